@@ -1,0 +1,246 @@
+"""Filterbank definitions: the cochlea and the whisker array as plain data.
+
+A :class:`Bank` is what every other part of the model needs to know about a
+filterbank: its sample rate, the centre frequency and bandwidth parameter of
+each channel, and the channels' names. It holds no state and does no signal
+processing.
+
+Conventions (see docs/model.md)
+-------------------------------
+* ``erb(fc) = fc / q_ear + b_min`` in Hz (Glasberg & Moore 1990 form).
+* The gammatone's bandwidth parameter is ``b = 1.019 * erb(fc)`` in Hz, the ``b``
+  of the impulse response ``t**3 exp(-2 pi b t) cos(2 pi fc t)``.
+* The paper's "bandwidth" figures are Slaney's ``B = 2 pi b`` (rad/s, quoted as
+  Hz): see :func:`slaney_bandwidth`. The true -3 dB width is
+  :func:`half_power_width`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+#: Glasberg & Moore (1990) constants used by the cochlea.
+COCHLEA_Q_EAR = 9.26449
+COCHLEA_B_MIN = 24.7
+#: The paper's choice for the whiskers (Sect. 2).
+WHISKER_Q_EAR = 35.0
+WHISKER_B_MIN = 15.0
+#: Factor between the ERB and the gammatone's b for order 4 (Patterson et al.).
+ERB_TO_B = 1.019
+
+#: Reconstructed whisker resonance table (Hz), rows A..E, arcs 1..4.
+#: A RECONSTRUCTION, not Neimark et al.'s measured table (which is not public
+#: text): it meets every figure the paper quotes (A4 = 630 Hz, lowest 82 Hz,
+#: highest 749 Hz, mean 270 Hz, hence B from 111 to 233 with mean 145) and its
+#: shape follows the whisker lengths of the average rat. See docs/model.md.
+WHISKER_TABLE: dict[str, tuple[float, float, float, float]] = {
+    "A": (105.0, 158.0, 340.0, 630.0),
+    "B": (85.0, 146.0, 251.0, 749.0),
+    "C": (82.0, 136.0, 240.0, 560.0),
+    "D": (86.0, 130.0, 222.0, 420.0),
+    "E": (99.0, 147.0, 255.0, 560.0),
+}
+WHISKER_ROWS = tuple(WHISKER_TABLE)
+WHISKER_RATE = 5000.0
+COCHLEA_RATE = 44100.0
+
+
+@dataclass(frozen=True)
+class Bank:
+    """A gammatone filterbank as plain data.
+
+    Parameters
+    ----------
+    kind : str
+        ``"cochlea"``, ``"whisker"`` or ``"custom"``.
+    fs : float
+        Sample rate, Hz.
+    cf : ndarray, shape (channels,)
+        Centre frequencies, Hz; each in (0, fs/2).
+    b : ndarray, shape (channels,)
+        Bandwidth parameters of the impulse response, Hz; each > 0.
+    names : tuple of str
+        One name per channel (``"A4"`` for a whisker, ``"ch07"`` for the cochlea).
+
+    Raises
+    ------
+    ValueError
+        Empty bank, mismatched lengths, non-finite values, ``fs <= 0``,
+        ``cf <= 0``, ``cf >= fs/2`` or ``b <= 0``.
+    """
+
+    kind: str
+    fs: float
+    cf: np.ndarray
+    b: np.ndarray
+    names: tuple[str, ...]
+
+    def __post_init__(self) -> None:
+        cf = np.asarray(self.cf, dtype=np.float64).reshape(-1)
+        b = np.asarray(self.b, dtype=np.float64).reshape(-1)
+        names = tuple(str(n) for n in self.names)
+        fs = float(self.fs)
+        if not np.isfinite(fs) or fs <= 0:
+            raise ValueError(f"sample rate fs must be a positive number of Hz, got {self.fs!r}")
+        if cf.size == 0:
+            raise ValueError("a bank needs at least one channel; got an empty list of centre frequencies")
+        if b.size != cf.size or len(names) != cf.size:
+            raise ValueError(
+                f"cf, b and names must have one entry per channel; got {cf.size}, {b.size} and {len(names)}"
+            )
+        if not (np.all(np.isfinite(cf)) and np.all(np.isfinite(b))):
+            raise ValueError("centre frequencies and bandwidths must be finite numbers (found NaN or Inf)")
+        bad = np.flatnonzero((cf <= 0) | (cf >= fs / 2))
+        if bad.size:
+            k = int(bad[0])
+            raise ValueError(
+                f"centre frequency of channel {names[k]} is {cf[k]:g} Hz, outside (0, fs/2) = (0, {fs / 2:g}) Hz: "
+                "lower it or raise the sample rate"
+            )
+        bad = np.flatnonzero(b <= 0)
+        if bad.size:
+            k = int(bad[0])
+            raise ValueError(f"bandwidth parameter b of channel {names[k]} is {b[k]:g} Hz; it must be > 0")
+        if len(set(names)) != len(names):
+            raise ValueError("channel names must be unique")
+        cf.flags.writeable = False
+        b.flags.writeable = False
+        object.__setattr__(self, "cf", cf)
+        object.__setattr__(self, "b", b)
+        object.__setattr__(self, "names", names)
+        object.__setattr__(self, "fs", fs)
+
+    @property
+    def channels(self) -> int:
+        """Number of channels."""
+        return int(self.cf.size)
+
+    def to_dict(self) -> dict:
+        """JSON-ready description, enough to rebuild the bank exactly (floats round-trip)."""
+        return {
+            "kind": self.kind,
+            "fs": self.fs,
+            "cf": [float(v) for v in self.cf],
+            "b": [float(v) for v in self.b],
+            "names": list(self.names),
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "Bank":
+        """Inverse of :meth:`to_dict`; raises ValueError on a malformed description."""
+        try:
+            return cls(kind=str(d["kind"]), fs=float(d["fs"]), cf=np.asarray(d["cf"], float),
+                       b=np.asarray(d["b"], float), names=tuple(d["names"]))
+        except (KeyError, TypeError) as exc:
+            raise ValueError(f"malformed bank description: {exc!r}; expected keys kind, fs, cf, b, names") from exc
+
+    def matches(self, other: "Bank") -> bool:
+        """True if both banks filter identically (same rate, cf and b to 1e-12, same names)."""
+        return (
+            self.channels == other.channels
+            and np.isclose(self.fs, other.fs, rtol=1e-12, atol=0)
+            and np.allclose(self.cf, other.cf, rtol=1e-12, atol=0)
+            and np.allclose(self.b, other.b, rtol=1e-12, atol=0)
+            and self.names == other.names
+        )
+
+
+def erb(fc, q_ear: float = COCHLEA_Q_EAR, b_min: float = COCHLEA_B_MIN):
+    """Equivalent rectangular bandwidth ``fc / q_ear + b_min``, Hz."""
+    return np.asarray(fc, dtype=np.float64) / q_ear + b_min
+
+
+def slaney_bandwidth(b):
+    """The paper's bandwidth figure ``B = 2 pi b`` (rad/s, quoted as "Hz" in the paper)."""
+    return 2 * np.pi * np.asarray(b, dtype=np.float64)
+
+
+def half_power_width(b, order: int = 4):
+    """True -3 dB width of an order-``order`` gammatone of bandwidth parameter ``b``, Hz.
+
+    For a gammatone the magnitude near fc is ``(1 + ((f - fc)/b)**2) ** (-order/2)``,
+    so the half-power width is ``2 b sqrt(2**(1/order) - 1)`` (0.87 b at order 4).
+    """
+    return 2 * np.asarray(b, dtype=np.float64) * np.sqrt(2 ** (1 / order) - 1)
+
+
+def erb_space(f_low: float, f_high: float, n: int, q_ear: float = COCHLEA_Q_EAR,
+              b_min: float = COCHLEA_B_MIN) -> np.ndarray:
+    """Slaney's ERBSpace: ``n`` centre frequencies equally spaced on the ERB scale.
+
+    ``cf_k = -c + exp(k/n * (ln(f_low + c) - ln(f_high + c))) * (f_high + c)``,
+    ``c = q_ear * b_min``, ``k = 1..n``: descending from just below ``f_high`` down
+    to ``f_low`` (``f_high`` itself is excluded, ``f_low`` included), as in
+    Slaney's Auditory Toolbox.
+
+    Returns
+    -------
+    ndarray, shape (n,)
+        Centre frequencies in Hz, descending.
+    """
+    if n < 1:
+        raise ValueError(f"the number of channels must be >= 1, got {n}")
+    if not (0 < f_low < f_high):
+        raise ValueError(f"need 0 < f_low < f_high, got f_low={f_low}, f_high={f_high}")
+    c = q_ear * b_min
+    k = np.arange(1, n + 1)
+    return -c + np.exp(k / n * (np.log(f_low + c) - np.log(f_high + c))) * (f_high + c)
+
+
+def cochlea_bank(n: int = 50, f_low: float = 20.0, f_high: float = 20000.0,
+                 fs: float = COCHLEA_RATE) -> Bank:
+    """The paper's cochlea: ``n`` channels ERB-spaced over [f_low, f_high), Glasberg-Moore bandwidths.
+
+    Channels are ordered by ascending centre frequency (``ch00`` lowest).
+    """
+    cf = np.sort(erb_space(f_low, f_high, n))
+    b = ERB_TO_B * erb(cf, COCHLEA_Q_EAR, COCHLEA_B_MIN)
+    names = tuple(f"ch{k:02d}" for k in range(n))
+    return Bank("cochlea", fs, cf, b, names)
+
+
+def whisker_bank(rows: Sequence[str] | str = WHISKER_ROWS, mean_B: float | None = None,
+                 fs: float = WHISKER_RATE) -> Bank:
+    """The whisker array: the reconstructed table's vibrissae, row by row.
+
+    Parameters
+    ----------
+    rows : sequence of str or str
+        Rows to include, a subset of ``"ABCDE"`` (default all five: 20 channels).
+        Channel order is row by row in the order given, arcs 1..4 within a row.
+    mean_B : float, optional
+        If given, every channel's ``b`` is multiplied by one factor so that the
+        mean of Slaney's ``B = 2 pi b`` equals ``mean_B`` (the paper's Fig. 5
+        sweep). By default the paper's ``q_ear = 35, b_min = 15`` apply (mean B
+        about 145 over all 20 channels).
+    fs : float
+        Sample rate, Hz (default 5000).
+    """
+    rows = tuple(rows)
+    if not rows:
+        raise ValueError("choose at least one whisker row from A, B, C, D, E")
+    unknown = [r for r in rows if r not in WHISKER_TABLE]
+    if unknown:
+        raise ValueError(f"unknown whisker row(s) {unknown}; rows are {', '.join(WHISKER_ROWS)}")
+    if len(set(rows)) != len(rows):
+        raise ValueError(f"whisker rows repeat in {rows}")
+    cf = np.array([f for r in rows for f in WHISKER_TABLE[r]], dtype=np.float64)
+    names = tuple(f"{r}{arc}" for r in rows for arc in range(1, 5))
+    b = ERB_TO_B * erb(cf, WHISKER_Q_EAR, WHISKER_B_MIN)
+    if mean_B is not None:
+        if not (np.isfinite(mean_B) and mean_B > 0):
+            raise ValueError(f"mean_B must be a positive number, got {mean_B!r}")
+        b = b * (mean_B / float(np.mean(slaney_bandwidth(b))))
+    return Bank("whisker", fs, cf, b, names)
+
+
+def bank_by_name(name: str, **kwargs) -> Bank:
+    """``"whisker"`` or ``"cochlea"`` with that bank's keyword arguments."""
+    if name == "whisker":
+        return whisker_bank(**kwargs)
+    if name == "cochlea":
+        return cochlea_bank(**kwargs)
+    raise ValueError(f"unknown bank {name!r}: choose 'whisker' or 'cochlea'")
