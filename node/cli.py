@@ -1,0 +1,102 @@
+"""The ``supramodal`` command: a thin layer over the model, the drivers and the node.
+
+Each subcommand imports what it needs when it runs, so that, for example, an
+experiment never imports sounddevice or pyserial.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+
+class CliError(Exception):
+    """A user error the CLI reports in one line, without a traceback."""
+
+
+def _cmd_experiment(args) -> int:
+    from supramodal.experiments.common import progress_to_stderr
+    from supramodal.experiments.fig3 import fig3, fig3_random_sets
+    from supramodal.experiments.report import fig3_table, write_fig3
+    from supramodal.textures import load_texture_set, reference_texture_set
+
+    if args.figure != "fig3":
+        raise CliError(f"experiment {args.figure!r} is not available yet; available: fig3")
+    if args.sets > 1 and args.textures:
+        raise CliError("--sets draws random texture sets; it cannot be combined with --textures")
+    progress = None if args.quiet else progress_to_stderr
+    if args.sets > 1:
+        result = fig3_random_sets(args.bank, args.sets, seed=args.seed, epochs=args.epochs, progress=progress)
+    else:
+        ts = load_texture_set(args.textures) if args.textures else reference_texture_set(args.bank)
+        if ts.bank != args.bank:
+            raise CliError(f"texture set {ts.name!r} is for the {ts.bank} bank, not {args.bank}: pass --bank {ts.bank}")
+        result = fig3(ts, epochs=args.epochs, seed=args.seed, progress=progress)
+    written = write_fig3(result, Path(args.out))
+    if args.json:
+        print(json.dumps(result))
+    else:
+        print(fig3_table(result))
+        print("wrote " + ", ".join(str(p) for p in written))
+    return 0
+
+
+def _cmd_synth(args) -> int:
+    import numpy as np
+    from scipy.io import wavfile
+
+    from supramodal.textures import load_texture_set, reference_texture_set
+
+    ts = load_texture_set(args.textures) if args.textures else reference_texture_set(args.bank)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    duration = args.duration if args.duration else ts.duration
+    for i, tex in enumerate(ts.textures):
+        x = ts.synthesize(i, duration=duration).astype(np.float32)
+        path = out / f"{tex.name}.wav"
+        wavfile.write(path, int(round(ts.fs)), x)
+        print(f"{path}  {len(x) / ts.fs:g} s at {ts.fs:g} Hz, peaks {list(tex.peaks)} Hz")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="supramodal", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("experiment", help="reproduce a figure of the paper")
+    p.add_argument("figure", choices=["fig3"], help="which figure")
+    p.add_argument("--bank", choices=["whisker", "cochlea"], default="whisker")
+    p.add_argument("--textures", metavar="FILE", help="texture-set JSON file (default: the bank's reference set)")
+    p.add_argument("--sets", type=int, default=1, help="average over N random texture sets (default 1: the reference set)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the random sets and of the networks' initial weights")
+    p.add_argument("--epochs", type=int, default=500, help="iRPROP- epochs (default 500)")
+    p.add_argument("--out", default="out", help="directory for CSV and PNG (default ./out)")
+    p.add_argument("--json", action="store_true", help="print one JSON object on stdout instead of a table")
+    p.add_argument("--quiet", action="store_true", help="no progress on stderr")
+    p.set_defaults(func=_cmd_experiment)
+
+    p = sub.add_parser("synth", help="write a texture set as WAV files")
+    p.add_argument("--bank", choices=["whisker", "cochlea"], default="whisker")
+    p.add_argument("--textures", metavar="FILE", help="texture-set JSON file (default: the bank's reference set)")
+    p.add_argument("--duration", type=float, help="seconds per texture (default: the set's)")
+    p.add_argument("--out", default="out/textures", help="directory (default ./out/textures)")
+    p.set_defaults(func=_cmd_synth)
+    return parser
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except (CliError, ValueError) as exc:
+        print(f"supramodal: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("supramodal: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,215 @@
+"""Multilayer perceptron trained with batch iRPROP-, after FANN 2.x's defaults (paper Sect. 4.1).
+
+What follows FANN (read from its source, see docs/model.md):
+
+* logistic units in the hidden and output layers, ``1 / (1 + exp(-2 s x))`` with
+  steepness ``s = 0.5``; weights and biases uniform in [-0.1, 0.1];
+* targets 1 for the true class, 0 otherwise;
+* FANN's "tanh" error function: the output error ``e = t - y`` is replaced by
+  ``ln((1 + e) / (1 - e))``, or +-17 when ``|e| > 0.9999999``;
+* unit derivatives ``2 s y (1 - y)`` with ``y`` clipped to [0.01, 0.99];
+* iRPROP- constants: increase 1.2, decrease 0.5, step min 0, max 50, initial 0.1,
+  the previous step floored at 1e-4 before each update, weights clipped to +-1500.
+
+Where this differs from FANN, by choice:
+
+* the exact logistic function instead of FANN_SIGMOID_STEPWISE, its
+  piecewise-linear approximation (which existed only to save time on 2003 CPUs);
+* textbook iRPROP- (Igel & Huesken 2000) on a sign change: the step shrinks, the
+  gradient is forgotten and the weight is *not* moved that epoch (FANN moves it
+  by the new step in the positive direction, an artefact of its ``slope = 0``
+  branch); with an unchanged sign or a zero product the step grows or is kept
+  as the textbook says.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+STEEPNESS = 0.5
+INIT_RANGE = 0.1
+RPROP_INCREASE = 1.2
+RPROP_DECREASE = 0.5
+RPROP_DELTA_MIN = 0.0
+RPROP_DELTA_MAX = 50.0
+RPROP_DELTA_ZERO = 0.1
+RPROP_STEP_FLOOR = 1e-4
+WEIGHT_LIMIT = 1500.0
+ERROR_CLIP = 17.0
+
+
+def sigmoid(x, steepness: float = STEEPNESS):
+    """FANN_SIGMOID: ``1 / (1 + exp(-2 s x))``, computed without overflow."""
+    z = 2 * steepness * np.asarray(x, dtype=np.float64)
+    return 0.5 * (1 + np.tanh(0.5 * z))
+
+
+def sigmoid_derivative(y, steepness: float = STEEPNESS):
+    """FANN's derivative from the unit's output, ``2 s y (1 - y)`` with y clipped to [0.01, 0.99]."""
+    y = np.clip(y, 0.01, 0.99)
+    return 2 * steepness * y * (1 - y)
+
+
+def tanh_error(e):
+    """FANN_ERRORFUNC_TANH: ``ln((1 + e) / (1 - e))``, +-17 beyond +-0.9999999."""
+    e = np.asarray(e, dtype=np.float64)
+    out = np.empty_like(e)
+    hi, lo = e > 0.9999999, e < -0.9999999
+    mid = ~(hi | lo)
+    out[hi], out[lo] = ERROR_CLIP, -ERROR_CLIP
+    out[mid] = np.log((1 + e[mid]) / (1 - e[mid]))
+    return out
+
+
+@dataclass
+class MLP:
+    """A three-layer perceptron: inputs -> logistic hidden layer -> logistic outputs.
+
+    Attributes
+    ----------
+    w1 : ndarray, shape (inputs, hidden)
+    b1 : ndarray, shape (hidden,)
+    w2 : ndarray, shape (hidden, outputs)
+    b2 : ndarray, shape (outputs,)
+    """
+
+    w1: np.ndarray
+    b1: np.ndarray
+    w2: np.ndarray
+    b2: np.ndarray
+
+    @classmethod
+    def create(cls, inputs: int, hidden: int, outputs: int, seed=None) -> "MLP":
+        """FANN-style random start: every weight and bias uniform in [-0.1, 0.1]."""
+        for name, v in (("inputs", inputs), ("hidden", hidden), ("outputs", outputs)):
+            if v < 1:
+                raise ValueError(f"{name} must be >= 1, got {v}")
+        rng = np.random.default_rng(seed)
+        u = lambda *shape: rng.uniform(-INIT_RANGE, INIT_RANGE, size=shape)
+        return cls(u(inputs, hidden), u(hidden), u(hidden, outputs), u(outputs))
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        return (self.w1.shape[0], self.w1.shape[1], self.w2.shape[1])
+
+    def forward(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Hidden and output activations for inputs ``x`` of shape (n, inputs)."""
+        h = sigmoid(x @ self.w1 + self.b1)
+        return h, sigmoid(h @ self.w2 + self.b2)
+
+    def outputs(self, x: np.ndarray) -> np.ndarray:
+        """Output activations in [0, 1], shape (n, outputs)."""
+        return self.forward(np.asarray(x, dtype=np.float64))[1]
+
+    def predict(self, x: np.ndarray) -> np.ndarray:
+        """Winner-take-all class index, shape (n,)."""
+        return np.argmax(self.outputs(x), axis=1)
+
+    def params(self) -> list[np.ndarray]:
+        return [self.w1, self.b1, self.w2, self.b2]
+
+    def gradients(self, x: np.ndarray, targets: np.ndarray) -> tuple[list[np.ndarray], float]:
+        """Batch gradient of FANN's (tanh-error) objective, summed over samples, and the plain MSE.
+
+        The sign convention is that of a gradient: a weight moves against it.
+        """
+        h, y = self.forward(x)
+        diff = targets - y
+        mse = float(np.mean(diff**2))
+        delta2 = tanh_error(diff) * sigmoid_derivative(y)           # (n, outputs)
+        delta1 = (delta2 @ self.w2.T) * sigmoid_derivative(h)       # (n, hidden)
+        # FANN accumulates "slopes" = delta * input (a descent direction); the gradient is minus that.
+        return [-(x.T @ delta1), -delta1.sum(0), -(h.T @ delta2), -delta2.sum(0)], mse
+
+
+@dataclass
+class IRpropMinus:
+    """Batch iRPROP- state for a list of parameter arrays (updated in place)."""
+
+    params: list[np.ndarray]
+    increase: float = RPROP_INCREASE
+    decrease: float = RPROP_DECREASE
+    delta_min: float = RPROP_DELTA_MIN
+    delta_max: float = RPROP_DELTA_MAX
+    delta_zero: float = RPROP_DELTA_ZERO
+    steps: list[np.ndarray] = field(init=False)
+    previous: list[np.ndarray] = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.steps = [np.full_like(p, self.delta_zero) for p in self.params]
+        self.previous = [np.zeros_like(p) for p in self.params]
+
+    def step(self, grads: list[np.ndarray]) -> None:
+        """One update from the batch gradients ``grads`` (same shapes as the parameters)."""
+        for p, g, step, prev in zip(self.params, grads, self.steps, self.previous):
+            g = g.copy()
+            np.maximum(step, RPROP_STEP_FLOOR, out=step)             # FANN: a zero step would stop learning
+            same = g * prev
+            grow, shrink = same > 0, same < 0
+            step[grow] = np.minimum(step[grow] * self.increase, self.delta_max)
+            step[shrink] = np.maximum(step[shrink] * self.decrease, self.delta_min)
+            g[shrink] = 0.0                                           # iRPROP-: forget, do not move
+            p -= np.sign(g) * step
+            np.clip(p, -WEIGHT_LIMIT, WEIGHT_LIMIT, out=p)
+            prev[...] = g
+
+
+def one_hot(labels: np.ndarray, n_classes: int) -> np.ndarray:
+    """Targets: 1 for the true class, 0 otherwise, shape (n, n_classes)."""
+    labels = np.asarray(labels)
+    t = np.zeros((labels.size, n_classes))
+    t[np.arange(labels.size), labels] = 1.0
+    return t
+
+
+def train_mlp(x: np.ndarray, labels: np.ndarray, n_classes: int, hidden: int | None = None,
+              epochs: int = 500, seed=None, desired_mse: float = 0.0, progress=None) -> tuple[MLP, list[float]]:
+    """Train an MLP by batch iRPROP- on (already scaled) inputs.
+
+    Parameters
+    ----------
+    x : ndarray, shape (n, inputs)
+    labels : ndarray of int, shape (n,)
+        Class indices in ``0 .. n_classes - 1``.
+    hidden : int, optional
+        Hidden units (default: as many as inputs, as in the paper).
+    epochs : int
+        Maximum number of batch epochs (default 500).
+    seed : int or None
+        Seed of the initial weights; the result is deterministic given it.
+    desired_mse : float
+        Stop early once the training MSE falls below it (FANN's desired error; 0 = never).
+    progress : callable(epoch, mse), optional
+
+    Returns
+    -------
+    (MLP, list of float)
+        The network and the training MSE before each epoch's update.
+    """
+    x = np.asarray(x, dtype=np.float64)
+    labels = np.asarray(labels)
+    if x.ndim != 2 or x.shape[0] == 0:
+        raise ValueError(f"training inputs must have shape (n >= 1, inputs), got {x.shape}")
+    if labels.shape != (x.shape[0],) or labels.dtype.kind not in "iu":
+        raise ValueError(f"labels must be integers of shape ({x.shape[0]},), got {labels.dtype} {labels.shape}")
+    if labels.min() < 0 or labels.max() >= n_classes:
+        raise ValueError(f"labels must lie in 0..{n_classes - 1}")
+    if not np.isfinite(x).all():
+        raise ValueError("training inputs contain NaN or Inf")
+    if epochs < 1:
+        raise ValueError(f"epochs must be >= 1, got {epochs}")
+    net = MLP.create(x.shape[1], hidden or x.shape[1], n_classes, seed=seed)
+    opt = IRpropMinus(net.params())
+    targets = one_hot(labels, n_classes)
+    history = []
+    for epoch in range(epochs):
+        grads, mse = net.gradients(x, targets)
+        history.append(mse)
+        if progress is not None:
+            progress(epoch, mse)
+        if mse < desired_mse:
+            break
+        opt.step(grads)
+    return net, history

@@ -1,0 +1,214 @@
+"""A trained texture classifier with everything needed to use it, stored as data.
+
+A model file is a NumPy ``.npz`` archive read with ``allow_pickle=False``: the
+arrays ``w1, b1, w2, b2, mean, scale`` and ``header``, a JSON text with the
+format name and version, the bank, the features, the window, the peak mode, the
+class names and how it was trained. Nothing in it is ever executed; every part
+is validated on load and anything that does not fit is refused with
+:class:`ModelError`.
+"""
+
+from __future__ import annotations
+
+import json
+import zipfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from supramodal.banks import Bank
+from supramodal.features import check_features
+from supramodal.mlp import MLP, train_mlp
+from supramodal.peaks import PEAK_MODES
+
+MODEL_FORMAT = "supramodal-model"
+MODEL_VERSION = 1
+_ARRAYS = ("w1", "b1", "w2", "b2", "mean", "scale")
+
+
+class ModelError(ValueError):
+    """A model file is missing, corrupt, of another format, or does not fit the scene."""
+
+
+@dataclass
+class TextureModel:
+    """Input scaling + MLP + the metadata that says what the inputs mean.
+
+    Inputs are feature windows of shape (n, features, channels), flattened
+    feature-major, standardised with the training set's mean and scale.
+    """
+
+    bank: Bank
+    features: tuple[str, ...]
+    window_samples: int
+    peak_mode: str
+    classes: tuple[str, ...]
+    mean: np.ndarray
+    scale: np.ndarray
+    mlp: MLP
+    training: dict = field(default_factory=dict)
+
+    @property
+    def n_inputs(self) -> int:
+        return len(self.features) * self.bank.channels
+
+    @classmethod
+    def train(cls, values: np.ndarray, labels, classes, bank: Bank, features, window_samples: int,
+              peak_mode: str = "maxima", epochs: int = 500, seed: int = 0, hidden: int | None = None,
+              progress=None) -> "TextureModel":
+        """Fit the scaling and the MLP on feature windows.
+
+        Parameters
+        ----------
+        values : ndarray, shape (n, features, channels)
+        labels : array of int, shape (n,)
+            Index into ``classes`` of each window.
+        classes : sequence of str
+        epochs, seed, hidden, progress
+            See :func:`supramodal.mlp.train_mlp`.
+        """
+        features = check_features(features)
+        values = np.asarray(values, dtype=np.float64)
+        expected = (len(features), bank.channels)
+        if values.ndim != 3 or values.shape[1:] != expected:
+            raise ValueError(f"feature windows must have shape (n, {expected[0]}, {expected[1]}), got {values.shape}")
+        x = values.reshape(len(values), -1)
+        mean = x.mean(axis=0)
+        scale = x.std(axis=0)
+        scale[scale == 0] = 1.0                   # a constant input carries nothing; keep it at 0
+        mlp, history = train_mlp((x - mean) / scale, np.asarray(labels), len(classes), hidden=hidden,
+                                 epochs=epochs, seed=seed, progress=progress)
+        info = {"algorithm": "iRPROP-", "epochs": len(history), "seed": seed,
+                "final_mse": history[-1], "windows": int(len(values))}
+        return cls(bank, features, int(window_samples), peak_mode, tuple(classes), mean, scale, mlp, info)
+
+    def _inputs(self, values: np.ndarray) -> np.ndarray:
+        values = np.asarray(values, dtype=np.float64)
+        expected = (len(self.features), self.bank.channels)
+        if values.ndim != 3 or values.shape[1:] != expected:
+            raise ValueError(f"feature windows must have shape (n, {expected[0]}, {expected[1]}), got {values.shape}")
+        return (values.reshape(len(values), -1) - self.mean) / self.scale
+
+    def outputs(self, values: np.ndarray) -> np.ndarray:
+        """Output unit activations in [0, 1], shape (n, classes)."""
+        return self.mlp.outputs(self._inputs(values))
+
+    def predict(self, values: np.ndarray) -> np.ndarray:
+        """Winner-take-all class index per window, shape (n,)."""
+        return np.argmax(self.outputs(values), axis=1)
+
+    def check_fits(self, bank: Bank, features, window_samples: int) -> None:
+        """Raise :class:`ModelError` naming what differs if the model was not made for this pipeline."""
+        features = check_features(features)
+        if not self.bank.matches(bank):
+            raise ModelError(
+                f"the model was trained on a {self.bank.kind} bank of {self.bank.channels} channels at "
+                f"{self.bank.fs:g} Hz, but the pipeline uses a {bank.kind} bank of {bank.channels} channels at "
+                f"{bank.fs:g} Hz (or other centre frequencies/bandwidths): use a model trained for this bank"
+            )
+        if features != self.features:
+            raise ModelError(f"the model takes features {list(self.features)}, the pipeline computes {list(features)}")
+        if int(window_samples) != self.window_samples:
+            raise ModelError(
+                f"the model was trained on windows of {self.window_samples} samples, the pipeline makes "
+                f"{window_samples}: set the window to {self.window_samples / self.bank.fs:g} s"
+            )
+
+    # -- files ---------------------------------------------------------------------------------
+
+    def header(self) -> dict:
+        return {
+            "format": MODEL_FORMAT,
+            "version": MODEL_VERSION,
+            "bank": self.bank.to_dict(),
+            "features": list(self.features),
+            "window_samples": self.window_samples,
+            "peak_mode": self.peak_mode,
+            "classes": list(self.classes),
+            "layers": list(self.mlp.shape),
+            "training": self.training,
+        }
+
+    def save(self, path) -> Path:
+        """Write the model as ``.npz`` (the suffix is added if missing). Returns the path written."""
+        path = Path(path)
+        if path.suffix != ".npz":
+            path = path.with_name(path.name + ".npz")
+        arrays = dict(zip(_ARRAYS, (self.mlp.w1, self.mlp.b1, self.mlp.w2, self.mlp.b2, self.mean, self.scale)))
+        with open(path, "wb") as fh:
+            np.savez(fh, header=np.array(json.dumps(self.header())), **arrays)
+        return path
+
+    @classmethod
+    def load(cls, path) -> "TextureModel":
+        """Read and validate a model file; :class:`ModelError` says what is wrong with it."""
+        path = Path(path)
+        if not path.is_file():
+            raise ModelError(f"no model file at {path}: train one with `supramodal train` or give the right path")
+        try:
+            with np.load(path, allow_pickle=False) as npz:
+                names = set(npz.files)
+                missing = {"header", *_ARRAYS} - names
+                if missing:
+                    raise ModelError(f"{path} is not a supramodal model: it lacks {sorted(missing)}")
+                header_text = npz["header"]
+                arrays = {k: npz[k] for k in _ARRAYS}
+        except ModelError:
+            raise
+        except (zipfile.BadZipFile, ValueError, OSError, EOFError) as exc:
+            raise ModelError(f"{path} is not a readable model file ({exc}); it may be truncated or of another kind") from exc
+        try:
+            header = json.loads(str(header_text))
+        except (json.JSONDecodeError, TypeError) as exc:
+            raise ModelError(f"{path}: the model header is not valid JSON ({exc})") from exc
+        return cls._from_parts(path, header, arrays)
+
+    @classmethod
+    def _from_parts(cls, path, header, arrays) -> "TextureModel":
+        def bad(msg):
+            return ModelError(f"{path}: {msg}")
+
+        if not isinstance(header, dict) or header.get("format") != MODEL_FORMAT:
+            raise bad(f"not a {MODEL_FORMAT} file (format is {header.get('format') if isinstance(header, dict) else None!r})")
+        if header.get("version") != MODEL_VERSION:
+            raise bad(f"model format version {header.get('version')!r} is not supported (this program reads "
+                      f"version {MODEL_VERSION}); retrain the model with this version")
+        known = {"format", "version", "bank", "features", "window_samples", "peak_mode", "classes", "layers", "training"}
+        unknown = set(header) - known
+        if unknown:
+            raise bad(f"unknown header key(s) {sorted(unknown)}")
+        try:
+            bank = Bank.from_dict(header["bank"])
+            features = check_features(header["features"])
+        except (KeyError, ValueError) as exc:
+            raise bad(f"invalid bank or features in the header: {exc}") from exc
+        classes = header.get("classes")
+        if not (isinstance(classes, list) and classes and all(isinstance(c, str) for c in classes)
+                and len(set(classes)) == len(classes)):
+            raise bad("'classes' must be a non-empty list of distinct names")
+        window = header.get("window_samples")
+        if not (isinstance(window, int) and window >= 2):
+            raise bad(f"'window_samples' must be an integer >= 2, got {window!r}")
+        if header.get("peak_mode") not in PEAK_MODES:
+            raise bad(f"'peak_mode' must be one of {PEAK_MODES}")
+        n_in = len(features) * bank.channels
+        w1, b1, w2, b2, mean, scale = (arrays[k] for k in _ARRAYS)
+        hidden = w1.shape[1] if w1.ndim == 2 else -1
+        shapes = {"w1": (n_in, hidden), "b1": (hidden,), "w2": (hidden, len(classes)), "b2": (len(classes),),
+                  "mean": (n_in,), "scale": (n_in,)}
+        for k, want in shapes.items():
+            a = arrays[k]
+            if a.dtype.kind != "f" or a.shape != want or hidden < 1:
+                raise bad(f"array {k} has shape {a.shape} and dtype {a.dtype}; expected float {want} for "
+                          f"{len(features)} feature(s) x {bank.channels} channels and {len(classes)} classes")
+            if not np.isfinite(a).all():
+                raise bad(f"array {k} contains NaN or Inf")
+        if np.any(scale <= 0):
+            raise bad("input scale must be > 0 everywhere")
+        mlp = MLP(*(a.astype(np.float64) for a in (w1, b1, w2, b2)))
+        training = header.get("training", {})
+        if not isinstance(training, dict):
+            raise bad("'training' must be an object")
+        return cls(bank, features, window, header["peak_mode"], tuple(classes), mean.astype(np.float64),
+                   scale.astype(np.float64), mlp, training)
