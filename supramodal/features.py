@@ -12,8 +12,11 @@ A channel's very first peak has no predecessor: it adds to ``A`` but gives no
 ``f_k`` (its ``f`` and ``Af`` terms are 0). A window with no peak gives 0.
 
 Windows are non-overlapping and aligned on the stream: window ``w`` covers
-stream samples ``[w * length, (w + 1) * length)``. A window is emitted once every
-sample in it is decided by the peak extractor.
+stream samples ``[w * length, (w + 1) * length)``. A peak is timed by its
+*detection*, the sample after it (when it is known to be a peak, as a spike
+would be): a peak at sample ``n`` counts in the window that holds sample
+``n + 1``. So a window is complete, and emitted, as soon as its own last sample
+has arrived: no look-ahead into the next block, no added latency in a stream.
 """
 
 from __future__ import annotations
@@ -118,10 +121,11 @@ class FeatureWindows:
     def process(self, peaks: Peaks) -> Windows:
         """Add decided peaks; return the windows they close (possibly none)."""
         W, C = self.length, self.channels
-        n_closed = peaks.decided // W - self._next       # windows now complete
+        # Peaks up to sample decided - 1 are known, i.e. detections up to sample `decided`.
+        n_closed = (peaks.decided + 1) // W - self._next
         span = max(n_closed, self._open.shape[0])
         if len(peaks):
-            span = max(span, int(peaks.index.max()) // W - self._next + 1)
+            span = max(span, (int(peaks.index.max()) + 1) // W - self._next + 1)
         if span > self._open.shape[0]:
             grown = np.zeros((span, len(self.features), C))
             grown[: self._open.shape[0]] = self._open
@@ -136,7 +140,7 @@ class FeatureWindows:
     def _accumulate(self, peaks: Peaks) -> None:
         ch, idx, amp = peaks.channel, peaks.index, peaks.amplitude
         C = self.channels
-        slot = (idx // self.length - self._next) * C + ch  # (window, channel) bin
+        slot = ((idx + 1) // self.length - self._next) * C + ch  # (window of detection, channel) bin
         if slot.size and slot.min() < 0:
             raise ValueError("a peak falls in a window already emitted: peaks must come in stream order")
         nbins = self._open.shape[0] * C
