@@ -1,0 +1,157 @@
+"""Scene -> Node: the one place that knows which driver, bank, model and sinks a scene means.
+
+Only what a scene needs is imported or built: a scene without a microphone never
+imports sounddevice, one without a serial port never imports pyserial, features
+not asked for are not computed, and there is no classifier without a model.
+"""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import replace
+
+import numpy as np
+
+from node.graph import Labels, Node
+from node.scene import Scene, SceneError
+from node.sinks import make_sink
+from supramodal.banks import Bank, cochlea_bank, whisker_bank
+from supramodal.model import ModelError, TextureModel
+from supramodal.pipeline import FeaturePipeline
+
+
+def bank_for(scene: Scene) -> Bank:
+    b = scene.bank
+    if b["kind"] == "whisker":
+        kw = {"rows": tuple(b["rows"]), "mean_B": b["mean_B"]}
+    else:
+        kw = {"n": b["channels"], "f_low": b["f_low"], "f_high": b["f_high"]}
+    if b["fs"] is not None:
+        kw["fs"] = float(b["fs"])
+    build = whisker_bank if b["kind"] == "whisker" else cochlea_bank
+    try:
+        return build(**kw)
+    except ValueError as exc:
+        raise SceneError(f"{scene.source}: [bank] {exc}") from None
+
+
+def pipeline_for(scene: Scene, bank: Bank) -> FeaturePipeline:
+    f = scene.features
+    try:
+        return FeaturePipeline(bank, f["names"], f["window"], dtype=np.dtype(f["dtype"]), peak_mode=f["peak_mode"],
+                               nonfinite=f["nonfinite"])
+    except ValueError as exc:
+        raise SceneError(f"{scene.source}: [features] {exc}") from None
+
+
+def _speed(value):
+    return float("inf") if value == "max" else float(value)
+
+
+def _texture_set(scene: Scene, spec: str):
+    from supramodal.textures import load_texture_set, reference_texture_set
+
+    return reference_texture_set(scene.bank["kind"]) if spec == "reference" else load_texture_set(scene.resolve(spec))
+
+
+def synth_session(scene: Scene, bank: Bank):
+    """The synth driver's signal: each texture for ``seconds`` in ``order``, with its labels.
+
+    With ``held_out`` the segment is the *last* ``seconds`` of the texture's full-length
+    signal: the part a model trained on the spot (on the first 75 %) has never seen.
+    """
+    d = scene.driver
+    ts = _texture_set(scene, d["textures"])
+    if abs(ts.fs - bank.fs) > 1e-9 * bank.fs:
+        raise SceneError(f"{scene.source}: [driver] texture set {ts.name!r} is at {ts.fs:g} Hz, the bank at {bank.fs:g} Hz")
+    order = d["order"] or list(ts.names)
+    unknown = [n for n in order if n not in ts.names]
+    if unknown:
+        raise SceneError(f"{scene.source}: [driver] order: unknown texture(s) {unknown}; the set has {list(ts.names)}")
+    n = int(round(d["seconds"] * ts.fs))
+    parts, labels, t = [], [], 0.0
+    for name in order:
+        i = ts.names.index(name)
+        if d["held_out"]:
+            full = ts.synthesize(i)
+            if n > 0.25 * full.size + 1:
+                raise SceneError(f"{scene.source}: [driver] seconds: held-out segments are at most a quarter of the "
+                                 f"set's {ts.duration:g} s; ask for {0.25 * ts.duration:g} s or less")
+            seg = full[-n:]
+        else:
+            seg = ts.synthesize(i, duration=d["seconds"])
+        parts.append(seg)
+        labels.append((t, t + seg.size / ts.fs, name))
+        t += seg.size / ts.fs
+    return ts, np.concatenate(parts)[:, None], Labels(labels)
+
+
+def train_on_texture_set(ts, bank: Bank, features, window: float, progress=None) -> TextureModel:
+    """The model the default scene trains on the spot: Fig. 3's training half of each texture."""
+    from supramodal.experiments.common import DEFAULT_EPOCHS, split, texture_features
+
+    values, _ = texture_features(ts, bank, features, window)
+    x_train, y_train, _, _ = split(values)
+    wlen = FeaturePipeline(bank, features, window).window_samples
+    if progress:
+        progress(f"trained on {len(x_train)} windows of {len(ts.textures)} textures ({', '.join(features)})")
+    return TextureModel.train(x_train, y_train, ts.names, bank, features, wlen, epochs=DEFAULT_EPOCHS, seed=0)
+
+
+def driver_for(scene: Scene, bank: Bank, speed_override=None):
+    """Build the scene's driver; returns ``(driver, labels, texture_set_or_None)``."""
+    d = scene.driver
+    kind = d["type"]
+    speed = _speed(speed_override if speed_override is not None else d.get("speed", 1.0))
+    block = d.get("block") or max(1, int(round(0.01 * bank.fs)))
+    if kind == "synth":
+        from replay.driver import ReplayDriver
+
+        ts, data, labels = synth_session(scene, bank)
+        return ReplayDriver((data, bank.fs), block_size=block, speed=speed, on_notice=None), labels, ts
+    if kind == "replay":
+        from replay.driver import ReplayDriver
+
+        drv = ReplayDriver(str(scene.resolve(d["path"])), rate=bank.fs, block_size=block, speed=speed, loop=d["loop"],
+                           on_notice=lambda m: print(f"supramodal: {m}", file=sys.stderr))
+        labels = Labels([(lab.start, lab.end, lab.label) for lab in drv.labels])
+        return drv, labels, None
+    if kind == "serial":
+        from drivers.serial_whisker import SerialWhiskerDriver
+
+        return SerialWhiskerDriver(d["port"], rate=d["rate"], channels=d["channels"], baudrate=d["baudrate"]), Labels(), None
+    if kind == "microphone":
+        from drivers.microphone import MicrophoneDriver
+
+        return MicrophoneDriver(device=d["device"], rate=d["rate"], channels=d["channels"], blocksize=d["block"]), Labels(), None
+    raise SceneError(f"{scene.source}: [driver] type {kind!r} is not supported")
+
+
+def build_node(scene: Scene, speed=None, sinks_override=None, progress=None) -> Node:
+    """Everything a scene describes, wired and ready to :meth:`Node.run`."""
+    bank = bank_for(scene)
+    pipeline = pipeline_for(scene, bank)
+    driver, labels, ts = driver_for(scene, bank, speed)
+    model = None
+    m = scene.model
+    if m["train_on_start"]:
+        if ts is None:
+            raise SceneError(f"{scene.source}: [model] train_on_start works only with the synth driver")
+        # Synthesised textures: the model is made on the spot (the default scene does this).
+        model = train_on_texture_set(ts, bank, pipeline.features, pipeline.window, progress)
+        if m["path"] is not None:
+            model.save(scene.resolve(m["path"]))
+    elif m["path"] is not None:
+        model = TextureModel.load(scene.resolve(m["path"]))
+    if model is not None:
+        try:
+            model.check_fits(bank, pipeline.features, pipeline.window_samples)
+        except ModelError as exc:
+            raise SceneError(f"{scene.source}: [model] {exc}") from None
+    sinks = sinks_override if sinks_override is not None else [make_sink(s["type"], s["path"]) for s in scene.sinks]
+    mapping = scene.driver.get("mapping", "auto")
+    try:
+        return Node(driver, pipeline, sinks, model=model, decision=scene.decision, mapping=mapping, labels=labels,
+                    buffer_seconds=scene.buffer["seconds"], overrun=scene.buffer["overrun"])
+    except ValueError as exc:
+        raise SceneError(f"{scene.source}: {exc}") from None

@@ -1,0 +1,309 @@
+"""The running node: driver thread -> ring buffer -> processing thread -> sinks.
+
+Threads and real-time rules
+---------------------------
+* The *driver thread* only moves blocks: ``driver.read()`` -> ``ring.write()``,
+  noting each block's arrival time. It never waits on processing: when the
+  processing thread lags by more than the ring's capacity, the ring's overrun
+  policy drops frames, and every dropped frame is counted.
+* The *processing thread* reads the ring, runs the model blocks (mapping ->
+  filterbank -> peaks -> windows -> classifier -> decisions) and calls the
+  sinks. Frames lost in the ring are replaced by zeros marked as filled, so
+  stream time stays exact and the windows they touch are flagged ``gap``.
+* The caller's thread (:meth:`Node.run`) starts both, waits, and handles the
+  stop request (Ctrl-C, SIGTERM, :meth:`Node.stop`): the driver stops, what is
+  already buffered is processed, the summary is written, nothing is left running.
+"""
+
+from __future__ import annotations
+
+import collections
+import threading
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from drivers.base import DriverClosed
+from node.ringbuffer import RingBuffer, RingClosed
+from supramodal.decisions import ContactDetector, DecisionAccumulator, window_decision
+from supramodal.model import TextureModel
+from supramodal.pipeline import FeaturePipeline
+
+
+class NodeError(RuntimeError):
+    """A thread of the node failed; the message says which and why."""
+
+
+def channel_mapper(mapping, driver_channels: int, bank_channels: int):
+    """Return ``f(frames (L, driver_channels)) -> model input`` for a scene's ``mapping``.
+
+    ``"mono"`` (one channel, fanned out to every filter), ``"per-channel"`` (each
+    physical channel through its own filter), ``"mean"`` (their mean, fanned
+    out), an integer (that channel, fanned out), or ``"auto"`` (mono for one
+    channel, per-channel when the counts match).
+    """
+    if mapping == "auto":
+        if driver_channels == 1:
+            mapping = "mono"
+        elif driver_channels == bank_channels:
+            mapping = "per-channel"
+        else:
+            raise ValueError(
+                f"the driver has {driver_channels} channels and the bank {bank_channels}: set the driver's "
+                "mapping to \"mean\", a channel index, or use a bank with as many channels")
+    if mapping == "mono":
+        if driver_channels != 1:
+            raise ValueError(f"mapping \"mono\" needs a one-channel driver; this one has {driver_channels}: "
+                             "use \"mean\" or a channel index")
+        return lambda frames: frames[:, 0]
+    if mapping == "per-channel":
+        if driver_channels != bank_channels:
+            raise ValueError(f"mapping \"per-channel\" needs as many driver channels ({driver_channels}) "
+                             f"as filters ({bank_channels})")
+        return lambda frames: frames.T
+    if mapping == "mean":
+        return lambda frames: frames.mean(axis=1)
+    if isinstance(mapping, int):
+        if not 0 <= mapping < driver_channels:
+            raise ValueError(f"mapping channel {mapping} does not exist: the driver has channels 0..{driver_channels - 1}")
+        return lambda frames: frames[:, mapping]
+    raise ValueError(f"unknown channel mapping {mapping!r}")
+
+
+@dataclass
+class Labels:
+    """Truth labels as time ranges ``(start_s, end_s, name)``, for accuracy where they are known."""
+
+    ranges: list[tuple[float, float, str]] = field(default_factory=list)
+
+    def at(self, t: float) -> str | None:
+        for start, end, name in self.ranges:
+            if start <= t < end:
+                return name
+        return None
+
+
+class Node:
+    """One stream: a driver, the model blocks and the sinks, run on two threads.
+
+    Parameters
+    ----------
+    driver : drivers.base.Driver
+    pipeline : supramodal.pipeline.FeaturePipeline
+        Its bank's rate must equal the driver's rate.
+    sinks : list of node.sinks.Sink
+    model : TextureModel, optional
+        Without it the node emits feature windows.
+    decision : dict, optional
+        ``scope``, ``n``, ``method``, ``contact_threshold`` (see supramodal.decisions).
+    mapping : str or int
+        Driver channels to filter inputs, see :func:`channel_mapper`.
+    labels : Labels, optional
+    buffer_seconds : float
+        Ring capacity.
+    overrun : {"drop-oldest", "drop-newest"}
+    """
+
+    def __init__(self, driver, pipeline: FeaturePipeline, sinks, model: TextureModel | None = None,
+                 decision: dict | None = None, mapping="auto", labels: Labels | None = None,
+                 buffer_seconds: float = 2.0, overrun: str = "drop-oldest") -> None:
+        bank = pipeline.bank
+        if abs(driver.rate - bank.fs) > 1e-9 * bank.fs:
+            raise ValueError(f"the driver delivers {driver.rate:g} Hz but the {bank.kind} bank runs at {bank.fs:g} Hz")
+        if model is not None:
+            model.check_fits(bank, pipeline.features, pipeline.window_samples)
+        self.driver = driver
+        self.pipeline = pipeline
+        self.sinks = list(sinks)
+        self.model = model
+        self.labels = labels or Labels()
+        self.map = channel_mapper(mapping, driver.channels, bank.channels)
+        decision = {"scope": "window", "n": 10, "method": "log", "contact_threshold": 0.01, **(decision or {})}
+        self.decision = decision
+        self.accumulator = None
+        self.contact = None
+        if model is not None and decision["scope"] != "window":
+            self.accumulator = DecisionAccumulator(len(model.classes), decision["scope"], decision["n"], decision["method"])
+            if decision["scope"] == "contact":
+                self.contact = ContactDetector(pipeline.window_samples, decision["contact_threshold"])
+        capacity = max(int(buffer_seconds * driver.rate), 1)
+        self.ring = RingBuffer(capacity, driver.channels, dtype=np.float64, overrun=overrun)
+        self._reader = self.ring.add_reader("processing")
+        self._arrivals: collections.deque[tuple[int, float]] = collections.deque()
+        self._stop = threading.Event()
+        self._errors: list[tuple[str, BaseException]] = []
+        self._stopped_by = None
+        # processing-thread state
+        self._expected = 0
+        self._gap_windows: set[int] = set()
+        self._gap_filled = 0
+        self._latencies: list[float] = []
+        self._cpu = 0.0
+        self._n_windows = 0
+        self._correct = self._labelled = self._acc_correct = self._acc_labelled = 0
+
+    # -- control -----------------------------------------------------------------------------
+
+    def stop(self, reason: str = "stop requested") -> None:
+        """Ask the node to stop (thread-safe, also from a signal handler)."""
+        if self._stopped_by is None:
+            self._stopped_by = reason
+        self._stop.set()
+
+    def run(self) -> dict:
+        """Run until the driver's stream ends or :meth:`stop`; return the summary (also sent to sinks)."""
+        t0 = time.monotonic()
+        threads = [threading.Thread(target=self._guard, args=("driver", self._drive), name="node-driver", daemon=True),
+                   threading.Thread(target=self._guard, args=("processing", self._process), name="node-processing",
+                                    daemon=True)]
+        with self.driver:
+            for t in threads:
+                t.start()
+            # Join with a timeout so that the main thread stays responsive to signals.
+            while any(t.is_alive() for t in threads):
+                for t in threads:
+                    t.join(0.1)
+        summary = self._summary(time.monotonic() - t0)
+        for s in self.sinks:
+            s.summary(summary)
+            s.close()
+        if self._errors:
+            where, exc = self._errors[0]
+            raise NodeError(f"the {where} thread failed: {type(exc).__name__}: {exc}") from exc
+        return summary
+
+    def _guard(self, where: str, target) -> None:
+        try:
+            target()
+        except BaseException as exc:  # surfaced by run(); never lost in a thread
+            self._errors.append((where, exc))
+            self.stop(f"{where} error")
+            self.ring.close()
+
+    # -- driver thread ------------------------------------------------------------------------
+
+    def _drive(self) -> None:
+        try:
+            while not self._stop.is_set():
+                try:
+                    block = self.driver.read(timeout=0.05)
+                except DriverClosed:
+                    break
+                if block is None:
+                    continue
+                self.ring.write(block.data, block.filled)
+                self._arrivals.append((block.start + block.frames, block.arrival))
+        finally:
+            self.ring.close()
+
+    # -- processing thread --------------------------------------------------------------------
+
+    def _process(self) -> None:
+        W = self.pipeline.window_samples
+        while True:
+            try:
+                chunk = self._reader.read(timeout=0.05)
+            except RingClosed:
+                break
+            if chunk is None:
+                continue
+            c0 = time.thread_time()
+            start, data, filled = chunk
+            if start > self._expected:
+                # Frames lost in the ring: zeros keep stream time exact; the windows are flagged.
+                gap = start - self._expected
+                self._gap_filled += gap
+                self._mark_gap(self._expected, start, W)
+                self._step(np.zeros((gap, data.shape[1])), self._expected)
+            if filled is not None and filled.any():
+                idx = np.flatnonzero(filled) + start
+                self._gap_windows.update(np.unique(idx // W).tolist())
+            self._step(data, start)
+            self._expected = start + data.shape[0]
+            self._cpu += time.thread_time() - c0
+        c0 = time.thread_time()
+        self._emit(self.pipeline.finish(), flags=None)
+        self._cpu += time.thread_time() - c0
+
+    def _mark_gap(self, a: int, b: int, W: int) -> None:
+        self._gap_windows.update(range(a // W, (b - 1) // W + 1))
+
+    def _step(self, frames: np.ndarray, start: int) -> None:
+        x = self.map(frames)
+        windows = self.pipeline.process(x)
+        flags = self.contact.process(x) if self.contact is not None else None
+        self._emit(windows, flags)
+
+    def _emit(self, windows, flags) -> None:
+        if not len(windows):
+            return
+        W, fs = self.pipeline.window_samples, self.pipeline.bank.fs
+        outputs = self.model.outputs(windows.values) if self.model is not None else None
+        for i, w in enumerate(windows.numbers.tolist()):
+            end = (w + 1) * W
+            event = {"t": end / fs, "window": w}
+            truth = self.labels.at((w + 0.5) * W / fs)
+            if outputs is not None:
+                d = window_decision(outputs[i])
+                name = self.model.classes[d.label]
+                event.update(predicted=name, confidence=round(d.confidence, 4))
+                if self.accumulator is not None:
+                    in_contact = bool(flags[i]) if flags is not None and i < len(flags) else True
+                    a = self.accumulator.update(outputs[i], in_contact)
+                    acc_name = self.model.classes[a.label] if a.label >= 0 else None
+                    event["accumulated"] = {"label": acc_name, "confidence": round(a.confidence, 4), "windows": a.windows}
+                    if truth is not None and acc_name is not None:
+                        self._acc_labelled += 1
+                        self._acc_correct += acc_name == truth
+                if truth is not None:
+                    self._labelled += 1
+                    self._correct += name == truth
+            else:
+                event["features"] = {f: windows.values[i, k].tolist() for k, f in enumerate(windows.features)}
+            event["truth"] = truth
+            if w in self._gap_windows:
+                event["gap"] = True
+                self._gap_windows.discard(w)
+            event["latency_ms"] = self._latency_ms(end)
+            self._n_windows += 1
+            for s in self.sinks:
+                s.emit(event)
+
+    def _latency_ms(self, end: int) -> float | None:
+        """Now minus the arrival of the block that completed the window."""
+        while self._arrivals and self._arrivals[0][0] < end:
+            self._arrivals.popleft()
+        if not self._arrivals:
+            return None  # the window was completed by end-of-stream or filled frames
+        lat = (time.monotonic() - self._arrivals[0][1]) * 1e3
+        self._latencies.append(lat)
+        return round(lat, 3)
+
+    # -- summary ------------------------------------------------------------------------------
+
+    def _summary(self, wall: float) -> dict:
+        fs = self.pipeline.bank.fs
+        stream = self._expected / fs
+        drv = dict(self.driver.stats())
+        ring = self.ring.stats()
+        lost_in_ring = self._reader.lost
+        lat = np.array(self._latencies)
+        return {
+            "windows": self._n_windows,
+            "stream_seconds": stream,
+            "wall_seconds": wall,
+            "window_accuracy": self._correct / self._labelled if self._labelled else None,
+            "labelled_windows": self._labelled,
+            "accumulated_accuracy": self._acc_correct / self._acc_labelled if self._acc_labelled else None,
+            "samples_dropped": int(lost_in_ring + drv.get("dropped", 0)),
+            "samples_filled": int(drv.get("filled", 0) + self._gap_filled),
+            "nonfinite_replaced": self.pipeline.filterbank.nonfinite_count,
+            "partial_window_samples": self.pipeline.partial_samples,
+            "latency_ms": ({"p50": float(np.percentile(lat, 50)), "p99": float(np.percentile(lat, 99)),
+                            "max": float(lat.max()), "count": int(lat.size)} if lat.size else None),
+            "real_time_factor": self._cpu / stream if stream else 0.0,
+            "driver": drv,
+            "ring": {k: v for k, v in ring.items() if isinstance(v, (int, float))},
+            "stopped_by": self._stopped_by,
+        }

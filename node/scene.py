@@ -1,0 +1,266 @@
+"""Scenes: what a node runs, as a TOML file validated before anything starts.
+
+A scene names the driver and its options, the bank, the features and window,
+the model (optional: without one the node emits feature windows), how decisions
+are pooled, and the sinks. Every key is checked against the schema below;
+an unknown key, a wrong type or a value out of range is refused with a message
+naming the key. Nothing in a scene is executed.
+
+Example (the embedded default is ``default_scene()``)::
+
+    [driver]
+    type = "replay"            # replay | synth | serial | microphone
+    path = "session.wav"       # replay: WAV file or recorded session
+    speed = 1.0                # replay/synth: 1.0 real time, 2.0 twice as fast, "max"
+    block = 50                 # frames per block
+
+    [bank]
+    kind = "whisker"           # whisker | cochlea
+    rows = "ABCDE"             # whisker rows
+
+    [features]
+    names = ["Af"]
+    window = 0.1
+
+    [model]
+    path = "whisker.npz"
+
+    [decision]
+    scope = "contact"          # window | last | contact
+    n = 10
+
+    [[sink]]
+    type = "text"              # text | jsonl
+    path = "-"                 # "-" is stdout
+"""
+
+from __future__ import annotations
+
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from supramodal.decisions import METHODS, SCOPES
+from supramodal.features import FEATURES
+from supramodal.peaks import PEAK_MODES
+
+
+class SceneError(ValueError):
+    """A scene file is unreadable or does not fit the schema; the message names the key."""
+
+
+def _number(v):
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+def _positive(v):
+    return _number(v) and v > 0
+
+
+def _non_negative(v):
+    return _number(v) and v >= 0
+
+
+def _int_min(lo):
+    return lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= lo
+
+
+def _one_of(*choices):
+    return lambda v: v in choices
+
+
+def _str(v):
+    return isinstance(v, str) and v != ""
+
+
+def _speed(v):
+    return v == "max" or _positive(v)
+
+
+def _features(v):
+    return isinstance(v, list) and v and all(f in FEATURES for f in v) and len(set(v)) == len(v)
+
+
+def _rows(v):
+    return isinstance(v, str) and v and set(v) <= set("ABCDE") and len(set(v)) == len(v)
+
+
+def _mapping(v):
+    return v in ("auto", "mono", "per-channel", "mean") or (isinstance(v, int) and not isinstance(v, bool) and v >= 0)
+
+
+def _texture_list(v):
+    return isinstance(v, list) and all(isinstance(t, str) for t in v)
+
+
+# section -> key -> (check, description of what is expected, default or REQUIRED)
+REQUIRED = object()
+DRIVER_KEYS = {
+    "replay": {
+        "path": (_str, "a WAV file or session path", REQUIRED),
+        "speed": (_speed, '1.0 (real time), a positive factor, or "max"', 1.0),
+        "block": (_int_min(1), "frames per block, an integer >= 1", None),
+        "loop": (lambda v: isinstance(v, bool), "true or false", False),
+        "mapping": (_mapping, '"auto", "mono", "per-channel", "mean" or a channel index', "auto"),
+    },
+    "synth": {
+        "textures": (_str, '"reference" or a texture-set JSON path', "reference"),
+        "seconds": (_positive, "seconds per texture, > 0", 10.0),
+        "order": (_texture_list, "a list of texture names", None),
+        "speed": (_speed, '1.0 (real time), a positive factor, or "max"', 1.0),
+        "block": (_int_min(1), "frames per block, an integer >= 1", None),
+        "held_out": (lambda v: isinstance(v, bool), "true or false", True),
+    },
+    "serial": {
+        "port": (_str, "a serial port path or pyserial URL", REQUIRED),
+        "rate": (_positive, "frames per second, Hz", 5000.0),
+        "channels": (_int_min(1), "an integer >= 1", 20),
+        "baudrate": (_int_min(1), "an integer", 2000000),
+        "mapping": (_mapping, '"auto", "mono", "per-channel", "mean" or a channel index', "auto"),
+    },
+    "microphone": {
+        "device": (lambda v: isinstance(v, (str, int)) and not isinstance(v, bool), "a device name or index", None),
+        "rate": (_positive, "Hz", 44100.0),
+        "channels": (_int_min(1), "an integer >= 1", 1),
+        "block": (_int_min(1), "frames per block", 441),
+        "mapping": (_mapping, '"auto", "mono", "per-channel", "mean" or a channel index', "auto"),
+    },
+}
+SECTIONS = {
+    "bank": {
+        "kind": (_one_of("whisker", "cochlea"), '"whisker" or "cochlea"', "whisker"),
+        "rows": (_rows, 'whisker rows, e.g. "ABCDE"', "ABCDE"),
+        "mean_B": (_positive, "mean Slaney bandwidth, > 0", None),
+        "channels": (_int_min(1), "cochlea channels, an integer >= 1", 50),
+        "f_low": (_positive, "Hz", 20.0),
+        "f_high": (_positive, "Hz", 20000.0),
+        "fs": (_positive, "sample rate, Hz", None),
+    },
+    "features": {
+        "names": (_features, f"a list drawn from {list(FEATURES)}", ["Af"]),
+        "window": (_positive, "seconds, > 0", 0.1),
+        "peak_mode": (_one_of(*PEAK_MODES), f"one of {list(PEAK_MODES)}", "maxima"),
+        "dtype": (_one_of("float64", "float32"), '"float64" or "float32"', "float64"),
+        "nonfinite": (_one_of("raise", "zero"), '"raise" or "zero"', "zero"),
+    },
+    "model": {
+        "path": (_str, "a model .npz path (loaded; or written when train_on_start)", None),
+        "train_on_start": (lambda v: isinstance(v, bool), "true or false (synth driver only)", False),
+    },
+    "decision": {
+        "scope": (_one_of(*SCOPES), f"one of {list(SCOPES)}", "window"),
+        "n": (_int_min(0), "windows, an integer >= 0", 10),
+        "method": (_one_of(*METHODS), f"one of {list(METHODS)}", "log"),
+        "contact_threshold": (_non_negative, "input RMS, >= 0", 0.01),
+    },
+    "buffer": {
+        "seconds": (_positive, "ring buffer capacity, seconds", 2.0),
+        "overrun": (_one_of("drop-oldest", "drop-newest"), '"drop-oldest" or "drop-newest"', "drop-oldest"),
+    },
+}
+SINK_KEYS = {
+    "text": {"path": (_str, '"-" (stdout) or a file path', "-")},
+    "jsonl": {"path": (_str, '"-" (stdout) or a file path', "-")},
+}
+
+
+@dataclass
+class Scene:
+    """A validated scene: plain dicts with every default filled in."""
+
+    driver: dict[str, Any]
+    bank: dict[str, Any]
+    features: dict[str, Any]
+    model: dict[str, Any]
+    decision: dict[str, Any]
+    buffer: dict[str, Any]
+    sinks: list[dict[str, Any]] = field(default_factory=list)
+    source: str = "<scene>"
+    base_dir: Path = field(default_factory=Path.cwd)
+
+    def resolve(self, path: str) -> Path:
+        """A path from the scene, relative to the scene file's folder."""
+        p = Path(path).expanduser()
+        return p if p.is_absolute() else self.base_dir / p
+
+
+def _fill(where: str, given: dict, schema: dict) -> dict:
+    if not isinstance(given, dict):
+        raise SceneError(f"{where} must be a table")
+    unknown = sorted(set(given) - set(schema))
+    if unknown:
+        raise SceneError(f"{where}: unknown key(s) {unknown}; allowed keys: {sorted(schema)}")
+    out = {}
+    for key, (check, expected, default) in schema.items():
+        if key in given:
+            value = given[key]
+            if not check(value):
+                raise SceneError(f"{where} {key}: expected {expected}, got {value!r}")
+            out[key] = value
+        elif default is REQUIRED:
+            raise SceneError(f"{where}: missing required key {key!r} ({expected})")
+        else:
+            out[key] = default
+    return out
+
+
+def scene_from_dict(d: dict, source: str = "<scene>", base_dir: Path | None = None) -> Scene:
+    """Validate a parsed scene and fill in defaults."""
+    if not isinstance(d, dict):
+        raise SceneError(f"{source}: a scene is a TOML table")
+    allowed = {"driver", "sink", *SECTIONS}
+    unknown = sorted(set(d) - allowed)
+    if unknown:
+        raise SceneError(f"{source}: unknown section(s) {unknown}; sections are {sorted(allowed)}")
+    driver = d.get("driver")
+    if not isinstance(driver, dict) or "type" not in driver:
+        raise SceneError(f"{source}: [driver] type is required, one of {sorted(DRIVER_KEYS)}")
+    dtype_ = driver["type"]
+    if dtype_ not in DRIVER_KEYS:
+        raise SceneError(f"{source}: [driver] type: expected one of {sorted(DRIVER_KEYS)}, got {dtype_!r}")
+    drv = {"type": dtype_, **_fill(f"{source}: [driver] ({dtype_})", {k: v for k, v in driver.items() if k != "type"},
+                                   DRIVER_KEYS[dtype_])}
+    sections = {name: _fill(f"{source}: [{name}]", d.get(name, {}), schema) for name, schema in SECTIONS.items()}
+    sinks_in = d.get("sink", [{"type": "text"}])
+    if not isinstance(sinks_in, list) or not sinks_in:
+        raise SceneError(f"{source}: [[sink]] must be a list of at least one sink table")
+    sinks = []
+    for i, s in enumerate(sinks_in):
+        if not isinstance(s, dict) or s.get("type") not in SINK_KEYS:
+            raise SceneError(f"{source}: [[sink]] #{i + 1} type: expected one of {sorted(SINK_KEYS)}, got "
+                             f"{s.get('type') if isinstance(s, dict) else s!r}")
+        sinks.append({"type": s["type"], **_fill(f"{source}: [[sink]] #{i + 1}", {k: v for k, v in s.items() if k != "type"},
+                                                 SINK_KEYS[s["type"]])})
+    bank = sections["bank"]
+    if bank["kind"] == "cochlea" and bank["f_low"] >= bank["f_high"]:
+        raise SceneError(f"{source}: [bank] f_low must be below f_high")
+    if sections["decision"]["scope"] == "last" and sections["decision"]["n"] < 1:
+        raise SceneError(f"{source}: [decision] n must be >= 1 with scope = \"last\"")
+    return Scene(drv, bank, sections["features"], sections["model"], sections["decision"], sections["buffer"],
+                 sinks, source, base_dir or Path.cwd())
+
+
+def load_scene(path) -> Scene:
+    """Read and validate a scene file."""
+    path = Path(path)
+    try:
+        data = tomllib.loads(path.read_text())
+    except FileNotFoundError:
+        raise SceneError(f"no scene file at {path}") from None
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise SceneError(f"{path} is not valid TOML: {exc}") from None
+    return scene_from_dict(data, str(path), path.resolve().parent)
+
+
+def default_scene() -> Scene:
+    """The embedded default: the whisker array replaying a synthesised session of the
+    reference textures (their held-out last 10 s), with a model trained on the spot."""
+    return scene_from_dict({
+        "driver": {"type": "synth", "textures": "reference", "seconds": 10.0, "held_out": True, "block": 50},
+        "bank": {"kind": "whisker"},
+        "features": {"names": ["Af"], "window": 0.1},
+        "model": {"train_on_start": True},
+        "decision": {"scope": "window"},
+        "sink": [{"type": "text"}],
+    }, "<default scene>")
