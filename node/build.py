@@ -150,8 +150,11 @@ def build_node(scene: Scene, speed=None, sinks_override=None, progress=None) -> 
             raise SceneError(f"{scene.source}: [model] {exc}") from None
     sinks = sinks_override if sinks_override is not None else [make_sink(s["type"], s["path"]) for s in scene.sinks]
     mapping = scene.driver.get("mapping", "auto")
+    overrun = scene.buffer["overrun"]
+    if overrun == "auto":
+        overrun = "block" if scene.driver["type"] in ("replay", "synth") else "drop-oldest"
     try:
         return Node(driver, pipeline, sinks, model=model, decision=scene.decision, mapping=mapping, labels=labels,
-                    buffer_seconds=scene.buffer["seconds"], overrun=scene.buffer["overrun"])
+                    buffer_seconds=scene.buffer["seconds"], overrun=overrun)
     except ValueError as exc:
         raise SceneError(f"{scene.source}: {exc}") from None

@@ -61,9 +61,49 @@ def _cmd_synth(args) -> int:
     return 0
 
 
+def _speed(text: str):
+    if text == "max":
+        return "max"
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--speed takes a positive factor or 'max', got {text!r}") from None
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"--speed must be > 0, got {text!r}")
+    return value
+
+
+def _cmd_run(args) -> int:
+    import signal
+
+    from node.build import build_node
+    from node.scene import default_scene, load_scene
+    from node.sinks import JsonLinesSink
+
+    scene = load_scene(args.scene) if args.scene else default_scene()
+    sinks = [JsonLinesSink("-")] if args.json else None
+    progress = None if args.quiet else (lambda m: print(f"supramodal: {m}", file=sys.stderr, flush=True))
+    if progress:
+        progress(f"scene {scene.source}: {scene.driver['type']} driver, {scene.bank['kind']} bank, "
+                 f"features {scene.features['names']}")
+    node = build_node(scene, speed=args.speed, sinks_override=sinks, progress=progress)
+    # Signals only set a flag: the node finishes what it holds and prints its summary.
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda signum, frame: node.stop(signal.Signals(signum).name))
+    node.run()
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="supramodal", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("run", help="run the node on a scene (default: the embedded whisker replay scene)")
+    p.add_argument("scene", nargs="?", help="scene TOML file (default: the embedded default scene)")
+    p.add_argument("--speed", type=_speed, help="replay speed: 1 = real time (default), a factor, or 'max'")
+    p.add_argument("--json", action="store_true", help="JSON Lines on stdout instead of the scene's sinks")
+    p.add_argument("--quiet", action="store_true", help="no progress on stderr")
+    p.set_defaults(func=_cmd_run)
 
     p = sub.add_parser("experiment", help="reproduce a figure of the paper")
     p.add_argument("figure", choices=["fig3"], help="which figure")
@@ -86,11 +126,23 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _is_user_error(exc: BaseException) -> bool:
+    """Errors that mean bad input or a missing device: one line, no traceback."""
+    from drivers.base import DriverError
+
+    if isinstance(exc, (CliError, ValueError, OSError, DriverError)):
+        return True
+    graph = sys.modules.get("node.graph")
+    return graph is not None and isinstance(exc, graph.NodeError)
+
+
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
-    except (CliError, ValueError) as exc:
+    except Exception as exc:
+        if not _is_user_error(exc):
+            raise
         print(f"supramodal: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -102,7 +102,9 @@ class Node:
     labels : Labels, optional
     buffer_seconds : float
         Ring capacity.
-    overrun : {"drop-oldest", "drop-newest"}
+    overrun : {"drop-oldest", "drop-newest", "block"}
+        "block" makes the driver thread wait for space: right for replay, where
+        no sample need be lost; live drivers drop and count instead.
     """
 
     def __init__(self, driver, pipeline: FeaturePipeline, sinks, model: TextureModel | None = None,
@@ -192,10 +194,20 @@ class Node:
                     break
                 if block is None:
                     continue
-                self.ring.write(block.data, block.filled)
                 self._arrivals.append((block.start + block.frames, block.arrival))
+                self._write(block)
         finally:
             self.ring.close()
+
+    def _write(self, block) -> None:
+        # Under "block" the ring takes what fits and we wait for the rest (lossless replay);
+        # under the drop policies it takes everything and counts what it drops.
+        kept, n = 0, block.frames
+        while kept < n:
+            filled = None if block.filled is None else block.filled[kept:]
+            kept += self.ring.write(block.data[kept:], filled, timeout=0.1)
+            if kept < n and self._stop.is_set() and self.ring.closed:
+                return
 
     # -- processing thread --------------------------------------------------------------------
 

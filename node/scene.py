@@ -156,7 +156,9 @@ SECTIONS = {
     },
     "buffer": {
         "seconds": (_positive, "ring buffer capacity, seconds", 2.0),
-        "overrun": (_one_of("drop-oldest", "drop-newest"), '"drop-oldest" or "drop-newest"', "drop-oldest"),
+        # "auto": "block" (lossless back-pressure) for replay and synth, "drop-oldest" for live drivers.
+        "overrun": (_one_of("auto", "drop-oldest", "drop-newest", "block"),
+                    '"auto", "drop-oldest", "drop-newest" or "block"', "auto"),
     },
 }
 SINK_KEYS = {
