@@ -171,7 +171,20 @@ class ReplayDriver:
         If a source file does not exist.
     ReplayError
         (a ``ValueError``) for bad arguments, unsupported or corrupt files and
-        invalid sidecars; raised at construction, never later.
+        invalid sidecars, all at construction; only a ``block_size`` callable
+        returning something other than an int >= 1 is caught later, by ``read()``.
+
+    Notes
+    -----
+    * The whole source is held in memory as float64 (a 10-minute 20-channel
+      5 kHz session is 480 MB); blocks are copies of slices of it.
+    * Resampling is done once on one pass of the source. When looping, each
+      seam therefore shows the filter's edge transient (``resample_poly``
+      pads with zeros), as the source's own ends do; the blocks still equal
+      :attr:`data` repeated, exactly.
+    * Filled ranges are mapped to the new rate rounding outwards: a mark may
+      widen by up to one output frame, it is never lost. Filter ringing from
+      a filled stretch can reach further than that and is not marked.
     """
 
     def __init__(self, source, rate: float | None = None, block_size: BlockSize = None,
@@ -265,7 +278,9 @@ class ReplayDriver:
     def _load(self, source):
         """-> (data (n, ch) float64, rate, labels, filled mask or None, name)."""
         if isinstance(source, Session):
-            return (source.data, source.rate, source.labels, source.filled_mask(),
+            # A Session may be built by hand: check its samples like any array.
+            data, rate, _, _, _ = self._load((source.data, source.rate))
+            return (data, rate, source.labels, source.filled_mask(),
                     str(source.path) if source.path else "session")
         if isinstance(source, (str, os.PathLike)):
             path = Path(source)
