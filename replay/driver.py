@@ -1,0 +1,539 @@
+"""The replay driver: a recording delivered block by block as a live driver would.
+
+:class:`ReplayDriver` follows :class:`drivers.base.Driver` exactly. It reads an
+in-memory array, a WAV file or a session once, at construction (so ``rate`` and
+``channels`` are known before ``open()``), optionally selects channels and
+resamples, and then hands out :class:`drivers.base.Block` objects that tile the
+stream exactly: each block starts where the previous one ended, and the
+concatenation of all blocks equals the (resampled) source, repeated when looping.
+
+Pacing
+------
+Block ``k`` covering stream frames ``[start, end)`` is released at
+:func:`release_time` ``(end, rate, speed, t0)`` = ``t0 + end / (rate * speed)``,
+with ``t0`` the ``time.monotonic()`` of ``open()``: the moment its last frame
+would have been measured by a live device, scaled by ``speed``. The schedule is
+absolute, so waiting never accumulates drift, and a consumer that falls behind
+finds the due blocks ready at once (like a driver's input buffer, but one that
+never overflows). ``speed='max'`` releases every block at once.
+
+Threading
+---------
+``read()`` is called from one thread. ``close()`` may be called from any thread;
+it wakes a ``read()`` that is waiting for a block's release time, which then
+raises :class:`drivers.base.DriverClosed`.
+"""
+
+from __future__ import annotations
+
+import math
+import numbers
+import os
+import sys
+import threading
+import time
+from fractions import Fraction
+from pathlib import Path
+from typing import Callable, Sequence, Union
+
+import numpy as np
+from scipy.signal import resample_poly
+
+from drivers.base import Block, DeviceUnavailable, DriverClosed, DriverError
+from replay.errors import ReplayError
+from replay.session import Label, Session, load_session, session_paths
+from replay.wavio import read_wav
+
+__all__ = ["ReplayDriver", "release_time", "random_block_sizes", "RandomBlockSizes", "BlockSize"]
+
+#: What ``block_size`` accepts: frames per block, a sequence cycled through,
+#: or a callable drawing each size from a :class:`numpy.random.Generator`.
+BlockSize = Union[int, Sequence[int], Callable[[np.random.Generator], int], None]
+
+
+def release_time(end_frame: int, rate: float, speed: float = 1.0, t0: float = 0.0) -> float:
+    """When a block ending at ``end_frame`` is released: the pacing schedule.
+
+    A pure function of the block's end, so it can be tested without a clock.
+    For equal blocks of ``n`` frames, block ``k`` (0-based) ends at
+    ``(k + 1) * n`` and is released at ``t0 + (k + 1) * n / rate / speed``.
+
+    Parameters
+    ----------
+    end_frame : int
+        Stream index one past the block's last frame.
+    rate : float
+        Frames per second of the stream, Hz.
+    speed : float, default 1.0
+        Replay speed factor (2.0 = twice real time); ``math.inf`` for 'max'.
+    t0 : float, default 0.0
+        Time of stream frame 0, seconds (``time.monotonic()`` at ``open()``).
+
+    Returns
+    -------
+    float
+        Seconds on the same clock as ``t0``.
+    """
+    if speed == math.inf:
+        return t0
+    return t0 + end_frame / (rate * speed)
+
+
+class RandomBlockSizes:
+    """Block sizes drawn uniformly from ``[low, high]`` frames (both included).
+
+    Pass an instance as ``ReplayDriver(block_size=...)`` together with
+    ``seed=`` to mimic a driver whose blocks vary in size, reproducibly.
+    """
+
+    def __init__(self, low: int, high: int):
+        if not (_is_count(low) and _is_count(high) and low <= high):
+            raise ReplayError(f"random block sizes need integers 1 <= low <= high, got {low!r}, {high!r}")
+        self.low, self.high = int(low), int(high)
+
+    def __call__(self, rng: np.random.Generator) -> int:
+        return int(rng.integers(self.low, self.high + 1))
+
+    def __repr__(self) -> str:
+        return f"random_block_sizes({self.low}, {self.high})"
+
+
+def random_block_sizes(low: int, high: int) -> RandomBlockSizes:
+    """Block sizes drawn uniformly from ``[low, high]`` frames; see :class:`RandomBlockSizes`."""
+    return RandomBlockSizes(low, high)
+
+
+def _is_count(v) -> bool:
+    return isinstance(v, numbers.Integral) and not isinstance(v, bool) and v >= 1
+
+
+def _print_stderr(message: str) -> None:
+    print(message, file=sys.stderr, flush=True)
+
+
+class ReplayDriver:
+    """Replays an array, a WAV file or a session as a :class:`drivers.base.Driver`.
+
+    Parameters
+    ----------
+    source : (ndarray, rate) tuple, Session, str or path-like
+        * ``(array, rate)``: float samples of shape (frames, channels) (or
+          (frames,) for one channel) scaled to +-1, and their rate in Hz;
+        * a :class:`replay.session.Session`;
+        * a path: ``NAME.json`` is a session; ``NAME.wav`` is a session when
+          ``NAME.json`` exists beside it, else a bare WAV file (no labels).
+    rate : float, optional
+        Rate of the replayed stream, Hz. Default: the source's rate. When it
+        differs, the source is resampled once, at construction, with
+        :func:`scipy.signal.resample_poly` by ``up/down`` =
+        ``Fraction(rate / source_rate).limit_denominator(max_denominator)``;
+        :attr:`rate` is then the effective rate ``source_rate * up / down``,
+        which a notice reports if it is not exactly the requested one.
+    block_size : int, sequence of int, callable or None, default None
+        Frames per block. ``None``: about 10 ms at :attr:`rate`. A sequence is
+        cycled through. A callable is called as ``block_size(rng)`` with a
+        :class:`numpy.random.Generator` seeded by ``seed`` for each block and
+        returns its size (see :func:`random_block_sizes`). The last block of
+        a stream that does not loop is shorter if the stream ends first.
+    speed : float or 'max', default 1.0
+        Replay speed: 1.0 real time, 2.0 twice as fast, 'max' (or
+        ``math.inf``) as fast as the reader reads. See :func:`release_time`.
+    loop : bool or int, default False
+        False: play once. True: loop forever. An int ``n >= 1``: play ``n``
+        passes. Stream indices keep counting across passes.
+    channels : int, sequence of int or None, default None
+        None: all channels. An int: the number of channels the source must
+        have (refused otherwise), e.g. 20 for a whisker recording. A sequence:
+        the source channels to keep, in that order.
+    seed : int, optional
+        Seed of the generator handed to a callable ``block_size``. The
+        generator is re-created at every ``open()``, so sizes repeat.
+    max_denominator : int, default 1000
+        Largest ``down`` factor the resampling ratio may use.
+    on_notice : callable or None, default prints to stderr
+        Called once with each notice (e.g. "resampling ..."); None silences
+        them. They are kept in :attr:`notices` either way.
+
+    Attributes
+    ----------
+    rate : float
+        Frames per second of the replayed stream, Hz.
+    channels : int
+        Channels per frame.
+    source_rate : float
+        The source's own rate, Hz.
+    notices : list of str
+        What the driver chose to tell (today: that it resamples, and how).
+
+    Raises
+    ------
+    DeviceUnavailable
+        If a source file does not exist.
+    ReplayError
+        (a ``ValueError``) for bad arguments, unsupported or corrupt files and
+        invalid sidecars, all at construction; only a ``block_size`` callable
+        returning something other than an int >= 1 is caught later, by ``read()``.
+
+    Notes
+    -----
+    * The whole source is held in memory as float64 (a 10-minute 20-channel
+      5 kHz session is 480 MB); blocks are copies of slices of it.
+    * Resampling is done once on one pass of the source. When looping, each
+      seam therefore shows the filter's edge transient (``resample_poly``
+      pads with zeros), as the source's own ends do; the blocks still equal
+      :attr:`data` repeated, exactly.
+    * Filled ranges are mapped to the new rate rounding outwards: a mark may
+      widen by up to one output frame, it is never lost. Filter ringing from
+      a filled stretch can reach further than that and is not marked.
+    """
+
+    def __init__(self, source, rate: float | None = None, block_size: BlockSize = None,
+                 speed: float | str = 1.0, loop: bool | int = False, channels=None,
+                 seed: int | None = None, max_denominator: int = 1000,
+                 on_notice: Callable[[str], None] | None = _print_stderr):
+        self.notices: list[str] = []
+        self._on_notice = on_notice
+        data, src_rate, labels, filled, self.name = self._load(source)
+        if data.shape[0] == 0:
+            raise ReplayError(f"{self.name}: the source has no frames; nothing to replay")
+        data = self._select(data, channels)
+        self.source_rate = float(src_rate)
+
+        # --- resampling (once, whole source: blocks are then plain slices) ---
+        if rate is not None and (isinstance(rate, bool) or not isinstance(rate, numbers.Real)
+                                 or not math.isfinite(rate) or rate <= 0):
+            raise ReplayError(f"rate must be a positive number of Hz, got {rate!r}")
+        up = down = 1
+        if rate is not None and rate != src_rate:
+            if not _is_count(max_denominator):
+                raise ReplayError(f"max_denominator must be a positive integer, got {max_denominator!r}")
+            ratio = (Fraction(rate) / Fraction(src_rate)).limit_denominator(max_denominator)
+            up, down = ratio.numerator, ratio.denominator
+            if up == 0:
+                raise ReplayError(f"cannot resample {src_rate} Hz to {rate} Hz with a down factor "
+                                  f"<= {max_denominator}; raise max_denominator")
+        self.up, self.down = up, down
+        self.rate = float(Fraction(src_rate) * up / down)  # the effective rate, exact or not
+        if rate is not None and rate != src_rate:
+            n_in = data.shape[0]
+            if (up, down) != (1, 1):
+                data = resample_poly(data, up, down, axis=0)
+                if filled is not None:
+                    filled = self._resample_mask(filled, up, down, data.shape[0])
+                msg = (f"replay: resampling {self.name} from {src_rate:g} Hz to {self.rate:g} Hz "
+                       f"(resample_poly up={up} down={down}; {n_in} -> {data.shape[0]} frames)")
+            else:
+                msg = f"replay: not resampling {self.name}: {src_rate:g} Hz kept"
+            if self.rate != rate:
+                # Say it: the node would otherwise believe the requested rate.
+                msg += (f"; requested {rate:g} Hz is not a ratio with denominator <= {max_denominator}, "
+                        f"rate error {(self.rate - rate) / rate:+.2e}")
+            self._notice(msg)
+        self._data = np.ascontiguousarray(data, dtype=np.float64)
+        self._data.flags.writeable = False
+        self.channels = int(self._data.shape[1])
+        self._filled = filled if filled is not None and filled.any() else None
+        self._labels = tuple(labels)
+
+        # --- block sizes, speed, looping ---
+        if block_size is None:
+            block_size = max(1, round(self.rate * 0.010))
+        if _is_count(block_size):
+            self._sizes = int(block_size)
+        elif callable(block_size):
+            self._sizes = block_size
+        elif isinstance(block_size, (Sequence, np.ndarray)) and not isinstance(block_size, (str, bytes)):
+            sizes = list(block_size)
+            if not sizes or not all(_is_count(s) for s in sizes):
+                raise ReplayError(f"a block_size sequence must be non-empty positive integers, got {block_size!r}")
+            self._sizes = [int(s) for s in sizes]
+        else:
+            raise ReplayError(f"block_size must be a positive int, a sequence of them or a callable, "
+                              f"got {block_size!r}")
+        self._seed = seed
+        if speed == "max" or speed == math.inf:
+            self.speed = math.inf
+        elif isinstance(speed, numbers.Real) and not isinstance(speed, bool) and math.isfinite(speed) and speed > 0:
+            self.speed = float(speed)
+        else:
+            raise ReplayError(f"speed must be a positive number or 'max', got {speed!r}")
+        if isinstance(loop, bool):
+            self._passes = None if loop else 1
+        elif _is_count(loop):
+            self._passes = int(loop)
+        else:
+            raise ReplayError(f"loop must be True, False or a number of passes >= 1, got {loop!r}")
+
+        self._closed = threading.Event()
+        self._is_open = False
+        self._reset()
+
+    # --- construction helpers -------------------------------------------------
+
+    def _notice(self, message: str) -> None:
+        self.notices.append(message)
+        if self._on_notice is not None:
+            self._on_notice(message)
+
+    def _load(self, source):
+        """-> (data (n, ch) float64, rate, labels, filled mask or None, name)."""
+        if isinstance(source, Session):
+            # A Session may be built by hand: check its samples like any array.
+            data, rate, _, _, _ = self._load((source.data, source.rate))
+            return (data, rate, source.labels, source.filled_mask(),
+                    str(source.path) if source.path else "session")
+        if isinstance(source, (str, os.PathLike)):
+            path = Path(source)
+            wav, js = session_paths(path)
+            as_session = path.suffix.lower() == ".json" or (path.suffix.lower() == ".wav" and js.exists())
+            try:
+                if as_session:
+                    s = load_session(path)
+                    return s.data, s.rate, s.labels, s.filled_mask(), str(wav)
+                if path.suffix.lower() != ".wav":
+                    raise ReplayError(f"{path}: expected NAME.wav or NAME.json")
+                data, rate = read_wav(path)
+                return data, rate, (), None, str(path)
+            except FileNotFoundError as e:
+                raise DeviceUnavailable(str(e)) from e
+        if isinstance(source, np.ndarray):
+            raise ReplayError("an in-memory source needs its rate: pass (array, rate)")
+        if isinstance(source, tuple) and len(source) == 2:
+            array, rate = source
+            if isinstance(rate, bool) or not isinstance(rate, numbers.Real) or not math.isfinite(rate) or rate <= 0:
+                raise ReplayError(f"the source rate must be a positive number of Hz, got {rate!r}")
+            a = np.asarray(array)
+            if a.ndim == 1:
+                a = a.reshape(-1, 1)
+            if a.ndim != 2 or a.shape[1] < 1:
+                raise ReplayError(f"an in-memory source must have shape (frames, channels), got {a.shape}")
+            if a.dtype.kind != "f":
+                # Integers would need a full scale we would have to guess.
+                raise ReplayError(f"an in-memory source must be float scaled to +-1, got {a.dtype}")
+            if not np.all(np.isfinite(a)):
+                raise ReplayError("the in-memory source holds NaN or infinite samples")
+            return a.astype(np.float64), rate, (), None, f"array{a.shape}"
+        raise ReplayError(f"source must be (array, rate), a Session or a path, got {type(source).__name__}")
+
+    def _select(self, data: np.ndarray, channels) -> np.ndarray:
+        have = data.shape[1]
+        if channels is None:
+            return data
+        if _is_count(channels):
+            if channels != have:
+                raise ReplayError(f"{self.name}: has {have} channels, {channels} expected")
+            return data
+        if isinstance(channels, (Sequence, np.ndarray)) and not isinstance(channels, (str, bytes)):
+            idx = list(channels)
+            if not idx or not all(isinstance(i, numbers.Integral) and not isinstance(i, bool)
+                                  and 0 <= i < have for i in idx):
+                raise ReplayError(f"{self.name}: channels must be indices in [0, {have}), got {channels!r}")
+            return data[:, [int(i) for i in idx]]
+        raise ReplayError(f"channels must be None, a count or a sequence of indices, got {channels!r}")
+
+    @staticmethod
+    def _resample_mask(mask: np.ndarray, up: int, down: int, n_out: int) -> np.ndarray:
+        # Output frame j sits at source time j*down/up. Mark every output frame
+        # whose time falls within a filled range's span, rounding outwards:
+        # a filled mark may spread, it must never be lost.
+        out = np.zeros(n_out, dtype=bool)
+        m = np.asarray(mask, dtype=bool)
+        edges = np.diff(np.concatenate(([False], m, [False])).astype(np.int8))
+        for s, e in zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)):
+            a = (int(s) * up) // down
+            b = -((-int(e) * up) // down)
+            out[a:min(b, n_out)] = True
+        return out
+
+    # --- Driver contract ------------------------------------------------------
+
+    def _reset(self) -> None:
+        self._pos = 0              # stream index of the next frame to deliver
+        self._blocks = 0
+        self._filled_count = 0
+        self._next_size: int | None = None  # drawn but not yet delivered (read timed out)
+        self._k = 0                # blocks drawn, for cycling a sequence
+        self._rng = np.random.default_rng(self._seed)
+        self._t0 = time.monotonic()
+
+    def open(self) -> None:
+        """Start (or restart) the stream at frame 0; counters reset; ``t0`` is now."""
+        self._closed.clear()
+        self._reset()
+        self._is_open = True
+
+    def close(self) -> None:
+        """End the stream; a ``read()`` waiting in another thread wakes and raises. Idempotent."""
+        self._is_open = False
+        self._closed.set()
+
+    def __enter__(self) -> "ReplayDriver":
+        self.open()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def _draw_size(self) -> int:
+        if isinstance(self._sizes, int):
+            size = self._sizes
+        elif isinstance(self._sizes, list):
+            size = self._sizes[self._k % len(self._sizes)]
+        else:
+            size = self._sizes(self._rng)
+            if not _is_count(size):
+                raise ReplayError(f"block_size callable returned {size!r}; it must return an int >= 1")
+        self._k += 1
+        return int(size)
+
+    @property
+    def total_frames(self) -> float:
+        """Frames in the whole stream (``math.inf`` when looping forever)."""
+        return math.inf if self._passes is None else self._passes * self._data.shape[0]
+
+    def release_time(self, end_frame: int) -> float:
+        """:func:`release_time` of a block ending at ``end_frame`` since the last ``open()``."""
+        return release_time(end_frame, self.rate, self.speed, self._t0)
+
+    def read(self, timeout: float | None = None) -> Block | None:
+        """Return the next block once its release time has come.
+
+        Parameters
+        ----------
+        timeout : float or None, default None
+            Longest wait in seconds; None waits as long as needed, 0 polls.
+
+        Returns
+        -------
+        Block or None
+            ``data`` float64 of shape (frames, channels), a fresh copy;
+            ``start`` its first stream index; ``arrival`` its release time on
+            the ``time.monotonic()`` clock (when a live device would have
+            delivered its last frame; ``time.monotonic()`` at read for
+            'max'); ``filled`` from the session's filled ranges, or None.
+            None if the block is not due within ``timeout``; the same block
+            is returned by the next call.
+
+        Raises
+        ------
+        DriverClosed
+            At the end of the stream, or when ``close()`` is or was called.
+        DriverError
+            If the driver was never opened.
+        """
+        if self._closed.is_set():
+            raise DriverClosed(f"{self.name}: closed")
+        if not self._is_open:
+            raise DriverError(f"{self.name}: read() before open(); use `with driver:` or call open()")
+        remaining = self.total_frames - self._pos
+        if remaining <= 0:
+            raise DriverClosed(f"{self.name}: end of stream after {self._pos} frames")
+        if self._next_size is None:
+            self._next_size = self._draw_size()
+        size = int(min(self._next_size, remaining))
+        end = self._pos + size
+        due = self.release_time(end)
+        deadline = None if timeout is None else time.monotonic() + max(0.0, timeout)
+        while True:
+            now = time.monotonic()
+            if now >= due:
+                break
+            wait = due - now
+            if deadline is not None:
+                if now >= deadline:
+                    return None
+                wait = min(wait, deadline - now)
+            if self._closed.wait(wait):  # close() interrupts the wait at once
+                raise DriverClosed(f"{self.name}: closed")
+        data = self._take(self._data, self._pos, size)
+        filled = None
+        if self._filled is not None:
+            filled = self._take(self._filled, self._pos, size)
+            n = int(np.count_nonzero(filled))
+            self._filled_count += n
+            if n == 0:
+                filled = None
+        block = Block(data=data, start=self._pos, arrival=due if self.speed != math.inf else time.monotonic(),
+                      filled=filled)
+        self._pos = end
+        self._blocks += 1
+        self._next_size = None
+        return block
+
+    @staticmethod
+    def _take(src: np.ndarray, pos: int, size: int) -> np.ndarray:
+        """Copy of ``size`` frames from stream index ``pos`` of ``src`` repeated end to end."""
+        n = src.shape[0]
+        i = pos % n
+        if i + size <= n:
+            return src[i:i + size].copy()
+        parts, left = [], size
+        while left:  # a block may straddle the loop seam, or be longer than the source
+            k = min(left, n - i)
+            parts.append(src[i:i + k])
+            left -= k
+            i = 0
+        return np.concatenate(parts)
+
+    def stats(self) -> dict[str, int]:
+        """Counters since ``open()``.
+
+        Returns
+        -------
+        dict
+            ``frames`` delivered; ``filled`` delivered frames marked filled by
+            the recording; ``blocks`` delivered; ``loops`` times the stream
+            went back to the source's first frame.
+        """
+        n = self._data.shape[0]
+        return {"frames": self._pos, "filled": self._filled_count, "blocks": self._blocks,
+                "loops": max(0, (self._pos - 1) // n)}
+
+    # --- what the replay knows beyond a live driver ------------------------------
+
+    @property
+    def data(self) -> np.ndarray:
+        """One pass of the stream as replayed (channels selected, resampled); read-only, (frames, channels)."""
+        return self._data
+
+    @property
+    def period(self) -> float:
+        """Seconds per pass of the source at :attr:`rate`, ``frames / rate``."""
+        return self._data.shape[0] / self.rate
+
+    @property
+    def labels(self) -> tuple[Label, ...]:
+        """The source's labels for every pass delivered so far, in stream seconds.
+
+        Pass ``k`` is shifted by ``k * period``. Before any frame is delivered,
+        the first pass's labels. Empty for sources without labels.
+        """
+        n = self._data.shape[0]
+        last_pass = max(0, (self._pos - 1) // n)
+        return tuple(lab.shifted(k * self.period) for k in range(last_pass + 1) for lab in self._labels)
+
+    def labels_between(self, t0: float, t1: float) -> tuple[Label, ...]:
+        """Labels overlapping stream time ``[t0, t1)`` seconds, shifted for their pass.
+
+        Pure: does not depend on how far the stream has been read.
+        """
+        if not self._labels or t1 <= t0:
+            return ()
+        p = self.period
+        k_first = max(0, math.floor(t0 / p) - 1)
+        k_last = math.floor(t1 / p)
+        if self._passes is not None:
+            k_last = min(k_last, self._passes - 1)
+        out = []
+        for k in range(k_first, k_last + 1):
+            for lab in self._labels:
+                s = lab.shifted(k * p)
+                if s.end > t0 and s.start < t1:
+                    out.append(s)
+        return tuple(out)
+
+    def __repr__(self) -> str:
+        speed = "max" if self.speed == math.inf else self.speed
+        loop = {None: True, 1: False}.get(self._passes, self._passes)
+        return (f"ReplayDriver({self.name}, rate={self.rate:g}, channels={self.channels}, "
+                f"speed={speed}, loop={loop})")

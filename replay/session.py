@@ -1,0 +1,440 @@
+"""Sessions: a WAV file plus a strict JSON sidecar.
+
+A session named ``NAME`` is two files side by side:
+
+``NAME.wav``
+    The samples (any layout :func:`replay.wavio.read_wav` accepts).
+``NAME.json``
+    The sidecar, a JSON object with exactly these keys::
+
+        {
+          "format": "supramodal-session",   # required, this exact string
+          "version": 1,                     # required, integer; only 1 exists
+          "rate": 5000,                     # required, Hz; equals the WAV header's rate
+          "channels": 20,                   # required; equals the WAV's channel count
+          "source": "serial_whisker port=/dev/ttyACM0 baud=2000000",  # required, free text
+          "labels": [                       # required, may be empty; seconds from the
+            {"start": 0.0, "end": 2.5, "label": "sandpaper"},       # start of the WAV,
+            {"start": 2.5, "end": 5.0, "label": "felt"}             # in time order,
+          ],                                                        # not overlapping
+          "filled": [[1200, 1250], [9000, 9001]]  # optional: [start_frame, end_frame)
+        }                                         # ranges the recording driver synthesised
+
+The sidecar is data, never code: it is read with :func:`json.load` only
+(duplicate keys, ``NaN`` and ``Infinity`` refused), and validated strictly:
+an unknown key, a wrong type, a rate or channel count that disagrees with the
+WAV, a label outside the recording or overlapping another, each raise a
+:class:`~replay.errors.SessionError` naming the file, the key and the fix.
+
+Threading: the functions keep no state and may be called from any thread.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterable, Mapping
+
+import numpy as np
+
+from replay.errors import SessionError
+from replay.wavio import _as_frames, read_wav, wav_info, write_wav
+
+__all__ = ["FORMAT", "VERSION", "Label", "Session", "session_paths", "load_session", "save_session",
+           "validate_sidecar", "mask_to_ranges"]
+
+#: Value of the sidecar's ``"format"`` key.
+FORMAT = "supramodal-session"
+#: The only sidecar version this code reads and writes.
+VERSION = 1
+
+_REQUIRED = ("format", "version", "rate", "channels", "source", "labels")
+_OPTIONAL = ("filled",)
+_LABEL_KEYS = ("start", "end", "label")
+
+
+@dataclass(frozen=True)
+class Label:
+    """A labelled time range of a recording.
+
+    Attributes
+    ----------
+    start, end : float
+        Seconds from the start of the recording (or of the replayed stream,
+        for :attr:`replay.driver.ReplayDriver.labels`); ``start < end``, the
+        range is ``[start, end)``.
+    label : str
+        What was under the whiskers / microphone, e.g. a texture name.
+    """
+
+    start: float
+    end: float
+    label: str
+
+    def shifted(self, seconds: float) -> "Label":
+        """The same label moved later by ``seconds``."""
+        return Label(self.start + seconds, self.end + seconds, self.label)
+
+
+@dataclass(frozen=True, eq=False)
+class Session:
+    """A loaded session.
+
+    Attributes
+    ----------
+    data : ndarray of float64, shape (frames, channels)
+        Samples scaled to +-1 full scale.
+    rate : int
+        Frames per second, Hz.
+    source : str
+        Free text saying what recorded it (driver name and options).
+    labels : tuple of Label
+        In time order, not overlapping, within ``[0, frames / rate]``.
+    filled : tuple of (int, int)
+        ``[start_frame, end_frame)`` ranges the recording driver synthesised,
+        ascending and not overlapping.
+    path : pathlib.Path or None
+        The WAV file it was loaded from, if any.
+    """
+
+    data: np.ndarray
+    rate: int
+    source: str
+    labels: tuple[Label, ...] = ()
+    filled: tuple[tuple[int, int], ...] = ()
+    path: Path | None = field(default=None)
+
+    @property
+    def frames(self) -> int:
+        return int(self.data.shape[0])
+
+    @property
+    def channels(self) -> int:
+        return int(self.data.shape[1])
+
+    @property
+    def duration(self) -> float:
+        """Length in seconds, ``frames / rate``."""
+        return self.frames / self.rate
+
+    def filled_mask(self) -> np.ndarray:
+        """Per-frame filled flags, bool array of shape (frames,)."""
+        mask = np.zeros(self.frames, dtype=bool)
+        for s, e in self.filled:
+            mask[s:e] = True
+        return mask
+
+
+def session_paths(path: str | os.PathLike) -> tuple[Path, Path]:
+    """The ``(NAME.wav, NAME.json)`` pair for ``NAME``, ``NAME.wav`` or ``NAME.json``."""
+    p = Path(path)
+    if p.suffix.lower() in (".wav", ".json"):
+        p = p.with_suffix("")
+    return p.with_name(p.name + ".wav"), p.with_name(p.name + ".json")
+
+
+# --- strict JSON ------------------------------------------------------------
+
+def _no_duplicate_keys(pairs):
+    seen = {}
+    for k, v in pairs:
+        if k in seen:
+            raise SessionError(f"key {k!r} appears twice in one object; keep one")
+        seen[k] = v
+    return seen
+
+
+def _no_constants(name):
+    raise SessionError(f"{name} is not a number JSON allows; use a finite number")
+
+
+def _load_json(path: Path) -> Any:
+    try:
+        with open(path, "rb") as f:
+            return json.load(f, object_pairs_hook=_no_duplicate_keys, parse_constant=_no_constants)
+    except SessionError as e:
+        raise SessionError(f"{path}: {e}") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise SessionError(f"{path}: not valid JSON ({e}); fix or regenerate the sidecar") from None
+
+
+# --- validation ---------------------------------------------------------------
+
+def _is_int(v) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _is_number(v) -> bool:
+    return (_is_int(v) or isinstance(v, float)) and math.isfinite(v)
+
+
+def _type_name(v) -> str:
+    return {dict: "object", list: "array", str: "string", bool: "boolean", type(None): "null",
+            int: "integer", float: "number"}.get(type(v), type(v).__name__)
+
+
+def validate_sidecar(meta: Any, *, rate: int, channels: int, frames: int,
+                     where: str = "sidecar") -> tuple[str, tuple[Label, ...], tuple[tuple[int, int], ...]]:
+    """Check a parsed sidecar against the WAV it describes.
+
+    Parameters
+    ----------
+    meta : object
+        What :func:`json.load` returned.
+    rate : int
+        The WAV header's rate, Hz.
+    channels : int
+        The WAV's channel count.
+    frames : int
+        The WAV's length in frames (labels and filled ranges must lie within).
+    where : str
+        Prefix of error messages, normally the sidecar's path.
+
+    Returns
+    -------
+    source : str
+    labels : tuple of Label
+    filled : tuple of (int, int)
+
+    Raises
+    ------
+    SessionError
+        Naming the key, the problem and the fix.
+    """
+    def bad(key, problem, fix):
+        return SessionError(f"{where}: {key}: {problem}; {fix}")
+
+    if not isinstance(meta, dict):
+        raise SessionError(f"{where}: the sidecar must be a JSON object, got {_type_name(meta)}")
+    unknown = sorted(set(meta) - set(_REQUIRED) - set(_OPTIONAL))
+    if unknown:
+        raise bad(", ".join(repr(k) for k in unknown), "unknown key",
+                  f"remove it or fix its spelling (allowed keys: {', '.join(_REQUIRED + _OPTIONAL)})")
+    missing = [k for k in _REQUIRED if k not in meta]
+    if missing:
+        raise bad(", ".join(repr(k) for k in missing), "missing", f"add it (required keys: {', '.join(_REQUIRED)})")
+
+    if meta["format"] != FORMAT:
+        raise bad("format", f"is {meta['format']!r}", f"it must be {FORMAT!r}; this is not a supramodal session")
+    v = meta["version"]
+    if not _is_int(v):
+        raise bad("version", f"must be an integer, got {_type_name(v)} {v!r}", f"set it to {VERSION}")
+    if v != VERSION:
+        raise bad("version", f"is {v}, this code reads version {VERSION} only",
+                  "use the supramodal version that wrote it, or convert the sidecar")
+
+    r = meta["rate"]
+    if not _is_number(r) or r <= 0:
+        raise bad("rate", f"must be a positive number of Hz, got {_type_name(r)} {r!r}", f"set it to {rate}")
+    if r != rate:
+        raise bad("rate", f"is {r} Hz but the WAV header says {rate} Hz",
+                  "correct the sidecar's rate or re-save the session; replay never guesses which is right")
+    c = meta["channels"]
+    if not _is_int(c) or c < 1:
+        raise bad("channels", f"must be a positive integer, got {_type_name(c)} {c!r}", f"set it to {channels}")
+    if c != channels:
+        raise bad("channels", f"is {c} but the WAV has {channels}",
+                  "correct the sidecar or pair it with the right WAV")
+    source = meta["source"]
+    if not isinstance(source, str):
+        raise bad("source", f"must be a string, got {_type_name(source)}",
+                  "describe the recording driver and its options as text")
+
+    labels = _validate_labels(meta["labels"], frames / rate, 0.5 / rate, bad)
+    filled = _validate_filled(meta.get("filled", []), frames, bad)
+    return source, labels, filled
+
+
+def _validate_labels(raw, duration: float, slack: float, bad) -> tuple[Label, ...]:
+    if not isinstance(raw, list):
+        raise bad("labels", f"must be an array, got {_type_name(raw)}", "use [] when nothing is labelled")
+    out: list[Label] = []
+    for i, item in enumerate(raw):
+        key = f"labels[{i}]"
+        if not isinstance(item, dict):
+            raise bad(key, f"must be an object, got {_type_name(item)}",
+                      'write {"start": s, "end": s, "label": "name"}')
+        extra = sorted(set(item) - set(_LABEL_KEYS))
+        missing = [k for k in _LABEL_KEYS if k not in item]
+        if extra or missing:
+            raise bad(key, f"has keys {sorted(item)}", f"use exactly {list(_LABEL_KEYS)}")
+        s, e, name = item["start"], item["end"], item["label"]
+        for k, val in (("start", s), ("end", e)):
+            if not _is_number(val):
+                raise bad(f"{key}.{k}", f"must be a finite number of seconds, got {_type_name(val)} {val!r}",
+                          "write seconds from the start of the recording")
+        if not isinstance(name, str) or not name:
+            raise bad(f"{key}.label", f"must be a non-empty string, got {name!r}", "name the texture")
+        if not 0 <= s < e:
+            raise bad(key, f"range [{s}, {e}) is empty, reversed or negative", "need 0 <= start < end")
+        # Half a frame of slack: "end = duration" computed in float must pass.
+        if e > duration + slack:
+            raise bad(key, f"ends at {e} s, after the recording's end at {duration} s",
+                      "clip it to the recording or pair the sidecar with the right WAV")
+        if out and s < out[-1].end:
+            prev = out[-1]
+            problem = ("starts before labels[%d] ([%s, %s) %r)" % (i - 1, prev.start, prev.end, prev.label))
+            fix = ("put labels in time order" if s < prev.start else
+                   "labels must not overlap; end the earlier one where this one starts")
+            raise bad(key, f"[{s}, {e}) {problem}", fix)
+        out.append(Label(float(s), float(e), name))
+    return tuple(out)
+
+
+def _validate_filled(raw, frames: int, bad) -> tuple[tuple[int, int], ...]:
+    if not isinstance(raw, list):
+        raise bad("filled", f"must be an array of [start_frame, end_frame] pairs, got {_type_name(raw)}",
+                  "omit the key when no frame was filled")
+    out: list[tuple[int, int]] = []
+    for i, item in enumerate(raw):
+        key = f"filled[{i}]"
+        if not (isinstance(item, list) and len(item) == 2 and all(_is_int(v) for v in item)):
+            raise bad(key, f"must be a pair of integer frame indices, got {item!r}",
+                      "write [start_frame, end_frame] (end excluded)")
+        s, e = item
+        if not 0 <= s < e <= frames:
+            raise bad(key, f"range [{s}, {e}) is empty or outside the recording's {frames} frames",
+                      "need 0 <= start < end <= frames")
+        if out and s < out[-1][1]:
+            raise bad(key, f"[{s}, {e}) starts before the end of filled[{i - 1}] {list(out[-1])}",
+                      "list ranges in order without overlap (merge overlapping ones)")
+        out.append((s, e))
+    return tuple(out)
+
+
+# --- load / save ----------------------------------------------------------------
+
+def load_session(path: str | os.PathLike) -> Session:
+    """Load and validate a session.
+
+    Parameters
+    ----------
+    path : str or path-like
+        ``NAME``, ``NAME.wav`` or ``NAME.json``; both files must exist.
+
+    Returns
+    -------
+    Session
+
+    Raises
+    ------
+    FileNotFoundError
+        If either file is missing.
+    SessionError
+        If the sidecar is not valid JSON or fails validation (see
+        :func:`validate_sidecar`); checked before the samples are read.
+    WavFormatError
+        If the WAV file is unsupported, truncated or corrupt.
+    """
+    wav, js = session_paths(path)
+    if not js.exists():
+        raise FileNotFoundError(f"{js}: no sidecar; a session is NAME.wav + NAME.json "
+                                "(use replay.read_wav for a bare WAV file)")
+    meta = _load_json(js)
+    info = wav_info(wav)
+    source, labels, filled = validate_sidecar(meta, rate=info.rate, channels=info.channels,
+                                              frames=info.frames, where=str(js))
+    data, rate = read_wav(wav)
+    return Session(data=data, rate=rate, source=source, labels=labels, filled=filled, path=wav)
+
+
+def mask_to_ranges(mask) -> list[tuple[int, int]]:
+    """``[start, end)`` ranges of the True runs of a 1-D bool array."""
+    m = np.asarray(mask, dtype=bool).ravel()
+    edges = np.diff(np.concatenate(([False], m, [False])).astype(np.int8))
+    starts = np.flatnonzero(edges == 1)
+    ends = np.flatnonzero(edges == -1)
+    return [(int(s), int(e)) for s, e in zip(starts, ends)]
+
+
+def _label_dict(item) -> dict:
+    if isinstance(item, Label):
+        return {"start": item.start, "end": item.end, "label": item.label}
+    if isinstance(item, Mapping):
+        return dict(item)
+    s, e, name = item  # (start, end, label) tuple
+    return {"start": s, "end": e, "label": name}
+
+
+def save_session(path: str | os.PathLike, data, rate: int, source: str,
+                 labels: Iterable[Label | Mapping | tuple] = (), filled=None,
+                 dtype: str = "float32") -> tuple[Path, Path]:
+    """Write a session: ``NAME.wav`` and its sidecar ``NAME.json``.
+
+    The sidecar is validated exactly as :func:`load_session` would before
+    anything is written. An existing sidecar is removed first and the new one
+    written last, so an interrupted save leaves a WAV without a sidecar (not
+    loadable as a session) rather than a sidecar describing the wrong WAV.
+
+    Parameters
+    ----------
+    path : str or path-like
+        ``NAME``, ``NAME.wav`` or ``NAME.json``.
+    data : array_like of float, shape (frames, channels) or (frames,)
+        Samples, full scale +-1.
+    rate : int
+        Frames per second, Hz (a whole number: WAV stores integers).
+    source : str
+        Free text: the recording driver and its options.
+    labels : iterable of Label, dict or (start, end, label) tuple, optional
+        Seconds from the start of ``data``; sorted by start here, then
+        checked for overlap and range.
+    filled : sequence of (start_frame, end_frame), or bool array of shape (frames,), optional
+        Frames the recording driver synthesised (e.g. the concatenated
+        :attr:`drivers.base.Block.filled` masks).
+    dtype : {'float32', 'float64', 'int16', 'int32', 'uint8'}, default 'float32'
+        Sample type of the WAV (see :func:`replay.wavio.write_wav`).
+
+    Returns
+    -------
+    (pathlib.Path, pathlib.Path)
+        The WAV and sidecar written.
+
+    Raises
+    ------
+    SessionError
+        If the metadata would not validate.
+    ValueError
+        For bad samples, rate or dtype.
+    """
+    wav, js = session_paths(path)
+    x = _as_frames(data)
+    if isinstance(rate, bool) or not _is_number(rate) or not float(rate).is_integer() or rate < 1:
+        raise ValueError(f"rate must be a positive whole number of Hz (WAV stores integers), got {rate!r}")
+    rate = int(rate)
+    # Sort only what sorts; anything malformed stays in place for validation to name.
+    label_list = sorted((_label_dict(item) for item in labels),
+                        key=lambda d: d["start"] if _is_number(d.get("start")) else -math.inf)
+    if filled is None:
+        ranges = []
+    else:
+        arr = np.asarray(filled)
+        if arr.dtype == bool:
+            if arr.shape != (x.shape[0],):
+                raise ValueError(f"filled mask must have shape ({x.shape[0]},), got {arr.shape}")
+            ranges = mask_to_ranges(arr)
+        else:
+            ranges = [(int(s), int(e)) for s, e in filled]
+    meta = {"format": FORMAT, "version": VERSION, "rate": rate, "channels": int(x.shape[1]),
+            "source": source, "labels": label_list}
+    if ranges:
+        meta["filled"] = [list(r) for r in ranges]
+    validate_sidecar(meta, rate=rate, channels=int(x.shape[1]), frames=int(x.shape[0]), where=str(js))
+
+    js.unlink(missing_ok=True)
+    write_wav(wav, x, rate, dtype=dtype)
+    fd, tmp = tempfile.mkstemp(prefix=f".{js.name}.", suffix=".tmp", dir=js.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            json.dump(meta, f, indent=1, allow_nan=False)
+            f.write("\n")
+        os.chmod(tmp, 0o644)
+        os.replace(tmp, js)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return wav, js
