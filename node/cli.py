@@ -94,6 +94,37 @@ def _cmd_run(args) -> int:
     return 0
 
 
+def _mapping(text: str):
+    return int(text) if text.isdigit() else text
+
+
+def _progress(args):
+    return None if getattr(args, "quiet", False) else (lambda m: print(f"supramodal: {m}", file=sys.stderr, flush=True))
+
+
+def _cmd_train(args) -> int:
+    from node.training import train_from_manifest
+    from supramodal.banks import bank_by_name
+
+    bank = bank_by_name(args.bank)
+    model = train_from_manifest(args.manifest, bank, tuple(args.features), args.window, epochs=args.epochs,
+                                seed=args.seed, mapping=args.mapping, progress=_progress(args))
+    path = model.save(args.out)
+    print(f"wrote {path}: {model.bank.kind} bank, features {list(model.features)}, classes {list(model.classes)}, "
+          f"{model.training['windows']} training windows, final MSE {model.training['final_mse']:.4g}")
+    return 0
+
+
+def _cmd_evaluate(args) -> int:
+    from node.training import evaluate_manifest, format_evaluation
+    from supramodal.model import TextureModel
+
+    model = TextureModel.load(args.model)
+    result = evaluate_manifest(model, args.manifest, mapping=args.mapping, progress=_progress(args))
+    print(json.dumps(result) if args.json else format_evaluation(result))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="supramodal", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -104,6 +135,27 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="JSON Lines on stdout instead of the scene's sinks")
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")
     p.set_defaults(func=_cmd_run)
+
+    p = sub.add_parser("train", help="train a model from labelled recordings")
+    p.add_argument("--bank", choices=["whisker", "cochlea"], required=True)
+    p.add_argument("--manifest", required=True, help="CSV with columns path,label[,start,end]; paths relative to it")
+    p.add_argument("--out", required=True, help="model file to write (.npz)")
+    p.add_argument("--features", nargs="+", default=["Af"], choices=["Af", "A", "f"])
+    p.add_argument("--window", type=float, default=0.1, help="window, seconds (default 0.1)")
+    p.add_argument("--epochs", type=int, default=500)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--mapping", type=_mapping, default="auto",
+                   help="recording channels to filters: auto, mono, per-channel, mean, or a channel index")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=_cmd_train)
+
+    p = sub.add_parser("evaluate", help="accuracy and confusion of a model on labelled recordings")
+    p.add_argument("model", help="model file (.npz)")
+    p.add_argument("--manifest", required=True)
+    p.add_argument("--mapping", type=_mapping, default="auto")
+    p.add_argument("--json", action="store_true")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=_cmd_evaluate)
 
     p = sub.add_parser("experiment", help="reproduce a figure of the paper")
     p.add_argument("figure", choices=["fig3"], help="which figure")
