@@ -114,8 +114,7 @@ def driver_for(scene: Scene, bank: Bank, speed_override=None):
 
         drv = ReplayDriver(str(scene.resolve(d["path"])), rate=bank.fs, block_size=block, speed=speed, loop=d["loop"],
                            on_notice=lambda m: print(f"supramodal: {m}", file=sys.stderr))
-        labels = Labels([(lab.start, lab.end, lab.label) for lab in drv.labels])
-        return drv, labels, None
+        return drv, Labels.of(drv), None
     if kind == "serial":
         from drivers.serial_whisker import SerialWhiskerDriver
 

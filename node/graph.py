@@ -77,6 +77,11 @@ class Labels:
 
     ranges: list[tuple[float, float, str]] = field(default_factory=list)
 
+    @classmethod
+    def of(cls, driver) -> "Labels":
+        """The labels a driver carries (a replayed session's), or none."""
+        return cls([(lab.start, lab.end, lab.label) for lab in getattr(driver, "labels", ())])
+
     def at(self, t: float) -> str | None:
         for start, end, name in self.ranges:
             if start <= t < end:
@@ -100,6 +105,7 @@ class Node:
     mapping : str or int
         Driver channels to filter inputs, see :func:`channel_mapper`.
     labels : Labels, optional
+        Truth labels; by default those the driver carries (a replayed session's).
     buffer_seconds : float
         Ring capacity.
     overrun : {"drop-oldest", "drop-newest", "block"}
@@ -119,7 +125,7 @@ class Node:
         self.pipeline = pipeline
         self.sinks = list(sinks)
         self.model = model
-        self.labels = labels or Labels()
+        self.labels = labels if labels is not None else Labels.of(driver)
         self.map = channel_mapper(mapping, driver.channels, bank.channels)
         decision = {"scope": "window", "n": 10, "method": "log", "contact_threshold": 0.01, **(decision or {})}
         self.decision = decision

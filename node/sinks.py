@@ -82,6 +82,24 @@ class TextSink(Sink):
         self._fh.write("\n".join(lines) + "\n")
 
 
+class ListSink(Sink):
+    """Keeps events and the summary in memory: for a node embedded in a Python program, and tests."""
+
+    def __init__(self) -> None:
+        self.path = None
+        self.events: list[dict] = []
+        self.final: dict | None = None
+
+    def emit(self, event: dict) -> None:
+        self.events.append(event)
+
+    def summary(self, summary: dict) -> None:
+        self.final = summary
+
+    def close(self) -> None:
+        pass
+
+
 SINKS = {"text": TextSink, "jsonl": JsonLinesSink}
 
 

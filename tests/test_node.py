@@ -1,0 +1,322 @@
+"""The streaming node: replay vs offline, gaps, scenes, imports, train/evaluate, signals."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from node.build import build_node
+from node.graph import Node, channel_mapper
+from node.scene import SceneError, default_scene, load_scene, scene_from_dict
+from node.sinks import ListSink
+from replay.driver import ReplayDriver, random_block_sizes
+from replay.session import save_session
+from replay.wavio import write_wav
+from supramodal.banks import cochlea_bank, whisker_bank
+from supramodal.model import TextureModel
+from supramodal.pipeline import FeaturePipeline, extract_features
+from supramodal.textures import reference_texture_set
+
+ROOT = Path(__file__).resolve().parents[1]
+SHARED_DATA = ROOT.parent / "shared" / "data" / "lmt-surface-sounds"
+
+
+def _env():
+    env = dict(os.environ)
+    env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
+    return env
+
+
+@pytest.fixture(scope="module")
+def whisker_signal():
+    """Three reference textures, 3 s each, one after the other, at 5 kHz."""
+    ts = reference_texture_set("whisker")
+    parts = [ts.synthesize(i, duration=3.0) for i in range(3)]
+    return ts, np.concatenate(parts)
+
+
+@pytest.fixture(scope="module")
+def small_model(whisker_signal):
+    """A model of the first three reference textures, trained on their first 2 s."""
+    ts, _ = whisker_signal
+    bank = whisker_bank()
+    values, labels = [], []
+    for i in range(3):
+        v = extract_features(ts.synthesize(i, duration=6.0)[: 2 * 5000], bank, ("Af",)).values
+        values.append(v)
+        labels.append(np.full(len(v), i))
+    return TextureModel.train(np.concatenate(values), np.concatenate(labels), ts.names[:3], bank, ("Af",), 500,
+                              epochs=200, seed=1)
+
+
+def _run_node(driver, model=None, features=("Af",), **kw):
+    pipeline = FeaturePipeline(whisker_bank(), features)
+    sink = ListSink()
+    kw.setdefault("overrun", "block")   # lossless replay, as the scene builder chooses for replay drivers
+    Node(driver, pipeline, [sink], model=model, **kw).run()
+    return sink
+
+
+@pytest.mark.parametrize("block", [50, 1, 499, "random"])
+def test_replay_through_node_equals_offline(tmp_path, whisker_signal, small_model, block):
+    _, x = whisker_signal
+    path = tmp_path / "sig.wav"
+    write_wav(path, x[:, None], 5000, dtype="float64")
+    block_size = random_block_sizes(1, 700) if block == "random" else block
+    driver = ReplayDriver(str(path), block_size=block_size, seed=7, speed="max", on_notice=None)
+    sink = _run_node(driver, model=small_model, features=("Af",))
+    offline = extract_features(x, whisker_bank(), ("Af",))
+    assert [e["window"] for e in sink.events] == list(range(len(offline)))
+    # Features: the node's model saw exactly the offline windows; compare decisions and confidences.
+    outputs = small_model.outputs(offline.values)
+    assert [e["predicted"] for e in sink.events] == [small_model.classes[k] for k in outputs.argmax(1)]
+    conf = outputs.max(1) / np.clip(outputs, 1e-12, None).sum(1)
+    np.testing.assert_allclose([e["confidence"] for e in sink.events], np.round(conf, 4), atol=1e-12)
+    assert sink.final["samples_dropped"] == 0 and sink.final["windows"] == len(offline)
+
+
+def test_feature_windows_through_node_equal_offline_to_1e12(tmp_path, whisker_signal):
+    _, x = whisker_signal
+    driver = ReplayDriver((x[:, None], 5000.0), block_size=random_block_sizes(1, 300), seed=3, speed="max",
+                          on_notice=None)
+    sink = _run_node(driver, features=("Af", "A", "f"))
+    offline = extract_features(x, whisker_bank(), ("Af", "A", "f"))
+    got = np.array([[e["features"][f] for f in ("Af", "A", "f")] for e in sink.events])
+    assert got.shape == offline.values.shape
+    rel = np.abs(got - offline.values).max(axis=(0, 2)) / np.abs(offline.values).max(axis=(0, 2))
+    assert np.all(rel <= 1e-12), rel
+
+
+def test_per_channel_mapping_feeds_each_filter_its_own_signal():
+    rng = np.random.default_rng(0)
+    x = rng.standard_normal((5000, 20)) * 0.1
+    driver = ReplayDriver((x, 5000.0), block_size=123, speed="max", on_notice=None)
+    sink = _run_node(driver, features=("A",))
+    offline = extract_features(x.T, whisker_bank(), ("A",))
+    got = np.array([e["features"]["A"] for e in sink.events])
+    np.testing.assert_allclose(got, offline.values[:, 0], rtol=1e-12)
+
+
+def test_channel_mapper_refuses_mismatch_with_a_fix():
+    with pytest.raises(ValueError, match="mean"):
+        channel_mapper("auto", 3, 20)
+    with pytest.raises(ValueError, match="does not exist"):
+        channel_mapper(5, 2, 20)
+    frames = np.arange(6.0).reshape(3, 2)
+    np.testing.assert_array_equal(channel_mapper("mean", 2, 20)(frames), [0.5, 2.5, 4.5])
+    np.testing.assert_array_equal(channel_mapper(1, 2, 20)(frames), [1, 3, 5])
+
+
+def test_filled_frames_mark_their_windows_and_are_counted(tmp_path, whisker_signal):
+    _, x = whisker_signal
+    x = x[:10000].copy()
+    x[2600:2700] = 0.0
+    save_session(tmp_path / "s", x[:, None], 5000, "test", labels=[(0.0, 1.0, "T1")], filled=[(2600, 2700)])
+    driver = ReplayDriver(str(tmp_path / "s.wav"), block_size=77, speed="max", on_notice=None)
+    sink = _run_node(driver, features=("A",))
+    gaps = [e["window"] for e in sink.events if e.get("gap")]
+    assert gaps == [5]                                   # samples 2600..2699 lie in window 5 (2500..2999)
+    assert sink.final["samples_filled"] == 100
+    assert [e["truth"] for e in sink.events] == ["T1"] * 10 + [None] * 10
+
+
+def test_accumulated_decision_over_the_last_windows(tmp_path, whisker_signal, small_model):
+    _, x = whisker_signal
+    driver = ReplayDriver((x[:, None], 5000.0), block_size=50, speed="max", on_notice=None)
+    sink = _run_node(driver, model=small_model, decision={"scope": "last", "n": 5, "method": "vote"})
+    acc = [e["accumulated"] for e in sink.events]
+    assert [a["windows"] for a in acc[:7]] == [1, 2, 3, 4, 5, 5, 5]
+    for i in range(4, len(acc)):
+        votes = [e["predicted"] for e in sink.events[i - 4 : i + 1]]
+        assert votes.count(acc[i]["label"]) == max(votes.count(v) for v in set(votes))
+
+
+def test_contact_scope_resets_on_silence(whisker_signal, small_model):
+    _, x = whisker_signal
+    sig = np.concatenate([x[:5000], np.zeros(2500), x[5000:10000]])
+    driver = ReplayDriver((sig[:, None], 5000.0), block_size=50, speed="max", on_notice=None)
+    sink = _run_node(driver, model=small_model, decision={"scope": "contact", "contact_threshold": 0.01})
+    acc = [e["accumulated"] for e in sink.events]
+    assert [a["windows"] for a in acc[:10]] == list(range(1, 11))
+    assert all(a["label"] is None and a["windows"] == 0 for a in acc[10:15])   # 0.5 s of silence
+    assert acc[15]["windows"] == 1 and acc[24]["windows"] == 10
+
+
+# -- scenes ----------------------------------------------------------------------------------------
+
+
+def _scene(**sections):
+    base = {"driver": {"type": "synth", "seconds": 1.0}}
+    base.update(sections)
+    return base
+
+
+@pytest.mark.parametrize("scene, needle", [
+    ({"driver": {"type": "synth"}, "bogus": {}}, "unknown section"),
+    (_scene(bank={"kind": "retina"}), "[bank] kind"),
+    (_scene(bank={"rows": "AZ"}), "[bank] rows"),
+    (_scene(features={"names": ["Af", "Q"]}), "[features] names"),
+    (_scene(features={"window": -1}), "[features] window"),
+    (_scene(features={"windw": 0.1}), "unknown key(s) ['windw']"),
+    (_scene(decision={"scope": "touch"}), "[decision] scope"),
+    (_scene(decision={"scope": "last", "n": 0}), "[decision] n"),
+    ({"driver": {"type": "replay"}}, "missing required key 'path'"),
+    ({"driver": {"type": "serial", "port": "/dev/x", "rate": "fast"}}, "rate"),
+    ({"driver": {"type": "bluetooth"}}, "[driver] type"),
+    ({"bank": {}}, "[driver] type is required"),
+    (_scene(sink=[{"type": "pigeon"}]), "[[sink]] #1 type"),
+    (_scene(sink=[{"type": "jsonl", "file": "x"}]), "unknown key(s) ['file']"),
+    (_scene(driver={"type": "synth", "speed": 0}), "speed"),
+])
+def test_scene_errors_name_the_key(scene, needle):
+    with pytest.raises(SceneError) as info:
+        scene_from_dict(scene, "s.toml")
+    assert needle in str(info.value)
+
+
+def test_scene_file_errors(tmp_path):
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[driver\ntype = 'synth'")
+    with pytest.raises(SceneError, match="not valid TOML"):
+        load_scene(bad)
+    with pytest.raises(SceneError, match="no scene file"):
+        load_scene(tmp_path / "missing.toml")
+
+
+def test_scene_refuses_a_model_for_another_bank(tmp_path, small_model):
+    small_model.save(tmp_path / "whisker.npz")
+    (tmp_path / "s.toml").write_text(
+        '[driver]\ntype = "synth"\nseconds = 1.0\n[bank]\nkind = "cochlea"\n[model]\npath = "whisker.npz"\n')
+    with pytest.raises(Exception, match="whisker bank of 20 channels"):
+        build_node(load_scene(tmp_path / "s.toml"), speed="max")
+
+
+def test_scene_refuses_a_model_for_other_features(tmp_path, small_model):
+    small_model.save(tmp_path / "m.npz")
+    (tmp_path / "s.toml").write_text('[driver]\ntype = "synth"\n[features]\nnames = ["A"]\n[model]\npath = "m.npz"\n')
+    with pytest.raises(Exception, match=r"takes features \['Af'\]"):
+        build_node(load_scene(tmp_path / "s.toml"), speed="max")
+
+
+def test_whisker_replay_scene_runs_without_sounddevice_or_serial(tmp_path, whisker_signal):
+    _, x = whisker_signal
+    write_wav(tmp_path / "w.wav", x[:, None], 5000)
+    scene = tmp_path / "s.toml"
+    scene.write_text('[driver]\ntype = "replay"\npath = "w.wav"\nblock = 50\n[features]\nnames = ["A"]\n'
+                     '[[sink]]\ntype = "jsonl"\n')
+    code = (
+        "import sys\n"
+        "sys.modules['sounddevice'] = None; sys.modules['serial'] = None  # any import of them fails\n"
+        "from node.cli import main\n"
+        f"rc = main(['run', {str(scene)!r}, '--speed', 'max', '--quiet'])\n"
+        "assert 'sounddevice' not in [m for m, v in sys.modules.items() if v is not None]\n"
+        "sys.exit(rc)\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=_env(), timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    lines = [json.loads(line) for line in proc.stdout.splitlines()]
+    assert len(lines) == 91 and lines[-1]["summary"] is True and lines[-1]["windows"] == 90
+    assert set(lines[0]["features"]) == {"A"}
+
+
+def test_default_scene_is_valid_and_synthesises_held_out_textures():
+    scene = default_scene()
+    assert scene.driver["type"] == "synth" and scene.model["train_on_start"]
+    assert scene.bank["kind"] == "whisker"
+
+
+# -- train / evaluate ---------------------------------------------------------------------------
+
+
+def test_train_evaluate_round_trip_on_synthesised_recordings(tmp_path):
+    from node.cli import main
+
+    ts = reference_texture_set("whisker")
+    rows_train, rows_test = ["path,label"], ["path,label,start,end"]
+    for i, name in enumerate(ts.names[:4]):
+        # A 44.1 kHz copy of one recording exercises resampling to the bank's 5 kHz.
+        x = ts.synthesize(i, duration=8.0)
+        write_wav(tmp_path / f"{name}.wav", x[:, None], 5000)
+        rows_train.append(f"{name}.wav,{name}")
+        rows_test.append(f"{name}.wav,{name},6.0,8.0")
+    from scipy.signal import resample_poly
+    write_wav(tmp_path / "hi.wav", resample_poly(ts.synthesize(0, duration=8.0), 441, 50)[:, None], 44100)
+    rows_test.append(f"hi.wav,{ts.names[0]},6.0,8.0")
+    (tmp_path / "train.csv").write_text("\n".join(rows_train) + "\n")
+    (tmp_path / "test.csv").write_text("\n".join(rows_test) + "\n")
+    assert main(["train", "--bank", "whisker", "--manifest", str(tmp_path / "train.csv"), "--out",
+                 str(tmp_path / "m"), "--epochs", "200", "--quiet"]) == 0
+    model = TextureModel.load(tmp_path / "m.npz")
+    assert model.classes == tuple(sorted(ts.names[:4]))
+    from node.training import evaluate_manifest
+
+    result = evaluate_manifest(model, tmp_path / "test.csv")
+    assert set(result) >= {"window_accuracy", "recording_accuracy", "labels", "confusion"}
+    assert result["window_accuracy"] > 0.6 and result["recording_accuracy"] >= 0.8
+    confusion = np.array(result["confusion"])
+    assert confusion.sum() == 5 * 20 and confusion.shape == (4, 4)
+
+
+def test_manifest_errors(tmp_path):
+    from node.training import read_manifest
+
+    (tmp_path / "m.csv").write_text("file,label\nx.wav,a\n")
+    with pytest.raises(ValueError, match="columns must be path,label"):
+        read_manifest(tmp_path / "m.csv")
+    (tmp_path / "m.csv").write_text("path,label,start,end\nx.wav,a,2,1\n")
+    with pytest.raises(ValueError, match="line 2"):
+        read_manifest(tmp_path / "m.csv")
+
+
+@pytest.mark.skipif(not SHARED_DATA.is_dir(), reason=f"real recordings not present at {SHARED_DATA} "
+                    "(they live in the project's shared/ folder, not in the package)")
+def test_real_surface_recordings_cochlea(tmp_path):
+    from node.training import evaluate_manifest, train_from_manifest
+
+    names = ["carpet", "fiber", "rough_paper", "sheep_skin", "textile", "wallpaper"]
+    cut = 0.7 * 211611 / 44100
+    (tmp_path / "train.csv").write_text("path,label,start,end\n" + "".join(
+        f"{SHARED_DATA / n}.wav,{n},0,{cut}\n" for n in names))
+    (tmp_path / "test.csv").write_text("path,label,start,end\n" + "".join(
+        f"{SHARED_DATA / n}.wav,{n},{cut},\n" for n in names))
+    model = train_from_manifest(tmp_path / "train.csv", cochlea_bank(), ("Af",))
+    result = evaluate_manifest(model, tmp_path / "test.csv")
+    # Chance is 1/6; measured 0.82 of windows and 6/6 recordings (docs/model.md).
+    assert result["window_accuracy"] >= 0.6
+    assert result["recording_accuracy"] >= 5 / 6
+
+
+# -- signals ----------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_clean_shutdown_on_signal(sig):
+    proc = subprocess.Popen([sys.executable, "-m", "node.cli", "run", "--json", "--quiet"], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, env=_env(), cwd=ROOT)
+    try:
+        lines = []
+        deadline = time.monotonic() + 120
+        while len(lines) < 5 and time.monotonic() < deadline:
+            line = proc.stdout.readline()
+            if not line:
+                break
+            lines.append(json.loads(line))
+        assert len(lines) == 5, proc.stderr.read()
+        proc.send_signal(sig)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+    assert proc.returncode == 0, err
+    assert "Traceback" not in err
+    records = [json.loads(line) for line in out.splitlines()]
+    summary = records[-1]
+    assert summary["summary"] is True and summary["stopped_by"] == signal.Signals(sig).name
+    assert summary["windows"] == 5 + len(records) - 1
+    assert summary["stream_seconds"] < 40                 # stopped well before the 80 s session ends
