@@ -147,7 +147,11 @@ class TextureModel:
         if not path.is_file():
             raise ModelError(f"no model file at {path}: train one with `supramodal train` or give the right path")
         try:
-            with np.load(path, allow_pickle=False) as npz:
+            loaded = np.load(path, allow_pickle=False)
+            if not isinstance(loaded, np.lib.npyio.NpzFile):
+                raise ModelError(f"{path} is not a supramodal model: it holds a single array (.npy), "
+                                 "not an .npz archive")
+            with loaded as npz:
                 names = set(npz.files)
                 missing = {"header", *_ARRAYS} - names
                 if missing:
@@ -180,6 +184,8 @@ class TextureModel:
             raise bad(f"unknown header key(s) {sorted(unknown)}")
         try:
             bank = Bank.from_dict(header["bank"])
+            if not (isinstance(header["features"], list) and all(isinstance(f, str) for f in header["features"])):
+                raise ValueError(f"'features' must be a list of names, got {header['features']!r}")
             features = check_features(header["features"])
         except (KeyError, ValueError) as exc:
             raise bad(f"invalid bank or features in the header: {exc}") from exc

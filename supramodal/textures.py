@@ -143,9 +143,10 @@ def random_texture_set(bank: str, n: int = 8, seed: int = 0, duration: float = 4
     rng = np.random.default_rng(np.random.SeedSequence([seed, 0x7E57]))
     textures = []
     while len(textures) < n:
-        peaks = np.sort(np.exp(rng.uniform(np.log(lo), np.log(hi), 3)))
-        if np.all(peaks[1:] / peaks[:-1] >= min_ratio):
-            textures.append(Texture(f"T{len(textures) + 1}", tuple(round(float(p), 1) for p in peaks)))
+        # Round first, then check: the stored (rounded) peaks are the ones that must be min_ratio apart.
+        peaks = [round(float(p), 1) for p in np.sort(np.exp(rng.uniform(np.log(lo), np.log(hi), 3)))]
+        if all(b / a >= min_ratio for a, b in zip(peaks, peaks[1:])):
+            textures.append(Texture(f"T{len(textures) + 1}", tuple(peaks)))
     return TextureSet(f"{bank}-random-{seed}", bank, BANK_RATES[bank], duration, width, seed, tuple(textures))
 
 

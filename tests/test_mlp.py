@@ -1,0 +1,238 @@
+"""The MLP and iRPROP-: gradients against the objective they descend, one step by hand, learning."""
+
+import math
+
+import numpy as np
+import pytest
+
+from supramodal.mlp import (
+    MLP,
+    IRpropMinus,
+    one_hot,
+    sigmoid,
+    sigmoid_derivative,
+    tanh_error,
+    train_mlp,
+)
+
+
+def fann_objective(net, x, targets):
+    """The objective whose gradient FANN's tanh error function follows.
+
+    FANN's output delta is ln((1+e)/(1-e)) * y' with e = t - y. Since d/de [(1+e) ln(1+e) + (1-e) ln(1-e)]
+    = ln(1+e) + 1 - ln(1-e) - 1 = ln((1+e)/(1-e)) and de/dy = -1, that delta is -dE/dy * y' for
+    E = sum over samples and outputs of (1+e) ln(1+e) + (1-e) ln(1-e): not the MSE. (Valid while
+    |e| < 0.9999999 and the units stay in [0.01, 0.99], where FANN clips nothing.)
+    """
+    _, y = net.forward(x)
+    e = targets - y
+    return float(np.sum((1 + e) * np.log1p(e) + (1 - e) * np.log1p(-e)))
+
+
+def fixed_net(inputs, hidden, outputs, seed, scale=1.0):
+    rng = np.random.default_rng(seed)
+    u = lambda *shape: rng.uniform(-scale, scale, size=shape)
+    return MLP(u(inputs, hidden), u(hidden), u(hidden, outputs), u(outputs))
+
+
+# -- units and error function ------------------------------------------------------------------
+
+def test_sigmoid_is_fanns_logistic_with_steepness_half():
+    x = np.array([-30.0, -2.0, 0.0, 0.7, 40.0, 800.0])
+    # 0.5 (1 + tanh(x/2)): accurate to 1e-16 absolute (not relative deep in the negative tail,
+    # 2e-4 relative at x = -30, which no classifier output can notice)
+    np.testing.assert_allclose(sigmoid(x), 1 / (1 + np.exp(-x)), rtol=1e-15, atol=1e-16)
+    assert np.isfinite(sigmoid(np.array([-1e6, 1e6]))).all()           # no overflow
+    y = np.array([0.001, 0.3, 0.5, 0.995])
+    np.testing.assert_allclose(sigmoid_derivative(y), [0.01 * 0.99, 0.3 * 0.7, 0.25, 0.99 * 0.01], rtol=1e-15)
+
+
+def test_tanh_error_and_its_clip():
+    e = np.array([-0.5, 0.0, 0.25, 0.99999989, 0.99999991, -0.9999999001, 1.0, -1.0])
+    out = tanh_error(e)
+    assert out[0] == pytest.approx(math.log(0.5 / 1.5))
+    assert out[1] == 0.0
+    assert out[2] == pytest.approx(math.log(1.25 / 0.75))
+    assert out[3] == pytest.approx(math.log(1.99999989 / 0.00000011), rel=1e-6)
+    assert out[4:].tolist() == [17.0, -17.0, 17.0, -17.0]
+
+
+# -- gradients ---------------------------------------------------------------------------------
+
+def test_gradients_by_hand_on_a_1_1_1_net():
+    net = MLP(np.array([[0.5]]), np.array([-0.2]), np.array([[0.8]]), np.array([0.1]))
+    x, t = np.array([[1.5]]), np.array([[1.0]])
+    s1 = 0.5 * 1.5 - 0.2
+    h = 1 / (1 + math.exp(-s1))
+    s2 = 0.8 * h + 0.1
+    y = 1 / (1 + math.exp(-s2))
+    e = 1.0 - y
+    d2 = math.log((1 + e) / (1 - e)) * y * (1 - y)          # FANN's output delta
+    d1 = d2 * 0.8 * h * (1 - h)                             # back through w2 and the hidden unit
+    grads, mse = net.gradients(x, t)
+    assert mse == pytest.approx(e * e, rel=1e-14)
+    expected = [-d1 * 1.5, -d1, -d2 * h, -d2]                # gradient = minus FANN's slopes
+    for g, want in zip(grads, expected):
+        assert g.item() == pytest.approx(want, rel=1e-13)
+
+
+def test_gradients_are_the_gradient_of_fanns_tanh_objective():
+    net = fixed_net(3, 4, 2, seed=1)
+    rng = np.random.default_rng(2)
+    x = rng.standard_normal((7, 3))
+    targets = one_hot(rng.integers(0, 2, 7), 2)
+    grads, _ = net.gradients(x, targets)
+    h = 1e-6
+    for p, g in zip(net.params(), grads):
+        numeric = np.zeros_like(p)
+        for idx in np.ndindex(p.shape):
+            old = p[idx]
+            p[idx] = old + h
+            up = fann_objective(net, x, targets)
+            p[idx] = old - h
+            down = fann_objective(net, x, targets)
+            p[idx] = old
+            numeric[idx] = (up - down) / (2 * h)
+        np.testing.assert_allclose(g, numeric, rtol=1e-6, atol=1e-8)
+
+
+def test_gradients_are_not_those_of_the_mse():
+    """The point of the tanh error: far from the target it pushes harder than the MSE does."""
+    net = fixed_net(2, 2, 1, seed=3)
+    x = np.array([[0.3, -0.4]])
+    t = np.array([[1.0]])
+    grads, _ = net.gradients(x, t)
+    _, y = net.forward(x)
+    h = net.forward(x)[0]
+    mse_grad_w2 = -(t - y) * y * (1 - y) * h.T          # d/dw2 of (t - y)^2 / 2
+    assert not np.allclose(grads[2], mse_grad_w2, rtol=1e-3)
+    e = (t - y).item()
+    ratio = grads[2] / mse_grad_w2
+    np.testing.assert_allclose(ratio, math.log((1 + e) / (1 - e)) / e, rtol=1e-12)
+
+
+# -- iRPROP- -----------------------------------------------------------------------------------
+
+def test_one_irprop_step_on_a_tiny_net_by_hand():
+    net = MLP(np.array([[0.5]]), np.array([-0.2]), np.array([[0.8]]), np.array([0.1]))
+    before = [p.copy() for p in net.params()]
+    opt = IRpropMinus(net.params())
+    x, t = np.array([[1.5]]), np.array([[1.0]])
+    g1, _ = net.gradients(x, t)
+    opt.step(g1)
+    # First step: no previous gradient (product 0): the step stays at delta_zero = 0.1, the weight
+    # moves against the gradient's sign. Output below target: every gradient here is negative.
+    assert all(g.item() < 0 for g in g1)
+    for p, b in zip(net.params(), before):                 # updated in place, the net's own arrays
+        assert p.item() == pytest.approx(b.item() + 0.1, abs=1e-15)
+    assert [s.item() for s in opt.steps] == [0.1] * 4
+    g2, _ = net.gradients(x, t)
+    opt.step(g2)                                            # same sign again: the step grows to 0.12
+    for p, b in zip(net.params(), before):
+        assert p.item() == pytest.approx(b.item() + 0.1 + 0.12, abs=1e-15)
+    assert [s.item() for s in opt.steps] == pytest.approx([0.12] * 4, abs=1e-15)
+
+
+def test_irprop_grow_keep_shrink_forget():
+    p = np.zeros(4)
+    opt = IRpropMinus([p])
+    opt.step([np.array([1.0, -1.0, 0.0, 1.0])])
+    np.testing.assert_allclose(p, [-0.1, 0.1, 0.0, -0.1])
+    np.testing.assert_allclose(opt.steps[0], [0.1, 0.1, 0.1, 0.1])
+    opt.step([np.array([2.0, -3.0, 5.0, -1.0])])
+    # 0, 1: same sign -> x1.2 and move; 2: previous 0 -> keep 0.1 and move; 3: sign change -> x0.5,
+    # weight NOT moved, gradient forgotten
+    np.testing.assert_allclose(opt.steps[0], [0.12, 0.12, 0.1, 0.05])
+    np.testing.assert_allclose(p, [-0.22, 0.22, -0.1, -0.1])
+    np.testing.assert_array_equal(opt.previous[0], [2.0, -3.0, 5.0, 0.0])
+    opt.step([np.array([1.0, -1.0, 1.0, -1.0])])
+    # 3: the forgotten gradient makes the product 0: keep 0.05 and move by it
+    np.testing.assert_allclose(opt.steps[0], [0.144, 0.144, 0.12, 0.05])
+    np.testing.assert_allclose(p, [-0.364, 0.364, -0.22, -0.05])
+
+
+def test_irprop_step_is_clipped_at_50_and_floored_at_1e4():
+    p = np.zeros(3)
+    opt = IRpropMinus([p])
+    opt.steps[0][:] = [45.0, 1e-6, 1e-6]
+    opt.previous[0][:] = [1.0, 1.0, 1.0]
+    opt.step([np.array([1.0, 1.0, -1.0])])
+    # 45 * 1.2 = 54 -> 50; 1e-6 floored to 1e-4 first, then * 1.2; the third shrinks from the floor
+    np.testing.assert_allclose(opt.steps[0], [50.0, 1.2e-4, 0.5e-4], rtol=1e-15)
+    np.testing.assert_allclose(p, [-50.0, -1.2e-4, 0.0], rtol=1e-15)
+    opt.step([np.array([1.0, 1.0, -1.0])])
+    np.testing.assert_allclose(opt.steps[0], [50.0, 1.44e-4, 1e-4], rtol=1e-15)   # kept, floored again
+    np.testing.assert_allclose(p, [-100.0, -2.64e-4, 1e-4], rtol=1e-15)
+
+
+def test_weights_are_clipped_to_1500():
+    p = np.array([1499.0, -1499.0])
+    opt = IRpropMinus([p])
+    opt.steps[0][:] = 50.0
+    opt.step([np.array([-1.0, 1.0])])
+    np.testing.assert_array_equal(p, [1500.0, -1500.0])
+
+
+# -- learning ----------------------------------------------------------------------------------
+
+def blobs(seed, n_per_class=60):
+    rng = np.random.default_rng(seed)
+    centres = np.array([[3.0, 0.0, 0.0, 1.0], [0.0, 3.0, -1.0, 0.0], [-2.0, -2.0, 2.0, -1.0]])
+    x = np.concatenate([c + 0.5 * rng.standard_normal((n_per_class, 4)) for c in centres])
+    y = np.repeat(np.arange(3), n_per_class)
+    return x, y
+
+
+def test_learns_separable_gaussian_blobs():
+    x, y = blobs(0)
+    xt, yt = blobs(1)
+    net, history = train_mlp(x, y, 3, epochs=300, seed=0)
+    assert net.shape == (4, 4, 3)                       # hidden = inputs, as in the paper
+    assert len(history) == 300
+    assert history[-1] < 0.02 and history[-1] < history[0] / 5
+    assert np.mean(net.predict(x) == y) == 1.0
+    assert np.mean(net.predict(xt) == yt) >= 0.98
+
+
+def test_training_is_deterministic_given_a_seed():
+    x, y = blobs(2)
+    a, ha = train_mlp(x, y, 3, epochs=50, seed=7)
+    b, hb = train_mlp(x, y, 3, epochs=50, seed=7)
+    c, hc = train_mlp(x, y, 3, epochs=50, seed=8)
+    for pa, pb in zip(a.params(), b.params()):
+        np.testing.assert_array_equal(pa, pb)
+    assert ha == hb
+    assert not np.array_equal(a.w1, c.w1)
+
+
+def test_initial_weights_follow_fann():
+    net = MLP.create(20, 20, 8, seed=0)
+    for p in net.params():
+        assert np.all(np.abs(p) <= 0.1)
+    assert net.w1.std() > 0.05                          # uniform on [-0.1, 0.1]: sd 0.058
+
+
+def test_desired_mse_stops_early():
+    x, y = blobs(3)
+    net, history = train_mlp(x, y, 3, epochs=500, seed=0, desired_mse=0.05)
+    assert history[-1] < 0.05 and all(h >= 0.05 for h in history[:-1]) and len(history) < 500
+
+
+@pytest.mark.parametrize("args, match", [
+    ((np.zeros((0, 2)), np.zeros(0, int), 2), "training inputs"),
+    ((np.zeros(5), np.zeros(5, int), 2), "training inputs"),
+    ((np.zeros((5, 2)), np.zeros(4, int), 2), "labels"),
+    ((np.zeros((5, 2)), np.zeros(5), 2), "labels"),
+    ((np.zeros((5, 2)), np.full(5, 2), 2), r"labels must lie in 0\.\.1"),
+    ((np.full((5, 2), np.nan), np.zeros(5, int), 2), "NaN or Inf"),
+])
+def test_train_refuses_bad_data(args, match):
+    with pytest.raises(ValueError, match=match):
+        train_mlp(*args, epochs=1)
+
+
+def test_train_refuses_bad_sizes():
+    with pytest.raises(ValueError, match="epochs"):
+        train_mlp(np.zeros((5, 2)), np.zeros(5, int), 2, epochs=0)
+    with pytest.raises(ValueError, match="hidden"):
+        MLP.create(2, 0, 2)
