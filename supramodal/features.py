@@ -121,8 +121,9 @@ class FeatureWindows:
     def process(self, peaks: Peaks) -> Windows:
         """Add decided peaks; return the windows they close (possibly none)."""
         W, C = self.length, self.channels
-        # Peaks up to sample decided - 1 are known, i.e. detections up to sample `decided`.
-        n_closed = (peaks.decided + 1) // W - self._next
+        # A window is complete once its last sample has been seen: its peaks were all
+        # detected by then (the last one it can hold sits one sample before its end).
+        n_closed = peaks.seen // W - self._next
         span = max(n_closed, self._open.shape[0])
         if len(peaks):
             span = max(span, (int(peaks.index.max()) + 1) // W - self._next + 1)

@@ -35,12 +35,21 @@ class Peaks:
     decided : int
         Every sample with stream index below this is decided: later calls never
         report a peak before it.
+    seen : int
+        Samples the extractor has received. Mid-stream ``decided + 1`` (the last
+        sample waits for its successor); after :meth:`PeakExtractor.finish` equal
+        to ``decided``. A feature window is complete once all its samples are seen.
     """
 
     channel: np.ndarray
     index: np.ndarray
     amplitude: np.ndarray
     decided: int
+    seen: int = -1
+
+    def __post_init__(self) -> None:
+        if self.seen < 0:
+            object.__setattr__(self, "seen", self.decided + 1)
 
     def __len__(self) -> int:
         return int(self.index.size)
@@ -97,12 +106,12 @@ class PeakExtractor:
         L = y.shape[1]
         n0 = self.samples_seen
         if L == 0:
-            return self._empty(max(n0 - 1, 0))
+            return self._empty(max(n0 - 1, 0), n0)
         z = np.concatenate([self._tail, y], axis=1)          # stream samples n0-2 .. n0+L-1
         self._tail = z[:, -2:].copy()
         self.samples_seen = n0 + L
         peaks = self._find(z, first_index=n0 - 1)
-        return Peaks(*peaks, decided=n0 + L - 1)
+        return Peaks(*peaks, decided=n0 + L - 1, seen=n0 + L)
 
     def finish(self) -> Peaks:
         """End of stream: the last sample has no successor and is not a peak.
@@ -110,7 +119,7 @@ class PeakExtractor:
         Returns the (empty) final decision, with ``decided`` = every sample seen.
         """
         self._finished = True
-        return self._empty(self.samples_seen)
+        return self._empty(self.samples_seen, self.samples_seen)
 
     def _find(self, z: np.ndarray, first_index: int):
         left, mid, right = z[:, :-2], z[:, 1:-1], z[:, 2:]
@@ -126,5 +135,5 @@ class PeakExtractor:
             amplitude = np.abs(amplitude)
         return channel, offset.astype(np.int64) + first_index, amplitude
 
-    def _empty(self, decided: int) -> Peaks:
-        return Peaks(np.empty(0, np.intp), np.empty(0, np.int64), np.empty(0), decided)
+    def _empty(self, decided: int, seen: int) -> Peaks:
+        return Peaks(np.empty(0, np.intp), np.empty(0, np.int64), np.empty(0), decided, seen)

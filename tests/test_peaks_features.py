@@ -159,8 +159,8 @@ def test_same_sums_when_peaks_arrive_in_several_calls():
     """The f of a peak whose predecessor arrived in an earlier call (and earlier window)."""
     fw = FeatureWindows(2, FS, 10)
     chunks = [
-        peaks([e for e in P if e[1] < 8], decided=9),        # window 0 not complete yet
-        peaks([], decided=10),                               # now it is
+        peaks([e for e in P if e[1] < 8], decided=8),        # sample 8 undecided: window 0 not complete yet
+        peaks([], decided=9),                                # its peaks are all known now (detections up to 9)
         peaks([e for e in P if 8 <= e[1] < 20], decided=21),
         peaks([e for e in P if e[1] >= 20], decided=40),
     ]
@@ -170,13 +170,19 @@ def test_same_sums_when_peaks_arrive_in_several_calls():
     np.testing.assert_array_equal(concat_windows(outs, FEATURES, 2).values, expected_values())
 
 
-def test_a_window_closes_only_when_all_its_samples_are_decided():
+def test_a_window_closes_when_its_last_sample_has_arrived():
+    """A peak counts in the window of its detection (the sample after it): window w holds the peaks at
+    samples [10w - 1, 10w + 9) and closes once samples up to 10w + 8 are decided, i.e. when the
+    extractor has seen sample 10w + 9, the window's own last sample."""
     fw = FeatureWindows(1, FS, 10)
-    assert len(fw.process(peaks([(0, 9, 1.0)], decided=9))) == 0
-    assert len(fw.process(peaks([], decided=10))) == 1
-    assert len(fw.process(peaks([], decided=19))) == 0
+    assert len(fw.process(peaks([(0, 7, 1.0)], decided=8))) == 0
+    out = fw.process(peaks([(0, 8, 2.0)], decided=9))           # peak at 8, detected at 9: window 0
+    assert out.first == 0 and out.feature("A")[:, 0].tolist() == [3.0]
+    assert len(fw.process(peaks([(0, 9, 4.0)], decided=18))) == 0  # peak at 9, detected at 10: window 1
+    out = fw.process(peaks([], decided=19))
+    assert out.first == 1 and out.feature("A")[:, 0].tolist() == [4.0]
     out = fw.process(peaks([], decided=35))
-    assert out.first == 1 and len(out) == 2
+    assert out.first == 2 and len(out) == 1
     np.testing.assert_array_equal(out.values, 0.0)
 
 
@@ -197,9 +203,10 @@ def test_extractor_into_windows_counts_a_first_peak_in_A_only():
     parts.append(fw.process(ex.finish()))
     w = concat_windows(parts, FEATURES, 1)
     assert len(w) == 2                              # 14 samples: windows [0,5) and [5,10); 10..13 partial
-    np.testing.assert_array_equal(w.feature("A")[:, 0], [3.0, 5.0 + 4.0])
-    np.testing.assert_array_equal(w.feature("f")[:, 0], [0.0, FS / 3 + FS / 4])
-    np.testing.assert_array_equal(w.feature("Af")[:, 0], [0.0, 5.0 * (FS / 3) + 4.0 * (FS / 4)])
+    # The peak at 9 is detected at sample 10: it belongs to the partial window 2, which is dropped.
+    np.testing.assert_array_equal(w.feature("A")[:, 0], [3.0, 5.0])
+    np.testing.assert_array_equal(w.feature("f")[:, 0], [0.0, FS / 3])
+    np.testing.assert_array_equal(w.feature("Af")[:, 0], [0.0, 5.0 * (FS / 3)])
 
 
 def test_peaks_out_of_order_are_refused():
@@ -271,7 +278,9 @@ def plain_windows(entries, fs, length, n_windows, channels):
     for c in range(channels):
         prev = None
         for _, n, amp in sorted(e for e in entries if e[0] == c):
-            w = n // length
+            w = (n + 1) // length                    # the window of the peak's detection
+            if w >= n_windows:
+                continue
             v[w, 1, c] += amp
             if prev is not None:
                 v[w, 2, c] += fs / (n - prev)
@@ -297,6 +306,7 @@ def test_feature_windows_match_the_definition_for_any_delivery(seed, length, n_w
         outs.append(fw.process(peaks([e for e in entries if done <= e[1] < d], decided=d)))
         done = d
     got = concat_windows(outs, FEATURES, 3)
-    assert got.first == 0 and len(got) == n_windows
-    np.testing.assert_allclose(got.values, plain_windows(entries, 4000.0, length, n_windows, 3),
+    n_closed = (total + 1) // length                 # detections up to sample `total` are known
+    assert got.first == 0 and len(got) == n_closed
+    np.testing.assert_allclose(got.values, plain_windows(entries, 4000.0, length, n_closed, 3),
                                rtol=1e-12, atol=0)
