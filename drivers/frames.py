@@ -70,7 +70,7 @@ def frame_size(samples_per_frame: int, channels: int) -> int:
     return OVERHEAD + 2 * samples_per_frame * channels
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)  # eq would compare arrays ambiguously
 class Frame:
     """One decoded, CRC-checked frame.
 
@@ -265,7 +265,13 @@ class FrameDecoder:
         Returns
         -------
         list of Frame
+
+        Raises
+        ------
+        TypeError
+            If ``data`` is not bytes-like (a programming error, not bad input).
         """
+        data = memoryview(data).cast("B")
         try:
             return self._feed(data)
         except Exception:  # pragma: no cover - a bug; never let it kill a stream
