@@ -1,0 +1,521 @@
+"""Driver for the elastomer whisker array on a serial port (frames: ``drivers.frames``).
+
+The board streams frames (see ``docs/serial-frames.md``); this driver reads
+whatever bytes are waiting, decodes them, checks the channel count, fills
+sequence gaps with zeros (marked in :attr:`Block.filled`), and rides through
+an unplug by reopening the same path with bounded exponential backoff.
+
+Threading rules
+---------------
+* :meth:`SerialWhiskerDriver.read`, :meth:`~SerialWhiskerDriver.open` and
+  :meth:`~SerialWhiskerDriver.close` are called from one thread (the node's
+  driver thread). ``read`` never blocks longer than its timeout, so a node
+  stops a reader by flagging it and joining, then calls ``close`` itself.
+* :meth:`~SerialWhiskerDriver.stats` and :attr:`~SerialWhiskerDriver.events`
+  return copies and may be called from any thread.
+* The driver starts no thread.
+"""
+
+from __future__ import annotations
+
+import errno
+import math
+import termios
+import time
+from collections import deque
+
+import numpy as np
+import serial
+
+from drivers.base import Block, DeviceUnavailable, DriverClosed
+from drivers.frames import (
+    FLAG_OVERRUN,
+    FULL_SCALE,
+    MAX_CHANNELS,
+    SEQ_MODULUS,
+    FrameDecoder,
+)
+
+# What an unplug looks like from pyserial on Linux (measured, see
+# TESTING-WITHOUT-HARDWARE.md): read() -> SerialException, in_waiting -> bare
+# OSError (EIO), flush/tcsetattr -> termios.error.
+_LINK_ERRORS = (serial.SerialException, OSError, termios.error)
+
+_COUNTERS = (
+    "frames", "filled", "frames_ok", "sequence_gaps", "frames_lost", "discontinuities",
+    "channel_mismatch", "device_overruns", "bytes_read", "reconnects", "unplugs",
+)
+_DECODER_COUNTERS = ("crc_errors", "truncated", "header_errors", "bytes_skipped")
+
+
+class SerialWhiskerDriver:
+    """Blocks of whisker samples from a serial port (or pyserial URL).
+
+    Parameters
+    ----------
+    port : str
+        Device path (``/dev/ttyACM0``, ``/dev/serial/by-id/...``, a pty or a
+        symlink to one) or a pyserial URL (``loop://`` for unit tests).
+    rate : float
+        Sample rate of the board, Hz (frames of the sample stream per second).
+    channels : int
+        Channels the board is configured for, 1..64. Serial frames with another
+        count are skipped and counted in ``channel_mismatch``.
+    baudrate : int, default 3_000_000
+        For a real UART; 20 channels x 5 kHz x int16 needs about 2.02 Mbit/s
+        with 8N1 framing. USB CDC-ACM boards and ptys ignore it.
+    timeout : float, default 0.5
+        Seconds :meth:`read` waits when called with ``timeout=None``.
+    reconnect : bool, default True
+        After an unplug, reopen ``port`` with backoff (0.05 s doubling to 2 s)
+        from within :meth:`read`. If False an unplug raises
+        :class:`DeviceUnavailable` and the driver closes.
+    max_gap : float, default 10.0
+        Longest gap, in seconds of stream, filled with zeros. A sequence jump
+        that is longer, or that would put the stream ahead of the wall clock
+        (the board restarted), is counted in ``discontinuities`` and not filled.
+    exclusive : bool, default True
+        Lock the port (flock) so a second reader fails loudly at open.
+
+    Attributes
+    ----------
+    rate : float
+        Hz.
+    channels : int
+    first_sequence : int or None
+        Sequence number of the serial frame that begins stream frame 0, to
+        line the stream up with the board's own log; None before any data.
+    events : list of str
+        Timestamped, human-readable log of opens, unplugs, reconnects,
+        discontinuities and misconfigurations (last 200).
+
+    Notes
+    -----
+    :meth:`stats` counts since :meth:`open`. ``frames`` and ``filled`` are
+    frames of the *sample* stream (rows of :attr:`Block.data`), as in the
+    Driver contract; the other counters count serial frames (packets):
+
+    ``frames_ok``
+        serial frames accepted (decoded, right channel count).
+    ``crc_errors``, ``truncated``, ``header_errors``, ``bytes_skipped``
+        from :class:`drivers.frames.FrameDecoder`: altered frames, cut-short
+        frames, failed headers, bytes not in any decoded frame.
+    ``sequence_gaps``, ``frames_lost``
+        gaps in the sequence counter that were filled, and the serial frames
+        missing in them (never arrived intact, or had the wrong channel
+        count). ``filled`` equals the sum over gaps of missing frames times the
+        samples per frame of the frame before the gap.
+    ``discontinuities``
+        sequence jumps not filled (board restart, gap > ``max_gap``).
+    ``channel_mismatch``
+        serial frames skipped for a channel count other than ``channels``.
+    ``device_overruns``
+        frames flagged by the board as following an overrun on its side.
+    ``unplugs``, ``reconnects``
+        lost connections; resumed connections (the reopened port delivered
+        data). ``bytes_read`` counts every byte read from the port.
+
+    Gap filling is checked against the clock (see :meth:`_judge_gap`): within
+    a burst of backlogged frames (a board that buffered while nobody read),
+    only gaps up to ``BUFFER_SLACK`` can be told from a restart and filled.
+    After a discontinuity, ``Block.start`` still tiles the stream but no
+    longer equals the board's sample count.
+    """
+
+    BACKOFF_START = 0.05  #: s, first reopen delay after an unplug
+    BACKOFF_MAX = 2.0  #: s, longest reopen delay
+    BUFFER_SLACK = 0.25  #: s, tolerance of the gap check (delivery delay, clock drift)
+    POLL = 0.05  #: s, longest single wait on the port; read() rechecks its deadline after each
+    MAX_EVENTS = 200
+
+    def __init__(self, port: str, rate: float, channels: int, baudrate: int = 3_000_000,
+                 timeout: float = 0.5, reconnect: bool = True, max_gap: float = 10.0,
+                 exclusive: bool = True) -> None:
+        if not 1 <= int(channels) <= MAX_CHANNELS:
+            raise ValueError(f"channels must be 1..{MAX_CHANNELS}, got {channels}")
+        if not rate > 0:
+            raise ValueError(f"rate must be > 0 Hz, got {rate}")
+        self.port = str(port)
+        self.rate = float(rate)
+        self.channels = int(channels)
+        self.baudrate = int(baudrate)
+        self.timeout = float(timeout)
+        self.reconnect = bool(reconnect)
+        self.max_gap = float(max_gap)
+        self.exclusive = bool(exclusive)
+        self.first_sequence: int | None = None
+        self._ser = None
+        self._open = False
+        self._events: deque[str] = deque(maxlen=self.MAX_EVENTS)
+        self._reset_state()
+
+    # -- lifecycle -----------------------------------------------------------
+
+    def _reset_state(self) -> None:
+        self._stats = dict.fromkeys(_COUNTERS, 0)
+        self._decoder = FrameDecoder()
+        self._next_seq: int | None = None
+        self._spf = 0
+        self._t0 = 0.0  # monotonic s when stream row 0 was taken, estimated
+        self._start = 0
+        self._port_timeout = None
+        self._mismatch_seen: set[int] = set()
+        self._reopened = False  # connected by a reconnect, no byte seen yet
+        self._lost_at = 0.0
+        self._backoff = self.BACKOFF_START
+        self._next_attempt = 0.0
+        self._attempts = 0
+        self.first_sequence = None
+
+    def open(self) -> None:
+        """Open the port; counters restart from zero.
+
+        Raises
+        ------
+        DeviceUnavailable
+            The port cannot be opened; the message names it and the fix.
+        """
+        if self._open:
+            return
+        self._reset_state()
+        self._ser = self._open_port()
+        self._open = True
+        self._event(f"opened {self.port}")
+        need = self.rate * 2 * self.channels * 10  # bits/s with 8N1, payload only
+        if "://" not in self.port and self.baudrate < need * 1.01:
+            self._event(f"baudrate {self.baudrate} is below the ~{need:.0f} bit/s this stream "
+                        "needs on a real UART (USB CDC-ACM boards ignore it)")
+
+    def close(self) -> None:
+        """Close the port. Idempotent; :meth:`read` then raises DriverClosed."""
+        was_open = self._open
+        self._open = False
+        self._close_port()
+        if was_open:
+            self._event(f"closed {self.port}")
+
+    def __enter__(self) -> "SerialWhiskerDriver":
+        self.open()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # -- public reads ----------------------------------------------------------
+
+    def stats(self) -> dict[str, int]:
+        """Counters since :meth:`open` (see class Notes); a new dict."""
+        out = dict(self._stats)
+        dec = self._decoder
+        for k in _DECODER_COUNTERS:
+            out[k] = getattr(dec, k)
+        return out
+
+    @property
+    def events(self) -> list[str]:
+        """Copy of the event log, oldest first."""
+        return list(self._events)
+
+    def read(self, timeout: float | None = None) -> Block | None:
+        """Return the next block, or None if none arrived within ``timeout``.
+
+        Parameters
+        ----------
+        timeout : float or None
+            Seconds, >= 0; None uses the constructor's ``timeout``. Never
+            exceeded by more than scheduling jitter, reconnect attempts included.
+
+        Returns
+        -------
+        Block or None
+            float32 data, shape (frames, channels), full scale +-1.0
+            (int16 / 32768): every serial frame completed by the bytes read,
+            with zero rows for lost frames, marked in ``filled``.
+
+        Raises
+        ------
+        DriverClosed
+            Before :meth:`open` or after :meth:`close`.
+        DeviceUnavailable
+            The device was lost and ``reconnect`` is False.
+        """
+        if not self._open:
+            raise DriverClosed(f"{self.port}: driver is not open (call open() or use 'with')")
+        wait = self.timeout if timeout is None else max(0.0, float(timeout))
+        deadline = time.monotonic() + wait
+        while True:
+            if self._ser is None and not self._reopen(deadline):
+                return None
+            try:
+                data = self._read_some(deadline)
+            except _LINK_ERRORS as exc:
+                self._link_lost(exc)
+                continue
+            now = time.monotonic()
+            if data:
+                self._stats["bytes_read"] += len(data)
+                if self._reopened:
+                    self._reopened = False
+                    self._stats["reconnects"] += 1
+                    self._backoff = self.BACKOFF_START
+                    self._event(f"reconnected to {self.port} after {now - self._lost_at:.2f} s "
+                                f"({self._attempts} attempt(s))")
+                frames = self._decoder.feed(data)
+                if frames:
+                    block = self._assemble(frames, now)
+                    if block is not None:
+                        return block
+            if now >= deadline:
+                return None
+
+    # -- port handling -----------------------------------------------------------
+
+    def _open_port(self):
+        try:
+            ser = serial.serial_for_url(self.port, baudrate=self.baudrate, timeout=self.POLL,
+                                        exclusive=self.exclusive, do_not_open=True)
+            ser.open()
+        except (serial.SerialException, OSError, ValueError, termios.error) as exc:
+            raise DeviceUnavailable(self._explain(exc)) from exc
+        self._port_timeout = self.POLL
+        return ser
+
+    def _explain(self, exc: BaseException) -> str:
+        code = getattr(exc, "errno", None)
+        text = str(exc)
+        if code == errno.ENOENT or "No such file" in text:
+            return (f"serial port {self.port!r} not found ({text}). Plug the whisker board in, "
+                    "or pass its path: ls /dev/ttyACM* /dev/ttyUSB* /dev/serial/by-id/")
+        if code in (errno.EACCES, errno.EPERM) or "ermission denied" in text:
+            return (f"permission denied on serial port {self.port!r} ({text}). Add your user to "
+                    "the port's group: sudo usermod -aG dialout $USER, then log in again")
+        if code in (errno.EBUSY, errno.EAGAIN) or "exclusively lock" in text:
+            return (f"serial port {self.port!r} is in use by another program ({text}): close "
+                    "the other reader (another node, a serial monitor, ModemManager)")
+        return (f"cannot open serial port {self.port!r}: {text}. Check the path, the cable "
+                "and that the board is powered")
+
+    def _close_port(self) -> None:
+        ser, self._ser = self._ser, None
+        if ser is not None:
+            try:
+                ser.close()
+            except Exception:  # a dead device may fail its close; it is gone either way
+                pass
+
+    def _read_some(self, deadline: float) -> bytes:
+        """Bytes waiting now, else wait (<= POLL and <= deadline) for the first one."""
+        ser = self._ser
+        waiting = ser.in_waiting
+        if waiting:
+            return ser.read(waiting)
+        remaining = deadline - time.monotonic()
+        if remaining <= 0:
+            return b""
+        t = min(remaining, self.POLL)
+        # Changing pyserial's timeout costs a tcsetattr: only when it matters.
+        if self._port_timeout is None or abs(self._port_timeout - t) > 1e-3:
+            ser.timeout = t
+            self._port_timeout = t
+        first = ser.read(1)
+        if first:
+            waiting = ser.in_waiting
+            if waiting:
+                return first + ser.read(waiting)
+        return first
+
+    def _link_lost(self, exc: BaseException) -> None:
+        now = time.monotonic()
+        self._close_port()
+        # Bytes of a half-received frame cannot be completed by the next connection.
+        self._decoder.reset(keep_sequence=True)
+        if not self.reconnect:
+            self._open = False
+            self._stats["unplugs"] += 1
+            self._event(f"lost {self.port}: {exc}")
+            raise DeviceUnavailable(
+                f"serial port {self.port!r} was lost ({exc}). Check the cable and the board's "
+                "power; reconnect=True rides through unplugs") from exc
+        if self._reopened:
+            # The reopened port died before sending a byte (a node that had
+            # not vanished yet): a failed attempt, not a new unplug.
+            self._reopened = False
+            self._schedule_retry(now)
+            return
+        self._stats["unplugs"] += 1
+        self._event(f"lost {self.port}: {exc}; reopening with backoff "
+                    f"{self.BACKOFF_START:g} s doubling to {self.BACKOFF_MAX:g} s")
+        self._lost_at = now
+        self._attempts = 0
+        self._backoff = self.BACKOFF_START
+        self._next_attempt = now + self._backoff
+
+    def _schedule_retry(self, now: float) -> None:
+        self._backoff = min(self._backoff * 2, self.BACKOFF_MAX)
+        self._next_attempt = now + self._backoff
+
+    def _reopen(self, deadline: float) -> bool:
+        """Try to reopen until it works (True) or ``deadline`` passes (False)."""
+        while True:
+            now = time.monotonic()
+            if now >= self._next_attempt:
+                self._attempts += 1
+                try:
+                    self._ser = self._open_port()
+                except DeviceUnavailable as exc:
+                    if self._attempts == 1 or self._attempts % 20 == 0:
+                        self._event(f"reopen attempt {self._attempts} failed: {exc}")
+                    self._schedule_retry(now)
+                else:
+                    self._reopened = True
+                    return True
+            now = time.monotonic()
+            if now >= deadline:
+                return False
+            time.sleep(max(0.0, min(self._next_attempt, deadline) - now))
+
+    # -- frames to blocks ------------------------------------------------------
+
+    def _assemble(self, frames, arrival: float) -> Block | None:
+        parts: list[np.ndarray] = []
+        fills: list[tuple[int, int]] = []  # (row offset, rows) of filled runs
+        rows = 0
+        st = self._stats
+        for f in frames:
+            ch = f.samples.shape[1]
+            if ch != self.channels:
+                st["channel_mismatch"] += 1
+                if ch not in self._mismatch_seen:
+                    self._mismatch_seen.add(ch)
+                    self._event(f"frame {f.seq} has {ch} channels but the driver is configured "
+                                f"for {self.channels}: skipped (fix the channels setting or the "
+                                "board's firmware)")
+                continue
+            if f.flags & FLAG_OVERRUN:
+                st["device_overruns"] += 1
+            n_rows = f.samples.shape[0]
+            rebase = self._next_seq is None
+            if rebase:
+                if self.first_sequence is None:
+                    self.first_sequence = f.seq
+            elif f.seq != self._next_seq:
+                lost = self._judge_gap((f.seq - self._next_seq) % SEQ_MODULUS, f.seq, arrival,
+                                       self._start + rows, n_rows)
+                if lost > 0:
+                    n = lost * self._spf
+                    parts.append(np.zeros((n, ch), dtype=np.int16))
+                    fills.append((rows, n))
+                    rows += n
+                rebase = lost < 0
+            parts.append(f.samples)
+            rows += n_rows
+            st["frames_ok"] += 1
+            self._next_seq = (f.seq + 1) % SEQ_MODULUS
+            self._spf = n_rows
+            # When row 0 was taken, if this frame had no delay; the least
+            # delayed frame gives the best (latest-bound) estimate.
+            t0 = arrival - (self._start + rows) / self.rate
+            self._t0 = t0 if rebase else min(self._t0, t0)
+        if not parts:
+            return None
+        data = np.concatenate(parts, axis=0).astype(np.float32)
+        data *= np.float32(1.0 / FULL_SCALE)  # a power of two: exact
+        filled = None
+        if fills:
+            filled = np.zeros(rows, dtype=bool)
+            for off, n in fills:
+                filled[off:off + n] = True
+            st["filled"] += sum(n for _, n in fills)
+        block = Block(data=data, start=self._start, arrival=arrival, filled=filled)
+        self._start += rows
+        st["frames"] += rows
+        return block
+
+    def _judge_gap(self, jump: int, seq: int, now: float, pos: int, rows: int) -> int:
+        """Serial frames to fill for a sequence jump of ``jump`` (0: don't fill).
+
+        Parameters are the jump modulo 65536, the new frame's sequence number,
+        its arrival time, the stream position (rows) before any fill, and the
+        new frame's rows.
+
+        The stream can never be ahead of the wall clock: a frame cannot arrive
+        before its samples were taken. ``self._t0`` estimates when stream row 0
+        was taken (the least-delayed frame so far says it best), so at ``now``
+        at most ``(now - t0) * rate`` rows can exist. That bounds the jump,
+        picks how many times the u16 counter wrapped, and tells a board restart
+        (its counter means nothing) from a real gap. A reader that stalled
+        while the board dropped frames still fills the whole gap: the bound
+        comes from the clock, not from the time between two reads.
+        """
+        spf = self._spf
+        room = (now - self._t0 + self.BUFFER_SLACK) * self.rate - pos - rows
+        most = math.floor(room / spf)
+        if jump <= most:
+            lost = jump + (most - jump) // SEQ_MODULUS * SEQ_MODULUS
+            lost_s = lost * spf / self.rate
+            if lost_s <= self.max_gap:
+                self._stats["sequence_gaps"] += 1
+                self._stats["frames_lost"] += lost
+                return lost
+            why = f"longer than max_gap = {self.max_gap:g} s"
+        else:
+            lost_s = jump * spf / self.rate
+            why = "more than the time elapsed allows: board restarted?"
+        self._stats["discontinuities"] += 1
+        self._event(f"sequence jumped to {seq} (expected {self._next_seq}: {lost_s:.2f} s of "
+                    f"stream, {why}): not filled, stream time is discontinuous here")
+        return -1
+
+    def _event(self, text: str) -> None:
+        t = time.time()
+        stamp = time.strftime("%Y-%m-%dT%H:%M:%S", time.localtime(t)) + f".{int(t % 1 * 1000):03d}"
+        self._events.append(f"{stamp} {text}")
+
+
+__all__ = ["SerialWhiskerDriver"]
+
+
+def _bench(seconds: float = 5.0, channels: int = 20, rate: float = 5000.0,
+           samples_per_frame: int = 32) -> None:
+    """Print the driver's CPU cost streaming from the mock board on a pty.
+
+    CPU seconds per second of stream, for the reading thread alone
+    (``time.thread_time``) and for the whole process (the mock's writer included).
+    """
+    from drivers.mock_whisker import MockWhiskerDevice
+
+    n = int(seconds * rate)
+    t = np.arange(n)[:, None] / rate
+    src = 0.5 * np.sin(2 * np.pi * (50 + 10 * np.arange(channels)) * t)
+    with MockWhiskerDevice(src, rate, samples_per_frame=samples_per_frame) as dev, \
+            SerialWhiskerDriver(dev.port, rate, channels) as drv:
+        reads = rows = 0
+        cpu0, proc0, wall0 = time.thread_time(), time.process_time(), time.monotonic()
+        dev.start()
+        while rows < n:
+            block = drv.read(1.0)
+            reads += 1
+            if block is None and dev.finished.is_set():
+                break
+            rows += 0 if block is None else block.frames
+        cpu, proc, wall = (time.thread_time() - cpu0, time.process_time() - proc0,
+                           time.monotonic() - wall0)
+        st = drv.stats()
+    stream_s = rows / rate
+    print(f"{channels} channels x {rate:g} Hz, {samples_per_frame} samples/frame, "
+          f"{stream_s:.2f} s of stream in {wall:.2f} s, {reads} reads, {st['frames_ok']} frames")
+    print(f"driver thread: {cpu / stream_s * 1000:.1f} ms CPU per s of stream "
+          f"({cpu / stream_s * 100:.2f} % of a core); whole process incl. mock writer: "
+          f"{proc / stream_s * 100:.2f} %")
+    print({k: v for k, v in st.items() if v})
+
+
+if __name__ == "__main__":
+    import sys
+
+    if "--bench" in sys.argv[1:]:
+        _bench()
+    else:
+        print("usage: python -m drivers.serial_whisker --bench  (CPU cost against the mock)",
+              file=sys.stderr)
+        sys.exit(2)

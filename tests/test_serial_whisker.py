@@ -1,0 +1,498 @@
+"""Serial whisker driver: parsing on loop://, link-loss state machine on a fake
+port, and end to end against the mock board on a real pty (``hardware``).
+
+No assertion here is on wall time: streams are stopped by sample count (or by
+the mock having finished and the port staying idle), with generous timeouts.
+"""
+
+from __future__ import annotations
+
+import errno
+import threading
+import time
+
+import numpy as np
+import pytest
+import serial
+from scipy.io import wavfile
+
+from drivers.base import Block, DeviceUnavailable, Driver, DriverClosed
+from drivers.frames import FLAG_OVERRUN, encode_frame
+from drivers.mock_whisker import FaultSpec, MockWhiskerDevice, load_wav, main, quantise
+from drivers.serial_whisker import SerialWhiskerDriver
+
+
+def frames_bytes(seqs, channels=3, n=4, value=None, flags=0):
+    """Frames whose samples encode (seq, row, channel), or all ``value``."""
+    out = b""
+    for s in seqs:
+        if value is None:
+            x = (s % 100) * 100 + np.arange(n)[:, None] * 10 + np.arange(channels)[None, :]
+        else:
+            x = np.full((n, channels), value)
+        out += encode_frame(s, x.astype(np.int16), flags=flags)
+    return out
+
+
+def read_all(drv, want_rows, timeout=0.5, max_reads=100):
+    blocks, rows = [], 0
+    for _ in range(max_reads):
+        if rows >= want_rows:
+            break
+        b = drv.read(timeout)
+        if b is not None:
+            blocks.append(b)
+            rows += b.frames
+    return blocks
+
+
+def joined(blocks):
+    data = np.concatenate([b.data for b in blocks])
+    filled = np.concatenate([np.zeros(b.frames, bool) if b.filled is None else b.filled
+                             for b in blocks])
+    return data, filled
+
+
+def assert_tiled(blocks, channels):
+    start = blocks[0].start
+    for b in blocks:
+        assert isinstance(b, Block)
+        assert b.start == start
+        assert b.data.dtype == np.float32 and b.data.shape == (b.frames, channels)
+        assert b.filled is None or (b.filled.dtype == bool and b.filled.shape == (b.frames,))
+        start += b.frames
+
+
+# -- loop:// --------------------------------------------------------------------------
+
+
+def test_driver_follows_the_contract():
+    drv = SerialWhiskerDriver("loop://", 1000, 3)
+    assert isinstance(drv, Driver)
+    with pytest.raises(DriverClosed):
+        drv.read(0)
+    with drv:
+        assert drv.read(0.05) is None
+    with pytest.raises(DriverClosed):
+        drv.read(0)
+
+
+def test_parses_frames_on_loop_url():
+    with SerialWhiskerDriver("loop://", 1000, 3) as drv:
+        drv._ser.write(b"\x00\x13noise" + frames_bytes([65534, 65535, 0, 1]))
+        blocks = read_all(drv, 16)
+        assert_tiled(blocks, 3)
+        data, filled = joined(blocks)
+        expect = np.concatenate([np.frombuffer(frames_bytes([s])[10:-4], "<i2").reshape(4, 3)
+                                 for s in (65534, 65535, 0, 1)]) / 32768
+        np.testing.assert_array_equal(data, expect)
+        assert not filled.any() and blocks[0].start == 0
+        assert drv.first_sequence == 65534
+        st = drv.stats()
+        assert st["frames"] == 16 and st["filled"] == 0 and st["frames_ok"] == 4
+        assert st["bytes_skipped"] == 7 and st["sequence_gaps"] == 0
+
+
+def test_gap_is_filled_with_zeros_and_marked():
+    with SerialWhiskerDriver("loop://", 1000, 3) as drv:
+        drv._ser.write(frames_bytes([65533, 65534]) + frames_bytes([2, 3], value=7))
+        blocks = read_all(drv, 4 * 7)
+        data, filled = joined(blocks)
+        # 65535, 0 and 1 lost across the wrap: 3 frames x 4 rows of zeros.
+        assert filled.tolist() == [False] * 8 + [True] * 12 + [False] * 8
+        assert np.all(data[filled] == 0) and np.all(data[20:] == np.float32(7 / 32768))
+        st = drv.stats()
+        assert (st["sequence_gaps"], st["frames_lost"]) == (1, 3)
+        assert (st["filled"], st["frames"]) == (12, 28)
+        assert sum(b.n_filled for b in blocks) == 12
+
+
+def test_channel_mismatch_is_skipped_counted_and_explained():
+    with SerialWhiskerDriver("loop://", 1000, 3) as drv:
+        drv._ser.write(frames_bytes([0], 3) + frames_bytes([1], channels=5) + frames_bytes([2], 3))
+        blocks = read_all(drv, 12)
+        data, filled = joined(blocks)
+        st = drv.stats()
+        assert st["channel_mismatch"] == 1 and st["frames_ok"] == 2
+        assert filled.tolist() == [False] * 4 + [True] * 4 + [False] * 4
+        assert np.all(data[filled] == 0)
+        assert any("5 channels" in e and "configured for 3" in e for e in drv.events)
+
+
+def test_device_overrun_flag_is_counted():
+    with SerialWhiskerDriver("loop://", 1000, 3) as drv:
+        drv._ser.write(frames_bytes([0]) + frames_bytes([1], flags=FLAG_OVERRUN))
+        read_all(drv, 8)
+        assert drv.stats()["device_overruns"] == 1
+
+
+def test_restart_of_the_board_is_a_discontinuity_not_a_fill():
+    # 40000 frames (160 s) cannot have passed between two frames read together.
+    with SerialWhiskerDriver("loop://", 1000, 3) as drv:
+        drv._ser.write(frames_bytes([5, 6, 40000, 40001]))
+        blocks = read_all(drv, 16)
+        data, filled = joined(blocks)
+        assert len(data) == 16 and not filled.any()
+        st = drv.stats()
+        assert st["discontinuities"] == 1 and st["filled"] == 0 and st["frames_lost"] == 0
+        assert any("restarted" in e for e in drv.events)
+
+
+def test_gap_longer_than_max_gap_is_not_filled():
+    with SerialWhiskerDriver("loop://", 1000, 3, max_gap=0.01) as drv:
+        drv._ser.write(frames_bytes([0, 1, 5]))  # 3 lost frames = 12 ms > 10 ms
+        read_all(drv, 12)
+        assert drv.stats()["discontinuities"] == 1
+        assert any("max_gap" in e for e in drv.events)
+
+
+def test_missing_port_names_the_port_and_the_fix(tmp_path):
+    path = str(tmp_path / "ttyNOPE")
+    drv = SerialWhiskerDriver(path, 5000, 20)
+    with pytest.raises(DeviceUnavailable) as info:
+        drv.open()
+    assert path in str(info.value) and "ls /dev/ttyACM*" in str(info.value)
+
+
+def test_bad_arguments():
+    with pytest.raises(ValueError):
+        SerialWhiskerDriver("loop://", 1000, 0)
+    with pytest.raises(ValueError):
+        SerialWhiskerDriver("loop://", 0, 3)
+
+
+# -- link loss on a scripted port ------------------------------------------------------
+
+
+class FakeLink:
+    """Stands in for ``serial.serial_for_url``: a byte queue that can be unplugged."""
+
+    def __init__(self):
+        self.data = bytearray()
+        self.present = True
+        self.generation = 0
+        self.opens = 0
+
+    def unplug(self):
+        self.present = False
+        self.generation += 1
+        self.data.clear()
+
+    def __call__(self, url, **kwargs):
+        return FakePort(self, url, kwargs.get("timeout"))
+
+
+class FakePort:
+    def __init__(self, link, url, timeout):
+        self.link, self.url, self.timeout = link, url, timeout
+        self.generation = link.generation
+
+    def open(self):
+        self.link.opens += 1
+        if not self.link.present:
+            raise serial.SerialException(
+                errno.ENOENT,
+                f"could not open port {self.url}: [Errno 2] No such file or directory")
+
+    def _check(self, exc):
+        if self.generation != self.link.generation:
+            raise exc
+
+    @property
+    def in_waiting(self):
+        self._check(OSError(errno.EIO, "Input/output error"))
+        return len(self.link.data)
+
+    def read(self, size):
+        self._check(serial.SerialException("device reports readiness to read but returned "
+                                           "no data (device disconnected or multiple access "
+                                           "on port?)"))
+        if not self.link.data:
+            time.sleep(min(self.timeout or 0, 0.01))
+            return b""
+        out = bytes(self.link.data[:size])
+        del self.link.data[:size]
+        return out
+
+    def close(self):
+        pass
+
+
+def test_unplug_reopens_with_backoff_and_fills_the_gap(monkeypatch):
+    link = FakeLink()
+    monkeypatch.setattr(serial, "serial_for_url", link)
+    with SerialWhiskerDriver("/dev/ttyFAKE", 1000, 3) as drv:
+        link.data += frames_bytes([10, 11])
+        assert len(joined(read_all(drv, 8))[0]) == 8
+        link.unplug()
+        # Unplugged: read() returns None within its timeout and keeps trying.
+        assert drv.read(0.1) is None
+        assert drv.stats()["unplugs"] == 1 and drv.stats()["reconnects"] == 0
+        opens = link.opens
+        assert drv.read(0.3) is None
+        assert link.opens > opens  # retried with backoff
+        link.present = True
+        link.data += frames_bytes([13, 14])  # 12 was lost while unplugged
+        _, filled = joined(read_all(drv, 12))
+        assert filled.tolist() == [True] * 4 + [False] * 8
+        st = drv.stats()
+        assert (st["unplugs"], st["reconnects"], st["frames_lost"]) == (1, 1, 1)
+        text = "\n".join(drv.events)
+        assert "lost /dev/ttyFAKE" in text and "reconnected" in text and "not found" in text
+
+
+def test_port_that_dies_before_sending_is_a_failed_attempt_not_an_unplug(monkeypatch):
+    link = FakeLink()
+    monkeypatch.setattr(serial, "serial_for_url", link)
+    with SerialWhiskerDriver("/dev/ttyFAKE", 1000, 3) as drv:
+        link.data += frames_bytes([0])
+        read_all(drv, 4)
+        link.unplug()
+        link.present = True  # the node is still there ...
+        drv.read(0.15)  # ... reopened,
+        link.generation += 1  # ... and it dies again before a byte came.
+        drv.read(0.15)
+        st = drv.stats()
+        assert st["unplugs"] == 1 and st["reconnects"] == 0
+
+
+def test_without_reconnect_an_unplug_raises_then_closes(monkeypatch):
+    link = FakeLink()
+    monkeypatch.setattr(serial, "serial_for_url", link)
+    drv = SerialWhiskerDriver("/dev/ttyFAKE", 1000, 3, reconnect=False)
+    drv.open()
+    link.unplug()
+    with pytest.raises(DeviceUnavailable, match="ttyFAKE"):
+        drv.read(0.1)
+    with pytest.raises(DriverClosed):
+        drv.read(0.1)
+
+
+# -- the mock board on a real pty --------------------------------------------------------
+
+RATE, CHANNELS, SPF = 5000.0, 20, 32
+
+
+def source(seconds, seed=0):
+    rng = np.random.default_rng(seed)
+    n = int(seconds * RATE)
+    t = np.arange(n)[:, None] / RATE
+    x = 0.6 * np.sin(2 * np.pi * (40 + 13 * np.arange(CHANNELS)) * t) + rng.normal(0, 0.1, (n, 20))
+    x[::97, 0] = 1.5  # clipped to +32767
+    x[::89, 1] = -1.5  # clipped to -32768
+    return x
+
+
+def stream(dev, drv, n):
+    """Read until every row of the source arrived, or the mock finished and the
+    port stayed idle for 2 s (frames lost at the end never arrive)."""
+    blocks, idle, rows = [], 0, 0
+    dev.start()
+    for _ in range(4000):  # about 400 s at most, only if something hangs
+        if drv.first_sequence is not None:
+            offset = ((drv.first_sequence - dev.first_seq) % 65536) * dev.samples_per_frame
+            if rows >= n - offset:
+                break
+        b = drv.read(0.1)
+        if b is None:
+            idle = idle + 1 if dev.finished.is_set() else 0
+            if idle >= 20:
+                break
+            continue
+        idle = 0
+        blocks.append(b)
+        rows += b.frames
+    return blocks
+
+
+def check_against_ledger(blocks, dev, drv, src):
+    """Measured rows bit-exact at their place, filled rows zero, and filled frames
+    exactly the frames the ledger says were lost between the first and last frames
+    the driver received. Returns (filled frame indices, those lost frames, ledger)."""
+    assert dev.error is None
+    led = dev.ledger
+    assert_tiled(blocks, CHANNELS)
+    data, filled = joined(blocks)
+    offset = ((drv.first_sequence - dev.first_seq) % 65536) * SPF
+    q = quantise(src)[offset:offset + len(data)]
+    assert len(q) == len(data)
+    np.testing.assert_array_equal((data[~filled] * 32768).astype(np.int16), q[~filled])
+    assert np.all(data[filled] == 0)
+    filled_frames = set((offset + np.flatnonzero(filled)) // SPF)
+    k_first, k_last = offset // SPF, (offset + len(data) - 1) // SPF
+    st = drv.stats()
+    assert st["frames"] == len(data) and st["filled"] == int(filled.sum())
+    assert st["discontinuities"] == 0 and st["channel_mismatch"] == 0
+    return filled_frames, {k: v for k, v in led.lost.items() if k_first < k < k_last}, led
+
+
+@pytest.mark.hardware
+def test_pty_end_to_end_bit_exact_across_the_sequence_wrap():
+    src = source(1.5)
+    with MockWhiskerDevice(src, RATE, samples_per_frame=SPF, first_seq=65500) as dev, \
+            SerialWhiskerDriver(dev.port, RATE, CHANNELS) as drv:
+        blocks = stream(dev, drv, len(src))
+        filled_frames, lost, led = check_against_ledger(blocks, dev, drv, src)
+        st = drv.stats()
+    assert filled_frames == set(lost)  # empty unless the machine stalled the reader
+    assert set(lost.values()) <= {"overflow"}
+    assert st["crc_errors"] == st["truncated"] == st["header_errors"] == 0
+    assert st["bytes_skipped"] == 0 and st["unplugs"] == 0
+    if not led.lost:
+        assert st["frames"] == len(src) and st["frames_ok"] == dev.n_frames
+        assert drv.first_sequence == 65500
+
+
+@pytest.mark.hardware
+def test_pty_every_injected_fault_is_accounted_for():
+    src = source(2.0, seed=1)
+    faults = FaultSpec(garbage_rate=0.1, drop_rate=0.06, crc_rate=0.06)
+    with MockWhiskerDevice(src, RATE, samples_per_frame=SPF, faults=faults, seed=7,
+                           first_seq=65400) as dev, \
+            SerialWhiskerDriver(dev.port, RATE, CHANNELS) as drv:
+        blocks = stream(dev, drv, len(src))
+        filled_frames, lost, led = check_against_ledger(blocks, dev, drv, src)
+        st = drv.stats()
+    assert led.crc > 5 and led.truncated > 5 and led.garbage > 10  # the schedule did inject
+    assert st["crc_errors"] == led.crc
+    assert st["truncated"] == led.truncated
+    assert st["bytes_skipped"] == led.garbage_bytes + led.damaged_bytes
+    assert filled_frames == set(lost)
+    assert {k for k, v in led.lost.items() if v != "overflow"} <= set(lost)
+    assert st["frames_lost"] == len(lost)
+    assert st["filled"] == SPF * len(lost)
+    assert st["frames_ok"] == led.sent
+
+
+@pytest.mark.hardware
+def test_pty_reader_stall_overflow_is_filled_not_a_discontinuity():
+    src = source(2.5, seed=2)
+    with MockWhiskerDevice(src, RATE, samples_per_frame=SPF) as dev, \
+            SerialWhiskerDriver(dev.port, RATE, CHANNELS) as drv:
+        dev.start()
+        blocks = []
+        for _ in range(600):
+            if sum(b.frames for b in blocks) >= 2500:
+                break
+            b = drv.read(0.5)
+            if b is not None:
+                blocks.append(b)
+        time.sleep(1.0)  # the node stalls; the pty (~22 kB, ~0.1 s) overflows
+        rest = stream(dev, drv, len(src) - sum(b.frames for b in blocks))
+        blocks += rest
+        filled_frames, lost, led = check_against_ledger(blocks, dev, drv, src)
+    assert led.overflow > 0
+    assert filled_frames == set(lost) and set(lost.values()) == {"overflow"}
+    assert drv.stats()["frames_lost"] == led.overflow
+
+
+@pytest.mark.hardware
+def test_pty_unplug_replug_same_path_resumes_and_fills_the_gap():
+    src = source(2.8, seed=3)
+    faults = FaultSpec(unplug_every=0.8, unplug_for=0.3)
+    with MockWhiskerDevice(src, RATE, samples_per_frame=SPF, faults=faults, seed=1) as dev, \
+            SerialWhiskerDriver(dev.port, RATE, CHANNELS) as drv:
+        blocks = stream(dev, drv, len(src))
+        filled_frames, lost, led = check_against_ledger(blocks, dev, drv, src)
+        st = drv.stats()
+        events = "\n".join(drv.events)
+    assert led.unplugs == 2 and len(led.unplug_at) == 2
+    assert st["unplugs"] == 2 and st["reconnects"] == 2, events
+    # Every frame produced while unplugged is filled and marked; anything else
+    # filled was in the pty when it went (lost with it), or written to the new
+    # pty before the driver reopened it (pyserial flushes input at open).
+    unplugged = {k for k, v in lost.items() if v == "unplugged"}
+    assert unplugged and unplugged <= filled_frames
+    window = int(2.0 * RATE / SPF)
+    for k in filled_frames - set(lost):
+        assert any(u - window <= k < u + window for u in led.unplug_at), k
+    fs = sorted(filled_frames)
+    runs, run = [], []
+    for k in fs:
+        if run and k != run[-1] + 1:
+            runs.append(run)
+            run = []
+        run.append(k)
+    runs.append(run)
+    # One filled gap per unplug (a stalled reader could add overflow gaps).
+    assert sum(any(k in unplugged for k in r) for r in runs) == 2
+    assert events.count("reconnected to") == 2
+
+
+@pytest.mark.hardware
+def test_mock_never_blocks_when_nobody_reads(tmp_path, capsys):
+    rate = 5000
+    x = (np.random.default_rng(4).normal(0, 3000, (int(0.4 * rate), 1))).astype(np.int16)
+    wav = tmp_path / "mono.wav"
+    wavfile.write(wav, rate, x)
+    port = str(tmp_path / "whisker0")
+    result = {}
+    t = threading.Thread(target=lambda: result.setdefault(
+        "rc", main([str(wav), "--channels", "20", "--port", port, "--linger", "0",
+                    "--garbage-rate", "0.1", "--seed", "3"])))
+    t.start()
+    t.join(60)
+    assert not t.is_alive(), "the mock blocked with no reader"
+    assert result["rc"] == 0
+    out, err = capsys.readouterr()
+    assert out.strip() == port
+    assert "overflow" in err
+    assert int(err.split("overflow ")[1].split(",")[0]) > 0  # 80 kB into a ~22 kB pty
+
+
+# -- WAV loading and the CLI pieces -------------------------------------------------------
+
+
+@pytest.mark.parametrize("dtype,scale", [(np.int16, 32768), (np.int32, 2**31),
+                                         (np.float32, 1.0)])
+def test_load_wav_scales_to_full_scale(tmp_path, dtype, scale):
+    x = np.array([[0.5, -0.25], [-1.0, 0.125]])
+    path = tmp_path / "x.wav"
+    wavfile.write(path, 8000, (x * scale).astype(dtype))
+    y, rate = load_wav(str(path))
+    assert rate == 8000 and y.shape == (2, 2)
+    np.testing.assert_allclose(y, x)
+
+
+def test_load_wav_mono_is_one_column(tmp_path):
+    path = tmp_path / "m.wav"
+    wavfile.write(path, 5000, np.array([1, 2, 3], np.int16))
+    y, _ = load_wav(str(path))
+    assert y.shape == (3, 1)
+
+
+def test_cli_refuses_fanning_out_a_multichannel_source(tmp_path, capsys):
+    path = tmp_path / "s.wav"
+    wavfile.write(path, 5000, np.zeros((10, 2), np.int16))
+    assert main([str(path), "--channels", "20"]) == 2
+    assert "fans out mono" in capsys.readouterr().err
+
+
+def test_fault_spec_validation():
+    with pytest.raises(ValueError):
+        FaultSpec(crc_rate=1.5)
+    with pytest.raises(ValueError):
+        FaultSpec(drop_rate=0.6, crc_rate=0.6)
+
+
+@pytest.mark.hardware
+def test_second_reader_is_refused_with_a_clear_message():
+    with MockWhiskerDevice(np.zeros((64, 2)), 1000) as dev, \
+            SerialWhiskerDriver(dev.port, 1000, 2):
+        with pytest.raises(DeviceUnavailable, match="in use by another program"):
+            SerialWhiskerDriver(dev.port, 1000, 2).open()
+
+
+@pytest.mark.hardware
+def test_pty_loop_mode_replays_the_source():
+    src = source(0.05, seed=5)  # 250 rows: not a multiple of 32, so frames straddle the end
+    with MockWhiskerDevice(src, RATE, samples_per_frame=SPF, loop=True) as dev, \
+            SerialWhiskerDriver(dev.port, RATE, CHANNELS) as drv:
+        dev.start()
+        blocks = read_all(drv, 4 * len(src), timeout=1.0, max_reads=2000)
+        dev.close()
+        assert dev.error is None and not dev.finished.is_set()
+    data, filled = joined(blocks)
+    offset = ((drv.first_sequence - dev.first_seq) % 65536) * SPF
+    expect = np.tile(quantise(src), (8, 1))[offset:offset + len(data)]
+    np.testing.assert_array_equal((data[~filled] * 32768).astype(np.int16), expect[~filled])
