@@ -493,43 +493,11 @@ class MockWhiskerDevice:
 # -- command line ------------------------------------------------------------------
 
 
-def load_wav(path: str) -> tuple[np.ndarray, float]:
-    """Read a WAV file as full-scale floats.
-
-    Parameters
-    ----------
-    path : str
-        uint8, int16, int32 or float32 WAV.
-
-    Returns
-    -------
-    samples : ndarray of float64, shape (n, channels)
-        Full scale +-1.0 (int16 / 32768, int32 / 2**31, uint8 (x - 128) / 128).
-    rate : float
-        Hz.
-    """
-    from scipy.io import wavfile
-
-    rate, x = wavfile.read(path)
-    if x.dtype == np.int16:
-        y = x / 32768.0
-    elif x.dtype == np.int32:
-        y = x / 2147483648.0
-    elif x.dtype == np.uint8:
-        y = (x.astype(np.float64) - 128.0) / 128.0
-    elif x.dtype.kind == "f":
-        y = x.astype(np.float64)
-    else:
-        raise ValueError(f"{path}: unsupported WAV sample type {x.dtype}")
-    if y.ndim == 1:
-        y = y[:, None]
-    return y, float(rate)
-
-
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Add the ``mock-whisker`` options to ``parser``."""
     parser.add_argument("source", metavar="SOURCE",
-                        help="WAV file to stream (uint8/int16/int32/float32, any channel count)")
+                        help="what to stream: a WAV file, a recorded session, or synth:NAME (a reference "
+                             "whisker texture, e.g. synth:T3)")
     parser.add_argument("--port", metavar="PATH", default=None,
                         help="symlink to create for the pty (default: in a temporary directory)")
     parser.add_argument("--channels", type=int, default=None,
@@ -607,21 +575,3 @@ def run(args: argparse.Namespace, samples: np.ndarray, rate: float) -> int:
           f"{led.overflow}, unplugs {led.unplugs} ({led.unplugged} frames unplugged)",
           file=sys.stderr)
     return 0
-
-
-def main(argv: list[str] | None = None) -> int:
-    """``python -m drivers.mock_whisker SOURCE [options]``: load a WAV and :func:`run`."""
-    parser = argparse.ArgumentParser(prog="supramodal mock-whisker",
-                                     description="Mock whisker-array board on a pty.")
-    add_arguments(parser)
-    args = parser.parse_args(argv)
-    try:
-        samples, rate = load_wav(args.source)
-    except (OSError, ValueError) as exc:
-        print(f"mock-whisker: cannot read {args.source}: {exc}", file=sys.stderr)
-        return 2
-    return run(args, samples, rate)
-
-
-if __name__ == "__main__":
-    sys.exit(main())

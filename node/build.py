@@ -126,7 +126,7 @@ def driver_for(scene: Scene, bank: Bank, speed_override=None):
     raise SceneError(f"{scene.source}: [driver] type {kind!r} is not supported")
 
 
-def build_node(scene: Scene, speed=None, sinks_override=None, progress=None) -> Node:
+def build_node(scene: Scene, speed=None, sinks_override=None, progress=None, recorder=None) -> Node:
     """Everything a scene describes, wired and ready to :meth:`Node.run`."""
     bank = bank_for(scene)
     pipeline = pipeline_for(scene, bank)
@@ -154,6 +154,6 @@ def build_node(scene: Scene, speed=None, sinks_override=None, progress=None) -> 
         overrun = "block" if scene.driver["type"] in ("replay", "synth") else "drop-oldest"
     try:
         return Node(driver, pipeline, sinks, model=model, decision=scene.decision, mapping=mapping, labels=labels,
-                    buffer_seconds=scene.buffer["seconds"], overrun=overrun)
+                    buffer_seconds=scene.buffer["seconds"], overrun=overrun, recorder=recorder)
     except ValueError as exc:
         raise SceneError(f"{scene.source}: {exc}") from None

@@ -94,6 +94,65 @@ def _cmd_run(args) -> int:
     return 0
 
 
+def _cmd_record(args) -> int:
+    import json as _json
+    import signal
+    import threading
+    import time
+
+    from node.build import build_node
+    from node.recorder import SessionRecorder
+    from node.scene import load_scene
+
+    scene = load_scene(args.scene)
+    name = args.name or time.strftime("session-%Y%m%d-%H%M%S")
+    source = _json.dumps({"scene": scene.source, "driver": scene.driver})
+    recorder = SessionRecorder(args.out, name, source, label=args.label)
+    node = build_node(scene, recorder=recorder, progress=_progress(args))
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda signum, frame: node.stop(signal.Signals(signum).name))
+    if args.marks:
+        # Each line typed starts a label (its text) at the current stream time; an empty line ends it.
+        def read_marks():
+            for line in sys.stdin:
+                recorder.mark(line.strip() or None)
+        threading.Thread(target=read_marks, daemon=True).start()
+    summary = node.run(max_seconds=args.seconds)
+    if summary.get("recorded"):
+        print(f"recorded {summary['stream_seconds']:.2f} s to {summary['recorded'][0]} (+ .json)", file=sys.stderr)
+    return 0
+
+
+def _mock_source(source: str):
+    """SOURCE of mock-whisker: ``synth:NAME`` (a reference whisker texture), a session or a WAV file."""
+    if source.startswith("synth:"):
+        from supramodal.textures import reference_texture_set
+
+        ts = reference_texture_set("whisker")
+        name = source[len("synth:"):]
+        if name not in ts.names:
+            raise CliError(f"unknown texture {name!r}; the whisker reference set has {list(ts.names)}")
+        return ts.synthesize(ts.names.index(name))[:, None], ts.fs
+    from replay.driver import ReplayDriver
+
+    drv = ReplayDriver(source, speed="max", on_notice=None)   # a session or a bare WAV file
+    return drv.data, drv.rate
+
+
+def _cmd_mock_whisker(args) -> int:
+    from drivers.mock_whisker import run
+
+    samples, rate = _mock_source(args.source)
+    return run(args, samples, rate)
+
+
+def _cmd_devices(args) -> int:
+    from drivers.devices import format_devices
+
+    print(format_devices())
+    return 0
+
+
 def _mapping(text: str):
     return int(text) if text.isdigit() else text
 
@@ -156,6 +215,26 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=_cmd_evaluate)
+
+    p = sub.add_parser("record", help="record a scene's raw driver blocks as a session (WAV + JSON)")
+    p.add_argument("scene", help="scene TOML file")
+    p.add_argument("--out", required=True, help="folder for the session")
+    p.add_argument("--name", help="session name (default: session-DATE-TIME)")
+    p.add_argument("--label", help="label of the whole recording")
+    p.add_argument("--marks", action="store_true",
+                   help="read labels from stdin while recording: a line starts that label now, an empty line ends it")
+    p.add_argument("--seconds", type=float, help="stop after this much stream (default: until the stream ends or Ctrl-C)")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=_cmd_record)
+
+    from drivers.mock_whisker import add_arguments as mock_arguments
+
+    p = sub.add_parser("mock-whisker", help="a mock whisker-array board streaming frames on a pty, with fault injection")
+    mock_arguments(p)
+    p.set_defaults(func=_cmd_mock_whisker)
+
+    p = sub.add_parser("devices", help="list audio inputs and serial ports")
+    p.set_defaults(func=_cmd_devices)
 
     p = sub.add_parser("experiment", help="reproduce a figure of the paper")
     p.add_argument("figure", choices=["fig3"], help="which figure")

@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from drivers.base import DriverClosed
+from drivers.base import Block, DriverClosed
 from node.ringbuffer import RingBuffer, RingClosed
 from supramodal.decisions import ContactDetector, DecisionAccumulator, window_decision
 from supramodal.model import TextureModel
@@ -89,6 +89,13 @@ class Labels:
         return None
 
 
+def _head(block: Block, n: int) -> Block:
+    """The first ``n`` frames of a block."""
+    n = max(n, 0)
+    filled = None if block.filled is None else block.filled[:n]
+    return Block(block.data[:n], block.start, block.arrival, filled)
+
+
 class Node:
     """One stream: a driver, the model blocks and the sinks, run on two threads.
 
@@ -108,6 +115,8 @@ class Node:
         Truth labels; by default those the driver carries (a replayed session's).
     buffer_seconds : float
         Ring capacity.
+    recorder : node.recorder.SessionRecorder, optional
+        Records the raw driver frames (a second ring reader, on its own thread).
     overrun : {"drop-oldest", "drop-newest", "block"}
         "block" makes the driver thread wait for space: right for replay, where
         no sample need be lost; live drivers drop and count instead.
@@ -115,7 +124,7 @@ class Node:
 
     def __init__(self, driver, pipeline: FeaturePipeline, sinks, model: TextureModel | None = None,
                  decision: dict | None = None, mapping="auto", labels: Labels | None = None,
-                 buffer_seconds: float = 2.0, overrun: str = "drop-oldest") -> None:
+                 buffer_seconds: float = 2.0, overrun: str = "drop-oldest", recorder=None) -> None:
         bank = pipeline.bank
         if abs(driver.rate - bank.fs) > 1e-9 * bank.fs:
             raise ValueError(f"the driver delivers {driver.rate:g} Hz but the {bank.kind} bank runs at {bank.fs:g} Hz")
@@ -138,10 +147,15 @@ class Node:
         capacity = max(int(buffer_seconds * driver.rate), 1)
         self.ring = RingBuffer(capacity, driver.channels, dtype=np.float64, overrun=overrun)
         self._reader = self.ring.add_reader("processing")
+        self.recorder = recorder
+        if recorder is not None:
+            self._recorder_reader = self.ring.add_reader("recorder")
+            recorder.attach(driver.rate, driver.channels, lambda: self.ring.written)
         self._arrivals: collections.deque[tuple[int, float]] = collections.deque()
         self._stop = threading.Event()
         self._errors: list[tuple[str, BaseException]] = []
         self._stopped_by = None
+        self._max_frames = None
         # processing-thread state
         self._expected = 0
         self._gap_windows: set[int] = set()
@@ -159,12 +173,21 @@ class Node:
             self._stopped_by = reason
         self._stop.set()
 
-    def run(self) -> dict:
-        """Run until the driver's stream ends or :meth:`stop`; return the summary (also sent to sinks)."""
+    def run(self, max_seconds: float | None = None) -> dict:
+        """Run until the driver's stream ends, ``max_seconds`` of stream have passed, or :meth:`stop`.
+
+        Returns the summary (also sent to the sinks).
+        """
+        if max_seconds is not None and not max_seconds > 0:
+            raise ValueError(f"max_seconds must be > 0, got {max_seconds!r}")
+        self._max_frames = None if max_seconds is None else int(round(max_seconds * self.driver.rate))
         t0 = time.monotonic()
         threads = [threading.Thread(target=self._guard, args=("driver", self._drive), name="node-driver", daemon=True),
                    threading.Thread(target=self._guard, args=("processing", self._process), name="node-processing",
                                     daemon=True)]
+        if self.recorder is not None:
+            threads.append(threading.Thread(target=self._guard, name="node-recorder", daemon=True,
+                                            args=("recorder", lambda: self.recorder.run(self._recorder_reader))))
         with self.driver:
             for t in threads:
                 t.start()
@@ -200,6 +223,12 @@ class Node:
                     break
                 if block is None:
                     continue
+                if self._max_frames is not None and block.start + block.frames >= self._max_frames:
+                    block = _head(block, self._max_frames - block.start)
+                    self._arrivals.append((block.start + block.frames, block.arrival))
+                    self._write(block)
+                    self.stop("stream length reached")
+                    break
                 self._arrivals.append((block.start + block.frames, block.arrival))
                 self._write(block)
         finally:
@@ -322,6 +351,7 @@ class Node:
                             "max": float(lat.max()), "count": int(lat.size)} if lat.size else None),
             "real_time_factor": self._cpu / stream if stream else 0.0,
             "driver": drv,
+            "recorded": [str(p) for p in self.recorder.paths] if self.recorder and self.recorder.paths else None,
             "ring": {k: v for k, v in ring.items() if isinstance(v, (int, float))},
             "stopped_by": self._stopped_by,
         }

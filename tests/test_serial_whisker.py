@@ -18,7 +18,13 @@ from scipy.io import wavfile
 
 from drivers.base import Block, DeviceUnavailable, Driver, DriverClosed
 from drivers.frames import FLAG_OVERRUN, encode_frame
-from drivers.mock_whisker import FaultSpec, MockWhiskerDevice, load_wav, main, quantise
+from drivers.mock_whisker import FaultSpec, MockWhiskerDevice, quantise
+from node.cli import main as cli_main
+
+
+def main(argv):
+    """`supramodal mock-whisker ARGV`."""
+    return cli_main(["mock-whisker", *argv])
 from drivers.serial_whisker import SerialWhiskerDriver
 
 
@@ -440,25 +446,7 @@ def test_mock_never_blocks_when_nobody_reads(tmp_path, capsys):
     assert int(err.split("overflow ")[1].split(",")[0]) > 0  # 80 kB into a ~22 kB pty
 
 
-# -- WAV loading and the CLI pieces -------------------------------------------------------
-
-
-@pytest.mark.parametrize("dtype,scale", [(np.int16, 32768), (np.int32, 2**31),
-                                         (np.float32, 1.0)])
-def test_load_wav_scales_to_full_scale(tmp_path, dtype, scale):
-    x = np.array([[0.5, -0.25], [-1.0, 0.125]])
-    path = tmp_path / "x.wav"
-    wavfile.write(path, 8000, (x * scale).astype(dtype))
-    y, rate = load_wav(str(path))
-    assert rate == 8000 and y.shape == (2, 2)
-    np.testing.assert_allclose(y, x)
-
-
-def test_load_wav_mono_is_one_column(tmp_path):
-    path = tmp_path / "m.wav"
-    wavfile.write(path, 5000, np.array([1, 2, 3], np.int16))
-    y, _ = load_wav(str(path))
-    assert y.shape == (3, 1)
+# -- the CLI pieces -------------------------------------------------------
 
 
 def test_cli_refuses_fanning_out_a_multichannel_source(tmp_path, capsys):

@@ -1,0 +1,129 @@
+"""Record a node's raw driver blocks as a session that the replay driver plays back exactly.
+
+The recorder is a second reader of the node's ring buffer, on its own thread: it
+sees the frames before any processing, with their ``filled`` marks, and appends
+them to a raw file in the output folder as they come (memory stays flat however
+long the recording). At the end the raw file becomes ``NAME.wav`` + ``NAME.json``
+(:func:`replay.session.save_session`): float32 samples when every sample is
+exactly a float32 (serial and microphone drivers), float64 otherwise, so that
+replaying the session feeds the node bit-identical samples.
+
+Labels are time ranges; :meth:`SessionRecorder.mark` starts one at the current
+stream position (or ends the current one), from any thread.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+from pathlib import Path
+
+import numpy as np
+
+from node.ringbuffer import RingClosed
+from replay.session import save_session
+
+_CHUNK = 1 << 18  # frames per pass when converting the raw file
+
+
+class SessionRecorder:
+    """Writes what a ring reader delivers to ``folder/name.wav`` + ``.json``.
+
+    Parameters
+    ----------
+    folder : path
+        Created if missing.
+    name : str
+        Session base name.
+    source : str
+        Free text stored in the sidecar: the driver and its options.
+    label : str, optional
+        A label for the whole recording.
+    """
+
+    def __init__(self, folder, name: str, source: str, label: str | None = None) -> None:
+        self.folder = Path(folder)
+        self.folder.mkdir(parents=True, exist_ok=True)
+        self.name = name
+        self.source = source
+        self.rate: float | None = None
+        self.channels: int | None = None
+        self._raw_path = self.folder / f".{name}.raw"
+        self._raw = open(self._raw_path, "wb")
+        self._frames = 0
+        self._filled: list[tuple[int, int]] = []
+        self._lock = threading.Lock()
+        self._marks: list[tuple[int, str | None]] = [(0, label)] if label else []
+        self._position = lambda: self._frames
+        self.paths: tuple[Path, Path] | None = None
+
+    def attach(self, rate: float, channels: int, position) -> None:
+        """Called by the node: the stream's rate, channels, and a callable giving the current frame."""
+        self.rate, self.channels, self._position = float(rate), int(channels), position
+
+    def mark(self, label: str | None) -> None:
+        """Start a label at the current stream position; ``None`` ends the current one. Thread-safe."""
+        with self._lock:
+            self._marks.append((int(self._position()), label or None))
+
+    def run(self, reader) -> None:
+        """Drain ``reader`` (a ring reader) until the ring closes; then write the session."""
+        try:
+            expected = 0
+            while True:
+                try:
+                    chunk = reader.read(timeout=0.1)
+                except RingClosed:
+                    break
+                if chunk is None:
+                    continue
+                start, data, filled = chunk
+                if start > expected:
+                    # The recorder fell behind the ring: keep time exact, mark the hole as filled.
+                    self._append(np.zeros((start - expected, data.shape[1])), None, missing=True)
+                self._append(data, filled)
+                expected = start + data.shape[0]
+        finally:
+            self._raw.close()
+            self.paths = self._finish()
+
+    def _append(self, data: np.ndarray, filled, missing: bool = False) -> None:
+        a = self._frames
+        self._raw.write(np.ascontiguousarray(data, dtype=np.float64).tobytes())
+        self._frames += data.shape[0]
+        if missing:
+            self._filled.append((a, self._frames))
+        elif filled is not None and filled.any():
+            idx = np.flatnonzero(np.diff(np.r_[0, filled.astype(np.int8), 0]))
+            self._filled += [(a + int(s), a + int(e)) for s, e in zip(idx[::2], idx[1::2])]
+
+    def _labels(self) -> list[tuple[float, float, str]]:
+        with self._lock:
+            marks = sorted(self._marks, key=lambda m: m[0]) + [(self._frames, None)]
+        out = []
+        for (a, name), (b, _) in zip(marks, marks[1:]):
+            if name is not None and b > a:
+                out.append((a / self.rate, b / self.rate, name))
+        return out
+
+    def _finish(self) -> tuple[Path, Path] | None:
+        if self._frames == 0 or self.rate is None:
+            os.unlink(self._raw_path)
+            return None
+        raw = np.memmap(self._raw_path, dtype=np.float64, mode="r", shape=(self._frames, self.channels))
+        exact32 = all(np.array_equal(raw[i : i + _CHUNK].astype(np.float32).astype(np.float64), raw[i : i + _CHUNK])
+                      for i in range(0, self._frames, _CHUNK))
+        paths = save_session(self.folder / self.name, raw, int(round(self.rate)), self.source, labels=self._labels(),
+                             filled=self._merged_filled(), dtype="float32" if exact32 else "float64")
+        del raw
+        os.unlink(self._raw_path)
+        return paths
+
+    def _merged_filled(self) -> list[tuple[int, int]]:
+        merged: list[list[int]] = []
+        for a, b in sorted(self._filled):
+            if merged and a <= merged[-1][1]:
+                merged[-1][1] = max(merged[-1][1], b)
+            else:
+                merged.append([a, b])
+        return [(a, b) for a, b in merged]
