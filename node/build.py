@@ -122,7 +122,8 @@ def driver_for(scene: Scene, bank: Bank, speed_override=None):
     if kind == "microphone":
         from drivers.microphone import MicrophoneDriver
 
-        return MicrophoneDriver(device=d["device"], rate=d["rate"], channels=d["channels"], blocksize=d["block"]), Labels(), None
+        return MicrophoneDriver(device=d["device"], rate=d["rate"], channels=d["channels"], blocksize=d["block"],
+                                dtype=d["dtype"], buffer_seconds=d["buffer_seconds"]), Labels(), None
     raise SceneError(f"{scene.source}: [driver] type {kind!r} is not supported")
 
 
@@ -147,7 +148,8 @@ def build_node(scene: Scene, speed=None, sinks_override=None, progress=None, rec
             model.check_fits(bank, pipeline.features, pipeline.window_samples)
         except ModelError as exc:
             raise SceneError(f"{scene.source}: [model] {exc}") from None
-    sinks = sinks_override if sinks_override is not None else [make_sink(s["type"], s["path"]) for s in scene.sinks]
+    sinks = sinks_override if sinks_override is not None else [
+        make_sink(s["type"], s["path"] if s["path"] == "-" else str(scene.resolve(s["path"]))) for s in scene.sinks]
     mapping = scene.driver.get("mapping", "auto")
     overrun = scene.buffer["overrun"]
     if overrun == "auto":

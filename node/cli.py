@@ -90,7 +90,7 @@ def _cmd_run(args) -> int:
     # Signals only set a flag: the node finishes what it holds and prints its summary.
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda signum, frame: node.stop(signal.Signals(signum).name))
-    node.run()
+    node.run(max_seconds=args.seconds)
     return 0
 
 
@@ -192,6 +192,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("scene", nargs="?", help="scene TOML file (default: the embedded default scene)")
     p.add_argument("--speed", type=_speed, help="replay speed: 1 = real time (default), a factor, or 'max'")
     p.add_argument("--json", action="store_true", help="JSON Lines on stdout instead of the scene's sinks")
+    p.add_argument("--seconds", type=float, help="stop after this much stream (default: until it ends or Ctrl-C)")
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")
     p.set_defaults(func=_cmd_run)
 

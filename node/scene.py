@@ -124,6 +124,8 @@ DRIVER_KEYS = {
         "rate": (_positive, "Hz", 44100.0),
         "channels": (_int_min(1), "an integer >= 1", 1),
         "block": (_int_min(1), "frames per block", 441),
+        "dtype": (_one_of("float32", "int16"), '"float32" or "int16" (capture format)', "float32"),
+        "buffer_seconds": (_positive, "seconds the driver buffers between PortAudio and the node", 2.0),
         "mapping": (_mapping, '"auto", "mono", "per-channel", "mean" or a channel index', "auto"),
     },
 }
