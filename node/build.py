@@ -39,7 +39,7 @@ def pipeline_for(scene: Scene, bank: Bank) -> FeaturePipeline:
     f = scene.features
     try:
         return FeaturePipeline(bank, f["names"], f["window"], dtype=np.dtype(f["dtype"]), peak_mode=f["peak_mode"],
-                               nonfinite=f["nonfinite"])
+                               nonfinite=f["nonfinite"], peak_threshold=f["peak_threshold"])
     except ValueError as exc:
         raise SceneError(f"{scene.source}: [features] {exc}") from None
 
@@ -86,16 +86,18 @@ def synth_session(scene: Scene, bank: Bank):
     return ts, np.concatenate(parts)[:, None], Labels(labels)
 
 
-def train_on_texture_set(ts, bank: Bank, features, window: float, progress=None) -> TextureModel:
-    """The model the default scene trains on the spot: Fig. 3's training half of each texture."""
+def train_on_texture_set(ts, pipeline: FeaturePipeline, progress=None) -> TextureModel:
+    """The model the default scene trains on the spot: Fig. 3's training part of each texture,
+    computed with the scene's own pipeline settings."""
     from supramodal.experiments.common import DEFAULT_EPOCHS, split, texture_features
 
-    values, _ = texture_features(ts, bank, features, window)
+    p = pipeline
+    values, _ = texture_features(ts, p.bank, p.features, p.window, peak_mode=p.peaks.mode,
+                                 peak_threshold=p.peaks.threshold)
     x_train, y_train, _, _ = split(values)
-    wlen = FeaturePipeline(bank, features, window).window_samples
     if progress:
-        progress(f"trained on {len(x_train)} windows of {len(ts.textures)} textures ({', '.join(features)})")
-    return TextureModel.train(x_train, y_train, ts.names, bank, features, wlen, epochs=DEFAULT_EPOCHS, seed=0)
+        progress(f"trained on {len(x_train)} windows of {len(ts.textures)} textures ({', '.join(p.features)})")
+    return TextureModel.train_for(p, x_train, y_train, ts.names, epochs=DEFAULT_EPOCHS, seed=0)
 
 
 def driver_for(scene: Scene, bank: Bank, speed_override=None):
@@ -138,14 +140,14 @@ def build_node(scene: Scene, speed=None, sinks_override=None, progress=None, rec
         if ts is None:
             raise SceneError(f"{scene.source}: [model] train_on_start works only with the synth driver")
         # Synthesised textures: the model is made on the spot (the default scene does this).
-        model = train_on_texture_set(ts, bank, pipeline.features, pipeline.window, progress)
+        model = train_on_texture_set(ts, pipeline, progress)
         if m["path"] is not None:
             model.save(scene.resolve(m["path"]))
     elif m["path"] is not None:
         model = TextureModel.load(scene.resolve(m["path"]))
     if model is not None:
         try:
-            model.check_fits(bank, pipeline.features, pipeline.window_samples)
+            model.check_pipeline(pipeline)
         except ModelError as exc:
             raise SceneError(f"{scene.source}: [model] {exc}") from None
     sinks = sinks_override if sinks_override is not None else [

@@ -129,7 +129,7 @@ class Node:
         if abs(driver.rate - bank.fs) > 1e-9 * bank.fs:
             raise ValueError(f"the driver delivers {driver.rate:g} Hz but the {bank.kind} bank runs at {bank.fs:g} Hz")
         if model is not None:
-            model.check_fits(bank, pipeline.features, pipeline.window_samples)
+            model.check_pipeline(pipeline)
         self.driver = driver
         self.pipeline = pipeline
         self.sinks = list(sinks)

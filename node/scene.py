@@ -143,6 +143,7 @@ SECTIONS = {
         "names": (_features, f"a list drawn from {list(FEATURES)}", ["Af"]),
         "window": (_positive, "seconds, > 0", 0.1),
         "peak_mode": (_one_of(*PEAK_MODES), f"one of {list(PEAK_MODES)}", "maxima"),
+        "peak_threshold": (_non_negative, "smallest peak amplitude counted, >= 0", 0.0),
         "dtype": (_one_of("float64", "float32"), '"float64" or "float32"', "float64"),
         "nonfinite": (_one_of("raise", "zero"), '"raise" or "zero"', "zero"),
     },

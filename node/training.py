@@ -64,8 +64,10 @@ def read_manifest(path) -> list[Recording]:
     return out
 
 
-def recording_windows(rec: Recording, bank: Bank, features, window: float, mapping="auto", notice=None) -> np.ndarray:
-    """Feature windows of one recording (its [start, end) part), shape (n, features, channels)."""
+def recording_windows(rec: Recording, pipeline: FeaturePipeline, mapping="auto", notice=None) -> np.ndarray:
+    """Feature windows of one recording (its [start, end) part) through a fresh ``pipeline``,
+    shape (n, features, channels)."""
+    bank = pipeline.bank
     driver = ReplayDriver(str(rec.path), rate=bank.fs, speed="max", on_notice=notice)
     data = driver.data
     a = int(round(rec.start * driver.rate))
@@ -73,7 +75,7 @@ def recording_windows(rec: Recording, bank: Bank, features, window: float, mappi
     if b > data.shape[0] + 1:
         raise ValueError(f"{rec.path}: end {rec.end} s is past the recording's {data.shape[0] / driver.rate:.3f} s")
     x = channel_mapper(mapping, data.shape[1], bank.channels)(data[a:b])
-    return FeaturePipeline(bank, features, window).run(x, block=65536).values
+    return pipeline.run(x, block=65536).values
 
 
 def train_from_manifest(manifest, bank: Bank, features=("Af",), window: float = 0.1, epochs: int = DEFAULT_EPOCHS,
@@ -85,7 +87,7 @@ def train_from_manifest(manifest, bank: Bank, features=("Af",), window: float = 
         raise ValueError(f"{manifest}: training needs at least two labels, found {list(classes)}")
     values, labels = [], []
     for k, rec in enumerate(recs):
-        v = recording_windows(rec, bank, features, window, mapping, notice=progress)
+        v = recording_windows(rec, FeaturePipeline(bank, features, window), mapping, notice=progress)
         if progress:
             progress(f"[{k + 1}/{len(recs)}] {rec.path.name} ({rec.label}): {len(v)} windows")
         values.append(v)
@@ -93,8 +95,7 @@ def train_from_manifest(manifest, bank: Bank, features=("Af",), window: float = 
     x, y = np.concatenate(values), np.concatenate(labels)
     if len(x) == 0:
         raise ValueError(f"{manifest}: the recordings are shorter than one window")
-    wlen = FeaturePipeline(bank, features, window).window_samples
-    return TextureModel.train(x, y, classes, bank, features, wlen, epochs=epochs, seed=seed)
+    return TextureModel.train_for(FeaturePipeline(bank, features, window), x, y, classes, epochs=epochs, seed=seed)
 
 
 def evaluate_manifest(model: TextureModel, manifest, mapping="auto", progress=None) -> dict:
@@ -114,14 +115,13 @@ def evaluate_manifest(model: TextureModel, manifest, mapping="auto", progress=No
     unknown = sorted({r.label for r in recs} - set(model.classes))
     if unknown:
         raise ValueError(f"{manifest}: label(s) {unknown} are not classes of the model ({list(model.classes)})")
-    window_seconds = model.window_samples / model.bank.fs
     labels = list(model.classes)
     confusion = np.zeros((len(labels), len(labels)), dtype=int)
     per_rec = []
     for rec in recs:
-        v = recording_windows(rec, model.bank, model.features, window_seconds, mapping, notice=progress)
+        v = recording_windows(rec, model.pipeline(), mapping, notice=progress)
         if len(v) == 0:
-            raise ValueError(f"{rec.path}: shorter than one window of {window_seconds:g} s")
+            raise ValueError(f"{rec.path}: shorter than one window of {model.window_samples / model.bank.fs:g} s")
         out = model.outputs(v)
         pred = np.argmax(out, axis=1)
         truth = labels.index(rec.label)

@@ -48,6 +48,7 @@ class TextureModel:
     scale: np.ndarray
     mlp: MLP
     training: dict = field(default_factory=dict)
+    peak_threshold: float = 0.0
 
     @property
     def n_inputs(self) -> int:
@@ -56,7 +57,7 @@ class TextureModel:
     @classmethod
     def train(cls, values: np.ndarray, labels, classes, bank: Bank, features, window_samples: int,
               peak_mode: str = "maxima", epochs: int = 500, seed: int = 0, hidden: int | None = None,
-              progress=None) -> "TextureModel":
+              progress=None, peak_threshold: float = 0.0) -> "TextureModel":
         """Fit the scaling and the MLP on feature windows.
 
         Parameters
@@ -81,7 +82,8 @@ class TextureModel:
                                  epochs=epochs, seed=seed, progress=progress)
         info = {"algorithm": "iRPROP-", "epochs": len(history), "seed": seed,
                 "final_mse": history[-1], "windows": int(len(values))}
-        return cls(bank, features, int(window_samples), peak_mode, tuple(classes), mean, scale, mlp, info)
+        return cls(bank, features, int(window_samples), peak_mode, tuple(classes), mean, scale, mlp, info,
+                   float(peak_threshold))
 
     def _inputs(self, values: np.ndarray) -> np.ndarray:
         values = np.asarray(values, dtype=np.float64)
@@ -98,8 +100,31 @@ class TextureModel:
         """Winner-take-all class index per window, shape (n,)."""
         return np.argmax(self.outputs(values), axis=1)
 
-    def check_fits(self, bank: Bank, features, window_samples: int) -> None:
-        """Raise :class:`ModelError` naming what differs if the model was not made for this pipeline."""
+    @classmethod
+    def train_for(cls, pipeline, values, labels, classes, **kwargs) -> "TextureModel":
+        """:meth:`train` with the bank, features, window and peak settings of a FeaturePipeline."""
+        return cls.train(values, labels, classes, pipeline.bank, pipeline.features, pipeline.window_samples,
+                         peak_mode=pipeline.peaks.mode, peak_threshold=pipeline.peaks.threshold, **kwargs)
+
+    def pipeline(self, **kwargs):
+        """A FeaturePipeline computing exactly the inputs this model takes (extra keyword arguments
+        such as ``dtype`` or ``nonfinite`` are passed on)."""
+        from supramodal.pipeline import FeaturePipeline
+
+        return FeaturePipeline(self.bank, self.features, self.window_samples / self.bank.fs, peak_mode=self.peak_mode,
+                               peak_threshold=self.peak_threshold, **kwargs)
+
+    def check_pipeline(self, pipeline) -> None:
+        """:meth:`check_fits` against everything a FeaturePipeline computes with."""
+        self.check_fits(pipeline.bank, pipeline.features, pipeline.window_samples, pipeline.peaks.mode,
+                        pipeline.peaks.threshold)
+
+    def check_fits(self, bank: Bank, features, window_samples: int, peak_mode: str | None = None,
+                   peak_threshold: float | None = None) -> None:
+        """Raise :class:`ModelError` naming what differs if the model was not made for this pipeline.
+
+        ``peak_mode`` and ``peak_threshold`` are checked when given.
+        """
         features = check_features(features)
         if not self.bank.matches(bank):
             raise ModelError(
@@ -114,6 +139,11 @@ class TextureModel:
                 f"the model was trained on windows of {self.window_samples} samples, the pipeline makes "
                 f"{window_samples}: set the window to {self.window_samples / self.bank.fs:g} s"
             )
+        if peak_mode is not None and peak_mode != self.peak_mode:
+            raise ModelError(f"the model was trained on peak mode {self.peak_mode!r}, the pipeline uses {peak_mode!r}")
+        if peak_threshold is not None and float(peak_threshold) != self.peak_threshold:
+            raise ModelError(f"the model was trained with peak threshold {self.peak_threshold:g}, the pipeline uses "
+                             f"{peak_threshold:g}: set [features] peak_threshold = {self.peak_threshold:g}")
 
     # -- files ---------------------------------------------------------------------------------
 
@@ -125,6 +155,7 @@ class TextureModel:
             "features": list(self.features),
             "window_samples": self.window_samples,
             "peak_mode": self.peak_mode,
+            "peak_threshold": self.peak_threshold,
             "classes": list(self.classes),
             "layers": list(self.mlp.shape),
             "training": self.training,
@@ -178,7 +209,8 @@ class TextureModel:
         if header.get("version") != MODEL_VERSION:
             raise bad(f"model format version {header.get('version')!r} is not supported (this program reads "
                       f"version {MODEL_VERSION}); retrain the model with this version")
-        known = {"format", "version", "bank", "features", "window_samples", "peak_mode", "classes", "layers", "training"}
+        known = {"format", "version", "bank", "features", "window_samples", "peak_mode", "peak_threshold", "classes",
+                 "layers", "training"}
         unknown = set(header) - known
         if unknown:
             raise bad(f"unknown header key(s) {sorted(unknown)}")
@@ -198,6 +230,9 @@ class TextureModel:
             raise bad(f"'window_samples' must be an integer >= 2, got {window!r}")
         if header.get("peak_mode") not in PEAK_MODES:
             raise bad(f"'peak_mode' must be one of {PEAK_MODES}")
+        threshold = header.get("peak_threshold", 0.0)
+        if isinstance(threshold, bool) or not isinstance(threshold, (int, float)) or not (0 <= threshold < float("inf")):
+            raise bad(f"'peak_threshold' must be a finite number >= 0, got {threshold!r}")
         n_in = len(features) * bank.channels
         w1, b1, w2, b2, mean, scale = (arrays[k] for k in _ARRAYS)
         hidden = w1.shape[1] if w1.ndim == 2 else -1
@@ -217,4 +252,4 @@ class TextureModel:
         if not isinstance(training, dict):
             raise bad("'training' must be an object")
         return cls(bank, features, window, header["peak_mode"], tuple(classes), mean.astype(np.float64),
-                   scale.astype(np.float64), mlp, training)
+                   scale.astype(np.float64), mlp, training, float(threshold))

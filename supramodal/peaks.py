@@ -64,6 +64,10 @@ class PeakExtractor:
         Number of channels of the blocks it will receive.
     mode : {"maxima", "extrema"}
         Positive local maxima only (default), or all local extrema.
+    threshold : float
+        Smallest peak amplitude kept (default 0: every local maximum above 0, the
+        paper's rule). A real sensor's noise floor, or the filters' ring-down
+        after a contact ends, gives peaks of no meaning; a threshold drops them.
 
     Notes
     -----
@@ -71,9 +75,12 @@ class PeakExtractor:
     which is what the filterbank outputs at rest. Not thread-safe.
     """
 
-    def __init__(self, channels: int, mode: str = "maxima") -> None:
+    def __init__(self, channels: int, mode: str = "maxima", threshold: float = 0.0) -> None:
         if mode not in PEAK_MODES:
             raise ValueError(f"peak mode must be one of {PEAK_MODES}, got {mode!r}")
+        if not (np.isfinite(threshold) and threshold >= 0):
+            raise ValueError(f"peak threshold must be a finite amplitude >= 0, got {threshold!r}")
+        self.threshold = float(threshold)
         if channels < 1:
             raise ValueError(f"channels must be >= 1, got {channels}")
         self.channels = int(channels)
@@ -123,10 +130,11 @@ class PeakExtractor:
 
     def _find(self, z: np.ndarray, first_index: int):
         left, mid, right = z[:, :-2], z[:, 1:-1], z[:, 2:]
+        t = self.threshold
         if self.mode == "maxima":
-            is_peak = (left < mid) & (mid >= right) & (mid > 0)
+            is_peak = (left < mid) & (mid >= right) & (mid > t)
         else:
-            is_peak = ((left < mid) & (mid >= right) & (mid > 0)) | ((left > mid) & (mid <= right) & (mid < 0))
+            is_peak = ((left < mid) & (mid >= right) & (mid > t)) | ((left > mid) & (mid <= right) & (mid < -t))
         if first_index < 0:
             is_peak[:, : -first_index] = False                # samples before the stream began
         channel, offset = np.nonzero(is_peak)

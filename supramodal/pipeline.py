@@ -40,6 +40,8 @@ class FeaturePipeline:
     dtype : {numpy.float64, numpy.float32}
         Filterbank arithmetic (default float64).
     peak_mode : {"maxima", "extrema"}
+    peak_threshold : float
+        Smallest peak amplitude counted (default 0), see :class:`~supramodal.peaks.PeakExtractor`.
     nonfinite : {"raise", "zero"}
         NaN/Inf input policy, see :class:`~supramodal.gammatone.GammatoneFilterbank`.
     subblock : int
@@ -47,13 +49,14 @@ class FeaturePipeline:
     """
 
     def __init__(self, bank: Bank, features=FEATURES, window: float = DEFAULT_WINDOW, dtype=np.float64,
-                 peak_mode: str = "maxima", nonfinite: str = "raise", subblock: int = DEFAULT_SUBBLOCK) -> None:
+                 peak_mode: str = "maxima", nonfinite: str = "raise", subblock: int = DEFAULT_SUBBLOCK,
+                 peak_threshold: float = 0.0) -> None:
         self.bank = bank
         self.features = check_features(features)
         self.window = float(window)
         self.window_samples = window_length(window, bank.fs)
         self.filterbank = GammatoneFilterbank(bank, dtype=dtype, subblock=subblock, nonfinite=nonfinite)
-        self.peaks = PeakExtractor(bank.channels, mode=peak_mode)
+        self.peaks = PeakExtractor(bank.channels, mode=peak_mode, threshold=peak_threshold)
         self.windows = FeatureWindows(bank.channels, bank.fs, self.window_samples, self.features)
 
     def process(self, x) -> Windows:

@@ -302,3 +302,26 @@ def test_constant_inputs_keep_a_unit_scale():
     values[:, 1, 4] = 7.0
     m = TextureModel.train(values, labels, CLASSES, BANK, FEATURES, 500, epochs=2)
     assert m.scale[8 + 4] == 1.0 and np.all(m.scale > 0)
+
+
+def test_peak_settings_travel_with_the_model_and_are_checked(tmp_path):
+    from supramodal.pipeline import FeaturePipeline
+
+    x, y = training_data()
+    pipeline = FeaturePipeline(BANK, FEATURES, 0.1, peak_mode="extrema", peak_threshold=1e-3)
+    m = TextureModel.train_for(pipeline, x, y, CLASSES, epochs=20, seed=0)
+    back = TextureModel.load(m.save(tmp_path / "m"))
+    assert (back.peak_mode, back.peak_threshold) == ("extrema", 1e-3)
+    back.check_pipeline(back.pipeline())                      # the model's own pipeline fits
+    with pytest.raises(ModelError, match="peak mode 'extrema'"):
+        back.check_pipeline(FeaturePipeline(BANK, FEATURES, 0.1, peak_threshold=1e-3))
+    with pytest.raises(ModelError, match="peak threshold 0.001"):
+        back.check_pipeline(FeaturePipeline(BANK, FEATURES, 0.1, peak_mode="extrema"))
+
+
+def test_negative_peak_threshold_in_a_header_is_refused(saved):
+    header, arrays = read_parts(saved)
+    header["peak_threshold"] = -1
+    write_parts(saved, header, arrays)
+    with pytest.raises(ModelError, match="peak_threshold"):
+        TextureModel.load(saved)

@@ -310,3 +310,14 @@ def test_feature_windows_match_the_definition_for_any_delivery(seed, length, n_w
     assert got.first == 0 and len(got) == n_closed
     np.testing.assert_allclose(got.values, plain_windows(entries, 4000.0, length, n_closed, 3),
                                rtol=1e-12, atol=0)
+
+
+def test_peak_threshold_drops_small_peaks_in_both_modes():
+    y = np.array([[0.0, 0.5, 0.0, 2.0, 0.0, -0.5, 0.0, -3.0, 0.0, 0.0]])
+    maxima = PeakExtractor(1, threshold=1.0).process(y)
+    assert maxima.index.tolist() == [3] and maxima.amplitude.tolist() == [2.0]
+    extrema = PeakExtractor(1, mode="extrema", threshold=1.0).process(y)
+    assert extrema.index.tolist() == [3, 7] and extrema.amplitude.tolist() == [2.0, 3.0]
+    assert PeakExtractor(1).process(y).index.tolist() == [1, 3]
+    with pytest.raises(ValueError, match="peak threshold"):
+        PeakExtractor(1, threshold=-1.0)
