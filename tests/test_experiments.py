@@ -305,3 +305,11 @@ def test_unscaled_rates_use_raw_inputs():
     raw = classification_rates(values, ("a", "b", "c"), bank, ("A",), 500, epochs=50, standardise=False)
     assert set(raw) == set(scaled) == {"mean_rate", "per_texture"} and is_rate(raw["mean_rate"])
     assert raw["mean_rate"] > 1 / 3
+
+
+def test_ablation_plans_have_unique_keys():
+    from supramodal.experiments.ablations import plans as ablation_plans
+
+    for quick_mode in (True, False):
+        keys = [r.key for p in ablation_plans(quick=quick_mode).values() for r in p.runs]
+        assert len(keys) == len(set(keys)) and all(k[0] == "ablation" for k in keys)

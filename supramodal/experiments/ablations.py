@@ -16,6 +16,8 @@ the training or the banks the figures use: they vary one thing at a time beside 
   state zeroed at each window's start) instead of one continuous stream: a gammatone's
   envelope peaks ``(n-1) / (2 pi b) = 3 / B`` seconds after an onset, 100 ms at B = 30.
 * ``rows``: Fig. 6b's whisker rows on the random whisker sets, in the order A..E and E..A.
+* ``level_spread``: at a given mean B, how far apart the textures' mean A lie on each whisker
+  channel (dB) against the spread of A from window to window within a texture.
 * ``unscaled``: Fig. 3 (both reference sets) and Fig. 5 (a few B) with the raw feature values
   fed to the network, without the per-input standardisation the paper does not mention.
 """
@@ -206,6 +208,25 @@ def rows(n_sets: int = ABLATION_SETS, seed: int = 0, quick: bool = False, epochs
     return Plan(runs, assemble)
 
 
+LEVEL_B = (5.0, 145.0)
+
+
+def level_spread(mean_B: float, quick: bool = False, progress=None) -> dict:
+    """Per whisker channel at ``mean_B``, on the reference set: the range over textures of the mean
+    of A (dB), the mean over textures of A's window-to-window standard deviation (dB, of 20 log10 A),
+    and their ratio, a per-channel separability index."""
+    ts = quick_set(reference_texture_set("whisker"), quick)
+    bank = default_bank(ts, mean_B=mean_B)
+    values, _ = texture_features(ts, bank, ("A",))
+    a_db = 20 * np.log10(values[:, 1:, 0, :])                   # (textures, windows, channels), onset dropped
+    means = a_db.mean(axis=1)
+    spread = means.max(axis=0) - means.min(axis=0)
+    within = a_db.std(axis=1).mean(axis=0)
+    return {"mean_B": mean_B, "names": list(bank.names), "cf": [float(c) for c in bank.cf],
+            "between_db": [float(v) for v in spread], "within_db": [float(v) for v in within],
+            "ratio": [float(v) for v in spread / within]}
+
+
 UNSCALED_B = (5.0, 30.0, 145.0, 300.0)
 
 
@@ -245,6 +266,8 @@ def plans(quick: bool = False, epochs: int = DEFAULT_EPOCHS) -> dict[str, Plan]:
         "peak_width": peak_width(grid=(5.0, 145.0) if quick else WIDTH_GRID, quick=quick, epochs=epochs),
         "windows_from_rest": windows_from_rest(grid=(5.0, 145.0) if quick else WIDTH_GRID, quick=quick, epochs=epochs),
         "rows": rows(n_sets, quick=quick, epochs=epochs),
+        **{f"level_spread_{B:g}": single(("ablation", "levels", B), level_spread, {"mean_B": B, "quick": quick}, 3.0)
+           for B in LEVEL_B},
         "unscaled": unscaled(grid=(5.0, 145.0) if quick else UNSCALED_B, quick=quick, epochs=epochs),
         "network_seeds_whisker": single(("ablation", "seeds", "whisker"), network_seeds,
                                         {"bank_name": "whisker", "quick": quick, "epochs": epochs}, 15.0),
