@@ -92,7 +92,7 @@ def _plot_fig3(result: dict, path: Path) -> Path:
     paper = PAPER_FIG3.get(result["bank"], {})
     for k, f in enumerate(feats):
         rates = [result["features"][f]["per_texture"][n] for n in names]
-        sd = f" ± {result['features'][f]['sd']:.2f}" if "sd" in result["features"][f] else ""
+        sd = f" ± {result['features'][f]['sd']:.3f}" if "sd" in result["features"][f] else ""
         ax.bar(np.arange(len(names)) + (k - (len(feats) - 1) / 2) * width, rates, width,
                color=SHADES.get(f, None), edgecolor="k", linewidth=0.5,
                label=f"{f}: mean {result['features'][f]['mean_rate']:.3f}{sd} (paper {paper.get(f, float('nan')):.3f})")
@@ -104,7 +104,8 @@ def _plot_fig3(result: dict, path: Path) -> Path:
         ax.set_xlabel("texture (peak frequencies, Hz)", fontsize=8)
     ax.set_ylim(0, 1.05)
     ax.set_ylabel("classification rate")
-    ax.set_title(f"Fig. 3, {result['bank']} bank: {result['texture_set']}", fontsize=10)
+    note = " (bar k: mean over the sets of their k-th texture; ± sd of the sets' means)" if "sets" in result else ""
+    ax.set_title(f"Fig. 3, {result['bank']} bank: {result['texture_set']}{note}", fontsize=10)
     ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.25 if peaks else -0.08), ncol=2,
               frameon=False)
     return _save(fig, path)
