@@ -17,28 +17,31 @@ class CliError(Exception):
 
 
 def _cmd_experiment(args) -> int:
-    from supramodal.experiments.common import progress_to_stderr
-    from supramodal.experiments.fig3 import fig3, fig3_random_sets
-    from supramodal.experiments.report import fig3_table, write_fig3
-    from supramodal.textures import load_texture_set, reference_texture_set
+    import time
 
-    if args.figure != "fig3":
-        raise CliError(f"experiment {args.figure!r} is not available yet; available: fig3")
-    if args.sets > 1 and args.textures:
-        raise CliError("--sets draws random texture sets; it cannot be combined with --textures")
+    from supramodal.experiments.common import progress_to_stderr
+    from supramodal.experiments.report import figure_table, write_figure
+    from supramodal.experiments.runner import run_plans
+    from supramodal.experiments.suite import plans
+    from supramodal.textures import load_texture_set
+
+    if args.seed < 0:
+        raise CliError(f"--seed must be >= 0, got {args.seed}")
+    if args.jobs is not None and args.jobs < 1:
+        raise CliError(f"--jobs must be >= 1, got {args.jobs}")
+    ts = load_texture_set(args.textures) if args.textures else None
+    todo = plans(args.figure, quick=args.quick, epochs=args.epochs, seed=args.seed, sets=args.sets,
+                 bank=args.bank, texture_set=ts)
     progress = None if args.quiet else progress_to_stderr
-    if args.sets > 1:
-        result = fig3_random_sets(args.bank, args.sets, seed=args.seed, epochs=args.epochs, progress=progress)
-    else:
-        ts = load_texture_set(args.textures) if args.textures else reference_texture_set(args.bank)
-        if ts.bank != args.bank:
-            raise CliError(f"texture set {ts.name!r} is for the {ts.bank} bank, not {args.bank}: pass --bank {ts.bank}")
-        result = fig3(ts, epochs=args.epochs, seed=args.seed, progress=progress)
-    written = write_fig3(result, Path(args.out))
+    t0 = time.perf_counter()
+    results = run_plans(todo, jobs=args.jobs, seed=args.seed, progress=progress)
+    written = [p for name, result in results.items() for p in write_figure(name, result, Path(args.out))]
+    if progress:
+        progress(f"experiment {args.figure}: {time.perf_counter() - t0:.1f} s")
     if args.json:
-        print(json.dumps(result))
+        print(json.dumps(results[args.figure] if args.figure in results else results))
     else:
-        print(fig3_table(result))
+        print("\n\n".join(figure_table(name, result) for name, result in results.items()))
         print("wrote " + ", ".join(str(p) for p in written))
     return 0
 
@@ -237,15 +240,20 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("devices", help="list audio inputs and serial ports")
     p.set_defaults(func=_cmd_devices)
 
-    p = sub.add_parser("experiment", help="reproduce a figure of the paper")
-    p.add_argument("figure", choices=["fig3"], help="which figure")
-    p.add_argument("--bank", choices=["whisker", "cochlea"], default="whisker")
-    p.add_argument("--textures", metavar="FILE", help="texture-set JSON file (default: the bank's reference set)")
-    p.add_argument("--sets", type=int, default=1, help="average over N random texture sets (default 1: the reference set)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the random sets and of the networks' initial weights")
+    p = sub.add_parser("experiment", help="reproduce a figure of the paper (or all of them)")
+    p.add_argument("figure", choices=["fig1", "fig3", "fig4", "fig5", "fig6", "all"], help="which figure")
+    p.add_argument("--quick", action="store_true", help="short textures and small grids: seconds, not minutes")
+    p.add_argument("--jobs", type=int, help="worker processes (default: all cores); results do not depend on it")
+    p.add_argument("--seed", type=int, default=0,
+                   help="experiment seed: each run's network seed derives from it and the run; also the first "
+                        "random texture set's seed")
     p.add_argument("--epochs", type=int, default=500, help="iRPROP- epochs (default 500)")
+    p.add_argument("--bank", choices=["whisker", "cochlea"], help="fig3: one bank (default: both)")
+    p.add_argument("--textures", metavar="FILE", help="fig3: texture-set JSON file (default: the reference sets)")
+    p.add_argument("--sets", type=int, help="fig3: N random texture sets instead of the reference set; "
+                                            "all: N random sets per bank besides it (default 5, 0 with --quick)")
     p.add_argument("--out", default="out", help="directory for CSV and PNG (default ./out)")
-    p.add_argument("--json", action="store_true", help="print one JSON object on stdout instead of a table")
+    p.add_argument("--json", action="store_true", help="print the figure's data as one JSON object instead of a table")
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")
     p.set_defaults(func=_cmd_experiment)
 

@@ -1,26 +1,84 @@
-"""Pieces shared by the experiments: texture features, train/test split, classification rates."""
+"""Pieces shared by the experiments: texture features, train/test split, classification rates,
+and the plain-data description of an experiment's runs (:class:`Run`, :class:`Plan`)."""
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 import time
+from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
 
 from supramodal.banks import Bank, bank_by_name
 from supramodal.features import FEATURES
+from supramodal.mlp import train_mlp
 from supramodal.model import TextureModel
-from supramodal.pipeline import DEFAULT_WINDOW, FeaturePipeline
+from supramodal.pipeline import DEFAULT_WINDOW, FeaturePipeline, window_length
 from supramodal.textures import TextureSet
 
 #: Fraction of each texture's windows used for training (paper: 300 of 400), the rest for testing.
 TRAIN_FRACTION = 0.75
 DEFAULT_EPOCHS = 500
+#: Seconds per texture in ``--quick`` mode (40 windows: 30 to train, 10 to test).
+QUICK_DURATION = 4.0
+BANKS = ("whisker", "cochlea")
+
+
+@dataclass(frozen=True)
+class Run:
+    """One independent run of an experiment, as data (executed by :mod:`.runner`).
+
+    Attributes
+    ----------
+    key : tuple
+        Names the run, unique within a plan; made of str, int and float. With
+        ``seeded``, the run's seed is derived from the experiment's seed and this key.
+    fn : callable
+        A module-level function, called as ``fn(**kwargs, progress=...)`` (and
+        ``seed=...`` if ``seeded``); returns plain data.
+    kwargs : dict
+        Picklable arguments.
+    cost : float
+        Relative cost estimate, in seconds of one core (only the schedule depends on it).
+    seeded : bool
+        Whether ``fn`` takes a ``seed``.
+    """
+
+    key: tuple
+    fn: Callable
+    kwargs: dict = field(default_factory=dict)
+    cost: float = 1.0
+    seeded: bool = True
+
+
+@dataclass(frozen=True)
+class Plan:
+    """An experiment: its runs, and how to assemble their results (``{key: result}``) into one dict."""
+
+    runs: list
+    assemble: Callable
+
+
+def quick_set(texture_set: TextureSet, quick: bool) -> TextureSet:
+    """The texture set, shortened to :data:`QUICK_DURATION` seconds per texture in quick mode."""
+    return dataclasses.replace(texture_set, duration=QUICK_DURATION) if quick else texture_set
+
+
+def estimate_cost(texture_set: TextureSet, bank: Bank, n_features: int, epochs: int = DEFAULT_EPOCHS) -> float:
+    """Rough seconds of one core for :func:`rates_of` (features, then one network per feature)."""
+    samples = len(texture_set.textures) * texture_set.duration * texture_set.fs
+    windows = len(texture_set.textures) * texture_set.duration / DEFAULT_WINDOW
+    c = bank.channels
+    return samples * c * 5e-8 + n_features * windows * (c * c + 8 * c) * epochs * 2e-9 + 0.5
 
 
 def progress_to_stderr(message: str) -> None:
-    """Default progress reporter of long experiments: one line on stderr."""
-    print(message, file=sys.stderr, flush=True)
+    """Default progress reporter of long experiments: one line on stderr, in one write (so that the
+    lines of parallel worker processes do not interleave)."""
+    sys.stderr.write(message + "\n")
+    sys.stderr.flush()
 
 
 def default_bank(texture_set: TextureSet, **kwargs) -> Bank:
@@ -52,6 +110,33 @@ def texture_features(texture_set: TextureSet, bank: Bank, features=FEATURES, win
     return np.stack([v[:n] for v in out]), {"signal_seconds": signal, "compute_seconds": compute}
 
 
+def rates_of(texture_set: TextureSet, bank: Bank, features=FEATURES, epochs: int = DEFAULT_EPOCHS, seed: int = 0,
+             progress=None, standardise: bool = True) -> dict:
+    """Features of every texture through ``bank``, then one network per feature alone.
+
+    Returns
+    -------
+    dict
+        ``{"features": {feature: {"mean_rate", "per_texture"}}, "timing": {...}}``.
+    """
+    values, timing = texture_features(texture_set, bank, features, progress=progress)
+    return {"features": rates_per_feature(values, texture_set.names, bank, features, epochs, seed, progress,
+                                          standardise), "timing": timing}
+
+
+def rates_per_feature(values: np.ndarray, classes, bank: Bank, features, epochs: int = DEFAULT_EPOCHS,
+                      seed: int = 0, progress=None, standardise: bool = True) -> dict:
+    """:func:`classification_rates` of each feature alone; ``values`` as from :func:`texture_features`."""
+    wlen = window_length(DEFAULT_WINDOW, bank.fs)
+    results = {}
+    for k, feature in enumerate(features):
+        if progress:
+            progress(f"{bank.kind} ({bank.channels} channels): training and testing on {feature}")
+        results[feature] = classification_rates(values[:, :, k : k + 1], classes, bank, (feature,), wlen,
+                                                epochs=epochs, seed=seed, standardise=standardise)
+    return results
+
+
 def split(values: np.ndarray, train_fraction: float = TRAIN_FRACTION):
     """First ``train_fraction`` of each texture's windows for training, the rest for testing.
 
@@ -69,13 +154,22 @@ def split(values: np.ndarray, train_fraction: float = TRAIN_FRACTION):
 
 
 def classification_rates(values: np.ndarray, classes, bank: Bank, features, window_samples: int,
-                         epochs: int = DEFAULT_EPOCHS, seed: int = 0) -> dict:
+                         epochs: int = DEFAULT_EPOCHS, seed: int = 0, standardise: bool = True) -> dict:
     """Train on the first part of each texture, test on the rest.
+
+    ``standardise=False`` (an ablation, not the model) feeds the raw feature values to the
+    network, without the per-input scaling :class:`~supramodal.model.TextureModel` applies.
 
     Returns ``{"mean_rate": r, "per_texture": {name: r}}``, rates in [0, 1].
     """
     x_train, y_train, x_test, y_test = split(values)
-    model = TextureModel.train(x_train, y_train, classes, bank, features, window_samples, epochs=epochs, seed=seed)
-    correct = model.predict(x_test) == y_test
+    if standardise:
+        model = TextureModel.train(x_train, y_train, classes, bank, features, window_samples, epochs=epochs,
+                                   seed=seed)
+        predicted = model.predict(x_test)
+    else:
+        mlp, _ = train_mlp(x_train.reshape(len(x_train), -1), y_train, len(classes), epochs=epochs, seed=seed)
+        predicted = mlp.predict(x_test.reshape(len(x_test), -1))
+    correct = predicted == y_test
     per = {name: float(np.mean(correct[y_test == k])) for k, name in enumerate(classes)}
     return {"mean_rate": float(np.mean(correct)), "per_texture": per}
