@@ -120,51 +120,61 @@ class FeatureWindows:
 
     def process(self, peaks: Peaks) -> Windows:
         """Add decided peaks; return the windows they close (possibly none)."""
-        W, C = self.length, self.channels
+        W = self.length
         # A window is complete once its last sample has been seen: its peaks were all
         # detected by then (the last one it can hold sits one sample before its end).
         n_closed = peaks.seen // W - self._next
-        span = max(n_closed, self._open.shape[0])
-        if len(peaks):
-            span = max(span, (int(peaks.index.max()) + 1) // W - self._next + 1)
+        span = n_closed
+        idx = peaks.index
+        if idx.size:
+            first_w = (int(idx.min()) + 1) // W                # windows of the earliest and latest detection
+            last_w = (int(idx.max()) + 1) // W
+            if first_w < self._next:
+                raise ValueError("a peak falls in a window already emitted: peaks must come in stream order")
+            span = max(span, last_w - self._next + 1)
         if span > self._open.shape[0]:
-            grown = np.zeros((span, len(self.features), C))
+            grown = np.zeros((span, len(self.features), self.channels))
             grown[: self._open.shape[0]] = self._open
             self._open = grown
-        if len(peaks):
-            self._accumulate(peaks)
+        if idx.size:
+            self._accumulate(peaks, first_w, last_w)
         out = Windows(self._next, self._open[:n_closed].copy(), self.features)
         self._open = self._open[n_closed:]
         self._next += n_closed
         return out
 
-    def _accumulate(self, peaks: Peaks) -> None:
+    def _accumulate(self, peaks: Peaks, first_w: int, last_w: int) -> None:
         ch, idx, amp = peaks.channel, peaks.index, peaks.amplitude
         C = self.channels
-        slot = ((idx + 1) // self.length - self._next) * C + ch  # (window of detection, channel) bin
-        if slot.size and slot.min() < 0:
-            raise ValueError("a peak falls in a window already emitted: peaks must come in stream order")
+        freq = self._frequencies(ch, idx) if self._need_f else None
+        if first_w == last_w:
+            # The usual case (a block inside one window): plain per-channel sums.
+            row = self._open[first_w - self._next]
+            for k, name in enumerate(self.features):
+                w = amp if name == "A" else freq if name == "f" else amp * freq
+                row[k] += np.bincount(ch, weights=w, minlength=C)
+            return
+        slot = ((idx + 1) // self.length - self._next) * C + ch     # (window of detection, channel) bin
         nbins = self._open.shape[0] * C
-        if self._need_f:
-            prev = np.empty_like(idx)
-            prev[1:] = idx[:-1]
-            first = np.ones(idx.size, dtype=bool)
-            first[1:] = ch[1:] != ch[:-1]
-            prev[first] = self._last_peak[ch[first]]
-            last = np.ones(idx.size, dtype=bool)
-            last[:-1] = first[1:]
-            self._last_peak[ch[last]] = idx[last]
-            has_prev = prev >= 0
-            freq = np.zeros(idx.size)
-            freq[has_prev] = self.fs / (idx[has_prev] - prev[has_prev])
         for k, name in enumerate(self.features):
-            if name == "A":
-                weights = amp
-            elif name == "f":
-                weights = freq
-            else:
-                weights = amp * freq
-            self._open[:, k, :] += np.bincount(slot, weights=weights, minlength=nbins).reshape(-1, C)
+            w = amp if name == "A" else freq if name == "f" else amp * freq
+            self._open[:, k, :] += np.bincount(slot, weights=w, minlength=nbins).reshape(-1, C)
+
+    def _frequencies(self, ch: np.ndarray, idx: np.ndarray) -> np.ndarray:
+        """``f_k = fs / (n_k - n_(k-1))`` per peak, 0 for a channel's first peak ever; updates the last peaks."""
+        # Peaks come sorted by channel: a channel's run starts where the channel number changes.
+        counts = np.bincount(ch, minlength=self.channels)
+        ends = np.cumsum(counts)
+        present = np.flatnonzero(counts)                      # channels with a peak in this call
+        firsts = ends[present] - counts[present]
+        prev = np.empty_like(idx)
+        prev[1:] = idx[:-1]
+        before = self._last_peak[present]                     # each channel's previous peak, -1 if none
+        prev[firsts] = before
+        self._last_peak[present] = idx[ends[present] - 1]
+        freq = self.fs / (idx - prev)
+        freq[firsts[before < 0]] = 0.0
+        return freq
 
     @property
     def windows_emitted(self) -> int:

@@ -3,7 +3,8 @@
 The analytic gammatone ``g(t) = t**3 exp(-2 pi b t) cos(2 pi fc t)`` sampled at
 ``t = n/fs`` is, up to the constant ``fs**-3``, ``Re(n**3 p**n)`` with the pole
 ``p = exp((-2 pi b + 2j pi fc) / fs)``. This module realises exactly that
-sequence, normalised to unit gain at ``fc``.
+sequence, normalised to unit gain at ``fc``. (:mod:`supramodal.backends` holds
+the plain per-channel reference realisation and the backend interface.)
 
 How it streams
 --------------
@@ -15,38 +16,96 @@ over a sub-block of ``l`` samples are then closed-form:
 * ``y[n0+d] = Re(p**d (d**3 S0 + 3 d**2 S1 + 3 d S2 + S3) + sum_i h[d-i] x[n0+i])``
 * ``S'_j = p**l sum_r C(j, r) l**(j-r) S_r + sum_i (l-i)**j p**(l-i) x[n0+i]``
 
-A block is cut into sub-blocks of ``M`` samples; all sub-blocks and all channels
-go through three batched matrix products (the Toeplitz part, the input-to-state
-part and the state-to-output part); only the 8-real-number state recursion
-loops, once per sub-block. No filter coefficients are ever recursed on, so
-nothing drifts: every matrix entry is computed from the closed form in float64
-once, at construction.
+A block is cut into sub-blocks of ``m`` samples (24 to 64, chosen per block
+length). One batched matrix product gives every channel's state inputs and
+within-sub-block responses (``X @ [W | T]``, a mono block broadcast against the
+channels' matrices); the start states of all sub-blocks come from one more
+product on those inputs (for up to 12 sub-blocks; longer blocks go in groups,
+and only the groups' start states are recursed on, one Python step per group);
+a last batched product adds the states' part of the output. Large temporaries
+are kept between calls: fresh multi-megabyte arrays cost page faults every block.
+
+Precision
+---------
+* Every matrix entry and every pole power is computed once, from the closed form,
+  with the phase ``2 pi fc d / fs`` reduced modulo ``2 pi`` in extended precision
+  (``numpy.longdouble``) and rounded once: nothing is ever recursed on but the
+  state, so nothing drifts, and the phase error after ``n`` samples is about
+  ``(n / m) * 1e-16`` rad instead of ``n * fc/fs * 1e-16``.
+* The state recursion is always float64 (complex128). With ``dtype=float32`` the
+  three large products (Toeplitz, input-to-state, state-to-output) run in float32
+  and the output is float32; its error is a few 1e-7 of the output's scale and
+  does not grow with stream length (docs/stability.md).
+* States below about 1e-287 are flushed to zero after each block: subnormal
+  numbers make matrix products many times slower and carry nothing here.
 """
 
 from __future__ import annotations
 
+import math
+from collections import OrderedDict
 from math import comb
 
 import numpy as np
 
 from supramodal.banks import Bank
 
-#: Below this magnitude a state or matrix entry is flushed to zero: subnormal
-#: numbers make matrix products tens of times slower on x86 and carry no
-#: information at the 1e-12 level this module works to.
-_FLUSH = {np.dtype(np.float64): 1e-290, np.dtype(np.float32): 1e-35}
+_LD = np.longdouble
+_TWO_PI_LD = 2 * np.arccos(_LD(-1))      # 2 pi to long-double precision
 
-DEFAULT_SUBBLOCK = 32
+#: ``S + c - c`` rounds every |S| below ``c * 2**-53`` (about 1e-287) to exactly 0.
+_FLUSH_OFFSET = 2.0**-900
+#: Matrix entries below this are set to 0 (no subnormal operands in float32 products).
+_FLUSH_MATRIX = {np.dtype(np.float64): 1e-290, np.dtype(np.float32): 1e-35}
+
+#: Smallest bandwidth parameter accepted, as a fraction of the sample rate: the impulse
+#: response then lasts ~1e8 samples and float64 holds its phase to ~1e-9 (docs/stability.md).
+MIN_B_OVER_FS = 1e-7
+
+#: Matrix sets kept per filterbank (one per sub-block length in use).
+_MATRIX_CACHE = 6
+#: Up to this many sub-blocks, their states come from one matrix product (no recursion);
+#: beyond, groups of about _GROUP sub-blocks.
+_SINGLE_GROUP = 12
+_GROUP = 6
 
 
 def _pole(bank: Bank) -> np.ndarray:
     """Complex pole per channel, shape (channels,)."""
-    return np.exp((-2 * np.pi * bank.b + 2j * np.pi * bank.cf) / bank.fs)
+    return pole_powers(bank, np.ones(1))[:, 0]
 
 
-def _moment_sum(q):
-    """``sum_{m>=0} m**3 q**m = q (1 + 4q + q**2) / (1 - q)**4`` for ``|q| < 1``."""
-    return q * (1 + 4 * q + q * q) / (1 - q) ** 4
+def pole_powers(bank: Bank, d) -> np.ndarray:
+    """``p**d`` per channel for real exponents ``d``, correctly rounded to complex128.
+
+    The phase ``2 pi fc d / fs`` is reduced modulo ``2 pi`` in extended precision
+    first, so large ``d`` lose nothing to the float64 rounding of ``2 pi fc / fs``.
+
+    Returns
+    -------
+    ndarray, shape (channels,) + numpy.shape(d), complex128
+    """
+    d = np.asarray(d, dtype=_LD)
+    cf = bank.cf.astype(_LD).reshape((-1,) + (1,) * d.ndim)
+    b = bank.b.astype(_LD).reshape(cf.shape)
+    fs = _LD(bank.fs)
+    turns = np.fmod(cf * d / fs, _LD(1))
+    phase = _TWO_PI_LD * turns
+    mag = np.exp(-_TWO_PI_LD * b * d / fs)
+    out = np.empty(np.broadcast_shapes(cf.shape, d.shape), dtype=np.complex128)
+    out.real = (mag * np.cos(phase)).astype(np.float64)
+    out.imag = (mag * np.sin(phase)).astype(np.float64)
+    return out
+
+
+def _moment_sum(z):
+    """``sum_{m>=0} m**3 q**m = q (1 + 4q + q**2) / (1 - q)**4`` with ``q = exp(z)``, ``Re z < 0``.
+
+    ``1 - q`` is taken as ``-expm1(z)``: exact to rounding even when ``|q|`` is within
+    1e-6 of 1 (narrow filters at high sample rates), where ``1 - q`` would lose digits.
+    """
+    q = np.exp(z)
+    return q * (1 + 4 * q + q * q) / np.expm1(z) ** 4
 
 
 def gain_at_cf(bank: Bank) -> np.ndarray:
@@ -54,12 +113,13 @@ def gain_at_cf(bank: Bank) -> np.ndarray:
 
     The real sequence's transform is ``(H(w) + conj(H(-w))) / 2`` with
     ``H(w) = sum n**3 (p e**(-jw))**n`` in closed form; the second term matters
-    for low ``fc`` and wide ``b``.
+    for low ``fc`` and wide ``b``. At ``w = 2 pi fc / fs`` the first term's ratio
+    ``p e**(-jw)`` is the real ``exp(-2 pi b / fs)`` exactly.
     """
-    p = _pole(bank)
-    w = 2 * np.pi * bank.cf / bank.fs
-    h_pos = _moment_sum(p * np.exp(-1j * w))
-    h_neg = _moment_sum(p * np.exp(1j * w))
+    beta = 2 * np.pi * bank.b / bank.fs
+    theta2 = 4 * np.pi * bank.cf / bank.fs
+    h_pos = _moment_sum(-beta + 0j)
+    h_neg = _moment_sum(-beta + 1j * theta2)
     return np.abs(h_pos + np.conj(h_neg)) / 2
 
 
@@ -69,43 +129,293 @@ def reference_impulse_response(bank: Bank, n: int) -> np.ndarray:
     Computed directly from ``t**3 exp(-2 pi b t) cos(2 pi fc t)`` (not from the
     pole form the filter uses), so comparing against it is an independent check.
     The argument ``2 pi fc k / fs`` is evaluated in ``numpy.longdouble`` (64-bit
-    mantissa on x86-64): in float64 its rounding grows like ``k * 1e-16`` rad,
-    which over tens of thousands of samples (narrow ``b``) made the reference
-    less accurate than the filter it judges (2e-12 against 5e-13). Where
-    ``longdouble`` is only float64 (some ARM platforms) it is float64 again.
+    mantissa on x86-64) and reduced modulo one turn before the cosine: in float64
+    its rounding grows like ``k * 1e-16`` rad, which over tens of thousands of
+    samples (narrow ``b``) would make the reference less accurate than the filter
+    it judges. Where ``longdouble`` is only float64 (some ARM platforms) it is
+    float64 again.
 
     Returns
     -------
     ndarray, shape (channels, n), float64
     """
-    ld = np.longdouble
-    two_pi = 2 * np.arccos(ld(-1))                       # pi to long-double precision
-    k = np.arange(n, dtype=ld)
-    b = bank.b.astype(ld)[:, None]
-    cf = bank.cf.astype(ld)[:, None]
-    fs = ld(bank.fs)
-    h = k**3 * np.exp(-two_pi * b * k / fs) * np.cos(two_pi * cf * k / fs)
-    return (h / gain_at_cf(bank).astype(ld)[:, None]).astype(np.float64)
+    k = np.arange(n, dtype=_LD)
+    b = bank.b.astype(_LD)[:, None]
+    cf = bank.cf.astype(_LD)[:, None]
+    fs = _LD(bank.fs)
+    h = k**3 * np.exp(-_TWO_PI_LD * b * k / fs) * np.cos(_TWO_PI_LD * np.fmod(cf * k / fs, _LD(1)))
+    return (h / gain_at_cf(bank).astype(_LD)[:, None]).astype(np.float64)
 
 
-class GammatoneFilterbank:
-    """Stateful streaming filterbank: every channel of a block in one pass.
+def check_bandwidths(bank: Bank) -> None:
+    """Refuse bandwidths too narrow for float64 to hold the filter (``b < MIN_B_OVER_FS * fs``)."""
+    bad = np.flatnonzero(bank.b < MIN_B_OVER_FS * bank.fs)
+    if bad.size:
+        k = int(bad[0])
+        raise ValueError(
+            f"bandwidth parameter b of channel {bank.names[k]} is {bank.b[k]:g} Hz, below {MIN_B_OVER_FS:g} * fs = "
+            f"{MIN_B_OVER_FS * bank.fs:g} Hz: its impulse response would last over 1e8 samples, beyond what "
+            "float64 holds to the documented error (docs/stability.md); widen it or lower the sample rate")
+
+
+class FilterbankBase:
+    """What every filterbank backend shares: parameters, input checks, the non-finite policy.
+
+    Subclasses implement :meth:`reset` and ``_filter(x)`` (``x`` already checked,
+    of the filterbank's dtype, shape (L,) or (channels, L), L >= 1).
+
+    Parameters
+    ----------
+    bank : Bank
+    dtype : {numpy.float64, numpy.float32}
+    nonfinite : {"raise", "zero"}
+        What to do with NaN or Inf input samples: raise ValueError (default), or
+        replace them by 0 and count them in :attr:`nonfinite_count`, so that a
+        bad sample never poisons the filter state.
+    """
+
+    backend = "base"
+
+    def __init__(self, bank: Bank, dtype=np.float64, nonfinite: str = "raise") -> None:
+        dtype = np.dtype(dtype)
+        if dtype not in (np.dtype(np.float64), np.dtype(np.float32)):
+            raise ValueError(f"dtype must be float64 or float32, got {dtype}")
+        if nonfinite not in ("raise", "zero"):
+            raise ValueError(f"nonfinite must be 'raise' or 'zero', got {nonfinite!r}")
+        check_bandwidths(bank)
+        self.bank = bank
+        self.channels = bank.channels
+        self.dtype = dtype
+        self.nonfinite = nonfinite
+        self.nonfinite_count = 0
+        self.samples_processed = 0
+
+    def reset(self) -> None:
+        """Return to rest: zero state, as if no sample had been seen. Counters are kept."""
+        raise NotImplementedError
+
+    def prepare(self, x) -> np.ndarray:
+        """Check a block and convert it to the filterbank's dtype; apply the non-finite policy.
+
+        Returns the block as it will be filtered: shape (L,) or (channels, L), NaN
+        and Inf replaced by 0 (and counted) under ``nonfinite="zero"``.
+        """
+        x = np.asarray(x)
+        if x.dtype.kind not in "fiu":
+            raise ValueError(
+                f"input samples must be real numbers (float or int), got dtype {x.dtype}; "
+                "convert complex or text data before filtering"
+            )
+        if not (x.ndim == 1 or (x.ndim == 2 and x.shape[0] == self.channels)):
+            raise ValueError(
+                f"input block must have shape (L,) (mono, fed to all {self.channels} channels) or "
+                f"({self.channels}, L) (one signal per channel); got shape {x.shape}"
+            )
+        if x.dtype != self.dtype:
+            x = x.astype(self.dtype)
+        # One reduction decides the common case: a finite sum means every sample is finite.
+        if x.size and not math.isfinite(np.add.reduce(x, axis=None)):
+            bad = ~np.isfinite(x)
+            n_bad = int(bad.sum())
+            if n_bad:
+                if self.nonfinite == "raise":
+                    raise ValueError(
+                        f"input block contains {n_bad} NaN or Inf sample(s) (first at index "
+                        f"{np.argwhere(bad)[0].tolist()}); clean the signal, or create the filterbank with "
+                        "nonfinite='zero' to replace and count them"
+                    )
+                self.nonfinite_count += n_bad
+                x = np.where(bad, 0.0, x).astype(self.dtype, copy=False)
+        return x
+
+    def process(self, x, *, prepared: bool = False, out: np.ndarray | None = None) -> np.ndarray:
+        """Filter one block.
+
+        Parameters
+        ----------
+        x : array_like, shape (L,) or (channels, L)
+            Samples at ``bank.fs``; ``L`` may be 0.
+        prepared : bool
+            ``x`` is already the result of :meth:`prepare` (skip the checks).
+        out : ndarray, shape (channels, L), optional
+            Write the output here (of the filterbank's dtype) instead of a new array.
+
+        Returns
+        -------
+        ndarray, shape (channels, L), of the filterbank's dtype (``out`` if given)
+        """
+        if not prepared:
+            x = self.prepare(x)
+        L = x.shape[-1]
+        if out is not None and (out.shape != (self.channels, L) or out.dtype != self.dtype):
+            raise ValueError(f"out must be a {self.dtype} array of shape {(self.channels, L)}, "
+                             f"got {out.dtype} {out.shape}")
+        if L == 0:
+            return np.empty((self.channels, 0), dtype=self.dtype) if out is None else out
+        y = self._filter(x, out)
+        self.samples_processed += L
+        return y
+
+    def _filter(self, x: np.ndarray, out: np.ndarray | None) -> np.ndarray:
+        raise NotImplementedError
+
+    def _fresh(self) -> "FilterbankBase":
+        raise NotImplementedError
+
+    def impulse_response(self, n: int) -> np.ndarray:
+        """Response of a fresh filterbank of the same design to a unit impulse, shape (channels, n)."""
+        x = np.zeros(n)
+        if n:
+            x[0] = 1.0
+        return self._fresh().process(x)
+
+
+def _transition(bank: Bank, l: int):
+    """State transition over ``l`` samples, ``S' = (S @ B) * pl``: B (4, 4) complex, pl (C, 1)."""
+    B = np.array([[comb(j, r) * float(l) ** (j - r) if r <= j else 0.0 for j in range(4)] for r in range(4)])
+    pl = pole_powers(bank, np.array([float(l)]))
+    if l > 0 and np.any(np.abs(pl) >= 1.0):
+        raise ValueError("a pole power rounds to magnitude >= 1: the bandwidth is too narrow for float64")
+    return B.astype(np.complex128), pl
+
+
+class _SubblockMatrices:
+    """Everything the fast form needs for one sub-block length ``m``, built once."""
+
+    def __init__(self, bank: Bank, m: int, dtype: np.dtype) -> None:
+        C = bank.channels
+        self.m = m
+        g = 1.0 / gain_at_cf(bank)[:, None]                        # (C, 1)
+        d = np.arange(m + 1, dtype=np.float64)                      # lags 0..m
+        pd = pole_powers(bank, d)                                   # (C, m+1), no recursion
+        h = g * (d**3 * pd).real                                    # normalised impulse response
+
+        # Per channel, one matrix for a sub-block's input x (row vector of m samples):
+        # x @ TW[c] = [state input (4 complex moments as Re, Im pairs) | Toeplitz part (m outputs)].
+        TW = np.zeros((C, m, 8 + m))
+        back = m - np.arange(m)                                     # input i is m - i samples from the end
+        for j in range(4):
+            w = back**j * pd[:, back]                               # (m - i)**j p**(m - i)
+            TW[:, :, 2 * j], TW[:, :, 2 * j + 1] = w.real, w.imag
+        lag = np.arange(m)[None, :] - np.arange(m)[:, None]         # output e - input i
+        TW[:, :, 8:] = np.where(lag >= 0, h[:, np.clip(lag, 0, m)], 0.0)
+        # State-to-output: y[e] = Re(g p**e sum_j coef_j(e) S_j), coef = (e**3, 3e**2, 3e, 1).
+        e = d[:m]
+        coef = np.stack([e**3, 3 * e**2, 3 * e, np.ones_like(e)])  # (4, m)
+        Oc = g[:, None, :] * pd[:, None, :m] * coef[None]           # (C, 4, m)
+        O = np.empty((C, 8, m))
+        O[:, 0::2], O[:, 1::2] = Oc.real, -Oc.imag
+        tiny = _FLUSH_MATRIX[dtype]
+        for arr in (TW, O):
+            arr[np.abs(arr) < tiny] = 0.0
+        self.TW = np.ascontiguousarray(TW, dtype=dtype)
+        self.O = np.ascontiguousarray(O, dtype=dtype)
+        self._bank = bank
+        self._rest: dict[int, tuple] = {}
+        self._groups: dict[int, tuple] = {}
+
+    def rest(self, r: int):
+        """Transition over a last, partial sub-block of ``r`` samples."""
+        if r not in self._rest:
+            self._rest[r] = _transition(self._bank, r)
+        return self._rest[r]
+
+    def powers(self, n: int) -> list:
+        """``Phi**k`` per channel for k = 0..n, each (C, 4, 4), from the closed form."""
+        out = []
+        for k in range(n + 1):
+            B, pl = _transition(self._bank, k * self.m)
+            out.append(pl[:, :, None] * B[None])
+        return out
+
+    def single(self, K: int) -> np.ndarray:
+        """``H[c]`` (4(K+1), 4(K+1)): ``[S_0 | U_0 .. U_(K-1)] @ H[c]`` = the start states of
+        sub-blocks 0..K (block (0, j) = Phi**j; block (i+1, j) = Phi**(j-1-i) for j > i)."""
+        key = ("single", K)
+        if key not in self._groups:
+            C = self._bank.channels
+            phi = self.powers(K)
+            H = np.zeros((C, 4 * (K + 1), 4 * (K + 1)), dtype=np.complex128)
+            for j in range(K + 1):
+                H[:, 0:4, 4 * j : 4 * j + 4] = phi[j]
+                for i in range(j):
+                    H[:, 4 * (i + 1) : 4 * (i + 2), 4 * j : 4 * j + 4] = phi[j - 1 - i]
+            H[np.abs(H) < _FLUSH_MATRIX[np.dtype(np.float64)]] = 0.0
+            self._groups[key] = H
+        return self._groups[key]
+
+    def group(self, J: int):
+        """For groups of ``J`` sub-blocks: (G, P, (B, pl) over J sub-blocks).
+
+        ``G[c]`` (4J, 4J) maps the state inputs of a group's sub-blocks to the states after
+        each of them from a zero start (block (i, j) = Phi**(j - i), i <= j); ``P[c]`` (4, 4J)
+        maps a group's start state to the start states of its sub-blocks (block j = Phi**j);
+        ``Phi**n = p**(n m) B(n m)`` comes from the closed form for every n.
+        """
+        if J not in self._groups:
+            C = self._bank.channels
+            blocks = self.powers(J)                                  # (C, 4, 4): Phi**n per channel
+            G = np.zeros((C, 4 * J, 4 * J), dtype=np.complex128)
+            P = np.empty((C, 4, 4 * J), dtype=np.complex128)
+            for j in range(J):
+                P[:, :, 4 * j : 4 * j + 4] = blocks[j]
+                for i in range(j + 1):
+                    G[:, 4 * i : 4 * i + 4, 4 * j : 4 * j + 4] = blocks[j - i]
+            tiny = _FLUSH_MATRIX[np.dtype(np.float64)]
+            G[np.abs(G) < tiny] = 0.0
+            P[np.abs(P) < tiny] = 0.0
+            self._groups[J] = (G, P, _transition(self._bank, J * self.m))
+        return self._groups[J]
+
+
+#: The automatic sub-block length aims at about this many samples (measured on x86-64: the
+#: Toeplitz product grows with it, the number of state steps shrinks); 32 for short blocks.
+_TARGET_SUBBLOCK = 48
+_TARGET_SHORT = 32
+#: After this many different sub-block lengths, automatic mode stops adapting to the block length
+#: (a stream of ever-changing block lengths would otherwise rebuild matrices all the time).
+_ADAPTIVE_BUILDS = 12
+_FIXED_SUBBLOCK = 32
+
+
+def auto_subblock(length: int) -> int:
+    """Sub-block length the fast form uses for a block of ``length`` samples.
+
+    Blocks up to 40 samples are one sub-block. Longer blocks are cut into ``K``
+    sub-blocks of 24 to 64 samples, preferring an exact division (no padded
+    samples) with a length near 48 (32 for blocks up to 128 samples); otherwise the
+    sub-block nearest that length.
+    """
+    if length <= 40:
+        return max(int(length), 1)
+    target = _TARGET_SHORT if length <= 128 else _TARGET_SUBBLOCK
+    best = None
+    for K in range(-(-length // 64), -(-length // 24) + 1):
+        m = -(-length // K)
+        exact = m * K == length
+        score = (not exact, abs(math.log(m / target)))
+        if best is None or score < best[0]:
+            best = (score, m)
+    return best[1]
+
+
+class GammatoneFilterbank(FilterbankBase):
+    """Stateful streaming filterbank, the fast exact form: every channel of a block in one pass.
 
     Parameters
     ----------
     bank : Bank
         Centre frequencies, bandwidths and sample rate.
     dtype : {numpy.float64, numpy.float32}
-        Arithmetic and output type (default float64). float32 is about twice as
-        fast; its error bound is in docs/model.md.
-    subblock : int
-        Sub-block length ``M`` of the block state-space form (default 32). Cost
-        per sample per channel is about ``M + 32`` multiply-adds plus one Python
-        step per sub-block; results do not depend on it beyond rounding.
+        Arithmetic of the large products and type of the output (default float64).
+        The state recursion is float64 either way; float32 is faster for long
+        blocks, with an error of a few 1e-7 (docs/stability.md).
+    subblock : int or None
+        Sub-block length ``m`` of the block state-space form, 1..4096; None (default)
+        picks it per block length (:func:`auto_subblock`). Results do not depend on
+        it beyond rounding.
     nonfinite : {"raise", "zero"}
-        What to do with NaN or Inf input samples: raise ValueError (default), or
-        replace them by 0 and count them in :attr:`nonfinite_count`, so that a
-        bad sample never poisons the filter state.
+        See :class:`FilterbankBase`.
 
     Notes
     -----
@@ -119,153 +429,158 @@ class GammatoneFilterbank:
     Not thread-safe: one instance belongs to one stream.
     """
 
-    def __init__(self, bank: Bank, dtype=np.float64, subblock: int = DEFAULT_SUBBLOCK,
+    backend = "fast"
+
+    def __init__(self, bank: Bank, dtype=np.float64, subblock: int | None = None,
                  nonfinite: str = "raise") -> None:
-        dtype = np.dtype(dtype)
-        if dtype not in (np.dtype(np.float64), np.dtype(np.float32)):
-            raise ValueError(f"dtype must be float64 or float32, got {dtype}")
-        if not (isinstance(subblock, (int, np.integer)) and 1 <= subblock <= 4096):
-            raise ValueError(f"subblock must be an integer in 1..4096, got {subblock!r}")
-        if nonfinite not in ("raise", "zero"):
-            raise ValueError(f"nonfinite must be 'raise' or 'zero', got {nonfinite!r}")
-        self.bank = bank
-        self.dtype = dtype
-        self.subblock = int(subblock)
-        self.nonfinite = nonfinite
-        self.nonfinite_count = 0
-        self.samples_processed = 0
-        self._build_matrices()
+        super().__init__(bank, dtype, nonfinite)
+        if subblock is not None and not (isinstance(subblock, (int, np.integer)) and 1 <= subblock <= 4096):
+            raise ValueError(f"subblock must be None (automatic) or an integer in 1..4096, got {subblock!r}")
+        self.subblock = None if subblock is None else int(subblock)
+        self._matrices: OrderedDict[int, _SubblockMatrices] = OrderedDict()
+        self._cdtype = np.complex64 if self.dtype == np.float32 else np.complex128
+        self._builds = 0
+        self._auto_memo: dict[int, int] = {}
+        self._scratch: dict[str, np.ndarray] = {}
         self.reset()
 
-    @property
-    def channels(self) -> int:
-        return self.bank.channels
-
     def reset(self) -> None:
-        """Return to rest: zero state, as if no sample had been seen. Counters are kept."""
-        self._state = np.zeros((self.channels, 1, 8), dtype=self.dtype)
+        self._state = np.zeros((self.channels, 4), dtype=np.complex128)
 
-    def _build_matrices(self) -> None:
-        M = self.subblock
-        p = _pole(self.bank)[:, None]                       # (C, 1)
-        g = 1.0 / gain_at_cf(self.bank)[:, None]            # (C, 1)
-        d = np.arange(M + 1, dtype=np.float64)[None, :]     # (1, M+1): lag 0..M
-        pd = p ** d                                         # (C, M+1), exact powers, no recursion
-        h = g * (d**3 * pd).real                            # normalised impulse response, lags 0..M
+    def _fresh(self) -> "GammatoneFilterbank":
+        return GammatoneFilterbank(self.bank, self.dtype, self.subblock)
 
-        # Toeplitz part, transposed for X @ T: T[c, i, d] = h[c, d - i] for d >= i.
-        lag = np.arange(M)[None, :] - np.arange(M)[:, None]  # [i, d] -> d - i
-        T = np.where(lag >= 0, h[:, np.clip(lag, 0, M)], 0.0)
+    def _auto(self, L: int) -> int:
+        m = self._auto_memo.get(L)
+        if m is None:
+            if self._builds >= _ADAPTIVE_BUILDS:
+                m = min(_FIXED_SUBBLOCK, L)
+            else:
+                m = auto_subblock(L)
+            if len(self._auto_memo) > 256:
+                self._auto_memo.clear()
+            self._auto_memo[L] = m
+        return m
 
-        # State-to-output: y[d] = Re(g p**d (d**3 S0 + 3 d**2 S1 + 3 d S2 + S3)).
-        dd = d[:, :M]
-        basis = np.stack([dd**3, 3 * dd**2, 3 * dd, np.ones_like(dd)], axis=1)   # (1, 4, M)
-        O = g[:, :, None] * pd[:, None, :M] * basis                                # (C, 4, M)
-        O_real = np.concatenate([O.real, -O.imag], axis=1)                          # (C, 8, M)
-
-        # Input-to-state for a sub-block of length M: W[c, i, j] = (M-i)**j p**(M-i).
-        # A remainder of length r uses the last r rows (they equal (r-i)**j p**(r-i)).
-        back = M - np.arange(M, dtype=np.float64)                                  # M..1
-        pw = p ** back[None, :]                                                     # (C, M)
-        W = np.stack([back**j * pw for j in range(4)], axis=2)                      # (C, M, 4)
-        W_real = np.concatenate([W.real, W.imag], axis=2)                           # (C, M, 8)
-
-        # State transition over l samples, l = 0..M: Phi_l[j, r] = p**l C(j, r) l**(j-r).
-        phis = np.empty((self.channels, M + 1, 8, 8))
-        for l in range(M + 1):
-            binom = np.array([[comb(j, r) * float(l) ** (j - r) if r <= j else 0.0 for r in range(4)]
-                              for j in range(4)])
-            phi = pd[:, l, None, None] * binom                                      # (C, 4, 4) complex
-            A, B = phi.real, phi.imag
-            # Row-vector form: s_new = s @ R with s = [Re S, Im S].
-            R = np.block([[A.transpose(0, 2, 1), B.transpose(0, 2, 1)],
-                          [-B.transpose(0, 2, 1), A.transpose(0, 2, 1)]])
-            phis[:, l] = R
-
-        tiny = _FLUSH[self.dtype]
-        for arr in (T, O_real, W_real, phis):
-            arr[np.abs(arr) < tiny] = 0.0
-        dt = self.dtype
-        self._T = np.ascontiguousarray(T, dtype=dt)
-        self._O = np.ascontiguousarray(O_real, dtype=dt)
-        self._W = np.ascontiguousarray(W_real, dtype=dt)
-        self._phi = np.ascontiguousarray(phis, dtype=dt)
-
-    def _check_input(self, x) -> np.ndarray:
-        x = np.asarray(x)
-        if x.dtype.kind not in "fiu":
-            raise ValueError(
-                f"input samples must be real numbers (float or int), got dtype {x.dtype}; "
-                "convert complex or text data before filtering"
-            )
-        if x.ndim == 1:
-            pass
-        elif x.ndim == 2 and x.shape[0] == self.channels:
-            pass
+    def _get(self, m: int) -> _SubblockMatrices:
+        mats = self._matrices.get(m)
+        if mats is None:
+            mats = self._matrices[m] = _SubblockMatrices(self.bank, m, self.dtype)
+            self._builds += 1
+            if len(self._matrices) > _MATRIX_CACHE:
+                self._matrices.popitem(last=False)
         else:
-            raise ValueError(
-                f"input block must have shape (L,) (mono, fed to all {self.channels} channels) or "
-                f"({self.channels}, L) (one signal per channel); got shape {x.shape}"
-            )
-        x = x.astype(self.dtype, copy=False)
-        if x.size and not np.isfinite(x).all():
-            bad = ~np.isfinite(x)
-            if self.nonfinite == "raise":
-                raise ValueError(
-                    f"input block contains {int(bad.sum())} NaN or Inf sample(s) (first at index "
-                    f"{np.argwhere(bad)[0].tolist()}); clean the signal, or create the filterbank with "
-                    "nonfinite='zero' to replace and count them"
-                )
-            self.nonfinite_count += int(bad.sum())
-            x = np.where(bad, 0.0, x).astype(self.dtype, copy=False)
-        return x
+            self._matrices.move_to_end(m)
+        return mats
 
-    def process(self, x) -> np.ndarray:
-        """Filter one block.
+    def _work(self, name: str, shape: tuple, dtype) -> np.ndarray:
+        """A scratch array kept between calls: fresh multi-megabyte temporaries cost page faults
+        on every block (the allocator hands large freed blocks back to the system)."""
+        key = (name, shape, dtype)
+        a = self._scratch.get(key)
+        if a is None:
+            if len(self._scratch) > 64:
+                self._scratch.clear()
+            a = self._scratch[key] = np.empty(shape, dtype=dtype)
+        return a
 
-        Parameters
-        ----------
-        x : array_like, shape (L,) or (channels, L)
-            Samples at ``bank.fs``; ``L`` may be 0.
-
-        Returns
-        -------
-        ndarray, shape (channels, L), of the filterbank's dtype
-        """
-        x = self._check_input(x)
+    def _filter(self, x: np.ndarray, out: np.ndarray | None) -> np.ndarray:
+        C = self.channels
         L = x.shape[-1]
-        C, M = self.channels, self.subblock
-        y = np.empty((C, L), dtype=self.dtype)
-        K, r = divmod(L, M)
-        S = self._state                                           # (C, 1, 8)
-        if K:
-            X = x[..., : K * M].reshape(x.shape[:-1] + (K, M))   # (K, M) or (C, K, M)
-            Y = X @ self._T                                       # (C, K, M)
-            U = X @ self._W                                       # (C, K, 8)
-            states = np.empty((C, K, 8), dtype=self.dtype)
-            phi = self._phi[:, M]
-            for k in range(K):
-                states[:, k] = S[:, 0]
-                S = S @ phi + U[:, k : k + 1]
-            Y += states @ self._O
-            y[:, : K * M] = Y.reshape(C, K * M)
+        m = self.subblock or self._auto(L)
+        mats = self._get(m)
+        K, r = divmod(L, m)
+        Kout = K + (r > 0)
         if r:
-            xr = x[..., None, K * M :]                             # (1, r) or (C, 1, r)
-            y[:, K * M :] = (xr @ self._T[:, :r, :r] + S @ self._O[:, :, :r])[:, 0]
-            S = S @ self._phi[:, r] + xr @ self._W[:, M - r :]
-        if L:
-            S[np.abs(S) < _FLUSH[self.dtype]] = 0.0
-            self._state = S
-        self.samples_processed += L
+            X = self._work("X", x.shape[:-1] + (Kout * m,), self.dtype)
+            X[..., :L] = x
+            X[..., L:] = 0.0
+        else:
+            X = x
+        X = X.reshape(x.shape[:-1] + (Kout, m))
+        # Every channel's state inputs and within-sub-block responses: (C, Kout, 8 + m). A mono
+        # block (Kout, m) is broadcast against the channels' matrices.
+        Z = np.matmul(X, mats.TW, out=self._work("Z", (C, Kout, 8 + m), self.dtype))
+        st = self._states(mats, Z[:, :K, :8].view(self._cdtype), K)       # (C, K + 1, 4), complex128
+        if r:
+            # The last, partial sub-block: its state input from the last r rows of its matrix.
+            B, pr = mats.rest(r)
+            ur = np.matmul(x[..., None, K * m :], mats.TW[:, m - r :, :8])[:, 0]
+            end = (st[:, K] @ B) * pr + ur.view(self._cdtype)
+        else:
+            end = st[:, K].copy()
+        states = st[:, :Kout]
+        if self.dtype != np.float64:
+            states = states.astype(self._cdtype)
+        y = np.matmul(states.view(self.dtype), mats.O,
+                      out=None if out is None else self._work("Y", (C, Kout, m), self.dtype))
+        flat = end.view(np.float64)
+        flat += _FLUSH_OFFSET
+        flat -= _FLUSH_OFFSET
+        self._state = end
+        if out is not None and not r:
+            blocks = out.reshape(C, K, m)                                 # a view when out's rows are
+            if np.may_share_memory(blocks, out):                          # contiguous, as the pipeline's are
+                np.add(y, Z[:, :, 8:], out=blocks)
+                return out
+        y += Z[:, :, 8:]
+        y = y.reshape(C, Kout * m)[:, :L]
+        if out is not None:
+            out[...] = y
+            return out
         return y
 
-    def impulse_response(self, n: int) -> np.ndarray:
-        """Response of a fresh filterbank of the same design to a unit impulse, shape (channels, n)."""
-        fresh = GammatoneFilterbank(self.bank, self.dtype, self.subblock)
-        x = np.zeros(n)
-        if n:
-            x[0] = 1.0
-        return fresh.process(x)
+    def _states(self, mats: _SubblockMatrices, U: np.ndarray, K: int) -> np.ndarray:
+        """Start states of sub-blocks 0..K from the state now and the inputs ``U`` (C, K, 4).
+
+        Sub-blocks go in groups of J: the states inside a group come from one matrix
+        product on the group's inputs; only the group start states are recursed on,
+        in a Python loop of ceil(K / J) steps of float64 arithmetic.
+        """
+        C = self.channels
+        if K <= _SINGLE_GROUP:
+            # One product: [S_0 | U_0 .. U_(K-1)] @ H gives every start state at once.
+            inputs = self._work("in", (C, K + 1, 4), np.complex128)
+            inputs[:, 0] = self._state
+            inputs[:, 1:] = U
+            st = np.matmul(inputs.reshape(C, 1, 4 * (K + 1)), mats.single(K),
+                           out=self._work("st", (C, 1, 4 * (K + 1)), np.complex128))
+            return st.reshape(C, K + 1, 4)
+        st = self._work("st", (C, K + 1, 4), np.complex128)
+        matmul, multiply, add = np.matmul, np.multiply, np.add
+        J = _group_size(K, C)
+        nc = -(-K // J)
+        G, P, (BJ, pJ) = mats.group(J)
+        Upad = self._work("U", (C, nc * J, 4), np.complex128)
+        Upad[:, :K] = U
+        Upad[:, K:] = 0.0
+        local = np.matmul(Upad.reshape(C, nc, 4 * J), G, out=self._work("local", (C, nc, 4 * J), np.complex128))
+        local = local.reshape(C, nc, J, 4)                                      # zero-start states
+        starts = np.empty((nc + 1, C, 4), dtype=np.complex128)                 # group start states
+        starts[0] = self._state
+        tmp = np.empty((C, 4), dtype=np.complex128)
+        ends = local[:, :, J - 1]
+        for q in range(nc):
+            matmul(starts[q], BJ, out=tmp)
+            multiply(tmp, pJ, out=tmp)
+            add(tmp, ends[:, q], out=starts[q + 1])
+        full = np.matmul(starts[:nc].transpose(1, 0, 2), P, out=self._work("full", (C, nc, 4 * J), np.complex128))
+        full = full.reshape(C, nc, J, 4)
+        full[:, :, 1:] += local[:, :, : J - 1]
+        full = full.reshape(C, nc * J, 4)
+        if nc * J > K:
+            return full[:, : K + 1]
+        st[:, :K] = full
+        st[:, K] = starts[nc]
+        return st
+
+
+def _group_size(K: int, channels: int) -> int:
+    """Sub-blocks per group of the two-level state computation (see ``_states``)."""
+    if K <= _SINGLE_GROUP:
+        return K
+    nc = -(-K // _GROUP)
+    return -(-K // nc)
 
 
 def relative_error(y, y_ref) -> float:

@@ -85,9 +85,27 @@ class PeakExtractor:
             raise ValueError(f"channels must be >= 1, got {channels}")
         self.channels = int(channels)
         self.mode = mode
-        self._tail = None          # last two samples seen, shape (channels, 2)
+        self._z = None             # (channels, 2 + L): the last two samples seen, then the block
+        self._staged = None
+        self._scratch = {}
         self.samples_seen = 0
         self._finished = False
+
+    def staging(self, length: int, dtype=np.float64) -> np.ndarray:
+        """A (channels, length) array to write the next block into; pass that very array to
+        :meth:`process` next, which then skips copying it (an optimisation for the pipeline)."""
+        self._staged = self._buffer(int(length), np.dtype(dtype))[:, 2:]
+        return self._staged
+
+    def _buffer(self, L: int, dtype: np.dtype) -> np.ndarray:
+        """The (channels, L + 2) work array, its first two columns holding the last two samples."""
+        z = self._z
+        if z is None or z.shape[1] != L + 2 or z.dtype != dtype:
+            new = np.zeros((self.channels, L + 2), dtype=dtype)
+            if z is not None:
+                new[:, :2] = z[:, :2]
+            self._z = z = new
+        return z
 
     def process(self, y: np.ndarray) -> Peaks:
         """Decide the peaks that ``y`` makes decidable.
@@ -105,19 +123,22 @@ class PeakExtractor:
         """
         if self._finished:
             raise RuntimeError("finish() was called: this peak extractor's stream has ended")
+        staged, self._staged = self._staged, None
         y = np.asarray(y)
         if y.ndim != 2 or y.shape[0] != self.channels:
             raise ValueError(f"expected a block of shape ({self.channels}, L), got {y.shape}")
-        if self._tail is None:
-            self._tail = np.zeros((self.channels, 2), dtype=y.dtype)
         L = y.shape[1]
         n0 = self.samples_seen
         if L == 0:
             return self._empty(max(n0 - 1, 0), n0)
-        z = np.concatenate([self._tail, y], axis=1)          # stream samples n0-2 .. n0+L-1
-        self._tail = z[:, -2:].copy()
+        if y is staged:
+            z = self._z
+        else:
+            z = self._buffer(L, y.dtype if y.dtype.kind == "f" else np.dtype(np.float64))
+            z[:, 2:] = y                                       # stream samples n0-2 .. n0+L-1
         self.samples_seen = n0 + L
         peaks = self._find(z, first_index=n0 - 1)
+        z[:, :2] = z[:, L : L + 2]                             # the tail for the next block
         return Peaks(*peaks, decided=n0 + L - 1, seen=n0 + L)
 
     def finish(self) -> Peaks:
@@ -129,19 +150,42 @@ class PeakExtractor:
         return self._empty(self.samples_seen, self.samples_seen)
 
     def _find(self, z: np.ndarray, first_index: int):
-        left, mid, right = z[:, :-2], z[:, 1:-1], z[:, 2:]
+        C, n = z.shape                                         # n = L + 2: two samples of the past first
+        flat = z.reshape(-1)
+        N = flat.size
         t = self.threshold
         if self.mode == "maxima":
-            is_peak = (left < mid) & (mid >= right) & (mid > t)
+            # Local maxima above t are exactly the samples where r = max(z, t) rises into and then
+            # does not rise: r[n-1] < r[n] >= r[n+1] (r[n] > r[n-1] >= t forces z[n] > t).
+            # Computed on the flattened rows; the two columns whose neighbours lie in another
+            # row (the first and the last) are cleared below.
+            r = np.maximum(flat, t, out=self._work("r", N, flat.dtype))
+            rise = np.greater(r[1:], r[:-1], out=self._work("rise", N - 1, bool))   # sample k+1 above k
+            is_peak = self._work("peak", N, bool)
+            np.greater(rise[:-1], rise[1:], out=is_peak[1:-1])  # rises into k, does not rise out of it
         else:
-            is_peak = ((left < mid) & (mid >= right) & (mid > t)) | ((left > mid) & (mid <= right) & (mid < -t))
+            left, mid, right = flat[:-2], flat[1:-1], flat[2:]
+            is_peak = np.empty(N, dtype=bool)
+            is_peak[1:-1] = ((left < mid) & (mid >= right) & (mid > t)) | ((left > mid) & (mid <= right) & (mid < -t))
+        grid = is_peak.reshape(C, n)
+        grid[:, 0] = False
+        grid[:, -1] = False
         if first_index < 0:
-            is_peak[:, : -first_index] = False                # samples before the stream began
-        channel, offset = np.nonzero(is_peak)
-        amplitude = mid[channel, offset]
+            grid[:, : 1 - first_index] = False                 # samples before the stream began
+        where = np.flatnonzero(is_peak)
+        amplitude = flat[where]
         if self.mode == "extrema":
             amplitude = np.abs(amplitude)
-        return channel, offset.astype(np.int64) + first_index, amplitude
+        channel = where // n
+        index = where - channel * n + (first_index - 1)
+        return channel, index, amplitude
+
+    def _work(self, name: str, size: int, dtype) -> np.ndarray:
+        """A scratch array kept between blocks (fresh large arrays cost page faults every block)."""
+        a = self._scratch.get(name)
+        if a is None or a.size < size or a.dtype != dtype:
+            a = self._scratch[name] = np.empty(size, dtype=dtype)
+        return a[:size]
 
     def _empty(self, decided: int, seen: int) -> Peaks:
         return Peaks(np.empty(0, np.intp), np.empty(0, np.int64), np.empty(0), decided, seen)

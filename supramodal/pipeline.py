@@ -9,9 +9,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from supramodal.backends import make_filterbank
 from supramodal.banks import Bank
 from supramodal.features import FEATURES, FeatureWindows, Windows, check_features, concat_windows
-from supramodal.gammatone import DEFAULT_SUBBLOCK, GammatoneFilterbank
 from supramodal.peaks import PeakExtractor
 
 DEFAULT_WINDOW = 0.1
@@ -43,35 +43,108 @@ class FeaturePipeline:
     peak_threshold : float
         Smallest peak amplitude counted (default 0), see :class:`~supramodal.peaks.PeakExtractor`.
     nonfinite : {"raise", "zero"}
-        NaN/Inf input policy, see :class:`~supramodal.gammatone.GammatoneFilterbank`.
-    subblock : int
-        Filterbank sub-block length.
+        NaN/Inf input policy, see :class:`~supramodal.gammatone.FilterbankBase`.
+    subblock : int or None
+        Sub-block length of the fast filterbank (default: chosen per block length).
+    backend : {"fast", "reference"}
+        Filterbank backend (:mod:`supramodal.backends`).
+    gather : bool
+        True (default): blocks are checked on arrival and gathered; the filterbank,
+        the peak extractor and the feature windows run once a window's last sample
+        has arrived, on everything up to that window's end. The windows returned
+        by each call are the same as without gathering (the filterbank's output
+        does not depend on the partition beyond rounding), with far fewer numpy
+        calls for small blocks. False runs every stage on every block as it comes.
+
+    Notes
+    -----
+    Non-finite samples are refused or replaced (and counted) in the call that
+    brings them, gathering or not.
     """
 
     def __init__(self, bank: Bank, features=FEATURES, window: float = DEFAULT_WINDOW, dtype=np.float64,
-                 peak_mode: str = "maxima", nonfinite: str = "raise", subblock: int = DEFAULT_SUBBLOCK,
-                 peak_threshold: float = 0.0) -> None:
+                 peak_mode: str = "maxima", nonfinite: str = "raise", subblock: int | None = None,
+                 peak_threshold: float = 0.0, backend: str = "fast", gather: bool = True) -> None:
         self.bank = bank
         self.features = check_features(features)
         self.window = float(window)
         self.window_samples = window_length(window, bank.fs)
-        self.filterbank = GammatoneFilterbank(bank, dtype=dtype, subblock=subblock, nonfinite=nonfinite)
+        options = {} if subblock is None else {"subblock": subblock}
+        self.filterbank = make_filterbank(bank, backend, dtype=dtype, nonfinite=nonfinite, **options)
         self.peaks = PeakExtractor(bank.channels, mode=peak_mode, threshold=peak_threshold)
         self.windows = FeatureWindows(bank.channels, bank.fs, self.window_samples, self.features)
+        self.gather = bool(gather)
+        self._buf = None          # gathered samples not yet filtered: (n,) mono or (channels, n)
+        self._held = 0
+        self._finished = False
+        self._empty = None
 
     def process(self, x) -> Windows:
         """Feed one block, shape (L,) or (channels, L); return the windows it closes."""
-        return self.windows.process(self.peaks.process(self.filterbank.process(x)))
+        if self._finished:
+            raise RuntimeError("finish() was called: this pipeline's stream has ended")
+        x = self.filterbank.prepare(x)
+        if not self.gather:
+            return self._run(x)
+        parts = []
+        if self._held and x.ndim != self._buf.ndim:
+            parts.append(self._release(self._held))          # mono after per-channel, or the reverse
+        self._hold(x)
+        W = self.window_samples
+        start = self.peaks.samples_seen                        # stream index of the first held sample
+        upto = (start + self._held) // W * W - start           # held samples up to the last window end
+        if upto > 0:
+            parts.append(self._release(upto))
+        if not parts:
+            return self._no_windows()
+        return parts[0] if len(parts) == 1 else concat_windows(parts, self.features, self.bank.channels)
+
+    def _no_windows(self) -> Windows:
+        """An empty result (shared: it holds nothing to change)."""
+        first = self.windows.windows_emitted
+        if self._empty is None or self._empty.first != first:
+            self._empty = Windows(first, np.zeros((0, len(self.features), self.bank.channels)), self.features)
+        return self._empty
+
+    def _hold(self, x: np.ndarray) -> None:
+        L = x.shape[-1]
+        need = self._held + L
+        if self._buf is None or self._buf.shape[-1] < need or x.ndim != self._buf.ndim:
+            size = max(need, 2 * self.window_samples, 2 * (0 if self._buf is None else self._buf.shape[-1]))
+            buf = np.empty(x.shape[:-1] + (size,), dtype=x.dtype)
+            if self._held:
+                buf[..., : self._held] = self._buf[..., : self._held]
+            self._buf = buf
+        self._buf[..., self._held : need] = x
+        self._held = need
+
+    def _release(self, n: int) -> Windows:
+        """Run the first ``n`` held samples through the stages; keep the rest held."""
+        out = self._run(self._buf[..., :n])
+        rest = self._held - n
+        if rest:
+            self._buf[..., :rest] = self._buf[..., n : self._held]
+        self._held = rest
+        return out
+
+    def _run(self, x: np.ndarray) -> Windows:
+        # The filterbank writes straight into the peak extractor's work array (no copy between them).
+        y = self.peaks.staging(x.shape[-1], self.filterbank.dtype)
+        self.filterbank.process(x, prepared=True, out=y)
+        return self.windows.process(self.peaks.process(y))
 
     def finish(self) -> Windows:
         """End of stream: close the last complete window. A trailing partial window is dropped
         (see :attr:`partial_samples`)."""
-        return self.windows.process(self.peaks.finish())
+        parts = [self._release(self._held)] if self._held else []
+        self._finished = True
+        parts.append(self.windows.process(self.peaks.finish()))
+        return concat_windows(parts, self.features, self.bank.channels)
 
     @property
     def partial_samples(self) -> int:
         """Samples after the last complete window: not part of any emitted window."""
-        return self.peaks.samples_seen - self.windows.windows_emitted * self.window_samples
+        return self.peaks.samples_seen + self._held - self.windows.windows_emitted * self.window_samples
 
     def run(self, x, block: int | None = None) -> Windows:
         """Whole signal through the pipeline (optionally in blocks of ``block`` samples), finished."""
