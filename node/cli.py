@@ -187,6 +187,17 @@ def _cmd_evaluate(args) -> int:
     return 0
 
 
+def _cmd_bench(args) -> int:
+    import os
+    import subprocess
+
+    from supramodal.bench import PINNED_THREADS
+
+    # A child process, so that BLAS and OpenMP read the one-thread settings before numpy loads.
+    cmd = [sys.executable, "-m", "supramodal.bench", "--out", args.out] + ["--quick"] * args.quick + ["--json"] * args.json
+    return subprocess.run(cmd, env={**os.environ, **PINNED_THREADS}).returncode
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="supramodal", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -256,6 +267,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="print the figure's data as one JSON object instead of a table")
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")
     p.set_defaults(func=_cmd_experiment)
+
+    p = sub.add_parser("bench", help="filterbank error against run time, drift, the whole node (report in --out)")
+    p.add_argument("--quick", action="store_true", help="short signals and streams (well under a minute; not for quoting)")
+    p.add_argument("--out", default="out/bench", help="directory for the report (default ./out/bench)")
+    p.add_argument("--json", action="store_true", help="print the results as one JSON object on stdout")
+    p.set_defaults(func=_cmd_bench)
 
     p = sub.add_parser("synth", help="write a texture set as WAV files")
     p.add_argument("--bank", choices=["whisker", "cochlea"], default="whisker")

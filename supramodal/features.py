@@ -139,7 +139,10 @@ class FeatureWindows:
         if idx.size:
             self._accumulate(peaks, first_w, last_w)
         out = Windows(self._next, self._open[:n_closed].copy(), self.features)
-        self._open = self._open[n_closed:]
+        if n_closed and n_closed == self._open.shape[0]:
+            self._open.fill(0.0)                                # every open window emitted: reuse the rows
+        else:
+            self._open = self._open[n_closed:]
         self._next += n_closed
         return out
 

@@ -213,8 +213,9 @@ class FilterbankBase:
             )
         if x.dtype != self.dtype:
             x = x.astype(self.dtype)
-        # One reduction decides the common case: a finite sum means every sample is finite.
-        if x.size and not math.isfinite(np.add.reduce(x, axis=None)):
+        # One BLAS dot product decides the common case (and raises no floating-point warning):
+        # a finite sum of squares means every sample is finite.
+        if x.size and not math.isfinite(np.vdot(x, x)):
             bad = ~np.isfinite(x)
             n_bad = int(bad.sum())
             if n_bad:
@@ -292,17 +293,19 @@ class _SubblockMatrices:
 
         # Per channel, one matrix for a sub-block's input x (row vector of m samples):
         # x @ TW[c] = [state input (4 complex moments as Re, Im pairs) | Toeplitz part (m outputs)].
+        # The state is kept as g * S (the moments times the channel's normalising gain): of the
+        # output's order whatever the bandwidth, so that its float32 copy cannot overflow.
         TW = np.zeros((C, m, 8 + m))
         back = m - np.arange(m)                                     # input i is m - i samples from the end
         for j in range(4):
-            w = back**j * pd[:, back]                               # (m - i)**j p**(m - i)
+            w = g * back**j * pd[:, back]                           # g (m - i)**j p**(m - i)
             TW[:, :, 2 * j], TW[:, :, 2 * j + 1] = w.real, w.imag
         lag = np.arange(m)[None, :] - np.arange(m)[:, None]         # output e - input i
         TW[:, :, 8:] = np.where(lag >= 0, h[:, np.clip(lag, 0, m)], 0.0)
-        # State-to-output: y[e] = Re(g p**e sum_j coef_j(e) S_j), coef = (e**3, 3e**2, 3e, 1).
+        # State-to-output: y[e] = Re(p**e sum_j coef_j(e) (g S_j)), coef = (e**3, 3e**2, 3e, 1).
         e = d[:m]
         coef = np.stack([e**3, 3 * e**2, 3 * e, np.ones_like(e)])  # (4, m)
-        Oc = g[:, None, :] * pd[:, None, :m] * coef[None]           # (C, 4, m)
+        Oc = pd[:, None, :m] * coef[None]                           # (C, 4, m)
         O = np.empty((C, 8, m))
         O[:, 0::2], O[:, 1::2] = Oc.real, -Oc.imag
         tiny = _FLUSH_MATRIX[dtype]

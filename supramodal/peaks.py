@@ -172,13 +172,13 @@ class PeakExtractor:
         grid[:, -1] = False
         if first_index < 0:
             grid[:, : 1 - first_index] = False                 # samples before the stream began
-        where = np.flatnonzero(is_peak)
+        where = is_peak.nonzero()[0]
         amplitude = flat[where]
         if self.mode == "extrema":
             amplitude = np.abs(amplitude)
-        channel = where // n
-        index = where - channel * n + (first_index - 1)
-        return channel, index, amplitude
+        channel, column = np.divmod(where, n)
+        column += first_index - 1                              # stream index of each peak
+        return channel, column, amplitude
 
     def _work(self, name: str, size: int, dtype) -> np.ndarray:
         """A scratch array kept between blocks (fresh large arrays cost page faults every block)."""

@@ -148,7 +148,7 @@ def run_calls(pipe, x, sizes):
     return counts, concat_windows(parts, pipe.features, pipe.bank.channels)
 
 
-@settings(max_examples=40)
+@settings(max_examples=40, deadline=None)
 @given(seed=st.integers(0, 2**32 - 1), sizes=st.lists(st.integers(0, 700), min_size=1, max_size=25),
        per_channel=st.booleans(), mode=st.sampled_from(["maxima", "extrema"]))
 def test_gathering_changes_nothing_but_the_cost(seed, sizes, per_channel, mode):

@@ -1,0 +1,14 @@
+"""``python -m supramodal.bench``: re-executes itself with one BLAS/OpenMP thread, then runs."""
+
+import os
+import sys
+
+from supramodal.bench import PINNED_THREADS
+
+if __name__ == "__main__":
+    if any(os.environ.get(k) != v for k, v in PINNED_THREADS.items()):
+        os.execve(sys.executable, [sys.executable, "-m", "supramodal.bench", *sys.argv[1:]],
+                  {**os.environ, **PINNED_THREADS})
+    from supramodal.bench.run import main
+
+    sys.exit(main())
