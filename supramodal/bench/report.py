@@ -169,12 +169,15 @@ def markdown(results: dict, plots: bool = True) -> str:
     for r in c["chain"]:
         lines.append(f"| {r['bank']} | {LABELS.get((r['backend'], r['dtype']))} | {r['block']} | {_rtf(r['rtf'])} | "
                      f"{_rtf(r['cpu_rtf'])} | {r['agreement']:.3f} | {r['accuracy']:.3f} | {r['windows']} |")
-    lines += ["", "The threaded node itself (replay driver at full speed, ring buffer, processing thread, list sink; "
-              "RTF = processing-thread CPU time per second of stream):", "",
-              "| bank | block | RTF | latency p50 / p99 (ms) | agreement | windows |", "|---|---|---|---|---|---|"]
+    lines += ["", "The threaded node itself (replay driver, ring buffer, processing thread, list sink, as "
+              "`supramodal run` builds it; RTF = processing-thread CPU time per second of stream; latency = "
+              "decision time minus the arrival of the block that completed the window):", "",
+              "| bank | block | replay speed | RTF | latency p50 / p99 (ms) | agreement | windows |",
+              "|---|---|---|---|---|---|---|"]
     for r in c["threaded"]:
         lat = r["latency_ms"] or {}
-        lines.append(f"| {r['bank']} | {r['block']} | {_rtf(r['rtf'])} | "
+        speed = "real time" if r["speed"] == 1 else "as fast as possible" if not math.isfinite(r["speed"]) else r["speed"]
+        lines.append(f"| {r['bank']} | {r['block']} | {speed} | {_rtf(r['rtf'])} | "
                      f"{lat.get('p50', float('nan')):.2f} / {lat.get('p99', float('nan')):.2f} | {r['agreement']:.3f} | "
                      f"{r['windows']} |")
     return "\n".join(lines) + "\n"
@@ -190,12 +193,13 @@ def _plot_pareto(results: dict, path: Path) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from matplotlib.ticker import NullFormatter
+
     a = results["speed_error"]
     banks = list(dict.fromkeys(r["bank"] for r in a))
     ncol = max(len({r["block"] for r in a if r["bank"] == k}) for k in banks)
     fig, axes = plt.subplots(len(banks), ncol, figsize=(3.6 * ncol, 3.3 * len(banks)), squeeze=False)
-    finite = [r["error"] for r in a if math.isfinite(r["error"])]
-    ceiling = max(max(finite) * 30, 10.0)
+    floor, ceiling = 1e-17, 30.0          # exact (the reference against itself) / NaN, Inf or above 1
     for i, kind in enumerate(banks):
         blocks = sorted({r["block"] for r in a if r["bank"] == kind})
         for j in range(ncol):
@@ -205,18 +209,20 @@ def _plot_pareto(results: dict, path: Path) -> Path:
                 continue
             rows = [r for r in a if r["bank"] == kind and r["block"] == blocks[j]]
             for r in rows:
-                bad = not math.isfinite(r["error"])
-                ax.scatter(r["rtf"], ceiling if bad else max(r["error"], 1e-17),
+                bad = not math.isfinite(r["error"]) or r["error"] > 1
+                ax.scatter(r["rtf"], ceiling if bad else max(r["error"], floor),
                            marker="x" if bad else MARKERS[r["backend"]],
                            facecolors="none" if r["dtype"] == "float32" and not bad else None,
                            color=f"C{list(LABELS).index((r['backend'], r['dtype']))}",
                            label=LABELS[(r["backend"], r["dtype"])] + (" (bad)" if bad else ""))
             front = sorted((r["rtf"], r["error"]) for r in rows if r["pareto"])
             if front:
-                ax.step([p[0] for p in front], [max(p[1], 1e-17) for p in front], where="post", color="k",
+                ax.step([p[0] for p in front], [max(p[1], floor) for p in front], where="post", color="k",
                         linewidth=0.8, linestyle="--")
             ax.set_xscale("log")
             ax.set_yscale("log")
+            ax.set_ylim(floor / 10, ceiling * 10)
+            ax.xaxis.set_minor_formatter(NullFormatter())
             ax.set_title(f"{kind}, {blocks[j]}-sample blocks", fontsize=9)
             ax.set_xlabel("real-time factor (one core)", fontsize=8)
             ax.set_ylabel("max relative error", fontsize=8)
@@ -228,7 +234,8 @@ def _plot_pareto(results: dict, path: Path) -> Path:
                 handles.append(h)
                 names.append(n)
     fig.legend(handles, names, loc="lower center", ncol=4, fontsize=8, frameon=False)
-    fig.suptitle("Error against run time (dashed: Pareto front; x at the top: NaN/Inf or diverging)", fontsize=10)
+    fig.suptitle("Error against run time (dashed: Pareto front; x at the top: NaN, Inf or error > 1; "
+                 "bottom row: 0, the reference against itself)", fontsize=10)
     fig.tight_layout(rect=(0, 0.08, 1, 0.96))
     fig.savefig(path, dpi=120)
     plt.close(fig)
@@ -250,17 +257,18 @@ def _plot_drift(results: dict, path: Path) -> Path:
             k, backend, dtype = key.split("/")
             if k != kind:
                 continue
-            v = np.array([x if x is not None and math.isfinite(x) else np.nan for x in values], dtype=float)
-            if np.all(np.isnan(v)):
-                continue
-            t = np.arange(1, v.size + 1)
+            t = np.array([p[0] for p in values], dtype=float)
+            v = np.array([p[1] if p[1] is not None else np.inf for p in values], dtype=float)
+            v = np.where(np.isfinite(v) & (v <= 1), np.maximum(v, 1e-17), 30.0)     # NaN, Inf, > 1: at the top
             ax.plot(t, v, label=LABELS[(backend, dtype)], color=f"C{list(LABELS).index((backend, dtype))}",
                     linewidth=0.8, linestyle="-" if dtype == "float64" else ":")
         ax.set_xscale("log")
         ax.set_yscale("log")
+        ax.set_ylim(1e-17, 300.0)
         ax.set_xlabel("stream time (s)")
-        ax.set_ylabel("max relative error over each second")
-        ax.set_title(f"{kind}: error against the reference over the stream", fontsize=9)
+        ax.set_ylabel("max relative error (log-spaced intervals)")
+        ax.set_title(f"{kind}: error against the reference over the stream (NaN, Inf or > 1 drawn at the top)",
+                     fontsize=9)
         ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=120)

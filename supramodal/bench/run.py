@@ -55,6 +55,7 @@ class Config:
     texture_seconds: float                # synthesised seconds per texture in part c
     session_seconds: float                # held-out seconds per texture replayed in part c
     node_blocks: dict                     # bank -> block sizes of part c (the first for every backend)
+    node_speed: float                     # replay speed of the threaded node (1 = real time)
     epochs: int
     seed: int = 2010
 
@@ -69,6 +70,7 @@ FULL = Config(
     drift_channels={"cochlea": (0, 12, 24, 37, 49), "whisker": tuple(range(20))},
     texture_seconds=40.0, session_seconds=5.0,
     node_blocks={"cochlea": (441, 64), "whisker": (50,)},
+    node_speed=1.0,
     epochs=500,
 )
 
@@ -81,6 +83,7 @@ QUICK = replace(
     drift_channels={"cochlea": (0, 49), "whisker": tuple(range(20))},
     texture_seconds=4.0, session_seconds=0.5,
     node_blocks={"cochlea": (441,), "whisker": (50,)},
+    node_speed=float("inf"),
     epochs=30,
 )
 
@@ -113,23 +116,39 @@ def summarise_errors(err: np.ndarray) -> tuple[float, int]:
     return float(np.max(err)), int(np.sum(~np.isfinite(err) | (err > 1.0)))
 
 
-def timed_runs(make, x: np.ndarray, L: int, repeats: int, budget: float):
-    """Wall-clock and CPU seconds of each run (fresh warmed filterbank each), and the first run's output."""
-    runs, cpu, parts = [], [], []
+def interleaved(jobs: dict, repeats: int, budget: float) -> dict:
+    """Run each job ``repeats`` times, one run of every job per round, so that a change of load on
+    a shared machine affects every job alike. ``jobs[key](first)`` sets a run up, untimed (``first``:
+    the job's first run), and returns the callable that is timed. A job whose runs exceed ``budget``
+    seconds stops repeating. Returns ``{key: (wall seconds per run, CPU seconds per run)}``."""
+    times = {k: ([], []) for k in jobs}
     for r in range(repeats):
-        fb = warm(make(), L)
-        t0, c0 = time.perf_counter(), time.process_time()
-        if r == 0:
-            for i in range(0, x.size, L):
-                parts.append(fb.process(x[i : i + L]))
-        else:
-            for i in range(0, x.size, L):
-                fb.process(x[i : i + L])
-        runs.append(time.perf_counter() - t0)
-        cpu.append(time.process_time() - c0)
-        if sum(runs) > budget:
-            break
-    return runs, cpu, np.concatenate(parts, axis=1)
+        for key, setup in jobs.items():
+            wall, cpu = times[key]
+            if r and sum(wall) > budget:
+                continue
+            run = setup(r == 0)
+            t0, c0 = time.perf_counter(), time.process_time()
+            run()
+            wall.append(time.perf_counter() - t0)
+            cpu.append(time.process_time() - c0)
+    return times
+
+
+def stream_job(bank: Bank, variant, x: np.ndarray, L: int, keep: dict):
+    """Runs of a fresh, warmed filterbank over ``x`` in blocks of ``L``; the first run's output
+    goes to ``keep[variant]``."""
+    def setup(first: bool):
+        fb = warm(make_backend(bank, *variant), L)
+
+        def run() -> None:
+            if first:
+                keep[variant] = np.concatenate([fb.process(x[i : i + L]) for i in range(0, x.size, L)], axis=1)
+            else:
+                for i in range(0, x.size, L):
+                    fb.process(x[i : i + L])
+        return run
+    return setup
 
 
 def pareto(points: list[tuple[float, float]]) -> list[bool]:
@@ -154,22 +173,26 @@ def speed_error(cfg: Config, progress) -> list[dict]:
         ref = make_filterbank(bank, "reference").process(x)
         n_ir = cfg.ir_samples[kind]
         ir_ref = reference_impulse_response(bank, n_ir)
-        for backend, dtype in VARIANTS:
+        ir = {}
+        with np.errstate(all="ignore"):
+            for v in VARIANTS:
+                ir[v] = summarise_errors(channel_errors(make_backend(bank, *v).impulse_response(n_ir), ir_ref))
+        for L in cfg.blocks[kind]:
+            n = x.size // L * L
+            outputs = {}
             with np.errstate(all="ignore"):
-                ir_err, ir_bad = summarise_errors(channel_errors(make_backend(bank, backend, dtype).impulse_response(n_ir), ir_ref))
-            for L in cfg.blocks[kind]:
-                n = x.size // L * L
-                with np.errstate(all="ignore"):
-                    runs, cpu, y = timed_runs(lambda: make_backend(bank, backend, dtype), x[:n], L, cfg.repeats,
-                                              cfg.budget)
-                err, bad = summarise_errors(channel_errors(y, ref[:, :n]))
-                rtf = float(np.median(runs)) / (n / bank.fs)
-                rows.append({"bank": kind, "channels": bank.channels, "fs": bank.fs, "backend": backend, "dtype": dtype,
-                             "block": L, "rtf": rtf, "rtf_runs": [r / (n / bank.fs) for r in runs],
+                times = interleaved({v: stream_job(bank, v, x[:n], L, outputs) for v in VARIANTS}, cfg.repeats,
+                                    cfg.budget)
+            for v in VARIANTS:
+                err, bad = summarise_errors(channel_errors(outputs.pop(v), ref[:, :n]))
+                wall, cpu = times[v]
+                rtf = float(np.median(wall)) / (n / bank.fs)
+                rows.append({"bank": kind, "channels": bank.channels, "fs": bank.fs, "backend": v[0], "dtype": v[1],
+                             "block": L, "rtf": rtf, "rtf_runs": [r / (n / bank.fs) for r in wall],
                              "cpu_rtf": float(np.median(cpu)) / (n / bank.fs),
                              "signal_seconds": n / bank.fs, "error": err, "bad_channels": bad,
-                             "ir_error": ir_err, "ir_bad_channels": ir_bad})
-                progress(f"a. {kind:7} {backend:9} {dtype:7} block {L:5}: RTF {rtf:.5f}  error {err:.2e}"
+                             "ir_error": ir[v][0], "ir_bad_channels": ir[v][1]})
+                progress(f"a. {kind:7} {v[0]:9} {v[1]:7} block {L:5}: RTF {rtf:.5f}  error {err:.2e}"
                          + (f"  ({bad} bad channels)" if bad else ""))
     for kind in BANKS:
         for L in {r["block"] for r in rows if r["bank"] == kind}:
@@ -184,6 +207,13 @@ def speed_error(cfg: Config, progress) -> list[dict]:
 def sub_bank(bank: Bank, channels) -> Bank:
     idx = list(channels)
     return Bank(bank.kind, bank.fs, bank.cf[idx], bank.b[idx], tuple(bank.names[i] for i in idx))
+
+
+def envelope(per_second: np.ndarray, bins: int = 120) -> list:
+    """[[end second, max error over the interval], ...] on log-spaced intervals: the drift plot's data."""
+    ends = np.unique(np.geomspace(1, per_second.size, bins).round().astype(int))
+    starts = np.concatenate([[0], ends[:-1]])
+    return [[int(b), float(np.max(per_second[a:b]))] for a, b in zip(starts, ends)]
 
 
 def drift(cfg: Config, progress) -> dict:
@@ -215,7 +245,7 @@ def drift(cfg: Config, progress) -> dict:
         for v in others:
             with np.errstate(all="ignore"):
                 per_second = np.max(diff[v] / scale, axis=1)
-            out["series"][f"{kind}/{v[0]}/{v[1]}"] = [float(e) for e in per_second]
+            out["series"][f"{kind}/{v[0]}/{v[1]}"] = envelope(per_second)
             for t in cfg.drift_checkpoints:
                 with np.errstate(all="ignore"):
                     upto = np.max(np.max(diff[v][:t], axis=0) / np.max(scale[:t], axis=0))
@@ -259,40 +289,37 @@ def make_pipeline(bank: Bank, backend: str, dtype: str) -> FeaturePipeline:
     return pipe
 
 
-def chain(bank, model, session, L, backend, dtype, repeats, budget):
-    """Pipeline to decisions, block by block, as the node's processing thread runs it.
+def chain_job(bank, model, session, L, variant, keep: dict):
+    """Runs of the pipeline to decisions, block by block, as the node's processing thread runs it
+    (fresh, warmed pipeline each run); the first run's decided labels go to ``keep[(variant, L)]``."""
+    def setup(first: bool):
+        pipe = make_pipeline(bank, *variant)
 
-    Returns (wall seconds of each run, decided labels of the first run)."""
-    runs, cpu, decided = [], [], None
-    for r in range(repeats):
-        pipe = make_pipeline(bank, backend, dtype)
-        labels = []
-        t0, c0 = time.perf_counter(), time.process_time()
-        with np.errstate(all="ignore"):
-            for i in range(0, session.size, L):
-                w = pipe.process(session[i : i + L])
+        def run() -> None:
+            labels = []
+            with np.errstate(all="ignore"):
+                for i in range(0, session.size, L):
+                    w = pipe.process(session[i : i + L])
+                    if len(w):
+                        for o in model.outputs(w.values):
+                            labels.append(window_decision(o).label)
+                w = pipe.finish()
                 if len(w):
-                    for o in model.outputs(w.values):
-                        labels.append(window_decision(o).label)
-            w = pipe.finish()
-            if len(w):
-                labels += [window_decision(o).label for o in model.outputs(w.values)]
-        runs.append(time.perf_counter() - t0)
-        cpu.append(time.process_time() - c0)
-        decided = decided if decided is not None else labels
-        if sum(runs) > budget:
-            break
-    return runs, cpu, decided
+                    labels += [window_decision(o).label for o in model.outputs(w.values)]
+            if first:
+                keep[(variant, L)] = labels
+        return run
+    return setup
 
 
-def threaded_node(bank, model, session, ranges, L):
+def threaded_node(bank, model, session, ranges, L, speed):
     """The node itself (driver thread, ring buffer, processing thread, sink) on the replayed session."""
     from node.graph import Labels, Node
     from node.sinks import ListSink
     from replay.driver import ReplayDriver
 
     sink = ListSink()
-    driver = ReplayDriver((session[:, None], bank.fs), block_size=L, speed=float("inf"), on_notice=None)
+    driver = ReplayDriver((session[:, None], bank.fs), block_size=L, speed=speed, on_notice=None)
     node = Node(driver, make_pipeline(bank, "fast", "float64"), [sink], model=model, decision={"scope": "window"},
                 mapping="mono", labels=Labels(list(ranges)), overrun="block")
     summary = node.run()
@@ -303,36 +330,34 @@ def node_part(cfg: Config, progress) -> dict:
     rows, threaded = [], []
     for kind in BANKS:
         bank, model, session, ranges = texture_session(kind, cfg)
+        seconds = session.size / bank.fs
         W = int(round(0.1 * bank.fs))
         truth = [next(k for k, (a, b, _) in enumerate(ranges) if a <= (w + 0.5) * W / bank.fs < b)
                  for w in range(session.size // W)]
-        progress(f"c. {kind}: model trained, session of {session.size / bank.fs:g} s")
-        reference = {}
-        for backend, dtype in sorted(VARIANTS, key=lambda v: v != ("reference", "float64")):
-            blocks = cfg.node_blocks[kind] if backend == "fast" else cfg.node_blocks[kind][:1]
-            for L in blocks:
-                runs, cpu, labels = chain(bank, model, session, L, backend, dtype,
-                                          cfg.repeats if backend == "fast" else 1, cfg.budget)
-                if (backend, dtype) == ("reference", "float64"):
-                    reference[L] = labels
-                ref = reference.get(L, reference[cfg.node_blocks[kind][0]])
-                agree = float(np.mean(np.array(labels) == np.array(ref))) if labels else float("nan")
-                acc = float(np.mean(np.array(labels) == np.array(truth[: len(labels)]))) if labels else float("nan")
-                rtf = float(np.median(runs)) / (session.size / bank.fs)
-                rows.append({"bank": kind, "backend": backend, "dtype": dtype, "block": L, "rtf": rtf,
-                             "rtf_runs": [r / (session.size / bank.fs) for r in runs],
-                             "cpu_rtf": float(np.median(cpu)) / (session.size / bank.fs), "windows": len(labels),
-                             "agreement": agree, "accuracy": acc, "session_seconds": session.size / bank.fs})
-                progress(f"c. {kind:7} {backend:9} {dtype:7} block {L:4}: RTF {rtf:.5f}  agreement {agree:.3f}")
-        L = cfg.node_blocks[kind][0]
-        summary, predicted = threaded_node(bank, model, session, ranges, L)
-        names = list(model.classes)
-        ref_names = [names[k] for k in reference[L]]
+        progress(f"c. {kind}: model trained, session of {seconds:g} s")
+        labels = {}
+        first = cfg.node_blocks[kind][0]
+        jobs = {(v, L): chain_job(bank, model, session, L, v, labels)
+                for v in VARIANTS for L in (cfg.node_blocks[kind] if v[0] == "fast" else (first,))}
+        times = interleaved(jobs, cfg.repeats, cfg.budget)
+        ref = labels[(("reference", "float64"), first)]
+        for (v, L), (wall, cpu) in times.items():
+            got = np.array(labels[(v, L)])
+            agree = float(np.mean(got == np.array(ref))) if got.size else float("nan")
+            acc = float(np.mean(got == np.array(truth[: got.size]))) if got.size else float("nan")
+            rtf = float(np.median(wall)) / seconds
+            rows.append({"bank": kind, "backend": v[0], "dtype": v[1], "block": L, "rtf": rtf,
+                         "rtf_runs": [r / seconds for r in wall], "cpu_rtf": float(np.median(cpu)) / seconds,
+                         "windows": int(got.size), "agreement": agree, "accuracy": acc, "session_seconds": seconds})
+            progress(f"c. {kind:7} {v[0]:9} {v[1]:7} block {L:4}: RTF {rtf:.5f}  agreement {agree:.3f}")
+        summary, predicted = threaded_node(bank, model, session, ranges, first, cfg.node_speed)
+        ref_names = [model.classes[k] for k in ref]
         agree = float(np.mean([p == q for p, q in zip(predicted, ref_names)])) if predicted else float("nan")
-        threaded.append({"bank": kind, "backend": "fast", "dtype": "float64", "block": L,
-                         "rtf": summary["real_time_factor"], "latency_ms": summary["latency_ms"],
-                         "windows": summary["windows"], "window_accuracy": summary["window_accuracy"],
-                         "agreement": agree, "samples_dropped": summary["samples_dropped"]})
+        threaded.append({"bank": kind, "backend": "fast", "dtype": "float64", "block": first,
+                         "speed": cfg.node_speed, "rtf": summary["real_time_factor"],
+                         "latency_ms": summary["latency_ms"], "windows": summary["windows"],
+                         "window_accuracy": summary["window_accuracy"], "agreement": agree,
+                         "samples_dropped": summary["samples_dropped"]})
         progress(f"c. {kind}: threaded node RTF {summary['real_time_factor']:.5f}, agreement {agree:.3f}")
     return {"chain": rows, "threaded": threaded}
 
