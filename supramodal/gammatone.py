@@ -98,12 +98,15 @@ def pole_powers(bank: Bank, d) -> np.ndarray:
     return out
 
 
-def _moment_sum(z):
-    """``sum_{m>=0} m**3 q**m = q (1 + 4q + q**2) / (1 - q)**4`` with ``q = exp(z)``, ``Re z < 0``.
+def _moment_sum(q):
+    """``sum_{m>=0} m**3 q**m = q (1 + 4q + q**2) / (1 - q)**4`` for ``|q| < 1``."""
+    return q * (1 + 4 * q + q * q) / (1 - q) ** 4
 
-    ``1 - q`` is taken as ``-expm1(z)``: exact to rounding even when ``|q|`` is within
-    1e-6 of 1 (narrow filters at high sample rates), where ``1 - q`` would lose digits.
-    """
+
+def _moment_sum_log(z):
+    """:func:`_moment_sum` of ``q = exp(z)``, ``Re z < 0``, with ``1 - q`` taken as ``-expm1(z)``:
+    exact to rounding even when ``|q|`` is within 1e-6 of 1 (narrow filters at high sample
+    rates), where ``1 - q`` would lose digits."""
     q = np.exp(z)
     return q * (1 + 4 * q + q * q) / np.expm1(z) ** 4
 
@@ -118,8 +121,8 @@ def gain_at_cf(bank: Bank) -> np.ndarray:
     """
     beta = 2 * np.pi * bank.b / bank.fs
     theta2 = 4 * np.pi * bank.cf / bank.fs
-    h_pos = _moment_sum(-beta + 0j)
-    h_neg = _moment_sum(-beta + 1j * theta2)
+    h_pos = _moment_sum_log(-beta + 0j)
+    h_neg = _moment_sum_log(-beta + 1j * theta2)
     return np.abs(h_pos + np.conj(h_neg)) / 2
 
 
