@@ -22,8 +22,9 @@ figure modules stay pure functions.
 from __future__ import annotations
 
 import hashlib
+import inspect
 import os
-import pickle
+import sys
 import time
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from contextlib import contextmanager
@@ -106,8 +107,8 @@ def run_all(runs: list[Run], jobs: int | None = None, seed: int = 0, progress=No
         The experiment's seed; each run receives ``run_seed(seed, run.key)``.
     progress : callable(str), optional
         Receives one line per finished run (with elapsed time and an estimate of
-        the time left); the runs' own progress lines too if it can be pickled
-        (a module-level function), since workers call it.
+        the time left); the runs' own progress lines too if it is a module-level
+        function, which spawned workers can import and call.
 
     Returns
     -------
@@ -124,10 +125,7 @@ def run_all(runs: list[Run], jobs: int | None = None, seed: int = 0, progress=No
     if not runs:
         return {}
     seeds = {r.key: run_seed(seed, r.key) for r in runs}
-    try:
-        worker_progress = pickle.loads(pickle.dumps(progress)) and progress
-    except Exception:
-        worker_progress = None
+    worker_progress = progress if _sendable_to_workers(progress) else None
     order = sorted(range(len(runs)), key=lambda i: -runs[i].cost)       # costly first; stable
     total_cost = sum(r.cost for r in runs)
     results, done_cost, t0 = {}, 0.0, time.perf_counter()
@@ -153,6 +151,12 @@ def run_all(runs: list[Run], jobs: int | None = None, seed: int = 0, progress=No
                 fut.cancel()
             raise
     return {k: results[k] for k in keys}
+
+
+def _sendable_to_workers(fn) -> bool:
+    """A module-level function reaches spawned workers by reference; a lambda or closure does not."""
+    return (inspect.isfunction(fn) and "<" not in fn.__qualname__
+            and getattr(sys.modules.get(fn.__module__), fn.__qualname__, None) is fn)
 
 
 def run_plans(plans: dict[str, Plan], jobs: int | None = None, seed: int = 0, progress=None) -> dict:
