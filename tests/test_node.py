@@ -320,3 +320,9 @@ def test_clean_shutdown_on_signal(sig):
     assert summary["summary"] is True and summary["stopped_by"] == signal.Signals(sig).name
     assert summary["windows"] == 5 + len(records) - 1
     assert summary["stream_seconds"] < 40                 # stopped well before the 80 s session ends
+
+
+@pytest.mark.parametrize("path", sorted((ROOT / "examples").glob("*.toml")), ids=lambda p: p.name)
+def test_example_scenes_are_valid(path):
+    scene = load_scene(path)
+    assert scene.driver["type"] in ("synth", "replay", "serial", "microphone")
