@@ -22,6 +22,8 @@ from supramodal.gammatone import (
     relative_error,
 )
 
+from blocks import feed_blocks
+
 LD = np.longdouble
 TWO_PI = 2 * np.arccos(LD(-1))            # pi to long-double precision (np.pi is only a double)
 EXTENDED = np.finfo(LD).eps < 1e-18       # x86-64 80-bit or quad; else the reference is only float64
@@ -180,12 +182,7 @@ PARTITION_BANK = Bank(
 
 def feed(fb, x, sizes):
     """Feed x in blocks of the given sizes (the rest in a last block); return the concatenated output."""
-    out, i = [], 0
-    for s in sizes:
-        out.append(fb.process(x[..., i : i + s]))
-        i = min(i + s, x.shape[-1])
-    out.append(fb.process(x[..., i:]))
-    y = np.concatenate(out, axis=1)
+    y = np.concatenate(feed_blocks(fb.process, x, sizes), axis=1)
     assert y.shape == (fb.channels, x.shape[-1])
     return y
 

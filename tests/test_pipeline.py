@@ -13,6 +13,8 @@ from supramodal.gammatone import GammatoneFilterbank
 from supramodal.peaks import PeakExtractor
 from supramodal.pipeline import FeaturePipeline, extract_features, window_length
 
+from blocks import feed_blocks
+
 
 def plain_features(y, fs, length):
     """The paper's definitions for one channel, written as a plain loop (independent of the module):
@@ -136,13 +138,8 @@ SMALL = Bank("custom", 5000.0, [40.0, 630.0, 1800.0], [2.0, 33.6, 300.0], ("lo",
 
 
 def feed(pipe, x, sizes):
-    parts, i = [], 0
-    for s in sizes:
-        parts.append(pipe.process(x[..., i : i + s]))
-        i = min(i + s, x.shape[-1])
-    parts.append(pipe.process(x[..., i:]))
-    parts.append(pipe.finish())
-    return parts
+    """Feed x in blocks of the given sizes, then finish; return every call's windows."""
+    return feed_blocks(pipe.process, x, sizes) + [pipe.finish()]
 
 
 @settings(max_examples=50)
