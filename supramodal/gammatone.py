@@ -14,16 +14,25 @@ four complex "moments" per channel, ``S_j = sum_{m>=1} m**j p**m x[n0-m]``
 over a sub-block of ``l`` samples are then closed-form:
 
 * ``y[n0+d] = Re(p**d (d**3 S0 + 3 d**2 S1 + 3 d S2 + S3) + sum_i h[d-i] x[n0+i])``
-* ``S'_j = p**l sum_r C(j, r) l**(j-r) S_r + sum_i (l-i)**j p**(l-i) x[n0+i]``
+* ``S' = p**l (S @ B(l)) + U``, ``B(l)[r, j] = C(j, r) l**(j-r)``, ``U_j = sum_i (l-i)**j p**(l-i) x[n0+i]``
 
-A block is cut into sub-blocks of ``m`` samples (24 to 64, chosen per block
-length). One batched matrix product gives every channel's state inputs and
-within-sub-block responses (``X @ [W | T]``, a mono block broadcast against the
-channels' matrices); the start states of all sub-blocks come from one more
-product on those inputs (for up to 12 sub-blocks; longer blocks go in groups,
-and only the groups' start states are recursed on, one Python step per group);
-a last batched product adds the states' part of the output. Large temporaries
-are kept between calls: fresh multi-megabyte arrays cost page faults every block.
+A block is cut into ``K`` sub-blocks of ``m`` samples (16 to 32, an exact division
+where there is one: 441 = 21 x 21), and goes in three steps, each a few large
+products (measured on x86-64, they run near the core's float64 peak):
+
+1. the state inputs ``U_k`` of every sub-block and channel: one product of the
+   mono block ``(K, m)`` with a ``(m, 8 C)`` matrix;
+2. the start state of every sub-block. Rescaled to the block start,
+   ``A_k = S_k / P**k`` with ``P = p**m``, the recursion is ``A_(k+1) = A_k B(m) +
+   U_k P**-(k+1)``: no pole factor is left, so it is one real, channel-independent
+   linear map for every channel at once (one product up to 8 sub-blocks; beyond,
+   within groups, then between them). The rescaling stays below ``exp(200)``: blocks
+   longer than the widest channel allows, or than 24 sub-blocks, go in passes;
+3. the output: per channel ``[S_k | x_k] @ [O ; T]``, the start state's part and the
+   within-sub-block Toeplitz part in one product.
+
+Large temporaries are kept between calls: fresh multi-megabyte arrays cost page
+faults every block.
 
 Precision
 ---------
@@ -32,10 +41,13 @@ Precision
   (``numpy.longdouble``) and rounded once: nothing is ever recursed on but the
   state, so nothing drifts, and the phase error after ``n`` samples is about
   ``(n / m) * 1e-16`` rad instead of ``n * fc/fs * 1e-16``.
-* The state recursion is always float64 (complex128). With ``dtype=float32`` the
-  three large products (Toeplitz, input-to-state, state-to-output) run in float32
-  and the output is float32; its error is a few 1e-7 of the output's scale and
-  does not grow with stream length (docs/stability.md).
+* The rescaling in step 2 costs no precision: each term of a start state is the
+  term of the direct sum times the same factor ``P**-k``, so the sums round as they
+  would without it; the binomial matrices hold exact integers times powers of ``m``.
+* The state computation is always float64 (complex128). With ``dtype=float32`` the
+  two large products (steps 1 and 3) run in float32 and the output is float32; its
+  error is a few 1e-7 of the output's scale and does not grow with stream length
+  (docs/stability.md).
 * States below about 1e-287 are flushed to zero after each block: subnormal
   numbers make matrix products many times slower and carry nothing here.
 """
@@ -61,6 +73,10 @@ _FLUSH_MATRIX = {np.dtype(np.float64): 1e-290, np.dtype(np.float32): 1e-35}
 #: Smallest bandwidth parameter accepted, as a fraction of the sample rate: the impulse
 #: response then lasts ~1e8 samples and float64 holds its phase to ~1e-9 (docs/stability.md).
 MIN_B_OVER_FS = 1e-7
+#: Largest bandwidth parameter accepted, as a fraction of the sample rate: the response then
+#: decays by exp(-2 pi * 10), about 5e-28, per sample; the fast form rescales by up to
+#: exp(200) per pass, which a wider filter would overflow in a single sample.
+MAX_B_OVER_FS = 10.0
 
 #: Matrix sets kept per filterbank (one per sub-block length in use).
 _MATRIX_CACHE = 6
@@ -151,7 +167,7 @@ def reference_impulse_response(bank: Bank, n: int) -> np.ndarray:
 
 
 def check_bandwidths(bank: Bank) -> None:
-    """Refuse bandwidths too narrow for float64 to hold the filter (``b < MIN_B_OVER_FS * fs``)."""
+    """Refuse bandwidths float64 cannot hold: ``b < MIN_B_OVER_FS * fs`` or ``b > MAX_B_OVER_FS * fs``."""
     bad = np.flatnonzero(bank.b < MIN_B_OVER_FS * bank.fs)
     if bad.size:
         k = int(bad[0])
@@ -159,6 +175,13 @@ def check_bandwidths(bank: Bank) -> None:
             f"bandwidth parameter b of channel {bank.names[k]} is {bank.b[k]:g} Hz, below {MIN_B_OVER_FS:g} * fs = "
             f"{MIN_B_OVER_FS * bank.fs:g} Hz: its impulse response would last over 1e8 samples, beyond what "
             "float64 holds to the documented error (docs/stability.md); widen it or lower the sample rate")
+    bad = np.flatnonzero(bank.b > MAX_B_OVER_FS * bank.fs)
+    if bad.size:
+        k = int(bad[0])
+        raise ValueError(
+            f"bandwidth parameter b of channel {bank.names[k]} is {bank.b[k]:g} Hz, above {MAX_B_OVER_FS:g} * fs = "
+            f"{MAX_B_OVER_FS * bank.fs:g} Hz: its impulse response would be over within one sample; narrow it "
+            "or raise the sample rate")
 
 
 class FilterbankBase:
@@ -274,135 +297,181 @@ class FilterbankBase:
         return self._fresh().process(x)
 
 
-def _transition(bank: Bank, l: int):
-    """State transition over ``l`` samples, ``S' = (S @ B) * pl``: B (4, 4) complex, pl (C, 1)."""
-    B = np.array([[comb(j, r) * float(l) ** (j - r) if r <= j else 0.0 for j in range(4)] for r in range(4)])
-    pl = pole_powers(bank, np.array([float(l)]))
-    if l > 0 and np.any(np.abs(pl) >= 1.0):
-        raise ValueError("a pole power rounds to magnitude >= 1: the bandwidth is too narrow for float64")
-    return B.astype(np.complex128), pl
+def _shift(l: float) -> np.ndarray:
+    """``B(l)`` (4, 4): the moments ``l`` samples later, pole factor aside, are ``S @ B(l)``.
+
+    ``(d + l)**j`` expanded: ``B[r, j] = C(j, r) l**(j - r)`` for ``r <= j``. Channel-independent;
+    ``B(a) B(b) = B(a + b)``.
+    """
+    return np.array([[comb(j, r) * float(l) ** (j - r) if r <= j else 0.0 for j in range(4)] for r in range(4)])
+
+
+def _flush_small(a: np.ndarray, dtype) -> np.ndarray:
+    """Matrix entries below the dtype's flush level set to 0: no subnormal operands in products."""
+    a[np.abs(a) < _FLUSH_MATRIX[np.dtype(dtype)]] = 0.0
+    return a
 
 
 class _SubblockMatrices:
-    """Everything the fast form needs for one sub-block length ``m``, built once."""
+    """The per-channel matrices of one sub-block length ``m``, built once.
+
+    ``WA`` (m, 4 * C * 2): one sub-block's input row times ``WA`` gives every channel's state
+    input, the four moments ``g sum_i (m - i)**j p**(m - i) x[i]`` as (j, channel, Re/Im)
+    columns. ``WAc`` (C, m, 8): the same per channel, for one signal per channel. ``MB`` (C, 8 + m,
+    m): per channel, rows ``[O ; T]``: the start state's part of the sub-block's output (the
+    state as 8 reals, ``Re S0, Im S0, .., Im S3``) above the Toeplitz matrix of the impulse
+    response (input i to output e). The state is kept as ``g S``, of the output's order
+    whatever the bandwidth, so that its float32 copy cannot overflow.
+    """
 
     def __init__(self, bank: Bank, m: int, dtype: np.dtype) -> None:
         C = bank.channels
-        self.m = m
         g = 1.0 / gain_at_cf(bank)[:, None]                        # (C, 1)
         d = np.arange(m + 1, dtype=np.float64)                      # lags 0..m
         pd = pole_powers(bank, d)                                   # (C, m+1), no recursion
         h = g * (d**3 * pd).real                                    # normalised impulse response
-
-        # Per channel, one matrix for a sub-block's input x (row vector of m samples):
-        # x @ TW[c] = [state input (4 complex moments as Re, Im pairs) | Toeplitz part (m outputs)].
-        # The state is kept as g * S (the moments times the channel's normalising gain): of the
-        # output's order whatever the bandwidth, so that its float32 copy cannot overflow.
-        TW = np.zeros((C, m, 8 + m))
         back = m - np.arange(m)                                     # input i is m - i samples from the end
+        WA = np.empty((m, 4, C, 2))
         for j in range(4):
-            w = g * back**j * pd[:, back]                           # g (m - i)**j p**(m - i)
-            TW[:, :, 2 * j], TW[:, :, 2 * j + 1] = w.real, w.imag
-        lag = np.arange(m)[None, :] - np.arange(m)[:, None]         # output e - input i
-        TW[:, :, 8:] = np.where(lag >= 0, h[:, np.clip(lag, 0, m)], 0.0)
-        # State-to-output: y[e] = Re(p**e sum_j coef_j(e) (g S_j)), coef = (e**3, 3e**2, 3e, 1).
+            w = g * back**j * pd[:, back]                           # (C, m)
+            WA[:, j, :, 0], WA[:, j, :, 1] = w.real.T, w.imag.T
+        _flush_small(WA, dtype)
+        self.WA = np.ascontiguousarray(WA.reshape(m, 8 * C), dtype=dtype)
+        self.WAc = np.ascontiguousarray(WA.transpose(2, 0, 1, 3).reshape(C, m, 8), dtype=dtype)
+        # y[e] = Re(p**e sum_j coef_j(e) (g S_j)), coef = (e**3, 3e**2, 3e, 1)
         e = d[:m]
         coef = np.stack([e**3, 3 * e**2, 3 * e, np.ones_like(e)])  # (4, m)
         Oc = pd[:, None, :m] * coef[None]                           # (C, 4, m)
-        O = np.empty((C, 8, m))
-        O[:, 0::2], O[:, 1::2] = Oc.real, -Oc.imag
-        tiny = _FLUSH_MATRIX[dtype]
-        for arr in (TW, O):
-            arr[np.abs(arr) < tiny] = 0.0
-        self.TW = np.ascontiguousarray(TW, dtype=dtype)
-        self.O = np.ascontiguousarray(O, dtype=dtype)
-        self._bank = bank
-        self._rest: dict[int, tuple] = {}
-        self._groups: dict[int, tuple] = {}
-
-    def rest(self, r: int):
-        """Transition over a last, partial sub-block of ``r`` samples."""
-        if r not in self._rest:
-            self._rest[r] = _transition(self._bank, r)
-        return self._rest[r]
-
-    def powers(self, n: int) -> list:
-        """``Phi**k`` per channel for k = 0..n, each (C, 4, 4), from the closed form."""
-        out = []
-        for k in range(n + 1):
-            B, pl = _transition(self._bank, k * self.m)
-            out.append(pl[:, :, None] * B[None])
-        return out
-
-    def single(self, K: int) -> np.ndarray:
-        """``H[c]`` (4(K+1), 4(K+1)): ``[S_0 | U_0 .. U_(K-1)] @ H[c]`` = the start states of
-        sub-blocks 0..K (block (0, j) = Phi**j; block (i+1, j) = Phi**(j-1-i) for j > i)."""
-        key = ("single", K)
-        if key not in self._groups:
-            C = self._bank.channels
-            phi = self.powers(K)
-            H = np.zeros((C, 4 * (K + 1), 4 * (K + 1)), dtype=np.complex128)
-            for j in range(K + 1):
-                H[:, 0:4, 4 * j : 4 * j + 4] = phi[j]
-                for i in range(j):
-                    H[:, 4 * (i + 1) : 4 * (i + 2), 4 * j : 4 * j + 4] = phi[j - 1 - i]
-            H[np.abs(H) < _FLUSH_MATRIX[np.dtype(np.float64)]] = 0.0
-            self._groups[key] = H
-        return self._groups[key]
-
-    def group(self, J: int):
-        """For groups of ``J`` sub-blocks: (G, P, (B, pl) over J sub-blocks).
-
-        ``G[c]`` (4J, 4J) maps the state inputs of a group's sub-blocks to the states after
-        each of them from a zero start (block (i, j) = Phi**(j - i), i <= j); ``P[c]`` (4, 4J)
-        maps a group's start state to the start states of its sub-blocks (block j = Phi**j);
-        ``Phi**n = p**(n m) B(n m)`` comes from the closed form for every n.
-        """
-        if J not in self._groups:
-            C = self._bank.channels
-            blocks = self.powers(J)                                  # (C, 4, 4): Phi**n per channel
-            G = np.zeros((C, 4 * J, 4 * J), dtype=np.complex128)
-            P = np.empty((C, 4, 4 * J), dtype=np.complex128)
-            for j in range(J):
-                P[:, :, 4 * j : 4 * j + 4] = blocks[j]
-                for i in range(j + 1):
-                    G[:, 4 * i : 4 * i + 4, 4 * j : 4 * j + 4] = blocks[j - i]
-            tiny = _FLUSH_MATRIX[np.dtype(np.float64)]
-            G[np.abs(G) < tiny] = 0.0
-            P[np.abs(P) < tiny] = 0.0
-            self._groups[J] = (G, P, _transition(self._bank, J * self.m))
-        return self._groups[J]
+        MB = np.empty((C, 8 + m, m))
+        MB[:, 0:8:2], MB[:, 1:8:2] = Oc.real, -Oc.imag
+        lag = np.arange(m)[None, :] - np.arange(m)[:, None]         # output e - input i
+        MB[:, 8:] = np.where(lag >= 0, h[:, np.clip(lag, 0, m)], 0.0)
+        self.MB = np.ascontiguousarray(_flush_small(MB, dtype), dtype=dtype)
 
 
-#: The automatic sub-block length aims at about this many samples (measured on x86-64: the
-#: Toeplitz product grows with it, the number of state steps shrinks); 32 for short blocks.
-_TARGET_SUBBLOCK = 48
-_TARGET_SHORT = 32
+class _Plan:
+    """One block shape: ``K`` sub-blocks of ``m`` samples; built once, with its scratch and views.
+
+    The start states of all sub-blocks come from channel-independent real products once every
+    channel's state inputs are rescaled to the block start (``V_k = U_k P**-(k+1)``, ``P = p**m``):
+    there the recursion ``A_(k+1) = A_k B(m) + V_k`` has no pole factor left, and
+    ``S_k = P**k A_k`` returns to the moments. Up to _ONE_LEVEL sub-blocks, one product
+    ``[S0 | V] @ H`` gives every ``A_k``. Beyond, the sub-blocks go in ``ng`` groups of ``J``
+    (zero-padded): ``G`` gives the states inside each group from a zero start, ``Hg`` the
+    groups' start states, ``PJ`` carries a group's start state to each of its sub-blocks.
+    Every pole power comes from the closed form, so nothing is recursed on but the state.
+    """
+
+    def __init__(self, bank: Bank, mats: _SubblockMatrices, m: int, K: int, dtype: np.dtype) -> None:
+        C = bank.channels
+        self.mats, self.m, self.K = mats, m, K
+        if K <= _ONE_LEVEL:
+            self.ng, self.J = 0, K
+            R = K
+        else:
+            self.ng = ng = max(1, round(math.sqrt(K / 2)))
+            self.J = J = -(-K // ng)
+            R = ng * J                                               # sub-blocks incl. zero padding
+        self.pinv = np.ascontiguousarray(np.broadcast_to(pole_powers(bank, -m * np.arange(1.0, K + 1)).T[:, None, :],
+                                                         (K, 4, C)))
+        ppow = np.ascontiguousarray(np.broadcast_to(pole_powers(bank, m * np.arange(0.0, R + 1)).T[:, None, :],
+                                                    (R + 1, 4, C)))
+        B = [_shift(n * m) for n in range(R + 1)]
+        # Scratch kept between calls (fresh temporaries of this size cost page faults), and the
+        # views the pass works on. Rows of W beyond K stay zero: padded sub-blocks have no input.
+        self.W = W = np.zeros((R + 1, 4, C), dtype=np.complex128)   # [S0 | V_0 .. V_(R-1)]
+        self.state = W[0]                                            # the filterbank's state lives here
+        self.state_flat = self.state.view(np.float64)
+        Wr = W.view(np.float64)                                      # (R + 1, 4, 2C)
+        self.V = W[1 : K + 1]
+        self.V_flat = self.V.view(np.float64).reshape(K, 8 * C)
+        if self.ng == 0:
+            H = np.zeros((K + 1, 4, K + 1, 4))                       # (k, j) <- (i, r) of [S0 | V]
+            for k in range(K + 1):
+                H[k, :, 0, :] = B[k].T
+                for i in range(k):
+                    H[k, :, i + 1, :] = B[k - 1 - i].T
+            self.H = H.reshape(4 * (K + 1), 4 * (K + 1))
+            self.W_flat = Wr.reshape(4 * (K + 1), 2 * C)
+            self.A = np.empty((4 * (K + 1), 2 * C))
+            A = self.A.reshape(K + 1, 4, 2 * C).view(np.complex128)
+            self.end = A[K]
+        else:
+            ng, J = self.ng, self.J
+            G = np.zeros((J, 4, J, 4))                               # (kk, j) <- (i, r): state after kk
+            for kk in range(J):
+                for i in range(kk + 1):
+                    G[kk, :, i, :] = B[kk - i].T
+            Hg = np.zeros((ng + 1, 4, ng + 1, 4))                    # (g, j) <- [S0 | group ends]
+            for q in range(ng + 1):
+                Hg[q, :, 0, :] = B[q * J].T
+                for i in range(q):
+                    Hg[q, :, i + 1, :] = B[(q - 1 - i) * J].T
+            self.G = G.reshape(4 * J, 4 * J)
+            self.Hg = Hg.reshape(4 * (ng + 1), 4 * (ng + 1))
+            self.PJ = np.concatenate([B[kk].T for kk in range(J)])  # (4J, 4)
+            self.V_groups = Wr[1:].reshape(ng, 4 * J, 2 * C)
+            self.local = np.empty((ng, 4 * J, 2 * C))
+            self.local_ends = self.local[:, 4 * (J - 1) :]
+            self.local_head = self.local[:, : 4 * (J - 1)]
+            self.ends = np.empty((ng + 1, 4, 2 * C))
+            self.ends_flat = self.ends.reshape(4 * (ng + 1), 2 * C)
+            self.starts = np.empty((4 * (ng + 1), 2 * C))
+            starts = self.starts.reshape(ng + 1, 4, 2 * C)
+            self.group_starts = starts[:ng]
+            self.full = np.empty((ng, 4 * J, 2 * C))
+            self.full_tail = self.full[:, 4:]
+            A = self.full.reshape(R, 4, 2 * C).view(np.complex128)
+            self.end = starts[ng].view(np.complex128) if K == R else A[K]
+        self.A_used = A[:K]
+        self.ppow = ppow[:K]
+        self.ppow_end = ppow[K]
+        self.S = np.empty((K, 4, C), dtype=np.complex128)
+        self.Lb = Lb = np.empty((C, 8 + m, K), dtype=dtype)          # per channel [start state | input]^T
+        self.Lb_states = Lb[:, :8].reshape(C, 4, 2, K)
+        self.S_by_channel = self.S.view(np.float64).reshape(K, 4, C, 2).transpose(2, 1, 3, 0)
+        self.Lb_input = Lb[:, 8:]
+        self.LHS = Lb.transpose(0, 2, 1)                             # (C, K, 8 + m)
+        self.cdtype = np.complex64 if dtype == np.float32 else np.complex128
+        self.U = np.empty((K, 8 * C), dtype=dtype) if dtype != np.float64 else None
+        self.U_c = self.U.view(self.cdtype).reshape(K, 4, C) if self.U is not None else None
+        self.Uc = np.empty((C, K, 8), dtype=dtype)
+        self.Uc_t = self.Uc.view(self.cdtype).transpose(1, 2, 0)
+
+
+#: The automatic sub-block length: an exact division of the block between these, nearest to
+#: _TARGET_SUBBLOCK (measured on x86-64: the Toeplitz product grows with the length, the state
+#: products with the number of sub-blocks).
+_SUBBLOCK_RANGE = (16, 32)
+_TARGET_SUBBLOCK = 21
+#: Up to this many sub-blocks, one product gives every start state; beyond, two levels of groups.
+_ONE_LEVEL = 8
+#: Sub-blocks per pass at most: longer blocks go in passes (the group products grow with it).
+_MAX_SUBBLOCKS = 24
+#: A pass spans at most this many of the widest channel's time constants ``fs / (2 pi b)``:
+#: the rescaling to the pass start multiplies by up to ``exp(_MAX_DECAY)`` (about 1e87).
+_MAX_DECAY = 200.0
+#: Plans and matrix sets kept per filterbank (least recently used dropped).
+_PLAN_CACHE = 16
 #: After this many different sub-block lengths, automatic mode stops adapting to the block length
 #: (a stream of ever-changing block lengths would otherwise rebuild matrices all the time).
 _ADAPTIVE_BUILDS = 12
-_FIXED_SUBBLOCK = 32
 
 
 def auto_subblock(length: int) -> int:
     """Sub-block length the fast form uses for a block of ``length`` samples.
 
-    Blocks up to 40 samples are one sub-block. Longer blocks are cut into ``K``
-    sub-blocks of 24 to 64 samples, preferring an exact division (no padded
-    samples) with a length near 48 (32 for blocks up to 128 samples); otherwise the
-    sub-block nearest that length.
+    Blocks up to 32 samples are one sub-block. Longer blocks: the length between 16 and 32 that
+    divides the block exactly, nearest to 21 (441 -> 21, 64 -> 16, 50 -> 25); if none divides
+    it, 21, and the rest of the block goes in a pass of its own.
     """
-    if length <= 40:
+    if length <= _SUBBLOCK_RANGE[1]:
         return max(int(length), 1)
-    target = _TARGET_SHORT if length <= 128 else _TARGET_SUBBLOCK
-    best = None
-    for K in range(-(-length // 64), -(-length // 24) + 1):
-        m = -(-length // K)
-        exact = m * K == length
-        score = (not exact, abs(math.log(m / target)))
-        if best is None or score < best[0]:
-            best = (score, m)
-    return best[1]
+    lo, hi = _SUBBLOCK_RANGE
+    exact = [m for m in range(lo, hi + 1) if length % m == 0]
+    if not exact:
+        return _TARGET_SUBBLOCK
+    return min(exact, key=lambda m: abs(math.log(m / _TARGET_SUBBLOCK)))
 
 
 class GammatoneFilterbank(FilterbankBase):
@@ -413,13 +482,14 @@ class GammatoneFilterbank(FilterbankBase):
     bank : Bank
         Centre frequencies, bandwidths and sample rate.
     dtype : {numpy.float64, numpy.float32}
-        Arithmetic of the large products and type of the output (default float64).
-        The state recursion is float64 either way; float32 is faster for long
+        Arithmetic of the two large products and type of the output (default float64).
+        The state computation is float64 either way; float32 is faster for long
         blocks, with an error of a few 1e-7 (docs/stability.md).
     subblock : int or None
         Sub-block length ``m`` of the block state-space form, 1..4096; None (default)
-        picks it per block length (:func:`auto_subblock`). Results do not depend on
-        it beyond rounding.
+        picks it per block length (:func:`auto_subblock`). It is capped where the widest
+        channel would decay by more than ``exp(200)`` over one sub-block. Results do not
+        depend on it beyond rounding.
     nonfinite : {"raise", "zero"}
         See :class:`FilterbankBase`.
 
@@ -443,150 +513,113 @@ class GammatoneFilterbank(FilterbankBase):
         if subblock is not None and not (isinstance(subblock, (int, np.integer)) and 1 <= subblock <= 4096):
             raise ValueError(f"subblock must be None (automatic) or an integer in 1..4096, got {subblock!r}")
         self.subblock = None if subblock is None else int(subblock)
+        beta_max = float(np.max(2 * np.pi * bank.b / bank.fs))
+        self._max_span = max(1, int(_MAX_DECAY / beta_max))           # samples per pass at most
         self._matrices: OrderedDict[int, _SubblockMatrices] = OrderedDict()
-        self._cdtype = np.complex64 if self.dtype == np.float32 else np.complex128
+        self._plans: OrderedDict[tuple, _Plan] = OrderedDict()
+        self._layouts: dict[int, list] = {}
         self._builds = 0
-        self._auto_memo: dict[int, int] = {}
-        self._scratch: dict[str, np.ndarray] = {}
         self.reset()
 
     def reset(self) -> None:
-        self._state = np.zeros((self.channels, 4), dtype=np.complex128)
+        self._state = np.zeros((4, self.channels), dtype=np.complex128)      # g S_j per channel
 
     def _fresh(self) -> "GammatoneFilterbank":
         return GammatoneFilterbank(self.bank, self.dtype, self.subblock)
 
-    def _auto(self, L: int) -> int:
-        m = self._auto_memo.get(L)
-        if m is None:
-            if self._builds >= _ADAPTIVE_BUILDS:
-                m = min(_FIXED_SUBBLOCK, L)
+    def _layout(self, L: int) -> list:
+        """The passes a block of ``L`` samples goes in: ``[(m, K), ...]``, ``K * m`` samples each."""
+        passes = self._layouts.get(L)
+        if passes is None:
+            if self.subblock is not None:
+                m = self.subblock
+            elif self._builds >= _ADAPTIVE_BUILDS:
+                m = _TARGET_SUBBLOCK
             else:
                 m = auto_subblock(L)
-            if len(self._auto_memo) > 256:
-                self._auto_memo.clear()
-            self._auto_memo[L] = m
-        return m
+            m = max(1, min(m, L, self._max_span))
+            per_pass = max(1, min(_MAX_SUBBLOCKS, self._max_span // m))
+            K, r = divmod(L, m)
+            n = -(-K // per_pass)
+            passes = [(m, K // n + (i < K % n)) for i in range(n)]
+            if r:
+                passes.append((r, 1))
+            if len(self._layouts) > 256:
+                self._layouts.clear()
+            self._layouts[L] = passes
+        return passes
 
-    def _get(self, m: int) -> _SubblockMatrices:
-        mats = self._matrices.get(m)
-        if mats is None:
-            mats = self._matrices[m] = _SubblockMatrices(self.bank, m, self.dtype)
-            self._builds += 1
-            if len(self._matrices) > _MATRIX_CACHE:
-                self._matrices.popitem(last=False)
+    def _plan(self, m: int, K: int) -> _Plan:
+        plan = self._plans.get((m, K))
+        if plan is None:
+            mats = self._matrices.get(m)
+            if mats is None:
+                mats = self._matrices[m] = _SubblockMatrices(self.bank, m, self.dtype)
+                self._builds += 1
+                if len(self._matrices) > _PLAN_CACHE:
+                    self._matrices.popitem(last=False)
+            plan = self._plans[(m, K)] = _Plan(self.bank, mats, m, K, self.dtype)
+            if len(self._plans) > _PLAN_CACHE:
+                self._plans.popitem(last=False)
         else:
-            self._matrices.move_to_end(m)
-        return mats
-
-    def _work(self, name: str, shape: tuple, dtype) -> np.ndarray:
-        """A scratch array kept between calls: fresh multi-megabyte temporaries cost page faults
-        on every block (the allocator hands large freed blocks back to the system)."""
-        key = (name, shape, dtype)
-        a = self._scratch.get(key)
-        if a is None:
-            if len(self._scratch) > 64:
-                self._scratch.clear()
-            a = self._scratch[key] = np.empty(shape, dtype=dtype)
-        return a
+            self._plans.move_to_end((m, K))
+        return plan
 
     def _filter(self, x: np.ndarray, out: np.ndarray | None) -> np.ndarray:
-        C = self.channels
-        L = x.shape[-1]
-        m = self.subblock or self._auto(L)
-        mats = self._get(m)
-        K, r = divmod(L, m)
-        Kout = K + (r > 0)
-        if r:
-            X = self._work("X", x.shape[:-1] + (Kout * m,), self.dtype)
-            X[..., :L] = x
-            X[..., L:] = 0.0
-        else:
-            X = x
-        X = X.reshape(x.shape[:-1] + (Kout, m))
-        # Every channel's state inputs and within-sub-block responses: (C, Kout, 8 + m). A mono
-        # block (Kout, m) is broadcast against the channels' matrices.
-        Z = np.matmul(X, mats.TW, out=self._work("Z", (C, Kout, 8 + m), self.dtype))
-        st = self._states(mats, Z[:, :K, :8].view(self._cdtype), K)       # (C, K + 1, 4), complex128
-        if r:
-            # The last, partial sub-block: its state input from the last r rows of its matrix.
-            B, pr = mats.rest(r)
-            ur = np.matmul(x[..., None, K * m :], mats.TW[:, m - r :, :8])[:, 0]
-            end = (st[:, K] @ B) * pr + ur.view(self._cdtype)
-        else:
-            end = st[:, K].copy()
-        states = st[:, :Kout]
-        if self.dtype != np.float64:
-            states = states.astype(self._cdtype)
-        y = np.matmul(states.view(self.dtype), mats.O,
-                      out=None if out is None else self._work("Y", (C, Kout, m), self.dtype))
-        flat = end.view(np.float64)
-        flat += _FLUSH_OFFSET
-        flat -= _FLUSH_OFFSET
-        self._state = end
-        if out is not None and not r:
-            blocks = out.reshape(C, K, m)                                 # a view when out's rows are
-            if np.may_share_memory(blocks, out):                          # contiguous, as the pipeline's are
-                np.add(y, Z[:, :, 8:], out=blocks)
-                return out
-        y += Z[:, :, 8:]
-        y = y.reshape(C, Kout * m)[:, :L]
-        if out is not None:
-            out[...] = y
-            return out
+        C, L = self.channels, x.shape[-1]
+        y = np.empty((C, L), dtype=self.dtype) if out is None else out
+        a = 0
+        for m, K in self._layout(L):
+            b = a + m * K
+            plan = self._plan(m, K)
+            dst = y[:, a:b].reshape(C, K, m)
+            if np.may_share_memory(dst, y):
+                self._run(plan, x[..., a:b], dst)
+            else:                                  # out's rows are not evenly strided: go through a copy
+                y[:, a:b] = self._run(plan, x[..., a:b], dst).reshape(C, -1)
+            a = b
         return y
 
-    def _states(self, mats: _SubblockMatrices, U: np.ndarray, K: int) -> np.ndarray:
-        """Start states of sub-blocks 0..K from the state now and the inputs ``U`` (C, K, 4).
-
-        Sub-blocks go in groups of J: the states inside a group come from one matrix
-        product on the group's inputs; only the group start states are recursed on,
-        in a Python loop of ceil(K / J) steps of float64 arithmetic.
-        """
-        C = self.channels
-        if K <= _SINGLE_GROUP:
-            # One product: [S_0 | U_0 .. U_(K-1)] @ H gives every start state at once.
-            inputs = self._work("in", (C, K + 1, 4), np.complex128)
-            inputs[:, 0] = self._state
-            inputs[:, 1:] = U
-            st = np.matmul(inputs.reshape(C, 1, 4 * (K + 1)), mats.single(K),
-                           out=self._work("st", (C, 1, 4 * (K + 1)), np.complex128))
-            return st.reshape(C, K + 1, 4)
-        st = self._work("st", (C, K + 1, 4), np.complex128)
-        matmul, multiply, add = np.matmul, np.multiply, np.add
-        J = _group_size(K, C)
-        nc = -(-K // J)
-        G, P, (BJ, pJ) = mats.group(J)
-        Upad = self._work("U", (C, nc * J, 4), np.complex128)
-        Upad[:, :K] = U
-        Upad[:, K:] = 0.0
-        local = np.matmul(Upad.reshape(C, nc, 4 * J), G, out=self._work("local", (C, nc, 4 * J), np.complex128))
-        local = local.reshape(C, nc, J, 4)                                      # zero-start states
-        starts = np.empty((nc + 1, C, 4), dtype=np.complex128)                 # group start states
-        starts[0] = self._state
-        tmp = np.empty((C, 4), dtype=np.complex128)
-        ends = local[:, :, J - 1]
-        for q in range(nc):
-            matmul(starts[q], BJ, out=tmp)
-            multiply(tmp, pJ, out=tmp)
-            add(tmp, ends[:, q], out=starts[q + 1])
-        full = np.matmul(starts[:nc].transpose(1, 0, 2), P, out=self._work("full", (C, nc, 4 * J), np.complex128))
-        full = full.reshape(C, nc, J, 4)
-        full[:, :, 1:] += local[:, :, : J - 1]
-        full = full.reshape(C, nc * J, 4)
-        if nc * J > K:
-            return full[:, : K + 1]
-        st[:, :K] = full
-        st[:, K] = starts[nc]
-        return st
-
-
-def _group_size(K: int, channels: int) -> int:
-    """Sub-blocks per group of the two-level state computation (see ``_states``)."""
-    if K <= _SINGLE_GROUP:
-        return K
-    nc = -(-K // _GROUP)
-    return -(-K // nc)
+    def _run(self, plan: _Plan, x: np.ndarray, dst: np.ndarray) -> np.ndarray:
+        """Filter ``K * m`` samples into ``dst`` (C, K, m) and advance the state."""
+        matmul, multiply = np.matmul, np.multiply
+        C, m, K = self.channels, plan.m, plan.K
+        mats = plan.mats
+        if self._state is not plan.state:                            # the last block used another plan
+            plan.state[...] = self._state
+        if x.ndim == 1:
+            X = x.reshape(K, m)
+            if plan.U is None:                                        # float64: straight into W
+                matmul(X, mats.WA, out=plan.V_flat)
+                multiply(plan.V, plan.pinv, out=plan.V)
+            else:
+                matmul(X, mats.WA, out=plan.U)
+                multiply(plan.U_c, plan.pinv, out=plan.V)
+            plan.Lb_input[...] = np.ascontiguousarray(X.T)            # every channel's Toeplitz input
+        else:
+            X = x.reshape(C, K, m)
+            matmul(X, mats.WAc, out=plan.Uc)
+            multiply(plan.Uc_t, plan.pinv, out=plan.V)
+            plan.Lb_input[...] = X.transpose(0, 2, 1)
+        # Start states of every sub-block, rescaled to the block start (real, channel-independent).
+        if plan.ng == 0:
+            matmul(plan.H, plan.W_flat, out=plan.A)
+        else:
+            matmul(plan.G, plan.V_groups, out=plan.local)
+            plan.ends[0] = plan.state_flat
+            plan.ends[1:] = plan.local_ends
+            matmul(plan.Hg, plan.ends_flat, out=plan.starts)
+            matmul(plan.PJ, plan.group_starts, out=plan.full)
+            plan.full_tail += plan.local_head
+        multiply(plan.A_used, plan.ppow, out=plan.S)
+        # The output: [start state | input] @ [O ; T] per channel, sub-blocks as rows.
+        plan.Lb_states[...] = plan.S_by_channel
+        matmul(plan.LHS, mats.MB, out=dst)
+        multiply(plan.end, plan.ppow_end, out=plan.state)            # next block's S0, in place
+        plan.state_flat += _FLUSH_OFFSET
+        plan.state_flat -= _FLUSH_OFFSET
+        self._state = plan.state
+        return dst
 
 
 def relative_error(y, y_ref) -> float:

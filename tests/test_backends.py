@@ -95,11 +95,28 @@ def test_out_argument_is_written_and_checked():
 
 
 def test_automatic_subblock_prefers_exact_divisions():
-    assert auto_subblock(1) == 1 and auto_subblock(40) == 40
-    assert auto_subblock(50) == 25 and auto_subblock(64) == 32
-    assert auto_subblock(441) == 49 and auto_subblock(500) == 50 and auto_subblock(4410) == 49
+    assert auto_subblock(1) == 1 and auto_subblock(32) == 32
+    assert auto_subblock(50) == 25 and auto_subblock(64) == 16
+    assert auto_subblock(441) == 21 and auto_subblock(500) == 20 and auto_subblock(4410) == 21
     for L in (41, 97, 443, 1000, 65536):
-        assert 24 <= auto_subblock(L) <= 64
+        m = auto_subblock(L)
+        assert 16 <= m <= 32
+        assert L % m == 0 or m == 21            # no exact division: 21 and a pass for the rest
+
+
+def test_long_and_uneven_blocks_go_in_passes():
+    cochlea = GammatoneFilterbank(cochlea_bank())
+    assert cochlea._layout(441) == [(21, 21)]
+    assert cochlea._layout(443) == [(21, 21), (2, 1)]
+    passes = cochlea._layout(4410)
+    assert sum(m * K for m, K in passes) == 4410 and max(K for _, K in passes) <= 24
+    # a pass never spans more than exp(200) of decay of the widest channel
+    fb = GammatoneFilterbank(SMALL)
+    beta = 2 * np.pi * SMALL.b.max() / SMALL.fs
+    assert all(beta * m * K <= 200 for m, K in fb._layout(4410))
+    x = np.random.default_rng(1).standard_normal(4410 + 443)
+    y = np.concatenate([fb.process(x[:4410]), fb.process(x[4410:])], axis=1)
+    assert per_channel_error(y, GammatoneFilterbank(SMALL, subblock=7).process(x)).max() <= 1e-13
 
 
 def test_variable_block_lengths_stop_adapting_the_subblock():
@@ -107,7 +124,7 @@ def test_variable_block_lengths_stop_adapting_the_subblock():
     x = np.random.default_rng(2).standard_normal(20000)
     sizes = list(range(100, 140))
     y = feed(fb, x, sizes)
-    assert len(fb._matrices) <= 6
+    assert len(fb._matrices) <= 16 and len(fb._plans) <= 16
     assert per_channel_error(y, GammatoneFilterbank(SMALL).process(x)).max() <= 1e-13
 
 

@@ -96,6 +96,14 @@ def test_bandwidths_below_the_float64_limit_are_refused(backend):
     make_filterbank(Bank("custom", 192000.0, [1000.0], [1.01e-7 * 192000.0], ("c",)), backend)
 
 
+@pytest.mark.parametrize("backend", ["fast", "reference"])
+def test_bandwidths_above_ten_times_the_rate_are_refused(backend):
+    with pytest.raises(ValueError, match=r"above 10 \* fs"):
+        make_filterbank(Bank("custom", 1000.0, [100.0], [10001.0], ("c",)), backend)
+    y = make_filterbank(Bank("custom", 1000.0, [100.0], [9999.0], ("c",)), backend).process(np.ones(100))
+    assert np.isfinite(y).all()
+
+
 # -- impulse response over the whole domain --------------------------------------------------
 
 @settings(max_examples=40, deadline=None)
