@@ -67,6 +67,8 @@ _TWO_PI_LD = 2 * np.arccos(_LD(-1))      # 2 pi to long-double precision
 
 #: ``S + c - c`` rounds every |S| below ``c * 2**-53`` (about 1e-287) to exactly 0.
 _FLUSH_OFFSET = 2.0**-900
+#: The state is flushed every this many passes (a decay to 1e-287 takes far longer).
+_FLUSH_EVERY = 8
 #: Matrix entries below this are set to 0 (no subnormal operands in float32 products).
 _FLUSH_MATRIX = {np.dtype(np.float64): 1e-290, np.dtype(np.float32): 1e-35}
 
@@ -356,10 +358,11 @@ class _Plan:
     channel's state inputs are rescaled to the block start (``V_k = U_k P**-(k+1)``, ``P = p**m``):
     there the recursion ``A_(k+1) = A_k B(m) + V_k`` has no pole factor left, and
     ``S_k = P**k A_k`` returns to the moments. Up to _ONE_LEVEL sub-blocks, one product
-    ``[S0 | V] @ H`` gives every ``A_k``. Beyond, the sub-blocks go in ``ng`` groups of ``J``
-    (zero-padded): ``G`` gives the states inside each group from a zero start, ``Hg`` the
-    groups' start states, ``PJ`` carries a group's start state to each of its sub-blocks.
-    Every pole power comes from the closed form, so nothing is recursed on but the state.
+    ``H @ [S0 ; V]`` gives every ``A_k``. Beyond, the sub-blocks go in ``ng`` groups of ``J``
+    (zero-padded): ``Gend`` gives each group's end state from a zero start, ``Hg`` the groups'
+    start states from those; with each start carried through the group's first sub-block and
+    added to that sub-block's input, ``Gsh`` gives the start state of every later sub-block. Every pole power comes from the closed form, so nothing is recursed on but
+    the state.
     """
 
     def __init__(self, bank: Bank, mats: _SubblockMatrices, m: int, K: int, dtype: np.dtype) -> None:
@@ -372,57 +375,68 @@ class _Plan:
             self.ng = ng = max(1, round(math.sqrt(K / 2)))
             self.J = J = -(-K // ng)
             R = ng * J                                               # sub-blocks incl. zero padding
-        self.pinv = np.ascontiguousarray(np.broadcast_to(pole_powers(bank, -m * np.arange(1.0, K + 1)).T[:, None, :],
-                                                         (K, 4, C)))
+        pinv = np.zeros((R, 4, C), dtype=np.complex128)              # zero for padded sub-blocks
+        pinv[:K] = pole_powers(bank, -m * np.arange(1.0, K + 1)).T[:, None, :]
         ppow = np.ascontiguousarray(np.broadcast_to(pole_powers(bank, m * np.arange(0.0, R + 1)).T[:, None, :],
                                                     (R + 1, 4, C)))
-        B = [_shift(n * m) for n in range(R + 1)]
+        B = [_shift(n * m).T for n in range(R + 1)]                  # column-vector form: a' = B a
+        self.cdtype = np.complex64 if dtype == np.float32 else np.complex128
         # Scratch kept between calls (fresh temporaries of this size cost page faults), and the
-        # views the pass works on. Rows of W beyond K stay zero: padded sub-blocks have no input.
-        self.W = W = np.zeros((R + 1, 4, C), dtype=np.complex128)   # [S0 | V_0 .. V_(R-1)]
-        self.state = W[0]                                            # the filterbank's state lives here
-        self.state_flat = self.state.view(np.float64)
-        Wr = W.view(np.float64)                                      # (R + 1, 4, 2C)
-        self.V = W[1 : K + 1]
-        self.V_flat = self.V.view(np.float64).reshape(K, 8 * C)
+        # views the pass works on. The state inputs of padded sub-blocks stay zero.
+        self.U = np.zeros((R, 8 * C), dtype=dtype)                   # state inputs (K rows used)
+        self.U_flat = self.U[:K]
+        self.U_c = self.U.view(self.cdtype).reshape(R, 4, C)
+        self.Uc = np.empty((C, K, 8), dtype=dtype)                   # the same, one signal per channel
+        self.Uc_t = self.Uc.view(self.cdtype).transpose(1, 2, 0)
         if self.ng == 0:
-            H = np.zeros((K + 1, 4, K + 1, 4))                       # (k, j) <- (i, r) of [S0 | V]
+            H = np.zeros((K + 1, 4, K + 1, 4))                       # (k, j) <- (i, r) of [S0 ; V]
             for k in range(K + 1):
-                H[k, :, 0, :] = B[k].T
+                H[k, :, 0, :] = B[k]
                 for i in range(k):
-                    H[k, :, i + 1, :] = B[k - 1 - i].T
+                    H[k, :, i + 1, :] = B[k - 1 - i]
             self.H = H.reshape(4 * (K + 1), 4 * (K + 1))
-            self.W_flat = Wr.reshape(4 * (K + 1), 2 * C)
+            W = np.zeros((K + 1, 4, C), dtype=np.complex128)         # [S0 ; V_0 .. V_(K-1)]
+            self.state, self.V = W[0], W[1:]
+            self.W_flat = W.view(np.float64).reshape(4 * (K + 1), 2 * C)
             self.A = np.empty((4 * (K + 1), 2 * C))
             A = self.A.reshape(K + 1, 4, 2 * C).view(np.complex128)
             self.end = A[K]
         else:
             ng, J = self.ng, self.J
-            G = np.zeros((J, 4, J, 4))                               # (kk, j) <- (i, r): state after kk
+            Gend = np.zeros((4, J, 4))                               # j <- (i, r): a group's end state
+            Gsh = np.zeros((J - 1, 4, J, 4))                         # (kk, j) <- (i, r): start of kk >= 1
             for kk in range(J):
-                for i in range(kk + 1):
-                    G[kk, :, i, :] = B[kk - i].T
-            Hg = np.zeros((ng + 1, 4, ng + 1, 4))                    # (g, j) <- [S0 | group ends]
+                Gend[:, kk, :] = B[J - 1 - kk]
+            for kk in range(1, J):
+                for i in range(kk):
+                    Gsh[kk - 1, :, i, :] = B[kk - 1 - i]
+            Hg = np.zeros((ng + 1, 4, ng + 1, 4))                    # (g, j) <- [S0 ; group ends]
             for q in range(ng + 1):
-                Hg[q, :, 0, :] = B[q * J].T
+                Hg[q, :, 0, :] = B[q * J]
                 for i in range(q):
-                    Hg[q, :, i + 1, :] = B[(q - 1 - i) * J].T
-            self.G = G.reshape(4 * J, 4 * J)
+                    Hg[q, :, i + 1, :] = B[(q - 1 - i) * J]
+            self.Gend = Gend.reshape(4, 4 * J)
+            self.Gsh = Gsh.reshape(4 * (J - 1), 4 * J)
             self.Hg = Hg.reshape(4 * (ng + 1), 4 * (ng + 1))
-            self.PJ = np.concatenate([B[kk].T for kk in range(J)])  # (4J, 4)
-            self.V_groups = Wr[1:].reshape(ng, 4 * J, 2 * C)
-            self.local = np.empty((ng, 4 * J, 2 * C))
-            self.local_ends = self.local[:, 4 * (J - 1) :]
-            self.local_head = self.local[:, : 4 * (J - 1)]
-            self.ends = np.empty((ng + 1, 4, 2 * C))
+            self.B1 = np.ascontiguousarray(B[1])
+            V = np.zeros((R, 4, C), dtype=np.complex128)
+            self.V = V
+            self.V_groups = V.view(np.float64).reshape(ng, 4 * J, 2 * C)
+            self.V_first = self.V_groups[:, :4]                       # first sub-block of each group
+            self.ends = np.empty((ng + 1, 4, 2 * C))                 # [S0 ; group ends from zero]
+            self.state = self.ends[0].view(np.complex128)
             self.ends_flat = self.ends.reshape(4 * (ng + 1), 2 * C)
             self.starts = np.empty((4 * (ng + 1), 2 * C))
-            starts = self.starts.reshape(ng + 1, 4, 2 * C)
-            self.group_starts = starts[:ng]
-            self.full = np.empty((ng, 4 * J, 2 * C))
-            self.full_tail = self.full[:, 4:]
+            self.group_starts = self.starts[: 4 * ng].reshape(ng, 4, 2 * C)
+            self.carried = np.empty((ng, 4, 2 * C))
+            self.full = np.empty((ng, J, 4, 2 * C))                  # start state of every sub-block
+            self.full_first = self.full[:, 0]
+            self.full_rest = self.full[:, 1:].reshape(ng, 4 * (J - 1), 2 * C)
             A = self.full.reshape(R, 4, 2 * C).view(np.complex128)
-            self.end = starts[ng].view(np.complex128) if K == R else A[K]
+            self.end = self.starts[4 * ng :].view(np.complex128) if K == R else A[K]
+        self.pinv = pinv
+        self.pinv_used, self.V_used = pinv[:K], self.V[:K]             # padded rows left out
+        self.state_flat = self.state.view(np.float64)
         self.A_used = A[:K]
         self.ppow = ppow[:K]
         self.ppow_end = ppow[K]
@@ -432,11 +446,6 @@ class _Plan:
         self.S_by_channel = self.S.view(np.float64).reshape(K, 4, C, 2).transpose(2, 1, 3, 0)
         self.Lb_input = Lb[:, 8:]
         self.LHS = Lb.transpose(0, 2, 1)                             # (C, K, 8 + m)
-        self.cdtype = np.complex64 if dtype == np.float32 else np.complex128
-        self.U = np.empty((K, 8 * C), dtype=dtype) if dtype != np.float64 else None
-        self.U_c = self.U.view(self.cdtype).reshape(K, 4, C) if self.U is not None else None
-        self.Uc = np.empty((C, K, 8), dtype=dtype)
-        self.Uc_t = self.Uc.view(self.cdtype).transpose(1, 2, 0)
 
 
 #: The automatic sub-block length: an exact division of the block between these, nearest to
@@ -519,6 +528,7 @@ class GammatoneFilterbank(FilterbankBase):
         self._plans: OrderedDict[tuple, _Plan] = OrderedDict()
         self._layouts: dict[int, list] = {}
         self._builds = 0
+        self._blocks = 0
         self.reset()
 
     def reset(self) -> None:
@@ -568,8 +578,13 @@ class GammatoneFilterbank(FilterbankBase):
     def _filter(self, x: np.ndarray, out: np.ndarray | None) -> np.ndarray:
         C, L = self.channels, x.shape[-1]
         y = np.empty((C, L), dtype=self.dtype) if out is None else out
+        passes = self._layout(L)
+        if len(passes) == 1 and y.flags.c_contiguous:                 # the common case, kept short
+            m, K = passes[0]
+            self._run(self._plan(m, K), x, y.reshape(C, K, m))
+            return y
         a = 0
-        for m, K in self._layout(L):
+        for m, K in passes:
             b = a + m * K
             plan = self._plan(m, K)
             dst = y[:, a:b].reshape(C, K, m)
@@ -587,37 +602,38 @@ class GammatoneFilterbank(FilterbankBase):
         mats = plan.mats
         if self._state is not plan.state:                            # the last block used another plan
             plan.state[...] = self._state
+        # 1. State inputs, rescaled to the block start; every channel's Toeplitz input.
         if x.ndim == 1:
             X = x.reshape(K, m)
-            if plan.U is None:                                        # float64: straight into W
-                matmul(X, mats.WA, out=plan.V_flat)
-                multiply(plan.V, plan.pinv, out=plan.V)
-            else:
-                matmul(X, mats.WA, out=plan.U)
-                multiply(plan.U_c, plan.pinv, out=plan.V)
-            plan.Lb_input[...] = np.ascontiguousarray(X.T)            # every channel's Toeplitz input
+            matmul(X, mats.WA, out=plan.U_flat)
+            multiply(plan.U_c, plan.pinv, out=plan.V)
+            plan.Lb_input[...] = np.ascontiguousarray(X.T)
         else:
             X = x.reshape(C, K, m)
             matmul(X, mats.WAc, out=plan.Uc)
-            multiply(plan.Uc_t, plan.pinv, out=plan.V)
+            multiply(plan.Uc_t, plan.pinv_used, out=plan.V_used)
             plan.Lb_input[...] = X.transpose(0, 2, 1)
-        # Start states of every sub-block, rescaled to the block start (real, channel-independent).
+        # 2. Start states of every sub-block (real, channel-independent products), then unscaled.
         if plan.ng == 0:
             matmul(plan.H, plan.W_flat, out=plan.A)
         else:
-            matmul(plan.G, plan.V_groups, out=plan.local)
-            plan.ends[0] = plan.state_flat
-            plan.ends[1:] = plan.local_ends
+            matmul(plan.Gend, plan.V_groups, out=plan.ends[1:])
             matmul(plan.Hg, plan.ends_flat, out=plan.starts)
-            matmul(plan.PJ, plan.group_starts, out=plan.full)
-            plan.full_tail += plan.local_head
+            # Each group's start carried through its first sub-block joins that sub-block's input:
+            # the later start states of the group are then sums over the inputs alone.
+            matmul(plan.B1, plan.group_starts, out=plan.carried)
+            plan.V_first += plan.carried
+            plan.full_first[...] = plan.group_starts
+            matmul(plan.Gsh, plan.V_groups, out=plan.full_rest)
         multiply(plan.A_used, plan.ppow, out=plan.S)
-        # The output: [start state | input] @ [O ; T] per channel, sub-blocks as rows.
+        # 3. The output: [start state | input] @ [O ; T] per channel, sub-blocks as rows.
         plan.Lb_states[...] = plan.S_by_channel
         matmul(plan.LHS, mats.MB, out=dst)
-        multiply(plan.end, plan.ppow_end, out=plan.state)            # next block's S0, in place
-        plan.state_flat += _FLUSH_OFFSET
-        plan.state_flat -= _FLUSH_OFFSET
+        multiply(plan.end, plan.ppow_end, out=plan.state)            # the next block's S0, in place
+        self._blocks += 1
+        if self._blocks % _FLUSH_EVERY == 0:
+            plan.state_flat += _FLUSH_OFFSET
+            plan.state_flat -= _FLUSH_OFFSET
         self._state = plan.state
         return dst
 
