@@ -360,8 +360,8 @@ class _Plan:
     ``S_k = P**k A_k`` returns to the moments. Up to _ONE_LEVEL sub-blocks, one product
     ``H @ [S0 ; V]`` gives every ``A_k``. Beyond, the sub-blocks go in ``ng`` groups of ``J``
     (zero-padded): ``Gend`` gives each group's end state from a zero start, ``Hg`` the groups'
-    start states from those; with each start carried through the group's first sub-block and
-    added to that sub-block's input, ``Gsh`` gives the start state of every later sub-block. Every pole power comes from the closed form, so nothing is recursed on but
+    start states from those, and the start state of each group's second sub-block; put in
+    place of that group's first input, ``Gsh`` gives the start state of every later sub-block. Every pole power comes from the closed form, so nothing is recursed on but
     the state.
     """
 
@@ -410,30 +410,38 @@ class _Plan:
             for kk in range(1, J):
                 for i in range(kk):
                     Gsh[kk - 1, :, i, :] = B[kk - 1 - i]
-            Hg = np.zeros((ng + 1, 4, ng + 1, 4))                    # (g, j) <- [S0 ; group ends]
+            # (q, j) <- [S0 ; group ends from zero ; first state inputs]: the groups' start states,
+            # then the start state of each group's second sub-block (rows ng + 1 ..).
+            Hg = np.zeros((2 * ng + 1, 4, 2 * ng + 1, 4))
             for q in range(ng + 1):
                 Hg[q, :, 0, :] = B[q * J]
                 for i in range(q):
                     Hg[q, :, i + 1, :] = B[(q - 1 - i) * J]
+            for q in range(ng):
+                Hg[ng + 1 + q, :, 0, :] = B[q * J + 1]
+                for i in range(q):
+                    Hg[ng + 1 + q, :, i + 1, :] = B[(q - 1 - i) * J + 1]
+                Hg[ng + 1 + q, :, ng + 1 + q, :] = B[0]
             self.Gend = Gend.reshape(4, 4 * J)
             self.Gsh = Gsh.reshape(4 * (J - 1), 4 * J)
-            self.Hg = Hg.reshape(4 * (ng + 1), 4 * (ng + 1))
-            self.B1 = np.ascontiguousarray(B[1])
+            self.Hg = Hg.reshape(4 * (2 * ng + 1), 4 * (2 * ng + 1))
             V = np.zeros((R, 4, C), dtype=np.complex128)
             self.V = V
             self.V_groups = V.view(np.float64).reshape(ng, 4 * J, 2 * C)
             self.V_first = self.V_groups[:, :4]                       # first sub-block of each group
-            self.ends = np.empty((ng + 1, 4, 2 * C))                 # [S0 ; group ends from zero]
-            self.state = self.ends[0].view(np.complex128)
-            self.ends_flat = self.ends.reshape(4 * (ng + 1), 2 * C)
-            self.starts = np.empty((4 * (ng + 1), 2 * C))
+            ends = np.empty((2 * ng + 1, 4, 2 * C))                  # [S0 ; group ends ; first inputs]
+            self.state = ends[0].view(np.complex128)
+            self.ends = ends[1 : ng + 1]
+            self.firsts = ends[ng + 1 :]
+            self.ends_flat = ends.reshape(4 * (2 * ng + 1), 2 * C)
+            self.starts = np.empty((4 * (2 * ng + 1), 2 * C))        # [starts ; second sub-blocks' starts]
             self.group_starts = self.starts[: 4 * ng].reshape(ng, 4, 2 * C)
-            self.carried = np.empty((ng, 4, 2 * C))
+            self.seconds = self.starts[4 * (ng + 1) :].reshape(ng, 4, 2 * C)
             self.full = np.empty((ng, J, 4, 2 * C))                  # start state of every sub-block
             self.full_first = self.full[:, 0]
             self.full_rest = self.full[:, 1:].reshape(ng, 4 * (J - 1), 2 * C)
             A = self.full.reshape(R, 4, 2 * C).view(np.complex128)
-            self.end = self.starts[4 * ng :].view(np.complex128) if K == R else A[K]
+            self.end = self.starts[4 * ng : 4 * (ng + 1)].view(np.complex128) if K == R else A[K]
         self.pinv = pinv
         self.pinv_used, self.V_used = pinv[:K], self.V[:K]             # padded rows left out
         self.state_flat = self.state.view(np.float64)
@@ -617,12 +625,12 @@ class GammatoneFilterbank(FilterbankBase):
         if plan.ng == 0:
             matmul(plan.H, plan.W_flat, out=plan.A)
         else:
-            matmul(plan.Gend, plan.V_groups, out=plan.ends[1:])
+            matmul(plan.Gend, plan.V_groups, out=plan.ends)
+            plan.firsts[...] = plan.V_first
             matmul(plan.Hg, plan.ends_flat, out=plan.starts)
-            # Each group's start carried through its first sub-block joins that sub-block's input:
-            # the later start states of the group are then sums over the inputs alone.
-            matmul(plan.B1, plan.group_starts, out=plan.carried)
-            plan.V_first += plan.carried
+            # The start of each group's second sub-block replaces its first input: the later start
+            # states of the group are then sums over the inputs alone.
+            plan.V_first[...] = plan.seconds
             plan.full_first[...] = plan.group_starts
             matmul(plan.Gsh, plan.V_groups, out=plan.full_rest)
         multiply(plan.A_used, plan.ppow, out=plan.S)

@@ -122,7 +122,7 @@ def markdown(results: dict, plots: bool = True) -> str:
               "Filterbank only, mono white noise (std 1) in blocks, one scipy call per channel per block for the "
               "peers (state carried). `ir error`: the design's impulse response against the sampled analytic "
               "gammatone. Pareto-optimal points are marked *. The reference recurses on its pole once per sample, "
-              "the fast form once per group of sub-blocks: against the analytic gammatone (`ir error`) the fast "
+              "the fast form once per pass (a block of up to 24 sub-blocks): against the analytic gammatone (`ir error`) the fast "
               "form is the more accurate of the two, and its error against the reference on a stream is mostly "
               "the reference's own."]
     a = results["speed_error"]
