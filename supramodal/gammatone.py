@@ -361,8 +361,8 @@ class _Plan:
     ``H @ [S0 ; V]`` gives every ``A_k``. Beyond, the sub-blocks go in ``ng`` groups of ``J``
     (zero-padded): ``Gend`` gives each group's end state from a zero start, ``Hg`` the groups'
     start states from those, and the start state of each group's second sub-block; put in
-    place of that group's first input, ``Gsh`` gives the start state of every later sub-block. Every pole power comes from the closed form, so nothing is recursed on but
-    the state.
+    place of that group's first input, ``Gsh`` gives the start state of every later sub-block.
+    Every pole power comes from the closed form, so nothing is recursed on but the state.
     """
 
     def __init__(self, bank: Bank, mats: _SubblockMatrices, m: int, K: int, dtype: np.dtype) -> None:
@@ -423,7 +423,10 @@ class _Plan:
                     Hg[ng + 1 + q, :, i + 1, :] = B[(q - 1 - i) * J + 1]
                 Hg[ng + 1 + q, :, ng + 1 + q, :] = B[0]
             self.Gend = Gend.reshape(4, 4 * J)
-            self.Gsh = Gsh.reshape(4 * (J - 1), 4 * J)
+            # Gsh is block lower-triangular: its first h row blocks need only the first h inputs.
+            h = (J - 1) // 2
+            Gsh = Gsh.reshape(4 * (J - 1), 4 * J)
+            self.Gsh_head, self.Gsh_tail = Gsh[: 4 * h, : 4 * h].copy(), Gsh[4 * h :, : 4 * (J - 1)].copy()
             self.Hg = Hg.reshape(4 * (2 * ng + 1), 4 * (2 * ng + 1))
             V = np.zeros((R, 4, C), dtype=np.complex128)
             self.V = V
@@ -439,7 +442,9 @@ class _Plan:
             self.seconds = self.starts[4 * (ng + 1) :].reshape(ng, 4, 2 * C)
             self.full = np.empty((ng, J, 4, 2 * C))                  # start state of every sub-block
             self.full_first = self.full[:, 0]
-            self.full_rest = self.full[:, 1:].reshape(ng, 4 * (J - 1), 2 * C)
+            full_rest = self.full[:, 1:].reshape(ng, 4 * (J - 1), 2 * C)
+            self.full_head, self.full_tail = full_rest[:, : 4 * h], full_rest[:, 4 * h :]
+            self.V_head, self.V_tail = self.V_groups[:, : 4 * h], self.V_groups[:, : 4 * (J - 1)]
             A = self.full.reshape(R, 4, 2 * C).view(np.complex128)
             self.end = self.starts[4 * ng : 4 * (ng + 1)].view(np.complex128) if K == R else A[K]
         self.pinv = pinv
@@ -632,7 +637,8 @@ class GammatoneFilterbank(FilterbankBase):
             # states of the group are then sums over the inputs alone.
             plan.V_first[...] = plan.seconds
             plan.full_first[...] = plan.group_starts
-            matmul(plan.Gsh, plan.V_groups, out=plan.full_rest)
+            matmul(plan.Gsh_head, plan.V_head, out=plan.full_head)
+            matmul(plan.Gsh_tail, plan.V_tail, out=plan.full_tail)
         multiply(plan.A_used, plan.ppow, out=plan.S)
         # 3. The output: [start state | input] @ [O ; T] per channel, sub-blocks as rows.
         plan.Lb_states[...] = plan.S_by_channel

@@ -178,7 +178,10 @@ def test_gathering_changes_nothing_but_the_cost(seed, sizes, per_channel, mode):
     c2, w2 = run_calls(FeaturePipeline(SMALL, gather=False, **kw), x, sizes)
     assert c1 == c2
     assert w1.first == w2.first and w1.values.shape == w2.values.shape
-    np.testing.assert_allclose(w1.values, w2.values, rtol=1e-12, atol=0)
+    # Rounding is relative to the signal, not to each value: a quiet channel's small features
+    # (the narrow 30 Hz channel's A is ~1e-4 here) differ by ~1e-16 in absolute terms.
+    scale = np.abs(w2.values).max(axis=(0, 1), initial=0.0)          # per feature, over channels
+    assert np.all(np.abs(w1.values - w2.values) <= 1e-12 * np.abs(w2.values) + 1e-13 * scale)
 
 
 def test_gathering_holds_samples_until_a_window_ends():
