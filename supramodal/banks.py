@@ -48,6 +48,14 @@ WHISKER_RATE = 5000.0
 COCHLEA_RATE = 44100.0
 
 
+def _real(value, what: str) -> np.ndarray:
+    """``value`` as a float64 array, or a ValueError naming ``what`` (complex, text, None...)."""
+    a = np.asarray(value)
+    if a.dtype.kind not in "fiu":
+        raise ValueError(f"{what} must be real numbers (Hz), got {a.dtype} values: {value!r:.60}")
+    return a.astype(np.float64)
+
+
 @dataclass(frozen=True)
 class Bank:
     """A gammatone filterbank as plain data.
@@ -79,10 +87,11 @@ class Bank:
     names: tuple[str, ...]
 
     def __post_init__(self) -> None:
-        cf = np.asarray(self.cf, dtype=np.float64).reshape(-1)
-        b = np.asarray(self.b, dtype=np.float64).reshape(-1)
+        cf, b, fs = _real(self.cf, "centre frequencies cf"), _real(self.b, "bandwidths b"), _real(self.fs, "sample rate fs")
+        if fs.size != 1:
+            raise ValueError(f"sample rate fs must be one number of Hz, got {fs.size} values")
+        cf, b, fs = cf.reshape(-1), b.reshape(-1), float(fs.reshape(-1)[0])
         names = tuple(str(n) for n in self.names)
-        fs = float(self.fs)
         if not np.isfinite(fs) or fs <= 0:
             raise ValueError(f"sample rate fs must be a positive number of Hz, got {self.fs!r}")
         if cf.size == 0:

@@ -83,6 +83,9 @@ def analytic_step_response(bank: Bank, n: int) -> np.ndarray:
     (float("nan"), 100.0, 10.0, "positive number of Hz"),
     (1000.0, float("nan"), 10.0, "finite"),
     (1000.0, 100.0, float("inf"), "finite"),
+    (1000.0, 100.0 + 1j, 10.0, "cf must be real numbers"),
+    (1000.0, "100", 10.0, "cf must be real numbers"),
+    (1000j, 100.0, 10.0, "fs must be real numbers"),
 ])
 def test_parameters_outside_the_domain_are_refused(fs, cf, b, match):
     with pytest.raises(ValueError, match=match):
