@@ -7,6 +7,8 @@ not asked for are not computed, and there is no classifier without a model.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import sys
 from dataclasses import replace
 
@@ -150,8 +152,10 @@ def build_node(scene: Scene, speed=None, sinks_override=None, progress=None, rec
             model.check_pipeline(pipeline)
         except ModelError as exc:
             raise SceneError(f"{scene.source}: [model] {exc}") from None
+    paths = [s["path"] if s["path"] == "-" else str(scene.resolve(s["path"])) for s in scene.sinks]
+    created = [p for p in paths if p != "-" and not Path(p).exists()]
     sinks = sinks_override if sinks_override is not None else [
-        make_sink(s["type"], s["path"] if s["path"] == "-" else str(scene.resolve(s["path"]))) for s in scene.sinks]
+        make_sink(s["type"], p) for s, p in zip(scene.sinks, paths)]
     mapping = scene.driver.get("mapping", "auto")
     overrun = scene.buffer["overrun"]
     if overrun == "auto":
@@ -160,4 +164,11 @@ def build_node(scene: Scene, speed=None, sinks_override=None, progress=None, rec
         return Node(driver, pipeline, sinks, model=model, decision=scene.decision, mapping=mapping, labels=labels,
                     buffer_seconds=scene.buffer["seconds"], overrun=overrun, recorder=recorder)
     except ValueError as exc:
+        # A refused scene leaves nothing behind: the sink files it opened are closed and, where
+        # this call created them, removed.
+        if sinks_override is None:
+            for sink in sinks:
+                sink.close()
+            for p in created:
+                Path(p).unlink(missing_ok=True)
         raise SceneError(f"{scene.source}: {exc}") from None

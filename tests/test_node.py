@@ -191,6 +191,22 @@ def test_scene_file_errors(tmp_path):
         load_scene(tmp_path / "missing.toml")
 
 
+def test_a_scene_refused_late_leaves_no_sink_file(tmp_path):
+    """The mapping is checked against the driver only when the node is built, after the sinks
+    are opened: the refused scene must not leave an empty output file behind."""
+    write_wav(tmp_path / "mono.wav", np.zeros(5000, np.float32), 5000)
+    (tmp_path / "s.toml").write_text(
+        '[driver]\ntype = "replay"\npath = "mono.wav"\nmapping = "per-channel"\n'
+        '[[sink]]\ntype = "jsonl"\npath = "out.jsonl"\n')
+    with pytest.raises(SceneError, match="per-channel"):
+        build_node(load_scene(tmp_path / "s.toml"), speed="max")
+    assert not (tmp_path / "out.jsonl").exists()
+    (tmp_path / "out.jsonl").write_text("kept\n")                   # a file that was there stays
+    with pytest.raises(SceneError):
+        build_node(load_scene(tmp_path / "s.toml"), speed="max")
+    assert (tmp_path / "out.jsonl").exists()
+
+
 def test_scene_refuses_a_model_for_another_bank(tmp_path, small_model):
     small_model.save(tmp_path / "whisker.npz")
     (tmp_path / "s.toml").write_text(
