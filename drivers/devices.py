@@ -112,32 +112,25 @@ def format_devices() -> str:
         be listed (PortAudio or pyserial missing) shows why and how to fix it
         instead, so the other section is still printed.
     """
-    lines = ["Audio inputs (MicrophoneDriver device= takes the index or part of the name):"]
-    try:
-        inputs = list_audio_inputs()
-    except DriverError as exc:
-        lines.append(f"  unavailable: {exc}")
-    else:
-        if not inputs:
-            lines.append("  none found")
-        for d in inputs:
-            mark = "*" if d["default"] else " "
-            lines.append(
-                f"{mark} {d['index']:3d}  {d['name']}  ({d['hostapi']}, {d['channels']} in, "
-                f"{d['default_rate']:g} Hz)"
-            )
-    lines.append("Serial ports:")
-    try:
-        ports = list_serial_ports()
-    except DriverError as exc:
-        lines.append(f"  unavailable: {exc}")
-    else:
-        if not ports:
-            lines.append("  none found")
-        for p in ports:
-            desc = p["description"] if p["description"] not in (None, "", "n/a") else ""
-            usb = ""
-            if p["vid"] is not None and p["pid"] is not None:
-                usb = f"  USB {p['vid']:04x}:{p['pid']:04x}"
-            lines.append(f"  {p['device']}  {desc}{usb}".rstrip())
+    def audio_line(d: dict) -> str:
+        mark = "*" if d["default"] else " "
+        return f"{mark} {d['index']:3d}  {d['name']}  ({d['hostapi']}, {d['channels']} in, {d['default_rate']:g} Hz)"
+
+    def serial_line(p: dict) -> str:
+        desc = p["description"] if p["description"] not in (None, "", "n/a") else ""
+        usb = f"  USB {p['vid']:04x}:{p['pid']:04x}" if p["vid"] is not None and p["pid"] is not None else ""
+        return f"  {p['device']}  {desc}{usb}".rstrip()
+
+    lines = []
+    for title, lister, line in (
+            ("Audio inputs (MicrophoneDriver device= takes the index or part of the name):", list_audio_inputs,
+             audio_line),
+            ("Serial ports:", list_serial_ports, serial_line)):
+        lines.append(title)
+        try:
+            found = lister()
+        except DriverError as exc:
+            lines.append(f"  unavailable: {exc}")
+            continue
+        lines += [line(item) for item in found] or ["  none found"]
     return "\n".join(lines) + "\n"

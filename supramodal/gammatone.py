@@ -48,7 +48,7 @@ Precision
   two large products (steps 1 and 3) run in float32 and the output is float32; its
   error is a few 1e-7 of the output's scale and does not grow with stream length
   (docs/stability.md).
-* States below about 1e-287 are flushed to zero after each block: subnormal
+* States below about 1e-287 are flushed to zero every 8 passes: subnormal
   numbers make matrix products many times slower and carry nothing here.
 """
 
@@ -80,12 +80,6 @@ MIN_B_OVER_FS = 1e-7
 #: exp(200) per pass, which a wider filter would overflow in a single sample.
 MAX_B_OVER_FS = 10.0
 
-#: Matrix sets kept per filterbank (one per sub-block length in use).
-_MATRIX_CACHE = 6
-#: Up to this many sub-blocks, their states come from one matrix product (no recursion);
-#: beyond, groups of about _GROUP sub-blocks.
-_SINGLE_GROUP = 12
-_GROUP = 6
 
 
 def _pole(bank: Bank) -> np.ndarray:
