@@ -20,8 +20,10 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
+from supramodal.errors import SupramodalError
 
-class DriverError(Exception):
+
+class DriverError(SupramodalError):
     """Base class of every error a driver raises."""
 
 

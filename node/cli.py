@@ -11,8 +11,10 @@ import json
 import sys
 from pathlib import Path
 
+from supramodal.errors import SupramodalError
 
-class CliError(Exception):
+
+class CliError(SupramodalError):
     """A user error the CLI reports in one line, without a traceback."""
 
 

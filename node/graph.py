@@ -29,9 +29,10 @@ from node.ringbuffer import RingBuffer, RingClosed
 from supramodal.decisions import ContactDetector, DecisionAccumulator, window_decision
 from supramodal.model import TextureModel
 from supramodal.pipeline import FeaturePipeline
+from supramodal.errors import SupramodalError
 
 
-class NodeError(RuntimeError):
+class NodeError(SupramodalError, RuntimeError):
     """A thread of the node failed; the message says which and why."""
 
 

@@ -67,12 +67,14 @@ from typing import NamedTuple
 
 import numpy as np
 
+from supramodal.errors import SupramodalError
+
 __all__ = ["RingBuffer", "Reader", "Chunk", "RingBufferError", "RingClosed", "OVERRUN_POLICIES"]
 
 OVERRUN_POLICIES = ("drop-oldest", "drop-newest", "block")
 
 
-class RingBufferError(Exception):
+class RingBufferError(SupramodalError):
     """Base class of the ring buffer's errors."""
 
 

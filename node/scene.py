@@ -44,9 +44,10 @@ from typing import Any
 from supramodal.decisions import METHODS, SCOPES
 from supramodal.features import FEATURES
 from supramodal.peaks import PEAK_MODES
+from supramodal.errors import InputError
 
 
-class SceneError(ValueError):
+class SceneError(InputError):
     """A scene file is unreadable or does not fit the schema; the message names the key."""
 
 

@@ -21,13 +21,14 @@ from supramodal.banks import Bank
 from supramodal.features import check_features
 from supramodal.mlp import MLP, train_mlp
 from supramodal.peaks import PEAK_MODES
+from supramodal.errors import InputError
 
 MODEL_FORMAT = "supramodal-model"
 MODEL_VERSION = 1
 _ARRAYS = ("w1", "b1", "w2", "b2", "mean", "scale")
 
 
-class ModelError(ValueError):
+class ModelError(InputError):
     """A model file is missing, corrupt, of another format, or does not fit the scene."""
 
 
