@@ -39,6 +39,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from supramodal.errors import InputError
+
 SYNC = b"\xa5\x5a"
 VERSION = 1
 HEADER_SIZE = 10
@@ -124,16 +126,16 @@ def encode_frame(seq: int, samples: np.ndarray, flags: int = 0) -> bytes:
     """
     samples = np.asarray(samples)
     if samples.dtype != np.int16:
-        raise TypeError(f"samples must be int16, got {samples.dtype}: quantise first")
+        raise InputError(f"samples must be int16, got {samples.dtype}: quantise first")
     if samples.ndim != 2:
-        raise ValueError(f"samples must have shape (n, channels), got {samples.shape}")
+        raise InputError(f"samples must have shape (n, channels), got {samples.shape}")
     n, channels = samples.shape
     if not 1 <= n <= MAX_SAMPLES_PER_FRAME:
-        raise ValueError(f"samples per frame must be 1..{MAX_SAMPLES_PER_FRAME}, got {n}")
+        raise InputError(f"samples per frame must be 1..{MAX_SAMPLES_PER_FRAME}, got {n}")
     if not 1 <= channels <= MAX_CHANNELS:
-        raise ValueError(f"channel count must be 1..{MAX_CHANNELS}, got {channels}")
+        raise InputError(f"channel count must be 1..{MAX_CHANNELS}, got {channels}")
     if not 0 <= flags <= 0xFF:
-        raise ValueError(f"flags must be 0..255, got {flags}")
+        raise InputError(f"flags must be 0..255, got {flags}")
     seq &= 0xFFFF
     head = _HEADER.pack(SYNC, VERSION, flags, seq, n, channels,
                         _header_check(VERSION, flags, seq, n, channels))

@@ -49,6 +49,8 @@ from typing import Any, Iterator
 
 import numpy as np
 
+from supramodal.errors import InputError
+
 from drivers.base import Block, DeviceUnavailable, DriverClosed, DriverError
 
 __all__ = ["MicrophoneDriver", "CaptureBuffer", "import_sounddevice"]
@@ -184,7 +186,7 @@ class CaptureBuffer:
 
     def __init__(self, rate: float, channels: int, capacity: int, gap_block: int) -> None:
         if capacity < 1 or gap_block < 1:
-            raise ValueError("capacity and gap_block must be at least 1 frame")
+            raise InputError("capacity and gap_block must be at least 1 frame")
         self.rate = float(rate)
         self.channels = int(channels)
         self.capacity = int(capacity)
@@ -268,7 +270,7 @@ class CaptureBuffer:
                 else:
                     data = np.array(indata, dtype=np.float32, copy=True)
                 if data.shape != (frames, self.channels):
-                    raise ValueError(
+                    raise InputError(
                         f"indata has shape {data.shape}, expected ({frames}, {self.channels})"
                     )
             # State changes.
@@ -501,16 +503,16 @@ class MicrophoneDriver:
     ) -> None:
         dtype = np.dtype(dtype).name
         if dtype not in DTYPES:
-            raise ValueError(f"dtype must be one of {DTYPES}, not {dtype!r}")
+            raise InputError(f"dtype must be one of {DTYPES}, not {dtype!r}")
         if not rate > 0:
-            raise ValueError(f"rate must be positive, not {rate!r}")
+            raise InputError(f"rate must be positive, not {rate!r}")
         if int(channels) < 1:
-            raise ValueError(f"channels must be at least 1, not {channels!r}")
+            raise InputError(f"channels must be at least 1, not {channels!r}")
         if int(blocksize) < 0:
-            raise ValueError(f"blocksize must be 0 (PortAudio's choice) or more, not {blocksize!r}")
+            raise InputError(f"blocksize must be 0 (PortAudio's choice) or more, not {blocksize!r}")
         capacity = math.ceil(buffer_seconds * rate)
         if capacity < max(int(blocksize), 1):
-            raise ValueError(
+            raise InputError(
                 f"buffer_seconds={buffer_seconds!r} holds less than one block of {blocksize} frames"
             )
         self.device = device

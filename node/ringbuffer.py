@@ -67,7 +67,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from supramodal.errors import SupramodalError
+from supramodal.errors import InputError, SupramodalError
 
 __all__ = ["RingBuffer", "Reader", "Chunk", "RingBufferError", "RingClosed", "OVERRUN_POLICIES"]
 
@@ -143,9 +143,9 @@ class Reader:
             held, or if this reader was closed.
         """
         if max_frames is not None and max_frames < 1:
-            raise ValueError(f"max_frames must be >= 1 or None, got {max_frames!r}")
+            raise InputError(f"max_frames must be >= 1 or None, got {max_frames!r}")
         if min_frames < 1:
-            raise ValueError(f"min_frames must be >= 1, got {min_frames!r}")
+            raise InputError(f"min_frames must be >= 1, got {min_frames!r}")
         ring = self._ring
         with ring._lock:
             deadline = None
@@ -228,11 +228,11 @@ class RingBuffer:
 
     def __init__(self, capacity_frames: int, channels: int, dtype=np.float64, overrun: str = "drop-oldest"):
         if not isinstance(capacity_frames, int) or isinstance(capacity_frames, bool) or capacity_frames < 1:
-            raise ValueError(f"capacity_frames must be an int >= 1, got {capacity_frames!r}")
+            raise InputError(f"capacity_frames must be an int >= 1, got {capacity_frames!r}")
         if not isinstance(channels, int) or isinstance(channels, bool) or channels < 1:
-            raise ValueError(f"channels must be an int >= 1, got {channels!r}")
+            raise InputError(f"channels must be an int >= 1, got {channels!r}")
         if overrun not in OVERRUN_POLICIES:
-            raise ValueError(f"overrun must be one of {OVERRUN_POLICIES}, got {overrun!r}")
+            raise InputError(f"overrun must be one of {OVERRUN_POLICIES}, got {overrun!r}")
         self.capacity = capacity_frames
         self.channels = channels
         self.dtype = np.dtype(dtype)
@@ -273,13 +273,13 @@ class RingBuffer:
         Reader
         """
         if position not in ("newest", "oldest"):
-            raise ValueError(f"position must be 'newest' or 'oldest', got {position!r}")
+            raise InputError(f"position must be 'newest' or 'oldest', got {position!r}")
         with self._lock:
             if name is None:
                 name = f"reader{self._names}"
             self._names += 1
             if any(r.name == name for r in self._readers):
-                raise ValueError(f"a reader named {name!r} is already attached")
+                raise InputError(f"a reader named {name!r} is already attached")
             cursor = self._stored if position == "newest" else max(0, self._stored - self.capacity)
             start = cursor + self._offset(cursor)
             # Frames refused inside the part it will read were lost to it too:
@@ -339,16 +339,16 @@ class RingBuffer:
         if a.ndim == 1 and self.channels == 1:
             a = a.reshape(-1, 1)
         if a.ndim != 2 or a.shape[1] != self.channels:
-            raise ValueError(f"block must have shape (frames, {self.channels}), got {a.shape}")
+            raise InputError(f"block must have shape (frames, {self.channels}), got {a.shape}")
         if not np.can_cast(a.dtype, self.dtype, "same_kind"):
-            raise ValueError(f"cannot store {a.dtype} in a {self.dtype} ring")
+            raise InputError(f"cannot store {a.dtype} in a {self.dtype} ring")
         n = a.shape[0]
         if filled_mask is None:
             f = None
         else:
             f = np.asarray(filled_mask, dtype=bool)
             if f.shape != (n,):
-                raise ValueError(f"filled_mask must have shape ({n},), got {f.shape}")
+                raise InputError(f"filled_mask must have shape ({n},), got {f.shape}")
         with self._lock:
             if self._closed:
                 raise RingClosed("write() on a closed ring")

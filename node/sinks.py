@@ -10,6 +10,8 @@ import json
 import sys
 from typing import TextIO
 
+from supramodal.errors import InputError
+
 
 class Sink:
     """Base sink: ``emit(event)`` per window, ``summary(summary)`` once, ``close()`` at the end."""
@@ -107,4 +109,4 @@ def make_sink(kind: str, path: str = "-") -> Sink:
     try:
         return SINKS[kind](path)
     except KeyError:
-        raise ValueError(f"unknown sink {kind!r}; sinks are {sorted(SINKS)}") from None
+        raise InputError(f"unknown sink {kind!r}; sinks are {sorted(SINKS)}") from None

@@ -10,6 +10,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from supramodal.errors import InputError
 from drivers.frames import (
     FLAG_OVERRUN,
     HEADER_SIZE,
@@ -78,7 +79,7 @@ def test_frame_major_interleaving():
 
 
 def test_encode_rejects_bad_input():
-    with pytest.raises(TypeError):
+    with pytest.raises(InputError):
         encode_frame(0, np.zeros((2, 2)))
     for shape in [(0, 2), (4097, 1), (2, 0), (2, 65)]:
         with pytest.raises(ValueError):
