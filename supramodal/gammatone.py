@@ -646,11 +646,30 @@ class GammatoneFilterbank(FilterbankBase):
         return dst
 
 
-def relative_error(y, y_ref) -> float:
-    """``max |y - y_ref| / max |y_ref|`` over everything compared: the project's error figure."""
+def relative_error(y, y_ref, axis=None, floor: float = 0.0):
+    """``max |y - y_ref| / max |y_ref|``: the project's error figure.
+
+    Parameters
+    ----------
+    y, y_ref : array_like
+        What is measured and its reference, same shape (compared in float64).
+    axis : int, tuple of int or None, optional
+        None (default): one figure over everything compared, a float. The axes compared over
+        (``-1`` for filterbank output of shape (channels, samples)): one figure per channel,
+        an ndarray.
+    floor : float, optional
+        The divisor is ``max(max |y_ref|, floor)``: with a floor, an error is measured against
+        at least that scale (e.g. the input's amplitude, where a response is near 0). Where the
+        divisor is 0, the figure is ``max |y - y_ref|``. Default 0.
+
+    A NaN or Inf in ``y`` gives a NaN or Inf figure.
+    """
     y = np.asarray(y, dtype=np.float64)
     y_ref = np.asarray(y_ref, dtype=np.float64)
-    scale = np.max(np.abs(y_ref))
-    if scale == 0:
-        return float(np.max(np.abs(y))) if y.size else 0.0
-    return float(np.max(np.abs(y - y_ref)) / scale)
+    if y.size == 0:
+        return 0.0 if axis is None else np.zeros(np.delete(y.shape, axis))
+    with np.errstate(invalid="ignore", over="ignore"):
+        diff = np.max(np.abs(y - y_ref), axis=axis)
+    scale = np.maximum(np.max(np.abs(y_ref), axis=axis), floor)
+    err = diff / np.where(scale == 0, 1.0, scale)
+    return float(err) if axis is None else err
