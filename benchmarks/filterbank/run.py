@@ -36,6 +36,7 @@ from supramodal.gammatone import reference_impulse_response, relative_error
 from supramodal.model import TextureModel
 from supramodal.pipeline import FeaturePipeline
 from supramodal.textures import reference_texture_set
+from supramodal.training import DEFAULT_EPOCHS, TRAIN_FRACTION
 
 #: (backend, dtype) pairs measured; "fast" and "reference" are the product's backends, the rest peers.
 VARIANTS = (("fast", "float64"), ("fast", "float32"), ("reference", "float64"),
@@ -76,7 +77,7 @@ FULL = Config(
     texture_seconds=40.0, session_seconds=5.0,
     node_blocks={"cochlea": (441, 64), "whisker": (50,)},
     node_speed=1.0,
-    epochs=500,
+    epochs=DEFAULT_EPOCHS,
 )
 
 QUICK = replace(
@@ -262,7 +263,8 @@ def drift(cfg: Config, progress) -> dict:
 # -- part c: the whole node -------------------------------------------------------------------
 
 def texture_session(kind: str, cfg: Config):
-    """Training windows from the first 75 % of each texture; the session: the last seconds of each."""
+    """Training windows from the first :data:`~supramodal.training.TRAIN_FRACTION` of each texture; the session:
+    the last seconds of each."""
     ts = reference_texture_set(kind)
     bank = bank_by_name(kind)
     pipe_W = FeaturePipeline(bank, FEATURES).window_samples
@@ -271,7 +273,7 @@ def texture_session(kind: str, cfg: Config):
     t = 0.0
     for i, name in enumerate(ts.names):
         x = ts.synthesize(i, duration=cfg.texture_seconds)
-        w = FeaturePipeline(bank, FEATURES).run(x[: int(0.75 * x.size)], block=65536)
+        w = FeaturePipeline(bank, FEATURES).run(x[: int(TRAIN_FRACTION * x.size)], block=65536)
         values.append(w.values)
         labels += [i] * len(w)
         session.append(x[-n_session:])
