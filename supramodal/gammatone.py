@@ -82,11 +82,6 @@ MAX_B_OVER_FS = 10.0
 
 
 
-def _pole(bank: Bank) -> np.ndarray:
-    """Complex pole per channel, shape (channels,)."""
-    return pole_powers(bank, np.ones(1))[:, 0]
-
-
 def pole_powers(bank: Bank, d) -> np.ndarray:
     """``p**d`` per channel for real exponents ``d``, correctly rounded to complex128.
 
@@ -110,13 +105,9 @@ def pole_powers(bank: Bank, d) -> np.ndarray:
     return out
 
 
-def _moment_sum(q):
-    """``sum_{m>=0} m**3 q**m = q (1 + 4q + q**2) / (1 - q)**4`` for ``|q| < 1``."""
-    return q * (1 + 4 * q + q * q) / (1 - q) ** 4
-
-
 def _moment_sum_log(z):
-    """:func:`_moment_sum` of ``q = exp(z)``, ``Re z < 0``, with ``1 - q`` taken as ``-expm1(z)``:
+    """``sum_{m>=0} m**3 q**m = q (1 + 4q + q**2) / (1 - q)**4`` of ``q = exp(z)``, ``Re z < 0``, with
+    ``1 - q`` taken as ``-expm1(z)``:
     exact to rounding even when ``|q|`` is within 1e-6 of 1 (narrow filters at high sample
     rates), where ``1 - q`` would lose digits."""
     q = np.exp(z)

@@ -328,3 +328,10 @@ def test_bad_filterbank_parameters_are_refused(kwargs, match):
 def test_relative_error_is_the_projects_figure():
     assert relative_error([1.0, 2.0, 3.5], [1.0, 2.0, 4.0]) == pytest.approx(0.125)
     assert relative_error([0.0, 0.0], [0.0, 0.0]) == 0.0
+    # one figure per channel (the samples' axis), a zero reference giving the absolute error
+    per_channel = relative_error([[1.0, 2.0], [0.0, 3.0], [1.0, np.nan]], [[1.0, 4.0], [0.0, 0.0], [1.0, 1.0]], axis=-1)
+    assert per_channel[:2].tolist() == [0.5, 3.0] and np.isnan(per_channel[2])
+    # per feature over windows and channels; a floor on the divisor
+    values = np.ones((2, 3, 4))
+    assert relative_error(values * np.array([1.0, 1.5, 1.0])[None, :, None], values, axis=(0, 2)).tolist() == [0.0, 0.5, 0.0]
+    assert relative_error([0.25, 0.0], [0.0, 0.5], floor=1.0) == 0.5
