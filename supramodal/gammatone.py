@@ -106,10 +106,9 @@ def pole_powers(bank: Bank, d) -> np.ndarray:
 
 
 def _moment_sum_log(z):
-    """``sum_{m>=0} m**3 q**m = q (1 + 4q + q**2) / (1 - q)**4`` of ``q = exp(z)``, ``Re z < 0``, with
-    ``1 - q`` taken as ``-expm1(z)``:
-    exact to rounding even when ``|q|`` is within 1e-6 of 1 (narrow filters at high sample
-    rates), where ``1 - q`` would lose digits."""
+    """``sum_{m>=0} m**3 q**m = q (1 + 4q + q**2) / (1 - q)**4`` for ``q = exp(z)``, ``Re z < 0``,
+    with ``1 - q`` taken as ``-expm1(z)``: exact to rounding even when ``|q|`` is within 1e-6 of 1
+    (narrow filters at high sample rates), where ``1 - q`` would lose digits."""
     q = np.exp(z)
     return q * (1 + 4 * q + q * q) / np.expm1(z) ** 4
 
