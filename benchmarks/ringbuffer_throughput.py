@@ -6,21 +6,18 @@ the writer can, while one reader thread reads until the ring is closed. Under
 the default 'block' policy nothing is lost, so frames/s is frames delivered
 end to end; the clock runs from the first write to the reader's last frame.
 
-    python benchmarks/ringbuffer_throughput.py [--block 50] [--reads block|all] [--policy block]
+    python -m benchmarks.ringbuffer_throughput [--block 50] [--reads block|all] [--policy block]
 """
 
 from __future__ import annotations
 
 import argparse
-import os
-import sys
 import threading
 import time
 
 import numpy as np
 
-sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
-from node.ringbuffer import RingBuffer, RingClosed  # noqa: E402
+from node.ringbuffer import RingBuffer, RingClosed
 
 
 def run(frames: int, channels: int, block: int, capacity: int, policy: str, reads: str) -> dict:

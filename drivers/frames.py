@@ -28,7 +28,7 @@ make the decoder wait for up to 512 kB before the CRC can reject it.
 Threading: :func:`encode_frame` is pure. A :class:`FrameDecoder` holds a
 buffer and counters and must be used from one thread at a time.
 
-Run ``python -m drivers.frames --bench`` to measure the decoder's throughput.
+``python -m benchmarks.frame_decoding`` measures the decoder's throughput.
 """
 
 from __future__ import annotations
@@ -355,46 +355,3 @@ class FrameDecoder:
             self.frames_lost += gap
         else:
             self.sequence_resets += 1
-
-
-def _bench(seconds: float = 2.0) -> None:
-    """Print decode throughput for a 20-channel x 32-sample stream, MB/s."""
-    import time
-
-    rng = np.random.default_rng(0)
-    frames = [encode_frame(k, rng.integers(-32768, 32768, (32, 20), dtype=np.int16))
-              for k in range(2000)]
-    stream = b"".join(frames)
-    for chunk in (len(stream), 4096, 512):
-        dec = FrameDecoder()
-        total = 0
-        t0 = time.perf_counter()
-        while time.perf_counter() - t0 < seconds:
-            for j in range(0, len(stream), chunk):
-                dec.feed(stream[j:j + chunk])
-            total += len(stream)
-        dt = time.perf_counter() - t0
-        assert dec.crc_errors == 0 and dec.bytes_skipped == 0
-        print(f"chunks of {chunk:>7} B: {total / dt / 1e6:7.1f} MB/s, "
-              f"{dec.frames_ok / dt:9.0f} frames/s ({len(frames[0])} B frames)")
-    # Worst case: garbage with sync words, where every byte is looked at.
-    noise = bytearray(rng.integers(0, 256, 1 << 20, dtype=np.uint8).tobytes())
-    for j in range(0, len(noise) - 12, 97):
-        noise[j:j + 2] = SYNC
-    noise = bytes(noise)
-    dec = FrameDecoder()
-    t0 = time.perf_counter()
-    for j in range(0, len(noise), 4096):
-        dec.feed(noise[j:j + 4096])
-    dt = time.perf_counter() - t0
-    print(f"garbage with a sync every 97 B: {len(noise) / dt / 1e6:7.1f} MB/s")
-
-
-if __name__ == "__main__":
-    import sys
-
-    if "--bench" in sys.argv[1:]:
-        _bench()
-    else:
-        print("usage: python -m drivers.frames --bench", file=sys.stderr)
-        sys.exit(2)

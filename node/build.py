@@ -20,6 +20,7 @@ from node.sinks import make_sink
 from supramodal.banks import Bank, cochlea_bank, whisker_bank
 from supramodal.model import ModelError, TextureModel
 from supramodal.pipeline import FeaturePipeline
+from supramodal.training import DEFAULT_EPOCHS, split, texture_features
 
 
 def bank_for(scene: Scene) -> Bank:
@@ -91,8 +92,6 @@ def synth_session(scene: Scene, bank: Bank):
 def train_on_texture_set(ts, pipeline: FeaturePipeline, progress=None) -> TextureModel:
     """The model the default scene trains on the spot: Fig. 3's training part of each texture,
     computed with the scene's own pipeline settings."""
-    from supramodal.experiments.common import DEFAULT_EPOCHS, split, texture_features
-
     p = pipeline
     values, _ = texture_features(ts, p.bank, p.features, p.window, peak_mode=p.peaks.mode,
                                  peak_threshold=p.peaks.threshold)

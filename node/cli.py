@@ -193,10 +193,10 @@ def _cmd_bench(args) -> int:
     import os
     import subprocess
 
-    from supramodal.bench import PINNED_THREADS
+    from benchmarks.filterbank import PINNED_THREADS
 
     # A child process, so that BLAS and OpenMP read the one-thread settings before numpy loads.
-    cmd = [sys.executable, "-m", "supramodal.bench", "--out", args.out] + ["--quick"] * args.quick + ["--json"] * args.json
+    cmd = [sys.executable, "-m", "benchmarks.filterbank", "--out", args.out] + ["--quick"] * args.quick + ["--json"] * args.json
     return subprocess.run(cmd, env={**os.environ, **PINNED_THREADS}).returncode
 
 

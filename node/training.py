@@ -19,9 +19,9 @@ from node.graph import channel_mapper
 from replay.driver import ReplayDriver
 from supramodal.banks import Bank
 from supramodal.decisions import DecisionAccumulator
-from supramodal.experiments.common import DEFAULT_EPOCHS
 from supramodal.model import TextureModel
 from supramodal.pipeline import FeaturePipeline
+from supramodal.training import DEFAULT_EPOCHS
 
 
 @dataclass(frozen=True)

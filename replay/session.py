@@ -42,7 +42,7 @@ from typing import Any, Iterable, Mapping
 import numpy as np
 
 from replay.errors import SessionError
-from replay.wavio import _as_frames, read_wav, wav_info, write_wav
+from replay.wavio import as_frames, read_wav, wav_info, write_wav
 
 __all__ = ["FORMAT", "VERSION", "Label", "Session", "session_paths", "load_session", "save_session",
            "validate_sidecar", "mask_to_ranges"]
@@ -402,7 +402,7 @@ def save_session(path: str | os.PathLike, data, rate: int, source: str,
         For bad samples, rate or dtype.
     """
     wav, js = session_paths(path)
-    x = _as_frames(data)
+    x = as_frames(data)
     if isinstance(rate, bool) or not _is_number(rate) or not float(rate).is_integer() or rate < 1:
         raise ValueError(f"rate must be a positive whole number of Hz (WAV stores integers), got {rate!r}")
     rate = int(rate)

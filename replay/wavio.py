@@ -40,7 +40,7 @@ from scipy.io import wavfile
 
 from replay.errors import ClippingWarning, WavFormatError
 
-__all__ = ["WavInfo", "wav_info", "read_wav", "write_wav", "WRITE_DTYPES"]
+__all__ = ["WavInfo", "wav_info", "read_wav", "write_wav", "as_frames", "WRITE_DTYPES"]
 
 _PCM = 0x0001
 _IEEE_FLOAT = 0x0003
@@ -261,7 +261,14 @@ def read_wav(path: str | os.PathLike) -> tuple[np.ndarray, int]:
     return data, info.rate
 
 
-def _as_frames(data) -> np.ndarray:
+def as_frames(data) -> np.ndarray:
+    """Samples as float64 frames, shape (frames, channels); a 1-D array is one channel.
+
+    Raises
+    ------
+    ValueError
+        For another number of dimensions, no channel, or samples that are not real numbers.
+    """
     a = np.asarray(data)
     if a.ndim == 1:
         a = a.reshape(-1, 1)
@@ -309,7 +316,7 @@ def write_wav(path: str | os.PathLike, data, rate: int, dtype: str = "float32") 
     if isinstance(rate, bool) or not float(rate).is_integer() or rate < 1:
         raise ValueError(f"rate must be a positive whole number of Hz (WAV stores integers), got {rate!r}")
     rate = int(rate)
-    x = _as_frames(data)
+    x = as_frames(data)
     bad = np.count_nonzero(~np.isfinite(x))
     if bad:
         raise ValueError(f"{path}: refusing to write {bad} NaN or infinite samples")

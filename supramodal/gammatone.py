@@ -82,11 +82,6 @@ MAX_B_OVER_FS = 10.0
 
 
 
-def _pole(bank: Bank) -> np.ndarray:
-    """Complex pole per channel, shape (channels,)."""
-    return pole_powers(bank, np.ones(1))[:, 0]
-
-
 def pole_powers(bank: Bank, d) -> np.ndarray:
     """``p**d`` per channel for real exponents ``d``, correctly rounded to complex128.
 
@@ -110,15 +105,10 @@ def pole_powers(bank: Bank, d) -> np.ndarray:
     return out
 
 
-def _moment_sum(q):
-    """``sum_{m>=0} m**3 q**m = q (1 + 4q + q**2) / (1 - q)**4`` for ``|q| < 1``."""
-    return q * (1 + 4 * q + q * q) / (1 - q) ** 4
-
-
 def _moment_sum_log(z):
-    """:func:`_moment_sum` of ``q = exp(z)``, ``Re z < 0``, with ``1 - q`` taken as ``-expm1(z)``:
-    exact to rounding even when ``|q|`` is within 1e-6 of 1 (narrow filters at high sample
-    rates), where ``1 - q`` would lose digits."""
+    """``sum_{m>=0} m**3 q**m = q (1 + 4q + q**2) / (1 - q)**4`` for ``q = exp(z)``, ``Re z < 0``,
+    with ``1 - q`` taken as ``-expm1(z)``: exact to rounding even when ``|q|`` is within 1e-6 of 1
+    (narrow filters at high sample rates), where ``1 - q`` would lose digits."""
     q = np.exp(z)
     return q * (1 + 4 * q + q * q) / np.expm1(z) ** 4
 
@@ -646,11 +636,30 @@ class GammatoneFilterbank(FilterbankBase):
         return dst
 
 
-def relative_error(y, y_ref) -> float:
-    """``max |y - y_ref| / max |y_ref|`` over everything compared: the project's error figure."""
+def relative_error(y, y_ref, axis=None, floor: float = 0.0):
+    """``max |y - y_ref| / max |y_ref|``: the project's error figure.
+
+    Parameters
+    ----------
+    y, y_ref : array_like
+        What is measured and its reference, same shape (compared in float64).
+    axis : int, tuple of int or None, optional
+        None (default): one figure over everything compared, a float. The axes compared over
+        (``-1`` for filterbank output of shape (channels, samples)): one figure per channel,
+        an ndarray.
+    floor : float, optional
+        The divisor is ``max(max |y_ref|, floor)``: with a floor, an error is measured against
+        at least that scale (e.g. the input's amplitude, where a response is near 0). Where the
+        divisor is 0, the figure is ``max |y - y_ref|``. Default 0.
+
+    A NaN or Inf in ``y`` gives a NaN or Inf figure.
+    """
     y = np.asarray(y, dtype=np.float64)
     y_ref = np.asarray(y_ref, dtype=np.float64)
-    scale = np.max(np.abs(y_ref))
-    if scale == 0:
-        return float(np.max(np.abs(y))) if y.size else 0.0
-    return float(np.max(np.abs(y - y_ref)) / scale)
+    if y.size == 0:
+        return 0.0 if axis is None else np.zeros(np.delete(y.shape, axis))
+    with np.errstate(invalid="ignore", over="ignore"):
+        diff = np.max(np.abs(y - y_ref), axis=axis)
+    scale = np.maximum(np.max(np.abs(y_ref), axis=axis), floor)
+    err = diff / np.where(scale == 0, 1.0, scale)
+    return float(err) if axis is None else err

@@ -1,8 +1,10 @@
 """Measurements behind docs/results.md's explanations: where our figures differ from the paper, why.
 
-Each is a plan (plain data, run by :mod:`.runner`) or a pure function; ``scripts/ablations.py``
-runs them all and writes ``ablations.json``. None of them changes a reference texture set,
-the training or the banks the figures use: they vary one thing at a time beside them.
+Each is a plan (plain data, run by :mod:`.runner`) or a pure function;
+``python -m supramodal.experiments.ablations [--quick] [--jobs N] [--seed S] [--out DIR]``
+runs them all and writes ``ablations.json`` into ``--out`` (default ./out/ablations). None of
+them changes a reference texture set, the training or the banks the figures use: they vary one
+thing at a time beside them.
 
 * ``cochlea_on_whisker_spectra``: the cochlea bank on the *whisker* random sets' spectra
   (same peak frequencies, 80..750 Hz, 44.1 kHz): is cochlear f strong because of the bank,
@@ -24,18 +26,25 @@ the training or the banks the figures use: they vary one thing at a time beside 
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
+import json
+import sys
+import time
+from pathlib import Path
 
 import numpy as np
 
 from supramodal.banks import WHISKER_ROWS, Bank
-from supramodal.experiments.common import (DEFAULT_EPOCHS, Plan, Run, classification_rates, default_bank,
-                                           estimate_cost, quick_set, rates_of, rates_per_feature, texture_features)
+from supramodal.experiments.common import (Plan, Run, classification_rates, default_bank, estimate_cost,
+                                           progress_to_stderr, quick_set, rates_of, rates_per_feature)
+from supramodal.experiments.runner import run_plans
 from supramodal.features import FEATURES
 from supramodal.gammatone import GammatoneFilterbank
 from supramodal.peaks import PeakExtractor
 from supramodal.pipeline import DEFAULT_WINDOW, extract_features, window_length
 from supramodal.textures import BANK_RATES, random_texture_set, reference_texture_set
+from supramodal.training import DEFAULT_EPOCHS, texture_features
 
 ABLATION_SETS = 5
 WIDTHS = (0.05, 0.02)
@@ -132,7 +141,7 @@ def network_seeds(bank_name: str = "whisker", n_seeds: int = NETWORK_SEEDS, epoc
 
 
 def features_from_rest(texture_set, bank: Bank, features=FEATURES) -> np.ndarray:
-    """Like :func:`~supramodal.experiments.common.texture_features`, but every window is filtered from rest.
+    """Like :func:`~supramodal.training.texture_features`, but every window is filtered from rest.
 
     The bank is replicated once per window so that all windows of a texture go through one
     filterbank call, each window's samples into its own copy of the channels.
@@ -272,3 +281,28 @@ def plans(quick: bool = False, epochs: int = DEFAULT_EPOCHS) -> dict[str, Plan]:
         "network_seeds_whisker": single(("ablation", "seeds", "whisker"), network_seeds,
                                         {"bank_name": "whisker", "quick": quick, "epochs": epochs}, 15.0),
     }
+
+
+def main(argv=None) -> int:
+    """Run every ablation and write ``ablations.json`` (see the module's docstring)."""
+    parser = argparse.ArgumentParser(prog="python -m supramodal.experiments.ablations",
+                                     description="Run the ablations behind docs/results.md; write them as one JSON file.")
+    parser.add_argument("--quick", action="store_true")
+    parser.add_argument("--jobs", type=int)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--out", default="out/ablations")
+    args = parser.parse_args(argv)
+    t0 = time.perf_counter()
+    results = run_plans(plans(quick=args.quick), jobs=args.jobs, seed=args.seed, progress=progress_to_stderr)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "ablations.json").write_text(json.dumps(results, indent=1) + "\n")
+    print(f"wrote {out / 'ablations.json'} in {time.perf_counter() - t0:.0f} s")
+    return 0
+
+
+if __name__ == "__main__":
+    # The module's own name, not __main__: spawned workers import the plans' functions by it.
+    from supramodal.experiments.ablations import main as _main
+
+    sys.exit(_main())

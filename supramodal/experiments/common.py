@@ -1,11 +1,11 @@
-"""Pieces shared by the experiments: texture features, train/test split, classification rates,
-and the plain-data description of an experiment's runs (:class:`Run`, :class:`Plan`)."""
+"""Pieces shared by the experiments: classification rates and the plain-data description of an
+experiment's runs (:class:`Run`, :class:`Plan`). The training data (texture features, the train/test
+split, the default epochs) come from :mod:`supramodal.training`."""
 
 from __future__ import annotations
 
 import dataclasses
 import sys
-import time
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -15,12 +15,10 @@ from supramodal.banks import Bank, bank_by_name
 from supramodal.features import FEATURES
 from supramodal.mlp import train_mlp
 from supramodal.model import TextureModel
-from supramodal.pipeline import DEFAULT_WINDOW, FeaturePipeline, window_length
+from supramodal.pipeline import DEFAULT_WINDOW, window_length
 from supramodal.textures import TextureSet
+from supramodal.training import DEFAULT_EPOCHS, split, texture_features
 
-#: Fraction of each texture's windows used for training (paper: 300 of 400), the rest for testing.
-TRAIN_FRACTION = 0.75
-DEFAULT_EPOCHS = 500
 #: Seconds per texture in ``--quick`` mode (40 windows: 30 to train, 10 to test).
 QUICK_DURATION = 4.0
 BANKS = ("whisker", "cochlea")
@@ -86,30 +84,6 @@ def default_bank(texture_set: TextureSet, **kwargs) -> Bank:
     return bank_by_name(texture_set.bank, fs=texture_set.fs, **kwargs)
 
 
-def texture_features(texture_set: TextureSet, bank: Bank, features=FEATURES, window: float = DEFAULT_WINDOW,
-                     progress=None, **pipeline_kwargs) -> tuple[np.ndarray, dict]:
-    """Synthesise every texture of the set and compute its feature windows.
-
-    Returns
-    -------
-    values : ndarray, shape (textures, windows, features, channels)
-    timing : dict
-        ``signal_seconds`` processed and ``compute_seconds`` spent in the pipeline.
-    """
-    out, compute = [], 0.0
-    for i, tex in enumerate(texture_set.textures):
-        x = texture_set.synthesize(i)
-        t0 = time.perf_counter()
-        w = FeaturePipeline(bank, features, window, **pipeline_kwargs).run(x, block=65536)
-        compute += time.perf_counter() - t0
-        out.append(w.values)
-        if progress:
-            progress(f"  {texture_set.name}: texture {i + 1}/{len(texture_set.textures)} ({tex.name}) -> {len(w)} windows")
-    n = min(len(v) for v in out)
-    signal = len(texture_set.textures) * texture_set.duration
-    return np.stack([v[:n] for v in out]), {"signal_seconds": signal, "compute_seconds": compute}
-
-
 def rates_of(texture_set: TextureSet, bank: Bank, features=FEATURES, epochs: int = DEFAULT_EPOCHS, seed: int = 0,
              progress=None, standardise: bool = True) -> dict:
     """Features of every texture through ``bank``, then one network per feature alone.
@@ -126,7 +100,7 @@ def rates_of(texture_set: TextureSet, bank: Bank, features=FEATURES, epochs: int
 
 def rates_per_feature(values: np.ndarray, classes, bank: Bank, features, epochs: int = DEFAULT_EPOCHS,
                       seed: int = 0, progress=None, standardise: bool = True) -> dict:
-    """:func:`classification_rates` of each feature alone; ``values`` as from :func:`texture_features`."""
+    """:func:`classification_rates` of each feature alone; ``values`` as from :func:`~supramodal.training.texture_features`."""
     wlen = window_length(DEFAULT_WINDOW, bank.fs)
     results = {}
     for k, feature in enumerate(features):
@@ -135,22 +109,6 @@ def rates_per_feature(values: np.ndarray, classes, bank: Bank, features, epochs:
         results[feature] = classification_rates(values[:, :, k : k + 1], classes, bank, (feature,), wlen,
                                                 epochs=epochs, seed=seed, standardise=standardise)
     return results
-
-
-def split(values: np.ndarray, train_fraction: float = TRAIN_FRACTION):
-    """First ``train_fraction`` of each texture's windows for training, the rest for testing.
-
-    ``values`` has shape (textures, windows, ...). Returns ``(x_train, y_train, x_test, y_test)``
-    with the texture axis folded into the window axis.
-    """
-    n_tex, n_win = values.shape[:2]
-    n_train = int(round(train_fraction * n_win))
-    if not 0 < n_train < n_win:
-        raise ValueError(f"{n_win} windows per texture cannot be split {train_fraction:.0%} / rest")
-    labels = np.arange(n_tex)
-    x_train = values[:, :n_train].reshape((-1,) + values.shape[2:])
-    x_test = values[:, n_train:].reshape((-1,) + values.shape[2:])
-    return x_train, np.repeat(labels, n_train), x_test, np.repeat(labels, n_win - n_train)
 
 
 def classification_rates(values: np.ndarray, classes, bank: Bank, features, window_samples: int,

@@ -16,11 +16,16 @@ from scipy.optimize import brentq
 
 from supramodal.banks import Bank, cochlea_bank, half_power_width, slaney_bandwidth, whisker_bank
 from supramodal.experiments.common import Plan, Run
-from supramodal.gammatone import _moment_sum, _pole, gain_at_cf
+from supramodal.gammatone import gain_at_cf, pole_powers
 
 METHOD = "closed form of the sampled impulse response's transform (exact, no truncation)"
 #: Half power, as a gain.
 HALF_POWER = 1 / np.sqrt(2)
+
+
+def moment_sum(q):
+    """``S(q)``: ``sum_{n>=0} n**3 q**n = q (1 + 4q + q**2) / (1 - q)**4`` for ``|q| < 1`` (complex)."""
+    return q * (1 + 4 * q + q * q) / (1 - q) ** 4
 
 
 def transfer_function(bank: Bank, freqs) -> np.ndarray:
@@ -31,9 +36,9 @@ def transfer_function(bank: Bank, freqs) -> np.ndarray:
     ndarray, shape (channels, len(freqs)), complex
     """
     freqs = np.asarray(freqs, dtype=np.float64)
-    p = _pole(bank)[:, None]
+    p = pole_powers(bank, np.ones(1))           # shape (channels, 1)
     z = np.exp(1j * 2 * np.pi * freqs[None, :] / bank.fs)
-    h = (_moment_sum(p / z) + np.conj(_moment_sum(p * z))) / 2
+    h = (moment_sum(p / z) + np.conj(moment_sum(p * z))) / 2
     return h / gain_at_cf(bank)[:, None]
 
 

@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 
 from supramodal.banks import Bank
-from supramodal.experiments.common import (BANKS, DEFAULT_EPOCHS, Plan, Run, default_bank, estimate_cost,
-                                           quick_set, rates_of)
+from supramodal.experiments.common import BANKS, Plan, Run, default_bank, estimate_cost, quick_set, rates_of
 from supramodal.features import FEATURES
 from supramodal.textures import TextureSet, random_texture_set, reference_texture_set
+from supramodal.training import DEFAULT_EPOCHS
 
 #: The paper's mean rates (Fig. 3), for the side-by-side tables.
 PAPER_FIG3 = {
@@ -68,24 +68,6 @@ def summarize_sets(runs: list[dict], label: str) -> dict:
 
 def random_sets_label(n_sets: int, seed: int) -> str:
     return f"{n_sets} random sets, seeds {seed}..{seed + n_sets - 1}"
-
-
-def fig3_random_sets(bank: str, n_sets: int, seed: int = 0, features=FEATURES, epochs: int = DEFAULT_EPOCHS,
-                     progress=None) -> dict:
-    """Fig. 3 over ``n_sets`` random texture sets (seeds ``seed .. seed + n_sets - 1``), in this process.
-
-    Every set's networks start from ``seed``. The CLI runs the same sets through
-    :func:`plan` instead, in parallel, with a seed per run.
-    """
-    if n_sets < 1:
-        raise ValueError(f"--sets must be >= 1, got {n_sets}")
-    runs = []
-    for i in range(n_sets):
-        ts = random_texture_set(bank, 8, seed=seed + i)
-        if progress:
-            progress(f"fig3 {bank}: random set {i + 1}/{n_sets} (seed {seed + i})")
-        runs.append(fig3(ts, features, epochs=epochs, seed=seed, progress=progress))
-    return summarize_sets(runs, random_sets_label(n_sets, seed))
 
 
 def plan(banks=BANKS, texture_set: TextureSet | None = None, reference: bool = True, sets: int = 0,

@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 from supramodal.experiments import fig1, fig3, fig4, fig5, fig6
-from supramodal.experiments.common import BANKS, DEFAULT_EPOCHS, Plan
+from supramodal.experiments.common import BANKS, Plan
 from supramodal.textures import TextureSet
+from supramodal.training import DEFAULT_EPOCHS
 
 FIGURES = ("fig1", "fig3", "fig4", "fig5", "fig6")
 #: Random texture sets per bank that ``experiment all`` adds to Fig. 3 (none in quick mode).

@@ -1,4 +1,4 @@
-"""The measurements of ``supramodal bench`` (see :mod:`supramodal.bench`).
+"""The measurements of ``supramodal bench`` (see :mod:`benchmarks.filterbank`).
 
 Definitions used throughout:
 
@@ -23,14 +23,20 @@ from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 
+from benchmarks.filterbank import PINNED_THREADS
+from benchmarks.filterbank.peers import make_peer
+from benchmarks.filterbank.report import clean, write_report
+from node.graph import Labels, Node
+from node.sinks import ListSink
+from replay.driver import ReplayDriver
 from supramodal.backends import make_filterbank
 from supramodal.banks import Bank, bank_by_name
-from supramodal.bench import PINNED_THREADS
-from supramodal.bench.peers import make_peer
 from supramodal.decisions import window_decision
-from supramodal.gammatone import reference_impulse_response
+from supramodal.gammatone import reference_impulse_response, relative_error
 from supramodal.model import TextureModel
 from supramodal.pipeline import FeaturePipeline
+from supramodal.textures import reference_texture_set
+from supramodal.training import DEFAULT_EPOCHS, TRAIN_FRACTION
 
 #: (backend, dtype) pairs measured; "fast" and "reference" are the product's backends, the rest peers.
 VARIANTS = (("fast", "float64"), ("fast", "float32"), ("reference", "float64"),
@@ -71,7 +77,7 @@ FULL = Config(
     texture_seconds=40.0, session_seconds=5.0,
     node_blocks={"cochlea": (441, 64), "whisker": (50,)},
     node_speed=1.0,
-    epochs=500,
+    epochs=DEFAULT_EPOCHS,
 )
 
 QUICK = replace(
@@ -103,10 +109,8 @@ def warm(fb, L: int):
 
 
 def channel_errors(y: np.ndarray, ref: np.ndarray) -> np.ndarray:
-    """Per channel ``max |y - ref| / max |ref|``; inf where y is not finite."""
-    with np.errstate(all="ignore"):
-        d = np.max(np.abs(y.astype(np.float64) - ref), axis=1)
-        err = d / np.max(np.abs(ref), axis=1)
+    """Per channel :func:`~supramodal.gammatone.relative_error`; inf where y is not finite."""
+    err = relative_error(y, ref, axis=-1)
     err[~np.isfinite(err)] = np.inf
     return err
 
@@ -227,6 +231,8 @@ def drift(cfg: Config, progress) -> dict:
         ref = make_filterbank(bank, "reference")
         others = [(b, d) for b, d in VARIANTS if b != "reference"]
         fbs = {v: make_backend(bank, *v) for v in others}
+        # relative_error's numerator and divisor, kept apart second by second, so that the error over
+        # the last second and over the whole stream up to each mark follow without keeping the stream.
         diff = {v: np.zeros((total, bank.channels)) for v in others}
         scale = np.zeros((total, bank.channels))
         rng = np.random.default_rng(cfg.seed + 1)
@@ -257,9 +263,8 @@ def drift(cfg: Config, progress) -> dict:
 # -- part c: the whole node -------------------------------------------------------------------
 
 def texture_session(kind: str, cfg: Config):
-    """Training windows from the first 75 % of each texture; the session: the last seconds of each."""
-    from supramodal.textures import reference_texture_set
-
+    """Training windows from the first :data:`~supramodal.training.TRAIN_FRACTION` of each texture; the session:
+    the last seconds of each."""
     ts = reference_texture_set(kind)
     bank = bank_by_name(kind)
     pipe_W = FeaturePipeline(bank, FEATURES).window_samples
@@ -268,7 +273,7 @@ def texture_session(kind: str, cfg: Config):
     t = 0.0
     for i, name in enumerate(ts.names):
         x = ts.synthesize(i, duration=cfg.texture_seconds)
-        w = FeaturePipeline(bank, FEATURES).run(x[: int(0.75 * x.size)], block=65536)
+        w = FeaturePipeline(bank, FEATURES).run(x[: int(TRAIN_FRACTION * x.size)], block=65536)
         values.append(w.values)
         labels += [i] * len(w)
         session.append(x[-n_session:])
@@ -314,10 +319,6 @@ def chain_job(bank, model, session, L, variant, keep: dict):
 
 def threaded_node(bank, model, session, ranges, L, speed):
     """The node itself (driver thread, ring buffer, processing thread, sink) on the replayed session."""
-    from node.graph import Labels, Node
-    from node.sinks import ListSink
-    from replay.driver import ReplayDriver
-
     sink = ListSink()
     driver = ReplayDriver((session[:, None], bank.fs), block_size=L, speed=speed, on_notice=None)
     node = Node(driver, make_pipeline(bank, "fast", "float64"), [sink], model=model, decision={"scope": "window"},
@@ -437,8 +438,6 @@ def main(argv=None) -> int:
     parser.add_argument("--out", default="out/bench", help="directory for the report (default ./out/bench)")
     parser.add_argument("--json", action="store_true", help="print the results as one JSON object on stdout")
     args = parser.parse_args(argv)
-    from supramodal.bench.report import clean, write_report
-
     progress = (lambda m: print(f"supramodal bench: {m}", file=sys.stderr, flush=True))
     results = run(QUICK if args.quick else FULL, progress)
     written = write_report(results, args.out)

@@ -8,6 +8,7 @@ import math
 from pathlib import Path
 
 from supramodal.experiments.report import have_matplotlib
+from supramodal.training import TRAIN_FRACTION
 
 LABELS = {("fast", "float64"): "fast float64", ("fast", "float32"): "fast float32",
           ("reference", "float64"): "reference float64",
@@ -167,7 +168,8 @@ def markdown(results: dict, plots: bool = True) -> str:
     lines += ["", "## c. The whole node", "",
               "Pipeline to decisions (gammatone, peaks, Af per 100 ms window, MLP, winner-take-all) on a replayed "
               "session of the eight reference textures (held-out seconds of each, model trained on the spot on the "
-              "first 75 % of each texture), block by block as the node's processing thread runs it. Agreement: share "
+              f"first {100 * TRAIN_FRACTION:g} % of each texture), block by block as the node's processing thread runs it. "
+              "Agreement: share "
               "of windows whose decision equals the float64 reference backend's; accuracy: against the truth.", "",
               "| bank | backend | block | RTF | CPU RTF | agreement | accuracy | windows |",
               "|---|---|---|---|---|---|---|---|"]

@@ -12,26 +12,22 @@ Real-time pacing with no sound card (see ../shared/TESTING-WITHOUT-HARDWARE.md):
 
     apt-get install -y --no-install-recommends jackd2
     jackd --no-realtime -d dummy -r 44100 -p 256 -C 1 -P 1 &
-    python tools/measure_mic_cpu.py --device system --seconds 60
+    python -m benchmarks.microphone_cpu --device system --seconds 60
 
 PortAudio's own JACK host API opens the dummy server's ports ("system")
 directly. Unpaced, from ALSA's file plugin (ALSA_CONFIG_PATH set as in the
-tests), the same script measures CPU per second of audio delivered as fast as
+tests), the same command measures CPU per second of audio delivered as fast as
 the file plugin goes.
 """
 
 from __future__ import annotations
 
 import argparse
-import sys
 import threading
 import time
-from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-import drivers.microphone as micmod  # noqa: E402
-from drivers.microphone import MicrophoneDriver, import_sounddevice  # noqa: E402
+import drivers.microphone as micmod
+from drivers.microphone import MicrophoneDriver, import_sounddevice
 
 _PlainBuffer = micmod.CaptureBuffer
 

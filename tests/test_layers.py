@@ -1,0 +1,139 @@
+"""Dependencies point one way: the model knows no device, driver or node; drivers and replay know no DSP.
+
+Two checks each: what a fresh interpreter has loaded after importing a module (catches an import
+chain), and every import statement in the source, at any depth (catches a lazy import inside a
+function, which importing the module never runs).
+"""
+
+from __future__ import annotations
+
+import ast
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+#: Top-level packages the model package must never load: the node, the drivers and replay (the
+#: sources), the benchmarks (which measure the node), and the device libraries.
+NOT_IN_THE_MODEL = ("node", "drivers", "replay", "benchmarks", "serial", "sounddevice", "_sounddevice")
+#: What drivers and replay may use of the model package: the error root alone.
+DRIVER_MAY_USE = ("supramodal.errors",)
+
+
+def modules_of(package: str) -> list[str]:
+    """Every module of a top-level package in this checkout, by dotted name (``__main__`` modules,
+    which run rather than define, left out)."""
+    names = []
+    for path in sorted((ROOT / package).rglob("*.py")):
+        parts = path.relative_to(ROOT).with_suffix("").parts
+        if parts[-1] == "__main__":
+            continue
+        names.append(".".join(parts[:-1] if parts[-1] == "__init__" else parts))
+    return names
+
+
+def imports_in(path: Path) -> list[tuple[int, str]]:
+    """``(line, imported module)`` for every absolute import statement in a source file, at any depth."""
+    out = []
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            out += [(node.lineno, a.name) for a in node.names]
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+            # "from supramodal import banks" imports supramodal.banks: name both
+            out += [(node.lineno, node.module)] + [(node.lineno, f"{node.module}.{a.name}") for a in node.names]
+    return out
+
+
+def source_imports(module: str) -> list[tuple[str, int, str]]:
+    """``(file, line, imported module)`` for every import statement in a module of this checkout."""
+    path = ROOT / module.replace(".", "/")
+    path = path / "__init__.py" if path.is_dir() else path.with_suffix(".py")
+    return [(str(path.relative_to(ROOT)), line, what) for line, what in imports_in(path)]
+
+
+def loaded_after_import(modules: list[str]) -> dict[str, list[str]]:
+    """For each module in turn, imported in one fresh interpreter from this checkout: the modules it
+    added to ``sys.modules`` (itself and all it pulled in that an earlier one had not)."""
+    code = (
+        "import json, sys, importlib\n"
+        "out = {}\n"
+        "for name in json.loads(sys.argv[1]):\n"
+        "    before = set(sys.modules)\n"
+        "    module = importlib.import_module(name)\n"
+        "    out[name] = {'file': module.__file__, 'added': sorted(set(sys.modules) - before)}\n"
+        "print(json.dumps(out))\n"
+    )
+    r = subprocess.run([sys.executable, "-c", code, json.dumps(modules)], cwd=ROOT, capture_output=True, text=True,
+                       timeout=300)
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)
+    for name, got in out.items():   # an editable install of another checkout must not stand in for this one
+        assert Path(got["file"]).resolve().is_relative_to(ROOT), (name, got["file"])
+    return {name: got["added"] for name, got in out.items()}
+
+
+def top(name: str) -> str:
+    return name.split(".")[0]
+
+
+def test_the_checks_see_every_module_and_lazy_imports(tmp_path):
+    model = modules_of("supramodal")
+    assert {"supramodal", "supramodal.gammatone", "supramodal.training", "supramodal.experiments.common"} <= set(model)
+    assert not any(m.startswith("supramodal.bench") for m in model)
+    lazy = tmp_path / "lazy.py"
+    lazy.write_text("import numpy\n\ndef f():\n    from node.graph import Node\n    from drivers import base\n")
+    assert imports_in(lazy) == [(1, "numpy"), (4, "node.graph"), (4, "node.graph.Node"), (5, "drivers"),
+                                (5, "drivers.base")]
+    # What the bench loads (it measures the node): the import check sees a chain.
+    assert "node.graph" in loaded_after_import(["benchmarks.filterbank.run"])["benchmarks.filterbank.run"]
+
+
+def test_importing_any_model_module_loads_no_driver_node_benchmark_or_device():
+    modules = modules_of("supramodal")
+    for name, added in loaded_after_import(modules).items():
+        bad = sorted(m for m in added if top(m) in NOT_IN_THE_MODEL)
+        assert not bad, f"importing {name} loads {bad}"
+
+
+def test_no_model_module_imports_a_driver_node_benchmark_or_device_even_lazily():
+    bad = [(m, f, line, what) for m in modules_of("supramodal") for f, line, what in source_imports(m)
+           if top(what) in NOT_IN_THE_MODEL]
+    assert not bad, bad
+
+
+def driver_may_use(name: str) -> bool:
+    """Whether a driver or replay module may import ``name`` (a module, or a name in one)."""
+    if top(name) not in ("supramodal", "node", "benchmarks"):
+        return True
+    return name == "supramodal" or any(name == m or name.startswith(m + ".") for m in DRIVER_MAY_USE)
+
+
+@pytest.mark.parametrize("package", ["drivers", "replay"])
+def test_drivers_and_replay_use_nothing_of_the_model_but_its_error_root(package):
+    modules = modules_of(package)
+    bad = [(m, f, line, what) for m in modules for f, line, what in source_imports(m) if not driver_may_use(what)]
+    assert not bad, bad
+    for name, added in loaded_after_import(modules).items():
+        loaded = sorted(m for m in added if not driver_may_use(m))
+        assert not loaded, f"importing {name} loads {loaded}"
+
+
+def test_the_node_trains_with_the_model_layer_not_the_research_harness():
+    """Only the CLI's ``experiment`` command runs the experiments; the node's training, on the spot
+    or from a manifest, uses :mod:`supramodal.training`."""
+    bad = [(m, f, line, what) for m in modules_of("node") if m != "node.cli" for f, line, what in source_imports(m)
+           if what.startswith("supramodal.experiments")]
+    assert not bad, bad
+
+
+def test_no_private_name_is_imported_from_another_module():
+    """A helper another module needs is public (named and documented as such), not a private one kept
+    alive for an import."""
+    bad = [(m, f, line, what) for package in ("supramodal", "node", "drivers", "replay", "benchmarks")
+           for m in modules_of(package) for f, line, what in source_imports(m)
+           if any(part.startswith("_") and not part.startswith("__") for part in what.split("."))]
+    assert not bad, bad
