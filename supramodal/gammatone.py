@@ -56,6 +56,7 @@ from __future__ import annotations
 
 import math
 from collections import OrderedDict
+from fractions import Fraction
 from math import comb
 
 import numpy as np
@@ -118,24 +119,94 @@ def _moment_sum(q):
 def _moment_sum_log(z):
     """:func:`_moment_sum` of ``q = exp(z)``, ``Re z < 0``, with ``1 - q`` taken as ``-expm1(z)``:
     exact to rounding even when ``|q|`` is within 1e-6 of 1 (narrow filters at high sample
-    rates), where ``1 - q`` would lose digits."""
+    rates), where ``1 - q`` would lose digits. Works in the precision of ``z`` (complex128 or
+    ``numpy.clongdouble``)."""
     q = np.exp(z)
     return q * (1 + 4 * q + q * q) / np.expm1(z) ** 4
 
 
-def gain_at_cf(bank: Bank) -> np.ndarray:
-    """Magnitude at ``fc`` of the un-normalised sampled response ``Re(n**3 p**n)``, per channel.
+#: Above this decay per sample ``beta = 2 pi b / fs`` (b > 0.48 fs), :func:`gain_at_cf` sums the
+#: response directly: the closed form's two terms would cancel by up to ``exp(beta) / 8``.
+_GAIN_DIRECT_BETA = 3.0
+#: Terms of the direct sum: at ``beta >= 3`` the rest is below ``1e-30`` of the gain.
+_GAIN_DIRECT_TERMS = 48
 
-    The real sequence's transform is ``(H(w) + conj(H(-w))) / 2`` with
-    ``H(w) = sum n**3 (p e**(-jw))**n`` in closed form; the second term matters
-    for low ``fc`` and wide ``b``. At ``w = 2 pi fc / fs`` the first term's ratio
-    ``p e**(-jw)`` is the real ``exp(-2 pi b / fs)`` exactly.
+
+def _quarter_turns(cf: float, fs: float, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """``n * cf / fs = k / 4 + s`` for ``n = 1..n``: integers ``k`` and ``|s| <= 1/8`` in long double.
+
+    The reduction is exact (rational arithmetic on the float64 values), so ``s`` has full
+    relative precision however close ``n cf / fs`` lies to a quarter turn, where the cosine
+    or the sine vanishes.
     """
-    beta = 2 * np.pi * bank.b / bank.fs
-    theta2 = 4 * np.pi * bank.cf / bank.fs
-    h_pos = _moment_sum_log(-beta + 0j)
-    h_neg = _moment_sum_log(-beta + 1j * theta2)
-    return np.abs(h_pos + np.conj(h_neg)) / 2
+    cf_q, fs_q = Fraction(cf), Fraction(fs)
+    k = np.empty(n, dtype=np.int64)
+    s = np.empty(n, dtype=_LD)
+    for i in range(n):
+        t = (i + 1) * cf_q / fs_q
+        k[i] = round(4 * t)
+        rest = t - Fraction(int(k[i]), 4)
+        hi = float(rest)
+        s[i] = _LD(hi) + _LD(float(rest - Fraction(hi)))          # double-double: the long double's bits
+    return k, s
+
+
+def _gain_direct(cf: float, b: float, fs: float) -> float:
+    """:func:`gain_at_cf` of one wide channel by the direct sum (see there)."""
+    n = np.arange(1, _GAIN_DIRECT_TERMS + 1, dtype=_LD)
+    w = n**3 * np.exp(-_TWO_PI_LD * (_LD(b) / _LD(fs)) * n)
+    k, s = _quarter_turns(cf, fs, _GAIN_DIRECT_TERMS)
+    sig = _TWO_PI_LD * s
+    c0, s0 = np.cos(sig), np.sin(sig)
+    quadrant = k % 4                                   # cos, sin of 2 pi (k/4 + s)
+    cos_t = np.choose(quadrant, [c0, -s0, -c0, s0])
+    sin_t = np.choose(quadrant, [s0, c0, -s0, -c0])
+    re = np.sum(w * cos_t * cos_t)
+    im = np.sum(w * sin_t * cos_t)
+    return float(np.hypot(re, im))
+
+
+def gain_at_cf(bank: Bank) -> np.ndarray:
+    """Magnitude at ``fc`` of the un-normalised sampled response ``h[n] = n**3 r**n cos(theta n)``, per channel.
+
+    With ``r = exp(-beta)``, ``beta = 2 pi b / fs`` and ``theta = 2 pi fc / fs``, the gain is
+    ``|H| = |sum_n h[n] exp(-j theta n)|``. Two forms, each used where it is well conditioned,
+    give it to a few units in the last place (float64) over the whole accepted domain
+    (``1e-7 fs <= b <= 10 fs``, ``0 < fc < fs/2``; tests/test_gain.py checks it against mpmath):
+
+    * ``beta <= 3`` (b <= 0.48 fs), the closed form. Writing ``cos`` as two exponentials,
+      ``H = (M(r) + M(r exp(-2j theta))) / 2`` with ``M(q) = sum n**3 q**n = q (1 + 4q + q**2) / (1 - q)**4``
+      (:func:`_moment_sum_log`, ``1 - q = -expm1(z)``). The second term matters for low ``fc``
+      and wide ``b``; since ``|M(r exp(-2j theta))| <= M(r)`` the cancellation between them
+      costs at most ``M(r) / |H|``, about 4 at ``beta = 3``, ``fc = fs/4``, and it grows like
+      ``exp(beta) / 8`` beyond (``M(r) ~ r`` while ``|H| ~ 8 r**2`` at ``fc = fs/4``: 100 % at
+      b = 10 fs). The angle ``2 theta`` is reduced exactly to ``(-pi, pi]`` first
+      (``2 fc - fs`` is exact for ``fc >= fs/4``), so ``1 - q`` keeps its relative precision
+      for ``fc`` near ``fs/2`` and narrow ``b``; the rest runs in ``numpy.longdouble``.
+    * ``beta > 3``, the direct sum, short because the response is: 48 terms leave out less
+      than ``1e-30`` of ``|H|``. ``Re H = sum n**3 r**n cos(theta n)**2`` has no cancellation
+      (every term >= 0); ``Im H = -sum n**3 r**n sin(theta n) cos(theta n)`` has little, as
+      ``r < 0.05`` makes its first term dominate. Its ill-conditioning is in the phase: near
+      ``fc = fs/4`` the leading term ``r cos(theta)**2`` hangs on ``fc/fs - 1/4``. So
+      ``n fc / fs`` is reduced to the nearest quarter turn exactly (rational arithmetic on
+      the float64 inputs, :func:`_quarter_turns`) and the cosine and sine taken of the
+      remainder, each with full relative precision.
+
+    Returns
+    -------
+    ndarray, shape (channels,), float64
+    """
+    cf, b, fs = bank.cf, bank.b, bank.fs
+    beta = _TWO_PI_LD * b.astype(_LD) / _LD(fs)
+    # 2 theta reduced to (-pi, pi] in turns: 2 fc/fs - 1 for fc >= fs/4, where 2 fc - fs is exact
+    # (Sterbenz: fs/2 <= 2 fc < fs).
+    turns2 = np.where(cf >= fs / 4, 2 * cf - fs, 2 * cf).astype(_LD) / _LD(fs)
+    h = (_moment_sum_log((-beta).astype(np.clongdouble))
+         + _moment_sum_log(-beta + 1j * (_TWO_PI_LD * turns2)))
+    gain = (np.abs(h) / 2).astype(np.float64)
+    for c in np.flatnonzero(beta > _GAIN_DIRECT_BETA):
+        gain[c] = _gain_direct(float(cf[c]), float(b[c]), float(fs))
+    return gain
 
 
 def reference_impulse_response(bank: Bank, n: int) -> np.ndarray:
