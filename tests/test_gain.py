@@ -113,3 +113,52 @@ def test_gain_at_cf_is_correct_to_a_few_ulp_at_random_points(seed):
     worst = int(np.argmax(err))
     assert err[worst] <= GAIN_BOUND, (
         f"gain_at_cf off by {err[worst]:.3g} ({err[worst] / EPS:.3g} eps) at cf, b, fs = {points[worst]}")
+
+
+def corner_bank(fs: float) -> Bank:
+    """Wide and narrow channels at and near the quarter and half rate, where phases must be exact."""
+    quarter = fs / 4
+    cf = [quarter, np.nextafter(quarter, fs), quarter * (1 + 1e-9), quarter, 0.3 * fs, np.nextafter(fs / 2, 0),
+          1e-6 * fs, quarter]
+    b = [MAX_B_OVER_FS * fs, MAX_B_OVER_FS * fs, 2.0 * fs, 0.5 * fs, 1e-3 * fs, 1e-5 * fs, 0.01 * fs, 1e-4 * fs]
+    return Bank("custom", fs, cf, b, tuple(f"c{i}" for i in range(len(cf))))
+
+
+@pytest.mark.parametrize("fs", [1000.0, 44100.0])
+def test_reference_impulse_response_matches_mpmath_at_the_corners(fs):
+    # The tests' analytic reference, itself checked: n^3 exp(-2 pi b n/fs) cos(2 pi fc n/fs) / gain, at
+    # 50 digits. At fc = fs/4, b = 10 fs the normalised n = 1 term is exactly 0 but huge if cos(pi/2)
+    # is not (1e-20 * exp(63) / 8: the old reference gave 6e6 there, the peak being 1).
+    from supramodal.gammatone import reference_impulse_response
+
+    bank = corner_bank(fs)
+    n = 64
+    got = reference_impulse_response(bank, n)
+    for c in range(bank.channels):
+        cf, b = float(bank.cf[c]), float(bank.b[c])
+        with mp.workdps(50):
+            g = mp_gain_closed(cf, b, fs)
+            want = [k**3 * mp.exp(-2 * mp.pi * mp.mpf(b) * k / fs) * mp.cos(2 * mp.pi * mp.mpf(cf) * k / fs) / g
+                    for k in range(n)]
+            peak = max(abs(v) for v in want)
+            err = max(abs(mp.mpf(float(got[c, k])) - want[k]) for k in range(n)) / peak
+        assert err <= 4 * EPS, f"channel cf={cf!r} b={b!r}: reference off by {float(err):.3g} of its peak"
+
+
+@pytest.mark.parametrize("fs", [1000.0, 192000.0])
+def test_pole_powers_match_mpmath(fs):
+    from supramodal.gammatone import pole_powers
+
+    bank = corner_bank(fs)
+    d = np.array([1.0, 2.0, 3.0, 21.0, -21.0, 441.0, -504.0, 4096.0, 1e6])
+    with np.errstate(over="ignore", invalid="ignore"):      # p**-504 of a 10 fs channel: beyond float64
+        got = pole_powers(bank, d)
+    for c in range(bank.channels):
+        cf, b = float(bank.cf[c]), float(bank.b[c])
+        for i, e in enumerate(d):
+            with mp.workdps(50):
+                want = mp.exp((-2 * mp.pi * mp.mpf(b) + 2j * mp.pi * mp.mpf(cf)) * mp.mpf(e) / fs)
+                if abs(want) < mp.mpf(10) ** -290 or abs(want) > mp.mpf(10) ** 290:
+                    continue                             # beyond float64: the fast form never asks
+                err = abs(mp.mpc(complex(got[c, i])) - want) / abs(want)
+            assert err <= 2 * EPS, f"p**{e} of cf={cf!r} b={b!r} off by {float(err):.3g}"
