@@ -347,6 +347,7 @@ class Node:
             "samples_dropped": int(lost_in_ring + drv.get("dropped", 0)),
             "samples_filled": int(drv.get("filled", 0) + self._gap_filled),
             "nonfinite_replaced": self.pipeline.filterbank.nonfinite_count,
+            "out_of_range_replaced": self.pipeline.filterbank.out_of_range_count,
             "partial_window_samples": self.pipeline.partial_samples,
             "latency_ms": ({"p50": float(np.percentile(lat, 50)), "p99": float(np.percentile(lat, 99)),
                             "max": float(lat.max()), "count": int(lat.size)} if lat.size else None),

@@ -2,8 +2,10 @@
 
 Every backend is a :class:`~supramodal.gammatone.FilterbankBase`: built from a
 bank, a dtype and a non-finite policy; ``process(block) -> (channels, L)``,
-``reset()``, ``impulse_response(n)``, the counters ``samples_processed`` and
-``nonfinite_count``. Make one with :func:`make_filterbank`.
+``reset()``, ``impulse_response(n)``, the counters ``samples_processed``,
+``nonfinite_count`` and ``out_of_range_count``, and the input range ``max_input``
+(the same for every backend of a bank and dtype: samples beyond it are refused or
+replaced and counted, as NaN are). Make one with :func:`make_filterbank`.
 
 * ``"fast"``: :class:`~supramodal.gammatone.GammatoneFilterbank`, the block
   state-space form (every channel in a few matrix products), float64 or float32.
@@ -12,7 +14,10 @@ bank, a dtype and a non-finite policy; ``process(block) -> (channels, L)``,
   (1 - p z^-1)^4`` as four first-order sections run by ``scipy.signal.lfilter``
   with their states carried from block to block. float64 only. It is the ground
   truth for the error figures of long streams (docs/bench), where convolving with
-  the analytic impulse response would cost too much.
+  the analytic impulse response would cost too much. Its sections stay below
+  ``state_gain`` times the input (about 2), so alone it could take inputs up to
+  ~1e307; it is held to the fast form's ``max_input`` (~7e219) so that both accept
+  the same streams.
 """
 
 from __future__ import annotations
@@ -21,6 +26,7 @@ import numpy as np
 from scipy.signal import lfilter
 
 from supramodal.banks import Bank
+from supramodal.errors import InputError
 from supramodal.gammatone import FilterbankBase, GammatoneFilterbank, gain_at_cf, pole_powers
 
 BACKENDS = ("fast", "reference")
@@ -40,7 +46,7 @@ class ReferenceFilterbank(FilterbankBase):
 
     def __init__(self, bank: Bank, dtype=np.float64, nonfinite: str = "raise") -> None:
         if np.dtype(dtype) != np.float64:
-            raise ValueError(f"the reference backend is float64 only, got dtype {np.dtype(dtype)}")
+            raise InputError(f"the reference backend is float64 only, got dtype {np.dtype(dtype)}")
         super().__init__(bank, dtype, nonfinite)
         p = pole_powers(bank, np.arange(4.0))                      # p**0 .. p**3, (C, 4)
         g = 1.0 / gain_at_cf(bank)
@@ -80,6 +86,6 @@ def make_filterbank(bank: Bank, backend: str = "fast", dtype=np.float64, nonfini
         return GammatoneFilterbank(bank, dtype=dtype, nonfinite=nonfinite, **kwargs)
     if backend == "reference":
         if kwargs:
-            raise ValueError(f"the reference backend takes no options, got {sorted(kwargs)}")
+            raise InputError(f"the reference backend takes no options, got {sorted(kwargs)}")
         return ReferenceFilterbank(bank, dtype=dtype, nonfinite=nonfinite)
-    raise ValueError(f"unknown filterbank backend {backend!r}; backends are {', '.join(BACKENDS)}")
+    raise InputError(f"unknown filterbank backend {backend!r}; backends are {', '.join(BACKENDS)}")

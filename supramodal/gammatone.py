@@ -61,6 +61,7 @@ from math import comb
 import numpy as np
 
 from supramodal.banks import Bank
+from supramodal.errors import InputError
 
 _LD = np.longdouble
 _TWO_PI_LD = 2 * np.arccos(_LD(-1))      # 2 pi to long-double precision
@@ -79,14 +80,59 @@ MIN_B_OVER_FS = 1e-7
 #: decays by exp(-2 pi * 10), about 5e-28, per sample; the fast form rescales by up to
 #: exp(200) per pass, which a wider filter would overflow in a single sample.
 MAX_B_OVER_FS = 10.0
+#: Factor kept between the bound on every number the filter computes and the largest float
+#: (:func:`max_input`): the bound is a sum of magnitudes, so this only covers rounding and the
+#: few partial sums a realisation may form beyond it.
+INPUT_HEADROOM = 16.0
+_FLOAT64_MAX = float(np.finfo(np.float64).max)
 
+
+
+def _cos_sin_turns(k, s):
+    """``cos`` and ``sin`` of ``2 pi (k/4 + s)`` for integers ``k`` and ``|s| <= 1/8``, from ``s`` alone.
+
+    A cosine or sine that vanishes at a quarter turn is then ``+-sin(2 pi s)``, with the full
+    relative precision of ``s`` (exactly 0 at an exact quarter turn), instead of the absolute
+    rounding of ``2 pi`` times a number near 1/4 (about 1e-20 in long double, 1e-17 in float64).
+    """
+    sigma = _TWO_PI_LD * s
+    c, sn = np.cos(sigma), np.sin(sigma)
+    quadrant = np.mod(k, 4).astype(np.intp)
+    return np.choose(quadrant, [c, -sn, -c, sn]), np.choose(quadrant, [sn, c, -sn, -c])
+
+
+def _two_product(a, b):
+    """``a * b = hi + lo`` exactly (Dekker's splitting; float64 arrays, no overflow)."""
+    hi = a * b
+    a_hi = a * 134217729.0 - (a * 134217729.0 - a)
+    b_hi = b * 134217729.0 - (b * 134217729.0 - b)
+    a_lo, b_lo = a - a_hi, b - b_hi
+    return hi, ((a_hi * b_hi - hi) + a_hi * b_lo + a_lo * b_hi) + a_lo * b_lo
+
+
+def _quarter_turns(cf, fs: float, d):
+    """``cf * d / fs = k/4 + s``: integers ``k`` (as floats) and ``|s| <~ 1/8`` in long double.
+
+    The remainder ``cf d - k fs/4`` is formed exactly from the float64 values (two exact
+    products, then a subtraction that is exact where it cancels), so ``s`` keeps its full
+    relative precision however close ``cf d / fs`` lies to a quarter turn, where the cosine or
+    the sine vanishes; and it loses nothing for large ``d`` (integers below 2**53).
+    """
+    cf, d = np.broadcast_arrays(np.asarray(cf, dtype=np.float64), np.asarray(d, dtype=np.float64))
+    k = np.rint(4 * (cf * d) / fs)
+    p_hi, p_lo = _two_product(cf, d)
+    q_hi, q_lo = _two_product(k, np.full_like(k, fs / 4))
+    rest = (p_hi - q_hi).astype(_LD) + (p_lo.astype(_LD) - q_lo.astype(_LD))
+    return k, rest / _LD(fs)
 
 
 def pole_powers(bank: Bank, d) -> np.ndarray:
     """``p**d`` per channel for real exponents ``d``, correctly rounded to complex128.
 
-    The phase ``2 pi fc d / fs`` is reduced modulo ``2 pi`` in extended precision
-    first, so large ``d`` lose nothing to the float64 rounding of ``2 pi fc / fs``.
+    The phase ``2 pi fc d / fs`` is reduced exactly to the nearest quarter turn first
+    (:func:`_quarter_turns`), so large ``d`` lose nothing to the rounding of
+    ``2 pi fc / fs``, and a real or imaginary part that vanishes or nearly does
+    (``fc`` at or near ``fs/4``, ``d = 1``) keeps its relative precision.
 
     Returns
     -------
@@ -96,36 +142,81 @@ def pole_powers(bank: Bank, d) -> np.ndarray:
     cf = bank.cf.astype(_LD).reshape((-1,) + (1,) * d.ndim)
     b = bank.b.astype(_LD).reshape(cf.shape)
     fs = _LD(bank.fs)
-    turns = np.fmod(cf * d / fs, _LD(1))
-    phase = _TWO_PI_LD * turns
+    cos_t, sin_t = _cos_sin_turns(*_quarter_turns(bank.cf.reshape(cf.shape), bank.fs, d.astype(np.float64)))
     mag = np.exp(-_TWO_PI_LD * b * d / fs)
     out = np.empty(np.broadcast_shapes(cf.shape, d.shape), dtype=np.complex128)
-    out.real = (mag * np.cos(phase)).astype(np.float64)
-    out.imag = (mag * np.sin(phase)).astype(np.float64)
+    out.real = (mag * cos_t).astype(np.float64)
+    out.imag = (mag * sin_t).astype(np.float64)
     return out
 
 
 def _moment_sum_log(z):
     """``sum_{m>=0} m**3 q**m = q (1 + 4q + q**2) / (1 - q)**4`` for ``q = exp(z)``, ``Re z < 0``,
     with ``1 - q`` taken as ``-expm1(z)``: exact to rounding even when ``|q|`` is within 1e-6 of 1
-    (narrow filters at high sample rates), where ``1 - q`` would lose digits."""
+    (narrow filters at high sample rates), where ``1 - q`` would lose digits. Works in the
+    precision of ``z`` (complex128 or ``numpy.clongdouble``)."""
     q = np.exp(z)
     return q * (1 + 4 * q + q * q) / np.expm1(z) ** 4
 
 
-def gain_at_cf(bank: Bank) -> np.ndarray:
-    """Magnitude at ``fc`` of the un-normalised sampled response ``Re(n**3 p**n)``, per channel.
+#: Above this decay per sample ``beta = 2 pi b / fs`` (b > 0.48 fs), :func:`gain_at_cf` sums the
+#: response directly: the closed form's two terms would cancel by up to ``exp(beta) / 8``.
+_GAIN_DIRECT_BETA = 3.0
+#: Terms of the direct sum: at ``beta >= 3`` the rest is below ``1e-30`` of the gain.
+_GAIN_DIRECT_TERMS = 48
 
-    The real sequence's transform is ``(H(w) + conj(H(-w))) / 2`` with
-    ``H(w) = sum n**3 (p e**(-jw))**n`` in closed form; the second term matters
-    for low ``fc`` and wide ``b``. At ``w = 2 pi fc / fs`` the first term's ratio
-    ``p e**(-jw)`` is the real ``exp(-2 pi b / fs)`` exactly.
+
+def _gain_direct(cf: float, b: float, fs: float) -> float:
+    """:func:`gain_at_cf` of one wide channel by the direct sum (see there)."""
+    n = np.arange(1, _GAIN_DIRECT_TERMS + 1, dtype=_LD)
+    w = n**3 * np.exp(-_TWO_PI_LD * (_LD(b) / _LD(fs)) * n)
+    cos_t, sin_t = _cos_sin_turns(*_quarter_turns(cf, fs, np.arange(1.0, _GAIN_DIRECT_TERMS + 1)))
+    re = np.sum(w * cos_t * cos_t)
+    im = np.sum(w * sin_t * cos_t)
+    return float(np.hypot(re, im))
+
+
+def gain_at_cf(bank: Bank) -> np.ndarray:
+    """Magnitude at ``fc`` of the un-normalised sampled response ``h[n] = n**3 r**n cos(theta n)``, per channel.
+
+    With ``r = exp(-beta)``, ``beta = 2 pi b / fs`` and ``theta = 2 pi fc / fs``, the gain is
+    ``|H| = |sum_n h[n] exp(-j theta n)|``. Two forms, each used where it is well conditioned,
+    give it to a few units in the last place (float64) over the whole accepted domain
+    (``1e-7 fs <= b <= 10 fs``, ``0 < fc < fs/2``; tests/test_gain.py checks it against mpmath):
+
+    * ``beta <= 3`` (b <= 0.48 fs), the closed form. Writing ``cos`` as two exponentials,
+      ``H = (M(r) + M(r exp(-2j theta))) / 2`` with ``M(q) = sum n**3 q**n = q (1 + 4q + q**2) / (1 - q)**4``
+      (:func:`_moment_sum_log`, ``1 - q = -expm1(z)``). The second term matters for low ``fc``
+      and wide ``b``; since ``|M(r exp(-2j theta))| <= M(r)`` the cancellation between them
+      costs at most ``M(r) / |H|``, about 4 at ``beta = 3``, ``fc = fs/4``, and it grows like
+      ``exp(beta) / 8`` beyond (``M(r) ~ r`` while ``|H| ~ 8 r**2`` at ``fc = fs/4``: 100 % at
+      b = 10 fs). The angle ``2 theta`` is reduced exactly to ``(-pi, pi]`` first
+      (``2 fc - fs`` is exact for ``fc >= fs/4``), so ``1 - q`` keeps its relative precision
+      for ``fc`` near ``fs/2`` and narrow ``b``; the rest runs in ``numpy.longdouble``.
+    * ``beta > 3``, the direct sum, short because the response is: 48 terms leave out less
+      than ``1e-30`` of ``|H|``. ``Re H = sum n**3 r**n cos(theta n)**2`` has no cancellation
+      (every term >= 0); ``Im H = -sum n**3 r**n sin(theta n) cos(theta n)`` has little, as
+      ``r < 0.05`` makes its first term dominate. Its ill-conditioning is in the phase: near
+      ``fc = fs/4`` the leading term ``r cos(theta)**2`` hangs on ``fc/fs - 1/4``. So
+      ``n fc / fs`` is reduced to the nearest quarter turn exactly (exact products of the
+      float64 inputs, :func:`_quarter_turns`) and the cosine and sine taken of the
+      remainder, each with full relative precision.
+
+    Returns
+    -------
+    ndarray, shape (channels,), float64
     """
-    beta = 2 * np.pi * bank.b / bank.fs
-    theta2 = 4 * np.pi * bank.cf / bank.fs
-    h_pos = _moment_sum_log(-beta + 0j)
-    h_neg = _moment_sum_log(-beta + 1j * theta2)
-    return np.abs(h_pos + np.conj(h_neg)) / 2
+    cf, b, fs = bank.cf, bank.b, bank.fs
+    beta = _TWO_PI_LD * b.astype(_LD) / _LD(fs)
+    # 2 theta reduced to (-pi, pi] in turns: 2 fc/fs - 1 for fc >= fs/4, where 2 fc - fs is exact
+    # (Sterbenz: fs/2 <= 2 fc < fs).
+    turns2 = np.where(cf >= fs / 4, 2 * cf - fs, 2 * cf).astype(_LD) / _LD(fs)
+    h = (_moment_sum_log((-beta).astype(np.clongdouble))
+         + _moment_sum_log(-beta + 1j * (_TWO_PI_LD * turns2)))
+    gain = (np.abs(h) / 2).astype(np.float64)
+    for c in np.flatnonzero(beta > _GAIN_DIRECT_BETA):
+        gain[c] = _gain_direct(float(cf[c]), float(b[c]), float(fs))
+    return gain
 
 
 def reference_impulse_response(bank: Bank, n: int) -> np.ndarray:
@@ -138,7 +229,10 @@ def reference_impulse_response(bank: Bank, n: int) -> np.ndarray:
     its rounding grows like ``k * 1e-16`` rad, which over tens of thousands of
     samples (narrow ``b``) would make the reference less accurate than the filter
     it judges. Where ``longdouble`` is only float64 (some ARM platforms) it is
-    float64 again.
+    float64 again. The cosine is taken of the remainder after the nearest quarter
+    turn (:func:`_cos_sin_turns`): for wide ``b`` near ``fc = fs/4`` the normalised
+    ``n = 1`` term is ``exp(beta) cos(theta) / 8``, and a cosine that should vanish
+    must not come out as 1e-20 times 1e27.
 
     Returns
     -------
@@ -148,30 +242,96 @@ def reference_impulse_response(bank: Bank, n: int) -> np.ndarray:
     b = bank.b.astype(_LD)[:, None]
     cf = bank.cf.astype(_LD)[:, None]
     fs = _LD(bank.fs)
-    h = k**3 * np.exp(-_TWO_PI_LD * b * k / fs) * np.cos(_TWO_PI_LD * np.fmod(cf * k / fs, _LD(1)))
+    cos_t, _ = _cos_sin_turns(*_quarter_turns(bank.cf[:, None], bank.fs, np.arange(n, dtype=np.float64)))
+    h = k**3 * np.exp(-_TWO_PI_LD * b * k / fs) * cos_t
     return (h / gain_at_cf(bank).astype(_LD)[:, None]).astype(np.float64)
 
 
 def check_bandwidths(bank: Bank) -> None:
-    """Refuse bandwidths float64 cannot hold: ``b < MIN_B_OVER_FS * fs`` or ``b > MAX_B_OVER_FS * fs``."""
+    """Refuse bandwidths float64 cannot hold: ``b < MIN_B_OVER_FS * fs`` or ``b > MAX_B_OVER_FS * fs``.
+
+    Raises
+    ------
+    InputError
+        Naming the first channel out of range and the fix.
+    """
     bad = np.flatnonzero(bank.b < MIN_B_OVER_FS * bank.fs)
     if bad.size:
         k = int(bad[0])
-        raise ValueError(
+        raise InputError(
             f"bandwidth parameter b of channel {bank.names[k]} is {bank.b[k]:g} Hz, below {MIN_B_OVER_FS:g} * fs = "
             f"{MIN_B_OVER_FS * bank.fs:g} Hz: its impulse response would last over 1e8 samples, beyond what "
             "float64 holds to the documented error (docs/stability.md); widen it or lower the sample rate")
     bad = np.flatnonzero(bank.b > MAX_B_OVER_FS * bank.fs)
     if bad.size:
         k = int(bad[0])
-        raise ValueError(
+        raise InputError(
             f"bandwidth parameter b of channel {bank.names[k]} is {bank.b[k]:g} Hz, above {MAX_B_OVER_FS:g} * fs = "
             f"{MAX_B_OVER_FS * bank.fs:g} Hz: its impulse response would be over within one sample; narrow it "
             "or raise the sample rate")
 
 
+def state_gain(bank: Bank) -> np.ndarray:
+    """Per channel, the largest magnitude any state moment or output reaches per unit of input.
+
+    ``g sum_{n>=1} n**3 |p|**n = g M(r)`` with ``g = 1 / gain_at_cf`` and ``r = exp(-2 pi b / fs)``:
+    the l1 norm of the complex normalised response ``g n**3 p**n``. It bounds every moment
+    ``g S_j = g sum_m m**j p**m x[-m]`` (``m**j <= m**3``), the output, and every stage of the
+    reference backend's cascade. About 2 for narrow channels; it grows like ``exp(beta) / 8``
+    for wide channels near ``fs/4`` (3e26 at b = 10 fs), where the response's real part is
+    much smaller than its complex envelope.
+
+    Returns
+    -------
+    ndarray, shape (channels,), float64, >= 1
+    """
+    beta = 2 * np.pi * bank.b / bank.fs
+    return _moment_sum_log(-beta) / gain_at_cf(bank)
+
+
+def max_input(bank: Bank, dtype=np.float64) -> float:
+    """The largest input magnitude a filterbank of ``bank`` accepts, in the input's units.
+
+    Derivation. Let ``|x| <= X``. Every number a filterbank forms is bounded by a sum of
+    magnitudes of terms ``g m**j p**(m-l) x``:
+
+    * The state moments and the output are at most ``G X``, ``G`` = :func:`state_gain`
+      (largest over the channels); so is every partial sum of the products that form them,
+      and, in the reference backend, every section's output.
+    * The fast form computes the start states of a pass rescaled to the pass start, divided
+      by ``p**l``: ``|p**-l| = exp(beta l)``, at most ``exp(_MAX_DECAY)`` (about 7e86) since a
+      pass spans at most ``_MAX_DECAY`` time constants of the widest channel. Each term of the
+      binomial shifts ``B(l)`` is bounded the same way (``sum_r C(j, r) l**(j-r) m**r =
+      (m + l)**j``), so nothing in that step exceeds ``exp(_MAX_DECAY) G X``.
+    * With ``dtype=float32`` the two large products (state inputs; state and input to the
+      output) run in float32: their operands and sums are at most ``G X``, and the input
+      itself must fit (``G >= 1``).
+
+    Hence ``X <= DBL_MAX / (16 G exp(_MAX_DECAY))`` (float64; about 1e220 for the cochlea and
+    the whiskers) and also ``X <= FLT_MAX / (16 G)`` for float32 (about 1e37), 16 being
+    :data:`INPUT_HEADROOM`. The reference backend needs only ``DBL_MAX / (16 G)``; one limit for
+    every backend keeps them interchangeable. Samples beyond it are treated as NaN and Inf
+    are (:class:`FilterbankBase`, ``nonfinite``).
+
+    Parameters
+    ----------
+    bank : Bank
+    dtype : {numpy.float64, numpy.float32}
+        The filterbank's arithmetic.
+
+    Returns
+    -------
+    float
+    """
+    gain = float(np.max(state_gain(bank)))
+    limit = _FLOAT64_MAX / (INPUT_HEADROOM * gain * math.exp(_MAX_DECAY))
+    if np.dtype(dtype) == np.float32:
+        limit = min(limit, float(np.finfo(np.float32).max) / (INPUT_HEADROOM * gain))
+    return float(limit)
+
+
 class FilterbankBase:
-    """What every filterbank backend shares: parameters, input checks, the non-finite policy.
+    """What every filterbank backend shares: parameters, input checks, the input policy.
 
     Subclasses implement :meth:`reset` and ``_filter(x)`` (``x`` already checked,
     of the filterbank's dtype, shape (L,) or (channels, L), L >= 1).
@@ -181,9 +341,23 @@ class FilterbankBase:
     bank : Bank
     dtype : {numpy.float64, numpy.float32}
     nonfinite : {"raise", "zero"}
-        What to do with NaN or Inf input samples: raise ValueError (default), or
-        replace them by 0 and count them in :attr:`nonfinite_count`, so that a
-        bad sample never poisons the filter state.
+        What to do with input samples the filter cannot take: NaN, Inf, and finite samples
+        beyond :attr:`max_input`. ``"raise"`` (default): refuse the block with an
+        :class:`~supramodal.errors.InputError` naming the count, the first index and the fix;
+        nothing of it enters the filter. ``"zero"``: replace them by 0 and count them, NaN and
+        Inf in :attr:`nonfinite_count`, the others in :attr:`out_of_range_count`, so that a bad
+        sample never poisons the filter state.
+
+    Attributes
+    ----------
+    max_input : float
+        The input range is ``[-max_input, max_input]``, in the input's units: about 1e220 in
+        float64 and 1e37 in float32 for the cochlea and the whiskers (:func:`max_input`
+        derives it from the state's headroom). Inside it the state and the output stay finite
+        and no floating-point warning is raised, whatever the block sizes.
+    nonfinite_count, out_of_range_count : int
+        Samples replaced by 0 under ``nonfinite="zero"``.
+    samples_processed : int
     """
 
     backend = "base"
@@ -191,15 +365,17 @@ class FilterbankBase:
     def __init__(self, bank: Bank, dtype=np.float64, nonfinite: str = "raise") -> None:
         dtype = np.dtype(dtype)
         if dtype not in (np.dtype(np.float64), np.dtype(np.float32)):
-            raise ValueError(f"dtype must be float64 or float32, got {dtype}")
+            raise InputError(f"dtype must be float64 or float32, got {dtype}")
         if nonfinite not in ("raise", "zero"):
-            raise ValueError(f"nonfinite must be 'raise' or 'zero', got {nonfinite!r}")
+            raise InputError(f"nonfinite must be 'raise' or 'zero', got {nonfinite!r}")
         check_bandwidths(bank)
         self.bank = bank
         self.channels = bank.channels
         self.dtype = dtype
         self.nonfinite = nonfinite
+        self.max_input = max_input(bank, dtype)
         self.nonfinite_count = 0
+        self.out_of_range_count = 0
         self.samples_processed = 0
 
     def reset(self) -> None:
@@ -207,39 +383,64 @@ class FilterbankBase:
         raise NotImplementedError
 
     def prepare(self, x) -> np.ndarray:
-        """Check a block and convert it to the filterbank's dtype; apply the non-finite policy.
+        """Check a block and convert it to the filterbank's dtype; apply the input policy.
 
-        Returns the block as it will be filtered: shape (L,) or (channels, L), NaN
-        and Inf replaced by 0 (and counted) under ``nonfinite="zero"``.
+        Returns the block as it will be filtered: shape (L,) or (channels, L), NaN, Inf and
+        samples beyond :attr:`max_input` replaced by 0 (and counted) under ``nonfinite="zero"``.
+
+        Raises
+        ------
+        InputError
+            Not real numbers, a wrong shape, or (``nonfinite="raise"``) a sample outside the range.
         """
         x = np.asarray(x)
         if x.dtype.kind not in "fiu":
-            raise ValueError(
+            raise InputError(
                 f"input samples must be real numbers (float or int), got dtype {x.dtype}; "
                 "convert complex or text data before filtering"
             )
         if not (x.ndim == 1 or (x.ndim == 2 and x.shape[0] == self.channels)):
-            raise ValueError(
+            raise InputError(
                 f"input block must have shape (L,) (mono, fed to all {self.channels} channels) or "
                 f"({self.channels}, L) (one signal per channel); got shape {x.shape}"
             )
-        if x.dtype != self.dtype:
-            x = x.astype(self.dtype)
-        # One BLAS dot product decides the common case (and raises no floating-point warning):
-        # a finite sum of squares means every sample is finite.
-        if x.size and not math.isfinite(np.vdot(x, x)):
-            bad = ~np.isfinite(x)
-            n_bad = int(bad.sum())
-            if n_bad:
-                if self.nonfinite == "raise":
-                    raise ValueError(
-                        f"input block contains {n_bad} NaN or Inf sample(s) (first at index "
-                        f"{np.argwhere(bad)[0].tolist()}); clean the signal, or create the filterbank with "
-                        "nonfinite='zero' to replace and count them"
-                    )
-                self.nonfinite_count += n_bad
-                x = np.where(bad, 0.0, x).astype(self.dtype, copy=False)
-        return x
+        if x.dtype.kind != "f":
+            x = x.astype(self.dtype)           # integers: even 2**64 is far inside float32's range
+        # The range is checked in the block's own precision, before any narrowing cast (a float64
+        # sample above 3.4e38 would overflow float32). One BLAS dot product decides the common case
+        # and raises no floating-point warning: a finite sum of squares at most max_input**2 means
+        # every sample is finite and in range (max_input**2 may overflow: then finite is the test).
+        # Otherwise (a bad sample, or many near the limit) look.
+        limit = self.max_input
+        if x.size and not (float(np.vdot(x, x)) <= min(limit * limit, _FLOAT64_MAX)):
+            x = self._clean(x, limit)
+        return x if x.dtype == self.dtype else x.astype(self.dtype)
+
+    def _clean(self, x: np.ndarray, limit: float) -> np.ndarray:
+        """Apply the input policy to a block that may hold NaN, Inf or samples beyond ``limit``."""
+        nonfinite = ~np.isfinite(x)
+        outside = np.abs(x) > limit                  # Inf too: counted as non-finite below
+        outside &= ~nonfinite
+        n_nonfinite, n_outside = int(nonfinite.sum()), int(outside.sum())
+        if not (n_nonfinite or n_outside):
+            return x
+        if self.nonfinite == "raise":
+            if n_nonfinite:
+                raise InputError(
+                    f"input block contains {n_nonfinite} NaN or Inf sample(s) (first at index "
+                    f"{np.argwhere(nonfinite)[0].tolist()}); clean the signal, or create the filterbank with "
+                    "nonfinite='zero' to replace and count them"
+                )
+            first = tuple(np.argwhere(outside)[0].tolist())
+            raise InputError(
+                f"input block contains {n_outside} sample(s) beyond the filterbank's input range "
+                f"+-{limit:.3g} (first at index {list(first)}: {float(x[first]):.3g}); such values would overflow "
+                "the filter state (docs/stability.md). Scale the signal down, or create the filterbank "
+                "with nonfinite='zero' to replace and count them"
+            )
+        self.nonfinite_count += n_nonfinite
+        self.out_of_range_count += n_outside
+        return np.where(nonfinite | outside, x.dtype.type(0), x)
 
     def process(self, x, *, prepared: bool = False, out: np.ndarray | None = None) -> np.ndarray:
         """Filter one block.
@@ -261,7 +462,7 @@ class FilterbankBase:
             x = self.prepare(x)
         L = x.shape[-1]
         if out is not None and (out.shape != (self.channels, L) or out.dtype != self.dtype):
-            raise ValueError(f"out must be a {self.dtype} array of shape {(self.channels, L)}, "
+            raise InputError(f"out must be a {self.dtype} array of shape {(self.channels, L)}, "
                              f"got {out.dtype} {out.shape}")
         if L == 0:
             return np.empty((self.channels, 0), dtype=self.dtype) if out is None else out
