@@ -1,7 +1,11 @@
-"""Speed of the fast gammatone form against an earlier version of it, interleaved in one process.
+"""Speed and error of the fast gammatone form against an earlier version of it, in one process.
 
     git show bccde39:supramodal/gammatone.py > /tmp/old_gammatone.py
     python3 -m benchmarks.fastform_speed /tmp/old_gammatone.py [repeats] [bank:block ...]
+    python3 -m benchmarks.fastform_speed --errors /tmp/old_gammatone.py
+
+The second form prints the impulse-response error (against ``reference_impulse_response``, long
+double) of both versions on short blocks and mixed banks (docs/stability.md's table).
 
 Prints, per bank, block length and dtype, the minimum time per block of each version over many
 interleaved rounds (the machine may be busy: minima of interleaved rounds are what is compared)
@@ -17,7 +21,7 @@ import time
 import numpy as np
 
 from supramodal import gammatone as new_module
-from supramodal.banks import cochlea_bank, whisker_bank
+from supramodal.banks import Bank, cochlea_bank, whisker_bank
 
 BLOCKS = (32, 441, 500, 4410)
 
@@ -62,5 +66,43 @@ def main(argv: list[str]) -> None:
                       f"{best['new'] * 1e6:9.1f} {best['new'] / best['old']:8.3f}", flush=True)
 
 
+ERROR_CASES = {
+    "cochlea": (cochlea_bank, 15.0),
+    "192 kHz, cf 86.4 kHz, b 1 Hz": (lambda: Bank("custom", 192000.0, [86400.0], [1.0], ("c",)), 8.0),
+    "5 kHz, b 0.9 Hz beside b 49 kHz": (
+        lambda: Bank("custom", 5000.0, [30.0, 2000.0], [0.9, 49000.0], ("narrow", "wide")), 15.0),
+    "44.1 kHz, b 5 Hz beside b 440 kHz": (
+        lambda: Bank("custom", 44100.0, [1000.0, 10000.0], [5.0, 440000.0], ("narrow", "wide")), 15.0),
+}
+ERROR_BLOCKS = {"1": (1, 1), "2": (2, 2), "5": (5, 5), "32": (32, 32), "441": (441, 441), "1..5": (1, 5)}
+
+
+def errors(old_module) -> None:
+    from supramodal.gammatone import reference_impulse_response, relative_error
+    for name, (make, time_constants) in ERROR_CASES.items():
+        bank = make()
+        n = int(time_constants * bank.fs / (2 * np.pi * bank.b.min()))
+        ref = reference_impulse_response(bank, n)
+        for label, module in (("old", old_module), ("new", new_module)):
+            row = []
+            for block, (lo, hi) in ERROR_BLOCKS.items():
+                rng = np.random.default_rng(0)
+                fb = module.GammatoneFilterbank(bank)
+                x = np.zeros(n)
+                x[0] = 1.0
+                out, i = [], 0
+                while i < n:
+                    s = int(rng.integers(lo, hi + 1))
+                    out.append(fb.process(x[i : i + s]))
+                    i += s
+                y = np.concatenate(out, axis=1)
+                worst = max(relative_error(y[c], ref[c]) for c in range(bank.channels) if bank.b[c] < bank.fs)
+                row.append(f"{block}: {worst:.1e}")
+            print(f"{label} {name} (n={n}): " + ", ".join(row), flush=True)
+
+
 if __name__ == "__main__":
-    main(sys.argv[1:])
+    if sys.argv[1:2] == ["--errors"]:
+        errors(load(sys.argv[2]))
+    else:
+        main(sys.argv[1:])

@@ -8,42 +8,55 @@ the plain per-channel reference realisation and the backend interface.)
 
 How it streams
 --------------
-For a block starting at stream index ``n0`` the past inputs enter only through
-four complex "moments" per channel, ``S_j = sum_{m>=1} m**j p**m x[n0-m]``
-(``j = 0..3``), because ``(d+m)**3`` expands binomially. Output and state update
-over a sub-block of ``l`` samples are then closed-form:
+The moment recursion. The past inputs enter the output only through four complex
+"moments" per channel, ``S_j(n) = sum_(t>=1) t**j p**t x[n-t]`` (``j = 0..3``),
+because ``(d + t)**3`` expands binomially. Over the next ``l`` samples:
 
-* ``y[n0+d] = Re(p**d (d**3 S0 + 3 d**2 S1 + 3 d S2 + S3) + sum_i h[d-i] x[n0+i])``
-* ``S' = p**l (S @ B(l)) + U``, ``B(l)[r, j] = C(j, r) l**(j-r)``, ``U_j = sum_i (l-i)**j p**(l-i) x[n0+i]``
+* ``y[n+d] = g Re(p**d sum_j C(3, j) d**(3-j) S_j(n) + sum_(i<=d) (d-i)**3 p**(d-i) x[n+i])``;
+* ``S(n+l) = p**l B(l) S(n) + U``, ``B(l)[j, r] = C(j, r) l**(j-r)`` (exact integers),
+  ``U_j = sum_(i<l) (l-i)**j p**(l-i) x[n+i]``
 
-A block is cut into ``K`` sub-blocks of ``m`` samples (16 to 32, an exact division
-where there is one: 441 = 21 x 21), and goes in three steps, each a few large
-products (measured on x86-64, they run near the core's float64 peak):
+(``g`` the unit-gain factor; the state is kept as ``g S``, of the output's order).
 
-1. the state inputs ``U_k`` of every sub-block and channel: one product of the
-   mono block ``(K, m)`` with a ``(m, 8 C)`` matrix;
-2. the start state of every sub-block. Rescaled to the block start,
-   ``A_k = S_k / P**k`` with ``P = p**m``, the recursion is ``A_(k+1) = A_k B(m) +
-   U_k P**-(k+1)``: no pole factor is left, so it is one real, channel-independent
-   linear map for every channel at once (one product up to 8 sub-blocks; beyond,
-   within groups, then between them). The rescaling stays below ``exp(200)``: blocks
-   longer than the widest channel allows, or than 24 sub-blocks, go in passes;
+The rescaled frame. With an anchor ``a <= n`` per channel group, ``A(n) = p**-(n-a) S(n)``
+obeys ``A(n+l) = B(l) A(n) + p**-(n+l-a) U``: no pole factor is left on the state, so
+the recursion is real and the same for every channel, and the state is never multiplied
+by a rounded pole power, which would compound a rounding per step. The output takes
+``S = p**(n-a) A`` with the factor from a table (each entry correctly rounded). When the
+frame would span more than ``exp(200)`` of decay of the group's widest channel, or 2048
+samples (the table), it is renormalised: ``A <- p**(n-a) A``, ``a <- n``, one rounding.
+
+The group products. A block is cut into passes of ``K`` sub-blocks of ``m`` samples
+(``m`` 16 to 32, an exact division where there is one: 441 = 21 x 21), each in three
+steps of a few large products (measured on x86-64, near the core's float64 peak):
+
+1. the state inputs ``V_k = g U_k p**-(n_k+m-a)`` of every sub-block and channel: one
+   product of the mono block ``(K, m)`` with a ``(m, 8 C)`` matrix, then the rescaling;
+2. the start state of every sub-block, ``A_k = B(k m) A_0 + sum_(i<k) B((k-1-i) m) V_i``:
+   real, channel-independent maps applied to every channel's real and imaginary parts at
+   once (one product up to 8 sub-blocks; beyond, the end states of groups of sub-blocks,
+   then every group's start, then the starts within each group);
 3. the output: per channel ``[S_k | x_k] @ [O ; T]``, the start state's part and the
    within-sub-block Toeplitz part in one product.
 
-Large temporaries are kept between calls: fresh multi-megabyte arrays cost page
-faults every block.
+Channel groups: a channel much narrower than the bank's widest (time constant over 100
+times longer, where the widest's frame is shorter than 2048 samples) gets a frame of its
+own, so it is not renormalised every few samples because of a channel it does not share
+anything with. Large temporaries are kept between calls: fresh multi-megabyte arrays
+cost page faults every block.
 
 Precision
 ---------
 * Every matrix entry and every pole power is computed once, from the closed form,
   with the phase ``2 pi fc d / fs`` reduced modulo ``2 pi`` in extended precision
-  (``numpy.longdouble``) and rounded once: nothing is ever recursed on but the
-  state, so nothing drifts, and the phase error after ``n`` samples is about
-  ``(n / m) * 1e-16`` rad instead of ``n * fc/fs * 1e-16``.
-* The rescaling in step 2 costs no precision: each term of a start state is the
-  term of the direct sum times the same factor ``P**-k``, so the sums round as they
-  would without it; the binomial matrices hold exact integers times powers of ``m``.
+  (``numpy.longdouble``) and rounded once: nothing is recursed on but the state, so
+  nothing drifts.
+* The rescaling costs no precision: each term of a start state is the term of the
+  direct sum times one common factor, so the sums round as they would without it.
+  What remains is a rounding per renormalisation (every 2048 samples at most, or every
+  block for blocks longer than half the frame) and one per block in ``B(l) A`` (exact
+  integers, but the sum rounds): blocks of a few samples therefore carry a larger error
+  (docs/stability.md states it).
 * The state computation is always float64 (complex128). With ``dtype=float32`` the
   two large products (steps 1 and 3) run in float32 and the output is float32; its
   error is a few 1e-7 of the output's scale and does not grow with stream length
@@ -504,11 +517,11 @@ _MAX_SUBBLOCKS = 24
 #: The rescaled frame spans at most this many of a channel group's widest channel's time
 #: constants ``fs / (2 pi b)``: the rescaling multiplies by up to ``exp(_MAX_DECAY)`` (about 1e87).
 _MAX_DECAY = 200.0
-#: ... and at most this many samples (the length of the tables of pole powers); a pass is never longer.
+#: ... and at most this many samples: the length of the tables of pole powers (a pass is never longer).
 _ANCHOR_SPAN = 2048
 #: A channel shares its group's rescaled frame if its time constant is at most this many times the
-#: group's shortest (or the group's frame reaches _ANCHOR_SPAN anyway): it is then renormalised at
-#: most every few hundredths of its own time constant... at least every ``200 / _GROUP_RATIO`` of them.
+#: group's shortest (or the group's frame reaches _ANCHOR_SPAN anyway): the frame then spans at
+#: least ``_MAX_DECAY / _GROUP_RATIO = 2`` of its time constants between renormalisations.
 _GROUP_RATIO = 100.0
 #: Plans and matrix sets kept per filterbank (least recently used dropped).
 _PLAN_CACHE = 16
