@@ -450,7 +450,12 @@ class _PassPlan:
         else:
             self.groups = groups = max(1, round(math.sqrt(K / 2)))
             self.J = J = -(-K // groups)
-            self.group_end, self.coarse, self.inner = _two_level_maps(groups, J, m)
+            self.group_end, self.coarse, inner = _two_level_maps(groups, J, m)
+            # inner is block lower-triangular: its first `half` row blocks need only the first
+            # `half` input blocks (a quarter of its product saved).
+            half = (J - 1) // 2
+            self.inner_first = np.ascontiguousarray(inner[: 4 * half, : 4 * half])
+            self.inner_rest = np.ascontiguousarray(inner[4 * half :])
             padded = np.zeros((groups * J, 4, C), dtype=np.complex128)   # V_k; the padding stays 0
             self.inputs = padded[:K]
             self.inputs_by_group = _as_real_rows(padded.reshape(groups, J, 4, C))  # (groups, 4 J, 2 C)
@@ -465,13 +470,22 @@ class _PassPlan:
             self.starts = np.empty((groups * J + 1, 4, C), dtype=np.complex128)    # A_0 .. A_(groups J)
             by_group = self.starts[: groups * J].reshape(groups, J, 4, C)
             self.group_starts = by_group[:, 0]                      # A_(qJ)               } views
-            self.later_starts_rows = _as_real_rows(by_group[:, 1:])  # A_(qJ+1 .. qJ+J-1)  } of starts
-        self.end_state = self.starts[K]                             # A_K (view of starts)
+            later = _as_real_rows(by_group[:, 1:])                  # A_(qJ+1 .. qJ+J-1)  } views
+            self.later_starts_first = later[:, : 4 * half]          # ... the first half  } of starts
+            self.later_starts_rest = later[:, 4 * half :]            # ... the rest        }
+            self.inner_inputs_first = self.inputs_by_group[:, : 4 * half]      # [A_(qJ+1) ; V ..] } views
+            self.inner_inputs = self.inputs_by_group[:, : 4 * (J - 1)]          # } of the inputs
+        self.used_starts = self.starts[:K]                          # A_0 .. A_(K-1) } views
+        self.end_state = self.starts[K]                             # A_K            } of starts
         self.state_input = np.empty((K, 8 * C), dtype=dtype)                        # mono: g U_k
         self.state_input_complex = self.state_input.view(cdtype).reshape(K, 4, C)
         self.state_input_per_channel = np.empty((C, K, 8), dtype=dtype)
         self.state_input_per_channel_complex = self.state_input_per_channel.view(cdtype).transpose(1, 2, 0)
         self.start_states = np.empty((K, 4, C), dtype=np.complex128)                # S_k
+        # The rescaling factors of the pass per frame offset, copied out of the group's tables and
+        # repeated over the 4 moments (contiguous, they multiply about twice as fast as strided,
+        # broadcast rows): a stream of equal blocks meets a few offsets again and again.
+        self.rescale_at: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         # Per channel, the sub-blocks' [S_k | x_k] as columns: the output product reads its transpose
         # (measured faster than the row layout, whose filling strides badly).
         columns = np.empty((C, 8 + m, K), dtype=dtype)
@@ -500,7 +514,8 @@ def _start_states(plan: _PassPlan, state: np.ndarray) -> None:
     # A_(qJ+1) takes the place of V_(qJ), which it contains: the rest of the group's start states
     # are then one map of [A_(qJ+1) ; V_(qJ+1) .. V_(qJ+J-2)].
     plan.group_firsts[...] = plan.coarse_out[groups + 1 :]
-    np.matmul(plan.inner, plan.inputs_by_group[:, : 4 * (J - 1)], out=plan.later_starts_rows)
+    np.matmul(plan.inner_first, plan.inner_inputs_first, out=plan.later_starts_first)
+    np.matmul(plan.inner_rest, plan.inner_inputs, out=plan.later_starts_rest)
     if plan.K == groups * J:                                # else A_K is the first padded sub-block's start
         plan.end_state[...] = plan.coarse_out[groups]
 
@@ -523,6 +538,8 @@ _ANCHOR_SPAN = 2048
 #: group's shortest (or the group's frame reaches _ANCHOR_SPAN anyway): the frame then spans at
 #: least ``_MAX_DECAY / _GROUP_RATIO = 2`` of its time constants between renormalisations.
 _GROUP_RATIO = 100.0
+#: Frame offsets whose rescaling factors a pass plan keeps (a stream of equal blocks meets a few).
+_RESCALE_CACHE = 64
 #: Plans and matrix sets kept per filterbank (least recently used dropped).
 _PLAN_CACHE = 16
 #: After this many different sub-block lengths, automatic mode stops adapting to the block length
@@ -571,8 +588,7 @@ class _ChannelGroup:
 
     ``state`` (4, C) holds ``A = p**-offset S``: the moments (times the unit-gain factor) at the
     current sample, rescaled to the anchor ``offset`` samples back. ``powers[t] = p**t`` and
-    ``inverse_powers[t] = p**-t`` (``t = 0 .. span``), shape (4, C) each (the same row four times),
-    correctly rounded.
+    ``inverse_powers[t] = p**-t`` (``t = 0 .. span``), shape (1, C) each, correctly rounded.
     """
 
     def __init__(self, bank: Bank, channels: np.ndarray) -> None:
@@ -582,9 +598,8 @@ class _ChannelGroup:
         beta_max = float(np.max(2 * np.pi * self.bank.b / self.bank.fs))
         self.span = max(1, min(int(_MAX_DECAY / beta_max), _ANCHOR_SPAN))
         t = np.arange(self.span + 1.0)
-        # Repeated over the 4 moments: a broadcasting multiply costs more than the copies save.
-        self.powers = np.repeat(pole_powers(self.bank, t).T[:, None, :], 4, axis=1)        # (span + 1, 4, C)
-        self.inverse_powers = np.repeat(pole_powers(self.bank, -t).T[:, None, :], 4, axis=1)
+        self.powers = np.ascontiguousarray(pole_powers(self.bank, t).T[:, None, :])     # (span + 1, 1, C)
+        self.inverse_powers = np.ascontiguousarray(pole_powers(self.bank, -t).T[:, None, :])
         self.state = np.zeros((4, len(channels)), dtype=np.complex128)
         self.offset = 0
         self.passes = 0
@@ -604,8 +619,14 @@ def _filter_pass(group: _ChannelGroup, plan: _PassPlan, x: np.ndarray, dst: np.n
         group.state *= group.powers[group.offset]
         group.offset = 0
     o = group.offset
-    rescale_in = group.inverse_powers[o + m : o + (K + 1) * m : m]            # (K, 4, C)
-    rescale_out = group.powers[o : o + K * m : m]                            # (K, 4, C)
+    rescale = plan.rescale_at.get(o)
+    if rescale is None:
+        rescale = (group.inverse_powers[o + m : o + (K + 1) * m : m],        # p**-(o + (k+1) m), (K, 1, C)
+                   group.powers[o : o + K * m : m])                          # p**(o + k m), (K, 1, C)
+        if len(plan.rescale_at) < _RESCALE_CACHE:
+            rescale = tuple(np.repeat(r, 4, axis=1) for r in rescale)        # (K, 4, C), contiguous
+            plan.rescale_at[o] = rescale
+    rescale_in, rescale_out = rescale
     # 1. State inputs, rescaled to the anchor; every channel's Toeplitz input.
     if x.ndim == 1:
         X = x.reshape(K, m)
@@ -620,7 +641,7 @@ def _filter_pass(group: _ChannelGroup, plan: _PassPlan, x: np.ndarray, dst: np.n
     # 2. Start states A_0 .. A_K in the rescaled frame (real, channel-independent maps).
     _start_states(plan, group.state)
     # 3. The output: per channel [S_k | x_k] @ to_output, S_k = p**(o + k m) A_k.
-    np.multiply(plan.starts[:K], rescale_out, out=plan.start_states)
+    np.multiply(plan.used_starts, rescale_out, out=plan.start_states)
     plan.columns_states[...] = plan.start_states_by_channel
     np.matmul(plan.rows, mats.to_output, out=dst)
     group.state[...] = plan.end_state
@@ -713,8 +734,11 @@ class GammatoneFilterbank(FilterbankBase):
         return passes
 
     def _plan(self, group: int, m: int, K: int) -> _PassPlan:
-        plan = _lru_get(self._plans, (group, m, K))
-        if plan is None:
+        key = (group, m, K)
+        plan = self._plans.get(key)
+        if plan is not None:
+            self._plans.move_to_end(key)                    # least recently used is dropped first
+        else:
             mats = _lru_get(self._matrices, (group, m))
             if mats is None:
                 mats = _SubblockMatrices(self._groups[group].bank, m, self.dtype)
@@ -728,7 +752,12 @@ class GammatoneFilterbank(FilterbankBase):
         C, L = self.channels, x.shape[-1]
         y = np.empty((C, L), dtype=self.dtype) if out is None else out
         if len(self._groups) == 1:
-            self._filter_group(0, x, y)
+            passes = self._layout(L)
+            if len(passes) == 1 and y.flags.c_contiguous:          # the common case, kept short
+                m, K = passes[0]
+                _filter_pass(self._groups[0], self._plan(0, m, K), x, y.reshape(C, K, m))
+            else:
+                self._filter_group(0, x, y)
             return y
         for g, group in enumerate(self._groups):
             rows = np.empty((len(group.channels), L), dtype=self.dtype)
@@ -739,12 +768,7 @@ class GammatoneFilterbank(FilterbankBase):
     def _filter_group(self, g: int, x: np.ndarray, y: np.ndarray) -> None:
         """Filter one channel group's block ``x`` into its rows ``y`` (C_group, L), pass by pass."""
         group, a = self._groups[g], 0
-        passes = self._layout(x.shape[-1], g)
-        if len(passes) == 1 and y.flags.c_contiguous:              # the common case, kept short
-            m, K = passes[0]
-            _filter_pass(group, self._plan(g, m, K), x, y.reshape(y.shape[0], K, m))
-            return
-        for m, K in passes:
+        for m, K in self._layout(x.shape[-1], g):
             b = a + m * K
             dst = y[:, a:b].reshape(y.shape[0], K, m)
             if np.may_share_memory(dst, y):
