@@ -8,42 +8,55 @@ the plain per-channel reference realisation and the backend interface.)
 
 How it streams
 --------------
-For a block starting at stream index ``n0`` the past inputs enter only through
-four complex "moments" per channel, ``S_j = sum_{m>=1} m**j p**m x[n0-m]``
-(``j = 0..3``), because ``(d+m)**3`` expands binomially. Output and state update
-over a sub-block of ``l`` samples are then closed-form:
+The moment recursion. The past inputs enter the output only through four complex
+"moments" per channel, ``S_j(n) = sum_(t>=1) t**j p**t x[n-t]`` (``j = 0..3``),
+because ``(d + t)**3`` expands binomially. Over the next ``l`` samples:
 
-* ``y[n0+d] = Re(p**d (d**3 S0 + 3 d**2 S1 + 3 d S2 + S3) + sum_i h[d-i] x[n0+i])``
-* ``S' = p**l (S @ B(l)) + U``, ``B(l)[r, j] = C(j, r) l**(j-r)``, ``U_j = sum_i (l-i)**j p**(l-i) x[n0+i]``
+* ``y[n+d] = g Re(p**d sum_j C(3, j) d**(3-j) S_j(n) + sum_(i<=d) (d-i)**3 p**(d-i) x[n+i])``;
+* ``S(n+l) = p**l B(l) S(n) + U``, ``B(l)[j, r] = C(j, r) l**(j-r)`` (exact integers),
+  ``U_j = sum_(i<l) (l-i)**j p**(l-i) x[n+i]``
 
-A block is cut into ``K`` sub-blocks of ``m`` samples (16 to 32, an exact division
-where there is one: 441 = 21 x 21), and goes in three steps, each a few large
-products (measured on x86-64, they run near the core's float64 peak):
+(``g`` the unit-gain factor; the state is kept as ``g S``, of the output's order).
 
-1. the state inputs ``U_k`` of every sub-block and channel: one product of the
-   mono block ``(K, m)`` with a ``(m, 8 C)`` matrix;
-2. the start state of every sub-block. Rescaled to the block start,
-   ``A_k = S_k / P**k`` with ``P = p**m``, the recursion is ``A_(k+1) = A_k B(m) +
-   U_k P**-(k+1)``: no pole factor is left, so it is one real, channel-independent
-   linear map for every channel at once (one product up to 8 sub-blocks; beyond,
-   within groups, then between them). The rescaling stays below ``exp(200)``: blocks
-   longer than the widest channel allows, or than 24 sub-blocks, go in passes;
+The rescaled frame. With an anchor ``a <= n`` per channel group, ``A(n) = p**-(n-a) S(n)``
+obeys ``A(n+l) = B(l) A(n) + p**-(n+l-a) U``: no pole factor is left on the state, so
+the recursion is real and the same for every channel, and the state is never multiplied
+by a rounded pole power, which would compound a rounding per step. The output takes
+``S = p**(n-a) A`` with the factor from a table (each entry correctly rounded). When the
+frame would span more than ``exp(200)`` of decay of the group's widest channel, or 2048
+samples (the table), it is renormalised: ``A <- p**(n-a) A``, ``a <- n``, one rounding.
+
+The group products. A block is cut into passes of ``K`` sub-blocks of ``m`` samples
+(``m`` 16 to 32, an exact division where there is one: 441 = 21 x 21), each in three
+steps of a few large products (measured on x86-64, near the core's float64 peak):
+
+1. the state inputs ``V_k = g U_k p**-(n_k+m-a)`` of every sub-block and channel: one
+   product of the mono block ``(K, m)`` with a ``(m, 8 C)`` matrix, then the rescaling;
+2. the start state of every sub-block, ``A_k = B(k m) A_0 + sum_(i<k) B((k-1-i) m) V_i``:
+   real, channel-independent maps applied to every channel's real and imaginary parts at
+   once (one product up to 8 sub-blocks; beyond, the end states of groups of sub-blocks,
+   then every group's start, then the starts within each group);
 3. the output: per channel ``[S_k | x_k] @ [O ; T]``, the start state's part and the
    within-sub-block Toeplitz part in one product.
 
-Large temporaries are kept between calls: fresh multi-megabyte arrays cost page
-faults every block.
+Channel groups: a channel much narrower than the bank's widest (time constant over 100
+times longer, where the widest's frame is shorter than 2048 samples) gets a frame of its
+own, so it is not renormalised every few samples because of a channel it does not share
+anything with. Large temporaries are kept between calls: fresh multi-megabyte arrays
+cost page faults every block.
 
 Precision
 ---------
 * Every matrix entry and every pole power is computed once, from the closed form,
   with the phase ``2 pi fc d / fs`` reduced modulo ``2 pi`` in extended precision
-  (``numpy.longdouble``) and rounded once: nothing is ever recursed on but the
-  state, so nothing drifts, and the phase error after ``n`` samples is about
-  ``(n / m) * 1e-16`` rad instead of ``n * fc/fs * 1e-16``.
-* The rescaling in step 2 costs no precision: each term of a start state is the
-  term of the direct sum times the same factor ``P**-k``, so the sums round as they
-  would without it; the binomial matrices hold exact integers times powers of ``m``.
+  (``numpy.longdouble``) and rounded once: nothing is recursed on but the state, so
+  nothing drifts.
+* The rescaling costs no precision: each term of a start state is the term of the
+  direct sum times one common factor, so the sums round as they would without it.
+  What remains is a rounding per renormalisation (every 2048 samples at most, or every
+  block for blocks longer than half the frame) and one per block in ``B(l) A`` (exact
+  integers, but the sum rounds): blocks of a few samples therefore carry a larger error
+  (docs/stability.md states it).
 * The state computation is always float64 (complex128). With ``dtype=float32`` the
   two large products (steps 1 and 3) run in float32 and the output is float32; its
   error is a few 1e-7 of the output's scale and does not grow with stream length
@@ -485,12 +498,12 @@ class FilterbankBase:
 
 
 def _shift(l: float) -> np.ndarray:
-    """``B(l)`` (4, 4): the moments ``l`` samples later, pole factor aside, are ``S @ B(l)``.
+    """``B(l)``, shape (4, 4): moments ``l`` samples later, pole factor aside: ``S'_j = sum_r B[j, r] S_r``.
 
-    ``(d + l)**j`` expanded: ``B[r, j] = C(j, r) l**(j - r)`` for ``r <= j``. Channel-independent;
-    ``B(a) B(b) = B(a + b)``.
+    ``(t + l)**j`` expanded: ``B[j, r] = C(j, r) l**(j - r)`` for ``r <= j``, else 0. Real,
+    channel-independent, exact integers for ``l <= 2**17``; ``B(a) B(b) = B(a + b)``.
     """
-    return np.array([[comb(j, r) * float(l) ** (j - r) if r <= j else 0.0 for j in range(4)] for r in range(4)])
+    return np.array([[comb(j, r) * float(l) ** (j - r) if r <= j else 0.0 for r in range(4)] for j in range(4)])
 
 
 def _flush_small(a: np.ndarray, dtype) -> np.ndarray:
@@ -499,16 +512,32 @@ def _flush_small(a: np.ndarray, dtype) -> np.ndarray:
     return a
 
 
-class _SubblockMatrices:
-    """The per-channel matrices of one sub-block length ``m``, built once.
+def _as_real_rows(z: np.ndarray) -> np.ndarray:
+    """A complex array (..., n, 4, C) seen as real (..., 4 n, 2 C), no copy.
 
-    ``WA`` (m, 4 * C * 2): one sub-block's input row times ``WA`` gives every channel's state
-    input, the four moments ``g sum_i (m - i)**j p**(m - i) x[i]`` as (j, channel, Re/Im)
-    columns. ``WAc`` (C, m, 8): the same per channel, for one signal per channel. ``MB`` (C, 8 + m,
-    m): per channel, rows ``[O ; T]``: the start state's part of the sub-block's output (the
-    state as 8 reals, ``Re S0, Im S0, .., Im S3``) above the Toeplitz matrix of the impulse
-    response (input i to output e). The state is kept as ``g S``, of the output's order
+    The recursion's maps are real and act on the (sub-block, moment) rows alone, so they apply
+    to the real and imaginary parts of every channel at once: one real matrix product.
+    """
+    return z.view(np.float64).reshape(z.shape[:-3] + (4 * z.shape[-3], 2 * z.shape[-1]), copy=False)
+
+
+class _SubblockMatrices:
+    """The per-channel matrices of one sub-block length ``m``, built once (steps 1 and 3).
+
+    The state is kept as ``g S`` (``g`` the channel's unit-gain factor): of the output's order
     whatever the bandwidth, so that its float32 copy cannot overflow.
+
+    Attributes
+    ----------
+    to_state : ndarray, shape (m, 8 C)
+        A mono sub-block (a row) times this gives every channel's state input
+        ``g U_j = g sum_i (m - i)**j p**(m - i) x[i]``, as (moment j, channel, Re/Im) columns.
+    to_state_per_channel : ndarray, shape (C, m, 8)
+        The same per channel, for one signal per channel.
+    to_output : ndarray, shape (C, 8 + m, m)
+        Per channel, ``[state ; input] @ to_output`` is the sub-block's output: the first 8 rows
+        map the start state (``Re S0, Im S0, .., Im S3``) to ``Re(p**e sum_j c_j(e) S_j)``, the
+        other ``m`` are the Toeplitz matrix of the impulse response (input ``i`` to output ``e``).
     """
 
     def __init__(self, bank: Bank, m: int, dtype: np.dtype) -> None:
@@ -516,134 +545,170 @@ class _SubblockMatrices:
         g = 1.0 / gain_at_cf(bank)[:, None]                        # (C, 1)
         d = np.arange(m + 1, dtype=np.float64)                      # lags 0..m
         pd = pole_powers(bank, d)                                   # (C, m+1), no recursion
-        h = g * (d**3 * pd).real                                    # normalised impulse response
+        impulse = g * (d**3 * pd).real                              # normalised impulse response
         back = m - np.arange(m)                                     # input i is m - i samples from the end
-        WA = np.empty((m, 4, C, 2))
+        to_state = np.empty((m, 4, C, 2))
         for j in range(4):
             w = g * back**j * pd[:, back]                           # (C, m)
-            WA[:, j, :, 0], WA[:, j, :, 1] = w.real.T, w.imag.T
-        _flush_small(WA, dtype)
-        self.WA = np.ascontiguousarray(WA.reshape(m, 8 * C), dtype=dtype)
-        self.WAc = np.ascontiguousarray(WA.transpose(2, 0, 1, 3).reshape(C, m, 8), dtype=dtype)
-        # y[e] = Re(p**e sum_j coef_j(e) (g S_j)), coef = (e**3, 3e**2, 3e, 1)
+            to_state[:, j, :, 0], to_state[:, j, :, 1] = w.real.T, w.imag.T
+        _flush_small(to_state, dtype)
+        self.to_state = np.ascontiguousarray(to_state.reshape(m, 8 * C), dtype=dtype)
+        self.to_state_per_channel = np.ascontiguousarray(to_state.transpose(2, 0, 1, 3).reshape(C, m, 8),
+                                                         dtype=dtype)
+        # y[e] = Re(p**e sum_j c_j(e) (g S_j)), c(e) = (e**3, 3e**2, 3e, 1): (e + t)**3 expanded
         e = d[:m]
         coef = np.stack([e**3, 3 * e**2, 3 * e, np.ones_like(e)])  # (4, m)
-        Oc = pd[:, None, :m] * coef[None]                           # (C, 4, m)
-        MB = np.empty((C, 8 + m, m))
-        MB[:, 0:8:2], MB[:, 1:8:2] = Oc.real, -Oc.imag
+        from_state = pd[:, None, :m] * coef[None]                   # (C, 4, m) complex
+        to_output = np.empty((C, 8 + m, m))
+        to_output[:, 0:8:2], to_output[:, 1:8:2] = from_state.real, -from_state.imag
         lag = np.arange(m)[None, :] - np.arange(m)[:, None]         # output e - input i
-        MB[:, 8:] = np.where(lag >= 0, h[:, np.clip(lag, 0, m)], 0.0)
-        self.MB = np.ascontiguousarray(_flush_small(MB, dtype), dtype=dtype)
+        to_output[:, 8:] = np.where(lag >= 0, impulse[:, np.clip(lag, 0, m)], 0.0)
+        self.to_output = np.ascontiguousarray(_flush_small(to_output, dtype), dtype=dtype)
 
 
-class _Plan:
-    """One block shape: ``K`` sub-blocks of ``m`` samples; built once, with its scratch and views.
+def _one_level_map(K: int, m: int) -> np.ndarray:
+    """Real (4 (K + 1), 4 (K + 1)): ``[A_0 ; V_0 .. V_(K-1)]`` to ``[A_0 .. A_K]``.
 
-    The start states of all sub-blocks come from channel-independent real products once every
-    channel's state inputs are rescaled to the block start (``V_k = U_k P**-(k+1)``, ``P = p**m``):
-    there the recursion ``A_(k+1) = A_k B(m) + V_k`` has no pole factor left, and
-    ``S_k = P**k A_k`` returns to the moments. Up to _ONE_LEVEL sub-blocks, one product
-    ``H @ [S0 ; V]`` gives every ``A_k``. Beyond, the sub-blocks go in ``ng`` groups of ``J``
-    (zero-padded): ``Gend`` gives each group's end state from a zero start, ``Hg`` the groups'
-    start states from those, and the start state of each group's second sub-block; put in
-    place of that group's first input, ``Gsh`` gives the start state of every later sub-block.
-    Every pole power comes from the closed form, so nothing is recursed on but the state.
+    ``A_k = B(k m) A_0 + sum_(i<k) B((k - 1 - i) m) V_i``: the recursion ``A_(k+1) = B(m) A_k + V_k`` unrolled.
+    """
+    H = np.zeros((K + 1, 4, K + 1, 4))
+    for k in range(K + 1):
+        H[k, :, 0, :] = _shift(k * m)
+        for i in range(k):
+            H[k, :, i + 1, :] = _shift((k - 1 - i) * m)
+    return H.reshape(4 * (K + 1), 4 * (K + 1))
+
+
+def _two_level_maps(groups: int, J: int, m: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The three real maps of the grouped recursion: ``K`` sub-blocks in ``groups`` groups of ``J``.
+
+    Returns
+    -------
+    group_end : (4, 4 J)
+        A group's inputs ``V_(qJ) .. V_(qJ+J-1)`` to its end state from a zero start,
+        ``E_q = sum_i B((J - 1 - i) m) V_(qJ+i)``.
+    coarse : (4 (2 groups + 1), same)
+        ``[A_0 ; E_0 .. E_(groups-1) ; V_0, V_J, ..]`` to ``[A_0, A_J, .., A_(groups J) ; A_1, A_(J+1), ..]``:
+        every group's start state, the pass's end, and the start state of every group's second
+        sub-block ``A_(qJ+1) = B(m) A_(qJ) + V_(qJ)``.
+    inner : (4 (J - 1), 4 (J - 1))
+        Within a group, ``[A_(qJ+1) ; V_(qJ+1) .. V_(qJ+J-2)]`` to ``[A_(qJ+1) .. A_(qJ+J-1)]``.
+    """
+    group_end = np.zeros((4, J, 4))
+    for i in range(J):
+        group_end[:, i, :] = _shift((J - 1 - i) * m)
+    n = 2 * groups + 1
+    coarse = np.zeros((n, 4, n, 4))
+    for q in range(groups + 1):                                      # A_(qJ)
+        coarse[q, :, 0, :] = _shift(q * J * m)
+        for i in range(q):
+            coarse[q, :, 1 + i, :] = _shift((q - 1 - i) * J * m)
+    for q in range(groups):                                          # A_(qJ+1)
+        row = groups + 1 + q
+        coarse[row, :, 0, :] = _shift((q * J + 1) * m)
+        for i in range(q):
+            coarse[row, :, 1 + i, :] = _shift(((q - 1 - i) * J + 1) * m)
+        coarse[row, :, row, :] = _shift(0)
+    inner = _one_level_map(J - 2, m)
+    return group_end.reshape(4, 4 * J), coarse.reshape(4 * n, 4 * n), inner
+
+
+class _PassPlan:
+    """One pass shape, ``K`` sub-blocks of ``m`` samples: step 2's real maps and the scratch arrays.
+
+    Scratch is kept between calls (fresh temporaries of this size cost page faults). Up to
+    _ONE_LEVEL sub-blocks, one product gives every start state; beyond, ``groups`` groups of
+    ``J`` sub-blocks (the last zero-padded): the groups' end states from a zero start, then
+    every group's start state, then the start states within each group (:func:`_two_level_maps`).
+
+    The real and complex views of the scratch that the products read and write are made here
+    once (a view costs about a microsecond per call); each is listed with the array it shows.
     """
 
-    def __init__(self, bank: Bank, mats: _SubblockMatrices, m: int, K: int, dtype: np.dtype) -> None:
-        C = bank.channels
+    def __init__(self, mats: _SubblockMatrices, m: int, K: int, channels: int, dtype: np.dtype) -> None:
+        C = channels
         self.mats, self.m, self.K = mats, m, K
+        cdtype = np.complex64 if dtype == np.float32 else np.complex128
         if K <= _ONE_LEVEL:
-            self.ng, self.J = 0, K
-            R = K
+            self.groups, self.J = 0, K
+            self.one_level = _one_level_map(K, m)
+            state_and_inputs = np.zeros((K + 1, 4, C), dtype=np.complex128)        # [A_0 ; V_0 .. V_(K-1)]
+            self.first_state = state_and_inputs[0]                  # A_0  } views of state_and_inputs
+            self.inputs = state_and_inputs[1:]                      # V_k  }
+            self.state_and_inputs_rows = _as_real_rows(state_and_inputs)
+            self.starts = np.empty((K + 1, 4, C), dtype=np.complex128)             # A_0 .. A_K
+            self.starts_rows = _as_real_rows(self.starts)
         else:
-            self.ng = ng = max(1, round(math.sqrt(K / 2)))
-            self.J = J = -(-K // ng)
-            R = ng * J                                               # sub-blocks incl. zero padding
-        pinv = np.zeros((R, 4, C), dtype=np.complex128)              # zero for padded sub-blocks
-        pinv[:K] = pole_powers(bank, -m * np.arange(1.0, K + 1)).T[:, None, :]
-        ppow = np.ascontiguousarray(np.broadcast_to(pole_powers(bank, m * np.arange(0.0, R + 1)).T[:, None, :],
-                                                    (R + 1, 4, C)))
-        B = [_shift(n * m).T for n in range(R + 1)]                  # column-vector form: a' = B a
-        self.cdtype = np.complex64 if dtype == np.float32 else np.complex128
-        # Scratch kept between calls (fresh temporaries of this size cost page faults), and the
-        # views the pass works on. The state inputs of padded sub-blocks stay zero.
-        self.U = np.zeros((R, 8 * C), dtype=dtype)                   # state inputs (K rows used)
-        self.U_flat = self.U[:K]
-        self.U_c = self.U.view(self.cdtype).reshape(R, 4, C)
-        self.Uc = np.empty((C, K, 8), dtype=dtype)                   # the same, one signal per channel
-        self.Uc_t = self.Uc.view(self.cdtype).transpose(1, 2, 0)
-        if self.ng == 0:
-            H = np.zeros((K + 1, 4, K + 1, 4))                       # (k, j) <- (i, r) of [S0 ; V]
-            for k in range(K + 1):
-                H[k, :, 0, :] = B[k]
-                for i in range(k):
-                    H[k, :, i + 1, :] = B[k - 1 - i]
-            self.H = H.reshape(4 * (K + 1), 4 * (K + 1))
-            W = np.zeros((K + 1, 4, C), dtype=np.complex128)         # [S0 ; V_0 .. V_(K-1)]
-            self.state, self.V = W[0], W[1:]
-            self.W_flat = W.view(np.float64).reshape(4 * (K + 1), 2 * C)
-            self.A = np.empty((4 * (K + 1), 2 * C))
-            A = self.A.reshape(K + 1, 4, 2 * C).view(np.complex128)
-            self.end = A[K]
-        else:
-            ng, J = self.ng, self.J
-            Gend = np.zeros((4, J, 4))                               # j <- (i, r): a group's end state
-            Gsh = np.zeros((J - 1, 4, J, 4))                         # (kk, j) <- (i, r): start of kk >= 1
-            for kk in range(J):
-                Gend[:, kk, :] = B[J - 1 - kk]
-            for kk in range(1, J):
-                for i in range(kk):
-                    Gsh[kk - 1, :, i, :] = B[kk - 1 - i]
-            # (q, j) <- [S0 ; group ends from zero ; first state inputs]: the groups' start states,
-            # then the start state of each group's second sub-block (rows ng + 1 ..).
-            Hg = np.zeros((2 * ng + 1, 4, 2 * ng + 1, 4))
-            for q in range(ng + 1):
-                Hg[q, :, 0, :] = B[q * J]
-                for i in range(q):
-                    Hg[q, :, i + 1, :] = B[(q - 1 - i) * J]
-            for q in range(ng):
-                Hg[ng + 1 + q, :, 0, :] = B[q * J + 1]
-                for i in range(q):
-                    Hg[ng + 1 + q, :, i + 1, :] = B[(q - 1 - i) * J + 1]
-                Hg[ng + 1 + q, :, ng + 1 + q, :] = B[0]
-            self.Gend = Gend.reshape(4, 4 * J)
-            # Gsh is block lower-triangular: its first h row blocks need only the first h inputs.
-            h = (J - 1) // 2
-            Gsh = Gsh.reshape(4 * (J - 1), 4 * J)
-            self.Gsh_head, self.Gsh_tail = Gsh[: 4 * h, : 4 * h].copy(), Gsh[4 * h :, : 4 * (J - 1)].copy()
-            self.Hg = Hg.reshape(4 * (2 * ng + 1), 4 * (2 * ng + 1))
-            V = np.zeros((R, 4, C), dtype=np.complex128)
-            self.V = V
-            self.V_groups = V.view(np.float64).reshape(ng, 4 * J, 2 * C)
-            self.V_first = self.V_groups[:, :4]                       # first sub-block of each group
-            ends = np.empty((2 * ng + 1, 4, 2 * C))                  # [S0 ; group ends ; first inputs]
-            self.state = ends[0].view(np.complex128)
-            self.ends = ends[1 : ng + 1]
-            self.firsts = ends[ng + 1 :]
-            self.ends_flat = ends.reshape(4 * (2 * ng + 1), 2 * C)
-            self.starts = np.empty((4 * (2 * ng + 1), 2 * C))        # [starts ; second sub-blocks' starts]
-            self.group_starts = self.starts[: 4 * ng].reshape(ng, 4, 2 * C)
-            self.seconds = self.starts[4 * (ng + 1) :].reshape(ng, 4, 2 * C)
-            self.full = np.empty((ng, J, 4, 2 * C))                  # start state of every sub-block
-            self.full_first = self.full[:, 0]
-            full_rest = self.full[:, 1:].reshape(ng, 4 * (J - 1), 2 * C)
-            self.full_head, self.full_tail = full_rest[:, : 4 * h], full_rest[:, 4 * h :]
-            self.V_head, self.V_tail = self.V_groups[:, : 4 * h], self.V_groups[:, : 4 * (J - 1)]
-            A = self.full.reshape(R, 4, 2 * C).view(np.complex128)
-            self.end = self.starts[4 * ng : 4 * (ng + 1)].view(np.complex128) if K == R else A[K]
-        self.pinv = pinv
-        self.pinv_used, self.V_used = pinv[:K], self.V[:K]             # padded rows left out
-        self.state_flat = self.state.view(np.float64)
-        self.A_used = A[:K]
-        self.ppow = ppow[:K]
-        self.ppow_end = ppow[K]
-        self.S = np.empty((K, 4, C), dtype=np.complex128)
-        self.Lb = Lb = np.empty((C, 8 + m, K), dtype=dtype)          # per channel [start state | input]^T
-        self.Lb_states = Lb[:, :8].reshape(C, 4, 2, K)
-        self.S_by_channel = self.S.view(np.float64).reshape(K, 4, C, 2).transpose(2, 1, 3, 0)
-        self.Lb_input = Lb[:, 8:]
-        self.LHS = Lb.transpose(0, 2, 1)                             # (C, K, 8 + m)
+            self.groups = groups = max(1, round(math.sqrt(K / 2)))
+            self.J = J = -(-K // groups)
+            self.group_end, self.coarse, inner = _two_level_maps(groups, J, m)
+            # inner is block lower-triangular: its first `half` row blocks need only the first
+            # `half` input blocks (a quarter of its product saved).
+            half = (J - 1) // 2
+            self.inner_first = np.ascontiguousarray(inner[: 4 * half, : 4 * half])
+            self.inner_rest = np.ascontiguousarray(inner[4 * half :])
+            padded = np.zeros((groups * J, 4, C), dtype=np.complex128)   # V_k; the padding stays 0
+            self.inputs = padded[:K]
+            self.inputs_by_group = _as_real_rows(padded.reshape(groups, J, 4, C))  # (groups, 4 J, 2 C)
+            self.group_firsts = padded[::J]                         # V_(qJ), later A_(qJ+1)
+            coarse_in = np.empty((2 * groups + 1, 4, C), dtype=np.complex128)
+            self.coarse_in_rows = _as_real_rows(coarse_in)
+            self.coarse_in_state = coarse_in[0]                     # A_0        } views of coarse_in
+            self.coarse_in_ends = coarse_in[1 : groups + 1].view(np.float64)   # E_q  }
+            self.coarse_in_firsts = coarse_in[groups + 1 :]         # V_(qJ)     }
+            self.coarse_out = np.empty((2 * groups + 1, 4, C), dtype=np.complex128)
+            self.coarse_out_rows = _as_real_rows(self.coarse_out)
+            self.starts = np.empty((groups * J + 1, 4, C), dtype=np.complex128)    # A_0 .. A_(groups J)
+            by_group = self.starts[: groups * J].reshape(groups, J, 4, C)
+            self.group_starts = by_group[:, 0]                      # A_(qJ)               } views
+            later = _as_real_rows(by_group[:, 1:])                  # A_(qJ+1 .. qJ+J-1)  } views
+            self.later_starts_first = later[:, : 4 * half]          # ... the first half  } of starts
+            self.later_starts_rest = later[:, 4 * half :]            # ... the rest        }
+            self.inner_inputs_first = self.inputs_by_group[:, : 4 * half]      # [A_(qJ+1) ; V ..] } views
+            self.inner_inputs = self.inputs_by_group[:, : 4 * (J - 1)]          # } of the inputs
+        self.used_starts = self.starts[:K]                          # A_0 .. A_(K-1) } views
+        self.end_state = self.starts[K]                             # A_K            } of starts
+        self.state_input = np.empty((K, 8 * C), dtype=dtype)                        # mono: g U_k
+        self.state_input_complex = self.state_input.view(cdtype).reshape(K, 4, C)
+        self.state_input_per_channel = np.empty((C, K, 8), dtype=dtype)
+        self.state_input_per_channel_complex = self.state_input_per_channel.view(cdtype).transpose(1, 2, 0)
+        self.start_states = np.empty((K, 4, C), dtype=np.complex128)                # S_k
+        # The rescaling factors of the pass per frame offset, copied out of the group's tables and
+        # repeated over the 4 moments (contiguous, they multiply about twice as fast as strided,
+        # broadcast rows): a stream of equal blocks meets a few offsets again and again.
+        self.rescale_at: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        # Per channel, the sub-blocks' [S_k | x_k] as columns: the output product reads its transpose
+        # (measured faster than the row layout, whose filling strides badly).
+        columns = np.empty((C, 8 + m, K), dtype=dtype)
+        self.columns_states = columns[:, :8].reshape(C, 4, 2, K)     # } views of columns
+        self.columns_input = columns[:, 8:]                         # }
+        self.rows = columns.transpose(0, 2, 1)                      # } (C, K, 8 + m)
+        self.start_states_by_channel = self.start_states.view(np.float64).reshape(K, 4, C, 2).transpose(2, 1, 3, 0)
+
+
+def _start_states(plan: _PassPlan, state: np.ndarray) -> None:
+    """Step 2: the start state of every sub-block of the pass and its end, ``A_0 .. A_K``, into ``plan.starts``.
+
+    ``state`` (4, C) is ``A_0``; the inputs ``V_k`` are in ``plan.inputs``. Two levels: the first
+    input of every group is overwritten.
+    """
+    if plan.groups == 0:
+        plan.first_state[...] = state
+        np.matmul(plan.one_level, plan.state_and_inputs_rows, out=plan.starts_rows)
+        return
+    plan.coarse_in_state[...] = state
+    np.matmul(plan.group_end, plan.inputs_by_group, out=plan.coarse_in_ends)
+    plan.coarse_in_firsts[...] = plan.group_firsts
+    np.matmul(plan.coarse, plan.coarse_in_rows, out=plan.coarse_out_rows)
+    groups, J = plan.groups, plan.J
+    plan.group_starts[...] = plan.coarse_out[:groups]
+    # A_(qJ+1) takes the place of V_(qJ), which it contains: the rest of the group's start states
+    # are then one map of [A_(qJ+1) ; V_(qJ+1) .. V_(qJ+J-2)].
+    plan.group_firsts[...] = plan.coarse_out[groups + 1 :]
+    np.matmul(plan.inner_first, plan.inner_inputs_first, out=plan.later_starts_first)
+    np.matmul(plan.inner_rest, plan.inner_inputs, out=plan.later_starts_rest)
+    if plan.K == groups * J:                                # else A_K is the first padded sub-block's start
+        plan.end_state[...] = plan.coarse_out[groups]
 
 
 #: The automatic sub-block length: an exact division of the block between these, nearest to
@@ -655,9 +720,17 @@ _TARGET_SUBBLOCK = 21
 _ONE_LEVEL = 8
 #: Sub-blocks per pass at most: longer blocks go in passes (the group products grow with it).
 _MAX_SUBBLOCKS = 24
-#: A pass spans at most this many of the widest channel's time constants ``fs / (2 pi b)``:
-#: the rescaling to the pass start multiplies by up to ``exp(_MAX_DECAY)`` (about 1e87).
+#: The rescaled frame spans at most this many of a channel group's widest channel's time
+#: constants ``fs / (2 pi b)``: the rescaling multiplies by up to ``exp(_MAX_DECAY)`` (about 1e87).
 _MAX_DECAY = 200.0
+#: ... and at most this many samples: the length of the tables of pole powers (a pass is never longer).
+_ANCHOR_SPAN = 2048
+#: A channel shares its group's rescaled frame if its time constant is at most this many times the
+#: group's shortest (or the group's frame reaches _ANCHOR_SPAN anyway): the frame then spans at
+#: least ``_MAX_DECAY / _GROUP_RATIO = 2`` of its time constants between renormalisations.
+_GROUP_RATIO = 100.0
+#: Frame offsets whose rescaling factors a pass plan keeps (a stream of equal blocks meets a few).
+_RESCALE_CACHE = 64
 #: Plans and matrix sets kept per filterbank (least recently used dropped).
 _PLAN_CACHE = 16
 #: After this many different sub-block lengths, automatic mode stops adapting to the block length
@@ -679,6 +752,101 @@ def auto_subblock(length: int) -> int:
     if not exact:
         return _TARGET_SUBBLOCK
     return min(exact, key=lambda m: abs(math.log(m / _TARGET_SUBBLOCK)))
+
+
+def _channel_groups(bank: Bank) -> list[np.ndarray]:
+    """Channels that share one rescaled frame, widest first; usually one group of every channel.
+
+    A group's frame is renormalised at least every ``span`` samples, ``span`` set by its widest
+    channel (:data:`_MAX_DECAY`, :data:`_ANCHOR_SPAN`). A much narrower channel in the same group
+    would be renormalised many times per time constant, each a rounding that compounds: it opens
+    a group of its own.
+    """
+    spans = _MAX_DECAY / (2 * np.pi * bank.b / bank.fs)
+    groups: list[list[int]] = []
+    for c in np.argsort(spans, kind="stable"):
+        if groups:
+            widest = spans[groups[-1][0]]
+            if widest >= _ANCHOR_SPAN or spans[c] <= _GROUP_RATIO * widest:
+                groups[-1].append(int(c))
+                continue
+        groups.append([int(c)])
+    return [np.array(sorted(g)) for g in groups]
+
+
+class _ChannelGroup:
+    """Channels sharing one rescaled frame: their bank, pole-power tables, state and anchor.
+
+    ``state`` (4, C) holds ``A = p**-offset S``: the moments (times the unit-gain factor) at the
+    current sample, rescaled to the anchor ``offset`` samples back. ``powers[t] = p**t`` and
+    ``inverse_powers[t] = p**-t`` (``t = 0 .. span``), shape (1, C) each, correctly rounded.
+    """
+
+    def __init__(self, bank: Bank, channels: np.ndarray) -> None:
+        self.channels = channels
+        self.bank = Bank(bank.kind, bank.fs, bank.cf[channels], bank.b[channels],
+                         tuple(bank.names[c] for c in channels))
+        beta_max = float(np.max(2 * np.pi * self.bank.b / self.bank.fs))
+        self.span = max(1, min(int(_MAX_DECAY / beta_max), _ANCHOR_SPAN))
+        t = np.arange(self.span + 1.0)
+        self.powers = np.ascontiguousarray(pole_powers(self.bank, t).T[:, None, :])     # (span + 1, 1, C)
+        self.inverse_powers = np.ascontiguousarray(pole_powers(self.bank, -t).T[:, None, :])
+        self.state = np.zeros((4, len(channels)), dtype=np.complex128)
+        self.offset = 0
+        self.passes = 0
+
+    def reset(self) -> None:
+        self.state[...] = 0.0
+        self.offset = 0
+
+
+def _filter_pass(group: _ChannelGroup, plan: _PassPlan, x: np.ndarray, dst: np.ndarray) -> None:
+    """Filter one pass, ``K * m`` samples of ``x`` ((L,) or (C, L)), into ``dst`` (C, K, m); advance the state.
+
+    With ``o = group.offset``: ``V_k = g U_k p**-(o + (k+1) m)``, ``S_k = p**(o + k m) A_k``.
+    """
+    m, K, mats = plan.m, plan.K, plan.mats
+    if group.offset + K * m > group.span:                   # renormalise: the anchor moves here
+        group.state *= group.powers[group.offset]
+        group.offset = 0
+    o = group.offset
+    rescale = plan.rescale_at.get(o)
+    if rescale is None:
+        rescale = (group.inverse_powers[o + m : o + (K + 1) * m : m],        # p**-(o + (k+1) m), (K, 1, C)
+                   group.powers[o : o + K * m : m])                          # p**(o + k m), (K, 1, C)
+        if len(plan.rescale_at) < _RESCALE_CACHE:
+            rescale = tuple(np.repeat(r, 4, axis=1) for r in rescale)        # (K, 4, C), contiguous
+            plan.rescale_at[o] = rescale
+    rescale_in, rescale_out = rescale
+    # 1. State inputs, rescaled to the anchor; every channel's Toeplitz input.
+    if x.ndim == 1:
+        X = x.reshape(K, m)
+        np.matmul(X, mats.to_state, out=plan.state_input)
+        np.multiply(plan.state_input_complex, rescale_in, out=plan.inputs)
+        plan.columns_input[...] = np.ascontiguousarray(X.T)         # broadcast to every channel
+    else:
+        X = x.reshape(x.shape[0], K, m)
+        np.matmul(X, mats.to_state_per_channel, out=plan.state_input_per_channel)
+        np.multiply(plan.state_input_per_channel_complex, rescale_in, out=plan.inputs)
+        plan.columns_input[...] = X.transpose(0, 2, 1)
+    # 2. Start states A_0 .. A_K in the rescaled frame (real, channel-independent maps).
+    _start_states(plan, group.state)
+    # 3. The output: per channel [S_k | x_k] @ to_output, S_k = p**(o + k m) A_k.
+    np.multiply(plan.used_starts, rescale_out, out=plan.start_states)
+    plan.columns_states[...] = plan.start_states_by_channel
+    np.matmul(plan.rows, mats.to_output, out=dst)
+    group.state[...] = plan.end_state
+    group.offset = o + K * m
+    group.passes += 1
+    if group.passes % _FLUSH_EVERY == 0:
+        _flush_tiny(group.state)
+
+
+def _flush_tiny(state: np.ndarray) -> None:
+    """Set state entries below about 1e-287 to exactly 0, in place (``s + c - c``, exact for larger ones)."""
+    real = state.view(np.float64)
+    real += _FLUSH_OFFSET
+    real -= _FLUSH_OFFSET
 
 
 class GammatoneFilterbank(FilterbankBase):
@@ -706,8 +874,7 @@ class GammatoneFilterbank(FilterbankBase):
     channel (a microphone into the cochlea; one texture signal into every
     whisker), or one signal per channel, shape (channels, L). The output is
     always (channels, L). Any partition of a signal into blocks gives the same
-    output as one call on the whole signal, to rounding (about 1e-15 relative in
-    float64).
+    output as one call on the whole signal, to rounding (docs/stability.md).
 
     Not thread-safe: one instance belongs to one stream.
     """
@@ -720,33 +887,33 @@ class GammatoneFilterbank(FilterbankBase):
         if subblock is not None and not (isinstance(subblock, (int, np.integer)) and 1 <= subblock <= 4096):
             raise ValueError(f"subblock must be None (automatic) or an integer in 1..4096, got {subblock!r}")
         self.subblock = None if subblock is None else int(subblock)
-        beta_max = float(np.max(2 * np.pi * bank.b / bank.fs))
-        self._max_span = max(1, int(_MAX_DECAY / beta_max))           # samples per pass at most
-        self._matrices: OrderedDict[int, _SubblockMatrices] = OrderedDict()
-        self._plans: OrderedDict[tuple, _Plan] = OrderedDict()
-        self._layouts: dict[int, list] = {}
+        self._groups = [_ChannelGroup(bank, channels) for channels in _channel_groups(bank)]
+        # Least-recently-used caches: matrices per (group, m), plans per (group, m, K).
+        self._matrices: OrderedDict[tuple, _SubblockMatrices] = OrderedDict()
+        self._plans: OrderedDict[tuple, _PassPlan] = OrderedDict()
+        self._layouts: dict[tuple, list] = {}
         self._builds = 0
-        self._blocks = 0
-        self.reset()
 
     def reset(self) -> None:
-        self._state = np.zeros((4, self.channels), dtype=np.complex128)      # g S_j per channel
+        for group in self._groups:
+            group.reset()
 
     def _fresh(self) -> "GammatoneFilterbank":
         return GammatoneFilterbank(self.bank, self.dtype, self.subblock)
 
-    def _layout(self, L: int) -> list:
+    def _layout(self, L: int, group: int = 0) -> list:
         """The passes a block of ``L`` samples goes in: ``[(m, K), ...]``, ``K * m`` samples each."""
-        passes = self._layouts.get(L)
+        passes = self._layouts.get((group, L))
         if passes is None:
+            span = self._groups[group].span
             if self.subblock is not None:
                 m = self.subblock
             elif self._builds >= _ADAPTIVE_BUILDS:
                 m = _TARGET_SUBBLOCK
             else:
                 m = auto_subblock(L)
-            m = max(1, min(m, L, self._max_span))
-            per_pass = max(1, min(_MAX_SUBBLOCKS, self._max_span // m))
+            m = max(1, min(m, L, span))
+            per_pass = max(1, min(_MAX_SUBBLOCKS, span // m))
             K, r = divmod(L, m)
             n = -(-K // per_pass)
             passes = [(m, K // n + (i < K % n)) for i in range(n)]
@@ -754,87 +921,68 @@ class GammatoneFilterbank(FilterbankBase):
                 passes.append((r, 1))
             if len(self._layouts) > 256:
                 self._layouts.clear()
-            self._layouts[L] = passes
+            self._layouts[(group, L)] = passes
         return passes
 
-    def _plan(self, m: int, K: int) -> _Plan:
-        plan = self._plans.get((m, K))
-        if plan is None:
-            mats = self._matrices.get(m)
-            if mats is None:
-                mats = self._matrices[m] = _SubblockMatrices(self.bank, m, self.dtype)
-                self._builds += 1
-                if len(self._matrices) > _PLAN_CACHE:
-                    self._matrices.popitem(last=False)
-            plan = self._plans[(m, K)] = _Plan(self.bank, mats, m, K, self.dtype)
-            if len(self._plans) > _PLAN_CACHE:
-                self._plans.popitem(last=False)
+    def _plan(self, group: int, m: int, K: int) -> _PassPlan:
+        key = (group, m, K)
+        plan = self._plans.get(key)
+        if plan is not None:
+            self._plans.move_to_end(key)                    # least recently used is dropped first
         else:
-            self._plans.move_to_end((m, K))
+            mats = _lru_get(self._matrices, (group, m))
+            if mats is None:
+                mats = _SubblockMatrices(self._groups[group].bank, m, self.dtype)
+                _lru_put(self._matrices, (group, m), mats)
+                self._builds += 1
+            plan = _PassPlan(mats, m, K, len(self._groups[group].channels), self.dtype)
+            _lru_put(self._plans, (group, m, K), plan)
         return plan
 
     def _filter(self, x: np.ndarray, out: np.ndarray | None) -> np.ndarray:
         C, L = self.channels, x.shape[-1]
         y = np.empty((C, L), dtype=self.dtype) if out is None else out
-        passes = self._layout(L)
-        if len(passes) == 1 and y.flags.c_contiguous:                 # the common case, kept short
-            m, K = passes[0]
-            self._run(self._plan(m, K), x, y.reshape(C, K, m))
+        if len(self._groups) == 1:
+            passes = self._layout(L)
+            if len(passes) == 1 and y.flags.c_contiguous:          # the common case, kept short
+                m, K = passes[0]
+                _filter_pass(self._groups[0], self._plan(0, m, K), x, y.reshape(C, K, m))
+            else:
+                self._filter_group(0, x, y)
             return y
-        a = 0
-        for m, K in passes:
-            b = a + m * K
-            plan = self._plan(m, K)
-            dst = y[:, a:b].reshape(C, K, m)
-            if np.may_share_memory(dst, y):
-                self._run(plan, x[..., a:b], dst)
-            else:                                  # out's rows are not evenly strided: go through a copy
-                y[:, a:b] = self._run(plan, x[..., a:b], dst).reshape(C, -1)
-            a = b
+        for g, group in enumerate(self._groups):
+            rows = np.empty((len(group.channels), L), dtype=self.dtype)
+            self._filter_group(g, x if x.ndim == 1 else x[group.channels], rows)
+            y[group.channels] = rows
         return y
 
-    def _run(self, plan: _Plan, x: np.ndarray, dst: np.ndarray) -> np.ndarray:
-        """Filter ``K * m`` samples into ``dst`` (C, K, m) and advance the state."""
-        matmul, multiply = np.matmul, np.multiply
-        C, m, K = self.channels, plan.m, plan.K
-        mats = plan.mats
-        if self._state is not plan.state:                            # the last block used another plan
-            plan.state[...] = self._state
-        # 1. State inputs, rescaled to the block start; every channel's Toeplitz input.
-        if x.ndim == 1:
-            X = x.reshape(K, m)
-            matmul(X, mats.WA, out=plan.U_flat)
-            multiply(plan.U_c, plan.pinv, out=plan.V)
-            plan.Lb_input[...] = np.ascontiguousarray(X.T)
-        else:
-            X = x.reshape(C, K, m)
-            matmul(X, mats.WAc, out=plan.Uc)
-            multiply(plan.Uc_t, plan.pinv_used, out=plan.V_used)
-            plan.Lb_input[...] = X.transpose(0, 2, 1)
-        # 2. Start states of every sub-block (real, channel-independent products), then unscaled.
-        if plan.ng == 0:
-            matmul(plan.H, plan.W_flat, out=plan.A)
-        else:
-            matmul(plan.Gend, plan.V_groups, out=plan.ends)
-            plan.firsts[...] = plan.V_first
-            matmul(plan.Hg, plan.ends_flat, out=plan.starts)
-            # The start of each group's second sub-block replaces its first input: the later start
-            # states of the group are then sums over the inputs alone.
-            plan.V_first[...] = plan.seconds
-            plan.full_first[...] = plan.group_starts
-            matmul(plan.Gsh_head, plan.V_head, out=plan.full_head)
-            matmul(plan.Gsh_tail, plan.V_tail, out=plan.full_tail)
-        multiply(plan.A_used, plan.ppow, out=plan.S)
-        # 3. The output: [start state | input] @ [O ; T] per channel, sub-blocks as rows.
-        plan.Lb_states[...] = plan.S_by_channel
-        matmul(plan.LHS, mats.MB, out=dst)
-        multiply(plan.end, plan.ppow_end, out=plan.state)            # the next block's S0, in place
-        self._blocks += 1
-        if self._blocks % _FLUSH_EVERY == 0:
-            plan.state_flat += _FLUSH_OFFSET
-            plan.state_flat -= _FLUSH_OFFSET
-        self._state = plan.state
-        return dst
+    def _filter_group(self, g: int, x: np.ndarray, y: np.ndarray) -> None:
+        """Filter one channel group's block ``x`` into its rows ``y`` (C_group, L), pass by pass."""
+        group, a = self._groups[g], 0
+        for m, K in self._layout(x.shape[-1], g):
+            b = a + m * K
+            dst = y[:, a:b].reshape(y.shape[0], K, m)
+            if np.may_share_memory(dst, y):
+                _filter_pass(group, self._plan(g, m, K), x[..., a:b], dst)
+            else:                                  # y's rows are not evenly strided: go through a copy
+                _filter_pass(group, self._plan(g, m, K), x[..., a:b], dst)
+                y[:, a:b] = dst.reshape(y.shape[0], -1)
+            a = b
+
+
+def _lru_get(cache: OrderedDict, key):
+    """The cached value (marked most recently used), or None."""
+    value = cache.get(key)
+    if value is not None:
+        cache.move_to_end(key)
+    return value
+
+
+def _lru_put(cache: OrderedDict, key, value) -> None:
+    """Cache a value, dropping the least recently used beyond _PLAN_CACHE entries."""
+    cache[key] = value
+    if len(cache) > _PLAN_CACHE:
+        cache.popitem(last=False)
 
 
 def relative_error(y, y_ref, axis=None, floor: float = 0.0):

@@ -23,6 +23,7 @@ from supramodal.gammatone import (
 )
 
 from blocks import feed_blocks
+from fastform_plain import PlainGammatone
 
 LD = np.longdouble
 TWO_PI = 2 * np.arccos(LD(-1))            # pi to long-double precision (np.pi is only a double)
@@ -205,6 +206,43 @@ def test_block_partition_invariance(seed, length, sizes, per_channel, subblock):
     other = GammatoneFilterbank(PARTITION_BANK, subblock=32).process(x)
     if length:
         assert relative_error(other, whole, axis=-1).max() <= 1e-12
+
+
+MIXED_BANK = Bank("custom", 5000.0, [30.0, 2000.0, 700.0], [0.9, 49500.0, 3.0], ("narrow", "widest", "mid"))
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    length=st.integers(1, 700),
+    sizes=st.lists(st.integers(0, 200), max_size=12),
+    plain_m=st.integers(1, 40),
+    subblock=st.sampled_from([None, 1, 3, 21, 257]),
+    per_channel=st.booleans(),
+    mixed=st.booleans(),
+)
+def test_fast_form_equals_the_plain_loop(seed, length, sizes, plain_m, subblock, per_channel, mixed):
+    """The same algorithm written as loops (tests/fastform_plain.py: per channel, per sub-block, no
+    rescaling, no products over sub-blocks) at random block sizes, partitions and sub-block lengths,
+    after a loud start (an impulse) so the state carries weight: equal to rounding."""
+    bank = MIXED_BANK if mixed else PARTITION_BANK
+    rng = np.random.default_rng(seed)
+    x = rng.standard_normal((bank.channels, length) if per_channel else length)
+    x[..., 0] += 50.0
+    plain = PlainGammatone(bank, plain_m)
+    expected = np.concatenate([plain.process(x[..., i : i + 97]) for i in range(0, length, 97)], axis=1)
+    y = feed(GammatoneFilterbank(bank, subblock=subblock), x, sizes)
+    scale = np.max(np.abs(expected), axis=1)
+    assert (np.max(np.abs(y - expected), axis=1) <= 1e-13 * scale).all()
+
+
+def test_the_plain_loop_is_the_gammatone():
+    """The plain loop itself against the independent long-double reference: it is what the fast form is compared to."""
+    ref = independent_reference(PARTITION_BANK, 3000)
+    x = np.zeros(3000)
+    x[0] = 1.0
+    y = PlainGammatone(PARTITION_BANK, 25).process(x)
+    assert per_channel_error(y, ref).max() <= 1e-13
 
 
 def test_mono_input_equals_the_same_signal_per_channel():
