@@ -566,6 +566,22 @@ class _SubblockMatrices:
         self.to_output = np.ascontiguousarray(_flush_small(to_output, dtype), dtype=dtype)
 
 
+def _grouping(K: int) -> tuple[int, int]:
+    """``(groups, J)`` for a pass of ``K`` sub-blocks: ``(0, K)`` up to _ONE_LEVEL, else ``groups``
+    groups of ``J`` sub-blocks, the last zero-padded to ``groups * J >= K``."""
+    if K <= _ONE_LEVEL:
+        return 0, K
+    groups = max(1, round(math.sqrt(K / 2)))
+    return groups, -(-K // groups)
+
+
+def _reach(K: int) -> int:
+    """Sub-blocks a pass of ``K`` reaches in the rescaled frame, padding included: the last group's
+    end state is formed at ``groups * J`` sub-blocks, so that is what the frame must hold."""
+    groups, J = _grouping(K)
+    return groups * J if groups else K
+
+
 def _one_level_map(K: int, m: int) -> np.ndarray:
     """Real (4 (K + 1), 4 (K + 1)): ``[A_0 ; V_0 .. V_(K-1)]`` to ``[A_0 .. A_K]``.
 
@@ -629,8 +645,9 @@ class _PassPlan:
         C = channels
         self.mats, self.m, self.K = mats, m, K
         cdtype = np.complex64 if dtype == np.float32 else np.complex128
-        if K <= _ONE_LEVEL:
-            self.groups, self.J = 0, K
+        self.groups, self.J = _grouping(K)
+        self.reach = _reach(K) * m                  # samples of the frame the pass uses, padding included
+        if self.groups == 0:
             self.one_level = _one_level_map(K, m)
             state_and_inputs = np.zeros((K + 1, 4, C), dtype=np.complex128)        # [A_0 ; V_0 .. V_(K-1)]
             self.first_state = state_and_inputs[0]                  # A_0  } views of state_and_inputs
@@ -639,8 +656,7 @@ class _PassPlan:
             self.starts = np.empty((K + 1, 4, C), dtype=np.complex128)             # A_0 .. A_K
             self.starts_rows = _as_real_rows(self.starts)
         else:
-            self.groups = groups = max(1, round(math.sqrt(K / 2)))
-            self.J = J = -(-K // groups)
+            groups, J = self.groups, self.J
             self.group_end, self.coarse, inner = _two_level_maps(groups, J, m)
             # inner is block lower-triangular: its first `half` row blocks need only the first
             # `half` input blocks (a quarter of its product saved).
@@ -806,7 +822,9 @@ def _filter_pass(group: _ChannelGroup, plan: _PassPlan, x: np.ndarray, dst: np.n
     With ``o = group.offset``: ``V_k = g U_k p**-(o + (k+1) m)``, ``S_k = p**(o + k m) A_k``.
     """
     m, K, mats = plan.m, plan.K, plan.mats
-    if group.offset + K * m > group.span:                   # renormalise: the anchor moves here
+    # Renormalise (the anchor moves here) before any state the pass forms, the padded last group's
+    # end included, would lie more than span samples from the anchor: exp(_MAX_DECAY) at most.
+    if group.offset + plan.reach > group.span:
         group.state *= group.powers[group.offset]
         group.offset = 0
     o = group.offset
@@ -914,6 +932,9 @@ class GammatoneFilterbank(FilterbankBase):
                 m = auto_subblock(L)
             m = max(1, min(m, L, span))
             per_pass = max(1, min(_MAX_SUBBLOCKS, span // m))
+            # The passes below hold at most per_pass sub-blocks each; none may reach past the span.
+            while per_pass > 1 and max(map(_reach, range(1, per_pass + 1))) * m > span:
+                per_pass -= 1
             K, r = divmod(L, m)
             n = -(-K // per_pass)
             passes = [(m, K // n + (i < K % n)) for i in range(n)]
