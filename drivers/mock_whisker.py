@@ -718,6 +718,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="probability per frame of losing bytes from it")
     parser.add_argument("--crc-rate", type=float, default=0.0, metavar="R",
                         help="probability per frame of an altered payload byte")
+    parser.add_argument("--omit-rate", type=float, default=0.0, metavar="R",
+                        help="probability per frame of leaving it out (its sequence number skipped)")
+    parser.add_argument("--channels-rate", type=float, default=0.0, metavar="R",
+                        help="probability per frame of sending it with one channel more (or fewer)")
+    parser.add_argument("--version-rate", type=float, default=0.0, metavar="R",
+                        help="probability per frame of sending it with a wrong version")
     parser.add_argument("--unplug-every", type=float, default=None, metavar="S",
                         help="unplug after every S seconds connected")
     parser.add_argument("--unplug-for", type=float, default=0.5, metavar="S",
@@ -757,8 +763,9 @@ def run(args: argparse.Namespace, samples: np.ndarray, rate: float) -> int:
             return 2
     try:
         faults = FaultSpec(garbage_rate=args.garbage_rate, drop_rate=args.drop_rate,
-                           crc_rate=args.crc_rate, unplug_every=args.unplug_every,
-                           unplug_for=args.unplug_for)
+                           crc_rate=args.crc_rate, omit_rate=args.omit_rate,
+                           channels_rate=args.channels_rate, version_rate=args.version_rate,
+                           unplug_every=args.unplug_every, unplug_for=args.unplug_for)
         dev = MockWhiskerDevice(samples, rate, port=args.port,
                                 samples_per_frame=args.samples_per_frame, loop=args.loop,
                                 faults=faults, seed=args.seed, first_seq=args.first_seq)
@@ -778,7 +785,8 @@ def run(args: argparse.Namespace, samples: np.ndarray, rate: float) -> int:
             pass
         led = dev.ledger
     print(f"mock-whisker: {led.frames} frames, {led.sent} intact; garbage {led.garbage} "
-          f"({led.garbage_bytes} B), truncated {led.truncated}, crc {led.crc}, overflow "
-          f"{led.overflow}, unplugs {led.unplugs} ({led.unplugged} frames unplugged)",
-          file=sys.stderr)
+          f"({led.garbage_bytes} B), truncated {led.truncated}, crc {led.crc}, omitted "
+          f"{led.omitted}, wrong channels {led.wrong_channels}, wrong version {led.wrong_version}, "
+          f"overflow {led.overflow}, unplugs {led.unplugs} ({led.unplugged} frames unplugged, "
+          f"{led.unplug_lost} lost in the port)", file=sys.stderr)
     return 0
