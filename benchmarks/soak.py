@@ -224,8 +224,17 @@ def run_soak(seconds: float, unplugs: int, seed: int = 1, sample_every: float = 
         ledger = dev.ledger
         mock_error = None if dev.error is None else repr(dev.error)
     uptime = time.monotonic() - t0
-    return _compare(ledger, driver, sink, summary, samples, uptime, error, mock_error,
-                    seconds=seconds, unplugs=unplugs, seed=seed, spec=spec)
+    rep = _compare(ledger, driver, sink, summary, samples, uptime, error, mock_error,
+                   seconds=seconds, unplugs=unplugs, seed=seed, spec=spec)
+    rep["growth_kib"] = {"mock_ledger": _size_kib(ledger.lost), "node_latencies": _size_kib(node._latencies)}
+    return rep
+
+
+def _size_kib(container) -> float:
+    """Memory held by a dict or list and the numbers in it, KiB (what grows by design)."""
+    items = container.items() if isinstance(container, dict) else ((x,) for x in container)
+    return (sys.getsizeof(container) + sum(sys.getsizeof(v) for item in items for v in item
+                                           if not isinstance(v, str))) / 1024
 
 
 def _slope(samples, skip: float = 0.25) -> float | None:
@@ -330,6 +339,9 @@ def format_report(rep: dict) -> str:
             f"by chance in skipped bytes: {rep['header_errors_by_chance']}",
             f"- RSS: start {r['start']} KiB, max {r['max']} KiB, end {r['end']} KiB, slope {slope} "
             "(least squares after the first quarter)",
+            *([f"- what grows by design: the mock's ledger of lost frames {g2['mock_ledger']:.0f} KiB, the "
+               f"node's list of window latencies {g2['node_latencies']:.0f} KiB at the end"]
+              if (g2 := rep.get("growth_kib")) else []),
             f"- uptime {rep['uptime_s']:.1f} s, stream {rep['stream_s']:.1f} s, {rep['blocks']} blocks "
             f"({rep['unaligned_blocks']} not frame-aligned), {rep['windows']} windows "
             f"({rep['gap_windows']} flagged gap)",
