@@ -529,6 +529,30 @@ def test_pty_unplug_replug_same_path_resumes_and_fills_the_gap():
 
 
 @pytest.mark.hardware
+def test_pty_frames_left_in_the_port_at_an_unplug_are_in_the_ledger():
+    """The reader stalls across an unplug: what sat in the pty is lost with it, and the ledger
+    knows exactly which frames (and how many bytes of a frame the reader had) were lost."""
+    src = source(2.5, seed=6)
+    faults = FaultSpec(unplug_every=1.0, unplug_for=0.2, unplug_limit=1)
+    with MockWhiskerDevice(src, RATE, samples_per_frame=SPF, faults=faults, seed=2) as dev, \
+            SerialWhiskerDriver(dev.port, RATE, CHANNELS) as drv:
+        dev.start()
+        blocks = read_all(drv, 1000, timeout=0.5, max_reads=600)
+        assert dev.ledger.unplugs == 0  # the stall below begins well before the unplug
+        for _ in range(300):  # the node stalls until the board is unplugged
+            if dev.ledger.unplugs:
+                break
+            time.sleep(0.01)
+        blocks += stream(dev, drv, len(src) - sum(b.frames for b in blocks))
+        filled_frames, lost, led = check_against_ledger(blocks, dev, drv, src)
+        st = drv.stats()
+    assert led.unplugs == 1 and led.unplugs_forced == 0
+    assert led.unplug_lost > 0 and "unplug" in lost.values()
+    assert filled_frames == set(lost) and st["frames_lost"] == len(lost)
+    assert st["bytes_skipped"] == led.cut_bytes  # the head of a frame whose tail was lost
+
+
+@pytest.mark.hardware
 def test_mock_never_blocks_when_nobody_reads(tmp_path, capsys):
     rate = 5000
     x = (np.random.default_rng(4).normal(0, 3000, (int(0.4 * rate), 1))).astype(np.int16)
