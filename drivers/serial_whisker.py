@@ -36,7 +36,6 @@ import numpy as np
 import serial
 
 from drivers.base import Block, DeviceUnavailable, DriverClosed
-from supramodal.errors import InputError
 from drivers.frames import (
     FLAG_OVERRUN,
     FULL_SCALE,
@@ -44,6 +43,7 @@ from drivers.frames import (
     SEQ_MODULUS,
     FrameDecoder,
 )
+from supramodal.errors import InputError
 
 # What an unplug looks like from pyserial on Linux (measured, see
 # TESTING-WITHOUT-HARDWARE.md): read() -> SerialException, in_waiting -> bare
@@ -198,7 +198,7 @@ class SerialWhiskerDriver:
         self._attempts = 0
         self.first_sequence = None
         self._last_frame_at = time.monotonic()
-        self._silence_from = dict(self.stats())  # counters when the silence began
+        self._silence_from = self.stats()  # counters when the silence began
         self._next_warning = math.inf
         self._warnings_now = 0  # notices during the current silence
 
