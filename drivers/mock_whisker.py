@@ -3,15 +3,26 @@
 :class:`MockWhiskerDevice` plays a sample array as serial frames
 (``drivers.frames``) at the real rate into a pty, so :class:`SerialWhiskerDriver`
 (or anything else) can open it like a USB serial board. It can insert garbage,
-cut frames short, corrupt them, and unplug and replug, and keeps a
+cut frames short, corrupt them, leave them out, send them with a wrong channel
+count or a wrong version, and unplug and replug, and keeps a
 :class:`FaultLedger` of everything it did, so tests can check that every fault
-shows up in the reader's counters.
+shows up in the reader's counters, exactly.
 
 The port is a symlink the mock owns, pointing at the current pty slave: an
 unplug closes the pty and removes the link (reopening fails with ENOENT, as for
 a vanished ``/dev/ttyACM0``); a replug makes a new pty and points the link at
 it, so a reader reopens the *same path*. (``os.openpty`` cannot recreate a
 given ``/dev/pts/N``.)
+
+The ledger is exact across unplugs too. The device keeps the pty's slave end
+open itself: at an unplug it first reads whatever the reader has not taken yet
+(those bytes are what a real unplug loses with the port's buffer) and so knows
+which frames were lost in the port, and how many bytes of a frame the reader
+had received before the link went (it discards them). A few frames before each
+unplug are sent clean, so that every fault before it has been judged by a
+reader by then. After a replug the device sends nothing until a reader has
+opened the port (it sees the open's input flush through the pty's packet mode),
+as a USB CDC-ACM board waits for the host: frames of that wait are never written.
 
 Threading rules
 ---------------
@@ -29,12 +40,18 @@ from __future__ import annotations
 
 import argparse
 import copy
+import errno
+import fcntl
 import os
+import struct
 import sys
 import tempfile
+import termios
 import threading
 import time
 import tty
+import zlib
+from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -45,8 +62,11 @@ from drivers.frames import (
     MAX_CHANNELS,
     MAX_SAMPLES_PER_FRAME,
     SEQ_MODULUS,
+    VERSION,
     encode_frame,
 )
+
+_TIOCPKT_FLUSHREAD = 0x01  # packet-mode status bit: the slave's input queue was flushed
 
 
 @dataclass(frozen=True)
@@ -69,19 +89,34 @@ class FaultSpec:
     drop_max : int, default 64
     crc_rate : float, default 0
         One payload byte of a frame altered (a line error): its CRC fails.
-        ``drop_rate + crc_rate`` must be <= 1: a frame gets at most one.
+    omit_rate : float, default 0
+        A whole frame never sent (its sequence number is skipped).
+    channels_rate : float, default 0
+        A frame sent, intact, with one channel more (or, at 64, one fewer)
+        than the stream has: a reader must skip it.
+    version_rate : float, default 0
+        A frame sent with version ``VERSION + 1`` (header check and CRC
+        correct for it): a reader must skip its bytes. Never right after a
+        truncated frame, as for garbage.
+
+        A frame gets at most one of the five: ``drop_rate + crc_rate +
+        omit_rate + channels_rate + version_rate`` must be <= 1.
     unplug_every : float or None, default None
         Seconds connected before each unplug; None never unplugs.
     unplug_for : float, default 0.5
         Seconds unplugged. Frames are still produced meanwhile (the board runs
         on), and are lost.
+    unplug_limit : int or None, default None
+        Unplug at most this many times; None: no limit.
 
     Notes
     -----
-    Without ``loop`` the first and the last frame are sent clean: a decoder
-    can only place a loss between two good frames, and judges a bad frame
-    once bytes follow it, so a fault there would be missing from its counters
-    while present in the ledger.
+    The first frame, and without ``loop`` the last one, are sent clean: a
+    decoder can only place a loss between two good frames, and judges a bad
+    frame once bytes follow it, so a fault there would be missing from its
+    counters while present in the ledger. For the same reason frames are sent
+    clean from the moment an unplug is due until it happens, and after
+    :meth:`MockWhiskerDevice.end_faults`.
     """
 
     garbage_rate: float = 0.0
@@ -89,22 +124,38 @@ class FaultSpec:
     drop_rate: float = 0.0
     drop_max: int = 64
     crc_rate: float = 0.0
+    omit_rate: float = 0.0
+    channels_rate: float = 0.0
+    version_rate: float = 0.0
     unplug_every: float | None = None
     unplug_for: float = 0.5
+    unplug_limit: int | None = None
+
+    #: The frame faults, in the order they share one draw per frame.
+    KINDS = ("truncated", "crc", "omitted", "channels", "version")
 
     def __post_init__(self) -> None:
-        for name in ("garbage_rate", "drop_rate", "crc_rate"):
+        for name in ("garbage_rate", "drop_rate", "crc_rate", "omit_rate", "channels_rate",
+                     "version_rate"):
             v = getattr(self, name)
             if not 0.0 <= v <= 1.0:
                 raise ValueError(f"{name} must be in [0, 1], got {v}")
-        if self.drop_rate + self.crc_rate > 1.0:
-            raise ValueError("drop_rate + crc_rate must be <= 1")
+        if sum(self.kind_rates()) > 1.0:
+            raise ValueError("drop_rate + crc_rate + omit_rate + channels_rate + version_rate "
+                             "must be <= 1 (a frame gets at most one fault)")
         if self.garbage_max < 1 or self.drop_max < 1:
             raise ValueError("garbage_max and drop_max must be >= 1")
         if self.unplug_every is not None and self.unplug_every <= 0:
             raise ValueError("unplug_every must be > 0 s or None")
         if self.unplug_for < 0:
             raise ValueError("unplug_for must be >= 0 s")
+        if self.unplug_limit is not None and self.unplug_limit < 0:
+            raise ValueError("unplug_limit must be >= 0 or None")
+
+    def kind_rates(self) -> tuple[float, ...]:
+        """Probabilities of the frame faults, in the order of :attr:`KINDS`."""
+        return (self.drop_rate, self.crc_rate, self.omit_rate, self.channels_rate,
+                self.version_rate)
 
 
 @dataclass
@@ -124,23 +175,39 @@ class FaultLedger:
         Frames written cut short, and the bytes removed from them.
     crc : int
         Frames written with an altered payload byte.
+    omitted : int
+        Frames left out on purpose (never written).
+    wrong_channels, wrong_version : int
+        Frames written with a wrong channel count, or a wrong version.
     damaged_bytes : int
-        Bytes written as part of truncated or altered frames.
+        Bytes written as part of truncated, altered or wrong-version frames
+        (a reader skips them).
     overflow : int
         Frames not written (or, at an unplug or at the end, not finished)
         because the pty buffer was full.
     unplugs : int
         Unplugs done.
     unplugged : int
-        Frames produced while unplugged (never written).
+        Frames produced while unplugged, or after a replug before a reader
+        opened the port (never written).
+    unplug_lost : int
+        Frames written but still in the port when it was unplugged, whole or
+        in part (Linux discards a pty's buffer when the master closes).
+    cut_bytes : int
+        Bytes of those frames that the reader had received before the unplug:
+        the head of a frame whose tail was lost (a reader discards them).
+    unplugs_forced : int
+        Unplugs done although a fault might not have been judged by the
+        reader yet (nobody read the port for a second after the unplug was
+        due). Zero for an exact ledger.
+    faults_ended_at : int or None
+        Index of the first frame after :meth:`MockWhiskerDevice.end_faults`.
     lost : dict of int to str
-        Every frame not written intact: index -> ``"truncated"``, ``"crc"``,
-        ``"overflow"`` or ``"unplugged"``.
+        Every frame not delivered intact: index -> ``"truncated"``, ``"crc"``,
+        ``"omitted"``, ``"channels"``, ``"version"``, ``"overflow"``,
+        ``"unplugged"`` or ``"unplug"`` (lost in the port at an unplug).
     unplug_at : list of int
         For each unplug, the index of the first frame produced after it.
-        Frames before it that were written but not yet read are lost with the
-        pty (Linux discards a pty's buffer when the master closes); the ledger
-        cannot know which, but they are at most one pty buffer (~22 kB) back.
     """
 
     frames: int = 0
@@ -150,10 +217,17 @@ class FaultLedger:
     truncated: int = 0
     dropped_bytes: int = 0
     crc: int = 0
+    omitted: int = 0
+    wrong_channels: int = 0
+    wrong_version: int = 0
     damaged_bytes: int = 0
     overflow: int = 0
     unplugs: int = 0
     unplugged: int = 0
+    unplug_lost: int = 0
+    cut_bytes: int = 0
+    unplugs_forced: int = 0
+    faults_ended_at: int | None = None
     lost: dict[int, str] = field(default_factory=dict)
     unplug_at: list[int] = field(default_factory=list)
 
@@ -250,8 +324,18 @@ class MockWhiskerDevice:
         self._ledger = FaultLedger()
         self._thread: threading.Thread | None = None
         self._master: int | None = None
+        self._slave: int | None = None  # held open to read what the reader left at an unplug
+        self._await_host = False  # replugged: send nothing until a reader opens the port
+        self._calm = False  # end_faults() was called
+        self._quiet = False  # an unplug is due: frames go clean until it happens
         self._pending: memoryview | None = None
         self._pending_frame = -1
+        # Bytes written on this connection, the recent frames' spans in them
+        # (index, first byte, end if fully written), and the bytes written
+        # since the last faulted frame or garbage ended.
+        self._written = 0
+        self._spans: deque[tuple[int, int, int]] = deque()
+        self._clean_run = 0
         self._tmpdir = None
         if port is None:
             self._tmpdir = tempfile.mkdtemp(prefix="mock-whisker-")
@@ -271,12 +355,20 @@ class MockWhiskerDevice:
             self._thread.start()
         return self
 
+    def end_faults(self) -> None:
+        """From the next frame on, send every frame clean and unplug no more.
+
+        A reader that keeps reading a little longer has then judged every
+        fault, so its counters can equal the ledger's totals.
+        """
+        self._calm = True
+
     def close(self) -> None:
         """Stop the writer, close the pty, remove the symlink (and temp dir)."""
         self._stop.set()
         if self._thread is not None:
             self._thread.join()
-        self._unplug_pty()
+        self._unplug_pty(account=False)
         if self._tmpdir is not None:
             try:
                 os.rmdir(self._tmpdir)
@@ -295,6 +387,14 @@ class MockWhiskerDevice:
         """A consistent copy of the fault ledger."""
         with self._lock:
             return copy.deepcopy(self._ledger)
+
+    def lost_kind(self, k: int) -> str | None:
+        """Why frame ``k`` was not delivered intact (a key of :attr:`FaultLedger.lost`), or None.
+
+        Thread-safe and without copying the ledger: for a reader checking every gap as it comes.
+        """
+        with self._lock:
+            return self._ledger.lost.get(k)
 
     def seq_of(self, k: int) -> int:
         """Sequence number of frame index ``k``."""
@@ -315,21 +415,80 @@ class MockWhiskerDevice:
         # At once: a new pty is in cooked mode (echo, CR/LF translation).
         tty.setraw(slave)
         name = os.ttyname(slave)
-        os.close(slave)  # the master keeps the pty alive; the reader opens the name
         os.set_blocking(master, False)
+        os.set_blocking(slave, False)
+        # Packet mode: a reader's open flushes its input (pyserial does), and
+        # the master then reads a status byte with TIOCPKT_FLUSHREAD set.
+        fcntl.ioctl(master, termios.TIOCPKT, struct.pack("i", 1))
         tmp = f"{self.port}.{os.getpid()}.tmp"
         if os.path.lexists(tmp):
             os.unlink(tmp)
         os.symlink(name, tmp)
         os.replace(tmp, self.port)  # atomic: a reader never sees a missing link here
-        self._master, self.pty = master, name
+        self._master, self._slave, self.pty = master, slave, name
+        self._written = 0
+        self._spans.clear()
+        self._clean_run = 0
 
-    def _unplug_pty(self) -> None:
+    def _host_opened(self) -> bool:
+        """Has a reader opened the port since the last call? (reads packet-mode status)"""
+        try:
+            status = os.read(self._master, 64)
+        except (BlockingIOError, InterruptedError):
+            return False
+        except OSError as exc:  # EIO: no slave open at all yet
+            if exc.errno == errno.EIO:
+                return False
+            raise
+        return any(b & _TIOCPKT_FLUSHREAD for b in status)
+
+    def _unread(self) -> int:
+        """Bytes written to the port that the reader has not taken yet."""
+        buf = fcntl.ioctl(self._slave, termios.FIONREAD, b"\0\0\0\0")
+        return struct.unpack("i", buf)[0]
+
+    def _steal_unread(self) -> int:
+        """Take every byte the reader has not read (the port's buffer); how many."""
+        n = 0
+        while True:
+            try:
+                chunk = os.read(self._slave, 65536)
+            except (BlockingIOError, InterruptedError):
+                return n
+            except OSError:
+                return n
+            if not chunk:
+                return n
+            n += len(chunk)
+
+    def _unplug_pty(self, account: bool = True) -> None:
+        """Unplug; with ``account``, record in the ledger what the port's buffer held."""
         if os.path.islink(self.port):
             os.unlink(self.port)
         if self._master is not None:
+            if account:
+                self._account_unplug(self._steal_unread())
             os.close(self._master)
-        self._master, self.pty = None, None
+            os.close(self._slave)
+        self._master, self._slave, self.pty = None, None, None
+
+    def _account_unplug(self, stolen: int) -> None:
+        """Frames not (fully) received by the reader: those ending after the cut."""
+        cut = self._written - stolen
+        with self._lock:
+            led = self._ledger
+            for k, a, end in self._spans:
+                if end <= cut:
+                    continue
+                if a < cut:
+                    led.cut_bytes += cut - a
+                if k == self._pending_frame and self._pending is not None:
+                    self._lose(k, "overflow", unfinished=True)
+                elif k not in led.lost:
+                    led.lost[k] = "unplug"
+                    led.sent -= 1
+                    led.unplug_lost += 1
+        self._pending = None
 
     # -- the writer thread -------------------------------------------------------
 
@@ -352,26 +511,38 @@ class MockWhiskerDevice:
         f = self.faults
         t0 = time.monotonic()
         k = 0
-        next_unplug = t0 + f.unplug_every if f.unplug_every else float("inf")
+        next_unplug = t0 + f.unplug_every if f.unplug_every and f.unplug_limit != 0 else float("inf")
         replug_at = float("inf")
         prev_truncated = False
+        # Bytes that must follow the last fault before an unplug: a reader
+        # judges a bad frame once its declared length plus a header has come.
+        margin = f.drop_max + HEADER_SIZE
         while not self._stop.is_set():
             now = time.monotonic()
-            if self._master is not None and now >= next_unplug:
-                with self._lock:
-                    if self._pending is not None:
-                        self._lose(self._pending_frame, "overflow", unfinished=True)
-                    self._ledger.unplugs += 1
-                    self._ledger.unplug_at.append(k)
-                self._pending = None
-                self._unplug_pty()
-                replug_at = now + f.unplug_for
+            if self._calm:
                 next_unplug = float("inf")
+            self._quiet = now >= next_unplug
+            if self._master is not None and self._quiet:
+                pending = 0 if self._pending is None else len(self._pending)
+                settled = self._clean_run - pending - self._unread() >= margin
+                if settled or now >= next_unplug + 1.0:
+                    with self._lock:
+                        self._ledger.unplugs += 1
+                        self._ledger.unplugs_forced += not settled
+                        self._ledger.unplug_at.append(k)
+                    self._unplug_pty()
+                    replug_at = now + f.unplug_for
+                    next_unplug = float("inf")
+                    self._quiet = False
             if self._master is None and now >= replug_at:
                 self._plug()
+                self._await_host = True
                 replug_at = float("inf")
-                if f.unplug_every and not self.finished.is_set():
+                if (f.unplug_every and not self.finished.is_set()
+                        and (f.unplug_limit is None or self._ledger.unplugs < f.unplug_limit)):
                     next_unplug = now + f.unplug_every
+            if self._await_host and self._host_opened():
+                self._await_host = False
             if self._pending is not None:
                 self._flush()
             while (self.n_frames is None or k < self.n_frames) and self._due(k, t0) <= now:
@@ -385,7 +556,7 @@ class MockWhiskerDevice:
             wake = min(next_unplug, replug_at)
             if self.n_frames is None or k < self.n_frames:
                 wake = min(wake, self._due(k, t0))
-            if self._pending is not None:
+            if self._pending is not None or self._quiet:
                 wake = min(wake, now + 0.002)
             self._stop.wait(max(0.0, min(wake, now + 0.5) - time.monotonic()))
         if self._pending is not None:
@@ -417,13 +588,19 @@ class MockWhiskerDevice:
         short; returns the same for after frame ``k``.
         """
         f, rng = self.faults, self._rng
-        frame = bytearray(encode_frame(self.seq_of(k), self.frame_rows(k)))
+        rows = self.frame_rows(k)
+        frame = bytearray(encode_frame(self.seq_of(k), rows))
         # Draw every random quantity in a fixed order, whether or not the frame
         # can be written, so the schedule depends on the seed only.
         g_len = int(rng.integers(1, f.garbage_max + 1)) if rng.random() < f.garbage_rate else 0
         garbage = rng.bytes(g_len)
         u = rng.random()
-        kind = "truncated" if u < f.drop_rate else "crc" if u < f.drop_rate + f.crc_rate else ""
+        kind = ""
+        for name, rate in zip(f.KINDS, f.kind_rates()):
+            if u < rate:
+                kind = name
+                break
+            u -= rate
         if kind == "truncated":
             run = int(rng.integers(1, f.drop_max + 1))
             run = min(run, len(frame) - HEADER_SIZE)
@@ -432,18 +609,35 @@ class MockWhiskerDevice:
         elif kind == "crc":
             at = HEADER_SIZE + int(rng.integers(0, len(frame) - HEADER_SIZE - 4))
             frame[at] ^= int(rng.integers(1, 256))
+        elif kind == "channels":
+            ch = rows.shape[1]
+            other = rows[:, :ch - 1] if ch == MAX_CHANNELS else np.concatenate([rows, rows[:, :1]], 1)
+            frame = bytearray(encode_frame(self.seq_of(k), other))
+        elif kind == "version":
+            frame[2] = VERSION + 1
+            frame[9] ^= VERSION ^ (VERSION + 1)  # the header check stays right
+            frame[-4:] = struct.pack("<I", zlib.crc32(frame[:-4]))
         if prev_truncated:
             garbage = b""
-        if self.n_frames is not None and k in (0, self.n_frames - 1):
-            frame = bytearray(encode_frame(self.seq_of(k), self.frame_rows(k)))
+            if kind == "version":  # would make the truncated frame look altered
+                kind, frame = "", bytearray(encode_frame(self.seq_of(k), rows))
+        if (k == 0 or (self.n_frames is not None and k == self.n_frames - 1)
+                or self._quiet or self._calm):
+            frame = bytearray(encode_frame(self.seq_of(k), rows))
             garbage, kind = b"", ""
         with self._lock:
             led = self._ledger
             led.frames += 1
-            if self._master is None:
+            if self._calm and led.faults_ended_at is None:
+                led.faults_ended_at = k
+            if self._master is None or self._await_host:
                 self._lose(k, "unplugged")
                 return False
-            if not self._write(k, bytes(garbage) + bytes(frame)):
+            if kind == "omitted":
+                led.lost[k] = kind
+                led.omitted += 1
+                return prev_truncated  # nothing went on the wire
+            if not self._write(k, bytes(garbage), bytes(frame)):
                 self._lose(k, "overflow")
                 return prev_truncated  # still the last thing on the wire
             if garbage:
@@ -451,18 +645,24 @@ class MockWhiskerDevice:
                 led.garbage_bytes += len(garbage)
             if kind:
                 led.lost[k] = kind
-                led.damaged_bytes += len(frame)
+                if kind == "channels":
+                    led.wrong_channels += 1  # a whole, valid frame: a reader decodes it
+                else:
+                    led.damaged_bytes += len(frame)
                 if kind == "truncated":
                     led.truncated += 1
                     led.dropped_bytes += run
-                else:
+                elif kind == "crc":
                     led.crc += 1
+                elif kind == "version":
+                    led.wrong_version += 1
             else:
                 led.sent += 1
+            self._clean_run = 0 if garbage or kind else self._clean_run + len(frame)
         return kind == "truncated"
 
-    def _write(self, k: int, chunk: bytes) -> bool:
-        """Write ``chunk`` without blocking; False if it was dropped whole.
+    def _write(self, k: int, garbage: bytes, frame: bytes) -> bool:
+        """Write ``garbage + frame`` without blocking; False if it was dropped whole.
 
         A partly written chunk keeps its tail pending (a frame must not be cut
         by the mock's own buffering, only by injected faults); while a tail is
@@ -472,10 +672,16 @@ class MockWhiskerDevice:
             self._flush()
             if self._pending is not None:
                 return False
+        chunk = garbage + frame
         try:
             n = os.write(self._master, chunk)
         except (BlockingIOError, InterruptedError):
             return False
+        a = self._written + len(garbage)
+        self._spans.append((k, a, a + len(frame)))
+        while self._spans and self._spans[0][2] < a - (1 << 20):  # far more than a pty holds
+            self._spans.popleft()
+        self._written += n
         if n < len(chunk):
             self._pending = memoryview(chunk)[n:]
             self._pending_frame = k
@@ -486,6 +692,7 @@ class MockWhiskerDevice:
             n = os.write(self._master, self._pending)
         except (BlockingIOError, InterruptedError):
             return
+        self._written += n
         rest = self._pending[n:]
         self._pending = rest if len(rest) else None
 
@@ -511,6 +718,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="probability per frame of losing bytes from it")
     parser.add_argument("--crc-rate", type=float, default=0.0, metavar="R",
                         help="probability per frame of an altered payload byte")
+    parser.add_argument("--omit-rate", type=float, default=0.0, metavar="R",
+                        help="probability per frame of leaving it out (its sequence number skipped)")
+    parser.add_argument("--channels-rate", type=float, default=0.0, metavar="R",
+                        help="probability per frame of sending it with one channel more (or fewer)")
+    parser.add_argument("--version-rate", type=float, default=0.0, metavar="R",
+                        help="probability per frame of sending it with a wrong version")
     parser.add_argument("--unplug-every", type=float, default=None, metavar="S",
                         help="unplug after every S seconds connected")
     parser.add_argument("--unplug-for", type=float, default=0.5, metavar="S",
@@ -550,8 +763,9 @@ def run(args: argparse.Namespace, samples: np.ndarray, rate: float) -> int:
             return 2
     try:
         faults = FaultSpec(garbage_rate=args.garbage_rate, drop_rate=args.drop_rate,
-                           crc_rate=args.crc_rate, unplug_every=args.unplug_every,
-                           unplug_for=args.unplug_for)
+                           crc_rate=args.crc_rate, omit_rate=args.omit_rate,
+                           channels_rate=args.channels_rate, version_rate=args.version_rate,
+                           unplug_every=args.unplug_every, unplug_for=args.unplug_for)
         dev = MockWhiskerDevice(samples, rate, port=args.port,
                                 samples_per_frame=args.samples_per_frame, loop=args.loop,
                                 faults=faults, seed=args.seed, first_seq=args.first_seq)
@@ -571,7 +785,8 @@ def run(args: argparse.Namespace, samples: np.ndarray, rate: float) -> int:
             pass
         led = dev.ledger
     print(f"mock-whisker: {led.frames} frames, {led.sent} intact; garbage {led.garbage} "
-          f"({led.garbage_bytes} B), truncated {led.truncated}, crc {led.crc}, overflow "
-          f"{led.overflow}, unplugs {led.unplugs} ({led.unplugged} frames unplugged)",
-          file=sys.stderr)
+          f"({led.garbage_bytes} B), truncated {led.truncated}, crc {led.crc}, omitted "
+          f"{led.omitted}, wrong channels {led.wrong_channels}, wrong version {led.wrong_version}, "
+          f"overflow {led.overflow}, unplugs {led.unplugs} ({led.unplugged} frames unplugged, "
+          f"{led.unplug_lost} lost in the port)", file=sys.stderr)
     return 0

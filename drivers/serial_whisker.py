@@ -3,7 +3,10 @@
 The board streams frames (see ``docs/serial-frames.md``); this driver reads
 whatever bytes are waiting, decodes them, checks the channel count, fills
 sequence gaps with zeros (marked in :attr:`Block.filled`), and rides through
-an unplug by reopening the same path with bounded exponential backoff.
+an unplug by reopening the same path with bounded exponential backoff. A port
+that delivers no valid frame for ``silence_warning`` seconds (a dead board, a
+wrong baud rate, the wrong port) gets a notice saying what did arrive and the
+likely causes, repeated every ``silence_warning`` seconds while it lasts.
 
 Threading rules
 ---------------
@@ -13,16 +16,21 @@ Threading rules
   stops a reader by flagging it and joining, then calls ``close`` itself.
 * :meth:`~SerialWhiskerDriver.stats` and :attr:`~SerialWhiskerDriver.events`
   return copies and may be called from any thread.
-* The driver starts no thread.
+* The driver starts no thread. Notices (``on_notice``) are called from
+  :meth:`~SerialWhiskerDriver.read`, on the reading thread: they must not block.
 """
 
 from __future__ import annotations
 
 import errno
 import math
+import os
+import stat
+import sys
 import termios
 import time
 from collections import deque
+from typing import Callable
 
 import numpy as np
 import serial
@@ -35,6 +43,7 @@ from drivers.frames import (
     SEQ_MODULUS,
     FrameDecoder,
 )
+from supramodal.errors import InputError
 
 # What an unplug looks like from pyserial on Linux (measured, see
 # TESTING-WITHOUT-HARDWARE.md): read() -> SerialException, in_waiting -> bare
@@ -44,8 +53,13 @@ _LINK_ERRORS = (serial.SerialException, OSError, termios.error)
 _COUNTERS = (
     "frames", "filled", "frames_ok", "sequence_gaps", "frames_lost", "discontinuities",
     "channel_mismatch", "device_overruns", "bytes_read", "reconnects", "unplugs",
+    "silence_warnings",
 )
 _DECODER_COUNTERS = ("crc_errors", "truncated", "header_errors", "bytes_skipped")
+
+
+def _print_stderr(message: str) -> None:
+    print(message, file=sys.stderr, flush=True)
 
 
 class SerialWhiskerDriver:
@@ -76,6 +90,16 @@ class SerialWhiskerDriver:
         (the board restarted), is counted in ``discontinuities`` and not filled.
     exclusive : bool, default True
         Lock the port (flock) so a second reader fails loudly at open.
+    silence_warning : float or None, default 3.0
+        Seconds without a valid frame (since :meth:`open` or the last frame)
+        before a notice, and between repeated notices while the silence lasts;
+        each says for how long, what arrived meanwhile (no byte at all, bytes
+        but no valid frame, frames with the wrong channel count, or a lost
+        port) and the likely causes. None: never.
+    on_notice : callable or None, default prints to stderr
+        Called with each notice (one line of text), on the reading thread;
+        None silences them. They are in :attr:`events` either way, and counted
+        in ``silence_warnings``.
 
     Attributes
     ----------
@@ -114,6 +138,8 @@ class SerialWhiskerDriver:
     ``unplugs``, ``reconnects``
         lost connections; resumed connections (the reopened port delivered
         data). ``bytes_read`` counts every byte read from the port.
+    ``silence_warnings``
+        notices of a port delivering no valid frame (see ``silence_warning``).
 
     Gap filling is checked against the clock (see :meth:`_judge_gap`): within
     a burst of backlogged frames (a board that buffered while nobody read),
@@ -130,11 +156,14 @@ class SerialWhiskerDriver:
 
     def __init__(self, port: str, rate: float, channels: int, baudrate: int = 3_000_000,
                  timeout: float = 0.5, reconnect: bool = True, max_gap: float = 10.0,
-                 exclusive: bool = True) -> None:
+                 exclusive: bool = True, silence_warning: float | None = 3.0,
+                 on_notice: Callable[[str], None] | None = _print_stderr) -> None:
         if not 1 <= int(channels) <= MAX_CHANNELS:
-            raise ValueError(f"channels must be 1..{MAX_CHANNELS}, got {channels}")
+            raise InputError(f"channels must be 1..{MAX_CHANNELS}, got {channels}")
         if not rate > 0:
-            raise ValueError(f"rate must be > 0 Hz, got {rate}")
+            raise InputError(f"rate must be > 0 Hz, got {rate}")
+        if silence_warning is not None and not silence_warning > 0:
+            raise InputError(f"silence_warning must be > 0 s or None, got {silence_warning}")
         self.port = str(port)
         self.rate = float(rate)
         self.channels = int(channels)
@@ -143,6 +172,8 @@ class SerialWhiskerDriver:
         self.reconnect = bool(reconnect)
         self.max_gap = float(max_gap)
         self.exclusive = bool(exclusive)
+        self.silence_warning = None if silence_warning is None else float(silence_warning)
+        self._on_notice = on_notice
         self.first_sequence: int | None = None
         self._ser = None
         self._open = False
@@ -166,6 +197,10 @@ class SerialWhiskerDriver:
         self._next_attempt = 0.0
         self._attempts = 0
         self.first_sequence = None
+        self._last_frame_at = time.monotonic()
+        self._silence_from = self.stats()  # counters when the silence began
+        self._next_warning = math.inf
+        self._warnings_now = 0  # notices during the current silence
 
     def open(self) -> None:
         """Open the port; counters restart from zero.
@@ -180,6 +215,7 @@ class SerialWhiskerDriver:
         self._reset_state()
         self._ser = self._open_port()
         self._open = True
+        self._frame_seen(time.monotonic())
         self._event(f"opened {self.port}")
         need = self.rate * 2 * self.channels * 10  # bits/s with 8N1, payload only
         if "://" not in self.port and self.baudrate < need * 1.01:
@@ -242,7 +278,14 @@ class SerialWhiskerDriver:
         if not self._open:
             raise DriverClosed(f"{self.port}: driver is not open (call open() or use 'with')")
         wait = self.timeout if timeout is None else max(0.0, float(timeout))
-        deadline = time.monotonic() + wait
+        block = self._read_until(time.monotonic() + wait)
+        if block is None and self.silence_warning is not None:
+            now = time.monotonic()
+            if now >= self._next_warning:
+                self._warn_silence(now)
+        return block
+
+    def _read_until(self, deadline: float) -> Block | None:
         while True:
             if self._ser is None and not self._reopen(deadline):
                 return None
@@ -283,6 +326,11 @@ class SerialWhiskerDriver:
     def _explain(self, exc: BaseException) -> str:
         code = getattr(exc, "errno", None)
         text = str(exc)
+        kind = self._not_a_serial_device(code, text)
+        if kind:
+            return (f"{self.port!r} is not a serial device ({kind}). Pass the whisker board's "
+                    "port, e.g. /dev/ttyACM0 (list them: ls /dev/serial/by-id/); to play a "
+                    "recorded file, use a replay driver instead")
         if code == errno.ENOENT or "No such file" in text:
             return (f"serial port {self.port!r} not found ({text}). Plug the whisker board in, "
                     "or pass its path: ls /dev/ttyACM* /dev/ttyUSB* /dev/serial/by-id/")
@@ -294,6 +342,28 @@ class SerialWhiskerDriver:
                     "the other reader (another node, a serial monitor, ModemManager)")
         return (f"cannot open serial port {self.port!r}: {text}. Check the path, the cable "
                 "and that the board is powered")
+
+    def _not_a_serial_device(self, code, text: str) -> str | None:
+        """What the port is, if an open failed because it is no terminal; else None.
+
+        pyserial opens a regular file or /dev/null, then fails to configure it
+        (ENOTTY, "Inappropriate ioctl for device"); a directory fails with EISDIR.
+        """
+        if "://" in self.port:
+            return None
+        if code not in (errno.ENOTTY, errno.EISDIR) and "Inappropriate ioctl" not in text:
+            return None
+        try:
+            mode = os.stat(self.port).st_mode
+        except OSError:
+            return None
+        if stat.S_ISREG(mode):
+            return "a regular file"
+        if stat.S_ISDIR(mode):
+            return "a directory"
+        if stat.S_ISCHR(mode):
+            return "a character device that is not a terminal, like /dev/null"
+        return "not a terminal"
 
     def _close_port(self) -> None:
         ser, self._ser = self._ser, None
@@ -418,6 +488,7 @@ class SerialWhiskerDriver:
             self._t0 = t0 if rebase else min(self._t0, t0)
         if not parts:
             return None
+        self._frame_seen(arrival)
         data = np.concatenate(parts, axis=0).astype(np.float32)
         data *= np.float32(1.0 / FULL_SCALE)  # a power of two: exact
         filled = None
@@ -465,6 +536,47 @@ class SerialWhiskerDriver:
         self._event(f"sequence jumped to {seq} (expected {self._next_seq}: {lost_s:.2f} s of "
                     f"stream, {why}): not filled, stream time is discontinuous here")
         return -1
+
+    # -- silence ---------------------------------------------------------------
+
+    def _frame_seen(self, now: float) -> None:
+        """A valid frame arrived (or the port opened): a silence starts counting from here."""
+        self._last_frame_at = now
+        self._warnings_now = 0
+        if self.silence_warning is not None:
+            self._next_warning = now + self.silence_warning
+            self._silence_from = self.stats()
+
+    def _warn_silence(self, now: float) -> None:
+        """Say that no valid frame came for a while, what did arrive, and why that may be."""
+        self._warnings_now += 1
+        self._stats["silence_warnings"] += 1
+        self._next_warning = now + self.silence_warning
+        st, was = self.stats(), self._silence_from
+        got = {k: st[k] - was[k] for k in st}
+        since = "since the port opened" if self._stats["frames_ok"] == 0 else "since the last frame"
+        head = (f"serial port {self.port!r}: no valid frame for {now - self._last_frame_at:.1f} s "
+                f"{since} (notice {self._warnings_now}")
+        head += ")" if self._warnings_now == 1 else f", every {self.silence_warning:g} s)"
+        if self._ser is None:
+            why = (f"the port is gone (unplugged?), {self._attempts} reopen attempt(s) so far: "
+                   "check the cable and the board's power")
+        elif got["bytes_read"] == 0:
+            why = ("no byte at all arrived: the board is not streaming (powered? firmware "
+                   "running?), or this is not the board's port (ls /dev/serial/by-id/)")
+        elif got["channel_mismatch"] and not got["frames_ok"]:
+            why = (f"{got['channel_mismatch']} frame(s) arrived, all with a channel count other than "
+                   f"the {self.channels} configured: fix the channels setting or the board's firmware")
+        else:
+            why = (f"{got['bytes_read']} bytes arrived but no valid frame ({got['crc_errors']} CRC "
+                   f"errors, {got['header_errors']} bad headers, {got['bytes_skipped']} bytes "
+                   "skipped): a wrong baud rate (set the board's; USB boards ignore it), another "
+                   "device on this port, or firmware sending another format "
+                   "(docs/serial-frames.md)")
+        message = f"{head}: {why}"
+        self._event(message)
+        if self._on_notice is not None:
+            self._on_notice(message)
 
     def _event(self, text: str) -> None:
         t = time.time()

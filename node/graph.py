@@ -278,10 +278,20 @@ class Node:
         self._gap_windows.update(range(a // W, (b - 1) // W + 1))
 
     def _step(self, frames: np.ndarray, start: int) -> None:
-        x = self.map(frames)
-        windows = self.pipeline.process(x)
-        flags = self.contact.process(x) if self.contact is not None else None
-        self._emit(windows, flags)
+        # Cut the stream at each window end, wherever the ring read happened to end: the
+        # pipeline then filters exactly one window's samples per pass, so the output does not
+        # depend on thread timing, not even in its last bit (a pass over several windows rounds
+        # differently). No latency is added: a window still runs when its last sample is in.
+        W = self.pipeline.window_samples
+        n = frames.shape[0]
+        cut = 0
+        while cut < n:
+            end = min(n, ((start + cut) // W + 1) * W - start)
+            x = self.map(frames[cut:end])
+            windows = self.pipeline.process(x)
+            flags = self.contact.process(x) if self.contact is not None else None
+            self._emit(windows, flags)
+            cut = end
 
     def _emit(self, windows, flags) -> None:
         if not len(windows):

@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
-import numpy as np
+import random
+import time
 
-from node.build import build_node
+import numpy as np
+import pytest
+
+from node.build import bank_for, build_node, synth_session
 from node.cli import main
 from node.graph import Node
 from node.recorder import SessionRecorder
@@ -67,3 +71,50 @@ def test_record_command_stops_after_seconds(tmp_path):
     assert s.data.shape[0] == 12500
     assert [(lab.start, lab.end, lab.label) for lab in s.labels] == [(0.0, 2.5, "grit")]
     assert len((tmp_path / "out.jsonl").read_text().splitlines()) == 25 + 1
+
+
+class Jittery:
+    """Calls ``read`` of what it wraps after a random sleep: usually under a millisecond,
+    one time in five up to 30 ms, so that ring reads end anywhere and sometimes span
+    several windows, as on a busy machine."""
+
+    def __init__(self, read, seed):
+        self._read, self._rng = read, random.Random(seed)
+
+    def read(self, *args, **kwargs):
+        r = self._rng.random()
+        time.sleep(self._rng.uniform(0, 0.03) if r < 0.2 else self._rng.uniform(0, 0.001))
+        return self._read(*args, **kwargs)
+
+
+class JitteryReader(Jittery):
+    def __init__(self, reader, seed):
+        super().__init__(reader.read, seed)
+        self._reader = reader
+
+    @property
+    def lost(self):
+        return self._reader.lost
+
+
+@pytest.mark.parametrize("seed", [None, 1, 2])
+def test_node_output_does_not_depend_on_ring_read_timing(seed):
+    """The node cuts the stream at window ends, so the features equal, to the last bit, the
+    offline pipeline fed one window at a time, whatever the driver's and the processing
+    thread's timing. (Before: a ring read spanning several windows was filtered in one pass,
+    which rounds differently, about 1 run in 20 on a busy machine.)"""
+    scene = scene_from_dict({"driver": {"type": "synth", "seconds": 0.5, "held_out": False, "block": 37},
+                             "features": {"names": ["Af", "A"]}})
+    _, data, _ = synth_session(scene, bank_for(scene))
+    pipeline = FeaturePipeline(whisker_bank(), ("Af", "A"))
+    offline = pipeline.run(data[:, 0], block=pipeline.window_samples)
+    sink = ListSink()
+    node = build_node(scene, speed="max", sinks_override=[sink])
+    if seed is not None:
+        node.driver.read = Jittery(node.driver.read, seed).read
+        node._reader = JitteryReader(node._reader, seed + 100)
+    node.run()
+    assert len(sink.events) == len(offline) == 40
+    for e in sink.events:
+        w = e["window"]
+        assert e["features"] == {f: offline.values[w, k].tolist() for k, f in enumerate(offline.features)}

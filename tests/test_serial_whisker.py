@@ -20,6 +20,7 @@ from drivers.base import Block, DeviceUnavailable, Driver, DriverClosed
 from drivers.frames import FLAG_OVERRUN, encode_frame
 from drivers.mock_whisker import FaultSpec, MockWhiskerDevice, quantise
 from node.cli import main as cli_main
+from supramodal.errors import InputError
 
 
 def main(argv):
@@ -165,6 +166,116 @@ def test_bad_arguments():
         SerialWhiskerDriver("loop://", 1000, 0)
     with pytest.raises(ValueError):
         SerialWhiskerDriver("loop://", 0, 3)
+
+
+# -- a port that sends no valid frame ---------------------------------------------------
+
+
+def read_until_notices(drv, notices, n, max_reads=200):
+    """Read (0.02 s each) until ``n`` notices came; the blocks read meanwhile."""
+    blocks = []
+    for _ in range(max_reads):
+        if len(notices) >= n:
+            break
+        b = drv.read(0.02)
+        if b is not None:
+            blocks.append(b)
+    return blocks
+
+
+def test_silent_port_warns_and_keeps_warning_with_a_count():
+    notices = []
+    with SerialWhiskerDriver("loop://", 1000, 3, silence_warning=0.1, on_notice=notices.append) as drv:
+        assert read_until_notices(drv, notices, 3) == []
+        assert len(notices) == 3 and drv.stats()["silence_warnings"] == 3
+        first, third = notices[0], notices[2]
+        assert "'loop://'" in first and "since the port opened" in first and "(notice 1)" in first
+        assert "no byte at all" in first and "not streaming" in first and "by-id" in first
+        assert "notice 3, every 0.1 s" in third
+        assert float(third.split("no valid frame for ")[1].split(" s")[0]) >= 0.3
+        assert all(any(m in e for e in drv.events) for m in notices)
+        # Frames end the silence; a new one counts from the last frame, notices from 1 again.
+        drv._ser.write(frames_bytes([0, 1]))
+        blocks = read_until_notices(drv, notices, 4)
+        assert sum(b.frames for b in blocks) == 8
+        assert "since the last frame" in notices[3] and "(notice 1)" in notices[3]
+        assert drv.stats()["silence_warnings"] == 4
+
+
+def test_bytes_without_a_valid_frame_point_at_the_baud_rate():
+    notices = []
+    with SerialWhiskerDriver("loop://", 1000, 3, silence_warning=0.1, on_notice=notices.append) as drv:
+        bad = bytearray(frames_bytes([7]))
+        bad[20] ^= 0xFF  # CRC fails
+        noise = np.random.default_rng(0).integers(0, 256, 500, dtype=np.uint8).tobytes()
+        drv._ser.write(noise + bytes(bad) + noise)
+        read_until_notices(drv, notices, 1)
+        st = drv.stats()
+    assert st["bytes_read"] == len(noise) * 2 + len(bad) and st["frames_ok"] == 0
+    assert f"{st['bytes_read']} bytes arrived but no valid frame" in notices[0]
+    assert "1 CRC errors" in notices[0] and "wrong baud rate" in notices[0]
+
+
+def test_frames_of_the_wrong_channel_count_only_are_a_silence_explained():
+    notices = []
+    with SerialWhiskerDriver("loop://", 1000, 3, silence_warning=0.1, on_notice=notices.append) as drv:
+        drv._ser.write(frames_bytes([0, 1, 2], channels=5))
+        assert read_until_notices(drv, notices, 1) == []
+    assert "3 frame(s) arrived" in notices[0] and "other than the 3 configured" in notices[0]
+
+
+def test_silence_warning_off_and_refused_values():
+    notices = []
+    with SerialWhiskerDriver("loop://", 1000, 3, silence_warning=None, on_notice=notices.append) as drv:
+        for _ in range(10):
+            drv.read(0.02)
+        assert notices == [] and drv.stats()["silence_warnings"] == 0
+    for bad in (0, -1.0):
+        with pytest.raises(InputError, match="silence_warning"):
+            SerialWhiskerDriver("loop://", 1000, 3, silence_warning=bad)
+
+
+def test_node_prints_the_silence_notice_and_counts_it(capsys):
+    from node.graph import Node
+    from supramodal.banks import whisker_bank
+    from supramodal.pipeline import FeaturePipeline
+
+    drv = SerialWhiskerDriver("loop://", 5000, 1, silence_warning=0.1)  # default: notices on stderr
+    node = Node(drv, FeaturePipeline(whisker_bank(), ("Af",)), [])
+    stopper = threading.Thread(target=lambda: (time.sleep(0.5), node.stop("test")))
+    stopper.start()
+    summary = node.run()
+    stopper.join()
+    err = capsys.readouterr().err
+    assert summary["driver"]["silence_warnings"] >= 2
+    assert err.count("no valid frame for") == summary["driver"]["silence_warnings"]
+    assert "no byte at all" in err
+
+
+@pytest.mark.parametrize("kind", ["file", "devnull", "directory"])
+def test_a_path_that_is_not_a_serial_device_is_refused_as_such(tmp_path, kind):
+    path = {"file": tmp_path / "capture.bin", "devnull": "/dev/null", "directory": tmp_path}[kind]
+    if kind == "file":
+        path.write_bytes(frames_bytes([0, 1]))
+    drv = SerialWhiskerDriver(str(path), 5000, 20)
+    with pytest.raises(DeviceUnavailable) as info:
+        drv.open()
+    text = str(info.value)
+    assert f"{str(path)!r} is not a serial device" in text
+    assert {"file": "regular file", "devnull": "not a terminal", "directory": "directory"}[kind] in text
+    assert "/dev/ttyACM0" in text and "cable" not in text
+
+
+@pytest.mark.hardware
+def test_pty_board_that_never_streams_is_reported():
+    notices = []
+    with MockWhiskerDevice(np.zeros((64, CHANNELS)), RATE) as dev, \
+            SerialWhiskerDriver(dev.port, RATE, CHANNELS, silence_warning=0.2,
+                                on_notice=notices.append) as drv:
+        # dev.start() never called: the port opens and nothing comes.
+        assert read_until_notices(drv, notices, 2) == []
+    assert "no byte at all" in notices[0] and "notice 2" in notices[1]
+    assert drv.stats()["silence_warnings"] == 2
 
 
 # -- link loss on a scripted port ------------------------------------------------------
@@ -328,7 +439,7 @@ def check_against_ledger(blocks, dev, drv, src):
     k_first, k_last = offset // SPF, (offset + len(data) - 1) // SPF
     st = drv.stats()
     assert st["frames"] == len(data) and st["filled"] == int(filled.sum())
-    assert st["discontinuities"] == 0 and st["channel_mismatch"] == 0
+    assert st["discontinuities"] == 0
     return filled_frames, {k: v for k, v in led.lost.items() if k_first < k < k_last}, led
 
 
@@ -342,7 +453,7 @@ def test_pty_end_to_end_bit_exact_across_the_sequence_wrap():
         st = drv.stats()
     assert filled_frames == set(lost)  # empty unless the machine stalled the reader
     assert set(lost.values()) <= {"overflow"}
-    assert st["crc_errors"] == st["truncated"] == st["header_errors"] == 0
+    assert st["crc_errors"] == st["truncated"] == st["header_errors"] == st["channel_mismatch"] == 0
     assert st["bytes_skipped"] == 0 and st["unplugs"] == 0
     if not led.lost:
         assert st["frames"] == len(src) and st["frames_ok"] == dev.n_frames
@@ -352,7 +463,8 @@ def test_pty_end_to_end_bit_exact_across_the_sequence_wrap():
 @pytest.mark.hardware
 def test_pty_every_injected_fault_is_accounted_for():
     src = source(2.0, seed=1)
-    faults = FaultSpec(garbage_rate=0.1, drop_rate=0.06, crc_rate=0.06)
+    faults = FaultSpec(garbage_rate=0.1, drop_rate=0.06, crc_rate=0.06, omit_rate=0.04,
+                       channels_rate=0.04, version_rate=0.04)
     with MockWhiskerDevice(src, RATE, samples_per_frame=SPF, faults=faults, seed=7,
                            first_seq=65400) as dev, \
             SerialWhiskerDriver(dev.port, RATE, CHANNELS) as drv:
@@ -360,8 +472,11 @@ def test_pty_every_injected_fault_is_accounted_for():
         filled_frames, lost, led = check_against_ledger(blocks, dev, drv, src)
         st = drv.stats()
     assert led.crc > 5 and led.truncated > 5 and led.garbage > 10  # the schedule did inject
+    assert min(led.omitted, led.wrong_channels, led.wrong_version) > 3
     assert st["crc_errors"] == led.crc
     assert st["truncated"] == led.truncated
+    assert st["channel_mismatch"] == led.wrong_channels
+    assert st["header_errors"] >= led.wrong_version  # and sync words by chance in skipped bytes
     assert st["bytes_skipped"] == led.garbage_bytes + led.damaged_bytes
     assert filled_frames == set(lost)
     assert {k for k, v in led.lost.items() if v != "overflow"} <= set(lost)
@@ -404,25 +519,37 @@ def test_pty_unplug_replug_same_path_resumes_and_fills_the_gap():
         events = "\n".join(drv.events)
     assert led.unplugs == 2 and len(led.unplug_at) == 2
     assert st["unplugs"] == 2 and st["reconnects"] == 2, events
-    # Every frame produced while unplugged is filled and marked; anything else
-    # filled was in the pty when it went (lost with it), or written to the new
-    # pty before the driver reopened it (pyserial flushes input at open).
-    unplugged = {k for k, v in lost.items() if v == "unplugged"}
-    assert unplugged and unplugged <= filled_frames
-    window = int(2.0 * RATE / SPF)
-    for k in filled_frames - set(lost):
-        assert any(u - window <= k < u + window for u in led.unplug_at), k
-    fs = sorted(filled_frames)
-    runs, run = [], []
-    for k in fs:
-        if run and k != run[-1] + 1:
-            runs.append(run)
-            run = []
-        run.append(k)
-    runs.append(run)
-    # One filled gap per unplug (a stalled reader could add overflow gaps).
-    assert sum(any(k in unplugged for k in r) for r in runs) == 2
+    # Exactly the frames the ledger lost are filled: those produced while unplugged (or
+    # before the driver reopened), those left in the port when it went, and any overflow.
+    assert filled_frames == set(lost)
+    assert {v for v in lost.values()} <= {"unplugged", "unplug", "overflow"}
+    assert st["frames_lost"] == len(lost) and st["bytes_skipped"] == led.cut_bytes
+    assert led.unplugs_forced == 0
     assert events.count("reconnected to") == 2
+
+
+@pytest.mark.hardware
+def test_pty_frames_left_in_the_port_at_an_unplug_are_in_the_ledger():
+    """The reader stalls across an unplug: what sat in the pty is lost with it, and the ledger
+    knows exactly which frames (and how many bytes of a frame the reader had) were lost."""
+    src = source(2.5, seed=6)
+    faults = FaultSpec(unplug_every=1.0, unplug_for=0.2, unplug_limit=1)
+    with MockWhiskerDevice(src, RATE, samples_per_frame=SPF, faults=faults, seed=2) as dev, \
+            SerialWhiskerDriver(dev.port, RATE, CHANNELS) as drv:
+        dev.start()
+        blocks = read_all(drv, 1000, timeout=0.5, max_reads=600)
+        assert dev.ledger.unplugs == 0  # the stall below begins well before the unplug
+        for _ in range(300):  # the node stalls until the board is unplugged
+            if dev.ledger.unplugs:
+                break
+            time.sleep(0.01)
+        blocks += stream(dev, drv, len(src) - sum(b.frames for b in blocks))
+        filled_frames, lost, led = check_against_ledger(blocks, dev, drv, src)
+        st = drv.stats()
+    assert led.unplugs == 1 and led.unplugs_forced == 0
+    assert led.unplug_lost > 0 and "unplug" in lost.values()
+    assert filled_frames == set(lost) and st["frames_lost"] == len(lost)
+    assert st["bytes_skipped"] == led.cut_bytes  # the head of a frame whose tail was lost
 
 
 @pytest.mark.hardware
@@ -461,6 +588,8 @@ def test_fault_spec_validation():
         FaultSpec(crc_rate=1.5)
     with pytest.raises(ValueError):
         FaultSpec(drop_rate=0.6, crc_rate=0.6)
+    with pytest.raises(ValueError, match="at most one fault"):
+        FaultSpec(omit_rate=0.5, channels_rate=0.3, version_rate=0.3)
 
 
 @pytest.mark.hardware
