@@ -131,8 +131,8 @@ def _parse(path: Path) -> list[Recording]:
     unknown = [c for c in columns if c not in COLUMNS]
     missing = [c for c in REQUIRED_COLUMNS if c not in columns]
     if unknown or missing or len(set(columns)) != len(columns):
-        raise ManifestError(f"{path}, line 1: the header is {','.join(header)!r}; it must name the columns "
-                            "path,label and optionally start,end, each once (is the header line missing?)")
+        raise ManifestError(f"{path}, line 1: the header is {','.join(header)!r}; columns must be "
+                            "path,label[,start,end], each named once (is the header line missing?)")
     recs = []
     for line, fields in rows:
         where = f"{path}, line {line}"
