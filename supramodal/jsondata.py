@@ -43,6 +43,11 @@ def nesting_depth(text: str) -> tuple[int, int]:
     return max(int(level[k]), 0), at[k]
 
 
+def _line_column(text: str, offset: int) -> str:
+    line_start = text.rfind("\n", 0, offset) + 1
+    return f"line {text.count(chr(10), 0, offset) + 1}, column {offset - line_start + 1}"
+
+
 def parse_json_text(text: str, where: str, *, max_depth: int, error: type[Exception], limit_name: str, **json_kwargs):
     """Parse ``text`` as JSON if it nests at most ``max_depth`` levels.
 
@@ -68,7 +73,7 @@ def parse_json_text(text: str, where: str, *, max_depth: int, error: type[Except
     """
     depth, at = nesting_depth(text)
     if depth > max_depth:
-        raise error(f"{where}: JSON nested {depth} levels deep (from {_line_column(text, at)}); the limit is "
+        raise error(f"{where}: JSON nested {depth} levels deep (deepest at {_line_column(text, at)}); the limit is "
                     f"{max_depth} ({limit_name}): this file is damaged or not of this format")
     try:
         return json.loads(text, **json_kwargs)
