@@ -186,7 +186,8 @@ def test_fuzzed_model_headers_load_or_raise_model_error_only(tmp_path, model, ch
     except ModelError:
         return
     # Accepted: then it is the model its header declares, and it works on inputs of that shape.
-    assert set(drop) - set(changes) <= {"training", "peak_threshold"}       # the only optional keys
+    assert set(KEYS) - set(header) >= {"extra"}                      # no unknown key, and every required one:
+    assert set(header) >= set(KEYS) - {"training", "peak_threshold", "extra"}
     assert "extra" not in header and header["format"] == "supramodal-model" and header["version"] == 1
     assert loaded.window_samples == header["window_samples"] <= MAX_WINDOW_SAMPLES
     assert loaded.classes == tuple(header["classes"]) and loaded.peak_mode == header["peak_mode"]
