@@ -2,20 +2,19 @@
 
 A manifest is a CSV file with a header and the columns ``path,label`` and,
 optionally, ``start,end`` (seconds; a recording's part to use). Paths are relative
-to the manifest's folder. Recordings are read and resampled to the bank's rate by
+to the manifest's folder. :mod:`node.manifest` reads and checks it (format, rules
+and errors there) before any training starts. Recordings are read and resampled to the bank's rate by
 the replay driver, exactly as ``supramodal run`` would replay them, so a model
 sees in training what the node feeds it live.
 """
 
 from __future__ import annotations
 
-import csv
-from dataclasses import dataclass
-from pathlib import Path
-
 import numpy as np
 
 from node.graph import channel_mapper
+from node.manifest import ManifestError, Recording, read_manifest
+from supramodal.errors import SupramodalError
 from replay.driver import ReplayDriver
 from supramodal.banks import Bank
 from supramodal.decisions import DecisionAccumulator
@@ -24,77 +23,67 @@ from supramodal.pipeline import FeaturePipeline
 from supramodal.training import DEFAULT_EPOCHS
 
 
-@dataclass(frozen=True)
-class Recording:
-    """One manifest row: a file, its label and the part of it to use (seconds; None = to the end)."""
-
-    path: Path
-    label: str
-    start: float = 0.0
-    end: float | None = None
-
-
-def read_manifest(path) -> list[Recording]:
-    """Parse and check a manifest; ValueError names the row and the problem."""
-    path = Path(path)
-    try:
-        text = path.read_text()
-    except FileNotFoundError:
-        raise ValueError(f"no manifest at {path}") from None
-    rows = list(csv.DictReader(text.splitlines()))
-    if not rows:
-        raise ValueError(f"{path}: the manifest lists no recording (expected a header 'path,label' and one row per file)")
-    columns = set(rows[0])
-    if not {"path", "label"} <= columns or not columns <= {"path", "label", "start", "end"}:
-        raise ValueError(f"{path}: columns must be path,label[,start,end]; got {sorted(c for c in columns if c)}")
-    out = []
-    for i, row in enumerate(rows, start=2):
-        where = f"{path}, line {i}"
-        if not row.get("path") or not row.get("label"):
-            raise ValueError(f"{where}: path and label must not be empty")
-        try:
-            start = float(row["start"]) if row.get("start") else 0.0
-            end = float(row["end"]) if row.get("end") else None
-        except ValueError:
-            raise ValueError(f"{where}: start and end must be numbers of seconds") from None
-        if start < 0 or (end is not None and end <= start):
-            raise ValueError(f"{where}: need 0 <= start < end, got start={start}, end={end}")
-        p = Path(row["path"])
-        out.append(Recording(p if p.is_absolute() else path.parent / p, row["label"].strip(), start, end))
-    return out
-
-
 def recording_windows(rec: Recording, pipeline: FeaturePipeline, mapping="auto", notice=None) -> np.ndarray:
     """Feature windows of one recording (its [start, end) part) through a fresh ``pipeline``,
-    shape (n, features, channels)."""
+    shape (n, features, channels).
+
+    Raises
+    ------
+    ManifestError
+        Naming the manifest's line, if the file cannot be replayed into the pipeline's
+        bank, or if the part asked for lies past its end.
+    """
     bank = pipeline.bank
-    driver = ReplayDriver(str(rec.path), rate=bank.fs, speed="max", on_notice=notice)
-    data = driver.data
+    try:
+        driver = ReplayDriver(str(rec.path), rate=bank.fs, speed="max", on_notice=notice)
+        data = driver.data
+        x = channel_mapper(mapping, data.shape[1], bank.channels)
+    except (SupramodalError, ValueError) as e:          # a file or mapping that does not fit
+        raise ManifestError(f"{rec.where}: {e}") from e
     a = int(round(rec.start * driver.rate))
     b = data.shape[0] if rec.end is None else int(round(rec.end * driver.rate))
-    if b > data.shape[0] + 1:
-        raise ValueError(f"{rec.path}: end {rec.end} s is past the recording's {data.shape[0] / driver.rate:.3f} s")
-    x = channel_mapper(mapping, data.shape[1], bank.channels)(data[a:b])
-    return pipeline.run(x, block=65536).values
+    duration = data.shape[0] / driver.rate
+    if a >= data.shape[0] or b > data.shape[0] + 1:
+        raise ManifestError(f"{rec.where}: [{rec.start:g}, {rec.end if rec.end is not None else duration:g}) s "
+                            f"is not inside {rec.path.name}, which is {duration:g} s long")
+    return pipeline.run(x(data[a:b]), block=65536).values
+
+
+def _no_window(rec: Recording, window_seconds: float) -> ManifestError:
+    return ManifestError(f"{rec.where}: {rec.path.name} [{rec.start:g}, {'end' if rec.end is None else f'{rec.end:g}'}"
+                         f") s holds no complete window of {window_seconds:g} s; widen the span or drop the line")
 
 
 def train_from_manifest(manifest, bank: Bank, features=("Af",), window: float = 0.1, epochs: int = DEFAULT_EPOCHS,
                         seed: int = 0, mapping="auto", progress=None) -> TextureModel:
-    """Train a model on every window of every recording in the manifest."""
+    """Train a model on every window of every recording in the manifest.
+
+    The manifest is read and checked whole (:func:`node.manifest.read_manifest`) before
+    any feature is computed; a line whose part of its file holds no complete window is
+    refused (its label would be a class the model never saw).
+
+    Raises
+    ------
+    ManifestError
+        Naming the manifest's line, the cause and the fix; or the manifest if it has fewer
+        than two labels.
+    """
     recs = read_manifest(manifest)
     classes = tuple(sorted({r.label for r in recs}))
     if len(classes) < 2:
-        raise ValueError(f"{manifest}: training needs at least two labels, found {list(classes)}")
+        raise ManifestError(f"{manifest}: training needs at least two labels, found {list(classes)}; "
+                            "add recordings of another texture")
     values, labels = [], []
     for k, rec in enumerate(recs):
-        v = recording_windows(rec, FeaturePipeline(bank, features, window), mapping, notice=progress)
+        pipeline = FeaturePipeline(bank, features, window)
+        v = recording_windows(rec, pipeline, mapping, notice=progress)
+        if len(v) == 0:
+            raise _no_window(rec, pipeline.window_samples / bank.fs)
         if progress:
             progress(f"[{k + 1}/{len(recs)}] {rec.path.name} ({rec.label}): {len(v)} windows")
         values.append(v)
         labels.append(np.full(len(v), classes.index(rec.label)))
     x, y = np.concatenate(values), np.concatenate(labels)
-    if len(x) == 0:
-        raise ValueError(f"{manifest}: the recordings are shorter than one window")
     return TextureModel.train_for(FeaturePipeline(bank, features, window), x, y, classes, epochs=epochs, seed=seed)
 
 
@@ -112,16 +101,18 @@ def evaluate_manifest(model: TextureModel, manifest, mapping="auto", progress=No
         ``recordings`` (per-recording details).
     """
     recs = read_manifest(manifest)
-    unknown = sorted({r.label for r in recs} - set(model.classes))
+    unknown = [r for r in recs if r.label not in model.classes]
     if unknown:
-        raise ValueError(f"{manifest}: label(s) {unknown} are not classes of the model ({list(model.classes)})")
+        raise ManifestError(f"{unknown[0].where}: label {unknown[0].label!r} is not a class of the model "
+                            f"({list(model.classes)}); {len(unknown)} line(s) have such labels: fix the labels "
+                            "or evaluate a model trained on them")
     labels = list(model.classes)
     confusion = np.zeros((len(labels), len(labels)), dtype=int)
     per_rec = []
     for rec in recs:
         v = recording_windows(rec, model.pipeline(), mapping, notice=progress)
         if len(v) == 0:
-            raise ValueError(f"{rec.path}: shorter than one window of {model.window_samples / model.bank.fs:g} s")
+            raise _no_window(rec, model.window_samples / model.bank.fs)
         out = model.outputs(v)
         pred = np.argmax(out, axis=1)
         truth = labels.index(rec.label)

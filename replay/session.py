@@ -20,8 +20,10 @@ A session named ``NAME`` is two files side by side:
           "filled": [[1200, 1250], [9000, 9001]]  # optional: [start_frame, end_frame)
         }                                         # ranges the recording driver synthesised
 
-The sidecar is data, never code: it is read with :func:`json.load` only
-(duplicate keys, ``NaN`` and ``Infinity`` refused), and validated strictly:
+The sidecar is data, never code: it is read with :func:`json.loads` only
+(duplicate keys, ``NaN`` and ``Infinity`` refused; files over
+:data:`MAX_SIDECAR_BYTES` or nested deeper than :data:`MAX_SIDECAR_DEPTH` refused
+before parsing), and validated strictly:
 an unknown key, a wrong type, a rate or channel count that disagrees with the
 WAV, a label outside the recording or overlapping another, each raise a
 :class:`~replay.errors.SessionError` naming the file, the key and the fix.
@@ -43,14 +45,22 @@ import numpy as np
 
 from replay.errors import SessionError
 from replay.wavio import as_frames, read_wav, wav_info, write_wav
+from supramodal.jsondata import read_json_file
 
-__all__ = ["FORMAT", "VERSION", "Label", "Session", "session_paths", "load_session", "save_session",
+__all__ = ["FORMAT", "VERSION", "MAX_SIDECAR_BYTES", "MAX_SIDECAR_DEPTH", "Label", "Session", "session_paths", "load_session", "save_session",
            "validate_sidecar", "mask_to_ranges"]
 
 #: Value of the sidecar's ``"format"`` key.
 FORMAT = "supramodal-session"
 #: The only sidecar version this code reads and writes.
 VERSION = 1
+
+#: Largest sidecar read, bytes (checked before reading): an hour of labels and filled
+#: ranges takes well under 1 MiB.
+MAX_SIDECAR_BYTES = 16 * 2**20
+#: Deepest nesting of arrays and objects read: the format nests 3 levels (object,
+#: ``labels`` array, label object); deeper text is refused before it is parsed.
+MAX_SIDECAR_DEPTH = 8
 
 _REQUIRED = ("format", "version", "rate", "channels", "source", "labels")
 _OPTIONAL = ("filled",)
@@ -143,23 +153,26 @@ def _no_duplicate_keys(pairs):
     seen = {}
     for k, v in pairs:
         if k in seen:
-            raise SessionError(f"key {k!r} appears twice in one object; keep one")
+            raise _StrictJson(f"key {k!r} appears twice in one object; keep one")
         seen[k] = v
     return seen
 
 
 def _no_constants(name):
-    raise SessionError(f"{name} is not a number JSON allows; use a finite number")
+    raise _StrictJson(f"{name} is not a number JSON allows; use a finite number")
+
+
+class _StrictJson(SessionError):
+    """Raised by the parser hooks, which do not know the file; :func:`_load_json` names it."""
 
 
 def _load_json(path: Path) -> Any:
     try:
-        with open(path, "rb") as f:
-            return json.load(f, object_pairs_hook=_no_duplicate_keys, parse_constant=_no_constants)
-    except SessionError as e:
+        return read_json_file(path, max_bytes=MAX_SIDECAR_BYTES, max_depth=MAX_SIDECAR_DEPTH, error=SessionError,
+                              limits=("replay.session.MAX_SIDECAR_BYTES", "replay.session.MAX_SIDECAR_DEPTH"),
+                              object_pairs_hook=_no_duplicate_keys, parse_constant=_no_constants)
+    except _StrictJson as e:
         raise SessionError(f"{path}: {e}") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise SessionError(f"{path}: not valid JSON ({e}); fix or regenerate the sidecar") from None
 
 
 # --- validation ---------------------------------------------------------------

@@ -23,6 +23,14 @@ IEEE float 64          float64             none
 ``WAVE_FORMAT_EXTENSIBLE`` files are accepted when their sub-format is one of
 the above. RIFX (big-endian) and RF64 (> 4 GiB) containers are refused.
 
+Float samples
+-------------
+Float WAVs may hold values beyond +-1 (headroom), and those are read as they
+are. A float file is refused if any sample is NaN or infinite, or if any
+``|x|`` exceeds :data:`MAX_FLOAT_MAGNITUDE` (1e6 full scale, 120 dB above it):
+no recording holds such values, and they mean a file written in other units
+(or damaged); the message gives the peak found and the fix (rescale to +-1).
+
 Threading: the functions keep no state and may be called from any thread.
 """
 
@@ -38,9 +46,9 @@ from pathlib import Path
 import numpy as np
 from scipy.io import wavfile
 
-from replay.errors import ClippingWarning, WavFormatError
+from replay.errors import ClippingWarning, ReplayError, WavFormatError
 
-__all__ = ["WavInfo", "wav_info", "read_wav", "write_wav", "as_frames", "WRITE_DTYPES"]
+__all__ = ["WavInfo", "wav_info", "read_wav", "write_wav", "as_frames", "WRITE_DTYPES", "MAX_FLOAT_MAGNITUDE"]
 
 _PCM = 0x0001
 _IEEE_FLOAT = 0x0003
@@ -70,6 +78,10 @@ _TAG_NAMES = {
 }
 
 _CONVERT_HINT = "convert it to 16-bit or 32-bit integer PCM or 32-bit float (e.g. `sox IN -b 32 -e float OUT.wav`)"
+
+#: Largest ``|sample|`` a float WAV may hold, in full scale (1.0): 1e6 is 120 dB above full
+#: scale, beyond any recording, yet far below what the filterbank's state can hold.
+MAX_FLOAT_MAGNITUDE = 1e6
 
 #: dtypes :func:`write_wav` can write, by name.
 WRITE_DTYPES = ("float32", "float64", "int16", "int32", "uint8")
@@ -230,7 +242,8 @@ def read_wav(path: str | os.PathLike) -> tuple[np.ndarray, int]:
         If the file does not exist.
     WavFormatError
         For unsupported formats, truncated or corrupt files (see
-        :func:`wav_info`), and float files holding NaN or infinity.
+        :func:`wav_info`), and float files holding NaN, infinity or values
+        beyond :data:`MAX_FLOAT_MAGNITUDE` full scale.
     """
     info = wav_info(path)
     try:
@@ -258,6 +271,12 @@ def read_wav(path: str | os.PathLike) -> tuple[np.ndarray, int]:
         bad = np.count_nonzero(~np.isfinite(data))
         if bad:
             raise _fail(info.path, f"{bad} samples are NaN or infinite; a recording never holds those")
+        peak = float(np.max(np.abs(data))) if data.size else 0.0
+        if peak > MAX_FLOAT_MAGNITUDE:
+            over = np.count_nonzero(np.abs(data) > MAX_FLOAT_MAGNITUDE)
+            raise _fail(info.path, f"{over} float samples exceed {MAX_FLOAT_MAGNITUDE:g} times full scale "
+                                   f"(peak |x| = {peak:.6g}); a recording scaled to +-1 never holds those: "
+                                   "rescale it to +-1 full scale (e.g. `sox IN OUT.wav gain -n`)")
     return data, info.rate
 
 
@@ -294,7 +313,8 @@ def write_wav(path: str | os.PathLike, data, rate: int, dtype: str = "float32") 
     rate : int
         Frames per second, Hz; a positive integer (WAV headers store integers).
     dtype : {'float32', 'float64', 'int16', 'int32', 'uint8'}, default 'float32'
-        Sample type on disk. Float types keep values beyond +-1 as they are.
+        Sample type on disk. Float types keep values beyond +-1 as they are, up to
+        :data:`MAX_FLOAT_MAGNITUDE`.
         Integer types round to the nearest step (``x * 32768`` for int16,
         ``x * 2**31`` for int32, ``x * 128 + 128`` for uint8) and clip what does
         not fit, so +1.0 itself is clipped by one step.
@@ -309,7 +329,9 @@ def write_wav(path: str | os.PathLike, data, rate: int, dtype: str = "float32") 
     ------
     ValueError
         For a bad shape, dtype or rate, or samples that are NaN or infinite
-        (refused rather than written as garbage).
+        (refused rather than written as garbage); for float types, samples
+        beyond :data:`MAX_FLOAT_MAGNITUDE` (a :class:`ReplayError`: :func:`read_wav`
+        would refuse the file).
     """
     if dtype not in WRITE_DTYPES:
         raise ValueError(f"dtype must be one of {WRITE_DTYPES}, got {dtype!r}")
@@ -322,9 +344,12 @@ def write_wav(path: str | os.PathLike, data, rate: int, dtype: str = "float32") 
         raise ValueError(f"{path}: refusing to write {bad} NaN or infinite samples")
     clipped = 0
     if dtype in ("float32", "float64"):
+        peak = float(np.max(np.abs(x))) if x.size else 0.0
+        if peak > MAX_FLOAT_MAGNITUDE:
+            # read_wav would refuse the file: refuse to write it.
+            raise ReplayError(f"{path}: refusing to write samples beyond {MAX_FLOAT_MAGNITUDE:g} times full "
+                              f"scale (peak |x| = {peak:.6g}); scale the data to +-1 full scale")
         out = x.astype(dtype)
-        if not np.all(np.isfinite(out)):
-            raise ValueError(f"{path}: samples overflow {dtype}")
     else:
         if dtype == "uint8":
             q, lo, hi = np.rint(x * 128.0) + 128.0, 0, 255

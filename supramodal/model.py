@@ -6,30 +6,101 @@ format name and version, the bank, the features, the window, the peak mode, the
 class names and how it was trained. Nothing in it is ever executed; every part
 is validated on load and anything that does not fit is refused with
 :class:`ModelError`.
+
+What a file may ask for is bounded: every member's declared size is checked
+before it is read (:data:`MAX_HEADER_BYTES`, :data:`MAX_ARRAY_BYTES`), the
+header's nesting before it is parsed (:data:`MAX_HEADER_DEPTH`), and the header's
+window, channels and classes against :data:`MAX_WINDOW_SAMPLES`,
+:data:`MAX_CHANNELS` and :data:`MAX_CLASSES`. Every array's shape must follow
+from the header: ``layers = [features x channels, hidden, classes]``, ``w1``
+(inputs, hidden), ``b1`` (hidden,), ``w2`` (hidden, classes), ``b2`` (classes,),
+``mean`` and ``scale`` (inputs,); and the bank's ``kind`` must fit its channels
+(a whisker bank's centre frequencies are the whisker table's, a cochlea's
+bandwidths the Glasberg-Moore rule's).
 """
 
 from __future__ import annotations
 
 import json
+import math
 import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from supramodal.banks import Bank
+from supramodal.banks import COCHLEA_B_MIN, COCHLEA_Q_EAR, ERB_TO_B, WHISKER_TABLE, Bank, erb
 from supramodal.features import check_features
 from supramodal.mlp import MLP, train_mlp
 from supramodal.peaks import PEAK_MODES
 from supramodal.errors import InputError
+from supramodal.jsondata import parse_json_text
 
 MODEL_FORMAT = "supramodal-model"
 MODEL_VERSION = 1
 _ARRAYS = ("w1", "b1", "w2", "b2", "mean", "scale")
 
+#: Longest window a model may declare, samples: 2**20 is 210 s at 5 kHz and 24 s at 44.1 kHz
+#: (the paper's windows are 0.1 s); a pipeline holds two windows of every channel.
+MAX_WINDOW_SAMPLES = 2**20
+#: Most channels a model's bank may have (the cochlea has 50, the whiskers 20).
+MAX_CHANNELS = 1024
+#: Most classes a model may name.
+MAX_CLASSES = 1024
+#: Largest header member, bytes as stored (numpy stores text as 4 bytes a character: 1 M characters).
+MAX_HEADER_BYTES = 2**22
+#: Deepest nesting of the header's JSON (the format nests 3 levels; ``training`` is free-form).
+MAX_HEADER_DEPTH = 16
+#: Largest array member a model file may declare, bytes (a 1024-channel, 1024-class model
+#: with 1024 hidden units takes 25 MB).
+MAX_ARRAY_BYTES = 2**28
+
 
 class ModelError(InputError):
     """A model file is missing, corrupt, of another format, or does not fit the scene."""
+
+
+def _check_member_size(npz, name: str, max_bytes: int, path) -> None:
+    """Refuse a member whose declared array (its .npy header, read alone) is larger than ``max_bytes``.
+
+    numpy allocates an array of the declared shape before reading a member's data,
+    so a few bytes declaring a huge shape would otherwise end in a MemoryError.
+    """
+    member = name + ".npy" if name + ".npy" in npz.zip.namelist() else name
+    with npz.zip.open(member) as f:
+        version = np.lib.format.read_magic(f)          # ValueError if not a .npy member
+        if version == (1, 0):
+            shape, _, dtype = np.lib.format.read_array_header_1_0(f)
+        elif version == (2, 0):
+            shape, _, dtype = np.lib.format.read_array_header_2_0(f)
+        else:
+            raise ModelError(f"{path}: member {name!r} uses .npy format version {version}; this program reads "
+                             "1.0 and 2.0 (as numpy.savez writes)")
+    size = math.prod(shape) * dtype.itemsize
+    if size > max_bytes:
+        raise ModelError(f"{path}: array {name!r} declares shape {shape} of {dtype}, {size} bytes, more than the "
+                         f"{max_bytes} a model file may hold ({'MAX_HEADER_BYTES' if name == 'header' else 'MAX_ARRAY_BYTES'}"
+                         "); the file is damaged or not a supramodal model")
+
+
+def _bank_kind_problem(bank: Bank) -> str | None:
+    """What makes ``bank``'s channels contradict its ``kind``, or None if they fit."""
+    if bank.kind == "whisker":
+        table = {f"{row}{arc + 1}": cf for row, cfs in WHISKER_TABLE.items() for arc, cf in enumerate(cfs)}
+        for name, cf in zip(bank.names, bank.cf):
+            if name not in table or not np.isclose(cf, table[name], rtol=1e-9, atol=0):
+                return (f"channel {name!r} at {cf:g} Hz is not a whisker of the table "
+                        f"(whiskers are {', '.join(list(table)[:3])}, ... at their resonances)")
+    elif bank.kind == "cochlea":
+        want = ERB_TO_B * erb(bank.cf, COCHLEA_Q_EAR, COCHLEA_B_MIN)
+        k = np.flatnonzero(~np.isclose(bank.b, want, rtol=1e-9, atol=0))
+        if k.size:
+            i = int(k[0])
+            return (f"channel {bank.names[i]!r} has b = {bank.b[i]:g} Hz, but a cochlea channel at "
+                    f"{bank.cf[i]:g} Hz has b = {want[i]:g} Hz (Glasberg-Moore)")
+    elif bank.kind != "custom":
+        return "the kind is none of 'whisker', 'cochlea', 'custom'"
+    return None
 
 
 @dataclass
@@ -188,16 +259,19 @@ class TextureModel:
                 missing = {"header", *_ARRAYS} - names
                 if missing:
                     raise ModelError(f"{path} is not a supramodal model: it lacks {sorted(missing)}")
+                for k in ("header", *_ARRAYS):
+                    _check_member_size(npz, k, MAX_HEADER_BYTES if k == "header" else MAX_ARRAY_BYTES, path)
                 header_text = npz["header"]
                 arrays = {k: npz[k] for k in _ARRAYS}
         except ModelError:
             raise
         except (zipfile.BadZipFile, ValueError, OSError, EOFError) as exc:
             raise ModelError(f"{path} is not a readable model file ({exc}); it may be truncated or of another kind") from exc
-        try:
-            header = json.loads(str(header_text))
-        except (json.JSONDecodeError, TypeError) as exc:
-            raise ModelError(f"{path}: the model header is not valid JSON ({exc})") from exc
+        if header_text.dtype.kind != "U" or header_text.ndim != 0:
+            raise ModelError(f"{path}: the model header must be one text, got a {header_text.dtype} array "
+                             f"of shape {header_text.shape}")
+        header = parse_json_text(str(header_text), f"{path}: the model header", max_depth=MAX_HEADER_DEPTH,
+                                 error=ModelError, limit_name="supramodal.model.MAX_HEADER_DEPTH")
         return cls._from_parts(path, header, arrays)
 
     @classmethod
@@ -222,28 +296,49 @@ class TextureModel:
             features = check_features(header["features"])
         except (KeyError, ValueError) as exc:
             raise bad(f"invalid bank or features in the header: {exc}") from exc
+        if bank.channels > MAX_CHANNELS:
+            raise bad(f"'bank' has {bank.channels} channels, more than the {MAX_CHANNELS} a model may have "
+                      "(MAX_CHANNELS)")
+        problem = _bank_kind_problem(bank)
+        if problem:
+            raise bad(f"'bank': kind {bank.kind!r} does not fit its channels ({problem}); the header does not "
+                      "describe the bank the model was trained on: retrain it")
         classes = header.get("classes")
         if not (isinstance(classes, list) and classes and all(isinstance(c, str) for c in classes)
                 and len(set(classes)) == len(classes)):
             raise bad("'classes' must be a non-empty list of distinct names")
+        if len(classes) > MAX_CLASSES:
+            raise bad(f"'classes' names {len(classes)} classes, more than the {MAX_CLASSES} a model may have "
+                      "(MAX_CLASSES)")
         window = header.get("window_samples")
-        if not (isinstance(window, int) and window >= 2):
+        if not (isinstance(window, int) and not isinstance(window, bool) and window >= 2):
             raise bad(f"'window_samples' must be an integer >= 2, got {window!r}")
+        if window > MAX_WINDOW_SAMPLES:
+            raise bad(f"'window_samples' is {window}, more than the {MAX_WINDOW_SAMPLES} samples a window may have "
+                      f"(MAX_WINDOW_SAMPLES, {MAX_WINDOW_SAMPLES / bank.fs:g} s at {bank.fs:g} Hz)")
         if header.get("peak_mode") not in PEAK_MODES:
             raise bad(f"'peak_mode' must be one of {PEAK_MODES}")
         threshold = header.get("peak_threshold", 0.0)
         if isinstance(threshold, bool) or not isinstance(threshold, (int, float)) or not (0 <= threshold < float("inf")):
             raise bad(f"'peak_threshold' must be a finite number >= 0, got {threshold!r}")
         n_in = len(features) * bank.channels
+        layers = header.get("layers")
+        if not (isinstance(layers, list) and len(layers) == 3
+                and all(isinstance(n, int) and not isinstance(n, bool) for n in layers)
+                and layers[0] == n_in and layers[1] >= 1 and layers[2] == len(classes)):
+            raise bad(f"'layers' is {layers!r}; it must be [inputs, hidden, outputs] = [{n_in}, hidden >= 1, "
+                      f"{len(classes)}] for {len(features)} feature(s) x {bank.channels} channels and "
+                      f"{len(classes)} classes")
+        hidden = layers[1]
         w1, b1, w2, b2, mean, scale = (arrays[k] for k in _ARRAYS)
-        hidden = w1.shape[1] if w1.ndim == 2 else -1
         shapes = {"w1": (n_in, hidden), "b1": (hidden,), "w2": (hidden, len(classes)), "b2": (len(classes),),
                   "mean": (n_in,), "scale": (n_in,)}
         for k, want in shapes.items():
             a = arrays[k]
-            if a.dtype.kind != "f" or a.shape != want or hidden < 1:
+            if a.dtype.kind != "f" or a.shape != want:
                 raise bad(f"array {k} has shape {a.shape} and dtype {a.dtype}; expected float {want} for "
-                          f"{len(features)} feature(s) x {bank.channels} channels and {len(classes)} classes")
+                          f"{len(features)} feature(s) x {bank.channels} channels, {hidden} hidden units "
+                          f"('layers' {layers}) and {len(classes)} classes")
             if not np.isfinite(a).all():
                 raise bad(f"array {k} contains NaN or Inf")
         if np.any(scale <= 0):

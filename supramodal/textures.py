@@ -20,16 +20,26 @@ A texture set is a JSON file (format ``supramodal-textures``, version 1)::
 
 ``seed`` makes the noise of every texture reproducible (texture ``i`` of the set
 draws from ``SeedSequence([seed, i])``).
+
+A texture-set file is data: it is parsed as JSON only, within bounds (at most
+:data:`MAX_TEXTURE_SET_BYTES`, nested at most :data:`MAX_TEXTURE_SET_DEPTH` deep,
+at most :data:`MAX_TEXTURES` textures, each at most :data:`MAX_TEXTURE_SAMPLES`
+samples long), and anything else is refused with a :class:`TextureSetError`
+naming the file, the key and the limit.
 """
 
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
 
 import numpy as np
+
+from supramodal.errors import InputError
+from supramodal.jsondata import read_json_file
 
 TEXTURES_FORMAT = "supramodal-textures"
 TEXTURES_VERSION = 1
@@ -39,6 +49,21 @@ FLOOR_RMS = 0.1
 #: Where random peaks are drawn for each bank, Hz: inside the bank's range.
 PEAK_RANGES = {"whisker": (80.0, 750.0), "cochlea": (100.0, 10000.0)}
 BANK_RATES = {"whisker": 5000.0, "cochlea": 44100.0}
+
+#: Longest texture synthesised, samples (``duration * fs``): 2**24 is 3355 s at 5 kHz and
+#: 380 s at 44.1 kHz (the reference sets use 40 s). Synthesis shapes the whole signal in
+#: one FFT, about 40 bytes a sample at its peak: 0.7 GB at this bound.
+MAX_TEXTURE_SAMPLES = 2**24
+#: Most textures in one set.
+MAX_TEXTURES = 256
+#: Largest texture-set file read, bytes (checked before reading; a set of 256 textures takes ~20 kB).
+MAX_TEXTURE_SET_BYTES = 2**20
+#: Deepest nesting read: the format nests 3 levels (object, ``textures``, texture with its ``peaks``).
+MAX_TEXTURE_SET_DEPTH = 8
+
+
+class TextureSetError(InputError):
+    """A texture-set file or description is refused; the message names the file, the key and the fix."""
 
 
 @dataclass(frozen=True)
@@ -112,9 +137,7 @@ def synthesize(peaks, fs: float, duration: float, width: float = 0.2, seed=None)
         The floor (-3 dB) has RMS :data:`FLOOR_RMS`.
     """
     _check_peaks(peaks, fs)
-    n = int(round(duration * fs))
-    if n < 1:
-        raise ValueError(f"duration {duration} s at {fs} Hz gives no sample")
+    n = texture_samples(duration, fs)
     rng = np.random.default_rng(seed)
     noise = rng.standard_normal(n)
     spectrum = np.fft.rfft(noise)
@@ -124,21 +147,39 @@ def synthesize(peaks, fs: float, duration: float, width: float = 0.2, seed=None)
     return np.fft.irfft(spectrum * amplitude, n)
 
 
+def texture_samples(duration: float, fs: float) -> int:
+    """Samples in ``duration`` seconds at ``fs`` Hz, ``round(duration * fs)``.
+
+    Raises
+    ------
+    InputError
+        If that is not between 1 and :data:`MAX_TEXTURE_SAMPLES`.
+    """
+    n = duration * fs
+    if not (math.isfinite(n) and 0.5 <= n):
+        raise InputError(f"duration {duration} s at {fs} Hz gives no sample; give a positive number of seconds")
+    if n > MAX_TEXTURE_SAMPLES + 0.5:
+        raise InputError(f"duration {duration:g} s at {fs:g} Hz is {n:.6g} samples, more than the "
+                         f"{MAX_TEXTURE_SAMPLES} a texture may have (MAX_TEXTURE_SAMPLES: "
+                         f"{MAX_TEXTURE_SAMPLES / fs:g} s at this rate); synthesise shorter textures")
+    return int(round(n))
+
+
 def _check_peaks(peaks, fs) -> None:
     peaks = list(peaks)
     if len(peaks) != 3:
-        raise ValueError(f"a three-peak texture needs exactly 3 peak frequencies, got {len(peaks)}")
+        raise InputError(f"a three-peak texture needs exactly 3 peak frequencies, got {len(peaks)}")
     if not all(np.isfinite(p) and 0 < p < fs / 2 for p in peaks):
-        raise ValueError(f"peak frequencies {peaks} must lie in (0, fs/2) = (0, {fs / 2:g}) Hz")
+        raise InputError(f"peak frequencies {peaks} must lie in (0, fs/2) = (0, {fs / 2:g}) Hz")
     if sorted(peaks) != peaks or len(set(peaks)) != 3:
-        raise ValueError(f"peak frequencies must be distinct and ascending (the lowest gets +6 dB), got {peaks}")
+        raise InputError(f"peak frequencies must be distinct and ascending (the lowest gets +6 dB), got {peaks}")
 
 
 def random_texture_set(bank: str, n: int = 8, seed: int = 0, duration: float = 40.0, width: float = 0.2,
                        min_ratio: float = 1.2) -> TextureSet:
     """Draw ``n`` textures: three peaks log-uniform in the bank's range, each at least ``min_ratio`` apart."""
     if bank not in PEAK_RANGES:
-        raise ValueError(f"unknown bank {bank!r}: choose 'whisker' or 'cochlea'")
+        raise InputError(f"unknown bank {bank!r}: choose 'whisker' or 'cochlea'")
     lo, hi = PEAK_RANGES[bank]
     rng = np.random.default_rng(np.random.SeedSequence([seed, 0x7E57]))
     textures = []
@@ -153,7 +194,7 @@ def random_texture_set(bank: str, n: int = 8, seed: int = 0, duration: float = 4
 def texture_set_from_dict(d, source: str = "texture set") -> TextureSet:
     """Validate a texture-set description (already parsed JSON) and build it."""
     def bad(msg):
-        return ValueError(f"{source}: {msg}")
+        return TextureSetError(f"{source}: {msg}")
 
     if not isinstance(d, dict):
         raise bad("expected a JSON object")
@@ -169,13 +210,20 @@ def texture_set_from_dict(d, source: str = "texture set") -> TextureSet:
         raise bad(f"'bank' must be 'whisker' or 'cochlea', got {d.get('bank')!r}")
     for key in ("fs", "duration", "width"):
         v = d.get(key)
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0:
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v < math.inf:
             raise bad(f"'{key}' must be a positive number, got {v!r}")
+    try:
+        texture_samples(float(d["duration"]), float(d["fs"]))
+    except InputError as exc:
+        raise bad(f"'duration': {exc}") from None
     if isinstance(d.get("seed"), bool) or not isinstance(d.get("seed"), int) or d["seed"] < 0:
         raise bad(f"'seed' must be a non-negative integer, got {d.get('seed')!r}")
     items = d.get("textures")
     if not isinstance(items, list) or len(items) < 2:
         raise bad("'textures' must be a list of at least 2 textures")
+    if len(items) > MAX_TEXTURES:
+        raise bad(f"'textures' lists {len(items)} textures, more than the {MAX_TEXTURES} a set may hold "
+                  "(MAX_TEXTURES); split the set")
     textures = []
     for i, t in enumerate(items):
         if not isinstance(t, dict) or set(t) != {"name", "peaks"} or not isinstance(t["name"], str):
@@ -185,7 +233,7 @@ def texture_set_from_dict(d, source: str = "texture set") -> TextureSet:
             raise bad(f"texture {t['name']!r}: 'peaks' must be a list of 3 numbers")
         try:
             _check_peaks([float(p) for p in peaks], float(d["fs"]))
-        except ValueError as exc:
+        except InputError as exc:
             raise bad(f"texture {t['name']!r}: {exc}") from None
         textures.append(Texture(t["name"], tuple(float(p) for p in peaks)))
     names = [t.name for t in textures]
@@ -199,17 +247,18 @@ def load_texture_set(path) -> TextureSet:
     """Read a texture-set JSON file (validated; never executed)."""
     path = Path(path)
     try:
-        d = json.loads(path.read_text())
+        d = read_json_file(path, max_bytes=MAX_TEXTURE_SET_BYTES, max_depth=MAX_TEXTURE_SET_DEPTH,
+                           error=TextureSetError, limits=("MAX_TEXTURE_SET_BYTES", "MAX_TEXTURE_SET_DEPTH"))
     except FileNotFoundError:
-        raise ValueError(f"no texture-set file at {path}") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise ValueError(f"{path} is not valid JSON: {exc}") from None
+        raise TextureSetError(f"no texture-set file at {path}") from None
+    except IsADirectoryError:
+        raise TextureSetError(f"{path} is a folder, not a texture-set file") from None
     return texture_set_from_dict(d, str(path))
 
 
 def reference_texture_set(bank: str) -> TextureSet:
     """The reference set shipped with the package for ``bank`` ('whisker' or 'cochlea')."""
     if bank not in BANK_RATES:
-        raise ValueError(f"unknown bank {bank!r}: choose 'whisker' or 'cochlea'")
+        raise InputError(f"unknown bank {bank!r}: choose 'whisker' or 'cochlea'")
     text = resources.files("supramodal").joinpath("data", "textures", f"{bank}_reference.json").read_text()
     return texture_set_from_dict(json.loads(text), f"{bank}_reference.json")

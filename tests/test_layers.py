@@ -20,8 +20,9 @@ ROOT = Path(__file__).resolve().parents[1]
 #: Top-level packages the model package must never load: the node, the drivers and replay (the
 #: sources), the benchmarks (which measure the node), and the device libraries.
 NOT_IN_THE_MODEL = ("node", "drivers", "replay", "benchmarks", "serial", "sounddevice", "_sounddevice")
-#: What drivers and replay may use of the model package: the error root alone.
-DRIVER_MAY_USE = ("supramodal.errors",)
+#: What drivers and replay may use of the model package: the error root and the bounded JSON
+#: reader (file handling, no DSP; the model's own files need it too, so it cannot live in replay).
+DRIVER_MAY_USE = ("supramodal.errors", "supramodal.jsondata")
 
 
 def modules_of(package: str) -> list[str]:
