@@ -267,9 +267,12 @@ def test_train_evaluate_round_trip_on_synthesised_recordings(tmp_path):
     rows_test.append(f"hi.wav,{ts.names[0]},6.0,8.0")
     (tmp_path / "train.csv").write_text("\n".join(rows_train) + "\n")
     (tmp_path / "test.csv").write_text("\n".join(rows_test) + "\n")
+    # The model is written to exactly the path given (no suffix added), and read back from it.
     assert main(["train", "--bank", "whisker", "--manifest", str(tmp_path / "train.csv"), "--out",
                  str(tmp_path / "m"), "--epochs", "200", "--quiet"]) == 0
-    model = TextureModel.load(tmp_path / "m.npz")
+    assert sorted(p.name for p in tmp_path.glob("m*")) == ["m"]
+    assert main(["evaluate", str(tmp_path / "m"), "--manifest", str(tmp_path / "test.csv"), "--quiet"]) == 0
+    model = TextureModel.load(tmp_path / "m")
     assert model.classes == tuple(sorted(ts.names[:4]))
     from node.training import evaluate_manifest
 
