@@ -45,9 +45,8 @@ from supramodal.banks import WHISKER_RATE, WHISKER_ROWS, whisker_bank
 from supramodal.decisions import (DEFAULT_CONTACT_THRESHOLD, DEFAULT_METHOD, DEFAULT_POOLED, DEFAULT_SCOPE, METHODS,
                                   SCOPES)
 from supramodal.errors import InputError
-from supramodal.features import FEATURE_TABLE, FEATURES
+from supramodal.features import DEFAULT_WINDOW, FEATURE_TABLE, FEATURES
 from supramodal.peaks import DEFAULT_PEAK_MODE, PEAK_MODES
-from supramodal.pipeline import DEFAULT_WINDOW
 
 
 class SceneError(InputError):
@@ -273,6 +272,8 @@ def load_scene(path) -> Scene:
         data = tomllib.loads(path.read_text())
     except FileNotFoundError:
         raise SceneError(f"no scene file at {path}") from None
+    except OSError as exc:                  # a folder, no permission, ...: the user's path, one line
+        raise SceneError(f"cannot read the scene file {path}: {exc.strerror or exc}") from None
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise SceneError(f"{path} is not valid TOML: {exc}") from None
     return scene_from_dict(data, str(path), path.resolve().parent)

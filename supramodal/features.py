@@ -61,6 +61,9 @@ FEATURE_TABLE: dict[str, Feature] = {f.name: f for f in (
 )}
 #: Every feature name, in the table's order (the default selection computes all of them).
 FEATURES = tuple(FEATURE_TABLE)
+#: Feature window, seconds (the paper's 100 ms; the one home of this default, also for the
+#: pipeline, the scene and the command line).
+DEFAULT_WINDOW = 0.1
 
 
 def check_features(features) -> tuple[str, ...]:

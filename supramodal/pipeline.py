@@ -11,12 +11,10 @@ import numpy as np
 
 from supramodal.backends import make_filterbank
 from supramodal.banks import Bank
-from supramodal.features import FEATURES, FeatureWindows, Windows, check_features, concat_windows
+from supramodal.features import DEFAULT_WINDOW, FEATURES, FeatureWindows, Windows, check_features, concat_windows
 from supramodal.errors import InputError
 from supramodal.peaks import DEFAULT_PEAK_MODE, PeakExtractor
 
-#: Feature window, seconds (the paper's 100 ms; the one home of this default).
-DEFAULT_WINDOW = 0.1
 
 
 def window_length(window: float, fs: float) -> int:
