@@ -31,6 +31,8 @@ from pathlib import Path
 
 import numpy as np
 
+from supramodal.errors import InputError
+
 TEXTURES_FORMAT = "supramodal-textures"
 TEXTURES_VERSION = 1
 PEAK_GAINS_DB = (6.0, 3.0, 3.0)
@@ -114,7 +116,7 @@ def synthesize(peaks, fs: float, duration: float, width: float = 0.2, seed=None)
     _check_peaks(peaks, fs)
     n = int(round(duration * fs))
     if n < 1:
-        raise ValueError(f"duration {duration} s at {fs} Hz gives no sample")
+        raise InputError(f"duration {duration} s at {fs} Hz gives no sample")
     rng = np.random.default_rng(seed)
     noise = rng.standard_normal(n)
     spectrum = np.fft.rfft(noise)
@@ -127,18 +129,18 @@ def synthesize(peaks, fs: float, duration: float, width: float = 0.2, seed=None)
 def _check_peaks(peaks, fs) -> None:
     peaks = list(peaks)
     if len(peaks) != 3:
-        raise ValueError(f"a three-peak texture needs exactly 3 peak frequencies, got {len(peaks)}")
+        raise InputError(f"a three-peak texture needs exactly 3 peak frequencies, got {len(peaks)}")
     if not all(np.isfinite(p) and 0 < p < fs / 2 for p in peaks):
-        raise ValueError(f"peak frequencies {peaks} must lie in (0, fs/2) = (0, {fs / 2:g}) Hz")
+        raise InputError(f"peak frequencies {peaks} must lie in (0, fs/2) = (0, {fs / 2:g}) Hz")
     if sorted(peaks) != peaks or len(set(peaks)) != 3:
-        raise ValueError(f"peak frequencies must be distinct and ascending (the lowest gets +6 dB), got {peaks}")
+        raise InputError(f"peak frequencies must be distinct and ascending (the lowest gets +6 dB), got {peaks}")
 
 
 def random_texture_set(bank: str, n: int = 8, seed: int = 0, duration: float = 40.0, width: float = 0.2,
                        min_ratio: float = 1.2) -> TextureSet:
     """Draw ``n`` textures: three peaks log-uniform in the bank's range, each at least ``min_ratio`` apart."""
     if bank not in PEAK_RANGES:
-        raise ValueError(f"unknown bank {bank!r}: choose 'whisker' or 'cochlea'")
+        raise InputError(f"unknown bank {bank!r}: choose 'whisker' or 'cochlea'")
     lo, hi = PEAK_RANGES[bank]
     rng = np.random.default_rng(np.random.SeedSequence([seed, 0x7E57]))
     textures = []
@@ -153,7 +155,7 @@ def random_texture_set(bank: str, n: int = 8, seed: int = 0, duration: float = 4
 def texture_set_from_dict(d, source: str = "texture set") -> TextureSet:
     """Validate a texture-set description (already parsed JSON) and build it."""
     def bad(msg):
-        return ValueError(f"{source}: {msg}")
+        return InputError(f"{source}: {msg}")
 
     if not isinstance(d, dict):
         raise bad("expected a JSON object")
@@ -201,15 +203,15 @@ def load_texture_set(path) -> TextureSet:
     try:
         d = json.loads(path.read_text())
     except FileNotFoundError:
-        raise ValueError(f"no texture-set file at {path}") from None
+        raise InputError(f"no texture-set file at {path}") from None
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise ValueError(f"{path} is not valid JSON: {exc}") from None
+        raise InputError(f"{path} is not valid JSON: {exc}") from None
     return texture_set_from_dict(d, str(path))
 
 
 def reference_texture_set(bank: str) -> TextureSet:
     """The reference set shipped with the package for ``bank`` ('whisker' or 'cochlea')."""
     if bank not in BANK_RATES:
-        raise ValueError(f"unknown bank {bank!r}: choose 'whisker' or 'cochlea'")
+        raise InputError(f"unknown bank {bank!r}: choose 'whisker' or 'cochlea'")
     text = resources.files("supramodal").joinpath("data", "textures", f"{bank}_reference.json").read_text()
     return texture_set_from_dict(json.loads(text), f"{bank}_reference.json")
