@@ -56,6 +56,7 @@ _COUNTERS = (
     "silence_warnings",
 )
 _DECODER_COUNTERS = ("crc_errors", "truncated", "header_errors", "bytes_skipped")
+DEFAULT_BAUDRATE = 3_000_000  #: bit/s; 20 channels at 5 kHz need about 2.02 Mbit/s (docs/serial-frames.md)
 
 
 def _print_stderr(message: str) -> None:
@@ -154,7 +155,7 @@ class SerialWhiskerDriver:
     POLL = 0.05  #: s, longest single wait on the port; read() rechecks its deadline after each
     MAX_EVENTS = 200
 
-    def __init__(self, port: str, rate: float, channels: int, baudrate: int = 3_000_000,
+    def __init__(self, port: str, rate: float, channels: int, baudrate: int = DEFAULT_BAUDRATE,
                  timeout: float = 0.5, reconnect: bool = True, max_gap: float = 10.0,
                  exclusive: bool = True, silence_warning: float | None = 3.0,
                  on_notice: Callable[[str], None] | None = _print_stderr) -> None:

@@ -10,7 +10,6 @@ from __future__ import annotations
 from pathlib import Path
 
 import sys
-from dataclasses import replace
 
 import numpy as np
 
@@ -20,17 +19,21 @@ from node.sinks import make_sink
 from supramodal.banks import Bank, cochlea_bank, whisker_bank
 from supramodal.model import ModelError, TextureModel
 from supramodal.pipeline import FeaturePipeline
-from supramodal.training import DEFAULT_EPOCHS, split, texture_features
+from supramodal.training import split, texture_features
+
+
+def _given(options: dict, names: dict) -> dict:
+    """The scene options the scene sets, renamed to keyword arguments; a None option is left
+    out so that the driver's or the bank's own default applies (its one home)."""
+    return {arg: options[key] for key, arg in names.items() if options[key] is not None}
 
 
 def bank_for(scene: Scene) -> Bank:
     b = scene.bank
     if b["kind"] == "whisker":
-        kw = {"rows": tuple(b["rows"]), "mean_B": b["mean_B"]}
+        kw = {"rows": tuple(b["rows"]), **_given(b, {"mean_B": "mean_B", "fs": "fs"})}
     else:
-        kw = {"n": b["channels"], "f_low": b["f_low"], "f_high": b["f_high"]}
-    if b["fs"] is not None:
-        kw["fs"] = float(b["fs"])
+        kw = _given(b, {"channels": "n", "f_low": "f_low", "f_high": "f_high", "fs": "fs"})
     build = whisker_bank if b["kind"] == "whisker" else cochlea_bank
     try:
         return build(**kw)
@@ -47,10 +50,6 @@ def pipeline_for(scene: Scene, bank: Bank) -> FeaturePipeline:
         raise SceneError(f"{scene.source}: [features] {exc}") from None
 
 
-def _speed(value):
-    return float("inf") if value == "max" else float(value)
-
-
 def _texture_set(scene: Scene, spec: str):
     from supramodal.textures import load_texture_set, reference_texture_set
 
@@ -61,8 +60,10 @@ def synth_session(scene: Scene, bank: Bank):
     """The synth driver's signal: each texture for ``seconds`` in ``order``, with its labels.
 
     With ``held_out`` the segment is the *last* ``seconds`` of the texture's full-length
-    signal: the part a model trained on the spot (on the first 75 %) has never seen.
+    signal: the part a model trained on the spot (on the first ``TRAIN_FRACTION``) has never seen.
     """
+    from supramodal.training import TRAIN_FRACTION
+
     d = scene.driver
     ts = _texture_set(scene, d["textures"])
     if abs(ts.fs - bank.fs) > 1e-9 * bank.fs:
@@ -77,9 +78,11 @@ def synth_session(scene: Scene, bank: Bank):
         i = ts.names.index(name)
         if d["held_out"]:
             full = ts.synthesize(i)
-            if n > 0.25 * full.size + 1:
-                raise SceneError(f"{scene.source}: [driver] seconds: held-out segments are at most a quarter of the "
-                                 f"set's {ts.duration:g} s; ask for {0.25 * ts.duration:g} s or less")
+            held_out = 1 - TRAIN_FRACTION
+            if n > held_out * full.size + 1:
+                raise SceneError(f"{scene.source}: [driver] seconds: held-out segments are at most the last "
+                                 f"{held_out:.0%} of the set's {ts.duration:g} s; ask for {held_out * ts.duration:g} s "
+                                 "or less")
             seg = full[-n:]
         else:
             seg = ts.synthesize(i, duration=d["seconds"])
@@ -98,35 +101,39 @@ def train_on_texture_set(ts, pipeline: FeaturePipeline, progress=None) -> Textur
     x_train, y_train, _, _ = split(values)
     if progress:
         progress(f"trained on {len(x_train)} windows of {len(ts.textures)} textures ({', '.join(p.features)})")
-    return TextureModel.train_for(p, x_train, y_train, ts.names, epochs=DEFAULT_EPOCHS, seed=0)
+    return TextureModel.train_for(p, x_train, y_train, ts.names, seed=0)
 
 
 def driver_for(scene: Scene, bank: Bank, speed_override=None):
     """Build the scene's driver; returns ``(driver, labels, texture_set_or_None)``."""
     d = scene.driver
     kind = d["type"]
-    speed = _speed(speed_override if speed_override is not None else d.get("speed", 1.0))
-    block = d.get("block") or max(1, int(round(0.01 * bank.fs)))
+    if kind in ("synth", "replay"):
+        # Speed and block size: the replay driver's defaults unless the scene or --speed sets them.
+        replay = _given({**d, "speed": speed_override if speed_override is not None else d["speed"]},
+                        {"speed": "speed", "block": "block_size"})
     if kind == "synth":
         from replay.driver import ReplayDriver
 
         ts, data, labels = synth_session(scene, bank)
-        return ReplayDriver((data, bank.fs), block_size=block, speed=speed, on_notice=None), labels, ts
+        return ReplayDriver((data, bank.fs), on_notice=None, **replay), labels, ts
     if kind == "replay":
         from replay.driver import ReplayDriver
 
-        drv = ReplayDriver(str(scene.resolve(d["path"])), rate=bank.fs, block_size=block, speed=speed, loop=d["loop"],
-                           on_notice=lambda m: print(f"supramodal: {m}", file=sys.stderr))
+        drv = ReplayDriver(str(scene.resolve(d["path"])), rate=bank.fs, loop=d["loop"],
+                           on_notice=lambda m: print(f"supramodal: {m}", file=sys.stderr), **replay)
         return drv, Labels.of(drv), None
     if kind == "serial":
         from drivers.serial_whisker import SerialWhiskerDriver
 
-        return SerialWhiskerDriver(d["port"], rate=d["rate"], channels=d["channels"], baudrate=d["baudrate"]), Labels(), None
+        return SerialWhiskerDriver(d["port"], rate=d["rate"], channels=d["channels"],
+                                   **_given(d, {"baudrate": "baudrate"})), Labels(), None
     if kind == "microphone":
         from drivers.microphone import MicrophoneDriver
 
-        return MicrophoneDriver(device=d["device"], rate=d["rate"], channels=d["channels"], blocksize=d["block"],
-                                dtype=d["dtype"], buffer_seconds=d["buffer_seconds"]), Labels(), None
+        options = _given(d, {"device": "device", "rate": "rate", "channels": "channels", "block": "blocksize",
+                             "dtype": "dtype", "buffer_seconds": "buffer_seconds"})
+        return MicrophoneDriver(**options), Labels(), None
     raise SceneError(f"{scene.source}: [driver] type {kind!r} is not supported")
 
 

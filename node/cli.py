@@ -2,20 +2,103 @@
 
 Each subcommand imports what it needs when it runs, so that, for example, an
 experiment never imports sounddevice or pyserial.
+
+Errors and exit status (README "Errors and exit status"):
+
+* 0: done; also when the reader of stdout went away (``supramodal run | head``): the
+  reader asked for no more, as Ctrl-C does, and a ``set -o pipefail`` script must not fail.
+* 2: a :class:`~supramodal.errors.SupramodalError` (bad input, a device or a file the
+  user named), or an ``OSError`` naming a file: one line ``supramodal: error: ...``.
+* 1: anything else is a bug: its traceback and a line asking to report it.
+* 130 / 143: SIGINT / SIGTERM before the stream started (while a scene is built or its
+  model trained): one line, nothing processed. Once the node runs, both stop it cleanly:
+  what is buffered is processed, the summary printed, and the exit status is 0.
+
+``--debug`` (before or after the command) shows the traceback of every error.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
+import signal
 import sys
+import traceback
 from pathlib import Path
 
 from supramodal.errors import SupramodalError
 
+#: Exit status of a refused input (argparse uses it for usage errors too).
+EXIT_USER_ERROR = 2
+#: Exit status of an unexpected exception (what Python itself returns for one).
+EXIT_BUG = 1
+
 
 class CliError(SupramodalError):
     """A user error the CLI reports in one line, without a traceback."""
+
+
+class StartupInterrupted(BaseException):
+    """SIGINT or SIGTERM arrived before the stream started. A BaseException, like
+    KeyboardInterrupt, so that no ``except Exception`` on the way swallows it."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
+
+
+def _interrupt_startup(signum, frame):
+    raise StartupInterrupted(signum)
+
+
+def _interrupt_until_running() -> None:
+    """Until :func:`_stop_on_signals`, SIGINT and SIGTERM interrupt the start-up (building the
+    scene, training its model) with a one-line message instead of dying silently."""
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, _interrupt_startup)
+
+
+def _stop_on_signals(node) -> None:
+    """From now on SIGINT and SIGTERM only set a flag: the node finishes what it holds and
+    prints its summary (before this, :func:`_interrupt_startup` applies)."""
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda signum, frame: node.stop(signal.Signals(signum).name))
+
+
+def _check_output(text: str, folder: bool) -> Path:
+    """An output path, checked before any long work starts, so that none is lost.
+
+    A file (``folder=False``) must not be a folder, and its folder must exist and be
+    writable; the file is written at exactly this path. A folder (``folder=True``) is
+    created with its parents when the command writes; it must not be a file, and its
+    nearest existing ancestor must be a writable folder.
+    """
+    path = Path(text).expanduser()
+    if folder:
+        if path.exists() and not path.is_dir():
+            raise argparse.ArgumentTypeError(f"{path} is a file; give a folder")
+        parent = next(p for p in (path, *path.parents) if p.exists())
+        if not parent.is_dir():
+            raise argparse.ArgumentTypeError(f"{path} cannot be created: {parent} is a file")
+    else:
+        if path.is_dir():
+            raise argparse.ArgumentTypeError(f"{path} is a folder; give a file name in it, e.g. {path / 'model.npz'}")
+        parent = path.parent
+        if not parent.is_dir():
+            raise argparse.ArgumentTypeError(f"the folder {parent} does not exist: create it first "
+                                             f"(mkdir -p {parent}) or choose another path")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise argparse.ArgumentTypeError(f"cannot write in {parent}: permission denied")
+    return path
+
+
+def _output_file(text: str) -> Path:
+    return _check_output(text, folder=False)
+
+
+def _output_folder(text: str) -> Path:
+    return _check_output(text, folder=True)
 
 
 def _cmd_experiment(args) -> int:
@@ -67,24 +150,23 @@ def _cmd_synth(args) -> int:
 
 
 def _speed(text: str):
-    if text == "max":
-        return "max"
+    from node.scene import SPEED_HELP, SPEED_MAX, is_speed
+
     try:
-        value = float(text)
+        value = text if text == SPEED_MAX else float(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"--speed takes a positive factor or 'max', got {text!r}") from None
-    if not value > 0:
-        raise argparse.ArgumentTypeError(f"--speed must be > 0, got {text!r}")
+        value = None
+    if not is_speed(value):
+        raise argparse.ArgumentTypeError(f"expected {SPEED_HELP}, got {text!r}")
     return value
 
 
 def _cmd_run(args) -> int:
-    import signal
-
     from node.build import build_node
     from node.scene import default_scene, load_scene
     from node.sinks import JsonLinesSink
 
+    _interrupt_until_running()
     scene = load_scene(args.scene) if args.scene else default_scene()
     sinks = [JsonLinesSink("-")] if args.json else None
     progress = None if args.quiet else (lambda m: print(f"supramodal: {m}", file=sys.stderr, flush=True))
@@ -92,16 +174,13 @@ def _cmd_run(args) -> int:
         progress(f"scene {scene.source}: {scene.driver['type']} driver, {scene.bank['kind']} bank, "
                  f"features {scene.features['names']}")
     node = build_node(scene, speed=args.speed, sinks_override=sinks, progress=progress)
-    # Signals only set a flag: the node finishes what it holds and prints its summary.
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda signum, frame: node.stop(signal.Signals(signum).name))
+    _stop_on_signals(node)
     node.run(max_seconds=args.seconds)
     return 0
 
 
 def _cmd_record(args) -> int:
     import json as _json
-    import signal
     import threading
     import time
 
@@ -109,13 +188,13 @@ def _cmd_record(args) -> int:
     from node.recorder import SessionRecorder
     from node.scene import load_scene
 
+    _interrupt_until_running()
     scene = load_scene(args.scene)
     name = args.name or time.strftime("session-%Y%m%d-%H%M%S")
     source = _json.dumps({"scene": scene.source, "driver": scene.driver})
     recorder = SessionRecorder(args.out, name, source, label=args.label)
     node = build_node(scene, recorder=recorder, progress=_progress(args))
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda signum, frame: node.stop(signal.Signals(signum).name))
+    _stop_on_signals(node)
     if args.marks:
         # Each line typed starts a label (its text) at the current stream time; an empty line ends it.
         def read_marks():
@@ -201,31 +280,43 @@ def _cmd_bench(args) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from supramodal.features import DEFAULT_WINDOW, FEATURE_TABLE
+    from supramodal.mlp import DEFAULT_EPOCHS
+
     parser = argparse.ArgumentParser(prog="supramodal", description=__doc__.splitlines()[0])
+    parser.add_argument("--debug", action="store_true", help="show the traceback of every error, not one line")
+    # --debug is also accepted after the command; SUPPRESS keeps the top-level value when it is not.
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--debug", action="store_true", default=argparse.SUPPRESS, help=argparse.SUPPRESS)
     sub = parser.add_subparsers(dest="command", required=True)
 
-    p = sub.add_parser("run", help="run the node on a scene (default: the embedded whisker replay scene)")
+    def add_parser(name, **kwargs):
+        return sub.add_parser(name, parents=[common], **kwargs)
+
+    p = add_parser("run", help="run the node on a scene (default: the embedded whisker replay scene)")
     p.add_argument("scene", nargs="?", help="scene TOML file (default: the embedded default scene)")
-    p.add_argument("--speed", type=_speed, help="replay speed: 1 = real time (default), a factor, or 'max'")
+    p.add_argument("--speed", type=_speed, help="replay speed: 1 = real time (default: the scene's), a factor, or 'max'")
     p.add_argument("--json", action="store_true", help="JSON Lines on stdout instead of the scene's sinks")
     p.add_argument("--seconds", type=float, help="stop after this much stream (default: until it ends or Ctrl-C)")
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")
     p.set_defaults(func=_cmd_run)
 
-    p = sub.add_parser("train", help="train a model from labelled recordings")
+    p = add_parser("train", help="train a model from labelled recordings")
     p.add_argument("--bank", choices=["whisker", "cochlea"], required=True)
     p.add_argument("--manifest", required=True, help="CSV with columns path,label[,start,end]; paths relative to it")
-    p.add_argument("--out", required=True, help="model file to write (.npz)")
-    p.add_argument("--features", nargs="+", default=["Af"], choices=["Af", "A", "f"])
-    p.add_argument("--window", type=float, default=0.1, help="window, seconds (default 0.1)")
-    p.add_argument("--epochs", type=int, default=500)
+    p.add_argument("--out", required=True, type=_output_file,
+                   help="model file to write, at exactly this path (an .npz archive; e.g. model.npz)")
+    p.add_argument("--features", nargs="+", default=["Af"], choices=list(FEATURE_TABLE),
+                   help="; ".join(f"{f.name}: {f.description}" for f in FEATURE_TABLE.values()) + " (default Af)")
+    p.add_argument("--window", type=float, default=DEFAULT_WINDOW, help=f"window, seconds (default {DEFAULT_WINDOW})")
+    p.add_argument("--epochs", type=int, default=DEFAULT_EPOCHS, help=f"iRPROP- epochs (default {DEFAULT_EPOCHS})")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--mapping", type=_mapping, default="auto",
                    help="recording channels to filters: auto, mono, per-channel, mean, or a channel index")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=_cmd_train)
 
-    p = sub.add_parser("evaluate", help="accuracy and confusion of a model on labelled recordings")
+    p = add_parser("evaluate", help="accuracy and confusion of a model on labelled recordings")
     p.add_argument("model", help="model file (.npz)")
     p.add_argument("--manifest", required=True)
     p.add_argument("--mapping", type=_mapping, default="auto")
@@ -233,9 +324,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=_cmd_evaluate)
 
-    p = sub.add_parser("record", help="record a scene's raw driver blocks as a session (WAV + JSON)")
+    p = add_parser("record", help="record a scene's raw driver blocks as a session (WAV + JSON)")
     p.add_argument("scene", help="scene TOML file")
-    p.add_argument("--out", required=True, help="folder for the session")
+    p.add_argument("--out", required=True, type=_output_folder, help="folder for the session (created if missing)")
     p.add_argument("--name", help="session name (default: session-DATE-TIME)")
     p.add_argument("--label", help="label of the whole recording")
     p.add_argument("--marks", action="store_true",
@@ -246,67 +337,96 @@ def build_parser() -> argparse.ArgumentParser:
 
     from drivers.mock_whisker import add_arguments as mock_arguments
 
-    p = sub.add_parser("mock-whisker", help="a mock whisker-array board streaming frames on a pty, with fault injection")
+    p = add_parser("mock-whisker", help="a mock whisker-array board streaming frames on a pty, with fault injection")
     mock_arguments(p)
     p.set_defaults(func=_cmd_mock_whisker)
 
-    p = sub.add_parser("devices", help="list audio inputs and serial ports")
+    p = add_parser("devices", help="list audio inputs and serial ports")
     p.set_defaults(func=_cmd_devices)
 
-    p = sub.add_parser("experiment", help="reproduce a figure of the paper (or all of them)")
+    p = add_parser("experiment", help="reproduce a figure of the paper (or all of them)")
     p.add_argument("figure", choices=["fig1", "fig3", "fig4", "fig5", "fig6", "all"], help="which figure")
     p.add_argument("--quick", action="store_true", help="short textures and small grids: seconds, not minutes")
     p.add_argument("--jobs", type=int, help="worker processes (default: all cores); results do not depend on it")
     p.add_argument("--seed", type=int, default=0,
                    help="experiment seed: each run's network seed derives from it and the run; also the first "
                         "random texture set's seed")
-    p.add_argument("--epochs", type=int, default=500, help="iRPROP- epochs (default 500)")
+    p.add_argument("--epochs", type=int, default=DEFAULT_EPOCHS, help=f"iRPROP- epochs (default {DEFAULT_EPOCHS})")
     p.add_argument("--bank", choices=["whisker", "cochlea"], help="fig3: one bank (default: both)")
     p.add_argument("--textures", metavar="FILE", help="fig3: texture-set JSON file (default: the reference sets)")
     p.add_argument("--sets", type=int, help="fig3: N random texture sets instead of the reference set; "
                                             "all: N random sets per bank besides it (default 5, 0 with --quick)")
-    p.add_argument("--out", default="out", help="directory for CSV and PNG (default ./out)")
+    p.add_argument("--out", default="out", type=_output_folder, help="directory for CSV and PNG (default ./out)")
     p.add_argument("--json", action="store_true", help="print the figure's data as one JSON object instead of a table")
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")
     p.set_defaults(func=_cmd_experiment)
 
-    p = sub.add_parser("bench", help="filterbank error against run time, drift, the whole node (report in --out)")
+    p = add_parser("bench", help="filterbank error against run time, drift, the whole node (report in --out)")
     p.add_argument("--quick", action="store_true", help="short signals and streams (well under a minute; not for quoting)")
-    p.add_argument("--out", default="out/bench", help="directory for the report (default ./out/bench)")
+    p.add_argument("--out", default="out/bench", type=_output_folder, help="directory for the report (default ./out/bench)")
     p.add_argument("--json", action="store_true", help="print the results as one JSON object on stdout")
     p.set_defaults(func=_cmd_bench)
 
-    p = sub.add_parser("synth", help="write a texture set as WAV files")
+    p = add_parser("synth", help="write a texture set as WAV files")
     p.add_argument("--bank", choices=["whisker", "cochlea"], default="whisker")
     p.add_argument("--textures", metavar="FILE", help="texture-set JSON file (default: the bank's reference set)")
     p.add_argument("--duration", type=float, help="seconds per texture (default: the set's)")
-    p.add_argument("--out", default="out/textures", help="directory (default ./out/textures)")
+    p.add_argument("--out", default="out/textures", type=_output_folder, help="directory (default ./out/textures)")
     p.set_defaults(func=_cmd_synth)
     return parser
 
 
 def _is_user_error(exc: BaseException) -> bool:
-    """Errors that mean bad input or a missing device: one line, no traceback."""
-    from drivers.base import DriverError
+    """Whether ``exc`` is the user's to fix (one line) rather than a bug (a traceback).
 
-    if isinstance(exc, (CliError, ValueError, OSError, DriverError)):
-        return True
+    Every error the project raises on purpose (:class:`SupramodalError`), except a node
+    thread's failure whose cause is itself a bug; and an ``OSError`` that names a file
+    (a path given on the command line or in a scene: missing, unreadable, not writable).
+    """
     graph = sys.modules.get("node.graph")
-    return graph is not None and isinstance(exc, graph.NodeError)
+    if graph is not None and isinstance(exc, graph.NodeError) and exc.__cause__ is not None:
+        return _is_user_error(exc.__cause__)
+    if isinstance(exc, SupramodalError):
+        return True
+    return isinstance(exc, OSError) and exc.filename is not None
+
+
+def _reader_left(exc: BaseException) -> bool:
+    """Whether ``exc`` means that the reader of stdout went away (``| head``), directly or in a node thread."""
+    while exc is not None:
+        if isinstance(exc, BrokenPipeError):
+            return True
+        exc = exc.__cause__
+    return False
 
 
 def main(argv=None) -> int:
+    """Run the command line; returns the exit status (see the module docstring)."""
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
-    except Exception as exc:
-        if not _is_user_error(exc):
-            raise
-        print(f"supramodal: error: {exc}", file=sys.stderr)
-        return 2
+    except StartupInterrupted as exc:
+        print(f"supramodal: interrupted by {exc} during start-up (building the scene, training its model); "
+              "nothing was processed", file=sys.stderr)
+        return 128 + exc.signum
     except KeyboardInterrupt:
         print("supramodal: interrupted", file=sys.stderr)
-        return 130
+        return 128 + signal.SIGINT
+    except Exception as exc:
+        if _reader_left(exc):
+            # Python docs' recipe: point stdout at /dev/null so that the interpreter's last
+            # flush does not fail again; then stop quietly (exit status: module docstring).
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+            return 0
+        if _is_user_error(exc):
+            if args.debug:
+                traceback.print_exception(exc)
+            print(f"supramodal: error: {exc}", file=sys.stderr)
+            return EXIT_USER_ERROR
+        traceback.print_exception(exc)
+        print(f"supramodal: internal error ({type(exc).__name__}): this is a bug in supramodal; please report it "
+              "with the traceback above and the command that gave it", file=sys.stderr)
+        return EXIT_BUG
 
 
 if __name__ == "__main__":

@@ -11,8 +11,8 @@ Example (the embedded default is ``default_scene()``)::
     [driver]
     type = "replay"            # replay | synth | serial | microphone
     path = "session.wav"       # replay: WAV file or recorded session
-    speed = 1.0                # replay/synth: 1.0 real time, 2.0 twice as fast, "max"
-    block = 50                 # frames per block
+    speed = 1.0                # replay/synth: 1.0 real time (default), 2.0 twice as fast, "max"
+    block = 50                 # frames per block (default: 10 ms)
 
     [bank]
     kind = "whisker"           # whisker | cochlea
@@ -20,7 +20,7 @@ Example (the embedded default is ``default_scene()``)::
 
     [features]
     names = ["Af"]
-    window = 0.1
+    window = 0.1               # seconds (default 0.1)
 
     [model]
     path = "whisker.npz"
@@ -41,10 +41,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from supramodal.decisions import METHODS, SCOPES
-from supramodal.features import FEATURES
-from supramodal.peaks import PEAK_MODES
+from supramodal.banks import WHISKER_RATE, WHISKER_ROWS, whisker_bank
+from supramodal.decisions import (DEFAULT_CONTACT_THRESHOLD, DEFAULT_METHOD, DEFAULT_POOLED, DEFAULT_SCOPE, METHODS,
+                                  SCOPES)
 from supramodal.errors import InputError
+from supramodal.features import DEFAULT_WINDOW, FEATURE_TABLE, FEATURES
+from supramodal.peaks import DEFAULT_PEAK_MODE, PEAK_MODES
 
 
 class SceneError(InputError):
@@ -75,8 +77,14 @@ def _str(v):
     return isinstance(v, str) and v != ""
 
 
-def _speed(v):
-    return v == "max" or _positive(v)
+#: The replay speed that releases every block at once (in a scene and after ``--speed``).
+SPEED_MAX = "max"
+SPEED_HELP = f'1.0 (real time), a positive factor, or "{SPEED_MAX}"'
+
+
+def is_speed(v) -> bool:
+    """Whether ``v`` is a replay speed: a positive number or :data:`SPEED_MAX`."""
+    return v == SPEED_MAX or _positive(v)
 
 
 def _features(v):
@@ -95,13 +103,17 @@ def _texture_list(v):
     return isinstance(v, list) and all(isinstance(t, str) for t in v)
 
 
-# section -> key -> (check, description of what is expected, default or REQUIRED)
+# section -> key -> (check, description of what is expected, default or REQUIRED).
+# Every default has one home: a key whose default belongs to the driver or the bank is None
+# here ("the owner's default": build.py does not pass it on); the others import their owner's
+# constant.
 REQUIRED = object()
+_WHISKER_CHANNELS = whisker_bank().channels
 DRIVER_KEYS = {
     "replay": {
         "path": (_str, "a WAV file or session path", REQUIRED),
-        "speed": (_speed, '1.0 (real time), a positive factor, or "max"', 1.0),
-        "block": (_int_min(1), "frames per block, an integer >= 1", None),
+        "speed": (is_speed, SPEED_HELP + " (default: the replay driver's)", None),
+        "block": (_int_min(1), "frames per block, an integer >= 1 (default: the replay driver's)", None),
         "loop": (lambda v: isinstance(v, bool), "true or false", False),
         "mapping": (_mapping, '"auto", "mono", "per-channel", "mean" or a channel index', "auto"),
     },
@@ -109,43 +121,51 @@ DRIVER_KEYS = {
         "textures": (_str, '"reference" or a texture-set JSON path', "reference"),
         "seconds": (_positive, "seconds per texture, > 0", 10.0),
         "order": (_texture_list, "a list of texture names", None),
-        "speed": (_speed, '1.0 (real time), a positive factor, or "max"', 1.0),
-        "block": (_int_min(1), "frames per block, an integer >= 1", None),
+        "speed": (is_speed, SPEED_HELP + " (default: the replay driver's)", None),
+        "block": (_int_min(1), "frames per block, an integer >= 1 (default: the replay driver's)", None),
         "held_out": (lambda v: isinstance(v, bool), "true or false", True),
     },
     "serial": {
         "port": (_str, "a serial port path or pyserial URL", REQUIRED),
-        "rate": (_positive, "frames per second, Hz", 5000.0),
-        "channels": (_int_min(1), "an integer >= 1", 20),
-        "baudrate": (_int_min(1), "an integer", 2000000),
+        "rate": (_positive, "frames per second, Hz", WHISKER_RATE),
+        "channels": (_int_min(1), "an integer >= 1", _WHISKER_CHANNELS),
+        "baudrate": (_int_min(1), "bit/s on a real UART, an integer (default: the serial driver's "
+                                  "DEFAULT_BAUDRATE)", None),
         "mapping": (_mapping, '"auto", "mono", "per-channel", "mean" or a channel index', "auto"),
     },
     "microphone": {
-        "device": (lambda v: isinstance(v, (str, int)) and not isinstance(v, bool), "a device name or index", None),
-        "rate": (_positive, "Hz", 44100.0),
-        "channels": (_int_min(1), "an integer >= 1", 1),
-        "block": (_int_min(1), "frames per block", 441),
-        "dtype": (_one_of("float32", "int16"), '"float32" or "int16" (capture format)', "float32"),
-        "buffer_seconds": (_positive, "seconds the driver buffers between PortAudio and the node", 2.0),
+        "device": (lambda v: isinstance(v, (str, int)) and not isinstance(v, bool),
+                   "a device name or index (default: the system's default input)", None),
+        # None: the microphone driver's default (drivers.microphone.MicrophoneDriver).
+        "rate": (_positive, "Hz (default: the microphone driver's)", None),
+        "channels": (_int_min(1), "an integer >= 1 (default: the microphone driver's)", None),
+        "block": (_int_min(1), "frames per block (default: the microphone driver's)", None),
+        "dtype": (_one_of("float32", "int16"), '"float32" or "int16" (capture format; default: the driver\'s)', None),
+        "buffer_seconds": (_positive, "seconds the driver buffers between PortAudio and the node "
+                                      "(default: the driver's)", None),
         "mapping": (_mapping, '"auto", "mono", "per-channel", "mean" or a channel index', "auto"),
     },
 }
 SECTIONS = {
     "bank": {
         "kind": (_one_of("whisker", "cochlea"), '"whisker" or "cochlea"', "whisker"),
-        "rows": (_rows, 'whisker rows, e.g. "ABCDE"', "ABCDE"),
-        "mean_B": (_positive, "mean Slaney bandwidth, > 0", None),
-        "channels": (_int_min(1), "cochlea channels, an integer >= 1", 50),
-        "f_low": (_positive, "Hz", 20.0),
-        "f_high": (_positive, "Hz", 20000.0),
-        "fs": (_positive, "sample rate, Hz", None),
+        "rows": (_rows, 'whisker rows, e.g. "ABCDE"', "".join(WHISKER_ROWS)),
+        # None: the bank's own default (supramodal.banks.whisker_bank / cochlea_bank).
+        "mean_B": (_positive, "mean Slaney bandwidth, > 0 (default: the paper's bandwidths)", None),
+        "channels": (_int_min(1), "cochlea channels, an integer >= 1 (default: the cochlea bank's)", None),
+        "f_low": (_positive, "Hz (default: the cochlea bank's)", None),
+        "f_high": (_positive, "Hz, above f_low (default: the cochlea bank's)", None),
+        "fs": (_positive, "sample rate, Hz (default: the bank's)", None),
     },
     "features": {
-        "names": (_features, f"a list drawn from {list(FEATURES)}", ["Af"]),
-        "window": (_positive, "seconds, > 0", 0.1),
-        "peak_mode": (_one_of(*PEAK_MODES), f"one of {list(PEAK_MODES)}", "maxima"),
+        "names": (_features, "a list of distinct names drawn from "
+                  + "; ".join(f"{f.name} ({f.description})" for f in FEATURE_TABLE.values()), ["Af"]),
+        "window": (_positive, "seconds, > 0", DEFAULT_WINDOW),
+        "peak_mode": (_one_of(*PEAK_MODES), f"one of {list(PEAK_MODES)}", DEFAULT_PEAK_MODE),
         "peak_threshold": (_non_negative, "smallest peak amplitude counted, >= 0", 0.0),
         "dtype": (_one_of("float64", "float32"), '"float64" or "float32"', "float64"),
+        # Not the pipeline's default ("raise"): a live node replaces and counts a bad sample
+        # rather than stopping.
         "nonfinite": (_one_of("raise", "zero"), '"raise" or "zero"', "zero"),
     },
     "model": {
@@ -153,10 +173,10 @@ SECTIONS = {
         "train_on_start": (lambda v: isinstance(v, bool), "true or false (synth driver only)", False),
     },
     "decision": {
-        "scope": (_one_of(*SCOPES), f"one of {list(SCOPES)}", "window"),
-        "n": (_int_min(0), "windows, an integer >= 0", 10),
-        "method": (_one_of(*METHODS), f"one of {list(METHODS)}", "log"),
-        "contact_threshold": (_non_negative, "input RMS, >= 0", 0.01),
+        "scope": (_one_of(*SCOPES), f"one of {list(SCOPES)}", DEFAULT_SCOPE),
+        "n": (_int_min(0), "windows, an integer >= 0", DEFAULT_POOLED),
+        "method": (_one_of(*METHODS), f"one of {list(METHODS)}", DEFAULT_METHOD),
+        "contact_threshold": (_non_negative, "input RMS, >= 0", DEFAULT_CONTACT_THRESHOLD),
     },
     "buffer": {
         "seconds": (_positive, "ring buffer capacity, seconds", 2.0),
@@ -239,8 +259,6 @@ def scene_from_dict(d: dict, source: str = "<scene>", base_dir: Path | None = No
         sinks.append({"type": s["type"], **_fill(f"{source}: [[sink]] #{i + 1}", {k: v for k, v in s.items() if k != "type"},
                                                  SINK_KEYS[s["type"]])})
     bank = sections["bank"]
-    if bank["kind"] == "cochlea" and bank["f_low"] >= bank["f_high"]:
-        raise SceneError(f"{source}: [bank] f_low must be below f_high")
     if sections["decision"]["scope"] == "last" and sections["decision"]["n"] < 1:
         raise SceneError(f"{source}: [decision] n must be >= 1 with scope = \"last\"")
     return Scene(drv, bank, sections["features"], sections["model"], sections["decision"], sections["buffer"],
@@ -254,6 +272,8 @@ def load_scene(path) -> Scene:
         data = tomllib.loads(path.read_text())
     except FileNotFoundError:
         raise SceneError(f"no scene file at {path}") from None
+    except OSError as exc:                  # a folder, no permission, ...: the user's path, one line
+        raise SceneError(f"cannot read the scene file {path}: {exc.strerror or exc}") from None
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise SceneError(f"{path} is not valid TOML: {exc}") from None
     return scene_from_dict(data, str(path), path.resolve().parent)
@@ -265,7 +285,7 @@ def default_scene() -> Scene:
     return scene_from_dict({
         "driver": {"type": "synth", "textures": "reference", "seconds": 10.0, "held_out": True, "block": 50},
         "bank": {"kind": "whisker"},
-        "features": {"names": ["Af"], "window": 0.1},
+        "features": {"names": ["Af"]},
         "model": {"train_on_start": True},
         "decision": {"scope": "window"},
         "sink": [{"type": "text"}],

@@ -20,7 +20,7 @@ from supramodal.banks import Bank
 from supramodal.decisions import DecisionAccumulator
 from supramodal.model import TextureModel
 from supramodal.pipeline import FeaturePipeline
-from supramodal.training import DEFAULT_EPOCHS
+from supramodal.mlp import DEFAULT_EPOCHS
 
 
 def recording_windows(rec: Recording, pipeline: FeaturePipeline, mapping="auto", notice=None) -> np.ndarray:

@@ -22,6 +22,8 @@ from typing import Sequence
 
 import numpy as np
 
+from supramodal.errors import InputError
+
 #: Glasberg & Moore (1990) constants used by the cochlea.
 COCHLEA_Q_EAR = 9.26449
 COCHLEA_B_MIN = 24.7
@@ -49,10 +51,10 @@ COCHLEA_RATE = 44100.0
 
 
 def _real(value, what: str) -> np.ndarray:
-    """``value`` as a float64 array, or a ValueError naming ``what`` (complex, text, None...)."""
+    """``value`` as a float64 array, or an InputError naming ``what`` (complex, text, None...)."""
     a = np.asarray(value)
     if a.dtype.kind not in "fiu":
-        raise ValueError(f"{what} must be real numbers (Hz), got {a.dtype} values: {value!r:.60}")
+        raise InputError(f"{what} must be real numbers (Hz), got {a.dtype} values: {value!r:.60}")
     return a.astype(np.float64)
 
 
@@ -75,7 +77,7 @@ class Bank:
 
     Raises
     ------
-    ValueError
+    InputError
         Empty bank, mismatched lengths, non-finite values, ``fs <= 0``,
         ``cf <= 0``, ``cf >= fs/2`` or ``b <= 0``.
     """
@@ -89,32 +91,32 @@ class Bank:
     def __post_init__(self) -> None:
         cf, b, fs = _real(self.cf, "centre frequencies cf"), _real(self.b, "bandwidths b"), _real(self.fs, "sample rate fs")
         if fs.size != 1:
-            raise ValueError(f"sample rate fs must be one number of Hz, got {fs.size} values")
+            raise InputError(f"sample rate fs must be one number of Hz, got {fs.size} values")
         cf, b, fs = cf.reshape(-1), b.reshape(-1), float(fs.reshape(-1)[0])
         names = tuple(str(n) for n in self.names)
         if not np.isfinite(fs) or fs <= 0:
-            raise ValueError(f"sample rate fs must be a positive number of Hz, got {self.fs!r}")
+            raise InputError(f"sample rate fs must be a positive number of Hz, got {self.fs!r}")
         if cf.size == 0:
-            raise ValueError("a bank needs at least one channel; got an empty list of centre frequencies")
+            raise InputError("a bank needs at least one channel; got an empty list of centre frequencies")
         if b.size != cf.size or len(names) != cf.size:
-            raise ValueError(
+            raise InputError(
                 f"cf, b and names must have one entry per channel; got {cf.size}, {b.size} and {len(names)}"
             )
         if not (np.all(np.isfinite(cf)) and np.all(np.isfinite(b))):
-            raise ValueError("centre frequencies and bandwidths must be finite numbers (found NaN or Inf)")
+            raise InputError("centre frequencies and bandwidths must be finite numbers (found NaN or Inf)")
         bad = np.flatnonzero((cf <= 0) | (cf >= fs / 2))
         if bad.size:
             k = int(bad[0])
-            raise ValueError(
+            raise InputError(
                 f"centre frequency of channel {names[k]} is {cf[k]:g} Hz, outside (0, fs/2) = (0, {fs / 2:g}) Hz: "
                 "lower it or raise the sample rate"
             )
         bad = np.flatnonzero(b <= 0)
         if bad.size:
             k = int(bad[0])
-            raise ValueError(f"bandwidth parameter b of channel {names[k]} is {b[k]:g} Hz; it must be > 0")
+            raise InputError(f"bandwidth parameter b of channel {names[k]} is {b[k]:g} Hz; it must be > 0")
         if len(set(names)) != len(names):
-            raise ValueError("channel names must be unique")
+            raise InputError("channel names must be unique")
         cf.flags.writeable = False
         b.flags.writeable = False
         object.__setattr__(self, "cf", cf)
@@ -139,12 +141,12 @@ class Bank:
 
     @classmethod
     def from_dict(cls, d: dict) -> "Bank":
-        """Inverse of :meth:`to_dict`; raises ValueError on a malformed description."""
+        """Inverse of :meth:`to_dict`; raises InputError on a malformed description."""
         try:
             return cls(kind=str(d["kind"]), fs=float(d["fs"]), cf=np.asarray(d["cf"], float),
                        b=np.asarray(d["b"], float), names=tuple(d["names"]))
         except (KeyError, TypeError) as exc:
-            raise ValueError(f"malformed bank description: {exc!r}; expected keys kind, fs, cf, b, names") from exc
+            raise InputError(f"malformed bank description: {exc!r}; expected keys kind, fs, cf, b, names") from exc
 
     def matches(self, other: "Bank") -> bool:
         """True if both banks filter identically (same rate, cf and b to 1e-12, same names)."""
@@ -191,9 +193,9 @@ def erb_space(f_low: float, f_high: float, n: int, q_ear: float = COCHLEA_Q_EAR,
         Centre frequencies in Hz, descending.
     """
     if n < 1:
-        raise ValueError(f"the number of channels must be >= 1, got {n}")
+        raise InputError(f"the number of channels must be >= 1, got {n}")
     if not (0 < f_low < f_high):
-        raise ValueError(f"need 0 < f_low < f_high, got f_low={f_low}, f_high={f_high}")
+        raise InputError(f"need 0 < f_low < f_high, got f_low={f_low}, f_high={f_high}")
     c = q_ear * b_min
     k = np.arange(1, n + 1)
     return -c + np.exp(k / n * (np.log(f_low + c) - np.log(f_high + c))) * (f_high + c)
@@ -230,18 +232,18 @@ def whisker_bank(rows: Sequence[str] | str = WHISKER_ROWS, mean_B: float | None 
     """
     rows = tuple(rows)
     if not rows:
-        raise ValueError("choose at least one whisker row from A, B, C, D, E")
+        raise InputError("choose at least one whisker row from A, B, C, D, E")
     unknown = [r for r in rows if r not in WHISKER_TABLE]
     if unknown:
-        raise ValueError(f"unknown whisker row(s) {unknown}; rows are {', '.join(WHISKER_ROWS)}")
+        raise InputError(f"unknown whisker row(s) {unknown}; rows are {', '.join(WHISKER_ROWS)}")
     if len(set(rows)) != len(rows):
-        raise ValueError(f"whisker rows repeat in {rows}")
+        raise InputError(f"whisker rows repeat in {rows}")
     cf = np.array([f for r in rows for f in WHISKER_TABLE[r]], dtype=np.float64)
     names = tuple(f"{r}{arc}" for r in rows for arc in range(1, 5))
     b = ERB_TO_B * erb(cf, WHISKER_Q_EAR, WHISKER_B_MIN)
     if mean_B is not None:
         if not (np.isfinite(mean_B) and mean_B > 0):
-            raise ValueError(f"mean_B must be a positive number, got {mean_B!r}")
+            raise InputError(f"mean_B must be a positive number, got {mean_B!r}")
         b = b * (mean_B / float(np.mean(slaney_bandwidth(b))))
     return Bank("whisker", fs, cf, b, names)
 
@@ -252,4 +254,4 @@ def bank_by_name(name: str, **kwargs) -> Bank:
         return whisker_bank(**kwargs)
     if name == "cochlea":
         return cochlea_bank(**kwargs)
-    raise ValueError(f"unknown bank {name!r}: choose 'whisker' or 'cochlea'")
+    raise InputError(f"unknown bank {name!r}: choose 'whisker' or 'cochlea'")

@@ -20,8 +20,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from supramodal.errors import InputError
+
 SCOPES = ("window", "last", "contact")
 METHODS = ("log", "vote")
+#: Defaults of a decision (the scene's [decision] section takes them from here).
+DEFAULT_SCOPE = "window"
+DEFAULT_POOLED = 10
+DEFAULT_METHOD = "log"
+DEFAULT_CONTACT_THRESHOLD = 0.01
 _EPS = 1e-12
 
 
@@ -68,20 +75,21 @@ class DecisionAccumulator:
     scope : {"window", "last", "contact"}
         ``"window"`` decides each window alone (the paper's setting).
     n : int
-        Windows pooled for ``scope="last"`` (default 10 = 1 s of 100 ms windows);
+        Windows pooled for ``scope="last"`` (default :data:`DEFAULT_POOLED`, 1 s of 100 ms windows);
         for ``"contact"``, the most windows kept (0 = unlimited).
     method : {"log", "vote"}
     """
 
-    def __init__(self, n_classes: int, scope: str = "window", n: int = 10, method: str = "log") -> None:
+    def __init__(self, n_classes: int, scope: str = DEFAULT_SCOPE, n: int = DEFAULT_POOLED,
+                 method: str = DEFAULT_METHOD) -> None:
         if scope not in SCOPES:
-            raise ValueError(f"decision scope must be one of {SCOPES}, got {scope!r}")
+            raise InputError(f"decision scope must be one of {SCOPES}, got {scope!r}")
         if method not in METHODS:
-            raise ValueError(f"decision method must be one of {METHODS}, got {method!r}")
+            raise InputError(f"decision method must be one of {METHODS}, got {method!r}")
         if scope == "last" and n < 1:
-            raise ValueError(f"scope 'last' needs n >= 1 windows, got {n}")
+            raise InputError(f"scope 'last' needs n >= 1 windows, got {n}")
         if n < 0:
-            raise ValueError(f"n must be >= 0, got {n}")
+            raise InputError(f"n must be >= 0, got {n}")
         self.n_classes = int(n_classes)
         self.scope, self.method = scope, method
         maxlen = n if scope == "last" else (n or None)
@@ -95,7 +103,7 @@ class DecisionAccumulator:
         """Add one window's outputs (classes,) and return the current decision."""
         outputs = np.asarray(outputs, dtype=np.float64)
         if outputs.shape != (self.n_classes,):
-            raise ValueError(f"expected {self.n_classes} outputs, got shape {outputs.shape}")
+            raise InputError(f"expected {self.n_classes} outputs, got shape {outputs.shape}")
         if self.scope == "window":
             return window_decision(outputs)
         if self.scope == "contact" and not in_contact:
@@ -122,12 +130,13 @@ class ContactDetector:
     window_samples : int
         Same windows as the feature pipeline.
     threshold : float
-        RMS (full scale 1.0) at or above which a window is in contact.
+        RMS (full scale 1.0) at or above which a window is in contact (default
+        :data:`DEFAULT_CONTACT_THRESHOLD`).
     """
 
-    def __init__(self, window_samples: int, threshold: float) -> None:
+    def __init__(self, window_samples: int, threshold: float = DEFAULT_CONTACT_THRESHOLD) -> None:
         if not (np.isfinite(threshold) and threshold >= 0):
-            raise ValueError(f"contact threshold must be a non-negative RMS, got {threshold!r}")
+            raise InputError(f"contact threshold must be a non-negative RMS, got {threshold!r}")
         self.window_samples = int(window_samples)
         self.threshold = float(threshold)
         self._energy = 0.0

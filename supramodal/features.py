@@ -22,26 +22,70 @@ has arrived: no look-ahead into the next block, no added latency in a stream.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 
+from supramodal.errors import InputError
 from supramodal.peaks import Peaks
 
-FEATURES = ("Af", "A", "f")
+@dataclass(frozen=True)
+class Feature:
+    """One per-window feature: how a peak contributes to it, and what it means.
+
+    Attributes
+    ----------
+    name : str
+    description : str
+        One line, for help texts and error messages.
+    needs_frequency : bool
+        Whether :attr:`term` uses the peaks' instantaneous frequencies (they are
+        computed only if some selected feature needs them).
+    term : callable(amplitude, frequency) -> ndarray
+        A peak's contribution to the window's sum, from its amplitude ``A_k`` and
+        instantaneous frequency ``f_k`` in Hz (``None`` when not needed), shape (peaks,).
+    """
+
+    name: str
+    description: str
+    needs_frequency: bool
+    term: Callable[[np.ndarray, np.ndarray | None], np.ndarray]
+
+
+#: The one table of features: the names a scene, the command line or a model file may use,
+#: the check of a selection and the computation all come from it.
+FEATURE_TABLE: dict[str, Feature] = {f.name: f for f in (
+    Feature("Af", "sum of A_k f_k, the equivalent noise level (Hz x amplitude)", True, lambda amp, freq: amp * freq),
+    Feature("A", "sum of the peak amplitudes A_k (full scale 1.0)", False, lambda amp, freq: amp),
+    Feature("f", "sum of the instantaneous frequencies f_k (Hz)", True, lambda amp, freq: freq),
+)}
+#: Every feature name, in the table's order (the default selection computes all of them).
+FEATURES = tuple(FEATURE_TABLE)
+#: Feature window, seconds (the paper's 100 ms; the one home of this default, also for the
+#: pipeline, the scene and the command line).
+DEFAULT_WINDOW = 0.1
 
 
 def check_features(features) -> tuple[str, ...]:
-    """Validate a feature selection; returns it as a tuple in the given order."""
+    """Validate a feature selection; returns it as a tuple in the given order.
+
+    Raises
+    ------
+    InputError
+        An empty selection, a name not in :data:`FEATURE_TABLE` (the message lists the
+        known ones) or a name given twice.
+    """
     if isinstance(features, str):
         features = (features,)
     features = tuple(features)
     if not features:
-        raise ValueError(f"choose at least one feature from {FEATURES}")
-    unknown = [f for f in features if f not in FEATURES]
+        raise InputError(f"choose at least one feature from {list(FEATURES)}")
+    unknown = [f for f in features if f not in FEATURE_TABLE]
     if unknown:
-        raise ValueError(f"unknown feature(s) {unknown}; features are {', '.join(FEATURES)}")
+        known = "; ".join(f"{f.name}: {f.description}" for f in FEATURE_TABLE.values())
+        raise InputError(f"unknown feature(s) {unknown}; the features are {known}")
     if len(set(features)) != len(features):
-        raise ValueError(f"features repeat in {features}")
+        raise InputError(f"features repeat in {features}")
     return features
 
 
@@ -82,7 +126,7 @@ def concat_windows(parts: list[Windows], features: tuple[str, ...], channels: in
         return Windows(0, np.zeros((0, len(features), channels)), features)
     for a, b in zip(parts, parts[1:]):
         if b.first != a.first + len(a):
-            raise ValueError(f"windows are not consecutive: {a.first}+{len(a)} then {b.first}")
+            raise InputError(f"windows are not consecutive: {a.first}+{len(a)} then {b.first}")
     return Windows(parts[0].first, np.concatenate([p.values for p in parts]), features)
 
 
@@ -96,8 +140,8 @@ class FeatureWindows:
         Sample rate, Hz (for the instantaneous frequency).
     length : int
         Window length in samples (100 ms is 500 at 5 kHz, 4410 at 44.1 kHz).
-    features : sequence of {"Af", "A", "f"}
-        Only these are computed, in this order.
+    features : sequence of str
+        Names from :data:`FEATURE_TABLE`; only these are computed, in this order.
 
     Notes
     -----
@@ -106,14 +150,15 @@ class FeatureWindows:
 
     def __init__(self, channels: int, fs: float, length: int, features=FEATURES) -> None:
         if not (isinstance(length, (int, np.integer)) and length >= 1):
-            raise ValueError(f"window length must be a whole number of samples >= 1, got {length!r}")
+            raise InputError(f"window length must be a whole number of samples >= 1, got {length!r}")
         if not (np.isfinite(fs) and fs > 0):
-            raise ValueError(f"sample rate must be > 0 Hz, got {fs!r}")
+            raise InputError(f"sample rate must be > 0 Hz, got {fs!r}")
         self.channels = int(channels)
         self.fs = float(fs)
         self.length = int(length)
         self.features = check_features(features)
-        self._need_f = "f" in self.features or "Af" in self.features
+        self._terms = tuple(FEATURE_TABLE[name].term for name in self.features)
+        self._need_f = any(FEATURE_TABLE[name].needs_frequency for name in self.features)
         self._last_peak = np.full(self.channels, -1, dtype=np.int64)
         self._next = 0                                   # first window not yet emitted
         self._open = np.zeros((0, len(self.features), self.channels))
@@ -130,7 +175,7 @@ class FeatureWindows:
             first_w = (int(idx.min()) + 1) // W                # windows of the earliest and latest detection
             last_w = (int(idx.max()) + 1) // W
             if first_w < self._next:
-                raise ValueError("a peak falls in a window already emitted: peaks must come in stream order")
+                raise InputError("a peak falls in a window already emitted: peaks must come in stream order")
             span = max(span, last_w - self._next + 1)
         if span > self._open.shape[0]:
             grown = np.zeros((span, len(self.features), self.channels))
@@ -153,15 +198,13 @@ class FeatureWindows:
         if first_w == last_w:
             # The usual case (a block inside one window): plain per-channel sums.
             row = self._open[first_w - self._next]
-            for k, name in enumerate(self.features):
-                w = amp if name == "A" else freq if name == "f" else amp * freq
-                row[k] += np.bincount(ch, weights=w, minlength=C)
+            for k, term in enumerate(self._terms):
+                row[k] += np.bincount(ch, weights=term(amp, freq), minlength=C)
             return
         slot = ((idx + 1) // self.length - self._next) * C + ch     # (window of detection, channel) bin
         nbins = self._open.shape[0] * C
-        for k, name in enumerate(self.features):
-            w = amp if name == "A" else freq if name == "f" else amp * freq
-            self._open[:, k, :] += np.bincount(slot, weights=w, minlength=nbins).reshape(-1, C)
+        for k, term in enumerate(self._terms):
+            self._open[:, k, :] += np.bincount(slot, weights=term(amp, freq), minlength=nbins).reshape(-1, C)
 
     def _frequencies(self, ch: np.ndarray, idx: np.ndarray) -> np.ndarray:
         """``f_k = fs / (n_k - n_(k-1))`` per peak, 0 for a channel's first peak ever; updates the last peaks."""

@@ -253,7 +253,6 @@ def reference_impulse_response(bank: Bank, n: int) -> np.ndarray:
     """
     k = np.arange(n, dtype=_LD)
     b = bank.b.astype(_LD)[:, None]
-    cf = bank.cf.astype(_LD)[:, None]
     fs = _LD(bank.fs)
     cos_t, _ = _cos_sin_turns(*_quarter_turns(bank.cf[:, None], bank.fs, np.arange(n, dtype=np.float64)))
     h = k**3 * np.exp(-_TWO_PI_LD * b * k / fs) * cos_t

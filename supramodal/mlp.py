@@ -28,6 +28,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from supramodal.errors import InputError
+
+#: iRPROP- epochs when none are asked for (the one home of this default; the paper trains 500).
+DEFAULT_EPOCHS = 500
 STEEPNESS = 0.5
 INIT_RANGE = 0.1
 RPROP_INCREASE = 1.2
@@ -85,7 +89,7 @@ class MLP:
         """FANN-style random start: every weight and bias uniform in [-0.1, 0.1]."""
         for name, v in (("inputs", inputs), ("hidden", hidden), ("outputs", outputs)):
             if v < 1:
-                raise ValueError(f"{name} must be >= 1, got {v}")
+                raise InputError(f"{name} must be >= 1, got {v}")
         rng = np.random.default_rng(seed)
         u = lambda *shape: rng.uniform(-INIT_RANGE, INIT_RANGE, size=shape)
         return cls(u(inputs, hidden), u(hidden), u(hidden, outputs), u(outputs))
@@ -165,7 +169,7 @@ def one_hot(labels: np.ndarray, n_classes: int) -> np.ndarray:
 
 
 def train_mlp(x: np.ndarray, labels: np.ndarray, n_classes: int, hidden: int | None = None,
-              epochs: int = 500, seed=None, desired_mse: float = 0.0, progress=None) -> tuple[MLP, list[float]]:
+              epochs: int = DEFAULT_EPOCHS, seed=None, desired_mse: float = 0.0, progress=None) -> tuple[MLP, list[float]]:
     """Train an MLP by batch iRPROP- on (already scaled) inputs.
 
     Parameters
@@ -176,7 +180,7 @@ def train_mlp(x: np.ndarray, labels: np.ndarray, n_classes: int, hidden: int | N
     hidden : int, optional
         Hidden units (default: as many as inputs, as in the paper).
     epochs : int
-        Maximum number of batch epochs (default 500).
+        Maximum number of batch epochs (default :data:`DEFAULT_EPOCHS`).
     seed : int or None
         Seed of the initial weights; the result is deterministic given it.
     desired_mse : float
@@ -191,15 +195,15 @@ def train_mlp(x: np.ndarray, labels: np.ndarray, n_classes: int, hidden: int | N
     x = np.asarray(x, dtype=np.float64)
     labels = np.asarray(labels)
     if x.ndim != 2 or x.shape[0] == 0:
-        raise ValueError(f"training inputs must have shape (n >= 1, inputs), got {x.shape}")
+        raise InputError(f"training inputs must have shape (n >= 1, inputs), got {x.shape}")
     if labels.shape != (x.shape[0],) or labels.dtype.kind not in "iu":
-        raise ValueError(f"labels must be integers of shape ({x.shape[0]},), got {labels.dtype} {labels.shape}")
+        raise InputError(f"labels must be integers of shape ({x.shape[0]},), got {labels.dtype} {labels.shape}")
     if labels.min() < 0 or labels.max() >= n_classes:
-        raise ValueError(f"labels must lie in 0..{n_classes - 1}")
+        raise InputError(f"labels must lie in 0..{n_classes - 1}")
     if not np.isfinite(x).all():
-        raise ValueError("training inputs contain NaN or Inf")
+        raise InputError("training inputs contain NaN or Inf")
     if epochs < 1:
-        raise ValueError(f"epochs must be >= 1, got {epochs}")
+        raise InputError(f"epochs must be >= 1, got {epochs}")
     net = MLP.create(x.shape[1], hidden or x.shape[1], n_classes, seed=seed)
     opt = IRpropMinus(net.params())
     targets = one_hot(labels, n_classes)

@@ -31,7 +31,7 @@ import numpy as np
 
 from supramodal.banks import COCHLEA_B_MIN, COCHLEA_Q_EAR, ERB_TO_B, WHISKER_TABLE, Bank, erb
 from supramodal.features import check_features
-from supramodal.mlp import MLP, train_mlp
+from supramodal.mlp import DEFAULT_EPOCHS, MLP, train_mlp
 from supramodal.peaks import PEAK_MODES
 from supramodal.errors import InputError
 from supramodal.jsondata import parse_json_text
@@ -128,7 +128,7 @@ class TextureModel:
 
     @classmethod
     def train(cls, values: np.ndarray, labels, classes, bank: Bank, features, window_samples: int,
-              peak_mode: str = "maxima", epochs: int = 500, seed: int = 0, hidden: int | None = None,
+              peak_mode: str = "maxima", epochs: int = DEFAULT_EPOCHS, seed: int = 0, hidden: int | None = None,
               progress=None, peak_threshold: float = 0.0) -> "TextureModel":
         """Fit the scaling and the MLP on feature windows.
 
@@ -234,10 +234,9 @@ class TextureModel:
         }
 
     def save(self, path) -> Path:
-        """Write the model as ``.npz`` (the suffix is added if missing). Returns the path written."""
+        """Write the model, an ``.npz`` archive, to exactly ``path`` (no suffix is added, so that
+        :meth:`load` reads it back from the same name). Returns the path written."""
         path = Path(path)
-        if path.suffix != ".npz":
-            path = path.with_name(path.name + ".npz")
         arrays = dict(zip(_ARRAYS, (self.mlp.w1, self.mlp.b1, self.mlp.w2, self.mlp.b2, self.mean, self.scale)))
         with open(path, "wb") as fh:
             np.savez(fh, header=np.array(json.dumps(self.header())), **arrays)

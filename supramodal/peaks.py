@@ -18,7 +18,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from supramodal.errors import InputError
+
 PEAK_MODES = ("maxima", "extrema")
+DEFAULT_PEAK_MODE = "maxima"
 
 
 @dataclass(frozen=True)
@@ -75,14 +78,14 @@ class PeakExtractor:
     which is what the filterbank outputs at rest. Not thread-safe.
     """
 
-    def __init__(self, channels: int, mode: str = "maxima", threshold: float = 0.0) -> None:
+    def __init__(self, channels: int, mode: str = DEFAULT_PEAK_MODE, threshold: float = 0.0) -> None:
         if mode not in PEAK_MODES:
-            raise ValueError(f"peak mode must be one of {PEAK_MODES}, got {mode!r}")
+            raise InputError(f"peak mode must be one of {PEAK_MODES}, got {mode!r}")
         if not (np.isfinite(threshold) and threshold >= 0):
-            raise ValueError(f"peak threshold must be a finite amplitude >= 0, got {threshold!r}")
+            raise InputError(f"peak threshold must be a finite amplitude >= 0, got {threshold!r}")
         self.threshold = float(threshold)
         if channels < 1:
-            raise ValueError(f"channels must be >= 1, got {channels}")
+            raise InputError(f"channels must be >= 1, got {channels}")
         self.channels = int(channels)
         self.mode = mode
         self._z = None             # (channels, 2 + L): the last two samples seen, then the block
@@ -126,7 +129,7 @@ class PeakExtractor:
         staged, self._staged = self._staged, None
         y = np.asarray(y)
         if y.ndim != 2 or y.shape[0] != self.channels:
-            raise ValueError(f"expected a block of shape ({self.channels}, L), got {y.shape}")
+            raise InputError(f"expected a block of shape ({self.channels}, L), got {y.shape}")
         L = y.shape[1]
         n0 = self.samples_seen
         if L == 0:

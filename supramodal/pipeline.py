@@ -11,19 +11,19 @@ import numpy as np
 
 from supramodal.backends import make_filterbank
 from supramodal.banks import Bank
-from supramodal.features import FEATURES, FeatureWindows, Windows, check_features, concat_windows
-from supramodal.peaks import PeakExtractor
+from supramodal.features import DEFAULT_WINDOW, FEATURES, FeatureWindows, Windows, check_features, concat_windows
+from supramodal.errors import InputError
+from supramodal.peaks import DEFAULT_PEAK_MODE, PeakExtractor
 
-DEFAULT_WINDOW = 0.1
 
 
 def window_length(window: float, fs: float) -> int:
     """Window length in samples for ``window`` seconds at ``fs`` Hz (rounded to the nearest sample)."""
     if not (np.isfinite(window) and window > 0):
-        raise ValueError(f"window must be a positive number of seconds, got {window!r}")
+        raise InputError(f"window must be a positive number of seconds, got {window!r}")
     n = int(round(window * fs))
     if n < 2:
-        raise ValueError(f"a window of {window} s is {n} sample(s) at {fs:g} Hz; it needs at least 2")
+        raise InputError(f"a window of {window} s is {n} sample(s) at {fs:g} Hz; it needs at least 2")
     return n
 
 
@@ -36,7 +36,7 @@ class FeaturePipeline:
     features : sequence of {"Af", "A", "f"}
         Features to compute (default all three); only these are computed.
     window : float
-        Window length in seconds (default 0.1), rounded to whole samples.
+        Window length in seconds (default :data:`DEFAULT_WINDOW`), rounded to whole samples.
     dtype : {numpy.float64, numpy.float32}
         Filterbank arithmetic (default float64).
     peak_mode : {"maxima", "extrema"}
@@ -63,7 +63,7 @@ class FeaturePipeline:
     """
 
     def __init__(self, bank: Bank, features=FEATURES, window: float = DEFAULT_WINDOW, dtype=np.float64,
-                 peak_mode: str = "maxima", nonfinite: str = "raise", subblock: int | None = None,
+                 peak_mode: str = DEFAULT_PEAK_MODE, nonfinite: str = "raise", subblock: int | None = None,
                  peak_threshold: float = 0.0, backend: str = "fast", gather: bool = True) -> None:
         self.bank = bank
         self.features = check_features(features)

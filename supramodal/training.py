@@ -1,4 +1,4 @@
-"""Training data from texture sets: features, the train/test split, the default epochs.
+"""Training data from texture sets: features and the train/test split.
 
 What the node's on-the-spot training (the default scene), the manifest training, the experiments
 and the benchmarks share. Pure numpy: no devices, no threads.
@@ -13,13 +13,12 @@ import numpy as np
 from supramodal.banks import Bank
 from supramodal.errors import InputError
 from supramodal.features import FEATURES
-from supramodal.pipeline import DEFAULT_WINDOW, FeaturePipeline
+from supramodal.features import DEFAULT_WINDOW
+from supramodal.pipeline import FeaturePipeline
 from supramodal.textures import TextureSet
 
 #: Fraction of each texture's windows used for training (paper: 300 of 400), the rest for testing.
 TRAIN_FRACTION = 0.75
-#: iRPROP- epochs of a training run, unless told otherwise.
-DEFAULT_EPOCHS = 500
 
 
 def texture_features(texture_set: TextureSet, bank: Bank, features=FEATURES, window: float = DEFAULT_WINDOW,

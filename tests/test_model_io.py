@@ -1,9 +1,7 @@
 """A trained model as data: save/load round trip, and every refusal of a bad file."""
 
-import io
 import json
 import pathlib
-import pickle
 import zipfile
 
 import numpy as np
@@ -73,9 +71,13 @@ def test_save_load_round_trip_gives_identical_outputs(model, saved):
     loaded.check_fits(BANK, FEATURES, 500)           # fits the pipeline it was made for
 
 
-def test_save_adds_the_suffix(model, tmp_path):
-    path = model.save(tmp_path / "model")
-    assert path == tmp_path / "model.npz" and path.is_file()
+@pytest.mark.parametrize("name", ["model", "model.npz", "model.bin"])
+def test_save_writes_exactly_the_path_given_and_load_reads_it(model, tmp_path, name):
+    """`train --out X` then `evaluate X` must find the model: no suffix is added on save."""
+    path = model.save(tmp_path / name)
+    assert path == tmp_path / name
+    assert [p.name for p in tmp_path.iterdir()] == [name]
+    assert TextureModel.load(tmp_path / name).classes == model.classes
 
 
 def test_saved_file_is_plain_data(saved):

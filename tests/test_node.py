@@ -268,9 +268,12 @@ def test_train_evaluate_round_trip_on_synthesised_recordings(tmp_path):
     rows_test.append(f"hi.wav,{ts.names[0]},6.0,8.0")
     (tmp_path / "train.csv").write_text("\n".join(rows_train) + "\n")
     (tmp_path / "test.csv").write_text("\n".join(rows_test) + "\n")
+    # The model is written to exactly the path given (no suffix added), and read back from it.
     assert main(["train", "--bank", "whisker", "--manifest", str(tmp_path / "train.csv"), "--out",
                  str(tmp_path / "m"), "--epochs", "200", "--quiet"]) == 0
-    model = TextureModel.load(tmp_path / "m.npz")
+    assert sorted(p.name for p in tmp_path.glob("m*")) == ["m"]
+    assert main(["evaluate", str(tmp_path / "m"), "--manifest", str(tmp_path / "test.csv"), "--quiet"]) == 0
+    model = TextureModel.load(tmp_path / "m")
     assert model.classes == tuple(sorted(ts.names[:4]))
     from node.training import evaluate_manifest
 
@@ -343,3 +346,75 @@ def test_clean_shutdown_on_signal(sig):
 def test_example_scenes_are_valid(path):
     scene = load_scene(path)
     assert scene.driver["type"] in ("synth", "replay", "serial", "microphone")
+
+
+# -- defaults: one home each ------------------------------------------------------------------------
+
+
+def test_default_serial_scene_meets_the_frame_formats_link_budget():
+    """20 channels at 5 kHz in frames of the board's size, 10 bits a byte on a UART (8N1):
+    the baud rate the default serial scene opens the port with must carry them."""
+    import inspect
+
+    from drivers.frames import frame_size
+    from drivers.mock_whisker import MockWhiskerDevice
+    from drivers.serial_whisker import DEFAULT_BAUDRATE
+    from node.build import driver_for
+
+    scene = scene_from_dict({"driver": {"type": "serial", "port": "loop://"}})
+    d = scene.driver
+    spf = inspect.signature(MockWhiskerDevice.__init__).parameters["samples_per_frame"].default
+    need = d["rate"] / spf * frame_size(spf, d["channels"]) * 10
+    assert need == pytest.approx(2.02e6, rel=1e-3)            # docs/serial-frames.md
+    driver, _, _ = driver_for(scene, whisker_bank())
+    assert driver.baudrate == DEFAULT_BAUDRATE >= need
+    scene = scene_from_dict({"driver": {"type": "serial", "port": "loop://", "baudrate": 4_000_000}})
+    assert driver_for(scene, whisker_bank())[0].baudrate == 4_000_000
+
+
+def test_replay_speed_and_block_defaults_are_the_replay_drivers(whisker_signal):
+    from node.build import driver_for
+
+    scene = scene_from_dict({"driver": {"type": "synth", "order": ["T1"], "seconds": 1.0}})
+    driver, _, _ = driver_for(scene, whisker_bank())
+    own = ReplayDriver((np.zeros((100, 1)), whisker_bank().fs))
+    assert (driver.speed, driver._sizes) == (own.speed, own._sizes)
+    driver, _, _ = driver_for(scene, whisker_bank(), speed_override="max")
+    assert driver.speed == float("inf")
+
+
+def test_command_line_model_and_scene_share_the_defaults():
+    import inspect
+
+    from node.cli import build_parser
+    from supramodal.features import DEFAULT_WINDOW
+    from supramodal.mlp import DEFAULT_EPOCHS, train_mlp
+    from supramodal.pipeline import FeaturePipeline
+
+    parser = build_parser()
+    train = parser.parse_args(["train", "--bank", "whisker", "--manifest", "m.csv", "--out", "m.npz"])
+    experiment = parser.parse_args(["experiment", "fig1"])
+    assert train.epochs == experiment.epochs == DEFAULT_EPOCHS
+    for fn in (train_mlp, TextureModel.train):
+        assert inspect.signature(fn).parameters["epochs"].default == DEFAULT_EPOCHS
+    assert train.window == default_scene().features["window"] == DEFAULT_WINDOW
+    assert inspect.signature(FeaturePipeline).parameters["window"].default == DEFAULT_WINDOW
+    assert f"(default {DEFAULT_EPOCHS})" in parser._subparsers._group_actions[0].choices["train"].format_help()
+
+
+@pytest.mark.parametrize("train_fraction, accepted", [(0.75, False), (0.6, True)])
+def test_held_out_share_follows_the_training_fraction(monkeypatch, train_fraction, accepted):
+    """Held-out segments come from the part the model did not train on: 1 - TRAIN_FRACTION of each texture."""
+    import supramodal.training as training
+    from node.build import synth_session
+
+    monkeypatch.setattr(training, "TRAIN_FRACTION", train_fraction)
+    ts = reference_texture_set("whisker")
+    seconds = 0.3 * ts.duration                                   # within 40 %, beyond 25 %
+    scene = scene_from_dict({"driver": {"type": "synth", "order": ["T1"], "seconds": seconds}})
+    if accepted:
+        _, data, _ = synth_session(scene, whisker_bank())
+        assert data.shape[0] == round(seconds * ts.fs)
+    else:
+        with pytest.raises(SceneError, match=f"at most the last 25% of the set's {ts.duration:g} s"):
+            synth_session(scene, whisker_bank())

@@ -239,6 +239,38 @@ def test_check_features():
         check_features("af")
 
 
+def test_an_unknown_feature_is_refused_everywhere_with_the_known_names():
+    """Names come from the one table: no fall-through to a computation for a name it lacks."""
+    from node.cli import build_parser
+    from node.scene import SceneError, scene_from_dict
+    from supramodal.errors import InputError
+    from supramodal.features import FEATURE_TABLE
+
+    with pytest.raises(InputError, match=r"unknown feature\(s\) \['Amp'\]; the features are Af: .*; A: .*; f: "):
+        FeatureWindows(2, FS, 10, ("Af", "Amp"))
+    with pytest.raises(SceneError, match=r"\[features\] names: expected a list of distinct names drawn from Af \("):
+        scene_from_dict({"driver": {"type": "synth"}, "features": {"names": ["Amp"]}})
+    choices = next(a for a in build_parser()._subparsers._group_actions[0].choices["train"]._actions
+                   if a.dest == "features").choices
+    assert list(choices) == list(FEATURE_TABLE) == list(FEATURES)
+
+
+def test_a_feature_is_computed_from_its_table_entry(monkeypatch):
+    """A feature added to the table is accepted and computed from its entry alone:
+    here the sum of squared amplitudes, against a plain per-peak loop."""
+    from supramodal import features
+
+    extra = features.Feature("A2", "sum of squared amplitudes", False, lambda amp, freq: amp ** 2)
+    monkeypatch.setitem(features.FEATURE_TABLE, "A2", extra)
+    fw = FeatureWindows(2, FS, 10, ("A2", "A"))
+    out = fw.process(peaks(P, decided=40))
+    want = np.zeros((4, 2))
+    for ch, idx, amp in P:
+        want[(idx + 1) // 10, ch] += amp * amp
+    np.testing.assert_array_equal(out.feature("A2"), want)
+    np.testing.assert_array_equal(out.feature("A"), expected_values()[:, 1, :])
+
+
 def test_concat_windows_refuses_gaps():
     a = Windows(0, np.zeros((2, 1, 1)), ("A",))
     b = Windows(3, np.zeros((1, 1, 1)), ("A",))

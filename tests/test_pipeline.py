@@ -10,7 +10,6 @@ from hypothesis import strategies as st
 from supramodal.banks import Bank, whisker_bank
 from supramodal.features import FEATURES, concat_windows
 from supramodal.gammatone import GammatoneFilterbank, relative_error
-from supramodal.peaks import PeakExtractor
 from supramodal.pipeline import FeaturePipeline, extract_features, window_length
 
 from blocks import feed_blocks

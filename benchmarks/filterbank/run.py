@@ -36,7 +36,8 @@ from supramodal.gammatone import reference_impulse_response, relative_error
 from supramodal.model import TextureModel
 from supramodal.pipeline import FeaturePipeline
 from supramodal.textures import reference_texture_set
-from supramodal.training import DEFAULT_EPOCHS, TRAIN_FRACTION
+from supramodal.mlp import DEFAULT_EPOCHS
+from supramodal.training import TRAIN_FRACTION
 
 #: (backend, dtype) pairs measured; "fast" and "reference" are the product's backends, the rest peers.
 VARIANTS = (("fast", "float64"), ("fast", "float32"), ("reference", "float64"),

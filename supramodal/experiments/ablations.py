@@ -42,9 +42,11 @@ from supramodal.experiments.runner import run_plans
 from supramodal.features import FEATURES
 from supramodal.gammatone import GammatoneFilterbank
 from supramodal.peaks import PeakExtractor
-from supramodal.pipeline import DEFAULT_WINDOW, extract_features, window_length
+from supramodal.features import DEFAULT_WINDOW
+from supramodal.pipeline import extract_features, window_length
 from supramodal.textures import BANK_RATES, random_texture_set, reference_texture_set
-from supramodal.training import DEFAULT_EPOCHS, texture_features
+from supramodal.mlp import DEFAULT_EPOCHS
+from supramodal.training import texture_features
 
 ABLATION_SETS = 5
 WIDTHS = (0.05, 0.02)

@@ -15,9 +15,11 @@ from supramodal.banks import Bank, bank_by_name
 from supramodal.features import FEATURES
 from supramodal.mlp import train_mlp
 from supramodal.model import TextureModel
-from supramodal.pipeline import DEFAULT_WINDOW, window_length
+from supramodal.features import DEFAULT_WINDOW
+from supramodal.pipeline import window_length
 from supramodal.textures import TextureSet
-from supramodal.training import DEFAULT_EPOCHS, split, texture_features
+from supramodal.mlp import DEFAULT_EPOCHS
+from supramodal.training import split, texture_features
 
 #: Seconds per texture in ``--quick`` mode (40 windows: 30 to train, 10 to test).
 QUICK_DURATION = 4.0

@@ -22,7 +22,8 @@ import numpy as np
 from supramodal.banks import whisker_bank
 from supramodal.experiments.common import Plan, Run
 from supramodal.features import FEATURES
-from supramodal.pipeline import DEFAULT_WINDOW, extract_features
+from supramodal.features import DEFAULT_WINDOW
+from supramodal.pipeline import extract_features
 
 CHANNEL = "A4"
 #: Full sweep: 241 log-spaced frequencies over two octaves centred on 630 Hz (0.58 % apart).

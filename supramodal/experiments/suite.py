@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 from supramodal.experiments import fig1, fig3, fig4, fig5, fig6
+from supramodal.errors import InputError
 from supramodal.experiments.common import BANKS, Plan
+from supramodal.mlp import DEFAULT_EPOCHS
 from supramodal.textures import TextureSet
-from supramodal.training import DEFAULT_EPOCHS
 
 FIGURES = ("fig1", "fig3", "fig4", "fig5", "fig6")
 #: Random texture sets per bank that ``experiment all`` adds to Fig. 3 (none in quick mode).
@@ -22,26 +23,26 @@ def plans(figure: str, quick: bool = False, epochs: int = DEFAULT_EPOCHS, seed: 
     sets (default :data:`ALL_SETS`, 0 in quick mode).
     """
     if figure not in FIGURES + ("all",):
-        raise ValueError(f"unknown figure {figure!r}; choose one of {', '.join(FIGURES)} or all")
+        raise InputError(f"unknown figure {figure!r}; choose one of {', '.join(FIGURES)} or all")
     if sets is not None and sets < 0:
-        raise ValueError(f"--sets must be >= 0, got {sets}")
+        raise InputError(f"--sets must be >= 0, got {sets}")
     common = {"quick": quick, "epochs": epochs}
     if figure == "all":
         if bank is not None or texture_set is not None:
-            raise ValueError("--bank and --textures apply to fig3 alone, not to all")
+            raise InputError("--bank and --textures apply to fig3 alone, not to all")
         n_sets = (0 if quick else ALL_SETS) if sets is None else sets
         fig3_plan = fig3.plan(BANKS, reference=True, sets=n_sets, seed=seed, **common)
         return {"fig1": fig1.plan(**common), "fig3": fig3_plan, "fig4": fig4.plan(**common),
                 "fig5": fig5.plan(**common), "fig6": fig6.plan(**common)}
     if figure != "fig3":
         if bank is not None or texture_set is not None or sets is not None:
-            raise ValueError("--bank, --textures and --sets apply to fig3 (and --sets to all)")
+            raise InputError("--bank, --textures and --sets apply to fig3 (and --sets to all)")
         return {figure: {"fig1": fig1, "fig4": fig4, "fig5": fig5, "fig6": fig6}[figure].plan(**common)}
     if texture_set is not None:
         if sets is not None and sets > 1:
-            raise ValueError("--sets draws random texture sets; it cannot be combined with --textures")
+            raise InputError("--sets draws random texture sets; it cannot be combined with --textures")
         if bank is not None and bank != texture_set.bank:
-            raise ValueError(f"texture set {texture_set.name!r} is for the {texture_set.bank} bank, not {bank}: "
+            raise InputError(f"texture set {texture_set.name!r} is for the {texture_set.bank} bank, not {bank}: "
                              f"pass --bank {texture_set.bank}")
         banks = (texture_set.bank,)
     else:

@@ -1,0 +1,177 @@
+"""The command line: one line for user errors, a traceback for bugs, output paths checked before
+the work, quiet exit when the reader of stdout leaves, signals during start-up."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from node import cli
+from node.cli import main
+from replay.wavio import write_wav
+from supramodal.errors import InputError
+from supramodal.textures import reference_texture_set
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _env():
+    env = dict(os.environ)
+    env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
+    return env
+
+
+@pytest.fixture(scope="module")
+def replay_scene(tmp_path_factory):
+    """A whisker replay scene of 2 s of one reference texture, looping (an endless stream)."""
+    folder = tmp_path_factory.mktemp("scene")
+    ts = reference_texture_set("whisker")
+    write_wav(folder / "w.wav", ts.synthesize(0, duration=2.0)[:, None], 5000)
+    scene = folder / "s.toml"
+    scene.write_text('[driver]\ntype = "replay"\npath = "w.wav"\nloop = true\n[features]\nnames = ["A"]\n'
+                     '[[sink]]\ntype = "jsonl"\n')
+    return scene
+
+
+def _lines(text: str) -> list[str]:
+    return [line for line in text.splitlines() if line.strip()]
+
+
+# -- errors: one line for the user's, a traceback for bugs --------------------------------------
+
+
+def test_user_error_is_one_line_and_exit_2(tmp_path, capsys):
+    assert main(["run", str(tmp_path / "missing.toml")]) == 2
+    err = _lines(capsys.readouterr().err)
+    assert err == [f"supramodal: error: no scene file at {tmp_path / 'missing.toml'}"]
+
+
+def test_a_folder_given_as_scene_is_a_user_error(tmp_path, capsys):
+    assert main(["run", str(tmp_path)]) == 2
+    err = _lines(capsys.readouterr().err)
+    assert len(err) == 1 and err[0].startswith("supramodal: error: cannot read the scene file") and str(tmp_path) in err[0]
+
+
+def test_debug_shows_the_traceback_of_a_user_error(tmp_path, capsys):
+    for argv in (["--debug", "run", str(tmp_path / "missing.toml")], ["run", "--debug", str(tmp_path / "missing.toml")]):
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert "Traceback" in err and "SceneError" in err
+        assert err.rstrip().splitlines()[-1].startswith("supramodal: error: no scene file")
+
+
+@pytest.mark.parametrize("planted", [ZeroDivisionError("division by zero"), ValueError("a bare ValueError"),
+                                     KeyError("k")])
+def test_a_planted_bug_shows_its_traceback(monkeypatch, tmp_path, capsys, planted):
+    import node.scene
+
+    def broken(path):
+        raise planted
+
+    monkeypatch.setattr(node.scene, "load_scene", broken)
+    assert main(["run", str(tmp_path / "s.toml")]) == cli.EXIT_BUG
+    err = capsys.readouterr().err
+    assert "Traceback (most recent call last)" in err and "in broken\n    raise planted" in err
+    assert type(planted).__name__ in err
+    assert "this is a bug in supramodal" in err.splitlines()[-1]
+    assert "supramodal: error:" not in err
+
+
+@pytest.mark.parametrize("raised, one_line", [(InputError("the sink refused it"), True),
+                                              (ValueError("unexpected in a thread"), False)])
+def test_an_error_in_a_node_thread(monkeypatch, replay_scene, capsys, raised, one_line):
+    """A SupramodalError from a thread stays one line; any other exception there is a bug with its traceback."""
+    from node.sinks import JsonLinesSink
+
+    def emit(self, event):
+        raise raised
+
+    monkeypatch.setattr(JsonLinesSink, "emit", emit)
+    rc = main(["run", str(replay_scene), "--json", "--quiet", "--speed", "max", "--seconds", "5"])
+    err = capsys.readouterr().err
+    if one_line:
+        assert rc == 2 and "Traceback" not in err
+        assert _lines(err) == ["supramodal: error: the processing thread failed: InputError: the sink refused it"]
+    else:
+        assert rc == cli.EXIT_BUG
+        assert "Traceback" in err and "raise raised" in err and "ValueError: unexpected in a thread" in err
+        assert "this is a bug in supramodal" in err.splitlines()[-1]
+
+
+# -- output paths: checked before the work ------------------------------------------------------
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["train", "--bank", "whisker", "--manifest", "{tmp}/m.csv", "--out", "{tmp}/missing/m.npz"],
+     "the folder {tmp}/missing does not exist"),
+    (["train", "--bank", "whisker", "--manifest", "{tmp}/m.csv", "--out", "{tmp}"],
+     "{tmp} is a folder; give a file name in it"),
+    (["experiment", "fig1", "--out", "{tmp}/file"], "{tmp}/file is a file; give a folder"),
+    (["synth", "--out", "{tmp}/file/sub"], "{tmp}/file/sub cannot be created: {tmp}/file is a file"),
+    (["record", "scene.toml", "--out", "{tmp}/file"], "{tmp}/file is a file; give a folder"),
+    (["bench", "--out", "{tmp}/file"], "{tmp}/file is a file; give a folder"),
+])
+def test_output_paths_are_checked_before_any_work(monkeypatch, tmp_path, capsys, argv, message):
+    (tmp_path / "file").write_text("not a folder")
+
+    def no_work(args):
+        raise AssertionError("the command started its work although its output path is unusable")
+
+    for name in ("_cmd_train", "_cmd_experiment", "_cmd_synth", "_cmd_record", "_cmd_bench"):
+        monkeypatch.setattr(cli, name, no_work)
+    with pytest.raises(SystemExit) as stop:
+        main([a.format(tmp=tmp_path) for a in argv])
+    assert stop.value.code == 2
+    assert message.format(tmp=tmp_path) in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["file"]     # nothing written
+
+
+def test_output_paths_that_are_fine_pass(tmp_path):
+    parser = cli.build_parser()
+    args = parser.parse_args(["train", "--bank", "whisker", "--manifest", "m.csv", "--out", str(tmp_path / "m")])
+    assert args.out == tmp_path / "m"
+    args = parser.parse_args(["synth", "--out", str(tmp_path / "new" / "deeper")])   # created when written
+    assert args.out == tmp_path / "new" / "deeper" and not args.out.exists()
+
+
+# -- the reader of stdout leaves: a quiet exit ------------------------------------------------
+
+
+def test_run_into_head_exits_quietly_with_status_0(replay_scene):
+    """`supramodal run | head` under `set -o pipefail`: the script does not fail, nothing on stderr."""
+    script = f"set -o pipefail; {sys.executable} -m node.cli run {replay_scene} --json --quiet --speed max | head -n 3"
+    proc = subprocess.run(["bash", "-c", script], capture_output=True, text=True, env=_env(), cwd=ROOT, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert len(proc.stdout.splitlines()) == 3
+    assert proc.stderr == ""
+
+
+# -- signals during start-up ------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_signal_during_start_up_training(tmp_path, sig):
+    """The cochlea scene trains its model for tens of seconds at start-up: a signal there
+    prints one line and exits 128 + signal, nothing on stdout."""
+    scene = tmp_path / "s.toml"
+    scene.write_text('[driver]\ntype = "synth"\n[bank]\nkind = "cochlea"\n[model]\ntrain_on_start = true\n')
+    proc = subprocess.Popen([sys.executable, "-m", "node.cli", "run", str(scene), "--json"], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, env=_env(), cwd=ROOT)
+    try:
+        first = proc.stderr.readline()               # printed just before the scene is built
+        assert first.startswith("supramodal: scene "), first
+        time.sleep(0.5)
+        proc.send_signal(sig)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+    assert proc.returncode == 128 + sig, err
+    assert out == ""
+    assert _lines(err) == [f"supramodal: interrupted by {signal.Signals(sig).name} during start-up (building the "
+                           "scene, training its model); nothing was processed"]
