@@ -65,6 +65,7 @@ from drivers.frames import (
     VERSION,
     encode_frame,
 )
+from supramodal.errors import InputError
 
 _TIOCPKT_FLUSHREAD = 0x01  # packet-mode status bit: the slave's input queue was flushed
 
@@ -139,18 +140,18 @@ class FaultSpec:
                      "version_rate"):
             v = getattr(self, name)
             if not 0.0 <= v <= 1.0:
-                raise ValueError(f"{name} must be in [0, 1], got {v}")
+                raise InputError(f"{name} must be in [0, 1], got {v}")
         if sum(self.kind_rates()) > 1.0:
-            raise ValueError("drop_rate + crc_rate + omit_rate + channels_rate + version_rate "
+            raise InputError("drop_rate + crc_rate + omit_rate + channels_rate + version_rate "
                              "must be <= 1 (a frame gets at most one fault)")
         if self.garbage_max < 1 or self.drop_max < 1:
-            raise ValueError("garbage_max and drop_max must be >= 1")
+            raise InputError("garbage_max and drop_max must be >= 1")
         if self.unplug_every is not None and self.unplug_every <= 0:
-            raise ValueError("unplug_every must be > 0 s or None")
+            raise InputError("unplug_every must be > 0 s or None")
         if self.unplug_for < 0:
-            raise ValueError("unplug_for must be >= 0 s")
+            raise InputError("unplug_for must be >= 0 s")
         if self.unplug_limit is not None and self.unplug_limit < 0:
-            raise ValueError("unplug_limit must be >= 0 or None")
+            raise InputError("unplug_limit must be >= 0 or None")
 
     def kind_rates(self) -> tuple[float, ...]:
         """Probabilities of the frame faults, in the order of :attr:`KINDS`."""
@@ -302,12 +303,12 @@ class MockWhiskerDevice:
                  first_seq: int = 0) -> None:
         data = quantise(samples)
         if data.ndim != 2 or not 1 <= data.shape[1] <= MAX_CHANNELS or data.shape[0] < 1:
-            raise ValueError(f"samples must have shape (n >= 1, 1..{MAX_CHANNELS}), "
+            raise InputError(f"samples must have shape (n >= 1, 1..{MAX_CHANNELS}), "
                              f"got {data.shape}")
         if not 1 <= samples_per_frame <= MAX_SAMPLES_PER_FRAME:
-            raise ValueError(f"samples_per_frame must be 1..{MAX_SAMPLES_PER_FRAME}")
+            raise InputError(f"samples_per_frame must be 1..{MAX_SAMPLES_PER_FRAME}")
         if not rate > 0:
-            raise ValueError(f"rate must be > 0 Hz, got {rate}")
+            raise InputError(f"rate must be > 0 Hz, got {rate}")
         self._data = np.ascontiguousarray(data)
         self.rate = float(rate)
         self.samples_per_frame = int(samples_per_frame)

@@ -28,6 +28,11 @@ def _given(options: dict, names: dict) -> dict:
     return {arg: options[key] for key, arg in names.items() if options[key] is not None}
 
 
+def _notice(message: str) -> None:
+    """A driver's notice (a silent port, a replayed file's gap) on stderr, named as the node's."""
+    print(f"supramodal: {message}", file=sys.stderr, flush=True)
+
+
 def bank_for(scene: Scene) -> Bank:
     b = scene.bank
     if b["kind"] == "whisker":
@@ -121,12 +126,12 @@ def driver_for(scene: Scene, bank: Bank, speed_override=None):
         from replay.driver import ReplayDriver
 
         drv = ReplayDriver(str(scene.resolve(d["path"])), rate=bank.fs, loop=d["loop"],
-                           on_notice=lambda m: print(f"supramodal: {m}", file=sys.stderr), **replay)
+                           on_notice=_notice, **replay)
         return drv, Labels.of(drv), None
     if kind == "serial":
         from drivers.serial_whisker import SerialWhiskerDriver
 
-        return SerialWhiskerDriver(d["port"], rate=d["rate"], channels=d["channels"],
+        return SerialWhiskerDriver(d["port"], rate=d["rate"], channels=d["channels"], on_notice=_notice,
                                    **_given(d, {"baudrate": "baudrate"})), Labels(), None
     if kind == "microphone":
         from drivers.microphone import MicrophoneDriver

@@ -25,11 +25,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from drivers.base import Block, DriverClosed
+from node.latency import LatencyHistogram
 from node.ringbuffer import RingBuffer, RingClosed
 from supramodal.decisions import ContactDetector, DecisionAccumulator, window_decision
+from supramodal.errors import InputError, SupramodalError
 from supramodal.model import TextureModel
 from supramodal.pipeline import FeaturePipeline
-from supramodal.errors import SupramodalError
 
 
 class NodeError(SupramodalError, RuntimeError):
@@ -50,26 +51,26 @@ def channel_mapper(mapping, driver_channels: int, bank_channels: int):
         elif driver_channels == bank_channels:
             mapping = "per-channel"
         else:
-            raise ValueError(
+            raise InputError(
                 f"the driver has {driver_channels} channels and the bank {bank_channels}: set the driver's "
                 "mapping to \"mean\", a channel index, or use a bank with as many channels")
     if mapping == "mono":
         if driver_channels != 1:
-            raise ValueError(f"mapping \"mono\" needs a one-channel driver; this one has {driver_channels}: "
+            raise InputError(f"mapping \"mono\" needs a one-channel driver; this one has {driver_channels}: "
                              "use \"mean\" or a channel index")
         return lambda frames: frames[:, 0]
     if mapping == "per-channel":
         if driver_channels != bank_channels:
-            raise ValueError(f"mapping \"per-channel\" needs as many driver channels ({driver_channels}) "
+            raise InputError(f"mapping \"per-channel\" needs as many driver channels ({driver_channels}) "
                              f"as filters ({bank_channels})")
         return lambda frames: frames.T
     if mapping == "mean":
         return lambda frames: frames.mean(axis=1)
     if isinstance(mapping, int):
         if not 0 <= mapping < driver_channels:
-            raise ValueError(f"mapping channel {mapping} does not exist: the driver has channels 0..{driver_channels - 1}")
+            raise InputError(f"mapping channel {mapping} does not exist: the driver has channels 0..{driver_channels - 1}")
         return lambda frames: frames[:, mapping]
-    raise ValueError(f"unknown channel mapping {mapping!r}")
+    raise InputError(f"unknown channel mapping {mapping!r}")
 
 
 @dataclass
@@ -128,7 +129,7 @@ class Node:
                  buffer_seconds: float = 2.0, overrun: str = "drop-oldest", recorder=None) -> None:
         bank = pipeline.bank
         if abs(driver.rate - bank.fs) > 1e-9 * bank.fs:
-            raise ValueError(f"the driver delivers {driver.rate:g} Hz but the {bank.kind} bank runs at {bank.fs:g} Hz")
+            raise InputError(f"the driver delivers {driver.rate:g} Hz but the {bank.kind} bank runs at {bank.fs:g} Hz")
         if model is not None:
             model.check_pipeline(pipeline)
         self.driver = driver
@@ -161,7 +162,7 @@ class Node:
         self._expected = 0
         self._gap_windows: set[int] = set()
         self._gap_filled = 0
-        self._latencies: list[float] = []
+        self._latencies = LatencyHistogram()
         self._cpu = 0.0
         self._n_windows = 0
         self._correct = self._labelled = self._acc_correct = self._acc_labelled = 0
@@ -180,7 +181,7 @@ class Node:
         Returns the summary (also sent to the sinks).
         """
         if max_seconds is not None and not max_seconds > 0:
-            raise ValueError(f"max_seconds must be > 0, got {max_seconds!r}")
+            raise InputError(f"max_seconds must be > 0, got {max_seconds!r}")
         self._max_frames = None if max_seconds is None else int(round(max_seconds * self.driver.rate))
         t0 = time.monotonic()
         threads = [threading.Thread(target=self._guard, args=("driver", self._drive), name="node-driver", daemon=True),
@@ -335,7 +336,7 @@ class Node:
         if not self._arrivals:
             return None  # the window was completed by end-of-stream or filled frames
         lat = (time.monotonic() - self._arrivals[0][1]) * 1e3
-        self._latencies.append(lat)
+        self._latencies.add(lat)
         return round(lat, 3)
 
     # -- summary ------------------------------------------------------------------------------
@@ -346,7 +347,6 @@ class Node:
         drv = dict(self.driver.stats())
         ring = self.ring.stats()
         lost_in_ring = self._reader.lost
-        lat = np.array(self._latencies)
         return {
             "windows": self._n_windows,
             "stream_seconds": stream,
@@ -359,8 +359,7 @@ class Node:
             "nonfinite_replaced": self.pipeline.filterbank.nonfinite_count,
             "out_of_range_replaced": self.pipeline.filterbank.out_of_range_count,
             "partial_window_samples": self.pipeline.partial_samples,
-            "latency_ms": ({"p50": float(np.percentile(lat, 50)), "p99": float(np.percentile(lat, 99)),
-                            "max": float(lat.max()), "count": int(lat.size)} if lat.size else None),
+            "latency_ms": self._latencies.summary(),
             "real_time_factor": self._cpu / stream if stream else 0.0,
             "driver": drv,
             "recorded": [str(p) for p in self.recorder.paths] if self.recorder and self.recorder.paths else None,

@@ -73,7 +73,8 @@ class TextSink(Sink):
         if s.get("accumulated_accuracy") is not None:
             lines.append(f"  accumulated acc.   {s['accumulated_accuracy']:.3f}")
         lines.append(f"  samples dropped    {s['samples_dropped']}  (filled {s['samples_filled']}, "
-                     f"nonfinite replaced {s['nonfinite_replaced']})")
+                     f"nonfinite replaced {s['nonfinite_replaced']}, out of range replaced "
+                     f"{s.get('out_of_range_replaced', 0)})")
         lat = s.get("latency_ms")
         if lat:
             lines.append(f"  decision latency   p50 {lat['p50']:.2f} ms, p99 {lat['p99']:.2f} ms, max {lat['max']:.2f} ms "

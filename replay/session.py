@@ -45,6 +45,7 @@ import numpy as np
 
 from replay.errors import SessionError
 from replay.wavio import as_frames, read_wav, wav_info, write_wav
+from supramodal.errors import InputError
 from supramodal.jsondata import read_json_file
 
 __all__ = ["FORMAT", "VERSION", "MAX_SIDECAR_BYTES", "MAX_SIDECAR_DEPTH", "Label", "Session", "session_paths", "load_session", "save_session",
@@ -417,7 +418,7 @@ def save_session(path: str | os.PathLike, data, rate: int, source: str,
     wav, js = session_paths(path)
     x = as_frames(data)
     if isinstance(rate, bool) or not _is_number(rate) or not float(rate).is_integer() or rate < 1:
-        raise ValueError(f"rate must be a positive whole number of Hz (WAV stores integers), got {rate!r}")
+        raise InputError(f"rate must be a positive whole number of Hz (WAV stores integers), got {rate!r}")
     rate = int(rate)
     # Sort only what sorts; anything malformed stays in place for validation to name.
     label_list = sorted((_label_dict(item) for item in labels),
@@ -428,7 +429,7 @@ def save_session(path: str | os.PathLike, data, rate: int, source: str,
         arr = np.asarray(filled)
         if arr.dtype == bool:
             if arr.shape != (x.shape[0],):
-                raise ValueError(f"filled mask must have shape ({x.shape[0]},), got {arr.shape}")
+                raise InputError(f"filled mask must have shape ({x.shape[0]},), got {arr.shape}")
             ranges = mask_to_ranges(arr)
         else:
             ranges = [(int(s), int(e)) for s, e in filled]

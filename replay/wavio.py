@@ -47,6 +47,7 @@ import numpy as np
 from scipy.io import wavfile
 
 from replay.errors import ClippingWarning, ReplayError, WavFormatError
+from supramodal.errors import InputError
 
 __all__ = ["WavInfo", "wav_info", "read_wav", "write_wav", "as_frames", "WRITE_DTYPES", "MAX_FLOAT_MAGNITUDE"]
 
@@ -292,9 +293,9 @@ def as_frames(data) -> np.ndarray:
     if a.ndim == 1:
         a = a.reshape(-1, 1)
     if a.ndim != 2 or a.shape[1] < 1:
-        raise ValueError(f"data must have shape (frames, channels), got {a.shape}")
+        raise InputError(f"data must have shape (frames, channels), got {a.shape}")
     if a.dtype.kind not in "fiu" or a.dtype == bool:
-        raise ValueError(f"data must be real numbers scaled to +-1, got dtype {a.dtype}")
+        raise InputError(f"data must be real numbers scaled to +-1, got dtype {a.dtype}")
     return a.astype(np.float64, copy=False)
 
 
@@ -334,14 +335,14 @@ def write_wav(path: str | os.PathLike, data, rate: int, dtype: str = "float32") 
         would refuse the file).
     """
     if dtype not in WRITE_DTYPES:
-        raise ValueError(f"dtype must be one of {WRITE_DTYPES}, got {dtype!r}")
+        raise InputError(f"dtype must be one of {WRITE_DTYPES}, got {dtype!r}")
     if isinstance(rate, bool) or not float(rate).is_integer() or rate < 1:
-        raise ValueError(f"rate must be a positive whole number of Hz (WAV stores integers), got {rate!r}")
+        raise InputError(f"rate must be a positive whole number of Hz (WAV stores integers), got {rate!r}")
     rate = int(rate)
     x = as_frames(data)
     bad = np.count_nonzero(~np.isfinite(x))
     if bad:
-        raise ValueError(f"{path}: refusing to write {bad} NaN or infinite samples")
+        raise InputError(f"{path}: refusing to write {bad} NaN or infinite samples")
     clipped = 0
     if dtype in ("float32", "float64"):
         peak = float(np.max(np.abs(x))) if x.size else 0.0

@@ -48,6 +48,9 @@ WHISKER_TABLE: dict[str, tuple[float, float, float, float]] = {
 WHISKER_ROWS = tuple(WHISKER_TABLE)
 WHISKER_RATE = 5000.0
 COCHLEA_RATE = 44100.0
+#: Most channels a bank may have (the cochlea has 50, the whiskers 20): a bound on what a scene or
+#: a model file can make the node allocate.
+MAX_CHANNELS = 1024
 
 
 def _real(value, what: str) -> np.ndarray:
@@ -98,6 +101,8 @@ class Bank:
             raise InputError(f"sample rate fs must be a positive number of Hz, got {self.fs!r}")
         if cf.size == 0:
             raise InputError("a bank needs at least one channel; got an empty list of centre frequencies")
+        if cf.size > MAX_CHANNELS:
+            raise InputError(f"a bank has at most {MAX_CHANNELS} channels (MAX_CHANNELS); this one has {cf.size} channels")
         if b.size != cf.size or len(names) != cf.size:
             raise InputError(
                 f"cf, b and names must have one entry per channel; got {cf.size}, {b.size} and {len(names)}"
@@ -207,6 +212,8 @@ def cochlea_bank(n: int = 50, f_low: float = 20.0, f_high: float = 20000.0,
 
     Channels are ordered by ascending centre frequency (``ch00`` lowest).
     """
+    if not (isinstance(n, (int, np.integer)) and 1 <= n <= MAX_CHANNELS):
+        raise InputError(f"a cochlea has 1..{MAX_CHANNELS} channels (MAX_CHANNELS); got {n!r}")
     cf = np.sort(erb_space(f_low, f_high, n))
     b = ERB_TO_B * erb(cf, COCHLEA_Q_EAR, COCHLEA_B_MIN)
     names = tuple(f"ch{k:02d}" for k in range(n))

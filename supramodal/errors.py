@@ -10,6 +10,7 @@ line, and anything else as a bug, with its traceback. The tree::
      +-- drivers.base.DriverError: a device or stream failed (DeviceUnavailable, DriverClosed, ...)
      +-- node.ringbuffer.RingBufferError
      +-- node.graph.NodeError (also RuntimeError): a thread of the node failed
+     +-- StreamEndedError (also RuntimeError): a block fed to a stream after its finish()
 
 The leaf classes live beside the code that raises them; this module holds only the root and
 the kinds every layer shares, so that any layer may import it without importing anything else.
@@ -24,6 +25,11 @@ class SupramodalError(Exception):
 
 class InputError(SupramodalError, ValueError):
     """Bad input: an argument, a block of samples or a file's content does not fit. Also a ValueError."""
+
+
+class StreamEndedError(SupramodalError, RuntimeError):
+    """A block was fed to a streaming object (peak extractor, pipeline) after its ``finish()``:
+    a stream that has ended takes no more samples; make a new one, or ``reset()`` it. Also a RuntimeError."""
 
 
 class SupramodalWarning(UserWarning):

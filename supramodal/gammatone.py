@@ -902,7 +902,7 @@ class GammatoneFilterbank(FilterbankBase):
                  nonfinite: str = "raise") -> None:
         super().__init__(bank, dtype, nonfinite)
         if subblock is not None and not (isinstance(subblock, (int, np.integer)) and 1 <= subblock <= 4096):
-            raise ValueError(f"subblock must be None (automatic) or an integer in 1..4096, got {subblock!r}")
+            raise InputError(f"subblock must be None (automatic) or an integer in 1..4096, got {subblock!r}")
         self.subblock = None if subblock is None else int(subblock)
         self._groups = [_ChannelGroup(bank, channels) for channels in _channel_groups(bank)]
         # Least-recently-used caches: matrices per (group, m), plans per (group, m, K).

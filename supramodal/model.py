@@ -10,8 +10,9 @@ is validated on load and anything that does not fit is refused with
 What a file may ask for is bounded: every member's declared size is checked
 before it is read (:data:`MAX_HEADER_BYTES`, :data:`MAX_ARRAY_BYTES`), the
 header's nesting before it is parsed (:data:`MAX_HEADER_DEPTH`), and the header's
-window, channels and classes against :data:`MAX_WINDOW_SAMPLES`,
-:data:`MAX_CHANNELS` and :data:`MAX_CLASSES`. Every array's shape must follow
+window, channels and classes against
+:data:`supramodal.pipeline.MAX_WINDOW_SAMPLES`,
+:data:`supramodal.banks.MAX_CHANNELS` and :data:`MAX_CLASSES`. Every array's shape must follow
 from the header: ``layers = [features x channels, hidden, classes]``, ``w1``
 (inputs, hidden), ``b1`` (hidden,), ``w2`` (hidden, classes), ``b2`` (classes,),
 ``mean`` and ``scale`` (inputs,); and the bank's ``kind`` must fit its channels
@@ -30,21 +31,17 @@ from pathlib import Path
 import numpy as np
 
 from supramodal.banks import COCHLEA_B_MIN, COCHLEA_Q_EAR, ERB_TO_B, WHISKER_TABLE, Bank, erb
+from supramodal.errors import InputError
 from supramodal.features import check_features
+from supramodal.jsondata import parse_json_text
 from supramodal.mlp import DEFAULT_EPOCHS, MLP, train_mlp
 from supramodal.peaks import PEAK_MODES
-from supramodal.errors import InputError
-from supramodal.jsondata import parse_json_text
+from supramodal.pipeline import MAX_WINDOW_SAMPLES
 
 MODEL_FORMAT = "supramodal-model"
 MODEL_VERSION = 1
 _ARRAYS = ("w1", "b1", "w2", "b2", "mean", "scale")
 
-#: Longest window a model may declare, samples: 2**20 is 210 s at 5 kHz and 24 s at 44.1 kHz
-#: (the paper's windows are 0.1 s); a pipeline holds two windows of every channel.
-MAX_WINDOW_SAMPLES = 2**20
-#: Most channels a model's bank may have (the cochlea has 50, the whiskers 20).
-MAX_CHANNELS = 1024
 #: Most classes a model may name.
 MAX_CLASSES = 1024
 #: Largest header member, bytes as stored (numpy stores text as 4 bytes a character: 1 M characters).
@@ -145,7 +142,7 @@ class TextureModel:
         values = np.asarray(values, dtype=np.float64)
         expected = (len(features), bank.channels)
         if values.ndim != 3 or values.shape[1:] != expected:
-            raise ValueError(f"feature windows must have shape (n, {expected[0]}, {expected[1]}), got {values.shape}")
+            raise InputError(f"feature windows must have shape (n, {expected[0]}, {expected[1]}), got {values.shape}")
         x = values.reshape(len(values), -1)
         mean = x.mean(axis=0)
         scale = x.std(axis=0)
@@ -161,7 +158,7 @@ class TextureModel:
         values = np.asarray(values, dtype=np.float64)
         expected = (len(self.features), self.bank.channels)
         if values.ndim != 3 or values.shape[1:] != expected:
-            raise ValueError(f"feature windows must have shape (n, {expected[0]}, {expected[1]}), got {values.shape}")
+            raise InputError(f"feature windows must have shape (n, {expected[0]}, {expected[1]}), got {values.shape}")
         return (values.reshape(len(values), -1) - self.mean) / self.scale
 
     def outputs(self, values: np.ndarray) -> np.ndarray:
@@ -291,13 +288,10 @@ class TextureModel:
         try:
             bank = Bank.from_dict(header["bank"])
             if not (isinstance(header["features"], list) and all(isinstance(f, str) for f in header["features"])):
-                raise ValueError(f"'features' must be a list of names, got {header['features']!r}")
+                raise InputError(f"'features' must be a list of names, got {header['features']!r}")
             features = check_features(header["features"])
         except (KeyError, ValueError) as exc:
-            raise bad(f"invalid bank or features in the header: {exc}") from exc
-        if bank.channels > MAX_CHANNELS:
-            raise bad(f"'bank' has {bank.channels} channels, more than the {MAX_CHANNELS} a model may have "
-                      "(MAX_CHANNELS)")
+            raise bad(f"invalid 'bank' or 'features' in the header: {exc}") from exc
         problem = _bank_kind_problem(bank)
         if problem:
             raise bad(f"'bank': kind {bank.kind!r} does not fit its channels ({problem}); the header does not "

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from supramodal.errors import InputError
+from supramodal.errors import InputError, StreamEndedError
 
 PEAK_MODES = ("maxima", "extrema")
 DEFAULT_PEAK_MODE = "maxima"
@@ -125,7 +125,7 @@ class PeakExtractor:
             (the previous block's last sample and all but this block's last).
         """
         if self._finished:
-            raise RuntimeError("finish() was called: this peak extractor's stream has ended")
+            raise StreamEndedError("finish() was called: this peak extractor's stream has ended")
         staged, self._staged = self._staged, None
         y = np.asarray(y)
         if y.ndim != 2 or y.shape[0] != self.channels:

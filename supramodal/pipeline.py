@@ -11,19 +11,28 @@ import numpy as np
 
 from supramodal.backends import make_filterbank
 from supramodal.banks import Bank
+from supramodal.errors import InputError, StreamEndedError
 from supramodal.features import DEFAULT_WINDOW, FEATURES, FeatureWindows, Windows, check_features, concat_windows
-from supramodal.errors import InputError
 from supramodal.peaks import DEFAULT_PEAK_MODE, PeakExtractor
 
 
 
+#: Most samples a feature window may span (2**20: 24 s at 44.1 kHz, 210 s at 5 kHz), a bound on
+#: what a scene or a model file can make the node buffer.
+MAX_WINDOW_SAMPLES = 2**20
+
+
 def window_length(window: float, fs: float) -> int:
-    """Window length in samples for ``window`` seconds at ``fs`` Hz (rounded to the nearest sample)."""
+    """Window length in samples for ``window`` seconds at ``fs`` Hz (rounded to the nearest sample),
+    2 .. :data:`MAX_WINDOW_SAMPLES`."""
     if not (np.isfinite(window) and window > 0):
         raise InputError(f"window must be a positive number of seconds, got {window!r}")
     n = int(round(window * fs))
     if n < 2:
         raise InputError(f"a window of {window} s is {n} sample(s) at {fs:g} Hz; it needs at least 2")
+    if n > MAX_WINDOW_SAMPLES:
+        raise InputError(f"a window of {window:g} s is {n} samples at {fs:g} Hz, more than MAX_WINDOW_SAMPLES "
+                         f"({MAX_WINDOW_SAMPLES}, {MAX_WINDOW_SAMPLES / fs:g} s); choose a shorter window")
     return n
 
 
@@ -82,7 +91,7 @@ class FeaturePipeline:
     def process(self, x) -> Windows:
         """Feed one block, shape (L,) or (channels, L); return the windows it closes."""
         if self._finished:
-            raise RuntimeError("finish() was called: this pipeline's stream has ended")
+            raise StreamEndedError("finish() was called: this pipeline's stream has ended")
         x = self.filterbank.prepare(x)
         if not self.gather:
             return self._run(x)

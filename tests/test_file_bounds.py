@@ -23,7 +23,8 @@ from replay.wavio import MAX_FLOAT_MAGNITUDE, read_wav, write_wav
 from supramodal.banks import cochlea_bank, whisker_bank
 from supramodal.errors import InputError, SupramodalError
 from supramodal.jsondata import nesting_depth
-from supramodal.model import MAX_CLASSES, MAX_WINDOW_SAMPLES, ModelError, TextureModel
+from supramodal.model import MAX_CLASSES, ModelError, TextureModel
+from supramodal.pipeline import MAX_WINDOW_SAMPLES
 from supramodal.textures import (MAX_TEXTURE_SAMPLES, MAX_TEXTURES, TextureSetError, load_texture_set, synthesize,
                                  texture_set_from_dict)
 
@@ -95,7 +96,8 @@ def _with(header, **changes):
 @pytest.mark.parametrize("change, key, words", [
     (dict(window_samples=10**12), "'window_samples'", [str(MAX_WINDOW_SAMPLES), "MAX_WINDOW_SAMPLES"]),
     (dict(classes=[f"c{i}" for i in range(MAX_CLASSES + 1)]), "'classes'", ["MAX_CLASSES"]),
-    (dict(bank=cochlea_bank(n=1500).to_dict()), "'bank'", ["1500 channels", "MAX_CHANNELS"]),
+    (dict(bank={"kind": "custom", "fs": 44100.0, "cf": [1000.0 + i for i in range(1500)], "b": [100.0] * 1500,
+                "names": [f"c{i}" for i in range(1500)]}), "'bank'", ["1500 channels", "MAX_CHANNELS"]),
     (dict(layers=[4, 99, 3]), "'layers'", ["array w1", "(4, 99)", "99 hidden units"]),
     (dict(layers=[5, 4, 3]), "'layers'", ["[4, hidden >= 1, 3]"]),
     (dict(layers=[4, 16]), "'layers'", ["[inputs, hidden, outputs]"]),
@@ -291,3 +293,18 @@ def test_nesting_depth_matches_the_parsed_value(value, indent, ascii_only):
 def test_every_refusal_here_is_a_supramodal_error():
     for cls in (WavFormatError, ReplayError, SessionError, ModelError, TextureSetError):
         assert issubclass(cls, SupramodalError)
+
+
+@pytest.mark.parametrize("section, key, value, named", [
+    ("features", "window", 1e9, "MAX_WINDOW_SAMPLES"),
+    ("bank", "channels", 10**6, "MAX_CHANNELS"),
+])
+def test_a_scene_asking_for_an_unbounded_window_or_bank_is_refused_before_allocating(section, key, value, named):
+    """A scene is data a user may receive: its window and channel count are bounded like a model's."""
+    from node.build import build_node
+    from node.scene import scene_from_dict
+
+    bank = {"kind": "cochlea"} if section == "bank" else {}
+    scene = scene_from_dict({section: {**bank, key: value}, "driver": {"type": "synth", "seconds": 1.0}})
+    with pytest.raises(InputError, match=named):
+        build_node(scene)

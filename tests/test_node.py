@@ -418,3 +418,85 @@ def test_held_out_share_follows_the_training_fraction(monkeypatch, train_fractio
     else:
         with pytest.raises(SceneError, match=f"at most the last 25% of the set's {ts.duration:g} s"):
             synth_session(scene, whisker_bank())
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_latency_histogram_percentiles_are_within_a_bin_of_the_exact_ones(seed):
+    """The node's constant-memory latency record against numpy on the same values: percentiles
+    (numpy's "lower" method) within the 1 % bin width, count and maximum exact."""
+    from node.latency import LatencyHistogram
+
+    rng = np.random.default_rng(seed)
+    values = np.concatenate([rng.lognormal(0.0, 1.5, int(rng.integers(1, 5000))), rng.uniform(0.01, 80.0, 50)])
+    rng.shuffle(values)
+    hist = LatencyHistogram()
+    for v in values:
+        hist.add(float(v))
+    s = hist.summary()
+    assert s["count"] == values.size and s["max"] == values.max()
+    for q, key in ((50, "p50"), (99, "p99")):
+        exact = np.percentile(values, q, method="lower")
+        assert abs(s[key] / exact - 1) <= 0.0101, (q, s[key], exact)
+    assert LatencyHistogram().summary() is None
+
+
+class _ArrayDriver:
+    """A live driver's stream as an array, in random blocks (1..700 frames), NaN and Inf passed on
+    as a device could deliver them (replay refuses them in its files)."""
+
+    def __init__(self, x, rate, seed):
+        self.rate, self.channels, self._x, self._i = rate, 1, x[:, None], 0
+        self._rng = np.random.default_rng(seed)
+
+    def open(self):
+        pass
+
+    def close(self):
+        pass
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        pass
+
+    def stats(self):
+        return {"frames": self._i, "filled": 0}
+
+    def read(self, timeout=None):
+        from drivers.base import Block, DriverClosed
+
+        if self._i >= len(self._x):
+            raise DriverClosed("end of the array")
+        n = int(self._rng.integers(1, 701))
+        block = Block(self._x[self._i : self._i + n], self._i, time.monotonic())
+        self._i += block.frames
+        return block
+
+
+def test_nonfinite_and_out_of_range_samples_are_replaced_counted_and_reported(tmp_path, whisker_signal):
+    """A stream with NaN, Inf and a sample beyond the filterbank's max_input runs on (policy "zero"):
+    each kind counted apart in the summary and shown in the text sink's summary line, and the
+    feature windows are those of the stream with those samples set to 0."""
+    from node.sinks import make_sink
+
+    _, x = whisker_signal
+    x = x[:20000].copy()
+    fb_limit = FeaturePipeline(whisker_bank(), ("Af",)).filterbank.max_input
+    bad_at = {1234: np.nan, 5000: np.inf, 7777: -np.inf, 9000: 10 * fb_limit, 15000: -1e300}
+    for i, v in bad_at.items():
+        x[i] = v
+    pipeline = FeaturePipeline(whisker_bank(), ("Af",), nonfinite="zero")
+    listed, text_path = ListSink(), tmp_path / "out.txt"
+    text = make_sink("text", str(text_path))
+    Node(_ArrayDriver(x, 5000.0, seed=7), pipeline, [listed, text], overrun="block").run()
+    text.close()
+    s = listed.final
+    assert (s["nonfinite_replaced"], s["out_of_range_replaced"]) == (3, 2)
+    assert "nonfinite replaced 3, out of range replaced 2" in text_path.read_text()
+    clean = x.copy()
+    clean[list(bad_at)] = 0.0
+    ref = extract_features(clean, whisker_bank(), ("Af",)).values
+    got = np.array([e["features"]["Af"] for e in listed.events])
+    assert got.shape == ref[:, 0].shape
+    assert relative_error(got, ref[:, 0]) <= 1e-12

@@ -26,6 +26,7 @@ import numpy as np
 from scipy.signal import gammatone, lfilter, sosfilt
 
 from supramodal.banks import Bank
+from supramodal.errors import InputError
 from supramodal.gammatone import FilterbankBase
 
 PEERS = ("scipy-iir", "slaney")
@@ -165,4 +166,4 @@ def make_peer(bank: Bank, name: str, dtype=np.float64) -> FilterbankBase:
         return ScipyGammatonePeer(bank, dtype)
     if name == "slaney":
         return SlaneyPeer(bank, dtype)
-    raise ValueError(f"unknown peer {name!r}; peers are {', '.join(PEERS)}")
+    raise InputError(f"unknown peer {name!r}; peers are {', '.join(PEERS)}")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from supramodal.banks import Bank
+from supramodal.errors import InputError
 from supramodal.experiments.common import BANKS, Plan, Run, default_bank, estimate_cost, quick_set, rates_of
 from supramodal.features import FEATURES
 from supramodal.textures import TextureSet, random_texture_set, reference_texture_set
@@ -83,10 +84,10 @@ def plan(banks=BANKS, texture_set: TextureSet | None = None, reference: bool = T
     """
     banks = tuple(banks)
     if texture_set is not None and banks != (texture_set.bank,):
-        raise ValueError(f"texture set {texture_set.name!r} is for the {texture_set.bank} bank, not {list(banks)}: "
+        raise InputError(f"texture set {texture_set.name!r} is for the {texture_set.bank} bank, not {list(banks)}: "
                          f"pass --bank {texture_set.bank}")
     if sets < 0:
-        raise ValueError(f"--sets must be >= 0, got {sets}")
+        raise InputError(f"--sets must be >= 0, got {sets}")
     runs, labels = [], {}
     for bank in banks:
         sets_of_bank = []

@@ -20,6 +20,7 @@ from __future__ import annotations
 import numpy as np
 
 from supramodal.banks import whisker_bank
+from supramodal.errors import InputError
 from supramodal.experiments.common import Plan, Run
 from supramodal.features import FEATURES
 from supramodal.features import DEFAULT_WINDOW
@@ -42,7 +43,7 @@ def sine_responses(bank, channel: str, freqs, duration: float = 2.0, settle: flo
         w = extract_features(np.sin(2 * np.pi * freq * t), bank, FEATURES)
         steady = w.values[skip:, :, k]
         if len(steady) < 2:
-            raise ValueError(f"{duration} s leaves fewer than 2 steady windows after {settle} s of settling")
+            raise InputError(f"{duration} s leaves fewer than 2 steady windows after {settle} s of settling")
         for j, f in enumerate(FEATURES):
             mean[f].append(float(steady[:, j].mean()))
             sd[f].append(float(steady[:, j].std()))

@@ -34,6 +34,7 @@ from typing import Callable
 
 import numpy as np
 
+from supramodal.errors import InputError
 from supramodal.experiments.common import Plan, Run
 
 #: Environment variables that hold BLAS/OpenMP libraries to one thread in the workers.
@@ -56,7 +57,7 @@ def run_seed(seed: int, key: tuple) -> int:
     digest of ``repr(key)``, so that it is the same in every process and session.
     """
     if not (isinstance(seed, (int, np.integer)) and seed >= 0):
-        raise ValueError(f"the seed must be an integer >= 0, got {seed!r}")
+        raise InputError(f"the seed must be an integer >= 0, got {seed!r}")
     digest = hashlib.sha256(repr(tuple(key)).encode()).digest()
     words = np.frombuffer(digest, dtype=np.uint32)
     return int(np.random.SeedSequence([int(seed), *map(int, words)]).generate_state(1)[0])
@@ -117,11 +118,11 @@ def run_all(runs: list[Run], jobs: int | None = None, seed: int = 0, progress=No
     """
     jobs = default_jobs() if jobs is None else int(jobs)
     if jobs < 1:
-        raise ValueError(f"--jobs must be >= 1, got {jobs}")
+        raise InputError(f"--jobs must be >= 1, got {jobs}")
     keys = [r.key for r in runs]
     if len(set(keys)) != len(keys):
         dup = next(k for k in keys if keys.count(k) > 1)
-        raise ValueError(f"run keys must be unique; {dup!r} repeats")
+        raise InputError(f"run keys must be unique; {dup!r} repeats")
     if not runs:
         return {}
     seeds = {r.key: run_seed(seed, r.key) for r in runs}
