@@ -701,6 +701,17 @@ class MockWhiskerDevice:
 # -- command line ------------------------------------------------------------------
 
 
+#: The fault rates the command line sets, as FaultSpec fields, and what each does to a frame.
+_FAULT_RATE_FLAGS = {
+    "garbage_rate": "garbage bytes before it",
+    "drop_rate": "losing bytes from it",
+    "crc_rate": "an altered payload byte",
+    "omit_rate": "leaving it out (its sequence number skipped)",
+    "channels_rate": "sending it with one channel more (or fewer)",
+    "version_rate": "sending it with a wrong version",
+}
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Add the ``mock-whisker`` options to ``parser``."""
     parser.add_argument("source", metavar="SOURCE",
@@ -713,18 +724,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--samples-per-frame", type=int, default=32, metavar="N",
                         help="samples per channel per frame (default 32)")
     parser.add_argument("--loop", action="store_true", help="replay SOURCE forever")
-    parser.add_argument("--garbage-rate", type=float, default=0.0, metavar="R",
-                        help="probability per frame of garbage bytes before it")
-    parser.add_argument("--drop-rate", type=float, default=0.0, metavar="R",
-                        help="probability per frame of losing bytes from it")
-    parser.add_argument("--crc-rate", type=float, default=0.0, metavar="R",
-                        help="probability per frame of an altered payload byte")
-    parser.add_argument("--omit-rate", type=float, default=0.0, metavar="R",
-                        help="probability per frame of leaving it out (its sequence number skipped)")
-    parser.add_argument("--channels-rate", type=float, default=0.0, metavar="R",
-                        help="probability per frame of sending it with one channel more (or fewer)")
-    parser.add_argument("--version-rate", type=float, default=0.0, metavar="R",
-                        help="probability per frame of sending it with a wrong version")
+    for rate, what in _FAULT_RATE_FLAGS.items():
+        parser.add_argument("--" + rate.replace("_", "-"), type=float, default=0.0, metavar="R",
+                            help=f"probability per frame of {what}")
     parser.add_argument("--unplug-every", type=float, default=None, metavar="S",
                         help="unplug after every S seconds connected")
     parser.add_argument("--unplug-for", type=float, default=0.5, metavar="S",
@@ -763,9 +765,7 @@ def run(args: argparse.Namespace, samples: np.ndarray, rate: float) -> int:
                   "--channels fans out mono sources only", file=sys.stderr)
             return 2
     try:
-        faults = FaultSpec(garbage_rate=args.garbage_rate, drop_rate=args.drop_rate,
-                           crc_rate=args.crc_rate, omit_rate=args.omit_rate,
-                           channels_rate=args.channels_rate, version_rate=args.version_rate,
+        faults = FaultSpec(**{rate: getattr(args, rate) for rate in _FAULT_RATE_FLAGS},
                            unplug_every=args.unplug_every, unplug_for=args.unplug_for)
         dev = MockWhiskerDevice(samples, rate, port=args.port,
                                 samples_per_frame=args.samples_per_frame, loop=args.loop,
