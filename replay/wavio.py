@@ -1,9 +1,9 @@
 """WAV files to and from float64 arrays scaled to +-1 full scale.
 
 Reading goes through :func:`scipy.io.wavfile.read`, but only after this module
-has parsed the RIFF header itself: scipy silently returns 24-bit PCM as
-left-justified int32, 12-bit PCM as int8, and a file truncated on a frame
-boundary as a shorter array with only a warning. Each of those would be
+has parsed the RIFF header itself: scipy returns 24-bit PCM as left-justified
+int32 (read here, scaled exactly), 12-bit PCM as int8, and a file truncated on
+a frame boundary as a shorter array with only a warning. The last two would be
 *silently wrong* here, so the header is checked first and every file that is
 not one of the supported layouts is refused with a :class:`WavFormatError`
 that names the file, the problem and the fix.
@@ -15,6 +15,8 @@ format     bits        numpy dtype         scaling to float64
 =========  ==========  ==================  ==========================
 PCM        8           uint8               ``(x - 128) / 128``
 PCM        16          int16               ``x / 32768``
+PCM        24          int32 (left-        ``x / 2**31`` (= the 24-bit
+                       justified by scipy) value ``/ 2**23``, exactly)
 PCM        32          int32               ``x / 2**31``
 IEEE float 32          float32             none
 IEEE float 64          float64             none
@@ -59,6 +61,7 @@ _EXTENSIBLE = 0xFFFE
 _SUPPORTED = {
     (_PCM, 8): np.dtype(np.uint8),
     (_PCM, 16): np.dtype("<i2"),
+    (_PCM, 24): np.dtype("<i4"),      # field recorders' usual format; scipy shifts it left by 8 bits
     (_PCM, 32): np.dtype("<i4"),
     (_IEEE_FLOAT, 32): np.dtype("<f4"),
     (_IEEE_FLOAT, 64): np.dtype("<f8"),
@@ -78,7 +81,8 @@ _TAG_NAMES = {
     0xF1AC: "FLAC",
 }
 
-_CONVERT_HINT = "convert it to 16-bit or 32-bit integer PCM or 32-bit float (e.g. `sox IN -b 32 -e float OUT.wav`)"
+_CONVERT_HINT = ("convert it to 16-, 24- or 32-bit integer PCM or 32-bit float "
+                 "(e.g. `sox IN -b 32 -e float OUT.wav`)")
 
 #: Largest ``|sample|`` a float WAV may hold, in full scale (1.0): 1e6 is 120 dB above full
 #: scale, beyond any recording, yet far below what the filterbank's state can hold.
@@ -107,7 +111,8 @@ class WavInfo:
     bits : int
         Bits per sample as stored (container size).
     dtype : numpy.dtype
-        The sample type on disk.
+        The type the samples are read as: the type on disk, except 24-bit PCM, read as
+        int32 shifted left by 8 bits (as :func:`scipy.io.wavfile.read` returns it).
     """
 
     path: Path
@@ -204,9 +209,9 @@ def wav_info(path: str | os.PathLike) -> WavInfo:
     if dtype is None:
         kind = "integer PCM" if tag == _PCM else "float"
         raise _fail(path, f"{bits}-bit {kind} samples are not supported; {_CONVERT_HINT}")
-    if block_align != channels * dtype.itemsize:
+    if block_align != channels * bits // 8:
         raise _fail(path, f"corrupt: block align is {block_align} bytes, but {channels} channels of "
-                          f"{bits}-bit samples need {channels * dtype.itemsize}")
+                          f"{bits}-bit samples need {channels * bits // 8}")
     available = size - data_offset
     if data_size > available:
         raise _fail(path, f"truncated: the 'data' chunk declares {data_size} bytes "
@@ -225,13 +230,13 @@ def read_wav(path: str | os.PathLike) -> tuple[np.ndarray, int]:
     Parameters
     ----------
     path : str or path-like
-        The WAV file: mono or multichannel, 8-bit unsigned, 16-bit or 32-bit
+        The WAV file: mono or multichannel, 8-bit unsigned, 16-, 24- or 32-bit
         integer PCM, or 32-bit or 64-bit float.
 
     Returns
     -------
     data : ndarray of float64, shape (frames, channels)
-        Integer samples divided by their full scale (128, 32768, 2**31;
+        Integer samples divided by their full scale (128, 32768, 2**23, 2**31;
         uint8 is offset by 128 first); float samples as stored. Mono files
         give shape ``(frames, 1)``.
     rate : int

@@ -100,6 +100,23 @@ def test_extensible_pcm_is_accepted(tmp_path):
     np.testing.assert_array_equal(y, [[1000 / 32768, -1000 / 32768], [0.5, -0.5]])
 
 
+@pytest.mark.parametrize("channels", [1, 2, 5])
+@pytest.mark.parametrize("extensible", [False, True])
+def test_24_bit_pcm_is_read_exactly(tmp_path, channels, extensible):
+    """24-bit PCM (field recorders' format), built byte by byte here: each sample v / 2**23 exactly,
+    the extremes included."""
+    values = np.concatenate([[-2**23, 2**23 - 1, 0, 1, -1], RNG.integers(-2**23, 2**23, 200 * channels)])
+    values = values[: len(values) // channels * channels]
+    payload = b"".join(int(v).to_bytes(3, "little", signed=True) for v in values)
+    tag = (0xFFFE, 1) if extensible else (1, None)
+    path = tmp_path / "rec24.wav"
+    path.write_bytes(_riff(tag[0], channels, 48000, 24, payload, extensible_tag=tag[1]))
+    y, rate = read_wav(path)
+    assert rate == 48000 and y.shape == (len(values) // channels, channels)
+    np.testing.assert_array_equal(y, values.reshape(-1, channels) / 2**23)
+    assert wav_info(path).bits == 24
+
+
 def test_int16_clipping_is_counted_and_warned(tmp_path):
     x = np.array([[0.0, 1.0], [-1.0, 1.5], [-2.0, 0.25]])
     with pytest.warns(ClippingWarning, match=r"clipped 3 of 6 samples"):
@@ -139,8 +156,9 @@ def _good_bytes(tmp_path, frames=100, channels=3, dtype="float32"):
 
 
 @pytest.mark.parametrize("make, match", [
-    (lambda good: _riff(1, 1, 5000, 24, b"\x00" * 30), r"24-bit integer PCM samples are not supported"),
-    (lambda good: _riff(0xFFFE, 2, 5000, 24, b"\x00" * 60, extensible_tag=1), r"24-bit integer PCM"),
+    (lambda good: _riff(1, 1, 5000, 20, b"\x00" * 30), r"20-bit integer PCM samples are not supported"),
+    (lambda good: _riff(0xFFFE, 2, 5000, 20, b"\x00" * 60, extensible_tag=1), r"20-bit integer PCM"),
+    (lambda good: _riff(1, 2, 5000, 24, b"\x00" * 9), r"not a whole number of 6-byte frames"),
     (lambda good: _riff(1, 1, 5000, 12, b"\x00" * 10), r"12-bit integer PCM"),
     (lambda good: _riff(7, 1, 8000, 8, b"\x00" * 10), r"compressed or unknown sample format mu-law"),
     (lambda good: _riff(2, 1, 8000, 4, b"\x00" * 10), r"Microsoft ADPCM"),
