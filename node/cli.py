@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import signal
 import sys
@@ -140,13 +141,48 @@ def _cmd_synth(args) -> int:
     ts = load_texture_set(args.textures) if args.textures else reference_texture_set(args.bank)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    duration = args.duration if args.duration else ts.duration
+    duration = ts.duration if args.duration is None else args.duration
     for i, tex in enumerate(ts.textures):
         x = ts.synthesize(i, duration=duration).astype(np.float32)
         path = out / f"{tex.name}.wav"
         wavfile.write(path, int(round(ts.fs)), x)
         print(f"{path}  {len(x) / ts.fs:g} s at {ts.fs:g} Hz, peaks {list(tex.peaks)} Hz")
     return 0
+
+
+def _stream_seconds(text: str) -> float | None:
+    """``--seconds``: a positive number of seconds of stream, or ``inf`` (run until the stream ends)."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"expected a positive number of seconds, or inf for no limit; got {text!r}")
+    return None if math.isinf(value) else value
+
+
+def _positive_seconds(text: str) -> float:
+    """A finite, positive number of seconds (``--window``, ``--duration``)."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"expected a finite, positive number of seconds; got {text!r}")
+    return value
+
+
+def _count(lo: int):
+    """An integer option of at least ``lo`` (``--epochs``, ``--jobs``, ``--sets``, ``--seed``)."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a whole number >= {lo}; got {text!r}") from None
+        if value < lo:
+            raise argparse.ArgumentTypeError(f"expected a whole number >= {lo}; got {text!r}")
+        return value
+    return parse
 
 
 def _speed(text: str):
@@ -297,7 +333,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("scene", nargs="?", help="scene TOML file (default: the embedded default scene)")
     p.add_argument("--speed", type=_speed, help="replay speed: 1 = real time (default: the scene's), a factor, or 'max'")
     p.add_argument("--json", action="store_true", help="JSON Lines on stdout instead of the scene's sinks")
-    p.add_argument("--seconds", type=float, help="stop after this much stream (default: until it ends or Ctrl-C)")
+    p.add_argument("--seconds", type=_stream_seconds,
+                   help="stop after this much stream; inf or none: until it ends or Ctrl-C (default)")
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")
     p.set_defaults(func=_cmd_run)
 
@@ -308,9 +345,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="model file to write, at exactly this path (an .npz archive; e.g. model.npz)")
     p.add_argument("--features", nargs="+", default=["Af"], choices=list(FEATURE_TABLE),
                    help="; ".join(f"{f.name}: {f.description}" for f in FEATURE_TABLE.values()) + " (default Af)")
-    p.add_argument("--window", type=float, default=DEFAULT_WINDOW, help=f"window, seconds (default {DEFAULT_WINDOW})")
-    p.add_argument("--epochs", type=int, default=DEFAULT_EPOCHS, help=f"iRPROP- epochs (default {DEFAULT_EPOCHS})")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--window", type=_positive_seconds, default=DEFAULT_WINDOW, help=f"window, seconds (default {DEFAULT_WINDOW})")
+    p.add_argument("--epochs", type=_count(1), default=DEFAULT_EPOCHS, help=f"iRPROP- epochs (default {DEFAULT_EPOCHS})")
+    p.add_argument("--seed", type=_count(0), default=0)
     p.add_argument("--mapping", type=_mapping, default="auto",
                    help="recording channels to filters: auto, mono, per-channel, mean, or a channel index")
     p.add_argument("--quiet", action="store_true")
@@ -331,7 +368,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--label", help="label of the whole recording")
     p.add_argument("--marks", action="store_true",
                    help="read labels from stdin while recording: a line starts that label now, an empty line ends it")
-    p.add_argument("--seconds", type=float, help="stop after this much stream (default: until the stream ends or Ctrl-C)")
+    p.add_argument("--seconds", type=_stream_seconds,
+                   help="stop after this much stream; inf or none: until the stream ends or Ctrl-C (default)")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=_cmd_record)
 
@@ -347,14 +385,14 @@ def build_parser() -> argparse.ArgumentParser:
     p = add_parser("experiment", help="reproduce a figure of the paper (or all of them)")
     p.add_argument("figure", choices=["fig1", "fig3", "fig4", "fig5", "fig6", "all"], help="which figure")
     p.add_argument("--quick", action="store_true", help="short textures and small grids: seconds, not minutes")
-    p.add_argument("--jobs", type=int, help="worker processes (default: all cores); results do not depend on it")
-    p.add_argument("--seed", type=int, default=0,
+    p.add_argument("--jobs", type=_count(1), help="worker processes (default: all cores); results do not depend on it")
+    p.add_argument("--seed", type=_count(0), default=0,
                    help="experiment seed: each run's network seed derives from it and the run; also the first "
                         "random texture set's seed")
-    p.add_argument("--epochs", type=int, default=DEFAULT_EPOCHS, help=f"iRPROP- epochs (default {DEFAULT_EPOCHS})")
+    p.add_argument("--epochs", type=_count(1), default=DEFAULT_EPOCHS, help=f"iRPROP- epochs (default {DEFAULT_EPOCHS})")
     p.add_argument("--bank", choices=["whisker", "cochlea"], help="fig3: one bank (default: both)")
     p.add_argument("--textures", metavar="FILE", help="fig3: texture-set JSON file (default: the reference sets)")
-    p.add_argument("--sets", type=int, help="fig3: N random texture sets instead of the reference set; "
+    p.add_argument("--sets", type=_count(0), help="fig3: N random texture sets instead of the reference set; "
                                             "all: N random sets per bank besides it (default 5, 0 with --quick)")
     p.add_argument("--out", default="out", type=_output_folder, help="directory for CSV and PNG (default ./out)")
     p.add_argument("--json", action="store_true", help="print the figure's data as one JSON object instead of a table")
@@ -370,7 +408,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = add_parser("synth", help="write a texture set as WAV files")
     p.add_argument("--bank", choices=["whisker", "cochlea"], default="whisker")
     p.add_argument("--textures", metavar="FILE", help="texture-set JSON file (default: the bank's reference set)")
-    p.add_argument("--duration", type=float, help="seconds per texture (default: the set's)")
+    p.add_argument("--duration", type=_positive_seconds, help="seconds per texture (default: the set's)")
     p.add_argument("--out", default="out/textures", type=_output_folder, help="directory (default ./out/textures)")
     p.set_defaults(func=_cmd_synth)
     return parser

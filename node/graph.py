@@ -18,6 +18,7 @@ Threads and real-time rules
 from __future__ import annotations
 
 import collections
+import math
 import threading
 import time
 from dataclasses import dataclass, field
@@ -181,7 +182,9 @@ class Node:
         Returns the summary (also sent to the sinks).
         """
         if max_seconds is not None and not max_seconds > 0:
-            raise InputError(f"max_seconds must be > 0, got {max_seconds!r}")
+            raise InputError(f"max_seconds must be > 0 (or None or inf: no limit), got {max_seconds!r}")
+        if max_seconds is not None and math.isinf(max_seconds):
+            max_seconds = None
         self._max_frames = None if max_seconds is None else int(round(max_seconds * self.driver.rate))
         t0 = time.monotonic()
         threads = [threading.Thread(target=self._guard, args=("driver", self._drive), name="node-driver", daemon=True),

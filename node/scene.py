@@ -36,6 +36,8 @@ Example (the embedded default is ``default_scene()``)::
 
 from __future__ import annotations
 
+import math
+
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -58,11 +60,11 @@ def _number(v):
 
 
 def _positive(v):
-    return _number(v) and v > 0
+    return _number(v) and math.isfinite(v) and v > 0
 
 
 def _non_negative(v):
-    return _number(v) and v >= 0
+    return _number(v) and math.isfinite(v) and v >= 0
 
 
 def _int_min(lo):

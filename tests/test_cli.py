@@ -175,3 +175,63 @@ def test_signal_during_start_up_training(tmp_path, sig):
     assert out == ""
     assert _lines(err) == [f"supramodal: interrupted by {signal.Signals(sig).name} during start-up (building the "
                            "scene, training its model); nothing was processed"]
+
+
+# -- numbers on the command line and in scenes ---------------------------------------------------
+
+
+@pytest.mark.parametrize("argv, option", [
+    (["run", "--seconds", "nan"], "--seconds"),
+    (["run", "--seconds", "0"], "--seconds"),
+    (["run", "--seconds", "-1"], "--seconds"),
+    (["run", "--seconds", "soon"], "--seconds"),
+    (["synth", "--duration", "inf"], "--duration"),
+    (["synth", "--duration", "0"], "--duration"),
+    (["synth", "--duration", "nan"], "--duration"),
+    (["train", "--bank", "whisker", "--manifest", "m.csv", "--out", "m.npz", "--window", "inf"], "--window"),
+    (["train", "--bank", "whisker", "--manifest", "m.csv", "--out", "m.npz", "--epochs", "0"], "--epochs"),
+    (["experiment", "fig3", "--jobs", "0"], "--jobs"),
+    (["experiment", "fig3", "--sets", "-2"], "--sets"),
+    (["experiment", "fig3", "--seed", "-1"], "--seed"),
+])
+def test_bad_numbers_on_the_command_line_name_their_option(capsys, argv, option):
+    with pytest.raises(SystemExit) as stop:
+        cli.build_parser().parse_args(argv)
+    assert stop.value.code == 2
+    err = capsys.readouterr().err
+    assert f"argument {option}" in err and "Traceback" not in err
+
+
+def test_seconds_inf_means_no_limit(replay_scene):
+    args = cli.build_parser().parse_args(["run", str(replay_scene), "--seconds", "inf"])
+    assert args.seconds is None
+    assert cli.build_parser().parse_args(["run", "--seconds", "2.5"]).seconds == 2.5
+
+
+@pytest.mark.parametrize("section, key", [("driver", "seconds"), ("features", "window"), ("buffer", "seconds")])
+def test_a_scene_refuses_infinite_seconds_naming_the_key(section, key):
+    from node.scene import SceneError, scene_from_dict
+
+    driver = {"type": "synth"} if section != "driver" else {"type": "synth", "seconds": float("inf")}
+    sections = {"driver": driver} | ({section: {key: float("inf")}} if section != "driver" else {})
+    with pytest.raises(SceneError, match=rf"\[{section}\] (\(synth\) )?{key}: .*got inf"):
+        scene_from_dict(sections)
+
+
+def test_node_run_takes_inf_as_no_limit_and_refuses_nan():
+    import numpy as np
+
+    from node.graph import Node
+    from node.sinks import ListSink
+    from replay.driver import ReplayDriver
+    from supramodal.banks import whisker_bank
+    from supramodal.pipeline import FeaturePipeline
+
+    def node():
+        x = np.zeros((5000, 1))
+        return Node(ReplayDriver((x, 5000.0), speed="max", on_notice=None), FeaturePipeline(whisker_bank(), ("A",)),
+                    [ListSink()], overrun="block")
+
+    assert node().run(max_seconds=float("inf"))["stream_seconds"] == 1.0
+    with pytest.raises(InputError, match="max_seconds"):
+        node().run(max_seconds=float("nan"))
