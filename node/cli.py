@@ -28,6 +28,7 @@ import sys
 import traceback
 from pathlib import Path
 
+from supramodal import __version__
 from supramodal.errors import SupramodalError
 
 #: Exit status of a refused input (argparse uses it for usage errors too).
@@ -320,6 +321,7 @@ def build_parser() -> argparse.ArgumentParser:
     from supramodal.mlp import DEFAULT_EPOCHS
 
     parser = argparse.ArgumentParser(prog="supramodal", description=__doc__.splitlines()[0])
+    parser.add_argument("--version", action="version", version=f"supramodal {__version__}")
     parser.add_argument("--debug", action="store_true", help="show the traceback of every error, not one line")
     # --debug is also accepted after the command; SUPPRESS keeps the top-level value when it is not.
     common = argparse.ArgumentParser(add_help=False)

@@ -235,3 +235,15 @@ def test_node_run_takes_inf_as_no_limit_and_refuses_nan():
     assert node().run(max_seconds=float("inf"))["stream_seconds"] == 1.0
     with pytest.raises(InputError, match="max_seconds"):
         node().run(max_seconds=float("nan"))
+
+
+def test_version_and_python_m_supramodal():
+    """`supramodal --version` and `python -m supramodal` (where the script is not on PATH) both work."""
+    from supramodal import __version__
+
+    proc = subprocess.run([sys.executable, "-m", "supramodal", "--version"], capture_output=True, text=True,
+                          env=_env(), cwd=ROOT, timeout=60)
+    assert proc.returncode == 0 and proc.stdout.strip() == f"supramodal {__version__}"
+    proc = subprocess.run([sys.executable, "-m", "supramodal", "run", "--seconds", "nan"], capture_output=True,
+                          text=True, env=_env(), cwd=ROOT, timeout=60)
+    assert proc.returncode == 2 and "argument --seconds" in proc.stderr
