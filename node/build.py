@@ -7,7 +7,6 @@ not asked for are not computed, and there is no classifier without a model.
 
 from __future__ import annotations
 
-from pathlib import Path
 
 import sys
 
@@ -142,10 +141,18 @@ def driver_for(scene: Scene, bank: Bank, speed_override=None):
     raise SceneError(f"{scene.source}: [driver] type {kind!r} is not supported")
 
 
-def build_node(scene: Scene, speed=None, sinks_override=None, progress=None, recorder=None) -> Node:
-    """Everything a scene describes, wired and ready to :meth:`Node.run`."""
+def build_node(scene: Scene, speed=None, sinks_override=None, progress=None, recorder=None,
+               overwrite: bool = False) -> Node:
+    """Everything a scene describes, wired and ready to :meth:`Node.run`.
+
+    ``overwrite``: whether the scene's file sinks may replace existing files (``run --force``).
+    Sink files are checked here, before any training, and created only when first written.
+    """
     bank = bank_for(scene)
     pipeline = pipeline_for(scene, bank)
+    paths = [s["path"] if s["path"] == "-" else str(scene.resolve(s["path"])) for s in scene.sinks]
+    sinks = sinks_override if sinks_override is not None else [
+        make_sink(s["type"], p, overwrite) for s, p in zip(scene.sinks, paths)]
     driver, labels, ts = driver_for(scene, bank, speed)
     model = None
     m = scene.model
@@ -163,10 +170,6 @@ def build_node(scene: Scene, speed=None, sinks_override=None, progress=None, rec
             model.check_pipeline(pipeline)
         except ModelError as exc:
             raise SceneError(f"{scene.source}: [model] {exc}") from None
-    paths = [s["path"] if s["path"] == "-" else str(scene.resolve(s["path"])) for s in scene.sinks]
-    created = [p for p in paths if p != "-" and not Path(p).exists()]
-    sinks = sinks_override if sinks_override is not None else [
-        make_sink(s["type"], p) for s, p in zip(scene.sinks, paths)]
     mapping = scene.driver.get("mapping", "auto")
     overrun = scene.buffer["overrun"]
     if overrun == "auto":
@@ -175,11 +178,8 @@ def build_node(scene: Scene, speed=None, sinks_override=None, progress=None, rec
         return Node(driver, pipeline, sinks, model=model, decision=scene.decision, mapping=mapping, labels=labels,
                     buffer_seconds=scene.buffer["seconds"], overrun=overrun, recorder=recorder)
     except ValueError as exc:
-        # A refused scene leaves nothing behind: the sink files it opened are closed and, where
-        # this call created them, removed.
+        # A refused scene leaves nothing behind: its sinks have written nothing, so no file exists.
         if sinks_override is None:
             for sink in sinks:
                 sink.close()
-            for p in created:
-                Path(p).unlink(missing_ok=True)
         raise SceneError(f"{scene.source}: {exc}") from None

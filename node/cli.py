@@ -137,15 +137,19 @@ def _cmd_synth(args) -> int:
     import numpy as np
     from scipy.io import wavfile
 
+    from node.outputs import check_new_file
     from supramodal.textures import load_texture_set, reference_texture_set
 
     ts = load_texture_set(args.textures) if args.textures else reference_texture_set(args.bank)
     out = Path(args.out)
+    paths = [out / f"{tex.name}.wav" for tex in ts.textures]
+    if out.is_dir():
+        for path in paths:
+            check_new_file(path, args.force, "the texture file")
     out.mkdir(parents=True, exist_ok=True)
     duration = ts.duration if args.duration is None else args.duration
-    for i, tex in enumerate(ts.textures):
+    for i, (tex, path) in enumerate(zip(ts.textures, paths)):
         x = ts.synthesize(i, duration=duration).astype(np.float32)
-        path = out / f"{tex.name}.wav"
         wavfile.write(path, int(round(ts.fs)), x)
         print(f"{path}  {len(x) / ts.fs:g} s at {ts.fs:g} Hz, peaks {list(tex.peaks)} Hz")
     return 0
@@ -210,7 +214,7 @@ def _cmd_run(args) -> int:
     if progress:
         progress(f"scene {scene.source}: {scene.driver['type']} driver, {scene.bank['kind']} bank, "
                  f"features {scene.features['names']}")
-    node = build_node(scene, speed=args.speed, sinks_override=sinks, progress=progress)
+    node = build_node(scene, speed=args.speed, sinks_override=sinks, progress=progress, overwrite=args.force)
     _stop_on_signals(node)
     node.run(max_seconds=args.seconds)
     return 0
@@ -229,7 +233,7 @@ def _cmd_record(args) -> int:
     scene = load_scene(args.scene)
     name = args.name or time.strftime("session-%Y%m%d-%H%M%S")
     source = _json.dumps({"scene": scene.source, "driver": scene.driver})
-    recorder = SessionRecorder(args.out, name, source, label=args.label)
+    recorder = SessionRecorder(args.out, name, source, label=args.label, overwrite=args.force)
     node = build_node(scene, recorder=recorder, progress=_progress(args))
     _stop_on_signals(node)
     if args.marks:
@@ -283,9 +287,11 @@ def _progress(args):
 
 
 def _cmd_train(args) -> int:
+    from node.outputs import check_new_file
     from node.training import train_from_manifest
     from supramodal.banks import bank_by_name
 
+    check_new_file(args.out, args.force, "the model file")      # before the training, not after
     bank = bank_by_name(args.bank)
     model = train_from_manifest(args.manifest, bank, tuple(args.features), args.window, epochs=args.epochs,
                                 seed=args.seed, mapping=args.mapping, progress=_progress(args))
@@ -332,15 +338,17 @@ def build_parser() -> argparse.ArgumentParser:
         return sub.add_parser(name, parents=[common], **kwargs)
 
     p = add_parser("run", help="run the node on a scene (default: the embedded whisker replay scene)")
+    p.add_argument("--force", action="store_true", help="replace existing sink files (default: refuse)")
     p.add_argument("scene", nargs="?", help="scene TOML file (default: the embedded default scene)")
     p.add_argument("--speed", type=_speed, help="replay speed: 1 = real time (default: the scene's), a factor, or 'max'")
     p.add_argument("--json", action="store_true", help="JSON Lines on stdout instead of the scene's sinks")
     p.add_argument("--seconds", type=_stream_seconds,
-                   help="stop after this much stream; inf or none: until it ends or Ctrl-C (default)")
+                   help="stop after this much stream; inf: until it ends or Ctrl-C (the default)")
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")
     p.set_defaults(func=_cmd_run)
 
     p = add_parser("train", help="train a model from labelled recordings")
+    p.add_argument("--force", action="store_true", help="replace an existing model file at --out (default: refuse)")
     p.add_argument("--bank", choices=["whisker", "cochlea"], required=True)
     p.add_argument("--manifest", required=True, help="CSV with columns path,label[,start,end]; paths relative to it")
     p.add_argument("--out", required=True, type=_output_file,
@@ -364,6 +372,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_evaluate)
 
     p = add_parser("record", help="record a scene's raw driver blocks as a session (WAV + JSON)")
+    p.add_argument("--force", action="store_true", help="replace an existing session of that name (default: refuse)")
     p.add_argument("scene", help="scene TOML file")
     p.add_argument("--out", required=True, type=_output_folder, help="folder for the session (created if missing)")
     p.add_argument("--name", help="session name (default: session-DATE-TIME)")
@@ -371,7 +380,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--marks", action="store_true",
                    help="read labels from stdin while recording: a line starts that label now, an empty line ends it")
     p.add_argument("--seconds", type=_stream_seconds,
-                   help="stop after this much stream; inf or none: until the stream ends or Ctrl-C (default)")
+                   help="stop after this much stream; inf: until the stream ends or Ctrl-C (the default)")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=_cmd_record)
 
@@ -408,6 +417,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_bench)
 
     p = add_parser("synth", help="write a texture set as WAV files")
+    p.add_argument("--force", action="store_true", help="replace existing texture files in --out (default: refuse)")
     p.add_argument("--bank", choices=["whisker", "cochlea"], default="whisker")
     p.add_argument("--textures", metavar="FILE", help="texture-set JSON file (default: the bank's reference set)")
     p.add_argument("--duration", type=_positive_seconds, help="seconds per texture (default: the set's)")

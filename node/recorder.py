@@ -21,7 +21,8 @@ from pathlib import Path
 import numpy as np
 
 from node.ringbuffer import RingClosed
-from replay.session import save_session
+from replay.session import save_session, session_paths
+from supramodal.errors import InputError
 
 _CHUNK = 1 << 18  # frames per pass when converting the raw file
 
@@ -39,17 +40,27 @@ class SessionRecorder:
         Free text stored in the sidecar: the driver and its options.
     label : str, optional
         A label for the whole recording.
+    overwrite : bool
+        Whether an existing session of that name may be replaced (default False: refused).
+
+    Nothing is created until the first frames arrive: a node that fails to start leaves
+    neither the folder nor a raw file behind.
     """
 
-    def __init__(self, folder, name: str, source: str, label: str | None = None) -> None:
+    def __init__(self, folder, name: str, source: str, label: str | None = None, overwrite: bool = False) -> None:
         self.folder = Path(folder)
-        self.folder.mkdir(parents=True, exist_ok=True)
+        if self.folder.exists() and not self.folder.is_dir():
+            raise InputError(f"{self.folder} is a file; give a folder for the session")
+        for path in session_paths(self.folder / name):
+            if path.exists() and not overwrite:
+                raise InputError(f"a session {name!r} exists in {self.folder} ({path.name}); pass --force "
+                                 "(overwrite=True) to replace it, or choose another name")
         self.name = name
         self.source = source
         self.rate: float | None = None
         self.channels: int | None = None
         self._raw_path = self.folder / f".{name}.raw"
-        self._raw = open(self._raw_path, "wb")
+        self._raw = None
         self._frames = 0
         self._filled: list[tuple[int, int]] = []
         self._lock = threading.Lock()
@@ -84,10 +95,14 @@ class SessionRecorder:
                 self._append(data, filled)
                 expected = start + data.shape[0]
         finally:
-            self._raw.close()
+            if self._raw is not None:
+                self._raw.close()
             self.paths = self._finish()
 
     def _append(self, data: np.ndarray, filled, missing: bool = False) -> None:
+        if self._raw is None:
+            self.folder.mkdir(parents=True, exist_ok=True)
+            self._raw = open(self._raw_path, "wb")
         a = self._frames
         self._raw.write(np.ascontiguousarray(data, dtype=np.float64).tobytes())
         self._frames += data.shape[0]
@@ -108,7 +123,8 @@ class SessionRecorder:
 
     def _finish(self) -> tuple[Path, Path] | None:
         if self._frames == 0 or self.rate is None:
-            os.unlink(self._raw_path)
+            if self._raw is not None:
+                os.unlink(self._raw_path)
             return None
         raw = np.memmap(self._raw_path, dtype=np.float64, mode="r", shape=(self._frames, self.channels))
         exact32 = all(np.array_equal(raw[i : i + _CHUNK].astype(np.float32).astype(np.float64), raw[i : i + _CHUNK])

@@ -2,23 +2,46 @@
 
 A sink is called from the processing thread only; it must not block for long
 (a file or a terminal is fine; a network peer would need its own thread).
+
+A file sink checks its path when it is made (an existing file is refused unless
+``overwrite``) but creates the file only when it first writes: a node that fails
+to start (a port that does not open) leaves no empty file behind.
 """
 
 from __future__ import annotations
 
 import json
 import sys
+from pathlib import Path
 from typing import TextIO
 
+from node.outputs import check_new_file
 from supramodal.errors import InputError
 
 
 class Sink:
-    """Base sink: ``emit(event)`` per window, ``summary(summary)`` once, ``close()`` at the end."""
+    """Base sink: ``emit(event)`` per window, ``summary(summary)`` once, ``close()`` at the end.
 
-    def __init__(self, path: str = "-") -> None:
+    Parameters
+    ----------
+    path : str
+        ``"-"`` for standard output, else a file, created at the first write.
+    overwrite : bool
+        Whether an existing file may be replaced (default False: refused with an InputError
+        that says how to allow it).
+    """
+
+    def __init__(self, path: str = "-", overwrite: bool = False) -> None:
         self.path = path
-        self._fh: TextIO = sys.stdout if path == "-" else open(path, "w", buffering=1)
+        self._file: TextIO | None = sys.stdout if path == "-" else None
+        if path != "-":
+            check_new_file(Path(path), overwrite, "a sink file")
+
+    @property
+    def _fh(self) -> TextIO:
+        if self._file is None:
+            self._file = open(self.path, "w", buffering=1)
+        return self._file
 
     def emit(self, event: dict) -> None:
         raise NotImplementedError
@@ -27,10 +50,10 @@ class Sink:
         raise NotImplementedError
 
     def close(self) -> None:
-        if self._fh is not sys.stdout:
-            self._fh.close()
-        else:
-            self._fh.flush()
+        if self._file is sys.stdout:
+            self._file.flush()
+        elif self._file is not None:
+            self._file.close()
 
 
 class JsonLinesSink(Sink):
@@ -106,8 +129,8 @@ class ListSink(Sink):
 SINKS = {"text": TextSink, "jsonl": JsonLinesSink}
 
 
-def make_sink(kind: str, path: str = "-") -> Sink:
-    try:
-        return SINKS[kind](path)
-    except KeyError:
-        raise InputError(f"unknown sink {kind!r}; sinks are {sorted(SINKS)}") from None
+def make_sink(kind: str, path: str = "-", overwrite: bool = False) -> Sink:
+    if kind not in SINKS:
+        raise InputError(f"unknown sink {kind!r}; sinks are {sorted(SINKS)}")
+    return SINKS[kind](path, overwrite)
+

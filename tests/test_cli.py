@@ -247,3 +247,84 @@ def test_version_and_python_m_supramodal():
     proc = subprocess.run([sys.executable, "-m", "supramodal", "run", "--seconds", "nan"], capture_output=True,
                           text=True, env=_env(), cwd=ROOT, timeout=60)
     assert proc.returncode == 2 and "argument --seconds" in proc.stderr
+
+
+# -- nothing left behind, nothing replaced by accident --------------------------------------------
+
+
+def _serial_scene(folder: Path, port: str) -> Path:
+    scene = folder / "serial.toml"
+    scene.write_text(f'[driver]\ntype = "serial"\nport = "{port}"\nrate = 5000.0\nchannels = 20\n'
+                     'mapping = "per-channel"\n[bank]\nkind = "whisker"\n[[sink]]\ntype = "jsonl"\n'
+                     'path = "out/decisions.jsonl"\n')
+    (folder / "out").mkdir()
+    return scene
+
+
+def test_a_port_that_does_not_open_leaves_no_file(tmp_path, capsys):
+    """No board: exit 2 naming the port, and the scene's sink file is not created."""
+    scene = _serial_scene(tmp_path, str(tmp_path / "no-such-port"))
+    assert main(["run", str(scene), "--quiet"]) == 2
+    assert "no-such-port" in capsys.readouterr().err
+    assert list((tmp_path / "out").iterdir()) == []
+
+
+def test_a_failed_record_leaves_no_folder_and_no_raw_file(tmp_path, capsys):
+    scene = _serial_scene(tmp_path, str(tmp_path / "no-such-port"))
+    assert main(["record", str(scene), "--out", str(tmp_path / "sessions"), "--name", "s", "--quiet"]) == 2
+    assert not (tmp_path / "sessions").exists()
+
+
+def test_record_refuses_to_replace_a_session_unless_forced(replay_scene, tmp_path, capsys):
+    out = tmp_path / "sessions"
+    assert main(["record", str(replay_scene), "--out", str(out), "--name", "s", "--seconds", "1", "--quiet"]) == 0
+    first = (out / "s.wav").read_bytes()
+    assert main(["record", str(replay_scene), "--out", str(out), "--name", "s", "--seconds", "0.5", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "a session 's' exists" in err and "--force" in err
+    assert (out / "s.wav").read_bytes() == first
+    assert sorted(p.name for p in out.iterdir()) == ["s.json", "s.wav"]
+    assert main(["record", str(replay_scene), "--out", str(out), "--name", "s", "--seconds", "0.5", "--quiet",
+                 "--force"]) == 0
+    assert len((out / "s.wav").read_bytes()) < len(first)
+
+
+def test_run_refuses_to_replace_a_sink_file_unless_forced(tmp_path, capsys):
+    folder = tmp_path
+    ts = reference_texture_set("whisker")
+    write_wav(folder / "w.wav", ts.synthesize(0, duration=1.0)[:, None], 5000)
+    scene = folder / "s.toml"
+    scene.write_text('[driver]\ntype = "replay"\npath = "w.wav"\nspeed = "max"\n[features]\nnames = ["A"]\n'
+                     '[[sink]]\ntype = "jsonl"\npath = "d.jsonl"\n')
+    (folder / "d.jsonl").write_text("earlier results\n")
+    assert main(["run", str(scene), "--quiet"]) == 2
+    assert "d.jsonl exists; pass --force" in capsys.readouterr().err
+    assert (folder / "d.jsonl").read_text() == "earlier results\n"
+    assert main(["run", str(scene), "--quiet", "--force"]) == 0
+    assert (folder / "d.jsonl").read_text().count("\n") == 11       # 10 windows + the summary
+
+
+def test_train_refuses_an_existing_model_before_training(monkeypatch, tmp_path, capsys):
+    import node.training
+
+    def no_training(*a, **k):
+        raise AssertionError("trained although the output would be refused")
+
+    monkeypatch.setattr(node.training, "train_from_manifest", no_training)
+    (tmp_path / "m.npz").write_bytes(b"an earlier model")
+    argv = ["train", "--bank", "whisker", "--manifest", str(tmp_path / "m.csv"), "--out", str(tmp_path / "m.npz")]
+    assert main(argv) == 2
+    assert "m.npz exists; pass --force" in capsys.readouterr().err
+    assert (tmp_path / "m.npz").read_bytes() == b"an earlier model"
+
+
+def test_synth_refuses_to_replace_textures_unless_forced(tmp_path, capsys):
+    out = tmp_path / "tex"
+    assert main(["synth", "--out", str(out), "--duration", "0.1"]) == 0
+    names = sorted(p.name for p in out.iterdir())
+    before = {n: (out / n).stat().st_size for n in names}
+    assert main(["synth", "--out", str(out), "--duration", "0.2"]) == 2
+    assert "exists; pass --force" in capsys.readouterr().err
+    assert {n: (out / n).stat().st_size for n in names} == before
+    assert main(["synth", "--out", str(out), "--duration", "0.2", "--force"]) == 0
+    assert all((out / n).stat().st_size > before[n] for n in names)

@@ -21,6 +21,7 @@ from replay.driver import ReplayDriver, random_block_sizes
 from replay.session import save_session
 from replay.wavio import write_wav
 from supramodal.banks import cochlea_bank, whisker_bank
+from supramodal.errors import InputError
 from supramodal.gammatone import relative_error
 from supramodal.model import TextureModel
 from supramodal.pipeline import FeaturePipeline, extract_features
@@ -203,9 +204,11 @@ def test_a_scene_refused_late_leaves_no_sink_file(tmp_path):
         build_node(load_scene(tmp_path / "s.toml"), speed="max")
     assert not (tmp_path / "out.jsonl").exists()
     (tmp_path / "out.jsonl").write_text("kept\n")                   # a file that was there stays
-    with pytest.raises(SceneError):
+    with pytest.raises(InputError, match="out.jsonl exists; pass --force"):
         build_node(load_scene(tmp_path / "s.toml"), speed="max")
-    assert (tmp_path / "out.jsonl").exists()
+    with pytest.raises(SceneError):
+        build_node(load_scene(tmp_path / "s.toml"), speed="max", overwrite=True)
+    assert (tmp_path / "out.jsonl").read_text() == "kept\n"        # checked, never opened
 
 
 def test_scene_refuses_a_model_for_another_bank(tmp_path, small_model):
