@@ -204,11 +204,14 @@ def _speed(text: str):
 
 def _cmd_run(args) -> int:
     from node.build import build_node
-    from node.scene import default_scene, load_scene
+    from node.scene import default_scene, load_scene, scene_to_toml
     from node.sinks import JsonLinesSink
 
-    _interrupt_until_running()
     scene = load_scene(args.scene) if args.scene else default_scene()
+    if args.print_scene:
+        print(scene_to_toml(scene), end="")
+        return 0
+    _interrupt_until_running()
     sinks = [JsonLinesSink("-")] if args.json else None
     progress = None if args.quiet else (lambda m: print(f"supramodal: {m}", file=sys.stderr, flush=True))
     if progress:
@@ -235,6 +238,10 @@ def _cmd_record(args) -> int:
     source = _json.dumps({"scene": scene.source, "driver": scene.driver})
     recorder = SessionRecorder(args.out, name, source, label=args.label, overwrite=args.force)
     node = build_node(scene, recorder=recorder, progress=_progress(args))
+    if node.labels.ranges and (args.label or args.marks):
+        raise CliError(f"{scene.source}: the {scene.driver['type']} driver labels its stream itself, and the "
+                       "recording keeps those labels with their times; --label and --marks would contradict them "
+                       "(leave them out)")
     _stop_on_signals(node)
     if args.marks:
         # Each line typed starts a label (its text) at the current stream time; an empty line ends it.
@@ -345,6 +352,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seconds", type=_stream_seconds,
                    help="stop after this much stream; inf: until it ends or Ctrl-C (the default)")
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")
+    p.add_argument("--print-scene", action="store_true",
+                   help="print the scene (the default one if none is given) as TOML, every key filled in, and exit: "
+                        "a starting point to edit, e.g. supramodal run --print-scene > my.toml")
     p.set_defaults(func=_cmd_run)
 
     p = add_parser("train", help="train a model from labelled recordings")

@@ -153,7 +153,7 @@ class Node:
         self.recorder = recorder
         if recorder is not None:
             self._recorder_reader = self.ring.add_reader("recorder")
-            recorder.attach(driver.rate, driver.channels, lambda: self.ring.written)
+            recorder.attach(driver.rate, driver.channels, lambda: self.ring.written, labels=self.labels.ranges)
         self._arrivals: collections.deque[tuple[int, float]] = collections.deque()
         self._stop = threading.Event()
         self._errors: list[tuple[str, BaseException]] = []

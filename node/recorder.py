@@ -8,8 +8,9 @@ long the recording). At the end the raw file becomes ``NAME.wav`` + ``NAME.json`
 exactly a float32 (serial and microphone drivers), float64 otherwise, so that
 replaying the session feeds the node bit-identical samples.
 
-Labels are time ranges; :meth:`SessionRecorder.mark` starts one at the current
-stream position (or ends the current one), from any thread.
+Labels are time ranges: those the driver carries (a synthesised or replayed stream knows its
+truth) are kept with their times; otherwise :meth:`SessionRecorder.mark` starts one at the
+current stream position (or ends the current one), from any thread.
 """
 
 from __future__ import annotations
@@ -61,6 +62,7 @@ class SessionRecorder:
         self.channels: int | None = None
         self._raw_path = self.folder / f".{name}.raw"
         self._raw = None
+        self._driver_labels: list[tuple[float, float, str]] = []
         self._frames = 0
         self._filled: list[tuple[int, int]] = []
         self._lock = threading.Lock()
@@ -68,9 +70,11 @@ class SessionRecorder:
         self._position = lambda: self._frames
         self.paths: tuple[Path, Path] | None = None
 
-    def attach(self, rate: float, channels: int, position) -> None:
-        """Called by the node: the stream's rate, channels, and a callable giving the current frame."""
+    def attach(self, rate: float, channels: int, position, labels=()) -> None:
+        """Called by the node: the stream's rate, channels, a callable giving the current frame, and
+        the driver's own labels ``(start_s, end_s, name)``, kept in the session."""
         self.rate, self.channels, self._position = float(rate), int(channels), position
+        self._driver_labels = [(float(a), float(b), str(n)) for a, b, n in labels]
 
     def mark(self, label: str | None) -> None:
         """Start a label at the current stream position; ``None`` ends the current one. Thread-safe."""
@@ -113,6 +117,10 @@ class SessionRecorder:
             self._filled += [(a + int(s), a + int(e)) for s, e in zip(idx[::2], idx[1::2])]
 
     def _labels(self) -> list[tuple[float, float, str]]:
+        if self._driver_labels:
+            # The driver's truth, clipped to what was recorded (a recording stopped early).
+            end = self._frames / self.rate
+            return [(a, min(b, end), n) for a, b, n in self._driver_labels if a < end]
         with self._lock:
             marks = sorted(self._marks, key=lambda m: m[0]) + [(self._frames, None)]
         out = []

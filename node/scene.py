@@ -36,8 +36,8 @@ Example (the embedded default is ``default_scene()``)::
 
 from __future__ import annotations
 
+import json
 import math
-
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -292,3 +292,33 @@ def default_scene() -> Scene:
         "decision": {"scope": "window"},
         "sink": [{"type": "text"}],
     }, "<default scene>")
+
+
+def _toml_value(v) -> str:
+    """One scene value as TOML: strings (JSON's escapes are TOML's), booleans, numbers, lists."""
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, float):
+        return "inf" if v == math.inf else "-inf" if v == -math.inf else "nan" if v != v else repr(v)
+    if isinstance(v, (int, str)):
+        return json.dumps(v)
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    raise SceneError(f"a scene value {v!r} ({type(v).__name__}) has no TOML form")
+
+
+def scene_to_toml(scene: Scene) -> str:
+    """The scene as a TOML file that :func:`load_scene` reads back to the same scene: every key
+    with its value (defaults filled in), keys whose default belongs to the driver or the bank
+    (None) left out, so that they keep following their owner."""
+    def table(header: str, values: dict) -> list[str]:
+        return [header] + [f"{k} = {_toml_value(v)}" for k, v in values.items() if v is not None] + [""]
+
+    lines = [f"# supramodal scene, from {scene.source} (supramodal run --print-scene).",
+             "# Paths are relative to this file's folder; docs/node.md lists every key.", ""]
+    lines += table("[driver]", scene.driver)
+    for name in SECTIONS:
+        lines += table(f"[{name}]", getattr(scene, name))
+    for sink in scene.sinks:
+        lines += table("[[sink]]", sink)
+    return "\n".join(lines)

@@ -328,3 +328,18 @@ def test_synth_refuses_to_replace_textures_unless_forced(tmp_path, capsys):
     assert {n: (out / n).stat().st_size for n in names} == before
     assert main(["synth", "--out", str(out), "--duration", "0.2", "--force"]) == 0
     assert all((out / n).stat().st_size > before[n] for n in names)
+
+
+def test_print_scene_writes_a_scene_that_loads_back_the_same(tmp_path, capsys, replay_scene):
+    """`run --print-scene` (the embedded default, or a file) prints TOML that load_scene reads
+    back to the same scene: every key, defaults filled in."""
+    from node.scene import default_scene, load_scene
+
+    for argv, expected in ((["run", "--print-scene"], default_scene()), (["run", str(replay_scene), "--print-scene"],
+                                                                        load_scene(replay_scene))):
+        assert main(argv) == 0
+        path = tmp_path / "printed.toml"
+        path.write_text(capsys.readouterr().out)
+        again = load_scene(path)
+        for part in ("driver", "bank", "features", "model", "decision", "buffer", "sinks"):
+            assert getattr(again, part) == getattr(expected, part), part

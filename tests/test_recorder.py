@@ -31,7 +31,11 @@ def test_recorded_session_replays_to_identical_node_output(tmp_path):
     assert summary["recorded"] == [str(wav), str(sidecar)]
     session = load_session(wav)
     assert session.data.shape == (8 * 2500, 1) and session.rate == 5000
-    assert [(lab.start, lab.end, lab.label) for lab in session.labels] == [(0.0, 4.0, "bench")]
+    # The synth driver's truth is kept with its times (the "bench" label of the whole recording
+    # applies only where the driver carries none).
+    _, _, truth = synth_session(scene, whisker_bank())
+    assert [(lab.start, lab.end, lab.label) for lab in session.labels] == truth.ranges
+    assert [lab.label for lab in session.labels] == [f"T{i}" for i in range(1, 9)]
     assert not list(tmp_path.glob(".*.raw"))                     # the spool file is gone
     replayed = ListSink()
     Node(ReplayDriver(str(wav), block_size=101, speed="max", on_notice=None),
@@ -66,11 +70,21 @@ def test_record_command_stops_after_seconds(tmp_path):
     (tmp_path / "s.toml").write_text('[driver]\ntype = "synth"\nseconds = 1.0\nheld_out = false\nspeed = "max"\n'
                                      '[[sink]]\ntype = "jsonl"\npath = "out.jsonl"\n')
     assert main(["record", str(tmp_path / "s.toml"), "--out", str(tmp_path / "rec"), "--name", "x",
-                 "--seconds", "2.5", "--label", "grit", "--quiet"]) == 0
+                 "--seconds", "2.5", "--quiet"]) == 0
     s = load_session(tmp_path / "rec" / "x.wav")
     assert s.data.shape[0] == 12500
-    assert [(lab.start, lab.end, lab.label) for lab in s.labels] == [(0.0, 2.5, "grit")]
+    # The driver's labels, clipped where the recording stopped: its replay reports accuracy.
+    assert [(lab.start, lab.end, lab.label) for lab in s.labels] == [(0.0, 1.0, "T1"), (1.0, 2.0, "T2"),
+                                                                       (2.0, 2.5, "T3")]
     assert len((tmp_path / "out.jsonl").read_text().splitlines()) == 25 + 1
+
+
+def test_a_whole_recording_label_is_refused_where_the_driver_labels_the_stream(tmp_path, capsys):
+    (tmp_path / "s.toml").write_text('[driver]\ntype = "synth"\nseconds = 1.0\nheld_out = false\nspeed = "max"\n')
+    assert main(["record", str(tmp_path / "s.toml"), "--out", str(tmp_path / "rec"), "--name", "x",
+                 "--seconds", "1", "--label", "grit", "--quiet"]) == 2
+    assert "labels its stream itself" in capsys.readouterr().err
+    assert not (tmp_path / "rec").exists()
 
 
 class Jittery:
