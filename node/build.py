@@ -12,6 +12,7 @@ import sys
 
 import numpy as np
 
+from node.band import warn_if_beyond_band
 from node.graph import Labels, Node
 from node.scene import Scene, SceneError
 from node.sinks import make_sink
@@ -126,6 +127,7 @@ def driver_for(scene: Scene, bank: Bank, speed_override=None):
 
         drv = ReplayDriver(str(scene.resolve(d["path"])), rate=bank.fs, loop=d["loop"],
                            on_notice=_notice, **replay)
+        warn_if_beyond_band(bank, drv.source_rate, f"{scene.source}: [driver] path {d['path']}")
         return drv, Labels.of(drv), None
     if kind == "serial":
         from drivers.serial_whisker import SerialWhiskerDriver

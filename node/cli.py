@@ -26,10 +26,11 @@ import os
 import signal
 import sys
 import traceback
+import warnings
 from pathlib import Path
 
 from supramodal import __version__
-from supramodal.errors import SupramodalError
+from supramodal.errors import SupramodalError, SupramodalWarning
 
 #: Exit status of a refused input (argparse uses it for usage errors too).
 EXIT_USER_ERROR = 2
@@ -460,9 +461,25 @@ def _reader_left(exc: BaseException) -> bool:
     return False
 
 
+def _show_warning(message, category, filename, lineno, file=None, line=None, _default=warnings.showwarning):
+    """The package's warnings as one line each, like its errors (``--quiet`` hides progress, never these)."""
+    if issubclass(category, SupramodalWarning):
+        print(f"supramodal: warning: {message}", file=sys.stderr, flush=True)
+    else:
+        _default(message, category, filename, lineno, file, line)
+
+
 def main(argv=None) -> int:
     """Run the command line; returns the exit status (see the module docstring)."""
     args = build_parser().parse_args(argv)
+    shown, warnings.showwarning = warnings.showwarning, _show_warning
+    try:
+        return _run(args)
+    finally:
+        warnings.showwarning = shown
+
+
+def _run(args) -> int:
     try:
         return args.func(args)
     except StartupInterrupted as exc:

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from node.band import warn_if_beyond_band
 from node.graph import channel_mapper
 from node.manifest import ManifestError, Recording, read_manifest
 from supramodal.errors import SupramodalError
@@ -40,6 +41,7 @@ def recording_windows(rec: Recording, pipeline: FeaturePipeline, mapping="auto",
         x = channel_mapper(mapping, data.shape[1], bank.channels)
     except (SupramodalError, ValueError) as e:          # a file or mapping that does not fit
         raise ManifestError(f"{rec.where}: {e}") from e
+    warn_if_beyond_band(bank, driver.source_rate, f"{rec.where}: {rec.path.name}")
     a = int(round(rec.start * driver.rate))
     b = data.shape[0] if rec.end is None else int(round(rec.end * driver.rate))
     duration = data.shape[0] / driver.rate

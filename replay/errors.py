@@ -9,6 +9,7 @@ bad: a file, a sidecar, an argument) and a :class:`drivers.base.DriverError`
 from __future__ import annotations
 
 from drivers.base import DriverError
+from supramodal.errors import SupramodalWarning
 
 
 class ReplayError(DriverError, ValueError):
@@ -29,5 +30,5 @@ class SessionError(ReplayError):
     """
 
 
-class ClippingWarning(UserWarning):
+class ClippingWarning(SupramodalWarning):
     """Samples were clipped when writing an integer WAV file."""

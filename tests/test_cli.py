@@ -343,3 +343,21 @@ def test_print_scene_writes_a_scene_that_loads_back_the_same(tmp_path, capsys, r
         again = load_scene(path)
         for part in ("driver", "bank", "features", "model", "decision", "buffer", "sinks"):
             assert getattr(again, part) == getattr(expected, part), part
+
+
+def test_a_bank_above_the_recordings_band_is_warned_even_when_quiet(tmp_path, capsys):
+    """A cochlea (44.1 kHz) trained on 5 kHz recordings: the channels above 2.5 kHz see nothing;
+    the command says how many, as a warning --quiet does not hide."""
+    from supramodal.banks import cochlea_bank
+
+    ts = reference_texture_set("whisker")
+    for i in range(2):
+        write_wav(tmp_path / f"t{i}.wav", ts.synthesize(i, duration=0.5)[:, None], 5000)
+    (tmp_path / "m.csv").write_text("path,label\nt0.wav,a\nt1.wav,b\n")
+    argv = ["train", "--bank", "cochlea", "--manifest", str(tmp_path / "m.csv"), "--out", str(tmp_path / "m.npz"),
+            "--epochs", "2", "--quiet"]
+    assert main(argv) == 0
+    err = capsys.readouterr().err
+    above = int((cochlea_bank().cf >= 2500).sum())
+    assert err.count("supramodal: warning:") == 2                    # one per recording
+    assert f"{above} of the cochlea bank's 50 channels" in err and "sampled at 5000 Hz" in err
