@@ -17,6 +17,7 @@ from node.graph import Labels, Node
 from node.scene import Scene, SceneError
 from node.sinks import make_sink
 from supramodal.banks import Bank, cochlea_bank, whisker_bank
+from supramodal.errors import InputError
 from supramodal.model import ModelError, TextureModel
 from supramodal.pipeline import FeaturePipeline
 from supramodal.training import split, texture_features
@@ -125,7 +126,11 @@ def driver_for(scene: Scene, bank: Bank, speed_override=None):
     if kind == "replay":
         from replay.driver import ReplayDriver
 
-        drv = ReplayDriver(str(scene.resolve(d["path"])), rate=bank.fs, loop=d["loop"],
+        path = scene.resolve(d["path"])
+        if not path.exists():
+            raise SceneError(f"{scene.source}: [driver] path: no recording at {path} (a relative path is taken from "
+                             "the scene file's folder)")
+        drv = ReplayDriver(str(path), rate=bank.fs, loop=d["loop"],
                            on_notice=_notice, **replay)
         warn_if_beyond_band(bank, drv.source_rate, f"{scene.source}: [driver] path {d['path']}")
         return drv, Labels.of(drv), None
@@ -153,8 +158,14 @@ def build_node(scene: Scene, speed=None, sinks_override=None, progress=None, rec
     bank = bank_for(scene)
     pipeline = pipeline_for(scene, bank)
     paths = [s["path"] if s["path"] == "-" else str(scene.resolve(s["path"])) for s in scene.sinks]
-    sinks = sinks_override if sinks_override is not None else [
-        make_sink(s["type"], p, overwrite) for s, p in zip(scene.sinks, paths)]
+    sinks = sinks_override
+    if sinks is None:
+        sinks = []
+        for i, (s, p) in enumerate(zip(scene.sinks, paths)):
+            try:
+                sinks.append(make_sink(s["type"], p, overwrite))
+            except InputError as exc:
+                raise SceneError(f"{scene.source}: [[sink]] #{i + 1} path: {exc}") from None
     driver, labels, ts = driver_for(scene, bank, speed)
     model = None
     m = scene.model

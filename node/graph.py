@@ -38,13 +38,14 @@ class NodeError(SupramodalError, RuntimeError):
     """A thread of the node failed; the message says which and why."""
 
 
-def channel_mapper(mapping, driver_channels: int, bank_channels: int):
+def channel_mapper(mapping, driver_channels: int, bank_channels: int, setting: str = "the scene's [driver] mapping"):
     """Return ``f(frames (L, driver_channels)) -> model input`` for a scene's ``mapping``.
 
     ``"mono"`` (one channel, fanned out to every filter), ``"per-channel"`` (each
     physical channel through its own filter), ``"mean"`` (their mean, fanned
     out), an integer (that channel, fanned out), or ``"auto"`` (mono for one
-    channel, per-channel when the counts match).
+    channel, per-channel when the counts match). ``setting`` names where the user sets
+    the mapping, for the advice of a refusal (``"--mapping"`` on the command line).
     """
     if mapping == "auto":
         if driver_channels == 1:
@@ -53,12 +54,12 @@ def channel_mapper(mapping, driver_channels: int, bank_channels: int):
             mapping = "per-channel"
         else:
             raise InputError(
-                f"the driver has {driver_channels} channels and the bank {bank_channels}: set the driver's "
-                "mapping to \"mean\", a channel index, or use a bank with as many channels")
+                f"the source has {driver_channels} channels and the bank {bank_channels}: set {setting} to "
+                "\"mean\" or a channel index (e.g. 0), or use a bank with as many channels")
     if mapping == "mono":
         if driver_channels != 1:
-            raise InputError(f"mapping \"mono\" needs a one-channel driver; this one has {driver_channels}: "
-                             "use \"mean\" or a channel index")
+            raise InputError(f"mapping \"mono\" needs a one-channel source; this one has {driver_channels}: "
+                             f"set {setting} to \"mean\" or a channel index")
         return lambda frames: frames[:, 0]
     if mapping == "per-channel":
         if driver_channels != bank_channels:

@@ -38,7 +38,7 @@ def recording_windows(rec: Recording, pipeline: FeaturePipeline, mapping="auto",
     try:
         driver = ReplayDriver(str(rec.path), rate=bank.fs, speed="max", on_notice=notice)
         data = driver.data
-        x = channel_mapper(mapping, data.shape[1], bank.channels)
+        x = channel_mapper(mapping, data.shape[1], bank.channels, setting="--mapping")
     except (SupramodalError, ValueError) as e:          # a file or mapping that does not fit
         raise ManifestError(f"{rec.where}: {e}") from e
     warn_if_beyond_band(bank, driver.source_rate, f"{rec.where}: {rec.path.name}")

@@ -261,7 +261,15 @@ class TextureModel:
                 arrays = {k: npz[k] for k in _ARRAYS}
         except ModelError:
             raise
-        except (zipfile.BadZipFile, ValueError, OSError, EOFError) as exc:
+        except ValueError as exc:
+            if "pickle" not in str(exc):
+                raise ModelError(f"{path} is not a readable model file ({exc}); it may be truncated or of another "
+                                 "kind") from exc
+            # numpy's message would suggest loading it unsafely: never. Say what the file is not.
+            raise ModelError(f"{path} is not a supramodal model file: it holds a pickled Python object, which "
+                             "this program never loads (a model file holds only plain arrays); train a model "
+                             "with `supramodal train`") from None
+        except (zipfile.BadZipFile, OSError, EOFError) as exc:
             raise ModelError(f"{path} is not a readable model file ({exc}); it may be truncated or of another kind") from exc
         if header_text.dtype.kind != "U" or header_text.ndim != 0:
             raise ModelError(f"{path}: the model header must be one text, got a {header_text.dtype} array "

@@ -361,3 +361,25 @@ def test_a_bank_above_the_recordings_band_is_warned_even_when_quiet(tmp_path, ca
     above = int((cochlea_bank().cf >= 2500).sum())
     assert err.count("supramodal: warning:") == 2                    # one per recording
     assert f"{above} of the cochlea bank's 50 channels" in err and "sampled at 5000 Hz" in err
+
+
+def test_messages_point_at_what_the_user_sets(tmp_path, capsys):
+    """Each refusal names what to change where the user changes it: --mapping for train, the
+    scene's key for a missing recording or sink folder."""
+    import numpy as np
+
+    write_wav(tmp_path / "st.wav", np.zeros((6000, 2)), 5000)
+    write_wav(tmp_path / "st2.wav", np.zeros((6000, 2)), 5000)
+    (tmp_path / "m.csv").write_text("path,label\nst.wav,a\nst2.wav,b\n")
+    assert main(["train", "--bank", "whisker", "--manifest", str(tmp_path / "m.csv"), "--out",
+                 str(tmp_path / "m.npz"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "m.csv, line 2" in err and 'set --mapping to "mean"' in err
+    (tmp_path / "gone.toml").write_text('[driver]\ntype = "replay"\npath = "gone.wav"\n')
+    assert main(["run", str(tmp_path / "gone.toml"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "[driver] path: no recording at" in err and "scene file's folder" in err and "Errno" not in err
+    (tmp_path / "sink.toml").write_text('[driver]\ntype = "replay"\npath = "st.wav"\nmapping = "mean"\n'
+                                        '[[sink]]\ntype = "jsonl"\npath = "nodir/x.jsonl"\n')
+    assert main(["run", str(tmp_path / "sink.toml"), "--quiet"]) == 2
+    assert "[[sink]] #1 path:" in capsys.readouterr().err
