@@ -170,9 +170,15 @@ def build_node(scene: Scene, speed=None, sinks_override=None, progress=None, rec
     model = None
     m = scene.model
     if m["train_on_start"]:
+        # Synthesised textures: the model is made on the spot (the default scene does this); a
+        # live or replayed source gets the bank's reference set (the mock board plays it).
         if ts is None:
-            raise SceneError(f"{scene.source}: [model] train_on_start works only with the synth driver")
-        # Synthesised textures: the model is made on the spot (the default scene does this).
+            from supramodal.textures import reference_texture_set
+
+            ts = reference_texture_set(bank.kind)
+            if abs(ts.fs - bank.fs) > 1e-9 * bank.fs:
+                raise SceneError(f"{scene.source}: [model] train_on_start: the {bank.kind} reference textures are "
+                                 f"at {ts.fs:g} Hz, the bank at {bank.fs:g} Hz; give a [model] path instead")
         model = train_on_texture_set(ts, pipeline, progress)
         if m["path"] is not None:
             model.save(scene.resolve(m["path"]))

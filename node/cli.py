@@ -203,6 +203,25 @@ def _speed(text: str):
     return value
 
 
+def _default_run_guide(scene, speed) -> list[str]:
+    """What the embedded default scene shows, how long it runs, and where to go from it."""
+    from supramodal.textures import reference_texture_set
+    from supramodal.training import TRAIN_FRACTION
+
+    d = scene.driver
+    n = len(reference_texture_set(scene.bank["kind"]).names)
+    pace = "at once (--speed max)" if speed == "max" else "in real time (--speed max runs it at once)"
+    return [
+        f"the default scene: the {scene.bank['kind']} bank replays the last {d['seconds']:g} s of each of the {n} "
+        f"reference textures ({n * d['seconds']:g} s of stream) {pace}, with a model trained on the spot on the "
+        f"first {TRAIN_FRACTION:.0%} of each texture",
+        f"one line per {scene.features['window'] * 1000:g} ms window: the decided texture, its confidence, the "
+        "texture really there, ok or -- (wrong); Ctrl-C stops and prints the summary",
+        "next: a model of your own recordings (supramodal train --help), the serial whisker array "
+        "(examples/whisker_serial.toml with supramodal mock-whisker), your own scene (supramodal run --print-scene)",
+    ]
+
+
 def _cmd_run(args) -> int:
     from node.build import build_node
     from node.scene import default_scene, load_scene, scene_to_toml
@@ -215,7 +234,10 @@ def _cmd_run(args) -> int:
     _interrupt_until_running()
     sinks = [JsonLinesSink("-")] if args.json else None
     progress = None if args.quiet else (lambda m: print(f"supramodal: {m}", file=sys.stderr, flush=True))
-    if progress:
+    if progress and args.scene is None:
+        for line in _default_run_guide(scene, args.speed):
+            progress(line)
+    elif progress:
         progress(f"scene {scene.source}: {scene.driver['type']} driver, {scene.bank['kind']} bank, "
                  f"features {scene.features['names']}")
     node = build_node(scene, speed=args.speed, sinks_override=sinks, progress=progress, overwrite=args.force)

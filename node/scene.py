@@ -172,7 +172,8 @@ SECTIONS = {
     },
     "model": {
         "path": (_str, "a model .npz path (loaded; or written when train_on_start)", None),
-        "train_on_start": (lambda v: isinstance(v, bool), "true or false (synth driver only)", False),
+        "train_on_start": (lambda v: isinstance(v, bool), "true or false: train at start-up on the synth driver's texture set, or with another "
+                           "driver on the bank's reference set", False),
     },
     "decision": {
         "scope": (_one_of(*SCOPES), f"one of {list(SCOPES)}", DEFAULT_SCOPE),

@@ -67,9 +67,24 @@ class JsonLinesSink(Sink):
 
 
 class TextSink(Sink):
-    """One human-readable line per window and a summary block."""
+    """One human-readable line per window, under a line that names the columns, and a summary block."""
+
+    _headed = False
+
+    def _header(self, event: dict) -> str:
+        if "predicted" not in event:
+            return f"{'time':>11}  feature sums over the channels, per feature"
+        line = f"{'time':>11}  {'decision':<12} confidence"
+        if event.get("accumulated"):
+            line += "  | the decision pooled over the last windows"
+        if event.get("truth") is not None:
+            line += "  truth: the texture really there; ok = right, -- = wrong"
+        return line
 
     def emit(self, event: dict) -> None:
+        if not self._headed:
+            self._fh.write(self._header(event) + "\n")
+            self._headed = True
         head = f"{event['t']:9.3f} s"
         if "predicted" in event:
             line = f"{head}  {event['predicted']:<12} conf {event['confidence']:.2f}"

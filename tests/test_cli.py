@@ -383,3 +383,18 @@ def test_messages_point_at_what_the_user_sets(tmp_path, capsys):
                                         '[[sink]]\ntype = "jsonl"\npath = "nodir/x.jsonl"\n')
     assert main(["run", str(tmp_path / "sink.toml"), "--quiet"]) == 2
     assert "[[sink]] #1 path:" in capsys.readouterr().err
+
+
+def test_the_first_run_says_what_it_shows_and_where_to_go(capsys):
+    """`supramodal run` with no scene: how long it runs and at what pace, what each column means
+    (-- explained), and the next steps; the columns are named above the first window."""
+    assert main(["run", "--speed", "max", "--seconds", "0.3"]) == 0
+    out, err = capsys.readouterr()
+    assert "8 reference textures (80 s of stream) at once" in err
+    assert "ok or -- (wrong)" in err and "Ctrl-C stops" in err
+    assert "supramodal train --help" in err and "examples/whisker_serial.toml" in err and "--print-scene" in err
+    lines = out.splitlines()
+    assert "decision" in lines[0] and "confidence" in lines[0] and "-- = wrong" in lines[0]
+    assert lines[1].strip().startswith("0.100 s")
+    assert main(["run", "--seconds", "0.1", "--quiet", "--speed", "max"]) == 0
+    assert "default scene" not in capsys.readouterr().err                # --quiet: no guide either

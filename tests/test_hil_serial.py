@@ -120,3 +120,37 @@ def test_every_injected_fault_is_accounted_for(signal_and_model):
     emitted = {e["window"] for e in sink.events}
     assert {e["window"] for e in sink.events if e.get("gap")} == touched & emitted
     assert summary["windows"] == len(sink.events) >= len(x) // W - 2
+
+
+def test_the_serial_example_scene_decides_on_the_mock_board():
+    """examples/whisker_serial.toml as shipped (its port pointed at the mock's pty): it trains its
+    model at start-up on the reference textures and decides, per contact, the texture the
+    board plays (synth:T3, fanned out to 20 whiskers)."""
+    from pathlib import Path
+
+    from node.build import build_node
+    from node.scene import load_scene
+
+    scene = load_scene(Path(__file__).resolve().parents[1] / "examples" / "whisker_serial.toml")
+    ts = reference_texture_set("whisker")
+    x = quantise(np.repeat(ts.synthesize(ts.names.index("T3"), duration=3.0)[:, None], 20, axis=1)) / 32768.0
+    dev = MockWhiskerDevice(x, RATE, samples_per_frame=SPF)
+    scene.driver["port"] = dev.port
+    sink = ListSink()
+    node = build_node(scene, sinks_override=[sink])
+
+    def board():
+        time.sleep(0.3)
+        dev.start()
+        dev.finished.wait(60)
+        time.sleep(0.5)
+        node.stop("board finished")
+
+    with dev:
+        t = threading.Thread(target=board, daemon=True)
+        t.start()
+        node.run()
+        t.join(5)
+    pooled = [e["accumulated"]["label"] for e in sink.events if e.get("accumulated")]
+    assert len(sink.events) >= 25 and "predicted" in sink.events[0]
+    assert pooled[-1] == "T3" and pooled.count("T3") >= 0.8 * len(pooled)

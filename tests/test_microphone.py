@@ -3,7 +3,7 @@
 Unit tests drive CaptureBuffer.callback, the function PortAudio calls, directly
 with synthetic blocks; the hardware tests run MicrophoneDriver on a real
 PortAudio stream whose "sound card" is ALSA's file plugin serving a raw file
-(see ../shared/TESTING-WITHOUT-HARDWARE.md), in a subprocess.
+(configured by the test itself, no sound card needed), in a subprocess.
 """
 
 from __future__ import annotations

@@ -298,8 +298,8 @@ def test_manifest_errors(tmp_path):
         read_manifest(tmp_path / "m.csv")
 
 
-@pytest.mark.skipif(not SHARED_DATA.is_dir(), reason=f"real recordings not present at {SHARED_DATA} "
-                    "(they live in the project's shared/ folder, not in the package)")
+@pytest.mark.skipif(not SHARED_DATA.is_dir(), reason="the LMT surface recordings are not distributed with "
+                    "supramodal; this check runs only on the developers' machines, which hold a copy")
 def test_real_surface_recordings_cochlea(tmp_path):
     from node.training import evaluate_manifest, train_from_manifest
 
