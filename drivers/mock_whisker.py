@@ -43,6 +43,7 @@ import copy
 import errno
 import fcntl
 import os
+import signal
 import struct
 import sys
 import tempfile
@@ -773,9 +774,23 @@ def run(args: argparse.Namespace, samples: np.ndarray, rate: float) -> int:
     except (ValueError, OSError) as exc:
         print(f"mock-whisker: {exc}", file=sys.stderr)
         return 2
+    # SIGTERM (a supervisor, `kill`) ends the board as Ctrl-C does: the ledger line is printed
+    # and the port's symlink removed, never left pointing at a pty another program may get.
+    previous = signal.signal(signal.SIGTERM, _terminate_as_interrupt)
+    try:
+        return _serve(dev, args, samples.shape[1], rate)
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _terminate_as_interrupt(signum, frame):
+    raise KeyboardInterrupt
+
+
+def _serve(dev: "MockWhiskerDevice", args: argparse.Namespace, channels: int, rate: float) -> int:
     with dev:
         print(dev.port, flush=True)
-        print(f"mock-whisker: {samples.shape[1]} channels at {rate:g} Hz, "
+        print(f"mock-whisker: {channels} channels at {rate:g} Hz, "
               f"{args.samples_per_frame} samples per frame, pty {dev.pty}", file=sys.stderr)
         dev.start()
         try:

@@ -398,3 +398,21 @@ def test_the_first_run_says_what_it_shows_and_where_to_go(capsys):
     assert lines[1].strip().startswith("0.100 s")
     assert main(["run", "--seconds", "0.1", "--quiet", "--speed", "max"]) == 0
     assert "default scene" not in capsys.readouterr().err                # --quiet: no guide either
+
+
+def test_mock_whisker_ends_on_sigterm_as_on_ctrl_c(tmp_path):
+    """SIGTERM: the ledger line is printed, the exit status is 0 and the port's symlink is gone."""
+    link = tmp_path / "whisker0"
+    proc = subprocess.Popen([sys.executable, "-m", "node.cli", "mock-whisker", "synth:T1", "--loop", "--port", str(link)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env(), cwd=ROOT)
+    try:
+        assert proc.stdout.readline().strip() == str(link)
+        assert link.is_symlink()
+        time.sleep(0.3)
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=20)
+    finally:
+        proc.kill()
+    assert proc.returncode == 0, err
+    assert "mock-whisker: " in err and " frames, " in err and "unplugs" in err
+    assert not link.exists() and not link.is_symlink()
