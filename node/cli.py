@@ -382,7 +382,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = add_parser("train", help="train a model from labelled recordings")
     p.add_argument("--force", action="store_true", help="replace an existing model file at --out (default: refuse)")
-    p.add_argument("--bank", choices=["whisker", "cochlea"], required=True)
+    p.add_argument("--bank", choices=["whisker", "cochlea"], required=True, help="the filterbank: whisker (5 kHz) or cochlea (44.1 kHz)")
     p.add_argument("--manifest", required=True, help="CSV with columns path,label[,start,end]; paths relative to it")
     p.add_argument("--out", required=True, type=_output_file,
                    help="model file to write, at exactly this path (an .npz archive; e.g. model.npz)")
@@ -390,18 +390,19 @@ def build_parser() -> argparse.ArgumentParser:
                    help="; ".join(f"{f.name}: {f.description}" for f in FEATURE_TABLE.values()) + " (default Af)")
     p.add_argument("--window", type=_positive_seconds, default=DEFAULT_WINDOW, help=f"window, seconds (default {DEFAULT_WINDOW})")
     p.add_argument("--epochs", type=_count(1), default=DEFAULT_EPOCHS, help=f"iRPROP- epochs (default {DEFAULT_EPOCHS})")
-    p.add_argument("--seed", type=_count(0), default=0)
+    p.add_argument("--seed", type=_count(0), default=0, help="seed of the network's initial weights (default 0)")
     p.add_argument("--mapping", type=_mapping, default="auto",
-                   help="recording channels to filters: auto, mono, per-channel, mean, or a channel index")
-    p.add_argument("--quiet", action="store_true")
+                   help="recording channels to filters: auto (one channel to all, or one each), mono, per-channel, mean, or a channel index (default auto)")
+    p.add_argument("--quiet", action="store_true", help="no progress on stderr (warnings are still shown)")
     p.set_defaults(func=_cmd_train)
 
     p = add_parser("evaluate", help="accuracy and confusion of a model on labelled recordings")
     p.add_argument("model", help="model file (.npz)")
-    p.add_argument("--manifest", required=True)
-    p.add_argument("--mapping", type=_mapping, default="auto")
-    p.add_argument("--json", action="store_true")
-    p.add_argument("--quiet", action="store_true")
+    p.add_argument("--manifest", required=True, help="CSV with columns path,label[,start,end]; paths relative to it")
+    p.add_argument("--mapping", type=_mapping, default="auto",
+                   help="recording channels to filters: auto (one channel to all, or one each), mono, per-channel, mean, or a channel index (default auto)")
+    p.add_argument("--json", action="store_true", help="print the result as one JSON object instead of a table")
+    p.add_argument("--quiet", action="store_true", help="no progress on stderr (warnings are still shown)")
     p.set_defaults(func=_cmd_evaluate)
 
     p = add_parser("record", help="record a scene's raw driver blocks as a session (WAV + JSON)")
@@ -414,7 +415,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="read labels from stdin while recording: a line starts that label now, an empty line ends it")
     p.add_argument("--seconds", type=_stream_seconds,
                    help="stop after this much stream; inf: until the stream ends or Ctrl-C (the default)")
-    p.add_argument("--quiet", action="store_true")
+    p.add_argument("--quiet", action="store_true", help="no progress on stderr (warnings are still shown)")
     p.set_defaults(func=_cmd_record)
 
     from drivers.mock_whisker import add_arguments as mock_arguments
@@ -451,7 +452,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = add_parser("synth", help="write a texture set as WAV files")
     p.add_argument("--force", action="store_true", help="replace existing texture files in --out (default: refuse)")
-    p.add_argument("--bank", choices=["whisker", "cochlea"], default="whisker")
+    p.add_argument("--bank", choices=["whisker", "cochlea"], default="whisker", help="whose reference textures (default whisker)")
     p.add_argument("--textures", metavar="FILE", help="texture-set JSON file (default: the bank's reference set)")
     p.add_argument("--duration", type=_positive_seconds, help="seconds per texture (default: the set's)")
     p.add_argument("--out", default="out/textures", type=_output_folder, help="directory (default ./out/textures)")

@@ -416,3 +416,19 @@ def test_mock_whisker_ends_on_sigterm_as_on_ctrl_c(tmp_path):
     assert proc.returncode == 0, err
     assert "mock-whisker: " in err and " frames, " in err and "unplugs" in err
     assert not link.exists() and not link.is_symlink()
+
+
+def test_every_option_has_help_stating_its_default():
+    import argparse
+
+    parser = cli.build_parser()
+    commands = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices
+    missing = []
+    for name, sub in commands.items():
+        for action in sub._actions:
+            if action.dest in ("help", "debug"):
+                continue
+            text = action.help or ""
+            if not text or (action.default not in (None, False, argparse.SUPPRESS) and "default" not in text):
+                missing.append(f"{name} {'/'.join(action.option_strings) or action.dest}")
+    assert not missing, f"options without help, or whose help does not state the default: {missing}"
