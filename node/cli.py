@@ -323,6 +323,20 @@ def _cmd_train(args) -> int:
 
     check_new_file(args.out, args.force, "the model file")      # before the training, not after
     bank = bank_by_name(args.bank)
+    if args.cv:
+        from node.confusion import write_confusion
+        from node.training import cross_validate_manifest, format_cross_validation
+
+        base = args.out.with_name(args.out.stem + "-cv")
+        for suffix in (".csv", ".png"):
+            check_new_file(base.with_name(base.name + suffix), args.force, "the cross-validation file")
+        cv = cross_validate_manifest(args.manifest, bank, tuple(args.features), args.window, args.cv,
+                                     epochs=args.epochs, seed=args.seed, mapping=args.mapping, progress=_progress(args))
+        print(format_cross_validation(cv))
+        files = write_confusion(cv["labels"], cv["confusion"], base,
+                                f"{args.cv}-fold grouped cross-validation: window accuracy "
+                                f"{cv['window_accuracy']['mean']:.3f} +- {cv['window_accuracy']['sd']:.3f}")
+        print("wrote " + ", ".join(str(p) for p in files))
     model = train_from_manifest(args.manifest, bank, tuple(args.features), args.window, epochs=args.epochs,
                                 seed=args.seed, mapping=args.mapping, progress=_progress(args))
     path = model.save(args.out)
@@ -390,7 +404,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="; ".join(f"{f.name}: {f.description}" for f in FEATURE_TABLE.values()) + " (default Af)")
     p.add_argument("--window", type=_positive_seconds, default=DEFAULT_WINDOW, help=f"window, seconds (default {DEFAULT_WINDOW})")
     p.add_argument("--epochs", type=_count(1), default=DEFAULT_EPOCHS, help=f"iRPROP- epochs (default {DEFAULT_EPOCHS})")
-    p.add_argument("--seed", type=_count(0), default=0, help="seed of the network's initial weights (default 0)")
+    p.add_argument("--seed", type=_count(0), default=0,
+                   help="seed of the network's initial weights and of the cross-validation folds (default 0)")
+    p.add_argument("--cv", type=_count(2), metavar="K",
+                   help="first report grouped K-fold cross-validation (folds by recording: mean and sd, recall, "
+                        "confusion as MODEL-cv.csv/.png), then train the final model on everything (default: no "
+                        "cross-validation)")
     p.add_argument("--mapping", type=_mapping, default="auto",
                    help="recording channels to filters: auto (one channel to all, or one each), mono, per-channel, mean, or a channel index (default auto)")
     p.add_argument("--quiet", action="store_true", help="no progress on stderr (warnings are still shown)")

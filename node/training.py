@@ -15,13 +15,14 @@ import numpy as np
 from node.band import warn_if_beyond_band
 from node.graph import channel_mapper
 from node.manifest import ManifestError, Recording, read_manifest
-from supramodal.errors import SupramodalError
 from replay.driver import ReplayDriver
 from supramodal.banks import Bank
 from supramodal.decisions import DecisionAccumulator
+from supramodal.errors import SupramodalError
+from supramodal.mlp import DEFAULT_EPOCHS
 from supramodal.model import TextureModel
 from supramodal.pipeline import FeaturePipeline
-from supramodal.mlp import DEFAULT_EPOCHS
+from supramodal.training import grouped_folds
 
 
 def recording_windows(rec: Recording, pipeline: FeaturePipeline, mapping="auto", notice=None) -> np.ndarray:
@@ -70,12 +71,18 @@ def train_from_manifest(manifest, bank: Bank, features=("Af",), window: float = 
         Naming the manifest's line, the cause and the fix; or the manifest if it has fewer
         than two labels.
     """
+    recs, classes, windows = _manifest_windows(manifest, bank, features, window, mapping, progress)
+    return _train(recs, classes, windows, FeaturePipeline(bank, features, window), epochs, seed)
+
+
+def _manifest_windows(manifest, bank, features, window, mapping, progress):
+    """The manifest's recordings, its classes (sorted) and every recording's feature windows."""
     recs = read_manifest(manifest)
     classes = tuple(sorted({r.label for r in recs}))
     if len(classes) < 2:
         raise ManifestError(f"{manifest}: training needs at least two labels, found {list(classes)}; "
                             "add recordings of another texture")
-    values, labels = [], []
+    windows = []
     for k, rec in enumerate(recs):
         pipeline = FeaturePipeline(bank, features, window)
         v = recording_windows(rec, pipeline, mapping, notice=progress)
@@ -83,10 +90,84 @@ def train_from_manifest(manifest, bank: Bank, features=("Af",), window: float = 
             raise _no_window(rec, pipeline.window_samples / bank.fs)
         if progress:
             progress(f"[{k + 1}/{len(recs)}] {rec.path.name} ({rec.label}): {len(v)} windows")
-        values.append(v)
-        labels.append(np.full(len(v), classes.index(rec.label)))
-    x, y = np.concatenate(values), np.concatenate(labels)
-    return TextureModel.train_for(FeaturePipeline(bank, features, window), x, y, classes, epochs=epochs, seed=seed)
+        windows.append(v)
+    return recs, classes, windows
+
+
+def _train(recs, classes, windows, pipeline: FeaturePipeline, epochs: int, seed: int) -> TextureModel:
+    x = np.concatenate(windows)
+    y = np.concatenate([np.full(len(v), classes.index(r.label)) for r, v in zip(recs, windows)])
+    return TextureModel.train_for(pipeline, x, y, classes, epochs=epochs, seed=seed)
+
+
+def cross_validate_manifest(manifest, bank: Bank, features=("Af",), window: float = 0.1, k: int = 5,
+                            epochs: int = DEFAULT_EPOCHS, seed: int = 0, mapping="auto", progress=None) -> dict:
+    """Grouped ``k``-fold cross-validation of the training :func:`train_from_manifest` would do.
+
+    Folds are grouped by recording file (:func:`supramodal.training.grouped_folds`): the windows
+    of one recording are never on both sides. Each fold's model is trained as the final one
+    would be (same features, window, epochs, seed) on the other folds' recordings and scored on
+    its own.
+
+    Returns
+    -------
+    dict
+        ``k``, ``seed``, ``folds`` (per fold: ``window_accuracy``, ``recording_accuracy``,
+        ``recordings``), ``window_accuracy`` and ``recording_accuracy`` (``{"mean", "sd"}``
+        over folds; sd with ``ddof=1``), ``labels``, ``confusion`` (windows of every test fold;
+        rows = truth), ``recall`` (per label, from ``confusion``), ``chance`` (the largest
+        label's share of windows: what always answering it would score).
+    """
+    recs, classes, windows = _manifest_windows(manifest, bank, features, window, mapping, progress)
+    fold = grouped_folds([str(r.path) for r in recs], [r.label for r in recs], k, seed)
+    confusion = np.zeros((len(classes), len(classes)), dtype=int)
+    folds = []
+    for f in range(k):
+        train = [i for i in range(len(recs)) if fold[i] != f]
+        test = [i for i in range(len(recs)) if fold[i] == f]
+        seen = sorted({recs[i].label for i in train})
+        if seen != list(classes):
+            missing = sorted(set(classes) - set(seen))
+            raise ManifestError(f"{manifest}: fold {f + 1} of {k} would train without {missing}: record them more "
+                                "often or lower --cv")
+        model = _train([recs[i] for i in train], classes, [windows[i] for i in train],
+                       FeaturePipeline(bank, features, window), epochs, seed)
+        result = score_recordings(model, [recs[i] for i in test], [windows[i] for i in test])
+        confusion += np.array(result["confusion"])
+        folds.append({"window_accuracy": result["window_accuracy"], "recording_accuracy": result["recording_accuracy"],
+                      "recordings": [r["path"] for r in result["recordings"]]})
+        if progress:
+            progress(f"fold {f + 1}/{k}: {len(test)} recordings, {result['window_accuracy']:.3f} of windows, "
+                     f"{result['recording_accuracy']:.3f} of recordings")
+
+    def spread(key):
+        v = np.array([fo[key] for fo in folds])
+        return {"mean": float(v.mean()), "sd": float(v.std(ddof=1))}
+
+    totals = confusion.sum(axis=1)
+    return {"k": k, "seed": seed, "folds": folds, "window_accuracy": spread("window_accuracy"),
+            "recording_accuracy": spread("recording_accuracy"), "labels": list(classes),
+            "confusion": confusion.tolist(),
+            "recall": {c: float(confusion[i, i] / totals[i]) if totals[i] else None for i, c in enumerate(classes)},
+            "chance": float(totals.max() / totals.sum())}
+
+
+def format_cross_validation(result: dict) -> str:
+    w, r = result["window_accuracy"], result["recording_accuracy"]
+    lines = [f"grouped {result['k']}-fold cross-validation (folds by recording, seed {result['seed']})",
+             f"window accuracy     {w['mean']:.3f} +- {w['sd']:.3f} (chance {result['chance']:.3f})",
+             f"recording accuracy  {r['mean']:.3f} +- {r['sd']:.3f}",
+             "recall per label    " + ", ".join(f"{c} {v:.3f}" for c, v in result["recall"].items() if v is not None)]
+    return "\n".join(lines) + "\n\n" + _confusion_table(result["labels"], result["confusion"])
+
+
+def _confusion_table(labels, confusion) -> str:
+    width = max(8, *(len(n) for n in labels)) + 1
+    lines = ["confusion (windows; rows = truth, columns = predicted)",
+             " " * width + "".join(f"{n:>{width}}" for n in labels)]
+    for n, row in zip(labels, confusion):
+        lines.append(f"{n:<{width}}" + "".join(f"{v:>{width}}" for v in row))
+    return "\n".join(lines)
 
 
 def evaluate_manifest(model: TextureModel, manifest, mapping="auto", progress=None) -> dict:
@@ -108,13 +189,21 @@ def evaluate_manifest(model: TextureModel, manifest, mapping="auto", progress=No
         raise ManifestError(f"{unknown[0].where}: label {unknown[0].label!r} is not a class of the model "
                             f"({list(model.classes)}); {len(unknown)} line(s) have such labels: fix the labels "
                             "or evaluate a model trained on them")
-    labels = list(model.classes)
-    confusion = np.zeros((len(labels), len(labels)), dtype=int)
-    per_rec = []
+    windows = []
     for rec in recs:
         v = recording_windows(rec, model.pipeline(), mapping, notice=progress)
         if len(v) == 0:
             raise _no_window(rec, model.window_samples / model.bank.fs)
+        windows.append(v)
+    return score_recordings(model, recs, windows, progress)
+
+
+def score_recordings(model: TextureModel, recs: list[Recording], windows: list[np.ndarray], progress=None) -> dict:
+    """The result of :func:`evaluate_manifest` for recordings whose feature windows are known."""
+    labels = list(model.classes)
+    confusion = np.zeros((len(labels), len(labels)), dtype=int)
+    per_rec = []
+    for rec, v in zip(recs, windows):
         out = model.outputs(v)
         pred = np.argmax(out, axis=1)
         truth = labels.index(rec.label)
@@ -137,12 +226,6 @@ def evaluate_manifest(model: TextureModel, manifest, mapping="auto", progress=No
 
 
 def format_evaluation(result: dict) -> str:
-    labels = result["labels"]
-    width = max(8, *(len(n) for n in labels)) + 1
     lines = [f"window accuracy     {result['window_accuracy']:.3f}",
-             f"recording accuracy  {result['recording_accuracy']:.3f} ({len(result['recordings'])} recordings)",
-             "", "confusion (windows; rows = truth, columns = predicted)",
-             " " * width + "".join(f"{n:>{width}}" for n in labels)]
-    for n, row in zip(labels, result["confusion"]):
-        lines.append(f"{n:<{width}}" + "".join(f"{v:>{width}}" for v in row))
-    return "\n".join(lines)
+             f"recording accuracy  {result['recording_accuracy']:.3f} ({len(result['recordings'])} recordings)", ""]
+    return "\n".join(lines) + "\n" + _confusion_table(result["labels"], result["confusion"])

@@ -91,3 +91,61 @@ def split(values: np.ndarray, train_fraction: float = TRAIN_FRACTION):
     x_train = values[:, :n_train].reshape((-1,) + values.shape[2:])
     x_test = values[:, n_train:].reshape((-1,) + values.shape[2:])
     return x_train, np.repeat(labels, n_train), x_test, np.repeat(labels, n_win - n_train)
+
+
+def grouped_folds(groups, labels, k: int, seed: int = 0) -> np.ndarray:
+    """Assign items to ``k`` cross-validation folds, every item of one group in the same fold.
+
+    A group is one recording (one trial): its windows are alike, so a window in the test fold
+    whose neighbours trained the model would flatter the score. Groups are dealt to the folds
+    label by label, shuffled by ``seed``, so each fold holds about the same share of each label.
+
+    Parameters
+    ----------
+    groups : sequence of hashable, length n
+        The group of each item (e.g. the recording's path).
+    labels : sequence of str, length n
+        The label of each item; a group is dealt under the label of its first item.
+    k : int
+        Number of folds, >= 2.
+    seed : int, optional
+        Seed of the shuffle (default 0): the folds depend on nothing else.
+
+    Returns
+    -------
+    ndarray of int, shape (n,)
+        The fold of each item, 0 .. k-1.
+
+    Raises
+    ------
+    InputError
+        If ``k < 2``, if there are fewer groups than folds, or if a label has fewer than two
+        groups (one fold's model would then never see it).
+    """
+    groups, labels = list(groups), list(labels)
+    if len(groups) != len(labels):
+        raise InputError(f"{len(groups)} groups for {len(labels)} labels: give one of each per item")
+    if not (isinstance(k, (int, np.integer)) and k >= 2):
+        raise InputError(f"cross-validation needs k >= 2 folds, got {k!r}")
+    first_label: dict = {}
+    for g, lab in zip(groups, labels):
+        first_label.setdefault(g, lab)
+    if len(first_label) < k:
+        raise InputError(f"{k} folds need at least {k} recordings; there are {len(first_label)}: "
+                         "lower --cv or add recordings")
+    by_label: dict[str, list] = {}
+    for g, lab in first_label.items():
+        by_label.setdefault(lab, []).append(g)
+    thin = sorted(lab for lab, gs in by_label.items() if len(gs) < 2)
+    if thin:
+        raise InputError(f"label(s) {thin} have one recording each: a fold without it would train a model that "
+                         "never saw the label; record each texture at least twice (or split a long recording "
+                         "into files)")
+    rng = np.random.default_rng(seed)
+    fold_of, turn = {}, 0
+    for lab in sorted(by_label):
+        gs = sorted(by_label[lab], key=str)
+        for i in rng.permutation(len(gs)):
+            fold_of[gs[i]] = turn % k
+            turn += 1
+    return np.array([fold_of[g] for g in groups], dtype=int)

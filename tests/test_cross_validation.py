@@ -1,0 +1,111 @@
+"""Grouped cross-validation: folds by recording, deterministic, and the scores a plain
+re-training of each fold gives."""
+
+from __future__ import annotations
+
+import csv
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from node.cli import main
+from node.training import cross_validate_manifest, evaluate_manifest, train_from_manifest
+from replay.wavio import write_wav
+from supramodal.banks import whisker_bank
+from supramodal.errors import InputError
+from supramodal.textures import reference_texture_set
+from supramodal.training import grouped_folds
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.tuples(st.integers(0, 9), st.sampled_from("abc")), min_size=1, max_size=60),
+       st.integers(2, 6), st.integers(0, 2**16))
+def test_folds_never_split_a_group_and_depend_only_on_the_seed(items, k, seed):
+    groups = [f"rec{g}" for g, _ in items]
+    labels_of = {}
+    labels = [labels_of.setdefault(g, lab) for g, (_, lab) in zip(groups, items)]   # one label per group
+    try:
+        fold = grouped_folds(groups, labels, k, seed)
+    except InputError as exc:
+        per_label = {}
+        for g, lab in labels_of.items():
+            per_label.setdefault(lab, set()).add(g)
+        assert len(labels_of) < k or any(len(gs) < 2 for gs in per_label.values()), str(exc)
+        return
+    assert fold.shape == (len(items),) and fold.min() >= 0 and fold.max() < k
+    for g in set(groups):
+        assert len({fold[i] for i in range(len(groups)) if groups[i] == g}) == 1     # a group in one fold
+    np.testing.assert_array_equal(fold, grouped_folds(groups, labels, k, seed))
+    # each label's groups are spread: no fold holds more than its share, rounded up
+    for lab in set(labels):
+        gs = sorted({g for g, l in zip(groups, labels) if l == lab})
+        per_fold = np.bincount([fold[groups.index(g)] for g in gs], minlength=k)
+        assert per_fold.max() <= -(-len(gs) // k)
+
+
+@pytest.mark.parametrize("groups, labels, k, match", [
+    (["a", "b"], ["x", "y"], 1, "k >= 2"),
+    (["a", "b"], ["x", "x"], 3, "at least 3 recordings"),
+    (["a", "b", "c"], ["x", "x", "y"], 2, r"\['y'\] have one recording"),
+])
+def test_folds_are_refused_where_they_cannot_work(groups, labels, k, match):
+    with pytest.raises(InputError, match=match):
+        grouped_folds(groups, labels, k)
+
+
+@pytest.fixture(scope="module")
+def recordings(tmp_path_factory):
+    """Three whisker textures, three recordings each (different stretches of the texture): 9 files."""
+    folder = tmp_path_factory.mktemp("cv")
+    ts = reference_texture_set("whisker")
+    rows = ["path,label"]
+    for t in range(3):
+        x = ts.synthesize(t, duration=4.5)
+        for r in range(3):
+            name = f"{ts.names[t]}_{r}.wav"
+            write_wav(folder / name, x[r * 7500:(r + 1) * 7500, None], 5000)
+            rows.append(f"{name},{ts.names[t]}")
+    (folder / "all.csv").write_text("\n".join(rows) + "\n")
+    return folder
+
+
+def test_each_fold_scores_as_training_on_the_other_recordings(recordings):
+    """Fold by fold, the result equals a plain re-run: train_from_manifest on a manifest of the
+    other folds' recordings, evaluate_manifest on this fold's."""
+    bank = whisker_bank()
+    cv = cross_validate_manifest(recordings / "all.csv", bank, ("Af",), 0.1, k=3, epochs=60, seed=4)
+    all_recs = sorted(str(p) for p in recordings.glob("*.wav"))
+    tested = sorted(p for f in cv["folds"] for p in f["recordings"])
+    assert tested == all_recs                                       # every recording tested once
+    lines = (recordings / "all.csv").read_text().splitlines()[1:]
+    for f, fold in enumerate(cv["folds"]):
+        test_names = {p.rsplit("/", 1)[-1] for p in fold["recordings"]}
+        (recordings / "train.csv").write_text("path,label\n" + "\n".join(
+            line for line in lines if line.split(",")[0] not in test_names) + "\n")
+        (recordings / "test.csv").write_text("path,label\n" + "\n".join(
+            line for line in lines if line.split(",")[0] in test_names) + "\n")
+        model = train_from_manifest(recordings / "train.csv", bank, ("Af",), 0.1, epochs=60, seed=4)
+        plain = evaluate_manifest(model, recordings / "test.csv")
+        assert fold["window_accuracy"] == pytest.approx(plain["window_accuracy"], abs=1e-12)
+        assert fold["recording_accuracy"] == pytest.approx(plain["recording_accuracy"], abs=1e-12)
+    confusion = np.array(cv["confusion"])
+    assert confusion.sum() == 9 * 15                                # 15 windows per 1.5 s recording
+    means = np.mean([f["window_accuracy"] for f in cv["folds"]])
+    assert cv["window_accuracy"]["mean"] == pytest.approx(means)
+    assert cv["chance"] == pytest.approx(1 / 3)
+    again = cross_validate_manifest(recordings / "all.csv", bank, ("Af",), 0.1, k=3, epochs=60, seed=4)
+    assert again["folds"] == cv["folds"]                            # deterministic given the seed
+
+
+def test_train_cv_reports_then_writes_the_model_and_the_confusion_files(recordings, tmp_path, capsys):
+    out = tmp_path / "m.npz"
+    assert main(["train", "--bank", "whisker", "--manifest", str(recordings / "all.csv"), "--out", str(out),
+                 "--epochs", "60", "--cv", "3", "--quiet"]) == 0
+    text = capsys.readouterr().out
+    assert "grouped 3-fold cross-validation" in text and "+-" in text and "chance 0.333" in text
+    assert out.is_file()
+    rows = list(csv.reader(open(tmp_path / "m-cv.csv")))
+    assert rows[0][1:] == ["T1", "T2", "T3"]
+    assert sum(int(v) for row in rows[1:] for v in row[1:]) == 9 * 15
