@@ -16,7 +16,8 @@ from node.band import warn_if_beyond_band
 from node.graph import Labels, Node
 from node.scene import Scene, SceneError
 from node.sinks import make_sink
-from supramodal.banks import Bank, cochlea_bank, whisker_bank
+from supramodal.bankfile import BANK_KEYS, BankFileError, bank_from_description, load_bank
+from supramodal.banks import Bank
 from supramodal.errors import InputError
 from supramodal.model import ModelError, TextureModel
 from supramodal.pipeline import FeaturePipeline
@@ -35,16 +36,16 @@ def _notice(message: str) -> None:
 
 
 def bank_for(scene: Scene) -> Bank:
+    """The scene's bank: its [bank] file, or its kind's recipe with the keys the scene sets."""
     b = scene.bank
-    if b["kind"] == "whisker":
-        kw = {"rows": tuple(b["rows"]), **_given(b, {"mean_B": "mean_B", "fs": "fs"})}
-    else:
-        kw = _given(b, {"channels": "n", "f_low": "f_low", "f_high": "f_high", "fs": "fs"})
-    build = whisker_bank if b["kind"] == "whisker" else cochlea_bank
     try:
-        return build(**kw)
-    except ValueError as exc:
-        raise SceneError(f"{scene.source}: [bank] {exc}") from None
+        if b["file"] is not None:
+            return load_bank(scene.resolve(b["file"]))
+        keys = BANK_KEYS[b["kind"]]
+        return bank_from_description({"kind": b["kind"], **{k: v for k, v in b.items() if k in keys and v is not None}},
+                                     f"{scene.source}: [bank]")
+    except BankFileError as exc:
+        raise SceneError(str(exc) if b["file"] is None else f"{scene.source}: [bank] file: {exc}") from None
 
 
 def pipeline_for(scene: Scene, bank: Bank) -> FeaturePipeline:

@@ -308,6 +308,17 @@ def _cmd_devices(args) -> int:
     return 0
 
 
+def _bank(text: str):
+    """``--bank``: a paper bank by name, or a bank file, read and checked at parse time."""
+    from supramodal.bankfile import load_bank
+    from supramodal.banks import bank_by_name
+
+    try:
+        return bank_by_name(text) if text in ("whisker", "cochlea") else load_bank(text)
+    except SupramodalError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
 def _mapping(text: str):
     return int(text) if text.isdigit() else text
 
@@ -319,10 +330,8 @@ def _progress(args):
 def _cmd_train(args) -> int:
     from node.outputs import check_new_file
     from node.training import train_from_manifest
-    from supramodal.banks import bank_by_name
-
     check_new_file(args.out, args.force, "the model file")      # before the training, not after
-    bank = bank_by_name(args.bank)
+    bank = args.bank
     if args.cv:
         from node.confusion import write_confusion
         from node.training import cross_validate_manifest, format_cross_validation
@@ -396,7 +405,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = add_parser("train", help="train a model from labelled recordings")
     p.add_argument("--force", action="store_true", help="replace an existing model file at --out (default: refuse)")
-    p.add_argument("--bank", choices=["whisker", "cochlea"], required=True, help="the filterbank: whisker (5 kHz) or cochlea (44.1 kHz)")
+    p.add_argument("--bank", type=_bank, required=True, metavar="whisker|cochlea|FILE",
+                   help="the filterbank: whisker (5 kHz), cochlea (44.1 kHz), or a bank file (supramodal-bank JSON: "
+                        "any ERB-spaced band at any rate, or explicit channels; docs/node.md)")
     p.add_argument("--manifest", required=True, help="CSV with columns path,label[,start,end]; paths relative to it")
     p.add_argument("--out", required=True, type=_output_file,
                    help="model file to write, at exactly this path (an .npz archive; e.g. model.npz)")

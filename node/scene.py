@@ -158,6 +158,8 @@ SECTIONS = {
         "f_low": (_positive, "Hz (default: the cochlea bank's)", None),
         "f_high": (_positive, "Hz, above f_low (default: the cochlea bank's)", None),
         "fs": (_positive, "sample rate, Hz (default: the bank's)", None),
+        "file": (_str, "a bank file (supramodal-bank JSON, e.g. from a fit), relative to the scene; "
+                       "the [bank] table then holds nothing else", None),
     },
     "features": {
         "names": (_features, "a list of distinct names drawn from "
@@ -262,6 +264,9 @@ def scene_from_dict(d: dict, source: str = "<scene>", base_dir: Path | None = No
         sinks.append({"type": s["type"], **_fill(f"{source}: [[sink]] #{i + 1}", {k: v for k, v in s.items() if k != "type"},
                                                  SINK_KEYS[s["type"]])})
     bank = sections["bank"]
+    if bank["file"] is not None and set(d.get("bank", {})) - {"file"}:
+        raise SceneError(f"{source}: [bank] file: a bank file describes the whole bank; remove "
+                         f"{sorted(set(d['bank']) - {'file'})} or the file")
     if sections["decision"]["scope"] == "last" and sections["decision"]["n"] < 1:
         raise SceneError(f"{source}: [decision] n must be >= 1 with scope = \"last\"")
     return Scene(drv, bank, sections["features"], sections["model"], sections["decision"], sections["buffer"],

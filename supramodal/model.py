@@ -262,11 +262,11 @@ class TextureModel:
         except ModelError:
             raise
         except ValueError as exc:
-            if "pickle" not in str(exc):
+            if "Object arrays" not in str(exc):       # numpy's words for a pickled member of an archive
                 raise ModelError(f"{path} is not a readable model file ({exc}); it may be truncated or of another "
                                  "kind") from exc
             # numpy's message would suggest loading it unsafely: never. Say what the file is not.
-            raise ModelError(f"{path} is not a supramodal model file: it holds a pickled Python object, which "
+            raise ModelError(f"{path} is not a supramodal model file: a member holds a pickled Python object, which "
                              "this program never loads (a model file holds only plain arrays); train a model "
                              "with `supramodal train`") from None
         except (zipfile.BadZipFile, OSError, EOFError) as exc:

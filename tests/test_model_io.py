@@ -260,7 +260,7 @@ def test_pickle_inside_the_npz_is_refused_without_unpickling(saved, tmp_path, wh
     p = tmp_path / "evil.npz"
     with open(p, "wb") as fh:
         np.savez(fh, **parts)                           # numpy pickles object arrays
-    with pytest.raises(ModelError, match="not a supramodal model file: it holds a pickled Python object") as err:
+    with pytest.raises(ModelError, match="not a supramodal model file: a member holds a pickled Python object") as err:
         TextureModel.load(p)
     assert "allow_pickle" not in str(err.value)          # numpy's advice to load it unsafely is not passed on
     assert not marker.exists(), "the model loader unpickled an object"
