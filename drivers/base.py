@@ -11,10 +11,17 @@ Threading and real-time rules
   (frames synthesised to fill a gap, never measured), and driver-specific counters
   (CRC errors, skipped bytes, overflows, reconnects, ...).
 * Drivers are context managers: ``with driver: ...`` opens and closes the device.
+* A driver says what its hardware is doing as :class:`DriverEvent` objects kept in
+  an :class:`EventLog`: ``take_events()`` returns and clears the new ones, from
+  any thread, without waiting on anything but a short lock. The driver starts no
+  thread for them; whoever runs it (the node's driver thread) polls.
 """
 
 from __future__ import annotations
 
+import threading
+import time
+from collections import Counter, deque
 from dataclasses import dataclass, field
 from typing import Protocol, runtime_checkable
 
@@ -53,12 +60,24 @@ class Block:
     arrival : float
         ``time.monotonic()`` when the driver received the block's last frame;
         the node measures decision latency from it.
+    restarts : tuple of int, default ()
+        Offsets (frames, within the block) of frames that do not follow the
+        frame before them in the source's time: the board restarted, or a
+        sequence jump too long to fill. ``start`` still tiles the stream; the
+        time between the two frames is unknown.
+    overruns : tuple of int, default ()
+        Offsets of frames before which the source lost samples it could not
+        count or fill (the board's OVERRUN flag, an audio overflow without a
+        timestamp): from there on, the stream index runs behind real time by
+        the unknown loss.
     """
 
     data: np.ndarray
     start: int
     arrival: float
     filled: np.ndarray | None = field(default=None)
+    restarts: tuple[int, ...] = ()
+    overruns: tuple[int, ...] = ()
 
     @property
     def frames(self) -> int:
@@ -67,6 +86,97 @@ class Block:
     @property
     def n_filled(self) -> int:
         return 0 if self.filled is None else int(np.count_nonzero(self.filled))
+
+
+@dataclass(frozen=True)
+class DriverEvent:
+    """Something a driver's hardware did, said as it happened.
+
+    Attributes
+    ----------
+    kind : str
+        A short, stable name: ``"channels"`` (a frame of the wrong channel
+        count), ``"version"``, ``"unplug"``, ``"reconnect"``, ``"restart"``,
+        ``"gap"``, ``"overrun"``, ``"silence"``, ``"overflow"``, ``"error"``,
+        ``"notice"``, ...; each driver documents its kinds.
+    message : str
+        One line for a person: what happened and, for a fault, the likely fix.
+    time : float
+        ``time.time()`` (s since the epoch) when the driver saw it.
+    stream_index : int or None
+        Stream frame where it happened, when it has a place in the stream.
+    count : int, default 1
+        Occurrences this event stands for: more than 1 when a rate limiter
+        folded repeats of the same kind into it (its message is the latest).
+    """
+
+    kind: str
+    message: str
+    time: float
+    stream_index: int | None = None
+    count: int = 1
+
+    def as_dict(self) -> dict:
+        """The event as a JSON-ready dict: ``{"event": kind, "message": ..., ...}``."""
+        return {"event": self.kind, "message": self.message, "time": round(self.time, 3),
+                "stream_index": self.stream_index, "count": self.count}
+
+
+class EventLog:
+    """A bounded, thread-safe queue of :class:`DriverEvent` plus a short history.
+
+    Parameters
+    ----------
+    capacity : int, default 1024
+        Events kept for :meth:`take`; beyond it the oldest is dropped and counted
+        per kind (returned by the next :meth:`take`), so nothing goes unsaid.
+    history : int, default 200
+        Events kept for :meth:`history` (read, never cleared by :meth:`take`).
+
+    Notes
+    -----
+    Every method may be called from any thread (also an audio callback: a
+    method holds a lock for a few microseconds and never blocks otherwise).
+    """
+
+    def __init__(self, capacity: int = 1024, history: int = 200) -> None:
+        self._lock = threading.Lock()
+        self._new: deque[DriverEvent] = deque()
+        self._capacity = int(capacity)
+        self._history: deque[DriverEvent] = deque(maxlen=int(history))
+        self._dropped: Counter = Counter()
+
+    def record(self, kind: str, message: str, stream_index: int | None = None, count: int = 1) -> DriverEvent:
+        """Add an event (timestamped now) and return it."""
+        ev = DriverEvent(kind, message, time.time(), stream_index, count)
+        with self._lock:
+            if len(self._new) >= self._capacity:
+                old = self._new.popleft()
+                self._dropped[old.kind] += old.count
+            self._new.append(ev)
+            self._history.append(ev)
+        return ev
+
+    def take(self) -> tuple[list[DriverEvent], dict[str, int]]:
+        """Return and clear the new events, and the per-kind counts dropped since the last call."""
+        with self._lock:
+            if not self._new and not self._dropped:
+                return [], {}
+            out, self._new = list(self._new), deque()
+            dropped, self._dropped = dict(self._dropped), Counter()
+        return out, dropped
+
+    def history(self) -> list[DriverEvent]:
+        """The last ``history`` events, oldest first (a copy)."""
+        with self._lock:
+            return list(self._history)
+
+    def clear(self) -> None:
+        """Forget everything (a driver's ``open()`` restarts its counters)."""
+        with self._lock:
+            self._new.clear()
+            self._history.clear()
+            self._dropped.clear()
 
 
 @runtime_checkable
@@ -98,6 +208,11 @@ class Driver(Protocol):
     def stats(self) -> dict[str, int]:
         """Counters since ``open()``: at least ``frames`` and ``filled``."""
         ...
+
+    # Optional (the node polls it when present; every driver here has it):
+    # def take_events(self) -> tuple[list[DriverEvent], dict[str, int]]:
+    #     """New events since the last call, and per-kind counts of those dropped
+    #     (bounded log); thread-safe, never blocks."""
 
     def __enter__(self) -> "Driver": ...
 

@@ -174,6 +174,9 @@ class FrameDecoder:
     header_errors : int
         Sync words whose header failed the checks: mostly the sync pattern
         occurring by chance in skipped bytes, or a damaged header.
+    version_errors : int
+        Of those, headers valid but for their version (check byte and bounds
+        right): frames of another firmware version, or, rarely, chance.
     bytes_skipped : int
         Bytes not part of any returned frame (garbage, damaged frames,
         discarded by :meth:`reset`). Invariant:
@@ -202,6 +205,7 @@ class FrameDecoder:
         self.crc_errors = 0
         self.truncated = 0
         self.header_errors = 0
+        self.version_errors = 0
         self.bytes_skipped = 0
         self.sequence_gaps = 0
         self.frames_lost = 0
@@ -217,7 +221,7 @@ class FrameDecoder:
     def counters(self) -> dict[str, int]:
         """All counters as a new dict."""
         return {k: getattr(self, k) for k in (
-            "frames_ok", "crc_errors", "truncated", "header_errors", "bytes_skipped",
+            "frames_ok", "crc_errors", "truncated", "header_errors", "version_errors", "bytes_skipped",
             "sequence_gaps", "frames_lost", "sequence_resets", "bytes_fed",
             "bytes_in_frames")}
 
@@ -243,6 +247,13 @@ class FrameDecoder:
                 or check != _header_check(version, flags, seq, n, ch)):
             return None
         return flags, seq, n, ch
+
+    @staticmethod
+    def _header_fits_version(buf, i: int) -> bool:
+        """Is the header at ``i`` valid but for its version (a frame of another version)?"""
+        _, version, flags, seq, n, ch, check = _HEADER.unpack_from(buf, i)
+        return (1 <= ch <= MAX_CHANNELS and 1 <= n <= MAX_SAMPLES_PER_FRAME
+                and check == _header_check(version, flags, seq, n, ch))
 
     def _frame_starts_within(self, buf, lo: int, hi: int) -> bool:
         """Does a valid frame header start at an offset in ``[lo, hi)``?
@@ -305,6 +316,9 @@ class FrameDecoder:
             head = self._header(buf, i)
             if head is None:
                 self.header_errors += 1
+                version = buf[i + 2]
+                if version != VERSION and self._header_fits_version(buf, i):
+                    self.version_errors += 1
                 self.bytes_skipped += 1
                 pos = i + 1
                 continue

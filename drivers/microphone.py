@@ -51,7 +51,7 @@ import numpy as np
 
 from supramodal.errors import InputError
 
-from drivers.base import Block, DeviceUnavailable, DriverClosed, DriverError
+from drivers.base import Block, DeviceUnavailable, DriverClosed, DriverError, DriverEvent, EventLog
 
 __all__ = ["MicrophoneDriver", "CaptureBuffer", "import_sounddevice"]
 
@@ -174,6 +174,12 @@ class CaptureBuffer:
     gap_block : int
         Longest block, in frames, in which a gap is delivered (a long gap comes
         as several blocks, so that no consumer receives an unbounded block).
+    events : EventLog, optional
+        Where the callback says what happens, as it happens (thread-safe, never
+        blocks for more than a short lock): ``overflow`` (PortAudio flagged
+        ``input_overflow``; without a timestamp the block's first frame is also
+        marked in :attr:`Block.overruns`), ``underflow``, ``dropped`` (buffer
+        full: the block is filled later) and ``error`` (the callback failed).
 
     Notes
     -----
@@ -184,11 +190,13 @@ class CaptureBuffer:
     would have had, so that frame indices stay aligned with time.
     """
 
-    def __init__(self, rate: float, channels: int, capacity: int, gap_block: int) -> None:
+    def __init__(self, rate: float, channels: int, capacity: int, gap_block: int,
+                 events: EventLog | None = None) -> None:
         if capacity < 1 or gap_block < 1:
             raise InputError("capacity and gap_block must be at least 1 frame")
         self.rate = float(rate)
         self.channels = int(channels)
+        self.events = events if events is not None else EventLog()
         self.capacity = int(capacity)
         self.gap_block = int(gap_block)
         # SimpleQueue: put() never blocks (C implementation, no bound); the bound is
@@ -278,15 +286,25 @@ class CaptureBuffer:
             self.captured += frames
             if overflow:
                 self.overflows += 1
+                self.events.record("overflow", (
+                    f"microphone: input overflow, {lost} frame(s) lost (filled)" if lost else
+                    "microphone: input overflow, loss unknown (no timestamp): stream time runs "
+                    "behind by it") + "; the machine is too busy or the block too small",
+                    self._next)
+            if getattr(status, "input_underflow", False):
+                self.events.record("underflow", "microphone: input underflow reported by PortAudio",
+                                   self._next)
             if lost:
                 self.lost += lost
                 self._add_gap(lost, arrival)
             if data is None:
                 self.dropped += frames
+                self.events.record("dropped", f"microphone: buffer full, {frames} frame(s) dropped "
+                                   "(filled): the node reads too slowly", self._next)
                 self._add_gap(frames, arrival)
                 return
             self._flush_gap()
-            self._queue.put((_DATA, self._next, data, arrival))
+            self._queue.put((_DATA, self._next, data, arrival, overflow and not lost))
             self._queued_in += frames
             self._next += frames
         except BaseException as exc:  # noqa: BLE001 - nothing may escape to PortAudio
@@ -295,6 +313,7 @@ class CaptureBuffer:
     def _callback_failed(self, exc: BaseException, frames: Any, arrival: float) -> None:
         try:
             self.errors += 1
+            self.events.record("error", f"microphone: the callback failed: {exc!r}", self._next)
             n = frames if isinstance(frames, int) and frames > 0 else 0
             self.captured += n
             self.dropped += n
@@ -375,11 +394,11 @@ class CaptureBuffer:
             return None
         kind = item[0]
         if kind == _DATA:
-            _, start, data, arrival = item
+            _, start, data, arrival, overrun = item
             n = data.shape[0]
             self._queued_out += n
             self.frames += n
-            return Block(data=data, start=start, arrival=arrival)
+            return Block(data=data, start=start, arrival=arrival, overruns=(0,) if overrun else ())
         if kind == _GAP:
             _, self._fill_start, self._fill_left, self._fill_arrival = item
             return self._fill_piece()
@@ -529,6 +548,7 @@ class MicrophoneDriver:
         # Serialises close() against read()'s liveness check, which must not ask
         # PortAudio about a stream close() is freeing. The callback never takes it.
         self._stream_lock = threading.Lock()
+        self._log = EventLog()
 
     def __repr__(self) -> str:
         return (
@@ -579,6 +599,7 @@ class MicrophoneDriver:
                 self.channels,
                 self._capacity,
                 gap_block=self.blocksize or 1024,
+                events=self._log,
             )
             stream = sd.InputStream(
                 device=info["index"],
@@ -663,10 +684,18 @@ class MicrophoneDriver:
             with portaudio_errors(f"microphone stream {self!r} failed", self.device_info):
                 active = stream.active
         if not active:
+            self._log.record("error", f"microphone: PortAudio stopped the stream {self!r} "
+                             "(device unplugged or failed)")
             raise DeviceUnavailable(
                 f"PortAudio stopped the microphone stream {self!r} (device unplugged or "
                 "failed); close() the driver and open it again"
             )
+
+    def take_events(self) -> tuple[list[DriverEvent], dict[str, int]]:
+        """Events since the last call (kinds: see :class:`CaptureBuffer`; also ``error``
+        when PortAudio stopped the stream), and per-kind counts of any dropped (bounded
+        log). Any thread; never blocks."""
+        return self._log.take()
 
     def stats(self) -> dict[str, int]:
         """Counters since :meth:`open` (all zero before); see :meth:`CaptureBuffer.stats`."""

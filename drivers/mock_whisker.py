@@ -58,6 +58,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from drivers.frames import (
+    FLAG_OVERRUN,
     FULL_SCALE,
     HEADER_SIZE,
     MAX_CHANNELS,
@@ -103,6 +104,10 @@ class FaultSpec:
 
         A frame gets at most one of the five: ``drop_rate + crc_rate +
         omit_rate + channels_rate + version_rate`` must be <= 1.
+    overrun_rate : float, default 0
+        A frame sent intact with flag bit 0 (OVERRUN) set, as a board whose ADC
+        overran before it; independent of the five faults above. Drawn only
+        when > 0, so other schedules do not change.
     unplug_every : float or None, default None
         Seconds connected before each unplug; None never unplugs.
     unplug_for : float, default 0.5
@@ -129,6 +134,7 @@ class FaultSpec:
     omit_rate: float = 0.0
     channels_rate: float = 0.0
     version_rate: float = 0.0
+    overrun_rate: float = 0.0
     unplug_every: float | None = None
     unplug_for: float = 0.5
     unplug_limit: int | None = None
@@ -138,7 +144,7 @@ class FaultSpec:
 
     def __post_init__(self) -> None:
         for name in ("garbage_rate", "drop_rate", "crc_rate", "omit_rate", "channels_rate",
-                     "version_rate"):
+                     "version_rate", "overrun_rate"):
             v = getattr(self, name)
             if not 0.0 <= v <= 1.0:
                 raise InputError(f"{name} must be in [0, 1], got {v}")
@@ -210,6 +216,12 @@ class FaultLedger:
         ``"unplugged"`` or ``"unplug"`` (lost in the port at an unplug).
     unplug_at : list of int
         For each unplug, the index of the first frame produced after it.
+    unplug_times, replug_times : list of float
+        ``time.monotonic()`` of each unplug, and of each replug (the port back).
+    overrun_at : list of int
+        Indices of frames written with the OVERRUN flag (intact: not lost).
+    restart_at : list of int
+        Indices of frames where the board's sequence counter restarted from 0.
     """
 
     frames: int = 0
@@ -232,6 +244,10 @@ class FaultLedger:
     faults_ended_at: int | None = None
     lost: dict[int, str] = field(default_factory=dict)
     unplug_at: list[int] = field(default_factory=list)
+    unplug_times: list[float] = field(default_factory=list)
+    replug_times: list[float] = field(default_factory=list)
+    overrun_at: list[int] = field(default_factory=list)
+    restart_at: list[int] = field(default_factory=list)
 
 
 def quantise(samples: np.ndarray) -> np.ndarray:
@@ -278,6 +294,9 @@ class MockWhiskerDevice:
         Seed of the fault schedule.
     first_seq : int, default 0
         Sequence number of the first frame (65530 exercises the wrap).
+    restart_at : sequence of int, default ()
+        Frame indices at which the board restarts its sequence counter from 0,
+        as after a reset (the samples go on without a pause).
 
     Attributes
     ----------
@@ -301,7 +320,7 @@ class MockWhiskerDevice:
     def __init__(self, samples: np.ndarray, rate: float, port: str | None = None,
                  samples_per_frame: int = 32, loop: bool = False,
                  faults: FaultSpec = FaultSpec(), seed: int | None = None,
-                 first_seq: int = 0) -> None:
+                 first_seq: int = 0, restart_at=()) -> None:
         data = quantise(samples)
         if data.ndim != 2 or not 1 <= data.shape[1] <= MAX_CHANNELS or data.shape[0] < 1:
             raise InputError(f"samples must have shape (n >= 1, 1..{MAX_CHANNELS}), "
@@ -316,6 +335,9 @@ class MockWhiskerDevice:
         self.loop = bool(loop)
         self.faults = faults
         self.first_seq = int(first_seq) % SEQ_MODULUS
+        self.restart_at = tuple(sorted(int(k) for k in restart_at))
+        if any(k < 1 for k in self.restart_at):
+            raise InputError("restart_at: frame indices must be >= 1")
         self._rng = np.random.default_rng(seed)
         n = self._data.shape[0]
         self.n_frames = None if self.loop else -(-n // self.samples_per_frame)
@@ -400,6 +422,9 @@ class MockWhiskerDevice:
 
     def seq_of(self, k: int) -> int:
         """Sequence number of frame index ``k``."""
+        last = max((r for r in self.restart_at if r <= k), default=None)
+        if last is not None:
+            return (k - last) % SEQ_MODULUS
         return (self.first_seq + k) % SEQ_MODULUS
 
     def frame_rows(self, k: int) -> np.ndarray:
@@ -532,12 +557,15 @@ class MockWhiskerDevice:
                         self._ledger.unplugs += 1
                         self._ledger.unplugs_forced += not settled
                         self._ledger.unplug_at.append(k)
+                        self._ledger.unplug_times.append(time.monotonic())
                     self._unplug_pty()
                     replug_at = now + f.unplug_for
                     next_unplug = float("inf")
                     self._quiet = False
             if self._master is None and now >= replug_at:
                 self._plug()
+                with self._lock:
+                    self._ledger.replug_times.append(time.monotonic())
                 self._await_host = True
                 replug_at = float("inf")
                 if (f.unplug_every and not self.finished.is_set()
@@ -597,6 +625,7 @@ class MockWhiskerDevice:
         g_len = int(rng.integers(1, f.garbage_max + 1)) if rng.random() < f.garbage_rate else 0
         garbage = rng.bytes(g_len)
         u = rng.random()
+        overrun = bool(f.overrun_rate) and rng.random() < f.overrun_rate
         kind = ""
         for name, rate in zip(f.KINDS, f.kind_rates()):
             if u < rate:
@@ -626,7 +655,11 @@ class MockWhiskerDevice:
         if (k == 0 or (self.n_frames is not None and k == self.n_frames - 1)
                 or self._quiet or self._calm):
             frame = bytearray(encode_frame(self.seq_of(k), rows))
-            garbage, kind = b"", ""
+            garbage, kind, overrun = b"", "", False
+        if overrun and kind not in ("", "omitted"):
+            overrun = False  # only on frames that arrive intact: the ledger stays exact
+        if overrun:
+            frame = bytearray(encode_frame(self.seq_of(k), rows, flags=FLAG_OVERRUN))
         with self._lock:
             led = self._ledger
             led.frames += 1
@@ -660,6 +693,10 @@ class MockWhiskerDevice:
                     led.wrong_version += 1
             else:
                 led.sent += 1
+                if overrun:
+                    led.overrun_at.append(k)
+                if k in self.restart_at:
+                    led.restart_at.append(k)
             self._clean_run = 0 if garbage or kind else self._clean_run + len(frame)
         return kind == "truncated"
 
@@ -710,6 +747,7 @@ _FAULT_RATE_FLAGS = {
     "omit_rate": "leaving it out (its sequence number skipped)",
     "channels_rate": "sending it with one channel more (or fewer)",
     "version_rate": "sending it with a wrong version",
+    "overrun_rate": "setting its OVERRUN flag (sent intact)",
 }
 
 

@@ -8,14 +8,40 @@ that delivers no valid frame for ``silence_warning`` seconds (a dead board, a
 wrong baud rate, the wrong port) gets a notice saying what did arrive and the
 likely causes, repeated every ``silence_warning`` seconds while it lasts.
 
+What the board does is said as it happens, as :class:`drivers.base.DriverEvent`
+objects (:meth:`SerialWhiskerDriver.take_events`); their kinds:
+
+``open``, ``close``
+    the port was opened or closed.
+``baudrate``
+    the configured baud rate is too low for the stream on a real UART.
+``channels``
+    a frame with a channel count other than the configured one (skipped), one
+    event per frame, from the first one on.
+``version``
+    a frame of another format version (skipped), one per frame.
+``gap``
+    frames lost (sequence jump) and filled with zeros.
+``restart``
+    a sequence jump not filled (the board restarted, or longer than ``max_gap``):
+    stream time is discontinuous there (:attr:`Block.restarts`).
+``overrun``
+    a frame flagged OVERRUN by the board (:attr:`Block.overruns`).
+``unplug``, ``reopen``, ``reconnect``
+    the port was lost; a reopen attempt failed (the first and every 20th);
+    the reopened port delivered data.
+``silence``
+    no valid frame for ``silence_warning`` seconds (the notice's text).
+
 Threading rules
 ---------------
 * :meth:`SerialWhiskerDriver.read`, :meth:`~SerialWhiskerDriver.open` and
   :meth:`~SerialWhiskerDriver.close` are called from one thread (the node's
   driver thread). ``read`` never blocks longer than its timeout, so a node
   stops a reader by flagging it and joining, then calls ``close`` itself.
-* :meth:`~SerialWhiskerDriver.stats` and :attr:`~SerialWhiskerDriver.events`
-  return copies and may be called from any thread.
+* :meth:`~SerialWhiskerDriver.stats`, :attr:`~SerialWhiskerDriver.events` and
+  :meth:`~SerialWhiskerDriver.take_events` return copies and may be called from
+  any thread.
 * The driver starts no thread. Notices (``on_notice``) are called from
   :meth:`~SerialWhiskerDriver.read`, on the reading thread: they must not block.
 """
@@ -29,13 +55,12 @@ import stat
 import sys
 import termios
 import time
-from collections import deque
 from typing import Callable
 
 import numpy as np
 import serial
 
-from drivers.base import Block, DeviceUnavailable, DriverClosed
+from drivers.base import Block, DeviceUnavailable, DriverClosed, DriverEvent, EventLog
 from drivers.frames import (
     FLAG_OVERRUN,
     FULL_SCALE,
@@ -82,7 +107,7 @@ class SerialWhiskerDriver:
     timeout : float, default 0.5
         Seconds :meth:`read` waits when called with ``timeout=None``.
     reconnect : bool, default True
-        After an unplug, reopen ``port`` with backoff (0.05 s doubling to 2 s)
+        After an unplug, reopen ``port`` with backoff (0.05 s doubling to 0.5 s)
         from within :meth:`read`. If False an unplug raises
         :class:`DeviceUnavailable` and the driver closes.
     max_gap : float, default 10.0
@@ -91,16 +116,18 @@ class SerialWhiskerDriver:
         (the board restarted), is counted in ``discontinuities`` and not filled.
     exclusive : bool, default True
         Lock the port (flock) so a second reader fails loudly at open.
-    silence_warning : float or None, default 3.0
+    silence_warning : float or None, default 1.0
         Seconds without a valid frame (since :meth:`open` or the last frame)
         before a notice, and between repeated notices while the silence lasts;
         each says for how long, what arrived meanwhile (no byte at all, bytes
         but no valid frame, frames with the wrong channel count, or a lost
         port) and the likely causes. None: never.
     on_notice : callable or None, default prints to stderr
-        Called with each notice (one line of text), on the reading thread;
-        None silences them. They are in :attr:`events` either way, and counted
-        in ``silence_warnings``.
+        Called with the text of each silence notice, on the reading thread, for
+        a driver used on its own; None silences them. They are ``silence``
+        events either way (:meth:`take_events`, :attr:`events`), and counted in
+        ``silence_warnings``. The node passes None: it shows every event,
+        notices included, through its sinks.
 
     Attributes
     ----------
@@ -111,8 +138,8 @@ class SerialWhiskerDriver:
         Sequence number of the serial frame that begins stream frame 0, to
         line the stream up with the board's own log; None before any data.
     events : list of str
-        Timestamped, human-readable log of opens, unplugs, reconnects,
-        discontinuities and misconfigurations (last 200).
+        Timestamped, human-readable log of the last 200 events (opens, unplugs,
+        reconnects, discontinuities, misconfigurations, notices).
 
     Notes
     -----
@@ -150,14 +177,14 @@ class SerialWhiskerDriver:
     """
 
     BACKOFF_START = 0.05  #: s, first reopen delay after an unplug
-    BACKOFF_MAX = 2.0  #: s, longest reopen delay
+    BACKOFF_MAX = 0.5  #: s, longest reopen delay (a reconnect is seen at most this late)
     BUFFER_SLACK = 0.25  #: s, tolerance of the gap check (delivery delay, clock drift)
     POLL = 0.05  #: s, longest single wait on the port; read() rechecks its deadline after each
     MAX_EVENTS = 200
 
     def __init__(self, port: str, rate: float, channels: int, baudrate: int = DEFAULT_BAUDRATE,
                  timeout: float = 0.5, reconnect: bool = True, max_gap: float = 10.0,
-                 exclusive: bool = True, silence_warning: float | None = 3.0,
+                 exclusive: bool = True, silence_warning: float | None = 1.0,
                  on_notice: Callable[[str], None] | None = _print_stderr) -> None:
         if not 1 <= int(channels) <= MAX_CHANNELS:
             raise InputError(f"channels must be 1..{MAX_CHANNELS}, got {channels}")
@@ -178,7 +205,7 @@ class SerialWhiskerDriver:
         self.first_sequence: int | None = None
         self._ser = None
         self._open = False
-        self._events: deque[str] = deque(maxlen=self.MAX_EVENTS)
+        self._log = EventLog(history=self.MAX_EVENTS)
         self._reset_state()
 
     # -- lifecycle -----------------------------------------------------------
@@ -191,7 +218,7 @@ class SerialWhiskerDriver:
         self._t0 = 0.0  # monotonic s when stream row 0 was taken, estimated
         self._start = 0
         self._port_timeout = None
-        self._mismatch_seen: set[int] = set()
+        self._version_errors = 0
         self._reopened = False  # connected by a reconnect, no byte seen yet
         self._lost_at = 0.0
         self._backoff = self.BACKOFF_START
@@ -217,10 +244,10 @@ class SerialWhiskerDriver:
         self._ser = self._open_port()
         self._open = True
         self._frame_seen(time.monotonic())
-        self._event(f"opened {self.port}")
+        self._event("open", f"opened {self.port}")
         need = self.rate * 2 * self.channels * 10  # bits/s with 8N1, payload only
         if "://" not in self.port and self.baudrate < need * 1.01:
-            self._event(f"baudrate {self.baudrate} is below the ~{need:.0f} bit/s this stream "
+            self._event("baudrate", f"baudrate {self.baudrate} is below the ~{need:.0f} bit/s this stream "
                         "needs on a real UART (USB CDC-ACM boards ignore it)")
 
     def close(self) -> None:
@@ -229,7 +256,7 @@ class SerialWhiskerDriver:
         self._open = False
         self._close_port()
         if was_open:
-            self._event(f"closed {self.port}")
+            self._event("close", f"closed {self.port}")
 
     def __enter__(self) -> "SerialWhiskerDriver":
         self.open()
@@ -250,8 +277,14 @@ class SerialWhiskerDriver:
 
     @property
     def events(self) -> list[str]:
-        """Copy of the event log, oldest first."""
-        return list(self._events)
+        """The last ``MAX_EVENTS`` events as timestamped lines, oldest first (a copy)."""
+        return [_stamp(ev.time) + " " + ev.message for ev in self._log.history()]
+
+    def take_events(self) -> tuple[list[DriverEvent], dict[str, int]]:
+        """Events since the last call (see the module docstring for their kinds), and
+        per-kind counts of any dropped because nobody took them (1024 are kept).
+        Any thread; never blocks."""
+        return self._log.take()
 
     def read(self, timeout: float | None = None) -> Block | None:
         """Return the next block, or None if none arrived within ``timeout``.
@@ -302,9 +335,11 @@ class SerialWhiskerDriver:
                     self._reopened = False
                     self._stats["reconnects"] += 1
                     self._backoff = self.BACKOFF_START
-                    self._event(f"reconnected to {self.port} after {now - self._lost_at:.2f} s "
-                                f"({self._attempts} attempt(s))")
+                    self._event("reconnect", f"reconnected to {self.port} after "
+                                f"{now - self._lost_at:.2f} s ({self._attempts} attempt(s))", self._start)
                 frames = self._decoder.feed(data)
+                if self._decoder.version_errors != self._version_errors:
+                    self._versions_seen()
                 if frames:
                     block = self._assemble(frames, now)
                     if block is not None:
@@ -403,7 +438,7 @@ class SerialWhiskerDriver:
         if not self.reconnect:
             self._open = False
             self._stats["unplugs"] += 1
-            self._event(f"lost {self.port}: {exc}")
+            self._event("unplug", f"lost {self.port}: {exc}", self._start)
             raise DeviceUnavailable(
                 f"serial port {self.port!r} was lost ({exc}). Check the cable and the board's "
                 "power; reconnect=True rides through unplugs") from exc
@@ -414,8 +449,8 @@ class SerialWhiskerDriver:
             self._schedule_retry(now)
             return
         self._stats["unplugs"] += 1
-        self._event(f"lost {self.port}: {exc}; reopening with backoff "
-                    f"{self.BACKOFF_START:g} s doubling to {self.BACKOFF_MAX:g} s")
+        self._event("unplug", f"lost {self.port}: {exc}; reopening with backoff "
+                    f"{self.BACKOFF_START:g} s doubling to {self.BACKOFF_MAX:g} s", self._start)
         self._lost_at = now
         self._attempts = 0
         self._backoff = self.BACKOFF_START
@@ -435,7 +470,7 @@ class SerialWhiskerDriver:
                     self._ser = self._open_port()
                 except DeviceUnavailable as exc:
                     if self._attempts == 1 or self._attempts % 20 == 0:
-                        self._event(f"reopen attempt {self._attempts} failed: {exc}")
+                        self._event("reopen", f"reopen attempt {self._attempts} failed: {exc}")
                     self._schedule_retry(now)
                 else:
                     self._reopened = True
@@ -450,20 +485,18 @@ class SerialWhiskerDriver:
     def _assemble(self, frames, arrival: float) -> Block | None:
         parts: list[np.ndarray] = []
         fills: list[tuple[int, int]] = []  # (row offset, rows) of filled runs
+        restarts: list[int] = []  # row offsets where stream time is discontinuous
+        overruns: list[int] = []  # row offsets of frames flagged OVERRUN
         rows = 0
         st = self._stats
         for f in frames:
             ch = f.samples.shape[1]
             if ch != self.channels:
                 st["channel_mismatch"] += 1
-                if ch not in self._mismatch_seen:
-                    self._mismatch_seen.add(ch)
-                    self._event(f"frame {f.seq} has {ch} channels but the driver is configured "
-                                f"for {self.channels}: skipped (fix the channels setting or the "
-                                "board's firmware)")
+                self._event("channels", f"frame {f.seq} has {ch} channels but the driver is "
+                            f"configured for {self.channels}: skipped (fix the channels setting "
+                            "or the board's firmware)", self._start + rows)
                 continue
-            if f.flags & FLAG_OVERRUN:
-                st["device_overruns"] += 1
             n_rows = f.samples.shape[0]
             rebase = self._next_seq is None
             if rebase:
@@ -474,10 +507,20 @@ class SerialWhiskerDriver:
                                        self._start + rows, n_rows)
                 if lost > 0:
                     n = lost * self._spf
+                    self._event("gap", f"{lost} frame(s) lost before sequence {f.seq}: "
+                                f"{n} rows filled with zeros", self._start + rows)
                     parts.append(np.zeros((n, ch), dtype=np.int16))
                     fills.append((rows, n))
                     rows += n
                 rebase = lost < 0
+                if rebase:
+                    restarts.append(rows)
+            if f.flags & FLAG_OVERRUN:
+                st["device_overruns"] += 1
+                overruns.append(rows)
+                self._event("overrun", f"frame {f.seq} is flagged OVERRUN: the board lost samples "
+                            "before it (not filled: stream time runs behind by the loss)",
+                            self._start + rows)
             parts.append(f.samples)
             rows += n_rows
             st["frames_ok"] += 1
@@ -498,7 +541,8 @@ class SerialWhiskerDriver:
             for off, n in fills:
                 filled[off:off + n] = True
             st["filled"] += sum(n for _, n in fills)
-        block = Block(data=data, start=self._start, arrival=arrival, filled=filled)
+        block = Block(data=data, start=self._start, arrival=arrival, filled=filled,
+                      restarts=tuple(restarts), overruns=tuple(overruns))
         self._start += rows
         st["frames"] += rows
         return block
@@ -534,8 +578,8 @@ class SerialWhiskerDriver:
             lost_s = jump * spf / self.rate
             why = "more than the time elapsed allows: board restarted?"
         self._stats["discontinuities"] += 1
-        self._event(f"sequence jumped to {seq} (expected {self._next_seq}: {lost_s:.2f} s of "
-                    f"stream, {why}): not filled, stream time is discontinuous here")
+        self._event("restart", f"sequence jumped to {seq} (expected {self._next_seq}: {lost_s:.2f} s of "
+                    f"stream, {why}): not filled, stream time is discontinuous here", pos)
         return -1
 
     # -- silence ---------------------------------------------------------------
@@ -575,14 +619,25 @@ class SerialWhiskerDriver:
                    "device on this port, or firmware sending another format "
                    "(docs/serial-frames.md)")
         message = f"{head}: {why}"
-        self._event(message)
+        self._event("silence", message, self._start)
         if self._on_notice is not None:
             self._on_notice(message)
 
-    def _event(self, text: str) -> None:
-        t = time.time()
-        stamp = time.strftime("%Y-%m-%dT%H:%M:%S", time.localtime(t)) + f".{int(t % 1 * 1000):03d}"
-        self._events.append(f"{stamp} {text}")
+    def _versions_seen(self) -> None:
+        """Frames of another version arrived (the decoder skipped them): say so, one event each."""
+        new = self._decoder.version_errors - self._version_errors
+        self._version_errors = self._decoder.version_errors
+        for _ in range(new):
+            self._event("version", "a frame of another format version arrived: skipped (this "
+                        "driver reads version 1; update the host or flash the matching firmware, "
+                        "docs/serial-frames.md)", self._start)
+
+    def _event(self, kind: str, text: str, stream_index: int | None = None) -> None:
+        self._log.record(kind, text, stream_index)
+
+
+def _stamp(t: float) -> str:
+    return time.strftime("%Y-%m-%dT%H:%M:%S", time.localtime(t)) + f".{int(t % 1 * 1000):03d}"
 
 
 __all__ = ["SerialWhiskerDriver"]

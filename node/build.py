@@ -8,8 +8,6 @@ not asked for are not computed, and there is no classifier without a model.
 from __future__ import annotations
 
 
-import sys
-
 import numpy as np
 
 from node.band import warn_if_beyond_band
@@ -28,11 +26,6 @@ def _given(options: dict, names: dict) -> dict:
     """The scene options the scene sets, renamed to keyword arguments; a None option is left
     out so that the driver's or the bank's own default applies (its one home)."""
     return {arg: options[key] for key, arg in names.items() if options[key] is not None}
-
-
-def _notice(message: str) -> None:
-    """A driver's notice (a silent port, a replayed file's gap) on stderr, named as the node's."""
-    print(f"supramodal: {message}", file=sys.stderr, flush=True)
 
 
 def bank_for(scene: Scene) -> Bank:
@@ -132,13 +125,13 @@ def driver_for(scene: Scene, bank: Bank, speed_override=None):
             raise SceneError(f"{scene.source}: [driver] path: no recording at {path} (a relative path is taken from "
                              "the scene file's folder)")
         drv = ReplayDriver(str(path), rate=bank.fs, loop=d["loop"],
-                           on_notice=_notice, **replay)
+                           on_notice=None, **replay)  # notices reach the sinks as events
         warn_if_beyond_band(bank, drv.source_rate, f"{scene.source}: [driver] path {d['path']}")
         return drv, Labels.of(drv), None
     if kind == "serial":
         from drivers.serial_whisker import SerialWhiskerDriver
 
-        return SerialWhiskerDriver(d["port"], rate=d["rate"], channels=d["channels"], on_notice=_notice,
+        return SerialWhiskerDriver(d["port"], rate=d["rate"], channels=d["channels"], on_notice=None,
                                    **_given(d, {"baudrate": "baudrate"})), Labels(), None
     if kind == "microphone":
         from drivers.microphone import MicrophoneDriver

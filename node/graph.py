@@ -3,9 +3,16 @@
 Threads and real-time rules
 ---------------------------
 * The *driver thread* only moves blocks: ``driver.read()`` -> ``ring.write()``,
-  noting each block's arrival time. It never waits on processing: when the
+  noting each block's arrival time and its restart/overrun marks. It never waits
+  on processing: when the
   processing thread lags by more than the ring's capacity, the ring's overrun
-  policy drops frames, and every dropped frame is counted.
+  policy drops frames, and every dropped frame is counted. After every read (a
+  block or a timeout, at most 50 ms apart) it takes the driver's new events
+  (``take_events()``) and queues them, without waiting.
+* The *event thread* hands the queued driver events to the sinks
+  (``sink.event(ev)``), at most one per kind per second (:class:`node.events.EventLimiter`:
+  repeats are folded into the next one's ``count``), so neither the driver nor
+  the processing thread ever waits on a sink for an event.
 * The *processing thread* reads the ring, runs the model blocks (mapping ->
   filterbank -> peaks -> windows -> classifier -> decisions) and calls the
   sinks. Frames lost in the ring are replaced by zeros marked as filled, so
@@ -19,6 +26,7 @@ from __future__ import annotations
 
 import collections
 import math
+import queue
 import threading
 import time
 from dataclasses import dataclass, field
@@ -26,6 +34,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from drivers.base import Block, DriverClosed
+from node.events import EventLimiter
 from node.latency import LatencyHistogram
 from node.ringbuffer import RingBuffer, RingClosed
 from supramodal.decisions import ContactDetector, DecisionAccumulator, window_decision
@@ -97,7 +106,8 @@ def _head(block: Block, n: int) -> Block:
     """The first ``n`` frames of a block."""
     n = max(n, 0)
     filled = None if block.filled is None else block.filled[:n]
-    return Block(block.data[:n], block.start, block.arrival, filled)
+    return Block(block.data[:n], block.start, block.arrival, filled,
+                 tuple(i for i in block.restarts if i < n), tuple(i for i in block.overruns if i < n))
 
 
 class Node:
@@ -156,6 +166,12 @@ class Node:
             self._recorder_reader = self.ring.add_reader("recorder")
             recorder.attach(driver.rate, driver.channels, lambda: self.ring.written, labels=self.labels.ranges)
         self._arrivals: collections.deque[tuple[int, float]] = collections.deque()
+        # driver thread -> processing thread: (stream index, "restart" | "overrun"), in stream order
+        self._marks: collections.deque[tuple[int, str]] = collections.deque()
+        self._window_marks: dict[int, set[str]] = {}
+        # driver thread -> event thread: lists of events, (None, dropped) for drops, None to end
+        self._event_queue: queue.SimpleQueue = queue.SimpleQueue()
+        self._limiter = EventLimiter()
         self._stop = threading.Event()
         self._errors: list[tuple[str, BaseException]] = []
         self._stopped_by = None
@@ -190,6 +206,8 @@ class Node:
         t0 = time.monotonic()
         threads = [threading.Thread(target=self._guard, args=("driver", self._drive), name="node-driver", daemon=True),
                    threading.Thread(target=self._guard, args=("processing", self._process), name="node-processing",
+                                    daemon=True),
+                   threading.Thread(target=self._guard, args=("event", self._deliver_events), name="node-events",
                                     daemon=True)]
         if self.recorder is not None:
             threads.append(threading.Thread(target=self._guard, name="node-recorder", daemon=True,
@@ -221,14 +239,21 @@ class Node:
     # -- driver thread ------------------------------------------------------------------------
 
     def _drive(self) -> None:
+        take = getattr(self.driver, "take_events", None)
         try:
             while not self._stop.is_set():
                 try:
                     block = self.driver.read(timeout=0.05)
                 except DriverClosed:
                     break
+                finally:
+                    if take is not None:
+                        self._queue_events(take)
                 if block is None:
                     continue
+                for kind, offsets in (("restart", block.restarts), ("overrun", block.overruns)):
+                    for i in offsets:
+                        self._marks.append((block.start + i, kind))
                 if self._max_frames is not None and block.start + block.frames >= self._max_frames:
                     block = _head(block, self._max_frames - block.start)
                     self._arrivals.append((block.start + block.frames, block.arrival))
@@ -239,6 +264,39 @@ class Node:
                 self._write(block)
         finally:
             self.ring.close()
+            self._event_queue.put(None)
+
+    def _queue_events(self, take) -> None:
+        events, dropped = take()
+        if events or dropped:
+            self._event_queue.put((events, dropped))
+
+    # -- event thread -------------------------------------------------------------------------
+
+    def _deliver_events(self) -> None:
+        """Driver events to the sinks, rate-limited; ends after the driver thread's last batch."""
+        lim = self._limiter
+        while True:
+            try:
+                item = self._event_queue.get(timeout=0.1)
+            except queue.Empty:
+                item = ()
+            if item is None:
+                break
+            if item:
+                events, dropped = item
+                lim.add_dropped(dropped)
+                self._show([lim.add(ev) for ev in events])
+            self._show(lim.due())
+        self._show(lim.flush())
+
+    def _show(self, events) -> None:
+        for ev in events:
+            if ev is not None:
+                for s in self.sinks:
+                    event = getattr(s, "event", None)  # a sink predating driver events has none
+                    if event is not None:
+                        event(ev)
 
     def _write(self, block) -> None:
         # Under "block" the ring takes what fits and we wait for the rest (lossless replay);
@@ -328,10 +386,22 @@ class Node:
             if w in self._gap_windows:
                 event["gap"] = True
                 self._gap_windows.discard(w)
+            for mark in self._marks_of(w, W):
+                event[mark] = True
             event["latency_ms"] = self._latency_ms(end)
             self._n_windows += 1
             for s in self.sinks:
                 s.emit(event)
+
+    def _marks_of(self, w: int, W: int) -> list[str]:
+        """The driver's marks ("restart", "overrun") in window ``w``, sorted."""
+        end = (w + 1) * W
+        while self._marks and self._marks[0][0] < end:
+            index, kind = self._marks.popleft()
+            self._window_marks.setdefault(index // W, set()).add(kind)
+        for old in [k for k in self._window_marks if k < w]:  # windows never emitted (end of stream)
+            del self._window_marks[old]
+        return sorted(self._window_marks.pop(w, ()))
 
     def _latency_ms(self, end: int) -> float | None:
         """Now minus the arrival of the block that completed the window."""
@@ -369,4 +439,5 @@ class Node:
             "recorded": [str(p) for p in self.recorder.paths] if self.recorder and self.recorder.paths else None,
             "ring": {k: v for k, v in ring.items() if isinstance(v, (int, float))},
             "stopped_by": self._stopped_by,
+            "events": self._limiter.summary(),
         }

@@ -1,26 +1,34 @@
 """Where the node's window events go: text lines or JSON Lines, to stdout or a file.
 
-A sink is called from the processing thread only; it must not block for long
-(a file or a terminal is fine; a network peer would need its own thread).
-
 A file sink checks its path when it is made (an existing file is refused unless
 ``overwrite``) but creates the file only when it first writes: a node that fails
 to start (a port that does not open) leaves no empty file behind.
+
+Threading rules
+---------------
+``emit`` is called from the node's processing thread, ``event`` (driver events)
+from its event thread, ``summary`` and ``close`` from the caller's thread once
+both have ended. A sink must not block for long (a file or a terminal is fine; a
+network peer would need its own thread); one writing ``emit`` and ``event`` to
+the same stream serialises them with its lock, held for one write.
 """
 
 from __future__ import annotations
 
 import json
 import sys
+import threading
 from pathlib import Path
 from typing import TextIO
 
+from drivers.base import DriverEvent
 from node.outputs import check_new_file
 from supramodal.errors import InputError
 
 
 class Sink:
-    """Base sink: ``emit(event)`` per window, ``summary(summary)`` once, ``close()`` at the end.
+    """Base sink: ``emit(event)`` per window, ``event(ev)`` per driver event (default: ignored),
+    ``summary(summary)`` once, ``close()`` at the end.
 
     Parameters
     ----------
@@ -36,6 +44,7 @@ class Sink:
         self._file: TextIO | None = sys.stdout if path == "-" else None
         if path != "-":
             check_new_file(Path(path), overwrite, "a sink file")
+        self._lock = threading.Lock()
 
     @property
     def _fh(self) -> TextIO:
@@ -45,6 +54,9 @@ class Sink:
 
     def emit(self, event: dict) -> None:
         raise NotImplementedError
+
+    def event(self, ev: DriverEvent) -> None:
+        """A driver event (rate-limited by the node: ``ev.count`` > 1 stands for repeats)."""
 
     def summary(self, summary: dict) -> None:
         raise NotImplementedError
@@ -57,19 +69,34 @@ class Sink:
 
 
 class JsonLinesSink(Sink):
-    """One JSON object per window; the summary as a last object with ``"summary": true``."""
+    """One JSON object per window; a driver event as ``{"event": kind, "message": ..., "time": ...,
+    "stream_index": ..., "count": ...}`` in the same stream; the summary as a last object with
+    ``"summary": true``."""
 
     def emit(self, event: dict) -> None:
-        self._fh.write(json.dumps(event) + "\n")
+        line = json.dumps(event) + "\n"
+        with self._lock:
+            self._fh.write(line)
+
+    def event(self, ev: DriverEvent) -> None:
+        line = json.dumps(ev.as_dict()) + "\n"
+        with self._lock:
+            self._fh.write(line)
 
     def summary(self, summary: dict) -> None:
         self._fh.write(json.dumps({"summary": True, **summary}) + "\n")
 
 
 class TextSink(Sink):
-    """One human-readable line per window, under a line that names the columns, and a summary block."""
+    """One human-readable line per window, under a line that names the columns, and a summary block;
+    driver events on stderr, ``supramodal: MESSAGE`` and, for repeats folded in, ``(N more since)``."""
 
     _headed = False
+
+    def event(self, ev: DriverEvent) -> None:
+        more = f" ({ev.count - 1} more since)" if ev.count > 1 else ""
+        sys.stderr.write(f"supramodal: {ev.message}{more}\n")
+        sys.stderr.flush()
 
     def _header(self, event: dict) -> str:
         if "predicted" not in event:
@@ -118,21 +145,31 @@ class TextSink(Sink):
             lines.append(f"  decision latency   p50 {lat['p50']:.2f} ms, p99 {lat['p99']:.2f} ms, max {lat['max']:.2f} ms "
                          "after window close")
         lines.append(f"  real-time factor   {s['real_time_factor']:.4f} (processing CPU s per s of stream)")
+        counts = (s.get("events") or {}).get("counts")
+        if counts:
+            dropped = sum(s["events"].get("dropped", {}).values())
+            lines.append("  driver events      " + ", ".join(f"{k} {n}" for k, n in counts.items())
+                         + (f" ({dropped} not shown: dropped before the node took them)" if dropped else ""))
         if s.get("stopped_by"):
             lines.append(f"  stopped by         {s['stopped_by']}")
         self._fh.write("\n".join(lines) + "\n")
 
 
 class ListSink(Sink):
-    """Keeps events and the summary in memory: for a node embedded in a Python program, and tests."""
+    """Keeps window events (``events``), driver events (``driver_events``) and the summary in
+    memory: for a node embedded in a Python program, and tests."""
 
     def __init__(self) -> None:
         self.path = None
         self.events: list[dict] = []
+        self.driver_events: list[DriverEvent] = []
         self.final: dict | None = None
 
     def emit(self, event: dict) -> None:
         self.events.append(event)
+
+    def event(self, ev: DriverEvent) -> None:
+        self.driver_events.append(ev)
 
     def summary(self, summary: dict) -> None:
         self.final = summary

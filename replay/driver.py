@@ -39,7 +39,7 @@ from typing import Callable, Sequence, Union
 import numpy as np
 from scipy.signal import resample_poly
 
-from drivers.base import Block, DeviceUnavailable, DriverClosed, DriverError
+from drivers.base import Block, DeviceUnavailable, DriverClosed, DriverError, DriverEvent, EventLog
 from replay.errors import ReplayError
 from replay.session import Label, Session, load_session, session_paths
 from replay.wavio import read_wav
@@ -151,8 +151,10 @@ class ReplayDriver:
     max_denominator : int, default 1000
         Largest ``down`` factor the resampling ratio may use.
     on_notice : callable or None, default prints to stderr
-        Called once with each notice (e.g. "resampling ..."); None silences
-        them. They are kept in :attr:`notices` either way.
+        Called once with each notice (e.g. "resampling ..."), for a driver used
+        on its own; None silences them. They are kept in :attr:`notices` and
+        are ``notice`` events (:meth:`take_events`) either way; the node passes
+        None and shows the events through its sinks.
 
     Attributes
     ----------
@@ -164,6 +166,9 @@ class ReplayDriver:
         The source's own rate, Hz.
     notices : list of str
         What the driver chose to tell (today: that it resamples, and how).
+
+    Events (:meth:`take_events`): ``notice`` (each notice) and ``gap`` (a run of
+    frames the recording marked filled begins; its stream index).
 
     Raises
     ------
@@ -193,6 +198,7 @@ class ReplayDriver:
                  on_notice: Callable[[str], None] | None = _print_stderr):
         self.notices: list[str] = []
         self._on_notice = on_notice
+        self._log = EventLog()
         data, src_rate, labels, filled, self.name = self._load(source)
         if data.shape[0] == 0:
             raise ReplayError(f"{self.name}: the source has no frames; nothing to replay")
@@ -270,8 +276,14 @@ class ReplayDriver:
 
     # --- construction helpers -------------------------------------------------
 
+    def take_events(self) -> tuple[list[DriverEvent], dict[str, int]]:
+        """Events since the last call and per-kind counts of any dropped (bounded log);
+        any thread, never blocks. Notices made at construction come with the first call."""
+        return self._log.take()
+
     def _notice(self, message: str) -> None:
         self.notices.append(message)
+        self._log.record("notice", message)
         if self._on_notice is not None:
             self._on_notice(message)
 
@@ -351,6 +363,7 @@ class ReplayDriver:
         self._pos = 0              # stream index of the next frame to deliver
         self._blocks = 0
         self._filled_count = 0
+        self._last_filled = False  # was the last delivered frame filled?
         self._next_size: int | None = None  # drawn but not yet delivered (read timed out)
         self._k = 0                # blocks drawn, for cycling a sequence
         self._rng = np.random.default_rng(self._seed)
@@ -451,6 +464,12 @@ class ReplayDriver:
             filled = self._take(self._filled, self._pos, size)
             n = int(np.count_nonzero(filled))
             self._filled_count += n
+            if n:
+                starts = np.flatnonzero(filled & ~np.concatenate(([self._last_filled], filled[:-1])))
+                for i in starts.tolist():
+                    self._log.record("gap", f"replay: {self.name}: frames from {self._pos + i} were filled "
+                                     "in the recording (lost when it was made)", self._pos + i)
+            self._last_filled = bool(filled[-1])
             if n == 0:
                 filled = None
         block = Block(data=data, start=self._pos, arrival=due if self.speed != math.inf else time.monotonic(),
