@@ -814,6 +814,9 @@ def run(args: argparse.Namespace, samples: np.ndarray, rate: float) -> int:
         return 2
     # SIGTERM (a supervisor, `kill`) ends the board as Ctrl-C does: the ledger line is printed
     # and the port's symlink removed, never left pointing at a pty another program may get.
+    # (Signal handlers belong to the main thread; run from another, e.g. in a test, it keeps them.)
+    if threading.current_thread() is not threading.main_thread():
+        return _serve(dev, args, samples.shape[1], rate)
     previous = signal.signal(signal.SIGTERM, _terminate_as_interrupt)
     try:
         return _serve(dev, args, samples.shape[1], rate)

@@ -246,8 +246,8 @@ def test_cli_fig3_one_bank_keeps_its_shape(tmp_path):
 
 @pytest.mark.parametrize("args, message", [
     (["fig5", "--bank", "whisker"], "apply to fig3"),
-    (["fig1", "--jobs", "0"], "--jobs must be >= 1"),
-    (["fig3", "--seed", "-2"], "--seed must be >= 0"),
+    (["fig1", "--jobs", "0"], "argument --jobs: expected a whole number >= 1"),
+    (["fig3", "--seed", "-2"], "argument --seed: expected a whole number >= 0"),
     (["all", "--bank", "cochlea"], "not to all"),
 ])
 def test_cli_refuses_bad_options(tmp_path, args, message):
