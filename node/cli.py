@@ -333,7 +333,7 @@ def _cmd_train(args) -> int:
     check_new_file(args.out, args.force, "the model file")      # before the training, not after
     bank = args.bank
     if args.cv:
-        from node.confusion import write_confusion
+        from node.reports import write_confusion
         from node.training import cross_validate_manifest, format_cross_validation
 
         base = args.out.with_name(args.out.stem + "-cv")
@@ -359,8 +359,18 @@ def _cmd_evaluate(args) -> int:
     from supramodal.model import TextureModel
 
     model = TextureModel.load(args.model)
+    if args.out is not None and args.out.is_dir():
+        from node.outputs import check_new_file
+
+        for name in ("confusion.csv", "confusion.png", "pooling.csv", "channels.csv", "evaluation.png"):
+            check_new_file(args.out / name, args.force, "the evaluation file")
     result = evaluate_manifest(model, args.manifest, mapping=args.mapping, progress=_progress(args))
     print(json.dumps(result) if args.json else format_evaluation(result))
+    if args.out is not None:
+        from node.reports import write_evaluation
+
+        files = write_evaluation(result, args.out)
+        print("wrote " + ", ".join(str(p) for p in files), file=sys.stderr)
     return 0
 
 
@@ -432,6 +442,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--mapping", type=_mapping, default="auto",
                    help="recording channels to filters: auto (one channel to all, or one each), mono, per-channel, mean, or a channel index (default auto)")
     p.add_argument("--json", action="store_true", help="print the result as one JSON object instead of a table")
+    p.add_argument("--out", type=_output_folder, metavar="DIR",
+                   help="also write the confusion, accuracy against windows pooled and the channels' importance "
+                        "as CSV and PNG into DIR (default: print only)")
+    p.add_argument("--force", action="store_true", help="replace earlier evaluation files in --out (default: refuse)")
     p.add_argument("--quiet", action="store_true", help="no progress on stderr (warnings are still shown)")
     p.set_defaults(func=_cmd_evaluate)
 

@@ -19,6 +19,7 @@ from replay.driver import ReplayDriver
 from supramodal.banks import Bank
 from supramodal.decisions import DecisionAccumulator
 from supramodal.errors import SupramodalError
+from supramodal.evaluation import POOLED_WINDOWS, permutation_importance, pooled_accuracy
 from supramodal.mlp import DEFAULT_EPOCHS
 from supramodal.model import TextureModel
 from supramodal.pipeline import FeaturePipeline
@@ -195,7 +196,11 @@ def evaluate_manifest(model: TextureModel, manifest, mapping="auto", progress=No
         if len(v) == 0:
             raise _no_window(rec, model.window_samples / model.bank.fs)
         windows.append(v)
-    return score_recordings(model, recs, windows, progress)
+    result = score_recordings(model, recs, windows, progress)
+    truth = np.concatenate([np.full(len(v), model.classes.index(r.label)) for r, v in zip(recs, windows)])
+    importance = permutation_importance(model.outputs, np.concatenate(windows), truth)
+    result["channel_importance"] = dict(zip(model.bank.names, importance.round(6).tolist()))
+    return result
 
 
 def score_recordings(model: TextureModel, recs: list[Recording], windows: list[np.ndarray], progress=None) -> dict:
@@ -203,8 +208,8 @@ def score_recordings(model: TextureModel, recs: list[Recording], windows: list[n
     labels = list(model.classes)
     confusion = np.zeros((len(labels), len(labels)), dtype=int)
     per_rec = []
-    for rec, v in zip(recs, windows):
-        out = model.outputs(v)
+    outputs = [model.outputs(v) for v in windows]
+    for rec, v, out in zip(recs, windows, outputs):
         pred = np.argmax(out, axis=1)
         truth = labels.index(rec.label)
         np.add.at(confusion, (truth, pred), 1)
@@ -216,9 +221,14 @@ def score_recordings(model: TextureModel, recs: list[Recording], windows: list[n
                         "confidence": decision.confidence})
         if progress:
             progress(f"{rec.path.name}: {per_rec[-1]['window_accuracy']:.3f} of windows, recording -> {labels[decision.label]}")
+    truths = [labels.index(r.label) for r in recs]
+    totals = confusion.sum(axis=1)
     return {
         "window_accuracy": float(np.trace(confusion) / confusion.sum()),
         "recording_accuracy": float(np.mean([r["predicted"] == r["label"] for r in per_rec])),
+        "chance": float(totals.max() / totals.sum()),
+        "pooled": {str(n): dict(zip(("accuracy", "runs"), pooled_accuracy(outputs, truths, n)))
+                   for n in POOLED_WINDOWS},
         "labels": labels,
         "confusion": confusion.tolist(),
         "recordings": per_rec,
@@ -226,6 +236,17 @@ def score_recordings(model: TextureModel, recs: list[Recording], windows: list[n
 
 
 def format_evaluation(result: dict) -> str:
-    lines = [f"window accuracy     {result['window_accuracy']:.3f}",
-             f"recording accuracy  {result['recording_accuracy']:.3f} ({len(result['recordings'])} recordings)", ""]
-    return "\n".join(lines) + "\n" + _confusion_table(result["labels"], result["confusion"])
+    lines = [f"window accuracy     {result['window_accuracy']:.3f} (chance {result['chance']:.3f}: always the "
+             "commonest label)",
+             f"recording accuracy  {result['recording_accuracy']:.3f} ({len(result['recordings'])} recordings, "
+             "all windows of each pooled)", "",
+             "windows pooled      accuracy (runs of that many consecutive windows)"]
+    for n, p in result["pooled"].items():
+        shown = "-" if p["accuracy"] is None else f"{p['accuracy']:.3f}"
+        lines.append(f"  {n:>3}               {shown} ({p['runs']} runs)")
+    lines.append(f"  whole recording   {result['recording_accuracy']:.3f}")
+    if "channel_importance" in result:
+        top = sorted(result["channel_importance"].items(), key=lambda kv: -kv[1])
+        lines += ["", "channels carrying the decision (window accuracy lost when the channel is shuffled)",
+                  "  " + ", ".join(f"{name} {v:+.3f}" for name, v in top[:8])]
+    return "\n".join(lines) + "\n\n" + _confusion_table(result["labels"], result["confusion"])

@@ -109,3 +109,56 @@ def test_train_cv_reports_then_writes_the_model_and_the_confusion_files(recordin
     rows = list(csv.reader(open(tmp_path / "m-cv.csv")))
     assert rows[0][1:] == ["T1", "T2", "T3"]
     assert sum(int(v) for row in rows[1:] for v in row[1:]) == 9 * 15
+
+
+def test_pooled_accuracy_is_the_nodes_pooling_over_runs_of_windows():
+    """Against a plain loop of the node's own accumulator (scope "last", n windows, log method)
+    fed each run of n windows afresh."""
+    from supramodal.decisions import DecisionAccumulator
+    from supramodal.evaluation import pooled_accuracy
+
+    rng = np.random.default_rng(2)
+    outputs = [rng.random((int(rng.integers(0, 23)), 4)) for _ in range(7)]
+    truths = rng.integers(0, 4, 7).tolist()
+    for n in (1, 2, 3, 5, 10, 30):
+        hits = runs = 0
+        for out, t in zip(outputs, truths):
+            for start in range(0, len(out) - n + 1, n):
+                acc = DecisionAccumulator(4, scope="last", n=n)
+                for o in out[start:start + n]:
+                    d = acc.update(o)
+                hits += d.label == t
+                runs += 1
+        got, got_runs = pooled_accuracy(outputs, truths, n)
+        assert got_runs == runs and (got is None if runs == 0 else got == pytest.approx(hits / runs))
+
+
+def test_permutation_importance_finds_the_channel_that_decides():
+    from supramodal.evaluation import permutation_importance
+
+    rng = np.random.default_rng(3)
+    windows = rng.standard_normal((400, 1, 6))
+    truth = (windows[:, 0, 4] > 0).astype(int)                       # only channel 4 decides
+
+    def outputs(w):
+        return np.stack([(w[:, 0, 4] <= 0).astype(float), (w[:, 0, 4] > 0).astype(float)], axis=1)
+
+    importance = permutation_importance(outputs, windows, truth, repeats=3, seed=1)
+    assert importance[4] > 0.4 and np.all(np.abs(np.delete(importance, 4)) == 0)
+
+
+def test_evaluate_reports_chance_pooling_and_channels_and_writes_them(recordings, tmp_path, capsys):
+    model_path = tmp_path / "m.npz"
+    assert main(["train", "--bank", "whisker", "--manifest", str(recordings / "all.csv"), "--out", str(model_path),
+                 "--epochs", "60", "--quiet"]) == 0
+    capsys.readouterr()
+    assert main(["evaluate", str(model_path), "--manifest", str(recordings / "all.csv"), "--out",
+                 str(tmp_path / "eval"), "--quiet"]) == 0
+    text = capsys.readouterr().out
+    assert "chance 0.333" in text and "windows pooled" in text and "whole recording" in text
+    assert "channels carrying the decision" in text
+    rows = list(csv.reader(open(tmp_path / "eval" / "pooling.csv")))
+    assert [r[0] for r in rows[1:]] == ["1", "2", "5", "10", "recording"]
+    assert len(list(csv.reader(open(tmp_path / "eval" / "channels.csv")))) == 1 + 20
+    assert main(["evaluate", str(model_path), "--manifest", str(recordings / "all.csv"), "--out",
+                 str(tmp_path / "eval"), "--quiet"]) == 2                          # no silent overwrite

@@ -1,0 +1,100 @@
+"""Evaluation results as files a user opens: CSV always, PNG where matplotlib is installed (extra ``plots``)."""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["write_confusion", "write_evaluation"]
+
+
+def write_confusion(labels, confusion, base: Path, title: str) -> list[Path]:
+    """Write ``base.csv`` (counts; rows = truth, columns = predicted) and ``base.png`` (each row as
+    shares of its windows, so a rare label reads as clearly as a common one).
+
+    Returns the paths written (the PNG only where matplotlib can be imported).
+    """
+    counts = np.asarray(confusion, dtype=int)
+    csv_path = base.with_name(base.name + ".csv")
+    with open(csv_path, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["truth \\ predicted", *labels])
+        for name, row in zip(labels, counts):
+            w.writerow([name, *row.tolist()])
+    written = [csv_path]
+    plt = _pyplot()
+    if plt is None:
+        return written
+    shares = counts / np.maximum(counts.sum(axis=1, keepdims=True), 1)
+    n = len(labels)
+    fig, ax = plt.subplots(figsize=(1.2 + 0.55 * n, 1.0 + 0.5 * n))
+    ax.imshow(shares, cmap="Greys", vmin=0, vmax=1)
+    for i in range(n):
+        for j in range(n):
+            ax.text(j, i, f"{shares[i, j]:.2f}", ha="center", va="center", fontsize=8,
+                    color="white" if shares[i, j] > 0.5 else "black")
+    ax.set_xticks(range(n), labels, rotation=45, ha="right")
+    ax.set_yticks(range(n), labels)
+    ax.set_xlabel("predicted")
+    ax.set_ylabel("truth")
+    ax.set_title(title, fontsize=9)
+    fig.tight_layout()
+    png_path = base.with_name(base.name + ".png")
+    fig.savefig(png_path, dpi=120)
+    plt.close(fig)
+    return written + [png_path]
+
+
+def _pyplot():
+    """matplotlib.pyplot on a file backend, or None where matplotlib is not installed."""
+    try:
+        import matplotlib
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return None
+    return plt
+
+
+def write_evaluation(result: dict, folder: Path) -> list[Path]:
+    """``evaluate --out``: the confusion (``confusion.csv/.png``), accuracy against windows pooled
+    (``pooling.csv``) and the channels' importance (``channels.csv``), with one PNG of the last two
+    (``evaluation.png``). Returns the paths written."""
+    folder.mkdir(parents=True, exist_ok=True)
+    written = write_confusion(result["labels"], result["confusion"], folder / "confusion",
+                              f"window accuracy {result['window_accuracy']:.3f} (chance {result['chance']:.3f})")
+    pooled = [(int(n), p["accuracy"], p["runs"]) for n, p in result["pooled"].items()]
+    with open(folder / "pooling.csv", "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["windows pooled", "accuracy", "runs"])
+        w.writerows(pooled + [("recording", result["recording_accuracy"], len(result["recordings"]))])
+    channels = list(result["channel_importance"].items())
+    with open(folder / "channels.csv", "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["channel", "window accuracy lost when shuffled"])
+        w.writerows(channels)
+    written += [folder / "pooling.csv", folder / "channels.csv"]
+    plt = _pyplot()
+    if plt is None:
+        return written
+    fig, (left, right) = plt.subplots(1, 2, figsize=(10, 3.6))
+    shown = [(n, a) for n, a, _ in pooled if a is not None]
+    left.plot([n for n, _ in shown], [a for _, a in shown], "o-", color="0.2")
+    left.axhline(result["chance"], color="0.6", linestyle=":", label="chance")
+    left.axhline(result["recording_accuracy"], color="0.4", linestyle="--", label="whole recording")
+    left.set_xscale("log")
+    left.set_xticks([n for n, _ in shown], [str(n) for n, _ in shown])
+    left.set_xlabel("windows pooled")
+    left.set_ylabel("accuracy")
+    left.set_ylim(0, 1.02)
+    left.legend(fontsize=8, loc="lower right")
+    right.bar(range(len(channels)), [v for _, v in channels], color="0.4")
+    right.set_xticks(range(len(channels)), [n for n, _ in channels], rotation=90, fontsize=7)
+    right.set_ylabel("accuracy lost when shuffled")
+    right.set_title("channels carrying the decision", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(folder / "evaluation.png", dpi=120)
+    plt.close(fig)
+    return written + [folder / "evaluation.png"]

@@ -1,0 +1,90 @@
+"""What a user needs to trust a model: how accuracy grows with the windows pooled, and which
+channels carry the decision. Pure numpy on a model's outputs; no files, no devices.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from supramodal.decisions import posteriors
+from supramodal.errors import InputError
+
+__all__ = ["POOLED_WINDOWS", "pooled_accuracy", "permutation_importance"]
+
+#: Numbers of consecutive windows whose pooled decision ``evaluate`` reports (and the whole recording).
+POOLED_WINDOWS = (1, 2, 5, 10)
+
+
+def pooled_accuracy(outputs_by_recording, truths, n: int) -> tuple[float | None, int]:
+    """Accuracy of decisions pooled over ``n`` consecutive windows, as the node pools a contact.
+
+    Each recording's windows are cut into runs of ``n`` from its start (a shorter rest is left
+    out); a run's decision is the class of the largest summed log-posterior
+    (:class:`~supramodal.decisions.DecisionAccumulator`'s ``"log"`` method).
+
+    Parameters
+    ----------
+    outputs_by_recording : sequence of ndarray, each (windows, classes)
+        The model's outputs for each recording's windows, in time order.
+    truths : sequence of int
+        Each recording's class index.
+    n : int
+        Windows per run, >= 1.
+
+    Returns
+    -------
+    accuracy : float or None
+        Share of runs decided right; None when no recording holds ``n`` windows.
+    runs : int
+        How many runs were decided.
+    """
+    if not (isinstance(n, (int, np.integer)) and n >= 1):
+        raise InputError(f"windows pooled must be an integer >= 1, got {n!r}")
+    hits = runs = 0
+    for outputs, truth in zip(outputs_by_recording, truths):
+        logp = np.log(posteriors(outputs))
+        m = len(logp) // n
+        if m == 0:
+            continue
+        score = logp[: m * n].reshape(m, n, -1).sum(axis=1)
+        hits += int(np.count_nonzero(np.argmax(score, axis=1) == truth))
+        runs += m
+    return (hits / runs if runs else None), runs
+
+
+def permutation_importance(outputs, windows: np.ndarray, truth: np.ndarray, repeats: int = 5,
+                           seed: int = 0) -> np.ndarray:
+    """How much window accuracy each channel carries: the drop when its features are shuffled.
+
+    Channel ``c``'s feature values (every feature of it) are permuted across the windows,
+    breaking their link with the labels while keeping their distribution; the drop in
+    accuracy, averaged over ``repeats`` permutations, is the channel's importance.
+
+    Parameters
+    ----------
+    outputs : callable
+        ``outputs(windows) -> (n, classes)``, e.g. :meth:`TextureModel.outputs`.
+    windows : ndarray, shape (n, features, channels)
+    truth : ndarray of int, shape (n,)
+    repeats : int, optional
+        Permutations per channel (default 5).
+    seed : int, optional
+        Seed of the permutations (default 0).
+
+    Returns
+    -------
+    ndarray, shape (channels,)
+        Accuracy lost per channel (0 = the decision does not use it; can be slightly negative
+        by chance).
+    """
+    windows = np.asarray(windows)
+    truth = np.asarray(truth)
+    rng = np.random.default_rng(seed)
+    base = float(np.mean(np.argmax(outputs(windows), axis=1) == truth))
+    drop = np.zeros(windows.shape[2])
+    for c in range(windows.shape[2]):
+        for _ in range(repeats):
+            shuffled = windows.copy()
+            shuffled[:, :, c] = windows[rng.permutation(len(windows)), :, c]
+            drop[c] += base - float(np.mean(np.argmax(outputs(shuffled), axis=1) == truth))
+    return drop / repeats
