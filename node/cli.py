@@ -354,6 +354,23 @@ def _cmd_train(args) -> int:
     return 0
 
 
+def _cmd_fit(args) -> int:
+    from node.fit import fit_manifest, format_fit, write_fit
+    from node.outputs import check_new_file
+
+    if args.out.is_dir():
+        for name in ("fit.csv", "bank.json", "fit.png"):
+            check_new_file(args.out / name, args.force, "the fit file")
+    result = fit_manifest(args.manifest, k=args.cv, epochs=args.epochs, seed=args.seed, quick=args.quick,
+                          jobs=args.jobs, mapping=args.mapping, progress=_progress(args))
+    print(format_fit(result))
+    files = write_fit(result, args.out)
+    b = result["best"]
+    print(f"wrote {', '.join(str(p) for p in files)}\nnext: supramodal train --bank {args.out / 'bank.json'} "
+          f"--window {b['window']:g} --features {' '.join(b['features'])} --manifest {args.manifest} --out MODEL")
+    return 0
+
+
 def _cmd_evaluate(args) -> int:
     from node.training import evaluate_manifest, format_evaluation
     from supramodal.model import TextureModel
@@ -435,6 +452,21 @@ def build_parser() -> argparse.ArgumentParser:
                    help="recording channels to filters: auto (one channel to all, or one each), mono, per-channel, mean, or a channel index (default auto)")
     p.add_argument("--quiet", action="store_true", help="no progress on stderr (warnings are still shown)")
     p.set_defaults(func=_cmd_train)
+
+    p = add_parser("fit", help="fit a bank, window and features to your recordings by grouped cross-validation")
+    p.add_argument("manifest", help="CSV with columns path,label[,start,end]; paths relative to it")
+    p.add_argument("--out", type=_output_folder, default="out/fit",
+                   help="folder for fit.csv, fit.png and bank.json, the best bank (default ./out/fit)")
+    p.add_argument("--cv", type=_count(2), default=5, metavar="K", help="folds, grouped by recording (default 5)")
+    p.add_argument("--epochs", type=_count(1), default=300, help="iRPROP- epochs per fold (default 300)")
+    p.add_argument("--seed", type=_count(0), default=0, help="seed of the folds and the networks (default 0)")
+    p.add_argument("--quick", action="store_true", help="fewer values per parameter (default: the full sweep)")
+    p.add_argument("--jobs", type=_count(1), default=1, help="processes scoring candidates at once (default 1)")
+    p.add_argument("--mapping", type=_mapping, default="auto",
+                   help="recording channels to filters: auto (one channel to all, or one each), mono, per-channel, mean, or a channel index (default auto)")
+    p.add_argument("--force", action="store_true", help="replace earlier fit files in --out (default: refuse)")
+    p.add_argument("--quiet", action="store_true", help="no progress on stderr (warnings are still shown)")
+    p.set_defaults(func=_cmd_fit)
 
     p = add_parser("evaluate", help="accuracy and confusion of a model on labelled recordings")
     p.add_argument("model", help="model file (.npz)")

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["write_confusion", "write_evaluation"]
+__all__ = ["pyplot_or_none", "write_confusion", "write_evaluation"]
 
 
 def write_confusion(labels, confusion, base: Path, title: str) -> list[Path]:
@@ -24,7 +24,7 @@ def write_confusion(labels, confusion, base: Path, title: str) -> list[Path]:
         for name, row in zip(labels, counts):
             w.writerow([name, *row.tolist()])
     written = [csv_path]
-    plt = _pyplot()
+    plt = pyplot_or_none()
     if plt is None:
         return written
     shares = counts / np.maximum(counts.sum(axis=1, keepdims=True), 1)
@@ -47,7 +47,7 @@ def write_confusion(labels, confusion, base: Path, title: str) -> list[Path]:
     return written + [png_path]
 
 
-def _pyplot():
+def pyplot_or_none():
     """matplotlib.pyplot on a file backend, or None where matplotlib is not installed."""
     try:
         import matplotlib
@@ -76,7 +76,7 @@ def write_evaluation(result: dict, folder: Path) -> list[Path]:
         w.writerow(["channel", "window accuracy lost when shuffled"])
         w.writerows(channels)
     written += [folder / "pooling.csv", folder / "channels.csv"]
-    plt = _pyplot()
+    plt = pyplot_or_none()
     if plt is None:
         return written
     fig, (left, right) = plt.subplots(1, 2, figsize=(10, 3.6))

@@ -105,8 +105,9 @@ def cross_validate_manifest(manifest, bank: Bank, features=("Af",), window: floa
                             epochs: int = DEFAULT_EPOCHS, seed: int = 0, mapping="auto", progress=None) -> dict:
     """Grouped ``k``-fold cross-validation of the training :func:`train_from_manifest` would do.
 
-    Folds are grouped by recording file (:func:`supramodal.training.grouped_folds`): the windows
-    of one recording are never on both sides. Each fold's model is trained as the final one
+    Folds are grouped by manifest line, one trial (:func:`supramodal.training.grouped_folds`):
+    the windows of one trial are never on both sides. A long recording may be split into
+    several lines (``start``, ``end``) to make several trials; their spans must not overlap. Each fold's model is trained as the final one
     would be (same features, window, epochs, seed) on the other folds' recordings and scored on
     its own.
 
@@ -120,7 +121,8 @@ def cross_validate_manifest(manifest, bank: Bank, features=("Af",), window: floa
         label's share of windows: what always answering it would score).
     """
     recs, classes, windows = _manifest_windows(manifest, bank, features, window, mapping, progress)
-    fold = grouped_folds([str(r.path) for r in recs], [r.label for r in recs], k, seed)
+    _refuse_overlapping_trials(recs)
+    fold = grouped_folds([r.where for r in recs], [r.label for r in recs], k, seed)
     confusion = np.zeros((len(classes), len(classes)), dtype=int)
     folds = []
     for f in range(k):
@@ -153,9 +155,23 @@ def cross_validate_manifest(manifest, bank: Bank, features=("Af",), window: floa
             "chance": float(totals.max() / totals.sum())}
 
 
+def _refuse_overlapping_trials(recs: list[Recording]) -> None:
+    """Two lines of one file whose spans overlap share windows: a fold could test on what it trained on."""
+    by_file: dict = {}
+    for r in recs:
+        by_file.setdefault(r.path, []).append(r)
+    for lines in by_file.values():
+        lines.sort(key=lambda r: r.start)
+        for a, b in zip(lines, lines[1:]):
+            if a.end is None or a.end > b.start:
+                raise ManifestError(f"{b.where}: its span of {b.path.name} overlaps {a.where}'s; cross-validation "
+                                    "takes each line as one trial, so the spans of one file must not overlap")
+
+
 def format_cross_validation(result: dict) -> str:
     w, r = result["window_accuracy"], result["recording_accuracy"]
-    lines = [f"grouped {result['k']}-fold cross-validation (folds by recording, seed {result['seed']})",
+    lines = [f"grouped {result['k']}-fold cross-validation (folds by manifest line: a trial's windows on one side; "
+             f"seed {result['seed']})",
              f"window accuracy     {w['mean']:.3f} +- {w['sd']:.3f} (chance {result['chance']:.3f})",
              f"recording accuracy  {r['mean']:.3f} +- {r['sd']:.3f}",
              "recall per label    " + ", ".join(f"{c} {v:.3f}" for c, v in result["recall"].items() if v is not None)]

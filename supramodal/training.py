@@ -138,9 +138,9 @@ def grouped_folds(groups, labels, k: int, seed: int = 0) -> np.ndarray:
         by_label.setdefault(lab, []).append(g)
     thin = sorted(lab for lab, gs in by_label.items() if len(gs) < 2)
     if thin:
-        raise InputError(f"label(s) {thin} have one recording each: a fold without it would train a model that "
-                         "never saw the label; record each texture at least twice (or split a long recording "
-                         "into files)")
+        raise InputError(f"label(s) {thin} have one trial (manifest line) each: a fold without it would train a "
+                         "model that never saw the label; record each texture at least twice, or split a long "
+                         "recording into several lines with start and end")
     rng = np.random.default_rng(seed)
     fold_of, turn = {}, 0
     for lab in sorted(by_label):

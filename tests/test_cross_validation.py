@@ -48,7 +48,7 @@ def test_folds_never_split_a_group_and_depend_only_on_the_seed(items, k, seed):
 @pytest.mark.parametrize("groups, labels, k, match", [
     (["a", "b"], ["x", "y"], 1, "k >= 2"),
     (["a", "b"], ["x", "x"], 3, "at least 3 recordings"),
-    (["a", "b", "c"], ["x", "x", "y"], 2, r"\['y'\] have one recording"),
+    (["a", "b", "c"], ["x", "x", "y"], 2, r"\['y'\] have one trial"),
 ])
 def test_folds_are_refused_where_they_cannot_work(groups, labels, k, match):
     with pytest.raises(InputError, match=match):
@@ -109,6 +109,23 @@ def test_train_cv_reports_then_writes_the_model_and_the_confusion_files(recordin
     rows = list(csv.reader(open(tmp_path / "m-cv.csv")))
     assert rows[0][1:] == ["T1", "T2", "T3"]
     assert sum(int(v) for row in rows[1:] for v in row[1:]) == 9 * 15
+
+
+def test_lines_of_one_file_are_trials_and_must_not_overlap(recordings, tmp_path):
+    """One recording per label, split into two lines each: two trials per label, folds possible;
+    overlapping spans of one file are refused (a fold would test on windows it trained on)."""
+    from node.manifest import ManifestError
+
+    names = sorted(p.name for p in recordings.glob("*_0.wav"))
+    split = ["path,label,start,end"] + [f"{recordings / n},{n[:2]},{a},{b}" for n in names
+                                        for a, b in ((0, 0.7), (0.7, 1.5))]
+    (tmp_path / "split.csv").write_text("\n".join(split) + "\n")
+    cv = cross_validate_manifest(tmp_path / "split.csv", whisker_bank(), ("Af",), 0.1, k=2, epochs=30)
+    assert sum(len(f["recordings"]) for f in cv["folds"]) == 6
+    overlap = split[:2] + [split[1].replace(",0,0.7", ",0.5,1.5")] + split[3:]
+    (tmp_path / "overlap.csv").write_text("\n".join(overlap) + "\n")
+    with pytest.raises(ManifestError, match="overlaps"):
+        cross_validate_manifest(tmp_path / "overlap.csv", whisker_bank(), ("Af",), 0.1, k=2, epochs=30)
 
 
 def test_pooled_accuracy_is_the_nodes_pooling_over_runs_of_windows():

@@ -1,0 +1,60 @@
+"""`supramodal fit`: a bank, window and features fitted to a sensor's own recordings."""
+
+from __future__ import annotations
+
+import csv
+
+import numpy as np
+import pytest
+
+from node.cli import main
+from node.fit import Candidate, fit_manifest
+from node.training import cross_validate_manifest
+from replay.wavio import write_wav
+from supramodal.bankfile import load_bank
+from supramodal.textures import synthesize
+
+#: A fingertip-like sensor: 2.2 kHz, content below 1 kHz, four textures whose peaks lie close
+#: together low in the band.
+SENSOR_RATE = 2200
+TEXTURES = {"silk": (60, 180, 420), "denim": (75, 210, 480), "cork": (120, 300, 700), "felt": (95, 260, 600)}
+
+
+@pytest.fixture(scope="module")
+def sensor(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("sensor")
+    rows = ["path,label"]
+    for t, (name, peaks) in enumerate(TEXTURES.items()):
+        for r in range(3):
+            x = 0.2 * synthesize(peaks, SENSOR_RATE, 1.0, seed=100 * t + r)
+            write_wav(folder / f"{name}{r}.wav", x[:, None], SENSOR_RATE)
+            rows.append(f"{name}{r}.wav,{name}")
+    (folder / "m.csv").write_text("\n".join(rows) + "\n")
+    return folder
+
+
+def test_fit_is_deterministic_and_its_best_is_the_cross_validation_of_that_setting(sensor):
+    result = fit_manifest(sensor / "m.csv", k=3, epochs=30, seed=1, quick=True)
+    assert result["fs"] == SENSOR_RATE
+    assert [r["step"] for r in result["rows"]].count("b_scale") == 3 and set(result["paper"]) == {"whisker", "cochlea"}
+    b = result["best"]
+    fields = {f: b[f] for f in Candidate.__dataclass_fields__}
+    best = Candidate(**{**fields, "features": tuple(fields["features"])})
+    direct = cross_validate_manifest(sensor / "m.csv", best.bank(), best.features, best.window, 3, epochs=30, seed=1)
+    assert b["window_mean"] == pytest.approx(direct["window_accuracy"]["mean"], abs=1e-12)
+    last = [r for r in result["rows"] if r["step"] == "features"]
+    assert b["window_mean"] == max(r["window_mean"] for r in last)       # the last step keeps its best
+    assert fit_manifest(sensor / "m.csv", k=3, epochs=30, seed=1, quick=True)["rows"] == result["rows"]
+
+
+def test_fit_command_writes_a_bank_that_train_takes(sensor, tmp_path, capsys):
+    out = tmp_path / "fit"
+    assert main(["fit", str(sensor / "m.csv"), "--out", str(out), "--cv", "3", "--epochs", "30", "--quick",
+                 "--quiet"]) == 0
+    text = capsys.readouterr().out
+    assert "best:" in text and "the paper's whisker bank" in text and "next: supramodal train --bank" in text
+    bank = load_bank(out / "bank.json")
+    assert bank.fs == SENSOR_RATE and bank.cf.max() < SENSOR_RATE / 2
+    assert len(list(csv.reader(open(out / "fit.csv")))) == 1 + 13
+    assert main(["train", "--bank", str(out / "bank.json"), "--manifest", str(sensor / "m.csv"),
+                 "--out", str(tmp_path / "m.npz"), "--epochs", "30", "--quiet"]) == 0
