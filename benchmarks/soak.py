@@ -288,7 +288,13 @@ def _compare(led, driver: CheckedDriver, sink: CountingSink, summary: dict, samp
     row("frames differing from the mock's", 0, None, driver.mismatched_frames)
     row("discontinuities", 0, st["discontinuities"])
     row("unplugs forced (ledger not exact)", 0, led.unplugs_forced)
-    row("samples dropped in the node's ring", 0, int(summary.get("samples_dropped", -1)))
+    # The node's summary: every row of the stream has one fate (docs/node.md); the filled ones
+    # are exactly the ledger's lost frames, and no measured row was lost in the ring.
+    fates = summary.get("frames") or {}
+    row("node summary: rows filled", SPF * n_lost, fates.get("filled", -1))
+    row("node summary: rows dropped", 0, fates.get("dropped", -1))
+    row("node summary: delivered + filled + dropped - stream", 0,
+        sum(fates.get(k, 0) for k in ("delivered", "filled", "dropped")) - fates.get("stream", -1))
 
     rss = [s[1] for s in samples]
     report = {

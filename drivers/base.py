@@ -10,6 +10,11 @@ Threading and real-time rules
   :meth:`Driver.stats`: ``frames`` (delivered, including filled ones), ``filled``
   (frames synthesised to fill a gap, never measured), and driver-specific counters
   (CRC errors, skipped bytes, overflows, reconnects, ...).
+* A driver whose filled frames all stand for samples the host received and lost
+  itself (a buffer overflow, not a loss on the line or at the source) says so
+  with a true ``fills_are_drops`` attribute; the node then reports them as
+  *dropped*, not *filled* (docs/node.md, "Every frame has one fate"). Absent
+  means False.
 * Drivers are context managers: ``with driver: ...`` opens and closes the device.
 * A driver says what its hardware is doing as :class:`DriverEvent` objects kept in
   an :class:`EventLog`: ``take_events()`` returns and clears the new ones, from
@@ -189,6 +194,9 @@ class Driver(Protocol):
         Frames per second, Hz.
     channels : int
         Channels per frame.
+    fills_are_drops : bool, optional
+        True if every filled frame stands for a sample the host lost (see the
+        module documentation); absent means False.
     """
 
     rate: float

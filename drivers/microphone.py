@@ -494,6 +494,10 @@ class MicrophoneDriver:
         Channels per frame.
     device_info : dict or None
         The opened device's ``sounddevice.query_devices()`` entry, after :meth:`open`.
+    fills_are_drops : bool
+        True: every filled frame stands for audio the host lost (PortAudio's
+        input overflow, a full capture buffer, a failed callback), never for
+        audio that was not there, so the node counts them as dropped.
 
     Notes
     -----
@@ -510,6 +514,8 @@ class MicrophoneDriver:
     >>> with MicrophoneDriver(device="USB", rate=44100) as mic:   # doctest: +SKIP
     ...     block = mic.read(timeout=1.0)
     """
+
+    fills_are_drops = True
 
     def __init__(
         self,

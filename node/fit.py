@@ -39,9 +39,9 @@ __all__ = ["Candidate", "fit_manifest", "format_fit", "write_fit"]
 
 #: The values each step tries (quick mode: the shorter lists), as (name, full, quick).
 STEPS = (
-    ("channels", (10, 20, 40), (10, 20)),
+    ("channels", (10, 20, 30, 50), (10, 20)),
     ("f_high", (0.5, 0.7, 0.9), (0.5, 0.9)),          # fraction of the Nyquist frequency
-    ("f_low", (0.005, 0.02, 0.1), (0.005, 0.05)),     # fraction of the Nyquist frequency
+    ("f_low", (0.001, 0.005, 0.02, 0.1), (0.005, 0.05)),   # fraction of the Nyquist frequency
     ("b_scale", (0.5, 1.0, 2.0), (0.5, 1.0, 2.0)),
     ("window", (0.05, 0.1, 0.2, 0.4), (0.1, 0.4)),    # seconds
     ("features", (("A",), ("f",), ("Af",), ("A", "f", "Af")), (("Af",), ("A", "f", "Af"))),

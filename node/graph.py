@@ -15,8 +15,10 @@ Threads and real-time rules
   the processing thread ever waits on a sink for an event.
 * The *processing thread* reads the ring, runs the model blocks (mapping ->
   filterbank -> peaks -> windows -> classifier -> decisions) and calls the
-  sinks. Frames lost in the ring are replaced by zeros marked as filled, so
-  stream time stays exact and the windows they touch are flagged ``gap``.
+  sinks. Frames lost in the ring are replaced by zeros, so stream time stays
+  exact and the windows they touch are flagged ``gap``.
+* Every frame of the stream has one fate in the summary's ``frames``:
+  delivered, filled or dropped (see :meth:`Node._frame_fates`).
 * The caller's thread (:meth:`Node.run`) starts both, waits, and handles the
   stop request (Ctrl-C, SIGTERM, :meth:`Node.stop`): the driver stops, what is
   already buffered is processed, the summary is written, nothing is left running.
@@ -179,7 +181,6 @@ class Node:
         # processing-thread state
         self._expected = 0
         self._gap_windows: set[int] = set()
-        self._gap_filled = 0
         self._latencies = LatencyHistogram()
         self._cpu = 0.0
         self._n_windows = 0
@@ -300,12 +301,14 @@ class Node:
 
     def _write(self, block) -> None:
         # Under "block" the ring takes what fits and we wait for the rest (lossless replay);
-        # under the drop policies it takes everything and counts what it drops.
+        # under the drop policies one write is final: it takes everything and counts what it
+        # drops, or ("drop-newest") refuses the rest, whose stream indices are then spent.
+        # Offering refused frames again would put them in the stream twice.
         kept, n = 0, block.frames
         while kept < n:
             filled = None if block.filled is None else block.filled[kept:]
             kept += self.ring.write(block.data[kept:], filled, timeout=0.1)
-            if kept < n and self._stop.is_set() and self.ring.closed:
+            if self.ring.overrun != "block" or (kept < n and self._stop.is_set() and self.ring.closed):
                 return
 
     # -- processing thread --------------------------------------------------------------------
@@ -323,8 +326,9 @@ class Node:
             start, data, filled = chunk
             if start > self._expected:
                 # Frames lost in the ring: zeros keep stream time exact; the windows are flagged.
+                # The ring counts them (lost, lost_filled), so that each keeps one fate: these
+                # zeros are the node's stand-in, not another count (see _frame_fates).
                 gap = start - self._expected
-                self._gap_filled += gap
                 self._mark_gap(self._expected, start, W)
                 self._step(np.zeros((gap, data.shape[1])), self._expected)
             if filled is not None and filled.any():
@@ -415,12 +419,42 @@ class Node:
 
     # -- summary ------------------------------------------------------------------------------
 
+    def _frame_fates(self) -> dict[str, int]:
+        """Every frame of the stream counted once: delivered, filled or dropped.
+
+        ``delivered``: measured by the driver and processed as measured.
+        ``filled``: synthesised by the driver (``Block.filled``) for samples the host never
+        received (lost on the line or by the board, unplugged), whether the ring kept its zeros
+        or dropped them: zeros lost are still zeros, not data lost.
+        ``dropped``: samples the host received and lost: measured frames the ring lost
+        (``dropped_in_ring``; the pipeline gets zeros in their place, but they count here
+        only), and a driver's fills for its own losses (``dropped_by_driver``: a driver with
+        ``fills_are_drops``, the microphone, fills only for overflows and a full buffer).
+        ``stream``: frames offered to the ring, the stream's length; once the processing
+        thread has drained the ring, ``delivered + filled + dropped == stream`` exactly.
+        ``filled_lost_in_ring``: filled frames the ring dropped (counted in ``filled``, or in
+        ``dropped_by_driver``), for the record.
+        """
+        ring = self.ring.stats()
+        r = self._reader.stats()
+        # The ring knows each row's flag when it drops it: the split is exact per frame,
+        # whatever the timing (a fill longer than the ring loses its own head on write).
+        synthesised = r["read_filled"] + r["lost_filled"]
+        driver_drops = synthesised if getattr(self.driver, "fills_are_drops", False) else 0
+        in_ring = r["lost"] - r["lost_filled"]
+        return {"stream": ring["written"],
+                "delivered": r["read"] - r["read_filled"],
+                "filled": synthesised - driver_drops,
+                "dropped": in_ring + driver_drops,
+                "dropped_in_ring": in_ring,
+                "dropped_by_driver": driver_drops,
+                "filled_lost_in_ring": r["lost_filled"]}
+
     def _summary(self, wall: float) -> dict:
         fs = self.pipeline.bank.fs
         stream = self._expected / fs
         drv = dict(self.driver.stats())
         ring = self.ring.stats()
-        lost_in_ring = self._reader.lost
         return {
             "windows": self._n_windows,
             "stream_seconds": stream,
@@ -428,8 +462,7 @@ class Node:
             "window_accuracy": self._correct / self._labelled if self._labelled else None,
             "labelled_windows": self._labelled,
             "accumulated_accuracy": self._acc_correct / self._acc_labelled if self._acc_labelled else None,
-            "samples_dropped": int(lost_in_ring + drv.get("dropped", 0)),
-            "samples_filled": int(drv.get("filled", 0) + self._gap_filled),
+            "frames": self._frame_fates(),
             "nonfinite_replaced": self.pipeline.filterbank.nonfinite_count,
             "out_of_range_replaced": self.pipeline.filterbank.out_of_range_count,
             "partial_window_samples": self.pipeline.partial_samples,

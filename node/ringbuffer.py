@@ -6,6 +6,15 @@ consumer (a model block, a recorder, a monitor) reads through its own
 the model: it moves ``(frames, channels)`` arrays and their per-frame
 ``filled`` flags, and accounts for every frame.
 
+Filled frames lost
+------------------
+A reader's ``lost`` counts every frame it will never receive; ``lost_filled``
+counts those of them that were written with a True ``filled`` flag (frames a
+driver synthesised, never measured). The difference is measured data lost.
+The node needs the split: a long gap fill is written as one block, and when
+it is longer than the ring the ring drops its oldest rows, which are zeros,
+not data (docs/node.md, "Every frame has one fate").
+
 Stream indices
 --------------
 Every frame offered to :meth:`RingBuffer.write` gets the next absolute stream
@@ -106,13 +115,16 @@ class Reader:
     Use a reader from one thread only.
     """
 
-    def __init__(self, ring: "RingBuffer", name: str, cursor: int, start: int, lost: int):
+    def __init__(self, ring: "RingBuffer", name: str, cursor: int, start: int, lost: int,
+                 lost_filled: int):
         self._ring = ring
         self.name = name
         self._cursor = cursor   # storage position of the next frame to read
         self._start = start     # stream index at attach time
         self._read = 0          # frames returned
+        self._read_filled = 0   # of them, written with a True filled flag
         self._lost = lost       # frames between start and the stream end it will never receive
+        self._lost_filled = lost_filled  # of them, written with a True filled flag
         self._closed = False
 
     def read(self, max_frames: int | None = None, timeout: float | None = None,
@@ -187,18 +199,27 @@ class Reader:
         with self._ring._lock:
             return self._lost
 
+    @property
+    def lost_filled(self) -> int:
+        """Of :attr:`lost`, the frames written with a True filled flag (never measured)."""
+        with self._ring._lock:
+            return self._lost_filled
+
     def close(self) -> None:
         """Detach: the ring stops waiting for this reader; later reads raise :class:`RingClosed`."""
         self._ring._remove(self)
 
     def stats(self) -> dict[str, int]:
-        """``start`` stream index when added, ``read`` and ``lost`` frames, ``available`` now."""
+        """``start`` stream index when added, ``read`` and ``lost`` frames, ``available`` now,
+        and ``read_filled``, ``lost_filled``: of the frames read and lost, those written with a
+        True filled flag."""
         with self._ring._lock:
             return self._stats()
 
     def _stats(self) -> dict[str, int]:
         return {"start": self._start, "read": self._read, "lost": self._lost,
-                "available": self._ring._stored - self._cursor}
+                "available": self._ring._stored - self._cursor,
+                "read_filled": self._read_filled, "lost_filled": self._lost_filled}
 
     def __repr__(self) -> str:
         return f"<Reader {self.name!r} of {self._ring!r}>"
@@ -248,9 +269,12 @@ class RingBuffer:
         self._stored = 0
         self._end = 0            # stream index one past the last frame offered
         self._refused = 0
+        self._filled_in = 0              # frames offered with a True filled flag (kept or refused)
         self._hole_pos: list[int] = []   # storage positions where a gap starts, ascending
         self._hole_off: list[int] = []   # offset from that position on
+        self._hole_fill: list[int] = []  # filled frames refused before that position's frame, cumulative
         self._base_offset = 0            # offset before the first hole
+        self._base_fill = 0              # refused filled frames before the first hole
         self._readers: list[Reader] = []
         self._names = 0
         self._closed = False
@@ -285,7 +309,8 @@ class RingBuffer:
             # Frames refused inside the part it will read were lost to it too:
             # count them, so that read + lost == stream end - start at the end.
             lost = (self._end - start) - (self._stored - cursor)
-            reader = Reader(self, name, cursor, start, lost)
+            lost_filled = self._refused_fill(self._stored) - self._refused_fill(cursor)
+            reader = Reader(self, name, cursor, start, lost, lost_filled)
             self._readers.append(reader)
             return reader
 
@@ -354,6 +379,8 @@ class RingBuffer:
                 raise RingClosed("write() on a closed ring")
             if n == 0:
                 return 0
+            if f is not None and self.overrun != "block":
+                self._filled_in += int(np.count_nonzero(f))  # 'block' counts what it takes, in _store
             if self.overrun == "drop-oldest":
                 self._store(a, f)
                 kept = n
@@ -362,7 +389,7 @@ class RingBuffer:
                 if kept:
                     self._store(a[:kept], None if f is None else f[:kept])
                 if kept < n:
-                    self._refuse(n - kept)
+                    self._refuse(n - kept, 0 if f is None else int(np.count_nonzero(f[kept:])))
             else:
                 kept = 0
                 deadline = None
@@ -399,11 +426,14 @@ class RingBuffer:
         n = n_offered = a.shape[0]
         cap = self.capacity
         new_stored = self._stored + n
+        if self.overrun == "block" and f is not None:
+            self._filled_in += int(np.count_nonzero(f))
         # Readers further back than one capacity lose what is about to be overwritten.
         limit = new_stored - cap
         for r in self._readers:
             if r._cursor < limit:
                 r._lost += limit - r._cursor
+                r._lost_filled += self._filled_between(r._cursor, limit, f)
                 r._cursor = limit
         if n > cap:  # only the newest capacity frames can be held
             a, f = a[n - cap:], (None if f is None else f[n - cap:])
@@ -421,22 +451,49 @@ class RingBuffer:
         self._stored = new_stored
         self._end += n_offered
 
-    def _refuse(self, n: int) -> None:
+    def _filled_between(self, a: int, b: int, f: np.ndarray | None) -> int:
+        """Flagged frames at storage positions ``a .. b - 1``, before the block ``f`` is stored.
+
+        Positions below ``self._stored`` are still in the ring (a reader's cursor never lags
+        more than one capacity); those from ``self._stored`` on are the head of the block being
+        written, when it is longer than the space left (``f``: its flags, or None).
+        """
+        cap = self.capacity
+        held_end = min(b, self._stored)
+        count = 0
+        if held_end > a:
+            i, m = a % cap, held_end - a
+            k = min(m, cap - i)
+            count += int(np.count_nonzero(self._flags[i:i + k])) + int(np.count_nonzero(self._flags[:m - k]))
+        if f is not None and b > self._stored:
+            count += int(np.count_nonzero(f[max(a, self._stored) - self._stored:b - self._stored]))
+        return count
+
+    def _refuse(self, n: int, n_filled: int) -> None:
         offset = self._offset(self._stored) + n
+        fill = self._refused_fill(self._stored) + n_filled
         if self._hole_pos and self._hole_pos[-1] == self._stored:
             self._hole_off[-1] = offset  # refused again before anything was kept: one gap
+            self._hole_fill[-1] = fill
         else:
             self._hole_pos.append(self._stored)
             self._hole_off.append(offset)
+            self._hole_fill.append(fill)
         self._refused += n
         self._end += n
         for r in self._readers:
             r._lost += n
+            r._lost_filled += n_filled
 
     def _offset(self, position: int) -> int:
         """Stream index minus storage position for the frame at ``position``."""
         i = bisect.bisect_right(self._hole_pos, position) - 1
         return self._hole_off[i] if i >= 0 else self._base_offset
+
+    def _refused_fill(self, position: int) -> int:
+        """Refused frames flagged filled, before the frame at storage ``position`` (cumulative)."""
+        i = bisect.bisect_right(self._hole_pos, position) - 1
+        return self._hole_fill[i] if i >= 0 else self._base_fill
 
     def _prune(self) -> None:
         # A hole is only needed while some reader, or a reader added at
@@ -447,7 +504,8 @@ class RingBuffer:
         i = bisect.bisect_right(self._hole_pos, floor)
         if i:
             self._base_offset = self._hole_off[i - 1]
-            del self._hole_pos[:i], self._hole_off[:i]
+            self._base_fill = self._hole_fill[i - 1]
+            del self._hole_pos[:i], self._hole_off[:i], self._hole_fill[:i]
 
     def _copy_out(self, reader: Reader, max_frames: int | None) -> Chunk:
         """Copy the reader's next frames, never across a hole; called under the lock."""
@@ -471,6 +529,7 @@ class RingBuffer:
         start = cur + self._offset(cur)
         reader._cursor = cur + n
         reader._read += n
+        reader._read_filled += int(np.count_nonzero(flags))
         if self._hole_pos:
             self._prune()
         if self.overrun == "block":
@@ -503,16 +562,19 @@ class RingBuffer:
         -------
         dict
             ``written``: frames offered to :meth:`write` (the stream's length);
+            ``filled``: of them, frames offered with a True filled flag;
             ``stored``: frames kept (equal to ``written`` unless refused);
             ``refused``: frames refused under 'drop-newest';
             ``capacity``: frames held at most;
-            ``readers``: ``{name: {"start", "read", "lost", "available"}}`` for
-            each attached reader. For each, once the ring is closed and the
-            reader drained, ``read + lost == written - start``.
+            ``readers``: ``{name: {"start", "read", "lost", "available",
+            "read_filled", "lost_filled"}}`` for each attached reader. For each,
+            once the ring is closed and the reader drained,
+            ``read + lost == written - start``, and ``read_filled + lost_filled``
+            is the number of filled frames offered from ``start`` on.
         """
         with self._lock:
-            return {"written": self._end, "stored": self._stored, "refused": self._refused,
-                    "capacity": self.capacity,
+            return {"written": self._end, "filled": self._filled_in, "stored": self._stored,
+                    "refused": self._refused, "capacity": self.capacity,
                     "readers": {r.name: r._stats() for r in self._readers}}
 
     def __repr__(self) -> str:

@@ -137,9 +137,9 @@ class TextSink(Sink):
             lines.append(f"  window accuracy    {s['window_accuracy']:.3f} over {s['labelled_windows']} labelled windows")
         if s.get("accumulated_accuracy") is not None:
             lines.append(f"  accumulated acc.   {s['accumulated_accuracy']:.3f}")
-        lines.append(f"  samples dropped    {s['samples_dropped']}  (filled {s['samples_filled']}, "
-                     f"nonfinite replaced {s['nonfinite_replaced']}, out of range replaced "
-                     f"{s.get('out_of_range_replaced', 0)})")
+        lines.append(frames_line(s["frames"]))
+        lines.append(f"  samples replaced   nonfinite replaced {s['nonfinite_replaced']}, out of range replaced "
+                     f"{s.get('out_of_range_replaced', 0)}")
         lat = s.get("latency_ms")
         if lat:
             lines.append(f"  decision latency   p50 {lat['p50']:.2f} ms, p99 {lat['p99']:.2f} ms, max {lat['max']:.2f} ms "
@@ -153,6 +153,19 @@ class TextSink(Sink):
         if s.get("stopped_by"):
             lines.append(f"  stopped by         {s['stopped_by']}")
         self._fh.write("\n".join(lines) + "\n")
+
+
+def frames_line(f: dict) -> str:
+    """The summary line of frame fates: ``stream = delivered + filled + dropped``, with where the
+    dropped ones went (docs/node.md, "Every frame has one fate")."""
+    total = f["delivered"] + f["filled"] + f["dropped"]
+    line = (f"  frames             {f['stream']} = delivered {f['delivered']} + filled {f['filled']} + "
+            f"dropped {f['dropped']} (in ring {f['dropped_in_ring']}, by driver {f['dropped_by_driver']})")
+    if total != f["stream"]:
+        # Only when the processing thread stopped before draining the ring (it failed): say so
+        # rather than print an identity that does not hold.
+        line = line.replace(" = ", " != ", 1) + f"; {f['stream'] - total} not processed"
+    return line
 
 
 class ListSink(Sink):

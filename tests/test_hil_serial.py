@@ -1,7 +1,8 @@
 """Hardware in the loop: the node on the serial driver against the mock board on a real pty.
 
 Without faults, the decisions equal those of replaying the same file; with faults, every
-fault the mock injected is accounted for in the driver's counters and the node's output.
+fault the mock injected is accounted for in the driver's counters and the node's output, and
+every frame of the stream has one fate in the node's summary (delivered, filled or dropped).
 """
 
 from __future__ import annotations
@@ -47,12 +48,13 @@ def signal_and_model():
     return x, model
 
 
-def _run_serial(x, model, faults=FaultSpec(), seed=0):
+def _run_serial(x, model, faults=FaultSpec(), seed=0, buffer_seconds=2.0):
     """Stream x from the mock board into a node; stop once the board has sent everything."""
     dev = MockWhiskerDevice(x[:, None], RATE, samples_per_frame=SPF, faults=faults, seed=seed)
-    driver = SerialWhiskerDriver(dev.port, rate=RATE, channels=1)
+    driver = SerialWhiskerDriver(dev.port, rate=RATE, channels=1, on_notice=None)
     sink = ListSink()
-    node = Node(driver, FeaturePipeline(whisker_bank(), ("Af",)), [sink], model=model, overrun="drop-oldest")
+    node = Node(driver, FeaturePipeline(whisker_bank(), ("Af",)), [sink], model=model, overrun="drop-oldest",
+                buffer_seconds=buffer_seconds)
 
     def board():
         time.sleep(0.3)                       # the node has opened the port by then
@@ -78,7 +80,7 @@ def _offline_decisions(x, model, offset):
 def test_serial_node_decides_as_replaying_the_same_file(tmp_path, signal_and_model):
     x, model = signal_and_model
     sink, summary, driver, ledger = _run_serial(x, model)
-    assert ledger.sent == ledger.frames and summary["samples_dropped"] == 0
+    assert ledger.sent == ledger.frames and summary["frames"]["dropped"] == summary["frames"]["filled"] == 0
     assert driver.stats()["crc_errors"] == 0 and driver.stats()["filled"] == 0
     # The stream starts at the first frame the driver received (normally frame 0).
     offset = (driver.first_sequence - dev_first_seq()) * SPF
@@ -109,7 +111,7 @@ def test_every_injected_fault_is_accounted_for(signal_and_model):
     assert st["crc_errors"] == ledger.crc
     assert st["truncated"] == ledger.truncated
     assert st["frames_lost"] == len(ledger.lost) == ledger.truncated + ledger.crc + ledger.overflow
-    assert st["filled"] == SPF * len(ledger.lost) == summary["samples_filled"]
+    assert st["filled"] == SPF * len(ledger.lost) == summary["frames"]["filled"]
     assert st["bytes_skipped"] >= ledger.garbage_bytes
     # Every window touched by a lost frame, and only those, is flagged in the node's output.
     k0 = driver.first_sequence - dev_first_seq()
@@ -154,3 +156,67 @@ def test_the_serial_example_scene_decides_on_the_mock_board():
     pooled = [e["accumulated"]["label"] for e in sink.events if e.get("accumulated")]
     assert len(sink.events) >= 25 and "predicted" in sink.events[0]
     assert pooled[-1] == "T3" and pooled.count("T3") >= 0.8 * len(pooled)
+
+
+# -- every frame has one fate: each fault kind, and an outage longer than the ring ------------------
+
+FAULTS = {
+    "garbage": dict(garbage_rate=0.1),
+    "drop bytes": dict(drop_rate=0.05),
+    "crc": dict(crc_rate=0.05),
+    "omit": dict(omit_rate=0.05),
+    "wrong channels": dict(channels_rate=0.05),
+    "wrong version": dict(version_rate=0.05),
+    "unplugs": dict(unplug_every=0.6, unplug_for=0.3),
+    "all": dict(garbage_rate=0.03, drop_rate=0.02, crc_rate=0.02, omit_rate=0.02, channels_rate=0.02,
+                version_rate=0.02, unplug_every=0.8, unplug_for=0.3),
+}
+SHORT = int(2.5 * RATE)  # rows of the signal streamed per fault kind
+
+
+def _check_one_fate(summary, st, ledger, n_rows):
+    """``delivered + filled + dropped == stream`` and each count against the mock's ledger."""
+    f = summary["frames"]
+    assert f["delivered"] + f["filled"] + f["dropped"] == f["stream"], f
+    assert f["dropped"] == f["dropped_in_ring"] and f["dropped_by_driver"] == 0, f
+    # The stream runs from frame 0 (sent clean, the port open before) to the last frame the
+    # driver received; frames lost after it (an unplug at the end) are in no stream.
+    last = max(k for k in range(ledger.frames) if k not in ledger.lost)
+    lost = [k for k in ledger.lost if k < last]
+    assert f["stream"] == st["frames"] == min(n_rows, SPF * (last + 1))
+    # Every row the driver made up is a row of a frame the board lost, counted filled exactly
+    # once, whatever the ring did with it.
+    assert f["filled"] == st["filled"] == SPF * len(lost)
+    # The measured rows were processed or, if the ring overran, dropped: no other fate.
+    assert f["delivered"] + f["dropped"] == st["frames"] - st["filled"]
+
+
+@pytest.mark.parametrize("kind", list(FAULTS))
+def test_one_fate_per_frame_under_each_fault_of_the_mock_board(signal_and_model, kind):
+    x = signal_and_model[0][:SHORT]
+    _, summary, driver, ledger = _run_serial(x, None, FaultSpec(**FAULTS[kind]), seed=4)
+    st = driver.stats()
+    if kind != "garbage":
+        assert ledger.lost, "the fault was injected"
+    if kind == "unplugs":
+        assert ledger.unplugs >= 1 and st["unplugs"] == ledger.unplugs
+    _check_one_fate(summary, st, ledger, len(x))
+
+
+def test_an_outage_longer_than_the_ring_is_filled_not_dropped(signal_and_model):
+    """1.2 s unplugged with a 0.5 s ring: the fill (one block) is longer than the ring, which
+    drops its oldest rows. They are the driver's zeros, so they stay filled, and the filled
+    count still equals the ledger's lost frames (before: dropped and filled both grew).
+
+    The driver retries at 0.05, 0.15, 0.35, 0.75 and 1.55 s after the loss: 1.2 s leaves
+    0.35 s either side of the replug, so it reconnects at its 1.55 s attempt whatever the load.
+    """
+    x = signal_and_model[0][:SHORT]
+    faults = FaultSpec(unplug_every=0.5, unplug_for=1.2, unplug_limit=1)
+    _, summary, driver, ledger = _run_serial(x, None, faults, buffer_seconds=0.5)
+    st = driver.stats()
+    assert ledger.unplugs == 1 == st["reconnects"]
+    _check_one_fate(summary, st, ledger, len(x))
+    f = summary["frames"]
+    assert f["filled"] > 1.2 * RATE > 0.5 * RATE    # the outage was longer than the ring
+    assert f["filled_lost_in_ring"] > 0             # and the ring dropped part of its fill

@@ -27,6 +27,8 @@ from supramodal.model import TextureModel
 from supramodal.pipeline import FeaturePipeline, extract_features
 from supramodal.textures import reference_texture_set
 
+from stand_ins import StandInDriver
+
 ROOT = Path(__file__).resolve().parents[1]
 SHARED_DATA = ROOT.parent / "shared" / "data" / "lmt-surface-sounds"
 
@@ -82,7 +84,7 @@ def test_replay_through_node_equals_offline(tmp_path, whisker_signal, small_mode
     assert [e["predicted"] for e in sink.events] == [small_model.classes[k] for k in outputs.argmax(1)]
     conf = outputs.max(1) / np.clip(outputs, 1e-12, None).sum(1)
     np.testing.assert_allclose([e["confidence"] for e in sink.events], np.round(conf, 4), atol=1e-12)
-    assert sink.final["samples_dropped"] == 0 and sink.final["windows"] == len(offline)
+    assert sink.final["frames"]["dropped"] == 0 and sink.final["windows"] == len(offline)
 
 
 def test_feature_windows_through_node_equal_offline_to_1e12(tmp_path, whisker_signal):
@@ -126,7 +128,8 @@ def test_filled_frames_mark_their_windows_and_are_counted(tmp_path, whisker_sign
     sink = _run_node(driver, features=("A",))
     gaps = [e["window"] for e in sink.events if e.get("gap")]
     assert gaps == [5]                                   # samples 2600..2699 lie in window 5 (2500..2999)
-    assert sink.final["samples_filled"] == 100
+    f = sink.final["frames"]
+    assert (f["stream"], f["delivered"], f["filled"], f["dropped"]) == (10000, 9900, 100, 0)
     assert [e["truth"] for e in sink.events] == ["T1"] * 10 + [None] * 10
 
 
@@ -443,25 +446,13 @@ def test_latency_histogram_percentiles_are_within_a_bin_of_the_exact_ones(seed):
     assert LatencyHistogram().summary() is None
 
 
-class _ArrayDriver:
+class _ArrayDriver(StandInDriver):
     """A live driver's stream as an array, in random blocks (1..700 frames), NaN and Inf passed on
     as a device could deliver them (replay refuses them in its files)."""
 
     def __init__(self, x, rate, seed):
         self.rate, self.channels, self._x, self._i = rate, 1, x[:, None], 0
         self._rng = np.random.default_rng(seed)
-
-    def open(self):
-        pass
-
-    def close(self):
-        pass
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        pass
 
     def stats(self):
         return {"frames": self._i, "filled": 0}

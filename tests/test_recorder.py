@@ -106,9 +106,8 @@ class JitteryReader(Jittery):
         super().__init__(reader.read, seed)
         self._reader = reader
 
-    @property
-    def lost(self):
-        return self._reader.lost
+    def stats(self):
+        return self._reader.stats()
 
 
 @pytest.mark.parametrize("seed", [None, 1, 2])

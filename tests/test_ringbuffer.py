@@ -104,6 +104,7 @@ def test_ring_matches_the_reference_model(capacity, policy, ops, initial):
     model = Model(capacity, policy)
     readers = []
     flagged = set()  # stream indices written with a True flag
+    offered_filled = set()  # stream indices offered with a True filled flag, kept or refused
     for _ in range(initial):
         readers.append(rb.add_reader())
         model.add("newest")
@@ -117,6 +118,8 @@ def test_ring_matches_the_reference_model(capacity, policy, ops, initial):
             assert kept == model.write(n)
             if with_flags:  # frames not taken under 'block' get these indices again later
                 flagged.update(range(start, start + kept))
+                offered = kept if policy == "block" else n
+                offered_filled.update(k for k in range(start, start + offered) if k % 3 == 0)
         elif op[0] == "add":
             if len(readers) < 4:
                 readers.append(rb.add_reader(position=op[1]))
@@ -139,6 +142,7 @@ def test_ring_matches_the_reference_model(capacity, policy, ops, initial):
             assert reader.position == (model.kept[r[0]] if r[0] < len(model.kept) else model.end)
     stats = rb.stats()
     assert stats["written"] == model.end
+    assert stats["filled"] == len(offered_filled)
     assert stats["stored"] == len(model.kept)
     assert stats["refused"] == (model.end - len(model.kept) if policy == "drop-newest" else 0)
     rb.close()
@@ -152,6 +156,9 @@ def test_ring_matches_the_reference_model(capacity, policy, ops, initial):
         s = reader.stats()
         assert s["start"] == r[2]
         assert s["read"] + s["lost"] == model.end - s["start"]
+        # ... and of the filled frames offered from its start on, each read or counted lost as filled
+        assert s["read_filled"] + s["lost_filled"] == sum(k >= s["start"] for k in offered_filled)
+        assert s["lost_filled"] <= s["lost"]
 
 
 # --- wrap-around and flags ------------------------------------------------------------------
@@ -208,8 +215,10 @@ def test_drop_oldest_advances_the_lagging_reader_and_counts_its_loss():
     chunk = slow.read()
     assert chunk.start == 25 and chunk.data.shape == (10, 2)  # expected 0: lost 25
     check_chunk(chunk)
-    assert rb.stats()["readers"] == {"slow": {"start": 0, "read": 10, "lost": 25, "available": 0},
-                                     "fast": {"start": 0, "read": 35, "lost": 0, "available": 0}}
+    # flags(): every third index is filled; the slow reader lost 0..24 (9 filled) and read 25..34 (3)
+    assert rb.stats()["readers"] == {
+        "slow": {"start": 0, "read": 10, "lost": 25, "available": 0, "read_filled": 3, "lost_filled": 9},
+        "fast": {"start": 0, "read": 35, "lost": 0, "available": 0, "read_filled": 12, "lost_filled": 0}}
 
 
 def test_drop_oldest_block_larger_than_capacity_keeps_the_newest():
@@ -454,6 +463,8 @@ def test_threaded_million_frames_arrive_in_order_or_are_counted_lost(policy):
         assert s["read"] == received
         assert received + s["lost"] == total          # every frame arrived or was counted lost
         assert s["lost"] == gaps + (total - expected)  # and each loss was visible as a gap
+        # every filled frame (index % 7 == 0) was read or counted among the filled frames lost
+        assert s["read_filled"] + s["lost_filled"] == len(range(0, total, 7))
         if policy == "block":
             assert s["lost"] == 0 and received == total
     if policy == "drop-newest":

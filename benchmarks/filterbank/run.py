@@ -359,7 +359,7 @@ def node_part(cfg: Config, progress) -> dict:
                          "speed": cfg.node_speed, "rtf": summary["real_time_factor"],
                          "latency_ms": summary["latency_ms"], "windows": summary["windows"],
                          "window_accuracy": summary["window_accuracy"], "agreement": agree,
-                         "samples_dropped": summary["samples_dropped"]})
+                         "frames_dropped": summary["frames"]["dropped"]})
         progress(f"c. {kind}: threaded node RTF {summary['real_time_factor']:.5f}, agreement {agree:.3f}")
     return {"chain": rows, "threaded": threaded}
 
