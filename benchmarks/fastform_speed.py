@@ -1,8 +1,8 @@
 """Speed and error of the fast gammatone form against an earlier version of it, in one process.
 
     git show bccde39:supramodal/gammatone.py > /tmp/old_gammatone.py
-    python3 -m benchmarks.fastform_speed /tmp/old_gammatone.py [repeats] [bank:block ...]
-    python3 -m benchmarks.fastform_speed --errors /tmp/old_gammatone.py
+    python3 -m supramodal.benchmarks.fastform_speed /tmp/old_gammatone.py [repeats] [bank:block ...]
+    python3 -m supramodal.benchmarks.fastform_speed --errors /tmp/old_gammatone.py
 
 The second form prints the impulse-response error (against ``reference_impulse_response``, long
 double) of both versions on short blocks and mixed banks (docs/stability.md's table).

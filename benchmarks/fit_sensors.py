@@ -3,7 +3,7 @@ synthetic sensors with bands unlike the paper's (2.2 kHz with content below 1 kH
 content below 2.5 kHz). Prints, per sensor, the fitted bank's grouped cross-validation accuracy
 beside the paper's whisker and cochlea banks (same window and features), mean and sd over folds.
 
-    python3 -m benchmarks.fit_sensors [--quick] [--jobs N] [--out DIR]
+    python3 -m supramodal.benchmarks.fit_sensors [--quick] [--jobs N] [--out DIR]
 
 Each synthetic sensor: 5 textures of three wide spectral peaks, each texture's 5 % above the
 last's, low in the sensor's band; 4 recordings of 3 s each (different noise seeds), so grouped 4-fold cross-validation has a
@@ -19,8 +19,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from node.fit import fit_manifest, format_fit, write_fit
-from replay.wavio import write_wav
+from supramodal.node.fit import fit_manifest, format_fit, write_fit
+from supramodal.replay.wavio import write_wav
 from supramodal.textures import synthesize
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data" / "lmt-surface-sounds"
@@ -61,7 +61,7 @@ def lmt_manifest(folder: Path, lines: int = 4, seconds: float = 211611 / 44100) 
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python3 -m benchmarks.fit_sensors", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="python3 -m supramodal.benchmarks.fit_sensors", description=__doc__.splitlines()[0])
     p.add_argument("--quick", action="store_true", help="fewer values per parameter")
     p.add_argument("--jobs", type=int, default=1, help="processes (default 1)")
     p.add_argument("--out", default="out/fit_sensors", help="folder for each sensor's fit files")

@@ -4,7 +4,7 @@ A 20-channel x 32-sample frame stream fed in chunks of the whole stream, 4096 B 
 each for ``--seconds``; then the worst case: garbage with a sync word every 97 bytes, where
 every byte is looked at.
 
-    python -m benchmarks.frame_decoding [--seconds 2]
+    python -m supramodal.benchmarks.frame_decoding [--seconds 2]
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ import time
 
 import numpy as np
 
-from drivers.frames import SYNC, FrameDecoder, encode_frame
+from supramodal.drivers.frames import SYNC, FrameDecoder, encode_frame
 
 
 def main(argv=None) -> int:

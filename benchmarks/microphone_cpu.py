@@ -12,7 +12,7 @@ Real-time pacing with no sound card (see ../shared/TESTING-WITHOUT-HARDWARE.md):
 
     apt-get install -y --no-install-recommends jackd2
     jackd --no-realtime -d dummy -r 44100 -p 256 -C 1 -P 1 &
-    python -m benchmarks.microphone_cpu --device system --seconds 60
+    python -m supramodal.benchmarks.microphone_cpu --device system --seconds 60
 
 PortAudio's own JACK host API opens the dummy server's ports ("system")
 directly. Unpaced, from ALSA's file plugin (ALSA_CONFIG_PATH set as in the
@@ -26,8 +26,8 @@ import argparse
 import threading
 import time
 
-import drivers.microphone as micmod
-from drivers.microphone import MicrophoneDriver, import_sounddevice
+import supramodal.drivers.microphone as micmod
+from supramodal.drivers.microphone import MicrophoneDriver, import_sounddevice
 
 _PlainBuffer = micmod.CaptureBuffer
 

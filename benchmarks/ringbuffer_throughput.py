@@ -6,7 +6,7 @@ the writer can, while one reader thread reads until the ring is closed. Under
 the default 'block' policy nothing is lost, so frames/s is frames delivered
 end to end; the clock runs from the first write to the reader's last frame.
 
-    python -m benchmarks.ringbuffer_throughput [--block 50] [--reads block|all] [--policy block]
+    python -m supramodal.benchmarks.ringbuffer_throughput [--block 50] [--reads block|all] [--policy block]
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ import time
 
 import numpy as np
 
-from node.ringbuffer import RingBuffer, RingClosed
+from supramodal.node.ringbuffer import RingBuffer, RingClosed
 
 
 def run(frames: int, channels: int, block: int, capacity: int, policy: str, reads: str) -> dict:

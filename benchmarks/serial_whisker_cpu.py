@@ -3,7 +3,7 @@
 CPU seconds per second of stream, for the reading thread alone (``time.thread_time``) and for
 the whole process (the mock's writer thread included).
 
-    python -m benchmarks.serial_whisker_cpu [--seconds 5] [--channels 20] [--rate 5000] [--samples-per-frame 32]
+    python -m supramodal.benchmarks.serial_whisker_cpu [--seconds 5] [--channels 20] [--rate 5000] [--samples-per-frame 32]
 """
 
 from __future__ import annotations
@@ -13,8 +13,8 @@ import time
 
 import numpy as np
 
-from drivers.mock_whisker import MockWhiskerDevice
-from drivers.serial_whisker import SerialWhiskerDriver
+from supramodal.drivers.mock_whisker import MockWhiskerDevice
+from supramodal.drivers.serial_whisker import SerialWhiskerDriver
 
 
 def measure(seconds: float = 5.0, channels: int = 20, rate: float = 5000.0, samples_per_frame: int = 32) -> dict:

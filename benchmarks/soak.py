@@ -1,9 +1,9 @@
 """Soak and faults: the node on the serial driver against the mock whisker board, for a long time.
 
-    python3 -m benchmarks.soak --minutes 60 --unplugs 100 --out DIR
+    python3 -m supramodal.benchmarks.soak --minutes 60 --unplugs 100 --out DIR
 
-Runs a :class:`node.graph.Node` (serial driver -> ring -> 20-channel whisker pipeline -> a
-counting sink) against :class:`drivers.mock_whisker.MockWhiskerDevice` on a real pty at full
+Runs a :class:`supramodal.node.graph.Node` (serial driver -> ring -> 20-channel whisker pipeline -> a
+counting sink) against :class:`supramodal.drivers.mock_whisker.MockWhiskerDevice` on a real pty at full
 rate (20 channels x 5 kHz, 32 samples per frame: about 200 kB/s), with every fault the mock
 can inject (garbage, altered bytes, truncated, left-out, wrong-channel-count and
 wrong-version frames) and ``--unplugs`` unplug/replug cycles spread over the run. Every
@@ -33,9 +33,9 @@ from pathlib import Path
 
 import numpy as np
 
-from drivers.mock_whisker import FaultSpec, MockWhiskerDevice
-from drivers.serial_whisker import SerialWhiskerDriver
-from node.graph import Node
+from supramodal.drivers.mock_whisker import FaultSpec, MockWhiskerDevice
+from supramodal.drivers.serial_whisker import SerialWhiskerDriver
+from supramodal.node.graph import Node
 from supramodal.banks import whisker_bank
 from supramodal.pipeline import FeaturePipeline
 
@@ -329,7 +329,7 @@ def format_report(rep: dict) -> str:
     """The report as Markdown (also what is printed)."""
     p = rep["params"]
     out = [f"# Soak: {p['seconds']:g} s of faults, {p['unplugs']} unplugs, seed {p['seed']}", "",
-           f"20 channels x 5 kHz, {SPF} samples/frame; `python3 -m benchmarks.soak --minutes "
+           f"20 channels x 5 kHz, {SPF} samples/frame; `python3 -m supramodal.benchmarks.soak --minutes "
            f"{p['seconds'] / 60:g} --unplugs {p['unplugs']} --seed {p['seed']}`", "",
            "| count | mock's ledger | driver | checked blocks | match |", "|---|---:|---:|---:|---|"]
     for r in rep["rows"]:
@@ -387,7 +387,7 @@ def write_report(rep: dict, out: Path) -> list[Path]:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python3 -m benchmarks.soak", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(prog="python3 -m supramodal.benchmarks.soak", description=__doc__.split("\n\n")[0])
     ap.add_argument("--minutes", type=float, default=60.0, help="minutes of faults and unplugs (default 60)")
     ap.add_argument("--unplugs", type=int, default=100, help="unplug/replug cycles (default 100)")
     ap.add_argument("--seed", type=int, default=1, help="seed of the fault schedule (default 1)")

@@ -12,8 +12,8 @@ device queries are not thread-safe against that).
 
 from __future__ import annotations
 
-from drivers.base import DeviceUnavailable, DriverError
-from drivers.microphone import import_sounddevice, portaudio_errors
+from supramodal.drivers.base import DeviceUnavailable, DriverError
+from supramodal.drivers.microphone import import_sounddevice, portaudio_errors
 
 __all__ = ["list_audio_inputs", "list_serial_ports", "format_devices"]
 

@@ -28,7 +28,7 @@ make the decoder wait for up to 512 kB before the CRC can reject it.
 Threading: :func:`encode_frame` is pure. A :class:`FrameDecoder` holds a
 buffer and counters and must be used from one thread at a time.
 
-``python -m benchmarks.frame_decoding`` measures the decoder's throughput.
+``python -m supramodal.benchmarks.frame_decoding`` measures the decoder's throughput.
 """
 
 from __future__ import annotations

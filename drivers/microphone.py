@@ -51,7 +51,7 @@ import numpy as np
 
 from supramodal.errors import InputError
 
-from drivers.base import Block, DeviceUnavailable, DriverClosed, DriverError, DriverEvent, EventLog
+from supramodal.drivers.base import Block, DeviceUnavailable, DriverClosed, DriverError, DriverEvent, EventLog
 
 __all__ = ["MicrophoneDriver", "CaptureBuffer", "import_sounddevice"]
 

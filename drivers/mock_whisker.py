@@ -33,7 +33,7 @@ dropped and counted, and the writer never blocks when nobody reads.
 :attr:`ledger` returns a consistent copy from any thread.
 
 Command line (to be wired as ``supramodal mock-whisker``): :func:`add_arguments`
-and :func:`run`, or ``python -m drivers.mock_whisker SOURCE.wav [options]``.
+and :func:`run`, or ``python -m supramodal.drivers.mock_whisker SOURCE.wav [options]``.
 """
 
 from __future__ import annotations
@@ -57,7 +57,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from drivers.frames import (
+from supramodal.drivers.frames import (
     FLAG_OVERRUN,
     FULL_SCALE,
     HEADER_SIZE,

@@ -8,7 +8,7 @@ that delivers no valid frame for ``silence_warning`` seconds (a dead board, a
 wrong baud rate, the wrong port) gets a notice saying what did arrive and the
 likely causes, repeated every ``silence_warning`` seconds while it lasts.
 
-What the board does is said as it happens, as :class:`drivers.base.DriverEvent`
+What the board does is said as it happens, as :class:`supramodal.drivers.base.DriverEvent`
 objects (:meth:`SerialWhiskerDriver.take_events`); their kinds:
 
 ``open``, ``close``
@@ -60,8 +60,8 @@ from typing import Callable
 import numpy as np
 import serial
 
-from drivers.base import Block, DeviceUnavailable, DriverClosed, DriverEvent, EventLog
-from drivers.frames import (
+from supramodal.drivers.base import Block, DeviceUnavailable, DriverClosed, DriverEvent, EventLog
+from supramodal.drivers.frames import (
     FLAG_OVERRUN,
     FULL_SCALE,
     MAX_CHANNELS,

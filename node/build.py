@@ -10,10 +10,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from node.band import warn_if_beyond_band
-from node.graph import Labels, Node
-from node.scene import Scene, SceneError
-from node.sinks import make_sink
+from supramodal.node.band import warn_if_beyond_band
+from supramodal.node.graph import Labels, Node
+from supramodal.node.scene import Scene, SceneError
+from supramodal.node.sinks import make_sink
 from supramodal.bankfile import BANK_KEYS, BankFileError, bank_from_description, load_bank
 from supramodal.banks import Bank
 from supramodal.errors import InputError
@@ -113,12 +113,12 @@ def driver_for(scene: Scene, bank: Bank, speed_override=None):
         replay = _given({**d, "speed": speed_override if speed_override is not None else d["speed"]},
                         {"speed": "speed", "block": "block_size"})
     if kind == "synth":
-        from replay.driver import ReplayDriver
+        from supramodal.replay.driver import ReplayDriver
 
         ts, data, labels = synth_session(scene, bank)
         return ReplayDriver((data, bank.fs), on_notice=None, **replay), labels, ts
     if kind == "replay":
-        from replay.driver import ReplayDriver
+        from supramodal.replay.driver import ReplayDriver
 
         path = scene.resolve(d["path"])
         if not path.exists():
@@ -129,12 +129,12 @@ def driver_for(scene: Scene, bank: Bank, speed_override=None):
         warn_if_beyond_band(bank, drv.source_rate, f"{scene.source}: [driver] path {d['path']}")
         return drv, Labels.of(drv), None
     if kind == "serial":
-        from drivers.serial_whisker import SerialWhiskerDriver
+        from supramodal.drivers.serial_whisker import SerialWhiskerDriver
 
         return SerialWhiskerDriver(d["port"], rate=d["rate"], channels=d["channels"], on_notice=None,
                                    **_given(d, {"baudrate": "baudrate"})), Labels(), None
     if kind == "microphone":
-        from drivers.microphone import MicrophoneDriver
+        from supramodal.drivers.microphone import MicrophoneDriver
 
         options = _given(d, {"device": "device", "rate": "rate", "channels": "channels", "block": "blocksize",
                              "dtype": "dtype", "buffer_seconds": "buffer_seconds"})

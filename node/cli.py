@@ -138,7 +138,7 @@ def _cmd_synth(args) -> int:
     import numpy as np
     from scipy.io import wavfile
 
-    from node.outputs import check_new_file
+    from supramodal.node.outputs import check_new_file
     from supramodal.textures import load_texture_set, reference_texture_set
 
     ts = load_texture_set(args.textures) if args.textures else reference_texture_set(args.bank)
@@ -192,7 +192,7 @@ def _count(lo: int):
 
 
 def _speed(text: str):
-    from node.scene import SPEED_HELP, SPEED_MAX, is_speed
+    from supramodal.node.scene import SPEED_HELP, SPEED_MAX, is_speed
 
     try:
         value = text if text == SPEED_MAX else float(text)
@@ -223,9 +223,9 @@ def _default_run_guide(scene, speed) -> list[str]:
 
 
 def _cmd_run(args) -> int:
-    from node.build import build_node
-    from node.scene import default_scene, load_scene, scene_to_toml
-    from node.sinks import JsonLinesSink
+    from supramodal.node.build import build_node
+    from supramodal.node.scene import default_scene, load_scene, scene_to_toml
+    from supramodal.node.sinks import JsonLinesSink
 
     scene = load_scene(args.scene) if args.scene else default_scene()
     if args.print_scene:
@@ -251,9 +251,9 @@ def _cmd_record(args) -> int:
     import threading
     import time
 
-    from node.build import build_node
-    from node.recorder import SessionRecorder
-    from node.scene import load_scene
+    from supramodal.node.build import build_node
+    from supramodal.node.recorder import SessionRecorder
+    from supramodal.node.scene import load_scene
 
     _interrupt_until_running()
     scene = load_scene(args.scene)
@@ -288,21 +288,21 @@ def _mock_source(source: str):
         if name not in ts.names:
             raise CliError(f"unknown texture {name!r}; the whisker reference set has {list(ts.names)}")
         return ts.synthesize(ts.names.index(name))[:, None], ts.fs
-    from replay.driver import ReplayDriver
+    from supramodal.replay.driver import ReplayDriver
 
     drv = ReplayDriver(source, speed="max", on_notice=None)   # a session or a bare WAV file
     return drv.data, drv.rate
 
 
 def _cmd_mock_whisker(args) -> int:
-    from drivers.mock_whisker import run
+    from supramodal.drivers.mock_whisker import run
 
     samples, rate = _mock_source(args.source)
     return run(args, samples, rate)
 
 
 def _cmd_devices(args) -> int:
-    from drivers.devices import format_devices
+    from supramodal.drivers.devices import format_devices
 
     print(format_devices())
     return 0
@@ -328,13 +328,13 @@ def _progress(args):
 
 
 def _cmd_train(args) -> int:
-    from node.outputs import check_new_file
-    from node.training import train_from_manifest
+    from supramodal.node.outputs import check_new_file
+    from supramodal.node.training import train_from_manifest
     check_new_file(args.out, args.force, "the model file")      # before the training, not after
     bank = args.bank
     if args.cv:
-        from node.reports import write_confusion
-        from node.training import cross_validate_manifest, format_cross_validation
+        from supramodal.node.reports import write_confusion
+        from supramodal.node.training import cross_validate_manifest, format_cross_validation
 
         base = args.out.with_name(args.out.stem + "-cv")
         for suffix in (".csv", ".png"):
@@ -355,8 +355,8 @@ def _cmd_train(args) -> int:
 
 
 def _cmd_fit(args) -> int:
-    from node.fit import fit_manifest, format_fit, write_fit
-    from node.outputs import check_new_file
+    from supramodal.node.fit import fit_manifest, format_fit, write_fit
+    from supramodal.node.outputs import check_new_file
 
     if args.out.is_dir():
         for name in ("fit.csv", "bank.json", "fit.png"):
@@ -372,19 +372,19 @@ def _cmd_fit(args) -> int:
 
 
 def _cmd_evaluate(args) -> int:
-    from node.training import evaluate_manifest, format_evaluation
+    from supramodal.node.training import evaluate_manifest, format_evaluation
     from supramodal.model import TextureModel
 
     model = TextureModel.load(args.model)
     if args.out is not None and args.out.is_dir():
-        from node.outputs import check_new_file
+        from supramodal.node.outputs import check_new_file
 
         for name in ("confusion.csv", "confusion.png", "pooling.csv", "channels.csv", "evaluation.png"):
             check_new_file(args.out / name, args.force, "the evaluation file")
     result = evaluate_manifest(model, args.manifest, mapping=args.mapping, progress=_progress(args))
     print(json.dumps(result) if args.json else format_evaluation(result))
     if args.out is not None:
-        from node.reports import write_evaluation
+        from supramodal.node.reports import write_evaluation
 
         files = write_evaluation(result, args.out)
         print("wrote " + ", ".join(str(p) for p in files), file=sys.stderr)
@@ -395,10 +395,10 @@ def _cmd_bench(args) -> int:
     import os
     import subprocess
 
-    from benchmarks.filterbank import PINNED_THREADS
+    from supramodal.benchmarks.filterbank import PINNED_THREADS
 
     # A child process, so that BLAS and OpenMP read the one-thread settings before numpy loads.
-    cmd = [sys.executable, "-m", "benchmarks.filterbank", "--out", args.out] + ["--quick"] * args.quick + ["--json"] * args.json
+    cmd = [sys.executable, "-m", "supramodal.benchmarks.filterbank", "--out", args.out] + ["--quick"] * args.quick + ["--json"] * args.json
     return subprocess.run(cmd, env={**os.environ, **PINNED_THREADS}).returncode
 
 
@@ -494,7 +494,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true", help="no progress on stderr (warnings are still shown)")
     p.set_defaults(func=_cmd_record)
 
-    from drivers.mock_whisker import add_arguments as mock_arguments
+    from supramodal.drivers.mock_whisker import add_arguments as mock_arguments
 
     p = add_parser("mock-whisker", help="a mock whisker-array board streaming frames on a pty, with fault injection")
     mock_arguments(p)
@@ -543,7 +543,7 @@ def _is_user_error(exc: BaseException) -> bool:
     thread's failure whose cause is itself a bug; and an ``OSError`` that names a file
     (a path given on the command line or in a scene: missing, unreadable, not writable).
     """
-    graph = sys.modules.get("node.graph")
+    graph = sys.modules.get("supramodal.node.graph")
     if graph is not None and isinstance(exc, graph.NodeError) and exc.__cause__ is not None:
         return _is_user_error(exc.__cause__)
     if isinstance(exc, SupramodalError):

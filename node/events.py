@@ -12,7 +12,7 @@ import time
 from collections import Counter, deque
 from dataclasses import replace
 
-from drivers.base import DriverEvent
+from supramodal.drivers.base import DriverEvent
 
 
 class EventLimiter:

@@ -35,10 +35,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from drivers.base import Block, DriverClosed
-from node.events import EventLimiter
-from node.latency import LatencyHistogram
-from node.ringbuffer import RingBuffer, RingClosed
+from supramodal.drivers.base import Block, DriverClosed
+from supramodal.node.events import EventLimiter
+from supramodal.node.latency import LatencyHistogram
+from supramodal.node.ringbuffer import RingBuffer, RingClosed
 from supramodal.decisions import ContactDetector, DecisionAccumulator, window_decision
 from supramodal.errors import InputError, SupramodalError
 from supramodal.model import TextureModel

@@ -4,7 +4,7 @@ The recorder is a second reader of the node's ring buffer, on its own thread: it
 sees the frames before any processing, with their ``filled`` marks, and appends
 them to a raw file in the output folder as they come (memory stays flat however
 long the recording). At the end the raw file becomes ``NAME.wav`` + ``NAME.json``
-(:func:`replay.session.save_session`): float32 samples when every sample is
+(:func:`supramodal.replay.session.save_session`): float32 samples when every sample is
 exactly a float32 (serial and microphone drivers), float64 otherwise, so that
 replaying the session feeds the node bit-identical samples.
 
@@ -21,8 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
-from node.ringbuffer import RingClosed
-from replay.session import save_session, session_paths
+from supramodal.node.ringbuffer import RingClosed
+from supramodal.replay.session import save_session, session_paths
 from supramodal.errors import InputError
 
 _CHUNK = 1 << 18  # frames per pass when converting the raw file

@@ -21,8 +21,8 @@ import threading
 from pathlib import Path
 from typing import TextIO
 
-from drivers.base import DriverEvent
-from node.outputs import check_new_file
+from supramodal.drivers.base import DriverEvent
+from supramodal.node.outputs import check_new_file
 from supramodal.errors import InputError
 
 

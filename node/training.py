@@ -12,10 +12,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from node.band import warn_if_beyond_band
-from node.graph import channel_mapper
-from node.manifest import ManifestError, Recording, read_manifest
-from replay.driver import ReplayDriver
+from supramodal.node.band import warn_if_beyond_band
+from supramodal.node.graph import channel_mapper
+from supramodal.node.manifest import ManifestError, Recording, read_manifest
+from supramodal.replay.driver import ReplayDriver
 from supramodal.banks import Bank
 from supramodal.decisions import DecisionAccumulator
 from supramodal.errors import SupramodalError

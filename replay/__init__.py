@@ -1,6 +1,6 @@
 """Replay driver: recorded sessions, WAV files and in-memory arrays, as a live driver would deliver them.
 
-``replay`` is just another driver: it produces :class:`drivers.base.Block`
+``replay`` is just another driver: it produces :class:`supramodal.drivers.base.Block`
 objects and knows nothing of the signal processing (it never imports
 ``supramodal`` or ``node``).
 
@@ -16,10 +16,10 @@ replay.driver
     :class:`ReplayDriver`, the pacing schedule and block-size policies.
 """
 
-from replay.errors import ClippingWarning, ReplayError, SessionError, WavFormatError
-from replay.wavio import WavInfo, read_wav, wav_info, write_wav
-from replay.session import Label, Session, load_session, save_session, session_paths
-from replay.driver import ReplayDriver, random_block_sizes, release_time
+from supramodal.replay.errors import ClippingWarning, ReplayError, SessionError, WavFormatError
+from supramodal.replay.wavio import WavInfo, read_wav, wav_info, write_wav
+from supramodal.replay.session import Label, Session, load_session, save_session, session_paths
+from supramodal.replay.driver import ReplayDriver, random_block_sizes, release_time
 
 __all__ = [
     "ClippingWarning",

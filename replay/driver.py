@@ -1,9 +1,9 @@
 """The replay driver: a recording delivered block by block as a live driver would.
 
-:class:`ReplayDriver` follows :class:`drivers.base.Driver` exactly. It reads an
+:class:`ReplayDriver` follows :class:`supramodal.drivers.base.Driver` exactly. It reads an
 in-memory array, a WAV file or a session once, at construction (so ``rate`` and
 ``channels`` are known before ``open()``), optionally selects channels and
-resamples, and then hands out :class:`drivers.base.Block` objects that tile the
+resamples, and then hands out :class:`supramodal.drivers.base.Block` objects that tile the
 stream exactly: each block starts where the previous one ended, and the
 concatenation of all blocks equals the (resampled) source, repeated when looping.
 
@@ -21,7 +21,7 @@ Threading
 ---------
 ``read()`` is called from one thread. ``close()`` may be called from any thread;
 it wakes a ``read()`` that is waiting for a block's release time, which then
-raises :class:`drivers.base.DriverClosed`.
+raises :class:`supramodal.drivers.base.DriverClosed`.
 """
 
 from __future__ import annotations
@@ -39,10 +39,10 @@ from typing import Callable, Sequence, Union
 import numpy as np
 from scipy.signal import resample_poly
 
-from drivers.base import Block, DeviceUnavailable, DriverClosed, DriverError, DriverEvent, EventLog
-from replay.errors import ReplayError
-from replay.session import Label, Session, load_session, session_paths
-from replay.wavio import read_wav
+from supramodal.drivers.base import Block, DeviceUnavailable, DriverClosed, DriverError, DriverEvent, EventLog
+from supramodal.replay.errors import ReplayError
+from supramodal.replay.session import Label, Session, load_session, session_paths
+from supramodal.replay.wavio import read_wav
 
 __all__ = ["ReplayDriver", "release_time", "random_block_sizes", "RandomBlockSizes", "BlockSize"]
 
@@ -112,14 +112,14 @@ def _print_stderr(message: str) -> None:
 
 
 class ReplayDriver:
-    """Replays an array, a WAV file or a session as a :class:`drivers.base.Driver`.
+    """Replays an array, a WAV file or a session as a :class:`supramodal.drivers.base.Driver`.
 
     Parameters
     ----------
     source : (ndarray, rate) tuple, Session, str or path-like
         * ``(array, rate)``: float samples of shape (frames, channels) (or
           (frames,) for one channel) scaled to +-1, and their rate in Hz;
-        * a :class:`replay.session.Session`;
+        * a :class:`supramodal.replay.session.Session`;
         * a path: ``NAME.json`` is a session; ``NAME.wav`` is a session when
           ``NAME.json`` exists beside it, else a bare WAV file (no labels).
     rate : float, optional

@@ -2,13 +2,13 @@
 
 Every error the replay package raises on purpose derives from
 :class:`ReplayError`, which is both a :class:`ValueError` (the input was
-bad: a file, a sidecar, an argument) and a :class:`drivers.base.DriverError`
+bad: a file, a sidecar, an argument) and a :class:`supramodal.drivers.base.DriverError`
 (so the node's ``except DriverError`` around any driver catches it too).
 """
 
 from __future__ import annotations
 
-from drivers.base import DriverError
+from supramodal.drivers.base import DriverError
 from supramodal.errors import SupramodalWarning
 
 

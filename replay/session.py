@@ -43,8 +43,8 @@ from typing import Any, Iterable, Mapping
 
 import numpy as np
 
-from replay.errors import SessionError
-from replay.wavio import as_frames, read_wav, wav_info, write_wav
+from supramodal.replay.errors import SessionError
+from supramodal.replay.wavio import as_frames, read_wav, wav_info, write_wav
 from supramodal.errors import InputError
 from supramodal.jsondata import read_json_file
 
@@ -170,7 +170,7 @@ class _StrictJson(SessionError):
 def _load_json(path: Path) -> Any:
     try:
         return read_json_file(path, max_bytes=MAX_SIDECAR_BYTES, max_depth=MAX_SIDECAR_DEPTH, error=SessionError,
-                              limits=("replay.session.MAX_SIDECAR_BYTES", "replay.session.MAX_SIDECAR_DEPTH"),
+                              limits=("supramodal.replay.session.MAX_SIDECAR_BYTES", "supramodal.replay.session.MAX_SIDECAR_DEPTH"),
                               object_pairs_hook=_no_duplicate_keys, parse_constant=_no_constants)
     except _StrictJson as e:
         raise SessionError(f"{path}: {e}") from None
@@ -399,7 +399,7 @@ def save_session(path: str | os.PathLike, data, rate: int, source: str,
         checked for overlap and range.
     filled : sequence of (start_frame, end_frame), or bool array of shape (frames,), optional
         Frames the recording driver synthesised (e.g. the concatenated
-        :attr:`drivers.base.Block.filled` masks).
+        :attr:`supramodal.drivers.base.Block.filled` masks).
     dtype : {'float32', 'float64', 'int16', 'int32', 'uint8'}, default 'float32'
         Sample type of the WAV (see :func:`replay.wavio.write_wav`).
 

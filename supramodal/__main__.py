@@ -6,6 +6,6 @@ The one module of the model package that reaches the node: it runs the program, 
 
 import sys
 
-from node.cli import main
+from supramodal.node.cli import main
 
 sys.exit(main())

@@ -26,9 +26,9 @@ import time
 
 import numpy as np
 
-from drivers import DeviceUnavailable, DriverClosed
-from drivers.devices import format_devices, list_audio_inputs
-from drivers.microphone import MicrophoneDriver
+from supramodal.drivers import DeviceUnavailable, DriverClosed
+from supramodal.drivers.devices import format_devices, list_audio_inputs
+from supramodal.drivers.microphone import MicrophoneDriver
 
 
 def capture(prefix: str, n: int, dtype: str, buffer_seconds: float, stall: bool) -> None:

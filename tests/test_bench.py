@@ -6,11 +6,11 @@ import math
 import numpy as np
 import scipy.signal
 
-from node import cli
+from supramodal.node import cli
 from supramodal.banks import cochlea_bank, whisker_bank
-from benchmarks.filterbank.peers import make_peer, scipy_iir_design, scipy_uses_bank_bandwidths, slaney_sos
-from benchmarks.filterbank.report import clean
-from benchmarks.filterbank.run import pareto
+from supramodal.benchmarks.filterbank.peers import make_peer, scipy_iir_design, scipy_uses_bank_bandwidths, slaney_sos
+from supramodal.benchmarks.filterbank.report import clean
+from supramodal.benchmarks.filterbank.run import pareto
 from supramodal.gammatone import reference_impulse_response, relative_error
 
 

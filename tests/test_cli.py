@@ -12,9 +12,9 @@ from pathlib import Path
 
 import pytest
 
-from node import cli
-from node.cli import main
-from replay.wavio import write_wav
+from supramodal.node import cli
+from supramodal.node.cli import main
+from supramodal.replay.wavio import write_wav
 from supramodal.errors import InputError
 from supramodal.textures import reference_texture_set
 
@@ -69,12 +69,12 @@ def test_debug_shows_the_traceback_of_a_user_error(tmp_path, capsys):
 @pytest.mark.parametrize("planted", [ZeroDivisionError("division by zero"), ValueError("a bare ValueError"),
                                      KeyError("k")])
 def test_a_planted_bug_shows_its_traceback(monkeypatch, tmp_path, capsys, planted):
-    import node.scene
+    import supramodal.node.scene
 
     def broken(path):
         raise planted
 
-    monkeypatch.setattr(node.scene, "load_scene", broken)
+    monkeypatch.setattr(supramodal.node.scene, "load_scene", broken)
     assert main(["run", str(tmp_path / "s.toml")]) == cli.EXIT_BUG
     err = capsys.readouterr().err
     assert "Traceback (most recent call last)" in err and "in broken\n    raise planted" in err
@@ -87,7 +87,7 @@ def test_a_planted_bug_shows_its_traceback(monkeypatch, tmp_path, capsys, plante
                                               (ValueError("unexpected in a thread"), False)])
 def test_an_error_in_a_node_thread(monkeypatch, replay_scene, capsys, raised, one_line):
     """A SupramodalError from a thread stays one line; any other exception there is a bug with its traceback."""
-    from node.sinks import JsonLinesSink
+    from supramodal.node.sinks import JsonLinesSink
 
     def emit(self, event):
         raise raised
@@ -145,7 +145,7 @@ def test_output_paths_that_are_fine_pass(tmp_path):
 
 def test_run_into_head_exits_quietly_with_status_0(replay_scene):
     """`supramodal run | head` under `set -o pipefail`: the script does not fail, nothing on stderr."""
-    script = f"set -o pipefail; {sys.executable} -m node.cli run {replay_scene} --json --quiet --speed max | head -n 3"
+    script = f"set -o pipefail; {sys.executable} -m supramodal.node.cli run {replay_scene} --json --quiet --speed max | head -n 3"
     proc = subprocess.run(["bash", "-c", script], capture_output=True, text=True, env=_env(), cwd=ROOT, timeout=120)
     assert proc.returncode == 0, proc.stderr
     assert len(proc.stdout.splitlines()) == 3
@@ -161,7 +161,7 @@ def test_signal_during_start_up_training(tmp_path, sig):
     prints one line and exits 128 + signal, nothing on stdout."""
     scene = tmp_path / "s.toml"
     scene.write_text('[driver]\ntype = "synth"\n[bank]\nkind = "cochlea"\n[model]\ntrain_on_start = true\n')
-    proc = subprocess.Popen([sys.executable, "-m", "node.cli", "run", str(scene), "--json"], stdout=subprocess.PIPE,
+    proc = subprocess.Popen([sys.executable, "-m", "supramodal.node.cli", "run", str(scene), "--json"], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, env=_env(), cwd=ROOT)
     try:
         first = proc.stderr.readline()               # printed just before the scene is built
@@ -210,7 +210,7 @@ def test_seconds_inf_means_no_limit(replay_scene):
 
 @pytest.mark.parametrize("section, key", [("driver", "seconds"), ("features", "window"), ("buffer", "seconds")])
 def test_a_scene_refuses_infinite_seconds_naming_the_key(section, key):
-    from node.scene import SceneError, scene_from_dict
+    from supramodal.node.scene import SceneError, scene_from_dict
 
     driver = {"type": "synth"} if section != "driver" else {"type": "synth", "seconds": float("inf")}
     sections = {"driver": driver} | ({section: {key: float("inf")}} if section != "driver" else {})
@@ -221,9 +221,9 @@ def test_a_scene_refuses_infinite_seconds_naming_the_key(section, key):
 def test_node_run_takes_inf_as_no_limit_and_refuses_nan():
     import numpy as np
 
-    from node.graph import Node
-    from node.sinks import ListSink
-    from replay.driver import ReplayDriver
+    from supramodal.node.graph import Node
+    from supramodal.node.sinks import ListSink
+    from supramodal.replay.driver import ReplayDriver
     from supramodal.banks import whisker_bank
     from supramodal.pipeline import FeaturePipeline
 
@@ -305,12 +305,12 @@ def test_run_refuses_to_replace_a_sink_file_unless_forced(tmp_path, capsys):
 
 
 def test_train_refuses_an_existing_model_before_training(monkeypatch, tmp_path, capsys):
-    import node.training
+    import supramodal.node.training
 
     def no_training(*a, **k):
         raise AssertionError("trained although the output would be refused")
 
-    monkeypatch.setattr(node.training, "train_from_manifest", no_training)
+    monkeypatch.setattr(supramodal.node.training, "train_from_manifest", no_training)
     (tmp_path / "m.npz").write_bytes(b"an earlier model")
     argv = ["train", "--bank", "whisker", "--manifest", str(tmp_path / "m.csv"), "--out", str(tmp_path / "m.npz")]
     assert main(argv) == 2
@@ -333,7 +333,7 @@ def test_synth_refuses_to_replace_textures_unless_forced(tmp_path, capsys):
 def test_print_scene_writes_a_scene_that_loads_back_the_same(tmp_path, capsys, replay_scene):
     """`run --print-scene` (the embedded default, or a file) prints TOML that load_scene reads
     back to the same scene: every key, defaults filled in."""
-    from node.scene import default_scene, load_scene
+    from supramodal.node.scene import default_scene, load_scene
 
     for argv, expected in ((["run", "--print-scene"], default_scene()), (["run", str(replay_scene), "--print-scene"],
                                                                         load_scene(replay_scene))):
@@ -403,7 +403,7 @@ def test_the_first_run_says_what_it_shows_and_where_to_go(capsys):
 def test_mock_whisker_ends_on_sigterm_as_on_ctrl_c(tmp_path):
     """SIGTERM: the ledger line is printed, the exit status is 0 and the port's symlink is gone."""
     link = tmp_path / "whisker0"
-    proc = subprocess.Popen([sys.executable, "-m", "node.cli", "mock-whisker", "synth:T1", "--loop", "--port", str(link)],
+    proc = subprocess.Popen([sys.executable, "-m", "supramodal.node.cli", "mock-whisker", "synth:T1", "--loop", "--port", str(link)],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env(), cwd=ROOT)
     try:
         assert proc.stdout.readline().strip() == str(link)

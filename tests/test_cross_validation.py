@@ -10,9 +10,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from node.cli import main
-from node.training import cross_validate_manifest, evaluate_manifest, train_from_manifest
-from replay.wavio import write_wav
+from supramodal.node.cli import main
+from supramodal.node.training import cross_validate_manifest, evaluate_manifest, train_from_manifest
+from supramodal.replay.wavio import write_wav
 from supramodal.banks import whisker_bank
 from supramodal.errors import InputError
 from supramodal.textures import reference_texture_set
@@ -114,7 +114,7 @@ def test_train_cv_reports_then_writes_the_model_and_the_confusion_files(recordin
 def test_lines_of_one_file_are_trials_and_must_not_overlap(recordings, tmp_path):
     """One recording per label, split into two lines each: two trials per label, folds possible;
     overlapping spans of one file are refused (a fold would test on windows it trained on)."""
-    from node.manifest import ManifestError
+    from supramodal.node.manifest import ManifestError
 
     names = sorted(p.name for p in recordings.glob("*_0.wav"))
     split = ["path,label,start,end"] + [f"{recordings / n},{n[:2]},{a},{b}" for n in names

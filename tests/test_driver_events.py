@@ -15,13 +15,13 @@ import time
 import numpy as np
 import pytest
 
-from drivers.base import Block, DriverEvent, EventLog
-from drivers.mock_whisker import FaultSpec, MockWhiskerDevice
-from drivers.serial_whisker import SerialWhiskerDriver
-from node.events import EventLimiter
-from node.graph import Node
-from node.sinks import JsonLinesSink, ListSink, TextSink
-from replay.driver import ReplayDriver
+from supramodal.drivers.base import Block, DriverEvent, EventLog
+from supramodal.drivers.mock_whisker import FaultSpec, MockWhiskerDevice
+from supramodal.drivers.serial_whisker import SerialWhiskerDriver
+from supramodal.node.events import EventLimiter
+from supramodal.node.graph import Node
+from supramodal.node.sinks import JsonLinesSink, ListSink, TextSink
+from supramodal.replay.driver import ReplayDriver
 from supramodal.banks import whisker_bank
 from supramodal.pipeline import FeaturePipeline
 

@@ -16,10 +16,10 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from drivers.base import Block, DriverClosed
-from drivers.microphone import CaptureBuffer, MicrophoneDriver
-from node.graph import Node
-from node.sinks import ListSink, make_sink
+from supramodal.drivers.base import Block, DriverClosed
+from supramodal.drivers.microphone import CaptureBuffer, MicrophoneDriver
+from supramodal.node.graph import Node
+from supramodal.node.sinks import ListSink, make_sink
 from supramodal.banks import whisker_bank
 from supramodal.pipeline import FeaturePipeline
 

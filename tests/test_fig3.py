@@ -61,7 +61,7 @@ def test_fig3_is_deterministic(result):
 
 def run_cli(*args, timeout=300):
     env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    return subprocess.run([sys.executable, "-m", "node.cli", *args], cwd=ROOT, env=env,
+    return subprocess.run([sys.executable, "-m", "supramodal.node.cli", *args], cwd=ROOT, env=env,
                           capture_output=True, text=True, timeout=timeout)
 
 

@@ -18,8 +18,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from scipy.io import wavfile
 
-from replay import ReplayDriver, ReplayError, SessionError, WavFormatError, load_session, save_session
-from replay.wavio import MAX_FLOAT_MAGNITUDE, read_wav, write_wav
+from supramodal.replay import ReplayDriver, ReplayError, SessionError, WavFormatError, load_session, save_session
+from supramodal.replay.wavio import MAX_FLOAT_MAGNITUDE, read_wav, write_wav
 from supramodal.banks import cochlea_bank, whisker_bank
 from supramodal.errors import InputError, SupramodalError
 from supramodal.jsondata import nesting_depth
@@ -257,14 +257,14 @@ def test_deeply_nested_sidecar_is_refused_not_a_recursion_error(tmp_path):
 
 
 def test_oversized_sidecar_is_refused_before_it_is_read(tmp_path, monkeypatch):
-    import replay.session
+    import supramodal.replay.session
 
     save_session(tmp_path / "s", np.zeros((100, 1)), 5000, "test")
     size = (tmp_path / "s.json").stat().st_size
-    monkeypatch.setattr(replay.session, "MAX_SIDECAR_BYTES", size - 1)
+    monkeypatch.setattr(supramodal.replay.session, "MAX_SIDECAR_BYTES", size - 1)
     with pytest.raises(SessionError, match=rf"s\.json: {size} bytes.*MAX_SIDECAR_BYTES"):
         load_session(tmp_path / "s")
-    monkeypatch.setattr(replay.session, "MAX_SIDECAR_BYTES", size)
+    monkeypatch.setattr(supramodal.replay.session, "MAX_SIDECAR_BYTES", size)
     assert load_session(tmp_path / "s").frames == 100
 
 
@@ -301,8 +301,8 @@ def test_every_refusal_here_is_a_supramodal_error():
 ])
 def test_a_scene_asking_for_an_unbounded_window_or_bank_is_refused_before_allocating(section, key, value, named):
     """A scene is data a user may receive: its window and channel count are bounded like a model's."""
-    from node.build import build_node
-    from node.scene import scene_from_dict
+    from supramodal.node.build import build_node
+    from supramodal.node.scene import scene_from_dict
 
     bank = {"kind": "cochlea"} if section == "bank" else {}
     scene = scene_from_dict({section: {**bank, key: value}, "driver": {"type": "synth", "seconds": 1.0}})

@@ -4,13 +4,12 @@ from __future__ import annotations
 
 import csv
 
-import numpy as np
 import pytest
 
-from node.cli import main
-from node.fit import Candidate, fit_manifest
-from node.training import cross_validate_manifest
-from replay.wavio import write_wav
+from supramodal.node.cli import main
+from supramodal.node.fit import Candidate, fit_manifest
+from supramodal.node.training import cross_validate_manifest
+from supramodal.replay.wavio import write_wav
 from supramodal.bankfile import load_bank
 from supramodal.textures import synthesize
 

@@ -11,7 +11,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from supramodal.errors import InputError
-from drivers.frames import (
+from supramodal.drivers.frames import (
     FLAG_OVERRUN,
     HEADER_SIZE,
     SYNC,

@@ -17,24 +17,47 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 
-#: Top-level packages the model package must never load: the node, the drivers and replay (the
-#: sources), the benchmarks (which measure the node), and the device libraries.
+#: Where each layer's import package lives in the checkout. One top-level name is installed,
+#: ``supramodal``; the node, drivers, replay and benchmarks sit beside the model in the repository
+#: and install as its subpackages (pyproject.toml's package-dir).
+LAYER_DIRS = {"supramodal.node": "node", "supramodal.drivers": "drivers", "supramodal.replay": "replay",
+              "supramodal.benchmarks": "benchmarks", "supramodal": "supramodal"}
+#: Layers the model package must never load: the node, the drivers and replay (the sources), the
+#: benchmarks (which measure the node), and the device libraries.
 NOT_IN_THE_MODEL = ("node", "drivers", "replay", "benchmarks", "serial", "sounddevice", "_sounddevice")
 #: What drivers and replay may use of the model package: the error root and the bounded JSON
 #: reader (file handling, no DSP; the model's own files need it too, so it cannot live in replay).
 DRIVER_MAY_USE = ("supramodal.errors", "supramodal.jsondata")
 
 
-def modules_of(package: str) -> list[str]:
-    """Every module of a top-level package in this checkout, by dotted name (``__main__`` modules,
-    which run rather than define, left out)."""
+def layer(name: str) -> str:
+    """The layer a dotted module name belongs to: ``supramodal.node.graph`` -> ``node``,
+    ``supramodal.gammatone`` -> ``supramodal``, ``numpy.linalg`` -> ``numpy``."""
+    for package in LAYER_DIRS:   # the subpackages before the model package that holds them
+        if name == package or name.startswith(package + "."):
+            return package.rsplit(".", 1)[-1]
+    return name.split(".")[0]
+
+
+def modules_of(layer_name: str) -> list[str]:
+    """Every module of a layer (``"supramodal"``, ``"node"``, ...) in this checkout, by its installed
+    dotted name (``__main__`` modules, which run rather than define, left out)."""
+    package = "supramodal" if layer_name == "supramodal" else f"supramodal.{layer_name}"
+    folder = ROOT / LAYER_DIRS[package]
     names = []
-    for path in sorted((ROOT / package).rglob("*.py")):
-        parts = path.relative_to(ROOT).with_suffix("").parts
+    for path in sorted(folder.rglob("*.py")):
+        parts = path.relative_to(folder).with_suffix("").parts
         if parts[-1] == "__main__":
             continue
-        names.append(".".join(parts[:-1] if parts[-1] == "__init__" else parts))
+        names.append(".".join((package,) + (parts[:-1] if parts[-1] == "__init__" else parts)))
     return names
+
+
+def path_of(module: str) -> Path:
+    """The source file of a module of this checkout, from its installed dotted name."""
+    package = next(p for p in LAYER_DIRS if module == p or module.startswith(p + "."))
+    path = ROOT / LAYER_DIRS[package] / module[len(package):].lstrip(".").replace(".", "/")
+    return path / "__init__.py" if path.is_dir() else path.with_suffix(".py")
 
 
 def imports_in(path: Path) -> list[tuple[int, str]]:
@@ -51,8 +74,7 @@ def imports_in(path: Path) -> list[tuple[int, str]]:
 
 def source_imports(module: str) -> list[tuple[str, int, str]]:
     """``(file, line, imported module)`` for every import statement in a module of this checkout."""
-    path = ROOT / module.replace(".", "/")
-    path = path / "__init__.py" if path.is_dir() else path.with_suffix(".py")
+    path = path_of(module)
     return [(str(path.relative_to(ROOT)), line, what) for line, what in imports_in(path)]
 
 
@@ -77,38 +99,37 @@ def loaded_after_import(modules: list[str]) -> dict[str, list[str]]:
     return {name: got["added"] for name, got in out.items()}
 
 
-def top(name: str) -> str:
-    return name.split(".")[0]
-
-
 def test_the_checks_see_every_module_and_lazy_imports(tmp_path):
     model = modules_of("supramodal")
     assert {"supramodal", "supramodal.gammatone", "supramodal.training", "supramodal.experiments.common"} <= set(model)
     assert not any(m.startswith("supramodal.bench") for m in model)
     lazy = tmp_path / "lazy.py"
-    lazy.write_text("import numpy\n\ndef f():\n    from node.graph import Node\n    from drivers import base\n")
-    assert imports_in(lazy) == [(1, "numpy"), (4, "node.graph"), (4, "node.graph.Node"), (5, "drivers"),
-                                (5, "drivers.base")]
+    lazy.write_text("import numpy\n\ndef f():\n    from supramodal.node.graph import Node\n"
+                    "    from supramodal.drivers import base\n")
+    assert imports_in(lazy) == [(1, "numpy"), (4, "supramodal.node.graph"), (4, "supramodal.node.graph.Node"),
+                                (5, "supramodal.drivers"), (5, "supramodal.drivers.base")]
+    assert [layer(m) for _, m in imports_in(lazy)] == ["numpy", "node", "node", "drivers", "drivers"]
+    assert path_of("supramodal.node.graph") == ROOT / "node" / "graph.py"
     # What the bench loads (it measures the node): the import check sees a chain.
-    assert "node.graph" in loaded_after_import(["benchmarks.filterbank.run"])["benchmarks.filterbank.run"]
+    assert "supramodal.node.graph" in loaded_after_import(["supramodal.benchmarks.filterbank.run"])["supramodal.benchmarks.filterbank.run"]
 
 
 def test_importing_any_model_module_loads_no_driver_node_benchmark_or_device():
     modules = modules_of("supramodal")
     for name, added in loaded_after_import(modules).items():
-        bad = sorted(m for m in added if top(m) in NOT_IN_THE_MODEL)
+        bad = sorted(m for m in added if layer(m) in NOT_IN_THE_MODEL)
         assert not bad, f"importing {name} loads {bad}"
 
 
 def test_no_model_module_imports_a_driver_node_benchmark_or_device_even_lazily():
     bad = [(m, f, line, what) for m in modules_of("supramodal") for f, line, what in source_imports(m)
-           if top(what) in NOT_IN_THE_MODEL]
+           if layer(what) in NOT_IN_THE_MODEL]
     assert not bad, bad
 
 
 def driver_may_use(name: str) -> bool:
     """Whether a driver or replay module may import ``name`` (a module, or a name in one)."""
-    if top(name) not in ("supramodal", "node", "benchmarks"):
+    if layer(name) not in ("supramodal", "node", "benchmarks"):
         return True
     return name == "supramodal" or any(name == m or name.startswith(m + ".") for m in DRIVER_MAY_USE)
 
@@ -126,7 +147,7 @@ def test_drivers_and_replay_use_nothing_of_the_model_but_its_error_root(package)
 def test_the_node_trains_with_the_model_layer_not_the_research_harness():
     """Only the CLI's ``experiment`` command runs the experiments; the node's training, on the spot
     or from a manifest, uses :mod:`supramodal.training`."""
-    bad = [(m, f, line, what) for m in modules_of("node") if m != "node.cli" for f, line, what in source_imports(m)
+    bad = [(m, f, line, what) for m in modules_of("node") if m != "supramodal.node.cli" for f, line, what in source_imports(m)
            if what.startswith("supramodal.experiments")]
     assert not bad, bad
 
@@ -138,3 +159,21 @@ def test_no_private_name_is_imported_from_another_module():
            for m in modules_of(package) for f, line, what in source_imports(m)
            if any(part.startswith("_") and not part.startswith("__") for part in what.split("."))]
     assert not bad, bad
+
+
+def test_the_wheel_installs_one_top_level_package_and_every_package_of_the_checkout():
+    """Generic top-level names (node, drivers) would clash with other installed packages: the wheel
+    holds ``supramodal`` alone, and every package directory of the checkout is listed in it (a new
+    subpackage left out of pyproject.toml would be missing from a user's install)."""
+    import tomllib
+
+    setup = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]
+    listed = set(setup["packages"])
+    assert {p.split(".")[0] for p in listed} == {"supramodal"}
+    assert setup["package-dir"] == {p: d for p, d in LAYER_DIRS.items()}
+    found = set()
+    for package, folder in LAYER_DIRS.items():
+        for init in (ROOT / folder).rglob("__init__.py"):
+            sub = init.parent.relative_to(ROOT / folder).parts
+            found.add(".".join((package,) + sub))
+    assert found == listed, (sorted(found - listed), sorted(listed - found))

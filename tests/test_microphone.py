@@ -22,13 +22,13 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-import drivers.microphone
-from drivers import Block, DeviceUnavailable, Driver, DriverClosed, DriverError
-from drivers.microphone import CaptureBuffer, MicrophoneDriver
+import supramodal.drivers.microphone
+from supramodal.drivers import Block, DeviceUnavailable, Driver, DriverClosed, DriverError
+from supramodal.drivers.microphone import CaptureBuffer, MicrophoneDriver
 
 ROOT = Path(__file__).resolve().parents[1]
 # An editable install of another checkout must not stand in for this one.
-assert Path(drivers.microphone.__file__).resolve().is_relative_to(ROOT), drivers.microphone.__file__
+assert Path(supramodal.drivers.microphone.__file__).resolve().is_relative_to(ROOT), supramodal.drivers.microphone.__file__
 CHILD = Path(__file__).with_name("mic_hil_child.py")
 RATE = 44100.0
 
@@ -453,13 +453,15 @@ def _run_python(code: str, env: dict | None = None, timeout: float = 120) -> sub
 
 def test_import_drivers_imports_neither_sounddevice_nor_pyserial():
     r = _run_python(
-        "import sys, drivers, drivers.microphone, drivers.devices\n"
-        "from drivers.microphone import MicrophoneDriver\n"
+        "import sys, supramodal.drivers, supramodal.drivers.microphone, supramodal.drivers.devices\n"
+        "from supramodal.drivers.microphone import MicrophoneDriver\n"
         "MicrophoneDriver(device='x', rate=48000, channels=2)\n"
-        "bad = sorted(m for m in ('sounddevice', '_sounddevice', 'serial', 'node', 'replay') if m in sys.modules)\n"
+        "bad = sorted(m for m in ('sounddevice', '_sounddevice', 'serial', 'supramodal.node', 'supramodal.replay')\n"
+        "             if m in sys.modules)\n"
         # The error root (supramodal.errors, no imports of its own) is the one piece of the model
         # package a driver may load: nothing of the DSP.
-        "bad += sorted(m for m in sys.modules if m.startswith('supramodal.') and m != 'supramodal.errors')\n"
+        "bad += sorted(m for m in sys.modules if m.startswith('supramodal.') and m != 'supramodal.errors'\n"
+        "              and not m.startswith('supramodal.drivers'))\n"
         "print(bad)\n"
     )
     assert r.returncode == 0, r.stderr
@@ -475,9 +477,9 @@ def test_missing_portaudio_names_the_package_to_install():
         "import ctypes.util\n"
         "real = ctypes.util.find_library\n"
         "ctypes.util.find_library = lambda name: None if 'portaudio' in name else real(name)\n"
-        "from drivers import DeviceUnavailable\n"
-        "from drivers.microphone import MicrophoneDriver\n"
-        "from drivers.devices import list_audio_inputs, format_devices\n"
+        "from supramodal.drivers import DeviceUnavailable\n"
+        "from supramodal.drivers.microphone import MicrophoneDriver\n"
+        "from supramodal.drivers.devices import list_audio_inputs, format_devices\n"
         "for f in (MicrophoneDriver().open, list_audio_inputs):\n"
         "    try:\n"
         "        f()\n"
@@ -506,7 +508,7 @@ def test_missing_device_is_device_unavailable_with_a_fix():
 
 
 def test_device_lists_are_plain_data():
-    from drivers.devices import format_devices, list_serial_ports
+    from supramodal.drivers.devices import format_devices, list_serial_ports
 
     ports = list_serial_ports()
     assert isinstance(ports, list)
@@ -683,7 +685,7 @@ def test_node_on_a_real_stream_equals_replaying_the_file(tmp_path):
                      '[buffer]\nseconds = 10.0\n')
     env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     env.update(_alsa_file_device(tmp_path, raw))
-    r = subprocess.run([sys.executable, "-m", "node.cli", "run", str(scene), "--json", "--quiet", "--seconds", "2"],
+    r = subprocess.run([sys.executable, "-m", "supramodal.node.cli", "run", str(scene), "--json", "--quiet", "--seconds", "2"],
                        capture_output=True, text=True, env=env, timeout=300, cwd=ROOT)
     assert r.returncode == 0, r.stderr
     lines = [json.loads(line) for line in r.stdout.splitlines()]

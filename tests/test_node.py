@@ -13,13 +13,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from node.build import build_node
-from node.graph import Node, channel_mapper
-from node.scene import SceneError, default_scene, load_scene, scene_from_dict
-from node.sinks import ListSink
-from replay.driver import ReplayDriver, random_block_sizes
-from replay.session import save_session
-from replay.wavio import write_wav
+from supramodal.node.build import build_node
+from supramodal.node.graph import Node, channel_mapper
+from supramodal.node.scene import SceneError, default_scene, load_scene, scene_from_dict
+from supramodal.node.sinks import ListSink
+from supramodal.replay.driver import ReplayDriver, random_block_sizes
+from supramodal.replay.session import save_session
+from supramodal.replay.wavio import write_wav
 from supramodal.banks import cochlea_bank, whisker_bank
 from supramodal.errors import InputError
 from supramodal.gammatone import relative_error
@@ -238,7 +238,7 @@ def test_whisker_replay_scene_runs_without_sounddevice_or_serial(tmp_path, whisk
     code = (
         "import sys\n"
         "sys.modules['sounddevice'] = None; sys.modules['serial'] = None  # any import of them fails\n"
-        "from node.cli import main\n"
+        "from supramodal.node.cli import main\n"
         f"rc = main(['run', {str(scene)!r}, '--speed', 'max', '--quiet'])\n"
         "assert 'sounddevice' not in [m for m, v in sys.modules.items() if v is not None]\n"
         "sys.exit(rc)\n")
@@ -259,7 +259,7 @@ def test_default_scene_is_valid_and_synthesises_held_out_textures():
 
 
 def test_train_evaluate_round_trip_on_synthesised_recordings(tmp_path):
-    from node.cli import main
+    from supramodal.node.cli import main
 
     ts = reference_texture_set("whisker")
     rows_train, rows_test = ["path,label"], ["path,label,start,end"]
@@ -281,7 +281,7 @@ def test_train_evaluate_round_trip_on_synthesised_recordings(tmp_path):
     assert main(["evaluate", str(tmp_path / "m"), "--manifest", str(tmp_path / "test.csv"), "--quiet"]) == 0
     model = TextureModel.load(tmp_path / "m")
     assert model.classes == tuple(sorted(ts.names[:4]))
-    from node.training import evaluate_manifest
+    from supramodal.node.training import evaluate_manifest
 
     result = evaluate_manifest(model, tmp_path / "test.csv")
     assert set(result) >= {"window_accuracy", "recording_accuracy", "labels", "confusion"}
@@ -291,7 +291,7 @@ def test_train_evaluate_round_trip_on_synthesised_recordings(tmp_path):
 
 
 def test_manifest_errors(tmp_path):
-    from node.training import read_manifest
+    from supramodal.node.training import read_manifest
 
     (tmp_path / "m.csv").write_text("file,label\nx.wav,a\n")
     with pytest.raises(ValueError, match="columns must be path,label"):
@@ -304,7 +304,7 @@ def test_manifest_errors(tmp_path):
 @pytest.mark.skipif(not SHARED_DATA.is_dir(), reason="the LMT surface recordings are not distributed with "
                     "supramodal; this check runs only on the developers' machines, which hold a copy")
 def test_real_surface_recordings_cochlea(tmp_path):
-    from node.training import evaluate_manifest, train_from_manifest
+    from supramodal.node.training import evaluate_manifest, train_from_manifest
 
     names = ["carpet", "fiber", "rough_paper", "sheep_skin", "textile", "wallpaper"]
     cut = 0.7 * 211611 / 44100
@@ -324,7 +324,7 @@ def test_real_surface_recordings_cochlea(tmp_path):
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 def test_clean_shutdown_on_signal(sig):
-    proc = subprocess.Popen([sys.executable, "-m", "node.cli", "run", "--json", "--quiet"], stdout=subprocess.PIPE,
+    proc = subprocess.Popen([sys.executable, "-m", "supramodal.node.cli", "run", "--json", "--quiet"], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, env=_env(), cwd=ROOT)
     try:
         lines = []
@@ -362,10 +362,10 @@ def test_default_serial_scene_meets_the_frame_formats_link_budget():
     the baud rate the default serial scene opens the port with must carry them."""
     import inspect
 
-    from drivers.frames import frame_size
-    from drivers.mock_whisker import MockWhiskerDevice
-    from drivers.serial_whisker import DEFAULT_BAUDRATE
-    from node.build import driver_for
+    from supramodal.drivers.frames import frame_size
+    from supramodal.drivers.mock_whisker import MockWhiskerDevice
+    from supramodal.drivers.serial_whisker import DEFAULT_BAUDRATE
+    from supramodal.node.build import driver_for
 
     scene = scene_from_dict({"driver": {"type": "serial", "port": "loop://"}})
     d = scene.driver
@@ -379,7 +379,7 @@ def test_default_serial_scene_meets_the_frame_formats_link_budget():
 
 
 def test_replay_speed_and_block_defaults_are_the_replay_drivers(whisker_signal):
-    from node.build import driver_for
+    from supramodal.node.build import driver_for
 
     scene = scene_from_dict({"driver": {"type": "synth", "order": ["T1"], "seconds": 1.0}})
     driver, _, _ = driver_for(scene, whisker_bank())
@@ -392,7 +392,7 @@ def test_replay_speed_and_block_defaults_are_the_replay_drivers(whisker_signal):
 def test_command_line_model_and_scene_share_the_defaults():
     import inspect
 
-    from node.cli import build_parser
+    from supramodal.node.cli import build_parser
     from supramodal.features import DEFAULT_WINDOW
     from supramodal.mlp import DEFAULT_EPOCHS, train_mlp
     from supramodal.pipeline import FeaturePipeline
@@ -412,7 +412,7 @@ def test_command_line_model_and_scene_share_the_defaults():
 def test_held_out_share_follows_the_training_fraction(monkeypatch, train_fraction, accepted):
     """Held-out segments come from the part the model did not train on: 1 - TRAIN_FRACTION of each texture."""
     import supramodal.training as training
-    from node.build import synth_session
+    from supramodal.node.build import synth_session
 
     monkeypatch.setattr(training, "TRAIN_FRACTION", train_fraction)
     ts = reference_texture_set("whisker")
@@ -430,7 +430,7 @@ def test_held_out_share_follows_the_training_fraction(monkeypatch, train_fractio
 def test_latency_histogram_percentiles_are_within_a_bin_of_the_exact_ones(seed):
     """The node's constant-memory latency record against numpy on the same values: percentiles
     (numpy's "lower" method) within the 1 % bin width, count and maximum exact."""
-    from node.latency import LatencyHistogram
+    from supramodal.node.latency import LatencyHistogram
 
     rng = np.random.default_rng(seed)
     values = np.concatenate([rng.lognormal(0.0, 1.5, int(rng.integers(1, 5000))), rng.uniform(0.01, 80.0, 50)])
@@ -458,7 +458,7 @@ class _ArrayDriver(StandInDriver):
         return {"frames": self._i, "filled": 0}
 
     def read(self, timeout=None):
-        from drivers.base import Block, DriverClosed
+        from supramodal.drivers.base import Block, DriverClosed
 
         if self._i >= len(self._x):
             raise DriverClosed("end of the array")
@@ -472,7 +472,7 @@ def test_nonfinite_and_out_of_range_samples_are_replaced_counted_and_reported(tm
     """A stream with NaN, Inf and a sample beyond the filterbank's max_input runs on (policy "zero"):
     each kind counted apart in the summary and shown in the text sink's summary line, and the
     feature windows are those of the stream with those samples set to 0."""
-    from node.sinks import make_sink
+    from supramodal.node.sinks import make_sink
 
     _, x = whisker_signal
     x = x[:20000].copy()

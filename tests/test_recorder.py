@@ -8,15 +8,15 @@ import time
 import numpy as np
 import pytest
 
-from node.build import bank_for, build_node, synth_session
-from node.cli import main
-from node.graph import Node
-from node.recorder import SessionRecorder
-from node.ringbuffer import RingBuffer
-from node.scene import scene_from_dict
-from node.sinks import ListSink
-from replay.driver import ReplayDriver
-from replay.session import load_session
+from supramodal.node.build import bank_for, build_node, synth_session
+from supramodal.node.cli import main
+from supramodal.node.graph import Node
+from supramodal.node.recorder import SessionRecorder
+from supramodal.node.ringbuffer import RingBuffer
+from supramodal.node.scene import scene_from_dict
+from supramodal.node.sinks import ListSink
+from supramodal.replay.driver import ReplayDriver
+from supramodal.replay.session import load_session
 from supramodal.banks import whisker_bank
 from supramodal.pipeline import FeaturePipeline
 

@@ -15,8 +15,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.io import wavfile
 
-from drivers.base import Block, DeviceUnavailable, Driver, DriverClosed, DriverError
-from replay import (ClippingWarning, Label, ReplayDriver, ReplayError, Session, SessionError,
+from supramodal.drivers.base import Block, DeviceUnavailable, Driver, DriverClosed, DriverError
+from supramodal.replay import (ClippingWarning, Label, ReplayDriver, ReplayError, Session, SessionError,
                     WavFormatError, load_session, random_block_sizes, read_wav, release_time,
                     save_session, wav_info, write_wav)
 

@@ -16,17 +16,17 @@ import pytest
 import serial
 from scipy.io import wavfile
 
-from drivers.base import Block, DeviceUnavailable, Driver, DriverClosed
-from drivers.frames import FLAG_OVERRUN, encode_frame
-from drivers.mock_whisker import FaultSpec, MockWhiskerDevice, quantise
-from node.cli import main as cli_main
+from supramodal.drivers.base import Block, DeviceUnavailable, Driver, DriverClosed
+from supramodal.drivers.frames import FLAG_OVERRUN, encode_frame
+from supramodal.drivers.mock_whisker import FaultSpec, MockWhiskerDevice, quantise
+from supramodal.node.cli import main as cli_main
 from supramodal.errors import InputError
 
 
 def main(argv):
     """`supramodal mock-whisker ARGV`."""
     return cli_main(["mock-whisker", *argv])
-from drivers.serial_whisker import SerialWhiskerDriver
+from supramodal.drivers.serial_whisker import SerialWhiskerDriver
 
 
 def frames_bytes(seqs, channels=3, n=4, value=None, flags=0):
@@ -236,7 +236,7 @@ def test_silence_warning_off_and_refused_values():
 
 
 def test_node_prints_the_silence_notice_and_counts_it(capsys):
-    from node.graph import Node
+    from supramodal.node.graph import Node
     from supramodal.banks import whisker_bank
     from supramodal.pipeline import FeaturePipeline
 

@@ -1,14 +1,14 @@
 """A short soak (benchmarks/soak.py): the node on the serial driver against the mock board on a
 real pty with every fault kind and unplugs; the driver's counts equal the mock's ledger exactly.
 
-The full run (an hour, 100 unplugs) is ``python3 -m benchmarks.soak --minutes 60 --unplugs 100``.
+The full run (an hour, 100 unplugs) is ``python3 -m supramodal.benchmarks.soak --minutes 60 --unplugs 100``.
 """
 
 from __future__ import annotations
 
 import pytest
 
-from benchmarks.soak import FAULT_RATES, format_report, run_soak
+from supramodal.benchmarks.soak import FAULT_RATES, format_report, run_soak
 
 pytestmark = [pytest.mark.hardware, pytest.mark.slow]
 

@@ -1,7 +1,7 @@
 """``supramodal bench``: error against run time, drift over long streams, the whole node.
 
 Benchmark code, not a product path: the peer designs live in
-:mod:`benchmarks.filterbank.peers` and nowhere else. Three parts:
+:mod:`supramodal.benchmarks.filterbank.peers` and nowhere else. Three parts:
 
 a. every filterbank backend (fast float64 and float32, reference float64) and
    peer (scipy.signal.gammatone 'iir' + lfilter, Slaney's cascade + sosfilt, in
@@ -12,8 +12,8 @@ c. the whole node: pipeline to decisions per backend (real-time factor, decision
    agreement with the float64 reference), and the threaded node itself.
 
 Run it with ``supramodal bench [--quick] [--out DIR] [--json]``: the command runs
-``python -m benchmarks.filterbank`` in a child process with BLAS and OpenMP pinned to
-one thread (``python -m benchmarks.filterbank`` re-executes itself so pinned if they
+``python -m supramodal.benchmarks.filterbank`` in a child process with BLAS and OpenMP pinned to
+one thread (``python -m supramodal.benchmarks.filterbank`` re-executes itself so pinned if they
 are not).
 """
 

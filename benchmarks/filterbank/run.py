@@ -1,4 +1,4 @@
-"""The measurements of ``supramodal bench`` (see :mod:`benchmarks.filterbank`).
+"""The measurements of ``supramodal bench`` (see :mod:`supramodal.benchmarks.filterbank`).
 
 Definitions used throughout:
 
@@ -23,12 +23,12 @@ from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 
-from benchmarks.filterbank import PINNED_THREADS
-from benchmarks.filterbank.peers import make_peer
-from benchmarks.filterbank.report import clean, write_report
-from node.graph import Labels, Node
-from node.sinks import ListSink
-from replay.driver import ReplayDriver
+from supramodal.benchmarks.filterbank import PINNED_THREADS
+from supramodal.benchmarks.filterbank.peers import make_peer
+from supramodal.benchmarks.filterbank.report import clean, write_report
+from supramodal.node.graph import Labels, Node
+from supramodal.node.sinks import ListSink
+from supramodal.replay.driver import ReplayDriver
 from supramodal.backends import make_filterbank
 from supramodal.banks import Bank, bank_by_name
 from supramodal.decisions import window_decision
