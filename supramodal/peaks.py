@@ -22,6 +22,13 @@ from supramodal.errors import InputError, StreamEndedError
 
 PEAK_MODES = ("maxima", "extrema")
 DEFAULT_PEAK_MODE = "maxima"
+#: A peak's amplitude must exceed this, whatever the threshold (0 included). A filterbank left in
+#: exact silence rings down through 1e-300 and below, and flushes its state to zero at times that
+#: depend on where block boundaries fall (gammatone's ``_flush_tiny``): peaks of that residue would
+#: make the first window after a long silence depend on the chunking (up to 2.7e-3 of Af, measured).
+#: 1e-250 lies some 200 orders of magnitude below any physical signal and far above the residue's
+#: flush level (about 1e-287), so it changes no feature of real input (docs/stability.md).
+PEAK_FLOOR = 1e-250
 
 
 @dataclass(frozen=True)
@@ -71,6 +78,7 @@ class PeakExtractor:
         Smallest peak amplitude kept (default 0: every local maximum above 0, the
         paper's rule). A real sensor's noise floor, or the filters' ring-down
         after a contact ends, gives peaks of no meaning; a threshold drops them.
+        Whatever the threshold, a peak must also exceed :data:`PEAK_FLOOR` (1e-250).
 
     Notes
     -----
@@ -156,7 +164,7 @@ class PeakExtractor:
         C, n = z.shape                                         # n = L + 2: two samples of the past first
         flat = z.reshape(-1)
         N = flat.size
-        t = self.threshold
+        t = max(self.threshold, PEAK_FLOOR)
         if self.mode == "maxima":
             # Local maxima above t are exactly the samples where r = max(z, t) rises into and then
             # does not rise: r[n-1] < r[n] >= r[n+1] (r[n] > r[n-1] >= t forces z[n] > t).

@@ -353,3 +353,18 @@ def test_peak_threshold_drops_small_peaks_in_both_modes():
     assert PeakExtractor(1).process(y).index.tolist() == [1, 3]
     with pytest.raises(ValueError, match="peak threshold"):
         PeakExtractor(1, threshold=-1.0)
+
+
+@pytest.mark.parametrize("mode", ["maxima", "extrema"])
+@pytest.mark.parametrize("threshold", [0.0, 1e-300, 1e-260])
+def test_peaks_must_exceed_the_floor_whatever_the_threshold(mode, threshold):
+    """Ring-down residue (far below any signal) is no peak, even with no threshold; 1e-249 is."""
+    from supramodal.peaks import PEAK_FLOOR
+    assert PEAK_FLOOR == 1e-250
+    x = np.zeros((1, 12))
+    x[0, 2], x[0, 5], x[0, 8] = 1e-300, 1e-250, 1e-249      # at the floor: not above it
+    p = PeakExtractor(1, mode=mode, threshold=threshold).process(x)
+    assert p.index.tolist() == [8] and p.amplitude.tolist() == [1e-249]
+    if mode == "extrema":                                     # minima by their magnitude
+        q = PeakExtractor(1, mode=mode, threshold=threshold).process(-x)
+        assert q.index.tolist() == [8]
