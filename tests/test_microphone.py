@@ -11,6 +11,8 @@ from __future__ import annotations
 import ctypes.util
 import json
 import os
+import secrets
+import shutil
 import subprocess
 import sys
 import threading
@@ -661,6 +663,119 @@ def test_real_device_refusals_and_listing(tmp_path):
     assert len(default) == 1 and default[0]["name"] == "default" and default[0]["channels"] >= 1
     assert default[0]["hostapi"] == "ALSA"
     assert "*" in r["text"] and "default" in r["text"]
+
+
+# -- (c) in real time: a JACK dummy clock under the file device ---------------------------
+
+JACK_PLUGIN = Path("/usr/lib") / f"{os.uname().machine}-linux-gnu" / "alsa-lib" / "libasound_module_pcm_jack.so"
+
+
+@pytest.fixture
+def jack_server():
+    """A private JACK server on the dummy backend (a clock, no sound card): its name, unique to this
+    test, so that parallel runs never share one. Real-time scheduling where allowed, else not."""
+    if shutil.which("jackd") is None or shutil.which("jack_wait") is None:
+        pytest.skip("JACK missing: apt-get install --no-install-recommends jackd2")
+    if not JACK_PLUGIN.exists():
+        pytest.skip(f"ALSA's JACK plugin missing ({JACK_PLUGIN}): apt-get install --no-install-recommends "
+                    "libasound2-plugins")
+    name = f"supramodal-{os.getpid()}-{secrets.token_hex(4)}"
+    backend = ["-d", "dummy", "-r", "44100", "-p", "1024", "-C", "1", "-P", "1"]
+    for realtime in (["-R", "-P", "20"], ["--no-realtime"]):
+        proc = subprocess.Popen(["jackd", *realtime, "-n", name, *backend], stdout=subprocess.DEVNULL,
+                                stderr=subprocess.PIPE, text=True)
+        ready = subprocess.run(["jack_wait", "-s", name, "-w", "-t", "10"], capture_output=True, text=True)
+        if ready.returncode == 0 and proc.poll() is None:
+            break
+        proc.kill()
+        proc.wait()
+    else:
+        pytest.skip(f"jackd does not start here: {proc.stderr.read()[-500:]}")
+    try:
+        yield name
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
+def _paced_file_device(tmp_path: Path, raw: Path, server: str) -> dict:
+    """Environment serving ``raw`` as the default capture device, paced by JACK's dummy clock: the
+    file plugin reads the file as its slave (ALSA's JACK plugin) takes frames, in real time."""
+    env = _alsa_file_device(tmp_path, raw)
+    conf = tmp_path / "asound.conf"
+    conf.write_text(conf.read_text().replace(
+        'slave.pcm "null"',
+        "slave.pcm { type plug slave.pcm { type jack capture_ports { 0 system:capture_1 } "
+        "playback_ports { 0 system:playback_1 } } }"))
+    env["JACK_DEFAULT_SERVER"] = server
+    return env
+
+
+@pytest.mark.hardware
+@pytest.mark.parametrize("dtype", ["int16", "float32"])
+def test_real_time_capture_through_jack_is_the_played_signal(tmp_path, jack_server, dtype):
+    """8 s of audio at the pace of a sound card: no overflow, nothing dropped or filled, every sample
+    the file's, and the 8 s take about 8 s (an unpaced file device delivers them in ~10 ms)."""
+    _require_portaudio()
+    n = int(8 * RATE)
+    source = _source_signal(int(10 * RATE))
+    expected = source.astype(np.float32) / np.float32(32768)
+    raw = tmp_path / "mic.raw"
+    (source.astype("<i2") if dtype == "int16" else expected.astype("<f4")).tofile(raw)
+    prefix = str(tmp_path / "capture")
+    # A 0.5 s buffer, far less than the 8 s read: a paced stream never needs more.
+    _run_child(["capture", prefix, str(n), dtype, "0.5"], _paced_file_device(tmp_path, raw, jack_server))
+    data = np.load(prefix + ".npz")["data"][:, 0]
+    info = json.loads(Path(prefix + ".json").read_text())
+    at_n = info["at_n"]
+    assert at_n["overflows"] == 0 and at_n["dropped"] == 0 and at_n["filled"] == 0 and at_n["errors"] == 0
+    np.testing.assert_array_equal(data[:n], expected[:n])
+    frames = np.cumsum(info["frames"])
+    last = int(np.searchsorted(frames, n))                 # the block that completed the 8 s
+    span = info["arrivals"][last] - info["arrivals"][0]
+    assert span >= 6.0, f"8 s of audio arrived in {span:.2f} s: the stream is not paced"
+
+
+def _int16_device(tmp_path: Path, raw: Path, server: str, kind: str) -> dict:
+    """The paced file device, giving int16 only: behind ALSA's ``linear`` plugin (integer formats
+    only, so PortAudio converts to float32 itself) or ``plug`` (ALSA converts). Paced, because an
+    unpaced device behind a converting plugin overruns and skips whole periods unreported."""
+    env = _paced_file_device(tmp_path, raw, server)
+    conf = tmp_path / "asound.conf"
+    conf.write_text(conf.read_text().replace("pcm.!default {", "pcm.filedev {", 1)
+                    + f'pcm.!default {{\n    type {kind}\n    slave {{ pcm "filedev" format S16_LE }}\n}}\n')
+    return env
+
+
+@pytest.mark.hardware
+@pytest.mark.parametrize("kind", ["plug", "linear"])
+def test_example_scene_float32_default_on_an_int16_device_is_exact(tmp_path, jack_server, kind):
+    """examples/microphone.toml leaves the driver's dtype at its default, float32; on a device that
+    gives int16 the conversion (PortAudio's behind ``linear``, ALSA's behind ``plug``) is exactly
+    x / 32768, sample for sample."""
+    import inspect
+
+    from supramodal.node.scene import load_scene
+
+    _require_portaudio()
+    assert load_scene(ROOT / "examples" / "microphone.toml").driver["dtype"] is None
+    default = inspect.signature(MicrophoneDriver).parameters["dtype"].default
+    assert default == "float32"
+    n = int(2 * RATE)
+    source = _source_signal(int(4 * RATE))
+    raw = tmp_path / "mic.raw"
+    source.astype("<i2").tofile(raw)
+    prefix = str(tmp_path / "capture")
+    _run_child(["capture", prefix, str(n), default, "0.5"], _int16_device(tmp_path, raw, jack_server, kind))
+    data = np.load(prefix + ".npz")["data"][:, 0]
+    info = json.loads(Path(prefix + ".json").read_text())
+    assert info["dtypes"] == ["float32"]
+    assert info["at_n"]["overflows"] == 0 and info["at_n"]["dropped"] == 0 and info["at_n"]["filled"] == 0
+    np.testing.assert_array_equal(data[:n], source[:n].astype(np.float32) / np.float32(32768))
 
 
 # -- (e) the whole node on a real PortAudio stream ----------------------------------------
