@@ -376,6 +376,10 @@ def _cmd_evaluate(args) -> int:
     from supramodal.model import TextureModel
 
     model = TextureModel.load(args.model)
+    if args.cv:
+        return _evaluate_cv(model, args)
+    if args.seed is not None:
+        raise CliError("--seed applies to --cv only (scoring the model as it is draws nothing at random)")
     if args.out is not None and args.out.is_dir():
         from supramodal.node.outputs import check_new_file
 
@@ -387,6 +391,32 @@ def _cmd_evaluate(args) -> int:
         from supramodal.node.reports import write_evaluation
 
         files = write_evaluation(result, args.out)
+        print("wrote " + ", ".join(str(p) for p in files), file=sys.stderr)
+    return 0
+
+
+def _evaluate_cv(model, args) -> int:
+    """``evaluate --cv K``: the model's configuration re-trained and scored fold by fold."""
+    from supramodal.node.training import cross_validate_model, format_cross_validation
+
+    if args.seed is not None and args.seed < 0:
+        raise CliError(f"--seed must be >= 0, got {args.seed}")
+    base = None if args.out is None else args.out / "cv-confusion"
+    if base is not None and args.out.is_dir():
+        from supramodal.node.outputs import check_new_file
+
+        for suffix in (".csv", ".png"):
+            check_new_file(base.with_name(base.name + suffix), args.force, "the cross-validation file")
+    cv = cross_validate_model(model, args.manifest, args.cv, seed=args.seed, mapping=args.mapping,
+                              progress=_progress(args))
+    print(json.dumps(cv) if args.json else format_cross_validation(cv))
+    if base is not None:
+        from supramodal.node.reports import write_confusion
+
+        args.out.mkdir(parents=True, exist_ok=True)
+        files = write_confusion(cv["labels"], cv["confusion"], base,
+                                f"{args.cv}-fold grouped cross-validation of {Path(args.model).name}'s configuration: "
+                                f"window accuracy {cv['window_accuracy']['mean']:.3f} +- {cv['window_accuracy']['sd']:.3f}")
         print("wrote " + ", ".join(str(p) for p in files), file=sys.stderr)
     return 0
 
@@ -477,6 +507,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=_output_folder, metavar="DIR",
                    help="also write the confusion, accuracy against windows pooled and the channels' importance "
                         "as CSV and PNG into DIR (default: print only)")
+    p.add_argument("--cv", type=_count(2), metavar="K",
+                   help="instead of scoring the model itself, re-train its configuration (bank, features, window, "
+                        "peaks, hidden units, epochs) on K-1 folds of the manifest and score it on the K-th, folds "
+                        "grouped by manifest line: how well a model like it does on recordings it never saw; with "
+                        "--out, writes cv-confusion.csv/.png (default: no cross-validation)")
+    p.add_argument("--seed", type=int, metavar="S",
+                   help="with --cv: seed of the folds and of the training (default: the model's own seed)")
     p.add_argument("--force", action="store_true", help="replace earlier evaluation files in --out (default: refuse)")
     p.add_argument("--quiet", action="store_true", help="no progress on stderr (warnings are still shown)")
     p.set_defaults(func=_cmd_evaluate)

@@ -72,12 +72,14 @@ def train_from_manifest(manifest, bank: Bank, features=("Af",), window: float = 
         Naming the manifest's line, the cause and the fix; or the manifest if it has fewer
         than two labels.
     """
-    recs, classes, windows = _manifest_windows(manifest, bank, features, window, mapping, progress)
-    return _train(recs, classes, windows, FeaturePipeline(bank, features, window), epochs, seed)
+    make_pipeline = lambda: FeaturePipeline(bank, features, window)       # noqa: E731
+    recs, classes, windows = _manifest_windows(manifest, make_pipeline, mapping, progress)
+    return _train(recs, classes, windows, make_pipeline(), epochs, seed)
 
 
-def _manifest_windows(manifest, bank, features, window, mapping, progress):
-    """The manifest's recordings, its classes (sorted) and every recording's feature windows."""
+def _manifest_windows(manifest, make_pipeline, mapping, progress):
+    """The manifest's recordings, its classes (sorted) and every recording's feature windows
+    (``make_pipeline()``: a fresh FeaturePipeline per recording)."""
     recs = read_manifest(manifest)
     classes = tuple(sorted({r.label for r in recs}))
     if len(classes) < 2:
@@ -85,20 +87,20 @@ def _manifest_windows(manifest, bank, features, window, mapping, progress):
                             "add recordings of another texture")
     windows = []
     for k, rec in enumerate(recs):
-        pipeline = FeaturePipeline(bank, features, window)
+        pipeline = make_pipeline()
         v = recording_windows(rec, pipeline, mapping, notice=progress)
         if len(v) == 0:
-            raise _no_window(rec, pipeline.window_samples / bank.fs)
+            raise _no_window(rec, pipeline.window_samples / pipeline.bank.fs)
         if progress:
             progress(f"[{k + 1}/{len(recs)}] {rec.path.name} ({rec.label}): {len(v)} windows")
         windows.append(v)
     return recs, classes, windows
 
 
-def _train(recs, classes, windows, pipeline: FeaturePipeline, epochs: int, seed: int) -> TextureModel:
+def _train(recs, classes, windows, pipeline: FeaturePipeline, epochs: int, seed: int, hidden=None) -> TextureModel:
     x = np.concatenate(windows)
     y = np.concatenate([np.full(len(v), classes.index(r.label)) for r, v in zip(recs, windows)])
-    return TextureModel.train_for(pipeline, x, y, classes, epochs=epochs, seed=seed)
+    return TextureModel.train_for(pipeline, x, y, classes, epochs=epochs, seed=seed, hidden=hidden)
 
 
 def cross_validate_manifest(manifest, bank: Bank, features=("Af",), window: float = 0.1, k: int = 5,
@@ -120,7 +122,31 @@ def cross_validate_manifest(manifest, bank: Bank, features=("Af",), window: floa
         rows = truth), ``recall`` (per label, from ``confusion``), ``chance`` (the largest
         label's share of windows: what always answering it would score).
     """
-    recs, classes, windows = _manifest_windows(manifest, bank, features, window, mapping, progress)
+    make_pipeline = lambda: FeaturePipeline(bank, features, window)       # noqa: E731
+    return _cross_validate(manifest, make_pipeline, k, epochs, seed, None, mapping, progress)
+
+
+def cross_validate_model(model: TextureModel, manifest, k: int = 5, seed: int | None = None, mapping="auto",
+                         progress=None) -> dict:
+    """Grouped ``k``-fold cross-validation of ``model``'s configuration on the manifest.
+
+    Each fold trains a fresh model exactly as ``model`` was made (bank, features, window, peak
+    settings, hidden units, epochs) on the other folds' recordings and scores it on its own: how
+    well a model like this one generalises to recordings it has not seen, which scoring ``model``
+    itself on its own training recordings cannot say. ``seed`` defaults to the model's.
+
+    Returns
+    -------
+    dict
+        As :func:`cross_validate_manifest`.
+    """
+    seed = model.training.get("seed", 0) if seed is None else seed
+    return _cross_validate(manifest, model.pipeline, k, int(model.training["epochs"]), seed,
+                           model.mlp.shape[1], mapping, progress)
+
+
+def _cross_validate(manifest, make_pipeline, k, epochs, seed, hidden, mapping, progress) -> dict:
+    recs, classes, windows = _manifest_windows(manifest, make_pipeline, mapping, progress)
     _refuse_overlapping_trials(recs)
     fold = grouped_folds([r.where for r in recs], [r.label for r in recs], k, seed)
     confusion = np.zeros((len(classes), len(classes)), dtype=int)
@@ -134,7 +160,7 @@ def cross_validate_manifest(manifest, bank: Bank, features=("Af",), window: floa
             raise ManifestError(f"{manifest}: fold {f + 1} of {k} would train without {missing}: record them more "
                                 "often or lower --cv")
         model = _train([recs[i] for i in train], classes, [windows[i] for i in train],
-                       FeaturePipeline(bank, features, window), epochs, seed)
+                       make_pipeline(), epochs, seed, hidden)
         result = score_recordings(model, [recs[i] for i in test], [windows[i] for i in test])
         confusion += np.array(result["confusion"])
         folds.append({"window_accuracy": result["window_accuracy"], "recording_accuracy": result["recording_accuracy"],

@@ -179,3 +179,34 @@ def test_evaluate_reports_chance_pooling_and_channels_and_writes_them(recordings
     assert len(list(csv.reader(open(tmp_path / "eval" / "channels.csv")))) == 1 + 20
     assert main(["evaluate", str(model_path), "--manifest", str(recordings / "all.csv"), "--out",
                  str(tmp_path / "eval"), "--quiet"]) == 2                          # no silent overwrite
+
+
+def test_evaluate_cv_retrains_the_models_configuration_fold_by_fold(recordings, tmp_path, capsys):
+    """`evaluate MODEL --cv K` cross-validates what the model file says it is (bank, features, window,
+    epochs, seed, hidden units): the same folds and scores as cross-validating those settings
+    directly, the confusion written, and --seed for --cv only."""
+    import json
+
+    model_path = tmp_path / "m.npz"
+    assert main(["train", "--bank", "whisker", "--manifest", str(recordings / "all.csv"), "--out", str(model_path),
+                 "--epochs", "60", "--seed", "4", "--features", "Af", "A", "--window", "0.1", "--quiet"]) == 0
+    capsys.readouterr()
+    assert main(["evaluate", str(model_path), "--manifest", str(recordings / "all.csv"), "--cv", "3", "--json",
+                 "--out", str(tmp_path / "eval"), "--quiet"]) == 0
+    got = json.loads(capsys.readouterr().out)
+    direct = cross_validate_manifest(recordings / "all.csv", whisker_bank(), ("Af", "A"), 0.1, k=3, epochs=60, seed=4)
+    assert got["folds"] == direct["folds"] and got["confusion"] == direct["confusion"]
+    assert got["window_accuracy"] == direct["window_accuracy"] and got["seed"] == 4
+    assert set(got["recall"]) == {"T1", "T2", "T3"} and got["recording_accuracy"]["sd"] >= 0
+    rows = list(csv.reader(open(tmp_path / "eval" / "cv-confusion.csv")))
+    assert sum(int(v) for row in rows[1:] for v in row[1:]) == 9 * 15
+    # another seed: other folds or another training, still every recording tested once
+    assert main(["evaluate", str(model_path), "--manifest", str(recordings / "all.csv"), "--cv", "3", "--json",
+                 "--seed", "5", "--quiet"]) == 0
+    other = json.loads(capsys.readouterr().out)
+    assert other["seed"] == 5 and sum(len(f["recordings"]) for f in other["folds"]) == 9
+    assert main(["evaluate", str(model_path), "--manifest", str(recordings / "all.csv"), "--seed", "5"]) == 2
+    assert "--seed applies to --cv only" in capsys.readouterr().err
+    assert main(["evaluate", str(model_path), "--manifest", str(recordings / "all.csv"), "--cv", "3",
+                 "--out", str(tmp_path / "eval"), "--quiet"]) == 2                 # no silent overwrite
+    assert "cv-confusion" in capsys.readouterr().err
