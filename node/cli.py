@@ -238,8 +238,10 @@ def _cmd_run(args) -> int:
         for line in _default_run_guide(scene, args.speed):
             progress(line)
     elif progress:
-        progress(f"scene {scene.source}: {scene.driver['type']} driver, {scene.bank['kind']} bank, "
-                 f"features {scene.features['names']}")
+        bank = (f"the bank of {scene.bank['file']}" if scene.bank["file"] is not None
+                else f"{scene.bank['kind']} bank")
+        progress(f"scene {scene.source}: {scene.driver['type']} driver, {bank}, features {scene.features['names']}, "
+                 f"{scene.features['window']:g} s windows")
     node = build_node(scene, speed=args.speed, sinks_override=sinks, progress=progress, overwrite=args.force)
     _stop_on_signals(node)
     node.run(max_seconds=args.seconds)

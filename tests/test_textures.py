@@ -216,3 +216,16 @@ def test_bad_texture_files(tmp_path):
     p.write_text(json.dumps(d))
     with pytest.raises(ValueError, match=f"{p.name}.*'version' 7"):
         load_texture_set(p)
+
+
+@pytest.mark.parametrize("name", ["fingertip_textures.json", "fingertip_heldout_textures.json"])
+def test_the_own_sensor_guides_texture_sets_load_and_differ_only_in_seed(name):
+    """docs/own-sensor.md synthesises its worked example from these files."""
+    from pathlib import Path
+
+    folder = Path(__file__).resolve().parents[1] / "examples"
+    ts, ref = load_texture_set(folder / name), load_texture_set(folder / "fingertip_textures.json")
+    assert ts.fs == 2200.0 and len(ts.names) == 5
+    assert max(max(t.peaks) for t in ts.textures) < 1000.0             # content below 1 kHz
+    assert [t.peaks for t in ts.textures] == [t.peaks for t in ref.textures]
+    assert (ts.seed == ref.seed) == (name == "fingertip_textures.json")
