@@ -231,3 +231,48 @@ def test_overrun_windows_are_flagged(tmp_path):
     assert {e["window"] for e in timed.events if e.get("overrun")} == expected
     assert not any(e.get("restart") for e in timed.events)
     assert summary["events"]["counts"]["overrun"] == len(received)
+
+
+@pytest.mark.hardware
+@pytest.mark.parametrize("json_mode", [True, False])
+def test_the_command_line_says_what_the_board_does_as_it_happens(tmp_path, json_mode):
+    """`supramodal run SCENE [--json]` in its own process against a board configured for 19 channels
+    that unplugs once: the mismatch and the unplug and reconnect appear while the node runs (JSON
+    objects on stdout with --json, one line each on stderr in text), repeats folded into counts."""
+    import subprocess
+    import sys
+
+    faults = FaultSpec(unplug_every=1.0, unplug_for=0.4, unplug_limit=1)
+    dev = MockWhiskerDevice(source(3.0, 19), RATE, samples_per_frame=SPF, faults=faults, seed=2)
+    scene = tmp_path / "s.toml"
+    with dev:
+        scene.write_text(f'[driver]\ntype = "serial"\nport = "{dev.port}"\nrate = {RATE}.0\nchannels = 20\n'
+                         'mapping = "per-channel"\n[bank]\nkind = "whisker"\n')
+        proc = subprocess.Popen([sys.executable, "-m", "supramodal.node.cli", "run", str(scene), "--quiet",
+                                 "--seconds", "inf"] + ["--json"] * json_mode,
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        try:
+            time.sleep(1.0)                   # the node has opened the port
+            dev.start()
+            dev.finished.wait(60)
+            time.sleep(1.5)                   # the reconnect's report, and the last frames
+        finally:
+            proc.send_signal(2)               # Ctrl-C: the node stops with its summary
+            out, err = proc.communicate(timeout=60)
+        ledger = dev.ledger
+    assert proc.returncode == 0, err
+    assert ledger.unplugs == 1
+    if json_mode:
+        events = [d for d in map(json.loads, out.splitlines()) if "event" in d]
+        kinds = [d["event"] for d in events]
+        assert "channels" in kinds and kinds.count("unplug") == kinds.count("reconnect") == 1
+        mismatch = [d for d in events if d["event"] == "channels"]
+        assert len(mismatch) <= 3 * 6                   # at most 3 a second are shown ...
+        summary = json.loads(out.splitlines()[-1])
+        assert summary["events"]["counts"]["channels"] == ledger.sent     # ... and every frame sent counted
+        assert any(d["count"] > 1 for d in mismatch)     # repeats folded into the next one shown
+        assert sum(d["count"] for d in mismatch) <= ledger.sent
+    else:
+        assert "frame 0 has 19 channels but the driver is configured for 20" in err
+        assert "more since)" in err
+        assert err.count("supramodal: lost ") == err.count("supramodal: reconnected to ") == 1
