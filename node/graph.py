@@ -255,6 +255,8 @@ class Node:
                 for kind, offsets in (("restart", block.restarts), ("overrun", block.overruns)):
                     for i in offsets:
                         self._marks.append((block.start + i, kind))
+                        if self.recorder is not None:
+                            self.recorder.note(block.start + i, kind)
                 if self._max_frames is not None and block.start + block.frames >= self._max_frames:
                     block = _head(block, self._max_frames - block.start)
                     self._arrivals.append((block.start + block.frames, block.arrival))

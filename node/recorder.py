@@ -1,7 +1,8 @@
 """Record a node's raw driver blocks as a session that the replay driver plays back exactly.
 
 The recorder is a second reader of the node's ring buffer, on its own thread: it
-sees the frames before any processing, with their ``filled`` marks, and appends
+sees the frames before any processing, with their ``filled`` marks (and, from the node, the
+board's restart and overrun marks), and appends
 them to a raw file in the output folder as they come (memory stays flat however
 long the recording). At the end the raw file becomes ``NAME.wav`` + ``NAME.json``
 (:func:`supramodal.replay.session.save_session`): float32 samples when every sample is
@@ -67,6 +68,7 @@ class SessionRecorder:
         self._filled: list[tuple[int, int]] = []
         self._lock = threading.Lock()
         self._marks: list[tuple[int, str | None]] = [(0, label)] if label else []
+        self._board_marks: list[tuple[int, str]] = []      # (stream index, "restart" | "overrun")
         self._position = lambda: self._frames
         self.paths: tuple[Path, Path] | None = None
 
@@ -80,6 +82,12 @@ class SessionRecorder:
         """Start a label at the current stream position; ``None`` ends the current one. Thread-safe."""
         with self._lock:
             self._marks.append((int(self._position()), label or None))
+
+    def note(self, index: int, kind: str) -> None:
+        """Keep a driver's mark (``"restart"`` or ``"overrun"``) at stream ``index`` in the session, so
+        that its replay flags the same windows. Called by the node's driver thread; thread-safe."""
+        with self._lock:
+            self._board_marks.append((int(index), kind))
 
     def run(self, reader) -> None:
         """Drain ``reader`` (a ring reader) until the ring closes; then write the session."""
@@ -137,8 +145,10 @@ class SessionRecorder:
         raw = np.memmap(self._raw_path, dtype=np.float64, mode="r", shape=(self._frames, self.channels))
         exact32 = all(np.array_equal(raw[i : i + _CHUNK].astype(np.float32).astype(np.float64), raw[i : i + _CHUNK])
                       for i in range(0, self._frames, _CHUNK))
+        with self._lock:
+            marks = [(i, kind) for i, kind in self._board_marks if i < self._frames]
         paths = save_session(self.folder / self.name, raw, int(round(self.rate)), self.source, labels=self._labels(),
-                             filled=self._merged_filled(), dtype="float32" if exact32 else "float64")
+                             filled=self._merged_filled(), dtype="float32" if exact32 else "float64", marks=marks)
         del raw
         os.unlink(self._raw_path)
         return paths

@@ -168,7 +168,9 @@ class ReplayDriver:
         What the driver chose to tell (today: that it resamples, and how).
 
     Events (:meth:`take_events`): ``notice`` (each notice) and ``gap`` (a run of
-    frames the recording marked filled begins; its stream index).
+    frames the recording marked filled begins; its stream index). A session's board
+    restart and overrun marks come back as the blocks' ``restarts`` and ``overruns``,
+    so that the node flags the same windows as it did live.
 
     Raises
     ------
@@ -199,7 +201,7 @@ class ReplayDriver:
         self.notices: list[str] = []
         self._on_notice = on_notice
         self._log = EventLog()
-        data, src_rate, labels, filled, self.name = self._load(source)
+        data, src_rate, labels, filled, marks, self.name = self._load(source)
         if data.shape[0] == 0:
             raise ReplayError(f"{self.name}: the source has no frames; nothing to replay")
         data = self._select(data, channels)
@@ -240,6 +242,10 @@ class ReplayDriver:
         self.channels = int(self._data.shape[1])
         self._filled = filled if filled is not None and filled.any() else None
         self._labels = tuple(labels)
+        # A session's restart and overrun marks, at the replayed rate: a mark's frame lands on the
+        # output frame at or after its time, so it marks the same window as in the live run.
+        self._marks = tuple((-((-frame * up) // down), kind) for frame, kind in marks
+                            if -((-frame * up) // down) < self._data.shape[0])
 
         # --- block sizes, speed, looping ---
         if block_size is None:
@@ -288,11 +294,11 @@ class ReplayDriver:
             self._on_notice(message)
 
     def _load(self, source):
-        """-> (data (n, ch) float64, rate, labels, filled mask or None, name)."""
+        """-> (data (n, ch) float64, rate, labels, filled mask or None, marks, name)."""
         if isinstance(source, Session):
             # A Session may be built by hand: check its samples like any array.
-            data, rate, _, _, _ = self._load((source.data, source.rate))
-            return (data, rate, source.labels, source.filled_mask(),
+            data, rate, _, _, _, _ = self._load((source.data, source.rate))
+            return (data, rate, source.labels, source.filled_mask(), source.marks,
                     str(source.path) if source.path else "session")
         if isinstance(source, (str, os.PathLike)):
             path = Path(source)
@@ -301,11 +307,11 @@ class ReplayDriver:
             try:
                 if as_session:
                     s = load_session(path)
-                    return s.data, s.rate, s.labels, s.filled_mask(), str(wav)
+                    return s.data, s.rate, s.labels, s.filled_mask(), s.marks, str(wav)
                 if path.suffix.lower() != ".wav":
                     raise ReplayError(f"{path}: expected NAME.wav or NAME.json")
                 data, rate = read_wav(path)
-                return data, rate, (), None, str(path)
+                return data, rate, (), None, (), str(path)
             except FileNotFoundError as e:
                 raise DeviceUnavailable(str(e)) from e
         if isinstance(source, np.ndarray):
@@ -324,7 +330,7 @@ class ReplayDriver:
                 raise ReplayError(f"an in-memory source must be float scaled to +-1, got {a.dtype}")
             if not np.all(np.isfinite(a)):
                 raise ReplayError("the in-memory source holds NaN or infinite samples")
-            return a.astype(np.float64), rate, (), None, f"array{a.shape}"
+            return a.astype(np.float64), rate, (), None, (), f"array{a.shape}"
         raise ReplayError(f"source must be (array, rate), a Session or a path, got {type(source).__name__}")
 
     def _select(self, data: np.ndarray, channels) -> np.ndarray:
@@ -473,11 +479,23 @@ class ReplayDriver:
             if n == 0:
                 filled = None
         block = Block(data=data, start=self._pos, arrival=due if self.speed != math.inf else time.monotonic(),
-                      filled=filled)
+                      filled=filled, restarts=self._marks_in(self._pos, size, "restart"),
+                      overruns=self._marks_in(self._pos, size, "overrun"))
         self._pos = end
         self._blocks += 1
         self._next_size = None
         return block
+
+    def _marks_in(self, pos: int, size: int, kind: str) -> tuple[int, ...]:
+        """Offsets within the block ``[pos, pos + size)`` of the session's marks of ``kind``, on every
+        pass of a looped source."""
+        n = self._data.shape[0]
+        out = []
+        for frame, k in self._marks:
+            if k == kind:
+                first = pos + (frame - pos) % n          # the mark's first stream index at or after pos
+                out += range(first - pos, size, n)
+        return tuple(sorted(out))
 
     @staticmethod
     def _take(src: np.ndarray, pos: int, size: int) -> np.ndarray:

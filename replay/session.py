@@ -18,6 +18,7 @@ A session named ``NAME`` is two files side by side:
             {"start": 2.5, "end": 5.0, "label": "felt"}             # in time order,
           ],                                                        # not overlapping
           "filled": [[1200, 1250], [9000, 9001]]  # optional: [start_frame, end_frame)
+          "marks": [[4800, "restart"], [7000, "overrun"]]  # optional: [frame, kind]
         }                                         # ranges the recording driver synthesised
 
 The sidecar is data, never code: it is read with :func:`json.loads` only
@@ -64,7 +65,9 @@ MAX_SIDECAR_BYTES = 16 * 2**20
 MAX_SIDECAR_DEPTH = 8
 
 _REQUIRED = ("format", "version", "rate", "channels", "source", "labels")
-_OPTIONAL = ("filled",)
+_OPTIONAL = ("filled", "marks")
+#: What a mark says happened at its frame (drivers.base.Block's ``restarts`` and ``overruns``).
+MARK_KINDS = ("restart", "overrun")
 _LABEL_KEYS = ("start", "end", "label")
 
 
@@ -108,6 +111,10 @@ class Session:
     filled : tuple of (int, int)
         ``[start_frame, end_frame)`` ranges the recording driver synthesised,
         ascending and not overlapping.
+    marks : tuple of (int, str)
+        ``(frame, kind)``, ascending: where the recording driver reported a board restart
+        (``"restart"``: the source's time may jump there) or samples the board lost itself
+        (``"overrun"``), so that a replay flags the same windows as the live run.
     path : pathlib.Path or None
         The WAV file it was loaded from, if any.
     """
@@ -117,6 +124,7 @@ class Session:
     source: str
     labels: tuple[Label, ...] = ()
     filled: tuple[tuple[int, int], ...] = ()
+    marks: tuple[tuple[int, str], ...] = ()
     path: Path | None = field(default=None)
 
     @property
@@ -192,7 +200,8 @@ def _type_name(v) -> str:
 
 
 def validate_sidecar(meta: Any, *, rate: int, channels: int, frames: int,
-                     where: str = "sidecar") -> tuple[str, tuple[Label, ...], tuple[tuple[int, int], ...]]:
+                     where: str = "sidecar") -> tuple[str, tuple[Label, ...], tuple[tuple[int, int], ...],
+                                                      tuple[tuple[int, str], ...]]:
     """Check a parsed sidecar against the WAV it describes.
 
     Parameters
@@ -213,6 +222,7 @@ def validate_sidecar(meta: Any, *, rate: int, channels: int, frames: int,
     source : str
     labels : tuple of Label
     filled : tuple of (int, int)
+    marks : tuple of (int, str)
 
     Raises
     ------
@@ -260,7 +270,8 @@ def validate_sidecar(meta: Any, *, rate: int, channels: int, frames: int,
 
     labels = _validate_labels(meta["labels"], frames / rate, 0.5 / rate, bad)
     filled = _validate_filled(meta.get("filled", []), frames, bad)
-    return source, labels, filled
+    marks = _validate_marks(meta.get("marks", []), frames, bad)
+    return source, labels, filled, marks
 
 
 def _validate_labels(raw, duration: float, slack: float, bad) -> tuple[Label, ...]:
@@ -320,6 +331,26 @@ def _validate_filled(raw, frames: int, bad) -> tuple[tuple[int, int], ...]:
     return tuple(out)
 
 
+def _validate_marks(raw, frames: int, bad) -> tuple[tuple[int, str], ...]:
+    if not isinstance(raw, list):
+        raise bad("marks", f"must be an array of [frame, kind] pairs, got {_type_name(raw)}",
+                  "omit the key when the board never restarted or overran")
+    out: list[tuple[int, str]] = []
+    for i, item in enumerate(raw):
+        key = f"marks[{i}]"
+        if not (isinstance(item, list) and len(item) == 2 and _is_int(item[0]) and isinstance(item[1], str)):
+            raise bad(key, f"must be a [frame, kind] pair, got {item!r}", f"write [frame, one of {list(MARK_KINDS)}]")
+        frame, kind = item
+        if kind not in MARK_KINDS:
+            raise bad(key, f"kind {kind!r} is unknown", f"use one of {list(MARK_KINDS)}")
+        if not 0 <= frame < frames:
+            raise bad(key, f"frame {frame} is outside the recording's {frames} frames", "need 0 <= frame < frames")
+        if out and frame < out[-1][0]:
+            raise bad(key, f"frame {frame} comes before marks[{i - 1}] at {out[-1][0]}", "list marks in frame order")
+        out.append((frame, kind))
+    return tuple(out)
+
+
 # --- load / save ----------------------------------------------------------------
 
 def load_session(path: str | os.PathLike) -> Session:
@@ -350,10 +381,10 @@ def load_session(path: str | os.PathLike) -> Session:
                                 "(use replay.read_wav for a bare WAV file)")
     meta = _load_json(js)
     info = wav_info(wav)
-    source, labels, filled = validate_sidecar(meta, rate=info.rate, channels=info.channels,
-                                              frames=info.frames, where=str(js))
+    source, labels, filled, marks = validate_sidecar(meta, rate=info.rate, channels=info.channels,
+                                                     frames=info.frames, where=str(js))
     data, rate = read_wav(wav)
-    return Session(data=data, rate=rate, source=source, labels=labels, filled=filled, path=wav)
+    return Session(data=data, rate=rate, source=source, labels=labels, filled=filled, marks=marks, path=wav)
 
 
 def mask_to_ranges(mask) -> list[tuple[int, int]]:
@@ -376,7 +407,7 @@ def _label_dict(item) -> dict:
 
 def save_session(path: str | os.PathLike, data, rate: int, source: str,
                  labels: Iterable[Label | Mapping | tuple] = (), filled=None,
-                 dtype: str = "float32") -> tuple[Path, Path]:
+                 dtype: str = "float32", marks: Iterable[tuple[int, str]] = ()) -> tuple[Path, Path]:
     """Write a session: ``NAME.wav`` and its sidecar ``NAME.json``.
 
     The sidecar is validated exactly as :func:`load_session` would before
@@ -402,6 +433,9 @@ def save_session(path: str | os.PathLike, data, rate: int, source: str,
         :attr:`supramodal.drivers.base.Block.filled` masks).
     dtype : {'float32', 'float64', 'int16', 'int32', 'uint8'}, default 'float32'
         Sample type of the WAV (see :func:`replay.wavio.write_wav`).
+    marks : iterable of (frame, kind), optional
+        Board restarts and overruns the recording driver reported (kind ``"restart"`` or
+        ``"overrun"``, see :attr:`Session.marks`); sorted by frame here.
 
     Returns
     -------
@@ -437,6 +471,9 @@ def save_session(path: str | os.PathLike, data, rate: int, source: str,
             "source": source, "labels": label_list}
     if ranges:
         meta["filled"] = [list(r) for r in ranges]
+    mark_list = sorted(([m[0], m[1]] for m in marks), key=lambda m: m[0] if _is_int(m[0]) else -1)
+    if mark_list:
+        meta["marks"] = mark_list
     validate_sidecar(meta, rate=rate, channels=int(x.shape[1]), frames=int(x.shape[0]), where=str(js))
 
     js.unlink(missing_ok=True)

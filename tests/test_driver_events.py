@@ -276,3 +276,29 @@ def test_the_command_line_says_what_the_board_does_as_it_happens(tmp_path, json_
         assert "frame 0 has 19 channels but the driver is configured for 20" in err
         assert "more since)" in err
         assert err.count("supramodal: lost ") == err.count("supramodal: reconnected to ") == 1
+
+
+@pytest.mark.hardware
+def test_a_recorded_session_replays_with_the_live_runs_restart_and_overrun_flags(tmp_path):
+    """Recorded from a board that restarts once and overruns now and then, a session keeps the
+    marks (its sidecar's "marks"), and replaying it flags exactly the windows the live run flagged,
+    in any block size."""
+    from supramodal.node.recorder import SessionRecorder
+    from supramodal.replay.session import load_session
+
+    dev = MockWhiskerDevice(source(2.5), RATE, samples_per_frame=SPF, restart_at=(120,),
+                            faults=FaultSpec(overrun_rate=0.03), seed=7)
+    recorder = SessionRecorder(tmp_path / "rec", "s", "mock board")
+    timed, summary, driver, ledger, _ = run_node(dev, 1, tmp_path, node_kw={"recorder": recorder})
+    assert ledger.restart_at == [120] and len(ledger.overrun_at) >= 3
+    live = {e["window"]: (bool(e.get("restart")), bool(e.get("overrun"))) for e in timed.events}
+    assert any(r for r, _ in live.values()) and any(o for _, o in live.values())
+    session = load_session(tmp_path / "rec" / "s")
+    kinds = [k for _, k in session.marks]
+    assert kinds.count("restart") == 1 and kinds.count("overrun") == driver.stats()["device_overruns"]
+    for block in (SPF, 37, 1000):
+        sink = ListSink()
+        Node(ReplayDriver(session, block_size=block, speed="max", on_notice=None),
+             FeaturePipeline(whisker_bank(), ("Af",)), [sink]).run()
+        replayed = {e["window"]: (bool(e.get("restart")), bool(e.get("overrun"))) for e in sink.events}
+        assert replayed == live, block

@@ -269,6 +269,11 @@ def _mutate(tmp_path, fn):
     (lambda m: m.update(filled=[[4990, 5001]]), r"filled\[0\]: range \[4990, 5001\) is empty or outside"),
     (lambda m: m.update(filled=[[0.0, 1.0]]), r"filled\[0\]: must be a pair of integer frame indices"),
     (lambda m: m.update(filled={"0": 1}), r"filled: must be an array"),
+    (lambda m: m.update(marks=[[10, "reboot"]]), r"marks\[0\]: kind 'reboot' is unknown; use one of \['restart', 'overrun'\]"),
+    (lambda m: m.update(marks=[[5000, "restart"]]), r"marks\[0\]: frame 5000 is outside the recording's 5000 frames"),
+    (lambda m: m.update(marks=[[20, "overrun"], [10, "restart"]]), r"marks\[1\]: frame 10 comes before .*frame order"),
+    (lambda m: m.update(marks=[["10", "restart"]]), r"marks\[0\]: must be a \[frame, kind\] pair"),
+    (lambda m: m.update(marks={"10": "restart"}), r"marks: must be an array of \[frame, kind\] pairs"),
 ])
 def test_sidecar_validation(tmp_path, fn, match):
     _mutate(tmp_path, fn)
@@ -606,3 +611,25 @@ def test_close_interrupts_a_paced_wait():
     t.join(timeout=30)  # generous: only checks the wait was interrupted, not how fast
     assert not t.is_alive()
     assert len(outcome) == 1 and isinstance(outcome[0], DriverClosed)
+
+
+def test_session_marks_come_back_in_the_blocks_at_any_rate_and_on_every_loop(tmp_path):
+    """A session's restart and overrun marks reach the node as the blocks' ``restarts`` and
+    ``overruns``: each once per pass, at its frame (at the frame at or after its time when resampled)."""
+    x = np.random.default_rng(0).uniform(-0.5, 0.5, (1000, 1))
+    save_session(tmp_path / "m", x, 5000, "test", marks=[(700, "overrun"), (250, "restart")])
+    assert load_session(tmp_path / "m").marks == ((250, "restart"), (700, "overrun"))
+    for rate, loop, want in ((None, 2, {"restart": [250, 1250], "overrun": [700, 1700]}),
+                             (10000.0, False, {"restart": [500], "overrun": [1400]}),
+                             (3000.0, False, {"restart": [150], "overrun": [420]})):
+        drv = ReplayDriver(tmp_path / "m.json", rate=rate, block_size=97, speed="max", loop=loop, on_notice=None)
+        got = {"restart": [], "overrun": []}
+        with drv:
+            while True:
+                try:
+                    b = drv.read()
+                except DriverClosed:
+                    break
+                got["restart"] += [b.start + i for i in b.restarts]
+                got["overrun"] += [b.start + i for i in b.overruns]
+        assert got == want, (rate, loop)
