@@ -1,0 +1,129 @@
+"""A two-sense world without hardware: one surface, felt by the whiskers and heard by a microphone.
+
+A surface is a texture of the kind :mod:`supramodal.textures` synthesises (noise shaped by three
+spectral peaks) plus a friction sound: three peaks above the whiskers' band, which the contact
+makes audible but the whiskers, sampled at 5 kHz and tuned below 1 kHz, never feel. The whisker
+array gets the vibration; the microphone gets the vibration (weaker), the friction sound, and the
+robot's motor noise, loud and low, which masks the vibration's peaks in the microphone.
+
+The sets are built so that fusion has something to do (issue 11): textures come in pairs that
+share everything but one part,
+
+* **heard pairs** share their vibration and differ in the friction sound: the whiskers cannot tell
+  them apart, the microphone can;
+* **felt pairs** share their friction sound and differ in the vibration's peaks, under the motor
+  noise's band: the whiskers can, the microphone hardly.
+
+So each sense alone confuses some pairs that the other separates. Pure numpy; the clocks, offsets
+and jitter of real sources belong to the node, not to this module.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.signal import butter, sosfilt
+
+from supramodal.errors import InputError
+from supramodal.textures import synthesize
+
+#: Whisker array rate and microphone rate, Hz.
+WHISKER_RATE = 5000.0
+MIC_RATE = 44100.0
+#: The motor's noise in the microphone: three low peaks, Hz, low-passed at MOTOR_CUTOFF (a motor
+#: hums, it does not hiss), and its level against the vibration.
+MOTOR_PEAKS = (90.0, 180.0, 360.0)
+MOTOR_CUTOFF = 1000.0
+MOTOR_GAIN = 10.0
+#: Level of the vibration in the microphone against the whiskers' (the contact is mostly felt).
+VIBRATION_IN_MIC = 0.3
+#: Level of the friction sound in the microphone.
+FRICTION_GAIN = 1.0
+#: Relative width of every peak (as in :func:`supramodal.textures.synthesize`).
+WIDTH = 0.2
+
+
+@dataclass(frozen=True)
+class Surface:
+    """One texture as both senses meet it.
+
+    Attributes
+    ----------
+    name : str
+    vibration : tuple of 3 float
+        Peaks of the contact vibration, Hz (below 1 kHz: the whiskers' band).
+    friction : tuple of 3 float
+        Peaks of the friction sound, Hz (above 2.5 kHz: beyond the whisker array's Nyquist).
+    """
+
+    name: str
+    vibration: tuple[float, float, float]
+    friction: tuple[float, float, float]
+
+
+def two_sense_set(pairs: int = 2, seed: int = 0) -> tuple[Surface, ...]:
+    """``2 * pairs`` heard-pair textures and ``2 * pairs`` felt-pair textures (see the module).
+
+    Parameters
+    ----------
+    pairs : int
+        Pairs of each kind, >= 1 (default 2: eight textures).
+    seed : int
+        Draws every peak (default 0); the same seed gives the same set.
+
+    Returns
+    -------
+    tuple of Surface
+        Named ``H1a, H1b, ...`` (heard pairs) and ``F1a, F1b, ...`` (felt pairs).
+    """
+    if isinstance(pairs, bool) or not isinstance(pairs, int) or pairs < 1:
+        raise InputError(f"pairs must be an integer >= 1, got {pairs!r}")
+    rng = np.random.default_rng(seed)
+
+    def vibration():
+        # three peaks spread over the whisker bank's 80-800 Hz, 1.3x apart at least
+        base = rng.uniform(100.0, 180.0)
+        return tuple(round(base * f, 1) for f in np.cumprod([1.0, *rng.uniform(1.5, 2.2, 2)]))
+
+    def friction():
+        base = rng.uniform(3000.0, 4500.0)
+        return tuple(round(base * f, 1) for f in (1.0, 1.6, 2.4))
+
+    out = []
+    for p in range(1, pairs + 1):
+        v, f = vibration(), friction()
+        out.append(Surface(f"H{p}a", v, f))
+        out.append(Surface(f"H{p}b", v, tuple(round(x * 1.35, 1) for x in f)))   # differs only in the sound
+    for p in range(1, pairs + 1):
+        v, f = vibration(), friction()
+        out.append(Surface(f"F{p}a", v, f))
+        out.append(Surface(f"F{p}b", tuple(round(x * 1.12, 1) for x in v), f))   # differs only in the feel
+    return tuple(out)
+
+
+def synthesize_contact(surface: Surface, seconds: float, seed=None) -> tuple[np.ndarray, np.ndarray]:
+    """The whisker vibration and the microphone signal of ``seconds`` of contact with ``surface``.
+
+    Returns
+    -------
+    whiskers : ndarray, shape (round(seconds * WHISKER_RATE),)
+        The vibration at :data:`WHISKER_RATE` (mono: every vibrissa meets the same surface).
+    mic : ndarray, shape (round(seconds * MIC_RATE),)
+        Vibration (times :data:`VIBRATION_IN_MIC`) + friction sound + motor noise at
+        :data:`MIC_RATE`.
+    """
+    ss = np.random.SeedSequence(seed)
+    s_w, s_v, s_f, s_m = ss.spawn(4)
+    whiskers = synthesize(surface.vibration, WHISKER_RATE, seconds, WIDTH, s_w)
+    mic = (VIBRATION_IN_MIC * synthesize(surface.vibration, MIC_RATE, seconds, WIDTH, s_v)
+           + FRICTION_GAIN * synthesize(surface.friction, MIC_RATE, seconds, WIDTH, s_f)
+           + MOTOR_GAIN * _motor(seconds, s_m))
+    return whiskers, mic
+
+
+def _motor(seconds: float, seed) -> np.ndarray:
+    """Motor noise at :data:`MIC_RATE`: the three-peak texture low-passed (4th-order Butterworth at
+    :data:`MOTOR_CUTOFF`), so that it masks the vibration's band and leaves the friction sound's."""
+    sos = butter(4, MOTOR_CUTOFF, fs=MIC_RATE, output="sos")
+    return sosfilt(sos, synthesize(MOTOR_PEAKS, MIC_RATE, seconds, WIDTH, seed))
