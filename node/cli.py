@@ -117,6 +117,8 @@ def _cmd_experiment(args) -> int:
         raise CliError(f"--seed must be >= 0, got {args.seed}")
     if args.jobs is not None and args.jobs < 1:
         raise CliError(f"--jobs must be >= 1, got {args.jobs}")
+    if args.figure == "fusion":
+        return _experiment_fusion(args)
     ts = load_texture_set(args.textures) if args.textures else None
     todo = plans(args.figure, quick=args.quick, epochs=args.epochs, seed=args.seed, sets=args.sets,
                  bank=args.bank, texture_set=ts)
@@ -301,6 +303,21 @@ def _cmd_mock_whisker(args) -> int:
 
     samples, rate = _mock_source(args.source)
     return run(args, samples, rate)
+
+
+def _experiment_fusion(args) -> int:
+    """``experiment fusion``: the two senses fused on the two-sense synthetic world (beyond the paper)."""
+    from supramodal.experiments.common import progress_to_stderr
+    from supramodal.experiments.fusion import fusion_table, run_fusion
+    from supramodal.experiments.report import write_figure
+
+    sets = args.sets if args.sets is not None else (2 if args.quick else 5)
+    if sets < 1:
+        raise CliError(f"--sets must be >= 1 for experiment fusion, got {sets}")
+    result = run_fusion(sets, args.quick, args.epochs, args.seed, None if args.quiet else progress_to_stderr)
+    written = write_figure("fusion", result, Path(args.out))
+    print(json.dumps(result) if args.json else fusion_table(result) + "\nwrote " + ", ".join(str(p) for p in written))
+    return 0
 
 
 def _cmd_devices(args) -> int:
@@ -543,7 +560,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_devices)
 
     p = add_parser("experiment", help="reproduce a figure of the paper (or all of them)")
-    p.add_argument("figure", choices=["fig1", "fig3", "fig4", "fig5", "fig6", "all"], help="which figure")
+    p.add_argument("figure", choices=["fig1", "fig3", "fig4", "fig5", "fig6", "all", "fusion"],
+                   help="which figure of the paper; fusion: the two senses fused on the two-sense synthetic world "
+                        "(beyond the paper; not in all)")
     p.add_argument("--quick", action="store_true", help="short textures and small grids: seconds, not minutes")
     p.add_argument("--jobs", type=_count(1), help="worker processes (default: all cores); results do not depend on it")
     p.add_argument("--seed", type=_count(0), default=0,
@@ -553,7 +572,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--bank", choices=["whisker", "cochlea"], help="fig3: one bank (default: both)")
     p.add_argument("--textures", metavar="FILE", help="fig3: texture-set JSON file (default: the reference sets)")
     p.add_argument("--sets", type=_count(0), help="fig3: N random texture sets instead of the reference set; "
-                                            "all: N random sets per bank besides it (default 5, 0 with --quick)")
+                                            "all: N random sets per bank besides it (default 5, 0 with --quick); "
+                                            "fusion: N random two-sense sets (default 5, 2 with --quick)")
     p.add_argument("--out", default="out", type=_output_folder, help="directory for CSV and PNG (default ./out)")
     p.add_argument("--json", action="store_true", help="print the figure's data as one JSON object instead of a table")
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")

@@ -87,3 +87,18 @@ def test_fusion_beats_each_sense_on_a_two_sense_set():
     assert w["early"] > best + 0.1 and w["late"] > best
     assert r["contact"]["early"] >= 0.95
     assert r == run_set(0, seconds=8.0, epochs=300, seed=0)             # deterministic given the seeds
+
+
+def test_experiment_fusion_on_the_command_line_writes_its_table_csv_and_plot(tmp_path, capsys):
+    import csv
+
+    from supramodal.node.cli import main
+
+    assert main(["experiment", "fusion", "--quick", "--sets", "1", "--epochs", "200", "--out", str(tmp_path),
+                 "--quiet"]) == 0
+    out = capsys.readouterr().out
+    assert "| early |" in out and "over the better single sense" in out
+    rows = list(csv.DictReader(open(tmp_path / "fusion.csv")))
+    assert [r["method"] for r in rows] == ["whiskers", "microphone", "late", "early"]
+    assert all(0.0 <= float(r["window_accuracy"]) <= 1.0 for r in rows)
+    assert main(["experiment", "fusion", "--sets", "0", "--out", str(tmp_path)]) == 2

@@ -10,6 +10,7 @@ late-fusion weight (:func:`supramodal.fusion.learn_late_weight`). Reported on th
 share of windows right, and the share of contacts right, a contact being a run of 10 test windows
 (1 s) pooled by summed log-posteriors.
 
+    supramodal experiment fusion [--quick] [--sets N] [--seed S] [--out DIR]
     python -m supramodal.experiments.fusion [--quick] [--sets N] [--seed S]
 """
 
@@ -94,6 +95,49 @@ def run_set(set_seed: int, seconds: float = 20.0, epochs: int = DEFAULT_EPOCHS, 
             "contact": {m: _pooled_accuracy(logs[m], y, per_texture) for m in METHODS}}
 
 
+def run_fusion(sets: int = 5, quick: bool = False, epochs: int = DEFAULT_EPOCHS, seed: int = 0,
+               progress=None) -> dict:
+    """:func:`run_set` over ``sets`` sets (seeds ``seed``, ``seed + 1``, ...); ``quick``: 8 s contacts
+    (default 20 s). Returns the per-set results and, per method, mean and sd over sets."""
+    seconds = 8.0 if quick else 20.0
+    t0 = time.perf_counter()
+    results = []
+    for k in range(sets):
+        r = run_set(seed + k, seconds, epochs, seed, progress)
+        results.append(r)
+        if progress:
+            progress(f"set {seed + k}: " + ", ".join(f"{m} {r['window'][m]:.3f}" for m in METHODS)
+                     + f" (late weight of the whiskers {r['late_weight']:.2f})")
+
+    def spread(values):
+        v = np.array(values)
+        return {"mean": float(v.mean()), "sd": float(v.std(ddof=1)) if len(v) > 1 else 0.0}
+
+    best = [max(r["window"]["whiskers"], r["window"]["microphone"]) for r in results]
+    return {"figure": "fusion", "seconds": seconds, "contact_windows": CONTACT_WINDOWS, "sets": results,
+            "summary": {m: {kind: spread([r[kind][m] for r in results]) for kind in ("window", "contact")}
+                        for m in METHODS},
+            "gain_over_better_sense": {m: spread([r["window"][m] - b for r, b in zip(results, best)])
+                                       for m in ("late", "early")},
+            "compute_seconds": time.perf_counter() - t0}
+
+
+def fusion_table(result: dict) -> str:
+    """The experiment's summary as Markdown."""
+    s = result["summary"]
+    lines = [f"{len(result['sets'])} two-sense sets of 8 textures, {result['seconds']:g} s contacts; test windows of "
+             f"100 ms and contacts of {result['contact_windows']} windows; mean +- sd over sets", "",
+             "| method | windows | contacts |", "|---|---|---|"]
+    for m in METHODS:
+        w, c = s[m]["window"], s[m]["contact"]
+        lines.append(f"| {m} | {w['mean']:.3f} +- {w['sd']:.3f} | {c['mean']:.3f} +- {c['sd']:.3f} |")
+    lines.append("")
+    for m, g in result["gain_over_better_sense"].items():
+        lines.append(f"{m} fusion over the better single sense, per window: {g['mean'] * 100:+.1f} points "
+                     f"(sd {g['sd'] * 100:.1f})")
+    return "\n".join(lines)
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m supramodal.experiments.fusion", description=__doc__.splitlines()[0])
     p.add_argument("--quick", action="store_true", help="8 s contacts and 2 sets (default: 20 s, --sets)")
@@ -101,29 +145,9 @@ def main(argv=None) -> int:
     p.add_argument("--seed", type=int, default=0, help="first set's seed and the networks' seed (default 0)")
     p.add_argument("--epochs", type=int, default=DEFAULT_EPOCHS, help=f"iRPROP- epochs (default {DEFAULT_EPOCHS})")
     args = p.parse_args(argv)
-    seconds, sets = (8.0, 2) if args.quick else (20.0, args.sets)
     progress = lambda m: print(m, file=sys.stderr, flush=True)    # noqa: E731
-    results = []
-    t0 = time.perf_counter()
-    for k in range(sets):
-        r = run_set(args.seed + k, seconds, args.epochs, args.seed, progress)
-        results.append(r)
-        progress(f"set {args.seed + k}: " + ", ".join(f"{m} {r['window'][m]:.3f}" for m in METHODS)
-                 + f" (late weight of the whiskers {r['late_weight']:.2f})")
-    print(f"{sets} two-sense sets of 8 textures, {seconds:g} s contacts; test windows of 100 ms and contacts of "
-          f"{CONTACT_WINDOWS} windows; mean +- sd over sets ({time.perf_counter() - t0:.0f} s)\n")
-    print("| method | windows | contacts |\n|---|---|---|")
-    for m in METHODS:
-        w = np.array([r["window"][m] for r in results])
-        c = np.array([r["contact"][m] for r in results])
-        print(f"| {m} | {w.mean():.3f} +- {w.std(ddof=1) if sets > 1 else 0:.3f} | "
-              f"{c.mean():.3f} +- {c.std(ddof=1) if sets > 1 else 0:.3f} |")
-    best_single = np.array([max(r["window"]["whiskers"], r["window"]["microphone"]) for r in results])
-    for m in ("late", "early"):
-        gain = np.array([r["window"][m] for r in results]) - best_single
-        print(f"\n{m} fusion over the better single sense, per window: {gain.mean() * 100:+.1f} points "
-              f"(min {gain.min() * 100:+.1f})", end="")
-    print()
+    result = run_fusion(2 if args.quick else args.sets, args.quick, args.epochs, args.seed, progress)
+    print(fusion_table(result))
     return 0
 
 

@@ -6,6 +6,8 @@ from __future__ import annotations
 import csv
 from pathlib import Path
 
+import numpy as np
+
 from supramodal.experiments.fig3 import PAPER_FIG3
 from supramodal.features import FEATURES
 
@@ -147,10 +149,12 @@ def write_figure(name: str, result: dict, out: Path) -> list[Path]:
         for r in result.get("random_sets", {}).values():
             written += write_fig3(r, out, suffix="_random")
         return written
-    writer = {"fig1": _write_fig1, "fig4": _write_fig4, "fig5": _write_fig5, "fig6": _write_fig6}[name]
+    writer = {"fig1": _write_fig1, "fig4": _write_fig4, "fig5": _write_fig5, "fig6": _write_fig6,
+              "fusion": _write_fusion}[name]
     paths = writer(result, out)
     if have_matplotlib():
-        plotter = {"fig1": _plot_fig1, "fig4": _plot_fig4, "fig5": _plot_fig5, "fig6": _plot_fig6}[name]
+        plotter = {"fig1": _plot_fig1, "fig4": _plot_fig4, "fig5": _plot_fig5, "fig6": _plot_fig6,
+                   "fusion": _plot_fusion}[name]
         paths.append(plotter(result, out / f"{name}.png"))
     return paths
 
@@ -163,6 +167,10 @@ def figure_table(name: str, result: dict) -> str:
         parts = [fig3_table(r) for r in result["banks"].values()]
         parts += [fig3_table(r) for r in result.get("random_sets", {}).values()]
         return "\n\n".join(parts)
+    if name == "fusion":
+        from supramodal.experiments.fusion import fusion_table
+
+        return fusion_table(result)
     return {"fig1": _table_fig1, "fig4": _table_fig4, "fig5": _table_fig5, "fig6": _table_fig6}[name](result)
 
 
@@ -323,4 +331,31 @@ def _plot_fig6(result: dict, path: Path) -> Path:
         ax.set_ylim(0, 1.02)
         ax.set_ylabel(f"mean classification rate ({result['feature']})")
         ax.grid(True, linewidth=0.3)
+    return _save(fig, path)
+
+
+# -- fusion of the two senses (beyond the paper) ---------------------------------------------------
+
+def _write_fusion(result: dict, out: Path) -> list[Path]:
+    rows = [(r["set_seed"], m, r["window"][m], r["contact"][m], r["late_weight"])
+            for r in result["sets"] for m in r["window"]]
+    return [_csv(out / "fusion.csv", ["set_seed", "method", "window_accuracy", "contact_accuracy",
+                                      "late_weight_of_whiskers"], rows)]
+
+
+def _plot_fusion(result: dict, path: Path) -> Path:
+    plt = _pyplot()
+    methods = list(result["summary"])
+    fig, ax = plt.subplots(figsize=(6, 3))
+    x = np.arange(len(methods))
+    for k, (kind, label) in enumerate((("window", "100 ms windows"), ("contact", "1 s contacts"))):
+        means = [result["summary"][m][kind]["mean"] for m in methods]
+        sds = [result["summary"][m][kind]["sd"] for m in methods]
+        ax.bar(x + (k - 0.5) * 0.38, means, 0.38, yerr=sds, capsize=3, label=label,
+               color=("0.45", "0.75")[k])
+    ax.set_xticks(x, methods)
+    ax.set_ylim(0, 1.05)
+    ax.set_ylabel("accuracy")
+    ax.set_title(f"two senses, {len(result['sets'])} random sets of 8 textures", fontsize=9)
+    ax.legend(fontsize=8, loc="lower right")
     return _save(fig, path)
