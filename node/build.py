@@ -13,7 +13,7 @@ import numpy as np
 from supramodal.node.band import warn_if_beyond_band
 from supramodal.node.graph import Labels, Node
 from supramodal.node.scene import Scene, SceneError
-from supramodal.node.sinks import make_sink
+from supramodal.node.sinks import QueuedSink, make_sink
 from supramodal.bankfile import BANK_KEYS, BankFileError, bank_from_description, load_bank
 from supramodal.banks import Bank
 from supramodal.errors import InputError
@@ -157,7 +157,8 @@ def build_node(scene: Scene, speed=None, sinks_override=None, progress=None, rec
         sinks = []
         for i, (s, p) in enumerate(zip(scene.sinks, paths)):
             try:
-                sinks.append(make_sink(s["type"], p, overwrite))
+                # Behind its own queue: processing never waits on a slow disk or a stalled terminal.
+                sinks.append(QueuedSink(make_sink(s["type"], p, overwrite)))
             except InputError as exc:
                 raise SceneError(f"{scene.source}: [[sink]] #{i + 1} path: {exc}") from None
     driver, labels, ts = driver_for(scene, bank, speed)

@@ -227,14 +227,14 @@ def _default_run_guide(scene, speed) -> list[str]:
 def _cmd_run(args) -> int:
     from supramodal.node.build import build_node
     from supramodal.node.scene import default_scene, load_scene, scene_to_toml
-    from supramodal.node.sinks import JsonLinesSink
+    from supramodal.node.sinks import JsonLinesSink, QueuedSink
 
     scene = load_scene(args.scene) if args.scene else default_scene()
     if args.print_scene:
         print(scene_to_toml(scene), end="")
         return 0
     _interrupt_until_running()
-    sinks = [JsonLinesSink("-")] if args.json else None
+    sinks = [QueuedSink(JsonLinesSink("-"))] if args.json else None
     progress = None if args.quiet else (lambda m: print(f"supramodal: {m}", file=sys.stderr, flush=True))
     if progress and args.scene is None:
         for line in _default_run_guide(scene, args.speed):

@@ -149,6 +149,9 @@ class Node:
         self.driver = driver
         self.pipeline = pipeline
         self.sinks = list(sinks)
+        for s in self.sinks:
+            if hasattr(s, "on_reader_left"):      # a queued sink whose reader may leave (`| head`)
+                s.on_reader_left = self._sink_reader_left
         self.model = model
         self.labels = labels if labels is not None else Labels.of(driver)
         self.map = channel_mapper(mapping, driver.channels, bank.channels)
@@ -220,6 +223,10 @@ class Node:
             while any(t.is_alive() for t in threads):
                 for t in threads:
                     t.join(0.1)
+        for s in self.sinks:
+            drain = getattr(s, "drain", None)     # a queued sink: let it take what it holds
+            if drain is not None:
+                drain()
         summary = self._summary(time.monotonic() - t0)
         for s in self.sinks:
             s.summary(summary)
@@ -228,6 +235,11 @@ class Node:
             where, exc = self._errors[0]
             raise NodeError(f"the {where} thread failed: {type(exc).__name__}: {exc}") from exc
         return summary
+
+    def _sink_reader_left(self, exc: BrokenPipeError) -> None:
+        """A sink's reader left: the stream has no one to go to; stop, and say why at the end."""
+        self._errors.append(("sink", exc))
+        self.stop("the reader of the output left")
 
     def _guard(self, where: str, target) -> None:
         try:
@@ -475,4 +487,5 @@ class Node:
             "ring": {k: v for k, v in ring.items() if isinstance(v, (int, float))},
             "stopped_by": self._stopped_by,
             "events": self._limiter.summary(),
+            "sinks": [s.stats() for s in self.sinks if hasattr(s, "stats")],
         }

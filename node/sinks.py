@@ -8,16 +8,20 @@ Threading rules
 ---------------
 ``emit`` is called from the node's processing thread, ``event`` (driver events)
 from its event thread, ``summary`` and ``close`` from the caller's thread once
-both have ended. A sink must not block for long (a file or a terminal is fine; a
-network peer would need its own thread); one writing ``emit`` and ``event`` to
-the same stream serialises them with its lock, held for one write.
+both have ended. One writing ``emit`` and ``event`` to the same stream serialises
+them with its lock, held for one write. A scene's sinks (and ``run --json``'s) run
+behind a :class:`QueuedSink`: on their own thread, behind a bounded queue, so
+that processing never waits on a sink; what a sink cannot take is dropped and
+counted in the summary (``sinks``).
 """
 
 from __future__ import annotations
 
 import json
+import queue
 import sys
 import threading
+import time
 from pathlib import Path
 from typing import TextIO
 
@@ -150,6 +154,11 @@ class TextSink(Sink):
             dropped = sum(s["events"].get("dropped", {}).values())
             lines.append("  driver events      " + ", ".join(f"{k} {n}" for k, n in counts.items())
                          + (f" ({dropped} not shown: dropped before the node took them)" if dropped else ""))
+        for q in s.get("sinks") or ():
+            if q["dropped_windows"] or q["dropped_events"] or q["errors"]:
+                lines.append(f"  sink               {q['sink']}: dropped {q['dropped_windows']} windows and "
+                             f"{q['dropped_events']} events it could not take"
+                             + (f", {q['errors']} errors (first: {q['first_error']})" if q["errors"] else ""))
         if s.get("stopped_by"):
             lines.append(f"  stopped by         {s['stopped_by']}")
         self._fh.write("\n".join(lines) + "\n")
@@ -189,6 +198,126 @@ class ListSink(Sink):
 
     def close(self) -> None:
         pass
+
+
+#: Items a sink's queue holds (:class:`QueuedSink`): 6.8 minutes of 100 ms windows.
+DEFAULT_SINK_QUEUE_ITEMS = 4096
+
+
+class QueuedSink:
+    """Runs a sink on its own thread, behind a bounded queue, so that processing never waits on it.
+
+    ``emit`` and ``event`` only put the item in the queue; when the queue is full (the sink is
+    slower than the stream: a slow disk, a stalled terminal, a network peer), the item is dropped
+    and counted. An exception from the sink is counted and the first one kept; the sink gets the
+    next items all the same. A ``BrokenPipeError`` (the reader of stdout left) ends the sink and
+    calls :attr:`on_reader_left`, which the node sets to stop the stream. :meth:`drain` waits (bounded) for the queue to empty at the end;
+    ``summary`` and ``close`` then run on the caller's thread, as for any sink.
+
+    Parameters
+    ----------
+    sink : Sink
+        The sink to run.
+    capacity : int
+        Items (window events and driver events) the queue holds (default
+        :data:`DEFAULT_SINK_QUEUE_ITEMS`).
+
+    Threading rules: ``emit`` and ``event`` may be called from any thread and never block;
+    :meth:`stats` is a snapshot, safe at any time.
+    """
+
+    def __init__(self, sink, capacity: int = DEFAULT_SINK_QUEUE_ITEMS) -> None:
+        if isinstance(capacity, bool) or not isinstance(capacity, int) or capacity < 1:
+            raise InputError(f"a sink queue holds at least 1 item, got capacity {capacity!r}")
+        self.sink = sink
+        self.path = getattr(sink, "path", None)
+        self._queue: queue.Queue = queue.Queue(maxsize=capacity)
+        self._dropped = {"windows": 0, "events": 0}
+        self._errors = 0
+        self._first_error: str | None = None
+        self._written = 0
+        self._lock = threading.Lock()
+        #: The BrokenPipeError that ended the sink (its reader left), else None.
+        self.reader_left: BrokenPipeError | None = None
+        #: Called (on the sink's thread) with that error; the node sets it to stop.
+        self.on_reader_left = None
+        self._thread = threading.Thread(target=self._run, name=f"sink-{type(sink).__name__}", daemon=True)
+        self._thread.start()
+
+    def emit(self, event: dict) -> None:
+        self._put("emit", event, "windows")
+
+    def event(self, ev: DriverEvent) -> None:
+        self._put("event", ev, "events")
+
+    def _put(self, method: str, item, kind: str) -> None:
+        try:
+            self._queue.put_nowait((method, item))
+        except queue.Full:
+            with self._lock:
+                self._dropped[kind] += 1
+
+    def _run(self) -> None:
+        while True:
+            item = self._queue.get()
+            if item is None:
+                return
+            method, payload = item
+            try:
+                target = getattr(self.sink, method, None)
+                if target is not None:
+                    target(payload)
+                with self._lock:
+                    self._written += 1
+            except BrokenPipeError as exc:  # the reader of stdout left (`| head`): nothing more to write
+                self.reader_left = exc
+                if self.on_reader_left is not None:
+                    self.on_reader_left(exc)
+                return
+            except Exception as exc:       # the sink's failure is counted, never the stream's
+                with self._lock:
+                    self._errors += 1
+                    if self._first_error is None:
+                        self._first_error = f"{type(exc).__name__}: {exc}"
+
+    def drain(self, timeout: float = 5.0) -> None:
+        """Let the sink take what is queued, for at most ``timeout`` seconds; what it has not taken
+        by then is dropped and counted. Call once, after the last ``emit`` and ``event``."""
+        deadline = time.monotonic() + timeout
+        while self._thread.is_alive():
+            try:
+                self._queue.put(None, timeout=max(0.0, deadline - time.monotonic()))
+                break
+            except queue.Full:
+                break
+        self._thread.join(max(0.0, deadline - time.monotonic()))
+        while True:                        # what the sink did not take in time
+            try:
+                item = self._queue.get_nowait()
+            except queue.Empty:
+                break
+            if item is not None:
+                with self._lock:
+                    self._dropped["windows" if item[0] == "emit" else "events"] += 1
+
+    def stats(self) -> dict:
+        """``{"sink", "written", "dropped_windows", "dropped_events", "errors", "first_error"}``."""
+        with self._lock:
+            return {"sink": type(self.sink).__name__ + (f" {self.path}" if self.path not in (None, "-") else ""),
+                    "written": self._written, "dropped_windows": self._dropped["windows"],
+                    "dropped_events": self._dropped["events"], "errors": self._errors,
+                    "first_error": self._first_error}
+
+    def summary(self, summary: dict) -> None:
+        self.sink.summary(summary)
+
+    def close(self) -> None:
+        if self._thread.is_alive():
+            try:
+                self._queue.put_nowait(None)     # end the worker (it ends at once if drained)
+            except queue.Full:
+                pass                             # a sink stuck for good: its daemon thread is left
+        self.sink.close()
 
 
 SINKS = {"text": TextSink, "jsonl": JsonLinesSink}

@@ -83,21 +83,22 @@ def test_a_planted_bug_shows_its_traceback(monkeypatch, tmp_path, capsys, plante
     assert "supramodal: error:" not in err
 
 
-@pytest.mark.parametrize("raised, one_line", [(InputError("the sink refused it"), True),
+@pytest.mark.parametrize("raised, one_line", [(InputError("the pipeline refused it"), True),
                                               (ValueError("unexpected in a thread"), False)])
 def test_an_error_in_a_node_thread(monkeypatch, replay_scene, capsys, raised, one_line):
-    """A SupramodalError from a thread stays one line; any other exception there is a bug with its traceback."""
-    from supramodal.node.sinks import JsonLinesSink
+    """A SupramodalError from a thread stays one line; any other exception there is a bug with its traceback.
+    (A sink's own failures are counted, not raised: tests/test_node.py.)"""
+    from supramodal.pipeline import FeaturePipeline
 
-    def emit(self, event):
+    def process(self, block):
         raise raised
 
-    monkeypatch.setattr(JsonLinesSink, "emit", emit)
+    monkeypatch.setattr(FeaturePipeline, "process", process)
     rc = main(["run", str(replay_scene), "--json", "--quiet", "--speed", "max", "--seconds", "5"])
     err = capsys.readouterr().err
     if one_line:
         assert rc == 2 and "Traceback" not in err
-        assert _lines(err) == ["supramodal: error: the processing thread failed: InputError: the sink refused it"]
+        assert _lines(err) == ["supramodal: error: the processing thread failed: InputError: the pipeline refused it"]
     else:
         assert rc == cli.EXIT_BUG
         assert "Traceback" in err and "raise raised" in err and "ValueError: unexpected in a thread" in err

@@ -7,6 +7,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -494,3 +495,57 @@ def test_nonfinite_and_out_of_range_samples_are_replaced_counted_and_reported(tm
     got = np.array([e["features"]["Af"] for e in listed.events])
     assert got.shape == ref[:, 0].shape
     assert relative_error(got, ref[:, 0]) <= 1e-12
+
+
+# -- sinks that block or fail never stall processing --------------------------------------------
+
+class _BlockingSink:
+    """A sink stuck on its first window until released (a stalled disk or network peer)."""
+
+    def __init__(self):
+        self.release = threading.Event()
+        self.windows = 0
+        self.path = None
+
+    def emit(self, event):
+        self.release.wait()
+        self.windows += 1
+
+    def summary(self, summary):
+        self.final = summary
+
+    def close(self):
+        pass
+
+
+class _FailingSink(_BlockingSink):
+    def emit(self, event):
+        self.windows += 1
+        raise OSError("No space left on device")
+
+
+def test_a_sink_that_blocks_or_fails_never_stalls_processing():
+    """A replay at full speed with three sinks: one stuck for the whole run behind a small queue,
+    one raising on every window, one plain. The plain one gets every window, the run ends at
+    once, and the summary counts what the stuck one dropped and what the failing one raised."""
+    from supramodal.node.sinks import QueuedSink
+
+    x = np.random.default_rng(0).standard_normal(5000 * 20) * 0.3       # 20 s: 200 windows
+    stuck, failing, plain = _BlockingSink(), _FailingSink(), ListSink()
+    sinks = [QueuedSink(stuck, capacity=8), QueuedSink(failing), plain]
+    node = Node(ReplayDriver((x, 5000.0), speed="max", block_size=50, on_notice=None),
+                FeaturePipeline(whisker_bank(), ("Af",)), sinks)
+    result = {}
+    runner = threading.Thread(target=lambda: result.update(summary=node.run()), daemon=True)
+    runner.start()
+    runner.join(120)            # a node waiting on the stuck sink would never end: the sink is never released
+    assert not runner.is_alive(), "processing waited on a stuck sink"
+    stuck.release.set()
+    summary = result["summary"]
+    assert len(plain.events) == summary["windows"] == 200
+    q_stuck, q_failing = summary["sinks"]
+    # the stuck sink held one window in its call and 8 in its queue; every other window was dropped
+    assert q_stuck["dropped_windows"] + q_stuck["written"] <= 200 and q_stuck["dropped_windows"] >= 200 - 9
+    assert q_failing["errors"] == 200 and "No space left on device" in q_failing["first_error"]
+    assert q_failing["dropped_windows"] == 0
+    assert plain.final["sinks"] == summary["sinks"]
