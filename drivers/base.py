@@ -113,6 +113,9 @@ class DriverEvent:
     count : int, default 1
         Occurrences this event stands for: more than 1 when a rate limiter
         folded repeats of the same kind into it (its message is the latest).
+    source : str or None
+        The name of the source whose driver it came from, where a node runs
+        several (set by the node; a driver leaves it None).
     """
 
     kind: str
@@ -120,11 +123,15 @@ class DriverEvent:
     time: float
     stream_index: int | None = None
     count: int = 1
+    source: str | None = None
 
     def as_dict(self) -> dict:
         """The event as a JSON-ready dict: ``{"event": kind, "message": ..., ...}``."""
-        return {"event": self.kind, "message": self.message, "time": round(self.time, 3),
-                "stream_index": self.stream_index, "count": self.count}
+        out = {"event": self.kind, "message": self.message, "time": round(self.time, 3),
+               "stream_index": self.stream_index, "count": self.count}
+        if self.source is not None:
+            out["source"] = self.source
+        return out
 
 
 class EventLog:

@@ -1,4 +1,4 @@
-"""Scene -> Node: the one place that knows which driver, bank, model and sinks a scene means.
+"""Scene -> Node or Graph: the one place that knows which drivers, banks, models and sinks a scene means.
 
 Only what a scene needs is imported or built: a scene without a microphone never
 imports sounddevice, one without a serial port never imports pyserial, features
@@ -11,8 +11,10 @@ from __future__ import annotations
 import numpy as np
 
 from supramodal.node.band import warn_if_beyond_band
-from supramodal.node.graph import Labels, Node
-from supramodal.node.scene import Scene, SceneError
+from supramodal.node.graph import Graph, Node
+from supramodal.node.sources import Source
+from supramodal.node.streams import Labels, Stream
+from supramodal.node.scene import LEARN, Scene, SceneError
 from supramodal.node.sinks import QueuedSink, make_sink
 from supramodal.bankfile import BANK_KEYS, BankFileError, bank_from_description, load_bank
 from supramodal.banks import Bank
@@ -92,13 +94,38 @@ def synth_session(scene: Scene, bank: Bank):
     return ts, np.concatenate(parts)[:, None], Labels(labels)
 
 
-def train_on_texture_set(ts, pipeline: FeaturePipeline, progress=None) -> TextureModel:
+def twosense_session(scene: Scene, bank: Bank):
+    """A two-sense source's signal: one sense of the two-sense world (supramodal.twosense), each
+    texture for ``seconds`` in ``order``, from contacts the model trained on the spot never met;
+    returns ``(the sense's training set, signal (samples, 1), labels)``."""
+    from supramodal.twosense import OneSense, two_sense_set
+
+    d = scene.driver
+    surfaces = two_sense_set(d["pairs"], d["set_seed"])
+    train = OneSense(surfaces, d["sense"], seed=d["set_seed"])
+    if abs(train.fs - bank.fs) > 1e-9 * bank.fs:
+        raise SceneError(f"{scene.source}: [driver] sense {d['sense']!r} is sampled at {train.fs:g} Hz, the bank at "
+                         f"{bank.fs:g} Hz: give the whiskers a whisker bank and the microphone a cochlea bank")
+    order = d["order"] or list(train.names)
+    unknown = [n for n in order if n not in train.names]
+    if unknown:
+        raise SceneError(f"{scene.source}: [driver] order: unknown texture(s) {unknown}; the set has {list(train.names)}")
+    played = OneSense(surfaces, d["sense"], d["seconds"], d["set_seed"], take=1)
+    parts = [played.synthesize(train.names.index(name)) for name in order]
+    labels = [(k * d["seconds"], (k + 1) * d["seconds"], name) for k, name in enumerate(order)]  # stream time
+    return train, np.concatenate(parts)[:, None], Labels(labels)
+
+
+def train_on_texture_set(ts, pipeline: FeaturePipeline, progress=None, held_out: list | None = None) -> TextureModel:
     """The model the default scene trains on the spot: Fig. 3's training part of each texture,
-    computed with the scene's own pipeline settings."""
+    computed with the scene's own pipeline settings. ``held_out``, a list, receives the held-out
+    part ``(x_test, y_test)`` (windows the model never saw: a fusion weight is learned on them)."""
     p = pipeline
     values, _ = texture_features(ts, p.bank, p.features, p.window, peak_mode=p.peaks.mode,
                                  peak_threshold=p.peaks.threshold)
-    x_train, y_train, _, _ = split(values)
+    x_train, y_train, x_test, y_test = split(values)
+    if held_out is not None:
+        held_out.append((x_test, y_test))
     if progress:
         progress(f"trained on {len(x_train)} windows of {len(ts.textures)} textures ({', '.join(p.features)})")
     return TextureModel.train_for(p, x_train, y_train, ts.names, seed=0)
@@ -108,7 +135,7 @@ def driver_for(scene: Scene, bank: Bank, speed_override=None):
     """Build the scene's driver; returns ``(driver, labels, texture_set_or_None)``."""
     d = scene.driver
     kind = d["type"]
-    if kind in ("synth", "replay"):
+    if kind in ("synth", "replay", "twosense"):
         # Speed and block size: the replay driver's defaults unless the scene or --speed sets them.
         replay = _given({**d, "speed": speed_override if speed_override is not None else d["speed"]},
                         {"speed": "speed", "block": "block_size"})
@@ -128,6 +155,11 @@ def driver_for(scene: Scene, bank: Bank, speed_override=None):
                            on_notice=None, **replay)  # notices reach the sinks as events
         warn_if_beyond_band(bank, drv.source_rate, f"{scene.source}: [driver] path {d['path']}")
         return drv, Labels.of(drv), None
+    if kind == "twosense":
+        from supramodal.replay.driver import ReplayDriver
+
+        ts, data, labels = twosense_session(scene, bank)
+        return ReplayDriver((data, bank.fs), on_notice=None, **replay), labels, ts
     if kind == "serial":
         from supramodal.drivers.serial_whisker import SerialWhiskerDriver
 
@@ -142,26 +174,29 @@ def driver_for(scene: Scene, bank: Bank, speed_override=None):
     raise SceneError(f"{scene.source}: [driver] type {kind!r} is not supported")
 
 
-def build_node(scene: Scene, speed=None, sinks_override=None, progress=None, recorder=None,
-               overwrite: bool = False) -> Node:
-    """Everything a scene describes, wired and ready to :meth:`Node.run`.
+def _sinks_for(scene: Scene, sinks_override, overwrite: bool):
+    """The scene's sinks (each behind its own queue) and the streams each listens to."""
+    if sinks_override is not None:
+        return list(sinks_override), None
+    sinks, routes = [], []
+    for i, s in enumerate(scene.sinks):
+        path = s["path"] if s["path"] == "-" else str(scene.resolve(s["path"]))
+        try:
+            # Behind its own queue: processing never waits on a slow disk or a stalled terminal.
+            sinks.append(QueuedSink(make_sink(s["type"], path, overwrite)))
+        except InputError as exc:
+            for made in sinks:
+                made.close()
+            raise SceneError(f"{scene.source}: [[sink]] #{i + 1} path: {exc}") from None
+        listens = s.get("from")
+        routes.append(None if listens is None else {listens} if isinstance(listens, str) else set(listens))
+    return sinks, routes
 
-    ``overwrite``: whether the scene's file sinks may replace existing files (``run --force``).
-    Sink files are checked here, before any training, and created only when first written.
-    """
-    bank = bank_for(scene)
-    pipeline = pipeline_for(scene, bank)
-    paths = [s["path"] if s["path"] == "-" else str(scene.resolve(s["path"])) for s in scene.sinks]
-    sinks = sinks_override
-    if sinks is None:
-        sinks = []
-        for i, (s, p) in enumerate(zip(scene.sinks, paths)):
-            try:
-                # Behind its own queue: processing never waits on a slow disk or a stalled terminal.
-                sinks.append(QueuedSink(make_sink(s["type"], p, overwrite)))
-            except InputError as exc:
-                raise SceneError(f"{scene.source}: [[sink]] #{i + 1} path: {exc}") from None
-    driver, labels, ts = driver_for(scene, bank, speed)
+
+def _model_for(scene: Scene, bank: Bank, pipeline: FeaturePipeline, ts, progress,
+               held_out: list | None = None) -> TextureModel | None:
+    """The scene's model: trained on the spot (its held-out windows appended to ``held_out``),
+    or loaded; checked against the pipeline."""
     model = None
     m = scene.model
     if m["train_on_start"]:
@@ -174,7 +209,7 @@ def build_node(scene: Scene, speed=None, sinks_override=None, progress=None, rec
             if abs(ts.fs - bank.fs) > 1e-9 * bank.fs:
                 raise SceneError(f"{scene.source}: [model] train_on_start: the {bank.kind} reference textures are "
                                  f"at {ts.fs:g} Hz, the bank at {bank.fs:g} Hz; give a [model] path instead")
-        model = train_on_texture_set(ts, pipeline, progress)
+        model = train_on_texture_set(ts, pipeline, progress, held_out)
         if m["path"] is not None:
             model.save(scene.resolve(m["path"]))
     elif m["path"] is not None:
@@ -184,16 +219,115 @@ def build_node(scene: Scene, speed=None, sinks_override=None, progress=None, rec
             model.check_pipeline(pipeline)
         except ModelError as exc:
             raise SceneError(f"{scene.source}: [model] {exc}") from None
-    mapping = scene.driver.get("mapping", "auto")
+    return model
+
+
+def _overrun(scene: Scene) -> str:
+    """The ring's policy: "auto" is lossless back-pressure for files, drop-oldest for live drivers."""
     overrun = scene.buffer["overrun"]
     if overrun == "auto":
-        overrun = "block" if scene.driver["type"] in ("replay", "synth") else "drop-oldest"
+        overrun = "block" if scene.driver["type"] in ("replay", "synth", "twosense") else "drop-oldest"
+    return overrun
+
+
+def _timebase(scene: Scene) -> str:
+    """Files keep their own time; a live driver's samples are put on host time by a clock model."""
+    return "stream" if scene.driver["type"] in ("replay", "synth", "twosense") else "host"
+
+
+def build_node(scene: Scene, speed=None, sinks_override=None, progress=None, recorder=None,
+               overwrite: bool = False) -> Graph:
+    """Everything a scene describes, wired and ready to :meth:`Graph.run`.
+
+    ``overwrite``: whether the scene's file sinks may replace existing files (``run --force``).
+    Sink files are checked here, before any training, and created only when first written.
+    A one-source scene gives a :class:`Node`; a scene in the graph form a :class:`Graph`.
+    """
+    if scene.is_graph:
+        return _build_graph(scene, speed, sinks_override, progress, recorder, overwrite)
+    bank = bank_for(scene)
+    pipeline = pipeline_for(scene, bank)
+    sinks, _ = _sinks_for(scene, sinks_override, overwrite)
+    driver, labels, ts = driver_for(scene, bank, speed)
+    model = _model_for(scene, bank, pipeline, ts, progress)
     try:
-        return Node(driver, pipeline, sinks, model=model, decision=scene.decision, mapping=mapping, labels=labels,
-                    buffer_seconds=scene.buffer["seconds"], overrun=overrun, recorder=recorder)
+        return Node(driver, pipeline, sinks, model=model, decision=scene.decision,
+                    mapping=scene.driver.get("mapping", "auto"), labels=labels,
+                    buffer_seconds=scene.buffer["seconds"], overrun=_overrun(scene), recorder=recorder,
+                    timebase=_timebase(scene))
     except ValueError as exc:
         # A refused scene leaves nothing behind: its sinks have written nothing, so no file exists.
         if sinks_override is None:
             for sink in sinks:
                 sink.close()
         raise SceneError(f"{scene.source}: {exc}") from None
+
+
+def _learned_weight(scene: Scene, a: Stream, b: Stream, held_out: dict, progress) -> float:
+    """The late-fusion weight learned on both models' held-out training windows (aligned: the two
+    senses of the same training contacts), as ``experiment fusion`` learns it."""
+    from supramodal.fusion import learn_late_weight
+
+    if not (held_out[a.name] and held_out[b.name]):
+        raise SceneError(f"{scene.source}: [fusion] weight = \"{LEARN}\" needs both streams' models trained on the "
+                         "spot (train_on_start) on the same textures; give a number instead")
+    (xa, ya), (xb, yb) = held_out[a.name][0], held_out[b.name][0]
+    if a.model.classes != b.model.classes or len(xa) != len(xb) or not np.array_equal(ya, yb):
+        raise SceneError(f"{scene.source}: [fusion] weight = \"{LEARN}\": the two streams were not trained on the two "
+                         "senses of the same contacts (a two-sense set); give a number instead")
+    weight = learn_late_weight(a.model.outputs(xa), b.model.outputs(xb), ya)
+    if progress:
+        progress(f"fusion: learned weight {weight:.2f} of {a.name} (and {1 - weight:.2f} of {b.name}) "
+                 f"on {len(ya)} held-out training windows")
+    return weight
+
+
+def _build_graph(scene: Scene, speed, sinks_override, progress, recorder, overwrite: bool) -> Graph:
+    from supramodal.node.fusion import LateFusion
+
+    if recorder is not None:
+        raise SceneError(f"{scene.source}: recording a scene of several sources is not supported yet; record "
+                         "each source with a one-source scene")
+    sinks, routes = _sinks_for(scene, sinks_override, overwrite)
+    try:
+        sources: dict[str, tuple[Source, Labels, object]] = {}
+        streams = []
+        held_out: dict[str, list] = {}          # stream -> [(x_test, y_test)] of a model trained on the spot
+        for spec in scene.streams:
+            sub = spec.scene
+            bank = bank_for(sub)
+            pipeline = pipeline_for(sub, bank)
+            if spec.source not in sources:      # one driver per source, whatever reads it
+                driver, labels, ts = driver_for(sub, bank, speed)
+                source = Source(spec.source, driver, sub.buffer["seconds"], _overrun(sub), _timebase(sub),
+                                time_offset=sub.driver.get("offset", 0.0))
+                sources[spec.source] = (source, labels, ts)
+            source, labels, ts = sources[spec.source]
+            held_out[spec.name] = []
+            model = _model_for(sub, bank, pipeline, ts, progress, held_out[spec.name])
+            try:
+                streams.append(Stream(spec.name, source, pipeline, model, sub.decision,
+                                      sub.driver.get("mapping", "auto"), labels))
+            except ValueError as exc:
+                raise SceneError(f"{sub.source}: {exc}") from None
+        fusion = None
+        f = scene.fusion
+        if f is not None:
+            a, b = (next(s for s in streams if s.name == n) for n in f["streams"])
+            weight = f["weight"]
+            if weight == LEARN:
+                weight = _learned_weight(scene, a, b, held_out, progress)
+            try:
+                # Two files keep their own time: waiting on the host's clock would make their
+                # fused decisions depend on how fast this machine runs them.
+                files = a.source.timebase == b.source.timebase == "stream"
+                fusion = LateFusion((a.name, b.name), (a.model.classes, b.model.classes), weight,
+                                    None if files else f["max_wait"], f["decision"])
+            except ValueError as exc:
+                raise SceneError(f"{scene.source}: [fusion] {exc}") from None
+        return Graph([s for s, _, _ in sources.values()], streams, sinks, routes=routes, fusion=fusion)
+    except BaseException:
+        if sinks_override is None:              # a refused scene leaves no file behind
+            for sink in sinks:
+                sink.close()
+        raise

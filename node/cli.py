@@ -224,6 +224,22 @@ def _default_run_guide(scene, speed) -> list[str]:
     ]
 
 
+def _scene_line(scene) -> str:
+    """What a scene runs, in one line: driver, bank, features and window (per stream, and the
+    fusion, for a scene of several sources)."""
+    def one(sub) -> str:
+        bank = (f"the bank of {sub.bank['file']}" if sub.bank["file"] is not None else f"{sub.bank['kind']} bank")
+        return f"{bank}, features {sub.features['names']}, {sub.features['window']:g} s windows"
+
+    if not scene.is_graph:
+        return f"scene {scene.source}: {scene.driver['type']} driver, {one(scene)}"
+    parts = [f"stream {s.name}: {s.scene.driver['type']} source {s.source}, {one(s.scene)}" for s in scene.streams]
+    if scene.fusion is not None:
+        f = scene.fusion
+        parts.append(f"fused: {f['streams'][0]} and {f['streams'][1]} ({f['method']}, weight {f['weight']})")
+    return f"scene {scene.source}: " + "; ".join(parts)
+
+
 def _cmd_run(args) -> int:
     from supramodal.node.build import build_node
     from supramodal.node.scene import default_scene, load_scene, scene_to_toml
@@ -240,10 +256,7 @@ def _cmd_run(args) -> int:
         for line in _default_run_guide(scene, args.speed):
             progress(line)
     elif progress:
-        bank = (f"the bank of {scene.bank['file']}" if scene.bank["file"] is not None
-                else f"{scene.bank['kind']} bank")
-        progress(f"scene {scene.source}: {scene.driver['type']} driver, {bank}, features {scene.features['names']}, "
-                 f"{scene.features['window']:g} s windows")
+        progress(_scene_line(scene))
     node = build_node(scene, speed=args.speed, sinks_override=sinks, progress=progress, overwrite=args.force)
     _stop_on_signals(node)
     node.run(max_seconds=args.seconds)

@@ -207,6 +207,11 @@ class ClockModel:
         self._offset = t0 + icpt - n0 * slope
         self._fitted = True
 
+    def line(self) -> tuple[float, float]:
+        """``(offset, slope)``: host time of sample 0, seconds, and seconds per sample (cheaper
+        than :meth:`estimate`, for a caller that maps many indices)."""
+        return self._offset, self._slope
+
     def time_of(self, index):
         """Host monotonic time of sample ``index`` (scalar or array), seconds."""
         return self._offset + np.asarray(index, dtype=np.float64) * self._slope if np.ndim(index) else \

@@ -1,4 +1,5 @@
-"""Driver events on their way to the sinks: rate-limited per kind, counted exactly.
+"""What the node tells its sinks: window results (:class:`WindowEvent`, one typed event per window
+and stream) and driver events on their way to the sinks, rate-limited per kind, counted exactly.
 
 Threading rules
 ---------------
@@ -10,7 +11,9 @@ from __future__ import annotations
 
 import time
 from collections import Counter, deque
-from dataclasses import replace
+from dataclasses import dataclass, replace
+
+import numpy as np
 
 from supramodal.drivers.base import DriverEvent
 
@@ -39,26 +42,28 @@ class EventLimiter:
         self.interval = float(interval)
         self.burst = int(burst)
         self._clock = clock
-        self._passed: dict[str, deque] = {}  # kind -> when its last (up to burst) events passed
-        self._held: dict[str, DriverEvent] = {}  # kind -> latest held event, count = occurrences held
-        self.counts: Counter = Counter()  # kind -> occurrences seen (dropped ones included)
-        self.dropped: Counter = Counter()  # kind -> occurrences a driver dropped before we saw them
+        # keys: kind, or source/kind for events that name their source
+        self._passed: dict[str, deque] = {}  # key -> when its last (up to burst) events passed
+        self._held: dict[str, DriverEvent] = {}  # key -> latest held event, count = occurrences held
+        self.counts: Counter = Counter()  # key -> occurrences seen (dropped ones included)
+        self.dropped: Counter = Counter()  # key -> occurrences a driver dropped before we saw them
 
     def add(self, ev: DriverEvent) -> DriverEvent | None:
         """Take one event; return what to show now (it, carrying any held back), or None."""
-        self.counts[ev.kind] += ev.count
+        key = _key(ev.source, ev.kind)
+        self.counts[key] += ev.count
         now = self._clock()
-        held = self._held.pop(ev.kind, None)
+        held = self._held.pop(key, None)
         if held is not None:
             ev = replace(ev, count=ev.count + held.count)
-        if self._room(ev.kind, now):
+        if self._room(key, now):
             return ev
-        self._held[ev.kind] = ev
+        self._held[key] = ev
         return None
 
-    def _room(self, kind: str, now: float) -> bool:
-        """May an event of ``kind`` pass now? If so, note that it does."""
-        passed = self._passed.setdefault(kind, deque())
+    def _room(self, key: str, now: float) -> bool:
+        """May an event of ``key`` pass now? If so, note that it does."""
+        passed = self._passed.setdefault(key, deque())
         while passed and now - passed[0] >= self.interval:
             passed.popleft()
         if len(passed) >= self.burst:
@@ -66,19 +71,17 @@ class EventLimiter:
         passed.append(now)
         return True
 
-    def add_dropped(self, dropped: dict[str, int]) -> None:
+    def add_dropped(self, dropped: dict[str, int], source: str | None = None) -> None:
         """Count events a driver's bounded log dropped (per kind) before they were taken."""
         for kind, n in dropped.items():
-            self.counts[kind] += n
-            self.dropped[kind] += n
+            self.counts[_key(source, kind)] += n
+            self.dropped[_key(source, kind)] += n
 
     def due(self) -> list[DriverEvent]:
         """Held events whose kind's interval is over: show them now."""
         now = self._clock()
-        out = [ev for kind, ev in self._held.items() if self._room(kind, now)]
-        for ev in out:
-            del self._held[ev.kind]
-        return out
+        keys = [key for key in self._held if self._room(key, now)]
+        return [self._held.pop(key) for key in keys]
 
     def flush(self) -> list[DriverEvent]:
         """Every held event, whatever the time (the stream has ended)."""
@@ -87,5 +90,96 @@ class EventLimiter:
         return out
 
     def summary(self) -> dict:
-        """``{"counts": {kind: occurrences}, "dropped": {kind: n}}`` for the node's summary."""
+        """``{"counts": {kind: occurrences}, "dropped": {kind: n}}`` for the node's summary (kinds
+        named ``source/kind`` for events that name their source)."""
         return {"counts": dict(sorted(self.counts.items())), "dropped": dict(sorted(self.dropped.items()))}
+
+
+#: The name of a one-source scene's stream (events carry it in ``stream``).
+MAIN_STREAM = "main"
+#: The name of the fusion block's stream.
+FUSED_STREAM = "fused"
+
+
+def _key(source: str | None, kind: str) -> str:
+    """Events are limited and counted per source and kind."""
+    return kind if source is None else f"{source}/{kind}"
+
+
+@dataclass(frozen=True)
+class WindowEvent:
+    """One window's result on one stream: what every sink receives per window.
+
+    Attributes
+    ----------
+    stream : str
+        The stream's name (a scene's ``[[stream]] name``; ``"main"`` for a one-source scene,
+        ``"fused"`` for the fusion block's decisions).
+    window : int
+        Window number on that stream, from 0.
+    start, end : float
+        The window's first sample and the sample after its last, seconds on the graph's common
+        clock (see :mod:`supramodal.node.sources`; for a one-source scene, stream time).
+    t : float
+        End of the window in the stream's own time, seconds (``(window + 1) * W / fs``).
+    features : dict of str to ndarray, or None
+        Per feature, the window's values over the channels; None on a fused event.
+    posteriors : ndarray or None
+        Normalised class posteriors (a model's, or the fused ones); None without a model.
+    decision : str or None
+        The winning class (winner-take-all over ``posteriors``).
+    confidence : float or None
+        Its posterior.
+    pooled : dict or None
+        The decision pooled over windows (``{"label", "confidence", "windows"}``), with a
+        ``[decision] scope`` other than ``"window"``.
+    truth : str or None
+        The texture really there, where the source carries labels.
+    flags : frozenset of str
+        ``"gap"`` (frames filled or lost), ``"restart"``, ``"overrun"`` (the driver's marks);
+        on a fused event also ``"alone"`` (one sense decided: the other's window did not come
+        in time or its source is down).
+    latency_ms : float or None
+        Host time from the arrival of the block that completed the window to the event, ms.
+    senses : tuple of str
+        The streams a fused decision used; ``()`` on a stream's own event.
+    in_contact : bool
+        Whether the contact detector saw a touch in the window (True without one); a fused
+        event is in contact when either sense is.
+    """
+
+    stream: str
+    window: int
+    start: float
+    end: float
+    t: float
+    features: dict | None = None
+    posteriors: np.ndarray | None = None
+    decision: str | None = None
+    confidence: float | None = None
+    pooled: dict | None = None
+    truth: str | None = None
+    flags: frozenset = frozenset()
+    latency_ms: float | None = None
+    senses: tuple = ()
+    in_contact: bool = True
+
+    def as_dict(self) -> dict:
+        """The event as a JSON-ready dict: ``{"stream", "t", "window", "start", "end"}``, then
+        ``predicted`` and ``confidence`` (and ``accumulated``, the pooled decision) with a
+        model, else ``features``; ``truth``, each flag as ``true``, ``latency_ms``."""
+        out = {"stream": self.stream, "t": round(self.t, 6), "window": self.window,
+               "start": round(self.start, 6), "end": round(self.end, 6)}
+        if self.decision is not None:
+            out.update(predicted=self.decision, confidence=round(self.confidence, 4))
+            if self.pooled is not None:
+                out["accumulated"] = self.pooled
+        elif self.features is not None:
+            out["features"] = {name: np.asarray(v).tolist() for name, v in self.features.items()}
+        if self.senses:
+            out["senses"] = list(self.senses)
+        out["truth"] = self.truth
+        for flag in sorted(self.flags):
+            out[flag] = True
+        out["latency_ms"] = self.latency_ms
+        return out

@@ -9,7 +9,7 @@ naming the key. Nothing in a scene is executed.
 Example (the embedded default is ``default_scene()``)::
 
     [driver]
-    type = "replay"            # replay | synth | serial | microphone
+    type = "replay"            # replay | synth | twosense | serial | microphone
     path = "session.wav"       # replay: WAV file or recorded session
     speed = 1.0                # replay/synth: 1.0 real time (default), 2.0 twice as fast, "max"
     block = 50                 # frames per block (default: 10 ms)
@@ -48,6 +48,8 @@ from supramodal.decisions import (DEFAULT_CONTACT_THRESHOLD, DEFAULT_METHOD, DEF
                                   SCOPES)
 from supramodal.errors import InputError
 from supramodal.features import DEFAULT_WINDOW, FEATURE_TABLE, FEATURES
+from supramodal.node.events import FUSED_STREAM, MAIN_STREAM
+from supramodal.node.fusion import DEFAULT_MAX_WAIT, DEFAULT_WEIGHT
 from supramodal.peaks import DEFAULT_PEAK_MODE, PEAK_MODES
 
 
@@ -127,6 +129,19 @@ DRIVER_KEYS = {
         "block": (_int_min(1), "frames per block, an integer >= 1 (default: the replay driver's)", None),
         "held_out": (lambda v: isinstance(v, bool), "true or false", True),
     },
+    "twosense": {
+        "sense": (_one_of("whiskers", "microphone"), '"whiskers" or "microphone": which side of the two-sense '
+                                                      'world this source plays', REQUIRED),
+        "set_seed": (_int_min(0), "the two-sense set's seed, an integer >= 0", 0),
+        "pairs": (_int_min(1), "heard pairs and felt pairs in the set, an integer >= 1", 2),
+        "seconds": (_positive, "seconds per texture, > 0", 10.0),
+        "order": (_texture_list, "a list of texture names", None),
+        "offset": (_non_negative, "seconds after the graph's start at which this source's first sample is "
+                                  "taken, >= 0", 0.0),
+        "speed": (is_speed, SPEED_HELP + " (default: the replay driver's)", None),
+        "block": (_int_min(1), "frames per block, an integer >= 1 (default: the replay driver's)", None),
+        "mapping": (_mapping, '"auto", "mono", "per-channel", "mean" or a channel index', "auto"),
+    },
     "serial": {
         "port": (_str, "a serial port path or pyserial URL", REQUIRED),
         "rate": (_positive, "frames per second, Hz", WHISKER_RATE),
@@ -190,9 +205,46 @@ SECTIONS = {
                     '"auto", "drop-oldest", "drop-newest" or "block"', "auto"),
     },
 }
+def _from(v):
+    return (_str(v) or isinstance(v, list) and v and all(_str(x) for x in v))
+
+
 SINK_KEYS = {
-    "text": {"path": (_str, '"-" (stdout) or a file path', "-")},
-    "jsonl": {"path": (_str, '"-" (stdout) or a file path', "-")},
+    "text": {"path": (_str, '"-" (stdout) or a file path', "-"),
+             "from": (_from, 'a stream name or a list of them ("fused": the fusion block\'s decisions; '
+                             'default: every stream)', None)},
+    "jsonl": {"path": (_str, '"-" (stdout) or a file path', "-"),
+              "from": (_from, 'a stream name or a list of them ("fused": the fusion block\'s decisions; '
+                              'default: every stream)', None)},
+}
+
+#: [fusion] weight: learned at start-up on the models' held-out training windows.
+LEARN = "learn"
+
+# The graph form: [[source]] (a driver's keys, and its ring), [[stream]] (a source through a
+# bank, features and a model: the one-source sections as sub-tables), [fusion].
+_NAME_HELP = "a name: letters, digits, '-' or '_'"
+
+
+def _name(v):
+    return _str(v) and len(v) <= 64 and all(c.isalnum() or c in "-_" for c in v)
+
+
+SOURCE_KEYS = {"name": (_name, _NAME_HELP, REQUIRED)}
+STREAM_KEYS = {
+    "name": (_name, _NAME_HELP + f" (not {FUSED_STREAM!r})", REQUIRED),
+    "source": (_name, "the name of a [[source]]", REQUIRED),
+}
+STREAM_SECTIONS = ("bank", "features", "model", "decision")
+FUSION_KEYS = {
+    "streams": (lambda v: isinstance(v, list) and len(v) == 2 and all(_name(x) for x in v) and v[0] != v[1],
+                "the names of two different [[stream]]s, each with a model", REQUIRED),
+    "method": (_one_of("late"), '"late" (weighted log-posteriors)', "late"),
+    "weight": (lambda v: v == LEARN or _number(v) and 0 <= v <= 1,
+               f'the first stream\'s weight, in [0, 1], or "{LEARN}" (learned on the held-out training windows '
+               'of two models trained on the spot)', DEFAULT_WEIGHT),
+    "max_wait": (_positive, "seconds a window of a live source waits for its partner before it is decided alone, > 0 "
+                                  "(file sources wait for each other)", DEFAULT_MAX_WAIT),
 }
 
 
@@ -209,11 +261,32 @@ class Scene:
     sinks: list[dict[str, Any]] = field(default_factory=list)
     source: str = "<scene>"
     base_dir: Path = field(default_factory=Path.cwd)
+    #: The graph form (several sources): the sources' driver tables (with ``name`` and their
+    #: ``buffer``), the streams, and the fusion block; empty for a one-source scene, whose
+    #: sections above are the scene. ``driver``, ``bank``, ... then hold the first stream's.
+    sources: list[dict[str, Any]] = field(default_factory=list)
+    streams: list["StreamSpec"] = field(default_factory=list)
+    fusion: dict[str, Any] | None = None
+
+    @property
+    def is_graph(self) -> bool:
+        """Whether the scene is written in the graph form ([[source]], [[stream]])."""
+        return bool(self.streams)
 
     def resolve(self, path: str) -> Path:
         """A path from the scene, relative to the scene file's folder."""
         p = Path(path).expanduser()
         return p if p.is_absolute() else self.base_dir / p
+
+
+@dataclass
+class StreamSpec:
+    """One ``[[stream]]`` of a graph scene: its name, its source's name, and the one-source scene
+    it amounts to (its source's driver and buffer; its own bank, features, model and decision)."""
+
+    name: str
+    source: str
+    scene: Scene
 
 
 def _fill(where: str, given: dict, schema: dict) -> dict:
@@ -240,10 +313,13 @@ def scene_from_dict(d: dict, source: str = "<scene>", base_dir: Path | None = No
     """Validate a parsed scene and fill in defaults."""
     if not isinstance(d, dict):
         raise SceneError(f"{source}: a scene is a TOML table")
+    if "source" in d or "stream" in d:
+        return _graph_scene(d, source, base_dir or Path.cwd())
     allowed = {"driver", "sink", *SECTIONS}
     unknown = sorted(set(d) - allowed)
     if unknown:
-        raise SceneError(f"{source}: unknown section(s) {unknown}; sections are {sorted(allowed)}")
+        raise SceneError(f"{source}: unknown section(s) {unknown}; sections are {sorted(allowed)}"
+                         + ("; a scene of several sources uses [[source]] and [[stream]]" if "fusion" in unknown else ""))
     driver = d.get("driver")
     if not isinstance(driver, dict) or "type" not in driver:
         raise SceneError(f"{source}: [driver] type is required, one of {sorted(DRIVER_KEYS)}")
@@ -253,6 +329,24 @@ def scene_from_dict(d: dict, source: str = "<scene>", base_dir: Path | None = No
     drv = {"type": dtype_, **_fill(f"{source}: [driver] ({dtype_})", {k: v for k, v in driver.items() if k != "type"},
                                    DRIVER_KEYS[dtype_])}
     sections = {name: _fill(f"{source}: [{name}]", d.get(name, {}), schema) for name, schema in SECTIONS.items()}
+    _check_sections(source, sections, d.get("bank", {}), "")
+    sinks = _sinks(d, source, (MAIN_STREAM,))
+    return Scene(drv, sections["bank"], sections["features"], sections["model"], sections["decision"],
+                 sections["buffer"], sinks, source, base_dir or Path.cwd())
+
+
+def _check_sections(source: str, sections: dict, bank_given: dict, where: str) -> None:
+    """Checks across keys of the one-source sections (``where``: the stream they belong to)."""
+    bank = sections["bank"]
+    if bank["file"] is not None and set(bank_given) - {"file"}:
+        raise SceneError(f"{source}: {where}[bank] file: a bank file describes the whole bank; remove "
+                         f"{sorted(set(bank_given) - {'file'})} or the file")
+    if sections["decision"]["scope"] == "last" and sections["decision"]["n"] < 1:
+        raise SceneError(f"{source}: {where}[decision] n must be >= 1 with scope = \"last\"")
+
+
+def _sinks(d: dict, source: str, streams) -> list[dict]:
+    """The [[sink]] tables, with ``from`` checked against the scene's streams."""
     sinks_in = d.get("sink", [{"type": "text"}])
     if not isinstance(sinks_in, list) or not sinks_in:
         raise SceneError(f"{source}: [[sink]] must be a list of at least one sink table")
@@ -261,16 +355,98 @@ def scene_from_dict(d: dict, source: str = "<scene>", base_dir: Path | None = No
         if not isinstance(s, dict) or s.get("type") not in SINK_KEYS:
             raise SceneError(f"{source}: [[sink]] #{i + 1} type: expected one of {sorted(SINK_KEYS)}, got "
                              f"{s.get('type') if isinstance(s, dict) else s!r}")
-        sinks.append({"type": s["type"], **_fill(f"{source}: [[sink]] #{i + 1}", {k: v for k, v in s.items() if k != "type"},
-                                                 SINK_KEYS[s["type"]])})
-    bank = sections["bank"]
-    if bank["file"] is not None and set(d.get("bank", {})) - {"file"}:
-        raise SceneError(f"{source}: [bank] file: a bank file describes the whole bank; remove "
-                         f"{sorted(set(d['bank']) - {'file'})} or the file")
-    if sections["decision"]["scope"] == "last" and sections["decision"]["n"] < 1:
-        raise SceneError(f"{source}: [decision] n must be >= 1 with scope = \"last\"")
-    return Scene(drv, bank, sections["features"], sections["model"], sections["decision"], sections["buffer"],
-                 sinks, source, base_dir or Path.cwd())
+        sink = {"type": s["type"], **_fill(f"{source}: [[sink]] #{i + 1}", {k: v for k, v in s.items() if k != "type"},
+                                             SINK_KEYS[s["type"]])}
+        listens = [sink["from"]] if isinstance(sink["from"], str) else sink["from"] or []
+        unknown = [n for n in listens if n not in streams]
+        if unknown:
+            raise SceneError(f"{source}: [[sink]] #{i + 1} from: no stream {unknown[0]!r}; the scene's streams are "
+                             f"{list(streams)}")
+        sinks.append(sink)
+    return sinks
+
+
+def _graph_scene(d: dict, source: str, base_dir: Path) -> Scene:
+    """A scene in the graph form: [[source]], [[stream]], [fusion], [[sink]]."""
+    one_source = sorted(set(d) & {"driver", *STREAM_SECTIONS})
+    if one_source:
+        raise SceneError(f"{source}: {one_source} belong to a one-source scene; with [[source]] and [[stream]], "
+                         "give each stream its own bank, features, model and decision as [stream.bank], ... "
+                         "and each source its driver keys")
+    unknown = sorted(set(d) - {"source", "stream", "fusion", "sink", "buffer"})
+    if unknown:
+        raise SceneError(f"{source}: unknown section(s) {unknown}; a scene of several sources has [[source]], "
+                         "[[stream]], [fusion] and [[sink]]")
+    if "buffer" in d:
+        raise SceneError(f"{source}: [buffer] belongs to a one-source scene; give each [[source]] its own "
+                         "[source.buffer]")
+    sources = []
+    for i, t in enumerate(_table_list(d, "source", source)):
+        where = f"{source}: [[source]] #{i + 1}"
+        kind = t.get("type")
+        if kind not in DRIVER_KEYS:
+            raise SceneError(f"{where} type: expected one of {sorted(DRIVER_KEYS)}, got {kind!r}")
+        given = {k: v for k, v in t.items() if k not in ("type", "buffer")}
+        keys = {**SOURCE_KEYS, **DRIVER_KEYS[kind]}
+        drv = {"type": kind, **_fill(f"{where} ({kind})", given, keys)}
+        drv["buffer"] = _fill(f"{where} [source.buffer]", t.get("buffer", {}), SECTIONS["buffer"])
+        sources.append(drv)
+    names = [s["name"] for s in sources]
+    if len(set(names)) != len(names):
+        raise SceneError(f"{source}: [[source]] name: each source needs its own name, got {names}")
+    streams = []
+    for i, t in enumerate(_table_list(d, "stream", source)):
+        where = f"{source}: [[stream]] #{i + 1}"
+        if not isinstance(t, dict):
+            raise SceneError(f"{where} must be a table")
+        given = {k: v for k, v in t.items() if k not in STREAM_SECTIONS}
+        head = _fill(where, given, STREAM_KEYS)
+        if head["name"] == FUSED_STREAM:
+            raise SceneError(f"{where} name: {FUSED_STREAM!r} is the fusion block's; choose another name")
+        if head["source"] not in names:
+            raise SceneError(f"{where} source: no source {head['source']!r}; the scene's sources are {names}")
+        sections = {name: _fill(f"{where} [stream.{name}]", t.get(name, {}), SECTIONS[name])
+                    for name in STREAM_SECTIONS}
+        _check_sections(source, sections, t.get("bank", {}), f"[[stream]] {head['name']} ")
+        drv = next(s for s in sources if s["name"] == head["source"])
+        sub = Scene({k: v for k, v in drv.items() if k not in ("name", "buffer")}, sections["bank"],
+                    sections["features"], sections["model"], sections["decision"], drv["buffer"], [],
+                    f"{source}: [[stream]] {head['name']}", base_dir)
+        streams.append(StreamSpec(head["name"], head["source"], sub))
+    stream_names = [s.name for s in streams]
+    if len(set(stream_names)) != len(stream_names):
+        raise SceneError(f"{source}: [[stream]] name: each stream needs its own name, got {stream_names}")
+    unused = [n for n in names if n not in {s.source for s in streams}]
+    if unused:
+        raise SceneError(f"{source}: [[source]] {unused[0]!r} feeds no [[stream]]: add a stream that reads it, "
+                         "or remove it")
+    fusion = None
+    if "fusion" in d:
+        given = d["fusion"]
+        if not isinstance(given, dict):
+            raise SceneError(f"{source}: [fusion] must be a table")
+        fusion = _fill(f"{source}: [fusion]", {k: v for k, v in given.items() if k != "decision"}, FUSION_KEYS)
+        fusion["decision"] = _fill(f"{source}: [fusion.decision]", given.get("decision", {}), SECTIONS["decision"])
+        for n in fusion["streams"]:
+            spec = next((s for s in streams if s.name == n), None)
+            if spec is None:
+                raise SceneError(f"{source}: [fusion] streams: no stream {n!r}; the scene's streams are {stream_names}")
+            m = spec.scene.model
+            if m["path"] is None and not m["train_on_start"]:
+                raise SceneError(f"{source}: [fusion] streams: stream {n!r} has no model to fuse; give it "
+                                 "[stream.model] path or train_on_start")
+    sinks = _sinks(d, source, stream_names + ([FUSED_STREAM] if fusion else []))
+    first = streams[0].scene
+    return Scene(first.driver, first.bank, first.features, first.model, first.decision, first.buffer, sinks,
+                 source, base_dir, sources=sources, streams=streams, fusion=fusion)
+
+
+def _table_list(d: dict, key: str, source: str) -> list:
+    tables = d.get(key)
+    if not isinstance(tables, list) or not tables or not all(isinstance(t, dict) for t in tables):
+        raise SceneError(f"{source}: [[{key}]] must be a list of at least one table (write [[{key}]], "
+                         "with two brackets)")
+    return tables
 
 
 def load_scene(path) -> Scene:
@@ -322,9 +498,21 @@ def scene_to_toml(scene: Scene) -> str:
 
     lines = [f"# supramodal scene, from {scene.source} (supramodal run --print-scene).",
              "# Paths are relative to this file's folder; docs/node.md lists every key.", ""]
-    lines += table("[driver]", scene.driver)
-    for name in SECTIONS:
-        lines += table(f"[{name}]", getattr(scene, name))
+    if scene.is_graph:
+        for src in scene.sources:
+            lines += table("[[source]]", {k: v for k, v in src.items() if k != "buffer"})
+            lines += table("[source.buffer]", src["buffer"])
+        for spec in scene.streams:
+            lines += table("[[stream]]", {"name": spec.name, "source": spec.source})
+            for name in STREAM_SECTIONS:
+                lines += table(f"[stream.{name}]", getattr(spec.scene, name))
+        if scene.fusion is not None:
+            lines += table("[fusion]", {k: v for k, v in scene.fusion.items() if k != "decision"})
+            lines += table("[fusion.decision]", scene.fusion["decision"])
+    else:
+        lines += table("[driver]", scene.driver)
+        for name in SECTIONS:
+            lines += table(f"[{name}]", getattr(scene, name))
     for sink in scene.sinks:
         lines += table("[[sink]]", sink)
     return "\n".join(lines)

@@ -25,7 +25,10 @@ import time
 from pathlib import Path
 from typing import TextIO
 
+import numpy as np
+
 from supramodal.drivers.base import DriverEvent
+from supramodal.node.events import MAIN_STREAM, WindowEvent
 from supramodal.node.outputs import check_new_file
 from supramodal.errors import InputError
 
@@ -56,7 +59,7 @@ class Sink:
             self._file = open(self.path, "w", buffering=1)
         return self._file
 
-    def emit(self, event: dict) -> None:
+    def emit(self, event: WindowEvent) -> None:
         raise NotImplementedError
 
     def event(self, ev: DriverEvent) -> None:
@@ -77,8 +80,8 @@ class JsonLinesSink(Sink):
     "stream_index": ..., "count": ...}`` in the same stream; the summary as a last object with
     ``"summary": true``."""
 
-    def emit(self, event: dict) -> None:
-        line = json.dumps(event) + "\n"
+    def emit(self, event: WindowEvent) -> None:
+        line = json.dumps(event.as_dict()) + "\n"
         with self._lock:
             self._fh.write(line)
 
@@ -102,53 +105,56 @@ class TextSink(Sink):
         sys.stderr.write(f"supramodal: {ev.message}{more}\n")
         sys.stderr.flush()
 
-    def _header(self, event: dict) -> str:
-        if "predicted" not in event:
+    def _header(self, event: WindowEvent) -> str:
+        if event.decision is None:
             return f"{'time':>11}  feature sums over the channels, per feature"
         line = f"{'time':>11}  {'decision':<12} confidence"
-        if event.get("accumulated"):
+        if event.pooled is not None:
             line += "  | the decision pooled over the last windows"
-        if event.get("truth") is not None:
+        if event.truth is not None:
             line += "  truth: the texture really there; ok = right, -- = wrong"
         return line
 
-    def emit(self, event: dict) -> None:
+    def emit(self, event: WindowEvent) -> None:
         if not self._headed:
             self._fh.write(self._header(event) + "\n")
             self._headed = True
-        head = f"{event['t']:9.3f} s"
-        if "predicted" in event:
-            line = f"{head}  {event['predicted']:<12} conf {event['confidence']:.2f}"
-            acc = event.get("accumulated")
+        head = f"{event.t:9.3f} s"
+        if event.stream != MAIN_STREAM:                 # a graph of several streams: say whose window
+            head += f"  {event.stream:<8}"
+        if event.decision is not None:
+            line = f"{head}  {event.decision:<12} conf {event.confidence:.2f}"
+            acc = event.pooled
             if acc:
                 shown = acc["label"] if acc["label"] is not None else "(no contact)"
                 line += f"  | over {acc['windows']:>3} win: {shown:<12} conf {acc['confidence']:.2f}"
-            if event.get("truth") is not None:
-                mark = "ok" if event["truth"] == event["predicted"] else "--"
-                line += f"  truth {event['truth']:<12} {mark}"
+            if event.truth is not None:
+                mark = "ok" if event.truth == event.decision else "--"
+                line += f"  truth {event.truth:<12} {mark}"
         else:
-            parts = [f"{name} sum {sum(vals):.4g}" for name, vals in event["features"].items()]
+            parts = [f"{name} sum {float(np.sum(vals)):.4g}" for name, vals in event.features.items()]
             line = f"{head}  " + "  ".join(parts)
-        if event.get("gap"):
-            line += "  [gap]"
+        for flag in ("gap", "alone"):
+            if flag in event.flags:
+                line += f"  [{flag}]"
         self._fh.write(line + "\n")
 
     def summary(self, s: dict) -> None:
-        lines = ["", "summary",
-                 f"  windows            {s['windows']}",
-                 f"  stream             {s['stream_seconds']:.2f} s in {s['wall_seconds']:.2f} s wall time"]
-        if s.get("window_accuracy") is not None:
-            lines.append(f"  window accuracy    {s['window_accuracy']:.3f} over {s['labelled_windows']} labelled windows")
-        if s.get("accumulated_accuracy") is not None:
-            lines.append(f"  accumulated acc.   {s['accumulated_accuracy']:.3f}")
-        lines.append(frames_line(s["frames"]))
-        lines.append(f"  samples replaced   nonfinite replaced {s['nonfinite_replaced']}, out of range replaced "
-                     f"{s.get('out_of_range_replaced', 0)}")
-        lat = s.get("latency_ms")
-        if lat:
-            lines.append(f"  decision latency   p50 {lat['p50']:.2f} ms, p99 {lat['p99']:.2f} ms, max {lat['max']:.2f} ms "
-                         "after window close")
-        lines.append(f"  real-time factor   {s['real_time_factor']:.4f} (processing CPU s per s of stream)")
+        lines = ["", "summary"]
+        if "streams" in s:                      # several streams: each one's counts, then the graph's
+            lines.append(f"  windows            {s['windows']} on {len(s['streams'])} streams")
+            for name, one in s["streams"].items():
+                lines += [f"  stream {name}"] + ["  " + line for line in _stream_lines(one)]
+            for name, c in (s.get("clocks") or {}).items():
+                lines.append(f"  clock {name:<11} rate error {c['ppm']:+.1f} ppm, jitter {c['jitter_ms']:.2f} ms")
+            f = s.get("fusion")
+            if f:
+                lines.append(f"  fused              {f['windows']} windows: {f['paired']} paired, {f['alone']} alone"
+                             f" (one sense), {sum(f['late'].values())} late windows left out"
+                             + (f"; window accuracy {f['window_accuracy']:.3f}" if f.get("window_accuracy") is not None
+                                else ""))
+        else:
+            lines += _stream_lines(s)
         counts = (s.get("events") or {}).get("counts")
         if counts:
             dropped = sum(s["events"].get("dropped", {}).values())
@@ -162,6 +168,26 @@ class TextSink(Sink):
         if s.get("stopped_by"):
             lines.append(f"  stopped by         {s['stopped_by']}")
         self._fh.write("\n".join(lines) + "\n")
+
+
+def _stream_lines(s: dict) -> list[str]:
+    """The summary lines of one stream's counts."""
+    lines = [f"  windows            {s['windows']}",
+             f"  stream             {s['stream_seconds']:.2f} s"
+             + (f" in {s['wall_seconds']:.2f} s wall time" if "wall_seconds" in s else "")]
+    if s.get("window_accuracy") is not None:
+        lines.append(f"  window accuracy    {s['window_accuracy']:.3f} over {s['labelled_windows']} labelled windows")
+    if s.get("accumulated_accuracy") is not None:
+        lines.append(f"  accumulated acc.   {s['accumulated_accuracy']:.3f}")
+    lines.append(frames_line(s["frames"]))
+    lines.append(f"  samples replaced   nonfinite replaced {s['nonfinite_replaced']}, out of range replaced "
+                 f"{s.get('out_of_range_replaced', 0)}")
+    lat = s.get("latency_ms")
+    if lat:
+        lines.append(f"  decision latency   p50 {lat['p50']:.2f} ms, p99 {lat['p99']:.2f} ms, max {lat['max']:.2f} ms "
+                     "after window close")
+    lines.append(f"  real-time factor   {s['real_time_factor']:.4f} (processing CPU s per s of stream)")
+    return lines
 
 
 def frames_line(f: dict) -> str:
@@ -178,17 +204,22 @@ def frames_line(f: dict) -> str:
 
 
 class ListSink(Sink):
-    """Keeps window events (``events``), driver events (``driver_events``) and the summary in
-    memory: for a node embedded in a Python program, and tests."""
+    """Keeps window events (``windows``: :class:`WindowEvent`; ``events``: the same as the dicts a
+    JSON Lines sink writes), driver events (``driver_events``) and the summary in memory: for a
+    node embedded in a Python program, and tests."""
 
     def __init__(self) -> None:
         self.path = None
-        self.events: list[dict] = []
+        self.windows: list[WindowEvent] = []
         self.driver_events: list[DriverEvent] = []
         self.final: dict | None = None
 
-    def emit(self, event: dict) -> None:
-        self.events.append(event)
+    @property
+    def events(self) -> list[dict]:
+        return [w.as_dict() for w in self.windows]
+
+    def emit(self, event: WindowEvent) -> None:
+        self.windows.append(event)
 
     def event(self, ev: DriverEvent) -> None:
         self.driver_events.append(ev)
@@ -244,7 +275,7 @@ class QueuedSink:
         self._thread = threading.Thread(target=self._run, name=f"sink-{type(sink).__name__}", daemon=True)
         self._thread.start()
 
-    def emit(self, event: dict) -> None:
+    def emit(self, event: WindowEvent) -> None:
         self._put("emit", event, "windows")
 
     def event(self, ev: DriverEvent) -> None:

@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from supramodal.node.band import warn_if_beyond_band
-from supramodal.node.graph import channel_mapper
+from supramodal.node.streams import channel_mapper
 from supramodal.node.manifest import ManifestError, Recording, read_manifest
 from supramodal.replay.driver import ReplayDriver
 from supramodal.banks import Bank

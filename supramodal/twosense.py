@@ -127,3 +127,65 @@ def _motor(seconds: float, seed) -> np.ndarray:
     :data:`MOTOR_CUTOFF`), so that it masks the vibration's band and leaves the friction sound's."""
     sos = butter(4, MOTOR_CUTOFF, fs=MIC_RATE, output="sos")
     return sosfilt(sos, synthesize(MOTOR_PEAKS, MIC_RATE, seconds, WIDTH, seed))
+
+
+#: The two senses of a surface, as a source of the node names them.
+SENSES = ("whiskers", "microphone")
+#: Seconds of contact per texture a sense's model is trained on (as ``experiment fusion``).
+TRAIN_SECONDS = 20.0
+
+
+@dataclass(frozen=True)
+class OneSense:
+    """One sense of a two-sense set, shaped as a texture set (``name``, ``fs``, ``duration``,
+    ``textures``, ``names``, ``synthesize``): what the training helpers take.
+
+    Contact ``index`` with ``take`` k is one draw of the world, the same for both senses: the
+    whisker signal of ``OneSense(..., "whiskers")`` and the microphone signal of
+    ``OneSense(..., "microphone")`` with the same arguments are the two sides of one contact.
+
+    Parameters
+    ----------
+    surfaces : tuple of Surface
+        The set (:func:`two_sense_set`).
+    sense : {"whiskers", "microphone"}
+    duration : float
+        Seconds per contact (default :data:`TRAIN_SECONDS`).
+    seed : int
+        The set's seed (contacts are drawn from ``[seed, index, take]``).
+    take : int
+        Which contact of each texture (default 0, the training contacts; a node's source plays
+        take 1, contacts its model has never met).
+    """
+
+    surfaces: tuple
+    sense: str
+    duration: float = TRAIN_SECONDS
+    seed: int = 0
+    take: int = 0
+
+    def __post_init__(self) -> None:
+        if self.sense not in SENSES:
+            raise InputError(f"a two-sense source's sense is one of {SENSES}, got {self.sense!r}")
+
+    @property
+    def name(self) -> str:
+        return f"two-sense set {self.seed} ({self.sense})"
+
+    @property
+    def fs(self) -> float:
+        return WHISKER_RATE if self.sense == "whiskers" else MIC_RATE
+
+    @property
+    def textures(self) -> tuple:
+        return self.surfaces
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(s.name for s in self.surfaces)
+
+    def synthesize(self, index: int, duration: float | None = None) -> np.ndarray:
+        """This sense's signal of contact ``index``, float64, shape (samples,)."""
+        whiskers, mic = synthesize_contact(self.surfaces[index], self.duration if duration is None else duration,
+                                           seed=[self.seed, index, self.take])
+        return whiskers if self.sense == "whiskers" else mic

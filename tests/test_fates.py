@@ -59,7 +59,7 @@ class ScriptDriver(StandInDriver):
         if self._i >= len(self._script):
             raise DriverClosed("end of the script")
         if self.wait_for is not None:
-            reader = self.wait_for._reader
+            reader = self.wait_for.streams[0].feed.reader
             while reader.available:
                 time.sleep(0.001)
         n, filled = self._script[self._i]

@@ -125,7 +125,8 @@ def test_node_output_does_not_depend_on_ring_read_timing(seed):
     node = build_node(scene, speed="max", sinks_override=[sink])
     if seed is not None:
         node.driver.read = Jittery(node.driver.read, seed).read
-        node._reader = JitteryReader(node._reader, seed + 100)
+        feed = node.streams[0].feed
+        feed.reader = JitteryReader(feed.reader, seed + 100)
     node.run()
     assert len(sink.events) == len(offline) == 40
     for e in sink.events:

@@ -1,0 +1,215 @@
+"""The fusion block: two streams' windows paired on common time, their decisions fused.
+
+Each stream emits its windows in order, on its own clock. Windows are paired when their
+centres on the graph's common time lie within half a window of each other (two 100 ms windows
+on crystals a few ppm and tens of ms apart overlap by at least half). A window whose partner has
+not come within ``max_wait`` seconds of host time (the other source is late, stalled or
+unplugged) is decided by its own sense alone and flagged ``"alone"`` (two file sources wait for
+each other without a deadline: their decisions do not depend on the host's timing); a partner that comes
+after that is *late*: counted, and left out of fusion (its own stream's sinks still get it).
+When both streams have ended, what is still waiting is decided alone.
+
+Late fusion: ``w log p_a + (1 - w) log p_b`` (:func:`supramodal.fusion.fuse_late`), normalised
+to posteriors, winner-take-all; pooling over windows as for one stream.
+
+Threading rules
+---------------
+:meth:`LateFusion.put` and :meth:`LateFusion.end` are called from the streams' processing
+threads and never block; :meth:`LateFusion.run` is the fusion thread; :meth:`summary` is called
+once it has ended.
+"""
+
+from __future__ import annotations
+
+import collections
+import math
+import queue
+import time
+
+import numpy as np
+
+from supramodal.decisions import DecisionAccumulator
+from supramodal.errors import InputError
+from supramodal.fusion import fuse_late
+from supramodal.node.events import FUSED_STREAM, WindowEvent
+from supramodal.node.latency import LatencyHistogram
+
+#: Host seconds a window waits for its partner from the other stream before it is decided alone.
+DEFAULT_MAX_WAIT = 0.5
+#: Late-fusion weight of the first stream when a scene gives none.
+DEFAULT_WEIGHT = 0.5
+
+_END = object()
+
+
+class LateFusion:
+    """Pairs the windows of two streams and fuses their posteriors.
+
+    Parameters
+    ----------
+    inputs : (str, str)
+        The two streams' names.
+    classes : (sequence of str, sequence of str)
+        Each stream's model classes; the two must name the same textures (in any order).
+    weight : float
+        Weight of the first stream's log-posteriors, in [0, 1] (default :data:`DEFAULT_WEIGHT`).
+    max_wait : float or None
+        Host seconds a window waits for its partner (default :data:`DEFAULT_MAX_WAIT`). None:
+        until the other stream has passed it or ended, however long that takes (two files replayed
+        at any speed: their timing is their own, and the decisions do not depend on the host's).
+    decision : dict, optional
+        Pooling of the fused decisions (``scope``, ``n``, ``method``), as for a stream.
+    """
+
+    def __init__(self, inputs, classes, weight: float = DEFAULT_WEIGHT, max_wait: float = DEFAULT_MAX_WAIT,
+                 decision: dict | None = None) -> None:
+        a, b = inputs
+        if a == b:
+            raise InputError(f"fusion needs two different streams, got {a!r} twice")
+        ca, cb = (list(c) for c in classes)
+        if sorted(ca) != sorted(cb) or len(set(ca)) != len(ca):
+            raise InputError(f"the fused streams' models must know the same textures: {a!r} has {ca}, {b!r} has {cb}; "
+                             "train both on one texture set")
+        if not (isinstance(weight, (int, float)) and 0.0 <= weight <= 1.0):
+            raise InputError(f"the fusion weight must lie in [0, 1], got {weight!r}")
+        if max_wait is not None and not (isinstance(max_wait, (int, float)) and math.isfinite(max_wait)
+                                         and max_wait > 0):
+            raise InputError(f"the fusion's max_wait must be a positive number of seconds, got {max_wait!r}")
+        self.inputs = (a, b)
+        self.classes = tuple(ca)
+        self._order_b = np.array([cb.index(name) for name in ca])   # b's outputs in a's class order
+        self.weight = float(weight)
+        self.max_wait = math.inf if max_wait is None else float(max_wait)
+        d = {"scope": "window", "n": 10, "method": "log", **(decision or {})}
+        self.accumulator = None
+        if d["scope"] != "window":
+            self.accumulator = DecisionAccumulator(len(ca), d["scope"], d["n"], d["method"])
+        self._queue: queue.SimpleQueue = queue.SimpleQueue()
+        self._pending = {a: collections.deque(), b: collections.deque()}
+        self._ended: set[str] = set()
+        # per stream: the centre of the last window of the *other* stream decided alone because
+        # this one's did not come in time; this stream's windows up to there are late
+        self._alone_until = {a: -math.inf, b: -math.inf}
+        self.windows = self.paired = self.alone = 0
+        self.late = {a: 0, b: 0}
+        self._correct = self._labelled = self._acc_correct = self._acc_labelled = 0
+        self.latencies = LatencyHistogram()
+
+    # -- processing threads -----------------------------------------------------------------
+
+    def put(self, event: WindowEvent) -> None:
+        """A window of one of the inputs (never blocks)."""
+        self._queue.put((event, time.monotonic()))
+
+    def end(self, stream: str) -> None:
+        """The stream ``stream`` has emitted its last window."""
+        self._queue.put((_END, stream))
+
+    # -- fusion thread ----------------------------------------------------------------------
+
+    def run(self, emit) -> None:
+        """Pair and fuse until both inputs have ended; ``emit`` each fused WindowEvent."""
+        while len(self._ended) < 2:
+            try:
+                item, extra = self._queue.get(timeout=0.01)
+            except queue.Empty:
+                item = None
+            if item is _END:
+                self._ended.add(extra)
+            elif item is not None:
+                self._take(item, extra)
+            self._pair(time.monotonic(), emit)
+        while not self._queue.empty():          # nothing comes after both ends, but be exact
+            item, extra = self._queue.get()
+            if item is not _END:
+                self._take(item, extra)
+        self._pair(math.inf, emit)
+
+    def _take(self, event: WindowEvent, put_at: float) -> None:
+        s = event.stream
+        if _centre(event) <= self._alone_until[s]:
+            self.late[s] += 1                   # its partner was already decided alone
+            return
+        # when the window's last block arrived (its stream measured the latency at emit time)
+        closed = put_at - event.latency_ms / 1e3 if event.latency_ms is not None else None
+        self._pending[s].append((event, put_at, closed))
+
+    def _pair(self, now: float, emit) -> None:
+        a, b = self.inputs
+        pa, pb = self._pending[a], self._pending[b]
+        while pa and pb:
+            ea, eb = pa[0][0], pb[0][0]
+            tol = 0.5 * min(ea.end - ea.start, eb.end - eb.start)
+            if abs(_centre(ea) - _centre(eb)) <= tol:
+                emit(self._fuse(pa.popleft(), pb.popleft()))
+            elif _centre(ea) < _centre(eb):
+                emit(self._single(pa.popleft()))    # b has moved past it: a's window has no partner
+            else:
+                emit(self._single(pb.popleft()))
+        for s, other in ((a, b), (b, a)):
+            waiting = self._pending[s]
+            while waiting and (other in self._ended or now - waiting[0][1] > self.max_wait):
+                item = waiting.popleft()
+                if other not in self._ended:
+                    self._alone_until[other] = _centre(item[0]) + 0.5 * (item[0].end - item[0].start)
+                emit(self._single(item))
+
+    def _fuse(self, item_a, item_b) -> WindowEvent:
+        (ea, _, closed_a), (eb, _, closed_b) = item_a, item_b
+        log_p = fuse_late(ea.posteriors[None, :], eb.posteriors[self._order_b][None, :], self.weight)[0]
+        post = np.exp(log_p - log_p.max())
+        post /= post.sum()
+        self.paired += 1
+        closed = None if closed_a is None or closed_b is None else max(closed_a, closed_b)
+        return self._event(post, (ea, eb), closed, frozenset((ea.flags | eb.flags) - {"alone"}))
+
+    def _single(self, item) -> WindowEvent:
+        event, _, closed = item
+        post = event.posteriors if event.stream == self.inputs[0] else event.posteriors[self._order_b]
+        self.alone += 1
+        return self._event(post, (event,), closed, event.flags | {"alone"})
+
+    def _event(self, post: np.ndarray, events, closed, flags) -> WindowEvent:
+        k = int(np.argmax(post))
+        decision = self.classes[k]
+        truth = next((e.truth for e in events if e.truth is not None), None)
+        in_contact = any(e.in_contact for e in events)
+        pooled = None
+        if self.accumulator is not None:
+            d = self.accumulator.update(post, in_contact)
+            label = self.classes[d.label] if d.label >= 0 else None
+            pooled = {"label": label, "confidence": round(d.confidence, 4), "windows": d.windows}
+            if truth is not None and label is not None:
+                self._acc_labelled += 1
+                self._acc_correct += label == truth
+        if truth is not None:
+            self._labelled += 1
+            self._correct += decision == truth
+        latency = None
+        if closed is not None:
+            latency = (time.monotonic() - closed) * 1e3
+            self.latencies.add(latency)
+            latency = round(latency, 3)
+        start, end = min(e.start for e in events), max(e.end for e in events)
+        event = WindowEvent(FUSED_STREAM, self.windows, start, end, end, posteriors=post, decision=decision,
+                            confidence=float(post[k]), pooled=pooled, truth=truth, flags=frozenset(flags),
+                            latency_ms=latency, senses=tuple(e.stream for e in events), in_contact=in_contact)
+        self.windows += 1
+        return event
+
+    # -- summary ----------------------------------------------------------------------------
+
+    def summary(self) -> dict:
+        """``windows`` fused decisions: ``paired`` from both senses, ``alone`` from one; ``late``
+        windows per stream (their partner was already decided alone); accuracies where truth is
+        known; ``latency_ms`` from the later window's last block to the fused decision."""
+        return {"inputs": list(self.inputs), "weight": self.weight, "windows": self.windows,
+                "paired": self.paired, "alone": self.alone, "late": dict(self.late),
+                "window_accuracy": self._correct / self._labelled if self._labelled else None,
+                "labelled_windows": self._labelled,
+                "accumulated_accuracy": self._acc_correct / self._acc_labelled if self._acc_labelled else None,
+                "latency_ms": self.latencies.summary()}
+
+
+def _centre(event: WindowEvent) -> float:
+    return 0.5 * (event.start + event.end)

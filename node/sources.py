@@ -1,0 +1,220 @@
+"""A source: one driver, its ring buffer and its thread, and the clock that puts its samples on
+the graph's common time line.
+
+Threads and real-time rules
+---------------------------
+The *source thread* (:meth:`Source.drive`) only moves blocks: ``driver.read()`` ->
+``ring.write()``, noting each block's arrival (for the clock and for decision latency) and its
+restart/overrun marks in every feed. It never waits on processing: when a reader lags by more
+than the ring's capacity, the ring's overrun policy drops frames, and every dropped frame is
+counted. After every read (a block or a timeout, at most 50 ms apart) it takes the driver's new
+events (``take_events()``) and queues them for the graph's event thread, without waiting.
+
+Common time
+-----------
+Every window event carries its start and end on one time line shared by all sources, in seconds
+from the graph's start. Where it comes from depends on the source (``timebase``):
+
+* ``"stream"`` (files: replay, synth, twosense): a file's time is its own sample count,
+  ``index / rate`` (plus the source's ``time_offset``, seconds). A replay at ``max`` speed keeps
+  its true timing.
+* ``"host"`` (live drivers: serial, microphone): a :class:`~supramodal.node.clock.ClockModel`
+  fitted to the blocks' arrival stamps maps the sample index to the host's monotonic clock, so
+  two sources on their own crystals line up; minus the graph's start.
+"""
+
+from __future__ import annotations
+
+import collections
+import queue
+import threading
+
+from supramodal.drivers.base import Block, DriverClosed
+from supramodal.node.clock import ClockModel
+from supramodal.node.ringbuffer import RingBuffer
+from supramodal.errors import InputError
+
+import numpy as np
+
+TIMEBASES = ("stream", "host")
+
+
+def _head(block: Block, n: int) -> Block:
+    """The first ``n`` frames of a block."""
+    n = max(n, 0)
+    filled = None if block.filled is None else block.filled[:n]
+    return Block(block.data[:n], block.start, block.arrival, filled,
+                 tuple(i for i in block.restarts if i < n), tuple(i for i in block.overruns if i < n))
+
+
+class Feed:
+    """What one reader of a source gets: the ring reader, and in stream order the arrival of
+    every block (``(end index, arrival)``) and the driver's marks (``(index, "restart" |
+    "overrun")``). Filled by the source thread, consumed by one processing thread (deques:
+    appends and pops from opposite ends are thread-safe)."""
+
+    def __init__(self, reader) -> None:
+        self.reader = reader
+        self.arrivals: collections.deque[tuple[int, float]] = collections.deque()
+        self.marks: collections.deque[tuple[int, str]] = collections.deque()
+
+
+class Source:
+    """A driver, its ring and its thread.
+
+    Parameters
+    ----------
+    name : str
+        The source's name in a scene (``[[source]] name``).
+    driver : drivers.base.Driver
+    buffer_seconds : float
+        Ring capacity, seconds of stream.
+    overrun : {"drop-oldest", "drop-newest", "block"}
+        The ring's policy. "block" makes the source thread wait for space: right for replay,
+        where no sample need be lost; live drivers drop and count instead.
+    timebase : {"stream", "host"}
+        How the source's samples are put on common time (see the module's docstring).
+    time_offset : float
+        For the stream timebase: seconds of common time at which the source's first sample was
+        taken (a two-sense source's ``offset``; default 0).
+    """
+
+    def __init__(self, name: str, driver, buffer_seconds: float = 2.0, overrun: str = "drop-oldest",
+                 timebase: str = "stream", time_offset: float = 0.0) -> None:
+        if timebase not in TIMEBASES:
+            raise InputError(f"a source's timebase is one of {TIMEBASES}, got {timebase!r}")
+        self.name = name
+        self.driver = driver
+        self.rate = float(driver.rate)
+        self.timebase = timebase
+        capacity = max(int(buffer_seconds * driver.rate), 1)
+        self.ring = RingBuffer(capacity, driver.channels, dtype=np.float64, overrun=overrun)
+        self.feeds: list[Feed] = []
+        self.recorder = None
+        self.clock = ClockModel(self.rate) if timebase == "host" else None
+        self.time_offset = float(time_offset)
+        # (offset, seconds per sample) of the common-time line, replaced whole by the source
+        # thread so that a processing thread never reads half of an update.
+        self._line = (self.time_offset, 1.0 / self.rate)
+        self.epoch = 0.0                 # host time of the graph's start (set by the graph)
+        self.max_frames: int | None = None
+        #: Set by the source thread: the stream length (``max_frames``) was reached.
+        self.reached_length = False
+        #: source thread -> the graph's event thread: (source name, events, dropped); None ends.
+        self.event_queue: queue.SimpleQueue | None = None
+
+    def add_feed(self, name: str) -> Feed:
+        """A new reader of this source's ring (a stream, or the recorder)."""
+        feed = Feed(self.ring.add_reader(name))
+        self.feeds.append(feed)
+        return feed
+
+    def time_of(self, index: int) -> float:
+        """Sample ``index`` on the graph's common time line, seconds."""
+        offset, slope = self._line
+        return offset + index * slope
+
+    # -- source thread ----------------------------------------------------------------------
+
+    def drive(self, stop: threading.Event, on_stop) -> None:
+        """Move blocks from the driver to the ring until the stream ends or ``stop`` is set;
+        ``on_stop(reason)`` when the stream length (``max_frames``) is reached."""
+        take = getattr(self.driver, "take_events", None)
+        try:
+            while not stop.is_set():
+                try:
+                    block = self.driver.read(timeout=0.05)
+                except DriverClosed:
+                    break
+                finally:
+                    if take is not None:
+                        self._queue_events(take)
+                if block is None:
+                    continue
+                last = self.max_frames is not None and block.start + block.frames >= self.max_frames
+                if last:
+                    block = _head(block, self.max_frames - block.start)
+                self._note(block)
+                self._write(block, stop)
+                if last:
+                    self.reached_length = True
+                    on_stop("stream length reached")
+                    break
+        finally:
+            self.ring.close()
+
+    def _note(self, block: Block) -> None:
+        end = block.start + block.frames
+        for kind, offsets in (("restart", block.restarts), ("overrun", block.overruns)):
+            for i in offsets:
+                for feed in self.feeds:
+                    feed.marks.append((block.start + i, kind))
+                if self.recorder is not None:
+                    self.recorder.note(block.start + i, kind)
+        for feed in self.feeds:
+            feed.arrivals.append((end, block.arrival))
+        if self.clock is not None and block.frames:
+            if block.restarts:
+                self.clock.reset()          # the board's count restarted: the old line is void
+            self.clock.update(end - 1, block.arrival)
+            offset, slope = self.clock.line()
+            self._line = (offset - self.epoch, slope)
+
+    def _queue_events(self, take) -> None:
+        events, dropped = take()
+        if (events or dropped) and self.event_queue is not None:
+            self.event_queue.put((self.name, events, dropped))
+
+    def _write(self, block: Block, stop: threading.Event) -> None:
+        # Under "block" the ring takes what fits and we wait for the rest (lossless replay);
+        # under the drop policies one write is final: it takes everything and counts what it
+        # drops, or ("drop-newest") refuses the rest, whose stream indices are then spent.
+        # Offering refused frames again would put them in the stream twice.
+        kept, n = 0, block.frames
+        while kept < n:
+            filled = None if block.filled is None else block.filled[kept:]
+            kept += self.ring.write(block.data[kept:], filled, timeout=0.1)
+            if self.ring.overrun != "block" or (kept < n and stop.is_set() and self.ring.closed):
+                return
+
+    # -- summary ----------------------------------------------------------------------------
+
+    def frame_fates(self, feed: Feed) -> dict[str, int]:
+        """Every frame of the stream counted once, as ``feed``'s reader saw it: delivered,
+        filled or dropped.
+
+        ``delivered``: measured by the driver and processed as measured.
+        ``filled``: synthesised by the driver (``Block.filled``) for samples the host never
+        received (lost on the line or by the board, unplugged), whether the ring kept its zeros
+        or dropped them: zeros lost are still zeros, not data lost.
+        ``dropped``: samples the host received and lost: measured frames the ring lost
+        (``dropped_in_ring``; the pipeline gets zeros in their place, but they count here
+        only), and a driver's fills for its own losses (``dropped_by_driver``: a driver with
+        ``fills_are_drops``, the microphone, fills only for overflows and a full buffer).
+        ``stream``: frames offered to the ring, the stream's length; once the processing
+        thread has drained the ring, ``delivered + filled + dropped == stream`` exactly.
+        ``filled_lost_in_ring``: filled frames the ring dropped (counted in ``filled``, or in
+        ``dropped_by_driver``), for the record.
+        """
+        ring = self.ring.stats()
+        r = feed.reader.stats()
+        # The ring knows each row's flag when it drops it: the split is exact per frame,
+        # whatever the timing (a fill longer than the ring loses its own head on write).
+        synthesised = r["read_filled"] + r["lost_filled"]
+        driver_drops = synthesised if getattr(self.driver, "fills_are_drops", False) else 0
+        in_ring = r["lost"] - r["lost_filled"]
+        return {"stream": ring["written"],
+                "delivered": r["read"] - r["read_filled"],
+                "filled": synthesised - driver_drops,
+                "dropped": in_ring + driver_drops,
+                "dropped_in_ring": in_ring,
+                "dropped_by_driver": driver_drops,
+                "filled_lost_in_ring": r["lost_filled"]}
+
+    def clock_summary(self) -> dict | None:
+        """The clock's estimate (rate error in ppm, jitter and delay in ms), for a host timebase."""
+        if self.clock is None:
+            return None
+        e = self.clock.estimate()
+        return {"ppm": round(e.ppm, 3), "jitter_ms": round(e.jitter * 1e3, 3), "delay_ms": round(e.delay * 1e3, 3),
+                "blocks": e.blocks, "fitted": e.fitted}

@@ -1,0 +1,265 @@
+"""A stream: one source's ring reader -> channel mapping -> filterbank -> peaks -> windows ->
+classifier -> decisions -> one :class:`~supramodal.node.events.WindowEvent` per window.
+
+Threading rules
+---------------
+:meth:`Stream.process` runs on the stream's own processing thread and is the only code that
+touches the pipeline, the model and the stream's counters. Frames the ring lost are replaced by
+zeros, so stream time stays exact, and the windows they touch are flagged ``gap``. The events
+go to ``emit`` (the graph's router: sinks behind their queues, and the fusion block's queue),
+which never blocks.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from supramodal.decisions import ContactDetector, DecisionAccumulator, posteriors
+from supramodal.errors import InputError
+from supramodal.model import TextureModel
+from supramodal.node.events import WindowEvent
+from supramodal.node.latency import LatencyHistogram
+from supramodal.node.ringbuffer import RingClosed
+from supramodal.pipeline import FeaturePipeline
+
+
+def channel_mapper(mapping, driver_channels: int, bank_channels: int, setting: str = "the scene's [driver] mapping"):
+    """Return ``f(frames (L, driver_channels)) -> model input`` for a scene's ``mapping``.
+
+    ``"mono"`` (one channel, fanned out to every filter), ``"per-channel"`` (each
+    physical channel through its own filter), ``"mean"`` (their mean, fanned
+    out), an integer (that channel, fanned out), or ``"auto"`` (mono for one
+    channel, per-channel when the counts match). ``setting`` names where the user sets
+    the mapping, for the advice of a refusal (``"--mapping"`` on the command line).
+    """
+    if mapping == "auto":
+        if driver_channels == 1:
+            mapping = "mono"
+        elif driver_channels == bank_channels:
+            mapping = "per-channel"
+        else:
+            raise InputError(
+                f"the source has {driver_channels} channels and the bank {bank_channels}: set {setting} to "
+                "\"mean\" or a channel index (e.g. 0), or use a bank with as many channels")
+    if mapping == "mono":
+        if driver_channels != 1:
+            raise InputError(f"mapping \"mono\" needs a one-channel source; this one has {driver_channels}: "
+                             f"set {setting} to \"mean\" or a channel index")
+        return lambda frames: frames[:, 0]
+    if mapping == "per-channel":
+        if driver_channels != bank_channels:
+            raise InputError(f"mapping \"per-channel\" needs as many driver channels ({driver_channels}) "
+                             f"as filters ({bank_channels})")
+        return lambda frames: frames.T
+    if mapping == "mean":
+        return lambda frames: frames.mean(axis=1)
+    if isinstance(mapping, int):
+        if not 0 <= mapping < driver_channels:
+            raise InputError(f"mapping channel {mapping} does not exist: the driver has channels 0..{driver_channels - 1}")
+        return lambda frames: frames[:, mapping]
+    raise InputError(f"unknown channel mapping {mapping!r}")
+
+
+@dataclass
+class Labels:
+    """Truth labels as time ranges ``(start_s, end_s, name)``, for accuracy where they are known."""
+
+    ranges: list[tuple[float, float, str]] = field(default_factory=list)
+
+    @classmethod
+    def of(cls, driver) -> "Labels":
+        """The labels a driver carries (a replayed session's), or none."""
+        return cls([(lab.start, lab.end, lab.label) for lab in getattr(driver, "labels", ())])
+
+    def at(self, t: float) -> str | None:
+        for start, end, name in self.ranges:
+            if start <= t < end:
+                return name
+        return None
+
+
+#: Pooling of a stream's decisions when a scene sets none (see supramodal.decisions).
+DEFAULT_DECISION = {"scope": "window", "n": 10, "method": "log", "contact_threshold": 0.01}
+
+
+class Stream:
+    """One source's samples through the model, to window events.
+
+    Parameters
+    ----------
+    name : str
+        The stream's name (``[[stream]] name``; events carry it).
+    source : node.sources.Source
+        Its bank's rate must equal the source's rate.
+    pipeline : supramodal.pipeline.FeaturePipeline
+    model : TextureModel, optional
+        Without it the stream emits feature windows.
+    decision : dict, optional
+        ``scope``, ``n``, ``method``, ``contact_threshold`` (see supramodal.decisions).
+    mapping : str or int
+        Source channels to filter inputs, see :func:`channel_mapper`.
+    labels : Labels, optional
+        Truth labels; by default those the driver carries (a replayed session's).
+    """
+
+    def __init__(self, name: str, source, pipeline: FeaturePipeline, model: TextureModel | None = None,
+                 decision: dict | None = None, mapping="auto", labels: Labels | None = None) -> None:
+        bank = pipeline.bank
+        if abs(source.rate - bank.fs) > 1e-9 * bank.fs:
+            raise InputError(f"the driver delivers {source.rate:g} Hz but the {bank.kind} bank runs at {bank.fs:g} Hz")
+        if model is not None:
+            model.check_pipeline(pipeline)
+        self.name = name
+        self.source = source
+        self.pipeline = pipeline
+        self.model = model
+        self.labels = labels if labels is not None else Labels.of(source.driver)
+        self.map = channel_mapper(mapping, source.driver.channels, bank.channels)
+        self.decision = {**DEFAULT_DECISION, **(decision or {})}
+        self.accumulator = None
+        self.contact = None
+        if model is not None and self.decision["scope"] != "window":
+            d = self.decision
+            self.accumulator = DecisionAccumulator(len(model.classes), d["scope"], d["n"], d["method"])
+            if d["scope"] == "contact":
+                self.contact = ContactDetector(pipeline.window_samples, d["contact_threshold"])
+        self.feed = source.add_feed(f"stream {name}")
+        self._window_marks: dict[int, set[str]] = {}
+        self._expected = 0
+        self._gap_windows: set[int] = set()
+        self.latencies = LatencyHistogram()
+        self.cpu = 0.0
+        self.windows = 0
+        self._correct = self._labelled = self._acc_correct = self._acc_labelled = 0
+
+    # -- processing thread --------------------------------------------------------------------
+
+    def process(self, emit) -> None:
+        """Read the source's ring until it closes, and ``emit`` a WindowEvent per window."""
+        W = self.pipeline.window_samples
+        reader = self.feed.reader
+        while True:
+            try:
+                chunk = reader.read(timeout=0.05)
+            except RingClosed:
+                break
+            if chunk is None:
+                continue
+            c0 = time.thread_time()
+            start, data, filled = chunk
+            if start > self._expected:
+                # Frames lost in the ring: zeros keep stream time exact; the windows are flagged.
+                # The ring counts them (lost, lost_filled), so that each keeps one fate: these
+                # zeros are the stream's stand-in, not another count (see Source.frame_fates).
+                gap = start - self._expected
+                self._gap_windows.update(range(self._expected // W, (start - 1) // W + 1))
+                self._step(np.zeros((gap, data.shape[1])), self._expected, emit)
+            if filled is not None and filled.any():
+                idx = np.flatnonzero(filled) + start
+                self._gap_windows.update(np.unique(idx // W).tolist())
+            self._step(data, start, emit)
+            self._expected = start + data.shape[0]
+            self.cpu += time.thread_time() - c0
+        c0 = time.thread_time()
+        self._emit(self.pipeline.finish(), None, emit)
+        self.cpu += time.thread_time() - c0
+
+    def _step(self, frames: np.ndarray, start: int, emit) -> None:
+        # Cut the stream at each window end, wherever the ring read happened to end: the
+        # pipeline then filters exactly one window's samples per pass, so the output does not
+        # depend on thread timing, not even in its last bit (a pass over several windows rounds
+        # differently). No latency is added: a window still runs when its last sample is in.
+        W = self.pipeline.window_samples
+        n = frames.shape[0]
+        cut = 0
+        while cut < n:
+            end = min(n, ((start + cut) // W + 1) * W - start)
+            x = self.map(frames[cut:end])
+            windows = self.pipeline.process(x)
+            flags = self.contact.process(x) if self.contact is not None else None
+            self._emit(windows, flags, emit)
+            cut = end
+
+    def _emit(self, windows, contact_flags, emit) -> None:
+        if not len(windows):
+            return
+        W, fs = self.pipeline.window_samples, self.pipeline.bank.fs
+        outputs = self.model.outputs(windows.values) if self.model is not None else None
+        for i, w in enumerate(windows.numbers.tolist()):
+            end = (w + 1) * W
+            truth = self.labels.at((w + 0.5) * W / fs)
+            in_contact = bool(contact_flags[i]) if contact_flags is not None and i < len(contact_flags) else True
+            post = decision = confidence = pooled = None
+            if outputs is not None:
+                post = posteriors(outputs[i])
+                k = int(np.argmax(post))
+                decision, confidence = self.model.classes[k], float(post[k])
+                if self.accumulator is not None:
+                    a = self.accumulator.update(outputs[i], in_contact)
+                    label = self.model.classes[a.label] if a.label >= 0 else None
+                    pooled = {"label": label, "confidence": round(a.confidence, 4), "windows": a.windows}
+                    if truth is not None and label is not None:
+                        self._acc_labelled += 1
+                        self._acc_correct += label == truth
+                if truth is not None:
+                    self._labelled += 1
+                    self._correct += decision == truth
+            flags = set(self._marks_of(w, W))
+            if w in self._gap_windows:
+                flags.add("gap")
+                self._gap_windows.discard(w)
+            features = {f: windows.values[i, k] for k, f in enumerate(windows.features)}
+            event = WindowEvent(self.name, w, self.source.time_of(w * W), self.source.time_of(end), end / fs,
+                                features=features, posteriors=post, decision=decision, confidence=confidence,
+                                pooled=pooled, truth=truth, flags=frozenset(flags), latency_ms=self._latency_ms(end),
+                                in_contact=in_contact)
+            self.windows += 1
+            emit(event)
+
+    def _marks_of(self, w: int, W: int) -> list[str]:
+        """The driver's marks ("restart", "overrun") in window ``w``."""
+        end = (w + 1) * W
+        marks = self.feed.marks
+        while marks and marks[0][0] < end:
+            index, kind = marks.popleft()
+            self._window_marks.setdefault(index // W, set()).add(kind)
+        for old in [k for k in self._window_marks if k < w]:  # windows never emitted (end of stream)
+            del self._window_marks[old]
+        return sorted(self._window_marks.pop(w, ()))
+
+    def _latency_ms(self, end: int) -> float | None:
+        """Now minus the arrival of the block that completed the window."""
+        arrivals = self.feed.arrivals
+        while arrivals and arrivals[0][0] < end:
+            arrivals.popleft()
+        if not arrivals:
+            return None  # the window was completed by end-of-stream or filled frames
+        lat = (time.monotonic() - arrivals[0][1]) * 1e3
+        self.latencies.add(lat)
+        return round(lat, 3)
+
+    # -- summary ------------------------------------------------------------------------------
+
+    def summary(self) -> dict:
+        """This stream's part of the node's summary (see :meth:`Graph.summary`)."""
+        fs = self.pipeline.bank.fs
+        stream = self._expected / fs
+        source = self.source
+        return {
+            "windows": self.windows,
+            "stream_seconds": stream,
+            "window_accuracy": self._correct / self._labelled if self._labelled else None,
+            "labelled_windows": self._labelled,
+            "accumulated_accuracy": self._acc_correct / self._acc_labelled if self._acc_labelled else None,
+            "frames": source.frame_fates(self.feed),
+            "nonfinite_replaced": self.pipeline.filterbank.nonfinite_count,
+            "out_of_range_replaced": self.pipeline.filterbank.out_of_range_count,
+            "partial_window_samples": self.pipeline.partial_samples,
+            "latency_ms": self.latencies.summary(),
+            "real_time_factor": self.cpu / stream if stream else 0.0,
+            "driver": dict(source.driver.stats()),
+            "ring": {k: v for k, v in source.ring.stats().items() if isinstance(v, (int, float))},
+        }
