@@ -7,6 +7,7 @@ not asked for are not computed, and there is no classifier without a model.
 
 from __future__ import annotations
 
+import math
 
 import numpy as np
 
@@ -156,10 +157,12 @@ def driver_for(scene: Scene, bank: Bank, speed_override=None):
         warn_if_beyond_band(bank, drv.source_rate, f"{scene.source}: [driver] path {d['path']}")
         return drv, Labels.of(drv), None
     if kind == "twosense":
-        from supramodal.replay.driver import ReplayDriver
+        from supramodal.replay.driver import DeviceClock, ReplayDriver
 
         ts, data, labels = twosense_session(scene, bank)
-        return ReplayDriver((data, bank.fs), on_notice=None, **replay), labels, ts
+        # Paced like a live device on its own crystal: the node sees only the arrivals.
+        clock = DeviceClock(d["clock_ppm"], d["offset"], d["jitter"], seed=d["set_seed"] * 2 + (d["sense"] == "whiskers"))
+        return ReplayDriver((data, bank.fs), on_notice=None, device_clock=clock, **replay), labels, ts
     if kind == "serial":
         from supramodal.drivers.serial_whisker import SerialWhiskerDriver
 
@@ -230,9 +233,21 @@ def _overrun(scene: Scene) -> str:
     return overrun
 
 
-def _timebase(scene: Scene) -> str:
-    """Files keep their own time; a live driver's samples are put on host time by a clock model."""
-    return "stream" if scene.driver["type"] in ("replay", "synth", "twosense") else "host"
+def _timebase(scene: Scene, driver) -> tuple[str, float, float]:
+    """``(timebase, time_offset, time_rate)`` of a scene's source (see node.sources.Source).
+
+    Files keep their own time. A live driver's samples are put on host time by a clock model. A
+    two-sense source at ``max`` speed is a file whose true timing is known (its offset and clock
+    error); at a finite speed it is paced like a live device, and the node sees only arrivals.
+    """
+    d = scene.driver
+    if d["type"] in ("replay", "synth"):
+        return "stream", 0.0, driver.rate
+    if d["type"] == "twosense":
+        if driver.speed == math.inf:
+            return "stream", d["offset"], driver.rate * (1.0 + d["clock_ppm"] * 1e-6)
+        return "host", 0.0, driver.rate * driver.speed
+    return "host", 0.0, driver.rate
 
 
 def build_node(scene: Scene, speed=None, sinks_override=None, progress=None, recorder=None,
@@ -253,8 +268,7 @@ def build_node(scene: Scene, speed=None, sinks_override=None, progress=None, rec
     try:
         return Node(driver, pipeline, sinks, model=model, decision=scene.decision,
                     mapping=scene.driver.get("mapping", "auto"), labels=labels,
-                    buffer_seconds=scene.buffer["seconds"], overrun=_overrun(scene), recorder=recorder,
-                    timebase=_timebase(scene))
+                    buffer_seconds=scene.buffer["seconds"], overrun=_overrun(scene), recorder=recorder)
     except ValueError as exc:
         # A refused scene leaves nothing behind: its sinks have written nothing, so no file exists.
         if sinks_override is None:
@@ -299,8 +313,7 @@ def _build_graph(scene: Scene, speed, sinks_override, progress, recorder, overwr
             pipeline = pipeline_for(sub, bank)
             if spec.source not in sources:      # one driver per source, whatever reads it
                 driver, labels, ts = driver_for(sub, bank, speed)
-                source = Source(spec.source, driver, sub.buffer["seconds"], _overrun(sub), _timebase(sub),
-                                time_offset=sub.driver.get("offset", 0.0))
+                source = Source(spec.source, driver, sub.buffer["seconds"], _overrun(sub), *_timebase(sub, driver))
                 sources[spec.source] = (source, labels, ts)
             source, labels, ts = sources[spec.source]
             held_out[spec.name] = []

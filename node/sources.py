@@ -26,6 +26,7 @@ from the graph's start. Where it comes from depends on the source (``timebase``)
 from __future__ import annotations
 
 import collections
+import math
 import queue
 import threading
 
@@ -77,10 +78,15 @@ class Source:
     time_offset : float
         For the stream timebase: seconds of common time at which the source's first sample was
         taken (a two-sense source's ``offset``; default 0).
+    time_rate : float, optional
+        The rate at which the source's samples advance on common time, Hz: for the stream
+        timebase, the file's own clock (a two-sense source's true rate, its ``clock_ppm``
+        included); for the host timebase, the clock model's nominal rate (a replay paced at
+        ``speed`` delivers ``speed`` times its rate). Default: the driver's rate.
     """
 
     def __init__(self, name: str, driver, buffer_seconds: float = 2.0, overrun: str = "drop-oldest",
-                 timebase: str = "stream", time_offset: float = 0.0) -> None:
+                 timebase: str = "stream", time_offset: float = 0.0, time_rate: float | None = None) -> None:
         if timebase not in TIMEBASES:
             raise InputError(f"a source's timebase is one of {TIMEBASES}, got {timebase!r}")
         self.name = name
@@ -91,12 +97,16 @@ class Source:
         self.ring = RingBuffer(capacity, driver.channels, dtype=np.float64, overrun=overrun)
         self.feeds: list[Feed] = []
         self.recorder = None
-        self.clock = ClockModel(self.rate) if timebase == "host" else None
+        time_rate = self.rate if time_rate is None else float(time_rate)
+        self.clock = ClockModel(time_rate) if timebase == "host" else None
         self.time_offset = float(time_offset)
         # (offset, seconds per sample) of the common-time line, replaced whole by the source
         # thread so that a processing thread never reads half of an update.
-        self._line = (self.time_offset, 1.0 / self.rate)
+        self._line = (self.time_offset, 1.0 / time_rate)
         self.epoch = 0.0                 # host time of the graph's start (set by the graph)
+        self._last_arrival = -math.inf
+        #: Blocks whose arrival stamp went backwards, left out of the clock fit.
+        self.clock_skipped = 0
         self.max_frames: int | None = None
         #: Set by the source thread: the stream length (``max_frames``) was reached.
         self.reached_length = False
@@ -156,6 +166,10 @@ class Source:
         if self.clock is not None and block.frames:
             if block.restarts:
                 self.clock.reset()          # the board's count restarted: the old line is void
+            if not block.arrival >= self._last_arrival:
+                self.clock_skipped += 1     # a stamp out of order (a driver's fill): not a measurement
+                return
+            self._last_arrival = block.arrival
             self.clock.update(end - 1, block.arrival)
             offset, slope = self.clock.line()
             self._line = (offset - self.epoch, slope)
@@ -217,4 +231,4 @@ class Source:
             return None
         e = self.clock.estimate()
         return {"ppm": round(e.ppm, 3), "jitter_ms": round(e.jitter * 1e3, 3), "delay_ms": round(e.delay * 1e3, 3),
-                "blocks": e.blocks, "fitted": e.fitted}
+                "blocks": e.blocks, "fitted": e.fitted, "skipped": self.clock_skipped}

@@ -19,11 +19,12 @@ replay.driver
 from supramodal.replay.errors import ClippingWarning, ReplayError, SessionError, WavFormatError
 from supramodal.replay.wavio import WavInfo, read_wav, wav_info, write_wav
 from supramodal.replay.session import Label, Session, load_session, save_session, session_paths
-from supramodal.replay.driver import ReplayDriver, random_block_sizes, release_time
+from supramodal.replay.driver import DeviceClock, ReplayDriver, random_block_sizes, release_time
 
 __all__ = [
     "ClippingWarning",
     "Label",
+    "DeviceClock",
     "ReplayDriver",
     "ReplayError",
     "Session",

@@ -32,6 +32,7 @@ import os
 import sys
 import threading
 import time
+from dataclasses import dataclass
 from fractions import Fraction
 from pathlib import Path
 from typing import Callable, Sequence, Union
@@ -77,6 +78,46 @@ def release_time(end_frame: int, rate: float, speed: float = 1.0, t0: float = 0.
     if speed == math.inf:
         return t0
     return t0 + end_frame / (rate * speed)
+
+
+@dataclass(frozen=True)
+class DeviceClock:
+    """How a simulated live device's blocks reach the host, for a replay paced like one.
+
+    A real board or sound card samples on its own crystal, a few tens of ppm off its nominal
+    rate, starts some time after the host asks, and delivers each block late by a variable delay
+    (USB polling, the audio server's period, the scheduler), never out of order. A replay with a
+    ``DeviceClock`` releases block ``k`` ending at frame ``end`` at
+
+        ``max(previous release, t0 + (start + end / (rate (1 + ppm 1e-6))) / speed + delay_k)``
+
+    with ``delay_k`` drawn from an exponential distribution of mean ``mean_delay`` (host seconds,
+    not scaled by the speed), and stamps that time as the block's arrival. At ``speed='max'`` it
+    has no effect. The node's clock model (``supramodal.node.clock``) must then find the line.
+
+    Attributes
+    ----------
+    ppm : float
+        The device's crystal error, parts per million (default 0), |ppm| < 1e4.
+    start : float
+        Seconds after ``open()`` at which the device takes its first sample (default 0), >= 0.
+    mean_delay : float
+        Mean delivery delay, seconds (default 0: on time), >= 0.
+    seed : int or None
+        Seed of the delays.
+    """
+
+    ppm: float = 0.0
+    start: float = 0.0
+    mean_delay: float = 0.0
+    seed: int | None = None
+
+    def __post_init__(self) -> None:
+        for name, value, ok in (("ppm", self.ppm, lambda v: abs(v) < 1e4), ("start", self.start, lambda v: v >= 0),
+                                ("mean_delay", self.mean_delay, lambda v: v >= 0)):
+            if not (isinstance(value, numbers.Real) and not isinstance(value, bool) and math.isfinite(value)
+                    and ok(value)):
+                raise ReplayError(f"DeviceClock {name} out of range: {value!r}")
 
 
 class RandomBlockSizes:
@@ -150,6 +191,9 @@ class ReplayDriver:
         generator is re-created at every ``open()``, so sizes repeat.
     max_denominator : int, default 1000
         Largest ``down`` factor the resampling ratio may use.
+    device_clock : DeviceClock, optional
+        Pace the replay like a live device on its own crystal, with a start delay and
+        delivery jitter (see :class:`DeviceClock`); default: exactly on the nominal schedule.
     on_notice : callable or None, default prints to stderr
         Called once with each notice (e.g. "resampling ..."), for a driver used
         on its own; None silences them. They are kept in :attr:`notices` and
@@ -197,7 +241,7 @@ class ReplayDriver:
     def __init__(self, source, rate: float | None = None, block_size: BlockSize = None,
                  speed: float | str = 1.0, loop: bool | int = False, channels=None,
                  seed: int | None = None, max_denominator: int = 1000,
-                 on_notice: Callable[[str], None] | None = _print_stderr):
+                 on_notice: Callable[[str], None] | None = _print_stderr, device_clock: DeviceClock | None = None):
         self.notices: list[str] = []
         self._on_notice = on_notice
         self._log = EventLog()
@@ -263,6 +307,9 @@ class ReplayDriver:
             raise ReplayError(f"block_size must be a positive int, a sequence of them or a callable, "
                               f"got {block_size!r}")
         self._seed = seed
+        if device_clock is not None and not isinstance(device_clock, DeviceClock):
+            raise ReplayError(f"device_clock must be a DeviceClock, got {device_clock!r}")
+        self.device_clock = device_clock
         if speed == "max" or speed == math.inf:
             self.speed = math.inf
         elif isinstance(speed, numbers.Real) and not isinstance(speed, bool) and math.isfinite(speed) and speed > 0:
@@ -374,6 +421,9 @@ class ReplayDriver:
         self._k = 0                # blocks drawn, for cycling a sequence
         self._rng = np.random.default_rng(self._seed)
         self._t0 = time.monotonic()
+        self._next_delay = 0.0
+        self._last_due = -math.inf
+        self._delay_rng = np.random.default_rng(self.device_clock.seed if self.device_clock else None)
 
     def open(self) -> None:
         """Start (or restart) the stream at frame 0; counters reset; ``t0`` is now."""
@@ -411,8 +461,12 @@ class ReplayDriver:
         return math.inf if self._passes is None else self._passes * self._data.shape[0]
 
     def release_time(self, end_frame: int) -> float:
-        """:func:`release_time` of a block ending at ``end_frame`` since the last ``open()``."""
-        return release_time(end_frame, self.rate, self.speed, self._t0)
+        """:func:`release_time` of a block ending at ``end_frame`` since the last ``open()`` (on
+        the device's own clock, before its delivery delay, with a :class:`DeviceClock`)."""
+        c = self.device_clock
+        if c is None or self.speed == math.inf:
+            return release_time(end_frame, self.rate, self.speed, self._t0)
+        return self._t0 + (c.start + end_frame / (self.rate * (1.0 + c.ppm * 1e-6))) / self.speed
 
     def read(self, timeout: float | None = None) -> Block | None:
         """Return the next block once its release time has come.
@@ -449,9 +503,12 @@ class ReplayDriver:
             raise DriverClosed(f"{self.name}: end of stream after {self._pos} frames")
         if self._next_size is None:
             self._next_size = self._draw_size()
+            c = self.device_clock
+            paced = c is not None and c.mean_delay > 0 and self.speed != math.inf
+            self._next_delay = float(self._delay_rng.exponential(c.mean_delay)) if paced else 0.0
         size = int(min(self._next_size, remaining))
         end = self._pos + size
-        due = self.release_time(end)
+        due = max(self.release_time(end) + self._next_delay, self._last_due)   # delivered in order
         deadline = None if timeout is None else time.monotonic() + max(0.0, timeout)
         while True:
             now = time.monotonic()
@@ -484,6 +541,7 @@ class ReplayDriver:
         self._pos = end
         self._blocks += 1
         self._next_size = None
+        self._last_due = due
         return block
 
     def _marks_in(self, pos: int, size: int, kind: str) -> tuple[int, ...]:

@@ -329,3 +329,29 @@ def test_a_two_sense_source_needs_the_bank_of_its_sense():
     d["stream"][1]["bank"] = {"kind": "whisker"}
     with pytest.raises(SceneError, match="sense 'microphone' is sampled at 44100 Hz, the bank at 5000 Hz"):
         build_node(scene_from_dict(d, "world.toml"), speed="max", sinks_override=[ListSink()])
+
+
+def test_two_sense_sources_paced_on_their_own_crystals_are_put_on_one_time_by_their_clock_models():
+    """Paced like live devices (speed 8): the whiskers' crystal +100 ppm, the microphone's -100
+    ppm and 37 ms later, blocks delivered 2 ms late on average. The node sees only the arrival
+    stamps; each source's clock model must find its rate error, and the fusion pair every window
+    across the offset as it does at ``max`` speed, where the true timing is known."""
+    d = _two_sense_scene(seconds=4.0)   # 32 s of stream: 4 s of host time, 4 clock segments
+    d["source"][0].update(clock_ppm=100.0, jitter=0.0005)
+    d["source"][1].update(clock_ppm=-100.0, jitter=0.0005)
+    d["fusion"]["max_wait"] = 10.0     # generous: this checks alignment, not the machine's speed
+    summary = {}
+    for speed in ("max", 8.0):
+        graph = build_node(scene_from_dict(d, "world.toml"), speed=speed, sinks_override=[ListSink()])
+        summary[speed] = graph.run()
+    clocks = summary[8.0]["clocks"]
+    # The ppm are against the paced rate (speed x nominal), the stamps' jitter is in host time.
+    assert clocks["whiskers"]["ppm"] == pytest.approx(100.0, abs=15.0)
+    assert clocks["mic"]["ppm"] == pytest.approx(-100.0, abs=15.0)
+    assert clocks["whiskers"]["fitted"] and clocks["mic"]["fitted"]
+    assert summary["max"]["clocks"] == {}            # files: their own time, no model to fit
+    for speed in ("max", 8.0):
+        f = summary[speed]["fusion"]
+        assert f["windows"] == f["paired"] == 320 and f["alone"] == 0 and f["late"] == {"whiskers": 0, "mic": 0}
+    # the same windows paired, so the same decisions (the clock moves times, not features)
+    assert summary[8.0]["fusion"]["window_accuracy"] == summary["max"]["fusion"]["window_accuracy"]

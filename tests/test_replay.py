@@ -18,6 +18,7 @@ from scipy.io import wavfile
 from supramodal.drivers.base import Block, DeviceUnavailable, Driver, DriverClosed, DriverError
 from supramodal.replay import (ClippingWarning, Label, ReplayDriver, ReplayError, Session, SessionError,
                     WavFormatError, load_session, random_block_sizes, read_wav, release_time,
+                    DeviceClock,
                     save_session, wav_info, write_wav)
 
 RNG = np.random.default_rng(20240601)
@@ -611,6 +612,73 @@ def test_close_interrupts_a_paced_wait():
     t.join(timeout=30)  # generous: only checks the wait was interrupted, not how fast
     assert not t.is_alive()
     assert len(outcome) == 1 and isinstance(outcome[0], DriverClosed)
+
+
+def _arrivals(driver, blocks):
+    """Ends and arrival stamps of the first ``blocks`` blocks, and the ``t0`` they count from.
+    The clock's origin is moved back a day so that every block is overdue: the stamps are the
+    schedule's, and the test does not wait for it."""
+    with driver:
+        driver._t0 -= 86400.0
+        got = [driver.read(timeout=0) for _ in range(blocks)]
+    return np.array([b.start + b.frames for b in got]), np.array([b.arrival for b in got]), driver._t0
+
+
+def test_a_device_clock_paces_blocks_on_the_device_crystal_from_its_start():
+    """Without delivery delay, block k ending at frame e arrives at t0 + (start + e / (rate (1 +
+    ppm 1e-6))) / speed: the crystal's error stretches the schedule, the start shifts it."""
+    rate, speed, ppm, start = 1000.0, 2.0, 250.0, 0.02
+    clock = DeviceClock(ppm=ppm, start=start)
+    ends, arrivals, t0 = _arrivals(ReplayDriver((_noise(2000, 1), rate), block_size=10, speed=speed,
+                                                device_clock=clock), 50)
+    true_rate = rate * (1 + ppm / 1e6)
+    # (to a few ulps of host time, which counts from a day back here)
+    np.testing.assert_allclose(arrivals - t0, (start + ends / true_rate) / speed, rtol=0, atol=1e-9)
+    # the line through the arrivals has the device's rate, not the nominal one
+    slope = np.polyfit(ends, arrivals - t0, 1)[0]
+    assert 1e6 * (1 / (slope * speed * rate) - 1) == pytest.approx(ppm, abs=1e-3)
+
+
+def test_a_device_clock_delivers_late_by_random_delays_but_never_early_or_out_of_order():
+    rate, speed, mean_delay = 1000.0, 2.0, 0.001     # a block every 5 ms, delays of 1 ms
+    clock = DeviceClock(ppm=-80.0, mean_delay=mean_delay, seed=7)
+    drv = ReplayDriver((_noise(20000, 1), rate), block_size=10, speed=speed, device_clock=clock)
+    ends, arrivals, t0 = _arrivals(drv, 1000)
+    scheduled = t0 + ends / (rate * (1 - 80e-6)) / speed
+    late = arrivals - scheduled
+    assert late.min() >= 0.0                          # never before the device sampled it
+    assert np.all(np.diff(arrivals) >= 0)             # in order, as USB and audio servers deliver
+    # Where a block was not held back behind its predecessor, its lateness is its own delay:
+    # exponential with the given mean (1000 draws, fixed seed: the mean within 10 %).
+    own = late[1:][np.diff(arrivals) > 0]
+    assert len(own) > 950
+    assert np.mean(own) == pytest.approx(mean_delay, rel=0.1)
+    # the same seed gives the same deliveries at every open()
+    again = _arrivals(drv, 1000)
+    np.testing.assert_allclose(again[1] - again[2], arrivals - t0, rtol=0, atol=1e-9)
+
+
+def test_a_device_clock_has_no_effect_at_speed_max():
+    drv = ReplayDriver((_noise(10**6, 1), 1000), block_size=1000, speed="max",
+                       device_clock=DeviceClock(ppm=500, start=100.0, mean_delay=1.0, seed=0))
+    with drv:
+        for _ in range(100):
+            assert drv.read(timeout=0) is not None
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    ({"ppm": 1e4}, "ppm out of range"), ({"ppm": math.nan}, "ppm out of range"),
+    ({"start": -0.1}, "start out of range"), ({"mean_delay": -1e-3}, "mean_delay out of range"),
+    ({"mean_delay": True}, "mean_delay out of range"), ({"start": "1"}, "start out of range"),
+])
+def test_device_clock_refusals_name_the_field(kwargs, match):
+    with pytest.raises(ReplayError, match=match):
+        DeviceClock(**kwargs)
+
+
+def test_device_clock_must_be_a_device_clock():
+    with pytest.raises(ReplayError, match="device_clock must be a DeviceClock"):
+        ReplayDriver((_noise(10, 1), 1000), device_clock={"ppm": 40})
 
 
 def test_session_marks_come_back_in_the_blocks_at_any_rate_and_on_every_loop(tmp_path):
