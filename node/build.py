@@ -114,7 +114,7 @@ def twosense_session(scene: Scene, bank: Bank):
     played = OneSense(surfaces, d["sense"], d["seconds"], d["set_seed"], take=1)
     parts = [played.synthesize(train.names.index(name)) for name in order]
     labels = [(k * d["seconds"], (k + 1) * d["seconds"], name) for k, name in enumerate(order)]  # stream time
-    return train, np.concatenate(parts)[:, None], Labels(labels)
+    return train, np.concatenate(parts)[:, None], Labels(labels, len(order) * d["seconds"] if d["loop"] else None)
 
 
 def train_on_texture_set(ts, pipeline: FeaturePipeline, progress=None, held_out: list | None = None) -> TextureModel:
@@ -162,7 +162,7 @@ def driver_for(scene: Scene, bank: Bank, speed_override=None):
         ts, data, labels = twosense_session(scene, bank)
         # Paced like a live device on its own crystal: the node sees only the arrivals.
         clock = DeviceClock(d["clock_ppm"], d["offset"], d["jitter"], seed=d["set_seed"] * 2 + (d["sense"] == "whiskers"))
-        return ReplayDriver((data, bank.fs), on_notice=None, device_clock=clock, **replay), labels, ts
+        return ReplayDriver((data, bank.fs), on_notice=None, device_clock=clock, loop=d["loop"], **replay), labels, ts
     if kind == "serial":
         from supramodal.drivers.serial_whisker import SerialWhiskerDriver
 

@@ -138,6 +138,7 @@ DRIVER_KEYS = {
         "order": (_texture_list, "a list of texture names", None),
         "offset": (_non_negative, "seconds after the graph's start at which this source's first sample is "
                                   "taken, >= 0", 0.0),
+        "loop": (lambda v: isinstance(v, bool), "true or false: play the contacts again and again", False),
         "clock_ppm": (lambda v: _number(v) and abs(v) <= 1000, "the simulated device's crystal error, ppm, "
                                                                 "within +-1000", 0.0),
         "jitter": (lambda v: _non_negative(v) and v <= 1, "mean delivery delay of a block, seconds, 0 to 1 "

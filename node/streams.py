@@ -65,16 +65,22 @@ def channel_mapper(mapping, driver_channels: int, bank_channels: int, setting: s
 
 @dataclass
 class Labels:
-    """Truth labels as time ranges ``(start_s, end_s, name)``, for accuracy where they are known."""
+    """Truth labels as time ranges ``(start_s, end_s, name)``, for accuracy where they are known;
+    with a ``period`` (seconds) they repeat, as a looped source's do."""
 
     ranges: list[tuple[float, float, str]] = field(default_factory=list)
+    period: float | None = None
 
     @classmethod
     def of(cls, driver) -> "Labels":
-        """The labels a driver carries (a replayed session's), or none."""
-        return cls([(lab.start, lab.end, lab.label) for lab in getattr(driver, "labels", ())])
+        """The labels a driver carries (a replayed session's, repeating with its loop), or none."""
+        ranges = [(lab.start, lab.end, lab.label) for lab in getattr(driver, "labels", ())]
+        looped = ranges and getattr(driver, "passes", 1) != 1
+        return cls(ranges, driver.period if looped else None)
 
     def at(self, t: float) -> str | None:
+        if self.period is not None:
+            t = t % self.period
         for start, end, name in self.ranges:
             if start <= t < end:
                 return name

@@ -456,6 +456,17 @@ class ReplayDriver:
         return int(size)
 
     @property
+    def opened_at(self) -> float:
+        """Host monotonic time of the last ``open()``, seconds: a paced stream's schedule (and a
+        :class:`DeviceClock`'s start) counts from it."""
+        return self._t0
+
+    @property
+    def passes(self) -> int | None:
+        """Passes of the source the stream plays: 1 without looping, None looping forever."""
+        return self._passes
+
+    @property
     def total_frames(self) -> float:
         """Frames in the whole stream (``math.inf`` when looping forever)."""
         return math.inf if self._passes is None else self._passes * self._data.shape[0]

@@ -20,7 +20,7 @@ from supramodal.node.graph import Graph
 from supramodal.node.scene import SceneError, load_scene, scene_from_dict, scene_to_toml
 from supramodal.node.sinks import ListSink
 from supramodal.node.sources import Source
-from supramodal.node.streams import Stream
+from supramodal.node.streams import Labels, Stream
 from supramodal.pipeline import FeaturePipeline
 from supramodal.replay.driver import ReplayDriver, random_block_sizes
 
@@ -355,3 +355,28 @@ def test_two_sense_sources_paced_on_their_own_crystals_are_put_on_one_time_by_th
         assert f["windows"] == f["paired"] == 320 and f["alone"] == 0 and f["late"] == {"whiskers": 0, "mic": 0}
     # the same windows paired, so the same decisions (the clock moves times, not features)
     assert summary[8.0]["fusion"]["window_accuracy"] == summary["max"]["fusion"]["window_accuracy"]
+
+
+def test_labels_of_a_looped_source_repeat_with_its_period():
+    labels = Labels([(0.0, 1.0, "a"), (1.0, 2.5, "b")], period=2.5)
+    assert [labels.at(t) for t in (0.5, 1.2, 2.6, 3.6, 250.1, 251.2)] == ["a", "b", "a", "b", "a", "b"]
+    assert Labels([(0.0, 1.0, "a")]).at(1.5) is None          # without a period, once
+    from supramodal.replay import Label, Session
+    session = Session(np.zeros((1000, 1)), 1000, "test", labels=(Label(0.0, 0.5, "x"), Label(0.5, 1.0, "y")))
+    assert Labels.of(ReplayDriver(session, loop=True, on_notice=None)).period == 1.0
+    assert Labels.of(ReplayDriver(session, loop=3, on_notice=None)).period == 1.0
+    assert Labels.of(ReplayDriver(session, on_notice=None)).period is None
+
+
+def test_a_looped_two_sense_world_is_labelled_on_every_pass():
+    """Two passes of a 2 s world (8 textures x 0.25 s): every window of the second pass has its
+    truth too, so the accuracy counts the whole stream."""
+    d = _two_sense_scene(seconds=0.25)
+    for source in d["source"]:
+        source["loop"] = True
+    graph = build_node(scene_from_dict(d, "world.toml"), speed="max", sinks_override=[ListSink()])
+    summary = graph.run(4.0)
+    for name in ("whiskers", "mic"):
+        s = summary["streams"][name]
+        assert s["windows"] == s["labelled_windows"] == 40
+    assert summary["fusion"]["labelled_windows"] == 40
