@@ -46,7 +46,7 @@ def test_fit_is_deterministic_and_its_best_is_the_cross_validation_of_that_setti
     assert fit_manifest(sensor / "m.csv", k=3, epochs=30, seed=1, quick=True)["rows"] == result["rows"]
 
 
-def test_fit_command_writes_a_bank_that_train_takes(sensor, tmp_path, capsys):
+def test_fit_writes_a_bank_whose_model_decides_in_the_node_as_evaluate_does_on_held_out_recordings(sensor, tmp_path, capsys):
     out = tmp_path / "fit"
     assert main(["fit", str(sensor / "m.csv"), "--out", str(out), "--cv", "3", "--epochs", "30", "--quick",
                  "--quiet"]) == 0
@@ -57,3 +57,32 @@ def test_fit_command_writes_a_bank_that_train_takes(sensor, tmp_path, capsys):
     assert len(list(csv.reader(open(out / "fit.csv")))) == 1 + 13
     assert main(["train", "--bank", str(out / "bank.json"), "--manifest", str(sensor / "m.csv"),
                  "--out", str(tmp_path / "m.npz"), "--epochs", "30", "--quiet"]) == 0
+    # The whole path a user takes: the fitted bank's model, in `supramodal run` on replays of
+    # recordings it never met (another seed, longer), decides every window as `evaluate` does.
+    import json
+
+    from supramodal.model import TextureModel
+    from supramodal.node.manifest import read_manifest
+    from supramodal.node.training import evaluate_manifest, recording_windows
+
+    rows = ["path,label"]
+    for t, (name, peaks) in enumerate(TEXTURES.items()):
+        write_wav(tmp_path / f"held_{name}.wav", 0.2 * synthesize(peaks, SENSOR_RATE, 2.0, seed=9000 + t)[:, None],
+                  SENSOR_RATE)
+        rows.append(f"held_{name}.wav,{name}")
+    (tmp_path / "held.csv").write_text("\n".join(rows) + "\n")
+    model = TextureModel.load(tmp_path / "m.npz")
+    evaluated = evaluate_manifest(model, tmp_path / "held.csv")
+    for k, rec in enumerate(read_manifest(tmp_path / "held.csv")):
+        scene = tmp_path / f"run{k}.toml"
+        scene.write_text(f'[driver]\ntype = "replay"\npath = "{rec.path.name}"\nspeed = "max"\n'
+                         f'[bank]\nfile = "fit/bank.json"\n[model]\npath = "m.npz"\n'
+                         f'[features]\nnames = {json.dumps(list(model.features))}\nwindow = {model.window_samples / SENSOR_RATE}\n')
+        capsys.readouterr()
+        assert main(["run", str(scene), "--json", "--quiet"]) == 0
+        events = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+        node = [e["predicted"] for e in events if "predicted" in e]
+        offline = [model.classes[i] for i in model.outputs(recording_windows(rec, model.pipeline())).argmax(axis=1)]
+        assert len(node) == 20 and node == offline
+        row = evaluated["confusion"][evaluated["labels"].index(rec.label)]
+        assert [node.count(label) for label in evaluated["labels"]] == list(row)
