@@ -59,6 +59,29 @@ def _texture_set(scene: Scene, spec: str):
     return reference_texture_set(scene.bank["kind"]) if spec == "reference" else load_texture_set(scene.resolve(spec))
 
 
+#: Samples a synthesised source may hold in memory, all its textures together (1 GiB of float64):
+#: a synth or two-sense source is generated whole before it plays.
+MAX_SYNTH_SAMPLES = 2**27
+
+
+def _checked_length(scene: Scene, order: list, fs: float) -> int:
+    """Samples per texture of a synthesised source; a length that cannot be held is refused
+    naming ``[driver] seconds`` (and ``order`` when it is the number of textures)."""
+    from supramodal.textures import texture_samples
+
+    d = scene.driver
+    try:
+        n = texture_samples(d["seconds"], fs)
+    except InputError as exc:
+        raise SceneError(f"{scene.source}: [driver] seconds: {exc}") from None
+    if n * len(order) > MAX_SYNTH_SAMPLES:
+        raise SceneError(f"{scene.source}: [driver] seconds x order: {len(order)} textures of {d['seconds']:g} s at "
+                         f"{fs:g} Hz are {n * len(order):.3g} samples, more than the {MAX_SYNTH_SAMPLES} a "
+                         f"synthesised source may hold ({MAX_SYNTH_SAMPLES / fs / 60:.0f} min at this rate); give "
+                         "fewer seconds per texture" + (" or set loop = true" if "loop" in d else ""))
+    return n
+
+
 def synth_session(scene: Scene, bank: Bank):
     """The synth driver's signal: each texture for ``seconds`` in ``order``, with its labels.
 
@@ -75,7 +98,7 @@ def synth_session(scene: Scene, bank: Bank):
     unknown = [n for n in order if n not in ts.names]
     if unknown:
         raise SceneError(f"{scene.source}: [driver] order: unknown texture(s) {unknown}; the set has {list(ts.names)}")
-    n = int(round(d["seconds"] * ts.fs))
+    n = _checked_length(scene, order, ts.fs)
     parts, labels, t = [], [], 0.0
     for name in order:
         i = ts.names.index(name)
@@ -111,6 +134,7 @@ def twosense_session(scene: Scene, bank: Bank):
     unknown = [n for n in order if n not in train.names]
     if unknown:
         raise SceneError(f"{scene.source}: [driver] order: unknown texture(s) {unknown}; the set has {list(train.names)}")
+    _checked_length(scene, order, train.fs)
     played = OneSense(surfaces, d["sense"], d["seconds"], d["set_seed"], take=1)
     parts = [played.synthesize(train.names.index(name)) for name in order]
     labels = [(k * d["seconds"], (k + 1) * d["seconds"], name) for k, name in enumerate(order)]  # stream time

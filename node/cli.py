@@ -23,6 +23,7 @@ import argparse
 import json
 import math
 import os
+import shutil
 import signal
 import sys
 import traceback
@@ -141,7 +142,8 @@ def _cmd_synth(args) -> int:
     from scipy.io import wavfile
 
     from supramodal.node.outputs import check_new_file
-    from supramodal.textures import load_texture_set, reference_texture_set
+    from supramodal.errors import InputError
+    from supramodal.textures import load_texture_set, reference_texture_set, texture_samples
 
     ts = load_texture_set(args.textures) if args.textures else reference_texture_set(args.bank)
     out = Path(args.out)
@@ -149,12 +151,27 @@ def _cmd_synth(args) -> int:
     if out.is_dir():
         for path in paths:
             check_new_file(path, args.force, "the texture file")
-    out.mkdir(parents=True, exist_ok=True)
     duration = ts.duration if args.duration is None else args.duration
-    for i, (tex, path) in enumerate(zip(ts.textures, paths)):
-        x = ts.synthesize(i, duration=duration).astype(np.float32)
-        wavfile.write(path, int(round(ts.fs)), x)
-        print(f"{path}  {len(x) / ts.fs:g} s at {ts.fs:g} Hz, peaks {list(tex.peaks)} Hz")
+    try:
+        texture_samples(duration, ts.fs)
+    except InputError as exc:
+        raise InputError(f"--duration: {exc}") from None
+    created = not out.exists()
+    out.mkdir(parents=True, exist_ok=True)
+    written = []
+    try:
+        for i, (tex, path) in enumerate(zip(ts.textures, paths)):
+            x = ts.synthesize(i, duration=duration).astype(np.float32)
+            wavfile.write(path, int(round(ts.fs)), x)
+            written.append(path)
+            print(f"{path}  {len(x) / ts.fs:g} s at {ts.fs:g} Hz, peaks {list(tex.peaks)} Hz")
+    except BaseException:
+        # A failed (or interrupted) run leaves nothing: no part of a set, no folder it made.
+        for path in paths[:len(written) + 1]:
+            path.unlink(missing_ok=True)
+        if created:
+            shutil.rmtree(out, ignore_errors=True)
+        raise
     return 0
 
 

@@ -219,6 +219,31 @@ def test_a_scene_refuses_infinite_seconds_naming_the_key(section, key):
         scene_from_dict(sections)
 
 
+@pytest.mark.parametrize("driver, needle", [
+    ({"type": "synth", "seconds": 1e5, "held_out": False}, r"\[driver\] seconds: duration 100000 s"),
+    ({"type": "synth", "seconds": 3000, "held_out": False, "order": ["T1", "T2", "T3"] * 4},
+     r"\[driver\] seconds x order: 12 textures of 3000 s .* more than the 134217728"),
+    ({"type": "twosense", "sense": "microphone", "seconds": 300, "pairs": 3},
+     r"\[driver\] seconds x order: 12 textures of 300 s .* or set loop = true"),
+])
+def test_a_synthesised_source_too_long_to_hold_is_refused_before_it_is_made(driver, needle):
+    """A synthesised source is generated whole: a length beyond what it may hold is refused,
+    naming the key, before anything is allocated (1e5 s of 20-channel texture would be 80 GB)."""
+    from supramodal.node.build import build_node
+    from supramodal.node.scene import SceneError, scene_from_dict
+
+    bank = {"kind": "cochlea"} if driver["type"] == "twosense" else {"kind": "whisker"}
+    with pytest.raises(SceneError, match=needle):
+        build_node(scene_from_dict({"driver": driver, "bank": bank}), sinks_override=[])
+
+
+def test_a_refused_synth_leaves_no_folder(tmp_path, capsys):
+    out = tmp_path / "big"
+    assert main(["synth", "--duration", "1e9", "--out", str(out)]) == 2
+    assert "--duration: duration 1e+09 s" in capsys.readouterr().err
+    assert not out.exists()
+
+
 def test_node_run_takes_inf_as_no_limit_and_refuses_nan():
     import numpy as np
 
