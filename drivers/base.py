@@ -103,7 +103,9 @@ class DriverEvent:
         A short, stable name: ``"channels"`` (a frame of the wrong channel
         count), ``"version"``, ``"unplug"``, ``"reconnect"``, ``"restart"``,
         ``"gap"``, ``"overrun"``, ``"silence"``, ``"overflow"``, ``"error"``,
-        ``"notice"``, ...; each driver documents its kinds.
+        ``"notice"``, ...; each driver documents its kinds. A node's fusion block says
+        ``"sense_lost"``, ``"sense_back"`` and ``"sense_ended"`` with the same event
+        (source ``"fused"``).
     message : str
         One line for a person: what happened and, for a fault, the likely fix.
     time : float

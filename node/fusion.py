@@ -9,6 +9,12 @@ each other without a deadline: their decisions do not depend on the host's timin
 after that is *late*: counted, and left out of fusion (its own stream's sinks still get it).
 When both streams have ended, what is still waiting is decided alone.
 
+A sense that drops out is said as it happens: the first window decided alone because the other
+stream's did not come in time gives a ``sense_lost`` event, the first pair after it a
+``sense_back`` event (with the count of windows decided alone meanwhile), and a stream that ends
+while the other goes on a ``sense_ended`` event. They go to the sinks as driver events do,
+from source ``"fused"``, and are counted in the summary (``dropouts``).
+
 Late fusion: ``w log p_a + (1 - w) log p_b`` (:func:`supramodal.fusion.fuse_late`), normalised
 to posteriors, winner-take-all; pooling over windows as for one stream.
 
@@ -29,6 +35,7 @@ import time
 import numpy as np
 
 from supramodal.decisions import DecisionAccumulator
+from supramodal.drivers.base import DriverEvent
 from supramodal.errors import InputError
 from supramodal.fusion import fuse_late
 from supramodal.node.events import FUSED_STREAM, WindowEvent
@@ -59,6 +66,12 @@ class LateFusion:
         at any speed: their timing is their own, and the decisions do not depend on the host's).
     decision : dict, optional
         Pooling of the fused decisions (``scope``, ``n``, ``method``), as for a stream.
+
+    Attributes
+    ----------
+    on_event : callable or None
+        Called from the fusion thread with each ``DriverEvent`` it says (a sense lost, back or
+        ended); must not block. The graph sets it to its event queue.
     """
 
     def __init__(self, inputs, classes, weight: float = DEFAULT_WEIGHT, max_wait: float = DEFAULT_MAX_WAIT,
@@ -92,6 +105,12 @@ class LateFusion:
         self._alone_until = {a: -math.inf, b: -math.inf}
         self.windows = self.paired = self.alone = 0
         self.late = {a: 0, b: 0}
+        self.on_event = None
+        # per stream: missing since its partner window did not come in time (windows decided
+        # alone since then), or None while present
+        self._missing: dict[str, int | None] = {a: None, b: None}
+        self._said_ended: set[str] = set()
+        self.dropouts = {a: 0, b: 0}
         self._correct = self._labelled = self._acc_correct = self._acc_labelled = 0
         self.latencies = LatencyHistogram()
 
@@ -141,6 +160,11 @@ class LateFusion:
             ea, eb = pa[0][0], pb[0][0]
             tol = 0.5 * min(ea.end - ea.start, eb.end - eb.start)
             if abs(_centre(ea) - _centre(eb)) <= tol:
+                for s in self.inputs:
+                    if self._missing[s] is not None:
+                        self._say("sense_back", f"fusion: '{s}' is back: fused decisions resume "
+                                                f"({self._missing[s]} windows decided alone meanwhile)")
+                        self._missing[s] = None
                 emit(self._fuse(pa.popleft(), pb.popleft()))
             elif _centre(ea) < _centre(eb):
                 emit(self._single(pa.popleft()))    # b has moved past it: a's window has no partner
@@ -150,9 +174,23 @@ class LateFusion:
             waiting = self._pending[s]
             while waiting and (other in self._ended or now - waiting[0][1] > self.max_wait):
                 item = waiting.popleft()
-                if other not in self._ended:
+                if other in self._ended:
+                    if other not in self._said_ended and s not in self._ended:
+                        self._said_ended.add(other)
+                        self._say("sense_ended", f"fusion: '{other}' has ended; deciding on '{s}' alone")
+                else:
                     self._alone_until[other] = _centre(item[0]) + 0.5 * (item[0].end - item[0].start)
+                    if self._missing[other] is None:
+                        self._missing[other] = 0
+                        self.dropouts[other] += 1
+                        self._say("sense_lost", f"fusion: no window from '{other}' within {self.max_wait:g} s; "
+                                                f"deciding on '{s}' alone until it comes back")
+                    self._missing[other] += 1
                 emit(self._single(item))
+
+    def _say(self, kind: str, message: str) -> None:
+        if self.on_event is not None:
+            self.on_event(DriverEvent(kind, message, time.time(), source=FUSED_STREAM))
 
     def _fuse(self, item_a, item_b) -> WindowEvent:
         (ea, _, closed_a), (eb, _, closed_b) = item_a, item_b
@@ -201,10 +239,12 @@ class LateFusion:
 
     def summary(self) -> dict:
         """``windows`` fused decisions: ``paired`` from both senses, ``alone`` from one; ``late``
-        windows per stream (their partner was already decided alone); accuracies where truth is
+        windows per stream (their partner was already decided alone); ``dropouts`` per stream
+        (times it stopped coming in time, each said as a ``sense_lost`` event); accuracies where truth is
         known; ``latency_ms`` from the later window's last block to the fused decision."""
         return {"inputs": list(self.inputs), "weight": self.weight, "windows": self.windows,
                 "paired": self.paired, "alone": self.alone, "late": dict(self.late),
+                "dropouts": dict(self.dropouts),
                 "window_accuracy": self._correct / self._labelled if self._labelled else None,
                 "labelled_windows": self._labelled,
                 "accumulated_accuracy": self._acc_correct / self._acc_labelled if self._acc_labelled else None,

@@ -38,7 +38,7 @@ from dataclasses import replace
 
 from supramodal.errors import InputError, SupramodalError
 from supramodal.model import TextureModel
-from supramodal.node.events import MAIN_STREAM, EventLimiter
+from supramodal.node.events import FUSED_STREAM, MAIN_STREAM, EventLimiter
 from supramodal.node.sources import Source
 from supramodal.node.streams import Labels, Stream, channel_mapper
 from supramodal.pipeline import FeaturePipeline
@@ -128,7 +128,8 @@ class Graph:
                     for s in self.streams]
         threads.append(self._thread("event", self._deliver_events))
         if self.fusion is not None:
-            threads.append(self._thread("fusion", self.fusion.run, self._route))
+            self.fusion.on_event = lambda ev: self._event_queue.put((FUSED_STREAM, [ev], {}))
+            threads.append(self._thread("fusion", self._fuse))
         if self.recorder is not None:
             threads.append(self._thread("recorder", self.recorder.run, self._recorder_feed.reader))
         with contextlib.ExitStack() as opened:
@@ -184,6 +185,12 @@ class Graph:
         if all(s.ring.closed or s.reached_length for s in self.sources):
             self.stop(reason)
 
+    def _fuse(self) -> None:
+        try:
+            self.fusion.run(self._route)
+        finally:
+            self._event_queue.put(None)
+
     def _process(self, stream: Stream) -> None:
         try:
             stream.process(self._route)
@@ -203,7 +210,7 @@ class Graph:
     def _deliver_events(self) -> None:
         """Driver events to the sinks, rate-limited; ends after every source thread's end."""
         lim = self._limiter
-        running = len(self.sources)
+        running = len(self.sources) + (self.fusion is not None)     # each ends with a None
         tag = len(self.sources) > 1           # name the source when there are several
         while running:
             try:

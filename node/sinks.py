@@ -151,6 +151,8 @@ class TextSink(Sink):
             if f:
                 lines.append(f"  fused              {f['windows']} windows: {f['paired']} paired, {f['alone']} alone"
                              f" (one sense), {sum(f['late'].values())} late windows left out"
+                             + "".join(f"; {name} dropped out {n} time{'s' * (n != 1)}"
+                                       for name, n in f.get("dropouts", {}).items() if n)
                              + (f"; window accuracy {f['window_accuracy']:.3f}" if f.get("window_accuracy") is not None
                                 else ""))
         else:

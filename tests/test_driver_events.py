@@ -269,7 +269,10 @@ def test_the_command_line_says_what_the_board_does_as_it_happens(tmp_path, json_
         mismatch = [d for d in events if d["event"] == "channels"]
         assert len(mismatch) <= 3 * 6                   # at most 3 a second are shown ...
         summary = json.loads(out.splitlines()[-1])
-        assert summary["events"]["counts"]["channels"] == ledger.sent     # ... and every frame sent counted
+        # ... and every frame the driver saw counted; it saw the frames sent, but for those still in
+        # the pty when Ctrl-C came (none on a quiet machine; a few tens of ms of them under load)
+        seen = summary["driver"]["channel_mismatch"]
+        assert summary["events"]["counts"]["channels"] == seen and ledger.sent - 60 <= seen <= ledger.sent
         assert any(d["count"] > 1 for d in mismatch)     # repeats folded into the next one shown
         assert sum(d["count"] for d in mismatch) <= ledger.sent
     else:

@@ -161,6 +161,8 @@ def test_a_window_whose_partner_does_not_come_in_time_is_decided_alone_and_the_p
     windows for that time, when they finally come, are late: counted, not fused; once b is
     back in time, pairing resumes."""
     fusion = LateFusion(("a", "b"), (CLASSES, CLASSES), weight=0.5, max_wait=0.05)
+    said = []
+    fusion.on_event = said.append
     p = np.array([0.2, 0.5, 0.3])
     script = [(0.0, _event("a", 0, 0.0, 0.1, p)), (0.0, _event("b", 0, 0.0, 0.1, p))]
     script += [(0.0, _event("a", k, 0.1 * k, 0.1, p)) for k in (1, 2, 3)]
@@ -172,17 +174,27 @@ def test_a_window_whose_partner_does_not_come_in_time_is_decided_alone_and_the_p
         (("a", "b"), False), (("a",), True), (("a",), True), (("a",), True), (("a", "b"), False)]
     s = fusion.summary()
     assert s["late"] == {"a": 0, "b": 3} and s["alone"] == 3 and s["paired"] == 2
+    # said as it happened: b lost once, then back, with the windows decided alone meanwhile
+    assert [(e.kind, e.source) for e in said] == [("sense_lost", "fused"), ("sense_back", "fused")]
+    assert "no window from 'b' within 0.05 s" in said[0].message and "deciding on 'a' alone" in said[0].message
+    assert "'b' is back" in said[1].message and "(3 windows decided alone meanwhile)" in said[1].message
+    assert s["dropouts"] == {"a": 0, "b": 1}
 
 
 def test_fusion_decides_alone_what_has_no_partner_at_the_ends():
     """Windows before the other stream starts, and after it ends, have no partner."""
     fusion = LateFusion(("a", "b"), (CLASSES, CLASSES), max_wait=5.0)
+    said = []
+    fusion.on_event = said.append
     p = np.array([0.6, 0.3, 0.1])
     script = [(0.0, _event("a", k, 0.1 * k, 0.1, p)) for k in range(6)]
     script += [(0.0, _event("b", k, 0.1 * k + 0.2, 0.1, p)) for k in range(2)]   # b covers 0.2-0.4 s
     script += [(0.0, ("end", "b")), (0.0, ("end", "a"))]
     out = _run_fusion(fusion, script)
     assert [len(e.senses) for e in out] == [1, 1, 2, 2, 1, 1]
+    # a later start is no dropout; an end while the other goes on is said once
+    assert [(e.kind, e.message) for e in said] == [("sense_ended", "fusion: 'b' has ended; deciding on 'a' alone")]
+    assert fusion.summary()["dropouts"] == {"a": 0, "b": 0}
 
 
 def test_fusion_refuses_models_of_different_textures():
@@ -380,3 +392,64 @@ def test_a_looped_two_sense_world_is_labelled_on_every_pass():
         s = summary["streams"][name]
         assert s["windows"] == s["labelled_windows"] == 40
     assert summary["fusion"]["labelled_windows"] == 40
+
+
+class _Stalling:
+    """A source's driver that stops delivering for ``seconds`` of host time once its stream
+    reaches frame ``at`` (a USB stall, a sound card lost and found): its blocks then come late,
+    in a burst, stamped when they come."""
+
+    def __init__(self, inner, at: int, seconds: float) -> None:
+        self.inner, self.at, self.seconds = inner, at, seconds
+        self.stalled = False
+
+    def __getattr__(self, name):
+        return getattr(self.inner, name)
+
+    def __enter__(self):
+        self.inner.open()
+        return self
+
+    def __exit__(self, *exc):
+        self.inner.close()
+
+    def read(self, timeout=None):
+        from dataclasses import replace
+
+        block = self.inner.read(timeout)
+        if block is None:
+            return None
+        if not self.stalled and block.start >= self.at:
+            self.stalled = True
+            time.sleep(self.seconds)
+        return replace(block, arrival=max(block.arrival, time.monotonic())) if self.stalled else block
+
+
+def test_a_sense_that_drops_out_leaves_the_other_deciding_alone_and_fusion_resumes_when_it_is_back():
+    """The two-sense world paced at 4x real time; the microphone stalls for 1 s of host time
+    (4 s of stream) 3 s into the stream. The whiskers keep deciding; fused windows meanwhile are
+    the whiskers' alone, flagged; the sinks hear 'sense_lost' then 'sense_back' as they happen;
+    the microphone's windows of the stall come late and are left out; then pairing resumes."""
+    d = _two_sense_scene(seconds=1.5)                     # 12 s of stream, 3 s of host time
+    d["fusion"]["max_wait"] = 0.3
+    sink = ListSink()
+    graph = build_node(scene_from_dict(d, "world.toml"), speed=4.0, sinks_override=[sink])
+    mic = graph.sources[1]
+    assert mic.name == "mic"
+    mic.driver = _Stalling(mic.driver, at=3 * 44100, seconds=1.0)
+    summary = graph.run()
+    f = summary["fusion"]
+    said = [(e.kind, e.source) for e in sink.driver_events]
+    assert said == [("sense_lost", "fused"), ("sense_back", "fused")]
+    assert "no window from 'mic'" in sink.driver_events[0].message
+    assert f["dropouts"] == {"whiskers": 0, "mic": 1}
+    assert summary["streams"]["whiskers"]["windows"] == summary["streams"]["mic"]["windows"] == 120
+    fused = [e for e in sink.windows if e.stream == "fused"]
+    alone = [e for e in fused if "alone" in e.flags]
+    # the stall: about 4 s of stream, less the wait before a window is decided alone
+    assert 20 <= len(alone) == f["alone"] <= 45 and all(e.senses == ("whiskers",) for e in alone)
+    assert f["late"]["mic"] >= 15 and f["late"]["whiskers"] == 0
+    assert f["paired"] + f["alone"] == f["windows"] == len(fused)
+    last_alone = max(e.window for e in alone)
+    assert all(e.senses == ("whiskers", "mic") for e in fused if e.window > last_alone)
+    assert sum(e.window > last_alone for e in fused) >= 20      # paired again to the end
