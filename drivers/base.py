@@ -75,6 +75,10 @@ class Block:
         count or fill (the board's OVERRUN flag, an audio overflow without a
         timestamp): from there on, the stream index runs behind real time by
         the unknown loss.
+    recorded : float or None, default None
+        For a block replayed with its recorded timing: when it was complete on the
+        common time of the node that recorded it, seconds (a session's
+        ``arrivals``). None for a live or freshly paced block.
     """
 
     data: np.ndarray
@@ -83,6 +87,7 @@ class Block:
     filled: np.ndarray | None = field(default=None)
     restarts: tuple[int, ...] = ()
     overruns: tuple[int, ...] = ()
+    recorded: float | None = None
 
     @property
     def frames(self) -> int:

@@ -171,13 +171,19 @@ def driver_for(scene: Scene, bank: Bank, speed_override=None):
         return ReplayDriver((data, bank.fs), on_notice=None, **replay), labels, ts
     if kind == "replay":
         from supramodal.replay.driver import ReplayDriver
+        from supramodal.replay.errors import ReplayError
 
         path = scene.resolve(d["path"])
         if not path.exists():
             raise SceneError(f"{scene.source}: [driver] path: no recording at {path} (a relative path is taken from "
                              "the scene file's folder)")
-        drv = ReplayDriver(str(path), rate=bank.fs, loop=d["loop"],
-                           on_notice=None, **replay)  # notices reach the sinks as events
+        try:
+            drv = ReplayDriver(str(path), rate=bank.fs, loop=d["loop"], timing=d["timing"],
+                               on_notice=None, **replay)  # notices reach the sinks as events
+        except ReplayError as exc:
+            if d["timing"] != "recorded":
+                raise
+            raise SceneError(f"{scene.source}: [driver] timing = \"recorded\": {exc}") from None
         warn_if_beyond_band(bank, drv.source_rate, f"{scene.source}: [driver] path {d['path']}")
         return drv, Labels.of(drv), None
     if kind == "twosense":
@@ -265,6 +271,8 @@ def _timebase(scene: Scene, driver) -> tuple[str, float, float]:
     error); at a finite speed it is paced like a live device, and the node sees only arrivals.
     """
     d = scene.driver
+    if d["type"] == "replay" and d["timing"] == "recorded":
+        return "recorded", 0.0, driver.recorded_rate       # the clock set up as when it was recorded
     if d["type"] in ("replay", "synth"):
         return "stream", 0.0, driver.rate
     if d["type"] == "twosense":
@@ -323,9 +331,6 @@ def _learned_weight(scene: Scene, a: Stream, b: Stream, held_out: dict, progress
 def _build_graph(scene: Scene, speed, sinks_override, progress, recorder, overwrite: bool) -> Graph:
     from supramodal.node.fusion import LateFusion
 
-    if recorder is not None:
-        raise SceneError(f"{scene.source}: recording a scene of several sources is not supported yet; record "
-                         "each source with a one-source scene")
     sinks, routes = _sinks_for(scene, sinks_override, overwrite)
     try:
         sources: dict[str, tuple[Source, Labels, object]] = {}
@@ -357,12 +362,13 @@ def _build_graph(scene: Scene, speed, sinks_override, progress, recorder, overwr
             try:
                 # Two files keep their own time: waiting on the host's clock would make their
                 # fused decisions depend on how fast this machine runs them.
-                files = a.source.timebase == b.source.timebase == "stream"
+                files = {a.source.timebase, b.source.timebase} <= {"stream", "recorded"}
                 fusion = LateFusion((a.name, b.name), (a.model.classes, b.model.classes), weight,
                                     None if files else f["max_wait"], f["decision"])
             except ValueError as exc:
                 raise SceneError(f"{scene.source}: [fusion] {exc}") from None
-        return Graph([s for s, _, _ in sources.values()], streams, sinks, routes=routes, fusion=fusion)
+        return Graph([s for s, _, _ in sources.values()], streams, sinks, routes=routes, fusion=fusion,
+                     recorder=recorder)
     except BaseException:
         if sinks_override is None:              # a refused scene leaves no file behind
             for sink in sinks:

@@ -286,12 +286,27 @@ def _cmd_record(args) -> int:
     import time
 
     from supramodal.node.build import build_node
+    from supramodal.node.graph_recording import graph_recorders, write_replay_scene
     from supramodal.node.recorder import SessionRecorder
     from supramodal.node.scene import load_scene
 
     _interrupt_until_running()
     scene = load_scene(args.scene)
     name = args.name or time.strftime("session-%Y%m%d-%H%M%S")
+    if scene.is_graph:
+        if args.label or args.marks:
+            raise CliError(f"{scene.source}: --label and --marks label a one-source recording; a graph's sources "
+                           "keep their drivers' own labels")
+        recorders = graph_recorders(scene, args.out, name, overwrite=args.force)
+        node = build_node(scene, recorder=recorders, progress=_progress(args))
+        _stop_on_signals(node)
+        summary = node.run(max_seconds=args.seconds)
+        if summary.get("recorded"):
+            replay = write_replay_scene(scene, node, args.out, name, overwrite=args.force)
+            wavs = ", ".join(p for p in summary["recorded"] if p.endswith(".wav"))
+            print(f"recorded {summary['stream_seconds']:.2f} s to {wavs} (+ .json); replay them in step: "
+                  f"supramodal run {replay}", file=sys.stderr)
+        return 0
     source = _json.dumps({"scene": scene.source, "driver": scene.driver})
     recorder = SessionRecorder(args.out, name, source, label=args.label, overwrite=args.force)
     node = build_node(scene, recorder=recorder, progress=_progress(args))

@@ -39,7 +39,7 @@ from dataclasses import replace
 from supramodal.errors import InputError, SupramodalError
 from supramodal.model import TextureModel
 from supramodal.node.events import FUSED_STREAM, MAIN_STREAM, EventLimiter
-from supramodal.node.sources import Source
+from supramodal.node.sources import Feed, Source
 from supramodal.node.streams import Labels, Stream, channel_mapper
 from supramodal.pipeline import FeaturePipeline
 
@@ -64,9 +64,10 @@ class Graph:
         decisions); None (the default for every sink) listens to all. Driver events and the
         summary go to every sink.
     fusion : node.fusion.LateFusion, optional
-    recorder : node.recorder.SessionRecorder, optional
-        Records the raw frames of the one source (a second ring reader, on its own thread);
-        a graph of several sources cannot record yet.
+    recorder : node.recorder.SessionRecorder or dict, optional
+        Records the raw frames of a source (another reader of its ring, on its own thread): one
+        recorder for a graph of one source, or ``{source name: recorder}`` for several (each
+        keeps its blocks' times on common time, so that the sessions replay in step).
     """
 
     def __init__(self, sources, streams, sinks, routes=None, fusion=None, recorder=None) -> None:
@@ -84,15 +85,29 @@ class Graph:
                 s.on_reader_left = self._sink_reader_left
         self.fusion = fusion
         self.recorder = recorder
-        if recorder is not None:
-            if len(self.sources) != 1:
-                raise InputError("recording a session of several sources is not supported yet: record each source "
-                                 "in a scene of its own")
-            source = self.sources[0]
-            self._recorder_feed = source.add_feed("recorder")
-            source.recorder = recorder
-            labels = self.streams[0].labels.ranges if self.streams else []
-            recorder.attach(source.rate, source.driver.channels, lambda: source.ring.written, labels=labels)
+        if recorder is None:
+            recorders = {}
+        elif isinstance(recorder, dict):
+            unknown = sorted(set(recorder) - {s.name for s in self.sources})
+            if unknown:
+                raise InputError(f"recorders for unknown sources {unknown}")
+            recorders = dict(recorder)
+        elif len(self.sources) == 1:
+            recorders = {self.sources[0].name: recorder}
+        else:
+            raise InputError("a graph of several sources records each one: give {source name: recorder}")
+        self._recorders: list[tuple[object, Feed]] = []
+        for source in self.sources:
+            rec = recorders.get(source.name)
+            if rec is None:
+                continue
+            feed = source.add_feed("recorder")
+            source.recorder = rec
+            stream = next((st for st in self.streams if st.source is source), None)
+            labels = stream.labels.ranges if stream is not None else []
+            rec.attach(source.rate, source.driver.channels, lambda source=source: source.ring.written, labels=labels,
+                       clock_rate=source.time_rate)
+            self._recorders.append((rec, feed))
         # source threads -> event thread: (source name, events, dropped); None from each source at its end
         self._event_queue: queue.SimpleQueue = queue.SimpleQueue()
         for source in self.sources:
@@ -130,8 +145,8 @@ class Graph:
         if self.fusion is not None:
             self.fusion.on_event = lambda ev: self._event_queue.put((FUSED_STREAM, [ev], {}))
             threads.append(self._thread("fusion", self._fuse))
-        if self.recorder is not None:
-            threads.append(self._thread("recorder", self.recorder.run, self._recorder_feed.reader))
+        for rec, feed in self._recorders:
+            threads.append(self._thread("recorder", rec.run, feed.reader))
         with contextlib.ExitStack() as opened:
             for source in self.sources:
                 opened.enter_context(source.driver)
@@ -250,7 +265,7 @@ class Graph:
         """
         common = {
             "wall_seconds": wall,
-            "recorded": [str(p) for p in self.recorder.paths] if self.recorder and self.recorder.paths else None,
+            "recorded": [str(p) for rec, _ in self._recorders for p in (rec.paths or ())] or None,
             "stopped_by": self._stopped_by,
             "events": self._limiter.summary(),
             "sinks": [s.stats() for s in self.sinks if hasattr(s, "stats")],

@@ -16,6 +16,7 @@ current stream position (or ends the current one), from any thread.
 
 from __future__ import annotations
 
+import array
 import os
 import threading
 from pathlib import Path
@@ -23,10 +24,13 @@ from pathlib import Path
 import numpy as np
 
 from supramodal.node.ringbuffer import RingClosed
-from supramodal.replay.session import save_session, session_paths
+from supramodal.replay.session import MAX_SIDECAR_BYTES, save_session, session_paths
 from supramodal.errors import InputError
 
 _CHUNK = 1 << 18  # frames per pass when converting the raw file
+#: Bytes of sidecar the block arrivals may take (about 22 bytes a block): beyond, every other one
+#: is dropped (two blocks replay as one) until they fit, so the session stays loadable.
+ARRIVALS_BUDGET = MAX_SIDECAR_BYTES // 2
 
 
 class SessionRecorder:
@@ -44,12 +48,17 @@ class SessionRecorder:
         A label for the whole recording.
     overwrite : bool
         Whether an existing session of that name may be replaced (default False: refused).
+    keep_arrivals : bool
+        Keep each block's end frame and time on the node's common time (:meth:`arrival`) in the
+        session's ``arrivals`` (default False): a node of several sources records them, so that
+        its sessions replay with their original relative timing.
 
     Nothing is created until the first frames arrive: a node that fails to start leaves
     neither the folder nor a raw file behind.
     """
 
-    def __init__(self, folder, name: str, source: str, label: str | None = None, overwrite: bool = False) -> None:
+    def __init__(self, folder, name: str, source: str, label: str | None = None, overwrite: bool = False,
+                 keep_arrivals: bool = False) -> None:
         self.folder = Path(folder)
         if self.folder.exists() and not self.folder.is_dir():
             raise InputError(f"{self.folder} is a file; give a folder for the session")
@@ -71,11 +80,18 @@ class SessionRecorder:
         self._board_marks: list[tuple[int, str]] = []      # (stream index, "restart" | "overrun")
         self._position = lambda: self._frames
         self.paths: tuple[Path, Path] | None = None
+        self.keep_arrivals = keep_arrivals
+        self._arrival_frames = array.array("q")
+        self._arrival_seconds = array.array("d")
+        #: Arrivals left out to keep the sidecar loadable (see ARRIVALS_BUDGET).
+        self.arrivals_thinned = 0
 
-    def attach(self, rate: float, channels: int, position, labels=()) -> None:
-        """Called by the node: the stream's rate, channels, a callable giving the current frame, and
-        the driver's own labels ``(start_s, end_s, name)``, kept in the session."""
+    def attach(self, rate: float, channels: int, position, labels=(), clock_rate: float | None = None) -> None:
+        """Called by the node: the stream's rate, channels, a callable giving the current frame,
+        the driver's own labels ``(start_s, end_s, name)``, kept in the session, and the nominal
+        rate of the source's clock model (samples per second of common time; default ``rate``)."""
         self.rate, self.channels, self._position = float(rate), int(channels), position
+        self.clock_rate = self.rate if clock_rate is None else float(clock_rate)
         self._driver_labels = [(float(a), float(b), str(n)) for a, b, n in labels]
 
     def mark(self, label: str | None) -> None:
@@ -88,6 +104,13 @@ class SessionRecorder:
         that its replay flags the same windows. Called by the node's driver thread; thread-safe."""
         with self._lock:
             self._board_marks.append((int(index), kind))
+
+    def arrival(self, end: int, seconds: float) -> None:
+        """A block ending at stream frame ``end`` was complete at ``seconds`` of the node's common
+        time. Called by the source thread, in stream order; kept only with ``keep_arrivals``."""
+        if self.keep_arrivals:
+            self._arrival_frames.append(int(end))
+            self._arrival_seconds.append(float(seconds))
 
     def run(self, reader) -> None:
         """Drain ``reader`` (a ring reader) until the ring closes; then write the session."""
@@ -148,10 +171,27 @@ class SessionRecorder:
         with self._lock:
             marks = [(i, kind) for i, kind in self._board_marks if i < self._frames]
         paths = save_session(self.folder / self.name, raw, int(round(self.rate)), self.source, labels=self._labels(),
-                             filled=self._merged_filled(), dtype="float32" if exact32 else "float64", marks=marks)
+                             filled=self._merged_filled(), dtype="float32" if exact32 else "float64", marks=marks,
+                             arrivals=self._arrivals())
         del raw
         os.unlink(self._raw_path)
         return paths
+
+    def _arrivals(self) -> tuple[np.ndarray, np.ndarray, float] | None:
+        """The kept arrivals within what was recorded, thinned to :data:`ARRIVALS_BUDGET`."""
+        if not self.keep_arrivals or not len(self._arrival_frames):
+            return None
+        frames = np.frombuffer(self._arrival_frames, dtype=np.int64)
+        seconds = np.frombuffer(self._arrival_seconds, dtype=np.float64)
+        keep = frames <= self._frames
+        frames, seconds = frames[keep], seconds[keep]
+        n = len(frames)
+        while len(frames) * 24 > ARRIVALS_BUDGET:
+            # every other block end, and always the last: two blocks replay as one
+            pick = np.r_[np.arange(0, len(frames) - 1, 2), len(frames) - 1]
+            frames, seconds = frames[pick], seconds[pick]
+        self.arrivals_thinned = n - len(frames)
+        return (frames, seconds, self.clock_rate) if len(frames) else None
 
     def _merged_filled(self) -> list[tuple[int, int]]:
         merged: list[list[int]] = []

@@ -120,6 +120,9 @@ DRIVER_KEYS = {
         "block": (_int_min(1), "frames per block, an integer >= 1 (default: the replay driver's)", None),
         "loop": (lambda v: isinstance(v, bool), "true or false", False),
         "mapping": (_mapping, '"auto", "mono", "per-channel", "mean" or a channel index', "auto"),
+        "timing": (_one_of("nominal", "recorded"), '"nominal" (the rate\'s schedule) or "recorded" (a session '
+                   "recorded by a graph: its blocks at their recorded times, in step with the other sources)",
+                   "nominal"),
     },
     "synth": {
         "textures": (_str, '"reference" or a texture-set JSON path', "reference"),

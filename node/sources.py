@@ -21,6 +21,14 @@ from the graph's start. Where it comes from depends on the source (``timebase``)
 * ``"host"`` (live drivers: serial, microphone): a :class:`~supramodal.node.clock.ClockModel`
   fitted to the blocks' arrival stamps maps the sample index to the host's monotonic clock, so
   two sources on their own crystals line up; minus the graph's start.
+* ``"recorded"`` (sessions recorded by a node of several sources, replayed with their recorded
+  timing): the same clock model, fitted to the times the recording node stamped on each block
+  (``Block.recorded``, already on its common time), so that the sources of one recording are
+  put on common time as they were when it was made, at any replay speed.
+
+When a source is recorded (several sources), each block's end frame and the time it was
+complete on common time go into its session (``arrivals``): the arrival stamp for the host
+timebase, the line's time of its last sample otherwise.
 """
 
 from __future__ import annotations
@@ -37,7 +45,7 @@ from supramodal.errors import InputError
 
 import numpy as np
 
-TIMEBASES = ("stream", "host")
+TIMEBASES = ("stream", "host", "recorded")
 
 
 def _head(block: Block, n: int) -> Block:
@@ -56,7 +64,8 @@ class Feed:
 
     def __init__(self, reader) -> None:
         self.reader = reader
-        self.arrivals: collections.deque[tuple[int, float]] = collections.deque()
+        #: (end frame, host arrival, common-time line (offset, slope)) of each block, in order
+        self.arrivals: collections.deque[tuple[int, float, tuple[float, float]]] = collections.deque()
         self.marks: collections.deque[tuple[int, str]] = collections.deque()
 
 
@@ -73,7 +82,7 @@ class Source:
     overrun : {"drop-oldest", "drop-newest", "block"}
         The ring's policy. "block" makes the source thread wait for space: right for replay,
         where no sample need be lost; live drivers drop and count instead.
-    timebase : {"stream", "host"}
+    timebase : {"stream", "host", "recorded"}
         How the source's samples are put on common time (see the module's docstring).
     time_offset : float
         For the stream timebase: seconds of common time at which the source's first sample was
@@ -98,7 +107,9 @@ class Source:
         self.feeds: list[Feed] = []
         self.recorder = None
         time_rate = self.rate if time_rate is None else float(time_rate)
-        self.clock = ClockModel(time_rate) if timebase == "host" else None
+        #: Samples per second of common time the clock model starts from (its nominal rate).
+        self.time_rate = time_rate
+        self.clock = ClockModel(time_rate) if timebase in ("host", "recorded") else None
         self.time_offset = float(time_offset)
         # (offset, seconds per sample) of the common-time line, replaced whole by the source
         # thread so that a processing thread never reads half of an update.
@@ -118,6 +129,10 @@ class Source:
         feed = Feed(self.ring.add_reader(name))
         self.feeds.append(feed)
         return feed
+
+    def line(self) -> tuple[float, float]:
+        """``(offset, slope)``: common time of sample 0, seconds, and seconds per sample, now."""
+        return self._line
 
     def time_of(self, index: int) -> float:
         """Sample ``index`` on the graph's common time line, seconds."""
@@ -161,18 +176,28 @@ class Source:
                     feed.marks.append((block.start + i, kind))
                 if self.recorder is not None:
                     self.recorder.note(block.start + i, kind)
-        for feed in self.feeds:
-            feed.arrivals.append((end, block.arrival))
         if self.clock is not None and block.frames:
+            recorded = self.timebase == "recorded"
+            if recorded and block.recorded is None:
+                raise InputError(f"source {self.name!r}: a block without its recorded time; the recorded timebase "
+                                 "needs a replay with timing = 'recorded'")
+            stamp = block.recorded if recorded else block.arrival
             if block.restarts:
                 self.clock.reset()          # the board's count restarted: the old line is void
-            if not block.arrival >= self._last_arrival:
+            if not stamp >= self._last_arrival:
                 self.clock_skipped += 1     # a stamp out of order (a driver's fill): not a measurement
-                return
-            self._last_arrival = block.arrival
-            self.clock.update(end - 1, block.arrival)
-            offset, slope = self.clock.line()
-            self._line = (offset - self.epoch, slope)
+            else:
+                self._last_arrival = stamp
+                self.clock.update(end - 1, stamp)
+                offset, slope = self.clock.line()
+                self._line = (offset - (0.0 if recorded else self.epoch), slope)
+        # The line as it stands after this block goes with it: a window's times are mapped by the
+        # line of the block that completed it, whatever the processing thread's timing.
+        for feed in self.feeds:
+            feed.arrivals.append((end, block.arrival, self._line))
+        if self.recorder is not None and block.frames:
+            stamp = block.arrival - self.epoch if self.timebase == "host" else self.time_of(end - 1)
+            self.recorder.arrival(end, stamp)
 
     def _queue_events(self, take) -> None:
         events, dropped = take()

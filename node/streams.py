@@ -218,9 +218,12 @@ class Stream:
                 flags.add("gap")
                 self._gap_windows.discard(w)
             features = {f: windows.values[i, k] for k, f in enumerate(windows.features)}
-            event = WindowEvent(self.name, w, self.source.time_of(w * W), self.source.time_of(end), end / fs,
+            block = self._completing_block(end)
+            offset, slope = self.source.line() if block is None else block[2]
+            latency = None if block is None else self._latency_ms(block[1])
+            event = WindowEvent(self.name, w, offset + w * W * slope, offset + end * slope, end / fs,
                                 features=features, posteriors=post, decision=decision, confidence=confidence,
-                                pooled=pooled, truth=truth, flags=frozenset(flags), latency_ms=self._latency_ms(end),
+                                pooled=pooled, truth=truth, flags=frozenset(flags), latency_ms=latency,
                                 in_contact=in_contact)
             self.windows += 1
             emit(event)
@@ -236,14 +239,18 @@ class Stream:
             del self._window_marks[old]
         return sorted(self._window_marks.pop(w, ()))
 
-    def _latency_ms(self, end: int) -> float | None:
-        """Now minus the arrival of the block that completed the window."""
+    def _completing_block(self, end: int):
+        """``(end, arrival, line)`` of the block that completed the window ending at frame
+        ``end``, or None if no block is known for it (the window was completed by the end of the
+        stream)."""
         arrivals = self.feed.arrivals
         while arrivals and arrivals[0][0] < end:
             arrivals.popleft()
-        if not arrivals:
-            return None  # the window was completed by end-of-stream or filled frames
-        lat = (time.monotonic() - arrivals[0][1]) * 1e3
+        return arrivals[0] if arrivals else None
+
+    def _latency_ms(self, arrival: float) -> float:
+        """Now minus the arrival of the block that completed the window."""
+        lat = (time.monotonic() - arrival) * 1e3
         self.latencies.add(lat)
         return round(lat, 3)
 

@@ -45,11 +45,17 @@ from supramodal.replay.errors import ReplayError
 from supramodal.replay.session import Label, Session, load_session, session_paths
 from supramodal.replay.wavio import read_wav
 
-__all__ = ["ReplayDriver", "release_time", "random_block_sizes", "RandomBlockSizes", "BlockSize"]
+__all__ = ["ReplayDriver", "DeviceClock", "TIMINGS", "release_time", "random_block_sizes", "RandomBlockSizes", "BlockSize"]
 
 #: What ``block_size`` accepts: frames per block, a sequence cycled through,
 #: or a callable drawing each size from a :class:`numpy.random.Generator`.
 BlockSize = Union[int, Sequence[int], Callable[[np.random.Generator], int], None]
+
+
+#: How a replay is paced: ``"nominal"``, block ``k`` when its last frame is due at the source's
+#: rate; ``"recorded"``, the recorded blocks at their recorded times (a session recorded by a
+#: node of several sources: its sidecar's ``arrivals``).
+TIMINGS = ("nominal", "recorded")
 
 
 def release_time(end_frame: int, rate: float, speed: float = 1.0, t0: float = 0.0) -> float:
@@ -194,6 +200,13 @@ class ReplayDriver:
     device_clock : DeviceClock, optional
         Pace the replay like a live device on its own crystal, with a start delay and
         delivery jitter (see :class:`DeviceClock`); default: exactly on the nominal schedule.
+    timing : {"nominal", "recorded"}, default "nominal"
+        "recorded": a session recorded by a node of several sources replays its recorded
+        blocks, each released at its recorded time (divided by ``speed``; at once at
+        ``"max"``) and carrying it in :attr:`Block.recorded`, so that the sources of one
+        recording replay with their original relative timing, drift and jitter included. Needs
+        the session's ``arrivals``, the session's own rate, no ``block_size``, no
+        ``device_clock`` and no ``loop``.
     on_notice : callable or None, default prints to stderr
         Called once with each notice (e.g. "resampling ..."), for a driver used
         on its own; None silences them. They are kept in :attr:`notices` and
@@ -241,11 +254,12 @@ class ReplayDriver:
     def __init__(self, source, rate: float | None = None, block_size: BlockSize = None,
                  speed: float | str = 1.0, loop: bool | int = False, channels=None,
                  seed: int | None = None, max_denominator: int = 1000,
-                 on_notice: Callable[[str], None] | None = _print_stderr, device_clock: DeviceClock | None = None):
+                 on_notice: Callable[[str], None] | None = _print_stderr, device_clock: DeviceClock | None = None,
+                 timing: str = "nominal"):
         self.notices: list[str] = []
         self._on_notice = on_notice
         self._log = EventLog()
-        data, src_rate, labels, filled, marks, self.name = self._load(source)
+        data, src_rate, labels, filled, marks, self.name, arrivals = self._load(source)
         if data.shape[0] == 0:
             raise ReplayError(f"{self.name}: the source has no frames; nothing to replay")
         data = self._select(data, channels)
@@ -292,6 +306,7 @@ class ReplayDriver:
                             if -((-frame * up) // down) < self._data.shape[0])
 
         # --- block sizes, speed, looping ---
+        block_given = block_size is not None
         if block_size is None:
             block_size = max(1, round(self.rate * 0.010))
         if _is_count(block_size):
@@ -307,6 +322,16 @@ class ReplayDriver:
             raise ReplayError(f"block_size must be a positive int, a sequence of them or a callable, "
                               f"got {block_size!r}")
         self._seed = seed
+        if timing not in TIMINGS:
+            raise ReplayError(f"timing must be one of {TIMINGS}, got {timing!r}")
+        self.timing = timing
+        self._arrivals = None
+        #: With timing "recorded": the nominal rate of the recording node's clock for this source.
+        self.recorded_rate: float | None = None
+        if timing == "recorded":
+            frames, seconds, self.recorded_rate = self._recorded_blocks(arrivals, up, down, block_given, device_clock)
+            self._arrivals = (frames, seconds)
+            self._sizes = list(np.diff(np.r_[0, self._arrivals[0]]).astype(int))
         if device_clock is not None and not isinstance(device_clock, DeviceClock):
             raise ReplayError(f"device_clock must be a DeviceClock, got {device_clock!r}")
         self.device_clock = device_clock
@@ -322,6 +347,9 @@ class ReplayDriver:
             self._passes = int(loop)
         else:
             raise ReplayError(f"loop must be True, False or a number of passes >= 1, got {loop!r}")
+        if timing == "recorded" and self._passes != 1:
+            raise ReplayError(f"{self.name}: a replay with the recorded timing plays the session once; "
+                              "leave loop out")
 
         self._closed = threading.Event()
         self._is_open = False
@@ -341,12 +369,12 @@ class ReplayDriver:
             self._on_notice(message)
 
     def _load(self, source):
-        """-> (data (n, ch) float64, rate, labels, filled mask or None, marks, name)."""
+        """-> (data (n, ch) float64, rate, labels, filled mask or None, marks, name, arrivals or None)."""
         if isinstance(source, Session):
             # A Session may be built by hand: check its samples like any array.
-            data, rate, _, _, _, _ = self._load((source.data, source.rate))
+            data, rate, _, _, _, _, _ = self._load((source.data, source.rate))
             return (data, rate, source.labels, source.filled_mask(), source.marks,
-                    str(source.path) if source.path else "session")
+                    str(source.path) if source.path else "session", source.arrivals)
         if isinstance(source, (str, os.PathLike)):
             path = Path(source)
             wav, js = session_paths(path)
@@ -354,11 +382,11 @@ class ReplayDriver:
             try:
                 if as_session:
                     s = load_session(path)
-                    return s.data, s.rate, s.labels, s.filled_mask(), s.marks, str(wav)
+                    return s.data, s.rate, s.labels, s.filled_mask(), s.marks, str(wav), s.arrivals
                 if path.suffix.lower() != ".wav":
                     raise ReplayError(f"{path}: expected NAME.wav or NAME.json")
                 data, rate = read_wav(path)
-                return data, rate, (), None, (), str(path)
+                return data, rate, (), None, (), str(path), None
             except FileNotFoundError as e:
                 raise DeviceUnavailable(str(e)) from e
         if isinstance(source, np.ndarray):
@@ -377,8 +405,26 @@ class ReplayDriver:
                 raise ReplayError(f"an in-memory source must be float scaled to +-1, got {a.dtype}")
             if not np.all(np.isfinite(a)):
                 raise ReplayError("the in-memory source holds NaN or infinite samples")
-            return a.astype(np.float64), rate, (), None, (), f"array{a.shape}"
+            return a.astype(np.float64), rate, (), None, (), f"array{a.shape}", None
         raise ReplayError(f"source must be (array, rate), a Session or a path, got {type(source).__name__}")
+
+    def _recorded_blocks(self, arrivals, up: int, down: int, block_given: bool, device_clock):
+        """The session's block ends, arrival times and clock rate, for ``timing="recorded"``; the
+        last block reaches the end of the data (its time the last one recorded)."""
+        if arrivals is None:
+            raise ReplayError(f"{self.name}: timing = 'recorded' needs a session recorded by a node of several "
+                              "sources (its sidecar's 'arrivals'); this source has none: use timing = 'nominal'")
+        if (up, down) != (1, 1):
+            raise ReplayError(f"{self.name}: a session replays with its recorded timing at its own rate, "
+                              f"{self.source_rate:g} Hz; give the stream a bank at that rate")
+        if block_given or device_clock is not None:
+            raise ReplayError(f"{self.name}: with timing = 'recorded' the blocks are the recorded ones, at their "
+                              "recorded times; leave out the block size and the device clock")
+        frames, seconds, clock_rate = np.asarray(arrivals[0]), np.asarray(arrivals[1]), float(arrivals[2])
+        n = self._data.shape[0]
+        if frames[-1] < n:
+            frames, seconds = np.r_[frames, n], np.r_[seconds, seconds[-1]]
+        return frames.astype(np.int64), seconds.astype(np.float64), clock_rate
 
     def _select(self, data: np.ndarray, channels) -> np.ndarray:
         have = data.shape[1]
@@ -475,6 +521,10 @@ class ReplayDriver:
         """:func:`release_time` of a block ending at ``end_frame`` since the last ``open()`` (on
         the device's own clock, before its delivery delay, with a :class:`DeviceClock`)."""
         c = self.device_clock
+        if self._arrivals is not None:
+            frames, seconds = self._arrivals
+            k = min(int(np.searchsorted(frames, end_frame)), len(frames) - 1)
+            return self._t0 + (seconds[k] / self.speed if self.speed != math.inf else 0.0)
         if c is None or self.speed == math.inf:
             return release_time(end_frame, self.rate, self.speed, self._t0)
         return self._t0 + (c.start + end_frame / (self.rate * (1.0 + c.ppm * 1e-6))) / self.speed
@@ -546,9 +596,12 @@ class ReplayDriver:
             self._last_filled = bool(filled[-1])
             if n == 0:
                 filled = None
+        recorded = None
+        if self._arrivals is not None:
+            recorded = float(self._arrivals[1][int(np.searchsorted(self._arrivals[0], end))])
         block = Block(data=data, start=self._pos, arrival=due if self.speed != math.inf else time.monotonic(),
                       filled=filled, restarts=self._marks_in(self._pos, size, "restart"),
-                      overruns=self._marks_in(self._pos, size, "overrun"))
+                      overruns=self._marks_in(self._pos, size, "overrun"), recorded=recorded)
         self._pos = end
         self._blocks += 1
         self._next_size = None

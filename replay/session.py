@@ -19,7 +19,14 @@ A session named ``NAME`` is two files side by side:
           ],                                                        # not overlapping
           "filled": [[1200, 1250], [9000, 9001]]  # optional: [start_frame, end_frame)
           "marks": [[4800, "restart"], [7000, "overrun"]]  # optional: [frame, kind]
-        }                                         # ranges the recording driver synthesised
+          "arrivals": {"frames": [50, 100, ...],   # optional: each block's end frame and
+                       "seconds": [0.0103, 0.0201, ...],  # when it was complete, on the
+                       "rate": 5000.0}            # recording node's common time, and the
+        }                                         # nominal rate its clock model assumed
+
+``filled`` lists the frame ranges the recording driver synthesised. ``arrivals`` is written
+when a node of several sources records: with it, the sessions of the sources replay with their
+original relative timing, drift and jitter included (the replay driver's ``timing="recorded"``).
 
 The sidecar is data, never code: it is read with :func:`json.loads` only
 (duplicate keys, ``NaN`` and ``Infinity`` refused; files over
@@ -50,7 +57,7 @@ from supramodal.errors import InputError
 from supramodal.jsondata import read_json_file
 
 __all__ = ["FORMAT", "VERSION", "MAX_SIDECAR_BYTES", "MAX_SIDECAR_DEPTH", "Label", "Session", "session_paths", "load_session", "save_session",
-           "validate_sidecar", "mask_to_ranges"]
+           "validate_sidecar", "validate_arrivals", "mask_to_ranges"]
 
 #: Value of the sidecar's ``"format"`` key.
 FORMAT = "supramodal-session"
@@ -65,7 +72,7 @@ MAX_SIDECAR_BYTES = 16 * 2**20
 MAX_SIDECAR_DEPTH = 8
 
 _REQUIRED = ("format", "version", "rate", "channels", "source", "labels")
-_OPTIONAL = ("filled", "marks")
+_OPTIONAL = ("filled", "marks", "arrivals")
 #: What a mark says happened at its frame (drivers.base.Block's ``restarts`` and ``overruns``).
 MARK_KINDS = ("restart", "overrun")
 _LABEL_KEYS = ("start", "end", "label")
@@ -117,6 +124,11 @@ class Session:
         (``"overrun"``), so that a replay flags the same windows as the live run.
     path : pathlib.Path or None
         The WAV file it was loaded from, if any.
+    arrivals : (ndarray of int64, ndarray of float64, float) or None
+        Each recorded block's end frame (ascending, the last at most ``frames``), the time it
+        was complete on the recording node's common time, seconds (non-decreasing), and the
+        nominal rate of the recording node's clock model for the source (samples per second of
+        common time); None when the session was not recorded by a node of several sources.
     """
 
     data: np.ndarray
@@ -126,6 +138,7 @@ class Session:
     filled: tuple[tuple[int, int], ...] = ()
     marks: tuple[tuple[int, str], ...] = ()
     path: Path | None = field(default=None)
+    arrivals: tuple[np.ndarray, np.ndarray, float] | None = None
 
     @property
     def frames(self) -> int:
@@ -274,6 +287,54 @@ def validate_sidecar(meta: Any, *, rate: int, channels: int, frames: int,
     return source, labels, filled, marks
 
 
+def validate_arrivals(raw: Any, frames: int, where: str = "sidecar") -> tuple[np.ndarray, np.ndarray, float]:
+    """Check a sidecar's ``arrivals``: ``{"frames": [...], "seconds": [...], "rate": r}``, the
+    arrays of equal length >= 1, frames integers ascending in ``(0, frames]``, seconds finite and
+    non-decreasing, the rate a positive number.
+
+    Returns
+    -------
+    (ndarray of int64, ndarray of float64, float)
+
+    Raises
+    ------
+    SessionError
+        Naming the key, the problem and the fix.
+    """
+    def bad(key, problem, fix):
+        return SessionError(f"{where}: {key}: {problem}; {fix}")
+
+    if not (isinstance(raw, dict) and sorted(raw) == ["frames", "rate", "seconds"]):
+        raise bad("arrivals", f"must be an object with exactly the keys 'frames', 'seconds' and 'rate', got "
+                  f"{str(raw)[:80]}", "write each recorded block's end frame and its time, or omit the key")
+    if not (_is_number(raw["rate"]) and raw["rate"] > 0):
+        raise bad("arrivals.rate", f"must be a positive number of Hz, got {raw['rate']!r}",
+                  "write the nominal rate of the recording node's clock for this source")
+    f, t = raw["frames"], raw["seconds"]
+    if not (isinstance(f, list) and isinstance(t, list) and 1 <= len(f) == len(t)):
+        raise bad("arrivals", "'frames' and 'seconds' must be arrays of one length >= 1",
+                  "give one time per block end")
+    for i, v in enumerate(f):
+        if not _is_int(v):
+            raise bad(f"arrivals.frames[{i}]", f"must be an integer, got {_type_name(v)} {v!r}", "write frame counts")
+    for i, v in enumerate(t):
+        if not _is_number(v):
+            raise bad(f"arrivals.seconds[{i}]", f"must be a finite number, got {_type_name(v)} {v!r}",
+                      "write seconds of the recording node's common time")
+    fa, ta = np.array(f, dtype=np.int64), np.array(t, dtype=np.float64)
+    step = np.flatnonzero(np.diff(fa) <= 0)
+    if fa[0] <= 0 or fa[-1] > frames or step.size:
+        i = int(step[0]) + 1 if step.size else (0 if fa[0] <= 0 else len(fa) - 1)
+        raise bad(f"arrivals.frames[{i}]", f"{int(fa[i])} is not after the block before it, or outside (0, {frames}]",
+                  "block ends must ascend within the recording")
+    back = np.flatnonzero(np.diff(ta) < 0)
+    if back.size:
+        i = int(back[0]) + 1
+        raise bad(f"arrivals.seconds[{i}]", f"{t[i]!r} comes before the block before it ({t[i - 1]!r})",
+                  "arrival times never go back")
+    return fa, ta, float(raw["rate"])
+
+
 def _validate_labels(raw, duration: float, slack: float, bad) -> tuple[Label, ...]:
     if not isinstance(raw, list):
         raise bad("labels", f"must be an array, got {_type_name(raw)}", "use [] when nothing is labelled")
@@ -383,8 +444,10 @@ def load_session(path: str | os.PathLike) -> Session:
     info = wav_info(wav)
     source, labels, filled, marks = validate_sidecar(meta, rate=info.rate, channels=info.channels,
                                                      frames=info.frames, where=str(js))
+    arrivals = validate_arrivals(meta["arrivals"], info.frames, str(js)) if "arrivals" in meta else None
     data, rate = read_wav(wav)
-    return Session(data=data, rate=rate, source=source, labels=labels, filled=filled, marks=marks, path=wav)
+    return Session(data=data, rate=rate, source=source, labels=labels, filled=filled, marks=marks, path=wav,
+                   arrivals=arrivals)
 
 
 def mask_to_ranges(mask) -> list[tuple[int, int]]:
@@ -407,7 +470,8 @@ def _label_dict(item) -> dict:
 
 def save_session(path: str | os.PathLike, data, rate: int, source: str,
                  labels: Iterable[Label | Mapping | tuple] = (), filled=None,
-                 dtype: str = "float32", marks: Iterable[tuple[int, str]] = ()) -> tuple[Path, Path]:
+                 dtype: str = "float32", marks: Iterable[tuple[int, str]] = (),
+                 arrivals: tuple[Iterable[int], Iterable[float], float] | None = None) -> tuple[Path, Path]:
     """Write a session: ``NAME.wav`` and its sidecar ``NAME.json``.
 
     The sidecar is validated exactly as :func:`load_session` would before
@@ -436,6 +500,10 @@ def save_session(path: str | os.PathLike, data, rate: int, source: str,
     marks : iterable of (frame, kind), optional
         Board restarts and overruns the recording driver reported (kind ``"restart"`` or
         ``"overrun"``, see :attr:`Session.marks`); sorted by frame here.
+    arrivals : (frames, seconds, rate), optional
+        Each block's end frame, when it was complete on the recording node's common time, and
+        its clock model's nominal rate (see :attr:`Session.arrivals`); seconds are written to
+        the microsecond.
 
     Returns
     -------
@@ -475,6 +543,11 @@ def save_session(path: str | os.PathLike, data, rate: int, source: str,
     if mark_list:
         meta["marks"] = mark_list
     validate_sidecar(meta, rate=rate, channels=int(x.shape[1]), frames=int(x.shape[0]), where=str(js))
+    if arrivals is not None:
+        frames_at, seconds_at, clock_rate = arrivals
+        meta["arrivals"] = {"frames": [int(v) for v in frames_at],
+                            "seconds": [round(float(v), 6) for v in seconds_at], "rate": float(clock_rate)}
+        validate_arrivals(meta["arrivals"], int(x.shape[0]), str(js))
 
     js.unlink(missing_ok=True)
     write_wav(wav, x, rate, dtype=dtype)

@@ -1,0 +1,65 @@
+"""Recording a graph of several sources, and the scene that replays the recording.
+
+Each source is recorded as a session of its own, ``NAME.SOURCE.wav`` + ``.json``, whose sidecar
+also keeps every block's end frame and the time it was complete on the graph's common time
+(``arrivals``). Beside them go the streams' models (``NAME.STREAM.npz``: a model trained on the
+spot is kept, so the replay decides with the same one) and ``NAME.toml``: the same graph with
+each source a replay of its session at its recorded timing (``timing = "recorded"``) and the
+fusion weight the recording used. ``supramodal run NAME.toml --speed max`` then puts the
+sources on common time as the live run did, drift and jitter included, and pairs and fuses the
+same windows.
+"""
+
+from __future__ import annotations
+
+import json
+import tomllib
+from pathlib import Path
+
+from supramodal.node.outputs import check_new_file
+from supramodal.node.recorder import SessionRecorder
+from supramodal.node.scene import Scene, scene_from_dict, scene_to_toml
+
+
+def recording_paths(folder, name: str, scene: Scene) -> dict[str, Path]:
+    """What recording ``scene`` as ``name`` writes into ``folder`` besides the sessions: each
+    stream's model and the replay scene, by stream name and ``"scene"``."""
+    folder = Path(folder)
+    paths = {spec.name: folder / f"{name}.{spec.name}.npz" for spec in scene.streams
+             if spec.scene.model["train_on_start"] or spec.scene.model["path"]}
+    paths["scene"] = folder / f"{name}.toml"
+    return paths
+
+
+def graph_recorders(scene: Scene, folder, name: str, overwrite: bool = False) -> dict[str, SessionRecorder]:
+    """One recorder per source of a graph scene, keeping the blocks' arrivals; every file the
+    recording would write is checked first (refused if it exists, unless ``overwrite``)."""
+    if Path(folder).is_dir():                       # else made at the first frames: nothing to replace
+        for path in recording_paths(folder, name, scene).values():
+            check_new_file(path, overwrite, "the recording's file")
+    return {src["name"]: SessionRecorder(folder, f"{name}.{src['name']}",
+                                         json.dumps({"scene": scene.source, "source": src}),
+                                         overwrite=overwrite, keep_arrivals=True)
+            for src in scene.sources}
+
+
+def write_replay_scene(scene: Scene, graph, folder, name: str, overwrite: bool = False) -> Path:
+    """After ``graph`` (built from ``scene``) has recorded into ``folder``: save its streams'
+    models and write ``NAME.toml``, the scene that replays the recording; returns its path."""
+    folder = Path(folder)
+    paths = recording_paths(folder, name, scene)
+    d = tomllib.loads(scene_to_toml(scene))
+    d["source"] = [{"name": src["name"], "type": "replay", "path": f"{name}.{src['name']}.wav",
+                    "timing": "recorded", "speed": "max", "buffer": src["buffer"]} for src in scene.sources]
+    for spec, stream in zip(d["stream"], graph.streams):
+        if stream.model is not None and spec["name"] in paths:
+            stream.model.save(paths[spec["name"]])
+            spec["model"] = {"path": paths[spec["name"]].name}
+    if graph.fusion is not None:
+        d["fusion"]["weight"] = graph.fusion.weight       # a learned weight, as it was learned
+    d.pop("sink", None)
+    replay = scene_from_dict(d, str(paths["scene"]), folder)
+    check_new_file(paths["scene"], overwrite, "the replay scene")
+    paths["scene"].write_text(f"# Replays the recording {name} with its recorded timing (supramodal record).\n"
+                              + scene_to_toml(replay))
+    return paths["scene"]

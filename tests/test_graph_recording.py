@@ -1,0 +1,164 @@
+"""Recording a graph of several sources, and replaying the recording in step: sessions with their
+blocks' times (sidecar ``arrivals``), the replay driver's recorded timing, the recorded timebase,
+and the scene `supramodal record` writes to replay it."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from supramodal.node.build import build_node
+from supramodal.node.cli import main
+from supramodal.node.graph_recording import graph_recorders, write_replay_scene
+from supramodal.node.scene import SceneError, load_scene, scene_from_dict
+from supramodal.node.sinks import ListSink
+from supramodal.replay import ReplayDriver, ReplayError, Session, SessionError, load_session, save_session
+
+from test_graph import _two_sense_scene
+
+
+# -- sessions keep their blocks' times --------------------------------------------------------------
+
+def test_arrivals_round_trip_through_a_session_to_the_microsecond(tmp_path):
+    frames = np.array([50, 100, 150, 200])
+    seconds = np.array([0.0101234567, 0.0203, 0.0301, 0.0402])
+    save_session(tmp_path / "s", np.zeros((200, 1)), 5000, "test", arrivals=(frames, seconds, 5000.2))
+    s = load_session(tmp_path / "s")
+    np.testing.assert_array_equal(s.arrivals[0], frames)
+    np.testing.assert_allclose(s.arrivals[1], seconds, rtol=0, atol=5e-7)
+    assert s.arrivals[2] == 5000.2
+    save_session(tmp_path / "plain", np.zeros((200, 1)), 5000, "test")
+    assert load_session(tmp_path / "plain").arrivals is None
+
+
+@pytest.mark.parametrize("arrivals, needle", [
+    ({"frames": [50, 100], "seconds": [0.0, 0.1]}, "exactly the keys 'frames', 'seconds' and 'rate'"),
+    ({"frames": [50, 100], "seconds": [0.0], "rate": 5000}, "one length >= 1"),
+    ({"frames": [], "seconds": [], "rate": 5000}, "one length >= 1"),
+    ({"frames": [50, 50], "seconds": [0.0, 0.1], "rate": 5000}, r"arrivals.frames\[1\]: 50 is not after"),
+    ({"frames": [0, 50], "seconds": [0.0, 0.1], "rate": 5000}, r"arrivals.frames\[0\]"),
+    ({"frames": [50, 300], "seconds": [0.0, 0.1], "rate": 5000}, r"arrivals.frames\[1\]: 300 .* outside \(0, 200\]"),
+    ({"frames": [50, 100], "seconds": [0.1, 0.05], "rate": 5000}, r"arrivals.seconds\[1\]: 0.05 comes before"),
+    ({"frames": [50, 100.5], "seconds": [0.0, 0.1], "rate": 5000}, r"arrivals.frames\[1\]: must be an integer"),
+    ({"frames": [50, 100], "seconds": [0.0, "x"], "rate": 5000}, r"arrivals.seconds\[1\]: must be a finite number"),
+    ({"frames": [50, 100], "seconds": [0.0, 0.1], "rate": 0}, "arrivals.rate: must be a positive number"),
+])
+def test_bad_arrivals_are_refused_naming_the_key(tmp_path, arrivals, needle):
+    save_session(tmp_path / "s", np.zeros((200, 1)), 5000, "test")
+    meta = json.loads((tmp_path / "s.json").read_text())
+    meta["arrivals"] = arrivals
+    (tmp_path / "s.json").write_text(json.dumps(meta))
+    with pytest.raises(SessionError, match=needle):
+        load_session(tmp_path / "s")
+
+
+# -- the replay driver's recorded timing ------------------------------------------------------------
+
+def _session(arrivals=((30, 70, 100), (0.5, 1.25, 2.0), 40.0), rate=40):
+    x = np.arange(100, dtype=float)[:, None] / 100
+    return Session(x, rate, "test", arrivals=tuple(np.asarray(a) if i < 2 else a for i, a in enumerate(arrivals)))
+
+
+def test_recorded_timing_replays_the_recorded_blocks_at_their_times():
+    """Blocks as recorded (sizes 30, 40, 30), each stamped with its recorded time; released at
+    t0 + time / speed (tested against a day-old origin so nothing waits); at 'max', at once."""
+    drv = ReplayDriver(_session(), speed=4.0, timing="recorded", on_notice=None)
+    assert drv.recorded_rate == 40.0
+    with drv:
+        drv._t0 -= 86400.0
+        blocks = [drv.read(timeout=0) for _ in range(3)]
+        t0 = drv.opened_at
+    assert [(b.start, b.frames, b.recorded) for b in blocks] == [(0, 30, 0.5), (30, 40, 1.25), (70, 30, 2.0)]
+    np.testing.assert_allclose([b.arrival - t0 for b in blocks], [0.125, 0.3125, 0.5], atol=1e-9)
+    np.testing.assert_array_equal(np.concatenate([b.data for b in blocks]), _session().data)
+    with ReplayDriver(_session(), speed="max", timing="recorded", on_notice=None) as fast:
+        assert [fast.read(timeout=0).recorded for _ in range(3)] == [0.5, 1.25, 2.0]
+
+
+def test_a_recording_cut_short_of_its_data_ends_with_the_last_time():
+    drv = ReplayDriver(_session(((30, 70), (0.5, 1.25), 40.0)), speed="max", timing="recorded", on_notice=None)
+    with drv:
+        blocks = [drv.read(timeout=0) for _ in range(3)]
+    assert [(b.frames, b.recorded) for b in blocks] == [(30, 0.5), (40, 1.25), (30, 1.25)]
+
+
+@pytest.mark.parametrize("kwargs, needle", [
+    ({"source": Session(np.zeros((10, 1)), 40, "t")}, "needs a session recorded by a node of several sources"),
+    ({"rate": 80}, "at its own rate, 40 Hz"),
+    ({"block_size": 10}, "leave out the block size and the device clock"),
+    ({"loop": True}, "plays the session once"),
+    ({"timing": "sometimes"}, "timing must be one of"),
+])
+def test_recorded_timing_refusals(kwargs, needle):
+    args = {"source": _session(), "timing": "recorded", "on_notice": None, **kwargs}
+    with pytest.raises(ReplayError, match=needle):
+        ReplayDriver(args.pop("source"), **args)
+
+
+# -- record a graph, replay it in step --------------------------------------------------------------
+
+def _fused(sink):
+    return [(e.window, e.senses, e.decision, "alone" in e.flags) for e in sink.windows if e.stream == "fused"]
+
+
+def test_a_two_sense_session_recorded_live_replays_with_the_same_fused_decisions(tmp_path):
+    """The two-sense world paced like live devices (speed 8, +-100 ppm, 2 ms jitter, 37 ms apart)
+    recorded by the graph; its replay scene, at 'max' and at a finite speed, puts the sources on
+    common time as the live run did (the clock models fed the recorded times) and pairs and fuses
+    the same windows to the same decisions, at the same times (to the microsecond kept)."""
+    d = _two_sense_scene(seconds=4.0)                         # 32 s of stream, 4 s of host time
+    d["source"][0].update(clock_ppm=100.0, jitter=0.002, speed=8.0)
+    d["source"][1].update(clock_ppm=-100.0, jitter=0.002, speed=8.0)
+    d["fusion"]["max_wait"] = 10.0                            # nothing alone on a busy machine
+    scene = scene_from_dict(d, str(tmp_path / "world.toml"), tmp_path)
+    live = ListSink()
+    graph = build_node(scene, sinks_override=[live], recorder=graph_recorders(scene, tmp_path, "s"))
+    summary = graph.run()
+    assert summary["clocks"]["whiskers"]["fitted"] and summary["clocks"]["mic"]["fitted"]
+    replay_scene = write_replay_scene(scene, graph, tmp_path, "s")
+    assert {p.name for p in tmp_path.iterdir()} == {"s.toml", "s.whiskers.wav", "s.whiskers.json", "s.mic.wav",
+                                                   "s.mic.json", "s.whiskers.npz", "s.mic.npz"}
+    assert load_session(tmp_path / "s.mic").arrivals[2] == 44100 * 8.0      # the clock as it was set up
+    for speed in ("max", 4.0):
+        again = ListSink()
+        result = build_node(load_scene(replay_scene), speed=speed, sinks_override=[again]).run()
+        assert _fused(again) == _fused(live) and len(_fused(live)) == 320
+        for a, b in zip((e for e in live.windows if e.stream == "fused"),
+                        (e for e in again.windows if e.stream == "fused")):
+            assert abs(a.start - b.start) < 2e-6 and abs(a.end - b.end) < 2e-6
+        assert result["clocks"]["whiskers"]["ppm"] == pytest.approx(summary["clocks"]["whiskers"]["ppm"], abs=0.5)
+        assert result["fusion"]["window_accuracy"] == summary["fusion"]["window_accuracy"]
+
+
+def test_record_of_a_graph_scene_writes_the_sessions_models_and_replay_scene(tmp_path, capsys):
+    d = _two_sense_scene(seconds=0.5)
+    lines = ["[[source]]\n" + "".join(f"{k} = {json.dumps(v)}\n" for k, v in s.items()) for s in d["source"]]
+    for st in d["stream"]:
+        lines.append(f'[[stream]]\nname = "{st["name"]}"\nsource = "{st["source"]}"\n[stream.bank]\n'
+                     f'kind = "{st["bank"]["kind"]}"\n[stream.model]\ntrain_on_start = true\n')
+    lines.append('[fusion]\nstreams = ["whiskers", "mic"]\nweight = "learn"\n')
+    (tmp_path / "w.toml").write_text("\n".join(lines))
+    out = tmp_path / "rec"
+    assert main(["record", str(tmp_path / "w.toml"), "--out", str(out), "--name", "s", "--quiet"]) == 0
+    err = capsys.readouterr().err
+    assert f"supramodal run {out / 's.toml'}" in err
+    assert {p.name for p in out.iterdir()} == {"s.toml", "s.whiskers.wav", "s.whiskers.json", "s.mic.wav",
+                                               "s.mic.json", "s.whiskers.npz", "s.mic.npz"}
+    replay = load_scene(out / "s.toml")
+    assert [s["timing"] for s in replay.sources] == ["recorded", "recorded"]
+    assert isinstance(replay.fusion["weight"], float)                   # the learned weight, as learned
+    # nothing replaced without --force, checked before anything runs
+    assert main(["record", str(tmp_path / "w.toml"), "--out", str(out), "--name", "s", "--quiet"]) == 2
+    assert "exists; pass --force" in capsys.readouterr().err
+    assert main(["record", str(tmp_path / "w.toml"), "--out", str(out), "--name", "t", "--label", "x"]) == 2
+    assert "--label and --marks label a one-source recording" in capsys.readouterr().err
+
+
+def test_a_replay_source_with_recorded_timing_needs_a_recorded_session(tmp_path):
+    save_session(tmp_path / "plain", np.zeros((5000, 1)), 5000, "test")
+    d = {"source": [{"name": "a", "type": "replay", "path": "plain.wav", "timing": "recorded"}],
+         "stream": [{"name": "a", "source": "a", "bank": {"kind": "whisker"}}]}
+    with pytest.raises(SceneError, match='timing = "recorded": .* needs a session recorded by a node of several'):
+        build_node(scene_from_dict(d, str(tmp_path / "x.toml"), tmp_path), sinks_override=[])
