@@ -141,16 +141,20 @@ def twosense_session(scene: Scene, bank: Bank):
     return train, np.concatenate(parts)[:, None], Labels(labels, len(order) * d["seconds"] if d["loop"] else None)
 
 
-def train_on_texture_set(ts, pipeline: FeaturePipeline, progress=None, held_out: list | None = None) -> TextureModel:
+def train_on_texture_set(ts, pipeline: FeaturePipeline, progress=None, held_out: list | None = None,
+                         trained: list | None = None) -> TextureModel:
     """The model the default scene trains on the spot: Fig. 3's training part of each texture,
     computed with the scene's own pipeline settings. ``held_out``, a list, receives the held-out
-    part ``(x_test, y_test)`` (windows the model never saw: a fusion weight is learned on them)."""
+    part ``(x_test, y_test)`` (windows the model never saw: a fusion weight is learned on them);
+    ``trained`` the training part ``(x_train, y_train)`` (an early-fusion network learns on it)."""
     p = pipeline
     values, _ = texture_features(ts, p.bank, p.features, p.window, peak_mode=p.peaks.mode,
                                  peak_threshold=p.peaks.threshold)
     x_train, y_train, x_test, y_test = split(values)
     if held_out is not None:
         held_out.append((x_test, y_test))
+    if trained is not None:
+        trained.append((x_train, y_train))
     if progress:
         progress(f"trained on {len(x_train)} windows of {len(ts.textures)} textures ({', '.join(p.features)})")
     return TextureModel.train_for(p, x_train, y_train, ts.names, seed=0)
@@ -227,9 +231,9 @@ def _sinks_for(scene: Scene, sinks_override, overwrite: bool):
 
 
 def _model_for(scene: Scene, bank: Bank, pipeline: FeaturePipeline, ts, progress,
-               held_out: list | None = None) -> TextureModel | None:
-    """The scene's model: trained on the spot (its held-out windows appended to ``held_out``),
-    or loaded; checked against the pipeline."""
+               held_out: list | None = None, trained: list | None = None) -> TextureModel | None:
+    """The scene's model: trained on the spot (its held-out and training windows appended to
+    ``held_out`` and ``trained``), or loaded; checked against the pipeline."""
     model = None
     m = scene.model
     if m["train_on_start"]:
@@ -242,7 +246,7 @@ def _model_for(scene: Scene, bank: Bank, pipeline: FeaturePipeline, ts, progress
             if abs(ts.fs - bank.fs) > 1e-9 * bank.fs:
                 raise SceneError(f"{scene.source}: [model] train_on_start: the {bank.kind} reference textures are "
                                  f"at {ts.fs:g} Hz, the bank at {bank.fs:g} Hz; give a [model] path instead")
-        model = train_on_texture_set(ts, pipeline, progress, held_out)
+        model = train_on_texture_set(ts, pipeline, progress, held_out, trained)
         if m["path"] is not None:
             model.save(scene.resolve(m["path"]))
     elif m["path"] is not None:
@@ -309,6 +313,38 @@ def build_node(scene: Scene, speed=None, sinks_override=None, progress=None, rec
         raise SceneError(f"{scene.source}: {exc}") from None
 
 
+def _early_model(scene: Scene, a: Stream, b: Stream, held_out: dict, trained: dict, progress):
+    """The early-fusion network: loaded from ``[fusion] model`` and checked against both streams'
+    pipelines, or trained on the spot on both streams' aligned training windows (the two senses
+    of the same training contacts), its accuracy on their held-out windows said."""
+    from supramodal.fused_model import EarlyFusionModel, Sense
+
+    path = scene.fusion["model"]
+    if path is not None:
+        try:
+            model = EarlyFusionModel.load(scene.resolve(path))
+            for sense, stream in zip(model.senses, (a, b)):
+                sense.check_pipeline(stream.pipeline)
+        except ModelError as exc:
+            raise SceneError(f"{scene.source}: [fusion] model: {exc}") from None
+        return model
+    if not (trained[a.name] and trained[b.name]):
+        raise SceneError(f"{scene.source}: [fusion] method = \"early\" needs a [fusion] model file, or both streams' "
+                         "models trained on the spot (train_on_start) on the same textures to train one")
+    (xa, ya), (xb, yb) = trained[a.name][0], trained[b.name][0]
+    if a.model.classes != b.model.classes or len(xa) != len(xb) or not np.array_equal(ya, yb):
+        raise SceneError(f"{scene.source}: [fusion] method = \"early\": the two streams were not trained on the two "
+                         "senses of the same contacts (a two-sense set); give a [fusion] model file instead")
+    model = EarlyFusionModel.train((Sense.of(a.name, a.pipeline), Sense.of(b.name, b.pipeline)), xa, xb, ya,
+                                   a.model.classes)
+    if progress:
+        (ta, tya), (tb, _) = held_out[a.name][0], held_out[b.name][0]
+        right = np.mean(np.argmax(model.outputs(ta, tb), axis=1) == tya)
+        progress(f"fusion: early network trained on {len(ya)} aligned windows of {a.name} and {b.name}; "
+                 f"{right:.3f} of {len(tya)} held-out windows right")
+    return model
+
+
 def _learned_weight(scene: Scene, a: Stream, b: Stream, held_out: dict, progress) -> float:
     """The late-fusion weight learned on both models' held-out training windows (aligned: the two
     senses of the same training contacts), as ``experiment fusion`` learns it."""
@@ -329,13 +365,14 @@ def _learned_weight(scene: Scene, a: Stream, b: Stream, held_out: dict, progress
 
 
 def _build_graph(scene: Scene, speed, sinks_override, progress, recorder, overwrite: bool) -> Graph:
-    from supramodal.node.fusion import LateFusion
+    from supramodal.node.fusion import EarlyFusion, LateFusion
 
     sinks, routes = _sinks_for(scene, sinks_override, overwrite)
     try:
         sources: dict[str, tuple[Source, Labels, object]] = {}
         streams = []
         held_out: dict[str, list] = {}          # stream -> [(x_test, y_test)] of a model trained on the spot
+        trained: dict[str, list] = {}           # stream -> [(x_train, y_train)] of it
         for spec in scene.streams:
             sub = spec.scene
             bank = bank_for(sub)
@@ -345,8 +382,8 @@ def _build_graph(scene: Scene, speed, sinks_override, progress, recorder, overwr
                 source = Source(spec.source, driver, sub.buffer["seconds"], _overrun(sub), *_timebase(sub, driver))
                 sources[spec.source] = (source, labels, ts)
             source, labels, ts = sources[spec.source]
-            held_out[spec.name] = []
-            model = _model_for(sub, bank, pipeline, ts, progress, held_out[spec.name])
+            held_out[spec.name], trained[spec.name] = [], []
+            model = _model_for(sub, bank, pipeline, ts, progress, held_out[spec.name], trained[spec.name])
             try:
                 streams.append(Stream(spec.name, source, pipeline, model, sub.decision,
                                       sub.driver.get("mapping", "auto"), labels))
@@ -356,15 +393,21 @@ def _build_graph(scene: Scene, speed, sinks_override, progress, recorder, overwr
         f = scene.fusion
         if f is not None:
             a, b = (next(s for s in streams if s.name == n) for n in f["streams"])
-            weight = f["weight"]
-            if weight == LEARN:
-                weight = _learned_weight(scene, a, b, held_out, progress)
+            # Two files keep their own time: waiting on the host's clock would make their
+            # fused decisions depend on how fast this machine runs them.
+            files = {a.source.timebase, b.source.timebase} <= {"stream", "recorded"}
+            max_wait = None if files else f["max_wait"]
             try:
-                # Two files keep their own time: waiting on the host's clock would make their
-                # fused decisions depend on how fast this machine runs them.
-                files = {a.source.timebase, b.source.timebase} <= {"stream", "recorded"}
-                fusion = LateFusion((a.name, b.name), (a.model.classes, b.model.classes), weight,
-                                    None if files else f["max_wait"], f["decision"])
+                if f["method"] == "early":
+                    model = _early_model(scene, a, b, held_out, trained, progress)
+                    fusion = EarlyFusion((a.name, b.name), (a.model.classes, b.model.classes), model, max_wait,
+                                         f["decision"])
+                else:
+                    weight = f["weight"]
+                    if weight == LEARN:
+                        weight = _learned_weight(scene, a, b, held_out, progress)
+                    fusion = LateFusion((a.name, b.name), (a.model.classes, b.model.classes), weight, max_wait,
+                                        f["decision"])
             except ValueError as exc:
                 raise SceneError(f"{scene.source}: [fusion] {exc}") from None
         return Graph([s for s, _, _ in sources.values()], streams, sinks, routes=routes, fusion=fusion,

@@ -253,7 +253,9 @@ def _scene_line(scene) -> str:
     parts = [f"stream {s.name}: {s.scene.driver['type']} source {s.source}, {one(s.scene)}" for s in scene.streams]
     if scene.fusion is not None:
         f = scene.fusion
-        parts.append(f"fused: {f['streams'][0]} and {f['streams'][1]} ({f['method']}, weight {f['weight']})")
+        how = f"weight {f['weight']}" if f["method"] == "late" else \
+            f"model {f['model']}" if f["model"] else "network trained on the spot"
+        parts.append(f"fused: {f['streams'][0]} and {f['streams'][1]} ({f['method']}, {how})")
     return f"scene {scene.source}: " + "; ".join(parts)
 
 

@@ -34,7 +34,7 @@ import time
 
 import numpy as np
 
-from supramodal.decisions import DecisionAccumulator
+from supramodal.decisions import DecisionAccumulator, posteriors
 from supramodal.drivers.base import DriverEvent
 from supramodal.errors import InputError
 from supramodal.fusion import fuse_late
@@ -51,6 +51,8 @@ _END = object()
 
 class LateFusion:
     """Pairs the windows of two streams and fuses their posteriors.
+
+    Subclasses decide a pair otherwise (:meth:`_fused_posteriors`; :class:`EarlyFusion`).
 
     Parameters
     ----------
@@ -73,6 +75,8 @@ class LateFusion:
         Called from the fusion thread with each ``DriverEvent`` it says (a sense lost, back or
         ended); must not block. The graph sets it to its event queue.
     """
+
+    method = "late"
 
     def __init__(self, inputs, classes, weight: float = DEFAULT_WEIGHT, max_wait: float = DEFAULT_MAX_WAIT,
                  decision: dict | None = None) -> None:
@@ -192,11 +196,15 @@ class LateFusion:
         if self.on_event is not None:
             self.on_event(DriverEvent(kind, message, time.time(), source=FUSED_STREAM))
 
-    def _fuse(self, item_a, item_b) -> WindowEvent:
-        (ea, _, closed_a), (eb, _, closed_b) = item_a, item_b
+    def _fused_posteriors(self, ea: WindowEvent, eb: WindowEvent) -> np.ndarray:
+        """Posteriors of a pair, in :attr:`classes` order: the weighted log-posteriors, normalised."""
         log_p = fuse_late(ea.posteriors[None, :], eb.posteriors[self._order_b][None, :], self.weight)[0]
         post = np.exp(log_p - log_p.max())
-        post /= post.sum()
+        return post / post.sum()
+
+    def _fuse(self, item_a, item_b) -> WindowEvent:
+        (ea, _, closed_a), (eb, _, closed_b) = item_a, item_b
+        post = self._fused_posteriors(ea, eb)
         self.paired += 1
         closed = None if closed_a is None or closed_b is None else max(closed_a, closed_b)
         return self._event(post, (ea, eb), closed, frozenset((ea.flags | eb.flags) - {"alone"}))
@@ -242,7 +250,7 @@ class LateFusion:
         windows per stream (their partner was already decided alone); ``dropouts`` per stream
         (times it stopped coming in time, each said as a ``sense_lost`` event); accuracies where truth is
         known; ``latency_ms`` from the later window's last block to the fused decision."""
-        return {"inputs": list(self.inputs), "weight": self.weight, "windows": self.windows,
+        return {"inputs": list(self.inputs), "method": self.method, "weight": self.weight, "windows": self.windows,
                 "paired": self.paired, "alone": self.alone, "late": dict(self.late),
                 "dropouts": dict(self.dropouts),
                 "window_accuracy": self._correct / self._labelled if self._labelled else None,
@@ -253,3 +261,36 @@ class LateFusion:
 
 def _centre(event: WindowEvent) -> float:
     return 0.5 * (event.start + event.end)
+
+
+class EarlyFusion(LateFusion):
+    """Pairs two streams' windows as :class:`LateFusion` does, and decides each pair with one
+    network on both windows' features (the supramodal network,
+    :class:`supramodal.fused_model.EarlyFusionModel`). A window decided alone (its partner did
+    not come in time, or its stream runs alone) keeps its own stream's posteriors.
+
+    Parameters
+    ----------
+    inputs, classes, max_wait, decision
+        As :class:`LateFusion`; ``inputs[k]`` feeds the model's sense ``k``.
+    model : EarlyFusionModel
+        Knows the streams' textures (in any order); its senses' features are read from the
+        window events by name.
+    """
+
+    method = "early"
+
+    def __init__(self, inputs, classes, model, max_wait: float = DEFAULT_MAX_WAIT, decision: dict | None = None) -> None:
+        super().__init__(inputs, classes, DEFAULT_WEIGHT, max_wait, decision)
+        if sorted(model.classes) != sorted(self.classes):
+            raise InputError(f"the early-fusion model knows {list(model.classes)}, the streams {list(self.classes)}: "
+                             "train it on the streams' textures")
+        self.model = model
+        self.weight = None
+        self._order_model = np.array([list(model.classes).index(name) for name in self.classes])
+
+    def _fused_posteriors(self, ea: WindowEvent, eb: WindowEvent) -> np.ndarray:
+        a, b = self.model.senses
+        va = np.stack([ea.features[f] for f in a.features])[None]
+        vb = np.stack([eb.features[f] for f in b.features])[None]
+        return posteriors(self.model.outputs(va, vb)[0][self._order_model])

@@ -2,8 +2,8 @@
 
 Each source is recorded as a session of its own, ``NAME.SOURCE.wav`` + ``.json``, whose sidecar
 also keeps every block's end frame and the time it was complete on the graph's common time
-(``arrivals``). Beside them go the streams' models (``NAME.STREAM.npz``: a model trained on the
-spot is kept, so the replay decides with the same one) and ``NAME.toml``: the same graph with
+(``arrivals``). Beside them go the streams' models (``NAME.STREAM.npz``, and ``NAME.fused.npz`` for
+early fusion: a model trained on the spot is kept, so the replay decides with the same one) and ``NAME.toml``: the same graph with
 each source a replay of its session at its recorded timing (``timing = "recorded"``) and the
 fusion weight the recording used. ``supramodal run NAME.toml --speed max`` then puts the
 sources on common time as the live run did, drift and jitter included, and pairs and fuses the
@@ -27,6 +27,8 @@ def recording_paths(folder, name: str, scene: Scene) -> dict[str, Path]:
     folder = Path(folder)
     paths = {spec.name: folder / f"{name}.{spec.name}.npz" for spec in scene.streams
              if spec.scene.model["train_on_start"] or spec.scene.model["path"]}
+    if scene.fusion is not None and scene.fusion["method"] == "early":
+        paths["fused"] = folder / f"{name}.fused.npz"
     paths["scene"] = folder / f"{name}.toml"
     return paths
 
@@ -55,7 +57,10 @@ def write_replay_scene(scene: Scene, graph, folder, name: str, overwrite: bool =
         if stream.model is not None and spec["name"] in paths:
             stream.model.save(paths[spec["name"]])
             spec["model"] = {"path": paths[spec["name"]].name}
-    if graph.fusion is not None:
+    if graph.fusion is not None and graph.fusion.method == "early":
+        graph.fusion.model.save(paths["fused"])           # a network trained on the spot, as trained
+        d["fusion"]["model"] = paths["fused"].name
+    elif graph.fusion is not None:
         d["fusion"]["weight"] = graph.fusion.weight       # a learned weight, as it was learned
     d.pop("sink", None)
     replay = scene_from_dict(d, str(paths["scene"]), folder)

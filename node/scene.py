@@ -247,7 +247,10 @@ STREAM_SECTIONS = ("bank", "features", "model", "decision")
 FUSION_KEYS = {
     "streams": (lambda v: isinstance(v, list) and len(v) == 2 and all(_name(x) for x in v) and v[0] != v[1],
                 "the names of two different [[stream]]s, each with a model", REQUIRED),
-    "method": (_one_of("late"), '"late" (weighted log-posteriors)', "late"),
+    "method": (_one_of("late", "early"), '"late" (weighted log-posteriors) or "early" (one network on both '
+                                           "streams' features: the supramodal network)", "late"),
+    "model": (_str, 'with method = "early": an early-fusion model file (default: the network trained on the '
+                    "spot on both streams' training windows, which needs both models trained on the spot)", None),
     "weight": (lambda v: v == LEARN or _number(v) and 0 <= v <= 1,
                f'the first stream\'s weight, in [0, 1], or "{LEARN}" (learned on the held-out training windows '
                'of two models trained on the spot)', DEFAULT_WEIGHT),

@@ -194,25 +194,8 @@ class TextureModel:
 
         ``peak_mode`` and ``peak_threshold`` are checked when given.
         """
-        features = check_features(features)
-        if not self.bank.matches(bank):
-            raise ModelError(
-                f"the model was trained on a {self.bank.kind} bank of {self.bank.channels} channels at "
-                f"{self.bank.fs:g} Hz, but the pipeline uses a {bank.kind} bank of {bank.channels} channels at "
-                f"{bank.fs:g} Hz (or other centre frequencies/bandwidths): use a model trained for this bank"
-            )
-        if features != self.features:
-            raise ModelError(f"the model takes features {list(self.features)}, the pipeline computes {list(features)}")
-        if int(window_samples) != self.window_samples:
-            raise ModelError(
-                f"the model was trained on windows of {self.window_samples} samples, the pipeline makes "
-                f"{window_samples}: set the window to {self.window_samples / self.bank.fs:g} s"
-            )
-        if peak_mode is not None and peak_mode != self.peak_mode:
-            raise ModelError(f"the model was trained on peak mode {self.peak_mode!r}, the pipeline uses {peak_mode!r}")
-        if peak_threshold is not None and float(peak_threshold) != self.peak_threshold:
-            raise ModelError(f"the model was trained with peak threshold {self.peak_threshold:g}, the pipeline uses "
-                             f"{peak_threshold:g}: set [features] peak_threshold = {self.peak_threshold:g}")
+        check_sense_fits((self.bank, self.features, self.window_samples, self.peak_mode, self.peak_threshold),
+                         bank, features, window_samples, peak_mode, peak_threshold)
 
     # -- files ---------------------------------------------------------------------------------
 
@@ -220,11 +203,7 @@ class TextureModel:
         return {
             "format": MODEL_FORMAT,
             "version": MODEL_VERSION,
-            "bank": self.bank.to_dict(),
-            "features": list(self.features),
-            "window_samples": self.window_samples,
-            "peak_mode": self.peak_mode,
-            "peak_threshold": self.peak_threshold,
+            **sense_header(self.bank, self.features, self.window_samples, self.peak_mode, self.peak_threshold),
             "classes": list(self.classes),
             "layers": list(self.mlp.shape),
             "training": self.training,
@@ -233,50 +212,13 @@ class TextureModel:
     def save(self, path) -> Path:
         """Write the model, an ``.npz`` archive, to exactly ``path`` (no suffix is added, so that
         :meth:`load` reads it back from the same name). Returns the path written."""
-        path = Path(path)
-        arrays = dict(zip(_ARRAYS, (self.mlp.w1, self.mlp.b1, self.mlp.w2, self.mlp.b2, self.mean, self.scale)))
-        with open(path, "wb") as fh:
-            np.savez(fh, header=np.array(json.dumps(self.header())), **arrays)
-        return path
+        return save_model_archive(path, self.header(), self.mlp, self.mean, self.scale)
 
     @classmethod
     def load(cls, path) -> "TextureModel":
         """Read and validate a model file; :class:`ModelError` says what is wrong with it."""
-        path = Path(path)
-        if not path.is_file():
-            raise ModelError(f"no model file at {path}: train one with `supramodal train` or give the right path")
-        try:
-            loaded = np.load(path, allow_pickle=False)
-            if not isinstance(loaded, np.lib.npyio.NpzFile):
-                raise ModelError(f"{path} is not a supramodal model: it holds a single array (.npy), "
-                                 "not an .npz archive")
-            with loaded as npz:
-                names = set(npz.files)
-                missing = {"header", *_ARRAYS} - names
-                if missing:
-                    raise ModelError(f"{path} is not a supramodal model: it lacks {sorted(missing)}")
-                for k in ("header", *_ARRAYS):
-                    _check_member_size(npz, k, MAX_HEADER_BYTES if k == "header" else MAX_ARRAY_BYTES, path)
-                header_text = npz["header"]
-                arrays = {k: npz[k] for k in _ARRAYS}
-        except ModelError:
-            raise
-        except ValueError as exc:
-            if "Object arrays" not in str(exc):       # numpy's words for a pickled member of an archive
-                raise ModelError(f"{path} is not a readable model file ({exc}); it may be truncated or of another "
-                                 "kind") from exc
-            # numpy's message would suggest loading it unsafely: never. Say what the file is not.
-            raise ModelError(f"{path} is not a supramodal model file: a member holds a pickled Python object, which "
-                             "this program never loads (a model file holds only plain arrays); train a model "
-                             "with `supramodal train`") from None
-        except (zipfile.BadZipFile, OSError, EOFError) as exc:
-            raise ModelError(f"{path} is not a readable model file ({exc}); it may be truncated or of another kind") from exc
-        if header_text.dtype.kind != "U" or header_text.ndim != 0:
-            raise ModelError(f"{path}: the model header must be one text, got a {header_text.dtype} array "
-                             f"of shape {header_text.shape}")
-        header = parse_json_text(str(header_text), f"{path}: the model header", max_depth=MAX_HEADER_DEPTH,
-                                 error=ModelError, limit_name="supramodal.model.MAX_HEADER_DEPTH")
-        return cls._from_parts(path, header, arrays)
+        header, arrays = read_model_archive(path, _ARRAYS)
+        return cls._from_parts(Path(path), header, arrays)
 
     @classmethod
     def _from_parts(cls, path, header, arrays) -> "TextureModel":
@@ -288,65 +230,167 @@ class TextureModel:
         if header.get("version") != MODEL_VERSION:
             raise bad(f"model format version {header.get('version')!r} is not supported (this program reads "
                       f"version {MODEL_VERSION}); retrain the model with this version")
-        known = {"format", "version", "bank", "features", "window_samples", "peak_mode", "peak_threshold", "classes",
-                 "layers", "training"}
+        known = {"format", "version", *SENSE_KEYS, "classes", "layers", "training"}
         unknown = set(header) - known
         if unknown:
             raise bad(f"unknown header key(s) {sorted(unknown)}")
-        try:
-            bank = Bank.from_dict(header["bank"])
-            if not (isinstance(header["features"], list) and all(isinstance(f, str) for f in header["features"])):
-                raise InputError(f"'features' must be a list of names, got {header['features']!r}")
-            features = check_features(header["features"])
-        except (KeyError, ValueError) as exc:
-            raise bad(f"invalid 'bank' or 'features' in the header: {exc}") from exc
-        problem = _bank_kind_problem(bank)
-        if problem:
-            raise bad(f"'bank': kind {bank.kind!r} does not fit its channels ({problem}); the header does not "
-                      "describe the bank the model was trained on: retrain it")
-        classes = header.get("classes")
-        if not (isinstance(classes, list) and classes and all(isinstance(c, str) for c in classes)
-                and len(set(classes)) == len(classes)):
-            raise bad("'classes' must be a non-empty list of distinct names")
-        if len(classes) > MAX_CLASSES:
-            raise bad(f"'classes' names {len(classes)} classes, more than the {MAX_CLASSES} a model may have "
-                      "(MAX_CLASSES)")
-        window = header.get("window_samples")
-        if not (isinstance(window, int) and not isinstance(window, bool) and window >= 2):
-            raise bad(f"'window_samples' must be an integer >= 2, got {window!r}")
-        if window > MAX_WINDOW_SAMPLES:
-            raise bad(f"'window_samples' is {window}, more than the {MAX_WINDOW_SAMPLES} samples a window may have "
-                      f"(MAX_WINDOW_SAMPLES, {MAX_WINDOW_SAMPLES / bank.fs:g} s at {bank.fs:g} Hz)")
-        if header.get("peak_mode") not in PEAK_MODES:
-            raise bad(f"'peak_mode' must be one of {PEAK_MODES}")
-        threshold = header.get("peak_threshold", 0.0)
-        if isinstance(threshold, bool) or not isinstance(threshold, (int, float)) or not (0 <= threshold < float("inf")):
-            raise bad(f"'peak_threshold' must be a finite number >= 0, got {threshold!r}")
+        bank, features, window, peak_mode, threshold = sense_from_header(header, bad)
+        classes = classes_from_header(header, bad)
         n_in = len(features) * bank.channels
-        layers = header.get("layers")
-        if not (isinstance(layers, list) and len(layers) == 3
-                and all(isinstance(n, int) and not isinstance(n, bool) for n in layers)
-                and layers[0] == n_in and layers[1] >= 1 and layers[2] == len(classes)):
-            raise bad(f"'layers' is {layers!r}; it must be [inputs, hidden, outputs] = [{n_in}, hidden >= 1, "
-                      f"{len(classes)}] for {len(features)} feature(s) x {bank.channels} channels and "
-                      f"{len(classes)} classes")
-        hidden = layers[1]
-        w1, b1, w2, b2, mean, scale = (arrays[k] for k in _ARRAYS)
-        shapes = {"w1": (n_in, hidden), "b1": (hidden,), "w2": (hidden, len(classes)), "b2": (len(classes),),
-                  "mean": (n_in,), "scale": (n_in,)}
-        for k, want in shapes.items():
-            a = arrays[k]
-            if a.dtype.kind != "f" or a.shape != want:
-                raise bad(f"array {k} has shape {a.shape} and dtype {a.dtype}; expected float {want} for "
-                          f"{len(features)} feature(s) x {bank.channels} channels, {hidden} hidden units "
-                          f"('layers' {layers}) and {len(classes)} classes")
-            if not np.isfinite(a).all():
-                raise bad(f"array {k} contains NaN or Inf")
-        if np.any(scale <= 0):
-            raise bad("input scale must be > 0 everywhere")
-        mlp = MLP(*(a.astype(np.float64) for a in (w1, b1, w2, b2)))
+        mlp, mean, scale = network_from_arrays(header, arrays, n_in, len(classes), bad,
+                                               f"{len(features)} feature(s) x {bank.channels} channels")
         training = header.get("training", {})
         if not isinstance(training, dict):
             raise bad("'training' must be an object")
-        return cls(bank, features, window, header["peak_mode"], tuple(classes), mean.astype(np.float64),
-                   scale.astype(np.float64), mlp, training, float(threshold))
+        return cls(bank, features, window, peak_mode, tuple(classes), mean, scale, mlp, training, threshold)
+
+
+def check_sense_fits(trained, bank: Bank, features, window_samples: int, peak_mode: str | None = None,
+                     peak_threshold: float | None = None) -> None:
+    """Raise :class:`ModelError` naming what differs if windows made with ``bank``, ``features``,
+    ``window_samples`` (and, when given, ``peak_mode`` and ``peak_threshold``) are not the
+    ``trained`` sense's, ``(bank, features, window_samples, peak_mode, peak_threshold)``."""
+    t_bank, t_features, t_window, t_mode, t_threshold = trained
+    features = check_features(features)
+    if not t_bank.matches(bank):
+        raise ModelError(
+            f"the model was trained on a {t_bank.kind} bank of {t_bank.channels} channels at "
+            f"{t_bank.fs:g} Hz, but the pipeline uses a {bank.kind} bank of {bank.channels} channels at "
+            f"{bank.fs:g} Hz (or other centre frequencies/bandwidths): use a model trained for this bank"
+        )
+    if features != tuple(t_features):
+        raise ModelError(f"the model takes features {list(t_features)}, the pipeline computes {list(features)}")
+    if int(window_samples) != t_window:
+        raise ModelError(
+            f"the model was trained on windows of {t_window} samples, the pipeline makes "
+            f"{window_samples}: set the window to {t_window / t_bank.fs:g} s"
+        )
+    if peak_mode is not None and peak_mode != t_mode:
+        raise ModelError(f"the model was trained on peak mode {t_mode!r}, the pipeline uses {peak_mode!r}")
+    if peak_threshold is not None and float(peak_threshold) != t_threshold:
+        raise ModelError(f"the model was trained with peak threshold {t_threshold:g}, the pipeline uses "
+                         f"{peak_threshold:g}: set [features] peak_threshold = {t_threshold:g}")
+
+
+#: Header keys that say what one sense's inputs are.
+SENSE_KEYS = ("bank", "features", "window_samples", "peak_mode", "peak_threshold")
+
+
+def sense_header(bank: Bank, features, window_samples: int, peak_mode: str, peak_threshold: float) -> dict:
+    """The :data:`SENSE_KEYS` of a header: what a sense's feature windows are."""
+    return {"bank": bank.to_dict(), "features": list(features), "window_samples": int(window_samples),
+            "peak_mode": peak_mode, "peak_threshold": float(peak_threshold)}
+
+
+def sense_from_header(header: dict, bad) -> tuple[Bank, tuple[str, ...], int, str, float]:
+    """``(bank, features, window_samples, peak_mode, peak_threshold)`` from a header's
+    :data:`SENSE_KEYS`, each validated; ``bad(message)`` makes the error to raise."""
+    try:
+        bank = Bank.from_dict(header["bank"])
+        if not (isinstance(header["features"], list) and all(isinstance(f, str) for f in header["features"])):
+            raise InputError(f"'features' must be a list of names, got {header['features']!r}")
+        features = check_features(header["features"])
+    except (KeyError, ValueError) as exc:
+        raise bad(f"invalid 'bank' or 'features' in the header: {exc}") from exc
+    problem = _bank_kind_problem(bank)
+    if problem:
+        raise bad(f"'bank': kind {bank.kind!r} does not fit its channels ({problem}); the header does not "
+                  "describe the bank the model was trained on: retrain it")
+    window = header.get("window_samples")
+    if not (isinstance(window, int) and not isinstance(window, bool) and window >= 2):
+        raise bad(f"'window_samples' must be an integer >= 2, got {window!r}")
+    if window > MAX_WINDOW_SAMPLES:
+        raise bad(f"'window_samples' is {window}, more than the {MAX_WINDOW_SAMPLES} samples a window may have "
+                  f"(MAX_WINDOW_SAMPLES, {MAX_WINDOW_SAMPLES / bank.fs:g} s at {bank.fs:g} Hz)")
+    if header.get("peak_mode") not in PEAK_MODES:
+        raise bad(f"'peak_mode' must be one of {PEAK_MODES}")
+    threshold = header.get("peak_threshold", 0.0)
+    if isinstance(threshold, bool) or not isinstance(threshold, (int, float)) or not (0 <= threshold < float("inf")):
+        raise bad(f"'peak_threshold' must be a finite number >= 0, got {threshold!r}")
+    return bank, features, window, header["peak_mode"], float(threshold)
+
+
+def classes_from_header(header: dict, bad) -> list[str]:
+    """A header's ``classes``: a non-empty list of at most :data:`MAX_CLASSES` distinct names."""
+    classes = header.get("classes")
+    if not (isinstance(classes, list) and classes and all(isinstance(c, str) for c in classes)
+            and len(set(classes)) == len(classes)):
+        raise bad("'classes' must be a non-empty list of distinct names")
+    if len(classes) > MAX_CLASSES:
+        raise bad(f"'classes' names {len(classes)} classes, more than the {MAX_CLASSES} a model may have "
+                  "(MAX_CLASSES)")
+    return classes
+
+
+def network_from_arrays(header: dict, arrays: dict, n_in: int, n_classes: int, bad, inputs_are: str):
+    """``(MLP, mean, scale)`` from a header's ``layers`` and the arrays :data:`_ARRAYS`, every
+    shape checked against ``n_in`` inputs (``inputs_are`` says what they are) and ``n_classes``."""
+    layers = header.get("layers")
+    if not (isinstance(layers, list) and len(layers) == 3
+            and all(isinstance(n, int) and not isinstance(n, bool) for n in layers)
+            and layers[0] == n_in and layers[1] >= 1 and layers[2] == n_classes):
+        raise bad(f"'layers' is {layers!r}; it must be [inputs, hidden, outputs] = [{n_in}, hidden >= 1, "
+                  f"{n_classes}] for {inputs_are} and {n_classes} classes")
+    hidden = layers[1]
+    shapes = {"w1": (n_in, hidden), "b1": (hidden,), "w2": (hidden, n_classes), "b2": (n_classes,),
+              "mean": (n_in,), "scale": (n_in,)}
+    for k, want in shapes.items():
+        a = arrays[k]
+        if a.dtype.kind != "f" or a.shape != want:
+            raise bad(f"array {k} has shape {a.shape} and dtype {a.dtype}; expected float {want} for "
+                      f"{inputs_are}, {hidden} hidden units ('layers' {layers}) and {n_classes} classes")
+        if not np.isfinite(a).all():
+            raise bad(f"array {k} contains NaN or Inf")
+    if np.any(arrays["scale"] <= 0):
+        raise bad("input scale must be > 0 everywhere")
+    mlp = MLP(*(arrays[k].astype(np.float64) for k in ("w1", "b1", "w2", "b2")))
+    return mlp, arrays["mean"].astype(np.float64), arrays["scale"].astype(np.float64)
+
+
+def save_model_archive(path, header: dict, mlp: MLP, mean: np.ndarray, scale: np.ndarray) -> Path:
+    """Write ``header`` (as JSON text) and the network's arrays to exactly ``path``, an ``.npz``."""
+    path = Path(path)
+    arrays = dict(zip(_ARRAYS, (mlp.w1, mlp.b1, mlp.w2, mlp.b2, mean, scale)))
+    with open(path, "wb") as fh:
+        np.savez(fh, header=np.array(json.dumps(header)), **arrays)
+    return path
+
+
+def read_model_archive(path, names=_ARRAYS) -> tuple[object, dict]:
+    """``(header, arrays)`` of a model file: the parsed JSON header and the named arrays, read
+    with ``allow_pickle=False``, every member's size bounded before it is read; anything else
+    is a :class:`ModelError` that says what the file is not."""
+    path = Path(path)
+    if not path.is_file():
+        raise ModelError(f"no model file at {path}: train one with `supramodal train` or give the right path")
+    try:
+        loaded = np.load(path, allow_pickle=False)
+        if not isinstance(loaded, np.lib.npyio.NpzFile):
+            raise ModelError(f"{path} is not a supramodal model: it holds a single array (.npy), "
+                             "not an .npz archive")
+        with loaded as npz:
+            missing = {"header", *names} - set(npz.files)
+            if missing:
+                raise ModelError(f"{path} is not a supramodal model: it lacks {sorted(missing)}")
+            for k in ("header", *names):
+                _check_member_size(npz, k, MAX_HEADER_BYTES if k == "header" else MAX_ARRAY_BYTES, path)
+            header_text = npz["header"]
+            arrays = {k: npz[k] for k in names}
+    except ModelError:
+        raise
+    except ValueError as exc:
+        if "Object arrays" not in str(exc):       # numpy's words for a pickled member of an archive
+            raise ModelError(f"{path} is not a readable model file ({exc}); it may be truncated or of another "
+                             "kind") from exc
+        # numpy's message would suggest loading it unsafely: never. Say what the file is not.
+        raise ModelError(f"{path} is not a supramodal model file: a member holds a pickled Python object, which "
+                         "this program never loads (a model file holds only plain arrays); train a model "
+                         "with `supramodal train`") from None
+    except (zipfile.BadZipFile, OSError, EOFError) as exc:
+        raise ModelError(f"{path} is not a readable model file ({exc}); it may be truncated or of another kind") from exc
+    if header_text.dtype.kind != "U" or header_text.ndim != 0:
+        raise ModelError(f"{path}: the model header must be one text, got a {header_text.dtype} array "
+                         f"of shape {header_text.shape}")
+    header = parse_json_text(str(header_text), f"{path}: the model header", max_depth=MAX_HEADER_DEPTH,
+                             error=ModelError, limit_name="supramodal.model.MAX_HEADER_DEPTH")
+    return header, arrays

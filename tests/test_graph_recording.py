@@ -132,23 +132,34 @@ def test_a_two_sense_session_recorded_live_replays_with_the_same_fused_decisions
         assert result["fusion"]["window_accuracy"] == summary["fusion"]["window_accuracy"]
 
 
-def test_record_of_a_graph_scene_writes_the_sessions_models_and_replay_scene(tmp_path, capsys):
+@pytest.mark.parametrize("fusion", ['weight = "learn"', 'method = "early"'])
+def test_record_of_a_graph_scene_writes_the_sessions_models_and_replay_scene(tmp_path, capsys, fusion):
     d = _two_sense_scene(seconds=0.5)
     lines = ["[[source]]\n" + "".join(f"{k} = {json.dumps(v)}\n" for k, v in s.items()) for s in d["source"]]
     for st in d["stream"]:
         lines.append(f'[[stream]]\nname = "{st["name"]}"\nsource = "{st["source"]}"\n[stream.bank]\n'
                      f'kind = "{st["bank"]["kind"]}"\n[stream.model]\ntrain_on_start = true\n')
-    lines.append('[fusion]\nstreams = ["whiskers", "mic"]\nweight = "learn"\n')
+    lines.append(f'[fusion]\nstreams = ["whiskers", "mic"]\n{fusion}\n[[sink]]\ntype = "jsonl"\npath = "live.jsonl"\n')
     (tmp_path / "w.toml").write_text("\n".join(lines))
     out = tmp_path / "rec"
     assert main(["record", str(tmp_path / "w.toml"), "--out", str(out), "--name", "s", "--quiet"]) == 0
     err = capsys.readouterr().err
     assert f"supramodal run {out / 's.toml'}" in err
+    early = "early" in fusion
     assert {p.name for p in out.iterdir()} == {"s.toml", "s.whiskers.wav", "s.whiskers.json", "s.mic.wav",
-                                               "s.mic.json", "s.whiskers.npz", "s.mic.npz"}
+                                               "s.mic.json", "s.whiskers.npz", "s.mic.npz"} | ({"s.fused.npz"} if early else set())
     replay = load_scene(out / "s.toml")
     assert [s["timing"] for s in replay.sources] == ["recorded", "recorded"]
-    assert isinstance(replay.fusion["weight"], float)                   # the learned weight, as learned
+    if early:
+        assert replay.fusion["method"] == "early" and replay.fusion["model"] == "s.fused.npz"
+    else:
+        assert isinstance(replay.fusion["weight"], float)               # the learned weight, as learned
+    # its replay decides as the recording did
+    assert main(["run", str(out / "s.toml"), "--json", "--quiet"]) == 0
+    replayed = [json.loads(x) for x in capsys.readouterr().out.splitlines()]
+    live = [json.loads(x) for x in (tmp_path / "live.jsonl").read_text().splitlines()]
+    fused = lambda events: [(e["window"], e["predicted"]) for e in events if e.get("stream") == "fused"]  # noqa: E731
+    assert fused(replayed) == fused(live) and len(fused(live)) == 40
     # nothing replaced without --force, checked before anything runs
     assert main(["record", str(tmp_path / "w.toml"), "--out", str(out), "--name", "s", "--quiet"]) == 2
     assert "exists; pass --force" in capsys.readouterr().err

@@ -1,0 +1,174 @@
+"""Early fusion, the supramodal network: one MLP on two senses' aligned feature windows, as a model
+file and as the node's fusion block."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from supramodal.banks import cochlea_bank, whisker_bank
+from supramodal.fused_model import EarlyFusionModel, Sense
+from supramodal.mlp import MLP
+from supramodal.model import ModelError, TextureModel
+from supramodal.node.build import build_node
+from supramodal.node.events import WindowEvent
+from supramodal.node.fusion import EarlyFusion
+from supramodal.node.scene import SceneError, scene_from_dict
+from supramodal.node.sinks import ListSink
+from supramodal.pipeline import FeaturePipeline
+
+from test_graph import _run_fusion, _two_sense_scene
+
+CLASSES = ("bark", "felt", "silk")
+SENSES = (Sense("whiskers", whisker_bank(), ("Af",), 500), Sense("mic", cochlea_bank(), ("A", "f"), 4410))
+
+
+def _model(classes=CLASSES, seed=0):
+    n_in = 20 + 100
+    rng = np.random.default_rng(seed)
+    return EarlyFusionModel(SENSES, tuple(classes), rng.normal(size=n_in), rng.uniform(0.5, 2, n_in),
+                            MLP.create(n_in, 7, len(classes), seed=seed), {"seed": seed})
+
+
+def _plain_outputs(model, va, vb):
+    """The network by hand: inputs side by side, standardised, two sigmoid layers."""
+    x = (np.concatenate([va.reshape(len(va), -1), vb.reshape(len(vb), -1)], axis=1) - model.mean) / model.scale
+    sig = lambda z: 1 / (1 + np.exp(-z))                   # noqa: E731
+    return sig(sig(x @ model.mlp.w1 + model.mlp.b1) @ model.mlp.w2 + model.mlp.b2)
+
+
+def test_early_model_round_trips_through_its_file(tmp_path):
+    model = _model()
+    rng = np.random.default_rng(1)
+    va, vb = rng.normal(size=(6, 1, 20)), rng.normal(size=(6, 2, 50))
+    loaded = EarlyFusionModel.load(model.save(tmp_path / "fused.npz"))
+    assert [(s.name, s.features, s.window_samples) for s in loaded.senses] == \
+        [("whiskers", ("Af",), 500), ("mic", ("A", "f"), 4410)]
+    assert loaded.senses[0].bank.matches(whisker_bank()) and loaded.classes == CLASSES
+    np.testing.assert_array_equal(loaded.outputs(va, vb), model.outputs(va, vb))
+
+
+def test_early_model_outputs_are_the_network_on_both_senses_side_by_side():
+    model = _model()
+    rng = np.random.default_rng(2)
+    va, vb = rng.normal(size=(5, 1, 20)), rng.normal(size=(5, 2, 50))
+    np.testing.assert_allclose(model.outputs(va, vb), _plain_outputs(model, va, vb), rtol=1e-12)
+    with pytest.raises(Exception, match="sense 'mic': feature windows must have shape"):
+        model.outputs(va, vb[:, :1])
+
+
+def _tamper(tmp_path, change):
+    path = _model().save(tmp_path / "m.npz")
+    with np.load(path) as npz:
+        arrays = {k: npz[k] for k in npz.files}
+    header = json.loads(str(arrays["header"]))
+    change(header)
+    arrays["header"] = np.array(json.dumps(header))
+    np.savez(open(tmp_path / "bad.npz", "wb"), **arrays)
+    return tmp_path / "bad.npz"
+
+
+@pytest.mark.parametrize("change, needle", [
+    (lambda h: h.update(format="supramodal-model"), "it is a one-sense model: give it to a \\[\\[stream\\]\\]"),
+    (lambda h: h.update(version=2), "format version 2 is not supported"),
+    (lambda h: h["senses"].pop(), "'senses' must be a list of the two senses"),
+    (lambda h: h["senses"][1].update(name="whiskers"), "both named 'whiskers'"),
+    (lambda h: h["senses"][1].update(features=["Af"]), "'layers' is .* 20 \\+ 50 inputs"),
+    (lambda h: h["senses"][0].update(window_samples=1), "senses\\[0\\]: 'window_samples' must be an integer >= 2"),
+    (lambda h: h["senses"][0].update(colour="red"), "senses\\[0\\] must have a non-empty 'name' and the keys"),
+    (lambda h: h.update(extra=1), "unknown header key"),
+])
+def test_bad_early_model_files_are_refused(tmp_path, change, needle):
+    with pytest.raises(ModelError, match=needle):
+        EarlyFusionModel.load(_tamper(tmp_path, change))
+
+
+def test_a_one_sense_model_file_is_not_an_early_model(tmp_path):
+    bank = whisker_bank()
+    m = TextureModel(bank, ("Af",), 500, "maxima", CLASSES, np.zeros(20), np.ones(20), MLP.create(20, 3, 3, 0))
+    with pytest.raises(ModelError, match="one-sense model"):
+        EarlyFusionModel.load(m.save(tmp_path / "one.npz"))
+
+
+def test_a_sense_checks_the_pipeline_that_feeds_it():
+    SENSES[0].check_pipeline(FeaturePipeline(whisker_bank(), ("Af",), 0.1))
+    with pytest.raises(ModelError, match="sense 'mic': the model takes features \\['A', 'f'\\]"):
+        SENSES[1].check_pipeline(FeaturePipeline(cochlea_bank(), ("Af",), 0.1))
+
+
+def _event(stream, w, features, post=None):
+    post = np.full(3, 1 / 3) if post is None else np.asarray(post, float)
+    return WindowEvent(stream, w, 0.1 * w, 0.1 * w + 0.1, 0.1 * w + 0.1, features=features, posteriors=post,
+                       decision=CLASSES[int(np.argmax(post))], confidence=float(post.max()), latency_ms=0.5)
+
+
+def test_the_early_fusion_block_decides_pairs_with_the_network_and_lone_windows_with_their_own_stream():
+    """Pairs: the network on both windows' features (in the model's feature order), posteriors
+    in the streams' class order (the model's are another); a window with no partner keeps its
+    stream's own posteriors."""
+    model = _model(classes=("silk", "bark", "felt"))
+    fusion = EarlyFusion(("whiskers", "mic"), (CLASSES, CLASSES), model, max_wait=5.0)
+    rng = np.random.default_rng(3)
+    wa = [{"Af": rng.normal(size=20)} for _ in range(4)]
+    wb = [{"f": rng.normal(size=50), "A": rng.normal(size=50)} for _ in range(3)]
+    script = [(0.0, _event("whiskers", k, wa[k])) for k in range(4)]
+    script += [(0.0, _event("mic", k, wb[k])) for k in range(3)]
+    own = [0.7, 0.2, 0.1]
+    script[3] = (0.0, _event("whiskers", 3, wa[3], own))
+    script += [(0.0, ("end", "mic")), (0.0, ("end", "whiskers"))]
+    out = _run_fusion(fusion, script)
+    assert [e.senses for e in out] == [("whiskers", "mic")] * 3 + [("whiskers",)]
+    for k in range(3):
+        raw = _plain_outputs(model, wa[k]["Af"][None, None], np.stack([wb[k]["A"], wb[k]["f"]])[None])[0]
+        ref = raw[[1, 2, 0]] / raw.sum()                     # model order silk, bark, felt -> bark, felt, silk
+        np.testing.assert_allclose(out[k].posteriors, ref, rtol=1e-12)
+    np.testing.assert_allclose(out[3].posteriors, own)
+    assert fusion.summary()["method"] == "early" and fusion.summary()["weight"] is None
+
+
+def test_early_fusion_refuses_a_model_of_other_textures():
+    with pytest.raises(Exception, match="the early-fusion model knows"):
+        EarlyFusion(("whiskers", "mic"), (CLASSES, CLASSES), _model(classes=("bark", "felt", "wool")))
+
+
+def test_the_two_sense_world_with_early_fusion_in_the_node_beats_late_fusion_and_each_sense(tmp_path):
+    """The supramodal network trained on the spot on both senses' aligned training windows: on
+    contacts it never met, it decides the windows that each sense alone confuses; and a network
+    saved to a file and named in [fusion] model decides the same."""
+    d = _two_sense_scene()
+    d["fusion"] = {"streams": ["whiskers", "mic"], "method": "early"}
+    sink = ListSink()
+    graph = build_node(scene_from_dict(d, "world.toml"), speed="max", sinks_override=[sink])
+    summary = graph.run()
+    f = summary["fusion"]
+    late = build_node(scene_from_dict(_two_sense_scene(), "world.toml"), speed="max",
+                      sinks_override=[ListSink()]).run()["fusion"]
+    best = max(summary["streams"][s]["window_accuracy"] for s in ("whiskers", "mic"))
+    assert f["method"] == "early" and f["windows"] == f["paired"] == 160
+    assert f["window_accuracy"] >= best + 0.2 and f["window_accuracy"] >= late["window_accuracy"] + 0.05
+    # the same network from a file
+    graph.fusion.model.save(tmp_path / "fused.npz")
+    d["fusion"]["model"] = str(tmp_path / "fused.npz")
+    again = ListSink()
+    build_node(scene_from_dict(d, "world.toml"), speed="max", sinks_override=[again]).run()
+    decided = lambda s: [e.decision for e in s.windows if e.stream == "fused"]     # noqa: E731
+    assert decided(again) == decided(sink)
+
+
+def test_early_fusion_needs_a_model_or_both_streams_trained_on_the_spot(tmp_path):
+    d = _two_sense_scene()
+    d["fusion"] = {"streams": ["whiskers", "mic"], "method": "early"}
+    model = tmp_path / "mic.npz"
+    from supramodal.node.build import train_on_texture_set
+    from supramodal.twosense import OneSense, two_sense_set
+    train_on_texture_set(OneSense(two_sense_set(), "microphone", duration=4.0),
+                         FeaturePipeline(cochlea_bank(), ("Af",))).save(model)
+    d["stream"][1]["model"] = {"path": str(model)}
+    with pytest.raises(SceneError, match='method = "early" needs a \\[fusion\\] model file'):
+        build_node(scene_from_dict(d, "world.toml"), speed="max", sinks_override=[ListSink()])
+    _model().save(tmp_path / "fused.npz")
+    d["fusion"]["model"] = str(tmp_path / "fused.npz")
+    with pytest.raises(SceneError, match="\\[fusion\\] model: sense 'mic': the model takes features \\['A', 'f'\\]"):
+        build_node(scene_from_dict(d, "world.toml"), speed="max", sinks_override=[ListSink()])
