@@ -313,6 +313,19 @@ def build_node(scene: Scene, speed=None, sinks_override=None, progress=None, rec
         raise SceneError(f"{scene.source}: {exc}") from None
 
 
+def _aligned_windows(scene: Scene, a: Stream, b: Stream, windows: dict, asked: str, instead: str):
+    """``((x_a, y), (x_b, y))``: windows kept when both streams' models were trained on the spot,
+    checked to be the two senses of the same contacts (what learning a fusion on them needs)."""
+    if not (windows[a.name] and windows[b.name]):
+        raise SceneError(f"{scene.source}: [fusion] {asked} needs both streams' models trained on the spot "
+                         f"(train_on_start) on the same textures; give {instead} instead")
+    (xa, ya), (xb, yb) = windows[a.name][0], windows[b.name][0]
+    if a.model.classes != b.model.classes or len(xa) != len(xb) or not np.array_equal(ya, yb):
+        raise SceneError(f"{scene.source}: [fusion] {asked}: the two streams were not trained on the two senses of "
+                         f"the same contacts (a two-sense set); give {instead} instead")
+    return (xa, ya), (xb, yb)
+
+
 def _early_model(scene: Scene, a: Stream, b: Stream, held_out: dict, trained: dict, progress):
     """The early-fusion network: loaded from ``[fusion] model`` and checked against both streams'
     pipelines, or trained on the spot on both streams' aligned training windows (the two senses
@@ -328,13 +341,7 @@ def _early_model(scene: Scene, a: Stream, b: Stream, held_out: dict, trained: di
         except ModelError as exc:
             raise SceneError(f"{scene.source}: [fusion] model: {exc}") from None
         return model
-    if not (trained[a.name] and trained[b.name]):
-        raise SceneError(f"{scene.source}: [fusion] method = \"early\" needs a [fusion] model file, or both streams' "
-                         "models trained on the spot (train_on_start) on the same textures to train one")
-    (xa, ya), (xb, yb) = trained[a.name][0], trained[b.name][0]
-    if a.model.classes != b.model.classes or len(xa) != len(xb) or not np.array_equal(ya, yb):
-        raise SceneError(f"{scene.source}: [fusion] method = \"early\": the two streams were not trained on the two "
-                         "senses of the same contacts (a two-sense set); give a [fusion] model file instead")
+    (xa, ya), (xb, _) = _aligned_windows(scene, a, b, trained, 'method = "early"', "a [fusion] model file")
     model = EarlyFusionModel.train((Sense.of(a.name, a.pipeline), Sense.of(b.name, b.pipeline)), xa, xb, ya,
                                    a.model.classes)
     if progress:
@@ -350,13 +357,7 @@ def _learned_weight(scene: Scene, a: Stream, b: Stream, held_out: dict, progress
     senses of the same training contacts), as ``experiment fusion`` learns it."""
     from supramodal.fusion import learn_late_weight
 
-    if not (held_out[a.name] and held_out[b.name]):
-        raise SceneError(f"{scene.source}: [fusion] weight = \"{LEARN}\" needs both streams' models trained on the "
-                         "spot (train_on_start) on the same textures; give a number instead")
-    (xa, ya), (xb, yb) = held_out[a.name][0], held_out[b.name][0]
-    if a.model.classes != b.model.classes or len(xa) != len(xb) or not np.array_equal(ya, yb):
-        raise SceneError(f"{scene.source}: [fusion] weight = \"{LEARN}\": the two streams were not trained on the two "
-                         "senses of the same contacts (a two-sense set); give a number instead")
+    (xa, ya), (xb, _) = _aligned_windows(scene, a, b, held_out, f'weight = "{LEARN}"', "a number")
     weight = learn_late_weight(a.model.outputs(xa), b.model.outputs(xb), ya)
     if progress:
         progress(f"fusion: learned weight {weight:.2f} of {a.name} (and {1 - weight:.2f} of {b.name}) "

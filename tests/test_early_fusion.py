@@ -166,7 +166,7 @@ def test_early_fusion_needs_a_model_or_both_streams_trained_on_the_spot(tmp_path
     train_on_texture_set(OneSense(two_sense_set(), "microphone", duration=4.0),
                          FeaturePipeline(cochlea_bank(), ("Af",))).save(model)
     d["stream"][1]["model"] = {"path": str(model)}
-    with pytest.raises(SceneError, match='method = "early" needs a \\[fusion\\] model file'):
+    with pytest.raises(SceneError, match='method = "early" needs both streams\' models trained on the spot'):
         build_node(scene_from_dict(d, "world.toml"), speed="max", sinks_override=[ListSink()])
     _model().save(tmp_path / "fused.npz")
     d["fusion"]["model"] = str(tmp_path / "fused.npz")
