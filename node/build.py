@@ -120,7 +120,8 @@ def synth_session(scene: Scene, bank: Bank):
 
 def twosense_session(scene: Scene, bank: Bank):
     """A two-sense source's signal: one sense of the two-sense world (supramodal.twosense), each
-    texture for ``seconds`` in ``order``, from contacts the model trained on the spot never met;
+    texture for ``seconds`` in ``order``, contact ``take`` (by default 1: contacts the model trained
+    on the spot never met);
     returns ``(the sense's training set, signal (samples, 1), labels)``."""
     from supramodal.twosense import OneSense, two_sense_set
 
@@ -135,7 +136,7 @@ def twosense_session(scene: Scene, bank: Bank):
     if unknown:
         raise SceneError(f"{scene.source}: [driver] order: unknown texture(s) {unknown}; the set has {list(train.names)}")
     _checked_length(scene, order, train.fs)
-    played = OneSense(surfaces, d["sense"], d["seconds"], d["set_seed"], take=1)
+    played = OneSense(surfaces, d["sense"], d["seconds"], d["set_seed"], take=d["take"])
     parts = [played.synthesize(train.names.index(name)) for name in order]
     labels = [(k * d["seconds"], (k + 1) * d["seconds"], name) for k, name in enumerate(order)]  # stream time
     return train, np.concatenate(parts)[:, None], Labels(labels, len(order) * d["seconds"] if d["loop"] else None)

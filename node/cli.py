@@ -396,6 +396,11 @@ def _progress(args):
 def _cmd_train(args) -> int:
     from supramodal.node.outputs import check_new_file
     from supramodal.node.training import train_from_manifest
+    if args.scene or args.fusion:
+        return _train_fusion(args)
+    if args.manifest is None or args.bank is None or args.out is None:
+        raise CliError("train needs --bank, --manifest and --out (or, for a fusion of two senses, --fusion and "
+                       "--scene)")
     check_new_file(args.out, args.force, "the model file")      # before the training, not after
     bank = args.bank
     if args.cv:
@@ -420,6 +425,32 @@ def _cmd_train(args) -> int:
     return 0
 
 
+def _train_fusion(args) -> int:
+    """``train --fusion early|late --scene S.toml ...``: a fusion learned on recorded two-sense sessions."""
+    from supramodal.node.fused_training import train_fused
+    from supramodal.node.outputs import check_new_file
+
+    if not (args.scene and args.fusion):
+        raise CliError("a fusion is trained with --fusion early|late and one --scene per recording (the scene "
+                       "`supramodal record` writes for a graph)")
+    if args.manifest is not None or args.cv:
+        raise CliError("--manifest and --cv train one sense; a fusion is trained on --scene recordings")
+    if args.fusion == "early":
+        if args.out is None:
+            raise CliError("--fusion early needs --out, the model file to write")
+        check_new_file(args.out, args.force, "the model file")
+    result, info = train_fused(args.scene, args.fusion, epochs=args.epochs, seed=args.seed, progress=_progress(args))
+    a, b = info["streams"]
+    if args.fusion == "late":
+        print(f"learned late-fusion weight {result:.2f} of {a} (and {1 - result:.2f} of {b}) on {info['pairs']} "
+              f"labelled pairs of windows: set [fusion] weight = {result:.2f}")
+        return 0
+    path = result.save(args.out)
+    print(f"wrote {path}: early fusion of {a} and {b}, classes {info['classes']}, {info['pairs']} pairs of windows, "
+          f"{info['train_accuracy']:.3f} of them right; use it with [fusion] method = \"early\", model = \"{path}\"")
+    return 0
+
+
 def _cmd_fit(args) -> int:
     from supramodal.node.fit import fit_manifest, format_fit, write_fit
     from supramodal.node.outputs import check_new_file
@@ -441,6 +472,12 @@ def _cmd_evaluate(args) -> int:
     from supramodal.node.training import evaluate_manifest, format_evaluation
     from supramodal.model import TextureModel
 
+    if args.scene:
+        return _evaluate_fusion(args)
+    if args.model is None or args.manifest is None:
+        raise CliError("evaluate needs a model file and --manifest (or, for two senses fused, --scene)")
+    if args.fused_model is not None:
+        raise CliError("--fused-model scores a fusion: give --scene recordings")
     model = TextureModel.load(args.model)
     if args.cv:
         return _evaluate_cv(model, args)
@@ -458,6 +495,18 @@ def _cmd_evaluate(args) -> int:
 
         files = write_evaluation(result, args.out)
         print("wrote " + ", ".join(str(p) for p in files), file=sys.stderr)
+    return 0
+
+
+def _evaluate_fusion(args) -> int:
+    """``evaluate --scene S.toml ...``: each stream and the fusion scored on recorded two-sense sessions."""
+    from supramodal.node.fused_training import evaluate_fused, format_fused_evaluation
+
+    if args.model is not None or args.manifest is not None or args.cv or args.out is not None:
+        raise CliError("with --scene, the scenes name the models: leave out the model file, --manifest, --cv "
+                       "and --out (give --fused-model to score another early-fusion network)")
+    result = evaluate_fused(args.scene, args.fused_model, progress=_progress(args))
+    print(json.dumps(result) if args.json else format_fused_evaluation(result))
     return 0
 
 
@@ -526,14 +575,21 @@ def build_parser() -> argparse.ArgumentParser:
                         "a starting point to edit, e.g. supramodal run --print-scene > my.toml")
     p.set_defaults(func=_cmd_run)
 
-    p = add_parser("train", help="train a model from labelled recordings")
+    p = add_parser("train", help="train a model from labelled recordings, or a fusion of two senses")
     p.add_argument("--force", action="store_true", help="replace an existing model file at --out (default: refuse)")
-    p.add_argument("--bank", type=_bank, required=True, metavar="whisker|cochlea|FILE",
+    p.add_argument("--bank", type=_bank, metavar="whisker|cochlea|FILE",
                    help="the filterbank: whisker (5 kHz), cochlea (44.1 kHz), or a bank file (supramodal-bank JSON: "
-                        "any ERB-spaced band at any rate, or explicit channels; docs/node.md)")
-    p.add_argument("--manifest", required=True, help="CSV with columns path,label[,start,end]; paths relative to it")
-    p.add_argument("--out", required=True, type=_output_file,
+                        "any ERB-spaced band at any rate, or explicit channels; docs/node.md); required with --manifest")
+    p.add_argument("--manifest", help="CSV with columns path,label[,start,end]; paths relative to it")
+    p.add_argument("--out", type=_output_file,
                    help="model file to write, at exactly this path (an .npz archive; e.g. model.npz)")
+    p.add_argument("--fusion", choices=["early", "late"],
+                   help="instead of one sense: learn the fusion of a recorded graph's two streams on its labelled "
+                        "pairs of windows (--scene): early, the supramodal network (written to --out); late, the "
+                        "weight of the first stream (printed) (default: one sense, from --manifest)")
+    p.add_argument("--scene", action="append", metavar="NAME.toml",
+                   help="with --fusion: a recording's replay scene (supramodal record of a graph writes it); give "
+                        "one per recording (default: none)")
     p.add_argument("--features", nargs="+", default=["Af"], choices=list(FEATURE_TABLE),
                    help="; ".join(f"{f.name}: {f.description}" for f in FEATURE_TABLE.values()) + " (default Af)")
     p.add_argument("--window", type=_positive_seconds, default=DEFAULT_WINDOW, help=f"window, seconds (default {DEFAULT_WINDOW})")
@@ -564,9 +620,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true", help="no progress on stderr (warnings are still shown)")
     p.set_defaults(func=_cmd_fit)
 
-    p = add_parser("evaluate", help="accuracy and confusion of a model on labelled recordings")
-    p.add_argument("model", help="model file (.npz)")
-    p.add_argument("--manifest", required=True, help="CSV with columns path,label[,start,end]; paths relative to it")
+    p = add_parser("evaluate", help="accuracy and confusion of a model on labelled recordings, or of a fusion")
+    p.add_argument("model", nargs="?", help="model file (.npz); not with --scene")
+    p.add_argument("--manifest", help="CSV with columns path,label[,start,end]; paths relative to it")
+    p.add_argument("--scene", action="append", metavar="NAME.toml",
+                   help="instead of a model and a manifest: a recorded graph's replay scene, run at max speed; each "
+                        "stream and the fusion scored per window and per contact; give one per recording "
+                        "(default: none)")
+    p.add_argument("--fused-model", metavar="FILE",
+                   help="with --scene: score this early-fusion network instead of the scenes' own fusion "
+                        "(default: the scenes' [fusion])")
     p.add_argument("--mapping", type=_mapping, default="auto",
                    help="recording channels to filters: auto (one channel to all, or one each), mono, per-channel, mean, or a channel index (default auto)")
     p.add_argument("--json", action="store_true", help="print the result as one JSON object instead of a table")

@@ -126,6 +126,8 @@ class WindowEvent:
         Per feature, the window's values over the channels; None on a fused event.
     posteriors : ndarray or None
         Normalised class posteriors (a model's, or the fused ones); None without a model.
+    classes : tuple of str
+        The class names in the order of ``posteriors`` (``()`` without a model).
     decision : str or None
         The winning class (winner-take-all over ``posteriors``).
     confidence : float or None
@@ -163,6 +165,7 @@ class WindowEvent:
     latency_ms: float | None = None
     senses: tuple = ()
     in_contact: bool = True
+    classes: tuple = ()
 
     def as_dict(self) -> dict:
         """The event as a JSON-ready dict: ``{"stream", "t", "window", "start", "end"}``, then

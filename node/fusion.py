@@ -110,6 +110,9 @@ class LateFusion:
         self.windows = self.paired = self.alone = 0
         self.late = {a: 0, b: 0}
         self.on_event = None
+        #: A list to which each fused pair of window events is appended (training a fusion on
+        #: recorded sessions); None: pairs are not kept.
+        self.kept_pairs: list | None = None
         # per stream: missing since its partner window did not come in time (windows decided
         # alone since then), or None while present
         self._missing: dict[str, int | None] = {a: None, b: None}
@@ -205,6 +208,8 @@ class LateFusion:
     def _fuse(self, item_a, item_b) -> WindowEvent:
         (ea, _, closed_a), (eb, _, closed_b) = item_a, item_b
         post = self._fused_posteriors(ea, eb)
+        if self.kept_pairs is not None:
+            self.kept_pairs.append((ea, eb))
         self.paired += 1
         closed = None if closed_a is None or closed_b is None else max(closed_a, closed_b)
         return self._event(post, (ea, eb), closed, frozenset((ea.flags | eb.flags) - {"alone"}))
@@ -239,7 +244,8 @@ class LateFusion:
         start, end = min(e.start for e in events), max(e.end for e in events)
         event = WindowEvent(FUSED_STREAM, self.windows, start, end, end, posteriors=post, decision=decision,
                             confidence=float(post[k]), pooled=pooled, truth=truth, flags=frozenset(flags),
-                            latency_ms=latency, senses=tuple(e.stream for e in events), in_contact=in_contact)
+                            latency_ms=latency, senses=tuple(e.stream for e in events), in_contact=in_contact,
+                            classes=self.classes)
         self.windows += 1
         return event
 

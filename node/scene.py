@@ -141,6 +141,8 @@ DRIVER_KEYS = {
         "order": (_texture_list, "a list of texture names", None),
         "offset": (_non_negative, "seconds after the graph's start at which this source's first sample is "
                                   "taken, >= 0", 0.0),
+        "take": (_int_min(0), "which contact of each texture it plays, an integer >= 0 (0: the one a model "
+                              "trained on the spot learns from)", 1),
         "loop": (lambda v: isinstance(v, bool), "true or false: play the contacts again and again", False),
         "clock_ppm": (lambda v: _number(v) and abs(v) <= 1000, "the simulated device's crystal error, ppm, "
                                                                 "within +-1000", 0.0),

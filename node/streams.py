@@ -224,7 +224,7 @@ class Stream:
             event = WindowEvent(self.name, w, offset + w * W * slope, offset + end * slope, end / fs,
                                 features=features, posteriors=post, decision=decision, confidence=confidence,
                                 pooled=pooled, truth=truth, flags=frozenset(flags), latency_ms=latency,
-                                in_contact=in_contact)
+                                in_contact=in_contact, classes=self.model.classes if self.model is not None else ())
             self.windows += 1
             emit(event)
 

@@ -173,3 +173,63 @@ def test_a_replay_source_with_recorded_timing_needs_a_recorded_session(tmp_path)
          "stream": [{"name": "a", "source": "a", "bank": {"kind": "whisker"}}]}
     with pytest.raises(SceneError, match='timing = "recorded": .* needs a session recorded by a node of several'):
         build_node(scene_from_dict(d, str(tmp_path / "x.toml"), tmp_path), sinks_override=[])
+
+
+# -- a fusion learned and scored on recorded two-sense sessions ---------------------------------------
+
+def _world_toml(take: int, seconds: float = 1.0) -> str:
+    src = ""
+    for name, sense, block, offset in (("whiskers", "whiskers", 50, 0.0), ("mic", "microphone", 441, 0.037)):
+        src += (f'[[source]]\nname = "{name}"\ntype = "twosense"\nsense = "{sense}"\ntake = {take}\n'
+                f'seconds = {seconds}\nblock = {block}\noffset = {offset}\nspeed = "max"\n\n')
+    for name, kind in (("whiskers", "whisker"), ("mic", "cochlea")):
+        src += (f'[[stream]]\nname = "{name}"\nsource = "{name}"\n[stream.bank]\nkind = "{kind}"\n'
+                '[stream.model]\ntrain_on_start = true\n\n')
+    return src + '[fusion]\nstreams = ["whiskers", "mic"]\nweight = "learn"\n'
+
+
+def test_a_fusion_trained_on_recorded_sessions_scores_on_another_recording(tmp_path, capsys):
+    """Three recordings of the two-sense world (other contacts each: take 1, 2, 3) train the
+    supramodal network and a late weight with `train --fusion --scene`; `evaluate --scene` on a
+    fourth scores each stream and the fusion per window and per contact: the network decides
+    what each sense alone confuses."""
+    for take in (1, 2, 3, 4):
+        (tmp_path / f"w{take}.toml").write_text(_world_toml(take))
+        assert main(["record", str(tmp_path / f"w{take}.toml"), "--out", str(tmp_path / "rec"), "--name",
+                     f"t{take}", "--quiet"]) == 0
+    scenes = [a for t in (1, 2, 3) for a in ("--scene", str(tmp_path / "rec" / f"t{t}.toml"))]
+    capsys.readouterr()
+    assert main(["train", "--fusion", "early", *scenes, "--out", str(tmp_path / "early.npz"), "--quiet"]) == 0
+    assert "240 pairs of windows" in capsys.readouterr().out
+    assert main(["train", "--fusion", "late", *scenes, "--quiet"]) == 0
+    assert "set [fusion] weight = " in capsys.readouterr().out
+    held = str(tmp_path / "rec" / "t4.toml")
+    assert main(["evaluate", "--scene", held, "--fused-model", str(tmp_path / "early.npz"), "--json", "--quiet"]) == 0
+    r = json.loads(capsys.readouterr().out)
+    assert r["fused"]["windows"] == r["whiskers"]["windows"] == 80 and r["fused"]["contacts"] == 8
+    best = max(r["whiskers"]["window_accuracy"], r["mic"]["window_accuracy"])
+    assert r["fused"]["window_accuracy"] >= best + 0.2 and r["fused"]["contact_accuracy"] == 1.0
+    # the scene's own (late) fusion, scored the same way
+    assert main(["evaluate", "--scene", held, "--json", "--quiet"]) == 0
+    late = json.loads(capsys.readouterr().out)
+    assert late["whiskers"] == r["whiskers"] and late["fused"]["window_accuracy"] < r["fused"]["window_accuracy"]
+
+
+@pytest.mark.parametrize("argv, needle", [
+    (["train", "--fusion", "early", "--scene", "x.toml"], "--fusion early needs --out"),
+    (["train", "--scene", "x.toml", "--out", "m.npz"], "trained with --fusion early|late and one --scene"),
+    (["train", "--fusion", "late", "--scene", "x.toml", "--manifest", "m.csv"], "--manifest and --cv train one sense"),
+    (["train", "--out", "m.npz"], "train needs --bank, --manifest and --out"),
+    (["evaluate", "m.npz", "--scene", "x.toml"], "with --scene, the scenes name the models"),
+    (["evaluate", "m.npz", "--manifest", "m.csv", "--fused-model", "f.npz"], "--fused-model scores a fusion"),
+])
+def test_fusion_training_and_scoring_options_are_checked(tmp_path, capsys, argv, needle, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    assert main(argv) == 2
+    assert needle in capsys.readouterr().err
+
+
+def test_a_one_source_scene_cannot_train_a_fusion(tmp_path, capsys):
+    (tmp_path / "one.toml").write_text('[driver]\ntype = "synth"\nseconds = 1.0\n')
+    assert main(["train", "--fusion", "late", "--scene", str(tmp_path / "one.toml"), "--quiet"]) == 2
+    assert "a scene with a [fusion] block of two streams is needed" in capsys.readouterr().err
