@@ -813,3 +813,35 @@ def test_node_on_a_real_stream_equals_replaying_the_file(tmp_path):
     got = np.array([[e["features"][f] for f in ("Af", "A", "f")] for e in events])
     rel = relative_error(got, offline.values, axis=(0, 2))     # per feature
     assert np.all(rel <= 1e-12), rel
+
+
+@pytest.mark.hardware
+def test_the_microphones_drops_are_said_as_they_happen_and_flag_their_windows(tmp_path):
+    """`supramodal run --json` on the unpaced file device (about 700x real time) with a driver buffer
+    of 20 ms: PortAudio's callback finds the buffer full and drops; the driver's 'dropped' events
+    reach the JSON output while the node runs, every frame it dropped is counted in the summary's
+    fates, and the windows its fills touch are flagged gap."""
+    _require_portaudio()
+    source = _source_signal(int(4 * RATE))
+    raw = tmp_path / "mic.raw"
+    source.astype("<i2").tofile(raw)
+    scene = tmp_path / "mic.toml"
+    scene.write_text('[driver]\ntype = "microphone"\ndtype = "int16"\nbuffer_seconds = 0.02\n'
+                     '[bank]\nkind = "cochlea"\n[features]\nnames = ["Af"]\n')
+    env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    env.update(_alsa_file_device(tmp_path, raw))
+    r = subprocess.run([sys.executable, "-m", "supramodal.node.cli", "run", str(scene), "--json", "--quiet",
+                        "--seconds", "3"], capture_output=True, text=True, env=env, timeout=300, cwd=ROOT)
+    assert r.returncode == 0, r.stderr
+    lines = [json.loads(line) for line in r.stdout.splitlines()]
+    summary = lines[-1]
+    said = [d for d in lines if d.get("event") == "dropped"]
+    windows = [d for d in lines if "window" in d]
+    assert said and all("buffer full" in d["message"] for d in said)
+    last_window = max(i for i, d in enumerate(lines) if "window" in d)
+    assert lines.index(said[0]) < last_window           # said while windows were still coming
+    fates = summary["frames"]
+    assert fates["dropped_by_driver"] > 0 and fates["dropped"] >= fates["dropped_by_driver"]
+    assert fates["delivered"] + fates["filled"] + fates["dropped"] == fates["stream"] == 3 * int(RATE)
+    assert summary["events"]["counts"]["dropped"] >= len(said)
+    assert any(d.get("gap") for d in windows)
