@@ -172,3 +172,20 @@ def test_early_fusion_needs_a_model_or_both_streams_trained_on_the_spot(tmp_path
     d["fusion"]["model"] = str(tmp_path / "fused.npz")
     with pytest.raises(SceneError, match="\\[fusion\\] model: sense 'mic': the model takes features \\['A', 'f'\\]"):
         build_node(scene_from_dict(d, "world.toml"), speed="max", sinks_override=[ListSink()])
+
+
+def test_fused_decisions_pool_over_windows_as_a_streams_do():
+    """[fusion.decision] pools the fused posteriors over the last 10 windows (a touch of 1 s): on
+    the two-sense world, where the last 10 windows were all on one texture, the pooled
+    early-fusion decision is right (windows straddling a change of texture pool both)."""
+    d = _two_sense_scene()
+    d["fusion"] = {"streams": ["whiskers", "mic"], "method": "early", "decision": {"scope": "last", "n": 10}}
+    sink = ListSink()
+    f = build_node(scene_from_dict(d, "world.toml"), speed="max", sinks_override=[sink]).run()["fusion"]
+    fused = [e for e in sink.windows if e.stream == "fused"]
+    assert all(e.pooled is not None and e.pooled["windows"] == min(e.window + 1, 10) for e in fused)
+    truth = [e.truth for e in fused]
+    settled = [e for e in fused if e.window >= 9 and len(set(truth[e.window - 9:e.window + 1])) == 1]
+    assert len(settled) >= 80
+    assert sum(e.pooled["label"] == e.truth for e in settled) / len(settled) >= 0.98
+    assert f["accumulated_accuracy"] is not None
