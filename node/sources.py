@@ -177,11 +177,15 @@ class Source:
                 if self.recorder is not None:
                     self.recorder.note(block.start + i, kind)
         if self.clock is not None and block.frames:
-            recorded = self.timebase == "recorded"
-            if recorded and block.recorded is None:
-                raise InputError(f"source {self.name!r}: a block without its recorded time; the recorded timebase "
-                                 "needs a replay with timing = 'recorded'")
-            stamp = block.recorded if recorded else block.arrival
+            if self.timebase == "recorded":
+                if block.recorded is None:
+                    raise InputError(f"source {self.name!r}: a block without its recorded time; the recorded "
+                                     "timebase needs a replay with timing = 'recorded'")
+                stamp = block.recorded
+            else:
+                # On common time, to the microsecond: the numbers a recording keeps, so that its
+                # replay feeds the clock model exactly what it was fed here.
+                stamp = round(block.arrival - self.epoch, 6)
             if block.restarts:
                 self.clock.reset()          # the board's count restarted: the old line is void
             if not stamp >= self._last_arrival:
@@ -189,15 +193,13 @@ class Source:
             else:
                 self._last_arrival = stamp
                 self.clock.update(end - 1, stamp)
-                offset, slope = self.clock.line()
-                self._line = (offset - (0.0 if recorded else self.epoch), slope)
+                self._line = self.clock.line()
         # The line as it stands after this block goes with it: a window's times are mapped by the
         # line of the block that completed it, whatever the processing thread's timing.
         for feed in self.feeds:
             feed.arrivals.append((end, block.arrival, self._line))
         if self.recorder is not None and block.frames:
-            stamp = block.arrival - self.epoch if self.timebase == "host" else self.time_of(end - 1)
-            self.recorder.arrival(end, stamp)
+            self.recorder.arrival(end, stamp if self.clock is not None else self.time_of(end - 1))
 
     def _queue_events(self, take) -> None:
         events, dropped = take()

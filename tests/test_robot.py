@@ -6,6 +6,7 @@ each on its own clock, fused; the board is unplugged for 1.5 s mid-stream."""
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 import time
@@ -67,12 +68,14 @@ max_wait = 0.5
 """
 
 
-@pytest.mark.hardware
-def test_the_robot_scene_runs_both_senses_fused_and_survives_the_board_unplugged(tmp_path, jack_server):
+def _run_robot(tmp_path, server, command: list[str], faults: FaultSpec | None = None, sink: str = ""):
+    """Models of the two-sense world (trained on other contacts than the one played), the board
+    playing the whisker side of PLAYED on a pty, the microphone its sound on the paced file device;
+    ``supramodal COMMAND robot.toml ...`` in its own process. Returns (stdout, stderr, returncode,
+    the board's ledger)."""
     _require_portaudio()
     surfaces = two_sense_set()
     senses = {s: OneSense(surfaces, s, seed=0) for s in ("whiskers", "microphone")}
-    # Models of the two-sense world, trained on other contacts than the one played.
     for name, sense, bank in (("whiskers", "whiskers", whisker_bank()), ("mic", "microphone", cochlea_bank())):
         train_on_texture_set(senses[sense], FeaturePipeline(bank, ("Af",))).save(tmp_path / f"{name}.npz")
     index = senses["whiskers"].names.index(PLAYED)
@@ -81,17 +84,14 @@ def test_the_robot_scene_runs_both_senses_fused_and_survives_the_board_unplugged
     raw = tmp_path / "mic.raw"
     sound.astype("<f4").tofile(raw)
     board = quantise(np.repeat(touch[:, None], 20, axis=1)) / 32768.0
-    # Unplugged 4 s after the board starts, for 1.5 s, once.
-    dev = MockWhiskerDevice(board, WHISKER_RATE, samples_per_frame=SPF, loop=True,
-                            faults=FaultSpec(unplug_every=4.0, unplug_for=1.5, unplug_limit=1))
+    dev = MockWhiskerDevice(board, WHISKER_RATE, samples_per_frame=SPF, loop=True, faults=faults or FaultSpec())
     scene = tmp_path / "robot.toml"
-    env = dict(_paced_file_device(tmp_path, raw, jack_server))
+    env = {**os.environ, **_paced_file_device(tmp_path, raw, server)}
     with dev:
-        scene.write_text(_scene(tmp_path, dev.port))
-        full_env = {**__import__("os").environ, **env}
-        proc = subprocess.Popen([sys.executable, "-m", "supramodal", "run", str(scene), "--json", "--quiet",
+        scene.write_text(_scene(tmp_path, dev.port) + sink)
+        proc = subprocess.Popen([sys.executable, "-m", "supramodal", command[0], str(scene), *command[1:], "--quiet",
                                  "--seconds", str(SECONDS)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                text=True, env=full_env, cwd=ROOT)
+                                text=True, env=env, cwd=ROOT)
         try:
             time.sleep(1.0)                 # the node has opened the port
             dev.start()
@@ -100,8 +100,15 @@ def test_the_robot_scene_runs_both_senses_fused_and_survives_the_board_unplugged
             if proc.poll() is None:
                 proc.kill()
                 proc.communicate()
-        ledger = dev.ledger
-    assert proc.returncode == 0, err
+        return out, err, proc.returncode, dev.ledger
+
+
+@pytest.mark.hardware
+def test_the_robot_scene_runs_both_senses_fused_and_survives_the_board_unplugged(tmp_path, jack_server):
+    # Unplugged 4 s after the board starts, for 1.5 s, once.
+    out, err, code, ledger = _run_robot(tmp_path, jack_server, ["run", "--json"],
+                                        FaultSpec(unplug_every=4.0, unplug_for=1.5, unplug_limit=1))
+    assert code == 0, err
     lines = [json.loads(line) for line in out.splitlines()]
     summary = lines[-1]
     events = [d for d in lines if "event" in d]
@@ -145,3 +152,26 @@ def test_the_robot_scene_runs_both_senses_fused_and_survives_the_board_unplugged
     clocks = summary["clocks"]
     assert clocks["whiskers"]["fitted"] and clocks["mic"]["fitted"]
     assert abs(clocks["mic"]["ppm"]) < 500 and abs(clocks["whiskers"]["ppm"]) < 500
+
+
+@pytest.mark.hardware
+def test_the_robot_recorded_live_replays_with_the_same_fused_decisions(tmp_path, jack_server, capsys):
+    """`supramodal record` of the robot scene, the real serial driver and PortAudio stream on their
+    own clocks: the replay scene it writes, run at max speed, pairs and fuses the same windows to
+    the same decisions as the live run did (its decisions were written by a sink as it ran)."""
+    from supramodal.node.cli import main
+
+    sink = '\n[[sink]]\ntype = "jsonl"\npath = "live.jsonl"\n'
+    out, err, code, _ = _run_robot(tmp_path, jack_server, ["record", "--out", str(tmp_path / "rec"), "--name", "r"],
+                                   sink=sink)
+    assert code == 0, err
+    assert "replay them in step: supramodal run" in err
+    live = [json.loads(x) for x in (tmp_path / "live.jsonl").read_text().splitlines()]
+    capsys.readouterr()
+    assert main(["run", str(tmp_path / "rec" / "r.toml"), "--json", "--quiet"]) == 0
+    again = [json.loads(x) for x in capsys.readouterr().out.splitlines()]
+    fused = lambda events: [(e["window"], tuple(e["senses"]), e["predicted"]) for e in events   # noqa: E731
+                            if e.get("stream") == "fused"]
+    assert len(fused(live)) >= 100 and fused(again) == fused(live)
+    times = lambda events: [(e["start"], e["end"]) for e in events if e.get("stream") == "fused"]  # noqa: E731
+    assert times(again) == times(live)           # the clocks were fed the very same stamps
