@@ -135,11 +135,12 @@ def twosense_session(scene: Scene, bank: Bank):
     unknown = [n for n in order if n not in train.names]
     if unknown:
         raise SceneError(f"{scene.source}: [driver] order: unknown texture(s) {unknown}; the set has {list(train.names)}")
-    _checked_length(scene, order, train.fs)
+    n = _checked_length(scene, order, train.fs)
     played = OneSense(surfaces, d["sense"], d["seconds"], d["set_seed"], take=d["take"])
     parts = [played.synthesize(train.names.index(name)) for name in order]
-    labels = [(k * d["seconds"], (k + 1) * d["seconds"], name) for k, name in enumerate(order)]  # stream time
-    return train, np.concatenate(parts)[:, None], Labels(labels, len(order) * d["seconds"] if d["loop"] else None)
+    step = n / train.fs                  # each texture's samples, in stream seconds
+    labels = [(k * step, (k + 1) * step, name) for k, name in enumerate(order)]
+    return train, np.concatenate(parts)[:, None], Labels(labels, len(order) * step if d["loop"] else None)
 
 
 def train_on_texture_set(ts, pipeline: FeaturePipeline, progress=None, held_out: list | None = None,
@@ -305,7 +306,8 @@ def build_node(scene: Scene, speed=None, sinks_override=None, progress=None, rec
     try:
         return Node(driver, pipeline, sinks, model=model, decision=scene.decision,
                     mapping=scene.driver.get("mapping", "auto"), labels=labels,
-                    buffer_seconds=scene.buffer["seconds"], overrun=_overrun(scene), recorder=recorder)
+                    buffer_seconds=scene.buffer["seconds"], overrun=_overrun(scene), recorder=recorder,
+                    **dict(zip(("timebase", "time_offset", "time_rate"), _timebase(scene, driver))))
     except ValueError as exc:
         # A refused scene leaves nothing behind: its sinks have written nothing, so no file exists.
         if sinks_override is None:

@@ -162,12 +162,12 @@ def _cmd_synth(args) -> int:
     try:
         for i, (tex, path) in enumerate(zip(ts.textures, paths)):
             x = ts.synthesize(i, duration=duration).astype(np.float32)
+            written.append(path)             # from here on, this file is ours to remove on failure
             wavfile.write(path, int(round(ts.fs)), x)
-            written.append(path)
             print(f"{path}  {len(x) / ts.fs:g} s at {ts.fs:g} Hz, peaks {list(tex.peaks)} Hz")
     except BaseException:
         # A failed (or interrupted) run leaves nothing: no part of a set, no folder it made.
-        for path in paths[:len(written) + 1]:
+        for path in written:
             path.unlink(missing_ok=True)
         if created:
             shutil.rmtree(out, ignore_errors=True)
@@ -287,6 +287,7 @@ def _cmd_record(args) -> int:
     import threading
     import time
 
+    from supramodal.errors import InputError
     from supramodal.node.build import build_node
     from supramodal.node.graph_recording import graph_recorders, write_replay_scene
     from supramodal.node.recorder import SessionRecorder
@@ -304,7 +305,10 @@ def _cmd_record(args) -> int:
         _stop_on_signals(node)
         summary = node.run(max_seconds=args.seconds)
         if summary.get("recorded"):
-            replay = write_replay_scene(scene, node, args.out, name, overwrite=args.force)
+            try:
+                replay = write_replay_scene(scene, node, args.out, name, overwrite=args.force)
+            except InputError as exc:
+                raise CliError(f"recorded {', '.join(summary['recorded'])}, but {exc}") from None
             wavs = ", ".join(p for p in summary["recorded"] if p.endswith(".wav"))
             print(f"recorded {summary['stream_seconds']:.2f} s to {wavs} (+ .json); replay them in step: "
                   f"supramodal run {replay}", file=sys.stderr)
@@ -439,6 +443,8 @@ def _train_fusion(args) -> int:
         if args.out is None:
             raise CliError("--fusion early needs --out, the model file to write")
         check_new_file(args.out, args.force, "the model file")
+    elif args.out is not None:
+        raise CliError("--fusion late learns one number, printed for [fusion] weight; it writes no file: leave out --out")
     result, info = train_fused(args.scene, args.fusion, epochs=args.epochs, seed=args.seed, progress=_progress(args))
     a, b = info["streams"]
     if args.fusion == "late":
@@ -447,7 +453,8 @@ def _train_fusion(args) -> int:
         return 0
     path = result.save(args.out)
     print(f"wrote {path}: early fusion of {a} and {b}, classes {info['classes']}, {info['pairs']} pairs of windows, "
-          f"{info['train_accuracy']:.3f} of them right; use it with [fusion] method = \"early\", model = \"{path}\"")
+          f"{info['train_accuracy']:.3f} of them right; use it with [fusion] method = \"early\", "
+          f"model = \"{path.resolve()}\" (a relative path is taken from the scene's folder)")
     return 0
 
 
@@ -505,7 +512,8 @@ def _evaluate_fusion(args) -> int:
     if args.model is not None or args.manifest is not None or args.cv or args.out is not None:
         raise CliError("with --scene, the scenes name the models: leave out the model file, --manifest, --cv "
                        "and --out (give --fused-model to score another early-fusion network)")
-    result = evaluate_fused(args.scene, args.fused_model, progress=_progress(args))
+    fused = None if args.fused_model is None else Path(args.fused_model).resolve()   # from here, not the scenes'
+    result = evaluate_fused(args.scene, fused, progress=_progress(args))
     print(json.dumps(result) if args.json else format_fused_evaluation(result))
     return 0
 

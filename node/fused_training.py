@@ -20,6 +20,7 @@ from supramodal.errors import InputError
 from supramodal.fused_model import EarlyFusionModel, Sense
 from supramodal.fusion import learn_late_weight
 from supramodal.mlp import DEFAULT_EPOCHS
+from supramodal.model import ModelError
 from supramodal.node.build import build_node
 from supramodal.node.events import FUSED_STREAM
 from supramodal.node.scene import SceneError, load_scene
@@ -70,12 +71,18 @@ def train_fused(paths, method: str = "early", epochs: int = DEFAULT_EPOCHS, seed
     for path in paths:
         graph, pairs = scene_pairs(path, progress)
         a, b = (next(s for s in graph.streams if s.name == n) for n in graph.fusion.inputs)
-        here = (Sense.of(a.name, a.pipeline), Sense.of(b.name, b.pipeline))
         if senses is None:
-            senses, classes = here, graph.fusion.classes
-        elif _describe(here) != _describe(senses) or sorted(graph.fusion.classes) != sorted(classes):
-            raise InputError(f"{path}: its streams or textures differ from the first scene's; train on recordings "
-                             "of one graph")
+            senses, classes = (Sense.of(a.name, a.pipeline), Sense.of(b.name, b.pipeline)), graph.fusion.classes
+        else:
+            try:
+                for sense, stream in zip(senses, (a, b)):
+                    sense.check_pipeline(stream.pipeline)
+            except ModelError as exc:
+                raise InputError(f"{path}: its streams differ from the first scene's ({exc}); train on recordings "
+                                 "of one graph") from None
+            if sorted(graph.fusion.classes) != sorted(classes):
+                raise InputError(f"{path}: its textures {list(graph.fusion.classes)} differ from the first scene's "
+                                 f"{list(classes)}; train on recordings of one graph")
         for ea, eb in pairs:
             va.append(np.stack([ea.features[f] for f in senses[0].features]))
             vb.append(np.stack([eb.features[f] for f in senses[1].features]))
@@ -97,10 +104,6 @@ def train_fused(paths, method: str = "early", epochs: int = DEFAULT_EPOCHS, seed
     weight = learn_late_weight(np.array(oa), np.array(ob), y)
     info["train_accuracy"] = None
     return weight, info
-
-
-def _describe(senses) -> list:
-    return [(s.bank.kind, s.bank.channels, s.bank.fs, s.features, s.window_samples) for s in senses]
 
 
 def _in_order(event, classes) -> np.ndarray:

@@ -117,6 +117,7 @@ class LateFusion:
         # alone since then), or None while present
         self._missing: dict[str, int | None] = {a: None, b: None}
         self._said_ended: set[str] = set()
+        self._after_end = {a: 0, b: 0}          # windows of a stream decided alone after the other's end
         self.dropouts = {a: 0, b: 0}
         self._correct = self._labelled = self._acc_correct = self._acc_labelled = 0
         self.latencies = LatencyHistogram()
@@ -182,7 +183,10 @@ class LateFusion:
             while waiting and (other in self._ended or now - waiting[0][1] > self.max_wait):
                 item = waiting.popleft()
                 if other in self._ended:
-                    if other not in self._said_ended and s not in self._ended:
+                    # Said at the second window decided alone after the other's end: two files
+                    # a few ms apart leave one lone window at their ends, which says nothing.
+                    self._after_end[s] += s not in self._ended
+                    if other not in self._said_ended and self._after_end[s] == 2:
                         self._said_ended.add(other)
                         self._say("sense_ended", f"fusion: '{other}' has ended; deciding on '{s}' alone")
                 else:

@@ -101,12 +101,12 @@ class Graph:
             rec = recorders.get(source.name)
             if rec is None:
                 continue
-            feed = source.add_feed("recorder")
+            feed = source.add_feed("recorder", track=False)
             source.recorder = rec
             stream = next((st for st in self.streams if st.source is source), None)
-            labels = stream.labels.ranges if stream is not None else []
-            rec.attach(source.rate, source.driver.channels, lambda source=source: source.ring.written, labels=labels,
-                       clock_rate=source.time_rate)
+            labels = stream.labels if stream is not None else Labels()
+            rec.attach(source.rate, source.driver.channels, lambda source=source: source.ring.written,
+                       labels=labels.ranges, clock_rate=source.time_rate, label_period=labels.period)
             self._recorders.append((rec, feed))
         # source threads -> event thread: (source name, events, dropped); None from each source at its end
         self._event_queue: queue.SimpleQueue = queue.SimpleQueue()
@@ -210,7 +210,7 @@ class Graph:
         try:
             stream.process(self._route)
         finally:
-            if self.fusion is not None:
+            if self.fusion is not None and stream.name in self.fusion.inputs:
                 self.fusion.end(stream.name)
 
     def _route(self, event) -> None:
@@ -257,7 +257,7 @@ class Graph:
 
         One stream: its counts at the top level (``windows``, ``stream_seconds``,
         ``window_accuracy``, ``frames``, ``latency_ms``, ``real_time_factor``, ``driver``,
-        ``ring``, ...). Several: ``windows`` (all streams'), ``stream_seconds`` (the longest) and
+        ``ring``, ...; a live source's clock under ``clock``). Several: ``windows`` (all streams'), ``stream_seconds`` (the longest) and
         per stream the same counts under ``streams``, the sources' clocks under ``clocks``, and
         the fusion block's counts under ``fusion``. Always: ``wall_seconds``, ``events`` (driver
         events per kind, ``source/kind`` with several sources), ``sinks`` (what each queued sink
@@ -272,7 +272,8 @@ class Graph:
         }
         per_stream = {s.name: s.summary() for s in self.streams}
         if len(self.streams) == 1 and self.fusion is None:
-            return {**next(iter(per_stream.values())), **common}
+            clock = self.sources[0].clock_summary()         # a live source's clock, under ``clock``
+            return {**next(iter(per_stream.values())), **({"clock": clock} if clock else {}), **common}
         clocks = {s.name: s.clock_summary() for s in self.sources if s.clock is not None}
         return {"windows": sum(s["windows"] for s in per_stream.values()),
                 "stream_seconds": max((s["stream_seconds"] for s in per_stream.values()), default=0.0),
@@ -304,15 +305,16 @@ class Node(Graph):
     overrun : {"drop-oldest", "drop-newest", "block"}
         "block" makes the driver thread wait for space: right for replay, where
         no sample need be lost; live drivers drop and count instead.
-    timebase : {"stream", "host"}
-        How window events are put on common time (see :mod:`supramodal.node.sources`).
+    timebase : {"stream", "host", "recorded"}
+        How window events are put on common time (see :mod:`supramodal.node.sources`), with
+        ``time_offset`` and ``time_rate`` as :class:`~supramodal.node.sources.Source` takes them.
     """
 
     def __init__(self, driver, pipeline: FeaturePipeline, sinks, model: TextureModel | None = None,
                  decision: dict | None = None, mapping="auto", labels: Labels | None = None,
                  buffer_seconds: float = 2.0, overrun: str = "drop-oldest", recorder=None,
-                 timebase: str = "stream") -> None:
-        source = Source(MAIN_STREAM, driver, buffer_seconds, overrun, timebase)
+                 timebase: str = "stream", time_offset: float = 0.0, time_rate: float | None = None) -> None:
+        source = Source(MAIN_STREAM, driver, buffer_seconds, overrun, timebase, time_offset, time_rate)
         stream = Stream(MAIN_STREAM, source, pipeline, model, decision, mapping, labels)
         super().__init__([source], [stream], sinks, recorder=recorder)
 

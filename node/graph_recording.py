@@ -7,7 +7,8 @@ early fusion: a model trained on the spot is kept, so the replay decides with th
 each source a replay of its session at its recorded timing (``timing = "recorded"``) and the
 fusion weight the recording used. ``supramodal run NAME.toml --speed max`` then puts the
 sources on common time as the live run did, drift and jitter included, and pairs and fuses the
-same windows.
+same windows (all of them when nothing was decided alone live: a replay is a file, whose fusion waits
+for both streams without a deadline).
 """
 
 from __future__ import annotations
@@ -16,28 +17,32 @@ import json
 import tomllib
 from pathlib import Path
 
+from supramodal.errors import InputError
 from supramodal.node.outputs import check_new_file
 from supramodal.node.recorder import SessionRecorder
 from supramodal.node.scene import Scene, scene_from_dict, scene_to_toml
 
 
-def recording_paths(folder, name: str, scene: Scene) -> dict[str, Path]:
-    """What recording ``scene`` as ``name`` writes into ``folder`` besides the sessions: each
-    stream's model and the replay scene, by stream name and ``"scene"``."""
+def recording_paths(folder, name: str, scene: Scene) -> dict:
+    """What recording ``scene`` as ``name`` writes into ``folder`` besides the sessions:
+    ``{"models": {stream: path}, "fused": path or None, "scene": path}``."""
     folder = Path(folder)
-    paths = {spec.name: folder / f"{name}.{spec.name}.npz" for spec in scene.streams
-             if spec.scene.model["train_on_start"] or spec.scene.model["path"]}
-    if scene.fusion is not None and scene.fusion["method"] == "early":
-        paths["fused"] = folder / f"{name}.fused.npz"
-    paths["scene"] = folder / f"{name}.toml"
-    return paths
+    early = scene.fusion is not None and scene.fusion["method"] == "early"
+    return {"models": {spec.name: folder / f"{name}.{spec.name}.npz" for spec in scene.streams
+                       if spec.scene.model["train_on_start"] or spec.scene.model["path"]},
+            "fused": folder / f"{name}.fused.npz" if early else None,
+            "scene": folder / f"{name}.toml"}
+
+
+def _files(paths: dict) -> list[Path]:
+    return [*paths["models"].values(), *([paths["fused"]] if paths["fused"] else []), paths["scene"]]
 
 
 def graph_recorders(scene: Scene, folder, name: str, overwrite: bool = False) -> dict[str, SessionRecorder]:
     """One recorder per source of a graph scene, keeping the blocks' arrivals; every file the
     recording would write is checked first (refused if it exists, unless ``overwrite``)."""
     if Path(folder).is_dir():                       # else made at the first frames: nothing to replace
-        for path in recording_paths(folder, name, scene).values():
+        for path in _files(recording_paths(folder, name, scene)):
             check_new_file(path, overwrite, "the recording's file")
     return {src["name"]: SessionRecorder(folder, f"{name}.{src['name']}",
                                          json.dumps({"scene": scene.source, "source": src}),
@@ -50,13 +55,20 @@ def write_replay_scene(scene: Scene, graph, folder, name: str, overwrite: bool =
     models and write ``NAME.toml``, the scene that replays the recording; returns its path."""
     folder = Path(folder)
     paths = recording_paths(folder, name, scene)
+    missing = [src["name"] for src in scene.sources if not (folder / f"{name}.{src['name']}.wav").exists()]
+    if missing:
+        raise InputError(f"no session was recorded for source(s) {missing} (no frame came): the recording "
+                         f"in {folder} cannot be replayed in step, so no replay scene is written")
     d = tomllib.loads(scene_to_toml(scene))
+    # Each source a replay of its session at its recorded times; its channel mapping as recorded;
+    # its ring waits rather than drops (a file need lose nothing).
     d["source"] = [{"name": src["name"], "type": "replay", "path": f"{name}.{src['name']}.wav",
-                    "timing": "recorded", "speed": "max", "buffer": src["buffer"]} for src in scene.sources]
+                    "timing": "recorded", "speed": "max", "mapping": src.get("mapping", "auto"),
+                    "buffer": {**src["buffer"], "overrun": "auto"}} for src in scene.sources]
     for spec, stream in zip(d["stream"], graph.streams):
-        if stream.model is not None and spec["name"] in paths:
-            stream.model.save(paths[spec["name"]])
-            spec["model"] = {"path": paths[spec["name"]].name}
+        if stream.model is not None and spec["name"] in paths["models"]:
+            stream.model.save(paths["models"][spec["name"]])
+            spec["model"] = {"path": paths["models"][spec["name"]].name}
     if graph.fusion is not None and graph.fusion.method == "early":
         graph.fusion.model.save(paths["fused"])           # a network trained on the spot, as trained
         d["fusion"]["model"] = paths["fused"].name

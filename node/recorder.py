@@ -17,6 +17,7 @@ current stream position (or ends the current one), from any thread.
 from __future__ import annotations
 
 import array
+import math
 import os
 import threading
 from pathlib import Path
@@ -73,6 +74,7 @@ class SessionRecorder:
         self._raw_path = self.folder / f".{name}.raw"
         self._raw = None
         self._driver_labels: list[tuple[float, float, str]] = []
+        self._label_period: float | None = None
         self._frames = 0
         self._filled: list[tuple[int, int]] = []
         self._lock = threading.Lock()
@@ -86,13 +88,16 @@ class SessionRecorder:
         #: Arrivals left out to keep the sidecar loadable (see ARRIVALS_BUDGET).
         self.arrivals_thinned = 0
 
-    def attach(self, rate: float, channels: int, position, labels=(), clock_rate: float | None = None) -> None:
+    def attach(self, rate: float, channels: int, position, labels=(), clock_rate: float | None = None,
+               label_period: float | None = None) -> None:
         """Called by the node: the stream's rate, channels, a callable giving the current frame,
-        the driver's own labels ``(start_s, end_s, name)``, kept in the session, and the nominal
-        rate of the source's clock model (samples per second of common time; default ``rate``)."""
+        the driver's own labels ``(start_s, end_s, name)``, kept in the session (repeating every
+        ``label_period`` seconds for a looped source), and the nominal rate of the source's clock
+        model (samples per second of common time; default ``rate``)."""
         self.rate, self.channels, self._position = float(rate), int(channels), position
         self.clock_rate = self.rate if clock_rate is None else float(clock_rate)
         self._driver_labels = [(float(a), float(b), str(n)) for a, b, n in labels]
+        self._label_period = label_period
 
     def mark(self, label: str | None) -> None:
         """Start a label at the current stream position; ``None`` ends the current one. Thread-safe."""
@@ -149,9 +154,13 @@ class SessionRecorder:
 
     def _labels(self) -> list[tuple[float, float, str]]:
         if self._driver_labels:
-            # The driver's truth, clipped to what was recorded (a recording stopped early).
+            # The driver's truth on every pass, clipped to what was recorded (a recording stopped early).
             end = self._frames / self.rate
-            return [(a, min(b, end), n) for a, b, n in self._driver_labels if a < end]
+            p = self._label_period
+            passes = 1 if p is None else math.ceil(end / p)
+            shifted = [(a + k * p if p else a, b + k * p if p else b, n)
+                       for k in range(passes) for a, b, n in self._driver_labels]
+            return [(a, min(b, end), n) for a, b, n in shifted if a < end]
         with self._lock:
             marks = sorted(self._marks, key=lambda m: m[0]) + [(self._frames, None)]
         out = []

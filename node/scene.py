@@ -440,6 +440,9 @@ def _graph_scene(d: dict, source: str, base_dir: Path) -> Scene:
             raise SceneError(f"{source}: [fusion] must be a table")
         fusion = _fill(f"{source}: [fusion]", {k: v for k, v in given.items() if k != "decision"}, FUSION_KEYS)
         fusion["decision"] = _fill(f"{source}: [fusion.decision]", given.get("decision", {}), SECTIONS["decision"])
+        if fusion["method"] == "late" and fusion["model"] is not None:
+            raise SceneError(f"{source}: [fusion] model: a model file is for method = \"early\"; late fusion has a "
+                             "weight (leave model out, or set method = \"early\")")
         for n in fusion["streams"]:
             spec = next((s for s in streams if s.name == n), None)
             if spec is None:

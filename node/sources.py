@@ -57,13 +57,16 @@ def _head(block: Block, n: int) -> Block:
 
 
 class Feed:
-    """What one reader of a source gets: the ring reader, and in stream order the arrival of
-    every block (``(end index, arrival)``) and the driver's marks (``(index, "restart" |
-    "overrun")``). Filled by the source thread, consumed by one processing thread (deques:
-    appends and pops from opposite ends are thread-safe)."""
+    """What one reader of a source gets: the ring reader, and in stream order each block's
+    ``(end index, host arrival, common-time line after it)`` and the driver's marks
+    (``(index, "restart" | "overrun")``). Filled by the source thread, consumed by one processing
+    thread (deques: appends and pops from opposite ends are thread-safe). A feed that does not
+    ``track`` (the recorder's: it takes marks and times from the source itself) gets neither,
+    so nothing piles up unread."""
 
-    def __init__(self, reader) -> None:
+    def __init__(self, reader, track: bool = True) -> None:
         self.reader = reader
+        self.track = track
         #: (end frame, host arrival, common-time line (offset, slope)) of each block, in order
         self.arrivals: collections.deque[tuple[int, float, tuple[float, float]]] = collections.deque()
         self.marks: collections.deque[tuple[int, str]] = collections.deque()
@@ -124,9 +127,10 @@ class Source:
         #: source thread -> the graph's event thread: (source name, events, dropped); None ends.
         self.event_queue: queue.SimpleQueue | None = None
 
-    def add_feed(self, name: str) -> Feed:
-        """A new reader of this source's ring (a stream, or the recorder)."""
-        feed = Feed(self.ring.add_reader(name))
+    def add_feed(self, name: str, track: bool = True) -> Feed:
+        """A new reader of this source's ring (a stream; or the recorder, which does not
+        ``track`` arrivals and marks, see :class:`Feed`)."""
+        feed = Feed(self.ring.add_reader(name), track)
         self.feeds.append(feed)
         return feed
 
@@ -173,9 +177,11 @@ class Source:
         for kind, offsets in (("restart", block.restarts), ("overrun", block.overruns)):
             for i in offsets:
                 for feed in self.feeds:
-                    feed.marks.append((block.start + i, kind))
+                    if feed.track:
+                        feed.marks.append((block.start + i, kind))
                 if self.recorder is not None:
                     self.recorder.note(block.start + i, kind)
+        stamp = None                    # the time the clock model took for this block, if it took one
         if self.clock is not None and block.frames:
             if self.timebase == "recorded":
                 if block.recorded is None:
@@ -190,6 +196,7 @@ class Source:
                 self.clock.reset()          # the board's count restarted: the old line is void
             if not stamp >= self._last_arrival:
                 self.clock_skipped += 1     # a stamp out of order (a driver's fill): not a measurement
+                stamp = None
             else:
                 self._last_arrival = stamp
                 self.clock.update(end - 1, stamp)
@@ -197,9 +204,15 @@ class Source:
         # The line as it stands after this block goes with it: a window's times are mapped by the
         # line of the block that completed it, whatever the processing thread's timing.
         for feed in self.feeds:
-            feed.arrivals.append((end, block.arrival, self._line))
+            if feed.track:
+                feed.arrivals.append((end, block.arrival, self._line))
         if self.recorder is not None and block.frames:
-            self.recorder.arrival(end, stamp if self.clock is not None else self.time_of(end - 1))
+            # What the clock model took (a skipped stamp is left out, as the clock left it out;
+            # its block then replays as part of the next), or a file's own time of the block.
+            if self.clock is None:
+                self.recorder.arrival(end, self.time_of(end - 1))
+            elif stamp is not None:
+                self.recorder.arrival(end, stamp)
 
     def _queue_events(self, take) -> None:
         events, dropped = take()

@@ -57,7 +57,7 @@ from supramodal.errors import InputError
 from supramodal.jsondata import read_json_file
 
 __all__ = ["FORMAT", "VERSION", "MAX_SIDECAR_BYTES", "MAX_SIDECAR_DEPTH", "Label", "Session", "session_paths", "load_session", "save_session",
-           "validate_sidecar", "validate_arrivals", "mask_to_ranges"]
+           "validate_sidecar", "validate_arrivals", "sidecar_text", "mask_to_ranges"]
 
 #: Value of the sidecar's ``"format"`` key.
 FORMAT = "supramodal-session"
@@ -317,16 +317,18 @@ def validate_arrivals(raw: Any, frames: int, where: str = "sidecar") -> tuple[np
     for i, v in enumerate(f):
         if not _is_int(v):
             raise bad(f"arrivals.frames[{i}]", f"must be an integer, got {_type_name(v)} {v!r}", "write frame counts")
+        if not 0 < v <= frames:
+            raise bad(f"arrivals.frames[{i}]", f"{v} is outside (0, {frames}]", "block ends must lie within the recording")
     for i, v in enumerate(t):
         if not _is_number(v):
             raise bad(f"arrivals.seconds[{i}]", f"must be a finite number, got {_type_name(v)} {v!r}",
                       "write seconds of the recording node's common time")
     fa, ta = np.array(f, dtype=np.int64), np.array(t, dtype=np.float64)
     step = np.flatnonzero(np.diff(fa) <= 0)
-    if fa[0] <= 0 or fa[-1] > frames or step.size:
-        i = int(step[0]) + 1 if step.size else (0 if fa[0] <= 0 else len(fa) - 1)
-        raise bad(f"arrivals.frames[{i}]", f"{int(fa[i])} is not after the block before it, or outside (0, {frames}]",
-                  "block ends must ascend within the recording")
+    if step.size:
+        i = int(step[0]) + 1
+        raise bad(f"arrivals.frames[{i}]", f"{int(fa[i])} is not after the block before it ({int(fa[i - 1])})",
+                  "block ends must ascend")
     back = np.flatnonzero(np.diff(ta) < 0)
     if back.size:
         i = int(back[0]) + 1
@@ -468,6 +470,17 @@ def _label_dict(item) -> dict:
     return {"start": s, "end": e, "label": name}
 
 
+def sidecar_text(meta: dict) -> str:
+    """The sidecar as written: indented JSON, with the block ``arrivals`` on one compact line
+    each (one number per line would double their size)."""
+    head = {k: v for k, v in meta.items() if k != "arrivals"}
+    text = json.dumps(head, indent=1, allow_nan=False)
+    if "arrivals" in meta:
+        compact = json.dumps(meta["arrivals"], separators=(",", ":"), allow_nan=False)
+        text = text[:-2] + f',\n "arrivals": {compact}\n}}'
+    return text + "\n"
+
+
 def save_session(path: str | os.PathLike, data, rate: int, source: str,
                  labels: Iterable[Label | Mapping | tuple] = (), filled=None,
                  dtype: str = "float32", marks: Iterable[tuple[int, str]] = (),
@@ -548,14 +561,18 @@ def save_session(path: str | os.PathLike, data, rate: int, source: str,
         meta["arrivals"] = {"frames": [int(v) for v in frames_at],
                             "seconds": [round(float(v), 6) for v in seconds_at], "rate": float(clock_rate)}
         validate_arrivals(meta["arrivals"], int(x.shape[0]), str(js))
+    text = sidecar_text(meta)
+    if len(text.encode("utf-8")) > MAX_SIDECAR_BYTES:
+        raise SessionError(f"{js}: the sidecar would take {len(text.encode('utf-8'))} bytes, more than the "
+                           f"{MAX_SIDECAR_BYTES} a session's sidecar may have (MAX_SIDECAR_BYTES): it could not be "
+                           "loaded; record shorter sessions")
 
     js.unlink(missing_ok=True)
     write_wav(wav, x, rate, dtype=dtype)
     fd, tmp = tempfile.mkstemp(prefix=f".{js.name}.", suffix=".tmp", dir=js.parent)
     try:
         with os.fdopen(fd, "w", encoding="utf-8") as f:
-            json.dump(meta, f, indent=1, allow_nan=False)
-            f.write("\n")
+            f.write(text)
         os.chmod(tmp, 0o644)
         os.replace(tmp, js)
     except BaseException:

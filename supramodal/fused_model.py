@@ -57,7 +57,8 @@ class Sense:
                              pipeline.bank, pipeline.features, pipeline.window_samples, pipeline.peaks.mode,
                              pipeline.peaks.threshold)
         except ModelError as exc:
-            raise ModelError(f"sense {self.name!r}: {exc}") from None
+            raise ModelError(f"sense {self.name!r}: {exc} (the model's senses feed [fusion] streams in their "
+                             "order: are the two streams given the other way round?)") from None
 
 
 @dataclass
@@ -139,7 +140,7 @@ class EarlyFusionModel:
             raise bad(f"not a {EARLY_FORMAT} file (format is {found!r})"
                       + ("; it is a one-sense model: give it to a [[stream]], not to [fusion]"
                          if found == "supramodal-model" else ""))
-        if header.get("version") != EARLY_VERSION:
+        if type(header.get("version")) is not int or header["version"] != EARLY_VERSION:   # true == 1 in Python
             raise bad(f"format version {header.get('version')!r} is not supported (this program reads version "
                       f"{EARLY_VERSION}); retrain the model with this version")
         unknown = set(header) - {"format", "version", "senses", "classes", "layers", "training"}

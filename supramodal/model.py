@@ -227,7 +227,7 @@ class TextureModel:
 
         if not isinstance(header, dict) or header.get("format") != MODEL_FORMAT:
             raise bad(f"not a {MODEL_FORMAT} file (format is {header.get('format') if isinstance(header, dict) else None!r})")
-        if header.get("version") != MODEL_VERSION:
+        if type(header.get("version")) is not int or header["version"] != MODEL_VERSION:   # true == 1 in Python
             raise bad(f"model format version {header.get('version')!r} is not supported (this program reads "
                       f"version {MODEL_VERSION}); retrain the model with this version")
         known = {"format", "version", *SENSE_KEYS, "classes", "layers", "training"}

@@ -73,6 +73,7 @@ def _tamper(tmp_path, change):
 @pytest.mark.parametrize("change, needle", [
     (lambda h: h.update(format="supramodal-model"), "it is a one-sense model: give it to a \\[\\[stream\\]\\]"),
     (lambda h: h.update(version=2), "format version 2 is not supported"),
+    (lambda h: h.update(version=True), "format version True is not supported"),
     (lambda h: h["senses"].pop(), "'senses' must be a list of the two senses"),
     (lambda h: h["senses"][1].update(name="whiskers"), "both named 'whiskers'"),
     (lambda h: h["senses"][1].update(features=["Af"]), "'layers' is .* 20 \\+ 50 inputs"),
@@ -189,3 +190,21 @@ def test_fused_decisions_pool_over_windows_as_a_streams_do():
     assert len(settled) >= 80
     assert sum(e.pooled["label"] == e.truth for e in settled) / len(settled) >= 0.98
     assert f["accumulated_accuracy"] is not None
+
+
+def test_a_model_file_for_late_fusion_is_refused_in_the_scene(tmp_path):
+    d = _two_sense_scene()
+    d["fusion"]["model"] = "fused.npz"
+    with pytest.raises(SceneError, match='\\[fusion\\] model: a model file is for method = "early"'):
+        scene_from_dict(d, "world.toml")
+
+
+def test_a_stream_outside_the_fusion_does_not_end_it():
+    """A third stream on the whisker source (features only) ends with it; the fusion goes on
+    until both of its own streams have ended, and fuses every pair."""
+    d = _two_sense_scene(seconds=1.0)
+    d["stream"].append({"name": "touch", "source": "whiskers", "bank": {"kind": "whisker"},
+                        "features": {"names": ["A"]}})
+    summary = build_node(scene_from_dict(d, "world.toml"), speed="max", sinks_override=[ListSink()]).run()
+    f = summary["fusion"]
+    assert summary["streams"]["touch"]["windows"] == 80 and f["windows"] == f["paired"] == 80

@@ -453,3 +453,17 @@ def test_a_sense_that_drops_out_leaves_the_other_deciding_alone_and_fusion_resum
     last_alone = max(e.window for e in alone)
     assert all(e.senses == ("whiskers", "mic") for e in fused if e.window > last_alone)
     assert sum(e.window > last_alone for e in fused) >= 20      # paired again to the end
+
+
+
+def test_a_one_source_live_like_scene_is_put_on_host_time_and_reports_its_clock():
+    """A one-source scene whose source is paced like a device (two-sense, speed 8, 100 ppm): its
+    windows are on host time by its clock model, and the summary says the clock; a file at max
+    keeps its own time and has none."""
+    driver = {"type": "twosense", "sense": "whiskers", "seconds": 1.0, "speed": 8.0, "clock_ppm": 100.0}
+    node = build_node(scene_from_dict({"driver": driver, "bank": {"kind": "whisker"}}), sinks_override=[ListSink()])
+    assert node.sources[0].timebase == "host"
+    assert set(node.run()["clock"]) >= {"ppm", "jitter_ms", "fitted"}
+    files = build_node(scene_from_dict({"driver": {**driver, "speed": "max"}, "bank": {"kind": "whisker"}}),
+                       sinks_override=[ListSink()])
+    assert files.sources[0].timebase == "stream" and "clock" not in files.run()

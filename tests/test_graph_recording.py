@@ -37,9 +37,10 @@ def test_arrivals_round_trip_through_a_session_to_the_microsecond(tmp_path):
     ({"frames": [50, 100], "seconds": [0.0, 0.1]}, "exactly the keys 'frames', 'seconds' and 'rate'"),
     ({"frames": [50, 100], "seconds": [0.0], "rate": 5000}, "one length >= 1"),
     ({"frames": [], "seconds": [], "rate": 5000}, "one length >= 1"),
-    ({"frames": [50, 50], "seconds": [0.0, 0.1], "rate": 5000}, r"arrivals.frames\[1\]: 50 is not after"),
-    ({"frames": [0, 50], "seconds": [0.0, 0.1], "rate": 5000}, r"arrivals.frames\[0\]"),
-    ({"frames": [50, 300], "seconds": [0.0, 0.1], "rate": 5000}, r"arrivals.frames\[1\]: 300 .* outside \(0, 200\]"),
+    ({"frames": [50, 50], "seconds": [0.0, 0.1], "rate": 5000}, r"arrivals.frames\[1\]: 50 is not after .* \(50\)"),
+    ({"frames": [0, 50], "seconds": [0.0, 0.1], "rate": 5000}, r"arrivals.frames\[0\]: 0 is outside \(0, 200\]"),
+    ({"frames": [50, 300], "seconds": [0.0, 0.1], "rate": 5000}, r"arrivals.frames\[1\]: 300 is outside \(0, 200\]"),
+    ({"frames": [50, 10**30], "seconds": [0.0, 0.1], "rate": 5000}, r"arrivals.frames\[1\]: 1000000000000000000000000000000 is outside"),
     ({"frames": [50, 100], "seconds": [0.1, 0.05], "rate": 5000}, r"arrivals.seconds\[1\]: 0.05 comes before"),
     ({"frames": [50, 100.5], "seconds": [0.0, 0.1], "rate": 5000}, r"arrivals.frames\[1\]: must be an integer"),
     ({"frames": [50, 100], "seconds": [0.0, "x"], "rate": 5000}, r"arrivals.seconds\[1\]: must be a finite number"),
@@ -117,7 +118,12 @@ def test_a_two_sense_session_recorded_live_replays_with_the_same_fused_decisions
     graph = build_node(scene, sinks_override=[live], recorder=graph_recorders(scene, tmp_path, "s"))
     summary = graph.run()
     assert summary["clocks"]["whiskers"]["fitted"] and summary["clocks"]["mic"]["fitted"]
+    # the recorders' feeds keep nothing unread (they take times from the sources themselves)
+    recorder_feeds = [f for src in graph.sources for f in src.feeds if not f.track]
+    assert len(recorder_feeds) == 2 and not any(f.arrivals or f.marks for f in recorder_feeds)
     replay_scene = write_replay_scene(scene, graph, tmp_path, "s")
+    replay = load_scene(replay_scene)
+    assert [(s["mapping"], s["buffer"]["overrun"]) for s in replay.sources] == [("auto", "auto")] * 2
     assert {p.name for p in tmp_path.iterdir()} == {"s.toml", "s.whiskers.wav", "s.whiskers.json", "s.mic.wav",
                                                    "s.mic.json", "s.whiskers.npz", "s.mic.npz"}
     assert load_session(tmp_path / "s.mic").arrivals[2] == 44100 * 8.0      # the clock as it was set up
@@ -188,7 +194,7 @@ def _world_toml(take: int, seconds: float = 1.0) -> str:
     return src + '[fusion]\nstreams = ["whiskers", "mic"]\nweight = "learn"\n'
 
 
-def test_a_fusion_trained_on_recorded_sessions_scores_on_another_recording(tmp_path, capsys):
+def test_a_fusion_trained_on_recorded_sessions_scores_on_another_recording(tmp_path, capsys, monkeypatch):
     """Three recordings of the two-sense world (other contacts each: take 1, 2, 3) train the
     supramodal network and a late weight with `train --fusion --scene`; `evaluate --scene` on a
     fourth scores each stream and the fusion per window and per contact: the network decides
@@ -204,7 +210,8 @@ def test_a_fusion_trained_on_recorded_sessions_scores_on_another_recording(tmp_p
     assert main(["train", "--fusion", "late", *scenes, "--quiet"]) == 0
     assert "set [fusion] weight = " in capsys.readouterr().out
     held = str(tmp_path / "rec" / "t4.toml")
-    assert main(["evaluate", "--scene", held, "--fused-model", str(tmp_path / "early.npz"), "--json", "--quiet"]) == 0
+    monkeypatch.chdir(tmp_path)                       # --fused-model is taken from here, not the scene's folder
+    assert main(["evaluate", "--scene", held, "--fused-model", "early.npz", "--json", "--quiet"]) == 0
     r = json.loads(capsys.readouterr().out)
     assert r["fused"]["windows"] == r["whiskers"]["windows"] == 80 and r["fused"]["contacts"] == 8
     best = max(r["whiskers"]["window_accuracy"], r["mic"]["window_accuracy"])
@@ -217,6 +224,7 @@ def test_a_fusion_trained_on_recorded_sessions_scores_on_another_recording(tmp_p
 
 @pytest.mark.parametrize("argv, needle", [
     (["train", "--fusion", "early", "--scene", "x.toml"], "--fusion early needs --out"),
+    (["train", "--fusion", "late", "--scene", "x.toml", "--out", "w.npz"], "it writes no file: leave out --out"),
     (["train", "--scene", "x.toml", "--out", "m.npz"], "trained with --fusion early|late and one --scene"),
     (["train", "--fusion", "late", "--scene", "x.toml", "--manifest", "m.csv"], "--manifest and --cv train one sense"),
     (["train", "--out", "m.npz"], "train needs --bank, --manifest and --out"),
@@ -233,3 +241,48 @@ def test_a_one_source_scene_cannot_train_a_fusion(tmp_path, capsys):
     (tmp_path / "one.toml").write_text('[driver]\ntype = "synth"\nseconds = 1.0\n')
     assert main(["train", "--fusion", "late", "--scene", str(tmp_path / "one.toml"), "--quiet"]) == 2
     assert "a scene with a [fusion] block of two streams is needed" in capsys.readouterr().err
+
+
+# -- what a recording keeps, checked piece by piece ----------------------------------------------------
+
+def test_a_looped_source_is_recorded_with_its_labels_on_every_pass(tmp_path):
+    d = _two_sense_scene(seconds=0.25)                    # 2 s a pass
+    for src in d["source"]:
+        src["loop"] = True
+    scene = scene_from_dict(d, str(tmp_path / "w.toml"), tmp_path)
+    graph = build_node(scene, speed="max", sinks_override=[], recorder=graph_recorders(scene, tmp_path, "s"))
+    graph.run(5.0)
+    labels = load_session(tmp_path / "s.whiskers").labels
+    assert len(labels) == 20 and labels[-1].end == pytest.approx(5.0)       # 2.5 passes of 8 textures
+    assert [lab.label for lab in labels[8:16]] == [lab.label for lab in labels[:8]]
+
+
+def test_a_stamp_the_clock_skips_is_left_out_of_the_recording_too(tmp_path):
+    """A block stamped before the one before it is no measurement: the clock model leaves it out,
+    and so does the recording (else its session would not save); it replays with the next one."""
+    from supramodal.drivers.base import Block
+    from supramodal.node.recorder import SessionRecorder
+    from supramodal.node.sources import Source
+
+    source = Source("s", ReplayDriver((np.zeros((100, 1)), 100.0), on_notice=None), timebase="host")
+    rec = SessionRecorder(tmp_path, "s", "test", keep_arrivals=True)
+    rec.attach(100.0, 1, lambda: 0)
+    source.recorder = rec
+    source.epoch = 1000.0
+    for start, arrival in ((0, 1000.10), (10, 1000.20), (20, 1000.15), (30, 1000.40)):
+        source._note(Block(np.zeros((10, 1)), start, arrival))
+    assert source.clock_skipped == 1
+    assert list(rec._arrival_frames) == [10, 20, 40] and list(rec._arrival_seconds) == [0.1, 0.2, 0.4]
+
+
+def test_a_sidecar_keeps_block_times_on_one_line_and_refuses_to_outgrow_the_reader(tmp_path, monkeypatch):
+    import supramodal.replay.session as session
+
+    save_session(tmp_path / "s", np.zeros((200, 1)), 5000, "t", arrivals=(np.arange(1, 201), np.arange(200) * 1e-3, 5e3))
+    lines = (tmp_path / "s.json").read_text().splitlines()
+    assert sum('"arrivals"' in line for line in lines) == 1 and len(lines) < 20
+    monkeypatch.setattr(session, "MAX_SIDECAR_BYTES", 2000)
+    with pytest.raises(SessionError, match="the sidecar would take .* more than the 2000"):
+        save_session(tmp_path / "t", np.zeros((200, 1)), 5000, "t",
+                     arrivals=(np.arange(1, 201), np.arange(200) * 1e-3, 5e3))
+    assert not (tmp_path / "t.wav").exists()                 # refused before anything is written
