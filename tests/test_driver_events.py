@@ -9,6 +9,7 @@ moment a sink received the event; waits are bounded and generous, assertions are
 from __future__ import annotations
 
 import json
+import re
 import threading
 import time
 
@@ -276,7 +277,9 @@ def test_the_command_line_says_what_the_board_does_as_it_happens(tmp_path, json_
         assert any(d["count"] > 1 for d in mismatch)     # repeats folded into the next one shown
         assert sum(d["count"] for d in mismatch) <= ledger.sent
     else:
-        assert "frame 0 has 19 channels but the driver is configured for 20" in err
+        # the first frame the node saw (frame 0, or a later one when the node opened the port after
+        # the board had started: the board drops frames while nobody reads)
+        assert re.search(r"frame \d+ has 19 channels but the driver is configured for 20", err), err
         assert "more since)" in err
         assert err.count("supramodal: lost ") == err.count("supramodal: reconnected to ") == 1
 
