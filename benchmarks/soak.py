@@ -237,8 +237,9 @@ def _size_kib(container) -> float:
                                            if not isinstance(v, str))) / 1024
 
 
-def _slope(samples, skip: float = 0.25) -> float | None:
-    """Least-squares RSS slope, KiB per minute, after the first ``skip`` of the run."""
+def rss_slope(samples, skip: float = 0.25) -> float | None:
+    """Least-squares RSS slope, KiB per minute, after the first ``skip`` of the run; ``samples``
+    are ``(seconds, RSS KiB, ...)``."""
     if len(samples) < 4:
         return None
     t = np.array([s[0] for s in samples])
@@ -302,7 +303,7 @@ def _compare(led, driver: CheckedDriver, sink: CountingSink, summary: dict, samp
         "rows": rows,
         "exact": all(r["ok"] for r in rows),
         "rss_kib": {"start": rss[0] if rss else None, "max": max(rss) if rss else None,
-                    "end": rss[-1] if rss else None, "slope_kib_per_min": _slope(samples)},
+                    "end": rss[-1] if rss else None, "slope_kib_per_min": rss_slope(samples)},
         "uptime_s": uptime,
         "stream_s": st["frames"] / RATE,
         "windows": sink.windows,

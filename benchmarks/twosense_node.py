@@ -44,7 +44,7 @@ from pathlib import Path
 
 import numpy as np
 
-from supramodal.benchmarks.soak import rss_kib
+from supramodal.benchmarks.soak import rss_kib, rss_slope
 from supramodal.node.build import build_node
 from supramodal.node.scene import scene_from_dict
 from supramodal.node.sinks import QueuedSink, Sink
@@ -150,18 +150,9 @@ def run_phase(name: str, streams: tuple[str, ...], seconds: float, sample_every:
             "latency_ms": {s: per[s]["latency_ms"] for s in streams},
             "accuracy": {s: per[s]["window_accuracy"] for s in streams},
             "windows": dict(sink.windows), "fusion": summary.get("fusion"), "clocks": clocks, "end": end,
-            "rss_slope_kib_per_min": _slope([(r["t"], r["rss_kib"]) for r in samples]),
+            "rss_slope_kib_per_min": rss_slope([(r["t"], r["rss_kib"]) for r in samples], skip=0.5),
             "rss_kib": [samples[0]["rss_kib"], max(r["rss_kib"] for r in samples), samples[-1]["rss_kib"]]
             if samples else None, "samples": samples}
-
-
-def _slope(points, skip: float = 0.5) -> float | None:
-    """Least-squares slope of ``(seconds, KiB)`` points over the run's last ``1 - skip``, KiB/min."""
-    if len(points) < 4:
-        return None
-    t, r = np.array(points, dtype=float).T
-    keep = t >= t[0] + skip * (t[-1] - t[0])
-    return float(np.polyfit(t[keep] / 60.0, r[keep], 1)[0]) if keep.sum() >= 3 else None
 
 
 def run(minutes: float, single_minutes: float, sample_every: float, progress=None) -> dict:

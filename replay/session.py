@@ -212,6 +212,13 @@ def _type_name(v) -> str:
             int: "integer", float: "number"}.get(type(v), type(v).__name__)
 
 
+def _complaint(where: str):
+    """``bad(key, problem, fix)``: the SessionError that names the file, the key, the problem and the fix."""
+    def bad(key, problem, fix):
+        return SessionError(f"{where}: {key}: {problem}; {fix}")
+    return bad
+
+
 def validate_sidecar(meta: Any, *, rate: int, channels: int, frames: int,
                      where: str = "sidecar") -> tuple[str, tuple[Label, ...], tuple[tuple[int, int], ...],
                                                       tuple[tuple[int, str], ...]]:
@@ -242,8 +249,7 @@ def validate_sidecar(meta: Any, *, rate: int, channels: int, frames: int,
     SessionError
         Naming the key, the problem and the fix.
     """
-    def bad(key, problem, fix):
-        return SessionError(f"{where}: {key}: {problem}; {fix}")
+    bad = _complaint(where)
 
     if not isinstance(meta, dict):
         raise SessionError(f"{where}: the sidecar must be a JSON object, got {_type_name(meta)}")
@@ -301,8 +307,7 @@ def validate_arrivals(raw: Any, frames: int, where: str = "sidecar") -> tuple[np
     SessionError
         Naming the key, the problem and the fix.
     """
-    def bad(key, problem, fix):
-        return SessionError(f"{where}: {key}: {problem}; {fix}")
+    bad = _complaint(where)
 
     if not (isinstance(raw, dict) and sorted(raw) == ["frames", "rate", "seconds"]):
         raise bad("arrivals", f"must be an object with exactly the keys 'frames', 'seconds' and 'rate', got "
