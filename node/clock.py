@@ -203,6 +203,10 @@ class ClockModel:
                 break
             keep = new_keep
         self._outliers += int(not keep[-1])      # each segment judged once, when it joins the fit
+        if not (math.isfinite(slope) and slope > 0):
+            # Blocks that all came at one instant (a device far faster than real time, stamps equal
+            # to the microsecond) say nothing of the rate: keep the line so far.
+            return
         self._slope = slope
         self._offset = t0 + icpt - n0 * slope
         self._fitted = True

@@ -179,3 +179,13 @@ def test_bad_updates_are_refused_and_change_nothing():
     with pytest.raises(ClockError, match="does not follow 49"):
         clock.update(49, 1.1)
     assert clock.estimate().blocks == 1
+
+
+def test_blocks_all_at_one_instant_leave_the_rate_as_it_was():
+    """A source far faster than real time delivers every block at one host instant: no rate can be
+    fitted, and the model keeps a positive one (its estimate must not divide by zero)."""
+    clock = ClockModel(1000.0)
+    for k in range(1, 5000):
+        clock.update(10 * k - 1, 5.0)
+    e = clock.estimate()
+    assert e.rate == pytest.approx(1000.0) and clock.time_of(0) <= 5.0
