@@ -48,7 +48,7 @@ def pipeline_for(scene: Scene, bank: Bank) -> FeaturePipeline:
     f = scene.features
     try:
         return FeaturePipeline(bank, f["names"], f["window"], dtype=np.dtype(f["dtype"]), peak_mode=f["peak_mode"],
-                               nonfinite=f["nonfinite"], peak_threshold=f["peak_threshold"])
+                               nonfinite=f["nonfinite"], peak_threshold=f["peak_threshold"], chunk=f["chunk"])
     except ValueError as exc:
         raise SceneError(f"{scene.source}: [features] {exc}") from None
 

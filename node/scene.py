@@ -193,6 +193,10 @@ SECTIONS = {
         "peak_mode": (_one_of(*PEAK_MODES), f"one of {list(PEAK_MODES)}", DEFAULT_PEAK_MODE),
         "peak_threshold": (_non_negative, "smallest peak amplitude counted, >= 0", 0.0),
         "dtype": (_one_of("float64", "float32"), '"float64" or "float32"', "float64"),
+        # Not the pipeline's default (whole windows): a live node runs each 10 ms as it comes, so
+        # that only a window's last 10 ms is left to run when it closes (its decision latency).
+        "chunk": (_non_negative, "seconds of each window run as soon as they are in, at fixed stream "
+                                 "indices, >= 0 (0: each window whole when it closes)", 0.01),
         # Not the pipeline's default ("raise"): a live node replaces and counts a bad sample
         # rather than stopping.
         "nonfinite": (_one_of("raise", "zero"), '"raise" or "zero"', "zero"),

@@ -64,6 +64,14 @@ class FeaturePipeline:
         by each call are the same as without gathering (the filterbank's output
         does not depend on the partition beyond rounding), with far fewer numpy
         calls for small blocks. False runs every stage on every block as it comes.
+    chunk : float or None
+        With ``gather``, also run the stages on every ``chunk`` seconds of each
+        window as soon as they are in (at stream indices ``w * W + k * C``, C the
+        chunk rounded to whole samples), so that only a window's last chunk is left
+        to run when it closes: the live node's decision latency. The cut points are
+        fixed by stream index, so the output does not depend on how the signal was
+        cut into blocks, to the last bit. None or 0 (default): each window runs
+        whole once its last sample is in.
 
     Notes
     -----
@@ -73,7 +81,8 @@ class FeaturePipeline:
 
     def __init__(self, bank: Bank, features=FEATURES, window: float = DEFAULT_WINDOW, dtype=np.float64,
                  peak_mode: str = DEFAULT_PEAK_MODE, nonfinite: str = "raise", subblock: int | None = None,
-                 peak_threshold: float = 0.0, backend: str = "fast", gather: bool = True) -> None:
+                 peak_threshold: float = 0.0, backend: str = "fast", gather: bool = True,
+                 chunk: float | None = None) -> None:
         self.bank = bank
         self.features = check_features(features)
         self.window = float(window)
@@ -83,6 +92,7 @@ class FeaturePipeline:
         self.peaks = PeakExtractor(bank.channels, mode=peak_mode, threshold=peak_threshold)
         self.windows = FeatureWindows(bank.channels, bank.fs, self.window_samples, self.features)
         self.gather = bool(gather)
+        self.chunk_samples = self._chunk_samples(chunk)
         self._buf = None          # gathered samples not yet filtered: (n,) mono or (channels, n)
         self._held = 0
         self._finished = False
@@ -99,14 +109,38 @@ class FeaturePipeline:
         if self._held and x.ndim != self._buf.ndim:
             parts.append(self._release(self._held))          # mono after per-channel, or the reverse
         self._hold(x)
-        W = self.window_samples
         start = self.peaks.samples_seen                        # stream index of the first held sample
-        upto = (start + self._held) // W * W - start           # held samples up to the last window end
-        if upto > 0:
-            parts.append(self._release(upto))
+        if self.chunk_samples:
+            # One pass per chunk: the partition, and so the rounding, is fixed by stream index.
+            while (cut := self._next_cut(start) - start) <= self._held:
+                parts.append(self._release(cut))
+                start += cut
+        else:
+            W = self.window_samples
+            upto = (start + self._held) // W * W - start       # held samples up to the last window end
+            if upto > 0:
+                parts.append(self._release(upto))
         if not parts:
             return self._no_windows()
         return parts[0] if len(parts) == 1 else concat_windows(parts, self.features, self.bank.channels)
+
+    def _chunk_samples(self, chunk) -> int:
+        """``chunk`` seconds in whole samples; 0 when windows run whole."""
+        if chunk is None or chunk == 0:
+            return 0
+        if not (isinstance(chunk, (int, float)) and np.isfinite(chunk) and chunk > 0):
+            raise InputError(f"chunk must be a positive number of seconds (or 0: whole windows), got {chunk!r}")
+        n = int(round(chunk * self.bank.fs))
+        if n < 1:
+            raise InputError(f"a chunk of {chunk:g} s is less than one sample at {self.bank.fs:g} Hz; "
+                             f"choose at least {1 / self.bank.fs:.3g} s, or 0 for whole windows")
+        return 0 if n >= self.window_samples else n
+
+    def _next_cut(self, index: int) -> int:
+        """The first cut point after stream index ``index``: the next chunk end or window end."""
+        W, C = self.window_samples, self.chunk_samples
+        w0 = index // W * W
+        return min(w0 + ((index - w0) // C + 1) * C, w0 + W)
 
     def _no_windows(self) -> Windows:
         """An empty result (shared: it holds nothing to change)."""

@@ -169,6 +169,57 @@ def test_pipeline_block_partition_invariance(seed, length, sizes, per_channel, s
             assert relative_error(parts.values[:, k], whole.values[:, k]) <= 1e-12, name
 
 
+def plain_cut_points(length, window, chunk):
+    """Stream indices where a chunked pipeline runs its stages, written out: every ``chunk``
+    samples from each window's start, and every window end."""
+    cuts = set()
+    for w0 in range(0, length + 1, window):
+        cuts.update(i for i in range(w0 + chunk, w0 + window, chunk) if i <= length)
+        if w0 + window <= length:
+            cuts.add(w0 + window)
+    return sorted(cuts)
+
+
+@settings(max_examples=40)
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    length=st.integers(0, 1200),
+    sizes=st.lists(st.integers(0, 300), max_size=25),
+    chunk_samples=st.sampled_from([1, 7, 13, 25, 49]),
+    per_channel=st.booleans(),
+)
+def test_a_chunked_pipeline_runs_exactly_its_chunks_whatever_the_blocks(seed, length, sizes, chunk_samples,
+                                                                         per_channel):
+    """With ``chunk``, the stages run on the segments between fixed cut points, whatever the
+    blocks: bit for bit the unbuffered pipeline fed exactly those segments."""
+    rng = np.random.default_rng(seed)
+    x = rng.standard_normal((3, length) if per_channel else length)
+    chunk = chunk_samples / SMALL.fs
+    pipe = FeaturePipeline(SMALL, window=0.01, chunk=chunk)                # 50-sample windows
+    assert pipe.chunk_samples == chunk_samples
+    got = concat_windows(feed(pipe, x, sizes), FEATURES, 3)
+    cuts = [0] + plain_cut_points(length, 50, chunk_samples)
+    plain = FeaturePipeline(SMALL, window=0.01, gather=False)
+    segments = [x[..., a:b] for a, b in zip(cuts, cuts[1:])] + [x[..., cuts[-1]:]]
+    want = concat_windows([plain.process(s) for s in segments] + [plain.finish()], FEATURES, 3)
+    assert len(got) == len(want) == length // 50
+    np.testing.assert_array_equal(got.values, want.values)
+    assert pipe.partial_samples == length % 50
+
+
+def test_chunks_change_the_features_only_by_rounding_and_a_chunk_of_a_window_or_more_is_whole():
+    x = np.random.default_rng(12).standard_normal(7 * 500 + 55)
+    whole = FeaturePipeline(SMALL).run(x, block=500)
+    chunked = FeaturePipeline(SMALL, chunk=0.01).run(x, block=4096)
+    assert len(chunked) == len(whole) == 7
+    for k in range(len(FEATURES)):
+        assert relative_error(chunked.values[:, k], whole.values[:, k]) <= 1e-12
+    for chunk in (0.1, 0.5, 0, None):
+        pipe = FeaturePipeline(SMALL, chunk=chunk)
+        assert pipe.chunk_samples == 0
+        np.testing.assert_array_equal(pipe.run(x, block=500).values, whole.values)
+
+
 def test_run_in_blocks_equals_one_call_and_extract_features():
     x = np.random.default_rng(7).standard_normal(5 * 500 + 123)
     one = FeaturePipeline(SMALL).run(x)
@@ -207,6 +258,10 @@ def test_pipeline_nonfinite_policy():
     ({"peak_mode": "minima"}, "peak mode"),
     ({"nonfinite": "drop"}, "nonfinite"),
     ({"dtype": np.float16}, "float64 or float32"),
+    ({"chunk": -0.01}, "chunk must be a positive number of seconds"),
+    ({"chunk": float("inf")}, "chunk must be a positive number of seconds"),
+    ({"chunk": "10 ms"}, "chunk must be a positive number of seconds"),
+    ({"chunk": 1e-5}, "less than one sample at 5000 Hz"),
 ])
 def test_pipeline_refuses_bad_parameters(kwargs, match):
     with pytest.raises(ValueError, match=match):

@@ -39,7 +39,8 @@ def test_recorded_session_replays_to_identical_node_output(tmp_path):
     assert not list(tmp_path.glob(".*.raw"))                     # the spool file is gone
     replayed = ListSink()
     Node(ReplayDriver(str(wav), block_size=101, speed="max", on_notice=None),
-         FeaturePipeline(whisker_bank(), ("Af", "A")), [replayed], overrun="block").run()
+         FeaturePipeline(whisker_bank(), ("Af", "A"), chunk=scene.features["chunk"]), [replayed],
+         overrun="block").run()
     assert len(replayed.events) == len(live.events) == 40
     for a, b in zip(live.events, replayed.events):
         assert a["window"] == b["window"] and a["features"] == b["features"]     # bit-identical
@@ -111,16 +112,21 @@ class JitteryReader(Jittery):
 
 
 @pytest.mark.parametrize("seed", [None, 1, 2])
-def test_node_output_does_not_depend_on_ring_read_timing(seed):
-    """The node cuts the stream at window ends, so the features equal, to the last bit, the
-    offline pipeline fed one window at a time, whatever the driver's and the processing
-    thread's timing. (Before: a ring read spanning several windows was filtered in one pass,
-    which rounds differently, about 1 run in 20 on a busy machine.)"""
+@pytest.mark.parametrize("chunk", [None, 0.0074, 0.0])
+def test_node_output_does_not_depend_on_ring_read_timing(seed, chunk):
+    """The node's pipeline runs at cut points fixed by stream index (each chunk, default 10 ms,
+    or each window end with chunk 0), so the features equal, to the last bit, the offline
+    pipeline fed the same cuts, whatever the driver's and the processing thread's timing.
+    (Before the cuts: a ring read spanning several windows was filtered in one pass, which
+    rounds differently, about 1 run in 20 on a busy machine.)"""
+    features = {"names": ["Af", "A"]} | ({} if chunk is None else {"chunk": chunk})
     scene = scene_from_dict({"driver": {"type": "synth", "seconds": 0.5, "held_out": False, "block": 37},
-                             "features": {"names": ["Af", "A"]}})
+                             "features": features})
     _, data, _ = synth_session(scene, bank_for(scene))
-    pipeline = FeaturePipeline(whisker_bank(), ("Af", "A"))
-    offline = pipeline.run(data[:, 0], block=pipeline.window_samples)
+    chunk = scene.features["chunk"]
+    pipeline = FeaturePipeline(whisker_bank(), ("Af", "A"), chunk=chunk)
+    # With chunks the pipeline cuts the offline signal itself; without, it is fed window by window.
+    offline = pipeline.run(data[:, 0], block=4096 if chunk else pipeline.window_samples)
     sink = ListSink()
     node = build_node(scene, speed="max", sinks_override=[sink])
     if seed is not None:
