@@ -79,6 +79,11 @@ class Block:
         For a block replayed with its recorded timing: when it was complete on the
         common time of the node that recorded it, seconds (a session's
         ``arrivals``). None for a live or freshly paced block.
+    timestamp : float or None, default None
+        For a source that stamps its own samples (an LSL stream: the sender's
+        timestamps, clock-corrected): when the block's last frame was taken, on
+        this host's ``time.monotonic()`` clock. The node's clock model then fits
+        these instead of ``arrival``. None: the driver knows only the arrival.
     """
 
     data: np.ndarray
@@ -88,6 +93,7 @@ class Block:
     restarts: tuple[int, ...] = ()
     overruns: tuple[int, ...] = ()
     recorded: float | None = None
+    timestamp: float | None = None
 
     @property
     def frames(self) -> int:

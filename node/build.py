@@ -210,6 +210,43 @@ def driver_for(scene: Scene, bank: Bank, speed_override=None):
         options = _given(d, {"device": "device", "rate": "rate", "channels": "channels", "block": "blocksize",
                              "dtype": "dtype", "buffer_seconds": "buffer_seconds"})
         return MicrophoneDriver(**options), Labels(), None
+    if kind == "xdf":
+        from supramodal.replay.driver import ReplayDriver
+        from supramodal.replay.errors import ReplayError
+        from supramodal.replay.xdf import xdf_session
+
+        path = scene.resolve(d["path"])
+        if not path.exists():
+            raise SceneError(f"{scene.source}: [driver] path: no XDF file at {path} (a relative path is taken from "
+                             "the scene file's folder)")
+        if all(d[k] is None for k in ("stream", "stream_type", "source_id")):
+            raise SceneError(f"{scene.source}: [driver] type \"xdf\" needs the recorded stream's name "
+                             "(stream = ...), stream_type or source_id")
+        speed = _given({"speed": speed_override if speed_override is not None else d["speed"]}, {"speed": "speed"})
+        try:
+            session = xdf_session(path, d["stream"], d["stream_type"], d["source_id"])
+            drv = ReplayDriver(session, rate=bank.fs, timing="recorded", on_notice=None, **speed)
+        except ReplayError as exc:
+            raise SceneError(f"{scene.source}: [driver] {exc}") from None
+        warn_if_beyond_band(bank, drv.source_rate, f"{scene.source}: [driver] path {d['path']}")
+        return drv, Labels(), None
+    if kind == "lsl":
+        from supramodal.drivers.lsl import LSLInletDriver
+
+        if all(d[k] is None for k in ("stream", "stream_type", "source_id")):
+            raise SceneError(f"{scene.source}: [driver] type \"lsl\" needs the stream's name (stream = ...), "
+                             "stream_type or source_id")
+        options = _given(d, {k: k for k in ("rate", "channels", "resolve_timeout", "gap_tolerance", "max_gap",
+                                            "stall_timeout", "buffer_seconds")})
+        try:
+            driver = LSLInletDriver(d["stream"], d["stream_type"], d["source_id"], **options)
+        except InputError as exc:
+            raise SceneError(f"{scene.source}: [driver] {exc}") from None
+        if abs(driver.rate - bank.fs) > 1e-9 * bank.fs:
+            raise SceneError(f"{scene.source}: the LSL stream {driver.info} runs at {driver.rate:g} Hz but the "
+                             f"{bank.kind} bank at {bank.fs:g} Hz; give the stream a bank at its rate "
+                             "([bank] fs, or a bank file)")
+        return driver, Labels(), None
     raise SceneError(f"{scene.source}: [driver] type {kind!r} is not supported")
 
 
@@ -219,6 +256,8 @@ def _sinks_for(scene: Scene, sinks_override, overwrite: bool):
         return list(sinks_override), None
     sinks, routes = [], []
     for i, s in enumerate(scene.sinks):
+        if s["type"] == "lsl":
+            continue                            # made once the streams are known (_lsl_sinks)
         path = s["path"] if s["path"] == "-" else str(scene.resolve(s["path"]))
         try:
             # Behind its own queue: processing never waits on a slow disk or a stalled terminal.
@@ -229,6 +268,42 @@ def _sinks_for(scene: Scene, sinks_override, overwrite: bool):
             raise SceneError(f"{scene.source}: [[sink]] #{i + 1} path: {exc}") from None
         listens = s.get("from")
         routes.append(None if listens is None else {listens} if isinstance(listens, str) else set(listens))
+    return sinks, routes
+
+
+def _lsl_sinks(scene: Scene, streams: list, fused_classes=None, sinks_override=None):
+    """The scene's LSL sinks (``[[sink]] type = "lsl"``), each behind its own queue, with the
+    streams each listens to; ``streams`` are ``(name, pipeline, model)``."""
+    if sinks_override is not None or not any(s["type"] == "lsl" for s in scene.sinks):
+        return [], []
+    from supramodal.node.events import FUSED_STREAM
+    from supramodal.node.lsl_outlets import LSLOutletSink, OutletStream
+
+    described = {}
+    for name, pipeline, model in streams:
+        bank = pipeline.bank
+        described[name] = OutletStream(name, bank.kind, bank.fs, tuple(bank.names), tuple(float(c) for c in bank.cf),
+                                       pipeline.features, pipeline.window_samples / bank.fs,
+                                       tuple(model.classes) if model is not None else ())
+    if fused_classes is not None:
+        window = next(iter(described.values())).window
+        described[FUSED_STREAM] = OutletStream(FUSED_STREAM, "fused", 0.0, (), (), (), window, tuple(fused_classes))
+    sinks, routes = [], []
+    for i, s in enumerate(scene.sinks):
+        if s["type"] != "lsl":
+            continue
+        listens = s["from"]
+        names = list(described) if listens is None else [listens] if isinstance(listens, str) else list(listens)
+        unknown = [n for n in names if n not in described]
+        if unknown:
+            raise SceneError(f"{scene.source}: [[sink]] #{i + 1} from: no stream {unknown}; the scene has "
+                             f"{list(described)}")
+        try:
+            sink = LSLOutletSink([described[n] for n in names], s["outputs"], s["prefix"])
+        except InputError as exc:
+            raise SceneError(f"{scene.source}: [[sink]] #{i + 1}: {exc}") from None
+        sinks.append(QueuedSink(sink))
+        routes.append(set(names))
     return sinks, routes
 
 
@@ -265,7 +340,7 @@ def _overrun(scene: Scene) -> str:
     """The ring's policy: "auto" is lossless back-pressure for files, drop-oldest for live drivers."""
     overrun = scene.buffer["overrun"]
     if overrun == "auto":
-        overrun = "block" if scene.driver["type"] in ("replay", "synth", "twosense") else "drop-oldest"
+        overrun = "block" if scene.driver["type"] in ("replay", "synth", "twosense", "xdf") else "drop-oldest"
     return overrun
 
 
@@ -277,7 +352,7 @@ def _timebase(scene: Scene, driver) -> tuple[str, float, float]:
     error); at a finite speed it is paced like a live device, and the node sees only arrivals.
     """
     d = scene.driver
-    if d["type"] == "replay" and d["timing"] == "recorded":
+    if d["type"] == "replay" and d["timing"] == "recorded" or d["type"] == "xdf":
         return "recorded", 0.0, driver.recorded_rate       # the clock set up as when it was recorded
     if d["type"] in ("replay", "synth"):
         return "stream", 0.0, driver.rate
@@ -304,6 +379,9 @@ def build_node(scene: Scene, speed=None, sinks_override=None, progress=None, rec
     driver, labels, ts = driver_for(scene, bank, speed)
     model = _model_for(scene, bank, pipeline, ts, progress)
     try:
+        from supramodal.node.events import MAIN_STREAM
+
+        sinks += _lsl_sinks(scene, [(MAIN_STREAM, pipeline, model)], sinks_override=sinks_override)[0]
         return Node(driver, pipeline, sinks, model=model, decision=scene.decision,
                     mapping=scene.driver.get("mapping", "auto"), labels=labels,
                     buffer_seconds=scene.buffer["seconds"], overrun=_overrun(scene), recorder=recorder,
@@ -414,6 +492,11 @@ def _build_graph(scene: Scene, speed, sinks_override, progress, recorder, overwr
                                         f["decision"])
             except ValueError as exc:
                 raise SceneError(f"{scene.source}: [fusion] {exc}") from None
+        more, more_routes = _lsl_sinks(scene, [(s.name, s.pipeline, s.model) for s in streams],
+                                       None if fusion is None else fusion.classes, sinks_override)
+        sinks += more
+        if routes is not None:
+            routes += more_routes
         return Graph([s for s, _, _ in sources.values()], streams, sinks, routes=routes, fusion=fusion,
                      recorder=recorder)
     except BaseException:

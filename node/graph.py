@@ -138,6 +138,10 @@ class Graph:
         for source in self.sources:
             source.max_frames = None if max_seconds is None else int(round(max_seconds * source.rate))
             source.epoch = t0
+        for s in self.sinks:
+            start = getattr(s, "start", None)     # a sink that puts common time on another clock (LSL)
+            if start is not None:
+                start(t0)
         threads = [self._thread(f"source {s.name}", self._drive, s) for s in self.sources]
         threads += [self._thread(f"processing {s.name}" if len(self.streams) > 1 else "processing", self._process, s)
                     for s in self.streams]

@@ -172,6 +172,34 @@ DRIVER_KEYS = {
                                       "(default: the driver's)", None),
         "mapping": (_mapping, '"auto", "mono", "per-channel", "mean" or a channel index', "auto"),
     },
+    # A stream of an XDF recording (LabRecorder's files; needs the "lsl" extra for pyxdf), replayed
+    # with its recorded timestamps. At least one of stream, stream_type and source_id.
+    "xdf": {
+        "path": (_str, "an XDF file path", REQUIRED),
+        "stream": (_str, "the recorded stream's name", None),
+        "stream_type": (_str, 'the recorded stream\'s type, e.g. "Whiskers"', None),
+        "source_id": (_str, "the recorded stream's source_id", None),
+        "speed": (is_speed, SPEED_HELP + " (default: the replay driver's)", None),
+        "mapping": (_mapping, '"auto", "mono", "per-channel", "mean" or a channel index', "auto"),
+    },
+    # A stream another machine sends over the Lab Streaming Layer (needs the "lsl" extra). At
+    # least one of stream, stream_type and source_id (checked when the driver is built).
+    "lsl": {
+        "stream": (_str, "the LSL stream's name", None),
+        "stream_type": (_str, 'the LSL stream\'s type, e.g. "Whiskers"', None),
+        "source_id": (_str, "the LSL stream's source_id (stable across restarts of its sender)", None),
+        "rate": (_positive, "Hz the stream must run at (default: its nominal rate)", None),
+        "channels": (_int_min(1), "the channel count the stream must have (default: its own)", None),
+        # None: the LSL driver's defaults (drivers.lsl).
+        "resolve_timeout": (_positive, "seconds to wait for the stream (default: the LSL driver's)", None),
+        "gap_tolerance": (_positive, "seconds of timestamp jitter before a step counts as lost samples "
+                                     "(default: the LSL driver's)", None),
+        "max_gap": (_positive, "longest gap filled with zeros, seconds (default: the LSL driver's)", None),
+        "stall_timeout": (_positive, "seconds without a sample before the stream is reported lost "
+                                     "(default: the LSL driver's)", None),
+        "buffer_seconds": (_positive, "seconds liblsl buffers in the inlet (default: the LSL driver's)", None),
+        "mapping": (_mapping, '"auto", "mono", "per-channel", "mean" or a channel index', "auto"),
+    },
 }
 SECTIONS = {
     "bank": {
@@ -230,6 +258,14 @@ SINK_KEYS = {
     "jsonl": {"path": (_str, '"-" (stdout) or a file path', "-"),
               "from": (_from, 'a stream name or a list of them ("fused": the fusion block\'s decisions; '
                               'default: every stream)', None)},
+    # Window events as Lab Streaming Layer outlets (needs the "lsl" extra; node/lsl_outlets.py).
+    "lsl": {"from": (_from, 'a stream name or a list of them ("fused": the fusion block\'s decisions; '
+                            'default: every stream)', None),
+            "outputs": (lambda v: isinstance(v, list) and v and len(set(v)) == len(v)
+                        and set(v) <= {"features", "decisions", "posteriors"},
+                        'a list drawn from "features", "decisions" and "posteriors"',
+                        ["features", "decisions", "posteriors"]),
+            "prefix": (lambda v: _name(v), "the outlets' name prefix: letters, digits, '-' or '_'", "supramodal")},
 }
 
 #: [fusion] weight: learned at start-up on the models' held-out training windows.

@@ -341,6 +341,12 @@ class QueuedSink:
                     "dropped_events": self._dropped["events"], "errors": self._errors,
                     "first_error": self._first_error}
 
+    def start(self, epoch: float) -> None:
+        """Passed on to a sink that has it (before any event, on the caller's thread)."""
+        start = getattr(self.sink, "start", None)
+        if start is not None:
+            start(epoch)
+
     def summary(self, summary: dict) -> None:
         self.sink.summary(summary)
 

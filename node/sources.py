@@ -190,8 +190,10 @@ class Source:
                 stamp = block.recorded
             else:
                 # On common time, to the microsecond: the numbers a recording keeps, so that its
-                # replay feeds the clock model exactly what it was fed here.
-                stamp = round(block.arrival - self.epoch, 6)
+                # replay feeds the clock model exactly what it was fed here. A source that stamps
+                # its own samples (LSL) is fitted on those: the sender's timing, not the network's.
+                taken = block.arrival if block.timestamp is None else block.timestamp
+                stamp = round(taken - self.epoch, 6)
             if block.restarts:
                 self.clock.reset()          # the board's count restarted: the old line is void
             if not stamp >= self._last_arrival:

@@ -205,8 +205,8 @@ class ReplayDriver:
         blocks, each released at its recorded time (divided by ``speed``; at once at
         ``"max"``) and carrying it in :attr:`Block.recorded`, so that the sources of one
         recording replay with their original relative timing, drift and jitter included. Needs
-        the session's ``arrivals``, the session's own rate, no ``block_size``, no
-        ``device_clock`` and no ``loop``.
+        the session's ``arrivals``, no ``block_size``, no ``device_clock`` and no ``loop``; a
+        resampled session's block ends map to the first output frame at or after them.
     on_notice : callable or None, default prints to stderr
         Called once with each notice (e.g. "resampling ..."), for a driver used
         on its own; None silences them. They are kept in :attr:`notices` and
@@ -414,14 +414,18 @@ class ReplayDriver:
         if arrivals is None:
             raise ReplayError(f"{self.name}: timing = 'recorded' needs a session recorded by a node of several "
                               "sources (its sidecar's 'arrivals'); this source has none: use timing = 'nominal'")
-        if (up, down) != (1, 1):
-            raise ReplayError(f"{self.name}: a session replays with its recorded timing at its own rate, "
-                              f"{self.source_rate:g} Hz; give the stream a bank at that rate")
         if block_given or device_clock is not None:
             raise ReplayError(f"{self.name}: with timing = 'recorded' the blocks are the recorded ones, at their "
                               "recorded times; leave out the block size and the device clock")
         frames, seconds, clock_rate = np.asarray(arrivals[0]), np.asarray(arrivals[1]), float(arrivals[2])
         n = self._data.shape[0]
+        if (up, down) != (1, 1):
+            # Resampled: a block ends at the first output frame at or after its recorded end, and
+            # the recording node's clock counts output frames.
+            frames = np.minimum(-((-frames.astype(np.int64) * up) // down), n)
+            keep = np.r_[np.diff(frames) > 0, True] if frames.size else frames.astype(bool)
+            frames, seconds = frames[keep], seconds[keep]
+            clock_rate *= up / down
         if frames[-1] < n:
             frames, seconds = np.r_[frames, n], np.r_[seconds, seconds[-1]]
         return frames.astype(np.int64), seconds.astype(np.float64), clock_rate

@@ -44,20 +44,25 @@ class Feature:
     term : callable(amplitude, frequency) -> ndarray
         A peak's contribution to the window's sum, from its amplitude ``A_k`` and
         instantaneous frequency ``f_k`` in Hz (``None`` when not needed), shape (peaks,).
+    unit : str
+        The unit of the window's sum, as stream meta-data names it (amplitudes in full scale:
+        a sample of 1.0 is the driver's full scale).
     """
 
     name: str
     description: str
     needs_frequency: bool
     term: Callable[[np.ndarray, np.ndarray | None], np.ndarray]
+    unit: str = ""
 
 
 #: The one table of features: the names a scene, the command line or a model file may use,
 #: the check of a selection and the computation all come from it.
 FEATURE_TABLE: dict[str, Feature] = {f.name: f for f in (
-    Feature("Af", "sum of A_k f_k, the equivalent noise level (Hz x amplitude)", True, lambda amp, freq: amp * freq),
-    Feature("A", "sum of the peak amplitudes A_k (full scale 1.0)", False, lambda amp, freq: amp),
-    Feature("f", "sum of the instantaneous frequencies f_k (Hz)", True, lambda amp, freq: freq),
+    Feature("Af", "sum of A_k f_k, the equivalent noise level (Hz x amplitude)", True, lambda amp, freq: amp * freq,
+            "Hz*fullscale"),
+    Feature("A", "sum of the peak amplitudes A_k (full scale 1.0)", False, lambda amp, freq: amp, "fullscale"),
+    Feature("f", "sum of the instantaneous frequencies f_k (Hz)", True, lambda amp, freq: freq, "Hz"),
 )}
 #: Every feature name, in the table's order (the default selection computes all of them).
 FEATURES = tuple(FEATURE_TABLE)

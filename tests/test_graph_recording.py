@@ -85,9 +85,18 @@ def test_a_recording_cut_short_of_its_data_ends_with_the_last_time():
     assert [(b.frames, b.recorded) for b in blocks] == [(30, 0.5), (40, 1.25), (30, 1.25)]
 
 
+def test_a_resampled_recording_keeps_its_recorded_times_on_the_new_frames():
+    """At twice the session's rate each block ends at the output frame of its recorded end, with
+    its recorded time, and the recording's clock counts output frames."""
+    drv = ReplayDriver(_session(), rate=80, speed="max", timing="recorded", on_notice=None)
+    with drv:
+        blocks = [drv.read(timeout=0) for _ in range(3)]
+    assert [(b.start, b.frames, b.recorded) for b in blocks] == [(0, 60, 0.5), (60, 80, 1.25), (140, 60, 2.0)]
+    assert drv.recorded_rate == 80.0
+
+
 @pytest.mark.parametrize("kwargs, needle", [
     ({"source": Session(np.zeros((10, 1)), 40, "t")}, "needs a session recorded by a node of several sources"),
-    ({"rate": 80}, "at its own rate, 40 Hz"),
     ({"block_size": 10}, "leave out the block size and the device clock"),
     ({"loop": True}, "plays the session once"),
     ({"timing": "sometimes"}, "timing must be one of"),

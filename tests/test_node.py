@@ -230,7 +230,7 @@ def test_scene_refuses_a_model_for_other_features(tmp_path, small_model):
         build_node(load_scene(tmp_path / "s.toml"), speed="max")
 
 
-def test_whisker_replay_scene_runs_without_sounddevice_or_serial(tmp_path, whisker_signal):
+def test_whisker_replay_scene_runs_without_sounddevice_serial_or_lsl(tmp_path, whisker_signal):
     _, x = whisker_signal
     write_wav(tmp_path / "w.wav", x[:, None], 5000)
     scene = tmp_path / "s.toml"
@@ -238,7 +238,8 @@ def test_whisker_replay_scene_runs_without_sounddevice_or_serial(tmp_path, whisk
                      '[[sink]]\ntype = "jsonl"\n')
     code = (
         "import sys\n"
-        "sys.modules['sounddevice'] = None; sys.modules['serial'] = None  # any import of them fails\n"
+        "for name in ('sounddevice', 'serial', 'pylsl', 'pyxdf'):\n"
+        "    sys.modules[name] = None  # any import of them fails\n"
         "from supramodal.node.cli import main\n"
         f"rc = main(['run', {str(scene)!r}, '--speed', 'max', '--quiet'])\n"
         "assert 'sounddevice' not in [m for m, v in sys.modules.items() if v is not None]\n"

@@ -1,0 +1,411 @@
+"""A Lab Streaming Layer stream as a driver: the inlet of a stream another machine sends.
+
+Needs the optional extra ``lsl`` (``pip install "supramodal[lsl]"``: pylsl, whose wheel carries
+liblsl on x86_64 Linux with glibc >= 2.35, Windows and macOS). :func:`import_pylsl` is the one
+place that imports it and turns a missing package or library into :class:`LSLUnavailable`,
+which says what to do.
+
+Threading and real-time rules
+-----------------------------
+Construction resolves the stream (it blocks up to ``resolve_timeout`` seconds on the network).
+:meth:`LSLInletDriver.read` is called from one thread (the node's source thread) and blocks at
+most ``timeout`` seconds: it waits for the first sample, then takes whatever else has arrived
+without waiting (the low-latency pattern measured in TESTING-WITHOUT-HARDWARE.md: a timed chunk
+pull would wait out its timeout). liblsl runs its own threads for the connection. A lost outlet
+is recovered by liblsl (the inlet is made with ``recover=True``), but only seconds after it is
+back; so while the stream is silent the driver also asks the network for it every
+:data:`PROBE_INTERVAL` (blocking at most :data:`PROBE_TIMEOUT`) and, when a new outlet of the
+same stream answers (a restarted sender), opens an inlet to it at once.
+
+Time
+----
+Each sample's LSL timestamp, corrected to this machine's LSL clock (``proc_clocksync``), is put
+on the host's monotonic clock (``time.monotonic()``, measured against ``pylsl.local_clock()`` at
+open) and handed to the node as :attr:`Block.timestamp` of each block's last sample: the node's
+clock model fits those, not the arrival times, so the sender's sample timing survives the
+network's jitter.
+
+Gaps
+----
+LSL samples carry no sequence number: a loss shows only in the timestamps. When a block's first
+sample comes more than ``gap_tolerance`` seconds after the previous block's last sample plus one
+sample period, the missing samples are filled with zeros (``filled``, ``gaps``, a ``gap``
+event), as the serial driver fills lost frames; a gap longer than ``max_gap`` seconds is not
+filled but marked as a restart (``Block.restarts``: stream time no longer equals the sender's),
+and so is a step backwards in time beyond the tolerance (the sender restarted with another
+clock). A sender that stamps its chunks when it pushes them, not from its sample count, jitters
+by its push delay; gaps shorter than the tolerance cannot be told from that jitter and are
+neither filled nor counted (:attr:`timing_slips` counts the steps seen between half the
+tolerance and the tolerance, as a warning sign).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from supramodal.drivers.base import Block, DeviceUnavailable, DriverClosed, DriverError, EventLog, DriverEvent
+from supramodal.errors import InputError
+
+#: What to run to get LSL, and what to do where the wheel carries no liblsl.
+INSTALL_HINT = ('install the optional extra: pip install "supramodal[lsl]" (pylsl). Its wheel carries liblsl only on '
+                "x86_64 Linux with glibc >= 2.35, Windows and macOS; elsewhere (ARM boards, older Linux) build "
+                "liblsl (https://github.com/sccn/liblsl, cmake) or install it from conda-forge (liblsl), and point "
+                "PYLSL_LIB at the library file")
+
+#: Seconds a stream may be silent before the driver says it is lost (an ``unplug`` event).
+DEFAULT_STALL_TIMEOUT = 0.5
+#: Seconds of timestamp jitter tolerated before a step counts as lost samples.
+DEFAULT_GAP_TOLERANCE = 0.05
+#: Longest gap, seconds, filled with zeros; a longer one is marked as a restart.
+DEFAULT_MAX_GAP = 10.0
+#: Seconds between two searches for a restarted sender while the stream is silent, and the
+#: longest one search (and the new inlet's connection) may block the source thread.
+PROBE_INTERVAL = 0.25
+PROBE_TIMEOUT = 0.2
+#: Seconds liblsl buffers in the inlet before it drops the oldest samples.
+DEFAULT_BUFFER_SECONDS = 30.0
+#: Seconds the resolver waits for the stream.
+DEFAULT_RESOLVE_TIMEOUT = 5.0
+
+# LSL channel formats (lsl_channel_format_t) -> (numpy dtype, full scale).
+_FORMATS = {1: (np.float32, 1.0), 2: (np.float64, 1.0), 4: (np.int32, 2.0 ** 31), 5: (np.int16, 2.0 ** 15),
+            6: (np.int8, 2.0 ** 7), 7: (np.int64, 2.0 ** 63)}
+_FORMAT_NAMES = {1: "float32", 2: "double64", 3: "string", 4: "int32", 5: "int16", 6: "int8", 7: "int64"}
+
+
+class LSLUnavailable(DeviceUnavailable):
+    """pylsl or its liblsl cannot be loaded on this machine."""
+
+
+def import_pylsl():
+    """The pylsl module, or :class:`LSLUnavailable` saying what to install."""
+    try:
+        import pylsl
+    except ImportError:
+        raise LSLUnavailable(f"LSL needs pylsl, which is not installed: {INSTALL_HINT}") from None
+    except (OSError, RuntimeError) as exc:
+        # pylsl is there but its liblsl is not (an ARM wheel, an old glibc): it raises at import.
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise LSLUnavailable(f"pylsl is installed but cannot load liblsl ({first}): {INSTALL_HINT}") from None
+    return pylsl
+
+
+def describe_stream(info) -> str:
+    """One line naming an LSL stream: name, type, source_id, channels, rate, host."""
+    return (f"name={info.name()!r} type={info.type()!r} source_id={info.source_id()!r} "
+            f"{info.channel_count()} ch at {info.nominal_srate():g} Hz from {info.hostname()}")
+
+
+def resolve_stream(name: str | None = None, stream_type: str | None = None, source_id: str | None = None,
+                   timeout: float = DEFAULT_RESOLVE_TIMEOUT):
+    """The one stream matching every property given, or :class:`DeviceUnavailable` naming those
+    that were found instead (or that none was); more than one match is refused too (say which
+    with ``source_id``)."""
+    pylsl = import_pylsl()
+    wanted = {"name": name, "type": stream_type, "source_id": source_id}
+    wanted = {k: v for k, v in wanted.items() if v is not None}
+    if not wanted:
+        raise InputError("an LSL inlet needs the stream's name, type or source_id")
+    for key, value in wanted.items():
+        if not isinstance(value, str) or not value or "'" in value:
+            raise InputError(f"an LSL stream {key} must be a non-empty string without quotes, got {value!r}")
+    predicate = " and ".join(f"{k}='{v}'" for k, v in wanted.items())
+    asked = ", ".join(f"{k}={v!r}" for k, v in wanted.items())
+    try:
+        found = pylsl.resolve_bypred(predicate, minimum=1, timeout=float(timeout))
+    except Exception as exc:  # liblsl's errors, one place
+        raise DriverError(f"LSL: resolving {asked} failed: {exc}") from None
+    if not found:
+        others = pylsl.resolve_streams(wait_time=1.0)
+        seen = "; ".join(describe_stream(i) for i in others[:10]) if others else "no stream at all"
+        raise DeviceUnavailable(f"LSL: no stream with {asked} within {timeout:g} s; found {seen}. Check the sender "
+                                "runs, the name, and that both machines share the LSL session (LSLAPICFG)")
+    if len(found) > 1:
+        ids = "; ".join(describe_stream(i) for i in found[:10])
+        raise DeviceUnavailable(f"LSL: {len(found)} streams match {asked} ({ids}); name one by its source_id")
+    return found[0]
+
+
+@dataclass(frozen=True)
+class Step:
+    """What lies between one block and the next, judged from their timestamps.
+
+    ``kind``: ``"first"`` (no block before), ``"ok"`` (within half the tolerance), ``"slip"``
+    (between half the tolerance and the tolerance: jitter, or a loss too short to tell),
+    ``"gap"`` (``samples`` lost, to fill), ``"long"`` (a gap beyond ``max_gap``) or
+    ``"back"`` (the timestamps stepped back beyond the tolerance). ``seconds``: the time missing
+    between the blocks (negative: overlapping).
+    """
+
+    kind: str
+    seconds: float = 0.0
+    samples: int = 0
+
+
+class TimestampSteps:
+    """Judges the step between consecutive blocks of a stream from their first and last
+    timestamps (seconds, any clock): a pure function of the stamps, so that it is tested alone.
+
+    Parameters
+    ----------
+    rate : float
+        Nominal rate, Hz: the next block's first sample is due one period after the last one.
+    tolerance, max_gap : float
+        Seconds; see the module notes.
+    """
+
+    def __init__(self, rate: float, tolerance: float, max_gap: float) -> None:
+        self.rate, self.tolerance, self.max_gap = float(rate), float(tolerance), float(max_gap)
+        self.last: float | None = None
+
+    def step(self, first: float, last: float) -> Step:
+        """The step before a block whose samples are stamped ``first`` .. ``last``."""
+        before, self.last = self.last, last
+        if before is None:
+            return Step("first")
+        missing = first - before - 1.0 / self.rate
+        if missing > self.max_gap:
+            return Step("long", missing)
+        if missing > self.tolerance:
+            return Step("gap", missing, int(round(missing * self.rate)))
+        if missing < -self.tolerance:
+            return Step("back", missing)
+        return Step("slip" if abs(missing) > self.tolerance / 2 else "ok", missing)
+
+
+class LSLInletDriver:
+    """Samples of one LSL stream, as blocks (see the module notes on threads, time and gaps).
+
+    Parameters
+    ----------
+    name, stream_type, source_id : str, optional
+        What the stream must match (at least one; all that are given).
+    rate : float, optional
+        The rate the caller expects, Hz: a stream at another nominal rate is refused. Default:
+        the stream's.
+    channels : int, optional
+        The channel count expected; default the stream's.
+    resolve_timeout : float, default :data:`DEFAULT_RESOLVE_TIMEOUT`
+        Seconds to wait for the stream at construction, and for its connection at open.
+    gap_tolerance, max_gap, stall_timeout, buffer_seconds : float
+        Seconds; see the module notes and the constants of the same names.
+
+    Attributes
+    ----------
+    rate : float
+        The stream's nominal rate, Hz.
+    channels : int
+    info : str
+        The stream resolved, one line (:func:`describe_stream`).
+
+    Events (:meth:`take_events`): ``unplug`` (no sample for ``stall_timeout``), ``reconnect``
+    (samples again, with the pause), ``gap`` (samples filled), ``restart`` (a step in the
+    timestamps that cannot be filled).
+    """
+
+    def __init__(self, name: str | None = None, stream_type: str | None = None, source_id: str | None = None, *,
+                 rate: float | None = None, channels: int | None = None,
+                 resolve_timeout: float = DEFAULT_RESOLVE_TIMEOUT, gap_tolerance: float = DEFAULT_GAP_TOLERANCE,
+                 max_gap: float = DEFAULT_MAX_GAP, stall_timeout: float = DEFAULT_STALL_TIMEOUT,
+                 buffer_seconds: float = DEFAULT_BUFFER_SECONDS) -> None:
+        for key, v in (("resolve_timeout", resolve_timeout), ("gap_tolerance", gap_tolerance), ("max_gap", max_gap),
+                       ("stall_timeout", stall_timeout), ("buffer_seconds", buffer_seconds)):
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise InputError(f"{key} must be a positive number of seconds, got {v!r}")
+        self._pylsl = import_pylsl()
+        self._stream = resolve_stream(name, stream_type, source_id, resolve_timeout)
+        self.info = describe_stream(self._stream)
+        fmt = self._stream.channel_format()
+        if fmt not in _FORMATS:
+            raise DeviceUnavailable(f"LSL: the stream {self.info} carries {_FORMAT_NAMES.get(fmt, fmt)} samples; "
+                                    "the node reads numeric streams (float32, double64, int8..int64)")
+        self._dtype, self._full_scale = _FORMATS[fmt]
+        self.rate = float(self._stream.nominal_srate())
+        if not self.rate > 0:
+            raise DeviceUnavailable(f"LSL: the stream {self.info} has no nominal rate (an irregular stream, such as "
+                                    "markers); the node filters regularly sampled signals")
+        if rate is not None and abs(rate - self.rate) > 1e-9 * self.rate:
+            raise DeviceUnavailable(f"LSL: the stream {self.info} runs at {self.rate:g} Hz, not the {rate:g} Hz "
+                                    "expected; give the stream a bank at its rate")
+        self.channels = int(self._stream.channel_count())
+        if channels is not None and channels != self.channels:
+            raise DeviceUnavailable(f"LSL: the stream {self.info} has {self.channels} channels, not {channels}")
+        self.resolve_timeout = float(resolve_timeout)
+        self.gap_tolerance, self.max_gap = float(gap_tolerance), float(max_gap)
+        self.stall_timeout, self.buffer_seconds = float(stall_timeout), float(buffer_seconds)
+        self._max_chunk = max(1, int(self.rate * 0.1))        # at most 100 ms per block
+        self._inlet = None
+        self._log = EventLog()
+        self._reset_counters()
+
+    # -- life cycle ---------------------------------------------------------------------------
+
+    def _reset_counters(self) -> None:
+        self._frames = self._filled = self._chunks = self._gaps = self._restarts = 0
+        self._stalls = self._timing_slips = self._reopened = 0
+        self._next_probe = 0.0
+        self._steps = TimestampSteps(self.rate, self.gap_tolerance, self.max_gap)
+        self._last_data = time.monotonic()
+        self._stalled = False
+
+    def open(self) -> None:
+        """Connect to the stream (waits up to ``resolve_timeout`` for it)."""
+        pylsl = self._pylsl
+        self._reset_counters()
+        self._log.clear()
+        try:
+            self._inlet = pylsl.StreamInlet(self._stream, max_buflen=max(1, math.ceil(self.buffer_seconds)),
+                                            recover=True, processing_flags=pylsl.proc_clocksync)
+            self._inlet.open_stream(timeout=self.resolve_timeout)
+        except Exception as exc:
+            self._inlet = None
+            raise DeviceUnavailable(f"LSL: cannot open the stream {self.info}: {exc}") from None
+        self._offset = self._clock_offset()
+        self._buf = np.empty((self._max_chunk, self.channels), dtype=self._dtype)
+        self._last_data = time.monotonic()
+
+    def _clock_offset(self) -> float:
+        """``time.monotonic() - pylsl.local_clock()``, from the tightest of a few brackets."""
+        best = (math.inf, 0.0)
+        for _ in range(9):
+            a = time.monotonic()
+            lsl = self._pylsl.local_clock()
+            b = time.monotonic()
+            best = min(best, (b - a, (a + b) / 2 - lsl))
+        return best[1]
+
+    def close(self) -> None:
+        inlet, self._inlet = self._inlet, None
+        if inlet is not None:
+            try:
+                inlet.close_stream()
+            except Exception:  # closing: nothing left to tell
+                pass
+
+    def __enter__(self) -> "LSLInletDriver":
+        self.open()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # -- reading (the source thread) ----------------------------------------------------------
+
+    def read(self, timeout: float | None = None) -> Block | None:
+        """The samples that arrived (up to 100 ms of them), waiting at most ``timeout`` s for the
+        first; None if none came."""
+        inlet = self._inlet
+        if inlet is None:
+            raise DriverClosed("the LSL inlet is closed")
+        wait = 0.0 if timeout is None else max(0.0, float(timeout))
+        try:
+            _, stamps = inlet.pull_chunk(timeout=wait, max_samples=self._max_chunk, dest_obj=self._buf,
+                                         min_samples=1, as_numpy=True)
+        except Exception as exc:  # liblsl's errors, one place
+            raise DriverError(f"LSL: reading {self.info} failed: {exc}") from None
+        now = time.monotonic()
+        n = len(stamps)
+        if n == 0:
+            if not self._stalled and now - self._last_data > self.stall_timeout:
+                self._stalled = True
+                self._stalls += 1
+                self._next_probe = now
+                self._log.record("unplug", f"LSL: no sample from {self.info} for {self.stall_timeout:g} s; waiting "
+                                 "for it to come back", self._frames)
+            if self._stalled and now >= self._next_probe:
+                self._next_probe = now + PROBE_INTERVAL
+                self._look_for_a_new_sender()
+            return None
+        data = self._buf[:n].astype(np.float64)
+        if self._full_scale != 1.0:
+            data /= self._full_scale
+        host = np.asarray(stamps, dtype=np.float64) + self._offset
+        if self._stalled:
+            self._stalled = False
+            self._log.record("reconnect", f"LSL: samples from {self.info} again after {now - self._last_data:.2f} s",
+                             self._frames)
+        self._last_data = now
+        block = self._block(data, host, now)
+        self._chunks += 1
+        return block
+
+    def _look_for_a_new_sender(self) -> None:
+        """While the stream is silent, ask the network for it again: a sender that was restarted
+        is a new outlet of the same stream (same source id, or same name, type and host), which
+        liblsl's own recovery finds only seconds later (about 3 s measured here); an inlet to it
+        is made at once. Blocks the source thread for at most :data:`PROBE_TIMEOUT` s."""
+        pylsl = self._pylsl
+        old = self._stream
+        query = (f"source_id='{old.source_id()}'" if old.source_id() and "'" not in old.source_id() else
+                 f"name='{old.name()}' and type='{old.type()}' and hostname='{old.hostname()}'")
+        try:
+            found = pylsl.resolve_bypred(query, minimum=1, timeout=PROBE_TIMEOUT)
+        except Exception:  # the network's trouble: liblsl's own recovery goes on
+            return
+        fresh = [i for i in found if i.uid() != old.uid()]
+        if not fresh:
+            return
+        new = fresh[0]
+        if (new.channel_count(), new.nominal_srate(), new.channel_format()) != \
+                (old.channel_count(), old.nominal_srate(), old.channel_format()):
+            raise DriverError(f"LSL: the stream came back as {describe_stream(new)}, no longer {self.info}; "
+                              "restart the node for the new stream")
+        try:
+            inlet = pylsl.StreamInlet(new, max_buflen=max(1, math.ceil(self.buffer_seconds)), recover=True,
+                                      processing_flags=pylsl.proc_clocksync)
+            inlet.open_stream(timeout=PROBE_TIMEOUT)
+        except Exception:  # not ready yet: the next probe tries again
+            return
+        self.close()
+        self._inlet, self._stream = inlet, new
+        self._reopened += 1
+
+    def _block(self, data: np.ndarray, host: np.ndarray, now: float) -> Block:
+        """The block for these samples, with the gap before them filled or marked."""
+        start = self._frames
+        step = self._steps.step(float(host[0]), float(host[-1]))
+        fill, restarts = 0, ()
+        if step.kind == "gap":
+            fill = step.samples
+            self._gaps += 1
+            self._filled += fill
+            self._log.record("gap", f"LSL: {fill} samples ({step.seconds * 1e3:.1f} ms) missing from {self.info}; "
+                             "filled with zeros", start)
+        elif step.kind in ("long", "back"):
+            restarts = (0,)
+            self._restarts += 1
+            what = (f"{step.seconds:.2f} s without samples, more than max_gap ({self.max_gap:g} s): not filled"
+                    if step.kind == "long" else f"timestamps stepped back {-step.seconds * 1e3:.1f} ms (the sender "
+                    "restarted?)")
+            self._log.record("restart", f"LSL: {self.info}: {what}; stream time jumps here", start)
+        elif step.kind == "slip":
+            self._timing_slips += 1
+        n = data.shape[0]
+        filled = None
+        if fill:
+            data = np.concatenate([np.zeros((fill, self.channels)), data])
+            filled = np.zeros(fill + n, dtype=bool)
+            filled[:fill] = True
+        self._frames += fill + n
+        return Block(data, start, now, filled, restarts=restarts, timestamp=float(host[-1]))
+
+    # -- counters and events ------------------------------------------------------------------
+
+    def stats(self) -> dict[str, int]:
+        """``frames`` (delivered, filled ones included), ``filled``, ``chunks`` (reads that
+        brought samples), ``gaps``, ``restarts``, ``stalls``, ``reopened`` (inlets made to a
+        restarted sender), ``timing_slips``."""
+        return {"frames": self._frames, "filled": self._filled, "chunks": self._chunks, "gaps": self._gaps,
+                "restarts": self._restarts, "stalls": self._stalls, "reopened": self._reopened,
+                "timing_slips": self._timing_slips}
+
+    def take_events(self) -> tuple[list[DriverEvent], dict[str, int]]:
+        """New events since the last call, and per-kind counts dropped; any thread, never blocks."""
+        return self._log.take()
+
+    def __repr__(self) -> str:
+        return f"LSLInletDriver({self.info})"

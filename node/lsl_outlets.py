@@ -1,0 +1,239 @@
+"""Window events out as Lab Streaming Layer streams: features, decisions and posteriors, so that
+another machine (a recorder such as LabRecorder, a controller, a second classifier) takes them.
+
+Needs the optional extra ``lsl`` (:func:`supramodal.drivers.lsl.import_pylsl` says what to
+install when it is missing).
+
+Streams
+-------
+Per node stream it listens to (``[[sink]] from``; default every stream, the fused one included),
+the sink opens up to three outlets, made when the node is built so that consumers can resolve them
+before the first window. Their names, types and source ids are fixed by the node's stream name
+(``NAME``) and the sink's ``prefix`` (default ``"supramodal"``), so that a restarted node is picked
+up again by consumers that recover by source id:
+
+============  ======================  ============  =========================================================
+output        name                    type          samples
+============  ======================  ============  =========================================================
+features      ``PREFIX-NAME-features``  ``Features``    float32, one channel per (feature, filter), labelled
+                                                    ``FEATURE/FILTER`` with the feature's unit; 1 / window Hz
+decisions     ``PREFIX-NAME-decisions`` ``Markers``     one JSON string per window: stream, window, start, end,
+                                                    decision, confidence, pooled, truth, flags; irregular
+posteriors    ``PREFIX-NAME-posteriors`` ``Posteriors`` float32, one channel per class, labelled with its name
+============  ======================  ============  =========================================================
+
+The source id is ``PREFIX@HOST/NAME/OUTPUT`` (HOST: this machine's name). Every stream's
+description carries ``channels`` (``label``, ``unit``, ``type``, per the XDF meta-data
+conventions) where it has channels, and a ``supramodal`` element: the node's stream, the bank
+(kind, rate, filters with their centre frequencies), the features, the window (seconds) and the
+classes.
+
+Time: each sample is stamped with its window's end on the node's common clock, put on LSL's
+clock (``pylsl.local_clock()``) by the offset between the two measured when the node starts. A
+window event's ``end`` counts seconds from the graph's start (:meth:`start` gives that instant);
+so for a live source it is the host time its last sample was taken, for a file it is the file's
+own time from the start of the run.
+
+Threading: the node runs this sink behind its own queue (:class:`~supramodal.node.sinks.QueuedSink`);
+``emit`` pushes on that thread and never waits for consumers (liblsl buffers and drops for a slow
+one, its outlets' ``max_buffered``).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import socket
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from supramodal import __version__
+from supramodal.drivers.lsl import import_pylsl
+from supramodal.features import FEATURE_TABLE
+from supramodal.node.events import WindowEvent
+from supramodal.errors import InputError
+
+#: What an LSL sink can send, in order.
+OUTPUTS = ("features", "decisions", "posteriors")
+#: Prefix of the outlets' names and source ids.
+DEFAULT_PREFIX = "supramodal"
+_TYPES = {"features": "Features", "decisions": "Markers", "posteriors": "Posteriors"}
+#: Seconds of samples an outlet keeps for a slow consumer before it drops the oldest.
+OUTLET_BUFFER_SECONDS = 60
+
+
+@dataclass(frozen=True)
+class OutletStream:
+    """What the outlets of one node stream say about it.
+
+    Attributes
+    ----------
+    name : str
+        The node's stream name (``"main"`` in a one-source scene, ``"fused"`` for fusion).
+    bank_kind : str
+    rate : float
+        The bank's sample rate, Hz.
+    filters : tuple of str
+        Filter names, in channel order (empty for the fused stream: it has no features).
+    centre_hz : tuple of float
+    features : tuple of str
+    window : float
+        Seconds.
+    classes : tuple of str
+        The model's classes (empty without a model).
+    """
+
+    name: str
+    bank_kind: str
+    rate: float
+    filters: tuple[str, ...]
+    centre_hz: tuple[float, ...]
+    features: tuple[str, ...]
+    window: float
+    classes: tuple[str, ...]
+
+
+def outlet_name(prefix: str, stream: str, output: str) -> str:
+    """The LSL name of one outlet: ``PREFIX-STREAM-OUTPUT``."""
+    return f"{prefix}-{stream}-{output}"
+
+
+def outlet_source_id(prefix: str, stream: str, output: str, host: str | None = None) -> str:
+    """The LSL source id of one outlet: ``PREFIX@HOST/STREAM/OUTPUT``."""
+    return f"{prefix}@{host or socket.gethostname()}/{stream}/{output}"
+
+
+class LSLOutletSink:
+    """The node's window events as LSL outlets (see the module notes).
+
+    Parameters
+    ----------
+    streams : sequence of OutletStream
+        The streams this sink sends (events of other streams are ignored).
+    outputs : sequence of {"features", "decisions", "posteriors"}
+        Default all three; posteriors and decisions only for a stream with classes, features
+        only for a stream with filters.
+    prefix : str
+        Default :data:`DEFAULT_PREFIX`.
+    """
+
+    def __init__(self, streams, outputs=OUTPUTS, prefix: str = DEFAULT_PREFIX) -> None:
+        unknown = sorted(set(outputs) - set(OUTPUTS))
+        if unknown or not outputs:
+            raise InputError(f"an LSL sink sends some of {list(OUTPUTS)}, got {list(outputs)}")
+        self.path = None
+        pylsl = self._pylsl = import_pylsl()
+        self.prefix = prefix
+        self._outlets: dict[tuple[str, str], object] = {}
+        self._streams = {s.name: s for s in streams}
+        self._offset = 0.0
+        self._epoch = time.monotonic()
+        for s in streams:
+            for output in outputs:
+                if output == "features" and not s.filters or output != "features" and not s.classes:
+                    continue
+                info = self._info(s, output)
+                self._outlets[(s.name, output)] = pylsl.StreamOutlet(info, chunk_size=1,
+                                                                     max_buffered=OUTLET_BUFFER_SECONDS)
+        self.pushed = {f"{name}/{output}": 0 for name, output in self._outlets}
+
+    @property
+    def names(self) -> list[str]:
+        """The LSL names of the outlets, in the order made."""
+        return [outlet_name(self.prefix, name, output) for name, output in self._outlets]
+
+    def _info(self, s: OutletStream, output: str):
+        pylsl = self._pylsl
+        if output == "features":
+            labels = [f"{f}/{name}" for f in s.features for name in s.filters]
+            units = [FEATURE_TABLE[f].unit for f in s.features for _ in s.filters]
+            kinds = [f"supramodal-{f}" for f in s.features for _ in s.filters]
+            info = pylsl.StreamInfo(outlet_name(self.prefix, s.name, output), _TYPES[output], len(labels),
+                                    1.0 / s.window, "float32", outlet_source_id(self.prefix, s.name, output))
+        elif output == "posteriors":
+            labels, units, kinds = list(s.classes), ["probability"] * len(s.classes), ["posterior"] * len(s.classes)
+            info = pylsl.StreamInfo(outlet_name(self.prefix, s.name, output), _TYPES[output], len(labels),
+                                    1.0 / s.window, "float32", outlet_source_id(self.prefix, s.name, output))
+        else:
+            labels = None
+            info = pylsl.StreamInfo(outlet_name(self.prefix, s.name, output), _TYPES[output], 1, pylsl.IRREGULAR_RATE,
+                                    "string", outlet_source_id(self.prefix, s.name, output))
+        desc = info.desc()
+        if labels is not None:
+            channels = desc.append_child("channels")
+            for label, unit, kind in zip(labels, units, kinds):
+                ch = channels.append_child("channel")
+                ch.append_child_value("label", label)
+                ch.append_child_value("unit", unit)
+                ch.append_child_value("type", kind)
+        meta = desc.append_child("supramodal")
+        meta.append_child_value("version", __version__)
+        meta.append_child_value("stream", s.name)
+        meta.append_child_value("window", repr(s.window))
+        meta.append_child_value("features", ",".join(s.features))
+        meta.append_child_value("classes", json.dumps(list(s.classes)))
+        bank = meta.append_child("bank")
+        bank.append_child_value("kind", s.bank_kind)
+        bank.append_child_value("rate", repr(s.rate))
+        filters = bank.append_child("filters")
+        for name, cf in zip(s.filters, s.centre_hz):
+            f = filters.append_child("filter")
+            f.append_child_value("name", name)
+            f.append_child_value("centre_hz", repr(float(cf)))
+        return info
+
+    # -- the node's calls ---------------------------------------------------------------------
+
+    def start(self, epoch: float) -> None:
+        """The graph's start, on ``time.monotonic()``: common time 0. The caller's thread, before
+        any event."""
+        best = (math.inf, 0.0)
+        for _ in range(9):
+            a = time.monotonic()
+            lsl = self._pylsl.local_clock()
+            b = time.monotonic()
+            best = min(best, (b - a, (a + b) / 2 - lsl))
+        self._epoch, self._offset = epoch, best[1]
+
+    def lsl_time(self, common: float) -> float:
+        """A time on the node's common clock, seconds, on LSL's clock."""
+        return self._epoch + common - self._offset
+
+    def emit(self, event: WindowEvent) -> None:
+        if event.stream not in self._streams:
+            return
+        stamp = self.lsl_time(event.end)
+        name = event.stream
+        features = self._outlets.get((name, "features"))
+        if features is not None and event.features:
+            s = self._streams[name]
+            row = np.concatenate([np.asarray(event.features[f], dtype=np.float32) for f in s.features])
+            features.push_sample(row, stamp)
+            self.pushed[f"{name}/features"] += 1
+        posteriors = self._outlets.get((name, "posteriors"))
+        if posteriors is not None and event.posteriors is not None:
+            posteriors.push_sample(np.asarray(event.posteriors, dtype=np.float32), stamp)
+            self.pushed[f"{name}/posteriors"] += 1
+        decisions = self._outlets.get((name, "decisions"))
+        if decisions is not None and event.decision is not None:
+            decisions.push_sample([json.dumps(_marker(event))], stamp)
+            self.pushed[f"{name}/decisions"] += 1
+
+    def event(self, ev) -> None:
+        """Driver events are not sent (they are in the node's own sinks)."""
+
+    def summary(self, summary: dict) -> None:
+        """Nothing to write: the counts are in :attr:`pushed`."""
+
+    def close(self) -> None:
+        self._outlets.clear()               # liblsl closes an outlet when it is released
+
+
+def _marker(event: WindowEvent) -> dict:
+    """The decision marker of one window: what a consumer needs to act on it."""
+    return {"stream": event.stream, "window": event.window, "start": round(event.start, 6),
+            "end": round(event.end, 6), "decision": event.decision,
+            "confidence": None if event.confidence is None else round(event.confidence, 4),
+            "pooled": event.pooled, "truth": event.truth, "flags": sorted(event.flags)}

@@ -1,0 +1,160 @@
+"""XDF recordings (LabRecorder's files) as sessions that replay with their recorded timing.
+
+Needs pyxdf (the optional extra ``lsl``: ``pip install "supramodal[lsl]"``); :func:`import_pyxdf`
+is the one place that imports it.
+
+A stream of an XDF file becomes a :class:`~supramodal.replay.session.Session` whose ``arrivals``
+are the recorded timestamps: blocks of about 10 ms, each with the time of its last sample, in
+seconds from the file's earliest timestamp (of any regularly sampled stream in it, so that every
+stream of one file shares that zero). Replayed with ``timing = "recorded"``, the node's clock model
+is fitted to those times, and two streams of one file (a whisker array at 5 kHz and a microphone at
+44.1 kHz, each on its own crystal) are put on one time line as they were recorded, at any speed.
+
+The timestamps are those the file holds, put on the recorder's clock by the file's clock offsets
+(pyxdf's ``synchronize_clocks``), not dejittered: the node's clock model rejects the jitter itself.
+A timestamp earlier than the one before it (jitter across a chunk boundary) is raised to it, so
+that block times never go backwards. Files are data: a stream that is not numeric, not regularly
+sampled, or holds non-finite samples or timestamps is refused with a message naming it.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+
+from supramodal.drivers.base import DeviceUnavailable
+from supramodal.replay.errors import ReplayError
+from supramodal.replay.session import Session
+
+#: Seconds per replayed block of an XDF stream.
+XDF_BLOCK_SECONDS = 0.01
+
+
+def import_pyxdf():
+    """The pyxdf module, or :class:`DeviceUnavailable` saying what to install."""
+    try:
+        import pyxdf
+    except ImportError:
+        raise DeviceUnavailable('reading XDF files needs pyxdf: pip install "supramodal[lsl]"') from None
+    return pyxdf
+
+
+def _describe(info: dict) -> str:
+    def first(key):
+        v = info.get(key)
+        return v[0] if isinstance(v, list) and v else v
+
+    return (f"name={first('name')!r} type={first('type')!r} source_id={first('source_id')!r} "
+            f"{first('channel_count')} ch at {first('nominal_srate')} Hz")
+
+
+def _matches(info: dict, want: dict) -> bool:
+    return all((info.get(k) or [None])[0] == v for k, v in want.items())
+
+
+def load_xdf_streams(path: str | os.PathLike):
+    """Every stream of an XDF file, timestamps on the recorder's clock: a list of pyxdf's stream
+    dicts. :class:`DeviceUnavailable` if the file is missing; :class:`ReplayError` if it cannot be
+    read as XDF."""
+    pyxdf = import_pyxdf()
+    path = Path(path)
+    if not path.is_file():
+        raise DeviceUnavailable(f"{path}: no such XDF file")
+    try:
+        streams, _ = pyxdf.load_xdf(str(path), synchronize_clocks=True, dejitter_timestamps=False, verbose=False)
+    except Exception as exc:  # pyxdf's errors on a damaged or foreign file, one place
+        raise ReplayError(f"{path}: not a readable XDF file ({type(exc).__name__}: {exc})") from None
+    return streams
+
+
+def _regular(s: dict) -> bool:
+    info = s.get("info", {})
+    try:
+        rate = float(info.get("nominal_srate", ["0"])[0])
+    except (TypeError, ValueError):
+        return False
+    return rate > 0 and isinstance(s.get("time_series"), np.ndarray) and len(s.get("time_stamps", ())) > 0
+
+
+def xdf_session(path: str | os.PathLike, name: str | None = None, stream_type: str | None = None,
+                source_id: str | None = None, streams=None) -> Session:
+    """One stream of an XDF file as a session with its recorded timing (see the module notes).
+
+    Parameters
+    ----------
+    path : path-like
+    name, stream_type, source_id : str, optional
+        What the stream must match (at least one; all that are given). Exactly one stream of the
+        file must match.
+    streams : list, optional
+        :func:`load_xdf_streams` of the file, when the caller has it already (one read for
+        several sources).
+    """
+    want = {k: v for k, v in (("name", name), ("type", stream_type), ("source_id", source_id)) if v is not None}
+    if not want:
+        raise ReplayError("an XDF source needs the stream's name, type or source_id")
+    path = Path(path)
+    streams = load_xdf_streams(path) if streams is None else streams
+    found = [s for s in streams if _matches(s.get("info", {}), want)]
+    asked = ", ".join(f"{k}={v!r}" for k, v in want.items())
+    if len(found) != 1:
+        have = "; ".join(_describe(s.get("info", {})) for s in streams) or "no stream"
+        what = "no stream" if not found else f"{len(found)} streams"
+        raise ReplayError(f"{path}: {what} with {asked}; the file has {have}")
+    s = found[0]
+    where = f"{path}: stream {_describe(s['info'])}"
+    if not _regular(s):
+        raise ReplayError(f"{where}: not a regularly sampled numeric stream (markers cannot be replayed as a signal)")
+    data = np.asarray(s["time_series"])
+    if data.dtype.kind not in "fiu" or data.ndim != 2 or data.shape[0] == 0:
+        raise ReplayError(f"{where}: expected numeric samples of shape (samples, channels), got {data.dtype} "
+                          f"{data.shape}")
+    stamps = np.asarray(s["time_stamps"], dtype=np.float64)
+    if stamps.shape != (data.shape[0],) or not np.all(np.isfinite(stamps)):
+        raise ReplayError(f"{where}: its timestamps are not one finite number per sample")
+    if data.dtype.kind in "iu":
+        data = data.astype(np.float64) / _full_scale(data.dtype)
+    else:
+        data = data.astype(np.float64)
+    if not np.all(np.isfinite(data)):
+        raise ReplayError(f"{where}: it holds NaN or infinite samples")
+    rate = float(s["info"]["nominal_srate"][0])
+    zero = min(float(np.min(x["time_stamps"])) for x in streams if _regular(x))
+    return Session(data, _session_rate(rate, where), f"XDF {path.name}: {_describe(s['info'])}", path=path,
+                   arrivals=_arrivals(stamps - zero, rate))
+
+
+def _full_scale(dtype) -> float:
+    """Integer samples are scaled so that the type's range is +-1."""
+    return float(2 ** (np.dtype(dtype).itemsize * 8 - 1))
+
+
+def _session_rate(rate: float, where: str) -> int:
+    """A session's rate is whole Hz; a stream at a fractional nominal rate is refused."""
+    if not (math.isfinite(rate) and rate >= 1 and abs(rate - round(rate)) < 1e-9 * rate):
+        raise ReplayError(f"{where}: nominal rate {rate} Hz is not a whole number of Hz; the node replays "
+                          "streams at whole rates")
+    return int(round(rate))
+
+
+def _arrivals(seconds: np.ndarray, rate: float) -> tuple[np.ndarray, np.ndarray, float]:
+    """Blocks of :data:`XDF_BLOCK_SECONDS`: each one's end frame and the time of its last sample
+    (never earlier than the block's before), and the rate the timestamps show over the whole
+    stream (a least-squares line; the nominal rate for a stream too short to show one). The node's
+    clock model starts from that rate, so the first windows are on time too, before the model
+    has seen enough blocks to find a drift of tens of ppm itself."""
+    n = seconds.size
+    step = max(1, int(round(XDF_BLOCK_SECONDS * rate)))
+    ends = np.r_[np.arange(step, n, step), n].astype(np.int64)
+    times = np.maximum.accumulate(seconds[ends - 1])
+    shown = float(rate)
+    if n >= 2 and seconds[-1] > seconds[0]:
+        index = np.arange(n, dtype=np.float64)
+        slope = np.polyfit(index - index.mean(), seconds - seconds.mean(), 1)[0]
+        # A rate far from nominal is a broken file or a clock reset: keep the nominal one.
+        if slope > 0 and abs(1.0 / slope - rate) < 0.01 * rate:
+            shown = 1.0 / slope
+    return ends, times, shown

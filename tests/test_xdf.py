@@ -1,0 +1,111 @@
+"""XDF recordings replayed with their recorded timing: files written by tests/xdf_writer.py (from
+the XDF specification) read back by pyxdf, and two streams of one file (5 kHz and 44.1 kHz, each
+on its own clock, 37 ms apart) put on the node's common time to within one sample."""
+
+import numpy as np
+import pytest
+
+from xdf_writer import XdfStream, write_xdf
+
+pyxdf = pytest.importorskip("pyxdf", reason="the XDF tests need pyxdf (the lsl extra; CI installs it)")
+
+from supramodal.node.build import build_node  # noqa: E402
+from supramodal.node.scene import SceneError, scene_from_dict  # noqa: E402
+from supramodal.node.sinks import ListSink  # noqa: E402
+from supramodal.replay.errors import ReplayError  # noqa: E402
+from supramodal.replay.xdf import xdf_session  # noqa: E402
+
+T0 = 5000.0                     # the sender's clock at the first whisker sample
+SECONDS = 3.0
+
+
+def _two_streams(seconds=SECONDS):
+    """Whiskers at 5 kHz (+40 ppm), a microphone at 44.1 kHz (-70 ppm, 37.1 ms later, and 10 ms
+    behind on the recorder's clock by its clock offsets), and a marker stream."""
+    rng = np.random.default_rng(5)
+    n_w, n_m = int(seconds * 5000), int(seconds * 44100)
+    whiskers = XdfStream("whiskers", "Whiskers", 5000.0, 0.1 * rng.standard_normal((n_w, 20)),
+                         T0 + np.arange(n_w) / (5000.0 * (1 + 40e-6)), source_id="board-1",
+                         offsets=[(T0 + k, 0.0) for k in range(4)])
+    mic = XdfStream("mic", "Audio", 44100.0, 0.1 * rng.standard_normal((n_m, 1)),
+                    T0 + 0.0371 + np.arange(n_m) / (44100.0 * (1 - 70e-6)), source_id="card-1",
+                    offsets=[(T0 + k, 0.010) for k in range(4)], chunk=441)
+    return whiskers, mic
+
+
+def test_a_file_written_to_the_specification_reads_back_with_pyxdf(tmp_path):
+    whiskers, mic = _two_streams(1.0)
+    write_xdf(tmp_path / "r.xdf", [whiskers, mic])
+    streams, header = pyxdf.load_xdf(str(tmp_path / "r.xdf"), dejitter_timestamps=False)
+    by_name = {s["info"]["name"][0]: s for s in streams}
+    for s, shift in ((whiskers, 0.0), (mic, 0.010)):
+        got = by_name[s.name]
+        np.testing.assert_array_equal(got["time_series"], s.samples.astype(np.float32))
+        np.testing.assert_allclose(got["time_stamps"], s.stamps + shift, rtol=0, atol=1e-9)
+        assert float(got["info"]["nominal_srate"][0]) == s.rate
+
+
+def test_one_stream_becomes_a_session_with_its_recorded_times(tmp_path):
+    whiskers, mic = _two_streams(1.0)
+    write_xdf(tmp_path / "r.xdf", [whiskers, mic])
+    session = xdf_session(tmp_path / "r.xdf", name="mic")
+    assert session.rate == 44100 and session.data.shape == (44100, 1)
+    np.testing.assert_array_equal(session.data, mic.samples.astype(np.float32))
+    ends, times, rate = session.arrivals
+    # The rate the timestamps show (the card's -70 ppm), which the node's clock model starts from.
+    assert rate == pytest.approx(44100.0 * (1 - 70e-6), rel=1e-9)
+    assert ends[-1] == 44100 and np.all(np.diff(ends) == 441)
+    # Seconds from the file's earliest sample (the whiskers'), the clock offset applied.
+    np.testing.assert_allclose(times, mic.stamps[ends - 1] + 0.010 - T0, rtol=0, atol=1e-9)
+
+
+def test_the_stream_asked_for_must_be_there_and_be_a_signal(tmp_path):
+    whiskers, mic = _two_streams(0.2)
+    markers = XdfStream("events", "Markers", 0.0, np.zeros((3, 1)), T0 + np.arange(3.0))
+    write_xdf(tmp_path / "r.xdf", [whiskers, mic, markers])
+    with pytest.raises(ReplayError, match=r"no stream with name='eeg'; the file has name='whiskers' .*name='mic'"):
+        xdf_session(tmp_path / "r.xdf", name="eeg")
+    with pytest.raises(ReplayError, match="not a regularly sampled numeric stream"):
+        xdf_session(tmp_path / "r.xdf", stream_type="Markers")
+    (tmp_path / "bad.xdf").write_bytes(b"XDF:" + b"\x01\x05\x02\x00junk")
+    with pytest.raises(ReplayError, match="not a readable XDF file"):
+        xdf_session(tmp_path / "bad.xdf", name="whiskers")
+
+
+def _graph(path, speed="max"):
+    source = {"type": "xdf", "path": str(path), "speed": speed}
+    return scene_from_dict({
+        "source": [{"name": "board", **source, "stream": "whiskers", "mapping": "per-channel"},
+                   {"name": "card", **source, "source_id": "card-1", "mapping": "mono"}],
+        "stream": [{"name": "whiskers", "source": "board", "bank": {"kind": "whisker"}, "features": {"names": ["Af"]}},
+                   {"name": "mic", "source": "card", "bank": {"kind": "cochlea"}, "features": {"names": ["Af"]}}],
+        "sink": [{"type": "text", "path": "-"}]})
+
+
+@pytest.mark.parametrize("speed", ["max", 6.0])
+def test_two_streams_of_one_file_replay_aligned_to_within_one_sample(tmp_path, speed):
+    """Every window of both streams starts, on the node's common time, within one sample of its
+    first sample's recorded time (from the file's first sample, clock offsets applied)."""
+    whiskers, mic = _two_streams()
+    write_xdf(tmp_path / "r.xdf", [whiskers, mic])
+    sink = ListSink()
+    build_node(_graph(tmp_path / "r.xdf", speed), sinks_override=[sink]).run()
+    seen = {"whiskers": 0, "mic": 0}
+    for e in sink.windows:
+        s, shift, W = (whiskers, 0.0, 500) if e.stream == "whiskers" else (mic, 0.010, 4410)
+        truth = s.stamps[e.window * W] + shift - T0
+        assert abs(e.start - truth) < 1.0 / s.rate, (e.stream, e.window, e.start - truth)
+        seen[e.stream] += 1
+    assert seen == {"whiskers": 30, "mic": 30}
+
+
+def test_an_xdf_source_must_name_its_stream(tmp_path):
+    whiskers, mic = _two_streams(0.2)
+    write_xdf(tmp_path / "r.xdf", [whiskers, mic])
+    scene = scene_from_dict({"driver": {"type": "xdf", "path": str(tmp_path / "r.xdf")}, "bank": {"kind": "whisker"}})
+    with pytest.raises(SceneError, match=r"type \"xdf\" needs the recorded stream's name \(stream = \.\.\.\)"):
+        build_node(scene)
+    scene = scene_from_dict({"driver": {"type": "xdf", "path": str(tmp_path / "r.xdf"), "stream": "nope"},
+                             "bank": {"kind": "whisker"}})
+    with pytest.raises(SceneError, match=r"\[driver\] .*no stream with name='nope'"):
+        build_node(scene)
