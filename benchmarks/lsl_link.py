@@ -276,7 +276,7 @@ def run_restart(seconds: float, out: Path, kill_at: float = 3.0, down: float = 1
     """The sender killed ``kill_at`` s into the stream and started again ``down`` s later, going on
     from where its sample clock has got to: the gap the node counts and fills, and how soon after
     the new sender's first push the node decides again on measured samples."""
-    from supramodal.drivers.lsl import import_pylsl
+    from supramodal.drivers.lsl import import_pylsl, lsl_clock_offset
 
     pylsl = import_pylsl()
     wav, model, _ = _prepare(seconds + kill_at + down + 2.0, out, progress)
@@ -297,7 +297,7 @@ def run_restart(seconds: float, out: Path, kill_at: float = 3.0, down: float = 1
         time.sleep(down)
         second = start_sender(wav, name, source_id, t0=t0, stderr=subprocess.PIPE)
         _, began = _start_line(second)
-        began += time.monotonic() - pylsl.local_clock()          # one machine, one offset
+        began += lsl_clock_offset(pylsl)                         # one machine, one offset
         runner.join(timeout=seconds + 60.0)
     finally:
         for proc in (first, second):

@@ -94,6 +94,18 @@ def import_pylsl():
     return pylsl
 
 
+def lsl_clock_offset(pylsl) -> float:
+    """``time.monotonic() - pylsl.local_clock()``, seconds: the midpoint of the tightest of a few
+    brackets of one LSL clock reading between two host clock readings."""
+    best = (math.inf, 0.0)
+    for _ in range(9):
+        a = time.monotonic()
+        lsl = pylsl.local_clock()
+        b = time.monotonic()
+        best = min(best, (b - a, (a + b) / 2 - lsl))
+    return best[1]
+
+
 def describe_stream(info) -> str:
     """One line naming an LSL stream: name, type, source_id, channels, rate, host."""
     return (f"name={info.name()!r} type={info.type()!r} source_id={info.source_id()!r} "
@@ -264,19 +276,9 @@ class LSLInletDriver:
         except Exception as exc:
             self._inlet = None
             raise DeviceUnavailable(f"LSL: cannot open the stream {self.info}: {exc}") from None
-        self._offset = self._clock_offset()
+        self._offset = lsl_clock_offset(self._pylsl)
         self._buf = np.empty((self._max_chunk, self.channels), dtype=self._dtype)
         self._last_data = time.monotonic()
-
-    def _clock_offset(self) -> float:
-        """``time.monotonic() - pylsl.local_clock()``, from the tightest of a few brackets."""
-        best = (math.inf, 0.0)
-        for _ in range(9):
-            a = time.monotonic()
-            lsl = self._pylsl.local_clock()
-            b = time.monotonic()
-            best = min(best, (b - a, (a + b) / 2 - lsl))
-        return best[1]
 
     def close(self) -> None:
         inlet, self._inlet = self._inlet, None

@@ -12,6 +12,7 @@ import math
 import numpy as np
 
 from supramodal.node.band import warn_if_beyond_band
+from supramodal.node.events import FUSED_STREAM, MAIN_STREAM
 from supramodal.node.graph import Graph, Node
 from supramodal.node.sources import Source
 from supramodal.node.streams import Labels, Stream
@@ -276,7 +277,6 @@ def _lsl_sinks(scene: Scene, streams: list, fused_classes=None, sinks_override=N
     streams each listens to; ``streams`` are ``(name, pipeline, model)``."""
     if sinks_override is not None or not any(s["type"] == "lsl" for s in scene.sinks):
         return [], []
-    from supramodal.node.events import FUSED_STREAM
     from supramodal.node.lsl_outlets import LSLOutletSink, OutletStream
 
     described = {}
@@ -379,8 +379,6 @@ def build_node(scene: Scene, speed=None, sinks_override=None, progress=None, rec
     driver, labels, ts = driver_for(scene, bank, speed)
     model = _model_for(scene, bank, pipeline, ts, progress)
     try:
-        from supramodal.node.events import MAIN_STREAM
-
         sinks += _lsl_sinks(scene, [(MAIN_STREAM, pipeline, model)], sinks_override=sinks_override)[0]
         return Node(driver, pipeline, sinks, model=model, decision=scene.decision,
                     mapping=scene.driver.get("mapping", "auto"), labels=labels,

@@ -42,7 +42,6 @@ one, its outlets' ``max_buffered``).
 from __future__ import annotations
 
 import json
-import math
 import socket
 import time
 from dataclasses import dataclass
@@ -50,7 +49,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from supramodal import __version__
-from supramodal.drivers.lsl import import_pylsl
+from supramodal.drivers.lsl import import_pylsl, lsl_clock_offset
 from supramodal.features import FEATURE_TABLE
 from supramodal.node.events import WindowEvent
 from supramodal.errors import InputError
@@ -137,12 +136,6 @@ class LSLOutletSink:
                 info = self._info(s, output)
                 self._outlets[(s.name, output)] = pylsl.StreamOutlet(info, chunk_size=1,
                                                                      max_buffered=OUTLET_BUFFER_SECONDS)
-        self.pushed = {f"{name}/{output}": 0 for name, output in self._outlets}
-
-    @property
-    def names(self) -> list[str]:
-        """The LSL names of the outlets, in the order made."""
-        return [outlet_name(self.prefix, name, output) for name, output in self._outlets]
 
     def _info(self, s: OutletStream, output: str):
         pylsl = self._pylsl
@@ -189,13 +182,7 @@ class LSLOutletSink:
     def start(self, epoch: float) -> None:
         """The graph's start, on ``time.monotonic()``: common time 0. The caller's thread, before
         any event."""
-        best = (math.inf, 0.0)
-        for _ in range(9):
-            a = time.monotonic()
-            lsl = self._pylsl.local_clock()
-            b = time.monotonic()
-            best = min(best, (b - a, (a + b) / 2 - lsl))
-        self._epoch, self._offset = epoch, best[1]
+        self._epoch, self._offset = epoch, lsl_clock_offset(self._pylsl)
 
     def lsl_time(self, common: float) -> float:
         """A time on the node's common clock, seconds, on LSL's clock."""
@@ -211,21 +198,18 @@ class LSLOutletSink:
             s = self._streams[name]
             row = np.concatenate([np.asarray(event.features[f], dtype=np.float32) for f in s.features])
             features.push_sample(row, stamp)
-            self.pushed[f"{name}/features"] += 1
         posteriors = self._outlets.get((name, "posteriors"))
         if posteriors is not None and event.posteriors is not None:
             posteriors.push_sample(np.asarray(event.posteriors, dtype=np.float32), stamp)
-            self.pushed[f"{name}/posteriors"] += 1
         decisions = self._outlets.get((name, "decisions"))
         if decisions is not None and event.decision is not None:
             decisions.push_sample([json.dumps(_marker(event))], stamp)
-            self.pushed[f"{name}/decisions"] += 1
 
     def event(self, ev) -> None:
         """Driver events are not sent (they are in the node's own sinks)."""
 
     def summary(self, summary: dict) -> None:
-        """Nothing to write: the counts are in :attr:`pushed`."""
+        """Nothing to write (the node's summary counts what the sink's queue passed on)."""
 
     def close(self) -> None:
         self._outlets.clear()               # liblsl closes an outlet when it is released

@@ -255,15 +255,21 @@ def intact_frames(fed: bytes, placed) -> list:
     return out
 
 
+def frame_ending_in(byte: int, seq: int) -> bytes:
+    """A one-sample frame whose last byte (its CRC's last) is ``byte``: the first found over
+    the sample values 0, 1, 2, ... (one in 256 is)."""
+    for value in range(32768):
+        frame = encode_frame(seq, np.array([[value]], np.int16))
+        if frame[-1] == byte:
+            return frame
+    raise AssertionError(f"no one-sample frame ends in {byte:#04x}")
+
+
 def test_a_last_frame_that_lost_a_trailing_zero_is_whole_again_with_the_flush_padding():
     """The case that made the fuzz test below fail once in CI (its oracle then looked at the
     stream without the flush's zeros): a frame whose last byte is 00 loses it at the end of the
     stream; the zeros that flush the decoder complete it, so it is decoded, rightly."""
-    for seed in range(100_000):
-        a = encode_frame(5, np.array([[seed]], np.int16))
-        if a[-1] == 0:
-            break
-    assert a[-1] == 0
+    a = frame_ending_in(0, seq=5)
     dec = FrameDecoder()
     assert dec.feed(a[:-1]) == []
     more, padding = flush(dec)
@@ -274,11 +280,7 @@ def test_a_frame_that_lost_its_sync_byte_is_whole_one_byte_earlier_after_a_frame
     """The second case the fuzz test found in CI: frame 1 lost its first byte (so it is damaged) and
     ends with A5 (its CRC's last byte); frame 2 lost its first byte too, its A5: the stream holds
     frame 2 whole, starting one byte early, on frame 1's last byte. The decoder returns it, rightly."""
-    for seed in range(100_000):
-        a = encode_frame(1, np.array([[seed]], np.int16))
-        if a[-1] == SYNC[0]:
-            break
-    assert a[-1] == SYNC[0]
+    a = frame_ending_in(SYNC[0], seq=1)
     b = encode_frame(2, np.array([[7]], np.int16))
     fed = a[1:] + b[1:] + bytes(64)
     assert [f.seq for f in FrameDecoder().feed(fed)] == [2]
@@ -289,11 +291,7 @@ def test_deleted_bytes_equal_to_what_follows_make_the_next_frame_the_damaged_one
     # Delete the last byte of frame 1 when it equals the byte after it (the next
     # frame's A5): the stream is byte for byte the one where frame 2 lost its
     # first byte. Frame 1 is intact on the wire and decoded; frame 2 is not.
-    for seed in range(10_000):
-        a = encode_frame(1, np.array([[seed]], np.int16))
-        if a[-1] == SYNC[0]:
-            break
-    assert a[-1] == SYNC[0]
+    a = frame_ending_in(SYNC[0], seq=1)
     b = encode_frame(2, np.array([[7]], np.int16))
     dec = FrameDecoder()
     frames = dec.feed(a[:-1] + b + bytes(64))
