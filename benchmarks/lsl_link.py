@@ -9,10 +9,13 @@ known peer 127.0.0.1, a session id of its own), and :func:`check_loopback_config
 with any other.
 
 The signal is the whisker reference textures, each 7.5 s (the first 60 s; fanned out to 20
-channels with a gain per whisker), written once as a float32 WAV. The sender
-(``python3 -m supramodal.benchmarks.lsl_link send``) plays it in real time in 10 ms chunks, each
-stamped with its last sample's time on the sender's sample clock; the node (its scene:
-:func:`inlet_scene`) classifies it per window. Then the same WAV is replayed locally, through the
+channels with a gain per whisker), written once as a float32 WAV. The sender plays it in real
+time in 10 ms chunks, each stamped with its last sample's time: by default a relay node
+(``supramodal run`` of :func:`relay_scene`: a replay source sent on by ``[[sink]] type =
+"lsl-signal"``, what machine A runs), or with ``--sender plain`` this module's own pylsl loop
+(``python3 -m supramodal.benchmarks.lsl_link send``, stamping from its sample clock; the
+kill-and-restart run always uses it, since it can go on where its sample clock had got to). The
+node (its scene: :func:`inlet_scene`) classifies it per window. Then the same WAV is replayed locally, through the
 same scene with a replay source, and the decisions are compared window by window.
 
 Reported: samples sent and received, filled and lost; the node's decisions against the local
@@ -149,6 +152,19 @@ def start_sender(wav, name, source_id, t0=None, env=None, stderr=None) -> subpro
     return subprocess.Popen(cmd, env=env or os.environ.copy(), stderr=stderr, text=True)
 
 
+def relay_scene(wav, prefix: str, wait: float = 30.0) -> str:
+    """The sending machine's scene: the WAV replayed in real time as a source that no stream
+    reads, sent on as ``PREFIX-whiskers-signal`` in 10 ms chunks once a consumer has come."""
+    return (f'[[source]]\nname = "whiskers"\ntype = "replay"\npath = {json.dumps(str(wav))}\nspeed = 1.0\n\n'
+            f'[[sink]]\ntype = "lsl-signal"\nprefix = "{prefix}"\nchunk = 0.01\nwait_for_consumer = {wait!r}\n')
+
+
+def start_relay(scene, stderr=None) -> subprocess.Popen:
+    """A relay node (``supramodal run SCENE``) as a child process, as the robot's computer would run it."""
+    return subprocess.Popen([sys.executable, "-m", "supramodal", "run", str(scene), "--quiet"],
+                            env=os.environ.copy(), stderr=stderr, text=True)
+
+
 # -- the receiving node ------------------------------------------------------------------------
 
 def inlet_scene(name: str, model: str, **driver) -> dict:
@@ -235,18 +251,32 @@ def _run_for(node, seconds: float, slack: float = 30.0) -> dict:
         watchdog.cancel()
 
 
-def run(seconds: float, out: Path, progress=print) -> dict:
+#: Who sends: a relay node (``supramodal run`` of :func:`relay_scene`), or the plain pylsl
+#: sender (:func:`send`), which stamps from its own sample clock.
+SENDERS = ("node", "plain")
+
+
+def run(seconds: float, out: Path, progress=print, sender: str = SENDERS[0]) -> dict:
     """Send ``seconds`` of the whisker signal from another process to an inlet node; compare with
-    the same WAV fed locally."""
+    the same WAV fed locally. ``sender``: one of :data:`SENDERS`."""
+    if sender not in SENDERS:
+        raise ValueError(f"sender is one of {SENDERS}, got {sender!r}")
     wav, model, local = _prepare(seconds, out, progress)
-    progress(f"sending {seconds:g} s over LSL from another process")
-    sender = start_sender(wav, STREAM_NAME, f"supramodal-bench-{uuid.uuid4().hex[:8]}")
+    progress(f"sending {seconds:g} s over LSL from another process ({sender} sender)")
+    if sender == "node":
+        prefix = f"bench{uuid.uuid4().hex[:8]}"
+        scene = out / "relay.toml"
+        scene.write_text(relay_scene(wav, prefix))
+        name, proc = f"{prefix}-whiskers-signal", start_relay(scene)
+    else:
+        name = STREAM_NAME
+        proc = start_sender(wav, name, f"supramodal-bench-{uuid.uuid4().hex[:8]}")
     try:
-        node, sink, blocks = _inlet_node(STREAM_NAME, model)
+        node, sink, blocks = _inlet_node(name, model)
         summary = _run_for(node, seconds)
     finally:
-        _end(sender)
-    return _report(local, sink.windows, sink.times, blocks, summary, seconds)
+        _end(proc)
+    return {"sender": sender, **_report(local, sink.windows, sink.times, blocks, summary, seconds)}
 
 
 def _end(proc) -> None:
@@ -359,8 +389,12 @@ def report_markdown(link: dict, restart: dict | None) -> str:
     """The two runs as the report's tables."""
     d = link["driver"]
     lines = ["# 20 whisker channels at 5 kHz over LSL, between two processes", "",
-             f"{link['seconds']:g} s sent in 10 ms chunks by one process (the sender's sample clock stamps them), "
-             "classified by a node in another (LSL on loopback only; LSLAPICFG: machine scope, known peer "
+             f"{link['seconds']:g} s sent in 10 ms chunks by one process ("
+             + ("a relay node, `supramodal run relay.toml`: a replay source sent on by `[[sink]] type = "
+                "\"lsl-signal\"`, each chunk stamped with its last sample's time on the node's common clock"
+                if link.get("sender", "plain") == "node" else "the plain pylsl sender, its sample clock stamping "
+                "each chunk")
+             + "), classified by a node in another (LSL on loopback only; LSLAPICFG: machine scope, known peer "
              "127.0.0.1).", "",
              "| measure | value |", "|---|---|",
              f"| samples sent / received | {link['samples_sent']} / {link['samples_received']} |",
@@ -400,6 +434,9 @@ def main(argv=None) -> int:
     parser.add_argument("--seconds", type=float, default=60.0, help="stream sent, seconds (default 60)")
     parser.add_argument("--restart-seconds", type=float, default=20.0,
                         help="stream of the kill-and-restart run, seconds (0: leave it out; default 20)")
+    parser.add_argument("--sender", choices=SENDERS, default=SENDERS[0],
+                        help="who sends: a relay node (supramodal run, [[sink]] type = \"lsl-signal\"; default) or "
+                             "the plain pylsl sender of this module")
     parser.add_argument("--out", default="lsl-link")
     args = parser.parse_args(argv)
     if args.command == "send":
@@ -410,7 +447,7 @@ def main(argv=None) -> int:
     os.environ["LSLAPICFG"] = str(loopback_config(out))
     check_loopback_config()
     progress = lambda m: print(m, file=sys.stderr, flush=True)   # noqa: E731
-    link = run(args.seconds, out / "link", progress)
+    link = run(args.seconds, out / "link", progress, sender=args.sender)
     restart = run_restart(args.restart_seconds, out / "restart", progress=progress) if args.restart_seconds else None
     (out / "lsl_link.json").write_text(json.dumps({"link": link, "restart": restart}, indent=1))
     text = report_markdown(link, restart)

@@ -16,7 +16,7 @@ from supramodal.node.events import FUSED_STREAM, MAIN_STREAM
 from supramodal.node.graph import Graph, Node
 from supramodal.node.sources import Source
 from supramodal.node.streams import Labels, Stream
-from supramodal.node.scene import LEARN, Scene, SceneError
+from supramodal.node.scene import LEARN, Scene, SceneError, source_scene
 from supramodal.node.sinks import QueuedSink, make_sink
 from supramodal.bankfile import BANK_KEYS, BankFileError, bank_from_description, load_bank
 from supramodal.banks import Bank
@@ -93,7 +93,7 @@ def synth_session(scene: Scene, bank: Bank):
 
     d = scene.driver
     ts = _texture_set(scene, d["textures"])
-    if abs(ts.fs - bank.fs) > 1e-9 * bank.fs:
+    if bank is not None and abs(ts.fs - bank.fs) > 1e-9 * bank.fs:
         raise SceneError(f"{scene.source}: [driver] texture set {ts.name!r} is at {ts.fs:g} Hz, the bank at {bank.fs:g} Hz")
     order = d["order"] or list(ts.names)
     unknown = [n for n in order if n not in ts.names]
@@ -129,7 +129,7 @@ def twosense_session(scene: Scene, bank: Bank):
     d = scene.driver
     surfaces = two_sense_set(d["pairs"], d["set_seed"])
     train = OneSense(surfaces, d["sense"], seed=d["set_seed"])
-    if abs(train.fs - bank.fs) > 1e-9 * bank.fs:
+    if bank is not None and abs(train.fs - bank.fs) > 1e-9 * bank.fs:
         raise SceneError(f"{scene.source}: [driver] sense {d['sense']!r} is sampled at {train.fs:g} Hz, the bank at "
                          f"{bank.fs:g} Hz: give the whiskers a whisker bank and the microphone a cochlea bank")
     order = d["order"] or list(train.names)
@@ -163,9 +163,16 @@ def train_on_texture_set(ts, pipeline: FeaturePipeline, progress=None, held_out:
     return TextureModel.train_for(p, x_train, y_train, ts.names, seed=0)
 
 
-def driver_for(scene: Scene, bank: Bank, speed_override=None):
-    """Build the scene's driver; returns ``(driver, labels, texture_set_or_None)``."""
+def driver_for(scene: Scene, bank: Bank | None, speed_override=None, xdf_files: dict | None = None):
+    """Build the scene's driver; returns ``(driver, labels, texture_set_or_None)``.
+
+    ``bank``: the bank that reads the source (a file is resampled to its rate, a stream at
+    another rate is refused), or None for a source that no bank reads (a relay's): then the
+    source keeps its own rate. ``xdf_files``: a dict the caller keeps while it builds several
+    sources (path -> the file's streams), so that one XDF file is read once for all its sources.
+    """
     d = scene.driver
+    rate = None if bank is None else bank.fs
     kind = d["type"]
     if kind in ("synth", "replay", "twosense"):
         # Speed and block size: the replay driver's defaults unless the scene or --speed sets them.
@@ -175,7 +182,7 @@ def driver_for(scene: Scene, bank: Bank, speed_override=None):
         from supramodal.replay.driver import ReplayDriver
 
         ts, data, labels = synth_session(scene, bank)
-        return ReplayDriver((data, bank.fs), on_notice=None, **replay), labels, ts
+        return ReplayDriver((data, ts.fs), on_notice=None, **replay), labels, ts
     if kind == "replay":
         from supramodal.replay.driver import ReplayDriver
         from supramodal.replay.errors import ReplayError
@@ -185,13 +192,14 @@ def driver_for(scene: Scene, bank: Bank, speed_override=None):
             raise SceneError(f"{scene.source}: [driver] path: no recording at {path} (a relative path is taken from "
                              "the scene file's folder)")
         try:
-            drv = ReplayDriver(str(path), rate=bank.fs, loop=d["loop"], timing=d["timing"],
+            drv = ReplayDriver(str(path), rate=rate, loop=d["loop"], timing=d["timing"],
                                on_notice=None, **replay)  # notices reach the sinks as events
         except ReplayError as exc:
             if d["timing"] != "recorded":
                 raise
             raise SceneError(f"{scene.source}: [driver] timing = \"recorded\": {exc}") from None
-        warn_if_beyond_band(bank, drv.source_rate, f"{scene.source}: [driver] path {d['path']}")
+        if bank is not None:
+            warn_if_beyond_band(bank, drv.source_rate, f"{scene.source}: [driver] path {d['path']}")
         return drv, Labels.of(drv), None
     if kind == "twosense":
         from supramodal.replay.driver import DeviceClock, ReplayDriver
@@ -199,7 +207,7 @@ def driver_for(scene: Scene, bank: Bank, speed_override=None):
         ts, data, labels = twosense_session(scene, bank)
         # Paced like a live device on its own crystal: the node sees only the arrivals.
         clock = DeviceClock(d["clock_ppm"], d["offset"], d["jitter"], seed=d["set_seed"] * 2 + (d["sense"] == "whiskers"))
-        return ReplayDriver((data, bank.fs), on_notice=None, device_clock=clock, loop=d["loop"], **replay), labels, ts
+        return ReplayDriver((data, ts.fs), on_notice=None, device_clock=clock, loop=d["loop"], **replay), labels, ts
     if kind == "serial":
         from supramodal.drivers.serial_whisker import SerialWhiskerDriver
 
@@ -214,7 +222,7 @@ def driver_for(scene: Scene, bank: Bank, speed_override=None):
     if kind == "xdf":
         from supramodal.replay.driver import ReplayDriver
         from supramodal.replay.errors import ReplayError
-        from supramodal.replay.xdf import xdf_session
+        from supramodal.replay.xdf import load_xdf_streams, xdf_session
 
         path = scene.resolve(d["path"])
         if not path.exists():
@@ -225,12 +233,19 @@ def driver_for(scene: Scene, bank: Bank, speed_override=None):
                              "(stream = ...), stream_type or source_id")
         speed = _given({"speed": speed_override if speed_override is not None else d["speed"]}, {"speed": "speed"})
         try:
-            session = xdf_session(path, d["stream"], d["stream_type"], d["source_id"])
-            drv = ReplayDriver(session, rate=bank.fs, timing="recorded", on_notice=None, **speed)
+            streams = None
+            if xdf_files is not None:
+                if path not in xdf_files:
+                    xdf_files[path] = load_xdf_streams(path)
+                streams = xdf_files[path]
+            session = xdf_session(path, d["stream"], d["stream_type"], d["source_id"], streams=streams,
+                                  labels=d["labels"])
+            drv = ReplayDriver(session, rate=rate, timing="recorded", on_notice=None, **speed)
         except ReplayError as exc:
             raise SceneError(f"{scene.source}: [driver] {exc}") from None
-        warn_if_beyond_band(bank, drv.source_rate, f"{scene.source}: [driver] path {d['path']}")
-        return drv, Labels(), None
+        if bank is not None:
+            warn_if_beyond_band(bank, drv.source_rate, f"{scene.source}: [driver] path {d['path']}")
+        return drv, Labels.of(drv), None
     if kind == "lsl":
         from supramodal.drivers.lsl import LSLInletDriver
 
@@ -243,7 +258,7 @@ def driver_for(scene: Scene, bank: Bank, speed_override=None):
             driver = LSLInletDriver(d["stream"], d["stream_type"], d["source_id"], **options)
         except InputError as exc:
             raise SceneError(f"{scene.source}: [driver] {exc}") from None
-        if abs(driver.rate - bank.fs) > 1e-9 * bank.fs:
+        if bank is not None and abs(driver.rate - bank.fs) > 1e-9 * bank.fs:
             raise SceneError(f"{scene.source}: the LSL stream {driver.info} runs at {driver.rate:g} Hz but the "
                              f"{bank.kind} bank at {bank.fs:g} Hz; give the stream a bank at its rate "
                              "([bank] fs, or a bank file)")
@@ -257,8 +272,8 @@ def _sinks_for(scene: Scene, sinks_override, overwrite: bool):
         return list(sinks_override), None
     sinks, routes = [], []
     for i, s in enumerate(scene.sinks):
-        if s["type"] == "lsl":
-            continue                            # made once the streams are known (_lsl_sinks)
+        if s["type"] in ("lsl", "lsl-signal"):
+            continue                            # made once the streams and sources are known (_lsl_sinks, _signal_taps)
         path = s["path"] if s["path"] == "-" else str(scene.resolve(s["path"]))
         try:
             # Behind its own queue: processing never waits on a slow disk or a stalled terminal.
@@ -305,6 +320,53 @@ def _lsl_sinks(scene: Scene, streams: list, fused_classes=None, sinks_override=N
         sinks.append(QueuedSink(sink))
         routes.append(set(names))
     return sinks, routes
+
+
+def _signal_type(driver_options: dict, banks: list) -> str:
+    """What a source is, as an LSL content type: by the banks that read it, else by its driver."""
+    kinds = {b.kind for b in banks}
+    if kinds == {"whisker"}:
+        return "Whiskers"
+    if kinds == {"cochlea"}:
+        return "Audio"
+    kind = driver_options["type"]
+    if kind == "serial" or kind == "twosense" and driver_options["sense"] == "whiskers":
+        return "Whiskers"
+    if kind == "microphone" or kind == "twosense":
+        return "Audio"
+    from supramodal.node.lsl_signal import DEFAULT_SIGNAL_TYPE
+
+    return DEFAULT_SIGNAL_TYPE
+
+
+def _signal_taps(scene: Scene, sources: dict, readers: dict, sinks_override=None) -> list:
+    """The scene's signal outlets (``[[sink]] type = "lsl-signal"``) as ``(source name, tap)``;
+    ``sources``: name -> (driver, driver options); ``readers``: source name -> [(bank, mapping)]
+    of the streams that read it."""
+    if sinks_override is not None or not any(s["type"] == "lsl-signal" for s in scene.sinks):
+        return []
+    from supramodal.node.lsl_signal import LSLSignalOutlet
+
+    taps = []
+    for i, s in enumerate(scene.sinks):
+        if s["type"] != "lsl-signal":
+            continue
+        driver, options = sources[s["source"]]
+        channels = driver.channels
+        banks = [bank for bank, _ in readers.get(s["source"], [])]
+        # Channel labels: the filters' names where a bank takes the channels one to one.
+        labels = next((bank.names for bank, mapping in readers.get(s["source"], [])
+                       if mapping in ("auto", "per-channel") and bank.channels == channels), None)
+        try:
+            tap = LSLSignalOutlet(s["source"], driver.rate, channels, s["chunk"], s["prefix"],
+                                  s["stream_type"] or _signal_type(options, banks), labels, options["type"],
+                                  s["wait_for_consumer"])
+        except InputError as exc:
+            for _, made in taps:
+                made.close()
+            raise SceneError(f"{scene.source}: [[sink]] #{i + 1}: {exc}") from None
+        taps.append((s["source"], tap))
+    return taps
 
 
 def _model_for(scene: Scene, bank: Bank, pipeline: FeaturePipeline, ts, progress,
@@ -378,18 +440,26 @@ def build_node(scene: Scene, speed=None, sinks_override=None, progress=None, rec
     sinks, _ = _sinks_for(scene, sinks_override, overwrite)
     driver, labels, ts = driver_for(scene, bank, speed)
     model = _model_for(scene, bank, pipeline, ts, progress)
+    taps = []
     try:
         sinks += _lsl_sinks(scene, [(MAIN_STREAM, pipeline, model)], sinks_override=sinks_override)[0]
-        return Node(driver, pipeline, sinks, model=model, decision=scene.decision,
-                    mapping=scene.driver.get("mapping", "auto"), labels=labels,
+        mapping = scene.driver.get("mapping", "auto")
+        taps = _signal_taps(scene, {MAIN_STREAM: (driver, scene.driver)}, {MAIN_STREAM: [(bank, mapping)]},
+                            sinks_override)
+        return Node(driver, pipeline, sinks, model=model, decision=scene.decision, mapping=mapping, labels=labels,
                     buffer_seconds=scene.buffer["seconds"], overrun=_overrun(scene), recorder=recorder,
-                    **dict(zip(("timebase", "time_offset", "time_rate"), _timebase(scene, driver))))
-    except ValueError as exc:
-        # A refused scene leaves nothing behind: its sinks have written nothing, so no file exists.
+                    **dict(zip(("timebase", "time_offset", "time_rate"), _timebase(scene, driver))), taps=[t for _, t in taps])
+    except BaseException as exc:
+        # A refused scene leaves nothing behind: its sinks have written nothing, so no file exists;
+        # no outlet is left open.
         if sinks_override is None:
             for sink in sinks:
                 sink.close()
-        raise SceneError(f"{scene.source}: {exc}") from None
+        for _, tap in taps:
+            tap.close()
+        if isinstance(exc, ValueError) and not isinstance(exc, SceneError):
+            raise SceneError(f"{scene.source}: {exc}") from None
+        raise
 
 
 def _aligned_windows(scene: Scene, a: Stream, b: Stream, windows: dict, asked: str, instead: str):
@@ -448,17 +518,19 @@ def _build_graph(scene: Scene, speed, sinks_override, progress, recorder, overwr
     from supramodal.node.fusion import EarlyFusion, LateFusion
 
     sinks, routes = _sinks_for(scene, sinks_override, overwrite)
+    taps = []
     try:
         sources: dict[str, tuple[Source, Labels, object]] = {}
         streams = []
         held_out: dict[str, list] = {}          # stream -> [(x_test, y_test)] of a model trained on the spot
         trained: dict[str, list] = {}           # stream -> [(x_train, y_train)] of it
+        xdf_files: dict = {}                    # path -> streams: an XDF file read once for its sources
         for spec in scene.streams:
             sub = spec.scene
             bank = bank_for(sub)
             pipeline = pipeline_for(sub, bank)
             if spec.source not in sources:      # one driver per source, whatever reads it
-                driver, labels, ts = driver_for(sub, bank, speed)
+                driver, labels, ts = driver_for(sub, bank, speed, xdf_files)
                 source = Source(spec.source, driver, sub.buffer["seconds"], _overrun(sub), *_timebase(sub, driver))
                 sources[spec.source] = (source, labels, ts)
             source, labels, ts = sources[spec.source]
@@ -469,6 +541,13 @@ def _build_graph(scene: Scene, speed, sinks_override, progress, recorder, overwr
                                       sub.driver.get("mapping", "auto"), labels))
             except ValueError as exc:
                 raise SceneError(f"{sub.source}: {exc}") from None
+        for src in scene.sources:               # sources only sent on (a relay's): no bank, their own rate
+            if src["name"] not in sources:
+                sub = source_scene(scene, src["name"])
+                driver, labels, ts = driver_for(sub, None, speed, xdf_files)
+                source = Source(src["name"], driver, sub.buffer["seconds"], _overrun(sub), *_timebase(sub, driver))
+                sources[src["name"]] = (source, labels, ts)
+        del xdf_files                           # the sessions hold what they need
         fusion = None
         f = scene.fusion
         if f is not None:
@@ -495,10 +574,18 @@ def _build_graph(scene: Scene, speed, sinks_override, progress, recorder, overwr
         sinks += more
         if routes is not None:
             routes += more_routes
+        readers: dict[str, list] = {}
+        for stream, spec in zip(streams, scene.streams):
+            readers.setdefault(spec.source, []).append((stream.pipeline.bank, spec.scene.driver.get("mapping", "auto")))
+        options = {src["name"]: src for src in scene.sources}
+        taps = _signal_taps(scene, {name: (s.driver, options[name]) for name, (s, _, _) in sources.items()}, readers,
+                            sinks_override)
         return Graph([s for s, _, _ in sources.values()], streams, sinks, routes=routes, fusion=fusion,
-                     recorder=recorder)
+                     recorder=recorder, taps=taps)
     except BaseException:
-        if sinks_override is None:              # a refused scene leaves no file behind
+        if sinks_override is None:              # a refused scene leaves no file behind, no outlet open
             for sink in sinks:
                 sink.close()
+            for _, tap in taps:
+                tap.close()
         raise

@@ -248,9 +248,12 @@ def _scene_line(scene) -> str:
         bank = (f"the bank of {sub.bank['file']}" if sub.bank["file"] is not None else f"{sub.bank['kind']} bank")
         return f"{bank}, features {sub.features['names']}, {sub.features['window']:g} s windows"
 
+    sent = [f"source {k['source']} sent on as LSL ({k['chunk'] * 1e3:g} ms chunks)" for k in scene.sinks
+            if k["type"] == "lsl-signal"]
     if not scene.is_graph:
-        return f"scene {scene.source}: {scene.driver['type']} driver, {one(scene)}"
+        return f"scene {scene.source}: {scene.driver['type']} driver, {one(scene)}" + "".join(f"; {p}" for p in sent)
     parts = [f"stream {s.name}: {s.scene.driver['type']} source {s.source}, {one(s.scene)}" for s in scene.streams]
+    parts += sent
     if scene.fusion is not None:
         f = scene.fusion
         how = f"weight {f['weight']}" if f["method"] == "late" else \

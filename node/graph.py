@@ -68,10 +68,20 @@ class Graph:
         Records the raw frames of a source (another reader of its ring, on its own thread): one
         recorder for a graph of one source, or ``{source name: recorder}`` for several (each
         keeps its blocks' times on common time, so that the sessions replay in step).
+    taps : list of (str, tap), optional
+        Readers of a source's raw frames, each on a thread of its own, by source name (e.g.
+        :class:`node.lsl_signal.LSLSignalOutlet`). A tap has a ``name``, ``prepare()`` (the caller's
+        thread, before the graph's start: it may wait, e.g. for a consumer), ``start(source,
+        epoch)`` (the caller's thread, before any frame), ``run(feed)`` (its thread: read the
+        :class:`~supramodal.node.sources.Feed` until the ring closes), ``summary()`` and
+        ``close()``. A source that only taps read needs no stream: a graph may have none (a
+        relay).
     """
 
-    def __init__(self, sources, streams, sinks, routes=None, fusion=None, recorder=None) -> None:
+    def __init__(self, sources, streams, sinks, routes=None, fusion=None, recorder=None, taps=()) -> None:
         self.sources = list(sources)
+        if not self.sources:
+            raise InputError("a graph needs at least one source")
         self.streams = list(streams)
         names = [s.name for s in self.streams]
         if len(set(names)) != len(names):
@@ -108,6 +118,12 @@ class Graph:
             rec.attach(source.rate, source.driver.channels, lambda source=source: source.ring.written,
                        labels=labels.ranges, clock_rate=source.time_rate, label_period=labels.period)
             self._recorders.append((rec, feed))
+        self._taps: list[tuple[object, Source, Feed]] = []
+        by_name = {s.name: s for s in self.sources}
+        for name, tap in taps:
+            if name not in by_name:
+                raise InputError(f"a tap of unknown source {name!r}; the sources are {list(by_name)}")
+            self._taps.append((tap, by_name[name], by_name[name].add_feed(f"tap {tap.name}")))
         # source threads -> event thread: (source name, events, dropped); None from each source at its end
         self._event_queue: queue.SimpleQueue = queue.SimpleQueue()
         for source in self.sources:
@@ -134,6 +150,15 @@ class Graph:
             raise InputError(f"max_seconds must be > 0 (or None or inf: no limit), got {max_seconds!r}")
         if max_seconds is not None and math.isinf(max_seconds):
             max_seconds = None
+        try:
+            return self._run(max_seconds)
+        finally:
+            for tap, _, _ in self._taps:          # an outlet is not left open, whatever happened
+                tap.close()
+
+    def _run(self, max_seconds: float | None) -> dict:
+        for tap, _, _ in self._taps:
+            tap.prepare()                         # may wait (e.g. for a consumer), before time starts
         t0 = time.monotonic()
         for source in self.sources:
             source.max_frames = None if max_seconds is None else int(round(max_seconds * source.rate))
@@ -151,6 +176,9 @@ class Graph:
             threads.append(self._thread("fusion", self._fuse))
         for rec, feed in self._recorders:
             threads.append(self._thread("recorder", rec.run, feed.reader))
+        for tap, source, feed in self._taps:
+            tap.start(source, t0)
+            threads.append(self._thread(f"tap {tap.name}", tap.run, feed))
         with contextlib.ExitStack() as opened:
             for source in self.sources:
                 opened.enter_context(source.driver)
@@ -164,6 +192,8 @@ class Graph:
             drain = getattr(s, "drain", None)     # a queued sink: let it take what it holds
             if drain is not None:
                 drain()
+        for tap, _, _ in self._taps:
+            tap.close()                           # its last chunk goes before the summary says so
         summary = self.summary(time.monotonic() - t0)
         for s in self.sinks:
             s.summary(summary)
@@ -265,7 +295,9 @@ class Graph:
         per stream the same counts under ``streams``, the sources' clocks under ``clocks``, and
         the fusion block's counts under ``fusion``. Always: ``wall_seconds``, ``events`` (driver
         events per kind, ``source/kind`` with several sources), ``sinks`` (what each queued sink
-        wrote, dropped and raised), ``stopped_by`` and ``recorded``.
+        wrote, dropped and raised), ``stopped_by`` and ``recorded``; with taps, ``taps``: per tap
+        its own counts and every frame's fate as its reader saw it (``frames``, see
+        :meth:`Source.frame_fates`).
         """
         common = {
             "wall_seconds": wall,
@@ -274,11 +306,17 @@ class Graph:
             "events": self._limiter.summary(),
             "sinks": [s.stats() for s in self.sinks if hasattr(s, "stats")],
         }
+        if self._taps:
+            common["taps"] = {tap.name: {**tap.summary(), "frames": source.frame_fates(feed)}
+                              for tap, source, feed in self._taps}
         per_stream = {s.name: s.summary() for s in self.streams}
         if len(self.streams) == 1 and self.fusion is None:
             clock = self.sources[0].clock_summary()         # a live source's clock, under ``clock``
             return {**next(iter(per_stream.values())), **({"clock": clock} if clock else {}), **common}
         clocks = {s.name: s.clock_summary() for s in self.sources if s.clock is not None}
+        if not self.streams:                                # a relay: its sources' frames are under taps
+            return {"windows": 0, "stream_seconds": max(s.ring.stats()["written"] / s.rate for s in self.sources),
+                    "streams": {}, "clocks": clocks, "fusion": None, **common}
         return {"windows": sum(s["windows"] for s in per_stream.values()),
                 "stream_seconds": max((s["stream_seconds"] for s in per_stream.values()), default=0.0),
                 "streams": per_stream, "clocks": clocks,
@@ -312,15 +350,18 @@ class Node(Graph):
     timebase : {"stream", "host", "recorded"}
         How window events are put on common time (see :mod:`supramodal.node.sources`), with
         ``time_offset`` and ``time_rate`` as :class:`~supramodal.node.sources.Source` takes them.
+    taps : sequence of tap, optional
+        Readers of the driver's raw frames (see :class:`Graph`).
     """
 
     def __init__(self, driver, pipeline: FeaturePipeline, sinks, model: TextureModel | None = None,
                  decision: dict | None = None, mapping="auto", labels: Labels | None = None,
                  buffer_seconds: float = 2.0, overrun: str = "drop-oldest", recorder=None,
-                 timebase: str = "stream", time_offset: float = 0.0, time_rate: float | None = None) -> None:
+                 timebase: str = "stream", time_offset: float = 0.0, time_rate: float | None = None,
+                 taps=()) -> None:
         source = Source(MAIN_STREAM, driver, buffer_seconds, overrun, timebase, time_offset, time_rate)
         stream = Stream(MAIN_STREAM, source, pipeline, model, decision, mapping, labels)
-        super().__init__([source], [stream], sinks, recorder=recorder)
+        super().__init__([source], [stream], sinks, recorder=recorder, taps=[(MAIN_STREAM, tap) for tap in taps])
 
     @property
     def driver(self):

@@ -65,7 +65,7 @@ def write_replay_scene(scene: Scene, graph, folder, name: str, overwrite: bool =
     d["source"] = [{"name": src["name"], "type": "replay", "path": f"{name}.{src['name']}.wav",
                     "timing": "recorded", "speed": "max", "mapping": src.get("mapping", "auto"),
                     "buffer": {**src["buffer"], "overrun": "auto"}} for src in scene.sources]
-    for spec, stream in zip(d["stream"], graph.streams):
+    for spec, stream in zip(d.get("stream", []), graph.streams):
         if stream.model is not None and spec["name"] in paths["models"]:
             stream.model.save(paths["models"][spec["name"]])
             spec["model"] = {"path": paths["models"][spec["name"]].name}
@@ -74,7 +74,10 @@ def write_replay_scene(scene: Scene, graph, folder, name: str, overwrite: bool =
         d["fusion"]["model"] = paths["fused"].name
     elif graph.fusion is not None:
         d["fusion"]["weight"] = graph.fusion.weight       # a learned weight, as it was learned
-    d.pop("sink", None)
+    # The replay's sinks are the default ones; a relay (no stream) sends its recording on again.
+    sent = [sink for sink in d.pop("sink", []) if sink["type"] == "lsl-signal"]
+    if not graph.streams:
+        d["sink"] = sent
     replay = scene_from_dict(d, str(paths["scene"]), folder)
     check_new_file(paths["scene"], overwrite, "the replay scene")
     paths["scene"].write_text(f"# Replays the recording {name} with its recorded timing (supramodal record).\n"

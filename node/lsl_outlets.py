@@ -94,6 +94,28 @@ class OutletStream:
     classes: tuple[str, ...]
 
 
+class LSLClock:
+    """The node's common time on LSL's clock (``pylsl.local_clock()``).
+
+    Parameters
+    ----------
+    pylsl : module
+    epoch : float
+        The graph's start on ``time.monotonic()``: common time 0.
+
+    The offset between the host's monotonic clock and LSL's is measured once, here
+    (:func:`~supramodal.drivers.lsl.lsl_clock_offset`).
+    """
+
+    def __init__(self, pylsl, epoch: float) -> None:
+        self.epoch = epoch
+        self.offset = lsl_clock_offset(pylsl)
+
+    def lsl_time(self, common: float) -> float:
+        """A time on the node's common clock, seconds, on LSL's clock."""
+        return self.epoch + common - self.offset
+
+
 def outlet_name(prefix: str, stream: str, output: str) -> str:
     """The LSL name of one outlet: ``PREFIX-STREAM-OUTPUT``."""
     return f"{prefix}-{stream}-{output}"
@@ -127,8 +149,7 @@ class LSLOutletSink:
         self.prefix = prefix
         self._outlets: dict[tuple[str, str], object] = {}
         self._streams = {s.name: s for s in streams}
-        self._offset = 0.0
-        self._epoch = time.monotonic()
+        self._clock = LSLClock(pylsl, time.monotonic())
         for s in streams:
             for output in outputs:
                 if output == "features" and not s.filters or output != "features" and not s.classes:
@@ -182,11 +203,11 @@ class LSLOutletSink:
     def start(self, epoch: float) -> None:
         """The graph's start, on ``time.monotonic()``: common time 0. The caller's thread, before
         any event."""
-        self._epoch, self._offset = epoch, lsl_clock_offset(self._pylsl)
+        self._clock = LSLClock(self._pylsl, epoch)
 
     def lsl_time(self, common: float) -> float:
         """A time on the node's common clock, seconds, on LSL's clock."""
-        return self._epoch + common - self._offset
+        return self._clock.lsl_time(common)
 
     def emit(self, event: WindowEvent) -> None:
         if event.stream not in self._streams:

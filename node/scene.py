@@ -50,6 +50,8 @@ from supramodal.errors import InputError
 from supramodal.features import DEFAULT_WINDOW, FEATURE_TABLE, FEATURES
 from supramodal.node.events import FUSED_STREAM, MAIN_STREAM
 from supramodal.node.fusion import DEFAULT_MAX_WAIT, DEFAULT_WEIGHT
+from supramodal.node.lsl_outlets import DEFAULT_PREFIX
+from supramodal.node.lsl_signal import DEFAULT_SIGNAL_CHUNK, DEFAULT_WAIT_FOR_CONSUMER, SIGNAL_CHUNK_RANGE
 from supramodal.peaks import DEFAULT_PEAK_MODE, PEAK_MODES
 
 
@@ -179,6 +181,8 @@ DRIVER_KEYS = {
         "stream": (_str, "the recorded stream's name", None),
         "stream_type": (_str, 'the recorded stream\'s type, e.g. "Whiskers"', None),
         "source_id": (_str, "the recorded stream's source_id", None),
+        "labels": (_str, "the name of a marker stream in the file whose strings are the truth labels (each "
+                         "marker starts a label, which runs until the next; an empty marker ends it)", None),
         "speed": (is_speed, SPEED_HELP + " (default: the replay driver's)", None),
         "mapping": (_mapping, '"auto", "mono", "per-channel", "mean" or a channel index', "auto"),
     },
@@ -265,8 +269,23 @@ SINK_KEYS = {
                         and set(v) <= {"features", "decisions", "posteriors"},
                         'a list drawn from "features", "decisions" and "posteriors"',
                         ["features", "decisions", "posteriors"]),
-            "prefix": (lambda v: _name(v), "the outlets' name prefix: letters, digits, '-' or '_'", "supramodal")},
+            "prefix": (lambda v: _name(v), "the outlets' name prefix: letters, digits, '-' or '_'", DEFAULT_PREFIX)},
+    # A source's samples as a Lab Streaming Layer outlet (needs the "lsl" extra; node/lsl_signal.py).
+    "lsl-signal": {
+        "source": (lambda v: _name(v), "the name of the [[source]] whose samples it sends (default: the scene's "
+                                       "only source)", None),
+        "chunk": (lambda v: _number(v) and SIGNAL_CHUNK_RANGE[0] <= v <= SIGNAL_CHUNK_RANGE[1],
+                  f"seconds of samples per push, {SIGNAL_CHUNK_RANGE[0]:g} to {SIGNAL_CHUNK_RANGE[1]:g}",
+                  DEFAULT_SIGNAL_CHUNK),
+        "prefix": (lambda v: _name(v), "the outlet's name prefix: letters, digits, '-' or '_'", DEFAULT_PREFIX),
+        # None: what the source is (node/build.py: "Whiskers", "Audio" or "Signal").
+        "stream_type": (_str, 'the LSL stream\'s type, e.g. "Whiskers" (default: what the source is)', None),
+        "wait_for_consumer": (_non_negative, "seconds to wait for a consumer before the node starts, >= 0 (0: start "
+                                             "at once; a file sent to another machine needs a wait)", DEFAULT_WAIT_FOR_CONSUMER),
+    },
 }
+#: Sink types that listen to a source's samples rather than to streams' windows.
+SOURCE_SINKS = ("lsl-signal",)
 
 #: [fusion] weight: learned at start-up on the models' held-out training windows.
 LEARN = "learn"
@@ -324,7 +343,7 @@ class Scene:
     @property
     def is_graph(self) -> bool:
         """Whether the scene is written in the graph form ([[source]], [[stream]])."""
-        return bool(self.streams)
+        return bool(self.sources)
 
     def resolve(self, path: str) -> Path:
         """A path from the scene, relative to the scene file's folder."""
@@ -398,8 +417,9 @@ def _check_sections(source: str, sections: dict, bank_given: dict, where: str) -
         raise SceneError(f"{source}: {where}[decision] n must be >= 1 with scope = \"last\"")
 
 
-def _sinks(d: dict, source: str, streams) -> list[dict]:
-    """The [[sink]] tables, with ``from`` checked against the scene's streams."""
+def _sinks(d: dict, source: str, streams, sources=(MAIN_STREAM,)) -> list[dict]:
+    """The [[sink]] tables, with ``from`` checked against the scene's streams and ``source``
+    against its sources (filled in when there is only one)."""
     sinks_in = d.get("sink", [{"type": "text"}])
     if not isinstance(sinks_in, list) or not sinks_in:
         raise SceneError(f"{source}: [[sink]] must be a list of at least one sink table")
@@ -410,6 +430,22 @@ def _sinks(d: dict, source: str, streams) -> list[dict]:
                              f"{s.get('type') if isinstance(s, dict) else s!r}")
         sink = {"type": s["type"], **_fill(f"{source}: [[sink]] #{i + 1}", {k: v for k, v in s.items() if k != "type"},
                                              SINK_KEYS[s["type"]])}
+        if sink["type"] in SOURCE_SINKS:
+            if sink["source"] is None and len(sources) > 1:
+                raise SceneError(f"{source}: [[sink]] #{i + 1} source: the scene has sources {list(sources)}; "
+                                 "name the one whose samples it sends")
+            sink["source"] = sink["source"] or sources[0]
+            if sink["source"] not in sources:
+                raise SceneError(f"{source}: [[sink]] #{i + 1} source: no source {sink['source']!r}; the scene's "
+                                 f"sources are {list(sources)}")
+            same = next((k for k, o in enumerate(sinks) if o["type"] == sink["type"]
+                         and (o["source"], o["prefix"]) == (sink["source"], sink["prefix"])), None)
+            if same is not None:
+                raise SceneError(f"{source}: [[sink]] #{i + 1} sends source {sink['source']!r} with prefix "
+                                 f"{sink['prefix']!r} as [[sink]] #{same + 1} does: one stream name for two outlets; "
+                                 "give it another prefix, or remove one")
+            sinks.append(sink)
+            continue
         listens = [sink["from"]] if isinstance(sink["from"], str) else sink["from"] or []
         unknown = [n for n in listens if n not in streams]
         if unknown:
@@ -448,7 +484,8 @@ def _graph_scene(d: dict, source: str, base_dir: Path) -> Scene:
     if len(set(names)) != len(names):
         raise SceneError(f"{source}: [[source]] name: each source needs its own name, got {names}")
     streams = []
-    for i, t in enumerate(_table_list(d, "stream", source)):
+    # A relay (every source sent on as it is, [[sink]] type = "lsl-signal") has no stream.
+    for i, t in enumerate(_table_list(d, "stream", source) if "stream" in d else ()):
         where = f"{source}: [[stream]] #{i + 1}"
         if not isinstance(t, dict):
             raise SceneError(f"{where} must be a table")
@@ -469,10 +506,6 @@ def _graph_scene(d: dict, source: str, base_dir: Path) -> Scene:
     stream_names = [s.name for s in streams]
     if len(set(stream_names)) != len(stream_names):
         raise SceneError(f"{source}: [[stream]] name: each stream needs its own name, got {stream_names}")
-    unused = [n for n in names if n not in {s.source for s in streams}]
-    if unused:
-        raise SceneError(f"{source}: [[source]] {unused[0]!r} feeds no [[stream]]: add a stream that reads it, "
-                         "or remove it")
     fusion = None
     if "fusion" in d:
         given = d["fusion"]
@@ -491,10 +524,34 @@ def _graph_scene(d: dict, source: str, base_dir: Path) -> Scene:
             if m["path"] is None and not m["train_on_start"]:
                 raise SceneError(f"{source}: [fusion] streams: stream {n!r} has no model to fuse; give it "
                                  "[stream.model] path or train_on_start")
-    sinks = _sinks(d, source, stream_names + ([FUSED_STREAM] if fusion else []))
-    first = streams[0].scene
+    sinks = _sinks(d, source, stream_names + ([FUSED_STREAM] if fusion else []), names)
+    sent = {s["source"] for s in sinks if s["type"] in SOURCE_SINKS}
+    unused = [n for n in names if n not in {s.source for s in streams} | sent]
+    if unused:
+        raise SceneError(f"{source}: [[source]] {unused[0]!r} feeds no [[stream]]: add a stream that reads it, "
+                         "send its samples on ([[sink]] type = \"lsl-signal\"), or remove it")
+    # A relay's sections are its first source's, with the defaults.
+    first = streams[0].scene if streams else _source_scene(sources[0], f"{source}: [[source]] {names[0]}", base_dir)
     return Scene(first.driver, first.bank, first.features, first.model, first.decision, first.buffer, sinks,
                  source, base_dir, sources=sources, streams=streams, fusion=fusion)
+
+
+def _source_scene(src: dict, source: str, base_dir: Path) -> Scene:
+    """The one-source scene of a ``[[source]]`` table that no stream reads: its driver and buffer,
+    the other sections' defaults."""
+    return Scene({k: v for k, v in src.items() if k not in ("name", "buffer")},
+                 *(_fill(f"{source} [{n}]", {}, SECTIONS[n]) for n in STREAM_SECTIONS), src["buffer"], [],
+                 source, base_dir)
+
+
+def source_scene(scene: Scene, name: str) -> Scene:
+    """The one-source scene of source ``name`` of a graph scene, as a source that no stream
+    reads is built (its driver and buffer, the other sections' defaults)."""
+    src = next((s for s in scene.sources if s["name"] == name), None)
+    if src is None:
+        raise SceneError(f"{scene.source}: no source {name!r}; the scene's sources are "
+                         f"{[s['name'] for s in scene.sources]}")
+    return _source_scene(src, f"{scene.source}: [[source]] {name}", scene.base_dir)
 
 
 def _table_list(d: dict, key: str, source: str) -> list:

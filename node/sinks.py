@@ -141,7 +141,9 @@ class TextSink(Sink):
 
     def summary(self, s: dict) -> None:
         lines = ["", "summary"]
-        if "streams" in s:                      # several streams: each one's counts, then the graph's
+        if "streams" in s and not s["streams"]:  # a relay: its sources' samples sent on, nothing decided
+            lines.append(f"  stream             {s['stream_seconds']:.2f} s sent on, no windows (a relay)")
+        elif "streams" in s:                    # several streams: each one's counts, then the graph's
             lines.append(f"  windows            {s['windows']} on {len(s['streams'])} streams")
             for name, one in s["streams"].items():
                 lines += [f"  stream {name}"] + ["  " + line for line in _stream_lines(one)]
@@ -157,6 +159,10 @@ class TextSink(Sink):
                                 else ""))
         else:
             lines += _stream_lines(s)
+        for name, t in (s.get("taps") or {}).items():
+            f = t["frames"]
+            lines.append(f"  sent               {name}: {t['samples_sent']} samples in {t['chunks']} chunks; not sent: "
+                         f"{f['filled']} filled and {f['dropped']} dropped frames")
         counts = (s.get("events") or {}).get("counts")
         if counts:
             dropped = sum(s["events"].get("dropped", {}).values())

@@ -13,7 +13,14 @@ is fitted to those times, and two streams of one file (a whisker array at 5 kHz 
 The timestamps are those the file holds, put on the recorder's clock by the file's clock offsets
 (pyxdf's ``synchronize_clocks``), not dejittered: the node's clock model rejects the jitter itself.
 A timestamp earlier than the one before it (jitter across a chunk boundary) is raised to it, so
-that block times never go backwards. Files are data: a stream that is not numeric, not regularly
+that block times never go backwards.
+
+Samples the file does not have (a sender that dropped out; a node's signal outlet, which sends
+no sample it did not measure) show as a step in the timestamps. As the LSL inlet does live
+(:mod:`supramodal.drivers.lsl`, the same tolerance and longest gap), a step of more than one
+sample period plus ``gap_tolerance`` is filled with zeros, marked filled (the node counts them,
+the windows are flagged ``gap``), so that stream time stays the recording's; a gap longer than
+``max_gap`` is not filled but marked as a restart (the clock model starts again after it). Files are data: a stream that is not numeric, not regularly
 sampled, or holds non-finite samples or timestamps is refused with a message naming it.
 """
 
@@ -26,8 +33,9 @@ from pathlib import Path
 import numpy as np
 
 from supramodal.drivers.base import DeviceUnavailable
+from supramodal.drivers.lsl import DEFAULT_GAP_TOLERANCE, DEFAULT_MAX_GAP, TimestampSteps
 from supramodal.replay.errors import ReplayError
-from supramodal.replay.session import Session
+from supramodal.replay.session import Label, Session
 
 #: Seconds per replayed block of an XDF stream.
 XDF_BLOCK_SECONDS = 0.01
@@ -80,7 +88,7 @@ def _regular(s: dict) -> bool:
 
 
 def xdf_session(path: str | os.PathLike, name: str | None = None, stream_type: str | None = None,
-                source_id: str | None = None, streams=None) -> Session:
+                source_id: str | None = None, streams=None, labels: str | None = None) -> Session:
     """One stream of an XDF file as a session with its recorded timing (see the module notes).
 
     Parameters
@@ -92,6 +100,9 @@ def xdf_session(path: str | os.PathLike, name: str | None = None, stream_type: s
     streams : list, optional
         :func:`load_xdf_streams` of the file, when the caller has it already (one read for
         several sources).
+    labels : str, optional
+        The name of a marker stream of the same file whose strings are the truth labels
+        (:func:`marker_labels`).
     """
     want = {k: v for k, v in (("name", name), ("type", stream_type), ("source_id", source_id)) if v is not None}
     if not want:
@@ -123,8 +134,102 @@ def xdf_session(path: str | os.PathLike, name: str | None = None, stream_type: s
         raise ReplayError(f"{where}: it holds NaN or infinite samples")
     rate = float(s["info"]["nominal_srate"][0])
     zero = min(float(np.min(x["time_stamps"])) for x in streams if _regular(x))
+    data, stamps, filled, marks = fill_gaps(data, stamps, rate)
+    truth = () if labels is None else marker_labels(_marker_stream(streams, labels, path), stamps, rate)
     return Session(data, _session_rate(rate, where), f"XDF {path.name}: {_describe(s['info'])}", path=path,
-                   arrivals=_arrivals(stamps - zero, rate))
+                   arrivals=_arrivals(stamps - zero, rate, [at for at, _ in marks]), filled=filled, marks=marks,
+                   labels=truth)
+
+
+def _marker_stream(streams, name: str, path: Path) -> dict:
+    """The one marker stream called ``name``: irregular, one string channel."""
+    found = [s for s in streams if _matches(s.get("info", {}), {"name": name})]
+    if len(found) != 1:
+        have = "; ".join(_describe(s.get("info", {})) for s in streams) or "no stream"
+        raise ReplayError(f"{path}: labels: {'no' if not found else len(found)} stream(s) named {name!r}; the file "
+                          f"has {have}")
+    info = found[0]["info"]
+    if (info.get("channel_format") or [None])[0] != "string" or (info.get("channel_count") or ["0"])[0] != "1":
+        raise ReplayError(f"{path}: labels: stream {_describe(info)} is not a marker stream (one string channel); "
+                          "name the stream whose markers say which texture is there")
+    return found[0]
+
+
+def marker_labels(markers: dict, stamps: np.ndarray, rate: float) -> tuple[Label, ...]:
+    """Truth labels from a marker stream, in the seconds of the stream whose samples are stamped
+    ``stamps`` (after :func:`fill_gaps`).
+
+    Each marker's text starts a label at the first sample stamped at or after the marker, which
+    runs until the next marker (or the end of the stream); a marker whose text is empty ends the
+    current label. A label that would cover no sample is left out.
+    """
+    times = np.asarray(markers.get("time_stamps", ()), dtype=np.float64)
+    texts = [str(m[0]).strip() if len(m) else "" for m in markers.get("time_series", ())]
+    order = np.argsort(times, kind="stable")
+    starts = np.searchsorted(stamps, times[order]) / rate
+    ends = np.r_[starts[1:], stamps.size / rate]
+    return tuple(Label(float(a), float(b), texts[k]) for a, b, k in zip(starts, ends, order.tolist())
+                 if texts[k] and b > a)
+
+
+def fill_gaps(data: np.ndarray, stamps: np.ndarray, rate: float, tolerance: float = DEFAULT_GAP_TOLERANCE,
+              max_gap: float = DEFAULT_MAX_GAP):
+    """Put back the samples a recorded stream's timestamps say are missing (see the module notes).
+
+    Parameters
+    ----------
+    data : ndarray, shape (samples, channels)
+    stamps : ndarray, shape (samples,)
+        Seconds, one per sample.
+    rate : float
+        The nominal rate, Hz.
+    tolerance : float
+        Seconds of timestamp jitter beyond one sample period before a step counts as missing
+        samples (default the LSL inlet's ``DEFAULT_GAP_TOLERANCE``).
+    max_gap : float
+        Longest gap filled, seconds (default the LSL inlet's ``DEFAULT_MAX_GAP``); a longer one,
+        or a step back beyond the tolerance, is marked as a restart instead (the inlet's rules:
+        :class:`~supramodal.drivers.lsl.TimestampSteps`).
+
+    Returns
+    -------
+    data, stamps : ndarray
+        With the missing samples as zeros, their times evenly spread over the gap.
+    filled : tuple of (int, int)
+        The filled ranges, ``[start, end)`` frames of the returned data.
+    marks : tuple of (int, str)
+        ``(frame, "restart")`` where a gap too long to fill ends.
+    """
+    steps = np.diff(stamps)
+    # The live inlet's judge, on each step that is not within the tolerance of one period.
+    judge = TimestampSteps(rate, tolerance, max_gap)
+    odd = np.flatnonzero(np.abs(steps - 1.0 / rate) > tolerance)
+    if not odd.size:
+        return data, stamps, (), ()
+    parts, times, filled, marks = [], [], [], []
+    taken = added = 0
+    for i in odd.tolist():                # the step lies between sample i and sample i + 1
+        judge.last = float(stamps[i])
+        step = judge.step(float(stamps[i + 1]), float(stamps[i + 1]))
+        if step.kind not in ("gap", "long", "back") or step.kind == "gap" and step.samples < 1:
+            continue
+        parts.append(data[taken:i + 1])
+        times.append(stamps[taken:i + 1])
+        at = i + 1 + added
+        if step.kind == "gap":
+            missing = step.samples
+            parts.append(np.zeros((missing, data.shape[1]), dtype=data.dtype))
+            times.append(stamps[i] + steps[i] * np.arange(1, missing + 1) / (missing + 1))
+            filled.append((at, at + missing))
+            added += missing
+        else:                             # too long to fill, or back in time: stream time jumps
+            marks.append((at, "restart"))
+        taken = i + 1
+    if not parts:
+        return data, stamps, (), ()
+    parts.append(data[taken:])
+    times.append(stamps[taken:])
+    return np.concatenate(parts), np.concatenate(times), tuple(filled), tuple(marks)
 
 
 def _full_scale(dtype) -> float:
@@ -140,15 +245,16 @@ def _session_rate(rate: float, where: str) -> int:
     return int(round(rate))
 
 
-def _arrivals(seconds: np.ndarray, rate: float) -> tuple[np.ndarray, np.ndarray, float]:
-    """Blocks of :data:`XDF_BLOCK_SECONDS`: each one's end frame and the time of its last sample
-    (never earlier than the block's before), and the rate the timestamps show over the whole
+def _arrivals(seconds: np.ndarray, rate: float, cuts=()) -> tuple[np.ndarray, np.ndarray, float]:
+    """Blocks of :data:`XDF_BLOCK_SECONDS`, also cut at ``cuts`` (restart frames: no block
+    spans one, so none of its frames is timed by the line after it): each one's end frame and the
+    time of its last sample (never earlier than the block's before), and the rate the timestamps show over the whole
     stream (a least-squares line; the nominal rate for a stream too short to show one). The node's
     clock model starts from that rate, so the first windows are on time too, before the model
     has seen enough blocks to find a drift of tens of ppm itself."""
     n = seconds.size
     step = max(1, int(round(XDF_BLOCK_SECONDS * rate)))
-    ends = np.r_[np.arange(step, n, step), n].astype(np.int64)
+    ends = np.unique(np.r_[np.arange(step, n, step), [c for c in cuts if 0 < c < n], n]).astype(np.int64)
     times = np.maximum.accumulate(seconds[ends - 1])
     shown = float(rate)
     if n >= 2 and seconds[-1] > seconds[0]:

@@ -28,10 +28,12 @@ def loopback_only():
     check_loopback_config()
 
 
-def test_a_stream_from_another_process_is_decided_as_the_same_signal_fed_locally(tmp_path):
-    """6 s of 20 whiskers at 5 kHz from a sender process, in 10 ms chunks: every sample arrives,
-    none is filled, and each of the 60 windows is decided as the same WAV replayed locally."""
-    result = run(6.0, tmp_path, progress=lambda _: None)
+@pytest.mark.parametrize("sender", ["node", "plain"])
+def test_a_stream_from_another_process_is_decided_as_the_same_signal_fed_locally(tmp_path, sender):
+    """6 s of 20 whiskers at 5 kHz from a sender process (a relay node, ``supramodal run`` with a
+    signal outlet; or plain pylsl), in 10 ms chunks: every sample arrives, none is filled, and
+    each of the 60 windows is decided as the same WAV replayed locally."""
+    result = run(6.0, tmp_path, progress=lambda _: None, sender=sender)
     assert result["samples_received"] == result["samples_sent"] == 30000
     assert result["driver"]["filled"] == 0 and result["driver"]["gaps"] == 0
     assert result["windows_remote"] == result["windows_local"] == result["decisions_compared"] == 60

@@ -72,10 +72,10 @@ def test_the_stream_asked_for_must_be_there_and_be_a_signal(tmp_path):
         xdf_session(tmp_path / "bad.xdf", name="whiskers")
 
 
-def _graph(path, speed="max"):
+def _graph(path, speed="max", **board):
     source = {"type": "xdf", "path": str(path), "speed": speed}
     return scene_from_dict({
-        "source": [{"name": "board", **source, "stream": "whiskers", "mapping": "per-channel"},
+        "source": [{"name": "board", **source, "stream": "whiskers", "mapping": "per-channel", **board},
                    {"name": "card", **source, "source_id": "card-1", "mapping": "mono"}],
         "stream": [{"name": "whiskers", "source": "board", "bank": {"kind": "whisker"}, "features": {"names": ["Af"]}},
                    {"name": "mic", "source": "card", "bank": {"kind": "cochlea"}, "features": {"names": ["Af"]}}],
@@ -109,3 +109,84 @@ def test_an_xdf_source_must_name_its_stream(tmp_path):
                              "bank": {"kind": "whisker"}})
     with pytest.raises(SceneError, match=r"\[driver\] .*no stream with name='nope'"):
         build_node(scene)
+
+
+def test_samples_missing_from_a_recording_are_put_back_as_filled_zeros_and_time_stays_aligned(tmp_path):
+    """The whisker stream lacks 0.3 s (samples 5000-6499: a sender that dropped out, or a
+    signal outlet's hole): the replay fills exactly those samples (counted, their windows flagged
+    gap), and every window after them is still within one sample of its recorded time."""
+    whiskers, mic = _two_streams()
+    full_stamps = whiskers.stamps
+    keep = np.r_[0:5000, 6500:len(full_stamps)]
+    holed = XdfStream("whiskers", "Whiskers", 5000.0, whiskers.samples[keep], full_stamps[keep],
+                      source_id="board-1", offsets=whiskers.offsets)
+    write_xdf(tmp_path / "r.xdf", [holed, mic])
+    session = xdf_session(tmp_path / "r.xdf", name="whiskers")
+    assert session.filled == ((5000, 6500),) and session.data.shape[0] == len(full_stamps)
+    np.testing.assert_array_equal(session.data[5000:6500], 0.0)
+    sink = ListSink()
+    summary = build_node(_graph(tmp_path / "r.xdf"), sinks_override=[sink]).run()
+    assert summary["streams"]["whiskers"]["frames"]["filled"] == 1500
+    mine = [e for e in sink.windows if e.stream == "whiskers"]
+    assert len(mine) == 30
+    assert {e.window for e in mine if "gap" in e.flags} == set(range(10, 13))
+    for e in mine:
+        assert abs(e.start - (full_stamps[e.window * 500] - T0)) < 1.0 / 5000, (e.window, e.start)
+
+
+def test_a_gap_longer_than_the_longest_filled_is_a_restart():
+    from supramodal.replay.xdf import fill_gaps
+
+    rate = 100.0
+    stamps = np.r_[np.arange(10) / rate, 0.5 + np.arange(5) / rate, 30.0 + np.arange(3) / rate]
+    data = np.arange(18.0)[:, None]
+    out, times, filled, marks = fill_gaps(data, stamps, rate, tolerance=0.05, max_gap=10.0)
+    # 0.09 -> 0.5: 40 samples missing (0.10 ... 0.49), filled; 0.54 -> 30.0: a restart, not filled.
+    assert filled == ((10, 50),) and marks == ((55, "restart"),)
+    np.testing.assert_array_equal(out[:, 0], np.r_[np.arange(10.0), np.zeros(40), np.arange(10.0, 18.0)])
+    np.testing.assert_allclose(times[10:50], np.arange(10, 50) / rate, atol=1e-12)
+    # A step back beyond the tolerance: a restart there, nothing filled (as the live inlet judges it).
+    back = np.r_[np.arange(10) / rate, -1.0 + np.arange(5) / rate]
+    assert fill_gaps(data[:15], back, rate, tolerance=0.05)[2:] == ((), ((10, "restart"),))
+    # A step beyond the tolerance that rounds to no whole sample (5 Hz) fills nothing.
+    slow = np.r_[0.0, 0.2, 0.46, 0.66]
+    assert fill_gaps(data[:4], slow, 5.0, tolerance=0.05)[2:] == ((), ())
+    # Jitter within the tolerance is not a gap.
+    same = fill_gaps(data[:10], stamps[:10] + 0.004 * (np.arange(10) % 2), rate, tolerance=0.05)
+    assert same[2] == () and same[3] == () and np.array_equal(same[0], data[:10])
+
+
+def test_two_sources_of_one_file_read_it_once(tmp_path, monkeypatch):
+    import supramodal.replay.xdf as xdf
+
+    whiskers, mic = _two_streams(0.5)
+    write_xdf(tmp_path / "r.xdf", [whiskers, mic])
+    reads = []
+    load = xdf.load_xdf_streams
+    monkeypatch.setattr(xdf, "load_xdf_streams", lambda path: reads.append(path) or load(path))
+    graph = build_node(_graph(tmp_path / "r.xdf"), sinks_override=[ListSink()])
+    assert len(reads) == 1 and [s.driver.rate for s in graph.sources] == [5000.0, 44100.0]
+
+
+def test_a_marker_stream_of_the_file_gives_the_truth_labels(tmp_path):
+    """Markers "T1" at the first whisker sample, "T2" 1.5 s later, an empty one at 2.5 s: each
+    whisker window's truth is the marker before its middle sample, none after the empty one;
+    the marker stream must be one of strings."""
+    whiskers, mic = _two_streams()
+    markers = XdfStream("texture", "Markers", 0.0, [["T1"], ["T2"], [""]], T0 + np.array([0.0, 1.5, 2.5]),
+                        fmt="string", chunk=1)
+    write_xdf(tmp_path / "r.xdf", [whiskers, mic, markers])
+    streams, _ = pyxdf.load_xdf(str(tmp_path / "r.xdf"), dejitter_timestamps=False)
+    assert [s["time_series"] for s in streams if s["info"]["name"][0] == "texture"] == [[["T1"], ["T2"], [""]]]
+    sink = ListSink()
+    build_node(_graph(tmp_path / "r.xdf", labels="texture"), sinks_override=[sink]).run()
+    truth = {e.window: e.truth for e in sink.windows if e.stream == "whiskers"}
+    stamps = whiskers.stamps - T0
+    for w, t in truth.items():
+        middle = stamps[int((w + 0.5) * 500)]
+        assert t == ("T1" if middle < 1.5 else "T2" if middle < 2.5 else None), (w, t)
+    assert {e.truth for e in sink.windows if e.stream == "mic"} == {None}
+    with pytest.raises(ReplayError, match=r"labels: stream name='whiskers' .* is not a marker stream"):
+        xdf_session(tmp_path / "r.xdf", name="mic", labels="whiskers")
+    with pytest.raises(ReplayError, match=r"labels: no stream\(s\) named 'events'"):
+        xdf_session(tmp_path / "r.xdf", name="mic", labels="events")

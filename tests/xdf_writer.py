@@ -35,7 +35,8 @@ def _chunk(tag: int, content: bytes) -> bytes:
 @dataclass
 class XdfStream:
     """One stream to write: samples (n, channels), one timestamp per sample (seconds, the sender's
-    clock), and the clock offsets (collection time, offset) the recorder measured for it."""
+    clock), and the clock offsets (collection time, offset) the recorder measured for it. With
+    ``fmt = "string"`` (a marker stream) the samples are a list of rows of strings."""
 
     name: str
     type: str
@@ -54,19 +55,23 @@ def write_xdf(path, streams: list[XdfStream]) -> None:
     out = [b"XDF:", _chunk(1, b'<?xml version="1.0"?><info><version>1.0</version></info>')]
     for sid, s in enumerate(streams, start=1):
         xml = (f'<?xml version="1.0"?><info><name>{s.name}</name><type>{s.type}</type>'
-               f"<channel_count>{s.samples.shape[1]}</channel_count><nominal_srate>{s.rate!r}</nominal_srate>"
+               f"<channel_count>{len(s.samples[0])}</channel_count><nominal_srate>{s.rate!r}</nominal_srate>"
                f"<channel_format>{s.fmt}</channel_format><source_id>{s.source_id}</source_id>"
                f"<created_at>{float(s.stamps[0]) - 1.0!r}</created_at><desc></desc></info>")
         out.append(_chunk(2, struct.pack("<I", sid) + xml.encode()))
     pieces = []                          # (time, bytes) of every samples chunk, to interleave
     for sid, s in enumerate(streams, start=1):
-        values = np.ascontiguousarray(s.samples, dtype=_FORMATS[s.fmt])
+        if s.fmt == "string":
+            # A string value: its length (as a chunk's length is written), then its UTF-8 bytes.
+            values = [b"".join(_varlen(len(v.encode())) + v.encode() for v in row) for row in s.samples]
+        else:
+            values = [row.tobytes() for row in np.ascontiguousarray(s.samples, dtype=_FORMATS[s.fmt])]
         for a in range(0, len(values), s.chunk):
             b = min(len(values), a + s.chunk)
             body = bytearray(struct.pack("<I", sid) + _varlen(b - a))
             for i in range(a, b):
                 # Every sample stamped (TimeStampBytes 8): the reader must take them as they are.
-                body += struct.pack("<Bd", 8, float(s.stamps[i])) + values[i].tobytes()
+                body += struct.pack("<Bd", 8, float(s.stamps[i])) + values[i]
             pieces.append((float(s.stamps[a]), _chunk(3, bytes(body))))
         for collected, offset in s.offsets:
             pieces.append((collected, _chunk(4, struct.pack("<Idd", sid, collected, offset))))
