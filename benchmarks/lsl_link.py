@@ -411,6 +411,8 @@ def report_markdown(link: dict, restart: dict | None) -> str:
     if restart is not None:
         r = restart
         lines += ["", f"## The sender killed {r['kill_at']:g} s in, started again {r['down']:g} s later", "",
+                  "The plain pylsl sender, started again on the same sample clock (so that the outage is known to "
+                  "the sample).", "",
                   "| measure | value |", "|---|---|",
                   f"| outage (kill to the new sender's first push) | {r['outage_s']} s |",
                   f"| node kept running: windows, contiguous | {r['windows']}, {r['window_numbers_contiguous']} |",
