@@ -512,12 +512,26 @@ def _evaluate_fusion(args) -> int:
     """``evaluate --scene S.toml ...``: each stream and the fusion scored on recorded two-sense sessions."""
     from supramodal.node.fused_training import evaluate_fused, format_fused_evaluation
 
-    if args.model is not None or args.manifest is not None or args.cv or args.out is not None:
-        raise CliError("with --scene, the scenes name the models: leave out the model file, --manifest, --cv "
-                       "and --out (give --fused-model to score another early-fusion network)")
+    if args.model is not None or args.manifest is not None or args.cv:
+        raise CliError("with --scene, the scenes name the models: leave out the model file, --manifest and --cv "
+                       "(give --fused-model to score another early-fusion network)")
     fused = None if args.fused_model is None else Path(args.fused_model).resolve()   # from here, not the scenes'
+    if args.out is not None and args.out.is_dir():
+        from supramodal.node.events import FUSED_STREAM
+        from supramodal.node.outputs import check_new_file
+        from supramodal.node.reports import fused_evaluation_files
+        from supramodal.node.scene import load_scene
+
+        streams = [spec.name for path in args.scene for spec in load_scene(path).streams] + [FUSED_STREAM]
+        for name in fused_evaluation_files(dict.fromkeys(streams)):
+            check_new_file(args.out / name, args.force, "the evaluation file")
     result = evaluate_fused(args.scene, fused, progress=_progress(args))
     print(json.dumps(result) if args.json else format_fused_evaluation(result))
+    if args.out is not None:
+        from supramodal.node.reports import write_fused_evaluation
+
+        files = write_fused_evaluation(result, args.out)
+        print("wrote " + ", ".join(str(p) for p in files), file=sys.stderr)
     return 0
 
 
@@ -646,7 +660,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="print the result as one JSON object instead of a table")
     p.add_argument("--out", type=_output_folder, metavar="DIR",
                    help="also write the confusion, accuracy against windows pooled and the channels' importance "
-                        "as CSV and PNG into DIR (default: print only)")
+                        "as CSV and PNG into DIR (with --scene: each stream's and the fusion's accuracy and "
+                        "confusion; default: print only)")
     p.add_argument("--cv", type=_count(2), metavar="K",
                    help="instead of scoring the model itself, re-train its configuration (bank, features, window, "
                         "peaks, hidden units, epochs) on K-1 folds of the manifest and score it on the K-th, folds "

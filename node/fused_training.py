@@ -118,6 +118,8 @@ def evaluate_fused(paths, fused_model=None, progress=None) -> dict:
     own fusion."""
     windows: dict[str, list] = {}
     contacts: dict[str, list] = {}
+    decided: dict[str, list] = {}           # stream -> [(truth, decision)] of its labelled windows
+    classes: dict[str, tuple] = {}
     for path in paths:
         scene = _graph_for(path, fused_model)
         sink = ListSink()
@@ -131,11 +133,23 @@ def evaluate_fused(paths, fused_model=None, progress=None) -> dict:
         for name, events in by_stream.items():
             windows.setdefault(name, []).extend(e.decision == e.truth for e in events)
             contacts.setdefault(name, []).extend(_contacts(events))
+            decided.setdefault(name, []).extend((e.truth, e.decision) for e in events)
+            classes.setdefault(name, tuple(events[0].classes))
     if FUSED_STREAM not in windows:
         raise InputError("no labelled window in these recordings: record with a source that labels its stream")
     return {name: {"window_accuracy": float(np.mean(windows[name])), "windows": len(windows[name]),
-                   "contact_accuracy": float(np.mean(contacts[name])), "contacts": len(contacts[name])}
+                   "contact_accuracy": float(np.mean(contacts[name])), "contacts": len(contacts[name]),
+                   "labels": list(classes[name]), "confusion": _confusion(decided[name], classes[name])}
             for name in windows}
+
+
+def _confusion(pairs, classes) -> list[list[int]]:
+    """Window counts, rows the truth and columns the decision, in the model's class order."""
+    index = {c: k for k, c in enumerate(classes)}
+    counts = np.zeros((len(classes), len(classes)), dtype=int)
+    for truth, decision in pairs:
+        counts[index[truth], index[decision]] += 1
+    return counts.tolist()
 
 
 def _contacts(events) -> list[bool]:

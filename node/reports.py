@@ -7,7 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["pyplot_or_none", "write_confusion", "write_evaluation"]
+__all__ = ["pyplot_or_none", "write_confusion", "write_evaluation", "write_fused_evaluation",
+           "fused_evaluation_files"]
 
 
 def write_confusion(labels, confusion, base: Path, title: str) -> list[Path]:
@@ -98,3 +99,45 @@ def write_evaluation(result: dict, folder: Path) -> list[Path]:
     fig.savefig(folder / "evaluation.png", dpi=120)
     plt.close(fig)
     return written + [folder / "evaluation.png"]
+
+
+def fused_evaluation_files(streams) -> list[str]:
+    """The file names :func:`write_fused_evaluation` writes for ``streams`` (the CSVs; each also
+    gets a PNG where matplotlib is installed)."""
+    names = ["fusion.csv", "fusion.png"]
+    for name in streams:
+        names += [f"confusion-{name}.csv", f"confusion-{name}.png"]
+    return names
+
+
+def write_fused_evaluation(result: dict, folder: Path) -> list[Path]:
+    """``evaluate --scene --out``: per stream (each sense and ``fused``) its accuracy per window and
+    per contact (``fusion.csv``, and side by side in ``fusion.png``) and its confusion
+    (``confusion-STREAM.csv/.png``). Returns the paths written."""
+    folder.mkdir(parents=True, exist_ok=True)
+    rows = [(name, r["window_accuracy"], r["windows"], r["contact_accuracy"], r["contacts"])
+            for name, r in result.items()]
+    with open(folder / "fusion.csv", "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["stream", "window accuracy", "windows", "contact accuracy", "contacts"])
+        w.writerows(rows)
+    written = [folder / "fusion.csv"]
+    for name, r in result.items():
+        written += write_confusion(r["labels"], r["confusion"], folder / f"confusion-{name}",
+                                   f"{name}: window accuracy {r['window_accuracy']:.3f} of {r['windows']}")
+    plt = pyplot_or_none()
+    if plt is None:
+        return written
+    fig, ax = plt.subplots(figsize=(1.5 + 1.3 * len(rows), 3.4))
+    x = np.arange(len(rows))
+    ax.bar(x - 0.18, [r[1] for r in rows], 0.36, color="0.55", label="per window")
+    ax.bar(x + 0.18, [r[3] for r in rows], 0.36, color="0.2", label="per contact")
+    ax.set_xticks(x, [r[0] for r in rows])
+    ax.set_ylim(0, 1.02)
+    ax.set_ylabel("accuracy")
+    ax.legend(fontsize=8, loc="lower right")
+    ax.set_title("each sense alone and fused", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(folder / "fusion.png", dpi=120)
+    plt.close(fig)
+    return written + [folder / "fusion.png"]

@@ -4,6 +4,7 @@ and the scene `supramodal record` writes to replay it."""
 
 from __future__ import annotations
 
+import csv
 import json
 
 import numpy as np
@@ -225,10 +226,26 @@ def test_a_fusion_trained_on_recorded_sessions_scores_on_another_recording(tmp_p
     assert r["fused"]["windows"] == r["whiskers"]["windows"] == 80 and r["fused"]["contacts"] == 8
     best = max(r["whiskers"]["window_accuracy"], r["mic"]["window_accuracy"])
     assert r["fused"]["window_accuracy"] >= best + 0.2 and r["fused"]["contact_accuracy"] == 1.0
-    # the scene's own (late) fusion, scored the same way
-    assert main(["evaluate", "--scene", held, "--json", "--quiet"]) == 0
+    # the scene's own (late) fusion, scored the same way, and written as files
+    assert main(["evaluate", "--scene", held, "--json", "--quiet", "--out", "report"]) == 0
     late = json.loads(capsys.readouterr().out)
     assert late["whiskers"] == r["whiskers"] and late["fused"]["window_accuracy"] < r["fused"]["window_accuracy"]
+    with open(tmp_path / "report" / "fusion.csv") as fh:
+        rows = list(csv.reader(fh))
+    assert rows[0] == ["stream", "window accuracy", "windows", "contact accuracy", "contacts"]
+    assert {row[0]: (float(row[1]), int(row[2])) for row in rows[1:]} == \
+        {name: (v["window_accuracy"], v["windows"]) for name, v in late.items()}
+    for name, v in late.items():
+        with open(tmp_path / "report" / f"confusion-{name}.csv") as fh:
+            table = list(csv.reader(fh))
+        counts = np.array([[int(c) for c in row[1:]] for row in table[1:]])
+        assert table[0][1:] == [row[0] for row in table[1:]] == v["labels"]
+        assert counts.sum() == v["windows"] and np.trace(counts) / counts.sum() == pytest.approx(v["window_accuracy"])
+        assert (tmp_path / "report" / f"confusion-{name}.png").stat().st_size > 0
+    assert (tmp_path / "report" / "fusion.png").stat().st_size > 0
+    # written once: a second run refuses to replace the files
+    assert main(["evaluate", "--scene", held, "--quiet", "--out", "report"]) == 2
+    assert "fusion.csv" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("argv, needle", [
