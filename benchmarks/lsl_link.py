@@ -167,9 +167,11 @@ def start_relay(scene, stderr=None) -> subprocess.Popen:
 
 # -- the receiving node ------------------------------------------------------------------------
 
-def inlet_scene(name: str, model: str, **driver) -> dict:
-    """The node's scene on the receiving machine: the whisker bank per channel, a model file."""
-    return {"driver": {"type": "lsl", "stream": name, "mapping": "per-channel", **driver},
+def inlet_scene(name: str | None, model: str, **driver) -> dict:
+    """The node's scene on the receiving machine: the whisker bank per channel, a model file; the
+    stream by ``name`` (or None) and whatever else ``driver`` names (``source_id``, ...)."""
+    named = {} if name is None else {"stream": name}
+    return {"driver": {"type": "lsl", **named, "mapping": "per-channel", **driver},
             "bank": {"kind": "whisker"}, "features": {"names": ["Af"]},
             "model": {"path": model}, "decision": {"scope": "window"}}
 

@@ -274,3 +274,46 @@ def test_without_a_consumer_the_node_waits_as_long_as_asked_then_starts_and_says
     tap = summary["taps"][f"{prefix}-arm-signal"]
     assert tap["consumer"] is False and 0.4 <= tap["waited_s"] < 10
     assert tap["samples_sent"] == tap["frames"]["stream"] == 8 * 1000
+
+
+def test_a_restarted_relay_is_picked_up_again_by_its_source_id(tmp_path):
+    """A node's inlet resolves a relay by the source id the docs give (``PREFIX@HOST/SOURCE/signal``);
+    the relay process is killed 3 s in and run again 1 s later (as a robot's computer that
+    rebooted): the inlet node keeps running, finds the new outlet of the same source id, fills and
+    counts the gap, and decides on measured samples again."""
+    import threading
+
+    from supramodal.benchmarks.lsl_link import _end, _inlet_node, _prepare, _run_for, relay_scene, start_relay
+    from supramodal.node.lsl_outlets import outlet_source_id
+
+    wav, model, _ = _prepare(8.0, tmp_path, lambda _: None)
+    prefix = f"t{uuid.uuid4().hex[:8]}"
+    scene = tmp_path / "relay.toml"
+    scene.write_text(relay_scene(wav, prefix))
+    first = start_relay(scene, stderr=subprocess.DEVNULL)
+    second = None
+    try:
+        node, sink, _ = _inlet_node(None, model, source_id=outlet_source_id(prefix, "whiskers", "signal"),
+                                    stall_timeout=0.3)
+        summary = {}
+        runner = threading.Thread(target=lambda: summary.update(_run_for(node, 9.0)))
+        runner.start()
+        time.sleep(3.0)
+        first.kill()
+        first.wait(timeout=10)
+        time.sleep(1.0)
+        second = start_relay(scene, stderr=subprocess.DEVNULL)
+        runner.join(timeout=60)
+        assert not runner.is_alive()
+    finally:
+        first.kill()
+        if second is not None:
+            _end(second)
+    d = summary["driver"]
+    assert d["reopened"] == 1 and d["gaps"] == 1 and d["restarts"] == 0, d
+    assert d["filled"] >= 5000                       # the second relay's first sample came >= 1 s later
+    numbers = [e.window for e in sink.windows]
+    assert numbers == list(range(len(numbers))) and len(numbers) == 90
+    after = [e for e in sink.windows if "gap" not in e.flags and e.window * 500 > d["filled"] + 3 * 5000]
+    assert len(after) >= 20 and all(e.decision is not None for e in after)
+    assert {"unplug", "reconnect", "gap"} <= set(summary["events"]["counts"])
