@@ -353,13 +353,14 @@ def _signal_taps(scene: Scene, sources: dict, readers: dict, sinks_override=None
             continue
         driver, options = sources[s["source"]]
         channels = driver.channels
-        banks = [bank for bank, _ in readers.get(s["source"], [])]
+        read_by = readers.get(s["source"], [])
         # Channel labels: the filters' names where a bank takes the channels one to one.
-        labels = next((bank.names for bank, mapping in readers.get(s["source"], [])
+        labels = next((bank.names for bank, mapping in read_by
                        if mapping in ("auto", "per-channel") and bank.channels == channels), None)
         try:
             tap = LSLSignalOutlet(s["source"], driver.rate, channels, s["chunk"], s["prefix"],
-                                  s["stream_type"] or _signal_type(options, banks), labels, options["type"],
+                                  s["stream_type"] or _signal_type(options, [bank for bank, _ in read_by]), labels,
+                                  options["type"],
                                   s["wait_for_consumer"])
         except InputError as exc:
             for _, made in taps:
@@ -543,7 +544,7 @@ def _build_graph(scene: Scene, speed, sinks_override, progress, recorder, overwr
                 raise SceneError(f"{sub.source}: {exc}") from None
         for src in scene.sources:               # sources only sent on (a relay's): no bank, their own rate
             if src["name"] not in sources:
-                sub = source_scene(scene, src["name"])
+                sub = source_scene(src, scene.source, scene.base_dir)
                 driver, labels, ts = driver_for(sub, None, speed, xdf_files)
                 source = Source(src["name"], driver, sub.buffer["seconds"], _overrun(sub), *_timebase(sub, driver))
                 sources[src["name"]] = (source, labels, ts)

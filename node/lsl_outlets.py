@@ -205,14 +205,10 @@ class LSLOutletSink:
         any event."""
         self._clock = LSLClock(self._pylsl, epoch)
 
-    def lsl_time(self, common: float) -> float:
-        """A time on the node's common clock, seconds, on LSL's clock."""
-        return self._clock.lsl_time(common)
-
     def emit(self, event: WindowEvent) -> None:
         if event.stream not in self._streams:
             return
-        stamp = self.lsl_time(event.end)
+        stamp = self._clock.lsl_time(event.end)
         name = event.stream
         features = self._outlets.get((name, "features"))
         if features is not None and event.features:

@@ -59,7 +59,7 @@ from supramodal import __version__
 from supramodal.drivers.lsl import import_pylsl
 from supramodal.errors import InputError
 from supramodal.node.lsl_outlets import DEFAULT_PREFIX, OUTLET_BUFFER_SECONDS, LSLClock, outlet_name, outlet_source_id
-from supramodal.node.ringbuffer import RingClosed
+from supramodal.node.ringbuffer import RingClosed, flag_runs
 
 #: Seconds of samples per push: LSL's usual 5-30 ms; 10 ms matches the node's own chunks.
 DEFAULT_SIGNAL_CHUNK = 0.01
@@ -146,7 +146,7 @@ class LSLSignalOutlet:
         self.consumer: bool | None = None
         self._clock: LSLClock | None = None
         self._feed = None
-        self._line = None                  # the source's current line, a fallback (see _stamp)
+        self._source = None
         self._pending: list[np.ndarray] = []
         self._restarts: collections.deque[int] = collections.deque()    # stream indices, ascending
         self._pending_end = 0              # stream index one past the last pending frame
@@ -176,7 +176,7 @@ class LSLSignalOutlet:
         """The source this outlet taps and the graph's start (``time.monotonic()``): common
         time 0. The caller's thread, before the tap's thread starts."""
         self._clock = LSLClock(self._pylsl, epoch)
-        self._line = source.line
+        self._source = source
 
     def run(self, feed) -> None:
         """Read ``feed`` (a :class:`~supramodal.node.sources.Feed` of the source's ring) until
@@ -197,9 +197,8 @@ class LSLSignalOutlet:
             if filled is None or not filled.any():
                 self._add(data, start)
             else:
-                edges = np.flatnonzero(np.diff(np.r_[1, filled.astype(np.int8), 1]))
-                for a, b in zip(edges[::2], edges[1::2]):      # the measured runs
-                    self._add(data[a:b], start + int(a))
+                for a, b in flag_runs(~filled):                 # the measured runs
+                    self._add(data[a:b], start + a)
                 if filled[-1]:
                     self._flush(hole=True)
             expected = start + data.shape[0]
@@ -261,8 +260,6 @@ class LSLSignalOutlet:
     def _stamp(self, index: int) -> float:
         """Sample ``index`` on common time, by the line of the block that brought it (the one a
         window ending there is dated by)."""
-        arrivals = self._feed.arrivals
-        while arrivals and arrivals[0][0] <= index:
-            arrivals.popleft()
-        offset, slope = arrivals[0][2] if arrivals else self._line()
+        block = self._feed.block_of(index)
+        offset, slope = self._source.line() if block is None else block[2]
         return offset + index * slope

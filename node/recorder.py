@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from supramodal.node.ringbuffer import RingClosed
+from supramodal.node.ringbuffer import RingClosed, flag_runs
 from supramodal.replay.session import MAX_SIDECAR_BYTES, save_session, session_paths
 from supramodal.errors import InputError
 
@@ -149,8 +149,7 @@ class SessionRecorder:
         if missing:
             self._filled.append((a, self._frames))
         elif filled is not None and filled.any():
-            idx = np.flatnonzero(np.diff(np.r_[0, filled.astype(np.int8), 0]))
-            self._filled += [(a + int(s), a + int(e)) for s, e in zip(idx[::2], idx[1::2])]
+            self._filled += [(a + s, a + e) for s, e in flag_runs(filled)]
 
     def _labels(self) -> list[tuple[float, float, str]]:
         if self._driver_labels:

@@ -109,6 +109,13 @@ class Chunk(NamedTuple):
     filled: np.ndarray
 
 
+def flag_runs(flags: np.ndarray) -> list[tuple[int, int]]:
+    """The runs of True in a chunk's per-frame flags, as ``(start, end)`` offsets (end exclusive),
+    in order: e.g. the filled frames of a read, or (of ``~filled``) the measured ones."""
+    edges = np.flatnonzero(np.diff(np.r_[0, np.asarray(flags, dtype=np.int8), 0]))
+    return list(zip(edges[::2].tolist(), edges[1::2].tolist()))
+
+
 class Reader:
     """One consumer's cursor into a :class:`RingBuffer`; create with :meth:`RingBuffer.add_reader`.
 

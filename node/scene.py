@@ -531,27 +531,18 @@ def _graph_scene(d: dict, source: str, base_dir: Path) -> Scene:
         raise SceneError(f"{source}: [[source]] {unused[0]!r} feeds no [[stream]]: add a stream that reads it, "
                          "send its samples on ([[sink]] type = \"lsl-signal\"), or remove it")
     # A relay's sections are its first source's, with the defaults.
-    first = streams[0].scene if streams else _source_scene(sources[0], f"{source}: [[source]] {names[0]}", base_dir)
+    first = streams[0].scene if streams else source_scene(sources[0], source, base_dir)
     return Scene(first.driver, first.bank, first.features, first.model, first.decision, first.buffer, sinks,
                  source, base_dir, sources=sources, streams=streams, fusion=fusion)
 
 
-def _source_scene(src: dict, source: str, base_dir: Path) -> Scene:
-    """The one-source scene of a ``[[source]]`` table that no stream reads: its driver and buffer,
-    the other sections' defaults."""
+def source_scene(src: dict, source: str, base_dir: Path) -> Scene:
+    """The one-source scene of a ``[[source]]`` table (of the scene file ``source``) that no
+    stream reads, as such a source is built: its driver and buffer, the other sections' defaults."""
+    where = f"{source}: [[source]] {src['name']}"
     return Scene({k: v for k, v in src.items() if k not in ("name", "buffer")},
-                 *(_fill(f"{source} [{n}]", {}, SECTIONS[n]) for n in STREAM_SECTIONS), src["buffer"], [],
-                 source, base_dir)
-
-
-def source_scene(scene: Scene, name: str) -> Scene:
-    """The one-source scene of source ``name`` of a graph scene, as a source that no stream
-    reads is built (its driver and buffer, the other sections' defaults)."""
-    src = next((s for s in scene.sources if s["name"] == name), None)
-    if src is None:
-        raise SceneError(f"{scene.source}: no source {name!r}; the scene's sources are "
-                         f"{[s['name'] for s in scene.sources]}")
-    return _source_scene(src, f"{scene.source}: [[source]] {name}", scene.base_dir)
+                 *(_fill(f"{where} [{n}]", {}, SECTIONS[n]) for n in STREAM_SECTIONS), src["buffer"], [],
+                 where, base_dir)
 
 
 def _table_list(d: dict, key: str, source: str) -> list:

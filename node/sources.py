@@ -71,6 +71,15 @@ class Feed:
         self.arrivals: collections.deque[tuple[int, float, tuple[float, float]]] = collections.deque()
         self.marks: collections.deque[tuple[int, str]] = collections.deque()
 
+    def block_of(self, index: int) -> tuple[int, float, tuple[float, float]] | None:
+        """``(end, arrival, line)`` of the block that brought frame ``index``, or None if no block
+        is known for it (the end of the stream). The blocks before it are dropped: call it with
+        indices that never go back. The reader's thread."""
+        arrivals = self.arrivals
+        while arrivals and arrivals[0][0] <= index:
+            arrivals.popleft()
+        return arrivals[0] if arrivals else None
+
 
 class Source:
     """A driver, its ring and its thread.

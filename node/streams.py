@@ -218,7 +218,7 @@ class Stream:
                 flags.add("gap")
                 self._gap_windows.discard(w)
             features = {f: windows.values[i, k] for k, f in enumerate(windows.features)}
-            block = self._completing_block(end)
+            block = self.feed.block_of(end - 1)     # the block that completed the window
             offset, slope = self.source.line() if block is None else block[2]
             latency = None if block is None else self._latency_ms(block[1])
             event = WindowEvent(self.name, w, offset + w * W * slope, offset + end * slope, end / fs,
@@ -238,15 +238,6 @@ class Stream:
         for old in [k for k in self._window_marks if k < w]:  # windows never emitted (end of stream)
             del self._window_marks[old]
         return sorted(self._window_marks.pop(w, ()))
-
-    def _completing_block(self, end: int):
-        """``(end, arrival, line)`` of the block that completed the window ending at frame
-        ``end``, or None if no block is known for it (the window was completed by the end of the
-        stream)."""
-        arrivals = self.feed.arrivals
-        while arrivals and arrivals[0][0] < end:
-            arrivals.popleft()
-        return arrivals[0] if arrivals else None
 
     def _latency_ms(self, arrival: float) -> float:
         """Now minus the arrival of the block that completed the window."""

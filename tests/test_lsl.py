@@ -11,21 +11,14 @@ import uuid
 import numpy as np
 import pytest
 
-from supramodal.benchmarks.lsl_link import (RATE, check_loopback_config, run, run_restart, start_sender,
+from supramodal.benchmarks.lsl_link import (RATE, run, run_restart, start_sender,
                                             whisker_signal)
 from supramodal.drivers.base import DeviceUnavailable
-from supramodal.drivers.lsl import LSLUnavailable, import_pylsl, resolve_stream
+from supramodal.drivers.lsl import import_pylsl, resolve_stream
 
-try:
-    import_pylsl()
-except LSLUnavailable as exc:
-    pytest.skip(f"the LSL tests need the lsl extra (CI installs it): {exc}", allow_module_level=True)
+from lsl_only import loopback_only, require_lsl  # noqa: F401  (the fixture applies itself)
 
-
-@pytest.fixture(autouse=True)
-def loopback_only():
-    """A test that could send packets beyond this machine does not run."""
-    check_loopback_config()
+require_lsl()
 
 
 @pytest.mark.parametrize("sender", ["node", "plain"])

@@ -17,22 +17,16 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from supramodal.benchmarks.lsl_link import check_loopback_config
-from supramodal.drivers.lsl import LSLUnavailable, import_pylsl, resolve_stream
+from supramodal.drivers.lsl import import_pylsl, resolve_stream
 from supramodal.node.ringbuffer import RingClosed
 from supramodal.node.scene import SceneError, scene_from_dict
 
-try:
-    import_pylsl()
-except LSLUnavailable as exc:
-    pytest.skip(f"the LSL tests need the lsl extra (CI installs it): {exc}", allow_module_level=True)
+from lsl_only import loopback_only, require_lsl  # noqa: F401  (the fixture applies itself)
+
+require_lsl()
 
 from supramodal.node.lsl_signal import LSLSignalOutlet  # noqa: E402  (after the skip: it needs pylsl to build)
-
-
-@pytest.fixture(autouse=True)
-def loopback_only():
-    check_loopback_config()
+from supramodal.node.sources import Feed  # noqa: E402
 
 
 class _PlannedReader:
@@ -45,13 +39,6 @@ class _PlannedReader:
         if not self.chunks:
             raise RingClosed("done")
         return self.chunks.popleft()
-
-
-class _Feed:
-    def __init__(self, chunks, arrivals):
-        self.reader = _PlannedReader(chunks)
-        self.arrivals = collections.deque(arrivals)
-        self.marks = collections.deque()
 
 
 class _Pushes:
@@ -125,7 +112,8 @@ def test_chunks_are_cut_at_fixed_indices_holes_are_not_sent_and_each_is_stamped_
         start = end
     marks = sorted((i, kind) for i, kind in marks if i < n)
     tap.start(_Source((0.0, 1.0 / rate)), epoch=100.0)
-    feed = _Feed(chunks, arrivals)
+    feed = Feed(_PlannedReader(chunks))
+    feed.arrivals.extend(arrivals)
     feed.marks.extend(marks)
     tap.run(feed)
     C = tap.frames_per_chunk
