@@ -1,16 +1,26 @@
 """Decisions over time: per window, over the last N windows, or over the current contact.
 
-A robot decides per touch, not per 100 ms. The classifier's outputs for one
-window are turned into a distribution ``p_k = o_k / sum(o)`` (the logistic
-outputs need not sum to 1); the accumulated decision is the argmax of
+A robot decides per touch, not per 100 ms. Every function here takes a window's
+*log-posteriors* (a model's :meth:`~supramodal.model.TextureModel.log_posteriors`: calibrated
+when the model is, finite, never clipped). The accumulated decision is the winner of
 
-* ``"log"``: the summed log-posteriors ``sum_t log p_k(t)`` (naive-Bayes pooling), or
-* ``"vote"``: the count of windows each class won (ties go to the larger summed output),
+* ``"log"``: the pooled log-posteriors ``log_softmax(g(n) sum_t log p_k(t))`` with
+  ``g(n) = 1 / (1 + (n - 1) rho)`` (:func:`supramodal.calibration.pool_log_posteriors`; ``rho``
+  is the model's fitted window correlation, 0 = naive Bayes), or
+* ``"vote"``: the count of windows each class won (ties go to the larger summed posterior),
 
 over the last ``n`` windows (``scope="last"``) or over every window since the
 current contact began (``scope="contact"``). A contact is a run of consecutive
 windows whose input RMS is at least ``threshold``; a window below it ends the
 contact and resets the accumulation.
+
+Decide as soon as it is sure: with a ``confidence`` threshold and ``scope="contact"``, the first
+pooled decision of a contact whose confidence reaches it is the contact's *final* decision
+(:attr:`Decision.decided`); it stands, with the number of windows it took, until the contact
+ends, while the per-window output goes on as before.
+
+A tie (several classes share the top pooled score) is no decision: label -1, never a class
+picked by its place in the class list.
 """
 
 from __future__ import annotations
@@ -20,6 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from supramodal.calibration import pool_log_posteriors, winner
 from supramodal.errors import InputError
 
 SCOPES = ("window", "last", "contact")
@@ -29,7 +40,6 @@ DEFAULT_SCOPE = "window"
 DEFAULT_POOLED = 10
 DEFAULT_METHOD = "log"
 DEFAULT_CONTACT_THRESHOLD = 0.01
-_EPS = 1e-12
 
 
 @dataclass(frozen=True)
@@ -39,35 +49,32 @@ class Decision:
     Attributes
     ----------
     label : int
-        Winning class index, or -1 when out of contact.
+        Winning class index, or -1: out of contact, or a tie.
     confidence : float
-        The winner's share: ``p_label`` for one window; for an accumulated
-        decision, the normalised posterior of the winner (``"log"``) or its
-        fraction of the votes (``"vote"``).
+        The winner's share: ``p_label`` for one window; for an accumulated decision, the
+        pooled posterior of the winner (``"log"``) or its fraction of the votes (``"vote"``).
     windows : int
         How many windows the decision is based on (0 when out of contact).
+    decided : bool
+        The contact's final decision has been taken (its confidence reached the threshold);
+        ``label``, ``confidence`` and ``windows`` are then those of the moment it was taken.
     """
 
     label: int
     confidence: float
     windows: int
+    decided: bool = False
 
 
-def posteriors(outputs: np.ndarray) -> np.ndarray:
-    """Output activations (n, classes) -> rows that sum to 1."""
-    o = np.clip(np.asarray(outputs, dtype=np.float64), _EPS, None)
-    return o / o.sum(axis=-1, keepdims=True)
-
-
-def window_decision(outputs: np.ndarray) -> Decision:
-    """Winner-take-all on one window's outputs, shape (classes,)."""
-    p = posteriors(outputs)
-    k = int(np.argmax(p))
-    return Decision(k, float(p[k]), 1)
+def window_decision(log_posteriors: np.ndarray) -> Decision:
+    """Winner-take-all on one window's log-posteriors, shape (classes,) (-1 on a tie)."""
+    lp = np.asarray(log_posteriors, dtype=np.float64)
+    k = int(winner(lp))
+    return Decision(k, float(np.exp(lp.max())), 1)
 
 
 class DecisionAccumulator:
-    """Pools per-window outputs into a decision over several windows.
+    """Pools per-window log-posteriors into a decision over several windows.
 
     Parameters
     ----------
@@ -78,10 +85,16 @@ class DecisionAccumulator:
         Windows pooled for ``scope="last"`` (default :data:`DEFAULT_POOLED`, 1 s of 100 ms windows);
         for ``"contact"``, the most windows kept (0 = unlimited).
     method : {"log", "vote"}
+    correlation : float
+        ``rho`` in [0, 1] of the ``"log"`` pooling (default 0: summed log-posteriors, naive
+        Bayes); a calibrated model's :attr:`~supramodal.calibration.Calibration.correlation`.
+    confidence : float or None
+        With ``scope="contact"``: the pooled confidence at which a contact's decision is final
+        (see the module); None: never final.
     """
 
     def __init__(self, n_classes: int, scope: str = DEFAULT_SCOPE, n: int = DEFAULT_POOLED,
-                 method: str = DEFAULT_METHOD) -> None:
+                 method: str = DEFAULT_METHOD, correlation: float = 0.0, confidence: float | None = None) -> None:
         if scope not in SCOPES:
             raise InputError(f"decision scope must be one of {SCOPES}, got {scope!r}")
         if method not in METHODS:
@@ -90,36 +103,55 @@ class DecisionAccumulator:
             raise InputError(f"scope 'last' needs n >= 1 windows, got {n}")
         if n < 0:
             raise InputError(f"n must be >= 0, got {n}")
+        if not (0.0 <= correlation <= 1.0):
+            raise InputError(f"the pooling's correlation must lie in [0, 1], got {correlation!r}")
+        if confidence is not None:
+            if scope != "contact":
+                raise InputError(f"a decision confidence threshold needs scope 'contact', got {scope!r}")
+            if not (0.0 < confidence < 1.0):
+                raise InputError(f"the decision confidence must lie in (0, 1), got {confidence!r}")
         self.n_classes = int(n_classes)
         self.scope, self.method = scope, method
+        self.correlation = float(correlation)
+        self.confidence = confidence
         maxlen = n if scope == "last" else (n or None)
         self._history: deque[np.ndarray] = deque(maxlen=maxlen)
+        self._final: Decision | None = None
 
     def reset(self) -> None:
-        """Forget every pooled window (a contact ended)."""
+        """Forget every pooled window and the final decision (a contact ended)."""
         self._history.clear()
+        self._final = None
 
-    def update(self, outputs: np.ndarray, in_contact: bool = True) -> Decision:
-        """Add one window's outputs (classes,) and return the current decision."""
-        outputs = np.asarray(outputs, dtype=np.float64)
-        if outputs.shape != (self.n_classes,):
-            raise InputError(f"expected {self.n_classes} outputs, got shape {outputs.shape}")
+    def update(self, log_posteriors: np.ndarray, in_contact: bool = True) -> Decision:
+        """Add one window's log-posteriors (classes,) and return the current decision."""
+        lp = np.asarray(log_posteriors, dtype=np.float64)
+        if lp.shape != (self.n_classes,):
+            raise InputError(f"expected {self.n_classes} log-posteriors, got shape {lp.shape}")
         if self.scope == "window":
-            return window_decision(outputs)
+            return window_decision(lp)
         if self.scope == "contact" and not in_contact:
             self.reset()
             return Decision(-1, 0.0, 0)
-        self._history.append(posteriors(outputs))
-        p = np.array(self._history)
+        self._history.append(lp)
+        if self._final is not None:
+            return self._final
+        d = self._pooled()
+        if self.confidence is not None and d.label >= 0 and d.confidence >= self.confidence:
+            d = Decision(d.label, d.confidence, d.windows, decided=True)
+            self._final = d
+        return d
+
+    def _pooled(self) -> Decision:
+        lp = np.array(self._history)
         if self.method == "log":
-            score = np.log(p).sum(axis=0)
-            k = int(np.argmax(score))
-            post = np.exp(score - score.max())
-            return Decision(k, float(post[k] / post.sum()), len(p))
-        votes = np.bincount(np.argmax(p, axis=1), minlength=self.n_classes).astype(float)
+            pooled = pool_log_posteriors(lp, self.correlation)
+            return Decision(int(winner(pooled)), float(np.exp(pooled.max())), len(lp))
+        p = np.exp(lp)
+        votes = np.bincount(np.argmax(lp, axis=1), minlength=self.n_classes).astype(float)
         tie = votes == votes.max()
-        k = int(np.argmax(np.where(tie, p.sum(axis=0), -np.inf)))
-        return Decision(k, float(votes[k] / len(p)), len(p))
+        score = np.where(tie, p.sum(axis=0), -np.inf)
+        return Decision(int(winner(score)), float(votes.max() / len(lp)), len(lp))
 
 
 class ContactDetector:

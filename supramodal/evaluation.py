@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from supramodal.decisions import posteriors
 from supramodal.errors import InputError
 
 __all__ = ["POOLED_WINDOWS", "pooled_accuracy", "permutation_importance"]
@@ -15,7 +14,7 @@ __all__ = ["POOLED_WINDOWS", "pooled_accuracy", "permutation_importance"]
 POOLED_WINDOWS = (1, 2, 5, 10)
 
 
-def pooled_accuracy(outputs_by_recording, truths, n: int) -> tuple[float | None, int]:
+def pooled_accuracy(log_posteriors_by_recording, truths, n: int) -> tuple[float | None, int]:
     """Accuracy of decisions pooled over ``n`` consecutive windows, as the node pools a contact.
 
     Each recording's windows are cut into runs of ``n`` from its start (a shorter rest is left
@@ -24,8 +23,8 @@ def pooled_accuracy(outputs_by_recording, truths, n: int) -> tuple[float | None,
 
     Parameters
     ----------
-    outputs_by_recording : sequence of ndarray, each (windows, classes)
-        The model's outputs for each recording's windows, in time order.
+    log_posteriors_by_recording : sequence of ndarray, each (windows, classes)
+        The model's log-posteriors for each recording's windows, in time order.
     truths : sequence of int
         Each recording's class index.
     n : int
@@ -41,8 +40,8 @@ def pooled_accuracy(outputs_by_recording, truths, n: int) -> tuple[float | None,
     if not (isinstance(n, (int, np.integer)) and n >= 1):
         raise InputError(f"windows pooled must be an integer >= 1, got {n!r}")
     hits = runs = 0
-    for outputs, truth in zip(outputs_by_recording, truths):
-        logp = np.log(posteriors(outputs))
+    for logp, truth in zip(log_posteriors_by_recording, truths):
+        logp = np.asarray(logp, dtype=np.float64)
         m = len(logp) // n
         if m == 0:
             continue

@@ -107,6 +107,15 @@ class MLP:
         """Output activations in [0, 1], shape (n, outputs)."""
         return self.forward(np.asarray(x, dtype=np.float64))[1]
 
+    def logits(self, x: np.ndarray) -> np.ndarray:
+        """The output units' logits ``z``, ``outputs = 1 / (1 + exp(-z))``, shape (n, outputs).
+
+        Finite where the outputs round to exactly 0.0 or 1.0: what calibrated posteriors are
+        computed from (:mod:`supramodal.calibration`). Their argmax is the outputs'.
+        """
+        h = sigmoid(np.asarray(x, dtype=np.float64) @ self.w1 + self.b1)
+        return 2 * STEEPNESS * (h @ self.w2 + self.b2)
+
     def predict(self, x: np.ndarray) -> np.ndarray:
         """Winner-take-all class index, shape (n,)."""
         return np.argmax(self.outputs(x), axis=1)

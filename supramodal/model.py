@@ -18,6 +18,13 @@ from the header: ``layers = [features x channels, hidden, classes]``, ``w1``
 ``mean`` and ``scale`` (inputs,); and the bank's ``kind`` must fit its channels
 (a whisker bank's centre frequencies are the whisker table's, a cochlea's
 bandwidths the Glasberg-Moore rule's).
+
+Version 2 adds the model's calibration (:mod:`supramodal.calibration`): the header's
+``calibration`` object (the window map and the contact pooling, fitted on held-out windows)
+and ``novelty`` (true when the file holds the arrays ``novelty_means`` (classes, inputs),
+``novelty_precision`` (inputs, inputs) and ``novelty_quantiles``). A version 1 file still
+loads: its model is *uncalibrated* (:attr:`TextureModel.calibrated` is False), its posteriors
+the normalised outputs, and it cannot say "unknown".
 """
 
 from __future__ import annotations
@@ -30,6 +37,8 @@ from pathlib import Path
 
 import numpy as np
 
+from supramodal.calibration import (DEFAULT_CALIBRATION_FOLDS, NOVELTY_QUANTILES, Calibration, Novelty,
+                                    input_scaling, fit_network_calibration, normalised_log_posteriors)
 from supramodal.banks import COCHLEA_B_MIN, COCHLEA_Q_EAR, ERB_TO_B, WHISKER_TABLE, Bank, erb
 from supramodal.errors import InputError
 from supramodal.features import check_features
@@ -39,8 +48,12 @@ from supramodal.peaks import PEAK_MODES
 from supramodal.pipeline import MAX_WINDOW_SAMPLES
 
 MODEL_FORMAT = "supramodal-model"
-MODEL_VERSION = 1
+MODEL_VERSION = 2
+#: Versions this program reads (1: before calibration; its models load uncalibrated).
+MODEL_VERSIONS = (1, 2)
 _ARRAYS = ("w1", "b1", "w2", "b2", "mean", "scale")
+#: Arrays of a model's novelty score, present when its header says ``"novelty": true``.
+NOVELTY_ARRAYS = ("novelty_means", "novelty_precision", "novelty_quantiles")
 
 #: Most classes a model may name.
 MAX_CLASSES = 1024
@@ -118,16 +131,25 @@ class TextureModel:
     mlp: MLP
     training: dict = field(default_factory=dict)
     peak_threshold: float = 0.0
+    calibration: Calibration | None = None
+    novelty: Novelty | None = None
 
     @property
     def n_inputs(self) -> int:
         return len(self.features) * self.bank.channels
 
+    @property
+    def calibrated(self) -> bool:
+        """Whether the posteriors are calibrated (a model trained by this version; a version 1
+        file is not)."""
+        return self.calibration is not None
+
     @classmethod
     def train(cls, values: np.ndarray, labels, classes, bank: Bank, features, window_samples: int,
               peak_mode: str = "maxima", epochs: int = DEFAULT_EPOCHS, seed: int = 0, hidden: int | None = None,
-              progress=None, peak_threshold: float = 0.0) -> "TextureModel":
-        """Fit the scaling and the MLP on feature windows.
+              progress=None, peak_threshold: float = 0.0, groups=None,
+              calibration_folds: int = DEFAULT_CALIBRATION_FOLDS, calibration_progress=None) -> "TextureModel":
+        """Fit the scaling and the MLP on feature windows, then their calibration.
 
         Parameters
         ----------
@@ -137,6 +159,16 @@ class TextureModel:
         classes : sequence of str
         epochs, seed, hidden, progress
             See :func:`supramodal.mlp.train_mlp`.
+        groups : sequence, length n, optional
+            Each window's recording (windows of one recording consecutive, in time order): the
+            calibration's held-out windows are whole recordings where there are enough of
+            them (:func:`supramodal.calibration.calibration_folds`). Default: one per label.
+        calibration_folds : int
+            Folds whose held-out windows fit the calibration and the novelty score (default
+            :data:`~supramodal.calibration.DEFAULT_CALIBRATION_FOLDS`); each trains one more
+            network like this one. 0: no calibration (the normalised outputs, as version 1).
+        calibration_progress : callable(str), optional
+            One line per calibration fold.
         """
         features = check_features(features)
         values = np.asarray(values, dtype=np.float64)
@@ -144,15 +176,18 @@ class TextureModel:
         if values.ndim != 3 or values.shape[1:] != expected:
             raise InputError(f"feature windows must have shape (n, {expected[0]}, {expected[1]}), got {values.shape}")
         x = values.reshape(len(values), -1)
-        mean = x.mean(axis=0)
-        scale = x.std(axis=0)
-        scale[scale == 0] = 1.0                   # a constant input carries nothing; keep it at 0
+        mean, scale = input_scaling(x)         # a constant input carries nothing; scale 1 keeps it at 0
         mlp, history = train_mlp((x - mean) / scale, np.asarray(labels), len(classes), hidden=hidden,
                                  epochs=epochs, seed=seed, progress=progress)
         info = {"algorithm": "iRPROP-", "epochs": len(history), "seed": seed,
                 "final_mse": history[-1], "windows": int(len(values))}
+        calibration = novelty = None
+        if calibration_folds:
+            calibration, novelty = fit_network_calibration(x, np.asarray(labels), len(classes), groups,
+                                                           calibration_folds, hidden, epochs, seed,
+                                                           calibration_progress)
         return cls(bank, features, int(window_samples), peak_mode, tuple(classes), mean, scale, mlp, info,
-                   float(peak_threshold))
+                   float(peak_threshold), calibration, novelty)
 
     def _inputs(self, values: np.ndarray) -> np.ndarray:
         values = np.asarray(values, dtype=np.float64)
@@ -164,6 +199,27 @@ class TextureModel:
     def outputs(self, values: np.ndarray) -> np.ndarray:
         """Output unit activations in [0, 1], shape (n, classes)."""
         return self.mlp.outputs(self._inputs(values))
+
+    def logits(self, values: np.ndarray) -> np.ndarray:
+        """The output units' logits, shape (n, classes) (finite where the outputs round to 0 or 1)."""
+        return self.mlp.logits(self._inputs(values))
+
+    def log_posteriors(self, values: np.ndarray) -> np.ndarray:
+        """Log-posteriors of the classes per window, shape (n, classes): calibrated when the model
+        is (:attr:`calibrated`), else the normalised outputs; finite, computed without clipping."""
+        return log_posteriors_of(self.logits(values), self.calibration)
+
+    def posteriors(self, values: np.ndarray) -> np.ndarray:
+        """Posteriors per window (rows sum to 1), shape (n, classes); see :meth:`log_posteriors`."""
+        return np.exp(self.log_posteriors(values))
+
+    def novelty_score(self, values: np.ndarray) -> np.ndarray:
+        """How unlike every training texture each window is, shape (n,)
+        (:class:`~supramodal.calibration.Novelty`); a model without a novelty score raises."""
+        if self.novelty is None:
+            raise ModelError("this model has no novelty score (trained before version 2, or without "
+                             "calibration): retrain it with `supramodal train` to detect unknown textures")
+        return self.novelty.score(self._inputs(values))
 
     def predict(self, values: np.ndarray) -> np.ndarray:
         """Winner-take-all class index per window, shape (n,)."""
@@ -207,17 +263,18 @@ class TextureModel:
             "classes": list(self.classes),
             "layers": list(self.mlp.shape),
             "training": self.training,
+            **calibration_header(self.calibration, self.novelty),
         }
 
     def save(self, path) -> Path:
         """Write the model, an ``.npz`` archive, to exactly ``path`` (no suffix is added, so that
         :meth:`load` reads it back from the same name). Returns the path written."""
-        return save_model_archive(path, self.header(), self.mlp, self.mean, self.scale)
+        return save_model_archive(path, self.header(), self.mlp, self.mean, self.scale, novelty_arrays(self.novelty))
 
     @classmethod
     def load(cls, path) -> "TextureModel":
         """Read and validate a model file; :class:`ModelError` says what is wrong with it."""
-        header, arrays = read_model_archive(path, _ARRAYS)
+        header, arrays = read_model_archive(path, _ARRAYS, optional=NOVELTY_ARRAYS)
         return cls._from_parts(Path(path), header, arrays)
 
     @classmethod
@@ -227,10 +284,12 @@ class TextureModel:
 
         if not isinstance(header, dict) or header.get("format") != MODEL_FORMAT:
             raise bad(f"not a {MODEL_FORMAT} file (format is {header.get('format') if isinstance(header, dict) else None!r})")
-        if type(header.get("version")) is not int or header["version"] != MODEL_VERSION:   # true == 1 in Python
+        if type(header.get("version")) is not int or header["version"] not in MODEL_VERSIONS:   # true == 1 in Python
             raise bad(f"model format version {header.get('version')!r} is not supported (this program reads "
-                      f"version {MODEL_VERSION}); retrain the model with this version")
+                      f"versions {', '.join(map(str, MODEL_VERSIONS))}); retrain the model with this version")
         known = {"format", "version", *SENSE_KEYS, "classes", "layers", "training"}
+        if header["version"] >= 2:
+            known |= set(CALIBRATION_KEYS)
         unknown = set(header) - known
         if unknown:
             raise bad(f"unknown header key(s) {sorted(unknown)}")
@@ -242,7 +301,9 @@ class TextureModel:
         training = header.get("training", {})
         if not isinstance(training, dict):
             raise bad("'training' must be an object")
-        return cls(bank, features, window, peak_mode, tuple(classes), mean, scale, mlp, training, threshold)
+        calibration, novelty = calibration_from_parts(header, arrays, n_in, len(classes), bad)
+        return cls(bank, features, window, peak_mode, tuple(classes), mean, scale, mlp, training, threshold,
+                   calibration, novelty)
 
 
 def check_sense_fits(trained, bank: Bank, features, window_samples: int, peak_mode: str | None = None,
@@ -347,19 +408,21 @@ def network_from_arrays(header: dict, arrays: dict, n_in: int, n_classes: int, b
     return mlp, arrays["mean"].astype(np.float64), arrays["scale"].astype(np.float64)
 
 
-def save_model_archive(path, header: dict, mlp: MLP, mean: np.ndarray, scale: np.ndarray) -> Path:
-    """Write ``header`` (as JSON text) and the network's arrays to exactly ``path``, an ``.npz``."""
+def save_model_archive(path, header: dict, mlp: MLP, mean: np.ndarray, scale: np.ndarray,
+                       extra: dict | None = None) -> Path:
+    """Write ``header`` (as JSON text), the network's arrays and any ``extra`` named arrays to
+    exactly ``path``, an ``.npz``."""
     path = Path(path)
-    arrays = dict(zip(_ARRAYS, (mlp.w1, mlp.b1, mlp.w2, mlp.b2, mean, scale)))
+    arrays = {**dict(zip(_ARRAYS, (mlp.w1, mlp.b1, mlp.w2, mlp.b2, mean, scale))), **(extra or {})}
     with open(path, "wb") as fh:
         np.savez(fh, header=np.array(json.dumps(header)), **arrays)
     return path
 
 
-def read_model_archive(path, names=_ARRAYS) -> tuple[object, dict]:
-    """``(header, arrays)`` of a model file: the parsed JSON header and the named arrays, read
-    with ``allow_pickle=False``, every member's size bounded before it is read; anything else
-    is a :class:`ModelError` that says what the file is not."""
+def read_model_archive(path, names=_ARRAYS, optional=()) -> tuple[object, dict]:
+    """``(header, arrays)`` of a model file: the parsed JSON header and the named arrays (and
+    those of ``optional`` that it holds), read with ``allow_pickle=False``, every member's size
+    bounded before it is read; anything else is a :class:`ModelError` that says what the file is not."""
     path = Path(path)
     if not path.is_file():
         raise ModelError(f"no model file at {path}: train one with `supramodal train` or give the right path")
@@ -372,6 +435,7 @@ def read_model_archive(path, names=_ARRAYS) -> tuple[object, dict]:
             missing = {"header", *names} - set(npz.files)
             if missing:
                 raise ModelError(f"{path} is not a supramodal model: it lacks {sorted(missing)}")
+            names = (*names, *(k for k in optional if k in npz.files))
             for k in ("header", *names):
                 _check_member_size(npz, k, MAX_HEADER_BYTES if k == "header" else MAX_ARRAY_BYTES, path)
             header_text = npz["header"]
@@ -394,3 +458,62 @@ def read_model_archive(path, names=_ARRAYS) -> tuple[object, dict]:
     header = parse_json_text(str(header_text), f"{path}: the model header", max_depth=MAX_HEADER_DEPTH,
                              error=ModelError, limit_name="supramodal.model.MAX_HEADER_DEPTH")
     return header, arrays
+
+
+# -- calibration in a model file (version 2) ----------------------------------------------------
+
+#: Header keys of a version 2 file's calibration.
+CALIBRATION_KEYS = ("calibration", "novelty")
+
+
+def log_posteriors_of(logits: np.ndarray, calibration: Calibration | None) -> np.ndarray:
+    """Log-posteriors from a network's logits: calibrated with ``calibration``, else the
+    normalised outputs (:func:`~supramodal.calibration.normalised_log_posteriors`)."""
+    if calibration is None:
+        return normalised_log_posteriors(logits)
+    return calibration.log_posteriors(logits)
+
+
+def calibration_header(calibration: Calibration | None, novelty: Novelty | None) -> dict:
+    """The :data:`CALIBRATION_KEYS` of a header."""
+    return {"calibration": None if calibration is None else calibration.to_dict(), "novelty": novelty is not None}
+
+
+def novelty_arrays(novelty: Novelty | None) -> dict:
+    """The :data:`NOVELTY_ARRAYS` a model file holds for ``novelty`` (none without one)."""
+    if novelty is None:
+        return {}
+    return dict(zip(NOVELTY_ARRAYS, (novelty.means, novelty.precision, novelty.quantiles)))
+
+
+def calibration_from_parts(header: dict, arrays: dict, n_in: int, n_classes: int, bad):
+    """``(Calibration or None, Novelty or None)`` of a header and its arrays, each validated;
+    both None for a version 1 file or one saved without them."""
+    raw = header.get("calibration")
+    calibration = None if raw is None else Calibration.from_dict(raw, bad)
+    flag = header.get("novelty", False)
+    if not isinstance(flag, bool):
+        raise bad(f"'novelty' must be true or false, got {flag!r}")
+    present = [k for k in NOVELTY_ARRAYS if k in arrays]
+    if not flag:
+        if present:
+            raise bad(f"the file holds {present} but its header says it has no novelty score")
+        return calibration, None
+    missing = [k for k in NOVELTY_ARRAYS if k not in arrays]
+    if missing:
+        raise bad(f"the header says the model has a novelty score, but the file lacks {missing}")
+    shapes = {"novelty_means": (n_classes, n_in), "novelty_precision": (n_in, n_in),
+              "novelty_quantiles": NOVELTY_QUANTILES.shape}
+    for k, want in shapes.items():
+        a = arrays[k]
+        if a.dtype.kind != "f" or a.shape != want:
+            raise bad(f"array {k} has shape {a.shape} and dtype {a.dtype}; expected float {want}")
+        if not np.isfinite(a).all():
+            raise bad(f"array {k} contains NaN or Inf")
+    q = arrays["novelty_quantiles"].astype(np.float64)
+    if np.any(np.diff(q) < 0) or q[0] < 0:
+        raise bad("array novelty_quantiles must be non-negative and non-decreasing")
+    precision = arrays["novelty_precision"].astype(np.float64)
+    if not np.allclose(precision, precision.T, rtol=1e-9, atol=1e-12):
+        raise bad("array novelty_precision must be symmetric")
+    return calibration, Novelty(arrays["novelty_means"].astype(np.float64), precision, q)

@@ -281,7 +281,7 @@ def texture_session(kind: str, cfg: Config):
         ranges.append((t, t + n_session / bank.fs, name))
         t += n_session / bank.fs
     model = TextureModel.train(np.concatenate(values), np.array(labels), ts.names, bank, FEATURES, pipe_W,
-                               epochs=cfg.epochs, seed=0)
+                               epochs=cfg.epochs, seed=0, calibration_folds=0)   # labels only
     return bank, model, np.concatenate(session), ranges
 
 
@@ -307,11 +307,11 @@ def chain_job(bank, model, session, L, variant, keep: dict):
                 for i in range(0, session.size, L):
                     w = pipe.process(session[i : i + L])
                     if len(w):
-                        for o in model.outputs(w.values):
+                        for o in model.log_posteriors(w.values):
                             labels.append(window_decision(o).label)
                 w = pipe.finish()
                 if len(w):
-                    labels += [window_decision(o).label for o in model.outputs(w.values)]
+                    labels += [window_decision(o).label for o in model.log_posteriors(w.values)]
             if first:
                 keep[(variant, L)] = labels
         return run

@@ -124,8 +124,9 @@ def classification_rates(values: np.ndarray, classes, bank: Bank, features, wind
     """
     x_train, y_train, x_test, y_test = split(values)
     if standardise:
+        # The rates need the winner alone, which calibration never changes: no calibration folds.
         model = TextureModel.train(x_train, y_train, classes, bank, features, window_samples, epochs=epochs,
-                                   seed=seed)
+                                   seed=seed, calibration_folds=0)
         predicted = model.predict(x_test)
     else:
         mlp, _ = train_mlp(x_train.reshape(len(x_train), -1), y_train, len(classes), epochs=epochs, seed=seed)

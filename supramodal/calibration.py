@@ -1,0 +1,520 @@
+"""Confidence that means what it says: calibrated posteriors of one window and of a contact,
+the measures of calibration, and a novelty score for textures the model never met.
+
+The network (:mod:`supramodal.mlp`) ends in logistic units trained towards 0 and 1 with FANN's
+tanh error, which drives their pre-activations (the *logits* ``z``) to hundreds: the outputs of
+the losing classes are exactly 0.0 in float64 and ``o / sum(o)`` says 1.00 whether the window is
+right or wrong. Everything here works on the logits, in the log domain, and never clips.
+
+Window posteriors
+    Uncalibrated (a model file without a calibration): the normalised outputs
+    ``p_k = o_k / sum_j o_j`` with ``o = sigmoid(z)``, computed as ``log sigmoid(z)`` minus their
+    log-sum-exp (:func:`normalised_log_posteriors`): the same numbers as before where they were
+    representable, and finite everywhere.
+
+    Calibrated (:class:`Calibration`): ``p = softmax(a * asinh(z / c))``, two numbers fitted by
+    minimising the log loss of held-out windows (:func:`fit_window_calibration`). ``asinh`` is odd
+    and increasing, so the winner of every window is the network's (the paper's winner-take-all
+    is unchanged); it is linear for ``|z| << c`` and logarithmic beyond, so the few logits in the
+    hundreds no longer decide the temperature of all the others. As ``c`` grows the map becomes
+    plain temperature scaling ``softmax(z / T)`` with ``T = c / a``, which it contains.
+
+Contact posteriors
+    The windows of one touch are not independent: summing their log-posteriors (naive Bayes)
+    counts the same evidence many times. The pooled posterior of ``n`` windows is
+    ``softmax(g(n) * sum_t log p_t)`` with ``g(n) = 1 / (1 + (n - 1) rho)``: ``rho = 0`` is naive
+    Bayes, ``rho = 1`` the mean of the windows (as sure as one window). ``n / (1 + (n - 1) rho)``
+    is the classical effective number of independent samples among ``n`` equally correlated ones;
+    ``rho`` is fitted on held-out runs of consecutive windows (:func:`fit_pooling`). Scaling by
+    ``g(n) > 0`` keeps the pooled winner that of the plain sum.
+
+Unknown textures
+    :class:`Novelty`: the squared Mahalanobis distance of a window's standardised inputs to the
+    nearest class mean (one covariance shared by the classes, shrunk towards its diagonal), with
+    the distribution of that score on held-out windows of known textures, so that a threshold
+    is a false-unknown rate.
+
+Pure numpy/scipy; the models (:mod:`supramodal.model`, :mod:`supramodal.fused_model`) fit and
+store these, the node applies them.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import minimize, minimize_scalar
+from scipy.special import log_softmax, logsumexp
+
+from supramodal.errors import InputError
+
+__all__ = [
+    "CALIBRATION_METHOD", "DEFAULT_CALIBRATION_FOLDS", "ECE_BINS", "Calibration", "Novelty",
+    "brier_score", "calibration_report", "effective_windows", "expected_calibration_error", "fit_novelty",
+    "fit_pooling", "fit_window_calibration", "log_loss", "log_sigmoid", "normalised_log_posteriors",
+    "pool_log_posteriors", "reliability", "winner",
+]
+
+#: Name of the window map stored in model files.
+CALIBRATION_METHOD = "asinh-temperature"
+#: Grouped folds whose held-out windows fit a model's calibration (the one home of this default).
+DEFAULT_CALIBRATION_FOLDS = 5
+#: Bins of the expected calibration error and of the reliability diagram.
+ECE_BINS = 15
+#: Consecutive held-out windows of one recording that make one run when the pooling is fitted
+#: (2 s of 100 ms windows); every prefix of a run, 1 .. this many windows, is scored.
+POOLING_RUN = 20
+#: Fraction of the covariance's diagonal mixed into it (shrinkage) for the novelty score.
+NOVELTY_SHRINK = 0.1
+#: Quantiles of the held-out novelty scores kept in a model: 0, 0.5, ..., 100 %.
+NOVELTY_QUANTILES = np.linspace(0.0, 1.0, 201)
+
+
+# -- log-domain posteriors ---------------------------------------------------------------------
+
+def log_sigmoid(z) -> np.ndarray:
+    """``log(1 / (1 + exp(-z)))`` without overflow or underflow to -inf (for finite ``z``)."""
+    z = np.asarray(z, dtype=np.float64)
+    return -np.logaddexp(0.0, -z)
+
+
+def normalised_log_posteriors(logits) -> np.ndarray:
+    """Log of the normalised outputs ``o_k / sum_j o_j``, ``o = sigmoid(logits)``, along the last axis.
+
+    The uncalibrated posteriors of a model file without a calibration, finite for finite logits
+    (an output of exactly 0.0 in float64 still has its logarithm here).
+    """
+    ls = log_sigmoid(logits)
+    return ls - logsumexp(ls, axis=-1, keepdims=True)
+
+
+def winner(log_posteriors) -> np.ndarray:
+    """Winner-take-all per row of ``log_posteriors`` (..., classes): the class index, or -1 where
+    the largest value is shared by several classes (a tie is no decision; it is never broken by
+    the classes' order)."""
+    lp = np.asarray(log_posteriors, dtype=np.float64)
+    k = np.argmax(lp, axis=-1)
+    top = np.take_along_axis(lp, k[..., None], axis=-1)
+    tied = np.count_nonzero(lp == top, axis=-1) > 1
+    return np.where(tied, -1, k)
+
+
+def effective_windows(n, correlation: float) -> np.ndarray:
+    """``n / (1 + (n - 1) rho)``: independent windows worth ``n`` windows of mutual correlation ``rho``."""
+    n = np.asarray(n, dtype=np.float64)
+    return n / (1.0 + (n - 1.0) * correlation)
+
+
+def pool_log_posteriors(log_posteriors, correlation: float) -> np.ndarray:
+    """Pooled log-posteriors of the windows ``log_posteriors`` (n, classes) of one contact:
+    ``log_softmax(g(n) sum_t log p_t)``, ``g(n) = 1 / (1 + (n - 1) correlation)``; shape (classes,)."""
+    lp = np.asarray(log_posteriors, dtype=np.float64)
+    n = lp.shape[0]
+    if n == 0:
+        raise InputError("pooling needs at least one window")
+    return log_softmax(lp.sum(axis=0) / (1.0 + (n - 1) * correlation))
+
+
+def _prefix_pooled(runs, correlation: float) -> tuple[np.ndarray, np.ndarray]:
+    """Pooled log-posteriors of every prefix of every run, and each prefix's length."""
+    out, lengths = [], []
+    for lp in runs:
+        n = np.arange(1, len(lp) + 1)[:, None]
+        out.append(log_softmax(np.cumsum(lp, axis=0) / (1.0 + (n - 1) * correlation), axis=1))
+        lengths.append(n[:, 0])
+    return np.concatenate(out), np.concatenate(lengths)
+
+
+# -- fitting -------------------------------------------------------------------------------------
+
+def _window_map(logits, temperature: float, scale: float) -> np.ndarray:
+    return np.arcsinh(np.asarray(logits, dtype=np.float64) / scale) * temperature
+
+
+def fit_window_calibration(logits, labels) -> tuple[float, float]:
+    """``(a, c)`` of ``softmax(a * asinh(z / c))`` minimising the log loss of ``labels``.
+
+    Parameters
+    ----------
+    logits : ndarray, shape (n, classes)
+        The network's logits of held-out windows (never its own training windows: on those it
+        is nearly always right, and the fit would learn to be sure).
+    labels : ndarray of int, shape (n,)
+
+    Returns
+    -------
+    (float, float)
+        ``a`` (the sharpness, > 0) and ``c`` (the scale of the logits where the map turns from
+        linear to logarithmic, > 0), each within ``[1e-3, 1e4]``.
+    """
+    z = np.asarray(logits, dtype=np.float64)
+    y = np.asarray(labels)
+    _check_scored(z, y, "logits")
+    target = _smoothed_targets(y, z.shape[1])
+    lo, hi = math.log(1e-3), math.log(1e4)
+
+    def loss(p):
+        a, c = np.exp(np.clip(p, lo, hi))
+        return -(target * log_softmax(_window_map(z, a, c), axis=1)).sum(axis=1).mean()
+
+    best = None
+    for start in ((0.0, 0.0), (0.0, math.log(10.0)), (math.log(3.0), math.log(30.0))):
+        r = minimize(loss, np.array(start), method="Nelder-Mead",
+                     options={"xatol": 1e-4, "fatol": 1e-7, "maxiter": 2000})
+        if best is None or r.fun < best.fun:
+            best = r
+    a, c = np.exp(np.clip(best.x, lo, hi))
+    return float(a), float(c)
+
+
+def _smoothed_targets(labels, n_classes: int) -> np.ndarray:
+    """Targets of the calibration's log loss: ``1 - eps`` on the true class and ``eps`` shared by
+    the others, ``eps = 1 / (n + 2)`` (Laplace's rule of succession for ``n`` windows).
+
+    Without it, held-out windows that are all right make the most likely calibration infinitely
+    sure, and the first wrong window in use costs without bound; with it, ``n`` right windows
+    out of ``n`` allow a confidence of about ``1 - 1 / (n + 2)``.
+    """
+    y = np.asarray(labels)
+    eps = 1.0 / (len(y) + 2)
+    t = np.full((len(y), n_classes), eps / (n_classes - 1))
+    t[np.arange(len(y)), y] = 1.0 - eps
+    return t
+
+
+def fit_pooling(runs, labels) -> float:
+    """The correlation ``rho`` in [0, 1] of :func:`pool_log_posteriors` that minimises the log loss
+    of every prefix of every run.
+
+    Parameters
+    ----------
+    runs : sequence of ndarray, each (windows, classes)
+        Calibrated log-posteriors of consecutive held-out windows of one recording.
+    labels : sequence of int
+        Each run's class.
+    """
+    runs = [np.asarray(r, dtype=np.float64) for r in runs if len(r)]
+    if not runs:
+        raise InputError("fitting the pooling needs at least one run of held-out windows")
+    y = np.concatenate([np.full(len(r), lab) for r, lab in zip(runs, labels) if len(r)])
+    target = _smoothed_targets(y, runs[0].shape[1])
+    r = minimize_scalar(lambda rho: -(target * _prefix_pooled(runs, rho)[0]).sum(axis=1).mean(), bounds=(0.0, 1.0),
+                        method="bounded", options={"xatol": 1e-5})
+    return float(r.x)
+
+
+def _check_scored(values, labels, what: str) -> None:
+    if values.ndim != 2 or values.shape[0] == 0 or values.shape[1] < 2:
+        raise InputError(f"{what} must have shape (n >= 1, classes >= 2), got {values.shape}")
+    if labels.shape != (values.shape[0],) or labels.dtype.kind not in "iu":
+        raise InputError(f"labels must be {values.shape[0]} integers, got {labels.dtype} {labels.shape}")
+    if labels.min() < 0 or labels.max() >= values.shape[1]:
+        raise InputError(f"labels must lie in 0..{values.shape[1] - 1}")
+    if not np.isfinite(values).all():
+        raise InputError(f"{what} contain NaN or Inf")
+
+
+# -- the calibration a model keeps -----------------------------------------------------------
+
+@dataclass(frozen=True)
+class Calibration:
+    """A model's fitted map from logits to window posteriors, and its pooling over a contact.
+
+    Attributes
+    ----------
+    temperature : float
+        ``a`` of ``softmax(a * asinh(z / c))`` (> 0).
+    scale : float
+        ``c`` (> 0), in units of the logits.
+    correlation : float
+        ``rho`` of :func:`pool_log_posteriors`, in [0, 1].
+    fitted_on : dict
+        How it was fitted: ``folds``, ``windows``, ``runs``, and the held-out log loss before
+        and after (plain data, kept in the model file).
+    """
+
+    temperature: float
+    scale: float
+    correlation: float
+    fitted_on: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        for name in ("temperature", "scale"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not (0 < v < math.inf):
+                raise InputError(f"calibration {name} must be a finite number > 0, got {v!r}")
+        c = self.correlation
+        if isinstance(c, bool) or not isinstance(c, (int, float)) or not (0.0 <= c <= 1.0):
+            raise InputError(f"calibration correlation must lie in [0, 1], got {c!r}")
+
+    def log_posteriors(self, logits) -> np.ndarray:
+        """Calibrated log-posteriors of windows with these ``logits`` (..., classes)."""
+        return log_softmax(_window_map(logits, self.temperature, self.scale), axis=-1)
+
+    def pool(self, log_posteriors) -> np.ndarray:
+        """Calibrated log-posteriors of one contact from its windows' (n, classes)."""
+        return pool_log_posteriors(log_posteriors, self.correlation)
+
+    def to_dict(self) -> dict:
+        return {"method": CALIBRATION_METHOD, "temperature": self.temperature, "scale": self.scale,
+                "correlation": self.correlation, "fitted_on": self.fitted_on}
+
+    @classmethod
+    def from_dict(cls, d, bad) -> "Calibration":
+        """From a model header's ``calibration`` object; ``bad(message)`` makes the error to raise."""
+        if not isinstance(d, dict):
+            raise bad("'calibration' must be an object")
+        keys = {"method", "temperature", "scale", "correlation", "fitted_on"}
+        if set(d) != keys:
+            raise bad(f"'calibration' must have exactly the keys {sorted(keys)}, has {sorted(d)}")
+        if d["method"] != CALIBRATION_METHOD:
+            raise bad(f"calibration method {d['method']!r} is not known (this program reads {CALIBRATION_METHOD!r})")
+        if not isinstance(d["fitted_on"], dict):
+            raise bad("'calibration.fitted_on' must be an object")
+        try:
+            return cls(d["temperature"], d["scale"], d["correlation"], d["fitted_on"])
+        except InputError as exc:
+            raise bad(str(exc)) from None
+
+
+def fit_calibration(logits, labels, groups, run: int = POOLING_RUN) -> Calibration:
+    """Fit a :class:`Calibration` on held-out windows.
+
+    Parameters
+    ----------
+    logits : ndarray, shape (n, classes)
+        Out-of-fold logits: each window's from a network that did not train on its group.
+    labels : ndarray of int, shape (n,)
+    groups : sequence, length n
+        Each window's recording (or held-out block); windows of one group are consecutive in
+        time and in order. Runs of ``run`` consecutive windows of one group fit the pooling.
+    """
+    z = np.asarray(logits, dtype=np.float64)
+    y = np.asarray(labels)
+    _check_scored(z, y, "logits")
+    a, c = fit_window_calibration(z, y)
+    lp = log_softmax(_window_map(z, a, c), axis=1)
+    runs, run_labels = [], []
+    groups = np.asarray(groups)
+    for g in _ordered_unique(groups):
+        idx = np.flatnonzero(groups == g)
+        for s in range(0, len(idx), run):
+            part = idx[s:s + run]
+            runs.append(lp[part])
+            run_labels.append(int(y[part[0]]))
+    rho = fit_pooling(runs, run_labels)
+    rows = np.arange(len(y))
+    before = float(-normalised_log_posteriors(z)[rows, y].mean())
+    after = float(-lp[rows, y].mean())
+    return Calibration(a, c, rho, {"windows": int(len(y)), "runs": len(runs), "run_windows": int(run),
+                                   "log_loss_uncalibrated": round(before, 6), "log_loss": round(after, 6)})
+
+
+def _ordered_unique(values) -> list:
+    seen: dict = {}
+    for v in values.tolist():
+        seen.setdefault(v, None)
+    return list(seen)
+
+
+# -- novelty ---------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Novelty:
+    """How far a window lies from every known texture: min over classes of the squared
+    Mahalanobis distance of its standardised inputs to the class mean.
+
+    Attributes
+    ----------
+    means : ndarray, shape (classes, inputs)
+    precision : ndarray, shape (inputs, inputs)
+        Inverse of the shared, shrunk covariance.
+    quantiles : ndarray, shape (len(NOVELTY_QUANTILES),)
+        The score's quantiles on held-out windows of known textures, increasing: the threshold
+        for a false-unknown rate ``r`` is the ``1 - r`` quantile.
+    """
+
+    means: np.ndarray
+    precision: np.ndarray
+    quantiles: np.ndarray
+
+    def score(self, x) -> np.ndarray:
+        """Novelty of standardised input rows ``x`` (n, inputs), shape (n,)."""
+        x = np.asarray(x, dtype=np.float64)
+        d = x[:, None, :] - self.means[None, :, :]                 # (n, classes, inputs)
+        m = np.einsum("nki,ij,nkj->nk", d, self.precision, d)
+        return m.min(axis=1)
+
+    def threshold(self, false_unknown: float) -> float:
+        """The score above which a window is unknown, so that a share ``false_unknown`` of held-out
+        windows of known textures would be called unknown."""
+        if not (0.0 < false_unknown < 1.0):
+            raise InputError(f"the false-unknown rate must lie in (0, 1), got {false_unknown!r}")
+        return float(np.interp(1.0 - false_unknown, NOVELTY_QUANTILES, self.quantiles))
+
+
+def _gaussian(x, y, n_classes: int):
+    means = np.stack([x[y == k].mean(axis=0) if np.any(y == k) else np.zeros(x.shape[1]) for k in range(n_classes)])
+    resid = x - means[y]
+    cov = resid.T @ resid / max(len(x) - n_classes, 1)
+    cov = (1 - NOVELTY_SHRINK) * cov + NOVELTY_SHRINK * np.diag(np.diag(cov)) + 1e-6 * np.eye(x.shape[1])
+    precision = np.linalg.inv(cov)
+    return means, (precision + precision.T) / 2
+
+
+def fit_novelty(x, labels, n_classes: int, folds) -> Novelty:
+    """Fit the novelty score on standardised training inputs ``x`` (n, inputs) and set its
+    quantiles on held-out windows: each fold's windows scored by the Gaussians of the others."""
+    x = np.asarray(x, dtype=np.float64)
+    y = np.asarray(labels)
+    folds = np.asarray(folds)
+    held = np.empty(len(x))
+    for f in np.unique(folds):
+        test = folds == f
+        means, precision = _gaussian(x[~test], y[~test], n_classes)
+        held[test] = Novelty(means, precision, NOVELTY_QUANTILES).score(x[test])
+    means, precision = _gaussian(x, y, n_classes)
+    return Novelty(means, precision, np.quantile(held, NOVELTY_QUANTILES))
+
+
+# -- measures ---------------------------------------------------------------------------------------
+
+def log_loss(log_posteriors, labels) -> float:
+    """Mean negative log-posterior of the true class (nats)."""
+    lp = np.asarray(log_posteriors, dtype=np.float64)
+    y = np.asarray(labels)
+    return float(-lp[np.arange(len(y)), y].mean())
+
+
+def brier_score(posteriors, labels) -> float:
+    """Mean over rows of ``sum_k (p_k - [k == y])^2`` (0 = perfect, 2 = sure and wrong)."""
+    p = np.asarray(posteriors, dtype=np.float64)
+    y = np.asarray(labels)
+    t = np.zeros_like(p)
+    t[np.arange(len(y)), y] = 1.0
+    return float(((p - t) ** 2).sum(axis=1).mean())
+
+
+def reliability(confidence, correct, bins: int = ECE_BINS) -> dict:
+    """Reliability diagram data: per equal-width confidence bin (right-closed, the first also
+    holding 0), the count, the mean confidence and the share right (None where empty)."""
+    conf = np.asarray(confidence, dtype=np.float64)
+    ok = np.asarray(correct, dtype=bool)
+    edges = np.linspace(0.0, 1.0, bins + 1)
+    which = np.clip(np.searchsorted(edges, conf, side="left") - 1, 0, bins - 1)
+    count = np.bincount(which, minlength=bins)
+    conf_sum = np.bincount(which, weights=conf, minlength=bins)
+    ok_sum = np.bincount(which, weights=ok.astype(float), minlength=bins)
+    mean_conf = [float(s / c) if c else None for s, c in zip(conf_sum, count)]
+    accuracy = [float(s / c) if c else None for s, c in zip(ok_sum, count)]
+    return {"edges": edges.tolist(), "count": count.tolist(), "confidence": mean_conf, "accuracy": accuracy}
+
+
+def expected_calibration_error(confidence, correct, bins: int = ECE_BINS) -> float:
+    """ECE: ``sum_b (n_b / n) |accuracy_b - confidence_b|`` over equal-width confidence bins."""
+    r = reliability(confidence, correct, bins)
+    n = sum(r["count"])
+    if n == 0:
+        raise InputError("no decisions to measure the calibration of")
+    return float(sum(c / n * abs(a - m) for c, a, m in zip(r["count"], r["accuracy"], r["confidence"]) if c))
+
+
+def calibration_report(log_posteriors, labels, bins: int = ECE_BINS, sure: float = 0.99) -> dict:
+    """Accuracy, log loss, Brier score, ECE and the reliability data of decisions whose
+    log-posteriors (n, classes) and true ``labels`` (n,) are given; also how many say at least
+    ``sure`` and what share of those is wrong. A tie (:func:`winner` -1) counts as wrong."""
+    lp = np.asarray(log_posteriors, dtype=np.float64)
+    y = np.asarray(labels)
+    p = np.exp(lp)
+    k = winner(lp)
+    conf = p.max(axis=1)
+    ok = k == y
+    high = conf >= sure
+    return {"n": int(len(y)), "accuracy": float(ok.mean()), "log_loss": log_loss(lp, y),
+            "brier": brier_score(p, y), "ece": expected_calibration_error(conf, ok, bins),
+            "sure": sure, "sure_count": int(high.sum()),
+            "sure_wrong": float((high & ~ok).sum() / high.sum()) if high.any() else None,
+            "reliability": reliability(conf, ok, bins)}
+
+
+# -- fitting a network's calibration by grouped folds ----------------------------------------------
+
+def calibration_folds(labels, groups, k: int = DEFAULT_CALIBRATION_FOLDS, seed: int = 0) -> tuple[np.ndarray, str]:
+    """Folds for the held-out windows of a calibration, and how they were made.
+
+    By recording (:func:`supramodal.training.grouped_folds`) when every label has at least two
+    recordings and there are at least ``k``; otherwise each recording's windows are cut into
+    ``k`` consecutive spans, span ``f`` in fold ``f`` (one long recording per texture, as the
+    reference sets: held out in time, not by recording).
+
+    Returns
+    -------
+    folds : ndarray of int, shape (n,)
+    by : {"recording", "span"}
+    """
+    from supramodal.training import grouped_folds
+
+    labels = np.asarray(labels)
+    groups = np.asarray(groups)
+    per_label = {lab: len(set(groups[labels == lab].tolist())) for lab in set(labels.tolist())}
+    if len(set(groups.tolist())) >= k and min(per_label.values()) >= 2:
+        return grouped_folds(groups.tolist(), labels.tolist(), k, seed), "recording"
+    folds = np.empty(len(labels), dtype=int)
+    for g in _ordered_unique(groups):
+        idx = np.flatnonzero(groups == g)
+        folds[idx] = np.arange(len(idx)) * k // len(idx)
+    return folds, "span"
+
+
+def fit_network_calibration(x, labels, n_classes: int, groups=None, k: int = DEFAULT_CALIBRATION_FOLDS,
+                            hidden: int | None = None, epochs: int | None = None, seed: int = 0,
+                            progress=None) -> tuple[Calibration, Novelty]:
+    """Calibration and novelty of a network trained as :func:`supramodal.mlp.train_mlp` would train
+    it on the raw (unstandardised) input rows ``x`` (n, inputs), from out-of-fold windows.
+
+    Each of ``k`` folds (:func:`calibration_folds`) trains a network with the same hidden units,
+    epochs and seed on the other folds (standardised by their own mean and scale) and gives the
+    logits of its own windows; the calibration is fitted on those held-out logits, never on
+    windows a network trained on.
+
+    Parameters
+    ----------
+    groups : sequence, length n, optional
+        Each window's recording, windows of one recording consecutive and in time order
+        (default: one recording per label).
+    progress : callable(str), optional
+    """
+    from supramodal.mlp import DEFAULT_EPOCHS, train_mlp
+
+    x = np.asarray(x, dtype=np.float64)
+    y = np.asarray(labels)
+    groups = y if groups is None else np.asarray(groups)
+    folds, by = calibration_folds(y, groups, k, seed)
+    z = np.empty((len(x), n_classes))
+    for f in range(k):
+        test = folds == f
+        if not test.any():
+            continue
+        mean, scale = input_scaling(x[~test])
+        net, _ = train_mlp((x[~test] - mean) / scale, y[~test], n_classes, hidden=hidden,
+                           epochs=DEFAULT_EPOCHS if epochs is None else epochs, seed=seed)
+        z[test] = net.logits((x[test] - mean) / scale)
+        if progress:
+            progress(f"calibration fold {f + 1}/{k}: {int(test.sum())} held-out windows, "
+                     f"{float(np.mean(np.argmax(z[test], axis=1) == y[test])):.3f} right")
+    cal = fit_calibration(z, y, groups)
+    cal = Calibration(cal.temperature, cal.scale, cal.correlation,
+                      {**cal.fitted_on, "folds": int(k), "folds_by": by,
+                       "held_out_accuracy": round(float(np.mean(np.argmax(z, axis=1) == y)), 6)})
+    mean, scale = input_scaling(x)
+    novelty = fit_novelty((x - mean) / scale, y, n_classes, folds)
+    return cal, novelty
+
+
+def input_scaling(x) -> tuple[np.ndarray, np.ndarray]:
+    """Mean and scale of input rows as a model standardises them (a constant input keeps scale 1)."""
+    mean = x.mean(axis=0)
+    scale = x.std(axis=0)
+    scale[scale == 0] = 1.0
+    return mean, scale
