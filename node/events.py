@@ -148,6 +148,15 @@ class WindowEvent:
     in_contact : bool
         Whether the contact detector saw a touch in the window (True without one); a fused
         event is in contact when either sense is.
+    log_posteriors : ndarray or None
+        The log of ``posteriors``, computed without underflow (what fusion and pooling use).
+    guess : str or None
+        The winner when ``decision`` is ``"unknown"`` (None on a tie or otherwise).
+    unknown : str or None
+        Why the decision is ``"unknown"``: ``"novel"`` (unlike every training texture),
+        ``"unsure"`` (below ``[decision] unknown_below``) or ``"tie"``; None otherwise.
+    novelty : float or None
+        The window's novelty score, where ``[decision] unknown`` asks for it.
     """
 
     stream: str
@@ -166,6 +175,10 @@ class WindowEvent:
     senses: tuple = ()
     in_contact: bool = True
     classes: tuple = ()
+    log_posteriors: np.ndarray | None = None
+    guess: str | None = None
+    unknown: str | None = None
+    novelty: float | None = None
 
     def as_dict(self) -> dict:
         """The event as a JSON-ready dict: ``{"stream", "t", "window", "start", "end"}``, then
@@ -175,6 +188,10 @@ class WindowEvent:
                "start": round(self.start, 6), "end": round(self.end, 6)}
         if self.decision is not None:
             out.update(predicted=self.decision, confidence=round(self.confidence, 4))
+            if self.unknown is not None:
+                out.update(unknown=self.unknown, guess=self.guess)
+            if self.novelty is not None:
+                out["novelty"] = self.novelty
             if self.pooled is not None:
                 out["accumulated"] = self.pooled
         elif self.features is not None:

@@ -15,8 +15,10 @@ stream's did not come in time gives a ``sense_lost`` event, the first pair after
 while the other goes on a ``sense_ended`` event. They go to the sinks as driver events do,
 from source ``"fused"``, and are counted in the summary (``dropouts``).
 
-Late fusion: ``w log p_a + (1 - w) log p_b`` (:func:`supramodal.fusion.fuse_late`), normalised
-to posteriors, winner-take-all; pooling over windows as for one stream.
+Late fusion: ``log_softmax(s (w log p_a + (1 - w) log p_b))`` (:func:`supramodal.fusion.fuse_late`)
+of the streams' log-posteriors, winner-take-all; pooling over windows and the "unknown" rules as
+for one stream (:mod:`supramodal.node.deciding`). A fused window is unknown as novel when either
+sense's window is: an honest "not sure" beats a confident wrong name.
 
 Threading rules
 ---------------
@@ -34,10 +36,10 @@ import time
 
 import numpy as np
 
-from supramodal.decisions import DecisionAccumulator, posteriors
 from supramodal.drivers.base import DriverEvent
 from supramodal.errors import InputError
 from supramodal.fusion import fuse_late
+from supramodal.node.deciding import Decider
 from supramodal.node.events import FUSED_STREAM, WindowEvent
 from supramodal.node.latency import LatencyHistogram
 
@@ -62,12 +64,18 @@ class LateFusion:
         Each stream's model classes; the two must name the same textures (in any order).
     weight : float
         Weight of the first stream's log-posteriors, in [0, 1] (default :data:`DEFAULT_WEIGHT`).
+    sharpness : float
+        Tempering of the fused log-posteriors, > 0 (default 1; learned with the weight by
+        :func:`supramodal.fusion.learn_late_fusion`).
+    correlation : float
+        Window correlation of the fused decisions' pooling (default 0: summed log-posteriors).
     max_wait : float or None
         Host seconds a window waits for its partner (default :data:`DEFAULT_MAX_WAIT`). None:
         until the other stream has passed it or ended, however long that takes (two files replayed
         at any speed: their timing is their own, and the decisions do not depend on the host's).
     decision : dict, optional
-        Pooling of the fused decisions (``scope``, ``n``, ``method``), as for a stream.
+        Pooling and rules of the fused decisions (``scope``, ``n``, ``method``, ``confidence``,
+        ``unknown_below``), as for a stream.
 
     Attributes
     ----------
@@ -79,7 +87,7 @@ class LateFusion:
     method = "late"
 
     def __init__(self, inputs, classes, weight: float = DEFAULT_WEIGHT, max_wait: float = DEFAULT_MAX_WAIT,
-                 decision: dict | None = None) -> None:
+                 decision: dict | None = None, *, sharpness: float = 1.0, correlation: float = 0.0) -> None:
         a, b = inputs
         if a == b:
             raise InputError(f"fusion needs two different streams, got {a!r} twice")
@@ -89,6 +97,8 @@ class LateFusion:
                              "train both on one texture set")
         if not (isinstance(weight, (int, float)) and 0.0 <= weight <= 1.0):
             raise InputError(f"the fusion weight must lie in [0, 1], got {weight!r}")
+        if not (isinstance(sharpness, (int, float)) and math.isfinite(sharpness) and sharpness > 0):
+            raise InputError(f"the fusion sharpness must be a finite number > 0, got {sharpness!r}")
         if max_wait is not None and not (isinstance(max_wait, (int, float)) and math.isfinite(max_wait)
                                          and max_wait > 0):
             raise InputError(f"the fusion's max_wait must be a positive number of seconds, got {max_wait!r}")
@@ -96,11 +106,10 @@ class LateFusion:
         self.classes = tuple(ca)
         self._order_b = np.array([cb.index(name) for name in ca])   # b's outputs in a's class order
         self.weight = float(weight)
+        self.sharpness = float(sharpness)
         self.max_wait = math.inf if max_wait is None else float(max_wait)
         d = {"scope": "window", "n": 10, "method": "log", **(decision or {})}
-        self.accumulator = None
-        if d["scope"] != "window":
-            self.accumulator = DecisionAccumulator(len(ca), d["scope"], d["n"], d["method"])
+        self.decider = Decider(ca, d, correlation)
         self._queue: queue.SimpleQueue = queue.SimpleQueue()
         self._pending = {a: collections.deque(), b: collections.deque()}
         self._ended: set[str] = set()
@@ -203,15 +212,14 @@ class LateFusion:
         if self.on_event is not None:
             self.on_event(DriverEvent(kind, message, time.time(), source=FUSED_STREAM))
 
-    def _fused_posteriors(self, ea: WindowEvent, eb: WindowEvent) -> np.ndarray:
-        """Posteriors of a pair, in :attr:`classes` order: the weighted log-posteriors, normalised."""
-        log_p = fuse_late(ea.posteriors[None, :], eb.posteriors[self._order_b][None, :], self.weight)[0]
-        post = np.exp(log_p - log_p.max())
-        return post / post.sum()
+    def _fused_log_posteriors(self, ea: WindowEvent, eb: WindowEvent) -> np.ndarray:
+        """Log-posteriors of a pair, in :attr:`classes` order (:func:`~supramodal.fusion.fuse_late`)."""
+        return fuse_late(_log_posteriors(ea)[None, :], _log_posteriors(eb)[self._order_b][None, :], self.weight,
+                         self.sharpness)[0]
 
     def _fuse(self, item_a, item_b) -> WindowEvent:
         (ea, _, closed_a), (eb, _, closed_b) = item_a, item_b
-        post = self._fused_posteriors(ea, eb)
+        post = self._fused_log_posteriors(ea, eb)
         if self.kept_pairs is not None:
             self.kept_pairs.append((ea, eb))
         self.paired += 1
@@ -220,20 +228,18 @@ class LateFusion:
 
     def _single(self, item) -> WindowEvent:
         event, _, closed = item
-        post = event.posteriors if event.stream == self.inputs[0] else event.posteriors[self._order_b]
+        lp = _log_posteriors(event)
+        post = lp if event.stream == self.inputs[0] else lp[self._order_b]
         self.alone += 1
         return self._event(post, (event,), closed, event.flags | {"alone"})
 
-    def _event(self, post: np.ndarray, events, closed, flags) -> WindowEvent:
-        k = int(np.argmax(post))
-        decision = self.classes[k]
+    def _event(self, log_post: np.ndarray, events, closed, flags) -> WindowEvent:
         truth = next((e.truth for e in events if e.truth is not None), None)
         in_contact = any(e.in_contact for e in events)
-        pooled = None
-        if self.accumulator is not None:
-            d = self.accumulator.update(post, in_contact)
-            label = self.classes[d.label] if d.label >= 0 else None
-            pooled = {"label": label, "confidence": round(d.confidence, 4), "windows": d.windows}
+        said = self.decider.decide(log_post, in_contact, novel=any(e.unknown == "novel" for e in events))
+        decision, pooled = said["decision"], said["pooled"]
+        label = None if pooled is None else pooled["label"]
+        if pooled is not None:
             if truth is not None and label is not None:
                 self._acc_labelled += 1
                 self._acc_correct += label == truth
@@ -246,10 +252,11 @@ class LateFusion:
             self.latencies.add(latency)
             latency = round(latency, 3)
         start, end = min(e.start for e in events), max(e.end for e in events)
-        event = WindowEvent(FUSED_STREAM, self.windows, start, end, end, posteriors=post, decision=decision,
-                            confidence=float(post[k]), pooled=pooled, truth=truth, flags=frozenset(flags),
-                            latency_ms=latency, senses=tuple(e.stream for e in events), in_contact=in_contact,
-                            classes=self.classes)
+        event = WindowEvent(FUSED_STREAM, self.windows, start, end, end, posteriors=np.exp(log_post),
+                            decision=decision, confidence=said["confidence"], pooled=pooled, truth=truth,
+                            flags=frozenset(flags), latency_ms=latency, senses=tuple(e.stream for e in events),
+                            in_contact=in_contact, classes=self.classes, log_posteriors=log_post,
+                            guess=said["guess"], unknown=said["reason"])
         self.windows += 1
         return event
 
@@ -260,13 +267,23 @@ class LateFusion:
         windows per stream (their partner was already decided alone); ``dropouts`` per stream
         (times it stopped coming in time, each said as a ``sense_lost`` event); accuracies where truth is
         known; ``latency_ms`` from the later window's last block to the fused decision."""
-        return {"inputs": list(self.inputs), "method": self.method, "weight": self.weight, "windows": self.windows,
+        return {"inputs": list(self.inputs), "method": self.method, "weight": self.weight,
+                "sharpness": None if self.weight is None else self.sharpness, "windows": self.windows,
                 "paired": self.paired, "alone": self.alone, "late": dict(self.late),
                 "dropouts": dict(self.dropouts),
                 "window_accuracy": self._correct / self._labelled if self._labelled else None,
                 "labelled_windows": self._labelled,
                 "accumulated_accuracy": self._acc_correct / self._acc_labelled if self._acc_labelled else None,
-                "latency_ms": self.latencies.summary()}
+                **self.decider.summary(), "latency_ms": self.latencies.summary()}
+
+
+def _log_posteriors(event: WindowEvent) -> np.ndarray:
+    """An event's log-posteriors (from its posteriors where it carries none: an event made
+    elsewhere, e.g. in a test)."""
+    if event.log_posteriors is not None:
+        return np.asarray(event.log_posteriors, dtype=np.float64)
+    with np.errstate(divide="ignore"):
+        return np.log(np.asarray(event.posteriors, dtype=np.float64))
 
 
 def _centre(event: WindowEvent) -> float:
@@ -290,8 +307,9 @@ class EarlyFusion(LateFusion):
 
     method = "early"
 
-    def __init__(self, inputs, classes, model, max_wait: float = DEFAULT_MAX_WAIT, decision: dict | None = None) -> None:
-        super().__init__(inputs, classes, DEFAULT_WEIGHT, max_wait, decision)
+    def __init__(self, inputs, classes, model, max_wait: float = DEFAULT_MAX_WAIT, decision: dict | None = None,
+                 *, correlation: float = 0.0) -> None:
+        super().__init__(inputs, classes, DEFAULT_WEIGHT, max_wait, decision, correlation=correlation)
         if sorted(model.classes) != sorted(self.classes):
             raise InputError(f"the early-fusion model knows {list(model.classes)}, the streams {list(self.classes)}: "
                              "train it on the streams' textures")
@@ -299,8 +317,8 @@ class EarlyFusion(LateFusion):
         self.weight = None
         self._order_model = np.array([list(model.classes).index(name) for name in self.classes])
 
-    def _fused_posteriors(self, ea: WindowEvent, eb: WindowEvent) -> np.ndarray:
+    def _fused_log_posteriors(self, ea: WindowEvent, eb: WindowEvent) -> np.ndarray:
         a, b = self.model.senses
         va = np.stack([ea.features[f] for f in a.features])[None]
         vb = np.stack([eb.features[f] for f in b.features])[None]
-        return posteriors(self.model.outputs(va, vb)[0][self._order_model])
+        return self.model.log_posteriors(va, vb)[0][self._order_model]

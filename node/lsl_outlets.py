@@ -237,4 +237,5 @@ def _marker(event: WindowEvent) -> dict:
     return {"stream": event.stream, "window": event.window, "start": round(event.start, 6),
             "end": round(event.end, 6), "decision": event.decision,
             "confidence": None if event.confidence is None else round(event.confidence, 4),
-            "pooled": event.pooled, "truth": event.truth, "flags": sorted(event.flags)}
+            "pooled": event.pooled, "truth": event.truth, "flags": sorted(event.flags),
+            **({"unknown": event.unknown, "guess": event.guess} if event.unknown is not None else {})}

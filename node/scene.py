@@ -71,6 +71,10 @@ def _non_negative(v):
     return _number(v) and math.isfinite(v) and v >= 0
 
 
+def _unit_interval(v):
+    return _number(v) and 0.0 <= v < 1.0
+
+
 def _int_min(lo):
     return lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= lo
 
@@ -243,6 +247,13 @@ SECTIONS = {
         "n": (_int_min(0), "windows, an integer >= 0", DEFAULT_POOLED),
         "method": (_one_of(*METHODS), f"one of {list(METHODS)}", DEFAULT_METHOD),
         "contact_threshold": (_non_negative, "input RMS, >= 0", DEFAULT_CONTACT_THRESHOLD),
+        # The rules of issue 23, each off at 0; their meaning is node/deciding.py's.
+        "confidence": (_unit_interval, "calibrated pooled confidence at which a contact's decision is final, "
+                                       "0 <= c < 1 (0: never; needs scope = \"contact\")", 0.0),
+        "unknown": (_unit_interval, "share of windows of known textures allowed to be called unknown by the "
+                                    "novelty score, 0 <= r < 1 (0: off)", 0.0),
+        "unknown_below": (_unit_interval, "calibrated confidence below which a window is unknown, "
+                                          "0 <= c < 1 (0: off)", 0.0),
     },
     "buffer": {
         "seconds": (_positive, "ring buffer capacity, seconds", 2.0),
@@ -415,6 +426,13 @@ def _check_sections(source: str, sections: dict, bank_given: dict, where: str) -
                          f"{sorted(set(bank_given) - {'file'})} or the file")
     if sections["decision"]["scope"] == "last" and sections["decision"]["n"] < 1:
         raise SceneError(f"{source}: {where}[decision] n must be >= 1 with scope = \"last\"")
+    _check_decision(source, sections["decision"], f"{where}[decision]")
+
+
+def _check_decision(source: str, decision: dict, where: str) -> None:
+    if decision["confidence"] and decision["scope"] != "contact":
+        raise SceneError(f"{source}: {where} confidence = {decision['confidence']:g} decides a contact as soon as it "
+                         f"is sure: it needs scope = \"contact\" (scope is {decision['scope']!r})")
 
 
 def _sinks(d: dict, source: str, streams, sources=(MAIN_STREAM,)) -> list[dict]:
@@ -513,6 +531,7 @@ def _graph_scene(d: dict, source: str, base_dir: Path) -> Scene:
             raise SceneError(f"{source}: [fusion] must be a table")
         fusion = _fill(f"{source}: [fusion]", {k: v for k, v in given.items() if k != "decision"}, FUSION_KEYS)
         fusion["decision"] = _fill(f"{source}: [fusion.decision]", given.get("decision", {}), SECTIONS["decision"])
+        _check_decision(source, fusion["decision"], "[fusion.decision]")
         if fusion["method"] == "late" and fusion["model"] is not None:
             raise SceneError(f"{source}: [fusion] model: a model file is for method = \"early\"; late fusion has a "
                              "weight (leave model out, or set method = \"early\")")

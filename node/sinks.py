@@ -124,10 +124,14 @@ class TextSink(Sink):
             head += f"  {event.stream:<8}"
         if event.decision is not None:
             line = f"{head}  {event.decision:<12} conf {event.confidence:.2f}"
+            if event.unknown is not None:
+                line += f" ({event.unknown}" + (f"; guess {event.guess})" if event.guess else ")")
             acc = event.pooled
             if acc:
                 shown = acc["label"] if acc["label"] is not None else "(no contact)"
                 line += f"  | over {acc['windows']:>3} win: {shown:<12} conf {acc['confidence']:.2f}"
+                if acc.get("decided"):
+                    line += f" decided after {acc['decided_after']}"
             if event.truth is not None:
                 mark = "ok" if event.truth == event.decision else "--"
                 line += f"  truth {event.truth:<12} {mark}"
@@ -187,6 +191,13 @@ def _stream_lines(s: dict) -> list[str]:
         lines.append(f"  window accuracy    {s['window_accuracy']:.3f} over {s['labelled_windows']} labelled windows")
     if s.get("accumulated_accuracy") is not None:
         lines.append(f"  accumulated acc.   {s['accumulated_accuracy']:.3f}")
+    unknown = s.get("unknown_windows")
+    if unknown and any(unknown.values()):
+        lines.append("  unknown windows    " + ", ".join(f"{n} {why}" for why, n in unknown.items() if n))
+    if "contacts_decided" in s:
+        median = s["windows_to_decide_median"]
+        lines.append(f"  contacts decided   {s['contacts_decided']}"
+                     + (f", median {median:g} windows to decide" if median is not None else ""))
     lines.append(frames_line(s["frames"]))
     lines.append(f"  samples replaced   nonfinite replaced {s['nonfinite_replaced']}, out of range replaced "
                  f"{s.get('out_of_range_replaced', 0)}")

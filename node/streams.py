@@ -17,9 +17,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from supramodal.decisions import ContactDetector, DecisionAccumulator, posteriors
+from supramodal.decisions import ContactDetector
 from supramodal.errors import InputError
 from supramodal.model import TextureModel
+from supramodal.node.deciding import Decider
 from supramodal.node.events import WindowEvent
 from supramodal.node.latency import LatencyHistogram
 from supramodal.node.ringbuffer import RingClosed
@@ -88,7 +89,26 @@ class Labels:
 
 
 #: Pooling of a stream's decisions when a scene sets none (see supramodal.decisions).
-DEFAULT_DECISION = {"scope": "window", "n": 10, "method": "log", "contact_threshold": 0.01}
+DEFAULT_DECISION = {"scope": "window", "n": 10, "method": "log", "contact_threshold": 0.01, "confidence": 0.0,
+                    "unknown": 0.0, "unknown_below": 0.0}
+
+
+def decider_for(model: TextureModel, decision: dict, where: str = "[decision]") -> Decider:
+    """The :class:`~supramodal.node.deciding.Decider` of a stream of ``model`` with the scene's
+    ``decision``; refuses rules the model cannot follow (a confidence threshold or "unknown"
+    without a calibration, "unknown" without a novelty score), naming the fix."""
+    d = {**DEFAULT_DECISION, **decision}
+    asks = [k for k in ("confidence", "unknown", "unknown_below") if d[k]]
+    if asks and not model.calibrated:
+        raise InputError(f"{where} {', '.join(asks)} needs calibrated posteriors, but the model is uncalibrated "
+                         "(a version 1 model file): retrain it with `supramodal train`")
+    threshold = None
+    if d["unknown"]:
+        if model.novelty is None:
+            raise InputError(f"{where} unknown needs a model with a novelty score: retrain it with `supramodal train`")
+        threshold = model.novelty.threshold(d["unknown"])
+    correlation = model.calibration.correlation if model.calibrated else 0.0
+    return Decider(model.classes, d, correlation, threshold)
 
 
 class Stream:
@@ -125,13 +145,12 @@ class Stream:
         self.labels = labels if labels is not None else Labels.of(source.driver)
         self.map = channel_mapper(mapping, source.driver.channels, bank.channels)
         self.decision = {**DEFAULT_DECISION, **(decision or {})}
-        self.accumulator = None
+        self.decider = None
         self.contact = None
-        if model is not None and self.decision["scope"] != "window":
-            d = self.decision
-            self.accumulator = DecisionAccumulator(len(model.classes), d["scope"], d["n"], d["method"])
-            if d["scope"] == "contact":
-                self.contact = ContactDetector(pipeline.window_samples, d["contact_threshold"])
+        if model is not None:
+            self.decider = decider_for(model, self.decision, f"stream {name!r}: [decision]")
+            if self.decision["scope"] == "contact":
+                self.contact = ContactDetector(pipeline.window_samples, self.decision["contact_threshold"])
         self.feed = source.add_feed(f"stream {name}")
         self._window_marks: dict[int, set[str]] = {}
         self._expected = 0
@@ -193,23 +212,26 @@ class Stream:
         if not len(windows):
             return
         W, fs = self.pipeline.window_samples, self.pipeline.bank.fs
-        outputs = self.model.outputs(windows.values) if self.model is not None else None
+        log_post = novelty = None
+        if self.model is not None:
+            log_post = self.model.log_posteriors(windows.values)
+            if self.decider.novelty_threshold is not None:
+                novelty = self.model.novelty_score(windows.values)
         for i, w in enumerate(windows.numbers.tolist()):
             end = (w + 1) * W
             truth = self.labels.at((w + 0.5) * W / fs)
             in_contact = bool(contact_flags[i]) if contact_flags is not None and i < len(contact_flags) else True
-            post = decision = confidence = pooled = None
-            if outputs is not None:
-                post = posteriors(outputs[i])
-                k = int(np.argmax(post))
-                decision, confidence = self.model.classes[k], float(post[k])
-                if self.accumulator is not None:
-                    a = self.accumulator.update(outputs[i], in_contact)
-                    label = self.model.classes[a.label] if a.label >= 0 else None
-                    pooled = {"label": label, "confidence": round(a.confidence, 4), "windows": a.windows}
-                    if truth is not None and label is not None:
-                        self._acc_labelled += 1
-                        self._acc_correct += label == truth
+            post = decision = confidence = pooled = guess = reason = None
+            if log_post is not None:
+                post = np.exp(log_post[i])
+                novel = novelty is not None and bool(novelty[i] > self.decider.novelty_threshold)
+                said = self.decider.decide(log_post[i], in_contact, novel)
+                decision, confidence, guess, reason, pooled = (said[k] for k in ("decision", "confidence", "guess",
+                                                                                 "reason", "pooled"))
+                label = None if pooled is None else pooled["label"]
+                if truth is not None and label is not None:
+                    self._acc_labelled += 1
+                    self._acc_correct += label == truth
                 if truth is not None:
                     self._labelled += 1
                     self._correct += decision == truth
@@ -223,7 +245,9 @@ class Stream:
             latency = None if block is None else self._latency_ms(block[1])
             event = WindowEvent(self.name, w, offset + w * W * slope, offset + end * slope, end / fs,
                                 features=features, posteriors=post, decision=decision, confidence=confidence,
-                                pooled=pooled, truth=truth, flags=frozenset(flags), latency_ms=latency,
+                                pooled=pooled, truth=truth, log_posteriors=None if log_post is None else log_post[i],
+                                guess=guess, unknown=reason,
+                                novelty=None if novelty is None else round(float(novelty[i]), 4), flags=frozenset(flags), latency_ms=latency,
                                 in_contact=in_contact, classes=self.model.classes if self.model is not None else ())
             self.windows += 1
             emit(event)
@@ -258,6 +282,7 @@ class Stream:
             "window_accuracy": self._correct / self._labelled if self._labelled else None,
             "labelled_windows": self._labelled,
             "accumulated_accuracy": self._acc_correct / self._acc_labelled if self._acc_labelled else None,
+            **(self.decider.summary() if self.decider is not None else {}),
             "frames": source.frame_fates(self.feed),
             "nonfinite_replaced": self.pipeline.filterbank.nonfinite_count,
             "out_of_range_replaced": self.pipeline.filterbank.out_of_range_count,

@@ -11,7 +11,6 @@ import numpy as np
 import pytest
 
 from supramodal.banks import cochlea_bank, whisker_bank
-from supramodal.decisions import posteriors
 from supramodal.errors import InputError
 from supramodal.node.build import build_node
 from supramodal.node.events import WindowEvent

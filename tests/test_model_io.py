@@ -85,7 +85,8 @@ def test_saved_file_is_plain_data(saved):
     header, arrays = read_parts(saved)
     assert header["format"] == MODEL_FORMAT and header["version"] == MODEL_VERSION
     assert header["features"] == list(FEATURES) and header["classes"] == list(CLASSES)
-    assert sorted(arrays) == ["b1", "b2", "mean", "scale", "w1", "w2"]
+    assert sorted(arrays) == ["b1", "b2", "mean", "novelty_means", "novelty_precision", "novelty_quantiles", "scale",
+                              "w1", "w2"]
     assert all(a.dtype.kind == "f" for a in arrays.values())
 
 
@@ -198,7 +199,7 @@ def test_nonpositive_scale(saved):
 @pytest.mark.parametrize("change, match", [
     ({"format": "other-model"}, "not a supramodal-model file"),
     ({"format": None}, "not a supramodal-model file"),
-    ({"version": 2}, "version 2 is not supported"),
+    ({"version": 3}, "version 3 is not supported"),
     ({"version": "1"}, "version '1' is not supported"),
     ({"extra": 1}, r"unknown header key\(s\) \['extra'\]"),
     ({"bank": {"kind": "whisker"}}, "invalid 'bank' or 'features'"),

@@ -1,0 +1,292 @@
+"""Calibrated confidence (issue 23): stable log-posteriors, the window map and the contact pooling,
+the measures, ties, the novelty score, and the calibration's round trip through a model file."""
+
+import json
+
+import mpmath
+import numpy as np
+import pytest
+
+from supramodal.banks import whisker_bank
+from supramodal.calibration import (NOVELTY_QUANTILES, Calibration, brier_score, calibration_folds,
+                                    expected_calibration_error, fit_calibration, fit_pooling, fit_window_calibration,
+                                    log_loss, normalised_log_posteriors, pool_log_posteriors, winner)
+from supramodal.decisions import DecisionAccumulator
+from supramodal.errors import InputError
+from supramodal.model import MODEL_VERSION, ModelError, TextureModel
+
+mpmath.mp.dps = 50
+
+
+# -- stable log-posteriors, against extended precision -------------------------------------------
+
+def _reference_normalised(z):
+    """log(o_k / sum o), o = 1 / (1 + exp(-z)), at 50 digits."""
+    o = [1 / (1 + mpmath.exp(-mpmath.mpf(float(v)))) for v in z]
+    total = mpmath.fsum(o)
+    return [float(mpmath.log(v / total)) for v in o]
+
+
+@pytest.mark.parametrize("z", [[-800.0, 30.0, 0.5], [-647.0, -300.0, 46.0, 12.0], [1e-3, -1e-3, 0.0],
+                               [700.0, 699.0, -700.0], [-40.0, -41.0, -39.5]])
+def test_normalised_log_posteriors_match_extended_precision_without_clipping(z):
+    """The outputs of the losing classes round to exactly 0.0 in float64 (z = -800); their
+    log-posteriors must still be finite and right, not the log of a clip at 1e-12."""
+    got = normalised_log_posteriors(np.array(z))
+    assert np.isfinite(got).all()
+    np.testing.assert_allclose(got, _reference_normalised(z), rtol=1e-12, atol=1e-12)
+
+
+def test_calibrated_log_posteriors_match_extended_precision():
+    cal = Calibration(3.0, 10.0, 0.2)
+    z = np.array([-647.0, 46.0, 0.3, -2.0])
+    s = [3.0 * mpmath.asinh(mpmath.mpf(float(v)) / 10) for v in z]
+    lse = mpmath.log(mpmath.fsum(mpmath.exp(v) for v in s))
+    np.testing.assert_allclose(cal.log_posteriors(z), [float(v - lse) for v in s], rtol=1e-13, atol=1e-13)
+
+
+def test_calibration_keeps_every_windows_winner():
+    """The paper's winner-take-all is unchanged: the map is increasing in each logit."""
+    rng = np.random.default_rng(0)
+    z = rng.normal(0, 50, (500, 7)) * rng.uniform(0.01, 10, (500, 1))
+    for cal in (Calibration(0.01, 1e4, 0.0), Calibration(3.0, 10.0, 0.5), Calibration(100.0, 0.01, 1.0)):
+        np.testing.assert_array_equal(np.argmax(cal.log_posteriors(z), axis=1), np.argmax(z, axis=1))
+        np.testing.assert_allclose(np.exp(cal.log_posteriors(z)).sum(axis=1), 1.0, rtol=1e-12)
+
+
+# -- fitting ------------------------------------------------------------------------------------------
+
+def _sampled(a, c, n=6000, k=5, seed=0):
+    """Logits and labels drawn from a known calibrated model softmax(a asinh(z / c))."""
+    rng = np.random.default_rng(seed)
+    z = rng.normal(0, 30, (n, k))
+    p = np.exp(Calibration(a, c, 0.0).log_posteriors(z))
+    y = np.array([rng.choice(k, p=row) for row in p])
+    return z, y, p
+
+
+def test_window_calibration_recovers_the_posteriors_it_was_drawn_from():
+    z, y, p = _sampled(2.0, 15.0)
+    a, c = fit_window_calibration(z, y)
+    fitted = np.exp(Calibration(a, c, 0.0).log_posteriors(z))
+    assert np.max(np.abs(fitted - p)) < 0.06
+    # and it beats the uncalibrated normalised outputs, which are sure of everything
+    assert log_loss(np.log(fitted), y) < log_loss(normalised_log_posteriors(z), y) - 0.5
+
+
+def test_all_right_held_out_windows_do_not_make_the_calibration_infinitely_sure():
+    """Laplace's rule: n right windows of n allow about 1 - 1/(n + 2), not 1.0."""
+    rng = np.random.default_rng(1)
+    y = rng.integers(0, 4, 400)
+    z = rng.normal(0, 1, (400, 4))
+    z[np.arange(400), y] += 20.0
+    cal = Calibration(*fit_window_calibration(z, y), 0.0)
+    top = np.exp(cal.log_posteriors(z).max(axis=1))
+    assert top.max() < 1 - 1e-5 and np.median(top) > 0.99
+
+
+def test_pooling_of_copies_is_one_window_and_of_independent_windows_naive_bayes():
+    rng = np.random.default_rng(2)
+    runs, labels, copies = [], [], []
+    for i in range(300):
+        y = i % 3
+        p = np.full(3, 0.2)
+        p[y] = 0.6
+        draws = rng.choice(3, size=8, p=p)          # each window a fresh draw: independent evidence
+        lp = np.log(np.where(np.arange(3)[None, :] == draws[:, None], 0.6, 0.2))
+        runs.append(lp)
+        labels.append(y)
+        copies.append(np.repeat(lp[:1], 8, axis=0))  # one window repeated: no new evidence
+    assert fit_pooling(runs, labels) < 0.1
+    assert fit_pooling(copies, labels) > 0.9
+
+
+def test_pooled_log_posteriors_match_a_plain_computation():
+    rng = np.random.default_rng(3)
+    lp = np.log(rng.dirichlet(np.ones(4), size=6))
+    for rho in (0.0, 0.3, 1.0):
+        g = 1.0 / (1.0 + 5 * rho)
+        s = [g * sum(float(lp[t, k]) for t in range(6)) for k in range(4)]
+        total = mpmath.log(mpmath.fsum(mpmath.exp(v) for v in s))
+        np.testing.assert_allclose(pool_log_posteriors(lp, rho), [float(v - total) for v in s], rtol=1e-12)
+
+
+def test_fit_calibration_reports_what_it_was_fitted_on():
+    z, y, _ = _sampled(1.0, 20.0, n=800, k=3)
+    cal = fit_calibration(z, y, groups=y)
+    assert cal.fitted_on["windows"] == 800 and cal.fitted_on["log_loss"] < cal.fitted_on["log_loss_uncalibrated"]
+    assert 0.0 <= cal.correlation <= 1.0
+
+
+def test_calibration_folds_are_by_recording_when_there_are_enough_else_by_span():
+    labels = np.repeat([0, 1], 30)
+    groups = np.repeat(np.arange(6), 10)                    # three recordings per label
+    folds, by = calibration_folds(labels, groups, k=3)
+    assert by == "recording"
+    for g in range(6):
+        assert len(set(folds[groups == g])) == 1            # a recording's windows on one side
+    folds, by = calibration_folds(labels, labels, k=5)      # one recording per label
+    assert by == "span"
+    for lab in (0, 1):
+        f = folds[labels == lab]
+        assert list(f) == sorted(f) and set(f) == set(range(5))   # consecutive spans, in time order
+
+
+# -- measures, against plain loops ------------------------------------------------------------------
+
+def test_ece_and_brier_against_plain_loops():
+    rng = np.random.default_rng(4)
+    p = rng.dirichlet(np.ones(5) * 0.5, size=1000)
+    y = rng.integers(0, 5, 1000)
+    conf, ok = p.max(axis=1), p.argmax(axis=1) == y
+    ece = 0.0
+    for b in range(15):
+        lo, hi = b / 15, (b + 1) / 15
+        inside = [i for i in range(1000) if (lo < conf[i] <= hi) or (b == 0 and conf[i] == 0)]
+        if inside:
+            ece += len(inside) / 1000 * abs(np.mean(ok[inside]) - np.mean(conf[inside]))
+    assert expected_calibration_error(conf, ok) == pytest.approx(ece, abs=1e-12)
+    brier = np.mean([sum((p[i, k] - (k == y[i])) ** 2 for k in range(5)) for i in range(1000)])
+    assert brier_score(p, y) == pytest.approx(brier, rel=1e-12)
+
+
+# -- ties ---------------------------------------------------------------------------------------------
+
+def test_a_tie_is_no_decision_whatever_the_class_order():
+    lp = np.log(np.array([[0.4, 0.4, 0.2], [0.2, 0.4, 0.4], [0.5, 0.3, 0.2]]))
+    assert winner(lp).tolist() == [-1, -1, 0]
+    order = [2, 0, 1]
+    assert winner(lp[:, order]).tolist() == [-1, -1, 1]
+
+
+def test_late_fusion_at_equal_weight_does_not_break_ties_by_class_name():
+    from supramodal.fusion import fuse_late
+
+    a = np.log(np.array([[0.7, 0.3]]))
+    b = np.log(np.array([[0.3, 0.7]]))
+    assert winner(fuse_late(a, b, 0.5)).tolist() == [-1]
+
+
+# -- anytime decisions --------------------------------------------------------------------------------
+
+def test_contact_decision_is_final_at_the_first_window_that_is_sure_and_stands_until_the_contact_ends():
+    acc = DecisionAccumulator(3, "contact", n=0, correlation=0.0, confidence=0.99)
+    sure_of_1 = np.log(np.array([0.1, 0.8, 0.1]))
+    said = [acc.update(sure_of_1) for _ in range(4)]
+    # pooled p(1) after n windows: 8^n / (8^n + 2): 0.8, 0.97, 0.996 -> final at the third
+    assert [d.decided for d in said] == [False, False, True, True]
+    assert said[2].windows == 3 and said[3].windows == 3 and said[3].label == 1
+    # later windows that say otherwise do not undo the final decision of this contact
+    assert acc.update(np.log(np.array([0.98, 0.01, 0.01]))).label == 1
+    assert acc.update(sure_of_1, in_contact=False).label == -1          # the contact ended
+    assert not acc.update(sure_of_1).decided                             # a new contact starts afresh
+
+
+def test_a_confidence_threshold_needs_a_contact_scope():
+    with pytest.raises(InputError, match="scope 'contact'"):
+        DecisionAccumulator(3, "last", n=5, confidence=0.9)
+
+
+# -- the model file -----------------------------------------------------------------------------------
+
+BANK = whisker_bank(rows="AB")
+CLASSES = ("rough", "smooth", "medium")
+
+
+def _data(seed=0, n=60):
+    rng = np.random.default_rng(seed)
+    labels = np.repeat(np.arange(3), n)
+    values = rng.gamma(2.0, 1.0, (3 * n, 1, 8)) * 100.0
+    values[:, 0, :3] *= 1 + 0.6 * labels[:, None]
+    return values, labels
+
+
+@pytest.fixture(scope="module")
+def model():
+    values, labels = _data()
+    return TextureModel.train(values, labels, CLASSES, BANK, ("Af",), 500, epochs=60, seed=1)
+
+
+def test_trained_model_is_calibrated_on_held_out_windows_and_keeps_the_networks_decisions(model):
+    values, labels = _data(seed=5)
+    assert model.calibrated and model.calibration.fitted_on["folds"] == 5
+    assert model.calibration.fitted_on["windows"] == 180
+    np.testing.assert_array_equal(np.argmax(model.log_posteriors(values), axis=1), model.predict(values))
+    plain = TextureModel.train(*_data(), CLASSES, BANK, ("Af",), 500, epochs=60, seed=1, calibration_folds=0)
+    np.testing.assert_array_equal(plain.outputs(values), model.outputs(values))   # the network is the same
+    assert not plain.calibrated
+
+
+def test_calibration_and_novelty_round_trip_through_the_model_file(model, tmp_path):
+    path = model.save(tmp_path / "m.npz")
+    loaded = TextureModel.load(path)
+    assert loaded.calibration == model.calibration
+    values, _ = _data(seed=7)
+    np.testing.assert_array_equal(loaded.log_posteriors(values), model.log_posteriors(values))
+    np.testing.assert_array_equal(loaded.novelty_score(values), model.novelty_score(values))
+    with np.load(path, allow_pickle=False) as npz:
+        assert json.loads(str(npz["header"]))["version"] == MODEL_VERSION == 2
+
+
+def _rewrite(path, edit_header=None, drop=(), arrays=None):
+    with np.load(path, allow_pickle=False) as npz:
+        header = json.loads(str(npz["header"]))
+        parts = {k: npz[k] for k in npz.files if k != "header" and k not in drop}
+    if edit_header:
+        edit_header(header)
+    parts.update(arrays or {})
+    with open(path, "wb") as fh:
+        np.savez(fh, header=np.array(json.dumps(header)), **parts)
+    return path
+
+
+def test_a_version_1_file_still_loads_and_is_said_to_be_uncalibrated(model, tmp_path):
+    def to_v1(h):
+        h["version"] = 1
+        del h["calibration"], h["novelty"]
+
+    path = _rewrite(model.save(tmp_path / "v1.npz"), to_v1, drop=("novelty_means", "novelty_precision",
+                                                                   "novelty_quantiles"))
+    old = TextureModel.load(path)
+    assert not old.calibrated and old.novelty is None
+    values, _ = _data(seed=8)
+    np.testing.assert_allclose(np.exp(old.log_posteriors(values)),
+                               old.outputs(values) / old.outputs(values).sum(axis=1, keepdims=True), rtol=1e-9)
+    with pytest.raises(ModelError, match="retrain"):
+        old.novelty_score(values)
+
+
+@pytest.mark.parametrize("edit, arrays, drop, message", [
+    (lambda h: h["calibration"].update(temperature=-1.0), None, (), "temperature"),
+    (lambda h: h["calibration"].update(method="isotonic"), None, (), "not known"),
+    (lambda h: h["calibration"].update(correlation=2.0), None, (), "correlation"),
+    (lambda h: h["calibration"].pop("scale"), None, (), "exactly the keys"),
+    (lambda h: h.update(calibration=[1, 2]), None, (), "must be an object"),
+    (lambda h: h.update(novelty="yes"), None, (), "true or false"),
+    (None, None, ("novelty_precision",), "lacks"),
+    (None, {"novelty_quantiles": np.linspace(1, 0, len(NOVELTY_QUANTILES))}, (), "non-decreasing"),
+    (None, {"novelty_means": np.zeros((2, 8))}, (), "novelty_means"),
+    (lambda h: h.update(novelty=False), None, (), "says it has no novelty"),
+    (lambda h: h.update(version=1), None, (), "unknown header key"),
+])
+def test_a_bad_calibration_in_a_model_file_is_refused_by_name(model, tmp_path, edit, arrays, drop, message):
+    path = _rewrite(model.save(tmp_path / "bad.npz"), edit, drop, arrays)
+    with pytest.raises(ModelError, match=message):
+        TextureModel.load(path)
+
+
+def test_an_asymmetric_precision_is_refused(model, tmp_path):
+    p = model.novelty.precision.copy()
+    p[0, 1] += 1.0
+    path = _rewrite(model.save(tmp_path / "asym.npz"), arrays={"novelty_precision": p})
+    with pytest.raises(ModelError, match="symmetric"):
+        TextureModel.load(path)
+
+
+def test_novelty_threshold_calls_the_asked_share_of_held_out_known_windows_unknown(model):
+    values, labels = _data(seed=11, n=400)
+    scores = model.novelty_score(values)
+    called = np.mean(scores > model.novelty.threshold(0.05))
+    assert 0.01 < called < 0.12
+    far = values * 6.0                                              # a texture far louder than any known
+    assert np.mean(model.novelty_score(far) > model.novelty.threshold(0.05)) > 0.9
