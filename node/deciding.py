@@ -11,7 +11,9 @@ Rules
   reason ``"novel"``. ``[decision] unknown_below = c``: a window whose calibrated confidence is
   below ``c`` is :data:`UNKNOWN`, reason ``"unsure"``. The winner is kept as the event's ``guess``.
 * The pooled decision (``scope = "last"`` or ``"contact"``) pools every window's log-posteriors
-  (:class:`supramodal.decisions.DecisionAccumulator`, with the model's fitted correlation); it is
+  (:class:`supramodal.decisions.DecisionAccumulator`, with the model's fitted correlation), except
+  that a novel window adds no evidence (its inputs are unlike anything the network was trained
+  on, so its posteriors say nothing of the known textures: it is pooled as uniform); it is
   :data:`UNKNOWN` while more than half of its windows are. With ``confidence = c`` and
   ``scope = "contact"``, the contact's decision is final as soon as its pooled confidence reaches
   ``c``: the pooled dict then says ``"decided": true`` and ``"decided_after"`` windows.
@@ -88,7 +90,8 @@ class Decider:
         decision = UNKNOWN if reason else self.classes[k]
         guess = self.classes[k] if reason and k >= 0 else None
         return {"decision": decision, "confidence": confidence, "guess": guess, "reason": reason,
-                "pooled": self._pool(lp, in_contact, reason is not None)}
+                "pooled": self._pool(np.full_like(lp, -np.log(lp.size)) if reason == "novel" else lp, in_contact,
+                                     reason is not None)}
 
     def _pool(self, lp: np.ndarray, in_contact: bool, unknown: bool) -> dict | None:
         if self.accumulator is None:

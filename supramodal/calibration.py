@@ -22,10 +22,13 @@ Window posteriors
 Contact posteriors
     The windows of one touch are not independent: summing their log-posteriors (naive Bayes)
     counts the same evidence many times. The pooled posterior of ``n`` windows is
-    ``softmax(g(n) * sum_t log p_t)`` with ``g(n) = 1 / (1 + (n - 1) rho)``: ``rho = 0`` is naive
-    Bayes, ``rho = 1`` the mean of the windows (as sure as one window). ``n / (1 + (n - 1) rho)``
-    is the classical effective number of independent samples among ``n`` equally correlated ones;
-    ``rho`` is fitted on held-out runs of consecutive windows (:func:`fit_pooling`). Scaling by
+    ``softmax(g(n) * sum_t log p_t)`` with ``g(n) = n_eff(n) / n``, where ``n_eff`` is the
+    effective number of independent windows among ``n`` whose correlation decays with their
+    distance as ``rho ** lag`` (a first-order autoregressive model; the classical
+    ``n / (1 + 2 sum_k (1 - k / n) rho ** k)``): ``rho = 0`` is naive Bayes, ``rho -> 1`` the mean of
+    the windows (as sure as one window), and for ``0 < rho < 1`` the evidence still grows without
+    bound, ``(1 - rho) / (1 + rho)`` window's worth per window, as a stationary touch should. ``rho``
+    is fitted on held-out runs of consecutive windows (:func:`fit_pooling`). Scaling by
     ``g(n) > 0`` keeps the pooled winner that of the plain sum.
 
 Unknown textures
@@ -101,28 +104,40 @@ def winner(log_posteriors) -> np.ndarray:
 
 
 def effective_windows(n, correlation: float) -> np.ndarray:
-    """``n / (1 + (n - 1) rho)``: independent windows worth ``n`` windows of mutual correlation ``rho``."""
+    """Independent windows worth ``n`` consecutive windows whose correlation at lag ``k`` is
+    ``correlation ** k``: ``n / (1 + 2 sum_{k=1}^{n-1} (1 - k/n) rho^k)``, in closed form.
+
+    1 for ``n = 1`` whatever ``rho``; ``n`` for ``rho = 0``; 1 for ``rho = 1``.
+    """
     n = np.asarray(n, dtype=np.float64)
-    return n / (1.0 + (n - 1.0) * correlation)
+    r = float(correlation)
+    if r <= 0.0:
+        return n.copy()
+    if r >= 1.0:
+        return np.ones_like(n)
+    # sum_{k=1}^{n-1} (1 - k/n) r^k = r / (1 - r) - r (1 - r^n) / (n (1 - r)^2)
+    s = r / (1 - r) - r * (1 - r ** n) / (n * (1 - r) ** 2)
+    return n / (1 + 2 * s)
 
 
 def pool_log_posteriors(log_posteriors, correlation: float) -> np.ndarray:
     """Pooled log-posteriors of the windows ``log_posteriors`` (n, classes) of one contact:
-    ``log_softmax(g(n) sum_t log p_t)``, ``g(n) = 1 / (1 + (n - 1) correlation)``; shape (classes,)."""
+    ``log_softmax(g(n) sum_t log p_t)``, ``g(n) = effective_windows(n, correlation) / n``; shape (classes,)."""
     lp = np.asarray(log_posteriors, dtype=np.float64)
     n = lp.shape[0]
     if n == 0:
         raise InputError("pooling needs at least one window")
-    return log_softmax(lp.sum(axis=0) / (1.0 + (n - 1) * correlation))
+    return log_softmax(lp.sum(axis=0) * (effective_windows(n, correlation) / n))
 
 
 def _prefix_pooled(runs, correlation: float) -> tuple[np.ndarray, np.ndarray]:
     """Pooled log-posteriors of every prefix of every run, and each prefix's length."""
     out, lengths = [], []
     for lp in runs:
-        n = np.arange(1, len(lp) + 1)[:, None]
-        out.append(log_softmax(np.cumsum(lp, axis=0) / (1.0 + (n - 1) * correlation), axis=1))
-        lengths.append(n[:, 0])
+        n = np.arange(1, len(lp) + 1, dtype=np.float64)
+        g = (effective_windows(n, correlation) / n)[:, None]
+        out.append(log_softmax(np.cumsum(lp, axis=0) * g, axis=1))
+        lengths.append(n)
     return np.concatenate(out), np.concatenate(lengths)
 
 

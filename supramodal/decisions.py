@@ -5,8 +5,9 @@ A robot decides per touch, not per 100 ms. Every function here takes a window's
 when the model is, finite, never clipped). The accumulated decision is the winner of
 
 * ``"log"``: the pooled log-posteriors ``log_softmax(g(n) sum_t log p_k(t))`` with
-  ``g(n) = 1 / (1 + (n - 1) rho)`` (:func:`supramodal.calibration.pool_log_posteriors`; ``rho``
-  is the model's fitted window correlation, 0 = naive Bayes), or
+  ``g(n) = n_eff(n) / n``, the effective number of independent windows per window
+  (:func:`supramodal.calibration.pool_log_posteriors`; ``rho``, the model's fitted correlation of
+  neighbouring windows, 0 = naive Bayes), or
 * ``"vote"``: the count of windows each class won (ties go to the larger summed posterior),
 
 over the last ``n`` windows (``scope="last"``) or over every window since the

@@ -104,9 +104,11 @@ def test_pooling_of_copies_is_one_window_and_of_independent_windows_naive_bayes(
 def test_pooled_log_posteriors_match_a_plain_computation():
     rng = np.random.default_rng(3)
     lp = np.log(rng.dirichlet(np.ones(4), size=6))
-    for rho in (0.0, 0.3, 1.0):
-        g = 1.0 / (1.0 + 5 * rho)
-        s = [g * sum(float(lp[t, k]) for t in range(6)) for k in range(4)]
+    for rho in (0.0, 0.3, 0.9, 1.0):
+        # n_eff of 6 windows with correlation rho^|i-j|: n^2 / sum_ij rho^|i-j| (the variance of their mean)
+        n_eff = mpmath.mpf(36) / mpmath.fsum(mpmath.mpf(rho) ** abs(i - j) for i in range(6) for j in range(6))
+        g = n_eff / 6
+        s = [g * mpmath.fsum(mpmath.mpf(float(lp[t, k])) for t in range(6)) for k in range(4)]
         total = mpmath.log(mpmath.fsum(mpmath.exp(v) for v in s))
         np.testing.assert_allclose(pool_log_posteriors(lp, rho), [float(v - total) for v in s], rtol=1e-12)
 

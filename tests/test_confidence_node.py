@@ -1,0 +1,153 @@
+"""The node's calibrated decisions (issue 23): a contact decided as soon as it is sure, "unknown" for a
+texture the model never met, ties never named, in the events and counted in the summary; and the
+scene's rules refused where the model cannot follow them."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from supramodal.banks import whisker_bank
+from supramodal.errors import InputError
+from supramodal.model import TextureModel
+from supramodal.node.deciding import UNKNOWN, Decider
+from supramodal.node.graph import Node
+from supramodal.node.scene import SceneError, scene_from_dict
+from supramodal.node.sinks import ListSink
+from supramodal.pipeline import FeaturePipeline, extract_features
+from supramodal.replay.driver import ReplayDriver, random_block_sizes
+from supramodal.textures import reference_texture_set
+
+FS = 5000
+KNOWN = (0, 4, 7)           # reference textures the model knows (well apart: ~0.97 of windows right)
+
+
+@pytest.fixture(scope="module")
+def model():
+    ts = reference_texture_set("whisker")
+    bank = whisker_bank()
+    values, labels = [], []
+    for k, i in enumerate(KNOWN):
+        v = extract_features(ts.synthesize(i, duration=12.0)[: 8 * FS], bank, ("Af",)).values
+        values.append(v)
+        labels.append(np.full(len(v), k))
+    return TextureModel.train(np.concatenate(values), np.concatenate(labels), [ts.names[i] for i in KNOWN], bank,
+                              ("Af",), 500, epochs=200, seed=1)
+
+
+@pytest.fixture(scope="module")
+def touches():
+    """Three touches of known textures (their last 4 s, never trained on) and one of a texture far
+    from all of them (white noise, 20x the level), 0.5 s of silence between touches."""
+    ts = reference_texture_set("whisker")
+    gap = np.zeros(FS // 2)
+    parts, truth = [], []
+    for i in KNOWN:
+        parts += [ts.synthesize(i, duration=12.0)[8 * FS:], gap]
+        truth += [ts.names[i]] * 40 + [None] * 5
+    parts.append(np.random.default_rng(5).standard_normal(4 * FS) * 20 * np.std(parts[0]))
+    truth += ["noise"] * 40
+    return np.concatenate(parts), truth
+
+
+def _run(model, x, decision, block_size):
+    sink = ListSink()
+    driver = ReplayDriver((x[:, None], float(FS)), block_size=block_size, seed=2, speed="max", on_notice=None)
+    Node(driver, FeaturePipeline(whisker_bank(), ("Af",)), [sink], model=model, decision=decision,
+         overrun="block").run()
+    return sink
+
+
+DECISION = {"scope": "contact", "n": 0, "contact_threshold": 0.01, "confidence": 0.99, "unknown": 0.05}
+
+
+def test_each_touch_is_decided_once_as_soon_as_it_is_sure_and_the_new_texture_is_unknown(model, touches):
+    x, truth = touches
+    sink = _run(model, x, DECISION, random_block_sizes(1, 700))
+    events = sink.events
+    assert len(events) == len(truth)
+    # per touch: the final decision, when it came, and that it stands for the rest of the touch
+    for t in range(3):
+        touch = events[45 * t: 45 * t + 40]
+        first = next(i for i, e in enumerate(touch) if e["accumulated"].get("decided"))
+        final = touch[first]["accumulated"]
+        assert final["label"] == truth[45 * t] and final["confidence"] >= 0.99
+        assert final["decided_after"] == first + 1 <= 30          # sure within 3 s of a texture it knows
+        assert all(e["accumulated"] == final for e in touch[first:])
+        assert all(e["accumulated"]["windows"] == i + 1 and not e["accumulated"]["decided"] for i, e in
+                   enumerate(touch[:first]))
+        assert all(e["accumulated"]["label"] is None for e in events[45 * t + 40: 45 * t + 45])   # silence
+    noise = events[135:]
+    novel = [e for e in noise if e.get("unknown") == "novel"]
+    assert len(novel) >= 0.9 * len(noise)
+    assert all(e["predicted"] == UNKNOWN and e["guess"] in model.classes for e in novel)
+    assert noise[-1]["accumulated"]["label"] == UNKNOWN and not noise[-1]["accumulated"]["decided"]
+    known_unknown = sum(e.get("unknown") == "novel" for e, t in zip(events[:135], truth) if t is not None)
+    assert known_unknown <= 0.15 * 120
+    s = sink.final
+    assert s["unknown_windows"]["novel"] == sum(e.get("unknown") == "novel" for e in events)
+    assert s["contacts_decided"] == 3
+    assert s["windows_to_decide_median"] == np.median(
+        [next(e["accumulated"]["decided_after"] for e in events[45 * t: 45 * t + 40] if e["accumulated"].get("decided"))
+         for t in range(3)])
+
+
+def test_decisions_do_not_depend_on_block_sizes(model, touches):
+    x, _ = touches
+    a = _run(model, x[: 6 * FS], DECISION, 50).events
+    b = _run(model, x[: 6 * FS], DECISION, random_block_sizes(1, 999)).events
+    keys = ("predicted", "unknown", "guess", "accumulated")
+    assert [[e.get(k) for k in keys] for e in a] == [[e.get(k) for k in keys] for e in b]
+
+
+def test_confidence_now_says_how_often_the_window_is_right(model, touches):
+    """Today's complaint: 1.00 on wrong windows. Among the windows of known textures, the wrong ones
+    are not sure, and none says 1.00."""
+    x, truth = touches
+    events = _run(model, x[: 135 * 500], {"scope": "window"}, 500).events
+    conf = np.array([e["confidence"] for e, t in zip(events, truth) if t is not None])
+    right = np.array([e["predicted"] == t for e, t in zip(events, truth) if t is not None])
+    assert len(conf) == 120
+    assert conf.max() < 1.0
+    if (~right).any():
+        assert conf[~right].mean() < conf[right].mean()
+
+
+def test_a_tie_is_said_unknown_and_counted():
+    d = Decider(("a", "b", "c"), {"scope": "window"})
+    said = d.decide(np.log(np.array([0.45, 0.45, 0.1])))
+    assert (said["decision"], said["reason"], said["guess"]) == (UNKNOWN, "tie", None)
+    said = d.decide(np.log(np.array([0.1, 0.45, 0.45])))
+    assert said["decision"] == UNKNOWN
+    assert d.summary()["unknown_windows"] == {"novel": 0, "unsure": 0, "tie": 2}
+
+
+def test_unknown_below_names_no_texture_when_unsure():
+    d = Decider(("a", "b"), {"scope": "window", "unknown_below": 0.8})
+    assert d.decide(np.log(np.array([0.7, 0.3])))["decision"] == UNKNOWN
+    assert d.decide(np.log(np.array([0.9, 0.1])))["decision"] == "a"
+
+
+def test_rules_the_model_cannot_follow_are_refused_before_start(model, touches):
+    from supramodal.node.streams import decider_for
+    import dataclasses
+
+    old = dataclasses.replace(model, calibration=None, novelty=None)
+    with pytest.raises(InputError, match="uncalibrated.*retrain"):
+        decider_for(old, {"scope": "contact", "confidence": 0.99})
+    no_novelty = dataclasses.replace(model, novelty=None)
+    with pytest.raises(InputError, match="novelty score"):
+        decider_for(no_novelty, {"unknown": 0.05})
+    assert decider_for(old, {"scope": "contact"}).accumulator.correlation == 0.0     # pooling as before
+
+
+@pytest.mark.parametrize("decision, needle", [
+    ({"scope": "window", "confidence": 0.99}, "needs scope = \"contact\""),
+    ({"scope": "contact", "confidence": 1.0}, "confidence"),
+    ({"unknown": -0.1}, "unknown"),
+    ({"unknown_below": 1.5}, "unknown_below"),
+])
+def test_scene_decision_rules_are_validated(decision, needle):
+    with pytest.raises(SceneError, match=needle):
+        scene_from_dict({"driver": {"type": "synth"}, "model": {"train_on_start": True}, "decision": decision},
+                        "<test>")
