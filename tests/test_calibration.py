@@ -292,3 +292,18 @@ def test_novelty_threshold_calls_the_asked_share_of_held_out_known_windows_unkno
     assert 0.01 < called < 0.12
     far = values * 6.0                                              # a texture far louder than any known
     assert np.mean(model.novelty_score(far) > model.novelty.threshold(0.05)) > 0.9
+
+
+def test_a_model_file_written_before_calibration_loads_uncalibrated():
+    """tests/data/model-v1.npz was written by this program at e879733 (format version 1), with the
+    first five training windows and the outputs it gave them in model-v1-check.npy."""
+    from pathlib import Path
+
+    data = Path(__file__).parent / "data"
+    old = TextureModel.load(data / "model-v1.npz")
+    check = np.load(data / "model-v1-check.npy")
+    values, outputs = check[:, :8].reshape(5, 1, 8), check[:, 8:]
+    assert not old.calibrated and old.novelty is None
+    np.testing.assert_allclose(old.outputs(values), outputs, rtol=1e-12)
+    np.testing.assert_allclose(np.exp(old.log_posteriors(values)), outputs / outputs.sum(axis=1, keepdims=True),
+                               rtol=1e-9)
