@@ -696,9 +696,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_devices)
 
     p = add_parser("experiment", help="reproduce a figure of the paper (or all of them)")
-    p.add_argument("figure", choices=["fig1", "fig3", "fig4", "fig5", "fig6", "all", "fusion"],
+    p.add_argument("figure", choices=["fig1", "fig3", "fig4", "fig5", "fig6", "all", "fusion", "calibration"],
                    help="which figure of the paper; fusion: the two senses fused on the two-sense synthetic world "
-                        "(beyond the paper; not in all)")
+                        "(beyond the paper; not in all); calibration: whether the confidence means what it says "
+                        "(calibration, fusion, unknown textures, anytime decisions; issue 23; not in all)")
     p.add_argument("--quick", action="store_true", help="short textures and small grids: seconds, not minutes")
     p.add_argument("--jobs", type=_count(1), help="worker processes (default: all cores); results do not depend on it")
     p.add_argument("--seed", type=_count(0), default=0,
@@ -709,7 +710,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--textures", metavar="FILE", help="fig3: texture-set JSON file (default: the reference sets)")
     p.add_argument("--sets", type=_count(0), help="fig3: N random texture sets instead of the reference set; "
                                             "all: N random sets per bank besides it (default 5, 0 with --quick); "
-                                            "fusion: N random two-sense sets (default 5, 2 with --quick)")
+                                            "fusion: N random two-sense sets (default 5, 2 with --quick); "
+                                            "calibration: N random sets per bank and N two-sense sets (default 5, "
+                                            "1 with --quick)")
     p.add_argument("--out", default="out", type=_output_folder, help="directory for CSV and PNG (default ./out)")
     p.add_argument("--json", action="store_true", help="print the figure's data as one JSON object instead of a table")
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")

@@ -1,14 +1,27 @@
 """Fusion of the two senses on the two-sense synthetic world: whiskers alone, microphone alone, late
-fusion and early fusion (the supramodal network), over random texture sets.
+fusion and early fusion (the supramodal network), over random texture sets, with calibrated
+posteriors (issue 23).
 
 Per set (:func:`supramodal.twosense.two_sense_set`, 8 textures): each texture's contact is
 synthesised for both senses; Af windows of 100 ms from the whisker bank (20 channels, 5 kHz) and
 the cochlea (50 channels, 44.1 kHz), aligned by index (offline, both start at the contact). The
-first :data:`~supramodal.training.TRAIN_FRACTION` of every texture's windows trains, the rest
-tests. Of the training windows, the first 80 % train the networks and the last 20 % choose the
-late-fusion weight (:func:`supramodal.fusion.learn_late_weight`). Reported on the test windows: the
-share of windows right, and the share of contacts right, a contact being a run of 10 test windows
-(1 s) pooled by summed log-posteriors.
+first :data:`~supramodal.training.TRAIN_FRACTION` of every texture's windows train, the rest test.
+
+* Each sense: a :class:`~supramodal.model.TextureModel`, calibrated as ``supramodal train``
+  calibrates it (on out-of-fold windows of its training part).
+* Late fusion: its weight and sharpness (:func:`supramodal.fusion.learn_late_fusion`) are learned
+  on *held-out* log-posteriors of the training windows: each window's from a network of the
+  sense's grouped folds that did not train on it (:func:`held_out_log_posteriors`), never from the
+  sense models' own training windows; its contact pooling (the windows' correlation) is fitted on
+  the same held-out windows, fused.
+* Early fusion: one network on both senses' standardised windows side by side (the network of
+  :class:`~supramodal.fused_model.EarlyFusionModel`), calibrated like a sense model
+  (:func:`supramodal.calibration.fit_network_calibration` on the concatenated inputs).
+
+Reported on the test windows: accuracy per window and per contact (a run of
+:data:`CONTACT_WINDOWS` test windows, pooled by each method's calibrated pooling), and the
+calibration of both (log loss, Brier score, ECE, and the share wrong of the decisions that say at
+least 0.99).
 
     supramodal experiment fusion [--quick] [--sets N] [--seed S] [--out DIR]
     python -m supramodal.experiments.fusion [--quick] [--sets N] [--seed S]
@@ -23,16 +36,23 @@ import time
 import numpy as np
 
 from supramodal.banks import cochlea_bank, whisker_bank
-from supramodal.decisions import posteriors
-from supramodal.fusion import Standardised, early_inputs, fuse_late, learn_late_weight
-from supramodal.mlp import DEFAULT_EPOCHS
-from supramodal.pipeline import extract_features
+from supramodal.calibration import (DEFAULT_CALIBRATION_FOLDS, POOLING_RUN, calibration_folds, calibration_report,
+                                    fit_network_calibration, fit_pooling, input_scaling, pool_log_posteriors)
+from supramodal.errors import InputError
+from supramodal.features import DEFAULT_WINDOW
+from supramodal.fusion import early_inputs, fuse_late, learn_late_fusion
+from supramodal.mlp import DEFAULT_EPOCHS, train_mlp
+from supramodal.model import TextureModel
+from supramodal.pipeline import extract_features, window_length
 from supramodal.training import TRAIN_FRACTION
 from supramodal.twosense import synthesize_contact, two_sense_set
 
 METHODS = ("whiskers", "microphone", "late", "early")
 #: Windows pooled into one contact decision (1 s).
 CONTACT_WINDOWS = 10
+#: A decision that says at least this is "sure" (the issue's figure: at most 1 % of them wrong).
+SURE = 0.99
+FEATURES = ("Af",)
 
 
 def set_features(set_seed: int, seconds: float, progress=None):
@@ -42,63 +62,206 @@ def set_features(set_seed: int, seconds: float, progress=None):
     fw, fm = [], []
     for i, s in enumerate(surfaces):
         w, m = synthesize_contact(s, seconds, seed=[set_seed, i])
-        fw.append(extract_features(w, wb, ("Af",)).values[:, 0])
-        fm.append(extract_features(m, cb, ("Af",)).values[:, 0])
+        fw.append(extract_features(w, wb, FEATURES).values[:, 0])
+        fm.append(extract_features(m, cb, FEATURES).values[:, 0])
         if progress:
             progress(f"  set {set_seed}: {s.name} ({i + 1}/{len(surfaces)})")
     n = min(min(len(v) for v in fw), min(len(v) for v in fm))
     return [s.name for s in surfaces], np.stack([v[:n] for v in fw]), np.stack([v[:n] for v in fm])
 
 
-def _pooled_accuracy(log_post: np.ndarray, labels: np.ndarray, per_texture: int) -> float:
-    """Contacts of CONTACT_WINDOWS consecutive test windows of one texture, pooled."""
-    hits = runs = 0
-    for t in range(len(log_post) // per_texture):
-        rows = log_post[t * per_texture:(t + 1) * per_texture]
-        for k in range(0, per_texture - CONTACT_WINDOWS + 1, CONTACT_WINDOWS):
-            hits += int(np.argmax(rows[k:k + CONTACT_WINDOWS].sum(axis=0)) == labels[t * per_texture])
-            runs += 1
-    return hits / runs
+def held_out_log_posteriors(model: TextureModel, values, labels, groups=None,
+                            k: int = DEFAULT_CALIBRATION_FOLDS, epochs: int = DEFAULT_EPOCHS,
+                            seed: int = 0) -> np.ndarray:
+    """Calibrated log-posteriors of a model's own training windows, each window's from a network
+    that never trained on it.
+
+    The windows are dealt to the grouped folds of the model's calibration
+    (:func:`supramodal.calibration.calibration_folds` with ``k`` and ``seed``); each fold's windows
+    are scored by a network trained, like ``model``, on the other folds, and the model's
+    calibration maps the logits. These are the windows a fusion may learn from.
+
+    Parameters
+    ----------
+    model : TextureModel
+        Calibrated, trained on ``values`` with ``epochs`` and ``seed``.
+    values : ndarray, shape (n, features, channels)
+    labels : ndarray of int, shape (n,)
+    groups : sequence, length n, optional
+        Each window's recording, as given to :meth:`TextureModel.train` (default: one per label).
+
+    Returns
+    -------
+    ndarray, shape (n, classes)
+    """
+    if not model.calibrated:
+        raise InputError("held-out log-posteriors need a calibrated model (trained with calibration folds)")
+    values = np.asarray(values, dtype=np.float64)
+    y = np.asarray(labels)
+    folds, _ = calibration_folds(y, y if groups is None else np.asarray(groups), k, seed)
+    logits = np.empty((len(y), len(model.classes)))
+    for f in range(k):
+        test = folds == f
+        if not test.any():
+            continue
+        net = TextureModel.train(values[~test], y[~test], model.classes, model.bank, model.features,
+                                 model.window_samples, model.peak_mode, epochs=epochs, seed=seed,
+                                 hidden=model.mlp.shape[1], calibration_folds=0)
+        logits[test] = net.logits(values[test])
+    return model.calibration.log_posteriors(logits)
+
+
+def contact_runs(labels, per_texture: int, length: int = CONTACT_WINDOWS) -> list[np.ndarray]:
+    """Indices of the contacts among test windows stacked texture by texture (``per_texture`` each):
+    runs of ``length`` consecutive windows of one texture (a shorter rest is left out)."""
+    runs = []
+    for start in range(0, len(labels), per_texture):
+        for k in range(0, per_texture - length + 1, length):
+            runs.append(np.arange(start + k, start + k + length))
+    return runs
+
+
+def pooled_contacts(log_posteriors, runs, correlation: float) -> np.ndarray:
+    """Each run's pooled log-posteriors (:func:`supramodal.calibration.pool_log_posteriors`), (runs, classes)."""
+    return np.array([pool_log_posteriors(log_posteriors[r], correlation) for r in runs])
+
+
+def _fold_runs(folds, groups, run: int = POOLING_RUN) -> list[np.ndarray]:
+    """Runs of up to ``run`` consecutive windows of one group and one fold (windows that one held-out
+    network scored in a row), for fitting a pooling."""
+    out = []
+    for key in dict.fromkeys(zip(groups.tolist(), folds.tolist())):
+        idx = np.flatnonzero((groups == key[0]) & (folds == key[1]))
+        out += [idx[s:s + run] for s in range(0, len(idx), run)]
+    return out
 
 
 def run_set(set_seed: int, seconds: float = 20.0, epochs: int = DEFAULT_EPOCHS, seed: int = 0, progress=None) -> dict:
-    """Window and contact accuracy of each method on one set; see the module docstring."""
+    """Accuracy and calibration of each method on one set; see the module docstring.
+
+    Returns
+    -------
+    dict
+        ``set_seed``, ``textures``, the late fusion learned (``late_weight`` of the whiskers,
+        ``late_sharpness``, ``late_correlation``) and the held-out accuracies it was learned on
+        (``held_out``); per method the test accuracy per ``window`` and per ``contact``, and
+        ``calibration[method][scope]``, a :func:`supramodal.calibration.calibration_report`.
+    """
     names, fw, fm = set_features(set_seed, seconds, progress)
     T, n = fw.shape[:2]
     n_train = int(round(TRAIN_FRACTION * n))
-    n_fit = int(round(0.8 * n_train))
-    parts = {"fit": slice(0, n_fit), "weight": slice(n_fit, n_train), "test": slice(n_train, n)}
+    if not 0 < n_train < n:
+        raise InputError(f"{n} windows per texture cannot be split into training and test windows: "
+                         "synthesise longer contacts")
 
-    def take(values, part):
-        v = values[:, parts[part]]
-        return v.reshape(-1, *v.shape[2:]), np.repeat(np.arange(T), v.shape[1])
+    def part(values, rows):
+        v = values[:, rows]
+        return v.reshape(-1, *v.shape[2:])
 
-    nets = {}
-    for name, values in (("whiskers", fw), ("microphone", fm), ("early", early_inputs(
-            fw.reshape(T * n, -1), fm.reshape(T * n, -1)).reshape(T, n, -1))):
-        x, y = take(values, "fit")
-        nets[name] = Standardised(x, y, T, epochs, seed)
-    out = {}
-    for part in ("weight", "test"):
-        xw, y = take(fw, part)
-        xm, _ = take(fm, part)
-        xe, _ = take(early_inputs(fw.reshape(T * n, -1), fm.reshape(T * n, -1)).reshape(T, n, -1), part)
-        out[part] = (y, nets["whiskers"].outputs(xw), nets["microphone"].outputs(xm), nets["early"].outputs(xe))
-    y, ow, om, _ = out["weight"]
-    weight = learn_late_weight(ow, om, y)
-    y, ow, om, oe = out["test"]
-    logs = {"whiskers": np.log(posteriors(ow)), "microphone": np.log(posteriors(om)),
-            "late": fuse_late(ow, om, weight), "early": np.log(posteriors(oe))}
-    per_texture = n - n_train
-    return {"set_seed": set_seed, "textures": names, "late_weight": weight, "test_windows_per_texture": per_texture,
-            "window": {m: float(np.mean(np.argmax(logs[m], axis=1) == y)) for m in METHODS},
-            "contact": {m: _pooled_accuracy(logs[m], y, per_texture) for m in METHODS}}
+    y_train = np.repeat(np.arange(T), n_train)
+    y_test = np.repeat(np.arange(T), n - n_train)
+    senses = {"whiskers": (fw, whisker_bank()), "microphone": (fm, cochlea_bank())}
+    test_lp, held, pooling = {}, {}, {}
+    for name, (values, bank) in senses.items():
+        x = part(values, slice(0, n_train))[:, None]
+        if progress:
+            progress(f"  set {set_seed}: training the {name} model and its held-out folds")
+        model = TextureModel.train(x, y_train, names, bank, FEATURES, window_length(DEFAULT_WINDOW, bank.fs),
+                                   epochs=epochs, seed=seed)
+        held[name] = held_out_log_posteriors(model, x, y_train, epochs=epochs, seed=seed)
+        test_lp[name] = model.log_posteriors(part(values, slice(n_train, n))[:, None])
+        pooling[name] = model.calibration.correlation
+    weight, sharpness = learn_late_fusion(held["whiskers"], held["microphone"], y_train)
+    folds, _ = calibration_folds(y_train, y_train, DEFAULT_CALIBRATION_FOLDS, seed)
+    fused_held = fuse_late(held["whiskers"], held["microphone"], weight, sharpness)
+    runs = _fold_runs(folds, y_train)
+    pooling["late"] = fit_pooling([fused_held[r] for r in runs], [int(y_train[r[0]]) for r in runs])
+    test_lp["late"] = fuse_late(test_lp["whiskers"], test_lp["microphone"], weight, sharpness)
+    test_lp["early"], pooling["early"] = _early(names, fw, fm, n_train, y_train, epochs, seed, progress, set_seed)
+
+    contacts = contact_runs(y_test, n - n_train)
+    y_contact = np.array([y_test[r[0]] for r in contacts])
+    calibration = {}
+    for m in METHODS:
+        calibration[m] = {"window": calibration_report(test_lp[m], y_test, sure=SURE),
+                          "contact": calibration_report(pooled_contacts(test_lp[m], contacts, pooling[m]), y_contact,
+                                                        sure=SURE)}
+    return {"set_seed": set_seed, "textures": names, "late_weight": weight, "late_sharpness": sharpness,
+            "late_correlation": pooling["late"], "test_windows_per_texture": n - n_train,
+            "held_out": {m: float(np.mean(np.argmax(held[m], axis=1) == y_train)) for m in ("whiskers", "microphone")}
+            | {"late": float(np.mean(np.argmax(fused_held, axis=1) == y_train))},
+            "window": {m: calibration[m]["window"]["accuracy"] for m in METHODS},
+            "contact": {m: calibration[m]["contact"]["accuracy"] for m in METHODS},
+            "calibration": calibration}
+
+
+def _early(names, fw, fm, n_train, y_train, epochs, seed, progress, set_seed):
+    """Early fusion's calibrated test log-posteriors and its pooling correlation: the network
+    :class:`~supramodal.fused_model.EarlyFusionModel` trains (one MLP on both senses' standardised
+    windows side by side), calibrated by :func:`~supramodal.calibration.fit_network_calibration`."""
+    if progress:
+        progress(f"  set {set_seed}: training the early-fusion network and its calibration folds")
+    T = fw.shape[0]
+    x = early_inputs(fw[:, :n_train].reshape(-1, fw.shape[2]), fm[:, :n_train].reshape(-1, fm.shape[2]))
+    mean, scale = input_scaling(x)
+    net, _ = train_mlp((x - mean) / scale, y_train, T, epochs=epochs, seed=seed)
+    calibration, _ = fit_network_calibration(x, y_train, T, epochs=epochs, seed=seed)
+    x_test = early_inputs(fw[:, n_train:].reshape(-1, fw.shape[2]), fm[:, n_train:].reshape(-1, fm.shape[2]))
+    return calibration.log_posteriors(net.logits((x_test - mean) / scale)), calibration.correlation
+
+
+def spread(values) -> dict:
+    """Mean and sd (ddof 1; 0 for one value) of a list of numbers."""
+    v = np.array(values, dtype=np.float64)
+    return {"mean": float(v.mean()), "sd": float(v.std(ddof=1)) if len(v) > 1 else 0.0,
+            "min": float(v.min()), "max": float(v.max())}
+
+
+def merge_reports(reports: list[dict]) -> dict:
+    """One :func:`~supramodal.calibration.calibration_report` of the decisions of several, as if
+    scored together: means weighted by count, reliability bins summed, sure decisions counted."""
+    n = np.array([r["n"] for r in reports], dtype=np.float64)
+    counts = np.sum([r["reliability"]["count"] for r in reports], axis=0)
+    conf = np.sum([[c * (m or 0.0) for c, m in zip(r["reliability"]["count"], r["reliability"]["confidence"])]
+                   for r in reports], axis=0)
+    right = np.sum([[c * (a or 0.0) for c, a in zip(r["reliability"]["count"], r["reliability"]["accuracy"])]
+                    for r in reports], axis=0)
+    sure = int(sum(r["sure_count"] for r in reports))
+    sure_wrong = sum(round(r["sure_wrong"] * r["sure_count"]) for r in reports if r["sure_count"])
+    mean_conf = [float(s / c) if c else None for s, c in zip(conf, counts)]
+    accuracy = [float(s / c) if c else None for s, c in zip(right, counts)]
+    ece = float(sum(c / counts.sum() * abs(a - m) for c, a, m in zip(counts, accuracy, mean_conf) if c))
+    return {"n": int(n.sum()),
+            **{k: float(np.dot(n, [r[k] for r in reports]) / n.sum()) for k in ("accuracy", "log_loss", "brier")},
+            "ece": ece, "sure": reports[0]["sure"], "sure_count": sure,
+            "sure_wrong": sure_wrong / sure if sure else None,
+            "reliability": {"edges": reports[0]["reliability"]["edges"], "count": counts.astype(int).tolist(),
+                            "confidence": mean_conf, "accuracy": accuracy}}
+
+
+def summarize(results: list[dict], seconds: float) -> dict:
+    """:func:`run_set` results of several sets: per method and scope the accuracy's and ECE's mean
+    and spread over sets, and every set's decisions scored together (``pooled``)."""
+    best = [max(r["window"]["whiskers"], r["window"]["microphone"]) for r in results]
+    summary = {}
+    for m in METHODS:
+        summary[m] = {}
+        for kind in ("window", "contact"):
+            reports = [r["calibration"][m][kind] for r in results]
+            summary[m][kind] = {**spread([r[kind][m] for r in results]),
+                                "ece": spread([c["ece"] for c in reports]), "pooled": merge_reports(reports)}
+    return {"figure": "fusion", "seconds": seconds, "contact_windows": CONTACT_WINDOWS, "sure": SURE, "sets": results,
+            "summary": summary,
+            "late_fusion": {k: spread([r[k] for r in results]) for k in ("late_weight", "late_sharpness",
+                                                                        "late_correlation")},
+            "gain_over_better_sense": {m: spread([r["window"][m] - b for r, b in zip(results, best)])
+                                       for m in ("late", "early")}}
 
 
 def run_fusion(sets: int = 5, quick: bool = False, epochs: int = DEFAULT_EPOCHS, seed: int = 0,
                progress=None) -> dict:
     """:func:`run_set` over ``sets`` sets (seeds ``seed``, ``seed + 1``, ...); ``quick``: 8 s contacts
-    (default 20 s). Returns the per-set results and, per method, mean and sd over sets."""
+    (default 20 s). Returns the per-set results and :func:`summarize`'s figures."""
     seconds = 8.0 if quick else 20.0
     t0 = time.perf_counter()
     results = []
@@ -107,35 +270,40 @@ def run_fusion(sets: int = 5, quick: bool = False, epochs: int = DEFAULT_EPOCHS,
         results.append(r)
         if progress:
             progress(f"set {seed + k}: " + ", ".join(f"{m} {r['window'][m]:.3f}" for m in METHODS)
-                     + f" (late weight of the whiskers {r['late_weight']:.2f})")
-
-    def spread(values):
-        v = np.array(values)
-        return {"mean": float(v.mean()), "sd": float(v.std(ddof=1)) if len(v) > 1 else 0.0}
-
-    best = [max(r["window"]["whiskers"], r["window"]["microphone"]) for r in results]
-    return {"figure": "fusion", "seconds": seconds, "contact_windows": CONTACT_WINDOWS, "sets": results,
-            "summary": {m: {kind: spread([r[kind][m] for r in results]) for kind in ("window", "contact")}
-                        for m in METHODS},
-            "gain_over_better_sense": {m: spread([r["window"][m] - b for r, b in zip(results, best)])
-                                       for m in ("late", "early")},
-            "compute_seconds": time.perf_counter() - t0}
+                     + f" (late weight of the whiskers {r['late_weight']:.2f}, sharpness {r['late_sharpness']:.2f})")
+    return {**summarize(results, seconds), "compute_seconds": time.perf_counter() - t0}
 
 
 def fusion_table(result: dict) -> str:
     """The experiment's summary as Markdown."""
     s = result["summary"]
     lines = [f"{len(result['sets'])} two-sense sets of 8 textures, {result['seconds']:g} s contacts; test windows of "
-             f"100 ms and contacts of {result['contact_windows']} windows; mean +- sd over sets", "",
-             "| method | windows | contacts |", "|---|---|---|"]
+             f"100 ms and contacts of {result['contact_windows']} windows; mean +- sd over sets; ECE (15 bins) and "
+             f"the share wrong of the decisions saying >= {result['sure']:g} over every set's decisions together", "",
+             "| method | windows | contacts | ECE windows | ECE contacts | wrong of sure windows | "
+             "wrong of sure contacts |", "|---|---|---|---|---|---|---|"]
     for m in METHODS:
         w, c = s[m]["window"], s[m]["contact"]
-        lines.append(f"| {m} | {w['mean']:.3f} +- {w['sd']:.3f} | {c['mean']:.3f} +- {c['sd']:.3f} |")
+        lines.append(f"| {m} | {w['mean']:.3f} +- {w['sd']:.3f} | {c['mean']:.3f} +- {c['sd']:.3f} | "
+                     f"{w['pooled']['ece']:.3f} | {c['pooled']['ece']:.3f} | {sure_cell(w['pooled'])} | "
+                     f"{sure_cell(c['pooled'])} |")
     lines.append("")
+    lf = result["late_fusion"]
+    lines.append(f"late fusion learned on held-out windows: weight of the whiskers {lf['late_weight']['mean']:.2f} "
+                 f"({lf['late_weight']['min']:.2f}..{lf['late_weight']['max']:.2f}), sharpness "
+                 f"{lf['late_sharpness']['mean']:.2f}, contact correlation {lf['late_correlation']['mean']:.2f}")
     for m, g in result["gain_over_better_sense"].items():
         lines.append(f"{m} fusion over the better single sense, per window: {g['mean'] * 100:+.1f} points "
-                     f"(sd {g['sd'] * 100:.1f})")
+                     f"(sd {g['sd'] * 100:.1f}, at least {g['min'] * 100:+.1f})")
     return "\n".join(lines)
+
+
+def sure_cell(report: dict) -> str:
+    """``wrong / sure`` decisions of a report as a share and a count, e.g. ``0.000 (0 of 312)``."""
+    if not report["sure_count"]:
+        return "- (0 sure)"
+    wrong = round(report["sure_wrong"] * report["sure_count"])
+    return f"{report['sure_wrong']:.3f} ({wrong} of {report['sure_count']})"
 
 
 def main(argv=None) -> int:

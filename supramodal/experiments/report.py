@@ -149,6 +149,11 @@ def write_figure(name: str, result: dict, out: Path) -> list[Path]:
         for r in result.get("random_sets", {}).values():
             written += write_fig3(r, out, suffix="_random")
         return written
+    if name == "calibration":
+        from supramodal.experiments.calibration import write_calibration
+        from supramodal.experiments.common import progress_to_stderr
+
+        return write_calibration(result, out, notice=progress_to_stderr)
     writer = {"fig1": _write_fig1, "fig4": _write_fig4, "fig5": _write_fig5, "fig6": _write_fig6,
               "fusion": _write_fusion}[name]
     paths = writer(result, out)
@@ -171,6 +176,10 @@ def figure_table(name: str, result: dict) -> str:
         from supramodal.experiments.fusion import fusion_table
 
         return fusion_table(result)
+    if name == "calibration":
+        from supramodal.experiments.calibration import calibration_table
+
+        return calibration_table(result)
     return {"fig1": _table_fig1, "fig4": _table_fig4, "fig5": _table_fig5, "fig6": _table_fig6}[name](result)
 
 
@@ -337,10 +346,11 @@ def _plot_fig6(result: dict, path: Path) -> Path:
 # -- fusion of the two senses (beyond the paper) ---------------------------------------------------
 
 def _write_fusion(result: dict, out: Path) -> list[Path]:
-    rows = [(r["set_seed"], m, r["window"][m], r["contact"][m], r["late_weight"])
+    rows = [(r["set_seed"], m, r["window"][m], r["contact"][m], r["late_weight"], r["late_sharpness"],
+             r["calibration"][m]["window"]["ece"], r["calibration"][m]["contact"]["ece"])
             for r in result["sets"] for m in r["window"]]
     return [_csv(out / "fusion.csv", ["set_seed", "method", "window_accuracy", "contact_accuracy",
-                                      "late_weight_of_whiskers"], rows)]
+                                      "late_weight_of_whiskers", "late_sharpness", "window_ece", "contact_ece"], rows)]
 
 
 def _plot_fusion(result: dict, path: Path) -> Path:

@@ -11,21 +11,30 @@ from supramodal.textures import TextureSet
 FIGURES = ("fig1", "fig3", "fig4", "fig5", "fig6")
 #: Random texture sets per bank that ``experiment all`` adds to Fig. 3 (none in quick mode).
 ALL_SETS = 5
+#: Experiments beyond the paper's figures that run as plans too (not part of ``all``).
+EXTRA = ("calibration",)
 
 
 def plans(figure: str, quick: bool = False, epochs: int = DEFAULT_EPOCHS, seed: int = 0, sets: int | None = None,
           bank: str | None = None, texture_set: TextureSet | None = None) -> dict[str, Plan]:
-    """Plans of ``figure`` (one of :data:`FIGURES`, or ``"all"``), keyed by figure name.
+    """Plans of ``figure`` (one of :data:`FIGURES`, ``"all"`` or one of :data:`EXTRA`), keyed by figure name.
 
     Fig. 3 options: ``bank`` (default: both, or the bank of ``texture_set``), ``texture_set``
     (default: the reference set), ``sets``: for ``fig3``, N > 1 random sets *instead of* the
     reference set (as before); for ``all``, N random sets per bank *besides* the reference
-    sets (default :data:`ALL_SETS`, 0 in quick mode).
+    sets (default :data:`ALL_SETS`, 0 in quick mode); for ``calibration``, N >= 1 random sets per
+    bank and N two-sense sets (:func:`supramodal.experiments.calibration.plan`).
     """
-    if figure not in FIGURES + ("all",):
-        raise InputError(f"unknown figure {figure!r}; choose one of {', '.join(FIGURES)} or all")
+    if figure not in FIGURES + ("all",) + EXTRA:
+        raise InputError(f"unknown figure {figure!r}; choose one of {', '.join(FIGURES + EXTRA)} or all")
     if sets is not None and sets < 0:
         raise InputError(f"--sets must be >= 0, got {sets}")
+    if figure == "calibration":
+        from supramodal.experiments import calibration
+
+        if bank is not None or texture_set is not None:
+            raise InputError("--bank and --textures apply to fig3, not to calibration (it measures both banks)")
+        return {figure: calibration.plan(quick=quick, epochs=epochs, seed=seed, sets=sets)}
     common = {"quick": quick, "epochs": epochs}
     if figure == "all":
         if bank is not None or texture_set is not None:
