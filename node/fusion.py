@@ -17,7 +17,7 @@ from source ``"fused"``, and are counted in the summary (``dropouts``).
 
 Late fusion: ``log_softmax(s (w log p_a + (1 - w) log p_b))`` (:func:`supramodal.fusion.fuse_late`)
 of the streams' log-posteriors, winner-take-all; pooling over windows and the "unknown" rules as
-for one stream (:mod:`supramodal.node.deciding`). A fused window is unknown as novel when either
+for one stream (:class:`supramodal.decisions.Decider`). A fused window is unknown as novel when either
 sense's window is: an honest "not sure" beats a confident wrong name.
 
 Threading rules
@@ -39,7 +39,7 @@ import numpy as np
 from supramodal.drivers.base import DriverEvent
 from supramodal.errors import InputError
 from supramodal.fusion import fuse_late
-from supramodal.node.deciding import Decider
+from supramodal.decisions import Decider
 from supramodal.node.events import FUSED_STREAM, WindowEvent
 from supramodal.node.latency import LatencyHistogram
 

@@ -247,7 +247,7 @@ SECTIONS = {
         "n": (_int_min(0), "windows, an integer >= 0", DEFAULT_POOLED),
         "method": (_one_of(*METHODS), f"one of {list(METHODS)}", DEFAULT_METHOD),
         "contact_threshold": (_non_negative, "input RMS, >= 0", DEFAULT_CONTACT_THRESHOLD),
-        # The rules of issue 23, each off at 0; their meaning is node/deciding.py's.
+        # The rules of issue 23, each off at 0; their meaning is supramodal.decisions.Decider's.
         "confidence": (_unit_interval, "calibrated pooled confidence at which a contact's decision is final, "
                                        "0 <= c < 1 (0: never; needs scope = \"contact\")", 0.0),
         "unknown": (_unit_interval, "share of windows of known textures allowed to be called unknown by the "

@@ -20,7 +20,7 @@ import numpy as np
 from supramodal.decisions import ContactDetector
 from supramodal.errors import InputError
 from supramodal.model import TextureModel
-from supramodal.node.deciding import Decider
+from supramodal.decisions import Decider
 from supramodal.node.events import WindowEvent
 from supramodal.node.latency import LatencyHistogram
 from supramodal.node.ringbuffer import RingClosed
@@ -94,7 +94,7 @@ DEFAULT_DECISION = {"scope": "window", "n": 10, "method": "log", "contact_thresh
 
 
 def decider_for(model: TextureModel, decision: dict, where: str = "[decision]") -> Decider:
-    """The :class:`~supramodal.node.deciding.Decider` of a stream of ``model`` with the scene's
+    """The :class:`~supramodal.decisions.Decider` of a stream of ``model`` with the scene's
     ``decision``; refuses rules the model cannot follow (a confidence threshold or "unknown"
     without a calibration, "unknown" without a novelty score), naming the fix."""
     d = {**DEFAULT_DECISION, **decision}

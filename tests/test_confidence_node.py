@@ -10,7 +10,7 @@ import pytest
 from supramodal.banks import whisker_bank
 from supramodal.errors import InputError
 from supramodal.model import TextureModel
-from supramodal.node.deciding import UNKNOWN, Decider
+from supramodal.decisions import UNKNOWN, Decider
 from supramodal.node.graph import Node
 from supramodal.node.scene import SceneError, scene_from_dict
 from supramodal.node.sinks import ListSink
