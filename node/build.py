@@ -20,6 +20,7 @@ from supramodal.node.scene import LEARN, Scene, SceneError, source_scene
 from supramodal.node.sinks import QueuedSink, make_sink
 from supramodal.bankfile import BANK_KEYS, BankFileError, bank_from_description, load_bank
 from supramodal.banks import Bank
+from supramodal.calibration import winner
 from supramodal.errors import InputError
 from supramodal.model import ModelError, TextureModel
 from supramodal.pipeline import FeaturePipeline
@@ -147,9 +148,12 @@ def twosense_session(scene: Scene, bank: Bank):
 def train_on_texture_set(ts, pipeline: FeaturePipeline, progress=None, held_out: list | None = None,
                          trained: list | None = None) -> TextureModel:
     """The model the default scene trains on the spot: Fig. 3's training part of each texture,
-    computed with the scene's own pipeline settings. ``held_out``, a list, receives the held-out
-    part ``(x_test, y_test)`` (windows the model never saw: a fusion weight is learned on them);
-    ``trained`` the training part ``(x_train, y_train)`` (an early-fusion network learns on it)."""
+    computed with the scene's own pipeline settings, calibrated on out-of-fold windows of that
+    training part (:meth:`TextureModel.train`: each texture's training windows cut into spans in
+    time, one per fold). ``held_out``, a list, receives the held-out part ``(x_test, y_test)``
+    (windows the model never saw: a fusion is scored on them); ``trained`` the training part
+    ``(x_train, y_train)`` (an early-fusion network learns on it, a late-fusion weight on its
+    out-of-fold windows)."""
     p = pipeline
     values, _ = texture_features(ts, p.bank, p.features, p.window, peak_mode=p.peaks.mode,
                                  peak_threshold=p.peaks.threshold)
@@ -158,9 +162,13 @@ def train_on_texture_set(ts, pipeline: FeaturePipeline, progress=None, held_out:
         held_out.append((x_test, y_test))
     if trained is not None:
         trained.append((x_train, y_train))
+    model = TextureModel.train_for(p, x_train, y_train, ts.names, seed=0)
     if progress:
-        progress(f"trained on {len(x_train)} windows of {len(ts.textures)} textures ({', '.join(p.features)})")
-    return TextureModel.train_for(p, x_train, y_train, ts.names, seed=0)
+        from supramodal.node.training import calibration_line
+
+        progress(f"trained on {len(x_train)} windows of {len(ts.textures)} textures ({', '.join(p.features)}); "
+                 + calibration_line(None if model.calibration is None else model.calibration.fitted_on))
+    return model
 
 
 def driver_for(scene: Scene, bank: Bank | None, speed_override=None, xdf_files: dict | None = None):
@@ -479,7 +487,8 @@ def _aligned_windows(scene: Scene, a: Stream, b: Stream, windows: dict, asked: s
 def _early_model(scene: Scene, a: Stream, b: Stream, held_out: dict, trained: dict, progress):
     """The early-fusion network: loaded from ``[fusion] model`` and checked against both streams'
     pipelines, or trained on the spot on both streams' aligned training windows (the two senses
-    of the same training contacts), its accuracy on their held-out windows said."""
+    of the same training contacts) and calibrated on their out-of-fold windows, its accuracy on
+    their held-out windows said beside each stream's."""
     from supramodal.fused_model import EarlyFusionModel, Sense
 
     path = scene.fusion["model"]
@@ -495,24 +504,53 @@ def _early_model(scene: Scene, a: Stream, b: Stream, held_out: dict, trained: di
     model = EarlyFusionModel.train((Sense.of(a.name, a.pipeline), Sense.of(b.name, b.pipeline)), xa, xb, ya,
                                    a.model.classes)
     if progress:
+        from supramodal.node.training import calibration_line
+
         (ta, tya), (tb, _) = held_out[a.name][0], held_out[b.name][0]
-        right = np.mean(np.argmax(model.outputs(ta, tb), axis=1) == tya)
-        progress(f"fusion: early network trained on {len(ya)} aligned windows of {a.name} and {b.name}; "
-                 f"{right:.3f} of {len(tya)} held-out windows right")
+        right = {a.name: a.model.log_posteriors(ta), b.name: b.model.log_posteriors(tb)[:, _order(b.model, a.model)],
+                 "early": model.log_posteriors(ta, tb)}
+        progress(f"fusion: early network trained on {len(ya)} aligned windows of {a.name} and {b.name}, "
+                 + calibration_line(model.calibration.fitted_on))
+        progress(f"fusion: {len(tya)} held-out windows right: "
+                 + ", ".join(f"{name} {np.mean(winner(lp) == tya):.3f}" for name, lp in right.items()))
     return model
 
 
-def _learned_weight(scene: Scene, a: Stream, b: Stream, held_out: dict, progress) -> float:
-    """The late-fusion weight learned on both models' held-out training windows (aligned: the two
-    senses of the same training contacts), as ``experiment fusion`` learns it."""
-    from supramodal.fusion import learn_late_weight
+def _order(model: TextureModel, reference: TextureModel) -> np.ndarray:
+    """Columns of ``model``'s posteriors in ``reference``'s class order."""
+    return np.array([list(model.classes).index(c) for c in reference.classes])
 
-    (xa, ya), (xb, _) = _aligned_windows(scene, a, b, held_out, f'weight = "{LEARN}"', "a number")
-    weight = learn_late_weight(a.model.outputs(xa), b.model.outputs(xb), ya)
+
+def _learned_weight(scene: Scene, a: Stream, b: Stream, held_out: dict, trained: dict, progress) -> dict:
+    """The late fusion learned for two models trained on the spot: the weight and sharpness
+    (:func:`supramodal.fused_model.learn_late_fusion_out_of_fold`) on out-of-fold log-posteriors
+    of their training windows (aligned: the two senses of the same training contacts), each from
+    a copy of the stream's model trained without the window's fold, never from the models on
+    their own training windows; the fused decisions' pooling fitted on the same windows. Said
+    beside each stream's and the fusion's accuracy on the held-out windows.
+
+    Returns ``{"weight", "sharpness", "correlation"}``.
+    """
+    from supramodal.fused_model import fused_pooling, learn_late_fusion_out_of_fold, senses_out_of_fold
+    from supramodal.fusion import fuse_late
+
+    (xa, ya), (xb, _) = _aligned_windows(scene, a, b, trained, f'weight = "{LEARN}"', "a number")
+    say = None if progress is None else (lambda m: progress(f"fusion: out-of-fold windows, {m}"))
+    (la, lb), folds, _ = senses_out_of_fold((a.model, b.model), (xa, xb), ya, a.model.classes, progress=say,
+                                            names=(a.name, b.name))
+    late = learn_late_fusion_out_of_fold(la, lb, ya, folds)
+    correlation = fused_pooling(late["fused"], ya, folds)
     if progress:
-        progress(f"fusion: learned weight {weight:.2f} of {a.name} (and {1 - weight:.2f} of {b.name}) "
-                 f"on {len(ya)} held-out training windows")
-    return weight
+        progress(f"fusion: learned weight {late['weight']:.2f} of {a.name} (and {1 - late['weight']:.2f} of {b.name}), "
+                 f"sharpness {late['sharpness']:.3g}, on {len(ya)} out-of-fold training windows "
+                 f"({len(np.unique(folds))} folds)")
+        (ta, tya), (tb, _) = held_out[a.name][0], held_out[b.name][0]
+        ha, hb = a.model.log_posteriors(ta), b.model.log_posteriors(tb)[:, _order(b.model, a.model)]
+        fused = fuse_late(ha, hb, late["weight"], late["sharpness"])
+        progress(f"fusion: {len(tya)} held-out windows right: "
+                 + ", ".join(f"{name} {np.mean(winner(lp) == tya):.3f}"
+                             for name, lp in ((a.name, ha), (b.name, hb), ("fused", fused))))
+    return {"weight": late["weight"], "sharpness": late["sharpness"], "correlation": correlation}
 
 
 def _build_graph(scene: Scene, speed, sinks_override, progress, recorder, overwrite: bool) -> Graph:
@@ -560,14 +598,18 @@ def _build_graph(scene: Scene, speed, sinks_override, progress, recorder, overwr
             try:
                 if f["method"] == "early":
                     model = _early_model(scene, a, b, held_out, trained, progress)
+                    correlation = 0.0 if model.calibration is None else model.calibration.correlation
                     fusion = EarlyFusion((a.name, b.name), (a.model.classes, b.model.classes), model, max_wait,
-                                         f["decision"])
+                                         f["decision"], correlation=correlation)
                 else:
-                    weight = f["weight"]
-                    if weight == LEARN:
-                        weight = _learned_weight(scene, a, b, held_out, progress)
-                    fusion = LateFusion((a.name, b.name), (a.model.classes, b.model.classes), weight, max_wait,
-                                        f["decision"])
+                    # A number: the scene's weight (and sharpness, where the scene gives one);
+                    # "learn": learned with the sharpness and the fused pooling on out-of-fold windows.
+                    late = {"weight": f["weight"], "sharpness": f.get("sharpness") or 1.0, "correlation": 0.0}
+                    if f["weight"] == LEARN:
+                        late = _learned_weight(scene, a, b, held_out, trained, progress)
+                    fusion = LateFusion((a.name, b.name), (a.model.classes, b.model.classes), late["weight"],
+                                        max_wait, f["decision"], sharpness=late["sharpness"],
+                                        correlation=late["correlation"])
             except ValueError as exc:
                 raise SceneError(f"{scene.source}: [fusion] {exc}") from None
         more, more_routes = _lsl_sinks(scene, [(s.name, s.pipeline, s.model) for s in streams],

@@ -402,7 +402,7 @@ def _progress(args):
 
 def _cmd_train(args) -> int:
     from supramodal.node.outputs import check_new_file
-    from supramodal.node.training import train_from_manifest
+    from supramodal.node.training import calibration_line, train_from_manifest
     if args.scene or args.fusion:
         return _train_fusion(args)
     if args.manifest is None or args.bank is None or args.out is None:
@@ -411,29 +411,41 @@ def _cmd_train(args) -> int:
     check_new_file(args.out, args.force, "the model file")      # before the training, not after
     bank = args.bank
     if args.cv:
-        from supramodal.node.reports import write_confusion
+        from supramodal.node.reports import plots_missing_notice, write_confusion, write_reliability
         from supramodal.node.training import cross_validate_manifest, format_cross_validation
 
         base = args.out.with_name(args.out.stem + "-cv")
-        for suffix in (".csv", ".png"):
-            check_new_file(base.with_name(base.name + suffix), args.force, "the cross-validation file")
+        reliability = args.out.with_name(args.out.stem + "-cv-reliability")
+        for b in (base, reliability):
+            for suffix in (".csv", ".png"):
+                check_new_file(b.with_name(b.name + suffix), args.force, "the cross-validation file")
         cv = cross_validate_manifest(args.manifest, bank, tuple(args.features), args.window, args.cv,
                                      epochs=args.epochs, seed=args.seed, mapping=args.mapping, progress=_progress(args))
         print(format_cross_validation(cv))
         files = write_confusion(cv["labels"], cv["confusion"], base,
                                 f"{args.cv}-fold grouped cross-validation: window accuracy "
                                 f"{cv['window_accuracy']['mean']:.3f} +- {cv['window_accuracy']['sd']:.3f}")
+        files += write_reliability(cv["calibration"], reliability,
+                                   f"{args.cv}-fold grouped cross-validation: test folds' decisions")
         print("wrote " + ", ".join(str(p) for p in files))
+        _say_plots_missing(plots_missing_notice())
     model = train_from_manifest(args.manifest, bank, tuple(args.features), args.window, epochs=args.epochs,
                                 seed=args.seed, mapping=args.mapping, progress=_progress(args))
     path = model.save(args.out)
     print(f"wrote {path}: {model.bank.kind} bank, features {list(model.features)}, classes {list(model.classes)}, "
           f"{model.training['windows']} training windows, final MSE {model.training['final_mse']:.4g}")
+    print("posteriors: " + calibration_line(None if model.calibration is None else model.calibration.fitted_on))
     return 0
 
 
+def _say_plots_missing(notice: str | None) -> None:
+    if notice:
+        print(f"supramodal: {notice}", file=sys.stderr)
+
+
 def _train_fusion(args) -> int:
-    """``train --fusion early|late --scene S.toml ...``: a fusion learned on recorded two-sense sessions."""
+    """``train --fusion early|late --scene S.toml ...``: a fusion learned on recorded two-sense sessions,
+    from windows held out of every network that scored them (node/fused_training.py)."""
     from supramodal.node.fused_training import train_fused
     from supramodal.node.outputs import check_new_file
 
@@ -450,13 +462,27 @@ def _train_fusion(args) -> int:
         raise CliError("--fusion late learns one number, printed for [fusion] weight; it writes no file: leave out --out")
     result, info = train_fused(args.scene, args.fusion, epochs=args.epochs, seed=args.seed, progress=_progress(args))
     a, b = info["streams"]
+    fused = "late" if args.fusion == "late" else "early"
+    print(f"held-out windows ({info['pairs']} pairs of {info['contacts']} contacts, {info['folds']} folds by "
+          f"{info['folds_by']}; each scored by networks that never trained on its fold):")
+    print(f"  {'':<12}{'accuracy':>10}{'log loss':>10}")
+    for name in (a, b, fused):
+        h = info["held_out"][name]
+        print(f"  {name:<12}{h['accuracy']:>10.3f}{h['log_loss']:>10.3f}")
     if args.fusion == "late":
-        print(f"learned late-fusion weight {result:.2f} of {a} (and {1 - result:.2f} of {b}) on {info['pairs']} "
-              f"labelled pairs of windows: set [fusion] weight = {result:.2f}")
+        from supramodal.node.scene import FUSION_KEYS
+
+        weight, sharpness = result
+        keys = f"weight = {weight:.2f}"
+        if "sharpness" in FUSION_KEYS:
+            keys += f", sharpness = {sharpness:.4g}"
+        print(f"learned late-fusion weight {weight:.2f} of {a} (and {1 - weight:.2f} of {b}) and sharpness "
+              f"{sharpness:.4g} on the out-of-fold windows of {info['pairs']} labelled pairs (the late row: each "
+              f"fold fused with a weight learned without it): set [fusion] {keys}")
         return 0
     path = result.save(args.out)
     print(f"wrote {path}: early fusion of {a} and {b}, classes {info['classes']}, {info['pairs']} pairs of windows, "
-          f"{info['train_accuracy']:.3f} of them right; use it with [fusion] method = \"early\", "
+          f"calibrated on its out-of-fold pairs (the early row); use it with [fusion] method = \"early\", "
           f"model = \"{path.resolve()}\" (a relative path is taken from the scene's folder)")
     return 0
 
@@ -495,17 +521,28 @@ def _cmd_evaluate(args) -> int:
         raise CliError("--seed applies to --cv only (scoring the model as it is draws nothing at random)")
     if args.out is not None and args.out.is_dir():
         from supramodal.node.outputs import check_new_file
+        from supramodal.node.reports import EVALUATION_FILES
 
-        for name in ("confusion.csv", "confusion.png", "pooling.csv", "channels.csv", "evaluation.png"):
+        for name in EVALUATION_FILES:
             check_new_file(args.out / name, args.force, "the evaluation file")
     result = evaluate_manifest(model, args.manifest, mapping=args.mapping, progress=_progress(args))
+    result["calibration"]["model_version"] = _model_file_version(args.model)
     print(json.dumps(result) if args.json else format_evaluation(result))
     if args.out is not None:
-        from supramodal.node.reports import write_evaluation
+        from supramodal.node.reports import plots_missing_notice, write_evaluation
 
         files = write_evaluation(result, args.out)
         print("wrote " + ", ".join(str(p) for p in files), file=sys.stderr)
+        _say_plots_missing(plots_missing_notice())
     return 0
+
+
+def _model_file_version(path) -> int | None:
+    """The format version a model file says it is (an uncalibrated model of version 1 is said so)."""
+    from supramodal.model import read_model_archive
+
+    header, _ = read_model_archive(path)
+    return header.get("version") if isinstance(header, dict) else None
 
 
 def _evaluate_fusion(args) -> int:
@@ -541,23 +578,27 @@ def _evaluate_cv(model, args) -> int:
 
     if args.seed is not None and args.seed < 0:
         raise CliError(f"--seed must be >= 0, got {args.seed}")
-    base = None if args.out is None else args.out / "cv-confusion"
-    if base is not None and args.out.is_dir():
+    bases = None if args.out is None else (args.out / "cv-confusion", args.out / "cv-reliability")
+    if bases is not None and args.out.is_dir():
         from supramodal.node.outputs import check_new_file
 
-        for suffix in (".csv", ".png"):
-            check_new_file(base.with_name(base.name + suffix), args.force, "the cross-validation file")
+        for base in bases:
+            for suffix in (".csv", ".png"):
+                check_new_file(base.with_name(base.name + suffix), args.force, "the cross-validation file")
     cv = cross_validate_model(model, args.manifest, args.cv, seed=args.seed, mapping=args.mapping,
                               progress=_progress(args))
     print(json.dumps(cv) if args.json else format_cross_validation(cv))
-    if base is not None:
-        from supramodal.node.reports import write_confusion
+    if bases is not None:
+        from supramodal.node.reports import plots_missing_notice, write_confusion, write_reliability
 
         args.out.mkdir(parents=True, exist_ok=True)
-        files = write_confusion(cv["labels"], cv["confusion"], base,
-                                f"{args.cv}-fold grouped cross-validation of {Path(args.model).name}'s configuration: "
-                                f"window accuracy {cv['window_accuracy']['mean']:.3f} +- {cv['window_accuracy']['sd']:.3f}")
+        what = f"{args.cv}-fold grouped cross-validation of {Path(args.model).name}'s configuration"
+        files = write_confusion(cv["labels"], cv["confusion"], bases[0],
+                                f"{what}: window accuracy {cv['window_accuracy']['mean']:.3f} +- "
+                                f"{cv['window_accuracy']['sd']:.3f}")
+        files += write_reliability(cv["calibration"], bases[1], f"{what}: test folds' decisions")
         print("wrote " + ", ".join(str(p) for p in files), file=sys.stderr)
+        _say_plots_missing(plots_missing_notice())
     return 0
 
 
@@ -610,8 +651,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="model file to write, at exactly this path (an .npz archive; e.g. model.npz)")
     p.add_argument("--fusion", choices=["early", "late"],
                    help="instead of one sense: learn the fusion of a recorded graph's two streams on its labelled "
-                        "pairs of windows (--scene): early, the supramodal network (written to --out); late, the "
-                        "weight of the first stream (printed) (default: one sense, from --manifest)")
+                        "pairs of windows (--scene): early, the supramodal network, calibrated (written to --out); "
+                        "late, the weight of the first stream and the sharpness (printed), learned on out-of-fold "
+                        "windows of copies of the streams' models, never on windows a network trained on; both print "
+                        "each sense's and the fusion's held-out score (default: one sense, from --manifest)")
     p.add_argument("--scene", action="append", metavar="NAME.toml",
                    help="with --fusion: a recording's replay scene (supramodal record of a graph writes it); give "
                         "one per recording (default: none)")
@@ -623,8 +666,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="seed of the network's initial weights and of the cross-validation folds (default 0)")
     p.add_argument("--cv", type=_count(2), metavar="K",
                    help="first report grouped K-fold cross-validation (folds by recording: mean and sd, recall, "
-                        "confusion as MODEL-cv.csv/.png), then train the final model on everything (default: no "
-                        "cross-validation)")
+                        "log loss, Brier score and ECE per window and per recording; confusion as MODEL-cv.csv/.png, "
+                        "reliability diagram as MODEL-cv-reliability.csv/.png), then train the final model on "
+                        "everything (default: no cross-validation)")
     p.add_argument("--mapping", type=_mapping, default="auto",
                    help="recording channels to filters: auto (one channel to all, or one each), mono, per-channel, mean, or a channel index (default auto)")
     p.add_argument("--quiet", action="store_true", help="no progress on stderr (warnings are still shown)")
@@ -659,14 +703,16 @@ def build_parser() -> argparse.ArgumentParser:
                    help="recording channels to filters: auto (one channel to all, or one each), mono, per-channel, mean, or a channel index (default auto)")
     p.add_argument("--json", action="store_true", help="print the result as one JSON object instead of a table")
     p.add_argument("--out", type=_output_folder, metavar="DIR",
-                   help="also write the confusion, accuracy against windows pooled and the channels' importance "
-                        "as CSV and PNG into DIR (with --scene: each stream's and the fusion's accuracy and "
-                        "confusion; default: print only)")
+                   help="also write the confusion, accuracy against windows pooled, the channels' importance and "
+                        "the reliability diagram (reliability.csv/.png) as CSV and PNG into DIR (PNGs need the "
+                        "plots extra; with --scene: each stream's and the fusion's accuracy and confusion; default: "
+                        "print only)")
     p.add_argument("--cv", type=_count(2), metavar="K",
                    help="instead of scoring the model itself, re-train its configuration (bank, features, window, "
                         "peaks, hidden units, epochs) on K-1 folds of the manifest and score it on the K-th, folds "
                         "grouped by manifest line: how well a model like it does on recordings it never saw; with "
-                        "--out, writes cv-confusion.csv/.png (default: no cross-validation)")
+                        "--out, writes cv-confusion.csv/.png and cv-reliability.csv/.png (default: no "
+                        "cross-validation)")
     p.add_argument("--seed", type=int, metavar="S",
                    help="with --cv: seed of the folds and of the training (default: the model's own seed)")
     p.add_argument("--force", action="store_true", help="replace earlier evaluation files in --out (default: refuse)")

@@ -6,19 +6,22 @@ blocks' times, and ``NAME.toml``, the scene that replays them in step). Each sce
 them live; the pairs whose truth is known are the data:
 
 * :func:`train_fused` fits the supramodal network (early fusion) on the pairs' feature windows,
-  or learns the late-fusion weight on their per-stream posteriors;
-* :func:`evaluate_fused` scores each stream and the fusion, per window and per contact (a run of
-  windows of one texture, its decisions pooled by summed log-posteriors, as the node pools a
-  contact).
+  or learns the late-fusion weight and sharpness on out-of-fold log-posteriors of copies of the
+  streams' models (never on windows a network trained on), and scores each sense and the fusion
+  on held-out windows;
+* :func:`evaluate_fused` scores each stream and the fusion, per window (accuracy and calibration)
+  and per contact (a run of windows of one texture, its decisions pooled by summed
+  log-posteriors, as the node pools a contact).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from supramodal.calibration import DEFAULT_CALIBRATION_FOLDS, calibration_report, winner
 from supramodal.errors import InputError
-from supramodal.fused_model import EarlyFusionModel, Sense
-from supramodal.fusion import learn_late_weight
+from supramodal.fused_model import (EarlyFusionModel, Sense, fused_pooling, held_out_scores,
+                                    learn_late_fusion_out_of_fold, senses_out_of_fold)
 from supramodal.mlp import DEFAULT_EPOCHS
 from supramodal.model import ModelError
 from supramodal.node.build import build_node
@@ -55,24 +58,45 @@ def scene_pairs(path, progress=None):
     return graph, pairs
 
 
-def train_fused(paths, method: str = "early", epochs: int = DEFAULT_EPOCHS, seed: int = 0, progress=None):
+def train_fused(paths, method: str = "early", epochs: int = DEFAULT_EPOCHS, seed: int = 0, progress=None,
+                k: int = DEFAULT_CALIBRATION_FOLDS):
     """Learn a fusion on the labelled pairs of the scenes at ``paths``.
+
+    Every number learned comes from windows held out of the network that made them: the pairs are
+    dealt to ``k`` folds by contact (a run of consecutive windows of one texture in one recording;
+    :func:`supramodal.calibration.calibration_folds`, shuffled by ``seed``), and each sense's
+    log-posteriors of a fold are those of a copy of its stream's model (same configuration)
+    trained on the other folds (:func:`supramodal.fused_model.senses_out_of_fold`), never those
+    of a model on its own training windows.
+
+    * ``"late"``: the first stream's weight and the sharpness
+      (:func:`supramodal.fused_model.learn_late_fusion_out_of_fold`) learned on those
+      out-of-fold log-posteriors; the fused held-out score is cross-fitted (each fold fused with a
+      weight learned without it).
+    * ``"early"``: the supramodal network trained on every pair, calibrated on out-of-fold pairs of
+      the same folds (:meth:`~supramodal.fused_model.EarlyFusionModel.train`); its held-out score
+      is that of its calibration folds.
 
     Returns
     -------
-    (EarlyFusionModel, dict) or (float, dict)
-        The network (``method="early"``) or the first stream's late-fusion weight, and what it was
-        learned on (``pairs``, ``classes``, ``streams``, ``train_accuracy``).
+    (EarlyFusionModel, dict) or ((float, float), dict)
+        The network (``method="early"``) or the first stream's late-fusion ``(weight, sharpness)``,
+        and what it was learned on: ``pairs``, ``classes``, ``streams``, ``contacts``, ``folds``,
+        ``folds_by``, (late) ``fold_weights`` and ``correlation`` (the fused decisions' contact
+        pooling, :func:`supramodal.fused_model.fused_pooling`), and ``held_out``: per stream and
+        for the fusion (``"late"`` or ``"early"``) its held-out window ``accuracy`` and
+        ``log_loss`` (late and streams: also ``brier``, ``ece``, ``sure_count``, ``sure_wrong``).
     """
     if method not in FUSION_METHODS:
         raise InputError(f"the fusion method is one of {FUSION_METHODS}, got {method!r}")
-    senses = classes = None
-    va, vb, truth, oa, ob = [], [], [], [], []
-    for path in paths:
+    senses = classes = models = None
+    va, vb, truth, groups = [], [], [], []
+    for k_scene, path in enumerate(paths):
         graph, pairs = scene_pairs(path, progress)
         a, b = (next(s for s in graph.streams if s.name == n) for n in graph.fusion.inputs)
         if senses is None:
             senses, classes = (Sense.of(a.name, a.pipeline), Sense.of(b.name, b.pipeline)), graph.fusion.classes
+            models = (a.model, b.model)
         else:
             try:
                 for sense, stream in zip(senses, (a, b)):
@@ -83,12 +107,11 @@ def train_fused(paths, method: str = "early", epochs: int = DEFAULT_EPOCHS, seed
             if sorted(graph.fusion.classes) != sorted(classes):
                 raise InputError(f"{path}: its textures {list(graph.fusion.classes)} differ from the first scene's "
                                  f"{list(classes)}; train on recordings of one graph")
+        groups += contact_groups(pairs, f"{k_scene}:")
         for ea, eb in pairs:
             va.append(np.stack([ea.features[f] for f in senses[0].features]))
             vb.append(np.stack([eb.features[f] for f in senses[1].features]))
             truth.append(classes.index(ea.truth))
-            oa.append(_in_order(ea, classes))
-            ob.append(_in_order(eb, classes))
     if not truth:
         raise InputError("no labelled pair of windows in these recordings: record with a source that labels its "
                          "stream, or label the sessions")
@@ -96,30 +119,53 @@ def train_fused(paths, method: str = "early", epochs: int = DEFAULT_EPOCHS, seed
     if missing:
         raise InputError(f"the recordings have no labelled pair of {missing}: record every texture")
     y = np.array(truth)
-    info = {"pairs": len(y), "classes": list(classes), "streams": [s.name for s in senses]}
+    va, vb = np.array(va), np.array(vb)
+    names = [s.name for s in senses]
+    say = None if progress is None else (lambda m: progress(f"held-out windows: {m}"))
+    lps, folds, by = senses_out_of_fold(models, (va, vb), y, classes, groups, k, seed, say, names)
+    held = held_out_scores(dict(zip(names, lps)), y)
+    info = {"pairs": len(y), "classes": list(classes), "streams": names, "contacts": len(set(groups)),
+            "folds": int(len(np.unique(folds))), "folds_by": "contact" if by == "recording" else by}
     if method == "early":
-        model = EarlyFusionModel.train(senses, np.array(va), np.array(vb), y, classes, epochs=epochs, seed=seed)
-        info["train_accuracy"] = float(np.mean(np.argmax(model.outputs(np.array(va), np.array(vb)), axis=1) == y))
+        say = None if progress is None else (lambda m: progress(f"early network's calibration: {m}"))
+        model = EarlyFusionModel.train(senses, va, vb, y, classes, epochs=epochs, seed=seed, groups=groups,
+                                       calibration_folds=k, calibration_progress=say)
+        fitted = model.calibration.fitted_on
+        held["early"] = {"n": int(fitted["windows"]), "accuracy": float(fitted["held_out_accuracy"]),
+                         "log_loss": float(fitted["log_loss"])}
+        info["held_out"] = held
         return model, info
-    weight = learn_late_weight(np.array(oa), np.array(ob), y)
-    info["train_accuracy"] = None
-    return weight, info
+    late = learn_late_fusion_out_of_fold(lps[0], lps[1], y, folds)
+    held.update(held_out_scores({"late": late["fused"]}, y))
+    info["held_out"] = held
+    info["fold_weights"] = late["fold_weights"]
+    info["correlation"] = fused_pooling(late["fused"], y, folds, groups)
+    return (late["weight"], late["sharpness"]), info
 
 
-def _in_order(event, classes) -> np.ndarray:
-    """An event's posteriors in ``classes`` order (its stream's model may list them otherwise)."""
-    return np.asarray(event.posteriors)[[list(event.classes).index(c) for c in classes]]
+def contact_groups(pairs, prefix: str = "") -> list[str]:
+    """Each pair's contact: runs of pairs of one truth whose first stream's windows follow one
+    another (``prefix`` + the run's number), the groups whole folds are made of."""
+    out, run, last = [], -1, None
+    for ea, _ in pairs:
+        if last is None or ea.truth != last.truth or ea.window != last.window + 1:
+            run += 1
+        out.append(f"{prefix}{run}")
+        last = ea
+    return out
 
 
 def evaluate_fused(paths, fused_model=None, progress=None) -> dict:
     """Each stream's and the fusion's accuracy over the scenes at ``paths`` (run at ``max``): per
-    window, and per contact (each run of windows of one texture, pooled by summed
-    log-posteriors). ``fused_model``: an early-fusion model file to use instead of the scenes'
-    own fusion."""
+    window, with the calibration of its log-posteriors (log loss, Brier score, ECE, the share
+    wrong of the windows that say >= 0.99), and per contact (each run of windows of one texture,
+    pooled by summed log-posteriors). ``fused_model``: an early-fusion model file to use instead
+    of the scenes' own fusion."""
     windows: dict[str, list] = {}
     contacts: dict[str, list] = {}
     decided: dict[str, list] = {}           # stream -> [(truth, decision)] of its labelled windows
     classes: dict[str, tuple] = {}
+    scored: dict[str, tuple[list, list]] = {}   # stream -> (log-posteriors, truth index) of its labelled windows
     for path in paths:
         scene = _graph_for(path, fused_model)
         sink = ListSink()
@@ -135,31 +181,55 @@ def evaluate_fused(paths, fused_model=None, progress=None) -> dict:
             contacts.setdefault(name, []).extend(_contacts(events))
             decided.setdefault(name, []).extend((e.truth, e.decision) for e in events)
             classes.setdefault(name, tuple(events[0].classes))
+            lps, ys = scored.setdefault(name, ([], []))
+            for e in events:
+                if e.truth in e.classes:
+                    order = [list(e.classes).index(c) for c in classes[name]]
+                    lps.append(_log_posteriors(e)[order])
+                    ys.append(classes[name].index(e.truth))
     if FUSED_STREAM not in windows:
         raise InputError("no labelled window in these recordings: record with a source that labels its stream")
-    return {name: {"window_accuracy": float(np.mean(windows[name])), "windows": len(windows[name]),
-                   "contact_accuracy": float(np.mean(contacts[name])), "contacts": len(contacts[name]),
-                   "labels": list(classes[name]), "confusion": _confusion(decided[name], classes[name])}
-            for name in windows}
+    out = {}
+    for name in windows:
+        lps, ys = scored[name]
+        report = calibration_report(np.array(lps), np.array(ys)) if ys else None
+        out[name] = {"window_accuracy": float(np.mean(windows[name])), "windows": len(windows[name]),
+                     "contact_accuracy": float(np.mean(contacts[name])), "contacts": len(contacts[name]),
+                     "labels": list(classes[name]), "confusion": _confusion(decided[name], classes[name]),
+                     "unknown": sum(d not in classes[name] for _, d in decided[name]),
+                     "calibration": None if report is None else
+                     {k: report[k] for k in ("n", "log_loss", "brier", "ece", "sure", "sure_count", "sure_wrong")}}
+    return out
+
+
+def _log_posteriors(event) -> np.ndarray:
+    """An event's log-posteriors (the node's own, never clipped; else the log of its posteriors)."""
+    lp = getattr(event, "log_posteriors", None)
+    if lp is not None:
+        return np.asarray(lp, dtype=np.float64)
+    with np.errstate(divide="ignore"):
+        return np.log(np.asarray(event.posteriors, dtype=np.float64))
 
 
 def _confusion(pairs, classes) -> list[list[int]]:
-    """Window counts, rows the truth and columns the decision, in the model's class order."""
+    """Window counts, rows the truth and columns the decision, in the model's class order (a
+    window decided "unknown" is in no column)."""
     index = {c: k for k, c in enumerate(classes)}
     counts = np.zeros((len(classes), len(classes)), dtype=int)
     for truth, decision in pairs:
-        counts[index[truth], index[decision]] += 1
+        if truth in index and decision in index:
+            counts[index[truth], index[decision]] += 1
     return counts.tolist()
 
 
 def _contacts(events) -> list[bool]:
     """Whether each run of consecutive windows of one truth was decided right when pooled by
-    summed log-posteriors (the decision's class order is the event's posteriors')."""
+    summed log-posteriors (the decision's class order is the event's; a tie is wrong)."""
     out, run = [], []
     for e in events + [None]:
         if run and (e is None or e.truth != run[-1].truth or e.window != run[-1].window + 1):
-            pooled = np.sum([np.log(np.clip(r.posteriors, 1e-300, None)) for r in run], axis=0)
-            out.append(run[-1].classes[int(np.argmax(pooled))] == run[-1].truth)
+            k = int(winner(np.sum([_log_posteriors(r) for r in run], axis=0)))
+            out.append(k >= 0 and run[-1].classes[k] == run[-1].truth)
             run = []
         if e is not None:
             run.append(e)
@@ -167,8 +237,16 @@ def _contacts(events) -> list[bool]:
 
 
 def format_fused_evaluation(result: dict) -> str:
-    lines = [f"{'stream':<12} {'windows right':>14} {'of':>6}  {'contacts right':>15} {'of':>5}"]
+    lines = [f"{'stream':<12} {'windows right':>14} {'of':>6}  {'contacts right':>15} {'of':>5}  {'log loss':>8} "
+             f"{'ECE':>6} {'>= 0.99 wrong':>14}"]
     for name, r in result.items():
+        c = r.get("calibration")
+        calib = "" if c is None else (f"  {c['log_loss']:>8.3f} {c['ece']:>6.3f} "
+                                      f"{_share(c['sure_wrong']):>6} of {c['sure_count']:<5}")
         lines.append(f"{name:<12} {r['window_accuracy']:>14.3f} {r['windows']:>6}  {r['contact_accuracy']:>15.3f} "
-                     f"{r['contacts']:>5}")
+                     f"{r['contacts']:>5}{calib}")
     return "\n".join(lines)
+
+
+def _share(v) -> str:
+    return "-" if v is None else f"{v:.3f}"

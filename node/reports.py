@@ -7,8 +7,12 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["pyplot_or_none", "write_confusion", "write_evaluation", "write_fused_evaluation",
-           "fused_evaluation_files"]
+__all__ = ["EVALUATION_FILES", "plots_missing_notice", "pyplot_or_none", "write_confusion", "write_evaluation",
+           "write_fused_evaluation", "fused_evaluation_files", "write_reliability"]
+
+#: Files ``evaluate --out`` writes (the PNGs where matplotlib is installed).
+EVALUATION_FILES = ("confusion.csv", "confusion.png", "pooling.csv", "channels.csv", "evaluation.png",
+                    "reliability.csv", "reliability.png")
 
 
 def write_confusion(labels, confusion, base: Path, title: str) -> list[Path]:
@@ -59,13 +63,73 @@ def pyplot_or_none():
     return plt
 
 
+def plots_missing_notice() -> str | None:
+    """What a user without matplotlib is told instead of the PNGs (None where it is installed)."""
+    if pyplot_or_none() is not None:
+        return None
+    return ("no PNG written (confusion, reliability diagram, plots): matplotlib is not installed; "
+            "pip install \"supramodal[plots]\" to draw them (the CSV files hold the same numbers)")
+
+
+def write_reliability(calibration: dict, base: Path, title: str) -> list[Path]:
+    """Write ``base.csv``, the reliability bins of the decisions per window and per recording
+    (``calibration["window"]`` and ``["recording"]``, each a
+    :func:`supramodal.calibration.calibration_report`), and ``base.png``, the reliability diagram:
+    per confidence bin, the share of decisions right against their mean confidence (a calibrated
+    model's bars reach the diagonal). Returns the paths written (the PNG only where matplotlib
+    can be imported)."""
+    scopes = [(name, calibration[name]) for name in ("window", "recording") if calibration.get(name)]
+    csv_path = base.with_name(base.name + ".csv")
+    with open(csv_path, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["scope", "confidence from", "confidence to", "decisions", "mean confidence", "accuracy"])
+        for name, report in scopes:
+            r = report["reliability"]
+            for lo, hi, n, conf, acc in zip(r["edges"][:-1], r["edges"][1:], r["count"], r["confidence"],
+                                            r["accuracy"]):
+                w.writerow([name, f"{lo:.6g}", f"{hi:.6g}", n, "" if conf is None else f"{conf:.6f}",
+                            "" if acc is None else f"{acc:.6f}"])
+    written = [csv_path]
+    plt = pyplot_or_none()
+    if plt is None:
+        return written
+    fig, axes = plt.subplots(1, len(scopes), figsize=(4.2 * len(scopes), 4.0), squeeze=False)
+    for ax, (name, report) in zip(axes[0], scopes):
+        r = report["reliability"]
+        edges = np.array(r["edges"])
+        width = np.diff(edges)
+        shown = [i for i, n in enumerate(r["count"]) if n]
+        ax.bar(edges[:-1][shown], [r["accuracy"][i] for i in shown], width[shown], align="edge", color="0.55",
+               edgecolor="0.2", label="share right")
+        ax.plot([r["confidence"][i] for i in shown], [r["accuracy"][i] for i in shown], "o", color="0.1",
+                markersize=3, label="mean confidence")
+        ax.plot([0, 1], [0, 1], ":", color="0.4", label="calibrated")
+        for i in shown:
+            ax.text(edges[i] + width[i] / 2, 0.02, str(r["count"][i]), rotation=90, ha="center", va="bottom",
+                    fontsize=6, color="white" if (r["accuracy"][i] or 0) > 0.15 else "black")
+        ax.set_xlim(0, 1)
+        ax.set_ylim(0, 1.02)
+        ax.set_xlabel("confidence (winner's posterior)")
+        ax.set_ylabel("share of decisions right")
+        ax.set_title(f"per {name}: ECE {report['ece']:.3f}, {report['n']} decisions", fontsize=9)
+        ax.legend(fontsize=7, loc="upper left")
+    fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    png_path = base.with_name(base.name + ".png")
+    fig.savefig(png_path, dpi=120)
+    plt.close(fig)
+    return written + [png_path]
+
+
 def write_evaluation(result: dict, folder: Path) -> list[Path]:
     """``evaluate --out``: the confusion (``confusion.csv/.png``), accuracy against windows pooled
     (``pooling.csv``) and the channels' importance (``channels.csv``), with one PNG of the last two
-    (``evaluation.png``). Returns the paths written."""
+    (``evaluation.png``), and the reliability diagram (``reliability.csv/.png``). Returns the paths
+    written."""
     folder.mkdir(parents=True, exist_ok=True)
     written = write_confusion(result["labels"], result["confusion"], folder / "confusion",
                               f"window accuracy {result['window_accuracy']:.3f} (chance {result['chance']:.3f})")
+    written += write_reliability(result["calibration"], folder / "reliability", _reliability_title(result))
     pooled = [(int(n), p["accuracy"], p["runs"]) for n, p in result["pooled"].items()]
     with open(folder / "pooling.csv", "w", newline="") as fh:
         w = csv.writer(fh)
@@ -99,6 +163,11 @@ def write_evaluation(result: dict, folder: Path) -> list[Path]:
     fig.savefig(folder / "evaluation.png", dpi=120)
     plt.close(fig)
     return written + [folder / "evaluation.png"]
+
+
+def _reliability_title(result: dict) -> str:
+    c = result["calibration"]
+    return "calibrated posteriors" if c.get("calibrated") else "uncalibrated posteriors (normalised outputs)"
 
 
 def fused_evaluation_files(streams) -> list[str]:

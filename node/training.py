@@ -17,7 +17,7 @@ from supramodal.node.streams import channel_mapper
 from supramodal.node.manifest import ManifestError, Recording, read_manifest
 from supramodal.replay.driver import ReplayDriver
 from supramodal.banks import Bank
-from supramodal.decisions import DecisionAccumulator
+from supramodal.calibration import calibration_report, pool_log_posteriors, winner
 from supramodal.errors import SupramodalError
 from supramodal.evaluation import POOLED_WINDOWS, permutation_importance, pooled_accuracy
 from supramodal.mlp import DEFAULT_EPOCHS
@@ -60,7 +60,10 @@ def _no_window(rec: Recording, window_seconds: float) -> ManifestError:
 
 def train_from_manifest(manifest, bank: Bank, features=("Af",), window: float = 0.1, epochs: int = DEFAULT_EPOCHS,
                         seed: int = 0, mapping="auto", progress=None) -> TextureModel:
-    """Train a model on every window of every recording in the manifest.
+    """Train a model on every window of every recording in the manifest, calibrated on held-out
+    windows: out-of-fold windows of folds grouped by recording (manifest line) where every label
+    has two recordings and there are enough of them, else of spans of each recording
+    (:meth:`supramodal.model.TextureModel.train`).
 
     The manifest is read and checked whole (:func:`node.manifest.read_manifest`) before
     any feature is computed; a line whose part of its file holds no complete window is
@@ -74,7 +77,8 @@ def train_from_manifest(manifest, bank: Bank, features=("Af",), window: float = 
     """
     make_pipeline = lambda: FeaturePipeline(bank, features, window)       # noqa: E731
     recs, classes, windows = _manifest_windows(manifest, make_pipeline, mapping, progress)
-    return _train(recs, classes, windows, make_pipeline(), epochs, seed)
+    say = None if progress is None else (lambda m: progress(f"calibration: {m}"))
+    return _train(recs, classes, windows, make_pipeline(), epochs, seed, calibration_progress=say)
 
 
 def _manifest_windows(manifest, make_pipeline, mapping, progress):
@@ -97,10 +101,21 @@ def _manifest_windows(manifest, make_pipeline, mapping, progress):
     return recs, classes, windows
 
 
-def _train(recs, classes, windows, pipeline: FeaturePipeline, epochs: int, seed: int, hidden=None) -> TextureModel:
+def _train(recs, classes, windows, pipeline: FeaturePipeline, epochs: int, seed: int, hidden=None,
+           calibration_progress=None) -> TextureModel:
+    """A model on the recordings' windows, calibrated on out-of-fold windows of folds grouped by
+    recording (:func:`recording_group`) where there are enough recordings."""
     x = np.concatenate(windows)
     y = np.concatenate([np.full(len(v), classes.index(r.label)) for r, v in zip(recs, windows)])
-    return TextureModel.train_for(pipeline, x, y, classes, epochs=epochs, seed=seed, hidden=hidden)
+    groups = np.repeat(np.array([recording_group(r) for r in recs]), [len(v) for v in windows])
+    return TextureModel.train_for(pipeline, x, y, classes, epochs=epochs, seed=seed, hidden=hidden, groups=groups,
+                                  calibration_progress=calibration_progress)
+
+
+def recording_group(rec: Recording) -> str:
+    """The calibration group of a manifest line's windows: its file and span (the same whatever
+    manifest lists it, so that a fold's model is calibrated as a re-run on its recordings is)."""
+    return f"{rec.path}@{rec.start:g}-{'end' if rec.end is None else f'{rec.end:g}'}"
 
 
 def cross_validate_manifest(manifest, bank: Bank, features=("Af",), window: float = 0.1, k: int = 5,
@@ -120,7 +135,9 @@ def cross_validate_manifest(manifest, bank: Bank, features=("Af",), window: floa
         ``recordings``), ``window_accuracy`` and ``recording_accuracy`` (``{"mean", "sd"}``
         over folds; sd with ``ddof=1``), ``labels``, ``confusion`` (windows of every test fold;
         rows = truth), ``recall`` (per label, from ``confusion``), ``chance`` (the largest
-        label's share of windows: what always answering it would score).
+        label's share of windows: what always answering it would score), ``calibration``
+        (per ``window`` and per ``recording``, a :func:`~supramodal.calibration.calibration_report`
+        of every test fold's decisions scored together, each by its fold's calibrated model).
     """
     make_pipeline = lambda: FeaturePipeline(bank, features, window)       # noqa: E731
     return _cross_validate(manifest, make_pipeline, k, epochs, seed, None, mapping, progress)
@@ -151,6 +168,8 @@ def _cross_validate(manifest, make_pipeline, k, epochs, seed, hidden, mapping, p
     fold = grouped_folds([r.where for r in recs], [r.label for r in recs], k, seed)
     confusion = np.zeros((len(classes), len(classes)), dtype=int)
     folds = []
+    scored = {"log_posteriors": [], "pooled": [], "recording_truth": [], "window_truth": []}
+    calibrated = True
     for f in range(k):
         train = [i for i in range(len(recs)) if fold[i] != f]
         test = [i for i in range(len(recs)) if fold[i] == f]
@@ -161,7 +180,10 @@ def _cross_validate(manifest, make_pipeline, k, epochs, seed, hidden, mapping, p
                                 "often or lower --cv")
         model = _train([recs[i] for i in train], classes, [windows[i] for i in train],
                        make_pipeline(), epochs, seed, hidden)
-        result = score_recordings(model, [recs[i] for i in test], [windows[i] for i in test])
+        result, part = _score_recordings(model, [recs[i] for i in test], [windows[i] for i in test])
+        for key, value in part.items():
+            scored[key] += list(value)
+        calibrated &= model.calibrated
         confusion += np.array(result["confusion"])
         folds.append({"window_accuracy": result["window_accuracy"], "recording_accuracy": result["recording_accuracy"],
                       "recordings": [r["path"] for r in result["recordings"]]})
@@ -178,7 +200,10 @@ def _cross_validate(manifest, make_pipeline, k, epochs, seed, hidden, mapping, p
             "recording_accuracy": spread("recording_accuracy"), "labels": list(classes),
             "confusion": confusion.tolist(),
             "recall": {c: float(confusion[i, i] / totals[i]) if totals[i] else None for i, c in enumerate(classes)},
-            "chance": float(totals.max() / totals.sum())}
+            "chance": float(totals.max() / totals.sum()),
+            "calibration": {"calibrated": calibrated,
+                            **_calibration_reports({k: np.array(v) if k != "log_posteriors" else v
+                                                    for k, v in scored.items()})}}
 
 
 def _refuse_overlapping_trials(recs: list[Recording]) -> None:
@@ -201,6 +226,9 @@ def format_cross_validation(result: dict) -> str:
              f"window accuracy     {w['mean']:.3f} +- {w['sd']:.3f} (chance {result['chance']:.3f})",
              f"recording accuracy  {r['mean']:.3f} +- {r['sd']:.3f}",
              "recall per label    " + ", ".join(f"{c} {v:.3f}" for c, v in result["recall"].items() if v is not None)]
+    if "calibration" in result:
+        lines += ["", "every test fold's decisions scored together, each by its fold's model:",
+                  format_calibration(result["calibration"])]
     return "\n".join(lines) + "\n\n" + _confusion_table(result["labels"], result["confusion"])
 
 
@@ -214,17 +242,20 @@ def _confusion_table(labels, confusion) -> str:
 
 
 def evaluate_manifest(model: TextureModel, manifest, mapping="auto", progress=None) -> dict:
-    """Per-window and per-recording accuracy of ``model`` on the manifest's recordings.
+    """Per-window and per-recording accuracy and calibration of ``model`` on the manifest's recordings.
 
-    A recording's decision pools all its windows by summed log-posteriors (as the
-    node's ``scope = "contact"`` does over one touch).
+    A recording's decision pools all its windows as the node's ``scope = "contact"`` pools one
+    touch (the model's calibrated pooling; summed log-posteriors for an uncalibrated model).
 
     Returns
     -------
     dict
         ``window_accuracy``, ``recording_accuracy``, ``labels`` (row/column order of
-        ``confusion``), ``confusion`` (windows; rows = truth, columns = predicted),
-        ``recordings`` (per-recording details).
+        ``confusion``), ``confusion`` (windows; rows = truth, columns = predicted; a tie is in no
+        column), ``recordings`` (per-recording details), ``calibration`` (``calibrated``,
+        ``fitted_on`` and, per ``window`` and per ``recording``, a
+        :func:`~supramodal.calibration.calibration_report`: accuracy, log loss, Brier score, ECE,
+        reliability bins, how many decisions say >= 0.99 and the share of them wrong).
     """
     recs = read_manifest(manifest)
     unknown = [r for r in recs if r.label not in model.classes]
@@ -240,41 +271,73 @@ def evaluate_manifest(model: TextureModel, manifest, mapping="auto", progress=No
         windows.append(v)
     result = score_recordings(model, recs, windows, progress)
     truth = np.concatenate([np.full(len(v), model.classes.index(r.label)) for r, v in zip(recs, windows)])
-    importance = permutation_importance(model.outputs, np.concatenate(windows), truth)
+    importance = permutation_importance(model.log_posteriors, np.concatenate(windows), truth)
     result["channel_importance"] = dict(zip(model.bank.names, importance.round(6).tolist()))
     return result
 
 
 def score_recordings(model: TextureModel, recs: list[Recording], windows: list[np.ndarray], progress=None) -> dict:
-    """The result of :func:`evaluate_manifest` for recordings whose feature windows are known."""
+    """The result of :func:`evaluate_manifest` for recordings whose feature windows are known.
+
+    Decisions come from the model's log-posteriors (calibrated when the model is): a window's is
+    their winner, a recording's the winner of its windows pooled
+    (:meth:`~supramodal.calibration.Calibration.pool` when calibrated, summed log-posteriors
+    otherwise). A tie is no decision and counts as wrong (``predicted`` None), never the class
+    whose name sorts first.
+    """
+    return _score_recordings(model, recs, windows, progress)[0]
+
+
+def _score_recordings(model: TextureModel, recs, windows, progress=None) -> tuple[dict, dict]:
+    """:func:`score_recordings`' result, and the arrays it was computed from (:func:`_score`)."""
     labels = list(model.classes)
     confusion = np.zeros((len(labels), len(labels)), dtype=int)
     per_rec = []
-    outputs = [model.outputs(v) for v in windows]
-    for rec, v, out in zip(recs, windows, outputs):
-        pred = np.argmax(out, axis=1)
+    scored = _score(model, recs, windows)
+    for rec, v, lp, pooled in zip(recs, windows, scored["log_posteriors"], scored["pooled"]):
+        pred = winner(lp)
         truth = labels.index(rec.label)
-        np.add.at(confusion, (truth, pred), 1)
-        pooled = DecisionAccumulator(len(labels), scope="contact", n=0)
-        for o in out:
-            decision = pooled.update(o)
+        decided = pred >= 0
+        np.add.at(confusion, (truth, pred[decided]), 1)
+        k = int(winner(pooled))
         per_rec.append({"path": str(rec.path), "label": rec.label, "windows": int(len(v)),
-                        "window_accuracy": float(np.mean(pred == truth)), "predicted": labels[decision.label],
-                        "confidence": decision.confidence})
+                        "window_accuracy": float(np.mean(pred == truth)), "predicted": labels[k] if k >= 0 else None,
+                        "confidence": float(np.exp(pooled.max()))})
         if progress:
-            progress(f"{rec.path.name}: {per_rec[-1]['window_accuracy']:.3f} of windows, recording -> {labels[decision.label]}")
+            progress(f"{rec.path.name}: {per_rec[-1]['window_accuracy']:.3f} of windows, recording -> "
+                     f"{per_rec[-1]['predicted'] or 'no decision (tie)'}")
     truths = [labels.index(r.label) for r in recs]
-    totals = confusion.sum(axis=1)
+    totals = np.bincount(scored["window_truth"], minlength=len(labels))
     return {
-        "window_accuracy": float(np.trace(confusion) / confusion.sum()),
+        "window_accuracy": float(np.mean(np.concatenate([winner(lp) for lp in scored["log_posteriors"]])
+                                         == scored["window_truth"])),
         "recording_accuracy": float(np.mean([r["predicted"] == r["label"] for r in per_rec])),
         "chance": float(totals.max() / totals.sum()),
-        "pooled": {str(n): dict(zip(("accuracy", "runs"), pooled_accuracy(outputs, truths, n)))
+        "pooled": {str(n): dict(zip(("accuracy", "runs"), pooled_accuracy(scored["log_posteriors"], truths, n)))
                    for n in POOLED_WINDOWS},
         "labels": labels,
         "confusion": confusion.tolist(),
         "recordings": per_rec,
-    }
+        "calibration": {"calibrated": model.calibrated,
+                        "fitted_on": None if model.calibration is None else model.calibration.fitted_on,
+                        **_calibration_reports(scored)},
+    }, scored
+
+
+def _score(model: TextureModel, recs: list[Recording], windows: list[np.ndarray]) -> dict:
+    """Each recording's window log-posteriors and its pooled log-posteriors, with the truths."""
+    labels = list(model.classes)
+    lps = [model.log_posteriors(v) for v in windows]
+    pool = model.calibration.pool if model.calibrated else (lambda lp: pool_log_posteriors(lp, 0.0))
+    truths = np.array([labels.index(r.label) for r in recs])
+    return {"log_posteriors": lps, "pooled": np.array([pool(lp) for lp in lps]), "recording_truth": truths,
+            "window_truth": np.repeat(truths, [len(lp) for lp in lps])}
+
+
+def _calibration_reports(scored: dict) -> dict:
+    """Calibration (:func:`supramodal.calibration.calibration_report`) per window and per recording."""
+    return {"window": calibration_report(np.concatenate(scored["log_posteriors"]), scored["window_truth"]),
+            "recording": calibration_report(scored["pooled"], scored["recording_truth"])}
 
 
 def format_evaluation(result: dict) -> str:
@@ -287,8 +350,61 @@ def format_evaluation(result: dict) -> str:
         shown = "-" if p["accuracy"] is None else f"{p['accuracy']:.3f}"
         lines.append(f"  {n:>3}               {shown} ({p['runs']} runs)")
     lines.append(f"  whole recording   {result['recording_accuracy']:.3f}")
+    if "calibration" in result:
+        lines += ["", format_calibration(result["calibration"])]
     if "channel_importance" in result:
         top = sorted(result["channel_importance"].items(), key=lambda kv: -kv[1])
         lines += ["", "channels carrying the decision (window accuracy lost when the channel is shuffled)",
                   "  " + ", ".join(f"{name} {v:+.3f}" for name, v in top[:8])]
     return "\n".join(lines) + "\n\n" + _confusion_table(result["labels"], result["confusion"])
+
+
+def format_calibration(calibration: dict) -> str:
+    """How far the confidence can be trusted: a model's calibration, and per window and per
+    recording its decisions' accuracy, log loss, Brier score, ECE and the share wrong of those
+    that say >= 0.99 (``calibration`` as in :func:`evaluate_manifest`'s result)."""
+    lines = [f"posteriors          {describe_calibration(calibration)}"]
+    w, r = calibration["window"], calibration["recording"]
+    sure = w["sure"]
+
+    def said(report) -> str:
+        if not report["sure_count"]:
+            return "none"
+        return f"{report['sure_count']}, {report['sure_wrong']:.3f} wrong"
+
+    rows = [("decisions", str(w["n"]), str(r["n"])), ("accuracy", f"{w['accuracy']:.3f}", f"{r['accuracy']:.3f}"),
+            ("log loss (nats)", f"{w['log_loss']:.3f}", f"{r['log_loss']:.3f}"),
+            ("Brier score", f"{w['brier']:.3f}", f"{r['brier']:.3f}"),
+            (f"ECE ({len(w['reliability']['count'])} bins)", f"{w['ece']:.3f}", f"{r['ece']:.3f}"),
+            (f"say >= {sure:g}", said(w), said(r))]
+    lines.append(f"{'':<20}{'per window':>18}{'per recording':>20}")
+    lines += [f"{name:<20}{a:>18}{b:>20}" for name, a, b in rows]
+    lines.append("(a recording: all its windows pooled as the node pools a contact; ECE: expected calibration "
+                 "error, the confidence's mean distance from the accuracy)")
+    return "\n".join(lines)
+
+
+def describe_calibration(calibration: dict) -> str:
+    """``calibrated on ...`` or ``uncalibrated (model file version 1)``, in words."""
+    if not calibration.get("calibrated"):
+        version = calibration.get("model_version")
+        why = "model file version 1" if version == 1 else "trained without calibration folds"
+        return (f"uncalibrated ({why}): the network's normalised outputs, whose confidence is not a probability; "
+                "retrain with `supramodal train` to calibrate them")
+    if not calibration.get("fitted_on"):
+        return "calibrated (each fold's model on out-of-fold windows of its own training recordings)"
+    return calibration_line(calibration["fitted_on"])
+
+
+def calibration_line(fitted_on: dict | None) -> str:
+    """What a model's calibration was fitted on (its ``fitted_on``; None: uncalibrated), in words."""
+    if fitted_on is None:
+        return "uncalibrated (posteriors: the network's normalised outputs)"
+    f = fitted_on
+    by = {"recording": " by recording", "span": " by span of each recording"}.get(f.get("folds_by"), "")
+    line = f"calibrated on {f.get('windows')} held-out windows ({f.get('folds')} folds{by})"
+    if "log_loss_uncalibrated" in f and "log_loss" in f:
+        line += f": held-out log loss {f['log_loss_uncalibrated']:.3f} -> {f['log_loss']:.3f} nats"
+    if "held_out_accuracy" in f:
+        line += f", {f['held_out_accuracy']:.3f} of them right"
+    return line

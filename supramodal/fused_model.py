@@ -9,6 +9,17 @@ Its file is an ``.npz`` archive like a :class:`~supramodal.model.TextureModel`'s
 ``allow_pickle=False``, every member bounded, every shape checked against the header), whose
 header names the format ``supramodal-early-model`` and, under ``senses``, what each sense's
 inputs are (bank, features, window, peak settings, and the sense's name), in input order.
+
+Version 2 adds the network's calibration, as a one-sense model file's version 2 does
+(:mod:`supramodal.model`): the header's ``calibration`` (fitted by
+:func:`supramodal.calibration.fit_network_calibration` on out-of-fold windows of the concatenated
+inputs) and ``novelty`` (with the arrays ``novelty_means``, ``novelty_precision``,
+``novelty_quantiles``). A version 1 file still loads, uncalibrated.
+
+Late fusion learns its weight from windows that neither sense's network trained on:
+:func:`out_of_fold_logits` scores each window with a copy of a sense model's configuration trained
+on the other folds, and :func:`learn_late_fusion_out_of_fold` learns the weight and sharpness on
+those windows and scores the fusion on each fold with a weight learned without it.
 """
 
 from __future__ import annotations
@@ -18,14 +29,21 @@ from pathlib import Path
 
 import numpy as np
 
+from supramodal.calibration import (DEFAULT_CALIBRATION_FOLDS, POOLING_RUN, Calibration, Novelty, calibration_folds,
+                                    calibration_report, fit_calibration, fit_network_calibration, fit_pooling,
+                                    input_scaling, normalised_log_posteriors)
 from supramodal.errors import InputError
-from supramodal.fusion import early_inputs
+from supramodal.fusion import early_inputs, fuse_late, learn_late_fusion
 from supramodal.mlp import DEFAULT_EPOCHS, MLP, train_mlp
-from supramodal.model import (SENSE_KEYS, ModelError, check_sense_fits, classes_from_header, network_from_arrays,
-                              read_model_archive, save_model_archive, sense_from_header, sense_header)
+from supramodal.model import (CALIBRATION_KEYS, NOVELTY_ARRAYS, SENSE_KEYS, ModelError, TextureModel,
+                              calibration_from_parts, calibration_header, check_sense_fits, classes_from_header,
+                              log_posteriors_of, network_from_arrays, novelty_arrays, read_model_archive,
+                              save_model_archive, sense_from_header, sense_header)
 
 EARLY_FORMAT = "supramodal-early-model"
-EARLY_VERSION = 1
+EARLY_VERSION = 2
+#: Versions this program reads (1: before calibration; its networks load uncalibrated).
+EARLY_VERSIONS = (1, 2)
 
 
 @dataclass(frozen=True)
@@ -75,6 +93,11 @@ class EarlyFusionModel:
     mlp : MLP
     training : dict
         How it was trained (algorithm, epochs, seed, windows).
+    calibration : Calibration or None
+        The map from the network's logits to calibrated posteriors and its contact pooling
+        (None: a version 1 file, or trained without calibration folds).
+    novelty : Novelty or None
+        How unlike every training texture a pair of windows is.
     """
 
     senses: tuple[Sense, Sense]
@@ -83,22 +106,40 @@ class EarlyFusionModel:
     scale: np.ndarray
     mlp: MLP
     training: dict = field(default_factory=dict)
+    calibration: Calibration | None = None
+    novelty: Novelty | None = None
+
+    @property
+    def calibrated(self) -> bool:
+        """Whether the posteriors are calibrated (not so for a version 1 file)."""
+        return self.calibration is not None
 
     @classmethod
     def train(cls, senses, values_a: np.ndarray, values_b: np.ndarray, labels, classes,
-              epochs: int = DEFAULT_EPOCHS, seed: int = 0, hidden: int | None = None) -> "EarlyFusionModel":
-        """Fit the scaling and the MLP on aligned windows: ``values_a[k]`` and ``values_b[k]`` cover
-        the same time, shapes (n, features, channels) of each sense; ``labels`` (n,) index ``classes``."""
+              epochs: int = DEFAULT_EPOCHS, seed: int = 0, hidden: int | None = None, groups=None,
+              calibration_folds: int = DEFAULT_CALIBRATION_FOLDS, calibration_progress=None) -> "EarlyFusionModel":
+        """Fit the scaling and the MLP on aligned windows, then their calibration.
+
+        ``values_a[k]`` and ``values_b[k]`` cover the same time, shapes (n, features, channels) of
+        each sense; ``labels`` (n,) index ``classes``. ``groups``, ``calibration_folds`` and
+        ``calibration_progress`` as for :meth:`supramodal.model.TextureModel.train`: the calibration
+        is fitted on out-of-fold windows of networks like this one
+        (:func:`~supramodal.calibration.fit_network_calibration` on the concatenated inputs),
+        grouped by ``groups`` (each pair's recording or contact; default one per label); 0 folds:
+        no calibration.
+        """
         senses = tuple(senses)
         x = early_inputs(cls._check(senses[0], values_a), cls._check(senses[1], values_b))
-        mean = x.mean(axis=0)
-        scale = x.std(axis=0)
-        scale[scale == 0] = 1.0
-        mlp, history = train_mlp((x - mean) / scale, np.asarray(labels), len(classes), hidden=hidden, epochs=epochs,
-                                 seed=seed)
+        y = np.asarray(labels)
+        mean, scale = input_scaling(x)
+        mlp, history = train_mlp((x - mean) / scale, y, len(classes), hidden=hidden, epochs=epochs, seed=seed)
         info = {"algorithm": "iRPROP-", "epochs": len(history), "seed": seed, "final_mse": history[-1],
                 "windows": int(len(x))}
-        return cls(senses, tuple(classes), mean, scale, mlp, info)
+        calibration = novelty = None
+        if calibration_folds:
+            calibration, novelty = fit_network_calibration(x, y, len(classes), groups, calibration_folds, hidden,
+                                                           epochs, seed, calibration_progress)
+        return cls(senses, tuple(classes), mean, scale, mlp, info, calibration, novelty)
 
     @staticmethod
     def _check(sense: Sense, values) -> np.ndarray:
@@ -109,10 +150,34 @@ class EarlyFusionModel:
                              f"{expected[1]}), got {values.shape}")
         return values
 
+    def _inputs(self, values_a: np.ndarray, values_b: np.ndarray) -> np.ndarray:
+        x = early_inputs(self._check(self.senses[0], values_a), self._check(self.senses[1], values_b))
+        return (x - self.mean) / self.scale
+
     def outputs(self, values_a: np.ndarray, values_b: np.ndarray) -> np.ndarray:
         """Output activations in [0, 1], shape (n, classes), for aligned windows of both senses."""
-        x = early_inputs(self._check(self.senses[0], values_a), self._check(self.senses[1], values_b))
-        return self.mlp.outputs((x - self.mean) / self.scale)
+        return self.mlp.outputs(self._inputs(values_a, values_b))
+
+    def logits(self, values_a: np.ndarray, values_b: np.ndarray) -> np.ndarray:
+        """The output units' logits, shape (n, classes) (finite where the outputs round to 0 or 1)."""
+        return self.mlp.logits(self._inputs(values_a, values_b))
+
+    def log_posteriors(self, values_a: np.ndarray, values_b: np.ndarray) -> np.ndarray:
+        """Log-posteriors per pair of windows, shape (n, classes): calibrated when the model is
+        (:attr:`calibrated`), else the normalised outputs; finite, never clipped."""
+        return log_posteriors_of(self.logits(values_a, values_b), self.calibration)
+
+    def posteriors(self, values_a: np.ndarray, values_b: np.ndarray) -> np.ndarray:
+        """Posteriors per pair of windows (rows sum to 1), shape (n, classes)."""
+        return np.exp(self.log_posteriors(values_a, values_b))
+
+    def novelty_score(self, values_a: np.ndarray, values_b: np.ndarray) -> np.ndarray:
+        """How unlike every training texture each pair of windows is, shape (n,); a model without
+        a novelty score (a version 1 file) raises :class:`ModelError`."""
+        if self.novelty is None:
+            raise ModelError("this early-fusion model has no novelty score (trained before version 2, or without "
+                             "calibration): retrain it with `supramodal train --fusion early`")
+        return self.novelty.score(self._inputs(values_a, values_b))
 
     # -- files ---------------------------------------------------------------------------------
 
@@ -120,17 +185,18 @@ class EarlyFusionModel:
         return {"format": EARLY_FORMAT, "version": EARLY_VERSION,
                 "senses": [{"name": s.name, **sense_header(s.bank, s.features, s.window_samples, s.peak_mode,
                                                            s.peak_threshold)} for s in self.senses],
-                "classes": list(self.classes), "layers": list(self.mlp.shape), "training": self.training}
+                "classes": list(self.classes), "layers": list(self.mlp.shape), "training": self.training,
+                **calibration_header(self.calibration, self.novelty)}
 
     def save(self, path) -> Path:
         """Write the model to exactly ``path`` (an ``.npz`` archive); returns the path."""
-        return save_model_archive(path, self.header(), self.mlp, self.mean, self.scale)
+        return save_model_archive(path, self.header(), self.mlp, self.mean, self.scale, novelty_arrays(self.novelty))
 
     @classmethod
     def load(cls, path) -> "EarlyFusionModel":
         """Read and validate an early-fusion model file; :class:`ModelError` says what is wrong."""
         path = Path(path)
-        header, arrays = read_model_archive(path)
+        header, arrays = read_model_archive(path, optional=NOVELTY_ARRAYS)
 
         def bad(msg):
             return ModelError(f"{path}: {msg}")
@@ -140,10 +206,13 @@ class EarlyFusionModel:
             raise bad(f"not a {EARLY_FORMAT} file (format is {found!r})"
                       + ("; it is a one-sense model: give it to a [[stream]], not to [fusion]"
                          if found == "supramodal-model" else ""))
-        if type(header.get("version")) is not int or header["version"] != EARLY_VERSION:   # true == 1 in Python
-            raise bad(f"format version {header.get('version')!r} is not supported (this program reads version "
-                      f"{EARLY_VERSION}); retrain the model with this version")
-        unknown = set(header) - {"format", "version", "senses", "classes", "layers", "training"}
+        if type(header.get("version")) is not int or header["version"] not in EARLY_VERSIONS:   # true == 1 in Python
+            raise bad(f"format version {header.get('version')!r} is not supported (this program reads versions "
+                      f"{', '.join(map(str, EARLY_VERSIONS))}); retrain the model with this version")
+        known = {"format", "version", "senses", "classes", "layers", "training"}
+        if header["version"] >= 2:
+            known |= set(CALIBRATION_KEYS)
+        unknown = set(header) - known
         if unknown:
             raise bad(f"unknown header key(s) {sorted(unknown)}")
         raw = header.get("senses")
@@ -164,4 +233,165 @@ class EarlyFusionModel:
         training = header.get("training", {})
         if not isinstance(training, dict):
             raise bad("'training' must be an object")
-        return cls(tuple(senses), tuple(classes), mean, scale, mlp, training)
+        calibration, novelty = calibration_from_parts(header, arrays, n_in, len(classes), bad)
+        return cls(tuple(senses), tuple(classes), mean, scale, mlp, training, calibration, novelty)
+
+
+# -- late fusion learned from windows the senses' networks never trained on ------------------------------
+
+def out_of_fold_logits(model: TextureModel, values, labels, classes, folds, progress=None) -> np.ndarray:
+    """Each window's logits from a network that never trained on its fold.
+
+    Per fold, a copy of ``model``'s configuration (bank, features, window, peak settings, hidden
+    units, epochs and seed, as :func:`supramodal.node.training.cross_validate_model` copies it) is
+    trained on the windows of the other folds, without a calibration of its own, and scores the
+    fold's windows.
+
+    Parameters
+    ----------
+    model : TextureModel
+        The sense model whose configuration is copied (its own weights are not used).
+    values : ndarray, shape (n, features, channels)
+    labels : ndarray of int, shape (n,)
+        Index into ``classes`` of each window.
+    classes : sequence of str
+        The copies' classes, in the order of the columns returned (``model``'s textures, in any
+        order).
+    folds : ndarray of int, shape (n,)
+        Each window's fold (e.g. :func:`supramodal.calibration.calibration_folds`).
+    progress : callable(str), optional
+        One line per fold.
+
+    Returns
+    -------
+    ndarray, shape (n, classes)
+    """
+    if sorted(classes) != sorted(model.classes):
+        raise InputError(f"the model knows {list(model.classes)}, the windows are labelled with {list(classes)}")
+    values = np.asarray(values, dtype=np.float64)
+    y = np.asarray(labels)
+    folds = np.asarray(folds)
+    epochs = int(model.training.get("epochs", DEFAULT_EPOCHS))
+    seed = int(model.training.get("seed", 0))
+    z = np.empty((len(y), len(classes)))
+    parts = np.unique(folds)
+    if len(parts) < 2:
+        raise InputError("out-of-fold windows need at least two folds")
+    for i, f in enumerate(parts):
+        test = folds == f
+        copy = TextureModel.train(values[~test], y[~test], classes, model.bank, model.features, model.window_samples,
+                                  model.peak_mode, epochs=epochs, seed=seed, hidden=model.mlp.shape[1],
+                                  peak_threshold=model.peak_threshold, calibration_folds=0)
+        z[test] = copy.logits(values[test])
+        if progress:
+            progress(f"fold {i + 1}/{len(parts)}: {int(test.sum())} held-out windows, "
+                     f"{float(np.mean(np.argmax(z[test], axis=1) == y[test])):.3f} right")
+    return z
+
+
+def out_of_fold_log_posteriors(model: TextureModel, values, labels, classes, folds, groups=None,
+                               progress=None) -> np.ndarray:
+    """Log-posteriors of each window from :func:`out_of_fold_logits`, mapped as ``model`` maps its
+    own: when ``model`` is calibrated, by a calibration fitted on these out-of-fold logits (as
+    :func:`~supramodal.calibration.fit_network_calibration` fits a model's), else the normalised
+    outputs (a version 1 model's posteriors). ``groups``: each window's recording, for the
+    calibration's pooling (default: one per label). Shape (n, classes)."""
+    y = np.asarray(labels)
+    z = out_of_fold_logits(model, values, y, classes, folds, progress)
+    if not model.calibrated:
+        return normalised_log_posteriors(z)
+    return fit_calibration(z, y, y if groups is None else groups).log_posteriors(z)
+
+
+def senses_out_of_fold(models, values, labels, classes, groups=None, k: int = DEFAULT_CALIBRATION_FOLDS,
+                       seed: int = 0, progress=None, names=None) -> tuple[list[np.ndarray], np.ndarray, str]:
+    """Out-of-fold log-posteriors of two (or more) senses on the same aligned windows, on the same folds.
+
+    Parameters
+    ----------
+    models : sequence of TextureModel
+        Each sense's model (its configuration is copied per fold).
+    values : sequence of ndarray, each (n, features, channels)
+        Each sense's windows, aligned: row ``i`` of every sense covers the same time.
+    labels : ndarray of int, shape (n,)
+        Index into ``classes``.
+    groups : sequence, length n, optional
+        Each window's recording or contact (windows of one consecutive and in time order): the
+        folds are whole groups where there are enough
+        (:func:`~supramodal.calibration.calibration_folds`); default one per label.
+    k, seed
+        Folds and their shuffle.
+    progress : callable(str), optional
+        One line per sense and fold, naming the sense by ``names`` (default "sense 1 of 2", ...).
+
+    Returns
+    -------
+    log_posteriors : list of ndarray, each (n, classes)
+    folds : ndarray of int, shape (n,)
+    by : {"recording", "span"}
+        How the folds were made.
+    """
+    y = np.asarray(labels)
+    groups = y if groups is None else np.asarray(groups)
+    folds, by = calibration_folds(y, groups, k, seed)
+    out = []
+    for i, (model, v) in enumerate(zip(models, values)):
+        name = f"sense {i + 1} of {len(models)}" if names is None else names[i]
+        say = None if progress is None else (lambda m, name=name: progress(f"{name}: {m}"))
+        out.append(out_of_fold_log_posteriors(model, v, y, classes, folds, groups, say))
+    return out, folds, by
+
+
+def learn_late_fusion_out_of_fold(log_posteriors_a, log_posteriors_b, labels, folds) -> dict:
+    """The late fusion's ``(weight, sharpness)`` learned on out-of-fold log-posteriors of both
+    senses (:func:`senses_out_of_fold`), and the fusion's own held-out score.
+
+    The weight and sharpness kept are learned on every window
+    (:func:`supramodal.fusion.learn_late_fusion`). The fused log-posteriors returned are
+    cross-fitted: each fold's windows fused with a weight and sharpness learned on the other
+    folds only, so that their score is a held-out score of the fusion as learned, not of the
+    windows it was learned on.
+
+    Returns
+    -------
+    dict
+        ``weight``, ``sharpness``, ``fused`` (ndarray (n, classes), cross-fitted), ``fold_weights``
+        (the weight learned without each fold, in fold order).
+    """
+    a = np.asarray(log_posteriors_a, dtype=np.float64)
+    b = np.asarray(log_posteriors_b, dtype=np.float64)
+    y = np.asarray(labels)
+    folds = np.asarray(folds)
+    weight, sharpness = learn_late_fusion(a, b, y)
+    fused = np.empty_like(a)
+    fold_weights = []
+    for f in np.unique(folds):
+        test = folds == f
+        w, s = learn_late_fusion(a[~test], b[~test], y[~test])
+        fused[test] = fuse_late(a[test], b[test], w, s)
+        fold_weights.append(w)
+    return {"weight": weight, "sharpness": sharpness, "fused": fused, "fold_weights": fold_weights}
+
+
+def held_out_scores(log_posteriors: dict, labels) -> dict:
+    """``{name: {"accuracy", "log_loss", "brier", "ece", "sure_count", "sure_wrong"}}`` of each named
+    set of held-out log-posteriors (a tie is wrong)."""
+    keys = ("n", "accuracy", "log_loss", "brier", "ece", "sure_count", "sure_wrong")
+    return {name: {k: v for k, v in calibration_report(lp, labels).items() if k in keys}
+            for name, lp in log_posteriors.items()}
+
+
+def fused_pooling(log_posteriors, labels, folds, groups=None) -> float:
+    """The correlation ``rho`` of the fused decisions' contact pooling
+    (:func:`supramodal.calibration.fit_pooling`), fitted on runs of up to
+    :data:`~supramodal.calibration.POOLING_RUN` consecutive held-out windows of one group (default:
+    one per label) and one fold, the windows one held-out network scored in a row."""
+    lp = np.asarray(log_posteriors, dtype=np.float64)
+    y = np.asarray(labels)
+    folds = np.asarray(folds)
+    groups = y if groups is None else np.asarray(groups)
+    runs = []
+    for g, f in dict.fromkeys(zip(groups.tolist(), folds.tolist())):
+        idx = np.flatnonzero((groups == g) & (folds == f))
+        runs += [idx[s:s + POOLING_RUN] for s in range(0, len(idx), POOLING_RUN)]
+    return fit_pooling([lp[r] for r in runs], [int(y[r[0]]) for r in runs])

@@ -72,7 +72,10 @@ def _tamper(tmp_path, change):
 
 @pytest.mark.parametrize("change, needle", [
     (lambda h: h.update(format="supramodal-model"), "it is a one-sense model: give it to a \\[\\[stream\\]\\]"),
-    (lambda h: h.update(version=2), "format version 2 is not supported"),
+    (lambda h: h.update(version=3), "format version 3 is not supported"),
+    (lambda h: h.update(version=1), "unknown header key\\(s\\) \\['calibration', 'novelty'\\]"),
+    (lambda h: h.update(calibration={"method": "platt"}), "'calibration' must have exactly the keys"),
+    (lambda h: h.update(novelty=True), "the header says the model has a novelty score, but the file lacks"),
     (lambda h: h.update(version=True), "format version True is not supported"),
     (lambda h: h["senses"].pop(), "'senses' must be a list of the two senses"),
     (lambda h: h["senses"][1].update(name="whiskers"), "both named 'whiskers'"),

@@ -7,7 +7,7 @@ import pytest
 from scipy.signal import welch
 
 from supramodal.errors import InputError
-from supramodal.fusion import LATE_WEIGHTS, early_inputs, fuse_late, learn_late_weight
+from supramodal.fusion import LATE_WEIGHTS, early_inputs, fuse_late, learn_late_fusion
 from supramodal.twosense import MIC_RATE, WHISKER_RATE, synthesize_contact, two_sense_set
 
 
@@ -57,12 +57,16 @@ def test_late_fusion_follows_the_sense_that_knows():
     knows = np.full((400, 4), 0.1)
     knows[np.arange(400), labels] = 0.9
     guesses = rng.random((400, 4))
-    w = learn_late_weight(knows, guesses, labels)
-    assert w >= 0.5 and np.mean(np.argmax(fuse_late(knows, guesses, w), axis=1) == labels) == 1.0
-    # the sum of log-posteriors, against a plain per-row computation
-    row = 0.3 * np.log(knows[0] / knows[0].sum()) + 0.7 * np.log(guesses[0] / guesses[0].sum())
-    np.testing.assert_allclose(fuse_late(knows, guesses, 0.3)[0], row, rtol=1e-12)
-    assert learn_late_weight(guesses, knows, labels) <= 0.5
+    log_knows = np.log(knows / knows.sum(axis=1, keepdims=True))
+    log_guesses = np.log(guesses / guesses.sum(axis=1, keepdims=True))
+    w, s = learn_late_fusion(log_knows, log_guesses, labels)
+    assert w >= 0.5 and s > 0
+    assert np.mean(np.argmax(fuse_late(log_knows, log_guesses, w, s), axis=1) == labels) == 1.0
+    # the weighted sum of log-posteriors, normalised, against a plain per-row computation
+    row = 0.3 * log_knows[0] + 0.7 * log_guesses[0]
+    row = row - np.log(np.exp(row).sum())
+    np.testing.assert_allclose(fuse_late(log_knows, log_guesses, 0.3)[0], row, rtol=1e-12)
+    assert learn_late_fusion(log_guesses, log_knows, labels)[0] <= 0.5
     assert LATE_WEIGHTS[0] == 0.0 and LATE_WEIGHTS[-1] == 1.0
 
 
