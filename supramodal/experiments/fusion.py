@@ -9,14 +9,15 @@ first :data:`~supramodal.training.TRAIN_FRACTION` of every texture's windows tra
 
 * Each sense: a :class:`~supramodal.model.TextureModel`, calibrated as ``supramodal train``
   calibrates it (on out-of-fold windows of its training part).
-* Late fusion: its weight and sharpness (:func:`supramodal.fusion.learn_late_fusion`) are learned
-  on *held-out* log-posteriors of the training windows: each window's from a network of the
-  sense's grouped folds that did not train on it (:func:`held_out_log_posteriors`), never from the
-  sense models' own training windows; its contact pooling (the windows' correlation) is fitted on
-  the same held-out windows, fused.
-* Early fusion: one network on both senses' standardised windows side by side (the network of
-  :class:`~supramodal.fused_model.EarlyFusionModel`), calibrated like a sense model
-  (:func:`supramodal.calibration.fit_network_calibration` on the concatenated inputs).
+* Late fusion, as ``train --fusion late`` learns it: its weight and sharpness
+  (:func:`supramodal.fusion.learn_late_fusion`) are learned on *held-out* log-posteriors of the
+  training windows, each window's from a copy of the sense's model trained on the other grouped
+  folds (:func:`supramodal.fused_model.senses_out_of_fold`), never from the sense models' own
+  training windows; its contact pooling on the same held-out windows, fused
+  (:func:`supramodal.fused_model.fused_pooling`).
+* Early fusion: the supramodal network (:class:`~supramodal.fused_model.EarlyFusionModel`, one MLP
+  on both senses' standardised windows side by side), calibrated like a sense model on the
+  out-of-fold windows of the concatenated inputs.
 
 Reported on the test windows: accuracy per window and per contact (a run of
 :data:`CONTACT_WINDOWS` test windows, pooled by each method's calibrated pooling), and the
@@ -36,12 +37,13 @@ import time
 import numpy as np
 
 from supramodal.banks import cochlea_bank, whisker_bank
-from supramodal.calibration import (DEFAULT_CALIBRATION_FOLDS, POOLING_RUN, calibration_folds, calibration_report,
-                                    fit_network_calibration, fit_pooling, input_scaling, pool_log_posteriors)
+from supramodal.calibration import DEFAULT_CALIBRATION_FOLDS, calibration_report, pool_log_posteriors
 from supramodal.errors import InputError
+from supramodal.experiments.common import Run
 from supramodal.features import DEFAULT_WINDOW
-from supramodal.fusion import early_inputs, fuse_late, learn_late_fusion
-from supramodal.mlp import DEFAULT_EPOCHS, train_mlp
+from supramodal.fused_model import EarlyFusionModel, Sense, fused_pooling, senses_out_of_fold
+from supramodal.fusion import fuse_late, learn_late_fusion
+from supramodal.mlp import DEFAULT_EPOCHS
 from supramodal.model import TextureModel
 from supramodal.pipeline import extract_features, window_length
 from supramodal.training import TRAIN_FRACTION
@@ -70,47 +72,6 @@ def set_features(set_seed: int, seconds: float, progress=None):
     return [s.name for s in surfaces], np.stack([v[:n] for v in fw]), np.stack([v[:n] for v in fm])
 
 
-def held_out_log_posteriors(model: TextureModel, values, labels, groups=None,
-                            k: int = DEFAULT_CALIBRATION_FOLDS, epochs: int = DEFAULT_EPOCHS,
-                            seed: int = 0) -> np.ndarray:
-    """Calibrated log-posteriors of a model's own training windows, each window's from a network
-    that never trained on it.
-
-    The windows are dealt to the grouped folds of the model's calibration
-    (:func:`supramodal.calibration.calibration_folds` with ``k`` and ``seed``); each fold's windows
-    are scored by a network trained, like ``model``, on the other folds, and the model's
-    calibration maps the logits. These are the windows a fusion may learn from.
-
-    Parameters
-    ----------
-    model : TextureModel
-        Calibrated, trained on ``values`` with ``epochs`` and ``seed``.
-    values : ndarray, shape (n, features, channels)
-    labels : ndarray of int, shape (n,)
-    groups : sequence, length n, optional
-        Each window's recording, as given to :meth:`TextureModel.train` (default: one per label).
-
-    Returns
-    -------
-    ndarray, shape (n, classes)
-    """
-    if not model.calibrated:
-        raise InputError("held-out log-posteriors need a calibrated model (trained with calibration folds)")
-    values = np.asarray(values, dtype=np.float64)
-    y = np.asarray(labels)
-    folds, _ = calibration_folds(y, y if groups is None else np.asarray(groups), k, seed)
-    logits = np.empty((len(y), len(model.classes)))
-    for f in range(k):
-        test = folds == f
-        if not test.any():
-            continue
-        net = TextureModel.train(values[~test], y[~test], model.classes, model.bank, model.features,
-                                 model.window_samples, model.peak_mode, epochs=epochs, seed=seed,
-                                 hidden=model.mlp.shape[1], calibration_folds=0)
-        logits[test] = net.logits(values[test])
-    return model.calibration.log_posteriors(logits)
-
-
 def contact_runs(labels, per_texture: int, length: int = CONTACT_WINDOWS) -> list[np.ndarray]:
     """Indices of the contacts among test windows stacked texture by texture (``per_texture`` each):
     runs of ``length`` consecutive windows of one texture (a shorter rest is left out)."""
@@ -124,16 +85,6 @@ def contact_runs(labels, per_texture: int, length: int = CONTACT_WINDOWS) -> lis
 def pooled_contacts(log_posteriors, runs, correlation: float) -> np.ndarray:
     """Each run's pooled log-posteriors (:func:`supramodal.calibration.pool_log_posteriors`), (runs, classes)."""
     return np.array([pool_log_posteriors(log_posteriors[r], correlation) for r in runs])
-
-
-def _fold_runs(folds, groups, run: int = POOLING_RUN) -> list[np.ndarray]:
-    """Runs of up to ``run`` consecutive windows of one group and one fold (windows that one held-out
-    network scored in a row), for fitting a pooling."""
-    out = []
-    for key in dict.fromkeys(zip(groups.tolist(), folds.tolist())):
-        idx = np.flatnonzero((groups == key[0]) & (folds == key[1]))
-        out += [idx[s:s + run] for s in range(0, len(idx), run)]
-    return out
 
 
 def run_set(set_seed: int, seconds: float = 20.0, epochs: int = DEFAULT_EPOCHS, seed: int = 0, progress=None) -> dict:
@@ -160,24 +111,32 @@ def run_set(set_seed: int, seconds: float = 20.0, epochs: int = DEFAULT_EPOCHS, 
 
     y_train = np.repeat(np.arange(T), n_train)
     y_test = np.repeat(np.arange(T), n - n_train)
-    senses = {"whiskers": (fw, whisker_bank()), "microphone": (fm, cochlea_bank())}
-    test_lp, held, pooling = {}, {}, {}
-    for name, (values, bank) in senses.items():
-        x = part(values, slice(0, n_train))[:, None]
+    banks = {"whiskers": whisker_bank(), "microphone": cochlea_bank()}
+    train = {"whiskers": part(fw, slice(0, n_train))[:, None], "microphone": part(fm, slice(0, n_train))[:, None]}
+    test = {"whiskers": part(fw, slice(n_train, n))[:, None], "microphone": part(fm, slice(n_train, n))[:, None]}
+    models, test_lp, pooling = {}, {}, {}
+    for name, bank in banks.items():
         if progress:
-            progress(f"  set {set_seed}: training the {name} model and its held-out folds")
-        model = TextureModel.train(x, y_train, names, bank, FEATURES, window_length(DEFAULT_WINDOW, bank.fs),
-                                   epochs=epochs, seed=seed)
-        held[name] = held_out_log_posteriors(model, x, y_train, epochs=epochs, seed=seed)
-        test_lp[name] = model.log_posteriors(part(values, slice(n_train, n))[:, None])
-        pooling[name] = model.calibration.correlation
-    weight, sharpness = learn_late_fusion(held["whiskers"], held["microphone"], y_train)
-    folds, _ = calibration_folds(y_train, y_train, DEFAULT_CALIBRATION_FOLDS, seed)
-    fused_held = fuse_late(held["whiskers"], held["microphone"], weight, sharpness)
-    runs = _fold_runs(folds, y_train)
-    pooling["late"] = fit_pooling([fused_held[r] for r in runs], [int(y_train[r[0]]) for r in runs])
+            progress(f"  set {set_seed}: training the {name} model and its calibration")
+        models[name] = TextureModel.train(train[name], y_train, names, bank, FEATURES,
+                                          window_length(DEFAULT_WINDOW, bank.fs), epochs=epochs, seed=seed)
+        test_lp[name] = models[name].log_posteriors(test[name])
+        pooling[name] = models[name].calibration.correlation
+    if progress:
+        progress(f"  set {set_seed}: held-out log-posteriors of both senses for the late fusion")
+    held, folds, _ = senses_out_of_fold(list(models.values()), list(train.values()), y_train, names,
+                                        k=DEFAULT_CALIBRATION_FOLDS, seed=seed)
+    weight, sharpness = learn_late_fusion(held[0], held[1], y_train)
+    fused_held = fuse_late(held[0], held[1], weight, sharpness)
+    pooling["late"] = fused_pooling(fused_held, y_train, folds)
     test_lp["late"] = fuse_late(test_lp["whiskers"], test_lp["microphone"], weight, sharpness)
-    test_lp["early"], pooling["early"] = _early(names, fw, fm, n_train, y_train, epochs, seed, progress, set_seed)
+    if progress:
+        progress(f"  set {set_seed}: training the early-fusion network and its calibration")
+    senses = [Sense(name, bank, FEATURES, window_length(DEFAULT_WINDOW, bank.fs)) for name, bank in banks.items()]
+    early = EarlyFusionModel.train(senses, train["whiskers"], train["microphone"], y_train, names, epochs=epochs,
+                                   seed=seed)
+    test_lp["early"] = early.log_posteriors(test["whiskers"], test["microphone"])
+    pooling["early"] = early.calibration.correlation
 
     contacts = contact_runs(y_test, n - n_train)
     y_contact = np.array([y_test[r[0]] for r in contacts])
@@ -188,26 +147,11 @@ def run_set(set_seed: int, seconds: float = 20.0, epochs: int = DEFAULT_EPOCHS, 
                                                         sure=SURE)}
     return {"set_seed": set_seed, "textures": names, "late_weight": weight, "late_sharpness": sharpness,
             "late_correlation": pooling["late"], "test_windows_per_texture": n - n_train,
-            "held_out": {m: float(np.mean(np.argmax(held[m], axis=1) == y_train)) for m in ("whiskers", "microphone")}
+            "held_out": {m: float(np.mean(np.argmax(lp, axis=1) == y_train)) for m, lp in zip(banks, held)}
             | {"late": float(np.mean(np.argmax(fused_held, axis=1) == y_train))},
             "window": {m: calibration[m]["window"]["accuracy"] for m in METHODS},
             "contact": {m: calibration[m]["contact"]["accuracy"] for m in METHODS},
             "calibration": calibration}
-
-
-def _early(names, fw, fm, n_train, y_train, epochs, seed, progress, set_seed):
-    """Early fusion's calibrated test log-posteriors and its pooling correlation: the network
-    :class:`~supramodal.fused_model.EarlyFusionModel` trains (one MLP on both senses' standardised
-    windows side by side), calibrated by :func:`~supramodal.calibration.fit_network_calibration`."""
-    if progress:
-        progress(f"  set {set_seed}: training the early-fusion network and its calibration folds")
-    T = fw.shape[0]
-    x = early_inputs(fw[:, :n_train].reshape(-1, fw.shape[2]), fm[:, :n_train].reshape(-1, fm.shape[2]))
-    mean, scale = input_scaling(x)
-    net, _ = train_mlp((x - mean) / scale, y_train, T, epochs=epochs, seed=seed)
-    calibration, _ = fit_network_calibration(x, y_train, T, epochs=epochs, seed=seed)
-    x_test = early_inputs(fw[:, n_train:].reshape(-1, fw.shape[2]), fm[:, n_train:].reshape(-1, fm.shape[2]))
-    return calibration.log_posteriors(net.logits((x_test - mean) / scale)), calibration.correlation
 
 
 def spread(values) -> dict:
@@ -259,17 +203,25 @@ def summarize(results: list[dict], seconds: float) -> dict:
 
 
 def run_fusion(sets: int = 5, quick: bool = False, epochs: int = DEFAULT_EPOCHS, seed: int = 0,
-               progress=None) -> dict:
-    """:func:`run_set` over ``sets`` sets (seeds ``seed``, ``seed + 1``, ...); ``quick``: 8 s contacts
-    (default 20 s). Returns the per-set results and :func:`summarize`'s figures."""
+               progress=None, jobs: int | None = None) -> dict:
+    """:func:`run_set` over ``sets`` sets (seeds ``seed``, ``seed + 1``, ...; the networks' seed is
+    ``seed`` itself); ``quick``: 8 s contacts (default 20 s). The sets run over ``jobs`` worker
+    processes (default: all cores; :func:`supramodal.experiments.runner.run_all`, single-threaded
+    BLAS: a set trains some 30 small networks, which threaded BLAS slows many times on a busy
+    machine); the results do not depend on ``jobs``. Returns the per-set results and
+    :func:`summarize`'s figures."""
+    from supramodal.experiments.runner import run_all
+
+    if sets < 1:
+        raise InputError(f"--sets must be >= 1 for the two-sense fusion, got {sets}")
     seconds = 8.0 if quick else 20.0
     t0 = time.perf_counter()
-    results = []
-    for k in range(sets):
-        r = run_set(seed + k, seconds, epochs, seed, progress)
-        results.append(r)
-        if progress:
-            progress(f"set {seed + k}: " + ", ".join(f"{m} {r['window'][m]:.3f}" for m in METHODS)
+    runs = [Run(("fusion", seed + k), run_set, {"set_seed": seed + k, "seconds": seconds, "epochs": epochs,
+                                                 "seed": seed}, 1.5 * seconds, seeded=False) for k in range(sets)]
+    results = list(run_all(runs, jobs=jobs, seed=seed, progress=progress).values())
+    if progress:
+        for r in results:
+            progress(f"set {r['set_seed']}: " + ", ".join(f"{m} {r['window'][m]:.3f}" for m in METHODS)
                      + f" (late weight of the whiskers {r['late_weight']:.2f}, sharpness {r['late_sharpness']:.2f})")
     return {**summarize(results, seconds), "compute_seconds": time.perf_counter() - t0}
 
@@ -312,9 +264,12 @@ def main(argv=None) -> int:
     p.add_argument("--sets", type=int, default=5, help="random two-sense texture sets (default 5)")
     p.add_argument("--seed", type=int, default=0, help="first set's seed and the networks' seed (default 0)")
     p.add_argument("--epochs", type=int, default=DEFAULT_EPOCHS, help=f"iRPROP- epochs (default {DEFAULT_EPOCHS})")
+    p.add_argument("--jobs", type=int, help="worker processes (default: all cores)")
     args = p.parse_args(argv)
-    progress = lambda m: print(m, file=sys.stderr, flush=True)    # noqa: E731
-    result = run_fusion(2 if args.quick else args.sets, args.quick, args.epochs, args.seed, progress)
+    from supramodal.experiments.common import progress_to_stderr
+
+    result = run_fusion(2 if args.quick else args.sets, args.quick, args.epochs, args.seed, progress_to_stderr,
+                        args.jobs)
     print(fusion_table(result))
     return 0
 
