@@ -61,8 +61,10 @@ __all__ = [
 
 #: Name of the window map stored in model files.
 CALIBRATION_METHOD = "asinh-temperature"
-#: Grouped folds whose held-out windows fit a model's calibration (the one home of this default).
-DEFAULT_CALIBRATION_FOLDS = 5
+#: Grouped folds whose held-out windows fit a model's calibration (the one home of this default). Ten,
+#: not five: each fold's network then trains on 90 % of the windows and behaves like the final one (five
+#: left the final network surer than its calibration said: whisker reference ECE 0.059 -> 0.033).
+DEFAULT_CALIBRATION_FOLDS = 10
 #: Bins of the expected calibration error and of the reliability diagram.
 ECE_BINS = 15
 #: Consecutive held-out windows of one recording that make one run when the pooling is fitted

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from supramodal.banks import whisker_bank
-from supramodal.calibration import (NOVELTY_QUANTILES, Calibration, brier_score, calibration_folds,
+from supramodal.calibration import (DEFAULT_CALIBRATION_FOLDS, NOVELTY_QUANTILES, Calibration, brier_score, calibration_folds,
                                     expected_calibration_error, fit_calibration, fit_pooling, fit_window_calibration,
                                     log_loss, normalised_log_posteriors, pool_log_posteriors, winner)
 from supramodal.decisions import DecisionAccumulator
@@ -211,7 +211,7 @@ def model():
 
 def test_trained_model_is_calibrated_on_held_out_windows_and_keeps_the_networks_decisions(model):
     values, labels = _data(seed=5)
-    assert model.calibrated and model.calibration.fitted_on["folds"] == 5
+    assert model.calibrated and model.calibration.fitted_on["folds"] == DEFAULT_CALIBRATION_FOLDS
     assert model.calibration.fitted_on["windows"] == 180
     np.testing.assert_array_equal(np.argmax(model.log_posteriors(values), axis=1), model.predict(values))
     plain = TextureModel.train(*_data(), CLASSES, BANK, ("Af",), 500, epochs=60, seed=1, calibration_folds=0)
