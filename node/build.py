@@ -604,7 +604,7 @@ def _build_graph(scene: Scene, speed, sinks_override, progress, recorder, overwr
                 else:
                     # A number: the scene's weight (and sharpness, where the scene gives one);
                     # "learn": learned with the sharpness and the fused pooling on out-of-fold windows.
-                    late = {"weight": f["weight"], "sharpness": f.get("sharpness") or 1.0, "correlation": 0.0}
+                    late = {k: f[k] for k in ("weight", "sharpness", "correlation")}
                     if f["weight"] == LEARN:
                         late = _learned_weight(scene, a, b, held_out, trained, progress)
                     fusion = LateFusion((a.name, b.name), (a.model.classes, b.model.classes), late["weight"],

@@ -476,6 +476,8 @@ def _train_fusion(args) -> int:
         keys = f"weight = {weight:.2f}"
         if "sharpness" in FUSION_KEYS:
             keys += f", sharpness = {sharpness:.4g}"
+        if "correlation" in FUSION_KEYS:
+            keys += f", correlation = {info['correlation']:.3g}"
         print(f"learned late-fusion weight {weight:.2f} of {a} (and {1 - weight:.2f} of {b}) and sharpness "
               f"{sharpness:.4g} on the out-of-fold windows of {info['pairs']} labelled pairs (the late row: each "
               f"fold fused with a weight learned without it): set [fusion] {keys}")

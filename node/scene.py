@@ -328,6 +328,11 @@ FUSION_KEYS = {
                'of two models trained on the spot)', DEFAULT_WEIGHT),
     "max_wait": (_positive, "seconds a window of a live source waits for its partner before it is decided alone, > 0 "
                                   "(file sources wait for each other)", DEFAULT_MAX_WAIT),
+    # With a numeric weight (as `train --fusion late` prints them); "learn" learns both.
+    "sharpness": (_positive, "tempering of the fused log-posteriors, > 0 (printed by `supramodal train --fusion late`)",
+                  1.0),
+    "correlation": (lambda v: _number(v) and 0 <= v <= 1, "correlation of neighbouring fused windows for pooling them, "
+                                                          "in [0, 1] (printed by `supramodal train --fusion late`)", 0.0),
 }
 
 
@@ -532,6 +537,10 @@ def _graph_scene(d: dict, source: str, base_dir: Path) -> Scene:
         fusion = _fill(f"{source}: [fusion]", {k: v for k, v in given.items() if k != "decision"}, FUSION_KEYS)
         fusion["decision"] = _fill(f"{source}: [fusion.decision]", given.get("decision", {}), SECTIONS["decision"])
         _check_decision(source, fusion["decision"], "[fusion.decision]")
+        given_learned = sorted({"sharpness", "correlation"} & set(given))
+        if fusion["weight"] == LEARN and given_learned:
+            raise SceneError(f"{source}: [fusion] {', '.join(given_learned)}: weight = \"{LEARN}\" learns them with the "
+                             "weight; give a numeric weight to set them, or leave them out")
         if fusion["method"] == "late" and fusion["model"] is not None:
             raise SceneError(f"{source}: [fusion] model: a model file is for method = \"early\"; late fusion has a "
                              "weight (leave model out, or set method = \"early\")")
