@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 
 from supramodal.banks import cochlea_bank, whisker_bank
-from supramodal.calibration import calibration_report, normalised_log_posteriors, pool_log_posteriors, winner
+from supramodal.calibration import (DEFAULT_CALIBRATION_FOLDS, calibration_report, normalised_log_posteriors,
+                                    pool_log_posteriors, winner)
 from supramodal.fused_model import (EARLY_VERSION, EarlyFusionModel, Sense, learn_late_fusion_out_of_fold,
                                     senses_out_of_fold)
 from supramodal.fusion import learn_late_fusion
@@ -142,10 +143,10 @@ SENSES = (Sense("whiskers", whisker_bank(), ("Af",), 500), Sense("mic", cochlea_
 @pytest.fixture(scope="module")
 def early():
     rng = np.random.default_rng(4)
-    y = np.repeat(np.arange(3), 30)
-    va = rng.normal(size=(90, 1, 20)) + 0.8 * np.eye(20)[y][:, None, :]
-    vb = rng.normal(size=(90, 1, 50))
-    model = EarlyFusionModel.train(SENSES, va, vb, y, CLASSES, epochs=80, groups=np.repeat(np.arange(9), 10))
+    y = np.repeat(np.arange(3), 40)
+    va = rng.normal(size=(120, 1, 20)) + 0.8 * np.eye(20)[y][:, None, :]
+    vb = rng.normal(size=(120, 1, 50))
+    model = EarlyFusionModel.train(SENSES, va, vb, y, CLASSES, epochs=80, groups=np.repeat(np.arange(12), 10))
     return model, va, vb, y
 
 
@@ -153,11 +154,11 @@ def test_an_early_fusion_network_is_calibrated_on_out_of_fold_pairs(early):
     model, va, vb, y = early
     assert model.calibrated and model.novelty is not None
     f = model.calibration.fitted_on
-    assert f["windows"] == 90 and f["folds_by"] == "recording" and 0.0 <= f["held_out_accuracy"] <= 1.0
+    assert f["windows"] == 120 and f["folds_by"] == "recording" and 0.0 <= f["held_out_accuracy"] <= 1.0
     lp = model.log_posteriors(va, vb)
     assert np.isfinite(lp).all() and np.allclose(np.exp(lp).sum(axis=1), 1.0)
     np.testing.assert_array_equal(winner(lp), np.argmax(model.logits(va, vb), axis=1))   # the network's winner
-    assert model.novelty_score(va, vb).shape == (90,)
+    assert model.novelty_score(va, vb).shape == (120,)
     bare = EarlyFusionModel.train(SENSES, va, vb, y, CLASSES, epochs=80, calibration_folds=0)
     assert not bare.calibrated
 
@@ -201,13 +202,14 @@ def test_a_version_1_early_fusion_file_still_loads_uncalibrated(early, tmp_path)
 
 @pytest.fixture(scope="module")
 def recordings(tmp_path_factory):
-    """Three whisker textures, three recordings of 1.5 s each (other stretches of the texture)."""
+    """Three whisker textures, four recordings of 1.5 s each (other stretches of the texture): 12
+    recordings, enough for the calibration's folds to be whole recordings."""
     folder = tmp_path_factory.mktemp("calibrated")
     ts = reference_texture_set("whisker")
     rows = ["path,label"]
     for t in range(3):
-        x = ts.synthesize(t, duration=4.5)
-        for r in range(3):
+        x = ts.synthesize(t, duration=6.0)
+        for r in range(4):
             name = f"{ts.names[t]}_{r}.wav"
             write_wav(folder / name, x[r * 7500:(r + 1) * 7500, None], 5000)
             rows.append(f"{name},{ts.names[t]}")
@@ -226,7 +228,8 @@ def trained(recordings, tmp_path_factory):
 def test_train_calibrates_on_folds_grouped_by_recording_and_says_so(trained, capsys):
     model = TextureModel.load(trained)
     f = model.calibration.fitted_on
-    assert f["folds_by"] == "recording" and f["windows"] == 135 and f["log_loss"] < f["log_loss_uncalibrated"]
+    assert f["folds_by"] == "recording" and f["windows"] == 180 and f["log_loss"] < f["log_loss_uncalibrated"]
+    assert f["folds"] == DEFAULT_CALIBRATION_FOLDS
 
 
 def test_evaluate_reports_log_loss_brier_ece_and_writes_the_reliability_diagram(recordings, trained, tmp_path,
@@ -238,7 +241,7 @@ def test_evaluate_reports_log_loss_brier_ece_and_writes_the_reliability_diagram(
                  str(tmp_path / "ev"), "--quiet"]) == 0
     result = json.loads(capsys.readouterr().out)
     cal = result["calibration"]
-    assert cal["calibrated"] and cal["model_version"] == 2 and cal["fitted_on"]["windows"] == 135
+    assert cal["calibrated"] and cal["model_version"] == 2 and cal["fitted_on"]["windows"] == 180
     # against the model's own log-posteriors, pooled per recording by its calibration
     model = TextureModel.load(trained)
     recs = read_manifest(recordings / "all.csv")
@@ -254,7 +257,7 @@ def test_evaluate_reports_log_loss_brier_ece_and_writes_the_reliability_diagram(
     # the reliability bins as CSV: 15 per scope, and the ECE follows from them
     with open(tmp_path / "ev" / "reliability.csv") as fh:
         rows = list(csv.DictReader(fh))
-    for scope, n in (("window", 135), ("recording", 9)):
+    for scope, n in (("window", 180), ("recording", 12)):
         bins = [r for r in rows if r["scope"] == scope]
         assert len(bins) == 15 and sum(int(r["decisions"]) for r in bins) == n
         ece = sum(int(r["decisions"]) / n * abs(float(r["accuracy"]) - float(r["mean confidence"]))
@@ -264,7 +267,7 @@ def test_evaluate_reports_log_loss_brier_ece_and_writes_the_reliability_diagram(
     # the table
     assert main(["evaluate", str(trained), "--manifest", str(recordings / "all.csv"), "--quiet"]) == 0
     text = capsys.readouterr().out
-    assert "calibrated on 135 held-out windows (5 folds by recording)" in text
+    assert f"calibrated on 180 held-out windows ({DEFAULT_CALIBRATION_FOLDS} folds by recording)" in text
     for row in ("log loss (nats)", "Brier score", "ECE (15 bins)", "say >= 0.99"):
         assert row in text
 
@@ -316,16 +319,16 @@ def test_cross_validation_reports_the_calibration_of_every_test_fold(recordings,
                  "--epochs", "60", "--cv", "3", "--quiet"]) == 0
     text = capsys.readouterr().out
     assert "every test fold's decisions scored together" in text and "ECE (15 bins)" in text
-    assert "posteriors: calibrated on 135 held-out windows" in text
+    assert "posteriors: calibrated on 180 held-out windows" in text
     with open(tmp_path / "m-cv-reliability.csv") as fh:
         rows = list(csv.DictReader(fh))
-    assert sum(int(r["decisions"]) for r in rows if r["scope"] == "window") == 135
-    assert sum(int(r["decisions"]) for r in rows if r["scope"] == "recording") == 9
+    assert sum(int(r["decisions"]) for r in rows if r["scope"] == "window") == 180
+    assert sum(int(r["decisions"]) for r in rows if r["scope"] == "recording") == 12
     assert main(["evaluate", str(out), "--manifest", str(recordings / "all.csv"), "--cv", "3", "--json", "--out",
                  str(tmp_path / "cv"), "--quiet"]) == 0
     cv = json.loads(capsys.readouterr().out)
-    assert cv["calibration"]["calibrated"] and cv["calibration"]["window"]["n"] == 135
-    assert cv["calibration"]["recording"]["n"] == 9
+    assert cv["calibration"]["calibrated"] and cv["calibration"]["window"]["n"] == 180
+    assert cv["calibration"]["recording"]["n"] == 12
     assert cv["calibration"]["window"]["accuracy"] == pytest.approx(
         np.trace(cv["confusion"]) / np.sum(cv["confusion"]))
     assert (tmp_path / "cv" / "cv-reliability.csv").is_file()
