@@ -7,6 +7,7 @@ not asked for are not computed, and there is no classifier without a model.
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -153,22 +154,41 @@ def train_on_texture_set(ts, pipeline: FeaturePipeline, progress=None, held_out:
     time, one per fold). ``held_out``, a list, receives the held-out part ``(x_test, y_test)``
     (windows the model never saw: a fusion is scored on them); ``trained`` the training part
     ``(x_train, y_train)`` (an early-fusion network learns on it, a late-fusion weight on its
-    out-of-fold windows)."""
+    out-of-fold windows).
+
+    The result depends on nothing but the texture set and the pipeline's settings, so a process
+    that builds several scenes (a test suite, a notebook, a benchmark) trains each model once:
+    the last :data:`TRAINED_ON_THE_SPOT` are kept in memory (the node never changes a model).
+    """
     p = pipeline
-    values, _ = texture_features(ts, p.bank, p.features, p.window, peak_mode=p.peaks.mode,
-                                 peak_threshold=p.peaks.threshold)
-    x_train, y_train, x_test, y_test = split(values)
+    key = (ts, json.dumps(p.bank.to_dict(), sort_keys=True), tuple(p.features), p.window_samples, p.peaks.mode,
+           float(p.peaks.threshold))
+    made = _trained_on_the_spot.pop(key, None)
+    if made is None:
+        values, _ = texture_features(ts, p.bank, p.features, p.window, peak_mode=p.peaks.mode,
+                                     peak_threshold=p.peaks.threshold)
+        x_train, y_train, x_test, y_test = split(values)
+        model = TextureModel.train_for(p, x_train, y_train, ts.names, seed=0)
+        made = (model, (x_train, y_train), (x_test, y_test))
+    _trained_on_the_spot[key] = made                    # the most recent last
+    while len(_trained_on_the_spot) > TRAINED_ON_THE_SPOT:
+        _trained_on_the_spot.pop(next(iter(_trained_on_the_spot)))
+    model, train_part, test_part = made
     if held_out is not None:
-        held_out.append((x_test, y_test))
+        held_out.append(test_part)
     if trained is not None:
-        trained.append((x_train, y_train))
-    model = TextureModel.train_for(p, x_train, y_train, ts.names, seed=0)
+        trained.append(train_part)
     if progress:
         from supramodal.node.training import calibration_line
 
-        progress(f"trained on {len(x_train)} windows of {len(ts.textures)} textures ({', '.join(p.features)}); "
+        progress(f"trained on {len(train_part[0])} windows of {len(ts.textures)} textures ({', '.join(p.features)}); "
                  + calibration_line(None if model.calibration is None else model.calibration.fitted_on))
     return model
+
+
+#: Models trained on the spot kept in memory, most recent last (see :func:`train_on_texture_set`).
+TRAINED_ON_THE_SPOT = 8
+_trained_on_the_spot: dict = {}
 
 
 def driver_for(scene: Scene, bank: Bank | None, speed_override=None, xdf_files: dict | None = None):

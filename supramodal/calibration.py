@@ -486,7 +486,7 @@ def calibration_folds(labels, groups, k: int = DEFAULT_CALIBRATION_FOLDS, seed: 
 
 def fit_network_calibration(x, labels, n_classes: int, groups=None, k: int = DEFAULT_CALIBRATION_FOLDS,
                             hidden: int | None = None, epochs: int | None = None, seed: int = 0,
-                            progress=None) -> tuple[Calibration, Novelty]:
+                            progress=None) -> tuple[Calibration, Novelty, "OutOfFold"]:
     """Calibration and novelty of a network trained as :func:`supramodal.mlp.train_mlp` would train
     it on the raw (unstandardised) input rows ``x`` (n, inputs), from out-of-fold windows.
 
@@ -501,6 +501,14 @@ def fit_network_calibration(x, labels, n_classes: int, groups=None, k: int = DEF
         Each window's recording, windows of one recording consecutive and in time order
         (default: one recording per label).
     progress : callable(str), optional
+
+    Returns
+    -------
+    calibration : Calibration
+    novelty : Novelty
+    out_of_fold : OutOfFold
+        The held-out logits and folds themselves, for whatever else needs a network's held-out
+        windows (a late fusion's weight: no need to train the same fold networks again).
     """
     from supramodal.mlp import DEFAULT_EPOCHS, train_mlp
 
@@ -526,7 +534,34 @@ def fit_network_calibration(x, labels, n_classes: int, groups=None, k: int = DEF
                        "held_out_accuracy": round(float(np.mean(np.argmax(z, axis=1) == y)), 6)})
     mean, scale = input_scaling(x)
     novelty = fit_novelty((x - mean) / scale, y, n_classes, folds)
-    return cal, novelty
+    return cal, novelty, OutOfFold(z, folds, _fingerprint(x, y))
+
+
+@dataclass(frozen=True)
+class OutOfFold:
+    """A network's held-out logits from training: ``logits`` (n, classes) of each training window
+    from the fold network that did not train on it, ``folds`` (n,), and ``fingerprint``, what they
+    were computed on (the input rows and labels, hashed: :meth:`matches`). Kept in memory only."""
+
+    logits: np.ndarray
+    folds: np.ndarray
+    fingerprint: str
+
+    def matches(self, x, labels, folds) -> bool:
+        """Whether these are the held-out logits of input rows ``x`` with ``labels`` on ``folds``."""
+        folds = np.asarray(folds)
+        return (folds.shape == self.folds.shape and bool(np.all(folds == self.folds))
+                and _fingerprint(np.asarray(x, dtype=np.float64).reshape(len(folds), -1), labels) == self.fingerprint)
+
+
+def _fingerprint(x, labels) -> str:
+    import hashlib
+
+    h = hashlib.blake2b(digest_size=16)
+    for a in (np.ascontiguousarray(x, dtype=np.float64), np.ascontiguousarray(labels, dtype=np.int64)):
+        h.update(str(a.shape).encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
 
 
 def input_scaling(x) -> tuple[np.ndarray, np.ndarray]:

@@ -133,6 +133,9 @@ class TextureModel:
     peak_threshold: float = 0.0
     calibration: Calibration | None = None
     novelty: Novelty | None = None
+    #: The calibration's held-out logits of the training windows (in memory after :meth:`train`,
+    #: never in the file; :class:`~supramodal.calibration.OutOfFold`), or None.
+    out_of_fold: object = field(default=None, repr=False, compare=False)
 
     @property
     def n_inputs(self) -> int:
@@ -181,13 +184,13 @@ class TextureModel:
                                  epochs=epochs, seed=seed, progress=progress)
         info = {"algorithm": "iRPROP-", "epochs": len(history), "seed": seed,
                 "final_mse": history[-1], "windows": int(len(values))}
-        calibration = novelty = None
+        calibration = novelty = out_of_fold = None
         if calibration_folds:
-            calibration, novelty = fit_network_calibration(x, np.asarray(labels), len(classes), groups,
-                                                           calibration_folds, hidden, epochs, seed,
-                                                           calibration_progress)
+            calibration, novelty, out_of_fold = fit_network_calibration(
+                x, np.asarray(labels), len(classes), groups, calibration_folds, hidden, epochs, seed,
+                calibration_progress)
         return cls(bank, features, int(window_samples), peak_mode, tuple(classes), mean, scale, mlp, info,
-                   float(peak_threshold), calibration, novelty)
+                   float(peak_threshold), calibration, novelty, out_of_fold)
 
     def _inputs(self, values: np.ndarray) -> np.ndarray:
         values = np.asarray(values, dtype=np.float64)

@@ -307,3 +307,23 @@ def test_a_model_file_written_before_calibration_loads_uncalibrated():
     np.testing.assert_allclose(old.outputs(values), outputs, rtol=1e-12)
     np.testing.assert_allclose(np.exp(old.log_posteriors(values)), outputs / outputs.sum(axis=1, keepdims=True),
                                rtol=1e-9)
+
+
+def test_the_calibrations_fold_networks_stand_in_for_copies_trained_again(model, tmp_path):
+    """A late fusion's weight needs held-out logits of the training windows: the model's own
+    calibration already trained those fold networks on those windows; they must equal copies
+    trained again, and be used only for the very windows and folds they were made on."""
+    import dataclasses
+
+    from supramodal.calibration import calibration_folds
+    from supramodal.fused_model import out_of_fold_logits
+
+    values, labels = _data()
+    folds, _ = calibration_folds(labels, labels, DEFAULT_CALIBRATION_FOLDS)
+    kept = out_of_fold_logits(model, values, labels, CLASSES, folds)
+    again = out_of_fold_logits(dataclasses.replace(model, out_of_fold=None), values, labels, CLASSES, folds)
+    np.testing.assert_allclose(kept, again, rtol=1e-9, atol=1e-9)
+    assert model.out_of_fold.matches(values, labels, folds)
+    assert not model.out_of_fold.matches(values * 1.0001, labels, folds)
+    assert not model.out_of_fold.matches(values, labels, (folds + 1) % DEFAULT_CALIBRATION_FOLDS)
+    assert TextureModel.load(model.save(tmp_path / "m.npz")).out_of_fold is None     # never in the file

@@ -171,3 +171,24 @@ def test_fusion_keys_printed_by_train_fusion_are_scene_keys_and_learn_refuses_th
         scene_from_dict(_fusion_scene(weight=0.5, sharpness=0.0), "<test>")
     with pytest.raises(SceneError, match="needs scope"):
         scene_from_dict(_fusion_scene(weight=0.5, decision={"confidence": 0.9}), "<test>")
+
+
+def test_a_model_trained_on_the_spot_is_trained_once_per_process(monkeypatch):
+    """Calibration trains eleven networks: a second scene with the same texture set and pipeline
+    gets the same model without training again; another pipeline trains its own."""
+    from supramodal.node import build
+    from supramodal.textures import reference_texture_set
+
+    calls = []
+    real = TextureModel.train_for
+    monkeypatch.setattr(TextureModel, "train_for", classmethod(lambda cls, *a, **k: calls.append(1) or real(*a, **k)))
+    monkeypatch.setattr(build, "_trained_on_the_spot", {})
+    ts = reference_texture_set("whisker")
+    short = type(ts)(**{**ts.__dict__, "duration": 4.0})
+    held_a, held_b = [], []
+    a = build.train_on_texture_set(short, FeaturePipeline(whisker_bank(), ("Af",)), held_out=held_a)
+    b = build.train_on_texture_set(short, FeaturePipeline(whisker_bank(), ("Af",)), held_out=held_b)
+    assert a is b and len(calls) == 1
+    np.testing.assert_array_equal(held_a[0][0], held_b[0][0])
+    c = build.train_on_texture_set(short, FeaturePipeline(whisker_bank(), ("A",)))
+    assert c is not a and c.features == ("A",) and len(calls) == 2
