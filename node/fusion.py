@@ -107,6 +107,7 @@ class LateFusion:
         self._order_b = np.array([cb.index(name) for name in ca])   # b's outputs in a's class order
         self.weight = float(weight)
         self.sharpness = float(sharpness)
+        self.correlation = float(correlation)
         self.max_wait = math.inf if max_wait is None else float(max_wait)
         d = {"scope": "window", "n": 10, "method": "log", **(decision or {})}
         self.decider = Decider(ca, d, correlation)

@@ -73,7 +73,8 @@ def write_replay_scene(scene: Scene, graph, folder, name: str, overwrite: bool =
         graph.fusion.model.save(paths["fused"])           # a network trained on the spot, as trained
         d["fusion"]["model"] = paths["fused"].name
     elif graph.fusion is not None:
-        d["fusion"]["weight"] = graph.fusion.weight       # a learned weight, as it was learned
+        for key in ("weight", "sharpness", "correlation"):  # learned ones, as they were learned
+            d["fusion"][key] = getattr(graph.fusion, key)
     # The replay's sinks are the default ones; a relay (no stream) sends its recording on again.
     sent = [sink for sink in d.pop("sink", []) if sink["type"] == "lsl-signal"]
     if not graph.streams:

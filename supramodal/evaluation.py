@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from supramodal.calibration import winner
 from supramodal.errors import InputError
 
 __all__ = ["POOLED_WINDOWS", "pooled_accuracy", "permutation_importance"]
@@ -46,7 +47,7 @@ def pooled_accuracy(log_posteriors_by_recording, truths, n: int) -> tuple[float 
         if m == 0:
             continue
         score = logp[: m * n].reshape(m, n, -1).sum(axis=1)
-        hits += int(np.count_nonzero(np.argmax(score, axis=1) == truth))
+        hits += int(np.count_nonzero(winner(score) == truth))       # a tie is no decision: not a hit
         runs += m
     return (hits / runs if runs else None), runs
 
@@ -62,7 +63,8 @@ def permutation_importance(outputs, windows: np.ndarray, truth: np.ndarray, repe
     Parameters
     ----------
     outputs : callable
-        ``outputs(windows) -> (n, classes)``, e.g. :meth:`TextureModel.outputs`.
+        ``outputs(windows) -> (n, classes)``, scores whose largest value per row is the decision,
+        e.g. :meth:`TextureModel.log_posteriors` (a tie is no decision).
     windows : ndarray, shape (n, features, channels)
     truth : ndarray of int, shape (n,)
     repeats : int, optional
@@ -79,11 +81,11 @@ def permutation_importance(outputs, windows: np.ndarray, truth: np.ndarray, repe
     windows = np.asarray(windows)
     truth = np.asarray(truth)
     rng = np.random.default_rng(seed)
-    base = float(np.mean(np.argmax(outputs(windows), axis=1) == truth))
+    base = float(np.mean(winner(outputs(windows)) == truth))
     drop = np.zeros(windows.shape[2])
     for c in range(windows.shape[2]):
         for _ in range(repeats):
             shuffled = windows.copy()
             shuffled[:, :, c] = windows[rng.permutation(len(windows)), :, c]
-            drop[c] += base - float(np.mean(np.argmax(outputs(shuffled), axis=1) == truth))
+            drop[c] += base - float(np.mean(winner(outputs(shuffled)) == truth))
     return drop / repeats

@@ -229,7 +229,9 @@ def test_a_fusion_trained_on_recorded_sessions_scores_on_another_recording(tmp_p
     # the scene's own (late) fusion, scored the same way, and written as files
     assert main(["evaluate", "--scene", held, "--json", "--quiet", "--out", "report"]) == 0
     late = json.loads(capsys.readouterr().out)
-    assert late["whiskers"] == r["whiskers"] and late["fused"]["window_accuracy"] < r["fused"]["window_accuracy"]
+    # (its fused windows are not the early network's: with calibrated senses late fusion is as good, not worse)
+    assert late["whiskers"] == r["whiskers"] and late["fused"]["window_accuracy"] >= best + 0.2
+    assert late["fused"]["window_accuracy"] != r["fused"]["window_accuracy"] or late["fused"] != r["fused"]
     with open(tmp_path / "report" / "fusion.csv") as fh:
         rows = list(csv.reader(fh))
     assert rows[0] == ["stream", "window accuracy", "windows", "contact accuracy", "contacts"]
