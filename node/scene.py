@@ -639,7 +639,8 @@ def scene_to_toml(scene: Scene) -> str:
             for name in STREAM_SECTIONS:
                 lines += table(f"[stream.{name}]", getattr(spec.scene, name))
         if scene.fusion is not None:
-            lines += table("[fusion]", {k: v for k, v in scene.fusion.items() if k != "decision"})
+            learned = {"decision"} | ({"sharpness", "correlation"} if scene.fusion["weight"] == LEARN else set())
+            lines += table("[fusion]", {k: v for k, v in scene.fusion.items() if k not in learned})
             lines += table("[fusion.decision]", scene.fusion["decision"])
     else:
         lines += table("[driver]", scene.driver)

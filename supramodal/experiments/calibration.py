@@ -484,7 +484,7 @@ def write_calibration(result: dict, out, notice=None) -> list:
     ``notice`` (a callable taking one line) says that no PNG was written. Returns the paths written."""
     from pathlib import Path
 
-    from supramodal.experiments.report import _csv, have_matplotlib
+    from supramodal.experiments.report import write_csv, have_matplotlib
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -497,13 +497,13 @@ def write_calibration(result: dict, out, notice=None) -> list:
             bins.append([name, kind, seed, method, scope, variant, r["edges"][b], r["edges"][b + 1], r["count"][b],
                          r["confidence"][b], r["accuracy"][b]])
     key = ["set", "kind", "set_seed", "method", "scope", "posteriors"]
-    paths = [_csv(out / "calibration.csv", key + list(metrics), rows),
-             _csv(out / "reliability.csv", key + ["bin_low", "bin_high", "count", "confidence", "accuracy"], bins)]
+    paths = [write_csv(out / "calibration.csv", key + list(metrics), rows),
+             write_csv(out / "reliability.csv", key + ["bin_low", "bin_high", "count", "confidence", "accuracy"], bins)]
     unknown = [[b, f["fold"], " ".join(f["left_out"]), scope, f[scope]["auroc_novelty"], f[scope]["auroc_doubt"],
                 f[scope]["false_unknown"], f[scope]["unknown_caught"], f["threshold"], f["accuracy"],
                 f["accuracy_with_rejection"], f["accuracy_of_accepted"]]
                for b in BANKS for f in result["leave_out"][b]["folds"] for scope in ("window", "contact")]
-    paths.append(_csv(out / "unknown.csv", ["bank", "fold", "left_out", "scope", "auroc_novelty", "auroc_doubt",
+    paths.append(write_csv(out / "unknown.csv", ["bank", "fold", "left_out", "scope", "auroc_novelty", "auroc_doubt",
                                             "false_unknown", "unknown_caught", "novelty_threshold",
                                             "known_accuracy", "known_accuracy_with_rejection",
                                             "known_accuracy_of_accepted"], unknown))
@@ -511,7 +511,7 @@ def write_calibration(result: dict, out, notice=None) -> list:
                 r["right"] / r["decided"] if r["decided"] else None, r["decided"] / r["contacts"],
                 r["median_windows"], float(np.mean(r["windows"])) if r["windows"] else None, r["end_right"]]
                for name, sweep in _sweeps(result).items() for r in sweep]
-    paths.append(_csv(out / "anytime.csv", ["set", "confidence", "contacts", "decided", "right", "right_of_decided",
+    paths.append(write_csv(out / "anytime.csv", ["set", "confidence", "contacts", "decided", "right", "right_of_decided",
                                             "decided_of_all", "median_windows", "mean_windows", "right_at_end"],
                       anytime))
     if have_matplotlib():
@@ -543,9 +543,9 @@ PLOT_MIN_BIN = 5
 
 
 def _plot_reliability(result: dict, path):
-    from supramodal.experiments.report import _pyplot, _save
+    from supramodal.experiments.report import pyplot, save_figure
 
-    plt = _pyplot()
+    plt = pyplot()
     fig, axes = plt.subplots(2, 2, figsize=(10, 8.4))
     groups = _groups(result)
     sets = [g for g in groups if not g[0].startswith("two senses")]
@@ -570,7 +570,7 @@ def _plot_reliability(result: dict, path):
             ax.legend(fontsize=6.5, loc="upper left")
     fig.suptitle(f"Reliability of held-out decisions (bins of at least {PLOT_MIN_BIN}; marker area ~ count)",
                  fontsize=10)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def _reliability_line(ax, report: dict, colour, marker, line, label) -> None:
@@ -584,9 +584,9 @@ def _reliability_line(ax, report: dict, colour, marker, line, label) -> None:
 
 
 def _plot_anytime(result: dict, path):
-    from supramodal.experiments.report import _pyplot, _save
+    from supramodal.experiments.report import pyplot, save_figure
 
-    plt = _pyplot()
+    plt = pyplot()
     fig, axes = plt.subplots(1, 3, figsize=(12, 3.8))
     styles = [("k", "o", "-"), ("C1", "s", "-"), ("k", "^", "--"), ("C1", "v", "--")]
     lowest = 1.0
@@ -612,4 +612,4 @@ def _plot_anytime(result: dict, path):
         ax.set_ylabel("share of contacts")
     axes[1].legend(fontsize=7, loc="lower left")
     fig.suptitle(f"Anytime decisions: contacts of up to {result['anytime_windows']} test windows", fontsize=10)
-    return _save(fig, path)
+    return save_figure(fig, path)

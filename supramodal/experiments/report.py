@@ -64,7 +64,7 @@ def write_fig3(result: dict, out: Path, suffix: str = "") -> list[Path]:
     return written
 
 
-def _pyplot():
+def pyplot():
     import matplotlib
 
     matplotlib.use("Agg")
@@ -73,7 +73,7 @@ def _pyplot():
     return plt
 
 
-def _save(fig, path: Path) -> Path:
+def save_figure(fig, path: Path) -> Path:
     """Save at 110 dpi as a palette PNG (64 colours: the plots are line art; a tenth of the size)."""
     import io
 
@@ -93,7 +93,7 @@ def _save(fig, path: Path) -> Path:
 def _plot_fig3(result: dict, path: Path) -> Path:
     import numpy as np
 
-    plt = _pyplot()
+    plt = pyplot()
 
     feats = list(result["features"])
     names = list(result["features"][feats[0]]["per_texture"])
@@ -118,12 +118,12 @@ def _plot_fig3(result: dict, path: Path) -> Path:
     ax.set_title(f"Fig. 3, {result['bank']} bank: {result['texture_set']}{note}", fontsize=10)
     ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.25 if peaks else -0.08), ncol=2,
               frameon=False)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 # -- every figure ----------------------------------------------------------------------------------
 
-def _csv(path: Path, header, rows) -> Path:
+def write_csv(path: Path, header, rows) -> Path:
     with open(path, "w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(header)
@@ -188,10 +188,10 @@ def _write_fig1(result: dict, out: Path) -> list[Path]:
     for bank, r in result["banks"].items():
         names = [c["name"] for c in r["channels"]]
         rows = ([f] + [r["gain_db"][k][i] for k in range(len(names))] for i, f in enumerate(r["freqs"]))
-        paths.append(_csv(out / f"fig1_{bank}.csv", ["freq_hz"] + [f"{n}_db" for n in names], rows))
+        paths.append(write_csv(out / f"fig1_{bank}.csv", ["freq_hz"] + [f"{n}_db" for n in names], rows))
     keys = ["name", "cf", "b", "B", "peak_hz", "width_3db", "width_3db_formula", "max_gain_db"]
     rows = ([bank] + [c[k] for k in keys] for bank, r in result["banks"].items() for c in r["channels"])
-    paths.append(_csv(out / "fig1_channels.csv", ["bank"] + keys, rows))
+    paths.append(write_csv(out / "fig1_channels.csv", ["bank"] + keys, rows))
     return paths
 
 
@@ -209,7 +209,7 @@ def _table_fig1(result: dict) -> str:
 
 
 def _plot_fig1(result: dict, path: Path) -> Path:
-    plt = _pyplot()
+    plt = pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
     titles = {"cochlea": "(a) cochlea: 50 channels, 20 Hz..20 kHz, q_ear 9.26, b_min 24.7",
               "whisker": "(b) whiskers: 20 vibrissae, q_ear 35, b_min 15"}
@@ -222,7 +222,7 @@ def _plot_fig1(result: dict, path: Path) -> Path:
         ax.set_ylabel("gain (dB)")
         ax.set_title(titles.get(bank, bank), fontsize=9)
         ax.grid(True, which="both", linewidth=0.3)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def _write_fig4(result: dict, out: Path) -> list[Path]:
@@ -232,7 +232,7 @@ def _write_fig4(result: dict, out: Path) -> list[Path]:
             for i, fr in enumerate(result["freqs"]))
     keys = ["peak_hz", "low_hz", "high_hz", "width_3db", "q", "closed", "range_db"]
     sharp = ([f] + [result["features"][f]["sharpness"][k] for k in keys] for f in feats)
-    return [_csv(out / "fig4.csv", header, rows), _csv(out / "fig4_sharpness.csv", ["feature"] + keys, sharp)]
+    return [write_csv(out / "fig4.csv", header, rows), write_csv(out / "fig4_sharpness.csv", ["feature"] + keys, sharp)]
 
 
 def _table_fig4(result: dict) -> str:
@@ -249,7 +249,7 @@ def _table_fig4(result: dict) -> str:
 
 
 def _plot_fig4(result: dict, path: Path) -> Path:
-    plt = _pyplot()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(7, 4))
     styles = {"A": ("k", "-"), "f": ("0.45", "--"), "Af": ("0.7", ":")}
     for f in ("A", "f", "Af"):
@@ -265,14 +265,14 @@ def _plot_fig4(result: dict, path: Path) -> Path:
     ax.set_ylim(0, 1.05)
     ax.set_title(f"Fig. 4: vibrissa {result['channel']} (cf {result['cf']:g} Hz), pure sines", fontsize=10)
     ax.legend(fontsize=8)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def _write_fig5(result: dict, out: Path) -> list[Path]:
     feats = list(result["features"])
     rows = ([B, result["mean_width_3db"][i], *result["B_range"][i]] + [result["features"][f]["mean_rate"][i] for f in feats]
             for i, B in enumerate(result["mean_B"]))
-    return [_csv(out / "fig5.csv", ["mean_B", "mean_width_3db_hz", "B_min", "B_max"] + feats, rows)]
+    return [write_csv(out / "fig5.csv", ["mean_B", "mean_width_3db_hz", "B_min", "B_max"] + feats, rows)]
 
 
 def _table_fig5(result: dict) -> str:
@@ -289,7 +289,7 @@ def _table_fig5(result: dict) -> str:
 
 
 def _plot_fig5(result: dict, path: Path) -> Path:
-    plt = _pyplot()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(7, 4))
     for f in [f for f in FEATURES if f in result["features"]]:
         ax.semilogx(result["mean_B"], result["features"][f]["mean_rate"], color=SHADES[f], marker=MARKERS[f],
@@ -302,13 +302,13 @@ def _plot_fig5(result: dict, path: Path) -> Path:
     ax.set_title(f"Fig. 5: whisker bandwidth, {result['texture_set']}", fontsize=10)
     ax.legend(fontsize=8)
     ax.grid(True, which="both", linewidth=0.3)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def _write_fig6(result: dict, out: Path) -> list[Path]:
     c, w = result["cochlea"], result["whisker"]
-    return [_csv(out / "fig6_cochlea.csv", ["channels", "mean_rate"], zip(c["channels"], c["mean_rate"])),
-            _csv(out / "fig6_whisker.csv", ["groups", "rows", "channels", "mean_rate"],
+    return [write_csv(out / "fig6_cochlea.csv", ["channels", "mean_rate"], zip(c["channels"], c["mean_rate"])),
+            write_csv(out / "fig6_whisker.csv", ["groups", "rows", "channels", "mean_rate"],
                  zip(w["groups"], w["rows"], w["channels"], w["mean_rate"]))]
 
 
@@ -324,7 +324,7 @@ def _table_fig6(result: dict) -> str:
 
 
 def _plot_fig6(result: dict, path: Path) -> Path:
-    plt = _pyplot()
+    plt = pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
     c, w = result["cochlea"], result["whisker"]
     axes[0].plot(c["channels"], c["mean_rate"], "k-o", markersize=3)
@@ -340,7 +340,7 @@ def _plot_fig6(result: dict, path: Path) -> Path:
         ax.set_ylim(0, 1.02)
         ax.set_ylabel(f"mean classification rate ({result['feature']})")
         ax.grid(True, linewidth=0.3)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 # -- fusion of the two senses (beyond the paper) ---------------------------------------------------
@@ -349,12 +349,12 @@ def _write_fusion(result: dict, out: Path) -> list[Path]:
     rows = [(r["set_seed"], m, r["window"][m], r["contact"][m], r["late_weight"], r["late_sharpness"],
              r["calibration"][m]["window"]["ece"], r["calibration"][m]["contact"]["ece"])
             for r in result["sets"] for m in r["window"]]
-    return [_csv(out / "fusion.csv", ["set_seed", "method", "window_accuracy", "contact_accuracy",
+    return [write_csv(out / "fusion.csv", ["set_seed", "method", "window_accuracy", "contact_accuracy",
                                       "late_weight_of_whiskers", "late_sharpness", "window_ece", "contact_ece"], rows)]
 
 
 def _plot_fusion(result: dict, path: Path) -> Path:
-    plt = _pyplot()
+    plt = pyplot()
     methods = list(result["summary"])
     fig, ax = plt.subplots(figsize=(6, 3))
     x = np.arange(len(methods))
@@ -368,4 +368,4 @@ def _plot_fusion(result: dict, path: Path) -> Path:
     ax.set_ylabel("accuracy")
     ax.set_title(f"two senses, {len(result['sets'])} random sets of 8 textures", fontsize=9)
     ax.legend(fontsize=8, loc="lower right")
-    return _save(fig, path)
+    return save_figure(fig, path)
