@@ -26,6 +26,7 @@ import os
 import shutil
 import signal
 import sys
+import threading
 import traceback
 import warnings
 from pathlib import Path
@@ -815,13 +816,24 @@ def _show_warning(message, category, filename, lineno, file=None, line=None, _de
 
 
 def main(argv=None) -> int:
-    """Run the command line; returns the exit status (see the module docstring)."""
+    """Run the command line; returns the exit status (see the module docstring).
+
+    The SIGINT and SIGTERM handlers a command installs (to stop a node cleanly) are its own: the
+    caller's are put back when it returns, so that a program or a test suite that calls ``main``
+    can still be interrupted afterwards.
+    """
     args = build_parser().parse_args(argv)
     shown, warnings.showwarning = warnings.showwarning, _show_warning
+    handlers = {}
+    if threading.current_thread() is threading.main_thread():      # signals are the main thread's
+        handlers = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
         return _run(args)
     finally:
         warnings.showwarning = shown
+        for sig, handler in handlers.items():
+            if handler is not None:                                  # None: set outside Python
+                signal.signal(sig, handler)
 
 
 def _run(args) -> int:

@@ -458,3 +458,20 @@ def test_every_option_has_help_stating_its_default():
             if not text or (action.default not in (None, False, argparse.SUPPRESS) and "default" not in text):
                 missing.append(f"{name} {'/'.join(action.option_strings) or action.dest}")
     assert not missing, f"options without help, or whose help does not state the default: {missing}"
+
+
+def test_main_gives_the_callers_signal_handlers_back(tmp_path):
+    """`supramodal run` stops its node on SIGINT/SIGTERM; called in-process (a test, a program), it
+    must not leave that handler behind, or the caller could no longer be interrupted."""
+    import signal
+
+    from supramodal.node.cli import main
+
+    mine = lambda signum, frame: None          # noqa: E731
+    before = {sig: signal.signal(sig, mine) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        assert main(["run", "--seconds", "0.3", "--speed", "max", "--quiet", "--json"]) == 0
+        assert signal.getsignal(signal.SIGINT) is mine and signal.getsignal(signal.SIGTERM) is mine
+    finally:
+        for sig, handler in before.items():
+            signal.signal(sig, handler)
