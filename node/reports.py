@@ -8,11 +8,11 @@ from pathlib import Path
 import numpy as np
 
 __all__ = ["EVALUATION_FILES", "plots_missing_notice", "pyplot_or_none", "write_confusion", "write_evaluation",
-           "write_fused_evaluation", "fused_evaluation_files", "write_reliability"]
+           "write_fused_evaluation", "fused_evaluation_files", "write_reliability", "write_anytime"]
 
 #: Files ``evaluate --out`` writes (the PNGs where matplotlib is installed).
 EVALUATION_FILES = ("confusion.csv", "confusion.png", "pooling.csv", "channels.csv", "evaluation.png",
-                    "reliability.csv", "reliability.png")
+                    "reliability.csv", "reliability.png", "anytime.csv", "anytime.png")
 
 
 def write_confusion(labels, confusion, base: Path, title: str) -> list[Path]:
@@ -141,6 +141,8 @@ def write_evaluation(result: dict, folder: Path) -> list[Path]:
         w.writerow(["channel", "window accuracy lost when shuffled"])
         w.writerows(channels)
     written += [folder / "pooling.csv", folder / "channels.csv"]
+    if result.get("anytime"):
+        written += write_anytime(result["anytime"], folder / "anytime")
     plt = pyplot_or_none()
     if plt is None:
         return written
@@ -163,6 +165,44 @@ def write_evaluation(result: dict, folder: Path) -> list[Path]:
     fig.savefig(folder / "evaluation.png", dpi=120)
     plt.close(fig)
     return written + [folder / "evaluation.png"]
+
+
+def write_anytime(rows: list[dict], base: Path) -> list[Path]:
+    """Write ``base.csv`` and ``base.png``: per confidence threshold, the touches decided, the share
+    of those right, and the median windows it took (``rows``: :func:`supramodal.evaluation.anytime_sweep`'s,
+    without the per-touch windows). Returns the paths written (the PNG where matplotlib is)."""
+    csv_path = base.with_name(base.name + ".csv")
+    with open(csv_path, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["confidence", "touches", "decided", "right", "right of decided", "median windows to decide",
+                    "right at the end"])
+        for r in rows:
+            w.writerow([r["confidence"], r["contacts"], r["decided"], r["right"],
+                        "" if not r["decided"] else f"{r['right'] / r['decided']:.6f}",
+                        "" if r["median_windows"] is None else r["median_windows"], r["end_right"]])
+    plt = pyplot_or_none()
+    if plt is None:
+        return [csv_path]
+    fig, (left, right) = plt.subplots(1, 2, figsize=(9, 3.4))
+    c = [r["confidence"] for r in rows]
+    left.plot(c, [r["right"] / r["decided"] if r["decided"] else np.nan for r in rows], "o-", color="0.2",
+              label="right of decided")
+    left.plot(c, [r["decided"] / r["contacts"] for r in rows], "s--", color="0.55", label="decided")
+    left.plot(c, c, ":", color="0.4", label="the threshold")
+    left.set_xlabel("confidence threshold")
+    left.set_ylabel("share of touches")
+    left.set_ylim(0, 1.02)
+    left.legend(fontsize=8, loc="lower right")
+    right.plot(c, [np.nan if r["median_windows"] is None else r["median_windows"] for r in rows], "o-", color="0.2")
+    right.set_xlabel("confidence threshold")
+    right.set_ylabel("median windows to decide")
+    right.set_ylim(bottom=0)
+    fig.suptitle("decided as soon as sure (each recording one touch)", fontsize=9)
+    fig.tight_layout()
+    png_path = base.with_name(base.name + ".png")
+    fig.savefig(png_path, dpi=120)
+    plt.close(fig)
+    return [csv_path, png_path]
 
 
 def _reliability_title(result: dict) -> str:

@@ -19,7 +19,7 @@ from supramodal.replay.driver import ReplayDriver
 from supramodal.banks import Bank
 from supramodal.calibration import calibration_report, pool_log_posteriors, winner
 from supramodal.errors import SupramodalError
-from supramodal.evaluation import POOLED_WINDOWS, permutation_importance, pooled_accuracy
+from supramodal.evaluation import POOLED_WINDOWS, anytime_sweep, permutation_importance, pooled_accuracy
 from supramodal.mlp import DEFAULT_EPOCHS
 from supramodal.model import TextureModel
 from supramodal.pipeline import FeaturePipeline
@@ -321,7 +321,22 @@ def _score_recordings(model: TextureModel, recs, windows, progress=None) -> tupl
         "calibration": {"calibrated": model.calibrated,
                         "fitted_on": None if model.calibration is None else model.calibration.fitted_on,
                         **_calibration_reports(scored)},
+        "anytime": _anytime(model, scored),
     }, scored
+
+
+def _anytime(model: TextureModel, scored: dict) -> list[dict] | None:
+    """Each recording taken as one touch, decided as soon as its pooled confidence reaches each of
+    :data:`~supramodal.evaluation.ANYTIME_THRESHOLDS` (:func:`~supramodal.evaluation.anytime_sweep`,
+    as the node's ``[decision] confidence`` decides a contact); None for an uncalibrated model,
+    whose confidence is no probability to set a threshold on."""
+    if not model.calibrated:
+        return None
+    lps = scored["log_posteriors"]
+    starts = np.cumsum([0] + [len(lp) for lp in lps])
+    runs = [np.arange(a, b) for a, b in zip(starts[:-1], starts[1:])]
+    rows = anytime_sweep(np.concatenate(lps), scored["window_truth"], runs, model.calibration.correlation)
+    return [{k: v for k, v in r.items() if k != "windows"} for r in rows]
 
 
 def _score(model: TextureModel, recs: list[Recording], windows: list[np.ndarray]) -> dict:
@@ -352,11 +367,25 @@ def format_evaluation(result: dict) -> str:
     lines.append(f"  whole recording   {result['recording_accuracy']:.3f}")
     if "calibration" in result:
         lines += ["", format_calibration(result["calibration"])]
+    if result.get("anytime"):
+        lines += ["", format_anytime(result["anytime"])]
     if "channel_importance" in result:
         top = sorted(result["channel_importance"].items(), key=lambda kv: -kv[1])
         lines += ["", "channels carrying the decision (window accuracy lost when the channel is shuffled)",
                   "  " + ", ".join(f"{name} {v:+.3f}" for name, v in top[:8])]
     return "\n".join(lines) + "\n\n" + _confusion_table(result["labels"], result["confusion"])
+
+
+def format_anytime(rows: list[dict]) -> str:
+    """The anytime decisions of :func:`evaluate_manifest` (its ``anytime``) as a table."""
+    lines = ["decided as soon as sure (each recording one touch, as [decision] confidence = c decides a contact)",
+             f"  {'c':>6}  {'decided':>9}  {'right of decided':>16}  {'median windows':>14}  {'right at the end':>16}"]
+    for r in rows:
+        right = "-" if not r["decided"] else f"{r['right'] / r['decided']:.3f}"
+        median = "-" if r["median_windows"] is None else f"{r['median_windows']:g}"
+        lines.append(f"  {r['confidence']:>6g}  {r['decided']:>4} of {r['contacts']:<2}  {right:>16}  {median:>14}  "
+                     f"{r['end_right']:>9} of {r['contacts']:<3}")
+    return "\n".join(lines)
 
 
 def format_calibration(calibration: dict) -> str:

@@ -1,5 +1,5 @@
-"""What a user needs to trust a model: how accuracy grows with the windows pooled, and which
-channels carry the decision. Pure numpy on a model's outputs; no files, no devices.
+"""What a user needs to trust a model: how accuracy grows with the windows pooled, how soon a
+touch is decided at a confidence threshold, and which channels carry the decision. Pure numpy on a model's outputs; no files, no devices.
 """
 
 from __future__ import annotations
@@ -7,12 +7,15 @@ from __future__ import annotations
 import numpy as np
 
 from supramodal.calibration import winner
+from supramodal.decisions import DecisionAccumulator
 from supramodal.errors import InputError
 
-__all__ = ["POOLED_WINDOWS", "pooled_accuracy", "permutation_importance"]
+__all__ = ["ANYTIME_THRESHOLDS", "POOLED_WINDOWS", "anytime_sweep", "pooled_accuracy", "permutation_importance"]
 
 #: Numbers of consecutive windows whose pooled decision ``evaluate`` reports (and the whole recording).
 POOLED_WINDOWS = (1, 2, 5, 10)
+#: Confidence thresholds of the anytime decisions ``evaluate`` and ``experiment calibration`` report.
+ANYTIME_THRESHOLDS = (0.5, 0.7, 0.8, 0.9, 0.95, 0.98, 0.99, 0.995, 0.999)
 
 
 def pooled_accuracy(log_posteriors_by_recording, truths, n: int) -> tuple[float | None, int]:
@@ -89,3 +92,44 @@ def permutation_importance(outputs, windows: np.ndarray, truth: np.ndarray, repe
             shuffled[:, :, c] = windows[rng.permutation(len(windows)), :, c]
             drop[c] += base - float(np.mean(winner(outputs(shuffled)) == truth))
     return drop / repeats
+
+
+def anytime_sweep(log_posteriors, labels, runs, correlation: float, thresholds=ANYTIME_THRESHOLDS) -> list[dict]:
+    """Contacts decided as soon as their pooled confidence reaches each threshold.
+
+    Parameters
+    ----------
+    log_posteriors : ndarray, shape (windows, classes)
+        Calibrated log-posteriors of test windows.
+    labels : ndarray of int, shape (windows,)
+    runs : list of ndarray
+        Each contact's windows, in time order (one texture each).
+    correlation : float
+        The pooling's window correlation (the model's).
+    thresholds : sequence of float in (0, 1)
+
+    Returns
+    -------
+    list of dict
+        Per threshold: ``confidence``, ``contacts``, ``decided`` (how many reached it),
+        ``right`` (decided and right), ``windows`` (the windows each decided contact took),
+        ``median_windows`` (None if none was decided) and ``end_right``: contacts whose
+        decision at their last window (the final one, or the pooled one if never final) is right.
+    """
+    lp = np.asarray(log_posteriors, dtype=np.float64)
+    y = np.asarray(labels)
+    out = []
+    for c in thresholds:
+        windows, right, end_right = [], 0, 0
+        for r in runs:
+            acc = DecisionAccumulator(lp.shape[1], "contact", 0, "log", correlation, c)
+            for t in r:
+                d = acc.update(lp[t])
+            if d.decided:
+                windows.append(d.windows)
+                right += int(d.label == y[r[0]])
+            end_right += int(d.label == y[r[0]])
+        out.append({"confidence": float(c), "contacts": len(runs), "decided": len(windows), "right": right,
+                    "windows": windows, "median_windows": float(np.median(windows)) if windows else None,
+                    "end_right": end_right})
+    return out

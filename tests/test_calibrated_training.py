@@ -310,7 +310,7 @@ def test_without_matplotlib_the_csvs_are_written_and_the_user_told(recordings, t
     err = capsys.readouterr().err
     assert "matplotlib is not installed" in err and "supramodal[plots]" in err
     assert sorted(p.name for p in (tmp_path / "ev").iterdir()) == \
-        ["channels.csv", "confusion.csv", "pooling.csv", "reliability.csv"]
+        ["anytime.csv", "channels.csv", "confusion.csv", "pooling.csv", "reliability.csv"]
 
 
 def test_cross_validation_reports_the_calibration_of_every_test_fold(recordings, tmp_path, capsys):
@@ -349,3 +349,45 @@ def test_a_tie_is_no_decision_whatever_the_class_names(recordings):
     assert all(r["predicted"] is None for r in result["recordings"])
     assert np.sum(result["confusion"]) == 0                                     # no window in any column
     assert result["calibration"]["window"]["accuracy"] == 0.0
+
+
+def test_evaluate_says_how_soon_each_touch_is_decided_at_each_threshold(recordings, trained, tmp_path, capsys):
+    """Each recording one touch, decided at the first window whose pooled confidence reaches the
+    threshold: checked against a plain walk over the windows (the pooling written out here)."""
+    import math
+
+    from supramodal.evaluation import ANYTIME_THRESHOLDS
+    from supramodal.node.manifest import read_manifest
+    from supramodal.node.training import recording_windows
+
+    assert main(["evaluate", str(trained), "--manifest", str(recordings / "all.csv"), "--json", "--out",
+                 str(tmp_path / "ev"), "--quiet"]) == 0
+    rows = json.loads(capsys.readouterr().out)["anytime"]
+    model = TextureModel.load(trained)
+    rho = model.calibration.correlation
+    recs = read_manifest(recordings / "all.csv")
+    lps = [model.log_posteriors(recording_windows(r, model.pipeline())) for r in recs]
+    assert [r["confidence"] for r in rows] == list(ANYTIME_THRESHOLDS)
+    for row in rows:
+        taken, right = [], 0
+        for rec, lp in zip(recs, lps):
+            total = np.zeros(lp.shape[1])
+            for n in range(1, len(lp) + 1):
+                total += lp[n - 1]
+                var = sum(rho ** abs(i - j) for i in range(n) for j in range(n))      # of the mean, times n^2
+                score = total * (n / var)                                           # n_eff / n = n / var
+                p = np.exp(score - score.max()) / np.exp(score - score.max()).sum()
+                if p.max() >= row["confidence"]:
+                    taken.append(n)
+                    right += model.classes[int(np.argmax(p))] == rec.label
+                    break
+        assert (row["decided"], row["right"]) == (len(taken), right)
+        assert row["median_windows"] == (float(np.median(taken)) if taken else None)
+        assert row["contacts"] == 12 and not math.isnan(row["end_right"])
+    with open(tmp_path / "ev" / "anytime.csv") as fh:
+        table = list(csv.DictReader(fh))
+    assert [float(r["confidence"]) for r in table] == list(ANYTIME_THRESHOLDS)
+    assert [int(r["decided"]) for r in table] == [r["decided"] for r in rows]
+    assert (tmp_path / "ev" / "anytime.png").stat().st_size > 0
+    assert main(["evaluate", str(trained), "--manifest", str(recordings / "all.csv"), "--quiet"]) == 0
+    assert "decided as soon as sure" in capsys.readouterr().out

@@ -18,7 +18,8 @@ import pytest
 from supramodal.calibration import calibration_report
 from supramodal.errors import InputError
 from supramodal.experiments import report
-from supramodal.experiments.calibration import (ANYTIME_CONFIDENCE, THRESHOLDS, anytime_sweep, auroc,
+from supramodal.evaluation import ANYTIME_THRESHOLDS as THRESHOLDS
+from supramodal.experiments.calibration import (ANYTIME_CONFIDENCE, anytime_sweep, auroc,
                                                 calibration_table, done_when, merge_sweeps)
 from supramodal.experiments.fusion import METHODS, merge_reports
 from supramodal.experiments.suite import plans

@@ -22,7 +22,7 @@ Four measurements, each on held-out windows (the last quarter of every texture's
 4. **Anytime decisions** (:func:`anytime_sweep`): contacts of up to :data:`ANYTIME_WINDOWS` test
    windows fed one by one to a :class:`~supramodal.decisions.DecisionAccumulator` with a
    confidence threshold; the share of contacts decided, the share of those right and the
-   median number of windows it took, against the threshold (:data:`THRESHOLDS`).
+   median number of windows it took, against the threshold (:data:`ANYTIME_THRESHOLDS`).
 
 Run by ``supramodal experiment calibration [--quick] [--sets N] [--seed S] [--jobs N] [--out DIR]
 [--json]``: a Markdown table on stdout, ``calibration.csv``, ``reliability.csv``, ``unknown.csv``,
@@ -38,8 +38,8 @@ import numpy as np
 from scipy.stats import rankdata
 
 from supramodal.calibration import calibration_report, normalised_log_posteriors, winner
-from supramodal.decisions import DecisionAccumulator
 from supramodal.errors import InputError
+from supramodal.evaluation import ANYTIME_THRESHOLDS, anytime_sweep
 from supramodal.experiments import fusion
 from supramodal.experiments.common import BANKS, QUICK_DURATION, Plan, Run, default_bank, quick_set
 from supramodal.experiments.fusion import (CONTACT_WINDOWS, SURE, contact_runs, merge_reports, pooled_contacts,
@@ -55,7 +55,6 @@ FEATURES = ("Af",)
 #: Most windows of one contact in the anytime decisions (2 s of 100 ms windows).
 ANYTIME_WINDOWS = 20
 #: Confidence thresholds of the anytime decisions.
-THRESHOLDS = (0.5, 0.7, 0.8, 0.9, 0.95, 0.98, 0.99, 0.995, 0.999)
 #: The threshold the issue names.
 ANYTIME_CONFIDENCE = 0.99
 #: Textures left out of training per fold of the unknown-texture test.
@@ -89,47 +88,6 @@ def auroc(unknown, known) -> float:
         raise InputError(f"an AUROC needs unknown and known items, got {u.size} and {k.size}")
     ranks = rankdata(np.concatenate([u, k]))
     return float((ranks[:u.size].sum() - u.size * (u.size + 1) / 2) / (u.size * k.size))
-
-
-def anytime_sweep(log_posteriors, labels, runs, correlation: float, thresholds=THRESHOLDS) -> list[dict]:
-    """Contacts decided as soon as their pooled confidence reaches each threshold.
-
-    Parameters
-    ----------
-    log_posteriors : ndarray, shape (windows, classes)
-        Calibrated log-posteriors of test windows.
-    labels : ndarray of int, shape (windows,)
-    runs : list of ndarray
-        Each contact's windows, in time order (one texture each).
-    correlation : float
-        The pooling's window correlation (the model's).
-    thresholds : sequence of float in (0, 1)
-
-    Returns
-    -------
-    list of dict
-        Per threshold: ``confidence``, ``contacts``, ``decided`` (how many reached it),
-        ``right`` (decided and right), ``windows`` (the windows each decided contact took),
-        ``median_windows`` (None if none was decided) and ``end_right``: contacts whose
-        decision at their last window (the final one, or the pooled one if never final) is right.
-    """
-    lp = np.asarray(log_posteriors, dtype=np.float64)
-    y = np.asarray(labels)
-    out = []
-    for c in thresholds:
-        windows, right, end_right = [], 0, 0
-        for r in runs:
-            acc = DecisionAccumulator(lp.shape[1], "contact", 0, "log", correlation, c)
-            for t in r:
-                d = acc.update(lp[t])
-            if d.decided:
-                windows.append(d.windows)
-                right += int(d.label == y[r[0]])
-            end_right += int(d.label == y[r[0]])
-        out.append({"confidence": float(c), "contacts": len(runs), "decided": len(windows), "right": right,
-                    "windows": windows, "median_windows": float(np.median(windows)) if windows else None,
-                    "end_right": end_right})
-    return out
 
 
 def merge_sweeps(sweeps: list[list[dict]]) -> list[dict]:
@@ -285,7 +243,7 @@ def plan(quick: bool = False, epochs: int = DEFAULT_EPOCHS, seed: int = 0, sets:
         out = {"figure": "calibration", "quick": quick, "epochs": epochs, "seed": seed,
                "duration": QUICK_DURATION if quick else None, "contact_windows": CONTACT_WINDOWS,
                "anytime_windows": ANYTIME_WINDOWS, "sure": SURE, "false_unknown": FALSE_UNKNOWN,
-               "thresholds": list(THRESHOLDS), "reference": {}, "random_sets": {}, "leave_out": {}}
+               "thresholds": list(ANYTIME_THRESHOLDS), "reference": {}, "random_sets": {}, "leave_out": {}}
         for bank in BANKS:
             out["reference"][bank] = results[("calibration", bank, "reference")]
             out["random_sets"][bank] = summarize_sets([results[("calibration", bank, "random", seed + i)]
