@@ -22,6 +22,7 @@ from supramodal.node.sinks import QueuedSink, make_sink
 from supramodal.bankfile import BANK_KEYS, BankFileError, bank_from_description, load_bank
 from supramodal.banks import Bank
 from supramodal.calibration import winner
+from supramodal.decisions import ContactDetector
 from supramodal.errors import InputError
 from supramodal.model import ModelError, TextureModel
 from supramodal.pipeline import FeaturePipeline
@@ -536,6 +537,18 @@ def _early_model(scene: Scene, a: Stream, b: Stream, held_out: dict, trained: di
     return model
 
 
+def _check_fusion_decision(scene: Scene, models) -> None:
+    """Refuse ``[fusion.decision]`` rules the fusion cannot follow with these ``models`` (the two
+    senses', or the early network), naming the fix, before anything starts."""
+    d = scene.fusion["decision"]
+    asks = [k for k in ("confidence", "unknown_below") if d[k]]
+    old = [m for m in models if not m.calibrated]
+    if asks and old:
+        raise SceneError(f"{scene.source}: [fusion.decision] {', '.join(asks)} needs calibrated posteriors, but "
+                         f"{len(old)} of the fusion's models {'is' if len(old) == 1 else 'are'} uncalibrated (a "
+                         "version 1 model file): retrain with `supramodal train` (or `train --fusion early`)")
+
+
 def _order(model: TextureModel, reference: TextureModel) -> np.ndarray:
     """Columns of ``model``'s posteriors in ``reference``'s class order."""
     return np.array([list(model.classes).index(c) for c in reference.classes])
@@ -615,9 +628,15 @@ def _build_graph(scene: Scene, speed, sinks_override, progress, recorder, overwr
             # fused decisions depend on how fast this machine runs them.
             files = {a.source.timebase, b.source.timebase} <= {"stream", "recorded"}
             max_wait = None if files else f["max_wait"]
+            _check_fusion_decision(scene, (a.model, b.model))
+            if f["decision"]["scope"] == "contact":
+                for s in (a, b):                # the fusion's contacts are its streams' touches
+                    if s.contact is None:
+                        s.contact = ContactDetector(s.pipeline.window_samples, f["decision"]["contact_threshold"])
             try:
                 if f["method"] == "early":
                     model = _early_model(scene, a, b, held_out, trained, progress)
+                    _check_fusion_decision(scene, (model,))
                     correlation = 0.0 if model.calibration is None else model.calibration.correlation
                     fusion = EarlyFusion((a.name, b.name), (a.model.classes, b.model.classes), model, max_wait,
                                          f["decision"], correlation=correlation)

@@ -284,7 +284,11 @@ def _log_posteriors(event: WindowEvent) -> np.ndarray:
     if event.log_posteriors is not None:
         return np.asarray(event.log_posteriors, dtype=np.float64)
     with np.errstate(divide="ignore"):
-        return np.log(np.asarray(event.posteriors, dtype=np.float64))
+        lp = np.log(np.asarray(event.posteriors, dtype=np.float64))
+    if not np.isfinite(lp).all():
+        raise InputError(f"a window of {event.stream!r} carries posteriors of exactly 0 and no log-posteriors: "
+                         "fusion needs finite log-posteriors (a stream's events carry them)")
+    return lp
 
 
 def _centre(event: WindowEvent) -> float:

@@ -438,6 +438,9 @@ def _check_decision(source: str, decision: dict, where: str) -> None:
     if decision["confidence"] and decision["scope"] != "contact":
         raise SceneError(f"{source}: {where} confidence = {decision['confidence']:g} decides a contact as soon as it "
                          f"is sure: it needs scope = \"contact\" (scope is {decision['scope']!r})")
+    if decision["confidence"] and decision["method"] != "log":
+        raise SceneError(f"{source}: {where} confidence needs method = \"log\": a vote's share is no probability "
+                         "(one window is a unanimous vote)")
 
 
 def _sinks(d: dict, source: str, streams, sources=(MAIN_STREAM,)) -> list[dict]:
@@ -537,6 +540,9 @@ def _graph_scene(d: dict, source: str, base_dir: Path) -> Scene:
         fusion = _fill(f"{source}: [fusion]", {k: v for k, v in given.items() if k != "decision"}, FUSION_KEYS)
         fusion["decision"] = _fill(f"{source}: [fusion.decision]", given.get("decision", {}), SECTIONS["decision"])
         _check_decision(source, fusion["decision"], "[fusion.decision]")
+        if fusion["decision"]["unknown"]:
+            raise SceneError(f"{source}: [fusion.decision] unknown: a fused window is unknown when either sense's "
+                             "window is novel; set unknown in each [[stream]]'s [decision] instead")
         given_learned = sorted({"sharpness", "correlation"} & set(given))
         if fusion["weight"] == LEARN and given_learned:
             raise SceneError(f"{source}: [fusion] {', '.join(given_learned)}: weight = \"{LEARN}\" learns them with the "

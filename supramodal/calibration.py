@@ -65,6 +65,9 @@ CALIBRATION_METHOD = "asinh-temperature"
 #: not five: each fold's network then trains on 90 % of the windows and behaves like the final one (five
 #: left the final network surer than its calibration said: whisker reference ECE 0.059 -> 0.033).
 DEFAULT_CALIBRATION_FOLDS = 10
+#: Range of the window map's two numbers (``a`` and ``c``): where the fit looks, and what a model
+#: file may hold.
+MAP_BOUNDS = (1e-3, 1e4)
 #: Bins of the expected calibration error and of the reliability diagram.
 ECE_BINS = 15
 #: Consecutive held-out windows of one recording that make one run when the pooling is fitted
@@ -117,6 +120,11 @@ def effective_windows(n, correlation: float) -> np.ndarray:
         return n.copy()
     if r >= 1.0:
         return np.ones_like(n)
+    if 1.0 - r < 1e-3:
+        # The closed form cancels catastrophically near rho = 1 (two terms of order 1/(1 - rho)^2):
+        # sum the series itself, which is then short of no precision.
+        return np.vectorize(lambda m: m / (1 + 2 * float(np.sum((1 - np.arange(1, m) / m) * r ** np.arange(1, m)))),
+                            otypes=[np.float64])(n)
     # sum_{k=1}^{n-1} (1 - k/n) r^k = r / (1 - r) - r (1 - r^n) / (n (1 - r)^2)
     s = r / (1 - r) - r * (1 - r ** n) / (n * (1 - r) ** 2)
     return n / (1 + 2 * s)
@@ -169,7 +177,7 @@ def fit_window_calibration(logits, labels) -> tuple[float, float]:
     y = np.asarray(labels)
     _check_scored(z, y, "logits")
     target = _smoothed_targets(y, z.shape[1])
-    lo, hi = math.log(1e-3), math.log(1e4)
+    lo, hi = (math.log(v) for v in MAP_BOUNDS)
 
     def loss(p):
         a, c = np.exp(np.clip(p, lo, hi))
@@ -211,10 +219,11 @@ def fit_pooling(runs, labels) -> float:
     labels : sequence of int
         Each run's class.
     """
-    runs = [np.asarray(r, dtype=np.float64) for r in runs if len(r)]
-    if not runs:
+    kept = [(np.asarray(r, dtype=np.float64), lab) for r, lab in zip(runs, labels) if len(r)]
+    if not kept:
         raise InputError("fitting the pooling needs at least one run of held-out windows")
-    y = np.concatenate([np.full(len(r), lab) for r, lab in zip(runs, labels) if len(r)])
+    runs = [r for r, _ in kept]
+    y = np.concatenate([np.full(len(r), lab) for r, lab in kept])
     target = _smoothed_targets(y, runs[0].shape[1])
     r = minimize_scalar(lambda rho: -(target * _prefix_pooled(runs, rho)[0]).sum(axis=1).mean(), bounds=(0.0, 1.0),
                         method="bounded", options={"xatol": 1e-5})
@@ -257,10 +266,11 @@ class Calibration:
     fitted_on: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
+        lo, hi = MAP_BOUNDS
         for name in ("temperature", "scale"):
             v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not (0 < v < math.inf):
-                raise InputError(f"calibration {name} must be a finite number > 0, got {v!r}")
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not (lo * (1 - 1e-9) <= v <= hi * (1 + 1e-9)):
+                raise InputError(f"calibration {name} must be a number in [{lo:g}, {hi:g}], got {v!r}")
         c = self.correlation
         if isinstance(c, bool) or not isinstance(c, (int, float)) or not (0.0 <= c <= 1.0):
             raise InputError(f"calibration correlation must lie in [0, 1], got {c!r}")
@@ -289,10 +299,24 @@ class Calibration:
             raise bad(f"calibration method {d['method']!r} is not known (this program reads {CALIBRATION_METHOD!r})")
         if not isinstance(d["fitted_on"], dict):
             raise bad("'calibration.fitted_on' must be an object")
+        for key, value in d["fitted_on"].items():
+            if key in _FITTED_COUNTS and not (type(value) is int and value >= 0):
+                raise bad(f"'calibration.fitted_on.{key}' must be a count, got {value!r}")
+            if key in _FITTED_NUMBERS and (isinstance(value, bool) or not isinstance(value, (int, float))
+                                           or not math.isfinite(value)):
+                raise bad(f"'calibration.fitted_on.{key}' must be a finite number, got {value!r}")
+            if key == "folds_by" and value not in ("recording", "span"):
+                raise bad(f"'calibration.fitted_on.folds_by' must be \"recording\" or \"span\", got {value!r}")
         try:
             return cls(d["temperature"], d["scale"], d["correlation"], d["fitted_on"])
         except InputError as exc:
             raise bad(str(exc)) from None
+
+
+#: What :func:`fit_calibration` and :func:`fit_network_calibration` record in ``fitted_on``: counts
+#: and numbers, checked when a model file is read (free text elsewhere is kept as it is).
+_FITTED_COUNTS = ("windows", "runs", "run_windows", "folds")
+_FITTED_NUMBERS = ("log_loss_uncalibrated", "log_loss", "held_out_accuracy")
 
 
 def fit_calibration(logits, labels, groups, run: int = POOLING_RUN) -> Calibration:

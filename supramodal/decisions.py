@@ -128,6 +128,9 @@ class DecisionAccumulator:
                 raise InputError(f"a decision confidence threshold needs scope 'contact', got {scope!r}")
             if not (0.0 < confidence < 1.0):
                 raise InputError(f"the decision confidence must lie in (0, 1), got {confidence!r}")
+            if method != "log":
+                raise InputError("a decision confidence threshold needs method 'log' (a vote's share is no "
+                                 "probability: one window is a unanimous vote)")
         self.n_classes = int(n_classes)
         self.scope, self.method = scope, method
         self.correlation = float(correlation)
@@ -141,8 +144,11 @@ class DecisionAccumulator:
         self._history.clear()
         self._final = None
 
-    def update(self, log_posteriors: np.ndarray, in_contact: bool = True) -> Decision:
-        """Add one window's log-posteriors (classes,) and return the current decision."""
+    def update(self, log_posteriors: np.ndarray, in_contact: bool = True, may_decide: bool = True) -> Decision:
+        """Add one window's log-posteriors (classes,) and return the current decision.
+
+        ``may_decide`` False: the contact's decision may not become final at this window (its
+        caller has a reason of its own not to be sure, e.g. most windows are unknown)."""
         lp = np.asarray(log_posteriors, dtype=np.float64)
         if lp.shape != (self.n_classes,):
             raise InputError(f"expected {self.n_classes} log-posteriors, got shape {lp.shape}")
@@ -155,7 +161,7 @@ class DecisionAccumulator:
         if self._final is not None:
             return self._final
         d = self._pooled()
-        if self.confidence is not None and d.label >= 0 and d.confidence >= self.confidence:
+        if self.confidence is not None and may_decide and d.label >= 0 and d.confidence >= self.confidence:
             d = Decision(d.label, d.confidence, d.windows, decided=True)
             self._final = d
         return d
@@ -166,7 +172,10 @@ class DecisionAccumulator:
             pooled = pool_log_posteriors(lp, self.correlation)
             return Decision(int(winner(pooled)), float(np.exp(pooled.max())), len(lp))
         p = np.exp(lp)
-        votes = np.bincount(np.argmax(lp, axis=1), minlength=self.n_classes).astype(float)
+        won = winner(lp)                                # a tied window votes for no class
+        votes = np.bincount(won[won >= 0], minlength=self.n_classes).astype(float)
+        if not votes.any():
+            return Decision(-1, 0.0, len(lp))
         tie = votes == votes.max()
         score = np.where(tie, p.sum(axis=0), -np.inf)
         return Decision(int(winner(score)), float(votes.max() / len(lp)), len(lp))
@@ -211,7 +220,7 @@ class Decider:
         self.unknown = {"novel": 0, "unsure": 0, "tie": 0}
         self.contacts_decided = 0
         self.windows_to_decide: list[int] = []
-        self._was_decided = False
+        self._final: dict | None = None
 
     def decide(self, log_posteriors: np.ndarray, in_contact: bool = True, novel: bool = False) -> dict:
         """One window's outcome (``novel``: its inputs are unlike every training texture's): ``decision`` (a class or :data:`UNKNOWN`), ``confidence`` (the
@@ -238,23 +247,25 @@ class Decider:
     def _pool(self, lp: np.ndarray, in_contact: bool, unknown: bool) -> dict | None:
         if self.accumulator is None:
             return None
-        d = self.accumulator.update(lp, in_contact)
-        if d.windows == 0:                         # out of contact: the accumulation was reset
+        if self.accumulator.scope == "contact" and not in_contact:
+            self.accumulator.update(lp, in_contact)   # the contact ended: the accumulation resets
             self._unknown_flags.clear()
-            self._was_decided = False
+            self._final = None
             return {"label": None, "confidence": 0.0, "windows": 0}
         self._unknown_flags.append(unknown)
         mostly_unknown = 2 * sum(self._unknown_flags) > len(self._unknown_flags)
+        d = self.accumulator.update(lp, in_contact, may_decide=not mostly_unknown)
+        if self._final is not None:                   # the contact's final decision stands as it was said
+            return self._final
         label = UNKNOWN if (d.label < 0 or mostly_unknown) else self.classes[d.label]
         out = {"label": label, "confidence": round(d.confidence, 4), "windows": d.windows}
         if self.accumulator.confidence is not None:
             out["decided"] = d.decided
             if d.decided:
                 out["decided_after"] = d.windows
-                if not self._was_decided:
-                    self.contacts_decided += 1
-                    self.windows_to_decide.append(d.windows)
-                    self._was_decided = True
+                self.contacts_decided += 1
+                self.windows_to_decide.append(d.windows)
+                self._final = out
         return out
 
     def summary(self) -> dict:

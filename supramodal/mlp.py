@@ -111,7 +111,8 @@ class MLP:
         """The output units' logits ``z``, ``outputs = 1 / (1 + exp(-z))``, shape (n, outputs).
 
         Finite where the outputs round to exactly 0.0 or 1.0: what calibrated posteriors are
-        computed from (:mod:`supramodal.calibration`). Their argmax is the outputs'.
+        computed from (:mod:`supramodal.calibration`). Their argmax is the outputs' wherever the
+        outputs' is unique (outputs that all round to 1.0 tie; their logits still differ).
         """
         h = sigmoid(np.asarray(x, dtype=np.float64) @ self.w1 + self.b1)
         return 2 * STEEPNESS * (h @ self.w2 + self.b2)

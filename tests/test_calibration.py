@@ -327,3 +327,59 @@ def test_the_calibrations_fold_networks_stand_in_for_copies_trained_again(model,
     assert not model.out_of_fold.matches(values * 1.0001, labels, folds)
     assert not model.out_of_fold.matches(values, labels, (folds + 1) % DEFAULT_CALIBRATION_FOLDS)
     assert TextureModel.load(model.save(tmp_path / "m.npz")).out_of_fold is None     # never in the file
+
+
+@pytest.mark.parametrize("rho", [0.5, 0.99, 1 - 1e-4, 1 - 1e-8, 1 - 1e-11, 1 - 1e-15])
+def test_effective_windows_against_extended_precision_up_to_rho_one(rho):
+    """n^2 / sum_ij rho^|i-j|, at 50 digits; the closed form cancels near rho = 1 (a model file or
+    a scene may hold any rho in [0, 1])."""
+    from supramodal.calibration import effective_windows
+
+    ns = np.array([1, 2, 7, 50])
+    got = effective_windows(ns, rho)
+    for n, g in zip(ns, got):
+        ref = mpmath.mpf(int(n)) ** 2 / mpmath.fsum(mpmath.mpf(rho) ** abs(i - j) for i in range(n) for j in range(n))
+        assert g == pytest.approx(float(ref), rel=1e-9)
+
+
+def test_fit_pooling_keeps_each_run_with_its_label_when_one_is_empty():
+    lp = np.log(np.array([[0.9, 0.1]] * 5))
+    other = np.log(np.array([[0.1, 0.9]] * 5))
+    with_empty = fit_pooling([lp, np.empty((0, 2)), other], [0, 1, 1])
+    assert with_empty == pytest.approx(fit_pooling([lp, other], [0, 1]), abs=1e-6)
+
+
+def test_a_vote_never_counts_a_tied_window_for_the_first_class_and_is_no_confidence_rule():
+    acc = DecisionAccumulator(2, "last", n=5, method="vote")
+    tied = np.log(np.array([0.5, 0.5]))
+    assert acc.update(tied).label == -1 and acc.update(tied).label == -1
+    with pytest.raises(InputError, match="method 'log'"):
+        DecisionAccumulator(2, "contact", n=0, method="vote", confidence=0.9)
+
+
+def test_a_final_contact_decision_stands_as_it_was_said_and_is_never_taken_while_mostly_unknown():
+    from supramodal.decisions import UNKNOWN, Decider
+
+    d = Decider(("a", "b"), {"scope": "contact", "n": 0, "method": "log", "confidence": 0.9,
+                              "unknown_below": 0.95})
+    unsure = np.log(np.array([0.94, 0.06]))          # each window unknown (below 0.95), pooled soon sure
+    said = [d.decide(unsure)["pooled"] for _ in range(4)]
+    assert all(p["label"] == UNKNOWN and not p["decided"] for p in said)
+    sure = np.log(np.array([0.99, 0.01]))
+    said = [d.decide(sure)["pooled"] for _ in range(8)]
+    final = next(p for p in said if p["decided"])
+    assert final["label"] == "a" and all(p == final for p in said[said.index(final):])
+    assert d.decide(np.log(np.array([0.01, 0.99])))["pooled"] == final   # a later window changes nothing
+    assert d.summary()["contacts_decided"] == 1
+
+
+@pytest.mark.parametrize("edit, message", [
+    (lambda h: h["calibration"].update(temperature=1e300), "temperature"),
+    (lambda h: h["calibration"]["fitted_on"].update(log_loss="small"), "finite number"),
+    (lambda h: h["calibration"]["fitted_on"].update(windows=-3), "count"),
+    (lambda h: h["calibration"]["fitted_on"].update(folds_by="chance"), "folds_by"),
+])
+def test_calibration_numbers_a_file_may_hold_are_bounded(model, tmp_path, edit, message):
+    path = _rewrite(model.save(tmp_path / "bad.npz"), edit)
+    with pytest.raises(ModelError, match=message):
+        TextureModel.load(path)

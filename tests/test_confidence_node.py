@@ -192,3 +192,24 @@ def test_a_model_trained_on_the_spot_is_trained_once_per_process(monkeypatch):
     np.testing.assert_array_equal(held_a[0][0], held_b[0][0])
     c = build.train_on_texture_set(short, FeaturePipeline(whisker_bank(), ("A",)))
     assert c is not a and c.features == ("A",) and len(calls) == 2
+
+
+def test_a_fusion_deciding_per_contact_gives_its_streams_contact_detectors(tmp_path):
+    """The fusion's contacts are its streams' touches: with [fusion.decision] scope = "contact", each
+    fused stream detects contacts even where its own decisions are per window (otherwise a fused
+    contact would never end, and its first final decision would stand for the whole run)."""
+    from supramodal.node.build import build_node
+
+    d = _fusion_scene(weight=0.5, decision={"scope": "contact", "confidence": 0.99, "contact_threshold": 0.02})
+    graph = build_node(scene_from_dict(d, "<test>", tmp_path), sinks_override=[ListSink()], progress=None)
+    try:
+        assert [s.contact.threshold for s in graph.streams] == [0.02, 0.02]
+        assert all(s.decision["scope"] == "window" for s in graph.streams)
+    finally:
+        for sink in graph.sinks:
+            sink.close()
+
+
+def test_fusion_unknown_is_set_per_stream():
+    with pytest.raises(SceneError, match="each \\[\\[stream\\]\\]'s \\[decision\\]"):
+        scene_from_dict(_fusion_scene(weight=0.5, decision={"unknown": 0.05}), "<test>")

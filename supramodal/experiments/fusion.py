@@ -37,7 +37,7 @@ import time
 import numpy as np
 
 from supramodal.banks import cochlea_bank, whisker_bank
-from supramodal.calibration import DEFAULT_CALIBRATION_FOLDS, calibration_report, pool_log_posteriors
+from supramodal.calibration import DEFAULT_CALIBRATION_FOLDS, calibration_report, pool_log_posteriors, winner
 from supramodal.errors import InputError
 from supramodal.experiments.common import Run
 from supramodal.features import DEFAULT_WINDOW
@@ -147,8 +147,8 @@ def run_set(set_seed: int, seconds: float = 20.0, epochs: int = DEFAULT_EPOCHS, 
                                                         sure=SURE)}
     return {"set_seed": set_seed, "textures": names, "late_weight": weight, "late_sharpness": sharpness,
             "late_correlation": pooling["late"], "test_windows_per_texture": n - n_train,
-            "held_out": {m: float(np.mean(np.argmax(lp, axis=1) == y_train)) for m, lp in zip(banks, held)}
-            | {"late": float(np.mean(np.argmax(fused_held, axis=1) == y_train))},
+            "held_out": {m: float(np.mean(winner(lp) == y_train)) for m, lp in zip(banks, held)}
+            | {"late": float(np.mean(winner(fused_held) == y_train))},
             "window": {m: calibration[m]["window"]["accuracy"] for m in METHODS},
             "contact": {m: calibration[m]["contact"]["accuracy"] for m in METHODS},
             "calibration": calibration}
