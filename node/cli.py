@@ -471,14 +471,8 @@ def _train_fusion(args) -> int:
         h = info["held_out"][name]
         print(f"  {name:<12}{h['accuracy']:>10.3f}{h['log_loss']:>10.3f}")
     if args.fusion == "late":
-        from supramodal.node.scene import FUSION_KEYS
-
         weight, sharpness = result
-        keys = f"weight = {weight:.2f}"
-        if "sharpness" in FUSION_KEYS:
-            keys += f", sharpness = {sharpness:.4g}"
-        if "correlation" in FUSION_KEYS:
-            keys += f", correlation = {info['correlation']:.3g}"
+        keys = f"weight = {weight:.2f}, sharpness = {sharpness:.4g}, correlation = {info['correlation']:.3g}"
         print(f"learned late-fusion weight {weight:.2f} of {a} (and {1 - weight:.2f} of {b}) and sharpness "
               f"{sharpness:.4g} on the out-of-fold windows of {info['pairs']} labelled pairs (the late row: each "
               f"fold fused with a weight learned without it): set [fusion] {keys}")
@@ -655,7 +649,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--fusion", choices=["early", "late"],
                    help="instead of one sense: learn the fusion of a recorded graph's two streams on its labelled "
                         "pairs of windows (--scene): early, the supramodal network, calibrated (written to --out); "
-                        "late, the weight of the first stream and the sharpness (printed), learned on out-of-fold "
+                        "late, the weight of the first stream, the sharpness and the pooling's correlation (printed), learned on out-of-fold "
                         "windows of copies of the streams' models, never on windows a network trained on; both print "
                         "each sense's and the fusion's held-out score (default: one sense, from --manifest)")
     p.add_argument("--scene", action="append", metavar="NAME.toml",

@@ -108,9 +108,9 @@ def test_confidence_now_says_how_often_the_window_is_right(model, touches):
     conf = np.array([e["confidence"] for e, t in zip(events, truth) if t is not None])
     right = np.array([e["predicted"] == t for e, t in zip(events, truth) if t is not None])
     assert len(conf) == 120
-    assert conf.max() < 1.0
-    if (~right).any():
-        assert conf[~right].mean() < conf[right].mean()
+    assert conf.max() < 1.0 and (~right).sum() >= 5          # (0.85 of them right)
+    assert conf[~right].mean() < conf[right].mean() - 0.1     # the wrong ones say so: less sure
+    assert conf.mean() <= right.mean() + 0.05                 # and it does not overclaim
 
 
 def test_a_tie_is_said_unknown_and_counted():
