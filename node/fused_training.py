@@ -16,10 +16,12 @@ them live; the pairs whose truth is known are the data:
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 
 from supramodal.calibration import DEFAULT_CALIBRATION_FOLDS, calibration_report, winner
-from supramodal.errors import InputError
+from supramodal.errors import InputError, SupramodalWarning
 from supramodal.fused_model import (EarlyFusionModel, Sense, fused_pooling, held_out_scores,
                                     learn_late_fusion_out_of_fold, senses_out_of_fold)
 from supramodal.mlp import DEFAULT_EPOCHS
@@ -126,6 +128,12 @@ def train_fused(paths, method: str = "early", epochs: int = DEFAULT_EPOCHS, seed
     held = held_out_scores(dict(zip(names, lps)), y)
     info = {"pairs": len(y), "classes": list(classes), "streams": names, "contacts": len(set(groups)),
             "folds": int(len(np.unique(folds))), "folds_by": "contact" if by == "recording" else by}
+    if by == "span":
+        # Held-out spans then lie between training windows of the same touch: their score flatters.
+        warnings.warn(f"{len(set(groups))} contacts are too few for {k} folds of whole contacts (every texture in "
+                      f"two or more, {k} or more in all): the held-out windows are time spans of contacts whose "
+                      "other windows trained the fold's networks, so the weight and the held-out scores are "
+                      "optimistic; record more contacts", SupramodalWarning, stacklevel=2)
     if method == "early":
         say = None if progress is None else (lambda m: progress(f"early network's calibration: {m}"))
         model = EarlyFusionModel.train(senses, va, vb, y, classes, epochs=epochs, seed=seed, groups=groups,

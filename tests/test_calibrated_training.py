@@ -121,6 +121,19 @@ def test_train_fusion_late_learns_from_held_out_contacts_and_prints_each_senses_
     assert f"set [fusion] weight = {weight:.2f}" in out and f"sharpness {sharpness:.4g}" in out
 
 
+def test_train_fusion_on_too_few_contacts_warns_that_its_held_out_windows_are_spans_of_them(memoriser,
+                                                                                              monkeypatch):
+    """With one recording (half the contacts: fewer than ten folds of whole contacts) the folds fall
+    back to time spans of each contact: said, since the held-out scores then flatter."""
+    from supramodal.errors import SupramodalWarning
+    from supramodal.node.fused_training import train_fused
+
+    _fake_recordings(monkeypatch, memoriser)
+    with pytest.warns(SupramodalWarning, match="too few for 10 folds of whole contacts"):
+        _, info = train_fused(["one.toml"], "late")
+    assert info["folds_by"] == "span"
+
+
 def test_the_scene_path_learns_its_weight_out_of_fold_too(memoriser):
     """`[fusion] weight = "learn"`: the models trained on the spot, their training windows kept; the
     weight comes from copies trained without each fold, not from the models on those windows."""
