@@ -8,7 +8,7 @@ reports process CPU seconds per second of audio for both and their difference;
 a third run measures the thread CPU time spent inside the driver's callback and
 in the reader thread.
 
-Real-time pacing with no sound card (see ../shared/TESTING-WITHOUT-HARDWARE.md)::
+Real-time pacing with no sound card (see docs/testing-without-hardware.md)::
 
     apt-get install -y --no-install-recommends jackd2
     jackd --no-realtime -d dummy -r 44100 -p 256 -C 1 -P 1 &
