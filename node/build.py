@@ -16,7 +16,7 @@ from supramodal.node.band import warn_if_beyond_band
 from supramodal.node.events import FUSED_STREAM, MAIN_STREAM
 from supramodal.node.graph import Graph, Node
 from supramodal.node.sources import Source
-from supramodal.node.streams import Labels, Stream
+from supramodal.node.streams import Labels, Stream, refuse_uncalibrated
 from supramodal.node.scene import LEARN, Scene, SceneError, source_scene
 from supramodal.node.sinks import QueuedSink, make_sink
 from supramodal.bankfile import BANK_KEYS, BankFileError, bank_from_description, load_bank
@@ -540,13 +540,10 @@ def _early_model(scene: Scene, a: Stream, b: Stream, held_out: dict, trained: di
 def _check_fusion_decision(scene: Scene, models) -> None:
     """Refuse ``[fusion.decision]`` rules the fusion cannot follow with these ``models`` (the two
     senses', or the early network), naming the fix, before anything starts."""
-    d = scene.fusion["decision"]
-    asks = [k for k in ("confidence", "unknown_below") if d[k]]
-    old = [m for m in models if not m.calibrated]
-    if asks and old:
-        raise SceneError(f"{scene.source}: [fusion.decision] {', '.join(asks)} needs calibrated posteriors, but "
-                         f"{len(old)} of the fusion's models {'is' if len(old) == 1 else 'are'} uncalibrated (a "
-                         "version 1 model file): retrain with `supramodal train` (or `train --fusion early`)")
+    try:
+        refuse_uncalibrated(scene.fusion["decision"], models, f"{scene.source}: [fusion.decision]")
+    except InputError as exc:
+        raise SceneError(str(exc)) from None
 
 
 def _order(model: TextureModel, reference: TextureModel) -> np.ndarray:

@@ -16,6 +16,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from supramodal.drivers.base import DriverEvent
+from supramodal.errors import InputError
 
 
 class EventLimiter:
@@ -203,3 +204,18 @@ class WindowEvent:
             out[flag] = True
         out["latency_ms"] = self.latency_ms
         return out
+
+
+def log_posteriors_of(event) -> np.ndarray:
+    """A window event's log-posteriors: those it carries (a stream's and the fusion's events do:
+    never clipped), else the log of its posteriors, refused where one is exactly 0 (an event
+    made elsewhere, e.g. by hand: its log would be -inf and poison every sum it enters)."""
+    lp = getattr(event, "log_posteriors", None)
+    if lp is not None:
+        return np.asarray(lp, dtype=np.float64)
+    with np.errstate(divide="ignore"):
+        lp = np.log(np.asarray(event.posteriors, dtype=np.float64))
+    if not np.isfinite(lp).all():
+        raise InputError(f"a window of {event.stream!r} carries posteriors of exactly 0 and no log-posteriors: "
+                         "its log-posteriors are needed (a stream's events carry them)")
+    return lp

@@ -27,7 +27,7 @@ from supramodal.fused_model import (EarlyFusionModel, Sense, fused_pooling, held
 from supramodal.mlp import DEFAULT_EPOCHS
 from supramodal.model import ModelError
 from supramodal.node.build import build_node
-from supramodal.node.events import FUSED_STREAM
+from supramodal.node.events import FUSED_STREAM, log_posteriors_of
 from supramodal.node.scene import SceneError, load_scene
 from supramodal.node.sinks import ListSink
 
@@ -193,7 +193,7 @@ def evaluate_fused(paths, fused_model=None, progress=None) -> dict:
             for e in events:
                 if e.truth in e.classes:
                     order = [list(e.classes).index(c) for c in classes[name]]
-                    lps.append(_log_posteriors(e)[order])
+                    lps.append(log_posteriors_of(e)[order])
                     ys.append(classes[name].index(e.truth))
     if FUSED_STREAM not in windows:
         raise InputError("no labelled window in these recordings: record with a source that labels its stream")
@@ -208,15 +208,6 @@ def evaluate_fused(paths, fused_model=None, progress=None) -> dict:
                      "calibration": None if report is None else
                      {k: report[k] for k in ("n", "log_loss", "brier", "ece", "sure", "sure_count", "sure_wrong")}}
     return out
-
-
-def _log_posteriors(event) -> np.ndarray:
-    """An event's log-posteriors (the node's own, never clipped; else the log of its posteriors)."""
-    lp = getattr(event, "log_posteriors", None)
-    if lp is not None:
-        return np.asarray(lp, dtype=np.float64)
-    with np.errstate(divide="ignore"):
-        return np.log(np.asarray(event.posteriors, dtype=np.float64))
 
 
 def _confusion(pairs, classes) -> list[list[int]]:
@@ -236,7 +227,7 @@ def _contacts(events) -> list[bool]:
     out, run = [], []
     for e in events + [None]:
         if run and (e is None or e.truth != run[-1].truth or e.window != run[-1].window + 1):
-            k = int(winner(np.sum([_log_posteriors(r) for r in run], axis=0)))
+            k = int(winner(np.sum([log_posteriors_of(r) for r in run], axis=0)))
             out.append(k >= 0 and run[-1].classes[k] == run[-1].truth)
             run = []
         if e is not None:

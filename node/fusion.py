@@ -39,8 +39,8 @@ import numpy as np
 from supramodal.drivers.base import DriverEvent
 from supramodal.errors import InputError
 from supramodal.fusion import fuse_late
-from supramodal.decisions import Decider
-from supramodal.node.events import FUSED_STREAM, WindowEvent
+from supramodal.decisions import DEFAULT_DECISION, Decider
+from supramodal.node.events import FUSED_STREAM, WindowEvent, log_posteriors_of
 from supramodal.node.latency import LatencyHistogram
 
 #: Host seconds a window waits for its partner from the other stream before it is decided alone.
@@ -109,7 +109,7 @@ class LateFusion:
         self.sharpness = float(sharpness)
         self.correlation = float(correlation)
         self.max_wait = math.inf if max_wait is None else float(max_wait)
-        d = {"scope": "window", "n": 10, "method": "log", **(decision or {})}
+        d = {**DEFAULT_DECISION, **(decision or {})}
         self.decider = Decider(ca, d, correlation)
         self._queue: queue.SimpleQueue = queue.SimpleQueue()
         self._pending = {a: collections.deque(), b: collections.deque()}
@@ -215,7 +215,7 @@ class LateFusion:
 
     def _fused_log_posteriors(self, ea: WindowEvent, eb: WindowEvent) -> np.ndarray:
         """Log-posteriors of a pair, in :attr:`classes` order (:func:`~supramodal.fusion.fuse_late`)."""
-        return fuse_late(_log_posteriors(ea)[None, :], _log_posteriors(eb)[self._order_b][None, :], self.weight,
+        return fuse_late(log_posteriors_of(ea)[None, :], log_posteriors_of(eb)[self._order_b][None, :], self.weight,
                          self.sharpness)[0]
 
     def _fuse(self, item_a, item_b) -> WindowEvent:
@@ -229,7 +229,7 @@ class LateFusion:
 
     def _single(self, item) -> WindowEvent:
         event, _, closed = item
-        lp = _log_posteriors(event)
+        lp = log_posteriors_of(event)
         post = lp if event.stream == self.inputs[0] else lp[self._order_b]
         self.alone += 1
         return self._event(post, (event,), closed, event.flags | {"alone"})
@@ -276,19 +276,6 @@ class LateFusion:
                 "labelled_windows": self._labelled,
                 "accumulated_accuracy": self._acc_correct / self._acc_labelled if self._acc_labelled else None,
                 **self.decider.summary(), "latency_ms": self.latencies.summary()}
-
-
-def _log_posteriors(event: WindowEvent) -> np.ndarray:
-    """An event's log-posteriors (from its posteriors where it carries none: an event made
-    elsewhere, e.g. in a test)."""
-    if event.log_posteriors is not None:
-        return np.asarray(event.log_posteriors, dtype=np.float64)
-    with np.errstate(divide="ignore"):
-        lp = np.log(np.asarray(event.posteriors, dtype=np.float64))
-    if not np.isfinite(lp).all():
-        raise InputError(f"a window of {event.stream!r} carries posteriors of exactly 0 and no log-posteriors: "
-                         "fusion needs finite log-posteriors (a stream's events carry them)")
-    return lp
 
 
 def _centre(event: WindowEvent) -> float:

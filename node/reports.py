@@ -45,11 +45,15 @@ def write_confusion(labels, confusion, base: Path, title: str) -> list[Path]:
     ax.set_xlabel("predicted")
     ax.set_ylabel("truth")
     ax.set_title(title, fontsize=9)
+    return written + [_save_png(plt, fig, base.with_name(base.name + ".png"))]
+
+
+def _save_png(plt, fig, path: Path) -> Path:
+    """Lay ``fig`` out, write it to ``path`` (120 dpi) and free it; returns ``path``."""
     fig.tight_layout()
-    png_path = base.with_name(base.name + ".png")
-    fig.savefig(png_path, dpi=120)
+    fig.savefig(path, dpi=120)
     plt.close(fig)
-    return written + [png_path]
+    return path
 
 
 def pyplot_or_none():
@@ -114,11 +118,7 @@ def write_reliability(calibration: dict, base: Path, title: str) -> list[Path]:
         ax.set_title(f"per {name}: ECE {report['ece']:.3f}, {report['n']} decisions", fontsize=9)
         ax.legend(fontsize=7, loc="upper left")
     fig.suptitle(title, fontsize=9)
-    fig.tight_layout()
-    png_path = base.with_name(base.name + ".png")
-    fig.savefig(png_path, dpi=120)
-    plt.close(fig)
-    return written + [png_path]
+    return written + [_save_png(plt, fig, base.with_name(base.name + ".png"))]
 
 
 def write_evaluation(result: dict, folder: Path) -> list[Path]:
@@ -161,10 +161,7 @@ def write_evaluation(result: dict, folder: Path) -> list[Path]:
     right.set_xticks(range(len(channels)), [n for n, _ in channels], rotation=90, fontsize=7)
     right.set_ylabel("accuracy lost when shuffled")
     right.set_title("channels carrying the decision", fontsize=9)
-    fig.tight_layout()
-    fig.savefig(folder / "evaluation.png", dpi=120)
-    plt.close(fig)
-    return written + [folder / "evaluation.png"]
+    return written + [_save_png(plt, fig, folder / "evaluation.png")]
 
 
 def write_anytime(rows: list[dict], base: Path) -> list[Path]:
@@ -198,11 +195,7 @@ def write_anytime(rows: list[dict], base: Path) -> list[Path]:
     right.set_ylabel("median windows to decide")
     right.set_ylim(bottom=0)
     fig.suptitle("decided as soon as sure (each recording one touch)", fontsize=9)
-    fig.tight_layout()
-    png_path = base.with_name(base.name + ".png")
-    fig.savefig(png_path, dpi=120)
-    plt.close(fig)
-    return [csv_path, png_path]
+    return [csv_path, _save_png(plt, fig, base.with_name(base.name + ".png"))]
 
 
 def _reliability_title(result: dict) -> str:
@@ -246,7 +239,4 @@ def write_fused_evaluation(result: dict, folder: Path) -> list[Path]:
     ax.set_ylabel("accuracy")
     ax.legend(fontsize=8, loc="lower right")
     ax.set_title("each sense alone and fused", fontsize=9)
-    fig.tight_layout()
-    fig.savefig(folder / "fusion.png", dpi=120)
-    plt.close(fig)
-    return written + [folder / "fusion.png"]
+    return written + [_save_png(plt, fig, folder / "fusion.png")]

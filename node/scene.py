@@ -44,8 +44,7 @@ from pathlib import Path
 from typing import Any
 
 from supramodal.banks import WHISKER_RATE, WHISKER_ROWS, whisker_bank
-from supramodal.decisions import (DEFAULT_CONTACT_THRESHOLD, DEFAULT_METHOD, DEFAULT_POOLED, DEFAULT_SCOPE, METHODS,
-                                  SCOPES)
+from supramodal.decisions import DEFAULT_DECISION, METHODS, SCOPES
 from supramodal.errors import InputError
 from supramodal.features import DEFAULT_WINDOW, FEATURE_TABLE, FEATURES
 from supramodal.node.events import FUSED_STREAM, MAIN_STREAM
@@ -243,17 +242,17 @@ SECTIONS = {
                            "driver on the bank's reference set", False),
     },
     "decision": {
-        "scope": (_one_of(*SCOPES), f"one of {list(SCOPES)}", DEFAULT_SCOPE),
-        "n": (_int_min(0), "windows, an integer >= 0", DEFAULT_POOLED),
-        "method": (_one_of(*METHODS), f"one of {list(METHODS)}", DEFAULT_METHOD),
-        "contact_threshold": (_non_negative, "input RMS, >= 0", DEFAULT_CONTACT_THRESHOLD),
+        "scope": (_one_of(*SCOPES), f"one of {list(SCOPES)}", DEFAULT_DECISION["scope"]),
+        "n": (_int_min(0), "windows, an integer >= 0", DEFAULT_DECISION["n"]),
+        "method": (_one_of(*METHODS), f"one of {list(METHODS)}", DEFAULT_DECISION["method"]),
+        "contact_threshold": (_non_negative, "input RMS, >= 0", DEFAULT_DECISION["contact_threshold"]),
         # The rules of issue 23, each off at 0; their meaning is supramodal.decisions.Decider's.
         "confidence": (_unit_interval, "calibrated pooled confidence at which a contact's decision is final, "
-                                       "0 <= c < 1 (0: never; needs scope = \"contact\")", 0.0),
+                                       "0 <= c < 1 (0: never; needs scope = \"contact\")", DEFAULT_DECISION["confidence"]),
         "unknown": (_unit_interval, "share of windows of known textures allowed to be called unknown by the "
-                                    "novelty score, 0 <= r < 1 (0: off)", 0.0),
+                                    "novelty score, 0 <= r < 1 (0: off)", DEFAULT_DECISION["unknown"]),
         "unknown_below": (_unit_interval, "calibrated confidence below which a window is unknown, "
-                                          "0 <= c < 1 (0: off)", 0.0),
+                                          "0 <= c < 1 (0: off)", DEFAULT_DECISION["unknown_below"]),
     },
     "buffer": {
         "seconds": (_positive, "ring buffer capacity, seconds", 2.0),

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from supramodal.decisions import ContactDetector
+from supramodal.decisions import DEFAULT_DECISION, ContactDetector
 from supramodal.errors import InputError
 from supramodal.model import TextureModel
 from supramodal.decisions import Decider
@@ -88,9 +88,15 @@ class Labels:
         return None
 
 
-#: Pooling of a stream's decisions when a scene sets none (see supramodal.decisions).
-DEFAULT_DECISION = {"scope": "window", "n": 10, "method": "log", "contact_threshold": 0.01, "confidence": 0.0,
-                    "unknown": 0.0, "unknown_below": 0.0}
+def refuse_uncalibrated(decision: dict, models, where: str) -> None:
+    """Refuse the rules of a ``[decision]`` (a confidence threshold, "unknown") that need
+    calibrated posteriors when one of ``models`` (a stream's, or a fusion's) has none, naming the fix."""
+    asks = [k for k in ("confidence", "unknown", "unknown_below") if decision.get(k)]
+    old = [m for m in models if not m.calibrated]
+    if asks and old:
+        whose = "the model is" if len(models) == 1 else f"{len(old)} of the {len(models)} models are"
+        raise InputError(f"{where} {', '.join(asks)} needs calibrated posteriors, but {whose} uncalibrated (a "
+                         "version 1 model file): retrain with `supramodal train`")
 
 
 def decider_for(model: TextureModel, decision: dict, where: str = "[decision]") -> Decider:
@@ -98,10 +104,7 @@ def decider_for(model: TextureModel, decision: dict, where: str = "[decision]") 
     ``decision``; refuses rules the model cannot follow (a confidence threshold or "unknown"
     without a calibration, "unknown" without a novelty score), naming the fix."""
     d = {**DEFAULT_DECISION, **decision}
-    asks = [k for k in ("confidence", "unknown", "unknown_below") if d[k]]
-    if asks and not model.calibrated:
-        raise InputError(f"{where} {', '.join(asks)} needs calibrated posteriors, but the model is uncalibrated "
-                         "(a version 1 model file): retrain it with `supramodal train`")
+    refuse_uncalibrated(d, (model,), where)
     threshold = None
     if d["unknown"]:
         if model.novelty is None:

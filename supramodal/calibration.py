@@ -339,7 +339,7 @@ def fit_calibration(logits, labels, groups, run: int = POOLING_RUN) -> Calibrati
     lp = log_softmax(_window_map(z, a, c), axis=1)
     runs, run_labels = [], []
     groups = np.asarray(groups)
-    for g in _ordered_unique(groups):
+    for g in dict.fromkeys(groups.tolist()):
         idx = np.flatnonzero(groups == g)
         for s in range(0, len(idx), run):
             part = idx[s:s + run]
@@ -351,13 +351,6 @@ def fit_calibration(logits, labels, groups, run: int = POOLING_RUN) -> Calibrati
     after = float(-lp[rows, y].mean())
     return Calibration(a, c, rho, {"windows": int(len(y)), "runs": len(runs), "run_windows": int(run),
                                    "log_loss_uncalibrated": round(before, 6), "log_loss": round(after, 6)})
-
-
-def _ordered_unique(values) -> list:
-    seen: dict = {}
-    for v in values.tolist():
-        seen.setdefault(v, None)
-    return list(seen)
 
 
 # -- novelty ---------------------------------------------------------------------------------------
@@ -503,7 +496,7 @@ def calibration_folds(labels, groups, k: int = DEFAULT_CALIBRATION_FOLDS, seed: 
     if len(set(groups.tolist())) >= k and min(per_label.values()) >= 2:
         return grouped_folds(groups.tolist(), labels.tolist(), k, seed), "recording"
     folds = np.empty(len(labels), dtype=int)
-    for g in _ordered_unique(groups):
+    for g in dict.fromkeys(groups.tolist()):
         idx = np.flatnonzero(groups == g)
         folds[idx] = np.arange(len(idx)) * k // len(idx)
     return folds, "span"

@@ -58,6 +58,11 @@ DEFAULT_SCOPE = "window"
 DEFAULT_POOLED = 10
 DEFAULT_METHOD = "log"
 DEFAULT_CONTACT_THRESHOLD = 0.01
+#: A whole ``[decision]`` when a scene gives none: the values above, and the rules of
+#: :class:`Decider` off (0: no final contact decision, no "unknown").
+DEFAULT_DECISION = {"scope": DEFAULT_SCOPE, "n": DEFAULT_POOLED, "method": DEFAULT_METHOD,
+                    "contact_threshold": DEFAULT_CONTACT_THRESHOLD, "confidence": 0.0, "unknown": 0.0,
+                    "unknown_below": 0.0}
 
 
 @dataclass(frozen=True)

@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from supramodal.calibration import (DEFAULT_CALIBRATION_FOLDS, POOLING_RUN, Calibration, Novelty, calibration_folds,
-                                    calibration_report, fit_calibration, fit_network_calibration, fit_pooling,
+                                    calibration_report, fit_network_calibration, fit_pooling, fit_window_calibration,
                                     input_scaling, normalised_log_posteriors)
 from supramodal.errors import InputError
 from supramodal.fusion import early_inputs, fuse_late, learn_late_fusion
@@ -296,18 +296,21 @@ def out_of_fold_logits(model: TextureModel, values, labels, classes, folds, prog
     return z
 
 
-def out_of_fold_log_posteriors(model: TextureModel, values, labels, classes, folds, groups=None,
-                               progress=None) -> np.ndarray:
+def out_of_fold_log_posteriors(model: TextureModel, values, labels, classes, folds, progress=None) -> np.ndarray:
     """Log-posteriors of each window from :func:`out_of_fold_logits`, mapped as ``model`` maps its
-    own: when ``model`` is calibrated, by a calibration fitted on these out-of-fold logits (as
-    :func:`~supramodal.calibration.fit_network_calibration` fits a model's), else the normalised
-    outputs (a version 1 model's posteriors). ``groups``: each window's recording, for the
-    calibration's pooling (default: one per label). Shape (n, classes)."""
+    own: when ``model`` is calibrated, by a window map fitted on these out-of-fold logits (as
+    :func:`~supramodal.calibration.fit_network_calibration` fits a model's; the model's own map
+    where these are the very logits it was fitted on), else the normalised outputs (a version 1
+    model's posteriors). Shape (n, classes)."""
     y = np.asarray(labels)
+    kept = model.out_of_fold
+    own = kept is not None and tuple(classes) == tuple(model.classes) and kept.matches(values, y, folds)
     z = out_of_fold_logits(model, values, y, classes, folds, progress)
     if not model.calibrated:
         return normalised_log_posteriors(z)
-    return fit_calibration(z, y, y if groups is None else groups).log_posteriors(z)
+    if own:
+        return model.calibration.log_posteriors(z)
+    return Calibration(*fit_window_calibration(z, y), 0.0).log_posteriors(z)
 
 
 def senses_out_of_fold(models, values, labels, classes, groups=None, k: int = DEFAULT_CALIBRATION_FOLDS,
@@ -345,7 +348,7 @@ def senses_out_of_fold(models, values, labels, classes, groups=None, k: int = DE
     for i, (model, v) in enumerate(zip(models, values)):
         name = f"sense {i + 1} of {len(models)}" if names is None else names[i]
         say = None if progress is None else (lambda m, name=name: progress(f"{name}: {m}"))
-        out.append(out_of_fold_log_posteriors(model, v, y, classes, folds, groups, say))
+        out.append(out_of_fold_log_posteriors(model, v, y, classes, folds, say))
     return out, folds, by
 
 

@@ -13,7 +13,6 @@ from scipy.special import log_softmax
 
 from supramodal.calibration import log_loss, winner
 from supramodal.errors import InputError
-from supramodal.mlp import train_mlp
 
 #: Weights of the first sense tried when learning late fusion (the second gets 1 - w).
 LATE_WEIGHTS = np.linspace(0.0, 1.0, 21)
@@ -71,31 +70,6 @@ def _fit_sharpness(mixed: np.ndarray, labels: np.ndarray) -> float:
     r = minimize_scalar(lambda ls: log_loss(log_softmax(np.exp(ls) * mixed, axis=1), labels), bounds=(-7.0, 5.0),
                         method="bounded", options={"xatol": 1e-4})
     return float(np.exp(r.x))
-
-
-class Standardised:
-    """An MLP on standardised, flattened feature windows (the scaling from the training windows).
-
-    Parameters
-    ----------
-    values : ndarray, shape (windows, ...)
-        Training windows (any trailing shape: flattened).
-    labels : ndarray of int, shape (windows,)
-    n_classes : int
-    epochs, seed
-        As :func:`supramodal.mlp.train_mlp`.
-    """
-
-    def __init__(self, values, labels, n_classes: int, epochs: int, seed: int) -> None:
-        x = np.asarray(values, dtype=np.float64).reshape(len(values), -1)
-        self.mean = x.mean(axis=0)
-        self.scale = x.std(axis=0)
-        self.scale[self.scale == 0] = 1.0
-        self.mlp, _ = train_mlp((x - self.mean) / self.scale, np.asarray(labels), n_classes, epochs=epochs, seed=seed)
-
-    def outputs(self, values) -> np.ndarray:
-        x = np.asarray(values, dtype=np.float64).reshape(len(values), -1)
-        return self.mlp.outputs((x - self.mean) / self.scale)
 
 
 def early_inputs(values_a: np.ndarray, values_b: np.ndarray) -> np.ndarray:

@@ -21,8 +21,8 @@ from supramodal.mlp import MLP
 from supramodal.model import ModelError, TextureModel
 from supramodal.node.cli import main
 from supramodal.pipeline import FeaturePipeline
-from supramodal.replay.wavio import write_wav
-from supramodal.textures import reference_texture_set
+
+from recordings import write_texture_recordings
 
 CLASSES = ("a", "b", "c")
 
@@ -217,17 +217,7 @@ def test_a_version_1_early_fusion_file_still_loads_uncalibrated(early, tmp_path)
 def recordings(tmp_path_factory):
     """Three whisker textures, four recordings of 1.5 s each (other stretches of the texture): 12
     recordings, enough for the calibration's folds to be whole recordings."""
-    folder = tmp_path_factory.mktemp("calibrated")
-    ts = reference_texture_set("whisker")
-    rows = ["path,label"]
-    for t in range(3):
-        x = ts.synthesize(t, duration=6.0)
-        for r in range(4):
-            name = f"{ts.names[t]}_{r}.wav"
-            write_wav(folder / name, x[r * 7500:(r + 1) * 7500, None], 5000)
-            rows.append(f"{name},{ts.names[t]}")
-    (folder / "all.csv").write_text("\n".join(rows) + "\n")
-    return folder
+    return write_texture_recordings(tmp_path_factory.mktemp("calibrated"), per_texture=4)
 
 
 @pytest.fixture(scope="module")

@@ -28,14 +28,6 @@ EPOCHS = 60
 FILES = ["calibration.csv", "reliability.csv", "unknown.csv", "anytime.csv"]
 
 
-def strip_timing(x):
-    if isinstance(x, dict):
-        return {k: strip_timing(v) for k, v in x.items() if k not in ("timing", "compute_seconds")}
-    if isinstance(x, list):
-        return [strip_timing(v) for v in x]
-    return x
-
-
 def numbers(x):
     """Every number in a nested result."""
     if isinstance(x, dict):

@@ -12,11 +12,11 @@ from hypothesis import strategies as st
 
 from supramodal.node.cli import main
 from supramodal.node.training import cross_validate_manifest, evaluate_manifest, train_from_manifest
-from supramodal.replay.wavio import write_wav
 from supramodal.banks import whisker_bank
 from supramodal.errors import InputError
-from supramodal.textures import reference_texture_set
 from supramodal.training import grouped_folds
+
+from recordings import write_texture_recordings
 
 
 @settings(max_examples=60, deadline=None)
@@ -58,17 +58,7 @@ def test_folds_are_refused_where_they_cannot_work(groups, labels, k, match):
 @pytest.fixture(scope="module")
 def recordings(tmp_path_factory):
     """Three whisker textures, three recordings each (different stretches of the texture): 9 files."""
-    folder = tmp_path_factory.mktemp("cv")
-    ts = reference_texture_set("whisker")
-    rows = ["path,label"]
-    for t in range(3):
-        x = ts.synthesize(t, duration=4.5)
-        for r in range(3):
-            name = f"{ts.names[t]}_{r}.wav"
-            write_wav(folder / name, x[r * 7500:(r + 1) * 7500, None], 5000)
-            rows.append(f"{name},{ts.names[t]}")
-    (folder / "all.csv").write_text("\n".join(rows) + "\n")
-    return folder
+    return write_texture_recordings(tmp_path_factory.mktemp("cv"), per_texture=3)
 
 
 def test_each_fold_scores_as_training_on_the_other_recordings(recordings):

@@ -25,16 +25,9 @@ from supramodal.experiments.suite import FIGURES, plans
 from supramodal.features import FEATURES
 from supramodal.gammatone import GammatoneFilterbank
 
+from results import strip_timing
+
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def strip_timing(x):
-    """A result without its timings (the only part that may differ between runs)."""
-    if isinstance(x, dict):
-        return {k: strip_timing(v) for k, v in x.items() if k not in ("timing", "compute_seconds")}
-    if isinstance(x, list):
-        return [strip_timing(v) for v in x]
-    return x
 
 
 def is_rate(v) -> bool:

@@ -557,7 +557,7 @@ def _plot_anytime(result: dict, path):
             ax.plot(x, v, color=colour, marker=marker, linestyle=line, markersize=4, label=name)
         lowest = min(lowest, np.nanmin(np.concatenate([values[0], values[1]], dtype=float), initial=1.0))
     titles = ("(a) decided contacts right", "(b) contacts decided at all",
-              f"(c) median windows to decide (of 100 ms)")
+              "(c) median windows to decide (of 100 ms)")
     for ax, title in zip(axes, titles):
         ticks = result["thresholds"]
         ax.set_xticks(-np.log10(1.0 - np.array(ticks)), [f"{t:g}" for t in ticks], fontsize=7)
