@@ -48,6 +48,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from supramodal.drivers.base import Block, DeviceUnavailable, DriverClosed, DriverError, EventLog, DriverEvent
+from supramodal.drivers.spec import Built, BuildContext, DriverSpec, OptionError, given
+from supramodal.checks import Key, integer, positive, text
 from supramodal.errors import InputError
 
 #: What to run to get LSL, and what to do where the wheel carries no liblsl.
@@ -411,3 +413,60 @@ class LSLInletDriver:
 
     def __repr__(self) -> str:
         return f"LSLInletDriver({self.info})"
+
+
+# -- as a scene names it ---------------------------------------------------------------------------
+
+#: Bounds of the inlet's times a scene may set, seconds: what a real link could need. A longer
+#: gap than ``max_gap`` is a restart, not samples to fill (1e300 s would fill beyond any memory).
+LIMITS = {"resolve_timeout": 3600.0, "gap_tolerance": 10.0, "max_gap": 60.0, "stall_timeout": 60.0,
+          "buffer_seconds": 3600.0}
+#: Highest nominal rate a scene may require of a stream, Hz.
+MAX_RATE = 1e6
+#: Keys that name the stream to resolve: a scene gives at least one.
+WHICH = ("stream", "stream_type", "source_id")
+
+
+def _seconds(key: str, what: str, default) -> Key:
+    return Key(positive(LIMITS[key]), f"{what}, up to {LIMITS[key]:g} s (default: {default:g})", None)
+
+
+def _check(options: dict) -> None:
+    if all(options[k] is None for k in WHICH):
+        raise OptionError('type "lsl" needs the stream\'s name (stream = ...), stream_type or source_id')
+
+
+def _build(options: dict, context: BuildContext) -> Built:
+    try:
+        driver = LSLInletDriver(options["stream"], options["stream_type"], options["source_id"],
+                                **given(options, {k: k for k in ("rate", "channels", *LIMITS)}))
+    except DriverError:
+        raise
+    except InputError as exc:
+        raise OptionError(str(exc)) from None
+    if context.rate is not None and abs(driver.rate - context.rate) > 1e-9 * context.rate:
+        raise OptionError(f"the LSL stream {driver.info} runs at {driver.rate:g} Hz but the bank at "
+                          f"{context.rate:g} Hz; give the stream a bank at its rate ([bank] fs, or a bank file)")
+    return Built(driver)
+
+
+SPEC = DriverSpec(
+    type="lsl",
+    summary="a stream another program sends over the Lab Streaming Layer (the lsl extra)",
+    keys={
+        "stream": Key(text, "the LSL stream's name", None),
+        "stream_type": Key(text, 'the LSL stream\'s type, e.g. "Whiskers"', None),
+        "source_id": Key(text, "the LSL stream's source_id (stable across restarts of its sender)", None),
+        "rate": Key(positive(MAX_RATE), f"Hz the stream must run at, up to {MAX_RATE:g} (default: its nominal rate)",
+                    None),
+        "channels": Key(integer(1, 4096), "the channel count the stream must have, 1..4096 (default: its own)", None),
+        "resolve_timeout": _seconds("resolve_timeout", "seconds to wait for the stream", DEFAULT_RESOLVE_TIMEOUT),
+        "gap_tolerance": _seconds("gap_tolerance", "seconds of timestamp jitter before a step counts as lost samples",
+                                  DEFAULT_GAP_TOLERANCE),
+        "max_gap": _seconds("max_gap", "longest gap filled with zeros, seconds (a longer one is a restart)",
+                            DEFAULT_MAX_GAP),
+        "stall_timeout": _seconds("stall_timeout", "seconds without a sample before the stream is reported lost",
+                                  DEFAULT_STALL_TIMEOUT),
+        "buffer_seconds": _seconds("buffer_seconds", "seconds liblsl buffers in the inlet", DEFAULT_BUFFER_SECONDS),
+    },
+    build=_build, live=True, check=_check)

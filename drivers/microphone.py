@@ -52,6 +52,8 @@ import numpy as np
 from supramodal.errors import InputError
 
 from supramodal.drivers.base import Block, DeviceUnavailable, DriverClosed, DriverError, DriverEvent, EventLog
+from supramodal.drivers.spec import Built, BuildContext, DriverSpec, given
+from supramodal.checks import Key, integer, one_of, positive
 
 __all__ = ["MicrophoneDriver", "CaptureBuffer", "import_sounddevice"]
 
@@ -719,3 +721,36 @@ class MicrophoneDriver:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+# -- as a scene names it ---------------------------------------------------------------------------
+
+#: Highest sample rate a scene may ask of a sound card, Hz (studio cards reach 768 kHz).
+MAX_RATE = 1e6
+#: Most channels a scene may ask of a sound card.
+MAX_CHANNELS = 1024
+#: Longest capture buffer a scene may ask for, seconds.
+MAX_BUFFER_SECONDS = 600.0
+
+
+def _build(options: dict, context: BuildContext) -> Built:
+    return Built(MicrophoneDriver(**given(options, {"device": "device", "rate": "rate", "channels": "channels",
+                                                    "block": "blocksize", "dtype": "dtype",
+                                                    "buffer_seconds": "buffer_seconds"})))
+
+
+SPEC = DriverSpec(
+    type="microphone",
+    summary="a sound card's input, through PortAudio (sounddevice)",
+    keys={
+        "device": Key(lambda v: isinstance(v, (str, int)) and not isinstance(v, bool),
+                      "a device name or index (default: the system's default input)", None),
+        "rate": Key(positive(MAX_RATE), f"Hz, up to {MAX_RATE:g} (default: the microphone driver's)", None),
+        "channels": Key(integer(1, MAX_CHANNELS), f"an integer 1..{MAX_CHANNELS} (default: the microphone driver's)",
+                        None),
+        "block": Key(integer(1, 2**20), "frames per block, 1..1048576 (default: the microphone driver's)", None),
+        "dtype": Key(one_of(*DTYPES), '"float32" or "int16" (capture format; default: the driver\'s)', None),
+        "buffer_seconds": Key(positive(MAX_BUFFER_SECONDS), "seconds the driver buffers between PortAudio and the node, "
+                              f"up to {MAX_BUFFER_SECONDS:g} (default: the driver's)", None),
+    },
+    build=_build, live=True, signal_type=lambda options: "Audio")

@@ -61,6 +61,8 @@ import numpy as np
 import serial
 
 from supramodal.drivers.base import Block, DeviceUnavailable, DriverClosed, DriverEvent, EventLog
+from supramodal.drivers.spec import Built, BuildContext, DriverSpec, OptionError, given
+from supramodal.checks import Key, integer, positive, text
 from supramodal.drivers.frames import (
     FLAG_OVERRUN,
     FULL_SCALE,
@@ -641,3 +643,35 @@ def _stamp(t: float) -> str:
 
 
 __all__ = ["SerialWhiskerDriver"]
+
+
+# -- as a scene names it ---------------------------------------------------------------------------
+
+#: Highest frame rate a scene may ask of the board, Hz: a UART at 12 Mbit/s carries about 1e5
+#: 20-channel frames a second; more is a typo, and would size the node's buffers beyond memory.
+MAX_RATE = 1e6
+#: Highest baud rate a scene may open a port at, bit/s (fast USB UARTs reach 12 Mbit/s).
+MAX_BAUDRATE = 100_000_000
+
+
+def _build(options: dict, context: BuildContext) -> Built:
+    rate = options["rate"] if options["rate"] is not None else context.rate
+    channels = options["channels"] if options["channels"] is not None else context.channels
+    missing = [k for k, v in (("rate", rate), ("channels", channels)) if v is None]
+    if missing:
+        raise OptionError(f"{missing[0]}: no bank reads this source, so give its {' and '.join(missing)}")
+    return Built(SerialWhiskerDriver(options["port"], rate=rate, channels=channels, on_notice=None,
+                                     **given(options, {"baudrate": "baudrate"})))
+
+
+SPEC = DriverSpec(
+    type="serial",
+    summary="the whisker array's board on a serial port (or a pyserial URL such as loop://)",
+    keys={
+        "port": Key(text, "a serial port path or pyserial URL"),
+        "rate": Key(positive(MAX_RATE), f"frames per second, Hz, up to {MAX_RATE:g} (default: the bank's rate)", None),
+        "channels": Key(integer(1, MAX_CHANNELS), f"an integer 1..{MAX_CHANNELS} (default: the bank's channels)", None),
+        "baudrate": Key(integer(1, MAX_BAUDRATE), f"bit/s on a real UART, an integer up to {MAX_BAUDRATE} (default: "
+                        f"{DEFAULT_BAUDRATE})", None),
+    },
+    build=_build, live=True, signal_type=lambda options: "Whiskers")

@@ -8,11 +8,12 @@ not asked for are not computed, and there is no classifier without a model.
 from __future__ import annotations
 
 import json
-import math
 
 import numpy as np
 
+from supramodal.drivers.spec import BuildContext, OptionError
 from supramodal.node.band import warn_if_beyond_band
+from supramodal.node.registry import driver_spec
 from supramodal.node.events import FUSED_STREAM, MAIN_STREAM
 from supramodal.node.graph import Graph, Node
 from supramodal.node.sources import Source
@@ -55,96 +56,6 @@ def pipeline_for(scene: Scene, bank: Bank) -> FeaturePipeline:
                                nonfinite=f["nonfinite"], peak_threshold=f["peak_threshold"], chunk=f["chunk"])
     except ValueError as exc:
         raise SceneError(f"{scene.source}: [features] {exc}") from None
-
-
-def _texture_set(scene: Scene, spec: str):
-    from supramodal.textures import load_texture_set, reference_texture_set
-
-    return reference_texture_set(scene.bank["kind"]) if spec == "reference" else load_texture_set(scene.resolve(spec))
-
-
-#: Samples a synthesised source may hold in memory, all its textures together (1 GiB of float64):
-#: a synth or two-sense source is generated whole before it plays.
-MAX_SYNTH_SAMPLES = 2**27
-
-
-def _checked_length(scene: Scene, order: list, fs: float) -> int:
-    """Samples per texture of a synthesised source; a length that cannot be held is refused
-    naming ``[driver] seconds`` (and ``order`` when it is the number of textures)."""
-    from supramodal.textures import texture_samples
-
-    d = scene.driver
-    try:
-        n = texture_samples(d["seconds"], fs)
-    except InputError as exc:
-        raise SceneError(f"{scene.source}: [driver] seconds: {exc}") from None
-    if n * len(order) > MAX_SYNTH_SAMPLES:
-        raise SceneError(f"{scene.source}: [driver] seconds x order: {len(order)} textures of {d['seconds']:g} s at "
-                         f"{fs:g} Hz are {n * len(order):.3g} samples, more than the {MAX_SYNTH_SAMPLES} a "
-                         f"synthesised source may hold ({MAX_SYNTH_SAMPLES / fs / 60:.0f} min at this rate); give "
-                         "fewer seconds per texture" + (" or set loop = true" if "loop" in d else ""))
-    return n
-
-
-def synth_session(scene: Scene, bank: Bank):
-    """The synth driver's signal: each texture for ``seconds`` in ``order``, with its labels.
-
-    With ``held_out`` the segment is the *last* ``seconds`` of the texture's full-length
-    signal: the part a model trained on the spot (on the first ``TRAIN_FRACTION``) has never seen.
-    """
-    from supramodal.training import TRAIN_FRACTION
-
-    d = scene.driver
-    ts = _texture_set(scene, d["textures"])
-    if bank is not None and abs(ts.fs - bank.fs) > 1e-9 * bank.fs:
-        raise SceneError(f"{scene.source}: [driver] texture set {ts.name!r} is at {ts.fs:g} Hz, the bank at {bank.fs:g} Hz")
-    order = d["order"] or list(ts.names)
-    unknown = [n for n in order if n not in ts.names]
-    if unknown:
-        raise SceneError(f"{scene.source}: [driver] order: unknown texture(s) {unknown}; the set has {list(ts.names)}")
-    n = _checked_length(scene, order, ts.fs)
-    parts, labels, t = [], [], 0.0
-    for name in order:
-        i = ts.names.index(name)
-        if d["held_out"]:
-            full = ts.synthesize(i)
-            held_out = 1 - TRAIN_FRACTION
-            if n > held_out * full.size + 1:
-                raise SceneError(f"{scene.source}: [driver] seconds: held-out segments are at most the last "
-                                 f"{held_out:.0%} of the set's {ts.duration:g} s; ask for {held_out * ts.duration:g} s "
-                                 "or less")
-            seg = full[-n:]
-        else:
-            seg = ts.synthesize(i, duration=d["seconds"])
-        parts.append(seg)
-        labels.append((t, t + seg.size / ts.fs, name))
-        t += seg.size / ts.fs
-    return ts, np.concatenate(parts)[:, None], Labels(labels)
-
-
-def twosense_session(scene: Scene, bank: Bank):
-    """A two-sense source's signal: one sense of the two-sense world (supramodal.twosense), each
-    texture for ``seconds`` in ``order``, contact ``take`` (by default 1: contacts the model trained
-    on the spot never met);
-    returns ``(the sense's training set, signal (samples, 1), labels)``."""
-    from supramodal.twosense import OneSense, two_sense_set
-
-    d = scene.driver
-    surfaces = two_sense_set(d["pairs"], d["set_seed"])
-    train = OneSense(surfaces, d["sense"], seed=d["set_seed"])
-    if bank is not None and abs(train.fs - bank.fs) > 1e-9 * bank.fs:
-        raise SceneError(f"{scene.source}: [driver] sense {d['sense']!r} is sampled at {train.fs:g} Hz, the bank at "
-                         f"{bank.fs:g} Hz: give the whiskers a whisker bank and the microphone a cochlea bank")
-    order = d["order"] or list(train.names)
-    unknown = [n for n in order if n not in train.names]
-    if unknown:
-        raise SceneError(f"{scene.source}: [driver] order: unknown texture(s) {unknown}; the set has {list(train.names)}")
-    n = _checked_length(scene, order, train.fs)
-    played = OneSense(surfaces, d["sense"], d["seconds"], d["set_seed"], take=d["take"])
-    parts = [played.synthesize(train.names.index(name)) for name in order]
-    step = n / train.fs                  # each texture's samples, in stream seconds
-    labels = [(k * step, (k + 1) * step, name) for k, name in enumerate(order)]
-    return train, np.concatenate(parts)[:, None], Labels(labels, len(order) * step if d["loop"] else None)
 
 
 def train_on_texture_set(ts, pipeline: FeaturePipeline, progress=None, held_out: list | None = None,
@@ -192,107 +103,30 @@ TRAINED_ON_THE_SPOT = 8
 _trained_on_the_spot: dict = {}
 
 
-def driver_for(scene: Scene, bank: Bank | None, speed_override=None, xdf_files: dict | None = None):
-    """Build the scene's driver; returns ``(driver, labels, texture_set_or_None)``.
+def driver_for(scene: Scene, bank: Bank | None, speed_override=None, shared: dict | None = None,
+               where: str | None = None):
+    """Build the scene's driver from its spec (node.registry); returns ``(driver, labels,
+    texture_set_or_None)``.
 
     ``bank``: the bank that reads the source (a file is resampled to its rate, a stream at
     another rate is refused), or None for a source that no bank reads (a relay's): then the
-    source keeps its own rate. ``xdf_files``: a dict the caller keeps while it builds several
-    sources (path -> the file's streams), so that one XDF file is read once for all its sources.
+    source keeps its own rate. ``shared``: a dict the caller keeps while it builds several
+    sources, so that what they share is made once (one XDF file read once for all its sources).
+    ``where``: the source's table in messages (default: the scene's ``[driver]``).
     """
     d = scene.driver
-    rate = None if bank is None else bank.fs
-    kind = d["type"]
-    if kind in ("synth", "replay", "twosense"):
-        # Speed and block size: the replay driver's defaults unless the scene or --speed sets them.
-        replay = _given({**d, "speed": speed_override if speed_override is not None else d["speed"]},
-                        {"speed": "speed", "block": "block_size"})
-    if kind == "synth":
-        from supramodal.replay.driver import ReplayDriver
-
-        ts, data, labels = synth_session(scene, bank)
-        return ReplayDriver((data, ts.fs), on_notice=None, **replay), labels, ts
-    if kind == "replay":
-        from supramodal.replay.driver import ReplayDriver
-        from supramodal.replay.errors import ReplayError
-
-        path = scene.resolve(d["path"])
-        if not path.exists():
-            raise SceneError(f"{scene.source}: [driver] path: no recording at {path} (a relative path is taken from "
-                             "the scene file's folder)")
-        try:
-            drv = ReplayDriver(str(path), rate=rate, loop=d["loop"], timing=d["timing"],
-                               on_notice=None, **replay)  # notices reach the sinks as events
-        except ReplayError as exc:
-            if d["timing"] != "recorded":
-                raise
-            raise SceneError(f"{scene.source}: [driver] timing = \"recorded\": {exc}") from None
-        if bank is not None:
-            warn_if_beyond_band(bank, drv.source_rate, f"{scene.source}: [driver] path {d['path']}")
-        return drv, Labels.of(drv), None
-    if kind == "twosense":
-        from supramodal.replay.driver import DeviceClock, ReplayDriver
-
-        ts, data, labels = twosense_session(scene, bank)
-        # Paced like a live device on its own crystal: the node sees only the arrivals.
-        clock = DeviceClock(d["clock_ppm"], d["offset"], d["jitter"], seed=d["set_seed"] * 2 + (d["sense"] == "whiskers"))
-        return ReplayDriver((data, ts.fs), on_notice=None, device_clock=clock, loop=d["loop"], **replay), labels, ts
-    if kind == "serial":
-        from supramodal.drivers.serial_whisker import SerialWhiskerDriver
-
-        return SerialWhiskerDriver(d["port"], rate=d["rate"], channels=d["channels"], on_notice=None,
-                                   **_given(d, {"baudrate": "baudrate"})), Labels(), None
-    if kind == "microphone":
-        from supramodal.drivers.microphone import MicrophoneDriver
-
-        options = _given(d, {"device": "device", "rate": "rate", "channels": "channels", "block": "blocksize",
-                             "dtype": "dtype", "buffer_seconds": "buffer_seconds"})
-        return MicrophoneDriver(**options), Labels(), None
-    if kind == "xdf":
-        from supramodal.replay.driver import ReplayDriver
-        from supramodal.replay.errors import ReplayError
-        from supramodal.replay.xdf import load_xdf_streams, xdf_session
-
-        path = scene.resolve(d["path"])
-        if not path.exists():
-            raise SceneError(f"{scene.source}: [driver] path: no XDF file at {path} (a relative path is taken from "
-                             "the scene file's folder)")
-        if all(d[k] is None for k in ("stream", "stream_type", "source_id")):
-            raise SceneError(f"{scene.source}: [driver] type \"xdf\" needs the recorded stream's name "
-                             "(stream = ...), stream_type or source_id")
-        speed = _given({"speed": speed_override if speed_override is not None else d["speed"]}, {"speed": "speed"})
-        try:
-            streams = None
-            if xdf_files is not None:
-                if path not in xdf_files:
-                    xdf_files[path] = load_xdf_streams(path)
-                streams = xdf_files[path]
-            session = xdf_session(path, d["stream"], d["stream_type"], d["source_id"], streams=streams,
-                                  labels=d["labels"])
-            drv = ReplayDriver(session, rate=rate, timing="recorded", on_notice=None, **speed)
-        except ReplayError as exc:
-            raise SceneError(f"{scene.source}: [driver] {exc}") from None
-        if bank is not None:
-            warn_if_beyond_band(bank, drv.source_rate, f"{scene.source}: [driver] path {d['path']}")
-        return drv, Labels.of(drv), None
-    if kind == "lsl":
-        from supramodal.drivers.lsl import LSLInletDriver
-
-        if all(d[k] is None for k in ("stream", "stream_type", "source_id")):
-            raise SceneError(f"{scene.source}: [driver] type \"lsl\" needs the stream's name (stream = ...), "
-                             "stream_type or source_id")
-        options = _given(d, {k: k for k in ("rate", "channels", "resolve_timeout", "gap_tolerance", "max_gap",
-                                            "stall_timeout", "buffer_seconds")})
-        try:
-            driver = LSLInletDriver(d["stream"], d["stream_type"], d["source_id"], **options)
-        except InputError as exc:
-            raise SceneError(f"{scene.source}: [driver] {exc}") from None
-        if bank is not None and abs(driver.rate - bank.fs) > 1e-9 * bank.fs:
-            raise SceneError(f"{scene.source}: the LSL stream {driver.info} runs at {driver.rate:g} Hz but the "
-                             f"{bank.kind} bank at {bank.fs:g} Hz; give the stream a bank at its rate "
-                             "([bank] fs, or a bank file)")
-        return driver, Labels(), None
-    raise SceneError(f"{scene.source}: [driver] type {kind!r} is not supported")
+    where = where or f"{scene.source}: [driver]"
+    spec = driver_spec(d["type"])
+    context = BuildContext(rate=None if bank is None else bank.fs, resolve=scene.resolve, speed=speed_override,
+                           shared=shared if shared is not None else {},
+                           channels=None if bank is None else bank.channels, bank=bank)
+    try:
+        built = spec.build(d, context)
+    except OptionError as exc:
+        raise SceneError(f"{where} {exc}") from None
+    if bank is not None and built.source_rate is not None:
+        warn_if_beyond_band(bank, built.source_rate, f"{where} path {d.get('path', d['type'])}")
+    return built.driver, Labels(list(built.labels), built.label_period), built.training_set
 
 
 def _sinks_for(scene: Scene, sinks_override, overwrite: bool):
@@ -358,14 +192,9 @@ def _signal_type(driver_options: dict, banks: list) -> str:
         return "Whiskers"
     if kinds == {"cochlea"}:
         return "Audio"
-    kind = driver_options["type"]
-    if kind == "serial" or kind == "twosense" and driver_options["sense"] == "whiskers":
-        return "Whiskers"
-    if kind == "microphone" or kind == "twosense":
-        return "Audio"
     from supramodal.node.lsl_signal import DEFAULT_SIGNAL_TYPE
 
-    return DEFAULT_SIGNAL_TYPE
+    return driver_spec(driver_options["type"]).signal_type(driver_options) or DEFAULT_SIGNAL_TYPE
 
 
 def _signal_taps(scene: Scene, sources: dict, readers: dict, sinks_override=None) -> list:
@@ -428,31 +257,40 @@ def _model_for(scene: Scene, bank: Bank, pipeline: FeaturePipeline, ts, progress
     return model
 
 
+#: Bytes of samples one source's ring may hold (float64): a bound on what ``[buffer] seconds`` can
+#: make the node allocate, whatever the source's rate and channels.
+MAX_RING_BYTES = 2**30
+
+
+def _check_ring(scene: Scene, driver, where: str) -> None:
+    """Refuse a ring (the scene's ``[buffer] seconds`` of ``driver``) beyond :data:`MAX_RING_BYTES`,
+    naming the key (``where``: the buffer's table)."""
+    seconds = scene.buffer["seconds"]
+    size = seconds * driver.rate * driver.channels * 8
+    if size > MAX_RING_BYTES:
+        raise SceneError(f"{where} seconds: {seconds:g} s of {driver.channels} channels at {driver.rate:g} Hz is a ring "
+                         f"of {size / 2**30:.3g} GiB, more than the {MAX_RING_BYTES / 2**30:g} GiB a source may hold "
+                         "(MAX_RING_BYTES); give fewer seconds")
+
+
+def _source(name: str, scene: Scene, driver, where: str) -> Source:
+    """The source of ``driver`` with its ring as the scene's ``[buffer]`` says."""
+    _check_ring(scene, driver, where)
+    return Source(name, driver, scene.buffer["seconds"], _overrun(scene), *_timebase(scene, driver))
+
+
 def _overrun(scene: Scene) -> str:
-    """The ring's policy: "auto" is lossless back-pressure for files, drop-oldest for live drivers."""
+    """The ring's policy: "auto" is the driver's (lossless back-pressure for files, drop-oldest for
+    live devices: node.registry)."""
     overrun = scene.buffer["overrun"]
-    if overrun == "auto":
-        overrun = "block" if scene.driver["type"] in ("replay", "synth", "twosense", "xdf") else "drop-oldest"
-    return overrun
+    return driver_spec(scene.driver["type"]).overrun if overrun == "auto" else overrun
 
 
 def _timebase(scene: Scene, driver) -> tuple[str, float, float]:
-    """``(timebase, time_offset, time_rate)`` of a scene's source (see node.sources.Source).
-
-    Files keep their own time. A live driver's samples are put on host time by a clock model. A
-    two-sense source at ``max`` speed is a file whose true timing is known (its offset and clock
-    error); at a finite speed it is paced like a live device, and the node sees only arrivals.
-    """
-    d = scene.driver
-    if d["type"] == "replay" and d["timing"] == "recorded" or d["type"] == "xdf":
-        return "recorded", 0.0, driver.recorded_rate       # the clock set up as when it was recorded
-    if d["type"] in ("replay", "synth"):
-        return "stream", 0.0, driver.rate
-    if d["type"] == "twosense":
-        if driver.speed == math.inf:
-            return "stream", d["offset"], driver.rate * (1.0 + d["clock_ppm"] * 1e-6)
-        return "host", 0.0, driver.rate * driver.speed
-    return "host", 0.0, driver.rate
+    """``(timebase, time_offset, time_rate)`` of a scene's source (see node.sources.Source), as its
+    driver's spec says: files keep their own time, a live driver's samples are put on host time by
+    a clock model."""
+    return driver_spec(scene.driver["type"]).timebase_of(scene.driver, driver)
 
 
 def build_node(scene: Scene, speed=None, sinks_override=None, progress=None, recorder=None,
@@ -469,6 +307,7 @@ def build_node(scene: Scene, speed=None, sinks_override=None, progress=None, rec
     pipeline = pipeline_for(scene, bank)
     sinks, _ = _sinks_for(scene, sinks_override, overwrite)
     driver, labels, ts = driver_for(scene, bank, speed)
+    _check_ring(scene, driver, f"{scene.source}: [buffer]")
     model = _model_for(scene, bank, pipeline, ts, progress)
     taps = []
     try:
@@ -593,14 +432,15 @@ def _build_graph(scene: Scene, speed, sinks_override, progress, recorder, overwr
         streams = []
         held_out: dict[str, list] = {}          # stream -> [(x_test, y_test)] of a model trained on the spot
         trained: dict[str, list] = {}           # stream -> [(x_train, y_train)] of it
-        xdf_files: dict = {}                    # path -> streams: an XDF file read once for its sources
+        shared: dict = {}                       # what the sources share, made once (node.registry)
         for spec in scene.streams:
             sub = spec.scene
             bank = bank_for(sub)
             pipeline = pipeline_for(sub, bank)
             if spec.source not in sources:      # one driver per source, whatever reads it
-                driver, labels, ts = driver_for(sub, bank, speed, xdf_files)
-                source = Source(spec.source, driver, sub.buffer["seconds"], _overrun(sub), *_timebase(sub, driver))
+                driver, labels, ts = driver_for(sub, bank, speed, shared,
+                                                 f"{scene.source}: [[source]] {spec.source}")
+                source = _source(spec.source, sub, driver, f"{scene.source}: [[source]] {spec.source} [source.buffer]")
                 sources[spec.source] = (source, labels, ts)
             source, labels, ts = sources[spec.source]
             held_out[spec.name], trained[spec.name] = [], []
@@ -613,10 +453,10 @@ def _build_graph(scene: Scene, speed, sinks_override, progress, recorder, overwr
         for src in scene.sources:               # sources only sent on (a relay's): no bank, their own rate
             if src["name"] not in sources:
                 sub = source_scene(src, scene.source, scene.base_dir)
-                driver, labels, ts = driver_for(sub, None, speed, xdf_files)
-                source = Source(src["name"], driver, sub.buffer["seconds"], _overrun(sub), *_timebase(sub, driver))
+                driver, labels, ts = driver_for(sub, None, speed, shared, f"{scene.source}: [[source]] {src['name']}")
+                source = _source(src["name"], sub, driver, f"{scene.source}: [[source]] {src['name']} [source.buffer]")
                 sources[src["name"]] = (source, labels, ts)
-        del xdf_files                           # the sessions hold what they need
+        del shared                              # the drivers hold what they need
         fusion = None
         f = scene.fusion
         if f is not None:

@@ -212,7 +212,7 @@ def _count(lo: int):
 
 
 def _speed(text: str):
-    from supramodal.node.scene import SPEED_HELP, SPEED_MAX, is_speed
+    from supramodal.replay.driver import SPEED_HELP, SPEED_MAX, is_speed
 
     try:
         value = text if text == SPEED_MAX else float(text)

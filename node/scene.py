@@ -9,7 +9,7 @@ naming the key. Nothing in a scene is executed.
 Example (the embedded default is ``default_scene()``)::
 
     [driver]
-    type = "replay"            # replay | synth | twosense | serial | microphone
+    type = "replay"            # a driver type (node.registry; docs/node.md lists each with its keys)
     path = "session.wav"       # replay: WAV file or recorded session
     speed = 1.0                # replay/synth: 1.0 real time (default), 2.0 twice as fast, "max"
     block = 50                 # frames per block (default: 10 ms)
@@ -38,12 +38,17 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from supramodal.banks import WHISKER_RATE, WHISKER_ROWS, whisker_bank
+from supramodal.bankfile import BANK_KEYS
+from supramodal.banks import WHISKER_ROWS
+from supramodal.checks import (NAME_HELP, Key, fill, flag, integer, is_name, non_negative, number, one_of,
+                               positive, text)
+from supramodal.drivers.spec import OptionError
 from supramodal.decisions import DEFAULT_DECISION, METHODS, SCOPES
 from supramodal.errors import InputError
 from supramodal.features import DEFAULT_WINDOW, FEATURE_TABLE, FEATURES
@@ -51,6 +56,7 @@ from supramodal.node.events import FUSED_STREAM, MAIN_STREAM
 from supramodal.node.fusion import DEFAULT_MAX_WAIT, DEFAULT_WEIGHT
 from supramodal.node.lsl_outlets import DEFAULT_PREFIX
 from supramodal.node.lsl_signal import DEFAULT_SIGNAL_CHUNK, DEFAULT_WAIT_FOR_CONSUMER, SIGNAL_CHUNK_RANGE
+from supramodal.node.registry import driver_spec, driver_types, source_keys
 from supramodal.peaks import DEFAULT_PEAK_MODE, PEAK_MODES
 
 
@@ -58,42 +64,8 @@ class SceneError(InputError):
     """A scene file is unreadable or does not fit the schema; the message names the key."""
 
 
-def _number(v):
-    return isinstance(v, (int, float)) and not isinstance(v, bool)
-
-
-def _positive(v):
-    return _number(v) and math.isfinite(v) and v > 0
-
-
-def _non_negative(v):
-    return _number(v) and math.isfinite(v) and v >= 0
-
-
-def _unit_interval(v):
-    return _number(v) and 0.0 <= v < 1.0
-
-
-def _int_min(lo):
-    return lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= lo
-
-
-def _one_of(*choices):
-    return lambda v: v in choices
-
-
-def _str(v):
-    return isinstance(v, str) and v != ""
-
-
-#: The replay speed that releases every block at once (in a scene and after ``--speed``).
-SPEED_MAX = "max"
-SPEED_HELP = f'1.0 (real time), a positive factor, or "{SPEED_MAX}"'
-
-
-def is_speed(v) -> bool:
-    """Whether ``v`` is a replay speed: a positive number or :data:`SPEED_MAX`."""
-    return v == SPEED_MAX or _positive(v)
+#: Longest ring a scene may ask for, seconds of its source (node.build also bounds its bytes).
+MAX_BUFFER_SECONDS = 600.0
 
 
 def _features(v):
@@ -104,194 +76,96 @@ def _rows(v):
     return isinstance(v, str) and v and set(v) <= set("ABCDE") and len(set(v)) == len(v)
 
 
-def _mapping(v):
-    return v in ("auto", "mono", "per-channel", "mean") or (isinstance(v, int) and not isinstance(v, bool) and v >= 0)
-
-
-def _texture_list(v):
-    return isinstance(v, list) and all(isinstance(t, str) for t in v)
-
-
-# section -> key -> (check, description of what is expected, default or REQUIRED).
-# Every default has one home: a key whose default belongs to the driver or the bank is None
-# here ("the owner's default": build.py does not pass it on); the others import their owner's
-# constant.
-REQUIRED = object()
-_WHISKER_CHANNELS = whisker_bank().channels
-DRIVER_KEYS = {
-    "replay": {
-        "path": (_str, "a WAV file or session path", REQUIRED),
-        "speed": (is_speed, SPEED_HELP + " (default: the replay driver's)", None),
-        "block": (_int_min(1), "frames per block, an integer >= 1 (default: the replay driver's)", None),
-        "loop": (lambda v: isinstance(v, bool), "true or false", False),
-        "mapping": (_mapping, '"auto", "mono", "per-channel", "mean" or a channel index', "auto"),
-        "timing": (_one_of("nominal", "recorded"), '"nominal" (the rate\'s schedule) or "recorded" (a session '
-                   "recorded by a graph: its blocks at their recorded times, in step with the other sources)",
-                   "nominal"),
-    },
-    "synth": {
-        "textures": (_str, '"reference" or a texture-set JSON path', "reference"),
-        "seconds": (_positive, "seconds per texture, > 0", 10.0),
-        "order": (_texture_list, "a list of texture names", None),
-        "speed": (is_speed, SPEED_HELP + " (default: the replay driver's)", None),
-        "block": (_int_min(1), "frames per block, an integer >= 1 (default: the replay driver's)", None),
-        "held_out": (lambda v: isinstance(v, bool), "true or false", True),
-    },
-    "twosense": {
-        "sense": (_one_of("whiskers", "microphone"), '"whiskers" or "microphone": which side of the two-sense '
-                                                      'world this source plays', REQUIRED),
-        "set_seed": (_int_min(0), "the two-sense set's seed, an integer >= 0", 0),
-        "pairs": (_int_min(1), "heard pairs and felt pairs in the set, an integer >= 1", 2),
-        "seconds": (_positive, "seconds per texture, > 0", 10.0),
-        "order": (_texture_list, "a list of texture names", None),
-        "offset": (_non_negative, "seconds after the graph's start at which this source's first sample is "
-                                  "taken, >= 0", 0.0),
-        "take": (_int_min(0), "which contact of each texture it plays, an integer >= 0 (0: the one a model "
-                              "trained on the spot learns from)", 1),
-        "loop": (lambda v: isinstance(v, bool), "true or false: play the contacts again and again", False),
-        "clock_ppm": (lambda v: _number(v) and abs(v) <= 1000, "the simulated device's crystal error, ppm, "
-                                                                "within +-1000", 0.0),
-        "jitter": (lambda v: _non_negative(v) and v <= 1, "mean delivery delay of a block, seconds, 0 to 1 "
-                                                           "(at a finite speed)", 0.0),
-        "speed": (is_speed, SPEED_HELP + " (default: the replay driver's)", None),
-        "block": (_int_min(1), "frames per block, an integer >= 1 (default: the replay driver's)", None),
-        "mapping": (_mapping, '"auto", "mono", "per-channel", "mean" or a channel index', "auto"),
-    },
-    "serial": {
-        "port": (_str, "a serial port path or pyserial URL", REQUIRED),
-        "rate": (_positive, "frames per second, Hz", WHISKER_RATE),
-        "channels": (_int_min(1), "an integer >= 1", _WHISKER_CHANNELS),
-        "baudrate": (_int_min(1), "bit/s on a real UART, an integer (default: the serial driver's "
-                                  "DEFAULT_BAUDRATE)", None),
-        "mapping": (_mapping, '"auto", "mono", "per-channel", "mean" or a channel index', "auto"),
-    },
-    "microphone": {
-        "device": (lambda v: isinstance(v, (str, int)) and not isinstance(v, bool),
-                   "a device name or index (default: the system's default input)", None),
-        # None: the microphone driver's default (drivers.microphone.MicrophoneDriver).
-        "rate": (_positive, "Hz (default: the microphone driver's)", None),
-        "channels": (_int_min(1), "an integer >= 1 (default: the microphone driver's)", None),
-        "block": (_int_min(1), "frames per block (default: the microphone driver's)", None),
-        "dtype": (_one_of("float32", "int16"), '"float32" or "int16" (capture format; default: the driver\'s)', None),
-        "buffer_seconds": (_positive, "seconds the driver buffers between PortAudio and the node "
-                                      "(default: the driver's)", None),
-        "mapping": (_mapping, '"auto", "mono", "per-channel", "mean" or a channel index', "auto"),
-    },
-    # A stream of an XDF recording (LabRecorder's files; needs the "lsl" extra for pyxdf), replayed
-    # with its recorded timestamps. At least one of stream, stream_type and source_id.
-    "xdf": {
-        "path": (_str, "an XDF file path", REQUIRED),
-        "stream": (_str, "the recorded stream's name", None),
-        "stream_type": (_str, 'the recorded stream\'s type, e.g. "Whiskers"', None),
-        "source_id": (_str, "the recorded stream's source_id", None),
-        "labels": (_str, "the name of a marker stream in the file whose strings are the truth labels (each "
-                         "marker starts a label, which runs until the next; an empty marker ends it)", None),
-        "speed": (is_speed, SPEED_HELP + " (default: the replay driver's)", None),
-        "mapping": (_mapping, '"auto", "mono", "per-channel", "mean" or a channel index', "auto"),
-    },
-    # A stream another machine sends over the Lab Streaming Layer (needs the "lsl" extra). At
-    # least one of stream, stream_type and source_id (checked when the driver is built).
-    "lsl": {
-        "stream": (_str, "the LSL stream's name", None),
-        "stream_type": (_str, 'the LSL stream\'s type, e.g. "Whiskers"', None),
-        "source_id": (_str, "the LSL stream's source_id (stable across restarts of its sender)", None),
-        "rate": (_positive, "Hz the stream must run at (default: its nominal rate)", None),
-        "channels": (_int_min(1), "the channel count the stream must have (default: its own)", None),
-        # None: the LSL driver's defaults (drivers.lsl).
-        "resolve_timeout": (_positive, "seconds to wait for the stream (default: the LSL driver's)", None),
-        "gap_tolerance": (_positive, "seconds of timestamp jitter before a step counts as lost samples "
-                                     "(default: the LSL driver's)", None),
-        "max_gap": (_positive, "longest gap filled with zeros, seconds (default: the LSL driver's)", None),
-        "stall_timeout": (_positive, "seconds without a sample before the stream is reported lost "
-                                     "(default: the LSL driver's)", None),
-        "buffer_seconds": (_positive, "seconds liblsl buffers in the inlet (default: the LSL driver's)", None),
-        "mapping": (_mapping, '"auto", "mono", "per-channel", "mean" or a channel index', "auto"),
-    },
-}
+# section -> key -> Key(check, what is expected, default; REQUIRED; or None). Every default has one
+# home: a key whose default belongs to the driver or the bank is None here ("the owner's default":
+# build.py does not pass it on); the others import their owner's constant. The drivers' keys are
+# their specs' (node.registry).
 SECTIONS = {
     "bank": {
-        "kind": (_one_of("whisker", "cochlea"), '"whisker" or "cochlea"', "whisker"),
-        "rows": (_rows, 'whisker rows, e.g. "ABCDE"', "".join(WHISKER_ROWS)),
+        "kind": Key(one_of("whisker", "cochlea"), '"whisker" or "cochlea"', "whisker"),
+        "rows": Key(_rows, f'whisker rows, e.g. "{"".join(WHISKER_ROWS)}" (default: every row)', None),
         # None: the bank's own default (supramodal.banks.whisker_bank / cochlea_bank).
-        "mean_B": (_positive, "mean Slaney bandwidth, > 0 (default: the paper's bandwidths)", None),
-        "channels": (_int_min(1), "cochlea channels, an integer >= 1 (default: the cochlea bank's)", None),
-        "f_low": (_positive, "Hz (default: the cochlea bank's)", None),
-        "f_high": (_positive, "Hz, above f_low (default: the cochlea bank's)", None),
-        "fs": (_positive, "sample rate, Hz (default: the bank's)", None),
-        "file": (_str, "a bank file (supramodal-bank JSON, e.g. from a fit), relative to the scene; "
-                       "the [bank] table then holds nothing else", None),
+        "mean_B": Key(positive(), "mean Slaney bandwidth, > 0 (default: the paper's bandwidths)", None),
+        "channels": Key(integer(1), "cochlea channels, an integer >= 1 (default: the cochlea bank's)", None),
+        "f_low": Key(positive(), "Hz (default: the cochlea bank's)", None),
+        "f_high": Key(positive(), "Hz, above f_low (default: the cochlea bank's)", None),
+        "fs": Key(positive(), "sample rate, Hz (default: the bank's)", None),
+        "file": Key(text, "a bank file (supramodal-bank JSON, e.g. from a fit), relative to the scene; "
+                          "the [bank] table then holds nothing else", None),
     },
     "features": {
-        "names": (_features, "a list of distinct names drawn from "
-                  + "; ".join(f"{f.name} ({f.description})" for f in FEATURE_TABLE.values()), ["Af"]),
-        "window": (_positive, "seconds, > 0", DEFAULT_WINDOW),
-        "peak_mode": (_one_of(*PEAK_MODES), f"one of {list(PEAK_MODES)}", DEFAULT_PEAK_MODE),
-        "peak_threshold": (_non_negative, "smallest peak amplitude counted, >= 0", 0.0),
-        "dtype": (_one_of("float64", "float32"), '"float64" or "float32"', "float64"),
+        "names": Key(_features, "a list of distinct names drawn from "
+                     + "; ".join(f"{f.name} ({f.description})" for f in FEATURE_TABLE.values()), ["Af"]),
+        "window": Key(positive(), "seconds, > 0", DEFAULT_WINDOW),
+        "peak_mode": Key(one_of(*PEAK_MODES), f"one of {list(PEAK_MODES)}", DEFAULT_PEAK_MODE),
+        "peak_threshold": Key(non_negative(), "smallest peak amplitude counted, >= 0", 0.0),
+        "dtype": Key(one_of("float64", "float32"), '"float64" or "float32"', "float64"),
         # Not the pipeline's default (whole windows): a live node runs each 10 ms as it comes, so
         # that only a window's last 10 ms is left to run when it closes (its decision latency).
-        "chunk": (_non_negative, "seconds of each window run as soon as they are in, at fixed stream "
-                                 "indices, >= 0 (0: each window whole when it closes)", 0.01),
+        "chunk": Key(non_negative(), "seconds of each window run as soon as they are in, at fixed stream "
+                                     "indices, >= 0 (0: each window whole when it closes)", 0.01),
         # Not the pipeline's default ("raise"): a live node replaces and counts a bad sample
         # rather than stopping.
-        "nonfinite": (_one_of("raise", "zero"), '"raise" or "zero"', "zero"),
+        "nonfinite": Key(one_of("raise", "zero"), '"raise" or "zero"', "zero"),
     },
     "model": {
-        "path": (_str, "a model .npz path (loaded; or written when train_on_start)", None),
-        "train_on_start": (lambda v: isinstance(v, bool), "true or false: train at start-up on the synth driver's texture set, or with another "
-                           "driver on the bank's reference set", False),
+        "path": Key(text, "a model .npz path (loaded; or written when train_on_start)", None),
+        "train_on_start": Key(flag, "true or false: train at start-up on the synth driver's texture set, or with "
+                                    "another driver on the bank's reference set", False),
     },
     "decision": {
-        "scope": (_one_of(*SCOPES), f"one of {list(SCOPES)}", DEFAULT_DECISION["scope"]),
-        "n": (_int_min(0), "windows, an integer >= 0", DEFAULT_DECISION["n"]),
-        "method": (_one_of(*METHODS), f"one of {list(METHODS)}", DEFAULT_DECISION["method"]),
-        "contact_threshold": (_non_negative, "input RMS, >= 0", DEFAULT_DECISION["contact_threshold"]),
+        "scope": Key(one_of(*SCOPES), f"one of {list(SCOPES)}", DEFAULT_DECISION["scope"]),
+        "n": Key(integer(0), "windows, an integer >= 0", DEFAULT_DECISION["n"]),
+        "method": Key(one_of(*METHODS), f"one of {list(METHODS)}", DEFAULT_DECISION["method"]),
+        "contact_threshold": Key(non_negative(), "input RMS, >= 0", DEFAULT_DECISION["contact_threshold"]),
         # The rules of issue 23, each off at 0; their meaning is supramodal.decisions.Decider's.
-        "confidence": (_unit_interval, "calibrated pooled confidence at which a contact's decision is final, "
-                                       "0 <= c < 1 (0: never; needs scope = \"contact\")", DEFAULT_DECISION["confidence"]),
-        "unknown": (_unit_interval, "share of windows of known textures allowed to be called unknown by the "
-                                    "novelty score, 0 <= r < 1 (0: off)", DEFAULT_DECISION["unknown"]),
-        "unknown_below": (_unit_interval, "calibrated confidence below which a window is unknown, "
-                                          "0 <= c < 1 (0: off)", DEFAULT_DECISION["unknown_below"]),
+        "confidence": Key(number(0.0, 1.0, hi_open=True), "calibrated pooled confidence at which a contact's "
+                          "decision is final, 0 <= c < 1 (0: never; needs scope = \"contact\")",
+                          DEFAULT_DECISION["confidence"]),
+        "unknown": Key(number(0.0, 1.0, hi_open=True), "share of windows of known textures allowed to be called "
+                       "unknown by the novelty score, 0 <= r < 1 (0: off)", DEFAULT_DECISION["unknown"]),
+        "unknown_below": Key(number(0.0, 1.0, hi_open=True), "calibrated confidence below which a window is unknown, "
+                             "0 <= c < 1 (0: off)", DEFAULT_DECISION["unknown_below"]),
     },
     "buffer": {
-        "seconds": (_positive, "ring buffer capacity, seconds", 2.0),
-        # "auto": "block" (lossless back-pressure) for replay and synth, "drop-oldest" for live drivers.
-        "overrun": (_one_of("auto", "drop-oldest", "drop-newest", "block"),
-                    '"auto", "drop-oldest", "drop-newest" or "block"', "auto"),
+        "seconds": Key(positive(MAX_BUFFER_SECONDS), f"ring buffer capacity, seconds, up to {MAX_BUFFER_SECONDS:g} "
+                                                     "(and at most MAX_RING_BYTES of samples)", 2.0),
+        # "auto": "block" (lossless back-pressure) for files, "drop-oldest" for live drivers.
+        "overrun": Key(one_of("auto", "drop-oldest", "drop-newest", "block"),
+                       '"auto", "drop-oldest", "drop-newest" or "block"', "auto"),
     },
 }
+
+
 def _from(v):
-    return (_str(v) or isinstance(v, list) and v and all(_str(x) for x in v))
+    return (text(v) or isinstance(v, list) and v and all(text(x) for x in v))
 
 
+_FROM = Key(_from, 'a stream name or a list of them ("fused": the fusion block\'s decisions; default: every stream)',
+            None)
 SINK_KEYS = {
-    "text": {"path": (_str, '"-" (stdout) or a file path', "-"),
-             "from": (_from, 'a stream name or a list of them ("fused": the fusion block\'s decisions; '
-                             'default: every stream)', None)},
-    "jsonl": {"path": (_str, '"-" (stdout) or a file path', "-"),
-              "from": (_from, 'a stream name or a list of them ("fused": the fusion block\'s decisions; '
-                              'default: every stream)', None)},
+    "text": {"path": Key(text, '"-" (stdout) or a file path', "-"), "from": _FROM},
+    "jsonl": {"path": Key(text, '"-" (stdout) or a file path', "-"), "from": _FROM},
     # Window events as Lab Streaming Layer outlets (needs the "lsl" extra; node/lsl_outlets.py).
-    "lsl": {"from": (_from, 'a stream name or a list of them ("fused": the fusion block\'s decisions; '
-                            'default: every stream)', None),
-            "outputs": (lambda v: isinstance(v, list) and v and len(set(v)) == len(v)
-                        and set(v) <= {"features", "decisions", "posteriors"},
-                        'a list drawn from "features", "decisions" and "posteriors"',
-                        ["features", "decisions", "posteriors"]),
-            "prefix": (lambda v: _name(v), "the outlets' name prefix: letters, digits, '-' or '_'", DEFAULT_PREFIX)},
+    "lsl": {"from": _FROM,
+            "outputs": Key(lambda v: isinstance(v, list) and v and len(set(v)) == len(v)
+                           and set(v) <= {"features", "decisions", "posteriors"},
+                           'a list drawn from "features", "decisions" and "posteriors"',
+                           ["features", "decisions", "posteriors"]),
+            "prefix": Key(is_name, "the outlets' name prefix: " + NAME_HELP[len("a name: "):], DEFAULT_PREFIX)},
     # A source's samples as a Lab Streaming Layer outlet (needs the "lsl" extra; node/lsl_signal.py).
     "lsl-signal": {
-        "source": (lambda v: _name(v), "the name of the [[source]] whose samples it sends (default: the scene's "
-                                       "only source)", None),
-        "chunk": (lambda v: _number(v) and SIGNAL_CHUNK_RANGE[0] <= v <= SIGNAL_CHUNK_RANGE[1],
-                  f"seconds of samples per push, {SIGNAL_CHUNK_RANGE[0]:g} to {SIGNAL_CHUNK_RANGE[1]:g}",
-                  DEFAULT_SIGNAL_CHUNK),
-        "prefix": (lambda v: _name(v), "the outlet's name prefix: letters, digits, '-' or '_'", DEFAULT_PREFIX),
-        # None: what the source is (node/build.py: "Whiskers", "Audio" or "Signal").
-        "stream_type": (_str, 'the LSL stream\'s type, e.g. "Whiskers" (default: what the source is)', None),
-        "wait_for_consumer": (_non_negative, "seconds to wait for a consumer before the node starts, >= 0 (0: start "
-                                             "at once; a file sent to another machine needs a wait)", DEFAULT_WAIT_FOR_CONSUMER),
+        "source": Key(is_name, "the name of the [[source]] whose samples it sends (default: the scene's only source)",
+                      None),
+        "chunk": Key(number(*SIGNAL_CHUNK_RANGE),
+                     f"seconds of samples per push, {SIGNAL_CHUNK_RANGE[0]:g} to {SIGNAL_CHUNK_RANGE[1]:g}",
+                     DEFAULT_SIGNAL_CHUNK),
+        "prefix": Key(is_name, "the outlet's name prefix: " + NAME_HELP[len("a name: "):], DEFAULT_PREFIX),
+        # None: what the source is (its banks' kind, else its driver's signal type).
+        "stream_type": Key(text, 'the LSL stream\'s type, e.g. "Whiskers" (default: what the source is)', None),
+        "wait_for_consumer": Key(non_negative(), "seconds to wait for a consumer before the node starts, >= 0 (0: "
+                                                 "start at once; a file sent to another machine needs a wait)",
+                                 DEFAULT_WAIT_FOR_CONSUMER),
     },
 }
 #: Sink types that listen to a source's samples rather than to streams' windows.
@@ -302,36 +176,31 @@ LEARN = "learn"
 
 # The graph form: [[source]] (a driver's keys, and its ring), [[stream]] (a source through a
 # bank, features and a model: the one-source sections as sub-tables), [fusion].
-_NAME_HELP = "a name: letters, digits, '-' or '_'"
+_NAME_HELP = NAME_HELP
 
-
-def _name(v):
-    return _str(v) and len(v) <= 64 and all(c.isalnum() or c in "-_" for c in v)
-
-
-SOURCE_KEYS = {"name": (_name, _NAME_HELP, REQUIRED)}
+SOURCE_KEYS = {"name": Key(is_name, NAME_HELP)}
 STREAM_KEYS = {
-    "name": (_name, _NAME_HELP + f" (not {FUSED_STREAM!r})", REQUIRED),
-    "source": (_name, "the name of a [[source]]", REQUIRED),
+    "name": Key(is_name, NAME_HELP + f" (not {FUSED_STREAM!r})"),
+    "source": Key(is_name, "the name of a [[source]]"),
 }
 STREAM_SECTIONS = ("bank", "features", "model", "decision")
 FUSION_KEYS = {
-    "streams": (lambda v: isinstance(v, list) and len(v) == 2 and all(_name(x) for x in v) and v[0] != v[1],
-                "the names of two different [[stream]]s, each with a model", REQUIRED),
-    "method": (_one_of("late", "early"), '"late" (weighted log-posteriors) or "early" (one network on both '
-                                           "streams' features: the supramodal network)", "late"),
-    "model": (_str, 'with method = "early": an early-fusion model file (default: the network trained on the '
-                    "spot on both streams' training windows, which needs both models trained on the spot)", None),
-    "weight": (lambda v: v == LEARN or _number(v) and 0 <= v <= 1,
-               f'the first stream\'s weight, in [0, 1], or "{LEARN}" (learned on the held-out training windows '
-               'of two models trained on the spot)', DEFAULT_WEIGHT),
-    "max_wait": (_positive, "seconds a window of a live source waits for its partner before it is decided alone, > 0 "
-                                  "(file sources wait for each other)", DEFAULT_MAX_WAIT),
+    "streams": Key(lambda v: isinstance(v, list) and len(v) == 2 and all(is_name(x) for x in v) and v[0] != v[1],
+                   "the names of two different [[stream]]s, each with a model"),
+    "method": Key(one_of("late", "early"), '"late" (weighted log-posteriors) or "early" (one network on both '
+                                             "streams' features: the supramodal network)", "late"),
+    "model": Key(text, 'with method = "early": an early-fusion model file (default: the network trained on the '
+                       "spot on both streams' training windows, which needs both models trained on the spot)", None),
+    "weight": Key(lambda v: v == LEARN or number(0.0, 1.0)(v),
+                  f'the first stream\'s weight, in [0, 1], or "{LEARN}" (learned on the held-out training windows '
+                  'of two models trained on the spot)', DEFAULT_WEIGHT),
+    "max_wait": Key(positive(), "seconds a window of a live source waits for its partner before it is decided alone, "
+                                "> 0 (file sources wait for each other)", DEFAULT_MAX_WAIT),
     # With a numeric weight (as `train --fusion late` prints them); "learn" learns both.
-    "sharpness": (_positive, "tempering of the fused log-posteriors, > 0 (printed by `supramodal train --fusion late`)",
-                  1.0),
-    "correlation": (lambda v: _number(v) and 0 <= v <= 1, "correlation of neighbouring fused windows for pooling them, "
-                                                          "in [0, 1] (printed by `supramodal train --fusion late`)", 0.0),
+    "sharpness": Key(positive(), "tempering of the fused log-posteriors, > 0 (printed by `supramodal train --fusion "
+                                 "late`)", 1.0),
+    "correlation": Key(number(0.0, 1.0), "correlation of neighbouring fused windows for pooling them, in [0, 1] "
+                                         "(printed by `supramodal train --fusion late`)", 0.0),
 }
 
 
@@ -376,24 +245,8 @@ class StreamSpec:
     scene: Scene
 
 
-def _fill(where: str, given: dict, schema: dict) -> dict:
-    if not isinstance(given, dict):
-        raise SceneError(f"{where} must be a table")
-    unknown = sorted(set(given) - set(schema))
-    if unknown:
-        raise SceneError(f"{where}: unknown key(s) {unknown}; allowed keys: {sorted(schema)}")
-    out = {}
-    for key, (check, expected, default) in schema.items():
-        if key in given:
-            value = given[key]
-            if not check(value):
-                raise SceneError(f"{where} {key}: expected {expected}, got {value!r}")
-            out[key] = value
-        elif default is REQUIRED:
-            raise SceneError(f"{where}: missing required key {key!r} ({expected})")
-        else:
-            out[key] = default
-    return out
+def _fill(where: str, given, schema: dict) -> dict:
+    return fill(where, given, schema, SceneError)
 
 
 def scene_from_dict(d: dict, source: str = "<scene>", base_dir: Path | None = None) -> Scene:
@@ -409,17 +262,32 @@ def scene_from_dict(d: dict, source: str = "<scene>", base_dir: Path | None = No
                          + ("; a scene of several sources uses [[source]] and [[stream]]" if "fusion" in unknown else ""))
     driver = d.get("driver")
     if not isinstance(driver, dict) or "type" not in driver:
-        raise SceneError(f"{source}: [driver] type is required, one of {sorted(DRIVER_KEYS)}")
-    dtype_ = driver["type"]
-    if dtype_ not in DRIVER_KEYS:
-        raise SceneError(f"{source}: [driver] type: expected one of {sorted(DRIVER_KEYS)}, got {dtype_!r}")
-    drv = {"type": dtype_, **_fill(f"{source}: [driver] ({dtype_})", {k: v for k, v in driver.items() if k != "type"},
-                                   DRIVER_KEYS[dtype_])}
+        raise SceneError(f"{source}: [driver] type is required, one of {driver_types()}")
+    drv = driver_table(f"{source}: [driver]", driver)
     sections = {name: _fill(f"{source}: [{name}]", d.get(name, {}), schema) for name, schema in SECTIONS.items()}
     _check_sections(source, sections, d.get("bank", {}), "")
-    sinks = _sinks(d, source, (MAIN_STREAM,))
+    sinks = _sinks(d, source, (MAIN_STREAM,), base_dir=base_dir or Path.cwd())
     return Scene(drv, sections["bank"], sections["features"], sections["model"], sections["decision"],
                  sections["buffer"], sinks, source, base_dir or Path.cwd())
+
+
+def driver_table(where: str, table, extra: dict | None = None) -> dict:
+    """A source's table (``[driver]`` or a ``[[source]]``, named by ``where``) validated against its
+    driver's keys (node.registry) and ``extra`` ones, defaults filled in; its ``buffer`` left out."""
+    if not isinstance(table, dict):
+        raise SceneError(f"{where} must be a table")
+    kind = table.get("type")
+    try:
+        spec = driver_spec(kind)
+    except InputError as exc:
+        raise SceneError(f"{where} type: {exc}") from None
+    given = {k: v for k, v in table.items() if k not in ("type", "buffer")}
+    drv = {"type": kind, **_fill(f"{where} ({kind})", given, {**(extra or {}), **source_keys(spec)})}
+    try:
+        spec.check(drv)
+    except OptionError as exc:
+        raise SceneError(f"{where} {exc}") from None
+    return drv
 
 
 def _check_sections(source: str, sections: dict, bank_given: dict, where: str) -> None:
@@ -428,6 +296,12 @@ def _check_sections(source: str, sections: dict, bank_given: dict, where: str) -
     if bank["file"] is not None and set(bank_given) - {"file"}:
         raise SceneError(f"{source}: {where}[bank] file: a bank file describes the whole bank; remove "
                          f"{sorted(set(bank_given) - {'file'})} or the file")
+    if bank["file"] is None:
+        kind = bank["kind"]
+        foreign = sorted(set(bank_given) - {"kind"} - set(BANK_KEYS[kind]))
+        if foreign:
+            raise SceneError(f"{source}: {where}[bank] {foreign[0]}: a {kind} bank has no {foreign[0]!r} (its keys: "
+                             f"{sorted(BANK_KEYS[kind])}); remove it, or choose the kind it belongs to")
     if sections["decision"]["scope"] == "last" and sections["decision"]["n"] < 1:
         raise SceneError(f"{source}: {where}[decision] n must be >= 1 with scope = \"last\"")
     _check_decision(source, sections["decision"], f"{where}[decision]")
@@ -442,9 +316,9 @@ def _check_decision(source: str, decision: dict, where: str) -> None:
                          "(one window is a unanimous vote)")
 
 
-def _sinks(d: dict, source: str, streams, sources=(MAIN_STREAM,)) -> list[dict]:
+def _sinks(d: dict, source: str, streams, sources=(MAIN_STREAM,), base_dir: Path | None = None) -> list[dict]:
     """The [[sink]] tables, with ``from`` checked against the scene's streams and ``source``
-    against its sources (filled in when there is only one)."""
+    against its sources (filled in when there is only one); two sinks may not write one file."""
     sinks_in = d.get("sink", [{"type": "text"}])
     if not isinstance(sinks_in, list) or not sinks_in:
         raise SceneError(f"{source}: [[sink]] must be a list of at least one sink table")
@@ -471,6 +345,14 @@ def _sinks(d: dict, source: str, streams, sources=(MAIN_STREAM,)) -> list[dict]:
                                  "give it another prefix, or remove one")
             sinks.append(sink)
             continue
+        if sink.get("path", "-") != "-":
+            target = os.path.normpath((base_dir or Path.cwd()) / Path(sink["path"]).expanduser())
+            same = next((k for k, o in enumerate(sinks) if o.get("path", "-") != "-" and target == os.path.normpath(
+                (base_dir or Path.cwd()) / Path(o["path"]).expanduser())), None)
+            if same is not None:
+                raise SceneError(f"{source}: [[sink]] #{i + 1} path: {sink['path']!r} is the file of [[sink]] #{same + 1} "
+                                 "too; two sinks writing one file would interleave their lines: give each its own "
+                                 "path, or one sink several streams (from = [...])")
         listens = [sink["from"]] if isinstance(sink["from"], str) else sink["from"] or []
         unknown = [n for n in listens if n not in streams]
         if unknown:
@@ -497,12 +379,7 @@ def _graph_scene(d: dict, source: str, base_dir: Path) -> Scene:
     sources = []
     for i, t in enumerate(_table_list(d, "source", source)):
         where = f"{source}: [[source]] #{i + 1}"
-        kind = t.get("type")
-        if kind not in DRIVER_KEYS:
-            raise SceneError(f"{where} type: expected one of {sorted(DRIVER_KEYS)}, got {kind!r}")
-        given = {k: v for k, v in t.items() if k not in ("type", "buffer")}
-        keys = {**SOURCE_KEYS, **DRIVER_KEYS[kind]}
-        drv = {"type": kind, **_fill(f"{where} ({kind})", given, keys)}
+        drv = driver_table(where, t, SOURCE_KEYS)
         drv["buffer"] = _fill(f"{where} [source.buffer]", t.get("buffer", {}), SECTIONS["buffer"])
         sources.append(drv)
     names = [s["name"] for s in sources]
@@ -546,6 +423,10 @@ def _graph_scene(d: dict, source: str, base_dir: Path) -> Scene:
         if fusion["weight"] == LEARN and given_learned:
             raise SceneError(f"{source}: [fusion] {', '.join(given_learned)}: weight = \"{LEARN}\" learns them with the "
                              "weight; give a numeric weight to set them, or leave them out")
+        late_only = sorted({"weight", "sharpness", "correlation"} & set(given))
+        if fusion["method"] == "early" and late_only:
+            raise SceneError(f"{source}: [fusion] {late_only[0]}: {', '.join(late_only)} belong to late fusion; early "
+                             "fusion is one network on both streams' features (remove them, or set method = \"late\")")
         if fusion["method"] == "late" and fusion["model"] is not None:
             raise SceneError(f"{source}: [fusion] model: a model file is for method = \"early\"; late fusion has a "
                              "weight (leave model out, or set method = \"early\")")
@@ -557,7 +438,7 @@ def _graph_scene(d: dict, source: str, base_dir: Path) -> Scene:
             if m["path"] is None and not m["train_on_start"]:
                 raise SceneError(f"{source}: [fusion] streams: stream {n!r} has no model to fuse; give it "
                                  "[stream.model] path or train_on_start")
-    sinks = _sinks(d, source, stream_names + ([FUSED_STREAM] if fusion else []), names)
+    sinks = _sinks(d, source, stream_names + ([FUSED_STREAM] if fusion else []), names, base_dir)
     sent = {s["source"] for s in sinks if s["type"] in SOURCE_SINKS}
     unused = [n for n in names if n not in {s.source for s in streams} | sent]
     if unused:

@@ -40,12 +40,14 @@ from typing import Callable, Sequence, Union
 import numpy as np
 from scipy.signal import resample_poly
 
+from supramodal.checks import Key, flag, integer, is_number, one_of, text
 from supramodal.drivers.base import Block, DeviceUnavailable, DriverClosed, DriverError, DriverEvent, EventLog
+from supramodal.drivers.spec import Built, BuildContext, DriverSpec, OptionError, given
 from supramodal.replay.errors import ReplayError
 from supramodal.replay.session import Label, Session, load_session, session_paths
 from supramodal.replay.wavio import read_wav
 
-__all__ = ["ReplayDriver", "DeviceClock", "TIMINGS", "release_time", "random_block_sizes", "RandomBlockSizes", "BlockSize"]
+__all__ = ["ReplayDriver", "DeviceClock", "SPEC", "SPEED_HELP", "SPEED_MAX", "TIMINGS", "is_speed", "release_time", "random_block_sizes", "RandomBlockSizes", "BlockSize"]
 
 #: What ``block_size`` accepts: frames per block, a sequence cycled through,
 #: or a callable drawing each size from a :class:`numpy.random.Generator`.
@@ -56,6 +58,20 @@ BlockSize = Union[int, Sequence[int], Callable[[np.random.Generator], int], None
 #: rate; ``"recorded"``, the recorded blocks at their recorded times (a session recorded by a
 #: node of several sources: its sidecar's ``arrivals``).
 TIMINGS = ("nominal", "recorded")
+
+#: The replay speed that releases every block at once (in a scene and after ``--speed``).
+SPEED_MAX = "max"
+#: Slowest and fastest finite replay speed a scene or ``--speed`` may ask for: a thousandth of real
+#: time (a 10 ms block every 10 s) to a million times faster (beyond that, ask for "max").
+SPEED_RANGE = (1e-3, 1e6)
+SPEED_HELP = (f'1.0 (real time), a factor from {SPEED_RANGE[0]:g} to {SPEED_RANGE[1]:g}, or "{SPEED_MAX}" '
+              "(every block at once)")
+
+
+def is_speed(v) -> bool:
+    """Whether ``v`` is a replay speed a scene may ask for: :data:`SPEED_MAX` or a number within
+    :data:`SPEED_RANGE`."""
+    return v == SPEED_MAX or is_number(v) and SPEED_RANGE[0] <= v <= SPEED_RANGE[1]
 
 
 def release_time(end_frame: int, rate: float, speed: float = 1.0, t0: float = 0.0) -> float:
@@ -700,3 +716,65 @@ class ReplayDriver:
         loop = {None: True, 1: False}.get(self._passes, self._passes)
         return (f"ReplayDriver({self.name}, rate={self.rate:g}, channels={self.channels}, "
                 f"speed={speed}, loop={loop})")
+
+
+# -- as a scene names it ---------------------------------------------------------------------------
+
+def speed_key() -> Key:
+    """The ``speed`` key of a paced source (its default: the replay driver's)."""
+    return Key(is_speed, SPEED_HELP + " (default: the replay driver's)", None)
+
+
+def block_key() -> Key:
+    """The ``block`` key of a paced source, frames per block (its default: 10 ms)."""
+    return Key(integer(1), "frames per block, an integer >= 1 (default: the replay driver's)", None)
+
+
+def pacing(options: dict, context: BuildContext) -> dict:
+    """The replay driver's ``speed`` and ``block_size`` arguments from a scene's options (the
+    command line's ``--speed`` first); absent ones keep the driver's defaults."""
+    speed = context.speed if context.speed is not None else options.get("speed")
+    return given({**options, "speed": speed}, {"speed": "speed", "block": "block_size"})
+
+
+def scene_labels(driver: ReplayDriver) -> dict:
+    """A replayed source's truth labels as :class:`~supramodal.drivers.spec.Built` takes them:
+    ``labels`` and, where the replay loops, their ``label_period``."""
+    ranges = tuple((lab.start, lab.end, lab.label) for lab in driver.labels)
+    looped = bool(ranges) and driver.passes != 1
+    return {"labels": ranges, "label_period": driver.period if looped else None}
+
+
+def _build(options: dict, context: BuildContext) -> Built:
+    path = context.resolve(options["path"])
+    if not path.exists():
+        raise OptionError(f"path: no recording at {path} (a relative path is taken from the scene file's folder)")
+    try:
+        # Notices reach the sinks as events, not stderr.
+        driver = ReplayDriver(str(path), rate=context.rate, loop=options["loop"], timing=options["timing"],
+                              on_notice=None, **pacing(options, context))
+    except ReplayError as exc:
+        if options["timing"] != "recorded":
+            raise
+        raise OptionError(f'timing = "recorded": {exc}') from None
+    return Built(driver, **scene_labels(driver), source_rate=driver.source_rate)
+
+
+def _timebase(options: dict, driver: ReplayDriver) -> tuple[str, float, float]:
+    if options["timing"] == "recorded":
+        return "recorded", 0.0, float(driver.recorded_rate)   # the clock set up as when it was recorded
+    return "stream", 0.0, driver.rate
+
+
+SPEC = DriverSpec(
+    type="replay",
+    summary="a WAV file or a recorded session, paced like the device that recorded it",
+    keys={
+        "path": Key(text, "a WAV file or session path"),
+        "speed": speed_key(),
+        "block": block_key(),
+        "loop": Key(flag, "true or false", False),
+        "timing": Key(one_of(*TIMINGS), '"nominal" (the rate\'s schedule) or "recorded" (a session recorded by a '
+                      "graph: its blocks at their recorded times, in step with the other sources)", "nominal"),
+    },
+    build=_build, live=False, timebase=_timebase)

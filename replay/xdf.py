@@ -35,6 +35,8 @@ import numpy as np
 from supramodal.drivers.base import DeviceUnavailable
 from supramodal.drivers.lsl import DEFAULT_GAP_TOLERANCE, DEFAULT_MAX_GAP, TimestampSteps
 from supramodal.replay.errors import ReplayError
+from supramodal.checks import Key, text
+from supramodal.drivers.spec import Built, BuildContext, DriverSpec, OptionError
 from supramodal.replay.session import Label, Session
 
 #: Seconds per replayed block of an XDF stream.
@@ -264,3 +266,55 @@ def _arrivals(seconds: np.ndarray, rate: float, cuts=()) -> tuple[np.ndarray, np
         if slope > 0 and abs(1.0 / slope - rate) < 0.01 * rate:
             shown = 1.0 / slope
     return ends, times, shown
+
+
+# -- as a scene names it ---------------------------------------------------------------------------
+
+#: Keys that name the recorded stream: a scene gives at least one.
+WHICH = ("stream", "stream_type", "source_id")
+
+
+def _check(options: dict) -> None:
+    if all(options[k] is None for k in WHICH):
+        raise OptionError('type "xdf" needs the recorded stream\'s name (stream = ...), stream_type or source_id')
+
+
+def _build(options: dict, context: BuildContext) -> Built:
+    from supramodal.replay.driver import ReplayDriver, pacing, scene_labels
+
+    path = context.resolve(options["path"])
+    if not path.exists():
+        raise OptionError(f"path: no XDF file at {path} (a relative path is taken from the scene file's folder)")
+    files = context.shared.setdefault("xdf", {})        # one file read once for all its sources
+    try:
+        if path not in files:
+            files[path] = load_xdf_streams(path)
+        session = xdf_session(path, options["stream"], options["stream_type"], options["source_id"],
+                              streams=files[path], labels=options["labels"])
+        driver = ReplayDriver(session, rate=context.rate, timing="recorded", on_notice=None,
+                              **pacing({"speed": options["speed"]}, context))
+    except ReplayError as exc:
+        raise OptionError(str(exc)) from None
+    return Built(driver, **scene_labels(driver), source_rate=driver.source_rate)
+
+
+def _spec() -> DriverSpec:
+    from supramodal.replay.driver import speed_key
+
+    return DriverSpec(
+        type="xdf",
+        summary="a stream of an XDF recording (LabRecorder's files; the lsl extra), at its recorded times",
+        keys={
+            "path": Key(text, "an XDF file path"),
+            "stream": Key(text, "the recorded stream's name", None),
+            "stream_type": Key(text, 'the recorded stream\'s type, e.g. "Whiskers"', None),
+            "source_id": Key(text, "the recorded stream's source_id", None),
+            "labels": Key(text, "the name of a marker stream in the file whose strings are the truth labels (each "
+                                "marker starts a label, which runs until the next; an empty marker ends it)", None),
+            "speed": speed_key(),
+        },
+        build=_build, live=False, check=_check,
+        timebase=lambda options, driver: ("recorded", 0.0, float(driver.recorded_rate)))
+
+
+SPEC = _spec()

@@ -18,12 +18,12 @@ least one channel, at most :data:`~supramodal.banks.MAX_CHANNELS`).
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
 
 import numpy as np
 
-from supramodal.banks import MAX_CHANNELS, Bank, cochlea_bank, whisker_bank
+from supramodal.banks import MAX_CHANNELS, MAX_RATE, Bank, cochlea_bank, whisker_bank
+from supramodal.checks import Key, fill, integer, is_number, positive
 from supramodal.errors import InputError
 from supramodal.jsondata import read_json_file
 
@@ -42,43 +42,32 @@ class BankFileError(InputError):
     """A bank description or bank file does not fit; the message names the key and the fix."""
 
 
-def _number(v):
-    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
-
-
-def _positive(v):
-    return _number(v) and v > 0
-
-
 def _numbers(v):
-    return isinstance(v, list) and 0 < len(v) <= MAX_CHANNELS and all(_number(x) for x in v)
+    return isinstance(v, list) and 0 < len(v) <= MAX_CHANNELS and all(is_number(x) for x in v)
 
 
 def _names(v):
     return isinstance(v, list) and all(isinstance(x, str) and x for x in v)
 
 
-def _count(v):
-    return isinstance(v, int) and not isinstance(v, bool) and 1 <= v <= MAX_CHANNELS
-
-
 def _rows(v):
     return isinstance(v, str) and v != "" and set(v) <= set("ABCDE") and len(set(v)) == len(v)
 
 
-#: Per kind, the keys a description may hold: (check, what is expected, required).
+_FS = f"sample rate, Hz, > 0 and at most {MAX_RATE:g} (MAX_RATE)"
+#: Per kind, the keys a description may hold (supramodal.checks: a default of None is the bank's own).
 BANK_KEYS = {
-    "whisker": {"rows": (_rows, 'whisker rows, e.g. "ABCDE"', False),
-                "mean_B": (_positive, "mean Slaney bandwidth 2 pi b, > 0", False),
-                "fs": (_positive, "sample rate, Hz, > 0", False)},
-    "cochlea": {"channels": (_count, f"an integer 1..{MAX_CHANNELS} (MAX_CHANNELS)", False),
-                "f_low": (_positive, "lowest centre frequency, Hz, > 0", False),
-                "f_high": (_positive, "top of the band, Hz, above f_low", False),
-                "fs": (_positive, "sample rate, Hz, > 0", False)},
-    "custom": {"fs": (_positive, "sample rate, Hz, > 0", True),
-               "cf": (_numbers, f"centre frequencies, Hz: a list of 1..{MAX_CHANNELS} numbers (MAX_CHANNELS)", True),
-               "b": (_numbers, "bandwidth parameters b, Hz: one per centre frequency", True),
-               "names": (_names, "channel names: one non-empty string per channel", False)},
+    "whisker": {"rows": Key(_rows, 'whisker rows, e.g. "ABCDE"', None),
+                "mean_B": Key(positive(), "mean Slaney bandwidth 2 pi b, > 0", None),
+                "fs": Key(positive(MAX_RATE), _FS, None)},
+    "cochlea": {"channels": Key(integer(1, MAX_CHANNELS), f"an integer 1..{MAX_CHANNELS} (MAX_CHANNELS)", None),
+                "f_low": Key(positive(), "lowest centre frequency, Hz, > 0", None),
+                "f_high": Key(positive(), "top of the band, Hz, above f_low", None),
+                "fs": Key(positive(MAX_RATE), _FS, None)},
+    "custom": {"fs": Key(positive(MAX_RATE), _FS),
+               "cf": Key(_numbers, f"centre frequencies, Hz: a list of 1..{MAX_CHANNELS} numbers (MAX_CHANNELS)"),
+               "b": Key(_numbers, "bandwidth parameters b, Hz: one per centre frequency"),
+               "names": Key(_names, "channel names: one non-empty string per channel", None)},
 }
 
 
@@ -97,18 +86,11 @@ def bank_from_description(d, where: str = "bank") -> Bank:
     kind = d.get("kind")
     if kind not in BANK_KEYS:
         raise BankFileError(f"{where}: kind must be one of {sorted(BANK_KEYS)}, got {kind!r}")
-    keys = BANK_KEYS[kind]
-    unknown = sorted(set(d) - set(keys) - {"kind"})
-    if unknown:
-        raise BankFileError(f"{where}: unknown key(s) {unknown} for a {kind} bank; its keys are {sorted(keys)}")
-    for key, (check, expected, required) in keys.items():
-        if key in d and not check(d[key]):
-            raise BankFileError(f"{where}: {key}: expected {expected}, got {d[key]!r}")
-        if required and key not in d:
-            raise BankFileError(f"{where}: a {kind} bank needs {key!r} ({expected})")
+    d = {k: v for k, v in fill(f"{where} ({kind} bank)", {k: v for k, v in d.items() if k != "kind"},
+                               BANK_KEYS[kind], BankFileError).items() if v is not None}
     try:
         if kind == "whisker":
-            return whisker_bank(**{k: d[k] for k in ("rows", "mean_B", "fs") if k in d})
+            return whisker_bank(**d)
         if kind == "cochlea":
             names = {"channels": "n", "f_low": "f_low", "f_high": "f_high", "fs": "fs"}
             return cochlea_bank(**{arg: d[k] for k, arg in names.items() if k in d})
@@ -131,7 +113,7 @@ def load_bank(path) -> Bank:
         raise BankFileError(f"{path} is a folder, not a bank file") from None
     if not isinstance(d, dict) or d.get("format") != BANK_FORMAT:
         raise BankFileError(f"{path} is not a supramodal bank file (its 'format' must be {BANK_FORMAT!r})")
-    if d.get("version") != BANK_VERSION:
+    if type(d.get("version")) is not int or d.get("version") != BANK_VERSION:
         raise BankFileError(f"{path}: bank file version {d.get('version')!r} is not supported (this program "
                             f"reads version {BANK_VERSION})")
     unknown = sorted(set(d) - {"format", "version", "bank"})

@@ -51,6 +51,9 @@ COCHLEA_RATE = 44100.0
 #: Most channels a bank may have (the cochlea has 50, the whiskers 20): a bound on what a scene or
 #: a model file can make the node allocate.
 MAX_CHANNELS = 1024
+#: Highest sample rate a bank runs at, Hz (audio interfaces reach 768 kHz): a bound on what a scene,
+#: a bank file or a model file can make the node resample and filter.
+MAX_RATE = 1e6
 
 
 def _real(value, what: str) -> np.ndarray:
@@ -97,8 +100,9 @@ class Bank:
             raise InputError(f"sample rate fs must be one number of Hz, got {fs.size} values")
         cf, b, fs = cf.reshape(-1), b.reshape(-1), float(fs.reshape(-1)[0])
         names = tuple(str(n) for n in self.names)
-        if not np.isfinite(fs) or fs <= 0:
-            raise InputError(f"sample rate fs must be a positive number of Hz, got {self.fs!r}")
+        if not np.isfinite(fs) or fs <= 0 or fs > MAX_RATE:
+            raise InputError(f"sample rate fs must be a positive number of Hz, at most {MAX_RATE:g} (MAX_RATE), "
+                             f"got {self.fs!r}")
         if cf.size == 0:
             raise InputError("a bank needs at least one channel; got an empty list of centre frequencies")
         if cf.size > MAX_CHANNELS:

@@ -48,12 +48,13 @@ def test_a_bank_file_round_trips_exactly_and_through_a_model_file(tmp_path):
     ({"kind": "custom", "fs": 2200.0, "cf": [], "b": []}, "cf: expected centre frequencies"),
     ({"kind": "custom", "fs": 2200.0, "cf": [float("nan")], "b": [10.0]}, "cf: expected"),
     ({"kind": "custom", "fs": 2200.0, "cf": [100.0, 200.0], "b": [10.0]}, "one entry per channel"),
-    ({"kind": "custom", "cf": [100.0], "b": [10.0]}, "needs 'fs'"),
+    ({"kind": "custom", "cf": [100.0], "b": [10.0]}, r"\(custom bank\): missing required key 'fs'"),
     ({"kind": "cochlea", "channels": 10, "f_high": 3000.0, "fs": 2200.0}, "outside"),
     ({"kind": "cochlea", "channels": 0}, "channels: expected an integer"),
     ({"kind": "cochlea", "fs": float("inf")}, "fs: expected"),
     ({"kind": "whisker", "rows": "AZ"}, "rows: expected"),
-    ({"kind": "whisker", "channels": 3}, r"unknown key\(s\) \['channels'\] for a whisker bank"),
+    ({"kind": "whisker", "channels": 3}, r"\(whisker bank\): unknown key\(s\) \['channels'\]"),
+    ({"kind": "cochlea", "fs": 1e7}, r"fs: expected sample rate, Hz, > 0 and at most 1e\+06"),
     ({"kind": "fingertip"}, "kind must be one of"),
     ([1, 2], "is a table"),
 ])
@@ -65,6 +66,7 @@ def test_banks_that_cannot_run_are_refused_naming_the_key(description, match):
 @pytest.mark.parametrize("content, match", [
     ({"format": "other", "version": 1, "bank": SENSOR}, "not a supramodal bank file"),
     ({"format": "supramodal-bank", "version": 2, "bank": SENSOR}, "version 2 is not supported"),
+    ({"format": "supramodal-bank", "version": True, "bank": SENSOR}, "version True is not supported"),
     ({"format": "supramodal-bank", "version": 1, "bank": SENSOR, "extra": 1}, r"unknown key\(s\) \['extra'\]"),
     ({"format": "supramodal-bank", "version": 1, "bank": {**SENSOR, "fs": 1000.0}}, "outside"),
 ])

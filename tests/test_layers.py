@@ -25,9 +25,10 @@ LAYER_DIRS = {"supramodal.node": "node", "supramodal.drivers": "drivers", "supra
 #: Layers the model package must never load: the node, the drivers and replay (the sources), the
 #: benchmarks (which measure the node), and the device libraries.
 NOT_IN_THE_MODEL = ("node", "drivers", "replay", "benchmarks", "serial", "sounddevice", "_sounddevice")
-#: What drivers and replay may use of the model package: the error root and the bounded JSON
-#: reader (file handling, no DSP; the model's own files need it too, so it cannot live in replay).
-DRIVER_MAY_USE = ("supramodal.errors", "supramodal.jsondata")
+#: What drivers and replay may use of the model package: the error root, the bounded JSON reader
+#: (file handling, no DSP; the model's own files need it too, so it cannot live in replay) and the
+#: validation vocabulary (a driver's spec states its keys in it; pure Python, no DSP).
+DRIVER_MAY_USE = ("supramodal.errors", "supramodal.jsondata", "supramodal.checks")
 
 
 def layer(name: str) -> str:

@@ -17,7 +17,7 @@ import pytest
 from supramodal.node.build import build_node
 from supramodal.node.graph import Node, channel_mapper
 from supramodal.node.scene import SceneError, default_scene, load_scene, scene_from_dict
-from supramodal.node.sinks import ListSink
+from supramodal.node.sinks import ListSink, Sink
 from supramodal.replay.driver import ReplayDriver, random_block_sizes
 from supramodal.replay.session import save_session
 from supramodal.replay.wavio import write_wav
@@ -364,11 +364,11 @@ def test_default_serial_scene_meets_the_frame_formats_link_budget():
     from supramodal.node.build import driver_for
 
     scene = scene_from_dict({"driver": {"type": "serial", "port": "loop://"}})
-    d = scene.driver
     spf = inspect.signature(MockWhiskerDevice.__init__).parameters["samples_per_frame"].default
-    need = d["rate"] / spf * frame_size(spf, d["channels"]) * 10
+    driver, _, _ = driver_for(scene, whisker_bank())     # the default scene's rate and channels: its bank's
+    need = driver.rate / spf * frame_size(spf, driver.channels) * 10
+    assert (driver.rate, driver.channels) == (whisker_bank().fs, whisker_bank().channels)
     assert need == pytest.approx(2.02e6, rel=1e-3)            # docs/serial-frames.md
-    driver, _, _ = driver_for(scene, whisker_bank())
     assert driver.baudrate == DEFAULT_BAUDRATE >= need
     scene = scene_from_dict({"driver": {"type": "serial", "port": "loop://", "baudrate": 4_000_000}})
     assert driver_for(scene, whisker_bank())[0].baudrate == 4_000_000
@@ -408,18 +408,18 @@ def test_command_line_model_and_scene_share_the_defaults():
 def test_held_out_share_follows_the_training_fraction(monkeypatch, train_fraction, accepted):
     """Held-out segments come from the part the model did not train on: 1 - TRAIN_FRACTION of each texture."""
     import supramodal.training as training
-    from supramodal.node.build import synth_session
+    from supramodal.node.build import driver_for
 
     monkeypatch.setattr(training, "TRAIN_FRACTION", train_fraction)
     ts = reference_texture_set("whisker")
     seconds = 0.3 * ts.duration                                   # within 40 %, beyond 25 %
     scene = scene_from_dict({"driver": {"type": "synth", "order": ["T1"], "seconds": seconds}})
     if accepted:
-        _, data, _ = synth_session(scene, whisker_bank())
-        assert data.shape[0] == round(seconds * ts.fs)
+        driver, _, _ = driver_for(scene, whisker_bank())
+        assert driver.data.shape[0] == round(seconds * ts.fs)
     else:
         with pytest.raises(SceneError, match=f"at most the last 25% of the set's {ts.duration:g} s"):
-            synth_session(scene, whisker_bank())
+            driver_for(scene, whisker_bank())
 
 
 @pytest.mark.parametrize("seed", range(5))
@@ -494,7 +494,7 @@ def test_nonfinite_and_out_of_range_samples_are_replaced_counted_and_reported(tm
 
 # -- sinks that block or fail never stall processing --------------------------------------------
 
-class _BlockingSink:
+class _BlockingSink(Sink):
     """A sink stuck on its first window until released (a stalled disk or network peer)."""
 
     def __init__(self):

@@ -8,7 +8,7 @@ import time
 import numpy as np
 import pytest
 
-from supramodal.node.build import bank_for, build_node, synth_session
+from supramodal.node.build import bank_for, build_node, driver_for
 from supramodal.node.cli import main
 from supramodal.node.graph import Node
 from supramodal.node.recorder import SessionRecorder
@@ -33,7 +33,7 @@ def test_recorded_session_replays_to_identical_node_output(tmp_path):
     assert session.data.shape == (8 * 2500, 1) and session.rate == 5000
     # The synth driver's truth is kept with its times (the "bench" label of the whole recording
     # applies only where the driver carries none).
-    _, _, truth = synth_session(scene, whisker_bank())
+    _, truth, _ = driver_for(scene, whisker_bank())
     assert [(lab.start, lab.end, lab.label) for lab in session.labels] == truth.ranges
     assert [lab.label for lab in session.labels] == [f"T{i}" for i in range(1, 9)]
     assert not list(tmp_path.glob(".*.raw"))                     # the spool file is gone
@@ -122,7 +122,7 @@ def test_node_output_does_not_depend_on_ring_read_timing(seed, chunk):
     features = {"names": ["Af", "A"]} | ({} if chunk is None else {"chunk": chunk})
     scene = scene_from_dict({"driver": {"type": "synth", "seconds": 0.5, "held_out": False, "block": 37},
                              "features": features})
-    _, data, _ = synth_session(scene, bank_for(scene))
+    data = driver_for(scene, bank_for(scene))[0].data
     chunk = scene.features["chunk"]
     pipeline = FeaturePipeline(whisker_bank(), ("Af", "A"), chunk=chunk)
     # With chunks the pipeline cuts the offline signal itself; without, it is fed window by window.

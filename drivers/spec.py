@@ -1,0 +1,160 @@
+"""What a scene needs to know of a kind of driver, in one object: :class:`DriverSpec`.
+
+Each driver module defines its spec as the module attribute ``SPEC``: the ``type`` a scene names
+it by, its keys (:class:`supramodal.checks.Key`: the check, the words, the default), how to build
+the driver from validated options, whether it is live, its timebase and what its samples are. The
+node's registry (``supramodal.node.registry``) maps each type to the module holding its spec and
+imports that module only when a scene names the type; so a new driver is one module plus one
+line there (or one :func:`~supramodal.node.registry.register_driver` call for a driver defined
+outside the package).
+
+A spec's ``build`` never imports the node: it is given a :class:`BuildContext` (the rate a bank
+reads the source at, the scene's folder, a shared cache) and returns a :class:`Built`. It raises
+:class:`OptionError` for an option that cannot be honoured (the node says which table it was in),
+and its driver's own errors otherwise.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from supramodal.checks import Key
+from supramodal.errors import InputError
+
+__all__ = ["BuildContext", "Built", "DriverSpec", "OptionError", "TIMEBASES", "given"]
+
+#: How a source's samples are put on the graph's common time (see ``supramodal.node.sources.Source``):
+#: ``stream`` (a file's own time, from its first sample), ``recorded`` (a recording's clock as it was
+#: recorded) or ``host`` (a live device's arrivals, fitted by a clock model).
+TIMEBASES = ("stream", "recorded", "host")
+
+
+class OptionError(InputError):
+    """A driver option that cannot be honoured; the message starts with the key, and the node
+    puts the table it came from in front of it."""
+
+
+@dataclass(frozen=True)
+class BuildContext:
+    """What a spec's ``build`` may use besides its options.
+
+    Attributes
+    ----------
+    rate : float or None
+        The rate, Hz, at which a bank reads the source: a file is resampled to it, a stream at
+        another rate refused. None: no bank reads the source (a relay's), it keeps its own rate.
+    resolve : callable
+        ``resolve(path) -> Path``: a path of the scene, relative to the scene file's folder.
+    speed : float, str or None
+        The command line's ``--speed`` (None: the scene's own).
+    shared : dict
+        One dict for all the sources of one scene: a spec may keep what several of its sources
+        share (an XDF file read once).
+    channels : int or None
+        The channels of the bank that reads the source (None: no bank), the default of a device
+        whose channel count is a setting.
+    bank : object or None
+        The bank that reads the source (``supramodal.banks.Bank``), for sources the model itself
+        makes (synthesised textures); a device or file driver needs only ``rate``.
+    """
+
+    rate: float | None
+    resolve: Callable[[str], Path] = Path
+    speed: Any = None
+    shared: dict = field(default_factory=dict)
+    channels: int | None = None
+    bank: Any = None
+
+
+@dataclass(frozen=True)
+class Built:
+    """A driver built from a scene's options.
+
+    Attributes
+    ----------
+    driver : Driver
+    labels : tuple of (float, float, str)
+        Truth labels the source carries, as ``(start_s, end_s, name)`` on its stream time.
+    label_period : float or None
+        Seconds after which the labels repeat (a looped source), or None.
+    training_set : object or None
+        The textures a model trained on the spot learns for this source (a synthesised one's
+        own); None: the bank's reference set.
+    source_rate : float or None
+        A file's own rate where it was resampled to the bank's: the node warns when the bank has
+        channels above its band.
+    """
+
+    driver: Any
+    labels: tuple = ()
+    label_period: float | None = None
+    training_set: Any = None
+    source_rate: float | None = None
+
+
+def _default_timebase(live: bool):
+    def timebase(options: dict, driver) -> tuple[str, float, float]:
+        return ("host" if live else "stream"), 0.0, float(driver.rate)
+    return timebase
+
+
+@dataclass(frozen=True)
+class DriverSpec:
+    """A kind of driver as a scene sees it.
+
+    Attributes
+    ----------
+    type : str
+        The name a scene gives it (``[driver] type`` / ``[[source]] type``).
+    keys : mapping of str to Key
+        Its options besides ``type`` (and a graph source's ``name`` and ``buffer``).
+    build : callable
+        ``build(options, context) -> Built``, with ``options`` validated and filled in.
+    live : bool
+        A device whose samples arrive whether or not the node keeps up: its ring drops the oldest
+        when full (``overrun = "auto"``) and its samples are put on host time. A file (False)
+        waits: the ring blocks it.
+    summary : str
+        One line for the docs' table of driver types.
+    timebase : callable, optional
+        ``timebase(options, driver) -> (timebase, time_offset, time_rate)`` (:data:`TIMEBASES`);
+        by default host time at the driver's rate for a live driver, stream time otherwise.
+    signal_type : callable, optional
+        ``signal_type(options) -> str or None``: what the samples are as an LSL content type
+        (``"Whiskers"``, ``"Audio"``), when no bank says so; None: unknown.
+    check : callable, optional
+        ``check(options) -> None``: a check across keys, raising :class:`OptionError`; run when
+        the scene is loaded, before anything is built.
+    """
+
+    type: str
+    keys: Mapping[str, Key]
+    build: Callable[[dict, BuildContext], Built]
+    live: bool
+    summary: str
+    timebase: Callable[[dict, Any], tuple[str, float, float]] | None = None
+    signal_type: Callable[[dict], str | None] = field(default=lambda options: None)
+    check: Callable[[dict], None] = field(default=lambda options: None)
+
+    def timebase_of(self, options: dict, driver) -> tuple[str, float, float]:
+        """``(timebase, time_offset, time_rate)`` of a built driver."""
+        tb = (self.timebase or _default_timebase(self.live))(options, driver)
+        if tb[0] not in TIMEBASES or not (math.isfinite(tb[2]) and tb[2] > 0):
+            raise InputError(f"driver {self.type!r}: timebase {tb!r} is not one of {TIMEBASES} at a positive rate")
+        return tb
+
+    @property
+    def overrun(self) -> str:
+        """The ring's policy for ``overrun = "auto"``: lossless back-pressure for a file, the
+        oldest frames dropped for a live device (it cannot wait)."""
+        return "drop-oldest" if self.live else "block"
+
+
+def given(options: dict, names: Mapping[str, str]) -> dict:
+    """The options a scene sets, renamed to a driver's keyword arguments (``{scene key: argument}``);
+    an option left at None is not passed, so that the driver's own default applies (its one home)."""
+    return {arg: options[key] for key, arg in names.items() if options.get(key) is not None}

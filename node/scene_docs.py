@@ -1,0 +1,108 @@
+"""The docs' tables of scene keys, made from the schema itself, so that they cannot drift.
+
+``python -m supramodal.node.scene_docs`` rewrites the generated blocks of README.md and
+docs/node.md (between ``<!-- BEGIN generated: NAME -->`` and ``<!-- END generated: NAME -->``);
+``--check`` exits 1 when the committed files differ from the schema (a test runs it too).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import sys
+from pathlib import Path
+
+from supramodal.node.registry import driver_spec, driver_types, source_keys
+from supramodal.node.scene import FUSION_KEYS, SECTIONS, SINK_KEYS, SOURCE_KEYS, STREAM_KEYS
+
+__all__ = ["BLOCKS", "blocks", "check", "main", "rewrite"]
+
+#: File (relative to the repository root) -> the generated blocks it holds.
+BLOCKS = {"docs/node.md": ("driver-keys", "section-keys", "sink-keys", "graph-keys"), "README.md": ("driver-types",)}
+
+
+def _value(v) -> str:
+    if v is None:
+        return "—"          # the driver's or the bank's own default, as "expected" says
+    return "`" + (json.dumps(v) if not isinstance(v, float) else f"{v:g}") + "`"
+
+
+def _keys_table(keys: dict) -> list[str]:
+    rows = ["| key | expected | default |", "|---|---|---|"]
+    for key, k in keys.items():
+        default = "**required**" if k.required else _value(k.default)
+        expected = k.expected.replace("|", "\\|")
+        rows.append(f"| `{key}` | {expected} | {default} |")
+    return rows
+
+
+def blocks() -> dict[str, str]:
+    """Every generated block, by name, as Markdown."""
+    out = {}
+    lines = []
+    for kind in driver_types():
+        spec = driver_spec(kind)
+        lines += [f"#### `type = \"{kind}\"`: {spec.summary}", "",
+                  f"{'Live' if spec.live else 'A file'}: `overrun = \"auto\"` is `\"{spec.overrun}\"`.", ""]
+        lines += _keys_table(source_keys(spec)) + [""]
+    out["driver-keys"] = "\n".join(lines).rstrip()
+    lines = []
+    for section, keys in SECTIONS.items():
+        lines += [f"#### `[{section}]`", ""] + _keys_table(keys) + [""]
+    out["section-keys"] = "\n".join(lines).rstrip()
+    lines = []
+    for kind, keys in SINK_KEYS.items():
+        lines += [f"#### `[[sink]] type = \"{kind}\"`", ""] + _keys_table(keys) + [""]
+    out["sink-keys"] = "\n".join(lines).rstrip()
+    lines = ["#### `[[source]]`: a driver's keys (above) and", ""] + _keys_table(SOURCE_KEYS) + [""]
+    lines += ["#### `[[stream]]`: `[stream.bank]`, `[stream.features]`, `[stream.model]`, `[stream.decision]` "
+              "(the sections above) and", ""] + _keys_table(STREAM_KEYS) + [""]
+    lines += ["#### `[fusion]`: `[fusion.decision]` (a `[decision]`) and", ""] + _keys_table(FUSION_KEYS)
+    out["graph-keys"] = "\n".join(lines).rstrip()
+    out["driver-types"] = "\n".join(f"- `{kind}`: {driver_spec(kind).summary}" for kind in driver_types())
+    return out
+
+
+def _pattern(name: str) -> re.Pattern:
+    return re.compile(rf"(<!-- BEGIN generated: {re.escape(name)} -->\n)(?:.*?\n)?(<!-- END generated: "
+                      rf"{re.escape(name)} -->)", re.S)
+
+
+def rewrite(text: str, names, made: dict[str, str], where: str = "the file") -> str:
+    """``text`` with each named block replaced by ``made[name]``; a missing block is an error."""
+    for name in names:
+        pattern = _pattern(name)
+        if not pattern.search(text):
+            raise ValueError(f"{where} has no generated block {name!r} (<!-- BEGIN generated: {name} --> ...)")
+        text = pattern.sub(lambda m: m.group(1) + made[name] + "\n" + m.group(2), text)
+    return text
+
+
+def check(root: Path) -> list[str]:
+    """The files under ``root`` whose generated blocks differ from the schema."""
+    made = blocks()
+    return [f for f, names in BLOCKS.items()
+            if (root / f).read_text() != rewrite((root / f).read_text(), names, made, f)]
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m supramodal.node.scene_docs", description=__doc__.splitlines()[0])
+    parser.add_argument("--root", type=Path, default=Path.cwd(), help="the repository's root (default: here)")
+    parser.add_argument("--check", action="store_true", help="only say whether the files are up to date")
+    args = parser.parse_args(argv)
+    if args.check:
+        stale = check(args.root)
+        for f in stale:
+            print(f"{f}: its scene key tables differ from the schema; run python -m supramodal.node.scene_docs",
+                  file=sys.stderr)
+        return 1 if stale else 0
+    made = blocks()
+    for f, names in BLOCKS.items():
+        path = args.root / f
+        path.write_text(rewrite(path.read_text(), names, made, f))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

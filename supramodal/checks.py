@@ -1,0 +1,169 @@
+"""One validation vocabulary: what a key of a scene table, a bank file or a driver accepts, said once.
+
+A table's schema is a mapping ``key -> Key``. A :class:`Key` holds a check (a predicate on the
+value as TOML or JSON gives it), the words that say what it expects (they go into the error
+message and into the docs' key tables) and its default: a value, ``None`` (the key's owner, a
+driver or a bank, keeps its own default and is not passed the key) or :data:`REQUIRED`.
+:func:`fill` validates a table against a schema and fills in the defaults; every refusal names
+the table (``where``), the key, what was expected and what was given.
+
+The predicates below are the words of the vocabulary. Numbers are always finite and never
+booleans (TOML's ``true`` is not 1); integers are Python ints.
+
+Pure Python; drivers, replay, the model's file readers and the node all use it.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from typing import Any
+
+from supramodal.errors import InputError
+
+__all__ = ["REQUIRED", "Key", "fill", "flag", "integer", "is_name", "is_number", "non_negative", "number", "one_of",
+           "positive", "text", "texts", "NAME_HELP", "MAX_NAME"]
+
+
+class _Required:
+    def __repr__(self) -> str:
+        return "REQUIRED"
+
+
+#: The default of a key that a table must give.
+REQUIRED: Any = _Required()
+
+#: Longest name (of a source, a stream, an outlet prefix), characters.
+MAX_NAME = 64
+NAME_HELP = f"a name: letters, digits, '-' or '_', at most {MAX_NAME} characters"
+
+
+@dataclass(frozen=True)
+class Key:
+    """One key of a table.
+
+    Attributes
+    ----------
+    check : callable
+        ``check(value) -> bool``: whether the value as parsed (TOML or JSON) is acceptable.
+    expected : str
+        What the key accepts, in words: the error message says "expected <expected>"; the docs'
+        key tables print it.
+    default : object
+        The value when the key is absent; ``None``: the owner's own default applies (the key is
+        not passed on); :data:`REQUIRED`: the table must give it.
+    """
+
+    check: Callable[[Any], bool]
+    expected: str
+    default: Any = REQUIRED
+
+    @property
+    def required(self) -> bool:
+        return self.default is REQUIRED
+
+
+Schema = Mapping[str, Key]
+
+
+def fill(where: str, given: Any, keys: Schema, error: type[InputError] = InputError) -> dict[str, Any]:
+    """Validate the table ``given`` against ``keys`` and fill in the defaults.
+
+    Parameters
+    ----------
+    where : str
+        The table, as the user wrote it (e.g. ``"scene.toml: [driver] (serial)"``); every message
+        starts with it.
+    given : dict
+        The table as parsed.
+    keys : mapping of str to Key
+    error : type
+        The exception raised (a subclass of :class:`~supramodal.errors.InputError`).
+
+    Returns
+    -------
+    dict
+        Every key of ``keys`` with its value (given, or the default; ``None`` for the owner's).
+
+    Raises
+    ------
+    error
+        For a table that is not a table, an unknown key, a value its check refuses, or a
+        required key missing; the message names the key and what it expects.
+    """
+    if not isinstance(given, dict):
+        raise error(f"{where} must be a table")
+    unknown = sorted(set(given) - set(keys))
+    if unknown:
+        raise error(f"{where}: unknown key(s) {unknown}; allowed keys: {sorted(keys)}")
+    out = {}
+    for key, spec in keys.items():
+        if key in given:
+            value = given[key]
+            if not spec.check(value):
+                raise error(f"{where} {key}: expected {spec.expected}, got {value!r}")
+            out[key] = value
+        elif spec.required:
+            raise error(f"{where}: missing required key {key!r} ({spec.expected})")
+        else:
+            out[key] = spec.default
+    return out
+
+
+# -- the words ---------------------------------------------------------------------------------------
+
+def is_number(v) -> bool:
+    """A finite int or float, not a bool."""
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def number(lo: float = -math.inf, hi: float = math.inf, *, lo_open: bool = False,
+           hi_open: bool = False) -> Callable[[Any], bool]:
+    """A finite number within ``[lo, hi]`` (an end excluded where ``lo_open`` / ``hi_open``)."""
+    def check(v) -> bool:
+        if not is_number(v):
+            return False
+        return (v > lo if lo_open else v >= lo) and (v < hi if hi_open else v <= hi)
+    return check
+
+
+def positive(hi: float = math.inf) -> Callable[[Any], bool]:
+    """A finite number ``0 < v <= hi``."""
+    return number(0.0, hi, lo_open=True)
+
+
+def non_negative(hi: float = math.inf) -> Callable[[Any], bool]:
+    """A finite number ``0 <= v <= hi``."""
+    return number(0.0, hi)
+
+
+def integer(lo: int | None = None, hi: int | None = None) -> Callable[[Any], bool]:
+    """An int (not a bool) within ``[lo, hi]`` (an absent end: unbounded)."""
+    return lambda v: (isinstance(v, int) and not isinstance(v, bool) and (lo is None or v >= lo)
+                      and (hi is None or v <= hi))
+
+
+def one_of(*choices) -> Callable[[Any], bool]:
+    """One of ``choices`` (compared with ``==``, so ``1`` is not ``True``)."""
+    return lambda v: any(v == c and type(v) is type(c) for c in choices)
+
+
+def flag(v) -> bool:
+    """``true`` or ``false``."""
+    return isinstance(v, bool)
+
+
+def text(v) -> bool:
+    """A non-empty string."""
+    return isinstance(v, str) and v != ""
+
+
+def texts(v) -> bool:
+    """A list of strings (possibly empty)."""
+    return isinstance(v, list) and all(isinstance(t, str) for t in v)
+
+
+def is_name(v) -> bool:
+    """A name (:data:`NAME_HELP`): what becomes a stream name, a file name part or an outlet name."""
+    return text(v) and len(v) <= MAX_NAME and all(c.isalnum() or c in "-_" for c in v)

@@ -1,0 +1,163 @@
+"""A new driver is one file plus one line: a toy driver defined in this file alone runs from a scene.
+
+Also: every driver type a scene may name has a spec that fits (its keys validate its defaults, its
+type is its name), and the scene refuses a type no driver has, listing those there are.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from supramodal.checks import Key, integer, positive
+from supramodal.drivers.base import Block, DriverClosed
+from supramodal.drivers.spec import Built, BuildContext, DriverSpec, OptionError
+from supramodal.node import registry
+from supramodal.node.build import build_node
+from supramodal.node.scene import SceneError, scene_from_dict
+from supramodal.node.sinks import ListSink
+
+
+class ToneDriver:
+    """A driver no one in the package wrote: a sine on every channel, ``seconds`` long."""
+
+    def __init__(self, rate: float, channels: int, frequency: float, seconds: float, block: int) -> None:
+        self.rate, self.channels, self.block = float(rate), int(channels), int(block)
+        self._n = int(round(seconds * rate))
+        self._frequency = frequency
+        self._pos = 0
+        self.opened = False
+
+    def open(self) -> None:
+        self.opened = True
+
+    def close(self) -> None:
+        self.opened = False
+
+    def __enter__(self):
+        self.open()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def read(self, timeout: float | None = None) -> Block | None:
+        if self._pos >= self._n:
+            raise DriverClosed("the tone has ended")
+        n = min(self.block, self._n - self._pos)
+        t = (self._pos + np.arange(n)) / self.rate
+        data = np.repeat(0.5 * np.sin(2 * np.pi * self._frequency * t)[:, None], self.channels, axis=1)
+        block = Block(data=data, start=self._pos, arrival=time.monotonic())
+        self._pos += n
+        return block
+
+    def stats(self) -> dict[str, int]:
+        return {"frames": self._pos, "filled": 0}
+
+
+def _build(options: dict, context: BuildContext) -> Built:
+    if context.rate is None:
+        raise OptionError("frequency: a tone needs a bank to set its rate")
+    if options["frequency"] >= context.rate / 2:
+        raise OptionError(f"frequency: {options['frequency']:g} Hz is above the bank's Nyquist frequency")
+    return Built(ToneDriver(context.rate, context.channels, options["frequency"], options["seconds"],
+                            options["block"]),
+                 labels=((0.0, options["seconds"], "tone"),))
+
+
+TONE = DriverSpec(type="tone", summary="a test tone", live=False, build=_build,
+                  keys={"frequency": Key(positive(), "Hz, > 0", 100.0),
+                        "seconds": Key(positive(60.0), "seconds, up to 60", 1.0),
+                        "block": Key(integer(1, 4096), "frames per block, 1..4096", 64)})
+
+
+@pytest.fixture
+def tone():
+    registry.register_driver(TONE, replace=True)          # the one line
+    yield TONE
+    registry._registered.pop("tone", None)
+
+
+def test_a_toy_driver_defined_here_runs_from_a_scene(tone):
+    scene = scene_from_dict({"driver": {"type": "tone", "frequency": 120.0, "seconds": 0.55, "block": 77},
+                             "bank": {"kind": "whisker"}, "features": {"names": ["Af"]}})
+    assert scene.driver == {"type": "tone", "frequency": 120.0, "seconds": 0.55, "block": 77, "mapping": "auto"}
+    sink = ListSink()
+    summary = build_node(scene, sinks_override=[sink]).run()
+    windows = sink.windows
+    assert len(windows) == 5                                  # 0.55 s of 100 ms windows
+    af = [np.asarray(e.features["Af"]).ravel() for e in windows]
+    assert all(np.all(np.isfinite(a)) and a.shape == (20,) for a in af)
+    # A 120 Hz tone: the whisker whose centre frequency is nearest answers most (Af).
+    from supramodal.banks import whisker_bank
+
+    nearest = int(np.argmin(np.abs(whisker_bank().cf - 120.0)))
+    assert all(int(np.argmax(a)) == nearest for a in af[1:])
+    assert all(e.truth == "tone" for e in windows)
+    fates = summary["frames"]
+    assert fates["delivered"] == round(0.55 * 5000) and fates["dropped"] == 0
+
+
+def test_a_toy_drivers_keys_are_checked_like_any_others(tone):
+    with pytest.raises(SceneError, match=r"\[driver\] \(tone\) seconds: expected seconds, up to 60, got 1000"):
+        scene_from_dict({"driver": {"type": "tone", "seconds": 1000}})
+    with pytest.raises(SceneError, match=r"unknown key\(s\) \['path'\]"):
+        scene_from_dict({"driver": {"type": "tone", "path": "x.wav"}})
+    scene = scene_from_dict({"driver": {"type": "tone", "frequency": 4000.0}})
+    with pytest.raises(SceneError, match=r"\[driver\] frequency: 4000 Hz is above the bank's Nyquist"):
+        build_node(scene, sinks_override=[ListSink()])
+
+
+def test_a_type_is_registered_once_unless_replaced(tone):
+    with pytest.raises(ValueError, match="exists already"):
+        registry.register_driver(TONE)
+    with pytest.raises(ValueError, match="exists already"):
+        registry.register_driver(DriverSpec(type="serial", keys={}, build=_build, live=True, summary="x"))
+
+
+def test_an_unknown_type_is_refused_listing_the_types_there_are():
+    with pytest.raises(SceneError, match=r"\[driver\] type: expected one of \['lsl', 'microphone', 'replay', "
+                                         r"'serial', 'synth', 'twosense', 'xdf'\], got 'tone'"):
+        scene_from_dict({"driver": {"type": "tone"}})
+
+
+@pytest.mark.parametrize("kind", sorted(registry.DRIVER_MODULES))
+def test_every_built_in_spec_fits_its_type_and_its_own_defaults(kind):
+    spec = registry.driver_spec(kind)
+    assert spec.type == kind and spec.summary
+    for key, k in registry.source_keys(spec).items():
+        if not k.required and k.default is not None:
+            assert k.check(k.default), (kind, key, k.default)
+        assert k.expected, (kind, key)
+    assert spec.overrun == ("drop-oldest" if spec.live else "block")
+
+
+def test_naming_a_driver_type_loads_only_its_module():
+    """A scene without a microphone never loads sounddevice's module, without a serial port never pyserial."""
+    import subprocess
+    import sys
+
+    code = ("import sys; from supramodal.node.scene import scene_from_dict; "
+            "scene_from_dict({'driver': {'type': 'synth'}}); "
+            "print(sorted(m for m in ('serial', 'sounddevice', 'supramodal.drivers.microphone', "
+            "'supramodal.drivers.serial_whisker', 'pylsl') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]"
+
+
+def test_the_docs_key_tables_are_the_schemas():
+    """README.md and docs/node.md hold tables made from the schema (python -m supramodal.node.scene_docs):
+    a key added, removed or reworded without regenerating them fails here."""
+    from pathlib import Path
+
+    from supramodal.node import scene_docs
+
+    root = Path(__file__).resolve().parents[1]
+    assert scene_docs.check(root) == []
+    made = scene_docs.blocks()
+    assert all(f"`{kind}`" in made["driver-types"] for kind in registry.driver_types())
+    assert "| `timing` |" in made["driver-keys"] and "| `labels` |" in made["driver-keys"]
+    node_md = (root / "docs/node.md").read_text()
+    assert all(f'`type = "{kind}"`' in node_md for kind in registry.driver_types())
