@@ -30,5 +30,16 @@ class SessionError(ReplayError):
     """
 
 
+class MissingSidecarError(SessionError, FileNotFoundError):
+    """A session's sidecar (``NAME.json``) is not beside its WAV. Also a FileNotFoundError.
+
+    The message names the missing file, says what it holds and how to get it back.
+    """
+
+
+class XdfDamageWarning(SupramodalWarning):
+    """pyxdf read an XDF file only by skipping damaged chunks: their samples are missing."""
+
+
 class ClippingWarning(SupramodalWarning):
     """Samples were clipped when writing an integer WAV file."""

@@ -27,6 +27,11 @@ A session named ``NAME`` is two files side by side:
 ``filled`` lists the frame ranges the recording driver synthesised. ``arrivals`` is written
 when a node of several sources records: with it, the sessions of the sources replay with their
 original relative timing, drift and jitter included (the replay driver's ``timing="recorded"``).
+Its times must tell the same story as its frames (:func:`validate_arrivals`): between two blocks
+with no mark between them, the seconds that passed differ from the seconds their frames last at
+``arrivals.rate`` by at most :data:`ARRIVALS_CLOCK_ERROR` of the latter (a device's crystal or
+resonator) plus :data:`ARRIVALS_LATENCY` (a block delivered late); at a ``restart`` or
+``overrun`` mark the time may jump forward.
 
 The sidecar is data, never code: it is read with :func:`json.loads` only
 (duplicate keys, ``NaN`` and ``Infinity`` refused; files over
@@ -51,13 +56,14 @@ from typing import Any, Iterable, Mapping
 
 import numpy as np
 
-from supramodal.replay.errors import SessionError
+from supramodal.replay.errors import MissingSidecarError, SessionError
 from supramodal.replay.wavio import as_frames, read_wav, wav_info, write_wav
 from supramodal.errors import InputError
 from supramodal.jsondata import read_json_file
 
 __all__ = ["FORMAT", "VERSION", "MAX_SIDECAR_BYTES", "MAX_SIDECAR_DEPTH", "Label", "Session", "session_paths", "load_session", "save_session",
-           "validate_sidecar", "validate_arrivals", "sidecar_text", "mask_to_ranges"]
+           "validate_sidecar", "validate_arrivals", "sidecar_text", "mask_to_ranges", "missing_sidecar",
+           "ARRIVALS_CLOCK_ERROR", "ARRIVALS_LATENCY"]
 
 #: Value of the sidecar's ``"format"`` key.
 FORMAT = "supramodal-session"
@@ -70,6 +76,14 @@ MAX_SIDECAR_BYTES = 16 * 2**20
 #: Deepest nesting of arrays and objects read: the format nests 3 levels (object,
 #: ``labels`` array, label object); deeper text is refused before it is parsed.
 MAX_SIDECAR_DEPTH = 8
+
+#: Largest clock error a recording's block times may show against ``arrivals.rate``, a fraction
+#: (1 %): crystals are within about 100 ppm, the ceramic resonators of cheap boards within 0.5 %.
+ARRIVALS_CLOCK_ERROR = 0.01
+#: Longest a block's time may lag (or, after a late block, lead) the line its frames put it on,
+#: seconds: a block delivered late by a stalled host, USB or network link. Delivery delays of real
+#: devices are milliseconds to a fraction of a second.
+ARRIVALS_LATENCY = 5.0
 
 _REQUIRED = ("format", "version", "rate", "channels", "source", "labels")
 _OPTIONAL = ("filled", "marks", "arrivals")
@@ -293,10 +307,25 @@ def validate_sidecar(meta: Any, *, rate: int, channels: int, frames: int,
     return source, labels, filled, marks
 
 
-def validate_arrivals(raw: Any, frames: int, where: str = "sidecar") -> tuple[np.ndarray, np.ndarray, float]:
+def validate_arrivals(raw: Any, frames: int, where: str = "sidecar", marks: Iterable[tuple[int, str]] = (),
+                      times: bool = True) -> tuple[np.ndarray, np.ndarray, float]:
     """Check a sidecar's ``arrivals``: ``{"frames": [...], "seconds": [...], "rate": r}``, the
     arrays of equal length >= 1, frames integers ascending in ``(0, frames]``, seconds finite and
     non-decreasing, the rate a positive number.
+
+    With ``times`` (the default; :func:`load_session`), the times must also agree with the frames
+    and the rate: for any two blocks ``j < k`` with no mark (``marks``: the sidecar's restarts
+    and overruns, where a source's time may jump) between their ends,
+
+        ``|(seconds[k] - seconds[j]) - (frames[k] - frames[j]) / rate|``
+        ``<= ARRIVALS_CLOCK_ERROR (frames[k] - frames[j]) / rate + ARRIVALS_LATENCY``
+
+    that is, the source's clock within 1 % of the rate the sidecar names, each block late by at
+    most 5 s. Times that break it (a jump, times that stand still, a rate far from the one the
+    seconds show) would put the source's windows at the wrong times and pair them with the wrong
+    windows of the other sources, silently; they are refused, naming both blocks. (The check is
+    O(blocks): a running minimum and maximum per stretch between marks.) :func:`save_session`
+    checks only the form, so that a live recording with a long stall is still saved.
 
     Returns
     -------
@@ -339,7 +368,44 @@ def validate_arrivals(raw: Any, frames: int, where: str = "sidecar") -> tuple[np
         i = int(back[0]) + 1
         raise bad(f"arrivals.seconds[{i}]", f"{t[i]!r} comes before the block before it ({t[i - 1]!r})",
                   "arrival times never go back")
+    if times:
+        _check_arrival_times(fa, ta, float(raw["rate"]), marks, bad)
     return fa, ta, float(raw["rate"])
+
+
+def _check_arrival_times(fa: np.ndarray, ta: np.ndarray, rate: float, marks, bad) -> None:
+    """The consistency rule of :func:`validate_arrivals`, in O(blocks)."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        nominal = fa / rate                     # when each block ends by its frames, seconds
+    if not np.all(np.isfinite(nominal)):
+        raise bad("arrivals.rate", f"{rate!r} Hz puts the block ends at non-finite times",
+                  "write the nominal rate of the recording node's clock for this source")
+    late = ta - (1.0 + ARRIVALS_CLOCK_ERROR) * nominal      # lag of block k behind block j: late[k] - late[j]
+    early = ta - (1.0 - ARRIVALS_CLOCK_ERROR) * nominal     # lead of block k on block j: early[j] - early[k]
+    # A stretch: the blocks whose ends have the same number of marks before them.
+    cut = np.sort(np.fromiter((m[0] for m in marks), dtype=np.int64, count=-1))
+    stretch = np.searchsorted(cut, fa, side="left")
+    starts = np.flatnonzero(np.r_[True, np.diff(stretch) != 0])
+    for a, b in zip(starts, np.r_[starts[1:], fa.size]):
+        if b - a < 2:
+            continue
+        for name, worst in (("after", late[a:b] - np.minimum.accumulate(late[a:b])),
+                            ("before", np.maximum.accumulate(early[a:b]) - early[a:b])):
+            over = np.flatnonzero(~(worst <= ARRIVALS_LATENCY))
+            if not over.size:
+                continue
+            k = a + int(over[0])
+            j = a + int(np.argmin(late[a:k]) if name == "after" else np.argmax(early[a:k]))
+            passed, lasts = float(ta[k] - ta[j]), float(nominal[k] - nominal[j])
+            raise bad(f"arrivals.seconds[{k}]",
+                      f"{float(ta[k])!r} s is {passed:.6g} s after arrivals.seconds[{j}] ({float(ta[j])!r} s), "
+                      f"but the {int(fa[k] - fa[j])} frames between those blocks' ends last {lasts:.6g} s at "
+                      f"arrivals.rate {rate!r} Hz: block times must follow the frames to within "
+                      f"{ARRIVALS_CLOCK_ERROR:.0%} of that plus {ARRIVALS_LATENCY:g} s of delivery delay "
+                      "(a real device's drift and latency), or jump only at a restart or overrun mark",
+                      "these are not the recording's times: write the recorded ones back (a copy from where the "
+                      "recording was made), or delete the sidecar's 'arrivals' and replay the session with "
+                      "timing = 'nominal' (then not in step with the other sources)")
 
 
 def _validate_labels(raw, duration: float, slack: float, bad) -> tuple[Label, ...]:
@@ -435,8 +501,10 @@ def load_session(path: str | os.PathLike) -> Session:
 
     Raises
     ------
+    MissingSidecarError
+        If the sidecar is missing (:func:`missing_sidecar`; also a FileNotFoundError).
     FileNotFoundError
-        If either file is missing.
+        If the WAV file is missing.
     SessionError
         If the sidecar is not valid JSON or fails validation (see
         :func:`validate_sidecar`); checked before the samples are read.
@@ -445,16 +513,30 @@ def load_session(path: str | os.PathLike) -> Session:
     """
     wav, js = session_paths(path)
     if not js.exists():
-        raise FileNotFoundError(f"{js}: no sidecar; a session is NAME.wav + NAME.json "
-                                "(use replay.read_wav for a bare WAV file)")
+        raise missing_sidecar(path)
     meta = _load_json(js)
     info = wav_info(wav)
     source, labels, filled, marks = validate_sidecar(meta, rate=info.rate, channels=info.channels,
                                                      frames=info.frames, where=str(js))
-    arrivals = validate_arrivals(meta["arrivals"], info.frames, str(js)) if "arrivals" in meta else None
+    arrivals = validate_arrivals(meta["arrivals"], info.frames, str(js), marks) if "arrivals" in meta else None
     data, rate = read_wav(wav)
     return Session(data=data, rate=rate, source=source, labels=labels, filled=filled, marks=marks, path=wav,
                    arrivals=arrivals)
+
+
+def missing_sidecar(path: str | os.PathLike) -> MissingSidecarError:
+    """The error for a session whose sidecar ``NAME.json`` is not there: it names the file, what
+    is lost without it and how to get it back (a caller that needs a session, such as a replay
+    with ``timing = "recorded"``, raises it rather than playing the bare WAV)."""
+    wav, js = session_paths(path)
+    have = f"beside {wav.name}" if wav.exists() else f"and so is {wav.name}"
+    return MissingSidecarError(
+        f"{js}: no sidecar: the session's sidecar file is missing ({have}); it holds the session's rate and channel "
+        "checks, its labels, its filled ranges and marks, and its blocks' recorded times ('arrivals', which "
+        "replay it in step with the other sources of its recording); copy it back from where the "
+        f"recording was made (supramodal record writes {js.name} beside {wav.name}), or record again; "
+        "without it the WAV is only samples: it replays with timing = 'nominal' alone, unlabelled and out "
+        "of step with any other source")
 
 
 def mask_to_ranges(mask) -> list[tuple[int, int]]:
@@ -493,9 +575,12 @@ def save_session(path: str | os.PathLike, data, rate: int, source: str,
     """Write a session: ``NAME.wav`` and its sidecar ``NAME.json``.
 
     The sidecar is validated exactly as :func:`load_session` would before
-    anything is written. An existing sidecar is removed first and the new one
-    written last, so an interrupted save leaves a WAV without a sidecar (not
-    loadable as a session) rather than a sidecar describing the wrong WAV.
+    anything is written, except that the block times in ``arrivals`` are checked
+    for form only (a live recording whose times :func:`load_session` would refuse
+    is still saved, rather than lost; see :func:`validate_arrivals`). An
+    existing sidecar is removed first and the new one written last, so an
+    interrupted save leaves a WAV without a sidecar (not loadable as a session)
+    rather than a sidecar describing the wrong WAV.
 
     Parameters
     ----------
@@ -565,7 +650,7 @@ def save_session(path: str | os.PathLike, data, rate: int, source: str,
         frames_at, seconds_at, clock_rate = arrivals
         meta["arrivals"] = {"frames": [int(v) for v in frames_at],
                             "seconds": [round(float(v), 6) for v in seconds_at], "rate": float(clock_rate)}
-        validate_arrivals(meta["arrivals"], int(x.shape[0]), str(js))
+        validate_arrivals(meta["arrivals"], int(x.shape[0]), str(js), times=False)   # a live recording is kept
     text = sidecar_text(meta)
     if len(text.encode("utf-8")) > MAX_SIDECAR_BYTES:
         raise SessionError(f"{js}: the sidecar would take {len(text.encode('utf-8'))} bytes, more than the "

@@ -21,26 +21,41 @@ no sample it did not measure) show as a step in the timestamps. As the LSL inlet
 sample period plus ``gap_tolerance`` is filled with zeros, marked filled (the node counts them,
 the windows are flagged ``gap``), so that stream time stays the recording's; a gap longer than
 ``max_gap`` is not filled but marked as a restart (the clock model starts again after it). Files are data: a stream that is not numeric, not regularly
-sampled, or holds non-finite samples or timestamps is refused with a message naming it.
+sampled, or holds non-finite samples or timestamps is refused with a message naming it; so is one
+whose ``nominal_srate`` is not a whole number of Hz from 1 to :data:`MAX_XDF_RATE`, or whose
+``channel_count`` is 0, or that would take more than :data:`MAX_XDF_SAMPLES` samples once its
+gaps are filled (checked before anything is filled). pyxdf's own log (tracebacks of the chunks it
+skips, notes on clock segments) is kept off the terminal: a file it cannot read is refused with
+its first complaint, and one it read only by skipping damaged chunks gives an
+:class:`~supramodal.replay.errors.XdfDamageWarning`.
 """
 
 from __future__ import annotations
 
+import logging
 import math
 import os
+import threading
+import warnings
 from pathlib import Path
 
 import numpy as np
 
 from supramodal.drivers.base import DeviceUnavailable
 from supramodal.drivers.lsl import DEFAULT_GAP_TOLERANCE, DEFAULT_MAX_GAP, TimestampSteps
-from supramodal.replay.errors import ReplayError
+from supramodal.replay.errors import ReplayError, XdfDamageWarning
 from supramodal.checks import Key, text
 from supramodal.drivers.spec import Built, BuildContext, DriverSpec, OptionError
 from supramodal.replay.session import Label, Session
 
 #: Seconds per replayed block of an XDF stream.
 XDF_BLOCK_SECONDS = 0.01
+#: Highest ``nominal_srate`` replayed, Hz: above any sensor the node serves (audio interfaces
+#: reach 768 kHz); a rate beyond it is a damaged or foreign header.
+MAX_XDF_RATE = 1_000_000
+#: Most samples (frames x channels) one replayed stream may hold once its gaps are filled: 2**29,
+#: 4 GiB as float64 (an hour of 20 channels at 5 kHz, or three of 44.1 kHz audio).
+MAX_XDF_SAMPLES = 2**29
 
 
 def import_pyxdf():
@@ -65,19 +80,62 @@ def _matches(info: dict, want: dict) -> bool:
     return all((info.get(k) or [None])[0] == v for k, v in want.items())
 
 
+class _Kept(logging.Handler):
+    """Keeps pyxdf's log records (while a file is read) instead of letting them reach stderr."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.DEBUG)
+        self.records: list[logging.LogRecord] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.records.append(record)
+
+
+_PYXDF_LOG = threading.Lock()       # one read at a time swaps pyxdf's logger
+
+
 def load_xdf_streams(path: str | os.PathLike):
     """Every stream of an XDF file, timestamps on the recorder's clock: a list of pyxdf's stream
     dicts. :class:`DeviceUnavailable` if the file is missing; :class:`ReplayError` if it cannot be
-    read as XDF."""
+    read as XDF (also when pyxdf found nothing but damage). pyxdf's log stays off the terminal; a
+    file read only by skipping damaged chunks gives an :class:`XdfDamageWarning`."""
     pyxdf = import_pyxdf()
     path = Path(path)
     if not path.is_file():
         raise DeviceUnavailable(f"{path}: no such XDF file")
-    try:
-        streams, _ = pyxdf.load_xdf(str(path), synchronize_clocks=True, dejitter_timestamps=False, verbose=False)
-    except Exception as exc:  # pyxdf's errors on a damaged or foreign file, one place
-        raise ReplayError(f"{path}: not a readable XDF file ({type(exc).__name__}: {exc})") from None
+    log = logging.getLogger("pyxdf")
+    kept = _Kept()
+    with _PYXDF_LOG:
+        propagate, level = log.propagate, log.level
+        log.addHandler(kept)
+        log.propagate = False
+        log.setLevel(logging.WARNING)
+        try:
+            streams, _ = pyxdf.load_xdf(str(path), synchronize_clocks=True, dejitter_timestamps=False, verbose=False)
+        except Exception as exc:  # pyxdf's errors on a damaged or foreign file, one place
+            raise ReplayError(f"{path}: not a readable XDF file ({type(exc).__name__}: {exc})") from None
+        finally:
+            log.removeHandler(kept)
+            log.propagate = propagate
+            log.setLevel(level)
+    damage = [r for r in kept.records if r.levelno >= logging.ERROR]
+    if damage:
+        first = _said(damage[0])
+        if not streams:
+            raise ReplayError(f"{path}: not a readable XDF file: no stream could be read (pyxdf: {first}); it is "
+                              "damaged or not XDF: record it again, or give the file LabRecorder wrote")
+        warnings.warn(f"{path}: damaged: pyxdf skipped {len(damage)} damaged part(s) of the file ({first}); their "
+                      "samples are missing (filled as gaps where the timestamps show them)", XdfDamageWarning,
+                      stacklevel=2)
     return streams
+
+
+def _said(record: logging.LogRecord) -> str:
+    """A pyxdf log record in one line, with the exception it carries."""
+    text = record.getMessage().strip()
+    if record.exc_info and record.exc_info[1] is not None:
+        text += f" ({type(record.exc_info[1]).__name__}: {record.exc_info[1]})"
+    return " ".join(text.split())
 
 
 def _regular(s: dict) -> bool:
@@ -122,6 +180,9 @@ def xdf_session(path: str | os.PathLike, name: str | None = None, stream_type: s
     if not _regular(s):
         raise ReplayError(f"{where}: not a regularly sampled numeric stream (markers cannot be replayed as a signal)")
     data = np.asarray(s["time_series"])
+    if data.ndim == 2 and data.shape[1] == 0:
+        raise ReplayError(f"{where}: channel_count is {(s['info'].get('channel_count') or ['0'])[0]} in the file: the "
+                          "stream has no channel to replay; name a stream that has samples")
     if data.dtype.kind not in "fiu" or data.ndim != 2 or data.shape[0] == 0:
         raise ReplayError(f"{where}: expected numeric samples of shape (samples, channels), got {data.dtype} "
                           f"{data.shape}")
@@ -135,10 +196,18 @@ def xdf_session(path: str | os.PathLike, name: str | None = None, stream_type: s
     if not np.all(np.isfinite(data)):
         raise ReplayError(f"{where}: it holds NaN or infinite samples")
     rate = float(s["info"]["nominal_srate"][0])
+    whole = _session_rate(rate, where)          # before anything is filled at that rate
+    frames = data.shape[0] + sum(missing for _, kind, missing in _steps(stamps, rate) if kind == "gap")
+    if frames * data.shape[1] > MAX_XDF_SAMPLES:
+        raise ReplayError(f"{where}: its timestamps span {float(stamps[-1] - stamps[0]):.6g} s: with the gaps in them "
+                          f"filled at nominal_srate {rate:g} Hz it would be {frames} frames x {data.shape[1]} "
+                          f"channel(s), more than the {MAX_XDF_SAMPLES} samples a replayed stream may hold "
+                          "(MAX_XDF_SAMPLES, 4 GiB); check the stream's nominal_srate and timestamps, or cut the "
+                          "recording into shorter files")
     zero = min(float(np.min(x["time_stamps"])) for x in streams if _regular(x))
     data, stamps, filled, marks = fill_gaps(data, stamps, rate)
     truth = () if labels is None else marker_labels(_marker_stream(streams, labels, path), stamps, rate)
-    return Session(data, _session_rate(rate, where), f"XDF {path.name}: {_describe(s['info'])}", path=path,
+    return Session(data, whole, f"XDF {path.name}: {_describe(s['info'])}", path=path,
                    arrivals=_arrivals(stamps - zero, rate, [at for at, _ in marks]), filled=filled, marks=marks,
                    labels=truth)
 
@@ -203,23 +272,13 @@ def fill_gaps(data: np.ndarray, stamps: np.ndarray, rate: float, tolerance: floa
         ``(frame, "restart")`` where a gap too long to fill ends.
     """
     steps = np.diff(stamps)
-    # The live inlet's judge, on each step that is not within the tolerance of one period.
-    judge = TimestampSteps(rate, tolerance, max_gap)
-    odd = np.flatnonzero(np.abs(steps - 1.0 / rate) > tolerance)
-    if not odd.size:
-        return data, stamps, (), ()
     parts, times, filled, marks = [], [], [], []
     taken = added = 0
-    for i in odd.tolist():                # the step lies between sample i and sample i + 1
-        judge.last = float(stamps[i])
-        step = judge.step(float(stamps[i + 1]), float(stamps[i + 1]))
-        if step.kind not in ("gap", "long", "back") or step.kind == "gap" and step.samples < 1:
-            continue
+    for i, kind, missing in _steps(stamps, rate, tolerance, max_gap):   # between sample i and i + 1
         parts.append(data[taken:i + 1])
         times.append(stamps[taken:i + 1])
         at = i + 1 + added
-        if step.kind == "gap":
-            missing = step.samples
+        if kind == "gap":
             parts.append(np.zeros((missing, data.shape[1]), dtype=data.dtype))
             times.append(stamps[i] + steps[i] * np.arange(1, missing + 1) / (missing + 1))
             filled.append((at, at + missing))
@@ -234,15 +293,37 @@ def fill_gaps(data: np.ndarray, stamps: np.ndarray, rate: float, tolerance: floa
     return np.concatenate(parts), np.concatenate(times), tuple(filled), tuple(marks)
 
 
+def _steps(stamps: np.ndarray, rate: float, tolerance: float = DEFAULT_GAP_TOLERANCE,
+           max_gap: float = DEFAULT_MAX_GAP):
+    """The steps of ``stamps`` that :func:`fill_gaps` acts on: ``(i, kind, missing)`` for the
+    step between sample ``i`` and ``i + 1``, ``kind`` ``"gap"`` (``missing`` samples to fill) or
+    a restart (``"long"``, ``"back"``; ``missing`` 0), judged as the live inlet judges them."""
+    steps = np.diff(stamps)
+    # The live inlet's judge, on each step that is not within the tolerance of one period.
+    judge = TimestampSteps(rate, tolerance, max_gap)
+    out = []
+    for i in np.flatnonzero(np.abs(steps - 1.0 / rate) > tolerance).tolist():
+        judge.last = float(stamps[i])
+        step = judge.step(float(stamps[i + 1]), float(stamps[i + 1]))
+        if step.kind not in ("gap", "long", "back") or step.kind == "gap" and step.samples < 1:
+            continue
+        out.append((i, step.kind, int(step.samples) if step.kind == "gap" else 0))
+    return out
+
+
 def _full_scale(dtype) -> float:
     """Integer samples are scaled so that the type's range is +-1."""
     return float(2 ** (np.dtype(dtype).itemsize * 8 - 1))
 
 
 def _session_rate(rate: float, where: str) -> int:
-    """A session's rate is whole Hz; a stream at a fractional nominal rate is refused."""
-    if not (math.isfinite(rate) and rate >= 1 and abs(rate - round(rate)) < 1e-9 * rate):
-        raise ReplayError(f"{where}: nominal rate {rate} Hz is not a whole number of Hz; the node replays "
+    """A session's rate is whole Hz from 1 to :data:`MAX_XDF_RATE`; any other nominal rate is refused."""
+    if not (math.isfinite(rate) and 1 <= rate <= MAX_XDF_RATE):
+        raise ReplayError(f"{where}: nominal_srate {rate:g} Hz is out of range: the node replays streams of 1 to "
+                          f"{MAX_XDF_RATE} Hz (MAX_XDF_RATE); this header is damaged or the stream is not a sensor's "
+                          "signal: name another stream, or correct the stream's nominal_srate where it was recorded")
+    if abs(rate - round(rate)) >= 1e-9 * rate:
+        raise ReplayError(f"{where}: nominal_srate {rate} Hz is not a whole number of Hz; the node replays "
                           "streams at whole rates")
     return int(round(rate))
 
@@ -260,8 +341,11 @@ def _arrivals(seconds: np.ndarray, rate: float, cuts=()) -> tuple[np.ndarray, np
     times = np.maximum.accumulate(seconds[ends - 1])
     shown = float(rate)
     if n >= 2 and seconds[-1] > seconds[0]:
-        index = np.arange(n, dtype=np.float64)
-        slope = np.polyfit(index - index.mean(), seconds - seconds.mean(), 1)[0]
+        # Fitted on the first sample and each block's last (a few per XDF_BLOCK_SECONDS, not every
+        # sample: an hour at 1 MHz would take minutes): the same line where the stamps are regular.
+        at = np.r_[0, ends - 1]
+        index, times_at = at.astype(np.float64), seconds[at]
+        slope = np.polyfit(index - index.mean(), times_at - times_at.mean(), 1)[0]
         # A rate far from nominal is a broken file or a clock reset: keep the nominal one.
         if slope > 0 and abs(1.0 / slope - rate) < 0.01 * rate:
             shown = 1.0 / slope
