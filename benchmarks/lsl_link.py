@@ -183,25 +183,23 @@ def local_scene(wav: str, model: str, train: bool = False) -> dict:
             "model": {"path": model, "train_on_start": train}, "decision": {"scope": "window"}}
 
 
-class _Stamped:
+def _stamped_sink():
     """A sink that keeps each window event (``windows``), and driver event, with the host time
-    it reached the sinks."""
+    it reached the sinks. Made here: this module loads no part of the node until it runs one."""
+    from supramodal.node.sinks import Sink
 
-    def __init__(self):
-        self.windows, self.times, self.driver_events = [], [], []
+    class Stamped(Sink):
+        def __init__(self):
+            self.windows, self.times, self.driver_events = [], [], []
 
-    def emit(self, event):
-        self.times.append(time.monotonic())
-        self.windows.append(event)
+        def emit(self, event):
+            self.times.append(time.monotonic())
+            self.windows.append(event)
 
-    def event(self, ev):
-        self.driver_events.append(ev)
+        def event(self, ev):
+            self.driver_events.append(ev)
 
-    def summary(self, summary):
-        pass
-
-    def close(self):
-        pass
+    return Stamped()
 
 
 def _prepare(seconds: float, out: Path, progress):
@@ -227,7 +225,7 @@ def _inlet_node(name: str, model, **driver):
     from supramodal.node.build import build_node
     from supramodal.node.scene import scene_from_dict
 
-    sink = _Stamped()
+    sink = _stamped_sink()
     node = build_node(scene_from_dict(inlet_scene(name, str(model), **driver)), sinks_override=[sink])
     driver_ = node.sources[0].driver
     read, blocks = driver_.read, []

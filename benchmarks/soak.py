@@ -36,6 +36,7 @@ import numpy as np
 from supramodal.drivers.mock_whisker import FaultSpec, MockWhiskerDevice
 from supramodal.drivers.serial_whisker import SerialWhiskerDriver
 from supramodal.node.graph import Node
+from supramodal.node.sinks import Sink
 from supramodal.banks import whisker_bank
 from supramodal.pipeline import FeaturePipeline
 
@@ -131,7 +132,7 @@ class CheckedDriver:
         self.last_frame = first + n - 1  # a block always ends with a received frame
 
 
-class CountingSink:
+class CountingSink(Sink):
     """Counts windows and gap windows, and the longest wall time between two windows."""
 
     def __init__(self) -> None:

@@ -20,11 +20,17 @@ Threads and real-time rules
   ``count``), so neither a source nor a stream ever waits on a sink for an event.
 * The *fusion thread*, with a ``[fusion]`` block, pairs the streams' windows and emits the fused
   decisions (stream ``"fused"``).
+* Each *tap thread* (:class:`~supramodal.node.taps.Tap`: the recorder, the LSL signal outlet)
+  reads one source's raw frames from its own ring reader.
 * Every frame of every source has one fate in the summary's ``frames``: delivered, filled or
   dropped (see :meth:`Source.frame_fates`).
 * The caller's thread (:meth:`Graph.run`) starts them all, waits, and handles the stop request
   (Ctrl-C, SIGTERM, :meth:`Graph.stop`): the drivers stop, what is already buffered is
   processed, the summary is written, nothing is left running.
+
+The graph calls sinks and taps only through their bases' methods (:class:`~supramodal.node.sinks.Sink`,
+:class:`~supramodal.node.taps.Tap`), every one of which a subclass may leave as it is; it never
+probes them for a method.
 """
 
 from __future__ import annotations
@@ -39,8 +45,11 @@ from dataclasses import replace
 from supramodal.errors import InputError, SupramodalError
 from supramodal.model import TextureModel
 from supramodal.node.events import FUSED_STREAM, MAIN_STREAM, EventLimiter
+from supramodal.node.recorder import SessionRecorder
+from supramodal.node.sinks import Sink
 from supramodal.node.sources import Feed, Source
 from supramodal.node.streams import Labels, Stream, channel_mapper
+from supramodal.node.taps import Tap
 from supramodal.pipeline import FeaturePipeline
 
 __all__ = ["Graph", "Node", "NodeError", "Labels", "channel_mapper"]
@@ -59,23 +68,23 @@ class Graph:
     streams : list of node.streams.Stream
         Each reads one of ``sources``; names are unique.
     sinks : list of node.sinks.Sink
+        Called on the graph's threads: a scene's sinks are each behind a
+        :class:`~supramodal.node.sinks.QueuedSink`, so that processing never waits on them.
     routes : list of (set of str or None), optional
         Per sink, the stream names it listens to (``"fused"`` for the fusion block's
         decisions); None (the default for every sink) listens to all. Driver events and the
         summary go to every sink.
     fusion : node.fusion.LateFusion, optional
     recorder : node.recorder.SessionRecorder or dict, optional
-        Records the raw frames of a source (another reader of its ring, on its own thread): one
-        recorder for a graph of one source, or ``{source name: recorder}`` for several (each
-        keeps its blocks' times on common time, so that the sessions replay in step).
-    taps : list of (str, tap), optional
+        Records the raw frames of a source (a tap, run as the others are): one recorder for a
+        graph of one source, or ``{source name: recorder}`` for several (each keeps its blocks'
+        times on common time, so that the sessions replay in step). What they wrote is in the
+        summary's ``recorded``, not under ``taps``.
+    taps : list of (str, node.taps.Tap), optional
         Readers of a source's raw frames, each on a thread of its own, by source name (e.g.
-        :class:`node.lsl_signal.LSLSignalOutlet`). A tap has a ``name``, ``prepare()`` (the caller's
-        thread, before the graph's start: it may wait, e.g. for a consumer), ``start(source,
-        epoch)`` (the caller's thread, before any frame), ``run(feed)`` (its thread: read the
-        :class:`~supramodal.node.sources.Feed` until the ring closes), ``summary()`` and
-        ``close()``. A source that only taps read needs no stream: a graph may have none (a
-        relay).
+        :class:`node.lsl_signal.LSLSignalOutlet`); see :class:`~supramodal.node.taps.Tap` for
+        the calls and their threads. A source that only taps read needs no stream: a graph may
+        have none (a relay).
     """
 
     def __init__(self, sources, streams, sinks, routes=None, fusion=None, recorder=None, taps=()) -> None:
@@ -87,12 +96,14 @@ class Graph:
         if len(set(names)) != len(names):
             raise InputError(f"stream names must be unique, got {names}")
         self.sinks = list(sinks)
+        odd = [type(s).__name__ for s in self.sinks if not isinstance(s, Sink)]
+        if odd:
+            raise InputError(f"a graph's sinks derive from supramodal.node.sinks.Sink; {odd} do not")
         self.routes = list(routes) if routes is not None else [None] * len(self.sinks)
         if len(self.routes) != len(self.sinks):
             raise InputError(f"{len(self.routes)} routes for {len(self.sinks)} sinks")
         for s in self.sinks:
-            if hasattr(s, "on_reader_left"):      # a queued sink whose reader may leave (`| head`)
-                s.on_reader_left = self._sink_reader_left
+            s.on_reader_left = self._sink_reader_left     # a queued sink's reader may leave (`| head`)
         self.fusion = fusion
         self.recorder = recorder
         if recorder is None:
@@ -106,24 +117,28 @@ class Graph:
             recorders = {self.sources[0].name: recorder}
         else:
             raise InputError("a graph of several sources records each one: give {source name: recorder}")
-        self._recorders: list[tuple[object, Feed]] = []
+        for source in self.sources:     # a source's truth labels: those of the first stream reading it
+            stream = next((st for st in self.streams if st.source is source), None)
+            source.labels = stream.labels if stream is not None else None
+        # Taps: the recorders (their own thread named "recorder"), then the others, each with the
+        # source it reads, its feed and its thread's name.
+        self._recorders: list[tuple[SessionRecorder, Source, Feed, str]] = []
         for source in self.sources:
             rec = recorders.get(source.name)
             if rec is None:
                 continue
-            feed = source.add_feed("recorder", track=False)
-            source.recorder = rec
-            stream = next((st for st in self.streams if st.source is source), None)
-            labels = stream.labels if stream is not None else Labels()
-            rec.attach(source.rate, source.driver.channels, lambda source=source: source.ring.written,
-                       labels=labels.ranges, clock_rate=source.time_rate, label_period=labels.period)
-            self._recorders.append((rec, feed))
-        self._taps: list[tuple[object, Source, Feed]] = []
+            if not isinstance(rec, SessionRecorder):
+                raise InputError(f"a recorder is a supramodal.node.recorder.SessionRecorder, got {type(rec).__name__}")
+            self._recorders.append((rec, source, source.add_feed("recorder", track=rec.track), "recorder"))
+        self._taps: list[tuple[Tap, Source, Feed, str]] = []
         by_name = {s.name: s for s in self.sources}
         for name, tap in taps:
             if name not in by_name:
                 raise InputError(f"a tap of unknown source {name!r}; the sources are {list(by_name)}")
-            self._taps.append((tap, by_name[name], by_name[name].add_feed(f"tap {tap.name}")))
+            if not isinstance(tap, Tap):
+                raise InputError(f"a graph's taps derive from supramodal.node.taps.Tap; {type(tap).__name__} does not")
+            source = by_name[name]
+            self._taps.append((tap, source, source.add_feed(f"tap {tap.name}", track=tap.track), f"tap {tap.name}"))
         # source threads -> event thread: (source name, events, dropped); None from each source at its end
         self._event_queue: queue.SimpleQueue = queue.SimpleQueue()
         for source in self.sources:
@@ -153,20 +168,22 @@ class Graph:
         try:
             return self._run(max_seconds)
         finally:
-            for tap, _, _ in self._taps:          # an outlet is not left open, whatever happened
+            for tap, _, _, _ in self._all_taps():  # an outlet is not left open, whatever happened
                 tap.close()
 
+    def _all_taps(self) -> list[tuple[Tap, Source, Feed, str]]:
+        """The recorders and the other taps: ``(tap, source, feed, thread name)``."""
+        return [*self._recorders, *self._taps]
+
     def _run(self, max_seconds: float | None) -> dict:
-        for tap, _, _ in self._taps:
+        for tap, _, _, _ in self._all_taps():
             tap.prepare()                         # may wait (e.g. for a consumer), before time starts
         t0 = time.monotonic()
         for source in self.sources:
             source.max_frames = None if max_seconds is None else int(round(max_seconds * source.rate))
             source.epoch = t0
         for s in self.sinks:
-            start = getattr(s, "start", None)     # a sink that puts common time on another clock (LSL)
-            if start is not None:
-                start(t0)
+            s.start(t0)                           # e.g. a sink that puts common time on another clock (LSL)
         threads = [self._thread(f"source {s.name}", self._drive, s) for s in self.sources]
         threads += [self._thread(f"processing {s.name}" if len(self.streams) > 1 else "processing", self._process, s)
                     for s in self.streams]
@@ -174,11 +191,9 @@ class Graph:
         if self.fusion is not None:
             self.fusion.on_event = lambda ev: self._event_queue.put((FUSED_STREAM, [ev], {}))
             threads.append(self._thread("fusion", self._fuse))
-        for rec, feed in self._recorders:
-            threads.append(self._thread("recorder", rec.run, feed.reader))
-        for tap, source, feed in self._taps:
+        for tap, source, feed, where in self._all_taps():
             tap.start(source, t0)
-            threads.append(self._thread(f"tap {tap.name}", tap.run, feed))
+            threads.append(self._thread(where, tap.run, feed))
         with contextlib.ExitStack() as opened:
             for source in self.sources:
                 opened.enter_context(source.driver)
@@ -189,10 +204,8 @@ class Graph:
                 for t in threads:
                     t.join(0.1)
         for s in self.sinks:
-            drain = getattr(s, "drain", None)     # a queued sink: let it take what it holds
-            if drain is not None:
-                drain()
-        for tap, _, _ in self._taps:
+            s.drain()                             # a queued sink: let it take what it holds
+        for tap, _, _, _ in self._all_taps():
             tap.close()                           # its last chunk goes before the summary says so
         summary = self.summary(time.monotonic() - t0)
         for s in self.sinks:
@@ -280,9 +293,7 @@ class Graph:
         for ev in events:
             if ev is not None:
                 for s in self.sinks:
-                    event = getattr(s, "event", None)  # a sink predating driver events has none
-                    if event is not None:
-                        event(ev)
+                    s.event(ev)
 
     # -- summary ------------------------------------------------------------------------------
 
@@ -291,24 +302,25 @@ class Graph:
 
         One stream: its counts at the top level (``windows``, ``stream_seconds``,
         ``window_accuracy``, ``frames``, ``latency_ms``, ``real_time_factor``, ``driver``,
-        ``ring``, ...; a live source's clock under ``clock``). Several: ``windows`` (all streams'), ``stream_seconds`` (the longest) and
-        per stream the same counts under ``streams``, the sources' clocks under ``clocks``, and
-        the fusion block's counts under ``fusion``. Always: ``wall_seconds``, ``events`` (driver
-        events per kind, ``source/kind`` with several sources), ``sinks`` (what each queued sink
-        wrote, dropped and raised), ``stopped_by`` and ``recorded``; with taps, ``taps``: per tap
-        its own counts and every frame's fate as its reader saw it (``frames``, see
-        :meth:`Source.frame_fates`).
+        ``ring``, ...; a live source's clock under ``clock``). Several: ``windows`` (all
+        streams'), ``stream_seconds`` (the longest) and per stream the same counts under
+        ``streams``, the sources' clocks under ``clocks``, and the fusion block's counts under
+        ``fusion``. Always: ``wall_seconds``, ``events`` (driver events per kind, ``source/kind``
+        with several sources), ``sinks`` (what each queued sink wrote, dropped and raised: the
+        sinks whose ``stats()`` is not None), ``stopped_by`` and ``recorded`` (the recorders'
+        files); with taps, ``taps``: per tap its own counts and every frame's fate as its reader
+        saw it (``frames``, see :meth:`Source.frame_fates`).
         """
         common = {
             "wall_seconds": wall,
-            "recorded": [str(p) for rec, _ in self._recorders for p in (rec.paths or ())] or None,
+            "recorded": [str(p) for rec, _, _, _ in self._recorders for p in (rec.paths or ())] or None,
             "stopped_by": self._stopped_by,
             "events": self._limiter.summary(),
-            "sinks": [s.stats() for s in self.sinks if hasattr(s, "stats")],
+            "sinks": [stats for stats in (s.stats() for s in self.sinks) if stats is not None],
         }
         if self._taps:
             common["taps"] = {tap.name: {**tap.summary(), "frames": source.frame_fates(feed)}
-                              for tap, source, feed in self._taps}
+                              for tap, source, feed, _ in self._taps}
         per_stream = {s.name: s.summary() for s in self.streams}
         if len(self.streams) == 1 and self.fusion is None:
             clock = self.sources[0].clock_summary()         # a live source's clock, under ``clock``

@@ -52,6 +52,7 @@ from supramodal import __version__
 from supramodal.drivers.lsl import import_pylsl, lsl_clock_offset
 from supramodal.features import FEATURE_TABLE
 from supramodal.node.events import WindowEvent
+from supramodal.node.sinks import Sink
 from supramodal.errors import InputError
 
 #: What an LSL sink can send, in order.
@@ -126,8 +127,8 @@ def outlet_source_id(prefix: str, stream: str, output: str, host: str | None = N
     return f"{prefix}@{host or socket.gethostname()}/{stream}/{output}"
 
 
-class LSLOutletSink:
-    """The node's window events as LSL outlets (see the module notes).
+class LSLOutletSink(Sink):
+    """The node's window events as LSL outlets (see the module notes): a :class:`~supramodal.node.sinks.Sink`.
 
     Parameters
     ----------
@@ -144,7 +145,6 @@ class LSLOutletSink:
         unknown = sorted(set(outputs) - set(OUTPUTS))
         if unknown or not outputs:
             raise InputError(f"an LSL sink sends some of {list(OUTPUTS)}, got {list(outputs)}")
-        self.path = None
         pylsl = self._pylsl = import_pylsl()
         self.prefix = prefix
         self._outlets: dict[tuple[str, str], object] = {}

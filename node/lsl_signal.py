@@ -41,11 +41,12 @@ timestamps), and the node's summary counts every frame's fate under ``taps``.
 
 Threading
 ---------
-The outlet is a *tap*: another reader of the source's ring on a thread of its own
-(:class:`supramodal.node.graph.Graph`), as the recorder is. ``push_chunk`` copies into liblsl's
-buffer and never waits for a consumer (liblsl drops the oldest for one slower than
-``OUTLET_BUFFER_SECONDS``). A file source's ring (policy "block") waits for this reader as for
-every other; a live source's ring drops frames for a reader that falls behind, counted.
+The outlet is a *tap* (:class:`supramodal.node.taps.Tap`): another reader of the source's ring
+on a thread of its own, run by :class:`supramodal.node.graph.Graph`, as the recorder is.
+``push_chunk`` copies into liblsl's buffer and never waits for a consumer (liblsl drops the
+oldest for one slower than ``OUTLET_BUFFER_SECONDS``). A file source's ring (policy "block")
+waits for this reader as for every other; a live source's ring drops frames for a reader that
+falls behind, counted.
 """
 
 from __future__ import annotations
@@ -60,6 +61,7 @@ from supramodal.drivers.lsl import import_pylsl
 from supramodal.errors import InputError
 from supramodal.node.lsl_outlets import DEFAULT_PREFIX, OUTLET_BUFFER_SECONDS, LSLClock, outlet_name, outlet_source_id
 from supramodal.node.ringbuffer import RingClosed, flag_runs
+from supramodal.node.taps import Tap
 
 #: Seconds of samples per push: LSL's usual 5-30 ms; 10 ms matches the node's own chunks.
 DEFAULT_SIGNAL_CHUNK = 0.01
@@ -79,8 +81,8 @@ LINGER_SECONDS = 0.5
 CONNECT_SETTLE_SECONDS = 0.2
 
 
-class LSLSignalOutlet:
-    """One source's samples as an LSL stream (see the module notes): a tap of the graph.
+class LSLSignalOutlet(Tap):
+    """One source's samples as an LSL stream (see the module notes): a :class:`~supramodal.node.taps.Tap`.
 
     Parameters
     ----------

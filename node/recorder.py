@@ -1,8 +1,11 @@
 """Record a node's raw driver blocks as a session that the replay driver plays back exactly.
 
-The recorder is a second reader of the node's ring buffer, on its own thread: it
-sees the frames before any processing, with their ``filled`` marks (and, from the node, the
-board's restart and overrun marks), and appends
+The recorder is a tap (:class:`supramodal.node.taps.Tap`): another reader of a source's ring
+buffer, on its own thread, run by the graph as every tap is. It sees the frames before any
+processing, with their ``filled`` marks (and, from the source thread, the board's restart and
+overrun marks and each block's time on common time: :meth:`SessionRecorder.note`,
+:meth:`SessionRecorder.arrival`, which the source calls once :meth:`SessionRecorder.start` has
+made the recorder its ``recorder``), and appends
 them to a raw file in the output folder as they come (memory stays flat however
 long the recording). At the end the raw file becomes ``NAME.wav`` + ``NAME.json``
 (:func:`supramodal.replay.session.save_session`): float32 samples when every sample is
@@ -12,6 +15,13 @@ replaying the session feeds the node bit-identical samples.
 Labels are time ranges: those the driver carries (a synthesised or replayed stream knows its
 truth) are kept with their times; otherwise :meth:`SessionRecorder.mark` starts one at the
 current stream position (or ends the current one), from any thread.
+
+Threading rules
+---------------
+``start`` (and ``attach``) on the caller's thread before the run; ``note`` and ``arrival`` on
+the source thread; ``run`` on the recorder's own thread; ``mark`` from any thread; every list
+two threads share is guarded by the recorder's lock, or appended by one thread and read after
+it has ended.
 """
 
 from __future__ import annotations
@@ -25,6 +35,8 @@ from pathlib import Path
 import numpy as np
 
 from supramodal.node.ringbuffer import RingClosed, flag_runs
+from supramodal.node.sources import Feed
+from supramodal.node.taps import Tap
 from supramodal.replay.session import MAX_SIDECAR_BYTES, save_session, session_paths
 from supramodal.errors import InputError
 
@@ -34,8 +46,8 @@ _CHUNK = 1 << 18  # frames per pass when converting the raw file
 ARRIVALS_BUDGET = MAX_SIDECAR_BYTES // 2
 
 
-class SessionRecorder:
-    """Writes what a ring reader delivers to ``folder/name.wav`` + ``.json``.
+class SessionRecorder(Tap):
+    """Writes what a ring reader delivers to ``folder/name.wav`` + ``.json``: a tap of the graph.
 
     Parameters
     ----------
@@ -55,8 +67,14 @@ class SessionRecorder:
         its sessions replay with their original relative timing.
 
     Nothing is created until the first frames arrive: a node that fails to start leaves
-    neither the folder nor a raw file behind.
+    neither the folder nor a raw file behind. The graph gives a recorder to a source with its
+    ``recorder`` argument (not among its ``taps``: the summary says what was recorded under
+    ``recorded``).
     """
+
+    #: The recorder takes marks and times from the source itself (:meth:`note`, :meth:`arrival`),
+    #: not from its feed: the feed keeps neither, so nothing piles up unread.
+    track = False
 
     def __init__(self, folder, name: str, source: str, label: str | None = None, overwrite: bool = False,
                  keep_arrivals: bool = False) -> None:
@@ -69,6 +87,7 @@ class SessionRecorder:
                                  "(overwrite=True) to replace it, or choose another name")
         self.name = name
         self.source = source
+        self.clock_rate: float | None = None
         self.rate: float | None = None
         self.channels: int | None = None
         self._raw_path = self.folder / f".{name}.raw"
@@ -99,6 +118,17 @@ class SessionRecorder:
         self._driver_labels = [(float(a), float(b), str(n)) for a, b, n in labels]
         self._label_period = label_period
 
+    def start(self, source, epoch: float) -> None:
+        """The source this recorder records (:class:`~supramodal.node.sources.Source`), before any
+        frame: :meth:`attach` to it (its rate, channels, position, truth labels and clock rate) and
+        become its ``recorder``, which the source thread tells each block's marks and time. The
+        caller's thread. ``epoch`` is not needed: the source's times are on common time already."""
+        labels = source.labels
+        self.attach(source.rate, source.driver.channels, lambda: source.ring.written,
+                    labels=labels.ranges if labels is not None else (), clock_rate=source.time_rate,
+                    label_period=labels.period if labels is not None else None)
+        source.recorder = self
+
     def mark(self, label: str | None) -> None:
         """Start a label at the current stream position; ``None`` ends the current one. Thread-safe."""
         with self._lock:
@@ -117,8 +147,10 @@ class SessionRecorder:
             self._arrival_frames.append(int(end))
             self._arrival_seconds.append(float(seconds))
 
-    def run(self, reader) -> None:
-        """Drain ``reader`` (a ring reader) until the ring closes; then write the session."""
+    def run(self, feed) -> None:
+        """Drain ``feed`` (a :class:`~supramodal.node.sources.Feed`, or a ring reader itself) until
+        the ring closes; then write the session (:attr:`paths`). The recorder's thread."""
+        reader = feed.reader if isinstance(feed, Feed) else feed
         try:
             expected = 0
             while True:
@@ -138,6 +170,10 @@ class SessionRecorder:
             if self._raw is not None:
                 self._raw.close()
             self.paths = self._finish()
+
+    def summary(self) -> dict:
+        """``{"session": name, "paths": [wav, json] or None}`` (None: no frame came)."""
+        return {"session": self.name, "paths": None if self.paths is None else [str(p) for p in self.paths]}
 
     def _append(self, data: np.ndarray, filled, missing: bool = False) -> None:
         if self._raw is None:

@@ -1,27 +1,34 @@
 """Where the node's window events go: text lines or JSON Lines, to stdout or a file.
 
-A file sink checks its path when it is made (an existing file is refused unless
-``overwrite``) but creates the file only when it first writes: a node that fails
-to start (a port that does not open) leaves no empty file behind.
+:class:`Sink` is the interface the graph calls (every call but ``emit`` a documented no-op by
+default): ``start``, ``emit``, ``event``, ``drain``, ``stats``, ``summary``, ``close``, and the
+:attr:`Sink.on_reader_left` hook. A new sink derives from it and overrides what it needs; the
+graph calls the rest as they are (it never probes a sink for a method).
+
+A file sink (:class:`FileSink`: text, JSON Lines) checks its path when it is made (an existing
+file is refused unless ``overwrite``) but creates the file only when it first writes: a node
+that fails to start (a port that does not open) leaves no empty file behind.
 
 Threading rules
 ---------------
-``emit`` is called from the node's processing thread, ``event`` (driver events)
-from its event thread, ``summary`` and ``close`` from the caller's thread once
-both have ended. One writing ``emit`` and ``event`` to the same stream serialises
-them with its lock, held for one write. A scene's sinks (and ``run --json``'s) run
-behind a :class:`QueuedSink`: on their own thread, behind a bounded queue, so
-that processing never waits on a sink; what a sink cannot take is dropped and
-counted in the summary (``sinks``).
+``start`` is called from the caller's thread before any event; ``emit`` from the node's
+processing thread (or the fusion thread), ``event`` (driver events) from its event thread;
+``drain``, ``stats``, ``summary`` and ``close`` from the caller's thread once those have ended.
+One writing ``emit`` and ``event`` to the same stream serialises them with its lock, held for
+one write. A scene's sinks (and ``run --json``'s) run behind a :class:`QueuedSink`: on their
+own thread, behind a bounded queue, so that processing never waits on a sink; what a sink
+cannot take is dropped and counted in the summary (``sinks``).
 """
 
 from __future__ import annotations
 
+import abc
 import json
 import queue
 import sys
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import TextIO
 
@@ -33,9 +40,58 @@ from supramodal.node.outputs import check_new_file
 from supramodal.errors import InputError
 
 
-class Sink:
-    """Base sink: ``emit(event)`` per window, ``event(ev)`` per driver event (default: ignored),
-    ``summary(summary)`` once, ``close()`` at the end.
+class Sink(abc.ABC):
+    """The base of every sink: the calls the graph makes, in order, all no-ops but :meth:`emit`.
+
+    :meth:`start` once, then :meth:`emit` per window and :meth:`event` per driver event (in any
+    interleaving, from two threads), then :meth:`drain`, :meth:`stats`, :meth:`summary` and
+    :meth:`close` once each.
+
+    Attributes
+    ----------
+    path : str or None
+        Where the sink writes (``"-"``: standard output), for the summary; None by default.
+    on_reader_left : callable or None
+        Set by the graph before the run: a sink that runs on its own thread (:class:`QueuedSink`)
+        calls it, with the ``BrokenPipeError``, when the reader of its output has left (``|
+        head``), and the graph stops. A sink called on the graph's threads need not: its error
+        stops the graph anyway. Default None.
+    """
+
+    path: str | None = None
+    on_reader_left: Callable[[BrokenPipeError], None] | None = None
+
+    def start(self, epoch: float) -> None:
+        """The graph's start on ``time.monotonic()`` (common time 0), before any event: for a
+        sink that puts common time on another clock (LSL). The caller's thread. Default: nothing."""
+
+    @abc.abstractmethod
+    def emit(self, event: WindowEvent) -> None:
+        """One window's event (of the streams the sink listens to). The processing or fusion thread."""
+
+    def event(self, ev: DriverEvent) -> None:
+        """A driver event (rate-limited by the node: ``ev.count`` > 1 stands for repeats). The
+        event thread. Default: ignored."""
+
+    def drain(self, timeout: float = 5.0) -> None:
+        """After the last ``emit`` and ``event``: take what is still held, for at most
+        ``timeout`` seconds (a queued sink's queue). The caller's thread. Default: nothing."""
+
+    def stats(self) -> dict | None:
+        """What the sink wrote, dropped and raised, for the summary's ``sinks``; None (the
+        default) for a sink that counts nothing (one called on the graph's own threads), which
+        the summary leaves out. The caller's thread, after :meth:`drain`."""
+        return None
+
+    def summary(self, summary: dict) -> None:
+        """The run's summary, once, after :meth:`drain`. The caller's thread. Default: nothing."""
+
+    def close(self) -> None:
+        """Release what the sink holds, last. The caller's thread. Default: nothing."""
+
+
+class FileSink(Sink):
+    """A sink that writes lines to standard output or a file (the base of text and JSON Lines).
 
     Parameters
     ----------
@@ -59,23 +115,15 @@ class Sink:
             self._file = open(self.path, "w", buffering=1)
         return self._file
 
-    def emit(self, event: WindowEvent) -> None:
-        raise NotImplementedError
-
-    def event(self, ev: DriverEvent) -> None:
-        """A driver event (rate-limited by the node: ``ev.count`` > 1 stands for repeats)."""
-
-    def summary(self, summary: dict) -> None:
-        raise NotImplementedError
-
     def close(self) -> None:
+        """Flush standard output, or close the file (if it was ever opened)."""
         if self._file is sys.stdout:
             self._file.flush()
         elif self._file is not None:
             self._file.close()
 
 
-class JsonLinesSink(Sink):
+class JsonLinesSink(FileSink):
     """One JSON object per window; a driver event as ``{"event": kind, "message": ..., "time": ...,
     "stream_index": ..., "count": ...}`` in the same stream; the summary as a last object with
     ``"summary": true``."""
@@ -94,7 +142,7 @@ class JsonLinesSink(Sink):
         self._fh.write(json.dumps({"summary": True, **summary}) + "\n")
 
 
-class TextSink(Sink):
+class TextSink(FileSink):
     """One human-readable line per window, under a line that names the columns, and a summary block;
     driver events on stderr, ``supramodal: MESSAGE`` and, for repeats folded in, ``(N more since)``."""
 
@@ -254,15 +302,17 @@ class ListSink(Sink):
 DEFAULT_SINK_QUEUE_ITEMS = 4096
 
 
-class QueuedSink:
+class QueuedSink(Sink):
     """Runs a sink on its own thread, behind a bounded queue, so that processing never waits on it.
 
     ``emit`` and ``event`` only put the item in the queue; when the queue is full (the sink is
     slower than the stream: a slow disk, a stalled terminal, a network peer), the item is dropped
     and counted. An exception from the sink is counted and the first one kept; the sink gets the
     next items all the same. A ``BrokenPipeError`` (the reader of stdout left) ends the sink and
-    calls :attr:`on_reader_left`, which the node sets to stop the stream. :meth:`drain` waits (bounded) for the queue to empty at the end;
-    ``summary`` and ``close`` then run on the caller's thread, as for any sink.
+    calls :attr:`on_reader_left`, which the node sets to stop the stream. :meth:`drain` waits
+    (bounded) for the queue to empty at the end; ``summary`` and ``close`` then run on the
+    caller's thread, as for any sink; ``start`` is passed on, on the caller's thread, before
+    any event.
 
     Parameters
     ----------
@@ -276,11 +326,13 @@ class QueuedSink:
     :meth:`stats` is a snapshot, safe at any time.
     """
 
-    def __init__(self, sink, capacity: int = DEFAULT_SINK_QUEUE_ITEMS) -> None:
+    def __init__(self, sink: Sink, capacity: int = DEFAULT_SINK_QUEUE_ITEMS) -> None:
+        if not isinstance(sink, Sink):
+            raise InputError(f"a queued sink runs a Sink (supramodal.node.sinks.Sink), got {type(sink).__name__}")
         if isinstance(capacity, bool) or not isinstance(capacity, int) or capacity < 1:
             raise InputError(f"a sink queue holds at least 1 item, got capacity {capacity!r}")
         self.sink = sink
-        self.path = getattr(sink, "path", None)
+        self.path = sink.path
         self._queue: queue.Queue = queue.Queue(maxsize=capacity)
         self._dropped = {"windows": 0, "events": 0}
         self._errors = 0
@@ -314,9 +366,10 @@ class QueuedSink:
                 return
             method, payload = item
             try:
-                target = getattr(self.sink, method, None)
-                if target is not None:
-                    target(payload)
+                if method == "emit":
+                    self.sink.emit(payload)
+                else:
+                    self.sink.event(payload)
                 with self._lock:
                     self._written += 1
             except BrokenPipeError as exc:  # the reader of stdout left (`| head`): nothing more to write
@@ -332,7 +385,8 @@ class QueuedSink:
 
     def drain(self, timeout: float = 5.0) -> None:
         """Let the sink take what is queued, for at most ``timeout`` seconds; what it has not taken
-        by then is dropped and counted. Call once, after the last ``emit`` and ``event``."""
+        by then is dropped and counted. Call once, after the last ``emit`` and ``event``; the
+        wrapped sink's own ``drain`` follows, in what is left of ``timeout``."""
         deadline = time.monotonic() + timeout
         while self._thread.is_alive():
             try:
@@ -349,6 +403,8 @@ class QueuedSink:
             if item is not None:
                 with self._lock:
                     self._dropped["windows" if item[0] == "emit" else "events"] += 1
+        if not self._thread.is_alive():    # never while the worker may still call the sink
+            self.sink.drain(max(0.0, deadline - time.monotonic()))
 
     def stats(self) -> dict:
         """``{"sink", "written", "dropped_windows", "dropped_events", "errors", "first_error"}``."""
@@ -359,10 +415,8 @@ class QueuedSink:
                     "first_error": self._first_error}
 
     def start(self, epoch: float) -> None:
-        """Passed on to a sink that has it (before any event, on the caller's thread)."""
-        start = getattr(self.sink, "start", None)
-        if start is not None:
-            start(epoch)
+        """Passed on to the sink (before any event, on the caller's thread)."""
+        self.sink.start(epoch)
 
     def summary(self, summary: dict) -> None:
         self.sink.summary(summary)

@@ -117,7 +117,13 @@ class Source:
         capacity = max(int(buffer_seconds * driver.rate), 1)
         self.ring = RingBuffer(capacity, driver.channels, dtype=np.float64, overrun=overrun)
         self.feeds: list[Feed] = []
+        #: The recorder of this source (:class:`~supramodal.node.recorder.SessionRecorder`, a tap
+        #: that set itself here in its ``start``), or None: the source thread tells it each
+        #: block's driver marks (``note``) and time on common time (``arrival``), which no feed carries.
         self.recorder = None
+        #: Truth labels of the source's samples (:class:`~supramodal.node.streams.Labels`), set by
+        #: the graph from the first stream that reads the source; None: none known (a relay).
+        self.labels = None
         time_rate = self.rate if time_rate is None else float(time_rate)
         #: Samples per second of common time the clock model starts from (its nominal rate).
         self.time_rate = time_rate
@@ -137,8 +143,8 @@ class Source:
         self.event_queue: queue.SimpleQueue | None = None
 
     def add_feed(self, name: str, track: bool = True) -> Feed:
-        """A new reader of this source's ring (a stream; or the recorder, which does not
-        ``track`` arrivals and marks, see :class:`Feed`)."""
+        """A new reader of this source's ring (a stream or a tap; a tap that does not ``track``
+        arrivals and marks, such as the recorder, gets neither, see :class:`Feed`)."""
         feed = Feed(self.ring.add_reader(name), track)
         self.feeds.append(feed)
         return feed
