@@ -21,8 +21,10 @@ bandwidths the Glasberg-Moore rule's).
 
 Version 2 adds the model's calibration (:mod:`supramodal.calibration`): the header's
 ``calibration`` object (the window map and the contact pooling, fitted on held-out windows)
-and ``novelty`` (true when the file holds the arrays ``novelty_means`` (classes, inputs),
-``novelty_precision`` (inputs, inputs) and ``novelty_quantiles``). A version 1 file still
+and ``novelty`` (false, or the novelty score's method and warp, :meth:`Novelty.header`; ``true`` in
+files of before the warp; the file then holds the arrays ``novelty_means`` (classes, inputs),
+``novelty_precision`` (inputs, inputs) and ``novelty_quantiles``, validated by
+:meth:`Novelty.from_parts`). A version 1 file still
 loads: its model is *uncalibrated* (:attr:`TextureModel.calibrated` is False), its posteriors
 the normalised outputs, and it cannot say "unknown".
 """
@@ -37,7 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
-from supramodal.calibration import (DEFAULT_CALIBRATION_FOLDS, NOVELTY_QUANTILES, Calibration, Novelty,
+from supramodal.calibration import (DEFAULT_CALIBRATION_FOLDS, Calibration, Novelty,
                                     input_scaling, fit_network_calibration, normalised_log_posteriors)
 from supramodal.banks import COCHLEA_B_MIN, COCHLEA_Q_EAR, ERB_TO_B, WHISKER_TABLE, Bank, erb
 from supramodal.errors import InputError
@@ -479,14 +481,15 @@ def log_posteriors_of(logits: np.ndarray, calibration: Calibration | None) -> np
 
 def calibration_header(calibration: Calibration | None, novelty: Novelty | None) -> dict:
     """The :data:`CALIBRATION_KEYS` of a header."""
-    return {"calibration": None if calibration is None else calibration.to_dict(), "novelty": novelty is not None}
+    return {"calibration": None if calibration is None else calibration.to_dict(),
+            "novelty": False if novelty is None else novelty.header()}
 
 
 def novelty_arrays(novelty: Novelty | None) -> dict:
     """The :data:`NOVELTY_ARRAYS` a model file holds for ``novelty`` (none without one)."""
     if novelty is None:
         return {}
-    return dict(zip(NOVELTY_ARRAYS, (novelty.means, novelty.precision, novelty.quantiles)))
+    return novelty.arrays()
 
 
 def calibration_from_parts(header: dict, arrays: dict, n_in: int, n_classes: int, bad):
@@ -494,29 +497,4 @@ def calibration_from_parts(header: dict, arrays: dict, n_in: int, n_classes: int
     both None for a version 1 file or one saved without them."""
     raw = header.get("calibration")
     calibration = None if raw is None else Calibration.from_dict(raw, bad)
-    flag = header.get("novelty", False)
-    if not isinstance(flag, bool):
-        raise bad(f"'novelty' must be true or false, got {flag!r}")
-    present = [k for k in NOVELTY_ARRAYS if k in arrays]
-    if not flag:
-        if present:
-            raise bad(f"the file holds {present} but its header says it has no novelty score")
-        return calibration, None
-    missing = [k for k in NOVELTY_ARRAYS if k not in arrays]
-    if missing:
-        raise bad(f"the header says the model has a novelty score, but the file lacks {missing}")
-    shapes = {"novelty_means": (n_classes, n_in), "novelty_precision": (n_in, n_in),
-              "novelty_quantiles": NOVELTY_QUANTILES.shape}
-    for k, want in shapes.items():
-        a = arrays[k]
-        if a.dtype.kind != "f" or a.shape != want:
-            raise bad(f"array {k} has shape {a.shape} and dtype {a.dtype}; expected float {want}")
-        if not np.isfinite(a).all():
-            raise bad(f"array {k} contains NaN or Inf")
-    q = arrays["novelty_quantiles"].astype(np.float64)
-    if np.any(np.diff(q) < 0) or q[0] < 0:
-        raise bad("array novelty_quantiles must be non-negative and non-decreasing")
-    precision = arrays["novelty_precision"].astype(np.float64)
-    if not np.allclose(precision, precision.T, rtol=1e-9, atol=1e-12):
-        raise bad("array novelty_precision must be symmetric")
-    return calibration, Novelty(arrays["novelty_means"].astype(np.float64), precision, q)
+    return calibration, Novelty.from_parts(header.get("novelty", False), arrays, n_in, n_classes, bad)

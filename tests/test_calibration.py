@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from supramodal.banks import whisker_bank
-from supramodal.calibration import (DEFAULT_CALIBRATION_FOLDS, NOVELTY_QUANTILES, Calibration, brier_score, calibration_folds,
+from supramodal.calibration import (DEFAULT_CALIBRATION_FOLDS, NOVELTY_QUANTILES, NOVELTY_RUN, Calibration, Novelty,
+                                    brier_score, calibration_folds, fit_novelty, novelty_warp,
                                     expected_calibration_error, fit_calibration, fit_pooling, fit_window_calibration,
                                     log_loss, normalised_log_posteriors, pool_log_posteriors, winner)
 from supramodal.decisions import DecisionAccumulator
@@ -266,7 +267,13 @@ def test_a_version_1_file_still_loads_and_is_said_to_be_uncalibrated(model, tmp_
     (lambda h: h.update(calibration=[1, 2]), None, (), "must be an object"),
     (lambda h: h.update(novelty="yes"), None, (), "true or false"),
     (None, None, ("novelty_precision",), "lacks"),
-    (None, {"novelty_quantiles": np.linspace(1, 0, len(NOVELTY_QUANTILES))}, (), "non-decreasing"),
+    (None, {"novelty_quantiles": np.tile(np.linspace(1, 0, len(NOVELTY_QUANTILES)), (NOVELTY_RUN, 1))}, (),
+     "non-decreasing"),
+    (None, {"novelty_quantiles": np.linspace(0, 1, len(NOVELTY_QUANTILES))}, (), "novelty_quantiles has shape"),
+    (lambda h: h["novelty"].update(method="knn"), None, (), "novelty method 'knn' is not known"),
+    (lambda h: h["novelty"].update(gain=[1.0] * 7), None, (), "list of 8 finite numbers"),
+    (lambda h: h["novelty"].update(gain=[0.0] * 8), None, (), "gain' must be > 0"),
+    (lambda h: h["novelty"].pop("offset"), None, (), "exactly the keys"),
     (None, {"novelty_means": np.zeros((2, 8))}, (), "novelty_means"),
     (lambda h: h.update(novelty=False), None, (), "says it has no novelty"),
     (lambda h: h.update(version=1), None, (), "unknown header key"),
@@ -292,6 +299,96 @@ def test_novelty_threshold_calls_the_asked_share_of_held_out_known_windows_unkno
     assert 0.01 < called < 0.12
     far = values * 6.0                                              # a texture far louder than any known
     assert np.mean(model.novelty_score(far) > model.novelty.threshold(0.05)) > 0.9
+
+
+def test_a_version_2_file_of_before_the_warp_still_loads_and_scores_the_standardised_inputs(model, tmp_path):
+    """A version 2 file written before the novelty's warp says ``"novelty": true`` and holds one row
+    of quantiles: it loads, scores the unwarped distance, and has no contact thresholds."""
+    values, _ = _data(seed=7)
+    x = model._inputs(values)
+    means = np.stack([x[:3].mean(axis=0), x[3:6].mean(axis=0), x[6:9].mean(axis=0)])
+    precision = np.diag(np.arange(1.0, 9.0))
+
+    def unwarped(h):
+        h["novelty"] = True
+
+    path = _rewrite(model.save(tmp_path / "old.npz"), unwarped,
+                    arrays={"novelty_means": means, "novelty_precision": precision,
+                            "novelty_quantiles": np.linspace(0.0, 10.0, len(NOVELTY_QUANTILES))})
+    old = TextureModel.load(path)
+    assert old.novelty.gain is None and not old.novelty.pools
+    d = x[:, None, :] - means[None]
+    np.testing.assert_allclose(old.novelty_score(values), (d * d * np.arange(1.0, 9.0)).sum(axis=2).min(axis=1),
+                               rtol=1e-12)
+    assert old.novelty.threshold(0.05) == pytest.approx(9.5)
+    with pytest.raises(InputError, match="no contact quantiles"):
+        old.novelty.contact_threshold(0.05, 10)
+
+
+def test_the_novelty_warp_is_the_logarithm_of_the_raw_inputs():
+    rng = np.random.default_rng(0)
+    raw = rng.gamma(2.0, 50.0, (200, 4)) + 20.0
+    mean, scale = raw.mean(axis=0), raw.std(axis=0)
+    gain, offset = novelty_warp(mean, scale)
+    u = np.arcsinh(((raw - mean) / scale) * gain + offset)
+    # asinh(v / floor) = log(2 v / floor) + O((floor / v)^2): up to a constant per input, log v
+    np.testing.assert_allclose(u - np.log(raw), np.log(2.0 / (0.01 * mean)) + 0 * u, atol=2e-3)
+
+
+def _novelty_data(rng, classes, n, shift=0.0):
+    """Windows of textures with log-normal inputs: class k's log-mean is k in the first input,
+    ``shift`` in the second (a texture the model never met: shift > 0)."""
+    labels = np.repeat(np.arange(len(classes)), n)
+    logs = rng.normal(0.0, 0.5, (len(labels), 3))
+    logs[:, 0] += np.asarray(classes, dtype=float)[labels]
+    logs[:, 1] += shift
+    return np.exp(logs + 3.0), labels
+
+
+def test_held_out_thresholds_come_from_known_windows_only_and_novel_contacts_pass_them():
+    """Fitted on known textures alone, the window and contact thresholds call about the asked share of
+    fresh known windows and contacts unknown; a texture between the known ones in the first input
+    but off in the second is caught per contact far more often than per window (its windows overlap
+    the known ones', its contacts' means do not)."""
+    rng = np.random.default_rng(3)
+    raw, y = _novelty_data(rng, [0, 2], 300)
+    mean, scale = raw.mean(axis=0), raw.std(axis=0)
+    folds = (np.arange(len(y)) % 300) * 10 // 300
+    nov = fit_novelty((raw - mean) / scale, y, 2, folds, y, mean, scale)
+    assert nov.pools and nov.quantiles.shape == (NOVELTY_RUN, len(NOVELTY_QUANTILES))
+    # row 0 is the held-out window scores' quantiles, computed here apart from fit_novelty, on the raw
+    # inputs' warp (asinh of the raw values over 1 % of their mean: their logarithm, up to a constant)
+    u = np.arcsinh(raw / (0.01 * mean))
+    held = np.empty(len(y))
+    for f in range(10):
+        test = folds == f
+        means = np.stack([u[~test & (y == k)].mean(axis=0) for k in range(2)])
+        r = u[~test] - means[y[~test]]
+        cov = r.T @ r / (len(r) - 2)
+        cov = 0.9 * cov + 0.1 * np.diag(np.diag(cov)) + 1e-6 * np.eye(3)
+        d = u[test][:, None, :] - means[None]
+        held[test] = np.einsum("nki,ij,nkj->nk", d, np.linalg.inv(cov), d).min(axis=1)
+    np.testing.assert_allclose(nov.quantiles[0], np.quantile(held, NOVELTY_QUANTILES), rtol=1e-9)
+
+    known, _ = _novelty_data(rng, [0, 2], 400)
+    novel, _ = _novelty_data(rng, [1], 400, shift=0.6)
+    xk, xn = (known - mean) / scale, (novel - mean) / scale
+    assert 0.02 < np.mean(nov.score(xk) > nov.threshold(0.05)) < 0.09
+    window_caught = np.mean(nov.score(xn) > nov.threshold(0.05))
+    t = nov.contact_threshold(0.05, 10)
+    contacts_known = [nov.pooled_score(xk[i:i + 10]) for i in range(0, len(xk), 10)]
+    contacts_novel = [nov.pooled_score(xn[i:i + 10]) for i in range(0, len(xn), 10)]
+    assert np.mean(np.array(contacts_known) > t) < 0.12
+    assert np.mean(np.array(contacts_novel) > t) > 0.9 > 0.5 > window_caught
+    assert nov.pooled_score(xn[:1]) == pytest.approx(float(nov.score(xn[:1])[0]))
+
+
+def test_the_contact_threshold_refuses_what_is_no_contact(model):
+    with pytest.raises(InputError, match="at least one window"):
+        model.novelty.contact_threshold(0.05, 0)
+    with pytest.raises(InputError, match="needs windows"):
+        model.novelty.pooled_score(np.zeros((0, 8)))
+    assert model.novelty.contact_threshold(0.05, 10 * NOVELTY_RUN) == model.novelty.contact_threshold(0.05, NOVELTY_RUN)
 
 
 def test_a_model_file_written_before_calibration_loads_uncalibrated():

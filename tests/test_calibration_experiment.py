@@ -157,9 +157,11 @@ def test_quick_result_has_every_part_and_no_nan(quick):
         assert [f["left_out"] for f in folds] == [["T1", "T2"], ["T3", "T4"], ["T5", "T6"], ["T7", "T8"]]
         for f in folds:
             for scope in ("window", "contact"):
-                assert all(0.0 <= f[scope][k] <= 1.0 for k in ("auroc_novelty", "auroc_doubt", "false_unknown",
-                                                                "unknown_caught"))
-            assert f["accuracy_with_rejection"] <= f["accuracy"]
+                assert all(0.0 <= f[scope][k] <= 1.0 for k in ("auroc_novelty", "auroc_mean_novelty", "auroc_doubt",
+                                                                "false_unknown", "unknown_caught"))
+                assert f[scope]["accuracy_with_rejection"] <= f[scope]["accuracy"]
+                assert f[scope]["n_known"] == 3 * f[scope]["n_unknown"]          # 6 known textures, 2 left out
+            assert f["window"]["auroc_mean_novelty"] == f["window"]["auroc_novelty"]
     two = quick["two_sense"]
     assert len(two["sets"]) == 1 and list(two["summary"]) == list(METHODS)
     assert 0.0 <= two["late_fusion"]["late_weight"]["mean"] <= 1.0
@@ -172,7 +174,7 @@ def test_quick_table_names_every_part_and_every_done_when_line(quick):
                 f"| {ANYTIME_CONFIDENCE:g} |", "| early |"):
         assert row in table, row
     lines = done_when(quick)
-    assert len(lines) == 9 and all(isinstance(miss, list) for _, _, miss in lines)
+    assert len(lines) == 12 and all(isinstance(miss, list) for _, _, miss in lines)
     assert all(f"| {what} |" in table for what, _, _ in lines)
 
 

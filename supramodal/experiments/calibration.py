@@ -152,16 +152,24 @@ def leave_out_fold(texture_set: TextureSet, fold: int, epochs: int = DEFAULT_EPO
     """Textures ``LEFT_OUT * fold ..`` left out of training; unknown-texture detection on the test
     windows of every texture (see the module).
 
+    A window is unknown when its novelty score (:meth:`~supramodal.calibration.Novelty.score`) is
+    beyond the model's threshold for a :data:`FALSE_UNKNOWN` rate of held-out known windows; a
+    contact when its pooled novelty (:meth:`~supramodal.calibration.Novelty.pooled_score`) is beyond
+    the threshold for that rate of held-out known contacts of its length. Both thresholds come from
+    the model's held-out windows of its known textures alone.
+
     Returns
     -------
     dict
         ``bank``, ``fold``, ``left_out`` (names); ``window`` and ``contact``: ``auroc_novelty``,
-        ``auroc_doubt`` (``1 - max p``), ``false_unknown`` (share of known test windows, or
-        contacts by their mean novelty, beyond the threshold) and ``unknown_caught`` (the same
-        share of unknown ones); ``threshold``; the known test windows' ``accuracy`` without
-        rejection, ``accuracy_with_rejection`` (a window called unknown counts as wrong),
-        ``accuracy_of_accepted`` (of the known windows not called unknown), ``drop`` (accuracy minus
-        accuracy with rejection) and ``accepted_drop`` (accuracy minus accuracy of accepted).
+        ``auroc_doubt`` (``1 - max p``; of a contact, of its pooled posteriors),
+        ``auroc_mean_novelty`` (a contact's mean window novelty, the score of before; windows: the
+        novelty itself), ``false_unknown`` (share of known test windows or contacts beyond the
+        threshold) and ``unknown_caught`` (the same share of unknown ones), ``threshold``; the known
+        test windows' or contacts' ``accuracy`` without rejection, ``accuracy_with_rejection`` (one
+        called unknown counts as wrong), ``accuracy_of_accepted`` (of those not called unknown),
+        ``drop`` (accuracy minus accuracy with rejection) and ``accepted_drop`` (accuracy minus
+        accuracy of accepted).
     """
     names = texture_set.names
     out = list(range(LEFT_OUT * fold, LEFT_OUT * fold + LEFT_OUT))
@@ -175,34 +183,38 @@ def leave_out_fold(texture_set: TextureSet, fold: int, epochs: int = DEFAULT_EPO
     model = TextureModel.train(x_train, y_train, [names[k] for k in known], bank, FEATURES, wlen, epochs=epochs,
                                seed=seed)
     _, _, x_test, y_test = split(values)
-    unknown = np.isin(y_test, out)
-    novelty = model.novelty_score(x_test)
-    lp = model.log_posteriors(x_test)
-    doubt = 1.0 - np.exp(lp.max(axis=1))
-    contacts = contact_runs(y_test, len(y_test) // len(names), CONTACT_WINDOWS)
-    c_unknown = unknown[[r[0] for r in contacts]]
-    c_novelty = np.array([novelty[r].mean() for r in contacts])
-    c_doubt = 1.0 - np.exp(pooled_contacts(lp, contacts, model.calibration.correlation).max(axis=1))
-    threshold = model.novelty.threshold(FALSE_UNKNOWN)
     index = {k: i for i, k in enumerate(known)}
-    right = winner(lp[~unknown]) == np.array([index[k] for k in y_test[~unknown]])
-    rejected = novelty[~unknown] > threshold
-    accuracy, kept = float(right.mean()), float((right & ~rejected).mean())
-    accepted = float(right[~rejected].mean()) if (~rejected).any() else None
-
-    def detection(score, doubt_score, is_unknown, nov):
-        return {"auroc_novelty": auroc(score[is_unknown], score[~is_unknown]),
-                "auroc_doubt": auroc(doubt_score[is_unknown], doubt_score[~is_unknown]),
-                "false_unknown": float(np.mean(nov[~is_unknown] > threshold)),
-                "unknown_caught": float(np.mean(nov[is_unknown] > threshold)),
-                "n_unknown": int(is_unknown.sum()), "n_known": int((~is_unknown).sum())}
-
-    return {"bank": bank.kind, "texture_set": texture_set.name, "fold": fold, "left_out": [names[k] for k in out],
-            "window": detection(novelty, doubt, unknown, novelty),
-            "contact": detection(c_novelty, c_doubt, c_unknown, c_novelty),
-            "threshold": threshold, "accuracy": accuracy, "accuracy_with_rejection": kept,
-            "accuracy_of_accepted": accepted, "drop": accuracy - kept,
-            "accepted_drop": accuracy - (accepted if accepted is not None else 0.0)}
+    contacts = contact_runs(y_test, len(y_test) // len(names), CONTACT_WINDOWS)
+    lp = model.log_posteriors(x_test)
+    novelty = model.novelty_score(x_test)
+    inputs = model._inputs(x_test)
+    first = [r[0] for r in contacts]
+    scopes = {"window": {"labels": y_test, "log_posteriors": lp, "novelty": novelty, "mean_novelty": novelty,
+                         "threshold": model.novelty.threshold(FALSE_UNKNOWN)},
+              "contact": {"labels": y_test[first],
+                          "log_posteriors": pooled_contacts(lp, contacts, model.calibration.correlation),
+                          "novelty": np.array([model.novelty.pooled_score(inputs[r]) for r in contacts]),
+                          "mean_novelty": np.array([novelty[r].mean() for r in contacts]),
+                          "threshold": model.novelty.contact_threshold(FALSE_UNKNOWN, CONTACT_WINDOWS)}}
+    result = {"bank": bank.kind, "texture_set": texture_set.name, "fold": fold, "left_out": [names[k] for k in out]}
+    for scope, d in scopes.items():
+        y, lps, nov, t = d["labels"], d["log_posteriors"], d["novelty"], d["threshold"]
+        unknown = np.isin(y, out)
+        doubt = 1.0 - np.exp(lps.max(axis=1))
+        right = winner(lps[~unknown]) == np.array([index[k] for k in y[~unknown]])
+        rejected = nov[~unknown] > t
+        accuracy, kept = float(right.mean()), float((right & ~rejected).mean())
+        accepted = float(right[~rejected].mean()) if (~rejected).any() else None
+        result[scope] = {"auroc_novelty": auroc(nov[unknown], nov[~unknown]),
+                         "auroc_mean_novelty": auroc(d["mean_novelty"][unknown], d["mean_novelty"][~unknown]),
+                         "auroc_doubt": auroc(doubt[unknown], doubt[~unknown]),
+                         "false_unknown": float(np.mean(rejected)),
+                         "unknown_caught": float(np.mean(nov[unknown] > t)),
+                         "n_unknown": int(unknown.sum()), "n_known": int((~unknown).sum()), "threshold": float(t),
+                         "accuracy": accuracy, "accuracy_with_rejection": kept, "accuracy_of_accepted": accepted,
+                         "drop": accuracy - kept,
+                         "accepted_drop": accuracy - (accepted if accepted is not None else 0.0)}
+    return result
 
 
 # -- the plan -------------------------------------------------------------------------------------------
@@ -273,11 +285,12 @@ def summarize_sets(results: list[dict], seed: int) -> dict:
 
 
 def summarize_folds(folds: list[dict]) -> dict:
-    """Leave-out folds of one bank, and the worst of each figure over them."""
+    """Leave-out folds of one bank, and the worst of each figure over them (``{scope}_{figure}``)."""
     worst = {f"{scope}_{k}": min(f[scope][k] for f in folds) for scope in ("window", "contact")
-             for k in ("auroc_novelty", "auroc_doubt")}
-    return {"folds": folds, "worst": {**worst, "drop": max(f["drop"] for f in folds),
-                                      "accepted_drop": max(f["accepted_drop"] for f in folds)}}
+             for k in ("auroc_novelty", "auroc_mean_novelty", "auroc_doubt")}
+    worst |= {f"{scope}_{k}": max(f[scope][k] for f in folds) for scope in ("window", "contact")
+              for k in ("drop", "accepted_drop")}
+    return {"folds": folds, "worst": worst}
 
 
 # -- the table -------------------------------------------------------------------------------------------
@@ -355,16 +368,18 @@ def done_when(result: dict) -> list[tuple[str, str, list[str]]]:
                 f"{early['mean']:.3f} (each set at least {early['min']:.3f})",
                 [] if early["min"] >= TARGET_EARLY else ["a set"]))
     lo = result["leave_out"]
-    out.append((f"unknown textures, every fold: AUROC >= {TARGET_AUROC} (novelty score, per window)",
-                ", ".join(f"{b} worst fold {lo[b]['worst']['window_auroc_novelty']:.3f} per window, "
-                          f"{lo[b]['worst']['contact_auroc_novelty']:.3f} per contact" for b in BANKS),
-                [b for b in BANKS if lo[b]["worst"]["window_auroc_novelty"] < TARGET_AUROC]))
-    for key, how in (("accepted_drop", "of the known windows still answered"),
-                     ("drop", "a known window called unknown counted wrong")):
-        out.append((f"known textures' accuracy falls <= {TARGET_DROP * 100:.0f} points at {FALSE_UNKNOWN:.0%} false "
-                    f"unknown ({how})", ", ".join(f"{b} worst fold {lo[b]['worst'][key] * 100:+.1f} points"
-                                                 for b in BANKS),
-                    [b for b in BANKS if lo[b]["worst"][key] > TARGET_DROP]))
+    for scope in ("window", "contact"):
+        out.append((f"unknown textures, every fold: AUROC >= {TARGET_AUROC} (novelty score, per {scope})",
+                    ", ".join(f"{b} worst fold {lo[b]['worst'][scope + '_auroc_novelty']:.3f}" for b in BANKS),
+                    [b for b in BANKS if lo[b]["worst"][scope + "_auroc_novelty"] < TARGET_AUROC]))
+    for scope in ("window", "contact"):
+        for key, how in (("accepted_drop", f"of the known {scope}s still answered"),
+                         ("drop", f"a known {scope} called unknown counted wrong")):
+            out.append((f"known textures' accuracy falls <= {TARGET_DROP * 100:.0f} points at {FALSE_UNKNOWN:.0%} "
+                        f"false unknown, per {scope} ({how})",
+                        ", ".join(f"{b} worst fold {lo[b]['worst'][scope + '_' + key] * 100:+.1f} points"
+                                  for b in BANKS),
+                        [b for b in BANKS if lo[b]["worst"][scope + "_" + key] > TARGET_DROP]))
     rows = {b: _at(result["reference"][b]["anytime"], ANYTIME_CONFIDENCE) for b in BANKS}
     out.append((f"anytime decisions at {ANYTIME_CONFIDENCE}: >= {TARGET_ANYTIME} of the decided contacts right",
                 ", ".join(f"{b} {_share(r['right'], r['decided'])} ({r['right']} of {r['decided']} decided; "
@@ -400,17 +415,20 @@ def calibration_table(result: dict) -> str:
               "log-posteriors)", ""] + _calibration_rows(result, 1)
     lines += ["", fusion.fusion_table(two)]
     lines += ["", f"Unknown textures: {LEFT_OUT} of 8 left out of training per fold; test windows of all 8 "
-              f"(threshold: {FALSE_UNKNOWN:.0%} false unknown on held-out training windows)", "",
-              "| bank | left out | AUROC novelty (window / contact) | AUROC 1 - max p (window / contact) | "
+              f"(thresholds: {FALSE_UNKNOWN:.0%} false unknown on held-out training windows, and on held-out "
+              f"contacts of {result['contact_windows']} windows); 'window / contact'", "",
+              "| bank | left out | AUROC novelty | AUROC mean window novelty (contact) | AUROC 1 - max p | "
               "false unknown | unknown caught | known accuracy: all -> with rejection (accepted) |",
-              "|---|---|---|---|---|---|---|"]
+              "|---|---|---|---|---|---|---|---|"]
     for bank in BANKS:
         for f in result["leave_out"][bank]["folds"]:
             w, c = f["window"], f["contact"]
             lines.append(f"| {bank} | {', '.join(f['left_out'])} | {w['auroc_novelty']:.3f} / {c['auroc_novelty']:.3f} | "
-                         f"{w['auroc_doubt']:.3f} / {c['auroc_doubt']:.3f} | {w['false_unknown']:.3f} | "
-                         f"{w['unknown_caught']:.3f} | {f['accuracy']:.3f} -> {f['accuracy_with_rejection']:.3f} "
-                         f"({_fmt(f['accuracy_of_accepted'], '.3f')}) |")
+                         f"{c['auroc_mean_novelty']:.3f} | {w['auroc_doubt']:.3f} / {c['auroc_doubt']:.3f} | "
+                         f"{w['false_unknown']:.3f} / {c['false_unknown']:.3f} | "
+                         f"{w['unknown_caught']:.3f} / {c['unknown_caught']:.3f} | "
+                         + " / ".join(f"{v['accuracy']:.3f} -> {v['accuracy_with_rejection']:.3f} "
+                                      f"({_fmt(v['accuracy_of_accepted'], '.3f')})" for v in (w, c)) + " |")
     lines += ["", f"Anytime decisions: contacts of up to {result['anytime_windows']} windows, decided at the first "
               "window whose pooled confidence reaches the threshold: right of decided / decided of all / median "
               "windows to decide", "",
@@ -457,14 +475,15 @@ def write_calibration(result: dict, out, notice=None) -> list:
     key = ["set", "kind", "set_seed", "method", "scope", "posteriors"]
     paths = [write_csv(out / "calibration.csv", key + list(metrics), rows),
              write_csv(out / "reliability.csv", key + ["bin_low", "bin_high", "count", "confidence", "accuracy"], bins)]
-    unknown = [[b, f["fold"], " ".join(f["left_out"]), scope, f[scope]["auroc_novelty"], f[scope]["auroc_doubt"],
-                f[scope]["false_unknown"], f[scope]["unknown_caught"], f["threshold"], f["accuracy"],
-                f["accuracy_with_rejection"], f["accuracy_of_accepted"]]
+    unknown = [[b, f["fold"], " ".join(f["left_out"]), scope]
+               + [f[scope][k] for k in ("auroc_novelty", "auroc_mean_novelty", "auroc_doubt", "false_unknown",
+                                        "unknown_caught", "threshold", "accuracy", "accuracy_with_rejection",
+                                        "accuracy_of_accepted")]
                for b in BANKS for f in result["leave_out"][b]["folds"] for scope in ("window", "contact")]
-    paths.append(write_csv(out / "unknown.csv", ["bank", "fold", "left_out", "scope", "auroc_novelty", "auroc_doubt",
-                                            "false_unknown", "unknown_caught", "novelty_threshold",
-                                            "known_accuracy", "known_accuracy_with_rejection",
-                                            "known_accuracy_of_accepted"], unknown))
+    paths.append(write_csv(out / "unknown.csv", ["bank", "fold", "left_out", "scope", "auroc_novelty",
+                                            "auroc_mean_window_novelty", "auroc_doubt", "false_unknown",
+                                            "unknown_caught", "novelty_threshold", "known_accuracy",
+                                            "known_accuracy_with_rejection", "known_accuracy_of_accepted"], unknown))
     anytime = [[name, r["confidence"], r["contacts"], r["decided"], r["right"],
                 r["right"] / r["decided"] if r["decided"] else None, r["decided"] / r["contacts"],
                 r["median_windows"], float(np.mean(r["windows"])) if r["windows"] else None, r["end_right"]]
