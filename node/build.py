@@ -14,8 +14,8 @@ import numpy as np
 from supramodal.drivers.spec import BuildContext, OptionError
 from supramodal.node.band import warn_if_beyond_band
 from supramodal.node.registry import driver_spec
-from supramodal.node.events import FUSED_STREAM, MAIN_STREAM
-from supramodal.node.graph import Graph, Node
+from supramodal.node.events import FUSED_STREAM
+from supramodal.node.graph import Graph
 from supramodal.node.sources import Source
 from supramodal.node.streams import Labels, Stream, refuse_uncalibrated
 from supramodal.node.scene import LEARN, Scene, SceneError, source_scene
@@ -293,44 +293,6 @@ def _timebase(scene: Scene, driver) -> tuple[str, float, float]:
     return driver_spec(scene.driver["type"]).timebase_of(scene.driver, driver)
 
 
-def build_node(scene: Scene, speed=None, sinks_override=None, progress=None, recorder=None,
-               overwrite: bool = False) -> Graph:
-    """Everything a scene describes, wired and ready to :meth:`Graph.run`.
-
-    ``overwrite``: whether the scene's file sinks may replace existing files (``run --force``).
-    Sink files are checked here, before any training, and created only when first written.
-    A one-source scene gives a :class:`Node`; a scene in the graph form a :class:`Graph`.
-    """
-    if scene.is_graph:
-        return _build_graph(scene, speed, sinks_override, progress, recorder, overwrite)
-    bank = bank_for(scene)
-    pipeline = pipeline_for(scene, bank)
-    sinks, _ = _sinks_for(scene, sinks_override, overwrite)
-    driver, labels, ts = driver_for(scene, bank, speed)
-    _check_ring(scene, driver, f"{scene.source}: [buffer]")
-    model = _model_for(scene, bank, pipeline, ts, progress)
-    taps = []
-    try:
-        sinks += _lsl_sinks(scene, [(MAIN_STREAM, pipeline, model)], sinks_override=sinks_override)[0]
-        mapping = scene.driver.get("mapping", "auto")
-        taps = _signal_taps(scene, {MAIN_STREAM: (driver, scene.driver)}, {MAIN_STREAM: [(bank, mapping)]},
-                            sinks_override)
-        return Node(driver, pipeline, sinks, model=model, decision=scene.decision, mapping=mapping, labels=labels,
-                    buffer_seconds=scene.buffer["seconds"], overrun=_overrun(scene), recorder=recorder,
-                    **dict(zip(("timebase", "time_offset", "time_rate"), _timebase(scene, driver))), taps=[t for _, t in taps])
-    except BaseException as exc:
-        # A refused scene leaves nothing behind: its sinks have written nothing, so no file exists;
-        # no outlet is left open.
-        if sinks_override is None:
-            for sink in sinks:
-                sink.close()
-        for _, tap in taps:
-            tap.close()
-        if isinstance(exc, ValueError) and not isinstance(exc, SceneError):
-            raise SceneError(f"{scene.source}: {exc}") from None
-        raise
-
-
 def _aligned_windows(scene: Scene, a: Stream, b: Stream, windows: dict, asked: str, instead: str):
     """``((x_a, y), (x_b, y))``: windows kept when both streams' models were trained on the spot,
     checked to be the two senses of the same contacts (what learning a fusion on them needs)."""
@@ -422,7 +384,18 @@ def _learned_weight(scene: Scene, a: Stream, b: Stream, held_out: dict, trained:
     return {"weight": late["weight"], "sharpness": late["sharpness"], "correlation": correlation}
 
 
-def _build_graph(scene: Scene, speed, sinks_override, progress, recorder, overwrite: bool) -> Graph:
+def build_node(scene: Scene, speed=None, sinks_override=None, progress=None, recorder=None,
+               overwrite: bool = False) -> Graph:
+    """Everything a scene describes, wired and ready to :meth:`Graph.run`: its sources, the streams
+    that read them, the fusion and the sinks (one builder for both forms of a scene; a one-source
+    scene is the graph of one source and one stream, both ``"main"``).
+
+    ``speed``: the command line's ``--speed``. ``sinks_override``: sinks that replace the scene's
+    (its file sinks are then not made). ``recorder``: a :class:`~supramodal.node.recorder.SessionRecorder`
+    for a one-source scene, or ``{source name: recorder}``. ``overwrite``: whether the scene's file
+    sinks may replace existing files (``run --force``). Sink files are checked here, before any
+    training, and created only when first written; a refused scene leaves no file and no outlet.
+    """
     from supramodal.node.fusion import EarlyFusion, LateFusion
 
     sinks, routes = _sinks_for(scene, sinks_override, overwrite)
@@ -438,9 +411,8 @@ def _build_graph(scene: Scene, speed, sinks_override, progress, recorder, overwr
             bank = bank_for(sub)
             pipeline = pipeline_for(sub, bank)
             if spec.source not in sources:      # one driver per source, whatever reads it
-                driver, labels, ts = driver_for(sub, bank, speed, shared,
-                                                 f"{scene.source}: [[source]] {spec.source}")
-                source = _source(spec.source, sub, driver, f"{scene.source}: [[source]] {spec.source} [source.buffer]")
+                driver, labels, ts = driver_for(sub, bank, speed, shared, scene.source_table(spec.source))
+                source = _source(spec.source, sub, driver, scene.buffer_table(spec.source))
                 sources[spec.source] = (source, labels, ts)
             source, labels, ts = sources[spec.source]
             held_out[spec.name], trained[spec.name] = [], []
@@ -453,8 +425,8 @@ def _build_graph(scene: Scene, speed, sinks_override, progress, recorder, overwr
         for src in scene.sources:               # sources only sent on (a relay's): no bank, their own rate
             if src["name"] not in sources:
                 sub = source_scene(src, scene.source, scene.base_dir)
-                driver, labels, ts = driver_for(sub, None, speed, shared, f"{scene.source}: [[source]] {src['name']}")
-                source = _source(src["name"], sub, driver, f"{scene.source}: [[source]] {src['name']} [source.buffer]")
+                driver, labels, ts = driver_for(sub, None, speed, shared, scene.source_table(src["name"]))
+                source = _source(src["name"], sub, driver, scene.buffer_table(src["name"]))
                 sources[src["name"]] = (source, labels, ts)
         del shared                              # the drivers hold what they need
         fusion = None

@@ -320,7 +320,7 @@ def _cmd_record(args) -> int:
     source = _json.dumps({"scene": scene.source, "driver": scene.driver})
     recorder = SessionRecorder(args.out, name, source, label=args.label, overwrite=args.force)
     node = build_node(scene, recorder=recorder, progress=_progress(args))
-    if node.labels.ranges and (args.label or args.marks):
+    if node.streams[0].labels.ranges and (args.label or args.marks):
         raise CliError(f"{scene.source}: the {scene.driver['type']} driver labels its stream itself, and the "
                        "recording keeps those labels with their times; --label and --marks would contradict them "
                        "(leave them out)")

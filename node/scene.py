@@ -45,7 +45,6 @@ from pathlib import Path
 from typing import Any
 
 from supramodal.bankfile import BANK_KEYS
-from supramodal.banks import WHISKER_ROWS
 from supramodal.checks import (NAME_HELP, Key, fill, flag, integer, is_name, non_negative, number, one_of,
                                positive, text)
 from supramodal.drivers.spec import OptionError
@@ -64,6 +63,8 @@ class SceneError(InputError):
     """A scene file is unreadable or does not fit the schema; the message names the key."""
 
 
+#: Longest feature window a scene may ask for, seconds (the paper's is 0.1 s; a fit tries up to 1 s).
+MAX_WINDOW = 60.0
 #: Longest ring a scene may ask for, seconds of its source (node.build also bounds its bytes).
 MAX_BUFFER_SECONDS = 600.0
 
@@ -81,29 +82,28 @@ def _rows(v):
 # build.py does not pass it on); the others import their owner's constant. The drivers' keys are
 # their specs' (node.registry).
 SECTIONS = {
+    # A recipe's keys are the bank file's (supramodal.bankfile): one check for both.
     "bank": {
         "kind": Key(one_of("whisker", "cochlea"), '"whisker" or "cochlea"', "whisker"),
-        "rows": Key(_rows, f'whisker rows, e.g. "{"".join(WHISKER_ROWS)}" (default: every row)', None),
-        # None: the bank's own default (supramodal.banks.whisker_bank / cochlea_bank).
-        "mean_B": Key(positive(), "mean Slaney bandwidth, > 0 (default: the paper's bandwidths)", None),
-        "channels": Key(integer(1), "cochlea channels, an integer >= 1 (default: the cochlea bank's)", None),
-        "f_low": Key(positive(), "Hz (default: the cochlea bank's)", None),
-        "f_high": Key(positive(), "Hz, above f_low (default: the cochlea bank's)", None),
-        "fs": Key(positive(), "sample rate, Hz (default: the bank's)", None),
+        **{k: Key(v.check, v.expected + f" (default: the {kind} bank's)", None)
+           for kind in ("whisker", "cochlea") for k, v in BANK_KEYS[kind].items() if k != "fs"},
+        "fs": Key(BANK_KEYS["whisker"]["fs"].check, BANK_KEYS["whisker"]["fs"].expected + " (default: the bank's)",
+                  None),
         "file": Key(text, "a bank file (supramodal-bank JSON, e.g. from a fit), relative to the scene; "
                           "the [bank] table then holds nothing else", None),
     },
     "features": {
         "names": Key(_features, "a list of distinct names drawn from "
                      + "; ".join(f"{f.name} ({f.description})" for f in FEATURE_TABLE.values()), ["Af"]),
-        "window": Key(positive(), "seconds, > 0", DEFAULT_WINDOW),
+        "window": Key(positive(MAX_WINDOW), f"seconds, > 0 and at most {MAX_WINDOW:g}", DEFAULT_WINDOW),
         "peak_mode": Key(one_of(*PEAK_MODES), f"one of {list(PEAK_MODES)}", DEFAULT_PEAK_MODE),
         "peak_threshold": Key(non_negative(), "smallest peak amplitude counted, >= 0", 0.0),
         "dtype": Key(one_of("float64", "float32"), '"float64" or "float32"', "float64"),
         # Not the pipeline's default (whole windows): a live node runs each 10 ms as it comes, so
         # that only a window's last 10 ms is left to run when it closes (its decision latency).
-        "chunk": Key(non_negative(), "seconds of each window run as soon as they are in, at fixed stream "
-                                     "indices, >= 0 (0: each window whole when it closes)", 0.01),
+        "chunk": Key(non_negative(MAX_WINDOW), "seconds of each window run as soon as they are in, at fixed "
+                                               f"stream indices, 0 to {MAX_WINDOW:g} (0: each window whole when it "
+                                               "closes)", 0.01),
         # Not the pipeline's default ("raise"): a live node replaces and counts a bad sample
         # rather than stopping.
         "nonfinite": Key(one_of("raise", "zero"), '"raise" or "zero"', "zero"),
@@ -205,8 +205,13 @@ FUSION_KEYS = {
 
 
 @dataclass
-class Scene:
-    """A validated scene: plain dicts with every default filled in."""
+class StreamScene:
+    """What one stream runs, with every default filled in: its source's driver and buffer, and
+    its own bank, features, model and decision (what node.build reads to build it).
+
+    ``source`` names the stream in messages: the scene file for a one-source scene, else
+    ``"FILE: [[stream]] NAME"``; paths resolve against ``base_dir``, the scene file's folder.
+    """
 
     driver: dict[str, Any]
     bank: dict[str, Any]
@@ -214,20 +219,8 @@ class Scene:
     model: dict[str, Any]
     decision: dict[str, Any]
     buffer: dict[str, Any]
-    sinks: list[dict[str, Any]] = field(default_factory=list)
     source: str = "<scene>"
     base_dir: Path = field(default_factory=Path.cwd)
-    #: The graph form (several sources): the sources' driver tables (with ``name`` and their
-    #: ``buffer``), the streams, and the fusion block; empty for a one-source scene, whose
-    #: sections above are the scene. ``driver``, ``bank``, ... then hold the first stream's.
-    sources: list[dict[str, Any]] = field(default_factory=list)
-    streams: list["StreamSpec"] = field(default_factory=list)
-    fusion: dict[str, Any] | None = None
-
-    @property
-    def is_graph(self) -> bool:
-        """Whether the scene is written in the graph form ([[source]], [[stream]])."""
-        return bool(self.sources)
 
     def resolve(self, path: str) -> Path:
         """A path from the scene, relative to the scene file's folder."""
@@ -237,12 +230,68 @@ class Scene:
 
 @dataclass
 class StreamSpec:
-    """One ``[[stream]]`` of a graph scene: its name, its source's name, and the one-source scene
-    it amounts to (its source's driver and buffer; its own bank, features, model and decision)."""
+    """One stream of a scene: its name, its source's name, and what it runs (:class:`StreamScene`)."""
 
     name: str
     source: str
-    scene: Scene
+    scene: StreamScene
+
+
+#: How a scene was written: ``[driver]``, ``[bank]``, ... (one source read by one stream, both named
+#: ``"main"``), or ``[[source]]`` and ``[[stream]]``. It is read the same way; only
+#: :func:`scene_to_toml` writes it back in its own form.
+FORMS = ("one-source", "graph")
+
+
+@dataclass
+class Scene:
+    """A validated scene, every default filled in: sources, streams, an optional fusion, sinks.
+
+    A one-source scene (``[driver]``, ``[bank]``, ...) is loaded as one ``[[source]]`` and one
+    ``[[stream]]``, both named ``"main"``; its sections are also read as ``scene.driver``,
+    ``scene.bank``, ... (the only stream's). A scene of several sources has no single driver:
+    those attributes refuse, naming ``scene.streams``.
+    """
+
+    sources: list[dict[str, Any]]
+    streams: list[StreamSpec]
+    sinks: list[dict[str, Any]] = field(default_factory=list)
+    fusion: dict[str, Any] | None = None
+    source: str = "<scene>"
+    base_dir: Path = field(default_factory=Path.cwd)
+    form: str = "graph"
+
+    @property
+    def is_graph(self) -> bool:
+        """Whether the scene is written in the graph form ([[source]], [[stream]])."""
+        return self.form == "graph"
+
+    def only_stream(self) -> StreamScene:
+        """What the only stream of a one-source scene runs."""
+        if self.is_graph:
+            raise SceneError(f"{self.source}: a scene in the graph form has no single [driver], [bank], ...: read "
+                             "each stream's (scene.streams)")
+        return self.streams[0].scene
+
+    driver = property(lambda self: self.only_stream().driver, doc="The one-source scene's [driver].")
+    bank = property(lambda self: self.only_stream().bank, doc="The one-source scene's [bank].")
+    features = property(lambda self: self.only_stream().features, doc="The one-source scene's [features].")
+    model = property(lambda self: self.only_stream().model, doc="The one-source scene's [model].")
+    decision = property(lambda self: self.only_stream().decision, doc="The one-source scene's [decision].")
+    buffer = property(lambda self: self.only_stream().buffer, doc="The one-source scene's [buffer].")
+
+    def resolve(self, path: str) -> Path:
+        """A path from the scene, relative to the scene file's folder."""
+        p = Path(path).expanduser()
+        return p if p.is_absolute() else self.base_dir / p
+
+    def source_table(self, name: str) -> str:
+        """How the scene file names source ``name`` in messages."""
+        return f"{self.source}: [driver]" if not self.is_graph else f"{self.source}: [[source]] {name}"
+
+    def buffer_table(self, name: str) -> str:
+        """How the scene file names source ``name``'s ring in messages."""
+        return f"{self.source}: [buffer]" if not self.is_graph else f"{self.source}: [[source]] {name} [source.buffer]"
 
 
 def _fill(where: str, given, schema: dict) -> dict:
@@ -267,8 +316,12 @@ def scene_from_dict(d: dict, source: str = "<scene>", base_dir: Path | None = No
     sections = {name: _fill(f"{source}: [{name}]", d.get(name, {}), schema) for name, schema in SECTIONS.items()}
     _check_sections(source, sections, d.get("bank", {}), "")
     sinks = _sinks(d, source, (MAIN_STREAM,), base_dir=base_dir or Path.cwd())
-    return Scene(drv, sections["bank"], sections["features"], sections["model"], sections["decision"],
-                 sections["buffer"], sinks, source, base_dir or Path.cwd())
+    # Desugared: one source and one stream, both "main".
+    base = base_dir or Path.cwd()
+    stream = StreamScene(drv, sections["bank"], sections["features"], sections["model"], sections["decision"],
+                         sections["buffer"], source, base)
+    return Scene([{"name": MAIN_STREAM, **drv, "buffer": sections["buffer"]}], [StreamSpec(MAIN_STREAM, MAIN_STREAM, stream)],
+                 sinks, None, source, base, form="one-source")
 
 
 def driver_table(where: str, table, extra: dict | None = None) -> dict:
@@ -401,9 +454,9 @@ def _graph_scene(d: dict, source: str, base_dir: Path) -> Scene:
                     for name in STREAM_SECTIONS}
         _check_sections(source, sections, t.get("bank", {}), f"[[stream]] {head['name']} ")
         drv = next(s for s in sources if s["name"] == head["source"])
-        sub = Scene({k: v for k, v in drv.items() if k not in ("name", "buffer")}, sections["bank"],
-                    sections["features"], sections["model"], sections["decision"], drv["buffer"], [],
-                    f"{source}: [[stream]] {head['name']}", base_dir)
+        sub = StreamScene({k: v for k, v in drv.items() if k not in ("name", "buffer")}, sections["bank"],
+                          sections["features"], sections["model"], sections["decision"], drv["buffer"],
+                          f"{source}: [[stream]] {head['name']}", base_dir)
         streams.append(StreamSpec(head["name"], head["source"], sub))
     stream_names = [s.name for s in streams]
     if len(set(stream_names)) != len(stream_names):
@@ -444,19 +497,16 @@ def _graph_scene(d: dict, source: str, base_dir: Path) -> Scene:
     if unused:
         raise SceneError(f"{source}: [[source]] {unused[0]!r} feeds no [[stream]]: add a stream that reads it, "
                          "send its samples on ([[sink]] type = \"lsl-signal\"), or remove it")
-    # A relay's sections are its first source's, with the defaults.
-    first = streams[0].scene if streams else source_scene(sources[0], source, base_dir)
-    return Scene(first.driver, first.bank, first.features, first.model, first.decision, first.buffer, sinks,
-                 source, base_dir, sources=sources, streams=streams, fusion=fusion)
+    return Scene(sources, streams, sinks, fusion, source, base_dir, form="graph")
 
 
-def source_scene(src: dict, source: str, base_dir: Path) -> Scene:
-    """The one-source scene of a ``[[source]]`` table (of the scene file ``source``) that no
-    stream reads, as such a source is built: its driver and buffer, the other sections' defaults."""
+def source_scene(src: dict, source: str, base_dir: Path) -> StreamScene:
+    """What a ``[[source]]`` table (of the scene file ``source``) that no stream reads is built as:
+    its driver and buffer, the other sections' defaults."""
     where = f"{source}: [[source]] {src['name']}"
-    return Scene({k: v for k, v in src.items() if k not in ("name", "buffer")},
-                 *(_fill(f"{where} [{n}]", {}, SECTIONS[n]) for n in STREAM_SECTIONS), src["buffer"], [],
-                 where, base_dir)
+    return StreamScene({k: v for k, v in src.items() if k not in ("name", "buffer")},
+                       *(_fill(f"{where} [{n}]", {}, SECTIONS[n]) for n in STREAM_SECTIONS), src["buffer"],
+                       where, base_dir)
 
 
 def _table_list(d: dict, key: str, source: str) -> list:
@@ -525,13 +575,16 @@ def scene_to_toml(scene: Scene) -> str:
             for name in STREAM_SECTIONS:
                 lines += table(f"[stream.{name}]", getattr(spec.scene, name))
         if scene.fusion is not None:
-            learned = {"decision"} | ({"sharpness", "correlation"} if scene.fusion["weight"] == LEARN else set())
+            # Keys a scene may not give: those "learn" learns, and late fusion's with early fusion.
+            learned = {"decision"} | ({"sharpness", "correlation"} if scene.fusion["weight"] == LEARN else set()) \
+                | ({"weight", "sharpness", "correlation"} if scene.fusion["method"] == "early" else set())
             lines += table("[fusion]", {k: v for k, v in scene.fusion.items() if k not in learned})
             lines += table("[fusion.decision]", scene.fusion["decision"])
-    else:
-        lines += table("[driver]", scene.driver)
+    else:                                   # in its own form: [driver], [bank], ...
+        only = scene.only_stream()
+        lines += table("[driver]", only.driver)
         for name in SECTIONS:
-            lines += table(f"[{name}]", getattr(scene, name))
+            lines += table(f"[{name}]", getattr(only, name))
     for sink in scene.sinks:
         lines += table("[[sink]]", sink)
     return "\n".join(lines)

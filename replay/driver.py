@@ -275,7 +275,7 @@ class ReplayDriver:
         self.notices: list[str] = []
         self._on_notice = on_notice
         self._log = EventLog()
-        data, src_rate, labels, filled, marks, self.name, arrivals = self._load(source)
+        data, src_rate, labels, filled, marks, self.name, arrivals = self._load(source, timing == "recorded")
         if data.shape[0] == 0:
             raise ReplayError(f"{self.name}: the source has no frames; nothing to replay")
         data = self._select(data, channels)
@@ -384,8 +384,11 @@ class ReplayDriver:
         if self._on_notice is not None:
             self._on_notice(message)
 
-    def _load(self, source):
-        """-> (data (n, ch) float64, rate, labels, filled mask or None, marks, name, arrivals or None)."""
+    def _load(self, source, need_session: bool = False):
+        """-> (data (n, ch) float64, rate, labels, filled mask or None, marks, name, arrivals or None).
+
+        ``need_session``: a path is read as a session even without its sidecar (timing "recorded"
+        needs the sidecar's arrivals: its absence is then said as such)."""
         if isinstance(source, Session):
             # A Session may be built by hand: check its samples like any array.
             data, rate, _, _, _, _, _ = self._load((source.data, source.rate))
@@ -394,7 +397,8 @@ class ReplayDriver:
         if isinstance(source, (str, os.PathLike)):
             path = Path(source)
             wav, js = session_paths(path)
-            as_session = path.suffix.lower() == ".json" or (path.suffix.lower() == ".wav" and js.exists())
+            as_session = need_session or path.suffix.lower() == ".json" or (path.suffix.lower() == ".wav"
+                                                                            and js.exists())
             try:
                 if as_session:
                     s = load_session(path)

@@ -54,11 +54,14 @@ def _rows(v):
     return isinstance(v, str) and v != "" and set(v) <= set("ABCDE") and len(set(v)) == len(v)
 
 
+#: Widest mean Slaney bandwidth of a whisker bank (its filters would ring for less than a sample).
+MAX_MEAN_B = 10000.0
 _FS = f"sample rate, Hz, > 0 and at most {MAX_RATE:g} (MAX_RATE)"
 #: Per kind, the keys a description may hold (supramodal.checks: a default of None is the bank's own).
 BANK_KEYS = {
     "whisker": {"rows": Key(_rows, 'whisker rows, e.g. "ABCDE"', None),
-                "mean_B": Key(positive(), "mean Slaney bandwidth 2 pi b, > 0", None),
+                "mean_B": Key(positive(MAX_MEAN_B), f"mean Slaney bandwidth 2 pi b, > 0 and at most {MAX_MEAN_B:g} "
+                                                    "(Fig. 5 sweeps 10 to 500)", None),
                 "fs": Key(positive(MAX_RATE), _FS, None)},
     "cochlea": {"channels": Key(integer(1, MAX_CHANNELS), f"an integer 1..{MAX_CHANNELS} (MAX_CHANNELS)", None),
                 "f_low": Key(positive(), "lowest centre frequency, Hz, > 0", None),

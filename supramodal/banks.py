@@ -22,6 +22,7 @@ from typing import Sequence
 
 import numpy as np
 
+from supramodal.checks import is_number
 from supramodal.errors import InputError
 
 #: Glasberg & Moore (1990) constants used by the cochlea.
@@ -218,6 +219,12 @@ def cochlea_bank(n: int = 50, f_low: float = 20.0, f_high: float = 20000.0,
     """
     if not (isinstance(n, (int, np.integer)) and 1 <= n <= MAX_CHANNELS):
         raise InputError(f"a cochlea has 1..{MAX_CHANNELS} channels (MAX_CHANNELS); got {n!r}")
+    for key, v in (("f_low", f_low), ("f_high", f_high), ("fs", fs)):
+        if not (is_number(v) and v > 0):
+            raise InputError(f"{key} must be a positive number of Hz, got {v!r}")
+    if not f_low < f_high <= fs / 2:
+        raise InputError(f"f_high = {f_high:g} Hz lies outside (f_low, fs/2] = ({f_low:g}, {fs / 2:g}] Hz: the band "
+                         "must rise and end at or below the Nyquist frequency; lower f_high (or f_low), or raise fs")
     cf = np.sort(erb_space(f_low, f_high, n))
     b = ERB_TO_B * erb(cf, COCHLEA_Q_EAR, COCHLEA_B_MIN)
     names = tuple(f"ch{k:02d}" for k in range(n))

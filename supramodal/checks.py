@@ -16,6 +16,7 @@ Pure Python; drivers, replay, the model's file readers and the node all use it.
 from __future__ import annotations
 
 import math
+import numbers
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -114,8 +115,13 @@ def fill(where: str, given: Any, keys: Schema, error: type[InputError] = InputEr
 # -- the words ---------------------------------------------------------------------------------------
 
 def is_number(v) -> bool:
-    """A finite int or float, not a bool."""
-    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+    """A finite real number (Python's or NumPy's), not a bool; an int too large for a float is not."""
+    if not isinstance(v, numbers.Real) or isinstance(v, bool) or type(v).__name__ == "bool_":
+        return False
+    try:
+        return math.isfinite(v)
+    except OverflowError:                   # an int beyond float's range: no sample rate or time is that
+        return False
 
 
 def number(lo: float = -math.inf, hi: float = math.inf, *, lo_open: bool = False,

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from supramodal.checks import is_number
 from supramodal.errors import InputError, StreamEndedError
 
 PEAK_MODES = ("maxima", "extrema")
@@ -89,7 +90,7 @@ class PeakExtractor:
     def __init__(self, channels: int, mode: str = DEFAULT_PEAK_MODE, threshold: float = 0.0) -> None:
         if mode not in PEAK_MODES:
             raise InputError(f"peak mode must be one of {PEAK_MODES}, got {mode!r}")
-        if not (np.isfinite(threshold) and threshold >= 0):
+        if not (is_number(threshold) and threshold >= 0):
             raise InputError(f"peak threshold must be a finite amplitude >= 0, got {threshold!r}")
         self.threshold = float(threshold)
         if channels < 1:

@@ -11,6 +11,7 @@ import numpy as np
 
 from supramodal.backends import make_filterbank
 from supramodal.banks import Bank
+from supramodal.checks import is_number
 from supramodal.errors import InputError, StreamEndedError
 from supramodal.features import DEFAULT_WINDOW, FEATURES, FeatureWindows, Windows, check_features, concat_windows
 from supramodal.peaks import DEFAULT_PEAK_MODE, PeakExtractor
@@ -25,7 +26,7 @@ MAX_WINDOW_SAMPLES = 2**20
 def window_length(window: float, fs: float) -> int:
     """Window length in samples for ``window`` seconds at ``fs`` Hz (rounded to the nearest sample),
     2 .. :data:`MAX_WINDOW_SAMPLES`."""
-    if not (np.isfinite(window) and window > 0):
+    if not (is_number(window) and window > 0):
         raise InputError(f"window must be a positive number of seconds, got {window!r}")
     n = int(round(window * fs))
     if n < 2:
@@ -128,7 +129,7 @@ class FeaturePipeline:
         """``chunk`` seconds in whole samples; 0 when windows run whole."""
         if chunk is None or chunk == 0:
             return 0
-        if not (isinstance(chunk, (int, float)) and np.isfinite(chunk) and chunk > 0):
+        if not (is_number(chunk) and chunk > 0):
             raise InputError(f"chunk must be a positive number of seconds (or 0: whole windows), got {chunk!r}")
         n = int(round(chunk * self.bank.fs))
         if n < 1:

@@ -165,8 +165,6 @@ def test_a_missing_sidecar_is_named_with_how_to_get_it_back(tmp_path):
     assert "copy it back from where the recording was made" in message and "'arrivals'" in message
 
 
-@pytest.mark.xfail(strict=True, reason="needs replay/driver.py to load a session for timing = 'recorded' "
-                                       "(see the report of issue 25 items 4/12/13/15)")
 def test_a_recorded_replay_whose_sidecar_is_gone_says_so(tmp_path, capsys):
     """Issue 25 item 13 through the command line: `rm rec.board.json` must not be answered with
     "use timing = 'nominal'" (that runs unsynchronised and unlabelled) but with the missing file."""

@@ -178,3 +178,45 @@ def test_the_wheel_installs_one_top_level_package_and_every_package_of_the_check
             sub = init.parent.relative_to(ROOT / folder).parts
             found.add(".".join((package,) + sub))
     assert found == listed, (sorted(found - listed), sorted(listed - found))
+
+
+#: The model's modules that every layer may use (docs/architecture.md: ``supramodal_shared``).
+SHARED = ("supramodal.errors", "supramodal.jsondata", "supramodal.checks")
+#: Layers from the top down: an arrow may only point down.
+RANKS = ("cli", "benchmarks", "node", "replay", "drivers", "supramodal", "supramodal_shared")
+#: The command line: a thin layer over all the others (it runs the benchmarks and experiments too).
+CLI = ("supramodal.node.cli",)
+
+
+def drawn_arrows() -> set[tuple[str, str]]:
+    """The arrows of docs/architecture.md's picture (its mermaid graph)."""
+    import re
+
+    text = (ROOT / "docs/architecture.md").read_text()
+    block = re.search(r"```mermaid\n(.*?)```", text, re.S).group(1)
+    return set(re.findall(r"^\s*(\w+) --> (\w+)\s*$", block, re.M))
+
+
+def box(module: str) -> str:
+    """The box of docs/architecture.md's picture a module of this checkout sits in."""
+    if any(module == m or module.startswith(m + ".") for m in SHARED):
+        return "supramodal_shared"
+    if any(module == m or module.startswith(m + ".") for m in CLI):
+        return "cli"
+    return layer(module)
+
+
+def test_the_architecture_picture_is_the_imports():
+    """docs/architecture.md draws every arrow the code has between layers, and no arrow points up."""
+    drawn = drawn_arrows()
+    assert drawn and all(RANKS.index(a) < RANKS.index(b) for a, b in drawn), drawn
+    found = set()
+    for package in ("benchmarks", "node", "replay", "drivers", "supramodal"):
+        for m in modules_of(package):
+            for _, _, what in source_imports(m):
+                a, b = box(m), box(what)
+                if a != b and b in RANKS:
+                    found.add((a, b))
+    # "supramodal" holds "supramodal_shared": an arrow to the model covers its shared modules.
+    covered = drawn | {(a, "supramodal_shared") for a, b in drawn if b == "supramodal"}
+    assert found <= covered, sorted(found - covered)

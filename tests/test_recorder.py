@@ -130,7 +130,8 @@ def test_node_output_does_not_depend_on_ring_read_timing(seed, chunk):
     sink = ListSink()
     node = build_node(scene, speed="max", sinks_override=[sink])
     if seed is not None:
-        node.driver.read = Jittery(node.driver.read, seed).read
+        driver = node.sources[0].driver
+        driver.read = Jittery(driver.read, seed).read
         feed = node.streams[0].feed
         feed.reader = JitteryReader(feed.reader, seed + 100)
     node.run()
