@@ -1,4 +1,4 @@
-"""The contract every driver follows, and the package's exceptions.
+"""The contract every driver follows, a base that gives its common part, and the package's exceptions.
 
 Threading and real-time rules
 -----------------------------
@@ -13,13 +13,18 @@ Threading and real-time rules
 * A driver whose filled frames all stand for samples the host received and lost
   itself (a buffer overflow, not a loss on the line or at the source) says so
   with a true ``fills_are_drops`` attribute; the node then reports them as
-  *dropped*, not *filled* (docs/node.md, "Every frame has one fate"). Absent
-  means False.
+  *dropped*, not *filled* (docs/node.md, "Every frame has one fate").
+  :class:`DriverBase` says False.
 * Drivers are context managers: ``with driver: ...`` opens and closes the device.
 * A driver says what its hardware is doing as :class:`DriverEvent` objects kept in
   an :class:`EventLog`: ``take_events()`` returns and clears the new ones, from
   any thread, without waiting on anything but a short lock. The driver starts no
   thread for them; whoever runs it (the node's driver thread) polls.
+
+A driver derives from :class:`DriverBase`, which owns the event log, ``take_events``,
+notices, the context manager and the labels of a driver that has none; the node calls
+every member of :class:`Driver` without probing for it, and a source refuses at
+construction a driver that lacks one (:func:`missing_members`).
 """
 
 from __future__ import annotations
@@ -28,7 +33,7 @@ import threading
 import time
 from collections import Counter, deque
 from dataclasses import dataclass, field
-from typing import Protocol, runtime_checkable
+from typing import Callable, ClassVar, Protocol, Self, Sequence, runtime_checkable
 
 import numpy as np
 
@@ -206,7 +211,8 @@ class EventLog:
 
 @runtime_checkable
 class Driver(Protocol):
-    """What the node needs of a source of blocks.
+    """What the node needs of a source of blocks (:class:`DriverBase` gives all but
+    ``rate``, ``channels``, ``read`` and ``stats``).
 
     Attributes
     ----------
@@ -214,13 +220,26 @@ class Driver(Protocol):
         Frames per second, Hz.
     channels : int
         Channels per frame.
-    fills_are_drops : bool, optional
+    fills_are_drops : bool
         True if every filled frame stands for a sample the host lost (see the
-        module documentation); absent means False.
+        module documentation); False for a driver that fills only what never
+        reached the host.
+    labels : sequence of Label
+        Truth labels the driver carries, each with ``start``, ``end`` (stream
+        seconds) and ``label``; empty for a live driver.
+    passes : int or None
+        Passes of its source the stream plays (a looped replay: more than 1, or
+        None for ever); 1 for a live driver.
+    period : float or None
+        Seconds per pass, which the labels repeat with when ``passes != 1``.
     """
 
     rate: float
     channels: int
+    fills_are_drops: bool
+    labels: Sequence
+    passes: int | None
+    period: float | None
 
     def open(self) -> None: ...
 
@@ -237,11 +256,129 @@ class Driver(Protocol):
         """Counters since ``open()``: at least ``frames`` and ``filled``."""
         ...
 
-    # Optional (the node polls it when present; every driver here has it):
-    # def take_events(self) -> tuple[list[DriverEvent], dict[str, int]]:
-    #     """New events since the last call, and per-kind counts of those dropped
-    #     (bounded log); thread-safe, never blocks."""
+    def take_events(self) -> tuple[list[DriverEvent], dict[str, int]]:
+        """New events since the last call, and per-kind counts of those dropped
+        (bounded log); any thread, never blocks but on a short lock."""
+        ...
 
     def __enter__(self) -> "Driver": ...
 
     def __exit__(self, *exc) -> None: ...
+
+
+#: The members of :class:`Driver` the node calls or reads, as :func:`missing_members` checks them.
+DRIVER_MEMBERS = ("rate", "channels", "open", "close", "read", "stats", "take_events", "fills_are_drops",
+                  "labels", "passes", "period", "__enter__", "__exit__")
+
+
+def missing_members(driver: object) -> tuple[str, ...]:
+    """The members of :class:`Driver` that ``driver`` lacks, in :data:`DRIVER_MEMBERS`'s order
+    (empty for a complete driver): checked once, where a driver enters the node, so that the
+    node then calls every member without probing for it."""
+    return tuple(name for name in DRIVER_MEMBERS if not hasattr(driver, name))
+
+
+#: Guards the lazy creation of a driver's event log (see :attr:`DriverBase.event_log`).
+_LOG_CREATION = threading.Lock()
+
+
+class DriverBase:
+    """The part of a driver every driver shares: its event log, ``take_events``, notices, the
+    context manager, and the labels of a driver that has none.
+
+    A subclass sets ``rate`` and ``channels`` and gives ``read`` and ``stats`` (see
+    :class:`Driver`); it overrides ``open`` and ``close`` when it has a device to open, and
+    ``fills_are_drops``, ``labels``, ``passes`` and ``period`` when it has something else to
+    say. It need not call ``DriverBase.__init__``: the event log is made on first use.
+
+    Attributes
+    ----------
+    fills_are_drops : bool, default False
+        Class attribute: True for a driver whose every filled frame stands for a sample the
+        host received and lost (module documentation).
+    labels : tuple, default ()
+        Truth labels the driver carries (a replayed session's); none.
+    passes : int or None, default 1
+        Passes of its source the stream plays; one.
+    period : float or None, default None
+        Seconds per pass, which looped labels repeat with; none.
+    EVENT_CAPACITY, EVENT_HISTORY : int
+        Class attributes: the event log's ``capacity`` and ``history`` (see :class:`EventLog`).
+
+    Notes
+    -----
+    Threads: :meth:`take_events`, :meth:`_record`, :attr:`event_log` and :attr:`events` may be
+    called from any thread, an audio callback included: each holds a short lock and never waits
+    otherwise. :meth:`_notice` calls ``on_notice`` on the caller's thread (the reading thread:
+    it must not block). ``open``, ``close``, ``__enter__`` and ``__exit__`` follow the driver's
+    own rules (by default: the thread that reads).
+    """
+
+    fills_are_drops: bool = False
+    labels: Sequence = ()
+    passes: int | None = 1
+    period: float | None = None
+    EVENT_CAPACITY: ClassVar[int] = 1024
+    EVENT_HISTORY: ClassVar[int] = 200
+    #: Called with the text of each notice (:meth:`_notice`) on the thread that makes it;
+    #: None: kept as an event only (the node's choice: it shows events through its sinks).
+    _on_notice: Callable[[str], None] | None = None
+
+    def __init__(self) -> None:
+        if "_event_log" not in self.__dict__:          # events logged before it are kept
+            self._event_log = EventLog(self.EVENT_CAPACITY, self.EVENT_HISTORY)
+
+    @property
+    def event_log(self) -> EventLog:
+        """The driver's :class:`EventLog` (made on first use by a subclass that did not call
+        ``DriverBase.__init__``); any thread."""
+        try:
+            return self.__dict__["_event_log"]
+        except KeyError:
+            with _LOG_CREATION:
+                if "_event_log" not in self.__dict__:
+                    self._event_log = EventLog(self.EVENT_CAPACITY, self.EVENT_HISTORY)
+                return self._event_log
+
+    def take_events(self) -> tuple[list[DriverEvent], dict[str, int]]:
+        """New events since the last call, and the per-kind counts of those the bounded log
+        dropped because nobody took them; ``([], {})`` when there is nothing new.
+
+        Any thread; holds the log's lock for a few microseconds and never waits otherwise.
+        """
+        return self.event_log.take()
+
+    def _record(self, kind: str, message: str, stream_index: int | None = None, count: int = 1) -> DriverEvent:
+        """Log an event (timestamped now) and return it; any thread, never blocks but on a short lock."""
+        return self.event_log.record(kind, message, stream_index, count)
+
+    def _notice(self, message: str, kind: str = "notice", stream_index: int | None = None) -> None:
+        """Log ``message`` as an event of ``kind`` and hand it to ``on_notice``, if one is set,
+        on this thread (a driver used on its own prints its notices; the node sets none)."""
+        self._record(kind, message, stream_index)
+        if self._on_notice is not None:
+            self._on_notice(message)
+
+    @property
+    def events(self) -> list[str]:
+        """The last ``EVENT_HISTORY`` events as timestamped lines, oldest first (a copy); any
+        thread. :meth:`take_events` is not affected."""
+        return [_stamp(ev.time) + " " + ev.message for ev in self.event_log.history()]
+
+    def open(self) -> None:
+        """Open the device; nothing to do here."""
+
+    def close(self) -> None:
+        """Close the device; nothing to do here."""
+
+    def __enter__(self) -> Self:
+        self.open()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def _stamp(t: float) -> str:
+    """``time.time()`` as local ``YYYY-MM-DDTHH:MM:SS.mmm``."""
+    return time.strftime("%Y-%m-%dT%H:%M:%S", time.localtime(t)) + f".{int(t % 1 * 1000):03d}"

@@ -47,7 +47,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from supramodal.drivers.base import Block, DeviceUnavailable, DriverClosed, DriverError, EventLog, DriverEvent
+from supramodal.drivers.base import Block, DeviceUnavailable, DriverBase, DriverClosed, DriverError
 from supramodal.drivers.spec import Built, BuildContext, DriverSpec, OptionError, given
 from supramodal.checks import Key, integer, positive, text
 from supramodal.errors import InputError
@@ -191,7 +191,7 @@ class TimestampSteps:
         return Step("slip" if abs(missing) > self.tolerance / 2 else "ok", missing)
 
 
-class LSLInletDriver:
+class LSLInletDriver(DriverBase):
     """Samples of one LSL stream, as blocks (see the module notes on threads, time and gaps).
 
     Parameters
@@ -253,7 +253,7 @@ class LSLInletDriver:
         self.stall_timeout, self.buffer_seconds = float(stall_timeout), float(buffer_seconds)
         self._max_chunk = max(1, int(self.rate * 0.1))        # at most 100 ms per block
         self._inlet = None
-        self._log = EventLog()
+        super().__init__()
         self._reset_counters()
 
     # -- life cycle ---------------------------------------------------------------------------
@@ -270,7 +270,7 @@ class LSLInletDriver:
         """Connect to the stream (waits up to ``resolve_timeout`` for it)."""
         pylsl = self._pylsl
         self._reset_counters()
-        self._log.clear()
+        self.event_log.clear()
         try:
             self._inlet = pylsl.StreamInlet(self._stream, max_buflen=max(1, math.ceil(self.buffer_seconds)),
                                             recover=True, processing_flags=pylsl.proc_clocksync)
@@ -289,13 +289,6 @@ class LSLInletDriver:
                 inlet.close_stream()
             except Exception:  # closing: nothing left to tell
                 pass
-
-    def __enter__(self) -> "LSLInletDriver":
-        self.open()
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
 
     # -- reading (the source thread) ----------------------------------------------------------
 
@@ -318,7 +311,7 @@ class LSLInletDriver:
                 self._stalled = True
                 self._stalls += 1
                 self._next_probe = now
-                self._log.record("unplug", f"LSL: no sample from {self.info} for {self.stall_timeout:g} s; waiting "
+                self._record("unplug", f"LSL: no sample from {self.info} for {self.stall_timeout:g} s; waiting "
                                  "for it to come back", self._frames)
             if self._stalled and now >= self._next_probe:
                 self._next_probe = now + PROBE_INTERVAL
@@ -330,7 +323,7 @@ class LSLInletDriver:
         host = np.asarray(stamps, dtype=np.float64) + self._offset
         if self._stalled:
             self._stalled = False
-            self._log.record("reconnect", f"LSL: samples from {self.info} again after {now - self._last_data:.2f} s",
+            self._record("reconnect", f"LSL: samples from {self.info} again after {now - self._last_data:.2f} s",
                              self._frames)
         self._last_data = now
         block = self._block(data, host, now)
@@ -377,7 +370,7 @@ class LSLInletDriver:
             fill = step.samples
             self._gaps += 1
             self._filled += fill
-            self._log.record("gap", f"LSL: {fill} samples ({step.seconds * 1e3:.1f} ms) missing from {self.info}; "
+            self._record("gap", f"LSL: {fill} samples ({step.seconds * 1e3:.1f} ms) missing from {self.info}; "
                              "filled with zeros", start)
         elif step.kind in ("long", "back"):
             restarts = (0,)
@@ -385,7 +378,7 @@ class LSLInletDriver:
             what = (f"{step.seconds:.2f} s without samples, more than max_gap ({self.max_gap:g} s): not filled"
                     if step.kind == "long" else f"timestamps stepped back {-step.seconds * 1e3:.1f} ms (the sender "
                     "restarted?)")
-            self._log.record("restart", f"LSL: {self.info}: {what}; stream time jumps here", start)
+            self._record("restart", f"LSL: {self.info}: {what}; stream time jumps here", start)
         elif step.kind == "slip":
             self._timing_slips += 1
         n = data.shape[0]
@@ -406,10 +399,6 @@ class LSLInletDriver:
         return {"frames": self._frames, "filled": self._filled, "chunks": self._chunks, "gaps": self._gaps,
                 "restarts": self._restarts, "stalls": self._stalls, "reopened": self._reopened,
                 "timing_slips": self._timing_slips}
-
-    def take_events(self) -> tuple[list[DriverEvent], dict[str, int]]:
-        """New events since the last call, and per-kind counts dropped; any thread, never blocks."""
-        return self._log.take()
 
     def __repr__(self) -> str:
         return f"LSLInletDriver({self.info})"

@@ -51,7 +51,7 @@ import numpy as np
 
 from supramodal.errors import InputError
 
-from supramodal.drivers.base import Block, DeviceUnavailable, DriverClosed, DriverError, DriverEvent, EventLog
+from supramodal.drivers.base import Block, DeviceUnavailable, DriverBase, DriverClosed, DriverError, EventLog
 from supramodal.drivers.spec import Built, BuildContext, DriverSpec, given
 from supramodal.checks import Key, integer, one_of, positive
 
@@ -462,7 +462,7 @@ class CaptureBuffer:
         }
 
 
-class MicrophoneDriver:
+class MicrophoneDriver(DriverBase):
     """A microphone (any PortAudio input device) as a :class:`~drivers.base.Driver`.
 
     Parameters
@@ -505,6 +505,9 @@ class MicrophoneDriver:
     -----
     Threading: see the module docstring. PortAudio's thread runs
     :meth:`CaptureBuffer.callback`; one reader thread calls :meth:`read`.
+
+    Events (:meth:`~drivers.base.DriverBase.take_events`): the kinds of :class:`CaptureBuffer`,
+    and ``error`` when PortAudio stopped the stream.
 
     Blocks carry ``start`` (index of their first frame since :meth:`open`,
     filled frames included) and ``arrival`` (``time.monotonic()`` in the callback
@@ -556,7 +559,7 @@ class MicrophoneDriver:
         # Serialises close() against read()'s liveness check, which must not ask
         # PortAudio about a stream close() is freeing. The callback never takes it.
         self._stream_lock = threading.Lock()
-        self._log = EventLog()
+        super().__init__()
 
     def __repr__(self) -> str:
         return (
@@ -607,7 +610,7 @@ class MicrophoneDriver:
                 self.channels,
                 self._capacity,
                 gap_block=self.blocksize or 1024,
-                events=self._log,
+                events=self.event_log,
             )
             stream = sd.InputStream(
                 device=info["index"],
@@ -692,18 +695,12 @@ class MicrophoneDriver:
             with portaudio_errors(f"microphone stream {self!r} failed", self.device_info):
                 active = stream.active
         if not active:
-            self._log.record("error", f"microphone: PortAudio stopped the stream {self!r} "
-                             "(device unplugged or failed)")
+            self._record("error", f"microphone: PortAudio stopped the stream {self!r} "
+                         "(device unplugged or failed)")
             raise DeviceUnavailable(
                 f"PortAudio stopped the microphone stream {self!r} (device unplugged or "
                 "failed); close() the driver and open it again"
             )
-
-    def take_events(self) -> tuple[list[DriverEvent], dict[str, int]]:
-        """Events since the last call (kinds: see :class:`CaptureBuffer`; also ``error``
-        when PortAudio stopped the stream), and per-kind counts of any dropped (bounded
-        log). Any thread; never blocks."""
-        return self._log.take()
 
     def stats(self) -> dict[str, int]:
         """Counters since :meth:`open` (all zero before); see :meth:`CaptureBuffer.stats`."""
@@ -714,13 +711,6 @@ class MicrophoneDriver:
                 0,
             )
         return self._buffer.stats()
-
-    def __enter__(self) -> "MicrophoneDriver":
-        self.open()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
 
 # -- as a scene names it ---------------------------------------------------------------------------

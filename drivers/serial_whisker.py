@@ -60,7 +60,7 @@ from typing import Callable
 import numpy as np
 import serial
 
-from supramodal.drivers.base import Block, DeviceUnavailable, DriverClosed, DriverEvent, EventLog
+from supramodal.drivers.base import Block, DeviceUnavailable, DriverBase, DriverClosed
 from supramodal.drivers.spec import Built, BuildContext, DriverSpec, OptionError, given
 from supramodal.checks import Key, integer, positive, text
 from supramodal.drivers.frames import (
@@ -90,7 +90,7 @@ def _print_stderr(message: str) -> None:
     print(message, file=sys.stderr, flush=True)
 
 
-class SerialWhiskerDriver:
+class SerialWhiskerDriver(DriverBase):
     """Blocks of whisker samples from a serial port (or pyserial URL).
 
     Parameters
@@ -183,6 +183,7 @@ class SerialWhiskerDriver:
     BUFFER_SLACK = 0.25  #: s, tolerance of the gap check (delivery delay, clock drift)
     POLL = 0.05  #: s, longest single wait on the port; read() rechecks its deadline after each
     MAX_EVENTS = 200
+    EVENT_HISTORY = MAX_EVENTS  #: events kept for :attr:`events`
 
     def __init__(self, port: str, rate: float, channels: int, baudrate: int = DEFAULT_BAUDRATE,
                  timeout: float = 0.5, reconnect: bool = True, max_gap: float = 10.0,
@@ -207,7 +208,7 @@ class SerialWhiskerDriver:
         self.first_sequence: int | None = None
         self._ser = None
         self._open = False
-        self._log = EventLog(history=self.MAX_EVENTS)
+        super().__init__()
         self._reset_state()
 
     # -- lifecycle -----------------------------------------------------------
@@ -246,10 +247,10 @@ class SerialWhiskerDriver:
         self._ser = self._open_port()
         self._open = True
         self._frame_seen(time.monotonic())
-        self._event("open", f"opened {self.port}")
+        self._record("open", f"opened {self.port}")
         need = self.rate * 2 * self.channels * 10  # bits/s with 8N1, payload only
         if "://" not in self.port and self.baudrate < need * 1.01:
-            self._event("baudrate", f"baudrate {self.baudrate} is below the ~{need:.0f} bit/s this stream "
+            self._record("baudrate", f"baudrate {self.baudrate} is below the ~{need:.0f} bit/s this stream "
                         "needs on a real UART (USB CDC-ACM boards ignore it)")
 
     def close(self) -> None:
@@ -258,14 +259,7 @@ class SerialWhiskerDriver:
         self._open = False
         self._close_port()
         if was_open:
-            self._event("close", f"closed {self.port}")
-
-    def __enter__(self) -> "SerialWhiskerDriver":
-        self.open()
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
+            self._record("close", f"closed {self.port}")
 
     # -- public reads ----------------------------------------------------------
 
@@ -276,17 +270,6 @@ class SerialWhiskerDriver:
         for k in _DECODER_COUNTERS:
             out[k] = getattr(dec, k)
         return out
-
-    @property
-    def events(self) -> list[str]:
-        """The last ``MAX_EVENTS`` events as timestamped lines, oldest first (a copy)."""
-        return [_stamp(ev.time) + " " + ev.message for ev in self._log.history()]
-
-    def take_events(self) -> tuple[list[DriverEvent], dict[str, int]]:
-        """Events since the last call (see the module docstring for their kinds), and
-        per-kind counts of any dropped because nobody took them (1024 are kept).
-        Any thread; never blocks."""
-        return self._log.take()
 
     def read(self, timeout: float | None = None) -> Block | None:
         """Return the next block, or None if none arrived within ``timeout``.
@@ -337,7 +320,7 @@ class SerialWhiskerDriver:
                     self._reopened = False
                     self._stats["reconnects"] += 1
                     self._backoff = self.BACKOFF_START
-                    self._event("reconnect", f"reconnected to {self.port} after "
+                    self._record("reconnect", f"reconnected to {self.port} after "
                                 f"{now - self._lost_at:.2f} s ({self._attempts} attempt(s))", self._start)
                 frames = self._decoder.feed(data)
                 if self._decoder.version_errors != self._version_errors:
@@ -440,7 +423,7 @@ class SerialWhiskerDriver:
         if not self.reconnect:
             self._open = False
             self._stats["unplugs"] += 1
-            self._event("unplug", f"lost {self.port}: {exc}", self._start)
+            self._record("unplug", f"lost {self.port}: {exc}", self._start)
             raise DeviceUnavailable(
                 f"serial port {self.port!r} was lost ({exc}). Check the cable and the board's "
                 "power; reconnect=True rides through unplugs") from exc
@@ -451,7 +434,7 @@ class SerialWhiskerDriver:
             self._schedule_retry(now)
             return
         self._stats["unplugs"] += 1
-        self._event("unplug", f"lost {self.port}: {exc}; reopening with backoff "
+        self._record("unplug", f"lost {self.port}: {exc}; reopening with backoff "
                     f"{self.BACKOFF_START:g} s doubling to {self.BACKOFF_MAX:g} s", self._start)
         self._lost_at = now
         self._attempts = 0
@@ -472,7 +455,7 @@ class SerialWhiskerDriver:
                     self._ser = self._open_port()
                 except DeviceUnavailable as exc:
                     if self._attempts == 1 or self._attempts % 20 == 0:
-                        self._event("reopen", f"reopen attempt {self._attempts} failed: {exc}")
+                        self._record("reopen", f"reopen attempt {self._attempts} failed: {exc}")
                     self._schedule_retry(now)
                 else:
                     self._reopened = True
@@ -495,7 +478,7 @@ class SerialWhiskerDriver:
             ch = f.samples.shape[1]
             if ch != self.channels:
                 st["channel_mismatch"] += 1
-                self._event("channels", f"frame {f.seq} has {ch} channels but the driver is "
+                self._record("channels", f"frame {f.seq} has {ch} channels but the driver is "
                             f"configured for {self.channels}: skipped (fix the channels setting "
                             "or the board's firmware)", self._start + rows)
                 continue
@@ -509,7 +492,7 @@ class SerialWhiskerDriver:
                                        self._start + rows, n_rows)
                 if lost > 0:
                     n = lost * self._spf
-                    self._event("gap", f"{lost} frame(s) lost before sequence {f.seq}: "
+                    self._record("gap", f"{lost} frame(s) lost before sequence {f.seq}: "
                                 f"{n} rows filled with zeros", self._start + rows)
                     parts.append(np.zeros((n, ch), dtype=np.int16))
                     fills.append((rows, n))
@@ -520,7 +503,7 @@ class SerialWhiskerDriver:
             if f.flags & FLAG_OVERRUN:
                 st["device_overruns"] += 1
                 overruns.append(rows)
-                self._event("overrun", f"frame {f.seq} is flagged OVERRUN: the board lost samples "
+                self._record("overrun", f"frame {f.seq} is flagged OVERRUN: the board lost samples "
                             "before it (not filled: stream time runs behind by the loss)",
                             self._start + rows)
             parts.append(f.samples)
@@ -580,7 +563,7 @@ class SerialWhiskerDriver:
             lost_s = jump * spf / self.rate
             why = "more than the time elapsed allows: board restarted?"
         self._stats["discontinuities"] += 1
-        self._event("restart", f"sequence jumped to {seq} (expected {self._next_seq}: {lost_s:.2f} s of "
+        self._record("restart", f"sequence jumped to {seq} (expected {self._next_seq}: {lost_s:.2f} s of "
                     f"stream, {why}): not filled, stream time is discontinuous here", pos)
         return -1
 
@@ -621,25 +604,16 @@ class SerialWhiskerDriver:
                    "device on this port, or firmware sending another format "
                    "(docs/serial-frames.md)")
         message = f"{head}: {why}"
-        self._event("silence", message, self._start)
-        if self._on_notice is not None:
-            self._on_notice(message)
+        self._notice(message, "silence", self._start)
 
     def _versions_seen(self) -> None:
         """Frames of another version arrived (the decoder skipped them): say so, one event each."""
         new = self._decoder.version_errors - self._version_errors
         self._version_errors = self._decoder.version_errors
         for _ in range(new):
-            self._event("version", "a frame of another format version arrived: skipped (this "
+            self._record("version", "a frame of another format version arrived: skipped (this "
                         "driver reads version 1; update the host or flash the matching firmware, "
                         "docs/serial-frames.md)", self._start)
-
-    def _event(self, kind: str, text: str, stream_index: int | None = None) -> None:
-        self._log.record(kind, text, stream_index)
-
-
-def _stamp(t: float) -> str:
-    return time.strftime("%Y-%m-%dT%H:%M:%S", time.localtime(t)) + f".{int(t % 1 * 1000):03d}"
 
 
 __all__ = ["SerialWhiskerDriver"]

@@ -41,7 +41,7 @@ import numpy as np
 from scipy.signal import resample_poly
 
 from supramodal.checks import Key, flag, integer, is_number, one_of, text
-from supramodal.drivers.base import Block, DeviceUnavailable, DriverClosed, DriverError, DriverEvent, EventLog
+from supramodal.drivers.base import Block, DeviceUnavailable, DriverBase, DriverClosed, DriverError
 from supramodal.drivers.spec import Built, BuildContext, DriverSpec, OptionError, given
 from supramodal.replay.errors import ReplayError
 from supramodal.replay.session import Label, Session, load_session, session_paths
@@ -174,7 +174,7 @@ def _print_stderr(message: str) -> None:
     print(message, file=sys.stderr, flush=True)
 
 
-class ReplayDriver:
+class ReplayDriver(DriverBase):
     """Replays an array, a WAV file or a session as a :class:`supramodal.drivers.base.Driver`.
 
     Parameters
@@ -240,8 +240,9 @@ class ReplayDriver:
     notices : list of str
         What the driver chose to tell (today: that it resamples, and how).
 
-    Events (:meth:`take_events`): ``notice`` (each notice) and ``gap`` (a run of
-    frames the recording marked filled begins; its stream index). A session's board
+    Events (:meth:`take_events`): ``notice`` (each notice; those made at construction come
+    with the first call) and ``gap`` (a run of frames the recording marked filled begins; its
+    stream index). A session's board
     restart and overrun marks come back as the blocks' ``restarts`` and ``overruns``,
     so that the node flags the same windows as it did live.
 
@@ -272,9 +273,9 @@ class ReplayDriver:
                  seed: int | None = None, max_denominator: int = 1000,
                  on_notice: Callable[[str], None] | None = _print_stderr, device_clock: DeviceClock | None = None,
                  timing: str = "nominal"):
+        super().__init__()
         self.notices: list[str] = []
         self._on_notice = on_notice
-        self._log = EventLog()
         data, src_rate, labels, filled, marks, self.name, arrivals = self._load(source, timing == "recorded")
         if data.shape[0] == 0:
             raise ReplayError(f"{self.name}: the source has no frames; nothing to replay")
@@ -373,16 +374,10 @@ class ReplayDriver:
 
     # --- construction helpers -------------------------------------------------
 
-    def take_events(self) -> tuple[list[DriverEvent], dict[str, int]]:
-        """Events since the last call and per-kind counts of any dropped (bounded log);
-        any thread, never blocks. Notices made at construction come with the first call."""
-        return self._log.take()
-
-    def _notice(self, message: str) -> None:
+    def _notice(self, message: str, kind: str = "notice", stream_index: int | None = None) -> None:
+        """Keep ``message`` in :attr:`notices`, then log and hand it on as every driver does."""
         self.notices.append(message)
-        self._log.record("notice", message)
-        if self._on_notice is not None:
-            self._on_notice(message)
+        super()._notice(message, kind, stream_index)
 
     def _load(self, source, need_session: bool = False):
         """-> (data (n, ch) float64, rate, labels, filled mask or None, marks, name, arrivals or None).
@@ -506,13 +501,6 @@ class ReplayDriver:
         self._is_open = False
         self._closed.set()
 
-    def __enter__(self) -> "ReplayDriver":
-        self.open()
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
     def _draw_size(self) -> int:
         if isinstance(self._sizes, int):
             size = self._sizes
@@ -615,8 +603,8 @@ class ReplayDriver:
             if n:
                 starts = np.flatnonzero(filled & ~np.concatenate(([self._last_filled], filled[:-1])))
                 for i in starts.tolist():
-                    self._log.record("gap", f"replay: {self.name}: frames from {self._pos + i} were filled "
-                                     "in the recording (lost when it was made)", self._pos + i)
+                    self._record("gap", f"replay: {self.name}: frames from {self._pos + i} were filled "
+                                 "in the recording (lost when it was made)", self._pos + i)
             self._last_filled = bool(filled[-1])
             if n == 0:
                 filled = None
