@@ -33,6 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
+from supramodal.drivers.base import DriverBase
 from supramodal.drivers.mock_whisker import FaultSpec, MockWhiskerDevice
 from supramodal.drivers.serial_whisker import SerialWhiskerDriver
 from supramodal.node.graph import Node
@@ -69,11 +70,12 @@ def source_signal(seconds: float = 6.0) -> np.ndarray:
     return x[:, None] * np.linspace(0.5, 1.0, CHANNELS)[None, :]
 
 
-class CheckedDriver:
+class CheckedDriver(DriverBase):
     """The serial driver as the node sees it, checking each block against the mock as it passes.
 
     Keeps counts only (memory stays flat): filled frames by the ledger's reason, frames whose
-    samples differ from what the mock sent, and the index of the last frame received.
+    samples differ from what the mock sent, and the index of the last frame received. Its
+    events are the serial driver's.
     """
 
     def __init__(self, inner: SerialWhiskerDriver, dev: MockWhiskerDevice) -> None:
@@ -98,12 +100,8 @@ class CheckedDriver:
     def stats(self) -> dict[str, int]:
         return self.inner.stats()
 
-    def __enter__(self) -> "CheckedDriver":
-        self.open()
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
+    def take_events(self):
+        return self.inner.take_events()
 
     def read(self, timeout: float | None = None):
         block = self.inner.read(timeout)

@@ -38,7 +38,7 @@ import math
 import queue
 import threading
 
-from supramodal.drivers.base import Block, DriverClosed
+from supramodal.drivers.base import Block, Driver, DriverClosed, missing_members
 from supramodal.node.clock import ClockModel
 from supramodal.node.ringbuffer import RingBuffer
 from supramodal.errors import InputError
@@ -89,6 +89,8 @@ class Source:
     name : str
         The source's name in a scene (``[[source]] name``).
     driver : drivers.base.Driver
+        Refused (:class:`~supramodal.errors.InputError`) if it lacks a member of the contract: a
+        driver derives from :class:`~supramodal.drivers.base.DriverBase`.
     buffer_seconds : float
         Ring capacity, seconds of stream.
     overrun : {"drop-oldest", "drop-newest", "block"}
@@ -106,10 +108,16 @@ class Source:
         ``speed`` delivers ``speed`` times its rate). Default: the driver's rate.
     """
 
-    def __init__(self, name: str, driver, buffer_seconds: float = 2.0, overrun: str = "drop-oldest",
+    def __init__(self, name: str, driver: Driver, buffer_seconds: float = 2.0, overrun: str = "drop-oldest",
                  timebase: str = "stream", time_offset: float = 0.0, time_rate: float | None = None) -> None:
         if timebase not in TIMEBASES:
             raise InputError(f"a source's timebase is one of {TIMEBASES}, got {timebase!r}")
+        missing = missing_members(driver)
+        if missing:
+            raise InputError(f"source {name!r}: the driver {type(driver).__name__} lacks {', '.join(missing)} of the "
+                             "driver contract (supramodal.drivers.base.Driver): derive from "
+                             "supramodal.drivers.base.DriverBase, which gives take_events, fills_are_drops, labels "
+                             "and the context manager")
         self.name = name
         self.driver = driver
         self.rate = float(driver.rate)
@@ -163,7 +171,6 @@ class Source:
     def drive(self, stop: threading.Event, on_stop) -> None:
         """Move blocks from the driver to the ring until the stream ends or ``stop`` is set;
         ``on_stop(reason)`` when the stream length (``max_frames``) is reached."""
-        take = getattr(self.driver, "take_events", None)
         try:
             while not stop.is_set():
                 try:
@@ -171,8 +178,7 @@ class Source:
                 except DriverClosed:
                     break
                 finally:
-                    if take is not None:
-                        self._queue_events(take)
+                    self._queue_events()
                 if block is None:
                     continue
                 last = self.max_frames is not None and block.start + block.frames >= self.max_frames
@@ -231,8 +237,8 @@ class Source:
             elif stamp is not None:
                 self.recorder.arrival(end, stamp)
 
-    def _queue_events(self, take) -> None:
-        events, dropped = take()
+    def _queue_events(self) -> None:
+        events, dropped = self.driver.take_events()
         if (events or dropped) and self.event_queue is not None:
             self.event_queue.put((self.name, events, dropped))
 
@@ -272,7 +278,7 @@ class Source:
         # The ring knows each row's flag when it drops it: the split is exact per frame,
         # whatever the timing (a fill longer than the ring loses its own head on write).
         synthesised = r["read_filled"] + r["lost_filled"]
-        driver_drops = synthesised if getattr(self.driver, "fills_are_drops", False) else 0
+        driver_drops = synthesised if self.driver.fills_are_drops else 0
         in_ring = r["lost"] - r["lost_filled"]
         return {"stream": ring["written"],
                 "delivered": r["read"] - r["read_filled"],

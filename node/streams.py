@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from supramodal.decisions import DEFAULT_DECISION, ContactDetector
+from supramodal.drivers.base import Driver
 from supramodal.errors import InputError
 from supramodal.model import TextureModel
 from supramodal.decisions import Decider
@@ -73,10 +74,11 @@ class Labels:
     period: float | None = None
 
     @classmethod
-    def of(cls, driver) -> "Labels":
-        """The labels a driver carries (a replayed session's, repeating with its loop), or none."""
-        ranges = [(lab.start, lab.end, lab.label) for lab in getattr(driver, "labels", ())]
-        looped = ranges and getattr(driver, "passes", 1) != 1
+    def of(cls, driver: Driver) -> "Labels":
+        """The labels a driver carries (a replayed session's, repeating with its loop), or none (a
+        :class:`~supramodal.drivers.base.DriverBase`'s ``labels`` are empty)."""
+        ranges = [(lab.start, lab.end, lab.label) for lab in driver.labels]
+        looped = ranges and driver.passes != 1
         return cls(ranges, driver.period if looped else None)
 
     def at(self, t: float) -> str | None:

@@ -1,17 +1,9 @@
-"""A base for drivers that tests stand in for a device: the context-manager part of the contract."""
+"""A base for drivers that tests stand in for a device."""
+
+from supramodal.drivers.base import DriverBase
 
 
-class StandInDriver:
-    """Nothing to open or close; subclasses set ``rate``, ``channels`` and give ``read`` and ``stats``."""
-
-    def open(self):
-        pass
-
-    def close(self):
-        pass
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        pass
+class StandInDriver(DriverBase):
+    """Nothing to open or close, no labels, no events unless it logs some (``self._record``):
+    :class:`~supramodal.drivers.base.DriverBase` as it is; subclasses set ``rate``,
+    ``channels`` and give ``read`` and ``stats``."""

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from supramodal.banks import cochlea_bank, whisker_bank
+from supramodal.drivers.base import DriverBase
 from supramodal.errors import InputError
 from supramodal.node.build import build_node
 from supramodal.node.events import WindowEvent
@@ -393,10 +394,10 @@ def test_a_looped_two_sense_world_is_labelled_on_every_pass():
     assert summary["fusion"]["labelled_windows"] == 40
 
 
-class _Stalling:
+class _Stalling(DriverBase):
     """A source's driver that stops delivering for ``seconds`` of host time once its stream
     reaches frame ``at`` (a USB stall, a sound card lost and found): its blocks then come late,
-    in a burst, stamped when they come."""
+    in a burst, stamped when they come. Everything else is the wrapped driver's."""
 
     def __init__(self, inner, at: int, seconds: float) -> None:
         self.inner, self.at, self.seconds = inner, at, seconds
@@ -405,12 +406,18 @@ class _Stalling:
     def __getattr__(self, name):
         return getattr(self.inner, name)
 
-    def __enter__(self):
+    def open(self):
         self.inner.open()
-        return self
 
-    def __exit__(self, *exc):
+    def close(self):
         self.inner.close()
+
+    def take_events(self):
+        return self.inner.take_events()
+
+    @property
+    def fills_are_drops(self):
+        return self.inner.fills_are_drops
 
     def read(self, timeout=None):
         from dataclasses import replace

@@ -1,6 +1,6 @@
-"""Interfaces, not probes (issue 24, item 2): a sink is a :class:`Sink`, a tap a :class:`Tap`; the
-graph calls their bases' methods, which a minimal subclass leaves as they are, and never probes
-a sink or a tap for a method."""
+"""Interfaces, not probes (issue 24, item 2): a sink is a :class:`Sink`, a tap a :class:`Tap`, a driver a
+:class:`DriverBase`; the graph calls their bases' methods, which a minimal subclass leaves as they
+are, and never probes a sink, a tap or a driver for a method."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from supramodal.banks import whisker_bank
-from supramodal.drivers.base import Block, DriverClosed, DriverEvent
+from supramodal.drivers.base import Block, Driver, DriverBase, DriverClosed, DriverEvent, EventLog
 from supramodal.errors import InputError
 from supramodal.node.graph import Graph
 from supramodal.node.ringbuffer import RingClosed
@@ -37,20 +37,15 @@ class _Chattering(StandInDriver):
     def __init__(self):
         self._x = np.random.default_rng(0).standard_normal((int(RATE), 1)) * 0.2
         self._at = 0
-        self._events: list[DriverEvent] = []
 
     def read(self, timeout=None):
         if self._at >= len(self._x):
             raise DriverClosed("end of the toy stream")
         block = Block(self._x[self._at:self._at + 250], self._at, time.monotonic())
         if self._at == 0:
-            self._events.append(DriverEvent("notice", "the toy driver began", time.time(), 0))
+            self._record("notice", "the toy driver began", 0)
         self._at += 250
         return block
-
-    def take_events(self):
-        events, self._events = self._events, []
-        return events, {}
 
     def stats(self):
         return {"frames": self._at, "filled": 0}
@@ -160,23 +155,76 @@ def test_a_queued_sink_passes_start_and_drain_on():
     assert inner.calls == [("start", 12.5), ("drain", True)]
 
 
+def test_the_driver_base_gives_the_contract_but_read_and_stats():
+    """A driver giving only rate, channels, read and stats (and not calling the base's __init__)
+    is a Driver: no events until it logs one, then each once; a context manager; no labels; its
+    fills are not drops."""
+    driver = _Chattering()
+    assert isinstance(driver, Driver) and isinstance(driver.event_log, EventLog)
+    assert driver.take_events() == ([], {})
+    assert not driver.fills_are_drops and driver.labels == () and driver.passes == 1 and driver.period is None
+    with driver as d:
+        assert d is driver
+        d.read()
+    events, dropped = driver.take_events()
+    assert [(ev.kind, ev.message, ev.stream_index) for ev in events] == [("notice", "the toy driver began", 0)]
+    assert dropped == {} and driver.take_events() == ([], {})
+    assert len(driver.events) == 1 and driver.events[0].endswith(" the toy driver began")
+
+
+def test_a_driver_notice_is_logged_then_handed_on():
+    class Telling(DriverBase):
+        EVENT_CAPACITY = 2
+
+        def __init__(self, told):
+            super().__init__()
+            self._on_notice = told.append
+
+    told = []
+    driver = Telling(told)
+    driver._notice("resampling", stream_index=3)
+    driver._notice("quiet", "silence")
+    driver._record("gap", "x")                          # beyond the capacity: the oldest is counted
+    events, dropped = driver.take_events()
+    assert told == ["resampling", "quiet"]
+    assert [(ev.kind, ev.message) for ev in events] == [("silence", "quiet"), ("gap", "x")]
+    assert dropped == {"notice": 1}
+
+
+def test_a_driver_that_is_not_one_is_refused_when_its_source_is_made():
+    class Duck:
+        rate, channels = RATE, 1
+
+        def open(self):
+            pass
+
+        def close(self):
+            pass
+
+        def read(self, timeout=None):
+            return None
+
+        def stats(self):
+            return {"frames": 0, "filled": 0}
+
+    with pytest.raises(InputError, match=r"source 'main': the driver Duck lacks take_events, fills_are_drops, "
+                                         r"labels, passes, period, __enter__, __exit__ .*derive from "
+                                         r"supramodal\.drivers\.base\.DriverBase"):
+        Source("main", Duck())
+
+
 # -- no probes ------------------------------------------------------------------------------------
 
 #: The runtime modules that call sinks, taps or drivers.
-RUNTIME = ("node/graph.py", "node/sinks.py", "node/sources.py", "node/lsl_outlets.py", "node/lsl_signal.py",
-           "node/recorder.py", "node/taps.py")
-#: The probes left, each with why: (file, the probe's text).
-ALLOWED = {
-    # Drivers: drivers/base.py's Driver is a Protocol whose take_events and fills_are_drops are
-    # optional (the test suite's stand-in drivers have neither); they go when drivers derive from a
-    # base that gives both (issue 24, item 2: a driver base owning the event log).
-    ("node/sources.py", 'getattr(self.driver, "take_events", None)'),
-    ("node/sources.py", 'getattr(self.driver, "fills_are_drops", False)'),
-}
+RUNTIME = ("node/graph.py", "node/sinks.py", "node/sources.py", "node/streams.py", "node/lsl_outlets.py",
+           "node/lsl_signal.py", "node/recorder.py", "node/taps.py")
+#: The probes left, each with why: (file, the probe's text). None: drivers derive from DriverBase,
+#: which gives every member of the contract (take_events, fills_are_drops, labels, ...).
+ALLOWED: set[tuple[str, str]] = set()
 
 
-def test_the_runtime_probes_no_sink_or_tap():
-    """No getattr/hasattr in the runtime modules, but the driver probes listed in ALLOWED."""
+def test_the_runtime_probes_no_sink_tap_or_driver():
+    """No getattr/hasattr in the runtime modules, but the probes listed in ALLOWED (none)."""
     found = set()
     for name in RUNTIME:
         for line in (ROOT / name).read_text().splitlines():
