@@ -13,13 +13,11 @@ import numpy as np
 
 from supramodal.drivers.spec import BuildContext, OptionError
 from supramodal.node.band import warn_if_beyond_band
-from supramodal.node.registry import driver_spec
-from supramodal.node.events import FUSED_STREAM
+from supramodal.node.registry import SinkContext, driver_spec, sink_spec
 from supramodal.node.graph import Graph
 from supramodal.node.sources import Source
 from supramodal.node.streams import Labels, Stream, refuse_uncalibrated
 from supramodal.node.scene import LEARN, Scene, SceneError, source_scene
-from supramodal.node.sinks import QueuedSink, make_sink
 from supramodal.bankfile import BANK_KEYS, BankFileError, bank_from_description, load_bank
 from supramodal.banks import Bank
 from supramodal.calibration import winner
@@ -129,103 +127,25 @@ def driver_for(scene: Scene, bank: Bank | None, speed_override=None, shared: dic
     return built.driver, Labels(list(built.labels), built.label_period), built.training_set
 
 
-def _sinks_for(scene: Scene, sinks_override, overwrite: bool):
-    """The scene's sinks (each behind its own queue) and the streams each listens to."""
-    if sinks_override is not None:
-        return list(sinks_override), None
-    sinks, routes = [], []
-    for i, s in enumerate(scene.sinks):
-        if s["type"] in ("lsl", "lsl-signal"):
-            continue                            # made once the streams and sources are known (_lsl_sinks, _signal_taps)
-        path = s["path"] if s["path"] == "-" else str(scene.resolve(s["path"]))
-        try:
-            # Behind its own queue: processing never waits on a slow disk or a stalled terminal.
-            sinks.append(QueuedSink(make_sink(s["type"], path, overwrite)))
-        except InputError as exc:
-            for made in sinks:
-                made.close()
-            raise SceneError(f"{scene.source}: [[sink]] #{i + 1} path: {exc}") from None
-        listens = s.get("from")
-        routes.append(None if listens is None else {listens} if isinstance(listens, str) else set(listens))
-    return sinks, routes
-
-
-def _lsl_sinks(scene: Scene, streams: list, fused_classes=None, sinks_override=None):
-    """The scene's LSL sinks (``[[sink]] type = "lsl"``), each behind its own queue, with the
-    streams each listens to; ``streams`` are ``(name, pipeline, model)``."""
-    if sinks_override is not None or not any(s["type"] == "lsl" for s in scene.sinks):
-        return [], []
-    from supramodal.node.lsl_outlets import LSLOutletSink, OutletStream
-
-    described = {}
-    for name, pipeline, model in streams:
-        bank = pipeline.bank
-        described[name] = OutletStream(name, bank.kind, bank.fs, tuple(bank.names), tuple(float(c) for c in bank.cf),
-                                       pipeline.features, pipeline.window_samples / bank.fs,
-                                       tuple(model.classes) if model is not None else ())
-    if fused_classes is not None:
-        window = next(iter(described.values())).window
-        described[FUSED_STREAM] = OutletStream(FUSED_STREAM, "fused", 0.0, (), (), (), window, tuple(fused_classes))
-    sinks, routes = [], []
-    for i, s in enumerate(scene.sinks):
-        if s["type"] != "lsl":
+def _make_sinks(scene: Scene, needs: str, made: list, overwrite: bool, **context) -> None:
+    """Make the scene's sinks whose spec needs ``needs`` (node.registry.NEEDS), appending
+    ``(index in the scene, spec, options, sink or tap)`` to ``made``; ``context``: the rest of the
+    :class:`~supramodal.node.registry.SinkContext` (the streams, the sources)."""
+    for i, options in enumerate(scene.sinks):
+        spec = sink_spec(options["type"])
+        if spec.needs != needs:
             continue
-        listens = s["from"]
-        names = list(described) if listens is None else [listens] if isinstance(listens, str) else list(listens)
-        unknown = [n for n in names if n not in described]
-        if unknown:
-            raise SceneError(f"{scene.source}: [[sink]] #{i + 1} from: no stream {unknown}; the scene has "
-                             f"{list(described)}")
+        where = f"{scene.source}: [[sink]] #{i + 1}"
         try:
-            sink = LSLOutletSink([described[n] for n in names], s["outputs"], s["prefix"])
-        except InputError as exc:
-            raise SceneError(f"{scene.source}: [[sink]] #{i + 1}: {exc}") from None
-        sinks.append(QueuedSink(sink))
-        routes.append(set(names))
-    return sinks, routes
+            made.append((i, spec, options, spec.build(options, SinkContext(where, scene.resolve, overwrite, **context))))
+        except OptionError as exc:
+            raise SceneError(f"{where} {exc}") from None
 
 
-def _signal_type(driver_options: dict, banks: list) -> str:
-    """What a source is, as an LSL content type: by the banks that read it, else by its driver."""
-    kinds = {b.kind for b in banks}
-    if kinds == {"whisker"}:
-        return "Whiskers"
-    if kinds == {"cochlea"}:
-        return "Audio"
-    from supramodal.node.lsl_signal import DEFAULT_SIGNAL_TYPE
-
-    return driver_spec(driver_options["type"]).signal_type(driver_options) or DEFAULT_SIGNAL_TYPE
-
-
-def _signal_taps(scene: Scene, sources: dict, readers: dict, sinks_override=None) -> list:
-    """The scene's signal outlets (``[[sink]] type = "lsl-signal"``) as ``(source name, tap)``;
-    ``sources``: name -> (driver, driver options); ``readers``: source name -> [(bank, mapping)]
-    of the streams that read it."""
-    if sinks_override is not None or not any(s["type"] == "lsl-signal" for s in scene.sinks):
-        return []
-    from supramodal.node.lsl_signal import LSLSignalOutlet
-
-    taps = []
-    for i, s in enumerate(scene.sinks):
-        if s["type"] != "lsl-signal":
-            continue
-        driver, options = sources[s["source"]]
-        channels = driver.channels
-        read_by = readers.get(s["source"], [])
-        # Channel labels: the filters' names where a bank takes the channels one to one.
-        labels = next((bank.names for bank, mapping in read_by
-                       if mapping in ("auto", "per-channel") and bank.channels == channels), None)
-        try:
-            tap = LSLSignalOutlet(s["source"], driver.rate, channels, s["chunk"], s["prefix"],
-                                  s["stream_type"] or _signal_type(options, [bank for bank, _ in read_by]), labels,
-                                  options["type"],
-                                  s["wait_for_consumer"])
-        except InputError as exc:
-            for _, made in taps:
-                made.close()
-            raise SceneError(f"{scene.source}: [[sink]] #{i + 1}: {exc}") from None
-        taps.append((s["source"], tap))
-    return taps
+def _routes(options: dict) -> set | None:
+    """The streams a sink of windows listens to (None: every one)."""
+    listens = options.get("from")
+    return None if listens is None else {listens} if isinstance(listens, str) else set(listens)
 
 
 def _model_for(scene: Scene, bank: Bank, pipeline: FeaturePipeline, ts, progress,
@@ -398,9 +318,10 @@ def build_node(scene: Scene, speed=None, sinks_override=None, progress=None, rec
     """
     from supramodal.node.fusion import EarlyFusion, LateFusion
 
-    sinks, routes = _sinks_for(scene, sinks_override, overwrite)
-    taps = []
+    made: list = []                             # (index, spec, options, sink or tap) of the scene's sinks
     try:
+        if sinks_override is None:              # files checked before any training
+            _make_sinks(scene, "nothing", made, overwrite)
         sources: dict[str, tuple[Source, Labels, object]] = {}
         streams = []
         held_out: dict[str, list] = {}          # stream -> [(x_test, y_test)] of a model trained on the spot
@@ -460,23 +381,27 @@ def build_node(scene: Scene, speed=None, sinks_override=None, progress=None, rec
                                         correlation=late["correlation"])
             except ValueError as exc:
                 raise SceneError(f"{scene.source}: [fusion] {exc}") from None
-        more, more_routes = _lsl_sinks(scene, [(s.name, s.pipeline, s.model) for s in streams],
-                                       None if fusion is None else fusion.classes, sinks_override)
-        sinks += more
-        if routes is not None:
-            routes += more_routes
-        readers: dict[str, list] = {}
-        for stream, spec in zip(streams, scene.streams):
-            readers.setdefault(spec.source, []).append((stream.pipeline.bank, spec.scene.driver.get("mapping", "auto")))
-        options = {src["name"]: src for src in scene.sources}
-        taps = _signal_taps(scene, {name: (s.driver, options[name]) for name, (s, _, _) in sources.items()}, readers,
-                            sinks_override)
+        if sinks_override is None:
+            _make_sinks(scene, "streams", made, overwrite, streams={s.name: s for s in streams},
+                        fused_classes=None if fusion is None else fusion.classes)
+            readers: dict[str, list] = {}
+            for stream, spec in zip(streams, scene.streams):
+                readers.setdefault(spec.source, []).append((stream.pipeline.bank,
+                                                            spec.scene.driver.get("mapping", "auto")))
+            options = {src["name"]: src for src in scene.sources}
+            _make_sinks(scene, "sources", made, overwrite,
+                        sources={name: (s.driver, options[name], readers.get(name, []))
+                                 for name, (s, _, _) in sources.items()})
+        made.sort(key=lambda m: m[0])           # the scene's order
+        windows = [(options, sink) for _, spec, options, sink in made if spec.listens == "windows"]
+        taps = [(options["source"], tap) for _, spec, options, tap in made if spec.listens == "samples"]
+        if sinks_override is not None:
+            sinks, routes = list(sinks_override), None
+        else:
+            sinks, routes = [sink for _, sink in windows], [_routes(options) for options, _ in windows]
         return Graph([s for s, _, _ in sources.values()], streams, sinks, routes=routes, fusion=fusion,
                      recorder=recorder, taps=taps)
     except BaseException:
-        if sinks_override is None:              # a refused scene leaves no file behind, no outlet open
-            for sink in sinks:
-                sink.close()
-            for _, tap in taps:
-                tap.close()
+        for _, _, _, sink in made:              # a refused scene leaves no file behind, no outlet open
+            sink.close()
         raise

@@ -51,9 +51,12 @@ import numpy as np
 from supramodal import __version__
 from supramodal.drivers.lsl import import_pylsl, lsl_clock_offset
 from supramodal.features import FEATURE_TABLE
-from supramodal.node.events import WindowEvent
-from supramodal.node.sinks import Sink
+from supramodal.node.events import FUSED_STREAM, WindowEvent
+from supramodal.node.registry import SinkSpec
+from supramodal.node.sinks import QueuedSink, Sink
 from supramodal.errors import InputError
+from supramodal.checks import NAME_HELP, Key, is_name
+from supramodal.drivers.spec import OptionError
 
 #: What an LSL sink can send, in order.
 OUTPUTS = ("features", "decisions", "posteriors")
@@ -239,3 +242,40 @@ def _marker(event: WindowEvent) -> dict:
             "confidence": None if event.confidence is None else round(event.confidence, 4),
             "pooled": event.pooled, "truth": event.truth, "flags": sorted(event.flags),
             **({"unknown": event.unknown, "guess": event.guess} if event.unknown is not None else {})}
+
+
+# -- as a scene names it ---------------------------------------------------------------------------
+
+def describe(name: str, pipeline, model) -> OutletStream:
+    """A stream's outlets' description from its pipeline and model (None: features only)."""
+    bank = pipeline.bank
+    return OutletStream(name, bank.kind, bank.fs, tuple(bank.names), tuple(float(c) for c in bank.cf),
+                        pipeline.features, pipeline.window_samples / bank.fs,
+                        tuple(model.classes) if model is not None else ())
+
+
+def _build(options: dict, context) -> Sink:
+    described = {name: describe(name, s.pipeline, s.model) for name, s in context.streams.items()}
+    if context.fused_classes is not None and described:
+        window = next(iter(described.values())).window
+        described[FUSED_STREAM] = OutletStream(FUSED_STREAM, "fused", 0.0, (), (), (), window,
+                                               tuple(context.fused_classes))
+    listens = options["from"]
+    names = list(described) if listens is None else [listens] if isinstance(listens, str) else list(listens)
+    unknown = [n for n in names if n not in described]
+    if unknown:
+        raise OptionError(f"from: no stream {unknown}; the scene has {list(described)}")
+    try:
+        sink = LSLOutletSink([described[n] for n in names], options["outputs"], options["prefix"])
+    except InputError as exc:
+        raise OptionError(str(exc)) from None
+    return QueuedSink(sink)
+
+
+SPEC = SinkSpec(
+    type="lsl",
+    summary="window events as Lab Streaming Layer outlets: features, decisions, posteriors (the lsl extra)",
+    keys={"outputs": Key(lambda v: isinstance(v, list) and bool(v) and len(set(v)) == len(v) and set(v) <= set(OUTPUTS),
+                         'a list drawn from "features", "decisions" and "posteriors"', list(OUTPUTS)),
+          "prefix": Key(is_name, "the outlets' name prefix: " + NAME_HELP[len("a name: "):], DEFAULT_PREFIX)},
+    build=_build, needs="streams")

@@ -58,9 +58,12 @@ import numpy as np
 
 from supramodal import __version__
 from supramodal.drivers.lsl import import_pylsl
+from supramodal.checks import NAME_HELP, Key, is_name, non_negative, number, text
+from supramodal.drivers.spec import OptionError
 from supramodal.errors import InputError
 from supramodal.node.lsl_outlets import DEFAULT_PREFIX, OUTLET_BUFFER_SECONDS, LSLClock, outlet_name, outlet_source_id
 from supramodal.node.ringbuffer import RingClosed, flag_runs
+from supramodal.node.registry import SinkSpec
 from supramodal.node.taps import Tap
 
 #: Seconds of samples per push: LSL's usual 5-30 ms; 10 ms matches the node's own chunks.
@@ -265,3 +268,52 @@ class LSLSignalOutlet(Tap):
         block = self._feed.block_of(index)
         offset, slope = self._source.line() if block is None else block[2]
         return offset + index * slope
+
+
+# -- as a scene names it ---------------------------------------------------------------------------
+
+def signal_type(driver_options: dict, banks: list) -> str:
+    """What a source is, as an LSL content type: by the banks that read it, else by its driver's spec."""
+    from supramodal.node.registry import driver_spec
+
+    kinds = {b.kind for b in banks}
+    if kinds == {"whisker"}:
+        return "Whiskers"
+    if kinds == {"cochlea"}:
+        return "Audio"
+    return driver_spec(driver_options["type"]).signal_type(driver_options) or DEFAULT_SIGNAL_TYPE
+
+
+def _build(options: dict, context) -> Tap:
+    driver, driver_options, read_by = context.sources[options["source"]]
+    channels = driver.channels
+    # Channel labels: the filters' names where a bank takes the channels one to one.
+    labels = next((bank.names for bank, mapping in read_by
+                   if mapping in ("auto", "per-channel") and bank.channels == channels), None)
+    try:
+        return LSLSignalOutlet(options["source"], driver.rate, channels, options["chunk"], options["prefix"],
+                               options["stream_type"] or signal_type(driver_options, [bank for bank, _ in read_by]),
+                               labels, driver_options["type"], options["wait_for_consumer"])
+    except InputError as exc:
+        raise OptionError(str(exc)) from None
+
+
+#: Longest wait for a consumer a scene may ask for, seconds.
+MAX_WAIT_FOR_CONSUMER = 3600.0
+
+SPEC = SinkSpec(
+    type="lsl-signal",
+    summary="a source's samples as a Lab Streaming Layer outlet, to classify them on another machine (the lsl extra)",
+    keys={
+        "chunk": Key(number(*SIGNAL_CHUNK_RANGE),
+                     f"seconds of samples per push, {SIGNAL_CHUNK_RANGE[0]:g} to {SIGNAL_CHUNK_RANGE[1]:g}",
+                     DEFAULT_SIGNAL_CHUNK),
+        "prefix": Key(is_name, "the outlet's name prefix: " + NAME_HELP[len("a name: "):], DEFAULT_PREFIX),
+        # None: what the source is (its banks' kind, else its driver's signal type).
+        "stream_type": Key(text, 'the LSL stream\'s type, e.g. "Whiskers" (default: what the source is)', None),
+        "wait_for_consumer": Key(non_negative(MAX_WAIT_FOR_CONSUMER),
+                                 "seconds to wait for a consumer before the node starts, 0 to "
+                                 f"{MAX_WAIT_FOR_CONSUMER:g} (0: start at once; a file sent to another machine "
+                                 "needs a wait)", DEFAULT_WAIT_FOR_CONSUMER),
+    },
+    build=_build, listens="samples", needs="sources", unique=("source", "prefix"))

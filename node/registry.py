@@ -1,4 +1,4 @@
-"""The kinds of driver a scene may name, by type: one line each.
+"""The kinds of driver and of sink a scene may name, by type: one line each.
 
 Like pyserial's ``protocol_handler_packages``: :data:`DRIVER_MODULES` maps a type to the module
 that defines its :class:`~supramodal.drivers.spec.DriverSpec` (as ``SPEC``, or the attribute
@@ -6,18 +6,24 @@ after a colon), imported only when a scene names the type, so that a scene witho
 never loads sounddevice's module and one without a serial port never loads pyserial. A driver
 defined outside the package is added with :func:`register_driver`.
 
-A new driver is therefore one module (the driver and its spec) plus one line here.
+A new driver is therefore one module (the driver and its spec) plus one line here. Sinks are
+registered the same way (:class:`SinkSpec`, :data:`SINK_MODULES`, :func:`register_sink`).
 """
 
 from __future__ import annotations
 
 import importlib
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
 
-from supramodal.checks import Key
+from supramodal.checks import Key, is_name, text
 from supramodal.drivers.spec import DriverSpec
 from supramodal.errors import InputError
 
-__all__ = ["DRIVER_MODULES", "MAPPING", "driver_spec", "driver_types", "register_driver", "source_keys"]
+__all__ = ["DRIVER_MODULES", "MAPPING", "SINK_MODULES", "Registry", "SinkContext", "SinkSpec", "driver_spec",
+           "driver_types", "register_driver", "register_sink", "sink_keys", "sink_spec", "sink_types", "source_keys"]
 
 #: Type -> ``"module"`` or ``"module:attribute"`` holding the driver's spec.
 DRIVER_MODULES = {
@@ -30,7 +36,54 @@ DRIVER_MODULES = {
     "lsl": "supramodal.drivers.lsl",
 }
 
-_registered: dict[str, DriverSpec] = {}
+
+class Registry:
+    """Specs by type: built-in ones named by module (imported when first asked for), others
+    registered at run time.
+
+    Parameters
+    ----------
+    what : str
+        What the specs are, in messages ("driver", "sink").
+    modules : dict of str to str
+        Type -> ``"module"`` or ``"module:attribute"`` (default attribute ``SPEC``).
+    spec_type : type
+        The class every spec is an instance of.
+    """
+
+    def __init__(self, what: str, modules: dict[str, str], spec_type: type) -> None:
+        self.what, self.modules, self.spec_type = what, modules, spec_type
+        self.registered: dict[str, object] = {}
+
+    def register(self, spec, replace: bool = False):
+        if not isinstance(spec, self.spec_type):
+            raise InputError(f"register_{self.what} takes a {self.spec_type.__name__}, got {type(spec).__name__}")
+        if not replace and (spec.type in self.modules or spec.type in self.registered):
+            raise InputError(f"a {self.what} of type {spec.type!r} exists already; pass replace=True to replace it")
+        self.registered[spec.type] = spec
+        return spec
+
+    def unregister(self, kind: str) -> None:
+        """Forget a type registered at run time (a built-in one stays)."""
+        self.registered.pop(kind, None)
+
+    def types(self) -> list[str]:
+        return sorted({*self.modules, *self.registered})
+
+    def spec(self, kind):
+        if isinstance(kind, str) and kind in self.registered:
+            return self.registered[kind]
+        where = self.modules.get(kind) if isinstance(kind, str) else None
+        if where is None:
+            raise InputError(f"expected one of {self.types()}, got {kind!r}")
+        module, _, attribute = where.partition(":")
+        spec = getattr(importlib.import_module(module), attribute or "SPEC")
+        if spec.type != kind:
+            raise InputError(f"{where} defines {self.what} type {spec.type!r}, not {kind!r}")
+        return spec
+
+
+DRIVERS = Registry("driver", DRIVER_MODULES, DriverSpec)
 
 
 def _mapping(v) -> bool:
@@ -50,39 +103,127 @@ def register_driver(spec: DriverSpec, replace: bool = False) -> DriverSpec:
     InputError
         If the type is taken (by a built-in driver or an earlier registration) and not ``replace``.
     """
-    if not isinstance(spec, DriverSpec):
-        raise InputError(f"register_driver takes a DriverSpec, got {type(spec).__name__}")
-    if not replace and (spec.type in DRIVER_MODULES or spec.type in _registered):
-        raise InputError(f"a driver of type {spec.type!r} exists already; pass replace=True to replace it")
-    _registered[spec.type] = spec
-    return spec
+    return DRIVERS.register(spec, replace)
 
 
 def driver_types() -> list[str]:
-    """Every type a scene may name, sorted."""
-    return sorted({*DRIVER_MODULES, *_registered})
+    """Every driver type a scene may name, sorted."""
+    return DRIVERS.types()
 
 
 def driver_spec(kind) -> DriverSpec:
-    """The spec of driver type ``kind``.
-
-    Raises
-    ------
-    InputError
-        For a type no driver has, listing those there are.
-    """
-    if isinstance(kind, str) and kind in _registered:
-        return _registered[kind]
-    where = DRIVER_MODULES.get(kind) if isinstance(kind, str) else None
-    if where is None:
-        raise InputError(f"expected one of {driver_types()}, got {kind!r}")
-    module, _, attribute = where.partition(":")
-    spec = getattr(importlib.import_module(module), attribute or "SPEC")
-    if spec.type != kind:
-        raise InputError(f"{where} defines driver type {spec.type!r}, not {kind!r}")
-    return spec
+    """The spec of driver type ``kind``; an :class:`InputError` for a type no driver has, listing
+    those there are."""
+    return DRIVERS.spec(kind)
 
 
 def source_keys(spec: DriverSpec) -> dict[str, Key]:
     """A source's keys in a scene: its driver's, and how streams read it (``mapping``)."""
     return {**spec.keys, "mapping": MAPPING}
+
+
+# -- sinks ---------------------------------------------------------------------------------------------
+
+#: Type -> the module holding the sink's spec (``SPEC``, or the attribute after a colon).
+SINK_MODULES = {
+    "text": "supramodal.node.sinks:TEXT",
+    "jsonl": "supramodal.node.sinks:JSONL",
+    "lsl": "supramodal.node.lsl_outlets",
+    "lsl-signal": "supramodal.node.lsl_signal",
+}
+#: What a sink may need built before it is made: nothing (it is made first, so that a file is
+#: checked before any training), the streams (their banks, features and models), or the sources.
+NEEDS = ("nothing", "streams", "sources")
+
+
+@dataclass(frozen=True)
+class SinkContext:
+    """What a sink spec's ``build`` may use besides its options.
+
+    Attributes
+    ----------
+    where : str
+        The sink's table in messages (``"s.toml: [[sink]] #2"``).
+    resolve : callable
+        ``resolve(path) -> Path``, relative to the scene file's folder.
+    overwrite : bool
+        Whether a file sink may replace an existing file (``run --force``).
+    streams : dict
+        Stream name -> the built ``node.streams.Stream`` (its pipeline and model), for sinks that
+        need the streams; ``"fused"`` is not among them.
+    fused_classes : tuple of str or None
+        The fusion's classes, when the scene has one.
+    sources : dict
+        Source name -> ``(driver, driver options, [(bank, mapping)] of the streams that read it)``,
+        for sinks that need the sources.
+    """
+
+    where: str
+    resolve: Callable[[str], Path] = Path
+    overwrite: bool = False
+    streams: Mapping[str, Any] = field(default_factory=dict)
+    fused_classes: tuple | None = None
+    sources: Mapping[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class SinkSpec:
+    """A kind of sink as a scene sees it.
+
+    Attributes
+    ----------
+    type : str
+        The name a scene gives it (``[[sink]] type``).
+    keys : mapping of str to Key
+        Its keys besides ``type`` and ``from`` (what it listens to: added for a sink of windows)
+        or ``source`` (added for a sink of samples).
+    build : callable
+        ``build(options, context) -> Sink`` (or a ``node.taps.Tap`` for a sink of samples),
+        ``options`` validated; raises ``drivers.spec.OptionError`` naming the key.
+    summary : str
+        One line for the docs.
+    listens : {"windows", "samples"}
+        A sink of the streams' window events (routed by ``from``), or of a source's samples (a tap
+        on the ring of ``source``).
+    needs : {"nothing", "streams", "sources"}
+        What must be built before it (:data:`NEEDS`).
+    unique : tuple of str
+        Keys whose values two sinks of this type may not share (one outlet name for two outlets).
+    """
+
+    type: str
+    keys: Mapping[str, Key]
+    build: Callable[[dict, SinkContext], Any]
+    summary: str
+    listens: str = "windows"
+    needs: str = "nothing"
+    unique: tuple[str, ...] = ()
+
+
+SINKS = Registry("sink", SINK_MODULES, SinkSpec)
+
+#: ``from``: the streams a sink of windows listens to.
+FROM = Key(lambda v: text(v) or isinstance(v, list) and bool(v) and all(text(x) for x in v),
+           'a stream name or a list of them ("fused": the fusion block\'s decisions; default: every stream)', None)
+#: ``source``: the source whose samples a sink of samples sends.
+SOURCE = Key(is_name, "the name of the [[source]] whose samples it sends (default: the scene's only source)", None)
+
+
+def register_sink(spec: SinkSpec, replace: bool = False) -> SinkSpec:
+    """Make ``spec`` a sink type scenes may name (a sink defined outside the package); returns it."""
+    return SINKS.register(spec, replace)
+
+
+def sink_types() -> list[str]:
+    """Every sink type a scene may name, sorted."""
+    return SINKS.types()
+
+
+def sink_spec(kind) -> SinkSpec:
+    """The spec of sink type ``kind``; an :class:`InputError` for a type no sink has."""
+    return SINKS.spec(kind)
+
+
+def sink_keys(spec: SinkSpec) -> dict[str, Key]:
+    """A sink's keys in a scene: its own, and what it listens to (``from`` or ``source``)."""
+    return {**spec.keys, **({"source": SOURCE} if spec.listens == "samples" else {"from": FROM})}

@@ -53,9 +53,7 @@ from supramodal.errors import InputError
 from supramodal.features import DEFAULT_WINDOW, FEATURE_TABLE, FEATURES
 from supramodal.node.events import FUSED_STREAM, MAIN_STREAM
 from supramodal.node.fusion import DEFAULT_MAX_WAIT, DEFAULT_WEIGHT
-from supramodal.node.lsl_outlets import DEFAULT_PREFIX
-from supramodal.node.lsl_signal import DEFAULT_SIGNAL_CHUNK, DEFAULT_WAIT_FOR_CONSUMER, SIGNAL_CHUNK_RANGE
-from supramodal.node.registry import driver_spec, driver_types, source_keys
+from supramodal.node.registry import driver_spec, driver_types, sink_keys, sink_spec, source_keys
 from supramodal.peaks import DEFAULT_PEAK_MODE, PEAK_MODES
 
 
@@ -63,8 +61,6 @@ class SceneError(InputError):
     """A scene file is unreadable or does not fit the schema; the message names the key."""
 
 
-#: Longest feature window a scene may ask for, seconds (the paper's is 0.1 s; a fit tries up to 1 s).
-MAX_WINDOW = 60.0
 #: Longest ring a scene may ask for, seconds of its source (node.build also bounds its bytes).
 MAX_BUFFER_SECONDS = 600.0
 
@@ -95,15 +91,14 @@ SECTIONS = {
     "features": {
         "names": Key(_features, "a list of distinct names drawn from "
                      + "; ".join(f"{f.name} ({f.description})" for f in FEATURE_TABLE.values()), ["Af"]),
-        "window": Key(positive(MAX_WINDOW), f"seconds, > 0 and at most {MAX_WINDOW:g}", DEFAULT_WINDOW),
+        "window": Key(positive(), "seconds, > 0 (at most MAX_WINDOW_SAMPLES samples)", DEFAULT_WINDOW),
         "peak_mode": Key(one_of(*PEAK_MODES), f"one of {list(PEAK_MODES)}", DEFAULT_PEAK_MODE),
         "peak_threshold": Key(non_negative(), "smallest peak amplitude counted, >= 0", 0.0),
         "dtype": Key(one_of("float64", "float32"), '"float64" or "float32"', "float64"),
         # Not the pipeline's default (whole windows): a live node runs each 10 ms as it comes, so
         # that only a window's last 10 ms is left to run when it closes (its decision latency).
-        "chunk": Key(non_negative(MAX_WINDOW), "seconds of each window run as soon as they are in, at fixed "
-                                               f"stream indices, 0 to {MAX_WINDOW:g} (0: each window whole when it "
-                                               "closes)", 0.01),
+        "chunk": Key(non_negative(), "seconds of each window run as soon as they are in, at fixed stream "
+                                     "indices, >= 0 (0: each window whole when it closes)", 0.01),
         # Not the pipeline's default ("raise"): a live node replaces and counts a bad sample
         # rather than stopping.
         "nonfinite": Key(one_of("raise", "zero"), '"raise" or "zero"', "zero"),
@@ -136,40 +131,6 @@ SECTIONS = {
     },
 }
 
-
-def _from(v):
-    return (text(v) or isinstance(v, list) and v and all(text(x) for x in v))
-
-
-_FROM = Key(_from, 'a stream name or a list of them ("fused": the fusion block\'s decisions; default: every stream)',
-            None)
-SINK_KEYS = {
-    "text": {"path": Key(text, '"-" (stdout) or a file path', "-"), "from": _FROM},
-    "jsonl": {"path": Key(text, '"-" (stdout) or a file path', "-"), "from": _FROM},
-    # Window events as Lab Streaming Layer outlets (needs the "lsl" extra; node/lsl_outlets.py).
-    "lsl": {"from": _FROM,
-            "outputs": Key(lambda v: isinstance(v, list) and v and len(set(v)) == len(v)
-                           and set(v) <= {"features", "decisions", "posteriors"},
-                           'a list drawn from "features", "decisions" and "posteriors"',
-                           ["features", "decisions", "posteriors"]),
-            "prefix": Key(is_name, "the outlets' name prefix: " + NAME_HELP[len("a name: "):], DEFAULT_PREFIX)},
-    # A source's samples as a Lab Streaming Layer outlet (needs the "lsl" extra; node/lsl_signal.py).
-    "lsl-signal": {
-        "source": Key(is_name, "the name of the [[source]] whose samples it sends (default: the scene's only source)",
-                      None),
-        "chunk": Key(number(*SIGNAL_CHUNK_RANGE),
-                     f"seconds of samples per push, {SIGNAL_CHUNK_RANGE[0]:g} to {SIGNAL_CHUNK_RANGE[1]:g}",
-                     DEFAULT_SIGNAL_CHUNK),
-        "prefix": Key(is_name, "the outlet's name prefix: " + NAME_HELP[len("a name: "):], DEFAULT_PREFIX),
-        # None: what the source is (its banks' kind, else its driver's signal type).
-        "stream_type": Key(text, 'the LSL stream\'s type, e.g. "Whiskers" (default: what the source is)', None),
-        "wait_for_consumer": Key(non_negative(), "seconds to wait for a consumer before the node starts, >= 0 (0: "
-                                                 "start at once; a file sent to another machine needs a wait)",
-                                 DEFAULT_WAIT_FOR_CONSUMER),
-    },
-}
-#: Sink types that listen to a source's samples rather than to streams' windows.
-SOURCE_SINKS = ("lsl-signal",)
 
 #: [fusion] weight: learned at start-up on the models' held-out training windows.
 LEARN = "learn"
@@ -377,25 +338,29 @@ def _sinks(d: dict, source: str, streams, sources=(MAIN_STREAM,), base_dir: Path
         raise SceneError(f"{source}: [[sink]] must be a list of at least one sink table")
     sinks = []
     for i, s in enumerate(sinks_in):
-        if not isinstance(s, dict) or s.get("type") not in SINK_KEYS:
-            raise SceneError(f"{source}: [[sink]] #{i + 1} type: expected one of {sorted(SINK_KEYS)}, got "
-                             f"{s.get('type') if isinstance(s, dict) else s!r}")
-        sink = {"type": s["type"], **_fill(f"{source}: [[sink]] #{i + 1}", {k: v for k, v in s.items() if k != "type"},
-                                             SINK_KEYS[s["type"]])}
-        if sink["type"] in SOURCE_SINKS:
+        where = f"{source}: [[sink]] #{i + 1}"
+        if not isinstance(s, dict):
+            raise SceneError(f"{where} must be a table")
+        try:
+            spec = sink_spec(s.get("type"))
+        except InputError as exc:
+            raise SceneError(f"{where} type: {exc}") from None
+        sink = {"type": s["type"], **_fill(where, {k: v for k, v in s.items() if k != "type"}, sink_keys(spec))}
+        if spec.listens == "samples":
             if sink["source"] is None and len(sources) > 1:
-                raise SceneError(f"{source}: [[sink]] #{i + 1} source: the scene has sources {list(sources)}; "
-                                 "name the one whose samples it sends")
+                raise SceneError(f"{where} source: the scene has sources {list(sources)}; name the one whose samples "
+                                 "it sends")
             sink["source"] = sink["source"] or sources[0]
             if sink["source"] not in sources:
-                raise SceneError(f"{source}: [[sink]] #{i + 1} source: no source {sink['source']!r}; the scene's "
-                                 f"sources are {list(sources)}")
-            same = next((k for k, o in enumerate(sinks) if o["type"] == sink["type"]
-                         and (o["source"], o["prefix"]) == (sink["source"], sink["prefix"])), None)
-            if same is not None:
-                raise SceneError(f"{source}: [[sink]] #{i + 1} sends source {sink['source']!r} with prefix "
-                                 f"{sink['prefix']!r} as [[sink]] #{same + 1} does: one stream name for two outlets; "
-                                 "give it another prefix, or remove one")
+                raise SceneError(f"{where} source: no source {sink['source']!r}; the scene's sources are "
+                                 f"{list(sources)}")
+        same = next((k for k, o in enumerate(sinks) if spec.unique and o["type"] == sink["type"]
+                     and all(o[u] == sink[u] for u in spec.unique)), None)
+        if same is not None:
+            said = " with ".join(f"{u} {sink[u]!r}" for u in spec.unique)
+            raise SceneError(f"{where} sends {said} as [[sink]] #{same + 1} does: one stream name for two outlets; "
+                             "change one, or remove one")
+        if spec.listens == "samples":
             sinks.append(sink)
             continue
         if sink.get("path", "-") != "-":
@@ -492,7 +457,7 @@ def _graph_scene(d: dict, source: str, base_dir: Path) -> Scene:
                 raise SceneError(f"{source}: [fusion] streams: stream {n!r} has no model to fuse; give it "
                                  "[stream.model] path or train_on_start")
     sinks = _sinks(d, source, stream_names + ([FUSED_STREAM] if fusion else []), names, base_dir)
-    sent = {s["source"] for s in sinks if s["type"] in SOURCE_SINKS}
+    sent = {s["source"] for s in sinks if sink_spec(s["type"]).listens == "samples"}
     unused = [n for n in names if n not in {s.source for s in streams} | sent]
     if unused:
         raise SceneError(f"{source}: [[source]] {unused[0]!r} feeds no [[stream]]: add a stream that reads it, "

@@ -13,8 +13,8 @@ import re
 import sys
 from pathlib import Path
 
-from supramodal.node.registry import driver_spec, driver_types, source_keys
-from supramodal.node.scene import FUSION_KEYS, SECTIONS, SINK_KEYS, SOURCE_KEYS, STREAM_KEYS
+from supramodal.node.registry import driver_spec, driver_types, sink_keys, sink_spec, sink_types, source_keys
+from supramodal.node.scene import FUSION_KEYS, SECTIONS, SOURCE_KEYS, STREAM_KEYS
 
 __all__ = ["BLOCKS", "blocks", "check", "main", "rewrite"]
 
@@ -52,8 +52,9 @@ def blocks() -> dict[str, str]:
         lines += [f"#### `[{section}]`", ""] + _keys_table(keys) + [""]
     out["section-keys"] = "\n".join(lines).rstrip()
     lines = []
-    for kind, keys in SINK_KEYS.items():
-        lines += [f"#### `[[sink]] type = \"{kind}\"`", ""] + _keys_table(keys) + [""]
+    for kind in sink_types():
+        spec = sink_spec(kind)
+        lines += [f"#### `[[sink]] type = \"{kind}\"`: {spec.summary}", ""] + _keys_table(sink_keys(spec)) + [""]
     out["sink-keys"] = "\n".join(lines).rstrip()
     lines = ["#### `[[source]]`: a driver's keys (above) and", ""] + _keys_table(SOURCE_KEYS) + [""]
     lines += ["#### `[[stream]]`: `[stream.bank]`, `[stream.features]`, `[stream.model]`, `[stream.decision]` "

@@ -34,9 +34,12 @@ from typing import TextIO
 
 import numpy as np
 
+from supramodal.checks import Key, text
 from supramodal.drivers.base import DriverEvent
+from supramodal.drivers.spec import OptionError
 from supramodal.node.events import MAIN_STREAM, WindowEvent
 from supramodal.node.outputs import check_new_file
+from supramodal.node.registry import SinkSpec
 from supramodal.errors import InputError
 
 
@@ -430,11 +433,22 @@ class QueuedSink(Sink):
         self.sink.close()
 
 
-SINKS = {"text": TextSink, "jsonl": JsonLinesSink}
+# -- as a scene names them ---------------------------------------------------------------------------
+
+def _file_sink(kind: type[FileSink]):
+    def build(options: dict, context) -> Sink:
+        path = options["path"] if options["path"] == "-" else str(context.resolve(options["path"]))
+        try:
+            sink = kind(path, context.overwrite)
+        except InputError as exc:
+            raise OptionError(f"path: {exc}") from None
+        # Behind its own queue: processing never waits on a slow disk or a stalled terminal.
+        return QueuedSink(sink)
+    return build
 
 
-def make_sink(kind: str, path: str = "-", overwrite: bool = False) -> Sink:
-    if kind not in SINKS:
-        raise InputError(f"unknown sink {kind!r}; sinks are {sorted(SINKS)}")
-    return SINKS[kind](path, overwrite)
-
+_PATH = Key(text, '"-" (stdout) or a file path', "-")
+TEXT = SinkSpec(type="text", keys={"path": _PATH}, build=_file_sink(TextSink),
+                summary="one line per window, for people (stdout or a file)")
+JSONL = SinkSpec(type="jsonl", keys={"path": _PATH}, build=_file_sink(JsonLinesSink),
+                 summary="one JSON object per window, driver event and summary (stdout or a file)")

@@ -19,7 +19,7 @@ import pytest
 from supramodal.drivers.base import Block, DriverClosed
 from supramodal.drivers.microphone import CaptureBuffer, MicrophoneDriver
 from supramodal.node.graph import Node
-from supramodal.node.sinks import ListSink, make_sink
+from supramodal.node.sinks import ListSink, TextSink
 from supramodal.banks import whisker_bank
 from supramodal.pipeline import FeaturePipeline
 
@@ -92,7 +92,7 @@ def test_a_fill_longer_than_the_ring_stays_filled_and_drops_nothing(tmp_path):
     script = [(50, False)] * 40 + [(fill + after, mask)] + [(50, False)] * 40
     driver = ScriptDriver(script)
     text_path = tmp_path / "out.txt"
-    text = make_sink("text", str(text_path))
+    text = TextSink(str(text_path))
     node, sink = _node(driver, buffer_seconds=2.0, sinks=[text])
     driver.wait_for = node
     node.run()

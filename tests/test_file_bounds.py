@@ -305,6 +305,5 @@ def test_a_scene_asking_for_an_unbounded_window_or_bank_is_refused_before_alloca
     from supramodal.node.scene import scene_from_dict
 
     bank = {"kind": "cochlea"} if section == "bank" else {}
-    scene = scene_from_dict({section: {**bank, key: value}, "driver": {"type": "synth", "seconds": 1.0}})
-    with pytest.raises(InputError, match=named):
-        build_node(scene)
+    with pytest.raises(InputError, match=named):         # when the scene is read, or when it is built
+        build_node(scene_from_dict({section: {**bank, key: value}, "driver": {"type": "synth", "seconds": 1.0}}))

@@ -468,7 +468,7 @@ def test_nonfinite_and_out_of_range_samples_are_replaced_counted_and_reported(tm
     """A stream with NaN, Inf and a sample beyond the filterbank's max_input runs on (policy "zero"):
     each kind counted apart in the summary and shown in the text sink's summary line, and the
     feature windows are those of the stream with those samples set to 0."""
-    from supramodal.node.sinks import make_sink
+    from supramodal.node.sinks import TextSink
 
     _, x = whisker_signal
     x = x[:20000].copy()
@@ -478,7 +478,7 @@ def test_nonfinite_and_out_of_range_samples_are_replaced_counted_and_reported(tm
         x[i] = v
     pipeline = FeaturePipeline(whisker_bank(), ("Af",), nonfinite="zero")
     listed, text_path = ListSink(), tmp_path / "out.txt"
-    text = make_sink("text", str(text_path))
+    text = TextSink(str(text_path))
     Node(_ArrayDriver(x, 5000.0, seed=7), pipeline, [listed, text], overrun="block").run()
     text.close()
     s = listed.final

@@ -12,16 +12,18 @@ import numpy as np
 import pytest
 
 from supramodal.checks import Key, integer, positive
-from supramodal.drivers.base import Block, DriverClosed
+from supramodal.drivers.base import Block, DriverBase, DriverClosed
 from supramodal.drivers.spec import Built, BuildContext, DriverSpec, OptionError
 from supramodal.node import registry
 from supramodal.node.build import build_node
 from supramodal.node.scene import SceneError, scene_from_dict
-from supramodal.node.sinks import ListSink
+from supramodal.node.registry import SinkSpec
+from supramodal.node.sinks import ListSink, Sink
 
 
-class ToneDriver:
-    """A driver no one in the package wrote: a sine on every channel, ``seconds`` long."""
+class ToneDriver(DriverBase):
+    """A driver no one in the package wrote: a sine on every channel, ``seconds`` long (the base
+    gives the event log, the labels of a driver that has none and the context manager)."""
 
     def __init__(self, rate: float, channels: int, frequency: float, seconds: float, block: int) -> None:
         self.rate, self.channels, self.block = float(rate), int(channels), int(block)
@@ -35,13 +37,6 @@ class ToneDriver:
 
     def close(self) -> None:
         self.opened = False
-
-    def __enter__(self):
-        self.open()
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
 
     def read(self, timeout: float | None = None) -> Block | None:
         if self._pos >= self._n:
@@ -77,7 +72,7 @@ TONE = DriverSpec(type="tone", summary="a test tone", live=False, build=_build,
 def tone():
     registry.register_driver(TONE, replace=True)          # the one line
     yield TONE
-    registry._registered.pop("tone", None)
+    registry.DRIVERS.unregister("tone")
 
 
 def test_a_toy_driver_defined_here_runs_from_a_scene(tone):
@@ -142,7 +137,7 @@ def test_naming_a_driver_type_loads_only_its_module():
     code = ("import sys; from supramodal.node.scene import scene_from_dict; "
             "scene_from_dict({'driver': {'type': 'synth'}}); "
             "print(sorted(m for m in ('serial', 'sounddevice', 'supramodal.drivers.microphone', "
-            "'supramodal.drivers.serial_whisker', 'pylsl') if m in sys.modules))")
+            "'supramodal.drivers.serial_whisker', 'supramodal.drivers.lsl', 'supramodal.node.lsl_outlets', 'pylsl') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"
 
@@ -161,3 +156,55 @@ def test_the_docs_key_tables_are_the_schemas():
     assert "| `timing` |" in made["driver-keys"] and "| `labels` |" in made["driver-keys"]
     node_md = (root / "docs/node.md").read_text()
     assert all(f'`type = "{kind}"`' in node_md for kind in registry.driver_types())
+
+
+class TallySink(Sink):
+    """A sink no one in the package wrote: counts each stream's windows and decisions."""
+
+    def __init__(self, label: str, tallies: dict) -> None:
+        self.label, self.tallies = label, tallies
+        self.closed = False
+
+    def emit(self, event) -> None:
+        key = (self.label, event.stream, event.decision)
+        self.tallies[key] = self.tallies.get(key, 0) + 1
+
+    def close(self) -> None:
+        self.closed = True
+
+
+TALLIES: dict = {}
+TALLY = SinkSpec(type="tally", summary="counts windows", keys={"label": Key(lambda v: isinstance(v, str), "a label", "t")},
+                 build=lambda options, context: TallySink(options["label"], TALLIES))
+
+
+@pytest.fixture
+def tally():
+    registry.register_sink(TALLY, replace=True)          # the one line
+    TALLIES.clear()
+    yield TALLY
+    registry.SINKS.unregister("tally")
+
+
+def test_a_toy_sink_defined_here_runs_from_a_scene_beside_the_built_in_ones(tone, tally, tmp_path):
+    scene = scene_from_dict({"driver": {"type": "tone", "frequency": 120.0, "seconds": 0.55},
+                             "sink": [{"type": "tally", "label": "x"}, {"type": "jsonl", "path": "w.jsonl"}]},
+                            str(tmp_path / "s.toml"), tmp_path)
+    assert scene.sinks[0] == {"type": "tally", "label": "x", "from": None}
+    build_node(scene).run()
+    assert TALLIES == {("x", "main", None): 5}            # no model: feature windows, no decision
+    assert len((tmp_path / "w.jsonl").read_text().splitlines()) == 5 + 1     # and the summary
+    with pytest.raises(SceneError, match=r"\[\[sink\]\] #1 label: expected a label, got 3"):
+        scene_from_dict({"driver": {"type": "tone"}, "sink": [{"type": "tally", "label": 3}]})
+    with pytest.raises(SceneError, match=r"\[\[sink\]\] #1 from: no stream 'elsewhere'"):
+        scene_from_dict({"driver": {"type": "tone"}, "sink": [{"type": "tally", "from": "elsewhere"}]})
+
+
+@pytest.mark.parametrize("kind", sorted(registry.SINK_MODULES))
+def test_every_built_in_sink_spec_fits_its_type_and_its_own_defaults(kind):
+    spec = registry.sink_spec(kind)
+    assert spec.type == kind and spec.summary and spec.listens in ("windows", "samples")
+    assert spec.needs in registry.NEEDS
+    for key, k in registry.sink_keys(spec).items():
+        if not k.required and k.default is not None:
+            assert k.check(k.default), (kind, key, k.default)
