@@ -379,6 +379,8 @@ def build_node(scene: Scene, speed=None, sinks_override=None, progress=None, rec
                     fusion = LateFusion((a.name, b.name), (a.model.classes, b.model.classes), late["weight"],
                                         max_wait, f["decision"], sharpness=late["sharpness"],
                                         correlation=late["correlation"])
+            except SceneError:
+                raise                           # says its table already
             except ValueError as exc:
                 raise SceneError(f"{scene.source}: [fusion] {exc}") from None
         if sinks_override is None:

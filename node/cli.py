@@ -211,6 +211,15 @@ def _count(lo: int):
     return parse
 
 
+def _session_name(text: str) -> str:
+    """A session's name: a file name part, never a path (refused at start, not after recording)."""
+    from supramodal.checks import NAME_HELP, is_name
+
+    if not is_name(text):
+        raise argparse.ArgumentTypeError(f"expected {NAME_HELP} (no folder: give that with --out), got {text!r}")
+    return text
+
+
 def _speed(text: str):
     from supramodal.replay.driver import SPEED_HELP, SPEED_MAX, is_speed
 
@@ -720,7 +729,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--force", action="store_true", help="replace an existing session of that name (default: refuse)")
     p.add_argument("scene", help="scene TOML file")
     p.add_argument("--out", required=True, type=_output_folder, help="folder for the session (created if missing)")
-    p.add_argument("--name", help="session name (default: session-DATE-TIME)")
+    p.add_argument("--name", type=_session_name,
+                   help="session name: letters, digits, '-' or '_' (default: session-DATE-TIME)")
     p.add_argument("--label", help="label of the whole recording")
     p.add_argument("--marks", action="store_true",
                    help="read labels from stdin while recording: a line starts that label now, an empty line ends it")

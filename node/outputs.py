@@ -22,7 +22,7 @@ def check_new_file(path: Path, overwrite: bool, what: str) -> None:
     if path.is_dir():
         raise InputError(f"{what} {path} is a folder; give a file name")
     if path.exists() and not overwrite:
-        raise InputError(f"{what} {path} exists; pass --force (overwrite=True) to replace it, or choose another path")
+        raise InputError(f"{what} {path} exists; pass --force to replace it, or choose another path")
     if not path.parent.is_dir():
         raise InputError(f"{what} {path}: the folder {path.parent} does not exist; create it first")
     if not os.access(path.parent, os.W_OK | os.X_OK):

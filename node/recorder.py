@@ -84,7 +84,7 @@ class SessionRecorder(Tap):
         for path in session_paths(self.folder / name):
             if path.exists() and not overwrite:
                 raise InputError(f"a session {name!r} exists in {self.folder} ({path.name}); pass --force "
-                                 "(overwrite=True) to replace it, or choose another name")
+                                 "to replace it, or choose another name")
         self.name = name
         self.source = source
         self.clock_rate: float | None = None

@@ -10,8 +10,8 @@ when the model is, finite, never clipped). The accumulated decision is the winne
   neighbouring windows, 0 = naive Bayes), or
 * ``"vote"``: the count of windows each class won (ties go to the larger summed posterior),
 
-over the last ``n`` windows (``scope="last"``) or over every window since the
-current contact began (``scope="contact"``). A contact is a run of consecutive
+over the last ``n`` windows (``scope="last"``) or over the windows since the
+current contact began, at most the last ``n`` (``scope="contact"``; ``n = 0``: every one). A contact is a run of consecutive
 windows whose input RMS is at least ``threshold``; a window below it ends the
 contact and resets the accumulation.
 

@@ -95,3 +95,31 @@ def test_a_graph_sources_build_errors_name_its_source_table(tmp_path):
                              "stream": [{"name": "whiskers", "source": "board"}]}, base_dir=tmp_path)
     with pytest.raises(SceneError, match=r"\[\[source\]\] board path: no recording at"):
         build_node(scene, sinks_override=[ListSink()])
+
+
+@pytest.mark.parametrize("name", ["../x", "a/b", "x" * 65, ""])
+def test_record_refuses_a_name_that_is_a_path_at_start(tmp_path, capsys, name):
+    """Item 14: `record --name ../x` was accepted and failed only after training and recording,
+    leaving an empty folder."""
+    from supramodal.node import cli
+
+    (tmp_path / "s.toml").write_text('[driver]\ntype = "synth"\nseconds = 0.5\n')
+    with pytest.raises(SystemExit) as exit_:
+        cli.main(["record", str(tmp_path / "s.toml"), "--out", str(tmp_path / "rec"), "--name", name])
+    assert exit_.value.code == 2
+    assert "--name: expected a name: letters, digits, '-' or '_', at most 64 characters" in capsys.readouterr().err
+    assert not (tmp_path / "rec").exists()
+
+
+def test_a_fused_model_error_names_its_table_once(tmp_path):
+    """Item 18: "t4.toml: [fusion] t4.toml: [fusion] model: ..." repeated its prefix."""
+    two = {"source": [{"name": "w", "type": "twosense", "sense": "whiskers", "seconds": 1.0},
+                      {"name": "m", "type": "twosense", "sense": "microphone", "seconds": 1.0}],
+           "stream": [{"name": "w", "source": "w", "model": {"train_on_start": True}},
+                      {"name": "m", "source": "m", "bank": {"kind": "cochlea"}, "model": {"train_on_start": True}}],
+           "fusion": {"streams": ["w", "m"], "method": "early", "model": "missing.npz"}}
+    scene = scene_from_dict(two, str(tmp_path / "t4.toml"), tmp_path)
+    with pytest.raises(SceneError) as caught:
+        build_node(scene, sinks_override=[ListSink()])
+    message = str(caught.value)
+    assert message.startswith(f"{tmp_path / 't4.toml'}: [fusion] model: ") and message.count("[fusion]") == 1, message
