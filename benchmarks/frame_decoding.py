@@ -13,7 +13,6 @@ import argparse
 import time
 
 import numpy as np
-
 from supramodal.drivers.frames import SYNC, FrameDecoder, encode_frame
 
 

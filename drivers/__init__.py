@@ -8,6 +8,6 @@ Hardware modules (``drivers.serial_whisker``, ``drivers.microphone``) import
 pyserial and sounddevice themselves, so ``import drivers`` alone imports neither.
 """
 
-from supramodal.drivers.base import Block, Driver, DriverError, DriverClosed, DeviceUnavailable
+from supramodal.drivers.base import Block, DeviceUnavailable, Driver, DriverClosed, DriverError
 
 __all__ = ["Block", "Driver", "DriverError", "DriverClosed", "DeviceUnavailable"]

@@ -32,8 +32,9 @@ from __future__ import annotations
 import threading
 import time
 from collections import Counter, deque
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Callable, ClassVar, Protocol, Self, Sequence, runtime_checkable
+from typing import ClassVar, Protocol, Self, runtime_checkable
 
 import numpy as np
 
@@ -261,7 +262,7 @@ class Driver(Protocol):
         (bounded log); any thread, never blocks but on a short lock."""
         ...
 
-    def __enter__(self) -> "Driver": ...
+    def __enter__(self) -> Driver: ...
 
     def __exit__(self, *exc) -> None: ...
 

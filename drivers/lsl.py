@@ -46,9 +46,9 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
-
 from supramodal.drivers.base import Block, DeviceUnavailable, DriverBase, DriverClosed, DriverError
-from supramodal.drivers.spec import Built, BuildContext, DriverSpec, OptionError, given
+from supramodal.drivers.spec import BuildContext, Built, DriverSpec, OptionError, given
+
 from supramodal.checks import Key, integer, positive, text
 from supramodal.errors import InputError
 

@@ -45,15 +45,15 @@ import queue
 import threading
 import time
 import traceback
-from typing import Any, Iterator
+from collections.abc import Iterator
+from typing import Any
 
 import numpy as np
-
-from supramodal.errors import InputError
-
 from supramodal.drivers.base import Block, DeviceUnavailable, DriverBase, DriverClosed, DriverError, EventLog
-from supramodal.drivers.spec import Built, BuildContext, DriverSpec, given
+from supramodal.drivers.spec import BuildContext, Built, DriverSpec, given
+
 from supramodal.checks import Key, integer, one_of, positive
+from supramodal.errors import InputError
 
 __all__ = ["MicrophoneDriver", "CaptureBuffer", "import_sounddevice"]
 

@@ -56,7 +56,6 @@ from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
-
 from supramodal.drivers.frames import (
     FLAG_OVERRUN,
     FULL_SCALE,
@@ -67,6 +66,7 @@ from supramodal.drivers.frames import (
     VERSION,
     encode_frame,
 )
+
 from supramodal.errors import InputError
 
 _TIOCPKT_FLUSHREAD = 0x01  # packet-mode status bit: the slave's input queue was flushed
@@ -372,7 +372,7 @@ class MockWhiskerDevice:
 
     # -- lifecycle -------------------------------------------------------------
 
-    def start(self) -> "MockWhiskerDevice":
+    def start(self) -> MockWhiskerDevice:
         """Start streaming (frame 0 is due one frame period from now)."""
         if self._thread is None:
             self._thread = threading.Thread(target=self._run, name="mock-whisker", daemon=True)
@@ -400,7 +400,7 @@ class MockWhiskerDevice:
                 pass
             self._tmpdir = None
 
-    def __enter__(self) -> "MockWhiskerDevice":
+    def __enter__(self) -> MockWhiskerDevice:
         return self
 
     def __exit__(self, *exc) -> None:
@@ -828,7 +828,7 @@ def _terminate_as_interrupt(signum, frame):
     raise KeyboardInterrupt
 
 
-def _serve(dev: "MockWhiskerDevice", args: argparse.Namespace, channels: int, rate: float) -> int:
+def _serve(dev: MockWhiskerDevice, args: argparse.Namespace, channels: int, rate: float) -> int:
     with dev:
         print(dev.port, flush=True)
         print(f"mock-whisker: {channels} channels at {rate:g} Hz, "

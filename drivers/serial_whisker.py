@@ -55,14 +55,11 @@ import stat
 import sys
 import termios
 import time
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 import serial
-
 from supramodal.drivers.base import Block, DeviceUnavailable, DriverBase, DriverClosed
-from supramodal.drivers.spec import Built, BuildContext, DriverSpec, OptionError, given
-from supramodal.checks import Key, integer, positive, text
 from supramodal.drivers.frames import (
     FLAG_OVERRUN,
     FULL_SCALE,
@@ -70,6 +67,9 @@ from supramodal.drivers.frames import (
     SEQ_MODULUS,
     FrameDecoder,
 )
+from supramodal.drivers.spec import BuildContext, Built, DriverSpec, OptionError, given
+
+from supramodal.checks import Key, integer, positive, text
 from supramodal.errors import InputError
 
 # What an unplug looks like from pyserial on Linux (measured, see

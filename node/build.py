@@ -10,14 +10,14 @@ from __future__ import annotations
 import json
 
 import numpy as np
-
 from supramodal.drivers.spec import BuildContext, OptionError
 from supramodal.node.band import warn_if_beyond_band
-from supramodal.node.registry import SinkContext, driver_spec, sink_spec
 from supramodal.node.graph import Graph
+from supramodal.node.registry import SinkContext, driver_spec, sink_spec
+from supramodal.node.scene import LEARN, Scene, SceneError, source_scene
 from supramodal.node.sources import Source
 from supramodal.node.streams import Labels, Stream, refuse_uncalibrated
-from supramodal.node.scene import LEARN, Scene, SceneError, source_scene
+
 from supramodal.bankfile import BANK_KEYS, BankFileError, bank_from_description, load_bank
 from supramodal.banks import Bank
 from supramodal.calibration import winner

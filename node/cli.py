@@ -141,8 +141,8 @@ def _cmd_experiment(args) -> int:
 def _cmd_synth(args) -> int:
     import numpy as np
     from scipy.io import wavfile
-
     from supramodal.node.outputs import check_new_file
+
     from supramodal.errors import InputError
     from supramodal.textures import load_texture_set, reference_texture_set, texture_samples
 
@@ -300,11 +300,12 @@ def _cmd_record(args) -> int:
     import threading
     import time
 
-    from supramodal.errors import InputError
     from supramodal.node.build import build_node
     from supramodal.node.graph_recording import graph_recorders, write_replay_scene
     from supramodal.node.recorder import SessionRecorder
     from supramodal.node.scene import load_scene
+
+    from supramodal.errors import InputError
 
     _interrupt_until_running()
     scene = load_scene(args.scene)
@@ -512,6 +513,7 @@ def _cmd_fit(args) -> int:
 
 def _cmd_evaluate(args) -> int:
     from supramodal.node.training import evaluate_manifest, format_evaluation
+
     from supramodal.model import TextureModel
 
     if args.scene:

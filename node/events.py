@@ -14,8 +14,8 @@ from collections import Counter, deque
 from dataclasses import dataclass, replace
 
 import numpy as np
-
 from supramodal.drivers.base import DriverEvent
+
 from supramodal.errors import InputError
 
 

@@ -19,17 +19,23 @@ from __future__ import annotations
 import warnings
 
 import numpy as np
-
-from supramodal.calibration import DEFAULT_CALIBRATION_FOLDS, calibration_report, winner
-from supramodal.errors import InputError, SupramodalWarning
-from supramodal.fused_model import (EarlyFusionModel, Sense, fused_pooling, held_out_scores,
-                                    learn_late_fusion_out_of_fold, senses_out_of_fold)
-from supramodal.mlp import DEFAULT_EPOCHS
-from supramodal.model import ModelError
 from supramodal.node.build import build_node
 from supramodal.node.events import FUSED_STREAM, log_posteriors_of
 from supramodal.node.scene import SceneError, load_scene
 from supramodal.node.sinks import ListSink
+
+from supramodal.calibration import DEFAULT_CALIBRATION_FOLDS, calibration_report, winner
+from supramodal.errors import InputError, SupramodalWarning
+from supramodal.fused_model import (
+    EarlyFusionModel,
+    Sense,
+    fused_pooling,
+    held_out_scores,
+    learn_late_fusion_out_of_fold,
+    senses_out_of_fold,
+)
+from supramodal.mlp import DEFAULT_EPOCHS
+from supramodal.model import ModelError
 
 #: How a fusion is learned from sessions.
 FUSION_METHODS = ("early", "late")

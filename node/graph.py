@@ -42,14 +42,15 @@ import threading
 import time
 from dataclasses import replace
 
-from supramodal.errors import InputError, SupramodalError
-from supramodal.model import TextureModel
 from supramodal.node.events import FUSED_STREAM, MAIN_STREAM, EventLimiter
 from supramodal.node.recorder import SessionRecorder
 from supramodal.node.sinks import Sink
 from supramodal.node.sources import Feed, Source
 from supramodal.node.streams import Labels, Stream, channel_mapper
 from supramodal.node.taps import Tap
+
+from supramodal.errors import InputError, SupramodalError
+from supramodal.model import TextureModel
 from supramodal.pipeline import FeaturePipeline
 
 __all__ = ["Graph", "Node", "NodeError", "Labels", "channel_mapper"]

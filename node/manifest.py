@@ -35,6 +35,7 @@ from pathlib import Path
 from supramodal.replay.errors import ReplayError
 from supramodal.replay.session import session_paths
 from supramodal.replay.wavio import WavInfo, wav_info
+
 from supramodal.errors import InputError
 
 __all__ = ["COLUMNS", "REQUIRED_COLUMNS", "ManifestError", "Recording", "read_manifest"]

@@ -18,8 +18,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from supramodal.checks import Key, is_name, text
 from supramodal.drivers.spec import DriverSpec
+
+from supramodal.checks import Key, is_name, text
 from supramodal.errors import InputError
 
 __all__ = ["DRIVER_MODULES", "MAPPING", "SINK_MODULES", "Registry", "SinkContext", "SinkSpec", "driver_spec",

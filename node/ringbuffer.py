@@ -122,7 +122,7 @@ class Reader:
     Use a reader from one thread only.
     """
 
-    def __init__(self, ring: "RingBuffer", name: str, cursor: int, start: int, lost: int,
+    def __init__(self, ring: RingBuffer, name: str, cursor: int, start: int, lost: int,
                  lost_filled: int):
         self._ring = ring
         self.name = name

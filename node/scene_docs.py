@@ -76,7 +76,8 @@ def rewrite(text: str, names, made: dict[str, str], where: str = "the file") -> 
         pattern = _pattern(name)
         if not pattern.search(text):
             raise ValueError(f"{where} has no generated block {name!r} (<!-- BEGIN generated: {name} --> ...)")
-        text = pattern.sub(lambda m: m.group(1) + made[name] + "\n" + m.group(2), text)
+        block = made[name]
+        text = pattern.sub(lambda m, block=block: m.group(1) + block + "\n" + m.group(2), text)
     return text
 
 

@@ -33,13 +33,13 @@ from pathlib import Path
 from typing import TextIO
 
 import numpy as np
-
-from supramodal.checks import Key, text
 from supramodal.drivers.base import DriverEvent
 from supramodal.drivers.spec import OptionError
 from supramodal.node.events import MAIN_STREAM, WindowEvent
 from supramodal.node.outputs import check_new_file
 from supramodal.node.registry import SinkSpec
+
+from supramodal.checks import Key, text
 from supramodal.errors import InputError
 
 

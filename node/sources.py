@@ -38,12 +38,12 @@ import math
 import queue
 import threading
 
+import numpy as np
 from supramodal.drivers.base import Block, Driver, DriverClosed, missing_members
 from supramodal.node.clock import ClockModel
 from supramodal.node.ringbuffer import RingBuffer
-from supramodal.errors import InputError
 
-import numpy as np
+from supramodal.errors import InputError
 
 TIMEBASES = ("stream", "host", "recorded")
 

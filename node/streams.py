@@ -16,15 +16,14 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
-
-from supramodal.decisions import DEFAULT_DECISION, ContactDetector
 from supramodal.drivers.base import Driver
-from supramodal.errors import InputError
-from supramodal.model import TextureModel
-from supramodal.decisions import Decider
 from supramodal.node.events import WindowEvent
 from supramodal.node.latency import LatencyHistogram
 from supramodal.node.ringbuffer import RingClosed
+
+from supramodal.decisions import DEFAULT_DECISION, ContactDetector, Decider
+from supramodal.errors import InputError
+from supramodal.model import TextureModel
 from supramodal.pipeline import FeaturePipeline
 
 
@@ -74,7 +73,7 @@ class Labels:
     period: float | None = None
 
     @classmethod
-    def of(cls, driver: Driver) -> "Labels":
+    def of(cls, driver: Driver) -> Labels:
         """The labels a driver carries (a replayed session's, repeating with its loop), or none (a
         :class:`~supramodal.drivers.base.DriverBase`'s ``labels`` are empty)."""
         ranges = [(lab.start, lab.end, lab.label) for lab in driver.labels]

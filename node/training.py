@@ -11,11 +11,11 @@ sees in training what the node feeds it live.
 from __future__ import annotations
 
 import numpy as np
-
 from supramodal.node.band import warn_if_beyond_band
-from supramodal.node.streams import channel_mapper
 from supramodal.node.manifest import ManifestError, Recording, read_manifest
+from supramodal.node.streams import channel_mapper
 from supramodal.replay.driver import ReplayDriver
+
 from supramodal.banks import Bank
 from supramodal.calibration import calibration_report, pool_log_posteriors, winner
 from supramodal.errors import SupramodalError

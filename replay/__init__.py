@@ -16,10 +16,10 @@ replay.driver
     :class:`ReplayDriver`, the pacing schedule and block-size policies.
 """
 
-from supramodal.replay.errors import ClippingWarning, ReplayError, SessionError, WavFormatError
-from supramodal.replay.wavio import WavInfo, read_wav, wav_info, write_wav
-from supramodal.replay.session import Label, Session, load_session, save_session, session_paths
 from supramodal.replay.driver import DeviceClock, ReplayDriver, random_block_sizes, release_time
+from supramodal.replay.errors import ClippingWarning, ReplayError, SessionError, WavFormatError
+from supramodal.replay.session import Label, Session, load_session, save_session, session_paths
+from supramodal.replay.wavio import WavInfo, read_wav, wav_info, write_wav
 
 __all__ = [
     "ClippingWarning",

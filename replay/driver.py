@@ -32,26 +32,26 @@ import os
 import sys
 import threading
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from fractions import Fraction
 from pathlib import Path
-from typing import Callable, Sequence, Union
 
 import numpy as np
 from scipy.signal import resample_poly
-
-from supramodal.checks import Key, flag, integer, is_number, one_of, text
 from supramodal.drivers.base import Block, DeviceUnavailable, DriverBase, DriverClosed, DriverError
-from supramodal.drivers.spec import Built, BuildContext, DriverSpec, OptionError, given
+from supramodal.drivers.spec import BuildContext, Built, DriverSpec, OptionError, given
 from supramodal.replay.errors import ReplayError
 from supramodal.replay.session import Label, Session, load_session, session_paths
 from supramodal.replay.wavio import read_wav
+
+from supramodal.checks import Key, flag, integer, is_number, one_of, text
 
 __all__ = ["ReplayDriver", "DeviceClock", "SPEC", "SPEED_HELP", "SPEED_MAX", "TIMINGS", "is_speed", "release_time", "random_block_sizes", "RandomBlockSizes", "BlockSize"]
 
 #: What ``block_size`` accepts: frames per block, a sequence cycled through,
 #: or a callable drawing each size from a :class:`numpy.random.Generator`.
-BlockSize = Union[int, Sequence[int], Callable[[np.random.Generator], int], None]
+BlockSize = int | Sequence[int] | Callable[[np.random.Generator], int] | None
 
 
 #: How a replay is paced: ``"nominal"``, block ``k`` when its last frame is due at the source's

@@ -50,14 +50,15 @@ import json
 import math
 import os
 import tempfile
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable, Mapping
+from typing import Any
 
 import numpy as np
-
 from supramodal.replay.errors import MissingSidecarError, SessionError
 from supramodal.replay.wavio import as_frames, read_wav, wav_info, write_wav
+
 from supramodal.errors import InputError
 from supramodal.jsondata import read_json_file
 
@@ -110,7 +111,7 @@ class Label:
     end: float
     label: str
 
-    def shifted(self, seconds: float) -> "Label":
+    def shifted(self, seconds: float) -> Label:
         """The same label moved later by ``seconds``."""
         return Label(self.start + seconds, self.end + seconds, self.label)
 
@@ -436,7 +437,7 @@ def _validate_labels(raw, duration: float, slack: float, bad) -> tuple[Label, ..
                       "clip it to the recording or pair the sidecar with the right WAV")
         if out and s < out[-1].end:
             prev = out[-1]
-            problem = ("starts before labels[%d] ([%s, %s) %r)" % (i - 1, prev.start, prev.end, prev.label))
+            problem = f"starts before labels[{i - 1}] ([{prev.start}, {prev.end}) {prev.label!r})"
             fix = ("put labels in time order" if s < prev.start else
                    "labels must not overlap; end the earlier one where this one starts")
             raise bad(key, f"[{s}, {e}) {problem}", fix)

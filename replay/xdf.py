@@ -40,13 +40,13 @@ import warnings
 from pathlib import Path
 
 import numpy as np
-
 from supramodal.drivers.base import DeviceUnavailable
 from supramodal.drivers.lsl import DEFAULT_GAP_TOLERANCE, DEFAULT_MAX_GAP, TimestampSteps
+from supramodal.drivers.spec import BuildContext, Built, DriverSpec, OptionError
 from supramodal.replay.errors import ReplayError, XdfDamageWarning
-from supramodal.checks import Key, text
-from supramodal.drivers.spec import Built, BuildContext, DriverSpec, OptionError
 from supramodal.replay.session import Label, Session
+
+from supramodal.checks import Key, text
 
 #: Seconds per replayed block of an XDF stream.
 XDF_BLOCK_SECONDS = 0.01

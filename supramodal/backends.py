@@ -59,7 +59,7 @@ class ReferenceFilterbank(FilterbankBase):
         self._zi = [[np.zeros(3, complex), np.zeros(1, complex), np.zeros(1, complex), np.zeros(1, complex)]
                     for _ in range(self.channels)]
 
-    def _fresh(self) -> "ReferenceFilterbank":
+    def _fresh(self) -> ReferenceFilterbank:
         return ReferenceFilterbank(self.bank)
 
     def _filter(self, x: np.ndarray, out: np.ndarray | None) -> np.ndarray:

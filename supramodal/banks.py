@@ -17,8 +17,8 @@ Conventions (see docs/model.md)
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 
@@ -150,7 +150,7 @@ class Bank:
         }
 
     @classmethod
-    def from_dict(cls, d: dict) -> "Bank":
+    def from_dict(cls, d: dict) -> Bank:
         """Inverse of :meth:`to_dict`; raises InputError on a malformed description."""
         try:
             return cls(kind=str(d["kind"]), fs=float(d["fs"]), cf=np.asarray(d["cf"], float),
@@ -158,7 +158,7 @@ class Bank:
         except (KeyError, TypeError) as exc:
             raise InputError(f"malformed bank description: {exc!r}; expected keys kind, fs, cf, b, names") from exc
 
-    def matches(self, other: "Bank") -> bool:
+    def matches(self, other: Bank) -> bool:
         """True if both banks filter identically (same rate, cf and b to 1e-12, same names)."""
         return (
             self.channels == other.channels

@@ -21,13 +21,14 @@ has arrived: no look-ahead into the next block, no added latency in a stream.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 
 from supramodal.errors import InputError
 from supramodal.peaks import Peaks
+
 
 @dataclass(frozen=True)
 class Feature:

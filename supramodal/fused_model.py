@@ -29,16 +29,40 @@ from pathlib import Path
 
 import numpy as np
 
-from supramodal.calibration import (DEFAULT_CALIBRATION_FOLDS, POOLING_RUN, Calibration, Novelty, calibration_folds,
-                                    calibration_report, fit_network_calibration, fit_pooling, fit_window_calibration,
-                                    input_scaling, normalised_log_posteriors)
+from supramodal.calibration import (
+    DEFAULT_CALIBRATION_FOLDS,
+    POOLING_RUN,
+    Calibration,
+    Novelty,
+    calibration_folds,
+    calibration_report,
+    fit_network_calibration,
+    fit_pooling,
+    fit_window_calibration,
+    input_scaling,
+    normalised_log_posteriors,
+)
 from supramodal.errors import InputError
 from supramodal.fusion import early_inputs, fuse_late, learn_late_fusion
 from supramodal.mlp import DEFAULT_EPOCHS, MLP, train_mlp
-from supramodal.model import (CALIBRATION_KEYS, NOVELTY_ARRAYS, SENSE_KEYS, ModelError, TextureModel,
-                              calibration_from_parts, calibration_header, check_sense_fits, classes_from_header,
-                              log_posteriors_of, network_from_arrays, novelty_arrays, read_model_archive,
-                              save_model_archive, sense_from_header, sense_header)
+from supramodal.model import (
+    CALIBRATION_KEYS,
+    NOVELTY_ARRAYS,
+    SENSE_KEYS,
+    ModelError,
+    TextureModel,
+    calibration_from_parts,
+    calibration_header,
+    check_sense_fits,
+    classes_from_header,
+    log_posteriors_of,
+    network_from_arrays,
+    novelty_arrays,
+    read_model_archive,
+    save_model_archive,
+    sense_from_header,
+    sense_header,
+)
 
 EARLY_FORMAT = "supramodal-early-model"
 EARLY_VERSION = 2
@@ -58,7 +82,7 @@ class Sense:
     peak_threshold: float = 0.0
 
     @classmethod
-    def of(cls, name: str, pipeline) -> "Sense":
+    def of(cls, name: str, pipeline) -> Sense:
         """The sense a :class:`~supramodal.pipeline.FeaturePipeline` computes."""
         return cls(name, pipeline.bank, tuple(pipeline.features), pipeline.window_samples, pipeline.peaks.mode,
                    float(pipeline.peaks.threshold))
@@ -117,7 +141,7 @@ class EarlyFusionModel:
     @classmethod
     def train(cls, senses, values_a: np.ndarray, values_b: np.ndarray, labels, classes,
               epochs: int = DEFAULT_EPOCHS, seed: int = 0, hidden: int | None = None, groups=None,
-              calibration_folds: int = DEFAULT_CALIBRATION_FOLDS, calibration_progress=None) -> "EarlyFusionModel":
+              calibration_folds: int = DEFAULT_CALIBRATION_FOLDS, calibration_progress=None) -> EarlyFusionModel:
         """Fit the scaling and the MLP on aligned windows, then their calibration.
 
         ``values_a[k]`` and ``values_b[k]`` cover the same time, shapes (n, features, channels) of
@@ -193,7 +217,7 @@ class EarlyFusionModel:
         return save_model_archive(path, self.header(), self.mlp, self.mean, self.scale, novelty_arrays(self.novelty))
 
     @classmethod
-    def load(cls, path) -> "EarlyFusionModel":
+    def load(cls, path) -> EarlyFusionModel:
         """Read and validate an early-fusion model file; :class:`ModelError` says what is wrong."""
         path = Path(path)
         header, arrays = read_model_archive(path, optional=NOVELTY_ARRAYS)

@@ -8,7 +8,6 @@ k of the other (pairing windows of live streams on a common clock is the node's 
 from __future__ import annotations
 
 import numpy as np
-
 from scipy.special import log_softmax
 
 from supramodal.calibration import log_loss, winner

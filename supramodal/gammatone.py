@@ -485,7 +485,7 @@ class FilterbankBase:
     def _filter(self, x: np.ndarray, out: np.ndarray | None) -> np.ndarray:
         raise NotImplementedError
 
-    def _fresh(self) -> "FilterbankBase":
+    def _fresh(self) -> FilterbankBase:
         raise NotImplementedError
 
     def impulse_response(self, n: int) -> np.ndarray:
@@ -496,7 +496,7 @@ class FilterbankBase:
         return self._fresh().process(x)
 
 
-def _shift(l: float) -> np.ndarray:
+def _shift(l: float) -> np.ndarray:  # noqa: E741 (l: the lag, as the docstring and the derivation name it)
     """``B(l)``, shape (4, 4): moments ``l`` samples later, pole factor aside: ``S'_j = sum_r B[j, r] S_r``.
 
     ``(t + l)**j`` expanded: ``B[j, r] = C(j, r) l**(j - r)`` for ``r <= j``, else 0. Real,
@@ -915,7 +915,7 @@ class GammatoneFilterbank(FilterbankBase):
         for group in self._groups:
             group.reset()
 
-    def _fresh(self) -> "GammatoneFilterbank":
+    def _fresh(self) -> GammatoneFilterbank:
         return GammatoneFilterbank(self.bank, self.dtype, self.subblock)
 
     def _layout(self, L: int, group: int = 0) -> list:

@@ -85,7 +85,7 @@ class MLP:
     b2: np.ndarray
 
     @classmethod
-    def create(cls, inputs: int, hidden: int, outputs: int, seed=None) -> "MLP":
+    def create(cls, inputs: int, hidden: int, outputs: int, seed=None) -> MLP:
         """FANN-style random start: every weight and bias uniform in [-0.1, 0.1]."""
         for name, v in (("inputs", inputs), ("hidden", hidden), ("outputs", outputs)):
             if v < 1:

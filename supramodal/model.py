@@ -39,9 +39,15 @@ from pathlib import Path
 
 import numpy as np
 
-from supramodal.calibration import (DEFAULT_CALIBRATION_FOLDS, Calibration, Novelty,
-                                    input_scaling, fit_network_calibration, normalised_log_posteriors)
 from supramodal.banks import COCHLEA_B_MIN, COCHLEA_Q_EAR, ERB_TO_B, WHISKER_TABLE, Bank, erb
+from supramodal.calibration import (
+    DEFAULT_CALIBRATION_FOLDS,
+    Calibration,
+    Novelty,
+    fit_network_calibration,
+    input_scaling,
+    normalised_log_posteriors,
+)
 from supramodal.errors import InputError
 from supramodal.features import check_features
 from supramodal.jsondata import parse_json_text
@@ -153,7 +159,7 @@ class TextureModel:
     def train(cls, values: np.ndarray, labels, classes, bank: Bank, features, window_samples: int,
               peak_mode: str = "maxima", epochs: int = DEFAULT_EPOCHS, seed: int = 0, hidden: int | None = None,
               progress=None, peak_threshold: float = 0.0, groups=None,
-              calibration_folds: int = DEFAULT_CALIBRATION_FOLDS, calibration_progress=None) -> "TextureModel":
+              calibration_folds: int = DEFAULT_CALIBRATION_FOLDS, calibration_progress=None) -> TextureModel:
         """Fit the scaling and the MLP on feature windows, then their calibration.
 
         Parameters
@@ -231,7 +237,7 @@ class TextureModel:
         return np.argmax(self.outputs(values), axis=1)
 
     @classmethod
-    def train_for(cls, pipeline, values, labels, classes, **kwargs) -> "TextureModel":
+    def train_for(cls, pipeline, values, labels, classes, **kwargs) -> TextureModel:
         """:meth:`train` with the bank, features, window and peak settings of a FeaturePipeline."""
         return cls.train(values, labels, classes, pipeline.bank, pipeline.features, pipeline.window_samples,
                          peak_mode=pipeline.peaks.mode, peak_threshold=pipeline.peaks.threshold, **kwargs)
@@ -277,13 +283,13 @@ class TextureModel:
         return save_model_archive(path, self.header(), self.mlp, self.mean, self.scale, novelty_arrays(self.novelty))
 
     @classmethod
-    def load(cls, path) -> "TextureModel":
+    def load(cls, path) -> TextureModel:
         """Read and validate a model file; :class:`ModelError` says what is wrong with it."""
         header, arrays = read_model_archive(path, _ARRAYS, optional=NOVELTY_ARRAYS)
         return cls._from_parts(Path(path), header, arrays)
 
     @classmethod
-    def _from_parts(cls, path, header, arrays) -> "TextureModel":
+    def _from_parts(cls, path, header, arrays) -> TextureModel:
         def bad(msg):
             return ModelError(f"{path}: {msg}")
 

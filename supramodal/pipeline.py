@@ -16,8 +16,6 @@ from supramodal.errors import InputError, StreamEndedError
 from supramodal.features import DEFAULT_WINDOW, FEATURES, FeatureWindows, Windows, check_features, concat_windows
 from supramodal.peaks import DEFAULT_PEAK_MODE, PeakExtractor
 
-
-
 #: Most samples a feature window may span (2**20: 24 s at 44.1 kHz, 210 s at 5 kHz), a bound on
 #: what a scene or a model file can make the node buffer.
 MAX_WINDOW_SAMPLES = 2**20

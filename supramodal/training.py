@@ -12,8 +12,7 @@ import numpy as np
 
 from supramodal.banks import Bank
 from supramodal.errors import InputError
-from supramodal.features import FEATURES
-from supramodal.features import DEFAULT_WINDOW
+from supramodal.features import DEFAULT_WINDOW, FEATURES
 from supramodal.pipeline import FeaturePipeline
 from supramodal.textures import TextureSet
 

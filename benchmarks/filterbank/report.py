@@ -204,7 +204,6 @@ def _plot_pareto(results: dict, path: Path) -> Path:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
     from matplotlib.ticker import NullFormatter
 
     a = results["speed_error"]

@@ -36,16 +36,24 @@ from pathlib import Path
 import numpy as np
 
 from supramodal.banks import WHISKER_ROWS, Bank
-from supramodal.experiments.common import (Plan, Run, classification_rates, default_bank, estimate_cost,
-                                           progress_to_stderr, quick_set, rates_of, rates_per_feature)
+from supramodal.experiments.common import (
+    Plan,
+    Run,
+    classification_rates,
+    default_bank,
+    estimate_cost,
+    progress_to_stderr,
+    quick_set,
+    rates_of,
+    rates_per_feature,
+)
 from supramodal.experiments.runner import run_plans
-from supramodal.features import FEATURES
+from supramodal.features import DEFAULT_WINDOW, FEATURES
 from supramodal.gammatone import GammatoneFilterbank
+from supramodal.mlp import DEFAULT_EPOCHS
 from supramodal.peaks import PeakExtractor
-from supramodal.features import DEFAULT_WINDOW
 from supramodal.pipeline import extract_features, window_length
 from supramodal.textures import BANK_RATES, random_texture_set, reference_texture_set
-from supramodal.mlp import DEFAULT_EPOCHS
 from supramodal.training import texture_features
 
 ABLATION_SETS = 5

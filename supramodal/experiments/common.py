@@ -6,19 +6,17 @@ from __future__ import annotations
 
 import dataclasses
 import sys
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
 import numpy as np
 
 from supramodal.banks import Bank, bank_by_name
-from supramodal.features import FEATURES
-from supramodal.mlp import train_mlp
+from supramodal.features import DEFAULT_WINDOW, FEATURES
+from supramodal.mlp import DEFAULT_EPOCHS, train_mlp
 from supramodal.model import TextureModel
-from supramodal.features import DEFAULT_WINDOW
 from supramodal.pipeline import window_length
 from supramodal.textures import TextureSet
-from supramodal.mlp import DEFAULT_EPOCHS
 from supramodal.training import split, texture_features
 
 #: Seconds per texture in ``--quick`` mode (40 windows: 30 to train, 10 to test).

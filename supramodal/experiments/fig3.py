@@ -8,8 +8,8 @@ from supramodal.banks import Bank
 from supramodal.errors import InputError
 from supramodal.experiments.common import BANKS, Plan, Run, default_bank, estimate_cost, quick_set, rates_of
 from supramodal.features import FEATURES
-from supramodal.textures import TextureSet, random_texture_set, reference_texture_set
 from supramodal.mlp import DEFAULT_EPOCHS
+from supramodal.textures import TextureSet, random_texture_set, reference_texture_set
 
 #: The paper's mean rates (Fig. 3), for the side-by-side tables.
 PAPER_FIG3 = {

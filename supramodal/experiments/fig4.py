@@ -22,8 +22,7 @@ import numpy as np
 from supramodal.banks import whisker_bank
 from supramodal.errors import InputError
 from supramodal.experiments.common import Plan, Run
-from supramodal.features import FEATURES
-from supramodal.features import DEFAULT_WINDOW
+from supramodal.features import DEFAULT_WINDOW, FEATURES
 from supramodal.pipeline import extract_features
 
 CHANNEL = "A4"

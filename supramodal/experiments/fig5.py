@@ -13,8 +13,8 @@ import numpy as np
 from supramodal.banks import half_power_width, slaney_bandwidth
 from supramodal.experiments.common import Plan, Run, default_bank, estimate_cost, quick_set, rates_of
 from supramodal.features import FEATURES
-from supramodal.textures import reference_texture_set
 from supramodal.mlp import DEFAULT_EPOCHS
+from supramodal.textures import reference_texture_set
 
 #: Log-like grid from 5 to 500; 145 is the paper's default bank.
 MEAN_B_GRID = (5.0, 10.0, 20.0, 30.0, 50.0, 75.0, 100.0, 145.0, 200.0, 300.0, 400.0, 500.0)

@@ -14,8 +14,8 @@ from __future__ import annotations
 
 from supramodal.banks import WHISKER_ROWS
 from supramodal.experiments.common import Plan, Run, default_bank, estimate_cost, quick_set, rates_of
-from supramodal.textures import reference_texture_set
 from supramodal.mlp import DEFAULT_EPOCHS
+from supramodal.textures import reference_texture_set
 
 COCHLEA_GRID = tuple(range(1, 21)) + tuple(range(25, 61, 5))
 QUICK_COCHLEA_GRID = (1, 3, 10)

@@ -26,11 +26,11 @@ import inspect
 import os
 import sys
 import time
+from collections.abc import Callable
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from contextlib import contextmanager
 from functools import partial
 from multiprocessing import get_context
-from typing import Callable
 
 import numpy as np
 

@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from supramodal.experiments import fig1, fig3, fig4, fig5, fig6
 from supramodal.errors import InputError
+from supramodal.experiments import fig1, fig3, fig4, fig5, fig6
 from supramodal.experiments.common import BANKS, Plan
 from supramodal.mlp import DEFAULT_EPOCHS
 from supramodal.textures import TextureSet
