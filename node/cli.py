@@ -66,7 +66,8 @@ def _interrupt_until_running() -> None:
 
 def _stop_on_signals(node) -> None:
     """From now on SIGINT and SIGTERM only set a flag: the node finishes what it holds and
-    prints its summary (before this, :func:`_interrupt_startup` applies)."""
+    prints its summary (before this, :func:`_interrupt_startup` applies). Called by the node once it
+    runs (``on_running``): a wait before, for a consumer of an outlet, is still start-up."""
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda signum, frame: node.stop(signal.Signals(signum).name))
 
@@ -141,9 +142,9 @@ def _cmd_experiment(args) -> int:
 def _cmd_synth(args) -> int:
     import numpy as np
     from scipy.io import wavfile
-    from supramodal.node.outputs import check_new_file
 
     from supramodal.errors import InputError
+    from supramodal.node.outputs import check_new_file
     from supramodal.textures import load_texture_set, reference_texture_set, texture_samples
 
     ts = load_texture_set(args.textures) if args.textures else reference_texture_set(args.bank)
@@ -290,8 +291,7 @@ def _cmd_run(args) -> int:
     elif progress:
         progress(_scene_line(scene))
     node = build_node(scene, speed=args.speed, sinks_override=sinks, progress=progress, overwrite=args.force)
-    _stop_on_signals(node)
-    node.run(max_seconds=args.seconds)
+    node.run(max_seconds=args.seconds, on_running=lambda: _stop_on_signals(node))
     return 0
 
 
@@ -300,12 +300,11 @@ def _cmd_record(args) -> int:
     import threading
     import time
 
+    from supramodal.errors import InputError
     from supramodal.node.build import build_node
     from supramodal.node.graph_recording import graph_recorders, write_replay_scene
     from supramodal.node.recorder import SessionRecorder
     from supramodal.node.scene import load_scene
-
-    from supramodal.errors import InputError
 
     _interrupt_until_running()
     scene = load_scene(args.scene)
@@ -316,8 +315,7 @@ def _cmd_record(args) -> int:
                            "keep their drivers' own labels")
         recorders = graph_recorders(scene, args.out, name, overwrite=args.force)
         node = build_node(scene, recorder=recorders, progress=_progress(args))
-        _stop_on_signals(node)
-        summary = node.run(max_seconds=args.seconds)
+        summary = node.run(max_seconds=args.seconds, on_running=lambda: _stop_on_signals(node))
         if summary.get("recorded"):
             try:
                 replay = write_replay_scene(scene, node, args.out, name, overwrite=args.force)
@@ -334,14 +332,13 @@ def _cmd_record(args) -> int:
         raise CliError(f"{scene.source}: the {scene.driver['type']} driver labels its stream itself, and the "
                        "recording keeps those labels with their times; --label and --marks would contradict them "
                        "(leave them out)")
-    _stop_on_signals(node)
     if args.marks:
         # Each line typed starts a label (its text) at the current stream time; an empty line ends it.
         def read_marks():
             for line in sys.stdin:
                 recorder.mark(line.strip() or None)
         threading.Thread(target=read_marks, daemon=True).start()
-    summary = node.run(max_seconds=args.seconds)
+    summary = node.run(max_seconds=args.seconds, on_running=lambda: _stop_on_signals(node))
     if summary.get("recorded"):
         print(f"recorded {summary['stream_seconds']:.2f} s to {summary['recorded'][0]} (+ .json)", file=sys.stderr)
     return 0
@@ -512,9 +509,8 @@ def _cmd_fit(args) -> int:
 
 
 def _cmd_evaluate(args) -> int:
-    from supramodal.node.training import evaluate_manifest, format_evaluation
-
     from supramodal.model import TextureModel
+    from supramodal.node.training import evaluate_manifest, format_evaluation
 
     if args.scene:
         return _evaluate_fusion(args)
@@ -846,7 +842,7 @@ def _run(args) -> int:
     try:
         return args.func(args)
     except StartupInterrupted as exc:
-        print(f"supramodal: interrupted by {exc} during start-up (building the scene, training its model); "
+        print(f"supramodal: interrupted by {exc} during start-up (building the scene, training its model, waiting for a consumer); "
               "nothing was processed", file=sys.stderr)
         return 128 + exc.signum
     except KeyboardInterrupt:

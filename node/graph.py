@@ -40,17 +40,17 @@ import math
 import queue
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import replace
 
+from supramodal.errors import InputError, SupramodalError
+from supramodal.model import TextureModel
 from supramodal.node.events import FUSED_STREAM, MAIN_STREAM, EventLimiter
 from supramodal.node.recorder import SessionRecorder
 from supramodal.node.sinks import Sink
 from supramodal.node.sources import Feed, Source
 from supramodal.node.streams import Labels, Stream, channel_mapper
 from supramodal.node.taps import Tap
-
-from supramodal.errors import InputError, SupramodalError
-from supramodal.model import TextureModel
 from supramodal.pipeline import FeaturePipeline
 
 __all__ = ["Graph", "Node", "NodeError", "Labels", "channel_mapper"]
@@ -157,17 +157,19 @@ class Graph:
             self._stopped_by = reason
         self._stop.set()
 
-    def run(self, max_seconds: float | None = None) -> dict:
+    def run(self, max_seconds: float | None = None, on_running: Callable[[], None] | None = None) -> dict:
         """Run until every source's stream ends, ``max_seconds`` of stream have passed, or :meth:`stop`.
 
-        Returns the summary (also sent to the sinks).
+        ``on_running``: called on the caller's thread once the taps are prepared (a wait for an
+        outlet's consumer is over), just before time starts: e.g. to make Ctrl-C stop the run
+        rather than interrupt the start-up. Returns the summary (also sent to the sinks).
         """
         if max_seconds is not None and not max_seconds > 0:
             raise InputError(f"max_seconds must be > 0 (or None or inf: no limit), got {max_seconds!r}")
         if max_seconds is not None and math.isinf(max_seconds):
             max_seconds = None
         try:
-            return self._run(max_seconds)
+            return self._run(max_seconds, on_running)
         finally:
             for tap, _, _, _ in self._all_taps():  # an outlet is not left open, whatever happened
                 tap.close()
@@ -176,9 +178,11 @@ class Graph:
         """The recorders and the other taps: ``(tap, source, feed, thread name)``."""
         return [*self._recorders, *self._taps]
 
-    def _run(self, max_seconds: float | None) -> dict:
+    def _run(self, max_seconds: float | None, on_running: Callable[[], None] | None) -> dict:
         for tap, _, _, _ in self._all_taps():
             tap.prepare()                         # may wait (e.g. for a consumer), before time starts
+        if on_running is not None:
+            on_running()
         t0 = time.monotonic()
         for source in self.sources:
             source.max_frames = None if max_seconds is None else int(round(max_seconds * source.rate))

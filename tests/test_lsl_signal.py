@@ -264,6 +264,7 @@ def test_without_a_consumer_the_node_waits_as_long_as_asked_then_starts_and_says
     assert tap["samples_sent"] == tap["frames"]["stream"] == 8 * 1000
 
 
+@pytest.mark.slow   # paced real time: a relay in real time, stopped and started again
 def test_a_restarted_relay_is_picked_up_again_by_its_source_id(tmp_path):
     """A node's inlet resolves a relay by the source id the docs give (``PREFIX@HOST/SOURCE/signal``);
     the relay process is killed 3 s in and run again 1 s later (as a robot's computer that
@@ -305,3 +306,29 @@ def test_a_restarted_relay_is_picked_up_again_by_its_source_id(tmp_path):
     after = [e for e in sink.windows if "gap" not in e.flags and e.window * 500 > d["filled"] + 3 * 5000]
     assert len(after) >= 20 and all(e.decision is not None for e in after)
     assert {"unplug", "reconnect", "gap"} <= set(summary["events"]["counts"])
+
+
+@pytest.mark.parametrize("signum, code", [(2, 130), (15, 143)])
+def test_a_wait_for_a_consumer_is_start_up_and_a_signal_ends_it_at_once(tmp_path, signum, code):
+    """Issue 25 item 9: with wait_for_consumer = 40, SIGINT and SIGTERM were ignored for the whole
+    wait and the node then ran; the README promises 130 / 143 at once during start-up."""
+    import os
+    import signal as signal_
+
+    (tmp_path / "relay.toml").write_text(
+        f'[[source]]\nname = "a"\ntype = "synth"\nseconds = 2.0\n\n[[sink]]\ntype = "lsl-signal"\n'
+        f'prefix = "wait-{uuid.uuid4().hex[:8]}"\nwait_for_consumer = 40\n')
+    proc = subprocess.Popen([sys.executable, "-m", "supramodal", "run", str(tmp_path / "relay.toml"), "--quiet"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path)
+    try:
+        time.sleep(4.0)                                      # well into the wait (start-up takes ~1 s)
+        assert proc.poll() is None, proc.communicate()
+        t = time.monotonic()
+        os.kill(proc.pid, signum)
+        out, err = proc.communicate(timeout=20)
+        waited = time.monotonic() - t
+    finally:
+        proc.kill()
+    assert proc.returncode == code and waited < 10, (proc.returncode, waited, err[-500:])
+    assert f"interrupted by {signal_.Signals(signum).name} during start-up" in err and "waiting for a consumer" in err
+    assert out == ""
