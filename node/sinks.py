@@ -23,24 +23,26 @@ cannot take is dropped and counted in the summary (``sinks``).
 from __future__ import annotations
 
 import abc
+import errno
 import json
+import os
 import queue
 import sys
 import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import TextIO
+from typing import Any, TextIO, cast
 
 import numpy as np
-from supramodal.drivers.base import DriverEvent
-from supramodal.drivers.spec import OptionError
-from supramodal.node.events import MAIN_STREAM, WindowEvent
-from supramodal.node.outputs import check_new_file
-from supramodal.node.registry import SinkSpec
 
 from supramodal.checks import Key, text
+from supramodal.drivers.base import DriverEvent
+from supramodal.drivers.spec import OptionError
 from supramodal.errors import InputError
+from supramodal.node.events import MAIN_STREAM, WindowEvent
+from supramodal.node.outputs import check_new_file
+from supramodal.node.registry import SinkContext, SinkSpec
 
 
 class Sink(abc.ABC):
@@ -80,17 +82,22 @@ class Sink(abc.ABC):
         """After the last ``emit`` and ``event``: take what is still held, for at most
         ``timeout`` seconds (a queued sink's queue). The caller's thread. Default: nothing."""
 
-    def stats(self) -> dict | None:
+    def stats(self) -> dict[str, Any] | None:
         """What the sink wrote, dropped and raised, for the summary's ``sinks``; None (the
         default) for a sink that counts nothing (one called on the graph's own threads), which
         the summary leaves out. The caller's thread, after :meth:`drain`."""
         return None
 
-    def summary(self, summary: dict) -> None:
+    def summary(self, summary: dict[str, Any]) -> None:
         """The run's summary, once, after :meth:`drain`. The caller's thread. Default: nothing."""
 
     def close(self) -> None:
         """Release what the sink holds, last. The caller's thread. Default: nothing."""
+
+
+class NoReader(OSError):
+    """A FIFO sink's file has no reader yet: opening it would block. The item is kept and the
+    open tried again (:class:`QueuedSink`); nothing waits on it."""
 
 
 class FileSink(Sink):
@@ -99,11 +106,15 @@ class FileSink(Sink):
     Parameters
     ----------
     path : str
-        ``"-"`` for standard output, else a file, created at the first write.
+        ``"-"`` for standard output, else a file, created at the first write. A named pipe
+        (FIFO) is opened without waiting for its reader: until one comes, a write raises
+        :class:`NoReader` (a queued sink keeps the items and tries again).
     overwrite : bool
         Whether an existing file may be replaced (default False: refused with an InputError
         that says how to allow it).
     """
+
+    path: str
 
     def __init__(self, path: str = "-", overwrite: bool = False) -> None:
         self.path = path
@@ -115,7 +126,20 @@ class FileSink(Sink):
     @property
     def _fh(self) -> TextIO:
         if self._file is None:
-            self._file = open(self.path, "w", buffering=1)
+            path = Path(self.path)
+            if path.is_fifo():
+                # open() of a FIFO waits for a reader, in a system call no signal ends: open it
+                # without waiting, then write as to any file.
+                try:
+                    fd = os.open(path, os.O_WRONLY | os.O_NONBLOCK)
+                except OSError as exc:
+                    if exc.errno == errno.ENXIO:
+                        raise NoReader(errno.ENXIO, f"no reader of the named pipe {path} yet") from None
+                    raise
+                os.set_blocking(fd, True)
+                self._file = open(fd, "w", buffering=1)
+            else:
+                self._file = open(self.path, "w", buffering=1)
         return self._file
 
     def close(self) -> None:
@@ -141,7 +165,7 @@ class JsonLinesSink(FileSink):
         with self._lock:
             self._fh.write(line)
 
-    def summary(self, summary: dict) -> None:
+    def summary(self, summary: dict[str, Any]) -> None:
         self._fh.write(json.dumps({"summary": True, **summary}) + "\n")
 
 
@@ -187,14 +211,15 @@ class TextSink(FileSink):
                 mark = "ok" if event.truth == event.decision else "--"
                 line += f"  truth {event.truth:<12} {mark}"
         else:
-            parts = [f"{name} sum {float(np.sum(vals)):.4g}" for name, vals in event.features.items()]
+            features = cast(dict[str, Any], event.features)   # an event without a decision carries features
+            parts = [f"{name} sum {float(np.sum(vals)):.4g}" for name, vals in features.items()]
             line = f"{head}  " + "  ".join(parts)
         for flag in ("gap", "alone"):
             if flag in event.flags:
                 line += f"  [{flag}]"
         self._fh.write(line + "\n")
 
-    def summary(self, s: dict) -> None:
+    def summary(self, s: dict[str, Any]) -> None:
         lines = ["", "summary"]
         if "streams" in s and not s["streams"]:  # a relay: its sources' samples sent on, nothing decided
             lines.append(f"  stream             {s['stream_seconds']:.2f} s sent on, no windows (a relay)")
@@ -233,7 +258,7 @@ class TextSink(FileSink):
         self._fh.write("\n".join(lines) + "\n")
 
 
-def _stream_lines(s: dict) -> list[str]:
+def _stream_lines(s: dict[str, Any]) -> list[str]:
     """The summary lines of one stream's counts."""
     lines = [f"  windows            {s['windows']}",
              f"  stream             {s['stream_seconds']:.2f} s"
@@ -260,7 +285,7 @@ def _stream_lines(s: dict) -> list[str]:
     return lines
 
 
-def frames_line(f: dict) -> str:
+def frames_line(f: dict[str, Any]) -> str:
     """The summary line of frame fates: ``stream = delivered + filled + dropped``, with where the
     dropped ones went (docs/node.md, "Every frame has one fate")."""
     total = f["delivered"] + f["filled"] + f["dropped"]
@@ -282,10 +307,10 @@ class ListSink(Sink):
         self.path = None
         self.windows: list[WindowEvent] = []
         self.driver_events: list[DriverEvent] = []
-        self.final: dict | None = None
+        self.final: dict[str, Any] | None = None
 
     @property
-    def events(self) -> list[dict]:
+    def events(self) -> list[dict[str, Any]]:
         return [w.as_dict() for w in self.windows]
 
     def emit(self, event: WindowEvent) -> None:
@@ -294,7 +319,7 @@ class ListSink(Sink):
     def event(self, ev: DriverEvent) -> None:
         self.driver_events.append(ev)
 
-    def summary(self, summary: dict) -> None:
+    def summary(self, summary: dict[str, Any]) -> None:
         self.final = summary
 
     def close(self) -> None:
@@ -303,6 +328,8 @@ class ListSink(Sink):
 
 #: Items a sink's queue holds (:class:`QueuedSink`): 6.8 minutes of 100 ms windows.
 DEFAULT_SINK_QUEUE_ITEMS = 4096
+#: Seconds between two tries to open a named pipe that has no reader yet.
+NO_READER_RETRY = 0.05
 
 
 class QueuedSink(Sink):
@@ -336,7 +363,8 @@ class QueuedSink(Sink):
             raise InputError(f"a sink queue holds at least 1 item, got capacity {capacity!r}")
         self.sink = sink
         self.path = sink.path
-        self._queue: queue.Queue = queue.Queue(maxsize=capacity)
+        # (method, item), or None: the end
+        self._queue: queue.Queue[tuple[str, Any] | None] = queue.Queue(maxsize=capacity)
         self._dropped = {"windows": 0, "events": 0}
         self._errors = 0
         self._first_error: str | None = None
@@ -345,7 +373,9 @@ class QueuedSink(Sink):
         #: The BrokenPipeError that ended the sink (its reader left), else None.
         self.reader_left: BrokenPipeError | None = None
         #: Called (on the sink's thread) with that error; the node sets it to stop.
-        self.on_reader_left = None
+        self.on_reader_left: Callable[[BrokenPipeError], None] | None = None
+        self._pending: tuple[str, Any] | None = None   # an item held back while a FIFO has no reader
+        self._closing = threading.Event()  # drain's time is up: stop waiting for a reader
         self._thread = threading.Thread(target=self._run, name=f"sink-{type(sink).__name__}", daemon=True)
         self._thread.start()
 
@@ -355,7 +385,7 @@ class QueuedSink(Sink):
     def event(self, ev: DriverEvent) -> None:
         self._put("event", ev, "events")
 
-    def _put(self, method: str, item, kind: str) -> None:
+    def _put(self, method: str, item: WindowEvent | DriverEvent, kind: str) -> None:
         try:
             self._queue.put_nowait((method, item))
         except queue.Full:
@@ -364,7 +394,8 @@ class QueuedSink(Sink):
 
     def _run(self) -> None:
         while True:
-            item = self._queue.get()
+            item = self._pending if self._pending is not None else self._queue.get()
+            self._pending = None
             if item is None:
                 return
             method, payload = item
@@ -375,6 +406,13 @@ class QueuedSink(Sink):
                     self.sink.event(payload)
                 with self._lock:
                     self._written += 1
+            except NoReader:               # a FIFO with no reader yet: keep the item, try again
+                if self._closing.is_set():
+                    with self._lock:
+                        self._dropped["windows" if method == "emit" else "events"] += 1
+                    return
+                self._pending = item
+                self._closing.wait(NO_READER_RETRY)
             except BrokenPipeError as exc:  # the reader of stdout left (`| head`): nothing more to write
                 self.reader_left = exc
                 if self.on_reader_left is not None:
@@ -398,6 +436,8 @@ class QueuedSink(Sink):
             except queue.Full:
                 break
         self._thread.join(max(0.0, deadline - time.monotonic()))
+        self._closing.set()                # a sink still waiting for a reader gives up
+        self._thread.join(2 * NO_READER_RETRY)
         while True:                        # what the sink did not take in time
             try:
                 item = self._queue.get_nowait()
@@ -409,7 +449,7 @@ class QueuedSink(Sink):
         if not self._thread.is_alive():    # never while the worker may still call the sink
             self.sink.drain(max(0.0, deadline - time.monotonic()))
 
-    def stats(self) -> dict:
+    def stats(self) -> dict[str, Any]:
         """``{"sink", "written", "dropped_windows", "dropped_events", "errors", "first_error"}``."""
         with self._lock:
             return {"sink": type(self.sink).__name__ + (f" {self.path}" if self.path not in (None, "-") else ""),
@@ -421,10 +461,17 @@ class QueuedSink(Sink):
         """Passed on to the sink (before any event, on the caller's thread)."""
         self.sink.start(epoch)
 
-    def summary(self, summary: dict) -> None:
-        self.sink.summary(summary)
+    def summary(self, summary: dict[str, Any]) -> None:
+        try:
+            self.sink.summary(summary)
+        except NoReader as exc:            # the summary cannot wait for a reader either
+            with self._lock:
+                self._errors += 1
+                if self._first_error is None:
+                    self._first_error = f"the summary was not written: {exc.strerror}"
 
     def close(self) -> None:
+        self._closing.set()
         if self._thread.is_alive():
             try:
                 self._queue.put_nowait(None)     # end the worker (it ends at once if drained)
@@ -435,8 +482,8 @@ class QueuedSink(Sink):
 
 # -- as a scene names them ---------------------------------------------------------------------------
 
-def _file_sink(kind: type[FileSink]):
-    def build(options: dict, context) -> Sink:
+def _file_sink(kind: type[FileSink]) -> Callable[[dict[str, Any], SinkContext], Sink]:
+    def build(options: dict[str, Any], context: SinkContext) -> Sink:
         path = options["path"] if options["path"] == "-" else str(context.resolve(options["path"]))
         try:
             sink = kind(path, context.overwrite)
