@@ -800,7 +800,7 @@ def _is_user_error(exc: BaseException) -> bool:
     return isinstance(exc, OSError) and exc.filename is not None
 
 
-def _reader_left(exc: BaseException) -> bool:
+def _reader_left(exc: BaseException | None) -> bool:
     """Whether ``exc`` means that the reader of stdout went away (``| head``), directly or in a node thread."""
     while exc is not None:
         if isinstance(exc, BrokenPipeError):
@@ -842,7 +842,7 @@ def _run(args) -> int:
     try:
         return args.func(args)
     except StartupInterrupted as exc:
-        print(f"supramodal: interrupted by {exc} during start-up (building the scene, training its model, waiting for a consumer); "
+        print(f"supramodal: interrupted by {exc} during start-up (building the scene, training its model); "
               "nothing was processed", file=sys.stderr)
         return 128 + exc.signum
     except KeyboardInterrupt:
