@@ -40,13 +40,13 @@ import warnings
 from pathlib import Path
 
 import numpy as np
+
+from supramodal.checks import Key, text
 from supramodal.drivers.base import DeviceUnavailable
 from supramodal.drivers.lsl import DEFAULT_GAP_TOLERANCE, DEFAULT_MAX_GAP, TimestampSteps
 from supramodal.drivers.spec import BuildContext, Built, DriverSpec, OptionError
 from supramodal.replay.errors import ReplayError, XdfDamageWarning
 from supramodal.replay.session import Label, Session
-
-from supramodal.checks import Key, text
 
 #: Seconds per replayed block of an XDF stream.
 XDF_BLOCK_SECONDS = 0.01
@@ -56,6 +56,11 @@ MAX_XDF_RATE = 1_000_000
 #: Most samples (frames x channels) one replayed stream may hold once its gaps are filled: 2**29,
 #: 4 GiB as float64 (an hour of 20 channels at 5 kHz, or three of 44.1 kHz audio).
 MAX_XDF_SAMPLES = 2**29
+
+
+#: Largest timestamp an XDF stream may carry, seconds: LSL's clock counts from the machine's boot
+#: (30 years is 9.5e8 s); beyond it the file's clock offsets are damaged.
+MAX_XDF_TIME = 1e9
 
 
 def import_pyxdf():
@@ -189,6 +194,10 @@ def xdf_session(path: str | os.PathLike, name: str | None = None, stream_type: s
     stamps = np.asarray(s["time_stamps"], dtype=np.float64)
     if stamps.shape != (data.shape[0],) or not np.all(np.isfinite(stamps)):
         raise ReplayError(f"{where}: its timestamps are not one finite number per sample")
+    if np.max(np.abs(stamps)) > MAX_XDF_TIME:
+        raise ReplayError(f"{where}: its timestamps, with the file's clock offsets applied, reach "
+                          f"{np.max(np.abs(stamps)):.3g} s, beyond the {MAX_XDF_TIME:g} s (MAX_XDF_TIME) any LSL clock "
+                          "shows: the file's clock offset chunks are damaged; record it again, or remove them")
     if data.dtype.kind in "iu":
         data = data.astype(np.float64) / _full_scale(data.dtype)
     else:

@@ -285,3 +285,16 @@ def test_a_file_read_only_by_skipping_damage_says_so_in_a_warning(tmp_path, xdf)
     with pytest.warns(XdfDamageWarning, match=r"r.xdf: damaged: pyxdf skipped 1 damaged part\(s\) .*corruption"):
         session = xdf_session(tmp_path / "r.xdf", name="s")
     assert 0 < session.frames < 5000
+
+
+@pytest.mark.parametrize("offset", [1e300, -1e300])
+def test_damaged_clock_offsets_are_refused_not_replayed_at_4e300_seconds(tmp_path, capsys, xdf, offset):
+    """Issue 25 item 6: XDF clock offsets of +-1e300 were accepted (every window at 4e300 s, flagged
+    restart, exit 0); the stamps they give are beyond any LSL clock, and the file is refused."""
+    stamps = 100.0 + np.arange(2000) / 1e3
+    scene = _xdf_scene(tmp_path, [_stream(1000.0, stamps, offsets=[(100.5, offset), (101.5, offset)])])
+    rc, out, err = _run(scene, capsys)
+    assert rc == 2 and out == ""
+    (line,) = _lines(err)
+    assert "with the file's clock offsets applied, reach" in line and "(MAX_XDF_TIME)" in line
+    assert not (tmp_path / "out.jsonl").exists()
