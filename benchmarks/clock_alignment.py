@@ -26,6 +26,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+
 from supramodal.node.clock import DEFAULT_WINDOW_SEGMENTS, ClockModel
 
 WHISKERS = dict(name="whiskers", nominal=5000.0, ppm=+100.0, t0=1000.0, block=50)

@@ -21,7 +21,6 @@ from pathlib import Path
 
 from supramodal.node.fit import fit_manifest, format_fit, write_fit
 from supramodal.replay.wavio import write_wav
-
 from supramodal.textures import synthesize
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data" / "lmt-surface-sounds"

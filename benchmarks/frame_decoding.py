@@ -13,6 +13,7 @@ import argparse
 import time
 
 import numpy as np
+
 from supramodal.drivers.frames import SYNC, FrameDecoder, encode_frame
 
 
@@ -40,11 +41,11 @@ def main(argv=None) -> int:
     noise = bytearray(rng.integers(0, 256, 1 << 20, dtype=np.uint8).tobytes())
     for j in range(0, len(noise) - 12, 97):
         noise[j:j + 2] = SYNC
-    noise = bytes(noise)
+    data = bytes(noise)
     dec = FrameDecoder()
     t0 = time.perf_counter()
-    for j in range(0, len(noise), 4096):
-        dec.feed(noise[j:j + 4096])
+    for j in range(0, len(data), 4096):
+        dec.feed(data[j:j + 4096])
     dt = time.perf_counter() - t0
     print(f"garbage with a sync every 97 B: {len(noise) / dt / 1e6:7.1f} MB/s")
     return 0

@@ -16,6 +16,7 @@ import threading
 import time
 
 import numpy as np
+
 from supramodal.node.ringbuffer import RingBuffer, RingClosed
 
 

@@ -12,6 +12,7 @@ import argparse
 import time
 
 import numpy as np
+
 from supramodal.drivers.mock_whisker import MockWhiskerDevice
 from supramodal.drivers.serial_whisker import SerialWhiskerDriver
 

@@ -32,13 +32,13 @@ from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
+
+from supramodal.banks import whisker_bank
 from supramodal.drivers.base import DriverBase
 from supramodal.drivers.mock_whisker import FaultSpec, MockWhiskerDevice
 from supramodal.drivers.serial_whisker import SerialWhiskerDriver
 from supramodal.node.graph import Node
 from supramodal.node.sinks import Sink
-
-from supramodal.banks import whisker_bank
 from supramodal.pipeline import FeaturePipeline
 
 RATE, CHANNELS, SPF = 5000.0, 20, 32

@@ -43,6 +43,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+
 from supramodal.benchmarks.soak import rss_kib, rss_slope
 from supramodal.node.build import build_node
 from supramodal.node.scene import scene_from_dict

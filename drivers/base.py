@@ -34,7 +34,7 @@ import time
 from collections import Counter, deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import ClassVar, Protocol, Self, runtime_checkable
+from typing import Any, ClassVar, Protocol, Self, runtime_checkable
 
 import numpy as np
 
@@ -144,7 +144,7 @@ class DriverEvent:
     count: int = 1
     source: str | None = None
 
-    def as_dict(self) -> dict:
+    def as_dict(self) -> dict[str, Any]:
         """The event as a JSON-ready dict: ``{"event": kind, "message": ..., ...}``."""
         out = {"event": self.kind, "message": self.message, "time": round(self.time, 3),
                "stream_index": self.stream_index, "count": self.count}
@@ -175,7 +175,7 @@ class EventLog:
         self._new: deque[DriverEvent] = deque()
         self._capacity = int(capacity)
         self._history: deque[DriverEvent] = deque(maxlen=int(history))
-        self._dropped: Counter = Counter()
+        self._dropped: Counter[str] = Counter()
 
     def record(self, kind: str, message: str, stream_index: int | None = None, count: int = 1) -> DriverEvent:
         """Add an event (timestamped now) and return it."""
@@ -238,7 +238,7 @@ class Driver(Protocol):
     rate: float
     channels: int
     fills_are_drops: bool
-    labels: Sequence
+    labels: Sequence[str]
     passes: int | None
     period: float | None
 
@@ -264,7 +264,7 @@ class Driver(Protocol):
 
     def __enter__(self) -> Driver: ...
 
-    def __exit__(self, *exc) -> None: ...
+    def __exit__(self, *exc: object) -> None: ...
 
 
 #: The members of :class:`Driver` the node calls or reads, as :func:`missing_members` checks them.
@@ -316,7 +316,7 @@ class DriverBase:
     """
 
     fills_are_drops: bool = False
-    labels: Sequence = ()
+    labels: Sequence[str] = ()
     passes: int | None = 1
     period: float | None = None
     EVENT_CAPACITY: ClassVar[int] = 1024
@@ -334,7 +334,8 @@ class DriverBase:
         """The driver's :class:`EventLog` (made on first use by a subclass that did not call
         ``DriverBase.__init__``); any thread."""
         try:
-            return self.__dict__["_event_log"]
+            log: EventLog = self.__dict__["_event_log"]
+            return log
         except KeyError:
             with _LOG_CREATION:
                 if "_event_log" not in self.__dict__:

@@ -284,9 +284,9 @@ class FrameDecoder:
         TypeError
             If ``data`` is not bytes-like (a programming error, not bad input).
         """
-        data = memoryview(data).cast("B")
+        view = memoryview(data).cast("B")
         try:
-            return self._feed(data)
+            return self._feed(view)
         except Exception:  # pragma: no cover - a bug; never let it kill a stream
             # Contract: never raise. Drop the buffer (counted) so a bug in one
             # spot cannot wedge the decoder, and carry on.

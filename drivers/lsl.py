@@ -46,10 +46,10 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
-from supramodal.drivers.base import Block, DeviceUnavailable, DriverBase, DriverClosed, DriverError
-from supramodal.drivers.spec import BuildContext, Built, DriverSpec, OptionError, given
 
 from supramodal.checks import Key, integer, positive, text
+from supramodal.drivers.base import Block, DeviceUnavailable, DriverBase, DriverClosed, DriverError
+from supramodal.drivers.spec import BuildContext, Built, DriverSpec, OptionError, given
 from supramodal.errors import InputError
 
 #: What to run to get LSL, and what to do where the wheel carries no liblsl.

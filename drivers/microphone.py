@@ -49,10 +49,10 @@ from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
-from supramodal.drivers.base import Block, DeviceUnavailable, DriverBase, DriverClosed, DriverError, EventLog
-from supramodal.drivers.spec import BuildContext, Built, DriverSpec, given
 
 from supramodal.checks import Key, integer, one_of, positive
+from supramodal.drivers.base import Block, DeviceUnavailable, DriverBase, DriverClosed, DriverError, EventLog
+from supramodal.drivers.spec import BuildContext, Built, DriverSpec, given
 from supramodal.errors import InputError
 
 __all__ = ["MicrophoneDriver", "CaptureBuffer", "import_sounddevice"]

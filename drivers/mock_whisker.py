@@ -56,6 +56,7 @@ from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
+
 from supramodal.drivers.frames import (
     FLAG_OVERRUN,
     FULL_SCALE,
@@ -66,7 +67,6 @@ from supramodal.drivers.frames import (
     VERSION,
     encode_frame,
 )
-
 from supramodal.errors import InputError
 
 _TIOCPKT_FLUSHREAD = 0x01  # packet-mode status bit: the slave's input queue was flushed

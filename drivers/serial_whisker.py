@@ -59,6 +59,8 @@ from collections.abc import Callable
 
 import numpy as np
 import serial
+
+from supramodal.checks import Key, integer, positive, text
 from supramodal.drivers.base import Block, DeviceUnavailable, DriverBase, DriverClosed
 from supramodal.drivers.frames import (
     FLAG_OVERRUN,
@@ -68,8 +70,6 @@ from supramodal.drivers.frames import (
     FrameDecoder,
 )
 from supramodal.drivers.spec import BuildContext, Built, DriverSpec, OptionError, given
-
-from supramodal.checks import Key, integer, positive, text
 from supramodal.errors import InputError
 
 # What an unplug looks like from pyserial on Linux (measured, see

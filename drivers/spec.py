@@ -65,7 +65,7 @@ class BuildContext:
     rate: float | None
     resolve: Callable[[str], Path] = Path
     speed: Any = None
-    shared: dict = field(default_factory=dict)
+    shared: dict[str, Any] = field(default_factory=dict)
     channels: int | None = None
     bank: Any = None
 
@@ -90,14 +90,14 @@ class Built:
     """
 
     driver: Any
-    labels: tuple = ()
+    labels: tuple[str, ...] = ()
     label_period: float | None = None
     training_set: Any = None
     source_rate: float | None = None
 
 
-def _default_timebase(live: bool):
-    def timebase(options: dict, driver) -> tuple[str, float, float]:
+def _default_timebase(live: bool) -> Callable[[dict[str, Any], Any], tuple[str, float, float]]:
+    def timebase(options: dict[str, Any], driver: Any) -> tuple[str, float, float]:
         return ("host" if live else "stream"), 0.0, float(driver.rate)
     return timebase
 
@@ -133,14 +133,14 @@ class DriverSpec:
 
     type: str
     keys: Mapping[str, Key]
-    build: Callable[[dict, BuildContext], Built]
+    build: Callable[[dict[str, Any], BuildContext], Built]
     live: bool
     summary: str
-    timebase: Callable[[dict, Any], tuple[str, float, float]] | None = None
-    signal_type: Callable[[dict], str | None] = field(default=lambda options: None)
-    check: Callable[[dict], None] = field(default=lambda options: None)
+    timebase: Callable[[dict[str, Any], Any], tuple[str, float, float]] | None = None
+    signal_type: Callable[[dict[str, Any]], str | None] = field(default=lambda options: None)
+    check: Callable[[dict[str, Any]], None] = field(default=lambda options: None)
 
-    def timebase_of(self, options: dict, driver) -> tuple[str, float, float]:
+    def timebase_of(self, options: dict[str, Any], driver: Any) -> tuple[str, float, float]:
         """``(timebase, time_offset, time_rate)`` of a built driver."""
         tb = (self.timebase or _default_timebase(self.live))(options, driver)
         if tb[0] not in TIMEBASES or not (math.isfinite(tb[2]) and tb[2] > 0):
@@ -154,7 +154,7 @@ class DriverSpec:
         return "drop-oldest" if self.live else "block"
 
 
-def given(options: dict, names: Mapping[str, str]) -> dict:
+def given(options: dict[str, Any], names: Mapping[str, str]) -> dict[str, Any]:
     """The options a scene sets, renamed to a driver's keyword arguments (``{scene key: argument}``);
     an option left at None is not passed, so that the driver's own default applies (its one home)."""
     return {arg: options[key] for key, arg in names.items() if options.get(key) is not None}

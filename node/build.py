@@ -10,20 +10,20 @@ from __future__ import annotations
 import json
 
 import numpy as np
+
+from supramodal.bankfile import BANK_KEYS, BankFileError, bank_from_description, load_bank
+from supramodal.banks import Bank
+from supramodal.calibration import winner
+from supramodal.decisions import ContactDetector
 from supramodal.drivers.spec import BuildContext, OptionError
+from supramodal.errors import InputError
+from supramodal.model import ModelError, TextureModel
 from supramodal.node.band import warn_if_beyond_band
 from supramodal.node.graph import Graph
 from supramodal.node.registry import SinkContext, driver_spec, sink_spec
 from supramodal.node.scene import LEARN, Scene, SceneError, source_scene
 from supramodal.node.sources import Source
 from supramodal.node.streams import Labels, Stream, refuse_uncalibrated
-
-from supramodal.bankfile import BANK_KEYS, BankFileError, bank_from_description, load_bank
-from supramodal.banks import Bank
-from supramodal.calibration import winner
-from supramodal.decisions import ContactDetector
-from supramodal.errors import InputError
-from supramodal.model import ModelError, TextureModel
 from supramodal.pipeline import FeaturePipeline
 from supramodal.training import split, texture_features
 

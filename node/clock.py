@@ -29,6 +29,7 @@ from __future__ import annotations
 import collections
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -132,12 +133,13 @@ class ClockModel:
     def reset(self) -> None:
         """Forget every block: the source's sample count restarted or jumped."""
         self._minima: collections.deque[tuple[int, float]] = collections.deque(maxlen=self.window_segments)
-        self._segment = None            # current segment number
-        self._best = None               # (index, arrival) of its earliest block relative to the line
+        self._segment: int | None = None   # current segment number
+        # (index, arrival) of its earliest block relative to the line
+        self._best: tuple[int, float] | None = None
         self._slope = 1.0 / self.nominal_rate   # seconds per sample
         self._offset = math.nan         # time of sample 0
         self._fitted = False
-        self._last_index = None
+        self._last_index: int | None = None
         self._last_arrival = -math.inf
         self._blocks = 0
         self._delays = np.zeros(JITTER_BLOCKS)
@@ -175,7 +177,7 @@ class ClockModel:
                 if len(self._minima) >= 2:
                     self._fit()
             self._segment, self._best = segment, (index, arrival)
-        elif intercept < self._best[1] - self._best[0] * self._slope:
+        elif self._best is not None and intercept < self._best[1] - self._best[0] * self._slope:
             self._best = (index, arrival)
 
     def _fit(self) -> None:
@@ -216,12 +218,12 @@ class ClockModel:
         than :meth:`estimate`, for a caller that maps many indices)."""
         return self._offset, self._slope
 
-    def time_of(self, index):
+    def time_of(self, index: Any) -> Any:
         """Host monotonic time of sample ``index`` (scalar or array), seconds."""
         return self._offset + np.asarray(index, dtype=np.float64) * self._slope if np.ndim(index) else \
             self._offset + float(index) * self._slope
 
-    def index_at(self, time):
+    def index_at(self, time: Any) -> Any:
         """Sample index (fractional) taken at host monotonic ``time`` (scalar or array), seconds."""
         return (np.asarray(time, dtype=np.float64) - self._offset) / self._slope if np.ndim(time) else \
             (float(time) - self._offset) / self._slope
@@ -250,5 +252,5 @@ def _line(x: np.ndarray, y: np.ndarray, slope_now: float) -> tuple[float, float]
     return slope, float(ym - slope * xm)
 
 
-def _finite_positive(v) -> bool:
+def _finite_positive(v: Any) -> bool:
     return not isinstance(v, bool) and isinstance(v, (int, float)) and math.isfinite(v) and v > 0

@@ -11,11 +11,13 @@ from __future__ import annotations
 
 import time
 from collections import Counter, deque
+from collections.abc import Callable
 from dataclasses import dataclass, replace
+from typing import Any, cast
 
 import numpy as np
-from supramodal.drivers.base import DriverEvent
 
+from supramodal.drivers.base import DriverEvent
 from supramodal.errors import InputError
 
 
@@ -39,15 +41,15 @@ class EventLimiter:
     clock : callable, default time.monotonic
     """
 
-    def __init__(self, interval: float = 1.0, burst: int = 3, clock=time.monotonic) -> None:
+    def __init__(self, interval: float = 1.0, burst: int = 3, clock: Callable[[], float] = time.monotonic) -> None:
         self.interval = float(interval)
         self.burst = int(burst)
         self._clock = clock
         # keys: kind, or source/kind for events that name their source
-        self._passed: dict[str, deque] = {}  # key -> when its last (up to burst) events passed
+        self._passed: dict[str, deque[float]] = {}  # key -> when its last (up to burst) events passed
         self._held: dict[str, DriverEvent] = {}  # key -> latest held event, count = occurrences held
-        self.counts: Counter = Counter()  # key -> occurrences seen (dropped ones included)
-        self.dropped: Counter = Counter()  # key -> occurrences a driver dropped before we saw them
+        self.counts: Counter[str] = Counter()  # key -> occurrences seen (dropped ones included)
+        self.dropped: Counter[str] = Counter()  # key -> occurrences a driver dropped before we saw them
 
     def add(self, ev: DriverEvent) -> DriverEvent | None:
         """Take one event; return what to show now (it, carrying any held back), or None."""
@@ -90,7 +92,7 @@ class EventLimiter:
         self._held.clear()
         return out
 
-    def summary(self) -> dict:
+    def summary(self) -> dict[str, Any]:
         """``{"counts": {kind: occurrences}, "dropped": {kind: n}}`` for the node's summary (kinds
         named ``source/kind`` for events that name their source)."""
         return {"counts": dict(sorted(self.counts.items())), "dropped": dict(sorted(self.dropped.items()))}
@@ -165,30 +167,31 @@ class WindowEvent:
     start: float
     end: float
     t: float
-    features: dict | None = None
+    features: dict[str, Any] | None = None
     posteriors: np.ndarray | None = None
     decision: str | None = None
     confidence: float | None = None
-    pooled: dict | None = None
+    pooled: dict[str, Any] | None = None
     truth: str | None = None
-    flags: frozenset = frozenset()
+    flags: frozenset[str] = frozenset()
     latency_ms: float | None = None
-    senses: tuple = ()
+    senses: tuple[str, ...] = ()
     in_contact: bool = True
-    classes: tuple = ()
+    classes: tuple[str, ...] = ()
     log_posteriors: np.ndarray | None = None
     guess: str | None = None
     unknown: str | None = None
     novelty: float | None = None
 
-    def as_dict(self) -> dict:
+    def as_dict(self) -> dict[str, Any]:
         """The event as a JSON-ready dict: ``{"stream", "t", "window", "start", "end"}``, then
         ``predicted`` and ``confidence`` (and ``accumulated``, the pooled decision) with a
         model, else ``features``; ``truth``, each flag as ``true``, ``latency_ms``."""
         out = {"stream": self.stream, "t": round(self.t, 6), "window": self.window,
                "start": round(self.start, 6), "end": round(self.end, 6)}
         if self.decision is not None:
-            out.update(predicted=self.decision, confidence=round(self.confidence, 4))
+            # a decision comes with its confidence (the streams and the fusion set both)
+            out.update(predicted=self.decision, confidence=round(cast(float, self.confidence), 4))
             if self.unknown is not None:
                 out.update(unknown=self.unknown, guess=self.guess)
             if self.novelty is not None:
@@ -206,7 +209,7 @@ class WindowEvent:
         return out
 
 
-def log_posteriors_of(event) -> np.ndarray:
+def log_posteriors_of(event: Any) -> np.ndarray:
     """A window event's log-posteriors: those it carries (a stream's and the fusion's events do:
     never clipped), else the log of its posteriors, refused where one is exactly 0 (an event
     made elsewhere, e.g. by hand: its log would be -inf and poison every sum it enters)."""

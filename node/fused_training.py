@@ -19,10 +19,6 @@ from __future__ import annotations
 import warnings
 
 import numpy as np
-from supramodal.node.build import build_node
-from supramodal.node.events import FUSED_STREAM, log_posteriors_of
-from supramodal.node.scene import SceneError, load_scene
-from supramodal.node.sinks import ListSink
 
 from supramodal.calibration import DEFAULT_CALIBRATION_FOLDS, calibration_report, winner
 from supramodal.errors import InputError, SupramodalWarning
@@ -36,6 +32,10 @@ from supramodal.fused_model import (
 )
 from supramodal.mlp import DEFAULT_EPOCHS
 from supramodal.model import ModelError
+from supramodal.node.build import build_node
+from supramodal.node.events import FUSED_STREAM, log_posteriors_of
+from supramodal.node.scene import SceneError, load_scene
+from supramodal.node.sinks import ListSink
 
 #: How a fusion is learned from sessions.
 FUSION_METHODS = ("early", "late")

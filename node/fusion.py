@@ -35,13 +35,13 @@ import queue
 import time
 
 import numpy as np
-from supramodal.drivers.base import DriverEvent
-from supramodal.node.events import FUSED_STREAM, WindowEvent, log_posteriors_of
-from supramodal.node.latency import LatencyHistogram
 
 from supramodal.decisions import DEFAULT_DECISION, Decider
+from supramodal.drivers.base import DriverEvent
 from supramodal.errors import InputError
 from supramodal.fusion import fuse_late
+from supramodal.node.events import FUSED_STREAM, WindowEvent, log_posteriors_of
+from supramodal.node.latency import LatencyHistogram
 
 #: Host seconds a window waits for its partner from the other stream before it is decided alone.
 DEFAULT_MAX_WAIT = 0.5

@@ -147,7 +147,7 @@ class Graph:
         self._limiter = EventLimiter()
         self._stop = threading.Event()
         self._errors: list[tuple[str, BaseException]] = []
-        self._stopped_by = None
+        self._stopped_by: str | None = None
 
     # -- control -----------------------------------------------------------------------------
 

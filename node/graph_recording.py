@@ -17,11 +17,10 @@ import json
 import tomllib
 from pathlib import Path
 
+from supramodal.errors import InputError
 from supramodal.node.outputs import check_new_file
 from supramodal.node.recorder import SessionRecorder
 from supramodal.node.scene import Scene, scene_from_dict, scene_to_toml
-
-from supramodal.errors import InputError
 
 
 def recording_paths(folder, name: str, scene: Scene) -> dict:

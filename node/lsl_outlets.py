@@ -47,16 +47,16 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
-from supramodal.drivers.lsl import import_pylsl, lsl_clock_offset
-from supramodal.drivers.spec import OptionError
-from supramodal.node.events import FUSED_STREAM, WindowEvent
-from supramodal.node.registry import SinkSpec
-from supramodal.node.sinks import QueuedSink, Sink
 
 from supramodal import __version__
 from supramodal.checks import NAME_HELP, Key, is_name
+from supramodal.drivers.lsl import import_pylsl, lsl_clock_offset
+from supramodal.drivers.spec import OptionError
 from supramodal.errors import InputError
 from supramodal.features import FEATURE_TABLE
+from supramodal.node.events import FUSED_STREAM, WindowEvent
+from supramodal.node.registry import SinkSpec
+from supramodal.node.sinks import QueuedSink, Sink
 
 #: What an LSL sink can send, in order.
 OUTPUTS = ("features", "decisions", "posteriors")

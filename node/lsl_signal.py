@@ -55,16 +55,16 @@ import collections
 import time
 
 import numpy as np
+
+from supramodal import __version__
+from supramodal.checks import NAME_HELP, Key, is_name, non_negative, number, text
 from supramodal.drivers.lsl import import_pylsl
 from supramodal.drivers.spec import OptionError
+from supramodal.errors import InputError
 from supramodal.node.lsl_outlets import DEFAULT_PREFIX, OUTLET_BUFFER_SECONDS, LSLClock, outlet_name, outlet_source_id
 from supramodal.node.registry import SinkSpec
 from supramodal.node.ringbuffer import RingClosed, flag_runs
 from supramodal.node.taps import Tap
-
-from supramodal import __version__
-from supramodal.checks import NAME_HELP, Key, is_name, non_negative, number, text
-from supramodal.errors import InputError
 
 #: Seconds of samples per push: LSL's usual 5-30 ms; 10 ms matches the node's own chunks.
 DEFAULT_SIGNAL_CHUNK = 0.01

@@ -32,11 +32,10 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
+from supramodal.errors import InputError
 from supramodal.replay.errors import ReplayError
 from supramodal.replay.session import session_paths
 from supramodal.replay.wavio import WavInfo, wav_info
-
-from supramodal.errors import InputError
 
 __all__ = ["COLUMNS", "REQUIRED_COLUMNS", "ManifestError", "Recording", "read_manifest"]
 

@@ -33,12 +33,12 @@ import threading
 from pathlib import Path
 
 import numpy as np
+
+from supramodal.errors import InputError
 from supramodal.node.ringbuffer import RingClosed, flag_runs
 from supramodal.node.sources import Feed
 from supramodal.node.taps import Tap
 from supramodal.replay.session import MAX_SIDECAR_BYTES, save_session, session_paths
-
-from supramodal.errors import InputError
 
 _CHUNK = 1 << 18  # frames per pass when converting the raw file
 #: Bytes of sidecar the block arrivals may take (about 22 bytes a block): beyond, every other one

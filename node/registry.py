@@ -16,11 +16,10 @@ import importlib
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
-
-from supramodal.drivers.spec import DriverSpec
+from typing import Any, Generic, Protocol, TypeVar
 
 from supramodal.checks import Key, is_name, text
+from supramodal.drivers.spec import DriverSpec
 from supramodal.errors import InputError
 
 __all__ = ["DRIVER_MODULES", "MAPPING", "SINK_MODULES", "Registry", "SinkContext", "SinkSpec", "driver_spec",
@@ -38,7 +37,17 @@ DRIVER_MODULES = {
 }
 
 
-class Registry:
+class _Typed(Protocol):
+    """A spec: what it has of its own type name (DriverSpec, SinkSpec)."""
+
+    @property
+    def type(self) -> str: ...
+
+
+SpecT = TypeVar("SpecT", bound=_Typed)
+
+
+class Registry(Generic[SpecT]):
     """Specs by type: built-in ones named by module (imported when first asked for), others
     registered at run time.
 
@@ -52,11 +61,11 @@ class Registry:
         The class every spec is an instance of.
     """
 
-    def __init__(self, what: str, modules: dict[str, str], spec_type: type) -> None:
+    def __init__(self, what: str, modules: dict[str, str], spec_type: type[SpecT]) -> None:
         self.what, self.modules, self.spec_type = what, modules, spec_type
-        self.registered: dict[str, object] = {}
+        self.registered: dict[str, SpecT] = {}
 
-    def register(self, spec, replace: bool = False):
+    def register(self, spec: object, replace: bool = False) -> SpecT:
         if not isinstance(spec, self.spec_type):
             raise InputError(f"register_{self.what} takes a {self.spec_type.__name__}, got {type(spec).__name__}")
         if not replace and (spec.type in self.modules or spec.type in self.registered):
@@ -71,14 +80,14 @@ class Registry:
     def types(self) -> list[str]:
         return sorted({*self.modules, *self.registered})
 
-    def spec(self, kind):
+    def spec(self, kind: object) -> SpecT:
         if isinstance(kind, str) and kind in self.registered:
             return self.registered[kind]
         where = self.modules.get(kind) if isinstance(kind, str) else None
         if where is None:
             raise InputError(f"expected one of {self.types()}, got {kind!r}")
         module, _, attribute = where.partition(":")
-        spec = getattr(importlib.import_module(module), attribute or "SPEC")
+        spec: SpecT = getattr(importlib.import_module(module), attribute or "SPEC")
         if spec.type != kind:
             raise InputError(f"{where} defines {self.what} type {spec.type!r}, not {kind!r}")
         return spec
@@ -87,7 +96,7 @@ class Registry:
 DRIVERS = Registry("driver", DRIVER_MODULES, DriverSpec)
 
 
-def _mapping(v) -> bool:
+def _mapping(v: object) -> bool:
     return v in ("auto", "mono", "per-channel", "mean") or (isinstance(v, int) and not isinstance(v, bool) and v >= 0)
 
 
@@ -112,7 +121,7 @@ def driver_types() -> list[str]:
     return DRIVERS.types()
 
 
-def driver_spec(kind) -> DriverSpec:
+def driver_spec(kind: object) -> DriverSpec:
     """The spec of driver type ``kind``; an :class:`InputError` for a type no driver has, listing
     those there are."""
     return DRIVERS.spec(kind)
@@ -163,7 +172,7 @@ class SinkContext:
     resolve: Callable[[str], Path] = Path
     overwrite: bool = False
     streams: Mapping[str, Any] = field(default_factory=dict)
-    fused_classes: tuple | None = None
+    fused_classes: tuple[str, ...] | None = None
     sources: Mapping[str, Any] = field(default_factory=dict)
 
 
@@ -194,7 +203,7 @@ class SinkSpec:
 
     type: str
     keys: Mapping[str, Key]
-    build: Callable[[dict, SinkContext], Any]
+    build: Callable[[dict[str, Any], SinkContext], Any]
     summary: str
     listens: str = "windows"
     needs: str = "nothing"
@@ -220,7 +229,7 @@ def sink_types() -> list[str]:
     return SINKS.types()
 
 
-def sink_spec(kind) -> SinkSpec:
+def sink_spec(kind: object) -> SinkSpec:
     """The spec of sink type ``kind``; an :class:`InputError` for a type no sink has."""
     return SINKS.spec(kind)
 

@@ -72,9 +72,10 @@ import bisect
 import math
 import threading
 import time
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
+from numpy.typing import ArrayLike, DTypeLike
 
 from supramodal.errors import InputError, SupramodalError
 
@@ -254,7 +255,8 @@ class RingBuffer:
     thread, one thread per reader.
     """
 
-    def __init__(self, capacity_frames: int, channels: int, dtype=np.float64, overrun: str = "drop-oldest"):
+    def __init__(self, capacity_frames: int, channels: int, dtype: DTypeLike = np.float64,
+                 overrun: str = "drop-oldest") -> None:
         if not isinstance(capacity_frames, int) or isinstance(capacity_frames, bool) or capacity_frames < 1:
             raise InputError(f"capacity_frames must be an int >= 1, got {capacity_frames!r}")
         if not isinstance(channels, int) or isinstance(channels, bool) or channels < 1:
@@ -337,7 +339,7 @@ class RingBuffer:
 
     # --- writer ---------------------------------------------------------------
 
-    def write(self, block, filled_mask=None, timeout: float | None = None) -> int:
+    def write(self, block: ArrayLike, filled_mask: ArrayLike | None = None, timeout: float | None = None) -> int:
         """Append frames (from the writer thread).
 
         Parameters
@@ -420,7 +422,7 @@ class RingBuffer:
                     kept += k
                     self._readable.notify_all()  # let readers free space while we wait
             self._readable.notify_all()
-            return kept
+            return int(kept)
 
     def _space(self) -> float:
         """Frames that fit before the slowest reader would be overrun (inf with no reader)."""
@@ -562,7 +564,7 @@ class RingBuffer:
         with self._lock:
             return self._end
 
-    def stats(self) -> dict:
+    def stats(self) -> dict[str, Any]:
         """Counters since construction.
 
         Returns

@@ -44,16 +44,15 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from supramodal.drivers.spec import OptionError
-from supramodal.node.events import FUSED_STREAM, MAIN_STREAM
-from supramodal.node.fusion import DEFAULT_MAX_WAIT, DEFAULT_WEIGHT
-from supramodal.node.registry import driver_spec, driver_types, sink_keys, sink_spec, source_keys
-
 from supramodal.bankfile import BANK_KEYS
 from supramodal.checks import NAME_HELP, Key, fill, flag, integer, is_name, non_negative, number, one_of, positive, text
 from supramodal.decisions import DEFAULT_DECISION, METHODS, SCOPES
+from supramodal.drivers.spec import OptionError
 from supramodal.errors import InputError
 from supramodal.features import DEFAULT_WINDOW, FEATURE_TABLE, FEATURES
+from supramodal.node.events import FUSED_STREAM, MAIN_STREAM
+from supramodal.node.fusion import DEFAULT_MAX_WAIT, DEFAULT_WEIGHT
+from supramodal.node.registry import driver_spec, driver_types, sink_keys, sink_spec, source_keys
 from supramodal.peaks import DEFAULT_PEAK_MODE, PEAK_MODES
 
 

@@ -53,8 +53,8 @@ def blocks() -> dict[str, str]:
     out["section-keys"] = "\n".join(lines).rstrip()
     lines = []
     for kind in sink_types():
-        spec = sink_spec(kind)
-        lines += [f"#### `[[sink]] type = \"{kind}\"`: {spec.summary}", ""] + _keys_table(sink_keys(spec)) + [""]
+        sink = sink_spec(kind)
+        lines += [f"#### `[[sink]] type = \"{kind}\"`: {sink.summary}", ""] + _keys_table(sink_keys(sink)) + [""]
     out["sink-keys"] = "\n".join(lines).rstrip()
     lines = ["#### `[[source]]`: a driver's keys (above) and", ""] + _keys_table(SOURCE_KEYS) + [""]
     lines += ["#### `[[stream]]`: `[stream.bank]`, `[stream.features]`, `[stream.model]`, `[stream.decision]` "
@@ -76,8 +76,8 @@ def rewrite(text: str, names, made: dict[str, str], where: str = "the file") -> 
         pattern = _pattern(name)
         if not pattern.search(text):
             raise ValueError(f"{where} has no generated block {name!r} (<!-- BEGIN generated: {name} --> ...)")
-        block = made[name]
-        text = pattern.sub(lambda m, block=block: m.group(1) + block + "\n" + m.group(2), text)
+        # sub() calls the lambda before the loop moves on: it sees this name's block
+        text = pattern.sub(lambda m: m.group(1) + made[name] + "\n" + m.group(2), text)  # noqa: B023
     return text
 
 

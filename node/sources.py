@@ -37,13 +37,18 @@ import collections
 import math
 import queue
 import threading
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
-from supramodal.drivers.base import Block, Driver, DriverClosed, missing_members
-from supramodal.node.clock import ClockModel
-from supramodal.node.ringbuffer import RingBuffer
 
+from supramodal.drivers.base import Block, Driver, DriverClosed, DriverEvent, missing_members
 from supramodal.errors import InputError
+from supramodal.node.clock import ClockModel
+from supramodal.node.ringbuffer import Reader, RingBuffer
+
+#: What a source puts on the graph's event queue: (source name, driver events, dropped counts by kind).
+EventItem = tuple[str, list[DriverEvent], dict[str, int]]
 
 TIMEBASES = ("stream", "host", "recorded")
 
@@ -64,7 +69,7 @@ class Feed:
     ``track`` (the recorder's: it takes marks and times from the source itself) gets neither,
     so nothing piles up unread."""
 
-    def __init__(self, reader, track: bool = True) -> None:
+    def __init__(self, reader: Reader, track: bool = True) -> None:
         self.reader = reader
         self.track = track
         #: (end frame, host arrival, common-time line (offset, slope)) of each block, in order
@@ -148,7 +153,7 @@ class Source:
         #: Set by the source thread: the stream length (``max_frames``) was reached.
         self.reached_length = False
         #: source thread -> the graph's event thread: (source name, events, dropped); None ends.
-        self.event_queue: queue.SimpleQueue | None = None
+        self.event_queue: queue.SimpleQueue[EventItem | None] | None = None
 
     def add_feed(self, name: str, track: bool = True) -> Feed:
         """A new reader of this source's ring (a stream or a tap; a tap that does not ``track``
@@ -168,7 +173,7 @@ class Source:
 
     # -- source thread ----------------------------------------------------------------------
 
-    def drive(self, stop: threading.Event, on_stop) -> None:
+    def drive(self, stop: threading.Event, on_stop: Callable[[str], None]) -> None:
         """Move blocks from the driver to the ring until the stream ends or ``stop`` is set;
         ``on_stop(reason)`` when the stream length (``max_frames``) is reached."""
         try:
@@ -181,9 +186,10 @@ class Source:
                     self._queue_events()
                 if block is None:
                     continue
-                last = self.max_frames is not None and block.start + block.frames >= self.max_frames
-                if last:
-                    block = _head(block, self.max_frames - block.start)
+                limit = self.max_frames
+                last = limit is not None and block.start + block.frames >= limit
+                if limit is not None and last:
+                    block = _head(block, limit - block.start)
                 self._note(block)
                 self._write(block, stop)
                 if last:
@@ -288,7 +294,7 @@ class Source:
                 "dropped_by_driver": driver_drops,
                 "filled_lost_in_ring": r["lost_filled"]}
 
-    def clock_summary(self) -> dict | None:
+    def clock_summary(self) -> dict[str, Any] | None:
         """The clock's estimate (rate error in ppm, jitter and delay in ms), for a host timebase."""
         if self.clock is None:
             return None

@@ -16,14 +16,14 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
+
+from supramodal.decisions import DEFAULT_DECISION, ContactDetector, Decider
 from supramodal.drivers.base import Driver
+from supramodal.errors import InputError
+from supramodal.model import TextureModel
 from supramodal.node.events import WindowEvent
 from supramodal.node.latency import LatencyHistogram
 from supramodal.node.ringbuffer import RingClosed
-
-from supramodal.decisions import DEFAULT_DECISION, ContactDetector, Decider
-from supramodal.errors import InputError
-from supramodal.model import TextureModel
 from supramodal.pipeline import FeaturePipeline
 
 

@@ -11,11 +11,11 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from supramodal.drivers.spec import BuildContext, Built, DriverSpec, OptionError
-from supramodal.replay.driver import DeviceClock, ReplayDriver, block_key, pacing, speed_key
 
 from supramodal.checks import Key, flag, integer, non_negative, number, one_of, positive, text, texts
+from supramodal.drivers.spec import BuildContext, Built, DriverSpec, OptionError
 from supramodal.errors import InputError
+from supramodal.replay.driver import DeviceClock, ReplayDriver, block_key, pacing, speed_key
 
 __all__ = ["MAX_SYNTH_SAMPLES", "SYNTH", "TWOSENSE", "synth_session", "twosense_session"]
 

@@ -21,6 +21,10 @@ drops the frames a tap falls behind on, and counts them in the tap's ``frames`` 
 from __future__ import annotations
 
 import abc
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:   # the sources import the taps: names for the annotations only
+    from supramodal.node.sources import Feed, Source
 
 __all__ = ["Tap"]
 
@@ -46,18 +50,18 @@ class Tap(abc.ABC):
         """Before the graph's start, on the caller's thread; may wait (e.g. for a consumer).
         Default: nothing."""
 
-    def start(self, source, epoch: float) -> None:
+    def start(self, source: Source, epoch: float) -> None:
         """The source this tap reads (:class:`~supramodal.node.sources.Source`) and the graph's
         start on ``time.monotonic()`` (common time 0). The caller's thread, before any frame and
         before the tap's thread starts. Default: nothing."""
 
     @abc.abstractmethod
-    def run(self, feed) -> None:
+    def run(self, feed: Feed) -> None:
         """Read ``feed`` (a :class:`~supramodal.node.sources.Feed`: ``feed.reader.read`` until it
         raises :class:`~supramodal.node.ringbuffer.RingClosed`). The tap's thread; an exception
         stops the graph, which raises it from :meth:`Graph.run`."""
 
-    def summary(self) -> dict:
+    def summary(self) -> dict[str, Any]:
         """The tap's own counts, for the graph's summary (``taps``; the graph adds ``frames``).
         The caller's thread, after :meth:`close`. Default: ``{}``."""
         return {}

@@ -11,10 +11,6 @@ sees in training what the node feeds it live.
 from __future__ import annotations
 
 import numpy as np
-from supramodal.node.band import warn_if_beyond_band
-from supramodal.node.manifest import ManifestError, Recording, read_manifest
-from supramodal.node.streams import channel_mapper
-from supramodal.replay.driver import ReplayDriver
 
 from supramodal.banks import Bank
 from supramodal.calibration import calibration_report, pool_log_posteriors, winner
@@ -22,7 +18,11 @@ from supramodal.errors import SupramodalError
 from supramodal.evaluation import POOLED_WINDOWS, anytime_sweep, permutation_importance, pooled_accuracy
 from supramodal.mlp import DEFAULT_EPOCHS
 from supramodal.model import TextureModel
+from supramodal.node.band import warn_if_beyond_band
+from supramodal.node.manifest import ManifestError, Recording, read_manifest
+from supramodal.node.streams import channel_mapper
 from supramodal.pipeline import FeaturePipeline
+from supramodal.replay.driver import ReplayDriver
 from supramodal.training import grouped_folds
 
 

@@ -39,13 +39,13 @@ from pathlib import Path
 
 import numpy as np
 from scipy.signal import resample_poly
+
+from supramodal.checks import Key, flag, integer, is_number, one_of, text
 from supramodal.drivers.base import Block, DeviceUnavailable, DriverBase, DriverClosed, DriverError
 from supramodal.drivers.spec import BuildContext, Built, DriverSpec, OptionError, given
 from supramodal.replay.errors import ReplayError
 from supramodal.replay.session import Label, Session, load_session, session_paths
 from supramodal.replay.wavio import read_wav
-
-from supramodal.checks import Key, flag, integer, is_number, one_of, text
 
 __all__ = ["ReplayDriver", "DeviceClock", "SPEC", "SPEED_HELP", "SPEED_MAX", "TIMINGS", "is_speed", "release_time", "random_block_sizes", "RandomBlockSizes", "BlockSize"]
 

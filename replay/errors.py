@@ -9,7 +9,6 @@ bad: a file, a sidecar, an argument) and a :class:`supramodal.drivers.base.Drive
 from __future__ import annotations
 
 from supramodal.drivers.base import DriverError
-
 from supramodal.errors import SupramodalWarning
 
 

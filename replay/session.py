@@ -56,11 +56,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from supramodal.replay.errors import MissingSidecarError, SessionError
-from supramodal.replay.wavio import as_frames, read_wav, wav_info, write_wav
 
 from supramodal.errors import InputError
 from supramodal.jsondata import read_json_file
+from supramodal.replay.errors import MissingSidecarError, SessionError
+from supramodal.replay.wavio import as_frames, read_wav, wav_info, write_wav
 
 __all__ = ["FORMAT", "VERSION", "MAX_SIDECAR_BYTES", "MAX_SIDECAR_DEPTH", "Label", "Session", "session_paths", "load_session", "save_session",
            "validate_sidecar", "validate_arrivals", "sidecar_text", "mask_to_ranges", "missing_sidecar",

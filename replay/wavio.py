@@ -47,9 +47,9 @@ from pathlib import Path
 
 import numpy as np
 from scipy.io import wavfile
-from supramodal.replay.errors import ClippingWarning, ReplayError, WavFormatError
 
 from supramodal.errors import InputError
+from supramodal.replay.errors import ClippingWarning, ReplayError, WavFormatError
 
 __all__ = ["WavInfo", "wav_info", "read_wav", "write_wav", "as_frames", "WRITE_DTYPES", "MAX_FLOAT_MAGNITUDE"]
 

@@ -99,9 +99,9 @@ class Bank:
         cf, b, fs = _real(self.cf, "centre frequencies cf"), _real(self.b, "bandwidths b"), _real(self.fs, "sample rate fs")
         if fs.size != 1:
             raise InputError(f"sample rate fs must be one number of Hz, got {fs.size} values")
-        cf, b, fs = cf.reshape(-1), b.reshape(-1), float(fs.reshape(-1)[0])
+        cf, b, rate = cf.reshape(-1), b.reshape(-1), float(fs.reshape(-1)[0])
         names = tuple(str(n) for n in self.names)
-        if not np.isfinite(fs) or fs <= 0 or fs > MAX_RATE:
+        if not np.isfinite(rate) or rate <= 0 or rate > MAX_RATE:
             raise InputError(f"sample rate fs must be a positive number of Hz, at most {MAX_RATE:g} (MAX_RATE), "
                              f"got {self.fs!r}")
         if cf.size == 0:
@@ -114,11 +114,11 @@ class Bank:
             )
         if not (np.all(np.isfinite(cf)) and np.all(np.isfinite(b))):
             raise InputError("centre frequencies and bandwidths must be finite numbers (found NaN or Inf)")
-        bad = np.flatnonzero((cf <= 0) | (cf >= fs / 2))
+        bad = np.flatnonzero((cf <= 0) | (cf >= rate / 2))
         if bad.size:
             k = int(bad[0])
             raise InputError(
-                f"centre frequency of channel {names[k]} is {cf[k]:g} Hz, outside (0, fs/2) = (0, {fs / 2:g}) Hz: "
+                f"centre frequency of channel {names[k]} is {cf[k]:g} Hz, outside (0, fs/2) = (0, {rate / 2:g}) Hz: "
                 "lower it or raise the sample rate"
             )
         bad = np.flatnonzero(b <= 0)
@@ -132,7 +132,7 @@ class Bank:
         object.__setattr__(self, "cf", cf)
         object.__setattr__(self, "b", b)
         object.__setattr__(self, "names", names)
-        object.__setattr__(self, "fs", fs)
+        object.__setattr__(self, "fs", rate)
 
     @property
     def channels(self) -> int:

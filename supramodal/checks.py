@@ -19,7 +19,7 @@ import math
 import numbers
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TypeGuard
 
 from supramodal.errors import InputError
 
@@ -114,7 +114,7 @@ def fill(where: str, given: Any, keys: Schema, error: type[InputError] = InputEr
 
 # -- the words ---------------------------------------------------------------------------------------
 
-def is_number(v) -> bool:
+def is_number(v: object) -> bool:
     """A finite real number (Python's or NumPy's), not a bool; an int too large for a float is not."""
     if not isinstance(v, numbers.Real) or isinstance(v, bool) or type(v).__name__ == "bool_":
         return False
@@ -127,10 +127,10 @@ def is_number(v) -> bool:
 def number(lo: float = -math.inf, hi: float = math.inf, *, lo_open: bool = False,
            hi_open: bool = False) -> Callable[[Any], bool]:
     """A finite number within ``[lo, hi]`` (an end excluded where ``lo_open`` / ``hi_open``)."""
-    def check(v) -> bool:
+    def check(v: Any) -> bool:
         if not is_number(v):
             return False
-        return (v > lo if lo_open else v >= lo) and (v < hi if hi_open else v <= hi)
+        return bool((v > lo if lo_open else v >= lo) and (v < hi if hi_open else v <= hi))
     return check
 
 
@@ -150,26 +150,26 @@ def integer(lo: int | None = None, hi: int | None = None) -> Callable[[Any], boo
                       and (hi is None or v <= hi))
 
 
-def one_of(*choices) -> Callable[[Any], bool]:
+def one_of(*choices: object) -> Callable[[Any], bool]:
     """One of ``choices`` (compared with ``==``, so ``1`` is not ``True``)."""
     return lambda v: any(v == c and type(v) is type(c) for c in choices)
 
 
-def flag(v) -> bool:
+def flag(v: object) -> bool:
     """``true`` or ``false``."""
     return isinstance(v, bool)
 
 
-def text(v) -> bool:
+def text(v: object) -> TypeGuard[str]:
     """A non-empty string."""
     return isinstance(v, str) and v != ""
 
 
-def texts(v) -> bool:
+def texts(v: object) -> bool:
     """A list of strings (possibly empty)."""
     return isinstance(v, list) and all(isinstance(t, str) for t in v)
 
 
-def is_name(v) -> bool:
+def is_name(v: object) -> bool:
     """A name (:data:`NAME_HELP`): what becomes a stream name, a file name part or an outlet name."""
     return text(v) and len(v) <= MAX_NAME and all(c.isalnum() or c in "-_" for c in v)

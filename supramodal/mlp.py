@@ -91,7 +91,10 @@ class MLP:
             if v < 1:
                 raise InputError(f"{name} must be >= 1, got {v}")
         rng = np.random.default_rng(seed)
-        u = lambda *shape: rng.uniform(-INIT_RANGE, INIT_RANGE, size=shape)
+
+        def u(*shape: int) -> np.ndarray:
+            return rng.uniform(-INIT_RANGE, INIT_RANGE, size=shape)
+
         return cls(u(inputs, hidden), u(hidden), u(hidden, outputs), u(outputs))
 
     @property

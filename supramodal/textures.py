@@ -182,7 +182,7 @@ def random_texture_set(bank: str, n: int = 8, seed: int = 0, duration: float = 4
         raise InputError(f"unknown bank {bank!r}: choose 'whisker' or 'cochlea'")
     lo, hi = PEAK_RANGES[bank]
     rng = np.random.default_rng(np.random.SeedSequence([seed, 0x7E57]))
-    textures = []
+    textures: list[Texture] = []
     while len(textures) < n:
         # Round first, then check: the stored (rounded) peaks are the ones that must be min_ratio apart.
         peaks = [round(float(p), 1) for p in np.sort(np.exp(rng.uniform(np.log(lo), np.log(hi), 3)))]

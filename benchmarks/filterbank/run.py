@@ -22,20 +22,20 @@ import time
 from dataclasses import asdict, dataclass, replace
 
 import numpy as np
-from supramodal.benchmarks.filterbank import PINNED_THREADS
-from supramodal.benchmarks.filterbank.peers import make_peer
-from supramodal.benchmarks.filterbank.report import clean, write_report
-from supramodal.node.graph import Labels, Node
-from supramodal.node.sinks import ListSink
-from supramodal.replay.driver import ReplayDriver
 
 from supramodal.backends import make_filterbank
 from supramodal.banks import Bank, bank_by_name
+from supramodal.benchmarks.filterbank import PINNED_THREADS
+from supramodal.benchmarks.filterbank.peers import make_peer
+from supramodal.benchmarks.filterbank.report import clean, write_report
 from supramodal.decisions import window_decision
 from supramodal.gammatone import reference_impulse_response, relative_error
 from supramodal.mlp import DEFAULT_EPOCHS
 from supramodal.model import TextureModel
+from supramodal.node.graph import Labels, Node
+from supramodal.node.sinks import ListSink
 from supramodal.pipeline import FeaturePipeline
+from supramodal.replay.driver import ReplayDriver
 from supramodal.textures import reference_texture_set
 from supramodal.training import TRAIN_FRACTION
 
