@@ -80,6 +80,7 @@ def test_fusion_refuses_misaligned_input():
     assert early_inputs(np.ones((3, 1, 20)), np.zeros((3, 1, 50))).shape == (3, 70)
 
 
+@pytest.mark.slow   # a long run: 8 s contacts, 300 epochs, run twice
 def test_fusion_beats_each_sense_on_a_two_sense_set():
     """One set, 8 s contacts: each sense alone confuses the pairs the other separates, fused they
     do not (the full figure over 5 sets is `python -m supramodal.experiments.fusion`)."""
@@ -93,6 +94,7 @@ def test_fusion_beats_each_sense_on_a_two_sense_set():
     assert r == run_set(0, seconds=8.0, epochs=300, seed=0)             # deterministic given the seeds
 
 
+@pytest.mark.slow   # a long run: the whole experiment on one set
 def test_experiment_fusion_on_the_command_line_writes_its_table_csv_and_plot(tmp_path, capsys):
     import csv
 

@@ -114,6 +114,7 @@ def _fused(sink):
     return [(e.window, e.senses, e.decision, "alone" in e.flags) for e in sink.windows if e.stream == "fused"]
 
 
+@pytest.mark.slow   # paced: 32 s of stream at speed 8, recorded and replayed twice
 def test_a_two_sense_session_recorded_live_replays_with_the_same_fused_decisions(tmp_path):
     """The two-sense world paced like live devices (speed 8, +-100 ppm, 2 ms jitter, 37 ms apart)
     recorded by the graph; its replay scene, at 'max' and at a finite speed, puts the sources on
@@ -204,6 +205,7 @@ def _world_toml(take: int, seconds: float = 1.0) -> str:
     return src + '[fusion]\nstreams = ["whiskers", "mic"]\nweight = "learn"\n'
 
 
+@pytest.mark.slow   # a long run: four recordings, two fusions trained and scored
 def test_a_fusion_trained_on_recorded_sessions_scores_on_another_recording(tmp_path, capsys, monkeypatch):
     """Three recordings of the two-sense world (other contacts each: take 1, 2, 3) train the
     supramodal network and a late weight with `train --fusion --scene`; `evaluate --scene` on a

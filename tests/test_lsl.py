@@ -35,6 +35,7 @@ def test_a_stream_from_another_process_is_decided_as_the_same_signal_fed_locally
     assert 0 <= result["transport_lag_ms"]["p50"] < 100
 
 
+@pytest.mark.slow   # paced real time: a sender process in real time, killed and restarted
 def test_a_sender_killed_and_restarted_leaves_a_counted_gap_and_the_node_decides_again_within_2_s(tmp_path):
     """The sender killed 3 s in and started again 1 s later (found again by its source id): the
     node keeps running to the end of its 8 s, fills exactly the samples never sent (counted, their
@@ -85,6 +86,7 @@ def _pull_all(inlets: dict, until: float, clock) -> dict:
     return got
 
 
+@pytest.mark.slow   # a node process that trains on the spot, then streams in real time
 def test_the_outlets_carry_the_documented_labels_units_classes_and_window_times(tmp_path):
     """A node in another process sends a replay's features, decisions and posteriors; a plain
     pylsl inlet reads them back: channel labels FEATURE/FILTER with units, class names as the

@@ -292,6 +292,7 @@ def _sound_silence_sound(bank, seconds_silent, seed):
     return np.concatenate([burst(), np.zeros(n_zero), burst()])
 
 
+@pytest.mark.slow   # a long stream: 7 s of signal fed 20 times, in blocks as short as 1 sample
 @pytest.mark.parametrize("bank_name", ["whisker", "cochlea"])
 @pytest.mark.parametrize("gather", [True, False])
 def test_features_after_long_silence_are_the_same_for_every_chunking(bank_name, gather):

@@ -104,6 +104,7 @@ def _run_robot(tmp_path, server, command: list[str], faults: FaultSpec | None = 
 
 
 @pytest.mark.hardware
+@pytest.mark.slow   # paced real time: the board and the JACK-paced microphone live
 def test_the_robot_scene_runs_both_senses_fused_and_survives_the_board_unplugged(tmp_path, jack_server):
     # Unplugged 4 s after the board starts, for 1.5 s, once.
     out, err, code, ledger = _run_robot(tmp_path, jack_server, ["run", "--json"],
@@ -155,6 +156,7 @@ def test_the_robot_scene_runs_both_senses_fused_and_survives_the_board_unplugged
 
 
 @pytest.mark.hardware
+@pytest.mark.slow   # paced real time: the board and the JACK-paced microphone live
 def test_the_robot_recorded_live_replays_with_the_same_fused_decisions(tmp_path, jack_server, capsys):
     """`supramodal record` of the robot scene, the real serial driver and PortAudio stream on their
     own clocks: the replay scene it writes, run at max speed, pairs and fuses the same windows to

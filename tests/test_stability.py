@@ -128,6 +128,7 @@ def test_impulse_response_over_the_domain(fs, cf_pos, b_pos, dtype):
         assert relative_error(ReferenceFilterbank(bank).impulse_response(n), ref) <= reference_bound(fs / b)
 
 
+@pytest.mark.slow   # a long stream: an impulse response of 1.3e7 samples
 def test_refusal_limit_still_meets_the_bound():
     """b = 1.5e-7 fs (a response of 1.3e7 samples): float64 7e-14 measured, float32 2e-7."""
     bank = Bank("custom", 44100.0, [20.0], [1.5e-7 * 44100.0], ("c",))
