@@ -96,13 +96,18 @@ class Registry(Generic[SpecT]):
 DRIVERS = Registry("driver", DRIVER_MODULES, DriverSpec)
 
 
+#: Highest channel index a mapping may name.
+MAX_CHANNEL_INDEX = 4095
+
+
 def _mapping(v: object) -> bool:
-    return v in ("auto", "mono", "per-channel", "mean") or (isinstance(v, int) and not isinstance(v, bool) and v >= 0)
+    return v in ("auto", "mono", "per-channel", "mean") or (isinstance(v, int) and not isinstance(v, bool)
+                                                             and 0 <= v <= MAX_CHANNEL_INDEX)
 
 
 #: How the streams read a source's channels into their bank's (``supramodal.node.streams.channel_mapper``):
 #: a key of every source, whatever its driver.
-MAPPING = Key(_mapping, '"auto", "mono", "per-channel", "mean" or a channel index', "auto")
+MAPPING = Key(_mapping, f'"auto", "mono", "per-channel", "mean" or a channel index 0..{MAX_CHANNEL_INDEX}', "auto")
 
 
 def register_driver(spec: DriverSpec, replace: bool = False) -> DriverSpec:

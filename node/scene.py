@@ -131,6 +131,11 @@ SECTIONS = {
 }
 
 
+#: Longest wait of a live window for its partner, seconds (a window waits in memory).
+MAX_FUSION_WAIT = 60.0
+#: Largest tempering of fused log-posteriors (learned ones are about 2).
+MAX_SHARPNESS = 1000.0
+
 #: [fusion] weight: learned at start-up on the models' held-out training windows.
 LEARN = "learn"
 
@@ -154,11 +159,12 @@ FUSION_KEYS = {
     "weight": Key(lambda v: v == LEARN or number(0.0, 1.0)(v),
                   f'the first stream\'s weight, in [0, 1], or "{LEARN}" (learned on the held-out training windows '
                   'of two models trained on the spot)', DEFAULT_WEIGHT),
-    "max_wait": Key(positive(), "seconds a window of a live source waits for its partner before it is decided alone, "
-                                "> 0 (file sources wait for each other)", DEFAULT_MAX_WAIT),
+    "max_wait": Key(positive(MAX_FUSION_WAIT), "seconds a window of a live source waits for its partner before it is "
+                                               f"decided alone, > 0 and at most {MAX_FUSION_WAIT:g} (file sources "
+                                               "wait for each other)", DEFAULT_MAX_WAIT),
     # With a numeric weight (as `train --fusion late` prints them); "learn" learns both.
-    "sharpness": Key(positive(), "tempering of the fused log-posteriors, > 0 (printed by `supramodal train --fusion "
-                                 "late`)", 1.0),
+    "sharpness": Key(positive(MAX_SHARPNESS), f"tempering of the fused log-posteriors, > 0 and at most {MAX_SHARPNESS:g} "
+                                              "(printed by `supramodal train --fusion late`)", 1.0),
     "correlation": Key(number(0.0, 1.0), "correlation of neighbouring fused windows for pooling them, in [0, 1] "
                                          "(printed by `supramodal train --fusion late`)", 0.0),
 }
@@ -268,7 +274,8 @@ def scene_from_dict(d: dict, source: str = "<scene>", base_dir: Path | None = No
     unknown = sorted(set(d) - allowed)
     if unknown:
         raise SceneError(f"{source}: unknown section(s) {unknown}; sections are {sorted(allowed)}"
-                         + ("; a scene of several sources uses [[source]] and [[stream]]" if "fusion" in unknown else ""))
+                         + ("; a scene of several sources uses [[source]] and [[stream]]"
+                            if "fusion" in unknown else ""))
     driver = d.get("driver")
     if not isinstance(driver, dict) or "type" not in driver:
         raise SceneError(f"{source}: [driver] type is required, one of {driver_types()}")
@@ -280,8 +287,8 @@ def scene_from_dict(d: dict, source: str = "<scene>", base_dir: Path | None = No
     base = base_dir or Path.cwd()
     stream = StreamScene(drv, sections["bank"], sections["features"], sections["model"], sections["decision"],
                          sections["buffer"], source, base)
-    return Scene([{"name": MAIN_STREAM, **drv, "buffer": sections["buffer"]}], [StreamSpec(MAIN_STREAM, MAIN_STREAM, stream)],
-                 sinks, None, source, base, form="one-source")
+    return Scene([{"name": MAIN_STREAM, **drv, "buffer": sections["buffer"]}],
+                 [StreamSpec(MAIN_STREAM, MAIN_STREAM, stream)], sinks, None, source, base, form="one-source")
 
 
 def driver_table(where: str, table, extra: dict | None = None) -> dict:
@@ -367,7 +374,8 @@ def _sinks(d: dict, source: str, streams, sources=(MAIN_STREAM,), base_dir: Path
             same = next((k for k, o in enumerate(sinks) if o.get("path", "-") != "-" and target == os.path.normpath(
                 (base_dir or Path.cwd()) / Path(o["path"]).expanduser())), None)
             if same is not None:
-                raise SceneError(f"{source}: [[sink]] #{i + 1} path: {sink['path']!r} is the file of [[sink]] #{same + 1} "
+                raise SceneError(f"{source}: [[sink]] #{i + 1} path: {sink['path']!r} is the file of "
+                                 f"[[sink]] #{same + 1} "
                                  "too; two sinks writing one file would interleave their lines: give each its own "
                                  "path, or one sink several streams (from = [...])")
         listens = [sink["from"]] if isinstance(sink["from"], str) else sink["from"] or []
@@ -438,7 +446,8 @@ def _graph_scene(d: dict, source: str, base_dir: Path) -> Scene:
                              "window is novel; set unknown in each [[stream]]'s [decision] instead")
         given_learned = sorted({"sharpness", "correlation"} & set(given))
         if fusion["weight"] == LEARN and given_learned:
-            raise SceneError(f"{source}: [fusion] {', '.join(given_learned)}: weight = \"{LEARN}\" learns them with the "
+            raise SceneError(f"{source}: [fusion] {', '.join(given_learned)}: weight = \"{LEARN}\" learns them "
+                             "with the "
                              "weight; give a numeric weight to set them, or leave them out")
         late_only = sorted({"weight", "sharpness", "correlation"} & set(given))
         if fusion["method"] == "early" and late_only:

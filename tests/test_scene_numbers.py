@@ -14,7 +14,9 @@ import sys
 
 import pytest
 
+from supramodal.node.build import build_node
 from supramodal.node.registry import driver_spec, source_keys
+from supramodal.node.sinks import ListSink
 from supramodal.node.scene import SECTIONS, SceneError, scene_from_dict, scene_to_toml
 
 BAD = {"zero": 0, "negative": -1.5, "huge": 1e300, "nan": math.nan, "inf": math.inf, "huge-int": 10**30}
@@ -53,10 +55,85 @@ def _scene(section: str, key: str, value) -> dict:
     return d
 
 
+def _load_only_cases():
+    """Numeric keys of the drivers that need a device or a stream (serial, microphone, lsl, xdf),
+    of every sink and of the fusion: driven at load (a run needs what a test machine lacks)."""
+    from supramodal.node.registry import driver_types, sink_keys, sink_spec, sink_types
+    from supramodal.node.scene import FUSION_KEYS
+
+    for kind in driver_types():
+        if kind in ("synth",):
+            continue
+        for name, key in source_keys(driver_spec(kind)).items():
+            if _numeric(key):
+                yield ("driver", kind), name
+    for kind in sink_types():
+        for name, key in sink_keys(sink_spec(kind)).items():
+            if _numeric(key):
+                yield ("sink", kind), name
+    for name, key in FUSION_KEYS.items():
+        if _numeric(key):
+            yield ("fusion", None), name
+
+
+#: Bad values a schema accepts on purpose, with why (a run, where it is possible, decides).
+ACCEPTED = {
+    ("driver", "microphone", "device", "zero"): "device index 0 is a real device",
+    ("driver", "microphone", "device", "huge-int"): "an index no card has: refused when the stream opens",
+    ("driver", "twosense", "set_seed", "zero"): "a seed", ("driver", "twosense", "set_seed", "huge-int"): "a seed",
+    ("driver", "twosense", "take", "zero"): "the first contact", ("driver", "twosense", "take", "huge-int"): "",
+    ("driver", "twosense", "offset", "zero"): "no offset", ("driver", "twosense", "clock_ppm", "zero"): "",
+    ("driver", "twosense", "jitter", "zero"): "no jitter", ("driver", "twosense", "clock_ppm", "negative"): "",
+    ("sink", "lsl-signal", "wait_for_consumer", "zero"): "start at once",
+    ("fusion", None, "weight", "zero"): "all on the second stream", ("fusion", None, "correlation", "zero"): "",
+    **{("driver", kind, "mapping", "zero"): "channel 0" for kind in ("lsl", "microphone", "replay", "serial", "twosense",
+                                                                       "xdf")},
+    ("driver", "twosense", "seconds", "huge"): "build", ("driver", "twosense", "seconds", "huge-int"): "build",
+}
+
+
+def _two_sense(section, kind, key, value) -> dict:
+    d = {"source": [{"name": "w", "type": "twosense", "sense": "whiskers", "seconds": 0.5},
+                    {"name": "m", "type": "twosense", "sense": "microphone", "seconds": 0.5}],
+         "stream": [{"name": "w", "source": "w", "model": {"path": "w.npz"}},
+                    {"name": "m", "source": "m", "bank": {"kind": "cochlea"}, "model": {"path": "m.npz"}}],
+         "fusion": {"streams": ["w", "m"]}}
+    if section == "fusion":
+        d["fusion"][key] = value
+    elif section == "sink":
+        d["sink"] = [{"type": kind, key: value, **({"source": "w"} if kind == "lsl-signal" else {})}]
+    return d
+
+
+@pytest.mark.parametrize("where, key, label", [(w, k, label) for w, k in _load_only_cases() for label in BAD])
+def test_every_other_numeric_key_refuses_bad_numbers_naming_the_key(tmp_path, where, key, label):
+    section, kind = where
+    value = BAD[label]
+    if section == "driver":
+        required = {"serial": {"port": "loop://"}, "lsl": {"stream": "x"}, "xdf": {"path": "r.xdf", "stream": "s"},
+                    "replay": {"path": "r.wav"}, "twosense": {"sense": "whiskers"}}.get(kind, {})
+        d = {"driver": {"type": kind, **required, key: value}}
+    else:
+        d = _two_sense(section, kind, key, value)
+    try:
+        scene_from_dict(d, str(tmp_path / "s.toml"), tmp_path)
+    except SceneError as exc:
+        assert key in str(exc), str(exc)
+        return
+    why = ACCEPTED.get((section, kind, key, label))
+    assert why is not None, f"[{section}] {kind} {key} = {value!r} is accepted"
+    if why == "build":                       # refused when built, before anything is allocated
+        with pytest.raises(SceneError, match=key):
+            build_node(scene_from_dict(d, str(tmp_path / "s.toml"), tmp_path), sinks_override=[ListSink()])
+
+
 def test_every_numeric_key_is_driven():
     keys = {(s, k) for s, k, _ in CASES}
     assert {("driver", "seconds"), ("driver", "speed"), ("buffer", "seconds"), ("features", "window"),
             ("bank", "mean_B"), ("decision", "n")} <= keys
+    others = {(w, k) for w, k in _load_only_cases()}
+    assert {(("driver", "serial"), "baudrate"), (("driver", "lsl"), "max_gap"), (("driver", "twosense"), "offset"),
+            (("sink", "lsl-signal"), "wait_for_consumer"), (("fusion", None), "max_wait")} <= others
 
 
 @pytest.mark.slow
