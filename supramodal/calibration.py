@@ -45,7 +45,7 @@ store these, the node applies them.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.optimize import minimize, minimize_scalar
@@ -55,13 +55,27 @@ from supramodal.errors import InputError
 
 __all__ = [
     "CALIBRATION_METHOD", "DEFAULT_CALIBRATION_FOLDS", "ECE_BINS", "NOVELTY_METHOD", "Calibration", "Novelty",
-    "brier_score", "calibration_report", "effective_windows", "expected_calibration_error", "fit_novelty",
+    "brier_score", "calibration_report", "cap_gaps", "confusion_caps", "fit_capped_pooling",
+    "fit_capped_window_calibration", "effective_windows", "expected_calibration_error", "fit_novelty",
     "fit_pooling", "fit_window_calibration", "log_loss", "log_sigmoid", "normalised_log_posteriors",
     "novelty_warp", "pool_log_posteriors", "reliability", "winner",
 ]
 
-#: Name of the window map stored in model files.
+#: Name of the window map stored in model files. Its optional keys ``caps`` and ``contact_caps``
+#: (:func:`cap_gaps`) are new; a program of before them refuses a file that has them (exact keys).
 CALIBRATION_METHOD = "asinh-temperature"
+#: Sharpness ``q`` of the soft minimum ``d / (1 + (d / L) ** q) ** (1 / q)`` of a gap ``d`` and its
+#: cap ``L``: within a few per cent of ``min(d, L)``, and strictly increasing in ``d``.
+CAP_SHARPNESS = 16.0
+#: Least cap (nats) a pair's out-of-fold counts may set, before the fitted factor: a pair whose
+#: winner is as often the other class keeps a winner, barely.
+CAP_FLOOR = 0.05
+#: Range of a stored cap (nats).
+CAP_BOUNDS = (1e-3, 1e4)
+#: Range of the fitted factor of the counts' caps (:func:`confusion_caps`): a cap bounds the evidence
+#: of the windows or contacts that deserve the most, so it never lies below the held-out odds of the
+#: decisions for that class on average (factor 1). Fitted factors on the two-sense world: 1.4 to 2.4.
+FACTOR_BOUNDS = (1.0, 1e2)
 #: Grouped folds whose held-out windows fit a model's calibration (the one home of this default). Ten,
 #: not five: each fold's network then trains on 90 % of the windows and behaves like the final one (five
 #: left the final network righter than its calibration said: `experiment calibration`, whisker reference
@@ -132,14 +146,54 @@ def effective_windows(n, correlation: float) -> np.ndarray:
     return n / (1 + 2 * s)
 
 
-def pool_log_posteriors(log_posteriors, correlation: float) -> np.ndarray:
+def pool_log_posteriors(log_posteriors, correlation: float, caps=None) -> np.ndarray:
     """Pooled log-posteriors of the windows ``log_posteriors`` (n, classes) of one contact:
-    ``log_softmax(g(n) sum_t log p_t)``, ``g(n) = effective_windows(n, correlation) / n``; shape (classes,)."""
+    ``log_softmax(g(n) sum_t log p_t)``, ``g(n) = effective_windows(n, correlation) / n``; with
+    ``caps`` (a calibration's contact caps), :func:`cap_gaps` of it instead. Shape (classes,)."""
     lp = np.asarray(log_posteriors, dtype=np.float64)
     n = lp.shape[0]
     if n == 0:
         raise InputError("pooling needs at least one window")
-    return log_softmax(lp.sum(axis=0) * (effective_windows(n, correlation) / n))
+    pooled = lp.sum(axis=0) * (effective_windows(n, correlation) / n)
+    return log_softmax(pooled) if caps is None else cap_gaps(pooled, caps)
+
+
+def cap_gaps(scores, caps) -> np.ndarray:
+    """Log-posteriors ``log_softmax`` of ``scores`` (..., classes) whose gaps to each row's winner
+    are capped per pair of classes.
+
+    With ``k`` the row's winner (its largest score) and ``d_j = s_k - s_j >= 0`` its lead over
+    class ``j``, the lead becomes ``d_j / (1 + (d_j / L_kj) ** q) ** (1 / q)`` (``q`` =
+    :data:`CAP_SHARPNESS`): ``d_j`` where it is well below the cap ``L_kj = caps[k, j] > 0``, about
+    ``L_kj`` beyond. The odds of the winner against ``j`` are then at most ``exp(L_kj)``.
+
+    A lead stays > 0 when it was > 0 and 0 when it was 0, and grows with ``d_j``: every row keeps
+    its winner, and a tie stays a tie (whichever tied class is taken as ``k``, the tied classes
+    keep leads of 0).
+    """
+    s = np.asarray(scores, dtype=np.float64)
+    L = np.array(caps, dtype=np.float64)
+    np.fill_diagonal(L, 1.0)                        # a class against itself: its lead is 0 whatever the cap
+    k = np.argmax(s, axis=-1)
+    d = np.take_along_axis(s, k[..., None], axis=-1) - s
+    with np.errstate(divide="ignore"):
+        log_ratio = np.log(d) - np.log(L[k])        # d = 0: -inf, the lead stays 0; the diagonal: d = 0
+    capped = d * np.exp(-np.logaddexp(0.0, CAP_SHARPNESS * log_ratio) / CAP_SHARPNESS)
+    return log_softmax(-capped, axis=-1)
+
+
+def confusion_caps(predicted, labels, n_classes: int) -> np.ndarray:
+    """Caps per pair of classes from held-out decisions: ``L[k, j] = log((N[k, k] + 1) / (N[j, k] + 1))``,
+    ``N[t, p]`` the count of held-out decisions for ``p`` of class ``t`` (Laplace's +1), at least
+    :data:`CAP_FLOOR`; the diagonal 0 (no cap of a class against itself).
+
+    ``exp(L[k, j])`` estimates the odds of ``k`` against ``j`` among the decisions for ``k``: about 1
+    for a pair the model cannot tell apart, large for a pair it never confuses."""
+    n = np.zeros((n_classes, n_classes))
+    np.add.at(n, (np.asarray(labels), np.asarray(predicted)), 1.0)
+    caps = np.maximum(np.log((np.diag(n)[:, None] + 1.0) / (n.T + 1.0)), CAP_FLOOR)
+    np.fill_diagonal(caps, 0.0)
+    return caps
 
 
 def _prefix_pooled(runs, correlation: float) -> tuple[np.ndarray, np.ndarray]:
@@ -195,6 +249,51 @@ def fit_window_calibration(logits, labels) -> tuple[float, float]:
     return float(a), float(c)
 
 
+def fit_capped_window_calibration(logits, labels) -> tuple[float, float, np.ndarray]:
+    """``(a, c, caps)`` of the capped window map ``cap_gaps(a * asinh(z / c), caps)`` minimising the
+    log loss of ``labels`` (held-out windows, as :func:`fit_window_calibration`).
+
+    ``caps = f * confusion_caps(...)`` of the held-out windows' own winners; ``a``, ``c`` and the
+    factor ``f`` (in :data:`FACTOR_BOUNDS`) are fitted together, so that the temperature no longer
+    has to compromise between the pairs the network tells apart and those it cannot: the caps
+    hold the latter near even odds, and the temperature serves the former.
+
+    Returns
+    -------
+    (float, float, ndarray (classes, classes))
+        ``caps`` has a zero diagonal and each other entry within :data:`CAP_BOUNDS`.
+    """
+    z = np.asarray(logits, dtype=np.float64)
+    y = np.asarray(labels)
+    _check_scored(z, y, "logits")
+    target = _smoothed_targets(y, z.shape[1])
+    base = confusion_caps(np.argmax(z, axis=1), y, z.shape[1])
+    lo, hi = (math.log(v) for v in MAP_BOUNDS)
+    flo, fhi = (math.log(v) for v in FACTOR_BOUNDS)
+
+    def unpack(p):
+        return (*np.exp(np.clip(p[:2], lo, hi)), math.exp(min(max(p[2], flo), fhi)))
+
+    def loss(p):
+        a, c, f = unpack(p)
+        return -(target * cap_gaps(_window_map(z, a, c), _bounded_caps(base * f))).sum(axis=1).mean()
+
+    best = None
+    for start in ((0.0, 0.0, 0.5), (0.0, math.log(10.0), 0.5), (math.log(3.0), math.log(30.0), 1.0)):
+        r = minimize(loss, np.array(start), method="Nelder-Mead",
+                     options={"xatol": 1e-4, "fatol": 1e-7, "maxiter": 3000})
+        if best is None or r.fun < best.fun:
+            best = r
+    a, c, f = unpack(best.x)
+    return float(a), float(c), _bounded_caps(base * f)
+
+
+def _bounded_caps(caps) -> np.ndarray:
+    caps = np.clip(caps, *CAP_BOUNDS)
+    np.fill_diagonal(caps, 0.0)
+    return caps
+
+
 def _smoothed_targets(labels, n_classes: int) -> np.ndarray:
     """Targets of the calibration's log loss: ``1 - eps`` on the true class and ``eps`` shared by
     the others, ``eps = 1 / (n + 2)`` (Laplace's rule of succession for ``n`` windows).
@@ -232,6 +331,44 @@ def fit_pooling(runs, labels) -> float:
     return float(r.x)
 
 
+def fit_capped_pooling(runs, labels) -> tuple[float, np.ndarray]:
+    """The correlation ``rho`` and the contact caps of a capped pooling
+    (``cap_gaps(g(n) sum_t log p_t, caps)``) minimising the log loss of every prefix of every run.
+
+    The caps are a factor (fitted with ``rho``) times :func:`confusion_caps` of the winners of the
+    runs' prefixes of two windows or more, pooled with :func:`fit_pooling`'s correlation. A pair
+    the network confuses within a whole touch (its preference within the pair persists from
+    window to window) keeps odds near even however long the contact; a pair whose windows err
+    independently is told apart by its contacts and keeps large caps.
+
+    Parameters as :func:`fit_pooling`; returns ``(rho, caps)``, ``caps`` (classes, classes) with a
+    zero diagonal and each other entry within :data:`CAP_BOUNDS`.
+    """
+    rho0 = fit_pooling(runs, labels)
+    kept = [(np.asarray(r, dtype=np.float64), lab) for r, lab in zip(runs, labels) if len(r)]
+    runs = [r for r, _ in kept]
+    y = np.concatenate([np.full(len(r), lab) for r, lab in kept])
+    n_classes = runs[0].shape[1]
+    pooled, lengths = _prefix_pooled(runs, rho0)
+    several = lengths >= 2
+    base = confusion_caps(np.argmax(pooled[several], axis=1), y[several], n_classes)
+    target = _smoothed_targets(y, n_classes)
+    flo, fhi = (math.log(v) for v in FACTOR_BOUNDS)
+
+    def unpack(p):
+        return 1.0 / (1.0 + math.exp(-min(max(p[0], -30.0), 30.0))), math.exp(min(max(p[1], flo), fhi))
+
+    def loss(p):
+        rho, f = unpack(p)
+        return -(target * cap_gaps(_prefix_pooled(runs, rho)[0], _bounded_caps(base * f))).sum(axis=1).mean()
+
+    r0 = min(max(rho0, 1e-3), 1 - 1e-3)
+    r = minimize(loss, np.array([math.log(r0 / (1 - r0)), 0.5]), method="Nelder-Mead",
+                 options={"xatol": 1e-4, "fatol": 1e-7, "maxiter": 2000})
+    rho, f = unpack(r.x)
+    return float(rho), _bounded_caps(base * f)
+
+
 def _check_scored(values, labels, what: str) -> None:
     if values.ndim != 2 or values.shape[0] == 0 or values.shape[1] < 2:
         raise InputError(f"{what} must have shape (n >= 1, classes >= 2), got {values.shape}")
@@ -260,12 +397,19 @@ class Calibration:
     fitted_on : dict
         How it was fitted: ``folds``, ``windows``, ``runs``, and the held-out log loss before
         and after (plain data, kept in the model file).
+    caps, contact_caps : tuple of tuples of float, or None
+        The caps per pair of classes (:func:`cap_gaps`) of a window's and of a contact's
+        posteriors, ``caps[k][j]`` that of a decision for ``k`` against ``j``: zero diagonal,
+        every other entry within :data:`CAP_BOUNDS`. None: no caps (a model file of before them,
+        or a fit where they did not earn their numbers: :func:`fit_calibration`).
     """
 
     temperature: float
     scale: float
     correlation: float
     fitted_on: dict = field(default_factory=dict)
+    caps: tuple | None = None
+    contact_caps: tuple | None = None
 
     def __post_init__(self) -> None:
         lo, hi = MAP_BOUNDS
@@ -276,27 +420,54 @@ class Calibration:
         c = self.correlation
         if isinstance(c, bool) or not isinstance(c, (int, float)) or not (0.0 <= c <= 1.0):
             raise InputError(f"calibration correlation must lie in [0, 1], got {c!r}")
+        for name in ("caps", "contact_caps"):
+            v = getattr(self, name)
+            if v is not None:
+                object.__setattr__(self, name, _checked_caps(v, name))
+        if self.caps is not None and self.contact_caps is not None and len(self.caps) != len(self.contact_caps):
+            raise InputError(f"calibration caps are for {len(self.caps)} classes, its contact caps for "
+                             f"{len(self.contact_caps)}")
+
+    @property
+    def capped(self) -> bool:
+        """Whether the window or contact posteriors are capped per pair of classes."""
+        return self.caps is not None or self.contact_caps is not None
 
     def log_posteriors(self, logits) -> np.ndarray:
         """Calibrated log-posteriors of windows with these ``logits`` (..., classes)."""
-        return log_softmax(_window_map(logits, self.temperature, self.scale), axis=-1)
+        scores = _window_map(logits, self.temperature, self.scale)
+        if self.caps is None:
+            return log_softmax(scores, axis=-1)
+        self._check_classes(scores.shape[-1])
+        return cap_gaps(scores, self.caps)
 
     def pool(self, log_posteriors) -> np.ndarray:
         """Calibrated log-posteriors of one contact from its windows' (n, classes)."""
-        return pool_log_posteriors(log_posteriors, self.correlation)
+        return pool_log_posteriors(log_posteriors, self.correlation, self.contact_caps)
+
+    def _check_classes(self, n: int) -> None:
+        if n != len(self.caps):
+            raise InputError(f"this calibration's caps are for {len(self.caps)} classes, got {n}")
 
     def to_dict(self) -> dict:
-        return {"method": CALIBRATION_METHOD, "temperature": self.temperature, "scale": self.scale,
-                "correlation": self.correlation, "fitted_on": self.fitted_on}
+        d = {"method": CALIBRATION_METHOD, "temperature": self.temperature, "scale": self.scale,
+             "correlation": self.correlation, "fitted_on": self.fitted_on}
+        for name in ("caps", "contact_caps"):
+            if getattr(self, name) is not None:
+                d[name] = [list(r) for r in getattr(self, name)]
+        return d
 
     @classmethod
-    def from_dict(cls, d, bad) -> "Calibration":
-        """From a model header's ``calibration`` object; ``bad(message)`` makes the error to raise."""
+    def from_dict(cls, d, bad, n_classes: int | None = None) -> "Calibration":
+        """From a model header's ``calibration`` object; ``bad(message)`` makes the error to raise;
+        ``n_classes``: the model's classes, which caps must match."""
         if not isinstance(d, dict):
             raise bad("'calibration' must be an object")
         keys = {"method", "temperature", "scale", "correlation", "fitted_on"}
-        if set(d) != keys:
-            raise bad(f"'calibration' must have exactly the keys {sorted(keys)}, has {sorted(d)}")
+        optional = {"caps", "contact_caps"}
+        if not keys <= set(d) <= keys | optional:
+            raise bad(f"'calibration' must have exactly the keys {sorted(keys)}, and may have {sorted(optional)}; "
+                      f"has {sorted(d)}")
         if d["method"] != CALIBRATION_METHOD:
             raise bad(f"calibration method {d['method']!r} is not known (this program reads {CALIBRATION_METHOD!r})")
         if not isinstance(d["fitted_on"], dict):
@@ -309,10 +480,38 @@ class Calibration:
                 raise bad(f"'calibration.fitted_on.{key}' must be a finite number, got {value!r}")
             if key == "folds_by" and value not in ("recording", "span"):
                 raise bad(f"'calibration.fitted_on.folds_by' must be \"recording\" or \"span\", got {value!r}")
+        caps = [d.get("caps"), d.get("contact_caps")]
+        for i, (name, v) in enumerate(zip(("caps", "contact_caps"), caps)):
+            if v is None:
+                continue
+            if (not isinstance(v, list) or not all(isinstance(r, list) for r in v)
+                    or not all(not isinstance(e, bool) and isinstance(e, (int, float)) for r in v for e in r)):
+                raise bad(f"'calibration.{name}' must be a list of lists of numbers")
+            if n_classes is not None and (len(v) != n_classes or any(len(r) != n_classes for r in v)):
+                raise bad(f"'calibration.{name}' must be {n_classes} x {n_classes} (the model's classes)")
+            caps[i] = tuple(tuple(float(e) for e in r) for r in v)
         try:
-            return cls(d["temperature"], d["scale"], d["correlation"], d["fitted_on"])
+            return cls(d["temperature"], d["scale"], d["correlation"], d["fitted_on"], *caps)
         except InputError as exc:
             raise bad(str(exc)) from None
+
+
+def _checked_caps(v, name: str) -> tuple:
+    """``v`` as a tuple of tuples of floats, checked: square, >= 2 classes, zero diagonal, every
+    other entry a finite number within :data:`CAP_BOUNDS`."""
+    try:
+        a = np.array(v, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InputError(f"calibration {name} must be a square table of numbers") from None
+    if a.ndim != 2 or a.shape[0] != a.shape[1] or a.shape[0] < 2:
+        raise InputError(f"calibration {name} must be a square table of >= 2 classes, got shape {a.shape}")
+    lo, hi = CAP_BOUNDS
+    off = a[~np.eye(len(a), dtype=bool)]
+    if not np.all(np.diag(a) == 0.0):
+        raise InputError(f"calibration {name} must have a zero diagonal")
+    if not (np.isfinite(off).all() and np.all(off >= lo * (1 - 1e-9)) and np.all(off <= hi * (1 + 1e-9))):
+        raise InputError(f"calibration {name} must lie in [{lo:g}, {hi:g}] off the diagonal")
+    return tuple(tuple(float(e) for e in r) for r in a)
 
 
 #: What :func:`fit_calibration` and :func:`fit_network_calibration` record in ``fitted_on``: counts
@@ -321,7 +520,7 @@ _FITTED_COUNTS = ("windows", "runs", "run_windows", "folds")
 _FITTED_NUMBERS = ("log_loss_uncalibrated", "log_loss", "held_out_accuracy")
 
 
-def fit_calibration(logits, labels, groups, run: int = POOLING_RUN, folds=None) -> Calibration:
+def fit_calibration(logits, labels, groups, run: int = POOLING_RUN, folds=None, caps: bool = True) -> Calibration:
     """Fit a :class:`Calibration` on held-out windows.
 
     Parameters
@@ -338,12 +537,29 @@ def fit_calibration(logits, labels, groups, run: int = POOLING_RUN, folds=None) 
         window to window; a run stitched from two fold networks' windows is less correlated than
         that, and a pooling fitted on it overclaims (two-sense world, whiskers: ECE per contact
         0.088 with stitched runs, 0.051 with runs of one fold).
+    caps : bool
+        Try caps per pair of classes on the window and on the contact posteriors
+        (:func:`fit_capped_window_calibration`, :func:`fit_capped_pooling`; the default). Each is
+        kept only where it earns its number: where it lowers the held-out log loss (windows; every
+        prefix of every run for the contact caps) by more than Akaike's criterion charges for the
+        one number fitted to that loss, the caps' factor: ``1 / n`` nats per decision (``n``
+        windows or prefixes; the caps themselves are counts of held-out decisions, not fitted to
+        the loss). False: the map and pooling of before them.
     """
     z = np.asarray(logits, dtype=np.float64)
     y = np.asarray(labels)
     _check_scored(z, y, "logits")
+    n_classes = z.shape[1]
+    charge = 1.0 / len(y)
     a, c = fit_window_calibration(z, y)
     lp = log_softmax(_window_map(z, a, c), axis=1)
+    window_caps = contact_caps = None
+    if caps:
+        target = _smoothed_targets(y, n_classes)
+        ca, cc, capped_caps = fit_capped_window_calibration(z, y)
+        capped = cap_gaps(_window_map(z, ca, cc), capped_caps)
+        if (target * (capped - lp)).sum(axis=1).mean() > charge:
+            a, c, window_caps, lp = ca, cc, capped_caps, capped
     runs, run_labels = [], []
     groups = np.asarray(groups)
     folds = np.zeros(len(y), dtype=int) if folds is None else np.asarray(folds)
@@ -355,11 +571,24 @@ def fit_calibration(logits, labels, groups, run: int = POOLING_RUN, folds=None) 
                 runs.append(lp[part])
                 run_labels.append(int(y[part[0]]))
     rho = fit_pooling(runs, run_labels)
+    if caps:
+        capped_rho, capped_caps = fit_capped_pooling(runs, run_labels)
+        prefix_y = np.concatenate([np.full(len(r), lab) for r, lab in zip(runs, run_labels)])
+        target = _smoothed_targets(prefix_y, n_classes)
+        gain = (target * (cap_gaps(_prefix_pooled(runs, capped_rho)[0], capped_caps)
+                          - _prefix_pooled(runs, rho)[0])).sum(axis=1).mean()
+        if gain > 1.0 / len(prefix_y):
+            rho, contact_caps = capped_rho, capped_caps
+    kept = tuple(None if v is None else _rows(v) for v in (window_caps, contact_caps))
     rows = np.arange(len(y))
     before = float(-normalised_log_posteriors(z)[rows, y].mean())
     after = float(-lp[rows, y].mean())
     return Calibration(a, c, rho, {"windows": int(len(y)), "runs": len(runs), "run_windows": int(run),
-                                   "log_loss_uncalibrated": round(before, 6), "log_loss": round(after, 6)})
+                                   "log_loss_uncalibrated": round(before, 6), "log_loss": round(after, 6)}, *kept)
+
+
+def _rows(caps) -> tuple:
+    return tuple(tuple(float(e) for e in r) for r in np.asarray(caps))
 
 
 # -- novelty ---------------------------------------------------------------------------------------
@@ -742,9 +971,8 @@ def fit_network_calibration(x, labels, n_classes: int, groups=None, k: int = DEF
             progress(f"calibration fold {f + 1}/{k}: {int(test.sum())} held-out windows, "
                      f"{float(np.mean(np.argmax(z[test], axis=1) == y[test])):.3f} right")
     cal = fit_calibration(z, y, groups, folds=folds)
-    cal = Calibration(cal.temperature, cal.scale, cal.correlation,
-                      {**cal.fitted_on, "folds": int(k), "folds_by": by,
-                       "held_out_accuracy": round(float(np.mean(np.argmax(z, axis=1) == y)), 6)})
+    cal = replace(cal, fitted_on={**cal.fitted_on, "folds": int(k), "folds_by": by,
+                                  "held_out_accuracy": round(float(np.mean(np.argmax(z, axis=1) == y)), 6)})
     mean, scale = input_scaling(x)
     novelty = fit_novelty((x - mean) / scale, y, n_classes, folds, groups, mean, scale)
     return cal, novelty, OutOfFold(z, folds, _fingerprint(x, y))

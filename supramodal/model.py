@@ -97,7 +97,8 @@ def _check_member_size(npz, name: str, max_bytes: int, path) -> None:
     size = math.prod(shape) * dtype.itemsize
     if size > max_bytes:
         raise ModelError(f"{path}: array {name!r} declares shape {shape} of {dtype}, {size} bytes, more than the "
-                         f"{max_bytes} a model file may hold ({'MAX_HEADER_BYTES' if name == 'header' else 'MAX_ARRAY_BYTES'}"
+                         f"{max_bytes} a model file may hold "
+                         f"({'MAX_HEADER_BYTES' if name == 'header' else 'MAX_ARRAY_BYTES'}"
                          "); the file is damaged or not a supramodal model")
 
 
@@ -294,7 +295,8 @@ class TextureModel:
             return ModelError(f"{path}: {msg}")
 
         if not isinstance(header, dict) or header.get("format") != MODEL_FORMAT:
-            raise bad(f"not a {MODEL_FORMAT} file (format is {header.get('format') if isinstance(header, dict) else None!r})")
+            raise bad(f"not a {MODEL_FORMAT} file "
+                      f"(format is {header.get('format') if isinstance(header, dict) else None!r})")
         if type(header.get("version")) is not int or header["version"] not in MODEL_VERSIONS:   # true == 1 in Python
             raise bad(f"model format version {header.get('version')!r} is not supported (this program reads "
                       f"versions {', '.join(map(str, MODEL_VERSIONS))}); retrain the model with this version")
@@ -462,7 +464,8 @@ def read_model_archive(path, names=_ARRAYS, optional=()) -> tuple[object, dict]:
                          "this program never loads (a model file holds only plain arrays); train a model "
                          "with `supramodal train`") from None
     except (zipfile.BadZipFile, OSError, EOFError) as exc:
-        raise ModelError(f"{path} is not a readable model file ({exc}); it may be truncated or of another kind") from exc
+        raise ModelError(f"{path} is not a readable model file ({exc}); "
+                         "it may be truncated or of another kind") from exc
     if header_text.dtype.kind != "U" or header_text.ndim != 0:
         raise ModelError(f"{path}: the model header must be one text, got a {header_text.dtype} array "
                          f"of shape {header_text.shape}")
@@ -502,5 +505,5 @@ def calibration_from_parts(header: dict, arrays: dict, n_in: int, n_classes: int
     """``(Calibration or None, Novelty or None)`` of a header and its arrays, each validated;
     both None for a version 1 file or one saved without them."""
     raw = header.get("calibration")
-    calibration = None if raw is None else Calibration.from_dict(raw, bad)
+    calibration = None if raw is None else Calibration.from_dict(raw, bad, n_classes)
     return calibration, Novelty.from_parts(header.get("novelty", False), arrays, n_in, n_classes, bad)

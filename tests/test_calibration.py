@@ -9,7 +9,7 @@ import pytest
 
 from supramodal.banks import whisker_bank
 from supramodal.calibration import (DEFAULT_CALIBRATION_FOLDS, NOVELTY_QUANTILES, NOVELTY_RUN, Calibration, Novelty,
-                                    brier_score, calibration_folds, fit_novelty, novelty_warp,
+                                    brier_score, cap_gaps, calibration_folds, fit_novelty, novelty_warp,
                                     expected_calibration_error, fit_calibration, fit_pooling, fit_window_calibration,
                                     log_loss, normalised_log_posteriors, pool_log_posteriors, winner)
 from supramodal.decisions import DecisionAccumulator
@@ -480,3 +480,111 @@ def test_calibration_numbers_a_file_may_hold_are_bounded(model, tmp_path, edit, 
     path = _rewrite(model.save(tmp_path / "bad.npz"), edit)
     with pytest.raises(ModelError, match=message):
         TextureModel.load(path)
+
+
+# -- caps per pair of classes (issue 23: classes the network cannot tell apart) ----------------------
+
+def _capped_reference(scores, caps, q=16):
+    """cap_gaps at 50 digits: leads over the winner softly capped, d / (1 + (d / L) ** q) ** (1 / q)."""
+    s = [mpmath.mpf(float(v)) for v in scores]
+    k = max(range(len(s)), key=lambda i: s[i])
+    led = [0 if j == k else (s[k] - s[j]) / (1 + ((s[k] - s[j]) / mpmath.mpf(float(caps[k][j]))) ** q) ** (mpmath.mpf(1) / q)
+           for j in range(len(s))]
+    lse = mpmath.log(mpmath.fsum(mpmath.exp(-v) for v in led))
+    return [float(-v - lse) for v in led]
+
+
+@pytest.mark.parametrize("scores", [[3.0, 1.0, -2.0], [-647.0, 46.0, 45.9], [0.2, 0.1, 40.0], [5.0, 5.0 - 1e-9, 0.0]])
+def test_capped_posteriors_match_extended_precision(scores):
+    caps = np.array([[0.0, 0.3, 5.0], [0.05, 0.0, 2.0], [7.0, 1e3, 0.0]])
+    np.testing.assert_allclose(cap_gaps(np.array(scores), caps), _capped_reference(scores, caps), rtol=1e-12, atol=1e-12)
+
+
+def test_caps_keep_every_windows_winner_and_every_tie():
+    rng = np.random.default_rng(3)
+    k = 6
+    z = rng.normal(0, 40, (2000, k)) * rng.uniform(0.001, 10, (2000, 1))
+    z[:50, 1] = z[:50, 4] = z[:50].max(axis=1) + 1.0                   # ties for the top
+    caps = rng.uniform(1e-3, 5, (k, k))
+    np.fill_diagonal(caps, 0.0)
+    tight = np.where(np.eye(k, dtype=bool), 0.0, 1e-3)
+    for cal in (Calibration(2.0, 10.0, 0.3, {}, caps, caps), Calibration(1e4, 1e-3, 0.0, {}, tight, caps)):
+        lp = cal.log_posteriors(z)
+        np.testing.assert_array_equal(winner(lp), winner(z))            # a tie stays a tie: -1
+        assert np.all(winner(lp)[:50] == -1)
+        np.testing.assert_allclose(np.exp(lp).sum(axis=1), 1.0, rtol=1e-12)
+        assert np.isfinite(lp).all()
+        pooled = cal.pool(lp[50:70])
+        assert winner(pooled) == winner(pool_log_posteriors(lp[50:70], cal.correlation))
+
+
+def _confusable(seed=0, runs=12, run=20):
+    """Held-out logits of 4 classes: 2 and 3 told apart (sure and right), 0 and 1 not: the network
+    is as sure, but picks one of the pair for a whole run of windows, either side with equal chance
+    (its preference persists within a touch, as the two-sense world's microphone does)."""
+    rng = np.random.default_rng(seed)
+    z, y, groups, folds = [], [], [], []
+    for r in range(runs * 4):
+        label = r % 4
+        side = label if label >= 2 else rng.integers(2)
+        logits = rng.normal(-30, 8, (run, 4))
+        logits[:, side] = rng.normal(30, 8, run)
+        if label < 2 and rng.random() < 0.1:                            # a few windows pick the other side
+            logits[:, [0, 1]] = logits[:, [1, 0]]
+        z.append(logits)
+        y += [label] * run
+        groups += [r] * run
+        folds += [r % 10] * run
+    return np.vstack(z), np.array(y), np.array(groups), np.array(folds)
+
+
+def test_two_classes_the_network_cannot_tell_apart_are_called_even_per_window_and_per_contact():
+    """The calibrated posteriors of the pair approach 0.5 / 0.5 (the truth: either side is right half
+    the time), per window and per contact, while the pair the network tells apart stays sure; one
+    temperature for all (no caps) cannot do both. Winners are the network's."""
+    z, y, groups, folds = _confusable()
+    cal = fit_calibration(z, y, groups, folds=folds)
+    plain = fit_calibration(z, y, groups, folds=folds, caps=False)
+    assert cal.caps is not None and plain.caps is None and plain.contact_caps is None
+    zt, yt, gt, _ = _confusable(seed=1)
+    pair = yt < 2
+    for c in (cal, plain):
+        np.testing.assert_array_equal(winner(c.log_posteriors(zt)), winner(zt))
+    p = np.exp(cal.log_posteriors(zt))
+    assert abs(p[pair].max(axis=1).mean() - 0.5) < 0.05                # even within the pair
+    assert p[pair][:, :2].sum(axis=1).min() > 0.97                      # and sure it is the pair
+    assert p[~pair].max(axis=1).min() > 0.97                            # the other pair stays sure
+    assert np.exp(plain.log_posteriors(zt))[pair].max(axis=1).mean() > 0.7   # what caps fix
+    contacts = [np.flatnonzero(gt == g)[:10] for g in np.unique(gt)]
+    top = np.array([np.exp(cal.pool(cal.log_posteriors(zt[r]))).max() for r in contacts])
+    is_pair = np.array([yt[r[0]] < 2 for r in contacts])
+    assert abs(top[is_pair].mean() - 0.5) < 0.05 and top[~is_pair].min() > 0.99
+    right = np.array([winner(cal.pool(cal.log_posteriors(zt[r]))) == yt[r[0]] for r in contacts])
+    assert 0.3 < right[is_pair].mean() < 0.7                            # what 0.5 claims, roughly
+
+
+def test_capped_calibration_round_trips_and_bad_caps_are_refused_by_name(model, tmp_path):
+    caps = ((0.0, 0.5, 3.0), (0.25, 0.0, 9.0), (2.0, 1e3, 0.0))
+    capped = Calibration(model.calibration.temperature, model.calibration.scale, 0.4, {"windows": 3}, caps, caps)
+    d = json.loads(json.dumps(capped.to_dict()))
+    assert d["method"] == "asinh-temperature" and Calibration.from_dict(d, InputError, 3) == capped
+    plain = {k: v for k, v in d.items() if k not in ("caps", "contact_caps")}
+    assert Calibration.from_dict(plain, InputError, 3).caps is None         # a file of before caps
+    path = replace_calibration(model, capped).save(tmp_path / "capped.npz")
+    loaded = TextureModel.load(path)
+    assert loaded.calibration == capped
+    values, _ = _data(seed=9)
+    np.testing.assert_array_equal(loaded.log_posteriors(values), capped.log_posteriors(model.logits(values)))
+    for key, value, message in [("caps", [[0, 1], [1, 0]], "3 x 3"), ("caps", [[0, -1, 1], [1, 0, 1], [1, 1, 0]], "lie in"),
+                                ("contact_caps", [[1, 1, 1], [1, 0, 1], [1, 1, 0]], "zero diagonal"),
+                                ("caps", [[0, True, 1], [1, 0, 1], [1, 1, 0]], "numbers"),
+                                ("caps", [[0, 1e5, 1], [1, 0, 1], [1, 1, 0]], "lie in"), ("extra", 1, "exactly the keys")]:
+        def edit(h, key=key, value=value):
+            h["calibration"][key] = value
+        with pytest.raises(ModelError, match=message):
+            TextureModel.load(_rewrite(model.save(tmp_path / f"bad-{key}.npz"), edit))
+
+
+def replace_calibration(model, calibration):
+    import dataclasses
+    return dataclasses.replace(model, calibration=calibration)

@@ -82,9 +82,10 @@ def contact_runs(labels, per_texture: int, length: int = CONTACT_WINDOWS) -> lis
     return runs
 
 
-def pooled_contacts(log_posteriors, runs, correlation: float) -> np.ndarray:
-    """Each run's pooled log-posteriors (:func:`supramodal.calibration.pool_log_posteriors`), (runs, classes)."""
-    return np.array([pool_log_posteriors(log_posteriors[r], correlation) for r in runs])
+def pooled_contacts(log_posteriors, runs, correlation: float, caps=None) -> np.ndarray:
+    """Each run's pooled log-posteriors (:func:`supramodal.calibration.pool_log_posteriors`, with a
+    calibration's contact ``caps`` where it has them), (runs, classes)."""
+    return np.array([pool_log_posteriors(log_posteriors[r], correlation, caps) for r in runs])
 
 
 def run_set(set_seed: int, seconds: float = 20.0, epochs: int = DEFAULT_EPOCHS, seed: int = 0, progress=None) -> dict:
@@ -121,14 +122,14 @@ def run_set(set_seed: int, seconds: float = 20.0, epochs: int = DEFAULT_EPOCHS, 
         models[name] = TextureModel.train(train[name], y_train, names, bank, FEATURES,
                                           window_length(DEFAULT_WINDOW, bank.fs), epochs=epochs, seed=seed)
         test_lp[name] = models[name].log_posteriors(test[name])
-        pooling[name] = models[name].calibration.correlation
+        pooling[name] = (models[name].calibration.correlation, models[name].calibration.contact_caps)
     if progress:
         progress(f"  set {set_seed}: held-out log-posteriors of both senses for the late fusion")
     held, folds, _ = senses_out_of_fold(list(models.values()), list(train.values()), y_train, names,
                                         k=DEFAULT_CALIBRATION_FOLDS, seed=seed)
     weight, sharpness = learn_late_fusion(held[0], held[1], y_train)
     fused_held = fuse_late(held[0], held[1], weight, sharpness)
-    pooling["late"] = fused_pooling(fused_held, y_train, folds)
+    pooling["late"] = (fused_pooling(fused_held, y_train, folds), None)
     test_lp["late"] = fuse_late(test_lp["whiskers"], test_lp["microphone"], weight, sharpness)
     if progress:
         progress(f"  set {set_seed}: training the early-fusion network and its calibration")
@@ -136,17 +137,17 @@ def run_set(set_seed: int, seconds: float = 20.0, epochs: int = DEFAULT_EPOCHS, 
     early = EarlyFusionModel.train(senses, train["whiskers"], train["microphone"], y_train, names, epochs=epochs,
                                    seed=seed)
     test_lp["early"] = early.log_posteriors(test["whiskers"], test["microphone"])
-    pooling["early"] = early.calibration.correlation
+    pooling["early"] = (early.calibration.correlation, early.calibration.contact_caps)
 
     contacts = contact_runs(y_test, n - n_train)
     y_contact = np.array([y_test[r[0]] for r in contacts])
     calibration = {}
     for m in METHODS:
         calibration[m] = {"window": calibration_report(test_lp[m], y_test, sure=SURE),
-                          "contact": calibration_report(pooled_contacts(test_lp[m], contacts, pooling[m]), y_contact,
+                          "contact": calibration_report(pooled_contacts(test_lp[m], contacts, *pooling[m]), y_contact,
                                                         sure=SURE)}
     return {"set_seed": set_seed, "textures": names, "late_weight": weight, "late_sharpness": sharpness,
-            "late_correlation": pooling["late"], "test_windows_per_texture": n - n_train,
+            "late_correlation": pooling["late"][0], "test_windows_per_texture": n - n_train,
             "held_out": {m: float(np.mean(winner(lp) == y_train)) for m, lp in zip(banks, held)}
             | {"late": float(np.mean(winner(fused_held) == y_train))},
             "window": {m: calibration[m]["window"]["accuracy"] for m in METHODS},
