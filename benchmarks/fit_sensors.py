@@ -6,9 +6,9 @@ beside the paper's whisker and cochlea banks (same window and features), mean an
     python3 -m supramodal.benchmarks.fit_sensors [--quick] [--jobs N] [--out DIR]
 
 Each synthetic sensor: 5 textures of three wide spectral peaks, each texture's 5 % above the
-last's, low in the sensor's band; 4 recordings of 3 s each (different noise seeds), so grouped 4-fold cross-validation has a
-recording of every texture in each fold. The LMT recordings (one 4.8 s recording per texture)
-are split into 4 lines of 1.2 s each, the trials of the folds.
+last's, low in the sensor's band; 4 recordings of 3 s each (different noise seeds), so grouped
+4-fold cross-validation has a recording of every texture in each fold. The LMT recordings (one
+4.8 s recording per texture) are split into 4 lines of 1.2 s each, the trials of the folds.
 """
 
 from __future__ import annotations
@@ -61,7 +61,8 @@ def lmt_manifest(folder: Path, lines: int = 4, seconds: float = 211611 / 44100) 
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python3 -m supramodal.benchmarks.fit_sensors", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="python3 -m supramodal.benchmarks.fit_sensors",
+                                description=__doc__.splitlines()[0])
     p.add_argument("--quick", action="store_true", help="fewer values per parameter")
     p.add_argument("--jobs", type=int, default=1, help="processes (default 1)")
     p.add_argument("--out", default="out/fit_sensors", help="folder for each sensor's fit files")

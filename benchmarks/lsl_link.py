@@ -352,8 +352,8 @@ def _percentiles(values) -> dict:
     v = np.asarray(values, dtype=float)
     if not v.size:
         return {"n": 0}
-    return {"n": int(v.size), "p50": round(float(np.percentile(v, 50)), 3), "p99": round(float(np.percentile(v, 99)), 3),
-            "max": round(float(v.max()), 3)}
+    return {"n": int(v.size), "p50": round(float(np.percentile(v, 50)), 3),
+            "p99": round(float(np.percentile(v, 99)), 3), "max": round(float(v.max()), 3)}
 
 
 def _report(local, remote, times, blocks, summary, seconds) -> dict:

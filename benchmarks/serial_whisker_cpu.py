@@ -3,7 +3,8 @@
 CPU seconds per second of stream, for the reading thread alone (``time.thread_time``) and for
 the whole process (the mock's writer thread included).
 
-    python -m supramodal.benchmarks.serial_whisker_cpu [--seconds 5] [--channels 20] [--rate 5000] [--samples-per-frame 32]
+    python -m supramodal.benchmarks.serial_whisker_cpu [--seconds 5] [--channels 20] [--rate 5000]
+        [--samples-per-frame 32]
 """
 
 from __future__ import annotations

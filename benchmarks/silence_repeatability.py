@@ -67,7 +67,8 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     if args.no_floor:
         supramodal.peaks.PEAK_FLOOR = 0.0
-    print(f"peak floor {supramodal.peaks.PEAK_FLOOR:g}; {args.chunkings} chunkings; 0.5 s noise, 6 s zeros, 0.5 s noise")
+    print(f"peak floor {supramodal.peaks.PEAK_FLOOR:g}; {args.chunkings} chunkings; "
+          "0.5 s noise, 6 s zeros, 0.5 s noise")
     print(f"{'bank':10} {'gather':7} {'worst window difference':>24} {'at window':>10}")
     for bank in (whisker_bank(), cochlea_bank()):
         for gather in (True, False):

@@ -175,10 +175,13 @@ def format_report(rep: dict) -> str:
     f = both["fusion"]
     out = ["# The two-sense node in real time", "",
            f"Whiskers alone and the microphone alone for {w['seconds'] / 60:g} min each, then both with late "
-           f"fusion for {both['seconds'] / 60:g} min, paced like live devices (whiskers {WHISKERS['clock_ppm']:+g} ppm, "
-           f"microphone {MIC['clock_ppm']:+g} ppm and {MIC['offset'] * 1e3:g} ms later, {WHISKERS['jitter'] * 1e3:g} ms "
+           f"fusion for {both['seconds'] / 60:g} min, paced like live devices "
+           f"(whiskers {WHISKERS['clock_ppm']:+g} ppm, "
+           f"microphone {MIC['clock_ppm']:+g} ppm and {MIC['offset'] * 1e3:g} ms later, "
+           f"{WHISKERS['jitter'] * 1e3:g} ms "
            "mean delivery delay).", "",
-           "| run | stream s | CPU s | CPU per s of stream | latency p50 / p99 ms | window accuracy | RSS start / max / end MiB | RSS slope, 2nd half, KiB/min |",
+           "| run | stream s | CPU s | CPU per s of stream | latency p50 / p99 ms | window accuracy "
+           "| RSS start / max / end MiB | RSS slope, 2nd half, KiB/min |",
            "|---|---|---|---|---|---|---|---|"]
     for p in rep["phases"]:
         lat = "; ".join(f"{s} {p['latency_ms'][s]['p50']:.2f} / {p['latency_ms'][s]['p99']:.2f}" for s in p["streams"])
@@ -194,7 +197,8 @@ def format_report(rep: dict) -> str:
             f"| CPU of both <= {TARGETS['cpu_ratio']} x (whiskers + microphone) | {rep['cpu_ratio']:.3f} x "
             f"({both['cpu_per_stream_s']:.4f} against {w['cpu_per_stream_s']:.4f} + {m['cpu_per_stream_s']:.4f}) | "
             f"{'yes' if rep['met']['cpu_ratio'] else 'no'} |",
-            f"| fused decision latency p99 <= {TARGETS['fused_latency_p99_ms']:g} ms | {rep['fused_latency_p99_ms']:.2f} ms | "
+            f"| fused decision latency p99 <= {TARGETS['fused_latency_p99_ms']:g} ms | "
+            f"{rep['fused_latency_p99_ms']:.2f} ms | "
             f"{'yes' if rep['met']['fused_latency_p99_ms'] else 'no'} |", "",
             f"Fusion: {f['windows']} windows, {f['paired']} paired, {f['alone']} alone, late {f['late']}; "
             f"learned weight {f['weight']:.2f}.", "",

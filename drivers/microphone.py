@@ -740,7 +740,8 @@ SPEC = DriverSpec(
                         None),
         "block": Key(integer(1, 2**20), "frames per block, 1..1048576 (default: the microphone driver's)", None),
         "dtype": Key(one_of(*DTYPES), '"float32" or "int16" (capture format; default: the driver\'s)', None),
-        "buffer_seconds": Key(positive(MAX_BUFFER_SECONDS), "seconds the driver buffers between PortAudio and the node, "
+        "buffer_seconds": Key(positive(MAX_BUFFER_SECONDS),
+                              "seconds the driver buffers between PortAudio and the node, "
                               f"up to {MAX_BUFFER_SECONDS:g} (default: the driver's)", None),
     },
     build=_build, live=True, signal_type=lambda options: "Audio")

@@ -137,7 +137,8 @@ def _make_sinks(scene: Scene, needs: str, made: list, overwrite: bool, **context
             continue
         where = f"{scene.source}: [[sink]] #{i + 1}"
         try:
-            made.append((i, spec, options, spec.build(options, SinkContext(where, scene.resolve, overwrite, **context))))
+            made.append((i, spec, options,
+                         spec.build(options, SinkContext(where, scene.resolve, overwrite, **context))))
         except OptionError as exc:
             raise SceneError(f"{where} {exc}") from None
 
@@ -188,8 +189,9 @@ def _check_ring(scene: Scene, driver, where: str) -> None:
     seconds = scene.buffer["seconds"]
     size = seconds * driver.rate * driver.channels * 8
     if size > MAX_RING_BYTES:
-        raise SceneError(f"{where} seconds: {seconds:g} s of {driver.channels} channels at {driver.rate:g} Hz is a ring "
-                         f"of {size / 2**30:.3g} GiB, more than the {MAX_RING_BYTES / 2**30:g} GiB a source may hold "
+        raise SceneError(f"{where} seconds: {seconds:g} s of {driver.channels} channels at {driver.rate:g} Hz "
+                         f"is a ring of {size / 2**30:.3g} GiB, more than the {MAX_RING_BYTES / 2**30:g} GiB "
+                         "a source may hold "
                          "(MAX_RING_BYTES); give fewer seconds")
 
 

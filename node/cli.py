@@ -467,7 +467,8 @@ def _train_fusion(args) -> int:
             raise CliError("--fusion early needs --out, the model file to write")
         check_new_file(args.out, args.force, "the model file")
     elif args.out is not None:
-        raise CliError("--fusion late learns one number, printed for [fusion] weight; it writes no file: leave out --out")
+        raise CliError("--fusion late learns one number, printed for [fusion] weight; it writes no file: "
+                       "leave out --out")
     result, info = train_fused(args.scene, args.fusion, epochs=args.epochs, seed=args.seed, progress=_progress(args))
     a, b = info["streams"]
     fused = "late" if args.fusion == "late" else "early"
@@ -613,7 +614,8 @@ def _cmd_bench(args) -> int:
     from supramodal.benchmarks.filterbank import PINNED_THREADS
 
     # A child process, so that BLAS and OpenMP read the one-thread settings before numpy loads.
-    cmd = [sys.executable, "-m", "supramodal.benchmarks.filterbank", "--out", args.out] + ["--quick"] * args.quick + ["--json"] * args.json
+    cmd = ([sys.executable, "-m", "supramodal.benchmarks.filterbank", "--out", args.out]
+           + ["--quick"] * args.quick + ["--json"] * args.json)
     return subprocess.run(cmd, env={**os.environ, **PINNED_THREADS}).returncode
 
 
@@ -635,7 +637,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = add_parser("run", help="run the node on a scene (default: the embedded whisker replay scene)")
     p.add_argument("--force", action="store_true", help="replace existing sink files (default: refuse)")
     p.add_argument("scene", nargs="?", help="scene TOML file (default: the embedded default scene)")
-    p.add_argument("--speed", type=_speed, help="replay speed: 1 = real time (default: the scene's), a factor, or 'max'")
+    p.add_argument("--speed", type=_speed,
+                   help="replay speed: 1 = real time (default: the scene's), a factor, or 'max'")
     p.add_argument("--json", action="store_true", help="JSON Lines on stdout instead of the scene's sinks")
     p.add_argument("--seconds", type=_stream_seconds,
                    help="stop after this much stream; inf: until it ends or Ctrl-C (the default)")
@@ -649,14 +652,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--force", action="store_true", help="replace an existing model file at --out (default: refuse)")
     p.add_argument("--bank", type=_bank, metavar="whisker|cochlea|FILE",
                    help="the filterbank: whisker (5 kHz), cochlea (44.1 kHz), or a bank file (supramodal-bank JSON: "
-                        "any ERB-spaced band at any rate, or explicit channels; docs/node.md); required with --manifest")
+                        "any ERB-spaced band at any rate, or explicit channels; docs/node.md); "
+                        "required with --manifest")
     p.add_argument("--manifest", help="CSV with columns path,label[,start,end]; paths relative to it")
     p.add_argument("--out", type=_output_file,
                    help="model file to write, at exactly this path (an .npz archive; e.g. model.npz)")
     p.add_argument("--fusion", choices=["early", "late"],
                    help="instead of one sense: learn the fusion of a recorded graph's two streams on its labelled "
                         "pairs of windows (--scene): early, the supramodal network, calibrated (written to --out); "
-                        "late, the weight of the first stream, the sharpness and the pooling's correlation (printed), learned on out-of-fold "
+                        "late, the weight of the first stream, the sharpness and the pooling's correlation "
+                        "(printed), learned on out-of-fold "
                         "windows of copies of the streams' models, never on windows a network trained on; both print "
                         "each sense's and the fusion's held-out score (default: one sense, from --manifest)")
     p.add_argument("--scene", action="append", metavar="NAME.toml",
@@ -664,8 +669,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "one per recording (default: none)")
     p.add_argument("--features", nargs="+", default=["Af"], choices=list(FEATURE_TABLE),
                    help="; ".join(f"{f.name}: {f.description}" for f in FEATURE_TABLE.values()) + " (default Af)")
-    p.add_argument("--window", type=_positive_seconds, default=DEFAULT_WINDOW, help=f"window, seconds (default {DEFAULT_WINDOW})")
-    p.add_argument("--epochs", type=_count(1), default=DEFAULT_EPOCHS, help=f"iRPROP- epochs (default {DEFAULT_EPOCHS})")
+    p.add_argument("--window", type=_positive_seconds, default=DEFAULT_WINDOW,
+                   help=f"window, seconds (default {DEFAULT_WINDOW})")
+    p.add_argument("--epochs", type=_count(1), default=DEFAULT_EPOCHS,
+                   help=f"iRPROP- epochs (default {DEFAULT_EPOCHS})")
     p.add_argument("--seed", type=_count(0), default=0,
                    help="seed of the network's initial weights and of the cross-validation folds (default 0)")
     p.add_argument("--cv", type=_count(2), metavar="K",
@@ -674,7 +681,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "reliability diagram as MODEL-cv-reliability.csv/.png), then train the final model on "
                         "everything (default: no cross-validation)")
     p.add_argument("--mapping", type=_mapping, default="auto",
-                   help="recording channels to filters: auto (one channel to all, or one each), mono, per-channel, mean, or a channel index (default auto)")
+                   help="recording channels to filters: auto (one channel to all, or one each), mono, per-channel, "
+                        "mean, or a channel index (default auto)")
     p.add_argument("--quiet", action="store_true", help="no progress on stderr (warnings are still shown)")
     p.set_defaults(func=_cmd_train)
 
@@ -688,7 +696,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quick", action="store_true", help="fewer values per parameter (default: the full sweep)")
     p.add_argument("--jobs", type=_count(1), default=1, help="processes scoring candidates at once (default 1)")
     p.add_argument("--mapping", type=_mapping, default="auto",
-                   help="recording channels to filters: auto (one channel to all, or one each), mono, per-channel, mean, or a channel index (default auto)")
+                   help="recording channels to filters: auto (one channel to all, or one each), mono, per-channel, "
+                        "mean, or a channel index (default auto)")
     p.add_argument("--force", action="store_true", help="replace earlier fit files in --out (default: refuse)")
     p.add_argument("--quiet", action="store_true", help="no progress on stderr (warnings are still shown)")
     p.set_defaults(func=_cmd_fit)
@@ -704,7 +713,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="with --scene: score this early-fusion network instead of the scenes' own fusion "
                         "(default: the scenes' [fusion])")
     p.add_argument("--mapping", type=_mapping, default="auto",
-                   help="recording channels to filters: auto (one channel to all, or one each), mono, per-channel, mean, or a channel index (default auto)")
+                   help="recording channels to filters: auto (one channel to all, or one each), mono, per-channel, "
+                        "mean, or a channel index (default auto)")
     p.add_argument("--json", action="store_true", help="print the result as one JSON object instead of a table")
     p.add_argument("--out", type=_output_folder, metavar="DIR",
                    help="also write the confusion, accuracy against windows pooled, the channels' importance and "
@@ -756,7 +766,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=_count(0), default=0,
                    help="experiment seed: each run's network seed derives from it and the run; also the first "
                         "random texture set's seed")
-    p.add_argument("--epochs", type=_count(1), default=DEFAULT_EPOCHS, help=f"iRPROP- epochs (default {DEFAULT_EPOCHS})")
+    p.add_argument("--epochs", type=_count(1), default=DEFAULT_EPOCHS,
+                   help=f"iRPROP- epochs (default {DEFAULT_EPOCHS})")
     p.add_argument("--bank", choices=["whisker", "cochlea"], help="fig3: one bank (default: both)")
     p.add_argument("--textures", metavar="FILE", help="fig3: texture-set JSON file (default: the reference sets)")
     p.add_argument("--sets", type=_count(0), help="fig3: N random texture sets instead of the reference set; "
@@ -770,14 +781,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_experiment)
 
     p = add_parser("bench", help="filterbank error against run time, drift, the whole node (report in --out)")
-    p.add_argument("--quick", action="store_true", help="short signals and streams (well under a minute; not for quoting)")
-    p.add_argument("--out", default="out/bench", type=_output_folder, help="directory for the report (default ./out/bench)")
+    p.add_argument("--quick", action="store_true",
+                   help="short signals and streams (well under a minute; not for quoting)")
+    p.add_argument("--out", default="out/bench", type=_output_folder,
+                   help="directory for the report (default ./out/bench)")
     p.add_argument("--json", action="store_true", help="print the results as one JSON object on stdout")
     p.set_defaults(func=_cmd_bench)
 
     p = add_parser("synth", help="write a texture set as WAV files")
     p.add_argument("--force", action="store_true", help="replace existing texture files in --out (default: refuse)")
-    p.add_argument("--bank", choices=["whisker", "cochlea"], default="whisker", help="whose reference textures (default whisker)")
+    p.add_argument("--bank", choices=["whisker", "cochlea"], default="whisker",
+                   help="whose reference textures (default whisker)")
     p.add_argument("--textures", metavar="FILE", help="texture-set JSON file (default: the bank's reference set)")
     p.add_argument("--duration", type=_positive_seconds, help="seconds per texture (default: the set's)")
     p.add_argument("--out", default="out/textures", type=_output_folder, help="directory (default ./out/textures)")

@@ -138,7 +138,8 @@ def _flat(score: dict) -> dict:
 
 def format_fit(result: dict) -> str:
     b = result["best"]
-    lines = [f"fit by grouped {result['k']}-fold cross-validation (seed {result['seed']}), banks at {result['fs']:g} Hz",
+    lines = [f"fit by grouped {result['k']}-fold cross-validation (seed {result['seed']}), "
+             f"banks at {result['fs']:g} Hz",
              f"{'step':<10}{'value':>22}{'windows':>16}{'recordings':>16}"]
     for r in result["rows"]:
         value = "+".join(r["value"]) if isinstance(r["value"], tuple) else f"{r['value']:g}"

@@ -3,8 +3,9 @@
 Each source is recorded as a session of its own, ``NAME.SOURCE.wav`` + ``.json``, whose sidecar
 also keeps every block's end frame and the time it was complete on the graph's common time
 (``arrivals``). Beside them go the streams' models (``NAME.STREAM.npz``, and ``NAME.fused.npz`` for
-early fusion: a model trained on the spot is kept, so the replay decides with the same one) and ``NAME.toml``: the same graph with
-each source a replay of its session at its recorded timing (``timing = "recorded"``) and the
+early fusion: a model trained on the spot is kept, so the replay decides with the same one) and
+``NAME.toml``: the same graph with each source a replay of its session at its recorded timing
+(``timing = "recorded"``) and the
 fusion weight the recording used. ``supramodal run NAME.toml --speed max`` then puts the
 sources on common time as the live run did, drift and jitter included, and pairs and fuses the
 same windows (all of them when nothing was decided alone live: a replay is a file, whose fusion waits

@@ -59,7 +59,8 @@ def channel_mapper(mapping, driver_channels: int, bank_channels: int, setting: s
         return lambda frames: frames.mean(axis=1)
     if isinstance(mapping, int):
         if not 0 <= mapping < driver_channels:
-            raise InputError(f"mapping channel {mapping} does not exist: the driver has channels 0..{driver_channels - 1}")
+            raise InputError(f"mapping channel {mapping} does not exist: "
+                             f"the driver has channels 0..{driver_channels - 1}")
         return lambda frames: frames[:, mapping]
     raise InputError(f"unknown channel mapping {mapping!r}")
 
@@ -251,7 +252,8 @@ class Stream:
                                 features=features, posteriors=post, decision=decision, confidence=confidence,
                                 pooled=pooled, truth=truth, log_posteriors=None if log_post is None else log_post[i],
                                 guess=guess, unknown=reason,
-                                novelty=None if novelty is None else round(float(novelty[i]), 4), flags=frozenset(flags), latency_ms=latency,
+                                novelty=None if novelty is None else round(float(novelty[i]), 4),
+                                flags=frozenset(flags), latency_ms=latency,
                                 in_contact=in_contact, classes=self.model.classes if self.model is not None else ())
             self.windows += 1
             emit(event)

@@ -124,9 +124,9 @@ def cross_validate_manifest(manifest, bank: Bank, features=("Af",), window: floa
 
     Folds are grouped by manifest line, one trial (:func:`supramodal.training.grouped_folds`):
     the windows of one trial are never on both sides. A long recording may be split into
-    several lines (``start``, ``end``) to make several trials; their spans must not overlap. Each fold's model is trained as the final one
-    would be (same features, window, epochs, seed) on the other folds' recordings and scored on
-    its own.
+    several lines (``start``, ``end``) to make several trials; their spans must not overlap. Each
+    fold's model is trained as the final one would be (same features, window, epochs, seed) on the
+    other folds' recordings and scored on its own.
 
     Returns
     -------

@@ -62,7 +62,8 @@ from supramodal.jsondata import read_json_file
 from supramodal.replay.errors import MissingSidecarError, SessionError
 from supramodal.replay.wavio import as_frames, read_wav, wav_info, write_wav
 
-__all__ = ["FORMAT", "VERSION", "MAX_SIDECAR_BYTES", "MAX_SIDECAR_DEPTH", "Label", "Session", "session_paths", "load_session", "save_session",
+__all__ = ["FORMAT", "VERSION", "MAX_SIDECAR_BYTES", "MAX_SIDECAR_DEPTH", "Label", "Session", "session_paths",
+           "load_session", "save_session",
            "validate_sidecar", "validate_arrivals", "sidecar_text", "mask_to_ranges", "missing_sidecar",
            "ARRIVALS_CLOCK_ERROR", "ARRIVALS_LATENCY"]
 
@@ -206,7 +207,8 @@ class _StrictJson(SessionError):
 def _load_json(path: Path) -> Any:
     try:
         return read_json_file(path, max_bytes=MAX_SIDECAR_BYTES, max_depth=MAX_SIDECAR_DEPTH, error=SessionError,
-                              limits=("supramodal.replay.session.MAX_SIDECAR_BYTES", "supramodal.replay.session.MAX_SIDECAR_DEPTH"),
+                              limits=("supramodal.replay.session.MAX_SIDECAR_BYTES",
+                                      "supramodal.replay.session.MAX_SIDECAR_DEPTH"),
                               object_pairs_hook=_no_duplicate_keys, parse_constant=_no_constants)
     except _StrictJson as e:
         raise SessionError(f"{path}: {e}") from None
@@ -353,7 +355,8 @@ def validate_arrivals(raw: Any, frames: int, where: str = "sidecar", marks: Iter
         if not _is_int(v):
             raise bad(f"arrivals.frames[{i}]", f"must be an integer, got {_type_name(v)} {v!r}", "write frame counts")
         if not 0 < v <= frames:
-            raise bad(f"arrivals.frames[{i}]", f"{v} is outside (0, {frames}]", "block ends must lie within the recording")
+            raise bad(f"arrivals.frames[{i}]", f"{v} is outside (0, {frames}]",
+                      "block ends must lie within the recording")
     for i, v in enumerate(t):
         if not _is_number(v):
             raise bad(f"arrivals.seconds[{i}]", f"must be a finite number, got {_type_name(v)} {v!r}",

@@ -20,9 +20,10 @@ no sample it did not measure) show as a step in the timestamps. As the LSL inlet
 (:mod:`supramodal.drivers.lsl`, the same tolerance and longest gap), a step of more than one
 sample period plus ``gap_tolerance`` is filled with zeros, marked filled (the node counts them,
 the windows are flagged ``gap``), so that stream time stays the recording's; a gap longer than
-``max_gap`` is not filled but marked as a restart (the clock model starts again after it). Files are data: a stream that is not numeric, not regularly
-sampled, or holds non-finite samples or timestamps is refused with a message naming it; so is one
-whose ``nominal_srate`` is not a whole number of Hz from 1 to :data:`MAX_XDF_RATE`, or whose
+``max_gap`` is not filled but marked as a restart (the clock model starts again after it). Files
+are data: a stream that is not numeric, not regularly sampled, or holds non-finite samples or
+timestamps is refused with a message naming it; so is one whose ``nominal_srate`` is not a whole
+number of Hz from 1 to :data:`MAX_XDF_RATE`, or whose
 ``channel_count`` is 0, or that would take more than :data:`MAX_XDF_SAMPLES` samples once its
 gaps are filled (checked before anything is filled). pyxdf's own log (tracebacks of the chunks it
 skips, notes on clock segments) is kept off the terminal: a file it cannot read is refused with

@@ -96,7 +96,8 @@ class Bank:
     names: tuple[str, ...]
 
     def __post_init__(self) -> None:
-        cf, b, fs = _real(self.cf, "centre frequencies cf"), _real(self.b, "bandwidths b"), _real(self.fs, "sample rate fs")
+        cf, b = _real(self.cf, "centre frequencies cf"), _real(self.b, "bandwidths b")
+        fs = _real(self.fs, "sample rate fs")
         if fs.size != 1:
             raise InputError(f"sample rate fs must be one number of Hz, got {fs.size} values")
         cf, b, rate = cf.reshape(-1), b.reshape(-1), float(fs.reshape(-1)[0])
@@ -107,7 +108,8 @@ class Bank:
         if cf.size == 0:
             raise InputError("a bank needs at least one channel; got an empty list of centre frequencies")
         if cf.size > MAX_CHANNELS:
-            raise InputError(f"a bank has at most {MAX_CHANNELS} channels (MAX_CHANNELS); this one has {cf.size} channels")
+            raise InputError(f"a bank has at most {MAX_CHANNELS} channels (MAX_CHANNELS); "
+                             f"this one has {cf.size} channels")
         if b.size != cf.size or len(names) != cf.size:
             raise InputError(
                 f"cf, b and names must have one entry per channel; got {cf.size}, {b.size} and {len(names)}"

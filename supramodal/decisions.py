@@ -11,9 +11,9 @@ when the model is, finite, never clipped). The accumulated decision is the winne
 * ``"vote"``: the count of windows each class won (ties go to the larger summed posterior),
 
 over the last ``n`` windows (``scope="last"``) or over the windows since the
-current contact began, at most the last ``n`` (``scope="contact"``; ``n = 0``: every one). A contact is a run of consecutive
-windows whose input RMS is at least ``threshold``; a window below it ends the
-contact and resets the accumulation.
+current contact began, at most the last ``n`` (``scope="contact"``; ``n = 0``: every one). A
+contact is a run of consecutive windows whose input RMS is at least ``threshold``; a window below
+it ends the contact and resets the accumulation.
 
 Decide as soon as it is sure: with a ``confidence`` threshold and ``scope="contact"``, the first
 pooled decision of a contact whose confidence reaches it is the contact's *final* decision
@@ -228,9 +228,10 @@ class Decider:
         self._final: dict | None = None
 
     def decide(self, log_posteriors: np.ndarray, in_contact: bool = True, novel: bool = False) -> dict:
-        """One window's outcome (``novel``: its inputs are unlike every training texture's): ``decision`` (a class or :data:`UNKNOWN`), ``confidence`` (the
-        winner's posterior), ``guess`` (the winner when the decision is unknown, else None),
-        ``reason`` (why unknown, else None) and ``pooled`` (dict or None)."""
+        """One window's outcome (``novel``: its inputs are unlike every training texture's):
+        ``decision`` (a class or :data:`UNKNOWN`), ``confidence`` (the winner's posterior), ``guess``
+        (the winner when the decision is unknown, else None), ``reason`` (why unknown, else None) and
+        ``pooled`` (dict or None)."""
         lp = np.asarray(log_posteriors, dtype=np.float64)
         k = int(winner(lp))
         confidence = float(np.exp(lp.max()))

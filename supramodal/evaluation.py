@@ -1,5 +1,6 @@
 """What a user needs to trust a model: how accuracy grows with the windows pooled, how soon a
-touch is decided at a confidence threshold, and which channels carry the decision. Pure numpy on a model's outputs; no files, no devices.
+touch is decided at a confidence threshold, and which channels carry the decision. Pure numpy on
+a model's outputs; no files, no devices.
 """
 
 from __future__ import annotations

@@ -182,7 +182,8 @@ def one_hot(labels: np.ndarray, n_classes: int) -> np.ndarray:
 
 
 def train_mlp(x: np.ndarray, labels: np.ndarray, n_classes: int, hidden: int | None = None,
-              epochs: int = DEFAULT_EPOCHS, seed=None, desired_mse: float = 0.0, progress=None) -> tuple[MLP, list[float]]:
+              epochs: int = DEFAULT_EPOCHS, seed=None, desired_mse: float = 0.0,
+              progress=None) -> tuple[MLP, list[float]]:
     """Train an MLP by batch iRPROP- on (already scaled) inputs.
 
     Parameters

@@ -229,7 +229,8 @@ def texture_set_from_dict(d, source: str = "texture set") -> TextureSet:
         if not isinstance(t, dict) or set(t) != {"name", "peaks"} or not isinstance(t["name"], str):
             raise bad(f"texture {i} must be an object with exactly 'name' (text) and 'peaks' (3 numbers)")
         peaks = t["peaks"]
-        if not isinstance(peaks, list) or not all(isinstance(p, (int, float)) and not isinstance(p, bool) for p in peaks):
+        if not isinstance(peaks, list) or not all(isinstance(p, (int, float)) and not isinstance(p, bool)
+                                                  for p in peaks):
             raise bad(f"texture {t['name']!r}: 'peaks' must be a list of 3 numbers")
         try:
             _check_peaks([float(p) for p in peaks], float(d["fs"]))

@@ -54,7 +54,8 @@ def texture_features(texture_set: TextureSet, bank: Bank, features=FEATURES, win
         compute += time.perf_counter() - t0
         out.append(w.values)
         if progress:
-            progress(f"  {texture_set.name}: texture {i + 1}/{len(texture_set.textures)} ({tex.name}) -> {len(w)} windows")
+            progress(f"  {texture_set.name}: texture {i + 1}/{len(texture_set.textures)} ({tex.name}) "
+                     f"-> {len(w)} windows")
     n = min(len(v) for v in out)
     signal = len(texture_set.textures) * texture_set.duration
     return np.stack([v[:n] for v in out]), {"signal_seconds": signal, "compute_seconds": compute}

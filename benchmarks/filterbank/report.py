@@ -52,7 +52,8 @@ def write_report(results: dict, out) -> list[Path]:
                         ["bank", "backend", "dtype", "block", "rtf", "cpu_rtf", "error", "bad_channels", "ir_error",
                          "pareto"],
                         [[r["bank"], r["backend"], r["dtype"], r["block"], f"{r['rtf']:.6g}", f"{r['cpu_rtf']:.6g}",
-                          f"{r['error']:.3g}", r["bad_channels"], f"{r['ir_error']:.3g}", int(r["pareto"])] for r in a]))
+                          f"{r['error']:.3g}", r["bad_channels"], f"{r['ir_error']:.3g}", int(r["pareto"])]
+                         for r in a]))
     written.append(_csv(out / "drift.csv", ["bank", "backend", "dtype", "seconds", "error_last_second", "error_up_to"],
                         [[r["bank"], r["backend"], r["dtype"], r["seconds"], f"{r['error_last_second']:.3g}",
                           f"{r['error_up_to']:.3g}"] for r in d]))
@@ -123,7 +124,8 @@ def markdown(results: dict, plots: bool = True) -> str:
               "Filterbank only, mono white noise (std 1) in blocks, one scipy call per channel per block for the "
               "peers (state carried). `ir error`: the design's impulse response against the sampled analytic "
               "gammatone. Pareto-optimal points are marked *. The reference recurses on its pole once per sample, "
-              "the fast form once per pass (a block of up to 24 sub-blocks): against the analytic gammatone (`ir error`) the fast "
+              "the fast form once per pass (a block of up to 24 sub-blocks): against the analytic gammatone "
+              "(`ir error`) the fast "
               "form is the more accurate of the two, and its error against the reference on a stream is mostly "
               "the reference's own."]
     a = results["speed_error"]
@@ -131,8 +133,11 @@ def markdown(results: dict, plots: bool = True) -> str:
         rows = [r for r in a if r["bank"] == kind]
         blocks = sorted({r["block"] for r in rows})
         r0 = rows[0]
-        lines += ["", f"### {kind} ({r0['channels']} channels, {r0['fs']:g} Hz, {r0['signal_seconds']:.3g} s of noise)", "",
-                  "| backend | " + " | ".join(f"RTF @{L}" for L in blocks) + " | error (worst block) | bad channels | ir error |",
+        lines += ["",
+                  f"### {kind} ({r0['channels']} channels, {r0['fs']:g} Hz, {r0['signal_seconds']:.3g} s of noise)",
+                  "",
+                  "| backend | " + " | ".join(f"RTF @{L}" for L in blocks)
+                  + " | error (worst block) | bad channels | ir error |",
                   "|---|" + "---|" * (len(blocks) + 3)]
         for key, rr in _by_variant(rows).items():
             by = {r["block"]: r for r in rr}
@@ -168,7 +173,8 @@ def markdown(results: dict, plots: bool = True) -> str:
     lines += ["", "## c. The whole node", "",
               "Pipeline to decisions (gammatone, peaks, Af per 100 ms window, MLP, winner-take-all) on a replayed "
               "session of the eight reference textures (held-out seconds of each, model trained on the spot on the "
-              f"first {100 * TRAIN_FRACTION:g} % of each texture), block by block as the node's processing thread runs it. "
+              f"first {100 * TRAIN_FRACTION:g} % of each texture), block by block as the node's processing thread "
+              "runs it. "
               "Agreement: share "
               "of windows whose decision equals the float64 reference backend's; accuracy: against the truth.", "",
               "| bank | backend | block | RTF | CPU RTF | agreement | accuracy | windows |",
@@ -183,9 +189,11 @@ def markdown(results: dict, plots: bool = True) -> str:
               "|---|---|---|---|---|---|---|"]
     for r in c["threaded"]:
         lat = r["latency_ms"] or {}
-        speed = "real time" if r["speed"] == 1 else "as fast as possible" if not math.isfinite(r["speed"]) else r["speed"]
+        speed = ("real time" if r["speed"] == 1 else "as fast as possible" if not math.isfinite(r["speed"])
+                 else r["speed"])
         lines.append(f"| {r['bank']} | {r['block']} | {speed} | {_rtf(r['rtf'])} | "
-                     f"{lat.get('p50', float('nan')):.2f} / {lat.get('p99', float('nan')):.2f} | {r['agreement']:.3f} | "
+                     f"{lat.get('p50', float('nan')):.2f} / {lat.get('p99', float('nan')):.2f} | "
+                     f"{r['agreement']:.3f} | "
                      f"{r['windows']} |")
     if any(r["speed"] == 1 for r in c["threaded"]):
         lines += ["", "Paced in real time, the processing thread handles each block after ~10 ms spent waiting (the "

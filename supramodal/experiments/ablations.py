@@ -267,7 +267,8 @@ def unscaled(grid=UNSCALED_B, quick: bool = False, epochs: int = DEFAULT_EPOCHS)
         return {"fig3": {name: {f: rate(("ablation", "unscaled", "fig3", name), f) for f in FEATURES}
                          for name in ("whisker", "cochlea")},
                 "fig5": {"mean_B": list(grid),
-                         "features": {f: [rate(("ablation", "unscaled", "fig5", B), f) for B in grid] for f in FEATURES}}}
+                         "features": {f: [rate(("ablation", "unscaled", "fig5", B), f) for B in grid]
+                                      for f in FEATURES}}}
 
     return Plan(runs, assemble)
 
@@ -296,7 +297,8 @@ def plans(quick: bool = False, epochs: int = DEFAULT_EPOCHS) -> dict[str, Plan]:
 def main(argv=None) -> int:
     """Run every ablation and write ``ablations.json`` (see the module's docstring)."""
     parser = argparse.ArgumentParser(prog="python -m supramodal.experiments.ablations",
-                                     description="Run the ablations behind docs/results.md; write them as one JSON file.")
+                                     description="Run the ablations behind docs/results.md; "
+                                                 "write them as one JSON file.")
     parser.add_argument("--quick", action="store_true")
     parser.add_argument("--jobs", type=int)
     parser.add_argument("--seed", type=int, default=0)

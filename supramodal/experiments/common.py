@@ -100,7 +100,8 @@ def rates_of(texture_set: TextureSet, bank: Bank, features=FEATURES, epochs: int
 
 def rates_per_feature(values: np.ndarray, classes, bank: Bank, features, epochs: int = DEFAULT_EPOCHS,
                       seed: int = 0, progress=None, standardise: bool = True) -> dict:
-    """:func:`classification_rates` of each feature alone; ``values`` as from :func:`~supramodal.training.texture_features`."""
+    """:func:`classification_rates` of each feature alone; ``values`` as from
+    :func:`~supramodal.training.texture_features`."""
     wlen = window_length(DEFAULT_WINDOW, bank.fs)
     results = {}
     for k, feature in enumerate(features):

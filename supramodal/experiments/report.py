@@ -114,7 +114,8 @@ def _plot_fig3(result: dict, path: Path) -> Path:
         ax.set_xlabel("texture (peak frequencies, Hz)", fontsize=8)
     ax.set_ylim(0, 1.05)
     ax.set_ylabel("classification rate")
-    note = "\nbar k: mean over the sets of their k-th texture; ± is the sd of the sets' mean rates" if "sets" in result else ""
+    note = ("\nbar k: mean over the sets of their k-th texture; ± is the sd of the sets' mean rates"
+            if "sets" in result else "")
     ax.set_title(f"Fig. 3, {result['bank']} bank: {result['texture_set']}{note}", fontsize=10)
     ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.25 if peaks else -0.08), ncol=2,
               frameon=False)
@@ -201,7 +202,8 @@ def _table_fig1(result: dict) -> str:
         ch = r["channels"]
         B = [c["B"] for c in ch]
         w = [c["width_3db"] for c in ch if c["width_3db"] is not None]
-        lines.append(f"{bank}: {len(ch)} channels, cf {min(c['cf'] for c in ch):.0f}..{max(c['cf'] for c in ch):.0f} Hz, "
+        lines.append(f"{bank}: {len(ch)} channels, "
+                     f"cf {min(c['cf'] for c in ch):.0f}..{max(c['cf'] for c in ch):.0f} Hz, "
                      f"B {min(B):.0f}..{max(B):.0f} (mean {sum(B) / len(B):.0f}), "
                      f"-3 dB width {min(w):.1f}..{max(w):.1f} Hz (mean {sum(w) / len(w):.1f})"
                      + (f", {len(ch) - len(w)} channel(s) with no lower -3 dB edge" if len(w) < len(ch) else ""))
@@ -270,7 +272,8 @@ def _plot_fig4(result: dict, path: Path) -> Path:
 
 def _write_fig5(result: dict, out: Path) -> list[Path]:
     feats = list(result["features"])
-    rows = ([B, result["mean_width_3db"][i], *result["B_range"][i]] + [result["features"][f]["mean_rate"][i] for f in feats]
+    rows = ([B, result["mean_width_3db"][i], *result["B_range"][i]]
+            + [result["features"][f]["mean_rate"][i] for f in feats]
             for i, B in enumerate(result["mean_B"]))
     return [write_csv(out / "fig5.csv", ["mean_B", "mean_width_3db_hz", "B_min", "B_max"] + feats, rows)]
 
@@ -282,7 +285,8 @@ def _table_fig5(result: dict) -> str:
     for i, B in enumerate(result["mean_B"]):
         lines.append(f"{B:>8g}{result['mean_width_3db'][i]:>8.1f}"
                      + "".join(f"{result['features'][f]['mean_rate'][i]:>8.3f}" for f in feats))
-    best = [f"{f} at B={result['mean_B'][max(range(len(result['mean_B'])), key=result['features'][f]['mean_rate'].__getitem__)]:g}"
+    mean_b = result["mean_B"]
+    best = [f"{f} at B={mean_b[max(range(len(mean_b)), key=result['features'][f]['mean_rate'].__getitem__)]:g}"
             for f in feats]
     lines.append("best: " + ", ".join(best) + f"; paper: {result['paper']}")
     return "\n".join(lines)
