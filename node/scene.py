@@ -131,6 +131,11 @@ SECTIONS = {
 }
 
 
+#: Longest wait of a live window for its partner, seconds (a window waits in memory).
+MAX_FUSION_WAIT = 60.0
+#: Largest tempering of fused log-posteriors (learned ones are about 2).
+MAX_SHARPNESS = 1000.0
+
 #: [fusion] weight: learned at start-up on the models' held-out training windows.
 LEARN = "learn"
 
@@ -154,11 +159,12 @@ FUSION_KEYS = {
     "weight": Key(lambda v: v == LEARN or number(0.0, 1.0)(v),
                   f'the first stream\'s weight, in [0, 1], or "{LEARN}" (learned on the held-out training windows '
                   'of two models trained on the spot)', DEFAULT_WEIGHT),
-    "max_wait": Key(positive(), "seconds a window of a live source waits for its partner before it is decided alone, "
-                                "> 0 (file sources wait for each other)", DEFAULT_MAX_WAIT),
+    "max_wait": Key(positive(MAX_FUSION_WAIT), "seconds a window of a live source waits for its partner before it is "
+                                               f"decided alone, > 0 and at most {MAX_FUSION_WAIT:g} (file sources "
+                                               "wait for each other)", DEFAULT_MAX_WAIT),
     # With a numeric weight (as `train --fusion late` prints them); "learn" learns both.
-    "sharpness": Key(positive(), "tempering of the fused log-posteriors, > 0 (printed by `supramodal train --fusion "
-                                 "late`)", 1.0),
+    "sharpness": Key(positive(MAX_SHARPNESS), f"tempering of the fused log-posteriors, > 0 and at most {MAX_SHARPNESS:g} "
+                                              "(printed by `supramodal train --fusion late`)", 1.0),
     "correlation": Key(number(0.0, 1.0), "correlation of neighbouring fused windows for pooling them, in [0, 1] "
                                          "(printed by `supramodal train --fusion late`)", 0.0),
 }

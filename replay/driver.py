@@ -718,9 +718,13 @@ def speed_key() -> Key:
     return Key(is_speed, SPEED_HELP + " (default: the replay driver's)", None)
 
 
+#: Most frames per block a scene may ask of a replay (a second at 1 MHz).
+MAX_BLOCK = 2**20
+
+
 def block_key() -> Key:
     """The ``block`` key of a paced source, frames per block (its default: 10 ms)."""
-    return Key(integer(1), "frames per block, an integer >= 1 (default: the replay driver's)", None)
+    return Key(integer(1, MAX_BLOCK), f"frames per block, 1..{MAX_BLOCK} (default: the replay driver's)", None)
 
 
 def pacing(options: dict, context: BuildContext) -> dict:

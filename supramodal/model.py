@@ -505,5 +505,5 @@ def calibration_from_parts(header: dict, arrays: dict, n_in: int, n_classes: int
     """``(Calibration or None, Novelty or None)`` of a header and its arrays, each validated;
     both None for a version 1 file or one saved without them."""
     raw = header.get("calibration")
-    calibration = None if raw is None else Calibration.from_dict(raw, bad)
+    calibration = None if raw is None else Calibration.from_dict(raw, bad, n_classes)
     return calibration, Novelty.from_parts(header.get("novelty", False), arrays, n_in, n_classes, bad)
