@@ -163,8 +163,9 @@ FUSION_KEYS = {
                                                f"decided alone, > 0 and at most {MAX_FUSION_WAIT:g} (file sources "
                                                "wait for each other)", DEFAULT_MAX_WAIT),
     # With a numeric weight (as `train --fusion late` prints them); "learn" learns both.
-    "sharpness": Key(positive(MAX_SHARPNESS), f"tempering of the fused log-posteriors, > 0 and at most {MAX_SHARPNESS:g} "
-                                              "(printed by `supramodal train --fusion late`)", 1.0),
+    "sharpness": Key(positive(MAX_SHARPNESS),
+                     f"tempering of the fused log-posteriors, > 0 and at most {MAX_SHARPNESS:g} "
+                     "(printed by `supramodal train --fusion late`)", 1.0),
     "correlation": Key(number(0.0, 1.0), "correlation of neighbouring fused windows for pooling them, in [0, 1] "
                                          "(printed by `supramodal train --fusion late`)", 0.0),
 }
