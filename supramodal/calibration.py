@@ -402,6 +402,11 @@ class Calibration:
         posteriors, ``caps[k][j]`` that of a decision for ``k`` against ``j``: zero diagonal,
         every other entry within :data:`CAP_BOUNDS`. None: no caps (a model file of before them,
         or a fit where they did not earn their numbers: :func:`fit_calibration`).
+    contact_correlation : float or None
+        ``rho`` of the capped contact pooling, in [0, 1]: given exactly when ``contact_caps`` is.
+        :attr:`correlation` stays that of the plain pooling (of the capped windows), for a
+        pooling that does not apply the contact caps; the two are fitted apart, each for its
+        own pooling (:attr:`contact_pooling`).
     """
 
     temperature: float
@@ -410,6 +415,7 @@ class Calibration:
     fitted_on: dict = field(default_factory=dict)
     caps: tuple | None = None
     contact_caps: tuple | None = None
+    contact_correlation: float | None = None
 
     def __post_init__(self) -> None:
         lo, hi = MAP_BOUNDS
@@ -424,6 +430,11 @@ class Calibration:
             v = getattr(self, name)
             if v is not None:
                 object.__setattr__(self, name, _checked_caps(v, name))
+        r = self.contact_correlation
+        if (r is None) != (self.contact_caps is None):
+            raise InputError("a calibration's contact caps come with their contact correlation, and only they")
+        if r is not None and (isinstance(r, bool) or not isinstance(r, (int, float)) or not (0.0 <= r <= 1.0)):
+            raise InputError(f"calibration contact_correlation must lie in [0, 1], got {r!r}")
         if self.caps is not None and self.contact_caps is not None and len(self.caps) != len(self.contact_caps):
             raise InputError(f"calibration caps are for {len(self.caps)} classes, its contact caps for "
                              f"{len(self.contact_caps)}")
@@ -441,9 +452,17 @@ class Calibration:
         self._check_classes(scores.shape[-1])
         return cap_gaps(scores, self.caps)
 
+    @property
+    def contact_pooling(self) -> tuple[float, tuple | None]:
+        """``(rho, caps)`` of this calibration's contact pooling (:func:`pool_log_posteriors`):
+        the capped one where it has contact caps, else ``(correlation, None)``."""
+        if self.contact_caps is None:
+            return self.correlation, None
+        return self.contact_correlation, self.contact_caps
+
     def pool(self, log_posteriors) -> np.ndarray:
         """Calibrated log-posteriors of one contact from its windows' (n, classes)."""
-        return pool_log_posteriors(log_posteriors, self.correlation, self.contact_caps)
+        return pool_log_posteriors(log_posteriors, *self.contact_pooling)
 
     def _check_classes(self, n: int) -> None:
         if n != len(self.caps):
@@ -455,6 +474,8 @@ class Calibration:
         for name in ("caps", "contact_caps"):
             if getattr(self, name) is not None:
                 d[name] = [list(r) for r in getattr(self, name)]
+        if self.contact_correlation is not None:
+            d["contact_correlation"] = self.contact_correlation
         return d
 
     @classmethod
@@ -464,7 +485,7 @@ class Calibration:
         if not isinstance(d, dict):
             raise bad("'calibration' must be an object")
         keys = {"method", "temperature", "scale", "correlation", "fitted_on"}
-        optional = {"caps", "contact_caps"}
+        optional = {"caps", "contact_caps", "contact_correlation"}
         if not keys <= set(d) <= keys | optional:
             raise bad(f"'calibration' must have exactly the keys {sorted(keys)}, and may have {sorted(optional)}; "
                       f"has {sorted(d)}")
@@ -491,7 +512,8 @@ class Calibration:
                 raise bad(f"'calibration.{name}' must be {n_classes} x {n_classes} (the model's classes)")
             caps[i] = tuple(tuple(float(e) for e in r) for r in v)
         try:
-            return cls(d["temperature"], d["scale"], d["correlation"], d["fitted_on"], *caps)
+            return cls(d["temperature"], d["scale"], d["correlation"], d["fitted_on"], *caps,
+                       d.get("contact_correlation"))
         except InputError as exc:
             raise bad(str(exc)) from None
 
@@ -553,7 +575,7 @@ def fit_calibration(logits, labels, groups, run: int = POOLING_RUN, folds=None, 
     charge = 1.0 / len(y)
     a, c = fit_window_calibration(z, y)
     lp = log_softmax(_window_map(z, a, c), axis=1)
-    window_caps = contact_caps = None
+    window_caps = contact_caps = contact_rho = None
     if caps:
         target = _smoothed_targets(y, n_classes)
         ca, cc, capped_caps = fit_capped_window_calibration(z, y)
@@ -578,8 +600,8 @@ def fit_calibration(logits, labels, groups, run: int = POOLING_RUN, folds=None, 
         gain = (target * (cap_gaps(_prefix_pooled(runs, capped_rho)[0], capped_caps)
                           - _prefix_pooled(runs, rho)[0])).sum(axis=1).mean()
         if gain > 1.0 / len(prefix_y):
-            rho, contact_caps = capped_rho, capped_caps
-    kept = tuple(None if v is None else _rows(v) for v in (window_caps, contact_caps))
+            contact_caps, contact_rho = capped_caps, capped_rho
+    kept = tuple(None if v is None else _rows(v) for v in (window_caps, contact_caps)) + (contact_rho,)
     rows = np.arange(len(y))
     before = float(-normalised_log_posteriors(z)[rows, y].mean())
     after = float(-lp[rows, y].mean())

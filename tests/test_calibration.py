@@ -508,7 +508,7 @@ def test_caps_keep_every_windows_winner_and_every_tie():
     caps = rng.uniform(1e-3, 5, (k, k))
     np.fill_diagonal(caps, 0.0)
     tight = np.where(np.eye(k, dtype=bool), 0.0, 1e-3)
-    for cal in (Calibration(2.0, 10.0, 0.3, {}, caps, caps), Calibration(1e4, 1e-3, 0.0, {}, tight, caps)):
+    for cal in (Calibration(2.0, 10.0, 0.3, {}, caps, caps, 0.5), Calibration(1e4, 1e-3, 0.0, {}, tight, caps, 0.0)):
         lp = cal.log_posteriors(z)
         np.testing.assert_array_equal(winner(lp), winner(z))            # a tie stays a tie: -1
         assert np.all(winner(lp)[:50] == -1)
@@ -565,10 +565,10 @@ def test_two_classes_the_network_cannot_tell_apart_are_called_even_per_window_an
 
 def test_capped_calibration_round_trips_and_bad_caps_are_refused_by_name(model, tmp_path):
     caps = ((0.0, 0.5, 3.0), (0.25, 0.0, 9.0), (2.0, 1e3, 0.0))
-    capped = Calibration(model.calibration.temperature, model.calibration.scale, 0.4, {"windows": 3}, caps, caps)
+    capped = Calibration(model.calibration.temperature, model.calibration.scale, 0.4, {"windows": 3}, caps, caps, 0.2)
     d = json.loads(json.dumps(capped.to_dict()))
     assert d["method"] == "asinh-temperature" and Calibration.from_dict(d, InputError, 3) == capped
-    plain = {k: v for k, v in d.items() if k not in ("caps", "contact_caps")}
+    plain = {k: v for k, v in d.items() if k not in ("caps", "contact_caps", "contact_correlation")}
     assert Calibration.from_dict(plain, InputError, 3).caps is None         # a file of before caps
     path = replace_calibration(model, capped).save(tmp_path / "capped.npz")
     loaded = TextureModel.load(path)
@@ -578,11 +578,12 @@ def test_capped_calibration_round_trips_and_bad_caps_are_refused_by_name(model, 
     for key, value, message in [("caps", [[0, 1], [1, 0]], "3 x 3"), ("caps", [[0, -1, 1], [1, 0, 1], [1, 1, 0]], "lie in"),
                                 ("contact_caps", [[1, 1, 1], [1, 0, 1], [1, 1, 0]], "zero diagonal"),
                                 ("caps", [[0, True, 1], [1, 0, 1], [1, 1, 0]], "numbers"),
-                                ("caps", [[0, 1e5, 1], [1, 0, 1], [1, 1, 0]], "lie in"), ("extra", 1, "exactly the keys")]:
+                                ("caps", [[0, 1e5, 1], [1, 0, 1], [1, 1, 0]], "lie in"), ("extra", 1, "exactly the keys"),
+                                ("contact_correlation", 1.5, "contact_correlation must lie in")]:
         def edit(h, key=key, value=value):
             h["calibration"][key] = value
         with pytest.raises(ModelError, match=message):
-            TextureModel.load(_rewrite(model.save(tmp_path / f"bad-{key}.npz"), edit))
+            TextureModel.load(_rewrite(replace_calibration(model, capped).save(tmp_path / f"bad-{key}.npz"), edit))
 
 
 def replace_calibration(model, calibration):

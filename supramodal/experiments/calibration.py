@@ -140,7 +140,7 @@ def score_set(texture_set: TextureSet, epochs: int = DEFAULT_EPOCHS, seed: int =
             "test_windows_per_texture": per_texture,
             "window": {"calibrated": calibration_report(lp, y_test, sure=SURE),
                        "uncalibrated": calibration_report(raw, y_test, sure=SURE)},
-            "contact": {"calibrated": calibration_report(pooled_contacts(lp, contacts, rho, model.calibration.contact_caps),
+            "contact": {"calibrated": calibration_report(pooled_contacts(lp, contacts, *model.calibration.contact_pooling),
                                                          y_contact, sure=SURE),
                         "uncalibrated": calibration_report(pooled_contacts(raw, contacts, 0.0), y_contact, sure=SURE),
                         "summed": calibration_report(pooled_contacts(lp, contacts, 0.0), y_contact, sure=SURE)},
@@ -193,8 +193,7 @@ def leave_out_fold(texture_set: TextureSet, fold: int, epochs: int = DEFAULT_EPO
     scopes = {"window": {"labels": y_test, "log_posteriors": lp, "novelty": novelty, "mean_novelty": novelty,
                          "threshold": model.novelty.threshold(FALSE_UNKNOWN)},
               "contact": {"labels": y_test[first],
-                          "log_posteriors": pooled_contacts(lp, contacts, model.calibration.correlation,
-                                                            model.calibration.contact_caps),
+                          "log_posteriors": pooled_contacts(lp, contacts, *model.calibration.contact_pooling),
                           "novelty": np.array([model.novelty.pooled_score(inputs[r]) for r in contacts]),
                           "mean_novelty": np.array([novelty[r].mean() for r in contacts]),
                           "threshold": model.novelty.contact_threshold(FALSE_UNKNOWN, CONTACT_WINDOWS)}}

@@ -122,7 +122,7 @@ def run_set(set_seed: int, seconds: float = 20.0, epochs: int = DEFAULT_EPOCHS, 
         models[name] = TextureModel.train(train[name], y_train, names, bank, FEATURES,
                                           window_length(DEFAULT_WINDOW, bank.fs), epochs=epochs, seed=seed)
         test_lp[name] = models[name].log_posteriors(test[name])
-        pooling[name] = (models[name].calibration.correlation, models[name].calibration.contact_caps)
+        pooling[name] = models[name].calibration.contact_pooling
     if progress:
         progress(f"  set {set_seed}: held-out log-posteriors of both senses for the late fusion")
     held, folds, _ = senses_out_of_fold(list(models.values()), list(train.values()), y_train, names,
@@ -137,7 +137,7 @@ def run_set(set_seed: int, seconds: float = 20.0, epochs: int = DEFAULT_EPOCHS, 
     early = EarlyFusionModel.train(senses, train["whiskers"], train["microphone"], y_train, names, epochs=epochs,
                                    seed=seed)
     test_lp["early"] = early.log_posteriors(test["whiskers"], test["microphone"])
-    pooling["early"] = (early.calibration.correlation, early.calibration.contact_caps)
+    pooling["early"] = early.calibration.contact_pooling
 
     contacts = contact_runs(y_test, n - n_train)
     y_contact = np.array([y_test[r[0]] for r in contacts])
