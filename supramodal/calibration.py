@@ -479,7 +479,7 @@ class Calibration:
         return d
 
     @classmethod
-    def from_dict(cls, d, bad, n_classes: int | None = None) -> "Calibration":
+    def from_dict(cls, d, bad, n_classes: int | None = None) -> Calibration:
         """From a model header's ``calibration`` object; ``bad(message)`` makes the error to raise;
         ``n_classes``: the model's classes, which caps must match."""
         if not isinstance(d, dict):
@@ -735,7 +735,7 @@ class Novelty:
         return {"novelty_means": self.means, "novelty_precision": self.precision, "novelty_quantiles": self.quantiles}
 
     @classmethod
-    def from_parts(cls, flag, arrays: dict, n_in: int, n_classes: int, bad) -> "Novelty | None":
+    def from_parts(cls, flag, arrays: dict, n_in: int, n_classes: int, bad) -> Novelty | None:
         """The novelty of a model file from its header's ``novelty`` value and its arrays, each
         validated; None when the header says false. ``bad(message)`` makes the error to raise."""
         names = ("novelty_means", "novelty_precision", "novelty_quantiles")
@@ -950,7 +950,7 @@ def calibration_folds(labels, groups, k: int = DEFAULT_CALIBRATION_FOLDS, seed: 
 
 def fit_network_calibration(x, labels, n_classes: int, groups=None, k: int = DEFAULT_CALIBRATION_FOLDS,
                             hidden: int | None = None, epochs: int | None = None, seed: int = 0,
-                            progress=None) -> tuple[Calibration, Novelty, "OutOfFold"]:
+                            progress=None) -> tuple[Calibration, Novelty, OutOfFold]:
     """Calibration and novelty of a network trained as :func:`supramodal.mlp.train_mlp` would train
     it on the raw (unstandardised) input rows ``x`` (n, inputs), from out-of-fold windows.
 

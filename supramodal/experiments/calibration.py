@@ -42,8 +42,15 @@ from supramodal.errors import InputError
 from supramodal.evaluation import ANYTIME_THRESHOLDS, anytime_sweep
 from supramodal.experiments import fusion
 from supramodal.experiments.common import BANKS, QUICK_DURATION, Plan, Run, default_bank, quick_set
-from supramodal.experiments.fusion import (CONTACT_WINDOWS, SURE, contact_runs, merge_reports, pooled_contacts,
-                                           spread, sure_cell)
+from supramodal.experiments.fusion import (
+    CONTACT_WINDOWS,
+    SURE,
+    contact_runs,
+    merge_reports,
+    pooled_contacts,
+    spread,
+    sure_cell,
+)
 from supramodal.features import DEFAULT_WINDOW
 from supramodal.mlp import DEFAULT_EPOCHS
 from supramodal.model import TextureModel
@@ -140,8 +147,8 @@ def score_set(texture_set: TextureSet, epochs: int = DEFAULT_EPOCHS, seed: int =
             "test_windows_per_texture": per_texture,
             "window": {"calibrated": calibration_report(lp, y_test, sure=SURE),
                        "uncalibrated": calibration_report(raw, y_test, sure=SURE)},
-            "contact": {"calibrated": calibration_report(pooled_contacts(lp, contacts, *model.calibration.contact_pooling),
-                                                         y_contact, sure=SURE),
+            "contact": {"calibrated": calibration_report(
+                pooled_contacts(lp, contacts, *model.calibration.contact_pooling), y_contact, sure=SURE),
                         "uncalibrated": calibration_report(pooled_contacts(raw, contacts, 0.0), y_contact, sure=SURE),
                         "summed": calibration_report(pooled_contacts(lp, contacts, 0.0), y_contact, sure=SURE)},
             "anytime": anytime_sweep(lp, y_test, anytime, rho),
@@ -424,7 +431,8 @@ def calibration_table(result: dict) -> str:
     for bank in BANKS:
         for f in result["leave_out"][bank]["folds"]:
             w, c = f["window"], f["contact"]
-            lines.append(f"| {bank} | {', '.join(f['left_out'])} | {w['auroc_novelty']:.3f} / {c['auroc_novelty']:.3f} | "
+            lines.append(f"| {bank} | {', '.join(f['left_out'])} | "
+                         f"{w['auroc_novelty']:.3f} / {c['auroc_novelty']:.3f} | "
                          f"{c['auroc_mean_novelty']:.3f} | {w['auroc_doubt']:.3f} / {c['auroc_doubt']:.3f} | "
                          f"{w['false_unknown']:.3f} / {c['false_unknown']:.3f} | "
                          f"{w['unknown_caught']:.3f} / {c['unknown_caught']:.3f} | "
@@ -461,7 +469,7 @@ def write_calibration(result: dict, out, notice=None) -> list:
     ``notice`` (a callable taking one line) says that no PNG was written. Returns the paths written."""
     from pathlib import Path
 
-    from supramodal.experiments.report import write_csv, have_matplotlib
+    from supramodal.experiments.report import have_matplotlib, write_csv
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -489,8 +497,9 @@ def write_calibration(result: dict, out, notice=None) -> list:
                 r["right"] / r["decided"] if r["decided"] else None, r["decided"] / r["contacts"],
                 r["median_windows"], float(np.mean(r["windows"])) if r["windows"] else None, r["end_right"]]
                for name, sweep in _sweeps(result).items() for r in sweep]
-    paths.append(write_csv(out / "anytime.csv", ["set", "confidence", "contacts", "decided", "right", "right_of_decided",
-                                            "decided_of_all", "median_windows", "mean_windows", "right_at_end"],
+    paths.append(write_csv(out / "anytime.csv", ["set", "confidence", "contacts", "decided", "right",
+                                                 "right_of_decided", "decided_of_all", "median_windows",
+                                                 "mean_windows", "right_at_end"],
                       anytime))
     if have_matplotlib():
         paths += [_plot_reliability(result, out / "calibration.png"), _plot_anytime(result, out / "anytime.png")]
