@@ -42,24 +42,30 @@ def pytest_configure(config):
 # -- running on every core (pytest-xdist, `-n auto`) --------------------------------------------------
 
 #: The xdist group of the tests that run against a clock: pty boards, JACK-paced microphones, LSL streams
-#: between processes, the soak. One worker runs them one after the other, last, when the other workers
-#: have run out of tests: beside a worker that computes, a relay restarted in real time was measured
-#: deciding on 5 windows after its gap where the test asks for 20 (it passes alone).
+#: between processes, the soak. One worker runs them one after the other (handed out first: the group is
+#: the longest unit of work), while the other workers take the rest.
 REAL_TIME_GROUP = "real-time"
+#: The xdist group of the tests marked ``alone``: handed out last, when the other workers have run out
+#: of tests. Beside a worker that computes, a relay restarted in real time was measured deciding on 5
+#: windows after its gap where the test asks for 20 (alone it passes).
+ALONE_GROUP = "alone"
 
 
 @pytest.hookimpl(tryfirst=True)             # before xdist reads the groups into the test ids
 def pytest_collection_modifyitems(config, items):
-    """Tests marked ``hardware`` and those of the LSL modules (``loopback_only``) go to one xdist group;
-    under xdist the ``slow`` tests are handed out first and that group last."""
-    real_time = set()
+    """Tests marked ``alone`` go to one xdist group, and so do the other tests marked ``hardware`` and
+    those of the LSL modules (``loopback_only``); under xdist that group is handed out first, then the
+    ``slow`` tests, then the rest, and the ``alone`` group last."""
+    rank = {}
     for item in items:
-        if item.get_closest_marker("hardware") or "loopback_only" in getattr(item, "fixturenames", ()):
+        if item.get_closest_marker("alone"):
+            item.add_marker(pytest.mark.xdist_group(ALONE_GROUP))
+            rank[item] = 3
+        elif item.get_closest_marker("hardware") or "loopback_only" in getattr(item, "fixturenames", ()):
             item.add_marker(pytest.mark.xdist_group(REAL_TIME_GROUP))
-            real_time.add(item)
+            rank[item] = 0
+        else:
+            rank[item] = 1 if item.get_closest_marker("slow") else 2
     if hasattr(config, "workerinput"):
-        # On xdist's workers (which all collect the same order; the scheduler hands tests out in it):
-        # the long tests first, so that none of them is left to run alone at the end, and the
-        # real-time group last, so that it runs when nothing else does.
-        items.sort(key=lambda item: (item in real_time, item.get_closest_marker("slow") is None))
-
+        # On xdist's workers (which all collect the same order; the scheduler hands tests out in it).
+        items.sort(key=rank.__getitem__)

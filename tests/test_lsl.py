@@ -36,6 +36,7 @@ def test_a_stream_from_another_process_is_decided_as_the_same_signal_fed_locally
 
 
 @pytest.mark.slow   # paced real time: a sender process in real time, killed and restarted
+@pytest.mark.alone  # a process restarted in real time, like the relay of test_lsl_signal.py
 def test_a_sender_killed_and_restarted_leaves_a_counted_gap_and_the_node_decides_again_within_2_s(tmp_path):
     """The sender killed 3 s in and started again 1 s later (found again by its source id): the
     node keeps running to the end of its 8 s, fills exactly the samples never sent (counted, their
