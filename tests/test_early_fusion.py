@@ -151,7 +151,9 @@ def test_the_two_sense_world_with_early_fusion_in_the_node_beats_late_fusion_and
                       sinks_override=[ListSink()]).run()["fusion"]
     best = max(summary["streams"][s]["window_accuracy"] for s in ("whiskers", "mic"))
     assert f["method"] == "early" and f["windows"] == f["paired"] == 160
-    assert f["window_accuracy"] >= best + 0.2 and f["window_accuracy"] >= late["window_accuracy"] + 0.05
+    # Early fusion beats late fusion here; by 5 points while late fusion was calibrated with one
+    # temperature (0.856), by less since the calibration caps each pair of classes (6915eaa: late 0.925).
+    assert f["window_accuracy"] >= best + 0.2 and f["window_accuracy"] > late["window_accuracy"]
     # the same network from a file
     graph.fusion.model.save(tmp_path / "fused.npz")
     d["fusion"]["model"] = str(tmp_path / "fused.npz")
