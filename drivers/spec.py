@@ -78,9 +78,11 @@ class Built:
     ----------
     driver : Driver
     labels : tuple of (float, float, str)
-        Truth labels the source carries, as ``(start_s, end_s, name)`` on its stream time.
+        Truth labels the build made, as ``(start_s, end_s, name)`` on the stream's time (a
+        synthesised source's). Empty: the driver's own (``driver.labels``, ``passes``,
+        ``period``: a replayed session's) are read.
     label_period : float or None
-        Seconds after which the labels repeat (a looped source), or None.
+        Seconds after which ``labels`` repeat (a looped source), or None.
     training_set : object or None
         The textures a model trained on the spot learns for this source (a synthesised one's
         own); None: the bank's reference set.

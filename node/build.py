@@ -124,7 +124,8 @@ def driver_for(scene: Scene, bank: Bank | None, speed_override=None, shared: dic
         raise SceneError(f"{where} {exc}") from None
     if bank is not None and built.source_rate is not None:
         warn_if_beyond_band(bank, built.source_rate, f"{where} path {d.get('path', d['type'])}")
-    return built.driver, Labels(list(built.labels), built.label_period), built.training_set
+    labels = Labels(list(built.labels), built.label_period) if built.labels else Labels.of(built.driver)
+    return built.driver, labels, built.training_set
 
 
 def _make_sinks(scene: Scene, needs: str, made: list, overwrite: bool, **context) -> None:

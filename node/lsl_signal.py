@@ -62,7 +62,7 @@ from supramodal.drivers.lsl import import_pylsl
 from supramodal.drivers.spec import OptionError
 from supramodal.errors import InputError
 from supramodal.node.lsl_outlets import DEFAULT_PREFIX, OUTLET_BUFFER_SECONDS, LSLClock, outlet_name, outlet_source_id
-from supramodal.node.registry import SinkSpec
+from supramodal.node.registry import SinkSpec, driver_spec
 from supramodal.node.ringbuffer import RingClosed, flag_runs
 from supramodal.node.taps import Tap
 
@@ -274,8 +274,6 @@ class LSLSignalOutlet(Tap):
 
 def signal_type(driver_options: dict, banks: list) -> str:
     """What a source is, as an LSL content type: by the banks that read it, else by its driver's spec."""
-    from supramodal.node.registry import driver_spec
-
     kinds = {b.kind for b in banks}
     if kinds == {"whisker"}:
         return "Whiskers"

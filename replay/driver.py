@@ -734,14 +734,6 @@ def pacing(options: dict, context: BuildContext) -> dict:
     return given({**options, "speed": speed}, {"speed": "speed", "block": "block_size"})
 
 
-def scene_labels(driver: ReplayDriver) -> dict:
-    """A replayed source's truth labels as :class:`~supramodal.drivers.spec.Built` takes them:
-    ``labels`` and, where the replay loops, their ``label_period``."""
-    ranges = tuple((lab.start, lab.end, lab.label) for lab in driver.labels)
-    looped = bool(ranges) and driver.passes != 1
-    return {"labels": ranges, "label_period": driver.period if looped else None}
-
-
 def _build(options: dict, context: BuildContext) -> Built:
     path = context.resolve(options["path"])
     if not path.exists():
@@ -754,7 +746,7 @@ def _build(options: dict, context: BuildContext) -> Built:
         if options["timing"] != "recorded":
             raise
         raise OptionError(f'timing = "recorded": {exc}') from None
-    return Built(driver, **scene_labels(driver), source_rate=driver.source_rate)
+    return Built(driver, source_rate=driver.source_rate)   # its labels are the driver's own
 
 
 def _timebase(options: dict, driver: ReplayDriver) -> tuple[str, float, float]:

@@ -374,7 +374,7 @@ def _check(options: dict) -> None:
 
 
 def _build(options: dict, context: BuildContext) -> Built:
-    from supramodal.replay.driver import ReplayDriver, pacing, scene_labels
+    from supramodal.replay.driver import ReplayDriver, pacing
 
     path = context.resolve(options["path"])
     if not path.exists():
@@ -389,7 +389,7 @@ def _build(options: dict, context: BuildContext) -> Built:
                               **pacing({"speed": options["speed"]}, context))
     except ReplayError as exc:
         raise OptionError(str(exc)) from None
-    return Built(driver, **scene_labels(driver), source_rate=driver.source_rate)
+    return Built(driver, source_rate=driver.source_rate)   # its labels (the marker stream's) are the driver's
 
 
 def _spec() -> DriverSpec:
