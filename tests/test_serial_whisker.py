@@ -502,9 +502,12 @@ def test_pty_reader_stall_overflow_is_filled_not_a_discontinuity():
         rest = stream(dev, drv, len(src) - sum(b.frames for b in blocks))
         blocks += rest
         filled_frames, lost, led = check_against_ledger(blocks, dev, drv, src)
-    assert led.overflow > 0
+    assert led.overflow > 0 and lost
     assert filled_frames == set(lost) and set(lost.values()) == {"overflow"}
-    assert drv.stats()["frames_lost"] == led.overflow
+    # Frames the pty lost after the last frame the driver read leave no gap it could see (a loaded
+    # machine can overflow the pty again near the end): the driver counts those between its first
+    # and last frames, every one of them.
+    assert drv.stats()["frames_lost"] == len(lost)
 
 
 @pytest.mark.hardware
