@@ -370,9 +370,8 @@ def build_node(scene: Scene, speed=None, sinks_override=None, progress=None, rec
                 if f["method"] == "early":
                     model = _early_model(scene, a, b, held_out, trained, progress)
                     _check_fusion_decision(scene, (model,))
-                    correlation = 0.0 if model.calibration is None else model.calibration.correlation
                     fusion = EarlyFusion((a.name, b.name), (a.model.classes, b.model.classes), model, max_wait,
-                                         f["decision"], correlation=correlation)
+                                         f["decision"])
                 else:
                     # A number: the scene's weight (and sharpness, where the scene gives one);
                     # "learn": learned with the sharpness and the fused pooling on out-of-fold windows.

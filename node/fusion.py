@@ -69,6 +69,8 @@ class LateFusion:
         :func:`supramodal.fusion.learn_late_fusion`).
     correlation : float
         Window correlation of the fused decisions' pooling (default 0: summed log-posteriors).
+    caps : array-like (classes, classes) or None
+        The pooling's caps per pair of classes, in the order of ``classes[0]`` (None: uncapped).
     max_wait : float or None
         Host seconds a window waits for its partner (default :data:`DEFAULT_MAX_WAIT`). None:
         until the other stream has passed it or ended, however long that takes (two files replayed
@@ -87,7 +89,8 @@ class LateFusion:
     method = "late"
 
     def __init__(self, inputs, classes, weight: float = DEFAULT_WEIGHT, max_wait: float = DEFAULT_MAX_WAIT,
-                 decision: dict | None = None, *, sharpness: float = 1.0, correlation: float = 0.0) -> None:
+                 decision: dict | None = None, *, sharpness: float = 1.0, correlation: float = 0.0,
+                 caps=None) -> None:
         a, b = inputs
         if a == b:
             raise InputError(f"fusion needs two different streams, got {a!r} twice")
@@ -110,7 +113,7 @@ class LateFusion:
         self.correlation = float(correlation)
         self.max_wait = math.inf if max_wait is None else float(max_wait)
         d = {**DEFAULT_DECISION, **(decision or {})}
-        self.decider = Decider(ca, d, correlation)
+        self.decider = Decider(ca, d, correlation, caps=caps)
         self._queue: queue.SimpleQueue = queue.SimpleQueue()
         self._pending = {a: collections.deque(), b: collections.deque()}
         self._ended: set[str] = set()
@@ -294,17 +297,22 @@ class EarlyFusion(LateFusion):
         As :class:`LateFusion`; ``inputs[k]`` feeds the model's sense ``k``.
     model : EarlyFusionModel
         Knows the streams' textures (in any order); its senses' features are read from the
-        window events by name.
+        window events by name. The fused decisions are pooled by its calibration's contact
+        pooling (uncapped summed log-posteriors for an uncalibrated model).
     """
 
     method = "early"
 
-    def __init__(self, inputs, classes, model, max_wait: float = DEFAULT_MAX_WAIT, decision: dict | None = None,
-                 *, correlation: float = 0.0) -> None:
-        super().__init__(inputs, classes, DEFAULT_WEIGHT, max_wait, decision, correlation=correlation)
-        if sorted(model.classes) != sorted(self.classes):
-            raise InputError(f"the early-fusion model knows {list(model.classes)}, the streams {list(self.classes)}: "
+    def __init__(self, inputs, classes, model, max_wait: float = DEFAULT_MAX_WAIT,
+                 decision: dict | None = None) -> None:
+        if sorted(model.classes) != sorted(classes[0]):
+            raise InputError(f"the early-fusion model knows {list(model.classes)}, the streams {list(classes[0])}: "
                              "train it on the streams' textures")
+        correlation, caps = (0.0, None) if model.calibration is None else model.calibration.contact_pooling
+        if caps is not None:                # the model's class order -> the streams'
+            order = [list(model.classes).index(name) for name in classes[0]]
+            caps = np.asarray(caps)[np.ix_(order, order)]
+        super().__init__(inputs, classes, DEFAULT_WEIGHT, max_wait, decision, correlation=correlation, caps=caps)
         self.model = model
         self.weight = None
         self._order_model = np.array([list(model.classes).index(name) for name in self.classes])

@@ -112,8 +112,8 @@ def decider_for(model: TextureModel, decision: dict, where: str = "[decision]") 
         if model.novelty is None:
             raise InputError(f"{where} unknown needs a model with a novelty score: retrain it with `supramodal train`")
         threshold = model.novelty.threshold(d["unknown"])
-    correlation = model.calibration.correlation if model.calibrated else 0.0
-    return Decider(model.classes, d, correlation, threshold)
+    correlation, caps = model.calibration.contact_pooling if model.calibrated else (0.0, None)
+    return Decider(model.classes, d, correlation, threshold, caps=caps)
 
 
 class Stream:

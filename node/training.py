@@ -335,7 +335,8 @@ def _anytime(model: TextureModel, scored: dict) -> list[dict] | None:
     lps = scored["log_posteriors"]
     starts = np.cumsum([0] + [len(lp) for lp in lps])
     runs = [np.arange(a, b) for a, b in zip(starts[:-1], starts[1:])]
-    rows = anytime_sweep(np.concatenate(lps), scored["window_truth"], runs, model.calibration.correlation)
+    rho, caps = model.calibration.contact_pooling
+    rows = anytime_sweep(np.concatenate(lps), scored["window_truth"], runs, rho, caps=caps)
     return [{k: v for k, v in r.items() if k != "windows"} for r in rows]
 
 

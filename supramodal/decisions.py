@@ -110,14 +110,20 @@ class DecisionAccumulator:
     method : {"log", "vote"}
     correlation : float
         ``rho`` in [0, 1] of the ``"log"`` pooling (default 0: summed log-posteriors, naive
-        Bayes); a calibrated model's :attr:`~supramodal.calibration.Calibration.correlation`.
+        Bayes).
     confidence : float or None
         With ``scope="contact"``: the pooled confidence at which a contact's decision is final
         (see the module); None: never final.
+    caps : sequence of sequences of float, or None
+        The ``"log"`` pooling's caps per pair of classes (:func:`~supramodal.calibration.cap_gaps`),
+        shape (classes, classes); None: uncapped. A calibrated model's pooling is
+        ``correlation, caps = model.calibration.contact_pooling``: the accumulator then pools
+        exactly as :meth:`~supramodal.calibration.Calibration.pool` does.
     """
 
     def __init__(self, n_classes: int, scope: str = DEFAULT_SCOPE, n: int = DEFAULT_POOLED,
-                 method: str = DEFAULT_METHOD, correlation: float = 0.0, confidence: float | None = None) -> None:
+                 method: str = DEFAULT_METHOD, correlation: float = 0.0, confidence: float | None = None,
+                 caps=None) -> None:
         if scope not in SCOPES:
             raise InputError(f"decision scope must be one of {SCOPES}, got {scope!r}")
         if method not in METHODS:
@@ -139,6 +145,10 @@ class DecisionAccumulator:
         self.n_classes = int(n_classes)
         self.scope, self.method = scope, method
         self.correlation = float(correlation)
+        self.caps = None if caps is None else np.asarray(caps, dtype=np.float64)
+        if self.caps is not None and self.caps.shape != (self.n_classes, self.n_classes):
+            raise InputError(f"the pooling's caps must have shape ({self.n_classes}, {self.n_classes}), "
+                             f"got {self.caps.shape}")
         self.confidence = confidence
         maxlen = n if scope == "last" else (n or None)
         self._history: deque[np.ndarray] = deque(maxlen=maxlen)
@@ -174,7 +184,7 @@ class DecisionAccumulator:
     def _pooled(self) -> Decision:
         lp = np.array(self._history)
         if self.method == "log":
-            pooled = pool_log_posteriors(lp, self.correlation)
+            pooled = pool_log_posteriors(lp, self.correlation, self.caps)
             return Decision(int(winner(pooled)), float(np.exp(pooled.max())), len(lp))
         p = np.exp(lp)
         won = winner(lp)                                # a tied window votes for no class
@@ -206,10 +216,12 @@ class Decider:
     novelty_threshold : float or None
         Novelty score above which a stream's window is unknown (None: the novelty rule is off);
         kept for the stream, which compares its windows' scores with it.
+    caps : array-like (classes, classes) or None
+        The pooling's caps per pair of classes (a calibrated model's contact caps; None: uncapped).
     """
 
     def __init__(self, classes, decision: dict, correlation: float = 0.0,
-                 novelty_threshold: float | None = None) -> None:
+                 novelty_threshold: float | None = None, caps=None) -> None:
         self.classes = tuple(classes)
         d = decision
         self.unknown_below = float(d.get("unknown_below") or 0.0)
@@ -219,7 +231,7 @@ class Decider:
         self._unknown_flags: deque | None = None
         if d.get("scope", "window") != "window":
             self.accumulator = DecisionAccumulator(len(self.classes), d["scope"], d["n"], d["method"],
-                                                   correlation=correlation, confidence=confidence)
+                                                   correlation=correlation, confidence=confidence, caps=caps)
             maxlen = d["n"] if d["scope"] == "last" else (d["n"] or None)
             self._unknown_flags = deque(maxlen=maxlen)
         self.unknown = {"novel": 0, "unsure": 0, "tie": 0}

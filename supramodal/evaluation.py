@@ -95,7 +95,8 @@ def permutation_importance(outputs, windows: np.ndarray, truth: np.ndarray, repe
     return drop / repeats
 
 
-def anytime_sweep(log_posteriors, labels, runs, correlation: float, thresholds=ANYTIME_THRESHOLDS) -> list[dict]:
+def anytime_sweep(log_posteriors, labels, runs, correlation: float, thresholds=ANYTIME_THRESHOLDS,
+                  caps=None) -> list[dict]:
     """Contacts decided as soon as their pooled confidence reaches each threshold.
 
     Parameters
@@ -108,6 +109,9 @@ def anytime_sweep(log_posteriors, labels, runs, correlation: float, thresholds=A
     correlation : float
         The pooling's window correlation (the model's).
     thresholds : sequence of float in (0, 1)
+    caps : array-like (classes, classes) or None
+        The pooling's caps per pair of classes. A calibrated model's pooling is
+        ``correlation, caps = model.calibration.contact_pooling``, as the node pools.
 
     Returns
     -------
@@ -123,7 +127,7 @@ def anytime_sweep(log_posteriors, labels, runs, correlation: float, thresholds=A
     for c in thresholds:
         windows, right, end_right = [], 0, 0
         for r in runs:
-            acc = DecisionAccumulator(lp.shape[1], "contact", 0, "log", correlation, c)
+            acc = DecisionAccumulator(lp.shape[1], "contact", 0, "log", correlation, c, caps=caps)
             for t in r:
                 d = acc.update(lp[t])
             if d.decided:

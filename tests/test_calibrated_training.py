@@ -359,6 +359,7 @@ def test_evaluate_says_how_soon_each_touch_is_decided_at_each_threshold(recordin
     threshold: checked against a plain walk over the windows (the pooling written out here)."""
     import math
 
+    from supramodal.calibration import CAP_SHARPNESS
     from supramodal.evaluation import ANYTIME_THRESHOLDS
     from supramodal.node.manifest import read_manifest
     from supramodal.node.training import recording_windows
@@ -367,7 +368,7 @@ def test_evaluate_says_how_soon_each_touch_is_decided_at_each_threshold(recordin
                  str(tmp_path / "ev"), "--quiet"]) == 0
     rows = json.loads(capsys.readouterr().out)["anytime"]
     model = TextureModel.load(trained)
-    rho = model.calibration.correlation
+    rho, caps = model.calibration.contact_pooling       # the node's pooling, caps and all
     recs = read_manifest(recordings / "all.csv")
     lps = [model.log_posteriors(recording_windows(r, model.pipeline())) for r in recs]
     assert [r["confidence"] for r in rows] == list(ANYTIME_THRESHOLDS)
@@ -379,6 +380,11 @@ def test_evaluate_says_how_soon_each_touch_is_decided_at_each_threshold(recordin
                 total += lp[n - 1]
                 var = sum(rho ** abs(i - j) for i in range(n) for j in range(n))      # of the mean, times n^2
                 score = total * (n / var)                                           # n_eff / n = n / var
+                if caps is not None:            # each lead over the winner bounded near its cap, smoothly
+                    k = int(np.argmax(score))
+                    lead = score[k] - score
+                    cap = np.array([caps[k][j] if j != k else 1.0 for j in range(len(score))])
+                    score = -lead / (1 + (lead / cap) ** CAP_SHARPNESS) ** (1 / CAP_SHARPNESS)
                 p = np.exp(score - score.max()) / np.exp(score - score.max()).sum()
                 if p.max() >= row["confidence"]:
                     taken.append(n)

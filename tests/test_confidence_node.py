@@ -4,6 +4,8 @@ scene's rules refused where the model cannot follow them."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -213,3 +215,23 @@ def test_a_fusion_deciding_per_contact_gives_its_streams_contact_detectors(tmp_p
 def test_fusion_unknown_is_set_per_stream():
     with pytest.raises(SceneError, match="each \\[\\[stream\\]\\]'s \\[decision\\]"):
         scene_from_dict(_fusion_scene(weight=0.5, decision={"unknown": 0.05}), "<test>")
+
+
+def test_the_nodes_contact_pooling_is_the_models_calibrated_pooling(model, touches):
+    """The contact decision the node streams, window after window, is the model's calibrated
+    contact pooling (`Calibration.pool`: its caps per pair of classes and their correlation) of the
+    touch's windows so far: the posterior the calibration figures were measured on."""
+    x, truth = touches
+    # This small model's fit kept no contact caps (they did not earn their numbers): give it some,
+    # tight enough to change every pooled confidence of the touch.
+    caps = ((0.0, 2.0, 3.0), (1.5, 0.0, 2.5), (2.0, 4.0, 0.0))
+    model = dataclasses.replace(model, calibration=dataclasses.replace(model.calibration, contact_caps=caps,
+                                                                       contact_correlation=0.3))
+    events = _run(model, x[: 45 * 500], {"scope": "contact", "n": 0, "contact_threshold": 0.01},
+                  random_block_sizes(1, 700)).events
+    lp = model.log_posteriors(extract_features(x[: 40 * 500], whisker_bank(), ("Af",)).values)
+    for i in range(40):
+        pooled = model.calibration.pool(lp[: i + 1])
+        acc = events[i]["accumulated"]
+        assert acc["windows"] == i + 1 and acc["label"] == model.classes[int(np.argmax(pooled))]
+        assert acc["confidence"] == pytest.approx(np.exp(pooled.max()), abs=6e-5)   # said to 4 decimals

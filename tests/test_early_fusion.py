@@ -3,12 +3,14 @@ file and as the node's fusion block."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
 import pytest
 
 from supramodal.banks import cochlea_bank, whisker_bank
+from supramodal.calibration import Calibration
 from supramodal.fused_model import EarlyFusionModel, Sense
 from supramodal.mlp import MLP
 from supramodal.model import ModelError, TextureModel
@@ -130,6 +132,24 @@ def test_the_early_fusion_block_decides_pairs_with_the_network_and_lone_windows_
         np.testing.assert_allclose(out[k].posteriors, ref, rtol=1e-12)
     np.testing.assert_allclose(out[3].posteriors, own)
     assert fusion.summary()["method"] == "early" and fusion.summary()["weight"] is None
+
+
+def test_the_early_fusion_pools_contacts_with_its_models_calibrated_pooling_in_the_streams_class_order():
+    """The fused contact decision pools as the early model's calibration does (its contact caps and
+    their correlation); the caps, per pair of the model's classes, follow the streams' order."""
+    caps = ((0.0, 1.0, 2.0), (3.0, 0.0, 4.0), (5.0, 6.0, 0.0))          # model order silk, bark, felt
+    cal = Calibration(1.0, 1.0, 0.5, {}, contact_caps=caps, contact_correlation=0.2)
+    model = dataclasses.replace(_model(classes=("silk", "bark", "felt")), calibration=cal)
+    fusion = EarlyFusion(("whiskers", "mic"), (CLASSES, CLASSES), model, max_wait=5.0,
+                         decision={"scope": "contact", "n": 0})
+    rng = np.random.default_rng(4)
+    lp = np.log(rng.dirichlet(np.ones(3), size=6))                      # streams' order bark, felt, silk
+    for t in range(6):
+        d = fusion.decider.accumulator.update(lp[t])
+    in_model_order = [CLASSES.index(c) for c in model.classes]          # [2, 0, 1]
+    pooled = cal.pool(lp[:, in_model_order])
+    expected = pooled[[list(model.classes).index(c) for c in CLASSES]]  # back to the streams' order
+    assert d.label == int(np.argmax(expected)) and d.confidence == pytest.approx(np.exp(expected.max()), rel=1e-12)
 
 
 def test_early_fusion_refuses_a_model_of_other_textures():

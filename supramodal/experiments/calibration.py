@@ -141,17 +141,17 @@ def score_set(texture_set: TextureSet, epochs: int = DEFAULT_EPOCHS, seed: int =
     y_contact = y_test[[r[0] for r in contacts]]
     lp = model.log_posteriors(x_test)
     raw = normalised_log_posteriors(model.logits(x_test))
-    rho = model.calibration.correlation
+    rho, caps = model.calibration.contact_pooling         # the node's pooling (DecisionAccumulator)
     anytime = contact_runs(y_test, per_texture, min(ANYTIME_WINDOWS, per_texture))
     return {"bank": bank.kind, "texture_set": texture_set.name, "calibration": model.calibration.to_dict(),
             "test_windows_per_texture": per_texture,
             "window": {"calibrated": calibration_report(lp, y_test, sure=SURE),
                        "uncalibrated": calibration_report(raw, y_test, sure=SURE)},
             "contact": {"calibrated": calibration_report(
-                pooled_contacts(lp, contacts, *model.calibration.contact_pooling), y_contact, sure=SURE),
+                pooled_contacts(lp, contacts, rho, caps), y_contact, sure=SURE),
                         "uncalibrated": calibration_report(pooled_contacts(raw, contacts, 0.0), y_contact, sure=SURE),
                         "summed": calibration_report(pooled_contacts(lp, contacts, 0.0), y_contact, sure=SURE)},
-            "anytime": anytime_sweep(lp, y_test, anytime, rho),
+            "anytime": anytime_sweep(lp, y_test, anytime, rho, caps=caps),
             "timing": timing}
 
 
