@@ -531,6 +531,18 @@ def _toml_value(v) -> str:
     raise SceneError(f"a scene value {v!r} ({type(v).__name__}) has no TOML form")
 
 
+def _written(section: str, values: dict) -> dict:
+    """What :func:`scene_to_toml` writes of a section: a ``[bank]`` holds only the keys its kind
+    has (``BANK_KEYS``; a bank file alone), whatever else the table carries (a scene built or
+    changed in code), so that the file loads back; every other section as it is."""
+    if section != "bank":
+        return values
+    if values.get("file") is not None:
+        return {"file": values["file"]}
+    keys = BANK_KEYS[values["kind"]]
+    return {k: v for k, v in values.items() if k == "kind" or k in keys}
+
+
 def scene_to_toml(scene: Scene) -> str:
     """The scene as a TOML file that :func:`load_scene` reads back to the same scene: every key
     with its value (defaults filled in), keys whose default belongs to the driver or the bank
@@ -547,7 +559,7 @@ def scene_to_toml(scene: Scene) -> str:
         for spec in scene.streams:
             lines += table("[[stream]]", {"name": spec.name, "source": spec.source})
             for name in STREAM_SECTIONS:
-                lines += table(f"[stream.{name}]", getattr(spec.scene, name))
+                lines += table(f"[stream.{name}]", _written(name, getattr(spec.scene, name)))
         if scene.fusion is not None:
             # Keys a scene may not give: those "learn" learns, and late fusion's with early fusion.
             learned = {"decision"} | ({"sharpness", "correlation"} if scene.fusion["weight"] == LEARN else set()) \
@@ -558,7 +570,7 @@ def scene_to_toml(scene: Scene) -> str:
         only = scene.only_stream()
         lines += table("[driver]", only.driver)
         for name in SECTIONS:
-            lines += table(f"[{name}]", getattr(only, name))
+            lines += table(f"[{name}]", _written(name, getattr(only, name)))
     for sink in scene.sinks:
         lines += table("[[sink]]", sink)
     return "\n".join(lines)
