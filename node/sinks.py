@@ -171,7 +171,14 @@ class JsonLinesSink(FileSink):
 
 class TextSink(FileSink):
     """One human-readable line per window, under a line that names the columns, and a summary block;
-    driver events on stderr, ``supramodal: MESSAGE`` and, for repeats folded in, ``(N more since)``."""
+    driver events on stderr, ``supramodal: MESSAGE`` and, for repeats folded in, ``(N more since)``.
+
+    Every line's time is on one basis, said in the header: the window's end (``WindowEvent.end``),
+    seconds on the node's common time, for every stream's window and the fused ones alike (a
+    stream's own time, ``WindowEvent.t``, would put a microphone window that ends 0.147 s into the
+    graph at 0.100 s beside a fused window at 0.147 s). In a one-source scene of a file, common
+    time is the stream's time.
+    """
 
     _headed = False
 
@@ -180,10 +187,13 @@ class TextSink(FileSink):
         sys.stderr.write(f"supramodal: {ev.message}{more}\n")
         sys.stderr.flush()
 
+    #: What the first column is, said in the header.
+    TIME_BASIS = "time: each window's end, s on the node's common time"
+
     def _header(self, event: WindowEvent) -> str:
         if event.decision is None:
-            return f"{'time':>11}  feature sums over the channels, per feature"
-        line = f"{'time':>11}  {'decision':<12} confidence"
+            return f"{'time':>11}  feature sums over the channels, per feature  ({self.TIME_BASIS})"
+        line = f"{'time':>11}  {'decision':<12} confidence  ({self.TIME_BASIS})"
         if event.pooled is not None:
             line += "  | the decision pooled over the last windows"
         if event.truth is not None:
@@ -194,7 +204,7 @@ class TextSink(FileSink):
         if not self._headed:
             self._fh.write(self._header(event) + "\n")
             self._headed = True
-        head = f"{event.t:9.3f} s"
+        head = f"{event.end:9.3f} s"                    # common time, for every stream (TIME_BASIS)
         if event.stream != MAIN_STREAM:                 # a graph of several streams: say whose window
             head += f"  {event.stream:<8}"
         if event.decision is not None:
