@@ -519,6 +519,9 @@ def _cmd_evaluate(args) -> int:
         raise CliError("evaluate needs a model file and --manifest (or, for two senses fused, --scene)")
     if args.fused_model is not None:
         raise CliError("--fused-model scores a fusion: give --scene recordings")
+    if args.contact_windows is not None:
+        raise CliError("--contact-windows cuts the contacts of recorded graphs: give --scene recordings (a "
+                       "manifest's recordings are pooled in runs of 1, 2, 5 and 10 windows, and whole)")
     model = TextureModel.load(args.model)
     if args.cv:
         return _evaluate_cv(model, args)
@@ -567,7 +570,7 @@ def _evaluate_fusion(args) -> int:
         streams = [spec.name for path in args.scene for spec in load_scene(path).streams] + [FUSED_STREAM]
         for name in fused_evaluation_files(dict.fromkeys(streams)):
             check_new_file(args.out / name, args.force, "the evaluation file")
-    result = evaluate_fused(args.scene, fused, progress=_progress(args))
+    result = evaluate_fused(args.scene, fused, progress=_progress(args), contact_windows=args.contact_windows)
     print(json.dumps(result) if args.json else format_fused_evaluation(result))
     if args.out is not None:
         from supramodal.node.reports import write_fused_evaluation
@@ -712,6 +715,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--fused-model", metavar="FILE",
                    help="with --scene: score this early-fusion network instead of the scenes' own fusion "
                         "(default: the scenes' [fusion])")
+    p.add_argument("--contact-windows", type=_count(1), metavar="N",
+                   help="with --scene: a contact is N consecutive windows of one texture, each run of one texture "
+                        "cut from its start (a shorter rest left out) (default: each whole run of one texture is "
+                        "one contact)")
     p.add_argument("--mapping", type=_mapping, default="auto",
                    help="recording channels to filters: auto (one channel to all, or one each), mono, per-channel, "
                         "mean, or a channel index (default auto)")

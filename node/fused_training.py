@@ -21,6 +21,7 @@ import warnings
 import numpy as np
 
 from supramodal.calibration import DEFAULT_CALIBRATION_FOLDS, calibration_report, winner
+from supramodal.checks import integer
 from supramodal.errors import InputError, SupramodalWarning
 from supramodal.fused_model import (
     EarlyFusionModel,
@@ -169,21 +170,57 @@ def contact_groups(pairs, prefix: str = "") -> list[str]:
     return out
 
 
-def evaluate_fused(paths, fused_model=None, progress=None) -> dict:
-    """Each stream's and the fusion's accuracy over the scenes at ``paths`` (run at ``max``): per
-    window, with the calibration of its log-posteriors (log loss, Brier score, ECE, the share
-    wrong of the windows that say >= 0.99), and per contact (each run of windows of one texture,
-    pooled by summed log-posteriors). ``fused_model``: an early-fusion model file to use instead
-    of the scenes' own fusion."""
+def evaluate_fused(paths, fused_model=None, progress=None, contact_windows: int | None = None) -> dict:
+    """Each stream's and the fusion's accuracy over the scenes at ``paths`` (run at ``max``).
+
+    Parameters
+    ----------
+    paths : sequence of path
+        Replay scenes of recorded graphs with a ``[fusion]`` block (``supramodal record`` writes them).
+    fused_model : path, optional
+        An early-fusion model file to score instead of the scenes' own fusion.
+    progress : callable, optional
+        Told one line per scene.
+    contact_windows : int, optional
+        Windows per contact, >= 1: each run of windows of one texture is cut into contacts of this
+        many consecutive windows from its start (a shorter rest is left out), as
+        :func:`supramodal.evaluation.pooled_accuracy` cuts a recording. Default None: a contact is
+        the whole run.
+
+    Returns
+    -------
+    dict
+        Per stream (each sense and ``"fused"``): ``window_accuracy`` and ``windows``, with the
+        calibration of its log-posteriors (log loss, Brier score, ECE, the share wrong of the
+        windows that say >= 0.99); ``contact_accuracy`` and ``contacts`` (each contact's windows
+        pooled by summed log-posteriors), ``contact_windows``; ``labels``, ``confusion``,
+        ``unknown``; and ``scored``, per scene what was scored: a sense's ``model`` file (None: a
+        model trained on the spot), the fusion's ``method``, ``weight`` and ``sharpness`` (late
+        fusion; None with early), ``correlation`` (its contact pooling), ``model`` (the early
+        network's file; None: trained on the spot, or late fusion) and ``senses``, each fused
+        stream's model file.
+
+    Raises
+    ------
+    InputError
+        ``contact_windows`` not an integer >= 1, no labelled window, or no run of one texture as
+        long as ``contact_windows``.
+    """
+    if contact_windows is not None and not integer(1)(contact_windows):
+        raise InputError(f"the windows per contact must be an integer >= 1, got {contact_windows!r}")
     windows: dict[str, list] = {}
     contacts: dict[str, list] = {}
     decided: dict[str, list] = {}           # stream -> [(truth, decision)] of its labelled windows
     classes: dict[str, tuple] = {}
     scored: dict[str, tuple[list, list]] = {}   # stream -> (log-posteriors, truth index) of its labelled windows
+    what: dict[str, list] = {}              # stream -> per scene, what was scored
     for path in paths:
         scene = _graph_for(path, fused_model)
         sink = ListSink()
-        build_node(scene, speed="max", sinks_override=[sink]).run()
+        graph = build_node(scene, speed="max", sinks_override=[sink])
+        graph.run()
+        for name, entry in _scored(scene, graph).items():
+            what.setdefault(name, []).append(entry)
         if progress:
             progress(f"{scene.source}: {len(sink.windows)} window events")
         by_stream: dict[str, list] = {}
@@ -192,7 +229,7 @@ def evaluate_fused(paths, fused_model=None, progress=None) -> dict:
                 by_stream.setdefault(e.stream, []).append(e)
         for name, events in by_stream.items():
             windows.setdefault(name, []).extend(e.decision == e.truth for e in events)
-            contacts.setdefault(name, []).extend(_contacts(events))
+            contacts.setdefault(name, []).extend(_contacts(events, contact_windows))
             decided.setdefault(name, []).extend((e.truth, e.decision) for e in events)
             classes.setdefault(name, tuple(events[0].classes))
             lps, ys = scored.setdefault(name, ([], []))
@@ -203,16 +240,40 @@ def evaluate_fused(paths, fused_model=None, progress=None) -> dict:
                     ys.append(classes[name].index(e.truth))
     if FUSED_STREAM not in windows:
         raise InputError("no labelled window in these recordings: record with a source that labels its stream")
+    if not contacts[FUSED_STREAM]:
+        raise InputError(f"--contact-windows {contact_windows}: no run of windows of one texture is that long in "
+                         "these recordings, so there is no contact to score; give fewer windows per contact")
     out = {}
     for name in windows:
         lps, ys = scored[name]
         report = calibration_report(np.array(lps), np.array(ys)) if ys else None
         out[name] = {"window_accuracy": float(np.mean(windows[name])), "windows": len(windows[name]),
-                     "contact_accuracy": float(np.mean(contacts[name])), "contacts": len(contacts[name]),
+                     "contact_accuracy": float(np.mean(contacts[name])) if contacts[name] else None,
+                     "contacts": len(contacts[name]), "contact_windows": contact_windows,
                      "labels": list(classes[name]), "confusion": _confusion(decided[name], classes[name]),
                      "unknown": sum(d not in classes[name] for _, d in decided[name]),
                      "calibration": None if report is None else
-                     {k: report[k] for k in ("n", "log_loss", "brier", "ece", "sure", "sure_count", "sure_wrong")}}
+                     {k: report[k] for k in ("n", "log_loss", "brier", "ece", "sure", "sure_count", "sure_wrong")},
+                     "scored": what.get(name, [])}
+    return out
+
+
+def _scored(scene, graph) -> dict[str, dict]:
+    """What one scene's run scored, per stream: a sense's model file, the fusion's method,
+    weight, sharpness, correlation and files (see :func:`evaluate_fused`)."""
+    def file(path):
+        return None if path is None else str(scene.resolve(path))
+
+    models = {spec.name: file(spec.scene.model["path"]) for spec in scene.streams}
+    out: dict[str, dict] = {name: {"scene": scene.source, "model": path} for name, path in models.items()}
+    f = graph.fusion
+    early = f.method == "early"
+    out[FUSED_STREAM] = {"scene": scene.source, "method": f.method,
+                         "weight": None if early else float(f.weight),
+                         "sharpness": None if early else float(f.sharpness),
+                         "correlation": float(f.correlation),
+                         "model": file(scene.fusion["model"]) if early else None,
+                         "senses": {name: models.get(name) for name in f.inputs}}
     return out
 
 
@@ -227,14 +288,19 @@ def _confusion(pairs, classes) -> list[list[int]]:
     return counts.tolist()
 
 
-def _contacts(events) -> list[bool]:
-    """Whether each run of consecutive windows of one truth was decided right when pooled by
-    summed log-posteriors (the decision's class order is the event's; a tie is wrong)."""
+def _contacts(events, n: int | None = None) -> list[bool]:
+    """Whether each contact was decided right when its windows are pooled by summed
+    log-posteriors (the decision's class order is the event's; a tie is wrong). A contact is
+    each run of consecutive windows of one truth (``n`` None), or each ``n`` consecutive windows
+    of a run from its start (a shorter rest left out)."""
     out, run = [], []
     for e in events + [None]:
         if run and (e is None or e.truth != run[-1].truth or e.window != run[-1].window + 1):
-            k = int(winner(np.sum([log_posteriors_of(r) for r in run], axis=0)))
-            out.append(k >= 0 and run[-1].classes[k] == run[-1].truth)
+            size = len(run) if n is None else n
+            for a in range(0, len(run) - size + 1, size):
+                part = run[a : a + size]
+                k = int(winner(np.sum([log_posteriors_of(r) for r in part], axis=0)))
+                out.append(k >= 0 and part[-1].classes[k] == part[-1].truth)
             run = []
         if e is not None:
             run.append(e)
@@ -242,14 +308,22 @@ def _contacts(events) -> list[bool]:
 
 
 def format_fused_evaluation(result: dict) -> str:
+    """The table ``evaluate --scene`` prints: per stream its windows and contacts right and its
+    calibration, then what was scored (the fusion's method, weight, sharpness and files; each
+    sense's model) and what a contact is."""
+    from supramodal.node.reports import contact_text, scored_text
+
     lines = [f"{'stream':<12} {'windows right':>14} {'of':>6}  {'contacts right':>15} {'of':>5}  {'log loss':>8} "
              f"{'ECE':>6} {'>= 0.99 wrong':>14}"]
     for name, r in result.items():
         c = r.get("calibration")
         calib = "" if c is None else (f"  {c['log_loss']:>8.3f} {c['ece']:>6.3f} "
                                       f"{_share(c['sure_wrong']):>6} of {c['sure_count']:<5}")
-        lines.append(f"{name:<12} {r['window_accuracy']:>14.3f} {r['windows']:>6}  {r['contact_accuracy']:>15.3f} "
+        lines.append(f"{name:<12} {r['window_accuracy']:>14.3f} {r['windows']:>6}  {_share(r['contact_accuracy']):>15} "
                      f"{r['contacts']:>5}{calib}")
+    for name, r in result.items():
+        lines.append(f"{name}: {scored_text(r['scored'])}")
+    lines.append(f"contacts: {contact_text(next(iter(result.values()))['contact_windows'])}")
     return "\n".join(lines)
 
 

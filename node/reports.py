@@ -8,7 +8,8 @@ from pathlib import Path
 import numpy as np
 
 __all__ = ["EVALUATION_FILES", "plots_missing_notice", "pyplot_or_none", "write_confusion", "write_evaluation",
-           "write_fused_evaluation", "fused_evaluation_files", "write_reliability", "write_anytime"]
+           "write_fused_evaluation", "fused_evaluation_files", "write_reliability", "write_anytime", "scored_text",
+           "contact_text", "FUSION_COLUMNS"]
 
 #: Files ``evaluate --out`` writes (the PNGs where matplotlib is installed).
 EVALUATION_FILES = ("confusion.csv", "confusion.png", "pooling.csv", "channels.csv", "evaluation.png",
@@ -48,10 +49,11 @@ def write_confusion(labels, confusion, base: Path, title: str) -> list[Path]:
     return written + [_save_png(plt, fig, base.with_name(base.name + ".png"))]
 
 
-def _save_png(plt, fig, path: Path) -> Path:
-    """Lay ``fig`` out, write it to ``path`` (120 dpi) and free it; returns ``path``."""
+def _save_png(plt, fig, path: Path, description: str | None = None) -> Path:
+    """Lay ``fig`` out, write it to ``path`` (120 dpi) and free it; returns ``path``.
+    ``description``: kept in the PNG's ``Description`` text chunk (what the figure shows)."""
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    fig.savefig(path, dpi=120, metadata=None if description is None else {"Description": description})
     plt.close(fig)
     return path
 
@@ -212,31 +214,91 @@ def fused_evaluation_files(streams) -> list[str]:
     return names
 
 
+#: The columns of ``fusion.csv`` (:func:`write_fused_evaluation`).
+FUSION_COLUMNS = ("stream", "window accuracy", "windows", "contact accuracy", "contacts", "windows per contact",
+                  "method", "weight", "sharpness", "correlation", "model files")
+
+
+def _distinct(values) -> list:
+    return list(dict.fromkeys(values))
+
+
+def _name(path) -> str:
+    return "trained on the spot" if path is None else Path(path).name
+
+
+def scored_text(scored: list[dict]) -> str:
+    """What a stream's score is of, in words (``scored``: :func:`~supramodal.node.fused_training.evaluate_fused`'s
+    ``scored``, one entry per scene; entries that differ are joined by ``"; "``)."""
+    said = []
+    for e in scored:
+        if "method" not in e:
+            said.append(f"model {_name(e['model'])}")
+        elif e["method"] == "early":
+            said.append(f"early fusion, network {_name(e['model'])}")
+        else:
+            senses = " and ".join(f"{name} {_name(path)}" for name, path in e["senses"].items())
+            said.append(f"late fusion, weight {e['weight']:.4g}, sharpness {e['sharpness']:.4g}, "
+                        f"correlation {e['correlation']:.4g}, of {senses}")
+    return "; ".join(_distinct(said)) or "-"
+
+
+def contact_text(contact_windows: int | None) -> str:
+    """What a contact is, in words (``None``: each run of windows of one texture)."""
+    if contact_windows is None:
+        return "each run of windows of one texture, pooled"
+    return (f"{contact_windows} windows each, pooled (each run of one texture cut from its start; a shorter rest "
+            "left out)")
+
+
+def _columns(r: dict) -> list:
+    """A row's columns after ``contacts``: windows per contact, method, weight, sharpness,
+    correlation and model files (values that differ between scenes joined by ``" | "``)."""
+    def join(values) -> str:
+        return " | ".join("" if v is None else (f"{v:.6g}" if isinstance(v, float) else str(v))
+                          for v in _distinct(values))
+
+    scored = r["scored"]
+    per = "run" if r["contact_windows"] is None else r["contact_windows"]
+    if not scored or "method" not in scored[0]:
+        return [per, "", "", "", "", join(_name(e["model"]) for e in scored)]
+    files = [_name(e["model"]) if e["method"] == "early" else " + ".join(_name(p) for p in e["senses"].values())
+             for e in scored]
+    return [per, join(e["method"] for e in scored), join(e["weight"] for e in scored),
+            join(e["sharpness"] for e in scored), join(e["correlation"] for e in scored), join(files)]
+
+
 def write_fused_evaluation(result: dict, folder: Path) -> list[Path]:
     """``evaluate --scene --out``: per stream (each sense and ``fused``) its accuracy per window and
-    per contact (``fusion.csv``, and side by side in ``fusion.png``) and its confusion
-    (``confusion-STREAM.csv/.png``). Returns the paths written."""
+    per contact, what a contact is and what was scored (``fusion.csv``, columns
+    :data:`FUSION_COLUMNS`; and side by side in ``fusion.png``, whose title and ``Description``
+    name them too) and its confusion (``confusion-STREAM.csv/.png``). Returns the paths written."""
     folder.mkdir(parents=True, exist_ok=True)
     rows = [(name, r["window_accuracy"], r["windows"], r["contact_accuracy"], r["contacts"])
             for name, r in result.items()]
     with open(folder / "fusion.csv", "w", newline="") as fh:
         w = csv.writer(fh)
-        w.writerow(["stream", "window accuracy", "windows", "contact accuracy", "contacts"])
-        w.writerows(rows)
+        w.writerow(FUSION_COLUMNS)
+        w.writerows([*row[:3], "" if row[3] is None else row[3], row[4], *_columns(result[row[0]])] for row in rows)
     written = [folder / "fusion.csv"]
+    what = {name: scored_text(r["scored"]) for name, r in result.items()}
     for name, r in result.items():
         written += write_confusion(r["labels"], r["confusion"], folder / f"confusion-{name}",
-                                   f"{name}: window accuracy {r['window_accuracy']:.3f} of {r['windows']}")
+                                   f"{name}: window accuracy {r['window_accuracy']:.3f} of {r['windows']}\n"
+                                   f"{what[name]}")
     plt = pyplot_or_none()
     if plt is None:
         return written
+    contacts = contact_text(next(iter(result.values()))["contact_windows"])
     fig, ax = plt.subplots(figsize=(1.5 + 1.3 * len(rows), 3.4))
     x = np.arange(len(rows))
     ax.bar(x - 0.18, [r[1] for r in rows], 0.36, color="0.55", label="per window")
-    ax.bar(x + 0.18, [r[3] for r in rows], 0.36, color="0.2", label="per contact")
+    ax.bar(x + 0.18, [np.nan if r[3] is None else r[3] for r in rows], 0.36, color="0.2", label="per contact")
     ax.set_xticks(x, [r[0] for r in rows])
     ax.set_ylim(0, 1.02)
     ax.set_ylabel("accuracy")
     ax.legend(fontsize=8, loc="lower right")
-    ax.set_title("each sense alone and fused", fontsize=9)
-    return written + [_save_png(plt, fig, folder / "fusion.png")]
+    fused = what.get("fused", "")
+    ax.set_title(f"each sense alone and fused\nfused: {fused}\ncontacts: {contacts}", fontsize=7, wrap=True)
+    description = "; ".join(f"{name}: {text}" for name, text in what.items()) + f"; contacts: {contacts}"
+    return written + [_save_png(plt, fig, folder / "fusion.png", description)]
