@@ -96,6 +96,17 @@ def test_anytime_decides_at_the_first_window_sure_enough_and_counts_right_and_un
     assert merged[1]["contacts"] == 6 and merged[1]["windows"] == high["windows"] * 2
 
 
+def test_contacts_side_by_side_or_starting_at_every_window_stay_within_one_texture():
+    from supramodal.experiments.fusion import contact_runs
+
+    y = np.repeat(np.arange(3), 7)                      # 3 textures, 7 test windows each
+    side = contact_runs(y, 7, 3)
+    assert [list(r) for r in side] == [[0, 1, 2], [3, 4, 5], [7, 8, 9], [10, 11, 12], [14, 15, 16], [17, 18, 19]]
+    every = contact_runs(y, 7, 3, step=1)
+    assert [list(r) for r in every] == [list(range(t * 7 + s, t * 7 + s + 3)) for t in range(3) for s in range(5)]
+    assert all(len(set(y[r])) == 1 for r in every)
+
+
 def test_merged_reports_equal_one_report_of_all_decisions():
     rng = np.random.default_rng(1)
     parts = []
@@ -150,15 +161,18 @@ def test_quick_result_has_every_part_and_no_nan(quick):
                 assert all(0.0 <= rep[k] <= 1.0 for k in ("accuracy", "ece")) and 0.0 <= rep["brier"] <= 2.0
                 assert rep["log_loss"] >= 0.0
         assert [r["confidence"] for r in ref["anytime"]] == list(THRESHOLDS)
-        for r in ref["anytime"]:
+        for r in ref["anytime"] + ref["anytime_every_start"]:
             assert 0 <= r["right"] <= r["decided"] <= r["contacts"] and len(r["windows"]) == r["decided"]
             assert all(1 <= w <= quick["anytime_windows"] for w in r["windows"])
+        per, length = ref["test_windows_per_texture"], min(quick["anytime_windows"], ref["test_windows_per_texture"])
+        assert ref["anytime"][0]["contacts"] == 8 * (per // length)                 # side by side
+        assert ref["anytime_every_start"][0]["contacts"] == 8 * (per - length + 1)  # one at every window
         folds = quick["leave_out"][bank]["folds"]
         assert [f["left_out"] for f in folds] == [["T1", "T2"], ["T3", "T4"], ["T5", "T6"], ["T7", "T8"]]
         for f in folds:
             for scope in ("window", "contact"):
                 assert all(0.0 <= f[scope][k] <= 1.0 for k in ("auroc_novelty", "auroc_mean_novelty", "auroc_doubt",
-                                                                "false_unknown", "unknown_caught"))
+                                                                "auroc_supervised", "false_unknown", "unknown_caught"))
                 assert f[scope]["accuracy_with_rejection"] <= f[scope]["accuracy"]
                 assert f[scope]["n_known"] == 3 * f[scope]["n_unknown"]          # 6 known textures, 2 left out
             assert f["window"]["auroc_mean_novelty"] == f["window"]["auroc_novelty"]
@@ -174,7 +188,7 @@ def test_quick_table_names_every_part_and_every_done_when_line(quick):
                 f"| {ANYTIME_CONFIDENCE:g} |", "| early |"):
         assert row in table, row
     lines = done_when(quick)
-    assert len(lines) == 12 and all(isinstance(miss, list) for _, _, miss in lines)
+    assert len(lines) == 13 and all(isinstance(miss, list) for _, _, miss in lines)
     assert all(f"| {what} |" in table for what, _, _ in lines)
 
 
@@ -192,7 +206,7 @@ def test_csv_files_parse_with_rates_in_range(quick, tmp_path, monkeypatch):
     unknown = list(csv.DictReader(open(tmp_path / "unknown.csv")))
     assert len(unknown) == 2 * 4 * 2 and all(0.0 <= float(r["auroc_novelty"]) <= 1.0 for r in unknown)
     anytime = list(csv.DictReader(open(tmp_path / "anytime.csv")))
-    assert len(anytime) == 4 * len(THRESHOLDS)
+    assert len(anytime) == 8 * len(THRESHOLDS)          # 4 groups, contacts side by side and at every start
     assert all(r["right_of_decided"] == "" or 0.0 <= float(r["right_of_decided"]) <= 1.0 for r in anytime)
     bins = list(csv.DictReader(open(tmp_path / "reliability.csv")))
     assert all(int(b["count"]) >= 0 for b in bins)

@@ -72,12 +72,15 @@ def set_features(set_seed: int, seconds: float, progress=None):
     return [s.name for s in surfaces], np.stack([v[:n] for v in fw]), np.stack([v[:n] for v in fm])
 
 
-def contact_runs(labels, per_texture: int, length: int = CONTACT_WINDOWS) -> list[np.ndarray]:
+def contact_runs(labels, per_texture: int, length: int = CONTACT_WINDOWS, step: int | None = None) -> list[np.ndarray]:
     """Indices of the contacts among test windows stacked texture by texture (``per_texture`` each):
-    runs of ``length`` consecutive windows of one texture (a shorter rest is left out)."""
+    runs of ``length`` consecutive windows of one texture (a shorter rest is left out), one every
+    ``step`` windows (default ``length``: contacts side by side; 1: a contact starting at every
+    window, overlapping)."""
+    step = length if step is None else step
     runs = []
     for start in range(0, len(labels), per_texture):
-        for k in range(0, per_texture - length + 1, length):
+        for k in range(0, per_texture - length + 1, step):
             runs.append(np.arange(start + k, start + k + length))
     return runs
 
