@@ -297,24 +297,31 @@ def _cmd_run(args) -> int:
 
 def _cmd_record(args) -> int:
     import json as _json
-    import threading
     import time
 
     from supramodal.errors import InputError
     from supramodal.node.build import build_node
-    from supramodal.node.graph_recording import graph_recorders, write_replay_scene
+    from supramodal.node.graph_recording import GraphMarks, graph_recorders, write_replay_scene
     from supramodal.node.recorder import SessionRecorder
     from supramodal.node.scene import load_scene
 
     _interrupt_until_running()
     scene = load_scene(args.scene)
     name = args.name or time.strftime("session-%Y%m%d-%H%M%S")
+    labelled = bool(args.label or args.marks)
+    if args.replace and not labelled:
+        raise CliError("--replace replaces a driver's own labels with --label or --marks: give one of them")
     if scene.is_graph:
-        if args.label or args.marks:
-            raise CliError(f"{scene.source}: --label and --marks label a one-source recording; a graph's sources "
-                           "keep their drivers' own labels")
-        recorders = graph_recorders(scene, args.out, name, overwrite=args.force)
+        recorders = graph_recorders(scene, args.out, name, overwrite=args.force, label=args.label,
+                                    replace=args.replace)
         node = build_node(scene, recorder=recorders, progress=_progress(args))
+        own = [s.name for s in node.sources if s.labels is not None and s.labels.ranges]
+        if own and labelled and not args.replace:
+            raise CliError(f"{scene.source}: source(s) {own} label their streams themselves, and the recording keeps "
+                           "those labels; --label and --marks would contradict them (leave them out, or pass "
+                           "--replace to label the recording with yours instead)")
+        if args.marks:
+            _read_marks(GraphMarks(recorders).mark)
         summary = node.run(max_seconds=args.seconds, on_running=lambda: _stop_on_signals(node))
         if summary.get("recorded"):
             try:
@@ -326,21 +333,53 @@ def _cmd_record(args) -> int:
                   f"supramodal run {replay}", file=sys.stderr)
         return 0
     source = _json.dumps({"scene": scene.source, "driver": scene.driver})
-    recorder = SessionRecorder(args.out, name, source, label=args.label, overwrite=args.force)
+    recorder = SessionRecorder(args.out, name, source, label=args.label, overwrite=args.force, replace=args.replace)
     node = build_node(scene, recorder=recorder, progress=_progress(args))
-    if node.streams[0].labels.ranges and (args.label or args.marks):
+    if node.streams[0].labels.ranges and labelled and not args.replace:
         raise CliError(f"{scene.source}: the {scene.driver['type']} driver labels its stream itself, and the "
                        "recording keeps those labels with their times; --label and --marks would contradict them "
-                       "(leave them out)")
+                       "(leave them out, or pass --replace to label the recording with yours instead)")
     if args.marks:
-        # Each line typed starts a label (its text) at the current stream time; an empty line ends it.
-        def read_marks():
-            for line in sys.stdin:
-                recorder.mark(line.strip() or None)
-        threading.Thread(target=read_marks, daemon=True).start()
+        _read_marks(recorder.mark)
     summary = node.run(max_seconds=args.seconds, on_running=lambda: _stop_on_signals(node))
     if summary.get("recorded"):
         print(f"recorded {summary['stream_seconds']:.2f} s to {summary['recorded'][0]} (+ .json)", file=sys.stderr)
+    return 0
+
+
+def _read_marks(mark) -> None:
+    """``record --marks``: each line typed on stdin starts a label (its text) now, an empty line
+    ends it (``mark(label or None)``), on a thread of its own; a line that is no valid label is
+    said on stderr and not applied."""
+    from supramodal.node.labels import LabelError, check_label_name
+
+    def read():
+        for line in sys.stdin:
+            text = line.strip()
+            try:
+                mark(check_label_name(text, "--marks") if text else None)
+            except LabelError as exc:
+                print(f"supramodal: {exc}; the line was not applied", file=sys.stderr, flush=True)
+    threading.Thread(target=read, name="marks", daemon=True).start()
+
+
+def _label_name(text: str) -> str:
+    """``--label``: a valid label name."""
+    from supramodal.node.labels import LabelError, check_label_name
+
+    try:
+        return check_label_name(text, "--label")
+    except LabelError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def _cmd_label(args) -> int:
+    from supramodal.node.labels import label_recording
+
+    written = label_recording(args.recording, args.spans, replace=args.replace)
+    for source, labels in written.items():
+        names = sorted({n for _, _, n in labels})
+        print(f"{source}: {len(labels)} label(s) {names}, in seconds of its own stream")
     return 0
 
 
@@ -746,13 +785,27 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, type=_output_folder, help="folder for the session (created if missing)")
     p.add_argument("--name", type=_session_name,
                    help="session name: letters, digits, '-' or '_' (default: session-DATE-TIME)")
-    p.add_argument("--label", help="label of the whole recording")
+    p.add_argument("--label", type=_label_name,
+                   help="label of the whole recording (of every source of a graph): letters, digits, '-' or '_'")
     p.add_argument("--marks", action="store_true",
-                   help="read labels from stdin while recording: a line starts that label now, an empty line ends it")
+                   help="read labels from stdin while recording: a line starts that label now, an empty line ends "
+                        "it; in a graph, on the node's common time, mapped to each source through its clock")
+    p.add_argument("--replace", action="store_true",
+                   help="with --label or --marks: label the recording with them instead of the labels a source's "
+                        "driver gives (synth, twosense, a replayed session; default: refused)")
     p.add_argument("--seconds", type=_stream_seconds,
                    help="stop after this much stream; inf: until the stream ends or Ctrl-C (the default)")
     p.add_argument("--quiet", action="store_true", help="no progress on stderr (warnings are still shown)")
     p.set_defaults(func=_cmd_record)
+
+    p = add_parser("label", help="label a recorded graph after the fact from spans on common time (CSV)")
+    p.add_argument("recording", metavar="REC.toml", help="the replay scene `supramodal record` wrote for a graph")
+    p.add_argument("spans", metavar="SPANS.csv",
+                   help="CSV with the header start,end,label: seconds of the recording's common time (as its replay "
+                        "prints window times), in order, not overlapping")
+    p.add_argument("--replace", action="store_true",
+                   help="replace the labels the sessions hold (default: refuse a session that has any)")
+    p.set_defaults(func=_cmd_label)
 
     from supramodal.drivers.mock_whisker import add_arguments as mock_arguments
 

@@ -39,16 +39,50 @@ def _files(paths: dict) -> list[Path]:
     return [*paths["models"].values(), *([paths["fused"]] if paths["fused"] else []), paths["scene"]]
 
 
-def graph_recorders(scene: Scene, folder, name: str, overwrite: bool = False) -> dict[str, SessionRecorder]:
+def graph_recorders(scene: Scene, folder, name: str, overwrite: bool = False, label: str | None = None,
+                    replace: bool = False) -> dict[str, SessionRecorder]:
     """One recorder per source of a graph scene, keeping the blocks' arrivals; every file the
-    recording would write is checked first (refused if it exists, unless ``overwrite``)."""
+    recording would write is checked first (refused if it exists, unless ``overwrite``).
+
+    ``label`` labels every source's whole recording; ``replace``: the labels given here and by
+    :class:`GraphMarks` replace those a source's driver carries (a synthesised source's truth)."""
     if Path(folder).is_dir():                       # else made at the first frames: nothing to replace
         for path in _files(recording_paths(folder, name, scene)):
             check_new_file(path, overwrite, "the recording's file")
     return {src["name"]: SessionRecorder(folder, f"{name}.{src['name']}",
                                          json.dumps({"scene": scene.source, "source": src}),
-                                         overwrite=overwrite, keep_arrivals=True)
+                                         label=label, overwrite=overwrite, keep_arrivals=True, replace=replace)
             for src in scene.sources}
+
+
+class GraphMarks:
+    """Labels typed while a graph records, on the node's common time, for every source at once.
+
+    A label starts at the common time of the newest sample any source has delivered (for live
+    sources, the moment it is typed, less a block's delivery); each source's recorder maps it to
+    its own frames through its clock when it writes its session
+    (:meth:`~supramodal.node.recorder.SessionRecorder.mark_at`). Thread-safe: :meth:`mark` may be
+    called from a thread reading a terminal.
+
+    Parameters
+    ----------
+    recorders : dict of str to SessionRecorder
+        The graph's recorders (:func:`graph_recorders`), started by the graph.
+    """
+
+    def __init__(self, recorders: dict[str, SessionRecorder]) -> None:
+        self.recorders = dict(recorders)
+
+    def now(self) -> float:
+        """Seconds of common time a label typed now starts at (0 before any sample)."""
+        return max([0.0, *(r.newest_time() for r in self.recorders.values())])
+
+    def mark(self, label: str | None) -> float:
+        """Start ``label`` now on every source (``None``: end the current one); returns its time, s."""
+        t = self.now()
+        for recorder in self.recorders.values():
+            recorder.mark_at(t, label)
+        return t
 
 
 def write_replay_scene(scene: Scene, graph, folder, name: str, overwrite: bool = False) -> Path:

@@ -12,9 +12,13 @@ long the recording). At the end the raw file becomes ``NAME.wav`` + ``NAME.json`
 exactly a float32 (serial and microphone drivers), float64 otherwise, so that
 replaying the session feeds the node bit-identical samples.
 
-Labels are time ranges: those the driver carries (a synthesised or replayed stream knows its
-truth) are kept with their times; otherwise :meth:`SessionRecorder.mark` starts one at the
-current stream position (or ends the current one), from any thread.
+Labels are time ranges in seconds of the device's own stream (frame / rate; see
+:mod:`supramodal.node.labels`): those the driver carries (a synthesised or replayed stream knows
+its truth) are kept with their times, unless ``replace``; otherwise :meth:`SessionRecorder.mark`
+starts one at the current stream position (or ends the current one), from any thread, and
+:meth:`SessionRecorder.mark_at` (a graph's recorders, one label typed for every source) at a time
+on the node's common time, mapped to this source's frames through its clock when the session is
+written.
 
 Threading rules
 ---------------
@@ -65,6 +69,9 @@ class SessionRecorder(Tap):
         Keep each block's end frame and time on the node's common time (:meth:`arrival`) in the
         session's ``arrivals`` (default False): a node of several sources records them, so that
         its sessions replay with their original relative timing.
+    replace : bool
+        Label the session with ``label`` and the marks only, leaving out the labels the driver
+        carries (default False: a driver's own labels are kept, and marks are the caller's to refuse).
 
     Nothing is created until the first frames arrive: a node that fails to start leaves
     neither the folder nor a raw file behind. The graph gives a recorder to a source with its
@@ -77,7 +84,7 @@ class SessionRecorder(Tap):
     track = False
 
     def __init__(self, folder, name: str, source: str, label: str | None = None, overwrite: bool = False,
-                 keep_arrivals: bool = False) -> None:
+                 keep_arrivals: bool = False, replace: bool = False) -> None:
         self.folder = Path(folder)
         if self.folder.exists() and not self.folder.is_dir():
             raise InputError(f"{self.folder} is a file; give a folder for the session")
@@ -98,6 +105,9 @@ class SessionRecorder(Tap):
         self._filled: list[tuple[int, int]] = []
         self._lock = threading.Lock()
         self._marks: list[tuple[int, str | None]] = [(0, label)] if label else []
+        self._timed_marks: list[tuple[float, str | None]] = []   # (seconds of common time, label)
+        self.replace = replace
+        self._source = None
         self._board_marks: list[tuple[int, str]] = []      # (stream index, "restart" | "overrun")
         self._position = lambda: self._frames
         self.paths: tuple[Path, Path] | None = None
@@ -128,6 +138,24 @@ class SessionRecorder(Tap):
                     labels=labels.ranges if labels is not None else (), clock_rate=source.time_rate,
                     label_period=labels.period if labels is not None else None)
         source.recorder = self
+        self._source = source
+
+    def newest_time(self) -> float:
+        """Common time of the newest sample the source has delivered, seconds (-inf before the
+        first): where a label typed now starts. Any thread."""
+        source = self._source
+        if source is None or not source.ring.written:
+            return -math.inf
+        return float(source.time_of(source.ring.written - 1))
+
+    def mark_at(self, seconds: float, label: str | None) -> None:
+        """Start a label at ``seconds`` of the node's common time (``None`` ends the current one);
+        mapped to this source's frames through its recorded block times when the session is
+        written (:func:`supramodal.node.labels.frames_at`). Needs ``keep_arrivals``. Thread-safe."""
+        if not self.keep_arrivals:
+            raise InputError("a mark on common time needs the blocks' times: make the recorder with keep_arrivals")
+        with self._lock:
+            self._timed_marks.append((float(seconds), label or None))
 
     def mark(self, label: str | None) -> None:
         """Start a label at the current stream position; ``None`` ends the current one. Thread-safe."""
@@ -188,7 +216,7 @@ class SessionRecorder(Tap):
             self._filled += [(a + s, a + e) for s, e in flag_runs(filled)]
 
     def _labels(self) -> list[tuple[float, float, str]]:
-        if self._driver_labels:
+        if self._driver_labels and not self.replace:
             # The driver's truth on every pass, clipped to what was recorded (a recording stopped early).
             end = self._frames / self.rate
             p = self._label_period
@@ -197,12 +225,26 @@ class SessionRecorder(Tap):
                        for k in range(passes) for a, b, n in self._driver_labels]
             return [(a, min(b, end), n) for a, b, n in shifted if a < end]
         with self._lock:
-            marks = sorted(self._marks, key=lambda m: m[0]) + [(self._frames, None)]
+            marks = list(self._marks) + self._timed_frames()
+        marks = sorted(marks, key=lambda m: m[0]) + [(self._frames, None)]
         out = []
         for (a, name), (b, _) in zip(marks, marks[1:]):
             if name is not None and b > a:
                 out.append((a / self.rate, b / self.rate, name))
         return out
+
+    def _timed_frames(self) -> list[tuple[int, str | None]]:
+        """The marks on common time as frame marks, through the clock fed this session's block
+        times (all of them, before any thinning). Called with the lock held."""
+        if not self._timed_marks or not len(self._arrival_frames):
+            return []
+        from supramodal.node.labels import frames_at
+
+        arrivals = (np.frombuffer(self._arrival_frames, dtype=np.int64),
+                    np.frombuffer(self._arrival_seconds, dtype=np.float64), self.clock_rate)
+        at = frames_at(arrivals, [t for t, _ in self._timed_marks], self._board_marks)
+        return [(int(round(min(max(float(f), 0.0), float(self._frames)))), label)
+                for f, (_, label) in zip(at, self._timed_marks)]
 
     def _finish(self) -> tuple[Path, Path] | None:
         if self._frames == 0 or self.rate is None:

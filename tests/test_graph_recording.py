@@ -180,8 +180,10 @@ def test_record_of_a_graph_scene_writes_the_sessions_models_and_replay_scene(tmp
     # nothing replaced without --force, checked before anything runs
     assert main(["record", str(tmp_path / "w.toml"), "--out", str(out), "--name", "s", "--quiet"]) == 2
     assert "exists; pass --force" in capsys.readouterr().err
+    # a graph's sources that label themselves keep their labels unless --replace (tests/test_labels.py)
+    (tmp_path / "live.jsonl").unlink()
     assert main(["record", str(tmp_path / "w.toml"), "--out", str(out), "--name", "t", "--label", "x"]) == 2
-    assert "--label and --marks label a one-source recording" in capsys.readouterr().err
+    assert "label their streams themselves" in capsys.readouterr().err
 
 
 def test_a_replay_source_with_recorded_timing_needs_a_recorded_session(tmp_path):
