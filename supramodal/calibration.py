@@ -48,7 +48,7 @@ import math
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from scipy.optimize import minimize, minimize_scalar
+from scipy.optimize import OptimizeResult, minimize, minimize_scalar
 from scipy.special import log_softmax, logsumexp
 
 from supramodal.errors import InputError
@@ -239,12 +239,13 @@ def fit_window_calibration(logits, labels) -> tuple[float, float]:
         a, c = np.exp(np.clip(p, lo, hi))
         return -(target * log_softmax(_window_map(z, a, c), axis=1)).sum(axis=1).mean()
 
-    best = None
+    best: OptimizeResult | None = None
     for start in ((0.0, 0.0), (0.0, math.log(10.0)), (math.log(3.0), math.log(30.0))):
         r = minimize(loss, np.array(start), method="Nelder-Mead",
                      options={"xatol": 1e-4, "fatol": 1e-7, "maxiter": 2000})
         if best is None or r.fun < best.fun:
             best = r
+    assert best is not None                     # three starts were tried
     a, c = np.exp(np.clip(best.x, lo, hi))
     return float(a), float(c)
 
@@ -278,12 +279,13 @@ def fit_capped_window_calibration(logits, labels) -> tuple[float, float, np.ndar
         a, c, f = unpack(p)
         return -(target * cap_gaps(_window_map(z, a, c), _bounded_caps(base * f))).sum(axis=1).mean()
 
-    best = None
+    best: OptimizeResult | None = None
     for start in ((0.0, 0.0, 0.5), (0.0, math.log(10.0), 0.5), (math.log(3.0), math.log(30.0), 1.0)):
         r = minimize(loss, np.array(start), method="Nelder-Mead",
                      options={"xatol": 1e-4, "fatol": 1e-7, "maxiter": 3000})
         if best is None or r.fun < best.fun:
             best = r
+    assert best is not None                     # three starts were tried
     a, c, f = unpack(best.x)
     return float(a), float(c), _bounded_caps(base * f)
 
@@ -456,7 +458,7 @@ class Calibration:
     def contact_pooling(self) -> tuple[float, tuple | None]:
         """``(rho, caps)`` of this calibration's contact pooling (:func:`pool_log_posteriors`):
         the capped one where it has contact caps, else ``(correlation, None)``."""
-        if self.contact_caps is None:
+        if self.contact_caps is None or self.contact_correlation is None:    # both or neither (__post_init__)
             return self.correlation, None
         return self.contact_correlation, self.contact_caps
 
@@ -465,7 +467,7 @@ class Calibration:
         return pool_log_posteriors(log_posteriors, *self.contact_pooling)
 
     def _check_classes(self, n: int) -> None:
-        if n != len(self.caps):
+        if self.caps is not None and n != len(self.caps):
             raise InputError(f"this calibration's caps are for {len(self.caps)} classes, got {n}")
 
     def to_dict(self) -> dict:
@@ -512,8 +514,8 @@ class Calibration:
                 raise bad(f"'calibration.{name}' must be {n_classes} x {n_classes} (the model's classes)")
             caps[i] = tuple(tuple(float(e) for e in r) for r in v)
         try:
-            return cls(d["temperature"], d["scale"], d["correlation"], d["fitted_on"], *caps,
-                       d.get("contact_correlation"))
+            return cls(d["temperature"], d["scale"], d["correlation"], d["fitted_on"], caps=caps[0],
+                       contact_caps=caps[1], contact_correlation=d.get("contact_correlation"))
         except InputError as exc:
             raise bad(str(exc)) from None
 
@@ -601,12 +603,14 @@ def fit_calibration(logits, labels, groups, run: int = POOLING_RUN, folds=None, 
                           - _prefix_pooled(runs, rho)[0])).sum(axis=1).mean()
         if gain > 1.0 / len(prefix_y):
             contact_caps, contact_rho = capped_caps, capped_rho
-    kept = tuple(None if v is None else _rows(v) for v in (window_caps, contact_caps)) + (contact_rho,)
     rows = np.arange(len(y))
     before = float(-normalised_log_posteriors(z)[rows, y].mean())
     after = float(-lp[rows, y].mean())
     return Calibration(a, c, rho, {"windows": int(len(y)), "runs": len(runs), "run_windows": int(run),
-                                   "log_loss_uncalibrated": round(before, 6), "log_loss": round(after, 6)}, *kept)
+                                   "log_loss_uncalibrated": round(before, 6), "log_loss": round(after, 6)},
+                       caps=None if window_caps is None else _rows(window_caps),
+                       contact_caps=None if contact_caps is None else _rows(contact_caps),
+                       contact_correlation=contact_rho)
 
 
 def _rows(caps) -> tuple:
@@ -725,7 +729,7 @@ class Novelty:
     def header(self) -> bool | dict:
         """The header's ``novelty`` value: ``true`` for the unwarped score of before (what such a file
         said), else the method and the warp (a program of before refuses it rather than misread it)."""
-        if self.gain is None:
+        if self.gain is None or self.offset is None:       # the warp is both or neither
             return True
         return {"method": NOVELTY_METHOD, "gain": [float(v) for v in self.gain],
                 "offset": [float(v) for v in self.offset]}
@@ -795,7 +799,7 @@ def novelty_warp(mean, scale) -> tuple[np.ndarray, np.ndarray]:
     return scale / floor, mean / floor
 
 
-def _gaussian(u, y, n_classes: int):
+def _gaussian(u, y, n_classes: int) -> tuple[np.ndarray, np.ndarray]:
     means = np.stack([u[y == k].mean(axis=0) if np.any(y == k) else np.zeros(u.shape[1]) for k in range(n_classes)])
     resid = u - means[y]
     cov = resid.T @ resid / max(len(u) - n_classes, 1)
@@ -833,7 +837,7 @@ def fit_novelty(x, labels, n_classes: int, folds, groups=None, mean=None, scale=
         gain, offset = novelty_warp(mean, scale)
     u = Novelty(np.zeros((1, x.shape[1])), np.eye(x.shape[1]), NOVELTY_QUANTILES, gain, offset).warped(x)
     held = np.empty(len(x))
-    pooled = [[] for _ in range(NOVELTY_RUN)]
+    pooled: list[list[float]] = [[] for _ in range(NOVELTY_RUN)]
     for f in np.unique(folds):
         test = folds == f
         fold = Novelty(*_gaussian(u[~test], y[~test], n_classes), NOVELTY_QUANTILES)

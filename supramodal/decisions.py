@@ -45,6 +45,7 @@ from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -227,8 +228,9 @@ class Decider:
         self.unknown_below = float(d.get("unknown_below") or 0.0)
         self.novelty_threshold = novelty_threshold
         confidence = d.get("confidence") or None
-        self.accumulator = None
-        self._unknown_flags: deque | None = None
+        self.accumulator: DecisionAccumulator | None = None
+        # which of the pooled windows were unknown (the accumulator's windows, the same maxlen)
+        self._unknown_flags: deque[bool] = deque()
         if d.get("scope", "window") != "window":
             self.accumulator = DecisionAccumulator(len(self.classes), d["scope"], d["n"], d["method"],
                                                    correlation=correlation, confidence=confidence, caps=caps)
@@ -289,7 +291,7 @@ class Decider:
     def summary(self) -> dict:
         """``unknown`` windows by reason; with a confidence threshold, ``contacts_decided`` and the
         median ``windows_to_decide``."""
-        out = {"unknown_windows": dict(self.unknown)}
+        out: dict[str, Any] = {"unknown_windows": dict(self.unknown)}
         if self.accumulator is not None and self.accumulator.confidence is not None:
             out["contacts_decided"] = self.contacts_decided
             out["windows_to_decide_median"] = (float(np.median(self.windows_to_decide))

@@ -34,6 +34,8 @@ figures are that experiment's.
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 from scipy.stats import rankdata
 
@@ -142,6 +144,7 @@ def score_set(texture_set: TextureSet, epochs: int = DEFAULT_EPOCHS, seed: int =
     y_contact = y_test[[r[0] for r in contacts]]
     lp = model.log_posteriors(x_test)
     raw = normalised_log_posteriors(model.logits(x_test))
+    assert model.calibration is not None                  # trained with calibration folds (the default)
     rho, caps = model.calibration.contact_pooling         # the node's pooling (DecisionAccumulator)
     anytime = contact_runs(y_test, per_texture, min(ANYTIME_WINDOWS, per_texture))
     every_start = contact_runs(y_test, per_texture, min(ANYTIME_WINDOWS, per_texture), step=1)
@@ -205,6 +208,7 @@ def leave_out_fold(texture_set: TextureSet, fold: int, epochs: int = DEFAULT_EPO
     seen = TextureModel.train(all_train, all_labels, names, bank, FEATURES, wlen, epochs=epochs, seed=seed,
                               calibration_folds=0)
     seen_score = np.exp(seen.log_posteriors(x_test)[:, out]).sum(axis=1)
+    assert model.calibration is not None and model.novelty is not None      # trained with calibration folds
     index = {k: i for i, k in enumerate(known)}
     contacts = contact_runs(y_test, len(y_test) // len(names), CONTACT_WINDOWS)
     lp = model.log_posteriors(x_test)
@@ -277,7 +281,7 @@ def plan(quick: bool = False, epochs: int = DEFAULT_EPOCHS, seed: int = 0, sets:
                         1.5 * seconds, seeded=False))
 
     def assemble(results: dict) -> dict:
-        out = {"figure": "calibration", "quick": quick, "epochs": epochs, "seed": seed,
+        out: dict[str, Any] = {"figure": "calibration", "quick": quick, "epochs": epochs, "seed": seed,
                "duration": QUICK_DURATION if quick else None, "contact_windows": CONTACT_WINDOWS,
                "anytime_windows": ANYTIME_WINDOWS, "sure": SURE, "false_unknown": FALSE_UNKNOWN,
                "thresholds": list(ANYTIME_THRESHOLDS), "reference": {}, "random_sets": {}, "leave_out": {}}
@@ -297,7 +301,7 @@ def plan(quick: bool = False, epochs: int = DEFAULT_EPOCHS, seed: int = 0, sets:
 def summarize_sets(results: list[dict], seed: int) -> dict:
     """:func:`score_set` results of random sets: per scope and posteriors, every set's decisions
     together (``pooled``) and the spread over sets of the accuracy and the ECE; anytime merged."""
-    summary = {}
+    summary: dict[str, dict] = {}
     for scope in ("window", "contact"):
         summary[scope] = {}
         for variant in results[0][scope]:
@@ -376,8 +380,8 @@ def done_when(result: dict) -> list[tuple[str, str, list[str]]]:
     where the last is empty."""
     out = []
     groups = [g for g in _groups(result) if not g[0].startswith(tuple(f"{b}," for b in BANKS))]
-    for scope, label in ((0, "per window"), (1, "per contact")):
-        values = [(g[0], g[1 + scope]["ece"]) for g in groups]
+    for k, label in ((0, "per window"), (1, "per contact")):
+        values = [(g[0], g[1 + k]["ece"]) for g in groups]
         out.append((f"ECE {label} <= {TARGET_ECE}", ", ".join(f"{n} {v:.3f}" for n, v in values),
                     [n for n, v in values if v > TARGET_ECE]))
     sure = [(g[0], g[1]["sure_wrong"], g[1]["sure_count"]) for g in groups]
