@@ -20,7 +20,7 @@ from supramodal.errors import InputError
 from supramodal.model import ModelError, TextureModel
 from supramodal.node.band import warn_if_beyond_band
 from supramodal.node.graph import Graph
-from supramodal.node.registry import SinkContext, driver_spec, sink_spec
+from supramodal.node.registry import SinkContext, StreamPlan, driver_spec, sink_spec
 from supramodal.node.scene import LEARN, Scene, SceneError, source_scene
 from supramodal.node.sources import Source
 from supramodal.node.streams import Labels, Stream, refuse_uncalibrated
@@ -148,6 +148,21 @@ def _routes(options: dict) -> set | None:
     """The streams a sink of windows listens to (None: every one)."""
     listens = options.get("from")
     return None if listens is None else {listens} if isinstance(listens, str) else set(listens)
+
+
+def _planned_classes(scene: Scene, bank: Bank, ts) -> tuple[str, ...]:
+    """The classes the scene's model will decide among, before it is trained (the texture set
+    :func:`_model_for` trains on) or loaded (its file, read here too); empty without a model."""
+    m = scene.model
+    if m["train_on_start"]:
+        if ts is None:
+            from supramodal.textures import reference_texture_set
+
+            ts = reference_texture_set(bank.kind)
+        return tuple(ts.names)
+    if m["path"] is not None:
+        return tuple(TextureModel.load(scene.resolve(m["path"])).classes)
+    return ()
 
 
 def _model_for(scene: Scene, bank: Bank, pipeline: FeaturePipeline, ts, progress,
@@ -330,7 +345,9 @@ def build_node(scene: Scene, speed=None, sinks_override=None, progress=None, rec
         held_out: dict[str, list] = {}          # stream -> [(x_test, y_test)] of a model trained on the spot
         trained: dict[str, list] = {}           # stream -> [(x_train, y_train)] of it
         shared: dict = {}                       # what the sources share, made once (node.registry)
-        for spec in scene.streams:
+        plans: dict[str, StreamPlan] = {}
+        banks: dict[str, Bank] = {}
+        for spec in scene.streams:              # every driver and pipeline first, no model yet
             sub = spec.scene
             bank = bank_for(sub)
             pipeline = pipeline_for(sub, bank)
@@ -338,9 +355,21 @@ def build_node(scene: Scene, speed=None, sinks_override=None, progress=None, rec
                 driver, labels, ts = driver_for(sub, bank, speed, shared, scene.source_table(spec.source))
                 source = _source(spec.source, sub, driver, scene.buffer_table(spec.source))
                 sources[spec.source] = (source, labels, ts)
+            plans[spec.name] = StreamPlan(pipeline, _planned_classes(sub, bank, sources[spec.source][2]))
+            banks[spec.name] = bank
+        if sinks_override is None:              # outlets up before any training: consumers resolve them meanwhile
+            f = scene.fusion
+            _make_sinks(scene, "plans", made, overwrite, plans=plans,
+                        fused_classes=None if f is None else plans[f["streams"][0]].classes)
+        for spec in scene.streams:
+            sub = spec.scene
+            pipeline, bank = plans[spec.name].pipeline, banks[spec.name]
             source, labels, ts = sources[spec.source]
             held_out[spec.name], trained[spec.name] = [], []
             model = _model_for(sub, bank, pipeline, ts, progress, held_out[spec.name], trained[spec.name])
+            if (() if model is None else tuple(model.classes)) != plans[spec.name].classes:
+                raise AssertionError(f"stream {spec.name}: the model's classes are not the planned "
+                                     f"{plans[spec.name].classes}")
             try:
                 streams.append(Stream(spec.name, source, pipeline, model, sub.decision,
                                       sub.driver.get("mapping", "auto"), labels))

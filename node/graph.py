@@ -179,8 +179,10 @@ class Graph:
         return [*self._recorders, *self._taps]
 
     def _run(self, max_seconds: float | None, on_running: Callable[[], None] | None) -> dict:
+        for s in self.sinks:
+            s.prepare()                           # may wait (e.g. for a consumer), before time starts
         for tap, _, _, _ in self._all_taps():
-            tap.prepare()                         # may wait (e.g. for a consumer), before time starts
+            tap.prepare()
         if on_running is not None:
             on_running()
         t0 = time.monotonic()

@@ -7,10 +7,12 @@ install when it is missing).
 Streams
 -------
 Per node stream it listens to (``[[sink]] from``; default every stream, the fused one included),
-the sink opens up to three outlets, made when the node is built so that consumers can resolve them
-before the first window. Their names, types and source ids are fixed by the node's stream name
-(``NAME``) and the sink's ``prefix`` (default ``"supramodal"``), so that a restarted node is picked
-up again by consumers that recover by source id:
+the sink opens up to three outlets, made when the node is built, before any model is trained (from
+the streams' plans: bank, features, classes), so that consumers resolve them during the start-up
+and get window 0; ``wait_for_consumer`` makes the node wait for them before it starts. Their
+names, types and source ids are fixed by the node's stream name (``NAME``) and the sink's
+``prefix`` (default ``"supramodal"``), so that a restarted node is picked up again by consumers
+that recover by source id:
 
 ============  ======================  ============  =========================================================
 output        name                    type          samples
@@ -49,7 +51,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from supramodal import __version__
-from supramodal.checks import NAME_HELP, Key, is_name
+from supramodal.checks import NAME_HELP, Key, is_name, non_negative
 from supramodal.drivers.lsl import import_pylsl, lsl_clock_offset
 from supramodal.drivers.spec import OptionError
 from supramodal.errors import InputError
@@ -65,6 +67,13 @@ DEFAULT_PREFIX = "supramodal"
 _TYPES = {"features": "Features", "decisions": "Markers", "posteriors": "Posteriors"}
 #: Seconds of samples an outlet keeps for a slow consumer before it drops the oldest.
 OUTLET_BUFFER_SECONDS = 60
+#: Seconds to wait for consumers before the node starts: none (a live sensor cannot wait).
+DEFAULT_WAIT_FOR_CONSUMER = 0.0
+#: Seconds after the last consumer has connected before the node starts: a consumer's data
+#: connection is set up after ``wait_for_consumers`` returns, and a sample pushed before can miss it.
+CONNECT_SETTLE_SECONDS = 0.2
+#: Seconds of one wait in liblsl: the main thread sees SIGINT and SIGTERM between two.
+WAIT_STEP_SECONDS = 0.1
 
 
 @dataclass(frozen=True)
@@ -120,6 +129,33 @@ class LSLClock:
         return self.epoch + common - self.offset
 
 
+def wait_for_consumers(outlets, seconds: float) -> tuple[float, list[bool]]:
+    """Wait up to ``seconds`` until each of ``outlets`` (pylsl ``StreamOutlet``) has a consumer,
+    then :data:`CONNECT_SETTLE_SECONDS` more. Start-up work: the wait is made of liblsl waits of
+    at most :data:`WAIT_STEP_SECONDS`, so that SIGINT and SIGTERM, whose handlers run on the main
+    thread between two, interrupt it.
+
+    Returns
+    -------
+    waited_s : float
+        Seconds waited, rounded to the millisecond.
+    found : list of bool
+        Per outlet, whether it had a consumer.
+    """
+    t = time.monotonic()
+    found = [False] * len(outlets)
+    while not all(found):
+        left = seconds - (time.monotonic() - t)
+        if left <= 0:
+            break
+        i = found.index(False)
+        found[i] = bool(outlets[i].wait_for_consumers(min(WAIT_STEP_SECONDS, left)))
+        found = [ok or bool(o.have_consumers()) for ok, o in zip(found, outlets)]
+    if any(found):
+        time.sleep(CONNECT_SETTLE_SECONDS)
+    return round(time.monotonic() - t, 3), found
+
+
 def outlet_name(prefix: str, stream: str, output: str) -> str:
     """The LSL name of one outlet: ``PREFIX-STREAM-OUTPUT``."""
     return f"{prefix}-{stream}-{output}"
@@ -142,14 +178,25 @@ class LSLOutletSink(Sink):
         only for a stream with filters.
     prefix : str
         Default :data:`DEFAULT_PREFIX`.
+    wait_for_consumer : float
+        Seconds :meth:`prepare` waits, before the node starts, until each outlet has a consumer
+        (default 0: the node starts at once). The node starts anyway when one has none by then
+        (:meth:`stats`: ``waited_s`` and ``consumers``).
+
+    The outlets are made here, when the node is built and before any model is trained, so that
+    a consumer started before the node resolves them during the start-up and gets window 0.
     """
 
-    def __init__(self, streams, outputs=OUTPUTS, prefix: str = DEFAULT_PREFIX) -> None:
+    def __init__(self, streams, outputs=OUTPUTS, prefix: str = DEFAULT_PREFIX,
+                 wait_for_consumer: float = DEFAULT_WAIT_FOR_CONSUMER) -> None:
         unknown = sorted(set(outputs) - set(OUTPUTS))
         if unknown or not outputs:
             raise InputError(f"an LSL sink sends some of {list(OUTPUTS)}, got {list(outputs)}")
         pylsl = self._pylsl = import_pylsl()
         self.prefix = prefix
+        self.wait_for_consumer = float(wait_for_consumer)
+        self.waited_s: float | None = None
+        self.consumers: list[str] | None = None
         self._outlets: dict[tuple[str, str], object] = {}
         self._streams = {s.name: s for s in streams}
         self._clock = LSLClock(pylsl, time.monotonic())
@@ -203,6 +250,20 @@ class LSLOutletSink(Sink):
 
     # -- the node's calls ---------------------------------------------------------------------
 
+    def prepare(self) -> None:
+        """Wait up to ``wait_for_consumer`` seconds until every outlet has a consumer (see
+        :func:`wait_for_consumers`). The caller's thread, before the graph's start."""
+        if self.wait_for_consumer > 0:
+            self.waited_s, found = wait_for_consumers(list(self._outlets.values()), self.wait_for_consumer)
+            self.consumers = [f"{name}-{output}" for (name, output), ok in zip(self._outlets, found) if ok]
+
+    def stats(self) -> dict | None:
+        """With a wait for consumers: ``waited_s`` and ``consumers`` (the outlets that had one,
+        ``STREAM-OUTPUT``); else None."""
+        if self.waited_s is None:
+            return None
+        return {"sink": "LSLOutletSink", "waited_s": self.waited_s, "consumers": self.consumers}
+
     def start(self, epoch: float) -> None:
         """The graph's start, on ``time.monotonic()``: common time 0. The caller's thread, before
         any event."""
@@ -246,16 +307,18 @@ def _marker(event: WindowEvent) -> dict:
 
 # -- as a scene names it ---------------------------------------------------------------------------
 
-def describe(name: str, pipeline, model) -> OutletStream:
-    """A stream's outlets' description from its pipeline and model (None: features only)."""
+def describe(name: str, pipeline, classes) -> OutletStream:
+    """A stream's outlets' description from its pipeline and its model's classes (empty: features
+    only)."""
     bank = pipeline.bank
     return OutletStream(name, bank.kind, bank.fs, tuple(bank.names), tuple(float(c) for c in bank.cf),
-                        pipeline.features, pipeline.window_samples / bank.fs,
-                        tuple(model.classes) if model is not None else ())
+                        pipeline.features, pipeline.window_samples / bank.fs, tuple(classes))
 
 
 def _build(options: dict, context) -> Sink:
-    described = {name: describe(name, s.pipeline, s.model) for name, s in context.streams.items()}
+    # Made from the streams' plans, before any model is trained: consumers resolve the outlets
+    # while the node trains (seconds), and get window 0.
+    described = {name: describe(name, p.pipeline, p.classes) for name, p in context.plans.items()}
     if context.fused_classes is not None and described:
         window = next(iter(described.values())).window
         described[FUSED_STREAM] = OutletStream(FUSED_STREAM, "fused", 0.0, (), (), (), window,
@@ -266,10 +329,15 @@ def _build(options: dict, context) -> Sink:
     if unknown:
         raise OptionError(f"from: no stream {unknown}; the scene has {list(described)}")
     try:
-        sink = LSLOutletSink([described[n] for n in names], options["outputs"], options["prefix"])
+        sink = LSLOutletSink([described[n] for n in names], options["outputs"], options["prefix"],
+                             options["wait_for_consumer"])
     except InputError as exc:
         raise OptionError(str(exc)) from None
     return QueuedSink(sink)
+
+
+#: Longest wait for consumers a scene may ask for, seconds.
+MAX_WAIT_FOR_CONSUMER = 3600.0
 
 
 SPEC = SinkSpec(
@@ -277,5 +345,9 @@ SPEC = SinkSpec(
     summary="window events as Lab Streaming Layer outlets: features, decisions, posteriors (the lsl extra)",
     keys={"outputs": Key(lambda v: isinstance(v, list) and bool(v) and len(set(v)) == len(v) and set(v) <= set(OUTPUTS),
                          'a list drawn from "features", "decisions" and "posteriors"', list(OUTPUTS)),
-          "prefix": Key(is_name, "the outlets' name prefix: " + NAME_HELP[len("a name: "):], DEFAULT_PREFIX)},
-    build=_build, needs="streams")
+          "prefix": Key(is_name, "the outlets' name prefix: " + NAME_HELP[len("a name: "):], DEFAULT_PREFIX),
+          "wait_for_consumer": Key(non_negative(MAX_WAIT_FOR_CONSUMER),
+                                   "seconds to wait, before the node starts, for a consumer on each of the sink's "
+                                   f"outlets, 0 to {MAX_WAIT_FOR_CONSUMER:g} (0: start at once)",
+                                   DEFAULT_WAIT_FOR_CONSUMER)},
+    build=_build, needs="plans")

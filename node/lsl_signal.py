@@ -61,7 +61,14 @@ from supramodal.checks import NAME_HELP, Key, is_name, non_negative, number, tex
 from supramodal.drivers.lsl import import_pylsl
 from supramodal.drivers.spec import OptionError
 from supramodal.errors import InputError
-from supramodal.node.lsl_outlets import DEFAULT_PREFIX, OUTLET_BUFFER_SECONDS, LSLClock, outlet_name, outlet_source_id
+from supramodal.node.lsl_outlets import (
+    DEFAULT_PREFIX,
+    OUTLET_BUFFER_SECONDS,
+    LSLClock,
+    outlet_name,
+    outlet_source_id,
+    wait_for_consumers,
+)
 from supramodal.node.registry import SinkSpec, driver_spec
 from supramodal.node.ringbuffer import RingClosed, flag_runs
 from supramodal.node.taps import Tap
@@ -79,9 +86,6 @@ SIGNAL = "signal"
 #: Seconds :meth:`LSLSignalOutlet.close` waits, when a consumer is connected, for liblsl to send
 #: the last chunk before the outlet goes.
 LINGER_SECONDS = 0.5
-#: Seconds after a consumer has connected before the first push: its data connection is set up
-#: after ``wait_for_consumers`` returns, and a chunk pushed before can miss it.
-CONNECT_SETTLE_SECONDS = 0.2
 
 
 class LSLSignalOutlet(Tap):
@@ -168,14 +172,7 @@ class LSLSignalOutlet(Tap):
         """Wait up to ``wait_for_consumer`` seconds for a consumer. The caller's thread, before
         the graph's start (a graph prepares its taps in turn: waits without a consumer add up)."""
         if self.wait_for_consumer > 0:
-            t = time.monotonic()
-            self.consumer = False
-            # In short waits: liblsl's wait holds the thread, and Ctrl-C is only seen between them.
-            while not self.consumer and time.monotonic() - t < self.wait_for_consumer:
-                self.consumer = bool(self._outlet.wait_for_consumers(0.1))
-            if self.consumer:
-                time.sleep(CONNECT_SETTLE_SECONDS)
-            self.waited_s = round(time.monotonic() - t, 3)
+            self.waited_s, (self.consumer,) = wait_for_consumers([self._outlet], self.wait_for_consumer)
 
     def start(self, source, epoch: float) -> None:
         """The source this outlet taps and the graph's start (``time.monotonic()``): common

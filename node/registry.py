@@ -147,8 +147,27 @@ SINK_MODULES = {
     "lsl-signal": "supramodal.node.lsl_signal",
 }
 #: What a sink may need built before it is made: nothing (it is made first, so that a file is
-#: checked before any training), the streams (their banks, features and models), or the sources.
-NEEDS = ("nothing", "streams", "sources")
+#: checked before any training), the streams' plans (their pipelines and classes, known before any
+#: model is trained: a sink that must exist before the start-up work, such as an LSL outlet that
+#: consumers resolve while the node trains), the streams (their banks, features and models), or the
+#: sources.
+NEEDS = ("nothing", "plans", "streams", "sources")
+
+
+@dataclass(frozen=True)
+class StreamPlan:
+    """A stream as it is known before its model is trained or loaded into the graph.
+
+    Attributes
+    ----------
+    pipeline : supramodal.pipeline.FeaturePipeline
+        Its bank, features and window.
+    classes : tuple of str
+        The classes its model decides among, in the model's order (empty without a model).
+    """
+
+    pipeline: Any
+    classes: tuple[str, ...]
 
 
 @dataclass(frozen=True)
@@ -168,6 +187,9 @@ class SinkContext:
         need the streams; ``"fused"`` is not among them.
     fused_classes : tuple of str or None
         The fusion's classes, when the scene has one.
+    plans : dict
+        Stream name -> its :class:`StreamPlan`, for sinks that need the plans (made before any
+        model is trained); ``"fused"`` is not among them.
     sources : dict
         Source name -> ``(driver, driver options, [(bank, mapping)] of the streams that read it)``,
         for sinks that need the sources.
@@ -179,6 +201,7 @@ class SinkContext:
     streams: Mapping[str, Any] = field(default_factory=dict)
     fused_classes: tuple[str, ...] | None = None
     sources: Mapping[str, Any] = field(default_factory=dict)
+    plans: Mapping[str, StreamPlan] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -200,7 +223,7 @@ class SinkSpec:
     listens : {"windows", "samples"}
         A sink of the streams' window events (routed by ``from``), or of a source's samples (a tap
         on the ring of ``source``).
-    needs : {"nothing", "streams", "sources"}
+    needs : {"nothing", "plans", "streams", "sources"}
         What must be built before it (:data:`NEEDS`).
     unique : tuple of str
         Keys whose values two sinks of this type may not share (one outlet name for two outlets).

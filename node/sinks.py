@@ -66,6 +66,10 @@ class Sink(abc.ABC):
     path: str | None = None
     on_reader_left: Callable[[BrokenPipeError], None] | None = None
 
+    def prepare(self) -> None:
+        """Before the graph's start, still start-up (SIGINT and SIGTERM interrupt it): e.g. wait
+        for a consumer of an outlet. The caller's (main) thread. Default: nothing."""
+
     def start(self, epoch: float) -> None:
         """The graph's start on ``time.monotonic()`` (common time 0), before any event: for a
         sink that puts common time on another clock (LSL). The caller's thread. Default: nothing."""
@@ -460,12 +464,18 @@ class QueuedSink(Sink):
             self.sink.drain(max(0.0, deadline - time.monotonic()))
 
     def stats(self) -> dict[str, Any]:
-        """``{"sink", "written", "dropped_windows", "dropped_events", "errors", "first_error"}``."""
+        """``{"sink", "written", "dropped_windows", "dropped_events", "errors", "first_error"}``,
+        and what the sink's own ``stats`` adds."""
+        own = self.sink.stats() or {}
         with self._lock:
             return {"sink": type(self.sink).__name__ + (f" {self.path}" if self.path not in (None, "-") else ""),
                     "written": self._written, "dropped_windows": self._dropped["windows"],
                     "dropped_events": self._dropped["events"], "errors": self._errors,
-                    "first_error": self._first_error}
+                    "first_error": self._first_error, **{k: v for k, v in own.items() if k != "sink"}}
+
+    def prepare(self) -> None:
+        """Passed on to the sink (on the caller's thread)."""
+        self.sink.prepare()
 
     def start(self, epoch: float) -> None:
         """Passed on to the sink (before any event, on the caller's thread)."""
