@@ -218,14 +218,17 @@ class LSLOutletSink(Sink):
                                     1.0 / s.window, "float32", outlet_source_id(self.prefix, s.name, output))
         elif output == "posteriors":
             labels, units, kinds = list(s.classes), ["probability"] * len(s.classes), ["posterior"] * len(s.classes)
+            # The fused stream's windows are stamped when a pair of windows of two sources is
+            # complete, on common time: not a regular rate (irregular, as LSL says it).
+            rate = pylsl.IRREGULAR_RATE if s.name == FUSED_STREAM else 1.0 / s.window
             info = pylsl.StreamInfo(outlet_name(self.prefix, s.name, output), _TYPES[output], len(labels),
-                                    1.0 / s.window, "float32", outlet_source_id(self.prefix, s.name, output))
+                                    rate, "float32", outlet_source_id(self.prefix, s.name, output))
         else:
-            labels = None
+            labels, units, kinds = ["decision"], ["json"], ["marker"]
             info = pylsl.StreamInfo(outlet_name(self.prefix, s.name, output), _TYPES[output], 1, pylsl.IRREGULAR_RATE,
                                     "string", outlet_source_id(self.prefix, s.name, output))
         desc = info.desc()
-        if labels is not None:
+        if labels:
             channels = desc.append_child("channels")
             for label, unit, kind in zip(labels, units, kinds):
                 ch = channels.append_child("channel")

@@ -128,3 +128,31 @@ def test_a_wait_for_consumers_of_the_window_outlets_is_start_up_and_a_signal_end
     assert proc.returncode == code and waited < 10, (proc.returncode, waited, err[-500:])
     assert f"interrupted by {signal_.Signals(signum).name} during start-up" in err
     assert out == ""
+
+
+def test_every_outlet_declares_its_channels_and_the_fused_posteriors_no_regular_rate():
+    """Issue 26 item 11: the decisions outlet had no ``channels`` element (docs/lsl.md says every
+    stream has one); the fused posteriors declared 10 Hz though a fused window is stamped when its
+    pair is complete (0.062-0.138 s apart measured): it is irregular now, as its decisions."""
+    pylsl = import_pylsl()
+    prefix = f"t{uuid.uuid4().hex[:8]}"
+    classes = ("a", "b")
+    streams = [OutletStream("main", "whisker", 5000.0, ("C1",), (100.0,), ("A",), 0.1, classes),
+               OutletStream("fused", "fused", 0.0, (), (), (), 0.1, classes)]
+    sink = LSLOutletSink(streams, prefix=prefix)
+    try:
+        infos = {}
+        for stream in ("main", "fused"):
+            for output in ("decisions", "posteriors"):
+                inlet = pylsl.StreamInlet(resolve_stream(outlet_name(prefix, stream, output), timeout=10.0))
+                infos[stream, output] = inlet.info(timeout=10)
+        for (stream, output), info in infos.items():
+            labels = info.get_channel_labels()
+            assert labels == (["decision"] if output == "decisions" else list(classes)), (stream, output, labels)
+        decisions = infos["main", "decisions"].desc().child("channels").child("channel")
+        assert decisions.child_value("unit") == "json" and decisions.child_value("type") == "marker"
+        assert infos["main", "posteriors"].nominal_srate() == pytest.approx(10.0)
+        assert infos["fused", "posteriors"].nominal_srate() == pylsl.IRREGULAR_RATE
+        assert infos["fused", "decisions"].nominal_srate() == pylsl.IRREGULAR_RATE
+    finally:
+        sink.close()
