@@ -13,9 +13,11 @@ most ``timeout`` seconds: it waits for the first sample, then takes whatever els
 without waiting (the low-latency pattern measured in TESTING-WITHOUT-HARDWARE.md: a timed chunk
 pull would wait out its timeout). liblsl runs its own threads for the connection. A lost outlet
 is recovered by liblsl (the inlet is made with ``recover=True``), but only seconds after it is
-back; so while the stream is silent the driver also asks the network for it every
-:data:`PROBE_INTERVAL` (blocking at most :data:`PROBE_TIMEOUT`) and, when a new outlet of the
-same stream answers (a restarted sender), opens an inlet to it at once.
+back, and only when the stream has a source id (without one liblsl gives up: the inlet raises
+``LostError``, which the driver takes as the stream going silent, never as the node's end); so
+while the stream is silent the driver also asks the network for it every :data:`PROBE_INTERVAL`
+(blocking at most :data:`PROBE_TIMEOUT`), by source id or else by name, type and host, and, when a
+new outlet of the same stream answers (a restarted sender), opens an inlet to it at once.
 
 Time
 ----
@@ -94,6 +96,11 @@ def import_pylsl():
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise LSLUnavailable(f"pylsl is installed but cannot load liblsl ({first}): {INSTALL_HINT}") from None
     return pylsl
+
+
+def _lost_error(pylsl) -> type[Exception]:
+    """pylsl's ``LostError`` (raised by an inlet whose sender, without a source id, went away)."""
+    return getattr(pylsl, "LostError", None) or pylsl.util.LostError
 
 
 def lsl_clock_offset(pylsl) -> float:
@@ -253,6 +260,7 @@ class LSLInletDriver(DriverBase):
         self.stall_timeout, self.buffer_seconds = float(stall_timeout), float(buffer_seconds)
         self._max_chunk = max(1, int(self.rate * 0.1))        # at most 100 ms per block
         self._inlet = None
+        self._lost = False           # the sender went away for good (no source id): no inlet until it is back
         super().__init__()
         self._reset_counters()
 
@@ -283,7 +291,7 @@ class LSLInletDriver(DriverBase):
         self._last_data = time.monotonic()
 
     def close(self) -> None:
-        inlet, self._inlet = self._inlet, None
+        inlet, self._inlet, self._lost = self._inlet, None, False
         if inlet is not None:
             try:
                 inlet.close_stream()
@@ -296,14 +304,28 @@ class LSLInletDriver(DriverBase):
         """The samples that arrived (up to 100 ms of them), waiting at most ``timeout`` s for the
         first; None if none came."""
         inlet = self._inlet
-        if inlet is None:
-            raise DriverClosed("the LSL inlet is closed")
         wait = 0.0 if timeout is None else max(0.0, float(timeout))
-        try:
-            _, stamps = inlet.pull_chunk(timeout=wait, max_samples=self._max_chunk, dest_obj=self._buf,
-                                         min_samples=1, as_numpy=True)
-        except Exception as exc:  # liblsl's errors, one place
-            raise DriverError(f"LSL: reading {self.info} failed: {exc}") from None
+        if inlet is None:
+            if not self._lost:
+                raise DriverClosed("the LSL inlet is closed")
+            time.sleep(min(wait, PROBE_INTERVAL))   # no inlet to wait on: the sender is gone
+            stamps: np.ndarray | list = []
+        else:
+            try:
+                _, stamps = inlet.pull_chunk(timeout=wait, max_samples=self._max_chunk, dest_obj=self._buf,
+                                             min_samples=1, as_numpy=True)
+            except _lost_error(self._pylsl):
+                # A sender without a source id cannot be recovered by liblsl: its inlet says so
+                # once. Not the node's end: the stream is silent, and searched for by name,
+                # type and host until a new sender of it answers.
+                self._inlet, self._lost = None, True
+                try:
+                    inlet.close_stream()
+                except Exception:  # the stream is gone already
+                    pass
+                stamps = []
+            except Exception as exc:  # liblsl's errors, one place
+                raise DriverError(f"LSL: reading {self.info} failed: {exc}") from None
         now = time.monotonic()
         n = len(stamps)
         if n == 0:
@@ -358,7 +380,7 @@ class LSLInletDriver(DriverBase):
         except Exception:  # not ready yet: the next probe tries again
             return
         self.close()
-        self._inlet, self._stream = inlet, new
+        self._inlet, self._stream, self._lost = inlet, new, False
         self._reopened += 1
 
     def _block(self, data: np.ndarray, host: np.ndarray, now: float) -> Block:

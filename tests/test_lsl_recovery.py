@@ -1,0 +1,87 @@
+"""The LSL inlet against plain pylsl senders that misbehave as a lab's do (issue 26, items 8-10): a
+sender with no source id killed and restarted; a sender that stamps at push time, holds 3 s and
+flushes its backlog; two senders of one name.
+
+Traffic stays on this machine (conftest.py's loopback ``LSLAPICFG``, checked by every test). The
+senders run in child processes (tests/lsl_senders.py)."""
+
+import json
+import subprocess
+import sys
+import time
+import uuid
+from pathlib import Path
+
+import pytest
+
+from supramodal.drivers.base import DeviceUnavailable
+from supramodal.drivers.lsl import LSLInletDriver
+
+from lsl_only import loopback_only, require_lsl  # noqa: F401  (the fixture applies itself)
+
+require_lsl()
+
+SENDER = Path(__file__).with_name("lsl_senders.py")
+
+
+def _sender(name: str, *args: str) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, str(SENDER), "--name", name, *args], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+
+
+def _end(proc: subprocess.Popen) -> None:
+    proc.kill()
+    proc.communicate(timeout=30)
+
+
+def _read_for(driver, seconds: float, blocks: list) -> None:
+    """Read for ``seconds`` of wall time, keeping the blocks (a read must never raise)."""
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        b = driver.read(timeout=0.05)
+        if b is not None:
+            blocks.append(b)
+
+
+def _read_until(driver, blocks: list, frames: int, limit: float) -> None:
+    end = time.monotonic() + limit
+    while sum(b.data.shape[0] for b in blocks) < frames and time.monotonic() < end:
+        b = driver.read(timeout=0.05)
+        if b is not None:
+            blocks.append(b)
+
+
+@pytest.mark.slow   # paced real time: a sender killed and started again
+def test_a_sender_without_a_source_id_killed_and_restarted_is_found_again(tmp_path):
+    """Issue 26 item 8: liblsl cannot recover a stream without a source id; its inlet raised
+    ``the stream has been lost`` and the node stopped (exit 2). Now the driver says ``unplug``,
+    searches by name, type and host, and reads the restarted sender (``reopened``, ``reconnect``),
+    its outage filled and counted."""
+    name = f"nosid-{uuid.uuid4().hex[:8]}"
+    first = _sender(name, "--channels", "2", "--seconds", "60")
+    second = None
+    driver = LSLInletDriver(name, resolve_timeout=30.0, channels=2)
+    assert driver._stream.source_id() == ""
+    blocks: list = []
+    try:
+        driver.open()
+        _read_until(driver, blocks, 5000, 30.0)               # 1 s of samples
+        assert sum(b.data.shape[0] for b in blocks) >= 5000
+        _end(first)
+        _read_for(driver, 1.5, blocks)                         # gone: never an exception
+        assert "unplug" in [e.kind for e in driver.take_events()[0]]
+        second = _sender(name, "--channels", "2", "--seconds", "60")
+        before = sum(b.data.shape[0] for b in blocks)
+        _read_until(driver, blocks, before + 5000, 60.0)       # 1 s of the new sender's samples
+        stats = driver.stats()
+        assert sum(b.data.shape[0] for b in blocks) >= before + 5000, stats
+        assert stats["reopened"] == 1 and stats["stalls"] == 1, stats
+        assert "reconnect" in [e.kind for e in driver.take_events()[0]]
+        # The outage is in the stamps (the new sender stamps at push time): filled and counted.
+        filled = sum(int(b.filled.sum()) for b in blocks if b.filled is not None)
+        assert filled == stats["filled"] and stats["gaps"] + stats["restarts"] == 1, stats
+    finally:
+        driver.close()
+        for p in (first, second):
+            if p is not None:
+                _end(p)
