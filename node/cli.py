@@ -421,6 +421,25 @@ def _experiment_fusion(args) -> int:
     return 0
 
 
+def _source_value(text: str) -> tuple[str, str]:
+    """A ``SOURCE=VALUE`` option of ``import-recording``."""
+    name, eq, value = text.partition("=")
+    if not eq or not name or not value:
+        raise argparse.ArgumentTypeError(f"expected SOURCE=VALUE (e.g. whiskers=whiskers.wav); got {text!r}")
+    return name, value
+
+
+def _cmd_import_recording(args) -> int:
+    from supramodal.node.import_recording import import_recording, sources_from_options
+
+    sources = sources_from_options(args.wav, args.times, args.xdf_stream, args.bank, args.model)
+    scene = import_recording(args.out, args.name, sources, xdf=args.xdf, markers=args.markers, fusion=args.fusion,
+                             overwrite=args.force)
+    print(f"wrote {scene} and the sessions of {', '.join(s.name for s in sources)} beside it\n"
+          f"next: supramodal run {scene} --speed max")
+    return 0
+
+
 def _cmd_devices(args) -> int:
     from supramodal.drivers.devices import format_devices
 
@@ -808,6 +827,36 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_label)
 
     from supramodal.drivers.mock_whisker import add_arguments as mock_arguments
+
+    p = add_parser("import-recording", help="a replayable graph recording (sessions and their replay scene) from "
+                                            "WAV files and their timestamps (CSV), or from XDF streams")
+    p.add_argument("--out", required=True, type=_output_folder, metavar="DIR",
+                   help="folder for the recording (created if missing)")
+    p.add_argument("--name", type=_session_name, default="imported",
+                   help="the recording's name: NAME.SOURCE.wav/.json per source and NAME.toml (default: imported)")
+    p.add_argument("--wav", type=_source_value, action="append", default=[], metavar="SOURCE=FILE.wav",
+                   help="a source's samples; give one per source (default: none)")
+    p.add_argument("--times", type=_source_value, action="append", default=[], metavar="SOURCE=TIMES.csv",
+                   help="its timestamps, seconds on the clock every source shares: a CSV with the header "
+                        "'end_frame,seconds' (a row per block: frames delivered by its end, when it was complete) "
+                        "or 'seconds' (a row per frame); one per --wav (default: none)")
+    p.add_argument("--xdf", metavar="FILE.xdf", help="instead of WAV files: an XDF file (the lsl extra)")
+    p.add_argument("--xdf-stream", type=_source_value, action="append", default=[], metavar="SOURCE=STREAM",
+                   help="with --xdf: a source read from the file's stream of that name; one per source (default: "
+                        "none)")
+    p.add_argument("--markers", metavar="STREAM",
+                   help="with --xdf: a marker stream whose strings label every source (default: no labels)")
+    p.add_argument("--bank", type=_source_value, action="append", default=[], metavar="SOURCE=BANK",
+                   help="each source's stream bank: whisker, cochlea or a bank file; one per source (default: none, "
+                        "so give one for every source)")
+    p.add_argument("--model", type=_source_value, action="append", default=[], metavar="SOURCE=MODEL.npz",
+                   help="a model for the source's stream, copied beside the sessions (default: none, the stream "
+                        "gives feature windows)")
+    p.add_argument("--fusion", action="store_true",
+                   help="fuse the two streams' decisions (late fusion; learn its weight with train --fusion late); "
+                        "needs two sources with models (default: no fusion)")
+    p.add_argument("--force", action="store_true", help="replace an earlier import of that name (default: refuse)")
+    p.set_defaults(func=_cmd_import_recording)
 
     p = add_parser("mock-whisker", help="a mock whisker-array board streaming frames on a pty, with fault injection")
     mock_arguments(p)
