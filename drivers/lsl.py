@@ -74,6 +74,9 @@ PROBE_TIMEOUT = 0.2
 DEFAULT_BUFFER_SECONDS = 30.0
 #: Seconds the resolver waits for the stream.
 DEFAULT_RESOLVE_TIMEOUT = 5.0
+#: Least seconds the resolver waits, after the first answer, for a second stream that matches
+#: too (refused: which one is meant is not known).
+DUPLICATE_WAIT = 1.0
 
 # LSL channel formats (lsl_channel_format_t) -> (numpy dtype, full scale).
 _FORMATS = {1: (np.float32, 1.0), 2: (np.float64, 1.0), 4: (np.int32, 2.0 ** 31), 5: (np.int16, 2.0 ** 15),
@@ -124,8 +127,9 @@ def describe_stream(info) -> str:
 def resolve_stream(name: str | None = None, stream_type: str | None = None, source_id: str | None = None,
                    timeout: float = DEFAULT_RESOLVE_TIMEOUT):
     """The one stream matching every property given, or :class:`DeviceUnavailable` naming those
-    that were found instead (or that none was); more than one match is refused too (say which
-    with ``source_id``)."""
+    that were found instead (or that none was); more than one match is refused too, listing them
+    (say which with ``source_id``). After the first answer the resolver waits
+    :data:`DUPLICATE_WAIT` seconds more (or twice the time the first took) for a second one."""
     pylsl = import_pylsl()
     wanted = {"name": name, "type": stream_type, "source_id": source_id}
     wanted = {k: v for k, v in wanted.items() if v is not None}
@@ -137,7 +141,14 @@ def resolve_stream(name: str | None = None, stream_type: str | None = None, sour
     predicate = " and ".join(f"{k}='{v}'" for k, v in wanted.items())
     asked = ", ".join(f"{k}={v!r}" for k, v in wanted.items())
     try:
+        t = time.monotonic()
         found = pylsl.resolve_bypred(predicate, minimum=1, timeout=float(timeout))
+        if len(found) == 1:
+            # resolve_bypred returns at the first answer: a second stream of the same name would
+            # answer in the same wave or the next; wait for one as long again (at least
+            # DUPLICATE_WAIT) and compare.
+            wait = min(float(timeout), max(DUPLICATE_WAIT, 2 * (time.monotonic() - t)))
+            found = _distinct(found + pylsl.resolve_bypred(predicate, minimum=2, timeout=wait))
     except Exception as exc:  # liblsl's errors, one place
         raise DriverError(f"LSL: resolving {asked} failed: {exc}") from None
     if not found:
@@ -147,8 +158,17 @@ def resolve_stream(name: str | None = None, stream_type: str | None = None, sour
                                 "runs, the name, and that both machines share the LSL session (LSLAPICFG)")
     if len(found) > 1:
         ids = "; ".join(describe_stream(i) for i in found[:10])
-        raise DeviceUnavailable(f"LSL: {len(found)} streams match {asked} ({ids}); name one by its source_id")
+        raise DeviceUnavailable(f"LSL: {len(found)} streams match {asked} ({ids}); name one by its source_id "
+                                "(source_id = ...), or stop the other sender")
     return found[0]
+
+
+def _distinct(infos: list) -> list:
+    """The streams of ``infos`` with one of each ``uid`` (one outlet answers each query)."""
+    seen: dict[str, object] = {}
+    for info in infos:
+        seen.setdefault(info.uid(), info)
+    return list(seen.values())
 
 
 @dataclass(frozen=True)

@@ -85,3 +85,23 @@ def test_a_sender_without_a_source_id_killed_and_restarted_is_found_again(tmp_pa
         for p in (first, second):
             if p is not None:
                 _end(p)
+
+
+def test_two_streams_of_one_name_are_refused_with_the_list_of_what_was_found():
+    """Issue 26 item 10: ``resolve_bypred(minimum=1)`` returns at the first answer, so the node took
+    whichever of two streams of one name answered first. Now both are listed and refused."""
+    from supramodal.drivers.lsl import resolve_stream
+
+    name = f"twice-{uuid.uuid4().hex[:8]}"
+    ids = [f"{k}-{uuid.uuid4().hex[:6]}" for k in ("left", "right")]
+    senders = [_sender(name, "--channels", "1", "--source-id", i, "--seconds", "60") for i in ids]
+    try:
+        for i in ids:                                  # both up
+            assert resolve_stream(source_id=i, timeout=30.0).name() == name
+        with pytest.raises(DeviceUnavailable, match=rf"2 streams match name='{name}'") as refused:
+            resolve_stream(name, timeout=10.0)
+        assert all(f"source_id='{i}'" in str(refused.value) for i in ids)
+        assert "name one by its source_id" in str(refused.value)
+    finally:
+        for p in senders:
+            _end(p)
