@@ -182,3 +182,44 @@ def test_xdf_streams_import_to_the_windows_the_xdf_source_gives(tmp_path, capsys
         for a, b in zip(imported[name], reference[name]):
             assert a["features"] == b["features"] and a["window"] == b["window"]
             assert a["start"] == pytest.approx(b["start"], abs=2e-6) and a["end"] == pytest.approx(b["end"], abs=2e-6)
+
+
+def test_a_graphs_own_sessions_imported_with_models_and_fusion_replay_to_its_fused_decisions(tmp_path, capsys):
+    """A two-sense recording made by `record` (models trained on the spot, late fusion), exported
+    as a lab would have it (each source's WAV and a CSV of its blocks' times) and imported with
+    the two models and --fusion: the imported scene pairs and fuses the same windows to the same
+    decisions as the recording's own replay scene, its times shifted by one constant (the import's
+    zero is the earliest first sample)."""
+    src = ""
+    for name, sense, block, offset in (("whiskers", "whiskers", 50, 0.0), ("mic", "microphone", 441, 0.037)):
+        src += (f'[[source]]\nname = "{name}"\ntype = "twosense"\nsense = "{sense}"\nseconds = 0.5\n'
+                f'block = {block}\noffset = {offset}\nspeed = "max"\n\n')
+    for name, kind in (("whiskers", "whisker"), ("mic", "cochlea")):
+        src += (f'[[stream]]\nname = "{name}"\nsource = "{name}"\n[stream.bank]\nkind = "{kind}"\n'
+                '[stream.model]\ntrain_on_start = true\n\n')
+    (tmp_path / "w.toml").write_text(src + '[fusion]\nstreams = ["whiskers", "mic"]\nweight = 0.5\n')
+    assert main(["record", str(tmp_path / "w.toml"), "--out", str(tmp_path / "own"), "--name", "t", "--quiet"]) == 0
+    argv = []
+    for name, kind in (("whiskers", "whisker"), ("mic", "cochlea")):
+        s = load_session(tmp_path / "own" / f"t.{name}")
+        ends, seconds, rate = s.arrivals
+        assert rate == s.rate                                   # a simulated device on its nominal clock
+        write_wav(tmp_path / f"{name}.wav", s.data, s.rate, dtype="float32")
+        _write_csv(tmp_path / f"{name}.csv", "end_frame,seconds", zip(ends.tolist(), seconds.tolist()))
+        argv += ["--wav", f"{name}={tmp_path / f'{name}.wav'}", "--times", f"{name}={tmp_path / f'{name}.csv'}",
+                 "--bank", f"{name}={kind}", "--model", f"{name}={tmp_path / 'own' / f't.{name}.npz'}"]
+    assert main(["import-recording", "--out", str(tmp_path / "lab"), "--name", "t", *argv, "--fusion"]) == 0
+    assert load_scene(tmp_path / "lab" / "t.toml").fusion["streams"] == ["whiskers", "mic"]
+
+    def fused(scene):
+        capsys.readouterr()
+        assert main(["run", str(scene), "--speed", "max", "--json", "--quiet"]) == 0
+        events = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+        return [e for e in events if e.get("stream") == "fused"]
+
+    own, lab = fused(tmp_path / "own" / "t.toml"), fused(tmp_path / "lab" / "t.toml")
+    assert len(own) == len(lab) == 40
+    assert [(e["window"], e["senses"], e["predicted"]) for e in lab] == \
+        [(e["window"], e["senses"], e["predicted"]) for e in own]
+    shift = lab[0]["end"] - own[0]["end"]
+    assert np.allclose([e["end"] - shift for e in lab], [e["end"] for e in own], atol=2e-6)
