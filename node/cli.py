@@ -469,6 +469,8 @@ def _progress(args):
 def _cmd_train(args) -> int:
     from supramodal.node.outputs import check_new_file
     from supramodal.node.training import calibration_line, train_from_manifest
+    if args.stream is not None and not args.fusion:
+        return _train_stream(args)
     if args.scene or args.fusion:
         return _train_fusion(args)
     if args.manifest is None or args.bank is None or args.out is None:
@@ -504,6 +506,44 @@ def _cmd_train(args) -> int:
     return 0
 
 
+def _train_stream(args) -> int:
+    """``train --scene REC.toml ... --stream NAME --out MODEL``: a sense model straight from recorded graphs."""
+    from supramodal.node.outputs import check_new_file
+    from supramodal.node.training import calibration_line, train_from_scenes
+
+    if not args.scene or args.out is None:
+        raise CliError("--stream trains one stream's model from recorded graphs: give one --scene per recording "
+                       "(the DIR/NAME.toml `supramodal record` wrote) and --out MODEL")
+    if args.manifest is not None or args.bank is not None or args.cv or args.models or args.live or args.write_scene:
+        raise CliError("with --scene and --stream, the recordings' scene says the bank, features and window: leave "
+                       "out --manifest, --bank, --cv, --model, --live and --write-scene")
+    check_new_file(args.out, args.force, "the model file")
+    model = train_from_scenes(args.scene, args.stream, epochs=args.epochs, seed=args.seed, progress=_progress(args))
+    path = model.save(args.out)
+    print(f"wrote {path}: stream {args.stream}, {model.bank.kind} bank, features {list(model.features)}, classes "
+          f"{list(model.classes)}, {model.training['windows']} training windows of {len(args.scene)} recording(s), "
+          f"final MSE {model.training['final_mse']:.4g}")
+    print("posteriors: " + calibration_line(None if model.calibration is None else model.calibration.fitted_on))
+    print("train the fusion on other recordings than these (supramodal train --fusion ... --model "
+          f"{args.stream}={path}): its sense posteriors are then those of this model on recordings it never saw")
+    return 0
+
+
+def _stream_models(pairs) -> dict:
+    """``--model STREAM=FILE`` options as ``{stream: path}``."""
+    out = {}
+    for text in pairs or []:
+        name, sep, path = text.partition("=")
+        if not sep or not name or not path:
+            raise CliError(f"--model {text!r}: write STREAM=FILE, e.g. --model whiskers=models/whiskers.npz")
+        if name in out:
+            raise CliError(f"--model names stream {name!r} twice")
+        out[name] = Path(path)
+    if out and len(out) != 2:
+        raise CliError(f"--model names {len(out)} stream(s); a fusion takes two: give --model for each")
+    return out
+
+
 def _say_plots_missing(notice: str | None) -> None:
     if notice:
         print(f"supramodal: {notice}", file=sys.stderr)
@@ -512,7 +552,7 @@ def _say_plots_missing(notice: str | None) -> None:
 def _train_fusion(args) -> int:
     """``train --fusion early|late --scene S.toml ...``: a fusion learned on recorded two-sense sessions,
     from windows held out of every network that scored them (node/fused_training.py)."""
-    from supramodal.node.fused_training import train_fused
+    from supramodal.node.fused_training import train_fused, write_fused_scene
     from supramodal.node.outputs import check_new_file
 
     if not (args.scene and args.fusion):
@@ -527,9 +567,17 @@ def _train_fusion(args) -> int:
     elif args.out is not None:
         raise CliError("--fusion late learns one number, printed for [fusion] weight; it writes no file: "
                        "leave out --out")
-    result, info = train_fused(args.scene, args.fusion, epochs=args.epochs, seed=args.seed, progress=_progress(args))
+    if (args.live is None) != (args.write_scene is None):
+        raise CliError("--live SCENE.toml (the scene the recordings were made with) and --write-scene FILE.toml (the "
+                       "scene to write, running it with the models and this fusion) go together")
+    if args.write_scene is not None:
+        check_new_file(args.write_scene, args.force, "the scene file")
+    models = _stream_models(args.models)
+    result, info = train_fused(args.scene, args.fusion, epochs=args.epochs, seed=args.seed, progress=_progress(args),
+                               models=models)
     a, b = info["streams"]
     fused = "late" if args.fusion == "late" else "early"
+    print(f"sense posteriors: {info['posteriors']['source']} ({info['posteriors']['why']})")
     print(f"held-out windows ({info['pairs']} pairs of {info['contacts']} contacts, {info['folds']} folds by "
           f"{info['folds_by']}; each scored by networks that never trained on its fold):")
     print(f"  {'':<12}{'accuracy':>10}{'log loss':>10}")
@@ -542,12 +590,24 @@ def _train_fusion(args) -> int:
         print(f"learned late-fusion weight {weight:.2f} of {a} (and {1 - weight:.2f} of {b}) and sharpness "
               f"{sharpness:.4g} on the out-of-fold windows of {info['pairs']} labelled pairs (the late row: each "
               f"fold fused with a weight learned without it): set [fusion] {keys}")
+        _write_run_scene(args, write_fused_scene, (a, b), models,
+                         {"method": "late", "weight": round(weight, 4), "sharpness": float(f"{sharpness:.4g}"),
+                          "correlation": float(f"{info['correlation']:.3g}")})
         return 0
     path = result.save(args.out)
+    _write_run_scene(args, write_fused_scene, (a, b), models, {"method": "early", "model": str(path.resolve())})
     print(f"wrote {path}: early fusion of {a} and {b}, classes {info['classes']}, {info['pairs']} pairs of windows, "
           f"calibrated on its out-of-fold pairs (the early row); use it with [fusion] method = \"early\", "
           f"model = \"{path.resolve()}\" (a relative path is taken from the scene's folder)")
     return 0
+
+
+def _write_run_scene(args, write, streams, models: dict, fusion: dict) -> None:
+    """``--write-scene``: the live scene with the sense models and the fusion learned, to run at once."""
+    if args.write_scene is None:
+        return
+    path = write(args.live, streams, fusion, models, args.write_scene)
+    print(f"wrote {path}: {args.live} with the sense models and this fusion; run it: supramodal run {path}")
 
 
 def _cmd_fit(args) -> int:
@@ -726,8 +786,21 @@ def build_parser() -> argparse.ArgumentParser:
                         "windows of copies of the streams' models, never on windows a network trained on; both print "
                         "each sense's and the fusion's held-out score (default: one sense, from --manifest)")
     p.add_argument("--scene", action="append", metavar="NAME.toml",
-                   help="with --fusion: a recording's replay scene (supramodal record of a graph writes it); give "
-                        "one per recording (default: none)")
+                   help="with --fusion or --stream: a recording's replay scene (supramodal record of a graph writes "
+                        "it); give one per recording (default: none)")
+    p.add_argument("--stream", metavar="NAME",
+                   help="with --scene: train this stream's model from the recordings' labelled sessions, with the "
+                        "scene's bank, features and window, calibrated on folds grouped by recording (instead of "
+                        "--manifest and --bank)")
+    p.add_argument("--model", dest="models", action="append", metavar="STREAM=FILE",
+                   help="with --fusion: the sense model a stream decides with, for each of the two fused streams "
+                        "(default: the recordings' own); models that `train --stream` made on other recordings give "
+                        "the fusion their own posteriors, else it learns from out-of-fold copies (it says which)")
+    p.add_argument("--live", metavar="SCENE.toml",
+                   help="with --fusion and --write-scene: the scene the recordings were made with")
+    p.add_argument("--write-scene", type=_output_file, metavar="FILE.toml",
+                   help="with --fusion and --live: write the live scene with the --model files and the fusion "
+                        "learned, ready for supramodal run (default: none)")
     p.add_argument("--features", nargs="+", default=["Af"], choices=list(FEATURE_TABLE),
                    help="; ".join(f"{f.name}: {f.description}" for f in FEATURE_TABLE.values()) + " (default Af)")
     p.add_argument("--window", type=_positive_seconds, default=DEFAULT_WINDOW,

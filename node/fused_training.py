@@ -16,11 +16,13 @@ them live; the pairs whose truth is known are the data:
 
 from __future__ import annotations
 
+import tomllib
 import warnings
+from pathlib import Path
 
 import numpy as np
 
-from supramodal.calibration import DEFAULT_CALIBRATION_FOLDS, calibration_report, winner
+from supramodal.calibration import DEFAULT_CALIBRATION_FOLDS, calibration_folds, calibration_report, winner
 from supramodal.checks import integer
 from supramodal.errors import InputError, SupramodalWarning
 from supramodal.fused_model import (
@@ -35,15 +37,39 @@ from supramodal.mlp import DEFAULT_EPOCHS
 from supramodal.model import ModelError
 from supramodal.node.build import build_node
 from supramodal.node.events import FUSED_STREAM, log_posteriors_of
-from supramodal.node.scene import SceneError, load_scene
+from supramodal.node.scene import Scene, SceneError, load_scene, scene_from_dict, scene_to_toml
 from supramodal.node.sinks import ListSink
 
 #: How a fusion is learned from sessions.
 FUSION_METHODS = ("early", "late")
 
 
-def _graph_for(path, fused_model=None):
+def with_models(scene: Scene, models: dict) -> Scene:
+    """``scene`` with the streams named in ``models`` (``{stream: model file}``) deciding with those
+    files, and, when two are named and the scene fuses other streams or none, a ``[fusion]`` of those
+    two (late, its defaults). A recording of a graph whose streams had no model is fused so."""
+    d = tomllib.loads(scene_to_toml(scene))
+    names = [spec["name"] for spec in d.get("stream", [])]
+    unknown = sorted(set(models) - set(names))
+    if unknown:
+        raise InputError(f"{scene.source}: --model names stream(s) {unknown}; its streams are {names}")
+    for spec in d["stream"]:
+        if spec["name"] in models:
+            path = Path(models[spec["name"]]).expanduser().resolve()
+            if not path.is_file():
+                raise InputError(f"--model {spec['name']}={models[spec['name']]}: no model file there; train it "
+                                 f"first (supramodal train --scene ... --stream {spec['name']} --out FILE)")
+            spec["model"] = {"path": str(path)}
+    fused = d.get("fusion", {}).get("streams")
+    if len(models) == 2 and (fused is None or set(fused) != set(models)):
+        d["fusion"] = {"streams": list(models)}
+    return scene_from_dict(d, scene.source, scene.base_dir)
+
+
+def _graph_for(path, fused_model=None, models=None):
     scene = load_scene(path)
+    if models:
+        scene = with_models(scene, models)
     if not scene.is_graph or scene.fusion is None:
         raise SceneError(f"{scene.source}: a scene with a [fusion] block of two streams is needed (the scene "
                          "`supramodal record` writes for a graph replays a two-sense recording)")
@@ -52,11 +78,12 @@ def _graph_for(path, fused_model=None):
     return scene
 
 
-def scene_pairs(path, progress=None):
+def scene_pairs(path, progress=None, models=None):
     """Run the scene at ``max`` speed; return ``(graph, pairs)``: the fused pairs of window events
     ``(event_a, event_b)`` whose truth is known, in order. Pairing does not depend on the fusion
-    method, so the scene's fusion is run as late fusion here (its own model is not needed)."""
-    scene = _graph_for(path)
+    method, so the scene's fusion is run as late fusion here (its own model is not needed).
+    ``models``: ``{stream: model file}`` to decide with instead of the scene's (:func:`with_models`)."""
+    scene = _graph_for(path, models=models)
     scene.fusion = {**scene.fusion, "method": "late", "model": None, "weight": 0.5}
     graph = build_node(scene, speed="max", sinks_override=[])
     graph.fusion.kept_pairs = []
@@ -68,15 +95,24 @@ def scene_pairs(path, progress=None):
 
 
 def train_fused(paths, method: str = "early", epochs: int = DEFAULT_EPOCHS, seed: int = 0, progress=None,
-                k: int = DEFAULT_CALIBRATION_FOLDS):
+                k: int = DEFAULT_CALIBRATION_FOLDS, models=None):
     """Learn a fusion on the labelled pairs of the scenes at ``paths``.
 
     Every number learned comes from windows held out of the network that made them: the pairs are
     dealt to ``k`` folds by contact (a run of consecutive windows of one texture in one recording;
     :func:`supramodal.calibration.calibration_folds`, shuffled by ``seed``), and each sense's
-    log-posteriors of a fold are those of a copy of its stream's model (same configuration)
-    trained on the other folds (:func:`supramodal.fused_model.senses_out_of_fold`), never those
-    of a model on its own training windows.
+    log-posteriors are either
+
+    * ``"unseen"``: the streams' own models' log-posteriors, when both models say which sessions they
+      were trained on (``training["sessions"]``, written by ``train --scene --stream``) and none of
+      these recordings is among them: the models the fusion will run with, on recordings they never
+      saw; or
+    * ``"out-of-fold"``: otherwise (a model saw some of these recordings, or does not say what it saw),
+      those of a copy of the stream's model (same configuration) trained on the other folds
+      (:func:`supramodal.fused_model.senses_out_of_fold`), never those of a model on its own
+      training windows.
+
+    ``models``: ``{stream: model file}`` deciding instead of the scenes' own (:func:`with_models`).
 
     * ``"late"``: the first stream's weight and the sharpness
       (:func:`supramodal.fused_model.learn_late_fusion_out_of_fold`) learned on those
@@ -94,18 +130,22 @@ def train_fused(paths, method: str = "early", epochs: int = DEFAULT_EPOCHS, seed
         ``folds_by``, (late) ``fold_weights`` and ``correlation`` (the fused decisions' contact
         pooling, :func:`supramodal.fused_model.fused_pooling`), and ``held_out``: per stream and
         for the fusion (``"late"`` or ``"early"``) its held-out window ``accuracy`` and
-        ``log_loss`` (late and streams: also ``brier``, ``ece``, ``sure_count``, ``sure_wrong``).
+        ``log_loss`` (late and streams: also ``brier``, ``ece``, ``sure_count``, ``sure_wrong``);
+        ``posteriors``: ``{"source": "unseen" | "out-of-fold", "why": text}``, which of the two above.
     """
+    from supramodal.node.training import scene_stream, session_fingerprint
+
     if method not in FUSION_METHODS:
         raise InputError(f"the fusion method is one of {FUSION_METHODS}, got {method!r}")
-    senses = classes = models = None
-    va, vb, truth, groups = [], [], [], []
+    senses = classes = None
+    stream_models: tuple = ()
+    va, vb, truth, groups, own, seen = [], [], [], [], ([], []), 0
     for k_scene, path in enumerate(paths):
-        graph, pairs = scene_pairs(path, progress)
+        graph, pairs = scene_pairs(path, progress, models)
         a, b = (next(s for s in graph.streams if s.name == n) for n in graph.fusion.inputs)
         if senses is None:
             senses, classes = (Sense.of(a.name, a.pipeline), Sense.of(b.name, b.pipeline)), graph.fusion.classes
-            models = (a.model, b.model)
+            stream_models = (a.model, b.model)
         else:
             try:
                 for sense, stream in zip(senses, (a, b)):
@@ -116,11 +156,15 @@ def train_fused(paths, method: str = "early", epochs: int = DEFAULT_EPOCHS, seed
             if sorted(graph.fusion.classes) != sorted(classes):
                 raise InputError(f"{path}: its textures {list(graph.fusion.classes)} differ from the first scene's "
                                  f"{list(classes)}; train on recordings of one graph")
+        for model, stream in zip(stream_models, (a, b)):
+            seen += session_fingerprint(scene_stream(path, stream.name)[2]) in model.training.get("sessions", [])
         groups += contact_groups(pairs, f"{k_scene}:")
         for ea, eb in pairs:
             va.append(np.stack([ea.features[f] for f in senses[0].features]))
             vb.append(np.stack([eb.features[f] for f in senses[1].features]))
             truth.append(classes.index(ea.truth))
+            for lps_own, e in zip(own, (ea, eb)):
+                lps_own.append(log_posteriors_of(e)[[list(e.classes).index(c) for c in classes]])
     if not truth:
         raise InputError("no labelled pair of windows in these recordings: record with a source that labels its "
                          "stream, or label the sessions")
@@ -130,11 +174,23 @@ def train_fused(paths, method: str = "early", epochs: int = DEFAULT_EPOCHS, seed
     y = np.array(truth)
     va, vb = np.array(va), np.array(vb)
     names = [s.name for s in senses]
-    say = None if progress is None else (lambda m: progress(f"held-out windows: {m}"))
-    lps, folds, by = senses_out_of_fold(models, (va, vb), y, classes, groups, k, seed, say, names)
+    said = [m.training.get("sessions") for m in stream_models]
+    if all(s is not None for s in said) and not seen:
+        lps = [np.array(v) for v in own]
+        folds, by = calibration_folds(y, np.asarray(groups), k, seed)
+        posteriors = {"source": "unseen", "why": f"the sense models were trained on {len(said[0])} and "
+                      f"{len(said[1])} other recording(s), none of these {len(paths)}: their own posteriors"}
+    else:
+        say = None if progress is None else (lambda m: progress(f"held-out windows: {m}"))
+        lps, folds, by = senses_out_of_fold(stream_models, (va, vb), y, classes, groups, k, seed, say, names)
+        why = (f"the sense models saw {seen} of these recordings' sessions" if seen else
+               "the sense models do not say which recordings they were trained on")
+        posteriors = {"source": "out-of-fold", "why": f"{why}: out-of-fold posteriors of copies of them trained "
+                      "without each fold"}
     held = held_out_scores(dict(zip(names, lps)), y)
     info = {"pairs": len(y), "classes": list(classes), "streams": names, "contacts": len(set(groups)),
-            "folds": int(len(np.unique(folds))), "folds_by": "contact" if by == "recording" else by}
+            "folds": int(len(np.unique(folds))), "folds_by": "contact" if by == "recording" else by,
+            "posteriors": posteriors}
     if by == "span":
         # Held-out spans then lie between training windows of the same touch: their score flatters.
         warnings.warn(f"{len(set(groups))} contacts are too few for {k} folds of whole contacts (every texture in "
@@ -156,6 +212,34 @@ def train_fused(paths, method: str = "early", epochs: int = DEFAULT_EPOCHS, seed
     info["fold_weights"] = late["fold_weights"]
     info["correlation"] = fused_pooling(late["fused"], y, folds, groups)
     return (late["weight"], late["sharpness"]), info
+
+
+def write_fused_scene(live, streams, fusion: dict, models: dict, out) -> Path:
+    """Write the scene that runs the fusion live: the scene ``live`` (the one the recordings were
+    made with) with the streams in ``models`` (``{stream: model file}``) deciding with those files
+    and ``[fusion]`` set to ``fusion`` (its keys: ``method``, ``model``, or ``weight``,
+    ``sharpness``, ``correlation``) over ``streams``. Paths the scene names relative to its own
+    folder (a replay's file, a bank file, a sink's file) are written absolute, so the new scene runs
+    from its own folder. Returns ``out``; refuses an existing file (the caller checks ``--force``)."""
+    scene = load_scene(live)
+    d = tomllib.loads(scene_to_toml(scene))
+    for src in d.get("source", []):
+        if src.get("type") == "replay" and "path" in src:
+            src["path"] = str(scene.resolve(src["path"]).resolve())
+    for spec in d.get("stream", []):
+        if spec.get("bank", {}).get("file"):
+            spec["bank"]["file"] = str(scene.resolve(spec["bank"]["file"]).resolve())
+        if spec["name"] in models:
+            spec["model"] = {"path": str(Path(models[spec["name"]]).resolve())}
+    for sink in d.get("sink", []):
+        if sink.get("path", "-") != "-":
+            sink["path"] = str(scene.resolve(sink["path"]).resolve())
+    d["fusion"] = {"streams": list(streams), **fusion}
+    out = Path(out)
+    checked = scene_from_dict(d, str(out), out.resolve().parent)
+    out.write_text(f"# {scene.source} with its sense models and the fusion learned by supramodal train --fusion.\n"
+                   + scene_to_toml(checked))
+    return out
 
 
 def contact_groups(pairs, prefix: str = "") -> list[str]:

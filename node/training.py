@@ -14,7 +14,7 @@ import numpy as np
 
 from supramodal.banks import Bank
 from supramodal.calibration import calibration_report, pool_log_posteriors, winner
-from supramodal.errors import SupramodalError
+from supramodal.errors import InputError, SupramodalError
 from supramodal.evaluation import POOLED_WINDOWS, anytime_sweep, permutation_importance, pooled_accuracy
 from supramodal.mlp import DEFAULT_EPOCHS
 from supramodal.model import TextureModel
@@ -23,6 +23,7 @@ from supramodal.node.manifest import ManifestError, Recording, read_manifest
 from supramodal.node.streams import channel_mapper
 from supramodal.pipeline import FeaturePipeline
 from supramodal.replay.driver import ReplayDriver
+from supramodal.replay.session import session_paths
 from supramodal.training import grouped_folds
 
 
@@ -102,14 +103,112 @@ def _manifest_windows(manifest, make_pipeline, mapping, progress):
 
 
 def _train(recs, classes, windows, pipeline: FeaturePipeline, epochs: int, seed: int, hidden=None,
-           calibration_progress=None) -> TextureModel:
+           calibration_progress=None, groups=None) -> TextureModel:
     """A model on the recordings' windows, calibrated on out-of-fold windows of folds grouped by
-    recording (:func:`recording_group`) where there are enough recordings."""
+    recording (``groups``, one per entry of ``recs``; default :func:`recording_group`) where there
+    are enough recordings."""
     x = np.concatenate(windows)
     y = np.concatenate([np.full(len(v), classes.index(r.label)) for r, v in zip(recs, windows)])
-    groups = np.repeat(np.array([recording_group(r) for r in recs]), [len(v) for v in windows])
+    names = [recording_group(r) for r in recs] if groups is None else list(groups)
+    groups = np.repeat(np.array(names), [len(v) for v in windows])
     return TextureModel.train_for(pipeline, x, y, classes, epochs=epochs, seed=seed, hidden=hidden, groups=groups,
                                   calibration_progress=calibration_progress)
+
+
+def session_fingerprint(path) -> str:
+    """``sha256:HEX`` of a session's WAV bytes: which recording a model saw, wherever it was moved."""
+    import hashlib
+
+    digest = hashlib.sha256()
+    with open(session_paths(path)[0], "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            digest.update(chunk)
+    return "sha256:" + digest.hexdigest()
+
+
+def scene_stream(path, stream: str):
+    """The recorded graph's replay scene at ``path``, stream ``stream`` of it and the session its
+    source plays: ``(scene, stream spec, session path, source table)``.
+
+    Raises
+    ------
+    InputError
+        Naming the scene: no stream of that name (its streams listed), or a source that is not a
+        recorded session.
+    """
+    from supramodal.node.scene import load_scene
+
+    scene = load_scene(path)
+    spec = next((s for s in scene.streams if s.name == stream), None)
+    if spec is None:
+        raise InputError(f"{scene.source}: no stream {stream!r}; its streams are {[s.name for s in scene.streams]} "
+                         "(--stream names one)")
+    src = next(s for s in scene.sources if s["name"] == spec.source)
+    if src["type"] != "replay":
+        raise InputError(f"{scene.source}: stream {stream!r} reads source {src['name']!r} of type {src['type']!r}, "
+                         "not a recording; give the scene `supramodal record` wrote (DIR/NAME.toml)")
+    return scene, spec, scene.resolve(src["path"]), src
+
+
+def train_from_scenes(paths, stream: str, epochs: int = DEFAULT_EPOCHS, seed: int = 0, progress=None,
+                      hidden=None) -> TextureModel:
+    """Train a stream's model straight from recorded graphs (``train --scene REC.toml ... --stream NAME``).
+
+    Each scene is a replay scene ``supramodal record`` wrote; the stream's bank, features and window
+    are the scene's (the same in every scene, else refused), its samples the session its source
+    plays, read at the bank's rate as the node reads them, and its labels the session's (seconds of
+    the device's own stream: ``record --marks``, ``--label`` or ``supramodal label``). Each labelled
+    span is a trial, as a manifest line is; the calibration's folds are grouped by **recording**
+    (every span of one recording in one fold) where every label lies in two recordings or more and
+    there are enough of them (:meth:`supramodal.model.TextureModel.train`). The model keeps, under
+    ``training["sessions"]``, the fingerprint of every session it saw (:func:`session_fingerprint`),
+    so that ``train --fusion`` can tell recordings it never saw.
+
+    Raises
+    ------
+    InputError
+        Naming the scene: a missing stream, streams configured differently, a recording without
+        labels, a span holding no window, fewer than two labels.
+    """
+    from supramodal.fused_model import Sense
+    from supramodal.node.build import bank_for, pipeline_for
+    from supramodal.replay.session import load_session
+
+    recs, windows, groups, seen, make, sense = [], [], [], [], None, None
+    for path in paths:
+        scene, spec, session, src = scene_stream(path, stream)
+        make_here = lambda sub=spec.scene: pipeline_for(sub, bank_for(sub))     # noqa: E731
+        if make is None:
+            make, first, sense = make_here, path, Sense.of(stream, make_here())
+        else:
+            try:
+                sense.check_pipeline(make_here())
+            except SupramodalError as exc:
+                raise InputError(f"{path}: stream {stream!r} differs from {first}'s ({exc}); train on recordings "
+                                 "of one graph") from None
+        labels = load_session(session).labels
+        if not labels:
+            raise InputError(f"{session}: the recording has no labels; label it (supramodal label {path} SPANS.csv, "
+                             "or record with --marks or --label)")
+        for lab in labels:
+            rec = Recording(session, lab.label, lab.start, lab.end)
+            pipeline = make()
+            v = recording_windows(rec, pipeline, src.get("mapping", "auto"), notice=progress)
+            if len(v):
+                recs.append(rec)
+                windows.append(v)
+                groups.append(str(path))
+        seen.append(session_fingerprint(session))
+        if progress:
+            progress(f"{path}: {len(labels)} labelled span(s) of {sorted({lab.label for lab in labels})}")
+    classes = tuple(sorted({r.label for r in recs}))
+    if len(classes) < 2:
+        raise InputError(f"training needs windows of at least two labels, the recordings have {list(classes)}; "
+                         "record (or label) another texture")
+    say = None if progress is None else (lambda m: progress(f"calibration: {m}"))
+    model = _train(recs, classes, windows, make(), epochs, seed, hidden, calibration_progress=say, groups=groups)
+    model.training.update({"sessions": seen, "stream": stream})
+    return model
 
 
 def recording_group(rec: Recording) -> str:

@@ -177,3 +177,97 @@ def test_the_robot_recorded_live_replays_with_the_same_fused_decisions(tmp_path,
     assert len(fused(live)) >= 100 and fused(again) == fused(live)
     times = lambda events: [(e["start"], e["end"]) for e in events if e.get("stream") == "fused"]  # noqa: E731
     assert times(again) == times(live)           # the clocks were fed the very same stamps
+
+
+# -- docs/own-robot.md: from examples/robot.toml to a fused model running live, six commands ----------
+
+EXAMPLE = ROOT / "examples" / "robot.toml"
+
+
+def _live(tmp_path, server, texture: str, take: int, argv: list[str], stdin: str = "", seconds: float = 4.0):
+    """``supramodal ARGV`` on the example robot scene (its port the mock board's) in its own process,
+    the board playing the two-sense world's touch of ``texture`` (contact ``take``) and the paced
+    microphone its sound; ``stdin`` typed at once. Returns (stdout, stderr, returncode)."""
+    _require_portaudio()
+    surfaces = two_sense_set()
+    index = OneSense(surfaces, "whiskers").names.index(texture)
+    touch = OneSense(surfaces, "whiskers", seconds + 4.0, 0, take=take).synthesize(index)
+    sound = OneSense(surfaces, "microphone", seconds + 8.0, 0, take=take).synthesize(index)
+    here = tmp_path / f"dev-{texture}-{take}-{argv[0]}"
+    here.mkdir()
+    raw = here / "mic.raw"
+    sound.astype("<f4").tofile(raw)
+    board = quantise(np.repeat(touch[:, None], 20, axis=1)) / 32768.0
+    port = tmp_path / "whisker0"             # the board's one path, as a udev rule would give it
+    dev = MockWhiskerDevice(board, WHISKER_RATE, port=str(port), samples_per_frame=SPF, loop=True)
+    env = {**os.environ, **_paced_file_device(here, raw, server)}
+    with dev:
+        if argv[0] == "run":
+            scene = argv[1]
+        else:
+            (tmp_path / "robot.toml").write_text(EXAMPLE.read_text().replace('"/tmp/whisker0"', f'"{port}"'))
+            scene = str(tmp_path / "robot.toml")
+        rest = argv[2:] if argv[0] == "run" else argv[1:]
+        proc = subprocess.Popen([sys.executable, "-m", "supramodal", argv[0], scene, *rest,
+                                 "--quiet", "--seconds", str(seconds)], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                stderr=subprocess.PIPE, text=True, env=env, cwd=tmp_path)
+        try:
+            proc.stdin.write(stdin)
+            proc.stdin.flush()
+            time.sleep(1.0)                 # the node has opened the port
+            dev.start()
+            out, err = proc.communicate(timeout=180)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.communicate()
+    return out, err, proc.returncode
+
+
+@pytest.mark.hardware
+@pytest.mark.slow   # paced real time: four recordings and a run, the board and the JACK-paced microphone live
+def test_own_robot_six_commands_from_the_example_scene_to_a_fused_model_deciding_live(tmp_path, jack_server,
+                                                                                      capsys, monkeypatch):
+    """docs/own-robot.md worked through: (1) `record examples/robot.toml --marks` (a texture name
+    typed), four recordings of two felt textures; (2) `label` one of them after the fact; (3, 4)
+    `train --scene --stream` each sense on two recordings; (5) `train --fusion early` on the two
+    others, with those models, writing the live scene; (6) `run` it: the fused model decides live,
+    on a fifth contact, and gets the texture right."""
+    from supramodal.node.cli import main
+    from supramodal.replay.session import load_session
+
+    monkeypatch.chdir(tmp_path)
+    # (1) record with marks: the texture's name typed as the recording starts
+    for name, texture, take in (("a1", "F1a", 1), ("a2", "F1b", 1), ("b1", "F1a", 2)):
+        out, err, code = _live(tmp_path, jack_server, texture, take,
+                               ["record", "--out", "rec", "--name", name, "--marks"], stdin=f"{texture}\n")
+        assert code == 0, err
+        for source in ("whiskers", "mic"):
+            labels = load_session(tmp_path / "rec" / f"{name}.{source}.wav").labels
+            assert [lab.label for lab in labels] == [texture] and labels[0].end - labels[0].start > 2.5
+    # (2) label after the fact: a recording made without marks, labelled from a spans file
+    out, err, code = _live(tmp_path, jack_server, "F1b", 2, ["record", "--out", "rec", "--name", "b2"])
+    assert code == 0, err
+    (tmp_path / "b2.csv").write_text("start,end,label\n0,60,F1b\n")
+    assert main(["label", "rec/b2.toml", "b2.csv"]) == 0
+    assert load_session(tmp_path / "rec" / "b2.mic.wav").labels[0].label == "F1b"
+    # (3, 4) each sense trained straight from two recordings
+    (tmp_path / "models").mkdir()
+    for stream in ("whiskers", "mic"):
+        assert main(["train", "--scene", "rec/a1.toml", "--scene", "rec/a2.toml", "--stream", stream,
+                     "--out", f"models/{stream}.npz", "--quiet"]) == 0
+    # (5) the fusion on the two other recordings, with those models: their own posteriors, unseen
+    capsys.readouterr()
+    assert main(["train", "--fusion", "early", "--scene", "rec/b1.toml", "--scene", "rec/b2.toml",
+                 "--model", "whiskers=models/whiskers.npz", "--model", "mic=models/mic.npz",
+                 "--out", "models/fused.npz", "--live", "robot.toml", "--write-scene", "fused.toml", "--quiet"]) == 0
+    said = capsys.readouterr().out
+    assert "sense posteriors: unseen" in said and "supramodal run fused.toml" in said
+    # (6) run: the fused model decides live on a contact none of the models saw
+    out, err, code = _live(tmp_path, jack_server, "F1a", 3, ["run", "fused.toml", "--json"])
+    assert code == 0, err
+    fused = [d for d in map(json.loads, out.splitlines()) if d.get("stream") == "fused"]
+    paired = [d for d in fused if d.get("senses") == ["whiskers", "mic"]]
+    assert len(paired) >= 25, len(fused)
+    right = sum(d["predicted"] == "F1a" for d in paired) / len(paired)
+    assert right >= 0.7, right
