@@ -379,6 +379,19 @@ class MockWhiskerDevice:
             self._thread.start()
         return self
 
+    def wait_for_reader(self, timeout: float) -> bool:
+        """Before :meth:`start`: wait until a reader opens the port (a node in another process
+        starting up), at most ``timeout`` seconds; whether one did. Started after it, the board's
+        faults fall at known times of the reader's run, however long its start-up took."""
+        if self._thread is not None:
+            raise RuntimeError("wait_for_reader() is for before start(): the writer thread reads the port's status")
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if self._host_opened():
+                return True
+            time.sleep(0.01)
+        return False
+
     def end_faults(self) -> None:
         """From the next frame on, send every frame clean and unplug no more.
 

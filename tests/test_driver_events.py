@@ -253,7 +253,9 @@ def test_the_command_line_says_what_the_board_does_as_it_happens(tmp_path, json_
                                  "--seconds", "inf"] + ["--json"] * json_mode,
                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         try:
-            time.sleep(1.0)                   # the node has opened the port
+            # the node's start-up (imports, the bank) takes over a second on a busy machine: start the
+            # board once it has the port open, so that the unplug falls inside its run
+            assert dev.wait_for_reader(60), "the node never opened the port"
             dev.start()
             dev.finished.wait(60)
             time.sleep(1.5)                   # the reconnect's report, and the last frames
