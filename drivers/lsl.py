@@ -29,20 +29,33 @@ network's jitter.
 
 Gaps
 ----
-LSL samples carry no sequence number: a loss shows only in the timestamps. When a block's first
-sample comes more than ``gap_tolerance`` seconds after the previous block's last sample plus one
-sample period, the missing samples are filled with zeros (``filled``, ``gaps``, a ``gap``
-event), as the serial driver fills lost frames; a gap longer than ``max_gap`` seconds is not
-filled but marked as a restart (``Block.restarts``: stream time no longer equals the sender's),
-and so is a step backwards in time beyond the tolerance (the sender restarted with another
-clock). A sender that stamps its chunks when it pushes them, not from its sample count, jitters
-by its push delay; gaps shorter than the tolerance cannot be told from that jitter and are
-neither filled nor counted (:attr:`timing_slips` counts the steps seen between half the
-tolerance and the tolerance, as a warning sign).
+LSL samples carry no sequence number: a loss shows only in the timestamps, and a sender that
+stamps each chunk when it pushes it (pylsl's default) puts its push delays in them too. Gaps are
+judged on the sender's sample clock (:class:`ClockSteps`), not from two raw stamps: a block
+stamped more than ``gap_tolerance`` seconds later than the clock model says is held (with what
+follows) until the stamps show what it was. Stamps that come back onto the sample clock were a
+backlog pushed late (a sender that held its samples and flushed them at once): nothing is filled,
+the blocks are dated by the sample clock rather than by their stamps (a ``backlog`` event).
+Stamps that run on at the sample rate, off the clock by the same amount for ``2 * gap_tolerance``
+seconds of samples, show lost samples: that many zeros are filled before the block (``filled``,
+``gaps``, a ``gap`` event), as the serial driver fills lost frames; the blocks held meanwhile
+(0.1 s of samples by default) come out late by that much, once. A gap longer than ``max_gap``
+seconds is not filled but marked as a restart (``Block.restarts``: stream time no longer equals
+the sender's), and so is a step backwards in time beyond the tolerance (the sender restarted
+with another clock). The first block is taken as on time. A loss shorter than the tolerance
+cannot be told from a delay and is neither filled nor counted (:attr:`timing_slips` counts the
+blocks stamped between half the tolerance and the tolerance late, as a warning sign).
+
+Ring
+----
+The inlet holds what arrives in liblsl's buffer (``buffer_seconds``), so the node's ring waits
+for the node (``overrun = "auto"`` is ``"block"``, :attr:`DriverSpec.buffered`) instead of
+dropping: a backlog flushed at once waits in the inlet, not lost in a ring smaller than it.
 """
 
 from __future__ import annotations
 
+import collections
 import math
 import time
 from dataclasses import dataclass
@@ -178,13 +191,19 @@ class Step:
     ``kind``: ``"first"`` (no block before), ``"ok"`` (within half the tolerance), ``"slip"``
     (between half the tolerance and the tolerance: jitter, or a loss too short to tell),
     ``"gap"`` (``samples`` lost, to fill), ``"long"`` (a gap beyond ``max_gap``) or
-    ``"back"`` (the timestamps stepped back beyond the tolerance). ``seconds``: the time missing
-    between the blocks (negative: overlapping).
+    ``"back"`` (the timestamps stepped back beyond the tolerance); from :class:`ClockSteps` also
+    ``"backlog"`` (stamps late by ``seconds`` that came back onto the sample clock: a held and
+    flushed backlog, nothing missing). ``seconds``: the time missing between the blocks
+    (negative: overlapping).
     """
 
     kind: str
     seconds: float = 0.0
     samples: int = 0
+    #: The block's last sample's time on the sender's sample clock (the clock model's line), for
+    #: a block whose stamps are known late (a backlog's): its stamps say when it was pushed, not
+    #: when it was sampled. None: the stamps stand.
+    on_line: float | None = None
 
 
 class TimestampSteps:
@@ -216,6 +235,137 @@ class TimestampSteps:
         if missing < -self.tolerance:
             return Step("back", missing)
         return Step("slip" if abs(missing) > self.tolerance / 2 else "ok", missing)
+
+
+#: Seconds of stream over which the clock model keeps its lower envelope (the earliest stamp
+#: relative to the sample count): long enough to hold a quick block, short enough that a sender's
+#: rate error (100 ppm: 0.2 ms over 2 s) does not count.
+ENVELOPE_SECONDS = 2.0
+
+
+class ClockSteps:
+    """Judges, on the sender's sample clock, what lies before each block of a stream: a pure
+    function of the blocks' sizes and stamps, so that it is tested alone.
+
+    The clock model is the line ``t = E + index / rate``: ``E`` the lower envelope of the
+    accepted blocks' ``last stamp - last index / rate`` over the last :data:`ENVELOPE_SECONDS`
+    (stamps are late by a delay >= 0, never early: the earliest is the sample clock). A block
+    whose last stamp lies within ``tolerance`` of the line follows on (``"ok"``, or ``"slip"``
+    beyond half the tolerance). A block stamped later than that is held, with those after it,
+    until the stamps say what happened:
+
+    - they come back onto the line (within the tolerance): the sender held its samples and
+      flushed its backlog, stamped at push time (overlapping stamps, 3 s of samples in
+      milliseconds): nothing was lost, nothing is filled (``"backlog"``);
+    - they run on at the sample rate, off the line by the same amount, for ``confirm`` seconds
+      of samples: samples are missing, as many as the smallest offset says (``"gap"``; beyond
+      ``max_gap`` seconds: ``"long"``, a restart).
+
+    A block stamped earlier than the line by more than the tolerance is a restart (``"back"``).
+    The first block, and the first after a restart, is ``"first"``.
+
+    Parameters
+    ----------
+    rate : float
+        Nominal rate, Hz.
+    tolerance, max_gap : float
+        Seconds (see :class:`LSLInletDriver`).
+    confirm : float, optional
+        Seconds of samples after a step whose stamps must run at the rate before it is filled
+        (default twice the tolerance).
+    """
+
+    def __init__(self, rate: float, tolerance: float, max_gap: float, confirm: float | None = None) -> None:
+        self.rate, self.tolerance, self.max_gap = float(rate), float(tolerance), float(max_gap)
+        self.confirm = 2 * self.tolerance if confirm is None else float(confirm)
+        self.index = 0                      # the stream index of the next sample (fills included)
+        self._envelope: list[tuple[int, float]] = []     # (last index, intercept) of accepted blocks
+        self._held: list[tuple[int, float, float, float]] = []   # (samples, first, last, residual)
+
+    @property
+    def held(self) -> int:
+        """Blocks held, awaiting a verdict."""
+        return len(self._held)
+
+    def _intercept(self) -> float | None:
+        horizon = self.index - ENVELOPE_SECONDS * self.rate
+        self._envelope = [e for e in self._envelope if e[0] >= horizon] or self._envelope[-1:]
+        return min(e[1] for e in self._envelope) if self._envelope else None
+
+    def _accept(self, n: int, last: float, fill: int = 0) -> None:
+        self.index += fill + n
+        self._envelope.append((self.index - 1, last - (self.index - 1) / self.rate))
+
+    def add(self, n: int, first: float, last: float) -> list[Step]:
+        """Take a block of ``n`` samples stamped ``first`` .. ``last`` (seconds); returns the
+        steps of the blocks judged now, oldest first: one per block, in the order they came
+        (none while a step is being judged)."""
+        if n < 1:
+            raise InputError(f"a block has at least one sample, got {n!r}")
+        e = self._intercept()
+        if e is None:
+            self._accept(n, last)
+            return [Step("first")]
+        held_n = sum(h[0] for h in self._held)
+        residual = last - (self.index + held_n + n - 1) / self.rate - e
+        if not self._held:
+            if residual < -self.tolerance or residual > self.max_gap:
+                return [self._restart(n, last, residual)]
+            if residual <= self.tolerance:
+                self._accept(n, last)
+                return [Step("slip" if residual > self.tolerance / 2 else "ok", residual)]
+        self._held.append((n, first, last, residual))
+        if residual <= self.tolerance:      # back on the line: a backlog, flushed
+            return self._release(0)
+        # Do the last stamps run at the rate over the last `confirm` seconds of samples held? (A
+        # backlog's are all about the flush's instant; liblsl dates a chunk's samples back from
+        # its stamp, so only the blocks' last stamps are compared.)
+        k, span = len(self._held) - 1, 0
+        while k > 0 and span < self.confirm * self.rate:
+            span += self._held[k][0]
+            k -= 1
+        if span < self.confirm * self.rate:
+            return []
+        if last - self._held[k][2] >= span / self.rate - self.tolerance:
+            return self._release(min(h[3] for h in self._held))
+        return []
+
+    def flush(self) -> list[Step]:
+        """A verdict on every held block now (the stream went silent, or ended): a gap of their
+        smallest offset where it exceeds the tolerance, else a backlog."""
+        steps: list[Step] = []
+        while self._held:
+            steps += self._release(min(h[3] for h in self._held))
+        return steps
+
+    def _release(self, offset: float) -> list[Step]:
+        """The first held block's step (``offset``: seconds missing before it); the blocks held
+        after it are judged again, on the line it leaves."""
+        held, self._held = self._held, []
+        fill = int(round(offset * self.rate)) if offset > self.tolerance else 0
+        if fill and offset > self.max_gap:
+            steps = [self._restart(held[0][0], held[0][2], offset)]
+        elif fill:
+            self._accept(held[0][0], held[0][2], fill)
+            steps = [Step("gap", fill / self.rate, fill)]
+        else:                               # a backlog: its blocks dated by the sample clock
+            e = self._intercept()
+            assert e is not None            # a block was accepted before any is held
+            steps = []
+            for k, (n, _, last, residual) in enumerate(held):
+                on_line = e + (self.index + n - 1) / self.rate
+                self._accept(n, min(last, on_line))
+                steps.append(Step("backlog" if k == 0 else "ok", residual if k == 0 else 0.0, on_line=on_line))
+            return steps
+        for n, first, last, _ in held[1:]:
+            steps += self.add(n, first, last)
+        return steps
+
+    def _restart(self, n: int, last: float, residual: float) -> Step:
+        """A step that cannot be filled: the clock model starts again with this block."""
+        self._envelope = []
+        self._accept(n, last)
+        return Step("back" if residual < 0 else "long", residual)
 
 
 class LSLInletDriver(DriverBase):
@@ -290,7 +440,11 @@ class LSLInletDriver(DriverBase):
         self._frames = self._filled = self._chunks = self._gaps = self._restarts = 0
         self._stalls = self._timing_slips = self._reopened = 0
         self._next_probe = 0.0
-        self._steps = TimestampSteps(self.rate, self.gap_tolerance, self.max_gap)
+        self._steps = ClockSteps(self.rate, self.gap_tolerance, self.max_gap)
+        self._held: collections.deque[tuple[np.ndarray, np.ndarray, float]] = collections.deque()
+        self._ready: collections.deque[Block] = collections.deque()
+        self._backlogs = 0
+        self._last_stamp = -math.inf
         self._last_data = time.monotonic()
         self._stalled = False
 
@@ -323,6 +477,8 @@ class LSLInletDriver(DriverBase):
     def read(self, timeout: float | None = None) -> Block | None:
         """The samples that arrived (up to 100 ms of them), waiting at most ``timeout`` s for the
         first; None if none came."""
+        if self._ready:
+            return self._ready.popleft()
         inlet = self._inlet
         wait = 0.0 if timeout is None else max(0.0, float(timeout))
         if inlet is None:
@@ -349,6 +505,9 @@ class LSLInletDriver(DriverBase):
         now = time.monotonic()
         n = len(stamps)
         if n == 0:
+            if self._held and now - self._last_data > self.stall_timeout:
+                self._judged(self._steps.flush())   # silent: judge the held blocks on what came
+                return self._ready.popleft() if self._ready else None
             if not self._stalled and now - self._last_data > self.stall_timeout:
                 self._stalled = True
                 self._stalls += 1
@@ -368,9 +527,16 @@ class LSLInletDriver(DriverBase):
             self._record("reconnect", f"LSL: samples from {self.info} again after {now - self._last_data:.2f} s",
                              self._frames)
         self._last_data = now
-        block = self._block(data, host, now)
         self._chunks += 1
-        return block
+        self._held.append((data, host, now))
+        self._judged(self._steps.add(n, float(host[0]), float(host[-1])))
+        return self._ready.popleft() if self._ready else None
+
+    def _judged(self, steps: list[Step]) -> None:
+        """The held blocks the clock model has judged, as blocks ready to return."""
+        for step in steps:
+            data, host, now = self._held.popleft()
+            self._ready.append(self._block(data, host, now, step))
 
     def _look_for_a_new_sender(self) -> None:
         """While the stream is silent, ask the network for it again: a sender that was restarted
@@ -403,10 +569,9 @@ class LSLInletDriver(DriverBase):
         self._inlet, self._stream, self._lost = inlet, new, False
         self._reopened += 1
 
-    def _block(self, data: np.ndarray, host: np.ndarray, now: float) -> Block:
-        """The block for these samples, with the gap before them filled or marked."""
+    def _block(self, data: np.ndarray, host: np.ndarray, now: float, step: Step) -> Block:
+        """The block for these samples, with the gap before them (``step``) filled or marked."""
         start = self._frames
-        step = self._steps.step(float(host[0]), float(host[-1]))
         fill, restarts = 0, ()
         if step.kind == "gap":
             fill = step.samples
@@ -423,6 +588,11 @@ class LSLInletDriver(DriverBase):
             self._record("restart", f"LSL: {self.info}: {what}; stream time jumps here", start)
         elif step.kind == "slip":
             self._timing_slips += 1
+        elif step.kind == "backlog":
+            self._backlogs += 1
+            self._record("backlog", f"LSL: {self.info}: samples stamped up to {step.seconds:.2f} s late came "
+                                    "back onto the sender's sample clock (a backlog pushed at once); nothing "
+                                    "missing, nothing filled", start)
         n = data.shape[0]
         filled = None
         if fill:
@@ -430,17 +600,22 @@ class LSLInletDriver(DriverBase):
             filled = np.zeros(fill + n, dtype=bool)
             filled[:fill] = True
         self._frames += fill + n
-        return Block(data, start, now, filled, restarts=restarts, timestamp=float(host[-1]))
+        stamp = float(host[-1]) if step.on_line is None else step.on_line
+        if not restarts:                    # one clock, never backwards (a backlog's dates meet the stamps)
+            stamp = max(stamp, self._last_stamp)
+        self._last_stamp = stamp
+        return Block(data, start, now, filled, restarts=restarts, timestamp=stamp)
 
     # -- counters and events ------------------------------------------------------------------
 
     def stats(self) -> dict[str, int]:
         """``frames`` (delivered, filled ones included), ``filled``, ``chunks`` (reads that
         brought samples), ``gaps``, ``restarts``, ``stalls``, ``reopened`` (inlets made to a
-        restarted sender), ``timing_slips``."""
+        restarted sender), ``timing_slips``, ``backlogs`` (late stamps that came back onto the
+        sample clock: nothing filled)."""
         return {"frames": self._frames, "filled": self._filled, "chunks": self._chunks, "gaps": self._gaps,
                 "restarts": self._restarts, "stalls": self._stalls, "reopened": self._reopened,
-                "timing_slips": self._timing_slips}
+                "timing_slips": self._timing_slips, "backlogs": self._backlogs}
 
     def __repr__(self) -> str:
         return f"LSLInletDriver({self.info})"
@@ -500,4 +675,4 @@ SPEC = DriverSpec(
                                   DEFAULT_STALL_TIMEOUT),
         "buffer_seconds": _seconds("buffer_seconds", "seconds liblsl buffers in the inlet", DEFAULT_BUFFER_SECONDS),
     },
-    build=_build, live=True, check=_check)
+    build=_build, live=True, check=_check, buffered=True)

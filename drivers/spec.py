@@ -131,6 +131,11 @@ class DriverSpec:
     check : callable, optional
         ``check(options) -> None``: a check across keys, raising :class:`OptionError`; run when
         the scene is loaded, before anything is built.
+    buffered : bool
+        A live driver that holds what arrives in a buffer of its own (an LSL inlet: liblsl keeps
+        ``buffer_seconds``), so that the node may wait for it: its ring blocks it (``overrun =
+        "auto"``) instead of dropping, and a backlog its sender flushes at once waits there.
+        Default False.
     """
 
     type: str
@@ -141,6 +146,7 @@ class DriverSpec:
     timebase: Callable[[dict[str, Any], Any], tuple[str, float, float]] | None = None
     signal_type: Callable[[dict[str, Any]], str | None] = field(default=lambda options: None)
     check: Callable[[dict[str, Any]], None] = field(default=lambda options: None)
+    buffered: bool = False
 
     def timebase_of(self, options: dict[str, Any], driver: Any) -> tuple[str, float, float]:
         """``(timebase, time_offset, time_rate)`` of a built driver."""
@@ -151,9 +157,10 @@ class DriverSpec:
 
     @property
     def overrun(self) -> str:
-        """The ring's policy for ``overrun = "auto"``: lossless back-pressure for a file, the
-        oldest frames dropped for a live device (it cannot wait)."""
-        return "drop-oldest" if self.live else "block"
+        """The ring's policy for ``overrun = "auto"``: lossless back-pressure for a file (and a
+        live driver with a buffer of its own), the oldest frames dropped for a live device (it
+        cannot wait)."""
+        return "drop-oldest" if self.live and not self.buffered else "block"
 
 
 def given(options: dict[str, Any], names: Mapping[str, str]) -> dict[str, Any]:

@@ -9,7 +9,8 @@ stdout at the start: ``{"t0": LSL time of sample 0 on the sender's sample clock}
 ``--stamp sample``: with its last sample's time on the sender's sample clock (``t0 + i / rate``).
 ``--hold-at A --hold-for B``: from A seconds of samples on, nothing is pushed for B seconds (the
 samples are kept), then the backlog is pushed at once, chunk by chunk, and sending goes on.
-``--source-id ""`` gives the stream no source id.
+``--source-id ""`` gives the stream no source id. ``--wait``: sample 0 is sent once a consumer has
+connected (so that it gets every sample; ``t0`` is printed then).
 """
 
 import argparse
@@ -38,6 +39,7 @@ def main(argv=None) -> None:
     p.add_argument("--stamp", choices=["push", "sample"], default="push")
     p.add_argument("--hold-at", type=float, default=None)
     p.add_argument("--hold-for", type=float, default=0.0)
+    p.add_argument("--wait", action="store_true", help="send nothing before a consumer has connected")
     a = p.parse_args(argv)
 
     import pylsl
@@ -47,6 +49,10 @@ def main(argv=None) -> None:
     outlet = pylsl.StreamOutlet(info, chunk_size=size)
     total = int(round(a.seconds * a.rate))
     hold_from = None if a.hold_at is None else int(round(a.hold_at * a.rate))
+    if a.wait:                                      # every sample to a consumer connected first
+        if not outlet.wait_for_consumers(60.0):
+            sys.exit("no consumer came")
+        time.sleep(0.3)
     t0 = pylsl.local_clock() + 0.05
     print(json.dumps({"t0": t0}), flush=True)
     i, held = 0, hold_from is None

@@ -71,12 +71,12 @@ def test_a_stream_that_is_not_there_is_refused_naming_what_was_found(tmp_path):
         sender.wait(timeout=10)
 
 
-def _pull_all(inlets: dict, until: float, clock) -> dict:
-    """Every sample each inlet gets until host time ``until``, taking what has come (never
+def _pull_all(inlets: dict, done, clock) -> dict:
+    """Every sample each inlet gets until ``done()`` is true, taking what has come (never
     waiting in liblsl: a pull that waits for a chunk to fill can outlast a closed outlet):
     per inlet (samples, timestamps, the LSL time each was received)."""
     got = {k: ([], [], []) for k in inlets}
-    while time.monotonic() < until:
+    while not done():
         for k, inlet in inlets.items():
             chunk, ts = inlet.pull_chunk(timeout=0.0)
             now = clock()
@@ -118,8 +118,18 @@ def test_the_outlets_carry_the_documented_labels_units_classes_and_window_times(
             assert info.source_id() == outlet_source_id(prefix, "main", output)
             inlets[output] = pylsl.StreamInlet(info, processing_flags=pylsl.proc_clocksync)
             inlets[output].open_stream(timeout=10)
-        got = _pull_all(inlets, time.monotonic() + 8.0, pylsl.local_clock)
         full = {k: v.info(timeout=5) for k, v in inlets.items()}
+        # The outlets are up while the node trains (seconds): pull until it has sent its 6 s and
+        # ended (1 s more for the last samples), at most 5 minutes.
+        ended: list = []
+        limit = time.monotonic() + 300
+
+        def done():
+            if node.poll() is not None and not ended:
+                ended.append(time.monotonic())
+            return time.monotonic() > limit or bool(ended) and time.monotonic() > ended[0] + 1.0
+
+        got = _pull_all(inlets, done, pylsl.local_clock)
         assert node.wait(timeout=30) == 0, node.stderr.read()
     finally:
         if node.poll() is None:

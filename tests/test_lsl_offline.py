@@ -8,7 +8,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from supramodal.drivers.lsl import LSLUnavailable, TimestampSteps, import_pylsl
+from supramodal.drivers.lsl import ClockSteps, LSLUnavailable, TimestampSteps, import_pylsl
 from supramodal.node.build import build_node
 from supramodal.node.cli import main
 from supramodal.node.scene import SceneError, scene_from_dict
@@ -80,3 +80,76 @@ def test_without_the_extra_a_scene_naming_lsl_says_what_to_install(monkeypatch, 
     assert main(["run", str(scene), "--quiet"]) != 0
     err = capsys.readouterr().err
     assert 'pip install "supramodal[lsl]"' in err and "PYLSL_LIB" in err
+
+
+def _judge_all(judge, blocks):
+    """Every block's step from a :class:`ClockSteps` (``blocks``: (samples, first, last)), flushed at the end."""
+    steps = []
+    for n, first, last in blocks:
+        steps += judge.add(n, first, last)
+    return steps + judge.flush()
+
+
+@settings(max_examples=200)
+@given(blocks=st.lists(st.tuples(st.integers(1, 400), st.floats(0.0, 0.02), st.sampled_from([0, 0, 0, 0, 1, 7, 400, 5000])),
+                       min_size=1, max_size=60),
+       t0=st.floats(0, 1e6))
+def test_the_clock_model_finds_each_loss_and_fills_nothing_for_delays(blocks, t0):
+    """Blocks stamped when they were pushed: their last sample's time on the sender's clock plus a
+    delay of 0-20 ms, some after a loss. Every loss beyond the tolerance is filled, sized within
+    the delays' spread (exactly when there is no delay), before the block that follows it; delays
+    alone are never taken for a loss; one step per block, in order."""
+    judge = ClockSteps(RATE, tolerance=0.05, max_gap=10.0)
+    index, stamped, losses = 0, [], []
+    for size, delay, lost in blocks:
+        if stamped:
+            index += lost
+        losses.append(lost if stamped else 0)
+        last = t0 + (index + size - 1) / RATE + delay
+        stamped.append((size, last - (size - 1) / RATE, last))
+        index += size
+    steps = _judge_all(judge, stamped)
+    assert len(steps) == len(blocks) and steps[0].kind == "first"
+    # A loss within the tolerance is not seen (not filled): it shifts the stamps of what follows
+    # by its length, as a delay would, until it leaves the clock model's envelope.
+    unseen = sum(x for x in losses if x / RATE <= 0.05)
+    exact = all(d == 0 for _, d, _ in blocks) and unseen == 0
+    for step, lost in zip(steps[1:], losses[1:]):
+        if lost / RATE > 0.05 + 0.02:
+            assert step.kind == "gap" and abs(step.samples - lost) <= 0.02 * RATE + unseen + 1, (step, lost)
+            if exact:
+                assert step.samples == lost
+        elif (lost + unseen) / RATE <= 0.05 - 0.02:
+            assert step.kind in ("ok", "slip", "backlog") and step.samples == 0, (step, lost)
+    assert judge.index == sum(s for s, _, _ in blocks) + sum(s.samples for s in steps)
+
+
+@settings(max_examples=100)
+@given(chunk=st.integers(20, 100), hold_at=st.integers(11, 200), hold=st.floats(0.1, 5.0), pull=st.integers(1, 10),
+       delay=st.floats(0.0, 0.01))
+def test_a_backlog_stamped_at_push_time_is_no_gap_and_is_dated_by_the_sample_clock(chunk, hold_at, hold, pull, delay):
+    """Issue 26 item 9: a sender pushing chunks stamped at push time holds for ``hold`` seconds,
+    then pushes the backlog at once (every stamp the flush's instant) and goes on; the inlet pulls
+    ``pull`` chunks at a time. Nothing is filled; the backlog's blocks are dated on the sample
+    clock (within the pushes' delay), never by their stamps."""
+    judge = ClockSteps(RATE, tolerance=0.05, max_gap=10.0)
+    chunks = []
+    total = hold_at * chunk + int(hold * RATE) + 50 * chunk
+    flush_at = hold_at * chunk / RATE + hold
+    for k in range(total // chunk):
+        last_index = (k + 1) * chunk - 1
+        due = (last_index + 1) / RATE + delay
+        chunks.append((chunk, max(due, flush_at) if k >= hold_at else due, last_index))
+    steps, blocks = [], []
+    for i in range(0, len(chunks), pull):
+        group = chunks[i:i + pull]
+        n = sum(c[0] for c in group)
+        blocks.append(group[-1][2])
+        steps += judge.add(n, group[-1][1] - (n - 1) / RATE, group[-1][1])
+    steps += judge.flush()
+    assert len(steps) == len(blocks)
+    assert all(s.samples == 0 and s.kind in ("first", "ok", "slip", "backlog") for s in steps), steps
+    assert judge.index == len(chunks) * chunk
+    for s, last_index in zip(steps, blocks):
+        if s.on_line is not None:
+            assert abs(s.on_line - (last_index + 1) / RATE) <= delay + 1e-9

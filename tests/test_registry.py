@@ -126,7 +126,7 @@ def test_every_built_in_spec_fits_its_type_and_its_own_defaults(kind):
         if not k.required and k.default is not None:
             assert k.check(k.default), (kind, key, k.default)
         assert k.expected, (kind, key)
-    assert spec.overrun == ("drop-oldest" if spec.live else "block")
+    assert spec.overrun == ("drop-oldest" if spec.live and not spec.buffered else "block")
 
 
 def test_naming_a_driver_type_loads_only_its_module():
