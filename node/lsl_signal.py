@@ -27,7 +27,8 @@ The samples are cut at fixed stream indices, every ``chunk`` seconds of samples 
 ``k * C``), whatever block sizes the driver delivers, and at the driver's restart marks (where
 the source's time jumps: no chunk reaches across one), and each chunk is pushed as soon as its last
 sample is in (``push_chunk``, which stamps the chunk's last sample; liblsl dates the others back by
-the nominal rate). The stamp is that sample's time on the node's common clock (the source's
+the nominal rate); after :data:`SILENCE_FLUSH_SECONDS` without a frame the frames of the chunk
+begun are pushed without waiting for the rest. The stamp is that sample's time on the node's common clock (the source's
 clock model, the line of the block that brought it), put on LSL's clock: for a live source, the
 host time the sample was taken; for a file, its own time from the start of the run.
 
@@ -83,6 +84,9 @@ DEFAULT_SIGNAL_TYPE = "Signal"
 SIGNAL_CHUNK_RANGE = (0.001, 0.1)
 #: The output name in the stream's name and source id.
 SIGNAL = "signal"
+#: Seconds without a frame from the source after which the frames of a chunk begun are pushed
+#: without waiting for the rest of the chunk.
+SILENCE_FLUSH_SECONDS = 0.1
 #: Seconds :meth:`LSLSignalOutlet.close` waits, when a consumer is connected, for liblsl to send
 #: the last chunk before the outlet goes.
 LINGER_SECONDS = 0.5
@@ -185,13 +189,19 @@ class LSLSignalOutlet(Tap):
         the ring closes, pushing each chunk as it completes. The tap's thread."""
         reader, expected = feed.reader, 0
         self._feed = feed
+        heard = time.monotonic()
         while True:
             try:
                 got = reader.read(timeout=0.05)
             except RingClosed:
                 break
             if got is None:
+                # A source gone silent (a sensor unplugged, a sender paused): the frames of the
+                # chunk begun go now, not when (if ever) the chunk completes.
+                if self._pending and time.monotonic() - heard >= SILENCE_FLUSH_SECONDS:
+                    self._flush()
                 continue
+            heard = time.monotonic()
             start, data, filled = got
             self._take_restarts(feed.marks, start + data.shape[0])
             if start > expected:

@@ -333,3 +333,43 @@ def test_a_wait_for_a_consumer_is_start_up_and_a_signal_ends_it_at_once(tmp_path
     assert proc.returncode == code and waited < 10, (proc.returncode, waited, err[-500:])
     assert f"interrupted by {signal_.Signals(signum).name} during start-up" in err
     assert out == ""
+
+
+class _SilentReader(_PlannedReader):
+    """A planned reader that, once its chunks are handed out, is silent for ``silence`` seconds
+    (reads that time out, as a ring whose source stopped), then closed; it keeps how many pushes
+    had been made when the silence ended."""
+
+    def __init__(self, chunks, silence, pushes):
+        super().__init__(chunks)
+        self.end = None
+        self.silence, self.pushes, self.pushed_in_silence = silence, pushes, None
+
+    def read(self, timeout=None):
+        if self.chunks:
+            return self.chunks.popleft()
+        if self.end is None:
+            self.end = time.monotonic() + self.silence
+        if time.monotonic() < self.end:
+            time.sleep(timeout or 0.0)
+            return None
+        self.pushed_in_silence = len(self.pushes.pushed)
+        raise RingClosed("done")
+
+
+def test_a_partial_chunk_goes_when_the_source_falls_silent():
+    """Issue 26 item 11: after a live source went silent its partial last chunk was held back
+    (22 samples not sent in 100 s): pushed only when the chunk completed or the ring closed. Now
+    it goes after 0.1 s without a frame, stamped at its last sample."""
+    rate = 5000.0
+    tap = LSLSignalOutlet("whiskers", rate, 2, chunk=0.01)
+    tap._outlet = pushes = _Pushes()
+    data = np.arange(2 * 72, dtype=float).reshape(72, 2)          # one chunk of 50, then 22 frames
+    reader = _SilentReader([(0, data, None)], silence=1.0, pushes=pushes)
+    tap.start(_Source((0.0, 1.0 / rate)), epoch=100.0)
+    feed = Feed(reader)
+    feed.arrivals.append((72, 0.0, (0.0, 1.0 / rate)))
+    tap.run(feed)
+    assert reader.pushed_in_silence == 2 and [len(x) for x, _ in pushes.pushed] == [50, 22]
+    assert pushes.pushed[1][1] == pytest.approx(100.0 + 71 / rate - tap._clock.offset, abs=1e-9)
+    assert tap.samples_sent == 72 and tap.holes == 0
