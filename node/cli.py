@@ -252,15 +252,20 @@ def _default_run_guide(scene, speed) -> list[str]:
     ]
 
 
-def _scene_line(scene) -> str:
+def _scene_line(scene, sinks_replaced: bool = False) -> str:
     """What a scene runs, in one line: driver, bank, features and window (per stream, and the
-    fusion, for a scene of several sources)."""
+    fusion, for a scene of several sources); ``sinks_replaced`` (``run --json``): the scene's
+    sinks are not made, so no source is said to be sent on."""
     def one(sub) -> str:
         bank = (f"the bank of {sub.bank['file']}" if sub.bank["file"] is not None else f"{sub.bank['kind']} bank")
         return f"{bank}, features {sub.features['names']}, {sub.features['window']:g} s windows"
 
     sent = [f"source {k['source']} sent on as LSL ({k['chunk'] * 1e3:g} ms chunks)" for k in scene.sinks
             if k["type"] == "lsl-signal"]
+    if sinks_replaced and scene.sinks:
+        kinds = [k["type"] for k in scene.sinks]
+        lsl = "; nothing sent on as LSL" if any(k.startswith("lsl") for k in kinds) else ""
+        sent = [f"--json: JSON Lines on stdout instead of the scene's sinks ({', '.join(kinds)}{lsl})"]
     if not scene.is_graph:
         return f"scene {scene.source}: {scene.driver['type']} driver, {one(scene)}" + "".join(f"; {p}" for p in sent)
     parts = [f"stream {s.name}: {s.scene.driver['type']} source {s.source}, {one(s.scene)}" for s in scene.streams]
@@ -289,7 +294,7 @@ def _cmd_run(args) -> int:
         for line in _default_run_guide(scene, args.speed):
             progress(line)
     elif progress:
-        progress(_scene_line(scene))
+        progress(_scene_line(scene, sinks_replaced=args.json))
     node = build_node(scene, speed=args.speed, sinks_override=sinks, progress=progress, overwrite=args.force)
     node.run(max_seconds=args.seconds, on_running=lambda: _stop_on_signals(node))
     return 0
@@ -595,10 +600,10 @@ def _train_fusion(args) -> int:
                           "correlation": float(f"{info['correlation']:.3g}")})
         return 0
     path = result.save(args.out)
-    _write_run_scene(args, write_fused_scene, (a, b), models, {"method": "early", "model": str(path.resolve())})
     print(f"wrote {path}: early fusion of {a} and {b}, classes {info['classes']}, {info['pairs']} pairs of windows, "
           f"calibrated on its out-of-fold pairs (the early row); use it with [fusion] method = \"early\", "
           f"model = \"{path.resolve()}\" (a relative path is taken from the scene's folder)")
+    _write_run_scene(args, write_fused_scene, (a, b), models, {"method": "early", "model": str(path.resolve())})
     return 0
 
 

@@ -153,3 +153,14 @@ def test_a_backlog_stamped_at_push_time_is_no_gap_and_is_dated_by_the_sample_clo
     for s, last_index in zip(steps, blocks):
         if s.on_line is not None:
             assert abs(s.on_line - (last_index + 1) / RATE) <= delay + 1e-9
+
+
+def test_json_replacing_the_lsl_sinks_is_what_the_start_up_line_says(tmp_path, capsys):
+    """Issue 26 item 11: ``run --json`` replaces the scene's sinks (an LSL signal outlet too), but
+    the start-up line still said "source a sent on as LSL"."""
+    scene = tmp_path / "relay.toml"
+    scene.write_text('[[source]]\nname = "a"\ntype = "synth"\nseconds = 0.5\n\n[[sink]]\ntype = "lsl-signal"\n')
+    assert main(["run", str(scene), "--json", "--speed", "max"]) == 0
+    err = capsys.readouterr().err
+    assert "sent on as LSL (" not in err, err
+    assert "--json: JSON Lines on stdout instead of the scene's sinks (lsl-signal; nothing sent on as LSL)" in err
