@@ -19,7 +19,9 @@ Samples the file does not have (a sender that dropped out; a node's signal outle
 no sample it did not measure) show as a step in the timestamps. As the LSL inlet does live
 (:mod:`supramodal.drivers.lsl`, the same tolerance and longest gap), a step of more than one
 sample period plus ``gap_tolerance`` is filled with zeros, marked filled (the node counts them,
-the windows are flagged ``gap``), so that stream time stays the recording's; a gap longer than
+the windows are flagged ``gap``), so that stream time stays the recording's. How many are
+missing is read on the sample clock each side of the gap (the median of ``t - i / rate`` over
+:data:`CLOCK_FIT_SECONDS` of stamps), not from the two jittered stamps at its edges. A gap longer than
 ``max_gap`` is not filled but marked as a restart (the clock model starts again after it). Files
 are data: a stream that is not numeric, not regularly sampled, or holds non-finite samples or
 timestamps is refused with a message naming it; so is one whose ``nominal_srate`` is not a whole
@@ -311,14 +313,38 @@ def _steps(stamps: np.ndarray, rate: float, tolerance: float = DEFAULT_GAP_TOLER
     steps = np.diff(stamps)
     # The live inlet's judge, on each step that is not within the tolerance of one period.
     judge = TimestampSteps(rate, tolerance, max_gap)
+    at = np.flatnonzero(np.abs(steps - 1.0 / rate) > tolerance).tolist()
     out = []
-    for i in np.flatnonzero(np.abs(steps - 1.0 / rate) > tolerance).tolist():
+    for k, i in enumerate(at):
         judge.last = float(stamps[i])
         step = judge.step(float(stamps[i + 1]), float(stamps[i + 1]))
-        if step.kind not in ("gap", "long", "back") or step.kind == "gap" and step.samples < 1:
+        if step.kind not in ("gap", "long", "back"):
             continue
-        out.append((i, step.kind, int(step.samples) if step.kind == "gap" else 0))
+        missing = 0
+        if step.kind == "gap":
+            # Sized on the sample clock each side, not from the two jittered stamps at its edges.
+            lo = at[k - 1] + 1 if k else 0
+            hi = at[k + 1] + 1 if k + 1 < len(at) else stamps.size
+            after = _clock_offset(stamps, i + 1, hi, rate, near_start=True)
+            missing = int(round((after - _clock_offset(stamps, lo, i + 1, rate, near_start=False)) * rate))
+            if missing < 1:
+                continue
+        out.append((i, step.kind, missing))
     return out
+
+
+#: Seconds of samples each side of a gap whose stamps place the sender's sample clock there.
+CLOCK_FIT_SECONDS = 1.0
+
+
+def _clock_offset(stamps: np.ndarray, a: int, b: int, rate: float, near_start: bool) -> float:
+    """The sender's sample clock over samples ``a .. b`` (no gap between them), as ``t - i / rate``
+    at ``i = 0``: the median over the :data:`CLOCK_FIT_SECONDS` of them nearest the gap (the first
+    ones when ``near_start``, else the last), robust to the stamps' jitter (a rate 100 ppm off
+    moves it 0.1 ms over that second)."""
+    n = max(1, int(CLOCK_FIT_SECONDS * rate))
+    idx = np.arange(a, min(b, a + n)) if near_start else np.arange(max(a, b - n), b)
+    return float(np.median(stamps[idx] - idx / rate))
 
 
 def _full_scale(dtype) -> float:

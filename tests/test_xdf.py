@@ -190,3 +190,22 @@ def test_a_marker_stream_of_the_file_gives_the_truth_labels(tmp_path):
         xdf_session(tmp_path / "r.xdf", name="mic", labels="whiskers")
     with pytest.raises(ReplayError, match=r"labels: no stream\(s\) named 'events'"):
         xdf_session(tmp_path / "r.xdf", name="mic", labels="events")
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_a_gap_is_sized_on_the_sample_clock_not_from_its_two_jittered_edge_stamps(seed):
+    """Issue 26 item 11: a 2,500-sample hole whose two edge stamps jitter apart (0.2 ms: one sample
+    at 5 kHz) was filled with 2,501 zeros, and the windows after it were late. Sized on the
+    sample clock each side of it (the median of 1 s of stamps), the fill is the hole."""
+    from supramodal.replay.xdf import fill_gaps
+
+    rate = 5000.0
+    rng = np.random.default_rng(seed)
+    index = np.r_[0:5000, 7500:15000]
+    stamps = 100.0 + index / rate + rng.uniform(-1e-4, 1e-4, index.size)   # LSL's push jitter, not dejittered
+    stamps[4999] = 100.0 + 4999 / rate - 1e-4                               # the edges as far apart as it goes
+    stamps[5000] = 100.0 + 7500 / rate + 1e-4
+    data = np.ones((index.size, 1))
+    out, times, filled, marks = fill_gaps(data, stamps, rate, tolerance=0.05, max_gap=10.0)
+    assert filled == ((5000, 7500),) and marks == () and out.shape[0] == 15000
+    assert np.all(np.diff(times) > 0)
