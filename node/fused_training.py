@@ -141,7 +141,7 @@ def train_fused(paths, method: str = "early", epochs: int = DEFAULT_EPOCHS, seed
     stream_models: tuple = ()
     va, vb, truth, groups, own, seen = [], [], [], [], ([], []), 0
     for k_scene, path in enumerate(paths):
-        graph, pairs = scene_pairs(path, progress, models)
+        graph, pairs = scene_pairs(path, progress, models) if models else scene_pairs(path, progress)
         a, b = (next(s for s in graph.streams if s.name == n) for n in graph.fusion.inputs)
         if senses is None:
             senses, classes = (Sense.of(a.name, a.pipeline), Sense.of(b.name, b.pipeline)), graph.fusion.classes
@@ -157,14 +157,16 @@ def train_fused(paths, method: str = "early", epochs: int = DEFAULT_EPOCHS, seed
                 raise InputError(f"{path}: its textures {list(graph.fusion.classes)} differ from the first scene's "
                                  f"{list(classes)}; train on recordings of one graph")
         for model, stream in zip(stream_models, (a, b)):
-            seen += session_fingerprint(scene_stream(path, stream.name)[2]) in model.training.get("sessions", [])
+            if "sessions" in model.training:        # a model that says what it saw (train --stream)
+                seen += session_fingerprint(scene_stream(path, stream.name)[2]) in model.training["sessions"]
         groups += contact_groups(pairs, f"{k_scene}:")
         for ea, eb in pairs:
             va.append(np.stack([ea.features[f] for f in senses[0].features]))
             vb.append(np.stack([eb.features[f] for f in senses[1].features]))
             truth.append(classes.index(ea.truth))
-            for lps_own, e in zip(own, (ea, eb)):
-                lps_own.append(log_posteriors_of(e)[[list(e.classes).index(c) for c in classes]])
+            if all("sessions" in m.training for m in stream_models):     # their own posteriors may serve
+                for lps_own, e in zip(own, (ea, eb)):
+                    lps_own.append(log_posteriors_of(e)[[list(e.classes).index(c) for c in classes]])
     if not truth:
         raise InputError("no labelled pair of windows in these recordings: record with a source that labels its "
                          "stream, or label the sessions")
