@@ -616,19 +616,23 @@ def _write_run_scene(args, write, streams, models: dict, fusion: dict) -> None:
 
 
 def _cmd_fit(args) -> int:
-    from supramodal.node.fit import fit_manifest, format_fit, write_fit
+    from supramodal.node.fit_search import fit_search, format_search, write_search
     from supramodal.node.outputs import check_new_file
 
     if args.out.is_dir():
-        for name in ("fit.csv", "bank.json", "fit.png"):
+        for name in ("fit.csv", "fit-curve.csv", "fit-curve.png", "bank.json"):
             check_new_file(args.out / name, args.force, "the fit file")
-    result = fit_manifest(args.manifest, k=args.cv, epochs=args.epochs, seed=args.seed, quick=args.quick,
-                          jobs=args.jobs, mapping=args.mapping, progress=_progress(args))
-    print(format_fit(result))
-    files = write_fit(result, args.out)
+    result = fit_search(args.manifest, k=args.cv, seed=args.seed, quick=args.quick, trials=args.trials,
+                        timeout=args.timeout, batch=args.batch, max_window=args.max_window,
+                        max_channels=args.max_channels, target=args.target, contact=args.contact,
+                        max_epochs=args.epochs, jobs=args.jobs, cluster=args.cluster, mapping=args.mapping,
+                        cache_dir=args.out / "cache", cache_memory=args.cache_memory * 2**20, progress=_progress(args))
+    print(format_search(result))
+    files = write_search(result, args.out)
     b = result["best"]
     print(f"wrote {', '.join(str(p) for p in files)}\nnext: supramodal train --bank {args.out / 'bank.json'} "
-          f"--window {b['window']:g} --features {' '.join(b['features'])} --manifest {args.manifest} --out MODEL")
+          f"--window {b['window']:g} --features {b['features'].replace('+', ' ')} --epochs {b['epochs']} "
+          f"--manifest {args.manifest} --out MODEL")
     return 0
 
 
@@ -825,15 +829,40 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true", help="no progress on stderr (warnings are still shown)")
     p.set_defaults(func=_cmd_train)
 
-    p = add_parser("fit", help="fit a bank, window and features to your recordings by grouped cross-validation")
+    p = add_parser("fit", help="fit a bank, window, features and network to your recordings under your latency and "
+                               "CPU budgets (a joint search by grouped cross-validation; the fit extra)")
     p.add_argument("manifest", help="CSV with columns path,label[,start,end]; paths relative to it")
     p.add_argument("--out", type=_output_folder, default="out/fit",
-                   help="folder for fit.csv, fit.png and bank.json, the best bank (default ./out/fit)")
+                   help="folder for fit.csv (every trial), fit-curve.csv/.png (best accuracy per window), bank.json "
+                        "(the best bank) and the feature cache (default ./out/fit)")
     p.add_argument("--cv", type=_count(2), default=5, metavar="K", help="folds, grouped by recording (default 5)")
-    p.add_argument("--epochs", type=_count(1), default=300, help="iRPROP- epochs per fold (default 300)")
-    p.add_argument("--seed", type=_count(0), default=0, help="seed of the folds and the networks (default 0)")
-    p.add_argument("--quick", action="store_true", help="fewer values per parameter (default: the full sweep)")
-    p.add_argument("--jobs", type=_count(1), default=1, help="processes scoring candidates at once (default 1)")
+    p.add_argument("--trials", type=_count(1), default=None,
+                   help="settings to try (default 60, --quick 20)")
+    p.add_argument("--timeout", type=_positive_seconds, default=None, metavar="S",
+                   help="start no new round of trials after S seconds (default: none)")
+    p.add_argument("--max-window", type=_positive_seconds, default=None, metavar="S",
+                   help="latency budget: no window longer than S seconds (default: none)")
+    p.add_argument("--max-channels", type=_count(1), default=None, metavar="N",
+                   help="CPU budget: no bank with more than N channels (default: none)")
+    p.add_argument("--target", choices=("window", "recording", "contact"), default="window",
+                   help="the accuracy to maximise: per window, per recording (all its windows pooled) or per "
+                        "contact (--contact seconds of windows pooled) (default window)")
+    p.add_argument("--contact", type=_positive_seconds, default=0.5, metavar="S",
+                   help="seconds of a contact for --target contact (default 0.5)")
+    p.add_argument("--epochs", type=_count(1), default=None,
+                   help="most iRPROP- epochs a trial may train (default: the search's own list)")
+    p.add_argument("--seed", type=_count(0), default=0,
+                   help="seed of the sampler, the folds and the networks (default 0)")
+    p.add_argument("--batch", type=_count(1), default=4,
+                   help="trials asked at once; the result depends on the seed and this, not on --jobs or --cluster "
+                        "(default 4)")
+    p.add_argument("--quick", action="store_true", help="fewer values per parameter and fewer trials")
+    p.add_argument("--jobs", type=_count(1), default=1,
+                   help="local processes scoring folds (a local Dask cluster when more than 1; default 1)")
+    p.add_argument("--cluster", default=None, metavar="ADDRESS",
+                   help="a running Dask scheduler (tcp://HOST:PORT) whose workers score the folds instead")
+    p.add_argument("--cache-memory", type=_count(16), default=512, metavar="MB",
+                   help="feature windows each process keeps in memory; more go to --out/cache (default 512)")
     p.add_argument("--mapping", type=_mapping, default="auto",
                    help="recording channels to filters: auto (one channel to all, or one each), mono, per-channel, "
                         "mean, or a channel index (default auto)")

@@ -52,12 +52,12 @@ def test_fit_is_deterministic_and_its_best_is_the_cross_validation_of_that_setti
 def test_fit_writes_a_bank_whose_model_decides_in_the_node_as_evaluate_does_on_held_out_recordings(sensor, tmp_path, capsys):
     out = tmp_path / "fit"
     assert main(["fit", str(sensor / "m.csv"), "--out", str(out), "--cv", "3", "--epochs", "30", "--quick",
-                 "--quiet"]) == 0
+                 "--trials", "4", "--quiet"]) == 0
     text = capsys.readouterr().out
-    assert "best:" in text and "the paper's whisker bank" in text and "next: supramodal train --bank" in text
+    assert "best (trial" in text and "the paper's whisker bank" in text and "next: supramodal train --bank" in text
     bank = load_bank(out / "bank.json")
     assert bank.fs == SENSOR_RATE and bank.cf.max() < SENSOR_RATE / 2
-    assert len(list(csv.reader(open(out / "fit.csv")))) == 1 + 13
+    assert len(list(csv.reader(open(out / "fit.csv")))) == 1 + 4
     assert main(["train", "--bank", str(out / "bank.json"), "--manifest", str(sensor / "m.csv"),
                  "--out", str(tmp_path / "m.npz"), "--epochs", "30", "--quiet"]) == 0
     # The whole path a user takes: the fitted bank's model, in `supramodal run` on replays of

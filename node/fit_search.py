@@ -1,0 +1,687 @@
+"""``supramodal fit``: a joint search of bank, window, features and network under a user's constraints.
+
+Every trial is one setting of all parameters at once (:class:`Setting`): the bank's family (ERB-spaced
+like the cochlea, or the whisker array's layout of resonances stretched over the band), its channels,
+band edges and bandwidth scale at the recordings' own rate, the window, the features, the hidden
+units and the epochs. Optuna's TPE sampler, seeded, proposes them; each is scored by grouped
+``k``-fold cross-validation (folds by manifest line, :func:`supramodal.training.grouped_folds`), one
+fold after another, each fold's running mean reported to Optuna as an intermediate value so that its
+median pruner stops a trial that is hopeless after its first folds.
+
+What a user states is obeyed, and refused when it cannot be (:class:`FitError`): ``max_window``
+(the latency budget: no window longer), ``max_channels`` (the CPU budget) and ``target``
+(``window``, ``recording`` or ``contact``: the accuracy maximised). A window must hold one period
+of the bank's lowest channel, so each trial's band starts no lower than ``1 / window``.
+
+Trials run in rounds of ``batch`` (asked from Optuna together, scored fold by fold, told in
+order): the result depends on the seed and the batch alone, not on how many processes or which
+cluster scored the folds. ``jobs > 1`` starts a local Dask cluster of that many processes,
+``cluster`` connects to a running Dask scheduler; the folds of a round are mapped over its
+workers by Dask (:class:`Runner`). Filterbank outputs are computed once per bank and recording
+(:class:`~node.fit_cache.FeatureCache`).
+
+The report: every trial; the best; the best per window length (the accuracy-vs-window curve) with
+the paper's two banks scored beside each point at the same window, features, hidden units and
+epochs (so also beside the best). Trials are scored on uncalibrated networks (their winner per
+window is the calibrated model's whenever the calibration keeps the order of the outputs; a model
+``supramodal train`` makes is calibrated on top); the paper's banks are scored the same way.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from supramodal.bankfile import bank_from_description, save_bank
+from supramodal.banks import (
+    ERB_TO_B,
+    MAX_CHANNELS,
+    WHISKER_B_MIN,
+    WHISKER_Q_EAR,
+    WHISKER_TABLE,
+    Bank,
+    cochlea_bank,
+    erb,
+    whisker_bank,
+)
+from supramodal.calibration import pool_log_posteriors, winner
+from supramodal.errors import InputError
+from supramodal.evaluation import pooled_accuracy
+from supramodal.model import TextureModel
+from supramodal.node.band import channels_beyond_band
+from supramodal.node.fit_cache import DEFAULT_MEMORY_BYTES, FeatureCache
+from supramodal.node.manifest import ManifestError, read_manifest
+from supramodal.node.reports import pyplot_or_none
+from supramodal.pipeline import window_length
+from supramodal.replay.session import session_paths
+from supramodal.replay.wavio import wav_info
+from supramodal.training import grouped_folds
+
+__all__ = ["FitError", "Runner", "Setting", "Space", "fit_search", "format_search", "install_hint", "search_space",
+           "write_search"]
+
+#: The values each parameter may take, (full, quick). Fractions of the Nyquist frequency for the
+#: band edges; seconds for the window.
+CHANNELS = ((10, 20, 30, 50), (10, 20, 30))
+F_HIGH = ((0.5, 0.7, 0.9), (0.5, 0.9))
+F_LOW = ((0.005, 0.02, 0.05, 0.1), (0.005, 0.02, 0.1))
+B_SCALE = ((0.5, 1.0, 2.0), (0.5, 1.0, 2.0))
+WINDOWS = ((0.025, 0.05, 0.1, 0.2, 0.4), (0.05, 0.1, 0.2, 0.4))
+FEATURE_SETS = (("Af", "A+f+Af", "A", "f"), ("Af", "A+f+Af"))
+HIDDEN = ((8, 16, 32, 64), (8, 16, 32))
+EPOCHS = ((50, 100, 200, 300), (30, 60, 120))
+FAMILIES = ("erb", "whisker")
+TARGETS = ("window", "recording", "contact")
+#: Trials when none are asked for (full, quick).
+DEFAULT_TRIALS = (60, 20)
+#: Trials asked from Optuna at once (the result depends on it, not on the number of processes).
+DEFAULT_BATCH = 4
+#: A contact, for ``target = "contact"``: seconds of consecutive windows pooled.
+DEFAULT_CONTACT = 0.5
+
+
+class FitError(InputError):
+    """A constraint or an option of the fit that cannot be met; the message says why and the fix."""
+
+
+def install_hint() -> str:
+    """The line that says how to install what the search needs."""
+    return "supramodal fit needs the fit extra (optuna, dask[distributed]): pip install 'supramodal[fit]'"
+
+
+def _features(text: str) -> tuple[str, ...]:
+    return tuple(text.split("+"))
+
+
+@dataclass(frozen=True)
+class Setting:
+    """One trial: a bank of ``family`` at ``fs`` Hz, a window and a network.
+
+    Attributes
+    ----------
+    fs : float
+        The bank's rate, Hz (the recordings' own).
+    family : {"erb", "whisker"}
+        ERB-spaced centre frequencies with the cochlea's bandwidth rule, or the whisker table's 20
+        resonances (their spread on a log scale, interpolated to ``channels``) stretched over the
+        band, with the whiskers' bandwidth rule.
+    channels : int
+    f_low, f_high : float
+        The band's edges, Hz (``f_low`` already at least ``1 / window``).
+    b_scale : float
+        Every bandwidth times this.
+    window : float
+        Seconds.
+    features : str
+        Feature names joined by ``+``.
+    hidden, epochs : int
+        Hidden units and iRPROP- epochs of the network.
+    """
+
+    fs: float
+    family: str
+    channels: int
+    f_low: float
+    f_high: float
+    b_scale: float
+    window: float
+    features: str
+    hidden: int
+    epochs: int
+
+    def bank(self) -> Bank:
+        """The setting's bank (kind ``custom``)."""
+        if self.family == "erb":
+            base = bank_from_description({"kind": "cochlea", "channels": self.channels, "f_low": self.f_low,
+                                          "f_high": self.f_high, "fs": self.fs}, "fit")
+            return Bank("custom", self.fs, base.cf, base.b * self.b_scale, base.names)
+        table = np.log(np.sort([cf for row in WHISKER_TABLE.values() for cf in row]))
+        at = np.interp(np.linspace(0, 1, self.channels), np.linspace(0, 1, table.size), table)
+        span = (at - table[0]) / (table[-1] - table[0]) if table[-1] > table[0] else np.zeros_like(at)
+        cf = np.exp(np.log(self.f_low) + span * (np.log(self.f_high) - np.log(self.f_low)))
+        stretch = self.f_high / math.exp(table[-1])
+        b = ERB_TO_B * erb(cf, WHISKER_Q_EAR, WHISKER_B_MIN * stretch) * self.b_scale
+        return Bank("custom", self.fs, cf, b, tuple(f"w{i + 1:02d}" for i in range(self.channels)))
+
+
+@dataclass(frozen=True)
+class Space:
+    """What the search may try, after the constraints (:func:`search_space`)."""
+
+    fs: float
+    channels: tuple[int, ...]
+    f_high: tuple[float, ...]
+    f_low: tuple[float, ...]
+    b_scale: tuple[float, ...]
+    windows: tuple[float, ...]
+    features: tuple[str, ...]
+    hidden: tuple[int, ...]
+    epochs: tuple[int, ...]
+    target: str
+    contact: float
+    max_window: float | None
+    max_channels: int | None
+
+    def setting(self, trial) -> Setting | None:
+        """The setting an Optuna trial proposes; None when its band is empty (the window's
+        ``1 / window`` lower edge at or above half its top edge)."""
+        family = trial.suggest_categorical("family", FAMILIES)
+        channels = trial.suggest_categorical("channels", self.channels)
+        f_high = trial.suggest_categorical("f_high", self.f_high)
+        f_low = trial.suggest_categorical("f_low", self.f_low)
+        b_scale = trial.suggest_categorical("b_scale", self.b_scale)
+        window = trial.suggest_categorical("window", self.windows)
+        features = trial.suggest_categorical("features", self.features)
+        hidden = trial.suggest_categorical("hidden", self.hidden)
+        epochs = trial.suggest_categorical("epochs", self.epochs)
+        nyquist = self.fs / 2
+        lo, hi = max(f_low * nyquist, 1 / window), f_high * nyquist
+        if lo * 2 > hi:
+            return None
+        return Setting(self.fs, family, channels, lo, hi, b_scale, window, features, hidden, epochs)
+
+    def start(self) -> list[dict]:
+        """The first trials, one per window (so that the curve has every window): a 20-channel (or
+        the budget's) ERB bank over the widest band, all three features."""
+        mid = lambda values: values[len(values) // 2]         # noqa: E731
+        first = {"family": "erb", "channels": min(self.channels, key=lambda c: (abs(c - 20), c)),
+                 "f_high": max(self.f_high), "f_low": min(self.f_low),
+                 "b_scale": 1.0 if 1.0 in self.b_scale else mid(self.b_scale), "features": "A+f+Af",
+                 "hidden": mid(self.hidden), "epochs": mid(self.epochs)}
+        return [{**first, "window": w} for w in self.windows]
+
+
+def _rate(path: Path) -> int:
+    wav = path if path.suffix.lower() == ".wav" else session_paths(path)[0]
+    return wav_info(wav).rate
+
+
+def _duration(rec) -> float:
+    wav = rec.path if rec.path.suffix.lower() == ".wav" else session_paths(rec.path)[0]
+    info = wav_info(wav)
+    end = info.frames / info.rate if rec.end is None else min(rec.end, info.frames / info.rate)
+    return end - rec.start
+
+
+def search_space(recs, quick: bool = False, max_window: float | None = None, max_channels: int | None = None,
+                 target: str = "window", contact: float = DEFAULT_CONTACT, max_epochs: int | None = None) -> Space:
+    """The values the search may try on these recordings under the constraints.
+
+    Parameters
+    ----------
+    recs : list of Recording
+    quick : bool
+        The shorter lists of values.
+    max_window : float or None
+        Latency budget, seconds: no window longer. A window of this length is tried too.
+    max_channels : int or None
+        CPU budget: no bank with more channels. A bank of this many channels is tried too.
+    target : {"window", "recording", "contact"}
+    contact : float
+        Seconds of a contact (``target = "contact"``): that many seconds of windows pooled.
+    max_epochs : int or None
+        Most iRPROP- epochs; this many are tried too.
+
+    Raises
+    ------
+    FitError
+        Every constraint that cannot be met, with the reason and the fix: a window budget of fewer
+        than two samples, or too short to hold one period of a channel an octave below the top of
+        any band; windows longer than the shortest trial; a channel budget beyond
+        :data:`~supramodal.banks.MAX_CHANNELS`; an unknown target; a contact shorter than a window
+        or longer than a trial.
+    """
+    pick = 1 if quick else 0
+    rates = sorted({_rate(r.path) for r in recs})
+    fs = float(rates[-1])
+    nyquist = fs / 2
+    shortest = min(recs, key=_duration)
+    short = _duration(shortest)
+    if target not in TARGETS:
+        raise FitError(f"--target {target!r}: choose one of {', '.join(TARGETS)}")
+    windows = list(WINDOWS[pick])
+    if max_window is not None:
+        if not (math.isfinite(max_window) and max_window > 0):
+            raise FitError(f"--max-window must be a positive number of seconds, got {max_window!r}")
+        if round(max_window * fs) < 2:
+            raise FitError(f"--max-window {max_window:g} s is {round(max_window * fs)} sample(s) at the recordings' "
+                           f"{fs:g} Hz; a window needs at least 2: allow at least {2 / fs:.3g} s")
+        top = max(F_HIGH[pick]) * nyquist
+        if 2 / max_window > top:
+            raise FitError(f"--max-window {max_window:g} s is shorter than one period of the lowest band any bank "
+                           f"could have: a window must hold one period of its bank's lowest channel, and the band an "
+                           f"octave below its top ({top:g} Hz at most at {fs:g} Hz), so a window of at least "
+                           f"{2 / top:.3g} s; raise --max-window")
+        windows = [w for w in windows if w <= max_window]
+        if max_window not in windows:
+            windows.append(float(max_window))
+    windows = [w for w in windows if 2 / w <= max(F_HIGH[pick]) * nyquist and round(w * fs) >= 2]
+    fitting = [w for w in windows if w <= short]
+    if not fitting:
+        raise FitError(f"{shortest.where}: {shortest.path.name} holds {short:g} s, shorter than every window the fit "
+                       f"may try ({', '.join(f'{w:g}' for w in windows)} s); use longer trials or a shorter "
+                       "--max-window")
+    channels = list(CHANNELS[pick])
+    if max_channels is not None:
+        if not (isinstance(max_channels, int) and 1 <= max_channels <= MAX_CHANNELS):
+            raise FitError(f"--max-channels must be a whole number from 1 to {MAX_CHANNELS} (MAX_CHANNELS), "
+                           f"got {max_channels!r}")
+        channels = [c for c in channels if c <= max_channels]
+        if max_channels not in channels:
+            channels.append(max_channels)
+    epochs = list(EPOCHS[pick])
+    if max_epochs is not None:
+        epochs = [e for e in epochs if e <= max_epochs]
+        if max_epochs not in epochs:
+            epochs.append(int(max_epochs))
+    if target == "contact":
+        if not (math.isfinite(contact) and contact >= min(fitting)):
+            raise FitError(f"--contact {contact:g} s is shorter than the shortest window ({min(fitting):g} s): "
+                           "a contact pools whole windows")
+        if contact > short:
+            raise FitError(f"--contact {contact:g} s is longer than {shortest.where} ({short:g} s): no trial would "
+                           "hold a whole contact; choose a shorter contact")
+    return Space(fs, tuple(sorted(channels)), F_HIGH[pick], F_LOW[pick], B_SCALE[pick], tuple(sorted(fitting)),
+                 FEATURE_SETS[pick], HIDDEN[pick], tuple(sorted(epochs)), target, float(contact), max_window,
+                 max_channels)
+
+
+# -- one fold, anywhere --------------------------------------------------------------------------
+
+#: This process's caches, by manifest and options (a worker keeps its own between tasks).
+_CACHES: dict[tuple, tuple[list, FeatureCache]] = {}
+
+
+def _cache(job: dict) -> tuple[list, FeatureCache]:
+    key = (job["manifest"], str(job["mapping"]), job["windows"], job["cache_dir"], job["cache_memory"])
+    if key not in _CACHES:
+        recs = read_manifest(job["manifest"])
+        _CACHES[key] = recs, FeatureCache(recs, job["windows"], job["mapping"], job["cache_memory"],
+                                          job["cache_dir"])
+    return _CACHES[key]
+
+
+def forget_caches() -> None:
+    """Drop this process's feature caches (the end of a fit)."""
+    _CACHES.clear()
+
+
+def score_fold(job: dict) -> dict:
+    """Train on every fold but ``job["fold"]`` and score that one (a task: plain data in and out).
+
+    Parameters
+    ----------
+    job : dict
+        ``manifest`` (path), ``mapping``, ``windows`` (every window of the search, seconds),
+        ``cache_dir``, ``cache_memory`` (bytes), ``bank`` (:meth:`Bank.to_dict`), ``window``
+        (seconds), ``features`` (names joined by ``+``), ``hidden``, ``epochs``, ``fold``, ``k``,
+        ``seed``, ``contact`` (seconds).
+
+    Returns
+    -------
+    dict
+        ``window``, ``recording`` and ``contact`` accuracy of the fold, ``filterbank_runs`` (the
+        recordings this task ran through a filterbank: 0 when the bank was cached).
+    """
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:                                 # without it BLAS keeps its own threads
+        from contextlib import nullcontext as threadpool_limits
+    recs, cache = _cache(job)
+    before = cache.filterbank_runs
+    bank = Bank.from_dict(job["bank"])
+    features = _features(job["features"])
+    with threadpool_limits(1):                          # one core per task: processes scale, threads fight
+        values = cache.features(bank, job["window"], features)
+        classes = sorted({r.label for r in recs})
+        fold = grouped_folds([r.where for r in recs], [r.label for r in recs], job["k"], job["seed"])
+        train = [i for i in range(len(recs)) if fold[i] != job["fold"]]
+        test = [i for i in range(len(recs)) if fold[i] == job["fold"]]
+        x = np.concatenate([values[i] for i in train])
+        y = np.concatenate([np.full(len(values[i]), classes.index(recs[i].label)) for i in train])
+        model = TextureModel.train(x, y, classes, bank, features, window_length(job["window"], bank.fs),
+                                   epochs=job["epochs"], seed=job["seed"], hidden=job["hidden"], calibration_folds=0)
+        lps = [model.log_posteriors(values[i]) for i in test if len(values[i])]
+        truths = [classes.index(recs[i].label) for i in test if len(values[i])]
+    window_right = np.concatenate([winner(lp) == t for lp, t in zip(lps, truths)])
+    recording = float(np.mean([winner(pool_log_posteriors(lp, 0.0)) == t for lp, t in zip(lps, truths)]))
+    n = max(1, int(round(job["contact"] / job["window"])))
+    contact = pooled_accuracy(lps, truths, n)[0]
+    return {"window": float(window_right.mean()), "recording": recording,
+            "contact": recording if contact is None else float(contact),
+            "filterbank_runs": cache.filterbank_runs - before}
+
+
+# -- where the folds run -------------------------------------------------------------------------
+
+class Runner:
+    """Maps fold tasks over this process, a local Dask cluster or a running one; results in order.
+
+    Parameters
+    ----------
+    jobs : int
+        1: in this process; more: a local Dask cluster of that many single-threaded processes.
+    cluster : str or None
+        A Dask scheduler's address (``tcp://HOST:PORT``); its workers must have supramodal
+        installed and see the manifest's files at the same paths.
+    """
+
+    def __init__(self, jobs: int = 1, cluster: str | None = None) -> None:
+        self.client = self._local = None
+        if cluster is not None or jobs > 1:
+            try:
+                import distributed  # noqa: F401
+            except ImportError:
+                raise FitError(install_hint()) from None
+        if cluster is not None:
+            from distributed import Client
+
+            try:
+                self.client = Client(cluster, timeout="20s")
+            except OSError as exc:
+                raise FitError(f"--cluster {cluster}: no Dask scheduler answers there ({exc}); start one "
+                               "(dask scheduler; dask worker ADDRESS) or leave --cluster out") from None
+        elif jobs > 1:
+            from distributed import Client, LocalCluster
+
+            self._local = LocalCluster(n_workers=jobs, threads_per_worker=1, processes=True, host="127.0.0.1",
+                                       dashboard_address=None)
+            self.client = Client(self._local)
+
+    @property
+    def where(self) -> str:
+        if self.client is None:
+            return "this process"
+        workers = len(self.client.scheduler_info().get("workers", {}))
+        return f"Dask scheduler {self.client.scheduler.address} ({workers} workers)"
+
+    def map(self, jobs: list[dict]) -> list[dict]:
+        if self.client is None:
+            return [score_fold(j) for j in jobs]
+        return self.client.gather(self.client.map(score_fold, jobs, pure=False))
+
+    def close(self) -> None:
+        if self.client is not None:
+            self.client.close()
+        if self._local is not None:
+            self._local.close()
+
+    def __enter__(self) -> Runner:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+# -- the search ----------------------------------------------------------------------------------
+
+def _summary(folds: list[dict]) -> dict:
+    out = {}
+    for key in TARGETS:
+        v = np.array([f[key] for f in folds])
+        out[f"{key}_mean"] = float(v.mean())
+        out[f"{key}_sd"] = float(v.std(ddof=1)) if len(v) > 1 else 0.0
+    return out
+
+
+def fit_search(manifest, k: int = 5, seed: int = 0, quick: bool = False, trials: int | None = None,
+               timeout: float | None = None, batch: int = DEFAULT_BATCH, max_window: float | None = None,
+               max_channels: int | None = None, target: str = "window", contact: float = DEFAULT_CONTACT,
+               max_epochs: int | None = None, jobs: int = 1, cluster: str | None = None, mapping="auto",
+               cache_dir=None, cache_memory: int = DEFAULT_MEMORY_BYTES, progress=None) -> dict:
+    """Search settings (module docstring) on the manifest's recordings.
+
+    Parameters
+    ----------
+    manifest : path-like
+    k, seed : int
+        Folds (grouped by manifest line) and the seed of the folds, the sampler and the networks.
+    quick : bool
+        The shorter lists of values, and fewer trials by default.
+    trials : int or None
+        Trials to run (default :data:`DEFAULT_TRIALS`).
+    timeout : float or None
+        Seconds: no new round of trials starts after this (the trials done so far are the result).
+    batch : int
+        Trials asked at once; the result depends on it (and the seed), not on ``jobs``/``cluster``.
+    max_window, max_channels, target, contact, max_epochs
+        See :func:`search_space`.
+    jobs, cluster
+        See :class:`Runner`.
+    cache_dir : path-like or None
+        Where feature windows that leave memory are kept (shared by local workers).
+    cache_memory : int
+        Bytes of feature windows each process keeps in memory.
+    progress : callable(str), optional
+
+    Returns
+    -------
+    dict
+        ``fs``, ``k``, ``seed``, ``batch``, ``target``, ``space`` (the values tried), ``rows`` (every
+        trial: state, setting, folds scored, means and sds), ``best`` (the best trial's row),
+        ``curve`` (per window: ``fitted``, the best trial there, and ``whisker``, ``cochlea``, the
+        paper's banks at that window with its features and network), ``paper`` (the paper's
+        banks beside the best), ``filterbank_runs`` (recordings run through a filterbank, all
+        processes), ``seconds``, ``where``.
+
+    Raises
+    ------
+    FitError
+        A constraint that cannot be met (:func:`search_space`), or nothing completed.
+    ManifestError
+        A manifest that cannot be cross-validated with ``k`` folds.
+    """
+    try:
+        import optuna
+    except ImportError:
+        raise FitError(install_hint()) from None
+    say = progress or (lambda m: None)
+    recs = read_manifest(manifest)
+    try:
+        grouped_folds([r.where for r in recs], [r.label for r in recs], k, seed)
+    except InputError as exc:
+        raise ManifestError(f"{manifest}: {exc}") from None
+    space = search_space(recs, quick, max_window, max_channels, target, contact, max_epochs)
+    trials = DEFAULT_TRIALS[1 if quick else 0] if trials is None else int(trials)
+    if trials < 1 or batch < 1:
+        raise FitError(f"the fit needs at least one trial and a batch of at least one, got {trials} and {batch}")
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    study = optuna.create_study(direction="maximize", sampler=optuna.samplers.TPESampler(seed=seed),
+                                pruner=optuna.pruners.MedianPruner(n_startup_trials=max(batch, len(space.windows)),
+                                                                   n_warmup_steps=0))
+    for params in space.start()[:trials]:
+        study.enqueue_trial(params)
+    base = {"manifest": str(manifest), "mapping": mapping, "windows": space.windows,
+            "cache_dir": None if cache_dir is None else str(cache_dir), "cache_memory": int(cache_memory),
+            "k": k, "seed": seed, "contact": space.contact}
+    rows: list[dict] = []
+    runs = 0
+    t0 = time.perf_counter()
+    with Runner(jobs, cluster) as runner:
+        where = runner.where
+        say(f"fit: {trials} trials of grouped {k}-fold cross-validation in rounds of {batch}, on {where}; "
+            f"maximising {target} accuracy; windows {', '.join(f'{w:g}' for w in space.windows)} s")
+        while len(rows) < trials and (timeout is None or time.perf_counter() - t0 < timeout):
+            asked = [study.ask() for _ in range(min(batch, trials - len(rows)))]
+            live: list[tuple] = []
+            for trial in asked:
+                setting = space.setting(trial)
+                if setting is None:
+                    study.tell(trial, state=optuna.trial.TrialState.PRUNED)
+                    rows.append({"trial": trial.number, "state": "empty band", "folds": 0, **_params(trial.params)})
+                    continue
+                live.append((trial, setting, []))
+            for f in range(k):
+                if not live:
+                    break
+                results = runner.map([{**base, "bank": s.bank().to_dict(), "window": s.window,
+                                       "features": s.features, "hidden": s.hidden, "epochs": s.epochs, "fold": f}
+                                      for _, s, _ in live])
+                still = []
+                for (trial, setting, folds), r in zip(live, results):
+                    runs += r["filterbank_runs"]
+                    folds.append(r)
+                    trial.report(float(np.mean([x[target] for x in folds])), f)
+                    if f < k - 1 and trial.should_prune():
+                        study.tell(trial, state=optuna.trial.TrialState.PRUNED)
+                        rows.append(_row(trial.number, "pruned", setting, folds, target))
+                    else:
+                        still.append((trial, setting, folds))
+                live = still
+            for trial, setting, folds in live:
+                row = _row(trial.number, "complete", setting, folds, target)
+                study.tell(trial, row["score"])
+                rows.append(row)
+            rows.sort(key=lambda r: r["trial"])
+            done = [r for r in rows if r["state"] == "complete"]
+            elapsed = time.perf_counter() - t0
+            left = elapsed / len(rows) * (trials - len(rows))
+            if timeout is not None:
+                left = min(left, max(0.0, timeout - elapsed))
+            best = max(done, key=_rank) if done else None
+            say(f"fit: trial {len(rows)} of {trials}; "
+                + (f"best so far {best[f'{target}_mean']:.3f} of {target}s (trial {best['trial']}: {_describe(best)})"
+                   if best else "none complete yet")
+                + f"; {elapsed:.0f} s, about {left:.0f} s left")
+        done = [r for r in rows if r["state"] == "complete"]
+        if not done:
+            raise FitError("no trial completed (every one pruned or with an empty band); run more trials")
+        best = max(done, key=_rank)
+        curve: list[dict] = []
+        for w in space.windows:
+            here = [r for r in done if r["window"] == w]
+            if here:
+                curve.append({"window": w, "fitted": max(here, key=_rank)})
+        paper_jobs = []
+        for point in curve:
+            s: dict = point["fitted"]
+            for bank in (whisker_bank(), cochlea_bank()):
+                paper_jobs += [{**base, "bank": bank.to_dict(), "window": s["window"], "features": s["features"],
+                                "hidden": s["hidden"], "epochs": s["epochs"], "fold": f}
+                               for f in range(k)]
+        say(f"fit: the paper's whisker and cochlea banks at {len(curve)} window(s), beside the best of each")
+        results = runner.map(paper_jobs)
+        runs += sum(r["filterbank_runs"] for r in results)
+        for i, point in enumerate(curve):
+            for j, name in enumerate(("whisker", "cochlea")):
+                folds = results[(2 * i + j) * k: (2 * i + j + 1) * k]
+                bank = whisker_bank() if name == "whisker" else cochlea_bank()
+                point[name] = {"folds": k, **_summary(folds), "channels": bank.channels,
+                               "beyond_band": int(channels_beyond_band(bank, min(_rate(r.path) for r in recs)).size)}
+    forget_caches()
+    if cache_dir is not None:
+        for path in Path(cache_dir).glob("*.npy"):     # this fit's; the next computes its own
+            path.unlink(missing_ok=True)
+    paper = next(p for p in curve if p["window"] == best["window"])
+    return {"fs": space.fs, "k": k, "seed": seed, "batch": batch, "target": target, "space": asdict(space),
+            "rows": rows, "best": best, "curve": curve, "paper": {n: paper[n] for n in ("whisker", "cochlea")},
+            "filterbank_runs": runs, "recordings": len(recs), "seconds": time.perf_counter() - t0, "where": where}
+
+
+def _params(p: dict) -> dict:
+    return {"family": p.get("family"), "channels": p.get("channels"), "b_scale": p.get("b_scale"),
+            "window": p.get("window"), "features": p.get("features"), "hidden": p.get("hidden"),
+            "epochs": p.get("epochs")}
+
+
+def _row(number: int, state: str, s: Setting, folds: list[dict], target: str) -> dict:
+    summary = _summary(folds)
+    return {"trial": number, "state": state, "folds": len(folds), **asdict(s), **summary,
+            "score": summary[f"{target}_mean"]}
+
+
+def _rank(row: dict):
+    """Best first by the target's mean (the search's objective), then window and recording accuracy,
+    then the earlier trial."""
+    return (row["score"], row["window_mean"], row["recording_mean"], -row["trial"])
+
+
+def _describe(row: dict) -> str:
+    return (f"{row['family']} {row['channels']} ch {row['f_low']:.4g}..{row['f_high']:.4g} Hz x{row['b_scale']:g}, "
+            f"{row['window']:g} s, {row['features']}, {row['hidden']} hidden, {row['epochs']} epochs")
+
+
+def format_search(result: dict) -> str:
+    """The search's report: the best, the paper's banks beside it, the accuracy-vs-window curve."""
+    t = result["target"]
+    b, rows = result["best"], result["rows"]
+    states = {s: sum(r["state"] == s for r in rows) for s in ("complete", "pruned", "empty band")}
+    lines = [f"fit by grouped {result['k']}-fold cross-validation (seed {result['seed']}, rounds of "
+             f"{result['batch']}), banks at {result['fs']:g} Hz, maximising {t} accuracy: {len(rows)} trials "
+             f"({states['complete']} complete, {states['pruned']} pruned, {states['empty band']} with an empty "
+             f"band) in {result['seconds']:.0f} s on {result['where']}; {result['filterbank_runs']} filterbank runs "
+             f"for {result['recordings']} recordings",
+             "",
+             f"best (trial {b['trial']}): {_describe(b)}: windows {b['window_mean']:.3f} +- {b['window_sd']:.3f}, "
+             f"recordings {b['recording_mean']:.3f} +- {b['recording_sd']:.3f}, contacts {b['contact_mean']:.3f}"]
+    for name, p in result["paper"].items():
+        lines.append(f"the paper's {name} bank (same window, features, network): windows {p['window_mean']:.3f} +- "
+                     f"{p['window_sd']:.3f}, recordings {p['recording_mean']:.3f} +- {p['recording_sd']:.3f}, "
+                     f"contacts {p['contact_mean']:.3f}"
+                     + (f"; {p['beyond_band']} of its {p['channels']} channels lie above the recordings' band"
+                        if p["beyond_band"] else ""))
+    lines += ["", f"best {t} accuracy per window length (each window's best trial; the paper's banks with its "
+                  "features and network)",
+              f"{'window':>8}  {'fitted':>14}  {'whisker':>14}  {'cochlea':>14}  setting"]
+    for p in result["curve"]:
+        f, w, c = p["fitted"], p["whisker"], p["cochlea"]
+        lines.append(f"{p['window']:>7g}s  {f[t + '_mean']:>7.3f} +-{f[t + '_sd']:.3f}  {w[t + '_mean']:>7.3f} +-"
+                     f"{w[t + '_sd']:.3f}  {c[t + '_mean']:>7.3f} +-{c[t + '_sd']:.3f}  {_describe(f)}")
+    return "\n".join(lines)
+
+
+ROW_FIELDS = ("trial", "state", "folds", "family", "channels", "f_low", "f_high", "b_scale", "window", "features",
+              "hidden", "epochs", "score", "window_mean", "window_sd", "recording_mean", "recording_sd",
+              "contact_mean", "contact_sd")
+
+
+def write_search(result: dict, folder: Path) -> list[Path]:
+    """``fit.csv`` (every trial), ``fit-curve.csv`` (best accuracy per window, beside the paper's banks),
+    ``bank.json`` (the best bank, for ``train --bank``) and, where matplotlib is installed,
+    ``fit-curve.png``."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    with open(folder / "fit.csv", "w", newline="") as fh:
+        rows = csv.DictWriter(fh, ROW_FIELDS, extrasaction="ignore", restval="")
+        rows.writeheader()
+        rows.writerows(result["rows"])
+    t = result["target"]
+    with open(folder / "fit-curve.csv", "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["window", "target", "fitted_mean", "fitted_sd", "whisker_mean", "whisker_sd", "cochlea_mean",
+                    "cochlea_sd", "fitted_window_mean", "whisker_window_mean", "cochlea_window_mean", "trial",
+                    "family", "channels", "f_low", "f_high", "b_scale", "features", "hidden", "epochs"])
+        for p in result["curve"]:
+            f = p["fitted"]
+            w.writerow([p["window"], t, f[t + "_mean"], f[t + "_sd"], p["whisker"][t + "_mean"],
+                        p["whisker"][t + "_sd"], p["cochlea"][t + "_mean"], p["cochlea"][t + "_sd"],
+                        f["window_mean"], p["whisker"]["window_mean"], p["cochlea"]["window_mean"], f["trial"],
+                        f["family"], f["channels"], f["f_low"], f["f_high"], f["b_scale"], f["features"],
+                        f["hidden"], f["epochs"]])
+    b = result["best"]
+    best = Setting(**{name: b[name] for name in Setting.__dataclass_fields__})
+    written = [folder / "fit.csv", folder / "fit-curve.csv", save_bank(folder / "bank.json", best.bank())]
+    plt = pyplot_or_none()
+    if plt is None:
+        return written
+    fig, ax = plt.subplots(figsize=(5.5, 3.6))
+    x = [p["window"] for p in result["curve"]]
+    for name, style in (("fitted", "o-"), ("cochlea", "s--"), ("whisker", "^:")):
+        ax.errorbar(x, [p[name][t + "_mean"] for p in result["curve"]],
+                    yerr=[p[name][t + "_sd"] for p in result["curve"]], fmt=style, capsize=3,
+                    label={"fitted": "fitted (best trial)", "cochlea": "paper's cochlea",
+                           "whisker": "paper's whisker"}[name])
+    ax.set_xscale("log")
+    ax.set_xticks(x, [f"{v:g}" for v in x])
+    ax.set_xlabel("window (s): the decision's latency")
+    ax.set_ylabel(f"{t} accuracy (grouped {result['k']}-fold CV)")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(folder / "fit-curve.png", dpi=110)
+    plt.close(fig)
+    return written + [folder / "fit-curve.png"]

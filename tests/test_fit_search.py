@@ -1,0 +1,188 @@
+"""`supramodal fit`'s joint search (node/fit_search.py) and its feature cache (node/fit_cache.py)."""
+
+from __future__ import annotations
+
+import csv
+import sys
+
+import numpy as np
+import pytest
+from test_fit import SENSOR_RATE as RATE
+from test_fit import (
+    TEXTURES,
+    sensor,  # noqa: F401  (a fixture)
+)
+
+from supramodal.banks import whisker_bank
+from supramodal.node.cli import main
+from supramodal.node.fit_cache import FeatureCache
+from supramodal.node.manifest import read_manifest
+from supramodal.node.training import recording_windows
+from supramodal.pipeline import FeaturePipeline
+from supramodal.replay.wavio import write_wav
+from supramodal.textures import synthesize
+
+pytest.importorskip("optuna", reason="the fit extra (optuna) is not installed: pip install -e '.[fit]'")
+
+from supramodal.node.fit_search import FitError, Setting, fit_search, search_space  # noqa: E402
+
+#: Small and fast: few trials of few epochs (the search's behaviour, not its accuracy, is tested).
+FAST = {"k": 3, "quick": True, "trials": 6, "batch": 3, "max_epochs": 8}
+
+
+@pytest.fixture(scope="module")
+def manifest(sensor):  # noqa: F811  (test_fit's fingertip-like sensor: 2.2 kHz, four textures close together)
+    return sensor / "m.csv"
+
+
+def _settings(rows):
+    return [(r["trial"], r["state"], r.get("family"), r.get("channels"), r.get("window"), r.get("features"),
+             r.get("hidden"), r.get("epochs"), r.get("window_mean")) for r in rows]
+
+
+# -- the cache -----------------------------------------------------------------------------------
+
+def test_cached_windows_are_the_pipelines_for_every_window_and_feature_set_from_one_filterbank_run(manifest, tmp_path):
+    recs = read_manifest(manifest)
+    bank = Setting(RATE, "erb", 12, 40.0, 900.0, 1.0, 0.1, "Af", 8, 10).bank()
+    cache = FeatureCache(recs, (0.05, 0.1, 0.2), folder=tmp_path / "cache")
+    for window, features in ((0.1, ("Af",)), (0.2, ("A", "f", "Af")), (0.05, ("f", "A")), (0.1, ("A",))):
+        got = cache.features(bank, window, features)
+        for rec, v in zip(recs, got):
+            want = recording_windows(rec, FeaturePipeline(bank, features, window))
+            assert v.shape == want.shape
+            np.testing.assert_allclose(v, want, rtol=1e-12, atol=1e-12)
+    assert cache.filterbank_runs == len(recs)               # once per recording, for four windows x features
+    # Another process of the same machine reads the bank from the folder instead of filtering again.
+    other = FeatureCache(recs, (0.05, 0.1, 0.2), folder=tmp_path / "cache")
+    np.testing.assert_array_equal(other.features(bank, 0.2, ("Af",))[3], cache.features(bank, 0.2, ("Af",))[3])
+    assert (other.filterbank_runs, other.disk_reads) == (0, 1)
+
+
+def test_the_cache_keeps_within_its_memory_bound_and_refilters_only_without_a_folder(manifest, tmp_path):
+    recs = read_manifest(manifest)
+    a = Setting(RATE, "erb", 8, 40.0, 900.0, 1.0, 0.1, "Af", 8, 10).bank()
+    b = Setting(RATE, "whisker", 8, 40.0, 900.0, 1.0, 0.1, "Af", 8, 10).bank()
+    bounded = FeatureCache(recs, (0.1,), memory_bytes=1)       # one bank at a time
+    bounded.features(a, 0.1, ("Af",))
+    bounded.features(b, 0.1, ("Af",))
+    bounded.features(a, 0.1, ("Af",))
+    assert bounded.filterbank_runs == 3 * len(recs) and len(bounded._held) == 1
+    spilled = FeatureCache(recs, (0.1,), memory_bytes=1, folder=tmp_path / "spill")
+    for bank in (a, b, a, b):
+        spilled.features(bank, 0.1, ("Af",))
+    assert (spilled.filterbank_runs, spilled.disk_reads) == (2 * len(recs), 2)
+
+
+# -- the search ----------------------------------------------------------------------------------
+
+def test_the_search_is_deterministic_for_a_seed_and_each_fold_is_filtered_once_per_bank(manifest):
+    first = fit_search(manifest, seed=3, **FAST)
+    again = fit_search(manifest, seed=3, **FAST)
+    assert _settings(first["rows"]) == _settings(again["rows"])
+    assert first["best"] == again["best"] and first["curve"] == again["curve"]
+    other = fit_search(manifest, seed=4, **FAST)
+    assert _settings(other["rows"]) != _settings(first["rows"])
+    # Work done once: every distinct bank (of the trials and the paper's two) ran through the
+    # filterbank once per recording, whatever the folds, windows and feature sets that used it.
+    banks = {(r["family"], r["channels"], r["f_low"], r["f_high"], r["b_scale"]) for r in first["rows"]
+             if r["folds"]}
+    assert first["filterbank_runs"] == (len(banks) + 2) * first["recordings"]
+    scored = sum(r["folds"] for r in first["rows"])
+    assert first["filterbank_runs"] < (scored + 2 * len(first["curve"]) * FAST["k"]) * first["recordings"]
+
+
+def test_the_search_reports_each_fold_and_prunes_hopeless_trials(manifest):
+    result = fit_search(manifest, seed=0, **{**FAST, "trials": 14})
+    states = [r["state"] for r in result["rows"]]
+    assert len(states) == 14 and "complete" in states
+    pruned = [r for r in result["rows"] if r["state"] == "pruned"]
+    assert pruned and all(1 <= r["folds"] < FAST["k"] for r in pruned)
+    complete = [r for r in result["rows"] if r["state"] == "complete"]
+    assert all(r["folds"] == FAST["k"] for r in complete)
+    assert result["best"]["score"] == max(r["score"] for r in complete)
+
+
+def test_a_dask_cluster_gives_the_result_of_one_process(manifest):
+    distributed = pytest.importorskip("distributed", reason="the fit extra (dask[distributed]) is not installed")
+    alone = fit_search(manifest, seed=5, **FAST)
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=False, protocol="tcp://",
+                                  host="127.0.0.1", dashboard_address=None) as cluster:
+        spread = fit_search(manifest, seed=5, cluster=cluster.scheduler_address, **FAST)
+    assert spread["where"].startswith("Dask scheduler tcp://127.0.0.1:")
+    assert spread["rows"] == alone["rows"] and spread["curve"] == alone["curve"] and spread["best"] == alone["best"]
+
+
+def test_constraints_are_obeyed_and_the_curve_holds_every_window_within_the_budget(manifest):
+    result = fit_search(manifest, seed=1, max_window=0.15, max_channels=12, **FAST)
+    tried = [r for r in result["rows"] if r["folds"]]
+    assert all(r["window"] <= 0.15 and r["channels"] <= 12 for r in tried)
+    assert all(r["f_low"] >= 1 / r["window"] - 1e-9 for r in tried)        # one period of the lowest channel
+    assert [p["window"] for p in result["curve"]] == [0.05, 0.1, 0.15]       # the budget itself is tried
+    for p in result["curve"]:
+        assert set(p) == {"window", "fitted", "whisker", "cochlea"} and p["whisker"]["folds"] == FAST["k"]
+    assert result["paper"]["whisker"] == next(p["whisker"] for p in result["curve"]
+                                              if p["window"] == result["best"]["window"])
+
+
+@pytest.mark.parametrize(("options", "words"), [
+    ({"max_window": 0.0005}, "1 sample(s) at the recordings' 2200 Hz; a window needs at least 2"),
+    ({"max_window": 0.002}, "shorter than one period of the lowest band any bank could have"),
+    ({"max_channels": 5000}, "--max-channels must be a whole number from 1 to 1024"),
+    ({"target": "contact", "contact": 2.0}, "--contact 2 s is longer than"),
+    ({"target": "contact", "contact": 0.01}, "shorter than the shortest window"),
+    ({"target": "session"}, "--target 'session': choose one of window, recording, contact"),
+])
+def test_impossible_constraints_are_refused_before_any_work(manifest, options, words):
+    with pytest.raises(FitError) as caught:
+        search_space(read_manifest(manifest), quick=True, **options)
+    assert words in str(caught.value)
+
+
+def test_trials_shorter_than_every_window_are_refused_naming_the_line(tmp_path):
+    rows = ["path,label,start,end"]
+    for name, peaks in TEXTURES.items():
+        write_wav(tmp_path / f"{name}.wav", 0.2 * synthesize(peaks, RATE, 1.0, seed=1)[:, None], RATE)
+        rows += [f"{name}.wav,{name},0,0.5", f"{name}.wav,{name},0.5,0.53"]
+    (tmp_path / "m.csv").write_text("\n".join(rows) + "\n")
+    with pytest.raises(FitError, match=r"line 3: silk.wav holds 0.03 s, shorter than every window"):
+        search_space(read_manifest(tmp_path / "m.csv"), quick=True)
+
+
+def test_whisker_family_spans_the_band_with_the_whisker_layout(manifest):
+    s = Setting(RATE, "whisker", 20, 50.0, 900.0, 1.0, 0.1, "Af", 8, 10)
+    bank = s.bank()
+    assert bank.cf[0] == pytest.approx(50.0) and bank.cf[-1] == pytest.approx(900.0)
+    paper = np.sort(whisker_bank().cf)
+    # The layout's spacing on a log scale is the whiskers', stretched over the band.
+    np.testing.assert_allclose(np.diff(np.log(bank.cf)) / np.log(900 / 50),
+                               np.diff(np.log(paper)) / np.log(paper[-1] / paper[0]), atol=1e-12)
+
+
+# -- the command ---------------------------------------------------------------------------------
+
+def test_fit_command_prints_progress_the_curve_and_writes_its_files(manifest, tmp_path, capsys):
+    out = tmp_path / "fit"
+    assert main(["fit", str(manifest), "--out", str(out), "--cv", "3", "--quick", "--trials", "4", "--batch", "2",
+                 "--epochs", "8", "--max-window", "0.1"]) == 0
+    captured = capsys.readouterr()
+    assert "fit: trial 2 of 4; best so far" in captured.err and "s left" in captured.err
+    assert "fit: trial 4 of 4;" in captured.err
+    assert "the paper's whisker bank (same window, features, network)" in captured.out
+    assert "best window accuracy per window length" in captured.out and "next: supramodal train --bank" in captured.out
+    curve = list(csv.DictReader(open(out / "fit-curve.csv")))
+    assert [float(r["window"]) for r in curve] == [0.05, 0.1]
+    assert len(list(csv.DictReader(open(out / "fit.csv")))) == 4
+    assert (out / "bank.json").is_file() and not list((out / "cache").glob("*.npy"))
+
+
+def test_fit_command_without_the_extra_says_how_to_install_it(manifest, tmp_path, capsys, monkeypatch):
+    monkeypatch.setitem(sys.modules, "optuna", None)            # import optuna raises ImportError
+    assert main(["fit", str(manifest), "--out", str(tmp_path / "fit"), "--quick"]) == 2
+    assert "pip install 'supramodal[fit]'" in capsys.readouterr().err
+
+
+def test_fit_command_refuses_an_impossible_budget_at_once(manifest, tmp_path, capsys):
+    assert main(["fit", str(manifest), "--out", str(tmp_path / "fit"), "--max-window", "0.002"]) == 2
+    err = capsys.readouterr().err
+    assert "supramodal: error:" in err and "raise --max-window" in err and "trial" not in err
