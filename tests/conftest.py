@@ -10,7 +10,11 @@ Hypothesis: no deadline (the suite asserts behaviour, never wall time); example 
 so that the whole suite stays near a minute on two cores.
 """
 
+import fcntl
+import hashlib
 import os
+import pickle
+import re
 
 import pytest
 
@@ -69,3 +73,130 @@ def pytest_collection_modifyitems(config, items):
     if hasattr(config, "workerinput"):
         # On xdist's workers (which all collect the same order; the scheduler hands tests out in it).
         items.sort(key=rank.__getitem__)
+
+
+# -- computed once per run, shared by the xdist workers ---------------------------------------------------
+
+#: The folder the results computed once per run are kept in, set by :func:`pytest_sessionstart`.
+_SHARED_DIR = None
+
+
+def _shared_path(name: str):
+    """Where the result of ``name`` is kept: a readable stem and a digest of the whole name."""
+    stem = re.sub(r"[^A-Za-z0-9_.-]+", "-", name)[:80]
+    return _SHARED_DIR / f"{stem}-{hashlib.sha256(name.encode()).hexdigest()[:16]}"
+
+
+def run_once(name: str, compute):
+    """``compute()``, computed once per test run by whichever xdist worker asks first and read from a
+    file by the others (without xdist: in this process, kept on disk for the run).
+
+    ``name`` must say everything that determines the result (the run is one version of the code, so a
+    fixture's module and name do when its inputs are fixed). The first worker to ask holds the name's
+    lock (``fcntl.flock``) while it computes; a worker that asks meanwhile waits for the file rather
+    than computing the same thing beside it. A compute that raises leaves nothing: the next one to ask
+    computes (and fails) again. The result must pickle; every caller gets its own copy."""
+    if _SHARED_DIR is None:                  # outside a pytest session (a test module run as a script)
+        return compute()
+    path = _shared_path(name)
+    fd = os.open(f"{path}.lock", os.O_CREAT | os.O_RDWR, 0o600)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)       # interruptible: Ctrl-C raises KeyboardInterrupt here
+        try:
+            with open(f"{path}.pickle", "rb") as f:
+                return pickle.load(f)
+        except FileNotFoundError:
+            pass
+        value = compute()
+        tmp = f"{path}.pickle.{os.getpid()}"
+        with open(tmp, "wb") as f:
+            pickle.dump(value, f, protocol=pickle.HIGHEST_PROTOCOL)
+        os.replace(tmp, f"{path}.pickle")
+        return value
+    finally:
+        os.close(fd)                         # releases the lock
+
+
+class _SharedModels(dict):
+    """``supramodal.node.build._trained_on_the_spot`` (the models the node trains on start, kept in
+    memory by their texture set and pipeline settings) backed by :func:`run_once`'s folder, so that
+    the xdist workers train each model once per run, not once each. The node's own key names the file:
+    a model missing from memory is looked up there (:meth:`pop`), and a model the node trained is
+    written there (:meth:`__setitem__`). While one worker trains, it holds the key's lock and a worker
+    asking for the same model waits for it; the lock is let go when the model is written or, if the
+    training raised, when the test ends (:func:`_release_model_locks`)."""
+
+    def __init__(self):
+        super().__init__()
+        self.held = {}                       # path -> fd of a lock held while this process trains
+
+    @staticmethod
+    def _path(key):
+        """The file of ``key``, or None where its repr does not say all of it (numpy elides long arrays)."""
+        name = "trained-on-the-spot " + repr(key)
+        return None if _SHARED_DIR is None or "..." in name else _shared_path(name)
+
+    def pop(self, key, *default):
+        path = None if key in self else self._path(key)
+        if path is None:
+            return super().pop(key, *default)
+        if path not in self.held:
+            fd = os.open(f"{path}.lock", os.O_CREAT | os.O_RDWR, 0o600)
+            fcntl.flock(fd, fcntl.LOCK_EX)
+            self.held[path] = fd
+        try:
+            with open(f"{path}.pickle", "rb") as f:
+                made = pickle.load(f)
+        except FileNotFoundError:
+            if default:
+                return default[0]            # the caller trains; __setitem__ writes it and lets go
+            self.release()
+            raise KeyError(key) from None
+        self.release(path)
+        return made
+
+    def __setitem__(self, key, made):
+        super().__setitem__(key, made)
+        path = self._path(key)
+        if path is not None and path in self.held:
+            tmp = f"{path}.pickle.{os.getpid()}"
+            with open(tmp, "wb") as f:
+                pickle.dump(made, f, protocol=pickle.HIGHEST_PROTOCOL)
+            os.replace(tmp, f"{path}.pickle")
+            self.release(path)
+
+    def release(self, path=None):
+        for p in [path] if path is not None else list(self.held):
+            fd = self.held.pop(p, None)
+            if fd is not None:
+                os.close(fd)
+
+
+_shared_models = _SharedModels()
+
+
+def pytest_sessionstart(session):
+    """The run's shared folder: under xdist, the controller's base temp (every worker's base temp is a
+    folder in it, so the workers of one run share it and no other run sees it); without xdist, this
+    process's own. The node's models trained on start are kept there too (:class:`_SharedModels`)."""
+    global _SHARED_DIR
+    config = session.config
+    base = config._tmp_path_factory.getbasetemp()
+    _SHARED_DIR = (base.parent if hasattr(config, "workerinput") else base) / "run-once"
+    _SHARED_DIR.mkdir(exist_ok=True)
+    from supramodal.node import build
+
+    build._trained_on_the_spot = _shared_models
+
+
+@pytest.fixture(autouse=True)
+def _release_model_locks():
+    """A model training that raised leaves its lock held (:class:`_SharedModels`): let it go."""
+    yield
+    _shared_models.release()
+
+
+@pytest.fixture(scope="session")
+def once():
+    """:func:`run_once` for fixtures: ``once("module.fixture", compute)``."""
+    return run_once

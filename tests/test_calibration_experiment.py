@@ -38,17 +38,21 @@ def numbers(x):
 
 
 @pytest.fixture(scope="module")
-def cli_run(tmp_path_factory):
-    """The experiment in quick mode through the command line: (result, stdout, stderr, out folder)."""
+def cli_run(tmp_path_factory, once):
+    """The experiment in quick mode through the command line: (result, stdout, stderr, out folder);
+    run once per test run, whichever xdist worker gets here first (conftest.run_once)."""
     from supramodal.node.cli import main
 
-    out = tmp_path_factory.mktemp("calibration")
-    stdout, stderr = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
-        code = main(["experiment", "calibration", "--quick", "--sets", "1", "--epochs", str(EPOCHS), "--jobs", "2",
-                     "--json", "--quiet", "--out", str(out)])
-    assert code == 0, stderr.getvalue()
-    return json.loads(stdout.getvalue()), stdout.getvalue(), stderr.getvalue(), out
+    def run():
+        out = tmp_path_factory.mktemp("calibration")
+        stdout, stderr = io.StringIO(), io.StringIO()
+        with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
+            code = main(["experiment", "calibration", "--quick", "--sets", "1", "--epochs", str(EPOCHS), "--jobs",
+                         "2", "--json", "--quiet", "--out", str(out)])
+        assert code == 0, stderr.getvalue()
+        return json.loads(stdout.getvalue()), stdout.getvalue(), stderr.getvalue(), out
+
+    return once(f"test_calibration_experiment.cli_run epochs={EPOCHS}", run)
 
 
 @pytest.fixture(scope="module")

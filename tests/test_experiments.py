@@ -35,9 +35,10 @@ def is_rate(v) -> bool:
 
 
 @pytest.fixture(scope="module")
-def quick():
-    """Every figure in quick mode, in one pool of two workers."""
-    return run_plans(plans("all", quick=True), jobs=2, seed=0)
+def quick(once):
+    """Every figure in quick mode, in one pool of two workers; run once per test run, whichever xdist
+    worker gets here first (conftest.run_once)."""
+    return once("test_experiments.quick all jobs=2 seed=0", lambda: run_plans(plans("all", quick=True), jobs=2, seed=0))
 
 
 # -- runner ---------------------------------------------------------------------------------------
