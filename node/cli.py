@@ -289,6 +289,9 @@ def _cmd_run(args) -> int:
         return 0
     _interrupt_until_running()
     sinks = [QueuedSink(JsonLinesSink("-"))] if args.json else None
+    if args.view is not None:
+        from supramodal.node.view import add_view
+        scene, sinks = add_view(scene, sinks, args.view)
     progress = None if args.quiet else (lambda m: print(f"supramodal: {m}", file=sys.stderr, flush=True))
     if progress and args.scene is None:
         for line in _default_run_guide(scene, args.speed):
@@ -296,8 +299,16 @@ def _cmd_run(args) -> int:
     elif progress:
         progress(_scene_line(scene, sinks_replaced=args.json))
     node = build_node(scene, speed=args.speed, sinks_override=sinks, progress=progress, overwrite=args.force)
+    _attach_views(node)
     node.run(max_seconds=args.seconds, on_running=lambda: _stop_on_signals(node))
     return 0
+
+
+def _attach_views(node, on_mark=None) -> None:
+    """A scene's view sinks (if any) get the graph's counters and, while recording, the marks."""
+    from supramodal.node.view import attach
+
+    attach(node, on_mark)
 
 
 def _cmd_record(args) -> int:
@@ -773,6 +784,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seconds", type=_stream_seconds,
                    help="stop after this much stream; inf: until it ends or Ctrl-C (the default)")
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")
+    p.add_argument("--view", nargs="?", const=0, type=int, metavar="PORT",
+                   help="also serve a page that shows the run live on 127.0.0.1:PORT (default 0: any free port; the "
+                        "URL and the run's token are printed at start; docs/view.md)")
     p.add_argument("--print-scene", action="store_true",
                    help="print the scene (the default one if none is given) as TOML, every key filled in, and exit: "
                         "a starting point to edit, e.g. supramodal run --print-scene > my.toml")

@@ -145,6 +145,7 @@ SINK_MODULES = {
     "jsonl": "supramodal.node.sinks:JSONL",
     "lsl": "supramodal.node.lsl_outlets",
     "lsl-signal": "supramodal.node.lsl_signal",
+    "view": "supramodal.node.view",
 }
 #: What a sink may need built before it is made: nothing (it is made first, so that a file is
 #: checked before any training), the streams' plans (their pipelines and classes, known before any

@@ -1,0 +1,630 @@
+"""Watch it live: a page in the browser that shows what the node decides, hears and how healthy it is.
+
+``[[sink]] type = "view"`` (or ``supramodal run SCENE --view [PORT]``) serves a page on
+127.0.0.1: per stream the posteriors over time, the decision, its confidence, the truth, the
+pooled decision, the current feature window and a scrolling channels x time image of one of
+its features; the fused decisions and their pairing; the health (frame fates, clocks, latency,
+sinks' drops) and driver events as banners. docs/view.md.
+
+Transport: the standard library's :class:`http.server.ThreadingHTTPServer` and Server-Sent
+Events (``text/event-stream``, one JSON object per message): no new dependency, a browser
+reconnects by itself, and the page only reads (the few requests that change something, marks
+and the replay's pause and speed, are plain POSTs that need the run's token).
+
+Threading rules
+---------------
+The view is a sink like every other: behind a :class:`~supramodal.node.sinks.QueuedSink`, so
+``emit`` and ``event`` run on that queue's thread, never on the processing thread. Each
+message is serialised once and put in every open page's own bounded queue (:class:`Hub`);
+a page that does not read (a paused tab, a killed client) loses its oldest messages, counted
+(``client_dropped`` in the sink's stats), and its request thread ends when a write times out.
+The server runs on a thread of its own (``view-server``, started by :meth:`ViewSink.prepare`),
+one daemon thread per open request, and a health thread (``view-health``, once a second,
+reading the graph's counters: :func:`graph_health`); :meth:`ViewSink.close` ends them all.
+"""
+
+from __future__ import annotations
+
+import hmac
+import ipaddress
+import json
+import math
+import secrets
+import socket
+import sys
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import replace
+from http import HTTPStatus
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from importlib import resources
+from typing import Any
+
+import numpy as np
+
+from supramodal.checks import Key, flag, integer, is_name, text
+from supramodal.drivers.base import DriverEvent
+from supramodal.drivers.spec import OptionError
+from supramodal.errors import InputError
+from supramodal.node.events import WindowEvent
+from supramodal.node.registry import SinkContext, SinkSpec, sink_keys
+from supramodal.node.sinks import QueuedSink, Sink
+
+__all__ = ["SPEC", "Hub", "ViewError", "ViewSink", "attach", "graph_health", "add_view", "view_sinks",
+           "window_message", "with_view"]
+
+#: Messages each open page's queue holds; beyond it the oldest are dropped and counted.
+CLIENT_QUEUE = 256
+#: Window messages kept for a page opened later (the last 60 s of 100 ms windows).
+HISTORY = 600
+#: Channels of a feature a window message carries at the most (a message stays small).
+MAX_CHANNELS = 256
+#: Bytes of a request body at the most (a mark is a label name).
+MAX_BODY = 1024
+#: Bytes of a page's socket send buffer (the kernel doubles it).
+SEND_BUFFER = 64 * 1024
+#: Seconds a write to a page may take before that page is given up.
+WRITE_TIMEOUT = 5.0
+#: Seconds the view's close waits for the open pages to take what is queued (the summary).
+CLOSE_FLUSH = 1.0
+#: Seconds between two health messages.
+HEALTH_PERIOD = 1.0
+#: The shortest token a non-loopback view accepts.
+MIN_TOKEN = 16
+#: The header that carries the token.
+TOKEN_HEADER = "X-Supramodal-Token"
+#: The page's files, inside the package.
+_HTML = "text/html; charset=utf-8"
+STATIC = {"/": ("index.html", _HTML), "/index.html": ("index.html", _HTML),
+          "/view.js": ("view.js", "text/javascript; charset=utf-8"),
+          "/view.css": ("view.css", "text/css; charset=utf-8")}
+
+
+class ViewError(InputError):
+    """A view that cannot be served as asked (a port in use, a bind without a token)."""
+
+
+def _port(v: object) -> bool:
+    return integer(0, 65535)(v)
+
+
+def _token(v: object) -> bool:
+    return text(v) and len(v) >= MIN_TOKEN and v.isascii() and v.isprintable() and " " not in v
+
+
+def _labels(v: object) -> bool:
+    return isinstance(v, list) and bool(v) and len(v) <= 64 and all(is_name(x) for x in v) and len(set(v)) == len(v)
+
+
+KEYS = {
+    "port": Key(_port, "a TCP port 0..65535 (0: any free one, printed at start)", 0),
+    "host": Key(text, 'the address to serve on; anything but loopback needs remote = true and a token',
+                "127.0.0.1"),
+    "remote": Key(flag, "true to allow a host other than loopback (with a token)", False),
+    "token": Key(_token, f"the token that requests changing something must carry, at least {MIN_TOKEN} printable "
+                         "characters (default: a new one each run, printed at start)", None),
+    "labels": Key(_labels, "the mark buttons' labels, names (default: the streams' classes)", None),
+}
+
+
+def is_loopback(host: str) -> bool:
+    """Whether ``host`` is this machine only (127.0.0.0/8, ::1, localhost)."""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+# -- messages ------------------------------------------------------------------------------------------
+
+def _json(obj: Any) -> str:
+    return json.dumps(obj, separators=(",", ":"), default=_plain, allow_nan=False)
+
+
+def _plain(o: Any) -> Any:
+    """numpy scalars and arrays, sets: as JSON has them."""
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, (np.floating, np.integer, np.bool_)):
+        return o.item()
+    if isinstance(o, (set, frozenset, tuple)):
+        return sorted(o) if isinstance(o, (set, frozenset)) else list(o)
+    raise TypeError(f"{type(o).__name__} is not JSON")
+
+
+def _finite(x: float, digits: int) -> float | None:
+    x = float(x)
+    return round(x, digits) if math.isfinite(x) else None
+
+
+def window_message(event: WindowEvent) -> dict[str, Any]:
+    """A window event as the page gets it: :meth:`WindowEvent.as_dict` (the JSONL sink's object,
+    unchanged in meaning) and what the page draws besides: ``posteriors`` with their ``classes``,
+    ``features`` per channel (rounded, at most :data:`MAX_CHANNELS`), ``in_contact``, ``flags``."""
+    out = event.as_dict()
+    out["type"] = "window"
+    if event.posteriors is not None:
+        out["posteriors"] = [_finite(p, 5) for p in np.asarray(event.posteriors, dtype=float).ravel()]
+        out["classes"] = list(event.classes)
+    if event.features is not None:
+        out["features"] = {name: [_finite(x, 6) for x in np.asarray(v, dtype=float).ravel()[:MAX_CHANNELS]]
+                           for name, v in event.features.items()}
+    out["in_contact"] = bool(event.in_contact)
+    out["flags"] = sorted(event.flags)
+    if out.get("novelty") is not None:
+        out["novelty"] = _finite(out["novelty"], 5)
+    return out
+
+
+def event_message(ev: DriverEvent) -> dict[str, Any]:
+    """A driver event as the page gets it (a banner): :meth:`DriverEvent.as_dict`."""
+    return {"type": "event", **ev.as_dict()}
+
+
+# -- the open pages ------------------------------------------------------------------------------------
+
+class _Client:
+    """One open page's queue: bounded; when full, the oldest message goes (counted)."""
+
+    def __init__(self, capacity: int) -> None:
+        self.items: deque[bytes] = deque()
+        self.capacity = capacity
+        self.ready = threading.Condition()
+        self.dropped = 0
+        self.gone = False
+
+
+class Hub:
+    """Every open page's queue, and the recent messages a page opened later gets first.
+
+    :meth:`publish` never blocks (it is called on the sink's thread); what a page does not take
+    in time is dropped from its own queue and counted in :attr:`dropped`.
+    """
+
+    def __init__(self, capacity: int = CLIENT_QUEUE, history: int = HISTORY) -> None:
+        self.capacity = capacity
+        self._clients: set[_Client] = set()
+        self._lock = threading.Lock()
+        self._history: deque[bytes] = deque(maxlen=history)
+        self._latest: dict[str, bytes] = {}   # the last message of each other kind (hello, health, summary)
+        self.dropped = 0                       # messages dropped by pages that did not read
+        self.opened = 0                        # pages that ever connected
+        self.closed = False
+
+    @staticmethod
+    def encode(message: dict[str, Any]) -> bytes:
+        return f"data: {_json(message)}\n\n".encode()
+
+    def publish(self, message: dict[str, Any], keep: str = "history") -> None:
+        """Send ``message`` to every open page; ``keep``: ``"history"`` (a window or an event, kept
+        for a page opened later among the last :data:`HISTORY`), ``"latest"`` (only the last of its
+        ``type`` is kept) or ``"none"``."""
+        data = self.encode(message)
+        with self._lock:
+            if keep == "history":
+                self._history.append(data)
+            elif keep == "latest":
+                self._latest[str(message.get("type"))] = data
+            clients = list(self._clients)
+        for c in clients:
+            self._put(c, data)
+
+    def reset(self) -> None:
+        """Forget the history (a replay that starts again)."""
+        with self._lock:
+            self._history.clear()
+
+    def _put(self, c: _Client, data: bytes) -> None:
+        with c.ready:
+            if len(c.items) >= c.capacity:
+                c.items.popleft()
+                c.dropped += 1
+                with self._lock:
+                    self.dropped += 1
+            c.items.append(data)
+            c.ready.notify()
+
+    def open(self) -> _Client:
+        """A new page: its queue starts with the latest hello and health and the history (the
+        newest :attr:`capacity` of them)."""
+        c = _Client(self.capacity)
+        with self._lock:
+            first = [self._latest[k] for k in ("hello", "health", "summary") if k in self._latest]
+            c.items.extend((first + list(self._history))[-self.capacity:])
+            self._clients.add(c)
+            self.opened += 1
+        return c
+
+    def leave(self, c: _Client) -> None:
+        with self._lock:
+            self._clients.discard(c)
+
+    def take(self, c: _Client, timeout: float) -> bytes | None:
+        """The page's next message, or None after ``timeout`` seconds or once closed."""
+        with c.ready:
+            if not c.items and not self.closed:
+                c.ready.wait(timeout)
+            return c.items.popleft() if c.items else None
+
+    def close(self) -> None:
+        """Wake every page's thread: they end."""
+        with self._lock:
+            self.closed = True
+            clients = list(self._clients)
+        for c in clients:
+            with c.ready:
+                c.ready.notify_all()
+
+    def clients(self) -> int:
+        with self._lock:
+            return len(self._clients)
+
+
+# -- the server ----------------------------------------------------------------------------------------
+
+class _Server(ThreadingHTTPServer):
+    daemon_threads = True          # a page's request thread never keeps the process alive
+    block_on_close = False
+    view: ViewSink
+
+
+class _Handler(BaseHTTPRequestHandler):
+    server: _Server
+    protocol_version = "HTTP/1.1"
+
+    def log_message(self, format: str, *args: Any) -> None:   # noqa: A002 (the base's name)
+        pass                                                     # no access log on the node's stderr
+
+    def setup(self) -> None:
+        super().setup()
+        self.connection.settimeout(WRITE_TIMEOUT)                # a stalled page is given up
+
+    # -- replies --
+
+    def _reply(self, status: int, body: bytes, kind: str = "text/plain; charset=utf-8") -> None:
+        self.send_response(status)
+        self.send_header("Content-Type", kind)
+        self.send_header("Content-Length", str(len(body)))
+        self.send_header("Cache-Control", "no-store")
+        self.send_header("X-Content-Type-Options", "nosniff")
+        self.end_headers()
+        if self.command != "HEAD":
+            self.wfile.write(body)
+
+    def _refuse(self, status: int, why: str) -> None:
+        self._reply(status, (why + "\n").encode())
+
+    # -- GET --
+
+    def do_GET(self) -> None:
+        view = self.server.view
+        path = self.path.split("?", 1)[0]
+        if path in STATIC:
+            name, kind = STATIC[path]
+            self._reply(HTTPStatus.OK, _static(name), kind)
+        elif path == "/state":
+            self._reply(HTTPStatus.OK, _json(view.hello()).encode(), "application/json")
+        elif path == "/events":
+            self._events()
+        else:
+            self._refuse(HTTPStatus.NOT_FOUND, f"no {path} here; the page is at /")
+
+    do_HEAD = do_GET
+
+    def _events(self) -> None:
+        hub = self.server.view.hub
+        self.send_response(HTTPStatus.OK)
+        self.send_header("Content-Type", "text/event-stream")
+        self.send_header("Cache-Control", "no-store")
+        self.send_header("Connection", "close")
+        self.end_headers()
+        self.close_connection = True
+        # A small send buffer: a page that stops reading falls behind in its own bounded queue,
+        # where its loss is counted, rather than in megabytes of the kernel's buffers.
+        self.connection.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, SEND_BUFFER)
+        client = hub.open()
+        try:
+            self.wfile.write(b"retry: 1000\n\n")
+            while True:
+                data = hub.take(client, 1.0)
+                if data is None and hub.closed:      # what was queued before the end is sent first
+                    break
+                self.wfile.write(data if data is not None else b": keep-alive\n\n")
+                self.wfile.flush()
+        except OSError:                     # the page went away, or stopped reading for WRITE_TIMEOUT
+            pass
+        finally:
+            hub.leave(client)
+
+    # -- POST: changes need the token and the page's own origin --
+
+    def do_POST(self) -> None:
+        view = self.server.view
+        path = self.path.split("?", 1)[0]
+        actions = view.actions()
+        if path not in actions:
+            return self._refuse(HTTPStatus.NOT_FOUND, f"no {path} here" + (
+                f"; this view takes {sorted(actions)}" if actions else "; this view is read-only"))
+        try:
+            length = int(self.headers.get("Content-Length") or 0)
+        except ValueError:
+            length = -1
+        if length < 0 or length > MAX_BODY:
+            self.close_connection = True
+            return self._refuse(HTTPStatus.REQUEST_ENTITY_TOO_LARGE, f"a body of at most {MAX_BODY} bytes")
+        body = self.rfile.read(length)
+        given = self.headers.get(TOKEN_HEADER) or ""
+        if not hmac.compare_digest(given.encode(), view.token.encode()):
+            return self._refuse(HTTPStatus.FORBIDDEN, f"a change needs the run's token in {TOKEN_HEADER} (printed "
+                                "on the terminal at start; open the page with #token=... to send it)")
+        if not view.origin_ok(self.headers.get("Origin"), self.headers.get("Host")):
+            return self._refuse(HTTPStatus.FORBIDDEN, "a change must come from the view's own page (Origin)")
+        try:
+            asked = json.loads(body or b"{}")
+            if not isinstance(asked, dict):
+                raise ValueError("not an object")
+        except ValueError as exc:
+            return self._refuse(HTTPStatus.BAD_REQUEST, f"the body must be a JSON object: {exc}")
+        try:
+            done = actions[path](asked)
+        except InputError as exc:
+            return self._refuse(HTTPStatus.UNPROCESSABLE_ENTITY, str(exc))
+        self._reply(HTTPStatus.OK, _json(done).encode(), "application/json")
+
+
+def _static(name: str) -> bytes:
+    return (resources.files("supramodal.node") / "view_static" / name).read_bytes()
+
+
+# -- the sink ------------------------------------------------------------------------------------------
+
+class ViewSink(Sink):
+    """Serves the page and sends it each window, driver event, health and the summary.
+
+    Parameters
+    ----------
+    port : int
+        0: any free one (:attr:`url` says which).
+    host : str
+        Loopback unless ``remote``; a non-loopback host needs ``remote`` and ``token``.
+    remote : bool
+    token : str or None
+        What a request that changes something must carry; None: a new random one.
+    labels : list of str or None
+        The mark buttons' labels (default: the streams' classes, as the windows name them).
+    mode : {"live", "replay"}
+    quiet : bool
+        Do not print the URL on stderr.
+
+    Raises
+    ------
+    ViewError
+        For a non-loopback host without ``remote`` and a token, or a port that cannot be bound;
+        the message names the fix.
+    """
+
+    def __init__(self, port: int = 0, host: str = "127.0.0.1", remote: bool = False, token: str | None = None,
+                 labels: list[str] | None = None, mode: str = "live", quiet: bool = False) -> None:
+        if not is_loopback(host) and not (remote and token):
+            raise ViewError(f"serving the view on {host!r} (not loopback) lets other machines see it: it needs "
+                            "remote = true and a token of your own (token = \"...\", at least "
+                            f"{MIN_TOKEN} characters); or leave host at 127.0.0.1")
+        if token is not None and not _token(token):
+            raise ViewError(f"the view's token must be at least {MIN_TOKEN} printable characters without spaces")
+        self.token = token or secrets.token_urlsafe(18)
+        self.labels = list(labels) if labels else None
+        self.mode = mode
+        self.hub = Hub()
+        self.health: Callable[[], dict[str, Any]] | None = None
+        self.on_mark: Callable[[str | None], Any] | None = None
+        self.control: Callable[[dict[str, Any]], dict[str, Any]] | None = None
+        self.marks: list[dict[str, Any]] = []
+        self._classes: dict[str, list[str]] = {}
+        self._streams: list[str] = []
+        self._lock = threading.Lock()
+        self._closing = threading.Event()
+        self._threads: list[threading.Thread] = []
+        try:
+            self._server = _Server((host, port), _Handler, bind_and_activate=True)
+        except OverflowError as exc:
+            raise ViewError(f"port {port}: {exc}; give a port 0..65535 (0: any free one)") from None
+        except OSError as exc:
+            raise ViewError(f"cannot serve the view on {host}:{port}: {exc.strerror or exc}; give another port, "
+                            "or 0 for any free one") from None
+        self._server.view = self
+        self.host, self.port = host, int(self._server.server_address[1])
+        shown = f"[{host}]" if ":" in host else host
+        self.url = f"http://{shown}:{self.port}/"
+        self.path = self.url
+        self._origins = {f"http://{shown}:{self.port}"} | (
+            {f"http://localhost:{self.port}", f"http://127.0.0.1:{self.port}"} if is_loopback(host) else set())
+        self._started = False
+        if not quiet:
+            print(f"supramodal: view at {self.url} (read-only); to mark or control it open "
+                  f"{self.url}#token={self.token}", file=sys.stderr, flush=True)
+
+    # -- what the page asks --
+
+    def hello(self) -> dict[str, Any]:
+        """What the page needs first: the mode, the streams and their classes, the mark labels,
+        whether marks and controls are open."""
+        with self._lock:
+            classes = {k: list(v) for k, v in self._classes.items()}
+            streams = list(self._streams)
+        labels = self.labels or sorted({c for cs in classes.values() for c in cs})
+        return {"type": "hello", "mode": self.mode, "streams": streams, "classes": classes, "labels": labels,
+                "marks": self.on_mark is not None, "control": self.control is not None}
+
+    def actions(self) -> dict[str, Callable[[dict[str, Any]], dict[str, Any]]]:
+        out: dict[str, Callable[[dict[str, Any]], dict[str, Any]]] = {}
+        if self.on_mark is not None:
+            out["/mark"] = self._mark
+        if self.control is not None:
+            out["/control"] = self.control
+        return out
+
+    def origin_ok(self, origin: str | None, host: str | None) -> bool:
+        """A change comes from the view's own page: its Origin is the view's, and so is its Host
+        (a page of another site that resolves its name to this machine has another Host)."""
+        return origin in self._origins and host is not None and f"http://{host}" in self._origins
+
+    def _mark(self, asked: dict[str, Any]) -> dict[str, Any]:
+        label = asked.get("label")
+        allowed = self.hello()["labels"]
+        if set(asked) - {"label"}:
+            raise InputError(f"a mark is {{\"label\": NAME or null}}; unknown keys {sorted(set(asked) - {'label'})}")
+        if label is not None and label not in allowed:
+            raise InputError(f"the label {label!r} is not one of this view's: {allowed}")
+        mark = self.on_mark
+        if mark is None:
+            raise InputError("marks are closed")
+        when = mark(label)
+        done = {"type": "mark", "label": label, "time": round(float(when), 3) if isinstance(when, (int, float))
+                else None}
+        with self._lock:
+            self.marks.append(done)
+        self.hub.publish(done)
+        return done
+
+    # -- the Sink calls --
+
+    def prepare(self) -> None:
+        """Start serving (the URL was printed when the sink was made)."""
+        if not self._started:
+            self._started = True
+            self._spawn("view-server", self._server.serve_forever, 0.2)
+            self.hub.publish(self.hello(), keep="latest")
+
+    def start(self, epoch: float) -> None:
+        self.prepare()
+        self._spawn("view-health", self._health_loop)
+
+    def _spawn(self, name: str, target: Callable[..., Any], *args: Any) -> None:
+        t = threading.Thread(target=target, args=args, name=name, daemon=True)
+        t.start()
+        self._threads.append(t)
+
+    def _health_loop(self) -> None:
+        while not self._closing.wait(HEALTH_PERIOD):
+            self.publish_health()
+
+    def publish_health(self) -> None:
+        """Send the graph's counters now (:func:`graph_health`), if the view is attached to one."""
+        if self.health is not None:
+            try:
+                self.hub.publish({"type": "health", "clients": self.hub.clients(),
+                                  "client_dropped": self.hub.dropped, **self.health()}, keep="latest")
+            except Exception:       # a counter read mid-update: the next tick has it
+                pass
+
+    def emit(self, event: WindowEvent) -> None:
+        if event.stream not in self._classes and event.classes:
+            with self._lock:
+                self._classes[event.stream] = list(event.classes)
+        if event.stream not in self._streams:
+            with self._lock:
+                self._streams.append(event.stream)
+            self.hub.publish(self.hello(), keep="latest")
+        self.hub.publish(window_message(event))
+
+    def event(self, ev: DriverEvent) -> None:
+        self.hub.publish(event_message(ev))
+
+    def summary(self, summary: dict[str, Any]) -> None:
+        self.publish_health()
+        self.hub.publish({"type": "summary", "summary": summary}, keep="latest")
+
+    def stats(self) -> dict[str, Any]:
+        return {"url": self.url, "pages": self.hub.opened, "client_dropped": self.hub.dropped,
+                "marks": len(self.marks)}
+
+    def close(self) -> None:
+        """Stop serving: the server's, the health and every page's thread end."""
+        self._closing.set()
+        self.hub.close()
+        deadline = time.monotonic() + CLOSE_FLUSH
+        while self.hub.clients() and time.monotonic() < deadline:   # the pages get the summary
+            time.sleep(0.02)
+        if self._started:
+            self._server.shutdown()
+        self._server.server_close()
+        for t in self._threads:
+            t.join(2 * WRITE_TIMEOUT)
+
+
+# -- the graph's counters ------------------------------------------------------------------------------
+
+def graph_health(graph: Any) -> dict[str, Any]:
+    """What the graph counts, read while it runs (what its summary says at the end, in the same
+    units): per stream ``frames`` (delivered, filled, dropped, :meth:`Source.frame_fates`),
+    ``windows`` and ``latency_ms`` (p50, p99, max); per source its clock (``ppm``,
+    ``jitter_ms``, ``delay_ms``: :meth:`Source.clock_summary`); the fusion's pairing counts
+    (``paired``, ``alone``, ``late``, ``dropouts``); each queued sink's stats (``written``,
+    ``dropped_windows``, ``dropped_events``, ``errors``)."""
+    streams = {}
+    for st in graph.streams:
+        streams[st.name] = {"windows": st.windows, "frames": st.source.frame_fates(st.feed),
+                            "latency_ms": st.latencies.summary(), "source": st.source.name}
+    clocks = {s.name: s.clock_summary() for s in graph.sources if s.clock is not None}
+    fusion = None
+    if graph.fusion is not None:
+        f = graph.fusion
+        fusion = {"windows": f.windows, "paired": f.paired, "alone": f.alone, "late": dict(f.late),
+                  "dropouts": dict(f.dropouts), "latency_ms": f.latencies.summary()}
+    sinks = [s for s in (k.stats() for k in graph.sinks) if s is not None]
+    return {"streams": streams, "clocks": clocks, "fusion": fusion, "sinks": sinks}
+
+
+def view_sinks(graph: Any) -> list[ViewSink]:
+    """The graph's view sinks (each behind its queue)."""
+    return [s.sink for s in graph.sinks if isinstance(s, QueuedSink) and isinstance(s.sink, ViewSink)]
+
+
+def attach(graph: Any, on_mark: Callable[[str | None], Any] | None = None) -> list[ViewSink]:
+    """Give the graph's view sinks its counters (health) and, while recording, the marks."""
+    views = view_sinks(graph)
+    for v in views:
+        v.health = lambda: graph_health(graph)
+        if on_mark is not None:
+            v.on_mark = on_mark
+    return views
+
+
+# -- as a scene names it -------------------------------------------------------------------------------
+
+def _build(options: dict[str, Any], context: SinkContext) -> Sink:
+    try:
+        view = ViewSink(options["port"], options["host"], options["remote"], options["token"], options["labels"])
+    except ViewError as exc:
+        raise OptionError(str(exc)) from None
+    # Behind its own queue, as every sink: a slow or absent page never slows processing.
+    return QueuedSink(view)
+
+
+SPEC = SinkSpec(type="view", keys=KEYS, build=_build,
+                summary="a page in the browser (127.0.0.1): decisions, posteriors, features, health, marks")
+
+
+def with_view(scene: Any, port: int) -> Any:
+    """``run --view PORT``: the scene with a view sink added (every stream, and the fusion)."""
+    if any(s["type"] == "view" for s in scene.sinks):
+        raise ViewError(f"{scene.source} has a [[sink]] type = \"view\" already; leave out --view, or that sink")
+    sink = {key: key_spec.default for key, key_spec in sink_keys(SPEC).items()}
+    sink.update(type="view", port=port)
+    return replace(scene, sinks=[*scene.sinks, sink])
+
+
+
+
+def add_view(scene: Any, sinks: list[Any] | None, port: int) -> tuple[Any, list[Any] | None]:
+    """``run --view PORT``: the scene with a view sink added, or (``--json``, whose ``sinks``
+    replace the scene's) those sinks with a view beside them."""
+    if isinstance(port, bool) or not _port(port):
+        raise ViewError(f"--view {port!r}: expected a TCP port 0..65535 (0: any free one)")
+    if sinks is not None:
+        return scene, [*sinks, QueuedSink(ViewSink(port))]
+    return with_view(scene, port), None

@@ -1,0 +1,277 @@
+"""The view (node/view.py): a page served by a running node, checked in a real headless browser
+(Debian's chromium over the DevTools protocol, tests/view_browser.py), and its server's rules
+(the token, the Origin, bounded messages, a page that stops reading never slows the node)."""
+
+from __future__ import annotations
+
+import http.client
+import json
+import socket
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from supramodal.drivers.spec import OptionError
+from supramodal.node.build import build_node
+from supramodal.node.events import WindowEvent
+from supramodal.node.recorder import SessionRecorder
+from supramodal.node.registry import SinkContext
+from supramodal.node.scene import SceneError, scene_from_dict
+from supramodal.node.sinks import QueuedSink
+from supramodal.node.view import CLIENT_QUEUE, MAX_BODY, SPEC, TOKEN_HEADER, ViewError, ViewSink, attach, view_sinks
+
+from view_browser import Browser, chromium_path, png_colours
+
+NO_CHROMIUM = "Debian's chromium is not installed (apt-get install -y chromium; .ci/run installs it)"
+
+# The default scene's model, trained once per test process (node/build.py keeps it), at twice real time.
+DEFAULT = {"driver": {"type": "synth", "textures": "reference", "seconds": 10.0, "held_out": True, "block": 50,
+                      "speed": 2.0},
+           "bank": {"kind": "whisker"}, "features": {"names": ["Af"]}, "model": {"train_on_start": True},
+           "decision": {"scope": "window"}}
+
+
+def scene(tmp_path: Path, *sinks: dict, **driver):
+    d = {**DEFAULT, "driver": {**DEFAULT["driver"], **driver}, "sink": list(sinks)}
+    return scene_from_dict(d, str(tmp_path / "scene.toml"), tmp_path)
+
+
+class Running:
+    """A graph run on a thread (the test's thread drives the browser meanwhile)."""
+
+    def __init__(self, graph, seconds: float | None) -> None:
+        self.graph, self.summary, self.error = graph, None, None
+        self.thread = threading.Thread(target=self._run, args=(seconds,), daemon=True)
+        self.thread.start()
+
+    def _run(self, seconds):
+        try:
+            self.summary = self.graph.run(max_seconds=seconds)
+        except BaseException as exc:     # surfaced by join()
+            self.error = exc
+
+    def join(self, timeout: float = 120.0):
+        self.thread.join(timeout)
+        assert not self.thread.is_alive(), "the node did not end"
+        if self.error is not None:
+            raise self.error
+        return self.summary
+
+
+@pytest.fixture(scope="module")
+def browser():
+    if chromium_path() is None:
+        pytest.skip(NO_CHROMIUM)
+    b = Browser()
+    yield b
+    b.close()
+
+
+def _view(graph) -> ViewSink:
+    (view,) = view_sinks(graph)
+    return view
+
+
+def _request(view: ViewSink, method: str, path: str, body: bytes = b"", headers: dict | None = None):
+    conn = http.client.HTTPConnection("127.0.0.1", view.port, timeout=30)
+    try:
+        conn.request(method, path, body=body, headers=headers or {})
+        r = conn.getresponse()
+        return r.status, r.read().decode()
+    finally:
+        conn.close()
+
+
+def _own(view: ViewSink) -> dict:
+    """The headers of the view's own page with the token."""
+    return {TOKEN_HEADER: view.token, "Origin": f"http://127.0.0.1:{view.port}", "Content-Type": "application/json"}
+
+
+# -- in a real browser -----------------------------------------------------------------------------
+
+def test_the_page_shows_the_running_nodes_decisions_as_its_jsonl_sink_has_them(tmp_path, browser):
+    jsonl = tmp_path / "decisions.jsonl"
+    graph = build_node(scene(tmp_path, {"type": "jsonl", "path": str(jsonl)}, {"type": "view"}))
+    view = _view(graph)
+    attach(graph)
+    run = Running(graph, 14.0)                    # 14 s of stream at twice real time
+    browser.open(view.url)
+    panel = "document.querySelector('[data-stream=\"main\"]')"
+    browser.wait_for(f"{panel} && {panel}.dataset.window", timeout=60)
+    seen = {}
+    deadline = time.monotonic() + 60
+    while len(seen) < 4 and time.monotonic() < deadline:
+        w, predicted, conf = browser.eval(f"[{panel}.dataset.window, {panel}.querySelector('.decision').textContent,"
+                                          f" {panel}.querySelector('.confidence').textContent]")
+        seen[int(w)] = (predicted, conf)
+        time.sleep(0.4)
+    summary = run.join()
+    assert len(seen) >= 4, f"the readout changed only {len(seen)} times: {seen}"
+    lines = [json.loads(line) for line in jsonl.read_text().splitlines()]
+    windows = {d["window"]: d for d in lines if d.get("stream") == "main" and "window" in d}
+    for w, (predicted, conf) in seen.items():
+        assert windows[w]["predicted"] == predicted, (w, windows[w], predicted)
+        assert f"{windows[w]['confidence']:.3f}" == conf, (w, windows[w], conf)
+    # the health panel shows the graph's counters, and the run's end
+    browser.wait_for("!!document.querySelector('#frames tbody tr[data-stream=\"main\"]')")
+    browser.wait_for("document.querySelector('#mode').textContent.endsWith('ended')")
+    shown = browser.eval("document.querySelector('#frames tbody tr[data-stream=\"main\"]').children[2].textContent")
+    assert int(shown) == summary["frames"]["delivered"]
+    assert not [t.name for t in threading.enumerate() if t.name.startswith("view-")]
+
+
+def test_a_screenshot_of_the_page_is_not_blank(tmp_path, browser):
+    graph = build_node(scene(tmp_path, {"type": "view"}))
+    view = _view(graph)
+    attach(graph)
+    run = Running(graph, 6.0)
+    browser.open(view.url)
+    browser.wait_for("document.querySelectorAll('[data-stream=\"main\"] .legend span').length == 8", timeout=60)
+    width, height, colours = png_colours(browser.screenshot(scale=0.5))
+    run.join()
+    assert width > 300 and height > 300
+    assert colours > 20, f"{colours} colours: the page looks blank"
+
+
+def test_a_mark_from_the_page_needs_the_token_and_lands_in_the_recording(tmp_path, browser):
+    sc = scene(tmp_path, {"type": "view", "labels": ["smooth", "rough"]}, seconds=3.0, speed=1.0)
+    recorder = SessionRecorder(tmp_path, "rec", "{}", replace=True)
+    graph = build_node(sc, recorder=recorder)
+    view = _view(graph)
+    attach(graph, on_mark=recorder.mark)
+    run = Running(graph, 6.0)
+    # read-only without the token: the buttons are there, but disabled
+    browser.open(view.url)
+    browser.wait_for("document.querySelectorAll('#markbuttons button').length == 2", timeout=60)
+    assert browser.eval("document.querySelector('#markbuttons button').disabled") is True
+    # with it, a click marks
+    browser.open(f"{view.url}#token={view.token}")
+    browser.wait_for("document.querySelector('[data-stream=\"main\"]') && "
+                     "Number(document.querySelector('[data-stream=\"main\"]').dataset.window) > 3", timeout=60)
+    browser.eval("document.querySelector('#markbuttons button[data-label=\"rough\"]').click()")
+    browser.wait_for("document.querySelector('#markstatus').textContent.startsWith('marking rough')")
+    run.join()
+    labels = json.loads((tmp_path / "rec.json").read_text())["labels"]
+    assert [lab["label"] for lab in labels] == ["rough"], labels
+
+
+# -- the server's rules, over plain HTTP ----------------------------------------------------------
+
+@pytest.fixture
+def marking_view():
+    view = ViewSink(labels=["smooth", "rough"], quiet=True)
+    marks = []
+    view.on_mark = lambda label: marks.append(label) or 1.5
+    view.prepare()
+    yield view, marks
+    view.close()
+
+
+def test_a_change_without_the_token_or_from_another_origin_is_refused_and_changes_nothing(marking_view):
+    view, marks = marking_view
+    body = json.dumps({"label": "rough"}).encode()
+    own = _own(view)
+    assert _request(view, "POST", "/mark", body, {**own, TOKEN_HEADER: ""})[0] == 403
+    assert _request(view, "POST", "/mark", body, {**own, TOKEN_HEADER: view.token[:-1] + "x"})[0] == 403
+    status, why = _request(view, "POST", "/mark", body, {**own, "Origin": "http://evil.example"})
+    assert status == 403 and "Origin" in why
+    assert _request(view, "POST", "/mark", body, {k: v for k, v in own.items() if k != "Origin"})[0] == 403
+    status, why = _request(view, "POST", "/mark", json.dumps({"label": "wet"}).encode(), own)
+    assert status == 422 and "'wet'" in why
+    assert _request(view, "POST", "/mark", b"x" * (MAX_BODY + 1), own)[0] == 413
+    assert _request(view, "POST", "/mark", b"[1]", own)[0] == 400
+    assert _request(view, "POST", "/nothing", body, own)[0] == 404
+    assert _request(view, "GET", "/../etc/passwd")[0] == 404
+    assert marks == [] and view.marks == []
+    status, done = _request(view, "POST", "/mark", body, own)
+    assert status == 200 and json.loads(done) == {"type": "mark", "label": "rough", "time": 1.5}
+    assert marks == ["rough"]
+    status, _ = _request(view, "POST", "/mark", json.dumps({"label": None}).encode(), own)
+    assert status == 200 and marks == ["rough", None]
+
+
+def test_without_marks_the_view_is_read_only():
+    view = ViewSink(quiet=True)
+    view.prepare()
+    try:
+        status, why = _request(view, "POST", "/mark", b"{}", _own(view))
+        assert status == 404 and "read-only" in why
+        assert _request(view, "GET", "/")[0] == 200
+        assert json.loads(_request(view, "GET", "/state")[1])["marks"] is False
+    finally:
+        view.close()
+
+
+def test_a_page_that_stops_reading_loses_messages_counted_and_never_blocks_the_sink():
+    view = ViewSink(quiet=True)
+    view.prepare()
+    stalled = socket.create_connection(("127.0.0.1", view.port), timeout=10)
+    stalled.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+    stalled.sendall(b"GET /events HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")   # and never reads
+    try:
+        deadline = time.monotonic() + 30
+        while view.hub.clients() == 0 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        features = {"Af": [float(i) for i in range(200)]}
+        t0 = time.monotonic()
+        n = 20 * CLIENT_QUEUE
+        for w in range(n):
+            view.emit(WindowEvent("main", w, w * 0.1, w * 0.1 + 0.1, w * 0.1 + 0.1, features=features))
+        took = time.monotonic() - t0
+        assert view.hub.dropped > n // 2, view.hub.dropped     # most were dropped, and counted
+        assert took < 30, f"{n} emits took {took:.1f} s"        # each is a few microseconds; never a wait
+        assert view.stats()["client_dropped"] == view.hub.dropped
+    finally:
+        stalled.close()
+        view.close()
+    assert not [t.name for t in threading.enumerate() if t.name.startswith("view-")]
+
+
+def test_a_node_with_a_page_that_never_reads_runs_as_fast_and_counts_the_drops(tmp_path):
+    sc = scene(tmp_path, {"type": "view"}, speed="max")
+    graph = build_node(sc)
+    view = _view(graph)
+    attach(graph)
+    graph.sinks[0].prepare()
+    stalled = socket.create_connection(("127.0.0.1", view.port), timeout=10)
+    stalled.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+    stalled.sendall(b"GET /events HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
+    try:
+        summary = Running(graph, None).join()
+    finally:
+        stalled.close()
+    assert summary["windows"] == 8 * 100                         # every window processed
+    (stats,) = summary["sinks"]
+    assert stats["client_dropped"] > 0                           # the page's loss, counted in the view's stats
+    assert stats["written"] + stats["dropped_windows"] + stats["dropped_events"] >= summary["windows"]
+
+
+# -- bad input -------------------------------------------------------------------------------------
+
+def test_binding_beyond_loopback_needs_remote_and_a_token(tmp_path):
+    context = SinkContext("s.toml: [[sink]] #1")
+    base = {"port": 0, "host": "0.0.0.0", "remote": False, "token": None, "labels": None}
+    with pytest.raises(OptionError, match="remote = true and a token"):
+        SPEC.build(base, context)
+    with pytest.raises(OptionError, match="remote = true and a token"):
+        SPEC.build({**base, "remote": True}, context)
+    with pytest.raises(SceneError, match="token: expected .* at least 16"):
+        scene(tmp_path, {"type": "view", "host": "0.0.0.0", "remote": True, "token": "short"})
+    sink = SPEC.build({**base, "remote": True, "token": "a-long-enough-token-0123"}, context)
+    try:
+        assert isinstance(sink, QueuedSink) and sink.sink.token == "a-long-enough-token-0123"
+    finally:
+        sink.close()
+
+
+def test_a_port_in_use_or_out_of_range_is_refused_naming_the_fix(tmp_path):
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        with pytest.raises(ViewError, match=f"127.0.0.1:{port}.*give another port, or 0"):
+            ViewSink(port, quiet=True)
+    with pytest.raises(SceneError, match="port: expected a TCP port 0..65535"):
+        scene(tmp_path, {"type": "view", "port": 70000})
