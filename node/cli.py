@@ -870,7 +870,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--batch", type=_count(1), default=4,
                    help="trials asked at once; the result depends on the seed and this, not on --jobs or --cluster "
                         "(default 4)")
-    p.add_argument("--quick", action="store_true", help="fewer values per parameter and fewer trials")
+    p.add_argument("--quick", action="store_true",
+                   help="fewer values per parameter, 16 trials, each fold's network trained on at most 4000 windows")
     p.add_argument("--jobs", type=_count(1), default=1,
                    help="local processes scoring folds (a local Dask cluster when more than 1; default 1)")
     p.add_argument("--cluster", default=None, metavar="ADDRESS",

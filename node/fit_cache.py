@@ -10,10 +10,11 @@ greatest common divisor of the search's window lengths at the bank's rate, and s
 window and selects any features on demand: one filterbank run per bank and recording for the
 whole search (every fold, window and feature set).
 
-The cache is bounded in memory (least recently used banks leave first); with a folder, a bank that
-leaves memory is kept on disk as two ``.npy`` files (written and read by numpy without pickle) and
-read back when asked for again. Processes of one machine share the folder: a bank one worker
-computed is read by the others instead of computed again.
+The cache is bounded in memory (least recently used banks leave first); with a folder, every bank
+is also kept on disk in parts of :data:`PART` recordings, two ``.npy`` files each (written and read
+by numpy without pickle, atomically), and read back when asked for again. Processes of one machine
+share the folder: a part one worker computed is read by the others instead of computed again, and
+the parts of one bank can be computed by several workers at once (:meth:`FeatureCache.fill`).
 """
 
 from __future__ import annotations
@@ -36,11 +37,13 @@ from supramodal.node.manifest import Recording
 from supramodal.node.training import recording_windows
 from supramodal.pipeline import FeaturePipeline, window_length
 
-__all__ = ["DEFAULT_MEMORY_BYTES", "FeatureCache", "base_samples"]
+__all__ = ["DEFAULT_MEMORY_BYTES", "PART", "FeatureCache", "base_samples"]
 
 #: In-memory bound of one process's cache, bytes (a 50-channel bank over 600 recordings of 5 s in
 #: 50 ms base windows takes 36 MB).
 DEFAULT_MEMORY_BYTES = 512 * 2**20
+#: Recordings per part of a bank on disk (the unit a worker filters at once).
+PART = 40
 
 
 def base_samples(windows, fs: float) -> int:
@@ -113,7 +116,7 @@ class FeatureCache:
         """
         features = check_features(features)
         W = window_length(window, bank.fs)
-        B = base_samples(self.windows, bank.fs)
+        B = self._base_samples(bank)
         if W % B:                                # a window the search did not announce: its own base
             B = W
         base = self._base(bank, B)
@@ -125,28 +128,48 @@ class FeatureCache:
             out.append(v[: n * m].reshape(n, m, len(FEATURES), bank.channels).sum(axis=1)[:, pick, :])
         return out
 
-    def _key(self, bank: Bank, base: int) -> str:
+    @property
+    def parts(self) -> int:
+        """How many parts of :data:`PART` recordings a bank is kept in."""
+        return -(-len(self.recs) // PART)
+
+    def fill(self, bank: Bank, part: int) -> None:
+        """Compute part ``part`` of ``bank`` into the folder (nothing if it is there already), so that
+        the processes sharing the folder find it: what a worker does while others fill other parts."""
+        self._part(bank, self._base_samples(bank), part)
+
+    def _base_samples(self, bank: Bank) -> int:
+        return base_samples(self.windows, bank.fs)
+
+    def _key(self, bank: Bank, base: int, part: int) -> str:
+        recs = self.recs[part * PART: (part + 1) * PART]
         what = {"bank": bank.to_dict(), "base": base, "mapping": self.mapping,
-                "recordings": [[str(r.path), r.start, r.end] for r in self.recs]}
+                "recordings": [[str(r.path), r.start, r.end] for r in recs]}
         return hashlib.sha256(json.dumps(what, sort_keys=True).encode()).hexdigest()[:32]
 
     def _base(self, bank: Bank, base: int) -> list[np.ndarray]:
-        key = self._key(bank, base)
+        key = self._key(bank, base, -1)
         if key in self._held:
             self._held.move_to_end(key)
             return self._held[key][0]
-        values = self._read(key, bank.channels)
+        values = [v for part in range(self.parts) for v in self._part(bank, base, part)]
+        self._hold(key, values)
+        return values
+
+    def _part(self, bank: Bank, base: int, part: int) -> list[np.ndarray]:
+        key = self._key(bank, base, part)
+        recs = self.recs[part * PART: (part + 1) * PART]
+        values = self._read(key, bank.channels, len(recs))
         if values is None:
             values = []
             with warnings.catch_warnings():
                 # The paper's banks may reach above the recordings' band: the fit's report says so once.
                 warnings.simplefilter("ignore", BandWarning)
-                for rec in self.recs:
+                for rec in recs:
                     values.append(recording_windows(rec, FeaturePipeline(bank, FEATURES, base / bank.fs),
                                                     self.mapping))
                     self.filterbank_runs += 1
             self._write(key, values)
-        self._hold(key, values)
         return values
 
     def _hold(self, key: str, values: list[np.ndarray]) -> None:
@@ -162,27 +185,27 @@ class FeatureCache:
         return self.folder / f"{key}-values.npy", self.folder / f"{key}-ends.npy"
 
     def _write(self, key: str, values: list[np.ndarray]) -> None:
-        """Keep a bank on disk (atomically: a reader never sees half a file)."""
+        """Keep a part on disk (atomically: a reader never sees half a file)."""
         if self.folder is None:
             return
         self.folder.mkdir(parents=True, exist_ok=True)
         ends = np.cumsum([len(v) for v in values]).astype(np.int64)
         for path, array in zip(self._paths(key), (np.concatenate(values), ends)):
-            tmp = path.with_name(f"{path.stem}.{os.getpid()}.tmp.npy")
+            tmp = path.with_name(f"{path.stem}.{os.getpid()}.{id(values)}.tmp.npy")
             np.save(tmp, array, allow_pickle=False)
             os.replace(tmp, path)
 
-    def _read(self, key: str, channels: int) -> list[np.ndarray] | None:
-        """A bank kept on disk, or None (absent, or not what this cache wrote: then recomputed)."""
+    def _read(self, key: str, channels: int, count: int) -> list[np.ndarray] | None:
+        """A part kept on disk, or None (absent, or not what this cache wrote: then recomputed)."""
         if self.folder is None:
             return None
         values_path, ends_path = self._paths(key)
         try:
-            values = np.load(values_path, allow_pickle=False)
             ends = np.load(ends_path, allow_pickle=False)
+            values = np.load(values_path, allow_pickle=False)
         except (OSError, ValueError):
             return None
-        if (values.ndim != 3 or values.shape[1:] != (len(FEATURES), channels) or ends.shape != (len(self.recs),)
+        if (values.ndim != 3 or values.shape[1:] != (len(FEATURES), channels) or ends.shape != (count,)
                 or ends.dtype.kind != "i" or (len(ends) and ends[-1] != len(values)) or np.any(np.diff(ends) < 0)):
             return None
         self.disk_reads += 1

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import csv
 import math
+import threading
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -54,7 +55,7 @@ from supramodal.errors import InputError
 from supramodal.evaluation import pooled_accuracy
 from supramodal.model import TextureModel
 from supramodal.node.band import channels_beyond_band
-from supramodal.node.fit_cache import DEFAULT_MEMORY_BYTES, FeatureCache
+from supramodal.node.fit_cache import DEFAULT_MEMORY_BYTES, PART, FeatureCache
 from supramodal.node.manifest import ManifestError, read_manifest
 from supramodal.node.reports import pyplot_or_none
 from supramodal.pipeline import window_length
@@ -78,7 +79,10 @@ EPOCHS = ((50, 100, 200, 300), (30, 60, 120))
 FAMILIES = ("erb", "whisker")
 TARGETS = ("window", "recording", "contact")
 #: Trials when none are asked for (full, quick).
-DEFAULT_TRIALS = (60, 20)
+DEFAULT_TRIALS = (60, 16)
+#: Most windows a fold's network trains on (full, quick): evenly spaced over the training recordings'
+#: windows, every recording in proportion (None: all). Test windows are always all scored.
+TRAIN_WINDOWS = (None, 4000)
 #: Trials asked from Optuna at once (the result depends on it, not on the number of processes).
 DEFAULT_BATCH = 4
 #: A contact, for ``target = "contact"``: seconds of consecutive windows pooled.
@@ -166,6 +170,7 @@ class Space:
     contact: float
     max_window: float | None
     max_channels: int | None
+    train_windows: int | None = None
 
     def setting(self, trial) -> Setting | None:
         """The setting an Optuna trial proposes; None when its band is empty (the window's
@@ -288,17 +293,19 @@ def search_space(recs, quick: bool = False, max_window: float | None = None, max
                            "hold a whole contact; choose a shorter contact")
     return Space(fs, tuple(sorted(channels)), F_HIGH[pick], F_LOW[pick], B_SCALE[pick], tuple(sorted(fitting)),
                  FEATURE_SETS[pick], HIDDEN[pick], tuple(sorted(epochs)), target, float(contact), max_window,
-                 max_channels)
+                 max_channels, TRAIN_WINDOWS[pick])
 
 
 # -- one fold, anywhere --------------------------------------------------------------------------
 
-#: This process's caches, by manifest and options (a worker keeps its own between tasks).
+#: This process's caches, by manifest, options and thread (a worker keeps its own between tasks; the
+#: threads of a worker share the folder, not the object).
 _CACHES: dict[tuple, tuple[list, FeatureCache]] = {}
 
 
 def _cache(job: dict) -> tuple[list, FeatureCache]:
-    key = (job["manifest"], str(job["mapping"]), job["windows"], job["cache_dir"], job["cache_memory"])
+    key = (job["manifest"], str(job["mapping"]), job["windows"], job["cache_dir"], job["cache_memory"],
+           threading.get_ident())
     if key not in _CACHES:
         recs = read_manifest(job["manifest"])
         _CACHES[key] = recs, FeatureCache(recs, job["windows"], job["mapping"], job["cache_memory"],
@@ -311,6 +318,22 @@ def forget_caches() -> None:
     _CACHES.clear()
 
 
+def warm_bank(job: dict) -> dict:
+    """Filter part ``job["part"]`` of the recordings through ``job["bank"]`` into the cache folder, where
+    the other workers of the machine read it: a task of its own, so that the parts of a new bank are
+    filtered by several workers at once instead of each fold filtering them again.
+
+    Returns
+    -------
+    dict
+        ``filterbank_runs``: the recordings filtered (0 when the part was on disk).
+    """
+    recs, cache = _cache(job)
+    before = cache.filterbank_runs
+    cache.fill(Bank.from_dict(job["bank"]), job["part"])
+    return {"filterbank_runs": cache.filterbank_runs - before}
+
+
 def score_fold(job: dict) -> dict:
     """Train on every fold but ``job["fold"]`` and score that one (a task: plain data in and out).
 
@@ -320,7 +343,8 @@ def score_fold(job: dict) -> dict:
         ``manifest`` (path), ``mapping``, ``windows`` (every window of the search, seconds),
         ``cache_dir``, ``cache_memory`` (bytes), ``bank`` (:meth:`Bank.to_dict`), ``window``
         (seconds), ``features`` (names joined by ``+``), ``hidden``, ``epochs``, ``fold``, ``k``,
-        ``seed``, ``contact`` (seconds).
+        ``seed``, ``contact`` (seconds), ``train_windows`` (most training windows, evenly spaced; None:
+        all).
 
     Returns
     -------
@@ -344,6 +368,9 @@ def score_fold(job: dict) -> dict:
         test = [i for i in range(len(recs)) if fold[i] == job["fold"]]
         x = np.concatenate([values[i] for i in train])
         y = np.concatenate([np.full(len(values[i]), classes.index(recs[i].label)) for i in train])
+        if job["train_windows"] is not None and len(x) > job["train_windows"]:
+            keep = np.round(np.linspace(0, len(x) - 1, job["train_windows"])).astype(int)
+            x, y = x[keep], y[keep]
         model = TextureModel.train(x, y, classes, bank, features, window_length(job["window"], bank.fs),
                                    epochs=job["epochs"], seed=job["seed"], hidden=job["hidden"], calibration_folds=0)
         lps = [model.log_posteriors(values[i]) for i in test if len(values[i])]
@@ -400,10 +427,23 @@ class Runner:
         workers = len(self.client.scheduler_info().get("workers", {}))
         return f"Dask scheduler {self.client.scheduler.address} ({workers} workers)"
 
-    def map(self, jobs: list[dict]) -> list[dict]:
+    def map(self, jobs: list[dict], task=None) -> list[dict]:
+        """``task`` (default :func:`score_fold`) of every job, in the jobs' order."""
+        task = score_fold if task is None else task
         if self.client is None:
-            return [score_fold(j) for j in jobs]
-        return self.client.gather(self.client.map(score_fold, jobs, pure=False))
+            return [task(j) for j in jobs]
+        return self.client.gather(self.client.map(task, jobs, pure=False))
+
+    def start(self, jobs: list[dict], task) -> list:
+        """Begin ``task`` on every job on the cluster's workers, behind every task :meth:`map` gives
+        them, and return at once (handles for :meth:`wait`); nothing in this process."""
+        if self.client is None:
+            return []
+        return self.client.map(task, jobs, pure=False, priority=-1)
+
+    def wait(self, started: list) -> list[dict]:
+        """The results of what :meth:`start` began."""
+        return [] if self.client is None else self.client.gather(started)
 
     def close(self) -> None:
         if self.client is not None:
@@ -498,12 +538,31 @@ def fit_search(manifest, k: int = 5, seed: int = 0, quick: bool = False, trials:
         study.enqueue_trial(params)
     base = {"manifest": str(manifest), "mapping": mapping, "windows": space.windows,
             "cache_dir": None if cache_dir is None else str(cache_dir), "cache_memory": int(cache_memory),
-            "k": k, "seed": seed, "contact": space.contact}
+            "k": k, "seed": seed, "contact": space.contact, "train_windows": space.train_windows}
     rows: list[dict] = []
     runs = 0
     t0 = time.perf_counter()
+    warmed: set[str] = set()
+
+    def warm(banks: list[Bank], runner: Runner) -> list[dict]:
+        """On a cluster sharing the cache folder, jobs filtering the parts of the banks not yet
+        filtered (in this process each fold fills what it needs)."""
+        if runner.client is None or cache_dir is None:
+            return []
+        todo = {}
+        for bank in banks:
+            key = repr(bank.to_dict())
+            if key not in warmed:
+                warmed.add(key)
+                todo[key] = [{**base, "bank": bank.to_dict(), "part": part} for part in range(parts)]
+        return [job for jobs in todo.values() for job in jobs]
+
+    parts = -(-len(recs) // PART)
     with Runner(jobs, cluster) as runner:
         where = runner.where
+        # The paper's banks filter every recording at their own rates (the cochlea's 44.1 kHz is the
+        # costliest bank of the fit): on a cluster they start now, beside the trials.
+        paper_warm = runner.start(warm([whisker_bank(), cochlea_bank()], runner), warm_bank)
         say(f"fit: {trials} trials of grouped {k}-fold cross-validation in rounds of {batch}, on {where}; "
             f"maximising {target} accuracy; windows {', '.join(f'{w:g}' for w in space.windows)} s")
         while len(rows) < trials and (timeout is None or time.perf_counter() - t0 < timeout):
@@ -516,6 +575,8 @@ def fit_search(manifest, k: int = 5, seed: int = 0, quick: bool = False, trials:
                     rows.append({"trial": trial.number, "state": "empty band", "folds": 0, **_params(trial.params)})
                     continue
                 live.append((trial, setting, []))
+            runs += sum(r["filterbank_runs"] for r in runner.map(warm([s.bank() for _, s, _ in live], runner),
+                                                                 warm_bank))
             for f in range(k):
                 if not live:
                     break
@@ -565,6 +626,7 @@ def fit_search(manifest, k: int = 5, seed: int = 0, quick: bool = False, trials:
                                 "hidden": s["hidden"], "epochs": s["epochs"], "fold": f}
                                for f in range(k)]
         say(f"fit: the paper's whisker and cochlea banks at {len(curve)} window(s), beside the best of each")
+        runs += sum(r["filterbank_runs"] for r in runner.wait(paper_warm))
         results = runner.map(paper_jobs)
         runs += sum(r["filterbank_runs"] for r in results)
         for i, point in enumerate(curve):
@@ -615,7 +677,9 @@ def format_search(result: dict) -> str:
              f"{result['batch']}), banks at {result['fs']:g} Hz, maximising {t} accuracy: {len(rows)} trials "
              f"({states['complete']} complete, {states['pruned']} pruned, {states['empty band']} with an empty "
              f"band) in {result['seconds']:.0f} s on {result['where']}; {result['filterbank_runs']} filterbank runs "
-             f"for {result['recordings']} recordings",
+             f"for {result['recordings']} recordings"
+             + ("" if result["space"]["train_windows"] is None else
+                f"; each fold's network trained on at most {result['space']['train_windows']} windows (--quick)"),
              "",
              f"best (trial {b['trial']}): {_describe(b)}: windows {b['window_mean']:.3f} +- {b['window_sd']:.3f}, "
              f"recordings {b['recording_mean']:.3f} +- {b['recording_sd']:.3f}, contacts {b['contact_mean']:.3f}"]
