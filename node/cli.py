@@ -323,6 +323,9 @@ def _cmd_record(args) -> int:
 
     _interrupt_until_running()
     scene = load_scene(args.scene)
+    if args.view is not None:
+        from supramodal.node.view import add_view
+        scene, _ = add_view(scene, None, args.view)
     name = args.name or time.strftime("session-%Y%m%d-%H%M%S")
     labelled = bool(args.label or args.marks)
     if args.replace and not labelled:
@@ -338,6 +341,7 @@ def _cmd_record(args) -> int:
                            "--replace to label the recording with yours instead)")
         if args.marks:
             _read_marks(GraphMarks(recorders).mark)
+        _attach_views(node, GraphMarks(recorders).mark if args.marks else None)    # marks from the page too
         summary = node.run(max_seconds=args.seconds, on_running=lambda: _stop_on_signals(node))
         if summary.get("recorded"):
             try:
@@ -357,6 +361,7 @@ def _cmd_record(args) -> int:
                        "(leave them out, or pass --replace to label the recording with yours instead)")
     if args.marks:
         _read_marks(recorder.mark)
+    _attach_views(node, recorder.mark if args.marks else None)                    # marks from the page too
     summary = node.run(max_seconds=args.seconds, on_running=lambda: _stop_on_signals(node))
     if summary.get("recorded"):
         print(f"recorded {summary['stream_seconds']:.2f} s to {summary['recorded'][0]} (+ .json)", file=sys.stderr)
@@ -387,6 +392,15 @@ def _label_name(text: str) -> str:
         return check_label_name(text, "--label")
     except LabelError as exc:
         raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def _cmd_view(args) -> int:
+    from supramodal.node.view_replay import ViewReplay
+
+    _interrupt_until_running()
+    replay = ViewReplay(args.recording, port=args.port, speed=args.speed, progress=_progress(args))
+    replay.serve(on_running=lambda: _stop_on_signals(replay))
+    return 0
 
 
 def _cmd_label(args) -> int:
@@ -937,7 +951,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seconds", type=_stream_seconds,
                    help="stop after this much stream; inf: until the stream ends or Ctrl-C (the default)")
     p.add_argument("--quiet", action="store_true", help="no progress on stderr (warnings are still shown)")
+    p.add_argument("--view", nargs="?", const=0, type=int, metavar="PORT",
+                   help="also serve the live page on 127.0.0.1:PORT (default 0: any free port); with --marks its label "
+                        "buttons mark too, given the run's token printed at start (docs/view.md)")
     p.set_defaults(func=_cmd_record)
+
+    p = add_parser("view", help="play a recording back into the view's page (pause, speed): docs/view.md")
+    p.add_argument("recording", metavar="REC.toml|SESSION",
+                   help="the replay scene `supramodal record` wrote for a graph, or a session (NAME.wav + NAME.json)")
+    p.add_argument("--port", type=int, default=0, help="the page's port on 127.0.0.1 (default 0: any free one)")
+    p.add_argument("--speed", type=float, default=1.0, help="playback speed at the start (default 1: as recorded)")
+    p.add_argument("--quiet", action="store_true", help="no progress on stderr (the URL is still printed)")
+    p.set_defaults(func=_cmd_view)
 
     p = add_parser("label", help="label a recorded graph after the fact from spans on common time (CSV)")
     p.add_argument("recording", metavar="REC.toml", help="the replay scene `supramodal record` wrote for a graph")

@@ -522,14 +522,19 @@ class ViewSink(Sink):
                 pass
 
     def emit(self, event: WindowEvent) -> None:
-        if event.stream not in self._classes and event.classes:
+        self.emit_message(window_message(event))
+
+    def emit_message(self, message: dict[str, Any]) -> None:
+        """A window as :func:`window_message` made it (a replay plays those it kept)."""
+        stream = message["stream"]
+        if stream not in self._classes and message.get("classes"):
             with self._lock:
-                self._classes[event.stream] = list(event.classes)
-        if event.stream not in self._streams:
+                self._classes[stream] = list(message["classes"])
+        if stream not in self._streams:
             with self._lock:
-                self._streams.append(event.stream)
+                self._streams.append(stream)
             self.hub.publish(self.hello(), keep="latest")
-        self.hub.publish(window_message(event))
+        self.hub.publish(message)
 
     def event(self, ev: DriverEvent) -> None:
         self.hub.publish(event_message(ev))

@@ -75,6 +75,9 @@
       h.forEach((m, i) => { const y = H - 2 - (H - 4) * (m.posteriors[k] || 0); i ? g.lineTo(x0 + i * dx, y) : g.moveTo(x0, y); });
       g.stroke();
     }
+    h.forEach((m, i) => {   // a fused window of one sense (its partner late or lost): an orange tick on top
+      if ((m.flags || []).includes("alone")) { g.fillStyle = "#f79009"; g.fillRect(x0 + i * dx - dx / 2, 0, Math.max(dx, 1), 4); }
+    });
     h.forEach((m, i) => {   // truth along the bottom: green right, red wrong
       if (m.truth == null) return;
       g.fillStyle = m.truth === m.predicted ? "#16794c" : "#b42318";
@@ -196,11 +199,13 @@
 
   function onSummary() {
     const mode = $("#mode"); text(mode, (hello ? hello.mode : "run") + " ended"); mode.className = "pill ended";
-    banner("the run has ended: the summary is on the terminal", "ended", true);
+    banner(hello && hello.mode === "replay" ? "the recording has ended (from the start: replays it)"
+           : "the run has ended: the summary is on the terminal", "ended", true);
   }
 
   function onReset() {
     for (const s of streams.values()) s.history = [];
+    if (hello) onHello(hello);
     $("#eventlog").innerHTML = "";
   }
 

@@ -1,0 +1,232 @@
+"""``supramodal view REC.toml | SESSION``: a recording played back into the view's page, with pause
+and speed, so that a user can look back at what the robot felt.
+
+The recording is first run through the node at once (``--speed max``: the same windows, decisions
+and driver events a live run of it gives, node/graph.py), kept in memory, then played to the page
+on the recording's own time (each window at its end on common time) by a player thread, which
+the page's pause, speed and restart buttons steer (POST ``/control``, with the run's token, as
+every change). The health the page shows is the recording's whole run (its summary's counters).
+
+Threading rules
+---------------
+:meth:`ViewReplay.serve` runs the node (its own threads, joined), then the player on the
+caller's thread until :meth:`ViewReplay.stop` (from a signal handler or another thread); the
+page's requests come on the view's server threads and only change the player's state under its
+condition.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+from supramodal.drivers.base import DriverEvent
+from supramodal.errors import InputError
+from supramodal.node.events import WindowEvent
+from supramodal.node.sinks import Sink
+from supramodal.node.view import ViewSink, event_message, window_message
+
+__all__ = ["BANKS_BY_RATE", "MAX_SPEED", "ViewReplay", "replay_scene"]
+
+#: A session alone (no REC.toml) is seen through the paper's bank for its rate.
+BANKS_BY_RATE = {5000: "whisker", 44100: "cochlea"}
+#: The fastest playback the page may ask for.
+MAX_SPEED = 100.0
+
+
+class _Keep(Sink):
+    """Keeps what the node sends, as the page will get it, with each item's time."""
+
+    def __init__(self) -> None:
+        self.items: list[tuple[float, dict[str, Any]]] = []
+        self.summary_: dict[str, Any] | None = None
+        self._lock = threading.Lock()
+
+    def emit(self, event: WindowEvent) -> None:
+        with self._lock:
+            self.items.append((float(event.end), window_message(event)))
+
+    def event(self, ev: DriverEvent) -> None:
+        with self._lock:
+            self.items.append((float(ev.time), event_message(ev)))
+
+    def summary(self, summary: dict[str, Any]) -> None:
+        self.summary_ = summary
+
+
+def replay_scene(path: str | Path) -> Any:
+    """The scene that replays ``path``: a recorded graph's ``REC.toml`` as it is, or a session
+    (``NAME``, ``NAME.wav`` or ``NAME.json``) through the paper's bank for its rate, no model."""
+    from supramodal.node.scene import load_scene, scene_from_dict
+    from supramodal.replay.session import load_session, session_paths
+
+    p = Path(path)
+    if p.suffix.lower() == ".toml":
+        return load_scene(str(p))
+    wav, sidecar = session_paths(p)
+    if not sidecar.exists():
+        raise InputError(f"{path}: neither a recording's REC.toml nor a session ({sidecar} is missing); give "
+                         "the .toml that supramodal record wrote, or a session NAME.wav with its NAME.json")
+    session = load_session(p)
+    kind = BANKS_BY_RATE.get(int(session.rate)) if float(session.rate).is_integer() else None
+    if kind is None:
+        raise InputError(f"{path}: a session at {session.rate:g} Hz has no default bank (whisker: 5000 Hz, cochlea: "
+                         "44100 Hz); view it through a scene of yours: supramodal run SCENE --view, with [driver] "
+                         f"type = \"replay\" and path = \"{wav}\"")
+    return scene_from_dict({"driver": {"type": "replay", "path": str(wav)}, "bank": {"kind": kind},
+                            "features": {"names": ["A", "f", "Af"]}, "sink": [{"type": "text"}]}, str(p))
+
+
+def _health(summary: dict[str, Any]) -> dict[str, Any]:
+    """The page's health from a run's summary (the recording's totals)."""
+    if "streams" in summary:
+        streams = {name: {"windows": s["windows"], "frames": s["frames"], "latency_ms": s.get("latency_ms")}
+                   for name, s in summary["streams"].items()}
+        clocks = summary.get("clocks") or {}
+    else:
+        streams = {"main": {"windows": summary["windows"], "frames": summary["frames"],
+                            "latency_ms": summary.get("latency_ms")}}
+        clocks = {"main": summary["clock"]} if summary.get("clock") else {}
+    f = summary.get("fusion")
+    fusion = None if not f else {k: f.get(k) for k in ("windows", "paired", "alone", "late", "dropouts", "latency_ms")}
+    return {"type": "health", "streams": streams, "clocks": clocks, "fusion": fusion, "sinks": [],
+            "replay": True}
+
+
+class ViewReplay:
+    """A recording run through the node once, then played to the view's page.
+
+    Parameters
+    ----------
+    path : str or Path
+        A recorded graph's ``REC.toml`` or a session.
+    port : int
+        The view's port (0: any free one).
+    speed : float
+        Playback speed at the start (1: the recording's own pace).
+    progress : callable, optional
+        ``progress(message)`` for start-up lines.
+    quiet : bool
+        The view prints no URL.
+    """
+
+    def __init__(self, path: str | Path, port: int = 0, speed: float = 1.0,
+                 progress: Callable[[str], None] | None = None, quiet: bool = False) -> None:
+        if not (isinstance(speed, (int, float)) and math.isfinite(speed) and 0 < speed <= MAX_SPEED):
+            raise InputError(f"--speed {speed!r}: expected a playback speed > 0 and at most {MAX_SPEED:g}")
+        self.scene = replay_scene(path)
+        self.path = str(path)
+        self.progress = progress
+        self.view = ViewSink(port, mode="replay", quiet=quiet)
+        self.view.control = self._control
+        self._cond = threading.Condition()
+        self._paused = False
+        self._speed = float(speed)
+        self._position = 0.0          # seconds of the recording
+        self._restart = False
+        self._stopped = threading.Event()
+        self.items: list[tuple[float, dict[str, Any]]] = []
+        self.summary: dict[str, Any] | None = None
+        self.played = 0               # items sent to the page, over every pass
+
+    # -- the page's controls --
+
+    def _control(self, asked: dict[str, Any]) -> dict[str, Any]:
+        unknown = sorted(set(asked) - {"paused", "speed", "restart"})
+        if unknown:
+            raise InputError(f"unknown control(s) {unknown}; the controls are paused, speed and restart")
+        paused, speed = asked.get("paused"), asked.get("speed")
+        if paused is not None and not isinstance(paused, bool):
+            raise InputError(f"paused: expected true or false, got {paused!r}")
+        if speed is not None and not (isinstance(speed, (int, float)) and not isinstance(speed, bool)
+                                      and math.isfinite(speed) and 0 < speed <= MAX_SPEED):
+            raise InputError(f"speed: expected a number > 0 and at most {MAX_SPEED:g}, got {speed!r}")
+        with self._cond:
+            if paused is not None:
+                self._paused = paused
+            if speed is not None:
+                self._speed = float(speed)
+            if asked.get("restart") is True:
+                self._restart = True
+            self._cond.notify_all()
+            return self.state()
+
+    def state(self) -> dict[str, Any]:
+        """``{"paused", "speed", "position"}`` (position: seconds of the recording)."""
+        return {"paused": self._paused, "speed": self._speed, "position": round(self._position, 3)}
+
+    def stop(self, reason: str = "stop requested") -> None:
+        """End :meth:`serve` (thread-safe, also from a signal handler)."""
+        self._stopped.set()
+        if self._cond.acquire(blocking=False):       # a signal handler never waits for the lock
+            try:
+                self._cond.notify_all()
+            finally:
+                self._cond.release()
+
+    # -- running --
+
+    def load(self) -> None:
+        """Run the recording through the node at once and keep what it sends."""
+        from supramodal.node.build import build_node
+
+        keep = _Keep()
+        graph = build_node(replace(self.scene, sinks=[]), speed="max", sinks_override=[keep], progress=self.progress)
+        self.summary = graph.run()
+        self.items = sorted(keep.items, key=lambda item: item[0])
+
+    def serve(self, on_running: Callable[[], None] | None = None, loop: bool = False) -> None:
+        """Load (if not yet), then play to the page until :meth:`stop`; at the end of the
+        recording the page keeps what it has (``loop``: it starts again)."""
+        try:
+            if self.summary is None:
+                self.load()
+            self.view.prepare()
+            if on_running is not None:
+                on_running()
+            if self.progress:
+                self.progress(f"{self.path}: {len(self.items)} windows and events, "
+                              f"{self.items[-1][0] if self.items else 0:.1f} s; Ctrl-C ends the view")
+            while not self._stopped.is_set():
+                self._play()
+                if not loop:
+                    with self._cond:
+                        while not (self._stopped.is_set() or self._restart):
+                            self._cond.wait(0.5)
+        finally:
+            self.view.close()
+
+    def _play(self) -> None:
+        """One pass over the recording, paced by the player's speed, paused while asked."""
+        hub = self.view.hub
+        hub.reset()
+        hub.publish({"type": "reset"}, keep="none")
+        with self._cond:
+            self._restart = False
+            self._position = 0.0
+        hub.publish(_health(self.summary or {"windows": 0, "frames": {}}), keep="latest")
+        wall = time.monotonic()
+        for t, message in self.items:
+            with self._cond:
+                while True:
+                    if self._stopped.is_set() or self._restart:
+                        return
+                    now = time.monotonic()
+                    if not self._paused:
+                        self._position += (now - wall) * self._speed
+                    wall = now
+                    if not self._paused and self._position >= t:
+                        break
+                    wait = 0.1 if self._paused else min(0.1, (t - self._position) / self._speed)
+                    self._cond.wait(max(wait, 0.001))
+            if message["type"] == "window":
+                self.view.emit_message(message)
+            else:
+                hub.publish(message)
+            self.played += 1
+        hub.publish({"type": "summary", "summary": self.summary}, keep="latest")
