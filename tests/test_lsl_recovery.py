@@ -75,11 +75,11 @@ def test_a_sender_without_a_source_id_killed_and_restarted_is_found_again(tmp_pa
         _read_until(driver, blocks, before + 5000, 60.0)       # 1 s of the new sender's samples
         stats = driver.stats()
         assert sum(b.data.shape[0] for b in blocks) >= before + 5000, stats
-        assert stats["reopened"] == 1 and stats["stalls"] == 1, stats
+        assert stats["reopened"] == 1 and stats["stalls"] >= 1, stats
         assert "reconnect" in [e.kind for e in driver.take_events()[0]]
         # The outage is in the stamps (the new sender stamps at push time): filled and counted.
         filled = sum(int(b.filled.sum()) for b in blocks if b.filled is not None)
-        assert filled == stats["filled"] and stats["gaps"] + stats["restarts"] == 1, stats
+        assert filled == stats["filled"] and stats["gaps"] + stats["restarts"] >= 1, stats
     finally:
         driver.close()
         for p in (first, second):
