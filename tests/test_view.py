@@ -9,10 +9,13 @@ import json
 import socket
 import threading
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
+from view_browser import Browser, chromium_path, png_colours
 
+from supramodal.drivers.base import DriverEvent
 from supramodal.drivers.spec import OptionError
 from supramodal.node.build import build_node
 from supramodal.node.events import WindowEvent
@@ -21,8 +24,6 @@ from supramodal.node.registry import SinkContext
 from supramodal.node.scene import SceneError, scene_from_dict
 from supramodal.node.sinks import QueuedSink
 from supramodal.node.view import CLIENT_QUEUE, MAX_BODY, SPEC, TOKEN_HEADER, ViewError, ViewSink, attach, view_sinks
-
-from view_browser import Browser, chromium_path, png_colours
 
 NO_CHROMIUM = "Debian's chromium is not installed (apt-get install -y chromium; .ci/run installs it)"
 
@@ -275,3 +276,71 @@ def test_a_port_in_use_or_out_of_range_is_refused_naming_the_fix(tmp_path):
             ViewSink(port, quiet=True)
     with pytest.raises(SceneError, match="port: expected a TCP port 0..65535"):
         scene(tmp_path, {"type": "view", "port": 70000})
+
+
+def test_a_driver_event_shows_as_a_banner_within_a_second(browser):
+    view = ViewSink(quiet=True)
+    view.prepare()
+    try:
+        browser.open(view.url)
+        browser.wait_for("!!document.querySelector('#conn.live')", timeout=60)
+        sent = time.monotonic()
+        view.event(DriverEvent("unplug", "the whisker board is unplugged; waiting for it", 12.5))
+        browser.wait_for("!!document.querySelector('#banners .event-unplug')", timeout=30, interval=0.02)
+        assert time.monotonic() - sent < 1.0 + 2.0        # within 1 s, plus the test's own polling on a busy machine
+        assert "unplugged" in browser.eval("document.querySelector('#banners .event-unplug').textContent")
+        assert "unplug" in browser.eval("document.querySelector('#eventlog li').textContent")
+    finally:
+        view.close()
+
+
+def test_a_fused_graph_shows_both_streams_the_fused_one_and_the_pairing(tmp_path, browser):
+    from supramodal.node.scene import load_scene
+    from supramodal.node.view import with_view
+
+    sc = load_scene(str(Path(__file__).resolve().parents[1] / "examples" / "two_streams_fused.toml"))
+    graph = build_node(with_view(replace(sc, sinks=[]), 0))
+    view = _view(graph)
+    attach(graph)
+    run = Running(graph, 6.0)
+    browser.open(view.url)
+    shown = ("[...document.querySelectorAll('#streams .stream')]"
+             ".map(s => s.dataset.stream + ':' + (s.dataset.window || ''))")
+    browser.wait_for(f"{shown}.every(s => !s.endsWith(':')) && {shown}.length == 3", timeout=120)
+    assert [s.split(":")[0] for s in browser.eval(shown)] == ["left", "right", "fused"]
+    fused = "document.querySelector('[data-stream=\"fused\"]')"
+    assert set(browser.eval(f"{fused}.dataset.senses").split(",")) <= {"left", "right"}
+    browser.wait_for(f"{fused}.querySelector('.pairing').textContent.startsWith('paired ')", timeout=30)
+    summary = run.join()
+    assert summary["fusion"]["windows"] > 0
+
+
+def test_run_view_serves_the_page_beside_the_json_lines_and_refuses_a_bad_port(tmp_path):
+    import subprocess
+    import sys
+    import urllib.request
+
+    (tmp_path / "s.toml").write_text('[driver]\ntype = "synth"\ntextures = "reference"\nseconds = 1.0\n'
+                                     '[bank]\nkind = "whisker"\n[features]\nnames = ["Af"]\n')
+    cmd = [sys.executable, "-m", "supramodal", "run", str(tmp_path / "s.toml"), "--json", "--seconds", "4",
+           "--quiet", "--view"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        line = proc.stderr.readline()
+        assert line.startswith("supramodal: view at http://127.0.0.1:") and "#token=" in line, line
+        url = line.split()[3]
+        with urllib.request.urlopen(url, timeout=30) as r:
+            assert r.status == 200 and b"<canvas" in r.read()
+        out, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 0, err
+    lines = [json.loads(x) for x in out.splitlines()]
+    assert sum("window" in d for d in lines) == 40
+    sinks = lines[-1]["sinks"]
+    assert [s["sink"].split()[0] for s in sinks] == ["JsonLinesSink", "ViewSink"]
+    assert sinks[1]["dropped_windows"] == 0 and sinks[1]["url"] == url
+    bad = subprocess.run(cmd[:-1] + ["--view", "70000"], capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2 and "--view 70000: expected a TCP port 0..65535 (0: any free one)" in bad.stderr

@@ -9,6 +9,7 @@ import threading
 import time
 
 import pytest
+from view_browser import Browser, chromium_path
 
 from supramodal.errors import InputError
 from supramodal.node.build import build_node
@@ -16,8 +17,6 @@ from supramodal.node.recorder import SessionRecorder
 from supramodal.node.scene import scene_from_dict
 from supramodal.node.view import TOKEN_HEADER
 from supramodal.node.view_replay import ViewReplay
-
-from view_browser import Browser, chromium_path
 
 PANEL = "document.querySelector('[data-stream=\"main\"]')"
 

@@ -34,7 +34,8 @@ def shoot(name: str, scene, seconds: float, after_windows: int) -> None:
     browser = Browser(width=1400, height=1000)
     try:
         browser.open(view.url)
-        browser.wait_for(f"!!document.body && Number(document.body.dataset.received || 0) > {after_windows}", timeout=600)
+        browser.wait_for(f"!!document.body && Number(document.body.dataset.received || 0) > {after_windows}",
+                         timeout=600)
         time.sleep(1.5)
         png = browser.screenshot(full=True)
     finally:
