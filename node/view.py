@@ -136,6 +136,19 @@ def _plain(o: Any) -> Any:
     raise TypeError(f"{type(o).__name__} is not JSON")
 
 
+def _clean(o: Any) -> Any:
+    """``o`` with every number JSON can carry (NaN and infinities as None; numpy as Python)."""
+    if isinstance(o, dict):
+        return {str(k): _clean(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple, set, frozenset, np.ndarray)):
+        return [_clean(v) for v in (sorted(o) if isinstance(o, (set, frozenset)) else o)]
+    if isinstance(o, (float, np.floating)):
+        return float(o) if math.isfinite(o) else None
+    if isinstance(o, (np.integer, np.bool_)):
+        return o.item()
+    return o
+
+
 def _finite(x: float, digits: int) -> float | None:
     x = float(x)
     return round(x, digits) if math.isfinite(x) else None
@@ -541,7 +554,7 @@ class ViewSink(Sink):
 
     def summary(self, summary: dict[str, Any]) -> None:
         self.publish_health()
-        self.hub.publish({"type": "summary", "summary": summary}, keep="latest")
+        self.hub.publish({"type": "summary", "summary": _clean(summary)}, keep="latest")
 
     def stats(self) -> dict[str, Any]:
         return {"url": self.url, "pages": self.hub.opened, "client_dropped": self.hub.dropped,

@@ -344,3 +344,15 @@ def test_run_view_serves_the_page_beside_the_json_lines_and_refuses_a_bad_port(t
     assert sinks[1]["dropped_windows"] == 0 and sinks[1]["url"] == url
     bad = subprocess.run(cmd[:-1] + ["--view", "70000"], capture_output=True, text=True, timeout=120)
     assert bad.returncode == 2 and "--view 70000: expected a TCP port 0..65535 (0: any free one)" in bad.stderr
+
+
+def test_a_summary_with_numbers_json_cannot_carry_reaches_the_page_as_null():
+    view = ViewSink(quiet=True)
+    try:
+        view.summary({"window_accuracy": float("nan"), "ppm": float("inf"), "windows": 3})
+        page = view.hub.open()
+        messages = [json.loads(m.decode()[len("data: "):]) for m in page.items]
+        (summary,) = [m["summary"] for m in messages if m["type"] == "summary"]
+        assert summary == {"window_accuracy": None, "ppm": None, "windows": 3}
+    finally:
+        view.close()
