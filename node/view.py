@@ -554,7 +554,10 @@ class ViewSink(Sink):
 
     def summary(self, summary: dict[str, Any]) -> None:
         self.publish_health()
-        self.hub.publish({"type": "summary", "summary": _clean(summary)}, keep="latest")
+        try:
+            self.hub.publish({"type": "summary", "summary": _clean(summary)}, keep="latest")
+        except (TypeError, ValueError):     # a value JSON has no form for: the page still learns of the end
+            self.hub.publish({"type": "summary", "summary": None}, keep="latest")
 
     def stats(self) -> dict[str, Any]:
         return {"url": self.url, "pages": self.hub.opened, "client_dropped": self.hub.dropped,
