@@ -226,6 +226,10 @@ def _inlet_node(name: str, model, **driver):
     from supramodal.node.scene import scene_from_dict
 
     sink = _stamped_sink()
+    # The sender is another process starting up (a relay node imports, builds and opens its outlet
+    # first): on a busy machine that takes longer than the default 5 s; resolving returns when it
+    # answers.
+    driver = {"resolve_timeout": 60.0, **driver}
     node = build_node(scene_from_dict(inlet_scene(name, str(model), **driver)), sinks_override=[sink])
     driver_ = node.sources[0].driver
     read, blocks = driver_.read, []

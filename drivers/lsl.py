@@ -90,6 +90,8 @@ DEFAULT_RESOLVE_TIMEOUT = 5.0
 #: Least seconds the resolver waits, after the first answer, for a second stream that matches
 #: too (refused: which one is meant is not known).
 DUPLICATE_WAIT = 1.0
+#: Most seconds of that wait (a second stream answers the same resolve waves as the first).
+DUPLICATE_WAIT_MAX = 3.0
 
 # LSL channel formats (lsl_channel_format_t) -> (numpy dtype, full scale).
 _FORMATS = {1: (np.float32, 1.0), 2: (np.float64, 1.0), 4: (np.int32, 2.0 ** 31), 5: (np.int16, 2.0 ** 15),
@@ -142,7 +144,8 @@ def resolve_stream(name: str | None = None, stream_type: str | None = None, sour
     """The one stream matching every property given, or :class:`DeviceUnavailable` naming those
     that were found instead (or that none was); more than one match is refused too, listing them
     (say which with ``source_id``). After the first answer the resolver waits
-    :data:`DUPLICATE_WAIT` seconds more (or twice the time the first took) for a second one."""
+    :data:`DUPLICATE_WAIT` seconds more (or twice the time the first took, at most
+    :data:`DUPLICATE_WAIT_MAX`) for a second one."""
     pylsl = import_pylsl()
     wanted = {"name": name, "type": stream_type, "source_id": source_id}
     wanted = {k: v for k, v in wanted.items() if v is not None}
@@ -160,7 +163,9 @@ def resolve_stream(name: str | None = None, stream_type: str | None = None, sour
             # resolve_bypred returns at the first answer: a second stream of the same name would
             # answer in the same wave or the next; wait for one as long again (at least
             # DUPLICATE_WAIT) and compare.
-            wait = min(float(timeout), max(DUPLICATE_WAIT, 2 * (time.monotonic() - t)))
+            # The first answer's time may hold a wait for a sender still starting up: bounded, so
+            # that a long resolve_timeout does not become a long wait for a duplicate.
+            wait = min(float(timeout), DUPLICATE_WAIT_MAX, max(DUPLICATE_WAIT, 2 * (time.monotonic() - t)))
             found = _distinct(found + pylsl.resolve_bypred(predicate, minimum=2, timeout=wait))
     except Exception as exc:  # liblsl's errors, one place
         raise DriverError(f"LSL: resolving {asked} failed: {exc}") from None

@@ -85,7 +85,7 @@ ACCEPTED = {
     ("driver", "twosense", "offset", "zero"): "no offset", ("driver", "twosense", "clock_ppm", "zero"): "",
     ("driver", "twosense", "jitter", "zero"): "no jitter", ("driver", "twosense", "clock_ppm", "negative"): "",
     ("sink", "lsl-signal", "wait_for_consumer", "zero"): "start at once",
-    ("sink", "lsl", "wait_for_consumer", "zero"): "start at once",
+    ("sink", "lsl", "wait_for_consumer", "zero"): "start at once", ("sink", "view", "port", "zero"): "any free port",
     ("fusion", None, "weight", "zero"): "all on the second stream", ("fusion", None, "correlation", "zero"): "",
     **{("driver", kind, "mapping", "zero"): "channel 0" for kind in ("lsl", "microphone", "replay", "serial", "twosense",
                                                                        "xdf")},
