@@ -294,6 +294,45 @@ def test_a_driver_event_shows_as_a_banner_within_a_second(browser):
         view.close()
 
 
+@pytest.mark.hardware
+def test_an_unplug_of_the_mock_board_shows_a_banner_within_a_second(tmp_path, browser):
+    """The whisker board on a pty unplugs once, 1.5 s into its stream: the page shows the unplug
+    banner, and then the reconnect, driven by the serial driver's own events through the sink queue
+    and the event stream (measured from the moment the board closed its port)."""
+    import numpy as np
+
+    from supramodal.drivers.mock_whisker import FaultSpec, MockWhiskerDevice
+
+    rate = 5000
+    samples = 0.3 * np.random.default_rng(3).standard_normal((4 * rate, 20))
+    faults = FaultSpec(unplug_every=1.5, unplug_for=0.5, unplug_limit=1)
+    with MockWhiskerDevice(samples, float(rate), samples_per_frame=32, faults=faults, seed=4) as dev:
+        d = {"driver": {"type": "serial", "port": dev.port, "rate": float(rate), "channels": 20,
+                        "mapping": "per-channel"},
+             "bank": {"kind": "whisker"}, "features": {"names": ["Af"]}, "sink": [{"type": "view"}]}
+        graph = build_node(scene_from_dict(d, str(tmp_path / "board.toml"), tmp_path))
+        view = _view(graph)
+        attach(graph)
+        run = Running(graph, None)
+        try:
+            browser.open(view.url)
+            browser.wait_for("!!document.querySelector('#conn.live')", timeout=60)
+            assert dev.wait_for_reader(60), "the node never opened the port"
+            dev.start()
+            browser.wait_for("!!document.querySelector('#banners .event-unplug')", timeout=30, interval=0.02)
+            shown = time.monotonic()
+            (unplugged,) = dev.ledger.unplug_times
+            # within 1 s; the slack is the test's polling of the browser on a busy machine
+            assert shown - unplugged < 1.0 + 1.0, shown - unplugged
+            browser.wait_for("!!document.querySelector('#banners .event-reconnect, #eventlog .event-reconnect')"
+                             " || [...document.querySelectorAll('#eventlog li')].some(li => "
+                             "li.textContent.includes('reconnect'))", timeout=30)
+            dev.finished.wait(30)
+        finally:
+            graph.stop()
+            run.join()
+
+
 def test_a_fused_graph_shows_both_streams_the_fused_one_and_the_pairing(tmp_path, browser):
     from supramodal.node.scene import load_scene
     from supramodal.node.view import with_view
