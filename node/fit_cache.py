@@ -6,7 +6,8 @@ the peaks *detected* in it (:mod:`supramodal.features`; a peak's instantaneous f
 its channel's previous peak, wherever that lies), so the features of a window of ``m * B`` samples
 are exactly the sums of ``m`` consecutive windows of ``B`` samples. :class:`FeatureCache` keeps,
 per bank and manifest line, the three features over *base windows* of ``B`` samples, ``B`` the
-greatest common divisor of the search's window lengths at the bank's rate, and sums them into any
+greatest common divisor of the search's window lengths at the bank's rate (:func:`base_samples`),
+and sums them into any
 window and selects any features on demand: one filterbank run per bank and recording for the
 whole search (every fold, window and feature set).
 
@@ -46,8 +47,11 @@ DEFAULT_MEMORY_BYTES = 512 * 2**20
 PART = 40
 
 
-def base_samples(windows, fs: float) -> int:
-    """The base window, samples: the greatest common divisor of ``windows`` (seconds) at ``fs`` Hz.
+def base_samples(windows, fs: float) -> tuple[int, ...]:
+    """The base windows, samples, for ``windows`` (seconds) at ``fs`` Hz: their greatest common
+    divisor where it is at least an eighth of the shortest (and 2 samples); else (lengths rounded to
+    whole samples that share no useful divisor, 1102 and 2205 samples at 44.1 kHz) each window takes
+    the first base that divides it, or becomes a base itself.
 
     Parameters
     ----------
@@ -55,8 +59,21 @@ def base_samples(windows, fs: float) -> int:
         Window lengths, seconds.
     fs : float
         The bank's rate, Hz.
+
+    Returns
+    -------
+    tuple of int
+        The bases, shortest first; every window is a whole number of one of them.
     """
-    return math.gcd(*(window_length(w, fs) for w in windows))
+    lengths = sorted({window_length(w, fs) for w in windows})
+    common = math.gcd(*lengths)
+    if common >= max(2, lengths[0] // 8):
+        return (common,)
+    bases: list[int] = []
+    for n in lengths:
+        if not any(n % b == 0 for b in bases):
+            bases.append(n)
+    return tuple(bases)
 
 
 class FeatureCache:
@@ -116,9 +133,8 @@ class FeatureCache:
         """
         features = check_features(features)
         W = window_length(window, bank.fs)
-        B = self._base_samples(bank)
-        if W % B:                                # a window the search did not announce: its own base
-            B = W
+        # The longest base dividing the window (fewest sums); a window the search did not announce: its own.
+        B = next((b for b in reversed(self._base_samples(bank)) if W % b == 0), W)
         base = self._base(bank, B)
         m = W // B
         pick = [FEATURES.index(f) for f in features]
@@ -136,9 +152,10 @@ class FeatureCache:
     def fill(self, bank: Bank, part: int) -> None:
         """Compute part ``part`` of ``bank`` into the folder (nothing if it is there already), so that
         the processes sharing the folder find it: what a worker does while others fill other parts."""
-        self._part(bank, self._base_samples(bank), part)
+        for base in self._base_samples(bank):
+            self._part(bank, base, part)
 
-    def _base_samples(self, bank: Bank) -> int:
+    def _base_samples(self, bank: Bank) -> tuple[int, ...]:
         return base_samples(self.windows, bank.fs)
 
     def _key(self, bank: Bank, base: int, part: int) -> str:

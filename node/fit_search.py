@@ -70,7 +70,7 @@ __all__ = ["FitError", "Runner", "Setting", "Space", "fit_search", "format_searc
 #: band edges; seconds for the window.
 CHANNELS = ((10, 20, 30, 50), (10, 20, 30))
 F_HIGH = ((0.5, 0.7, 0.9), (0.5, 0.9))
-F_LOW = ((0.005, 0.02, 0.05, 0.1), (0.005, 0.02, 0.1))
+F_LOW = ((0.001, 0.005, 0.02, 0.05, 0.1), (0.005, 0.02, 0.1))
 B_SCALE = ((0.5, 1.0, 2.0), (0.5, 1.0, 2.0))
 WINDOWS = ((0.025, 0.05, 0.1, 0.2, 0.4), (0.05, 0.1, 0.2, 0.4))
 FEATURE_SETS = (("Af", "A+f+Af", "A", "f"), ("Af", "A+f+Af"))
@@ -191,10 +191,11 @@ class Space:
         return Setting(self.fs, family, channels, lo, hi, b_scale, window, features, hidden, epochs)
 
     def start(self) -> list[dict]:
-        """The first trials, one per window (so that the curve has every window): a 20-channel (or
-        the budget's) ERB bank over the widest band, all three features."""
+        """The first trials, one per window (so that the curve has every window): the paper's cochlea
+        made at the recordings' rate, as far as the space allows (an ERB bank of the most channels
+        over the widest band), all three features."""
         mid = lambda values: values[len(values) // 2]         # noqa: E731
-        first = {"family": "erb", "channels": min(self.channels, key=lambda c: (abs(c - 20), c)),
+        first = {"family": "erb", "channels": max(self.channels),
                  "f_high": max(self.f_high), "f_low": min(self.f_low),
                  "b_scale": 1.0 if 1.0 in self.b_scale else mid(self.b_scale), "features": "A+f+Af",
                  "hidden": mid(self.hidden), "epochs": mid(self.epochs)}

@@ -15,7 +15,7 @@ from test_fit import (
 
 from supramodal.banks import whisker_bank
 from supramodal.node.cli import main
-from supramodal.node.fit_cache import FeatureCache
+from supramodal.node.fit_cache import FeatureCache, base_samples
 from supramodal.node.manifest import read_manifest
 from supramodal.node.training import recording_windows
 from supramodal.pipeline import FeaturePipeline
@@ -57,6 +57,23 @@ def test_cached_windows_are_the_pipelines_for_every_window_and_feature_set_from_
     other = FeatureCache(recs, (0.05, 0.1, 0.2), folder=tmp_path / "cache")
     np.testing.assert_array_equal(other.features(bank, 0.2, ("Af",))[3], cache.features(bank, 0.2, ("Af",))[3])
     assert (other.filterbank_runs, other.disk_reads) == (0, 1)
+
+
+def test_windows_of_no_useful_common_divisor_take_bases_of_their_own(tmp_path):
+    # 0.025 s and 0.05 s at 44.1 kHz are 1102 and 2205 samples (rounded): no common base of 2 or more.
+    assert base_samples((0.025, 0.05, 0.1), 44100) == (1102, 2205)
+    assert base_samples((0.05, 0.1, 0.2, 0.4), 2000) == (100,)
+    write_wav(tmp_path / "a.wav", 0.2 * synthesize((300, 900, 2500), 44100, 0.5, seed=2)[:, None], 44100)
+    write_wav(tmp_path / "b.wav", 0.2 * synthesize((400, 1200, 3000), 44100, 0.5, seed=3)[:, None], 44100)
+    (tmp_path / "m.csv").write_text("path,label\na.wav,a\nb.wav,b\n")
+    recs = read_manifest(tmp_path / "m.csv")
+    bank = Setting(44100, "erb", 4, 200.0, 5000.0, 1.0, 0.025, "Af", 8, 10).bank()
+    cache = FeatureCache(recs, (0.025, 0.05, 0.1))
+    for window in (0.025, 0.05, 0.1):
+        for rec, v in zip(recs, cache.features(bank, window, ("A", "Af"))):
+            want = recording_windows(rec, FeaturePipeline(bank, ("A", "Af"), window))
+            np.testing.assert_allclose(v, want, rtol=1e-12, atol=1e-12)
+    assert cache.filterbank_runs == 2 * len(recs)            # one run per base
 
 
 def test_the_cache_keeps_within_its_memory_bound_and_refilters_only_without_a_folder(manifest, tmp_path):
