@@ -742,6 +742,7 @@ def write_search(result: dict, folder: Path) -> list[Path]:
                     label={"fitted": "fitted (best trial)", "cochlea": "paper's cochlea",
                            "whisker": "paper's whisker"}[name])
     ax.set_xscale("log")
+    ax.minorticks_off()
     ax.set_xticks(x, [f"{v:g}" for v in x])
     ax.set_xlabel("window (s): the decision's latency")
     ax.set_ylabel(f"{t} accuracy (grouped {result['k']}-fold CV)")
