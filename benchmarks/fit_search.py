@@ -65,24 +65,30 @@ def speed_manifest(folder: Path, recordings: int = 600, labels: int = 16, second
 def today_estimate(manifest: Path, k: int = 5, epochs: int = 300) -> dict:
     """Today's coordinate search (:func:`node.fit.fit_manifest`, quick) on ``manifest``, estimated
     from one fold of its first candidate and one filterbank pass, both measured."""
-    from supramodal.node.fit import STEPS, Candidate, _recording_rate
+    from supramodal.model import TextureModel
+    from supramodal.node.fit import STEPS, Candidate
     from supramodal.node.manifest import read_manifest
-    from supramodal.node.training import _manifest_windows, _train
+    from supramodal.node.training import recording_group, recording_windows
     from supramodal.pipeline import FeaturePipeline
+    from supramodal.replay.wavio import wav_info
     from supramodal.training import grouped_folds
 
     recs = read_manifest(manifest)
-    c = Candidate(fs=float(_recording_rate(recs[0].path)))
+    c = Candidate(fs=float(wav_info(recs[0].path).rate))
     bank = c.bank()
     t0 = time.perf_counter()
-    recs, classes, windows = _manifest_windows(manifest, lambda: FeaturePipeline(bank, c.features, c.window), "auto",
-                                               None)
+    windows = [recording_windows(r, FeaturePipeline(bank, c.features, c.window)) for r in recs]
     filterbank = time.perf_counter() - t0
+    classes = sorted({r.label for r in recs})
     fold = grouped_folds([r.where for r in recs], [r.label for r in recs], k, 0)
     train = [i for i in range(len(recs)) if fold[i] != 0]
+    # One fold as node.training's cross-validation trains it: the model `train` makes, calibrated.
+    x = np.concatenate([windows[i] for i in train])
+    y = np.concatenate([np.full(len(windows[i]), classes.index(recs[i].label)) for i in train])
+    groups = np.repeat([recording_group(recs[i]) for i in train], [len(windows[i]) for i in train])
     t0 = time.perf_counter()
-    _train([recs[i] for i in train], classes, [windows[i] for i in train], FeaturePipeline(bank, c.features, c.window),
-           epochs, 0)
+    TextureModel.train_for(FeaturePipeline(bank, c.features, c.window), x, y, classes, epochs=epochs, seed=0,
+                           groups=groups)
     one_fold = time.perf_counter() - t0
     candidates = sum(len(quick) for _, _, quick in STEPS) + 2
     return {"filterbank_s": filterbank, "fold_s": one_fold, "candidates": candidates, "k": k,

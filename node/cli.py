@@ -865,9 +865,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "(the best bank) and the feature cache (default ./out/fit)")
     p.add_argument("--cv", type=_count(2), default=5, metavar="K", help="folds, grouped by recording (default 5)")
     p.add_argument("--trials", type=_count(1), default=None,
-                   help="settings to try (default 60, --quick 20)")
+                   help="settings to try (default 60, --quick 16)")
     p.add_argument("--timeout", type=_positive_seconds, default=None, metavar="S",
-                   help="start no new round of trials after S seconds (default: none)")
+                   help="time budget: no new round of trials after S seconds (the first always runs; default: none)")
     p.add_argument("--max-window", type=_positive_seconds, default=None, metavar="S",
                    help="latency budget: no window longer than S seconds (default: none)")
     p.add_argument("--max-channels", type=_count(1), default=None, metavar="N",

@@ -51,6 +51,7 @@ from supramodal.banks import (
     whisker_bank,
 )
 from supramodal.calibration import pool_log_posteriors, winner
+from supramodal.checks import integer, one_of, positive
 from supramodal.errors import InputError
 from supramodal.evaluation import pooled_accuracy
 from supramodal.model import TextureModel
@@ -248,11 +249,11 @@ def search_space(recs, quick: bool = False, max_window: float | None = None, max
     nyquist = fs / 2
     shortest = min(recs, key=_duration)
     short = _duration(shortest)
-    if target not in TARGETS:
+    if not one_of(*TARGETS)(target):
         raise FitError(f"--target {target!r}: choose one of {', '.join(TARGETS)}")
     windows = list(WINDOWS[pick])
     if max_window is not None:
-        if not (math.isfinite(max_window) and max_window > 0):
+        if not positive()(max_window):
             raise FitError(f"--max-window must be a positive number of seconds, got {max_window!r}")
         if round(max_window * fs) < 2:
             raise FitError(f"--max-window {max_window:g} s is {round(max_window * fs)} sample(s) at the recordings' "
@@ -274,7 +275,7 @@ def search_space(recs, quick: bool = False, max_window: float | None = None, max
                        "--max-window")
     channels = list(CHANNELS[pick])
     if max_channels is not None:
-        if not (isinstance(max_channels, int) and 1 <= max_channels <= MAX_CHANNELS):
+        if not integer(1, MAX_CHANNELS)(max_channels):
             raise FitError(f"--max-channels must be a whole number from 1 to {MAX_CHANNELS} (MAX_CHANNELS), "
                            f"got {max_channels!r}")
         channels = [c for c in channels if c <= max_channels]
@@ -286,7 +287,7 @@ def search_space(recs, quick: bool = False, max_window: float | None = None, max
         if max_epochs not in epochs:
             epochs.append(int(max_epochs))
     if target == "contact":
-        if not (math.isfinite(contact) and contact >= min(fitting)):
+        if not (positive()(contact) and contact >= min(fitting)):
             raise FitError(f"--contact {contact:g} s is shorter than the shortest window ({min(fitting):g} s): "
                            "a contact pools whole windows")
         if contact > short:
@@ -566,7 +567,8 @@ def fit_search(manifest, k: int = 5, seed: int = 0, quick: bool = False, trials:
         paper_warm = runner.start(warm([whisker_bank(), cochlea_bank()], runner), warm_bank)
         say(f"fit: {trials} trials of grouped {k}-fold cross-validation in rounds of {batch}, on {where}; "
             f"maximising {target} accuracy; windows {', '.join(f'{w:g}' for w in space.windows)} s")
-        while len(rows) < trials and (timeout is None or time.perf_counter() - t0 < timeout):
+        # A time budget stops new rounds, never the first: a fit always has a result.
+        while len(rows) < trials and (not rows or timeout is None or time.perf_counter() - t0 < timeout):
             asked = [study.ask() for _ in range(min(batch, trials - len(rows)))]
             live: list[tuple] = []
             for trial in asked:
@@ -609,7 +611,8 @@ def fit_search(manifest, k: int = 5, seed: int = 0, quick: bool = False, trials:
             say(f"fit: trial {len(rows)} of {trials}; "
                 + (f"best so far {best[f'{target}_mean']:.3f} of {target}s (trial {best['trial']}: {_describe(best)})"
                    if best else "none complete yet")
-                + f"; {elapsed:.0f} s, about {left:.0f} s left")
+                + f"; {elapsed:.0f} s" + ("" if timeout is None else f" of the {timeout:g} s budget")
+                + f", about {left:.0f} s left")
         done = [r for r in rows if r["state"] == "complete"]
         if not done:
             raise FitError("no trial completed (every one pruned or with an empty band); run more trials")

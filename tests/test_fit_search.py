@@ -120,6 +120,11 @@ def test_the_search_reports_each_fold_and_prunes_hopeless_trials(manifest):
     assert result["best"]["score"] == max(r["score"] for r in complete)
 
 
+def test_a_time_budget_stops_new_rounds_after_the_first(manifest):
+    result = fit_search(manifest, seed=2, timeout=1e-6, **{**FAST, "trials": 9})
+    assert len(result["rows"]) == FAST["batch"]                  # one round of trials, then the budget is spent
+
+
 def test_a_dask_cluster_gives_the_result_of_one_process(manifest, tmp_path):
     distributed = pytest.importorskip("distributed", reason="the fit extra (dask[distributed]) is not installed")
     alone = fit_search(manifest, seed=5, **FAST)
