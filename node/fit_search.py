@@ -449,6 +449,8 @@ class Runner:
 
     def close(self) -> None:
         if self.client is not None:
+            if self._local is None:                     # a cluster's workers outlive the fit: free their caches
+                self.client.run(forget_caches)
             self.client.close()
         if self._local is not None:
             self._local.close()
