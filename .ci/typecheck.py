@@ -2,7 +2,7 @@
 
 The checkout keeps node/, drivers/, replay/ and benchmarks/ beside supramodal/ and the wheel installs them as
 supramodal.node, ... (pyproject's [tool.setuptools.package-dir]). mypy cannot follow that mapping: it names a
-module after its folders (node/clock.py would be `node.clock`, a second copy of `supramodal.node.clock`), and
+module after its folders (node/runtime/clock.py would be `node.clock`, a second copy of `supramodal.node.runtime.clock`), and
 it does not see through setuptools' editable-install import hook (python/mypy#13392), so `mypy -p supramodal`
 finds only the model. This script hands mypy every module of the package under its installed name, with its
 real path (so messages point into the checkout), and the settings of pyproject's [tool.mypy] sections.

@@ -4,7 +4,7 @@ Whiskers at 5 kHz in 50-sample blocks, their crystal +100 ppm fast; a microphone
 441-sample blocks, -100 ppm slow, started 37 ms later. Each block arrives after its last sample,
 late by an exponential delay (mean = the jitter; 2 ms by default) plus 50 ms for one block in 500,
 stamped in order; one 4 s outage of the whisker source halfway (its held-up blocks arrive in a
-burst). Both feed a :class:`supramodal.node.clock.ClockModel`; at true instants every 0.1 s, each
+burst). Both feed a :class:`supramodal.node.runtime.clock.ClockModel`; at true instants every 0.1 s, each
 source's sample index at that instant is mapped back to host time through its model:
 
 * **alignment**: |whiskers' time - microphone's time| for the same instant (what pairing windows
@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from supramodal.node.clock import DEFAULT_WINDOW_SEGMENTS, ClockModel
+from supramodal.node.runtime.clock import DEFAULT_WINDOW_SEGMENTS, ClockModel
 
 WHISKERS = dict(name="whiskers", nominal=5000.0, ppm=+100.0, t0=1000.0, block=50)
 MIC = dict(name="microphone", nominal=44100.0, ppm=-100.0, t0=1000.037, block=441)

@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from supramodal.benchmarks.fit_sensors import SHARED, SYNTHETIC, WIDTH, lmt_manifest, synthetic_manifest
-from supramodal.node.fit_search import fit_search, format_search, write_search
+from supramodal.node.workflows.fit_search import fit_search, format_search, write_search
 from supramodal.replay.wavio import write_wav
 from supramodal.textures import synthesize
 
@@ -66,9 +66,9 @@ def today_estimate(manifest: Path, k: int = 5, epochs: int = 300) -> dict:
     """Today's coordinate search (:func:`node.fit.fit_manifest`, quick) on ``manifest``, estimated
     from one fold of its first candidate and one filterbank pass, both measured."""
     from supramodal.model import TextureModel
-    from supramodal.node.fit import STEPS, Candidate
-    from supramodal.node.manifest import read_manifest
-    from supramodal.node.training import recording_group, recording_windows
+    from supramodal.node.workflows.fit import STEPS, Candidate
+    from supramodal.node.workflows.manifest import read_manifest
+    from supramodal.node.workflows.training import recording_group, recording_windows
     from supramodal.pipeline import FeaturePipeline
     from supramodal.replay.wavio import wav_info
     from supramodal.training import grouped_folds
@@ -148,7 +148,7 @@ def _speed(args) -> int:
     print(f"\nquick fit of {args.recordings} recordings of 5 s at {SPEED_RATE} Hz, 16 labels, grouped 5-fold, "
           f"--jobs {args.jobs}: {new:.0f} s ({new / 60:.1f} min); {before} before, {after} after")
     if today is not None:
-        print(f"today's fit (node/fit.py, --quick, estimated): {today['candidates']} cross-validations x "
+        print(f"today's fit (node/workflows/fit.py, --quick, estimated): {today['candidates']} cross-validations x "
               f"({today['filterbank_s']:.1f} s filterbank pass + {today['k']} folds x {today['fold_s']:.1f} s "
               f"measured for one fold) = {today['seconds']:.0f} s ({today['seconds'] / 3600:.1f} h), in one process")
         print(f"| | today's fit (estimated) | joint search (measured) | speed-up |\n|---|---|---|---|\n"

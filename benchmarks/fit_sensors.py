@@ -19,7 +19,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from supramodal.node.fit import fit_manifest, format_fit, write_fit
+from supramodal.node.workflows.fit import fit_manifest, format_fit, write_fit
 from supramodal.replay.wavio import write_wav
 from supramodal.textures import synthesize
 

@@ -186,7 +186,7 @@ def local_scene(wav: str, model: str, train: bool = False) -> dict:
 def _stamped_sink():
     """A sink that keeps each window event (``windows``), and driver event, with the host time
     it reached the sinks. Made here: this module loads no part of the node until it runs one."""
-    from supramodal.node.sinks import Sink
+    from supramodal.node.runtime.sinks import Sink
 
     class Stamped(Sink):
         def __init__(self):
@@ -205,9 +205,9 @@ def _stamped_sink():
 def _prepare(seconds: float, out: Path, progress):
     """The signal's WAV, the model trained on the whisker reference textures, and the windows of
     the WAV replayed locally through the same scene."""
-    from supramodal.node.build import build_node
-    from supramodal.node.scene import scene_from_dict
-    from supramodal.node.sinks import ListSink
+    from supramodal.node.runtime.sinks import ListSink
+    from supramodal.node.scene.build import build_node
+    from supramodal.node.scene.schema import scene_from_dict
     from supramodal.replay.wavio import write_wav
 
     out.mkdir(parents=True, exist_ok=True)
@@ -222,8 +222,8 @@ def _prepare(seconds: float, out: Path, progress):
 def _inlet_node(name: str, model, **driver):
     """The inlet node, its sink, and the list its driver's reads fill with (end frame, timestamp,
     arrival) per block."""
-    from supramodal.node.build import build_node
-    from supramodal.node.scene import scene_from_dict
+    from supramodal.node.scene.build import build_node
+    from supramodal.node.scene.schema import scene_from_dict
 
     sink = _stamped_sink()
     # The sender is another process starting up (a relay node imports, builds and opens its outlet

@@ -17,7 +17,7 @@ import time
 
 import numpy as np
 
-from supramodal.node.ringbuffer import RingBuffer, RingClosed
+from supramodal.node.runtime.ringbuffer import RingBuffer, RingClosed
 
 
 def run(frames: int, channels: int, block: int, capacity: int, policy: str, reads: str) -> dict:

@@ -2,7 +2,7 @@
 
     python3 -m supramodal.benchmarks.soak --minutes 60 --unplugs 100 --out DIR
 
-Runs a :class:`supramodal.node.graph.Node` (serial driver -> ring -> 20-channel whisker pipeline -> a
+Runs a :class:`supramodal.node.runtime.graph.Node` (serial driver -> ring -> 20-channel whisker pipeline -> a
 counting sink) against :class:`supramodal.drivers.mock_whisker.MockWhiskerDevice` on a real pty at full
 rate (20 channels x 5 kHz, 32 samples per frame: about 200 kB/s), with every fault the mock
 can inject (garbage, altered bytes, truncated, left-out, wrong-channel-count and
@@ -37,8 +37,8 @@ from supramodal.banks import whisker_bank
 from supramodal.drivers.base import DriverBase
 from supramodal.drivers.mock_whisker import FaultSpec, MockWhiskerDevice
 from supramodal.drivers.serial_whisker import SerialWhiskerDriver
-from supramodal.node.graph import Node
-from supramodal.node.sinks import Sink
+from supramodal.node.runtime.graph import Node
+from supramodal.node.runtime.sinks import Sink
 from supramodal.pipeline import FeaturePipeline
 
 RATE, CHANNELS, SPF = 5000.0, 20, 32

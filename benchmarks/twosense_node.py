@@ -45,9 +45,9 @@ from pathlib import Path
 import numpy as np
 
 from supramodal.benchmarks.soak import rss_kib, rss_slope
-from supramodal.node.build import build_node
-from supramodal.node.scene import scene_from_dict
-from supramodal.node.sinks import QueuedSink, Sink
+from supramodal.node.runtime.sinks import QueuedSink, Sink
+from supramodal.node.scene.build import build_node
+from supramodal.node.scene.schema import scene_from_dict
 
 #: The sources as the issue describes a robot's: crystals tens of ppm off, tens of ms apart.
 WHISKERS = {"name": "whiskers", "type": "twosense", "sense": "whiskers", "block": 50,

@@ -19,10 +19,10 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-from supramodal.node.build import build_node
-from supramodal.node.scene import default_scene, load_scene
-from supramodal.node.sinks import ListSink
-from supramodal.node.view import attach, view_sinks, with_view
+from supramodal.node.runtime.sinks import ListSink
+from supramodal.node.runtime.view import attach, view_sinks, with_view
+from supramodal.node.scene.build import build_node
+from supramodal.node.scene.schema import default_scene, load_scene
 
 ROOT = Path(__file__).resolve().parents[1]
 

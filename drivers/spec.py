@@ -3,9 +3,9 @@
 Each driver module defines its spec as the module attribute ``SPEC``: the ``type`` a scene names
 it by, its keys (:class:`supramodal.checks.Key`: the check, the words, the default), how to build
 the driver from validated options, whether it is live, its timebase and what its samples are. The
-node's registry (``supramodal.node.registry``) maps each type to the module holding its spec and
+node's registry (``supramodal.node.scene.registry``) maps each type to the module holding its spec and
 imports that module only when a scene names the type; so a new driver is one module plus one
-line there (or one :func:`~supramodal.node.registry.register_driver` call for a driver defined
+line there (or one :func:`~supramodal.node.scene.registry.register_driver` call for a driver defined
 outside the package).
 
 A spec's ``build`` never imports the node: it is given a :class:`BuildContext` (the rate a bank
@@ -27,7 +27,7 @@ from supramodal.errors import InputError
 
 __all__ = ["BuildContext", "Built", "DriverSpec", "OptionError", "TIMEBASES", "given"]
 
-#: How a source's samples are put on the graph's common time (see ``supramodal.node.sources.Source``):
+#: How a source's samples are put on the graph's common time (see ``supramodal.node.runtime.sources.Source``):
 #: ``stream`` (a file's own time, from its first sample), ``recorded`` (a recording's clock as it was
 #: recorded) or ``host`` (a live device's arrivals, fitted by a clock model).
 TIMEBASES = ("stream", "recorded", "host")

@@ -144,7 +144,7 @@ def _cmd_synth(args) -> int:
     from scipy.io import wavfile
 
     from supramodal.errors import InputError
-    from supramodal.node.outputs import check_new_file
+    from supramodal.node.runtime.outputs import check_new_file
     from supramodal.textures import load_texture_set, reference_texture_set, texture_samples
 
     ts = load_texture_set(args.textures) if args.textures else reference_texture_set(args.bank)
@@ -279,9 +279,9 @@ def _scene_line(scene, sinks_replaced: bool = False) -> str:
 
 
 def _cmd_run(args) -> int:
-    from supramodal.node.build import build_node
-    from supramodal.node.scene import default_scene, load_scene, scene_to_toml
-    from supramodal.node.sinks import JsonLinesSink, QueuedSink
+    from supramodal.node.runtime.sinks import JsonLinesSink, QueuedSink
+    from supramodal.node.scene.build import build_node
+    from supramodal.node.scene.schema import default_scene, load_scene, scene_to_toml
 
     scene = load_scene(args.scene) if args.scene else default_scene()
     if args.print_scene:
@@ -290,7 +290,7 @@ def _cmd_run(args) -> int:
     _interrupt_until_running()
     sinks = [QueuedSink(JsonLinesSink("-"))] if args.json else None
     if args.view is not None:
-        from supramodal.node.view import add_view
+        from supramodal.node.runtime.view import add_view
         scene, sinks = add_view(scene, sinks, args.view)
     progress = None if args.quiet else (lambda m: print(f"supramodal: {m}", file=sys.stderr, flush=True))
     if progress and args.scene is None:
@@ -306,7 +306,7 @@ def _cmd_run(args) -> int:
 
 def _attach_views(node, on_mark=None) -> None:
     """A scene's view sinks (if any) get the graph's counters and, while recording, the marks."""
-    from supramodal.node.view import attach
+    from supramodal.node.runtime.view import attach
 
     attach(node, on_mark)
 
@@ -316,15 +316,15 @@ def _cmd_record(args) -> int:
     import time
 
     from supramodal.errors import InputError
-    from supramodal.node.build import build_node
-    from supramodal.node.graph_recording import GraphMarks, graph_recorders, write_replay_scene
-    from supramodal.node.recorder import SessionRecorder
-    from supramodal.node.scene import load_scene
+    from supramodal.node.runtime.recorder import SessionRecorder
+    from supramodal.node.scene.build import build_node
+    from supramodal.node.scene.schema import load_scene
+    from supramodal.node.workflows.graph_recording import GraphMarks, graph_recorders, write_replay_scene
 
     _interrupt_until_running()
     scene = load_scene(args.scene)
     if args.view is not None:
-        from supramodal.node.view import add_view
+        from supramodal.node.runtime.view import add_view
         scene, _ = add_view(scene, None, args.view)
     name = args.name or time.strftime("session-%Y%m%d-%H%M%S")
     labelled = bool(args.label or args.marks)
@@ -372,7 +372,7 @@ def _read_marks(mark) -> None:
     """``record --marks``: each line typed on stdin starts a label (its text) now, an empty line
     ends it (``mark(label or None)``), on a thread of its own; a line that is no valid label is
     said on stderr and not applied."""
-    from supramodal.node.labels import LabelError, check_label_name
+    from supramodal.node.workflows.labels import LabelError, check_label_name
 
     def read():
         for line in sys.stdin:
@@ -386,7 +386,7 @@ def _read_marks(mark) -> None:
 
 def _label_name(text: str) -> str:
     """``--label``: a valid label name."""
-    from supramodal.node.labels import LabelError, check_label_name
+    from supramodal.node.workflows.labels import LabelError, check_label_name
 
     try:
         return check_label_name(text, "--label")
@@ -395,7 +395,7 @@ def _label_name(text: str) -> str:
 
 
 def _cmd_view(args) -> int:
-    from supramodal.node.view_replay import ViewReplay
+    from supramodal.node.workflows.view_replay import ViewReplay
 
     _interrupt_until_running()
     replay = ViewReplay(args.recording, port=args.port, speed=args.speed, progress=_progress(args))
@@ -404,7 +404,7 @@ def _cmd_view(args) -> int:
 
 
 def _cmd_label(args) -> int:
-    from supramodal.node.labels import label_recording
+    from supramodal.node.workflows.labels import label_recording
 
     written = label_recording(args.recording, args.spans, replace=args.replace)
     for source, labels in written.items():
@@ -460,7 +460,7 @@ def _source_value(text: str) -> tuple[str, str]:
 
 
 def _cmd_import_recording(args) -> int:
-    from supramodal.node.import_recording import import_recording, sources_from_options
+    from supramodal.node.workflows.import_recording import import_recording, sources_from_options
 
     sources = sources_from_options(args.wav, args.times, args.xdf_stream, args.bank, args.model)
     scene = import_recording(args.out, args.name, sources, xdf=args.xdf, markers=args.markers, fusion=args.fusion,
@@ -497,8 +497,8 @@ def _progress(args):
 
 
 def _cmd_train(args) -> int:
-    from supramodal.node.outputs import check_new_file
-    from supramodal.node.training import calibration_line, train_from_manifest
+    from supramodal.node.runtime.outputs import check_new_file
+    from supramodal.node.workflows.training import calibration_line, train_from_manifest
     if args.stream is not None and not args.fusion:
         return _train_stream(args)
     if args.scene or args.fusion:
@@ -509,8 +509,8 @@ def _cmd_train(args) -> int:
     check_new_file(args.out, args.force, "the model file")      # before the training, not after
     bank = args.bank
     if args.cv:
-        from supramodal.node.reports import plots_missing_notice, write_confusion, write_reliability
-        from supramodal.node.training import cross_validate_manifest, format_cross_validation
+        from supramodal.node.workflows.reports import plots_missing_notice, write_confusion, write_reliability
+        from supramodal.node.workflows.training import cross_validate_manifest, format_cross_validation
 
         base = args.out.with_name(args.out.stem + "-cv")
         reliability = args.out.with_name(args.out.stem + "-cv-reliability")
@@ -538,8 +538,8 @@ def _cmd_train(args) -> int:
 
 def _train_stream(args) -> int:
     """``train --scene REC.toml ... --stream NAME --out MODEL``: a sense model straight from recorded graphs."""
-    from supramodal.node.outputs import check_new_file
-    from supramodal.node.training import calibration_line, train_from_scenes
+    from supramodal.node.runtime.outputs import check_new_file
+    from supramodal.node.workflows.training import calibration_line, train_from_scenes
 
     if not args.scene or args.out is None:
         raise CliError("--stream trains one stream's model from recorded graphs: give one --scene per recording "
@@ -581,9 +581,9 @@ def _say_plots_missing(notice: str | None) -> None:
 
 def _train_fusion(args) -> int:
     """``train --fusion early|late --scene S.toml ...``: a fusion learned on recorded two-sense sessions,
-    from windows held out of every network that scored them (node/fused_training.py)."""
-    from supramodal.node.fused_training import train_fused, write_fused_scene
-    from supramodal.node.outputs import check_new_file
+    from windows held out of every network that scored them (node/workflows/fused_training.py)."""
+    from supramodal.node.runtime.outputs import check_new_file
+    from supramodal.node.workflows.fused_training import train_fused, write_fused_scene
 
     if not (args.scene and args.fusion):
         raise CliError("a fusion is trained with --fusion early|late and one --scene per recording (the scene "
@@ -641,8 +641,8 @@ def _write_run_scene(args, write, streams, models: dict, fusion: dict) -> None:
 
 
 def _cmd_fit(args) -> int:
-    from supramodal.node.fit_search import fit_search, format_search, write_search
-    from supramodal.node.outputs import check_new_file
+    from supramodal.node.runtime.outputs import check_new_file
+    from supramodal.node.workflows.fit_search import fit_search, format_search, write_search
 
     if args.out.is_dir():
         for name in ("fit.csv", "fit-curve.csv", "fit-curve.png", "bank.json"):
@@ -663,7 +663,7 @@ def _cmd_fit(args) -> int:
 
 def _cmd_evaluate(args) -> int:
     from supramodal.model import TextureModel
-    from supramodal.node.training import evaluate_manifest, format_evaluation
+    from supramodal.node.workflows.training import evaluate_manifest, format_evaluation
 
     if args.scene:
         return _evaluate_fusion(args)
@@ -680,8 +680,8 @@ def _cmd_evaluate(args) -> int:
     if args.seed is not None:
         raise CliError("--seed applies to --cv only (scoring the model as it is draws nothing at random)")
     if args.out is not None and args.out.is_dir():
-        from supramodal.node.outputs import check_new_file
-        from supramodal.node.reports import EVALUATION_FILES
+        from supramodal.node.runtime.outputs import check_new_file
+        from supramodal.node.workflows.reports import EVALUATION_FILES
 
         for name in EVALUATION_FILES:
             check_new_file(args.out / name, args.force, "the evaluation file")
@@ -689,7 +689,7 @@ def _cmd_evaluate(args) -> int:
     result["calibration"]["model_version"] = _model_file_version(args.model)
     print(json.dumps(result) if args.json else format_evaluation(result))
     if args.out is not None:
-        from supramodal.node.reports import plots_missing_notice, write_evaluation
+        from supramodal.node.workflows.reports import plots_missing_notice, write_evaluation
 
         files = write_evaluation(result, args.out)
         print("wrote " + ", ".join(str(p) for p in files), file=sys.stderr)
@@ -707,17 +707,17 @@ def _model_file_version(path) -> int | None:
 
 def _evaluate_fusion(args) -> int:
     """``evaluate --scene S.toml ...``: each stream and the fusion scored on recorded two-sense sessions."""
-    from supramodal.node.fused_training import evaluate_fused, format_fused_evaluation
+    from supramodal.node.workflows.fused_training import evaluate_fused, format_fused_evaluation
 
     if args.model is not None or args.manifest is not None or args.cv:
         raise CliError("with --scene, the scenes name the models: leave out the model file, --manifest and --cv "
                        "(give --fused-model to score another early-fusion network)")
     fused = None if args.fused_model is None else Path(args.fused_model).resolve()   # from here, not the scenes'
     if args.out is not None and args.out.is_dir():
-        from supramodal.node.events import FUSED_STREAM
-        from supramodal.node.outputs import check_new_file
-        from supramodal.node.reports import fused_evaluation_files
-        from supramodal.node.scene import load_scene
+        from supramodal.node.runtime.events import FUSED_STREAM
+        from supramodal.node.runtime.outputs import check_new_file
+        from supramodal.node.scene.schema import load_scene
+        from supramodal.node.workflows.reports import fused_evaluation_files
 
         streams = [spec.name for path in args.scene for spec in load_scene(path).streams] + [FUSED_STREAM]
         for name in fused_evaluation_files(dict.fromkeys(streams)):
@@ -725,7 +725,7 @@ def _evaluate_fusion(args) -> int:
     result = evaluate_fused(args.scene, fused, progress=_progress(args), contact_windows=args.contact_windows)
     print(json.dumps(result) if args.json else format_fused_evaluation(result))
     if args.out is not None:
-        from supramodal.node.reports import write_fused_evaluation
+        from supramodal.node.workflows.reports import write_fused_evaluation
 
         files = write_fused_evaluation(result, args.out)
         print("wrote " + ", ".join(str(p) for p in files), file=sys.stderr)
@@ -734,13 +734,13 @@ def _evaluate_fusion(args) -> int:
 
 def _evaluate_cv(model, args) -> int:
     """``evaluate --cv K``: the model's configuration re-trained and scored fold by fold."""
-    from supramodal.node.training import cross_validate_model, format_cross_validation
+    from supramodal.node.workflows.training import cross_validate_model, format_cross_validation
 
     if args.seed is not None and args.seed < 0:
         raise CliError(f"--seed must be >= 0, got {args.seed}")
     bases = None if args.out is None else (args.out / "cv-confusion", args.out / "cv-reliability")
     if bases is not None and args.out.is_dir():
-        from supramodal.node.outputs import check_new_file
+        from supramodal.node.runtime.outputs import check_new_file
 
         for base in bases:
             for suffix in (".csv", ".png"):
@@ -749,7 +749,7 @@ def _evaluate_cv(model, args) -> int:
                               progress=_progress(args))
     print(json.dumps(cv) if args.json else format_cross_validation(cv))
     if bases is not None:
-        from supramodal.node.reports import plots_missing_notice, write_confusion, write_reliability
+        from supramodal.node.workflows.reports import plots_missing_notice, write_confusion, write_reliability
 
         args.out.mkdir(parents=True, exist_ok=True)
         what = f"{args.cv}-fold grouped cross-validation of {Path(args.model).name}'s configuration"
@@ -1062,7 +1062,7 @@ def _is_user_error(exc: BaseException) -> bool:
     thread's failure whose cause is itself a bug; and an ``OSError`` that names a file
     (a path given on the command line or in a scene: missing, unreadable, not writable).
     """
-    graph = sys.modules.get("supramodal.node.graph")
+    graph = sys.modules.get("supramodal.node.runtime.graph")
     if graph is not None and isinstance(exc, graph.NodeError) and exc.__cause__ is not None:
         return _is_user_error(exc.__cause__)
     if isinstance(exc, SupramodalError):

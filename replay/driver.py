@@ -116,7 +116,7 @@ class DeviceClock:
 
     with ``delay_k`` drawn from an exponential distribution of mean ``mean_delay`` (host seconds,
     not scaled by the speed), and stamps that time as the block's arrival. At ``speed='max'`` it
-    has no effect. The node's clock model (``supramodal.node.clock``) must then find the line.
+    has no effect. The node's clock model (``supramodal.node.runtime.clock``) must then find the line.
 
     Attributes
     ----------

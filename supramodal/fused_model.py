@@ -267,7 +267,7 @@ def out_of_fold_logits(model: TextureModel, values, labels, classes, folds, prog
     """Each window's logits from a network that never trained on its fold.
 
     Per fold, a copy of ``model``'s configuration (bank, features, window, peak settings, hidden
-    units, epochs and seed, as :func:`supramodal.node.training.cross_validate_model` copies it) is
+    units, epochs and seed, as :func:`supramodal.node.workflows.training.cross_validate_model` copies it) is
     trained on the windows of the other folds, without a calibration of its own, and scores the
     fold's windows.
 

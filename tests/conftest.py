@@ -119,7 +119,7 @@ def run_once(name: str, compute):
 
 
 class _SharedModels(dict):
-    """``supramodal.node.build._trained_on_the_spot`` (the models the node trains on start, kept in
+    """``supramodal.node.scene.build._trained_on_the_spot`` (the models the node trains on start, kept in
     memory by their texture set and pipeline settings) backed by :func:`run_once`'s folder, so that
     the xdist workers train each model once per run, not once each. The node's own key names the file:
     a model missing from memory is looked up there (:meth:`pop`), and a model the node trained is
@@ -260,7 +260,7 @@ def pytest_sessionstart(session):
     base = config._tmp_path_factory.getbasetemp()
     _SHARED_DIR = (base.parent if hasattr(config, "workerinput") else base) / "run-once"
     _SHARED_DIR.mkdir(exist_ok=True)
-    from supramodal.node import build
+    from supramodal.node.scene import build
 
     build._trained_on_the_spot = _shared_models
     _share_fusion_training()

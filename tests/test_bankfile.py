@@ -7,12 +7,12 @@ import json
 import numpy as np
 import pytest
 
-from supramodal.node.build import bank_for, build_node
+from supramodal.node.scene.build import bank_for, build_node
 from supramodal.node.cli import main
-from supramodal.node.manifest import read_manifest
-from supramodal.node.scene import SceneError, load_scene
-from supramodal.node.sinks import ListSink
-from supramodal.node.training import recording_windows
+from supramodal.node.workflows.manifest import read_manifest
+from supramodal.node.scene.schema import SceneError, load_scene
+from supramodal.node.runtime.sinks import ListSink
+from supramodal.node.workflows.training import recording_windows
 from supramodal.replay.wavio import write_wav
 from supramodal.bankfile import BankFileError, bank_from_description, load_bank, save_bank
 from supramodal.banks import cochlea_bank, erb_space, whisker_bank

@@ -87,7 +87,7 @@ def _pairs(values, y, contacts, scene):
 
 def _fake_recordings(monkeypatch, m):
     """`train --fusion` on two recorded 'scenes' whose streams carry the memoriser's models."""
-    import supramodal.node.fused_training as ft
+    import supramodal.node.workflows.fused_training as ft
 
     pipeline = FeaturePipeline(whisker_bank(), ("Af",), 0.1)
 
@@ -103,7 +103,7 @@ def _fake_recordings(monkeypatch, m):
 
 def test_train_fusion_late_learns_from_held_out_contacts_and_prints_each_senses_score(memoriser, monkeypatch,
                                                                                       capsys):
-    from supramodal.node.fused_training import train_fused
+    from supramodal.node.workflows.fused_training import train_fused
 
     _fake_recordings(monkeypatch, memoriser)
     (weight, sharpness), info = train_fused(["one.toml", "two.toml"], "late")
@@ -126,7 +126,7 @@ def test_train_fusion_on_too_few_contacts_warns_that_its_held_out_windows_are_sp
     """With one recording (half the contacts: fewer than ten folds of whole contacts) the folds fall
     back to time spans of each contact: said, since the held-out scores then flatter."""
     from supramodal.errors import SupramodalWarning
-    from supramodal.node.fused_training import train_fused
+    from supramodal.node.workflows.fused_training import train_fused
 
     _fake_recordings(monkeypatch, memoriser)
     with pytest.warns(SupramodalWarning, match="too few for 10 folds of whole contacts"):
@@ -137,7 +137,7 @@ def test_train_fusion_on_too_few_contacts_warns_that_its_held_out_windows_are_sp
 def test_the_scene_path_learns_its_weight_out_of_fold_too(memoriser):
     """`[fusion] weight = "learn"`: the models trained on the spot, their training windows kept; the
     weight comes from copies trained without each fold, not from the models on those windows."""
-    from supramodal.node.build import _learned_weight
+    from supramodal.node.scene.build import _learned_weight
 
     m = memoriser
     a, b = (SimpleNamespace(name=n, model=model) for n, model in zip(("noise", "signal"), m.models))
@@ -237,8 +237,8 @@ def test_train_calibrates_on_folds_grouped_by_recording_and_says_so(trained, cap
 
 def test_evaluate_reports_log_loss_brier_ece_and_writes_the_reliability_diagram(recordings, trained, tmp_path,
                                                                                  capsys):
-    from supramodal.node.manifest import read_manifest
-    from supramodal.node.training import recording_windows
+    from supramodal.node.workflows.manifest import read_manifest
+    from supramodal.node.workflows.training import recording_windows
 
     assert main(["evaluate", str(trained), "--manifest", str(recordings / "all.csv"), "--json", "--out",
                  str(tmp_path / "ev"), "--quiet"]) == 0
@@ -295,8 +295,8 @@ def test_an_old_model_is_evaluated_uncalibrated_and_said_to_be(recordings, train
     result = json.loads(capsys.readouterr().out)
     assert not result["calibration"]["calibrated"] and result["calibration"]["fitted_on"] is None
     model = TextureModel.load(old)
-    from supramodal.node.manifest import read_manifest
-    from supramodal.node.training import recording_windows
+    from supramodal.node.workflows.manifest import read_manifest
+    from supramodal.node.workflows.training import recording_windows
 
     recs = read_manifest(recordings / "all.csv")
     summed = [pool_log_posteriors(model.log_posteriors(recording_windows(r, model.pipeline())), 0.0) for r in recs]
@@ -305,7 +305,7 @@ def test_an_old_model_is_evaluated_uncalibrated_and_said_to_be(recordings, train
 
 def test_without_matplotlib_the_csvs_are_written_and_the_user_told(recordings, trained, tmp_path, capsys,
                                                                   monkeypatch):
-    import supramodal.node.reports as reports
+    import supramodal.node.workflows.reports as reports
 
     monkeypatch.setattr(reports, "pyplot_or_none", lambda: None)
     assert main(["evaluate", str(trained), "--manifest", str(recordings / "all.csv"), "--out", str(tmp_path / "ev"),
@@ -340,8 +340,8 @@ def test_cross_validation_reports_the_calibration_of_every_test_fold(recordings,
 def test_a_tie_is_no_decision_whatever_the_class_names(recordings):
     """A network whose outputs are all equal: every window and every recording ties. No decision
     goes to the class that sorts first (which would score 1/3); each tie counts as wrong."""
-    from supramodal.node.manifest import read_manifest
-    from supramodal.node.training import recording_windows, score_recordings
+    from supramodal.node.workflows.manifest import read_manifest
+    from supramodal.node.workflows.training import recording_windows, score_recordings
 
     bank = whisker_bank()
     flat = MLP(np.zeros((20, 2)), np.zeros(2), np.zeros((2, 3)), np.zeros(3))
@@ -361,8 +361,8 @@ def test_evaluate_says_how_soon_each_touch_is_decided_at_each_threshold(recordin
 
     from supramodal.calibration import CAP_SHARPNESS
     from supramodal.evaluation import ANYTIME_THRESHOLDS
-    from supramodal.node.manifest import read_manifest
-    from supramodal.node.training import recording_windows
+    from supramodal.node.workflows.manifest import read_manifest
+    from supramodal.node.workflows.training import recording_windows
 
     assert main(["evaluate", str(trained), "--manifest", str(recordings / "all.csv"), "--json", "--out",
                  str(tmp_path / "ev"), "--quiet"]) == 0

@@ -69,12 +69,12 @@ def test_debug_shows_the_traceback_of_a_user_error(tmp_path, capsys):
 @pytest.mark.parametrize("planted", [ZeroDivisionError("division by zero"), ValueError("a bare ValueError"),
                                      KeyError("k")])
 def test_a_planted_bug_shows_its_traceback(monkeypatch, tmp_path, capsys, planted):
-    import supramodal.node.scene
+    import supramodal.node.scene.schema
 
     def broken(path):
         raise planted
 
-    monkeypatch.setattr(supramodal.node.scene, "load_scene", broken)
+    monkeypatch.setattr(supramodal.node.scene.schema, "load_scene", broken)
     assert main(["run", str(tmp_path / "s.toml")]) == cli.EXIT_BUG
     err = capsys.readouterr().err
     assert "Traceback (most recent call last)" in err and "in broken\n    raise planted" in err
@@ -211,7 +211,7 @@ def test_seconds_inf_means_no_limit(replay_scene):
 
 @pytest.mark.parametrize("section, key", [("driver", "seconds"), ("features", "window"), ("buffer", "seconds")])
 def test_a_scene_refuses_infinite_seconds_naming_the_key(section, key):
-    from supramodal.node.scene import SceneError, scene_from_dict
+    from supramodal.node.scene.schema import SceneError, scene_from_dict
 
     driver = {"type": "synth"} if section != "driver" else {"type": "synth", "seconds": float("inf")}
     sections = {"driver": driver} | ({section: {key: float("inf")}} if section != "driver" else {})
@@ -229,8 +229,8 @@ def test_a_scene_refuses_infinite_seconds_naming_the_key(section, key):
 def test_a_synthesised_source_too_long_to_hold_is_refused_before_it_is_made(driver, needle):
     """A synthesised source is generated whole: a length beyond what it may hold is refused,
     naming the key, before anything is allocated (1e5 s of 20-channel texture would be 80 GB)."""
-    from supramodal.node.build import build_node
-    from supramodal.node.scene import SceneError, scene_from_dict
+    from supramodal.node.scene.build import build_node
+    from supramodal.node.scene.schema import SceneError, scene_from_dict
 
     bank = {"kind": "cochlea"} if driver["type"] == "twosense" else {"kind": "whisker"}
     with pytest.raises(SceneError, match=needle):
@@ -247,8 +247,8 @@ def test_a_refused_synth_leaves_no_folder(tmp_path, capsys):
 def test_node_run_takes_inf_as_no_limit_and_refuses_nan():
     import numpy as np
 
-    from supramodal.node.graph import Node
-    from supramodal.node.sinks import ListSink
+    from supramodal.node.runtime.graph import Node
+    from supramodal.node.runtime.sinks import ListSink
     from supramodal.replay.driver import ReplayDriver
     from supramodal.banks import whisker_bank
     from supramodal.pipeline import FeaturePipeline
@@ -331,12 +331,12 @@ def test_run_refuses_to_replace_a_sink_file_unless_forced(tmp_path, capsys):
 
 
 def test_train_refuses_an_existing_model_before_training(monkeypatch, tmp_path, capsys):
-    import supramodal.node.training
+    import supramodal.node.workflows.training
 
     def no_training(*a, **k):
         raise AssertionError("trained although the output would be refused")
 
-    monkeypatch.setattr(supramodal.node.training, "train_from_manifest", no_training)
+    monkeypatch.setattr(supramodal.node.workflows.training, "train_from_manifest", no_training)
     (tmp_path / "m.npz").write_bytes(b"an earlier model")
     argv = ["train", "--bank", "whisker", "--manifest", str(tmp_path / "m.csv"), "--out", str(tmp_path / "m.npz")]
     assert main(argv) == 2
@@ -359,7 +359,7 @@ def test_synth_refuses_to_replace_textures_unless_forced(tmp_path, capsys):
 def test_print_scene_writes_a_scene_that_loads_back_the_same(tmp_path, capsys, replay_scene):
     """`run --print-scene` (the embedded default, or a file) prints TOML that load_scene reads
     back to the same scene: every key, defaults filled in."""
-    from supramodal.node.scene import default_scene, load_scene
+    from supramodal.node.scene.schema import default_scene, load_scene
 
     for argv, expected in ((["run", "--print-scene"], default_scene()), (["run", str(replay_scene), "--print-scene"],
                                                                         load_scene(replay_scene))):

@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from supramodal.node.clock import ClockError, ClockModel
+from supramodal.node.runtime.clock import ClockError, ClockModel
 
 
 def simulate(nominal, ppm, t0, seconds, block, jitter, rng, outlier_rate=0.0, gap=None, first_index=0):

@@ -13,9 +13,9 @@ from supramodal.banks import whisker_bank
 from supramodal.errors import InputError
 from supramodal.model import TextureModel
 from supramodal.decisions import UNKNOWN, Decider
-from supramodal.node.graph import Node
-from supramodal.node.scene import SceneError, scene_from_dict
-from supramodal.node.sinks import ListSink
+from supramodal.node.runtime.graph import Node
+from supramodal.node.scene.schema import SceneError, scene_from_dict
+from supramodal.node.runtime.sinks import ListSink
 from supramodal.pipeline import FeaturePipeline, extract_features
 from supramodal.replay.driver import ReplayDriver, random_block_sizes
 from supramodal.textures import reference_texture_set
@@ -131,7 +131,7 @@ def test_unknown_below_names_no_texture_when_unsure():
 
 
 def test_rules_the_model_cannot_follow_are_refused_before_start(model, touches):
-    from supramodal.node.streams import decider_for
+    from supramodal.node.runtime.streams import decider_for
     import dataclasses
 
     old = dataclasses.replace(model, calibration=None, novelty=None)
@@ -178,7 +178,7 @@ def test_fusion_keys_printed_by_train_fusion_are_scene_keys_and_learn_refuses_th
 def test_a_model_trained_on_the_spot_is_trained_once_per_process(monkeypatch):
     """Calibration trains eleven networks: a second scene with the same texture set and pipeline
     gets the same model without training again; another pipeline trains its own."""
-    from supramodal.node import build
+    from supramodal.node.scene import build
     from supramodal.textures import reference_texture_set
 
     calls = []
@@ -200,7 +200,7 @@ def test_a_fusion_deciding_per_contact_gives_its_streams_contact_detectors(tmp_p
     """The fusion's contacts are its streams' touches: with [fusion.decision] scope = "contact", each
     fused stream detects contacts even where its own decisions are per window (otherwise a fused
     contact would never end, and its first final decision would stand for the whole run)."""
-    from supramodal.node.build import build_node
+    from supramodal.node.scene.build import build_node
 
     d = _fusion_scene(weight=0.5, decision={"scope": "contact", "confidence": 0.99, "contact_threshold": 0.02})
     graph = build_node(scene_from_dict(d, "<test>", tmp_path), sinks_override=[ListSink()], progress=None)

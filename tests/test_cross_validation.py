@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from supramodal.node.cli import main
-from supramodal.node.training import cross_validate_manifest, evaluate_manifest, train_from_manifest
+from supramodal.node.workflows.training import cross_validate_manifest, evaluate_manifest, train_from_manifest
 from supramodal.banks import whisker_bank
 from supramodal.errors import InputError
 from supramodal.training import grouped_folds
@@ -104,7 +104,7 @@ def test_train_cv_reports_then_writes_the_model_and_the_confusion_files(recordin
 def test_lines_of_one_file_are_trials_and_must_not_overlap(recordings, tmp_path):
     """One recording per label, split into two lines each: two trials per label, folds possible;
     overlapping spans of one file are refused (a fold would test on windows it trained on)."""
-    from supramodal.node.manifest import ManifestError
+    from supramodal.node.workflows.manifest import ManifestError
 
     names = sorted(p.name for p in recordings.glob("*_0.wav"))
     split = ["path,label,start,end"] + [f"{recordings / n},{n[:2]},{a},{b}" for n in names

@@ -14,11 +14,11 @@ from supramodal.calibration import Calibration
 from supramodal.fused_model import EarlyFusionModel, Sense
 from supramodal.mlp import MLP
 from supramodal.model import ModelError, TextureModel
-from supramodal.node.build import build_node
-from supramodal.node.events import WindowEvent
-from supramodal.node.fusion import EarlyFusion
-from supramodal.node.scene import SceneError, scene_from_dict
-from supramodal.node.sinks import ListSink
+from supramodal.node.scene.build import build_node
+from supramodal.node.runtime.events import WindowEvent
+from supramodal.node.runtime.fusion import EarlyFusion
+from supramodal.node.scene.schema import SceneError, scene_from_dict
+from supramodal.node.runtime.sinks import ListSink
 from supramodal.pipeline import FeaturePipeline
 
 from test_graph import _run_fusion, _two_sense_scene
@@ -187,7 +187,7 @@ def test_early_fusion_needs_a_model_or_both_streams_trained_on_the_spot(tmp_path
     d = _two_sense_scene()
     d["fusion"] = {"streams": ["whiskers", "mic"], "method": "early"}
     model = tmp_path / "mic.npz"
-    from supramodal.node.build import train_on_texture_set
+    from supramodal.node.scene.build import train_on_texture_set
     from supramodal.twosense import OneSense, two_sense_set
     train_on_texture_set(OneSense(two_sense_set(), "microphone", duration=4.0),
                          FeaturePipeline(cochlea_bank(), ("Af",))).save(model)

@@ -301,8 +301,8 @@ def test_every_refusal_here_is_a_supramodal_error():
 ])
 def test_a_scene_asking_for_an_unbounded_window_or_bank_is_refused_before_allocating(section, key, value, named):
     """A scene is data a user may receive: its window and channel count are bounded like a model's."""
-    from supramodal.node.build import build_node
-    from supramodal.node.scene import scene_from_dict
+    from supramodal.node.scene.build import build_node
+    from supramodal.node.scene.schema import scene_from_dict
 
     bank = {"kind": "cochlea"} if section == "bank" else {}
     with pytest.raises(InputError, match=named):         # when the scene is read, or when it is built

@@ -7,8 +7,8 @@ import csv
 import pytest
 
 from supramodal.node.cli import main
-from supramodal.node.fit import Candidate, fit_manifest
-from supramodal.node.training import cross_validate_manifest
+from supramodal.node.workflows.fit import Candidate, fit_manifest
+from supramodal.node.workflows.training import cross_validate_manifest
 from supramodal.replay.wavio import write_wav
 from supramodal.bankfile import load_bank
 from supramodal.textures import synthesize
@@ -65,8 +65,8 @@ def test_fit_writes_a_bank_whose_model_decides_in_the_node_as_evaluate_does_on_h
     import json
 
     from supramodal.model import TextureModel
-    from supramodal.node.manifest import read_manifest
-    from supramodal.node.training import evaluate_manifest, recording_windows
+    from supramodal.node.workflows.manifest import read_manifest
+    from supramodal.node.workflows.training import evaluate_manifest, recording_windows
 
     rows = ["path,label"]
     for t, (name, peaks) in enumerate(TEXTURES.items()):

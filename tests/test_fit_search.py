@@ -1,4 +1,4 @@
-"""`supramodal fit`'s joint search (node/fit_search.py) and its feature cache (node/fit_cache.py)."""
+"""`supramodal fit`'s joint search (node/workflows/fit_search.py) and its feature cache (node/workflows/fit_cache.py)."""
 
 from __future__ import annotations
 
@@ -15,16 +15,16 @@ from test_fit import (
 
 from supramodal.banks import whisker_bank
 from supramodal.node.cli import main
-from supramodal.node.fit_cache import FeatureCache, base_samples
-from supramodal.node.manifest import read_manifest
-from supramodal.node.training import recording_windows
+from supramodal.node.workflows.fit_cache import FeatureCache, base_samples
+from supramodal.node.workflows.manifest import read_manifest
+from supramodal.node.workflows.training import recording_windows
 from supramodal.pipeline import FeaturePipeline
 from supramodal.replay.wavio import write_wav
 from supramodal.textures import synthesize
 
 pytest.importorskip("optuna", reason="the fit extra (optuna) is not installed: pip install -e '.[fit]'")
 
-from supramodal.node.fit_search import FitError, Setting, fit_search, search_space  # noqa: E402
+from supramodal.node.workflows.fit_search import FitError, Setting, fit_search, search_space  # noqa: E402
 
 #: Small and fast: few trials of few epochs (the search's behaviour, not its accuracy, is tested).
 FAST = {"k": 3, "quick": True, "trials": 6, "batch": 3, "max_epochs": 8}

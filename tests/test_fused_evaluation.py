@@ -11,11 +11,11 @@ import tomllib
 import numpy as np
 import pytest
 
-from supramodal.node.build import build_node
+from supramodal.node.scene.build import build_node
 from supramodal.node.cli import main
-from supramodal.node.reports import FUSION_COLUMNS
-from supramodal.node.scene import load_scene
-from supramodal.node.sinks import ListSink
+from supramodal.node.workflows.reports import FUSION_COLUMNS
+from supramodal.node.scene.schema import load_scene
+from supramodal.node.runtime.sinks import ListSink
 
 
 def _world_toml(take: int, seconds: float) -> str:

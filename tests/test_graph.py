@@ -13,14 +13,14 @@ import pytest
 from supramodal.banks import cochlea_bank, whisker_bank
 from supramodal.drivers.base import DriverBase
 from supramodal.errors import InputError
-from supramodal.node.build import build_node
-from supramodal.node.events import WindowEvent
-from supramodal.node.fusion import LateFusion
-from supramodal.node.graph import Graph
-from supramodal.node.scene import SceneError, load_scene, scene_from_dict, scene_to_toml
-from supramodal.node.sinks import ListSink
-from supramodal.node.sources import Source
-from supramodal.node.streams import Labels, Stream
+from supramodal.node.scene.build import build_node
+from supramodal.node.runtime.events import WindowEvent
+from supramodal.node.runtime.fusion import LateFusion
+from supramodal.node.runtime.graph import Graph
+from supramodal.node.scene.schema import SceneError, load_scene, scene_from_dict, scene_to_toml
+from supramodal.node.runtime.sinks import ListSink
+from supramodal.node.runtime.sources import Source
+from supramodal.node.runtime.streams import Labels, Stream
 from supramodal.pipeline import FeaturePipeline
 from supramodal.replay.driver import ReplayDriver, random_block_sizes
 
@@ -326,7 +326,7 @@ def test_a_learned_weight_needs_models_trained_on_the_spot(tmp_path):
     model = tmp_path / "m.npz"
     d["stream"][1]["model"] = {"path": str(model)}
     scene = scene_from_dict(d, "world.toml")
-    from supramodal.node.build import bank_for, pipeline_for, train_on_texture_set
+    from supramodal.node.scene.build import bank_for, pipeline_for, train_on_texture_set
     from supramodal.twosense import OneSense, two_sense_set
 
     sub = scene.streams[1].scene

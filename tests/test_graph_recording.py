@@ -10,11 +10,11 @@ import json
 import numpy as np
 import pytest
 
-from supramodal.node.build import build_node
+from supramodal.node.scene.build import build_node
 from supramodal.node.cli import main
-from supramodal.node.graph_recording import graph_recorders, write_replay_scene
-from supramodal.node.scene import SceneError, load_scene, scene_from_dict
-from supramodal.node.sinks import ListSink
+from supramodal.node.workflows.graph_recording import graph_recorders, write_replay_scene
+from supramodal.node.scene.schema import SceneError, load_scene, scene_from_dict
+from supramodal.node.runtime.sinks import ListSink
 from supramodal.replay import ReplayDriver, ReplayError, Session, SessionError, load_session, save_session
 
 from test_graph import _two_sense_scene
@@ -293,8 +293,8 @@ def test_a_stamp_the_clock_skips_is_left_out_of_the_recording_too(tmp_path):
     """A block stamped before the one before it is no measurement: the clock model leaves it out,
     and so does the recording (else its session would not save); it replays with the next one."""
     from supramodal.drivers.base import Block
-    from supramodal.node.recorder import SessionRecorder
-    from supramodal.node.sources import Source
+    from supramodal.node.runtime.recorder import SessionRecorder
+    from supramodal.node.runtime.sources import Source
 
     source = Source("s", ReplayDriver((np.zeros((100, 1)), 100.0), on_notice=None), timebase="host")
     rec = SessionRecorder(tmp_path, "s", "test", keep_arrivals=True)

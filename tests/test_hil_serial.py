@@ -15,8 +15,8 @@ import pytest
 
 from supramodal.drivers.mock_whisker import FaultSpec, MockWhiskerDevice, quantise
 from supramodal.drivers.serial_whisker import SerialWhiskerDriver
-from supramodal.node.graph import Node
-from supramodal.node.sinks import ListSink
+from supramodal.node.runtime.graph import Node
+from supramodal.node.runtime.sinks import ListSink
 from supramodal.replay.driver import ReplayDriver
 from supramodal.replay.wavio import write_wav
 from supramodal.banks import whisker_bank
@@ -130,8 +130,8 @@ def test_the_serial_example_scene_decides_on_the_mock_board():
     board plays (synth:T3, fanned out to 20 whiskers)."""
     from pathlib import Path
 
-    from supramodal.node.build import build_node
-    from supramodal.node.scene import load_scene
+    from supramodal.node.scene.build import build_node
+    from supramodal.node.scene.schema import load_scene
 
     scene = load_scene(Path(__file__).resolve().parents[1] / "examples" / "whisker_serial.toml")
     ts = reference_texture_set("whisker")

@@ -12,7 +12,7 @@ import pytest
 
 from supramodal.banks import cochlea_bank, whisker_bank
 from supramodal.node.cli import main
-from supramodal.node.scene import load_scene
+from supramodal.node.scene.schema import load_scene
 from supramodal.pipeline import extract_features
 from supramodal.replay.session import load_session
 from supramodal.replay.wavio import read_wav, write_wav

@@ -15,12 +15,12 @@ import pytest
 from supramodal.banks import whisker_bank
 from supramodal.drivers.base import Block, Driver, DriverBase, DriverClosed, DriverEvent, EventLog
 from supramodal.errors import InputError
-from supramodal.node.graph import Graph
-from supramodal.node.ringbuffer import RingClosed
-from supramodal.node.sinks import ListSink, QueuedSink, Sink
-from supramodal.node.sources import Source
-from supramodal.node.streams import Stream
-from supramodal.node.taps import Tap
+from supramodal.node.runtime.graph import Graph
+from supramodal.node.runtime.ringbuffer import RingClosed
+from supramodal.node.runtime.sinks import ListSink, QueuedSink, Sink
+from supramodal.node.runtime.sources import Source
+from supramodal.node.runtime.streams import Stream
+from supramodal.node.runtime.taps import Tap
 from supramodal.pipeline import FeaturePipeline
 
 from stand_ins import StandInDriver
@@ -123,11 +123,11 @@ def test_a_sink_or_tap_that_is_not_one_is_refused_when_the_graph_is_made():
         def emit(self, event):
             pass
 
-    with pytest.raises(InputError, match="derive from supramodal.node.sinks.Sink"):
+    with pytest.raises(InputError, match="derive from supramodal.node.runtime.sinks.Sink"):
         _graph([Duck()])
     with pytest.raises(InputError, match="queued sink runs a Sink"):
         QueuedSink(Duck())
-    with pytest.raises(InputError, match="taps derive from supramodal.node.taps.Tap"):
+    with pytest.raises(InputError, match="taps derive from supramodal.node.runtime.taps.Tap"):
         _graph([], [Duck()])
     with pytest.raises(TypeError):
         Sink()                      # emit is the one call a sink must give
@@ -216,8 +216,8 @@ def test_a_driver_that_is_not_one_is_refused_when_its_source_is_made():
 # -- no probes ------------------------------------------------------------------------------------
 
 #: The runtime modules that call sinks, taps or drivers.
-RUNTIME = ("node/graph.py", "node/sinks.py", "node/sources.py", "node/streams.py", "node/lsl_outlets.py",
-           "node/lsl_signal.py", "node/recorder.py", "node/taps.py")
+RUNTIME = ("node/runtime/graph.py", "node/runtime/sinks.py", "node/runtime/sources.py", "node/runtime/streams.py", "node/runtime/lsl_outlets.py",
+           "node/runtime/lsl_signal.py", "node/runtime/recorder.py", "node/runtime/taps.py")
 #: The probes left, each with why: (file, the probe's text). None: drivers derive from DriverBase,
 #: which gives every member of the contract (take_events, fills_are_drops, labels, ...).
 ALLOWED: set[tuple[str, str]] = set()

@@ -10,11 +10,11 @@ import json
 import numpy as np
 import pytest
 
-from supramodal.node.build import build_node
+from supramodal.node.scene.build import build_node
 from supramodal.node.cli import main
-from supramodal.node.graph_recording import graph_recorders
-from supramodal.node.labels import LabelError, frames_at, read_spans
-from supramodal.node.scene import scene_from_dict
+from supramodal.node.workflows.graph_recording import graph_recorders
+from supramodal.node.workflows.labels import LabelError, frames_at, read_spans
+from supramodal.node.scene.schema import scene_from_dict
 from supramodal.replay.session import load_session, save_session
 
 WHISKERS, MIC = 5000, 44100

@@ -32,7 +32,7 @@ DRIVER_MAY_USE = ("supramodal.errors", "supramodal.jsondata", "supramodal.checks
 
 
 def layer(name: str) -> str:
-    """The layer a dotted module name belongs to: ``supramodal.node.graph`` -> ``node``,
+    """The layer a dotted module name belongs to: ``supramodal.node.runtime.graph`` -> ``node``,
     ``supramodal.gammatone`` -> ``supramodal``, ``numpy.linalg`` -> ``numpy``."""
     for package in LAYER_DIRS:   # the subpackages before the model package that holds them
         if name == package or name.startswith(package + "."):
@@ -105,14 +105,14 @@ def test_the_checks_see_every_module_and_lazy_imports(tmp_path):
     assert {"supramodal", "supramodal.gammatone", "supramodal.training", "supramodal.experiments.common"} <= set(model)
     assert not any(m.startswith("supramodal.bench") for m in model)
     lazy = tmp_path / "lazy.py"
-    lazy.write_text("import numpy\n\ndef f():\n    from supramodal.node.graph import Node\n"
+    lazy.write_text("import numpy\n\ndef f():\n    from supramodal.node.runtime.graph import Node\n"
                     "    from supramodal.drivers import base\n")
-    assert imports_in(lazy) == [(1, "numpy"), (4, "supramodal.node.graph"), (4, "supramodal.node.graph.Node"),
+    assert imports_in(lazy) == [(1, "numpy"), (4, "supramodal.node.runtime.graph"), (4, "supramodal.node.runtime.graph.Node"),
                                 (5, "supramodal.drivers"), (5, "supramodal.drivers.base")]
     assert [layer(m) for _, m in imports_in(lazy)] == ["numpy", "node", "node", "drivers", "drivers"]
-    assert path_of("supramodal.node.graph") == ROOT / "node" / "graph.py"
+    assert path_of("supramodal.node.runtime.graph") == ROOT / "node" / "runtime" / "graph.py"
     # What the bench loads (it measures the node): the import check sees a chain.
-    assert "supramodal.node.graph" in loaded_after_import(["supramodal.benchmarks.filterbank.run"])["supramodal.benchmarks.filterbank.run"]
+    assert "supramodal.node.runtime.graph" in loaded_after_import(["supramodal.benchmarks.filterbank.run"])["supramodal.benchmarks.filterbank.run"]
 
 
 def test_importing_any_model_module_loads_no_driver_node_benchmark_or_device():
@@ -148,7 +148,7 @@ def test_drivers_and_replay_use_nothing_of_the_model_but_its_error_root(package)
 def test_the_node_trains_with_the_model_layer_not_the_research_harness():
     """Only the CLI's ``experiment`` command runs the experiments; the node's training, on the spot
     or from a manifest, uses :mod:`supramodal.training`."""
-    bad = [(m, f, line, what) for m in modules_of("node") if m != "supramodal.node.cli" for f, line, what in source_imports(m)
+    bad = [(m, f, line, what) for m in modules_of("node") if not m.startswith("supramodal.node.cli") for f, line, what in source_imports(m)
            if what.startswith("supramodal.experiments")]
     assert not bad, bad
 

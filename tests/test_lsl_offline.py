@@ -9,9 +9,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from supramodal.drivers.lsl import ClockSteps, LSLUnavailable, TimestampSteps, import_pylsl
-from supramodal.node.build import build_node
+from supramodal.node.scene.build import build_node
 from supramodal.node.cli import main
-from supramodal.node.scene import SceneError, scene_from_dict
+from supramodal.node.scene.schema import SceneError, scene_from_dict
 
 RATE = 5000.0
 

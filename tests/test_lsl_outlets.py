@@ -21,7 +21,7 @@ from lsl_only import loopback_only, require_lsl  # noqa: F401  (the fixture appl
 
 require_lsl()
 
-from supramodal.node.lsl_outlets import LSLOutletSink, OutletStream, outlet_name  # noqa: E402  (needs pylsl)
+from supramodal.node.runtime.lsl_outlets import LSLOutletSink, OutletStream, outlet_name  # noqa: E402  (needs pylsl)
 
 
 def _replay_scene(tmp_path, prefix: str, seconds: float, sink: str, model: str = "train_on_start = true") -> str:
@@ -37,8 +37,8 @@ def test_the_outlets_are_up_while_the_model_trains(tmp_path):
     """Issue 26 item 7: the outlets were made after the start-up training, ~0.1 s before the first
     window, while resolving takes 0.6-1.5 s. Now a consumer resolves them while the model trains:
     the training's progress line comes after they are up."""
-    from supramodal.node.build import build_node
-    from supramodal.node.scene import scene_from_dict
+    from supramodal.node.scene.build import build_node
+    from supramodal.node.scene.schema import scene_from_dict
 
     import tomllib
 

@@ -114,9 +114,9 @@ def test_push_time_stamps_held_3_s_and_flushed_fill_nothing_and_keep_the_sender_
     though none was lost, 1,350 dropped in the ring, stream time 3.64 s ahead. Judged on the
     clock model: 0 filled, 0 dropped, every window's end within 1 ms of the sender's sample clock."""
     from supramodal.drivers.lsl import import_pylsl, lsl_clock_offset
-    from supramodal.node.build import build_node
-    from supramodal.node.scene import scene_from_dict
-    from supramodal.node.sinks import ListSink
+    from supramodal.node.scene.build import build_node
+    from supramodal.node.scene.schema import scene_from_dict
+    from supramodal.node.runtime.sinks import ListSink
 
     class Sink(ListSink):
         def start(self, epoch):

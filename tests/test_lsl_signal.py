@@ -18,15 +18,15 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from supramodal.drivers.lsl import import_pylsl, resolve_stream
-from supramodal.node.ringbuffer import RingClosed
-from supramodal.node.scene import SceneError, scene_from_dict
+from supramodal.node.runtime.ringbuffer import RingClosed
+from supramodal.node.scene.schema import SceneError, scene_from_dict
 
 from lsl_only import loopback_only, require_lsl  # noqa: F401  (the fixture applies itself)
 
 require_lsl()
 
-from supramodal.node.lsl_signal import LSLSignalOutlet  # noqa: E402  (after the skip: it needs pylsl to build)
-from supramodal.node.sources import Feed  # noqa: E402
+from supramodal.node.runtime.lsl_signal import LSLSignalOutlet  # noqa: E402  (after the skip: it needs pylsl to build)
+from supramodal.node.runtime.sources import Feed  # noqa: E402
 
 
 class _PlannedReader:
@@ -158,8 +158,8 @@ def test_the_scene_checks_the_signal_sink():
 
 def test_a_one_source_scene_sends_its_samples_and_still_decides(tmp_path):
     """The tap beside the model: every frame sent once, the windows decided as without it."""
-    from supramodal.node.build import build_node
-    from supramodal.node.sinks import ListSink
+    from supramodal.node.scene.build import build_node
+    from supramodal.node.runtime.sinks import ListSink
 
     scene = {"driver": {"type": "synth", "seconds": 1.0, "speed": "max", "block": 37}, "bank": {"kind": "whisker"},
              "model": {"train_on_start": True}, "decision": {"scope": "window"}}
@@ -183,7 +183,7 @@ def test_a_relay_in_another_process_sends_what_it_measured_and_the_stamps_show_t
     rate and labels as documented; every measured sample once, in order; none of the filled ones;
     and the timestamps step by exactly one sample period except over the hole, which they span
     by exactly its length."""
-    from supramodal.node.lsl_outlets import outlet_source_id
+    from supramodal.node.runtime.lsl_outlets import outlet_source_id
     from supramodal.replay.session import save_session
 
     pylsl = import_pylsl()
@@ -238,7 +238,7 @@ def test_a_relay_in_another_process_sends_what_it_measured_and_the_stamps_show_t
 
 def test_a_relay_is_recorded_and_its_replay_scene_sends_the_recording_on(tmp_path):
     from supramodal.node.cli import main
-    from supramodal.node.scene import load_scene
+    from supramodal.node.scene.schema import load_scene
     from supramodal.replay.session import load_session
 
     prefix = f"t{uuid.uuid4().hex[:8]}"
@@ -253,7 +253,7 @@ def test_a_relay_is_recorded_and_its_replay_scene_sends_the_recording_on(tmp_pat
 
 
 def test_without_a_consumer_the_node_waits_as_long_as_asked_then_starts_and_says_so():
-    from supramodal.node.build import build_node
+    from supramodal.node.scene.build import build_node
 
     prefix = f"t{uuid.uuid4().hex[:8]}"
     scene = scene_from_dict({"source": [{"name": "arm", "type": "synth", "speed": "max", "seconds": 0.2}],
@@ -274,7 +274,7 @@ def test_a_restarted_relay_is_picked_up_again_by_its_source_id(tmp_path):
     import threading
 
     from supramodal.benchmarks.lsl_link import _end, _inlet_node, _prepare, _run_for, relay_scene, start_relay
-    from supramodal.node.lsl_outlets import outlet_source_id
+    from supramodal.node.runtime.lsl_outlets import outlet_source_id
 
     wav, model, _ = _prepare(8.0, tmp_path, lambda _: None)
     prefix = f"t{uuid.uuid4().hex[:8]}"

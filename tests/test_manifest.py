@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, HealthCheck, strategies as st
 
-from supramodal.node.manifest import ManifestError, read_manifest
-from supramodal.node.training import evaluate_manifest, train_from_manifest
+from supramodal.node.workflows.manifest import ManifestError, read_manifest
+from supramodal.node.workflows.training import evaluate_manifest, train_from_manifest
 from supramodal.replay.wavio import write_wav
 from supramodal.banks import whisker_bank
 from supramodal.errors import InputError

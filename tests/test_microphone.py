@@ -761,7 +761,7 @@ def test_example_scene_float32_default_on_an_int16_device_is_exact(tmp_path, jac
     x / 32768, sample for sample."""
     import inspect
 
-    from supramodal.node.scene import load_scene
+    from supramodal.node.scene.schema import load_scene
 
     _require_portaudio()
     assert load_scene(ROOT / "examples" / "microphone.toml").driver["dtype"] is None

@@ -14,10 +14,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from supramodal.node.build import build_node
-from supramodal.node.graph import Node, channel_mapper
-from supramodal.node.scene import SceneError, default_scene, load_scene, scene_from_dict
-from supramodal.node.sinks import ListSink, Sink
+from supramodal.node.scene.build import build_node
+from supramodal.node.runtime.graph import Node, channel_mapper
+from supramodal.node.scene.schema import SceneError, default_scene, load_scene, scene_from_dict
+from supramodal.node.runtime.sinks import ListSink, Sink
 from supramodal.replay.driver import ReplayDriver, random_block_sizes
 from supramodal.replay.session import save_session
 from supramodal.replay.wavio import write_wav
@@ -283,7 +283,7 @@ def test_train_evaluate_round_trip_on_synthesised_recordings(tmp_path):
     assert main(["evaluate", str(tmp_path / "m"), "--manifest", str(tmp_path / "test.csv"), "--quiet"]) == 0
     model = TextureModel.load(tmp_path / "m")
     assert model.classes == tuple(sorted(ts.names[:4]))
-    from supramodal.node.training import evaluate_manifest
+    from supramodal.node.workflows.training import evaluate_manifest
 
     result = evaluate_manifest(model, tmp_path / "test.csv")
     assert set(result) >= {"window_accuracy", "recording_accuracy", "labels", "confusion"}
@@ -293,7 +293,7 @@ def test_train_evaluate_round_trip_on_synthesised_recordings(tmp_path):
 
 
 def test_manifest_errors(tmp_path):
-    from supramodal.node.training import read_manifest
+    from supramodal.node.workflows.training import read_manifest
 
     (tmp_path / "m.csv").write_text("file,label\nx.wav,a\n")
     with pytest.raises(ValueError, match="columns must be path,label"):
@@ -306,7 +306,7 @@ def test_manifest_errors(tmp_path):
 @pytest.mark.skipif(not SHARED_DATA.is_dir(), reason="the LMT surface recordings are not distributed with "
                     "supramodal; this check runs only on the developers' machines, which hold a copy")
 def test_real_surface_recordings_cochlea(tmp_path):
-    from supramodal.node.training import evaluate_manifest, train_from_manifest
+    from supramodal.node.workflows.training import evaluate_manifest, train_from_manifest
 
     names = ["carpet", "fiber", "rough_paper", "sheep_skin", "textile", "wallpaper"]
     cut = 0.7 * 211611 / 44100
@@ -361,7 +361,7 @@ def test_default_serial_scene_meets_the_frame_formats_link_budget():
     from supramodal.drivers.frames import frame_size
     from supramodal.drivers.mock_whisker import MockWhiskerDevice
     from supramodal.drivers.serial_whisker import DEFAULT_BAUDRATE
-    from supramodal.node.build import driver_for
+    from supramodal.node.scene.build import driver_for
 
     scene = scene_from_dict({"driver": {"type": "serial", "port": "loop://"}})
     spf = inspect.signature(MockWhiskerDevice.__init__).parameters["samples_per_frame"].default
@@ -375,7 +375,7 @@ def test_default_serial_scene_meets_the_frame_formats_link_budget():
 
 
 def test_replay_speed_and_block_defaults_are_the_replay_drivers(whisker_signal):
-    from supramodal.node.build import driver_for
+    from supramodal.node.scene.build import driver_for
 
     scene = scene_from_dict({"driver": {"type": "synth", "order": ["T1"], "seconds": 1.0}})
     driver, _, _ = driver_for(scene, whisker_bank())
@@ -408,7 +408,7 @@ def test_command_line_model_and_scene_share_the_defaults():
 def test_held_out_share_follows_the_training_fraction(monkeypatch, train_fraction, accepted):
     """Held-out segments come from the part the model did not train on: 1 - TRAIN_FRACTION of each texture."""
     import supramodal.training as training
-    from supramodal.node.build import driver_for
+    from supramodal.node.scene.build import driver_for
 
     monkeypatch.setattr(training, "TRAIN_FRACTION", train_fraction)
     ts = reference_texture_set("whisker")
@@ -426,7 +426,7 @@ def test_held_out_share_follows_the_training_fraction(monkeypatch, train_fractio
 def test_latency_histogram_percentiles_are_within_a_bin_of_the_exact_ones(seed):
     """The node's constant-memory latency record against numpy on the same values: percentiles
     (numpy's "lower" method) within the 1 % bin width, count and maximum exact."""
-    from supramodal.node.latency import LatencyHistogram
+    from supramodal.node.runtime.latency import LatencyHistogram
 
     rng = np.random.default_rng(seed)
     values = np.concatenate([rng.lognormal(0.0, 1.5, int(rng.integers(1, 5000))), rng.uniform(0.01, 80.0, 50)])
@@ -468,7 +468,7 @@ def test_nonfinite_and_out_of_range_samples_are_replaced_counted_and_reported(tm
     """A stream with NaN, Inf and a sample beyond the filterbank's max_input runs on (policy "zero"):
     each kind counted apart in the summary and shown in the text sink's summary line, and the
     feature windows are those of the stream with those samples set to 0."""
-    from supramodal.node.sinks import TextSink
+    from supramodal.node.runtime.sinks import TextSink
 
     _, x = whisker_signal
     x = x[:20000].copy()
@@ -523,7 +523,7 @@ def test_a_sink_that_blocks_or_fails_never_stalls_processing():
     """A replay at full speed with three sinks: one stuck for the whole run behind a small queue,
     one raising on every window, one plain. The plain one gets every window, the run ends at
     once, and the summary counts what the stuck one dropped and what the failing one raised."""
-    from supramodal.node.sinks import QueuedSink
+    from supramodal.node.runtime.sinks import QueuedSink
 
     x = np.random.default_rng(0).standard_normal(5000 * 20) * 0.3       # 20 s: 200 windows
     stuck, failing, plain = _BlockingSink(), _FailingSink(), ListSink()

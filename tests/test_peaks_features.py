@@ -242,7 +242,7 @@ def test_check_features():
 def test_an_unknown_feature_is_refused_everywhere_with_the_known_names():
     """Names come from the one table: no fall-through to a computation for a name it lacks."""
     from supramodal.node.cli import build_parser
-    from supramodal.node.scene import SceneError, scene_from_dict
+    from supramodal.node.scene.schema import SceneError, scene_from_dict
     from supramodal.errors import InputError
     from supramodal.features import FEATURE_TABLE
 

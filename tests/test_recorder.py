@@ -8,13 +8,13 @@ import time
 import numpy as np
 import pytest
 
-from supramodal.node.build import bank_for, build_node, driver_for
+from supramodal.node.scene.build import bank_for, build_node, driver_for
 from supramodal.node.cli import main
-from supramodal.node.graph import Node
-from supramodal.node.recorder import SessionRecorder
-from supramodal.node.ringbuffer import RingBuffer
-from supramodal.node.scene import scene_from_dict
-from supramodal.node.sinks import ListSink
+from supramodal.node.runtime.graph import Node
+from supramodal.node.runtime.recorder import SessionRecorder
+from supramodal.node.runtime.ringbuffer import RingBuffer
+from supramodal.node.scene.schema import scene_from_dict
+from supramodal.node.runtime.sinks import ListSink
 from supramodal.replay.driver import ReplayDriver
 from supramodal.replay.session import load_session
 from supramodal.banks import whisker_bank

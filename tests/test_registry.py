@@ -14,11 +14,11 @@ import pytest
 from supramodal.checks import Key, integer, positive
 from supramodal.drivers.base import Block, DriverBase, DriverClosed
 from supramodal.drivers.spec import Built, BuildContext, DriverSpec, OptionError
-from supramodal.node import registry
-from supramodal.node.build import build_node
-from supramodal.node.scene import SceneError, scene_from_dict
-from supramodal.node.registry import SinkSpec
-from supramodal.node.sinks import ListSink, Sink
+from supramodal.node.scene import registry
+from supramodal.node.scene.build import build_node
+from supramodal.node.scene.schema import SceneError, scene_from_dict
+from supramodal.node.scene.registry import SinkSpec
+from supramodal.node.runtime.sinks import ListSink, Sink
 
 
 class ToneDriver(DriverBase):
@@ -134,20 +134,20 @@ def test_naming_a_driver_type_loads_only_its_module():
     import subprocess
     import sys
 
-    code = ("import sys; from supramodal.node.scene import scene_from_dict; "
+    code = ("import sys; from supramodal.node.scene.schema import scene_from_dict; "
             "scene_from_dict({'driver': {'type': 'synth'}}); "
             "print(sorted(m for m in ('serial', 'sounddevice', 'supramodal.drivers.microphone', "
-            "'supramodal.drivers.serial_whisker', 'supramodal.drivers.lsl', 'supramodal.node.lsl_outlets', 'pylsl') if m in sys.modules))")
+            "'supramodal.drivers.serial_whisker', 'supramodal.drivers.lsl', 'supramodal.node.runtime.lsl_outlets', 'pylsl') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"
 
 
 def test_the_docs_key_tables_are_the_schemas():
-    """README.md and docs/node.md hold tables made from the schema (python -m supramodal.node.scene_docs):
+    """README.md and docs/node.md hold tables made from the schema (python -m supramodal.node.scene.docs):
     a key added, removed or reworded without regenerating them fails here."""
     from pathlib import Path
 
-    from supramodal.node import scene_docs
+    from supramodal.node.scene import docs as scene_docs
 
     root = Path(__file__).resolve().parents[1]
     assert scene_docs.check(root) == []

@@ -10,7 +10,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from supramodal.node.ringbuffer import Chunk, RingBuffer, RingClosed
+from supramodal.node.runtime.ringbuffer import Chunk, RingBuffer, RingClosed
 
 POLICIES = ("drop-oldest", "drop-newest", "block")
 

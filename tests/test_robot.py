@@ -16,7 +16,7 @@ import pytest
 
 from supramodal.banks import cochlea_bank, whisker_bank
 from supramodal.drivers.mock_whisker import FaultSpec, MockWhiskerDevice, quantise
-from supramodal.node.build import train_on_texture_set
+from supramodal.node.scene.build import train_on_texture_set
 from supramodal.pipeline import FeaturePipeline
 from supramodal.twosense import OneSense, two_sense_set
 

@@ -5,9 +5,9 @@ from __future__ import annotations
 
 import pytest
 
-from supramodal.node.build import build_node
-from supramodal.node.scene import SceneError, scene_from_dict
-from supramodal.node.sinks import ListSink
+from supramodal.node.scene.build import build_node
+from supramodal.node.scene.schema import SceneError, scene_from_dict
+from supramodal.node.runtime.sinks import ListSink
 
 
 def _graph(**first):
@@ -137,7 +137,7 @@ def test_a_sink_on_a_named_pipe_never_holds_up_the_node_and_loses_nothing_once_r
     scene_path = tmp_path / "s.toml"
     scene_path.write_text('[driver]\ntype = "synth"\nseconds = 1.0\norder = ["T1", "T2"]\nspeed = "max"\n\n'
                           '[[sink]]\ntype = "jsonl"\npath = "windows"\n')
-    from supramodal.node.scene import load_scene
+    from supramodal.node.scene.schema import load_scene
 
     # No reader at all: the node ends in bounded time, and says what it could not write.
     t = time.monotonic()

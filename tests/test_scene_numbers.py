@@ -14,10 +14,10 @@ import sys
 
 import pytest
 
-from supramodal.node.build import build_node
-from supramodal.node.registry import driver_spec, source_keys
-from supramodal.node.sinks import ListSink
-from supramodal.node.scene import SECTIONS, SceneError, scene_from_dict, scene_to_toml
+from supramodal.node.scene.build import build_node
+from supramodal.node.scene.registry import driver_spec, source_keys
+from supramodal.node.runtime.sinks import ListSink
+from supramodal.node.scene.schema import SECTIONS, SceneError, scene_from_dict, scene_to_toml
 
 BAD = {"zero": 0, "negative": -1.5, "huge": 1e300, "nan": math.nan, "inf": math.inf, "huge-int": 10**30}
 #: A run that is accepted must end within this (wall seconds, on a loaded CI machine).
@@ -58,8 +58,8 @@ def _scene(section: str, key: str, value) -> dict:
 def _load_only_cases():
     """Numeric keys of the drivers that need a device or a stream (serial, microphone, lsl, xdf),
     of every sink and of the fusion: driven at load (a run needs what a test machine lacks)."""
-    from supramodal.node.registry import driver_types, sink_keys, sink_spec, sink_types
-    from supramodal.node.scene import FUSION_KEYS
+    from supramodal.node.scene.registry import driver_types, sink_keys, sink_spec, sink_types
+    from supramodal.node.scene.schema import FUSION_KEYS
 
     for kind in driver_types():
         if kind in ("synth",):

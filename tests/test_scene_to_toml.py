@@ -9,7 +9,7 @@ import tomllib
 import pytest
 
 from supramodal.bankfile import BANK_KEYS
-from supramodal.node.scene import scene_from_dict, scene_to_toml
+from supramodal.node.scene.schema import scene_from_dict, scene_to_toml
 
 
 def _banks(text: str) -> list[dict]:

@@ -236,7 +236,7 @@ def test_silence_warning_off_and_refused_values():
 
 
 def test_node_prints_the_silence_notice_and_counts_it(capsys):
-    from supramodal.node.graph import Node
+    from supramodal.node.runtime.graph import Node
     from supramodal.banks import whisker_bank
     from supramodal.pipeline import FeaturePipeline
 

@@ -9,10 +9,10 @@ import re
 import numpy as np
 import pytest
 
-from supramodal.node.build import build_node
-from supramodal.node.events import FUSED_STREAM, WindowEvent
-from supramodal.node.scene import scene_from_dict
-from supramodal.node.sinks import ListSink, TextSink
+from supramodal.node.scene.build import build_node
+from supramodal.node.runtime.events import FUSED_STREAM, WindowEvent
+from supramodal.node.scene.schema import scene_from_dict
+from supramodal.node.runtime.sinks import ListSink, TextSink
 
 _LINE = re.compile(r"^ *(\d+\.\d{3}) s  (\S+)")
 

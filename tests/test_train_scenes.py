@@ -9,8 +9,8 @@ import pytest
 
 from supramodal.model import TextureModel
 from supramodal.node.cli import main
-from supramodal.node.scene import load_scene
-from supramodal.node.training import session_fingerprint
+from supramodal.node.scene.schema import load_scene
+from supramodal.node.workflows.training import session_fingerprint
 
 
 def _world(texture: str, take: int, block: int) -> str:

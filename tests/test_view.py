@@ -1,4 +1,4 @@
-"""The view (node/view.py): a page served by a running node, checked in a real headless browser
+"""The view (node/runtime/view.py): a page served by a running node, checked in a real headless browser
 (Debian's chromium over the DevTools protocol, tests/view_browser.py), and its server's rules
 (the token, the Origin, bounded messages, a page that stops reading never slows the node)."""
 
@@ -17,17 +17,17 @@ from view_browser import Browser, chromium_path, png_colours
 
 from supramodal.drivers.base import DriverEvent
 from supramodal.drivers.spec import OptionError
-from supramodal.node.build import build_node
-from supramodal.node.events import WindowEvent
-from supramodal.node.recorder import SessionRecorder
-from supramodal.node.registry import SinkContext
-from supramodal.node.scene import SceneError, scene_from_dict
-from supramodal.node.sinks import QueuedSink
-from supramodal.node.view import CLIENT_QUEUE, MAX_BODY, SPEC, TOKEN_HEADER, ViewError, ViewSink, attach, view_sinks
+from supramodal.node.scene.build import build_node
+from supramodal.node.runtime.events import WindowEvent
+from supramodal.node.runtime.recorder import SessionRecorder
+from supramodal.node.scene.registry import SinkContext
+from supramodal.node.scene.schema import SceneError, scene_from_dict
+from supramodal.node.runtime.sinks import QueuedSink
+from supramodal.node.runtime.view import CLIENT_QUEUE, MAX_BODY, SPEC, TOKEN_HEADER, ViewError, ViewSink, attach, view_sinks
 
 NO_CHROMIUM = "Debian's chromium is not installed (apt-get install -y chromium; .ci/run installs it)"
 
-# The default scene's model, trained once per test process (node/build.py keeps it), at twice real time.
+# The default scene's model, trained once per test process (node/scene/build.py keeps it), at twice real time.
 DEFAULT = {"driver": {"type": "synth", "textures": "reference", "seconds": 10.0, "held_out": True, "block": 50,
                       "speed": 2.0},
            "bank": {"kind": "whisker"}, "features": {"names": ["Af"]}, "model": {"train_on_start": True},
@@ -334,8 +334,8 @@ def test_an_unplug_of_the_mock_board_shows_a_banner_within_a_second(tmp_path, br
 
 
 def test_a_fused_graph_shows_both_streams_the_fused_one_and_the_pairing(tmp_path, browser):
-    from supramodal.node.scene import load_scene
-    from supramodal.node.view import with_view
+    from supramodal.node.scene.schema import load_scene
+    from supramodal.node.runtime.view import with_view
 
     sc = load_scene(str(Path(__file__).resolve().parents[1] / "examples" / "two_streams_fused.toml"))
     graph = build_node(with_view(replace(sc, sinks=[]), 0))

@@ -1,4 +1,4 @@
-"""``supramodal view REC.toml | SESSION`` (node/view_replay.py): a recording played back into the
+"""``supramodal view REC.toml | SESSION`` (node/workflows/view_replay.py): a recording played back into the
 view's page, paused and sped up from the page (with the run's token), in headless chromium."""
 
 from __future__ import annotations
@@ -12,11 +12,11 @@ import pytest
 from view_browser import Browser, chromium_path
 
 from supramodal.errors import InputError
-from supramodal.node.build import build_node
-from supramodal.node.recorder import SessionRecorder
-from supramodal.node.scene import scene_from_dict
-from supramodal.node.view import TOKEN_HEADER
-from supramodal.node.view_replay import ViewReplay
+from supramodal.node.scene.build import build_node
+from supramodal.node.runtime.recorder import SessionRecorder
+from supramodal.node.scene.schema import scene_from_dict
+from supramodal.node.runtime.view import TOKEN_HEADER
+from supramodal.node.workflows.view_replay import ViewReplay
 
 PANEL = "document.querySelector('[data-stream=\"main\"]')"
 

@@ -9,9 +9,9 @@ from xdf_writer import XdfStream, write_xdf
 
 pyxdf = pytest.importorskip("pyxdf", reason="the XDF tests need pyxdf (the lsl extra; CI installs it)")
 
-from supramodal.node.build import build_node  # noqa: E402
-from supramodal.node.scene import SceneError, scene_from_dict  # noqa: E402
-from supramodal.node.sinks import ListSink  # noqa: E402
+from supramodal.node.scene.build import build_node  # noqa: E402
+from supramodal.node.scene.schema import SceneError, scene_from_dict  # noqa: E402
+from supramodal.node.runtime.sinks import ListSink  # noqa: E402
 from supramodal.replay.errors import ReplayError  # noqa: E402
 from supramodal.replay.xdf import xdf_session  # noqa: E402
 

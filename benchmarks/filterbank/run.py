@@ -32,8 +32,8 @@ from supramodal.decisions import window_decision
 from supramodal.gammatone import reference_impulse_response, relative_error
 from supramodal.mlp import DEFAULT_EPOCHS
 from supramodal.model import TextureModel
-from supramodal.node.graph import Labels, Node
-from supramodal.node.sinks import ListSink
+from supramodal.node.runtime.graph import Labels, Node
+from supramodal.node.runtime.sinks import ListSink
 from supramodal.pipeline import FeaturePipeline
 from supramodal.replay.driver import ReplayDriver
 from supramodal.textures import reference_texture_set

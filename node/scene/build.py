@@ -18,12 +18,12 @@ from supramodal.decisions import ContactDetector
 from supramodal.drivers.spec import BuildContext, OptionError
 from supramodal.errors import InputError
 from supramodal.model import ModelError, TextureModel
-from supramodal.node.band import warn_if_beyond_band
-from supramodal.node.graph import Graph
-from supramodal.node.registry import SinkContext, StreamPlan, driver_spec, sink_spec
-from supramodal.node.scene import LEARN, Scene, SceneError, source_scene
-from supramodal.node.sources import Source
-from supramodal.node.streams import Labels, Stream, refuse_uncalibrated
+from supramodal.node.runtime.graph import Graph
+from supramodal.node.runtime.sources import Source
+from supramodal.node.runtime.streams import Labels, Stream, refuse_uncalibrated
+from supramodal.node.scene.band import warn_if_beyond_band
+from supramodal.node.scene.registry import SinkContext, StreamPlan, driver_spec, sink_spec
+from supramodal.node.scene.schema import LEARN, Scene, SceneError, source_scene
 from supramodal.pipeline import FeaturePipeline
 from supramodal.training import split, texture_features
 
@@ -89,7 +89,7 @@ def train_on_texture_set(ts, pipeline: FeaturePipeline, progress=None, held_out:
     if trained is not None:
         trained.append(train_part)
     if progress:
-        from supramodal.node.training import calibration_line
+        from supramodal.node.workflows.training import calibration_line
 
         progress(f"trained on {len(train_part[0])} windows of {len(ts.textures)} textures ({', '.join(p.features)}); "
                  + calibration_line(None if model.calibration is None else model.calibration.fitted_on))
@@ -131,7 +131,7 @@ def driver_for(scene: Scene, bank: Bank | None, speed_override=None, shared: dic
 def _make_sinks(scene: Scene, needs: str, made: list, overwrite: bool, **context) -> None:
     """Make the scene's sinks whose spec needs ``needs`` (node.registry.NEEDS), appending
     ``(index in the scene, spec, options, sink or tap)`` to ``made``; ``context``: the rest of the
-    :class:`~supramodal.node.registry.SinkContext` (the streams, the sources)."""
+    :class:`~supramodal.node.scene.registry.SinkContext` (the streams, the sources)."""
     for i, options in enumerate(scene.sinks):
         spec = sink_spec(options["type"])
         if spec.needs != needs:
@@ -264,7 +264,7 @@ def _early_model(scene: Scene, a: Stream, b: Stream, held_out: dict, trained: di
     model = EarlyFusionModel.train((Sense.of(a.name, a.pipeline), Sense.of(b.name, b.pipeline)), xa, xb, ya,
                                    a.model.classes)
     if progress:
-        from supramodal.node.training import calibration_line
+        from supramodal.node.workflows.training import calibration_line
 
         (ta, tya), (tb, _) = held_out[a.name][0], held_out[b.name][0]
         right = {a.name: a.model.log_posteriors(ta), b.name: b.model.log_posteriors(tb)[:, _order(b.model, a.model)],
@@ -329,12 +329,12 @@ def build_node(scene: Scene, speed=None, sinks_override=None, progress=None, rec
     scene is the graph of one source and one stream, both ``"main"``).
 
     ``speed``: the command line's ``--speed``. ``sinks_override``: sinks that replace the scene's
-    (its file sinks are then not made). ``recorder``: a :class:`~supramodal.node.recorder.SessionRecorder`
+    (its file sinks are then not made). ``recorder``: a :class:`~supramodal.node.runtime.recorder.SessionRecorder`
     for a one-source scene, or ``{source name: recorder}``. ``overwrite``: whether the scene's file
     sinks may replace existing files (``run --force``). Sink files are checked here, before any
     training, and created only when first written; a refused scene leaves no file and no outlet.
     """
-    from supramodal.node.fusion import EarlyFusion, LateFusion
+    from supramodal.node.runtime.fusion import EarlyFusion, LateFusion
 
     made: list = []                             # (index, spec, options, sink or tap) of the scene's sinks
     try:

@@ -40,9 +40,9 @@ from supramodal.checks import Key, text
 from supramodal.drivers.base import DriverEvent
 from supramodal.drivers.spec import OptionError
 from supramodal.errors import InputError
-from supramodal.node.events import MAIN_STREAM, WindowEvent
-from supramodal.node.outputs import check_new_file
-from supramodal.node.registry import SinkContext, SinkSpec
+from supramodal.node.runtime.events import MAIN_STREAM, WindowEvent
+from supramodal.node.runtime.outputs import check_new_file
+from supramodal.node.scene.registry import SinkContext, SinkSpec
 
 
 class Sink(abc.ABC):
@@ -372,7 +372,8 @@ class QueuedSink(Sink):
 
     def __init__(self, sink: Sink, capacity: int = DEFAULT_SINK_QUEUE_ITEMS) -> None:
         if not isinstance(sink, Sink):
-            raise InputError(f"a queued sink runs a Sink (supramodal.node.sinks.Sink), got {type(sink).__name__}")
+            raise InputError("a queued sink runs a Sink (supramodal.node.runtime.sinks.Sink), "
+                             f"got {type(sink).__name__}")
         if isinstance(capacity, bool) or not isinstance(capacity, int) or capacity < 1:
             raise InputError(f"a sink queue holds at least 1 item, got capacity {capacity!r}")
         self.sink = sink

@@ -122,7 +122,7 @@ class WindowEvent:
         Window number on that stream, from 0.
     start, end : float
         The window's first sample and the sample after its last, seconds on the graph's common
-        clock (see :mod:`supramodal.node.sources`; for a one-source scene, stream time).
+        clock (see :mod:`supramodal.node.runtime.sources`; for a one-source scene, stream time).
     t : float
         End of the window in the stream's own time, seconds (``(window + 1) * W / fs``).
     features : dict of str to ndarray, or None

@@ -42,8 +42,8 @@ timestamps), and the node's summary counts every frame's fate under ``taps``.
 
 Threading
 ---------
-The outlet is a *tap* (:class:`supramodal.node.taps.Tap`): another reader of the source's ring
-on a thread of its own, run by :class:`supramodal.node.graph.Graph`, as the recorder is.
+The outlet is a *tap* (:class:`supramodal.node.runtime.taps.Tap`): another reader of the source's ring
+on a thread of its own, run by :class:`supramodal.node.runtime.graph.Graph`, as the recorder is.
 ``push_chunk`` copies into liblsl's buffer and never waits for a consumer (liblsl drops the
 oldest for one slower than ``OUTLET_BUFFER_SECONDS``). A file source's ring (policy "block")
 waits for this reader as for every other; a live source's ring drops frames for a reader that
@@ -62,7 +62,7 @@ from supramodal.checks import NAME_HELP, Key, is_name, non_negative, number, tex
 from supramodal.drivers.lsl import import_pylsl
 from supramodal.drivers.spec import OptionError
 from supramodal.errors import InputError
-from supramodal.node.lsl_outlets import (
+from supramodal.node.runtime.lsl_outlets import (
     DEFAULT_PREFIX,
     OUTLET_BUFFER_SECONDS,
     LSLClock,
@@ -70,9 +70,9 @@ from supramodal.node.lsl_outlets import (
     outlet_source_id,
     wait_for_consumers,
 )
-from supramodal.node.registry import SinkSpec, driver_spec
-from supramodal.node.ringbuffer import RingClosed, flag_runs
-from supramodal.node.taps import Tap
+from supramodal.node.runtime.ringbuffer import RingClosed, flag_runs
+from supramodal.node.runtime.taps import Tap
+from supramodal.node.scene.registry import SinkSpec, driver_spec
 
 #: Seconds of samples per push: LSL's usual 5-30 ms; 10 ms matches the node's own chunks.
 DEFAULT_SIGNAL_CHUNK = 0.01
@@ -93,7 +93,7 @@ LINGER_SECONDS = 0.5
 
 
 class LSLSignalOutlet(Tap):
-    """One source's samples as an LSL stream (see the module notes): a :class:`~supramodal.node.taps.Tap`.
+    """One source's samples as an LSL stream (see the module notes): a :class:`~supramodal.node.runtime.taps.Tap`.
 
     Parameters
     ----------
@@ -105,7 +105,7 @@ class LSLSignalOutlet(Tap):
     chunk : float
         Seconds of samples per push (default :data:`DEFAULT_SIGNAL_CHUNK`).
     prefix : str
-        Default :data:`~supramodal.node.lsl_outlets.DEFAULT_PREFIX`.
+        Default :data:`~supramodal.node.runtime.lsl_outlets.DEFAULT_PREFIX`.
     stream_type : str
         The LSL content type (default :data:`DEFAULT_SIGNAL_TYPE`; the scene builder passes what
         the source is).
@@ -185,7 +185,7 @@ class LSLSignalOutlet(Tap):
         self._source = source
 
     def run(self, feed) -> None:
-        """Read ``feed`` (a :class:`~supramodal.node.sources.Feed` of the source's ring) until
+        """Read ``feed`` (a :class:`~supramodal.node.runtime.sources.Feed` of the source's ring) until
         the ring closes, pushing each chunk as it completes. The tap's thread."""
         reader, expected = feed.reader, 0
         self._feed = feed

@@ -40,8 +40,8 @@ from supramodal.decisions import DEFAULT_DECISION, Decider
 from supramodal.drivers.base import DriverEvent
 from supramodal.errors import InputError
 from supramodal.fusion import fuse_late
-from supramodal.node.events import FUSED_STREAM, WindowEvent, log_posteriors_of
-from supramodal.node.latency import LatencyHistogram
+from supramodal.node.runtime.events import FUSED_STREAM, WindowEvent, log_posteriors_of
+from supramodal.node.runtime.latency import LatencyHistogram
 
 #: Host seconds a window waits for its partner from the other stream before it is decided alone.
 DEFAULT_MAX_WAIT = 0.5

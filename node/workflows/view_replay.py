@@ -2,7 +2,7 @@
 and speed, so that a user can look back at what the robot felt.
 
 The recording is first run through the node at once (``--speed max``: the same windows, decisions
-and driver events a live run of it gives, node/graph.py), kept in memory, then played to the page
+and driver events a live run of it gives, node/runtime/graph.py), kept in memory, then played to the page
 on the recording's own time (each window at its end on common time) by a player thread, which
 the page's pause, speed and restart buttons steer (POST ``/control``, with the run's token, as
 every change). The health the page shows is the recording's whole run (its summary's counters).
@@ -27,9 +27,9 @@ from typing import Any
 
 from supramodal.drivers.base import DriverEvent
 from supramodal.errors import InputError
-from supramodal.node.events import WindowEvent
-from supramodal.node.sinks import Sink
-from supramodal.node.view import ViewSink, event_message, window_message
+from supramodal.node.runtime.events import WindowEvent
+from supramodal.node.runtime.sinks import Sink
+from supramodal.node.runtime.view import ViewSink, event_message, window_message
 
 __all__ = ["BANKS_BY_RATE", "MAX_SPEED", "ViewReplay", "replay_scene"]
 
@@ -62,7 +62,7 @@ class _Keep(Sink):
 def replay_scene(path: str | Path) -> Any:
     """The scene that replays ``path``: a recorded graph's ``REC.toml`` as it is, or a session
     (``NAME``, ``NAME.wav`` or ``NAME.json``) through the paper's bank for its rate, no model."""
-    from supramodal.node.scene import load_scene, scene_from_dict
+    from supramodal.node.scene.schema import load_scene, scene_from_dict
     from supramodal.replay.session import load_session, session_paths
 
     p = Path(path)
@@ -173,7 +173,7 @@ class ViewReplay:
 
     def load(self) -> None:
         """Run the recording through the node at once and keep what it sends."""
-        from supramodal.node.build import build_node
+        from supramodal.node.scene.build import build_node
 
         keep = _Keep()
         graph = build_node(replace(self.scene, sinks=[]), speed="max", sinks_override=[keep], progress=self.progress)

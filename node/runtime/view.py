@@ -13,7 +13,7 @@ and the replay's pause and speed, are plain POSTs that need the run's token).
 
 Threading rules
 ---------------
-The view is a sink like every other: behind a :class:`~supramodal.node.sinks.QueuedSink`, so
+The view is a sink like every other: behind a :class:`~supramodal.node.runtime.sinks.QueuedSink`, so
 ``emit`` and ``event`` run on that queue's thread, never on the processing thread. Each
 message is serialised once and put in every open page's own bounded queue (:class:`Hub`);
 a page that does not read (a paused tab, a killed client) loses its oldest messages, counted
@@ -48,9 +48,9 @@ from supramodal.checks import Key, flag, integer, is_name, text
 from supramodal.drivers.base import DriverEvent
 from supramodal.drivers.spec import OptionError
 from supramodal.errors import InputError
-from supramodal.node.events import WindowEvent
-from supramodal.node.registry import SinkContext, SinkSpec, sink_keys
-from supramodal.node.sinks import QueuedSink, Sink
+from supramodal.node.runtime.events import WindowEvent
+from supramodal.node.runtime.sinks import QueuedSink, Sink
+from supramodal.node.scene.registry import SinkContext, SinkSpec, sink_keys
 
 __all__ = ["SPEC", "Hub", "ViewError", "ViewSink", "attach", "graph_health", "add_view", "view_sinks",
            "window_message", "with_view"]
@@ -390,7 +390,7 @@ class _Handler(BaseHTTPRequestHandler):
 
 
 def _static(name: str) -> bytes:
-    return (resources.files("supramodal.node") / "view_static" / name).read_bytes()
+    return (resources.files("supramodal.node.runtime") / "view_static" / name).read_bytes()
 
 
 # -- the sink ------------------------------------------------------------------------------------------

@@ -50,9 +50,9 @@ from supramodal.decisions import DEFAULT_DECISION, METHODS, SCOPES
 from supramodal.drivers.spec import OptionError
 from supramodal.errors import InputError
 from supramodal.features import DEFAULT_WINDOW, FEATURE_TABLE, FEATURES
-from supramodal.node.events import FUSED_STREAM, MAIN_STREAM
-from supramodal.node.fusion import DEFAULT_MAX_WAIT, DEFAULT_WEIGHT
-from supramodal.node.registry import driver_spec, driver_types, sink_keys, sink_spec, source_keys
+from supramodal.node.runtime.events import FUSED_STREAM, MAIN_STREAM
+from supramodal.node.runtime.fusion import DEFAULT_MAX_WAIT, DEFAULT_WEIGHT
+from supramodal.node.scene.registry import driver_spec, driver_types, sink_keys, sink_spec, source_keys
 from supramodal.peaks import DEFAULT_PEAK_MODE, PEAK_MODES
 
 

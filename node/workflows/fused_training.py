@@ -35,10 +35,10 @@ from supramodal.fused_model import (
 )
 from supramodal.mlp import DEFAULT_EPOCHS
 from supramodal.model import ModelError
-from supramodal.node.build import build_node
-from supramodal.node.events import FUSED_STREAM, log_posteriors_of
-from supramodal.node.scene import Scene, SceneError, load_scene, scene_from_dict, scene_to_toml
-from supramodal.node.sinks import ListSink
+from supramodal.node.runtime.events import FUSED_STREAM, log_posteriors_of
+from supramodal.node.runtime.sinks import ListSink
+from supramodal.node.scene.build import build_node
+from supramodal.node.scene.schema import Scene, SceneError, load_scene, scene_from_dict, scene_to_toml
 
 #: How a fusion is learned from sessions.
 FUSION_METHODS = ("early", "late")
@@ -133,7 +133,7 @@ def train_fused(paths, method: str = "early", epochs: int = DEFAULT_EPOCHS, seed
         ``log_loss`` (late and streams: also ``brier``, ``ece``, ``sure_count``, ``sure_wrong``);
         ``posteriors``: ``{"source": "unseen" | "out-of-fold", "why": text}``, which of the two above.
     """
-    from supramodal.node.training import scene_stream, session_fingerprint
+    from supramodal.node.workflows.training import scene_stream, session_fingerprint
 
     if method not in FUSION_METHODS:
         raise InputError(f"the fusion method is one of {FUSION_METHODS}, got {method!r}")
@@ -397,7 +397,7 @@ def format_fused_evaluation(result: dict) -> str:
     """The table ``evaluate --scene`` prints: per stream its windows and contacts right and its
     calibration, then what was scored (the fusion's method, weight, sharpness and files; each
     sense's model) and what a contact is."""
-    from supramodal.node.reports import contact_text, scored_text
+    from supramodal.node.workflows.reports import contact_text, scored_text
 
     lines = [f"{'stream':<12} {'windows right':>14} {'of':>6}  {'contacts right':>15} {'of':>5}  {'log loss':>8} "
              f"{'ECE':>6} {'>= 0.99 wrong':>14}"]

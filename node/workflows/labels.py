@@ -38,7 +38,7 @@ import numpy as np
 
 from supramodal.checks import NAME_HELP, is_name
 from supramodal.errors import InputError
-from supramodal.node.clock import ClockModel
+from supramodal.node.runtime.clock import ClockModel
 from supramodal.replay.session import load_session, session_paths, sidecar_text, validate_sidecar
 
 __all__ = ["SPAN_COLUMNS", "LabelError", "Span", "check_label_name", "frames_at", "label_recording", "read_spans",
@@ -218,7 +218,7 @@ def spans_to_stream(spans: Iterable[Span], arrivals, marks, frames: int, rate: f
 
 def _sessions(scene_path) -> list[tuple[str, Path]]:
     """``(source name, session path)`` of every source of a recorded graph's replay scene."""
-    from supramodal.node.scene import load_scene
+    from supramodal.node.scene.schema import load_scene
 
     scene = load_scene(scene_path)
     sessions = []

@@ -3,7 +3,7 @@
 Both generate their whole signal with the model's texture synthesis (:mod:`supramodal.textures`,
 :mod:`supramodal.twosense`) and play it through the replay driver, so their specs live in the
 node (a driver module knows no DSP). Each is a :class:`~supramodal.drivers.spec.DriverSpec`
-registered in :mod:`supramodal.node.registry`.
+registered in :mod:`supramodal.node.scene.registry`.
 """
 
 from __future__ import annotations

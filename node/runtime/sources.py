@@ -18,7 +18,7 @@ from the graph's start. Where it comes from depends on the source (``timebase``)
 * ``"stream"`` (files: replay, synth, twosense): a file's time is its own sample count,
   ``index / rate`` (plus the source's ``time_offset``, seconds). A replay at ``max`` speed keeps
   its true timing.
-* ``"host"`` (live drivers: serial, microphone): a :class:`~supramodal.node.clock.ClockModel`
+* ``"host"`` (live drivers: serial, microphone): a :class:`~supramodal.node.runtime.clock.ClockModel`
   fitted to the blocks' arrival stamps maps the sample index to the host's monotonic clock, so
   two sources on their own crystals line up; minus the graph's start.
 * ``"recorded"`` (sessions recorded by a node of several sources, replayed with their recorded
@@ -44,8 +44,8 @@ import numpy as np
 
 from supramodal.drivers.base import Block, Driver, DriverClosed, DriverEvent, missing_members
 from supramodal.errors import InputError
-from supramodal.node.clock import ClockModel
-from supramodal.node.ringbuffer import Reader, RingBuffer
+from supramodal.node.runtime.clock import ClockModel
+from supramodal.node.runtime.ringbuffer import Reader, RingBuffer
 
 #: What a source puts on the graph's event queue: (source name, driver events, dropped counts by kind).
 EventItem = tuple[str, list[DriverEvent], dict[str, int]]
@@ -130,11 +130,11 @@ class Source:
         capacity = max(int(buffer_seconds * driver.rate), 1)
         self.ring = RingBuffer(capacity, driver.channels, dtype=np.float64, overrun=overrun)
         self.feeds: list[Feed] = []
-        #: The recorder of this source (:class:`~supramodal.node.recorder.SessionRecorder`, a tap
+        #: The recorder of this source (:class:`~supramodal.node.runtime.recorder.SessionRecorder`, a tap
         #: that set itself here in its ``start``), or None: the source thread tells it each
         #: block's driver marks (``note``) and time on common time (``arrival``), which no feed carries.
         self.recorder = None
-        #: Truth labels of the source's samples (:class:`~supramodal.node.streams.Labels`), set by
+        #: Truth labels of the source's samples (:class:`~supramodal.node.runtime.streams.Labels`), set by
         #: the graph from the first stream that reads the source; None: none known (a relay).
         self.labels = None
         time_rate = self.rate if time_rate is None else float(time_rate)

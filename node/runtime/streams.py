@@ -1,5 +1,5 @@
 """A stream: one source's ring reader -> channel mapping -> filterbank -> peaks -> windows ->
-classifier -> decisions -> one :class:`~supramodal.node.events.WindowEvent` per window.
+classifier -> decisions -> one :class:`~supramodal.node.runtime.events.WindowEvent` per window.
 
 Threading rules
 ---------------
@@ -21,9 +21,9 @@ from supramodal.decisions import DEFAULT_DECISION, ContactDetector, Decider
 from supramodal.drivers.base import Driver
 from supramodal.errors import InputError
 from supramodal.model import TextureModel
-from supramodal.node.events import WindowEvent
-from supramodal.node.latency import LatencyHistogram
-from supramodal.node.ringbuffer import RingClosed
+from supramodal.node.runtime.events import WindowEvent
+from supramodal.node.runtime.latency import LatencyHistogram
+from supramodal.node.runtime.ringbuffer import RingClosed
 from supramodal.pipeline import FeaturePipeline
 
 

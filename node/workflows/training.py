@@ -18,9 +18,9 @@ from supramodal.errors import InputError, SupramodalError
 from supramodal.evaluation import POOLED_WINDOWS, anytime_sweep, permutation_importance, pooled_accuracy
 from supramodal.mlp import DEFAULT_EPOCHS
 from supramodal.model import TextureModel
-from supramodal.node.band import warn_if_beyond_band
-from supramodal.node.manifest import ManifestError, Recording, read_manifest
-from supramodal.node.streams import channel_mapper
+from supramodal.node.runtime.streams import channel_mapper
+from supramodal.node.scene.band import warn_if_beyond_band
+from supramodal.node.workflows.manifest import ManifestError, Recording, read_manifest
 from supramodal.pipeline import FeaturePipeline
 from supramodal.replay.driver import ReplayDriver
 from supramodal.replay.session import session_paths
@@ -136,7 +136,7 @@ def scene_stream(path, stream: str):
         Naming the scene: no stream of that name (its streams listed), or a source that is not a
         recorded session.
     """
-    from supramodal.node.scene import load_scene
+    from supramodal.node.scene.schema import load_scene
 
     scene = load_scene(path)
     spec = next((s for s in scene.streams if s.name == stream), None)
@@ -171,7 +171,7 @@ def train_from_scenes(paths, stream: str, epochs: int = DEFAULT_EPOCHS, seed: in
         labels, a span holding no window, fewer than two labels.
     """
     from supramodal.fused_model import Sense
-    from supramodal.node.build import bank_for, pipeline_for
+    from supramodal.node.scene.build import bank_for, pipeline_for
     from supramodal.replay.session import load_session
 
     recs, windows, groups, seen, make, sense = [], [], [], [], None, None

@@ -1,26 +1,26 @@
 """The running node: sources -> streams -> (fusion) -> sinks, on their own threads.
 
-A graph is built from a scene (node/build.py): each ``[[source]]`` a driver with its ring and
-thread (:mod:`supramodal.node.sources`), each ``[[stream]]`` one source's samples through a bank,
-features and model to window events (:mod:`supramodal.node.streams`), an optional ``[fusion]``
-block pairing two streams' windows on common time (:mod:`supramodal.node.fusion`), and sinks,
+A graph is built from a scene (node/scene/build.py): each ``[[source]]`` a driver with its ring and
+thread (:mod:`supramodal.node.runtime.sources`), each ``[[stream]]`` one source's samples through a bank,
+features and model to window events (:mod:`supramodal.node.runtime.streams`), an optional ``[fusion]``
+block pairing two streams' windows on common time (:mod:`supramodal.node.runtime.fusion`), and sinks,
 each listening to the streams it names. A one-driver scene is the one-source case
 (:class:`Node`).
 
 Threads and real-time rules
 ---------------------------
 * Each *source thread* only moves blocks from its driver to its ring, and never waits on
-  processing (see :mod:`supramodal.node.sources`).
+  processing (see :mod:`supramodal.node.runtime.sources`).
 * Each *processing thread* runs one stream's model blocks over its ring reader and hands each
-  window's :class:`~supramodal.node.events.WindowEvent` to the router, which never blocks: a
-  scene's sinks run behind their own bounded queues (:class:`~supramodal.node.sinks.QueuedSink`),
+  window's :class:`~supramodal.node.runtime.events.WindowEvent` to the router, which never blocks: a
+  scene's sinks run behind their own bounded queues (:class:`~supramodal.node.runtime.sinks.QueuedSink`),
   the fusion block behind its queue.
 * The *event thread* hands the sources' driver events to the sinks, at most one per kind per
   second per source (:class:`node.events.EventLimiter`: repeats are folded into the next one's
   ``count``), so neither a source nor a stream ever waits on a sink for an event.
 * The *fusion thread*, with a ``[fusion]`` block, pairs the streams' windows and emits the fused
   decisions (stream ``"fused"``).
-* Each *tap thread* (:class:`~supramodal.node.taps.Tap`: the recorder, the LSL signal outlet)
+* Each *tap thread* (:class:`~supramodal.node.runtime.taps.Tap`: the recorder, the LSL signal outlet)
   reads one source's raw frames from its own ring reader.
 * Every frame of every source has one fate in the summary's ``frames``: delivered, filled or
   dropped (see :meth:`Source.frame_fates`).
@@ -28,8 +28,8 @@ Threads and real-time rules
   (Ctrl-C, SIGTERM, :meth:`Graph.stop`): the drivers stop, what is already buffered is
   processed, the summary is written, nothing is left running.
 
-The graph calls sinks and taps only through their bases' methods (:class:`~supramodal.node.sinks.Sink`,
-:class:`~supramodal.node.taps.Tap`), every one of which a subclass may leave as it is; it never
+The graph calls sinks and taps only through their bases' methods (:class:`~supramodal.node.runtime.sinks.Sink`,
+:class:`~supramodal.node.runtime.taps.Tap`), every one of which a subclass may leave as it is; it never
 probes them for a method.
 """
 
@@ -45,12 +45,12 @@ from dataclasses import replace
 
 from supramodal.errors import InputError, SupramodalError
 from supramodal.model import TextureModel
-from supramodal.node.events import FUSED_STREAM, MAIN_STREAM, EventLimiter
-from supramodal.node.recorder import SessionRecorder
-from supramodal.node.sinks import Sink
-from supramodal.node.sources import Feed, Source
-from supramodal.node.streams import Labels, Stream, channel_mapper
-from supramodal.node.taps import Tap
+from supramodal.node.runtime.events import FUSED_STREAM, MAIN_STREAM, EventLimiter
+from supramodal.node.runtime.recorder import SessionRecorder
+from supramodal.node.runtime.sinks import Sink
+from supramodal.node.runtime.sources import Feed, Source
+from supramodal.node.runtime.streams import Labels, Stream, channel_mapper
+from supramodal.node.runtime.taps import Tap
 from supramodal.pipeline import FeaturePipeline
 
 __all__ = ["Graph", "Node", "NodeError", "Labels", "channel_mapper"]
@@ -70,7 +70,7 @@ class Graph:
         Each reads one of ``sources``; names are unique.
     sinks : list of node.sinks.Sink
         Called on the graph's threads: a scene's sinks are each behind a
-        :class:`~supramodal.node.sinks.QueuedSink`, so that processing never waits on them.
+        :class:`~supramodal.node.runtime.sinks.QueuedSink`, so that processing never waits on them.
     routes : list of (set of str or None), optional
         Per sink, the stream names it listens to (``"fused"`` for the fusion block's
         decisions); None (the default for every sink) listens to all. Driver events and the
@@ -83,7 +83,7 @@ class Graph:
         summary's ``recorded``, not under ``taps``.
     taps : list of (str, node.taps.Tap), optional
         Readers of a source's raw frames, each on a thread of its own, by source name (e.g.
-        :class:`node.lsl_signal.LSLSignalOutlet`); see :class:`~supramodal.node.taps.Tap` for
+        :class:`node.lsl_signal.LSLSignalOutlet`); see :class:`~supramodal.node.runtime.taps.Tap` for
         the calls and their threads. A source that only taps read needs no stream: a graph may
         have none (a relay).
     """
@@ -99,7 +99,7 @@ class Graph:
         self.sinks = list(sinks)
         odd = [type(s).__name__ for s in self.sinks if not isinstance(s, Sink)]
         if odd:
-            raise InputError(f"a graph's sinks derive from supramodal.node.sinks.Sink; {odd} do not")
+            raise InputError(f"a graph's sinks derive from supramodal.node.runtime.sinks.Sink; {odd} do not")
         self.routes = list(routes) if routes is not None else [None] * len(self.sinks)
         if len(self.routes) != len(self.sinks):
             raise InputError(f"{len(self.routes)} routes for {len(self.sinks)} sinks")
@@ -129,7 +129,8 @@ class Graph:
             if rec is None:
                 continue
             if not isinstance(rec, SessionRecorder):
-                raise InputError(f"a recorder is a supramodal.node.recorder.SessionRecorder, got {type(rec).__name__}")
+                raise InputError("a recorder is a supramodal.node.runtime.recorder.SessionRecorder, "
+                                 f"got {type(rec).__name__}")
             self._recorders.append((rec, source, source.add_feed("recorder", track=rec.track), "recorder"))
         self._taps: list[tuple[Tap, Source, Feed, str]] = []
         by_name = {s.name: s for s in self.sources}
@@ -137,7 +138,8 @@ class Graph:
             if name not in by_name:
                 raise InputError(f"a tap of unknown source {name!r}; the sources are {list(by_name)}")
             if not isinstance(tap, Tap):
-                raise InputError(f"a graph's taps derive from supramodal.node.taps.Tap; {type(tap).__name__} does not")
+                raise InputError("a graph's taps derive from supramodal.node.runtime.taps.Tap; "
+                                 f"{type(tap).__name__} does not")
             source = by_name[name]
             self._taps.append((tap, source, source.add_feed(f"tap {tap.name}", track=tap.track), f"tap {tap.name}"))
         # source threads -> event thread: (source name, events, dropped); None from each source at its end
@@ -367,8 +369,8 @@ class Node(Graph):
         "block" makes the driver thread wait for space: right for replay, where
         no sample need be lost; live drivers drop and count instead.
     timebase : {"stream", "host", "recorded"}
-        How window events are put on common time (see :mod:`supramodal.node.sources`), with
-        ``time_offset`` and ``time_rate`` as :class:`~supramodal.node.sources.Source` takes them.
+        How window events are put on common time (see :mod:`supramodal.node.runtime.sources`), with
+        ``time_offset`` and ``time_rate`` as :class:`~supramodal.node.runtime.sources.Source` takes them.
     taps : sequence of tap, optional
         Readers of the driver's raw frames (see :class:`Graph`).
     """

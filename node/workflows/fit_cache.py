@@ -33,9 +33,9 @@ import numpy as np
 from supramodal.banks import Bank
 from supramodal.errors import InputError
 from supramodal.features import FEATURES, check_features
-from supramodal.node.band import BandWarning
-from supramodal.node.manifest import Recording
-from supramodal.node.training import recording_windows
+from supramodal.node.scene.band import BandWarning
+from supramodal.node.workflows.manifest import Recording
+from supramodal.node.workflows.training import recording_windows
 from supramodal.pipeline import FeaturePipeline, window_length
 
 __all__ = ["DEFAULT_MEMORY_BYTES", "PART", "FeatureCache", "base_samples"]

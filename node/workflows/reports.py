@@ -228,8 +228,9 @@ def _name(path) -> str:
 
 
 def scored_text(scored: list[dict]) -> str:
-    """What a stream's score is of, in words (``scored``: :func:`~supramodal.node.fused_training.evaluate_fused`'s
-    ``scored``, one entry per scene; entries that differ are joined by ``"; "``)."""
+    """What a stream's score is of, in words (``scored``:
+    :func:`~supramodal.node.workflows.fused_training.evaluate_fused`'s ``scored``, one entry per scene;
+    entries that differ are joined by ``"; "``)."""
     said = []
     for e in scored:
         if "method" not in e:

@@ -1,6 +1,6 @@
 """Record a node's raw driver blocks as a session that the replay driver plays back exactly.
 
-The recorder is a tap (:class:`supramodal.node.taps.Tap`): another reader of a source's ring
+The recorder is a tap (:class:`supramodal.node.runtime.taps.Tap`): another reader of a source's ring
 buffer, on its own thread, run by the graph as every tap is. It sees the frames before any
 processing, with their ``filled`` marks (and, from the source thread, the board's restart and
 overrun marks and each block's time on common time: :meth:`SessionRecorder.note`,
@@ -13,7 +13,7 @@ exactly a float32 (serial and microphone drivers), float64 otherwise, so that
 replaying the session feeds the node bit-identical samples.
 
 Labels are time ranges in seconds of the device's own stream (frame / rate; see
-:mod:`supramodal.node.labels`): those the driver carries (a synthesised or replayed stream knows
+:mod:`supramodal.node.workflows.labels`): those the driver carries (a synthesised or replayed stream knows
 its truth) are kept with their times, unless ``replace``; otherwise :meth:`SessionRecorder.mark`
 starts one at the current stream position (or ends the current one), from any thread, and
 :meth:`SessionRecorder.mark_at` (a graph's recorders, one label typed for every source) at a time
@@ -39,9 +39,9 @@ from pathlib import Path
 import numpy as np
 
 from supramodal.errors import InputError
-from supramodal.node.ringbuffer import RingClosed, flag_runs
-from supramodal.node.sources import Feed
-from supramodal.node.taps import Tap
+from supramodal.node.runtime.ringbuffer import RingClosed, flag_runs
+from supramodal.node.runtime.sources import Feed
+from supramodal.node.runtime.taps import Tap
 from supramodal.replay.session import MAX_SIDECAR_BYTES, save_session, session_paths
 
 _CHUNK = 1 << 18  # frames per pass when converting the raw file
@@ -129,7 +129,7 @@ class SessionRecorder(Tap):
         self._label_period = label_period
 
     def start(self, source, epoch: float) -> None:
-        """The source this recorder records (:class:`~supramodal.node.sources.Source`), before any
+        """The source this recorder records (:class:`~supramodal.node.runtime.sources.Source`), before any
         frame: :meth:`attach` to it (its rate, channels, position, truth labels and clock rate) and
         become its ``recorder``, which the source thread tells each block's marks and time. The
         caller's thread. ``epoch`` is not needed: the source's times are on common time already."""
@@ -151,7 +151,7 @@ class SessionRecorder(Tap):
     def mark_at(self, seconds: float, label: str | None) -> None:
         """Start a label at ``seconds`` of the node's common time (``None`` ends the current one);
         mapped to this source's frames through its recorded block times when the session is
-        written (:func:`supramodal.node.labels.frames_at`). Needs ``keep_arrivals``. Thread-safe."""
+        written (:func:`supramodal.node.workflows.labels.frames_at`). Needs ``keep_arrivals``. Thread-safe."""
         if not self.keep_arrivals:
             raise InputError("a mark on common time needs the blocks' times: make the recorder with keep_arrivals")
         with self._lock:
@@ -176,7 +176,7 @@ class SessionRecorder(Tap):
             self._arrival_seconds.append(float(seconds))
 
     def run(self, feed) -> None:
-        """Drain ``feed`` (a :class:`~supramodal.node.sources.Feed`, or a ring reader itself) until
+        """Drain ``feed`` (a :class:`~supramodal.node.runtime.sources.Feed`, or a ring reader itself) until
         the ring closes; then write the session (:attr:`paths`). The recorder's thread."""
         reader = feed.reader if isinstance(feed, Feed) else feed
         try:
@@ -238,7 +238,7 @@ class SessionRecorder(Tap):
         times (all of them, before any thinning). Called with the lock held."""
         if not self._timed_marks or not len(self._arrival_frames):
             return []
-        from supramodal.node.labels import frames_at
+        from supramodal.node.workflows.labels import frames_at
 
         arrivals = (np.frombuffer(self._arrival_frames, dtype=np.int64),
                     np.frombuffer(self._arrival_seconds, dtype=np.float64), self.clock_rate)

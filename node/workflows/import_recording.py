@@ -42,7 +42,7 @@ import numpy as np
 from supramodal.bankfile import load_bank
 from supramodal.checks import NAME_HELP, is_name
 from supramodal.errors import InputError
-from supramodal.node.outputs import check_new_file
+from supramodal.node.runtime.outputs import check_new_file
 from supramodal.replay.errors import ReplayError
 from supramodal.replay.session import Session, save_session, session_paths, validate_arrivals
 from supramodal.replay.wavio import read_wav
@@ -325,7 +325,7 @@ def import_recording(folder, name: str, sources: list[SourceFiles], xdf=None, ma
         For any input that does not fit (see the module notes); nothing is then written.
     """
     from supramodal.model import ModelError, TextureModel
-    from supramodal.node.scene import scene_from_dict, scene_to_toml
+    from supramodal.node.scene.schema import scene_from_dict, scene_to_toml
 
     folder = Path(folder)
     if not is_name(name):
@@ -429,8 +429,8 @@ def import_recording(folder, name: str, sources: list[SourceFiles], xdf=None, ma
 def _check_scene(path: Path) -> None:
     """Build (not run) the written scene: a model that does not fit its stream's bank or
     features, or two streams that cannot be fused, is refused now, not at the first run."""
-    from supramodal.node.build import build_node
-    from supramodal.node.scene import load_scene
+    from supramodal.node.scene.build import build_node
+    from supramodal.node.scene.schema import load_scene
 
     try:
         build_node(load_scene(path), speed="max", sinks_override=[])

@@ -55,10 +55,10 @@ from supramodal.checks import integer, one_of, positive
 from supramodal.errors import InputError
 from supramodal.evaluation import pooled_accuracy
 from supramodal.model import TextureModel
-from supramodal.node.band import channels_beyond_band
-from supramodal.node.fit_cache import DEFAULT_MEMORY_BYTES, PART, FeatureCache
-from supramodal.node.manifest import ManifestError, read_manifest
-from supramodal.node.reports import pyplot_or_none
+from supramodal.node.scene.band import channels_beyond_band
+from supramodal.node.workflows.fit_cache import DEFAULT_MEMORY_BYTES, PART, FeatureCache
+from supramodal.node.workflows.manifest import ManifestError, read_manifest
+from supramodal.node.workflows.reports import pyplot_or_none
 from supramodal.pipeline import window_length
 from supramodal.replay.session import session_paths
 from supramodal.replay.wavio import wav_info

@@ -28,10 +28,10 @@ import numpy as np
 
 from supramodal.bankfile import bank_from_description, save_bank
 from supramodal.banks import Bank, cochlea_bank, whisker_bank
-from supramodal.node.band import BandWarning, channels_beyond_band
-from supramodal.node.manifest import read_manifest
-from supramodal.node.reports import pyplot_or_none
-from supramodal.node.training import cross_validate_manifest
+from supramodal.node.scene.band import BandWarning, channels_beyond_band
+from supramodal.node.workflows.manifest import read_manifest
+from supramodal.node.workflows.reports import pyplot_or_none
+from supramodal.node.workflows.training import cross_validate_manifest
 from supramodal.replay.session import session_paths
 from supramodal.replay.wavio import wav_info
 

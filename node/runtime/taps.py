@@ -2,8 +2,8 @@
 signal outlet).
 
 A tap sees a source's samples before any processing, with their ``filled`` marks, through a
-:class:`~supramodal.node.sources.Feed` of the source's ring. The graph
-(:class:`supramodal.node.graph.Graph`) drives every tap through the calls of :class:`Tap`, in
+:class:`~supramodal.node.runtime.sources.Feed` of the source's ring. The graph
+(:class:`supramodal.node.runtime.graph.Graph`) drives every tap through the calls of :class:`Tap`, in
 this order: :meth:`~Tap.prepare`, :meth:`~Tap.start`, :meth:`~Tap.run` on the tap's thread,
 :meth:`~Tap.close` (at least once: again when the run ends, whatever happened), then
 :meth:`~Tap.summary`.
@@ -15,7 +15,7 @@ that runs the graph); ``run`` from the tap's own thread, between ``start`` and t
 after it. A tap never makes a source or a stream wait, except as its ring's policy says: a file
 source's ring (policy "block") waits for every reader, a tap included; a live source's ring
 drops the frames a tap falls behind on, and counts them in the tap's ``frames`` (see
-:meth:`~supramodal.node.sources.Source.frame_fates`).
+:meth:`~supramodal.node.runtime.sources.Source.frame_fates`).
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ import abc
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:   # the sources import the taps: names for the annotations only
-    from supramodal.node.sources import Feed, Source
+    from supramodal.node.runtime.sources import Feed, Source
 
 __all__ = ["Tap"]
 
@@ -51,14 +51,14 @@ class Tap(abc.ABC):
         Default: nothing."""
 
     def start(self, source: Source, epoch: float) -> None:
-        """The source this tap reads (:class:`~supramodal.node.sources.Source`) and the graph's
+        """The source this tap reads (:class:`~supramodal.node.runtime.sources.Source`) and the graph's
         start on ``time.monotonic()`` (common time 0). The caller's thread, before any frame and
         before the tap's thread starts. Default: nothing."""
 
     @abc.abstractmethod
     def run(self, feed: Feed) -> None:
-        """Read ``feed`` (a :class:`~supramodal.node.sources.Feed`: ``feed.reader.read`` until it
-        raises :class:`~supramodal.node.ringbuffer.RingClosed`). The tap's thread; an exception
+        """Read ``feed`` (a :class:`~supramodal.node.runtime.sources.Feed`: ``feed.reader.read`` until it
+        raises :class:`~supramodal.node.runtime.ringbuffer.RingClosed`). The tap's thread; an exception
         stops the graph, which raises it from :meth:`Graph.run`."""
 
     def summary(self) -> dict[str, Any]:

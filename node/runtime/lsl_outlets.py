@@ -36,7 +36,7 @@ window event's ``end`` counts seconds from the graph's start (:meth:`start` give
 so for a live source it is the host time its last sample was taken, for a file it is the file's
 own time from the start of the run.
 
-Threading: the node runs this sink behind its own queue (:class:`~supramodal.node.sinks.QueuedSink`);
+Threading: the node runs this sink behind its own queue (:class:`~supramodal.node.runtime.sinks.QueuedSink`);
 ``emit`` pushes on that thread and never waits for consumers (liblsl buffers and drops for a slow
 one, its outlets' ``max_buffered``).
 """
@@ -56,9 +56,9 @@ from supramodal.drivers.lsl import import_pylsl, lsl_clock_offset
 from supramodal.drivers.spec import OptionError
 from supramodal.errors import InputError
 from supramodal.features import FEATURE_TABLE
-from supramodal.node.events import FUSED_STREAM, WindowEvent
-from supramodal.node.registry import SinkSpec
-from supramodal.node.sinks import QueuedSink, Sink
+from supramodal.node.runtime.events import FUSED_STREAM, WindowEvent
+from supramodal.node.runtime.sinks import QueuedSink, Sink
+from supramodal.node.scene.registry import SinkSpec
 
 #: What an LSL sink can send, in order.
 OUTPUTS = ("features", "decisions", "posteriors")
@@ -167,7 +167,7 @@ def outlet_source_id(prefix: str, stream: str, output: str, host: str | None = N
 
 
 class LSLOutletSink(Sink):
-    """The node's window events as LSL outlets (see the module notes): a :class:`~supramodal.node.sinks.Sink`.
+    """The node's window events as LSL outlets (see the module notes): a :class:`~supramodal.node.runtime.sinks.Sink`.
 
     Parameters
     ----------

@@ -1,6 +1,6 @@
 """The docs' tables of scene keys, made from the schema itself, so that they cannot drift.
 
-``python -m supramodal.node.scene_docs`` rewrites the generated blocks of README.md and
+``python -m supramodal.node.scene.docs`` rewrites the generated blocks of README.md and
 docs/node.md (between ``<!-- BEGIN generated: NAME -->`` and ``<!-- END generated: NAME -->``);
 ``--check`` exits 1 when the committed files differ from the schema (a test runs it too).
 """
@@ -13,8 +13,8 @@ import re
 import sys
 from pathlib import Path
 
-from supramodal.node.registry import driver_spec, driver_types, sink_keys, sink_spec, sink_types, source_keys
-from supramodal.node.scene import FUSION_KEYS, SECTIONS, SOURCE_KEYS, STREAM_KEYS
+from supramodal.node.scene.registry import driver_spec, driver_types, sink_keys, sink_spec, sink_types, source_keys
+from supramodal.node.scene.schema import FUSION_KEYS, SECTIONS, SOURCE_KEYS, STREAM_KEYS
 
 __all__ = ["BLOCKS", "blocks", "check", "main", "rewrite"]
 
@@ -89,14 +89,14 @@ def check(root: Path) -> list[str]:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m supramodal.node.scene_docs", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m supramodal.node.scene.docs", description=__doc__.splitlines()[0])
     parser.add_argument("--root", type=Path, default=Path.cwd(), help="the repository's root (default: here)")
     parser.add_argument("--check", action="store_true", help="only say whether the files are up to date")
     args = parser.parse_args(argv)
     if args.check:
         stale = check(args.root)
         for f in stale:
-            print(f"{f}: its scene key tables differ from the schema; run python -m supramodal.node.scene_docs",
+            print(f"{f}: its scene key tables differ from the schema; run python -m supramodal.node.scene.docs",
                   file=sys.stderr)
         return 1 if stale else 0
     made = blocks()

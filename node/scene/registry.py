@@ -28,8 +28,8 @@ __all__ = ["DRIVER_MODULES", "MAPPING", "SINK_MODULES", "Registry", "SinkContext
 #: Type -> ``"module"`` or ``"module:attribute"`` holding the driver's spec.
 DRIVER_MODULES = {
     "replay": "supramodal.replay.driver",
-    "synth": "supramodal.node.synth_sources:SYNTH",
-    "twosense": "supramodal.node.synth_sources:TWOSENSE",
+    "synth": "supramodal.node.scene.synth_sources:SYNTH",
+    "twosense": "supramodal.node.scene.synth_sources:TWOSENSE",
     "serial": "supramodal.drivers.serial_whisker",
     "microphone": "supramodal.drivers.microphone",
     "xdf": "supramodal.replay.xdf",
@@ -105,7 +105,7 @@ def _mapping(v: object) -> bool:
                                                              and 0 <= v <= MAX_CHANNEL_INDEX)
 
 
-#: How the streams read a source's channels into their bank's (``supramodal.node.streams.channel_mapper``):
+#: How the streams read a source's channels into their bank's (``supramodal.node.runtime.streams.channel_mapper``):
 #: a key of every source, whatever its driver.
 MAPPING = Key(_mapping, f'"auto", "mono", "per-channel", "mean" or a channel index 0..{MAX_CHANNEL_INDEX}', "auto")
 
@@ -141,11 +141,11 @@ def source_keys(spec: DriverSpec) -> dict[str, Key]:
 
 #: Type -> the module holding the sink's spec (``SPEC``, or the attribute after a colon).
 SINK_MODULES = {
-    "text": "supramodal.node.sinks:TEXT",
-    "jsonl": "supramodal.node.sinks:JSONL",
-    "lsl": "supramodal.node.lsl_outlets",
-    "lsl-signal": "supramodal.node.lsl_signal",
-    "view": "supramodal.node.view",
+    "text": "supramodal.node.runtime.sinks:TEXT",
+    "jsonl": "supramodal.node.runtime.sinks:JSONL",
+    "lsl": "supramodal.node.runtime.lsl_outlets",
+    "lsl-signal": "supramodal.node.runtime.lsl_signal",
+    "view": "supramodal.node.runtime.view",
 }
 #: What a sink may need built before it is made: nothing (it is made first, so that a file is
 #: checked before any training), the streams' plans (their pipelines and classes, known before any
