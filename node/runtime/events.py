@@ -222,3 +222,27 @@ def log_posteriors_of(event: Any) -> np.ndarray:
         raise InputError(f"a window of {event.stream!r} carries posteriors of exactly 0 and no log-posteriors: "
                          "its log-posteriors are needed (a stream's events carry them)")
     return lp
+
+
+class TruthTally:
+    """Decisions against the truth, where a driver knows it: per window, and of the pooled
+    decision (a stream's or a fusion's; one processing thread writes, the summary reads it after)."""
+
+    def __init__(self) -> None:
+        self.correct = self.labelled = self.pooled_correct = self.pooled_labelled = 0
+
+    def add(self, decision: str | None, pooled_label: str | None, truth: str | None) -> None:
+        """One window's decision and its pooled decision's label (None: no pooled decision)."""
+        if truth is None:
+            return
+        self.labelled += 1
+        self.correct += decision == truth
+        if pooled_label is not None:
+            self.pooled_labelled += 1
+            self.pooled_correct += pooled_label == truth
+
+    def summary(self) -> dict[str, Any]:
+        """``window_accuracy``, ``labelled_windows`` and ``accumulated_accuracy`` (None: no truth)."""
+        return {"window_accuracy": self.correct / self.labelled if self.labelled else None,
+                "labelled_windows": self.labelled,
+                "accumulated_accuracy": self.pooled_correct / self.pooled_labelled if self.pooled_labelled else None}

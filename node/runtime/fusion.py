@@ -40,7 +40,7 @@ from supramodal.decisions import DEFAULT_DECISION, Decider
 from supramodal.drivers.base import DriverEvent
 from supramodal.errors import InputError
 from supramodal.fusion import fuse_late
-from supramodal.node.runtime.events import FUSED_STREAM, WindowEvent, log_posteriors_of
+from supramodal.node.runtime.events import FUSED_STREAM, TruthTally, WindowEvent, log_posteriors_of
 from supramodal.node.runtime.latency import LatencyHistogram
 
 #: Host seconds a window waits for its partner from the other stream before it is decided alone.
@@ -132,7 +132,7 @@ class LateFusion:
         self._said_ended: set[str] = set()
         self._after_end = {a: 0, b: 0}          # windows of a stream decided alone after the other's end
         self.dropouts = {a: 0, b: 0}
-        self._correct = self._labelled = self._acc_correct = self._acc_labelled = 0
+        self.tally = TruthTally()
         self.latencies = LatencyHistogram()
 
     # -- processing threads -----------------------------------------------------------------
@@ -242,14 +242,7 @@ class LateFusion:
         in_contact = any(e.in_contact for e in events)
         said = self.decider.decide(log_post, in_contact, novel=any(e.unknown == "novel" for e in events))
         decision, pooled = said["decision"], said["pooled"]
-        label = None if pooled is None else pooled["label"]
-        if pooled is not None:
-            if truth is not None and label is not None:
-                self._acc_labelled += 1
-                self._acc_correct += label == truth
-        if truth is not None:
-            self._labelled += 1
-            self._correct += decision == truth
+        self.tally.add(decision, None if pooled is None else pooled["label"], truth)
         latency = None
         if closed is not None:
             latency = (time.monotonic() - closed) * 1e3
@@ -275,10 +268,7 @@ class LateFusion:
                 "sharpness": None if self.weight is None else self.sharpness, "windows": self.windows,
                 "paired": self.paired, "alone": self.alone, "late": dict(self.late),
                 "dropouts": dict(self.dropouts),
-                "window_accuracy": self._correct / self._labelled if self._labelled else None,
-                "labelled_windows": self._labelled,
-                "accumulated_accuracy": self._acc_correct / self._acc_labelled if self._acc_labelled else None,
-                **self.decider.summary(), "latency_ms": self.latencies.summary()}
+                **self.tally.summary(), **self.decider.summary(), "latency_ms": self.latencies.summary()}
 
 
 def _centre(event: WindowEvent) -> float:

@@ -21,7 +21,7 @@ from supramodal.decisions import DEFAULT_DECISION, ContactDetector, Decider
 from supramodal.drivers.base import Driver
 from supramodal.errors import InputError
 from supramodal.model import TextureModel
-from supramodal.node.runtime.events import WindowEvent
+from supramodal.node.runtime.events import TruthTally, WindowEvent
 from supramodal.node.runtime.latency import LatencyHistogram
 from supramodal.node.runtime.ringbuffer import RingClosed
 from supramodal.pipeline import FeaturePipeline
@@ -163,7 +163,7 @@ class Stream:
         self.latencies = LatencyHistogram()
         self.cpu = 0.0
         self.windows = 0
-        self._correct = self._labelled = self._acc_correct = self._acc_labelled = 0
+        self.tally = TruthTally()
 
     # -- processing thread --------------------------------------------------------------------
 
@@ -233,13 +233,7 @@ class Stream:
                 said = self.decider.decide(log_post[i], in_contact, novel)
                 decision, confidence, guess, reason, pooled = (said[k] for k in ("decision", "confidence", "guess",
                                                                                  "reason", "pooled"))
-                label = None if pooled is None else pooled["label"]
-                if truth is not None and label is not None:
-                    self._acc_labelled += 1
-                    self._acc_correct += label == truth
-                if truth is not None:
-                    self._labelled += 1
-                    self._correct += decision == truth
+                self.tally.add(decision, None if pooled is None else pooled["label"], truth)
             flags = set(self._marks_of(w, W))
             if w in self._gap_windows:
                 flags.add("gap")
@@ -285,9 +279,7 @@ class Stream:
         return {
             "windows": self.windows,
             "stream_seconds": stream,
-            "window_accuracy": self._correct / self._labelled if self._labelled else None,
-            "labelled_windows": self._labelled,
-            "accumulated_accuracy": self._acc_correct / self._acc_labelled if self._acc_labelled else None,
+            **self.tally.summary(),
             **(self.decider.summary() if self.decider is not None else {}),
             "frames": source.frame_fates(self.feed),
             "nonfinite_replaced": self.pipeline.filterbank.nonfinite_count,
