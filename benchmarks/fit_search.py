@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from supramodal.benchmarks.fit_sensors import SHARED, SYNTHETIC, WIDTH, lmt_manifest, synthetic_manifest
+from supramodal.benchmarks.fit_sensors import WIDTH, sensor_manifests
 from supramodal.node.workflows.fit_search import fit_search, format_search, write_search
 from supramodal.replay.wavio import write_wav
 from supramodal.textures import synthesize
@@ -99,15 +99,7 @@ def _budget(args) -> int:
     out = Path(args.out)
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
-        sensors = {}
-        if SHARED.is_dir():
-            (Path(tmp) / "lmt").mkdir()
-            sensors["LMT surfaces 44.1 kHz"] = lmt_manifest(Path(tmp) / "lmt")
-        else:
-            _say(f"the LMT recordings are not at {SHARED}: their row is left out")
-        for name, (rate, textures) in SYNTHETIC.items():
-            (Path(tmp) / name).mkdir()
-            sensors[name] = synthetic_manifest(Path(tmp) / name, rate, textures)
+        sensors = sensor_manifests(Path(tmp), _say)
         print(f"before: {_load()}", flush=True)
         for name, manifest in sensors.items():
             result = fit_search(manifest, k=4, quick=args.quick, trials=args.trials, max_window=args.max_window,

@@ -60,6 +60,21 @@ def lmt_manifest(folder: Path, lines: int = 4, seconds: float = 211611 / 44100) 
     return folder / "manifest.csv"
 
 
+def sensor_manifests(folder: Path, say) -> dict[str, Path]:
+    """Each sensor's manifest written under ``folder``: the LMT recordings where they are (``say``
+    says their row is left out where not), and every :data:`SYNTHETIC` sensor."""
+    sensors = {}
+    if SHARED.is_dir():
+        (folder / "lmt").mkdir()
+        sensors["LMT surfaces 44.1 kHz"] = lmt_manifest(folder / "lmt")
+    else:
+        say(f"the LMT recordings are not at {SHARED}: their row is left out")
+    for name, (rate, textures) in SYNTHETIC.items():
+        (folder / name).mkdir()
+        sensors[name] = synthetic_manifest(folder / name, rate, textures)
+    return sensors
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python3 -m supramodal.benchmarks.fit_sensors",
                                 description=__doc__.splitlines()[0])
@@ -70,15 +85,7 @@ def main(argv=None) -> int:
     progress = lambda m: print(m, file=sys.stderr, flush=True)   # noqa: E731
     out = Path(args.out)
     with tempfile.TemporaryDirectory() as tmp:
-        sensors = {}
-        if SHARED.is_dir():
-            (Path(tmp) / "lmt").mkdir()
-            sensors["LMT surfaces 44.1 kHz"] = lmt_manifest(Path(tmp) / "lmt")
-        else:
-            progress(f"the LMT recordings are not at {SHARED}: their row is left out")
-        for name, (rate, textures) in SYNTHETIC.items():
-            (Path(tmp) / name).mkdir()
-            sensors[name] = synthetic_manifest(Path(tmp) / name, rate, textures)
+        sensors = sensor_manifests(Path(tmp), progress)
         summary = []
         for name, manifest in sensors.items():
             t0 = time.perf_counter()
