@@ -150,26 +150,33 @@ def _routes(options: dict) -> set | None:
     return None if listens is None else {listens} if isinstance(listens, str) else set(listens)
 
 
-def _planned_classes(scene: Scene, bank: Bank, ts) -> tuple[str, ...]:
+def _planned_classes(scene: Scene, bank: Bank, ts, loaded: TextureModel | None) -> tuple[str, ...]:
     """The classes the scene's model will decide among, before it is trained (the texture set
-    :func:`_model_for` trains on) or loaded (its file, read here too); empty without a model."""
-    m = scene.model
-    if m["train_on_start"]:
+    :func:`_model_for` trains on) or as ``loaded`` (:func:`_model_file`); empty without a model."""
+    if scene.model["train_on_start"]:
         if ts is None:
             from supramodal.textures import reference_texture_set
 
             ts = reference_texture_set(bank.kind)
         return tuple(ts.names)
-    if m["path"] is not None:
-        return tuple(TextureModel.load(scene.resolve(m["path"])).classes)
-    return ()
+    return () if loaded is None else tuple(loaded.classes)
+
+
+def _model_file(scene: Scene) -> TextureModel | None:
+    """The scene's model read from its file (once: the plans and the stream both take it), or None
+    where the model is trained on the spot or there is none."""
+    m = scene.model
+    if m["train_on_start"] or m["path"] is None:
+        return None
+    return TextureModel.load(scene.resolve(m["path"]))
 
 
 def _model_for(scene: Scene, bank: Bank, pipeline: FeaturePipeline, ts, progress,
-               held_out: list | None = None, trained: list | None = None) -> TextureModel | None:
+               held_out: list | None = None, trained: list | None = None,
+               loaded: TextureModel | None = None) -> TextureModel | None:
     """The scene's model: trained on the spot (its held-out and training windows appended to
-    ``held_out`` and ``trained``), or loaded; checked against the pipeline."""
-    model = None
+    ``held_out`` and ``trained``), or ``loaded`` (:func:`_model_file`); checked against the pipeline."""
+    model = loaded
     m = scene.model
     if m["train_on_start"]:
         # Synthesised textures: the model is made on the spot (the default scene does this); a
@@ -184,8 +191,6 @@ def _model_for(scene: Scene, bank: Bank, pipeline: FeaturePipeline, ts, progress
         model = train_on_texture_set(ts, pipeline, progress, held_out, trained)
         if m["path"] is not None:
             model.save(scene.resolve(m["path"]))
-    elif m["path"] is not None:
-        model = TextureModel.load(scene.resolve(m["path"]))
     if model is not None:
         try:
             model.check_pipeline(pipeline)
@@ -347,6 +352,7 @@ def build_node(scene: Scene, speed=None, sinks_override=None, progress=None, rec
         shared: dict = {}                       # what the sources share, made once (node.registry)
         plans: dict[str, StreamPlan] = {}
         banks: dict[str, Bank] = {}
+        loaded: dict[str, TextureModel | None] = {}     # stream -> its model file, read once
         for spec in scene.streams:              # every driver and pipeline first, no model yet
             sub = spec.scene
             bank = bank_for(sub)
@@ -355,7 +361,9 @@ def build_node(scene: Scene, speed=None, sinks_override=None, progress=None, rec
                 driver, labels, ts = driver_for(sub, bank, speed, shared, scene.source_table(spec.source))
                 source = _source(spec.source, sub, driver, scene.buffer_table(spec.source))
                 sources[spec.source] = (source, labels, ts)
-            plans[spec.name] = StreamPlan(pipeline, _planned_classes(sub, bank, sources[spec.source][2]))
+            loaded[spec.name] = _model_file(sub)
+            plans[spec.name] = StreamPlan(pipeline, _planned_classes(sub, bank, sources[spec.source][2],
+                                                                     loaded[spec.name]))
             banks[spec.name] = bank
         if sinks_override is None:              # outlets up before any training: consumers resolve them meanwhile
             f = scene.fusion
@@ -366,7 +374,8 @@ def build_node(scene: Scene, speed=None, sinks_override=None, progress=None, rec
             pipeline, bank = plans[spec.name].pipeline, banks[spec.name]
             source, labels, ts = sources[spec.source]
             held_out[spec.name], trained[spec.name] = [], []
-            model = _model_for(sub, bank, pipeline, ts, progress, held_out[spec.name], trained[spec.name])
+            model = _model_for(sub, bank, pipeline, ts, progress, held_out[spec.name], trained[spec.name],
+                               loaded[spec.name])
             if (() if model is None else tuple(model.classes)) != plans[spec.name].classes:
                 raise AssertionError(f"stream {spec.name}: the model's classes are not the planned "
                                      f"{plans[spec.name].classes}")
