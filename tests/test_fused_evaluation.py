@@ -16,24 +16,14 @@ from supramodal.node.cli import main
 from supramodal.node.workflows.reports import FUSION_COLUMNS
 from supramodal.node.scene.schema import load_scene
 from supramodal.node.runtime.sinks import ListSink
-
-
-def _world_toml(take: int, seconds: float) -> str:
-    src = ""
-    for name, sense, block, offset in (("whiskers", "whiskers", 37, 0.0), ("mic", "microphone", 263, 0.037)):
-        src += (f'[[source]]\nname = "{name}"\ntype = "twosense"\nsense = "{sense}"\ntake = {take}\n'
-                f'seconds = {seconds}\nblock = {block}\noffset = {offset}\nspeed = "max"\n\n')
-    for name, kind in (("whiskers", "whisker"), ("mic", "cochlea")):
-        src += (f'[[stream]]\nname = "{name}"\nsource = "{name}"\n[stream.bank]\nkind = "{kind}"\n'
-                '[stream.model]\ntrain_on_start = true\n\n')
-    return src + '[fusion]\nstreams = ["whiskers", "mic"]\nweight = "learn"\n'
+from two_sense_scenes import two_sense_world_toml
 
 
 @pytest.fixture(scope="module")
 def recording(tmp_path_factory):
     """One recording of the two-sense world, 0.8 s per texture (8 windows a run), and its replay scene."""
     folder = tmp_path_factory.mktemp("fused_eval")
-    (folder / "w.toml").write_text(_world_toml(take=1, seconds=0.8))
+    (folder / "w.toml").write_text(two_sense_world_toml(0.8, take=1, blocks=(37, 263)))
     assert main(["record", str(folder / "w.toml"), "--out", str(folder / "rec"), "--name", "t", "--quiet"]) == 0
     return folder / "rec" / "t.toml"
 

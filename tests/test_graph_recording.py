@@ -18,6 +18,7 @@ from supramodal.node.runtime.sinks import ListSink
 from supramodal.replay import ReplayDriver, ReplayError, Session, SessionError, load_session, save_session
 
 from test_graph import _two_sense_scene
+from two_sense_scenes import two_sense_world_toml
 
 
 # -- sessions keep their blocks' times --------------------------------------------------------------
@@ -196,17 +197,6 @@ def test_a_replay_source_with_recorded_timing_needs_a_recorded_session(tmp_path)
 
 # -- a fusion learned and scored on recorded two-sense sessions ---------------------------------------
 
-def _world_toml(take: int, seconds: float = 1.0) -> str:
-    src = ""
-    for name, sense, block, offset in (("whiskers", "whiskers", 50, 0.0), ("mic", "microphone", 441, 0.037)):
-        src += (f'[[source]]\nname = "{name}"\ntype = "twosense"\nsense = "{sense}"\ntake = {take}\n'
-                f'seconds = {seconds}\nblock = {block}\noffset = {offset}\nspeed = "max"\n\n')
-    for name, kind in (("whiskers", "whisker"), ("mic", "cochlea")):
-        src += (f'[[stream]]\nname = "{name}"\nsource = "{name}"\n[stream.bank]\nkind = "{kind}"\n'
-                '[stream.model]\ntrain_on_start = true\n\n')
-    return src + '[fusion]\nstreams = ["whiskers", "mic"]\nweight = "learn"\n'
-
-
 @pytest.mark.slow   # a long run: four recordings, two fusions trained and scored
 def test_a_fusion_trained_on_recorded_sessions_scores_on_another_recording(tmp_path, capsys, monkeypatch):
     """Three recordings of the two-sense world (other contacts each: take 1, 2, 3) train the
@@ -214,7 +204,7 @@ def test_a_fusion_trained_on_recorded_sessions_scores_on_another_recording(tmp_p
     fourth scores each stream and the fusion per window and per contact: the network decides
     what each sense alone confuses."""
     for take in (1, 2, 3, 4):
-        (tmp_path / f"w{take}.toml").write_text(_world_toml(take))
+        (tmp_path / f"w{take}.toml").write_text(two_sense_world_toml(1.0, take=take))
         assert main(["record", str(tmp_path / f"w{take}.toml"), "--out", str(tmp_path / "rec"), "--name",
                      f"t{take}", "--quiet"]) == 0
     scenes = [a for t in (1, 2, 3) for a in ("--scene", str(tmp_path / "rec" / f"t{t}.toml"))]

@@ -16,6 +16,7 @@ from supramodal.node.scene.schema import load_scene
 from supramodal.pipeline import extract_features
 from supramodal.replay.session import load_session
 from supramodal.replay.wavio import read_wav, write_wav
+from two_sense_scenes import two_sense_world_toml
 
 T0 = 1000.0                      # the lab recorder's clock at the microphone's first sample
 SECONDS = 3.0
@@ -190,14 +191,7 @@ def test_a_graphs_own_sessions_imported_with_models_and_fusion_replay_to_its_fus
     the two models and --fusion: the imported scene pairs and fuses the same windows to the same
     decisions as the recording's own replay scene, its times shifted by one constant (the import's
     zero is the earliest first sample)."""
-    src = ""
-    for name, sense, block, offset in (("whiskers", "whiskers", 50, 0.0), ("mic", "microphone", 441, 0.037)):
-        src += (f'[[source]]\nname = "{name}"\ntype = "twosense"\nsense = "{sense}"\nseconds = 0.5\n'
-                f'block = {block}\noffset = {offset}\nspeed = "max"\n\n')
-    for name, kind in (("whiskers", "whisker"), ("mic", "cochlea")):
-        src += (f'[[stream]]\nname = "{name}"\nsource = "{name}"\n[stream.bank]\nkind = "{kind}"\n'
-                '[stream.model]\ntrain_on_start = true\n\n')
-    (tmp_path / "w.toml").write_text(src + '[fusion]\nstreams = ["whiskers", "mic"]\nweight = 0.5\n')
+    (tmp_path / "w.toml").write_text(two_sense_world_toml(0.5, fusion="weight = 0.5"))
     assert main(["record", str(tmp_path / "w.toml"), "--out", str(tmp_path / "own"), "--name", "t", "--quiet"]) == 0
     argv = []
     for name, kind in (("whiskers", "whisker"), ("mic", "cochlea")):

@@ -5,8 +5,6 @@ and SIGTERM end; what each outlet declares (issue 26, items 7 and 11).
 Traffic stays on this machine (conftest.py's loopback ``LSLAPICFG``, checked by every test)."""
 
 import json
-import subprocess
-import sys
 import threading
 import time
 import uuid
@@ -18,6 +16,7 @@ from supramodal.drivers.base import DeviceUnavailable
 from supramodal.drivers.lsl import import_pylsl, resolve_stream
 
 from lsl_only import loopback_only, require_lsl  # noqa: F401  (the fixture applies itself)
+from node_processes import assert_start_up_ends_on, start_node
 
 require_lsl()
 
@@ -89,8 +88,7 @@ def test_a_consumer_started_before_the_node_receives_window_0(tmp_path):
 
     consumer = threading.Thread(target=consume, daemon=True)
     consumer.start()                       # before the node
-    node = subprocess.Popen([sys.executable, "-m", "supramodal", "run", str(tmp_path / "node.toml"), "--quiet"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path)
+    node = start_node(tmp_path / "node.toml", tmp_path)
     try:
         out, err = node.communicate(timeout=300)
     finally:
@@ -107,27 +105,16 @@ def test_a_consumer_started_before_the_node_receives_window_0(tmp_path):
 def test_a_wait_for_consumers_of_the_window_outlets_is_start_up_and_a_signal_ends_it(tmp_path, signum, code):
     """``wait_for_consumer`` on an LSL sink is start-up, as on a signal outlet: SIGINT and SIGTERM
     end it at once with 130 and 143."""
-    import os
-    import signal as signal_
-
     prefix = f"t{uuid.uuid4().hex[:8]}"
     (tmp_path / "node.toml").write_text(_replay_scene(tmp_path, prefix, 1.0, "wait_for_consumer = 60",
                                                       model="# none: features only"))
-    proc = subprocess.Popen([sys.executable, "-m", "supramodal", "run", str(tmp_path / "node.toml"), "--quiet"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path)
+    proc = start_node(tmp_path / "node.toml", tmp_path)
     try:
         resolve_stream(outlet_name(prefix, "main", "features"), timeout=60.0)   # built: it waits now
         time.sleep(1.0)
-        assert proc.poll() is None, proc.communicate()
-        t = time.monotonic()
-        os.kill(proc.pid, signum)
-        out, err = proc.communicate(timeout=20)
-        waited = time.monotonic() - t
+        assert_start_up_ends_on(proc, signum, code)
     finally:
         proc.kill()
-    assert proc.returncode == code and waited < 10, (proc.returncode, waited, err[-500:])
-    assert f"interrupted by {signal_.Signals(signum).name} during start-up" in err
-    assert out == ""
 
 
 def test_every_outlet_declares_its_channels_and_the_fused_posteriors_no_regular_rate():

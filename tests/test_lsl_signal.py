@@ -22,6 +22,7 @@ from supramodal.node.runtime.ringbuffer import RingClosed
 from supramodal.node.scene.schema import SceneError, scene_from_dict
 
 from lsl_only import loopback_only, require_lsl  # noqa: F401  (the fixture applies itself)
+from node_processes import assert_start_up_ends_on, start_node
 
 require_lsl()
 
@@ -313,26 +314,15 @@ def test_a_restarted_relay_is_picked_up_again_by_its_source_id(tmp_path):
 def test_a_wait_for_a_consumer_is_start_up_and_a_signal_ends_it_at_once(tmp_path, signum, code):
     """Issue 25 item 9: with wait_for_consumer = 40, SIGINT and SIGTERM were ignored for the whole
     wait and the node then ran; the README promises 130 / 143 at once during start-up."""
-    import os
-    import signal as signal_
-
     (tmp_path / "relay.toml").write_text(
         f'[[source]]\nname = "a"\ntype = "synth"\nseconds = 2.0\n\n[[sink]]\ntype = "lsl-signal"\n'
         f'prefix = "wait-{uuid.uuid4().hex[:8]}"\nwait_for_consumer = 40\n')
-    proc = subprocess.Popen([sys.executable, "-m", "supramodal", "run", str(tmp_path / "relay.toml"), "--quiet"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path)
+    proc = start_node(tmp_path / "relay.toml", tmp_path)
     try:
         time.sleep(4.0)                                      # well into the wait (start-up takes ~1 s)
-        assert proc.poll() is None, proc.communicate()
-        t = time.monotonic()
-        os.kill(proc.pid, signum)
-        out, err = proc.communicate(timeout=20)
-        waited = time.monotonic() - t
+        assert_start_up_ends_on(proc, signum, code)
     finally:
         proc.kill()
-    assert proc.returncode == code and waited < 10, (proc.returncode, waited, err[-500:])
-    assert f"interrupted by {signal_.Signals(signum).name} during start-up" in err
-    assert out == ""
 
 
 class _SilentReader(_PlannedReader):
