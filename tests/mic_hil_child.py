@@ -49,7 +49,8 @@ def capture(prefix: str, n: int, dtype: str, buffer_seconds: float, stall: bool)
         while got < n:
             block = mic.read(timeout=30.0)
             if block is None:
-                raise SystemExit("no block from the microphone in 30 s")
+                raise SystemExit(f"no block from the microphone in 30 s, after {got} of {n} frames; "
+                                 f"driver stats {mic.stats()}")
             blocks.append(block)
             got += block.frames
         at_n = mic.stats()

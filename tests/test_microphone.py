@@ -558,7 +558,9 @@ def _run_child(args: list[str], env: dict) -> None:
         [sys.executable, str(CHILD), *args], capture_output=True, text=True, env=full_env,
         timeout=300, cwd=ROOT,
     )
-    assert r.returncode == 0, f"child failed:\nstdout:\n{r.stdout}\nstderr:\n{r.stderr}"
+    jackd_log = Path(args[1]).parent / "jackd.log"      # the JACK server's messages, when it paced the device
+    said = f"\njackd said:\n{jackd_log.read_text()[-2000:]}" if jackd_log.exists() else ""
+    assert r.returncode == 0, f"child failed:\nstdout:\n{r.stdout}\nstderr:\n{r.stderr}{said}"
 
 
 def _source_signal(frames: int) -> np.ndarray:
@@ -673,9 +675,13 @@ JACK_PLUGIN = Path("/usr/lib") / f"{os.uname().machine}-linux-gnu" / "alsa-lib" 
 
 
 @pytest.fixture
-def jack_server():
+def jack_server(tmp_path):
     """A private JACK server on the dummy backend (a clock, no sound card): its name, unique to this
-    test, so that parallel runs never share one. Real-time scheduling where allowed, else not."""
+    test, so that parallel runs never share one. Real-time scheduling where allowed, else not.
+
+    Its messages go to a file, never to an unread pipe: on a loaded machine jackd reports every late
+    cycle, and once a pipe's 64 KiB fill, jackd blocks writing and its clock stops (the capture then
+    sees no block at all). A late client is given 10 s instead of 0.5 s before JACK drops it."""
     if shutil.which("jackd") is None or shutil.which("jack_wait") is None:
         pytest.skip("JACK missing: apt-get install --no-install-recommends jackd2")
     if not JACK_PLUGIN.exists():
@@ -683,16 +689,18 @@ def jack_server():
                     "libasound2-plugins")
     name = f"supramodal-{os.getpid()}-{secrets.token_hex(4)}"
     backend = ["-d", "dummy", "-r", "44100", "-p", "1024", "-C", "1", "-P", "1"]
+    log = tmp_path / "jackd.log"
     for realtime in (["-R", "-P", "20"], ["--no-realtime"]):
-        proc = subprocess.Popen(["jackd", *realtime, "-n", name, *backend], stdout=subprocess.DEVNULL,
-                                stderr=subprocess.PIPE, text=True)
+        with open(log, "w") as messages:
+            proc = subprocess.Popen(["jackd", *realtime, "-t", "10000", "-n", name, *backend],
+                                    stdout=messages, stderr=subprocess.STDOUT)
         ready = subprocess.run(["jack_wait", "-s", name, "-w", "-t", "10"], capture_output=True, text=True)
         if ready.returncode == 0 and proc.poll() is None:
             break
         proc.kill()
         proc.wait()
     else:
-        pytest.skip(f"jackd does not start here: {proc.stderr.read()[-500:]}")
+        pytest.skip(f"jackd does not start here: {log.read_text()[-500:]}")
     try:
         yield name
     finally:
