@@ -472,6 +472,8 @@ class MockWhiskerDevice:
 
     def _host_opened(self) -> bool:
         """Has a reader opened the port since the last call? (reads packet-mode status)"""
+        if self._master is None:  # unplugged (a replug awaiting a reader can be unplugged again): no port
+            return False
         try:
             status = os.read(self._master, 64)
         except (BlockingIOError, InterruptedError):

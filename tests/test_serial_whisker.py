@@ -576,6 +576,22 @@ def test_mock_never_blocks_when_nobody_reads(tmp_path, capsys):
     assert int(err.split("overflow ")[1].split(",")[0]) > 0  # 80 kB into a ~22 kB pty
 
 
+@pytest.mark.hardware
+def test_mock_unplugs_again_when_no_reader_reopens_the_port():
+    """A replugged board waits for a reader to open the port; when none does before its next
+    unplug, it unplugs anyway and replugs later, its writer thread alive (it once read the status
+    of the pty it had just closed: a TypeError)."""
+    src = source(0.5, seed=7)
+    faults = FaultSpec(unplug_every=0.1, unplug_for=0.05)
+    with MockWhiskerDevice(src, RATE, samples_per_frame=SPF, loop=True, faults=faults, seed=1) as dev:
+        dev.start()
+        deadline = time.monotonic() + 20.0
+        while dev.ledger.unplugs < 3 and not dev.finished.is_set() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert dev.error is None
+        assert dev.ledger.unplugs >= 3 and len(dev.ledger.replug_times) >= 2
+
+
 # -- the CLI pieces -------------------------------------------------------
 
 
