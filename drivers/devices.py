@@ -12,13 +12,15 @@ device queries are not thread-safe against that).
 
 from __future__ import annotations
 
+from typing import Any
+
 from supramodal.drivers.base import DeviceUnavailable, DriverError
 from supramodal.drivers.microphone import import_sounddevice, portaudio_errors
 
 __all__ = ["list_audio_inputs", "list_serial_ports", "format_devices"]
 
 
-def list_audio_inputs() -> list[dict]:
+def list_audio_inputs() -> list[dict[str, Any]]:
     """List PortAudio's input devices.
 
     Returns
@@ -59,7 +61,7 @@ def list_audio_inputs() -> list[dict]:
     ]
 
 
-def list_serial_ports() -> list[dict]:
+def list_serial_ports() -> list[dict[str, Any]]:
     """List the serial ports the operating system reports.
 
     Returns
@@ -112,11 +114,11 @@ def format_devices() -> str:
         be listed (PortAudio or pyserial missing) shows why and how to fix it
         instead, so the other section is still printed.
     """
-    def audio_line(d: dict) -> str:
+    def audio_line(d: dict[str, Any]) -> str:
         mark = "*" if d["default"] else " "
         return f"{mark} {d['index']:3d}  {d['name']}  ({d['hostapi']}, {d['channels']} in, {d['default_rate']:g} Hz)"
 
-    def serial_line(p: dict) -> str:
+    def serial_line(p: dict[str, Any]) -> str:
         desc = p["description"] if p["description"] not in (None, "", "n/a") else ""
         usb = f"  USB {p['vid']:04x}:{p['pid']:04x}" if p["vid"] is not None and p["pid"] is not None else ""
         return f"  {p['device']}  {desc}{usb}".rstrip()

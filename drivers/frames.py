@@ -239,9 +239,10 @@ class FrameDecoder:
             self._last_seq = None
 
     @staticmethod
-    def _header(buf, i: int):
+    def _header(buf: bytearray, i: int) -> tuple[int, int, int, int] | None:
         """Parse and check the header at ``buf[i:i+10]``; None if it is invalid."""
-        _, version, flags, seq, n, ch, check = _HEADER.unpack_from(buf, i)
+        fields: tuple[int, ...] = _HEADER.unpack_from(buf, i)
+        _, version, flags, seq, n, ch, check = fields
         if (version != VERSION or not 1 <= ch <= MAX_CHANNELS
                 or not 1 <= n <= MAX_SAMPLES_PER_FRAME
                 or check != _header_check(version, flags, seq, n, ch)):
@@ -249,13 +250,14 @@ class FrameDecoder:
         return flags, seq, n, ch
 
     @staticmethod
-    def _header_fits_version(buf, i: int) -> bool:
+    def _header_fits_version(buf: bytearray, i: int) -> bool:
         """Is the header at ``i`` valid but for its version (a frame of another version)?"""
-        _, version, flags, seq, n, ch, check = _HEADER.unpack_from(buf, i)
+        fields: tuple[int, ...] = _HEADER.unpack_from(buf, i)
+        _, version, flags, seq, n, ch, check = fields
         return (1 <= ch <= MAX_CHANNELS and 1 <= n <= MAX_SAMPLES_PER_FRAME
                 and check == _header_check(version, flags, seq, n, ch))
 
-    def _frame_starts_within(self, buf, lo: int, hi: int) -> bool:
+    def _frame_starts_within(self, buf: bytearray, lo: int, hi: int) -> bool:
         """Does a valid frame header start at an offset in ``[lo, hi)``?
 
         The caller makes sure ``buf`` holds ``hi + HEADER_SIZE - 1`` bytes.
@@ -293,7 +295,7 @@ class FrameDecoder:
             self.reset(keep_sequence=True)
             return []
 
-    def _feed(self, data) -> list[Frame]:
+    def _feed(self, data: memoryview) -> list[Frame]:
         buf = self._buf
         self.bytes_fed += len(data)
         buf += data

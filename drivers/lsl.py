@@ -59,6 +59,8 @@ import collections
 import math
 import time
 from dataclasses import dataclass
+from types import ModuleType
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -66,6 +68,10 @@ from supramodal.checks import Key, integer, positive, text
 from supramodal.drivers.base import Block, DeviceUnavailable, DriverBase, DriverClosed, DriverError
 from supramodal.drivers.spec import BuildContext, Built, DriverSpec, OptionError, given
 from supramodal.errors import InputError
+
+if TYPE_CHECKING:
+    # pylsl ships no type information (pyproject's [tool.mypy] takes it as Any): these name what an object is.
+    from pylsl import StreamInfo, StreamInlet
 
 #: What to run to get LSL, and what to do where the wheel carries no liblsl.
 INSTALL_HINT = ('install the optional extra: pip install "supramodal[lsl]" (pylsl). Its wheel carries liblsl only on '
@@ -103,7 +109,7 @@ class LSLUnavailable(DeviceUnavailable):
     """pylsl or its liblsl cannot be loaded on this machine."""
 
 
-def import_pylsl():
+def import_pylsl() -> ModuleType:
     """The pylsl module, or :class:`LSLUnavailable` saying what to install."""
     try:
         import pylsl
@@ -113,15 +119,17 @@ def import_pylsl():
         # pylsl is there but its liblsl is not (an ARM wheel, an old glibc): it raises at import.
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise LSLUnavailable(f"pylsl is installed but cannot load liblsl ({first}): {INSTALL_HINT}") from None
-    return pylsl
+    module: ModuleType = pylsl      # a module, untyped (Any) to mypy
+    return module
 
 
-def _lost_error(pylsl) -> type[Exception]:
+def _lost_error(pylsl: ModuleType) -> type[Exception]:
     """pylsl's ``LostError`` (raised by an inlet whose sender, without a source id, went away)."""
-    return getattr(pylsl, "LostError", None) or pylsl.util.LostError
+    error: type[Exception] = getattr(pylsl, "LostError", None) or pylsl.util.LostError
+    return error
 
 
-def lsl_clock_offset(pylsl) -> float:
+def lsl_clock_offset(pylsl: ModuleType) -> float:
     """``time.monotonic() - pylsl.local_clock()``, seconds: the midpoint of the tightest of a few
     brackets of one LSL clock reading between two host clock readings."""
     best = (math.inf, 0.0)
@@ -133,14 +141,14 @@ def lsl_clock_offset(pylsl) -> float:
     return best[1]
 
 
-def describe_stream(info) -> str:
+def describe_stream(info: StreamInfo) -> str:
     """One line naming an LSL stream: name, type, source_id, channels, rate, host."""
     return (f"name={info.name()!r} type={info.type()!r} source_id={info.source_id()!r} "
             f"{info.channel_count()} ch at {info.nominal_srate():g} Hz from {info.hostname()}")
 
 
 def resolve_stream(name: str | None = None, stream_type: str | None = None, source_id: str | None = None,
-                   timeout: float = DEFAULT_RESOLVE_TIMEOUT):
+                   timeout: float = DEFAULT_RESOLVE_TIMEOUT) -> StreamInfo:
     """The one stream matching every property given, or :class:`DeviceUnavailable` naming those
     that were found instead (or that none was); more than one match is refused too, listing them
     (say which with ``source_id``). After the first answer the resolver waits
@@ -181,9 +189,9 @@ def resolve_stream(name: str | None = None, stream_type: str | None = None, sour
     return found[0]
 
 
-def _distinct(infos: list) -> list:
+def _distinct(infos: list[StreamInfo]) -> list[StreamInfo]:
     """The streams of ``infos`` with one of each ``uid`` (one outlet answers each query)."""
-    seen: dict[str, object] = {}
+    seen: dict[str, StreamInfo] = {}
     for info in infos:
         seen.setdefault(info.uid(), info)
     return list(seen.values())
@@ -434,7 +442,7 @@ class LSLInletDriver(DriverBase):
         self.gap_tolerance, self.max_gap = float(gap_tolerance), float(max_gap)
         self.stall_timeout, self.buffer_seconds = float(stall_timeout), float(buffer_seconds)
         self._max_chunk = max(1, int(self.rate * 0.1))        # at most 100 ms per block
-        self._inlet = None
+        self._inlet: StreamInlet | None = None
         self._lost = False           # the sender went away for good (no source id): no inlet until it is back
         super().__init__()
         self._reset_counters()
@@ -490,7 +498,7 @@ class LSLInletDriver(DriverBase):
             if not self._lost:
                 raise DriverClosed("the LSL inlet is closed")
             time.sleep(min(wait, PROBE_INTERVAL))   # no inlet to wait on: the sender is gone
-            stamps: np.ndarray | list = []
+            stamps: np.ndarray | list[float] = []
         else:
             try:
                 _, stamps = inlet.pull_chunk(timeout=wait, max_samples=self._max_chunk, dest_obj=self._buf,
@@ -577,7 +585,8 @@ class LSLInletDriver(DriverBase):
     def _block(self, data: np.ndarray, host: np.ndarray, now: float, step: Step) -> Block:
         """The block for these samples, with the gap before them (``step``) filled or marked."""
         start = self._frames
-        fill, restarts = 0, ()
+        fill = 0
+        restarts: tuple[int, ...] = ()
         if step.kind == "gap":
             fill = step.samples
             self._gaps += 1
@@ -638,16 +647,16 @@ MAX_RATE = 1e6
 WHICH = ("stream", "stream_type", "source_id")
 
 
-def _seconds(key: str, what: str, default) -> Key:
+def _seconds(key: str, what: str, default: float) -> Key:
     return Key(positive(LIMITS[key]), f"{what}, up to {LIMITS[key]:g} s (default: {default:g})", None)
 
 
-def _check(options: dict) -> None:
+def _check(options: dict[str, Any]) -> None:
     if all(options[k] is None for k in WHICH):
         raise OptionError('type "lsl" needs the stream\'s name (stream = ...), stream_type or source_id')
 
 
-def _build(options: dict, context: BuildContext) -> Built:
+def _build(options: dict[str, Any], context: BuildContext) -> Built:
     try:
         driver = LSLInletDriver(options["stream"], options["stream_type"], options["source_id"],
                                 **given(options, {k: k for k in ("rate", "channels", *LIMITS)}))

@@ -114,7 +114,7 @@ _PA_SAMPLE_FORMAT_NOT_SUPPORTED = -9994
 
 
 @contextlib.contextmanager
-def portaudio_errors(what: str, device_info: dict | None = None) -> Iterator[None]:
+def portaudio_errors(what: str, device_info: dict[str, Any] | None = None) -> Iterator[None]:
     """Translate ``sounddevice.PortAudioError`` into :class:`DeviceUnavailable`.
 
     The one place where PortAudio's errors are caught; everything that calls
@@ -203,7 +203,7 @@ class CaptureBuffer:
         self.gap_block = int(gap_block)
         # SimpleQueue: put() never blocks (C implementation, no bound); the bound is
         # enforced in frames by the callback with the two counters below.
-        self._queue: queue.SimpleQueue = queue.SimpleQueue()
+        self._queue: queue.SimpleQueue[tuple[Any, ...]] = queue.SimpleQueue()
         # Written by the audio thread only.
         self._queued_in = 0  # data frames ever queued
         self._next = 0  # stream index of the next frame (measured or filled)
@@ -551,7 +551,7 @@ class MicrophoneDriver(DriverBase):
         self.blocksize = int(blocksize)
         self.dtype = dtype
         self.buffer_seconds = float(buffer_seconds)
-        self.device_info: dict | None = None
+        self.device_info: dict[str, Any] | None = None
         self._capacity = capacity
         self._buffer: CaptureBuffer | None = None
         self._stream: Any = None
@@ -723,7 +723,7 @@ MAX_CHANNELS = 1024
 MAX_BUFFER_SECONDS = 600.0
 
 
-def _build(options: dict, context: BuildContext) -> Built:
+def _build(options: dict[str, Any], context: BuildContext) -> Built:
     return Built(MicrophoneDriver(**given(options, {"device": "device", "rate": "rate", "channels": "channels",
                                                     "block": "blocksize", "dtype": "dtype",
                                                     "buffer_seconds": "buffer_seconds"})))

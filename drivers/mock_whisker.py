@@ -53,7 +53,10 @@ import time
 import tty
 import zlib
 from collections import deque
+from collections.abc import Iterable
 from dataclasses import dataclass, field
+from types import FrameType
+from typing import NoReturn
 
 import numpy as np
 
@@ -320,7 +323,7 @@ class MockWhiskerDevice:
     def __init__(self, samples: np.ndarray, rate: float, port: str | None = None,
                  samples_per_frame: int = 32, loop: bool = False,
                  faults: FaultSpec = FaultSpec(), seed: int | None = None,
-                 first_seq: int = 0, restart_at=()) -> None:
+                 first_seq: int = 0, restart_at: Iterable[int] = ()) -> None:
         data = quantise(samples)
         if data.ndim != 2 or not 1 <= data.shape[1] <= MAX_CHANNELS or data.shape[0] < 1:
             raise InputError(f"samples must have shape (n >= 1, 1..{MAX_CHANNELS}), "
@@ -416,7 +419,7 @@ class MockWhiskerDevice:
     def __enter__(self) -> MockWhiskerDevice:
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
     @property
@@ -445,7 +448,8 @@ class MockWhiskerDevice:
         spf = self.samples_per_frame
         if self.loop:
             n = self._data.shape[0]
-            return self._data[np.arange(k * spf, (k + 1) * spf) % n]
+            rows: np.ndarray = self._data[np.arange(k * spf, (k + 1) * spf) % n]
+            return rows
         return self._data[k * spf:(k + 1) * spf]
 
     # -- the pty ---------------------------------------------------------------
@@ -486,11 +490,14 @@ class MockWhiskerDevice:
 
     def _unread(self) -> int:
         """Bytes written to the port that the reader has not taken yet."""
+        assert self._slave is not None, "asked while plugged (_plug opens the master and the slave together)"
         buf = fcntl.ioctl(self._slave, termios.FIONREAD, b"\0\0\0\0")
-        return struct.unpack("i", buf)[0]
+        count: int = struct.unpack("i", buf)[0]
+        return count
 
     def _steal_unread(self) -> int:
         """Take every byte the reader has not read (the port's buffer); how many."""
+        assert self._slave is not None, "taken while plugged (_plug opens the master and the slave together)"
         n = 0
         while True:
             try:
@@ -508,6 +515,7 @@ class MockWhiskerDevice:
         if os.path.islink(self.port):
             os.unlink(self.port)
         if self._master is not None:
+            assert self._slave is not None, "_plug opens the master and the slave together"
             if account:
                 self._account_unplug(self._steal_unread())
             os.close(self._master)
@@ -727,6 +735,7 @@ class MockWhiskerDevice:
             if self._pending is not None:
                 return False
         chunk = garbage + frame
+        assert self._master is not None, "_emit writes only while plugged"
         try:
             n = os.write(self._master, chunk)
         except (BlockingIOError, InterruptedError):
@@ -742,6 +751,8 @@ class MockWhiskerDevice:
         return True
 
     def _flush(self) -> None:
+        # A tail is pending only while plugged: an unplug discards it (_account_unplug).
+        assert self._master is not None and self._pending is not None, "_flush is called with a tail pending"
         try:
             n = os.write(self._master, self._pending)
         except (BlockingIOError, InterruptedError):
@@ -839,7 +850,7 @@ def run(args: argparse.Namespace, samples: np.ndarray, rate: float) -> int:
         signal.signal(signal.SIGTERM, previous)
 
 
-def _terminate_as_interrupt(signum, frame):
+def _terminate_as_interrupt(signum: int, frame: FrameType | None) -> NoReturn:
     raise KeyboardInterrupt
 
 

@@ -56,6 +56,7 @@ import sys
 import termios
 import time
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 import serial
@@ -67,6 +68,7 @@ from supramodal.drivers.frames import (
     FULL_SCALE,
     MAX_CHANNELS,
     SEQ_MODULUS,
+    Frame,
     FrameDecoder,
 )
 from supramodal.drivers.spec import BuildContext, Built, DriverSpec, OptionError, given
@@ -206,7 +208,8 @@ class SerialWhiskerDriver(DriverBase):
         self.silence_warning = None if silence_warning is None else float(silence_warning)
         self._on_notice = on_notice
         self.first_sequence: int | None = None
-        self._ser = None
+        # pyserial ships no type information: its port objects are Any to mypy.
+        self._ser: serial.SerialBase | None = None
         self._open = False
         super().__init__()
         self._reset_state()
@@ -220,7 +223,7 @@ class SerialWhiskerDriver(DriverBase):
         self._spf = 0
         self._t0 = 0.0  # monotonic s when stream row 0 was taken, estimated
         self._start = 0
-        self._port_timeout = None
+        self._port_timeout: float | None = None
         self._version_errors = 0
         self._reopened = False  # connected by a reconnect, no byte seen yet
         self._lost_at = 0.0
@@ -334,7 +337,7 @@ class SerialWhiskerDriver(DriverBase):
 
     # -- port handling -----------------------------------------------------------
 
-    def _open_port(self):
+    def _open_port(self) -> serial.SerialBase:
         try:
             ser = serial.serial_for_url(self.port, baudrate=self.baudrate, timeout=self.POLL,
                                         exclusive=self.exclusive, do_not_open=True)
@@ -364,7 +367,7 @@ class SerialWhiskerDriver(DriverBase):
         return (f"cannot open serial port {self.port!r}: {text}. Check the path, the cable "
                 "and that the board is powered")
 
-    def _not_a_serial_device(self, code, text: str) -> str | None:
+    def _not_a_serial_device(self, code: int | None, text: str) -> str | None:
         """What the port is, if an open failed because it is no terminal; else None.
 
         pyserial opens a regular file or /dev/null, then fails to configure it
@@ -397,9 +400,11 @@ class SerialWhiskerDriver(DriverBase):
     def _read_some(self, deadline: float) -> bytes:
         """Bytes waiting now, else wait (<= POLL and <= deadline) for the first one."""
         ser = self._ser
+        assert ser is not None, "_read_until reads only with the port open"
         waiting = ser.in_waiting
         if waiting:
-            return ser.read(waiting)
+            data: bytes = ser.read(waiting)
+            return data
         remaining = deadline - time.monotonic()
         if remaining <= 0:
             return b""
@@ -408,11 +413,12 @@ class SerialWhiskerDriver(DriverBase):
         if self._port_timeout is None or abs(self._port_timeout - t) > 1e-3:
             ser.timeout = t
             self._port_timeout = t
-        first = ser.read(1)
+        first: bytes = ser.read(1)
         if first:
             waiting = ser.in_waiting
             if waiting:
-                return first + ser.read(waiting)
+                rest: bytes = ser.read(waiting)
+                return first + rest
         return first
 
     def _link_lost(self, exc: BaseException) -> None:
@@ -467,7 +473,7 @@ class SerialWhiskerDriver(DriverBase):
 
     # -- frames to blocks ------------------------------------------------------
 
-    def _assemble(self, frames, arrival: float) -> Block | None:
+    def _assemble(self, frames: list[Frame], arrival: float) -> Block | None:
         parts: list[np.ndarray] = []
         fills: list[tuple[int, int]] = []  # (row offset, rows) of filled runs
         restarts: list[int] = []  # row offsets where stream time is discontinuous
@@ -483,12 +489,13 @@ class SerialWhiskerDriver(DriverBase):
                             "or the board's firmware)", self._start + rows)
                 continue
             n_rows = f.samples.shape[0]
-            rebase = self._next_seq is None
-            if rebase:
+            expected = self._next_seq
+            rebase = expected is None
+            if expected is None:
                 if self.first_sequence is None:
                     self.first_sequence = f.seq
-            elif f.seq != self._next_seq:
-                lost = self._judge_gap((f.seq - self._next_seq) % SEQ_MODULUS, f.seq, arrival,
+            elif f.seq != expected:
+                lost = self._judge_gap((f.seq - expected) % SEQ_MODULUS, f.seq, arrival,
                                        self._start + rows, n_rows)
                 if lost > 0:
                     n = lost * self._spf
@@ -579,6 +586,7 @@ class SerialWhiskerDriver(DriverBase):
 
     def _warn_silence(self, now: float) -> None:
         """Say that no valid frame came for a while, what did arrive, and why that may be."""
+        assert self.silence_warning is not None, "read() warns only when silence_warning is set"
         self._warnings_now += 1
         self._stats["silence_warnings"] += 1
         self._next_warning = now + self.silence_warning
@@ -628,11 +636,11 @@ MAX_RATE = 1e6
 MAX_BAUDRATE = 100_000_000
 
 
-def _build(options: dict, context: BuildContext) -> Built:
+def _build(options: dict[str, Any], context: BuildContext) -> Built:
     rate = options["rate"] if options["rate"] is not None else context.rate
     channels = options["channels"] if options["channels"] is not None else context.channels
-    missing = [k for k, v in (("rate", rate), ("channels", channels)) if v is None]
-    if missing:
+    if rate is None or channels is None:
+        missing = [k for k, v in (("rate", rate), ("channels", channels)) if v is None]
         raise OptionError(f"{missing[0]}: no bank reads this source, so give its {' and '.join(missing)}")
     return Built(SerialWhiskerDriver(options["port"], rate=rate, channels=channels, on_notice=None,
                                      **given(options, {"baudrate": "baudrate"})))
