@@ -20,7 +20,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from supramodal.node.runtime.sinks import ListSink
-from supramodal.node.runtime.view import attach, view_sinks, with_view
+from supramodal.node.runtime.sinks.view import attach, view_sinks, with_view
 from supramodal.node.scene.build import build_node
 from supramodal.node.scene.schema import default_scene, load_scene
 

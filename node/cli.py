@@ -279,7 +279,8 @@ def _scene_line(scene, sinks_replaced: bool = False) -> str:
 
 
 def _cmd_run(args) -> int:
-    from supramodal.node.runtime.sinks import JsonLinesSink, QueuedSink
+    from supramodal.node.runtime.sinks import QueuedSink
+    from supramodal.node.runtime.sinks.jsonl import JsonLinesSink
     from supramodal.node.scene.build import build_node
     from supramodal.node.scene.schema import default_scene, load_scene, scene_to_toml
 
@@ -290,7 +291,7 @@ def _cmd_run(args) -> int:
     _interrupt_until_running()
     sinks = [QueuedSink(JsonLinesSink("-"))] if args.json else None
     if args.view is not None:
-        from supramodal.node.runtime.view import add_view
+        from supramodal.node.runtime.sinks.view import add_view
         scene, sinks = add_view(scene, sinks, args.view)
     progress = None if args.quiet else (lambda m: print(f"supramodal: {m}", file=sys.stderr, flush=True))
     if progress and args.scene is None:
@@ -306,7 +307,7 @@ def _cmd_run(args) -> int:
 
 def _attach_views(node, on_mark=None) -> None:
     """A scene's view sinks (if any) get the graph's counters and, while recording, the marks."""
-    from supramodal.node.runtime.view import attach
+    from supramodal.node.runtime.sinks.view import attach
 
     attach(node, on_mark)
 
@@ -316,7 +317,7 @@ def _cmd_record(args) -> int:
     import time
 
     from supramodal.errors import InputError
-    from supramodal.node.runtime.recorder import SessionRecorder
+    from supramodal.node.runtime.taps.recorder import SessionRecorder
     from supramodal.node.scene.build import build_node
     from supramodal.node.scene.schema import load_scene
     from supramodal.node.workflows.graph_recording import GraphMarks, graph_recorders, write_replay_scene
@@ -324,7 +325,7 @@ def _cmd_record(args) -> int:
     _interrupt_until_running()
     scene = load_scene(args.scene)
     if args.view is not None:
-        from supramodal.node.runtime.view import add_view
+        from supramodal.node.runtime.sinks.view import add_view
         scene, _ = add_view(scene, None, args.view)
     name = args.name or time.strftime("session-%Y%m%d-%H%M%S")
     labelled = bool(args.label or args.marks)

@@ -21,7 +21,9 @@ from supramodal.drivers.mock_whisker import FaultSpec, MockWhiskerDevice
 from supramodal.drivers.serial_whisker import SerialWhiskerDriver
 from supramodal.node.runtime.events import EventLimiter
 from supramodal.node.runtime.graph import Node
-from supramodal.node.runtime.sinks import JsonLinesSink, ListSink, TextSink
+from supramodal.node.runtime.sinks import ListSink
+from supramodal.node.runtime.sinks.jsonl import JsonLinesSink
+from supramodal.node.runtime.sinks.text import TextSink
 from supramodal.replay.driver import ReplayDriver
 from supramodal.banks import whisker_bank
 from supramodal.pipeline import FeaturePipeline
@@ -291,7 +293,7 @@ def test_a_recorded_session_replays_with_the_live_runs_restart_and_overrun_flags
     """Recorded from a board that restarts once and overruns now and then, a session keeps the
     marks (its sidecar's "marks"), and replaying it flags exactly the windows the live run flagged,
     in any block size."""
-    from supramodal.node.runtime.recorder import SessionRecorder
+    from supramodal.node.runtime.taps.recorder import SessionRecorder
     from supramodal.replay.session import load_session
 
     dev = MockWhiskerDevice(source(2.5), RATE, samples_per_frame=SPF, restart_at=(120,),

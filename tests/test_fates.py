@@ -19,7 +19,8 @@ import pytest
 from supramodal.drivers.base import Block, DriverClosed
 from supramodal.drivers.microphone import CaptureBuffer, MicrophoneDriver
 from supramodal.node.runtime.graph import Node
-from supramodal.node.runtime.sinks import ListSink, TextSink
+from supramodal.node.runtime.sinks import ListSink
+from supramodal.node.runtime.sinks.text import TextSink
 from supramodal.banks import whisker_bank
 from supramodal.pipeline import FeaturePipeline
 

@@ -283,7 +283,7 @@ def test_a_stamp_the_clock_skips_is_left_out_of_the_recording_too(tmp_path):
     """A block stamped before the one before it is no measurement: the clock model leaves it out,
     and so does the recording (else its session would not save); it replays with the next one."""
     from supramodal.drivers.base import Block
-    from supramodal.node.runtime.recorder import SessionRecorder
+    from supramodal.node.runtime.taps.recorder import SessionRecorder
     from supramodal.node.runtime.sources import Source
 
     source = Source("s", ReplayDriver((np.zeros((100, 1)), 100.0), on_notice=None), timebase="host")

@@ -216,8 +216,9 @@ def test_a_driver_that_is_not_one_is_refused_when_its_source_is_made():
 # -- no probes ------------------------------------------------------------------------------------
 
 #: The runtime modules that call sinks, taps or drivers.
-RUNTIME = ("node/runtime/graph.py", "node/runtime/sinks.py", "node/runtime/sources.py", "node/runtime/streams.py", "node/runtime/lsl_outlets.py",
-           "node/runtime/lsl_signal.py", "node/runtime/recorder.py", "node/runtime/taps.py")
+RUNTIME = ("node/runtime/graph.py", "node/runtime/sinks/__init__.py", "node/runtime/sinks/text.py",
+           "node/runtime/sinks/jsonl.py", "node/runtime/sources.py", "node/runtime/streams.py", "node/runtime/sinks/lsl.py",
+           "node/runtime/taps/lsl_signal.py", "node/runtime/taps/recorder.py", "node/runtime/taps/__init__.py")
 #: The probes left, each with why: (file, the probe's text). None: drivers derive from DriverBase,
 #: which gives every member of the contract (take_events, fills_are_drops, labels, ...).
 ALLOWED: set[tuple[str, str]] = set()

@@ -98,7 +98,7 @@ def test_the_outlets_carry_the_documented_labels_units_classes_and_window_times(
     import sys
 
     from supramodal.banks import whisker_bank
-    from supramodal.node.runtime.lsl_outlets import outlet_name, outlet_source_id
+    from supramodal.node.runtime.sinks.lsl import outlet_name, outlet_source_id
     from supramodal.replay.wavio import write_wav
 
     pylsl = import_pylsl()

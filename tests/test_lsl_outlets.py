@@ -20,7 +20,7 @@ from node_processes import assert_start_up_ends_on, start_node
 
 require_lsl()
 
-from supramodal.node.runtime.lsl_outlets import LSLOutletSink, OutletStream, outlet_name  # noqa: E402  (needs pylsl)
+from supramodal.node.runtime.sinks.lsl import LSLOutletSink, OutletStream, outlet_name  # noqa: E402  (needs pylsl)
 
 
 def _replay_scene(tmp_path, prefix: str, seconds: float, sink: str, model: str = "train_on_start = true") -> str:

@@ -26,7 +26,7 @@ from node_processes import assert_start_up_ends_on, start_node
 
 require_lsl()
 
-from supramodal.node.runtime.lsl_signal import LSLSignalOutlet  # noqa: E402  (after the skip: it needs pylsl to build)
+from supramodal.node.runtime.taps.lsl_signal import LSLSignalOutlet  # noqa: E402  (after the skip: it needs pylsl to build)
 from supramodal.node.runtime.sources import Feed  # noqa: E402
 
 
@@ -184,7 +184,7 @@ def test_a_relay_in_another_process_sends_what_it_measured_and_the_stamps_show_t
     rate and labels as documented; every measured sample once, in order; none of the filled ones;
     and the timestamps step by exactly one sample period except over the hole, which they span
     by exactly its length."""
-    from supramodal.node.runtime.lsl_outlets import outlet_source_id
+    from supramodal.node.runtime.sinks.lsl import outlet_source_id
     from supramodal.replay.session import save_session
 
     pylsl = import_pylsl()
@@ -275,7 +275,7 @@ def test_a_restarted_relay_is_picked_up_again_by_its_source_id(tmp_path):
     import threading
 
     from supramodal.benchmarks.lsl_link import _end, _inlet_node, _prepare, _run_for, relay_scene, start_relay
-    from supramodal.node.runtime.lsl_outlets import outlet_source_id
+    from supramodal.node.runtime.sinks.lsl import outlet_source_id
 
     wav, model, _ = _prepare(8.0, tmp_path, lambda _: None)
     prefix = f"t{uuid.uuid4().hex[:8]}"

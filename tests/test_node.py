@@ -468,7 +468,7 @@ def test_nonfinite_and_out_of_range_samples_are_replaced_counted_and_reported(tm
     """A stream with NaN, Inf and a sample beyond the filterbank's max_input runs on (policy "zero"):
     each kind counted apart in the summary and shown in the text sink's summary line, and the
     feature windows are those of the stream with those samples set to 0."""
-    from supramodal.node.runtime.sinks import TextSink
+    from supramodal.node.runtime.sinks.text import TextSink
 
     _, x = whisker_signal
     x = x[:20000].copy()

@@ -11,7 +11,7 @@ import pytest
 from supramodal.node.scene.build import bank_for, build_node, driver_for
 from supramodal.node.cli import main
 from supramodal.node.runtime.graph import Node
-from supramodal.node.runtime.recorder import SessionRecorder
+from supramodal.node.runtime.taps.recorder import SessionRecorder
 from supramodal.node.runtime.ringbuffer import RingBuffer
 from supramodal.node.scene.schema import scene_from_dict
 from supramodal.node.runtime.sinks import ListSink

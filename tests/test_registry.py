@@ -137,7 +137,7 @@ def test_naming_a_driver_type_loads_only_its_module():
     code = ("import sys; from supramodal.node.scene.schema import scene_from_dict; "
             "scene_from_dict({'driver': {'type': 'synth'}}); "
             "print(sorted(m for m in ('serial', 'sounddevice', 'supramodal.drivers.microphone', "
-            "'supramodal.drivers.serial_whisker', 'supramodal.drivers.lsl', 'supramodal.node.runtime.lsl_outlets', 'pylsl') if m in sys.modules))")
+            "'supramodal.drivers.serial_whisker', 'supramodal.drivers.lsl', 'supramodal.node.runtime.sinks.lsl', 'pylsl') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"
 

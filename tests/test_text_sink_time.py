@@ -12,7 +12,8 @@ import pytest
 from supramodal.node.scene.build import build_node
 from supramodal.node.runtime.events import FUSED_STREAM, WindowEvent
 from supramodal.node.scene.schema import scene_from_dict
-from supramodal.node.runtime.sinks import ListSink, TextSink
+from supramodal.node.runtime.sinks import ListSink
+from supramodal.node.runtime.sinks.text import TextSink
 
 _LINE = re.compile(r"^ *(\d+\.\d{3}) s  (\S+)")
 

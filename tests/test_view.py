@@ -19,11 +19,11 @@ from supramodal.drivers.base import DriverEvent
 from supramodal.drivers.spec import OptionError
 from supramodal.node.scene.build import build_node
 from supramodal.node.runtime.events import WindowEvent
-from supramodal.node.runtime.recorder import SessionRecorder
+from supramodal.node.runtime.taps.recorder import SessionRecorder
 from supramodal.node.scene.registry import SinkContext
 from supramodal.node.scene.schema import SceneError, scene_from_dict
 from supramodal.node.runtime.sinks import QueuedSink
-from supramodal.node.runtime.view import CLIENT_QUEUE, MAX_BODY, SPEC, TOKEN_HEADER, ViewError, ViewSink, attach, view_sinks
+from supramodal.node.runtime.sinks.view import CLIENT_QUEUE, MAX_BODY, SPEC, TOKEN_HEADER, ViewError, ViewSink, attach, view_sinks
 
 NO_CHROMIUM = "Debian's chromium is not installed (apt-get install -y chromium; .ci/run installs it)"
 
@@ -335,7 +335,7 @@ def test_an_unplug_of_the_mock_board_shows_a_banner_within_a_second(tmp_path, br
 
 def test_a_fused_graph_shows_both_streams_the_fused_one_and_the_pairing(tmp_path, browser):
     from supramodal.node.scene.schema import load_scene
-    from supramodal.node.runtime.view import with_view
+    from supramodal.node.runtime.sinks.view import with_view
 
     sc = load_scene(str(Path(__file__).resolve().parents[1] / "examples" / "two_streams_fused.toml"))
     graph = build_node(with_view(replace(sc, sinks=[]), 0))

@@ -13,9 +13,9 @@ from view_browser import Browser, chromium_path
 
 from supramodal.errors import InputError
 from supramodal.node.scene.build import build_node
-from supramodal.node.runtime.recorder import SessionRecorder
+from supramodal.node.runtime.taps.recorder import SessionRecorder
 from supramodal.node.scene.schema import scene_from_dict
-from supramodal.node.runtime.view import TOKEN_HEADER
+from supramodal.node.runtime.sinks.view import TOKEN_HEADER
 from supramodal.node.workflows.view_replay import ViewReplay
 
 PANEL = "document.querySelector('[data-stream=\"main\"]')"

@@ -46,11 +46,11 @@ from dataclasses import replace
 from supramodal.errors import InputError, SupramodalError
 from supramodal.model import TextureModel
 from supramodal.node.runtime.events import FUSED_STREAM, MAIN_STREAM, EventLimiter
-from supramodal.node.runtime.recorder import SessionRecorder
 from supramodal.node.runtime.sinks import Sink
 from supramodal.node.runtime.sources import Feed, Source
 from supramodal.node.runtime.streams import Labels, Stream, channel_mapper
 from supramodal.node.runtime.taps import Tap
+from supramodal.node.runtime.taps.recorder import SessionRecorder
 from supramodal.pipeline import FeaturePipeline
 
 __all__ = ["Graph", "Node", "NodeError", "Labels", "channel_mapper"]
@@ -76,16 +76,16 @@ class Graph:
         decisions); None (the default for every sink) listens to all. Driver events and the
         summary go to every sink.
     fusion : node.fusion.LateFusion, optional
-    recorder : node.recorder.SessionRecorder or dict, optional
+    recorder : node.runtime.taps.recorder.SessionRecorder or dict, optional
         Records the raw frames of a source (a tap, run as the others are): one recorder for a
         graph of one source, or ``{source name: recorder}`` for several (each keeps its blocks'
         times on common time, so that the sessions replay in step). What they wrote is in the
         summary's ``recorded``, not under ``taps``.
     taps : list of (str, node.taps.Tap), optional
         Readers of a source's raw frames, each on a thread of its own, by source name (e.g.
-        :class:`node.lsl_signal.LSLSignalOutlet`); see :class:`~supramodal.node.runtime.taps.Tap` for
-        the calls and their threads. A source that only taps read needs no stream: a graph may
-        have none (a relay).
+        :class:`~supramodal.node.runtime.taps.lsl_signal.LSLSignalOutlet`); see
+        :class:`~supramodal.node.runtime.taps.Tap` for the calls and their threads. A source that
+        only taps read needs no stream: a graph may have none (a relay).
     """
 
     def __init__(self, sources, streams, sinks, routes=None, fusion=None, recorder=None, taps=()) -> None:
@@ -129,7 +129,7 @@ class Graph:
             if rec is None:
                 continue
             if not isinstance(rec, SessionRecorder):
-                raise InputError("a recorder is a supramodal.node.runtime.recorder.SessionRecorder, "
+                raise InputError("a recorder is a supramodal.node.runtime.taps.recorder.SessionRecorder, "
                                  f"got {type(rec).__name__}")
             self._recorders.append((rec, source, source.add_feed("recorder", track=rec.track), "recorder"))
         self._taps: list[tuple[Tap, Source, Feed, str]] = []

@@ -130,7 +130,7 @@ class Source:
         capacity = max(int(buffer_seconds * driver.rate), 1)
         self.ring = RingBuffer(capacity, driver.channels, dtype=np.float64, overrun=overrun)
         self.feeds: list[Feed] = []
-        #: The recorder of this source (:class:`~supramodal.node.runtime.recorder.SessionRecorder`, a tap
+        #: The recorder of this source (:class:`~supramodal.node.runtime.taps.recorder.SessionRecorder`, a tap
         #: that set itself here in its ``start``), or None: the source thread tells it each
         #: block's driver marks (``note``) and time on common time (``arrival``), which no feed carries.
         self.recorder = None

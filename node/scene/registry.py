@@ -141,11 +141,11 @@ def source_keys(spec: DriverSpec) -> dict[str, Key]:
 
 #: Type -> the module holding the sink's spec (``SPEC``, or the attribute after a colon).
 SINK_MODULES = {
-    "text": "supramodal.node.runtime.sinks:TEXT",
-    "jsonl": "supramodal.node.runtime.sinks:JSONL",
-    "lsl": "supramodal.node.runtime.lsl_outlets",
-    "lsl-signal": "supramodal.node.runtime.lsl_signal",
-    "view": "supramodal.node.runtime.view",
+    "text": "supramodal.node.runtime.sinks.text",
+    "jsonl": "supramodal.node.runtime.sinks.jsonl",
+    "lsl": "supramodal.node.runtime.sinks.lsl",
+    "lsl-signal": "supramodal.node.runtime.taps.lsl_signal",
+    "view": "supramodal.node.runtime.sinks.view",
 }
 #: What a sink may need built before it is made: nothing (it is made first, so that a file is
 #: checked before any training), the streams' plans (their pipelines and classes, known before any

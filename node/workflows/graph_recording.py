@@ -20,7 +20,7 @@ from pathlib import Path
 
 from supramodal.errors import InputError
 from supramodal.node.runtime.outputs import check_new_file
-from supramodal.node.runtime.recorder import SessionRecorder
+from supramodal.node.runtime.taps.recorder import SessionRecorder
 from supramodal.node.scene.schema import Scene, scene_from_dict, scene_to_toml
 
 
@@ -61,7 +61,7 @@ class GraphMarks:
     A label starts at the common time of the newest sample any source has delivered (for live
     sources, the moment it is typed, less a block's delivery); each source's recorder maps it to
     its own frames through its clock when it writes its session
-    (:meth:`~supramodal.node.runtime.recorder.SessionRecorder.mark_at`). Thread-safe: :meth:`mark` may be
+    (:meth:`~supramodal.node.runtime.taps.recorder.SessionRecorder.mark_at`). Thread-safe: :meth:`mark` may be
     called from a thread reading a terminal.
 
     Parameters

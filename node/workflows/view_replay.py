@@ -29,7 +29,7 @@ from supramodal.drivers.base import DriverEvent
 from supramodal.errors import InputError
 from supramodal.node.runtime.events import WindowEvent
 from supramodal.node.runtime.sinks import Sink
-from supramodal.node.runtime.view import ViewSink, event_message, window_message
+from supramodal.node.runtime.sinks.view import ViewSink, event_message, window_message
 
 __all__ = ["BANKS_BY_RATE", "MAX_SPEED", "ViewReplay", "replay_scene"]
 

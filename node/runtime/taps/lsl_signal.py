@@ -62,7 +62,8 @@ from supramodal.checks import NAME_HELP, Key, is_name, non_negative, number, tex
 from supramodal.drivers.lsl import import_pylsl
 from supramodal.drivers.spec import OptionError
 from supramodal.errors import InputError
-from supramodal.node.runtime.lsl_outlets import (
+from supramodal.node.runtime.ringbuffer import RingClosed, flag_runs
+from supramodal.node.runtime.sinks.lsl import (
     DEFAULT_PREFIX,
     OUTLET_BUFFER_SECONDS,
     LSLClock,
@@ -70,7 +71,6 @@ from supramodal.node.runtime.lsl_outlets import (
     outlet_source_id,
     wait_for_consumers,
 )
-from supramodal.node.runtime.ringbuffer import RingClosed, flag_runs
 from supramodal.node.runtime.taps import Tap
 from supramodal.node.scene.registry import SinkSpec, driver_spec
 
@@ -105,7 +105,7 @@ class LSLSignalOutlet(Tap):
     chunk : float
         Seconds of samples per push (default :data:`DEFAULT_SIGNAL_CHUNK`).
     prefix : str
-        Default :data:`~supramodal.node.runtime.lsl_outlets.DEFAULT_PREFIX`.
+        Default :data:`~supramodal.node.runtime.sinks.lsl.DEFAULT_PREFIX`.
     stream_type : str
         The LSL content type (default :data:`DEFAULT_SIGNAL_TYPE`; the scene builder passes what
         the source is).

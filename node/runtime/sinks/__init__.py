@@ -1,4 +1,8 @@
-"""Where the node's window events go: text lines or JSON Lines, to stdout or a file.
+"""Sinks: where the node's window events go. This package holds the base and the machinery every
+sink shares; each sink a scene can name is one module beside it, with its spec (``SPEC``), registered
+in :data:`supramodal.node.scene.registry.SINK_MODULES`: :mod:`.text` (text lines), :mod:`.jsonl` (JSON
+Lines), :mod:`.lsl` (Lab Streaming Layer outlets), :mod:`.view` (a page in the browser). The taps (a
+source's raw frames) are in :mod:`supramodal.node.runtime.taps`.
 
 :class:`Sink` is the interface the graph calls (every call but ``emit`` a documented no-op by
 default): ``start``, ``emit``, ``event``, ``drain``, ``stats``, ``summary``, ``close``, and the
@@ -24,7 +28,6 @@ from __future__ import annotations
 
 import abc
 import errno
-import json
 import os
 import queue
 import sys
@@ -32,17 +35,16 @@ import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, TextIO, cast
+from typing import Any, TextIO
 
-import numpy as np
-
-from supramodal.checks import Key, text
+from supramodal.checks import Key
+from supramodal.checks import text as is_text  # not `text`: that is the text sink's module here
 from supramodal.drivers.base import DriverEvent
 from supramodal.drivers.spec import OptionError
 from supramodal.errors import InputError
-from supramodal.node.runtime.events import MAIN_STREAM, WindowEvent
+from supramodal.node.runtime.events import WindowEvent
 from supramodal.node.runtime.outputs import check_new_file
-from supramodal.node.scene.registry import SinkContext, SinkSpec
+from supramodal.node.scene.registry import SinkContext
 
 
 class Sink(abc.ABC):
@@ -152,164 +154,6 @@ class FileSink(Sink):
             self._file.flush()
         elif self._file is not None:
             self._file.close()
-
-
-class JsonLinesSink(FileSink):
-    """One JSON object per window; a driver event as ``{"event": kind, "message": ..., "time": ...,
-    "stream_index": ..., "count": ...}`` in the same stream; the summary as a last object with
-    ``"summary": true``."""
-
-    def emit(self, event: WindowEvent) -> None:
-        line = json.dumps(event.as_dict()) + "\n"
-        with self._lock:
-            self._fh.write(line)
-
-    def event(self, ev: DriverEvent) -> None:
-        line = json.dumps(ev.as_dict()) + "\n"
-        with self._lock:
-            self._fh.write(line)
-
-    def summary(self, summary: dict[str, Any]) -> None:
-        self._fh.write(json.dumps({"summary": True, **summary}) + "\n")
-
-
-class TextSink(FileSink):
-    """One human-readable line per window, under a line that names the columns, and a summary block;
-    driver events on stderr, ``supramodal: MESSAGE`` and, for repeats folded in, ``(N more since)``.
-
-    Every line's time is on one basis, said in the header: the window's end (``WindowEvent.end``),
-    seconds on the node's common time, for every stream's window and the fused ones alike (a
-    stream's own time, ``WindowEvent.t``, would put a microphone window that ends 0.147 s into the
-    graph at 0.100 s beside a fused window at 0.147 s). In a one-source scene of a file, common
-    time is the stream's time.
-    """
-
-    _headed = False
-
-    def event(self, ev: DriverEvent) -> None:
-        more = f" ({ev.count - 1} more since)" if ev.count > 1 else ""
-        sys.stderr.write(f"supramodal: {ev.message}{more}\n")
-        sys.stderr.flush()
-
-    #: What the first column is, said in the header.
-    TIME_BASIS = "time: each window's end, s on the node's common time"
-
-    def _header(self, event: WindowEvent) -> str:
-        if event.decision is None:
-            return f"{'time':>11}  feature sums over the channels, per feature  ({self.TIME_BASIS})"
-        line = f"{'time':>11}  {'decision':<12} confidence  ({self.TIME_BASIS})"
-        if event.pooled is not None:
-            line += "  | the decision pooled over the last windows"
-        if event.truth is not None:
-            line += "  truth: the texture really there; ok = right, -- = wrong"
-        return line
-
-    def emit(self, event: WindowEvent) -> None:
-        if not self._headed:
-            self._fh.write(self._header(event) + "\n")
-            self._headed = True
-        head = f"{event.end:9.3f} s"                    # common time, for every stream (TIME_BASIS)
-        if event.stream != MAIN_STREAM:                 # a graph of several streams: say whose window
-            head += f"  {event.stream:<8}"
-        if event.decision is not None:
-            line = f"{head}  {event.decision:<12} conf {event.confidence:.2f}"
-            if event.unknown is not None:
-                line += f" ({event.unknown}" + (f"; guess {event.guess})" if event.guess else ")")
-            acc = event.pooled
-            if acc:
-                shown = acc["label"] if acc["label"] is not None else "(no contact)"
-                line += f"  | over {acc['windows']:>3} win: {shown:<12} conf {acc['confidence']:.2f}"
-                if acc.get("decided"):
-                    line += f" decided after {acc['decided_after']}"
-            if event.truth is not None:
-                mark = "ok" if event.truth == event.decision else "--"
-                line += f"  truth {event.truth:<12} {mark}"
-        else:
-            features = cast(dict[str, Any], event.features)   # an event without a decision carries features
-            parts = [f"{name} sum {float(np.sum(vals)):.4g}" for name, vals in features.items()]
-            line = f"{head}  " + "  ".join(parts)
-        for flag in ("gap", "alone"):
-            if flag in event.flags:
-                line += f"  [{flag}]"
-        self._fh.write(line + "\n")
-
-    def summary(self, s: dict[str, Any]) -> None:
-        lines = ["", "summary"]
-        if "streams" in s and not s["streams"]:  # a relay: its sources' samples sent on, nothing decided
-            lines.append(f"  stream             {s['stream_seconds']:.2f} s sent on, no windows (a relay)")
-        elif "streams" in s:                    # several streams: each one's counts, then the graph's
-            lines.append(f"  windows            {s['windows']} on {len(s['streams'])} streams")
-            for name, one in s["streams"].items():
-                lines += [f"  stream {name}"] + ["  " + line for line in _stream_lines(one)]
-            for name, c in (s.get("clocks") or {}).items():
-                lines.append(f"  clock {name:<11} rate error {c['ppm']:+.1f} ppm, jitter {c['jitter_ms']:.2f} ms")
-            f = s.get("fusion")
-            if f:
-                lines.append(f"  fused              {f['windows']} windows: {f['paired']} paired, {f['alone']} alone"
-                             f" (one sense), {sum(f['late'].values())} late windows left out"
-                             + "".join(f"; {name} dropped out {n} time{'s' * (n != 1)}"
-                                       for name, n in f.get("dropouts", {}).items() if n)
-                             + (f"; window accuracy {f['window_accuracy']:.3f}" if f.get("window_accuracy") is not None
-                                else ""))
-        else:
-            lines += _stream_lines(s)
-        for name, t in (s.get("taps") or {}).items():
-            f = t["frames"]
-            lines.append(f"  sent               {name}: {t['samples_sent']} samples in {t['chunks']} chunks; not sent: "
-                         f"{f['filled']} filled and {f['dropped']} dropped frames")
-        counts = (s.get("events") or {}).get("counts")
-        if counts:
-            dropped = sum(s["events"].get("dropped", {}).values())
-            lines.append("  driver events      " + ", ".join(f"{k} {n}" for k, n in counts.items())
-                         + (f" ({dropped} not shown: dropped before the node took them)" if dropped else ""))
-        for q in s.get("sinks") or ():
-            if q["dropped_windows"] or q["dropped_events"] or q["errors"]:
-                lines.append(f"  sink               {q['sink']}: dropped {q['dropped_windows']} windows and "
-                             f"{q['dropped_events']} events it could not take"
-                             + (f", {q['errors']} errors (first: {q['first_error']})" if q["errors"] else ""))
-        if s.get("stopped_by"):
-            lines.append(f"  stopped by         {s['stopped_by']}")
-        self._fh.write("\n".join(lines) + "\n")
-
-
-def _stream_lines(s: dict[str, Any]) -> list[str]:
-    """The summary lines of one stream's counts."""
-    lines = [f"  windows            {s['windows']}",
-             f"  stream             {s['stream_seconds']:.2f} s"
-             + (f" in {s['wall_seconds']:.2f} s wall time" if "wall_seconds" in s else "")]
-    if s.get("window_accuracy") is not None:
-        lines.append(f"  window accuracy    {s['window_accuracy']:.3f} over {s['labelled_windows']} labelled windows")
-    if s.get("accumulated_accuracy") is not None:
-        lines.append(f"  accumulated acc.   {s['accumulated_accuracy']:.3f}")
-    unknown = s.get("unknown_windows")
-    if unknown and any(unknown.values()):
-        lines.append("  unknown windows    " + ", ".join(f"{n} {why}" for why, n in unknown.items() if n))
-    if "contacts_decided" in s:
-        median = s["windows_to_decide_median"]
-        lines.append(f"  contacts decided   {s['contacts_decided']}"
-                     + (f", median {median:g} windows to decide" if median is not None else ""))
-    lines.append(frames_line(s["frames"]))
-    lines.append(f"  samples replaced   nonfinite replaced {s['nonfinite_replaced']}, out of range replaced "
-                 f"{s.get('out_of_range_replaced', 0)}")
-    lat = s.get("latency_ms")
-    if lat:
-        lines.append(f"  decision latency   p50 {lat['p50']:.2f} ms, p99 {lat['p99']:.2f} ms, max {lat['max']:.2f} ms "
-                     "after window close")
-    lines.append(f"  real-time factor   {s['real_time_factor']:.4f} (processing CPU s per s of stream)")
-    return lines
-
-
-def frames_line(f: dict[str, Any]) -> str:
-    """The summary line of frame fates: ``stream = delivered + filled + dropped``, with where the
-    dropped ones went (docs/node.md, "Every frame has one fate")."""
-    total = f["delivered"] + f["filled"] + f["dropped"]
-    line = (f"  frames             {f['stream']} = delivered {f['delivered']} + filled {f['filled']} + "
-            f"dropped {f['dropped']} (in ring {f['dropped_in_ring']}, by driver {f['dropped_by_driver']})")
-    if total != f["stream"]:
-        # Only when the processing thread stopped before draining the ring (it failed): say so
-        # rather than print an identity that does not hold.
-        line = line.replace(" = ", " != ", 1) + f"; {f['stream'] - total} not processed"
-    return line
 
 
 class ListSink(Sink):
@@ -501,9 +345,15 @@ class QueuedSink(Sink):
         self.sink.close()
 
 
-# -- as a scene names them ---------------------------------------------------------------------------
+# -- the file sinks as a scene names them (text, jsonl) -----------------------------------------------
 
-def _file_sink(kind: type[FileSink]) -> Callable[[dict[str, Any], SinkContext], Sink]:
+#: The ``path`` key of a file sink (:mod:`.text`, :mod:`.jsonl`).
+PATH_KEY = Key(is_text, '"-" (stdout) or a file path', "-")
+
+
+def file_sink(kind: type[FileSink]) -> Callable[[dict[str, Any], SinkContext], Sink]:
+    """The ``build`` of a file sink's spec: ``kind`` at the scene's ``path`` (relative to the scene),
+    behind its own :class:`QueuedSink`."""
     def build(options: dict[str, Any], context: SinkContext) -> Sink:
         path = options["path"] if options["path"] == "-" else str(context.resolve(options["path"]))
         try:
@@ -513,10 +363,3 @@ def _file_sink(kind: type[FileSink]) -> Callable[[dict[str, Any], SinkContext], 
         # Behind its own queue: processing never waits on a slow disk or a stalled terminal.
         return QueuedSink(sink)
     return build
-
-
-_PATH = Key(text, '"-" (stdout) or a file path', "-")
-TEXT = SinkSpec(type="text", keys={"path": _PATH}, build=_file_sink(TextSink),
-                summary="one line per window, for people (stdout or a file)")
-JSONL = SinkSpec(type="jsonl", keys={"path": _PATH}, build=_file_sink(JsonLinesSink),
-                 summary="one JSON object per window, driver event and summary (stdout or a file)")

@@ -390,7 +390,7 @@ class _Handler(BaseHTTPRequestHandler):
 
 
 def _static(name: str) -> bytes:
-    return (resources.files("supramodal.node.runtime") / "view_static" / name).read_bytes()
+    return (resources.files("supramodal.node.runtime.sinks") / "view_static" / name).read_bytes()
 
 
 # -- the sink ------------------------------------------------------------------------------------------

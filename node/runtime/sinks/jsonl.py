@@ -1,0 +1,37 @@
+"""The ``jsonl`` sink: one JSON object per window, driver event and summary, to stdout or a file
+(a :class:`~supramodal.node.runtime.sinks.FileSink`, behind its own queue in a scene)."""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+
+from supramodal.drivers.base import DriverEvent
+from supramodal.node.runtime.events import WindowEvent
+from supramodal.node.runtime.sinks import PATH_KEY, FileSink, file_sink
+from supramodal.node.scene.registry import SinkSpec
+
+__all__ = ["SPEC", "JsonLinesSink"]
+
+
+class JsonLinesSink(FileSink):
+    """One JSON object per window; a driver event as ``{"event": kind, "message": ..., "time": ...,
+    "stream_index": ..., "count": ...}`` in the same stream; the summary as a last object with
+    ``"summary": true``."""
+
+    def emit(self, event: WindowEvent) -> None:
+        line = json.dumps(event.as_dict()) + "\n"
+        with self._lock:
+            self._fh.write(line)
+
+    def event(self, ev: DriverEvent) -> None:
+        line = json.dumps(ev.as_dict()) + "\n"
+        with self._lock:
+            self._fh.write(line)
+
+    def summary(self, summary: dict[str, Any]) -> None:
+        self._fh.write(json.dumps({"summary": True, **summary}) + "\n")
+
+
+SPEC = SinkSpec(type="jsonl", keys={"path": PATH_KEY}, build=file_sink(JsonLinesSink),
+                summary="one JSON object per window, driver event and summary (stdout or a file)")

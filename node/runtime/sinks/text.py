@@ -1,0 +1,159 @@
+"""The ``text`` sink: one human-readable line per window and a summary block, to stdout or a file
+(a :class:`~supramodal.node.runtime.sinks.FileSink`, behind its own queue in a scene)."""
+
+from __future__ import annotations
+
+import sys
+from typing import Any, cast
+
+import numpy as np
+
+from supramodal.drivers.base import DriverEvent
+from supramodal.node.runtime.events import MAIN_STREAM, WindowEvent
+from supramodal.node.runtime.sinks import PATH_KEY, FileSink, file_sink
+from supramodal.node.scene.registry import SinkSpec
+
+__all__ = ["SPEC", "TextSink", "frames_line"]
+
+
+class TextSink(FileSink):
+    """One human-readable line per window, under a line that names the columns, and a summary block;
+    driver events on stderr, ``supramodal: MESSAGE`` and, for repeats folded in, ``(N more since)``.
+
+    Every line's time is on one basis, said in the header: the window's end (``WindowEvent.end``),
+    seconds on the node's common time, for every stream's window and the fused ones alike (a
+    stream's own time, ``WindowEvent.t``, would put a microphone window that ends 0.147 s into the
+    graph at 0.100 s beside a fused window at 0.147 s). In a one-source scene of a file, common
+    time is the stream's time.
+    """
+
+    _headed = False
+
+    def event(self, ev: DriverEvent) -> None:
+        more = f" ({ev.count - 1} more since)" if ev.count > 1 else ""
+        sys.stderr.write(f"supramodal: {ev.message}{more}\n")
+        sys.stderr.flush()
+
+    #: What the first column is, said in the header.
+    TIME_BASIS = "time: each window's end, s on the node's common time"
+
+    def _header(self, event: WindowEvent) -> str:
+        if event.decision is None:
+            return f"{'time':>11}  feature sums over the channels, per feature  ({self.TIME_BASIS})"
+        line = f"{'time':>11}  {'decision':<12} confidence  ({self.TIME_BASIS})"
+        if event.pooled is not None:
+            line += "  | the decision pooled over the last windows"
+        if event.truth is not None:
+            line += "  truth: the texture really there; ok = right, -- = wrong"
+        return line
+
+    def emit(self, event: WindowEvent) -> None:
+        if not self._headed:
+            self._fh.write(self._header(event) + "\n")
+            self._headed = True
+        head = f"{event.end:9.3f} s"                    # common time, for every stream (TIME_BASIS)
+        if event.stream != MAIN_STREAM:                 # a graph of several streams: say whose window
+            head += f"  {event.stream:<8}"
+        if event.decision is not None:
+            line = f"{head}  {event.decision:<12} conf {event.confidence:.2f}"
+            if event.unknown is not None:
+                line += f" ({event.unknown}" + (f"; guess {event.guess})" if event.guess else ")")
+            acc = event.pooled
+            if acc:
+                shown = acc["label"] if acc["label"] is not None else "(no contact)"
+                line += f"  | over {acc['windows']:>3} win: {shown:<12} conf {acc['confidence']:.2f}"
+                if acc.get("decided"):
+                    line += f" decided after {acc['decided_after']}"
+            if event.truth is not None:
+                mark = "ok" if event.truth == event.decision else "--"
+                line += f"  truth {event.truth:<12} {mark}"
+        else:
+            features = cast(dict[str, Any], event.features)   # an event without a decision carries features
+            parts = [f"{name} sum {float(np.sum(vals)):.4g}" for name, vals in features.items()]
+            line = f"{head}  " + "  ".join(parts)
+        for flag in ("gap", "alone"):
+            if flag in event.flags:
+                line += f"  [{flag}]"
+        self._fh.write(line + "\n")
+
+    def summary(self, s: dict[str, Any]) -> None:
+        lines = ["", "summary"]
+        if "streams" in s and not s["streams"]:  # a relay: its sources' samples sent on, nothing decided
+            lines.append(f"  stream             {s['stream_seconds']:.2f} s sent on, no windows (a relay)")
+        elif "streams" in s:                    # several streams: each one's counts, then the graph's
+            lines.append(f"  windows            {s['windows']} on {len(s['streams'])} streams")
+            for name, one in s["streams"].items():
+                lines += [f"  stream {name}"] + ["  " + line for line in _stream_lines(one)]
+            for name, c in (s.get("clocks") or {}).items():
+                lines.append(f"  clock {name:<11} rate error {c['ppm']:+.1f} ppm, jitter {c['jitter_ms']:.2f} ms")
+            f = s.get("fusion")
+            if f:
+                lines.append(f"  fused              {f['windows']} windows: {f['paired']} paired, {f['alone']} alone"
+                             f" (one sense), {sum(f['late'].values())} late windows left out"
+                             + "".join(f"; {name} dropped out {n} time{'s' * (n != 1)}"
+                                       for name, n in f.get("dropouts", {}).items() if n)
+                             + (f"; window accuracy {f['window_accuracy']:.3f}" if f.get("window_accuracy") is not None
+                                else ""))
+        else:
+            lines += _stream_lines(s)
+        for name, t in (s.get("taps") or {}).items():
+            f = t["frames"]
+            lines.append(f"  sent               {name}: {t['samples_sent']} samples in {t['chunks']} chunks; not sent: "
+                         f"{f['filled']} filled and {f['dropped']} dropped frames")
+        counts = (s.get("events") or {}).get("counts")
+        if counts:
+            dropped = sum(s["events"].get("dropped", {}).values())
+            lines.append("  driver events      " + ", ".join(f"{k} {n}" for k, n in counts.items())
+                         + (f" ({dropped} not shown: dropped before the node took them)" if dropped else ""))
+        for q in s.get("sinks") or ():
+            if q["dropped_windows"] or q["dropped_events"] or q["errors"]:
+                lines.append(f"  sink               {q['sink']}: dropped {q['dropped_windows']} windows and "
+                             f"{q['dropped_events']} events it could not take"
+                             + (f", {q['errors']} errors (first: {q['first_error']})" if q["errors"] else ""))
+        if s.get("stopped_by"):
+            lines.append(f"  stopped by         {s['stopped_by']}")
+        self._fh.write("\n".join(lines) + "\n")
+
+
+def _stream_lines(s: dict[str, Any]) -> list[str]:
+    """The summary lines of one stream's counts."""
+    lines = [f"  windows            {s['windows']}",
+             f"  stream             {s['stream_seconds']:.2f} s"
+             + (f" in {s['wall_seconds']:.2f} s wall time" if "wall_seconds" in s else "")]
+    if s.get("window_accuracy") is not None:
+        lines.append(f"  window accuracy    {s['window_accuracy']:.3f} over {s['labelled_windows']} labelled windows")
+    if s.get("accumulated_accuracy") is not None:
+        lines.append(f"  accumulated acc.   {s['accumulated_accuracy']:.3f}")
+    unknown = s.get("unknown_windows")
+    if unknown and any(unknown.values()):
+        lines.append("  unknown windows    " + ", ".join(f"{n} {why}" for why, n in unknown.items() if n))
+    if "contacts_decided" in s:
+        median = s["windows_to_decide_median"]
+        lines.append(f"  contacts decided   {s['contacts_decided']}"
+                     + (f", median {median:g} windows to decide" if median is not None else ""))
+    lines.append(frames_line(s["frames"]))
+    lines.append(f"  samples replaced   nonfinite replaced {s['nonfinite_replaced']}, out of range replaced "
+                 f"{s.get('out_of_range_replaced', 0)}")
+    lat = s.get("latency_ms")
+    if lat:
+        lines.append(f"  decision latency   p50 {lat['p50']:.2f} ms, p99 {lat['p99']:.2f} ms, max {lat['max']:.2f} ms "
+                     "after window close")
+    lines.append(f"  real-time factor   {s['real_time_factor']:.4f} (processing CPU s per s of stream)")
+    return lines
+
+
+def frames_line(f: dict[str, Any]) -> str:
+    """The summary line of frame fates: ``stream = delivered + filled + dropped``, with where the
+    dropped ones went (docs/node.md, "Every frame has one fate")."""
+    total = f["delivered"] + f["filled"] + f["dropped"]
+    line = (f"  frames             {f['stream']} = delivered {f['delivered']} + filled {f['filled']} + "
+            f"dropped {f['dropped']} (in ring {f['dropped_in_ring']}, by driver {f['dropped_by_driver']})")
+    if total != f["stream"]:
+        # Only when the processing thread stopped before draining the ring (it failed): say so
+        # rather than print an identity that does not hold.
+        line = line.replace(" = ", " != ", 1) + f"; {f['stream'] - total} not processed"
+    return line
+
+
+SPEC = SinkSpec(type="text", keys={"path": PATH_KEY}, build=file_sink(TextSink),
+                summary="one line per window, for people (stdout or a file)")
