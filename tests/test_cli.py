@@ -124,8 +124,8 @@ def test_output_paths_are_checked_before_any_work(monkeypatch, tmp_path, capsys,
     def no_work(args):
         raise AssertionError("the command started its work although its output path is unusable")
 
-    for name in ("_cmd_train", "_cmd_experiment", "_cmd_synth", "_cmd_record", "_cmd_bench"):
-        monkeypatch.setattr(cli, name, no_work)
+    for name in ("train", "experiment", "synth", "record", "bench"):
+        monkeypatch.setattr(cli.COMMANDS[name], "run", no_work)
     with pytest.raises(SystemExit) as stop:
         main([a.format(tmp=tmp_path) for a in argv])
     assert stop.value.code == 2

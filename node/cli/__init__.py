@@ -1,0 +1,164 @@
+"""The ``supramodal`` command: a thin layer over the model, the drivers and the node.
+
+One module per command (``run``, ``train``, ...), each with ``add_parser(subparsers, common)``
+(its arguments) and ``run(args)`` (the command), listed once in :data:`COMMANDS`: a new command
+is one module and one line there. What the commands share: the argument types (``arguments``),
+the signal handling (``signals``) and the exit statuses (``errors``). Each command imports what
+it needs when it runs, so that, for example, an experiment never imports sounddevice or pyserial.
+
+Errors and exit status (README "Errors and exit status"):
+
+* 0: done; also when the reader of stdout went away (``supramodal run | head``): the
+  reader asked for no more, as Ctrl-C does, and a ``set -o pipefail`` script must not fail.
+* 2: a :class:`~supramodal.errors.SupramodalError` (bad input, a device or a file the
+  user named), or an ``OSError`` naming a file: one line ``supramodal: error: ...``.
+* 1: anything else is a bug: its traceback and a line asking to report it.
+* 130 / 143: SIGINT / SIGTERM before the stream started (while a scene is built or its
+  model trained): one line, nothing processed. Once the node runs, both stop it cleanly:
+  what is buffered is processed, the summary printed, and the exit status is 0.
+
+``--debug`` (before or after the command) shows the traceback of every error.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import signal
+import sys
+import threading
+import traceback
+import warnings
+from collections.abc import Callable, Sequence
+from types import ModuleType
+from typing import Any, TextIO
+
+from supramodal import __version__
+from supramodal.errors import SupramodalWarning
+from supramodal.node.cli import (
+    bench,
+    devices,
+    evaluate,
+    experiment,
+    fit,
+    import_recording,
+    label,
+    mock_whisker,
+    record,
+    run,
+    synth,
+    train,
+    view,
+)
+from supramodal.node.cli.errors import EXIT_BUG, EXIT_USER_ERROR, CliError, is_user_error, reader_left
+from supramodal.node.cli.signals import StartupInterrupted
+
+__all__ = ["COMMANDS", "EXIT_BUG", "EXIT_USER_ERROR", "CliError", "build_parser", "main"]
+
+#: The commands, in the order ``supramodal --help`` lists them: name -> module with
+#: ``add_parser(subparsers, common)`` and ``run(args) -> int``.
+COMMANDS: dict[str, ModuleType] = {
+    "run": run,
+    "train": train,
+    "fit": fit,
+    "evaluate": evaluate,
+    "record": record,
+    "view": view,
+    "label": label,
+    "import-recording": import_recording,
+    "mock-whisker": mock_whisker,
+    "devices": devices,
+    "experiment": experiment,
+    "bench": bench,
+    "synth": synth,
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The parser of the whole command line: the global options and one subparser per command.
+
+    Returns
+    -------
+    argparse.ArgumentParser
+        Its ``parse_args`` gives a namespace whose ``func`` runs the command.
+    """
+    assert __doc__ is not None
+    parser = argparse.ArgumentParser(prog="supramodal", description=__doc__.splitlines()[0])
+    parser.add_argument("--version", action="version", version=f"supramodal {__version__}")
+    parser.add_argument("--debug", action="store_true", help="show the traceback of every error, not one line")
+    # --debug is also accepted after the command; SUPPRESS keeps the top-level value when it is not.
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--debug", action="store_true", default=argparse.SUPPRESS, help=argparse.SUPPRESS)
+    sub = parser.add_subparsers(dest="command", required=True)
+    for module in COMMANDS.values():
+        module.add_parser(sub, common).set_defaults(func=module.run)
+    return parser
+
+
+def _show_warning(message: Warning | str, category: type[Warning], filename: str, lineno: int,
+                  file: TextIO | None = None, line: str | None = None,
+                  _default: Callable[..., Any] = warnings.showwarning) -> None:
+    """The package's warnings as one line each, like its errors (``--quiet`` hides progress, never these)."""
+    if issubclass(category, SupramodalWarning):
+        print(f"supramodal: warning: {message}", file=sys.stderr, flush=True)
+    else:
+        _default(message, category, filename, lineno, file, line)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the command line; returns the exit status (see the module docstring).
+
+    The SIGINT and SIGTERM handlers a command installs (to stop a node cleanly) are its own: the
+    caller's are put back when it returns, so that a program or a test suite that calls ``main``
+    can still be interrupted afterwards.
+
+    Parameters
+    ----------
+    argv : sequence of str, optional
+        The arguments after the program's name (default: ``sys.argv[1:]``).
+
+    Returns
+    -------
+    int
+        The exit status: 0, 1 (a bug), 2 (the user's error), 128 + a signal's number.
+    """
+    args = build_parser().parse_args(argv)
+    shown, warnings.showwarning = warnings.showwarning, _show_warning
+    handlers = {}
+    if threading.current_thread() is threading.main_thread():      # signals are the main thread's
+        handlers = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        return _run(args)
+    finally:
+        warnings.showwarning = shown
+        for sig, handler in handlers.items():
+            if handler is not None:                                  # None: set outside Python
+                signal.signal(sig, handler)
+
+
+def _run(args: argparse.Namespace) -> int:
+    """Run the parsed command and turn what it raised into its message and exit status."""
+    try:
+        return args.func(args)
+    except StartupInterrupted as exc:
+        print(f"supramodal: interrupted by {exc} during start-up (building the scene, training its model); "
+              "nothing was processed", file=sys.stderr)
+        return 128 + exc.signum
+    except KeyboardInterrupt:
+        print("supramodal: interrupted", file=sys.stderr)
+        return 128 + signal.SIGINT
+    except Exception as exc:
+        if reader_left(exc):
+            # Python docs' recipe: point stdout at /dev/null so that the interpreter's last
+            # flush does not fail again; then stop quietly (exit status: module docstring).
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+            return 0
+        if is_user_error(exc):
+            if args.debug:
+                traceback.print_exception(exc)
+            print(f"supramodal: error: {exc}", file=sys.stderr)
+            return EXIT_USER_ERROR
+        traceback.print_exception(exc)
+        print(f"supramodal: internal error ({type(exc).__name__}): this is a bug in supramodal; please report it "
+              "with the traceback above and the command that gave it", file=sys.stderr)
+        return EXIT_BUG

@@ -1,0 +1,145 @@
+"""What the commands share: argument types checked at parse time, output paths checked before any work,
+and the progress lines on stderr."""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import sys
+from pathlib import Path
+
+from supramodal.errors import SupramodalError
+
+
+def _check_output(text: str, folder: bool) -> Path:
+    """An output path, checked before any long work starts, so that none is lost.
+
+    A file (``folder=False``) must not be a folder, and its folder must exist and be
+    writable; the file is written at exactly this path. A folder (``folder=True``) is
+    created with its parents when the command writes; it must not be a file, and its
+    nearest existing ancestor must be a writable folder.
+    """
+    path = Path(text).expanduser()
+    if folder:
+        if path.exists() and not path.is_dir():
+            raise argparse.ArgumentTypeError(f"{path} is a file; give a folder")
+        parent = next(p for p in (path, *path.parents) if p.exists())
+        if not parent.is_dir():
+            raise argparse.ArgumentTypeError(f"{path} cannot be created: {parent} is a file")
+    else:
+        if path.is_dir():
+            raise argparse.ArgumentTypeError(f"{path} is a folder; give a file name in it, e.g. {path / 'model.npz'}")
+        parent = path.parent
+        if not parent.is_dir():
+            raise argparse.ArgumentTypeError(f"the folder {parent} does not exist: create it first "
+                                             f"(mkdir -p {parent}) or choose another path")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise argparse.ArgumentTypeError(f"cannot write in {parent}: permission denied")
+    return path
+
+
+def output_file(text: str) -> Path:
+    return _check_output(text, folder=False)
+
+
+def output_folder(text: str) -> Path:
+    return _check_output(text, folder=True)
+
+
+def stream_seconds(text: str) -> float | None:
+    """``--seconds``: a positive number of seconds of stream, or ``inf`` (run until the stream ends)."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"expected a positive number of seconds, or inf for no limit; got {text!r}")
+    return None if math.isinf(value) else value
+
+
+def positive_seconds(text: str) -> float:
+    """A finite, positive number of seconds (``--window``, ``--duration``)."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"expected a finite, positive number of seconds; got {text!r}")
+    return value
+
+
+def count(lo: int):
+    """An integer option of at least ``lo`` (``--epochs``, ``--jobs``, ``--sets``, ``--seed``)."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a whole number >= {lo}; got {text!r}") from None
+        if value < lo:
+            raise argparse.ArgumentTypeError(f"expected a whole number >= {lo}; got {text!r}")
+        return value
+    return parse
+
+
+def session_name(text: str) -> str:
+    """A session's name: a file name part, never a path (refused at start, not after recording)."""
+    from supramodal.checks import NAME_HELP, is_name
+
+    if not is_name(text):
+        raise argparse.ArgumentTypeError(f"expected {NAME_HELP} (no folder: give that with --out), got {text!r}")
+    return text
+
+
+def speed(text: str):
+    from supramodal.replay.driver import SPEED_HELP, SPEED_MAX, is_speed
+
+    try:
+        value = text if text == SPEED_MAX else float(text)
+    except ValueError:
+        value = None
+    if not is_speed(value):
+        raise argparse.ArgumentTypeError(f"expected {SPEED_HELP}, got {text!r}")
+    return value
+
+
+def label_name(text: str) -> str:
+    """``--label``: a valid label name."""
+    from supramodal.node.workflows.labels import LabelError, check_label_name
+
+    try:
+        return check_label_name(text, "--label")
+    except LabelError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def source_value(text: str) -> tuple[str, str]:
+    """A ``SOURCE=VALUE`` option of ``import-recording``."""
+    name, eq, value = text.partition("=")
+    if not eq or not name or not value:
+        raise argparse.ArgumentTypeError(f"expected SOURCE=VALUE (e.g. whiskers=whiskers.wav); got {text!r}")
+    return name, value
+
+
+def bank(text: str):
+    """``--bank``: a paper bank by name, or a bank file, read and checked at parse time."""
+    from supramodal.bankfile import load_bank
+    from supramodal.banks import bank_by_name
+
+    try:
+        return bank_by_name(text) if text in ("whisker", "cochlea") else load_bank(text)
+    except SupramodalError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def mapping(text: str):
+    return int(text) if text.isdigit() else text
+
+
+def progress(args):
+    return None if getattr(args, "quiet", False) else (lambda m: print(f"supramodal: {m}", file=sys.stderr, flush=True))
+
+
+def say_plots_missing(notice: str | None) -> None:
+    if notice:
+        print(f"supramodal: {notice}", file=sys.stderr)

@@ -1,0 +1,101 @@
+"""``supramodal experiment``: reproduce a figure of the paper (or all of them)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from supramodal.node.cli.arguments import count, output_folder
+from supramodal.node.cli.errors import CliError
+
+
+def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
+               common: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """Add the ``experiment`` command's parser and its arguments to ``subparsers``;
+    ``common`` is the parent parser of every command (``--debug``)."""
+    from supramodal.mlp import DEFAULT_EPOCHS
+
+    p = subparsers.add_parser("experiment", parents=[common],
+                              help="reproduce a figure of the paper (or all of them)")
+    p.add_argument("figure", choices=["fig1", "fig3", "fig4", "fig5", "fig6", "all", "fusion", "calibration"],
+                   help="which figure of the paper; fusion: the two senses fused on the two-sense synthetic world "
+                        "(beyond the paper; not in all); calibration: whether the confidence means what it says "
+                        "(calibration, fusion, unknown textures, anytime decisions; issue 23; not in all)")
+    p.add_argument("--quick", action="store_true", help="short textures and small grids: seconds, not minutes")
+    p.add_argument("--jobs", type=count(1), help="worker processes (default: all cores); results do not depend on it")
+    p.add_argument("--seed", type=count(0), default=0,
+                   help="experiment seed: each run's network seed derives from it and the run; also the first "
+                        "random texture set's seed")
+    p.add_argument("--epochs", type=count(1), default=DEFAULT_EPOCHS,
+                   help=f"iRPROP- epochs (default {DEFAULT_EPOCHS})")
+    p.add_argument("--bank", choices=["whisker", "cochlea"], help="fig3: one bank (default: both)")
+    p.add_argument("--textures", metavar="FILE", help="fig3: texture-set JSON file (default: the reference sets)")
+    p.add_argument("--sets", type=count(0), help="fig3: N random texture sets instead of the reference set; "
+                                            "all: N random sets per bank besides it (default 5, 0 with --quick); "
+                                            "fusion: N random two-sense sets (default 5, 2 with --quick); "
+                                            "calibration: N random sets per bank and N two-sense sets (default 5, "
+                                            "1 with --quick)")
+    p.add_argument("--out", default="out", type=output_folder, help="directory for CSV and PNG (default ./out)")
+    p.add_argument("--json", action="store_true", help="print the figure's data as one JSON object instead of a table")
+    p.add_argument("--quiet", action="store_true", help="no progress on stderr")
+    return p
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the figure's plans, print its table (or JSON) and write its files.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The parsed command line.
+
+    Returns
+    -------
+    int
+        The exit status (0: done).
+    """
+    import time
+
+    from supramodal.experiments.common import progress_to_stderr
+    from supramodal.experiments.report import figure_table, write_figure
+    from supramodal.experiments.runner import run_plans
+    from supramodal.experiments.suite import plans
+    from supramodal.textures import load_texture_set
+
+    if args.seed < 0:
+        raise CliError(f"--seed must be >= 0, got {args.seed}")
+    if args.jobs is not None and args.jobs < 1:
+        raise CliError(f"--jobs must be >= 1, got {args.jobs}")
+    if args.figure == "fusion":
+        return _experiment_fusion(args)
+    ts = load_texture_set(args.textures) if args.textures else None
+    todo = plans(args.figure, quick=args.quick, epochs=args.epochs, seed=args.seed, sets=args.sets,
+                 bank=args.bank, texture_set=ts)
+    progress = None if args.quiet else progress_to_stderr
+    t0 = time.perf_counter()
+    results = run_plans(todo, jobs=args.jobs, seed=args.seed, progress=progress)
+    written = [p for name, result in results.items() for p in write_figure(name, result, Path(args.out))]
+    if progress:
+        progress(f"experiment {args.figure}: {time.perf_counter() - t0:.1f} s")
+    if args.json:
+        print(json.dumps(results[args.figure] if args.figure in results else results))
+    else:
+        print("\n\n".join(figure_table(name, result) for name, result in results.items()))
+        print("wrote " + ", ".join(str(p) for p in written))
+    return 0
+
+
+def _experiment_fusion(args) -> int:
+    """``experiment fusion``: the two senses fused on the two-sense synthetic world (beyond the paper)."""
+    from supramodal.experiments.common import progress_to_stderr
+    from supramodal.experiments.fusion import fusion_table, run_fusion
+    from supramodal.experiments.report import write_figure
+
+    sets = args.sets if args.sets is not None else (2 if args.quick else 5)
+    if sets < 1:
+        raise CliError(f"--sets must be >= 1 for experiment fusion, got {sets}")
+    result = run_fusion(sets, args.quick, args.epochs, args.seed, None if args.quiet else progress_to_stderr)
+    written = write_figure("fusion", result, Path(args.out))
+    print(json.dumps(result) if args.json else fusion_table(result) + "\nwrote " + ", ".join(str(p) for p in written))
+    return 0

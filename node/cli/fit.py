@@ -1,0 +1,88 @@
+"""``supramodal fit``: a bank, window, features and network fitted to recordings under latency and CPU budgets."""
+
+from __future__ import annotations
+
+import argparse
+
+from supramodal.node.cli.arguments import count, mapping, output_folder, positive_seconds, progress
+
+
+def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
+               common: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """Add the ``fit`` command's parser and its arguments to ``subparsers``;
+    ``common`` is the parent parser of every command (``--debug``)."""
+    p = subparsers.add_parser("fit", parents=[common],
+                              help="fit a bank, window, features and network to your recordings under your latency and "
+                                   "CPU budgets (a joint search by grouped cross-validation; the fit extra)")
+    p.add_argument("manifest", help="CSV with columns path,label[,start,end]; paths relative to it")
+    p.add_argument("--out", type=output_folder, default="out/fit",
+                   help="folder for fit.csv (every trial), fit-curve.csv/.png (best accuracy per window), bank.json "
+                        "(the best bank) and the feature cache (default ./out/fit)")
+    p.add_argument("--cv", type=count(2), default=5, metavar="K", help="folds, grouped by recording (default 5)")
+    p.add_argument("--trials", type=count(1), default=None,
+                   help="settings to try (default 60, --quick 16)")
+    p.add_argument("--timeout", type=positive_seconds, default=None, metavar="S",
+                   help="time budget: no new round of trials after S seconds (the first always runs; default: none)")
+    p.add_argument("--max-window", type=positive_seconds, default=None, metavar="S",
+                   help="latency budget: no window longer than S seconds (default: none)")
+    p.add_argument("--max-channels", type=count(1), default=None, metavar="N",
+                   help="CPU budget: no bank with more than N channels (default: none)")
+    p.add_argument("--target", choices=("window", "recording", "contact"), default="window",
+                   help="the accuracy to maximise: per window, per recording (all its windows pooled) or per "
+                        "contact (--contact seconds of windows pooled) (default window)")
+    p.add_argument("--contact", type=positive_seconds, default=0.5, metavar="S",
+                   help="seconds of a contact for --target contact (default 0.5)")
+    p.add_argument("--epochs", type=count(1), default=None,
+                   help="most iRPROP- epochs a trial may train (default: the search's own list)")
+    p.add_argument("--seed", type=count(0), default=0,
+                   help="seed of the sampler, the folds and the networks (default 0)")
+    p.add_argument("--batch", type=count(1), default=4,
+                   help="trials asked at once; the result depends on the seed and this, not on --jobs or --cluster "
+                        "(default 4)")
+    p.add_argument("--quick", action="store_true",
+                   help="fewer values per parameter, 16 trials, each fold's network trained on at most 4000 windows")
+    p.add_argument("--jobs", type=count(1), default=1,
+                   help="local processes scoring folds (a local Dask cluster when more than 1; default 1)")
+    p.add_argument("--cluster", default=None, metavar="ADDRESS",
+                   help="a running Dask scheduler (tcp://HOST:PORT) whose workers score the folds instead")
+    p.add_argument("--cache-memory", type=count(16), default=512, metavar="MB",
+                   help="feature windows each process keeps in memory; more go to --out/cache (default 512)")
+    p.add_argument("--mapping", type=mapping, default="auto",
+                   help="recording channels to filters: auto (one channel to all, or one each), mono, per-channel, "
+                        "mean, or a channel index (default auto)")
+    p.add_argument("--force", action="store_true", help="replace earlier fit files in --out (default: refuse)")
+    p.add_argument("--quiet", action="store_true", help="no progress on stderr (warnings are still shown)")
+    return p
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the joint search and write its files into ``--out``.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The parsed command line.
+
+    Returns
+    -------
+    int
+        The exit status (0: done).
+    """
+    from supramodal.node.runtime.outputs import check_new_file
+    from supramodal.node.workflows.fit_search import fit_search, format_search, write_search
+
+    if args.out.is_dir():
+        for name in ("fit.csv", "fit-curve.csv", "fit-curve.png", "bank.json"):
+            check_new_file(args.out / name, args.force, "the fit file")
+    result = fit_search(args.manifest, k=args.cv, seed=args.seed, quick=args.quick, trials=args.trials,
+                        timeout=args.timeout, batch=args.batch, max_window=args.max_window,
+                        max_channels=args.max_channels, target=args.target, contact=args.contact,
+                        max_epochs=args.epochs, jobs=args.jobs, cluster=args.cluster, mapping=args.mapping,
+                        cache_dir=args.out / "cache", cache_memory=args.cache_memory * 2**20, progress=progress(args))
+    print(format_search(result))
+    files = write_search(result, args.out)
+    b = result["best"]
+    print(f"wrote {', '.join(str(p) for p in files)}\nnext: supramodal train --bank {args.out / 'bank.json'} "
+          f"--window {b['window']:g} --features {b['features'].replace('+', ' ')} --epochs {b['epochs']} "
+          f"--manifest {args.manifest} --out MODEL")
+    return 0

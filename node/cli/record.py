@@ -1,0 +1,125 @@
+"""``supramodal record``: record a scene's raw driver blocks as a session (WAV + JSON), or a graph's sessions."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import threading
+
+from supramodal.node.cli.arguments import label_name, output_folder, progress, session_name, stream_seconds
+from supramodal.node.cli.errors import CliError
+from supramodal.node.cli.run import attach_views
+from supramodal.node.cli.signals import interrupt_until_running, stop_on_signals
+
+
+def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
+               common: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """Add the ``record`` command's parser and its arguments to ``subparsers``;
+    ``common`` is the parent parser of every command (``--debug``)."""
+    p = subparsers.add_parser("record", parents=[common],
+                              help="record a scene's raw driver blocks as a session (WAV + JSON)")
+    p.add_argument("--force", action="store_true", help="replace an existing session of that name (default: refuse)")
+    p.add_argument("scene", help="scene TOML file")
+    p.add_argument("--out", required=True, type=output_folder, help="folder for the session (created if missing)")
+    p.add_argument("--name", type=session_name,
+                   help="session name: letters, digits, '-' or '_' (default: session-DATE-TIME)")
+    p.add_argument("--label", type=label_name,
+                   help="label of the whole recording (of every source of a graph): letters, digits, '-' or '_'")
+    p.add_argument("--marks", action="store_true",
+                   help="read labels from stdin while recording: a line starts that label now, an empty line ends "
+                        "it; in a graph, on the node's common time, mapped to each source through its clock")
+    p.add_argument("--replace", action="store_true",
+                   help="with --label or --marks: label the recording with them instead of the labels a source's "
+                        "driver gives (synth, twosense, a replayed session; default: refused)")
+    p.add_argument("--seconds", type=stream_seconds,
+                   help="stop after this much stream; inf: until the stream ends or Ctrl-C (the default)")
+    p.add_argument("--quiet", action="store_true", help="no progress on stderr (warnings are still shown)")
+    p.add_argument("--view", nargs="?", const=0, type=int, metavar="PORT",
+                   help="also serve the live page on 127.0.0.1:PORT (default 0: any free port); with --marks its label "
+                        "buttons mark too, given the run's token printed at start (docs/view.md)")
+    return p
+
+
+def run(args: argparse.Namespace) -> int:
+    """Record the scene until it ends, ``--seconds`` or a signal.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The parsed command line.
+
+    Returns
+    -------
+    int
+        The exit status (0: done).
+    """
+    import json as _json
+    import time
+
+    from supramodal.errors import InputError
+    from supramodal.node.runtime.taps.recorder import SessionRecorder
+    from supramodal.node.scene.build import build_node
+    from supramodal.node.scene.schema import load_scene
+    from supramodal.node.workflows.graph_recording import GraphMarks, graph_recorders, write_replay_scene
+
+    interrupt_until_running()
+    scene = load_scene(args.scene)
+    if args.view is not None:
+        from supramodal.node.runtime.sinks.view import add_view
+        scene, _ = add_view(scene, None, args.view)
+    name = args.name or time.strftime("session-%Y%m%d-%H%M%S")
+    labelled = bool(args.label or args.marks)
+    if args.replace and not labelled:
+        raise CliError("--replace replaces a driver's own labels with --label or --marks: give one of them")
+    if scene.is_graph:
+        recorders = graph_recorders(scene, args.out, name, overwrite=args.force, label=args.label,
+                                    replace=args.replace)
+        node = build_node(scene, recorder=recorders, progress=progress(args))
+        own = [s.name for s in node.sources if s.labels is not None and s.labels.ranges]
+        if own and labelled and not args.replace:
+            raise CliError(f"{scene.source}: source(s) {own} label their streams themselves, and the recording keeps "
+                           "those labels; --label and --marks would contradict them (leave them out, or pass "
+                           "--replace to label the recording with yours instead)")
+        if args.marks:
+            _read_marks(GraphMarks(recorders).mark)
+        attach_views(node, GraphMarks(recorders).mark if args.marks else None)    # marks from the page too
+        summary = node.run(max_seconds=args.seconds, on_running=lambda: stop_on_signals(node))
+        if summary.get("recorded"):
+            try:
+                replay = write_replay_scene(scene, node, args.out, name, overwrite=args.force)
+            except InputError as exc:
+                raise CliError(f"recorded {', '.join(summary['recorded'])}, but {exc}") from None
+            wavs = ", ".join(p for p in summary["recorded"] if p.endswith(".wav"))
+            print(f"recorded {summary['stream_seconds']:.2f} s to {wavs} (+ .json); replay them in step: "
+                  f"supramodal run {replay}", file=sys.stderr)
+        return 0
+    source = _json.dumps({"scene": scene.source, "driver": scene.driver})
+    recorder = SessionRecorder(args.out, name, source, label=args.label, overwrite=args.force, replace=args.replace)
+    node = build_node(scene, recorder=recorder, progress=progress(args))
+    if node.streams[0].labels.ranges and labelled and not args.replace:
+        raise CliError(f"{scene.source}: the {scene.driver['type']} driver labels its stream itself, and the "
+                       "recording keeps those labels with their times; --label and --marks would contradict them "
+                       "(leave them out, or pass --replace to label the recording with yours instead)")
+    if args.marks:
+        _read_marks(recorder.mark)
+    attach_views(node, recorder.mark if args.marks else None)                    # marks from the page too
+    summary = node.run(max_seconds=args.seconds, on_running=lambda: stop_on_signals(node))
+    if summary.get("recorded"):
+        print(f"recorded {summary['stream_seconds']:.2f} s to {summary['recorded'][0]} (+ .json)", file=sys.stderr)
+    return 0
+
+
+def _read_marks(mark) -> None:
+    """``record --marks``: each line typed on stdin starts a label (its text) now, an empty line
+    ends it (``mark(label or None)``), on a thread of its own; a line that is no valid label is
+    said on stderr and not applied."""
+    from supramodal.node.workflows.labels import LabelError, check_label_name
+
+    def read():
+        for line in sys.stdin:
+            text = line.strip()
+            try:
+                mark(check_label_name(text, "--marks") if text else None)
+            except LabelError as exc:
+                print(f"supramodal: {exc}; the line was not applied", file=sys.stderr, flush=True)
+    threading.Thread(target=read, name="marks", daemon=True).start()

@@ -1,0 +1,123 @@
+"""``supramodal run``: run the node on a scene (default: the embedded whisker replay scene)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from supramodal.node.cli.arguments import speed, stream_seconds
+from supramodal.node.cli.signals import interrupt_until_running, stop_on_signals
+
+
+def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
+               common: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """Add the ``run`` command's parser and its arguments to ``subparsers``;
+    ``common`` is the parent parser of every command (``--debug``)."""
+    p = subparsers.add_parser("run", parents=[common],
+                              help="run the node on a scene (default: the embedded whisker replay scene)")
+    p.add_argument("--force", action="store_true", help="replace existing sink files (default: refuse)")
+    p.add_argument("scene", nargs="?", help="scene TOML file (default: the embedded default scene)")
+    p.add_argument("--speed", type=speed,
+                   help="replay speed: 1 = real time (default: the scene's), a factor, or 'max'")
+    p.add_argument("--json", action="store_true", help="JSON Lines on stdout instead of the scene's sinks")
+    p.add_argument("--seconds", type=stream_seconds,
+                   help="stop after this much stream; inf: until it ends or Ctrl-C (the default)")
+    p.add_argument("--quiet", action="store_true", help="no progress on stderr")
+    p.add_argument("--view", nargs="?", const=0, type=int, metavar="PORT",
+                   help="also serve a page that shows the run live on 127.0.0.1:PORT (default 0: any free port; the "
+                        "URL and the run's token are printed at start; docs/view.md)")
+    p.add_argument("--print-scene", action="store_true",
+                   help="print the scene (the default one if none is given) as TOML, every key filled in, and exit: "
+                        "a starting point to edit, e.g. supramodal run --print-scene > my.toml")
+    return p
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the node on the scene until it ends, ``--seconds`` or a signal.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The parsed command line.
+
+    Returns
+    -------
+    int
+        The exit status (0: done).
+    """
+    from supramodal.node.runtime.sinks import QueuedSink
+    from supramodal.node.runtime.sinks.jsonl import JsonLinesSink
+    from supramodal.node.scene.build import build_node
+    from supramodal.node.scene.schema import default_scene, load_scene, scene_to_toml
+
+    scene = load_scene(args.scene) if args.scene else default_scene()
+    if args.print_scene:
+        print(scene_to_toml(scene), end="")
+        return 0
+    interrupt_until_running()
+    sinks = [QueuedSink(JsonLinesSink("-"))] if args.json else None
+    if args.view is not None:
+        from supramodal.node.runtime.sinks.view import add_view
+        scene, sinks = add_view(scene, sinks, args.view)
+    progress = None if args.quiet else (lambda m: print(f"supramodal: {m}", file=sys.stderr, flush=True))
+    if progress and args.scene is None:
+        for line in _default_run_guide(scene, args.speed):
+            progress(line)
+    elif progress:
+        progress(_scene_line(scene, sinks_replaced=args.json))
+    node = build_node(scene, speed=args.speed, sinks_override=sinks, progress=progress, overwrite=args.force)
+    attach_views(node)
+    node.run(max_seconds=args.seconds, on_running=lambda: stop_on_signals(node))
+    return 0
+
+
+def _default_run_guide(scene, speed) -> list[str]:
+    """What the embedded default scene shows, how long it runs, and where to go from it."""
+    from supramodal.textures import reference_texture_set
+    from supramodal.training import TRAIN_FRACTION
+
+    d = scene.driver
+    n = len(reference_texture_set(scene.bank["kind"]).names)
+    pace = "at once (--speed max)" if speed == "max" else "in real time (--speed max runs it at once)"
+    return [
+        f"the default scene: the {scene.bank['kind']} bank replays the last {d['seconds']:g} s of each of the {n} "
+        f"reference textures ({n * d['seconds']:g} s of stream) {pace}, with a model trained on the spot on the "
+        f"first {TRAIN_FRACTION:.0%} of each texture",
+        f"one line per {scene.features['window'] * 1000:g} ms window: the decided texture, its confidence, the "
+        "texture really there, ok or -- (wrong); Ctrl-C stops and prints the summary",
+        "next: a model of your own recordings (supramodal train --help), the serial whisker array "
+        "(examples/whisker_serial.toml with supramodal mock-whisker), your own scene (supramodal run --print-scene)",
+    ]
+
+
+def _scene_line(scene, sinks_replaced: bool = False) -> str:
+    """What a scene runs, in one line: driver, bank, features and window (per stream, and the
+    fusion, for a scene of several sources); ``sinks_replaced`` (``run --json``): the scene's
+    sinks are not made, so no source is said to be sent on."""
+    def one(sub) -> str:
+        bank = (f"the bank of {sub.bank['file']}" if sub.bank["file"] is not None else f"{sub.bank['kind']} bank")
+        return f"{bank}, features {sub.features['names']}, {sub.features['window']:g} s windows"
+
+    sent = [f"source {k['source']} sent on as LSL ({k['chunk'] * 1e3:g} ms chunks)" for k in scene.sinks
+            if k["type"] == "lsl-signal"]
+    if sinks_replaced and scene.sinks:
+        kinds = [k["type"] for k in scene.sinks]
+        lsl = "; nothing sent on as LSL" if any(k.startswith("lsl") for k in kinds) else ""
+        sent = [f"--json: JSON Lines on stdout instead of the scene's sinks ({', '.join(kinds)}{lsl})"]
+    if not scene.is_graph:
+        return f"scene {scene.source}: {scene.driver['type']} driver, {one(scene)}" + "".join(f"; {p}" for p in sent)
+    parts = [f"stream {s.name}: {s.scene.driver['type']} source {s.source}, {one(s.scene)}" for s in scene.streams]
+    parts += sent
+    if scene.fusion is not None:
+        f = scene.fusion
+        how = f"weight {f['weight']}" if f["method"] == "late" else \
+            f"model {f['model']}" if f["model"] else "network trained on the spot"
+        parts.append(f"fused: {f['streams'][0]} and {f['streams'][1]} ({f['method']}, {how})")
+    return f"scene {scene.source}: " + "; ".join(parts)
+
+
+def attach_views(node, on_mark=None) -> None:
+    """A scene's view sinks (if any) get the graph's counters and, while recording, the marks."""
+    from supramodal.node.runtime.sinks.view import attach
+
+    attach(node, on_mark)

@@ -1,0 +1,228 @@
+"""``supramodal train``: a model from labelled recordings, or a fusion of two senses."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from supramodal.node.cli.arguments import (
+    bank,
+    count,
+    mapping,
+    output_file,
+    positive_seconds,
+    progress,
+    say_plots_missing,
+)
+from supramodal.node.cli.errors import CliError
+
+
+def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
+               common: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """Add the ``train`` command's parser and its arguments to ``subparsers``;
+    ``common`` is the parent parser of every command (``--debug``)."""
+    from supramodal.features import DEFAULT_WINDOW, FEATURE_TABLE
+    from supramodal.mlp import DEFAULT_EPOCHS
+
+    p = subparsers.add_parser("train", parents=[common],
+                              help="train a model from labelled recordings, or a fusion of two senses")
+    p.add_argument("--force", action="store_true", help="replace an existing model file at --out (default: refuse)")
+    p.add_argument("--bank", type=bank, metavar="whisker|cochlea|FILE",
+                   help="the filterbank: whisker (5 kHz), cochlea (44.1 kHz), or a bank file (supramodal-bank JSON: "
+                        "any ERB-spaced band at any rate, or explicit channels; docs/node.md); "
+                        "required with --manifest")
+    p.add_argument("--manifest", help="CSV with columns path,label[,start,end]; paths relative to it")
+    p.add_argument("--out", type=output_file,
+                   help="model file to write, at exactly this path (an .npz archive; e.g. model.npz)")
+    p.add_argument("--fusion", choices=["early", "late"],
+                   help="instead of one sense: learn the fusion of a recorded graph's two streams on its labelled "
+                        "pairs of windows (--scene): early, the supramodal network, calibrated (written to --out); "
+                        "late, the weight of the first stream, the sharpness and the pooling's correlation "
+                        "(printed), learned on out-of-fold "
+                        "windows of copies of the streams' models, never on windows a network trained on; both print "
+                        "each sense's and the fusion's held-out score (default: one sense, from --manifest)")
+    p.add_argument("--scene", action="append", metavar="NAME.toml",
+                   help="with --fusion or --stream: a recording's replay scene (supramodal record of a graph writes "
+                        "it); give one per recording (default: none)")
+    p.add_argument("--stream", metavar="NAME",
+                   help="with --scene: train this stream's model from the recordings' labelled sessions, with the "
+                        "scene's bank, features and window, calibrated on folds grouped by recording (instead of "
+                        "--manifest and --bank)")
+    p.add_argument("--model", dest="models", action="append", metavar="STREAM=FILE",
+                   help="with --fusion: the sense model a stream decides with, for each of the two fused streams "
+                        "(default: the recordings' own); models that `train --stream` made on other recordings give "
+                        "the fusion their own posteriors, else it learns from out-of-fold copies (it says which)")
+    p.add_argument("--live", metavar="SCENE.toml",
+                   help="with --fusion and --write-scene: the scene the recordings were made with")
+    p.add_argument("--write-scene", type=output_file, metavar="FILE.toml",
+                   help="with --fusion and --live: write the live scene with the --model files and the fusion "
+                        "learned, ready for supramodal run (default: none)")
+    p.add_argument("--features", nargs="+", default=["Af"], choices=list(FEATURE_TABLE),
+                   help="; ".join(f"{f.name}: {f.description}" for f in FEATURE_TABLE.values()) + " (default Af)")
+    p.add_argument("--window", type=positive_seconds, default=DEFAULT_WINDOW,
+                   help=f"window, seconds (default {DEFAULT_WINDOW})")
+    p.add_argument("--epochs", type=count(1), default=DEFAULT_EPOCHS,
+                   help=f"iRPROP- epochs (default {DEFAULT_EPOCHS})")
+    p.add_argument("--seed", type=count(0), default=0,
+                   help="seed of the network's initial weights and of the cross-validation folds (default 0)")
+    p.add_argument("--cv", type=count(2), metavar="K",
+                   help="first report grouped K-fold cross-validation (folds by recording: mean and sd, recall, "
+                        "log loss, Brier score and ECE per window and per recording; confusion as MODEL-cv.csv/.png, "
+                        "reliability diagram as MODEL-cv-reliability.csv/.png), then train the final model on "
+                        "everything (default: no cross-validation)")
+    p.add_argument("--mapping", type=mapping, default="auto",
+                   help="recording channels to filters: auto (one channel to all, or one each), mono, per-channel, "
+                        "mean, or a channel index (default auto)")
+    p.add_argument("--quiet", action="store_true", help="no progress on stderr (warnings are still shown)")
+    return p
+
+
+def run(args: argparse.Namespace) -> int:
+    """Train a sense model from a manifest (or hand over to ``--stream`` or ``--fusion``).
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The parsed command line.
+
+    Returns
+    -------
+    int
+        The exit status (0: done).
+    """
+    from supramodal.node.runtime.outputs import check_new_file
+    from supramodal.node.workflows.training import calibration_line, train_from_manifest
+    if args.stream is not None and not args.fusion:
+        return _train_stream(args)
+    if args.scene or args.fusion:
+        return _train_fusion(args)
+    if args.manifest is None or args.bank is None or args.out is None:
+        raise CliError("train needs --bank, --manifest and --out (or, for a fusion of two senses, --fusion and "
+                       "--scene)")
+    check_new_file(args.out, args.force, "the model file")      # before the training, not after
+    bank = args.bank
+    if args.cv:
+        from supramodal.node.workflows.reports import plots_missing_notice, write_confusion, write_reliability
+        from supramodal.node.workflows.training import cross_validate_manifest, format_cross_validation
+
+        base = args.out.with_name(args.out.stem + "-cv")
+        reliability = args.out.with_name(args.out.stem + "-cv-reliability")
+        for b in (base, reliability):
+            for suffix in (".csv", ".png"):
+                check_new_file(b.with_name(b.name + suffix), args.force, "the cross-validation file")
+        cv = cross_validate_manifest(args.manifest, bank, tuple(args.features), args.window, args.cv,
+                                     epochs=args.epochs, seed=args.seed, mapping=args.mapping, progress=progress(args))
+        print(format_cross_validation(cv))
+        files = write_confusion(cv["labels"], cv["confusion"], base,
+                                f"{args.cv}-fold grouped cross-validation: window accuracy "
+                                f"{cv['window_accuracy']['mean']:.3f} +- {cv['window_accuracy']['sd']:.3f}")
+        files += write_reliability(cv["calibration"], reliability,
+                                   f"{args.cv}-fold grouped cross-validation: test folds' decisions")
+        print("wrote " + ", ".join(str(p) for p in files))
+        say_plots_missing(plots_missing_notice())
+    model = train_from_manifest(args.manifest, bank, tuple(args.features), args.window, epochs=args.epochs,
+                                seed=args.seed, mapping=args.mapping, progress=progress(args))
+    path = model.save(args.out)
+    print(f"wrote {path}: {model.bank.kind} bank, features {list(model.features)}, classes {list(model.classes)}, "
+          f"{model.training['windows']} training windows, final MSE {model.training['final_mse']:.4g}")
+    print("posteriors: " + calibration_line(None if model.calibration is None else model.calibration.fitted_on))
+    return 0
+
+
+def _train_stream(args) -> int:
+    """``train --scene REC.toml ... --stream NAME --out MODEL``: a sense model straight from recorded graphs."""
+    from supramodal.node.runtime.outputs import check_new_file
+    from supramodal.node.workflows.training import calibration_line, train_from_scenes
+
+    if not args.scene or args.out is None:
+        raise CliError("--stream trains one stream's model from recorded graphs: give one --scene per recording "
+                       "(the DIR/NAME.toml `supramodal record` wrote) and --out MODEL")
+    if args.manifest is not None or args.bank is not None or args.cv or args.models or args.live or args.write_scene:
+        raise CliError("with --scene and --stream, the recordings' scene says the bank, features and window: leave "
+                       "out --manifest, --bank, --cv, --model, --live and --write-scene")
+    check_new_file(args.out, args.force, "the model file")
+    model = train_from_scenes(args.scene, args.stream, epochs=args.epochs, seed=args.seed, progress=progress(args))
+    path = model.save(args.out)
+    print(f"wrote {path}: stream {args.stream}, {model.bank.kind} bank, features {list(model.features)}, classes "
+          f"{list(model.classes)}, {model.training['windows']} training windows of {len(args.scene)} recording(s), "
+          f"final MSE {model.training['final_mse']:.4g}")
+    print("posteriors: " + calibration_line(None if model.calibration is None else model.calibration.fitted_on))
+    print("train the fusion on other recordings than these (supramodal train --fusion ... --model "
+          f"{args.stream}={path}): its sense posteriors are then those of this model on recordings it never saw")
+    return 0
+
+
+def _stream_models(pairs) -> dict:
+    """``--model STREAM=FILE`` options as ``{stream: path}``."""
+    out = {}
+    for text in pairs or []:
+        name, sep, path = text.partition("=")
+        if not sep or not name or not path:
+            raise CliError(f"--model {text!r}: write STREAM=FILE, e.g. --model whiskers=models/whiskers.npz")
+        if name in out:
+            raise CliError(f"--model names stream {name!r} twice")
+        out[name] = Path(path)
+    if out and len(out) != 2:
+        raise CliError(f"--model names {len(out)} stream(s); a fusion takes two: give --model for each")
+    return out
+
+
+def _train_fusion(args) -> int:
+    """``train --fusion early|late --scene S.toml ...``: a fusion learned on recorded two-sense sessions,
+    from windows held out of every network that scored them (node/workflows/fused_training.py)."""
+    from supramodal.node.runtime.outputs import check_new_file
+    from supramodal.node.workflows.fused_training import train_fused, write_fused_scene
+
+    if not (args.scene and args.fusion):
+        raise CliError("a fusion is trained with --fusion early|late and one --scene per recording (the scene "
+                       "`supramodal record` writes for a graph)")
+    if args.manifest is not None or args.cv:
+        raise CliError("--manifest and --cv train one sense; a fusion is trained on --scene recordings")
+    if args.fusion == "early":
+        if args.out is None:
+            raise CliError("--fusion early needs --out, the model file to write")
+        check_new_file(args.out, args.force, "the model file")
+    elif args.out is not None:
+        raise CliError("--fusion late learns one number, printed for [fusion] weight; it writes no file: "
+                       "leave out --out")
+    if (args.live is None) != (args.write_scene is None):
+        raise CliError("--live SCENE.toml (the scene the recordings were made with) and --write-scene FILE.toml (the "
+                       "scene to write, running it with the models and this fusion) go together")
+    if args.write_scene is not None:
+        check_new_file(args.write_scene, args.force, "the scene file")
+    models = _stream_models(args.models)
+    result, info = train_fused(args.scene, args.fusion, epochs=args.epochs, seed=args.seed, progress=progress(args),
+                               models=models)
+    a, b = info["streams"]
+    fused = "late" if args.fusion == "late" else "early"
+    print(f"sense posteriors: {info['posteriors']['source']} ({info['posteriors']['why']})")
+    print(f"held-out windows ({info['pairs']} pairs of {info['contacts']} contacts, {info['folds']} folds by "
+          f"{info['folds_by']}; each scored by networks that never trained on its fold):")
+    print(f"  {'':<12}{'accuracy':>10}{'log loss':>10}")
+    for name in (a, b, fused):
+        h = info["held_out"][name]
+        print(f"  {name:<12}{h['accuracy']:>10.3f}{h['log_loss']:>10.3f}")
+    if args.fusion == "late":
+        weight, sharpness = result
+        keys = f"weight = {weight:.2f}, sharpness = {sharpness:.4g}, correlation = {info['correlation']:.3g}"
+        print(f"learned late-fusion weight {weight:.2f} of {a} (and {1 - weight:.2f} of {b}) and sharpness "
+              f"{sharpness:.4g} on the out-of-fold windows of {info['pairs']} labelled pairs (the late row: each "
+              f"fold fused with a weight learned without it): set [fusion] {keys}")
+        _write_run_scene(args, write_fused_scene, (a, b), models,
+                         {"method": "late", "weight": round(weight, 4), "sharpness": float(f"{sharpness:.4g}"),
+                          "correlation": float(f"{info['correlation']:.3g}")})
+        return 0
+    path = result.save(args.out)
+    print(f"wrote {path}: early fusion of {a} and {b}, classes {info['classes']}, {info['pairs']} pairs of windows, "
+          f"calibrated on its out-of-fold pairs (the early row); use it with [fusion] method = \"early\", "
+          f"model = \"{path.resolve()}\" (a relative path is taken from the scene's folder)")
+    _write_run_scene(args, write_fused_scene, (a, b), models, {"method": "early", "model": str(path.resolve())})
+    return 0
+
+
+def _write_run_scene(args, write, streams, models: dict, fusion: dict) -> None:
+    """``--write-scene``: the live scene with the sense models and the fusion learned, to run at once."""
+    if args.write_scene is None:
+        return
+    path = write(args.live, streams, fusion, models, args.write_scene)
+    print(f"wrote {path}: {args.live} with the sense models and this fusion; run it: supramodal run {path}")

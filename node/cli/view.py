@@ -1,0 +1,43 @@
+"""``supramodal view``: play a recording back into the view's page (pause, speed)."""
+
+from __future__ import annotations
+
+import argparse
+
+from supramodal.node.cli.arguments import progress
+from supramodal.node.cli.signals import interrupt_until_running, stop_on_signals
+
+
+def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
+               common: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """Add the ``view`` command's parser and its arguments to ``subparsers``;
+    ``common`` is the parent parser of every command (``--debug``)."""
+    p = subparsers.add_parser("view", parents=[common],
+                              help="play a recording back into the view's page (pause, speed): docs/view.md")
+    p.add_argument("recording", metavar="REC.toml|SESSION",
+                   help="the replay scene `supramodal record` wrote for a graph, or a session (NAME.wav + NAME.json)")
+    p.add_argument("--port", type=int, default=0, help="the page's port on 127.0.0.1 (default 0: any free one)")
+    p.add_argument("--speed", type=float, default=1.0, help="playback speed at the start (default 1: as recorded)")
+    p.add_argument("--quiet", action="store_true", help="no progress on stderr (the URL is still printed)")
+    return p
+
+
+def run(args: argparse.Namespace) -> int:
+    """Serve the recording's page until a signal stops it.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The parsed command line.
+
+    Returns
+    -------
+    int
+        The exit status (0: done).
+    """
+    from supramodal.node.workflows.view_replay import ViewReplay
+
+    interrupt_until_running()
+    replay = ViewReplay(args.recording, port=args.port, speed=args.speed, progress=progress(args))
+    replay.serve(on_running=lambda: stop_on_signals(replay))
+    return 0
