@@ -210,6 +210,20 @@ class EventLog:
             self._dropped.clear()
 
 
+class TruthLabel(Protocol):
+    """A truth label a driver carries (:class:`supramodal.replay.session.Label` is one): what was
+    sensed (``label``) over ``[start, end)``, stream seconds."""
+
+    @property
+    def start(self) -> float: ...
+
+    @property
+    def end(self) -> float: ...
+
+    @property
+    def label(self) -> str: ...
+
+
 @runtime_checkable
 class Driver(Protocol):
     """What the node needs of a source of blocks (:class:`DriverBase` gives all but
@@ -238,7 +252,7 @@ class Driver(Protocol):
     rate: float
     channels: int
     fills_are_drops: bool
-    labels: Sequence[str]
+    labels: Sequence[TruthLabel]
     passes: int | None
     period: float | None
 
@@ -316,7 +330,7 @@ class DriverBase:
     """
 
     fills_are_drops: bool = False
-    labels: Sequence[str] = ()
+    labels: Sequence[TruthLabel] = ()
     passes: int | None = 1
     period: float | None = None
     EVENT_CAPACITY: ClassVar[int] = 1024

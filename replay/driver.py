@@ -36,8 +36,10 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from fractions import Fraction
 from pathlib import Path
+from typing import Any, TypeGuard
 
 import numpy as np
+from numpy.typing import ArrayLike
 from scipy.signal import resample_poly
 
 from supramodal.checks import Key, flag, integer, is_number, one_of, text
@@ -53,6 +55,12 @@ __all__ = ["ReplayDriver", "DeviceClock", "SPEC", "SPEED_HELP", "SPEED_MAX", "TI
 #: What ``block_size`` accepts: frames per block, a sequence cycled through,
 #: or a callable drawing each size from a :class:`numpy.random.Generator`.
 BlockSize = int | Sequence[int] | Callable[[np.random.Generator], int] | None
+#: What :class:`ReplayDriver` replays: ``(samples, rate)``, a session, or a WAV or session path.
+ReplaySource = tuple[ArrayLike, float] | Session | str | os.PathLike[str]
+#: A source as :meth:`ReplayDriver._load` reads it: samples (frames, channels) float64, rate, labels,
+#: filled mask or None, marks, name, arrivals or None.
+_Loaded = tuple[np.ndarray, float, tuple[Label, ...], np.ndarray | None, tuple[tuple[int, str], ...], str,
+                tuple[np.ndarray, np.ndarray, float] | None]
 
 
 #: How a replay is paced: ``"nominal"``, block ``k`` when its last frame is due at the source's
@@ -69,7 +77,7 @@ SPEED_HELP = (f'1.0 (real time), a factor from {SPEED_RANGE[0]:g} to {SPEED_RANG
               "(every block at once)")
 
 
-def is_speed(v) -> bool:
+def is_speed(v: Any) -> bool:
     """Whether ``v`` is a replay speed a scene may ask for: :data:`SPEED_MAX` or a number within
     :data:`SPEED_RANGE`."""
     return v == SPEED_MAX or is_number(v) and SPEED_RANGE[0] <= v <= SPEED_RANGE[1]
@@ -167,8 +175,8 @@ def random_block_sizes(low: int, high: int) -> RandomBlockSizes:
     return RandomBlockSizes(low, high)
 
 
-def _is_count(v) -> bool:
-    return isinstance(v, numbers.Integral) and not isinstance(v, bool) and v >= 1
+def _is_count(v: object) -> TypeGuard[numbers.Integral]:
+    return isinstance(v, numbers.Integral) and not isinstance(v, bool) and int(v) >= 1
 
 
 def _print_stderr(message: str) -> None:
@@ -269,11 +277,12 @@ class ReplayDriver(DriverBase):
       a filled stretch can reach further than that and is not marked.
     """
 
-    def __init__(self, source, rate: float | None = None, block_size: BlockSize = None,
-                 speed: float | str = 1.0, loop: bool | int = False, channels=None,
+    def __init__(self, source: ReplaySource, rate: float | None = None, block_size: BlockSize = None,
+                 speed: float | str = 1.0, loop: bool | int = False,
+                 channels: int | Sequence[int] | np.ndarray | None = None,
                  seed: int | None = None, max_denominator: int = 1000,
                  on_notice: Callable[[str], None] | None = _print_stderr, device_clock: DeviceClock | None = None,
-                 timing: str = "nominal"):
+                 timing: str = "nominal") -> None:
         super().__init__()
         self.notices: list[str] = []
         self._on_notice = on_notice
@@ -325,6 +334,7 @@ class ReplayDriver(DriverBase):
 
         # --- block sizes, speed, looping ---
         block_given = block_size is not None
+        self._sizes: int | list[int] | Callable[[np.random.Generator], int]
         if block_size is None:
             block_size = max(1, round(self.rate * 0.010))
         if _is_count(block_size):
@@ -343,7 +353,7 @@ class ReplayDriver(DriverBase):
         if timing not in TIMINGS:
             raise ReplayError(f"timing must be one of {TIMINGS}, got {timing!r}")
         self.timing = timing
-        self._arrivals = None
+        self._arrivals: tuple[np.ndarray, np.ndarray] | None = None
         #: With timing "recorded": the nominal rate of the recording node's clock for this source.
         self.recorded_rate: float | None = None
         if timing == "recorded":
@@ -380,7 +390,7 @@ class ReplayDriver(DriverBase):
         self.notices.append(message)
         super()._notice(message, kind, stream_index)
 
-    def _load(self, source, need_session: bool = False):
+    def _load(self, source: ReplaySource, need_session: bool = False) -> _Loaded:
         """-> (data (n, ch) float64, rate, labels, filled mask or None, marks, name, arrivals or None).
 
         ``need_session``: a path is read as a session even without its sidecar (timing "recorded"
@@ -424,7 +434,8 @@ class ReplayDriver(DriverBase):
             return a.astype(np.float64), rate, (), None, (), f"array{a.shape}", None
         raise ReplayError(f"source must be (array, rate), a Session or a path, got {type(source).__name__}")
 
-    def _recorded_blocks(self, arrivals, up: int, down: int, block_given: bool, device_clock):
+    def _recorded_blocks(self, arrivals: tuple[np.ndarray, np.ndarray, float] | None, up: int, down: int,
+                         block_given: bool, device_clock: DeviceClock | None) -> tuple[np.ndarray, np.ndarray, float]:
         """The session's block ends, arrival times and clock rate, for ``timing="recorded"``; the
         last block reaches the end of the data (its time the last one recorded)."""
         if arrivals is None:
@@ -446,7 +457,7 @@ class ReplayDriver(DriverBase):
             frames, seconds = np.r_[frames, n], np.r_[seconds, seconds[-1]]
         return frames.astype(np.int64), seconds.astype(np.float64), clock_rate
 
-    def _select(self, data: np.ndarray, channels) -> np.ndarray:
+    def _select(self, data: np.ndarray, channels: int | Sequence[int] | np.ndarray | None) -> np.ndarray:
         have = data.shape[1]
         if channels is None:
             return data
@@ -457,7 +468,7 @@ class ReplayDriver(DriverBase):
         if isinstance(channels, (Sequence, np.ndarray)) and not isinstance(channels, (str, bytes)):
             idx = list(channels)
             if not idx or not all(isinstance(i, numbers.Integral) and not isinstance(i, bool)
-                                  and 0 <= i < have for i in idx):
+                                  and 0 <= int(i) < have for i in idx):
                 raise ReplayError(f"{self.name}: channels must be indices in [0, {have}), got {channels!r}")
             return data[:, [int(i) for i in idx]]
         raise ReplayError(f"channels must be None, a count or a sequence of indices, got {channels!r}")
@@ -520,8 +531,12 @@ class ReplayDriver(DriverBase):
         :class:`DeviceClock`'s start) counts from it."""
         return self._t0
 
+    # passes, period and labels: DriverBase's defaults are plain class attributes, which a driver with
+    # something to say overrides; a replay derives them from its source (labels: and from how far it
+    # has been read), read-only. mypy holds a read-only override of a settable attribute unsafe
+    # (nothing sets them: the node only reads them).
     @property
-    def passes(self) -> int | None:
+    def passes(self) -> int | None:  # type: ignore[override]  # read-only: see above
         """Passes of the source the stream plays: 1 without looping, None looping forever."""
         return self._passes
 
@@ -578,8 +593,9 @@ class ReplayDriver(DriverBase):
         if self._next_size is None:
             self._next_size = self._draw_size()
             c = self.device_clock
-            paced = c is not None and c.mean_delay > 0 and self.speed != math.inf
-            self._next_delay = float(self._delay_rng.exponential(c.mean_delay)) if paced else 0.0
+            self._next_delay = 0.0
+            if c is not None and c.mean_delay > 0 and self.speed != math.inf:     # paced like a device
+                self._next_delay = float(self._delay_rng.exponential(c.mean_delay))
         size = int(min(self._next_size, remaining))
         end = self._pos + size
         due = max(self.release_time(end) + self._next_delay, self._last_due)   # delivered in order
@@ -625,7 +641,7 @@ class ReplayDriver(DriverBase):
         """Offsets within the block ``[pos, pos + size)`` of the session's marks of ``kind``, on every
         pass of a looped source."""
         n = self._data.shape[0]
-        out = []
+        out: list[int] = []
         for frame, k in self._marks:
             if k == kind:
                 first = pos + (frame - pos) % n          # the mark's first stream index at or after pos
@@ -639,7 +655,8 @@ class ReplayDriver(DriverBase):
         i = pos % n
         if i + size <= n:
             return src[i:i + size].copy()
-        parts, left = [], size
+        parts: list[np.ndarray] = []
+        left = size
         while left:  # a block may straddle the loop seam, or be longer than the source
             k = min(left, n - i)
             parts.append(src[i:i + k])
@@ -669,12 +686,12 @@ class ReplayDriver(DriverBase):
         return self._data
 
     @property
-    def period(self) -> float:
+    def period(self) -> float:  # type: ignore[override]  # read-only: see passes
         """Seconds per pass of the source at :attr:`rate`, ``frames / rate``."""
-        return self._data.shape[0] / self.rate
+        return int(self._data.shape[0]) / self.rate
 
     @property
-    def labels(self) -> tuple[Label, ...]:
+    def labels(self) -> tuple[Label, ...]:  # type: ignore[override]  # read-only: see passes
         """The source's labels for every pass delivered so far, in stream seconds.
 
         Pass ``k`` is shifted by ``k * period``. Before any frame is delivered,
@@ -696,7 +713,7 @@ class ReplayDriver(DriverBase):
         k_last = math.floor(t1 / p)
         if self._passes is not None:
             k_last = min(k_last, self._passes - 1)
-        out = []
+        out: list[Label] = []
         for k in range(k_first, k_last + 1):
             for lab in self._labels:
                 s = lab.shifted(k * p)
@@ -727,14 +744,14 @@ def block_key() -> Key:
     return Key(integer(1, MAX_BLOCK), f"frames per block, 1..{MAX_BLOCK} (default: the replay driver's)", None)
 
 
-def pacing(options: dict, context: BuildContext) -> dict:
+def pacing(options: dict[str, Any], context: BuildContext) -> dict[str, Any]:
     """The replay driver's ``speed`` and ``block_size`` arguments from a scene's options (the
     command line's ``--speed`` first); absent ones keep the driver's defaults."""
     speed = context.speed if context.speed is not None else options.get("speed")
     return given({**options, "speed": speed}, {"speed": "speed", "block": "block_size"})
 
 
-def _build(options: dict, context: BuildContext) -> Built:
+def _build(options: dict[str, Any], context: BuildContext) -> Built:
     path = context.resolve(options["path"])
     if not path.exists():
         raise OptionError(f"path: no recording at {path} (a relative path is taken from the scene file's folder)")
@@ -749,8 +766,9 @@ def _build(options: dict, context: BuildContext) -> Built:
     return Built(driver, source_rate=driver.source_rate)   # its labels are the driver's own
 
 
-def _timebase(options: dict, driver: ReplayDriver) -> tuple[str, float, float]:
+def _timebase(options: dict[str, Any], driver: ReplayDriver) -> tuple[str, float, float]:
     if options["timing"] == "recorded":
+        assert driver.recorded_rate is not None, "a replay with the recorded timing knows its clock's rate"
         return "recorded", 0.0, float(driver.recorded_rate)   # the clock set up as when it was recorded
     return "stream", 0.0, driver.rate
 

@@ -50,12 +50,13 @@ import json
 import math
 import os
 import tempfile
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn, TypeGuard
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from supramodal.errors import InputError
 from supramodal.jsondata import read_json_file
@@ -177,7 +178,7 @@ class Session:
         return mask
 
 
-def session_paths(path: str | os.PathLike) -> tuple[Path, Path]:
+def session_paths(path: str | os.PathLike[str]) -> tuple[Path, Path]:
     """The ``(NAME.wav, NAME.json)`` pair for ``NAME``, ``NAME.wav`` or ``NAME.json``."""
     p = Path(path)
     if p.suffix.lower() in (".wav", ".json"):
@@ -187,8 +188,8 @@ def session_paths(path: str | os.PathLike) -> tuple[Path, Path]:
 
 # --- strict JSON ------------------------------------------------------------
 
-def _no_duplicate_keys(pairs):
-    seen = {}
+def _no_duplicate_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    seen: dict[str, Any] = {}
     for k, v in pairs:
         if k in seen:
             raise _StrictJson(f"key {k!r} appears twice in one object; keep one")
@@ -196,7 +197,7 @@ def _no_duplicate_keys(pairs):
     return seen
 
 
-def _no_constants(name):
+def _no_constants(name: str) -> NoReturn:
     raise _StrictJson(f"{name} is not a number JSON allows; use a finite number")
 
 
@@ -216,22 +217,26 @@ def _load_json(path: Path) -> Any:
 
 # --- validation ---------------------------------------------------------------
 
-def _is_int(v) -> bool:
+def _is_int(v: object) -> TypeGuard[int]:
     return isinstance(v, int) and not isinstance(v, bool)
 
 
-def _is_number(v) -> bool:
+def _is_number(v: object) -> bool:
     return (_is_int(v) or isinstance(v, float)) and math.isfinite(v)
 
 
-def _type_name(v) -> str:
+def _type_name(v: object) -> str:
     return {dict: "object", list: "array", str: "string", bool: "boolean", type(None): "null",
             int: "integer", float: "number"}.get(type(v), type(v).__name__)
 
 
-def _complaint(where: str):
+#: ``bad(key, problem, fix)``: a SessionError naming the file, the key, the problem and the fix.
+_Complaint = Callable[[str, str, str], SessionError]
+
+
+def _complaint(where: str) -> _Complaint:
     """``bad(key, problem, fix)``: the SessionError that names the file, the key, the problem and the fix."""
-    def bad(key, problem, fix):
+    def bad(key: str, problem: str, fix: str) -> SessionError:
         return SessionError(f"{where}: {key}: {problem}; {fix}")
     return bad
 
@@ -377,7 +382,8 @@ def validate_arrivals(raw: Any, frames: int, where: str = "sidecar", marks: Iter
     return fa, ta, float(raw["rate"])
 
 
-def _check_arrival_times(fa: np.ndarray, ta: np.ndarray, rate: float, marks, bad) -> None:
+def _check_arrival_times(fa: np.ndarray, ta: np.ndarray, rate: float, marks: Iterable[tuple[int, str]],
+                         bad: _Complaint) -> None:
     """The consistency rule of :func:`validate_arrivals`, in O(blocks)."""
     with np.errstate(over="ignore", invalid="ignore"):
         nominal = fa / rate                     # when each block ends by its frames, seconds
@@ -412,7 +418,7 @@ def _check_arrival_times(fa: np.ndarray, ta: np.ndarray, rate: float, marks, bad
                       "timing = 'nominal' (then not in step with the other sources)")
 
 
-def _validate_labels(raw, duration: float, slack: float, bad) -> tuple[Label, ...]:
+def _validate_labels(raw: Any, duration: float, slack: float, bad: _Complaint) -> tuple[Label, ...]:
     if not isinstance(raw, list):
         raise bad("labels", f"must be an array, got {_type_name(raw)}", "use [] when nothing is labelled")
     out: list[Label] = []
@@ -448,7 +454,7 @@ def _validate_labels(raw, duration: float, slack: float, bad) -> tuple[Label, ..
     return tuple(out)
 
 
-def _validate_filled(raw, frames: int, bad) -> tuple[tuple[int, int], ...]:
+def _validate_filled(raw: Any, frames: int, bad: _Complaint) -> tuple[tuple[int, int], ...]:
     if not isinstance(raw, list):
         raise bad("filled", f"must be an array of [start_frame, end_frame] pairs, got {_type_name(raw)}",
                   "omit the key when no frame was filled")
@@ -469,7 +475,7 @@ def _validate_filled(raw, frames: int, bad) -> tuple[tuple[int, int], ...]:
     return tuple(out)
 
 
-def _validate_marks(raw, frames: int, bad) -> tuple[tuple[int, str], ...]:
+def _validate_marks(raw: Any, frames: int, bad: _Complaint) -> tuple[tuple[int, str], ...]:
     if not isinstance(raw, list):
         raise bad("marks", f"must be an array of [frame, kind] pairs, got {_type_name(raw)}",
                   "omit the key when the board never restarted or overran")
@@ -491,7 +497,7 @@ def _validate_marks(raw, frames: int, bad) -> tuple[tuple[int, str], ...]:
 
 # --- load / save ----------------------------------------------------------------
 
-def load_session(path: str | os.PathLike) -> Session:
+def load_session(path: str | os.PathLike[str]) -> Session:
     """Load and validate a session.
 
     Parameters
@@ -528,7 +534,7 @@ def load_session(path: str | os.PathLike) -> Session:
                    arrivals=arrivals)
 
 
-def missing_sidecar(path: str | os.PathLike) -> MissingSidecarError:
+def missing_sidecar(path: str | os.PathLike[str]) -> MissingSidecarError:
     """The error for a session whose sidecar ``NAME.json`` is not there: it names the file, what
     is lost without it and how to get it back (a caller that needs a session, such as a replay
     with ``timing = "recorded"``, raises it rather than playing the bare WAV)."""
@@ -543,7 +549,7 @@ def missing_sidecar(path: str | os.PathLike) -> MissingSidecarError:
         "of step with any other source")
 
 
-def mask_to_ranges(mask) -> list[tuple[int, int]]:
+def mask_to_ranges(mask: ArrayLike) -> list[tuple[int, int]]:
     """``[start, end)`` ranges of the True runs of a 1-D bool array."""
     m = np.asarray(mask, dtype=bool).ravel()
     edges = np.diff(np.concatenate(([False], m, [False])).astype(np.int8))
@@ -552,7 +558,7 @@ def mask_to_ranges(mask) -> list[tuple[int, int]]:
     return [(int(s), int(e)) for s, e in zip(starts, ends)]
 
 
-def _label_dict(item) -> dict:
+def _label_dict(item: Label | Mapping[str, Any] | tuple[float, float, str]) -> dict[str, Any]:
     if isinstance(item, Label):
         return {"start": item.start, "end": item.end, "label": item.label}
     if isinstance(item, Mapping):
@@ -561,7 +567,7 @@ def _label_dict(item) -> dict:
     return {"start": s, "end": e, "label": name}
 
 
-def sidecar_text(meta: dict) -> str:
+def sidecar_text(meta: dict[str, Any]) -> str:
     """The sidecar as written: indented JSON, with the block ``arrivals`` on one compact line
     each (one number per line would double their size)."""
     head = {k: v for k, v in meta.items() if k != "arrivals"}
@@ -572,8 +578,9 @@ def sidecar_text(meta: dict) -> str:
     return text + "\n"
 
 
-def save_session(path: str | os.PathLike, data, rate: int, source: str,
-                 labels: Iterable[Label | Mapping | tuple] = (), filled=None,
+def save_session(path: str | os.PathLike[str], data: ArrayLike, rate: int, source: str,
+                 labels: Iterable[Label | Mapping[str, Any] | tuple[float, float, str]] = (),
+                 filled: np.ndarray | Iterable[tuple[int, int]] | None = None,
                  dtype: str = "float32", marks: Iterable[tuple[int, str]] = (),
                  arrivals: tuple[Iterable[int], Iterable[float], float] | None = None) -> tuple[Path, Path]:
     """Write a session: ``NAME.wav`` and its sidecar ``NAME.json``.
@@ -632,6 +639,7 @@ def save_session(path: str | os.PathLike, data, rate: int, source: str,
     # Sort only what sorts; anything malformed stays in place for validation to name.
     label_list = sorted((_label_dict(item) for item in labels),
                         key=lambda d: d["start"] if _is_number(d.get("start")) else -math.inf)
+    ranges: list[tuple[int, int]]
     if filled is None:
         ranges = []
     else:
@@ -642,11 +650,11 @@ def save_session(path: str | os.PathLike, data, rate: int, source: str,
             ranges = mask_to_ranges(arr)
         else:
             ranges = [(int(s), int(e)) for s, e in filled]
-    meta = {"format": FORMAT, "version": VERSION, "rate": rate, "channels": int(x.shape[1]),
-            "source": source, "labels": label_list}
+    meta: dict[str, Any] = {"format": FORMAT, "version": VERSION, "rate": rate, "channels": int(x.shape[1]),
+                            "source": source, "labels": label_list}
     if ranges:
         meta["filled"] = [list(r) for r in ranges]
-    mark_list = sorted(([m[0], m[1]] for m in marks), key=lambda m: m[0] if _is_int(m[0]) else -1)
+    mark_list: list[list[Any]] = sorted(([m[0], m[1]] for m in marks), key=lambda m: m[0] if _is_int(m[0]) else -1)
     if mark_list:
         meta["marks"] = mark_list
     validate_sidecar(meta, rate=rate, channels=int(x.shape[1]), frames=int(x.shape[0]), where=str(js))

@@ -46,6 +46,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from numpy.typing import ArrayLike
 from scipy.io import wavfile
 
 from supramodal.errors import InputError
@@ -58,7 +59,7 @@ _IEEE_FLOAT = 0x0003
 _EXTENSIBLE = 0xFFFE
 
 # (format tag, bits per sample) -> numpy dtype scipy returns for it.
-_SUPPORTED = {
+_SUPPORTED: dict[tuple[int, int], np.dtype] = {
     (_PCM, 8): np.dtype(np.uint8),
     (_PCM, 16): np.dtype("<i2"),
     (_PCM, 24): np.dtype("<i4"),      # field recorders' usual format; scipy shifts it left by 8 bits
@@ -129,11 +130,11 @@ class WavInfo:
         return self.frames / self.rate
 
 
-def _fail(path, problem: str) -> WavFormatError:
+def _fail(path: Path, problem: str) -> WavFormatError:
     return WavFormatError(f"{path}: {problem}")
 
 
-def wav_info(path: str | os.PathLike) -> WavInfo:
+def wav_info(path: str | os.PathLike[str]) -> WavInfo:
     """Parse and check a WAV file's header without reading its samples.
 
     Parameters
@@ -168,8 +169,9 @@ def wav_info(path: str | os.PathLike) -> WavInfo:
         if riff != b"RIFF" or wave != b"WAVE":
             raise _fail(path, f"not a WAV file (starts with {head[:4]!r}...{head[8:12]!r}, "
                               "expected b'RIFF'...b'WAVE')")
-        fmt = None
-        data_size = data_offset = None
+        fmt: bytes | None = None
+        data_size: int | None = None
+        data_offset = 0                 # set with data_size
         pos = 12
         while pos + 8 <= size:
             f.seek(pos)
@@ -224,7 +226,7 @@ def wav_info(path: str | os.PathLike) -> WavInfo:
                    format_tag=tag, bits=bits, dtype=dtype)
 
 
-def read_wav(path: str | os.PathLike) -> tuple[np.ndarray, int]:
+def read_wav(path: str | os.PathLike[str]) -> tuple[np.ndarray, int]:
     """Read a WAV file into float64 samples scaled to +-1 full scale.
 
     Parameters
@@ -286,7 +288,7 @@ def read_wav(path: str | os.PathLike) -> tuple[np.ndarray, int]:
     return data, info.rate
 
 
-def as_frames(data) -> np.ndarray:
+def as_frames(data: ArrayLike) -> np.ndarray:
     """Samples as float64 frames, shape (frames, channels); a 1-D array is one channel.
 
     Raises
@@ -304,7 +306,7 @@ def as_frames(data) -> np.ndarray:
     return a.astype(np.float64, copy=False)
 
 
-def write_wav(path: str | os.PathLike, data, rate: int, dtype: str = "float32") -> int:
+def write_wav(path: str | os.PathLike[str], data: ArrayLike, rate: int, dtype: str = "float32") -> int:
     """Write samples scaled to +-1 full scale to a WAV file.
 
     The file is written to a temporary name in the same directory and then
@@ -349,6 +351,8 @@ def write_wav(path: str | os.PathLike, data, rate: int, dtype: str = "float32") 
     if bad:
         raise InputError(f"{path}: refusing to write {bad} NaN or infinite samples")
     clipped = 0
+    lo: float
+    hi: float
     if dtype in ("float32", "float64"):
         peak = float(np.max(np.abs(x))) if x.size else 0.0
         if peak > MAX_FLOAT_MAGNITUDE:

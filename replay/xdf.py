@@ -40,9 +40,13 @@ import math
 import os
 import threading
 import warnings
+from collections.abc import Iterable
 from pathlib import Path
+from types import ModuleType
+from typing import Any
 
 import numpy as np
+from numpy.typing import DTypeLike
 
 from supramodal.checks import Key, text
 from supramodal.drivers.base import DeviceUnavailable
@@ -65,18 +69,23 @@ MAX_XDF_SAMPLES = 2**29
 #: (30 years is 9.5e8 s); beyond it the file's clock offsets are damaged.
 MAX_XDF_TIME = 1e9
 
+#: One stream of an XDF file as pyxdf reads it: ``info`` (the header, each value a list of strings),
+#: ``time_series``, ``time_stamps``, ...
+XdfStream = dict[str, Any]
 
-def import_pyxdf():
+
+def import_pyxdf() -> ModuleType:
     """The pyxdf module, or :class:`DeviceUnavailable` saying what to install."""
     try:
         import pyxdf
     except ImportError:
         raise DeviceUnavailable('reading XDF files needs pyxdf: pip install "supramodal[lsl]"') from None
-    return pyxdf
+    module: ModuleType = pyxdf      # a module, untyped (Any) to mypy
+    return module
 
 
-def _describe(info: dict) -> str:
-    def first(key):
+def _describe(info: dict[str, Any]) -> str:
+    def first(key: str) -> Any:
         v = info.get(key)
         return v[0] if isinstance(v, list) and v else v
 
@@ -84,7 +93,7 @@ def _describe(info: dict) -> str:
             f"{first('channel_count')} ch at {first('nominal_srate')} Hz")
 
 
-def _matches(info: dict, want: dict) -> bool:
+def _matches(info: dict[str, Any], want: dict[str, str]) -> bool:
     return all((info.get(k) or [None])[0] == v for k, v in want.items())
 
 
@@ -102,7 +111,7 @@ class _Kept(logging.Handler):
 _PYXDF_LOG = threading.Lock()       # one read at a time swaps pyxdf's logger
 
 
-def load_xdf_streams(path: str | os.PathLike):
+def load_xdf_streams(path: str | os.PathLike[str]) -> list[XdfStream]:
     """Every stream of an XDF file, timestamps on the recorder's clock: a list of pyxdf's stream
     dicts. :class:`DeviceUnavailable` if the file is missing; :class:`ReplayError` if it cannot be
     read as XDF (also when pyxdf found nothing but damage). pyxdf's log stays off the terminal; a
@@ -113,6 +122,7 @@ def load_xdf_streams(path: str | os.PathLike):
         raise DeviceUnavailable(f"{path}: no such XDF file")
     log = logging.getLogger("pyxdf")
     kept = _Kept()
+    streams: list[XdfStream]
     with _PYXDF_LOG:
         propagate, level = log.propagate, log.level
         log.addHandler(kept)
@@ -146,7 +156,7 @@ def _said(record: logging.LogRecord) -> str:
     return " ".join(text.split())
 
 
-def _regular(s: dict) -> bool:
+def _regular(s: XdfStream) -> bool:
     info = s.get("info", {})
     try:
         rate = float(info.get("nominal_srate", ["0"])[0])
@@ -155,8 +165,9 @@ def _regular(s: dict) -> bool:
     return rate > 0 and isinstance(s.get("time_series"), np.ndarray) and len(s.get("time_stamps", ())) > 0
 
 
-def xdf_session(path: str | os.PathLike, name: str | None = None, stream_type: str | None = None,
-                source_id: str | None = None, streams=None, labels: str | None = None) -> Session:
+def xdf_session(path: str | os.PathLike[str], name: str | None = None, stream_type: str | None = None,
+                source_id: str | None = None, streams: list[XdfStream] | None = None,
+                labels: str | None = None) -> Session:
     """One stream of an XDF file as a session with its recorded timing (see the module notes).
 
     Parameters
@@ -224,7 +235,7 @@ def xdf_session(path: str | os.PathLike, name: str | None = None, stream_type: s
                    labels=truth)
 
 
-def _marker_stream(streams, name: str, path: Path) -> dict:
+def _marker_stream(streams: list[XdfStream], name: str, path: Path) -> XdfStream:
     """The one marker stream called ``name``: irregular, one string channel."""
     found = [s for s in streams if _matches(s.get("info", {}), {"name": name})]
     if len(found) != 1:
@@ -238,7 +249,7 @@ def _marker_stream(streams, name: str, path: Path) -> dict:
     return found[0]
 
 
-def marker_labels(markers: dict, stamps: np.ndarray, rate: float) -> tuple[Label, ...]:
+def marker_labels(markers: XdfStream, stamps: np.ndarray, rate: float) -> tuple[Label, ...]:
     """Truth labels from a marker stream, in the seconds of the stream whose samples are stamped
     ``stamps`` (after :func:`fill_gaps`).
 
@@ -256,7 +267,8 @@ def marker_labels(markers: dict, stamps: np.ndarray, rate: float) -> tuple[Label
 
 
 def fill_gaps(data: np.ndarray, stamps: np.ndarray, rate: float, tolerance: float = DEFAULT_GAP_TOLERANCE,
-              max_gap: float = DEFAULT_MAX_GAP):
+              max_gap: float = DEFAULT_MAX_GAP) -> tuple[np.ndarray, np.ndarray, tuple[tuple[int, int], ...],
+                                                         tuple[tuple[int, str], ...]]:
     """Put back the samples a recorded stream's timestamps say are missing (see the module notes).
 
     Parameters
@@ -284,7 +296,10 @@ def fill_gaps(data: np.ndarray, stamps: np.ndarray, rate: float, tolerance: floa
         ``(frame, "restart")`` where a gap too long to fill ends.
     """
     steps = np.diff(stamps)
-    parts, times, filled, marks = [], [], [], []
+    parts: list[np.ndarray] = []
+    times: list[np.ndarray] = []
+    filled: list[tuple[int, int]] = []
+    marks: list[tuple[int, str]] = []
     taken = added = 0
     for i, kind, missing in _steps(stamps, rate, tolerance, max_gap):   # between sample i and i + 1
         parts.append(data[taken:i + 1])
@@ -306,7 +321,7 @@ def fill_gaps(data: np.ndarray, stamps: np.ndarray, rate: float, tolerance: floa
 
 
 def _steps(stamps: np.ndarray, rate: float, tolerance: float = DEFAULT_GAP_TOLERANCE,
-           max_gap: float = DEFAULT_MAX_GAP):
+           max_gap: float = DEFAULT_MAX_GAP) -> list[tuple[int, str, int]]:
     """The steps of ``stamps`` that :func:`fill_gaps` acts on: ``(i, kind, missing)`` for the
     step between sample ``i`` and ``i + 1``, ``kind`` ``"gap"`` (``missing`` samples to fill) or
     a restart (``"long"``, ``"back"``; ``missing`` 0), judged as the live inlet judges them."""
@@ -314,7 +329,7 @@ def _steps(stamps: np.ndarray, rate: float, tolerance: float = DEFAULT_GAP_TOLER
     # The live inlet's judge, on each step that is not within the tolerance of one period.
     judge = TimestampSteps(rate, tolerance, max_gap)
     at = np.flatnonzero(np.abs(steps - 1.0 / rate) > tolerance).tolist()
-    out = []
+    out: list[tuple[int, str, int]] = []
     for k, i in enumerate(at):
         judge.last = float(stamps[i])
         step = judge.step(float(stamps[i + 1]), float(stamps[i + 1]))
@@ -347,7 +362,7 @@ def _clock_offset(stamps: np.ndarray, a: int, b: int, rate: float, near_start: b
     return float(np.median(stamps[idx] - idx / rate))
 
 
-def _full_scale(dtype) -> float:
+def _full_scale(dtype: DTypeLike) -> float:
     """Integer samples are scaled so that the type's range is +-1."""
     return float(2 ** (np.dtype(dtype).itemsize * 8 - 1))
 
@@ -364,7 +379,7 @@ def _session_rate(rate: float, where: str) -> int:
     return int(round(rate))
 
 
-def _arrivals(seconds: np.ndarray, rate: float, cuts=()) -> tuple[np.ndarray, np.ndarray, float]:
+def _arrivals(seconds: np.ndarray, rate: float, cuts: Iterable[int] = ()) -> tuple[np.ndarray, np.ndarray, float]:
     """Blocks of :data:`XDF_BLOCK_SECONDS`, also cut at ``cuts`` (restart frames: no block
     spans one, so none of its frames is timed by the line after it): each one's end frame and the
     time of its last sample (never earlier than the block's before), and the rate the timestamps show over the whole
@@ -394,12 +409,12 @@ def _arrivals(seconds: np.ndarray, rate: float, cuts=()) -> tuple[np.ndarray, np
 WHICH = ("stream", "stream_type", "source_id")
 
 
-def _check(options: dict) -> None:
+def _check(options: dict[str, Any]) -> None:
     if all(options[k] is None for k in WHICH):
         raise OptionError('type "xdf" needs the recorded stream\'s name (stream = ...), stream_type or source_id')
 
 
-def _build(options: dict, context: BuildContext) -> Built:
+def _build(options: dict[str, Any], context: BuildContext) -> Built:
     from supramodal.replay.driver import ReplayDriver, pacing
 
     path = context.resolve(options["path"])
