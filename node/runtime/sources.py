@@ -38,7 +38,7 @@ import math
 import queue
 import threading
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -46,6 +46,9 @@ from supramodal.drivers.base import Block, Driver, DriverClosed, DriverEvent, mi
 from supramodal.errors import InputError
 from supramodal.node.runtime.clock import ClockModel
 from supramodal.node.runtime.ringbuffer import Reader, RingBuffer
+
+if TYPE_CHECKING:   # the recorder imports the sources: its name for an annotation only
+    from supramodal.node.runtime.taps.recorder import SessionRecorder
 
 #: What a source puts on the graph's event queue: (source name, driver events, dropped counts by kind).
 EventItem = tuple[str, list[DriverEvent], dict[str, int]]
@@ -133,7 +136,7 @@ class Source:
         #: The recorder of this source (:class:`~supramodal.node.runtime.taps.recorder.SessionRecorder`, a tap
         #: that set itself here in its ``start``), or None: the source thread tells it each
         #: block's driver marks (``note``) and time on common time (``arrival``), which no feed carries.
-        self.recorder = None
+        self.recorder: SessionRecorder | None = None
         #: Truth labels of the source's samples (:class:`~supramodal.node.runtime.streams.Labels`), set by
         #: the graph from the first stream that reads the source; None: none known (a relay).
         self.labels = None

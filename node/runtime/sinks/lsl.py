@@ -46,19 +46,26 @@ from __future__ import annotations
 import json
 import socket
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
+from types import ModuleType
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
 from supramodal import __version__
 from supramodal.checks import NAME_HELP, Key, is_name, non_negative
+from supramodal.drivers.base import DriverEvent
 from supramodal.drivers.lsl import import_pylsl, lsl_clock_offset
 from supramodal.drivers.spec import OptionError
 from supramodal.errors import InputError
 from supramodal.features import FEATURE_TABLE
 from supramodal.node.runtime.events import FUSED_STREAM, WindowEvent
 from supramodal.node.runtime.sinks import QueuedSink, Sink
-from supramodal.node.scene.registry import SinkSpec
+from supramodal.node.scene.registry import SinkContext, SinkSpec
+
+if TYPE_CHECKING:   # for the annotations only: the sink needs no model code to run
+    from supramodal.pipeline import FeaturePipeline
 
 #: What an LSL sink can send, in order.
 OUTPUTS = ("features", "decisions", "posteriors")
@@ -74,6 +81,18 @@ DEFAULT_WAIT_FOR_CONSUMER = 0.0
 CONNECT_SETTLE_SECONDS = 0.2
 #: Seconds of one wait in liblsl: the main thread sees SIGINT and SIGTERM between two.
 WAIT_STEP_SECONDS = 0.1
+
+
+class Outlet(Protocol):
+    """What the node uses of a ``pylsl.StreamOutlet`` (pylsl ships no type information)."""
+
+    def push_sample(self, x: Any, timestamp: float = ...) -> None: ...
+
+    def push_chunk(self, x: Any, timestamp: float = ...) -> None: ...
+
+    def wait_for_consumers(self, timeout: float) -> bool: ...
+
+    def have_consumers(self) -> bool: ...
 
 
 @dataclass(frozen=True)
@@ -120,7 +139,7 @@ class LSLClock:
     (:func:`~supramodal.drivers.lsl.lsl_clock_offset`).
     """
 
-    def __init__(self, pylsl, epoch: float) -> None:
+    def __init__(self, pylsl: ModuleType, epoch: float) -> None:
         self.epoch = epoch
         self.offset = lsl_clock_offset(pylsl)
 
@@ -129,7 +148,7 @@ class LSLClock:
         return self.epoch + common - self.offset
 
 
-def wait_for_consumers(outlets, seconds: float) -> tuple[float, list[bool]]:
+def wait_for_consumers(outlets: Sequence[Outlet], seconds: float) -> tuple[float, list[bool]]:
     """Wait up to ``seconds`` until each of ``outlets`` (pylsl ``StreamOutlet``) has a consumer,
     then :data:`CONNECT_SETTLE_SECONDS` more. Start-up work: the wait is made of liblsl waits of
     at most :data:`WAIT_STEP_SECONDS`, so that SIGINT and SIGTERM, whose handlers run on the main
@@ -187,7 +206,7 @@ class LSLOutletSink(Sink):
     a consumer started before the node resolves them during the start-up and gets window 0.
     """
 
-    def __init__(self, streams, outputs=OUTPUTS, prefix: str = DEFAULT_PREFIX,
+    def __init__(self, streams: Sequence[OutletStream], outputs: Sequence[str] = OUTPUTS, prefix: str = DEFAULT_PREFIX,
                  wait_for_consumer: float = DEFAULT_WAIT_FOR_CONSUMER) -> None:
         unknown = sorted(set(outputs) - set(OUTPUTS))
         if unknown or not outputs:
@@ -197,7 +216,7 @@ class LSLOutletSink(Sink):
         self.wait_for_consumer = float(wait_for_consumer)
         self.waited_s: float | None = None
         self.consumers: list[str] | None = None
-        self._outlets: dict[tuple[str, str], object] = {}
+        self._outlets: dict[tuple[str, str], Outlet] = {}
         self._streams = {s.name: s for s in streams}
         self._clock = LSLClock(pylsl, time.monotonic())
         for s in streams:
@@ -208,7 +227,8 @@ class LSLOutletSink(Sink):
                 self._outlets[(s.name, output)] = pylsl.StreamOutlet(info, chunk_size=1,
                                                                      max_buffered=OUTLET_BUFFER_SECONDS)
 
-    def _info(self, s: OutletStream, output: str):
+    def _info(self, s: OutletStream, output: str) -> Any:
+        """The outlet's ``pylsl.StreamInfo`` (Any: pylsl ships no type information)."""
         pylsl = self._pylsl
         if output == "features":
             labels = [f"{f}/{name}" for f in s.features for name in s.filters]
@@ -260,7 +280,7 @@ class LSLOutletSink(Sink):
             self.waited_s, found = wait_for_consumers(list(self._outlets.values()), self.wait_for_consumer)
             self.consumers = [f"{name}-{output}" for (name, output), ok in zip(self._outlets, found) if ok]
 
-    def stats(self) -> dict | None:
+    def stats(self) -> dict[str, Any] | None:
         """With a wait for consumers: ``waited_s`` and ``consumers`` (the outlets that had one,
         ``STREAM-OUTPUT``); else None."""
         if self.waited_s is None:
@@ -289,17 +309,17 @@ class LSLOutletSink(Sink):
         if decisions is not None and event.decision is not None:
             decisions.push_sample([json.dumps(_marker(event))], stamp)
 
-    def event(self, ev) -> None:
+    def event(self, ev: DriverEvent) -> None:
         """Driver events are not sent (they are in the node's own sinks)."""
 
-    def summary(self, summary: dict) -> None:
+    def summary(self, summary: dict[str, Any]) -> None:
         """Nothing to write (the node's summary counts what the sink's queue passed on)."""
 
     def close(self) -> None:
         self._outlets.clear()               # liblsl closes an outlet when it is released
 
 
-def _marker(event: WindowEvent) -> dict:
+def _marker(event: WindowEvent) -> dict[str, Any]:
     """The decision marker of one window: what a consumer needs to act on it."""
     return {"stream": event.stream, "window": event.window, "start": round(event.start, 6),
             "end": round(event.end, 6), "decision": event.decision,
@@ -310,7 +330,7 @@ def _marker(event: WindowEvent) -> dict:
 
 # -- as a scene names it ---------------------------------------------------------------------------
 
-def describe(name: str, pipeline, classes) -> OutletStream:
+def describe(name: str, pipeline: FeaturePipeline, classes: Sequence[str]) -> OutletStream:
     """A stream's outlets' description from its pipeline and its model's classes (empty: features
     only)."""
     bank = pipeline.bank
@@ -318,7 +338,7 @@ def describe(name: str, pipeline, classes) -> OutletStream:
                         pipeline.features, pipeline.window_samples / bank.fs, tuple(classes))
 
 
-def _build(options: dict, context) -> Sink:
+def _build(options: dict[str, Any], context: SinkContext) -> Sink:
     # Made from the streams' plans, before any model is trained: consumers resolve the outlets
     # while the node trains (seconds), and get window 0.
     described = {name: describe(name, p.pipeline, p.classes) for name, p in context.plans.items()}

@@ -54,6 +54,8 @@ from __future__ import annotations
 
 import collections
 import time
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -67,12 +69,17 @@ from supramodal.node.runtime.sinks.lsl import (
     DEFAULT_PREFIX,
     OUTLET_BUFFER_SECONDS,
     LSLClock,
+    Outlet,
     outlet_name,
     outlet_source_id,
     wait_for_consumers,
 )
 from supramodal.node.runtime.taps import Tap
-from supramodal.node.scene.registry import SinkSpec, driver_spec
+from supramodal.node.scene.registry import SinkContext, SinkSpec, driver_spec
+
+if TYPE_CHECKING:   # the annotations' names only (the sources import the taps)
+    from supramodal.banks import Bank
+    from supramodal.node.runtime.sources import Feed, Source
 
 #: Seconds of samples per push: LSL's usual 5-30 ms; 10 ms matches the node's own chunks.
 DEFAULT_SIGNAL_CHUNK = 0.01
@@ -123,8 +130,9 @@ class LSLSignalOutlet(Tap):
     """
 
     def __init__(self, source: str, rate: float, channels: int, chunk: float = DEFAULT_SIGNAL_CHUNK,
-                 prefix: str = DEFAULT_PREFIX, stream_type: str = DEFAULT_SIGNAL_TYPE, labels=None,
-                 driver: str = "", wait_for_consumer: float = DEFAULT_WAIT_FOR_CONSUMER) -> None:
+                 prefix: str = DEFAULT_PREFIX, stream_type: str = DEFAULT_SIGNAL_TYPE,
+                 labels: Sequence[str] | None = None, driver: str = "",
+                 wait_for_consumer: float = DEFAULT_WAIT_FOR_CONSUMER) -> None:
         lo, hi = SIGNAL_CHUNK_RANGE
         if not lo <= chunk <= hi:
             raise InputError(f"an LSL signal outlet's chunk is {lo:g} to {hi:g} s, got {chunk!r}")
@@ -152,14 +160,14 @@ class LSLSignalOutlet(Tap):
         meta.append_child_value("rate", repr(self.rate))
         meta.append_child_value("chunk", repr(self.frames_per_chunk / self.rate))
         meta.append_child_value("holes", "samples the node never measured are not sent; the timestamps show where")
-        self._outlet = pylsl.StreamOutlet(info, chunk_size=self.frames_per_chunk,
+        self._outlet: Outlet | None = pylsl.StreamOutlet(info, chunk_size=self.frames_per_chunk,
                                           max_buffered=OUTLET_BUFFER_SECONDS)
         self.wait_for_consumer = float(wait_for_consumer)
         self.waited_s: float | None = None
         self.consumer: bool | None = None
         self._clock: LSLClock | None = None
-        self._feed = None
-        self._source = None
+        self._feed: Feed | None = None
+        self._source: Source | None = None
         self._pending: list[np.ndarray] = []
         self._restarts: collections.deque[int] = collections.deque()    # stream indices, ascending
         self._pending_end = 0              # stream index one past the last pending frame
@@ -176,15 +184,16 @@ class LSLSignalOutlet(Tap):
         """Wait up to ``wait_for_consumer`` seconds for a consumer. The caller's thread, before
         the graph's start (a graph prepares its taps in turn: waits without a consumer add up)."""
         if self.wait_for_consumer > 0:
+            assert self._outlet is not None, "prepare before close (the graph's order of calls)"
             self.waited_s, (self.consumer,) = wait_for_consumers([self._outlet], self.wait_for_consumer)
 
-    def start(self, source, epoch: float) -> None:
+    def start(self, source: Source, epoch: float) -> None:
         """The source this outlet taps and the graph's start (``time.monotonic()``): common
         time 0. The caller's thread, before the tap's thread starts."""
         self._clock = LSLClock(self._pylsl, epoch)
         self._source = source
 
-    def run(self, feed) -> None:
+    def run(self, feed: Feed) -> None:
         """Read ``feed`` (a :class:`~supramodal.node.runtime.sources.Feed` of the source's ring) until
         the ring closes, pushing each chunk as it completes. The tap's thread."""
         reader, expected = feed.reader, 0
@@ -216,7 +225,7 @@ class LSLSignalOutlet(Tap):
             expected = start + data.shape[0]
         self._flush()
 
-    def summary(self) -> dict:
+    def summary(self) -> dict[str, Any]:
         """What the outlet sent (the graph adds every frame's fate as its reader saw it)."""
         return {"outlet": self.name, "source_id": self.source_id, "chunks": self.chunks,
                 "samples_sent": self.samples_sent, "holes": self.holes, "waited_s": self.waited_s,
@@ -230,7 +239,7 @@ class LSLSignalOutlet(Tap):
 
     # -- chunks -------------------------------------------------------------------------------
 
-    def _take_restarts(self, marks, end: int) -> None:
+    def _take_restarts(self, marks: collections.deque[tuple[int, str]], end: int) -> None:
         """Keep the driver's restart marks before stream index ``end`` (the source thread notes
         a block's marks before it writes the block, so all of them are there)."""
         while marks and marks[0][0] < end:
@@ -264,7 +273,9 @@ class LSLSignalOutlet(Tap):
             return
         x = np.concatenate(self._pending, axis=0).astype(np.float32)
         self._pending = []
-        self._outlet.push_chunk(x, self._clock.lsl_time(self._stamp(self._pending_end - 1)))
+        outlet, clock = self._outlet, self._clock
+        assert outlet is not None and clock is not None, "pushed between start and close (the tap's thread)"
+        outlet.push_chunk(x, clock.lsl_time(self._stamp(self._pending_end - 1)))
         self.chunks += 1
         self.samples_sent += x.shape[0]
         self.holes += hole
@@ -272,14 +283,16 @@ class LSLSignalOutlet(Tap):
     def _stamp(self, index: int) -> float:
         """Sample ``index`` on common time, by the line of the block that brought it (the one a
         window ending there is dated by)."""
-        block = self._feed.block_of(index)
-        offset, slope = self._source.line() if block is None else block[2]
+        feed, source = self._feed, self._source
+        assert feed is not None and source is not None, "start and run set them before any frame"
+        block = feed.block_of(index)
+        offset, slope = source.line() if block is None else block[2]
         return offset + index * slope
 
 
 # -- as a scene names it ---------------------------------------------------------------------------
 
-def signal_type(driver_options: dict, banks: list) -> str:
+def signal_type(driver_options: dict[str, Any], banks: Sequence[Bank]) -> str:
     """What a source is, as an LSL content type: by the banks that read it, else by its driver's spec."""
     kinds = {b.kind for b in banks}
     if kinds == {"whisker"}:
@@ -289,7 +302,7 @@ def signal_type(driver_options: dict, banks: list) -> str:
     return driver_spec(driver_options["type"]).signal_type(driver_options) or DEFAULT_SIGNAL_TYPE
 
 
-def _build(options: dict, context) -> Tap:
+def _build(options: dict[str, Any], context: SinkContext) -> Tap:
     driver, driver_options, read_by = context.sources[options["source"]]
     channels = driver.channels
     # Channel labels: the filters' names where a bank takes the channels one to one.

@@ -31,16 +31,19 @@ it has ended.
 from __future__ import annotations
 
 import array
+import io
 import math
 import os
 import threading
+from collections.abc import Callable, Iterable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from supramodal.errors import InputError
-from supramodal.node.runtime.ringbuffer import RingClosed, flag_runs
-from supramodal.node.runtime.sources import Feed
+from supramodal.node.runtime.ringbuffer import Reader, RingClosed, flag_runs
+from supramodal.node.runtime.sources import Feed, Source
 from supramodal.node.runtime.taps import Tap
 from supramodal.replay.session import MAX_SIDECAR_BYTES, save_session, session_paths
 
@@ -83,8 +86,8 @@ class SessionRecorder(Tap):
     #: not from its feed: the feed keeps neither, so nothing piles up unread.
     track = False
 
-    def __init__(self, folder, name: str, source: str, label: str | None = None, overwrite: bool = False,
-                 keep_arrivals: bool = False, replace: bool = False) -> None:
+    def __init__(self, folder: str | os.PathLike[str], name: str, source: str, label: str | None = None,
+                 overwrite: bool = False, keep_arrivals: bool = False, replace: bool = False) -> None:
         self.folder = Path(folder)
         if self.folder.exists() and not self.folder.is_dir():
             raise InputError(f"{self.folder} is a file; give a folder for the session")
@@ -98,7 +101,7 @@ class SessionRecorder(Tap):
         self.rate: float | None = None
         self.channels: int | None = None
         self._raw_path = self.folder / f".{name}.raw"
-        self._raw = None
+        self._raw: io.BufferedWriter | None = None
         self._driver_labels: list[tuple[float, float, str]] = []
         self._label_period: float | None = None
         self._frames = 0
@@ -107,9 +110,9 @@ class SessionRecorder(Tap):
         self._marks: list[tuple[int, str | None]] = [(0, label)] if label else []
         self._timed_marks: list[tuple[float, str | None]] = []   # (seconds of common time, label)
         self.replace = replace
-        self._source = None
+        self._source: Source | None = None
         self._board_marks: list[tuple[int, str]] = []      # (stream index, "restart" | "overrun")
-        self._position = lambda: self._frames
+        self._position: Callable[[], int] = lambda: self._frames
         self.paths: tuple[Path, Path] | None = None
         self.keep_arrivals = keep_arrivals
         self._arrival_frames = array.array("q")
@@ -117,7 +120,8 @@ class SessionRecorder(Tap):
         #: Arrivals left out to keep the sidecar loadable (see ARRIVALS_BUDGET).
         self.arrivals_thinned = 0
 
-    def attach(self, rate: float, channels: int, position, labels=(), clock_rate: float | None = None,
+    def attach(self, rate: float, channels: int, position: Callable[[], int],
+               labels: Iterable[tuple[float, float, str]] = (), clock_rate: float | None = None,
                label_period: float | None = None) -> None:
         """Called by the node: the stream's rate, channels, a callable giving the current frame,
         the driver's own labels ``(start_s, end_s, name)``, kept in the session (repeating every
@@ -128,7 +132,7 @@ class SessionRecorder(Tap):
         self._driver_labels = [(float(a), float(b), str(n)) for a, b, n in labels]
         self._label_period = label_period
 
-    def start(self, source, epoch: float) -> None:
+    def start(self, source: Source, epoch: float) -> None:
         """The source this recorder records (:class:`~supramodal.node.runtime.sources.Source`), before any
         frame: :meth:`attach` to it (its rate, channels, position, truth labels and clock rate) and
         become its ``recorder``, which the source thread tells each block's marks and time. The
@@ -175,7 +179,7 @@ class SessionRecorder(Tap):
             self._arrival_frames.append(int(end))
             self._arrival_seconds.append(float(seconds))
 
-    def run(self, feed) -> None:
+    def run(self, feed: Feed | Reader) -> None:
         """Drain ``feed`` (a :class:`~supramodal.node.runtime.sources.Feed`, or a ring reader itself) until
         the ring closes; then write the session (:attr:`paths`). The recorder's thread."""
         reader = feed.reader if isinstance(feed, Feed) else feed
@@ -199,11 +203,11 @@ class SessionRecorder(Tap):
                 self._raw.close()
             self.paths = self._finish()
 
-    def summary(self) -> dict:
+    def summary(self) -> dict[str, Any]:
         """``{"session": name, "paths": [wav, json] or None}`` (None: no frame came)."""
         return {"session": self.name, "paths": None if self.paths is None else [str(p) for p in self.paths]}
 
-    def _append(self, data: np.ndarray, filled, missing: bool = False) -> None:
+    def _append(self, data: np.ndarray, filled: np.ndarray | None, missing: bool = False) -> None:
         if self._raw is None:
             self.folder.mkdir(parents=True, exist_ok=True)
             self._raw = open(self._raw_path, "wb")
@@ -215,56 +219,60 @@ class SessionRecorder(Tap):
         elif filled is not None and filled.any():
             self._filled += [(a + s, a + e) for s, e in flag_runs(filled)]
 
-    def _labels(self) -> list[tuple[float, float, str]]:
+    def _labels(self, rate: float, clock_rate: float) -> list[tuple[float, float, str]]:
+        """The session's labels, in seconds of a stream of ``rate`` Hz (``clock_rate``: the source's
+        clock model's nominal rate, for the marks on common time)."""
         if self._driver_labels and not self.replace:
             # The driver's truth on every pass, clipped to what was recorded (a recording stopped early).
-            end = self._frames / self.rate
+            end = self._frames / rate
             p = self._label_period
             passes = 1 if p is None else math.ceil(end / p)
             shifted = [(a + k * p if p else a, b + k * p if p else b, n)
                        for k in range(passes) for a, b, n in self._driver_labels]
             return [(a, min(b, end), n) for a, b, n in shifted if a < end]
         with self._lock:
-            marks = list(self._marks) + self._timed_frames()
+            marks = list(self._marks) + self._timed_frames(clock_rate)
         marks = sorted(marks, key=lambda m: m[0]) + [(self._frames, None)]
         out = []
         for (a, name), (b, _) in zip(marks, marks[1:]):
             if name is not None and b > a:
-                out.append((a / self.rate, b / self.rate, name))
+                out.append((a / rate, b / rate, name))
         return out
 
-    def _timed_frames(self) -> list[tuple[int, str | None]]:
+    def _timed_frames(self, clock_rate: float) -> list[tuple[int, str | None]]:
         """The marks on common time as frame marks, through the clock fed this session's block
         times (all of them, before any thinning). Called with the lock held."""
         if not self._timed_marks or not len(self._arrival_frames):
             return []
         from supramodal.node.workflows.labels import frames_at
 
-        arrivals = (np.frombuffer(self._arrival_frames, dtype=np.int64),
-                    np.frombuffer(self._arrival_seconds, dtype=np.float64), self.clock_rate)
-        at = frames_at(arrivals, [t for t, _ in self._timed_marks], self._board_marks)
+        at = frames_at((self._arrival_frames, self._arrival_seconds, clock_rate), [t for t, _ in self._timed_marks],
+                       self._board_marks)
         return [(int(round(min(max(float(f), 0.0), float(self._frames)))), label)
                 for f, (_, label) in zip(at, self._timed_marks)]
 
     def _finish(self) -> tuple[Path, Path] | None:
-        if self._frames == 0 or self.rate is None:
+        rate, channels, clock_rate = self.rate, self.channels, self.clock_rate   # set together, by attach
+        if self._frames == 0 or rate is None or channels is None or clock_rate is None:
             if self._raw is not None:
                 os.unlink(self._raw_path)
             return None
-        raw = np.memmap(self._raw_path, dtype=np.float64, mode="r", shape=(self._frames, self.channels))
+        raw = np.memmap(self._raw_path, dtype=np.float64, mode="r", shape=(self._frames, channels))
         exact32 = all(np.array_equal(raw[i : i + _CHUNK].astype(np.float32).astype(np.float64), raw[i : i + _CHUNK])
                       for i in range(0, self._frames, _CHUNK))
         with self._lock:
             marks = [(i, kind) for i, kind in self._board_marks if i < self._frames]
-        paths = save_session(self.folder / self.name, raw, int(round(self.rate)), self.source, labels=self._labels(),
-                             filled=self._merged_filled(), dtype="float32" if exact32 else "float64", marks=marks,
-                             arrivals=self._arrivals())
+        paths = save_session(self.folder / self.name, raw, int(round(rate)), self.source,
+                             labels=self._labels(rate, clock_rate), filled=self._merged_filled(),
+                             dtype="float32" if exact32 else "float64", marks=marks,
+                             arrivals=self._arrivals(clock_rate))
         del raw
         os.unlink(self._raw_path)
         return paths
 
-    def _arrivals(self) -> tuple[np.ndarray, np.ndarray, float] | None:
-        """The kept arrivals within what was recorded, thinned to :data:`ARRIVALS_BUDGET`."""
+    def _arrivals(self, clock_rate: float) -> tuple[np.ndarray, np.ndarray, float] | None:
+        """The kept arrivals within what was recorded, thinned to :data:`ARRIVALS_BUDGET`, with the
+        clock model's nominal rate ``clock_rate``."""
         if not self.keep_arrivals or not len(self._arrival_frames):
             return None
         frames = np.frombuffer(self._arrival_frames, dtype=np.int64)
@@ -277,7 +285,7 @@ class SessionRecorder(Tap):
             pick = np.r_[np.arange(0, len(frames) - 1, 2), len(frames) - 1]
             frames, seconds = frames[pick], seconds[pick]
         self.arrivals_thinned = n - len(frames)
-        return (frames, seconds, self.clock_rate) if len(frames) else None
+        return (frames, seconds, clock_rate) if len(frames) else None
 
     def _merged_filled(self) -> list[tuple[int, int]]:
         merged: list[list[int]] = []
