@@ -1,4 +1,4 @@
-"""The view (node/runtime/view.py): a page served by a running node, checked in a real headless browser
+"""The view (node/runtime/sinks/view.py): a page served by a running node, checked in a real headless browser
 (Debian's chromium over the DevTools protocol, tests/view_browser.py), and its server's rules
 (the token, the Origin, bounded messages, a page that stops reading never slows the node)."""
 
