@@ -164,7 +164,7 @@ class Bank:
         """True if both banks filter identically (same rate, cf and b to 1e-12, same names)."""
         return (
             self.channels == other.channels
-            and np.isclose(self.fs, other.fs, rtol=1e-12, atol=0)
+            and bool(np.isclose(self.fs, other.fs, rtol=1e-12, atol=0))
             and np.allclose(self.cf, other.cf, rtol=1e-12, atol=0)
             and np.allclose(self.b, other.b, rtol=1e-12, atol=0)
             and self.names == other.names

@@ -57,13 +57,19 @@ class Feature:
     unit: str = ""
 
 
+def _given(freq: np.ndarray | None) -> np.ndarray:
+    """The peaks' frequencies, which a feature that ``needs_frequency`` is always given."""
+    assert freq is not None, "FeatureWindows computes them when a selected feature needs_frequency"
+    return freq
+
+
 #: The one table of features: the names a scene, the command line or a model file may use,
 #: the check of a selection and the computation all come from it.
 FEATURE_TABLE: dict[str, Feature] = {f.name: f for f in (
-    Feature("Af", "sum of A_k f_k, the equivalent noise level (Hz x amplitude)", True, lambda amp, freq: amp * freq,
-            "Hz*fullscale"),
+    Feature("Af", "sum of A_k f_k, the equivalent noise level (Hz x amplitude)", True,
+            lambda amp, freq: amp * _given(freq), "Hz*fullscale"),
     Feature("A", "sum of the peak amplitudes A_k (full scale 1.0)", False, lambda amp, freq: amp, "fullscale"),
-    Feature("f", "sum of the instantaneous frequencies f_k (Hz)", True, lambda amp, freq: freq, "Hz"),
+    Feature("f", "sum of the instantaneous frequencies f_k (Hz)", True, lambda amp, freq: _given(freq), "Hz"),
 )}
 #: Every feature name, in the table's order (the default selection computes all of them).
 FEATURES = tuple(FEATURE_TABLE)

@@ -26,14 +26,17 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 
+from supramodal.banks import Bank
 from supramodal.calibration import (
     DEFAULT_CALIBRATION_FOLDS,
     POOLING_RUN,
     Calibration,
     Novelty,
+    OutOfFold,
     calibration_folds,
     calibration_report,
     fit_network_calibration,
@@ -75,7 +78,7 @@ class Sense:
     """What one sense's input windows are: its name and the pipeline settings that make them."""
 
     name: str
-    bank: object
+    bank: Bank
     features: tuple[str, ...]
     window_samples: int
     peak_mode: str = "maxima"
@@ -258,10 +261,16 @@ class EarlyFusionModel:
         if not isinstance(training, dict):
             raise bad("'training' must be an object")
         calibration, novelty = calibration_from_parts(header, arrays, n_in, len(classes), bad)
-        return cls(tuple(senses), tuple(classes), mean, scale, mlp, training, calibration, novelty)
+        return cls((senses[0], senses[1]), tuple(classes), mean, scale, mlp, training, calibration, novelty)
 
 
 # -- late fusion learned from windows the senses' networks never trained on ------------------------------
+
+def _out_of_fold(model: TextureModel) -> OutOfFold | None:
+    """``model``'s held-out logits from its calibration, if it kept them (TextureModel.out_of_fold, which
+    supramodal.model annotates only as an object: fit_network_calibration's OutOfFold or None)."""
+    return cast(OutOfFold | None, model.out_of_fold)
+
 
 def out_of_fold_logits(model: TextureModel, values, labels, classes, folds, progress=None) -> np.ndarray:
     """Each window's logits from a network that never trained on its fold.
@@ -300,7 +309,7 @@ def out_of_fold_logits(model: TextureModel, values, labels, classes, folds, prog
     parts = np.unique(folds)
     if len(parts) < 2:
         raise InputError("out-of-fold windows need at least two folds")
-    kept = model.out_of_fold
+    kept = _out_of_fold(model)
     if kept is not None and tuple(classes) == tuple(model.classes) and kept.matches(values, y, folds):
         # The model's own calibration trained these very fold networks on these windows.
         if progress:
@@ -327,10 +336,10 @@ def out_of_fold_log_posteriors(model: TextureModel, values, labels, classes, fol
     where these are the very logits it was fitted on), else the normalised outputs (a version 1
     model's posteriors). Shape (n, classes)."""
     y = np.asarray(labels)
-    kept = model.out_of_fold
+    kept = _out_of_fold(model)
     own = kept is not None and tuple(classes) == tuple(model.classes) and kept.matches(values, y, folds)
     z = out_of_fold_logits(model, values, y, classes, folds, progress)
-    if not model.calibrated:
+    if model.calibration is None:          # not calibrated (model.calibrated)
         return normalised_log_posteriors(z)
     if own:
         return model.calibration.log_posteriors(z)

@@ -832,10 +832,11 @@ def _filter_pass(group: _ChannelGroup, plan: _PassPlan, x: np.ndarray, dst: np.n
         rescale = (group.inverse_powers[o + m : o + (K + 1) * m : m],        # p**-(o + (k+1) m), (K, 1, C)
                    group.powers[o : o + K * m : m])                          # p**(o + k m), (K, 1, C)
         if len(plan.rescale_at) < _RESCALE_CACHE:
-            rescale = tuple(np.repeat(r, 4, axis=1) for r in rescale)        # (K, 4, C), contiguous
+            rescale = (np.repeat(rescale[0], 4, axis=1), np.repeat(rescale[1], 4, axis=1))   # (K, 4, C), contiguous
             plan.rescale_at[o] = rescale
     rescale_in, rescale_out = rescale
     # 1. State inputs, rescaled to the anchor; every channel's Toeplitz input.
+    X: np.ndarray
     if x.ndim == 1:
         X = x.reshape(K, m)
         np.matmul(X, mats.to_state, out=plan.state_input)

@@ -17,6 +17,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import DTypeLike
 
 from supramodal.checks import is_number
 from supramodal.errors import InputError, StreamEndedError
@@ -97,13 +98,13 @@ class PeakExtractor:
             raise InputError(f"channels must be >= 1, got {channels}")
         self.channels = int(channels)
         self.mode = mode
-        self._z = None             # (channels, 2 + L): the last two samples seen, then the block
-        self._staged = None
-        self._scratch = {}
+        self._z: np.ndarray | None = None      # (channels, 2 + L): the last two samples seen, then the block
+        self._staged: np.ndarray | None = None
+        self._scratch: dict[str, np.ndarray] = {}
         self.samples_seen = 0
         self._finished = False
 
-    def staging(self, length: int, dtype=np.float64) -> np.ndarray:
+    def staging(self, length: int, dtype: DTypeLike = np.float64) -> np.ndarray:
         """A (channels, length) array to write the next block into; pass that very array to
         :meth:`process` next, which then skips copying it (an optimisation for the pipeline)."""
         self._staged = self._buffer(int(length), np.dtype(dtype))[:, 2:]
@@ -145,6 +146,7 @@ class PeakExtractor:
             return self._empty(max(n0 - 1, 0), n0)
         if y is staged:
             z = self._z
+            assert z is not None, "staging() made the work array"
         else:
             z = self._buffer(L, y.dtype if y.dtype.kind == "f" else np.dtype(np.float64))
             z[:, 2:] = y                                       # stream samples n0-2 .. n0+L-1
@@ -161,7 +163,7 @@ class PeakExtractor:
         self._finished = True
         return self._empty(self.samples_seen, self.samples_seen)
 
-    def _find(self, z: np.ndarray, first_index: int):
+    def _find(self, z: np.ndarray, first_index: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         C, n = z.shape                                         # n = L + 2: two samples of the past first
         flat = z.reshape(-1)
         N = flat.size
@@ -192,7 +194,7 @@ class PeakExtractor:
         column += first_index - 1                              # stream index of each peak
         return channel, column, amplitude
 
-    def _work(self, name: str, size: int, dtype) -> np.ndarray:
+    def _work(self, name: str, size: int, dtype: DTypeLike) -> np.ndarray:
         """A scratch array kept between blocks (fresh large arrays cost page faults every block)."""
         a = self._scratch.get(name)
         if a is None or a.size < size or a.dtype != dtype:

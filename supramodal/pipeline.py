@@ -92,10 +92,10 @@ class FeaturePipeline:
         self.windows = FeatureWindows(bank.channels, bank.fs, self.window_samples, self.features)
         self.gather = bool(gather)
         self.chunk_samples = self._chunk_samples(chunk)
-        self._buf = None          # gathered samples not yet filtered: (n,) mono or (channels, n)
-        self._held = 0
+        self._buf: np.ndarray | None = None   # gathered samples not yet filtered: (n,) mono or (channels, n)
+        self._held = 0                          # how many (the first of _buf's last axis)
         self._finished = False
-        self._empty = None
+        self._empty: Windows | None = None
 
     def process(self, x) -> Windows:
         """Feed one block, shape (L,) or (channels, L); return the windows it closes."""
@@ -104,8 +104,8 @@ class FeaturePipeline:
         x = self.filterbank.prepare(x)
         if not self.gather:
             return self._run(x)
-        parts = []
-        if self._held and x.ndim != self._buf.ndim:
+        parts: list[Windows] = []
+        if self._held and x.ndim != self._held_buffer().ndim:
             parts.append(self._release(self._held))          # mono after per-channel, or the reverse
         self._hold(x)
         start = self.peaks.samples_seen                        # stream index of the first held sample
@@ -155,17 +155,23 @@ class FeaturePipeline:
             size = max(need, 2 * self.window_samples, 2 * (0 if self._buf is None else self._buf.shape[-1]))
             buf = np.empty(x.shape[:-1] + (size,), dtype=x.dtype)
             if self._held:
-                buf[..., : self._held] = self._buf[..., : self._held]
+                buf[..., : self._held] = self._held_buffer()[..., : self._held]
             self._buf = buf
         self._buf[..., self._held : need] = x
         self._held = need
 
+    def _held_buffer(self) -> np.ndarray:
+        """:attr:`_buf`, when samples are held (there is one)."""
+        assert self._buf is not None, "held samples are kept in _buf"
+        return self._buf
+
     def _release(self, n: int) -> Windows:
         """Run the first ``n`` held samples through the stages; keep the rest held."""
-        out = self._run(self._buf[..., :n])
+        buf = self._held_buffer()
+        out = self._run(buf[..., :n])
         rest = self._held - n
         if rest:
-            self._buf[..., :rest] = self._buf[..., n : self._held]
+            buf[..., :rest] = buf[..., n : self._held]
         self._held = rest
         return out
 

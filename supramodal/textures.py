@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
@@ -165,6 +166,12 @@ def texture_samples(duration: float, fs: float) -> int:
     return int(round(n))
 
 
+def _three(peaks: Sequence[float]) -> tuple[float, float, float]:
+    """Three peak frequencies as a :class:`Texture` holds them (the caller made or checked three)."""
+    low, middle, high = peaks
+    return low, middle, high
+
+
 def _check_peaks(peaks, fs) -> None:
     peaks = list(peaks)
     if len(peaks) != 3:
@@ -187,7 +194,7 @@ def random_texture_set(bank: str, n: int = 8, seed: int = 0, duration: float = 4
         # Round first, then check: the stored (rounded) peaks are the ones that must be min_ratio apart.
         peaks = [round(float(p), 1) for p in np.sort(np.exp(rng.uniform(np.log(lo), np.log(hi), 3)))]
         if all(b / a >= min_ratio for a, b in zip(peaks, peaks[1:])):
-            textures.append(Texture(f"T{len(textures) + 1}", tuple(peaks)))
+            textures.append(Texture(f"T{len(textures) + 1}", _three(peaks)))
     return TextureSet(f"{bank}-random-{seed}", bank, BANK_RATES[bank], duration, width, seed, tuple(textures))
 
 
@@ -236,7 +243,7 @@ def texture_set_from_dict(d, source: str = "texture set") -> TextureSet:
             _check_peaks([float(p) for p in peaks], float(d["fs"]))
         except InputError as exc:
             raise bad(f"texture {t['name']!r}: {exc}") from None
-        textures.append(Texture(t["name"], tuple(float(p) for p in peaks)))
+        textures.append(Texture(t["name"], _three([float(p) for p in peaks])))
     names = [t.name for t in textures]
     if len(set(names)) != len(names):
         raise bad("texture names must be distinct")
