@@ -90,7 +90,7 @@ def plan(banks=BANKS, texture_set: TextureSet | None = None, reference: bool = T
         raise InputError(f"--sets must be >= 0, got {sets}")
     runs, labels = [], {}
     for bank in banks:
-        sets_of_bank = []
+        sets_of_bank: list[tuple[tuple[str | int, ...], TextureSet]] = []
         if reference:
             sets_of_bank.append((("fig3", bank, "reference"),
                                  texture_set if texture_set is not None else reference_texture_set(bank)))

@@ -36,8 +36,8 @@ def sine_responses(bank, channel: str, freqs, duration: float = 2.0, settle: flo
     k = bank.names.index(channel)
     t = np.arange(int(round(duration * bank.fs))) / bank.fs
     skip = int(round(settle / DEFAULT_WINDOW))
-    mean = {f: [] for f in FEATURES}
-    sd = {f: [] for f in FEATURES}
+    mean: dict[str, list[float]] = {f: [] for f in FEATURES}
+    sd: dict[str, list[float]] = {f: [] for f in FEATURES}
     for i, freq in enumerate(freqs):
         w = extract_features(np.sin(2 * np.pi * freq * t), bank, FEATURES)
         steady = w.values[skip:, :, k]

@@ -8,6 +8,8 @@ width is reported beside it. The texture set is the whisker reference set (Fig. 
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 from supramodal.banks import half_power_width, slaney_bandwidth
@@ -32,7 +34,7 @@ def plan(quick: bool = False, epochs: int = DEFAULT_EPOCHS, grid=None, features=
             for B in grid]
 
     def assemble(results: dict) -> dict:
-        out = {"figure": "fig5", "texture_set": ts.name, "duration": ts.duration, "mean_B": list(grid),
+        out: dict[str, Any] = {"figure": "fig5", "texture_set": ts.name, "duration": ts.duration, "mean_B": list(grid),
                "mean_width_3db": [float(np.mean(half_power_width(banks[B].b))) for B in grid],
                "B_range": [[float(v) for v in (slaney_bandwidth(banks[B].b).min(), slaney_bandwidth(banks[B].b).max())]
                            for B in grid],

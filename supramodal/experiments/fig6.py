@@ -12,7 +12,7 @@ the cost of ``experiment all`` (a 60-channel run costs as much as the 1..10 runs
 
 from __future__ import annotations
 
-from supramodal.banks import WHISKER_ROWS
+from supramodal.banks import WHISKER_ROWS, Bank
 from supramodal.experiments.common import Plan, Run, default_bank, estimate_cost, quick_set, rates_of
 from supramodal.mlp import DEFAULT_EPOCHS
 from supramodal.textures import reference_texture_set
@@ -40,7 +40,8 @@ def plan(quick: bool = False, epochs: int = DEFAULT_EPOCHS, cochlea_grid=None, *
     """One run per cochlear bank size and per whisker group, Af only."""
     grid = tuple(int(n) for n in (cochlea_grid or (QUICK_COCHLEA_GRID if quick else COCHLEA_GRID)))
     sets = {b: quick_set(reference_texture_set(b), quick) for b in ("cochlea", "whisker")}
-    banks = {("fig6", "cochlea", n): default_bank(sets["cochlea"], n=n) for n in grid}
+    banks: dict[tuple[str, str, int | str], Bank] = {("fig6", "cochlea", n): default_bank(sets["cochlea"], n=n)
+                                                     for n in grid}
     banks.update({("fig6", "whisker", g): default_bank(sets["whisker"], rows=g) for g in WHISKER_GROUPS})
     runs = [Run(key, rates_of, {"texture_set": sets[key[1]], "bank": bank, "features": (FEATURE,), "epochs": epochs},
                 estimate_cost(sets[key[1]], bank, 1, epochs)) for key, bank in banks.items()]

@@ -122,10 +122,11 @@ def run_set(set_seed: int, seconds: float = 20.0, epochs: int = DEFAULT_EPOCHS, 
     for name, bank in banks.items():
         if progress:
             progress(f"  set {set_seed}: training the {name} model and its calibration")
-        models[name] = TextureModel.train(train[name], y_train, names, bank, FEATURES,
-                                          window_length(DEFAULT_WINDOW, bank.fs), epochs=epochs, seed=seed)
-        test_lp[name] = models[name].log_posteriors(test[name])
-        pooling[name] = models[name].calibration.contact_pooling
+        model = models[name] = TextureModel.train(train[name], y_train, names, bank, FEATURES,
+                                                  window_length(DEFAULT_WINDOW, bank.fs), epochs=epochs, seed=seed)
+        test_lp[name] = model.log_posteriors(test[name])
+        assert model.calibration is not None, "trained with calibration folds (the default)"
+        pooling[name] = model.calibration.contact_pooling
     if progress:
         progress(f"  set {set_seed}: held-out log-posteriors of both senses for the late fusion")
     held, folds, _ = senses_out_of_fold(list(models.values()), list(train.values()), y_train, names,
@@ -140,6 +141,7 @@ def run_set(set_seed: int, seconds: float = 20.0, epochs: int = DEFAULT_EPOCHS, 
     early = EarlyFusionModel.train(senses, train["whiskers"], train["microphone"], y_train, names, epochs=epochs,
                                    seed=seed)
     test_lp["early"] = early.log_posteriors(test["whiskers"], test["microphone"])
+    assert early.calibration is not None, "trained with calibration folds (the default)"
     pooling["early"] = early.calibration.contact_pooling
 
     contacts = contact_runs(y_test, n - n_train)
@@ -178,7 +180,8 @@ def merge_reports(reports: list[dict]) -> dict:
     sure_wrong = sum(round(r["sure_wrong"] * r["sure_count"]) for r in reports if r["sure_count"])
     mean_conf = [float(s / c) if c else None for s, c in zip(conf, counts)]
     accuracy = [float(s / c) if c else None for s, c in zip(right, counts)]
-    ece = float(sum(c / counts.sum() * abs(a - m) for c, a, m in zip(counts, accuracy, mean_conf) if c))
+    ece = float(sum(c / counts.sum() * abs(a - m) for c, a, m in zip(counts, accuracy, mean_conf)
+                    if c and a is not None and m is not None))      # None exactly where c is 0
     return {"n": int(n.sum()),
             **{k: float(np.dot(n, [r[k] for r in reports]) / n.sum()) for k in ("accuracy", "log_loss", "brier")},
             "ece": ece, "sure": reports[0]["sure"], "sure_count": sure,
@@ -191,7 +194,7 @@ def summarize(results: list[dict], seconds: float) -> dict:
     """:func:`run_set` results of several sets: per method and scope the accuracy's and ECE's mean
     and spread over sets, and every set's decisions scored together (``pooled``)."""
     best = [max(r["window"]["whiskers"], r["window"]["microphone"]) for r in results]
-    summary = {}
+    summary: dict[str, dict[str, dict[str, object]]] = {}
     for m in METHODS:
         summary[m] = {}
         for kind in ("window", "contact"):

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 from supramodal.errors import InputError
 from supramodal.experiments import fig1, fig3, fig4, fig5, fig6
 from supramodal.experiments.common import BANKS, Plan
@@ -35,7 +37,7 @@ def plans(figure: str, quick: bool = False, epochs: int = DEFAULT_EPOCHS, seed: 
         if bank is not None or texture_set is not None:
             raise InputError("--bank and --textures apply to fig3, not to calibration (it measures both banks)")
         return {figure: calibration.plan(quick=quick, epochs=epochs, seed=seed, sets=sets)}
-    common = {"quick": quick, "epochs": epochs}
+    common: dict[str, Any] = {"quick": quick, "epochs": epochs}
     if figure == "all":
         if bank is not None or texture_set is not None:
             raise InputError("--bank and --textures apply to fig3 alone, not to all")
@@ -53,9 +55,9 @@ def plans(figure: str, quick: bool = False, epochs: int = DEFAULT_EPOCHS, seed: 
         if bank is not None and bank != texture_set.bank:
             raise InputError(f"texture set {texture_set.name!r} is for the {texture_set.bank} bank, not {bank}: "
                              f"pass --bank {texture_set.bank}")
-        banks = (texture_set.bank,)
+        banks: tuple[str, ...] = (texture_set.bank,)
     else:
         banks = BANKS if bank is None else (bank,)
-    random = sets is not None and sets > 1
-    return {"fig3": fig3.plan(banks, texture_set=texture_set, reference=not random, sets=sets if random else 0,
+    random_sets = sets if sets is not None and sets > 1 else 0      # N > 1: random sets instead of the reference
+    return {"fig3": fig3.plan(banks, texture_set=texture_set, reference=not random_sets, sets=random_sets,
                               seed=seed, **common)}
