@@ -24,16 +24,28 @@ from __future__ import annotations
 import argparse
 import time
 from pathlib import Path
+from typing import TypedDict
 
 import numpy as np
 
 from supramodal.node.runtime.clock import DEFAULT_WINDOW_SEGMENTS, ClockModel
 
-WHISKERS = dict(name="whiskers", nominal=5000.0, ppm=+100.0, t0=1000.0, block=50)
-MIC = dict(name="microphone", nominal=44100.0, ppm=-100.0, t0=1000.037, block=441)
+
+class Source(TypedDict):
+    """A simulated source: its name, nominal rate (Hz), crystal error (ppm), start (host s) and block (samples)."""
+
+    name: str
+    nominal: float
+    ppm: float
+    t0: float
+    block: int
 
 
-def simulate(src: dict, seconds: float, jitter: float, rng, outage=None):
+WHISKERS = Source(name="whiskers", nominal=5000.0, ppm=+100.0, t0=1000.0, block=50)
+MIC = Source(name="microphone", nominal=44100.0, ppm=-100.0, t0=1000.037, block=441)
+
+
+def simulate(src: Source, seconds: float, jitter: float, rng, outage=None):
     """(index of each block's last sample, arrival time) of a source; see the module docstring."""
     true_rate = src["nominal"] * (1 + src["ppm"] * 1e-6)
     n_blocks = int(seconds * src["nominal"] / src["block"])
@@ -46,7 +58,7 @@ def simulate(src: dict, seconds: float, jitter: float, rng, outage=None):
     return last, np.maximum.accumulate(arrival)
 
 
-def true_index(src: dict, t):
+def true_index(src: Source, t):
     return (np.asarray(t) - src["t0"]) * src["nominal"] * (1 + src["ppm"] * 1e-6)
 
 

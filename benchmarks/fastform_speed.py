@@ -28,6 +28,7 @@ BLOCKS = (32, 441, 500, 4410)
 
 def load(path: str):
     spec = importlib.util.spec_from_file_location("old_gammatone", path)
+    assert spec is not None and spec.loader is not None, f"{path}: no module loader for this file"
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
@@ -68,11 +69,13 @@ def main(argv: list[str]) -> None:
 
 ERROR_CASES = {
     "cochlea": (cochlea_bank, 15.0),
-    "192 kHz, cf 86.4 kHz, b 1 Hz": (lambda: Bank("custom", 192000.0, [86400.0], [1.0], ("c",)), 8.0),
+    "192 kHz, cf 86.4 kHz, b 1 Hz": (
+        lambda: Bank("custom", 192000.0, np.array([86400.0]), np.array([1.0]), ("c",)), 8.0),
     "5 kHz, b 0.9 Hz beside b 49 kHz": (
-        lambda: Bank("custom", 5000.0, [30.0, 2000.0], [0.9, 49000.0], ("narrow", "wide")), 15.0),
+        lambda: Bank("custom", 5000.0, np.array([30.0, 2000.0]), np.array([0.9, 49000.0]), ("narrow", "wide")), 15.0),
     "44.1 kHz, b 5 Hz beside b 440 kHz": (
-        lambda: Bank("custom", 44100.0, [1000.0, 10000.0], [5.0, 440000.0], ("narrow", "wide")), 15.0),
+        lambda: Bank("custom", 44100.0, np.array([1000.0, 10000.0]), np.array([5.0, 440000.0]), ("narrow", "wide")),
+        15.0),
 }
 ERROR_BLOCKS = {"1": (1, 1), "2": (2, 2), "5": (5, 5), "32": (32, 32), "441": (441, 441), "1..5": (1, 5)}
 

@@ -55,7 +55,8 @@ class _TimedBuffer(micmod.CaptureBuffer):
     """CaptureBuffer whose callback adds up its own thread CPU time."""
 
     spent_ns = 0
-    first_adc = last_adc = None  # inputBufferAdcTime of the first and last callbacks, s
+    first_adc: float | None = None  # inputBufferAdcTime of the first and last callbacks, s
+    last_adc: float | None = None
     last_start = 0  # stream index the last callback's block was given
 
     def callback(self, indata, frames, time_info, status):
@@ -74,7 +75,8 @@ def driver(device, rate: float, blocksize: int, frames: int, timed: bool) -> dic
     With ``timed``, the callback's own CPU time is measured too (which costs a
     little: use the untimed run for the total).
     """
-    micmod.CaptureBuffer = _TimedBuffer if timed else _PlainBuffer
+    # The driver makes its CaptureBuffer by this module-level name: swapped for one that times its callback.
+    micmod.CaptureBuffer = _TimedBuffer if timed else _PlainBuffer  # type: ignore[misc]  # a class swapped in
     try:
         mic = MicrophoneDriver(device=device, rate=rate, channels=1, blocksize=blocksize)
         with mic:
@@ -94,13 +96,15 @@ def driver(device, rate: float, blocksize: int, frames: int, timed: bool) -> dic
             }
             if timed:
                 buf = mic._buffer  # noqa: SLF001
+                assert isinstance(buf, _TimedBuffer), "made while _TimedBuffer was swapped in"
+                assert buf.first_adc is not None and buf.last_adc is not None, "blocks came: callbacks ran"
                 result["callback"] = buf.spent_ns / 1e9
                 # Where the last block should start by the device's clock, against where
                 # the driver put it: frames lost in overflows that were not accounted for.
                 result["drift"] = round((buf.last_adc - buf.first_adc) * rate) - buf.last_start
         return result
     finally:
-        micmod.CaptureBuffer = _PlainBuffer
+        micmod.CaptureBuffer = _PlainBuffer  # type: ignore[misc]  # the driver's own class back
 
 
 def main() -> None:

@@ -114,6 +114,7 @@ class CheckedDriver(DriverBase):
         if block.start % SPF or block.frames % SPF:
             self.unaligned_blocks += 1
             return
+        assert self.inner.first_sequence is not None, "a block came: the driver has seen a frame"
         k0 = (self.inner.first_sequence - self.dev.first_seq) % 65536
         first = k0 + block.start // SPF
         n = block.frames // SPF

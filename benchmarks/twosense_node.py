@@ -41,6 +41,7 @@ import sys
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -50,9 +51,9 @@ from supramodal.node.scene.build import build_node
 from supramodal.node.scene.schema import scene_from_dict
 
 #: The sources as the issue describes a robot's: crystals tens of ppm off, tens of ms apart.
-WHISKERS = {"name": "whiskers", "type": "twosense", "sense": "whiskers", "block": 50,
+WHISKERS: dict[str, Any] = {"name": "whiskers", "type": "twosense", "sense": "whiskers", "block": 50,
             "clock_ppm": 40.0, "offset": 0.0, "jitter": 0.002}
-MIC = {"name": "mic", "type": "twosense", "sense": "microphone", "block": 441,
+MIC: dict[str, Any] = {"name": "mic", "type": "twosense", "sense": "microphone", "block": 441,
        "clock_ppm": -70.0, "offset": 0.037, "jitter": 0.002}
 BANKS = {"whiskers": "whisker", "mic": "cochlea"}
 SECONDS_PER_TEXTURE = 4.0
@@ -79,9 +80,10 @@ class CountingSink(Sink):
 def scene_dict(streams: tuple[str, ...]) -> dict:
     """A graph scene of the given streams ("whiskers", "mic"), fused when both."""
     sources = {"whiskers": WHISKERS, "mic": MIC}
-    d = {"source": [dict(sources[s], seconds=SECONDS_PER_TEXTURE, loop=True, speed=1.0) for s in streams],
-         "stream": [{"name": s, "source": s, "bank": {"kind": BANKS[s]}, "model": {"train_on_start": True}}
-                    for s in streams]}
+    d: dict[str, Any] = {
+        "source": [dict(sources[s], seconds=SECONDS_PER_TEXTURE, loop=True, speed=1.0) for s in streams],
+        "stream": [{"name": s, "source": s, "bank": {"kind": BANKS[s]}, "model": {"train_on_start": True}}
+                   for s in streams]}
     if len(streams) == 2:
         d["fusion"] = {"streams": list(streams), "weight": "learn"}
     return d
@@ -108,7 +110,8 @@ def run_phase(name: str, streams: tuple[str, ...], seconds: float, sample_every:
 
     def sample() -> None:
         now = time.monotonic()
-        row = {"phase": name, "t": now - t0, "rss_kib": rss_kib(), "windows": sum(sink.windows.values())}
+        row: dict[str, Any] = {"phase": name, "t": now - t0, "rss_kib": rss_kib(),
+                               "windows": sum(sink.windows.values())}
         if len(streams) == 2 and all(s.clock.estimate().fitted for s in graph.sources):
             err = clock_errors(graph, now - 0.5)     # half a second back: both have samples there
             row.update({f"err_{k}_ms": v * 1e3 for k, v in err.items()})
@@ -237,11 +240,11 @@ def write_report(rep: dict, out: Path) -> list[Path]:
     ax1.set_ylabel("RSS, MiB")
     ax1.legend(fontsize=8)
     both = rep["phases"][-1]
-    rows = [r for r in both["samples"] if "align_ms" in r]
-    t = np.array([r["t"] for r in rows]) / 60
-    ax2.plot(t, [r["align_ms"] for r in rows], label="alignment (whiskers - microphone)")
-    ax2.plot(t, [r["err_whiskers_ms"] for r in rows], lw=0.8, label="whiskers against truth")
-    ax2.plot(t, [r["err_mic_ms"] for r in rows], lw=0.8, label="microphone against truth")
+    aligned = [r for r in both["samples"] if "align_ms" in r]
+    t = np.array([r["t"] for r in aligned]) / 60
+    ax2.plot(t, [r["align_ms"] for r in aligned], label="alignment (whiskers - microphone)")
+    ax2.plot(t, [r["err_whiskers_ms"] for r in aligned], lw=0.8, label="whiskers against truth")
+    ax2.plot(t, [r["err_mic_ms"] for r in aligned], lw=0.8, label="microphone against truth")
     ax2.set_xlabel("minutes of the run")
     ax2.set_ylabel("ms")
     ax2.legend(fontsize=8)

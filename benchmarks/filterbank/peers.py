@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import cmath
 import math
+from collections.abc import Callable
 
 import numpy as np
 from scipy.signal import gammatone, lfilter, sosfilt
@@ -105,6 +106,8 @@ def slaney_sos(cf: float, b: float, fs: float) -> np.ndarray:
 
 class _PerChannelPeer(FilterbankBase):
     """One scipy call per channel per block, state carried: ``_call(c, x) -> y``."""
+
+    _call: Callable[[int, np.ndarray], np.ndarray]     # each peer's own (a method)
 
     def __init__(self, bank: Bank, dtype=np.float64, nonfinite: str = "raise") -> None:
         super().__init__(bank, dtype, nonfinite)

@@ -20,6 +20,7 @@ import platform
 import sys
 import time
 from dataclasses import asdict, dataclass, replace
+from typing import Any
 
 import numpy as np
 
@@ -126,7 +127,7 @@ def interleaved(jobs: dict, repeats: int, budget: float) -> dict:
     a shared machine affects every job alike. ``jobs[key](first)`` sets a run up, untimed (``first``:
     the job's first run), and returns the callable that is timed. A job whose runs exceed ``budget``
     seconds stops repeating. Returns ``{key: (wall seconds per run, CPU seconds per run)}``."""
-    times = {k: ([], []) for k in jobs}
+    times: dict[Any, tuple[list[float], list[float]]] = {k: ([], []) for k in jobs}
     for r in range(repeats):
         for key, setup in jobs.items():
             wall, cpu = times[key]
@@ -184,7 +185,7 @@ def speed_error(cfg: Config, progress) -> list[dict]:
                 ir[v] = summarise_errors(channel_errors(make_backend(bank, *v).impulse_response(n_ir), ir_ref))
         for L in cfg.blocks[kind]:
             n = x.size // L * L
-            outputs = {}
+            outputs: dict[tuple[str, str], np.ndarray] = {}
             with np.errstate(all="ignore"):
                 times = interleaved({v: stream_job(bank, v, x[:n], L, outputs) for v in VARIANTS}, cfg.repeats,
                                     cfg.budget)
@@ -223,7 +224,7 @@ def envelope(per_second: np.ndarray, bins: int = 120) -> list:
 
 def drift(cfg: Config, progress) -> dict:
     """Every backend and peer against the reference over one long stream of white noise, 1 s blocks."""
-    out = {"checkpoints": list(cfg.drift_checkpoints), "channels": {}, "rows": [], "series": {}}
+    out: dict[str, Any] = {"checkpoints": list(cfg.drift_checkpoints), "channels": {}, "rows": [], "series": {}}
     total = max(cfg.drift_checkpoints)
     for kind in BANKS:
         bank = sub_bank(bank_by_name(kind), cfg.drift_channels[kind])
@@ -337,7 +338,7 @@ def node_part(cfg: Config, progress) -> dict:
         truth = [next(k for k, (a, b, _) in enumerate(ranges) if a <= (w + 0.5) * W / bank.fs < b)
                  for w in range(session.size // W)]
         progress(f"c. {kind}: model trained, session of {seconds:g} s")
-        labels = {}
+        labels: dict[tuple[tuple[str, str], int], list[int]] = {}
         first = cfg.node_blocks[kind][0]
         jobs = {(v, L): chain_job(bank, model, session, L, v, labels)
                 for v in VARIANTS for L in (cfg.node_blocks[kind] if v[0] == "fast" else (first,))}
@@ -421,9 +422,8 @@ def run(cfg: Config, progress=lambda m: None) -> dict:
     """All three parts; the results as one JSON-ready dict."""
     t0 = time.perf_counter()
     load0 = os.getloadavg() if hasattr(os, "getloadavg") else None
-    results = {"meta": {"quick": cfg.quick, "started": time.strftime("%Y-%m-%d %H:%M:%S %Z"), "machine": machine(),
-                        "config": asdict(cfg),
-                        "load_average_start": load0}}
+    results: dict[str, Any] = {"meta": {"quick": cfg.quick, "started": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
+                                         "machine": machine(), "config": asdict(cfg), "load_average_start": load0}}
     results["speed_error"] = speed_error(cfg, progress)
     results["drift"] = drift(cfg, progress)
     results["node"] = node_part(cfg, progress)
