@@ -58,6 +58,7 @@ from __future__ import annotations
 import collections
 import math
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass
 from types import ModuleType
 from typing import TYPE_CHECKING, Any
@@ -651,12 +652,12 @@ def _seconds(key: str, what: str, default: float) -> Key:
     return Key(positive(LIMITS[key]), f"{what}, up to {LIMITS[key]:g} s (default: {default:g})", None)
 
 
-def _check(options: dict[str, Any]) -> None:
+def _check(options: Mapping[str, Any]) -> None:
     if all(options[k] is None for k in WHICH):
         raise OptionError('type "lsl" needs the stream\'s name (stream = ...), stream_type or source_id')
 
 
-def _build(options: dict[str, Any], context: BuildContext) -> Built:
+def _build(options: Mapping[str, Any], context: BuildContext) -> Built:
     try:
         driver = LSLInletDriver(options["stream"], options["stream_type"], options["source_id"],
                                 **given(options, {k: k for k in ("rate", "channels", *LIMITS)}))

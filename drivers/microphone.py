@@ -45,7 +45,7 @@ import queue
 import threading
 import time
 import traceback
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from typing import Any
 
 import numpy as np
@@ -723,7 +723,7 @@ MAX_CHANNELS = 1024
 MAX_BUFFER_SECONDS = 600.0
 
 
-def _build(options: dict[str, Any], context: BuildContext) -> Built:
+def _build(options: Mapping[str, Any], context: BuildContext) -> Built:
     return Built(MicrophoneDriver(**given(options, {"device": "device", "rate": "rate", "channels": "channels",
                                                     "block": "blocksize", "dtype": "dtype",
                                                     "buffer_seconds": "buffer_seconds"})))

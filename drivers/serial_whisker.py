@@ -55,7 +55,7 @@ import stat
 import sys
 import termios
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import numpy as np
@@ -636,7 +636,7 @@ MAX_RATE = 1e6
 MAX_BAUDRATE = 100_000_000
 
 
-def _build(options: dict[str, Any], context: BuildContext) -> Built:
+def _build(options: Mapping[str, Any], context: BuildContext) -> Built:
     rate = options["rate"] if options["rate"] is not None else context.rate
     channels = options["channels"] if options["channels"] is not None else context.channels
     if rate is None or channels is None:

@@ -92,14 +92,14 @@ class Built:
     """
 
     driver: Any
-    labels: tuple[str, ...] = ()
+    labels: tuple[tuple[float, float, str], ...] = ()
     label_period: float | None = None
     training_set: Any = None
     source_rate: float | None = None
 
 
-def _default_timebase(live: bool) -> Callable[[dict[str, Any], Any], tuple[str, float, float]]:
-    def timebase(options: dict[str, Any], driver: Any) -> tuple[str, float, float]:
+def _default_timebase(live: bool) -> Callable[[Mapping[str, Any], Any], tuple[str, float, float]]:
+    def timebase(options: Mapping[str, Any], driver: Any) -> tuple[str, float, float]:
         return ("host" if live else "stream"), 0.0, float(driver.rate)
     return timebase
 
@@ -140,15 +140,15 @@ class DriverSpec:
 
     type: str
     keys: Mapping[str, Key]
-    build: Callable[[dict[str, Any], BuildContext], Built]
+    build: Callable[[Mapping[str, Any], BuildContext], Built]
     live: bool
     summary: str
-    timebase: Callable[[dict[str, Any], Any], tuple[str, float, float]] | None = None
-    signal_type: Callable[[dict[str, Any]], str | None] = field(default=lambda options: None)
-    check: Callable[[dict[str, Any]], None] = field(default=lambda options: None)
+    timebase: Callable[[Mapping[str, Any], Any], tuple[str, float, float]] | None = None
+    signal_type: Callable[[Mapping[str, Any]], str | None] = field(default=lambda options: None)
+    check: Callable[[Mapping[str, Any]], None] = field(default=lambda options: None)
     buffered: bool = False
 
-    def timebase_of(self, options: dict[str, Any], driver: Any) -> tuple[str, float, float]:
+    def timebase_of(self, options: Mapping[str, Any], driver: Any) -> tuple[str, float, float]:
         """``(timebase, time_offset, time_rate)`` of a built driver."""
         tb = (self.timebase or _default_timebase(self.live))(options, driver)
         if tb[0] not in TIMEBASES or not (math.isfinite(tb[2]) and tb[2] > 0):
@@ -163,7 +163,7 @@ class DriverSpec:
         return "drop-oldest" if self.live and not self.buffered else "block"
 
 
-def given(options: dict[str, Any], names: Mapping[str, str]) -> dict[str, Any]:
+def given(options: Mapping[str, Any], names: Mapping[str, str]) -> dict[str, Any]:
     """The options a scene sets, renamed to a driver's keyword arguments (``{scene key: argument}``);
     an option left at None is not passed, so that the driver's own default applies (its one home)."""
     return {arg: options[key] for key, arg in names.items() if options.get(key) is not None}

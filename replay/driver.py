@@ -32,7 +32,7 @@ import os
 import sys
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from fractions import Fraction
 from pathlib import Path
@@ -744,14 +744,14 @@ def block_key() -> Key:
     return Key(integer(1, MAX_BLOCK), f"frames per block, 1..{MAX_BLOCK} (default: the replay driver's)", None)
 
 
-def pacing(options: dict[str, Any], context: BuildContext) -> dict[str, Any]:
+def pacing(options: Mapping[str, Any], context: BuildContext) -> dict[str, Any]:
     """The replay driver's ``speed`` and ``block_size`` arguments from a scene's options (the
     command line's ``--speed`` first); absent ones keep the driver's defaults."""
     speed = context.speed if context.speed is not None else options.get("speed")
     return given({**options, "speed": speed}, {"speed": "speed", "block": "block_size"})
 
 
-def _build(options: dict[str, Any], context: BuildContext) -> Built:
+def _build(options: Mapping[str, Any], context: BuildContext) -> Built:
     path = context.resolve(options["path"])
     if not path.exists():
         raise OptionError(f"path: no recording at {path} (a relative path is taken from the scene file's folder)")
@@ -766,7 +766,7 @@ def _build(options: dict[str, Any], context: BuildContext) -> Built:
     return Built(driver, source_rate=driver.source_rate)   # its labels are the driver's own
 
 
-def _timebase(options: dict[str, Any], driver: ReplayDriver) -> tuple[str, float, float]:
+def _timebase(options: Mapping[str, Any], driver: ReplayDriver) -> tuple[str, float, float]:
     if options["timing"] == "recorded":
         assert driver.recorded_rate is not None, "a replay with the recorded timing knows its clock's rate"
         return "recorded", 0.0, float(driver.recorded_rate)   # the clock set up as when it was recorded

@@ -40,7 +40,7 @@ import math
 import os
 import threading
 import warnings
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 from types import ModuleType
 from typing import Any
@@ -409,12 +409,12 @@ def _arrivals(seconds: np.ndarray, rate: float, cuts: Iterable[int] = ()) -> tup
 WHICH = ("stream", "stream_type", "source_id")
 
 
-def _check(options: dict[str, Any]) -> None:
+def _check(options: Mapping[str, Any]) -> None:
     if all(options[k] is None for k in WHICH):
         raise OptionError('type "xdf" needs the recorded stream\'s name (stream = ...), stream_type or source_id')
 
 
-def _build(options: dict[str, Any], context: BuildContext) -> Built:
+def _build(options: Mapping[str, Any], context: BuildContext) -> Built:
     from supramodal.replay.driver import ReplayDriver, pacing
 
     path = context.resolve(options["path"])

@@ -59,11 +59,47 @@ DEFAULT_SCOPE = "window"
 DEFAULT_POOLED = 10
 DEFAULT_METHOD = "log"
 DEFAULT_CONTACT_THRESHOLD = 0.01
-#: A whole ``[decision]`` when a scene gives none: the values above, and the rules of
-#: :class:`Decider` off (0: no final contact decision, no "unknown").
-DEFAULT_DECISION = {"scope": DEFAULT_SCOPE, "n": DEFAULT_POOLED, "method": DEFAULT_METHOD,
-                    "contact_threshold": DEFAULT_CONTACT_THRESHOLD, "confidence": 0.0, "unknown": 0.0,
-                    "unknown_below": 0.0}
+@dataclass(frozen=True)
+class DecisionRules:
+    """How a stream (or a fusion) of windows decides: a scene's ``[decision]``, every rule's meaning
+    :class:`Decider`'s. The defaults are those a scene gets when it gives none, with the rules of
+    issue 23 off (0: no final contact decision, no "unknown").
+
+    Attributes
+    ----------
+    scope : {"window", "last", "contact"}
+        Decide each window alone, pool the last ``n`` windows, or pool the current contact's.
+    n : int
+        Windows pooled (``scope = "contact"``: at most the last ``n``; 0 = every one).
+    method : {"log", "vote"}
+        Pool log-posteriors, or count each window's winner.
+    contact_threshold : float
+        Input RMS at and above which a window is in contact.
+    confidence : float
+        Calibrated pooled confidence at which a contact's decision is final, in [0, 1) (0: never).
+    unknown : float
+        Share of windows of known textures the novelty score may call unknown, in [0, 1) (0: off).
+    unknown_below : float
+        Calibrated confidence below which a window is unknown, in [0, 1) (0: off).
+    """
+
+    scope: str = DEFAULT_SCOPE
+    n: int = DEFAULT_POOLED
+    method: str = DEFAULT_METHOD
+    contact_threshold: float = DEFAULT_CONTACT_THRESHOLD
+    confidence: float = 0.0
+    unknown: float = 0.0
+    unknown_below: float = 0.0
+
+    @property
+    def calibrated_rules(self) -> list[str]:
+        """The rules set here that need calibrated posteriors (``confidence``, ``unknown``,
+        ``unknown_below``), by name."""
+        return [k for k in ("confidence", "unknown", "unknown_below") if getattr(self, k)]
+
+
+#: The rules when a scene gives no ``[decision]``.
+DEFAULT_DECISION = DecisionRules()
 
 
 @dataclass(frozen=True)
@@ -209,9 +245,8 @@ class Decider:
     ----------
     classes : sequence of str
         In the order of the log-posteriors.
-    decision : dict
-        The scene's ``[decision]``: ``scope``, ``n``, ``method`` and optionally ``confidence``,
-        ``unknown``, ``unknown_below`` (0 or absent: off).
+    rules : DecisionRules
+        The scene's ``[decision]`` (default: :data:`DEFAULT_DECISION`).
     correlation : float
         The pooling's window correlation (a calibrated model's; 0 otherwise).
     novelty_threshold : float or None
@@ -221,20 +256,19 @@ class Decider:
         The pooling's caps per pair of classes (a calibrated model's contact caps; None: uncapped).
     """
 
-    def __init__(self, classes, decision: dict, correlation: float = 0.0,
+    def __init__(self, classes, rules: DecisionRules = DEFAULT_DECISION, correlation: float = 0.0,
                  novelty_threshold: float | None = None, caps=None) -> None:
         self.classes = tuple(classes)
-        d = decision
-        self.unknown_below = float(d.get("unknown_below") or 0.0)
+        self.unknown_below = float(rules.unknown_below)
         self.novelty_threshold = novelty_threshold
-        confidence = d.get("confidence") or None
+        confidence = rules.confidence or None
         self.accumulator: DecisionAccumulator | None = None
         # which of the pooled windows were unknown (the accumulator's windows, the same maxlen)
         self._unknown_flags: deque[bool] = deque()
-        if d.get("scope", "window") != "window":
-            self.accumulator = DecisionAccumulator(len(self.classes), d["scope"], d["n"], d["method"],
+        if rules.scope != "window":
+            self.accumulator = DecisionAccumulator(len(self.classes), rules.scope, rules.n, rules.method,
                                                    correlation=correlation, confidence=confidence, caps=caps)
-            maxlen = d["n"] if d["scope"] == "last" else (d["n"] or None)
+            maxlen = rules.n if rules.scope == "last" else (rules.n or None)
             self._unknown_flags = deque(maxlen=maxlen)
         self.unknown = {"novel": 0, "unsure": 0, "tie": 0}
         self.contacts_decided = 0

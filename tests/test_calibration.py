@@ -455,10 +455,9 @@ def test_a_vote_never_counts_a_tied_window_for_the_first_class_and_is_no_confide
 
 
 def test_a_final_contact_decision_stands_as_it_was_said_and_is_never_taken_while_mostly_unknown():
-    from supramodal.decisions import UNKNOWN, Decider
+    from supramodal.decisions import UNKNOWN, Decider, DecisionRules
 
-    d = Decider(("a", "b"), {"scope": "contact", "n": 0, "method": "log", "confidence": 0.9,
-                              "unknown_below": 0.95})
+    d = Decider(("a", "b"), DecisionRules(scope="contact", n=0, method="log", confidence=0.9, unknown_below=0.95))
     unsure = np.log(np.array([0.94, 0.06]))          # each window unknown (below 0.95), pooled soon sure
     said = [d.decide(unsure)["pooled"] for _ in range(4)]
     assert all(p["label"] == UNKNOWN and not p["decided"] for p in said)

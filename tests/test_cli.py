@@ -367,8 +367,14 @@ def test_print_scene_writes_a_scene_that_loads_back_the_same(tmp_path, capsys, r
         path = tmp_path / "printed.toml"
         path.write_text(capsys.readouterr().out)
         again = load_scene(path)
-        for part in ("driver", "bank", "features", "model", "decision", "buffer", "sinks"):
-            assert getattr(again, part) == getattr(expected, part), part
+        for part in ("sources", "streams", "sinks"):                # every key but where each is written
+            assert _keys(getattr(again, part)) == _keys(getattr(expected, part)), part
+
+
+def _keys(specs) -> list:
+    """A scene's sources, streams or sinks without the names of their tables in messages."""
+    return [{k: dict(v) if k == "options" else v for k, v in vars(s).items() if k not in ("where", "index")}
+            for s in specs]
 
 
 def test_a_bank_above_the_recordings_band_is_warned_even_when_quiet(tmp_path, capsys):

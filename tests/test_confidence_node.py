@@ -12,7 +12,7 @@ import pytest
 from supramodal.banks import whisker_bank
 from supramodal.errors import InputError
 from supramodal.model import TextureModel
-from supramodal.decisions import UNKNOWN, Decider
+from supramodal.decisions import UNKNOWN, Decider, DecisionRules
 from supramodal.node.runtime.graph import Node
 from supramodal.node.scene.schema import SceneError, scene_from_dict
 from supramodal.node.runtime.sinks import ListSink
@@ -55,8 +55,8 @@ def touches():
 def _run(model, x, decision, block_size):
     sink = ListSink()
     driver = ReplayDriver((x[:, None], float(FS)), block_size=block_size, seed=2, speed="max", on_notice=None)
-    Node(driver, FeaturePipeline(whisker_bank(), ("Af",)), [sink], model=model, decision=decision,
-         overrun="block").run()
+    Node(driver, FeaturePipeline(whisker_bank(), ("Af",)), [sink], model=model,
+         decision=DecisionRules(**decision), overrun="block").run()
     return sink
 
 
@@ -116,7 +116,7 @@ def test_confidence_now_says_how_often_the_window_is_right(model, touches):
 
 
 def test_a_tie_is_said_unknown_and_counted():
-    d = Decider(("a", "b", "c"), {"scope": "window"})
+    d = Decider(("a", "b", "c"), DecisionRules(scope="window"))
     said = d.decide(np.log(np.array([0.45, 0.45, 0.1])))
     assert (said["decision"], said["reason"], said["guess"]) == (UNKNOWN, "tie", None)
     said = d.decide(np.log(np.array([0.1, 0.45, 0.45])))
@@ -125,7 +125,7 @@ def test_a_tie_is_said_unknown_and_counted():
 
 
 def test_unknown_below_names_no_texture_when_unsure():
-    d = Decider(("a", "b"), {"scope": "window", "unknown_below": 0.8})
+    d = Decider(("a", "b"), DecisionRules(scope="window", unknown_below=0.8))
     assert d.decide(np.log(np.array([0.7, 0.3])))["decision"] == UNKNOWN
     assert d.decide(np.log(np.array([0.9, 0.1])))["decision"] == "a"
 
@@ -136,11 +136,11 @@ def test_rules_the_model_cannot_follow_are_refused_before_start(model, touches):
 
     old = dataclasses.replace(model, calibration=None, novelty=None)
     with pytest.raises(InputError, match="uncalibrated.*retrain"):
-        decider_for(old, {"scope": "contact", "confidence": 0.99})
+        decider_for(old, DecisionRules(scope="contact", confidence=0.99))
     no_novelty = dataclasses.replace(model, novelty=None)
     with pytest.raises(InputError, match="novelty score"):
-        decider_for(no_novelty, {"unknown": 0.05})
-    assert decider_for(old, {"scope": "contact"}).accumulator.correlation == 0.0     # pooling as before
+        decider_for(no_novelty, DecisionRules(unknown=0.05))
+    assert decider_for(old, DecisionRules(scope="contact")).accumulator.correlation == 0.0     # pooling as before
 
 
 @pytest.mark.parametrize("decision, needle", [
@@ -166,7 +166,7 @@ def _fusion_scene(**fusion):
 
 def test_fusion_keys_printed_by_train_fusion_are_scene_keys_and_learn_refuses_them():
     scene = scene_from_dict(_fusion_scene(weight=0.4, sharpness=2.2, correlation=0.6), "<test>")
-    assert (scene.fusion["weight"], scene.fusion["sharpness"], scene.fusion["correlation"]) == (0.4, 2.2, 0.6)
+    assert (scene.fusion.weight, scene.fusion.sharpness, scene.fusion.correlation) == (0.4, 2.2, 0.6)
     with pytest.raises(SceneError, match="learns them with the weight"):
         scene_from_dict(_fusion_scene(weight="learn", sharpness=2.0), "<test>")
     with pytest.raises(SceneError, match="sharpness"):
@@ -206,7 +206,7 @@ def test_a_fusion_deciding_per_contact_gives_its_streams_contact_detectors(tmp_p
     graph = build_node(scene_from_dict(d, "<test>", tmp_path), sinks_override=[ListSink()], progress=None)
     try:
         assert [s.contact.threshold for s in graph.streams] == [0.02, 0.02]
-        assert all(s.decision["scope"] == "window" for s in graph.streams)
+        assert all(s.decision.scope == "window" for s in graph.streams)
     finally:
         for sink in graph.sinks:
             sink.close()

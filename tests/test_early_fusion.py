@@ -20,6 +20,7 @@ from supramodal.node.runtime.fusion import EarlyFusion
 from supramodal.node.scene.schema import SceneError, scene_from_dict
 from supramodal.node.runtime.sinks import ListSink
 from supramodal.pipeline import FeaturePipeline
+from supramodal.decisions import DecisionRules
 
 from test_graph import _run_fusion, _two_sense_scene
 
@@ -141,7 +142,7 @@ def test_the_early_fusion_pools_contacts_with_its_models_calibrated_pooling_in_t
     cal = Calibration(1.0, 1.0, 0.5, {}, contact_caps=caps, contact_correlation=0.2)
     model = dataclasses.replace(_model(classes=("silk", "bark", "felt")), calibration=cal)
     fusion = EarlyFusion(("whiskers", "mic"), (CLASSES, CLASSES), model, max_wait=5.0,
-                         decision={"scope": "contact", "n": 0})
+                         decision=DecisionRules(scope="contact", n=0))
     rng = np.random.default_rng(4)
     lp = np.log(rng.dirichlet(np.ones(3), size=6))                      # streams' order bark, felt, silk
     for t in range(6):

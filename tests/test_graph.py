@@ -239,8 +239,8 @@ def test_a_graph_scene_prints_and_reads_back_to_the_same_scene():
     scene = scene_from_dict(_graph_scene(), "two.toml")
     again = scene_from_dict(tomllib.loads(scene_to_toml(scene)), "two.toml")
     assert again.sources == scene.sources and again.fusion == scene.fusion and again.sinks == scene.sinks
-    assert [(s.name, s.source, s.scene.bank, s.scene.features, s.scene.model) for s in again.streams] == \
-        [(s.name, s.source, s.scene.bank, s.scene.features, s.scene.model) for s in scene.streams]
+    assert [(s.name, s.source, s.bank, s.features, s.model) for s in again.streams] == \
+        [(s.name, s.source, s.bank, s.features, s.model) for s in scene.streams]
 
 
 @pytest.mark.parametrize("change, needle", [
@@ -329,9 +329,9 @@ def test_a_learned_weight_needs_models_trained_on_the_spot(tmp_path):
     from supramodal.node.scene.build import bank_for, pipeline_for, train_on_texture_set
     from supramodal.twosense import OneSense, two_sense_set
 
-    sub = scene.streams[1].scene
-    train_on_texture_set(OneSense(two_sense_set(), "microphone", duration=4.0), pipeline_for(sub, bank_for(sub))
-                         ).save(model)
+    sub = scene.streams[1]
+    train_on_texture_set(OneSense(two_sense_set(), "microphone", duration=4.0),
+                         pipeline_for(scene, bank_for(scene, sub), sub)).save(model)
     with pytest.raises(SceneError, match='weight = "learn" needs both streams\' models trained on the spot'):
         build_node(scene, speed="max", sinks_override=[ListSink()])
 

@@ -135,7 +135,8 @@ def test_a_two_sense_session_recorded_live_replays_with_the_same_fused_decisions
     assert len(recorder_feeds) == 2 and not any(f.arrivals or f.marks for f in recorder_feeds)
     replay_scene = write_replay_scene(scene, graph, tmp_path, "s")
     replay = load_scene(replay_scene)
-    assert [(s["mapping"], s["buffer"]["overrun"]) for s in replay.sources] == [("auto", "auto")] * 2
+    assert [(st.mapping, src.buffer.overrun) for st, src in zip(replay.streams, replay.sources)] == \
+        [("auto", "auto")] * 2
     assert {p.name for p in tmp_path.iterdir()} == {"s.toml", "s.whiskers.wav", "s.whiskers.json", "s.mic.wav",
                                                    "s.mic.json", "s.whiskers.npz", "s.mic.npz"}
     assert load_session(tmp_path / "s.mic").arrivals[2] == 44100 * 8.0      # the clock as it was set up
@@ -167,11 +168,11 @@ def test_record_of_a_graph_scene_writes_the_sessions_models_and_replay_scene(tmp
     assert {p.name for p in out.iterdir()} == {"s.toml", "s.whiskers.wav", "s.whiskers.json", "s.mic.wav",
                                                "s.mic.json", "s.whiskers.npz", "s.mic.npz"} | ({"s.fused.npz"} if early else set())
     replay = load_scene(out / "s.toml")
-    assert [s["timing"] for s in replay.sources] == ["recorded", "recorded"]
+    assert [s.options["timing"] for s in replay.sources] == ["recorded", "recorded"]
     if early:
-        assert replay.fusion["method"] == "early" and replay.fusion["model"] == "s.fused.npz"
+        assert replay.fusion.method == "early" and replay.fusion.model == "s.fused.npz"
     else:
-        assert isinstance(replay.fusion["weight"], float)               # the learned weight, as learned
+        assert isinstance(replay.fusion.weight, float)               # the learned weight, as learned
     # its replay decides as the recording did
     assert main(["run", str(out / "s.toml"), "--json", "--quiet"]) == 0
     replayed = [json.loads(x) for x in capsys.readouterr().out.splitlines()]

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import threading
 import time
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -137,7 +138,8 @@ def test_the_serial_example_scene_decides_on_the_mock_board():
     ts = reference_texture_set("whisker")
     x = quantise(np.repeat(ts.synthesize(ts.names.index("T3"), duration=3.0)[:, None], 20, axis=1)) / 32768.0
     dev = MockWhiskerDevice(x, RATE, samples_per_frame=SPF)
-    scene.driver["port"] = dev.port
+    board = scene.only_source()
+    scene = replace(scene, sources=(replace(board, options={**board.options, "port": dev.port}),))
     sink = ListSink()
     node = build_node(scene, sinks_override=[sink])
 

@@ -78,7 +78,7 @@ def test_wav_and_csv_of_two_senses_replay_as_the_offline_pipeline_at_their_times
     assert {p.name for p in rec.iterdir()} == {"lab.toml", "lab.whiskers.wav", "lab.whiskers.json", "lab.mic.wav",
                                                 "lab.mic.json"}
     scene = load_scene(rec / "lab.toml")
-    assert [(s["type"], s["timing"]) for s in scene.sources] == [("replay", "recorded")] * 2
+    assert [(s.type, s.options["timing"]) for s in scene.sources] == [("replay", "recorded")] * 2
     # the sessions hold the very samples, at their rates
     for name, rate in (("whiskers", W_RATE), ("mic", M_RATE)):
         x, r = read_wav(lab_files / f"{name}.wav")
@@ -203,7 +203,7 @@ def test_a_graphs_own_sessions_imported_with_models_and_fusion_replay_to_its_fus
         argv += ["--wav", f"{name}={tmp_path / f'{name}.wav'}", "--times", f"{name}={tmp_path / f'{name}.csv'}",
                  "--bank", f"{name}={kind}", "--model", f"{name}={tmp_path / 'own' / f't.{name}.npz'}"]
     assert main(["import-recording", "--out", str(tmp_path / "lab"), "--name", "t", *argv, "--fusion"]) == 0
-    assert load_scene(tmp_path / "lab" / "t.toml").fusion["streams"] == ["whiskers", "mic"]
+    assert load_scene(tmp_path / "lab" / "t.toml").fusion.streams == ("whiskers", "mic")
 
     def fused(scene):
         capsys.readouterr()

@@ -152,9 +152,9 @@ def test_the_scene_checks_the_signal_sink():
                                          {"type": "lsl-signal", "source": "b"}]})
     relay = scene_from_dict({**two, "sink": [{"type": "lsl-signal", "source": "a"},
                                              {"type": "lsl-signal", "source": "b"}]})
-    assert relay.is_graph and relay.streams == [] and [s["source"] for s in relay.sinks] == ["a", "b"]
+    assert relay.is_graph and relay.streams == () and [s.source for s in relay.sinks] == ["a", "b"]
     one = scene_from_dict({"driver": {"type": "synth"}, "sink": [{"type": "lsl-signal"}]})
-    assert one.sinks[0]["source"] == "main"
+    assert one.sinks[0].source == "main"
 
 
 def test_a_one_source_scene_sends_its_samples_and_still_decides(tmp_path):
@@ -249,8 +249,8 @@ def test_a_relay_is_recorded_and_its_replay_scene_sends_the_recording_on(tmp_pat
     assert main(["record", str(scene), "--out", str(tmp_path / "rec"), "--name", "r", "--quiet"]) == 0
     assert load_session(tmp_path / "rec" / "r.arm.wav").frames == 8 * 5000
     replay = load_scene(tmp_path / "rec" / "r.toml")
-    assert replay.streams == [] and replay.sources[0]["type"] == "replay"
-    assert [(s["type"], s["source"], s["prefix"]) for s in replay.sinks] == [("lsl-signal", "arm", prefix)]
+    assert replay.streams == () and replay.sources[0].type == "replay"
+    assert [(s.type, s.source, s.options["prefix"]) for s in replay.sinks] == [("lsl-signal", "arm", prefix)]
 
 
 def test_without_a_consumer_the_node_waits_as_long_as_asked_then_starts_and_says_so():

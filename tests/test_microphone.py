@@ -772,7 +772,7 @@ def test_example_scene_float32_default_on_an_int16_device_is_exact(tmp_path, jac
     from supramodal.node.scene.schema import load_scene
 
     _require_portaudio()
-    assert load_scene(ROOT / "examples" / "microphone.toml").driver["dtype"] is None
+    assert load_scene(ROOT / "examples" / "microphone.toml").only_source().options["dtype"] is None
     default = inspect.signature(MicrophoneDriver).parameters["dtype"].default
     assert default == "float32"
     n = int(2 * RATE)

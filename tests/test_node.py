@@ -27,6 +27,7 @@ from supramodal.gammatone import relative_error
 from supramodal.model import TextureModel
 from supramodal.pipeline import FeaturePipeline, extract_features
 from supramodal.textures import reference_texture_set
+from supramodal.decisions import DecisionRules
 
 from stand_ins import StandInDriver
 
@@ -66,6 +67,8 @@ def _run_node(driver, model=None, features=("Af",), **kw):
     pipeline = FeaturePipeline(whisker_bank(), features)
     sink = ListSink()
     kw.setdefault("overrun", "block")   # lossless replay, as the scene builder chooses for replay drivers
+    if "decision" in kw:
+        kw["decision"] = DecisionRules(**kw["decision"])
     Node(driver, pipeline, [sink], model=model, **kw).run()
     return sink
 
@@ -253,8 +256,8 @@ def test_whisker_replay_scene_runs_without_sounddevice_serial_or_lsl(tmp_path, w
 
 def test_default_scene_is_valid_and_synthesises_held_out_textures():
     scene = default_scene()
-    assert scene.driver["type"] == "synth" and scene.model["train_on_start"]
-    assert scene.bank["kind"] == "whisker"
+    assert scene.only_source().type == "synth" and scene.only_stream().model.train_on_start
+    assert scene.only_stream().bank.kind == "whisker"
 
 
 # -- train / evaluate ---------------------------------------------------------------------------
@@ -399,7 +402,7 @@ def test_command_line_model_and_scene_share_the_defaults():
     assert train.epochs == experiment.epochs == DEFAULT_EPOCHS
     for fn in (train_mlp, TextureModel.train):
         assert inspect.signature(fn).parameters["epochs"].default == DEFAULT_EPOCHS
-    assert train.window == default_scene().features["window"] == DEFAULT_WINDOW
+    assert train.window == default_scene().only_stream().features.window == DEFAULT_WINDOW
     assert inspect.signature(FeaturePipeline).parameters["window"].default == DEFAULT_WINDOW
     assert f"(default {DEFAULT_EPOCHS})" in parser._subparsers._group_actions[0].choices["train"].format_help()
 

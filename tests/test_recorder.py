@@ -39,7 +39,7 @@ def test_recorded_session_replays_to_identical_node_output(tmp_path):
     assert not list(tmp_path.glob(".*.raw"))                     # the spool file is gone
     replayed = ListSink()
     Node(ReplayDriver(str(wav), block_size=101, speed="max", on_notice=None),
-         FeaturePipeline(whisker_bank(), ("Af", "A"), chunk=scene.features["chunk"]), [replayed],
+         FeaturePipeline(whisker_bank(), ("Af", "A"), chunk=scene.only_stream().features.chunk), [replayed],
          overrun="block").run()
     assert len(replayed.events) == len(live.events) == 40
     for a, b in zip(live.events, replayed.events):
@@ -123,7 +123,7 @@ def test_node_output_does_not_depend_on_ring_read_timing(seed, chunk):
     scene = scene_from_dict({"driver": {"type": "synth", "seconds": 0.5, "held_out": False, "block": 37},
                              "features": features})
     data = driver_for(scene, bank_for(scene))[0].data
-    chunk = scene.features["chunk"]
+    chunk = scene.only_stream().features.chunk
     pipeline = FeaturePipeline(whisker_bank(), ("Af", "A"), chunk=chunk)
     # With chunks the pipeline cuts the offline signal itself; without, it is fed window by window.
     offline = pipeline.run(data[:, 0], block=4096 if chunk else pipeline.window_samples)

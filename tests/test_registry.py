@@ -78,7 +78,9 @@ def tone():
 def test_a_toy_driver_defined_here_runs_from_a_scene(tone):
     scene = scene_from_dict({"driver": {"type": "tone", "frequency": 120.0, "seconds": 0.55, "block": 77},
                              "bank": {"kind": "whisker"}, "features": {"names": ["Af"]}})
-    assert scene.driver == {"type": "tone", "frequency": 120.0, "seconds": 0.55, "block": 77, "mapping": "auto"}
+    src, stream = scene.only_source(), scene.only_stream()
+    assert (src.type, dict(src.options), stream.mapping) == \
+        ("tone", {"frequency": 120.0, "seconds": 0.55, "block": 77}, "auto")
     sink = ListSink()
     summary = build_node(scene, sinks_override=[sink]).run()
     windows = sink.windows
@@ -190,7 +192,7 @@ def test_a_toy_sink_defined_here_runs_from_a_scene_beside_the_built_in_ones(tone
     scene = scene_from_dict({"driver": {"type": "tone", "frequency": 120.0, "seconds": 0.55},
                              "sink": [{"type": "tally", "label": "x"}, {"type": "jsonl", "path": "w.jsonl"}]},
                             str(tmp_path / "s.toml"), tmp_path)
-    assert scene.sinks[0] == {"type": "tally", "label": "x", "from": None}
+    assert (scene.sinks[0].type, dict(scene.sinks[0].options)) == ("tally", {"label": "x", "from": None})
     build_node(scene).run()
     assert TALLIES == {("x", "main", None): 5}            # no model: feature windows, no decision
     assert len((tmp_path / "w.jsonl").read_text().splitlines()) == 5 + 1     # and the summary

@@ -35,7 +35,6 @@ type = "serial"
 port = "{port}"
 rate = {float(WHISKER_RATE)}
 channels = 20
-mapping = "per-channel"
 
 [[source]]
 name = "mic"
@@ -48,6 +47,7 @@ dtype = "float32"
 [[stream]]
 name = "whiskers"
 source = "whiskers"
+mapping = "per-channel"
 [stream.bank]
 kind = "whisker"
 [stream.model]

@@ -67,7 +67,7 @@ def test_late_fusion_keys_with_early_fusion_are_refused():
     for key, value in (("weight", "learn"), ("weight", 0.5), ("sharpness", 2.0), ("correlation", 0.5)):
         with pytest.raises(SceneError, match=rf"\[fusion\] {key}: .* belong to late fusion"):
             scene_from_dict({**two, "fusion": {"streams": ["w", "m"], "method": "early", key: value}})
-    assert scene_from_dict({**two, "fusion": {"streams": ["w", "m"], "method": "early"}}).fusion["method"] == "early"
+    assert scene_from_dict({**two, "fusion": {"streams": ["w", "m"], "method": "early"}}).fusion.method == "early"
 
 
 @pytest.mark.parametrize("paths", [("out.jsonl", "out.jsonl"), ("out.jsonl", "./sub/../out.jsonl")])

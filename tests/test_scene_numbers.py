@@ -17,7 +17,7 @@ import pytest
 from supramodal.node.scene.build import build_node
 from supramodal.node.scene.registry import driver_spec, source_keys
 from supramodal.node.runtime.sinks import ListSink
-from supramodal.node.scene.schema import SECTIONS, SceneError, scene_from_dict, scene_to_toml
+from supramodal.node.scene.schema import ONE_SOURCE_KEYS, SECTIONS, SceneError, scene_from_dict, scene_to_toml
 
 BAD = {"zero": 0, "negative": -1.5, "huge": 1e300, "nan": math.nan, "inf": math.inf, "huge-int": 10**30}
 #: A run that is accepted must end within this (wall seconds, on a loaded CI machine).
@@ -32,7 +32,7 @@ def _numeric(key) -> bool:
 
 
 def _cases():
-    for name, key in source_keys(driver_spec("synth")).items():
+    for name, key in {**source_keys(driver_spec("synth")), **ONE_SOURCE_KEYS}.items():
         if _numeric(key):
             yield "driver", name
     for section, keys in SECTIONS.items():
@@ -59,7 +59,7 @@ def _load_only_cases():
     """Numeric keys of the drivers that need a device or a stream (serial, microphone, lsl, xdf),
     of every sink and of the fusion: driven at load (a run needs what a test machine lacks)."""
     from supramodal.node.scene.registry import driver_types, sink_keys, sink_spec, sink_types
-    from supramodal.node.scene.schema import FUSION_KEYS
+    from supramodal.node.scene.schema import FUSION_KEYS, STREAM_KEYS
 
     for kind in driver_types():
         if kind in ("synth",):
@@ -74,6 +74,9 @@ def _load_only_cases():
     for name, key in FUSION_KEYS.items():
         if _numeric(key):
             yield ("fusion", None), name
+    for name, key in STREAM_KEYS.items():
+        if _numeric(key):
+            yield ("stream", None), name
 
 
 #: Bad values a schema accepts on purpose, with why (a run, where it is possible, decides).
@@ -87,8 +90,7 @@ ACCEPTED = {
     ("sink", "lsl-signal", "wait_for_consumer", "zero"): "start at once",
     ("sink", "lsl", "wait_for_consumer", "zero"): "start at once", ("sink", "view", "port", "zero"): "any free port",
     ("fusion", None, "weight", "zero"): "all on the second stream", ("fusion", None, "correlation", "zero"): "",
-    **{("driver", kind, "mapping", "zero"): "channel 0" for kind in ("lsl", "microphone", "replay", "serial", "twosense",
-                                                                       "xdf")},
+    ("stream", None, "mapping", "zero"): "channel 0",
     ("driver", "twosense", "seconds", "huge"): "build", ("driver", "twosense", "seconds", "huge-int"): "build",
 }
 
@@ -101,6 +103,8 @@ def _two_sense(section, kind, key, value) -> dict:
          "fusion": {"streams": ["w", "m"]}}
     if section == "fusion":
         d["fusion"][key] = value
+    elif section == "stream":
+        d["stream"][0][key] = value
     elif section == "sink":
         d["sink"] = [{"type": kind, key: value, **({"source": "w"} if kind == "lsl-signal" else {})}]
     return d
@@ -134,7 +138,8 @@ def test_every_numeric_key_is_driven():
             ("bank", "mean_B"), ("decision", "n")} <= keys
     others = {(w, k) for w, k in _load_only_cases()}
     assert {(("driver", "serial"), "baudrate"), (("driver", "lsl"), "max_gap"), (("driver", "twosense"), "offset"),
-            (("sink", "lsl-signal"), "wait_for_consumer"), (("fusion", None), "max_wait")} <= others
+            (("sink", "lsl-signal"), "wait_for_consumer"), (("fusion", None), "max_wait"),
+            (("stream", None), "mapping")} <= others
 
 
 @pytest.mark.slow

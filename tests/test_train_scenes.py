@@ -72,8 +72,8 @@ def test_a_fusion_says_whether_it_learned_from_unseen_recordings_or_out_of_fold(
     assert "sense posteriors: unseen (the sense models were trained on 2 and 2 other recording(s), none of these 2" \
         in said
     scene = load_scene(live)
-    assert scene.fusion["streams"] == ["whiskers", "mic"] and scene.fusion["method"] == "late"
-    assert [s.scene.model["path"] for s in scene.streams] == [str(recordings / "whiskers.npz"),
+    assert scene.fusion.streams == ("whiskers", "mic") and scene.fusion.method == "late"
+    assert [s.model.path for s in scene.streams] == [str(recordings / "whiskers.npz"),
                                                               str(recordings / "mic.npz")]
     # on the very recordings the models were trained on: out-of-fold copies instead
     assert main(["train", "--fusion", "late", *_scenes(recordings, 1), *models, "--quiet"]) == 0

@@ -75,10 +75,12 @@ def test_the_stream_asked_for_must_be_there_and_be_a_signal(tmp_path):
 def _graph(path, speed="max", **board):
     source = {"type": "xdf", "path": str(path), "speed": speed}
     return scene_from_dict({
-        "source": [{"name": "board", **source, "stream": "whiskers", "mapping": "per-channel", **board},
-                   {"name": "card", **source, "source_id": "card-1", "mapping": "mono"}],
-        "stream": [{"name": "whiskers", "source": "board", "bank": {"kind": "whisker"}, "features": {"names": ["Af"]}},
-                   {"name": "mic", "source": "card", "bank": {"kind": "cochlea"}, "features": {"names": ["Af"]}}],
+        "source": [{"name": "board", **source, "stream": "whiskers", **board},
+                   {"name": "card", **source, "source_id": "card-1"}],
+        "stream": [{"name": "whiskers", "source": "board", "mapping": "per-channel", "bank": {"kind": "whisker"},
+                    "features": {"names": ["Af"]}},
+                   {"name": "mic", "source": "card", "mapping": "mono", "bank": {"kind": "cochlea"},
+                    "features": {"names": ["Af"]}}],
         "sink": [{"type": "text", "path": "-"}]})
 
 

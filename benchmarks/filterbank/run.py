@@ -29,7 +29,7 @@ from supramodal.banks import Bank, bank_by_name
 from supramodal.benchmarks.filterbank import PINNED_THREADS
 from supramodal.benchmarks.filterbank.peers import make_peer
 from supramodal.benchmarks.filterbank.report import clean, write_report
-from supramodal.decisions import window_decision
+from supramodal.decisions import DecisionRules, window_decision
 from supramodal.gammatone import reference_impulse_response, relative_error
 from supramodal.mlp import DEFAULT_EPOCHS
 from supramodal.model import TextureModel
@@ -323,8 +323,8 @@ def threaded_node(bank, model, session, ranges, L, speed):
     """The node itself (driver thread, ring buffer, processing thread, sink) on the replayed session."""
     sink = ListSink()
     driver = ReplayDriver((session[:, None], bank.fs), block_size=L, speed=speed, on_notice=None)
-    node = Node(driver, make_pipeline(bank, "fast", "float64"), [sink], model=model, decision={"scope": "window"},
-                mapping="mono", labels=Labels(list(ranges)), overrun="block")
+    node = Node(driver, make_pipeline(bank, "fast", "float64"), [sink], model=model,
+                decision=DecisionRules(scope="window"), mapping="mono", labels=Labels(list(ranges)), overrun="block")
     summary = node.run()
     return summary, [e["predicted"] for e in sink.events]
 

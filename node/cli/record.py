@@ -93,11 +93,13 @@ def run(args: argparse.Namespace) -> int:
             print(f"recorded {summary['stream_seconds']:.2f} s to {wavs} (+ .json); replay them in step: "
                   f"supramodal run {replay}", file=sys.stderr)
         return 0
-    source = _json.dumps({"scene": scene.source, "driver": scene.driver})
+    src = scene.only_source()
+    source = _json.dumps({"scene": scene.source,
+                          "driver": {"type": src.type, **src.options, "mapping": scene.only_stream().mapping}})
     recorder = SessionRecorder(args.out, name, source, label=args.label, overwrite=args.force, replace=args.replace)
     node = build_node(scene, recorder=recorder, progress=progress(args))
     if node.streams[0].labels.ranges and labelled and not args.replace:
-        raise CliError(f"{scene.source}: the {scene.driver['type']} driver labels its stream itself, and the "
+        raise CliError(f"{scene.source}: the {src.type} driver labels its stream itself, and the "
                        "recording keeps those labels with their times; --label and --marks would contradict them "
                        "(leave them out, or pass --replace to label the recording with yours instead)")
     if args.marks:

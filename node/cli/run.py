@@ -76,14 +76,15 @@ def _default_run_guide(scene, speed) -> list[str]:
     from supramodal.textures import reference_texture_set
     from supramodal.training import TRAIN_FRACTION
 
-    d = scene.driver
-    n = len(reference_texture_set(scene.bank["kind"]).names)
+    stream = scene.only_stream()
+    seconds = float(scene.only_source().options["seconds"])
+    n = len(reference_texture_set(stream.bank.kind).names)
     pace = "at once (--speed max)" if speed == "max" else "in real time (--speed max runs it at once)"
     return [
-        f"the default scene: the {scene.bank['kind']} bank replays the last {d['seconds']:g} s of each of the {n} "
-        f"reference textures ({n * d['seconds']:g} s of stream) {pace}, with a model trained on the spot on the "
+        f"the default scene: the {stream.bank.kind} bank replays the last {seconds:g} s of each of the {n} "
+        f"reference textures ({n * seconds:g} s of stream) {pace}, with a model trained on the spot on the "
         f"first {TRAIN_FRACTION:.0%} of each texture",
-        f"one line per {scene.features['window'] * 1000:g} ms window: the decided texture, its confidence, the "
+        f"one line per {stream.features.window * 1000:g} ms window: the decided texture, its confidence, the "
         "texture really there, ok or -- (wrong); Ctrl-C stops and prints the summary",
         "next: a model of your own recordings (supramodal train --help), the serial whisker array "
         "(examples/whisker_serial.toml with supramodal mock-whisker), your own scene (supramodal run --print-scene)",
@@ -94,25 +95,27 @@ def _scene_line(scene, sinks_replaced: bool = False) -> str:
     """What a scene runs, in one line: driver, bank, features and window (per stream, and the
     fusion, for a scene of several sources); ``sinks_replaced`` (``run --json``): the scene's
     sinks are not made, so no source is said to be sent on."""
-    def one(sub) -> str:
-        bank = (f"the bank of {sub.bank['file']}" if sub.bank["file"] is not None else f"{sub.bank['kind']} bank")
-        return f"{bank}, features {sub.features['names']}, {sub.features['window']:g} s windows"
+    def one(stream) -> str:
+        bank = f"the bank of {stream.bank.file}" if stream.bank.file is not None else f"{stream.bank.kind} bank"
+        return f"{bank}, features {list(stream.features.names)}, {stream.features.window:g} s windows"
 
-    sent = [f"source {k['source']} sent on as LSL ({k['chunk'] * 1e3:g} ms chunks)" for k in scene.sinks
-            if k["type"] == "lsl-signal"]
+    sent = [f"source {k.source} sent on as LSL ({float(k.options['chunk']) * 1e3:g} ms chunks)" for k in scene.sinks
+            if k.type == "lsl-signal"]
     if sinks_replaced and scene.sinks:
-        kinds = [k["type"] for k in scene.sinks]
+        kinds = [k.type for k in scene.sinks]
         lsl = "; nothing sent on as LSL" if any(k.startswith("lsl") for k in kinds) else ""
         sent = [f"--json: JSON Lines on stdout instead of the scene's sinks ({', '.join(kinds)}{lsl})"]
     if not scene.is_graph:
-        return f"scene {scene.source}: {scene.driver['type']} driver, {one(scene)}" + "".join(f"; {p}" for p in sent)
-    parts = [f"stream {s.name}: {s.scene.driver['type']} source {s.source}, {one(s.scene)}" for s in scene.streams]
+        return (f"scene {scene.source}: {scene.only_source().type} driver, {one(scene.only_stream())}"
+                + "".join(f"; {p}" for p in sent))
+    parts = [f"stream {s.name}: {scene.source_named(s.source).type} source {s.source}, {one(s)}"
+             for s in scene.streams]
     parts += sent
     if scene.fusion is not None:
         f = scene.fusion
-        how = f"weight {f['weight']}" if f["method"] == "late" else \
-            f"model {f['model']}" if f["model"] else "network trained on the spot"
-        parts.append(f"fused: {f['streams'][0]} and {f['streams'][1]} ({f['method']}, {how})")
+        how = f"weight {f.weight}" if f.method == "late" else \
+            f"model {f.model}" if f.model else "network trained on the spot"
+        parts.append(f"fused: {f.streams[0]} and {f.streams[1]} ({f.method}, {how})")
     return f"scene {scene.source}: " + "; ".join(parts)
 
 

@@ -36,7 +36,7 @@ import time
 
 import numpy as np
 
-from supramodal.decisions import DEFAULT_DECISION, Decider
+from supramodal.decisions import DEFAULT_DECISION, Decider, DecisionRules
 from supramodal.drivers.base import DriverEvent
 from supramodal.errors import InputError
 from supramodal.fusion import fuse_late
@@ -75,9 +75,8 @@ class LateFusion:
         Host seconds a window waits for its partner (default :data:`DEFAULT_MAX_WAIT`). None:
         until the other stream has passed it or ended, however long that takes (two files replayed
         at any speed: their timing is their own, and the decisions do not depend on the host's).
-    decision : dict, optional
-        Pooling and rules of the fused decisions (``scope``, ``n``, ``method``, ``confidence``,
-        ``unknown_below``), as for a stream.
+    decision : supramodal.decisions.DecisionRules, optional
+        Pooling and rules of the fused decisions, as for a stream (default: each window alone).
 
     Attributes
     ----------
@@ -88,8 +87,8 @@ class LateFusion:
 
     method = "late"
 
-    def __init__(self, inputs, classes, weight: float = DEFAULT_WEIGHT, max_wait: float = DEFAULT_MAX_WAIT,
-                 decision: dict | None = None, *, sharpness: float = 1.0, correlation: float = 0.0,
+    def __init__(self, inputs, classes, weight: float = DEFAULT_WEIGHT, max_wait: float | None = DEFAULT_MAX_WAIT,
+                 decision: DecisionRules = DEFAULT_DECISION, *, sharpness: float = 1.0, correlation: float = 0.0,
                  caps=None) -> None:
         a, b = inputs
         if a == b:
@@ -108,14 +107,18 @@ class LateFusion:
         self.inputs = (a, b)
         self.classes = tuple(ca)
         self._order_b = np.array([cb.index(name) for name in ca])   # b's outputs in a's class order
-        self.weight = float(weight)
+        # The weight the pairs are fused with; `weight`, what the summary says (None: early fusion).
+        self._weight = float(weight)
+        self.weight: float | None = self._weight
         self.sharpness = float(sharpness)
         self.correlation = float(correlation)
         self.max_wait = math.inf if max_wait is None else float(max_wait)
-        d = {**DEFAULT_DECISION, **(decision or {})}
-        self.decider = Decider(ca, d, correlation, caps=caps)
+        self.decider = Decider(ca, decision, correlation, caps=caps)
         self._queue: queue.SimpleQueue = queue.SimpleQueue()
-        self._pending = {a: collections.deque(), b: collections.deque()}
+        # per stream: (event, when it was put, when its last block arrived or None) of the windows
+        # awaiting a partner
+        self._pending: dict[str, collections.deque[tuple[WindowEvent, float, float | None]]] = {
+            a: collections.deque(), b: collections.deque()}
         self._ended: set[str] = set()
         # per stream: the centre of the last window of the *other* stream decided alone because
         # this one's did not come in time; this stream's windows up to there are late
@@ -204,12 +207,13 @@ class LateFusion:
                         self._say("sense_ended", f"fusion: '{other}' has ended; deciding on '{s}' alone")
                 else:
                     self._alone_until[other] = _centre(item[0]) + 0.5 * (item[0].end - item[0].start)
-                    if self._missing[other] is None:
-                        self._missing[other] = 0
+                    missing = self._missing[other]
+                    if missing is None:
+                        missing = 0
                         self.dropouts[other] += 1
                         self._say("sense_lost", f"fusion: no window from '{other}' within {self.max_wait:g} s; "
                                                 f"deciding on '{s}' alone until it comes back")
-                    self._missing[other] += 1
+                    self._missing[other] = missing + 1
                 emit(self._single(item))
 
     def _say(self, kind: str, message: str) -> None:
@@ -218,7 +222,7 @@ class LateFusion:
 
     def _fused_log_posteriors(self, ea: WindowEvent, eb: WindowEvent) -> np.ndarray:
         """Log-posteriors of a pair, in :attr:`classes` order (:func:`~supramodal.fusion.fuse_late`)."""
-        return fuse_late(log_posteriors_of(ea)[None, :], log_posteriors_of(eb)[self._order_b][None, :], self.weight,
+        return fuse_late(log_posteriors_of(ea)[None, :], log_posteriors_of(eb)[self._order_b][None, :], self._weight,
                          self.sharpness)[0]
 
     def _fuse(self, item_a, item_b) -> WindowEvent:
@@ -293,8 +297,8 @@ class EarlyFusion(LateFusion):
 
     method = "early"
 
-    def __init__(self, inputs, classes, model, max_wait: float = DEFAULT_MAX_WAIT,
-                 decision: dict | None = None) -> None:
+    def __init__(self, inputs, classes, model, max_wait: float | None = DEFAULT_MAX_WAIT,
+                 decision: DecisionRules = DEFAULT_DECISION) -> None:
         if sorted(model.classes) != sorted(classes[0]):
             raise InputError(f"the early-fusion model knows {list(model.classes)}, the streams {list(classes[0])}: "
                              "train it on the streams' textures")
@@ -309,6 +313,7 @@ class EarlyFusion(LateFusion):
 
     def _fused_log_posteriors(self, ea: WindowEvent, eb: WindowEvent) -> np.ndarray:
         a, b = self.model.senses
+        assert ea.features is not None and eb.features is not None, "an early fusion's streams emit their features"
         va = np.stack([ea.features[f] for f in a.features])[None]
         vb = np.stack([eb.features[f] for f in b.features])[None]
         return self.model.log_posteriors(va, vb)[0][self._order_model]

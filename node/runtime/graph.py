@@ -43,6 +43,7 @@ import time
 from collections.abc import Callable
 from dataclasses import replace
 
+from supramodal.decisions import DEFAULT_DECISION, DecisionRules
 from supramodal.errors import InputError, SupramodalError
 from supramodal.model import TextureModel
 from supramodal.node.runtime.events import FUSED_STREAM, MAIN_STREAM, EventLimiter
@@ -355,8 +356,8 @@ class Node(Graph):
     sinks : list of node.sinks.Sink
     model : TextureModel, optional
         Without it the node emits feature windows.
-    decision : dict, optional
-        ``scope``, ``n``, ``method``, ``contact_threshold`` (see supramodal.decisions).
+    decision : supramodal.decisions.DecisionRules, optional
+        How it decides (default: each window alone).
     mapping : str or int
         Driver channels to filter inputs, see :func:`channel_mapper`.
     labels : Labels, optional
@@ -376,7 +377,7 @@ class Node(Graph):
     """
 
     def __init__(self, driver, pipeline: FeaturePipeline, sinks, model: TextureModel | None = None,
-                 decision: dict | None = None, mapping="auto", labels: Labels | None = None,
+                 decision: DecisionRules = DEFAULT_DECISION, mapping: str | int = "auto", labels: Labels | None = None,
                  buffer_seconds: float = 2.0, overrun: str = "drop-oldest", recorder=None,
                  timebase: str = "stream", time_offset: float = 0.0, time_rate: float | None = None,
                  taps=()) -> None:

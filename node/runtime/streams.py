@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from supramodal.decisions import DEFAULT_DECISION, ContactDetector, Decider
+from supramodal.decisions import DEFAULT_DECISION, ContactDetector, Decider, DecisionRules
 from supramodal.drivers.base import Driver
 from supramodal.errors import InputError
 from supramodal.model import TextureModel
@@ -90,10 +90,10 @@ class Labels:
         return None
 
 
-def refuse_uncalibrated(decision: dict, models, where: str) -> None:
+def refuse_uncalibrated(rules: DecisionRules, models, where: str) -> None:
     """Refuse the rules of a ``[decision]`` (a confidence threshold, "unknown") that need
     calibrated posteriors when one of ``models`` (a stream's, or a fusion's) has none, naming the fix."""
-    asks = [k for k in ("confidence", "unknown", "unknown_below") if decision.get(k)]
+    asks = rules.calibrated_rules
     old = [m for m in models if not m.calibrated]
     if asks and old:
         whose = "the model is" if len(models) == 1 else f"{len(old)} of the {len(models)} models are"
@@ -101,19 +101,18 @@ def refuse_uncalibrated(decision: dict, models, where: str) -> None:
                          "version 1 model file): retrain with `supramodal train`")
 
 
-def decider_for(model: TextureModel, decision: dict, where: str = "[decision]") -> Decider:
+def decider_for(model: TextureModel, rules: DecisionRules, where: str = "[decision]") -> Decider:
     """The :class:`~supramodal.decisions.Decider` of a stream of ``model`` with the scene's
-    ``decision``; refuses rules the model cannot follow (a confidence threshold or "unknown"
-    without a calibration, "unknown" without a novelty score), naming the fix."""
-    d = {**DEFAULT_DECISION, **decision}
-    refuse_uncalibrated(d, (model,), where)
+    ``[decision]`` ``rules``; refuses rules the model cannot follow (a confidence threshold or
+    "unknown" without a calibration, "unknown" without a novelty score), naming the fix."""
+    refuse_uncalibrated(rules, (model,), where)
     threshold = None
-    if d["unknown"]:
+    if rules.unknown:
         if model.novelty is None:
             raise InputError(f"{where} unknown needs a model with a novelty score: retrain it with `supramodal train`")
-        threshold = model.novelty.threshold(d["unknown"])
-    correlation, caps = model.calibration.contact_pooling if model.calibrated else (0.0, None)
-    return Decider(model.classes, d, correlation, threshold, caps=caps)
+        threshold = model.novelty.threshold(rules.unknown)
+    correlation, caps = model.calibration.contact_pooling if model.calibration is not None else (0.0, None)
+    return Decider(model.classes, rules, correlation, threshold, caps=caps)
 
 
 class Stream:
@@ -128,8 +127,8 @@ class Stream:
     pipeline : supramodal.pipeline.FeaturePipeline
     model : TextureModel, optional
         Without it the stream emits feature windows.
-    decision : dict, optional
-        ``scope``, ``n``, ``method``, ``contact_threshold`` (see supramodal.decisions).
+    decision : supramodal.decisions.DecisionRules, optional
+        How it decides (default: :data:`~supramodal.decisions.DEFAULT_DECISION`, each window alone).
     mapping : str or int
         Source channels to filter inputs, see :func:`channel_mapper`.
     labels : Labels, optional
@@ -137,7 +136,8 @@ class Stream:
     """
 
     def __init__(self, name: str, source, pipeline: FeaturePipeline, model: TextureModel | None = None,
-                 decision: dict | None = None, mapping="auto", labels: Labels | None = None) -> None:
+                 decision: DecisionRules = DEFAULT_DECISION, mapping: str | int = "auto",
+                 labels: Labels | None = None) -> None:
         bank = pipeline.bank
         if abs(source.rate - bank.fs) > 1e-9 * bank.fs:
             raise InputError(f"the driver delivers {source.rate:g} Hz but the {bank.kind} bank runs at {bank.fs:g} Hz")
@@ -149,13 +149,13 @@ class Stream:
         self.model = model
         self.labels = labels if labels is not None else Labels.of(source.driver)
         self.map = channel_mapper(mapping, source.driver.channels, bank.channels)
-        self.decision = {**DEFAULT_DECISION, **(decision or {})}
+        self.decision = decision
         self.decider = None
         self.contact = None
         if model is not None:
-            self.decider = decider_for(model, self.decision, f"stream {name!r}: [decision]")
-            if self.decision["scope"] == "contact":
-                self.contact = ContactDetector(pipeline.window_samples, self.decision["contact_threshold"])
+            self.decider = decider_for(model, decision, f"stream {name!r}: [decision]")
+            if decision.scope == "contact":
+                self.contact = ContactDetector(pipeline.window_samples, decision.contact_threshold)
         self.feed = source.add_feed(f"stream {name}")
         self._window_marks: dict[int, set[str]] = {}
         self._expected = 0
@@ -218,19 +218,21 @@ class Stream:
             return
         W, fs = self.pipeline.window_samples, self.pipeline.bank.fs
         log_post = novelty = None
+        decider = self.decider
         if self.model is not None:
+            assert decider is not None, "a stream with a model has its decider (made in __init__)"
             log_post = self.model.log_posteriors(windows.values)
-            if self.decider.novelty_threshold is not None:
+            if decider.novelty_threshold is not None:
                 novelty = self.model.novelty_score(windows.values)
         for i, w in enumerate(windows.numbers.tolist()):
             end = (w + 1) * W
             truth = self.labels.at((w + 0.5) * W / fs)
             in_contact = bool(contact_flags[i]) if contact_flags is not None and i < len(contact_flags) else True
             post = decision = confidence = pooled = guess = reason = None
-            if log_post is not None:
+            if log_post is not None and decider is not None:
                 post = np.exp(log_post[i])
-                novel = novelty is not None and bool(novelty[i] > self.decider.novelty_threshold)
-                said = self.decider.decide(log_post[i], in_contact, novel)
+                novel = novelty is not None and bool(novelty[i] > decider.novelty_threshold)
+                said = decider.decide(log_post[i], in_contact, novel)
                 decision, confidence, guess, reason, pooled = (said[k] for k in ("decision", "confidence", "guess",
                                                                                  "reason", "pooled"))
                 self.tally.add(decision, None if pooled is None else pooled["label"], truth)

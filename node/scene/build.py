@@ -8,10 +8,12 @@ not asked for are not computed, and there is no classifier without a model.
 from __future__ import annotations
 
 import json
+from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
-from supramodal.bankfile import BANK_KEYS, BankFileError, bank_from_description, load_bank
+from supramodal.bankfile import BankFileError, bank_from_description, load_bank
 from supramodal.banks import Bank
 from supramodal.calibration import winner
 from supramodal.decisions import ContactDetector
@@ -22,38 +24,35 @@ from supramodal.node.runtime.graph import Graph
 from supramodal.node.runtime.sources import Source
 from supramodal.node.runtime.streams import Labels, Stream, refuse_uncalibrated
 from supramodal.node.scene.band import warn_if_beyond_band
-from supramodal.node.scene.registry import SinkContext, StreamPlan, driver_spec, sink_spec
-from supramodal.node.scene.schema import LEARN, Scene, SceneError, source_scene
+from supramodal.node.scene.registry import SinkContext, SinkSpec, StreamPlan, driver_spec, sink_spec
+from supramodal.node.scene.schema import LEARN
+from supramodal.node.scene.specs import Scene, SceneError, SinkSettings, SourceSpec, StreamSpec
 from supramodal.pipeline import FeaturePipeline
 from supramodal.training import split, texture_features
 
 
-def _given(options: dict, names: dict) -> dict:
-    """The scene options the scene sets, renamed to keyword arguments; a None option is left
-    out so that the driver's or the bank's own default applies (its one home)."""
-    return {arg: options[key] for key, arg in names.items() if options[key] is not None}
-
-
-def bank_for(scene: Scene) -> Bank:
-    """The scene's bank: its [bank] file, or its kind's recipe with the keys the scene sets."""
-    b = scene.bank
+def bank_for(scene: Scene, stream: StreamSpec | None = None) -> Bank:
+    """The bank of ``stream`` (default: the scene's only one): its [bank] file, or its kind's recipe
+    with the keys the scene sets."""
+    stream = stream or scene.only_stream()
+    b = stream.bank
     try:
-        if b["file"] is not None:
-            return load_bank(scene.resolve(b["file"]))
-        keys = BANK_KEYS[b["kind"]]
-        return bank_from_description({"kind": b["kind"], **{k: v for k, v in b.items() if k in keys and v is not None}},
-                                     f"{scene.source}: [bank]")
+        if b.file is not None:
+            return load_bank(scene.resolve(b.file))
+        return bank_from_description({"kind": b.kind, **b.recipe}, f"{stream.where}: [bank]")
     except BankFileError as exc:
-        raise SceneError(str(exc) if b["file"] is None else f"{scene.source}: [bank] file: {exc}") from None
+        raise SceneError(str(exc) if b.file is None else f"{stream.where}: [bank] file: {exc}") from None
 
 
-def pipeline_for(scene: Scene, bank: Bank) -> FeaturePipeline:
-    f = scene.features
+def pipeline_for(scene: Scene, bank: Bank, stream: StreamSpec | None = None) -> FeaturePipeline:
+    """The feature pipeline of ``stream`` (default: the scene's only one) on ``bank``."""
+    stream = stream or scene.only_stream()
+    f = stream.features
     try:
-        return FeaturePipeline(bank, f["names"], f["window"], dtype=np.dtype(f["dtype"]), peak_mode=f["peak_mode"],
-                               nonfinite=f["nonfinite"], peak_threshold=f["peak_threshold"], chunk=f["chunk"])
+        return FeaturePipeline(bank, f.names, f.window, dtype=np.dtype(f.dtype), peak_mode=f.peak_mode,
+                               nonfinite=f.nonfinite, peak_threshold=f.peak_threshold, chunk=f.chunk)
     except ValueError as exc:
-        raise SceneError(f"{scene.source}: [features] {exc}") from None
+        raise SceneError(f"{stream.where}: [features] {exc}") from None
 
 
 def train_on_texture_set(ts, pipeline: FeaturePipeline, progress=None, held_out: list | None = None,
@@ -102,58 +101,50 @@ _trained_on_the_spot: dict = {}
 
 
 def driver_for(scene: Scene, bank: Bank | None, speed_override=None, shared: dict | None = None,
-               where: str | None = None):
-    """Build the scene's driver from its spec (node.registry); returns ``(driver, labels,
-    texture_set_or_None)``.
+               source: SourceSpec | None = None):
+    """Build the driver of ``source`` (default: the scene's only one) from its spec (node.registry);
+    returns ``(driver, labels, texture_set_or_None)``.
 
     ``bank``: the bank that reads the source (a file is resampled to its rate, a stream at
     another rate is refused), or None for a source that no bank reads (a relay's): then the
     source keeps its own rate. ``shared``: a dict the caller keeps while it builds several
     sources, so that what they share is made once (one XDF file read once for all its sources).
-    ``where``: the source's table in messages (default: the scene's ``[driver]``).
     """
-    d = scene.driver
-    where = where or f"{scene.source}: [driver]"
-    spec = driver_spec(d["type"])
+    src = source or scene.only_source()
+    spec = driver_spec(src.type)
     context = BuildContext(rate=None if bank is None else bank.fs, resolve=scene.resolve, speed=speed_override,
                            shared=shared if shared is not None else {},
                            channels=None if bank is None else bank.channels, bank=bank)
     try:
-        built = spec.build(d, context)
+        built = spec.build(src.options, context)
     except OptionError as exc:
-        raise SceneError(f"{where} {exc}") from None
+        raise SceneError(f"{src.where} {exc}") from None
     if bank is not None and built.source_rate is not None:
-        warn_if_beyond_band(bank, built.source_rate, f"{where} path {d.get('path', d['type'])}")
+        warn_if_beyond_band(bank, built.source_rate, f"{src.where} path {src.options.get('path', src.type)}")
     labels = Labels(list(built.labels), built.label_period) if built.labels else Labels.of(built.driver)
     return built.driver, labels, built.training_set
 
 
 def _make_sinks(scene: Scene, needs: str, made: list, overwrite: bool, **context) -> None:
     """Make the scene's sinks whose spec needs ``needs`` (node.registry.NEEDS), appending
-    ``(index in the scene, spec, options, sink or tap)`` to ``made``; ``context``: the rest of the
+    ``(settings, spec, sink or tap)`` to ``made``; ``context``: the rest of the
     :class:`~supramodal.node.scene.registry.SinkContext` (the streams, the sources)."""
-    for i, options in enumerate(scene.sinks):
-        spec = sink_spec(options["type"])
+    for settings in scene.sinks:
+        spec = sink_spec(settings.type)
         if spec.needs != needs:
             continue
-        where = f"{scene.source}: [[sink]] #{i + 1}"
+        where = f"{scene.source}: [[sink]] #{settings.index + 1}"
         try:
-            made.append((i, spec, options,
-                         spec.build(options, SinkContext(where, scene.resolve, overwrite, **context))))
+            made.append((settings, spec,
+                         spec.build(settings.options, SinkContext(where, scene.resolve, overwrite, **context))))
         except OptionError as exc:
             raise SceneError(f"{where} {exc}") from None
 
 
-def _routes(options: dict) -> set | None:
-    """The streams a sink of windows listens to (None: every one)."""
-    listens = options.get("from")
-    return None if listens is None else {listens} if isinstance(listens, str) else set(listens)
-
-
-def _planned_classes(scene: Scene, bank: Bank, ts, loaded: TextureModel | None) -> tuple[str, ...]:
-    """The classes the scene's model will decide among, before it is trained (the texture set
+def _planned_classes(stream: StreamSpec, bank: Bank, ts, loaded: TextureModel | None) -> tuple[str, ...]:
+    """The classes ``stream``'s model will decide among, before it is trained (the texture set
     :func:`_model_for` trains on) or as ``loaded`` (:func:`_model_file`); empty without a model."""
-    if scene.model["train_on_start"]:
+    if stream.model.train_on_start:
         if ts is None:
             from supramodal.textures import reference_texture_set
 
@@ -162,23 +153,23 @@ def _planned_classes(scene: Scene, bank: Bank, ts, loaded: TextureModel | None) 
     return () if loaded is None else tuple(loaded.classes)
 
 
-def _model_file(scene: Scene) -> TextureModel | None:
-    """The scene's model read from its file (once: the plans and the stream both take it), or None
+def _model_file(scene: Scene, stream: StreamSpec) -> TextureModel | None:
+    """``stream``'s model read from its file (once: the plans and the stream both take it), or None
     where the model is trained on the spot or there is none."""
-    m = scene.model
-    if m["train_on_start"] or m["path"] is None:
+    m = stream.model
+    if m.train_on_start or m.path is None:
         return None
-    return TextureModel.load(scene.resolve(m["path"]))
+    return TextureModel.load(scene.resolve(m.path))
 
 
-def _model_for(scene: Scene, bank: Bank, pipeline: FeaturePipeline, ts, progress,
+def _model_for(scene: Scene, stream: StreamSpec, bank: Bank, pipeline: FeaturePipeline, ts, progress,
                held_out: list | None = None, trained: list | None = None,
                loaded: TextureModel | None = None) -> TextureModel | None:
-    """The scene's model: trained on the spot (its held-out and training windows appended to
+    """``stream``'s model: trained on the spot (its held-out and training windows appended to
     ``held_out`` and ``trained``), or ``loaded`` (:func:`_model_file`); checked against the pipeline."""
     model = loaded
-    m = scene.model
-    if m["train_on_start"]:
+    m = stream.model
+    if m.train_on_start:
         # Synthesised textures: the model is made on the spot (the default scene does this); a
         # live or replayed source gets the bank's reference set (the mock board plays it).
         if ts is None:
@@ -186,16 +177,20 @@ def _model_for(scene: Scene, bank: Bank, pipeline: FeaturePipeline, ts, progress
 
             ts = reference_texture_set(bank.kind)
             if abs(ts.fs - bank.fs) > 1e-9 * bank.fs:
-                raise SceneError(f"{scene.source}: [model] train_on_start: the {bank.kind} reference textures are "
+                raise SceneError(f"{stream.where}: [model] train_on_start: the {bank.kind} reference textures are "
                                  f"at {ts.fs:g} Hz, the bank at {bank.fs:g} Hz; give a [model] path instead")
-        model = train_on_texture_set(ts, pipeline, progress, held_out, trained)
-        if m["path"] is not None:
-            model.save(scene.resolve(m["path"]))
+        # Read from the cache of models trained on start where it holds this one (docs/node.md).
+        from supramodal.node.workflows.model_cache import trained_on_start
+
+        model = trained_on_start(ts, pipeline, lambda h, t: train_on_texture_set(ts, pipeline, progress, h, t),
+                                 progress, held_out, trained)
+        if m.path is not None:
+            model.save(scene.resolve(m.path))
     if model is not None:
         try:
             model.check_pipeline(pipeline)
         except ModelError as exc:
-            raise SceneError(f"{scene.source}: [model] {exc}") from None
+            raise SceneError(f"{stream.where}: [model] {exc}") from None
     return model
 
 
@@ -204,10 +199,10 @@ def _model_for(scene: Scene, bank: Bank, pipeline: FeaturePipeline, ts, progress
 MAX_RING_BYTES = 2**30
 
 
-def _check_ring(scene: Scene, driver, where: str) -> None:
-    """Refuse a ring (the scene's ``[buffer] seconds`` of ``driver``) beyond :data:`MAX_RING_BYTES`,
+def _check_ring(src: SourceSpec, driver, where: str) -> None:
+    """Refuse a ring (``src``'s ``[buffer] seconds`` of ``driver``) beyond :data:`MAX_RING_BYTES`,
     naming the key (``where``: the buffer's table)."""
-    seconds = scene.buffer["seconds"]
+    seconds = src.buffer.seconds
     size = seconds * driver.rate * driver.channels * 8
     if size > MAX_RING_BYTES:
         raise SceneError(f"{where} seconds: {seconds:g} s of {driver.channels} channels at {driver.rate:g} Hz "
@@ -216,24 +211,30 @@ def _check_ring(scene: Scene, driver, where: str) -> None:
                          "(MAX_RING_BYTES); give fewer seconds")
 
 
-def _source(name: str, scene: Scene, driver, where: str) -> Source:
-    """The source of ``driver`` with its ring as the scene's ``[buffer]`` says."""
-    _check_ring(scene, driver, where)
-    return Source(name, driver, scene.buffer["seconds"], _overrun(scene), *_timebase(scene, driver))
+def _source(src: SourceSpec, driver, where: str) -> Source:
+    """The source of ``driver`` with its ring as ``src``'s ``[buffer]`` says (``where``: its table)."""
+    _check_ring(src, driver, where)
+    return Source(src.name, driver, src.buffer.seconds, _overrun(src), *_timebase(src, driver))
 
 
-def _overrun(scene: Scene) -> str:
+def _overrun(src: SourceSpec) -> str:
     """The ring's policy: "auto" is the driver's (lossless back-pressure for files, drop-oldest for
     live devices: node.registry)."""
-    overrun = scene.buffer["overrun"]
-    return driver_spec(scene.driver["type"]).overrun if overrun == "auto" else overrun
+    overrun = src.buffer.overrun
+    return driver_spec(src.type).overrun if overrun == "auto" else overrun
 
 
-def _timebase(scene: Scene, driver) -> tuple[str, float, float]:
-    """``(timebase, time_offset, time_rate)`` of a scene's source (see node.sources.Source), as its
-    driver's spec says: files keep their own time, a live driver's samples are put on host time by
-    a clock model."""
-    return driver_spec(scene.driver["type"]).timebase_of(scene.driver, driver)
+def _timebase(src: SourceSpec, driver) -> tuple[str, float, float]:
+    """``(timebase, time_offset, time_rate)`` of a source (see node.sources.Source), as its driver's
+    spec says: files keep their own time, a live driver's samples are put on host time by a clock
+    model."""
+    return driver_spec(src.type).timebase_of(src.options, driver)
+
+
+def _model(stream: Stream) -> TextureModel:
+    """The model of a fused stream (the schema refuses to fuse a stream without one)."""
+    assert stream.model is not None, f"stream {stream.name!r} is fused: the schema requires its model"
+    return stream.model
 
 
 def _aligned_windows(scene: Scene, a: Stream, b: Stream, windows: dict, asked: str, instead: str):
@@ -243,7 +244,7 @@ def _aligned_windows(scene: Scene, a: Stream, b: Stream, windows: dict, asked: s
         raise SceneError(f"{scene.source}: [fusion] {asked} needs both streams' models trained on the spot "
                          f"(train_on_start) on the same textures; give {instead} instead")
     (xa, ya), (xb, yb) = windows[a.name][0], windows[b.name][0]
-    if a.model.classes != b.model.classes or len(xa) != len(xb) or not np.array_equal(ya, yb):
+    if _model(a).classes != _model(b).classes or len(xa) != len(xb) or not np.array_equal(ya, yb):
         raise SceneError(f"{scene.source}: [fusion] {asked}: the two streams were not trained on the two senses of "
                          f"the same contacts (a two-sense set); give {instead} instead")
     return (xa, ya), (xb, yb)
@@ -256,7 +257,8 @@ def _early_model(scene: Scene, a: Stream, b: Stream, held_out: dict, trained: di
     their held-out windows said beside each stream's."""
     from supramodal.fused_model import EarlyFusionModel, Sense
 
-    path = scene.fusion["model"]
+    assert scene.fusion is not None, "an early fusion is built for a scene with a [fusion]"
+    path = scene.fusion.model
     if path is not None:
         try:
             model = EarlyFusionModel.load(scene.resolve(path))
@@ -267,15 +269,16 @@ def _early_model(scene: Scene, a: Stream, b: Stream, held_out: dict, trained: di
         return model
     (xa, ya), (xb, _) = _aligned_windows(scene, a, b, trained, 'method = "early"', "a [fusion] model file")
     model = EarlyFusionModel.train((Sense.of(a.name, a.pipeline), Sense.of(b.name, b.pipeline)), xa, xb, ya,
-                                   a.model.classes)
+                                   _model(a).classes)
     if progress:
         from supramodal.node.workflows.training import calibration_line
 
         (ta, tya), (tb, _) = held_out[a.name][0], held_out[b.name][0]
-        right = {a.name: a.model.log_posteriors(ta), b.name: b.model.log_posteriors(tb)[:, _order(b.model, a.model)],
+        right = {a.name: _model(a).log_posteriors(ta),
+                 b.name: _model(b).log_posteriors(tb)[:, _order(_model(b), _model(a))],
                  "early": model.log_posteriors(ta, tb)}
         progress(f"fusion: early network trained on {len(ya)} aligned windows of {a.name} and {b.name}, "
-                 + calibration_line(model.calibration.fitted_on))
+                 + calibration_line(None if model.calibration is None else model.calibration.fitted_on))
         progress(f"fusion: {len(tya)} held-out windows right: "
                  + ", ".join(f"{name} {np.mean(winner(lp) == tya):.3f}" for name, lp in right.items()))
     return model
@@ -284,18 +287,19 @@ def _early_model(scene: Scene, a: Stream, b: Stream, held_out: dict, trained: di
 def _check_fusion_decision(scene: Scene, models) -> None:
     """Refuse ``[fusion.decision]`` rules the fusion cannot follow with these ``models`` (the two
     senses', or the early network), naming the fix, before anything starts."""
+    assert scene.fusion is not None, "checked for a scene with a [fusion]"
     try:
-        refuse_uncalibrated(scene.fusion["decision"], models, f"{scene.source}: [fusion.decision]")
+        refuse_uncalibrated(scene.fusion.decision, models, f"{scene.source}: [fusion.decision]")
     except InputError as exc:
         raise SceneError(str(exc)) from None
 
 
-def _order(model: TextureModel, reference: TextureModel) -> np.ndarray:
+def _order(model: TextureModel, reference: TextureModel) -> NDArray[np.intp]:
     """Columns of ``model``'s posteriors in ``reference``'s class order."""
-    return np.array([list(model.classes).index(c) for c in reference.classes])
+    return np.array([list(model.classes).index(c) for c in reference.classes], dtype=np.intp)
 
 
-def _learned_weight(scene: Scene, a: Stream, b: Stream, held_out: dict, trained: dict, progress) -> dict:
+def _learned_weight(scene: Scene, a: Stream, b: Stream, held_out: dict, trained: dict, progress) -> dict[str, float]:
     """The late fusion learned for two models trained on the spot: the weight and sharpness
     (:func:`supramodal.fused_model.learn_late_fusion_out_of_fold`) on out-of-fold log-posteriors
     of their training windows (aligned: the two senses of the same training contacts), each from
@@ -310,7 +314,7 @@ def _learned_weight(scene: Scene, a: Stream, b: Stream, held_out: dict, trained:
 
     (xa, ya), (xb, _) = _aligned_windows(scene, a, b, trained, f'weight = "{LEARN}"', "a number")
     say = None if progress is None else (lambda m: progress(f"fusion: out-of-fold windows, {m}"))
-    (la, lb), folds, _ = senses_out_of_fold((a.model, b.model), (xa, xb), ya, a.model.classes, progress=say,
+    (la, lb), folds, _ = senses_out_of_fold((_model(a), _model(b)), (xa, xb), ya, _model(a).classes, progress=say,
                                             names=(a.name, b.name))
     late = learn_late_fusion_out_of_fold(la, lb, ya, folds)
     correlation = fused_pooling(late["fused"], ya, folds)
@@ -319,7 +323,7 @@ def _learned_weight(scene: Scene, a: Stream, b: Stream, held_out: dict, trained:
                  f"sharpness {late['sharpness']:.3g}, on {len(ya)} out-of-fold training windows "
                  f"({len(np.unique(folds))} folds)")
         (ta, tya), (tb, _) = held_out[a.name][0], held_out[b.name][0]
-        ha, hb = a.model.log_posteriors(ta), b.model.log_posteriors(tb)[:, _order(b.model, a.model)]
+        ha, hb = _model(a).log_posteriors(ta), _model(b).log_posteriors(tb)[:, _order(_model(b), _model(a))]
         fused = fuse_late(ha, hb, late["weight"], late["sharpness"])
         progress(f"fusion: {len(tya)} held-out windows right: "
                  + ", ".join(f"{name} {np.mean(winner(lp) == tya):.3f}"
@@ -341,7 +345,7 @@ def build_node(scene: Scene, speed=None, sinks_override=None, progress=None, rec
     """
     from supramodal.node.runtime.fusion import EarlyFusion, LateFusion
 
-    made: list = []                             # (index, spec, options, sink or tap) of the scene's sinks
+    made: list[tuple[SinkSettings, SinkSpec, Any]] = []     # the scene's sinks and taps, as made
     try:
         if sinks_override is None:              # files checked before any training
             _make_sinks(scene, "nothing", made, overwrite)
@@ -354,70 +358,66 @@ def build_node(scene: Scene, speed=None, sinks_override=None, progress=None, rec
         banks: dict[str, Bank] = {}
         loaded: dict[str, TextureModel | None] = {}     # stream -> its model file, read once
         for spec in scene.streams:              # every driver and pipeline first, no model yet
-            sub = spec.scene
-            bank = bank_for(sub)
-            pipeline = pipeline_for(sub, bank)
+            bank = bank_for(scene, spec)
+            pipeline = pipeline_for(scene, bank, spec)
             if spec.source not in sources:      # one driver per source, whatever reads it
-                driver, labels, ts = driver_for(sub, bank, speed, shared, scene.source_table(spec.source))
-                source = _source(spec.source, sub, driver, scene.buffer_table(spec.source))
-                sources[spec.source] = (source, labels, ts)
-            loaded[spec.name] = _model_file(sub)
-            plans[spec.name] = StreamPlan(pipeline, _planned_classes(sub, bank, sources[spec.source][2],
+                src = scene.source_named(spec.source)
+                driver, labels, ts = driver_for(scene, bank, speed, shared, src)
+                sources[spec.source] = (_source(src, driver, scene.buffer_table(src.name)), labels, ts)
+            loaded[spec.name] = _model_file(scene, spec)
+            plans[spec.name] = StreamPlan(pipeline, _planned_classes(spec, bank, sources[spec.source][2],
                                                                      loaded[spec.name]))
             banks[spec.name] = bank
         if sinks_override is None:              # outlets up before any training: consumers resolve them meanwhile
             f = scene.fusion
             _make_sinks(scene, "plans", made, overwrite, plans=plans,
-                        fused_classes=None if f is None else plans[f["streams"][0]].classes)
+                        fused_classes=None if f is None else plans[f.streams[0]].classes)
         for spec in scene.streams:
-            sub = spec.scene
             pipeline, bank = plans[spec.name].pipeline, banks[spec.name]
             source, labels, ts = sources[spec.source]
             held_out[spec.name], trained[spec.name] = [], []
-            model = _model_for(sub, bank, pipeline, ts, progress, held_out[spec.name], trained[spec.name],
+            model = _model_for(scene, spec, bank, pipeline, ts, progress, held_out[spec.name], trained[spec.name],
                                loaded[spec.name])
             if (() if model is None else tuple(model.classes)) != plans[spec.name].classes:
                 raise AssertionError(f"stream {spec.name}: the model's classes are not the planned "
                                      f"{plans[spec.name].classes}")
             try:
-                streams.append(Stream(spec.name, source, pipeline, model, sub.decision,
-                                      sub.driver.get("mapping", "auto"), labels))
+                streams.append(Stream(spec.name, source, pipeline, model, spec.decision, spec.mapping, labels))
             except ValueError as exc:
-                raise SceneError(f"{sub.source}: {exc}") from None
+                raise SceneError(f"{spec.where}: {exc}") from None
         for src in scene.sources:               # sources only sent on (a relay's): no bank, their own rate
-            if src["name"] not in sources:
-                sub = source_scene(src, scene.source, scene.base_dir)
-                driver, labels, ts = driver_for(sub, None, speed, shared, scene.source_table(src["name"]))
-                source = _source(src["name"], sub, driver, scene.buffer_table(src["name"]))
-                sources[src["name"]] = (source, labels, ts)
+            if src.name not in sources:
+                driver, labels, ts = driver_for(scene, None, speed, shared, src)
+                sources[src.name] = (_source(src, driver, scene.buffer_table(src.name)), labels, ts)
         del shared                              # the drivers hold what they need
-        fusion = None
+        fusion: LateFusion | None = None         # (an EarlyFusion is a LateFusion)
         f = scene.fusion
         if f is not None:
-            a, b = (next(s for s in streams if s.name == n) for n in f["streams"])
+            a, b = (next(s for s in streams if s.name == n) for n in f.streams)
             # Two files keep their own time: waiting on the host's clock would make their
             # fused decisions depend on how fast this machine runs them.
             files = {a.source.timebase, b.source.timebase} <= {"stream", "recorded"}
-            max_wait = None if files else f["max_wait"]
-            _check_fusion_decision(scene, (a.model, b.model))
-            if f["decision"]["scope"] == "contact":
+            max_wait = None if files else f.max_wait
+            _check_fusion_decision(scene, (_model(a), _model(b)))
+            if f.decision.scope == "contact":
                 for s in (a, b):                # the fusion's contacts are its streams' touches
                     if s.contact is None:
-                        s.contact = ContactDetector(s.pipeline.window_samples, f["decision"]["contact_threshold"])
+                        s.contact = ContactDetector(s.pipeline.window_samples, f.decision.contact_threshold)
             try:
-                if f["method"] == "early":
+                if f.method == "early":
                     model = _early_model(scene, a, b, held_out, trained, progress)
                     _check_fusion_decision(scene, (model,))
-                    fusion = EarlyFusion((a.name, b.name), (a.model.classes, b.model.classes), model, max_wait,
-                                         f["decision"])
+                    fusion = EarlyFusion((a.name, b.name), (_model(a).classes, _model(b).classes), model, max_wait,
+                                         f.decision)
                 else:
                     # A number: the scene's weight (and sharpness, where the scene gives one);
                     # "learn": learned with the sharpness and the fused pooling on out-of-fold windows.
-                    late = {k: f[k] for k in ("weight", "sharpness", "correlation")}
-                    if f["weight"] == LEARN:
+                    if f.weight == LEARN:
                         late = _learned_weight(scene, a, b, held_out, trained, progress)
-                    fusion = LateFusion((a.name, b.name), (a.model.classes, b.model.classes), late["weight"],
-                                        max_wait, f["decision"], sharpness=late["sharpness"],
+                    else:
+                        late = {"weight": float(f.weight), "sharpness": f.sharpness, "correlation": f.correlation}
+                    fusion = LateFusion((a.name, b.name), (_model(a).classes, _model(b).classes), late["weight"],
+                                        max_wait, f.decision, sharpness=late["sharpness"],
                                         correlation=late["correlation"])
             except SceneError:
                 raise                           # says its table already
@@ -428,22 +428,20 @@ def build_node(scene: Scene, speed=None, sinks_override=None, progress=None, rec
                         fused_classes=None if fusion is None else fusion.classes)
             readers: dict[str, list] = {}
             for stream, spec in zip(streams, scene.streams):
-                readers.setdefault(spec.source, []).append((stream.pipeline.bank,
-                                                            spec.scene.driver.get("mapping", "auto")))
-            options = {src["name"]: src for src in scene.sources}
+                readers.setdefault(spec.source, []).append((stream.pipeline.bank, spec.mapping))
             _make_sinks(scene, "sources", made, overwrite,
-                        sources={name: (s.driver, options[name], readers.get(name, []))
+                        sources={name: (s.driver, scene.source_named(name), readers.get(name, []))
                                  for name, (s, _, _) in sources.items()})
-        made.sort(key=lambda m: m[0])           # the scene's order
-        windows = [(options, sink) for _, spec, options, sink in made if spec.listens == "windows"]
-        taps = [(options["source"], tap) for _, spec, options, tap in made if spec.listens == "samples"]
+        made.sort(key=lambda m: m[0].index)     # the scene's order
+        windows = [(settings, sink) for settings, spec, sink in made if spec.listens == "windows"]
+        taps = [(settings.source, tap) for settings, spec, tap in made if spec.listens == "samples"]
         if sinks_override is not None:
             sinks, routes = list(sinks_override), None
         else:
-            sinks, routes = [sink for _, sink in windows], [_routes(options) for options, _ in windows]
+            sinks, routes = [sink for _, sink in windows], [settings.routes for settings, _ in windows]
         return Graph([s for s, _, _ in sources.values()], streams, sinks, routes=routes, fusion=fusion,
                      recorder=recorder, taps=taps)
     except BaseException:
-        for _, _, _, sink in made:              # a refused scene leaves no file behind, no outlet open
+        for _, _, sink in made:                 # a refused scene leaves no file behind, no outlet open
             sink.close()
         raise

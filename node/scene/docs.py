@@ -14,7 +14,7 @@ import sys
 from pathlib import Path
 
 from supramodal.node.scene.registry import driver_spec, driver_types, sink_keys, sink_spec, sink_types, source_keys
-from supramodal.node.scene.schema import FUSION_KEYS, SECTIONS, SOURCE_KEYS, STREAM_KEYS
+from supramodal.node.scene.schema import FUSION_KEYS, ONE_SOURCE_KEYS, SECTIONS, SOURCE_KEYS, STREAM_KEYS
 
 __all__ = ["BLOCKS", "blocks", "check", "main", "rewrite"]
 
@@ -48,6 +48,8 @@ def blocks() -> dict[str, str]:
         lines += _keys_table(source_keys(spec)) + [""]
     out["driver-keys"] = "\n".join(lines).rstrip()
     lines = []
+    lines += ["#### `[driver]` of a one-source scene: its driver's keys (above) and", ""]
+    lines += _keys_table(ONE_SOURCE_KEYS) + [""]
     for section, keys in SECTIONS.items():
         lines += [f"#### `[{section}]`", ""] + _keys_table(keys) + [""]
     out["section-keys"] = "\n".join(lines).rstrip()

@@ -22,7 +22,7 @@ from supramodal.checks import Key, is_name, text
 from supramodal.drivers.spec import DriverSpec
 from supramodal.errors import InputError
 
-__all__ = ["DRIVER_MODULES", "MAPPING", "SINK_MODULES", "Registry", "SinkContext", "SinkSpec", "driver_spec",
+__all__ = ["DRIVER_MODULES", "SINK_MODULES", "Registry", "SinkContext", "SinkSpec", "driver_spec",
            "driver_types", "register_driver", "register_sink", "sink_keys", "sink_spec", "sink_types", "source_keys"]
 
 #: Type -> ``"module"`` or ``"module:attribute"`` holding the driver's spec.
@@ -96,20 +96,6 @@ class Registry(Generic[SpecT]):
 DRIVERS = Registry("driver", DRIVER_MODULES, DriverSpec)
 
 
-#: Highest channel index a mapping may name.
-MAX_CHANNEL_INDEX = 4095
-
-
-def _mapping(v: object) -> bool:
-    return v in ("auto", "mono", "per-channel", "mean") or (isinstance(v, int) and not isinstance(v, bool)
-                                                             and 0 <= v <= MAX_CHANNEL_INDEX)
-
-
-#: How the streams read a source's channels into their bank's (``supramodal.node.runtime.streams.channel_mapper``):
-#: a key of every source, whatever its driver.
-MAPPING = Key(_mapping, f'"auto", "mono", "per-channel", "mean" or a channel index 0..{MAX_CHANNEL_INDEX}', "auto")
-
-
 def register_driver(spec: DriverSpec, replace: bool = False) -> DriverSpec:
     """Make ``spec`` a type scenes may name (a driver defined outside the package); returns it.
 
@@ -133,8 +119,8 @@ def driver_spec(kind: object) -> DriverSpec:
 
 
 def source_keys(spec: DriverSpec) -> dict[str, Key]:
-    """A source's keys in a scene: its driver's, and how streams read it (``mapping``)."""
-    return {**spec.keys, "mapping": MAPPING}
+    """A source's keys in a scene: its driver's (how a stream reads it, ``mapping``, is the stream's)."""
+    return dict(spec.keys)
 
 
 # -- sinks ---------------------------------------------------------------------------------------------
@@ -192,8 +178,8 @@ class SinkContext:
         Stream name -> its :class:`StreamPlan`, for sinks that need the plans (made before any
         model is trained); ``"fused"`` is not among them.
     sources : dict
-        Source name -> ``(driver, driver options, [(bank, mapping)] of the streams that read it)``,
-        for sinks that need the sources.
+        Source name -> ``(driver, its node.scene.specs.SourceSpec, [(bank, mapping)] of the streams
+        that read it)``, for sinks that need the sources.
     """
 
     where: str
@@ -218,7 +204,7 @@ class SinkSpec:
         or ``source`` (added for a sink of samples).
     build : callable
         ``build(options, context) -> Sink`` (or a ``node.taps.Tap`` for a sink of samples),
-        ``options`` validated; raises ``drivers.spec.OptionError`` naming the key.
+        ``options`` validated (a read-only mapping); raises ``drivers.spec.OptionError`` naming the key.
     summary : str
         One line for the docs.
     listens : {"windows", "samples"}
@@ -232,7 +218,7 @@ class SinkSpec:
 
     type: str
     keys: Mapping[str, Key]
-    build: Callable[[dict[str, Any], SinkContext], Any]
+    build: Callable[[Mapping[str, Any], SinkContext], Any]
     summary: str
     listens: str = "windows"
     needs: str = "nothing"

@@ -40,24 +40,36 @@ import json
 import math
 import os
 import tomllib
-from dataclasses import dataclass, field
+from dataclasses import asdict
 from pathlib import Path
-from typing import Any
 
 from supramodal.bankfile import BANK_KEYS
 from supramodal.checks import NAME_HELP, Key, fill, flag, integer, is_name, non_negative, number, one_of, positive, text
-from supramodal.decisions import DEFAULT_DECISION, METHODS, SCOPES
+from supramodal.decisions import DEFAULT_DECISION, METHODS, SCOPES, DecisionRules
 from supramodal.drivers.spec import OptionError
 from supramodal.errors import InputError
 from supramodal.features import DEFAULT_WINDOW, FEATURE_TABLE, FEATURES
 from supramodal.node.runtime.events import FUSED_STREAM, MAIN_STREAM
 from supramodal.node.runtime.fusion import DEFAULT_MAX_WAIT, DEFAULT_WEIGHT
 from supramodal.node.scene.registry import driver_spec, driver_types, sink_keys, sink_spec, source_keys
+from supramodal.node.scene.specs import (
+    BankSpec,
+    BufferSpec,
+    FeaturesSpec,
+    FusionSpec,
+    ModelSpec,
+    Scene,
+    SceneError,
+    SinkSettings,
+    SourceSpec,
+    StreamSpec,
+    frozen,
+)
 from supramodal.peaks import DEFAULT_PEAK_MODE, PEAK_MODES
 
-
-class SceneError(InputError):
-    """A scene file is unreadable or does not fit the schema; the message names the key."""
+# Scene and SceneError live with the other specs (node.scene.specs); they are read from here too.
+__all__ = ["FUSION_KEYS", "LEARN", "MAPPING", "ONE_SOURCE_KEYS", "SECTIONS", "SOURCE_KEYS", "STREAM_KEYS", "Scene",
+           "SceneError", "default_scene", "driver_table", "load_scene", "scene_from_dict", "scene_to_toml"]
 
 
 #: Longest ring a scene may ask for, seconds of its source (node.build also bounds its bytes).
@@ -108,18 +120,18 @@ SECTIONS = {
                                     "another driver on the bank's reference set", False),
     },
     "decision": {
-        "scope": Key(one_of(*SCOPES), f"one of {list(SCOPES)}", DEFAULT_DECISION["scope"]),
-        "n": Key(integer(0), "windows, an integer >= 0", DEFAULT_DECISION["n"]),
-        "method": Key(one_of(*METHODS), f"one of {list(METHODS)}", DEFAULT_DECISION["method"]),
-        "contact_threshold": Key(non_negative(), "input RMS, >= 0", DEFAULT_DECISION["contact_threshold"]),
+        "scope": Key(one_of(*SCOPES), f"one of {list(SCOPES)}", DEFAULT_DECISION.scope),
+        "n": Key(integer(0), "windows, an integer >= 0", DEFAULT_DECISION.n),
+        "method": Key(one_of(*METHODS), f"one of {list(METHODS)}", DEFAULT_DECISION.method),
+        "contact_threshold": Key(non_negative(), "input RMS, >= 0", DEFAULT_DECISION.contact_threshold),
         # The rules of issue 23, each off at 0; their meaning is supramodal.decisions.Decider's.
         "confidence": Key(number(0.0, 1.0, hi_open=True), "calibrated pooled confidence at which a contact's "
                           "decision is final, 0 <= c < 1 (0: never; needs scope = \"contact\")",
-                          DEFAULT_DECISION["confidence"]),
+                          DEFAULT_DECISION.confidence),
         "unknown": Key(number(0.0, 1.0, hi_open=True), "share of windows of known textures allowed to be called "
-                       "unknown by the novelty score, 0 <= r < 1 (0: off)", DEFAULT_DECISION["unknown"]),
+                       "unknown by the novelty score, 0 <= r < 1 (0: off)", DEFAULT_DECISION.unknown),
         "unknown_below": Key(number(0.0, 1.0, hi_open=True), "calibrated confidence below which a window is unknown, "
-                             "0 <= c < 1 (0: off)", DEFAULT_DECISION["unknown_below"]),
+                             "0 <= c < 1 (0: off)", DEFAULT_DECISION.unknown_below),
     },
     "buffer": {
         "seconds": Key(positive(MAX_BUFFER_SECONDS), f"ring buffer capacity, seconds, up to {MAX_BUFFER_SECONDS:g} "
@@ -143,11 +155,28 @@ LEARN = "learn"
 # bank, features and a model: the one-source sections as sub-tables), [fusion].
 _NAME_HELP = NAME_HELP
 
+#: Highest channel index a mapping may name.
+MAX_CHANNEL_INDEX = 4095
+
+
+def _mapping(v: object) -> bool:
+    return v in ("auto", "mono", "per-channel", "mean") or (isinstance(v, int) and not isinstance(v, bool)
+                                                             and 0 <= v <= MAX_CHANNEL_INDEX)
+
+
+#: How a stream reads its source's channels into its bank's
+#: (``supramodal.node.runtime.streams.channel_mapper``): a key of ``[[stream]]``, and of a one-source
+#: scene's ``[driver]`` (which stands for its source and its only stream).
+MAPPING = Key(_mapping, f'"auto", "mono", "per-channel", "mean" or a channel index 0..{MAX_CHANNEL_INDEX}', "auto")
+
 SOURCE_KEYS = {"name": Key(is_name, NAME_HELP)}
 STREAM_KEYS = {
     "name": Key(is_name, NAME_HELP + f" (not {FUSED_STREAM!r})"),
     "source": Key(is_name, "the name of a [[source]]"),
+    "mapping": MAPPING,
 }
+#: A one-source scene's ``[driver]``: its driver's keys and these.
+ONE_SOURCE_KEYS = {"mapping": MAPPING}
 STREAM_SECTIONS = ("bank", "features", "model", "decision")
 FUSION_KEYS = {
     "streams": Key(lambda v: isinstance(v, list) and len(v) == 2 and all(is_name(x) for x in v) and v[0] != v[1],
@@ -171,98 +200,24 @@ FUSION_KEYS = {
 }
 
 
-@dataclass
-class StreamScene:
-    """What one stream runs, with every default filled in: its source's driver and buffer, and
-    its own bank, features, model and decision (what node.build reads to build it).
-
-    ``source`` names the stream in messages: the scene file for a one-source scene, else
-    ``"FILE: [[stream]] NAME"``; paths resolve against ``base_dir``, the scene file's folder.
-    """
-
-    driver: dict[str, Any]
-    bank: dict[str, Any]
-    features: dict[str, Any]
-    model: dict[str, Any]
-    decision: dict[str, Any]
-    buffer: dict[str, Any]
-    source: str = "<scene>"
-    base_dir: Path = field(default_factory=Path.cwd)
-
-    def resolve(self, path: str) -> Path:
-        """A path from the scene, relative to the scene file's folder."""
-        p = Path(path).expanduser()
-        return p if p.is_absolute() else self.base_dir / p
-
-
-@dataclass
-class StreamSpec:
-    """One stream of a scene: its name, its source's name, and what it runs (:class:`StreamScene`)."""
-
-    name: str
-    source: str
-    scene: StreamScene
-
-
-#: How a scene was written: ``[driver]``, ``[bank]``, ... (one source read by one stream, both named
-#: ``"main"``), or ``[[source]]`` and ``[[stream]]``. It is read the same way; only
-#: :func:`scene_to_toml` writes it back in its own form.
-FORMS = ("one-source", "graph")
-
-
-@dataclass
-class Scene:
-    """A validated scene, every default filled in: sources, streams, an optional fusion, sinks.
-
-    A one-source scene (``[driver]``, ``[bank]``, ...) is loaded as one ``[[source]]`` and one
-    ``[[stream]]``, both named ``"main"``; its sections are also read as ``scene.driver``,
-    ``scene.bank``, ... (the only stream's). A scene of several sources has no single driver:
-    those attributes refuse, naming ``scene.streams``.
-    """
-
-    sources: list[dict[str, Any]]
-    streams: list[StreamSpec]
-    sinks: list[dict[str, Any]] = field(default_factory=list)
-    fusion: dict[str, Any] | None = None
-    source: str = "<scene>"
-    base_dir: Path = field(default_factory=Path.cwd)
-    form: str = "graph"
-
-    @property
-    def is_graph(self) -> bool:
-        """Whether the scene is written in the graph form ([[source]], [[stream]])."""
-        return self.form == "graph"
-
-    def only_stream(self) -> StreamScene:
-        """What the only stream of a one-source scene runs."""
-        if self.is_graph:
-            raise SceneError(f"{self.source}: a scene in the graph form has no single [driver], [bank], ...: read "
-                             "each stream's (scene.streams)")
-        return self.streams[0].scene
-
-    driver = property(lambda self: self.only_stream().driver, doc="The one-source scene's [driver].")
-    bank = property(lambda self: self.only_stream().bank, doc="The one-source scene's [bank].")
-    features = property(lambda self: self.only_stream().features, doc="The one-source scene's [features].")
-    model = property(lambda self: self.only_stream().model, doc="The one-source scene's [model].")
-    decision = property(lambda self: self.only_stream().decision, doc="The one-source scene's [decision].")
-    buffer = property(lambda self: self.only_stream().buffer, doc="The one-source scene's [buffer].")
-
-    def resolve(self, path: str) -> Path:
-        """A path from the scene, relative to the scene file's folder."""
-        p = Path(path).expanduser()
-        return p if p.is_absolute() else self.base_dir / p
-
-    def source_table(self, name: str) -> str:
-        """How the scene file names source ``name`` in messages."""
-        return f"{self.source}: [driver]" if not self.is_graph else f"{self.source}: [[source]] {name}"
-
-    def buffer_table(self, name: str) -> str:
-        """How the scene file names source ``name``'s ring in messages."""
-        return f"{self.source}: [buffer]" if not self.is_graph else f"{self.source}: [[source]] {name} [source.buffer]"
-
-
 def _fill(where: str, given, schema: dict) -> dict:
     return fill(where, given, schema, SceneError)
+
+
+def _bank(section: dict) -> BankSpec:
+    keys = BANK_KEYS[section["kind"]]
+    return BankSpec(section["kind"], section["file"],
+                    frozen({k: v for k, v in section.items() if k in keys and v is not None}))
+
+
+def _features_spec(section: dict) -> FeaturesSpec:
+    return FeaturesSpec(**{**section, "names": tuple(section["names"])})
+
+
+def _stream(name: str, source: str, mapping, sections: dict, where: str) -> StreamSpec:
+    """A stream from its validated sections (``where``: how messages name it)."""
+    return StreamSpec(name, source, mapping, _bank(sections["bank"]), _features_spec(sections["features"]),
+                      ModelSpec(**sections["model"]), DecisionRules(**sections["decision"]), where)
 
 
 def scene_from_dict(d: dict, source: str = "<scene>", base_dir: Path | None = None) -> Scene:
@@ -280,21 +235,22 @@ def scene_from_dict(d: dict, source: str = "<scene>", base_dir: Path | None = No
     driver = d.get("driver")
     if not isinstance(driver, dict) or "type" not in driver:
         raise SceneError(f"{source}: [driver] type is required, one of {driver_types()}")
-    drv = driver_table(f"{source}: [driver]", driver)
+    kind, options = driver_table(f"{source}: [driver]", driver, ONE_SOURCE_KEYS)
+    mapping = options.pop("mapping")
     sections = {name: _fill(f"{source}: [{name}]", d.get(name, {}), schema) for name, schema in SECTIONS.items()}
     _check_sections(source, sections, d.get("bank", {}), "")
-    sinks = _sinks(d, source, (MAIN_STREAM,), base_dir=base_dir or Path.cwd())
-    # Desugared: one source and one stream, both "main".
     base = base_dir or Path.cwd()
-    stream = StreamScene(drv, sections["bank"], sections["features"], sections["model"], sections["decision"],
-                         sections["buffer"], source, base)
-    return Scene([{"name": MAIN_STREAM, **drv, "buffer": sections["buffer"]}],
-                 [StreamSpec(MAIN_STREAM, MAIN_STREAM, stream)], sinks, None, source, base, form="one-source")
+    sinks = _sinks(d, source, (MAIN_STREAM,), base_dir=base)
+    # Desugared: one source and one stream, both "main".
+    src = SourceSpec(MAIN_STREAM, kind, frozen(options), BufferSpec(**sections["buffer"]), f"{source}: [driver]")
+    stream = _stream(MAIN_STREAM, MAIN_STREAM, mapping, sections, source)
+    return Scene((src,), (stream,), sinks, None, source, base, form="one-source")
 
 
-def driver_table(where: str, table, extra: dict | None = None) -> dict:
+def driver_table(where: str, table, extra: dict | None = None) -> tuple[str, dict]:
     """A source's table (``[driver]`` or a ``[[source]]``, named by ``where``) validated against its
-    driver's keys (node.registry) and ``extra`` ones, defaults filled in; its ``buffer`` left out."""
+    driver's keys (node.registry) and ``extra`` ones: ``(driver type, its keys with defaults filled
+    in)``, without ``type`` and ``buffer``."""
     if not isinstance(table, dict):
         raise SceneError(f"{where} must be a table")
     kind = table.get("type")
@@ -302,13 +258,17 @@ def driver_table(where: str, table, extra: dict | None = None) -> dict:
         spec = driver_spec(kind)
     except InputError as exc:
         raise SceneError(f"{where} type: {exc}") from None
+    kind = spec.type
     given = {k: v for k, v in table.items() if k not in ("type", "buffer")}
-    drv = {"type": kind, **_fill(f"{where} ({kind})", given, {**(extra or {}), **source_keys(spec)})}
+    if "mapping" in given and "mapping" not in (extra or {}):
+        raise SceneError(f"{where} mapping: how a stream reads its source's channels is the stream's: move it to "
+                         "the [[stream]] that reads this source")
+    options = _fill(f"{where} ({kind})", given, {**(extra or {}), **source_keys(spec)})
     try:
-        spec.check(drv)
+        spec.check({k: v for k, v in options.items() if k not in (extra or {})})
     except OptionError as exc:
         raise SceneError(f"{where} {exc}") from None
-    return drv
+    return kind, options
 
 
 def _check_sections(source: str, sections: dict, bank_given: dict, where: str) -> None:
@@ -337,13 +297,14 @@ def _check_decision(source: str, decision: dict, where: str) -> None:
                          "(one window is a unanimous vote)")
 
 
-def _sinks(d: dict, source: str, streams, sources=(MAIN_STREAM,), base_dir: Path | None = None) -> list[dict]:
+def _sinks(d: dict, source: str, streams, sources=(MAIN_STREAM,), base_dir: Path | None = None
+           ) -> tuple[SinkSettings, ...]:
     """The [[sink]] tables, with ``from`` checked against the scene's streams and ``source``
     against its sources (filled in when there is only one); two sinks may not write one file."""
     sinks_in = d.get("sink", [{"type": "text"}])
     if not isinstance(sinks_in, list) or not sinks_in:
         raise SceneError(f"{source}: [[sink]] must be a list of at least one sink table")
-    sinks = []
+    sinks: list[dict] = []
     for i, s in enumerate(sinks_in):
         where = f"{source}: [[sink]] #{i + 1}"
         if not isinstance(s, dict):
@@ -385,7 +346,7 @@ def _sinks(d: dict, source: str, streams, sources=(MAIN_STREAM,), base_dir: Path
             raise SceneError(f"{source}: [[sink]] #{i + 1} from: no stream {unknown[0]!r}; the scene's streams are "
                              f"{list(streams)}")
         sinks.append(sink)
-    return sinks
+    return tuple(SinkSettings(s.pop("type"), frozen(s), i) for i, s in enumerate(sinks))
 
 
 def _graph_scene(d: dict, source: str, base_dir: Path) -> Scene:
@@ -405,10 +366,11 @@ def _graph_scene(d: dict, source: str, base_dir: Path) -> Scene:
     sources = []
     for i, t in enumerate(_table_list(d, "source", source)):
         where = f"{source}: [[source]] #{i + 1}"
-        drv = driver_table(where, t, SOURCE_KEYS)
-        drv["buffer"] = _fill(f"{where} [source.buffer]", t.get("buffer", {}), SECTIONS["buffer"])
-        sources.append(drv)
-    names = [s["name"] for s in sources]
+        kind, options = driver_table(where, t, SOURCE_KEYS)
+        name = options.pop("name")
+        buffer = _fill(f"{where} [source.buffer]", t.get("buffer", {}), SECTIONS["buffer"])
+        sources.append(SourceSpec(name, kind, frozen(options), BufferSpec(**buffer), f"{source}: [[source]] {name}"))
+    names = [s.name for s in sources]
     if len(set(names)) != len(names):
         raise SceneError(f"{source}: [[source]] name: each source needs its own name, got {names}")
     streams = []
@@ -426,61 +388,52 @@ def _graph_scene(d: dict, source: str, base_dir: Path) -> Scene:
         sections = {name: _fill(f"{where} [stream.{name}]", t.get(name, {}), SECTIONS[name])
                     for name in STREAM_SECTIONS}
         _check_sections(source, sections, t.get("bank", {}), f"[[stream]] {head['name']} ")
-        drv = next(s for s in sources if s["name"] == head["source"])
-        sub = StreamScene({k: v for k, v in drv.items() if k not in ("name", "buffer")}, sections["bank"],
-                          sections["features"], sections["model"], sections["decision"], drv["buffer"],
-                          f"{source}: [[stream]] {head['name']}", base_dir)
-        streams.append(StreamSpec(head["name"], head["source"], sub))
+        streams.append(_stream(head["name"], head["source"], head["mapping"], sections,
+                               f"{source}: [[stream]] {head['name']}"))
     stream_names = [s.name for s in streams]
     if len(set(stream_names)) != len(stream_names):
         raise SceneError(f"{source}: [[stream]] name: each stream needs its own name, got {stream_names}")
-    fusion = None
-    if "fusion" in d:
-        given = d["fusion"]
-        if not isinstance(given, dict):
-            raise SceneError(f"{source}: [fusion] must be a table")
-        fusion = _fill(f"{source}: [fusion]", {k: v for k, v in given.items() if k != "decision"}, FUSION_KEYS)
-        fusion["decision"] = _fill(f"{source}: [fusion.decision]", given.get("decision", {}), SECTIONS["decision"])
-        _check_decision(source, fusion["decision"], "[fusion.decision]")
-        if fusion["decision"]["unknown"]:
-            raise SceneError(f"{source}: [fusion.decision] unknown: a fused window is unknown when either sense's "
-                             "window is novel; set unknown in each [[stream]]'s [decision] instead")
-        given_learned = sorted({"sharpness", "correlation"} & set(given))
-        if fusion["weight"] == LEARN and given_learned:
-            raise SceneError(f"{source}: [fusion] {', '.join(given_learned)}: weight = \"{LEARN}\" learns them "
-                             "with the "
-                             "weight; give a numeric weight to set them, or leave them out")
-        late_only = sorted({"weight", "sharpness", "correlation"} & set(given))
-        if fusion["method"] == "early" and late_only:
-            raise SceneError(f"{source}: [fusion] {late_only[0]}: {', '.join(late_only)} belong to late fusion; early "
-                             "fusion is one network on both streams' features (remove them, or set method = \"late\")")
-        if fusion["method"] == "late" and fusion["model"] is not None:
-            raise SceneError(f"{source}: [fusion] model: a model file is for method = \"early\"; late fusion has a "
-                             "weight (leave model out, or set method = \"early\")")
-        for n in fusion["streams"]:
-            spec = next((s for s in streams if s.name == n), None)
-            if spec is None:
-                raise SceneError(f"{source}: [fusion] streams: no stream {n!r}; the scene's streams are {stream_names}")
-            m = spec.scene.model
-            if m["path"] is None and not m["train_on_start"]:
-                raise SceneError(f"{source}: [fusion] streams: stream {n!r} has no model to fuse; give it "
-                                 "[stream.model] path or train_on_start")
+    fusion = _fusion(d, source, streams) if "fusion" in d else None
     sinks = _sinks(d, source, stream_names + ([FUSED_STREAM] if fusion else []), names, base_dir)
-    sent = {s["source"] for s in sinks if sink_spec(s["type"]).listens == "samples"}
+    sent = {s.source for s in sinks if sink_spec(s.type).listens == "samples"}
     unused = [n for n in names if n not in {s.source for s in streams} | sent]
     if unused:
         raise SceneError(f"{source}: [[source]] {unused[0]!r} feeds no [[stream]]: add a stream that reads it, "
                          "send its samples on ([[sink]] type = \"lsl-signal\"), or remove it")
-    return Scene(sources, streams, sinks, fusion, source, base_dir, form="graph")
+    return Scene(tuple(sources), tuple(streams), sinks, fusion, source, base_dir, form="graph")
 
 
-def source_scene(src: dict, source: str, base_dir: Path) -> StreamScene:
-    """What a ``[[source]]`` table (of the scene file ``source``) that no stream reads is built as:
-    its driver and buffer, the other sections' defaults."""
-    where = f"{source}: [[source]] {src['name']}"
-    return StreamScene({k: v for k, v in src.items() if k not in ("name", "buffer")},
-                       *(_fill(f"{where} [{n}]", {}, SECTIONS[n]) for n in STREAM_SECTIONS), src["buffer"],
-                       where, base_dir)
+def _fusion(d: dict, source: str, streams: list[StreamSpec]) -> FusionSpec:
+    """The ``[fusion]`` table of a graph scene (of ``streams``), validated."""
+    given = d["fusion"]
+    if not isinstance(given, dict):
+        raise SceneError(f"{source}: [fusion] must be a table")
+    stream_names = [s.name for s in streams]
+    fusion = _fill(f"{source}: [fusion]", {k: v for k, v in given.items() if k != "decision"}, FUSION_KEYS)
+    decision = _fill(f"{source}: [fusion.decision]", given.get("decision", {}), SECTIONS["decision"])
+    _check_decision(source, decision, "[fusion.decision]")
+    if decision["unknown"]:
+        raise SceneError(f"{source}: [fusion.decision] unknown: a fused window is unknown when either sense's "
+                         "window is novel; set unknown in each [[stream]]'s [decision] instead")
+    given_learned = sorted({"sharpness", "correlation"} & set(given))
+    if fusion["weight"] == LEARN and given_learned:
+        raise SceneError(f"{source}: [fusion] {', '.join(given_learned)}: weight = \"{LEARN}\" learns them "
+                         "with the weight; give a numeric weight to set them, or leave them out")
+    late_only = sorted({"weight", "sharpness", "correlation"} & set(given))
+    if fusion["method"] == "early" and late_only:
+        raise SceneError(f"{source}: [fusion] {late_only[0]}: {', '.join(late_only)} belong to late fusion; early "
+                         "fusion is one network on both streams' features (remove them, or set method = \"late\")")
+    if fusion["method"] == "late" and fusion["model"] is not None:
+        raise SceneError(f"{source}: [fusion] model: a model file is for method = \"early\"; late fusion has a "
+                         "weight (leave model out, or set method = \"early\")")
+    for n in fusion["streams"]:
+        spec = next((s for s in streams if s.name == n), None)
+        if spec is None:
+            raise SceneError(f"{source}: [fusion] streams: no stream {n!r}; the scene's streams are {stream_names}")
+        if not spec.model.exists:
+            raise SceneError(f"{source}: [fusion] streams: stream {n!r} has no model to fuse; give it "
+                             "[stream.model] path or train_on_start")
+    return FusionSpec(**{**fusion, "streams": tuple(fusion["streams"])}, decision=DecisionRules(**decision))
 
 
 def _table_list(d: dict, key: str, source: str) -> list:
@@ -531,46 +484,39 @@ def _toml_value(v) -> str:
     raise SceneError(f"a scene value {v!r} ({type(v).__name__}) has no TOML form")
 
 
-def _written(section: str, values: dict) -> dict:
-    """What :func:`scene_to_toml` writes of a section: a ``[bank]`` holds only the keys its kind
-    has (``BANK_KEYS``; a bank file alone), whatever else the table carries (a scene built or
-    changed in code), so that the file loads back; every other section as it is."""
-    if section != "bank":
-        return values
-    if values.get("file") is not None:
-        return {"file": values["file"]}
-    keys = BANK_KEYS[values["kind"]]
-    return {k: v for k, v in values.items() if k == "kind" or k in keys}
-
-
 def scene_to_toml(scene: Scene) -> str:
     """The scene as a TOML file that :func:`load_scene` reads back to the same scene: every key
     with its value (defaults filled in), keys whose default belongs to the driver or the bank
     (None) left out, so that they keep following their owner."""
-    def table(header: str, values: dict) -> list[str]:
+    def table(header: str, values) -> list[str]:
         return [header] + [f"{k} = {_toml_value(v)}" for k, v in values.items() if v is not None] + [""]
+
+    def sections(stream: StreamSpec, prefix: str) -> list[str]:
+        return (table(f"[{prefix}bank]", stream.bank.table())
+                + table(f"[{prefix}features]", asdict(stream.features))
+                + table(f"[{prefix}model]", asdict(stream.model))
+                + table(f"[{prefix}decision]", asdict(stream.decision)))
 
     lines = [f"# supramodal scene, from {scene.source} (supramodal run --print-scene).",
              "# Paths are relative to this file's folder; docs/node.md lists every key.", ""]
     if scene.is_graph:
         for src in scene.sources:
-            lines += table("[[source]]", {k: v for k, v in src.items() if k != "buffer"})
-            lines += table("[source.buffer]", src["buffer"])
-        for spec in scene.streams:
-            lines += table("[[stream]]", {"name": spec.name, "source": spec.source})
-            for name in STREAM_SECTIONS:
-                lines += table(f"[stream.{name}]", _written(name, getattr(spec.scene, name)))
-        if scene.fusion is not None:
+            lines += table("[[source]]", src.table())
+            lines += table("[source.buffer]", asdict(src.buffer))
+        for stream in scene.streams:
+            lines += table("[[stream]]", {"name": stream.name, "source": stream.source, "mapping": stream.mapping})
+            lines += sections(stream, "stream.")
+        f = scene.fusion
+        if f is not None:
             # Keys a scene may not give: those "learn" learns, and late fusion's with early fusion.
-            learned = {"decision"} | ({"sharpness", "correlation"} if scene.fusion["weight"] == LEARN else set()) \
-                | ({"weight", "sharpness", "correlation"} if scene.fusion["method"] == "early" else set())
-            lines += table("[fusion]", {k: v for k, v in scene.fusion.items() if k not in learned})
-            lines += table("[fusion.decision]", scene.fusion["decision"])
+            learned = {"decision"} | ({"sharpness", "correlation"} if f.weight == LEARN else set()) \
+                | ({"weight", "sharpness", "correlation"} if f.method == "early" else set())
+            lines += table("[fusion]", {k: v for k, v in asdict(f).items() if k not in learned})
+            lines += table("[fusion.decision]", asdict(f.decision))
     else:                                   # in its own form: [driver], [bank], ...
-        only = scene.only_stream()
-        lines += table("[driver]", only.driver)
-        for name in SECTIONS:
-            lines += table(f"[{name}]", _written(name, getattr(only, name)))
+        src, stream = scene.only_source(), scene.only_stream()
+        lines += table("[driver]", {"type": src.type, **src.options, "mapping": stream.mapping})
+        lines += sections(stream, "") + table("[buffer]", asdict(src.buffer))
     for sink in scene.sinks:
-        lines += table("[[sink]]", sink)
+        lines += table("[[sink]]", {"type": sink.type, **sink.options})
     return "\n".join(lines)

@@ -9,6 +9,8 @@ registered in :mod:`supramodal.node.scene.registry`.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
+from typing import Any
 
 import numpy as np
 
@@ -29,7 +31,7 @@ MAX_OFFSET = 60.0
 MAX_SYNTH_SAMPLES = 2**27
 
 
-def _checked_length(options: dict, order: list, fs: float) -> int:
+def _checked_length(options: Mapping[str, Any], order: list, fs: float) -> int:
     """Samples per texture of a synthesised source; a length that cannot be held is refused
     naming ``seconds`` (and ``order`` when it is the number of textures)."""
     from supramodal.textures import texture_samples
@@ -46,7 +48,7 @@ def _checked_length(options: dict, order: list, fs: float) -> int:
     return n
 
 
-def _order(options: dict, names) -> list:
+def _order(options: Mapping[str, Any], names) -> list:
     order = options["order"] or list(names)
     unknown = [n for n in order if n not in names]
     if unknown:
@@ -54,7 +56,7 @@ def _order(options: dict, names) -> list:
     return order
 
 
-def _texture_set(options: dict, context: BuildContext):
+def _texture_set(options: Mapping[str, Any], context: BuildContext):
     from supramodal.textures import load_texture_set, reference_texture_set
 
     spec = options["textures"]
@@ -62,7 +64,7 @@ def _texture_set(options: dict, context: BuildContext):
     return reference_texture_set(kind) if spec == "reference" else load_texture_set(context.resolve(spec))
 
 
-def synth_session(options: dict, context: BuildContext):
+def synth_session(options: Mapping[str, Any], context: BuildContext):
     """The synth driver's signal: each texture for ``seconds`` in ``order``, with its labels.
 
     With ``held_out`` the segment is the *last* ``seconds`` of the texture's full-length
@@ -98,7 +100,7 @@ def synth_session(options: dict, context: BuildContext):
     return ts, np.concatenate(parts)[:, None], tuple(labels)
 
 
-def _build_synth(options: dict, context: BuildContext) -> Built:
+def _build_synth(options: Mapping[str, Any], context: BuildContext) -> Built:
     ts, data, labels = synth_session(options, context)
     return Built(ReplayDriver((data, ts.fs), on_notice=None, **pacing(options, context)), labels=labels,
                  training_set=ts)
@@ -118,7 +120,7 @@ SYNTH = DriverSpec(
     build=_build_synth, live=False)
 
 
-def twosense_session(options: dict, context: BuildContext):
+def twosense_session(options: Mapping[str, Any], context: BuildContext):
     """A two-sense source's signal: one sense of the two-sense world (supramodal.twosense), each
     texture for ``seconds`` in ``order``, contact ``take`` (by default 1: contacts the model trained
     on the spot never met).
@@ -146,7 +148,7 @@ def twosense_session(options: dict, context: BuildContext):
     return train, np.concatenate(parts)[:, None], labels, (len(order) * step if options["loop"] else None)
 
 
-def _build_twosense(options: dict, context: BuildContext) -> Built:
+def _build_twosense(options: Mapping[str, Any], context: BuildContext) -> Built:
     ts, data, labels, period = twosense_session(options, context)
     # Paced like a live device on its own crystal: the node sees only the arrivals.
     clock = DeviceClock(options["clock_ppm"], options["offset"], options["jitter"],
@@ -156,7 +158,7 @@ def _build_twosense(options: dict, context: BuildContext) -> Built:
     return Built(driver, labels=labels, label_period=period, training_set=ts)
 
 
-def _twosense_timebase(options: dict, driver) -> tuple[str, float, float]:
+def _twosense_timebase(options: Mapping[str, Any], driver) -> tuple[str, float, float]:
     """At ``max`` speed a two-sense source is a file whose true timing is known (its offset and
     clock error); at a finite speed it is paced like a live device, and the node sees only arrivals."""
     if driver.speed == math.inf:

@@ -16,6 +16,7 @@ them live; the pairs whose truth is known are the data:
 
 from __future__ import annotations
 
+import dataclasses
 import tomllib
 import warnings
 from pathlib import Path
@@ -74,7 +75,8 @@ def _graph_for(path, fused_model=None, models=None):
         raise SceneError(f"{scene.source}: a scene with a [fusion] block of two streams is needed (the scene "
                          "`supramodal record` writes for a graph replays a two-sense recording)")
     if fused_model is not None:
-        scene.fusion = {**scene.fusion, "method": "early", "model": str(fused_model)}
+        scene = dataclasses.replace(scene, fusion=dataclasses.replace(scene.fusion, method="early",
+                                                                      model=str(fused_model)))
     return scene
 
 
@@ -84,7 +86,8 @@ def scene_pairs(path, progress=None, models=None):
     method, so the scene's fusion is run as late fusion here (its own model is not needed).
     ``models``: ``{stream: model file}`` to decide with instead of the scene's (:func:`with_models`)."""
     scene = _graph_for(path, models=models)
-    scene.fusion = {**scene.fusion, "method": "late", "model": None, "weight": 0.5}
+    assert scene.fusion is not None, "_graph_for refuses a scene without a [fusion]"
+    scene = dataclasses.replace(scene, fusion=dataclasses.replace(scene.fusion, method="late", model=None, weight=0.5))
     graph = build_node(scene, speed="max", sinks_override=[])
     graph.fusion.kept_pairs = []
     graph.run()
@@ -350,7 +353,7 @@ def _scored(scene, graph) -> dict[str, dict]:
     def file(path):
         return None if path is None else str(scene.resolve(path))
 
-    models = {spec.name: file(spec.scene.model["path"]) for spec in scene.streams}
+    models = {spec.name: file(spec.model.path) for spec in scene.streams}
     out: dict[str, dict] = {name: {"scene": scene.source, "model": path} for name, path in models.items()}
     f = graph.fusion
     early = f.method == "early"
@@ -358,7 +361,7 @@ def _scored(scene, graph) -> dict[str, dict]:
                          "weight": None if early else float(f.weight),
                          "sharpness": None if early else float(f.sharpness),
                          "correlation": float(f.correlation),
-                         "model": file(scene.fusion["model"]) if early else None,
+                         "model": file(scene.fusion.model) if early else None,
                          "senses": {name: models.get(name) for name in f.inputs}}
     return out
 

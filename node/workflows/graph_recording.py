@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import json
 import tomllib
+from dataclasses import asdict
 from pathlib import Path
 
 from supramodal.errors import InputError
@@ -28,9 +29,8 @@ def recording_paths(folder, name: str, scene: Scene) -> dict:
     """What recording ``scene`` as ``name`` writes into ``folder`` besides the sessions:
     ``{"models": {stream: path}, "fused": path or None, "scene": path}``."""
     folder = Path(folder)
-    early = scene.fusion is not None and scene.fusion["method"] == "early"
-    return {"models": {spec.name: folder / f"{name}.{spec.name}.npz" for spec in scene.streams
-                       if spec.scene.model["train_on_start"] or spec.scene.model["path"]},
+    early = scene.fusion is not None and scene.fusion.method == "early"
+    return {"models": {spec.name: folder / f"{name}.{spec.name}.npz" for spec in scene.streams if spec.model.exists},
             "fused": folder / f"{name}.fused.npz" if early else None,
             "scene": folder / f"{name}.toml"}
 
@@ -49,9 +49,10 @@ def graph_recorders(scene: Scene, folder, name: str, overwrite: bool = False, la
     if Path(folder).is_dir():                       # else made at the first frames: nothing to replace
         for path in _files(recording_paths(folder, name, scene)):
             check_new_file(path, overwrite, "the recording's file")
-    return {src["name"]: SessionRecorder(folder, f"{name}.{src['name']}",
-                                         json.dumps({"scene": scene.source, "source": src}),
-                                         label=label, overwrite=overwrite, keep_arrivals=True, replace=replace)
+    return {src.name: SessionRecorder(folder, f"{name}.{src.name}",
+                                      json.dumps({"scene": scene.source,
+                                                  "source": {**src.table(), "buffer": asdict(src.buffer)}}),
+                                      label=label, overwrite=overwrite, keep_arrivals=True, replace=replace)
             for src in scene.sources}
 
 
@@ -90,16 +91,16 @@ def write_replay_scene(scene: Scene, graph, folder, name: str, overwrite: bool =
     models and write ``NAME.toml``, the scene that replays the recording; returns its path."""
     folder = Path(folder)
     paths = recording_paths(folder, name, scene)
-    missing = [src["name"] for src in scene.sources if not (folder / f"{name}.{src['name']}.wav").exists()]
+    missing = [src.name for src in scene.sources if not (folder / f"{name}.{src.name}.wav").exists()]
     if missing:
         raise InputError(f"no session was recorded for source(s) {missing} (no frame came): the recording "
                          f"in {folder} cannot be replayed in step, so no replay scene is written")
     d = tomllib.loads(scene_to_toml(scene))
-    # Each source a replay of its session at its recorded times; its channel mapping as recorded;
-    # its ring waits rather than drops (a file need lose nothing).
-    d["source"] = [{"name": src["name"], "type": "replay", "path": f"{name}.{src['name']}.wav",
-                    "timing": "recorded", "speed": "max", "mapping": src.get("mapping", "auto"),
-                    "buffer": {**src["buffer"], "overrun": "auto"}} for src in scene.sources]
+    # Each source a replay of its session at its recorded times (the streams read it with their
+    # mappings, as recorded); its ring waits rather than drops (a file need lose nothing).
+    d["source"] = [{"name": src.name, "type": "replay", "path": f"{name}.{src.name}.wav",
+                    "timing": "recorded", "speed": "max",
+                    "buffer": {**asdict(src.buffer), "overrun": "auto"}} for src in scene.sources]
     for spec, stream in zip(d.get("stream", []), graph.streams):
         if stream.model is not None and spec["name"] in paths["models"]:
             stream.model.save(paths["models"][spec["name"]])

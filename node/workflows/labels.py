@@ -223,10 +223,10 @@ def _sessions(scene_path) -> list[tuple[str, Path]]:
     scene = load_scene(scene_path)
     sessions = []
     for src in scene.sources:
-        if src["type"] != "replay" or src.get("timing") != "recorded":
-            raise LabelError(f"{scene.source}: source {src['name']!r} is not a recorded session (type = "
-                             f"{src['type']!r}); give the scene `supramodal record` wrote for a graph (DIR/NAME.toml)")
-        sessions.append((src["name"], scene.resolve(src["path"])))
+        if src.type != "replay" or src.options.get("timing") != "recorded":
+            raise LabelError(f"{scene.source}: source {src.name!r} is not a recorded session (type = "
+                             f"{src.type!r}); give the scene `supramodal record` wrote for a graph (DIR/NAME.toml)")
+        sessions.append((src.name, scene.resolve(str(src.options["path"]))))
     return sessions
 
 

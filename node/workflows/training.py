@@ -128,7 +128,7 @@ def session_fingerprint(path) -> str:
 
 def scene_stream(path, stream: str):
     """The recorded graph's replay scene at ``path``, stream ``stream`` of it and the session its
-    source plays: ``(scene, stream spec, session path, source table)``.
+    source plays: ``(scene, stream spec, session path, source spec)``.
 
     Raises
     ------
@@ -143,11 +143,11 @@ def scene_stream(path, stream: str):
     if spec is None:
         raise InputError(f"{scene.source}: no stream {stream!r}; its streams are {[s.name for s in scene.streams]} "
                          "(--stream names one)")
-    src = next(s for s in scene.sources if s["name"] == spec.source)
-    if src["type"] != "replay":
-        raise InputError(f"{scene.source}: stream {stream!r} reads source {src['name']!r} of type {src['type']!r}, "
+    src = scene.source_named(spec.source)
+    if src.type != "replay":
+        raise InputError(f"{scene.source}: stream {stream!r} reads source {src.name!r} of type {src.type!r}, "
                          "not a recording; give the scene `supramodal record` wrote (DIR/NAME.toml)")
-    return scene, spec, scene.resolve(src["path"]), src
+    return scene, spec, scene.resolve(str(src.options["path"])), src
 
 
 def train_from_scenes(paths, stream: str, epochs: int = DEFAULT_EPOCHS, seed: int = 0, progress=None,
@@ -176,8 +176,8 @@ def train_from_scenes(paths, stream: str, epochs: int = DEFAULT_EPOCHS, seed: in
 
     recs, windows, groups, seen, make, sense = [], [], [], [], None, None
     for path in paths:
-        scene, spec, session, src = scene_stream(path, stream)
-        make_here = lambda sub=spec.scene: pipeline_for(sub, bank_for(sub))     # noqa: E731
+        scene, spec, session, _ = scene_stream(path, stream)
+        make_here = lambda sc=scene, sp=spec: pipeline_for(sc, bank_for(sc, sp), sp)     # noqa: E731
         if make is None:
             make, first, sense = make_here, path, Sense.of(stream, make_here())
         else:
@@ -193,7 +193,7 @@ def train_from_scenes(paths, stream: str, epochs: int = DEFAULT_EPOCHS, seed: in
         for lab in labels:
             rec = Recording(session, lab.label, lab.start, lab.end)
             pipeline = make()
-            v = recording_windows(rec, pipeline, src.get("mapping", "auto"), notice=progress)
+            v = recording_windows(rec, pipeline, spec.mapping, notice=progress)
             if len(v):
                 recs.append(rec)
                 windows.append(v)

@@ -33,7 +33,7 @@ import queue
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any, TextIO
 
@@ -351,10 +351,10 @@ class QueuedSink(Sink):
 PATH_KEY = Key(is_text, '"-" (stdout) or a file path', "-")
 
 
-def file_sink(kind: type[FileSink]) -> Callable[[dict[str, Any], SinkContext], Sink]:
+def file_sink(kind: type[FileSink]) -> Callable[[Mapping[str, Any], SinkContext], Sink]:
     """The ``build`` of a file sink's spec: ``kind`` at the scene's ``path`` (relative to the scene),
     behind its own :class:`QueuedSink`."""
-    def build(options: dict[str, Any], context: SinkContext) -> Sink:
+    def build(options: Mapping[str, Any], context: SinkContext) -> Sink:
         path = options["path"] if options["path"] == "-" else str(context.resolve(options["path"]))
         try:
             sink = kind(path, context.overwrite)

@@ -46,7 +46,7 @@ from __future__ import annotations
 import json
 import socket
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from types import ModuleType
 from typing import TYPE_CHECKING, Any, Protocol
@@ -338,7 +338,7 @@ def describe(name: str, pipeline: FeaturePipeline, classes: Sequence[str]) -> Ou
                         pipeline.features, pipeline.window_samples / bank.fs, tuple(classes))
 
 
-def _build(options: dict[str, Any], context: SinkContext) -> Sink:
+def _build(options: Mapping[str, Any], context: SinkContext) -> Sink:
     # Made from the streams' plans, before any model is trained: consumers resolve the outlets
     # while the node trains (seconds), and get window 0.
     described = {name: describe(name, p.pipeline, p.classes) for name, p in context.plans.items()}

@@ -35,7 +35,7 @@ import sys
 import threading
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import replace
 from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
@@ -617,7 +617,7 @@ def attach(graph: Any, on_mark: Callable[[str | None], Any] | None = None) -> li
 
 # -- as a scene names it -------------------------------------------------------------------------------
 
-def _build(options: dict[str, Any], context: SinkContext) -> Sink:
+def _build(options: Mapping[str, Any], context: SinkContext) -> Sink:
     try:
         view = ViewSink(options["port"], options["host"], options["remote"], options["token"], options["labels"])
     except ViewError as exc:
@@ -632,11 +632,12 @@ SPEC = SinkSpec(type="view", keys=KEYS, build=_build,
 
 def with_view(scene: Any, port: int) -> Any:
     """``run --view PORT``: the scene with a view sink added (every stream, and the fusion)."""
-    if any(s["type"] == "view" for s in scene.sinks):
+    from supramodal.node.scene.specs import SinkSettings, frozen
+
+    if any(s.type == "view" for s in scene.sinks):
         raise ViewError(f"{scene.source} has a [[sink]] type = \"view\" already; leave out --view, or that sink")
-    sink = {key: key_spec.default for key, key_spec in sink_keys(SPEC).items()}
-    sink.update(type="view", port=port)
-    return replace(scene, sinks=[*scene.sinks, sink])
+    options = {key: key_spec.default for key, key_spec in sink_keys(SPEC).items()} | {"port": port}
+    return replace(scene, sinks=(*scene.sinks, SinkSettings("view", frozen(options), len(scene.sinks))))
 
 
 

@@ -54,7 +54,7 @@ from __future__ import annotations
 
 import collections
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -76,6 +76,7 @@ from supramodal.node.runtime.sinks.lsl import (
 )
 from supramodal.node.runtime.taps import Tap
 from supramodal.node.scene.registry import SinkContext, SinkSpec, driver_spec
+from supramodal.node.scene.specs import SourceSpec
 
 if TYPE_CHECKING:   # the annotations' names only (the sources import the taps)
     from supramodal.banks import Bank
@@ -292,26 +293,26 @@ class LSLSignalOutlet(Tap):
 
 # -- as a scene names it ---------------------------------------------------------------------------
 
-def signal_type(driver_options: dict[str, Any], banks: Sequence[Bank]) -> str:
-    """What a source is, as an LSL content type: by the banks that read it, else by its driver's spec."""
+def signal_type(source: SourceSpec, banks: Sequence[Bank]) -> str:
+    """What ``source`` is, as an LSL content type: by the banks that read it, else by its driver's spec."""
     kinds = {b.kind for b in banks}
     if kinds == {"whisker"}:
         return "Whiskers"
     if kinds == {"cochlea"}:
         return "Audio"
-    return driver_spec(driver_options["type"]).signal_type(driver_options) or DEFAULT_SIGNAL_TYPE
+    return driver_spec(source.type).signal_type(source.options) or DEFAULT_SIGNAL_TYPE
 
 
-def _build(options: dict[str, Any], context: SinkContext) -> Tap:
-    driver, driver_options, read_by = context.sources[options["source"]]
+def _build(options: Mapping[str, Any], context: SinkContext) -> Tap:
+    driver, source, read_by = context.sources[options["source"]]
     channels = driver.channels
     # Channel labels: the filters' names where a bank takes the channels one to one.
     labels = next((bank.names for bank, mapping in read_by
                    if mapping in ("auto", "per-channel") and bank.channels == channels), None)
     try:
         return LSLSignalOutlet(options["source"], driver.rate, channels, options["chunk"], options["prefix"],
-                               options["stream_type"] or signal_type(driver_options, [bank for bank, _ in read_by]),
-                               labels, driver_options["type"], options["wait_for_consumer"])
+                               options["stream_type"] or signal_type(source, [bank for bank, _ in read_by]),
+                               labels, source.type, options["wait_for_consumer"])
     except InputError as exc:
         raise OptionError(str(exc)) from None
 

@@ -1,0 +1,100 @@
+"""A scene is typed, frozen values (node/scene/specs.py, issue 24 item 3): what a stream reads is the
+stream's (``mapping`` on ``[[stream]]``), nothing is changed after loading, and no spec is a dict."""
+
+from __future__ import annotations
+
+import dataclasses
+import tomllib
+import typing
+
+import numpy as np
+import pytest
+
+from supramodal.banks import whisker_bank
+from supramodal.decisions import DecisionRules
+from supramodal.node.runtime.sinks import ListSink
+from supramodal.node.scene import specs
+from supramodal.node.scene.build import build_node
+from supramodal.node.scene.schema import SceneError, scene_from_dict, scene_to_toml
+from supramodal.pipeline import extract_features
+from supramodal.replay.session import save_session
+
+SPECS = [specs.Scene, specs.SourceSpec, specs.StreamSpec, specs.BankSpec, specs.FeaturesSpec, specs.ModelSpec,
+         specs.BufferSpec, specs.FusionSpec, specs.SinkSettings, DecisionRules]
+
+
+def _two_readers(path: str) -> dict:
+    """One 20-channel source read by two whisker streams: each vibrissa by its own filter, and
+    channel 3 alone fanned out to every filter."""
+    return {"source": [{"name": "board", "type": "replay", "path": path, "speed": "max", "block": 123}],
+            "stream": [{"name": "all", "source": "board", "mapping": "per-channel", "features": {"names": ["A"]}},
+                       {"name": "three", "source": "board", "mapping": 3, "features": {"names": ["A"]}}]}
+
+
+def test_two_streams_read_one_source_each_by_its_own_mapping(tmp_path):
+    x = 0.1 * np.random.default_rng(0).standard_normal((5000, 20))
+    save_session(tmp_path / "s", x, 5000, "test")
+    sink = ListSink()
+    build_node(scene_from_dict(_two_readers("s.wav"), str(tmp_path / "g.toml"), tmp_path),
+               sinks_override=[sink]).run()
+    got = {name: np.array([e.features["A"] for e in sink.windows if e.stream == name]) for name in ("all", "three")}
+    # The session stores float32: the reference reads the same samples.
+    x32 = x.astype(np.float32).astype(np.float64)
+    every = extract_features(x32.T, whisker_bank(), ("A",)).values[:, 0]
+    fanned = extract_features(np.repeat(x32[:, 3:4], 20, axis=1).T, whisker_bank(), ("A",)).values[:, 0]
+    assert got["all"].shape == every.shape == got["three"].shape
+    np.testing.assert_allclose(got["all"], every, rtol=1e-12)
+    np.testing.assert_allclose(got["three"], fanned, rtol=1e-12)
+    assert not np.allclose(every, fanned)                    # the two mappings do differ
+
+
+def test_a_mapping_on_a_source_is_refused_with_where_it_belongs():
+    d = _two_readers("s.wav")
+    d["source"][0]["mapping"] = "per-channel"
+    with pytest.raises(SceneError, match=r"\[\[source\]\] #1 mapping: .*move it to the \[\[stream\]\]"):
+        scene_from_dict(d, "g.toml")
+
+
+def test_a_one_source_scenes_driver_mapping_is_its_streams_and_prints_back(tmp_path):
+    scene = scene_from_dict({"driver": {"type": "synth", "mapping": "mean"}}, "one.toml")
+    assert scene.only_stream().mapping == "mean" and "mapping" not in scene.only_source().options
+    again = scene_from_dict(tomllib.loads(scene_to_toml(scene)), "one.toml")
+    assert again.only_stream() == scene.only_stream() and again.only_source() == scene.only_source()
+
+
+def test_graph_mappings_print_back_on_their_streams(tmp_path):
+    scene = scene_from_dict(_two_readers("s.wav"), "g.toml")
+    d = tomllib.loads(scene_to_toml(scene))
+    assert [s.get("mapping") for s in d["stream"]] == ["per-channel", 3]
+    assert all("mapping" not in s for s in d["source"])
+    assert scene_from_dict(d, "g.toml").streams == scene.streams
+
+
+def test_a_loaded_scene_cannot_be_changed_in_place():
+    scene = scene_from_dict({"driver": {"type": "synth"}, "sink": [{"type": "text"}]}, "one.toml")
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        scene.only_stream().features.window = 0.2         # type: ignore[misc]
+    with pytest.raises(TypeError):
+        scene.only_source().options["seconds"] = 1.0      # type: ignore[index]
+    with pytest.raises(TypeError):
+        scene.sinks[0].options["path"] = "x"              # type: ignore[index]
+    # A variant is a new value; the loaded one stays as it was.
+    stream = scene.only_stream()
+    shorter = dataclasses.replace(stream, features=dataclasses.replace(stream.features, window=0.2))
+    assert shorter.features.window == 0.2 and scene.only_stream().features.window == 0.1
+
+
+def _annotations(cls) -> list:
+    hints = typing.get_type_hints(cls, vars(specs) | {"DecisionRules": DecisionRules})
+    return list(hints.values())
+
+
+@pytest.mark.parametrize("cls", SPECS, ids=lambda c: c.__name__)
+def test_no_spec_field_is_a_dict(cls):
+    """What crosses from the schema to the builder, the command line and the workflows: frozen
+    dataclasses, tuples, and read-only mappings only for a driver's or a sink's own keys."""
+    assert dataclasses.is_dataclass(cls) and cls.__dataclass_params__.frozen
+    for hint in _annotations(cls):
+        for part in (hint, *typing.get_args(hint)):
+            assert typing.get_origin(part) is not dict and part is not dict, f"{cls.__name__}: {hint}"
+            assert typing.get_origin(part) is not list and part is not list, f"{cls.__name__}: {hint}"
