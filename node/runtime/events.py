@@ -209,13 +209,12 @@ class WindowEvent:
         return out
 
 
-def log_posteriors_of(event: Any) -> np.ndarray:
+def log_posteriors_of(event: WindowEvent) -> np.ndarray:
     """A window event's log-posteriors: those it carries (a stream's and the fusion's events do:
     never clipped), else the log of its posteriors, refused where one is exactly 0 (an event
     made elsewhere, e.g. by hand: its log would be -inf and poison every sum it enters)."""
-    lp = getattr(event, "log_posteriors", None)
-    if lp is not None:
-        return np.asarray(lp, dtype=np.float64)
+    if event.log_posteriors is not None:
+        return np.asarray(event.log_posteriors, dtype=np.float64)
     with np.errstate(divide="ignore"):
         lp = np.log(np.asarray(event.posteriors, dtype=np.float64))
     if not np.isfinite(lp).all():
