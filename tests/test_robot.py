@@ -127,7 +127,10 @@ def test_the_robot_scene_runs_both_senses_fused_and_survives_the_board_unplugged
     n = int(SECONDS * 10)
     assert len(windows["mic"]) == n and [d["window"] for d in windows["mic"]] == list(range(n))
     assert len(windows["whiskers"]) == n
-    assert 10 <= sum(bool(d.get("gap")) for d in windows["whiskers"]) <= 25
+    # 1.5 s unplugged (15 windows), up to 0.5 s until the driver's next reopen (BACKOFF_MAX), the two
+    # windows it straddles, and up to 1 s of a loaded machine's scheduling (26 seen at load 10): a
+    # driver that did not reconnect would leave every window from the unplug on (80) a gap.
+    assert 10 <= sum(bool(d.get("gap")) for d in windows["whiskers"]) <= 32
     fates = summary["streams"]["whiskers"]["frames"]
     assert fates["delivered"] + fates["filled"] + fates["dropped"] == fates["stream"] == int(SECONDS * WHISKER_RATE)
     assert summary["streams"]["mic"]["frames"]["dropped"] == 0
