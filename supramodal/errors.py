@@ -9,7 +9,7 @@ line, and anything else as a bug, with its traceback. The tree::
      |    +-- node.scene.SceneError, supramodal.model.ModelError, replay.errors.ReplayError, ...
      +-- drivers.base.DriverError: a device or stream failed (DeviceUnavailable, DriverClosed, ...)
      +-- node.ringbuffer.RingBufferError
-     +-- node.graph.NodeError (also RuntimeError): a thread of the node failed
+     +-- node.runtime.graph.NodeError (also RuntimeError): a thread of the node failed
      +-- StreamEndedError (also RuntimeError): a block fed to a stream after its finish()
 
 The leaf classes live beside the code that raises them; this module holds only the root and

@@ -102,7 +102,7 @@ _trained_on_the_spot: dict = {}
 
 def driver_for(scene: Scene, bank: Bank | None, speed_override=None, shared: dict | None = None,
                source: SourceSpec | None = None):
-    """Build the driver of ``source`` (default: the scene's only one) from its spec (node.registry);
+    """Build the driver of ``source`` (default: the scene's only one) from its spec (node.scene.registry);
     returns ``(driver, labels, texture_set_or_None)``.
 
     ``bank``: the bank that reads the source (a file is resampled to its rate, a stream at
@@ -126,7 +126,7 @@ def driver_for(scene: Scene, bank: Bank | None, speed_override=None, shared: dic
 
 
 def _make_sinks(scene: Scene, needs: str, made: list, overwrite: bool, **context) -> None:
-    """Make the scene's sinks whose spec needs ``needs`` (node.registry.NEEDS), appending
+    """Make the scene's sinks whose spec needs ``needs`` (node.scene.registry.NEEDS), appending
     ``(settings, spec, sink or tap)`` to ``made``; ``context``: the rest of the
     :class:`~supramodal.node.scene.registry.SinkContext` (the streams, the sources)."""
     for settings in scene.sinks:
@@ -219,13 +219,13 @@ def _source(src: SourceSpec, driver, where: str) -> Source:
 
 def _overrun(src: SourceSpec) -> str:
     """The ring's policy: "auto" is the driver's (lossless back-pressure for files, drop-oldest for
-    live devices: node.registry)."""
+    live devices: node.scene.registry)."""
     overrun = src.buffer.overrun
     return driver_spec(src.type).overrun if overrun == "auto" else overrun
 
 
 def _timebase(src: SourceSpec, driver) -> tuple[str, float, float]:
-    """``(timebase, time_offset, time_rate)`` of a source (see node.sources.Source), as its driver's
+    """``(timebase, time_offset, time_rate)`` of a source (see node.runtime.sources.Source), as its driver's
     spec says: files keep their own time, a live driver's samples are put on host time by a clock
     model."""
     return driver_spec(src.type).timebase_of(src.options, driver)
@@ -338,7 +338,7 @@ def build_node(scene: Scene, speed=None, sinks_override=None, progress=None, rec
     scene is the graph of one source and one stream, both ``"main"``).
 
     ``speed``: the command line's ``--speed``. ``sinks_override``: sinks that replace the scene's
-    (its file sinks are then not made). ``recorder``: a :class:`~supramodal.node.runtime.recorder.SessionRecorder`
+    (its file sinks are then not made). ``recorder``: a :class:`~supramodal.node.runtime.taps.recorder.SessionRecorder`
     for a one-source scene, or ``{source name: recorder}``. ``overwrite``: whether the scene's file
     sinks may replace existing files (``run --force``). Sink files are checked here, before any
     training, and created only when first written; a refused scene leaves no file and no outlet.
@@ -353,7 +353,7 @@ def build_node(scene: Scene, speed=None, sinks_override=None, progress=None, rec
         streams = []
         held_out: dict[str, list] = {}          # stream -> [(x_test, y_test)] of a model trained on the spot
         trained: dict[str, list] = {}           # stream -> [(x_train, y_train)] of it
-        shared: dict = {}                       # what the sources share, made once (node.registry)
+        shared: dict = {}                       # what the sources share, made once (node.scene.registry)
         plans: dict[str, StreamPlan] = {}
         banks: dict[str, Bank] = {}
         loaded: dict[str, TextureModel | None] = {}     # stream -> its model file, read once

@@ -170,7 +170,7 @@ class SinkContext:
     overwrite : bool
         Whether a file sink may replace an existing file (``run --force``).
     streams : dict
-        Stream name -> the built ``node.streams.Stream`` (its pipeline and model), for sinks that
+        Stream name -> the built ``node.runtime.streams.Stream`` (its pipeline and model), for sinks that
         need the streams; ``"fused"`` is not among them.
     fused_classes : tuple of str or None
         The fusion's classes, when the scene has one.
@@ -203,7 +203,7 @@ class SinkSpec:
         Its keys besides ``type`` and ``from`` (what it listens to: added for a sink of windows)
         or ``source`` (added for a sink of samples).
     build : callable
-        ``build(options, context) -> Sink`` (or a ``node.taps.Tap`` for a sink of samples),
+        ``build(options, context) -> Sink`` (or a ``node.runtime.taps.Tap`` for a sink of samples),
         ``options`` validated (a read-only mapping); raises ``drivers.spec.OptionError`` naming the key.
     summary : str
         One line for the docs.

@@ -9,7 +9,7 @@ naming the key. Nothing in a scene is executed.
 Example (the embedded default is ``default_scene()``)::
 
     [driver]
-    type = "replay"            # a driver type (node.registry; docs/node.md lists each with its keys)
+    type = "replay"            # a driver type (node.scene.registry; docs/node.md lists each with its keys)
     path = "session.wav"       # replay: WAV file or recorded session
     speed = 1.0                # replay/synth: 1.0 real time (default), 2.0 twice as fast, "max"
     block = 50                 # frames per block (default: 10 ms)
@@ -72,7 +72,7 @@ __all__ = ["FUSION_KEYS", "LEARN", "MAPPING", "ONE_SOURCE_KEYS", "SECTIONS", "SO
            "SceneError", "default_scene", "driver_table", "load_scene", "scene_from_dict", "scene_to_toml"]
 
 
-#: Longest ring a scene may ask for, seconds of its source (node.build also bounds its bytes).
+#: Longest ring a scene may ask for, seconds of its source (node.scene.build also bounds its bytes).
 MAX_BUFFER_SECONDS = 600.0
 
 
@@ -87,7 +87,7 @@ def _rows(v):
 # section -> key -> Key(check, what is expected, default; REQUIRED; or None). Every default has one
 # home: a key whose default belongs to the driver or the bank is None here ("the owner's default":
 # build.py does not pass it on); the others import their owner's constant. The drivers' keys are
-# their specs' (node.registry).
+# their specs' (node.scene.registry).
 SECTIONS = {
     # A recipe's keys are the bank file's (supramodal.bankfile): one check for both.
     "bank": {
@@ -249,7 +249,7 @@ def scene_from_dict(d: dict, source: str = "<scene>", base_dir: Path | None = No
 
 def driver_table(where: str, table, extra: dict | None = None) -> tuple[str, dict]:
     """A source's table (``[driver]`` or a ``[[source]]``, named by ``where``) validated against its
-    driver's keys (node.registry) and ``extra`` ones: ``(driver type, its keys with defaults filled
+    driver's keys (node.scene.registry) and ``extra`` ones: ``(driver type, its keys with defaults filled
     in)``, without ``type`` and ``buffer``."""
     if not isinstance(table, dict):
         raise SceneError(f"{where} must be a table")

@@ -86,7 +86,7 @@ class FeatureCache:
     windows : sequence of float
         Every window length the search may ask for, seconds (they fix the base window).
     mapping : str or int
-        Recording channels to filters (:func:`node.streams.channel_mapper`).
+        Recording channels to filters (:func:`node.runtime.streams.channel_mapper`).
     memory_bytes : int
         Most bytes of feature windows held in memory.
     folder : path-like or None
