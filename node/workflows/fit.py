@@ -23,6 +23,7 @@ import warnings
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -37,8 +38,10 @@ from supramodal.replay.wavio import wav_info
 
 __all__ = ["Candidate", "fit_manifest", "format_fit", "write_fit"]
 
-#: The values each step tries (quick mode: the shorter lists), as (name, full, quick).
-STEPS = (
+#: The values each step tries (quick mode: the shorter lists), as (name, full, quick). ``name`` is a field of
+#: :class:`Candidate` and its values are of that field's type, which differs from step to step (Any, not a union
+#: every field would have to accept, so that ``replace(best, **{name: v})`` type-checks).
+STEPS: tuple[tuple[str, tuple[Any, ...], tuple[Any, ...]], ...] = (
     ("channels", (10, 20, 30, 50), (10, 20)),
     ("f_high", (0.5, 0.7, 0.9), (0.5, 0.9)),          # fraction of the Nyquist frequency
     ("f_low", (0.001, 0.005, 0.02, 0.1), (0.005, 0.05)),   # fraction of the Nyquist frequency
@@ -127,6 +130,7 @@ def fit_manifest(manifest, k: int = 5, epochs: int = 300, seed: int = 0, quick: 
                         "channels": bank.channels}
         if progress:
             progress(f"fit: the paper's {label} bank: windows {s['window_accuracy']['mean']:.3f}")
+    assert best_score is not None, "STEPS is not empty and each step sets best_score"
     return {"fs": best.fs, "k": k, "seed": seed, "rows": rows,
             "best": {**best.__dict__, "features": list(best.features), **_flat(best_score)}, "paper": paper}
 

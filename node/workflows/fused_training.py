@@ -36,7 +36,7 @@ from supramodal.fused_model import (
 )
 from supramodal.mlp import DEFAULT_EPOCHS
 from supramodal.model import ModelError
-from supramodal.node.runtime.events import FUSED_STREAM, log_posteriors_of
+from supramodal.node.runtime.events import FUSED_STREAM, WindowEvent, log_posteriors_of
 from supramodal.node.runtime.sinks import ListSink
 from supramodal.node.scene.build import build_node
 from supramodal.node.scene.schema import Scene, SceneError, load_scene, scene_from_dict, scene_to_toml
@@ -140,9 +140,15 @@ def train_fused(paths, method: str = "early", epochs: int = DEFAULT_EPOCHS, seed
 
     if method not in FUSION_METHODS:
         raise InputError(f"the fusion method is one of {FUSION_METHODS}, got {method!r}")
-    senses = classes = None
+    senses: tuple[Sense, Sense] | None = None        # the first scene's, and its classes
+    classes: tuple[str, ...] | None = None
     stream_models: tuple = ()
-    va, vb, truth, groups, own, seen = [], [], [], [], ([], []), 0
+    rows_a: list[np.ndarray] = []       # each pair's feature window of either sense
+    rows_b: list[np.ndarray] = []
+    truth: list[int] = []
+    groups: list[str] = []
+    own: tuple[list[np.ndarray], list[np.ndarray]] = ([], [])    # each sense model's own log-posteriors per pair
+    seen = 0
     for k_scene, path in enumerate(paths):
         graph, pairs = scene_pairs(path, progress, models) if models else scene_pairs(path, progress)
         a, b = (next(s for s in graph.streams if s.name == n) for n in graph.fusion.inputs)
@@ -150,6 +156,7 @@ def train_fused(paths, method: str = "early", epochs: int = DEFAULT_EPOCHS, seed
             senses, classes = (Sense.of(a.name, a.pipeline), Sense.of(b.name, b.pipeline)), graph.fusion.classes
             stream_models = (a.model, b.model)
         else:
+            assert classes is not None, "set with senses, by the first scene"
             try:
                 for sense, stream in zip(senses, (a, b)):
                     sense.check_pipeline(stream.pipeline)
@@ -164,8 +171,8 @@ def train_fused(paths, method: str = "early", epochs: int = DEFAULT_EPOCHS, seed
                 seen += session_fingerprint(scene_stream(path, stream.name)[2]) in model.training["sessions"]
         groups += contact_groups(pairs, f"{k_scene}:")
         for ea, eb in pairs:
-            va.append(np.stack([ea.features[f] for f in senses[0].features]))
-            vb.append(np.stack([eb.features[f] for f in senses[1].features]))
+            rows_a.append(np.stack([ea.features[f] for f in senses[0].features]))
+            rows_b.append(np.stack([eb.features[f] for f in senses[1].features]))
             truth.append(classes.index(ea.truth))
             if all("sessions" in m.training for m in stream_models):     # their own posteriors may serve
                 for lps_own, e in zip(own, (ea, eb)):
@@ -173,11 +180,12 @@ def train_fused(paths, method: str = "early", epochs: int = DEFAULT_EPOCHS, seed
     if not truth:
         raise InputError("no labelled pair of windows in these recordings: record with a source that labels its "
                          "stream, or label the sessions")
+    assert senses is not None and classes is not None, "a labelled pair came from a scene, which set them"
     missing = sorted(set(classes) - {classes[k] for k in truth})
     if missing:
         raise InputError(f"the recordings have no labelled pair of {missing}: record every texture")
     y = np.array(truth)
-    va, vb = np.array(va), np.array(vb)
+    va, vb = np.array(rows_a), np.array(rows_b)
     names = [s.name for s in senses]
     said = [m.training.get("sessions") for m in stream_models]
     if all(s is not None for s in said) and not seen:
@@ -206,6 +214,7 @@ def train_fused(paths, method: str = "early", epochs: int = DEFAULT_EPOCHS, seed
         say = None if progress is None else (lambda m: progress(f"early network's calibration: {m}"))
         model = EarlyFusionModel.train(senses, va, vb, y, classes, epochs=epochs, seed=seed, groups=groups,
                                        calibration_folds=k, calibration_progress=say)
+        assert model.calibration is not None, "EarlyFusionModel.train calibrates on calibration_folds=k > 0 folds"
         fitted = model.calibration.fitted_on
         held["early"] = {"n": int(fitted["windows"]), "accuracy": float(fitted["held_out_accuracy"]),
                          "log_loss": float(fitted["log_loss"])}
@@ -382,7 +391,8 @@ def _contacts(events, n: int | None = None) -> list[bool]:
     log-posteriors (the decision's class order is the event's; a tie is wrong). A contact is
     each run of consecutive windows of one truth (``n`` None), or each ``n`` consecutive windows
     of a run from its start (a shorter rest left out)."""
-    out, run = [], []
+    out: list[bool] = []
+    run: list[WindowEvent] = []
     for e in events + [None]:
         if run and (e is None or e.truth != run[-1].truth or e.window != run[-1].window + 1):
             size = len(run) if n is None else n

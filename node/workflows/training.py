@@ -10,6 +10,9 @@ sees in training what the node feeds it live.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import Any
+
 import numpy as np
 
 from supramodal.banks import Bank
@@ -174,13 +177,19 @@ def train_from_scenes(paths, stream: str, epochs: int = DEFAULT_EPOCHS, seed: in
     from supramodal.node.scene.build import bank_for, pipeline_for
     from supramodal.replay.session import load_session
 
-    recs, windows, groups, seen, make, sense = [], [], [], [], None, None
+    recs: list[Recording] = []
+    windows: list[np.ndarray] = []
+    groups: list[str] = []
+    seen: list[str] = []
+    make: Callable[[], FeaturePipeline] | None = None     # the first scene's pipeline, and its sense
+    sense: Sense | None = None
     for path in paths:
         scene, spec, session, _ = scene_stream(path, stream)
         make_here = lambda sc=scene, sp=spec: pipeline_for(sc, bank_for(sc, sp), sp)     # noqa: E731
         if make is None:
             make, first, sense = make_here, path, Sense.of(stream, make_here())
         else:
+            assert sense is not None, "set with make, by the first scene"
             try:
                 sense.check_pipeline(make_here())
             except SupramodalError as exc:
@@ -206,6 +215,7 @@ def train_from_scenes(paths, stream: str, epochs: int = DEFAULT_EPOCHS, seed: in
         raise InputError(f"training needs windows of at least two labels, the recordings have {list(classes)}; "
                          "record (or label) another texture")
     say = None if progress is None else (lambda m: progress(f"calibration: {m}"))
+    assert make is not None, "windows of two labels were found, so a scene was read"
     model = _train(recs, classes, windows, make(), epochs, seed, hidden, calibration_progress=say, groups=groups)
     model.training.update({"sessions": seen, "stream": stream})
     return model
@@ -267,7 +277,8 @@ def _cross_validate(manifest, make_pipeline, k, epochs, seed, hidden, mapping, p
     fold = grouped_folds([r.where for r in recs], [r.label for r in recs], k, seed)
     confusion = np.zeros((len(classes), len(classes)), dtype=int)
     folds = []
-    scored = {"log_posteriors": [], "pooled": [], "recording_truth": [], "window_truth": []}
+    # Each fold's _score arrays as lists: log-posteriors and pooled rows (arrays), truths (numpy integers).
+    scored: dict[str, list[Any]] = {"log_posteriors": [], "pooled": [], "recording_truth": [], "window_truth": []}
     calibrated = True
     for f in range(k):
         train = [i for i in range(len(recs)) if fold[i] != f]
@@ -397,7 +408,7 @@ def _score_recordings(model: TextureModel, recs, windows, progress=None) -> tupl
         pred = winner(lp)
         truth = labels.index(rec.label)
         decided = pred >= 0
-        np.add.at(confusion, (truth, pred[decided]), 1)
+        np.add.at(confusion[truth], pred[decided], 1)     # truth's row: a view of confusion, counted in place
         k = int(winner(pooled))
         per_rec.append({"path": str(rec.path), "label": rec.label, "windows": int(len(v)),
                         "window_accuracy": float(np.mean(pred == truth)), "predicted": labels[k] if k >= 0 else None,
@@ -429,7 +440,7 @@ def _anytime(model: TextureModel, scored: dict) -> list[dict] | None:
     :data:`~supramodal.evaluation.ANYTIME_THRESHOLDS` (:func:`~supramodal.evaluation.anytime_sweep`,
     as the node's ``[decision] confidence`` decides a contact); None for an uncalibrated model,
     whose confidence is no probability to set a threshold on."""
-    if not model.calibrated:
+    if model.calibration is None:          # not model.calibrated
         return None
     lps = scored["log_posteriors"]
     starts = np.cumsum([0] + [len(lp) for lp in lps])
@@ -443,7 +454,7 @@ def _score(model: TextureModel, recs: list[Recording], windows: list[np.ndarray]
     """Each recording's window log-posteriors and its pooled log-posteriors, with the truths."""
     labels = list(model.classes)
     lps = [model.log_posteriors(v) for v in windows]
-    pool = model.calibration.pool if model.calibrated else (lambda lp: pool_log_posteriors(lp, 0.0))
+    pool = model.calibration.pool if model.calibration is not None else (lambda lp: pool_log_posteriors(lp, 0.0))
     truths = np.array([labels.index(r.label) for r in recs])
     return {"log_posteriors": lps, "pooled": np.array([pool(lp) for lp in lps]), "recording_truth": truths,
             "window_truth": np.repeat(truths, [len(lp) for lp in lps])}
@@ -530,7 +541,7 @@ def calibration_line(fitted_on: dict | None) -> str:
     if fitted_on is None:
         return "uncalibrated (posteriors: the network's normalised outputs)"
     f = fitted_on
-    by = {"recording": " by recording", "span": " by span of each recording"}.get(f.get("folds_by"), "")
+    by = {"recording": " by recording", "span": " by span of each recording"}.get(f.get("folds_by", ""), "")
     line = f"calibrated on {f.get('windows')} held-out windows ({f.get('folds')} folds{by})"
     if "log_loss_uncalibrated" in f and "log_loss" in f:
         line += f": held-out log loss {f['log_loss_uncalibrated']:.3f} -> {f['log_loss']:.3f} nats"
