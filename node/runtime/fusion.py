@@ -33,8 +33,11 @@ import collections
 import math
 import queue
 import time
+from collections.abc import Callable, Iterable, Sequence
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from supramodal.decisions import DEFAULT_DECISION, Decider, DecisionRules
 from supramodal.drivers.base import DriverEvent
@@ -43,12 +46,26 @@ from supramodal.fusion import fuse_late
 from supramodal.node.runtime.events import FUSED_STREAM, TruthTally, WindowEvent, log_posteriors_of
 from supramodal.node.runtime.latency import LatencyHistogram
 
+if TYPE_CHECKING:   # the early-fusion model, for an annotation only: the runtime does not load it
+    from supramodal.fused_model import EarlyFusionModel
+
 #: Host seconds a window waits for its partner from the other stream before it is decided alone.
 DEFAULT_MAX_WAIT = 0.5
 #: Late-fusion weight of the first stream when a scene gives none.
 DEFAULT_WEIGHT = 0.5
 
-_END = object()
+
+class _End:
+    """The type of :data:`_END`."""
+
+
+#: On the fusion queue, ``(_END, stream)``: that stream has emitted its last window.
+_END = _End()
+
+#: What the fusion queue holds: ``(window event, host time it was put)`` or ``(_END, stream name)``.
+_Item = tuple[WindowEvent, float] | tuple[_End, str]
+#: A window waiting for its partner: (event, when it was put, when its last block arrived or None).
+_Pending = tuple[WindowEvent, float, float | None]
 
 
 class LateFusion:
@@ -87,9 +104,10 @@ class LateFusion:
 
     method = "late"
 
-    def __init__(self, inputs, classes, weight: float = DEFAULT_WEIGHT, max_wait: float | None = DEFAULT_MAX_WAIT,
+    def __init__(self, inputs: Sequence[str], classes: Sequence[Sequence[str]], weight: float = DEFAULT_WEIGHT,
+                 max_wait: float | None = DEFAULT_MAX_WAIT,
                  decision: DecisionRules = DEFAULT_DECISION, *, sharpness: float = 1.0, correlation: float = 0.0,
-                 caps=None) -> None:
+                 caps: ArrayLike | None = None) -> None:
         a, b = inputs
         if a == b:
             raise InputError(f"fusion needs two different streams, got {a!r} twice")
@@ -114,10 +132,10 @@ class LateFusion:
         self.correlation = float(correlation)
         self.max_wait = math.inf if max_wait is None else float(max_wait)
         self.decider = Decider(ca, decision, correlation, caps=caps)
-        self._queue: queue.SimpleQueue = queue.SimpleQueue()
+        self._queue: queue.SimpleQueue[_Item] = queue.SimpleQueue()
         # per stream: (event, when it was put, when its last block arrived or None) of the windows
         # awaiting a partner
-        self._pending: dict[str, collections.deque[tuple[WindowEvent, float, float | None]]] = {
+        self._pending: dict[str, collections.deque[_Pending]] = {
             a: collections.deque(), b: collections.deque()}
         self._ended: set[str] = set()
         # per stream: the centre of the last window of the *other* stream decided alone because
@@ -125,10 +143,10 @@ class LateFusion:
         self._alone_until = {a: -math.inf, b: -math.inf}
         self.windows = self.paired = self.alone = 0
         self.late = {a: 0, b: 0}
-        self.on_event = None
+        self.on_event: Callable[[DriverEvent], None] | None = None
         #: A list to which each fused pair of window events is appended (training a fusion on
         #: recorded sessions); None: pairs are not kept.
-        self.kept_pairs: list | None = None
+        self.kept_pairs: list[tuple[WindowEvent, WindowEvent]] | None = None
         # per stream: missing since its partner window did not come in time (windows decided
         # alone since then), or None while present
         self._missing: dict[str, int | None] = {a: None, b: None}
@@ -150,22 +168,25 @@ class LateFusion:
 
     # -- fusion thread ----------------------------------------------------------------------
 
-    def run(self, emit) -> None:
+    def run(self, emit: Callable[[WindowEvent], None]) -> None:
         """Pair and fuse until both inputs have ended; ``emit`` each fused WindowEvent."""
         while len(self._ended) < 2:
+            item: _Item | None
             try:
-                item, extra = self._queue.get(timeout=0.01)
+                item = self._queue.get(timeout=0.01)
             except queue.Empty:
                 item = None
-            if item is _END:
-                self._ended.add(extra)
-            elif item is not None:
-                self._take(item, extra)
+            if item is None:
+                pass
+            elif isinstance(item[0], _End):     # (_END, stream)
+                self._ended.add(item[1])
+            else:
+                self._take(*item)
             self._pair(time.monotonic(), emit)
         while not self._queue.empty():          # nothing comes after both ends, but be exact
-            item, extra = self._queue.get()
-            if item is not _END:
-                self._take(item, extra)
+            item = self._queue.get()
+            if not isinstance(item[0], _End):
+                self._take(*item)
         self._pair(math.inf, emit)
 
     def _take(self, event: WindowEvent, put_at: float) -> None:
@@ -177,7 +198,7 @@ class LateFusion:
         closed = put_at - event.latency_ms / 1e3 if event.latency_ms is not None else None
         self._pending[s].append((event, put_at, closed))
 
-    def _pair(self, now: float, emit) -> None:
+    def _pair(self, now: float, emit: Callable[[WindowEvent], None]) -> None:
         a, b = self.inputs
         pa, pb = self._pending[a], self._pending[b]
         while pa and pb:
@@ -222,10 +243,12 @@ class LateFusion:
 
     def _fused_log_posteriors(self, ea: WindowEvent, eb: WindowEvent) -> np.ndarray:
         """Log-posteriors of a pair, in :attr:`classes` order (:func:`~supramodal.fusion.fuse_late`)."""
-        return fuse_late(log_posteriors_of(ea)[None, :], log_posteriors_of(eb)[self._order_b][None, :], self._weight,
-                         self.sharpness)[0]
+        fused = fuse_late(log_posteriors_of(ea)[None, :], log_posteriors_of(eb)[self._order_b][None, :], self._weight,
+                          self.sharpness)
+        post: np.ndarray = fused[0]     # (an ndarray's row is typed Any)
+        return post
 
-    def _fuse(self, item_a, item_b) -> WindowEvent:
+    def _fuse(self, item_a: _Pending, item_b: _Pending) -> WindowEvent:
         (ea, _, closed_a), (eb, _, closed_b) = item_a, item_b
         post = self._fused_log_posteriors(ea, eb)
         if self.kept_pairs is not None:
@@ -234,14 +257,15 @@ class LateFusion:
         closed = None if closed_a is None or closed_b is None else max(closed_a, closed_b)
         return self._event(post, (ea, eb), closed, frozenset((ea.flags | eb.flags) - {"alone"}))
 
-    def _single(self, item) -> WindowEvent:
+    def _single(self, item: _Pending) -> WindowEvent:
         event, _, closed = item
         lp = log_posteriors_of(event)
         post = lp if event.stream == self.inputs[0] else lp[self._order_b]
         self.alone += 1
         return self._event(post, (event,), closed, event.flags | {"alone"})
 
-    def _event(self, log_post: np.ndarray, events, closed, flags) -> WindowEvent:
+    def _event(self, log_post: np.ndarray, events: Sequence[WindowEvent], closed: float | None,
+               flags: Iterable[str]) -> WindowEvent:
         truth = next((e.truth for e in events if e.truth is not None), None)
         in_contact = any(e.in_contact for e in events)
         said = self.decider.decide(log_post, in_contact, novel=any(e.unknown == "novel" for e in events))
@@ -263,7 +287,7 @@ class LateFusion:
 
     # -- summary ----------------------------------------------------------------------------
 
-    def summary(self) -> dict:
+    def summary(self) -> dict[str, Any]:
         """``windows`` fused decisions: ``paired`` from both senses, ``alone`` from one; ``late``
         windows per stream (their partner was already decided alone); ``dropouts`` per stream
         (times it stopped coming in time, each said as a ``sense_lost`` event); accuracies where truth is
@@ -297,15 +321,17 @@ class EarlyFusion(LateFusion):
 
     method = "early"
 
-    def __init__(self, inputs, classes, model, max_wait: float | None = DEFAULT_MAX_WAIT,
+    def __init__(self, inputs: Sequence[str], classes: Sequence[Sequence[str]], model: EarlyFusionModel,
+                 max_wait: float | None = DEFAULT_MAX_WAIT,
                  decision: DecisionRules = DEFAULT_DECISION) -> None:
         if sorted(model.classes) != sorted(classes[0]):
             raise InputError(f"the early-fusion model knows {list(model.classes)}, the streams {list(classes[0])}: "
                              "train it on the streams' textures")
-        correlation, caps = (0.0, None) if model.calibration is None else model.calibration.contact_pooling
-        if caps is not None:                # the model's class order -> the streams'
+        correlation, model_caps = (0.0, None) if model.calibration is None else model.calibration.contact_pooling
+        caps = None
+        if model_caps is not None:          # the model's class order -> the streams'
             order = [list(model.classes).index(name) for name in classes[0]]
-            caps = np.asarray(caps)[np.ix_(order, order)]
+            caps = np.asarray(model_caps)[np.ix_(order, order)]
         super().__init__(inputs, classes, DEFAULT_WEIGHT, max_wait, decision, correlation=correlation, caps=caps)
         self.model = model
         self.weight = None
@@ -316,4 +342,5 @@ class EarlyFusion(LateFusion):
         assert ea.features is not None and eb.features is not None, "an early fusion's streams emit their features"
         va = np.stack([ea.features[f] for f in a.features])[None]
         vb = np.stack([eb.features[f] for f in b.features])[None]
-        return self.model.log_posteriors(va, vb)[0][self._order_model]
+        post: np.ndarray = self.model.log_posteriors(va, vb)[0][self._order_model]   # (indexed: typed Any)
+        return post

@@ -40,19 +40,24 @@ import math
 import queue
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Collection, Iterable
 from dataclasses import replace
+from typing import TYPE_CHECKING, Any
 
 from supramodal.decisions import DEFAULT_DECISION, DecisionRules
+from supramodal.drivers.base import Driver, DriverEvent
 from supramodal.errors import InputError, SupramodalError
 from supramodal.model import TextureModel
-from supramodal.node.runtime.events import FUSED_STREAM, MAIN_STREAM, EventLimiter
+from supramodal.node.runtime.events import FUSED_STREAM, MAIN_STREAM, EventLimiter, WindowEvent
 from supramodal.node.runtime.sinks import Sink
-from supramodal.node.runtime.sources import Feed, Source
+from supramodal.node.runtime.sources import EventItem, Feed, Source
 from supramodal.node.runtime.streams import Labels, Stream, channel_mapper
 from supramodal.node.runtime.taps import Tap
 from supramodal.node.runtime.taps.recorder import SessionRecorder
 from supramodal.pipeline import FeaturePipeline
+
+if TYPE_CHECKING:   # for annotations only: a graph of one stream does not load the fusion block
+    from supramodal.node.runtime.fusion import LateFusion
 
 __all__ = ["Graph", "Node", "NodeError", "Labels", "channel_mapper"]
 
@@ -89,7 +94,10 @@ class Graph:
         only taps read needs no stream: a graph may have none (a relay).
     """
 
-    def __init__(self, sources, streams, sinks, routes=None, fusion=None, recorder=None, taps=()) -> None:
+    def __init__(self, sources: Iterable[Source], streams: Iterable[Stream], sinks: Iterable[Sink],
+                 routes: Iterable[Collection[str] | None] | None = None, fusion: LateFusion | None = None,
+                 recorder: SessionRecorder | dict[str, SessionRecorder] | None = None,
+                 taps: Iterable[tuple[str, Tap]] = ()) -> None:
         self.sources = list(sources)
         if not self.sources:
             raise InputError("a graph needs at least one source")
@@ -101,13 +109,14 @@ class Graph:
         odd = [type(s).__name__ for s in self.sinks if not isinstance(s, Sink)]
         if odd:
             raise InputError(f"a graph's sinks derive from supramodal.node.runtime.sinks.Sink; {odd} do not")
-        self.routes = list(routes) if routes is not None else [None] * len(self.sinks)
+        self.routes: list[Collection[str] | None] = list(routes) if routes is not None else [None] * len(self.sinks)
         if len(self.routes) != len(self.sinks):
             raise InputError(f"{len(self.routes)} routes for {len(self.sinks)} sinks")
         for s in self.sinks:
             s.on_reader_left = self._sink_reader_left     # a queued sink's reader may leave (`| head`)
         self.fusion = fusion
         self.recorder = recorder
+        recorders: dict[str, SessionRecorder]
         if recorder is None:
             recorders = {}
         elif isinstance(recorder, dict):
@@ -121,7 +130,9 @@ class Graph:
             raise InputError("a graph of several sources records each one: give {source name: recorder}")
         for source in self.sources:     # a source's truth labels: those of the first stream reading it
             stream = next((st for st in self.streams if st.source is source), None)
-            source.labels = stream.labels if stream is not None else None
+            # Source.labels is declared as None alone in sources.py (`self.labels = None`, unannotated), though
+            # it holds these Labels: its annotation belongs there (Labels | None), and this ignore goes with it.
+            source.labels = stream.labels if stream is not None else None  # type: ignore[assignment]
         # Taps: the recorders (their own thread named "recorder"), then the others, each with the
         # source it reads, its feed and its thread's name.
         self._recorders: list[tuple[SessionRecorder, Source, Feed, str]] = []
@@ -144,7 +155,7 @@ class Graph:
             source = by_name[name]
             self._taps.append((tap, source, source.add_feed(f"tap {tap.name}", track=tap.track), f"tap {tap.name}"))
         # source threads -> event thread: (source name, events, dropped); None from each source at its end
-        self._event_queue: queue.SimpleQueue = queue.SimpleQueue()
+        self._event_queue: queue.SimpleQueue[EventItem | None] = queue.SimpleQueue()
         for source in self.sources:
             source.event_queue = self._event_queue
         self._limiter = EventLimiter()
@@ -160,7 +171,7 @@ class Graph:
             self._stopped_by = reason
         self._stop.set()
 
-    def run(self, max_seconds: float | None = None, on_running: Callable[[], None] | None = None) -> dict:
+    def run(self, max_seconds: float | None = None, on_running: Callable[[], None] | None = None) -> dict[str, Any]:
         """Run until every source's stream ends, ``max_seconds`` of stream have passed, or :meth:`stop`.
 
         ``on_running``: called on the caller's thread once the taps are prepared (a wait for an
@@ -181,7 +192,7 @@ class Graph:
         """The recorders and the other taps: ``(tap, source, feed, thread name)``."""
         return [*self._recorders, *self._taps]
 
-    def _run(self, max_seconds: float | None, on_running: Callable[[], None] | None) -> dict:
+    def _run(self, max_seconds: float | None, on_running: Callable[[], None] | None) -> dict[str, Any]:
         for s in self.sinks:
             s.prepare()                           # may wait (e.g. for a consumer), before time starts
         for tap, _, _, _ in self._all_taps():
@@ -200,7 +211,7 @@ class Graph:
         threads.append(self._thread("event", self._deliver_events))
         if self.fusion is not None:
             self.fusion.on_event = lambda ev: self._event_queue.put((FUSED_STREAM, [ev], {}))
-            threads.append(self._thread("fusion", self._fuse))
+            threads.append(self._thread("fusion", self._fuse, self.fusion))
         for tap, source, feed, where in self._all_taps():
             tap.start(source, t0)
             threads.append(self._thread(where, tap.run, feed))
@@ -226,7 +237,7 @@ class Graph:
             raise NodeError(f"the {where} thread failed: {type(exc).__name__}: {exc}") from exc
         return summary
 
-    def _thread(self, where: str, target, *args) -> threading.Thread:
+    def _thread(self, where: str, target: Callable[..., object], *args: object) -> threading.Thread:
         return threading.Thread(target=self._guard, args=(where, target, *args), daemon=True,
                                 name="node-" + where.replace(" ", "-"))
 
@@ -235,7 +246,7 @@ class Graph:
         self._errors.append(("sink", exc))
         self.stop("the reader of the output left")
 
-    def _guard(self, where: str, target, *args) -> None:
+    def _guard(self, where: str, target: Callable[..., object], *args: object) -> None:
         try:
             target(*args)
         except BaseException as exc:  # surfaced by run(); never lost in a thread
@@ -257,9 +268,9 @@ class Graph:
         if all(s.ring.closed or s.reached_length for s in self.sources):
             self.stop(reason)
 
-    def _fuse(self) -> None:
+    def _fuse(self, fusion: LateFusion) -> None:
         try:
-            self.fusion.run(self._route)
+            fusion.run(self._route)
         finally:
             self._event_queue.put(None)
 
@@ -270,7 +281,7 @@ class Graph:
             if self.fusion is not None and stream.name in self.fusion.inputs:
                 self.fusion.end(stream.name)
 
-    def _route(self, event) -> None:
+    def _route(self, event: WindowEvent) -> None:
         """A window event to the fusion block (if it takes this stream) and to every sink that
         listens to its stream. Never blocks."""
         if self.fusion is not None and event.stream in self.fusion.inputs:
@@ -285,6 +296,7 @@ class Graph:
         running = len(self.sources) + (self.fusion is not None)     # each ends with a None
         tag = len(self.sources) > 1           # name the source when there are several
         while running:
+            item: EventItem | tuple[()] | None
             try:
                 item = self._event_queue.get(timeout=0.1)
             except queue.Empty:
@@ -299,7 +311,7 @@ class Graph:
             self._show(lim.due())
         self._show(lim.flush())
 
-    def _show(self, events) -> None:
+    def _show(self, events: Iterable[DriverEvent | None]) -> None:
         for ev in events:
             if ev is not None:
                 for s in self.sinks:
@@ -307,7 +319,7 @@ class Graph:
 
     # -- summary ------------------------------------------------------------------------------
 
-    def summary(self, wall: float) -> dict:
+    def summary(self, wall: float) -> dict[str, Any]:
         """The run's summary.
 
         One stream: its counts at the top level (``windows``, ``stream_seconds``,
@@ -376,17 +388,18 @@ class Node(Graph):
         Readers of the driver's raw frames (see :class:`Graph`).
     """
 
-    def __init__(self, driver, pipeline: FeaturePipeline, sinks, model: TextureModel | None = None,
-                 decision: DecisionRules = DEFAULT_DECISION, mapping: str | int = "auto", labels: Labels | None = None,
-                 buffer_seconds: float = 2.0, overrun: str = "drop-oldest", recorder=None,
+    def __init__(self, driver: Driver, pipeline: FeaturePipeline, sinks: Iterable[Sink],
+                 model: TextureModel | None = None, decision: DecisionRules = DEFAULT_DECISION,
+                 mapping: str | int = "auto", labels: Labels | None = None, buffer_seconds: float = 2.0,
+                 overrun: str = "drop-oldest", recorder: SessionRecorder | None = None,
                  timebase: str = "stream", time_offset: float = 0.0, time_rate: float | None = None,
-                 taps=()) -> None:
+                 taps: Iterable[Tap] = ()) -> None:
         source = Source(MAIN_STREAM, driver, buffer_seconds, overrun, timebase, time_offset, time_rate)
         stream = Stream(MAIN_STREAM, source, pipeline, model, decision, mapping, labels)
         super().__init__([source], [stream], sinks, recorder=recorder, taps=[(MAIN_STREAM, tap) for tap in taps])
 
     @property
-    def driver(self):
+    def driver(self) -> Driver:
         return self.sources[0].driver
 
     @property

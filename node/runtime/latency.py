@@ -54,7 +54,7 @@ class LatencyHistogram:
         i = int(np.searchsorted(np.cumsum(self._counts), math.floor(rank) + 1))
         return min(math.exp(self._log_low + (i + 0.5) * self._step), self.max)
 
-    def summary(self) -> dict | None:
+    def summary(self) -> dict[str, float] | None:
         """``{"p50", "p99", "max", "count"}`` in ms, or None with no latency recorded."""
         if not self.count:
             return None

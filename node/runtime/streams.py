@@ -13,7 +13,9 @@ which never blocks.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -26,8 +28,17 @@ from supramodal.node.runtime.latency import LatencyHistogram
 from supramodal.node.runtime.ringbuffer import RingClosed
 from supramodal.pipeline import FeaturePipeline
 
+if TYPE_CHECKING:   # for annotations only
+    from supramodal.features import Windows
+    from supramodal.fused_model import EarlyFusionModel
+    from supramodal.node.runtime.sources import Source
 
-def channel_mapper(mapping, driver_channels: int, bank_channels: int, setting: str = "the scene's [driver] mapping"):
+#: A window event's way out of a stream (the graph's router).
+Emit = Callable[[WindowEvent], None]
+
+
+def channel_mapper(mapping: str | int, driver_channels: int, bank_channels: int,
+                   setting: str = "the scene's [driver] mapping") -> Callable[[np.ndarray], np.ndarray]:
     """Return ``f(frames (L, driver_channels)) -> model input`` for a scene's ``mapping``.
 
     ``"mono"`` (one channel, fanned out to every filter), ``"per-channel"`` (each
@@ -90,7 +101,7 @@ class Labels:
         return None
 
 
-def refuse_uncalibrated(rules: DecisionRules, models, where: str) -> None:
+def refuse_uncalibrated(rules: DecisionRules, models: Sequence[TextureModel | EarlyFusionModel], where: str) -> None:
     """Refuse the rules of a ``[decision]`` (a confidence threshold, "unknown") that need
     calibrated posteriors when one of ``models`` (a stream's, or a fusion's) has none, naming the fix."""
     asks = rules.calibrated_rules
@@ -135,7 +146,7 @@ class Stream:
         Truth labels; by default those the driver carries (a replayed session's).
     """
 
-    def __init__(self, name: str, source, pipeline: FeaturePipeline, model: TextureModel | None = None,
+    def __init__(self, name: str, source: Source, pipeline: FeaturePipeline, model: TextureModel | None = None,
                  decision: DecisionRules = DEFAULT_DECISION, mapping: str | int = "auto",
                  labels: Labels | None = None) -> None:
         bank = pipeline.bank
@@ -167,7 +178,7 @@ class Stream:
 
     # -- processing thread --------------------------------------------------------------------
 
-    def process(self, emit) -> None:
+    def process(self, emit: Emit) -> None:
         """Read the source's ring until it closes, and ``emit`` a WindowEvent per window."""
         W = self.pipeline.window_samples
         reader = self.feed.reader
@@ -197,7 +208,7 @@ class Stream:
         self._emit(self.pipeline.finish(), None, emit)
         self.cpu += time.thread_time() - c0
 
-    def _step(self, frames: np.ndarray, start: int, emit) -> None:
+    def _step(self, frames: np.ndarray, start: int, emit: Emit) -> None:
         # Cut the stream at each window end, wherever the ring read happened to end: the
         # pipeline then filters exactly one window's samples per pass, so the output does not
         # depend on thread timing, not even in its last bit (a pass over several windows rounds
@@ -213,7 +224,7 @@ class Stream:
             self._emit(windows, flags, emit)
             cut = end
 
-    def _emit(self, windows, contact_flags, emit) -> None:
+    def _emit(self, windows: Windows, contact_flags: np.ndarray | None, emit: Emit) -> None:
         if not len(windows):
             return
         W, fs = self.pipeline.window_samples, self.pipeline.bank.fs
@@ -273,7 +284,7 @@ class Stream:
 
     # -- summary ------------------------------------------------------------------------------
 
-    def summary(self) -> dict:
+    def summary(self) -> dict[str, Any]:
         """This stream's part of the node's summary (see :meth:`Graph.summary`)."""
         fs = self.pipeline.bank.fs
         stream = self._expected / fs
