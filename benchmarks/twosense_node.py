@@ -49,6 +49,7 @@ from supramodal.benchmarks.soak import rss_kib, rss_slope
 from supramodal.node.runtime.sinks import QueuedSink, Sink
 from supramodal.node.scene.build import build_node
 from supramodal.node.scene.schema import scene_from_dict
+from supramodal.replay.driver import ReplayDriver
 
 #: The sources as the issue describes a robot's: crystals tens of ppm off, tens of ms apart.
 WHISKERS: dict[str, Any] = {"name": "whiskers", "type": "twosense", "sense": "whiskers", "block": 50,
@@ -112,7 +113,7 @@ def run_phase(name: str, streams: tuple[str, ...], seconds: float, sample_every:
         now = time.monotonic()
         row: dict[str, Any] = {"phase": name, "t": now - t0, "rss_kib": rss_kib(),
                                "windows": sum(sink.windows.values())}
-        if len(streams) == 2 and all(s.clock.estimate().fitted for s in graph.sources):
+        if len(streams) == 2 and all(s.clock is not None and s.clock.estimate().fitted for s in graph.sources):
             err = clock_errors(graph, now - 0.5)     # half a second back: both have samples there
             row.update({f"err_{k}_ms": v * 1e3 for k, v in err.items()})
             row["align_ms"] = (err["whiskers"] - err["mic"]) * 1e3
@@ -139,10 +140,13 @@ def run_phase(name: str, streams: tuple[str, ...], seconds: float, sample_every:
     if len(streams) == 2:
         err = clock_errors(graph, t0 + seconds - 0.5)
         end = {"err_ms": {k: v * 1e3 for k, v in err.items()}, "align_ms": (err["whiskers"] - err["mic"]) * 1e3}
-    clocks = {}
+    clocks: dict[str, dict[str, Any]] = {}
     for source in graph.sources:
-        true_ppm = source.driver.device_clock.ppm
+        driver = source.driver
+        assert isinstance(driver, ReplayDriver) and driver.device_clock is not None, "the scene's sources are synthetic"
+        true_ppm = driver.device_clock.ppm
         est = source.clock_summary()
+        assert est is not None, "a host-timed source has a clock"
         clocks[source.name] = {"true_ppm": true_ppm, "ppm": est["ppm"], "ppm_error": est["ppm"] - true_ppm,
                                "jitter_ms": est["jitter_ms"], "fitted": est["fitted"]}
     # A graph of one source reports as a one-source node: its stream's figures at the top.

@@ -208,21 +208,20 @@ def _train_fusion(args) -> int:
         print(f"learned late-fusion weight {weight:.2f} of {a} (and {1 - weight:.2f} of {b}) and sharpness "
               f"{sharpness:.4g} on the out-of-fold windows of {info['pairs']} labelled pairs (the late row: each "
               f"fold fused with a weight learned without it): set [fusion] {keys}")
-        _write_run_scene(args, write_fused_scene, (a, b), models,
-                         {"method": "late", "weight": round(weight, 4), "sharpness": float(f"{sharpness:.4g}"),
-                          "correlation": float(f"{info['correlation']:.3g}")})
+        _write_run_scene(args, write_fused_scene, (a, b), models, method="late", weight=round(weight, 4),
+                         sharpness=float(f"{sharpness:.4g}"), correlation=float(f"{info['correlation']:.3g}"))
         return 0
     path = result.save(args.out)
     print(f"wrote {path}: early fusion of {a} and {b}, classes {info['classes']}, {info['pairs']} pairs of windows, "
           f"calibrated on its out-of-fold pairs (the early row); use it with [fusion] method = \"early\", "
           f"model = \"{path.resolve()}\" (a relative path is taken from the scene's folder)")
-    _write_run_scene(args, write_fused_scene, (a, b), models, {"method": "early", "model": str(path.resolve())})
+    _write_run_scene(args, write_fused_scene, (a, b), models, method="early", model=str(path.resolve()))
     return 0
 
 
-def _write_run_scene(args, write, streams, models: dict, fusion: dict) -> None:
+def _write_run_scene(args, write, streams, models: dict[str, str], **fusion: str | float) -> None:
     """``--write-scene``: the live scene with the sense models and the fusion learned, to run at once."""
     if args.write_scene is None:
         return
-    path = write(args.live, streams, fusion, models, args.write_scene)
+    path = write(args.live, streams, models, args.write_scene, **fusion)
     print(f"wrote {path}: {args.live} with the sense models and this fusion; run it: supramodal run {path}")

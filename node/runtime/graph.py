@@ -130,9 +130,7 @@ class Graph:
             raise InputError("a graph of several sources records each one: give {source name: recorder}")
         for source in self.sources:     # a source's truth labels: those of the first stream reading it
             stream = next((st for st in self.streams if st.source is source), None)
-            # Source.labels is declared as None alone in sources.py (`self.labels = None`, unannotated), though
-            # it holds these Labels: its annotation belongs there (Labels | None), and this ignore goes with it.
-            source.labels = stream.labels if stream is not None else None  # type: ignore[assignment]
+            source.labels = stream.labels if stream is not None else None
         # Taps: the recorders (their own thread named "recorder"), then the others, each with the
         # source it reads, its feed and its thread's name.
         self._recorders: list[tuple[SessionRecorder, Source, Feed, str]] = []

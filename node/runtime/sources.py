@@ -47,7 +47,8 @@ from supramodal.errors import InputError
 from supramodal.node.runtime.clock import ClockModel
 from supramodal.node.runtime.ringbuffer import Reader, RingBuffer
 
-if TYPE_CHECKING:   # the recorder imports the sources: its name for an annotation only
+if TYPE_CHECKING:   # the recorder and the streams import the sources: their names for annotations only
+    from supramodal.node.runtime.streams import Labels
     from supramodal.node.runtime.taps.recorder import SessionRecorder
 
 #: What a source puts on the graph's event queue: (source name, driver events, dropped counts by kind).
@@ -139,7 +140,7 @@ class Source:
         self.recorder: SessionRecorder | None = None
         #: Truth labels of the source's samples (:class:`~supramodal.node.runtime.streams.Labels`), set by
         #: the graph from the first stream that reads the source; None: none known (a relay).
-        self.labels = None
+        self.labels: Labels | None = None
         time_rate = self.rate if time_rate is None else float(time_rate)
         #: Samples per second of common time the clock model starts from (its nominal rate).
         self.time_rate = time_rate

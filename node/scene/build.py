@@ -434,7 +434,11 @@ def build_node(scene: Scene, speed=None, sinks_override=None, progress=None, rec
                                  for name, (s, _, _) in sources.items()})
         made.sort(key=lambda m: m[0].index)     # the scene's order
         windows = [(settings, sink) for settings, spec, sink in made if spec.listens == "windows"]
-        taps = [(settings.source, tap) for settings, spec, tap in made if spec.listens == "samples"]
+        taps = []
+        for settings, sink_spec, tap in made:
+            if sink_spec.listens == "samples":
+                assert settings.source is not None, "a sink of samples names its source (the schema's SOURCE key)"
+                taps.append((settings.source, tap))
         if sinks_override is not None:
             sinks, routes = list(sinks_override), None
         else:

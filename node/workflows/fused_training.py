@@ -228,11 +228,13 @@ def train_fused(paths, method: str = "early", epochs: int = DEFAULT_EPOCHS, seed
     return (late["weight"], late["sharpness"]), info
 
 
-def write_fused_scene(live, streams, fusion: dict, models: dict, out) -> Path:
+def write_fused_scene(live, streams, models: dict[str, str], out, *, method: str, model: str | None = None,
+                      weight: float | None = None, sharpness: float | None = None,
+                      correlation: float | None = None) -> Path:
     """Write the scene that runs the fusion live: the scene ``live`` (the one the recordings were
     made with) with the streams in ``models`` (``{stream: model file}``) deciding with those files
-    and ``[fusion]`` set to ``fusion`` (its keys: ``method``, ``model``, or ``weight``,
-    ``sharpness``, ``correlation``) over ``streams``. Paths the scene names relative to its own
+    and a ``[fusion]`` of ``method`` over ``streams``: ``model`` (early), or ``weight``,
+    ``sharpness`` and ``correlation`` (late; the [fusion] keys). Paths the scene names relative to its own
     folder (a replay's file, a bank file, a sink's file) are written absolute, so the new scene runs
     from its own folder. Returns ``out``; refuses an existing file (the caller checks ``--force``)."""
     scene = load_scene(live)
@@ -248,7 +250,8 @@ def write_fused_scene(live, streams, fusion: dict, models: dict, out) -> Path:
     for sink in d.get("sink", []):
         if sink.get("path", "-") != "-":
             sink["path"] = str(scene.resolve(sink["path"]).resolve())
-    d["fusion"] = {"streams": list(streams), **fusion}
+    learned = {"model": model, "weight": weight, "sharpness": sharpness, "correlation": correlation}
+    d["fusion"] = {"streams": list(streams), "method": method, **{k: v for k, v in learned.items() if v is not None}}
     out = Path(out)
     checked = scene_from_dict(d, str(out), out.resolve().parent)
     out.write_text(f"# {scene.source} with its sense models and the fusion learned by supramodal train --fusion.\n"
