@@ -254,12 +254,18 @@ def _share_fusion_training():
 def pytest_sessionstart(session):
     """The run's shared folder: under xdist, the controller's base temp (every worker's base temp is a
     folder in it, so the workers of one run share it and no other run sees it); without xdist, this
-    process's own. The node's models trained on start are kept there too (:class:`_SharedModels`)."""
+    process's own. The node's models trained on start are kept there too (:class:`_SharedModels`), and
+    so is the cache of models trained on start (node/workflows/model_cache.py: ``SUPRAMODAL_CACHE``,
+    set here before any test starts a process, which inherits it), never the user's own: a node run as
+    a process by a test reads the model another process of the run trained."""
     global _SHARED_DIR
     config = session.config
     base = config._tmp_path_factory.getbasetemp()
     _SHARED_DIR = (base.parent if hasattr(config, "workerinput") else base) / "run-once"
     _SHARED_DIR.mkdir(exist_ok=True)
+    from supramodal.node.workflows.model_cache import CACHE_ENV
+
+    os.environ[CACHE_ENV] = str(_SHARED_DIR / "model-cache")
     from supramodal.node.scene import build
 
     build._trained_on_the_spot = _shared_models
