@@ -4,6 +4,7 @@ import json
 import math
 
 import numpy as np
+import pytest
 import scipy.signal
 
 from supramodal.node import cli
@@ -14,6 +15,7 @@ from supramodal.benchmarks.filterbank.run import pareto
 from supramodal.gammatone import reference_impulse_response, relative_error
 
 
+@pytest.mark.slow   # a long run: the filterbank benchmark in quick mode
 def test_quick_bench_writes_a_complete_report(tmp_path, capfd):
     assert cli.main(["bench", "--quick", "--out", str(tmp_path), "--json"]) == 0
     stdout = capfd.readouterr().out

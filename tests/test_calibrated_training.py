@@ -316,6 +316,7 @@ def test_without_matplotlib_the_csvs_are_written_and_the_user_told(recordings, t
         ["anytime.csv", "channels.csv", "confusion.csv", "pooling.csv", "reliability.csv"]
 
 
+@pytest.mark.slow   # a long run: a calibrated cross-validation
 def test_cross_validation_reports_the_calibration_of_every_test_fold(recordings, tmp_path, capsys):
     out = tmp_path / "m.npz"
     assert main(["train", "--bank", "whisker", "--manifest", str(recordings / "all.csv"), "--out", str(out),

@@ -124,6 +124,7 @@ def test_merged_reports_equal_one_report_of_all_decisions():
     assert merged["reliability"]["count"] == whole["reliability"]["count"]
 
 
+@pytest.mark.slow   # a long run: two senses' networks trained fold by fold
 def test_late_fusion_learns_from_windows_no_sense_network_trained_on(monkeypatch):
     """The weight and sharpness are learned on out-of-fold log-posteriors, not on the sense models'
     own training windows (this fails if run_set passes those)."""
@@ -153,6 +154,7 @@ def test_late_fusion_learns_from_windows_no_sense_network_trained_on(monkeypatch
 
 # -- the experiment -----------------------------------------------------------------------------------
 
+@pytest.mark.slow   # a long run: the calibration experiment in quick mode (once per run)
 def test_quick_result_has_every_part_and_no_nan(quick):
     assert set(quick["reference"]) == set(quick["random_sets"]) == set(quick["leave_out"]) == {"whisker", "cochlea"}
     assert all(not (isinstance(v, float) and math.isnan(v)) for v in numbers(quick))
@@ -185,6 +187,7 @@ def test_quick_result_has_every_part_and_no_nan(quick):
     assert 0.0 <= two["late_fusion"]["late_weight"]["mean"] <= 1.0
 
 
+@pytest.mark.slow   # the calibration experiment in quick mode, as above
 def test_quick_table_names_every_part_and_every_done_when_line(quick):
     table = calibration_table(quick)
     for row in ("| whisker reference |", "| cochlea reference |", "| whisker, 1 random sets |",
@@ -196,6 +199,7 @@ def test_quick_table_names_every_part_and_every_done_when_line(quick):
     assert all(f"| {what} |" in table for what, _, _ in lines)
 
 
+@pytest.mark.slow   # the calibration experiment in quick mode, as above
 def test_csv_files_parse_with_rates_in_range(quick, tmp_path, monkeypatch):
     monkeypatch.setattr(report, "have_matplotlib", lambda: False)
     written = report.write_figure("calibration", quick, tmp_path)
@@ -216,6 +220,7 @@ def test_csv_files_parse_with_rates_in_range(quick, tmp_path, monkeypatch):
     assert all(int(b["count"]) >= 0 for b in bins)
 
 
+@pytest.mark.slow   # the calibration experiment in quick mode, as above
 def test_no_png_without_matplotlib_says_so(quick, tmp_path, monkeypatch):
     from supramodal.experiments.calibration import write_calibration
 
@@ -231,6 +236,7 @@ def test_no_png_without_matplotlib_says_so(quick, tmp_path, monkeypatch):
     assert all(p.stat().st_size > 1000 for p in pngs)
 
 
+@pytest.mark.slow   # the calibration experiment in quick mode, as above
 def test_cli_writes_json_and_files_quietly(cli_run):
     result, _, err, out = cli_run
     assert err == "" and result["figure"] == "calibration" and result["quick"] is True

@@ -162,8 +162,9 @@ def test_signal_during_start_up_training(tmp_path, sig):
     prints one line and exits 128 + signal, nothing on stdout."""
     scene = tmp_path / "s.toml"
     scene.write_text('[driver]\ntype = "synth"\n[bank]\nkind = "cochlea"\n[model]\ntrain_on_start = true\n')
+    # It trains: not a model another test of the run left in the cache of models trained on start.
     proc = subprocess.Popen([sys.executable, "-m", "supramodal.node.cli", "run", str(scene), "--json"], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, env=_env(), cwd=ROOT)
+                            stderr=subprocess.PIPE, text=True, env={**_env(), "SUPRAMODAL_CACHE": "off"}, cwd=ROOT)
     try:
         first = proc.stderr.readline()               # printed just before the scene is built
         assert first.startswith("supramodal: scene "), first

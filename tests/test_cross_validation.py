@@ -61,6 +61,7 @@ def recordings(tmp_path_factory):
     return write_texture_recordings(tmp_path_factory.mktemp("cv"), per_texture=3)
 
 
+@pytest.mark.slow   # a long run: a cross-validation run twice and each fold trained again
 def test_each_fold_scores_as_training_on_the_other_recordings(recordings):
     """Fold by fold, the result equals a plain re-run: train_from_manifest on a manifest of the
     other folds' recordings, evaluate_manifest on this fold's."""
@@ -89,6 +90,7 @@ def test_each_fold_scores_as_training_on_the_other_recordings(recordings):
     assert again["folds"] == cv["folds"]                            # deterministic given the seed
 
 
+@pytest.mark.slow   # a long run: a cross-validation and a calibrated training
 def test_train_cv_reports_then_writes_the_model_and_the_confusion_files(recordings, tmp_path, capsys):
     out = tmp_path / "m.npz"
     assert main(["train", "--bank", "whisker", "--manifest", str(recordings / "all.csv"), "--out", str(out),
@@ -171,6 +173,7 @@ def test_evaluate_reports_chance_pooling_and_channels_and_writes_them(recordings
                  str(tmp_path / "eval"), "--quiet"]) == 2                          # no silent overwrite
 
 
+@pytest.mark.slow   # a long run: a model trained, then trained again fold by fold
 def test_evaluate_cv_retrains_the_models_configuration_fold_by_fold(recordings, tmp_path, capsys):
     """`evaluate MODEL --cv K` cross-validates what the model file says it is (bank, features, window,
     epochs, seed, hidden units): the same folds and scores as cross-validating those settings

@@ -158,6 +158,7 @@ def test_early_fusion_refuses_a_model_of_other_textures():
         EarlyFusion(("whiskers", "mic"), (CLASSES, CLASSES), _model(classes=("bark", "felt", "wool")))
 
 
+@pytest.mark.slow   # a long run: the two-sense world's early and late fusions trained and run twice
 def test_the_two_sense_world_with_early_fusion_in_the_node_beats_late_fusion_and_each_sense(tmp_path):
     """The supramodal network trained on the spot on both senses' aligned training windows: on
     contacts it never met, it decides the windows that each sense alone confuses; and a network
@@ -184,6 +185,7 @@ def test_the_two_sense_world_with_early_fusion_in_the_node_beats_late_fusion_and
     assert decided(again) == decided(sink)
 
 
+@pytest.mark.slow   # a long run: an early-fusion network trained on the spot
 def test_early_fusion_needs_a_model_or_both_streams_trained_on_the_spot(tmp_path):
     d = _two_sense_scene()
     d["fusion"] = {"streams": ["whiskers", "mic"], "method": "early"}
@@ -201,6 +203,7 @@ def test_early_fusion_needs_a_model_or_both_streams_trained_on_the_spot(tmp_path
         build_node(scene_from_dict(d, "world.toml"), speed="max", sinks_override=[ListSink()])
 
 
+@pytest.mark.slow   # a long run: the two-sense world's early-fusion network trained on the spot
 def test_fused_decisions_pool_over_windows_as_a_streams_do():
     """[fusion.decision] pools the fused posteriors over the last 10 windows (a touch of 1 s): on
     the two-sense world, where the last 10 windows were all on one texture, the pooled

@@ -66,6 +66,7 @@ def test_runner_returns_results_in_plan_order_whatever_the_schedule():
         run_all(runs, jobs=0)
 
 
+@pytest.mark.slow   # a long run: every figure in quick mode (once per run)
 def test_quick_results_do_not_depend_on_jobs(quick):
     one = run_plans({"fig5": plans("fig5", quick=True)["fig5"], "fig6": plans("fig6", quick=True)["fig6"]},
                     jobs=1, seed=0)
@@ -75,10 +76,12 @@ def test_quick_results_do_not_depend_on_jobs(quick):
 
 # -- each figure ----------------------------------------------------------------------------------
 
+@pytest.mark.slow   # every figure in quick mode, as above
 def test_all_runs_every_figure(quick):
     assert list(quick) == list(FIGURES)
 
 
+@pytest.mark.slow   # every figure in quick mode, as above
 def test_fig1_structure(quick):
     r = quick["fig1"]
     assert set(r["banks"]) == {"cochlea", "whisker"}
@@ -109,6 +112,7 @@ def test_fig1_closed_form_is_the_filters_own_response(bank):
     assert np.max(np.abs(fft - closed)) < 1e-9 * np.max(np.abs(closed))
 
 
+@pytest.mark.slow   # every figure in quick mode, as above
 def test_fig3_quick_structure(quick):
     r = quick["fig3"]
     assert set(r["banks"]) == {"whisker", "cochlea"} and "random_sets" not in r
@@ -120,6 +124,7 @@ def test_fig3_quick_structure(quick):
             assert is_rate(f["mean_rate"]) and all(is_rate(v) for v in f["per_texture"].values())
 
 
+@pytest.mark.slow   # every figure in quick mode, as above
 def test_fig4_quick_structure(quick):
     r = quick["fig4"]
     freqs = np.array(r["freqs"])
@@ -144,6 +149,7 @@ def test_sharpness_of_a_known_curve():
     assert not rising["closed"] and rising["width_3db"] is None and rising["high_hz"] is None
 
 
+@pytest.mark.slow   # every figure in quick mode, as above
 def test_fig5_quick_structure(quick):
     r = quick["fig5"]
     B = r["mean_B"]
@@ -157,6 +163,7 @@ def test_fig5_quick_structure(quick):
         assert len(f["per_texture"]) == 8 and all(len(v) == len(B) for v in f["per_texture"].values())
 
 
+@pytest.mark.slow   # every figure in quick mode, as above
 def test_fig6_quick_structure(quick):
     r = quick["fig6"]
     assert r["feature"] == "Af"
@@ -185,6 +192,7 @@ EXPECTED_FILES = {
 }
 
 
+@pytest.mark.slow   # every figure in quick mode, as above
 def test_write_figure_csv_always_png_with_matplotlib(quick, tmp_path, monkeypatch):
     monkeypatch.setattr(report, "have_matplotlib", lambda: False)
     for name, result in quick.items():
@@ -199,6 +207,7 @@ def test_write_figure_csv_always_png_with_matplotlib(quick, tmp_path, monkeypatc
         assert pngs and all(p.stat().st_size > 1000 for p in pngs)
 
 
+@pytest.mark.slow   # every figure in quick mode, as above
 def test_fig5_csv_rows(quick, tmp_path):
     report.write_figure("fig5", quick["fig5"], tmp_path)
     lines = (tmp_path / "fig5.csv").read_text().splitlines()
@@ -214,6 +223,7 @@ def run_cli(*args, timeout=300):
                           capture_output=True, text=True, timeout=timeout)
 
 
+@pytest.mark.slow   # every figure in quick mode, as above
 def test_cli_fig4_json_quiet(tmp_path, quick):
     proc = run_cli("experiment", "fig4", "--quick", "--json", "--quiet", "--jobs", "1", "--out", str(tmp_path))
     assert proc.returncode == 0, proc.stderr
@@ -222,6 +232,7 @@ def test_cli_fig4_json_quiet(tmp_path, quick):
     assert (tmp_path / "fig4.csv").is_file()
 
 
+@pytest.mark.slow   # a long run: Fig. 6 in quick mode in its own process
 def test_cli_fig6_progress_and_table(tmp_path):
     proc = run_cli("experiment", "fig6", "--quick", "--jobs", "2", "--out", str(tmp_path))
     assert proc.returncode == 0, proc.stderr
@@ -229,6 +240,7 @@ def test_cli_fig6_progress_and_table(tmp_path):
     assert "whisker rows:" in proc.stdout and "wrote " in proc.stdout
 
 
+@pytest.mark.slow   # a long run: Fig. 3 in quick mode in its own process
 def test_cli_fig3_one_bank_keeps_its_shape(tmp_path):
     proc = run_cli("experiment", "fig3", "--bank", "whisker", "--quick", "--json", "--quiet", "--out", str(tmp_path))
     assert proc.returncode == 0, proc.stderr

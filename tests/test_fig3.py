@@ -65,6 +65,7 @@ def run_cli(*args, timeout=300):
                           capture_output=True, text=True, timeout=timeout)
 
 
+@pytest.mark.slow   # a long run: Fig. 3 in quick mode in its own process
 def test_cli_fig3_json(tmp_path):
     textures = tmp_path / "short.json"
     short_whisker_set().save(textures)

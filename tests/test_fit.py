@@ -48,7 +48,6 @@ def test_fit_is_deterministic_and_its_best_is_the_cross_validation_of_that_setti
     assert fit_manifest(sensor / "m.csv", k=3, epochs=30, seed=1, quick=True)["rows"] == result["rows"]
 
 
-@pytest.mark.slow   # a long run: a whole fit from the command line, then train, evaluate and the node
 def test_fit_writes_a_bank_whose_model_decides_in_the_node_as_evaluate_does_on_held_out_recordings(sensor, tmp_path, capsys):
     out = tmp_path / "fit"
     assert main(["fit", str(sensor / "m.csv"), "--out", str(out), "--cv", "3", "--epochs", "30", "--quick",

@@ -93,6 +93,7 @@ def test_the_cache_keeps_within_its_memory_bound_and_refilters_only_without_a_fo
 
 # -- the search ----------------------------------------------------------------------------------
 
+@pytest.mark.slow   # a long run: a fit's search run twice
 def test_the_search_is_deterministic_for_a_seed_and_each_fold_is_filtered_once_per_bank(manifest):
     first = fit_search(manifest, seed=3, **FAST)
     again = fit_search(manifest, seed=3, **FAST)
@@ -125,6 +126,7 @@ def test_a_time_budget_stops_new_rounds_after_the_first(manifest):
     assert len(result["rows"]) == FAST["batch"]                  # one round of trials, then the budget is spent
 
 
+@pytest.mark.slow   # a long run: a fit's search on a local Dask cluster and in one process
 def test_a_dask_cluster_gives_the_result_of_one_process(manifest, tmp_path):
     distributed = pytest.importorskip("distributed", reason="the fit extra (dask[distributed]) is not installed")
     alone = fit_search(manifest, seed=5, **FAST)

@@ -102,6 +102,7 @@ def test_the_outputs_name_the_fusion_scored(recording, tmp_path, capsys):
     assert "fused: late fusion, weight" in out and "contacts: 4 windows each" in out
 
 
+@pytest.mark.slow   # a long run: an early-fusion network trained and scored
 def test_an_early_fusion_network_given_is_named(recording, tmp_path, capsys):
     """--fused-model: the scored fusion is that network, named by its file."""
     scenes = ["--scene", str(recording)]

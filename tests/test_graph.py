@@ -220,6 +220,7 @@ def _graph_scene(**over):
     return d
 
 
+@pytest.mark.slow   # a long run: a model trained on the spot for each of two streams, then fused
 def test_a_graph_scene_runs_two_streams_and_their_fusion_end_to_end(capsys):
     """Two synth sources, a model trained on the spot for each stream, late fusion: the fused
     stream pairs every window, its sink hears only it, and a second sink only stream R."""
@@ -343,6 +344,7 @@ def test_a_two_sense_source_needs_the_bank_of_its_sense():
         build_node(scene_from_dict(d, "world.toml"), speed="max", sinks_override=[ListSink()])
 
 
+@pytest.mark.slow   # paced: 32 s of stream at speed 8, after a run at max speed
 def test_two_sense_sources_paced_on_their_own_crystals_are_put_on_one_time_by_their_clock_models():
     """Paced like live devices (speed 8): the whiskers' crystal +100 ppm, the microphone's -100
     ppm and 37 ms later, blocks delivered 2 ms late on average. The node sees only the arrival
@@ -432,6 +434,7 @@ class _Stalling(DriverBase):
 
 
 @pytest.mark.alone  # paced in real time: beside a computing worker more windows wait out max_wait (52 > 45)
+@pytest.mark.slow   # paced: 3 s of the two-sense world at 4x real time, its models trained on the spot
 def test_a_sense_that_drops_out_leaves_the_other_deciding_alone_and_fusion_resumes_when_it_is_back():
     """The two-sense world paced at 4x real time; the microphone stalls for 1 s of host time
     (4 s of stream) 3 s into the stream. The whiskers keep deciding; fused windows meanwhile are

@@ -151,7 +151,8 @@ def test_a_two_sense_session_recorded_live_replays_with_the_same_fused_decisions
         assert result["fusion"]["window_accuracy"] == summary["fusion"]["window_accuracy"]
 
 
-@pytest.mark.parametrize("fusion", ['weight = "learn"', 'method = "early"'])
+# the early network's training is slow (a long run: an early-fusion network trained on the spot)
+@pytest.mark.parametrize("fusion", ['weight = "learn"', pytest.param('method = "early"', marks=pytest.mark.slow)])
 def test_record_of_a_graph_scene_writes_the_sessions_models_and_replay_scene(tmp_path, capsys, fusion):
     d = _two_sense_scene(seconds=0.5)
     lines = ["[[source]]\n" + "".join(f"{k} = {json.dumps(v)}\n" for k, v in s.items()) for s in d["source"]]

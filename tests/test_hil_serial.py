@@ -125,6 +125,7 @@ def test_every_injected_fault_is_accounted_for(signal_and_model):
     assert summary["windows"] == len(sink.events) >= len(x) // W - 2
 
 
+@pytest.mark.slow   # paced real time: the example scene on the mock board for 10 s
 def test_the_serial_example_scene_decides_on_the_mock_board():
     """examples/whisker_serial.toml as shipped (its port pointed at the mock's pty): it trains its
     model at start-up on the reference textures and decides, per contact, the texture the
@@ -193,7 +194,8 @@ def _check_one_fate(summary, st, ledger, n_rows):
     assert f["delivered"] + f["dropped"] == st["frames"] - st["filled"]
 
 
-@pytest.mark.parametrize("kind", list(FAULTS))
+# every fault at once in the quick command; each fault alone is slow (paced real time: 3 s each)
+@pytest.mark.parametrize("kind", [pytest.param(k, marks=() if k == "all" else pytest.mark.slow) for k in FAULTS])
 def test_one_fate_per_frame_under_each_fault_of_the_mock_board(signal_and_model, kind):
     x = signal_and_model[0][:SHORT]
     _, summary, driver, ledger = _run_serial(x, None, FaultSpec(**FAULTS[kind]), seed=4)

@@ -21,6 +21,7 @@ from lsl_only import loopback_only, require_lsl  # noqa: F401  (the fixture appl
 require_lsl()
 
 
+@pytest.mark.slow   # paced real time: a sender process streams while the node decides
 @pytest.mark.parametrize("sender", ["node", "plain"])
 def test_a_stream_from_another_process_is_decided_as_the_same_signal_fed_locally(tmp_path, sender):
     """6 s of 20 whiskers at 5 kHz from a sender process (a relay node, ``supramodal run`` with a

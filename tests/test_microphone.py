@@ -727,6 +727,7 @@ def _paced_file_device(tmp_path: Path, raw: Path, server: str) -> dict:
 
 @pytest.mark.hardware
 @pytest.mark.parametrize("dtype", ["int16", "float32"])
+@pytest.mark.slow   # paced real time: 8 s of audio at the pace of a sound card
 def test_real_time_capture_through_jack_is_the_played_signal(tmp_path, jack_server, dtype):
     """8 s of audio at the pace of a sound card: no overflow, nothing dropped or filled, every sample
     the file's, and the 8 s take about 8 s (an unpaced file device delivers them in ~10 ms)."""

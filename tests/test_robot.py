@@ -105,6 +105,7 @@ def _run_robot(tmp_path, server, command: list[str], faults: FaultSpec | None = 
 
 @pytest.mark.hardware
 @pytest.mark.slow   # paced real time: the board and the JACK-paced microphone live
+@pytest.mark.alone  # beside another paced test (the two-sense world at 4x, the soak) its fusion waited past max_wait
 def test_the_robot_scene_runs_both_senses_fused_and_survives_the_board_unplugged(tmp_path, jack_server):
     # Unplugged 4 s after the board starts, for 1.5 s, once.
     out, err, code, ledger = _run_robot(tmp_path, jack_server, ["run", "--json"],
@@ -160,6 +161,7 @@ def test_the_robot_scene_runs_both_senses_fused_and_survives_the_board_unplugged
 
 @pytest.mark.hardware
 @pytest.mark.slow   # paced real time: the board and the JACK-paced microphone live
+@pytest.mark.alone  # the robot scene live, as above
 def test_the_robot_recorded_live_replays_with_the_same_fused_decisions(tmp_path, jack_server, capsys):
     """`supramodal record` of the robot scene, the real serial driver and PortAudio stream on their
     own clocks: the replay scene it writes, run at max speed, pairs and fuses the same windows to
@@ -229,6 +231,7 @@ def _live(tmp_path, server, texture: str, take: int, argv: list[str], stdin: str
 
 @pytest.mark.hardware
 @pytest.mark.slow   # paced real time: four recordings and a run, the board and the JACK-paced microphone live
+@pytest.mark.alone  # the robot scene live, as above
 def test_own_robot_six_commands_from_the_example_scene_to_a_fused_model_deciding_live(tmp_path, jack_server,
                                                                                       capsys, monkeypatch):
     """docs/own-robot.md worked through: (1) `record examples/robot.toml --marks` (a texture name

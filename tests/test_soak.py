@@ -10,7 +10,8 @@ import pytest
 
 from supramodal.benchmarks.soak import FAULT_RATES, format_report, run_soak
 
-pytestmark = [pytest.mark.hardware, pytest.mark.slow]
+# alone: run beside the robot's live scene (and busy cores), its counts missed a truncated frame at an unplug in 3 of 22 runs
+pytestmark = [pytest.mark.hardware, pytest.mark.slow, pytest.mark.alone]
 
 
 def test_short_soak_counts_equal_the_ledger_and_nothing_stalls():

@@ -12,6 +12,10 @@ from supramodal.node.cli import main
 from supramodal.node.scene.schema import load_scene
 from supramodal.node.workflows.training import session_fingerprint
 
+# One worker runs this module's tests one after the other: a fusion's test trains from the models the
+# test before it writes into the module's recordings (on another worker it found none and skipped).
+pytestmark = pytest.mark.xdist_group("train-scenes")
+
 
 def _world(texture: str, take: int, block: int) -> str:
     """One contact of the two-sense world, both senses, no model (a robot recording), random blocks."""

@@ -92,6 +92,7 @@ def _own(view: ViewSink) -> dict:
 
 # -- in a real browser -----------------------------------------------------------------------------
 
+@pytest.mark.slow   # a long run: a model trained on the spot, 6 s of stream in the browser
 def test_the_page_shows_the_running_nodes_decisions_as_its_jsonl_sink_has_them(tmp_path, browser):
     jsonl = tmp_path / "decisions.jsonl"
     graph = build_node(scene(tmp_path, {"type": "jsonl", "path": str(jsonl)}, {"type": "view"}))
@@ -333,6 +334,7 @@ def test_an_unplug_of_the_mock_board_shows_a_banner_within_a_second(tmp_path, br
             run.join()
 
 
+@pytest.mark.slow   # a long run: two models trained on the spot and fused, in the browser
 def test_a_fused_graph_shows_both_streams_the_fused_one_and_the_pairing(tmp_path, browser):
     from supramodal.node.scene.schema import load_scene
     from supramodal.node.runtime.sinks.view import with_view
