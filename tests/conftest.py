@@ -78,6 +78,7 @@ def _paced_group(item) -> str | None:
     return None
 
 
+@pytest.hookimpl(optionalhook=True)
 def pytest_xdist_auto_num_workers(config):
     """``-n auto``: one worker per core for the tests that compute, plus one per paced group. The paced
     tests mostly wait for their clock; the workers that compute run in idle time
@@ -100,10 +101,12 @@ def pytest_collection_modifyitems(config, items):
     first, so that no worker ends the run alone on one of them), then the tests that mostly wait. xdist
     hands the groups out first (the largest units of work), one to a worker."""
     rank = {}
+    groups = {}
     for item in items:
         group = _paced_group(item)
         if group is not None:
             item.add_marker(pytest.mark.xdist_group(group))
+            groups[item.nodeid] = group
             rank[item] = 0.5 if item.get_closest_marker("alone") else 0
         elif item.get_closest_marker("slow"):
             rank[item] = 1
@@ -114,6 +117,101 @@ def pytest_collection_modifyitems(config, items):
     if hasattr(config, "workerinput"):
         # On xdist's workers (which all collect the same order; the scheduler hands tests out in it).
         items.sort(key=rank.__getitem__)
+        _write_paced_groups(groups)
+
+
+# -- keeping each paced group on one worker ---------------------------------------------------------------
+#
+# xdist's own channel for groups is a suffix its workers append to each test id ("...::test@group"); from
+# pytest 9.2 on, test ids are structured and the suffix is silently lost (pytest-dev/pytest-xdist#1386),
+# so that every paced test went to whichever worker was free, some of them to workers computing in idle
+# time: slower, and an LSL test failed. The workers instead write the groups to the run's shared folder
+# and the controller's scheduler reads them (:class:`_PacedGroupScheduling`); the controller checks at the
+# end of the run that each group ran on one worker (:func:`pytest_sessionfinish`).
+
+def _paced_groups_path():
+    return _SHARED_DIR / "paced-groups.json"
+
+
+def _write_paced_groups(groups: dict[str, str]) -> None:
+    """Write the paced groups of the collected tests (test id -> group) for the controller's scheduler.
+    Every worker writes the same (they collect the same tests), each whole file at once."""
+    import json
+
+    path = _paced_groups_path()
+    tmp = path.with_name(f"{path.name}.{os.getpid()}")
+    tmp.write_text(json.dumps(groups, sort_keys=True))
+    os.replace(tmp, path)
+
+
+def _read_paced_groups() -> dict[str, str]:
+    import json
+
+    try:
+        return json.loads(_paced_groups_path().read_text())
+    except FileNotFoundError:
+        raise pytest.UsageError(
+            f"the xdist workers wrote no paced groups to {_paced_groups_path()}: tests/conftest.py's "
+            "pytest_collection_modifyitems did not run on them") from None
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_make_scheduler(config, log):
+    """``--dist loadgroup`` (pyproject's addopts): xdist's load-group scheduling, with the groups read
+    from the workers' file rather than from the test ids (:func:`_write_paced_groups`)."""
+    if config.getvalue("dist") != "loadgroup":
+        return None
+    from xdist.scheduler import LoadGroupScheduling
+
+    class _PacedGroupScheduling(LoadGroupScheduling):
+        """A test's work unit: its paced group, else the test alone (and a group xdist's own suffix
+        names, should that channel work again)."""
+
+        groups: dict[str, str] | None = None
+
+        def _split_scope(self, nodeid: str) -> str:
+            if self.groups is None:          # first asked in schedule(), once every worker has collected
+                self.groups = _read_paced_groups()
+            return self.groups.get(nodeid) or super()._split_scope(nodeid)
+
+    return _PacedGroupScheduling(config, log)
+
+
+#: On xdist's controller, the workers each paced group ran on (:func:`pytest_runtest_logreport`).
+_paced_workers: dict[str, set[str]] = {}
+
+
+def pytest_runtest_logreport(report):
+    """On xdist's controller, note the worker each paced test ran on."""
+    worker = getattr(getattr(report, "node", None), "gateway", None)
+    if worker is None or _SHARED_DIR is None or report.when != "call":
+        return
+    if report.node.config.getvalue("dist") != "loadgroup":
+        return                               # asked for another scheduling: no groups to keep
+    groups = _paced_groups_cache()
+    group = groups.get(report.nodeid.split("@")[0])
+    if group is not None:
+        _paced_workers.setdefault(group, set()).add(worker.id)
+
+
+@functools.cache
+def _paced_groups_cache() -> dict[str, str]:
+    return _read_paced_groups()
+
+
+def pytest_sessionfinish(session):
+    """On xdist's controller, a paced group that ran on more than one worker fails the run, saying so:
+    its tests then ran beside each other, and on workers computing in idle time."""
+    split = {group: sorted(workers) for group, workers in _paced_workers.items() if len(workers) > 1}
+    if not split:
+        return
+    reporter = session.config.pluginmanager.get_plugin("terminalreporter")
+    for group, workers in split.items():
+        line = (f"paced group {group!r} ran on workers {', '.join(workers)}, not on one: the scheduler did "
+                "not keep it together (tests/conftest.py, _PacedGroupScheduling)")
+        if reporter is not None:
+            reporter.write_line(line, red=True)
+    session.exitstatus = pytest.ExitCode.TESTS_FAILED
 
 
 @pytest.hookimpl(hookwrapper=True)
