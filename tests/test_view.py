@@ -206,6 +206,31 @@ def test_without_marks_the_view_is_read_only():
         view.close()
 
 
+def test_the_page_learns_the_scenes_stream_order_before_any_window_whatever_window_comes_first(tmp_path):
+    """The page lays out its panels in the order hello lists the streams. They once came in the order
+    the first windows arrived, so a fused graph's right stream could be shown before its left one."""
+    from supramodal.node.scene.schema import load_scene
+    from supramodal.node.runtime.sinks.view import with_view
+
+    sc = load_scene(str(Path(__file__).resolve().parents[1] / "examples" / "two_streams_fused.toml"))
+    assert [st.name for st in sc.streams] == ["left", "right"] and sc.fusion is not None
+    (view,) = view_sinks(build_node(with_view(replace(sc, sinks=[]), 0)))   # (not started: no model trained)
+    try:
+        assert view.hello()["streams"] == ["left", "right", "fused"]
+        view.emit(WindowEvent("fused", 0, 0.0, 0.1, 0.1))
+        view.emit(WindowEvent("right", 0, 0.0, 0.1, 0.1))
+        assert view.hello()["streams"] == ["left", "right", "fused"]
+    finally:
+        view.close()
+    loose = ViewSink(quiet=True)                  # a view not built from a scene: first window first
+    try:
+        for name in ("b", "a", "b"):
+            loose.emit(WindowEvent(name, 0, 0.0, 0.1, 0.1))
+        assert loose.hello()["streams"] == ["b", "a"]
+    finally:
+        loose.close()
+
+
 def test_a_page_that_stops_reading_loses_messages_counted_and_never_blocks_the_sink():
     view = ViewSink(quiet=True)
     view.prepare()

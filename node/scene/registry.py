@@ -180,6 +180,10 @@ class SinkContext:
     sources : dict
         Source name -> ``(driver, its node.scene.specs.SourceSpec, [(bank, mapping)] of the streams
         that read it)``, for sinks that need the sources.
+    stream_names : tuple of str
+        The names of the streams whose windows the sink will receive, in the scene's order, ``"fused"``
+        last when the scene fuses: known to every sink, whatever it needs (a page lays out its panels
+        in that order, not in the order the first windows happen to arrive).
     """
 
     where: str
@@ -189,6 +193,7 @@ class SinkContext:
     fused_classes: tuple[str, ...] | None = None
     sources: Mapping[str, Any] = field(default_factory=dict)
     plans: Mapping[str, StreamPlan] = field(default_factory=dict)
+    stream_names: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)

@@ -35,7 +35,7 @@ import sys
 import threading
 import time
 from collections import deque
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import replace
 from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
@@ -412,6 +412,9 @@ class ViewSink(Sink):
     mode : {"live", "replay"}
     quiet : bool
         Do not print the URL on stderr.
+    streams : sequence of str
+        The streams the page shows, in order (a scene's: its streams, then ``"fused"``); a stream
+        not named here is added when its first window comes.
 
     Raises
     ------
@@ -421,7 +424,8 @@ class ViewSink(Sink):
     """
 
     def __init__(self, port: int = 0, host: str = "127.0.0.1", remote: bool = False, token: str | None = None,
-                 labels: list[str] | None = None, mode: str = "live", quiet: bool = False) -> None:
+                 labels: list[str] | None = None, mode: str = "live", quiet: bool = False,
+                 streams: Sequence[str] = ()) -> None:
         if not is_loopback(host) and not (remote and token):
             raise ViewError(f"serving the view on {host!r} (not loopback) lets other machines see it: it needs "
                             "remote = true and a token of your own (token = \"...\", at least "
@@ -437,7 +441,7 @@ class ViewSink(Sink):
         self.control: Callable[[dict[str, Any]], dict[str, Any]] | None = None
         self.marks: list[dict[str, Any]] = []
         self._classes: dict[str, list[str]] = {}
-        self._streams: list[str] = []
+        self._streams: list[str] = list(streams)   # in the scene's order; others as their first window comes
         self._lock = threading.Lock()
         self._closing = threading.Event()
         self._threads: list[threading.Thread] = []
@@ -619,7 +623,8 @@ def attach(graph: Any, on_mark: Callable[[str | None], Any] | None = None) -> li
 
 def _build(options: Mapping[str, Any], context: SinkContext) -> Sink:
     try:
-        view = ViewSink(options["port"], options["host"], options["remote"], options["token"], options["labels"])
+        view = ViewSink(options["port"], options["host"], options["remote"], options["token"], options["labels"],
+                        streams=context.stream_names)
     except ViewError as exc:
         raise OptionError(str(exc)) from None
     # Behind its own queue, as every sink: a slow or absent page never slows processing.

@@ -174,7 +174,8 @@
     hello = m;
     const mode = $("#mode");
     text(mode, m.mode); mode.className = "pill live";
-    for (const name of m.streams || []) streamPanel(name);
+    // The panels in the node's order (its scene's streams, then the fusion), whatever order windows came in.
+    for (const name of m.streams || []) $("#streams").appendChild(streamPanel(name).el);
     $("#controls").hidden = !(m.control && token);
     const marks = $("#marks");
     marks.hidden = !m.marks;
