@@ -196,15 +196,28 @@ def confusion_caps(predicted, labels, n_classes: int) -> np.ndarray:
     return caps
 
 
-def _prefix_pooled(runs, correlation: float) -> tuple[np.ndarray, np.ndarray]:
-    """Pooled log-posteriors of every prefix of every run, and each prefix's length."""
-    out, lengths = [], []
-    for lp in runs:
-        n = np.arange(1, len(lp) + 1, dtype=np.float64)
-        g = (effective_windows(n, correlation) / n)[:, None]
-        out.append(log_softmax(np.cumsum(lp, axis=0) * g, axis=1))
-        lengths.append(n)
-    return np.concatenate(out), np.concatenate(lengths)
+class _Prefixes:
+    """Every prefix of every run of log-posteriors, summed once, so that pooling them at a given
+    correlation is one vectorised step: the pooling fits (:func:`fit_pooling`,
+    :func:`fit_capped_pooling`) pool them at thousands of correlations, and a loop over runs made
+    those fits most of a model's training time.
+
+    Parameters
+    ----------
+    runs : sequence of ndarray, each (windows >= 1, classes)
+    """
+
+    def __init__(self, runs) -> None:
+        self.sums = np.concatenate([np.cumsum(lp, axis=0) for lp in runs])
+        #: Each prefix's length (its number of windows), float64, shape (prefixes,).
+        self.lengths = np.concatenate([np.arange(1, len(lp) + 1, dtype=np.float64) for lp in runs])
+        self._n = np.arange(1, len(max(runs, key=len)) + 1, dtype=np.float64)
+        self._at = self.lengths.astype(np.intp) - 1
+
+    def pooled(self, correlation: float) -> np.ndarray:
+        """The pooled log-posteriors of every prefix (prefixes, classes): ``log_softmax(g(n) sum_t log p_t)``."""
+        g = effective_windows(self._n, correlation) / self._n
+        return log_softmax(self.sums * g[self._at][:, None], axis=1)
 
 
 # -- fitting -------------------------------------------------------------------------------------
@@ -328,12 +341,13 @@ def fit_pooling(runs, labels) -> float:
     runs = [r for r, _ in kept]
     y = np.concatenate([np.full(len(r), lab) for r, lab in kept])
     target = _smoothed_targets(y, runs[0].shape[1])
-    r = minimize_scalar(lambda rho: -(target * _prefix_pooled(runs, rho)[0]).sum(axis=1).mean(), bounds=(0.0, 1.0),
+    prefixes = _Prefixes(runs)
+    r = minimize_scalar(lambda rho: -(target * prefixes.pooled(rho)).sum(axis=1).mean(), bounds=(0.0, 1.0),
                         method="bounded", options={"xatol": 1e-5})
     return float(r.x)
 
 
-def fit_capped_pooling(runs, labels) -> tuple[float, np.ndarray]:
+def fit_capped_pooling(runs, labels, plain_correlation: float | None = None) -> tuple[float, np.ndarray]:
     """The correlation ``rho`` and the contact caps of a capped pooling
     (``cap_gaps(g(n) sum_t log p_t, caps)``) minimising the log loss of every prefix of every run.
 
@@ -343,16 +357,18 @@ def fit_capped_pooling(runs, labels) -> tuple[float, np.ndarray]:
     window to window) keeps odds near even however long the contact; a pair whose windows err
     independently is told apart by its contacts and keeps large caps.
 
-    Parameters as :func:`fit_pooling`; returns ``(rho, caps)``, ``caps`` (classes, classes) with a
-    zero diagonal and each other entry within :data:`CAP_BOUNDS`.
+    Parameters as :func:`fit_pooling`, and ``plain_correlation``: :func:`fit_pooling`'s result for
+    these runs where the caller has it (default: fitted here). Returns ``(rho, caps)``, ``caps``
+    (classes, classes) with a zero diagonal and each other entry within :data:`CAP_BOUNDS`.
     """
-    rho0 = fit_pooling(runs, labels)
+    rho0 = fit_pooling(runs, labels) if plain_correlation is None else float(plain_correlation)
     kept = [(np.asarray(r, dtype=np.float64), lab) for r, lab in zip(runs, labels) if len(r)]
     runs = [r for r, _ in kept]
     y = np.concatenate([np.full(len(r), lab) for r, lab in kept])
     n_classes = runs[0].shape[1]
-    pooled, lengths = _prefix_pooled(runs, rho0)
-    several = lengths >= 2
+    prefixes = _Prefixes(runs)
+    pooled = prefixes.pooled(rho0)
+    several = prefixes.lengths >= 2
     base = confusion_caps(np.argmax(pooled[several], axis=1), y[several], n_classes)
     target = _smoothed_targets(y, n_classes)
     flo, fhi = (math.log(v) for v in FACTOR_BOUNDS)
@@ -362,7 +378,7 @@ def fit_capped_pooling(runs, labels) -> tuple[float, np.ndarray]:
 
     def loss(p):
         rho, f = unpack(p)
-        return -(target * cap_gaps(_prefix_pooled(runs, rho)[0], _bounded_caps(base * f))).sum(axis=1).mean()
+        return -(target * cap_gaps(prefixes.pooled(rho), _bounded_caps(base * f))).sum(axis=1).mean()
 
     r0 = min(max(rho0, 1e-3), 1 - 1e-3)
     r = minimize(loss, np.array([math.log(r0 / (1 - r0)), 0.5]), method="Nelder-Mead",
@@ -596,11 +612,12 @@ def fit_calibration(logits, labels, groups, run: int = POOLING_RUN, folds=None, 
                 run_labels.append(int(y[part[0]]))
     rho = fit_pooling(runs, run_labels)
     if caps:
-        capped_rho, capped_caps = fit_capped_pooling(runs, run_labels)
+        capped_rho, capped_caps = fit_capped_pooling(runs, run_labels, plain_correlation=rho)
         prefix_y = np.concatenate([np.full(len(r), lab) for r, lab in zip(runs, run_labels)])
         target = _smoothed_targets(prefix_y, n_classes)
-        gain = (target * (cap_gaps(_prefix_pooled(runs, capped_rho)[0], capped_caps)
-                          - _prefix_pooled(runs, rho)[0])).sum(axis=1).mean()
+        prefixes = _Prefixes(runs)
+        gain = (target * (cap_gaps(prefixes.pooled(capped_rho), capped_caps)
+                          - prefixes.pooled(rho))).sum(axis=1).mean()
         if gain > 1.0 / len(prefix_y):
             contact_caps, contact_rho = capped_caps, capped_rho
     rows = np.arange(len(y))

@@ -10,7 +10,7 @@ import pytest
 from supramodal.banks import whisker_bank
 from supramodal.calibration import (DEFAULT_CALIBRATION_FOLDS, NOVELTY_QUANTILES, NOVELTY_RUN, Calibration, Novelty,
                                     brier_score, cap_gaps, calibration_folds, fit_novelty, novelty_warp,
-                                    expected_calibration_error, fit_calibration, fit_pooling, fit_window_calibration,
+                                    expected_calibration_error, fit_calibration, fit_capped_pooling, fit_pooling, fit_window_calibration,
                                     log_loss, normalised_log_posteriors, pool_log_posteriors, winner)
 from supramodal.decisions import DecisionAccumulator
 from supramodal.errors import InputError
@@ -437,6 +437,46 @@ def test_effective_windows_against_extended_precision_up_to_rho_one(rho):
     for n, g in zip(ns, got):
         ref = mpmath.mpf(int(n)) ** 2 / mpmath.fsum(mpmath.mpf(rho) ** abs(i - j) for i in range(n) for j in range(n))
         assert g == pytest.approx(float(ref), rel=1e-9)
+
+
+def _plain_prefix_loss(runs, labels, rho, caps=None):
+    """The log loss (smoothed targets) of every prefix of every run, each pooled on its own as a contact
+    is (pool_log_posteriors): the plain loop the pooling fits vectorise."""
+    eps = 1.0 / (sum(len(r) for r in runs) + 2)
+    total, count = 0.0, 0
+    for lp, label in zip(runs, labels):
+        for m in range(1, len(lp) + 1):
+            pooled = pool_log_posteriors(lp[:m], rho, caps)
+            t = np.full(pooled.shape, eps / (len(pooled) - 1))
+            t[label] = 1.0 - eps
+            total -= float((t * pooled).sum())
+            count += 1
+    return total / count
+
+
+def test_the_pooling_fits_find_the_least_loss_of_every_prefix_pooled_as_a_contact_is():
+    """fit_pooling and fit_capped_pooling (which pool every prefix at once) against a plain search over
+    the loss of each prefix pooled on its own: the fitted correlation is no worse than the plain
+    search's, and the loss is the same function (runs of 1 to 30 windows, 4 classes)."""
+    from scipy.optimize import minimize_scalar
+
+    rng = np.random.default_rng(7)
+    labels = [int(k) for k in rng.integers(0, 4, size=12)]
+    runs = []
+    for label in labels:
+        z = rng.normal(size=(int(rng.integers(1, 31)), 4)) + np.eye(4)[label] * 1.2
+        z += rng.normal(size=4) * 0.8                         # a per-run bias: windows of a run correlate
+        runs.append(z - np.log(np.exp(z).sum(axis=1, keepdims=True)))
+    rho = fit_pooling(runs, labels)
+    plain = minimize_scalar(lambda r: _plain_prefix_loss(runs, labels, r), bounds=(0.0, 1.0), method="bounded",
+                            options={"xatol": 1e-5})
+    assert 0.0 < rho < 1.0
+    assert _plain_prefix_loss(runs, labels, rho) <= plain.fun + 1e-9
+    capped_rho, caps = fit_capped_pooling(runs, labels)
+    assert fit_capped_pooling(runs, labels, plain_correlation=rho)[0] == capped_rho
+    # with its caps, no correlation does better than the capped fit's, prefix by prefix
+    fitted = _plain_prefix_loss(runs, labels, capped_rho, caps)
+    assert min(_plain_prefix_loss(runs, labels, r, caps) for r in np.linspace(0.0, 1.0, 41)) >= fitted - 1e-7
 
 
 def test_fit_pooling_keeps_each_run_with_its_label_when_one_is_empty():
