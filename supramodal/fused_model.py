@@ -26,7 +26,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import cast
 
 import numpy as np
 
@@ -36,7 +35,6 @@ from supramodal.calibration import (
     POOLING_RUN,
     Calibration,
     Novelty,
-    OutOfFold,
     calibration_folds,
     calibration_report,
     fit_network_calibration,
@@ -266,12 +264,6 @@ class EarlyFusionModel:
 
 # -- late fusion learned from windows the senses' networks never trained on ------------------------------
 
-def _out_of_fold(model: TextureModel) -> OutOfFold | None:
-    """``model``'s held-out logits from its calibration, if it kept them (TextureModel.out_of_fold, which
-    supramodal.model annotates only as an object: fit_network_calibration's OutOfFold or None)."""
-    return cast(OutOfFold | None, model.out_of_fold)
-
-
 def out_of_fold_logits(model: TextureModel, values, labels, classes, folds, progress=None) -> np.ndarray:
     """Each window's logits from a network that never trained on its fold.
 
@@ -309,7 +301,7 @@ def out_of_fold_logits(model: TextureModel, values, labels, classes, folds, prog
     parts = np.unique(folds)
     if len(parts) < 2:
         raise InputError("out-of-fold windows need at least two folds")
-    kept = _out_of_fold(model)
+    kept = model.out_of_fold
     if kept is not None and tuple(classes) == tuple(model.classes) and kept.matches(values, y, folds):
         # The model's own calibration trained these very fold networks on these windows.
         if progress:
@@ -336,7 +328,7 @@ def out_of_fold_log_posteriors(model: TextureModel, values, labels, classes, fol
     where these are the very logits it was fitted on), else the normalised outputs (a version 1
     model's posteriors). Shape (n, classes)."""
     y = np.asarray(labels)
-    kept = _out_of_fold(model)
+    kept = model.out_of_fold
     own = kept is not None and tuple(classes) == tuple(model.classes) and kept.matches(values, y, folds)
     z = out_of_fold_logits(model, values, y, classes, folds, progress)
     if model.calibration is None:          # not calibrated (model.calibrated)

@@ -44,6 +44,7 @@ from supramodal.calibration import (
     DEFAULT_CALIBRATION_FOLDS,
     Calibration,
     Novelty,
+    OutOfFold,
     fit_network_calibration,
     input_scaling,
     normalised_log_posteriors,
@@ -144,7 +145,7 @@ class TextureModel:
     novelty: Novelty | None = None
     #: The calibration's held-out logits of the training windows (in memory after :meth:`train`,
     #: never in the file; :class:`~supramodal.calibration.OutOfFold`), or None.
-    out_of_fold: object = field(default=None, repr=False, compare=False)
+    out_of_fold: OutOfFold | None = field(default=None, repr=False, compare=False)
 
     @property
     def n_inputs(self) -> int:
