@@ -314,12 +314,15 @@ def test_a_restarted_relay_is_picked_up_again_by_its_source_id(tmp_path):
 def test_a_wait_for_a_consumer_is_start_up_and_a_signal_ends_it_at_once(tmp_path, signum, code):
     """Issue 25 item 9: with wait_for_consumer = 40, SIGINT and SIGTERM were ignored for the whole
     wait and the node then ran; the README promises 130 / 143 at once during start-up."""
+    prefix = f"wait-{uuid.uuid4().hex[:8]}"
     (tmp_path / "relay.toml").write_text(
         f'[[source]]\nname = "a"\ntype = "synth"\nseconds = 2.0\n\n[[sink]]\ntype = "lsl-signal"\n'
-        f'prefix = "wait-{uuid.uuid4().hex[:8]}"\nwait_for_consumer = 40\n')
+        f'prefix = "{prefix}"\nwait_for_consumer = 40\n')
     proc = start_node(tmp_path / "relay.toml", tmp_path)
     try:
-        time.sleep(4.0)                                      # well into the wait (start-up takes ~1 s)
+        # Its outlet is up: it waits now (a fixed 4 s was not always enough for start-up on a busy machine).
+        resolve_stream(f"{prefix}-a-signal", timeout=60.0)
+        time.sleep(1.0)
         assert_start_up_ends_on(proc, signum, code)
     finally:
         proc.kill()

@@ -53,6 +53,9 @@ def run(args: argparse.Namespace) -> int:
     int
         The exit status (0: done).
     """
+    # First: a signal while the scene loads and the modules import is start-up too (it ended the
+    # process silently, by the default handler, before the scene was read).
+    interrupt_until_running()
     import json as _json
     import time
 
@@ -62,7 +65,6 @@ def run(args: argparse.Namespace) -> int:
     from supramodal.node.scene.schema import load_scene
     from supramodal.node.workflows.graph_recording import GraphMarks, graph_recorders, write_replay_scene
 
-    interrupt_until_running()
     scene = load_scene(args.scene)
     if args.view is not None:
         from supramodal.node.runtime.sinks.view import add_view

@@ -45,6 +45,9 @@ def run(args: argparse.Namespace) -> int:
     int
         The exit status (0: done).
     """
+    # First: a signal while the scene loads and the modules import is start-up too (it ended the
+    # process silently, by the default handler, before the scene was read).
+    interrupt_until_running()
     from supramodal.node.runtime.sinks import QueuedSink
     from supramodal.node.runtime.sinks.jsonl import JsonLinesSink
     from supramodal.node.scene.build import build_node
@@ -54,7 +57,6 @@ def run(args: argparse.Namespace) -> int:
     if args.print_scene:
         print(scene_to_toml(scene), end="")
         return 0
-    interrupt_until_running()
     sinks = [QueuedSink(JsonLinesSink("-"))] if args.json else None
     if args.view is not None:
         from supramodal.node.runtime.sinks.view import add_view
