@@ -40,7 +40,6 @@ from typing import Any, TypeGuard
 
 import numpy as np
 from numpy.typing import ArrayLike
-from scipy.signal import resample_poly
 
 from supramodal.checks import Key, flag, integer, is_number, one_of, text
 from supramodal.drivers.base import Block, DeviceUnavailable, DriverBase, DriverClosed, DriverError
@@ -310,6 +309,7 @@ class ReplayDriver(DriverBase):
         if rate is not None and rate != src_rate:
             n_in = data.shape[0]
             if (up, down) != (1, 1):
+                from scipy.signal import resample_poly  # here: scipy.signal takes 0.6 s to import
                 data = resample_poly(data, up, down, axis=0)
                 if filled is not None:
                     filled = self._resample_mask(filled, up, down, data.shape[0])

@@ -48,7 +48,6 @@ import math
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from scipy.optimize import OptimizeResult, minimize, minimize_scalar
 from scipy.special import log_softmax, logsumexp
 
 from supramodal.errors import InputError
@@ -242,6 +241,8 @@ def fit_window_calibration(logits, labels) -> tuple[float, float]:
         ``a`` (the sharpness, > 0) and ``c`` (the scale of the logits where the map turns from
         linear to logarithmic, > 0), each within ``[1e-3, 1e4]``.
     """
+    from scipy.optimize import minimize  # here: it takes 0.3 s to import, and only a fit needs it
+
     z = np.asarray(logits, dtype=np.float64)
     y = np.asarray(labels)
     _check_scored(z, y, "logits")
@@ -252,7 +253,7 @@ def fit_window_calibration(logits, labels) -> tuple[float, float]:
         a, c = np.exp(np.clip(p, lo, hi))
         return -(target * log_softmax(_window_map(z, a, c), axis=1)).sum(axis=1).mean()
 
-    best: OptimizeResult | None = None
+    best = None
     for start in ((0.0, 0.0), (0.0, math.log(10.0)), (math.log(3.0), math.log(30.0))):
         r = minimize(loss, np.array(start), method="Nelder-Mead",
                      options={"xatol": 1e-4, "fatol": 1e-7, "maxiter": 2000})
@@ -277,6 +278,8 @@ def fit_capped_window_calibration(logits, labels) -> tuple[float, float, np.ndar
     (float, float, ndarray (classes, classes))
         ``caps`` has a zero diagonal and each other entry within :data:`CAP_BOUNDS`.
     """
+    from scipy.optimize import minimize  # here: it takes 0.3 s to import, and only a fit needs it
+
     z = np.asarray(logits, dtype=np.float64)
     y = np.asarray(labels)
     _check_scored(z, y, "logits")
@@ -292,7 +295,7 @@ def fit_capped_window_calibration(logits, labels) -> tuple[float, float, np.ndar
         a, c, f = unpack(p)
         return -(target * cap_gaps(_window_map(z, a, c), _bounded_caps(base * f))).sum(axis=1).mean()
 
-    best: OptimizeResult | None = None
+    best = None
     for start in ((0.0, 0.0, 0.5), (0.0, math.log(10.0), 0.5), (math.log(3.0), math.log(30.0), 1.0)):
         r = minimize(loss, np.array(start), method="Nelder-Mead",
                      options={"xatol": 1e-4, "fatol": 1e-7, "maxiter": 3000})
@@ -335,6 +338,8 @@ def fit_pooling(runs, labels) -> float:
     labels : sequence of int
         Each run's class.
     """
+    from scipy.optimize import minimize_scalar  # here: it takes 0.3 s to import, and only a fit needs it
+
     kept = [(np.asarray(r, dtype=np.float64), lab) for r, lab in zip(runs, labels) if len(r)]
     if not kept:
         raise InputError("fitting the pooling needs at least one run of held-out windows")
@@ -361,6 +366,8 @@ def fit_capped_pooling(runs, labels, plain_correlation: float | None = None) -> 
     these runs where the caller has it (default: fitted here). Returns ``(rho, caps)``, ``caps``
     (classes, classes) with a zero diagonal and each other entry within :data:`CAP_BOUNDS`.
     """
+    from scipy.optimize import minimize  # here: it takes 0.3 s to import, and only a fit needs it
+
     rho0 = fit_pooling(runs, labels) if plain_correlation is None else float(plain_correlation)
     kept = [(np.asarray(r, dtype=np.float64), lab) for r, lab in zip(runs, labels) if len(r)]
     runs = [r for r, _ in kept]

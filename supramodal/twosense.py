@@ -23,7 +23,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.signal import butter, sosfilt
 
 from supramodal.errors import InputError
 from supramodal.textures import synthesize
@@ -125,6 +124,8 @@ def synthesize_contact(surface: Surface, seconds: float, seed=None) -> tuple[np.
 def _motor(seconds: float, seed) -> np.ndarray:
     """Motor noise at :data:`MIC_RATE`: the three-peak texture low-passed (4th-order Butterworth at
     :data:`MOTOR_CUTOFF`), so that it masks the vibration's band and leaves the friction sound's."""
+    from scipy.signal import butter, sosfilt  # here: scipy.signal takes 0.6 s to import
+
     sos = butter(4, MOTOR_CUTOFF, fs=MIC_RATE, output="sos")
     return sosfilt(sos, synthesize(MOTOR_PEAKS, MIC_RATE, seconds, WIDTH, seed))
 
