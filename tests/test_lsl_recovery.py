@@ -108,6 +108,9 @@ def test_two_streams_of_one_name_are_refused_with_the_list_of_what_was_found():
 
 
 @pytest.mark.slow   # paced real time: 8 s of a sender that holds 3 s
+# alone: its first windows' ends came 1.14 ms from the sender's clock (the bound is 1 ms) in a CI run, with the
+# other paced group's processes (a JACK server in real-time scheduling among them) beside the sender
+@pytest.mark.alone
 def test_push_time_stamps_held_3_s_and_flushed_fill_nothing_and_keep_the_sender_clock(tmp_path):
     """Issue 26 item 9 (Done when): a sender that stamps each chunk when it pushes it, holds 3 s and
     then pushes its backlog at once. The gap was judged from two raw stamps: 15,001 samples filled
