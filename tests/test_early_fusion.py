@@ -228,6 +228,7 @@ def test_a_model_file_for_late_fusion_is_refused_in_the_scene(tmp_path):
         scene_from_dict(d, "world.toml")
 
 
+@pytest.mark.slow   # a long run: the two-sense world's two senses trained on the spot (15 s of CPU)
 def test_a_stream_outside_the_fusion_does_not_end_it():
     """A third stream on the whisker source (features only) ends with it; the fusion goes on
     until both of its own streams have ended, and fuses every pair."""

@@ -209,25 +209,26 @@ def test_without_marks_the_view_is_read_only():
 def test_the_page_learns_the_scenes_stream_order_before_any_window_whatever_window_comes_first(tmp_path):
     """The page lays out its panels in the order hello lists the streams. They once came in the order
     the first windows arrived, so a fused graph's right stream could be shown before its left one."""
-    from supramodal.node.scene.schema import load_scene
     from supramodal.node.runtime.sinks.view import with_view
 
-    sc = load_scene(str(Path(__file__).resolve().parents[1] / "examples" / "two_streams_fused.toml"))
-    assert [st.name for st in sc.streams] == ["left", "right"] and sc.fusion is not None
-    (view,) = view_sinks(build_node(with_view(replace(sc, sinks=[]), 0)))   # (not started: no model trained)
+    d = {"source": [{"name": n, "type": "synth", "seconds": 1.0} for n in ("zeta", "alpha")],
+         "stream": [{"name": n, "source": n} for n in ("zeta", "alpha")]}           # features only: no model
+    (view,) = view_sinks(build_node(with_view(scene_from_dict(d, str(tmp_path / "s.toml")), 0)))
     try:
-        assert view.hello()["streams"] == ["left", "right", "fused"]
-        view.emit(WindowEvent("fused", 0, 0.0, 0.1, 0.1))
-        view.emit(WindowEvent("right", 0, 0.0, 0.1, 0.1))
-        assert view.hello()["streams"] == ["left", "right", "fused"]
+        assert view.hello()["streams"] == ["zeta", "alpha"]                          # the scene's order
     finally:
         view.close()
-    loose = ViewSink(quiet=True)                  # a view not built from a scene: first window first
+    fused = ViewSink(quiet=True, streams=("left", "right", "fused"))                # as a fused scene names them
+    loose = ViewSink(quiet=True)                                                     # no scene: first window first
     try:
+        for name in ("fused", "right", "b", "right"):
+            fused.emit(WindowEvent(name, 0, 0.0, 0.1, 0.1))
+        assert fused.hello()["streams"] == ["left", "right", "fused", "b"]
         for name in ("b", "a", "b"):
             loose.emit(WindowEvent(name, 0, 0.0, 0.1, 0.1))
         assert loose.hello()["streams"] == ["b", "a"]
     finally:
+        fused.close()
         loose.close()
 
 
