@@ -124,6 +124,7 @@ def test_the_page_shows_the_running_nodes_decisions_as_its_jsonl_sink_has_them(t
     assert not [t.name for t in threading.enumerate() if t.name.startswith("view-")]
 
 
+@pytest.mark.slow   # a browser's screenshot, 10 s; the quick command keeps the token-and-mark browser test
 def test_a_screenshot_of_the_page_is_not_blank(tmp_path, browser):
     graph = build_node(scene(tmp_path, {"type": "view"}))
     view = _view(graph)
