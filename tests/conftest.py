@@ -106,7 +106,6 @@ def pytest_collection_modifyitems(config, items):
         group = _paced_group(item)
         if group is not None:
             item.add_marker(pytest.mark.xdist_group(group))
-            groups[item.nodeid] = group
             rank[item] = 0.5 if item.get_closest_marker("alone") else 0
         elif item.get_closest_marker("slow"):
             rank[item] = 1
@@ -114,101 +113,106 @@ def pytest_collection_modifyitems(config, items):
             # Tests that mostly wait (on a browser, or on another worker computing a result shared once per
             # run) early, beside the tests that compute: at the end of a run they left cores idle.
             rank[item] = 1.5 if _WAITS.intersection(getattr(item, "fixturenames", ())) else 2
+        # Every xdist group, the paced ones and those a test module names (as xdist joins several names).
+        names = {m.args[0] if m.args else m.kwargs.get("name", "default") for m in item.iter_markers("xdist_group")}
+        if names:
+            groups[item.nodeid] = "_".join(sorted(map(str, names)))
     if hasattr(config, "workerinput"):
         # On xdist's workers (which all collect the same order; the scheduler hands tests out in it).
         items.sort(key=rank.__getitem__)
-        _write_paced_groups(groups)
+        _write_groups(groups)
 
 
-# -- keeping each paced group on one worker ---------------------------------------------------------------
+# -- keeping each xdist group on one worker ---------------------------------------------------------------
 #
 # xdist's own channel for groups is a suffix its workers append to each test id ("...::test@group"); from
 # pytest 9.2 on, test ids are structured and the suffix is silently lost (pytest-dev/pytest-xdist#1386),
 # so that every paced test went to whichever worker was free, some of them to workers computing in idle
-# time: slower, and an LSL test failed. The workers instead write the groups to the run's shared folder
-# and the controller's scheduler reads them (:class:`_PacedGroupScheduling`); the controller checks at the
-# end of the run that each group ran on one worker (:func:`pytest_sessionfinish`).
+# time (slower, and an LSL test failed), and test_train_scenes's group was split (its fusion test skipped).
+# The workers instead write every test's group to the run's shared folder and the controller's scheduler
+# reads them (:class:`_GroupScheduling`); the controller checks at the end of the run that each group ran
+# on one worker (:func:`pytest_sessionfinish`).
 
-def _paced_groups_path():
+def _groups_path():
     return _SHARED_DIR / "paced-groups.json"
 
 
-def _write_paced_groups(groups: dict[str, str]) -> None:
-    """Write the paced groups of the collected tests (test id -> group) for the controller's scheduler.
+def _write_groups(groups: dict[str, str]) -> None:
+    """Write the xdist groups of the collected tests (test id -> group) for the controller's scheduler.
     Every worker writes the same (they collect the same tests), each whole file at once."""
     import json
 
-    path = _paced_groups_path()
+    path = _groups_path()
     tmp = path.with_name(f"{path.name}.{os.getpid()}")
     tmp.write_text(json.dumps(groups, sort_keys=True))
     os.replace(tmp, path)
 
 
-def _read_paced_groups() -> dict[str, str]:
+def _read_groups() -> dict[str, str]:
     import json
 
     try:
-        return json.loads(_paced_groups_path().read_text())
+        return json.loads(_groups_path().read_text())
     except FileNotFoundError:
         raise pytest.UsageError(
-            f"the xdist workers wrote no paced groups to {_paced_groups_path()}: tests/conftest.py's "
+            f"the xdist workers wrote no test groups to {_groups_path()}: tests/conftest.py's "
             "pytest_collection_modifyitems did not run on them") from None
 
 
 @pytest.hookimpl(optionalhook=True)
 def pytest_xdist_make_scheduler(config, log):
     """``--dist loadgroup`` (pyproject's addopts): xdist's load-group scheduling, with the groups read
-    from the workers' file rather than from the test ids (:func:`_write_paced_groups`)."""
+    from the workers' file rather than from the test ids (:func:`_write_groups`)."""
     if config.getvalue("dist") != "loadgroup":
         return None
     from xdist.scheduler import LoadGroupScheduling
 
-    class _PacedGroupScheduling(LoadGroupScheduling):
-        """A test's work unit: its paced group, else the test alone (and a group xdist's own suffix
-        names, should that channel work again)."""
+    class _GroupScheduling(LoadGroupScheduling):
+        """A test's work unit: its group, else the test alone (and a group xdist's own suffix names,
+        should that channel work again)."""
 
         groups: dict[str, str] | None = None
 
         def _split_scope(self, nodeid: str) -> str:
             if self.groups is None:          # first asked in schedule(), once every worker has collected
-                self.groups = _read_paced_groups()
+                self.groups = _read_groups()
             return self.groups.get(nodeid) or super()._split_scope(nodeid)
 
-    return _PacedGroupScheduling(config, log)
+    return _GroupScheduling(config, log)
 
 
-#: On xdist's controller, the workers each paced group ran on (:func:`pytest_runtest_logreport`).
-_paced_workers: dict[str, set[str]] = {}
+#: On xdist's controller, the workers each group ran on (:func:`pytest_runtest_logreport`).
+_group_workers: dict[str, set[str]] = {}
 
 
 def pytest_runtest_logreport(report):
-    """On xdist's controller, note the worker each paced test ran on."""
+    """On xdist's controller, note the worker each test of a group ran on."""
     worker = getattr(getattr(report, "node", None), "gateway", None)
     if worker is None or _SHARED_DIR is None or report.when != "call":
         return
     if report.node.config.getvalue("dist") != "loadgroup":
         return                               # asked for another scheduling: no groups to keep
-    groups = _paced_groups_cache()
-    group = groups.get(report.nodeid.split("@")[0])
+    group = _groups_cache().get(report.nodeid.split("@")[0])
     if group is not None:
-        _paced_workers.setdefault(group, set()).add(worker.id)
+        _group_workers.setdefault(group, set()).add(worker.id)
 
 
 @functools.cache
-def _paced_groups_cache() -> dict[str, str]:
-    return _read_paced_groups()
+def _groups_cache() -> dict[str, str]:
+    return _read_groups()
 
 
 def pytest_sessionfinish(session):
-    """On xdist's controller, a paced group that ran on more than one worker fails the run, saying so:
-    its tests then ran beside each other, and on workers computing in idle time."""
-    split = {group: sorted(workers) for group, workers in _paced_workers.items() if len(workers) > 1}
+    """On xdist's controller, a group that ran on more than one worker fails the run, saying so: paced
+    tests then ran beside each other and on workers computing in idle time, and a group's tests that
+    share files did not find them."""
+    split = {group: sorted(workers) for group, workers in _group_workers.items() if len(workers) > 1}
     if not split:
         return
     reporter = session.config.pluginmanager.get_plugin("terminalreporter")
     for group, workers in split.items():
-        line = (f"paced group {group!r} ran on workers {', '.join(workers)}, not on one: the scheduler did "
-                "not keep it together (tests/conftest.py, _PacedGroupScheduling)")
+        line = (f"test group {group!r} ran on workers {', '.join(workers)}, not on one: the scheduler did "
+                "not keep it together (tests/conftest.py, _GroupScheduling)")
         if reporter is not None:
             reporter.write_line(line, red=True)
     session.exitstatus = pytest.ExitCode.TESTS_FAILED
