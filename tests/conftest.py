@@ -49,8 +49,8 @@ def pytest_configure(config):
 #: The xdist groups of the tests that run against a clock ("paced"): each group runs on one worker, one
 #: test after the other, and the two groups side by side. The pty boards, the JACK-paced microphones and
 #: the soak (the ``hardware`` tests) in one, about 4 min on an otherwise idle machine; LSL streams between
-#: processes and the two-sense world paced at 4x in the other, about 3 min. Both mostly wait for their
-#: clock (a fifth of the time on the CPU). A test marked ``alone`` (the robot's live scene, the soak, a
+#: processes, the two-sense world paced at 4x and the view's pages in a browser in the other, about 3 min.
+#: Both mostly wait for their clock (a fifth of the time on the CPU). A test marked ``alone`` (the robot's live scene, the soak, a
 #: restarted sender or relay, the world at 4x) runs with no other paced test beside it
 #: (:func:`pytest_runtest_protocol`), last in its group: the robot's unplug test and the soak, each run
 #: beside the other, failed 3 of 14 runs beside two nice-19 processes burning both cores, 1 of 21
@@ -73,7 +73,11 @@ def _paced_group(item) -> str | None:
     """The paced group of a test, or None for a test that computes."""
     if item.get_closest_marker("hardware"):
         return PACED_DEVICES
-    if item.get_closest_marker("alone") or "loopback_only" in getattr(item, "fixturenames", ()):
+    fixtures = getattr(item, "fixturenames", ())
+    # A page in a browser waits on the clock as well: in a worker computing in idle time, a browser test
+    # waited 60 s for its first window in a CI dry run while the robot's live tests (paced, at normal
+    # priority, training models in their node processes) took the cores.
+    if item.get_closest_marker("alone") or "loopback_only" in fixtures or "browser" in fixtures:
         return PACED_LSL
     return None
 
