@@ -111,7 +111,13 @@ class Browser:
         """Poll ``expression`` until it is truthy; its value (fails after ``timeout`` s)."""
         deadline = time.monotonic() + timeout
         while True:
-            value = self.eval(expression)
+            try:
+                value = self.eval(expression)
+            except RuntimeError as exc:
+                # A page just opened (or reloading) has no JavaScript context for a moment: not yet true.
+                if "execution context" not in str(exc) or time.monotonic() > deadline:
+                    raise
+                value = None
             if value:
                 return value
             if time.monotonic() > deadline:
