@@ -50,8 +50,8 @@ def pytest_configure(config):
 #: test after the other, and the two groups side by side. The pty boards, the JACK-paced microphones and
 #: the soak (the ``hardware`` tests) in one, about 4 min on an otherwise idle machine; LSL streams between
 #: processes, the two-sense world paced at 4x and the view's pages in a browser in the other, about 3 min.
-#: Both mostly wait for their clock (a fifth of the time on the CPU). A test marked ``alone`` (the robot's live scene, the soak, a
-#: restarted sender or relay, the world at 4x) runs with no other paced test beside it
+#: Both mostly wait for their clock (a fifth of the time on the CPU). A test marked ``alone`` (the robot's
+#: live scene, the soak, a restarted sender or relay, the world at 4x) runs with no other paced test beside it
 #: (:func:`pytest_runtest_protocol`), last in its group: the robot's unplug test and the soak, each run
 #: beside the other, failed 3 of 14 runs beside two nice-19 processes burning both cores, 1 of 21
 #: beside two in idle time (:func:`_compute_in_idle_time`), none of 7 beside nothing; the robot's and
@@ -138,7 +138,7 @@ def pytest_collection_modifyitems(config, items):
 # on one worker (:func:`pytest_sessionfinish`).
 
 def _groups_path():
-    return _SHARED_DIR / "paced-groups.json"
+    return _SHARED_DIR / "groups.json"
 
 
 def _write_groups(groups: dict[str, str]) -> None:
@@ -152,7 +152,9 @@ def _write_groups(groups: dict[str, str]) -> None:
     os.replace(tmp, path)
 
 
-def _read_groups() -> dict[str, str]:
+@functools.cache
+def _groups() -> dict[str, str]:
+    """The groups the workers wrote (:func:`_write_groups`), read once by the controller."""
     import json
 
     try:
@@ -175,12 +177,9 @@ def pytest_xdist_make_scheduler(config, log):
         """A test's work unit: its group, else the test alone (and a group xdist's own suffix names,
         should that channel work again)."""
 
-        groups: dict[str, str] | None = None
-
         def _split_scope(self, nodeid: str) -> str:
-            if self.groups is None:          # first asked in schedule(), once every worker has collected
-                self.groups = _read_groups()
-            return self.groups.get(nodeid) or super()._split_scope(nodeid)
+            # First asked in schedule(), once every worker has collected (and written the file).
+            return _groups().get(nodeid) or super()._split_scope(nodeid)
 
     return _GroupScheduling(config, log)
 
@@ -196,14 +195,9 @@ def pytest_runtest_logreport(report):
         return
     if report.node.config.getvalue("dist") != "loadgroup":
         return                               # asked for another scheduling: no groups to keep
-    group = _groups_cache().get(report.nodeid.split("@")[0])
+    group = _groups().get(report.nodeid.split("@")[0])
     if group is not None:
         _group_workers.setdefault(group, set()).add(worker.id)
-
-
-@functools.cache
-def _groups_cache() -> dict[str, str]:
-    return _read_groups()
 
 
 def pytest_sessionfinish(session):

@@ -129,7 +129,6 @@ def _make_sinks(scene: Scene, needs: str, made: list, overwrite: bool, **context
     """Make the scene's sinks whose spec needs ``needs`` (node.scene.registry.NEEDS), appending
     ``(settings, spec, sink or tap)`` to ``made``; ``context``: the rest of the
     :class:`~supramodal.node.scene.registry.SinkContext` (the streams, the sources)."""
-    names = tuple(s.name for s in scene.streams) + (("fused",) if scene.fusion is not None else ())
     for settings in scene.sinks:
         spec = sink_spec(settings.type)
         if spec.needs != needs:
@@ -137,7 +136,7 @@ def _make_sinks(scene: Scene, needs: str, made: list, overwrite: bool, **context
         where = f"{scene.source}: [[sink]] #{settings.index + 1}"
         try:
             made.append((settings, spec, spec.build(settings.options, SinkContext(
-                where, scene.resolve, overwrite, stream_names=names, **context))))
+                where, scene.resolve, overwrite, stream_names=scene.window_names, **context))))
         except OptionError as exc:
             raise SceneError(f"{where} {exc}") from None
 

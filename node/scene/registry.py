@@ -181,9 +181,9 @@ class SinkContext:
         Source name -> ``(driver, its node.scene.specs.SourceSpec, [(bank, mapping)] of the streams
         that read it)``, for sinks that need the sources.
     stream_names : tuple of str
-        The names of the streams whose windows the sink will receive, in the scene's order, ``"fused"``
-        last when the scene fuses: known to every sink, whatever it needs (a page lays out its panels
-        in that order, not in the order the first windows happen to arrive).
+        The names of the streams whose windows the sink will receive (``Scene.window_names``): known to
+        every sink, whatever it needs (a page lays out its panels in that order, not in the order the
+        first windows happen to arrive).
     """
 
     where: str

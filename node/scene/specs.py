@@ -260,6 +260,11 @@ class Scene:
         """Whether the scene is written in the graph form ([[source]], [[stream]])."""
         return self.form == "graph"
 
+    @property
+    def window_names(self) -> tuple[str, ...]:
+        """The names the scene's windows carry, in its order: its streams, then ``"fused"`` when it fuses."""
+        return tuple(st.name for st in self.streams) + (("fused",) if self.fusion is not None else ())
+
     def only_stream(self) -> StreamSpec:
         """The only stream of a one-source scene."""
         self._one_source()

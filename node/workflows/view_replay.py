@@ -122,8 +122,7 @@ class ViewReplay:
         self.scene = replay_scene(path)
         self.path = str(path)
         self.progress = progress
-        names = tuple(st.name for st in self.scene.streams) + (("fused",) if self.scene.fusion is not None else ())
-        self.view = ViewSink(port, mode="replay", quiet=quiet, streams=names)
+        self.view = ViewSink(port, mode="replay", quiet=quiet, streams=self.scene.window_names)
         self.view.control = self._control
         self._cond = threading.Condition()
         self._paused = False
