@@ -20,9 +20,10 @@ from dataclasses import replace
 from pathlib import Path
 
 from supramodal.node.runtime.sinks import ListSink
-from supramodal.node.runtime.sinks.view import attach, view_sinks, with_view
+from supramodal.node.runtime.sinks.view import attach, view_sinks
 from supramodal.node.scene.build import build_node
 from supramodal.node.scene.schema import default_scene, load_scene
+from supramodal.node.scene.variants import with_view
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -50,8 +50,9 @@ from numpy.typing import DTypeLike
 
 from supramodal.checks import Key, text
 from supramodal.drivers.base import DeviceUnavailable
-from supramodal.drivers.lsl import DEFAULT_GAP_TOLERANCE, DEFAULT_MAX_GAP, TimestampSteps
+from supramodal.drivers.lsl import DEFAULT_GAP_TOLERANCE, DEFAULT_MAX_GAP
 from supramodal.drivers.spec import BuildContext, Built, DriverSpec, OptionError
+from supramodal.drivers.timestamps import TimestampSteps
 from supramodal.replay.errors import ReplayError, XdfDamageWarning
 from supramodal.replay.session import Label, Session
 
@@ -284,7 +285,7 @@ def fill_gaps(data: np.ndarray, stamps: np.ndarray, rate: float, tolerance: floa
     max_gap : float
         Longest gap filled, seconds (default the LSL inlet's ``DEFAULT_MAX_GAP``); a longer one,
         or a step back beyond the tolerance, is marked as a restart instead (the inlet's rules:
-        :class:`~supramodal.drivers.lsl.TimestampSteps`).
+        :class:`~supramodal.drivers.timestamps.TimestampSteps`).
 
     Returns
     -------

@@ -34,14 +34,25 @@ settings.load_profile("supramodal")
 
 
 def pytest_configure(config):
-    """LSL stays on this machine in every test: before anything loads liblsl, ``LSLAPICFG`` names a
-    loopback config with a session id of this run's own (tests/test_lsl.py checks it again)."""
+    """LSL and ROS 2 stay on this machine in every test: before anything loads liblsl, ``LSLAPICFG`` names
+    a loopback config with a session id of this run's own (tests/test_lsl.py checks it again); ROS 2's
+    discovery is on localhost, in a domain of this run's own."""
     import os
     import tempfile
 
     from supramodal.benchmarks.lsl_link import loopback_config
 
     os.environ["LSLAPICFG"] = str(loopback_config(tempfile.mkdtemp(prefix="supramodal-lsl-")))
+    # ROS 2 too (tests/ros2_only.py checks it again): DDS discovery on this machine only, in a domain of
+    # this run's own (never the one a user's robot may use), drawn by the controller and kept by its workers.
+    import random
+
+    if "SUPRAMODAL_TEST_ROS_DOMAIN" not in os.environ:
+        os.environ["SUPRAMODAL_TEST_ROS_DOMAIN"] = str(random.SystemRandom().randint(1, 100))
+    os.environ["ROS_DOMAIN_ID"] = os.environ["SUPRAMODAL_TEST_ROS_DOMAIN"]
+    os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+    for stale in ("ROS_STATIC_PEERS", "ROS_LOCALHOST_ONLY"):   # the second is deprecated, and would override
+        os.environ.pop(stale, None)
 
 
 # -- running on every core (pytest-xdist, `-n auto`) --------------------------------------------------
@@ -49,7 +60,8 @@ def pytest_configure(config):
 #: The xdist groups of the tests that run against a clock ("paced"): each group runs on one worker, one
 #: test after the other, and the two groups side by side. The pty boards, the JACK-paced microphones and
 #: the soak (the ``hardware`` tests) in one, about 4 min on an otherwise idle machine; LSL streams between
-#: processes, the two-sense world paced at 4x and the view's pages in a browser in the other, about 3 min.
+#: processes, ROS 2 nodes, the two-sense world paced at 4x and the view's pages in a browser in the other,
+#: about 3 min.
 #: Both mostly wait for their clock (a fifth of the time on the CPU). A test marked ``alone`` (the robot's
 #: live scene, the soak, a restarted sender or relay, the world at 4x) runs with no other paced test beside it
 #: (:func:`pytest_runtest_protocol`), last in its group: the robot's unplug test and the soak, each run
@@ -77,7 +89,9 @@ def _paced_group(item) -> str | None:
     # A page in a browser waits on the clock as well: in a worker computing in idle time, a browser test
     # waited 60 s for its first window in a CI dry run while the robot's live tests (paced, at normal
     # priority, training models in their node processes) took the cores.
-    if item.get_closest_marker("alone") or "loopback_only" in fixtures or "browser" in fixtures:
+    # ROS 2's tests (their fixture localhost_only) wait on DDS discovery and on nodes paced in real time, as LSL's.
+    if (item.get_closest_marker("alone") or "loopback_only" in fixtures or "localhost_only" in fixtures
+            or "browser" in fixtures):
         return PACED_LSL
     return None
 

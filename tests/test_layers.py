@@ -61,22 +61,35 @@ def path_of(module: str) -> Path:
     return path / "__init__.py" if path.is_dir() else path.with_suffix(".py")
 
 
-def imports_in(path: Path) -> list[tuple[int, str]]:
-    """``(line, imported module)`` for every absolute import statement in a source file, at any depth."""
+def imports_in(path: Path, package: str | None = None) -> list[tuple[int, str]]:
+    """``(line, imported module)`` for every import statement in a source file, at any depth: the
+    absolute ones, and, given the file's ``package`` (its dotted name), the relative ones resolved
+    against it (``from ..scene import build`` in ``supramodal.node.runtime`` names
+    ``supramodal.node.scene.build``)."""
     out = []
     for node in ast.walk(ast.parse(path.read_text(), str(path))):
         if isinstance(node, ast.Import):
             out += [(node.lineno, a.name) for a in node.names]
-        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+        elif isinstance(node, ast.ImportFrom) and (node.level == 0 and node.module or node.level and package):
+            target = node.module
+            if node.level:
+                parts = package.split(".")
+                target = ".".join(parts[:len(parts) - node.level + 1] + ([node.module] if node.module else []))
             # "from supramodal import banks" imports supramodal.banks: name both
-            out += [(node.lineno, node.module)] + [(node.lineno, f"{node.module}.{a.name}") for a in node.names]
+            out += [(node.lineno, target)] + [(node.lineno, f"{target}.{a.name}") for a in node.names]
     return out
+
+
+def package_of(module: str) -> str:
+    """The package a module of this checkout is in (a package's ``__init__`` is in the package itself),
+    against which its relative imports are resolved."""
+    return module if path_of(module).name == "__init__.py" else module.rsplit(".", 1)[0]
 
 
 def source_imports(module: str) -> list[tuple[str, int, str]]:
     """``(file, line, imported module)`` for every import statement in a module of this checkout."""
     path = path_of(module)
-    return [(str(path.relative_to(ROOT)), line, what) for line, what in imports_in(path)]
+    return [(str(path.relative_to(ROOT)), line, what) for line, what in imports_in(path, package_of(module))]
 
 
 def loaded_after_import(modules: list[str]) -> dict[str, list[str]]:
@@ -222,6 +235,91 @@ def test_the_architecture_picture_is_the_imports():
     assert found <= covered, sorted(found - covered)
 
 
+#: The rooms of the node (node/), from the bottom up: a module may import from its own room and the rooms
+#: below it, never from one above (docs/architecture.md). The runtime (threads, buffers, sinks, taps) knows
+#: no scene; the scene (schema, registries, builder) no workflow; the workflows no command. (node/__init__.py
+#: is in no room; the benchmarks are a layer of their own above the node: RANKS.)
+ROOMS = ("runtime", "scene", "workflows", "cli")
+#: The back-arrows between the rooms that exist today, allowed until they are gone: ``(file, imported
+#: module)``. The list only shrinks (issue 37): an arrow up that is not here fails, and so does an entry
+#: no import needs any longer (delete it). None may start in node/runtime/.
+KNOWN_BACK_ARROWS = {
+    # the builder trains a model on the spot and says its calibration (train_on_texture_set, _learned_weight)
+    ("node/scene/build.py", "supramodal.node.workflows.training"),
+    # ... and keeps a model trained on the spot in the model cache (_model_for)
+    ("node/scene/build.py", "supramodal.node.workflows.model_cache"),
+}
+
+
+def room(module: str) -> str | None:
+    """The room of node/ a dotted module name is in (``supramodal.node.scene.build`` -> ``"scene"``), or
+    None (a module outside the rooms: ``supramodal.node`` itself, another layer, a library)."""
+    parts = module.split(".")
+    return parts[2] if parts[:2] == ["supramodal", "node"] and len(parts) > 2 and parts[2] in ROOMS else None
+
+
+def imports_up(path: Path, package: str, from_room: str) -> list[tuple[int, str]]:
+    """``(line, imported module)`` of every import statement in ``path`` (a module of ``package``, in
+    room ``from_room``) that names a room above ``from_room``: at any depth, a lazy one in a function and
+    one under ``TYPE_CHECKING`` too."""
+    rank = ROOMS.index(from_room)
+    return [(line, what) for line, what in imports_in(path, package)
+            if (r := room(what)) is not None and ROOMS.index(r) > rank]
+
+
+def is_known(file: str, what: str) -> bool:
+    """Whether an import of ``what`` in ``file`` is one of :data:`KNOWN_BACK_ARROWS`."""
+    return any(file == f and (what == m or what.startswith(m + ".")) for f, m in KNOWN_BACK_ARROWS)
+
+
+def back_arrows() -> list[tuple[str, int, str]]:
+    """``(file, line, imported module)`` of every import in node/ that points up a room."""
+    found = []
+    for m in modules_of("node"):
+        if room(m) is not None:
+            path = path_of(m)
+            found += [(str(path.relative_to(ROOT)), line, what) for line, what in imports_up(path, package_of(m), room(m))]
+    return found
+
+
+def test_the_rooms_of_the_node_import_only_downwards():
+    """runtime < scene < workflows < cli inside node/: the runtime imports nothing of the scene, the
+    workflows or the command line, not even lazily or for its annotations; in the other rooms only the
+    arrows of :data:`KNOWN_BACK_ARROWS` point up, and each of them still exists."""
+    unroomed = [m for m in modules_of("node") if m != "supramodal.node" and room(m) is None]
+    assert not unroomed, f"modules of node/ in no room (give them one in ROOMS): {unroomed}"
+    assert not any(f.startswith("node/runtime/") for f, _ in KNOWN_BACK_ARROWS)
+    found = back_arrows()
+    runtime = [f"{f}:{line} imports {what}" for f, line, what in found if f.startswith("node/runtime/")]
+    assert not runtime, "the runtime imports the scene, the workflows or the command line: " + "; ".join(runtime)
+    new = [f"{f}:{line} imports {what}" for f, line, what in found if not is_known(f, what)]
+    assert not new, "an import up the node's rooms (runtime < scene < workflows < cli): " + "; ".join(new)
+    gone = sorted(k for k in KNOWN_BACK_ARROWS
+                  if not any(f == k[0] and (what == k[1] or what.startswith(k[1] + ".")) for f, _, what in found))
+    assert not gone, f"no longer imported: delete from KNOWN_BACK_ARROWS {gone}"
+
+
+def test_the_room_check_sees_lazy_type_checking_and_relative_imports_up(tmp_path):
+    fake = tmp_path / "fake.py"
+    fake.write_text("from typing import TYPE_CHECKING\n\nfrom supramodal.node.runtime.clock import ClockModel\n\n"
+                    "if TYPE_CHECKING:\n    from supramodal.node.scene.specs import Scene\n\n\n"
+                    "def f():\n    import supramodal.node.cli.run\n    from supramodal.node.workflows import labels\n"
+                    "    from ...scene import build\n    from .. import clock\n")
+    package = "supramodal.node.runtime.taps"     # as if it were node/runtime/taps/fake.py
+    assert sorted(imports_up(fake, package, "runtime")) == [
+        (6, "supramodal.node.scene.specs"), (6, "supramodal.node.scene.specs.Scene"), (10, "supramodal.node.cli.run"),
+        (11, "supramodal.node.workflows"), (11, "supramodal.node.workflows.labels"), (12, "supramodal.node.scene"),
+        (12, "supramodal.node.scene.build")]
+    assert imports_up(fake, package, "workflows") == [(10, "supramodal.node.cli.run")]
+    assert imports_up(fake, package, "cli") == []
+    assert (13, "supramodal.node.runtime.clock") in imports_in(fake, package)
+    assert room("supramodal.node.runtime.sinks.spec") == "runtime" and room("supramodal.node") is None
+    # a known arrow is known in its own file only, and by module (a name in it too)
+    assert is_known("node/scene/build.py", "supramodal.node.workflows.training.calibration_line")
+    assert not is_known("node/scene/schema.py", "supramodal.node.workflows.training")
+    assert not is_known("node/scene/build.py", "supramodal.node.workflows.trainings")
+
+
 def test_a_node_that_runs_a_model_loads_neither_scipy_signal_nor_scipy_optimize():
     """What `supramodal run` imports to build and run a scene with a model file (the CLI, the scene, the
     graph, the replay and serial drivers, the model) leaves out scipy.signal (0.6 s to import, with
@@ -232,6 +330,20 @@ def test_a_node_that_runs_a_model_loads_neither_scipy_signal_nor_scipy_optimize(
             "import supramodal.node.runtime.graph, supramodal.replay.driver, supramodal.drivers.serial_whisker\n"
             "import supramodal.model, supramodal.pipeline, supramodal.decisions\n"
             "print(sorted(m for m in ('scipy.signal', 'scipy.optimize', 'scipy.stats') if m in sys.modules))\n")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "[]", done.stdout
+
+
+def test_nothing_but_a_ros2_sink_at_work_imports_rclpy():
+    """A scene loads only what it uses (README): the command line (which takes ``--ros-args`` off),
+    the builder, the graph and even the ros2 sink's own module load no rclpy; a ros2 sink that is made
+    does (rclpy takes 0.3 s to import, and is absent without the ros2 extra)."""
+    code = ("import sys\n"
+            "import supramodal.node.cli, supramodal.node.cli.run, supramodal.node.scene.build\n"
+            "import supramodal.node.runtime.graph, supramodal.node.runtime.sinks.ros2, supramodal.drivers.ros2\n"
+            "print(sorted(m for m in sys.modules if m.split('.')[0] in ('rclpy', 'std_msgs', 'sensor_msgs',\n"
+            "                                                           'diagnostic_msgs')))\n")
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
     assert done.stdout.strip() == "[]", done.stdout

@@ -58,7 +58,8 @@ def _scene(section: str, key: str, value) -> dict:
 def _load_only_cases():
     """Numeric keys of the drivers that need a device or a stream (serial, microphone, lsl, xdf),
     of every sink and of the fusion: driven at load (a run needs what a test machine lacks)."""
-    from supramodal.node.scene.registry import driver_types, sink_keys, sink_spec, sink_types
+    from supramodal.node.runtime.sinks.spec import sink_keys
+    from supramodal.node.scene.registry import driver_types, sink_spec, sink_types
     from supramodal.node.scene.schema import FUSION_KEYS, STREAM_KEYS
 
     for kind in driver_types():
@@ -89,6 +90,7 @@ ACCEPTED = {
     ("driver", "twosense", "jitter", "zero"): "no jitter", ("driver", "twosense", "clock_ppm", "negative"): "",
     ("sink", "lsl-signal", "wait_for_consumer", "zero"): "start at once",
     ("sink", "lsl", "wait_for_consumer", "zero"): "start at once", ("sink", "view", "port", "zero"): "any free port",
+    ("sink", "ros2", "wait_for_subscribers", "zero"): "start at once",
     ("fusion", None, "weight", "zero"): "all on the second stream", ("fusion", None, "correlation", "zero"): "",
     ("stream", None, "mapping", "zero"): "channel 0",
     ("driver", "twosense", "seconds", "huge"): "build", ("driver", "twosense", "seconds", "huge-int"): "build",
@@ -116,7 +118,7 @@ def test_every_other_numeric_key_refuses_bad_numbers_naming_the_key(tmp_path, wh
     value = BAD[label]
     if section == "driver":
         required = {"serial": {"port": "loop://"}, "lsl": {"stream": "x"}, "xdf": {"path": "r.xdf", "stream": "s"},
-                    "replay": {"path": "r.wav"}, "twosense": {"sense": "whiskers"}}.get(kind, {})
+                    "replay": {"path": "r.wav"}, "twosense": {"sense": "whiskers"}, "ros2": {"topic": "/t"}}.get(kind, {})
         d = {"driver": {"type": kind, **required, key: value}}
     else:
         d = _two_sense(section, kind, key, value)

@@ -84,6 +84,28 @@ def test_a_loaded_scene_cannot_be_changed_in_place():
     assert shorter.features.window == 0.2 and scene.only_stream().features.window == 0.1
 
 
+def test_a_scene_with_one_more_sink_has_the_sink_its_file_would_give():
+    """node/scene/variants.py: a sink added in code (``--view``'s) is checked and filled as a
+    ``[[sink]]`` table is, and the scene it is added to stays as it was."""
+    from supramodal.node.runtime.sinks.view import ViewError
+    from supramodal.node.scene.variants import with_sink, with_view
+
+    one = {"driver": {"type": "synth"}, "sink": [{"type": "text"}]}
+    scene = scene_from_dict(one, "one.toml")
+    more = with_sink(scene, "jsonl", path="w.jsonl")
+    filed = scene_from_dict({**one, "sink": [{"type": "text"}, {"type": "jsonl", "path": "w.jsonl"}]}, "one.toml")
+    assert more.sinks == filed.sinks and scene.sinks == filed.sinks[:1]
+    assert [dict(s.options) for s in more.sinks] == [dict(s.options) for s in filed.sinks]
+    with pytest.raises(SceneError, match=r"one.toml: \[\[sink\]\] #2 type: expected one of \[.*'jsonl'"):
+        with_sink(scene, "nowhere")
+    with pytest.raises(SceneError, match=r"one.toml: \[\[sink\]\] #2 path: expected"):
+        with_sink(scene, "jsonl", path=3)
+    viewed = with_view(scene, 0)
+    assert viewed.sinks[-1].type == "view" and viewed.sinks[-1].options["port"] == 0
+    with pytest.raises(ViewError, match='has a \\[\\[sink\\]\\] type = "view" already'):
+        with_view(viewed, 0)
+
+
 def _annotations(cls) -> list:
     hints = typing.get_type_hints(cls, vars(specs) | {"DecisionRules": DecisionRules})
     return list(hints.values())

@@ -20,7 +20,7 @@ from supramodal.drivers.spec import OptionError
 from supramodal.node.scene.build import build_node
 from supramodal.node.runtime.events import WindowEvent
 from supramodal.node.runtime.taps.recorder import SessionRecorder
-from supramodal.node.scene.registry import SinkContext
+from supramodal.node.runtime.sinks.spec import SinkContext
 from supramodal.node.scene.schema import SceneError, scene_from_dict
 from supramodal.node.runtime.sinks import QueuedSink
 from supramodal.node.runtime.sinks.view import CLIENT_QUEUE, MAX_BODY, SPEC, TOKEN_HEADER, ViewError, ViewSink, attach, view_sinks
@@ -210,7 +210,7 @@ def test_without_marks_the_view_is_read_only():
 def test_the_page_learns_the_scenes_stream_order_before_any_window_whatever_window_comes_first(tmp_path):
     """The page lays out its panels in the order hello lists the streams. They once came in the order
     the first windows arrived, so a fused graph's right stream could be shown before its left one."""
-    from supramodal.node.runtime.sinks.view import with_view
+    from supramodal.node.scene.variants import with_view
 
     d = {"source": [{"name": n, "type": "synth", "seconds": 1.0} for n in ("zeta", "alpha")],
          "stream": [{"name": n, "source": n} for n in ("zeta", "alpha")]}           # features only: no model
@@ -364,7 +364,7 @@ def test_an_unplug_of_the_mock_board_shows_a_banner_within_a_second(tmp_path, br
 @pytest.mark.slow   # a long run: two models trained on the spot and fused, in the browser
 def test_a_fused_graph_shows_both_streams_the_fused_one_and_the_pairing(tmp_path, browser):
     from supramodal.node.scene.schema import load_scene
-    from supramodal.node.runtime.sinks.view import with_view
+    from supramodal.node.scene.variants import with_view
 
     sc = load_scene(str(Path(__file__).resolve().parents[1] / "examples" / "two_streams_fused.toml"))
     graph = build_node(with_view(replace(sc, sinks=[]), 0))

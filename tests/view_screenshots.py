@@ -17,7 +17,8 @@ from pathlib import Path
 
 from supramodal.node.scene.build import build_node
 from supramodal.node.scene.schema import default_scene, load_scene
-from supramodal.node.runtime.sinks.view import attach, view_sinks, with_view
+from supramodal.node.runtime.sinks.view import attach, view_sinks
+from supramodal.node.scene.variants import with_view
 
 sys.path.insert(0, str(Path(__file__).parent))
 from view_browser import Browser  # noqa: E402

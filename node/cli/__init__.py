@@ -34,6 +34,7 @@ from types import ModuleType
 from typing import Any, TextIO
 
 from supramodal import __version__
+from supramodal.drivers.ros2 import split_ros_arguments, use_ros_arguments
 from supramodal.errors import SupramodalWarning
 from supramodal.node.cli import (
     bench,
@@ -115,14 +116,20 @@ def main(argv: Sequence[str] | None = None) -> int:
     Parameters
     ----------
     argv : sequence of str, optional
-        The arguments after the program's name (default: ``sys.argv[1:]``).
+        The arguments after the program's name (default: ``sys.argv[1:]``). ``--ros-args`` sections
+        (up to ``--`` or the end) are ROS 2's: taken off, and given to the node's ROS 2 parts
+        (:func:`supramodal.drivers.ros2.use_ros_arguments`).
 
     Returns
     -------
     int
         The exit status: 0, 1 (a bug), 2 (the user's error), 128 + a signal's number.
     """
-    args = build_parser().parse_args(argv)
+    # ROS 2's own arguments (``--ros-args -r __ns:=/robot ...``, as a launch file passes them) are
+    # not the command's: kept for the node's ROS 2 parts, then the rest parsed as usual.
+    own, ros = split_ros_arguments(sys.argv[1:] if argv is None else argv)
+    use_ros_arguments(ros)
+    args = build_parser().parse_args(own)
     shown, warnings.showwarning = warnings.showwarning, _show_warning
     handlers = {}
     if threading.current_thread() is threading.main_thread():      # signals are the main thread's

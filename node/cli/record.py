@@ -67,7 +67,7 @@ def run(args: argparse.Namespace) -> int:
 
     scene = load_scene(args.scene)
     if args.view is not None:
-        from supramodal.node.runtime.sinks.view import add_view
+        from supramodal.node.scene.variants import add_view
         scene, _ = add_view(scene, None, args.view)
     name = args.name or time.strftime("session-%Y%m%d-%H%M%S")
     labelled = bool(args.label or args.marks)

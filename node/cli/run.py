@@ -59,7 +59,7 @@ def run(args: argparse.Namespace) -> int:
         return 0
     sinks = [QueuedSink(JsonLinesSink("-"))] if args.json else None
     if args.view is not None:
-        from supramodal.node.runtime.sinks.view import add_view
+        from supramodal.node.scene.variants import add_view
         scene, sinks = add_view(scene, sinks, args.view)
     progress = None if args.quiet else (lambda m: print(f"supramodal: {m}", file=sys.stderr, flush=True))
     if progress and args.scene is None:

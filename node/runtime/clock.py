@@ -22,16 +22,22 @@ estimate follow a rate that wanders with temperature.
 Cost: O(1) per block (a comparison and a few float operations); a fit of at most ``window``
 points once per segment. Not thread-safe: one source thread updates it; readers take
 :meth:`ClockModel.estimate`, a frozen snapshot.
+
+:func:`frames_at` runs a recorded source's block times through a model, as the node ran them, to map
+times on the node's common time to that source's frames: a recorder's marks and a recorded graph's
+labels (``supramodal.node.workflows.labels``) are put on each source's stream with it.
 """
 
 from __future__ import annotations
 
 import collections
 import math
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 
 from supramodal.errors import InputError
 
@@ -240,6 +246,50 @@ class ClockModel:
         return ClockEstimate(self.nominal_rate, rate, (rate / self.nominal_rate - 1.0) * 1e6, self._offset,
                              float(p95 - p5), float(p50), self._blocks, len(self._minima), self._outliers,
                              self._fitted)
+
+
+def frames_at(arrivals: tuple[Sequence[int], Sequence[float], float], times: ArrayLike,
+              marks: Iterable[tuple[int, str]] = ()) -> NDArray[np.float64]:
+    """The stream position (fractional frame) a source had reached at each common time in ``times``.
+
+    The source's clock model is fed its blocks as the node fed it live and as its replay feeds it
+    (``update(end - 1, time)`` per block, ``reset()`` at a ``restart`` mark); a time is mapped by the
+    line as it stood after the first block complete at or after it (the last block's line past the
+    end), as the node maps a window by the line of the block that completed it.
+
+    Parameters
+    ----------
+    arrivals : (frames, seconds, rate)
+        Each block's end frame, the common time it was complete (seconds), and the clock model's
+        nominal rate (Hz): a session's ``arrivals``.
+    times : array_like of float
+        Seconds of common time.
+    marks : iterable of (frame, kind)
+        The session's marks (only ``"restart"`` counts: the count restarted, the old line is void).
+
+    Returns
+    -------
+    ndarray of float64
+        Frames, same shape as ``times``; not clipped to the stream.
+    """
+    ends = np.asarray(arrivals[0], dtype=np.int64)
+    stamps = np.asarray(arrivals[1], dtype=np.float64)
+    clock = ClockModel(float(arrivals[2]))
+    restarts = sorted(i for i, kind in marks if kind == "restart")
+    lines = np.empty((len(ends), 2))
+    r = 0
+    for j, (end, stamp) in enumerate(zip(ends.tolist(), stamps.tolist())):
+        if r < len(restarts) and restarts[r] < end:       # a restart inside this block, as the source resets
+            while r < len(restarts) and restarts[r] < end:
+                r += 1
+            clock.reset()
+        clock.update(end - 1, stamp)
+        lines[j] = clock.line()
+    t = np.asarray(times, dtype=np.float64)
+    k = np.minimum(np.searchsorted(stamps, t, side="left"), len(ends) - 1)
+    offset, slope = lines[k, 0], lines[k, 1]
+    frames: NDArray[np.float64] = (t - offset) / slope
+    return frames
 
 
 def _line(x: np.ndarray, y: np.ndarray, slope_now: float) -> tuple[float, float]:

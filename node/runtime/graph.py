@@ -114,6 +114,7 @@ class Graph:
             raise InputError(f"{len(self.routes)} routes for {len(self.sinks)} sinks")
         for s in self.sinks:
             s.on_reader_left = self._sink_reader_left     # a queued sink's reader may leave (`| head`)
+            s.watch(self.health)                          # the graph's counters, for a sink that reports them
         self.fusion = fusion
         self.recorder = recorder
         recorders: dict[str, SessionRecorder]
@@ -316,6 +317,28 @@ class Graph:
                     s.event(ev)
 
     # -- summary ------------------------------------------------------------------------------
+
+    def health(self) -> dict[str, Any]:
+        """What the graph counts, read while it runs (what its summary says at the end, in the same
+        units): per stream ``frames`` (delivered, filled, dropped, :meth:`Source.frame_fates`),
+        ``windows``, ``latency_ms`` (p50, p99, max) and ``source``; per source with a host
+        timebase its clock (``ppm``, ``jitter_ms``, ``delay_ms``: :meth:`Source.clock_summary`); the
+        fusion's pairing counts (``windows``, ``paired``, ``alone``, ``late``, ``dropouts``,
+        ``latency_ms``) or None; each sink's stats (those that count: ``written``,
+        ``dropped_windows``, ``dropped_events``, ``errors`` for a queued sink). Any thread: every
+        count is a snapshot, read without stopping the graph."""
+        streams = {}
+        for st in self.streams:
+            streams[st.name] = {"windows": st.windows, "frames": st.source.frame_fates(st.feed),
+                                "latency_ms": st.latencies.summary(), "source": st.source.name}
+        clocks = {s.name: s.clock_summary() for s in self.sources if s.clock is not None}
+        fusion = None
+        if self.fusion is not None:
+            f = self.fusion
+            fusion = {"windows": f.windows, "paired": f.paired, "alone": f.alone, "late": dict(f.late),
+                      "dropouts": dict(f.dropouts), "latency_ms": f.latencies.summary()}
+        sinks = [s for s in (k.stats() for k in self.sinks) if s is not None]
+        return {"streams": streams, "clocks": clocks, "fusion": fusion, "sinks": sinks}
 
     def summary(self, wall: float) -> dict[str, Any]:
         """The run's summary.

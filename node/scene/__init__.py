@@ -1,2 +1,2 @@
 """Scenes: the schema (one validation vocabulary, one form), the registries of drivers and sinks,
-and the one builder that turns a scene into a running graph."""
+the one builder that turns a scene into a running graph, and a scene's variants made in code."""

@@ -21,10 +21,11 @@ from supramodal.drivers.spec import BuildContext, OptionError
 from supramodal.errors import InputError
 from supramodal.model import ModelError, TextureModel
 from supramodal.node.runtime.graph import Graph
+from supramodal.node.runtime.sinks.spec import SinkContext, SinkSpec, SourcePlan, StreamPlan
 from supramodal.node.runtime.sources import Source
 from supramodal.node.runtime.streams import Labels, Stream, refuse_uncalibrated
 from supramodal.node.scene.band import warn_if_beyond_band
-from supramodal.node.scene.registry import SinkContext, SinkSpec, StreamPlan, driver_spec, sink_spec
+from supramodal.node.scene.registry import driver_spec, sink_spec
 from supramodal.node.scene.schema import LEARN
 from supramodal.node.scene.specs import Scene, SceneError, SinkSettings, SourceSpec, StreamSpec
 from supramodal.pipeline import FeaturePipeline
@@ -126,9 +127,9 @@ def driver_for(scene: Scene, bank: Bank | None, speed_override=None, shared: dic
 
 
 def _make_sinks(scene: Scene, needs: str, made: list, overwrite: bool, **context) -> None:
-    """Make the scene's sinks whose spec needs ``needs`` (node.scene.registry.NEEDS), appending
+    """Make the scene's sinks whose spec needs ``needs`` (node.runtime.sinks.spec.NEEDS), appending
     ``(settings, spec, sink or tap)`` to ``made``; ``context``: the rest of the
-    :class:`~supramodal.node.scene.registry.SinkContext` (the streams, the sources)."""
+    :class:`~supramodal.node.runtime.sinks.spec.SinkContext` (the streams, the sources)."""
     for settings in scene.sinks:
         spec = sink_spec(settings.type)
         if spec.needs != needs:
@@ -139,6 +140,12 @@ def _make_sinks(scene: Scene, needs: str, made: list, overwrite: bool, **context
                 where, scene.resolve, overwrite, stream_names=scene.window_names, **context))))
         except OptionError as exc:
             raise SceneError(f"{where} {exc}") from None
+
+
+def _source_plan(src: SourceSpec, driver, read_by: list) -> SourcePlan:
+    """What a sink of ``src``'s samples is told of it: its built ``driver``, its driver type, options
+    and signal type (its driver's spec's), and the ``(bank, mapping)`` of the streams that read it."""
+    return SourcePlan(driver, src.type, src.options, driver_spec(src.type).signal_type(src.options), tuple(read_by))
 
 
 def _planned_classes(stream: StreamSpec, bank: Bank, ts, loaded: TextureModel | None) -> tuple[str, ...]:
@@ -430,7 +437,7 @@ def build_node(scene: Scene, speed=None, sinks_override=None, progress=None, rec
             for stream, spec in zip(streams, scene.streams):
                 readers.setdefault(spec.source, []).append((stream.pipeline.bank, spec.mapping))
             _make_sinks(scene, "sources", made, overwrite,
-                        sources={name: (s.driver, scene.source_named(name), readers.get(name, []))
+                        sources={name: _source_plan(scene.source_named(name), s.driver, readers.get(name, []))
                                  for name, (s, _, _) in sources.items()})
         made.sort(key=lambda m: m[0].index)     # the scene's order
         windows = [(settings, sink) for settings, spec, sink in made if spec.listens == "windows"]

@@ -13,7 +13,8 @@ import re
 import sys
 from pathlib import Path
 
-from supramodal.node.scene.registry import driver_spec, driver_types, sink_keys, sink_spec, sink_types, source_keys
+from supramodal.node.runtime.sinks.spec import sink_keys
+from supramodal.node.scene.registry import driver_spec, driver_types, sink_spec, sink_types, source_keys
 from supramodal.node.scene.schema import FUSION_KEYS, ONE_SOURCE_KEYS, SECTIONS, SOURCE_KEYS, STREAM_KEYS
 
 __all__ = ["BLOCKS", "blocks", "check", "main", "rewrite"]

@@ -7,23 +7,36 @@ never loads sounddevice's module and one without a serial port never loads pyser
 defined outside the package is added with :func:`register_driver`.
 
 A new driver is therefore one module (the driver and its spec) plus one line here. Sinks are
-registered the same way (:class:`SinkSpec`, :data:`SINK_MODULES`, :func:`register_sink`).
+registered the same way (:data:`SINK_MODULES`, :func:`register_sink`); a sink's spec,
+:class:`~supramodal.node.runtime.sinks.spec.SinkSpec`, lives beside the sinks in
+``supramodal.node.runtime.sinks.spec``, as a driver's does beside the drivers.
 """
 
 from __future__ import annotations
 
 import importlib
-from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
-from pathlib import Path
-from typing import Any, Generic, Protocol, TypeVar
+from typing import Generic, Protocol, TypeVar
 
-from supramodal.checks import Key, is_name, text
+from supramodal.checks import Key
 from supramodal.drivers.spec import DriverSpec
 from supramodal.errors import InputError
 
-__all__ = ["DRIVER_MODULES", "SINK_MODULES", "Registry", "SinkContext", "SinkSpec", "driver_spec",
-           "driver_types", "register_driver", "register_sink", "sink_keys", "sink_spec", "sink_types", "source_keys"]
+# A sink's spec lives beside the sinks (the runtime), as a driver's beside the drivers; its names are
+# re-exported here for code written against this module (the package imports them from there).
+from supramodal.node.runtime.sinks.spec import (
+    FROM,
+    NEEDS,
+    SOURCE,
+    SinkContext,
+    SinkSpec,
+    SourcePlan,
+    StreamPlan,
+    sink_keys,
+)
+
+__all__ = ["DRIVER_MODULES", "FROM", "NEEDS", "SINK_MODULES", "SOURCE", "Registry", "SinkContext", "SinkSpec",
+           "SourcePlan", "StreamPlan", "driver_spec", "driver_types", "register_driver", "register_sink", "sink_keys",
+           "sink_spec", "sink_types", "source_keys"]
 
 #: Type -> ``"module"`` or ``"module:attribute"`` holding the driver's spec.
 DRIVER_MODULES = {
@@ -34,6 +47,7 @@ DRIVER_MODULES = {
     "microphone": "supramodal.drivers.microphone",
     "xdf": "supramodal.replay.xdf",
     "lsl": "supramodal.drivers.lsl",
+    "ros2": "supramodal.drivers.ros2",
 }
 
 
@@ -130,113 +144,11 @@ SINK_MODULES = {
     "text": "supramodal.node.runtime.sinks.text",
     "jsonl": "supramodal.node.runtime.sinks.jsonl",
     "lsl": "supramodal.node.runtime.sinks.lsl",
+    "ros2": "supramodal.node.runtime.sinks.ros2",
     "lsl-signal": "supramodal.node.runtime.taps.lsl_signal",
     "view": "supramodal.node.runtime.sinks.view",
 }
-#: What a sink may need built before it is made: nothing (it is made first, so that a file is
-#: checked before any training), the streams' plans (their pipelines and classes, known before any
-#: model is trained: a sink that must exist before the start-up work, such as an LSL outlet that
-#: consumers resolve while the node trains), the streams (their banks, features and models), or the
-#: sources.
-NEEDS = ("nothing", "plans", "streams", "sources")
-
-
-@dataclass(frozen=True)
-class StreamPlan:
-    """A stream as it is known before its model is trained or loaded into the graph.
-
-    Attributes
-    ----------
-    pipeline : supramodal.pipeline.FeaturePipeline
-        Its bank, features and window.
-    classes : tuple of str
-        The classes its model decides among, in the model's order (empty without a model).
-    """
-
-    pipeline: Any
-    classes: tuple[str, ...]
-
-
-@dataclass(frozen=True)
-class SinkContext:
-    """What a sink spec's ``build`` may use besides its options.
-
-    Attributes
-    ----------
-    where : str
-        The sink's table in messages (``"s.toml: [[sink]] #2"``).
-    resolve : callable
-        ``resolve(path) -> Path``, relative to the scene file's folder.
-    overwrite : bool
-        Whether a file sink may replace an existing file (``run --force``).
-    streams : dict
-        Stream name -> the built ``node.runtime.streams.Stream`` (its pipeline and model), for sinks that
-        need the streams; ``"fused"`` is not among them.
-    fused_classes : tuple of str or None
-        The fusion's classes, when the scene has one.
-    plans : dict
-        Stream name -> its :class:`StreamPlan`, for sinks that need the plans (made before any
-        model is trained); ``"fused"`` is not among them.
-    sources : dict
-        Source name -> ``(driver, its node.scene.specs.SourceSpec, [(bank, mapping)] of the streams
-        that read it)``, for sinks that need the sources.
-    stream_names : tuple of str
-        The names of the streams whose windows the sink will receive (``Scene.window_names``): known to
-        every sink, whatever it needs (a page lays out its panels in that order, not in the order the
-        first windows happen to arrive).
-    """
-
-    where: str
-    resolve: Callable[[str], Path] = Path
-    overwrite: bool = False
-    streams: Mapping[str, Any] = field(default_factory=dict)
-    fused_classes: tuple[str, ...] | None = None
-    sources: Mapping[str, Any] = field(default_factory=dict)
-    plans: Mapping[str, StreamPlan] = field(default_factory=dict)
-    stream_names: tuple[str, ...] = ()
-
-
-@dataclass(frozen=True)
-class SinkSpec:
-    """A kind of sink as a scene sees it.
-
-    Attributes
-    ----------
-    type : str
-        The name a scene gives it (``[[sink]] type``).
-    keys : mapping of str to Key
-        Its keys besides ``type`` and ``from`` (what it listens to: added for a sink of windows)
-        or ``source`` (added for a sink of samples).
-    build : callable
-        ``build(options, context) -> Sink`` (or a ``node.runtime.taps.Tap`` for a sink of samples),
-        ``options`` validated (a read-only mapping); raises ``drivers.spec.OptionError`` naming the key.
-    summary : str
-        One line for the docs.
-    listens : {"windows", "samples"}
-        A sink of the streams' window events (routed by ``from``), or of a source's samples (a tap
-        on the ring of ``source``).
-    needs : {"nothing", "plans", "streams", "sources"}
-        What must be built before it (:data:`NEEDS`).
-    unique : tuple of str
-        Keys whose values two sinks of this type may not share (one outlet name for two outlets).
-    """
-
-    type: str
-    keys: Mapping[str, Key]
-    build: Callable[[Mapping[str, Any], SinkContext], Any]
-    summary: str
-    listens: str = "windows"
-    needs: str = "nothing"
-    unique: tuple[str, ...] = ()
-
-
 SINKS = Registry("sink", SINK_MODULES, SinkSpec)
-
-#: ``from``: the streams a sink of windows listens to.
-FROM = Key(lambda v: text(v) or isinstance(v, list) and bool(v) and all(text(x) for x in v),
-           'a stream name or a list of them ("fused": the fusion block\'s decisions; default: every stream)', None)
-#: ``source``: the source whose samples a sink of samples sends.
-SOURCE = Key(is_name, "the name of the [[source]] whose samples it sends (default: the scene's only source)", None)
 
 
 def register_sink(spec: SinkSpec, replace: bool = False) -> SinkSpec:
@@ -253,7 +165,3 @@ def sink_spec(kind: object) -> SinkSpec:
     """The spec of sink type ``kind``; an :class:`InputError` for a type no sink has."""
     return SINKS.spec(kind)
 
-
-def sink_keys(spec: SinkSpec) -> dict[str, Key]:
-    """A sink's keys in a scene: its own, and what it listens to (``from`` or ``source``)."""
-    return {**spec.keys, **({"source": SOURCE} if spec.listens == "samples" else {"from": FROM})}

@@ -51,7 +51,8 @@ from supramodal.errors import InputError
 from supramodal.features import DEFAULT_WINDOW, FEATURE_TABLE, FEATURES
 from supramodal.node.runtime.events import FUSED_STREAM, MAIN_STREAM
 from supramodal.node.runtime.fusion import DEFAULT_MAX_WAIT, DEFAULT_WEIGHT
-from supramodal.node.scene.registry import driver_spec, driver_types, sink_keys, sink_spec, source_keys
+from supramodal.node.runtime.sinks.spec import sink_keys
+from supramodal.node.scene.registry import driver_spec, driver_types, sink_spec, source_keys
 from supramodal.node.scene.specs import (
     BankSpec,
     BufferSpec,

@@ -11,7 +11,8 @@ time at all), and is what a replay, ``train`` and a manifest's ``start``/``end``
 put at ``t x rate`` would land 108 samples (at 5 kHz) early. So a span on common time is mapped
 to each source's stream through that source's clock: the clock model fed the blocks' recorded
 times (the sidecar's ``arrivals``), exactly as the node and its replay feed it, the line as it
-stood after the block that completed the sample (:func:`frames_at`).
+stood after the block that completed the sample (:func:`~supramodal.node.runtime.clock.frames_at`,
+beside the clock model: a recorder maps its marks on common time with it too).
 
 * :func:`read_spans` reads a spans file (CSV ``start,end,label``, seconds of common time),
   validated: finite times, ``0 <= start < end``, names of :data:`supramodal.checks.NAME_HELP`,
@@ -30,15 +31,13 @@ import json
 import math
 import os
 import tempfile
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
-
 from supramodal.checks import NAME_HELP, is_name
 from supramodal.errors import InputError
-from supramodal.node.runtime.clock import ClockModel
+from supramodal.node.runtime.clock import frames_at
 from supramodal.replay.session import load_session, session_paths, sidecar_text, validate_sidecar
 
 __all__ = ["SPAN_COLUMNS", "LabelError", "Span", "check_label_name", "frames_at", "label_recording", "read_spans",
@@ -151,48 +150,6 @@ def read_spans(path) -> list[Span]:
                                 f"overlaps [{a.start:g}, {a.end:g}) {a.label!r}")
                              + "; put spans in time order, each ending before the next starts")
     return [s for _, s in spans]
-
-
-def frames_at(arrivals: tuple[Sequence[int], Sequence[float], float], times, marks: Iterable[tuple[int, str]] = ()):
-    """The stream position (fractional frame) a source had reached at each common time in ``times``.
-
-    The source's clock model is fed its blocks as the node fed it live and as its replay feeds it
-    (``update(end - 1, time)`` per block, ``reset()`` at a ``restart`` mark); a time is mapped by the
-    line as it stood after the first block complete at or after it (the last block's line past the
-    end), as the node maps a window by the line of the block that completed it.
-
-    Parameters
-    ----------
-    arrivals : (frames, seconds, rate)
-        Each block's end frame, the common time it was complete (seconds), and the clock model's
-        nominal rate (Hz): a session's ``arrivals``.
-    times : array_like of float
-        Seconds of common time.
-    marks : iterable of (frame, kind)
-        The session's marks (only ``"restart"`` counts: the count restarted, the old line is void).
-
-    Returns
-    -------
-    ndarray of float64
-        Frames, same shape as ``times``; not clipped to the stream.
-    """
-    ends = np.asarray(arrivals[0], dtype=np.int64)
-    stamps = np.asarray(arrivals[1], dtype=np.float64)
-    clock = ClockModel(float(arrivals[2]))
-    restarts = sorted(i for i, kind in marks if kind == "restart")
-    lines = np.empty((len(ends), 2))
-    r = 0
-    for j, (end, stamp) in enumerate(zip(ends.tolist(), stamps.tolist())):
-        if r < len(restarts) and restarts[r] < end:       # a restart inside this block, as the source resets
-            while r < len(restarts) and restarts[r] < end:
-                r += 1
-            clock.reset()
-        clock.update(end - 1, stamp)
-        lines[j] = clock.line()
-    t = np.asarray(times, dtype=np.float64)
-    k = np.minimum(np.searchsorted(stamps, t, side="left"), len(ends) - 1)
-    offset, slope = lines[k, 0], lines[k, 1]
-    return (t - offset) / slope
 
 
 def spans_to_stream(spans: Iterable[Span], arrivals, marks, frames: int, rate: float) -> list[tuple[float, float, str]]:

@@ -1,12 +1,13 @@
 """Sinks: where the node's window events go. This package holds the base and the machinery every
-sink shares; each sink a scene can name is one module beside it, with its spec (``SPEC``), registered
-in :data:`supramodal.node.scene.registry.SINK_MODULES`: :mod:`.text` (text lines), :mod:`.jsonl` (JSON
+sink shares; each sink a scene can name is one module beside it, with its spec (``SPEC``, a
+:class:`~supramodal.node.runtime.sinks.spec.SinkSpec`: :mod:`.spec`), registered in
+:data:`supramodal.node.scene.registry.SINK_MODULES`: :mod:`.text` (text lines), :mod:`.jsonl` (JSON
 Lines), :mod:`.lsl` (Lab Streaming Layer outlets), :mod:`.view` (a page in the browser). The taps (a
 source's raw frames) are in :mod:`supramodal.node.runtime.taps`.
 
 :class:`Sink` is the interface the graph calls (every call but ``emit`` a documented no-op by
 default): ``start``, ``emit``, ``event``, ``drain``, ``stats``, ``summary``, ``close``, and the
-:attr:`Sink.on_reader_left` hook. A new sink derives from it and overrides what it needs; the
+:attr:`Sink.on_reader_left` and :meth:`Sink.watch` hooks. A new sink derives from it and overrides what it needs; the
 graph calls the rest as they are (it never probes a sink for a method).
 
 A file sink (:class:`FileSink`: text, JSON Lines) checks its path when it is made (an existing
@@ -44,7 +45,7 @@ from supramodal.drivers.spec import OptionError
 from supramodal.errors import InputError
 from supramodal.node.runtime.events import WindowEvent
 from supramodal.node.runtime.outputs import check_new_file
-from supramodal.node.scene.registry import SinkContext
+from supramodal.node.runtime.sinks.spec import SinkContext
 
 
 class Sink(abc.ABC):
@@ -63,10 +64,21 @@ class Sink(abc.ABC):
         calls it, with the ``BrokenPipeError``, when the reader of its output has left (``|
         head``), and the graph stops. A sink called on the graph's threads need not: its error
         stops the graph anyway. Default None.
+    health : callable or None
+        ``health() -> dict``: what the graph counts, read while it runs (``Graph.health``), given by
+        :meth:`watch` when the graph is made; None before (and for a sink outside a graph). A
+        sink that reports the node's health (the view's page, ROS 2 diagnostics) calls it from
+        its own thread.
     """
 
     path: str | None = None
     on_reader_left: Callable[[BrokenPipeError], None] | None = None
+    health: Callable[[], dict[str, Any]] | None = None
+
+    def watch(self, health: Callable[[], dict[str, Any]]) -> None:
+        """Take the graph's counters (:attr:`health`); the graph calls it once, when it is made.
+        Default: keep it."""
+        self.health = health
 
     def prepare(self) -> None:
         """Before the graph's start, still start-up (SIGINT and SIGTERM interrupt it): e.g. wait
@@ -321,6 +333,11 @@ class QueuedSink(Sink):
     def prepare(self) -> None:
         """Passed on to the sink (on the caller's thread)."""
         self.sink.prepare()
+
+    def watch(self, health: Callable[[], dict[str, Any]]) -> None:
+        """Passed on to the sink (and kept)."""
+        self.health = health
+        self.sink.watch(health)
 
     def start(self, epoch: float) -> None:
         """Passed on to the sink (before any event, on the caller's thread)."""

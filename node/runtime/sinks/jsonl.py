@@ -9,7 +9,7 @@ from typing import Any
 from supramodal.drivers.base import DriverEvent
 from supramodal.node.runtime.events import WindowEvent
 from supramodal.node.runtime.sinks import PATH_KEY, FileSink, file_sink
-from supramodal.node.scene.registry import SinkSpec
+from supramodal.node.runtime.sinks.spec import SinkSpec
 
 __all__ = ["SPEC", "JsonLinesSink"]
 

@@ -62,7 +62,7 @@ from supramodal.errors import InputError
 from supramodal.features import FEATURE_TABLE
 from supramodal.node.runtime.events import FUSED_STREAM, WindowEvent
 from supramodal.node.runtime.sinks import QueuedSink, Sink
-from supramodal.node.scene.registry import SinkContext, SinkSpec
+from supramodal.node.runtime.sinks.spec import SinkContext, SinkSpec, listened
 
 if TYPE_CHECKING:   # for the annotations only: the sink needs no model code to run
     from supramodal.pipeline import FeaturePipeline
@@ -346,11 +346,7 @@ def _build(options: Mapping[str, Any], context: SinkContext) -> Sink:
         window = next(iter(described.values())).window
         described[FUSED_STREAM] = OutletStream(FUSED_STREAM, "fused", 0.0, (), (), (), window,
                                                tuple(context.fused_classes))
-    listens = options["from"]
-    names = list(described) if listens is None else [listens] if isinstance(listens, str) else list(listens)
-    unknown = [n for n in names if n not in described]
-    if unknown:
-        raise OptionError(f"from: no stream {unknown}; the scene has {list(described)}")
+    names = listened(options["from"], described)
     try:
         sink = LSLOutletSink([described[n] for n in names], options["outputs"], options["prefix"],
                              options["wait_for_consumer"])

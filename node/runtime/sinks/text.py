@@ -11,7 +11,7 @@ import numpy as np
 from supramodal.drivers.base import DriverEvent
 from supramodal.node.runtime.events import MAIN_STREAM, WindowEvent
 from supramodal.node.runtime.sinks import PATH_KEY, FileSink, file_sink
-from supramodal.node.scene.registry import SinkSpec
+from supramodal.node.runtime.sinks.spec import SinkSpec
 
 __all__ = ["SPEC", "TextSink", "frames_line"]
 

@@ -20,7 +20,8 @@ a page that does not read (a paused tab, a killed client) loses its oldest messa
 (``client_dropped`` in the sink's stats), and its request thread ends when a write times out.
 The server runs on a thread of its own (``view-server``, started by :meth:`ViewSink.prepare`),
 one daemon thread per open request, and a health thread (``view-health``, once a second,
-reading the graph's counters: :func:`graph_health`); :meth:`ViewSink.close` ends them all.
+reading the graph's counters, ``Graph.health``, which the graph gives every sink: :meth:`Sink.watch`);
+:meth:`ViewSink.close` ends them all.
 """
 
 from __future__ import annotations
@@ -36,7 +37,6 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import replace
 from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from importlib import resources
@@ -50,10 +50,9 @@ from supramodal.drivers.spec import OptionError
 from supramodal.errors import InputError
 from supramodal.node.runtime.events import WindowEvent
 from supramodal.node.runtime.sinks import QueuedSink, Sink
-from supramodal.node.scene.registry import SinkContext, SinkSpec, sink_keys
+from supramodal.node.runtime.sinks.spec import SinkContext, SinkSpec
 
-__all__ = ["SPEC", "Hub", "ViewError", "ViewSink", "attach", "graph_health", "add_view", "view_sinks",
-           "window_message", "with_view"]
+__all__ = ["SPEC", "Hub", "ViewError", "ViewSink", "attach", "view_sinks", "window_message"]
 
 #: Messages each open page's queue holds; beyond it the oldest are dropped and counted.
 CLIENT_QUEUE = 256
@@ -530,7 +529,7 @@ class ViewSink(Sink):
             self.publish_health()
 
     def publish_health(self) -> None:
-        """Send the graph's counters now (:func:`graph_health`), if the view is attached to one."""
+        """Send the graph's counters now (``Graph.health``), if the view is in a graph."""
         if self.health is not None:
             try:
                 self.hub.publish({"type": "health", "clients": self.hub.clients(),
@@ -581,28 +580,7 @@ class ViewSink(Sink):
             t.join(2 * WRITE_TIMEOUT)
 
 
-# -- the graph's counters ------------------------------------------------------------------------------
-
-def graph_health(graph: Any) -> dict[str, Any]:
-    """What the graph counts, read while it runs (what its summary says at the end, in the same
-    units): per stream ``frames`` (delivered, filled, dropped, :meth:`Source.frame_fates`),
-    ``windows`` and ``latency_ms`` (p50, p99, max); per source its clock (``ppm``,
-    ``jitter_ms``, ``delay_ms``: :meth:`Source.clock_summary`); the fusion's pairing counts
-    (``paired``, ``alone``, ``late``, ``dropouts``); each queued sink's stats (``written``,
-    ``dropped_windows``, ``dropped_events``, ``errors``)."""
-    streams = {}
-    for st in graph.streams:
-        streams[st.name] = {"windows": st.windows, "frames": st.source.frame_fates(st.feed),
-                            "latency_ms": st.latencies.summary(), "source": st.source.name}
-    clocks = {s.name: s.clock_summary() for s in graph.sources if s.clock is not None}
-    fusion = None
-    if graph.fusion is not None:
-        f = graph.fusion
-        fusion = {"windows": f.windows, "paired": f.paired, "alone": f.alone, "late": dict(f.late),
-                  "dropouts": dict(f.dropouts), "latency_ms": f.latencies.summary()}
-    sinks = [s for s in (k.stats() for k in graph.sinks) if s is not None]
-    return {"streams": streams, "clocks": clocks, "fusion": fusion, "sinks": sinks}
-
+# -- a graph's views ----------------------------------------------------------------------------------
 
 def view_sinks(graph: Any) -> list[ViewSink]:
     """The graph's view sinks (each behind its queue)."""
@@ -610,10 +588,10 @@ def view_sinks(graph: Any) -> list[ViewSink]:
 
 
 def attach(graph: Any, on_mark: Callable[[str | None], Any] | None = None) -> list[ViewSink]:
-    """Give the graph's view sinks its counters (health) and, while recording, the marks."""
+    """The graph's view sinks, given the marks' handler while recording (``on_mark``). Their counters
+    (health) the graph gives every sink itself (:meth:`Sink.watch <supramodal.node.runtime.sinks.Sink.watch>`)."""
     views = view_sinks(graph)
     for v in views:
-        v.health = lambda: graph_health(graph)
         if on_mark is not None:
             v.on_mark = on_mark
     return views
@@ -634,24 +612,3 @@ def _build(options: Mapping[str, Any], context: SinkContext) -> Sink:
 SPEC = SinkSpec(type="view", keys=KEYS, build=_build,
                 summary="a page in the browser (127.0.0.1): decisions, posteriors, features, health, marks")
 
-
-def with_view(scene: Any, port: int) -> Any:
-    """``run --view PORT``: the scene with a view sink added (every stream, and the fusion)."""
-    from supramodal.node.scene.specs import SinkSettings, frozen
-
-    if any(s.type == "view" for s in scene.sinks):
-        raise ViewError(f"{scene.source} has a [[sink]] type = \"view\" already; leave out --view, or that sink")
-    options = {key: key_spec.default for key, key_spec in sink_keys(SPEC).items()} | {"port": port}
-    return replace(scene, sinks=(*scene.sinks, SinkSettings("view", frozen(options), len(scene.sinks))))
-
-
-
-
-def add_view(scene: Any, sinks: list[Any] | None, port: int) -> tuple[Any, list[Any] | None]:
-    """``run --view PORT``: the scene with a view sink added, or (``--json``, whose ``sinks``
-    replace the scene's) those sinks with a view beside them."""
-    if isinstance(port, bool) or not _port(port):
-        raise ViewError(f"--view {port!r}: expected a TCP port 0..65535 (0: any free one)")
-    if sinks is not None:
-        return scene, [*sinks, QueuedSink(ViewSink(port))]
-    return with_view(scene, port), None

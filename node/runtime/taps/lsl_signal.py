@@ -74,12 +74,10 @@ from supramodal.node.runtime.sinks.lsl import (
     outlet_source_id,
     wait_for_consumers,
 )
+from supramodal.node.runtime.sinks.spec import SinkContext, SinkSpec, SourcePlan
 from supramodal.node.runtime.taps import Tap
-from supramodal.node.scene.registry import SinkContext, SinkSpec, driver_spec
-from supramodal.node.scene.specs import SourceSpec
 
 if TYPE_CHECKING:   # the annotations' names only (the sources import the taps)
-    from supramodal.banks import Bank
     from supramodal.node.runtime.sources import Feed, Source
 
 #: Seconds of samples per push: LSL's usual 5-30 ms; 10 ms matches the node's own chunks.
@@ -115,8 +113,8 @@ class LSLSignalOutlet(Tap):
     prefix : str
         Default :data:`~supramodal.node.runtime.sinks.lsl.DEFAULT_PREFIX`.
     stream_type : str
-        The LSL content type (default :data:`DEFAULT_SIGNAL_TYPE`; the scene builder passes what
-        the source is).
+        The LSL content type (default :data:`DEFAULT_SIGNAL_TYPE`; a scene's ``lsl-signal`` sink
+        passes what the source is: :func:`signal_type`).
     labels : sequence of str, optional
         Channel labels (default ``ch1`` ... ``chN``).
     driver : str
@@ -293,26 +291,28 @@ class LSLSignalOutlet(Tap):
 
 # -- as a scene names it ---------------------------------------------------------------------------
 
-def signal_type(source: SourceSpec, banks: Sequence[Bank]) -> str:
-    """What ``source`` is, as an LSL content type: by the banks that read it, else by its driver's spec."""
-    kinds = {b.kind for b in banks}
+def signal_type(source: SourcePlan) -> str:
+    """What ``source`` is, as an LSL content type: by the banks that read it, else by its driver's spec
+    (:attr:`~supramodal.node.runtime.sinks.spec.SourcePlan.signal_type`)."""
+    kinds = {bank.kind for bank, _ in source.read_by}
     if kinds == {"whisker"}:
         return "Whiskers"
     if kinds == {"cochlea"}:
         return "Audio"
-    return driver_spec(source.type).signal_type(source.options) or DEFAULT_SIGNAL_TYPE
+    return source.signal_type or DEFAULT_SIGNAL_TYPE
 
 
 def _build(options: Mapping[str, Any], context: SinkContext) -> Tap:
-    driver, source, read_by = context.sources[options["source"]]
+    source = context.sources[options["source"]]
+    driver = source.driver
     channels = driver.channels
     # Channel labels: the filters' names where a bank takes the channels one to one.
-    labels = next((bank.names for bank, mapping in read_by
+    labels = next((bank.names for bank, mapping in source.read_by
                    if mapping in ("auto", "per-channel") and bank.channels == channels), None)
     try:
         return LSLSignalOutlet(options["source"], driver.rate, channels, options["chunk"], options["prefix"],
-                               options["stream_type"] or signal_type(source, [bank for bank, _ in read_by]),
-                               labels, source.type, options["wait_for_consumer"])
+                               options["stream_type"] or signal_type(source), labels, source.type,
+                               options["wait_for_consumer"])
     except InputError as exc:
         raise OptionError(str(exc)) from None
 

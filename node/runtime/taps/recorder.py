@@ -42,6 +42,7 @@ from typing import Any
 import numpy as np
 
 from supramodal.errors import InputError
+from supramodal.node.runtime.clock import frames_at
 from supramodal.node.runtime.ringbuffer import Reader, RingClosed, flag_runs
 from supramodal.node.runtime.sources import Feed, Source
 from supramodal.node.runtime.taps import Tap
@@ -155,7 +156,7 @@ class SessionRecorder(Tap):
     def mark_at(self, seconds: float, label: str | None) -> None:
         """Start a label at ``seconds`` of the node's common time (``None`` ends the current one);
         mapped to this source's frames through its recorded block times when the session is
-        written (:func:`supramodal.node.workflows.labels.frames_at`). Needs ``keep_arrivals``. Thread-safe."""
+        written (:func:`supramodal.node.runtime.clock.frames_at`). Needs ``keep_arrivals``. Thread-safe."""
         if not self.keep_arrivals:
             raise InputError("a mark on common time needs the blocks' times: make the recorder with keep_arrivals")
         with self._lock:
@@ -244,8 +245,6 @@ class SessionRecorder(Tap):
         times (all of them, before any thinning). Called with the lock held."""
         if not self._timed_marks or not len(self._arrival_frames):
             return []
-        from supramodal.node.workflows.labels import frames_at
-
         at = frames_at((self._arrival_frames, self._arrival_seconds, clock_rate), [t for t, _ in self._timed_marks],
                        self._board_marks)
         return [(int(round(min(max(float(f), 0.0), float(self._frames)))), label)

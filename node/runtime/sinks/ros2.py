@@ -1,0 +1,519 @@
+"""Window events, driver events and the node's health on ROS 2 topics, in stock message types, so
+that a robot's planner, ``ros2 topic echo``, rqt and Foxglove take them with no interface package.
+
+Needs the optional extra ``ros2`` or a sourced ROS 2 (:func:`supramodal.drivers.ros2.import_rclpy`
+says what to install when rclpy is missing).
+
+Topics
+------
+The sink is one ROS 2 node, ``node_name`` (default ``supramodal``) in ``namespace`` (default the
+root), both remappable as for any node (``--ros-args -r __ns:=/robot -r __node:=texture``). Per node
+stream it listens to (``[[sink]] from``; default every stream, the fused one included), its topics
+are private names of that node, ``~/STREAM/OUTPUT`` (``/supramodal/main/decision``), made when
+the node is built, before any model is trained, so that subscribers match while the node trains:
+
+``~/STREAM/decision`` (``std_msgs/String``; reliable, transient local, keep last ``decision_history``,
+    default 1: a late subscriber gets the last decision)
+    The window's JSON object, the ``jsonl`` sink's line with one key more, ``stamp``: the ROS time of
+    the window's end, ``{"sec", "nanosec"}``.
+``~/STREAM/posteriors`` (``sensor_msgs/JointState``; reliable, volatile, keep last 10)
+    ``name``: the classes, ``position``: their posteriors (``velocity`` and ``effort`` empty).
+``~/STREAM/features`` (``sensor_msgs/JointState``; best effort, volatile, keep last 5: sensor data)
+    ``name``: ``FEATURE/FILTER``, ``position``: the window's values.
+``~/events`` (``std_msgs/String``; reliable, transient local, keep last 20)
+    A driver event's JSON object (unplug, reconnect, gap, overrun, ...), as the ``jsonl`` sink writes it.
+``/diagnostics`` (``diagnostic_msgs/DiagnosticArray``; reliable, volatile, keep last 10)
+    Per stream, source, the fusion and the sinks: a level, a line and the counts (below).
+
+A message with a header (``JointState``) is stamped with its window's end on the ROS clock; the
+decision's ``stamp`` is that same time, so a subscriber can join a decision to its posteriors. The
+node's common time is put on the ROS clock by an offset measured once when the node starts (system
+time), or, where the node runs with ``use_sim_time`` (a bag played with ``--clock``), as the ROS
+clock's now less the window's age (:class:`~supramodal.drivers.ros2.RosClock`). A best-effort topic
+(features) needs a best-effort subscriber (``qos_profile_sensor_data``); the others take a
+default one.
+
+Diagnostics
+-----------
+Every ``diagnostics_period`` seconds (default 1, the ROS convention) and at once on a driver event,
+one ``DiagnosticArray`` whose statuses are named ``NODE: stream NAME``, ``NODE: source NAME``,
+``NODE: fusion`` and ``NODE: sinks`` (a diagnostic aggregator groups them by that prefix):
+:func:`diagnostic_report` says what each carries and when it is OK, WARN or ERROR. While the node
+starts up (a model trained on the spot) a single status says so.
+
+Threading: the node runs this sink behind its own queue (:class:`~supramodal.node.runtime.sinks.QueuedSink`):
+``emit`` and ``event`` publish on that thread and never wait for a subscriber (DDS keeps what a
+topic's history allows and drops the rest for a slow reader); the diagnostics timer runs on the ROS
+node's executor thread; a lock keeps the two from publishing diagnostics at once.
+"""
+
+from __future__ import annotations
+
+import array
+import json
+import threading
+import time
+from collections import Counter
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from supramodal.checks import Key, integer, non_negative, number
+from supramodal.drivers.base import DriverEvent
+from supramodal.drivers.ros2 import RosClock, RosNode, check_namespace, check_node_name, check_token
+from supramodal.drivers.spec import OptionError
+from supramodal.errors import InputError
+from supramodal.node.runtime.events import FUSED_STREAM, WindowEvent
+from supramodal.node.runtime.sinks import QueuedSink, Sink
+from supramodal.node.runtime.sinks.spec import SinkContext, SinkSpec, listened
+
+if TYPE_CHECKING:   # for the annotations only: the sink needs no model code to run
+    from supramodal.pipeline import FeaturePipeline
+
+__all__ = ["OUTPUTS", "SPEC", "Ros2Sink", "Status", "TopicStream", "diagnostic_report"]
+
+#: What a ros2 sink can publish per stream, in order.
+OUTPUTS = ("decision", "posteriors", "features")
+DEFAULT_NODE_NAME = "supramodal"
+#: The ROS standard topic of diagnostics (absolute: every node publishes there; remappable).
+DIAGNOSTICS_TOPIC = "/diagnostics"
+EVENTS_TOPIC = "~/events"
+#: Seconds between two diagnostics (ROS's convention: 1 Hz).
+DEFAULT_DIAGNOSTICS_PERIOD = 1.0
+DIAGNOSTICS_PERIOD_RANGE = (0.1, 60.0)
+#: Decisions a decision topic keeps for a late or slow subscriber (the last one: what the robot acts on).
+DEFAULT_DECISION_HISTORY = 1
+MAX_DECISION_HISTORY = 1000
+#: Driver events the events topic keeps for a late subscriber.
+EVENTS_HISTORY = 20
+#: Posteriors a posteriors topic keeps for a slow subscriber.
+POSTERIORS_HISTORY = 10
+#: Seconds to wait for subscribers before the node starts: none (a live sensor cannot wait).
+DEFAULT_WAIT_FOR_SUBSCRIBERS = 0.0
+MAX_WAIT_FOR_SUBSCRIBERS = 3600.0
+#: Seconds after every decision topic has a subscriber before the node starts: the subscriber's side
+#: of the match may still be on its way.
+MATCH_SETTLE_SECONDS = 0.2
+#: Seconds of one sleep in the wait: the main thread sees SIGINT and SIGTERM between two.
+WAIT_STEP_SECONDS = 0.05
+
+# diagnostic_msgs/DiagnosticStatus levels
+OK, WARN, ERROR = 0, 1, 2
+
+
+@dataclass(frozen=True)
+class TopicStream:
+    """What the topics of one node stream say about it.
+
+    Attributes
+    ----------
+    name : str
+        The node's stream name (``"main"`` in a one-source scene, ``"fused"`` for fusion); a ROS
+        name token (:func:`~supramodal.drivers.ros2.check_token`).
+    classes : tuple of str
+        The model's classes, in the order of the posteriors (empty without a model).
+    features : tuple of str
+        The features, in the order their values are concatenated (empty for the fused stream).
+    filters : tuple of str
+        The bank's filter names, in channel order.
+    """
+
+    name: str
+    classes: tuple[str, ...]
+    features: tuple[str, ...] = ()
+    filters: tuple[str, ...] = ()
+
+    @property
+    def feature_labels(self) -> list[str]:
+        """``FEATURE/FILTER`` per value of a window's features, in order."""
+        return [f"{f}/{name}" for f in self.features for name in self.filters]
+
+
+@dataclass(frozen=True)
+class Status:
+    """One ``diagnostic_msgs/DiagnosticStatus``, before it is a message.
+
+    Attributes
+    ----------
+    level : {0, 1, 2}
+        OK, WARN, ERROR.
+    name, message, hardware_id : str
+    values : tuple of (str, str)
+    """
+
+    level: int
+    name: str
+    message: str
+    hardware_id: str = ""
+    values: tuple[tuple[str, str], ...] = ()
+
+
+@dataclass
+class SourceState:
+    """What the driver events of one source said: the last one, counts per kind, and whether it is
+    unplugged now (an ``unplug`` not yet followed by a ``reconnect``)."""
+
+    last: DriverEvent | None = None
+    counts: Counter[str] = field(default_factory=Counter)
+    unplugged: bool = False
+
+
+#: Driver events that mean samples were lost or made up: the source's status is WARN in the period
+#: they happen.
+_LOSSY_EVENTS = ("gap", "overrun", "overflow", "restart", "error", "channels", "version", "silence")
+
+
+def _grew(now: Mapping[str, Any], before: Mapping[str, Any] | None, key: str) -> int:
+    """How much ``now[key]`` grew since ``before`` (all of it without a ``before``)."""
+    was = before.get(key, 0) if before else 0
+    return int(now.get(key) or 0) - int(was or 0)
+
+
+def _fmt(value: Any) -> str:
+    return "" if value is None else f"{value:g}" if isinstance(value, float) else str(value)
+
+
+def diagnostic_report(node: str, health: Mapping[str, Any] | None, sources: Mapping[str, SourceState],
+                      before: Mapping[str, Any] | None = None) -> list[Status]:
+    """The statuses of one diagnostics message.
+
+    Parameters
+    ----------
+    node : str
+        The ROS node's name: each status is named ``NODE: ...``.
+    health : dict or None
+        What the graph counts (:meth:`Graph.health <supramodal.node.runtime.graph.Graph.health>`:
+        ``streams``, ``clocks``, ``fusion``, ``sinks``); None while the node starts up.
+    sources : dict of str to SourceState
+        The driver events seen per source since the start.
+    before : dict or None
+        The ``health`` of the last report, to say what changed since (None: the first).
+
+    Returns
+    -------
+    list of Status
+        ``NODE: stream NAME`` per stream: windows, frame fates (``frames_delivered``, ``_filled``,
+        ``_dropped``, ``_stream``), latency (``latency_p50_ms``, ``_p99_ms``, ``_max_ms``) and its
+        source's clock (``clock_ppm``, ``clock_jitter_ms``, ``clock_delay_ms``); ERROR while its
+        source is unplugged, WARN when frames were filled or dropped since the last report, else OK.
+        ``NODE: source NAME`` per source with events: the last event, counts per kind; ERROR while
+        unplugged, WARN after an event that lost or made up samples, else OK. ``NODE: fusion``
+        (``paired``, ``alone``, ``late``): WARN when windows were decided alone since the last
+        report. ``NODE: sinks``: per sink its written, dropped and failed items; WARN when a sink
+        dropped or failed since the last report. Without ``health`` (start-up), ``NODE: node`` saying
+        so, and the sources' statuses.
+    """
+    out = []
+    if health is None:
+        out.append(Status(OK, f"{node}: node", "starting up (building the scene, training its model)"))
+        health = {}
+    before_streams = (before or {}).get("streams") or {}
+    clocks = health.get("clocks") or {}
+    for name, st in health.get("streams", {}).items():
+        frames, latency = st.get("frames") or {}, st.get("latency_ms") or {}
+        was = (before_streams.get(name) or {}).get("frames")
+        source = st.get("source") or ""
+        values = [("windows", _fmt(st.get("windows")))]
+        values += [(f"frames_{k}", _fmt(frames.get(k))) for k in ("delivered", "filled", "dropped", "stream")]
+        values += [(f"latency_{k}_ms", _fmt(latency.get(k))) for k in ("p50", "p99", "max")]
+        clock = clocks.get(source) or {}
+        values += [(f"clock_{k}", _fmt(clock.get(k))) for k in ("ppm", "jitter_ms", "delay_ms") if k in clock]
+        state = sources.get(source)
+        filled, dropped = _grew(frames, was, "filled"), _grew(frames, was, "dropped")
+        if state is not None and state.unplugged:
+            level, message = ERROR, f"source {source} unplugged: {state.last.message if state.last else ''}"
+        elif filled or dropped:
+            level, message = WARN, f"{filled} frames filled and {dropped} dropped since the last report"
+        else:
+            p99 = latency.get("p99")
+            level, message = OK, f"{st.get('windows', 0)} windows" + (f", latency p99 {p99:.1f} ms" if p99 else "")
+        out.append(Status(level, f"{node}: stream {name}", message, source, tuple(values)))
+    for name, state in sources.items():
+        last = state.last
+        values = [("last_event", last.kind if last else ""), ("last_message", last.message if last else "")]
+        values += [(f"events_{kind}", str(n)) for kind, n in sorted(state.counts.items())]
+        if state.unplugged:
+            level, message = ERROR, f"unplugged: {last.message if last else ''}"
+        elif last is not None and last.kind in _LOSSY_EVENTS and time.time() - last.time < 2.0:
+            level, message = WARN, f"{last.kind}: {last.message}"
+        else:
+            level, message = OK, f"last event: {last.kind}" if last else "no event"
+        out.append(Status(level, f"{node}: source {name}", message, name, tuple(values)))
+    fusion = health.get("fusion")
+    if fusion:
+        alone = _grew(fusion, (before or {}).get("fusion"), "alone")
+        values = [("windows", _fmt(fusion.get("windows"))), ("paired", _fmt(fusion.get("paired"))),
+                  ("alone", _fmt(fusion.get("alone"))), ("late", json.dumps(fusion.get("late") or {}))]
+        out.append(Status(WARN if alone else OK, f"{node}: fusion",
+                          f"{alone} windows decided by one sense since the last report" if alone
+                          else f"{fusion.get('paired', 0)} windows paired", FUSED_STREAM, tuple(values)))
+    sinks = health.get("sinks") or []
+    if sinks:
+        values, grew = [], 0
+        was_sinks = {s.get("sink"): s for s in ((before or {}).get("sinks") or [])}
+        for s in sinks:
+            label = str(s.get("sink"))
+            for key in ("written", "dropped_windows", "dropped_events", "errors"):
+                if key in s:
+                    values.append((f"{label} {key}", _fmt(s[key])))
+            grew += sum(_grew(s, was_sinks.get(s.get("sink")), k) for k in ("dropped_windows", "dropped_events",
+                                                                             "errors") if k in s)
+        out.append(Status(WARN if grew else OK, f"{node}: sinks",
+                          f"{grew} items dropped or failed since the last report" if grew else f"{len(sinks)} sinks",
+                          "", tuple(values)))
+    return out
+
+
+class Ros2Sink(Sink):
+    """The node's window events, driver events and health on ROS 2 topics (see the module notes).
+
+    Parameters
+    ----------
+    streams : sequence of TopicStream
+        The streams this sink publishes (events of other streams are ignored).
+    outputs : sequence of {"decision", "posteriors", "features"}
+        Default all three; decision and posteriors only for a stream with classes, features only for
+        a stream with features.
+    node_name : str
+        Default ``"supramodal"``.
+    namespace : str
+        Default ``""``: the root (or what ``--ros-args -r __ns:=...`` says).
+    frame_id : str
+        The ``header.frame_id`` of the stamped messages (the sensor's TF frame), default ``""``.
+    diagnostics_period : float
+        Seconds, default 1.
+    wait_for_subscribers : float
+        Seconds :meth:`prepare` waits, before the node starts, until every decision topic (or, for a
+        stream without classes, its features topic) has a subscriber (default 0: start at once).
+    decision_history : int
+        Decisions each decision topic keeps for a late or slow subscriber (default 1: the last).
+
+    Raises
+    ------
+    Ros2Unavailable
+        No rclpy here.
+    InputError
+        A bad option, or rclpy refused the node's name.
+    """
+
+    def __init__(self, streams: Sequence[TopicStream], outputs: Sequence[str] = OUTPUTS,
+                 node_name: str = DEFAULT_NODE_NAME, namespace: str = "", frame_id: str = "",
+                 diagnostics_period: float = DEFAULT_DIAGNOSTICS_PERIOD,
+                 wait_for_subscribers: float = DEFAULT_WAIT_FOR_SUBSCRIBERS,
+                 decision_history: int = DEFAULT_DECISION_HISTORY) -> None:
+        unknown = sorted(set(outputs) - set(OUTPUTS))
+        if unknown or not outputs:
+            raise InputError(f"a ros2 sink publishes some of {list(OUTPUTS)}, got {list(outputs)}")
+        bad = [s.name for s in streams if not check_token(s.name)]
+        if bad:
+            raise InputError(f"streams {bad} cannot be part of a ROS topic name; rename them with letters, digits "
+                             "and '_' (no '__', not starting with a digit)")
+        from diagnostic_msgs.msg import DiagnosticArray
+        from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+        from sensor_msgs.msg import JointState
+        from std_msgs.msg import String
+
+        self._ros = RosNode(node_name, namespace)
+        node = self._ros.node
+        latched = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=int(decision_history),
+                             reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        kinds: dict[str, tuple[Any, Any]] = {
+            "decision": (String, latched),
+            "posteriors": (JointState, QoSProfile(depth=POSTERIORS_HISTORY)),
+            "features": (JointState, qos_profile_sensor_data),
+        }
+        self._streams = {s.name: s for s in streams}
+        self._publishers: dict[tuple[str, str], Any] = {}
+        self._messages: dict[tuple[str, str], Any] = {}       # (stream, output) -> its JointState, refilled
+        for s in streams:
+            for output in outputs:
+                if output == "features" and not s.features or output != "features" and not s.classes:
+                    continue
+                kind, qos = kinds[output]
+                self._publishers[(s.name, output)] = node.create_publisher(kind, f"~/{s.name}/{output}", qos)
+        self._events = node.create_publisher(String, EVENTS_TOPIC, QoSProfile(
+            depth=EVENTS_HISTORY, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL))
+        self._diagnostics = node.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, QoSProfile(depth=10))
+        self._String, self._JointState, self._DiagnosticArray = String, JointState, DiagnosticArray
+        self.frame_id = frame_id
+        self.wait_for_subscribers = float(wait_for_subscribers)
+        self.waited_s: float | None = None
+        self.subscribed: list[str] | None = None
+        self.published: Counter[str] = Counter()
+        self._sources: dict[str, SourceState] = {}
+        self._before: dict[str, Any] | None = None
+        self._lock = threading.Lock()
+        self._clock = RosClock(node.get_clock(), time.monotonic())
+        self._timer = node.create_timer(float(diagnostics_period), self.publish_diagnostics)
+        self._ros.start()
+
+    @property
+    def node_name(self) -> str:
+        """The ROS node's fully qualified name (``/supramodal``; after any remapping)."""
+        return self._ros.name
+
+    def topic(self, stream: str, output: str) -> str:
+        """The full name of one of the sink's topics (after any remapping)."""
+        name: str = self._publishers[(stream, output)].topic_name
+        return name
+
+    # -- the node's calls ---------------------------------------------------------------------
+
+    def prepare(self) -> None:
+        """Wait up to ``wait_for_subscribers`` seconds until every decision topic (a stream
+        without classes: its features topic) has a subscriber. The caller's thread, before the
+        graph's start; made of short sleeps, so that SIGINT and SIGTERM interrupt it."""
+        if self.wait_for_subscribers <= 0:
+            return
+        waited = {key: pub for key, pub in self._publishers.items()
+                  if key[1] == "decision" or key[1] == "features" and not self._streams[key[0]].classes}
+        t = time.monotonic()
+        found = {key: False for key in waited}
+        while not all(found.values()) and time.monotonic() - t < self.wait_for_subscribers:
+            found = {key: pub.get_subscription_count() > 0 for key, pub in waited.items()}
+            if not all(found.values()):
+                time.sleep(WAIT_STEP_SECONDS)
+        if any(found.values()):
+            time.sleep(MATCH_SETTLE_SECONDS)
+        self.waited_s = round(time.monotonic() - t, 3)
+        self.subscribed = [f"{stream}/{output}" for (stream, output), ok in found.items() if ok]
+
+    def start(self, epoch: float) -> None:
+        """The graph's start, on ``time.monotonic()``: common time 0. The caller's thread, before
+        any event."""
+        self._clock = RosClock(self._ros.node.get_clock(), epoch)
+
+    def emit(self, event: WindowEvent) -> None:
+        s = self._streams.get(event.stream)
+        if s is None:
+            return
+        ns = self._clock.stamp_ns(event.end)
+        sec, nanosec = divmod(ns, 1_000_000_000)
+        features = self._publishers.get((s.name, "features"))
+        if features is not None and event.features:
+            values = np.concatenate([np.asarray(event.features[f], dtype=np.float64) for f in s.features])
+            features.publish(self._joint_state(s.name, "features", sec, nanosec, s.feature_labels, values))
+            self.published["features"] += 1
+        posteriors = self._publishers.get((s.name, "posteriors"))
+        if posteriors is not None and event.posteriors is not None:
+            classes = list(event.classes or s.classes)
+            posteriors.publish(self._joint_state(s.name, "posteriors", sec, nanosec, classes,
+                                                 np.asarray(event.posteriors, dtype=np.float64)))
+            self.published["posteriors"] += 1
+        decision = self._publishers.get((s.name, "decision"))
+        if decision is not None and event.decision is not None:
+            stamp = {"sec": sec, "nanosec": nanosec}
+            decision.publish(self._String(data=json.dumps({**event.as_dict(), "stamp": stamp})))
+            self.published["decision"] += 1
+
+    def _joint_state(self, stream: str, output: str, sec: int, nanosec: int, names: list[str],
+                     values: np.ndarray) -> Any:
+        """The stream's ``JointState`` of ``output``, its stamp and values set. One message per topic,
+        kept and refilled: a new one costs its field checks (about a third of a window's publishing);
+        its names are set again only when they change. The sink's thread only."""
+        msg = self._messages.get((stream, output))
+        if msg is None:
+            msg = self._messages[(stream, output)] = self._JointState()
+            msg.header.frame_id = self.frame_id
+        if list(msg.name) != names:
+            msg.name = names
+        msg.header.stamp.sec, msg.header.stamp.nanosec = sec, nanosec
+        msg.position = array.array("d", values.tobytes())   # an array of doubles: rclpy takes it unchecked
+        return msg
+
+    def event(self, ev: DriverEvent) -> None:
+        """A driver event: on ``~/events`` at once, and in the diagnostics, published at once too."""
+        name = ev.source or "source"
+        with self._lock:
+            state = self._sources.setdefault(name, SourceState())
+            state.last = ev
+            state.counts[ev.kind] += ev.count
+            if ev.kind == "unplug":
+                state.unplugged = True
+            elif ev.kind in ("reconnect", "restart"):
+                state.unplugged = False
+        self._events.publish(self._String(data=json.dumps(ev.as_dict())))
+        self.published["events"] += 1
+        self.publish_diagnostics()
+
+    def publish_diagnostics(self) -> None:
+        """One ``DiagnosticArray`` of :func:`diagnostic_report` now (the timer's call; also on a
+        driver event). Any thread."""
+        from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
+
+        with self._lock:
+            health = self.health() if self.health is not None else None
+            statuses = diagnostic_report(self._ros.node.get_name(), health, self._sources, self._before)
+            self._before = health
+            msg = self._DiagnosticArray()
+            msg.header.stamp = self._ros.node.get_clock().now().to_msg()
+            msg.status = [DiagnosticStatus(level=bytes([s.level]), name=s.name, message=s.message,
+                                           hardware_id=s.hardware_id,
+                                           values=[KeyValue(key=k, value=v) for k, v in s.values])
+                          for s in statuses]
+            self._diagnostics.publish(msg)
+            self.published["diagnostics"] += 1
+
+    def stats(self) -> dict[str, Any]:
+        """The node's name, what was published per output, and with a wait for subscribers
+        ``waited_s`` and ``subscribed`` (the topics that had one, ``STREAM/OUTPUT``)."""
+        out: dict[str, Any] = {"sink": "Ros2Sink", "node": self.node_name, "published": dict(self.published)}
+        if self.waited_s is not None:
+            out.update(waited_s=self.waited_s, subscribed=self.subscribed)
+        return out
+
+    def summary(self, summary: dict[str, Any]) -> None:
+        """The last diagnostics, with the run's final counts."""
+        self.publish_diagnostics()
+
+    def close(self) -> None:
+        self._ros.close()
+
+
+# -- as a scene names it ---------------------------------------------------------------------------
+
+def describe(name: str, pipeline: FeaturePipeline, classes: Sequence[str]) -> TopicStream:
+    """A stream's topics' description from its pipeline and its model's classes (empty: features only)."""
+    return TopicStream(name, tuple(classes), tuple(pipeline.features), tuple(pipeline.bank.names))
+
+
+def _build(options: Mapping[str, Any], context: SinkContext) -> Sink:
+    # Made from the streams' plans, before any model is trained: subscribers match the topics
+    # while the node trains, and get window 0.
+    described = {name: describe(name, p.pipeline, p.classes) for name, p in context.plans.items()}
+    if context.fused_classes is not None and described:
+        described[FUSED_STREAM] = TopicStream(FUSED_STREAM, tuple(context.fused_classes))
+    names = listened(options["from"], described)
+    try:
+        sink = Ros2Sink([described[n] for n in names], options["outputs"], options["node_name"],
+                        options["namespace"], options["frame_id"], options["diagnostics_period"],
+                        options["wait_for_subscribers"], options["decision_history"])
+    except InputError as exc:
+        raise OptionError(str(exc)) from None
+    return QueuedSink(sink)
+
+
+SPEC = SinkSpec(
+    type="ros2",
+    summary="window events, driver events and diagnostics on ROS 2 topics in stock messages (the ros2 extra)",
+    keys={"outputs": Key(lambda v: isinstance(v, list) and bool(v) and len(set(v)) == len(v) and set(v) <= set(OUTPUTS),
+                         'a list drawn from "decision", "posteriors" and "features"', list(OUTPUTS)),
+          "node_name": Key(check_node_name, "the ROS node's name: letters, digits and '_', not starting with a digit",
+                           DEFAULT_NODE_NAME),
+          "namespace": Key(check_namespace, 'the ROS node\'s namespace, e.g. "/robot" ("": the root, or what '
+                           "--ros-args -r __ns:=... says)", ""),
+          "frame_id": Key(lambda v: isinstance(v, str) and len(v) <= 256,
+                          "the header.frame_id of the stamped messages (the sensor's TF frame)", ""),
+          "diagnostics_period": Key(number(*DIAGNOSTICS_PERIOD_RANGE),
+                                    f"seconds between two diagnostics, {DIAGNOSTICS_PERIOD_RANGE[0]:g} to "
+                                    f"{DIAGNOSTICS_PERIOD_RANGE[1]:g}", DEFAULT_DIAGNOSTICS_PERIOD),
+          "wait_for_subscribers": Key(non_negative(MAX_WAIT_FOR_SUBSCRIBERS),
+                                      "seconds to wait, before the node starts, for a subscriber on each decision "
+                                      f"topic, 0 to {MAX_WAIT_FOR_SUBSCRIBERS:g} (0: start at once)",
+                                      DEFAULT_WAIT_FOR_SUBSCRIBERS),
+          "decision_history": Key(integer(1, MAX_DECISION_HISTORY),
+                                  "decisions each decision topic keeps for a late or slow subscriber, "
+                                  f"1 to {MAX_DECISION_HISTORY}", DEFAULT_DECISION_HISTORY)},
+    build=_build, needs="plans")

@@ -1,0 +1,243 @@
+"""The ``ros2`` sink against real rclpy (issue 33, item 1): a plain subscriber started before the node
+gets every window of every stream and of the fusion, the decisions equal the jsonl sink's, stamps are
+the windows' ends on the ROS clock; driver events on ``~/events`` and ``/diagnostics`` within a second;
+remapping by ``--ros-args``; a stopped subscriber never holds the node up.
+
+DDS stays on this machine, in a domain of the run's own (conftest.py; checked by ``localhost_only``);
+every test uses a namespace of its own."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from supramodal.drivers.base import DriverEvent
+from supramodal.drivers.ros2 import use_ros_arguments
+
+from ros2_only import Subscriber, localhost_only, require_ros2, unique_namespace  # noqa: F401  (the fixture applies itself)
+
+require_ros2()
+
+from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402  (needs rclpy)
+from rclpy.qos import qos_profile_sensor_data  # noqa: E402
+from sensor_msgs.msg import JointState  # noqa: E402
+from std_msgs.msg import String  # noqa: E402
+
+# two senses fused, a jsonl sink, a ros2 sink; a user's subscriber in a process of its own (reliable, keep
+# last 10, on every decision and posteriors topic)
+from supramodal.benchmarks.ros2_sink import SUBSCRIBER, scene  # noqa: E402
+from supramodal.node.runtime.sinks.ros2 import ERROR, OK, Ros2Sink, TopicStream  # noqa: E402
+
+def _node(tmp_path: Path, *args: str) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "supramodal", "run", str(tmp_path / "node.toml"), "--quiet", *args],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path)
+
+
+def _windows(path: Path) -> list[dict]:
+    return [d for d in map(json.loads, path.read_text().splitlines()) if "window" in d]
+
+
+@pytest.mark.slow   # a node process that trains two models on start (or reads them from the run's cache)
+def test_a_subscriber_started_before_the_node_gets_every_window_as_the_jsonl_sink_stamped_on_the_ros_clock(tmp_path):
+    """Done when (issue 33): a plain rclpy subscriber started before the node receives window 0 onward
+    of decisions and posteriors, for every stream and the fusion; the decision's data is the jsonl
+    sink's line (and the ``stamp``); every stamp is the window's end on the ROS clock, by one line
+    (within 1 ms; here within a microsecond, what the jsonl's rounding leaves). The node is renamed by
+    ``--ros-args -r __node:=``, as a launch file would."""
+    ns = unique_namespace()
+    (tmp_path / "node.toml").write_text(scene(1.0, ns, "wait_for_subscribers = 120"))
+    sub = Subscriber()
+    streams = ("left", "right", "fused")
+    try:
+        for s in streams:
+            sub.subscribe(f"{ns}/texture/{s}/decision", String, 100)
+            sub.subscribe(f"{ns}/texture/{s}/posteriors", JointState, 100)
+            sub.subscribe(f"{ns}/texture/{s}/features", JointState, qos_profile_sensor_data)
+        sub.subscribe("/diagnostics", DiagnosticArray, 100)
+        started_ns = time.time_ns()
+        node = _node(tmp_path, "--ros-args", "-r", "__node:=texture")
+        try:
+            out, err = node.communicate(timeout=400)
+        finally:
+            node.kill()
+        assert node.returncode == 0, err[-1500:]
+        windows = _windows(tmp_path / "out.jsonl")
+        by_stream = {s: [w for w in windows if w["stream"] == s] for s in streams}
+        assert all(len(by_stream[s]) >= 70 for s in streams), {s: len(v) for s, v in by_stream.items()}
+        assert sub.wait_for(lambda: all(len(sub.messages(f"{ns}/texture/{s}/decision")) >= len(by_stream[s])
+                                        for s in streams), 10.0)
+        epochs = []
+        for s in streams:
+            decisions = [json.loads(m.data) for m in sub.messages(f"{ns}/texture/{s}/decision")]
+            assert [d["window"] for d in decisions] == list(range(len(by_stream[s])))       # window 0 onward
+            assert [{k: v for k, v in d.items() if k != "stamp"} for d in decisions] == by_stream[s]
+            posteriors = sub.messages(f"{ns}/texture/{s}/posteriors")
+            assert len(posteriors) == len(decisions)
+            for d, p in zip(decisions, posteriors):
+                assert (p.header.stamp.sec, p.header.stamp.nanosec) == (d["stamp"]["sec"], d["stamp"]["nanosec"])
+                assert len(p.name) == 8 and len(p.position) == 8 and abs(sum(p.position) - 1) < 1e-9
+                best = max(range(8), key=lambda i: p.position[i])
+                assert p.name[best] == d["predicted"] and round(p.position[best], 4) == d["confidence"]
+                epochs.append(d["stamp"]["sec"] * 10**9 + d["stamp"]["nanosec"] - round(d["end"] * 1e9))
+            if s != "fused":
+                features = sub.messages(f"{ns}/texture/{s}/features")
+                assert features and all(len(f.name) == 20 and f.name[0].startswith("Af/") for f in features)
+        # One line from common time to the ROS clock for all the windows of all the streams, and its
+        # start (common time 0 on the ROS clock) after this test began and before the first window came.
+        assert max(epochs) - min(epochs) < 1_000, (min(epochs), max(epochs))
+        first_came = min(t for s in streams for t, _ in sub.timed(f"{ns}/texture/{s}/decision"))
+        assert started_ns < min(epochs) < time.time_ns() - (time.monotonic() - first_came) * 1e9
+        names = {st.name for _, m in sub.timed("/diagnostics") for st in m.status}
+        assert {"texture: stream left", "texture: stream right", "texture: fusion", "texture: sinks"} <= names
+        summary = json.loads((tmp_path / "out.jsonl").read_text().splitlines()[-1])
+        ros = [s for s in summary["sinks"] if s["sink"].startswith("Ros2Sink")]
+        assert len(ros) == 1 and ros[0]["node"] == f"{ns}/texture" and ros[0]["dropped_windows"] == 0
+        assert sorted(ros[0]["subscribed"]) == sorted(f"{s}/decision" for s in streams)
+    finally:
+        sub.close()
+
+
+def test_driver_events_reach_the_events_topic_and_the_diagnostics_within_a_second():
+    """Done when (issue 33): an unplug appears on the diagnostics within 1 s (as ERROR, on the stream
+    and its source), and on the latched ``~/events`` topic, which a subscriber that comes later still
+    gets; a reconnect puts the source back to OK."""
+    ns = unique_namespace()
+    sink = Ros2Sink([TopicStream("main", ("a", "b"))], namespace=ns, diagnostics_period=60.0)
+    sub = Subscriber()
+    try:
+        sub.subscribe("/diagnostics", DiagnosticArray, 100)
+        assert sub.wait_for(lambda: sink._diagnostics.get_subscription_count() > 0, 10.0)
+        time.sleep(0.3)                            # the subscriber's side of the match
+        t = time.monotonic()
+        sink.event(DriverEvent("unplug", "the port went away", time.time(), source="whiskers"))
+
+        def status(level: int) -> bool:
+            return any(st.name == "supramodal: source whiskers" and st.level == bytes([level])
+                       for _, m in sub.timed("/diagnostics") for st in m.status)
+
+        assert sub.wait_for(lambda: status(ERROR), 1.0)
+        came = next(when for when, m in sub.timed("/diagnostics") for st in m.status
+                    if st.name == "supramodal: source whiskers" and st.level == bytes([ERROR]))
+        assert came - t < 1.0
+        sink.event(DriverEvent("reconnect", "the port is back", time.time(), source="whiskers"))
+        assert sub.wait_for(lambda: status(OK), 1.0)
+        late = Subscriber("late")                  # after the events: the topic keeps them (transient local)
+        try:
+            from rclpy.qos import DurabilityPolicy, QoSProfile
+
+            late.subscribe(f"{ns}/supramodal/events", String, QoSProfile(depth=20,
+                                                                        durability=DurabilityPolicy.TRANSIENT_LOCAL))
+            assert late.wait_for(lambda: len(late.messages(f"{ns}/supramodal/events")) == 2, 10.0)
+            kinds = [json.loads(m.data)["event"] for m in late.messages(f"{ns}/supramodal/events")]
+            assert kinds == ["unplug", "reconnect"]
+        finally:
+            late.close()
+    finally:
+        sub.close()
+        sink.close()
+
+
+def test_ros_arguments_remap_the_node_and_its_topics():
+    """``--ros-args -r __ns:=... -r __node:=...`` (what a launch file passes) moves the node and every
+    private topic; the scene's namespace is what a remapping overrides."""
+    use_ros_arguments(["--ros-args", "-r", "__ns:=/robot/left_arm", "-r", "__node:=texture"])
+    try:
+        sink = Ros2Sink([TopicStream("main", ("a", "b"), ("Af",), ("w1",))], namespace=unique_namespace())
+        try:
+            assert sink.node_name == "/robot/left_arm/texture"
+            assert sink.topic("main", "decision") == "/robot/left_arm/texture/main/decision"
+            assert sink.topic("main", "features") == "/robot/left_arm/texture/main/features"
+        finally:
+            sink.close()
+    finally:
+        use_ros_arguments([])
+
+
+@pytest.mark.slow   # a node process, paced in real time, with a model trained on start (or cached)
+def test_a_stopped_subscriber_never_holds_the_node_up(tmp_path):
+    """Done when (issue 33): a subscriber stopped with SIGSTOP, matched on every decision topic, does not
+    hold the node up: the run (4 s of stream) ends on time, the jsonl sink has every window, the ros2 sink
+    dropped none (DDS keeps the last few for the stopped reader and never blocks the publisher)."""
+    ns = unique_namespace()
+    (tmp_path / "node.toml").write_text(scene(0.5, ns, "wait_for_subscribers = 120\ndecision_history = 5"))
+    stalled = subprocess.Popen([sys.executable, "-c", SUBSCRIBER, ns], stdout=subprocess.PIPE, text=True)
+    try:
+        assert stalled.stdout is not None and stalled.stdout.readline().strip() == "up"
+        node = _node(tmp_path)
+        try:
+            deadline = time.monotonic() + 300
+            while not (tmp_path / "out.jsonl").exists() and time.monotonic() < deadline and node.poll() is None:
+                time.sleep(0.05)                   # the first window: matched, the node runs
+            os.kill(stalled.pid, signal.SIGSTOP)
+            out, err = node.communicate(timeout=300)
+        finally:
+            node.kill()
+        assert node.returncode == 0, err[-1500:]
+        summary = json.loads((tmp_path / "out.jsonl").read_text().splitlines()[-1])
+        assert summary["wall_seconds"] < 4.0 + 2.0, summary["wall_seconds"]
+        windows = _windows(tmp_path / "out.jsonl")
+        assert {s: len([w for w in windows if w["stream"] == s]) for s in ("left", "right")} == {"left": 40,
+                                                                                               "right": 40}
+        ros = next(s for s in summary["sinks"] if s["sink"].startswith("Ros2Sink"))
+        assert ros["dropped_windows"] == 0 and ros["errors"] == 0, ros
+        assert sorted(ros["subscribed"]) == ["fused/decision", "left/decision", "right/decision"]
+    finally:
+        os.kill(stalled.pid, signal.SIGCONT)
+        stalled.kill()
+        stalled.wait()
+
+
+def test_under_use_sim_time_a_window_is_stamped_on_the_bags_clock():
+    """``-p use_sim_time:=true`` (a bag played with ``--clock``): the ROS clock follows ``/clock``, and a
+    window is stamped with that clock's now less the window's age on the host's clock."""
+    from rosgraph_msgs.msg import Clock
+
+    from supramodal.node.runtime.events import WindowEvent
+
+    use_ros_arguments(["--ros-args", "-p", "use_sim_time:=true"])
+    try:
+        sink = Ros2Sink([TopicStream("main", ("a", "b"))], namespace=unique_namespace())
+    finally:
+        use_ros_arguments([])
+    pub = Subscriber("bag_clock")
+    try:
+        clock = pub.node.create_publisher(Clock, "/clock", 10)
+        sim = 1234 * 10**9 + 500_000_000                     # 1234.5 s of the bag's time
+        ros_clock = sink._ros.node.get_clock()
+
+        def now_follows_the_bag() -> bool:
+            msg = Clock()
+            msg.clock.sec, msg.clock.nanosec = divmod(sim, 10**9)
+            clock.publish(msg)
+            return ros_clock.now().nanoseconds == sim
+
+        assert pub.wait_for(now_follows_the_bag, 10.0)
+        epoch = time.monotonic() - 10.0
+        sink.start(epoch)                                    # common time 0 was 10 s ago
+        sub = Subscriber()
+        try:
+            topic = f"{sink.node_name}/main/posteriors"
+            sub.subscribe(topic, JointState, 10)
+            assert sub.wait_for(lambda: sink._publishers[("main", "posteriors")].get_subscription_count() > 0, 10.0)
+            time.sleep(0.3)
+            import numpy as np
+
+            age = time.monotonic() - (epoch + 9.5)           # the window ended that long ago, host's clock
+            sink.emit(WindowEvent("main", 0, 9.4, 9.5, 9.5, posteriors=np.array([0.25, 0.75]), decision="b",
+                                  confidence=0.75, classes=("a", "b")))
+            assert sub.wait_for(lambda: len(sub.messages(topic)) == 1, 5.0)
+            stamp = sub.messages(topic)[0].header.stamp
+            # the bag's clock (stopped at 1234.5 s) less that age, within the few ms the call takes
+            assert abs(stamp.sec * 10**9 + stamp.nanosec - (sim - age * 1e9)) < 20_000_000, (stamp, age)
+        finally:
+            sub.close()
+    finally:
+        pub.close()
+        sink.close()
