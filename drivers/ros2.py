@@ -373,7 +373,8 @@ class Ros2TopicDriver(DriverBase):
         best-effort publisher, e.g. one with ROS's sensor-data QoS, needs ``"best_effort"``, and the
         driver says so).
     node_name, namespace : str
-        The driver's ROS 2 node (default ``supramodal_input``, the root).
+        The driver's ROS 2 node: default ``supramodal_`` and the topic's tokens (``/robot/whiskers``:
+        ``supramodal_robot_whiskers``), in the root.
     gap_tolerance, max_gap, stall_timeout, queue_seconds, rate_tolerance : float
         Seconds (the last a fraction); see the module notes.
 
@@ -384,7 +385,7 @@ class Ros2TopicDriver(DriverBase):
     """
 
     def __init__(self, topic: str, rate: float, channels: int, *, message: str = "auto",
-                 reliability: str = "reliable", node_name: str = "supramodal_input", namespace: str = "",
+                 reliability: str = "reliable", node_name: str | None = None, namespace: str = "",
                  gap_tolerance: float = 0.05, max_gap: float = 10.0, stall_timeout: float = 0.5,
                  queue_seconds: float = 30.0, rate_tolerance: float = 0.05) -> None:
         if not check_topic(topic):
@@ -403,7 +404,9 @@ class Ros2TopicDriver(DriverBase):
             raise InputError(f"channels must be a positive integer, got {channels!r}")
         self.topic, self.rate, self.channels = topic, float(rate), int(channels)
         self.message, self.reliability = message, reliability
-        self.node_name, self.namespace = node_name, namespace
+        # one node per topic read: two sources of a scene (and a ros2 sink) never share a node's name
+        self.node_name = node_name or "supramodal_" + "_".join(t for t in topic.split("/") if t)
+        self.namespace = namespace
         self.gap_tolerance, self.max_gap = float(gap_tolerance), float(max_gap)
         self.stall_timeout = float(stall_timeout)
         self.queue_seconds, self.rate_tolerance = float(queue_seconds), float(rate_tolerance)
@@ -693,8 +696,8 @@ def _build(options: Mapping[str, Any], context: BuildContext) -> Built:
                           "the topic's rate")
     try:
         driver = Ros2TopicDriver(options["topic"], float(rate), int(channels), message=options["message"],
-                                 reliability=options["reliability"], node_name=options["node_name"],
-                                 namespace=options["namespace"], **given(options, {k: k for k in LIMITS}))
+                                 reliability=options["reliability"], namespace=options["namespace"],
+                                 **given(options, {"node_name": "node_name", **{k: k for k in LIMITS}}))
     except DriverError:
         raise
     except InputError as exc:
@@ -717,7 +720,8 @@ SPEC = DriverSpec(
                        f"{sorted(MESSAGES)}", "auto"),
         "reliability": Key(one_of("reliable", "best_effort"), '"reliable" or "best_effort" (for a best-effort '
                            "publisher, e.g. sensor-data QoS)", "reliable"),
-        "node_name": Key(check_node_name, "the driver's ROS node's name", "supramodal_input"),
+        "node_name": Key(check_node_name, "the driver's ROS node's name (default: supramodal_ and the topic's "
+                         "tokens, e.g. supramodal_whiskers)", None),
         "namespace": Key(check_namespace, 'the driver\'s ROS node\'s namespace ("": the root)', ""),
         "gap_tolerance": _limit("gap_tolerance", "seconds of stamp jitter before a step counts as lost samples "
                                 "(default 0.05)"),

@@ -241,3 +241,93 @@ def test_under_use_sim_time_a_window_is_stamped_on_the_bags_clock():
     finally:
         pub.close()
         sink.close()
+
+
+@pytest.mark.hardware   # a mock whisker board on a pty, paced in real time
+def test_an_unplug_of_the_mock_board_is_on_the_diagnostics_within_a_second():
+    """Done when (issue 33): the mock board unplugged (its pty closed) appears on ``/diagnostics`` as an
+    ERROR of the source and its stream within 1 s of the unplug, and its return as OK again: the whole
+    way, the serial driver, the node's event thread, the sink's queue and DDS."""
+    import numpy as np
+
+    from supramodal.banks import whisker_bank
+    from supramodal.drivers.mock_whisker import FaultSpec, MockWhiskerDevice
+    from supramodal.drivers.serial_whisker import SerialWhiskerDriver
+    from supramodal.node.runtime.graph import Node
+    from supramodal.node.runtime.sinks import QueuedSink
+    from supramodal.pipeline import FeaturePipeline
+
+    rate = 5000
+    signal_ = 0.3 * np.random.default_rng(0).standard_normal((int(3.5 * rate), 1))
+    dev = MockWhiskerDevice(signal_, rate, samples_per_frame=32,
+                            faults=FaultSpec(unplug_every=1.2, unplug_for=0.6, unplug_limit=1), seed=1)
+    ns = unique_namespace()
+    sub = Subscriber()
+    try:
+        sub.subscribe("/diagnostics", DiagnosticArray, 100)
+        with dev:
+            driver = SerialWhiskerDriver(dev.port, rate=rate, channels=1, on_notice=None)
+            sink = Ros2Sink([TopicStream("main", (), ("Af",), tuple(whisker_bank().names))], namespace=ns,
+                            outputs=["features"])
+            node = Node(driver, FeaturePipeline(whisker_bank(), ("Af",)), [QueuedSink(sink)])
+            assert sub.wait_for(lambda: sink._diagnostics.get_subscription_count() > 0, 10.0)
+
+            def board():
+                time.sleep(0.3)
+                dev.start()
+                dev.finished.wait(60)
+                time.sleep(0.6)
+                node.stop("test done")
+
+            import threading
+
+            t = threading.Thread(target=board, daemon=True)
+            t.start()
+            node.run()
+            t.join(10)
+            ledger = dev.ledger
+        assert ledger.unplugs == 1
+
+        def first(name: str, level: int, after: float) -> float | None:
+            return next((when for when, m in sub.timed("/diagnostics") for st in m.status
+                         if when > after and st.name == name and st.level == bytes([level])), None)
+
+        down = first("supramodal: stream main", ERROR, ledger.unplug_times[0])
+        assert down is not None and down - ledger.unplug_times[0] < 1.0, (down, ledger.unplug_times)
+        assert first("supramodal: source main", ERROR, ledger.unplug_times[0]) is not None
+        up = first("supramodal: source main", OK, ledger.replug_times[0])    # a reconnect: the source is back
+        assert up is not None and up - ledger.replug_times[0] < 1.0, (up, ledger.replug_times)
+    finally:
+        sub.close()
+
+
+def test_the_subscriber_docs_ros2_md_gives_to_copy_prints_the_fused_decisions():
+    """docs/ros2.md's subscriber (copied as it is, its spin bounded) receives the fused decision and
+    posteriors a ros2 sink in namespace /robot publishes."""
+    import re
+
+    import numpy as np
+
+    from supramodal.node.runtime.events import WindowEvent
+
+    doc = (Path(__file__).resolve().parents[1] / "docs" / "ros2.md").read_text()
+    code = re.search(r"## A subscriber to copy\n\n```python\n(.*?)```", doc, re.S).group(1)
+    assert "rclpy.spin(node)" in code
+    code = code.replace("rclpy.spin(node)", "import time\nend = time.monotonic() + 20\n"
+                        "while time.monotonic() < end:\n    rclpy.spin_once(node, timeout_sec=0.1)\n")
+    listener = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    sink = Ros2Sink([TopicStream("fused", ("T1", "T2"))], namespace="/robot", wait_for_subscribers=20)
+    try:
+        sink.prepare()
+        assert sink.subscribed == ["fused/decision"]
+        sink.start(time.monotonic())
+        post = np.array([0.8, 0.2])
+        sink.emit(WindowEvent("fused", 0, 0.0, 0.1, 0.1, posteriors=post, decision="T1", confidence=0.8,
+                              classes=("T1", "T2"), senses=("left", "right")))
+        time.sleep(1.0)
+    finally:
+        sink.close()
+        listener.terminate()
+        out, err = listener.communicate(timeout=20)
+    assert "decided T1" in out, (out, err[-800:])
+    assert "{'T1': 0.8, 'T2': 0.2}" in out, out

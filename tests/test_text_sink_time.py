@@ -65,3 +65,30 @@ def test_a_streams_decision_and_its_fused_one_are_printed_on_one_basis(tmp_path)
     header, rows = _lines(path)
     assert "time: each window's end, s on the node's common time" in header
     assert rows == [(0.137, "mic"), (0.137, FUSED_STREAM)]
+
+
+def test_two_streams_emitting_at_once_lose_no_line_and_head_the_file_once(tmp_path):
+    """A text sink called on the graph's own threads (not queued) gets two streams' windows at once: the
+    file, opened at the first write, is opened once and every line kept (unlocked, both threads opened it
+    and a line was lost: a CI run printed 79 of 80 windows under load)."""
+    import threading
+
+    for k in range(150):
+        path = tmp_path / f"out{k}.txt"
+        sink = TextSink(str(path))
+        start = threading.Barrier(2)
+
+        def stream(name, sink=sink, start=start):
+            start.wait()
+            for w in range(5):
+                sink.emit(WindowEvent(name, w, 0.1 * w, 0.1 * (w + 1), 0.1 * (w + 1), features={"A": np.ones(2)}))
+
+        threads = [threading.Thread(target=stream, args=(n,)) for n in ("whiskers", "mic")]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+        sink.close()
+        header, rows = _lines(path)
+        assert "common time" in header and len(rows) == 10, (k, path.read_text())
+        assert path.read_text().count("common time") == 1

@@ -1,10 +1,12 @@
-"""``supramodal import-recording``: a replayable graph recording from WAV files and their timestamps, or XDF."""
+"""``supramodal import-recording``: a replayable graph recording from WAV files and their timestamps, XDF or a
+rosbag2."""
 
 from __future__ import annotations
 
 import argparse
 
 from supramodal.node.cli.arguments import output_folder, session_name, source_value
+from supramodal.node.cli.errors import CliError
 
 
 def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
@@ -30,6 +32,13 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
                         "none)")
     p.add_argument("--markers", metavar="STREAM",
                    help="with --xdf: a marker stream whose strings label every source (default: no labels)")
+    p.add_argument("--bag", metavar="BAG",
+                   help="instead of WAV files: a rosbag2 (its folder, or its .mcap or .db3 file; the ros2 extra)")
+    p.add_argument("--topic", type=source_value, action="append", default=[], metavar="SOURCE=TOPIC",
+                   help="with --bag: a source read from the bag's sensor topic (std_msgs *MultiArray or a stamped "
+                        "sensor_msgs/Image, samples x channels, at its bank's rate); one per source (default: none)")
+    p.add_argument("--label-topic", metavar="TOPIC",
+                   help="with --bag: a std_msgs/String topic whose messages label every source (default: no labels)")
     p.add_argument("--bank", type=source_value, action="append", default=[], metavar="SOURCE=BANK",
                    help="each source's stream bank: whisker, cochlea or a bank file; one per source (default: none, "
                         "so give one for every source)")
@@ -58,9 +67,11 @@ def run(args: argparse.Namespace) -> int:
     """
     from supramodal.node.workflows.import_recording import import_recording, sources_from_options
 
-    sources = sources_from_options(args.wav, args.times, args.xdf_stream, args.bank, args.model)
-    scene = import_recording(args.out, args.name, sources, xdf=args.xdf, markers=args.markers, fusion=args.fusion,
-                             overwrite=args.force)
+    if args.label_topic is not None and args.markers is not None:
+        raise CliError("--markers labels from an XDF file, --label-topic from a bag: give one")
+    sources = sources_from_options(args.wav, args.times, args.xdf_stream, args.bank, args.model, args.topic)
+    scene = import_recording(args.out, args.name, sources, xdf=args.xdf, markers=args.markers or args.label_topic,
+                             fusion=args.fusion, overwrite=args.force, bag=args.bag)
     print(f"wrote {scene} and the sessions of {', '.join(s.name for s in sources)} beside it\n"
           f"next: supramodal run {scene} --speed max")
     return 0

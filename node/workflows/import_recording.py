@@ -17,6 +17,9 @@ and ``evaluate --scene`` take them as they take a recording of the node's own:
 * **XDF streams** (LabRecorder's files; the ``lsl`` extra): each named stream of the file, read by
   :func:`supramodal.replay.xdf.xdf_session` (its recorded times, gaps filled and marked, a
   marker stream's strings as labels).
+* **rosbag2 topics** (a robot's recording, MCAP or sqlite3; the ``ros2`` extra): each named sensor
+  topic, read by :func:`supramodal.replay.rosbag.bag_streams` at its bank's rate and then by the XDF
+  reader's rules (its stamps, gaps filled and marked), a ``std_msgs/String`` topic's messages as labels.
 
 The times of all sources are put on one common time whose zero is the earliest first sample.
 Every file is data: WAVs through :func:`~supramodal.replay.wavio.read_wav`, CSVs through
@@ -80,6 +83,8 @@ class SourceFiles:
         The WAV file and its timestamps (CSV), for a source read from WAV + CSV.
     xdf_stream : str or None
         The name of a stream of the XDF file, for a source read from XDF.
+    topic : str or None
+        A sensor topic of the bag, for a source read from a rosbag2.
     model : path or None
         A model file for the stream (copied beside the sessions); None: the stream gives feature
         windows.
@@ -91,12 +96,18 @@ class SourceFiles:
     times: Path | None = None
     xdf_stream: str | None = None
     model: Path | None = None
+    topic: str | None = None
+
+    @property
+    def origins(self) -> int:
+        """How many of a WAV, an XDF stream and a bag topic the source is read from (one is right)."""
+        return (self.wav is not None) + (self.xdf_stream is not None) + (self.topic is not None)
 
 
-def sources_from_options(wav=(), times=(), xdf_streams=(), banks=(), models=()) -> list[SourceFiles]:
-    """The sources the command line's ``SOURCE=VALUE`` options describe, in the order the WAVs or
-    XDF streams are given (``wav``, ``times``, ``xdf_streams``, ``banks``, ``models``: lists of
-    ``(source, value)``). Refused, naming the option: a source given twice in one option, a
+def sources_from_options(wav=(), times=(), xdf_streams=(), banks=(), models=(), topics=()) -> list[SourceFiles]:
+    """The sources the command line's ``SOURCE=VALUE`` options describe, in the order the WAVs, XDF
+    streams or bag topics are given (``wav``, ``times``, ``xdf_streams``, ``banks``, ``models``,
+    ``topics``: lists of ``(source, value)``). Refused, naming the option: a source given twice in one option, a
     ``--times``, ``--bank`` or ``--model`` for no source, a source without its bank or (a WAV)
     its timestamps."""
     def by_source(option: str, pairs) -> dict[str, str]:
@@ -109,16 +120,18 @@ def sources_from_options(wav=(), times=(), xdf_streams=(), banks=(), models=()) 
 
     wavs, stamps = by_source("--wav", wav), by_source("--times", times)
     streams, bank = by_source("--xdf-stream", xdf_streams), by_source("--bank", banks)
-    model = by_source("--model", models)
+    model, topic = by_source("--model", models), by_source("--topic", topics)
     names = list(wavs) + [n for n in streams if n not in wavs]
+    names += [n for n in topic if n not in names]
     for option, given in (("--times", stamps), ("--bank", bank), ("--model", model)):
         stray = sorted(set(given) - set(names))
         if stray:
             raise ImportRecordingError(f"{option}: no source {stray[0]!r} (the sources: {names}); name a source "
-                                       "given by --wav or --xdf-stream")
+                                       "given by --wav, --xdf-stream or --topic")
     for n in names:
-        if n in wavs and n in streams:
-            raise ImportRecordingError(f"source {n!r} is given a WAV and an XDF stream; one of the two")
+        if (n in wavs) + (n in streams) + (n in topic) > 1:
+            raise ImportRecordingError(f"source {n!r} is given more than one of a WAV, an XDF stream and a bag topic; "
+                                       "one of them")
         if n in wavs and n not in stamps:
             raise ImportRecordingError(f"source {n!r}: its WAV needs its timestamps: --times {n}=TIMES.csv "
                                        f"(a CSV with the header '{','.join(BLOCK_COLUMNS)}' or "
@@ -127,7 +140,7 @@ def sources_from_options(wav=(), times=(), xdf_streams=(), banks=(), models=()) 
             raise ImportRecordingError(f"source {n!r} has no bank: --bank {n}=whisker, cochlea or a bank file")
     return [SourceFiles(n, bank[n], wav=Path(wavs[n]) if n in wavs else None,
                         times=Path(stamps[n]) if n in wavs else None, xdf_stream=streams.get(n),
-                        model=Path(model[n]) if n in model else None) for n in names]
+                        model=Path(model[n]) if n in model else None, topic=topic.get(n)) for n in names]
 
 
 def _number(text: str, where: str, column: str) -> float:
@@ -275,6 +288,37 @@ def _xdf_sessions(path: Path, sources: list[SourceFiles], markers: str | None) -
         raise ImportRecordingError(str(exc)) from None
 
 
+def _bag_sessions(path: Path, sources: list[SourceFiles], labels: str | None) -> dict[str, Session]:
+    """Each source's topic of the bag as a session, read at its bank's rate."""
+    from supramodal.replay.rosbag import bag_streams
+    from supramodal.replay.xdf import xdf_session
+
+    rates = {}
+    for s in sources:
+        assert s.topic is not None
+        rates[s.topic] = _bank_rate(s)
+    try:
+        streams = bag_streams(path, rates, labels)
+        out = {}
+        for s in sources:
+            session = xdf_session(path, s.topic, streams=streams, labels=labels)
+            out[s.name] = replace(session, source=f"rosbag2 {path.name}: topic {s.topic}")
+        return out
+    except ReplayError as exc:
+        raise ImportRecordingError(str(exc)) from None
+
+
+def _bank_rate(source: SourceFiles) -> float:
+    """The rate, Hz, the source's bank reads: a bag's samples carry none of their own."""
+    from supramodal.banks import cochlea_bank, whisker_bank
+
+    if source.bank == "whisker":
+        return float(whisker_bank().fs)
+    if source.bank == "cochlea":
+        return float(cochlea_bank().fs)
+    return float(load_bank(source.bank).fs)
+
+
 def _check_times(name: str, session: Session, where: str) -> None:
     """The times must follow the frames as a device's clock does (the rule replays are held to)."""
     assert session.arrivals is not None
@@ -297,7 +341,7 @@ def recording_files(folder, name: str, sources) -> list[Path]:
 
 
 def import_recording(folder, name: str, sources: list[SourceFiles], xdf=None, markers: str | None = None,
-                     fusion: bool = False, overwrite: bool = False) -> Path:
+                     fusion: bool = False, overwrite: bool = False, bag=None) -> Path:
     """Write a replayable graph recording of ``sources`` into ``folder``; returns its scene's path.
 
     Parameters
@@ -312,12 +356,15 @@ def import_recording(folder, name: str, sources: list[SourceFiles], xdf=None, ma
         The XDF file the sources' ``xdf_stream`` name.
     markers : str, optional
         With ``xdf``: a marker stream of the file whose strings label every source (each marker
-        starts a label that runs to the next; an empty one ends it).
+        starts a label that runs to the next; an empty one ends it); with ``bag``: a ``std_msgs/String``
+        topic of the bag, read the same way.
     fusion : bool
         Write ``[fusion]`` (late fusion of the two streams, default weight; learn it with
         ``supramodal train --fusion late``): needs exactly two sources, each with a model.
     overwrite : bool
         Replace files of an earlier import of that name (default: refuse).
+    bag : path, optional
+        The rosbag2 (folder, or its ``.mcap`` / ``.db3`` file) the sources' ``topic`` name.
 
     Raises
     ------
@@ -338,8 +385,9 @@ def import_recording(folder, name: str, sources: list[SourceFiles], xdf=None, ma
             raise ImportRecordingError(f"the source name {s.name!r} is not {NAME_HELP}")
         if s.name == "fused":
             raise ImportRecordingError("'fused' is the fusion block's stream: name the source otherwise")
-        if (s.wav is None) != (s.times is None) or (s.wav is None) == (s.xdf_stream is None):
-            raise ImportRecordingError(f"source {s.name!r}: give its WAV and its timestamps (CSV), or an XDF stream")
+        if (s.wav is None) != (s.times is None) or s.origins != 1:
+            raise ImportRecordingError(f"source {s.name!r}: give its WAV and its timestamps (CSV), an XDF stream or a "
+                                       "bag topic")
         if s.bank not in BANK_KINDS and not Path(s.bank).is_file():
             raise ImportRecordingError(f"source {s.name!r}: the bank is {list(BANK_KINDS)} or a bank file; no file "
                                        f"at {s.bank}")
@@ -351,9 +399,15 @@ def import_recording(folder, name: str, sources: list[SourceFiles], xdf=None, ma
     if xdf is not None and len(from_xdf) != len(sources):
         raise ImportRecordingError("a recording is imported from WAV files or from one XDF file, not both: their "
                                    "timestamps would not share a clock")
-    if markers is not None and xdf is None:
-        raise ImportRecordingError("marker labels are read from an XDF file; with WAV files label the recording "
-                                   "after the import")
+    from_bag = [s for s in sources if s.topic is not None]
+    if from_bag and bag is None:
+        raise ImportRecordingError("bag topics were named (--topic) but no bag given (--bag)")
+    if bag is not None and (len(from_bag) != len(sources) or xdf is not None):
+        raise ImportRecordingError("a recording is imported from WAV files, one XDF file or one bag, not several: "
+                                   "their timestamps would not share a clock")
+    if markers is not None and xdf is None and bag is None:
+        raise ImportRecordingError("marker labels are read from an XDF file or a bag; with WAV files label the "
+                                   "recording after the import")
     if fusion and (len(sources) != 2 or any(s.model is None for s in sources)):
         raise ImportRecordingError("a fusion fuses two streams' decisions: give exactly two sources, each with a "
                                    "model")
@@ -378,6 +432,9 @@ def import_recording(folder, name: str, sources: list[SourceFiles], xdf=None, ma
     if xdf is not None:
         sessions = _xdf_sessions(Path(xdf), sources, markers)
         where = {s.name: f"{xdf} stream {s.xdf_stream!r}" for s in sources}
+    elif bag is not None:
+        sessions = _bag_sessions(Path(bag), sources, markers)
+        where = {s.name: f"{bag} topic {s.topic}" for s in sources}
     else:
         read = {s.name: _wav_session(s) for s in sources}
         zero = min(first for _, first in read.values())
@@ -415,7 +472,7 @@ def import_recording(folder, name: str, sources: list[SourceFiles], xdf=None, ma
             if s.bank not in BANK_KINDS:
                 written.append(Path(shutil.copyfile(s.bank, folder / f"{name}.{s.name}.bank.json")))
         scene.write_text(f"# Replays the recording {name}, imported by supramodal import-recording from "
-                         f"{xdf if xdf is not None else ', '.join(str(s.wav) for s in sources)}.\n" + text)
+                         f"{xdf or bag or ', '.join(str(s.wav) for s in sources)}.\n" + text)
         written.append(scene)
         _check_scene(scene)
     except BaseException:

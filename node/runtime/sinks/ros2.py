@@ -65,7 +65,7 @@ from supramodal.drivers.base import DriverEvent
 from supramodal.drivers.ros2 import RosClock, RosNode, check_namespace, check_node_name, check_token
 from supramodal.drivers.spec import OptionError
 from supramodal.errors import InputError
-from supramodal.node.runtime.events import FUSED_STREAM, WindowEvent
+from supramodal.node.runtime.events import FUSED_STREAM, MAIN_STREAM, WindowEvent
 from supramodal.node.runtime.sinks import QueuedSink, Sink
 from supramodal.node.runtime.sinks.spec import SinkContext, SinkSpec, listened
 
@@ -425,7 +425,7 @@ class Ros2Sink(Sink):
 
     def event(self, ev: DriverEvent) -> None:
         """A driver event: on ``~/events`` at once, and in the diagnostics, published at once too."""
-        name = ev.source or "source"
+        name = ev.source or self._only_source()
         with self._lock:
             state = self._sources.setdefault(name, SourceState())
             state.last = ev
@@ -437,6 +437,13 @@ class Ros2Sink(Sink):
         self._events.publish(self._String(data=json.dumps(ev.as_dict())))
         self.published["events"] += 1
         self.publish_diagnostics()
+
+    def _only_source(self) -> str:
+        """The name of the graph's one source (a one-source graph's events name none): what its stream's
+        status is keyed by; ``main`` outside a graph."""
+        health = self.health() if self.health is not None else {}
+        sources = {st.get("source") for st in health.get("streams", {}).values()} - {None}
+        return str(sources.pop()) if len(sources) == 1 else MAIN_STREAM
 
     def publish_diagnostics(self) -> None:
         """One ``DiagnosticArray`` of :func:`diagnostic_report` now (the timer's call; also on a

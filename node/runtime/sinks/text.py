@@ -48,9 +48,18 @@ class TextSink(FileSink):
         return line
 
     def emit(self, event: WindowEvent) -> None:
-        if not self._headed:
-            self._fh.write(self._header(event) + "\n")
-            self._headed = True
+        line = self._line(event)
+        # Two streams' processing threads may emit at once (a sink called on the graph's own threads): the
+        # lock makes the header, the file's lazy open and each line one at a time (unlocked, both threads
+        # opened the file, and a line was lost under load).
+        with self._lock:
+            if not self._headed:
+                self._fh.write(self._header(event) + "\n")
+                self._headed = True
+            self._fh.write(line + "\n")
+
+    def _line(self, event: WindowEvent) -> str:
+        """The window's line."""
         head = f"{event.end:9.3f} s"                    # common time, for every stream (TIME_BASIS)
         if event.stream != MAIN_STREAM:                 # a graph of several streams: say whose window
             head += f"  {event.stream:<8}"
@@ -74,7 +83,7 @@ class TextSink(FileSink):
         for flag in ("gap", "alone"):
             if flag in event.flags:
                 line += f"  [{flag}]"
-        self._fh.write(line + "\n")
+        return line
 
     def summary(self, s: dict[str, Any]) -> None:
         lines = ["", "summary"]
