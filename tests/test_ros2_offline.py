@@ -111,7 +111,7 @@ def test_a_scene_with_a_bad_ros2_sink_is_refused_naming_the_key_before_anything_
     base = {"driver": {"type": "synth", "seconds": 1.0}, "model": {"train_on_start": True}}
     for key, value, words in [("namespace", "/robot/", "namespace"), ("node_name", "9lives", "node_name"),
                               ("outputs", ["decision", "labels"], "outputs"),
-                              ("decision_history", 0, "decision_history"),
+                              ("history", 0, "history"),
                               ("diagnostics_period", 0.0, "diagnostics_period")]:
         with pytest.raises(SceneError, match=words):
             scene_from_dict({**base, "sink": [{"type": "ros2", key: value}]}, "s.toml", tmp_path)

@@ -50,7 +50,8 @@ def test_a_subscriber_started_before_the_node_gets_every_window_as_the_jsonl_sin
     of decisions and posteriors, for every stream and the fusion; the decision's data is the jsonl
     sink's line (and the ``stamp``); every stamp is the window's end on the ROS clock, by one line
     (within 1 ms; here within a microsecond, what the jsonl's rounding leaves). The node is renamed by
-    ``--ros-args -r __node:=``, as a launch file would."""
+    ``--ros-args -r __node:=``, as a launch file would. With the default ``history`` (10): a subscriber in
+    a busy test process keeps up within a second of windows."""
     ns = unique_namespace()
     (tmp_path / "node.toml").write_text(scene(1.0, ns, "wait_for_subscribers = 120"))
     sub = Subscriber()
@@ -71,8 +72,11 @@ def test_a_subscriber_started_before_the_node_gets_every_window_as_the_jsonl_sin
         windows = _windows(tmp_path / "out.jsonl")
         by_stream = {s: [w for w in windows if w["stream"] == s] for s in streams}
         assert all(len(by_stream[s]) >= 70 for s in streams), {s: len(v) for s, v in by_stream.items()}
-        assert sub.wait_for(lambda: all(len(sub.messages(f"{ns}/texture/{s}/decision")) >= len(by_stream[s])
+        came = sub.wait_for(lambda: all(len(sub.messages(f"{ns}/texture/{s}/decision")) >= len(by_stream[s])
                                         for s in streams), 10.0)
+        assert came, {s: sorted(set(range(len(by_stream[s])))
+                                - {json.loads(m.data)["window"] for m in sub.messages(f"{ns}/texture/{s}/decision")})
+                      for s in streams}
         epochs = []
         for s in streams:
             decisions = [json.loads(m.data) for m in sub.messages(f"{ns}/texture/{s}/decision")]
@@ -166,7 +170,7 @@ def test_a_stopped_subscriber_never_holds_the_node_up(tmp_path):
     hold the node up: the run (4 s of stream) ends on time, the jsonl sink has every window, the ros2 sink
     dropped none (DDS keeps the last few for the stopped reader and never blocks the publisher)."""
     ns = unique_namespace()
-    (tmp_path / "node.toml").write_text(scene(0.5, ns, "wait_for_subscribers = 120\ndecision_history = 5"))
+    (tmp_path / "node.toml").write_text(scene(0.5, ns, "wait_for_subscribers = 120\nhistory = 5"))
     stalled = subprocess.Popen([sys.executable, "-c", SUBSCRIBER, ns], stdout=subprocess.PIPE, text=True)
     try:
         assert stalled.stdout is not None and stalled.stdout.readline().strip() == "up"

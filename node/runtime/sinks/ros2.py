@@ -12,11 +12,11 @@ stream it listens to (``[[sink]] from``; default every stream, the fused one inc
 are private names of that node, ``~/STREAM/OUTPUT`` (``/supramodal/main/decision``), made when
 the node is built, before any model is trained, so that subscribers match while the node trains:
 
-``~/STREAM/decision`` (``std_msgs/String``; reliable, transient local, keep last ``decision_history``,
-    default 1: a late subscriber gets the last decision)
+``~/STREAM/decision`` (``std_msgs/String``; reliable, transient local, keep last ``history``, default
+    10: a subscriber that comes later gets the last ones, oldest first, the newest the current one)
     The window's JSON object, the ``jsonl`` sink's line with one key more, ``stamp``: the ROS time of
     the window's end, ``{"sec", "nanosec"}``.
-``~/STREAM/posteriors`` (``sensor_msgs/JointState``; reliable, volatile, keep last 10)
+``~/STREAM/posteriors`` (``sensor_msgs/JointState``; reliable, volatile, keep last ``history``)
     ``name``: the classes, ``position``: their posteriors (``velocity`` and ``effort`` empty).
 ``~/STREAM/features`` (``sensor_msgs/JointState``; best effort, volatile, keep last 5: sensor data)
     ``name``: ``FEATURE/FILTER``, ``position``: the window's values.
@@ -83,13 +83,14 @@ EVENTS_TOPIC = "~/events"
 #: Seconds between two diagnostics (ROS's convention: 1 Hz).
 DEFAULT_DIAGNOSTICS_PERIOD = 1.0
 DIAGNOSTICS_PERIOD_RANGE = (0.1, 60.0)
-#: Decisions a decision topic keeps for a late or slow subscriber (the last one: what the robot acts on).
-DEFAULT_DECISION_HISTORY = 1
-MAX_DECISION_HISTORY = 1000
+#: Messages a decision or posteriors topic keeps for a slow or late subscriber: one second of windows. With a
+#: history of 1, a subscriber started before the node missed decisions in a suite run under load: one whose
+#: side of the match completes after the first windows gets only what the history holds (transient local),
+#: and one held up gets only what the publisher has not yet overwritten.
+DEFAULT_HISTORY = 10
+MAX_HISTORY = 1000
 #: Driver events the events topic keeps for a late subscriber.
 EVENTS_HISTORY = 20
-#: Posteriors a posteriors topic keeps for a slow subscriber.
-POSTERIORS_HISTORY = 10
 #: Seconds to wait for subscribers before the node starts: none (a live sensor cannot wait).
 DEFAULT_WAIT_FOR_SUBSCRIBERS = 0.0
 MAX_WAIT_FOR_SUBSCRIBERS = 3600.0
@@ -287,8 +288,9 @@ class Ros2Sink(Sink):
     wait_for_subscribers : float
         Seconds :meth:`prepare` waits, before the node starts, until every decision topic (or, for a
         stream without classes, its features topic) has a subscriber (default 0: start at once).
-    decision_history : int
-        Decisions each decision topic keeps for a late or slow subscriber (default 1: the last).
+    history : int
+        Messages each decision and posteriors topic keeps for a slow or late subscriber (default
+        :data:`DEFAULT_HISTORY`); a subscriber held up longer than that many windows misses some.
 
     Raises
     ------
@@ -302,7 +304,7 @@ class Ros2Sink(Sink):
                  node_name: str = DEFAULT_NODE_NAME, namespace: str = "", frame_id: str = "",
                  diagnostics_period: float = DEFAULT_DIAGNOSTICS_PERIOD,
                  wait_for_subscribers: float = DEFAULT_WAIT_FOR_SUBSCRIBERS,
-                 decision_history: int = DEFAULT_DECISION_HISTORY) -> None:
+                 history: int = DEFAULT_HISTORY) -> None:
         unknown = sorted(set(outputs) - set(OUTPUTS))
         if unknown or not outputs:
             raise InputError(f"a ros2 sink publishes some of {list(OUTPUTS)}, got {list(outputs)}")
@@ -317,11 +319,11 @@ class Ros2Sink(Sink):
 
         self._ros = RosNode(node_name, namespace)
         node = self._ros.node
-        latched = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=int(decision_history),
+        latched = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=int(history),
                              reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
         kinds: dict[str, tuple[Any, Any]] = {
             "decision": (String, latched),
-            "posteriors": (JointState, QoSProfile(depth=POSTERIORS_HISTORY)),
+            "posteriors": (JointState, QoSProfile(depth=int(history))),
             "features": (JointState, qos_profile_sensor_data),
         }
         self._streams = {s.name: s for s in streams}
@@ -496,7 +498,7 @@ def _build(options: Mapping[str, Any], context: SinkContext) -> Sink:
     try:
         sink = Ros2Sink([described[n] for n in names], options["outputs"], options["node_name"],
                         options["namespace"], options["frame_id"], options["diagnostics_period"],
-                        options["wait_for_subscribers"], options["decision_history"])
+                        options["wait_for_subscribers"], options["history"])
     except InputError as exc:
         raise OptionError(str(exc)) from None
     return QueuedSink(sink)
@@ -520,7 +522,7 @@ SPEC = SinkSpec(
                                       "seconds to wait, before the node starts, for a subscriber on each decision "
                                       f"topic, 0 to {MAX_WAIT_FOR_SUBSCRIBERS:g} (0: start at once)",
                                       DEFAULT_WAIT_FOR_SUBSCRIBERS),
-          "decision_history": Key(integer(1, MAX_DECISION_HISTORY),
-                                  "decisions each decision topic keeps for a late or slow subscriber, "
-                                  f"1 to {MAX_DECISION_HISTORY}", DEFAULT_DECISION_HISTORY)},
+          "history": Key(integer(1, MAX_HISTORY), "messages each decision and posteriors topic keeps for a slow or "
+                         f"late subscriber, 1 to {MAX_HISTORY} (a subscriber held up longer misses some)",
+                         DEFAULT_HISTORY)},
     build=_build, needs="plans")
