@@ -105,10 +105,11 @@ SUBSCRIBER = textwrap.dedent("""
 CASES = ("off", "on, live subscriber", "on, stopped subscriber")
 
 
-def run_case(case: str, seconds: float, folder: Path) -> dict:
-    """One node process of ``case``: the summary's latencies, windows and drops."""
+def run_case(case: str, seconds: float, folder: Path, keys: str = "") -> dict:
+    """One node process of ``case``: the summary's latencies, windows and drops (``keys``: TOML lines of
+    the ros2 sink's other keys)."""
     namespace = f"/bench{uuid.uuid4().hex[:8]}"
-    text = scene(seconds, None if case == "off" else namespace)
+    text = scene(seconds, None if case == "off" else namespace, "wait_for_subscribers = 60\n" + keys)
     work = folder / f"case{CASES.index(case)}-{uuid.uuid4().hex[:6]}"
     work.mkdir()
     (work / "node.toml").write_text(text)
@@ -144,6 +145,8 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--seconds", type=float, default=0.5, help="seconds of each of the 8 textures per run (0.5)")
     p.add_argument("--rounds", type=int, default=3, help="rounds of the three cases (3)")
+    p.add_argument("--sink-keys", default="", metavar="TOML",
+                   help='the ros2 sink\'s other keys, TOML lines (e.g. "diagnostics_period = 60"; default none)')
     args = p.parse_args(argv)
     os.environ.setdefault("ROS_DOMAIN_ID", str(random.SystemRandom().randint(1, 100)))
     os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
@@ -155,7 +158,7 @@ def main(argv: list[str] | None = None) -> int:
         for r in range(args.rounds):
             for case in CASES:
                 t = time.monotonic()
-                got = run_case(case, args.seconds, Path(tmp))
+                got = run_case(case, args.seconds, Path(tmp), args.sink_keys)
                 print(f"round {r + 1}/{args.rounds}, {case}: {got['windows']} windows in "
                       f"{time.monotonic() - t:.1f} s", file=sys.stderr, flush=True)
                 into = pooled[case]
@@ -165,7 +168,8 @@ def main(argv: list[str] | None = None) -> int:
                 into["wall"].append(got["wall"])
                 into["dropped"] += sum(int(s["dropped_windows"] or 0) + int(s["errors"] or 0) for s in got["sinks"])
     print(f"ros2 sink cost: {args.rounds} rounds of {8 * args.seconds:g} s of stream per case, 2 streams + fusion, "
-          f"real time; decision latency in ms (pooled over rounds)\n")
+          f"real time; decision latency in ms (pooled over rounds)"
+          + (f"; the sink's keys: {args.sink_keys!r}" if args.sink_keys else "") + "\n")
     print("| case | stream | p50 | p99 | max | windows per run | dropped or failed by sinks | wall s |")
     print("|---|---|---|---|---|---|---|---|")
     p99_off = {}
