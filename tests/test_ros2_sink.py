@@ -162,6 +162,21 @@ def test_ros_arguments_remap_the_node_and_its_topics():
             sink.close()
     finally:
         use_ros_arguments([])
+    # a remapping of one node by its name (docs/ros2.md): the sink's, not a driver's beside it
+    from supramodal.drivers.ros2 import RosNode
+
+    use_ros_arguments(["--ros-args", "-r", "supramodal:__node:=texture"])
+    try:
+        ns = unique_namespace()
+        sink = Ros2Sink([TopicStream("main", ("a", "b"))], namespace=ns)
+        other = RosNode("supramodal_whiskers", ns)
+        try:
+            assert sink.node_name == f"{ns}/texture" and other.name == f"{ns}/supramodal_whiskers"
+        finally:
+            sink.close()
+            other.close()
+    finally:
+        use_ros_arguments([])
 
 
 @pytest.mark.slow   # a node process, paced in real time, with a model trained on start (or cached)
