@@ -292,3 +292,34 @@ def test_a_node_waiting_for_a_topic_that_never_comes_says_so_and_stops_on_sigint
     assert [d["event"] for d in lines if "event" in d] == ["waiting"]
     assert "waiting for the first message" in lines[0]["message"] and "(no publisher)" in lines[0]["message"]
     assert lines[-1]["summary"] and lines[-1]["windows"] == 0
+
+
+@pytest.mark.slow   # 4 s of a publisher in real time
+def test_a_topic_recorded_replays_to_the_windows_the_node_computed_live(tmp_path):
+    """``supramodal record`` of a scene whose source is a ROS 2 topic (what docs/ros2.md points at for
+    training one's own models): the session replays to the feature windows the node computed live, to
+    the bit, and keeps its label."""
+    signal_ = whisker_signal(6.0)
+    write_wav(tmp_path / "s.wav", signal_, RATE)
+    topic = f"{unique_namespace()}/whiskers"
+    bank = 'mapping = "per-channel"\n\n[bank]\nkind = "whisker"\n\n[features]\nnames = ["Af"]\n\n[[sink]]\ntype = "jsonl"\n'
+    (tmp_path / "rec.toml").write_text(f'[driver]\ntype = "ros2"\ntopic = "{topic}"\n{bank}path = "live.jsonl"\n')
+    node = subprocess.Popen([sys.executable, "-m", "supramodal", "record", "rec.toml", "--out", "rec", "--name", "t1",
+                             "--label", "T1", "--seconds", "4", "--quiet"], cwd=tmp_path, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    pub = _publisher(topic, tmp_path / "s.wav", "--kind", "image", "--wait-subscriber", "300")
+    try:
+        _, err = node.communicate(timeout=300)
+    finally:
+        node.kill()
+        pub.kill()
+    assert node.returncode == 0, err[-1500:]
+    (tmp_path / "replay.toml").write_text('[driver]\ntype = "replay"\npath = "rec/t1.wav"\nspeed = "max"\n'
+                                          f'{bank}path = "replayed.jsonl"\n')
+    done = subprocess.run([sys.executable, "-m", "supramodal", "run", "replay.toml", "--quiet"], cwd=tmp_path,
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-1500:]
+    live, replayed = _windows(tmp_path / "live.jsonl"), _windows(tmp_path / "replayed.jsonl")
+    assert len(live) == len(replayed) == 40
+    assert [w["features"] for w in live] == [w["features"] for w in replayed]
+    assert {w["truth"] for w in replayed} == {"T1"}
