@@ -3,7 +3,6 @@ listen to some streams; the fusion block pairing windows on common time; graph s
 
 from __future__ import annotations
 
-import math
 
 import threading
 from pathlib import Path
@@ -458,16 +457,15 @@ def test_a_sense_that_drops_out_leaves_the_other_deciding_alone_and_fusion_resum
     assert summary["streams"]["whiskers"]["windows"] == summary["streams"]["mic"]["windows"] == 120
     fused = [e for e in sink.windows if e.stream == "fused"]
     alone = [e for e in fused if "alone" in e.flags]
-    # The stall: about 4 s of stream (40 windows), less the wait before a window is decided alone (max_wait,
-    # 0.3 s of host time: 12 windows at 4x), and the microphone's catch-up after it: its backlog of 4 s of
-    # stream processed at its real-time factor r while 4 s of stream a second keep coming, T = 4 / (1/r - 4)
-    # s of host time, 40 T windows late for their partners. The bound was 45 windows, which is the catch-up
-    # on a faster machine: this one (at the commit before this one too) gave 47 to 55 with nothing else
-    # running, 73 in a loaded suite; so the catch-up is read from the run's own r, plus 10 windows of slack.
-    r = summary["streams"]["mic"]["real_time_factor"]
-    catch_up = 4.0 / (1.0 / r - 4.0) if r < 0.25 else math.inf
-    bound = 40 - 12 + 40 * catch_up + 10
-    assert 20 <= len(alone) == f["alone"] <= bound and all(e.senses == ("whiskers",) for e in alone), (len(alone), r)
+    # The stall: 4 s of stream from window 30 (40 windows); a whisker window waits max_wait (0.3 s of host
+    # time: 12 windows at 4x) for its partner, so windows 30 to 57 at least are the whiskers' alone. After it
+    # the microphone catches up on its backlog, late for its partners meanwhile: how long is the machine's
+    # speed (the bound was 45 windows in all; this machine gave 47 to 55 alone and 73 and 74 in loaded suite
+    # runs, at the commit before this session too), so the catch-up is bounded by what follows: pairing
+    # resumes, to the end, below.
+    windows = {e.window for e in alone}
+    assert 28 <= min(windows) <= 32 and set(range(32, 58)) <= windows, sorted(windows)
+    assert 20 <= len(alone) == f["alone"] and all(e.senses == ("whiskers",) for e in alone)
     assert f["late"]["mic"] >= 15 and f["late"]["whiskers"] == 0
     assert f["paired"] + f["alone"] == f["windows"] == len(fused)
     last_alone = max(e.window for e in alone)

@@ -149,8 +149,8 @@ def test_a_publisher_killed_and_started_again_is_said_and_its_gap_filled_exactly
         if second is not None:
             second.kill()
     assert node.returncode == 0, err[-1500:]
-    lost = back - 4 * RATE
-    assert 1.0 * RATE < lost < 3.0 * RATE, lost
+    lost = back - 4 * RATE              # a second or more (under load the new process takes longer to start)
+    assert 1.0 * RATE < lost < 10.0 * RATE, lost      # below max_gap (10 s): a gap to fill, not a restart
     summary = _summary(tmp_path / "live.jsonl")
     assert summary["frames"]["filled"] == lost and summary["driver"]["gaps"] == 1
     assert summary["events"]["counts"].get("unplug") == 1 and summary["events"]["counts"].get("reconnect") == 1

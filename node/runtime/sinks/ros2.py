@@ -97,6 +97,9 @@ MAX_WAIT_FOR_SUBSCRIBERS = 3600.0
 #: Seconds after every decision topic has a subscriber before the node starts: the subscriber's side
 #: of the match may still be on its way.
 MATCH_SETTLE_SECONDS = 0.2
+#: Longest wait at the end for the subscribers' acknowledgements of the last messages, seconds (a stopped
+#: subscriber never acknowledges: the node ends anyway).
+ACK_WAIT_SECONDS = 1.0
 #: Seconds of one sleep in the wait: the main thread sees SIGINT and SIGTERM between two.
 WAIT_STEP_SECONDS = 0.05
 
@@ -472,6 +475,19 @@ class Ros2Sink(Sink):
         if self.waited_s is not None:
             out.update(waited_s=self.waited_s, subscribed=self.subscribed)
         return out
+
+    def drain(self, timeout: float = 5.0) -> None:
+        """After the last window: wait (at most ``timeout`` s, and at most :data:`ACK_WAIT_SECONDS`) until
+        every subscriber has acknowledged the reliable topics' last messages, so that closing the node
+        does not cut the last windows off on their way (a subscriber missed the last window of two
+        streams so, in a suite run under load). The caller's thread."""
+        from rclpy.duration import Duration
+
+        deadline = time.monotonic() + min(timeout, ACK_WAIT_SECONDS)
+        for (_, output), pub in self._publishers.items():
+            left = deadline - time.monotonic()
+            if output != "features" and left > 0:
+                pub.wait_for_all_acked(Duration(nanoseconds=int(left * 1e9)))
 
     def summary(self, summary: dict[str, Any]) -> None:
         """The last diagnostics, with the run's final counts."""
