@@ -67,7 +67,7 @@ import numpy as np
 from supramodal.checks import Key, integer, positive, text
 from supramodal.drivers.base import Block, DeviceUnavailable, DriverBase, DriverClosed, DriverError
 from supramodal.drivers.spec import BuildContext, Built, DriverSpec, OptionError, given
-from supramodal.drivers.timestamps import ENVELOPE_SECONDS, ClockSteps, Step, TimestampSteps  # noqa: F401  (moved; named here too)
+from supramodal.drivers.timestamps import ENVELOPE_SECONDS, ClockSteps, StampedBlocks, Step, TimestampSteps  # noqa: F401  (moved; named here too)
 from supramodal.errors import InputError
 
 if TYPE_CHECKING:
@@ -267,14 +267,12 @@ class LSLInletDriver(DriverBase):
     # -- life cycle ---------------------------------------------------------------------------
 
     def _reset_counters(self) -> None:
-        self._frames = self._filled = self._chunks = self._gaps = self._restarts = 0
-        self._stalls = self._timing_slips = self._reopened = 0
+        self._chunks = self._stalls = self._reopened = 0
         self._next_probe = 0.0
         self._steps = ClockSteps(self.rate, self.gap_tolerance, self.max_gap)
+        self._blocks = StampedBlocks(self.channels, lambda: f"LSL: {self.info}", "sender", self.max_gap, self._record)
         self._held: collections.deque[tuple[np.ndarray, np.ndarray, float]] = collections.deque()
         self._ready: collections.deque[Block] = collections.deque()
-        self._backlogs = 0
-        self._last_stamp = -math.inf
         self._last_data = time.monotonic()
         self._stalled = False
 
@@ -343,7 +341,7 @@ class LSLInletDriver(DriverBase):
                 self._stalls += 1
                 self._next_probe = now
                 self._record("unplug", f"LSL: no sample from {self.info} for {self.stall_timeout:g} s; waiting "
-                                 "for it to come back", self._frames)
+                                 "for it to come back", self._blocks.frames)
             if self._stalled and now >= self._next_probe:
                 self._next_probe = now + PROBE_INTERVAL
                 self._look_for_a_new_sender()
@@ -355,7 +353,7 @@ class LSLInletDriver(DriverBase):
         if self._stalled:
             self._stalled = False
             self._record("reconnect", f"LSL: samples from {self.info} again after {now - self._last_data:.2f} s",
-                             self._frames)
+                             self._blocks.frames)
         self._last_data = now
         self._chunks += 1
         self._held.append((data, host, now))
@@ -366,7 +364,7 @@ class LSLInletDriver(DriverBase):
         """The held blocks the clock model has judged, as blocks ready to return."""
         for step in steps:
             data, host, now = self._held.popleft()
-            self._ready.append(self._block(data, host, now, step))
+            self._ready.append(self._blocks.block(data, float(host[-1]), now, step))
 
     def _look_for_a_new_sender(self) -> None:
         """While the stream is silent, ask the network for it again: a sender that was restarted
@@ -399,44 +397,6 @@ class LSLInletDriver(DriverBase):
         self._inlet, self._stream, self._lost = inlet, new, False
         self._reopened += 1
 
-    def _block(self, data: np.ndarray, host: np.ndarray, now: float, step: Step) -> Block:
-        """The block for these samples, with the gap before them (``step``) filled or marked."""
-        start = self._frames
-        fill = 0
-        restarts: tuple[int, ...] = ()
-        if step.kind == "gap":
-            fill = step.samples
-            self._gaps += 1
-            self._filled += fill
-            self._record("gap", f"LSL: {fill} samples ({step.seconds * 1e3:.1f} ms) missing from {self.info}; "
-                             "filled with zeros", start)
-        elif step.kind in ("long", "back"):
-            restarts = (0,)
-            self._restarts += 1
-            what = (f"{step.seconds:.2f} s without samples, more than max_gap ({self.max_gap:g} s): not filled"
-                    if step.kind == "long" else f"timestamps stepped back {-step.seconds * 1e3:.1f} ms (the sender "
-                    "restarted?)")
-            self._record("restart", f"LSL: {self.info}: {what}; stream time jumps here", start)
-        elif step.kind == "slip":
-            self._timing_slips += 1
-        elif step.kind == "backlog":
-            self._backlogs += 1
-            self._record("backlog", f"LSL: {self.info}: samples stamped up to {step.seconds:.2f} s late came "
-                                    "back onto the sender's sample clock (a backlog pushed at once); nothing "
-                                    "missing, nothing filled", start)
-        n = data.shape[0]
-        filled = None
-        if fill:
-            data = np.concatenate([np.zeros((fill, self.channels)), data])
-            filled = np.zeros(fill + n, dtype=bool)
-            filled[:fill] = True
-        self._frames += fill + n
-        stamp = float(host[-1]) if step.on_line is None else step.on_line
-        if not restarts:                    # one clock, never backwards (a backlog's dates meet the stamps)
-            stamp = max(stamp, self._last_stamp)
-        self._last_stamp = stamp
-        return Block(data, start, now, filled, restarts=restarts, timestamp=stamp)
-
     # -- counters and events ------------------------------------------------------------------
 
     def stats(self) -> dict[str, int]:
@@ -444,9 +404,10 @@ class LSLInletDriver(DriverBase):
         brought samples), ``gaps``, ``restarts``, ``stalls``, ``reopened`` (inlets made to a
         restarted sender), ``timing_slips``, ``backlogs`` (late stamps that came back onto the
         sample clock: nothing filled)."""
-        return {"frames": self._frames, "filled": self._filled, "chunks": self._chunks, "gaps": self._gaps,
-                "restarts": self._restarts, "stalls": self._stalls, "reopened": self._reopened,
-                "timing_slips": self._timing_slips, "backlogs": self._backlogs}
+        b = self._blocks
+        return {"frames": b.frames, "filled": b.filled, "chunks": self._chunks, "gaps": b.gaps,
+                "restarts": b.restarts, "stalls": self._stalls, "reopened": self._reopened,
+                "timing_slips": b.slips, "backlogs": b.backlogs}
 
     def __repr__(self) -> str:
         return f"LSLInletDriver({self.info})"

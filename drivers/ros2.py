@@ -58,7 +58,7 @@ import numpy as np
 from supramodal.checks import REQUIRED, Key, integer, one_of, positive
 from supramodal.drivers.base import Block, DeviceUnavailable, DriverBase, DriverClosed, DriverError
 from supramodal.drivers.spec import BuildContext, Built, DriverSpec, OptionError, given
-from supramodal.drivers.timestamps import ClockSteps, Step
+from supramodal.drivers.timestamps import ClockSteps, StampedBlocks, Step
 from supramodal.errors import InputError
 
 __all__ = ["INSTALL_HINT", "Ros2Unavailable", "RosNode", "check_namespace", "check_node_name", "check_token",
@@ -428,12 +428,14 @@ class Ros2TopicDriver(DriverBase):
     def _reset(self) -> None:
         self._inbox: collections.deque[tuple[np.ndarray, float | None, float]] = collections.deque()
         self._queued = 0
-        self._frames = self._filled = self._messages = self._gaps = self._restarts = self._stalls = 0
-        self._backlogs = self._refused = self._nan = self._dropped_messages = self._dropped_samples = 0
+        self._messages = self._stalls = 0
+        self._refused = self._nan = self._dropped_messages = self._dropped_samples = 0
+        self._incompatible = False                              # a publisher's QoS the subscription cannot meet
         self._steps = ClockSteps(self.rate, self.gap_tolerance, self.max_gap)
+        self._blocks = StampedBlocks(self.channels, lambda: f"ROS 2: {self.info}", "publisher", self.max_gap,
+                                     self._record)
         self._held: collections.deque[tuple[np.ndarray, float, float]] = collections.deque()
         self._ready: collections.deque[Block] = collections.deque()
-        self._last_stamp = -math.inf
         self._last_data = time.monotonic()
         self._stalled = False
         self._next_look = 0.0
@@ -496,7 +498,7 @@ class Ros2TopicDriver(DriverBase):
             with self._lock:
                 self._nan += int(np.count_nonzero(bad))
             self._record("nan", f"ROS 2: {int(np.count_nonzero(bad))} non-finite values from {self.info} set to 0; "
-                                "check the publisher", self._frames)
+                                "check the publisher", self._blocks.frames)
         with self._lock:
             if data is None:
                 self._refused += 1
@@ -509,10 +511,10 @@ class Ros2TopicDriver(DriverBase):
                 data = None
                 why = ""
         if why:
-            self._record("channels", f"ROS 2: a message of {self.info} refused: {why}", self._frames)
+            self._record("channels", f"ROS 2: a message of {self.info} refused: {why}", self._blocks.frames)
         elif data is not None:
             self._record("overflow", f"ROS 2: {data.shape[0]} samples of {self.info} dropped: the node is "
-                                     f"{self.queue_seconds:g} s behind", self._frames)
+                                     f"{self.queue_seconds:g} s behind", self._blocks.frames)
         self._arrived.set()
 
     # -- reading (the source thread) -----------------------------------------------------------------
@@ -544,7 +546,7 @@ class Ros2TopicDriver(DriverBase):
             self._stalled = False
             if self._messages:
                 self._record("reconnect", f"ROS 2: messages from {self.info} again after "
-                                          f"{now - self._last_data:.2f} s", self._frames)
+                                          f"{now - self._last_data:.2f} s", self._blocks.frames)
         self._last_data = now
         self._messages += 1
         last = arrival if stamp is None else stamp
@@ -556,7 +558,7 @@ class Ros2TopicDriver(DriverBase):
     def _silent(self, now: float) -> Block | None:
         """No message: judge what is held once the topic is silent, say it is (``unplug``), and look for
         the topic's type (``message = "auto"``), a type that does not match, or a QoS that cannot."""
-        if getattr(self, "_incompatible", False):
+        if self._incompatible:
             raise DriverError(f"ROS 2: the publisher of {self.info} offers a QoS the {self.reliability} subscription "
                               "cannot match (a best-effort publisher, e.g. sensor-data QoS): set reliability = "
                               "\"best_effort\" in the scene")
@@ -571,11 +573,12 @@ class Ros2TopicDriver(DriverBase):
             publishers = self._sub.get_publisher_count() if self._sub is not None else 0
             who = "" if publishers else " (no publisher)"
             if self._messages == 0:         # nothing lost yet: the robot's driver has not started
-                self._record("waiting", f"ROS 2: waiting for the first message on {self.info}{who}", self._frames)
+                self._record("waiting", f"ROS 2: waiting for the first message on {self.info}{who}",
+                             self._blocks.frames)
             else:
                 self._stalls += 1
                 self._record("unplug", f"ROS 2: no message on {self.info} for {self.stall_timeout:g} s{who}; "
-                                       "waiting for it to come back", self._frames)
+                                       "waiting for it to come back", self._blocks.frames)
         return None
 
     def _look_at_the_graph(self) -> None:
@@ -600,44 +603,11 @@ class Ros2TopicDriver(DriverBase):
     def _judged(self, steps: list[Step]) -> None:
         for step in steps:
             data, last, arrival = self._held.popleft()
-            self._ready.append(self._block(data, last, arrival, step))
-
-    def _block(self, data: np.ndarray, last: float, arrival: float, step: Step) -> Block:
-        """The block for these samples, with the gap before them (``step``) filled or marked."""
-        start, fill = self._frames, 0
-        restarts: tuple[int, ...] = ()
-        if step.kind == "gap":
-            fill = step.samples
-            self._gaps += 1
-            self._filled += fill
-            self._record("gap", f"ROS 2: {fill} samples ({step.seconds * 1e3:.1f} ms) missing from {self.info}; "
-                                "filled with zeros", start)
-        elif step.kind in ("long", "back"):
-            restarts = (0,)
-            self._restarts += 1
-            self._rate_since = None
-            what = (f"{step.seconds:.2f} s without samples, more than max_gap ({self.max_gap:g} s): not filled"
-                    if step.kind == "long" else f"stamps stepped back {-step.seconds * 1e3:.1f} ms (the publisher "
-                    "restarted?)")
-            self._record("restart", f"ROS 2: {self.info}: {what}; stream time jumps here", start)
-        elif step.kind == "backlog":
-            self._backlogs += 1
-            self._record("backlog", f"ROS 2: {self.info}: samples that came up to {step.seconds:.2f} s late came back "
-                                    "onto the sample clock (a backlog sent at once); nothing missing, nothing filled",
-                         start)
-        n = data.shape[0]
-        filled = None
-        if fill:
-            data = np.concatenate([np.zeros((fill, self.channels)), data])
-            filled = np.zeros(fill + n, dtype=bool)
-            filled[:fill] = True
-        self._frames += fill + n
-        stamp = last if step.on_line is None else step.on_line
-        if not restarts:                    # one clock, never backwards
-            stamp = max(stamp, self._last_stamp)
-        self._last_stamp = stamp
-        self._check_rate(stamp)
-        return Block(data, start, arrival, filled, restarts=restarts, timestamp=stamp)
+            block = self._blocks.block(data, last, arrival, step)
+            if block.restarts:
+                self._rate_since = None         # the rate is measured again from the restart
+            self._check_rate(self._blocks.last_stamp)
+            self._ready.append(block)
 
     def _check_rate(self, stamp: float) -> None:
         """After :data:`RATE_CHECK_SECONDS` of samples, their rate against the scene's: a publisher at
@@ -645,9 +615,9 @@ class Ros2TopicDriver(DriverBase):
         if self._rate_checked:
             return
         if self._rate_since is None:
-            self._rate_since = (self._frames, stamp)
+            self._rate_since = (self._blocks.frames, stamp)
             return
-        frames, since = self._frames - self._rate_since[0], stamp - self._rate_since[1]
+        frames, since = self._blocks.frames - self._rate_since[0], stamp - self._rate_since[1]
         if since < RATE_CHECK_SECONDS:
             return
         measured = frames / since
@@ -663,8 +633,9 @@ class Ros2TopicDriver(DriverBase):
         ``stalls``, ``backlogs``, ``refused`` (messages of another layout), ``nan`` (values set to 0),
         ``dropped_messages`` and ``dropped_samples`` (the queue was full)."""
         with self._lock:
-            return {"frames": self._frames, "filled": self._filled, "messages": self._messages, "gaps": self._gaps,
-                    "restarts": self._restarts, "stalls": self._stalls, "backlogs": self._backlogs,
+            b = self._blocks
+            return {"frames": b.frames, "filled": b.filled, "messages": self._messages, "gaps": b.gaps,
+                    "restarts": b.restarts, "stalls": self._stalls, "backlogs": b.backlogs,
                     "refused": self._refused, "nan": self._nan, "dropped_messages": self._dropped_messages,
                     "dropped_samples": self._dropped_samples}
 

@@ -5,15 +5,21 @@ Pure functions of the blocks' sizes and stamps (no device, no clock of their own
 tested alone: :class:`ClockSteps` for a live stream (the LSL inlet, the ROS 2 subscriber), whose stamps
 may be late by a delay but never early; :class:`TimestampSteps` for a recording's stamps (XDF). The
 drivers' module notes say how each uses them (``supramodal.drivers.lsl``, ``supramodal.drivers.ros2``).
+:class:`StampedBlocks` makes a live stream's blocks with what :class:`ClockSteps` judged.
 """
 
 from __future__ import annotations
 
+import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
+import numpy as np
+
+from supramodal.drivers.base import Block
 from supramodal.errors import InputError
 
-__all__ = ["ENVELOPE_SECONDS", "ClockSteps", "Step", "TimestampSteps"]
+__all__ = ["ENVELOPE_SECONDS", "ClockSteps", "StampedBlocks", "Step", "TimestampSteps"]
 
 
 @dataclass(frozen=True)
@@ -198,3 +204,78 @@ class ClockSteps:
         self._envelope = []
         self._accept(n, last)
         return Step("back" if residual < 0 else "long", residual)
+
+
+class StampedBlocks:
+    """A live stream's samples as :class:`~supramodal.drivers.base.Block`, each with the step before it
+    (:class:`ClockSteps`'): a gap filled with zeros, a restart marked, a backlog dated on the sample clock,
+    each counted and said. What the LSL inlet and the ROS 2 subscriber share.
+
+    Parameters
+    ----------
+    channels : int
+        Columns of each block.
+    where : callable
+        How a message names the stream, asked at each message, e.g. ``"LSL: name='x' ..."`` (the ROS 2
+        topic's name says its type once it is known).
+    sender : str
+        What sends it, for a person: ``"sender"``, ``"publisher"``.
+    max_gap : float
+        The driver's longest filled gap, seconds (for the message of a longer one).
+    say : callable ``(kind, message, frame)``
+        Records a driver event (``"gap"``, ``"restart"``, ``"backlog"``) at a stream frame.
+
+    Attributes
+    ----------
+    frames, filled, gaps, restarts, backlogs, slips : int
+        Frames made (filled ones included), frames filled, gaps filled, restarts, backlogs, steps
+        between half the tolerance and the tolerance (jitter, or a loss too short to tell).
+    last_stamp : float
+        The last block's :attr:`~supramodal.drivers.base.Block.timestamp` (-inf before the first).
+
+    One thread (the driver's reader) calls :meth:`block`; the counts may be read from any.
+    """
+
+    def __init__(self, channels: int, where: Callable[[], str], sender: str, max_gap: float,
+                 say: Callable[[str, str, int], object]) -> None:
+        self.channels, self.where, self.sender, self.max_gap, self._say = channels, where, sender, max_gap, say
+        self.frames = self.filled = self.gaps = self.restarts = self.backlogs = self.slips = 0
+        self.last_stamp = -math.inf
+
+    def block(self, data: np.ndarray, last: float, arrival: float, step: Step) -> Block:
+        """The block of ``data`` (samples x channels) whose last sample is stamped ``last`` (host seconds)
+        and which came at ``arrival``, after the step ``step``."""
+        start, fill = self.frames, 0
+        restarts: tuple[int, ...] = ()
+        if step.kind == "gap":
+            fill = step.samples
+            self.gaps += 1
+            self.filled += fill
+            self._say("gap", f"{self.where()}: {fill} samples ({step.seconds * 1e3:.1f} ms) missing; filled with zeros",
+                      start)
+        elif step.kind in ("long", "back"):
+            restarts = (0,)
+            self.restarts += 1
+            what = (f"{step.seconds:.2f} s without samples, more than max_gap ({self.max_gap:g} s): not filled"
+                    if step.kind == "long" else
+                    f"timestamps stepped back {-step.seconds * 1e3:.1f} ms (the {self.sender} restarted?)")
+            self._say("restart", f"{self.where()}: {what}; stream time jumps here", start)
+        elif step.kind == "slip":
+            self.slips += 1
+        elif step.kind == "backlog":
+            self.backlogs += 1
+            self._say("backlog", f"{self.where()}: samples stamped up to {step.seconds:.2f} s late came back onto the "
+                                 f"{self.sender}'s sample clock (a backlog sent at once); nothing missing, nothing "
+                                 "filled", start)
+        n = data.shape[0]
+        filled = None
+        if fill:
+            data = np.concatenate([np.zeros((fill, self.channels)), data])
+            filled = np.zeros(fill + n, dtype=bool)
+            filled[:fill] = True
+        self.frames += fill + n
+        stamp = last if step.on_line is None else step.on_line
+        if not restarts:                    # one clock, never backwards (a backlog's dates meet the stamps)
+            stamp = max(stamp, self.last_stamp)
+        self.last_stamp = stamp
+        return Block(data, start, arrival, filled, restarts=restarts, timestamp=stamp)

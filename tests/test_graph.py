@@ -437,16 +437,22 @@ class _Stalling(DriverBase):
 @pytest.mark.alone  # paced in real time: beside a computing worker more windows wait out max_wait
 @pytest.mark.slow   # paced: 3 s of the two-sense world at 4x real time, its models trained on the spot
 def test_a_sense_that_drops_out_leaves_the_other_deciding_alone_and_fusion_resumes_when_it_is_back():
-    """The two-sense world paced at 4x real time; the microphone stalls for 1 s of host time
-    (4 s of stream) 3 s into the stream. The whiskers keep deciding; fused windows meanwhile are
+    """The two-sense world paced at 2x real time; the microphone stalls for 1 s of host time
+    (2 s of stream) 3 s into the stream. The whiskers keep deciding; fused windows meanwhile are
     the whiskers' alone, flagged; the sinks hear 'sense_lost' then 'sense_back' as they happen;
     the microphone's windows of the stall come late and are left out; then pairing resumes."""
-    # 20 s of stream, 5 s of host time: room after the microphone's catch-up for pairing to resume (with
-    # 12 s, a loaded suite run left 12 paired windows after it, the bound below is 20)
-    d = _two_sense_scene(seconds=2.5)
+    # 2x, not 4x: at 4x the node needs most of a core to keep up, and a loaded machine made the catch-up
+    # after the stall last to the stream's end (CI dry runs; reproduced beside two busy loops: 1 window
+    # paired after it). 16 s of stream, 8 s of host time.
+    d = _two_sense_scene(seconds=2.0)
     d["fusion"]["max_wait"] = 0.3
+    # The senses in step: a window pairs within half a window of host time, and the world's 37 ms offset
+    # left a 13 ms margin (3 ms at 4x) for the two clock models' errors, which a loaded machine's arrival
+    # jitter exceeded (CI dry run ci6: mic windows decided alone beside their unpaired partners). Pairing
+    # across an offset is test_the_two_sense_world_fused_in_the_node_beats_either_sense's, at max.
+    d["source"][1]["offset"] = 0.0
     sink = ListSink()
-    graph = build_node(scene_from_dict(d, "world.toml"), speed=4.0, sinks_override=[sink])
+    graph = build_node(scene_from_dict(d, "world.toml"), speed=2.0, sinks_override=[sink])
     mic = graph.sources[1]
     assert mic.name == "mic"
     mic.driver = _Stalling(mic.driver, at=3 * 44100, seconds=1.0)
@@ -456,24 +462,22 @@ def test_a_sense_that_drops_out_leaves_the_other_deciding_alone_and_fusion_resum
     assert said == [("sense_lost", "fused"), ("sense_back", "fused")]
     assert "no window from 'mic'" in sink.driver_events[0].message
     assert f["dropouts"] == {"whiskers": 0, "mic": 1}
-    assert summary["streams"]["whiskers"]["windows"] == summary["streams"]["mic"]["windows"] == 200
+    assert summary["streams"]["whiskers"]["windows"] == summary["streams"]["mic"]["windows"] == 160
     fused = [e for e in sink.windows if e.stream == "fused"]
     alone = [e for e in fused if "alone" in e.flags]
-    # The stall: 4 s of stream from window 30 (40 windows); a whisker window waits max_wait (0.3 s of host
-    # time: 12 windows at 4x) for its partner, so windows 30 to 57 at least are the whiskers' alone. After it
-    # the microphone catches up on its backlog, late for its partners meanwhile: how long is the machine's
-    # speed (the bound was 45 windows in all; this machine gave 47 to 55 alone and 73 and 74 in loaded suite
-    # runs, at the commit before this session too), so the catch-up is bounded by what follows: pairing
-    # resumes, to the end, below.
+    # The stall: 2 s of stream from window 30 (20 windows); a whisker window waits max_wait (0.3 s of host
+    # time: 6 windows at 2x) for its partner, so windows 30 to 43 at least are the whiskers' alone when the
+    # microphone's backlog comes. How many more depends on how fast this machine catches up on it: bounded
+    # by what follows, pairing again to the end.
     windows = {e.window for e in alone}
-    assert 28 <= min(windows) <= 32 and set(range(32, 58)) <= windows, sorted(windows)
-    assert 20 <= len(alone) == f["alone"] and all(e.senses == ("whiskers",) for e in alone)
-    assert f["late"]["mic"] >= 15 and f["late"]["whiskers"] == 0
+    assert 28 <= min(windows) <= 32 and set(range(32, 44)) <= windows, sorted(windows)
+    assert 12 <= len(alone) == f["alone"]
+    assert all(e.senses == ("whiskers",) for e in alone), [(e.window, e.senses) for e in alone]
+    assert f["late"]["mic"] >= 10 and f["late"]["whiskers"] == 0
     assert f["paired"] + f["alone"] == f["windows"] == len(fused)
     last_alone = max(e.window for e in alone)
     assert all(e.senses == ("whiskers", "mic") for e in fused if e.window > last_alone)
-    assert sum(e.window > last_alone for e in fused) >= 20      # paired again to the end
-
+    assert sum(e.window > last_alone for e in fused) >= 20, sorted(windows)     # paired again to the end
 
 
 def test_a_one_source_live_like_scene_is_put_on_host_time_and_reports_its_clock():

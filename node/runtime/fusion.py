@@ -46,8 +46,9 @@ from supramodal.fusion import fuse_late
 from supramodal.node.runtime.events import FUSED_STREAM, TruthTally, WindowEvent, log_posteriors_of
 from supramodal.node.runtime.latency import LatencyHistogram
 
-if TYPE_CHECKING:   # the early-fusion model, for an annotation only: the runtime does not load it
+if TYPE_CHECKING:   # for annotations only: the runtime does not load the early-fusion model
     from supramodal.fused_model import EarlyFusionModel
+    from supramodal.node.runtime.contacts import ContactTimeline
 
 #: Host seconds a window waits for its partner from the other stream before it is decided alone.
 DEFAULT_MAX_WAIT = 0.5
@@ -132,6 +133,9 @@ class LateFusion:
         self.correlation = float(correlation)
         self.max_wait = math.inf if max_wait is None else float(max_wait)
         self.decider = Decider(ca, decision, correlation, caps=caps)
+        #: The robot's own contact signal (``[fusion.decision] contact_from``): the fused windows'
+        #: touches; None: a fused window is in contact when either sense's is.
+        self.touches: ContactTimeline | None = None
         self._queue: queue.SimpleQueue[_Item] = queue.SimpleQueue()
         # per stream: (event, when it was put, when its last block arrived or None) of the windows
         # awaiting a partner
@@ -267,7 +271,10 @@ class LateFusion:
     def _event(self, log_post: np.ndarray, events: Sequence[WindowEvent], closed: float | None,
                flags: Iterable[str]) -> WindowEvent:
         truth = next((e.truth for e in events if e.truth is not None), None)
-        in_contact = any(e.in_contact for e in events)
+        start, end = min(e.start for e in events), max(e.end for e in events)
+        # the robot's own contact signal where the fusion has one, else either sense's touch
+        in_contact = (self.touches.in_window(start, end) if self.touches is not None
+                      else any(e.in_contact for e in events))
         said = self.decider.decide(log_post, in_contact, novel=any(e.unknown == "novel" for e in events))
         decision, pooled = said["decision"], said["pooled"]
         self.tally.add(decision, None if pooled is None else pooled["label"], truth)
@@ -276,7 +283,6 @@ class LateFusion:
             latency = (time.monotonic() - closed) * 1e3
             self.latencies.add(latency)
             latency = round(latency, 3)
-        start, end = min(e.start for e in events), max(e.end for e in events)
         event = WindowEvent(FUSED_STREAM, self.windows, start, end, end, posteriors=np.exp(log_post),
                             decision=decision, confidence=said["confidence"], pooled=pooled, truth=truth,
                             flags=frozenset(flags), latency_ms=latency, senses=tuple(e.stream for e in events),

@@ -57,6 +57,8 @@ from supramodal.node.runtime.taps.recorder import SessionRecorder
 from supramodal.pipeline import FeaturePipeline
 
 if TYPE_CHECKING:   # for annotations only: a graph of one stream does not load the fusion block
+    from supramodal.drivers.contact import ContactListener
+    from supramodal.node.runtime.contacts import ContactTimeline
     from supramodal.node.runtime.fusion import LateFusion
 
 __all__ = ["Graph", "Node", "NodeError", "Labels", "channel_mapper"]
@@ -97,7 +99,8 @@ class Graph:
     def __init__(self, sources: Iterable[Source], streams: Iterable[Stream], sinks: Iterable[Sink],
                  routes: Iterable[Collection[str] | None] | None = None, fusion: LateFusion | None = None,
                  recorder: SessionRecorder | dict[str, SessionRecorder] | None = None,
-                 taps: Iterable[tuple[str, Tap]] = ()) -> None:
+                 taps: Iterable[tuple[str, Tap]] = (),
+                 contacts: Iterable[tuple[ContactListener, ContactTimeline]] = ()) -> None:
         self.sources = list(sources)
         if not self.sources:
             raise InputError("a graph needs at least one source")
@@ -153,6 +156,7 @@ class Graph:
                                  f"{type(tap).__name__} does not")
             source = by_name[name]
             self._taps.append((tap, source, source.add_feed(f"tap {tap.name}", track=tap.track), f"tap {tap.name}"))
+        self.contacts = list(contacts)
         # source threads -> event thread: (source name, events, dropped); None from each source at its end
         self._event_queue: queue.SimpleQueue[EventItem | None] = queue.SimpleQueue()
         for source in self.sources:
@@ -214,6 +218,8 @@ class Graph:
         for tap, source, feed, where in self._all_taps():
             tap.start(source, t0)
             threads.append(self._thread(where, tap.run, feed))
+        threads += [self._thread(f"contacts {listener.name}", self._listen, listener, timeline, t0)
+                    for listener, timeline in self.contacts]
         with contextlib.ExitStack() as opened:
             for source in self.sources:
                 opened.enter_context(source.driver)
@@ -267,6 +273,20 @@ class Graph:
         if all(s.ring.closed or s.reached_length for s in self.sources):
             self.stop(reason)
 
+    def _listen(self, listener: ContactListener, timeline: ContactTimeline, t0: float) -> None:
+        """A contact signal's states onto its timeline, on common time, until the node stops."""
+        try:
+            with listener:
+                while not self._stop.is_set() and not all(s.ring.closed for s in self.sources):
+                    states = listener.poll(0.05)
+                    if states:
+                        timeline.add((t - t0, state) for t, state in states)
+                    events, dropped = listener.take_events()
+                    if events or dropped:
+                        self._event_queue.put(("contacts", events, dropped))
+        finally:
+            self._event_queue.put(None)
+
     def _fuse(self, fusion: LateFusion) -> None:
         try:
             fusion.run(self._route)
@@ -292,7 +312,7 @@ class Graph:
     def _deliver_events(self) -> None:
         """Driver events to the sinks, rate-limited; ends after every source thread's end."""
         lim = self._limiter
-        running = len(self.sources) + (self.fusion is not None)     # each ends with a None
+        running = len(self.sources) + (self.fusion is not None) + len(self.contacts)    # each ends with a None
         tag = len(self.sources) > 1           # name the source when there are several
         while running:
             item: EventItem | tuple[()] | None
@@ -361,6 +381,8 @@ class Graph:
             "events": self._limiter.summary(),
             "sinks": [stats for stats in (s.stats() for s in self.sinks) if stats is not None],
         }
+        if self.contacts:
+            common["contacts"] = [{**timeline.summary(), **listener.stats()} for listener, timeline in self.contacts]
         if self._taps:
             common["taps"] = {tap.name: {**tap.summary(), "frames": source.frame_fates(feed)}
                               for tap, source, feed, _ in self._taps}

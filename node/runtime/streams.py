@@ -31,6 +31,7 @@ from supramodal.pipeline import FeaturePipeline
 if TYPE_CHECKING:   # for annotations only
     from supramodal.features import Windows
     from supramodal.fused_model import EarlyFusionModel
+    from supramodal.node.runtime.contacts import ContactTimeline
     from supramodal.node.runtime.sources import Source
 
 #: A window event's way out of a stream (the graph's router).
@@ -163,6 +164,8 @@ class Stream:
         self.decision = decision
         self.decider = None
         self.contact = None
+        #: The robot's own contact signal (``[decision] contact_from``), in place of :attr:`contact`.
+        self.touches: ContactTimeline | None = None
         if model is not None:
             self.decider = decider_for(model, decision, f"stream {name!r}: [decision]")
             if decision.scope == "contact":
@@ -220,7 +223,7 @@ class Stream:
             end = min(n, ((start + cut) // W + 1) * W - start)
             x = self.map(frames[cut:end])
             windows = self.pipeline.process(x)
-            flags = self.contact.process(x) if self.contact is not None else None
+            flags = self.contact.process(x) if self.contact is not None and self.touches is None else None
             self._emit(windows, flags, emit)
             cut = end
 
@@ -238,7 +241,13 @@ class Stream:
         for i, w in enumerate(windows.numbers.tolist()):
             end = (w + 1) * W
             truth = self.labels.at((w + 0.5) * W / fs)
-            in_contact = bool(contact_flags[i]) if contact_flags is not None and i < len(contact_flags) else True
+            block = self.feed.block_of(end - 1)     # the block that completed the window
+            offset, slope = self.source.line() if block is None else block[2]
+            start_t, end_t = offset + w * W * slope, offset + end * slope       # on common time
+            if self.touches is not None:
+                in_contact = self.touches.in_window(start_t, end_t)
+            else:
+                in_contact = bool(contact_flags[i]) if contact_flags is not None and i < len(contact_flags) else True
             post = decision = confidence = pooled = guess = reason = None
             if log_post is not None and decider is not None:
                 post = np.exp(log_post[i])
@@ -252,10 +261,8 @@ class Stream:
                 flags.add("gap")
                 self._gap_windows.discard(w)
             features = {f: windows.values[i, k] for k, f in enumerate(windows.features)}
-            block = self.feed.block_of(end - 1)     # the block that completed the window
-            offset, slope = self.source.line() if block is None else block[2]
             latency = None if block is None else self._latency_ms(block[1])
-            event = WindowEvent(self.name, w, offset + w * W * slope, offset + end * slope, end / fs,
+            event = WindowEvent(self.name, w, start_t, end_t, end / fs,
                                 features=features, posteriors=post, decision=decision, confidence=confidence,
                                 pooled=pooled, truth=truth, log_posteriors=None if log_post is None else log_post[i],
                                 guess=guess, unknown=reason,

@@ -8,7 +8,7 @@ not asked for are not computed, and there is no classifier without a model.
 from __future__ import annotations
 
 import json
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -17,9 +17,11 @@ from supramodal.bankfile import BankFileError, bank_from_description, load_bank
 from supramodal.banks import Bank
 from supramodal.calibration import winner
 from supramodal.decisions import ContactDetector
+from supramodal.drivers.contact import ContactListener, contact_listener
 from supramodal.drivers.spec import BuildContext, OptionError
 from supramodal.errors import InputError
 from supramodal.model import ModelError, TextureModel
+from supramodal.node.runtime.contacts import ContactTimeline
 from supramodal.node.runtime.graph import Graph
 from supramodal.node.runtime.sinks.spec import SinkContext, SinkSpec, SourcePlan, StreamPlan
 from supramodal.node.runtime.sources import Source
@@ -30,6 +32,9 @@ from supramodal.node.scene.schema import LEARN
 from supramodal.node.scene.specs import Scene, SceneError, SinkSettings, SourceSpec, StreamSpec
 from supramodal.pipeline import FeaturePipeline
 from supramodal.training import split, texture_features
+
+if TYPE_CHECKING:   # for annotations only: a scene without fusion does not load it
+    from supramodal.node.runtime.fusion import LateFusion
 
 
 def bank_for(scene: Scene, stream: StreamSpec | None = None) -> Bank:
@@ -291,6 +296,32 @@ def _early_model(scene: Scene, a: Stream, b: Stream, held_out: dict, trained: di
     return model
 
 
+def _contacts(scene: Scene, streams: list[Stream], fusion: LateFusion | None) -> dict[str, tuple[ContactListener,
+                                                                                                ContactTimeline]]:
+    """The listener and timeline of each contact signal the scene names (``[decision] contact_from``), one per
+    signal, given to the streams and the fusion that read it. Their sources must be on the host's clock: the
+    signal's edges are."""
+    contacts: dict[str, tuple[ContactListener, ContactTimeline]] = {}
+    by_name = {s.name: s for s in streams}
+    readers: list[tuple[str, str, list[Stream], Stream | LateFusion]] = [
+        (spec.contact_from, spec.where, [by_name[spec.name]], by_name[spec.name])
+        for spec in scene.streams if spec.contact_from is not None]
+    if scene.fusion is not None and scene.fusion.contact_from is not None and fusion is not None:
+        readers.append((scene.fusion.contact_from, f"{scene.source}: [fusion]",
+                        [by_name[n] for n in scene.fusion.streams], fusion))
+    for address, where, read, reader in readers:
+        for stream in read:
+            if stream.source.timebase != "host":
+                raise SceneError(f"{where}: [decision] contact_from = {address!r}: the robot's contacts are on this "
+                                 f"host's clock, and source {stream.source.name!r} keeps its own time (a file "
+                                 "replayed at max speed): replay it in real time (--speed 1), or leave contact_from "
+                                 "out and let the input's level say the contacts (contact_threshold)")
+        if address not in contacts:
+            contacts[address] = (contact_listener(address), ContactTimeline(address))
+        reader.touches = contacts[address][1]
+    return contacts
+
+
 def _check_fusion_decision(scene: Scene, models) -> None:
     """Refuse ``[fusion.decision]`` rules the fusion cannot follow with these ``models`` (the two
     senses', or the early network), naming the fix, before anything starts."""
@@ -406,7 +437,7 @@ def build_node(scene: Scene, speed=None, sinks_override=None, progress=None, rec
             files = {a.source.timebase, b.source.timebase} <= {"stream", "recorded"}
             max_wait = None if files else f.max_wait
             _check_fusion_decision(scene, (_model(a), _model(b)))
-            if f.decision.scope == "contact":
+            if f.decision.scope == "contact" and f.contact_from is None:
                 for s in (a, b):                # the fusion's contacts are its streams' touches
                     if s.contact is None:
                         s.contact = ContactDetector(s.pipeline.window_samples, f.decision.contact_threshold)
@@ -430,6 +461,7 @@ def build_node(scene: Scene, speed=None, sinks_override=None, progress=None, rec
                 raise                           # says its table already
             except ValueError as exc:
                 raise SceneError(f"{scene.source}: [fusion] {exc}") from None
+        contacts = _contacts(scene, streams, fusion)
         if sinks_override is None:
             _make_sinks(scene, "streams", made, overwrite, streams={s.name: s for s in streams},
                         fused_classes=None if fusion is None else fusion.classes)
@@ -451,7 +483,7 @@ def build_node(scene: Scene, speed=None, sinks_override=None, progress=None, rec
         else:
             sinks, routes = [sink for _, sink in windows], [settings.routes for settings, _ in windows]
         return Graph([s for s, _, _ in sources.values()], streams, sinks, routes=routes, fusion=fusion,
-                     recorder=recorder, taps=taps)
+                     recorder=recorder, taps=taps, contacts=contacts.values())
     except BaseException:
         for _, _, sink in made:                 # a refused scene leaves no file behind, no outlet open
             sink.close()

@@ -46,6 +46,7 @@ from pathlib import Path
 from supramodal.bankfile import BANK_KEYS
 from supramodal.checks import NAME_HELP, Key, fill, flag, integer, is_name, non_negative, number, one_of, positive, text
 from supramodal.decisions import DEFAULT_DECISION, METHODS, SCOPES, DecisionRules
+from supramodal.drivers.contact import check_contact_from
 from supramodal.drivers.spec import OptionError
 from supramodal.errors import InputError
 from supramodal.features import DEFAULT_WINDOW, FEATURE_TABLE, FEATURES
@@ -133,6 +134,10 @@ SECTIONS = {
                        "unknown by the novelty score, 0 <= r < 1 (0: off)", DEFAULT_DECISION.unknown),
         "unknown_below": Key(number(0.0, 1.0, hi_open=True), "calibrated confidence below which a window is unknown, "
                              "0 <= c < 1 (0: off)", DEFAULT_DECISION.unknown_below),
+        # Not a DecisionRules field: where the node reads contacts (supramodal.drivers.contact), not how it decides.
+        "contact_from": Key(text, 'the robot\'s contact signal, in place of the input\'s RMS: '
+                            '"ros2:TOPIC" (std_msgs/Bool) or "lsl:NAME" (a marker stream); needs scope = "contact"',
+                            None),
     },
     "buffer": {
         "seconds": Key(positive(MAX_BUFFER_SECONDS), f"ring buffer capacity, seconds, up to {MAX_BUFFER_SECONDS:g} "
@@ -215,10 +220,16 @@ def _features_spec(section: dict) -> FeaturesSpec:
     return FeaturesSpec(**{**section, "names": tuple(section["names"])})
 
 
+def _decision_rules(section: dict) -> DecisionRules:
+    """The rules of a validated ``[decision]`` section (``contact_from`` is the spec's own field)."""
+    return DecisionRules(**{k: v for k, v in section.items() if k != "contact_from"})
+
+
 def _stream(name: str, source: str, mapping, sections: dict, where: str) -> StreamSpec:
     """A stream from its validated sections (``where``: how messages name it)."""
     return StreamSpec(name, source, mapping, _bank(sections["bank"]), _features_spec(sections["features"]),
-                      ModelSpec(**sections["model"]), DecisionRules(**sections["decision"]), where)
+                      ModelSpec(**sections["model"]), _decision_rules(sections["decision"]), where,
+                      contact_from=sections["decision"]["contact_from"])
 
 
 def scene_from_dict(d: dict, source: str = "<scene>", base_dir: Path | None = None) -> Scene:
@@ -290,6 +301,14 @@ def _check_sections(source: str, sections: dict, bank_given: dict, where: str) -
 
 
 def _check_decision(source: str, decision: dict, where: str) -> None:
+    if decision["contact_from"] is not None:
+        try:
+            check_contact_from(decision["contact_from"])
+        except InputError as exc:
+            raise SceneError(f"{source}: {where} {exc}") from None
+        if decision["scope"] != "contact":
+            raise SceneError(f"{source}: {where} contact_from = {decision['contact_from']!r} says when the robot "
+                             f"touches: it needs scope = \"contact\" (scope is {decision['scope']!r})")
     if decision["confidence"] and decision["scope"] != "contact":
         raise SceneError(f"{source}: {where} confidence = {decision['confidence']:g} decides a contact as soon as it "
                          f"is sure: it needs scope = \"contact\" (scope is {decision['scope']!r})")
@@ -434,7 +453,8 @@ def _fusion(d: dict, source: str, streams: list[StreamSpec]) -> FusionSpec:
         if not spec.model.exists:
             raise SceneError(f"{source}: [fusion] streams: stream {n!r} has no model to fuse; give it "
                              "[stream.model] path or train_on_start")
-    return FusionSpec(**{**fusion, "streams": tuple(fusion["streams"])}, decision=DecisionRules(**decision))
+    return FusionSpec(**{**fusion, "streams": tuple(fusion["streams"])}, decision=_decision_rules(decision),
+                      contact_from=decision["contact_from"])
 
 
 def _table_list(d: dict, key: str, source: str) -> list:
@@ -496,7 +516,7 @@ def scene_to_toml(scene: Scene) -> str:
         return (table(f"[{prefix}bank]", stream.bank.table())
                 + table(f"[{prefix}features]", asdict(stream.features))
                 + table(f"[{prefix}model]", asdict(stream.model))
-                + table(f"[{prefix}decision]", asdict(stream.decision)))
+                + table(f"[{prefix}decision]", {**asdict(stream.decision), "contact_from": stream.contact_from}))
 
     lines = [f"# supramodal scene, from {scene.source} (supramodal run --print-scene).",
              "# Paths are relative to this file's folder; docs/node.md lists every key.", ""]
@@ -509,11 +529,12 @@ def scene_to_toml(scene: Scene) -> str:
             lines += sections(stream, "stream.")
         f = scene.fusion
         if f is not None:
-            # Keys a scene may not give: those "learn" learns, and late fusion's with early fusion.
-            learned = {"decision"} | ({"sharpness", "correlation"} if f.weight == LEARN else set()) \
+            # Keys a scene may not give: those "learn" learns, and late fusion's with early fusion; and those
+            # of [fusion.decision].
+            learned = {"decision", "contact_from"} | ({"sharpness", "correlation"} if f.weight == LEARN else set()) \
                 | ({"weight", "sharpness", "correlation"} if f.method == "early" else set())
             lines += table("[fusion]", {k: v for k, v in asdict(f).items() if k not in learned})
-            lines += table("[fusion.decision]", asdict(f.decision))
+            lines += table("[fusion.decision]", {**asdict(f.decision), "contact_from": f.contact_from})
     else:                                   # in its own form: [driver], [bank], ...
         src, stream = scene.only_source(), scene.only_stream()
         lines += table("[driver]", {"type": src.type, **src.options, "mapping": stream.mapping})

@@ -152,6 +152,9 @@ class StreamSpec:
         How it reads its source's channels into its bank's (``node.runtime.streams.channel_mapper``).
     bank, features, model, decision
         Its sections.
+    contact_from : str or None
+        ``[decision] contact_from``: the robot's contact signal (``supramodal.drivers.contact``), or None
+        (the input's RMS, ``[decision] contact_threshold``).
     where : str
         How messages name it (the scene file for a one-source scene, else ``"FILE: [[stream]] NAME"``).
     """
@@ -164,6 +167,7 @@ class StreamSpec:
     model: ModelSpec
     decision: DecisionRules = DEFAULT_DECISION
     where: str = "<scene>"
+    contact_from: str | None = None
 
 
 @dataclass(frozen=True)
@@ -181,6 +185,7 @@ class FusionSpec:
     sharpness: float
     correlation: float
     decision: DecisionRules = DEFAULT_DECISION
+    contact_from: str | None = None
 
 
 @dataclass(frozen=True)

@@ -62,7 +62,7 @@ from supramodal.errors import InputError
 from supramodal.features import FEATURE_TABLE
 from supramodal.node.runtime.events import FUSED_STREAM, WindowEvent
 from supramodal.node.runtime.sinks import QueuedSink, Sink
-from supramodal.node.runtime.sinks.spec import SinkContext, SinkSpec, listened
+from supramodal.node.runtime.sinks.spec import SinkContext, SinkSpec, listened, stream_outputs
 
 if TYPE_CHECKING:   # for the annotations only: the sink needs no model code to run
     from supramodal.pipeline import FeaturePipeline
@@ -220,9 +220,7 @@ class LSLOutletSink(Sink):
         self._streams = {s.name: s for s in streams}
         self._clock = LSLClock(pylsl, time.monotonic())
         for s in streams:
-            for output in outputs:
-                if output == "features" and not s.filters or output != "features" and not s.classes:
-                    continue
+            for output in stream_outputs(outputs, bool(s.filters), bool(s.classes)):
                 info = self._info(s, output)
                 self._outlets[(s.name, output)] = pylsl.StreamOutlet(info, chunk_size=1,
                                                                      max_buffered=OUTLET_BUFFER_SECONDS)

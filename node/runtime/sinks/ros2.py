@@ -50,6 +50,7 @@ node's executor thread; a lock keeps the two from publishing diagnostics at once
 from __future__ import annotations
 
 import array
+import functools
 import json
 import threading
 import time
@@ -67,7 +68,7 @@ from supramodal.drivers.spec import OptionError
 from supramodal.errors import InputError
 from supramodal.node.runtime.events import FUSED_STREAM, MAIN_STREAM, WindowEvent
 from supramodal.node.runtime.sinks import QueuedSink, Sink
-from supramodal.node.runtime.sinks.spec import SinkContext, SinkSpec, listened
+from supramodal.node.runtime.sinks.spec import SinkContext, SinkSpec, listened, stream_outputs
 
 if TYPE_CHECKING:   # for the annotations only: the sink needs no model code to run
     from supramodal.pipeline import FeaturePipeline
@@ -129,10 +130,11 @@ class TopicStream:
     features: tuple[str, ...] = ()
     filters: tuple[str, ...] = ()
 
-    @property
-    def feature_labels(self) -> list[str]:
-        """``FEATURE/FILTER`` per value of a window's features, in order."""
-        return [f"{f}/{name}" for f in self.features for name in self.filters]
+    @functools.cached_property
+    def feature_labels(self) -> tuple[str, ...]:
+        """``FEATURE/FILTER`` per value of a window's features, in order (made once: each window's
+        features message names them)."""
+        return tuple(f"{f}/{name}" for f in self.features for name in self.filters)
 
 
 @dataclass(frozen=True)
@@ -180,7 +182,7 @@ def _fmt(value: Any) -> str:
 
 
 def diagnostic_report(node: str, health: Mapping[str, Any] | None, sources: Mapping[str, SourceState],
-                      before: Mapping[str, Any] | None = None) -> list[Status]:
+                      before: Mapping[str, Any] | None, now: float) -> list[Status]:
     """The statuses of one diagnostics message.
 
     Parameters
@@ -194,6 +196,8 @@ def diagnostic_report(node: str, health: Mapping[str, Any] | None, sources: Mapp
         The driver events seen per source since the start.
     before : dict or None
         The ``health`` of the last report, to say what changed since (None: the first).
+    now : float
+        ``time.time()`` of the report: a source's lossy event of the last 2 s makes it WARN.
 
     Returns
     -------
@@ -240,7 +244,7 @@ def diagnostic_report(node: str, health: Mapping[str, Any] | None, sources: Mapp
         values += [(f"events_{kind}", str(n)) for kind, n in sorted(state.counts.items())]
         if state.unplugged:
             level, message = ERROR, f"unplugged: {last.message if last else ''}"
-        elif last is not None and last.kind in _LOSSY_EVENTS and time.time() - last.time < 2.0:
+        elif last is not None and last.kind in _LOSSY_EVENTS and now - last.time < 2.0:
             level, message = WARN, f"{last.kind}: {last.message}"
         else:
             level, message = OK, f"last event: {last.kind}" if last else "no event"
@@ -332,10 +336,10 @@ class Ros2Sink(Sink):
         self._streams = {s.name: s for s in streams}
         self._publishers: dict[tuple[str, str], Any] = {}
         self._messages: dict[tuple[str, str], Any] = {}       # (stream, output) -> its JointState, refilled
+        self._names: dict[tuple[str, str], tuple[str, ...]] = {}     # ... -> the names its message carries
+        self._one_source: str | None = None                   # the graph's one source, once known
         for s in streams:
-            for output in outputs:
-                if output == "features" and not s.features or output != "features" and not s.classes:
-                    continue
+            for output in stream_outputs(outputs, bool(s.features), bool(s.classes)):
                 kind, qos = kinds[output]
                 self._publishers[(s.name, output)] = node.create_publisher(kind, f"~/{s.name}/{output}", qos)
         self._events = node.create_publisher(String, EVENTS_TOPIC, QoSProfile(
@@ -403,7 +407,7 @@ class Ros2Sink(Sink):
             self.published["features"] += 1
         posteriors = self._publishers.get((s.name, "posteriors"))
         if posteriors is not None and event.posteriors is not None:
-            classes = list(event.classes or s.classes)
+            classes = tuple(event.classes or s.classes)
             posteriors.publish(self._joint_state(s.name, "posteriors", sec, nanosec, classes,
                                                  np.asarray(event.posteriors, dtype=np.float64)))
             self.published["posteriors"] += 1
@@ -413,17 +417,20 @@ class Ros2Sink(Sink):
             decision.publish(self._String(data=json.dumps({**event.as_dict(), "stamp": stamp})))
             self.published["decision"] += 1
 
-    def _joint_state(self, stream: str, output: str, sec: int, nanosec: int, names: list[str],
+    def _joint_state(self, stream: str, output: str, sec: int, nanosec: int, names: tuple[str, ...],
                      values: np.ndarray) -> Any:
         """The stream's ``JointState`` of ``output``, its stamp and values set. One message per topic,
         kept and refilled: a new one costs its field checks (about a third of a window's publishing);
-        its names are set again only when they change. The sink's thread only."""
-        msg = self._messages.get((stream, output))
+        its names are set again only when they change (compared with the tuple last set, not the
+        message's list). The sink's thread only."""
+        key = (stream, output)
+        msg = self._messages.get(key)
         if msg is None:
-            msg = self._messages[(stream, output)] = self._JointState()
+            msg = self._messages[key] = self._JointState()
             msg.header.frame_id = self.frame_id
-        if list(msg.name) != names:
-            msg.name = names
+        if self._names.get(key) != names:
+            msg.name = list(names)
+            self._names[key] = names
         msg.header.stamp.sec, msg.header.stamp.nanosec = sec, nanosec
         msg.position = array.array("d", values.tobytes())   # an array of doubles: rclpy takes it unchecked
         return msg
@@ -445,10 +452,12 @@ class Ros2Sink(Sink):
 
     def _only_source(self) -> str:
         """The name of the graph's one source (a one-source graph's events name none): what its stream's
-        status is keyed by; ``main`` outside a graph."""
-        health = self.health() if self.health is not None else {}
-        sources = {st.get("source") for st in health.get("streams", {}).values()} - {None}
-        return str(sources.pop()) if len(sources) == 1 else MAIN_STREAM
+        status is keyed by; ``main`` outside a graph. Read from the graph's counters once."""
+        if self._one_source is None:
+            health = self.health() if self.health is not None else {}
+            sources = {st.get("source") for st in health.get("streams", {}).values()} - {None}
+            self._one_source = str(sources.pop()) if len(sources) == 1 else MAIN_STREAM
+        return self._one_source
 
     def publish_diagnostics(self) -> None:
         """One ``DiagnosticArray`` of :func:`diagnostic_report` now (the timer's call; also on a
@@ -457,7 +466,7 @@ class Ros2Sink(Sink):
 
         with self._lock:
             health = self.health() if self.health is not None else None
-            statuses = diagnostic_report(self._ros.node.get_name(), health, self._sources, self._before)
+            statuses = diagnostic_report(self._ros.node.get_name(), health, self._sources, self._before, time.time())
             self._before = health
             msg = self._DiagnosticArray()
             msg.header.stamp = self._ros.node.get_clock().now().to_msg()

@@ -18,7 +18,7 @@ table it was in).
 
 from __future__ import annotations
 
-from collections.abc import Callable, Collection, Mapping
+from collections.abc import Callable, Collection, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -30,7 +30,8 @@ if TYPE_CHECKING:   # the annotations' names only
     from supramodal.banks import Bank
     from supramodal.drivers.base import Driver
 
-__all__ = ["FROM", "NEEDS", "SOURCE", "SinkContext", "SinkSpec", "SourcePlan", "StreamPlan", "listened", "sink_keys"]
+__all__ = ["FROM", "NEEDS", "SOURCE", "SinkContext", "SinkSpec", "SourcePlan", "StreamPlan", "listened", "sink_keys",
+           "stream_outputs"]
 
 #: What a sink may need built before it is made: nothing (it is made first, so that a file is
 #: checked before any training), the streams' plans (their pipelines and classes, known before any
@@ -177,6 +178,12 @@ def listened(listens: str | list[str] | None, streams: Collection[str]) -> list[
     if unknown:
         raise OptionError(f"from: no stream {unknown}; the scene has {list(streams)}")
     return names
+
+
+def stream_outputs(outputs: Sequence[str], has_features: bool, has_classes: bool) -> list[str]:
+    """Of a sink's ``outputs``, those one stream has: ``"features"`` where it has feature columns, the others
+    (its decisions, its posteriors) where it has a model's classes (a stream without a model, the fusion)."""
+    return [o for o in outputs if (has_features if o == "features" else has_classes)]
 
 
 def sink_keys(spec: SinkSpec) -> dict[str, Key]:
