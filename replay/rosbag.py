@@ -88,6 +88,14 @@ def bag_streams(path: str | os.PathLike[str], topics: Mapping[str, float],
     path = Path(path)
     if not path.exists():
         raise ReplayError(f"{path}: no such bag (a rosbag2 folder, or its .mcap or .db3 file)")
+    if path.is_dir() and path.suffix == ".bag":
+        # rosbags takes a path named *.bag for ROS 1 (by its suffix): a rosbag2 folder so named is read
+        # through its one storage file
+        files = sorted(p for p in path.iterdir() if p.suffix in (".mcap", ".db3"))
+        if len(files) != 1:
+            raise ReplayError(f"{path}: a rosbag2 folder named *.bag with {len(files)} storage files; rename the "
+                              "folder without .bag (bag readers take *.bag for a ROS 1 bag)")
+        path = files[0]
     wanted = {**{t: "sensor" for t in topics}, **({labels: "labels"} if labels is not None else {})}
     parts: dict[str, list[tuple[int, Any]]] = {t: [] for t in wanted}
     channels: dict[str, int] = {}

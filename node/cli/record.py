@@ -33,6 +33,10 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
                         "driver gives (synth, twosense, a replayed session; default: refused)")
     p.add_argument("--seconds", type=stream_seconds,
                    help="stop after this much stream; inf: until the stream ends or Ctrl-C (the default)")
+    p.add_argument("--bag", metavar="FOLDER",
+                   help="also write the recording as a rosbag2 (MCAP) folder: each source's samples on "
+                        "/supramodal/SOURCE/samples (stamped sensor_msgs/Image), the labels on /supramodal/labels "
+                        "(needs the ros2 extra; docs/ros2.md)")
     p.add_argument("--quiet", action="store_true", help="no progress on stderr (warnings are still shown)")
     p.add_argument("--view", nargs="?", const=0, type=int, metavar="PORT",
                    help="also serve the live page on 127.0.0.1:PORT (default 0: any free port); with --marks its label "
@@ -73,6 +77,11 @@ def run(args: argparse.Namespace) -> int:
     labelled = bool(args.label or args.marks)
     if args.replace and not labelled:
         raise CliError("--replace replaces a driver's own labels with --label or --marks: give one of them")
+    sessions = ([(src.name, args.out / f"{name}.{src.name}.wav") for src in scene.sources] if scene.is_graph
+                else [(scene.only_source().name, args.out / f"{name}.wav")])
+    if args.bag is not None:                # refused before anything is recorded
+        from supramodal.node.workflows.bag_export import check_bag_target
+        check_bag_target(args.bag, [n for n, _ in sessions], args.force, made=args.out)
     if scene.is_graph:
         recorders = graph_recorders(scene, args.out, name, overwrite=args.force, label=args.label,
                                     replace=args.replace)
@@ -94,6 +103,7 @@ def run(args: argparse.Namespace) -> int:
             wavs = ", ".join(p for p in summary["recorded"] if p.endswith(".wav"))
             print(f"recorded {summary['stream_seconds']:.2f} s to {wavs} (+ .json); replay them in step: "
                   f"supramodal run {replay}", file=sys.stderr)
+            _write_bag(args, sessions)
         return 0
     src = scene.only_source()
     source = _json.dumps({"scene": scene.source,
@@ -110,7 +120,19 @@ def run(args: argparse.Namespace) -> int:
     summary = node.run(max_seconds=args.seconds, on_running=lambda: stop_on_signals(node))
     if summary.get("recorded"):
         print(f"recorded {summary['stream_seconds']:.2f} s to {summary['recorded'][0]} (+ .json)", file=sys.stderr)
+        _write_bag(args, sessions)
     return 0
+
+
+def _write_bag(args: argparse.Namespace, sessions: list) -> None:
+    """``record --bag``: the sessions just recorded, as a rosbag2."""
+    if args.bag is None:
+        return
+    from supramodal.node.workflows.bag_export import export_bag
+
+    done = export_bag(sessions, args.bag, overwrite=args.force)
+    topics = ", ".join(f"{t} ({n})" for t, n in done["topics"].items())
+    print(f"and as a rosbag2 (MCAP) in {done['bag']}: {topics}", file=sys.stderr)
 
 
 def _read_marks(mark) -> None:
