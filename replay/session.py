@@ -58,6 +58,7 @@ from typing import Any, NoReturn, TypeGuard
 import numpy as np
 from numpy.typing import ArrayLike
 
+from supramodal.checks import NAME_HELP, is_name
 from supramodal.errors import InputError
 from supramodal.jsondata import read_json_file
 from supramodal.replay.errors import MissingSidecarError, SessionError
@@ -436,8 +437,9 @@ def _validate_labels(raw: Any, duration: float, slack: float, bad: _Complaint) -
             if not _is_number(val):
                 raise bad(f"{key}.{k}", f"must be a finite number of seconds, got {_type_name(val)} {val!r}",
                           "write seconds from the start of the recording")
-        if not isinstance(name, str) or not name:
-            raise bad(f"{key}.label", f"must be a non-empty string, got {name!r}", "name the texture")
+        if not is_name(name):
+            raise bad(f"{key}.label", f"must be {NAME_HELP}, got {str(name)[:80]!r}",
+                      "name the texture (supramodal label --replace relabels a recording)")
         if not 0 <= s < e:
             raise bad(key, f"range [{s}, {e}) is empty, reversed or negative", "need 0 <= start < end")
         # Half a frame of slack: "end = duration" computed in float must pass.

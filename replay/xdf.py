@@ -48,7 +48,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import DTypeLike
 
-from supramodal.checks import Key, text
+from supramodal.checks import NAME_HELP, Key, is_name, text
 from supramodal.drivers.base import DeviceUnavailable
 from supramodal.drivers.lsl import DEFAULT_GAP_TOLERANCE, DEFAULT_MAX_GAP
 from supramodal.drivers.spec import BuildContext, Built, DriverSpec, OptionError
@@ -230,7 +230,8 @@ def xdf_session(path: str | os.PathLike[str], name: str | None = None, stream_ty
                           "recording into shorter files")
     zero = min(float(np.min(x["time_stamps"])) for x in streams if _regular(x))
     data, stamps, filled, marks = fill_gaps(data, stamps, rate)
-    truth = () if labels is None else marker_labels(_marker_stream(streams, labels, path), stamps, rate)
+    truth = () if labels is None else marker_labels(_marker_stream(streams, labels, path), stamps, rate,
+                                                    f"{path}: labels {labels!r}")
     return Session(data, whole, f"XDF {path.name}: {_describe(s['info'])}", path=path,
                    arrivals=_arrivals(stamps - zero, rate, [at for at, _ in marks]), filled=filled, marks=marks,
                    labels=truth)
@@ -250,16 +251,22 @@ def _marker_stream(streams: list[XdfStream], name: str, path: Path) -> XdfStream
     return found[0]
 
 
-def marker_labels(markers: XdfStream, stamps: np.ndarray, rate: float) -> tuple[Label, ...]:
+def marker_labels(markers: XdfStream, stamps: np.ndarray, rate: float, where: str = "labels") -> tuple[Label, ...]:
     """Truth labels from a marker stream, in the seconds of the stream whose samples are stamped
     ``stamps`` (after :func:`fill_gaps`).
 
     Each marker's text starts a label at the first sample stamped at or after the marker, which
     runs until the next marker (or the end of the stream); a marker whose text is empty ends the
-    current label. A label that would cover no sample is left out.
+    current label. A label that would cover no sample is left out. A marker is data: a text that is no
+    name (:data:`~supramodal.checks.NAME_HELP`: a label becomes a model's class, a file name's part, a
+    line on a terminal) is refused, a :class:`ReplayError` naming ``where``.
     """
     times = np.asarray(markers.get("time_stamps", ()), dtype=np.float64)
     texts = [str(m[0]).strip() if len(m) else "" for m in markers.get("time_series", ())]
+    for i, t in enumerate(texts):
+        if t and not is_name(t):
+            raise ReplayError(f"{where}: marker {i} says {t[:80]!r}, which is no label ({NAME_HELP}); relabel the "
+                              "recording after the import (supramodal label), or fix the markers")
     order = np.argsort(times, kind="stable")
     starts = np.searchsorted(stamps, times[order]) / rate
     ends = np.r_[starts[1:], stamps.size / rate]

@@ -272,12 +272,32 @@ def test_a_folder_that_cannot_be_written_is_said_and_the_node_trains(tmp_path):
 def test_the_folder_is_bounded_least_recently_used_first(tmp_path):
     folder = tmp_path / "models"
     folder.mkdir()
-    for i, name in enumerate(["old", "mid", "new", "kept"]):
-        (folder / f"{name}.npz").write_bytes(b"x" * 1000)
-        os.utime(folder / f"{name}.npz", (1000 + i, 1000 + i))
-    os.utime(folder / "kept.npz", (1, 1))          # the one just written is never removed
-    model_cache._bound(folder, folder / "kept.npz", 2500)
-    assert sorted(p.stem for p in folder.glob("*.npz")) == ["kept", "new"]
+    names = {name: f"{i:x}" * 40 for i, name in enumerate(["old", "mid", "new", "kept"], start=10)}   # key files
+    for i, key in enumerate(names.values()):
+        (folder / f"{key}.npz").write_bytes(b"x" * 1000)
+        os.utime(folder / f"{key}.npz", (1000 + i, 1000 + i))
+    kept = folder / f"{names['kept']}.npz"
+    os.utime(kept, (1, 1))                          # the one just written is never removed
+    model_cache._bound(folder, kept, 2500)
+    assert sorted(p.stem for p in folder.glob("*.npz")) == sorted([names["kept"], names["new"]])
+
+
+def test_the_bound_never_removes_a_file_that_is_not_the_cache_s_own(tmp_path):
+    """Issue 35, item 3: SUPRAMODAL_CACHE set to a project folder whose models/ holds the user's own
+    300 MB model (an old mtime): the cache's bound counts and removes only its own key files."""
+    folder = tmp_path / "models"
+    folder.mkdir()
+    mine = folder / "my_big_dataset.npz"
+    with mine.open("wb") as f:
+        f.truncate(300 * 2**20)                     # sparse: 300 MB in name only
+    os.utime(mine, (1, 1))
+    also = folder / ("a" * 39 + ".npz")             # not a key (39 digits)
+    also.write_bytes(b"x" * 10)
+    os.utime(also, (1, 1))
+    key = folder / ("b" * 40 + ".npz")
+    key.write_bytes(b"x" * 1000)
+    model_cache._bound(folder, key, 500)
+    assert mine.exists() and also.exists() and key.exists()
 
 
 def test_the_node_reads_its_model_from_the_cache_on_its_second_start(tmp_path, monkeypatch):

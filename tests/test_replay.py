@@ -260,7 +260,12 @@ def _mutate(tmp_path, fn):
     (lambda m: m["labels"][0].pop("end"), r"labels\[0\]: has keys \['label', 'start'\]; use exactly"),
     (lambda m: m["labels"][0].update(texture="x"), r"labels\[0\]: has keys"),
     (lambda m: m["labels"][0].update(start="0"), r"labels\[0\]\.start: must be a finite number"),
-    (lambda m: m["labels"][0].update(label=""), r"labels\[0\]\.label: must be a non-empty string"),
+    (lambda m: m["labels"][0].update(label=""), r"labels\[0\]\.label: must be a name: letters"),
+    # a label is data: no terminal escapes, no line breaks, no path, no 70-character name (issue 35, item 5)
+    (lambda m: m["labels"][0].update(label="felt\x1b[31mRED"), r"labels\[0\]\.label: must be a name: .*\\x1b"),
+    (lambda m: m["labels"][0].update(label="x\ny"), r"labels\[0\]\.label: must be a name"),
+    (lambda m: m["labels"][0].update(label="../x"), r"labels\[0\]\.label: must be a name"),
+    (lambda m: m["labels"][0].update(label="a" * 70), r"labels\[0\]\.label: must be a name.*at most 64"),
     (lambda m: m["labels"][0].update(start=0.3, end=0.3), r"labels\[0\]: range \[0.3, 0.3\) is empty"),
     (lambda m: m["labels"][0].update(start=-0.1), r"labels\[0\]: range .* negative"),
     (lambda m: m["labels"][1].update(end=1.5), r"labels\[1\]: ends at 1.5 s, after the recording's end at 1.0 s"),

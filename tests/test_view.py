@@ -295,6 +295,41 @@ def test_binding_beyond_loopback_needs_remote_and_a_token(tmp_path):
         sink.close()
 
 
+def test_a_request_for_another_host_is_refused_even_a_read_dns_rebinding(marking_view):
+    """Issue 35, item 6: a page of another site whose name resolves to this machine (DNS rebinding) sends
+    its own name as Host: it may not read the stream (``/state``, ``/events``, the page) nor change it;
+    the view's own names (with or without the port) are served."""
+    view, marks = marking_view
+    for path in ("/state", "/events", "/"):
+        status, why = _request(view, "GET", path, headers={"Host": f"evil.example:{view.port}"})
+        assert status == 403 and "Host" in why, (path, status)
+    body = json.dumps({"label": "rough"}).encode()
+    status, _ = _request(view, "POST", "/mark", body, {**_own(view), "Host": f"evil.example:{view.port}",
+                                                        "Origin": f"http://evil.example:{view.port}"})
+    assert status == 403 and marks == []
+    for host in (f"127.0.0.1:{view.port}", f"localhost:{view.port}", "127.0.0.1"):
+        assert _request(view, "GET", "/state", headers={"Host": host})[0] == 200, host
+
+
+def test_a_remote_view_takes_changes_from_the_page_it_served_at_the_address_it_was_reached_by():
+    """Issue 35, item 26: served on every address (host 0.0.0.0, remote, a token), the page reached as
+    http://ADDRESS:PORT sends that Origin with that Host: its marks are taken; another origin is refused."""
+    got = []
+    view = ViewSink(0, "0.0.0.0", remote=True, token="a-long-enough-token-0123", labels=["rough"], quiet=True)
+    view.on_mark = lambda label: got.append(label) or 1.0
+    view.prepare()
+    try:
+        body = json.dumps({"label": "rough"}).encode()
+        own = {TOKEN_HEADER: view.token, "Content-Type": "application/json"}
+        page = f"192.0.2.2:{view.port}"          # the machine's address on the robot's network, say
+        assert _request(view, "POST", "/mark", body, {**own, "Host": page, "Origin": f"http://{page}"})[0] == 200
+        assert _request(view, "POST", "/mark", body, {**own, "Host": page,
+                                                     "Origin": "http://evil.example"})[0] == 403
+        assert got == ["rough"]
+    finally:
+        view.close()
+
+
 def test_a_port_in_use_or_out_of_range_is_refused_naming_the_fix(tmp_path):
     with socket.socket() as taken:
         taken.bind(("127.0.0.1", 0))

@@ -194,6 +194,22 @@ def test_a_marker_stream_of_the_file_gives_the_truth_labels(tmp_path):
         xdf_session(tmp_path / "r.xdf", name="mic", labels="events")
 
 
+@pytest.mark.parametrize("marker, shown", [("felt\x1b[31mRED\x1b[0m", r"'felt\\x1b\[31mRED\\x1b\[0m'"),
+                                           ("x\ny\rz", r"'x\\ny\\rz'"), ("../x", r"'\.\./x'"),
+                                           ("a" * 70, "'a{70}'")])
+def test_a_marker_that_is_no_name_is_refused_not_made_a_label(tmp_path, marker, shown):
+    """Issue 35, item 5: a marker is data from a file; a terminal escape, a line break, a path or a name of
+    70 characters would become a model's class, a file name's part and a line printed raw: refused, named
+    (escaped), with the fix."""
+    whiskers, mic = _two_streams()
+    markers = XdfStream("texture", "Markers", 0.0, [["T1"], [marker]], T0 + np.array([0.0, 1.5]), fmt="string",
+                        chunk=1)
+    write_xdf(tmp_path / "r.xdf", [whiskers, mic, markers])
+    with pytest.raises(ReplayError, match=rf"r.xdf: labels 'texture': marker 1 says {shown}, which is no label "
+                                          r"\(a name: .*supramodal label"):
+        xdf_session(tmp_path / "r.xdf", name="whiskers", labels="texture")
+
+
 @pytest.mark.parametrize("seed", range(5))
 def test_a_gap_is_sized_on_the_sample_clock_not_from_its_two_jittered_edge_stamps(seed):
     """Issue 26 item 11: a 2,500-sample hole whose two edge stamps jitter apart (0.2 ms: one sample

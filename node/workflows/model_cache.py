@@ -35,6 +35,7 @@ import functools
 import hashlib
 import json
 import os
+import re
 import tempfile
 from pathlib import Path
 
@@ -258,11 +259,18 @@ def _lock(path: Path):
         os.close(fd)                    # lets the lock go
 
 
+#: A cache file's name: its key (:func:`cache_key`, 40 hex digits) and ``.npz``; the only files the cache removes.
+_KEY_FILE = re.compile(r"[0-9a-f]{40}\.npz")
+
+
 def _bound(folder: Path, keep: Path, limit: int) -> None:
-    """Remove the least recently used model files of ``folder`` (not ``keep``) until it holds at most
-    ``limit`` bytes."""
+    """Remove the least recently used cache files of ``folder`` (not ``keep``) until they hold at most
+    ``limit`` bytes. Only the cache's own key files count and go: a folder the user named as the cache may
+    hold files of theirs, which are never touched."""
     files = []
     for p in folder.glob("*.npz"):
+        if not _KEY_FILE.fullmatch(p.name):
+            continue
         try:
             st = p.stat()
         except FileNotFoundError:

@@ -315,7 +315,9 @@ class _Handler(BaseHTTPRequestHandler):
     def do_GET(self) -> None:
         view = self.server.view
         path = self.path.split("?", 1)[0]
-        if path in STATIC:
+        if not view.host_ok(self.headers.get("Host")):
+            self._refuse(HTTPStatus.FORBIDDEN, "this view answers requests for its own address only (Host)")
+        elif path in STATIC:
             name, kind = STATIC[path]
             self._reply(HTTPStatus.OK, _static(name), kind)
         elif path == "/state":
@@ -358,6 +360,8 @@ class _Handler(BaseHTTPRequestHandler):
         view = self.server.view
         path = self.path.split("?", 1)[0]
         actions = view.actions()
+        if not view.host_ok(self.headers.get("Host")):
+            return self._refuse(HTTPStatus.FORBIDDEN, "this view answers requests for its own address only (Host)")
         if path not in actions:
             return self._refuse(HTTPStatus.NOT_FOUND, f"no {path} here" + (
                 f"; this view takes {sorted(actions)}" if actions else "; this view is read-only"))
@@ -458,6 +462,10 @@ class ViewSink(Sink):
         self.path = self.url
         self._origins = {f"http://{shown}:{self.port}"} | (
             {f"http://localhost:{self.port}", f"http://127.0.0.1:{self.port}"} if is_loopback(host) else set())
+        # the names a request may give as its Host (a page of another site whose name resolves to this
+        # machine, DNS rebinding, gives its own); a remote view answers any name it is reached by
+        self.remote = bool(remote)
+        self._names = {shown} | ({"localhost", "127.0.0.1", "[::1]"} if is_loopback(host) else set())
         self._started = False
         if not quiet:
             print(f"supramodal: view at {self.url} (read-only); to mark or control it open "
@@ -483,9 +491,23 @@ class ViewSink(Sink):
             out["/control"] = self.control
         return out
 
+    def host_ok(self, host: str | None) -> bool:
+        """A request (any: reads too) names this view as its Host: on a view not ``remote``, one of the
+        names it serves on (a page of another site whose name resolves to this machine, DNS rebinding,
+        names its own, and may not read the stream). A remote view answers any name it is reached by."""
+        if host is None:
+            return False
+        if self.remote:
+            return True
+        name = host if host.endswith("]") else host.rsplit(":", 1)[0]
+        return name in self._names
+
     def origin_ok(self, origin: str | None, host: str | None) -> bool:
         """A change comes from the view's own page: its Origin is the view's, and so is its Host
-        (a page of another site that resolves its name to this machine has another Host)."""
+        (a page of another site that resolves its name to this machine has another Host). A remote
+        view's page is the one served as the Host it was reached by (any address of the machine)."""
+        if self.remote:
+            return host is not None and origin == f"http://{host}"
         return origin in self._origins and host is not None and f"http://{host}" in self._origins
 
     def _mark(self, asked: dict[str, Any]) -> dict[str, Any]:
