@@ -146,3 +146,36 @@ def test_a_bag_is_refused_before_anything_is_recorded_where_it_cannot_be_written
     assert (tmp_path / "mine" / "notes.txt").read_text() == "mine"      # a user's folder is never replaced
     with pytest.raises(BagExportError, match="ROS name token"):
         export_bag([("left arm", tmp_path / "x.wav")], tmp_path / "b")
+
+
+def test_the_node_s_decisions_go_on_a_decision_topic_per_stream_stamped_at_each_window_s_end(recorded, tmp_path):
+    """The windows the recording node wrote (its JSON Lines): each one with a decision becomes a
+    std_msgs/String on /supramodal/STREAM/decision, the ros2 sink's form (the line and its stamp), at the
+    window's end on the recording's time; events, the summary and windows without a model are not."""
+    import json
+
+    from rosbags.highlevel import AnyReader
+
+    lines = [{"stream": "whiskers", "t": 0.1, "window": 0, "start": 0.0, "end": 0.1, "predicted": "H1a",
+              "confidence": 0.9, "truth": "H1a", "latency_ms": None},
+             {"stream": "fused", "t": 0.137, "window": 0, "start": 0.0, "end": 0.137, "predicted": "H1b",
+              "confidence": 0.6, "senses": ["whiskers", "mic"], "truth": None, "latency_ms": None},
+             {"stream": "mic", "t": 0.137, "window": 0, "start": 0.037, "end": 0.137, "features": {"Af": [1.0]}},
+             {"event": "gap", "message": "x"}, {"windows": 2, "stream_seconds": 4.0}]
+    jsonl = tmp_path / "w.jsonl"
+    jsonl.write_text("".join(json.dumps(d) + "\n" for d in lines))
+    done = export_bag([("whiskers", recorded / "rec" / "r.whiskers.wav")], tmp_path / "b", windows=jsonl)
+    assert done["topics"]["/supramodal/whiskers/decision"] == 1 and done["topics"]["/supramodal/fused/decision"] == 1
+    assert not any(t.startswith("/supramodal/mic") for t in done["topics"])
+    got = {}
+    with AnyReader([tmp_path / "b"]) as reader:
+        for con, logged, raw in reader.messages():
+            if con.topic.endswith("/decision"):
+                got[con.topic] = (logged, json.loads(reader.deserialize(raw, con.msgtype).data))
+    logged, d = got["/supramodal/fused/decision"]
+    assert logged == BAG_EPOCH_NS + 137_000_000
+    assert d == {**lines[1], "stamp": {"sec": logged // 10**9, "nanosec": logged % 10**9}}
+    (tmp_path / "bad.jsonl").write_text("{\n")
+    with pytest.raises(BagExportError, match="line 1: not JSON"):
+        export_bag([("whiskers", recorded / "rec" / "r.whiskers.wav")], tmp_path / "c", windows=tmp_path / "bad.jsonl")
+    assert not (tmp_path / "c").exists()

@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import argparse
+import shutil
 import sys
+import tempfile
 import threading
+from pathlib import Path
 
 from supramodal.node.cli.arguments import label_name, output_folder, progress, session_name, stream_seconds
 from supramodal.node.cli.errors import CliError
@@ -60,14 +63,9 @@ def run(args: argparse.Namespace) -> int:
     # First: a signal while the scene loads and the modules import is start-up too (it ended the
     # process silently, by the default handler, before the scene was read).
     interrupt_until_running()
-    import json as _json
     import time
 
-    from supramodal.errors import InputError
-    from supramodal.node.runtime.taps.recorder import SessionRecorder
-    from supramodal.node.scene.build import build_node
     from supramodal.node.scene.schema import load_scene
-    from supramodal.node.workflows.graph_recording import GraphMarks, graph_recorders, write_replay_scene
 
     scene = load_scene(args.scene)
     if args.view is not None:
@@ -79,13 +77,35 @@ def run(args: argparse.Namespace) -> int:
         raise CliError("--replace replaces a driver's own labels with --label or --marks: give one of them")
     sessions = ([(src.name, args.out / f"{name}.{src.name}.wav") for src in scene.sources] if scene.is_graph
                 else [(scene.only_source().name, args.out / f"{name}.wav")])
+    windows = None
     if args.bag is not None:                # refused before anything is recorded
+        from supramodal.node.scene.variants import with_sink
         from supramodal.node.workflows.bag_export import check_bag_target
-        check_bag_target(args.bag, [n for n, _ in sessions], args.force, made=args.out)
+        check_bag_target(args.bag, [n for n, _ in sessions] + [st.name for st in scene.streams], args.force,
+                         made=args.out)
+        # the node's windows, for the bag's decision topics: a JSON Lines file of the run's own, gone after
+        windows = Path(tempfile.mkdtemp(prefix="supramodal-record-")) / "windows.jsonl"
+        scene = with_sink(scene, "jsonl", path=str(windows))
+    try:
+        return _record(args, scene, name, labelled, sessions, windows)
+    finally:
+        if windows is not None:
+            shutil.rmtree(windows.parent, ignore_errors=True)
+
+
+def _record(args: argparse.Namespace, scene, name: str, labelled: bool, sessions: list, windows) -> int:
+    """Record ``scene`` as ``name`` (see :func:`run`)."""
+    import json as _json
+
+    from supramodal.errors import InputError
+    from supramodal.node.runtime.taps.recorder import SessionRecorder
+    from supramodal.node.scene.build import build_node
+    from supramodal.node.workflows.graph_recording import GraphMarks, graph_recorders, write_replay_scene
+
     if scene.is_graph:
         recorders = graph_recorders(scene, args.out, name, overwrite=args.force, label=args.label,
                                     replace=args.replace)
-        node = build_node(scene, recorder=recorders, progress=progress(args))
+        node = build_node(scene, recorder=recorders, progress=progress(args), overwrite=args.force)
         own = [s.name for s in node.sources if s.labels is not None and s.labels.ranges]
         if own and labelled and not args.replace:
             raise CliError(f"{scene.source}: source(s) {own} label their streams themselves, and the recording keeps "
@@ -103,13 +123,13 @@ def run(args: argparse.Namespace) -> int:
             wavs = ", ".join(p for p in summary["recorded"] if p.endswith(".wav"))
             print(f"recorded {summary['stream_seconds']:.2f} s to {wavs} (+ .json); replay them in step: "
                   f"supramodal run {replay}", file=sys.stderr)
-            _write_bag(args, sessions)
+            _write_bag(args, sessions, windows)
         return 0
     src = scene.only_source()
     source = _json.dumps({"scene": scene.source,
                           "driver": {"type": src.type, **src.options, "mapping": scene.only_stream().mapping}})
     recorder = SessionRecorder(args.out, name, source, label=args.label, overwrite=args.force, replace=args.replace)
-    node = build_node(scene, recorder=recorder, progress=progress(args))
+    node = build_node(scene, recorder=recorder, progress=progress(args), overwrite=args.force)
     if node.streams[0].labels.ranges and labelled and not args.replace:
         raise CliError(f"{scene.source}: the {src.type} driver labels its stream itself, and the "
                        "recording keeps those labels with their times; --label and --marks would contradict them "
@@ -120,17 +140,18 @@ def run(args: argparse.Namespace) -> int:
     summary = node.run(max_seconds=args.seconds, on_running=lambda: stop_on_signals(node))
     if summary.get("recorded"):
         print(f"recorded {summary['stream_seconds']:.2f} s to {summary['recorded'][0]} (+ .json)", file=sys.stderr)
-        _write_bag(args, sessions)
+        _write_bag(args, sessions, windows)
     return 0
 
 
-def _write_bag(args: argparse.Namespace, sessions: list) -> None:
-    """``record --bag``: the sessions just recorded, as a rosbag2."""
+def _write_bag(args: argparse.Namespace, sessions: list, windows) -> None:
+    """``record --bag``: the sessions just recorded, and the windows' decisions (``windows``: the JSON
+    Lines the run wrote), as a rosbag2."""
     if args.bag is None:
         return
     from supramodal.node.workflows.bag_export import export_bag
 
-    done = export_bag(sessions, args.bag, overwrite=args.force)
+    done = export_bag(sessions, args.bag, overwrite=args.force, windows=windows)
     topics = ", ".join(f"{t} ({n})" for t, n in done["topics"].items())
     print(f"and as a rosbag2 (MCAP) in {done['bag']}: {topics}", file=sys.stderr)
 

@@ -9,7 +9,9 @@ source. A graph recording's sources are on the node's common time: each block's 
 lower envelope of its arrivals (the earliest-arriving block's offset, at the clock model's rate), so that
 the stamps are the samples' times, not their delays. The labels go on ``/supramodal/labels``
 (``std_msgs/String``): a message at each label's start, an empty one at its end (the form
-``import-recording --label-topic`` reads). The bag's time starts at :data:`BAG_EPOCH_NS` (a ROS time,
+``import-recording --label-topic`` reads). The node's decisions go on ``/supramodal/STREAM/decision``
+(``std_msgs/String``, the ``ros2`` sink's form: the window's JSON line and its ``stamp``), stamped at
+each window's end. The bag's time starts at :data:`BAG_EPOCH_NS` (a ROS time,
 the same for every export: a bag is reproducible to the byte).
 
 Filled frames travel as the zeros they are; their flags, and a board's restart marks, stay in the
@@ -29,7 +31,8 @@ import numpy as np
 from supramodal.errors import InputError
 from supramodal.replay.session import Session, load_session
 
-__all__ = ["BAG_EPOCH_NS", "LABEL_TOPIC", "BagExportError", "check_bag_target", "export_bag", "samples_topic"]
+__all__ = ["BAG_EPOCH_NS", "LABEL_TOPIC", "BagExportError", "check_bag_target", "decision_topic", "export_bag",
+           "samples_topic"]
 
 #: ROS time of the recording's time 0 in the bag, ns (2025-01-01T00:00:00Z).
 BAG_EPOCH_NS = 1_735_689_600 * 10**9
@@ -68,11 +71,37 @@ def _block_ends(session: Session) -> np.ndarray:
     return np.append(np.arange(step, session.frames, step), session.frames)
 
 
-def check_bag_target(bag: str | Path, sources: Sequence[str], overwrite: bool = False,
+def decision_topic(stream: str) -> str:
+    """The topic of a stream's decisions in an exported bag (the ``ros2`` sink's, under ``/supramodal``)."""
+    return f"/supramodal/{stream}/decision"
+
+
+def _decisions(path: Path, String: Any) -> list[tuple[int, str, Any, str]]:
+    """The decision messages of the windows of a JSON Lines file the node wrote (its own output: read
+    line by line, each a JSON object; a line that is not one is refused)."""
+    import json
+
+    out = []
+    with path.open(encoding="utf-8") as f:
+        for n, line in enumerate(f, 1):
+            try:
+                d = json.loads(line)
+            except ValueError:
+                raise BagExportError(f"{path}, line {n}: not JSON; the node's windows file is damaged") from None
+            if not (isinstance(d, dict) and "window" in d and "predicted" in d):
+                continue                    # an event, the summary, or a window without a model
+            stamp = BAG_EPOCH_NS + round(float(d["end"]) * 1e9)
+            d["stamp"] = {"sec": stamp // 10**9, "nanosec": stamp % 10**9}
+            out.append((stamp, decision_topic(str(d["stream"])), String(data=json.dumps(d)), "std_msgs/msg/String"))
+    return out
+
+
+def check_bag_target(bag: str | Path, names: Sequence[str], overwrite: bool = False,
                      made: str | Path | None = None) -> Path:
     """Refuse, before anything is recorded, a bag :func:`export_bag` could not write: rosbags missing,
     ``bag`` there (and no rosbag2 folder, or ``overwrite`` False), no parent folder (but ``made``, a
-    folder the recording makes), a source name that is no ROS name token. Returns ``bag`` as a Path."""
+    folder the recording makes), a source's or stream's name (``names``) that is no ROS name token. Returns
+    ``bag`` as a Path."""
     from supramodal.drivers.ros2 import check_token
     from supramodal.replay.rosbag import INSTALL_HINT
 
@@ -92,14 +121,15 @@ def check_bag_target(bag: str | Path, sources: Sequence[str], overwrite: bool = 
                                  "choose another --bag")
     if not bag.parent.is_dir() and (made is None or bag.parent.resolve() != Path(made).resolve()):
         raise BagExportError(f"{bag.parent}: no such folder for the bag; make it first (mkdir -p {bag.parent})")
-    bad = [name for name in sources if not check_token(name)]
+    bad = [name for name in names if not check_token(name)]
     if bad:
-        raise BagExportError(f"sources {bad}: a bag's topic names its source, which must then be a ROS name token "
-                             "(letters, digits and _, no __); rename the sources in the scene")
+        raise BagExportError(f"{bad}: a bag's topics name the sources and streams, which must then be ROS name "
+                             "tokens (letters, digits and _, no __); rename them in the scene")
     return bag
 
 
-def export_bag(sessions: Sequence[tuple[str, str | Path]], bag: str | Path, overwrite: bool = False) -> dict[str, Any]:
+def export_bag(sessions: Sequence[tuple[str, str | Path]], bag: str | Path, overwrite: bool = False,
+               windows: str | Path | None = None) -> dict[str, Any]:
     """Write ``sessions`` (``(source name, session WAV path)``) as a rosbag2 MCAP folder at ``bag``.
 
     Parameters
@@ -110,6 +140,10 @@ def export_bag(sessions: Sequence[tuple[str, str | Path]], bag: str | Path, over
         The bag's folder, made here (its parent must exist).
     overwrite : bool, default False
         Replace a bag already there (only a rosbag2 folder: anything else is refused).
+    windows : path-like, optional
+        The JSON Lines the recording node wrote (its ``jsonl`` sink): each window with a decision becomes a
+        message of ``/supramodal/STREAM/decision`` (``std_msgs/String``: the line and its ``stamp``, as the
+        ``ros2`` sink publishes it), stamped at the window's end on the recording's time.
 
     Returns
     -------
@@ -159,6 +193,8 @@ def export_bag(sessions: Sequence[tuple[str, str | Path]], bag: str | Path, over
                     labels.append((offset + label.end * per_second, ""))
     for when, text in labels:
         messages.append((BAG_EPOCH_NS + round(when * 1e9), LABEL_TOPIC, String(data=text), "std_msgs/msg/String"))
+    if windows is not None:
+        messages += _decisions(Path(windows), String)
     messages.sort(key=lambda m: (m[0], m[1]))
     counts: dict[str, int] = {}
     with tempfile.TemporaryDirectory(dir=bag.parent, prefix=f".{bag.name}.") as tmp:
