@@ -377,17 +377,21 @@ class Ros2TopicDriver(DriverBase):
         ``supramodal_robot_whiskers``), in the root.
     gap_tolerance, max_gap, stall_timeout, queue_seconds, rate_tolerance : float
         Seconds (the last a fraction); see the module notes.
+    block : int or None
+        Samples per message the publisher is said to send (the scene's ``block``): a message of another
+        size is kept (nothing is lost) but counted (``odd_blocks``) and said (``block``), since the node's
+        latency and the windows' timing follow the publisher's blocks. None (default): any size.
 
     Events (:meth:`take_events`): ``waiting`` (no first message yet, after ``stall_timeout``),
     ``unplug`` (no message for ``stall_timeout`` after the first), ``reconnect``, ``gap`` (samples
     filled), ``restart``, ``backlog``, ``channels`` (a message refused), ``nan`` (non-finite samples
-    set to 0), ``overflow`` (the queue was full).
+    set to 0), ``overflow`` (the queue was full), ``block`` (a message of another size than ``block``).
     """
 
     def __init__(self, topic: str, rate: float, channels: int, *, message: str = "auto",
                  reliability: str = "reliable", node_name: str | None = None, namespace: str = "",
                  gap_tolerance: float = 0.05, max_gap: float = 10.0, stall_timeout: float = 0.5,
-                 queue_seconds: float = 30.0, rate_tolerance: float = 0.05) -> None:
+                 queue_seconds: float = 30.0, rate_tolerance: float = 0.05, block: int | None = None) -> None:
         if not check_topic(topic):
             raise InputError(f"topic {topic!r} is not a ROS topic name (tokens of letters, digits and '_' "
                              "separated by '/')")
@@ -402,6 +406,9 @@ class Ros2TopicDriver(DriverBase):
                 raise InputError(f"{key} must be a positive number, got {v!r}")
         if isinstance(channels, bool) or not isinstance(channels, int) or channels < 1:
             raise InputError(f"channels must be a positive integer, got {channels!r}")
+        if block is not None and (isinstance(block, bool) or not isinstance(block, int) or block < 1):
+            raise InputError(f"block must be a positive integer (samples per message), got {block!r}")
+        self.block = block
         self.topic, self.rate, self.channels = topic, float(rate), int(channels)
         self.message, self.reliability = message, reliability
         # one node per topic read: two sources of a scene (and a ros2 sink) never share a node's name
@@ -431,6 +438,7 @@ class Ros2TopicDriver(DriverBase):
         self._messages = self._stalls = 0
         self._refused = self._nan = self._dropped_messages = self._dropped_samples = 0
         self._incompatible = False                              # a publisher's QoS the subscription cannot meet
+        self._odd_blocks = 0                                    # messages of another size than `block`
         self._steps = ClockSteps(self.rate, self.gap_tolerance, self.max_gap)
         self._blocks = StampedBlocks(self.channels, lambda: f"ROS 2: {self.info}", "publisher", self.max_gap,
                                      self._record)
@@ -492,6 +500,12 @@ class Ros2TopicDriver(DriverBase):
         if data is not None and self._kind == "sensor_msgs/msg/Image":
             ros_ns = int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
             stamp = (ros_ns + self._clock.offset_ns) / 1e9          # on this host's monotonic clock
+        if data is not None and self.block is not None and data.shape[0] != self.block:
+            with self._lock:
+                self._odd_blocks += 1
+            self._record("block", f"ROS 2: a message of {self.info} holds {data.shape[0]} samples, not the "
+                                  f"{self.block} the scene says (block); kept. Set block to the publisher's, or "
+                                  "leave it out", self._blocks.frames)
         if data is not None and not np.isfinite(data).all():
             bad = ~np.isfinite(data)
             data[bad] = 0.0
@@ -631,12 +645,14 @@ class Ros2TopicDriver(DriverBase):
     def stats(self) -> dict[str, int]:
         """``frames`` (delivered, filled ones included), ``filled``, ``messages``, ``gaps``, ``restarts``,
         ``stalls``, ``backlogs``, ``refused`` (messages of another layout), ``nan`` (values set to 0),
+        ``odd_blocks`` (messages of another size than ``block``, kept),
         ``dropped_messages`` and ``dropped_samples`` (the queue was full)."""
         with self._lock:
             b = self._blocks
             return {"frames": b.frames, "filled": b.filled, "messages": self._messages, "gaps": b.gaps,
                     "restarts": b.restarts, "stalls": self._stalls, "backlogs": b.backlogs,
-                    "refused": self._refused, "nan": self._nan, "dropped_messages": self._dropped_messages,
+                    "refused": self._refused, "nan": self._nan, "odd_blocks": self._odd_blocks,
+                    "dropped_messages": self._dropped_messages,
                     "dropped_samples": self._dropped_samples}
 
     def __repr__(self) -> str:
@@ -654,6 +670,8 @@ LIMITS = {"gap_tolerance": 10.0, "max_gap": 60.0, "stall_timeout": 60.0, "queue_
           "rate_tolerance": 0.5}
 #: Highest rate a scene may give a topic's samples, Hz.
 MAX_RATE = 1e6
+#: Most samples per message a scene may say a publisher sends (10 s at 100 kHz).
+MAX_BLOCK = 1_000_000
 
 
 def _build(options: Mapping[str, Any], context: BuildContext) -> Built:
@@ -668,6 +686,7 @@ def _build(options: Mapping[str, Any], context: BuildContext) -> Built:
     try:
         driver = Ros2TopicDriver(options["topic"], float(rate), int(channels), message=options["message"],
                                  reliability=options["reliability"], namespace=options["namespace"],
+                                 block=options["block"],
                                  **given(options, {"node_name": "node_name", **{k: k for k in LIMITS}}))
     except DriverError:
         raise
@@ -687,6 +706,8 @@ SPEC = DriverSpec(
         "topic": Key(check_topic, 'the topic, e.g. "/whiskers" (relative: in the namespace)', REQUIRED),
         "rate": Key(positive(MAX_RATE), f"Hz of the samples, up to {MAX_RATE:g} (default: the bank's)", None),
         "channels": Key(integer(1, 4096), "channels per sample, 1..4096 (default: the bank's)", None),
+        "block": Key(integer(1, MAX_BLOCK), f"samples per message the publisher sends, 1..{MAX_BLOCK} (checked: "
+                     "another size is kept, counted and said; default: any)", None),
         "message": Key(one_of("auto", *MESSAGES), f'"auto" (the type the publishers advertise) or one of '
                        f"{sorted(MESSAGES)}", "auto"),
         "reliability": Key(one_of("reliable", "best_effort"), '"reliable" or "best_effort" (for a best-effort '

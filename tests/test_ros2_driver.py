@@ -31,6 +31,7 @@ from std_msgs.msg import Float32MultiArray, MultiArrayDimension, String  # noqa:
 
 from supramodal.drivers.base import DriverError  # noqa: E402
 from supramodal.drivers.ros2 import Ros2TopicDriver  # noqa: E402
+from supramodal.errors import InputError  # noqa: E402
 
 PUBLISHER = Path(__file__).resolve().parent / "ros2_publisher.py"
 
@@ -246,6 +247,32 @@ def test_a_message_of_another_layout_is_refused_counted_and_said_and_nan_set_to_
         assert "2 non-finite values" in said["nan"]
     finally:
         talker.close()
+
+
+def test_a_message_of_another_size_than_the_scene_s_block_is_kept_counted_and_said():
+    """Item 2 (issue 33): the block size comes from the scene (``block``) and is checked against what
+    arrives: a message of another size is kept (no sample lost) but counted (``odd_blocks``) and said."""
+    topic = f"{unique_namespace()}/samples"
+    driver = Ros2TopicDriver(topic, 1000.0, 2, message="std_msgs/msg/Float32MultiArray", block=10)
+    talker = Subscriber("talker")
+    try:
+        with driver:
+            pub = talker.node.create_publisher(Float32MultiArray, topic, 100)
+            assert talker.wait_for(lambda: pub.get_subscription_count() > 0, 10.0)
+            time.sleep(0.3)
+            rows = np.arange(50, dtype=np.float32).reshape(25, 2) / 100
+            for part in (rows[:10], rows[10:17], rows[17:]):     # 10, then 7 and 8: two of another size
+                _arrays(pub, part)
+            blocks = _read_until(driver, 25)
+            events, _ = driver.take_events()
+        assert np.array_equal(np.concatenate([b.data for b in blocks]), rows.astype(np.float64))
+        assert driver.stats()["odd_blocks"] == 2
+        said = [e.message for e in events if e.kind == "block"]
+        assert len(said) == 2 and "holds 7 samples, not the 10 the scene says" in said[0]
+    finally:
+        talker.close()
+    with pytest.raises(InputError, match="block must be a positive integer"):
+        Ros2TopicDriver(topic, 1000.0, 2, block=0)
 
 
 def test_a_topic_of_another_type_is_refused_naming_both():
