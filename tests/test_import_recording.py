@@ -155,6 +155,52 @@ def test_an_import_is_not_replaced_without_force(lab_files, capsys):
     assert _import(lab_files, "--force") == 0
 
 
+def test_a_failed_import_with_force_leaves_the_earlier_import_as_it_was(lab_files, capsys):
+    """Issue 35, item 2: a --force import refused late (a model that does not fit its stream, found when the
+    written scene is built) deleted the earlier import of that name. Now everything is written and checked
+    aside, and put in place last: the earlier import's files are as they were, byte for byte."""
+    from pathlib import Path
+
+    assert _import(lab_files) == 0
+    rec = lab_files / "rec"
+    before = {p.name: p.read_bytes() for p in rec.iterdir()}
+    model = Path(__file__).parent / "data" / "model-v1.npz"          # a whisker model of 8 channels
+    capsys.readouterr()
+    assert _import(lab_files, "--force", "--model", f"mic={model}") == 2
+    assert "does not run" in capsys.readouterr().err
+    assert {p.name: p.read_bytes() for p in rec.iterdir()} == before          # nothing left aside either
+
+
+def test_an_import_never_writes_over_its_inputs_nor_leaves_a_folder_it_made_for_nothing(lab_files, capsys):
+    """Issue 35, items 2 and 32: an input that is one of the outputs (a WAV in --out under the output's name,
+    a model given as the .npz the import would write) is refused before anything is written, the input
+    intact, no traceback; a refused import leaves no --out folder it made."""
+    import shutil
+    from pathlib import Path
+
+    rec = lab_files / "rec"
+    rec.mkdir()
+    shutil.copyfile(lab_files / "whiskers.wav", rec / "lab.whiskers.wav")
+    mine = (rec / "lab.whiskers.wav").read_bytes()
+    argv = ["import-recording", "--out", str(rec), "--name", "lab", "--force",
+            "--wav", f"whiskers={rec / 'lab.whiskers.wav'}", "--times", f"whiskers={lab_files / 'whiskers.csv'}",
+            "--bank", "whiskers=whisker"]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "is an input of the import and would be one of its outputs" in err and "Traceback" not in err
+    assert (rec / "lab.whiskers.wav").read_bytes() == mine and [p.name for p in rec.iterdir()] == ["lab.whiskers.wav"]
+    (rec / "lab.whiskers.npz").write_bytes(b"not a model")
+    argv[argv.index(f"whiskers={rec / 'lab.whiskers.wav'}")] = f"whiskers={lab_files / 'whiskers.wav'}"
+    assert main([*argv, "--model", f"whiskers={rec / 'lab.whiskers.npz'}"]) == 2
+    assert "would be one of its outputs" in capsys.readouterr().err
+    assert (rec / "lab.whiskers.npz").read_bytes() == b"not a model"
+    new = lab_files / "new"
+    model = Path(__file__).parent / "data" / "model-v1.npz"          # a whisker model: no cochlea stream's
+    assert main(["import-recording", "--out", str(new), "--name", "lab", "--wav", f"mic={lab_files / 'mic.wav'}",
+                 "--times", f"mic={lab_files / 'mic.csv'}", "--bank", "mic=cochlea", "--model", f"mic={model}"]) == 2
+    assert "does not run" in capsys.readouterr().err and not new.exists()
+
+
 def test_xdf_streams_import_to_the_windows_the_xdf_source_gives(tmp_path, capsys):
     """Two streams of an XDF file imported, and the same file run as `type = "xdf"` sources: the
     same windows, features and times (one reader of the file's times: replay.xdf)."""

@@ -27,7 +27,9 @@ Every file is data: WAVs through :func:`~supramodal.replay.wavio.read_wav`, CSVs
 frame), banks through :func:`~supramodal.bankfile.load_bank`, models through
 :meth:`~supramodal.model.TextureModel.load`; nothing is executed. Every refusal is an
 :class:`ImportRecordingError` naming the file, the line and the fix; nothing is written until
-every input is read and checked, and an existing file is replaced only with ``overwrite``.
+every input is read and checked. The recording is written into a folder of its own beside it and its
+scene built there; only then does each file take its place, and an existing one is replaced only with
+``overwrite``: a refused or interrupted import leaves every file as it was. An input is never an output.
 """
 
 from __future__ import annotations
@@ -37,6 +39,7 @@ import csv
 import math
 import os
 import shutil
+import tempfile
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -413,9 +416,17 @@ def import_recording(folder, name: str, sources: list[SourceFiles], xdf=None, ma
                                    "model")
     if folder.exists() and not folder.is_dir():
         raise ImportRecordingError(f"{folder} is a file; give a folder for the recording")
+    outputs = recording_files(folder, name, sources)
     if folder.is_dir():
-        for path in recording_files(folder, name, sources):
+        for path in outputs:
             check_new_file(path, overwrite, "the recording's file")
+    # An input is never replaced (nor deleted by a failed import): an output of the same path is refused.
+    inputs = [p for s in sources for p in (s.wav, s.times, s.model, None if s.bank in BANK_KINDS else s.bank)
+              if p is not None] + [Path(p) for p in (xdf, bag) if p is not None]
+    same = sorted({str(o) for o in outputs for i in inputs if Path(o).resolve() == Path(i).resolve()})
+    if same:
+        raise ImportRecordingError(f"{same[0]} is an input of the import and would be one of its outputs; give "
+                                   "another --name or --out (the import never writes over its inputs)")
     # Read and check everything before anything is written.
     models = {}
     for s in sources:
@@ -457,29 +468,36 @@ def import_recording(folder, name: str, sources: list[SourceFiles], xdf=None, ma
     if fusion:
         d["fusion"] = {"streams": names}
     text = scene_to_toml(scene_from_dict(d, str(scene), folder))
+    made = not folder.exists()
     folder.mkdir(parents=True, exist_ok=True)
-    written: list[Path] = []
+    # Everything is written into a folder of its own beside the recording and checked there (the scene built);
+    # only then does each file take its place, replacing an earlier import's (with overwrite). A refusal or an
+    # interruption before that leaves every file that was there as it was.
+    staging = Path(tempfile.mkdtemp(prefix=f".{name}.import-", dir=folder))
     try:
         for s in sources:
             session = sessions[s.name]
             exact32 = np.array_equal(session.data.astype(np.float32).astype(np.float64), session.data)
-            written += save_session(folder / f"{name}.{s.name}", session.data, session.rate, session.source,
-                                    labels=session.labels, filled=list(session.filled),
-                                    dtype="float32" if exact32 else "float64", marks=session.marks,
-                                    arrivals=session.arrivals)
+            save_session(staging / f"{name}.{s.name}", session.data, session.rate, session.source,
+                         labels=session.labels, filled=list(session.filled),
+                         dtype="float32" if exact32 else "float64", marks=session.marks, arrivals=session.arrivals)
             if s.model is not None:
-                written.append(Path(shutil.copyfile(s.model, folder / f"{name}.{s.name}.npz")))
+                shutil.copyfile(s.model, staging / f"{name}.{s.name}.npz")
             if s.bank not in BANK_KINDS:
-                written.append(Path(shutil.copyfile(s.bank, folder / f"{name}.{s.name}.bank.json")))
-        scene.write_text(f"# Replays the recording {name}, imported by supramodal import-recording from "
-                         f"{xdf or bag or ', '.join(str(s.wav) for s in sources)}.\n" + text)
-        written.append(scene)
-        _check_scene(scene)
+                shutil.copyfile(s.bank, staging / f"{name}.{s.name}.bank.json")
+        (staging / scene.name).write_text(f"# Replays the recording {name}, imported by supramodal import-recording "
+                                          f"from {xdf or bag or ', '.join(str(s.wav) for s in sources)}.\n" + text)
+        _check_scene(staging / scene.name)
+        for path in outputs:                    # the scene last: a recording is there when its scene is
+            os.replace(staging / Path(path).name, path)
     except BaseException:
-        for path in written:
+        if made:
+            shutil.rmtree(staging, ignore_errors=True)
             with contextlib.suppress(OSError):
-                os.unlink(path)
+                folder.rmdir()                  # a folder made for nothing is not left behind (only if empty)
         raise
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
     return scene
 
 
