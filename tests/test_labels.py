@@ -162,3 +162,69 @@ def test_bad_spans_are_refused_naming_the_line_and_the_fix(tmp_path, text, needl
     (tmp_path / "s.csv").write_text(text)
     with pytest.raises(LabelError, match=needle):
         read_spans(tmp_path / "s.csv")
+
+
+def _two_sessions(tmp_path):
+    """A recording of two sources (``a``, ``b``), 20 s each at 5 kHz, with its replay scene."""
+    ends = np.arange(500, 100_001, 500)
+    for name in ("a", "b"):
+        save_session(tmp_path / f"r.{name}", np.zeros((100_000, 1)), WHISKERS, "test",
+                     arrivals=(ends, 0.25 + ends / WHISKERS, float(WHISKERS)))
+    (tmp_path / "r.toml").write_text("".join(
+        f'[[source]]\nname = "{n}"\ntype = "replay"\npath = "r.{n}.wav"\ntiming = "recorded"\n\n'
+        f'[[stream]]\nname = "{n}"\nsource = "{n}"\n\n' for n in ("a", "b")))
+    return [tmp_path / f"r.{n}.json" for n in ("a", "b")]
+
+
+def test_spans_that_would_make_a_sidecar_too_big_to_load_are_refused_before_anything_is_written(
+        tmp_path, monkeypatch, capsys):
+    """Issue 35, item 1: 150,000 spans made 19.4 MB sidecars (the reader's limit is 16 MiB) and label said
+    nothing: the recording no longer loaded, its old labels were gone. The size is checked first (here
+    against a limit made small, MAX_SIDECAR_BYTES as the reader has it): refused, every sidecar as it was."""
+    from supramodal.node.workflows import labels as labels_module
+
+    sidecars = _two_sessions(tmp_path)
+    before = [p.read_bytes() for p in sidecars]
+    monkeypatch.setattr(labels_module, "MAX_SIDECAR_BYTES", max(len(b) for b in before) + 500)
+    spans = tmp_path / "spans.csv"
+    spans.write_text("start,end,label\n" + "".join(f"{1 + k * 0.1:.1f},{1.05 + k * 0.1:.2f},s{k}\n"
+                                                   for k in range(100)))
+    assert main(["label", str(tmp_path / "r.toml"), str(spans)]) == 2
+    err = capsys.readouterr().err
+    assert "100 spans would make r.a.json" in err and "nothing was written" in err
+    assert [p.read_bytes() for p in sidecars] == before
+    spans.write_text("start,end,label\n1,2,grit\n")                  # a few: written
+    assert main(["label", str(tmp_path / "r.toml"), str(spans)]) == 0
+    assert all(load_session(p.with_suffix(".wav")).labels[0].label == "grit" for p in sidecars)
+
+
+def test_a_signal_while_label_writes_leaves_every_session_labelled_and_then_stops(tmp_path, monkeypatch):
+    """Issue 35, item 4: Ctrl-C while the sidecars were replaced left one session relabelled and the other
+    not. A SIGINT that comes after the first one is put in place waits until the last is: both are
+    labelled, then it stops the command (KeyboardInterrupt), and no temporary file is left."""
+    import os
+    import signal
+
+    from supramodal.node.workflows import labels as labels_module
+
+    sidecars = _two_sessions(tmp_path)
+    spans = tmp_path / "spans.csv"
+    spans.write_text("start,end,label\n1,2,grit\n")
+    real = os.replace
+    calls = []
+
+    def replace_then_signal(src, dst):
+        real(src, dst)
+        calls.append(dst)
+        if len(calls) == 1:
+            os.kill(os.getpid(), signal.SIGINT)         # Ctrl-C between the two sessions
+    monkeypatch.setattr(labels_module.os, "replace", replace_then_signal)
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            labels_module.label_recording(tmp_path / "r.toml", spans)
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    assert len(calls) == 2
+    assert [load_session(p.with_suffix(".wav")).labels[0].label for p in sidecars] == ["grit", "grit"]
+    assert not list(tmp_path.glob(".*.tmp"))

@@ -34,11 +34,18 @@ import tempfile
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from supramodal.checks import NAME_HELP, is_name
 from supramodal.errors import InputError
 from supramodal.node.runtime.clock import frames_at
-from supramodal.replay.session import load_session, session_paths, sidecar_text, validate_sidecar
+from supramodal.replay.session import (
+    MAX_SIDECAR_BYTES,
+    load_session,
+    session_paths,
+    sidecar_text,
+    validate_sidecar,
+)
 
 __all__ = ["SPAN_COLUMNS", "LabelError", "Span", "check_label_name", "frames_at", "label_recording", "read_spans",
            "spans_to_stream"]
@@ -187,17 +194,44 @@ def _sessions(scene_path) -> list[tuple[str, Path]]:
     return sessions
 
 
-def _write_sidecar(path: Path, meta: dict) -> None:
-    """Replace a sidecar atomically (a crash leaves the old one or the new one, never half of one)."""
+def _staged(path: Path, text: str) -> Path:
+    """``text`` written beside ``path`` under a temporary name (then put in place by :func:`_replace_all`)."""
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(sidecar_text(meta))
+            f.write(text)
         os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+    return Path(tmp)
+
+
+def _replace_all(staged: list[tuple[Path, Path]]) -> None:
+    """Put every staged sidecar in place, ``(temporary, final)``: all or none. Each replace is atomic (a
+    crash leaves a sidecar old or new, never half of one), and a Ctrl-C or SIGTERM that comes meanwhile is
+    held until all are done, then given to the handler it was for (a signal in between left one session
+    labelled and the other not). Signals are held only on the main thread (the only one Python's handlers
+    run on); elsewhere the replaces are microseconds apart."""
+    import signal
+
+    caught: list[int] = []
+    previous: dict[signal.Signals, Any] = {}
+    try:
+        for held in (signal.SIGINT, signal.SIGTERM):
+            previous[held] = signal.signal(held, lambda signum, frame: caught.append(signum))
+    except ValueError:                                    # not the main thread
+        pass
+    try:
+        for tmp, path in staged:
+            os.replace(tmp, path)
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+        for tmp, _ in staged:
+            tmp.unlink(missing_ok=True)
+    if caught:
+        signal.raise_signal(caught[0])                    # now, to the handler it was meant for
 
 
 def label_recording(scene_path, spans_path, replace: bool = False) -> dict[str, list[tuple[float, float, str]]]:
@@ -246,12 +280,28 @@ def label_recording(scene_path, spans_path, replace: bool = False) -> dict[str, 
         raise LabelError(f"{spans_path}: the span [{late[0].start:g}, {late[0].end:g}) {late[0].label!r} starts "
                          f"after the recording ends ({latest:.3f} s of common time); give times since the recording "
                          "started, as its replay prints them")
-    written = {}
-    for name, path, labels, frames, session in plans:
+    written, texts = {}, []
+    for name, path, labels, frames, session in plans:            # every sidecar made and checked first
         js = session_paths(path)[1]
         meta = json.loads(js.read_text(encoding="utf-8"))        # validated whole by load_session above
         meta["labels"] = [{"start": a, "end": b, "label": n} for a, b, n in labels]
         validate_sidecar(meta, rate=session.rate, channels=session.data.shape[1], frames=frames, where=str(js))
-        _write_sidecar(js, meta)
+        text = sidecar_text(meta)
+        size = len(text.encode("utf-8"))
+        if size > MAX_SIDECAR_BYTES:
+            raise LabelError(f"{spans_path}: {len(spans)} spans would make {js.name} {size} bytes, more than the "
+                             f"{MAX_SIDECAR_BYTES} a sidecar may have (MAX_SIDECAR_BYTES), and the recording would "
+                             "no longer load; nothing was written. Merge neighbouring spans of one label, or label "
+                             "a shorter recording")
+        texts.append((js, text))
         written[name] = labels
+    staged: list[tuple[Path, Path]] = []
+    try:
+        for js, text in texts:
+            staged.append((_staged(js, text), js))
+    except BaseException:
+        for tmp, _ in staged:
+            tmp.unlink(missing_ok=True)
+        raise
+    _replace_all(staged)
     return written
