@@ -143,9 +143,11 @@ class ViewReplay:
         paused, speed = asked.get("paused"), asked.get("speed")
         if paused is not None and not isinstance(paused, bool):
             raise InputError(f"paused: expected true or false, got {paused!r}")
+        # an int is compared as it is (math.isfinite of a 900-digit int raised OverflowError, unanswered)
         if speed is not None and not (isinstance(speed, (int, float)) and not isinstance(speed, bool)
-                                      and math.isfinite(speed) and 0 < speed <= MAX_SPEED):
-            raise InputError(f"speed: expected a number > 0 and at most {MAX_SPEED:g}, got {speed!r}")
+                                      and (isinstance(speed, int) or math.isfinite(speed))
+                                      and 0 < speed <= MAX_SPEED):
+            raise InputError(f"speed: expected a number > 0 and at most {MAX_SPEED:g}, got {str(speed)[:40]}")
         with self._cond:
             if paused is not None:
                 self._paused = paused

@@ -283,6 +283,15 @@ class _Server(ThreadingHTTPServer):
     block_on_close = False
     view: ViewSink
 
+    def handle_error(self, request: Any, client_address: Any) -> None:
+        """A page that went away mid-request (a reset, a closed tab) is no error of the node's; anything
+        else is said in one line, never as a traceback on the node's stderr (socketserver's default)."""
+        exc = sys.exc_info()[1]
+        if isinstance(exc, (ConnectionError, TimeoutError)):
+            return
+        print(f"supramodal: view: a request from {client_address[0]} failed: {type(exc).__name__}: {exc}",
+              file=sys.stderr, flush=True)
+
 
 class _Handler(BaseHTTPRequestHandler):
     server: _Server
