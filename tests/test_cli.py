@@ -3,6 +3,7 @@ the work, quiet exit when the reader of stdout leaves, signals during start-up."
 
 from __future__ import annotations
 
+import argparse
 import os
 import signal
 import subprocess
@@ -195,6 +196,15 @@ def test_signal_during_start_up_training(tmp_path, sig):
     (["experiment", "fig3", "--jobs", "0"], "--jobs"),
     (["experiment", "fig3", "--sets", "-2"], "--sets"),
     (["experiment", "fig3", "--seed", "-1"], "--seed"),
+    # issue 35, items 11, 13 and 16: one seed range for every command (numpy's and Optuna's 32 bits; fit's
+    # Optuna raised a ValueError traceback past it), --jobs at most the cores, a cluster address with its port
+    (["fit", "m.csv", "--seed", "4294967296"], "--seed"),
+    (["train", "--bank", "whisker", "--manifest", "m.csv", "--out", "m.npz", "--seed", "4294967296"], "--seed"),
+    (["evaluate", "m.npz", "--manifest", "m.csv", "--cv", "2", "--seed", "4294967296"], "--seed"),
+    (["fit", "m.csv", "--jobs", "1000"], "--jobs"),
+    (["experiment", "fig3", "--jobs", "1000"], "--jobs"),
+    (["fit", "m.csv", "--cluster", "notanaddress"], "--cluster"),
+    (["fit", "m.csv", "--cluster", "tcp://host:notaport"], "--cluster"),
 ])
 def test_bad_numbers_on_the_command_line_name_their_option(capsys, argv, option):
     with pytest.raises(SystemExit) as stop:
@@ -482,3 +492,17 @@ def test_main_gives_the_callers_signal_handlers_back(tmp_path):
     finally:
         for sig, handler in before.items():
             signal.signal(sig, handler)
+
+
+def test_the_seed_range_the_jobs_bound_and_a_cluster_address_are_said_and_good_ones_taken():
+    from supramodal.node.cli.arguments import MAX_SEED, cluster_address, cores, jobs, seed
+
+    assert seed("0") == 0 and seed(str(MAX_SEED)) == MAX_SEED == 2**32 - 1
+    assert jobs("1") == 1 and jobs(str(cores())) == cores()
+    assert cluster_address("10.0.0.2:8786") == "tcp://10.0.0.2:8786"
+    assert cluster_address("tls://sched.lab:8786") == "tls://sched.lab:8786"
+    for bad in ("notanaddress", "tcp://:8786", "http://h:1", "tcp://h:99999", "tcp://h:1/x"):
+        with pytest.raises(argparse.ArgumentTypeError, match="tcp://HOST:PORT"):
+            cluster_address(bad)
+    with pytest.raises(argparse.ArgumentTypeError, match=f"at most the {cores()} cores here"):
+        jobs(str(cores() + 1))

@@ -253,7 +253,7 @@ def test_cli_fig3_one_bank_keeps_its_shape(tmp_path):
 @pytest.mark.parametrize("args, message", [
     (["fig5", "--bank", "whisker"], "apply to fig3"),
     (["fig1", "--jobs", "0"], "argument --jobs: expected a whole number >= 1"),
-    (["fig3", "--seed", "-2"], "argument --seed: expected a whole number >= 0"),
+    (["fig3", "--seed", "-2"], "argument --seed: expected a whole number from 0 to 4294967295"),
     (["all", "--bank", "cochlea"], "not to all"),
 ])
 def test_cli_refuses_bad_options(tmp_path, args, message):

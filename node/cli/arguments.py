@@ -82,6 +82,56 @@ def count(lo: int):
     return parse
 
 
+#: The largest seed any command takes: numpy's and Optuna's seeds are 32-bit (one range for every command).
+MAX_SEED = 2**32 - 1
+
+
+def seed(text: str) -> int:
+    """``--seed``: a whole number 0 .. :data:`MAX_SEED`."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if not 0 <= value <= MAX_SEED:
+        raise argparse.ArgumentTypeError(f"expected a whole number from 0 to {MAX_SEED} (2**32 - 1); got {text!r}")
+    return value
+
+
+def cores() -> int:
+    """The cores this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:                   # not on Linux
+        return os.cpu_count() or 1
+
+
+def jobs(text: str) -> int:
+    """``--jobs``: local worker processes, 1 .. the cores here (more only compete for them and hold memory
+    each; a cluster of more machines is ``--cluster``)."""
+    n = cores()
+    value = count(1)(text)
+    if value > n:
+        raise argparse.ArgumentTypeError(f"expected at most the {n} cores here; got {text} (more processes only "
+                                         "compete for them; for more machines, run a Dask scheduler and give "
+                                         "--cluster)")
+    return value
+
+
+def cluster_address(text: str) -> str:
+    """``--cluster``: a Dask scheduler's address, ``tcp://HOST:PORT`` (``HOST:PORT`` taken as tcp)."""
+    from urllib.parse import urlsplit
+
+    address = text if "://" in text else f"tcp://{text}"
+    try:
+        parts = urlsplit(address)
+        port = parts.port
+    except ValueError:
+        port = None
+    if parts.scheme not in ("tcp", "tls") or not parts.hostname or port is None or parts.path not in ("", "/"):
+        raise argparse.ArgumentTypeError(f"expected a Dask scheduler's address, tcp://HOST:PORT; got {text!r}")
+    return address
+
+
 def session_name(text: str) -> str:
     """A session's name: a file name part, never a path (refused at start, not after recording)."""
     from supramodal.checks import NAME_HELP, is_name

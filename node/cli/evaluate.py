@@ -7,7 +7,7 @@ import json
 import sys
 from pathlib import Path
 
-from supramodal.node.cli.arguments import count, mapping, output_folder, progress, say_plots_missing
+from supramodal.node.cli.arguments import count, mapping, output_folder, progress, say_plots_missing, seed
 from supramodal.node.cli.errors import CliError
 
 
@@ -45,7 +45,7 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
                         "grouped by manifest line: how well a model like it does on recordings it never saw; with "
                         "--out, writes cv-confusion.csv/.png and cv-reliability.csv/.png (default: no "
                         "cross-validation)")
-    p.add_argument("--seed", type=int, metavar="S",
+    p.add_argument("--seed", type=seed, metavar="S",
                    help="with --cv: seed of the folds and of the training (default: the model's own seed)")
     p.add_argument("--force", action="store_true", help="replace earlier evaluation files in --out (default: refuse)")
     p.add_argument("--quiet", action="store_true", help="no progress on stderr (warnings are still shown)")

@@ -6,7 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
-from supramodal.node.cli.arguments import count, output_folder
+from supramodal.node.cli.arguments import count, jobs, output_folder, seed
 from supramodal.node.cli.errors import CliError
 
 
@@ -23,8 +23,8 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
                         "(beyond the paper; not in all); calibration: whether the confidence means what it says "
                         "(calibration, fusion, unknown textures, anytime decisions; issue 23; not in all)")
     p.add_argument("--quick", action="store_true", help="short textures and small grids: seconds, not minutes")
-    p.add_argument("--jobs", type=count(1), help="worker processes (default: all cores); results do not depend on it")
-    p.add_argument("--seed", type=count(0), default=0,
+    p.add_argument("--jobs", type=jobs, help="worker processes (default: all cores); results do not depend on it")
+    p.add_argument("--seed", type=seed, default=0,
                    help="experiment seed: each run's network seed derives from it and the run; also the first "
                         "random texture set's seed")
     p.add_argument("--epochs", type=count(1), default=DEFAULT_EPOCHS,

@@ -4,7 +4,16 @@ from __future__ import annotations
 
 import argparse
 
-from supramodal.node.cli.arguments import count, mapping, output_folder, positive_seconds, progress
+from supramodal.node.cli.arguments import (
+    cluster_address,
+    count,
+    jobs,
+    mapping,
+    output_folder,
+    positive_seconds,
+    progress,
+    seed,
+)
 
 
 def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
@@ -34,16 +43,16 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
                    help="seconds of a contact for --target contact (default 0.5)")
     p.add_argument("--epochs", type=count(1), default=None,
                    help="most iRPROP- epochs a trial may train (default: the search's own list)")
-    p.add_argument("--seed", type=count(0), default=0,
+    p.add_argument("--seed", type=seed, default=0,
                    help="seed of the sampler, the folds and the networks (default 0)")
     p.add_argument("--batch", type=count(1), default=4,
                    help="trials asked at once; the result depends on the seed and this, not on --jobs or --cluster "
                         "(default 4)")
     p.add_argument("--quick", action="store_true",
                    help="fewer values per parameter, 16 trials, each fold's network trained on at most 4000 windows")
-    p.add_argument("--jobs", type=count(1), default=1,
+    p.add_argument("--jobs", type=jobs, default=1,
                    help="local processes scoring folds (a local Dask cluster when more than 1; default 1)")
-    p.add_argument("--cluster", default=None, metavar="ADDRESS",
+    p.add_argument("--cluster", type=cluster_address, default=None, metavar="ADDRESS",
                    help="a running Dask scheduler (tcp://HOST:PORT) whose workers score the folds instead")
     p.add_argument("--cache-memory", type=count(16), default=512, metavar="MB",
                    help="feature windows each process keeps in memory; more go to --out/cache (default 512)")

@@ -13,6 +13,7 @@ from supramodal.node.cli.arguments import (
     positive_seconds,
     progress,
     say_plots_missing,
+    seed,
 )
 from supramodal.node.cli.errors import CliError
 
@@ -63,7 +64,7 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
                    help=f"window, seconds (default {DEFAULT_WINDOW})")
     p.add_argument("--epochs", type=count(1), default=DEFAULT_EPOCHS,
                    help=f"iRPROP- epochs (default {DEFAULT_EPOCHS})")
-    p.add_argument("--seed", type=count(0), default=0,
+    p.add_argument("--seed", type=seed, default=0,
                    help="seed of the network's initial weights and of the cross-validation folds (default 0)")
     p.add_argument("--cv", type=count(2), metavar="K",
                    help="first report grouped K-fold cross-validation (folds by recording: mean and sd, recall, "
