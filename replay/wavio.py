@@ -52,7 +52,8 @@ from scipy.io import wavfile
 from supramodal.errors import InputError
 from supramodal.replay.errors import ClippingWarning, ReplayError, WavFormatError
 
-__all__ = ["WavInfo", "wav_info", "read_wav", "write_wav", "as_frames", "WRITE_DTYPES", "MAX_FLOAT_MAGNITUDE"]
+__all__ = ["WavInfo", "wav_info", "read_wav", "write_wav", "as_frames", "WRITE_DTYPES", "MAX_FLOAT_MAGNITUDE",
+           "MAX_WAV_CHANNELS", "MAX_WAV_RATE"]
 
 _PCM = 0x0001
 _IEEE_FLOAT = 0x0003
@@ -88,6 +89,11 @@ _CONVERT_HINT = ("convert it to 16-, 24- or 32-bit integer PCM or 32-bit float "
 #: Largest ``|sample|`` a float WAV may hold, in full scale (1.0): 1e6 is 120 dB above full
 #: scale, beyond any recording, yet far below what the filterbank's state can hold.
 MAX_FLOAT_MAGNITUDE = 1e6
+#: Highest sample rate a WAV may declare here, Hz (the drivers' highest, ``MAX_RATE``): a header beyond it is
+#: damaged or no sensor's, and a rate past 4.29e9 bytes a second cannot even be written back.
+MAX_WAV_RATE = 1_000_000
+#: Most channels a WAV holds (its header's field is 16 bits).
+MAX_WAV_CHANNELS = 65535
 
 #: dtypes :func:`write_wav` can write, by name.
 WRITE_DTYPES = ("float32", "float64", "int16", "int32", "uint8")
@@ -203,6 +209,9 @@ def wav_info(path: str | os.PathLike[str]) -> WavInfo:
         raise _fail(path, "corrupt: header declares 0 channels")
     if rate < 1:
         raise _fail(path, "corrupt: header declares a sample rate of 0 Hz")
+    if rate > MAX_WAV_RATE:
+        raise _fail(path, f"header declares a sample rate of {rate} Hz, beyond the {MAX_WAV_RATE} Hz of any sensor "
+                          "this reads (MAX_WAV_RATE): a damaged header, or resample the recording")
     if tag not in (_PCM, _IEEE_FLOAT):
         name = _TAG_NAMES.get(tag, "unknown")
         raise _fail(path, f"compressed or unknown sample format {name} (format tag 0x{tag:04x}) "
@@ -346,7 +355,13 @@ def write_wav(path: str | os.PathLike[str], data: ArrayLike, rate: int, dtype: s
     if isinstance(rate, bool) or not float(rate).is_integer() or rate < 1:
         raise InputError(f"rate must be a positive whole number of Hz (WAV stores integers), got {rate!r}")
     rate = int(rate)
+    if rate > MAX_WAV_RATE:
+        raise InputError(f"{path}: a rate of {rate} Hz is beyond the {MAX_WAV_RATE} Hz a WAV may have here "
+                         "(MAX_WAV_RATE); check the rate")
     x = as_frames(data)
+    if x.shape[1] > MAX_WAV_CHANNELS:
+        raise InputError(f"{path}: {x.shape[1]} channels; a WAV holds at most {MAX_WAV_CHANNELS} (its header's "
+                         "field is 16 bits): check the stream's channel count")
     bad = np.count_nonzero(~np.isfinite(x))
     if bad:
         raise InputError(f"{path}: refusing to write {bad} NaN or infinite samples")

@@ -706,3 +706,21 @@ def test_session_marks_come_back_in_the_blocks_at_any_rate_and_on_every_loop(tmp
                 got["restart"] += [b.start + i for i in b.restarts]
                 got["overrun"] += [b.start + i for i in b.overruns]
         assert got == want, (rate, loop)
+
+
+def test_a_wav_header_rate_or_channels_beyond_any_sensor_is_refused_not_a_struct_error(tmp_path):
+    """Issue 35, items 14 and 15: a header declaring 4e9 Hz, and 70000 channels to write, ended in
+    struct.error tracebacks (a rate past 4.29e9 bytes a second, a 16-bit channel field)."""
+    from supramodal.errors import InputError
+    from supramodal.replay.wavio import MAX_WAV_RATE, wav_info
+
+    (tmp_path / "fast.wav").write_bytes(_riff(1, 1, 4_000_000_000, 8, b"\x80" * 10))
+    with pytest.raises(ReplayError, match=rf"fast.wav.*4000000000 Hz, beyond the {MAX_WAV_RATE} Hz"):
+        wav_info(tmp_path / "fast.wav")
+    with pytest.raises(InputError, match="70000 channels; a WAV holds at most 65535"):
+        write_wav(tmp_path / "wide.wav", np.zeros((2, 70000)), 5000)
+    with pytest.raises(InputError, match="4000000000 Hz is beyond"):
+        write_wav(tmp_path / "fast2.wav", np.zeros((2, 1)), 4_000_000_000)
+    assert not list(tmp_path.glob("wide*")) and not list(tmp_path.glob("fast2*"))
+    (tmp_path / "ok.wav").write_bytes(_riff(1, 1, MAX_WAV_RATE, 8, b"\x80" * 10))
+    assert wav_info(tmp_path / "ok.wav").rate == MAX_WAV_RATE
