@@ -38,6 +38,7 @@ from __future__ import annotations
 import logging
 import math
 import os
+import re
 import threading
 import warnings
 from collections.abc import Iterable, Mapping
@@ -111,6 +112,44 @@ class _Kept(logging.Handler):
 
 _PYXDF_LOG = threading.Lock()       # one read at a time swaps pyxdf's logger
 
+#: Most channels a stream of an XDF file may declare (a WAV's most: every replayed stream becomes one).
+MAX_XDF_CHANNELS = 65535
+#: Longest stream header read by :func:`check_xdf_headers`, bytes.
+_MAX_HEADER_BYTES = 1 << 20
+_CHANNEL_COUNT = re.compile(rb"<channel_count>\s*([^<]*?)\s*</channel_count>")
+
+
+def check_xdf_headers(path: Path) -> None:
+    """Refuse a file whose stream headers declare more than :data:`MAX_XDF_CHANNELS` channels, or a count that
+    is no whole number, before pyxdf reads it: pyxdf sizes its buffers from the header (a 306-byte file
+    declaring 1e9 channels took 12.7 GB). Walks the chunks' lengths only (seeking past the samples); a
+    chunk structure it cannot follow is left for pyxdf to refuse."""
+    size = path.stat().st_size
+    with path.open("rb") as f:
+        if f.read(4) != b"XDF:":
+            return
+        while f.tell() < size:
+            n = f.read(1)
+            if len(n) != 1 or n[0] not in (1, 4, 8):
+                return
+            raw = f.read(n[0])
+            if len(raw) != n[0]:
+                return
+            length = int.from_bytes(raw, "little")
+            start = f.tell()
+            if length < 2 or start + length > size:
+                return
+            tag = int.from_bytes(f.read(2), "little")
+            if tag == 2 and length <= _MAX_HEADER_BYTES:        # a StreamHeader: StreamId + its XML
+                content = f.read(length - 2)
+                for found in _CHANNEL_COUNT.findall(content[4:]):
+                    text = found.decode("ascii", "replace")
+                    if not text.isdigit() or int(text) > MAX_XDF_CHANNELS:
+                        raise ReplayError(f"{path}: a stream header declares channel_count {text[:20]!r}; a stream "
+                                          f"has 1 to {MAX_XDF_CHANNELS} channels (MAX_XDF_CHANNELS): the header is "
+                                          "damaged, or the stream is no sensor's")
+            f.seek(start + length)
+
 
 def load_xdf_streams(path: str | os.PathLike[str]) -> list[XdfStream]:
     """Every stream of an XDF file, timestamps on the recorder's clock: a list of pyxdf's stream
@@ -121,6 +160,7 @@ def load_xdf_streams(path: str | os.PathLike[str]) -> list[XdfStream]:
     path = Path(path)
     if not path.is_file():
         raise DeviceUnavailable(f"{path}: no such XDF file")
+    check_xdf_headers(path)
     log = logging.getLogger("pyxdf")
     kept = _Kept()
     streams: list[XdfStream]

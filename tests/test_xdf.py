@@ -227,3 +227,24 @@ def test_a_gap_is_sized_on_the_sample_clock_not_from_its_two_jittered_edge_stamp
     out, times, filled, marks = fill_gaps(data, stamps, rate, tolerance=0.05, max_gap=10.0)
     assert filled == ((5000, 7500),) and marks == () and out.shape[0] == 15000
     assert np.all(np.diff(times) > 0)
+
+
+@pytest.mark.parametrize("declared", ["1000000000", "200000000", "65536", "-3", "1e9"])
+def test_a_header_declaring_channels_no_sensor_has_is_refused_before_anything_is_allocated(tmp_path, declared):
+    """Issue 35, item 7: a 306-byte file whose header said 1e9 channels took 12.7 GB before its refusal
+    (2e8: 4 GB, then a struct.error). The headers are read first: refused at once, in bounded memory."""
+    import resource
+    import struct
+
+    from xdf_writer import _chunk
+
+    xml = (f'<?xml version="1.0"?><info><name>w</name><type>EEG</type><channel_count>{declared}</channel_count>'
+           '<nominal_srate>5000.0</nominal_srate><channel_format>float32</channel_format></info>')
+    body = bytearray(struct.pack("<I", 1) + bytes([1, 1]) + struct.pack("<Bd", 8, 1.0) + b"\0\0\0\0")
+    data = (b"XDF:" + _chunk(1, b'<?xml version="1.0"?><info><version>1.0</version></info>')
+            + _chunk(2, struct.pack("<I", 1) + xml.encode()) + _chunk(3, bytes(body)))
+    (tmp_path / "big.xdf").write_bytes(data)
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    with pytest.raises(ReplayError, match=rf"big.xdf: a stream header declares channel_count '{declared}'"):
+        xdf_session(tmp_path / "big.xdf", name="w")
+    assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before < 200_000      # KB: no gigabytes
