@@ -47,6 +47,7 @@ import numpy as np
 
 from supramodal.bankfile import load_bank
 from supramodal.checks import NAME_HELP, is_name
+from supramodal.csvdata import bounded_lines
 from supramodal.errors import InputError
 from supramodal.node.runtime.outputs import check_new_file
 from supramodal.replay.errors import ReplayError
@@ -200,7 +201,7 @@ def read_times(path, frames: int) -> tuple[str, np.ndarray, np.ndarray]:
     except OSError as exc:
         raise ImportRecordingError(f"{path}: cannot read the timestamps ({exc.strerror or exc})") from None
     with fh:
-        rows = csv.reader(fh)
+        rows = csv.reader(bounded_lines(fh, str(path), ImportRecordingError))
         try:
             header = tuple(c.strip() for c in next(rows, ()))
             if header not in (BLOCK_COLUMNS, SAMPLE_COLUMNS):

@@ -37,6 +37,7 @@ from pathlib import Path
 from typing import Any
 
 from supramodal.checks import NAME_HELP, is_name
+from supramodal.csvdata import bounded_lines
 from supramodal.errors import InputError
 from supramodal.node.runtime.clock import frames_at
 from supramodal.replay.session import (
@@ -121,7 +122,7 @@ def read_spans(path) -> list[Span]:
     spans: list[tuple[int, Span]] = []
     try:
         with open(path, newline="", encoding="utf-8-sig") as f:
-            reader = csv.reader(f, strict=True)
+            reader = csv.reader(bounded_lines(f, str(path), LabelError), strict=True)
             header = None
             for fields in reader:
                 where = f"{path}, line {reader.line_num}"

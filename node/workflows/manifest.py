@@ -32,6 +32,7 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
+from supramodal.csvdata import bounded_lines
 from supramodal.errors import InputError
 from supramodal.replay.errors import ReplayError
 from supramodal.replay.session import session_paths
@@ -88,7 +89,7 @@ def _rows(path: Path):
     """Yield ``(line, fields)`` for every non-blank CSV record, ``line`` being the record's first line."""
     try:
         with open(path, newline="", encoding="utf-8-sig") as f:
-            reader = csv.reader(f, strict=True)
+            reader = csv.reader(bounded_lines(f, str(path), ManifestError), strict=True)
             first = 1
             for fields in reader:
                 if any(v.strip() for v in fields):
