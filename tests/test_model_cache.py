@@ -321,3 +321,35 @@ def test_the_node_reads_its_model_from_the_cache_on_its_second_start(tmp_path, m
     assert len(lines) == 2 and "read from the model cache" not in lines[0]
     assert lines[1].endswith(".npz)") and "read from the model cache" in lines[1]
     assert lines[1].split(" (read from")[0] == lines[0]
+
+
+def test_a_wait_for_another_process_s_training_is_said_before_it_starts(tmp_path):
+    """Issue 35, item 12: a node waited silently for a cache lock another process held. The wait is said
+    first (what holds it, that Ctrl-C stops it); the lock taken once the other lets it go."""
+    import fcntl
+    import threading
+
+    path = tmp_path / ("c" * 40 + ".npz")
+    other = os.open(path.with_name(path.name + ".lock"), os.O_CREAT | os.O_RDWR, 0o600)
+    fcntl.flock(other, fcntl.LOCK_EX)                       # another process trains it
+    said, held = [], threading.Event()
+
+    def take():
+        with model_cache._lock(path, said.append):
+            held.set()
+
+    taker = threading.Thread(target=take, daemon=True)
+    taker.start()
+    try:
+        deadline = time.monotonic() + 10
+        while not said and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert len(said) == 1 and "another process is training this model" in said[0] and ".lock" in said[0]
+        assert not held.is_set()
+    finally:
+        os.close(other)                                      # the other lets it go
+    taker.join(10)
+    assert held.is_set()
+    with model_cache._lock(path, said.append):               # free: nothing said
+        pass
+    assert len(said) == 1

@@ -243,17 +243,25 @@ def _read(path: Path, key: str, ts, pipeline):
 
 
 @contextlib.contextmanager
-def _lock(path: Path):
+def _lock(path: Path, progress=None):
     """Hold ``path``'s lock file (fcntl.flock) while a model is trained; nothing where there is no flock.
-    OSError where the lock file cannot be made (before anything is held)."""
+    OSError where the lock file cannot be made (before anything is held). Where another process holds it
+    (training the same model), ``progress`` is told so before the wait (issue 35: a node waited silently)."""
     try:
         import fcntl
     except ImportError:                 # Windows: two nodes started at once may both train
         yield
         return
-    fd = os.open(path.with_name(path.name + ".lock"), os.O_CREAT | os.O_RDWR, 0o600)
+    lock = path.with_name(path.name + ".lock")
+    fd = os.open(lock, os.O_CREAT | os.O_RDWR, 0o600)
     try:
-        fcntl.flock(fd, fcntl.LOCK_EX)  # interruptible: Ctrl-C raises KeyboardInterrupt here
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            if progress:
+                progress(f"model cache: another process is training this model (it holds {lock}); waiting for it, "
+                         "then reading its model (Ctrl-C stops the wait)")
+            fcntl.flock(fd, fcntl.LOCK_EX)  # interruptible: Ctrl-C raises KeyboardInterrupt here
         yield
     finally:
         os.close(fd)                    # lets the lock go
@@ -332,7 +340,7 @@ def trained_on_start(ts, pipeline, train, progress=None, held_out: list | None =
         pass
     except CacheRefused as exc:
         refused(exc)
-    lock = _lock(path)
+    lock = _lock(path, progress)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         lock.__enter__()
