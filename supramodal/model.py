@@ -457,13 +457,18 @@ def read_model_archive(path, names=_ARRAYS, optional=()) -> tuple[object, dict]:
     except ModelError:
         raise
     except ValueError as exc:
-        if "Object arrays" not in str(exc):       # numpy's words for a pickled member of an archive
-            raise ModelError(f"{path} is not a readable model file ({exc}); it may be truncated or of another "
-                             "kind") from exc
-        # numpy's message would suggest loading it unsafely: never. Say what the file is not.
-        raise ModelError(f"{path} is not a supramodal model file: a member holds a pickled Python object, which "
-                         "this program never loads (a model file holds only plain arrays); train a model "
-                         "with `supramodal train`") from None
+        # numpy's messages suggest loading the file unsafely (allow_pickle=True, pickle.load()): never, and
+        # never repeated. Say what the file is not.
+        # numpy calls any file that is neither .npy nor .npz "pickled data"; a pickle (protocol 2 and on)
+        # starts with 0x80, an archive's member of objects is named by numpy
+        with open(path, "rb") as f:
+            pickle_file = f.read(1) == b"\x80"
+        if "Object arrays" in str(exc) or pickle_file:
+            raise ModelError(f"{path} is not a supramodal model file: it holds a pickled Python object, which this "
+                             "program never loads (a model file holds only plain arrays); train a model with "
+                             "`supramodal train`") from None
+        raise ModelError(f"{path} is not a readable model file: not an .npz archive of plain arrays (truncated, "
+                         "or another kind of file); train a model with `supramodal train`") from None
     except (zipfile.BadZipFile, OSError, EOFError) as exc:
         raise ModelError(f"{path} is not a readable model file ({exc}); "
                          "it may be truncated or of another kind") from exc

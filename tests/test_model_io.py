@@ -126,7 +126,7 @@ def test_empty_file(tmp_path):
 def test_text_file(tmp_path):
     p = tmp_path / "m.npz"
     p.write_text("format: supramodal-model\n")
-    with pytest.raises(ModelError, match="not a readable model file"):
+    with pytest.raises(ModelError, match="not a readable model file: not an .npz archive of plain arrays"):
         TextureModel.load(p)
 
 
@@ -261,7 +261,7 @@ def test_pickle_inside_the_npz_is_refused_without_unpickling(saved, tmp_path, wh
     p = tmp_path / "evil.npz"
     with open(p, "wb") as fh:
         np.savez(fh, **parts)                           # numpy pickles object arrays
-    with pytest.raises(ModelError, match="not a supramodal model file: a member holds a pickled Python object") as err:
+    with pytest.raises(ModelError, match="not a supramodal model file: it holds a pickled Python object") as err:
         TextureModel.load(p)
     assert "allow_pickle" not in str(err.value)          # numpy's advice to load it unsafely is not passed on
     assert not marker.exists(), "the model loader unpickled an object"
@@ -329,3 +329,22 @@ def test_negative_peak_threshold_in_a_header_is_refused(saved):
     write_parts(saved, header, arrays)
     with pytest.raises(ModelError, match="peak_threshold"):
         TextureModel.load(saved)
+
+
+@pytest.mark.parametrize("content", [b"hello, I am a text file\n", b"PICKLE", "pickle"])
+def test_a_text_file_or_a_pickle_given_as_a_model_gets_no_advice_to_load_it_unsafely(tmp_path, content):
+    """Issue 35, item 28: numpy's own message (load it with allow_pickle=True, or pickle.load()) was passed on
+    to the user for a text file or a pickle given as a model. Refused, saying what the file is not."""
+    import pickle
+
+    p = tmp_path / "m.npz"
+    if content == "pickle":
+        p.write_bytes(pickle.dumps(_Touch(tmp_path / "unpickled")))
+    else:
+        p.write_bytes(content)
+    said = "m.npz is not a supramodal model file: it holds a pickled" if content == "pickle" else \
+        "m.npz is not a readable model file: not an .npz archive"
+    with pytest.raises(ModelError, match=said) as err:
+        TextureModel.load(p)
+    assert "allow_pickle" not in str(err.value) and "pickle.load" not in str(err.value)
+    assert not (tmp_path / "unpickled").exists()
