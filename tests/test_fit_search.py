@@ -212,3 +212,16 @@ def test_fit_command_refuses_an_impossible_budget_at_once(manifest, tmp_path, ca
     assert main(["fit", str(manifest), "--out", str(tmp_path / "fit"), "--max-window", "0.002"]) == 2
     err = capsys.readouterr().err
     assert "supramodal: error:" in err and "raise --max-window" in err and "trial" not in err
+
+
+def test_a_manifest_of_one_label_is_refused_as_train_refuses_it(tmp_path, capsys):
+    """Issue 35, item 22: fit took a manifest of one label and reported "windows 1.000 ± 0.000" with a
+    bank.json; train refused it. Both refuse it now, with the same words, before any work."""
+    name, peaks = next(iter(TEXTURES.items()))
+    write_wav(tmp_path / "a.wav", 0.2 * synthesize(peaks, RATE, 1.0, seed=1)[:, None], RATE)
+    (tmp_path / "m.csv").write_text("path,label\na.wav,only\n")
+    for argv in (["fit", str(tmp_path / "m.csv"), "--out", str(tmp_path / "fit"), "--quick"],
+                 ["train", "--bank", "whisker", "--manifest", str(tmp_path / "m.csv"), "--out", str(tmp_path / "m.npz")]):
+        assert main(argv) == 2
+        assert "training needs at least two labels, found ['only']" in capsys.readouterr().err
+    assert not (tmp_path / "fit" / "bank.json").exists()

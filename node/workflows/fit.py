@@ -30,7 +30,7 @@ import numpy as np
 from supramodal.bankfile import bank_from_description, save_bank
 from supramodal.banks import Bank, cochlea_bank, whisker_bank
 from supramodal.node.scene.band import BandWarning, channels_beyond_band
-from supramodal.node.workflows.manifest import read_manifest
+from supramodal.node.workflows.manifest import manifest_classes, read_manifest
 from supramodal.node.workflows.reports import pyplot_or_none
 from supramodal.node.workflows.training import cross_validate_manifest
 from supramodal.replay.session import session_paths
@@ -97,6 +97,7 @@ def fit_manifest(manifest, k: int = 5, epochs: int = 300, seed: int = 0, quick: 
         features).
     """
     recs = read_manifest(manifest)
+    manifest_classes(recs, manifest)
     rates = sorted({_recording_rate(r.path) for r in recs})
     if len(rates) > 1 and progress:
         progress(f"fit: recordings at {rates} Hz; the banks run at {rates[-1]} Hz, the others resampled")

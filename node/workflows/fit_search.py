@@ -57,7 +57,7 @@ from supramodal.evaluation import pooled_accuracy
 from supramodal.model import TextureModel
 from supramodal.node.scene.band import channels_beyond_band
 from supramodal.node.workflows.fit_cache import DEFAULT_MEMORY_BYTES, PART, FeatureCache
-from supramodal.node.workflows.manifest import ManifestError, read_manifest
+from supramodal.node.workflows.manifest import ManifestError, manifest_classes, read_manifest
 from supramodal.node.workflows.reports import pyplot_or_none
 from supramodal.pipeline import window_length
 from supramodal.replay.session import session_paths
@@ -526,6 +526,7 @@ def fit_search(manifest, k: int = 5, seed: int = 0, quick: bool = False, trials:
         raise FitError(install_hint()) from None
     say = progress or (lambda m: None)
     recs = read_manifest(manifest)
+    manifest_classes(recs, manifest)          # one label: refused as train refuses it (it scored 1.000)
     try:
         grouped_folds([r.where for r in recs], [r.label for r in recs], k, seed)
     except InputError as exc:

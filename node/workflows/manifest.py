@@ -215,3 +215,13 @@ def read_manifest(path) -> list[Recording]:
     for rec in recs:
         check_span(rec, recording_info(rec))
     return recs
+
+
+def manifest_classes(recs: list[Recording], manifest) -> tuple[str, ...]:
+    """The labels of a manifest's recordings, sorted; a :class:`ManifestError` with fewer than two (a model
+    that tells one texture from nothing learns nothing: ``train`` and ``fit`` refuse it alike)."""
+    classes = tuple(sorted({r.label for r in recs}))
+    if len(classes) < 2:
+        raise ManifestError(f"{manifest}: training needs at least two labels, found {list(classes)}; "
+                            "add recordings of another texture")
+    return classes

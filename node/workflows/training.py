@@ -23,7 +23,7 @@ from supramodal.mlp import DEFAULT_EPOCHS
 from supramodal.model import TextureModel
 from supramodal.node.runtime.streams import channel_mapper
 from supramodal.node.scene.band import warn_if_beyond_band
-from supramodal.node.workflows.manifest import ManifestError, Recording, read_manifest
+from supramodal.node.workflows.manifest import ManifestError, Recording, manifest_classes, read_manifest
 from supramodal.pipeline import FeaturePipeline
 from supramodal.replay.driver import ReplayDriver
 from supramodal.replay.session import session_paths
@@ -89,10 +89,7 @@ def _manifest_windows(manifest, make_pipeline, mapping, progress):
     """The manifest's recordings, its classes (sorted) and every recording's feature windows
     (``make_pipeline()``: a fresh FeaturePipeline per recording)."""
     recs = read_manifest(manifest)
-    classes = tuple(sorted({r.label for r in recs}))
-    if len(classes) < 2:
-        raise ManifestError(f"{manifest}: training needs at least two labels, found {list(classes)}; "
-                            "add recordings of another texture")
+    classes = manifest_classes(recs, manifest)
     windows = []
     for k, rec in enumerate(recs):
         pipeline = make_pipeline()
