@@ -136,6 +136,7 @@ def train_fused(paths, method: str = "early", epochs: int = DEFAULT_EPOCHS, seed
         ``log_loss`` (late and streams: also ``brier``, ``ece``, ``sure_count``, ``sure_wrong``);
         ``posteriors``: ``{"source": "unseen" | "out-of-fold", "why": text}``, which of the two above.
     """
+    from supramodal.node.scene.schema import load_scene
     from supramodal.node.workflows.training import scene_stream, session_fingerprint
 
     if method not in FUSION_METHODS:
@@ -149,6 +150,15 @@ def train_fused(paths, method: str = "early", epochs: int = DEFAULT_EPOCHS, seed
     groups: list[str] = []
     own: tuple[list[np.ndarray], list[np.ndarray]] = ([], [])    # each sense model's own log-posteriors per pair
     seen = 0
+    # The same recording twice (or a copy of it), checked before any work: its pairs would be counted twice,
+    # on both sides of the folds.
+    fingerprints: dict[str, object] = {}
+    for path in paths:
+        fingerprint = session_fingerprint(scene_stream(path, load_scene(path).streams[0].name)[2])
+        if fingerprint in fingerprints:
+            raise InputError(f"{path}: its recording is {fingerprints[fingerprint]}'s again (the same samples); give "
+                             "each recording once")
+        fingerprints[fingerprint] = path
     for k_scene, path in enumerate(paths):
         graph, pairs = scene_pairs(path, progress, models) if models else scene_pairs(path, progress)
         a, b = (next(s for s in graph.streams if s.name == n) for n in graph.fusion.inputs)

@@ -178,6 +178,7 @@ def train_from_scenes(paths, stream: str, epochs: int = DEFAULT_EPOCHS, seed: in
     windows: list[np.ndarray] = []
     groups: list[str] = []
     seen: list[str] = []
+    owners: dict[str, object] = {}                      # fingerprint -> the scene it came in
     make: Callable[[], FeaturePipeline] | None = None     # the first scene's pipeline, and its sense
     sense: Sense | None = None
     for path in paths:
@@ -192,6 +193,13 @@ def train_from_scenes(paths, stream: str, epochs: int = DEFAULT_EPOCHS, seed: in
             except SupramodalError as exc:
                 raise InputError(f"{path}: stream {stream!r} differs from {first}'s ({exc}); train on recordings "
                                  "of one graph") from None
+        fingerprint = session_fingerprint(session)
+        if fingerprint in owners:
+            # the same recording twice (or a copy of it): its windows would be counted twice, and folds by
+            # recording would hold it on both sides (the calibration fitted on leaked copies)
+            raise InputError(f"{path}: its recording is {owners[fingerprint]}'s again (the same samples); give each "
+                             "recording once")
+        owners[fingerprint] = path
         labels = load_session(session).labels
         if not labels:
             raise InputError(f"{session}: the recording has no labels; label it (supramodal label {path} SPANS.csv, "
@@ -204,7 +212,7 @@ def train_from_scenes(paths, stream: str, epochs: int = DEFAULT_EPOCHS, seed: in
                 recs.append(rec)
                 windows.append(v)
                 groups.append(str(path))
-        seen.append(session_fingerprint(session))
+        seen.append(fingerprint)
         if progress:
             progress(f"{path}: {len(labels)} labelled span(s) of {sorted({lab.label for lab in labels})}")
     classes = tuple(sorted({r.label for r in recs}))
