@@ -263,3 +263,16 @@ def test_a_graphs_own_sessions_imported_with_models_and_fusion_replay_to_its_fus
         [(e["window"], e["senses"], e["predicted"]) for e in own]
     shift = lab[0]["end"] - own[0]["end"]
     assert np.allclose([e["end"] - shift for e in lab], [e["end"] for e in own], atol=2e-6)
+
+
+def test_per_sample_times_in_milliseconds_are_refused_not_read_as_gaps(lab_files, capsys):
+    """Issue 35, item 20: per-sample times in milliseconds were taken as seconds with gaps between every two
+    samples (2 s of 8 kHz became a 64 MB WAV of 16 M frames and 15999 filled gaps). Refused, saying so."""
+    lines = (lab_files / "mic.csv").read_text().splitlines()
+    first = float(lines[1])                         # milliseconds since the first sample: within MAX_TIME
+    (lab_files / "mic.csv").write_text("\n".join([lines[0], *(repr((float(v) - first) * 1000) for v in lines[1:])])
+                                       + "\n")
+    assert _import(lab_files) == 2
+    err = capsys.readouterr().err
+    assert "mic.csv: its times step by 0.0226" in err and "milliseconds?" in err and "44100 Hz" in err
+    assert not (lab_files / "rec").exists()

@@ -266,6 +266,15 @@ def _wav_session(src: SourceFiles) -> tuple[Session, float]:
         # a block is complete when its last sample is taken: the first sample, that many periods before
         first = float(seconds[0] - (ends[0] - 1) / rate)
         return Session(data, rate, what, arrivals=(ends, seconds, float(rate))), first
+    # Times in another unit than seconds (milliseconds: every step 1000 times too long) would be read as
+    # gaps to fill: 2 s of 8 kHz became 16 M frames. The steps' median says the unit.
+    if seconds.size > 1:
+        step = float(np.median(np.diff(seconds)))
+        if not 0.5 / rate <= step <= 2.0 / rate:
+            raise ImportRecordingError(
+                f"{src.times}: its times step by {step:.6g} s (the median), where samples at the WAV's {rate} Hz come "
+                f"every {1 / rate:.6g} s: {'milliseconds? ' if 500 / rate <= step <= 2000 / rate else ''}give each "
+                "frame's time in seconds, or the WAV at its real rate")
     # Per-sample times follow an XDF stream's rules (blocks of about 10 ms at their last sample's
     # time, gaps filled and marked, the rate the times show): read as the one stream of a file.
     stream = {"info": {"name": [src.name], "type": ["imported"], "source_id": [""], "nominal_srate": [str(rate)],
