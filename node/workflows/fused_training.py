@@ -154,7 +154,10 @@ def train_fused(paths, method: str = "early", epochs: int = DEFAULT_EPOCHS, seed
     # on both sides of the folds.
     fingerprints: dict[str, object] = {}
     for path in paths:
-        fingerprint = session_fingerprint(scene_stream(path, load_scene(path).streams[0].name)[2])
+        try:
+            fingerprint = session_fingerprint(scene_stream(path, load_scene(path).streams[0].name)[2])
+        except (InputError, OSError):
+            continue                    # no recorded session here: scene_pairs says what the scene is not
         if fingerprint in fingerprints:
             raise InputError(f"{path}: its recording is {fingerprints[fingerprint]}'s again (the same samples); give "
                              "each recording once")
