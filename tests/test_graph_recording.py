@@ -140,10 +140,18 @@ def test_a_two_sense_session_recorded_live_replays_with_the_same_fused_decisions
     assert {p.name for p in tmp_path.iterdir()} == {"s.toml", "s.whiskers.wav", "s.whiskers.json", "s.mic.wav",
                                                    "s.mic.json", "s.whiskers.npz", "s.mic.npz"}
     assert load_session(tmp_path / "s.mic").arrivals[2] == 44100 * 8.0      # the clock as it was set up
+    # Each stream's 320 windows fused once each, paired or alone. (The count of fused windows was asserted
+    # 320: at speed 8 a window is 12.5 ms of host time and the 37 ms offset 4.6 ms, so 1.6 ms of clock error
+    # under load paired each whisker window with the microphone's one before, one alone at each end: 321 in
+    # a CI dry run, the replay the same. The replay's equality is what this test is about.)
+    fused_live = [e for e in live.windows if e.stream == "fused"]
+    for sense in ("whiskers", "mic"):
+        assert sum(sense in e.senses for e in fused_live) == 320, sense
+    assert sum("alone" in e.flags for e in fused_live) <= 2
     for speed in ("max", 4.0):
         again = ListSink()
         result = build_node(load_scene(replay_scene), speed=speed, sinks_override=[again]).run()
-        assert _fused(again) == _fused(live) and len(_fused(live)) == 320
+        assert _fused(again) == _fused(live)
         for a, b in zip((e for e in live.windows if e.stream == "fused"),
                         (e for e in again.windows if e.stream == "fused")):
             assert (a.start, a.end) == (b.start, b.end)     # the clocks were fed the very same stamps
