@@ -457,10 +457,9 @@ def read_model_archive(path, names=_ARRAYS, optional=()) -> tuple[object, dict]:
     except ModelError:
         raise
     except ValueError as exc:
-        # numpy's messages suggest loading the file unsafely (allow_pickle=True, pickle.load()): never, and
-        # never repeated. Say what the file is not.
-        # numpy calls any file that is neither .npy nor .npz "pickled data"; a pickle (protocol 2 and on)
-        # starts with 0x80, an archive's member of objects is named by numpy
+        # numpy's own message advises an unsafe load, which this program never does nor repeats: say what
+        # the file is not. numpy calls any file that is neither .npy nor .npz "pickled data"; a pickle
+        # (protocol 2 and on) starts with 0x80, and an archive's member of objects is named by numpy.
         with open(path, "rb") as f:
             pickle_file = f.read(1) == b"\x80"
         if "Object arrays" in str(exc) or pickle_file:

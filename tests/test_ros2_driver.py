@@ -214,6 +214,15 @@ def _read_until(driver, frames: int, timeout: float = 10.0) -> list:
     return blocks
 
 
+def _matched_publisher(talker, topic: str):
+    """A Float32MultiArray publisher of ``talker`` on ``topic``, matched with the open driver's subscription
+    (and 0.3 s more, as a publisher that waits for its subscribers before it speaks)."""
+    pub = talker.node.create_publisher(Float32MultiArray, topic, 100)
+    assert talker.wait_for(lambda: pub.get_subscription_count() > 0, 10.0)
+    time.sleep(0.3)
+    return pub
+
+
 def test_a_message_of_another_layout_is_refused_counted_and_said_and_nan_set_to_zero():
     """Bad input (issue 33): a message of 3 channels where the scene reads 2 is refused, counted and said
     (``channels``); non-finite values are set to 0, counted and said (``nan``); both layouts of the
@@ -223,9 +232,7 @@ def test_a_message_of_another_layout_is_refused_counted_and_said_and_nan_set_to_
     talker = Subscriber("talker")
     try:
         with driver:
-            pub = talker.node.create_publisher(Float32MultiArray, topic, 100)
-            assert talker.wait_for(lambda: pub.get_subscription_count() > 0, 10.0)
-            time.sleep(0.3)
+            pub = _matched_publisher(talker, topic)
             rows = np.arange(20, dtype=np.float32).reshape(10, 2) / 100
             _arrays(pub, rows)
             _arrays(pub, np.zeros((10, 3)))                       # refused
@@ -257,9 +264,7 @@ def test_a_message_of_another_size_than_the_scene_s_block_is_kept_counted_and_sa
     talker = Subscriber("talker")
     try:
         with driver:
-            pub = talker.node.create_publisher(Float32MultiArray, topic, 100)
-            assert talker.wait_for(lambda: pub.get_subscription_count() > 0, 10.0)
-            time.sleep(0.3)
+            pub = _matched_publisher(talker, topic)
             rows = np.arange(50, dtype=np.float32).reshape(25, 2) / 100
             for part in (rows[:10], rows[10:17], rows[17:]):     # 10, then 7 and 8: two of another size
                 _arrays(pub, part)

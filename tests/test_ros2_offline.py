@@ -5,7 +5,6 @@ missing (issue 33, item 1)."""
 from __future__ import annotations
 
 import sys
-import time
 
 import pytest
 
@@ -76,27 +75,31 @@ def _by_name(statuses):
     return {s.name: s for s in statuses}
 
 
+#: The reports' time (``time.time()`` units): a fixed one, so that no report depends on the wall clock.
+NOW = 1_000_000.0
+
+
 def test_diagnostics_say_what_changed_since_the_last_report_and_an_unplug_is_an_error():
     before = _health()
-    steady = _by_name(diagnostic_report("n", _health(), {}, before, time.time()))
+    steady = _by_name(diagnostic_report("n", _health(), {}, before, NOW))
     assert {s.level for s in steady.values()} == {OK}
     values = dict(steady["n: stream main"].values)
     assert values["frames_delivered"] == "6000" and values["latency_p99_ms"] == "2.5" and values["clock_ppm"] == "12.5"
     assert steady["n: stream main"].hardware_id == "whiskers"
 
     lossy = _by_name(diagnostic_report("n", _health(filled=40, dropped=2, alone=3, sink_dropped=1), {}, before,
-                                       time.time()))
+                                       NOW))
     assert lossy["n: stream main"].level == WARN and "40 frames filled and 2 dropped" in lossy["n: stream main"].message
     assert lossy["n: fusion"].level == WARN and lossy["n: sinks"].level == WARN
     # the same counts a period later: nothing new, all OK again
     again = _by_name(diagnostic_report("n", _health(filled=40, dropped=2, alone=3, sink_dropped=1), {},
-                                       _health(filled=40, dropped=2, alone=3, sink_dropped=1), time.time()))
+                                       _health(filled=40, dropped=2, alone=3, sink_dropped=1), NOW))
     assert {s.level for s in again.values()} == {OK}
 
     state = SourceState()
-    state.last, state.unplugged = DriverEvent("unplug", "the port went away", time.time(), source="whiskers"), True
+    state.last, state.unplugged = DriverEvent("unplug", "the port went away", NOW - 60.0, source="whiskers"), True
     state.counts["unplug"] += 1
-    down = _by_name(diagnostic_report("n", _health(), {"whiskers": state}, before, time.time()))
+    down = _by_name(diagnostic_report("n", _health(), {"whiskers": state}, before, NOW))
     assert down["n: stream main"].level == ERROR and "unplugged" in down["n: stream main"].message
     assert down["n: source whiskers"].level == ERROR and dict(down["n: source whiskers"].values)["events_unplug"] == "1"
 
@@ -107,10 +110,10 @@ def test_diagnostics_say_what_changed_since_the_last_report_and_an_unplug_is_an_
     assert _by_name(diagnostic_report("n", _health(), {"whiskers": gap}, before, 1002.5))["n: source whiskers"].level \
         == OK
 
-    starting = diagnostic_report("n", None, {}, None, time.time())
+    starting = diagnostic_report("n", None, {}, None, NOW)
     assert len(starting) == 1 and starting[0].level == OK and "starting up" in starting[0].message
     # an event while the node starts up (a port that went away during the training) is said all the same
-    assert [s.level for s in diagnostic_report("n", None, {"whiskers": state}, None, time.time())] == [OK, ERROR]
+    assert [s.level for s in diagnostic_report("n", None, {"whiskers": state}, None, NOW)] == [OK, ERROR]
 
 
 def test_a_scene_with_a_bad_ros2_sink_is_refused_naming_the_key_before_anything_starts(tmp_path):
