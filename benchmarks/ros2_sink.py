@@ -1,7 +1,7 @@
 """What the ``ros2`` sink costs the node: its decision latency and throughput with the sink off, on with a
 live subscriber, and on with a subscriber stopped by SIGSTOP, side by side in one run.
 
-    python3 -m supramodal.benchmarks.ros2_sink --seconds 0.5 --rounds 3
+    python3 -m supramodal.benchmarks.ros2_sink --seconds 2 --rounds 3
 
 Needs the ``ros2`` extra (or a sourced ROS 2). DDS stays on this machine
 (``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``) in a domain drawn for the run (``ROS_DOMAIN_ID`` 1-100,
@@ -16,8 +16,10 @@ process (reliable, keep last 10 on every decision and posteriors topic), matched
 starts (``wait_for_subscribers``), stopped with SIGSTOP once the first window is written in the third
 case. Reported per case, pooled over rounds: the node's decision latency per stream (p50, p99, max, from
 the arrival of the block that completes a window to its event), windows written by the jsonl sink and
-dropped by each sink, the run's wall time; and the p99's difference to the case without the sink.
-Exit status 0 when no case lost a window of the jsonl sink.
+dropped by each sink, the run's wall time; and the p99's difference to the case without the sink, with
+its 95 % interval (a bootstrap over the windows of both cases: a p99 rests on its few slowest windows,
+and the interval says how far apart two runs of the same case fall). Exit status 0 when no case lost a
+window of the jsonl sink.
 """
 
 from __future__ import annotations
@@ -141,9 +143,18 @@ def run_case(case: str, seconds: float, folder: Path, keys: str = "") -> dict:
     return {"latencies": latencies, "windows": len(lines) - 1, "wall": summary["wall_seconds"], "sinks": sinks}
 
 
+def p99_difference_interval(on: np.ndarray, off: np.ndarray, draws: int = 2000, seed: int = 0) -> tuple[float, float]:
+    """The 95 % bootstrap interval of ``p99(on) - p99(off)``, each case's windows resampled on their own."""
+    rng = np.random.default_rng(seed)
+    diffs = [np.percentile(rng.choice(on, on.size), 99) - np.percentile(rng.choice(off, off.size), 99)
+             for _ in range(draws)]
+    low, high = np.percentile(diffs, [2.5, 97.5])
+    return float(low), float(high)
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--seconds", type=float, default=0.5, help="seconds of each of the 8 textures per run (0.5)")
+    p.add_argument("--seconds", type=float, default=2.0, help="seconds of each of the 8 textures per run (2)")
     p.add_argument("--rounds", type=int, default=3, help="rounds of the three cases (3)")
     p.add_argument("--sink-keys", default="", metavar="TOML",
                    help='the ros2 sink\'s other keys, TOML lines (e.g. "diagnostics_period = 60"; default none)')
@@ -172,15 +183,17 @@ def main(argv: list[str] | None = None) -> int:
           + (f"; the sink's keys: {args.sink_keys!r}" if args.sink_keys else "") + "\n")
     print("| case | stream | p50 | p99 | max | windows per run | dropped or failed by sinks | wall s |")
     print("|---|---|---|---|---|---|---|---|")
-    p99_off = {}
+    off = {s: np.asarray(v) for s, v in pooled["off"]["latencies"].items()}
     for case in CASES:
         into = pooled[case]
         for s, v in sorted(into["latencies"].items()):
             a = np.asarray(v)
             p99 = float(np.percentile(a, 99))
             if case == "off":
-                p99_off[s] = p99
-            delta = "" if case == "off" else f" ({p99 - p99_off[s]:+.2f})"
+                delta = ""
+            else:
+                low, high = p99_difference_interval(a, off[s])
+                delta = f" ({p99 - float(np.percentile(off[s], 99)):+.2f}, 95 % {low:+.2f} to {high:+.2f})"
             print(f"| {case} | {s} | {np.percentile(a, 50):.2f} | {p99:.2f}{delta} | {a.max():.2f} | "
                   f"{sorted(set(into['windows']))} | {into['dropped']} | {np.mean(into['wall']):.2f} |")
     lost = len({w for c in CASES for w in pooled[c]["windows"]}) != 1

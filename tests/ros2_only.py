@@ -96,6 +96,11 @@ class Subscriber:
             time.sleep(0.02)
         return done()
 
+    def publishes(self, namespace: str, topic: str) -> bool:
+        """Whether a node in ``namespace`` publishes ``topic``, as this subscriber's side of the
+        discovery sees it (the ros2 sink's publisher runs in a process of its own)."""
+        return any(info.node_namespace == namespace for info in self.node.get_publishers_info_by_topic(topic))
+
     def close(self) -> None:
         self.executor.shutdown(timeout_sec=2.0)
         self.node.destroy_node()

@@ -18,7 +18,7 @@ from supramodal.drivers.ros2 import (
     split_ros_arguments,
     use_ros_arguments,
 )
-from supramodal.node.runtime.sinks.ros2 import ERROR, OK, WARN, SourceState, diagnostic_report
+from supramodal.node.runtime.sinks.ros2_publisher import ERROR, OK, WARN, SourceState, diagnostic_report
 
 
 @pytest.mark.parametrize("name, ok", [("supramodal", True), ("_x1", True), ("texture_node", True), ("", False),
@@ -138,3 +138,26 @@ def test_a_stream_whose_name_cannot_be_a_topic_part_is_refused_saying_how_to_ren
     scene = scene_from_dict(d, "s.toml", tmp_path)
     with pytest.raises(SceneError, match=r"left-whisker.*ROS topic name; rename"):
         build_node(scene)
+
+
+def test_a_frame_to_the_publisher_process_comes_back_as_it_was_sent():
+    """The pipe's frames (JSON, then a NUL and float64 bytes): headers of every JSON kind, NUL characters
+    and NaN in them, payloads holding NUL bytes, and none; checked against the values themselves."""
+    import math
+
+    import numpy as np
+
+    from supramodal.node.runtime.sinks.ros2 import decode, encode
+
+    rng = np.random.default_rng(7)
+    for _ in range(200):
+        values = rng.standard_normal(int(rng.integers(0, 70)))
+        values[rng.random(values.size) < 0.1] = 0.0           # 0.0 is eight NUL bytes
+        header = {"op": "window", "stream": "a\0b\n\u00e9", "end": float(rng.random()), "n": values.size,
+                  "decision": {"predicted": "x", "confidence": np.float32(0.5), "nan": math.nan},
+                  "classes": None}
+        got, payload = decode(encode(header, values.tobytes()))
+        assert got["stream"] == "a\0b\n\u00e9" and got["end"] == header["end"] and got["n"] == values.size
+        assert got["decision"]["confidence"] == 0.5 and math.isnan(got["decision"]["nan"]) and got["classes"] is None
+        assert np.array_equal(np.frombuffer(payload, dtype=np.float64), values)
+    assert decode(encode({"op": "close"})) == ({"op": "close"}, b"")

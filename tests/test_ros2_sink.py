@@ -33,7 +33,9 @@ from std_msgs.msg import String  # noqa: E402
 # two senses fused, a jsonl sink, a ros2 sink; a user's subscriber in a process of its own (reliable, keep
 # last 10, on every decision and posteriors topic)
 from supramodal.benchmarks.ros2_sink import SUBSCRIBER, scene  # noqa: E402
-from supramodal.node.runtime.sinks.ros2 import ERROR, OK, Ros2Sink, TopicStream  # noqa: E402
+from supramodal.node.runtime.sinks.ros2 import Ros2Sink  # noqa: E402
+from supramodal.node.runtime.sinks.ros2_publisher import ERROR, OK, Ros2Publisher, TopicStream  # noqa: E402
+
 
 def _node(tmp_path: Path, *args: str) -> subprocess.Popen:
     return subprocess.Popen([sys.executable, "-m", "supramodal", "run", str(tmp_path / "node.toml"), "--quiet", *args],
@@ -117,8 +119,8 @@ def test_driver_events_reach_the_events_topic_and_the_diagnostics_within_a_secon
     sub = Subscriber()
     try:
         sub.subscribe("/diagnostics", DiagnosticArray, 100)
-        assert sub.wait_for(lambda: sink._diagnostics.get_subscription_count() > 0, 10.0)
-        time.sleep(0.3)                            # the subscriber's side of the match
+        assert sub.wait_for(lambda: sub.publishes(ns, "/diagnostics"), 10.0)
+        time.sleep(0.5)                            # the publisher's side of the match (in its process)
         t = time.monotonic()
         sink.event(DriverEvent("unplug", "the port went away", time.time(), source="whiskers"))
 
@@ -222,7 +224,7 @@ def test_under_use_sim_time_a_window_is_stamped_on_the_bags_clock():
 
     use_ros_arguments(["--ros-args", "-p", "use_sim_time:=true"])
     try:
-        sink = Ros2Sink([TopicStream("main", ("a", "b"))], namespace=unique_namespace())
+        sink = Ros2Publisher([TopicStream("main", ("a", "b"))], namespace=unique_namespace())
     finally:
         use_ros_arguments([])
     pub = Subscriber("bag_clock")
@@ -289,7 +291,8 @@ def test_an_unplug_of_the_mock_board_is_on_the_diagnostics_within_a_second():
             sink = Ros2Sink([TopicStream("main", (), ("Af",), tuple(whisker_bank().names))], namespace=ns,
                             outputs=["features"])
             node = Node(driver, FeaturePipeline(whisker_bank(), ("Af",)), [QueuedSink(sink)])
-            assert sub.wait_for(lambda: sink._diagnostics.get_subscription_count() > 0, 10.0)
+            assert sub.wait_for(lambda: sub.publishes(ns, "/diagnostics"), 10.0)
+            time.sleep(0.5)                        # the publisher's side of the match (in its process)
 
             def board():
                 time.sleep(0.3)
@@ -350,3 +353,81 @@ def test_the_subscriber_docs_ros2_md_gives_to_copy_prints_the_fused_decisions():
         out, err = listener.communicate(timeout=20)
     assert "decided T1" in out, (out, err[-800:])
     assert "{'T1': 0.8, 'T2': 0.2}" in out, out
+
+
+def test_a_publisher_process_that_dies_is_counted_and_said_and_never_mistaken_for_a_closed_stdout():
+    """The ros2 sink publishes from a process of its own: killed, each window after it is a counted error
+    of the sink naming the process's end (never a ``BrokenPipeError``, which would stop the node as a
+    closed stdout does), the drain says it could not, and closing does not wait on it."""
+    from supramodal.node.runtime.events import WindowEvent
+    from supramodal.node.runtime.sinks import QueuedSink
+
+    sink = Ros2Sink([TopicStream("main", ("a", "b"))], namespace=unique_namespace())
+    queued = QueuedSink(sink)
+    queued.start(time.monotonic())
+
+    def window(i: int) -> WindowEvent:
+        return WindowEvent("main", i, 0.1 * i, 0.1 * i + 0.1, 0.1 * i + 0.1, decision="a", confidence=0.9,
+                           posteriors=__import__("numpy").array([0.9, 0.1]), classes=("a", "b"))
+
+    queued.emit(window(0))
+    os.kill(sink.pid, signal.SIGKILL)
+    sink._process.wait(10)
+    for i in range(1, 4):
+        queued.emit(window(i))
+    t = time.monotonic()
+    queued.drain(2.0)
+    stats = queued.stats()
+    queued.close()
+    assert time.monotonic() - t < 5.0
+    assert queued.reader_left is None
+    assert stats["written"] == 1 and stats["errors"] == 3, stats
+    assert "publisher process has ended (signal 9)" in stats["first_error"], stats
+    assert stats["publisher_errors"] == 1 and "has ended" in stats["publisher_first_error"], stats   # its drain
+    assert stats["publisher_exit"] == "signal 9", stats
+
+
+def test_the_publisher_process_ends_when_the_node_is_killed():
+    """A node killed with SIGKILL cannot close its sink: the publisher process sees its input end and
+    ends on its own, within seconds (no orphan left publishing on the robot's bus)."""
+    code = ("import sys, time\n"
+            "from supramodal.node.runtime.sinks.ros2 import Ros2Sink\n"
+            "from supramodal.node.runtime.sinks.ros2_publisher import TopicStream\n"
+            f"sink = Ros2Sink([TopicStream('main', ('a', 'b'))], namespace={unique_namespace()!r})\n"
+            "print(sink.pid, flush=True)\n"
+            "time.sleep(120)\n")
+    node = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    try:
+        assert node.stdout is not None
+        child = int(node.stdout.readline())
+        assert _alive(child)
+        node.kill()
+        node.wait(10)
+        deadline = time.monotonic() + 10
+        while _alive(child) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert not _alive(child)
+    finally:
+        node.kill()
+
+
+def _alive(pid: int) -> bool:
+    """Whether ``pid`` runs (a zombie, ended but not yet reaped by whoever adopted it, does not)."""
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except (FileNotFoundError, ProcessLookupError):
+        return False
+    return state not in ("Z", "X")
+
+
+def test_ros_arguments_that_rclpy_refuses_are_an_error_of_the_scene_naming_them():
+    """The publisher process's refusal comes back as the sink's error, before the node starts: rclpy's
+    own reason, and the arguments."""
+    from supramodal.errors import InputError
+
+    use_ros_arguments(["--ros-args", "-r", "not a remapping"])
+    try:
+        with pytest.raises(InputError, match=r"ROS 2 refused the arguments .*not a remapping"):
+            Ros2Sink([TopicStream("main", ("a", "b"))], namespace=unique_namespace())
+    finally:
+        use_ros_arguments([])

@@ -1,310 +1,139 @@
-"""Window events, driver events and the node's health on ROS 2 topics, in stock message types, so
-that a robot's planner, ``ros2 topic echo``, rqt and Foxglove take them with no interface package.
+"""The ``ros2`` sink: window events, driver events and the node's health on ROS 2 topics, published by a
+process of its own.
 
-Needs the optional extra ``ros2`` or a sourced ROS 2 (:func:`supramodal.drivers.ros2.import_rclpy`
-says what to install when rclpy is missing).
+What goes on which topic, in which message and with which QoS is
+:class:`~supramodal.node.runtime.sinks.ros2_publisher.Ros2Publisher`'s (its module notes); this module
+runs that publisher in a child process and feeds it through a pipe. In the node's own process, rclpy's
+publishing took the interpreter from the streams' processing often enough to add 1.5 to 3.6 ms to the
+decisions' latency p99 (``benchmarks/ros2_sink.py``); the pipe costs the node a JSON line and a write
+per window.
 
-Topics
-------
-The sink is one ROS 2 node, ``node_name`` (default ``supramodal``) in ``namespace`` (default the
-root), both remappable as for any node (``--ros-args -r __ns:=/robot -r __node:=texture``). Per node
-stream it listens to (``[[sink]] from``; default every stream, the fused one included), its topics
-are private names of that node, ``~/STREAM/OUTPUT`` (``/supramodal/main/decision``), made when
-the node is built, before any model is trained, so that subscribers match while the node trains:
+The child (``python -c`` of :func:`serve`) is started when the sink is made, and answers before the
+node goes on: a ROS 2 that cannot be imported, or a name rclpy refuses, is an error of the scene, as
+it was in one process. It inherits the environment (``ROS_DOMAIN_ID``, a sourced ROS 2) and is given
+the command line's ``--ros-args``. It ignores SIGINT (Ctrl-C reaches the whole process group: the
+node still has its last windows to publish) and ends when the node closes the sink, or when the pipe
+closes because the node is gone.
 
-``~/STREAM/decision`` (``std_msgs/String``; reliable, transient local, keep last ``history``, default
-    10: a subscriber that comes later gets the last ones, oldest first, the newest the current one)
-    The window's JSON object, the ``jsonl`` sink's line with one key more, ``stamp``: the ROS time of
-    the window's end, ``{"sec", "nanosec"}``.
-``~/STREAM/posteriors`` (``sensor_msgs/JointState``; reliable, volatile, keep last ``history``)
-    ``name``: the classes, ``position``: their posteriors (``velocity`` and ``effort`` empty).
-``~/STREAM/features`` (``sensor_msgs/JointState``; best effort, volatile, keep last 5: sensor data)
-    ``name``: ``FEATURE/FILTER``, ``position``: the window's values.
-``~/events`` (``std_msgs/String``; reliable, transient local, keep last 20)
-    A driver event's JSON object (unplug, reconnect, gap, overrun, ...), as the ``jsonl`` sink writes it.
-``/diagnostics`` (``diagnostic_msgs/DiagnosticArray``; reliable, volatile, keep last 10)
-    Per stream, source, the fusion and the sinks: a level, a line and the counts (below).
+The wire, one frame per message (:class:`multiprocessing.connection.Connection`'s ``send_bytes``):
+a JSON object with ``"op"``, then, for a window, a NUL and its features and posteriors as float64 bytes.
+No frame is pickled. The child answers only ``open``, ``prepare`` and ``drain``, each in order, so that
+the node never reads from it while it runs.
 
-A message with a header (``JointState``) is stamped with its window's end on the ROS clock; the
-decision's ``stamp`` is that same time, so a subscriber can join a decision to its posteriors. The
-node's common time is put on the ROS clock by an offset measured once when the node starts (system
-time), or, where the node runs with ``use_sim_time`` (a bag played with ``--clock``), as the ROS
-clock's now less the window's age (:class:`~supramodal.drivers.ros2.RosClock`). A best-effort topic
-(features) needs a best-effort subscriber (``qos_profile_sensor_data``); the others take a
-default one.
-
-Diagnostics
------------
-Every ``diagnostics_period`` seconds (default 1, the ROS convention) and at once on a driver event,
-one ``DiagnosticArray`` whose statuses are named ``NODE: stream NAME``, ``NODE: source NAME``,
-``NODE: fusion`` and ``NODE: sinks`` (a diagnostic aggregator groups them by that prefix):
-:func:`diagnostic_report` says what each carries and when it is OK, WARN or ERROR. While the node
-starts up (a model trained on the spot) a single status says so.
-
-Threading: the node runs this sink behind its own queue (:class:`~supramodal.node.runtime.sinks.QueuedSink`):
-``emit`` and ``event`` publish on that thread and never wait for a subscriber (DDS keeps what a
-topic's history allows and drops the rest for a slow reader); the diagnostics timer runs on the ROS
-node's executor thread; a lock keeps the two from publishing diagnostics at once.
+Threading: as every sink, behind a :class:`~supramodal.node.runtime.sinks.QueuedSink`; ``emit`` and
+``event`` write to the pipe on that thread (a child that does not read, once the pipe's buffer is full,
+blocks that thread, and the queue drops and counts, never the streams); a thread of the sink's own
+sends the graph's counters every ``diagnostics_period``; a lock keeps the two writes apart.
 """
 
 from __future__ import annotations
 
-import array
-import functools
 import json
+import os
+import signal
+import subprocess
+import sys
 import threading
 import time
-from collections import Counter
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import asdict
+from multiprocessing.connection import Connection
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from supramodal.checks import Key, integer, non_negative, number
 from supramodal.drivers.base import DriverEvent
-from supramodal.drivers.ros2 import RosClock, RosNode, check_namespace, check_node_name, check_token
+from supramodal.drivers.ros2 import Ros2Unavailable, check_namespace, check_node_name, ros_arguments
 from supramodal.drivers.spec import OptionError
-from supramodal.errors import InputError
-from supramodal.node.runtime.events import FUSED_STREAM, MAIN_STREAM, WindowEvent
+from supramodal.errors import InputError, SupramodalError
+from supramodal.node.runtime.events import FUSED_STREAM, WindowEvent
 from supramodal.node.runtime.sinks import QueuedSink, Sink
+from supramodal.node.runtime.sinks.ros2_publisher import (
+    DEFAULT_HISTORY,
+    DEFAULT_NODE_NAME,
+    DEFAULT_WAIT_FOR_SUBSCRIBERS,
+    MAX_HISTORY,
+    MAX_WAIT_FOR_SUBSCRIBERS,
+    OUTPUTS,
+    WAIT_STEP_SECONDS,
+    TopicStream,
+    features_of,
+    only_source,
+)
 from supramodal.node.runtime.sinks.spec import SinkContext, SinkSpec, listened, stream_outputs
 
 if TYPE_CHECKING:   # for the annotations only: the sink needs no model code to run
     from supramodal.pipeline import FeaturePipeline
 
-__all__ = ["OUTPUTS", "SPEC", "Ros2Sink", "Status", "TopicStream", "diagnostic_report"]
+__all__ = ["SPEC", "PublisherProcessError", "Ros2Sink", "serve"]
 
-#: What a ros2 sink can publish per stream, in order.
-OUTPUTS = ("decision", "posteriors", "features")
-DEFAULT_NODE_NAME = "supramodal"
-#: The ROS standard topic of diagnostics (absolute: every node publishes there; remappable).
-DIAGNOSTICS_TOPIC = "/diagnostics"
-EVENTS_TOPIC = "~/events"
 #: Seconds between two diagnostics (ROS's convention: 1 Hz).
 DEFAULT_DIAGNOSTICS_PERIOD = 1.0
 DIAGNOSTICS_PERIOD_RANGE = (0.1, 60.0)
-#: Messages a decision or posteriors topic keeps for a slow or late subscriber: one second of windows. With a
-#: history of 1, a subscriber started before the node missed decisions in a suite run under load: one whose
-#: side of the match completes after the first windows gets only what the history holds (transient local),
-#: and one held up gets only what the publisher has not yet overwritten.
-DEFAULT_HISTORY = 10
-MAX_HISTORY = 1000
-#: Driver events the events topic keeps for a late subscriber.
-EVENTS_HISTORY = 20
-#: Seconds to wait for subscribers before the node starts: none (a live sensor cannot wait).
-DEFAULT_WAIT_FOR_SUBSCRIBERS = 0.0
-MAX_WAIT_FOR_SUBSCRIBERS = 3600.0
-#: Seconds after every decision topic has a subscriber before the node starts: the subscriber's side
-#: of the match may still be on its way.
-MATCH_SETTLE_SECONDS = 0.2
-#: Longest wait at the end for the subscribers' acknowledgements of the last messages, seconds (a stopped
-#: subscriber never acknowledges: the node ends anyway).
-ACK_WAIT_SECONDS = 1.0
-#: Seconds of one sleep in the wait: the main thread sees SIGINT and SIGTERM between two.
-WAIT_STEP_SECONDS = 0.05
-
-# diagnostic_msgs/DiagnosticStatus levels
-OK, WARN, ERROR = 0, 1, 2
+#: Seconds the publisher process has to import rclpy and make its node (0.7 s on an idle 2-core machine).
+OPEN_TIMEOUT = 60.0
+#: Seconds more than its own wait that an answer of the publisher process may take.
+ANSWER_MARGIN = 10.0
+#: Seconds the publisher process has to end once told to.
+CLOSE_TIMEOUT = 5.0
+#: How much lower the publisher process's CPU priority is than the node's: where the cores are busy, the
+#: streams' processing goes first, and a window's messages leave a little later.
+PUBLISHER_NICENESS = 10
+#: The publisher process: :func:`serve` on the two pipe ends it is given.
+CHILD_CODE = ("import sys; from supramodal.node.runtime.sinks.ros2 import serve; "
+              "serve(int(sys.argv[1]), int(sys.argv[2]))")
 
 
-@dataclass(frozen=True)
-class TopicStream:
-    """What the topics of one node stream say about it.
-
-    Attributes
-    ----------
-    name : str
-        The node's stream name (``"main"`` in a one-source scene, ``"fused"`` for fusion); a ROS
-        name token (:func:`~supramodal.drivers.ros2.check_token`).
-    classes : tuple of str
-        The model's classes, in the order of the posteriors (empty without a model).
-    features : tuple of str
-        The features, in the order their values are concatenated (empty for the fused stream).
-    filters : tuple of str
-        The bank's filter names, in channel order.
-    """
-
-    name: str
-    classes: tuple[str, ...]
-    features: tuple[str, ...] = ()
-    filters: tuple[str, ...] = ()
-
-    @functools.cached_property
-    def feature_labels(self) -> tuple[str, ...]:
-        """``FEATURE/FILTER`` per value of a window's features, in order (made once: each window's
-        features message names them)."""
-        return tuple(f"{f}/{name}" for f in self.features for name in self.filters)
+class PublisherProcessError(SupramodalError, RuntimeError):
+    """The ros2 sink's publisher process failed, ended, or did not answer in time. Also a RuntimeError."""
 
 
-@dataclass(frozen=True)
-class Status:
-    """One ``diagnostic_msgs/DiagnosticStatus``, before it is a message.
+# -- the wire ----------------------------------------------------------------------------------------------
 
-    Attributes
-    ----------
-    level : {0, 1, 2}
-        OK, WARN, ERROR.
-    name, message, hardware_id : str
-    values : tuple of (str, str)
-    """
-
-    level: int
-    name: str
-    message: str
-    hardware_id: str = ""
-    values: tuple[tuple[str, str], ...] = ()
+def _plain(value: Any) -> Any:
+    """JSON for what the graph's counters may hold besides JSON's own types (numpy's numbers)."""
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    raise TypeError(f"{type(value).__name__} is not JSON")
 
 
-@dataclass
-class SourceState:
-    """What the driver events of one source said: the last one, counts per kind, and whether it is
-    unplugged now (an ``unplug`` not yet followed by a ``reconnect``)."""
-
-    last: DriverEvent | None = None
-    counts: Counter[str] = field(default_factory=Counter)
-    unplugged: bool = False
+def encode(header: Mapping[str, Any], payload: bytes = b"") -> bytes:
+    """One frame: ``header`` as JSON, then a NUL and ``payload`` if there is one (JSON never holds a NUL:
+    it escapes control characters)."""
+    text = json.dumps(header, separators=(",", ":"), default=_plain).encode()
+    return text + b"\0" + payload if payload else text
 
 
-#: Driver events that mean samples were lost or made up: the source's status is WARN in the period
-#: they happen.
-_LOSSY_EVENTS = ("gap", "overrun", "overflow", "restart", "error", "channels", "version", "silence")
+def decode(frame: bytes) -> tuple[dict[str, Any], bytes]:
+    """A frame's header and payload (:func:`encode`'s inverse)."""
+    text, _, payload = frame.partition(b"\0")
+    return json.loads(text), payload
 
 
-def _grew(now: Mapping[str, Any], before: Mapping[str, Any] | None, key: str) -> int:
-    """How much ``now[key]`` grew since ``before`` (all of it without a ``before``)."""
-    was = before.get(key, 0) if before else 0
-    return int(now.get(key) or 0) - int(was or 0)
-
-
-def _fmt(value: Any) -> str:
-    return "" if value is None else f"{value:g}" if isinstance(value, float) else str(value)
-
-
-def diagnostic_report(node: str, health: Mapping[str, Any] | None, sources: Mapping[str, SourceState],
-                      before: Mapping[str, Any] | None, now: float) -> list[Status]:
-    """The statuses of one diagnostics message.
-
-    Parameters
-    ----------
-    node : str
-        The ROS node's name: each status is named ``NODE: ...``.
-    health : dict or None
-        What the graph counts (:meth:`Graph.health <supramodal.node.runtime.graph.Graph.health>`:
-        ``streams``, ``clocks``, ``fusion``, ``sinks``); None while the node starts up.
-    sources : dict of str to SourceState
-        The driver events seen per source since the start.
-    before : dict or None
-        The ``health`` of the last report, to say what changed since (None: the first).
-    now : float
-        ``time.time()`` of the report: a source's lossy event of the last 2 s makes it WARN.
-
-    Returns
-    -------
-    list of Status
-        ``NODE: stream NAME`` per stream: windows, frame fates (``frames_delivered``, ``_filled``,
-        ``_dropped``, ``_stream``), latency (``latency_p50_ms``, ``_p99_ms``, ``_max_ms``) and its
-        source's clock (``clock_ppm``, ``clock_jitter_ms``, ``clock_delay_ms``); ERROR while its
-        source is unplugged, WARN when frames were filled or dropped since the last report, else OK.
-        ``NODE: source NAME`` per source with events: the last event, counts per kind; ERROR while
-        unplugged, WARN after an event that lost or made up samples, else OK. ``NODE: fusion``
-        (``paired``, ``alone``, ``late``): WARN when windows were decided alone since the last
-        report. ``NODE: sinks``: per sink its written, dropped and failed items; WARN when a sink
-        dropped or failed since the last report. Without ``health`` (start-up), ``NODE: node`` saying
-        so, and the sources' statuses.
-    """
-    out = []
-    if health is None:
-        out.append(Status(OK, f"{node}: node", "starting up (building the scene, training its model)"))
-        health = {}
-    before_streams = (before or {}).get("streams") or {}
-    clocks = health.get("clocks") or {}
-    for name, st in health.get("streams", {}).items():
-        frames, latency = st.get("frames") or {}, st.get("latency_ms") or {}
-        was = (before_streams.get(name) or {}).get("frames")
-        source = st.get("source") or ""
-        values = [("windows", _fmt(st.get("windows")))]
-        values += [(f"frames_{k}", _fmt(frames.get(k))) for k in ("delivered", "filled", "dropped", "stream")]
-        values += [(f"latency_{k}_ms", _fmt(latency.get(k))) for k in ("p50", "p99", "max")]
-        clock = clocks.get(source) or {}
-        values += [(f"clock_{k}", _fmt(clock.get(k))) for k in ("ppm", "jitter_ms", "delay_ms") if k in clock]
-        state = sources.get(source)
-        filled, dropped = _grew(frames, was, "filled"), _grew(frames, was, "dropped")
-        if state is not None and state.unplugged:
-            level, message = ERROR, f"source {source} unplugged: {state.last.message if state.last else ''}"
-        elif filled or dropped:
-            level, message = WARN, f"{filled} frames filled and {dropped} dropped since the last report"
-        else:
-            p99 = latency.get("p99")
-            level, message = OK, f"{st.get('windows', 0)} windows" + (f", latency p99 {p99:.1f} ms" if p99 else "")
-        out.append(Status(level, f"{node}: stream {name}", message, source, tuple(values)))
-    for name, state in sources.items():
-        last = state.last
-        values = [("last_event", last.kind if last else ""), ("last_message", last.message if last else "")]
-        values += [(f"events_{kind}", str(n)) for kind, n in sorted(state.counts.items())]
-        if state.unplugged:
-            level, message = ERROR, f"unplugged: {last.message if last else ''}"
-        elif last is not None and last.kind in _LOSSY_EVENTS and now - last.time < 2.0:
-            level, message = WARN, f"{last.kind}: {last.message}"
-        else:
-            level, message = OK, f"last event: {last.kind}" if last else "no event"
-        out.append(Status(level, f"{node}: source {name}", message, name, tuple(values)))
-    fusion = health.get("fusion")
-    if fusion:
-        alone = _grew(fusion, (before or {}).get("fusion"), "alone")
-        values = [("windows", _fmt(fusion.get("windows"))), ("paired", _fmt(fusion.get("paired"))),
-                  ("alone", _fmt(fusion.get("alone"))), ("late", json.dumps(fusion.get("late") or {}))]
-        out.append(Status(WARN if alone else OK, f"{node}: fusion",
-                          f"{alone} windows decided by one sense since the last report" if alone
-                          else f"{fusion.get('paired', 0)} windows paired", FUSED_STREAM, tuple(values)))
-    sinks = health.get("sinks") or []
-    if sinks:
-        values, grew = [], 0
-        was_sinks = {s.get("sink"): s for s in ((before or {}).get("sinks") or [])}
-        for s in sinks:
-            label = str(s.get("sink"))
-            for key in ("written", "dropped_windows", "dropped_events", "errors"):
-                if key in s:
-                    values.append((f"{label} {key}", _fmt(s[key])))
-            grew += sum(_grew(s, was_sinks.get(s.get("sink")), k) for k in ("dropped_windows", "dropped_events",
-                                                                             "errors") if k in s)
-        out.append(Status(WARN if grew else OK, f"{node}: sinks",
-                          f"{grew} items dropped or failed since the last report" if grew else f"{len(sinks)} sinks",
-                          "", tuple(values)))
-    return out
-
+# -- the node's side -----------------------------------------------------------------------------------------
 
 class Ros2Sink(Sink):
-    """The node's window events, driver events and health on ROS 2 topics (see the module notes).
+    """The node's window events, driver events and health on ROS 2 topics, published by a process of its
+    own (the module notes; topics and messages: :mod:`~supramodal.node.runtime.sinks.ros2_publisher`).
 
     Parameters
     ----------
-    streams : sequence of TopicStream
-        The streams this sink publishes (events of other streams are ignored).
-    outputs : sequence of {"decision", "posteriors", "features"}
-        Default all three; decision and posteriors only for a stream with classes, features only for
-        a stream with features.
-    node_name : str
-        Default ``"supramodal"``.
-    namespace : str
-        Default ``""``: the root (or what ``--ros-args -r __ns:=...`` says).
-    frame_id : str
-        The ``header.frame_id`` of the stamped messages (the sensor's TF frame), default ``""``.
+    streams, outputs, node_name, namespace, frame_id, wait_for_subscribers, history
+        As :class:`~supramodal.node.runtime.sinks.ros2_publisher.Ros2Publisher`'s, which the process runs.
     diagnostics_period : float
-        Seconds, default 1.
-    wait_for_subscribers : float
-        Seconds :meth:`prepare` waits, before the node starts, until every decision topic (or, for a
-        stream without classes, its features topic) has a subscriber (default 0: start at once).
-    history : int
-        Messages each decision and posteriors topic keeps for a slow or late subscriber (default
-        :data:`DEFAULT_HISTORY`); a subscriber held up longer than that many windows misses some.
+        Seconds between two diagnostics (:data:`DIAGNOSTICS_PERIOD_RANGE`), default 1.
 
     Raises
     ------
     Ros2Unavailable
-        No rclpy here.
+        No rclpy here (the publisher process says what to install).
     InputError
-        A bad option, or rclpy refused the node's name.
+        A bad option, or rclpy refused the node's name or the ROS arguments.
+    PublisherProcessError
+        The publisher process did not start.
     """
 
     def __init__(self, streams: Sequence[TopicStream], outputs: Sequence[str] = OUTPUTS,
@@ -312,198 +141,293 @@ class Ros2Sink(Sink):
                  diagnostics_period: float = DEFAULT_DIAGNOSTICS_PERIOD,
                  wait_for_subscribers: float = DEFAULT_WAIT_FOR_SUBSCRIBERS,
                  history: int = DEFAULT_HISTORY) -> None:
-        unknown = sorted(set(outputs) - set(OUTPUTS))
-        if unknown or not outputs:
-            raise InputError(f"a ros2 sink publishes some of {list(OUTPUTS)}, got {list(outputs)}")
-        bad = [s.name for s in streams if not check_token(s.name)]
-        if bad:
-            raise InputError(f"streams {bad} cannot be part of a ROS topic name; rename them with letters, digits "
-                             "and '_' (no '__', not starting with a digit)")
-        from diagnostic_msgs.msg import DiagnosticArray
-        from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
-        from sensor_msgs.msg import JointState
-        from std_msgs.msg import String
-
-        self._ros = RosNode(node_name, namespace)
-        node = self._ros.node
-        latched = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=int(history),
-                             reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
-        kinds: dict[str, tuple[Any, Any]] = {
-            "decision": (String, latched),
-            "posteriors": (JointState, QoSProfile(depth=int(history))),
-            "features": (JointState, qos_profile_sensor_data),
-        }
+        period = float(diagnostics_period)
+        if not DIAGNOSTICS_PERIOD_RANGE[0] <= period <= DIAGNOSTICS_PERIOD_RANGE[1]:
+            raise InputError(f"diagnostics_period is {DIAGNOSTICS_PERIOD_RANGE[0]:g} to "
+                             f"{DIAGNOSTICS_PERIOD_RANGE[1]:g} s, got {diagnostics_period!r}")
         self._streams = {s.name: s for s in streams}
-        self._publishers: dict[tuple[str, str], Any] = {}
-        self._messages: dict[tuple[str, str], Any] = {}       # (stream, output) -> its JointState, refilled
-        self._names: dict[tuple[str, str], tuple[str, ...]] = {}     # ... -> the names its message carries
-        self._one_source: str | None = None                   # the graph's one source, once known
-        for s in streams:
-            for output in stream_outputs(outputs, bool(s.features), bool(s.classes)):
-                kind, qos = kinds[output]
-                self._publishers[(s.name, output)] = node.create_publisher(kind, f"~/{s.name}/{output}", qos)
-        self._events = node.create_publisher(String, EVENTS_TOPIC, QoSProfile(
-            depth=EVENTS_HISTORY, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL))
-        self._diagnostics = node.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, QoSProfile(depth=10))
-        self._String, self._JointState, self._DiagnosticArray = String, JointState, DiagnosticArray
-        self.frame_id = frame_id
+        self._features = {s.name for s in streams if "features" in stream_outputs(outputs, bool(s.features),
+                                                                                 bool(s.classes))}
         self.wait_for_subscribers = float(wait_for_subscribers)
         self.waited_s: float | None = None
         self.subscribed: list[str] | None = None
-        self.published: Counter[str] = Counter()
-        self._sources: dict[str, SourceState] = {}
-        self._before: dict[str, Any] | None = None
-        self._lock = threading.Lock()
-        self._clock = RosClock(node.get_clock(), time.monotonic())
-        self._timer = node.create_timer(float(diagnostics_period), self.publish_diagnostics)
-        self._ros.start()
+        self._published: dict[str, int] = {}
+        self._failed: tuple[int, str | None] = (0, None)     # the publisher's failures: count, first
+        self._lock = threading.Lock()                        # one writer of the pipe at a time
+        self._asked = 0                                      # requests sent: each answer names its own
+        self._one_source: str | None = None
+        into_child, self._out = os.pipe()
+        self._in, from_child = os.pipe()
+        try:
+            self._process = subprocess.Popen([sys.executable, "-c", CHILD_CODE, str(into_child), str(from_child)],
+                                             pass_fds=(into_child, from_child), stdin=subprocess.DEVNULL,
+                                             stdout=subprocess.DEVNULL)
+        finally:
+            os.close(into_child)
+            os.close(from_child)
+        self._to = Connection(self._out, readable=False)
+        self._from = Connection(self._in, writable=False)
+        self._closed = False
+        try:
+            ready = self._ask({"op": "open", "streams": [asdict(s) for s in streams], "outputs": list(outputs),
+                               "node_name": node_name, "namespace": namespace, "frame_id": frame_id,
+                               "wait_for_subscribers": self.wait_for_subscribers, "history": int(history),
+                               "ros_arguments": ros_arguments()}, OPEN_TIMEOUT, "start")
+        except BaseException:
+            self._end(now=True)
+            raise
+        if ready["op"] == "refused":
+            self._end(now=True)
+            kind = Ros2Unavailable if ready["kind"] == "unavailable" else InputError
+            raise kind(ready["message"])
+        self._node: str = ready["node"]
+        self._topics: dict[str, str] = ready["topics"]
+        self._stop = threading.Event()
+        self._timer = threading.Thread(target=self._diagnose, args=(period,), name="sink-ros2-diagnostics", daemon=True)
+        self._timer.start()
 
     @property
     def node_name(self) -> str:
         """The ROS node's fully qualified name (``/supramodal``; after any remapping)."""
-        return self._ros.name
+        return self._node
+
+    @property
+    def pid(self) -> int:
+        """The publisher process's id."""
+        return self._process.pid
 
     def topic(self, stream: str, output: str) -> str:
         """The full name of one of the sink's topics (after any remapping)."""
-        name: str = self._publishers[(stream, output)].topic_name
-        return name
+        return self._topics[f"{stream}/{output}"]
 
-    # -- the node's calls ---------------------------------------------------------------------
+    # -- the pipe ------------------------------------------------------------------------------------------
+
+    def _send(self, header: Mapping[str, Any], payload: bytes = b"") -> None:
+        frame = encode(header, payload)
+        with self._lock:
+            try:
+                self._to.send_bytes(frame)
+            except OSError:   # a BrokenPipeError too: not the node's stdout, which QueuedSink would stop for
+                raise PublisherProcessError(f"the ROS 2 publisher process has ended ({self._exit()}); "
+                                            "what it said is above, on stderr") from None
+
+    def _ask(self, header: dict[str, Any], timeout: float, what: str) -> dict[str, Any]:
+        """Send a request and wait up to ``timeout`` s for its answer, in short polls (SIGINT and SIGTERM
+        reach the caller's thread between two). The caller's thread."""
+        self._asked += 1
+        self._send({**header, "ask": self._asked})
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if self._from.poll(WAIT_STEP_SECONDS):
+                try:
+                    answer, _ = decode(self._from.recv_bytes())
+                except (EOFError, OSError):
+                    break
+                if answer.get("ask") == self._asked:      # an answer that came too late for its request: skipped
+                    return answer
+            elif self._process.poll() is not None:
+                break
+        if self._process.poll() is None:
+            raise PublisherProcessError(f"the ROS 2 publisher process did not {what} in {timeout:g} s")
+        raise PublisherProcessError(f"the ROS 2 publisher process ended before it could {what} ({self._exit()}); "
+                                    "what it said is above, on stderr")
+
+    def _exit(self) -> str:
+        code = self._process.poll()
+        return "still running" if code is None else f"exit status {code}" if code >= 0 else f"signal {-code}"
+
+    def _diagnose(self, period: float) -> None:
+        while not self._stop.wait(period):
+            try:
+                self._send({"op": "diagnostics", "health": self.health() if self.health is not None else None})
+            except PublisherProcessError:
+                return                                   # said by the next window's failure, and the summary
+
+    # -- the node's calls ----------------------------------------------------------------------------------
 
     def prepare(self) -> None:
-        """Wait up to ``wait_for_subscribers`` seconds until every decision topic (a stream
-        without classes: its features topic) has a subscriber. The caller's thread, before the
-        graph's start; made of short sleeps, so that SIGINT and SIGTERM interrupt it."""
+        """Wait up to ``wait_for_subscribers`` seconds until every decision topic (a stream without
+        classes: its features topic) has a subscriber. The caller's thread, before the graph's start;
+        SIGINT and SIGTERM interrupt it."""
         if self.wait_for_subscribers <= 0:
             return
-        waited = {key: pub for key, pub in self._publishers.items()
-                  if key[1] == "decision" or key[1] == "features" and not self._streams[key[0]].classes}
-        t = time.monotonic()
-        found = {key: False for key in waited}
-        while not all(found.values()) and time.monotonic() - t < self.wait_for_subscribers:
-            found = {key: pub.get_subscription_count() > 0 for key, pub in waited.items()}
-            if not all(found.values()):
-                time.sleep(WAIT_STEP_SECONDS)
-        if any(found.values()):
-            time.sleep(MATCH_SETTLE_SECONDS)
-        self.waited_s = round(time.monotonic() - t, 3)
-        self.subscribed = [f"{stream}/{output}" for (stream, output), ok in found.items() if ok]
+        done = self._ask({"op": "prepare"}, self.wait_for_subscribers + ANSWER_MARGIN, "wait for subscribers")
+        self.waited_s, self.subscribed = done["waited_s"], done["subscribed"]
 
     def start(self, epoch: float) -> None:
-        """The graph's start, on ``time.monotonic()``: common time 0. The caller's thread, before
-        any event."""
-        self._clock = RosClock(self._ros.node.get_clock(), epoch)
+        """The graph's start, on ``time.monotonic()`` (one clock for every process of this machine)."""
+        self._send({"op": "start", "epoch": epoch})
 
     def emit(self, event: WindowEvent) -> None:
         s = self._streams.get(event.stream)
         if s is None:
             return
-        ns = self._clock.stamp_ns(event.end)
-        sec, nanosec = divmod(ns, 1_000_000_000)
-        features = self._publishers.get((s.name, "features"))
-        if features is not None and event.features:
-            values = np.concatenate([np.asarray(event.features[f], dtype=np.float64) for f in s.features])
-            features.publish(self._joint_state(s.name, "features", sec, nanosec, s.feature_labels, values))
-            self.published["features"] += 1
-        posteriors = self._publishers.get((s.name, "posteriors"))
-        if posteriors is not None and event.posteriors is not None:
-            classes = tuple(event.classes or s.classes)
-            posteriors.publish(self._joint_state(s.name, "posteriors", sec, nanosec, classes,
-                                                 np.asarray(event.posteriors, dtype=np.float64)))
-            self.published["posteriors"] += 1
-        decision = self._publishers.get((s.name, "decision"))
-        if decision is not None and event.decision is not None:
-            stamp = {"sec": sec, "nanosec": nanosec}
-            decision.publish(self._String(data=json.dumps({**event.as_dict(), "stamp": stamp})))
-            self.published["decision"] += 1
-
-    def _joint_state(self, stream: str, output: str, sec: int, nanosec: int, names: tuple[str, ...],
-                     values: np.ndarray) -> Any:
-        """The stream's ``JointState`` of ``output``, its stamp and values set. One message per topic,
-        kept and refilled: a new one costs its field checks (about a third of a window's publishing);
-        its names are set again only when they change (compared with the tuple last set, not the
-        message's list). The sink's thread only."""
-        key = (stream, output)
-        msg = self._messages.get(key)
-        if msg is None:
-            msg = self._messages[key] = self._JointState()
-            msg.header.frame_id = self.frame_id
-        if self._names.get(key) != names:
-            msg.name = list(names)
-            self._names[key] = names
-        msg.header.stamp.sec, msg.header.stamp.nanosec = sec, nanosec
-        msg.position = array.array("d", values.tobytes())   # an array of doubles: rclpy takes it unchecked
-        return msg
+        features = features_of(event, s) if s.name in self._features else None
+        posteriors = None if event.posteriors is None else np.asarray(event.posteriors, dtype=np.float64).ravel()
+        classes = tuple(event.classes or s.classes)
+        payload = b"".join(a.tobytes() for a in (features, posteriors) if a is not None)
+        self._send({"op": "window", "stream": s.name, "end": event.end,
+                    "features": 0 if features is None else len(features),
+                    "posteriors": None if posteriors is None else len(posteriors),
+                    "classes": None if classes == s.classes else list(classes),
+                    "decision": event.as_dict() if event.decision is not None else None}, payload)
 
     def event(self, ev: DriverEvent) -> None:
-        """A driver event: on ``~/events`` at once, and in the diagnostics, published at once too."""
-        name = ev.source or self._only_source()
-        with self._lock:
-            state = self._sources.setdefault(name, SourceState())
-            state.last = ev
-            state.counts[ev.kind] += ev.count
-            if ev.kind == "unplug":
-                state.unplugged = True
-            elif ev.kind in ("reconnect", "restart"):
-                state.unplugged = False
-        self._events.publish(self._String(data=json.dumps(ev.as_dict())))
-        self.published["events"] += 1
-        self.publish_diagnostics()
+        """A driver event: on ``~/events`` and in the diagnostics, at once."""
+        self._send({"op": "event", "event": {**asdict(ev), "source": ev.source or self._only_source()}})
 
     def _only_source(self) -> str:
-        """The name of the graph's one source (a one-source graph's events name none): what its stream's
-        status is keyed by; ``main`` outside a graph. Read from the graph's counters once."""
         if self._one_source is None:
-            health = self.health() if self.health is not None else {}
-            sources = {st.get("source") for st in health.get("streams", {}).values()} - {None}
-            self._one_source = str(sources.pop()) if len(sources) == 1 else MAIN_STREAM
+            if self.health is None:
+                return only_source({})
+            self._one_source = only_source(self.health())
         return self._one_source
 
-    def publish_diagnostics(self) -> None:
-        """One ``DiagnosticArray`` of :func:`diagnostic_report` now (the timer's call; also on a
-        driver event). Any thread."""
-        from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
-
-        with self._lock:
-            health = self.health() if self.health is not None else None
-            statuses = diagnostic_report(self._ros.node.get_name(), health, self._sources, self._before, time.time())
-            self._before = health
-            msg = self._DiagnosticArray()
-            msg.header.stamp = self._ros.node.get_clock().now().to_msg()
-            msg.status = [DiagnosticStatus(level=bytes([s.level]), name=s.name, message=s.message,
-                                           hardware_id=s.hardware_id,
-                                           values=[KeyValue(key=k, value=v) for k, v in s.values])
-                          for s in statuses]
-            self._diagnostics.publish(msg)
-            self.published["diagnostics"] += 1
+    def drain(self, timeout: float = 5.0) -> None:
+        """After the last window: the publisher publishes what it was sent and waits (bounded) for the
+        subscribers' acknowledgements (:meth:`Ros2Publisher.drain`); its counts come back. The caller's
+        thread."""
+        try:
+            done = self._ask({"op": "drain", "timeout": timeout}, timeout + ANSWER_MARGIN, "drain")
+        except PublisherProcessError as exc:
+            self._failed = (self._failed[0] + 1, self._failed[1] or str(exc))
+            return
+        self._published = done["published"]
+        self._failed = (done["errors"], done["first_error"])
 
     def stats(self) -> dict[str, Any]:
-        """The node's name, what was published per output, and with a wait for subscribers
-        ``waited_s`` and ``subscribed`` (the topics that had one, ``STREAM/OUTPUT``)."""
-        out: dict[str, Any] = {"sink": "Ros2Sink", "node": self.node_name, "published": dict(self.published)}
+        """The node's name; after :meth:`drain`, what was published per output; with a wait for
+        subscribers ``waited_s`` and ``subscribed``; the publisher's failures (``publisher_errors``,
+        ``publisher_first_error``, each counted in the process, which goes on) when there were any, and
+        ``publisher_exit`` if the process ended before it was closed."""
+        out: dict[str, Any] = {"sink": "Ros2Sink", "node": self._node, "published": dict(self._published)}
         if self.waited_s is not None:
             out.update(waited_s=self.waited_s, subscribed=self.subscribed)
+        if self._failed[0]:
+            out.update(publisher_errors=self._failed[0], publisher_first_error=self._failed[1])
+        if not self._closed and self._process.poll() is not None:
+            out["publisher_exit"] = self._exit()
         return out
-
-    def drain(self, timeout: float = 5.0) -> None:
-        """After the last window: wait (at most ``timeout`` s, and at most :data:`ACK_WAIT_SECONDS`) until
-        every subscriber has acknowledged the reliable topics' last messages, so that closing the node
-        does not cut the last windows off on their way (a subscriber missed the last window of two
-        streams so, in a suite run under load). The caller's thread."""
-        from rclpy.duration import Duration
-
-        deadline = time.monotonic() + min(timeout, ACK_WAIT_SECONDS)
-        for (_, output), pub in self._publishers.items():
-            left = deadline - time.monotonic()
-            if output != "features" and left > 0:
-                pub.wait_for_all_acked(Duration(nanoseconds=int(left * 1e9)))
 
     def summary(self, summary: dict[str, Any]) -> None:
         """The last diagnostics, with the run's final counts."""
-        self.publish_diagnostics()
+        try:
+            self._send({"op": "diagnostics", "health": self.health() if self.health is not None else None})
+        except PublisherProcessError:
+            pass                                          # the summary says so (``publisher_exit``)
 
     def close(self) -> None:
-        self._ros.close()
+        """Stop the diagnostics, tell the publisher process to end, and wait for it (then kill it)."""
+        self._end()
+
+    def _end(self, now: bool = False) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        stop = getattr(self, "_stop", None)
+        if stop is not None:
+            stop.set()
+            self._timer.join(CLOSE_TIMEOUT)
+        if not now:
+            try:
+                self._send({"op": "close"})
+            except PublisherProcessError:
+                pass
+        self._to.close()                                  # the child reads the end of its input: it ends too
+        try:
+            self._process.wait(CLOSE_TIMEOUT)
+        except subprocess.TimeoutExpired:
+            self._process.kill()
+            self._process.wait()
+        self._from.close()
+
+
+# -- the publisher process's side ---------------------------------------------------------------------------
+
+def serve(read_fd: int, write_fd: int) -> None:
+    """The publisher process: make a :class:`Ros2Publisher` as the first frame says, answer whether it
+    could, then publish what each frame says until ``close`` or the end of the input.
+
+    Parameters
+    ----------
+    read_fd, write_fd : int
+        The pipe ends from the node and to it.
+    """
+    signal.signal(signal.SIGINT, signal.SIG_IGN)         # Ctrl-C is the node's to handle: it says when to end
+    os.nice(PUBLISHER_NICENESS)
+    source, answer = Connection(read_fd, writable=False), Connection(write_fd, readable=False)
+    try:
+        header, _ = decode(source.recv_bytes())
+    except (EOFError, OSError):
+        return
+    publisher = _open(header, answer)
+    if publisher is None:
+        return
+    errors, first = 0, None
+    try:
+        while True:
+            try:
+                header, payload = decode(source.recv_bytes())
+            except (EOFError, OSError):
+                return                                   # the node is gone
+            op = header["op"]
+            if op == "close":
+                return
+            try:
+                if op == "window":
+                    _publish_window(publisher, header, payload)
+                elif op == "event":
+                    publisher.event(DriverEvent(**header["event"]))
+                elif op == "diagnostics":
+                    publisher.publish_diagnostics(header["health"])
+                elif op == "start":
+                    publisher.start(header["epoch"])
+                elif op == "prepare":
+                    publisher.prepare()
+                    answer.send_bytes(encode({"ask": header["ask"], "waited_s": publisher.waited_s,
+                                              "subscribed": publisher.subscribed}))
+                elif op == "drain":
+                    publisher.drain(header["timeout"])
+                    answer.send_bytes(encode({"ask": header["ask"], "published": dict(publisher.published),
+                                              "errors": errors, "first_error": first}))
+            except Exception as exc:                     # counted, said once, and the next frame published
+                errors += 1
+                if first is None:
+                    first = f"{type(exc).__name__}: {exc}"
+                    print(f"supramodal ros2 sink: publishing failed ({op}): {first}", file=sys.stderr, flush=True)
+    finally:
+        publisher.close()
+
+
+def _open(header: Mapping[str, Any], answer: Connection) -> Any:
+    """The publisher the ``open`` frame asks for, its node's name and topics answered; or None, the
+    refusal answered."""
+    from supramodal.drivers.ros2 import use_ros_arguments
+    from supramodal.node.runtime.sinks.ros2_publisher import Ros2Publisher
+
+    use_ros_arguments(header["ros_arguments"])
+    try:
+        publisher = Ros2Publisher([TopicStream(s["name"], tuple(s["classes"]), tuple(s["features"]),
+                                               tuple(s["filters"])) for s in header["streams"]],
+                                  header["outputs"], header["node_name"], header["namespace"], header["frame_id"],
+                                  header["wait_for_subscribers"], header["history"])
+    except Ros2Unavailable as exc:
+        answer.send_bytes(encode({"ask": header["ask"], "op": "refused", "kind": "unavailable", "message": str(exc)}))
+        return None
+    except InputError as exc:
+        answer.send_bytes(encode({"ask": header["ask"], "op": "refused", "kind": "input", "message": str(exc)}))
+        return None
+    topics = {f"{stream}/{output}": publisher.topic(stream, output) for stream, output in publisher.outputs}
+    answer.send_bytes(encode({"ask": header["ask"], "op": "ready", "node": publisher.node_name, "topics": topics}))
+    return publisher
+
+
+def _publish_window(publisher: Any, header: Mapping[str, Any], payload: bytes) -> None:
+    values = np.frombuffer(payload, dtype=np.float64)
+    n = header["features"]
+    publisher.publish_window(header["stream"], header["end"], values[:n] if n else None,
+                             None if header["posteriors"] is None else values[n:n + header["posteriors"]],
+                             None if header["classes"] is None else tuple(header["classes"]), header["decision"])
 
 
 # -- as a scene names it ---------------------------------------------------------------------------
