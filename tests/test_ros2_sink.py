@@ -431,3 +431,83 @@ def test_ros_arguments_that_rclpy_refuses_are_an_error_of_the_scene_naming_them(
             Ros2Sink([TopicStream("main", ("a", "b"))], namespace=unique_namespace())
     finally:
         use_ros_arguments([])
+
+
+def test_a_driver_event_that_names_no_source_goes_on_the_events_topic_as_the_jsonl_sink_writes_it():
+    """The events topic carries the event's own JSON (no ``source`` made up for a one-source graph's event);
+    the diagnostics file it under the graph's one source, with the counters of the moment."""
+    ns = unique_namespace()
+    sink = Ros2Sink([TopicStream("main", ("a", "b"))], namespace=ns, diagnostics_period=60.0)
+    sink.watch(lambda: {"streams": {"main": {"windows": 3, "source": "whiskers", "frames": {}, "latency_ms": {}}}})
+    sub = Subscriber()
+    try:
+        from rclpy.qos import DurabilityPolicy, QoSProfile
+
+        sub.subscribe("/diagnostics", DiagnosticArray, 100)
+        sub.subscribe(f"{ns}/supramodal/events", String, QoSProfile(depth=20,
+                                                                    durability=DurabilityPolicy.TRANSIENT_LOCAL))
+        assert sub.wait_for(lambda: sub.publishes(ns, "/diagnostics"), 10.0)
+        time.sleep(0.5)
+        ev = DriverEvent("gap", "12 frames lost", time.time(), stream_index=500)
+        sink.event(ev)
+        assert sub.wait_for(lambda: len(sub.messages(f"{ns}/supramodal/events")) == 1, 10.0)
+        assert json.loads(sub.messages(f"{ns}/supramodal/events")[0].data) == ev.as_dict()
+        assert sub.wait_for(lambda: any(st.name == "supramodal: source whiskers" and "gap" in st.message
+                                        for m in sub.messages("/diagnostics") for st in m.status), 5.0)
+        assert any(st.name == "supramodal: stream main" for m in sub.messages("/diagnostics") for st in m.status)
+    finally:
+        sub.close()
+        sink.close()
+
+
+def test_an_interrupted_wait_for_subscribers_ends_the_publisher_process():
+    """Ctrl-C or SIGTERM while the sink waits for subscribers: the node will not start, nor close its
+    sinks; the publisher process (which ignores both) is ended, not left on the bus."""
+    sink = Ros2Sink([TopicStream("main", ("a", "b"))], namespace=unique_namespace(), wait_for_subscribers=60)
+
+    class Interrupted(Exception):
+        pass
+
+    def interrupt(signum, frame):
+        raise Interrupted
+
+    before = signal.signal(signal.SIGALRM, interrupt)
+    try:
+        signal.setitimer(signal.ITIMER_REAL, 0.5)
+        t = time.monotonic()
+        with pytest.raises(Interrupted):
+            sink.prepare()
+        assert time.monotonic() - t < 5.0
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, before)
+    assert sink._process.poll() is not None
+
+
+def test_a_frozen_publisher_process_cannot_hold_the_node_s_end():
+    """A publisher process that stops reading (SIGSTOP: a frozen rclpy) fills its pipe and holds the sink's
+    thread; the node's end still comes within seconds: the summary's and the close's writes are bounded,
+    and the process is killed."""
+    import numpy as np
+
+    from supramodal.node.runtime.events import WindowEvent
+    from supramodal.node.runtime.sinks import QueuedSink
+
+    sink = Ros2Sink([TopicStream("main", ("a", "b"))], namespace=unique_namespace())
+    queued = QueuedSink(sink)
+    queued.start(time.monotonic())
+    os.kill(sink.pid, signal.SIGSTOP)
+    try:
+        for i in range(2000):                           # about 0.5 MB: the pipe holds 64 KiB
+            queued.emit(WindowEvent("main", i, 0.1 * i, 0.1 * i + 0.1, 0.1 * i + 0.1, decision="a", confidence=0.9,
+                                    posteriors=np.array([0.9, 0.1]), classes=("a", "b")))
+        t = time.monotonic()
+        queued.drain(1.0)
+        queued.summary({})
+        queued.close()
+        assert time.monotonic() - t < 15.0
+        assert sink._process.poll() is not None
+    finally:
+        with __import__("contextlib").suppress(ProcessLookupError):
+            os.kill(sink.pid, signal.SIGCONT)
+            os.kill(sink.pid, signal.SIGKILL)

@@ -11,9 +11,10 @@ per window.
 The child (``python -c`` of :func:`serve`) is started when the sink is made, and answers before the
 node goes on: a ROS 2 that cannot be imported, or a name rclpy refuses, is an error of the scene, as
 it was in one process. It inherits the environment (``ROS_DOMAIN_ID``, a sourced ROS 2) and is given
-the command line's ``--ros-args``. It ignores SIGINT (Ctrl-C reaches the whole process group: the
-node still has its last windows to publish) and ends when the node closes the sink, or when the pipe
-closes because the node is gone.
+the command line's ``--ros-args``. It ignores SIGINT and SIGTERM (Ctrl-C, systemd and ``timeout`` signal the
+whole process group: the node still has its last windows to publish) and ends when the node closes the
+sink, or when the pipe closes because the node is gone; a node that cannot end it in
+:data:`CLOSE_TIMEOUT` kills it.
 
 The wire, one frame per message (:class:`multiprocessing.connection.Connection`'s ``send_bytes``):
 a JSON object with ``"op"``, then, for a window, a NUL and its features and posteriors as float64 bytes.
@@ -28,6 +29,7 @@ sends the graph's counters every ``diagnostics_period``; a lock keeps the two wr
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -202,20 +204,41 @@ class Ros2Sink(Sink):
 
     # -- the pipe ------------------------------------------------------------------------------------------
 
-    def _send(self, header: Mapping[str, Any], payload: bytes = b"") -> None:
+    def _send(self, header: Mapping[str, Any], payload: bytes = b"", bound: float | None = None) -> None:
+        """Write one frame. ``bound``: seconds the caller's thread may wait, for the lock or the write
+        (a child that stopped reading, its pipe full: a frozen rclpy); past them the child is killed,
+        which ends every write waiting on it (the sink's thread's too). None: no bound (the sink's
+        threads, whose waits the queue absorbs)."""
         frame = encode(header, payload)
-        with self._lock:
-            try:
+        watchdog = None if bound is None else threading.Timer(bound, self._kill)
+        if watchdog is not None:
+            watchdog.daemon = True
+            watchdog.start()
+        try:
+            with self._lock:
                 self._to.send_bytes(frame)
-            except OSError:   # a BrokenPipeError too: not the node's stdout, which QueuedSink would stop for
-                raise PublisherProcessError(f"the ROS 2 publisher process has ended ({self._exit()}); "
-                                            "what it said is above, on stderr") from None
+        except OSError:   # a BrokenPipeError too: not the node's stdout, which QueuedSink would stop for
+            raise PublisherProcessError(f"the ROS 2 publisher process has ended ({self._exit()}); "
+                                        "what it said is above, on stderr") from None
+        finally:
+            if watchdog is not None:
+                watchdog.cancel()
+
+    def _kill_quietly(self) -> None:
+        if self._process.poll() is None:
+            self._process.kill()
+
+    def _kill(self) -> None:
+        if self._process.poll() is None:
+            print(f"supramodal: ros2 sink: the publisher process (pid {self._process.pid}) stopped reading; "
+                  "killed", file=sys.stderr, flush=True)
+            self._process.kill()
 
     def _ask(self, header: dict[str, Any], timeout: float, what: str) -> dict[str, Any]:
         """Send a request and wait up to ``timeout`` s for its answer, in short polls (SIGINT and SIGTERM
         reach the caller's thread between two). The caller's thread."""
         self._asked += 1
-        self._send({**header, "ask": self._asked})
+        self._send({**header, "ask": self._asked}, bound=ANSWER_MARGIN)
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
             if self._from.poll(WAIT_STEP_SECONDS):
@@ -227,8 +250,12 @@ class Ros2Sink(Sink):
                     return answer
             elif self._process.poll() is not None:
                 break
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            self._process.wait(1.0)                      # the end of its output can come before its exit status
         if self._process.poll() is None:
-            raise PublisherProcessError(f"the ROS 2 publisher process did not {what} in {timeout:g} s")
+            raise PublisherProcessError(f"the ROS 2 publisher process (pid {self._process.pid}) did not {what} in "
+                                        f"{timeout:g} s: a machine this busy, or DDS stuck (check ROS_DOMAIN_ID, "
+                                        "RMW_IMPLEMENTATION and what it said on stderr)")
         raise PublisherProcessError(f"the ROS 2 publisher process ended before it could {what} ({self._exit()}); "
                                     "what it said is above, on stderr")
 
@@ -251,12 +278,16 @@ class Ros2Sink(Sink):
         SIGINT and SIGTERM interrupt it."""
         if self.wait_for_subscribers <= 0:
             return
-        done = self._ask({"op": "prepare"}, self.wait_for_subscribers + ANSWER_MARGIN, "wait for subscribers")
+        try:
+            done = self._ask({"op": "prepare"}, self.wait_for_subscribers + ANSWER_MARGIN, "wait for subscribers")
+        except BaseException:              # Ctrl-C, SIGTERM: the node will not start, nor close its sinks
+            self._end(now=True)
+            raise
         self.waited_s, self.subscribed = done["waited_s"], done["subscribed"]
 
     def start(self, epoch: float) -> None:
         """The graph's start, on ``time.monotonic()`` (one clock for every process of this machine)."""
-        self._send({"op": "start", "epoch": epoch})
+        self._send({"op": "start", "epoch": epoch}, bound=ANSWER_MARGIN)
 
     def emit(self, event: WindowEvent) -> None:
         s = self._streams.get(event.stream)
@@ -273,8 +304,9 @@ class Ros2Sink(Sink):
                     "decision": event.as_dict() if event.decision is not None else None}, payload)
 
     def event(self, ev: DriverEvent) -> None:
-        """A driver event: on ``~/events`` and in the diagnostics, at once."""
-        self._send({"op": "event", "event": {**asdict(ev), "source": ev.source or self._only_source()}})
+        """A driver event: on ``~/events`` and in the diagnostics (of the counters now), at once."""
+        self._send({"op": "event", "event": asdict(ev), "source": ev.source or self._only_source(),
+                    "health": self.health() if self.health is not None else None})
 
     def _only_source(self) -> str:
         if self._one_source is None:
@@ -312,7 +344,8 @@ class Ros2Sink(Sink):
     def summary(self, summary: dict[str, Any]) -> None:
         """The last diagnostics, with the run's final counts."""
         try:
-            self._send({"op": "diagnostics", "health": self.health() if self.health is not None else None})
+            self._send({"op": "diagnostics", "health": self.health() if self.health is not None else None},
+                       bound=CLOSE_TIMEOUT)
         except PublisherProcessError:
             pass                                          # the summary says so (``publisher_exit``)
 
@@ -328,9 +361,11 @@ class Ros2Sink(Sink):
         if stop is not None:
             stop.set()
             self._timer.join(CLOSE_TIMEOUT)
-        if not now:
+        if now:
+            self._kill_quietly()
+        else:
             try:
-                self._send({"op": "close"})
+                self._send({"op": "close"}, bound=CLOSE_TIMEOUT)
             except PublisherProcessError:
                 pass
         self._to.close()                                  # the child reads the end of its input: it ends too
@@ -353,7 +388,10 @@ def serve(read_fd: int, write_fd: int) -> None:
     read_fd, write_fd : int
         The pipe ends from the node and to it.
     """
-    signal.signal(signal.SIGINT, signal.SIG_IGN)         # Ctrl-C is the node's to handle: it says when to end
+    # Ctrl-C, and a SIGTERM to the whole group (systemd, timeout), are the node's to handle: it says when to
+    # end, after its last windows; a node that is gone closes the pipe, and that ends this process too.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
     os.nice(PUBLISHER_NICENESS)
     source, answer = Connection(read_fd, writable=False), Connection(write_fd, readable=False)
     try:
@@ -377,7 +415,7 @@ def serve(read_fd: int, write_fd: int) -> None:
                 if op == "window":
                     _publish_window(publisher, header, payload)
                 elif op == "event":
-                    publisher.event(DriverEvent(**header["event"]))
+                    publisher.event(DriverEvent(**header["event"]), header["source"], header["health"])
                 elif op == "diagnostics":
                     publisher.publish_diagnostics(header["health"])
                 elif op == "start":

@@ -257,11 +257,11 @@ def diagnostic_report(node: str, health: Mapping[str, Any] | None, sources: Mapp
         was_sinks = {s.get("sink"): s for s in ((before or {}).get("sinks") or [])}
         for s in sinks:
             label = str(s.get("sink"))
-            for key in ("written", "dropped_windows", "dropped_events", "errors"):
+            for key in ("written", "dropped_windows", "dropped_events", "errors", "publisher_errors"):
                 if key in s:
                     values.append((f"{label} {key}", _fmt(s[key])))
             grew += sum(_grew(s, was_sinks.get(s.get("sink")), k) for k in ("dropped_windows", "dropped_events",
-                                                                             "errors") if k in s)
+                                                                             "errors", "publisher_errors") if k in s)
         out.append(Status(WARN if grew else OK, f"{node}: sinks",
                           f"{grew} items dropped or failed since the last report" if grew else f"{len(sinks)} sinks",
                           "", tuple(values)))
@@ -445,9 +445,11 @@ class Ros2Publisher:
         msg.position = array.array("d", values.tobytes())   # an array of doubles: rclpy takes it unchecked
         return msg
 
-    def event(self, ev: DriverEvent) -> None:
-        """A driver event: on ``~/events`` at once, and in the diagnostics, published at once too."""
-        name = ev.source or self._only_source()
+    def event(self, ev: DriverEvent, source: str | None = None, health: Mapping[str, Any] | None = None) -> None:
+        """A driver event: on ``~/events`` at once (as the ``jsonl`` sink writes it), and in the diagnostics,
+        published at once too, of ``health`` (None: the counters last given). ``source``: the source it is
+        filed under when the event names none (default: the graph's one source)."""
+        name = ev.source or source or self._only_source()
         with self._lock:
             state = self._sources.setdefault(name, SourceState())
             state.last = ev
@@ -458,7 +460,7 @@ class Ros2Publisher:
                 state.unplugged = False
         self._events.publish(self._String(data=json.dumps(ev.as_dict())))
         self.published["events"] += 1
-        self.publish_diagnostics()
+        self.publish_diagnostics(health)
 
     def _only_source(self) -> str:
         """The name of the graph's one source (a one-source graph's events name none): what its stream's
