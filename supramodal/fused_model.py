@@ -92,16 +92,18 @@ class Sense:
     def n_inputs(self) -> int:
         return len(self.features) * self.bank.channels
 
-    def check_pipeline(self, pipeline) -> None:
+    def check_pipeline(self, pipeline, in_fusion: bool = True) -> None:
         """Raise :class:`ModelError` naming what differs if ``pipeline`` does not make this sense's
-        windows (checked as a one-sense model checks its pipeline)."""
+        windows (checked as a one-sense model checks its pipeline); ``in_fusion``: the pipeline is a
+        ``[fusion]`` stream's, and the message asks whether the streams were given in the other order."""
         try:
             check_sense_fits((self.bank, self.features, self.window_samples, self.peak_mode, self.peak_threshold),
                              pipeline.bank, pipeline.features, pipeline.window_samples, pipeline.peaks.mode,
                              pipeline.peaks.threshold)
         except ModelError as exc:
-            raise ModelError(f"sense {self.name!r}: {exc} (the model's senses feed [fusion] streams in their "
-                             "order: are the two streams given the other way round?)") from None
+            hint = (" (the model's senses feed [fusion] streams in their order: are the two streams given the "
+                    "other way round?)") if in_fusion else ""
+            raise ModelError(f"sense {self.name!r}: {exc}{hint}") from None
 
 
 @dataclass

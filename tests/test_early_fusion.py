@@ -238,3 +238,15 @@ def test_a_stream_outside_the_fusion_does_not_end_it():
     summary = build_node(scene_from_dict(d, "world.toml"), speed="max", sinks_override=[ListSink()]).run()
     f = summary["fusion"]
     assert summary["streams"]["touch"]["windows"] == 80 and f["windows"] == f["paired"] == 80
+
+
+def test_a_sense_that_does_not_fit_asks_about_the_streams_order_only_in_a_fusion():
+    """Issue 35 item 31: ``train --scene`` over two recordings whose stream differs was asked whether "the
+    two streams [were] given the other way round", with no fusion in sight; a [fusion] stream still is."""
+    sense = Sense.of("left", FeaturePipeline(whisker_bank(), ("Af",)))
+    other = FeaturePipeline(whisker_bank(), ("A", "f"))
+    with pytest.raises(ModelError, match=r"sense 'left': .*other way round"):
+        sense.check_pipeline(other)
+    with pytest.raises(ModelError, match=r"sense 'left': ") as refused:
+        sense.check_pipeline(other, in_fusion=False)
+    assert "other way round" not in str(refused.value) and "fusion" not in str(refused.value)

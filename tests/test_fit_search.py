@@ -225,3 +225,46 @@ def test_a_manifest_of_one_label_is_refused_as_train_refuses_it(tmp_path, capsys
         assert main(argv) == 2
         assert "training needs at least two labels, found ['only']" in capsys.readouterr().err
     assert not (tmp_path / "fit" / "bank.json").exists()
+
+
+def test_a_cluster_address_that_accepts_and_never_answers_is_refused_in_bounded_time(monkeypatch):
+    """Issue 35, item 9: ``--cluster`` at an address that accepts TCP and stays silent waited forever (Dask's
+    timeout covers only the connection). Refused once its greeting is late, saying so; a server that
+    closes at once is refused as no scheduler too."""
+    import socket
+    import threading
+    import time
+
+    from supramodal.node.workflows import fit_search as fs
+
+    pytest.importorskip("distributed")
+    monkeypatch.setattr(fs, "SCHEDULER_TIMEOUT", 1.0)
+    for behaviour, said in (("silent", "accepts connections but said nothing in 1 s"),
+                            ("closes", "closed the connection without a word")):
+        server = socket.socket()
+        server.bind(("127.0.0.1", 0))
+        server.listen(4)
+        held = []
+
+        def serve(server=server, behaviour=behaviour, held=held):
+            while True:
+                try:
+                    conn, _ = server.accept()
+                except OSError:
+                    return
+                if behaviour == "closes":
+                    conn.close()
+                else:
+                    held.append(conn)
+
+        threading.Thread(target=serve, daemon=True).start()
+        address = f"tcp://127.0.0.1:{server.getsockname()[1]}"
+        t = time.monotonic()
+        try:
+            with pytest.raises(FitError, match=rf"--cluster {address}: {said}: no Dask scheduler there"):
+                fs.Runner(cluster=address)
+            assert time.monotonic() - t < 10.0
+        finally:
+            server.close()
+            for conn in held:
+                conn.close()

@@ -276,3 +276,52 @@ def test_per_sample_times_in_milliseconds_are_refused_not_read_as_gaps(lab_files
     err = capsys.readouterr().err
     assert "mic.csv: its times step by 0.0226" in err and "milliseconds?" in err and "44100 Hz" in err
     assert not (lab_files / "rec").exists()
+
+
+def test_a_per_sample_time_far_beyond_any_recording_is_refused_naming_its_line_in_the_csv_s_words(lab_files, capsys):
+    """Issue 35, item 29: a 9e9 s jump in a per-sample CSV was said in an XDF file's words ("the file's clock
+    offset chunks are damaged"); 5e9 s here, within the times' own bound. The CSV's line and frame are named, and what to correct."""
+    lines = (lab_files / "mic.csv").read_text().splitlines()
+    lines[-5:] = [repr(float(v) + 5e9) for v in lines[-5:]]          # times still ascending, within MAX_TIME
+    (lab_files / "mic.csv").write_text("\n".join(lines) + "\n")
+    assert _import(lab_files) == 2
+    err = capsys.readouterr().err
+    frame = len(lines) - 6
+    assert f"mic.csv: line {frame + 2} (frame {frame}) is 5" in err and "correct that line's time" in err, err
+    assert "XDF" not in err and "clock offset" not in err
+    assert not (lab_files / "rec").exists()
+
+
+def test_sources_that_never_overlap_in_time_are_refused_with_the_gap(lab_files, capsys):
+    """Issue 35, item 24: sources 1e6 s apart were imported, and the replay would have waited out the gap
+    (11.6 days). Refused, naming each source's span and the gap; nothing written."""
+    lines = (lab_files / "mic.csv").read_text().splitlines()
+    (lab_files / "mic.csv").write_text("\n".join([lines[0], *(repr(float(v) + 1e6) for v in lines[1:])]) + "\n")
+    assert _import(lab_files) == 2
+    err = capsys.readouterr().err
+    assert "the sources never overlap in time" in err and "mic starts 99999" in err and "after whiskers ends" in err, err
+    assert not (lab_files / "rec").exists()
+
+
+def test_a_source_of_two_channels_is_imported_with_the_mapping_given_and_refused_without_naming_the_option(
+        lab_files, capsys):
+    """Issue 35, item 27: a 2-channel source was refused with "set the scene's [driver] mapping", a table the
+    import does not write and the command had no option for. The refusal names ``--mapping``; with it, the
+    scene's [[stream]] takes the mapping and the whisker stream's windows are those of the channels' mean."""
+    data, rate = read_wav(lab_files / "whiskers.wav")
+    stereo = np.hstack([data, 0.5 * data])
+    write_wav(lab_files / "whiskers.wav", stereo, rate, dtype="float32")
+    assert _import(lab_files) == 2
+    err = capsys.readouterr().err
+    assert "[[stream]] whiskers's mapping" in err and "--mapping SOURCE=mean" in err and "[driver]" not in err, err
+    assert not (lab_files / "rec").exists()
+    assert _import(lab_files, "--mapping", "whiskers=sideways") == 2
+    assert "--mapping whiskers=sideways: expected" in capsys.readouterr().err
+    assert _import(lab_files, "--mapping", "whiskers=mean") == 0
+    scene = load_scene(lab_files / "rec" / "lab.toml")
+    assert {s.name: s.mapping for s in scene.streams} == {"whiskers": "mean", "mic": "auto"}
+    got = _windows(capsys, lab_files / "rec" / "lab.toml")["whiskers"]
+    ref = extract_features(stereo.mean(axis=1), whisker_bank(), ("Af",)).values[:, 0]   # offline, of the mean
+    values = np.array([e["features"]["Af"] for e in got])
+    assert values.shape == ref.shape and len(ref) == 30
+    assert np.max(np.abs(values - ref)) <= 1e-12 * np.max(np.abs(ref))

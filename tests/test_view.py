@@ -359,6 +359,31 @@ def test_a_port_in_use_or_out_of_range_is_refused_naming_the_fix(tmp_path):
         scene(tmp_path, {"type": "view", "port": 70000})
 
 
+def test_a_view_serves_on_ipv6_loopback_and_a_host_that_is_no_address_here_names_that_fix():
+    """Issue 35 item 30: ``host = "::1"`` serves the page (it said "Address family for hostname not
+    supported; give another port"); a host that does not resolve, or is no address of this machine,
+    asks for an address of this machine, not another port."""
+    try:
+        with socket.socket(socket.AF_INET6) as probe:
+            probe.bind(("::1", 0))
+    except OSError:
+        pytest.skip("this machine has no IPv6 loopback")
+    view = ViewSink(0, host="::1", quiet=True)
+    view.prepare()
+    try:
+        assert view.url.startswith("http://[::1]:")
+        conn = http.client.HTTPConnection("::1", view.port, timeout=10)
+        conn.request("GET", "/state", headers={"Host": f"[::1]:{view.port}"})
+        assert conn.getresponse().status == 200
+        conn.close()
+    finally:
+        view.close()
+    for host in ("no-such-host.invalid", "192.0.2.1"):       # unresolvable; TEST-NET, no address of ours
+        with pytest.raises(ViewError, match=f"{host}.*give an address of this machine") as refused:
+            ViewSink(0, host=host, remote=True, token="a-token-of-twenty-chars", quiet=True)
+        assert "another port" not in str(refused.value)
+
+
 def test_a_driver_event_shows_as_a_banner_within_a_second(browser):
     view = ViewSink(quiet=True)
     view.prepare()

@@ -45,6 +45,10 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
     p.add_argument("--model", type=source_value, action="append", default=[], metavar="SOURCE=MODEL.npz",
                    help="a model for the source's stream, copied beside the sessions (default: none, the stream "
                         "gives feature windows)")
+    p.add_argument("--mapping", type=source_value, action="append", default=[], metavar="SOURCE=MAPPING",
+                   help="how a source of several channels feeds its bank: mean, a channel index (e.g. 0), "
+                        "per-channel (as many channels as filters) or mono; written as its [[stream]] mapping "
+                        "(default: auto, which takes one channel, or as many as the bank has filters)")
     p.add_argument("--fusion", action="store_true",
                    help="fuse the two streams' decisions (late fusion; learn its weight with train --fusion late); "
                         "needs two sources with models (default: no fusion)")
@@ -69,7 +73,8 @@ def run(args: argparse.Namespace) -> int:
 
     if args.label_topic is not None and args.markers is not None:
         raise CliError("--markers labels from an XDF file, --label-topic from a bag: give one")
-    sources = sources_from_options(args.wav, args.times, args.xdf_stream, args.bank, args.model, args.topic)
+    sources = sources_from_options(args.wav, args.times, args.xdf_stream, args.bank, args.model, args.topic,
+                                   args.mapping)
     scene = import_recording(args.out, args.name, sources, xdf=args.xdf, markers=args.markers or args.label_topic,
                              fusion=args.fusion, overwrite=args.force, bag=args.bag)
     print(f"wrote {scene} and the sessions of {', '.join(s.name for s in sources)} beside it\n"

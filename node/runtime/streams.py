@@ -145,11 +145,14 @@ class Stream:
         Source channels to filter inputs, see :func:`channel_mapper`.
     labels : Labels, optional
         Truth labels; by default those the driver carries (a replayed session's).
+    mapping_setting : str
+        Where the scene sets ``mapping``, for the advice of a refusal (default ``"the scene's [driver]
+        mapping"``, a one-source scene's).
     """
 
     def __init__(self, name: str, source: Source, pipeline: FeaturePipeline, model: TextureModel | None = None,
                  decision: DecisionRules = DEFAULT_DECISION, mapping: str | int = "auto",
-                 labels: Labels | None = None) -> None:
+                 labels: Labels | None = None, mapping_setting: str = "the scene's [driver] mapping") -> None:
         bank = pipeline.bank
         if abs(source.rate - bank.fs) > 1e-9 * bank.fs:
             raise InputError(f"the driver delivers {source.rate:g} Hz but the {bank.kind} bank runs at {bank.fs:g} Hz")
@@ -160,7 +163,7 @@ class Stream:
         self.pipeline = pipeline
         self.model = model
         self.labels = labels if labels is not None else Labels.of(source.driver)
-        self.map = channel_mapper(mapping, source.driver.channels, bank.channels)
+        self.map = channel_mapper(mapping, source.driver.channels, bank.channels, mapping_setting)
         self.decision = decision
         self.decider = None
         self.contact = None

@@ -22,6 +22,7 @@ from supramodal.drivers.spec import BuildContext, OptionError
 from supramodal.errors import InputError
 from supramodal.model import ModelError, TextureModel
 from supramodal.node.runtime.contacts import ContactTimeline
+from supramodal.node.runtime.events import MAIN_STREAM
 from supramodal.node.runtime.graph import Graph
 from supramodal.node.runtime.sinks.spec import SinkContext, SinkSpec, SourcePlan, StreamPlan
 from supramodal.node.runtime.sources import Source
@@ -420,7 +421,11 @@ def build_node(scene: Scene, speed=None, sinks_override=None, progress=None, rec
                 raise AssertionError(f"stream {spec.name}: the model's classes are not the planned "
                                      f"{plans[spec.name].classes}")
             try:
-                streams.append(Stream(spec.name, source, pipeline, model, spec.decision, spec.mapping, labels))
+                # where a refused mapping is set: [driver] in a one-source scene, the stream's table in a graph
+                setting = ("the scene's [driver] mapping" if len(scene.sources) == 1 and spec.name == MAIN_STREAM
+                           else f"[[stream]] {spec.name}'s mapping")
+                streams.append(Stream(spec.name, source, pipeline, model, spec.decision, spec.mapping, labels,
+                                      mapping_setting=setting))
             except ValueError as exc:
                 raise SceneError(f"{spec.where}: {exc}") from None
         for src in scene.sources:               # sources only sent on (a relay's): no bank, their own rate

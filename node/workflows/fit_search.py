@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import csv
 import math
+import socket
 import threading
 import time
 from dataclasses import asdict, dataclass
@@ -388,6 +389,39 @@ def score_fold(job: dict) -> dict:
 
 # -- where the folds run -------------------------------------------------------------------------
 
+#: Seconds a Dask scheduler has to accept the connection, and then to greet.
+SCHEDULER_TIMEOUT = 20.0
+
+
+def _check_scheduler_answers(address: str, seconds: float) -> None:
+    """Raise :class:`FitError` unless a TCP scheduler at ``address`` greets within ``seconds`` of the
+    connection (a Dask scheduler speaks first). Dask's own timeout covers only the connection: an address
+    that accepts and stays silent (another service, a stopped process) held the fit forever. Addresses
+    of other schemes (tls://, ucx://) are left to Dask."""
+    from distributed.comm import parse_address
+    from distributed.comm.addressing import parse_host_port
+
+    try:
+        scheme, location = parse_address(address)
+        host, port = parse_host_port(location)
+    except ValueError:
+        return                                          # Dask's own refusal says what is wrong
+    if scheme != "tcp":
+        return
+    try:
+        with socket.create_connection((host, port), timeout=seconds) as probe:
+            probe.settimeout(seconds)
+            if probe.recv(1):
+                return
+            said = "closed the connection without a word"
+    except TimeoutError:
+        said = f"accepts connections but said nothing in {seconds:g} s"
+    except OSError as exc:
+        said = f"cannot be reached ({exc.strerror or exc})"
+    raise FitError(f"--cluster {address}: {said}: no Dask scheduler there; start one (dask scheduler; dask worker "
+                   "ADDRESS) and give its address, or leave --cluster out")
+
+
 class Runner:
     """Maps fold tasks over this process, a local Dask cluster or a running one; results in order.
 
@@ -410,8 +444,9 @@ class Runner:
         if cluster is not None:
             from distributed import Client
 
+            _check_scheduler_answers(cluster, SCHEDULER_TIMEOUT)
             try:
-                self.client = Client(cluster, timeout="20s")
+                self.client = Client(cluster, timeout=f"{SCHEDULER_TIMEOUT:g}s")
             except OSError as exc:
                 raise FitError(f"--cluster {cluster}: no Dask scheduler answers there ({exc}); start one "
                                "(dask scheduler; dask worker ADDRESS) or leave --cluster out") from None

@@ -40,6 +40,7 @@ import math
 import os
 import shutil
 import tempfile
+from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -92,6 +93,8 @@ class SourceFiles:
     model : path or None
         A model file for the stream (copied beside the sessions); None: the stream gives feature
         windows.
+    mapping : str or int
+        How its channels feed its bank (its ``[[stream]]`` mapping; default ``"auto"``).
     """
 
     name: str
@@ -101,6 +104,7 @@ class SourceFiles:
     xdf_stream: str | None = None
     model: Path | None = None
     topic: str | None = None
+    mapping: str | int = "auto"
 
     @property
     def origins(self) -> int:
@@ -108,12 +112,13 @@ class SourceFiles:
         return (self.wav is not None) + (self.xdf_stream is not None) + (self.topic is not None)
 
 
-def sources_from_options(wav=(), times=(), xdf_streams=(), banks=(), models=(), topics=()) -> list[SourceFiles]:
+def sources_from_options(wav=(), times=(), xdf_streams=(), banks=(), models=(), topics=(),
+                         mappings=()) -> list[SourceFiles]:
     """The sources the command line's ``SOURCE=VALUE`` options describe, in the order the WAVs, XDF
     streams or bag topics are given (``wav``, ``times``, ``xdf_streams``, ``banks``, ``models``,
-    ``topics``: lists of ``(source, value)``). Refused, naming the option: a source given twice in one option, a
-    ``--times``, ``--bank`` or ``--model`` for no source, a source without its bank or (a WAV)
-    its timestamps."""
+    ``topics``, ``mappings``: lists of ``(source, value)``). Refused, naming the option: a source given
+    twice in one option, a ``--times``, ``--bank``, ``--model`` or ``--mapping`` for no source, a mapping
+    the scene would refuse, a source without its bank or (a WAV) its timestamps."""
     def by_source(option: str, pairs) -> dict[str, str]:
         out: dict[str, str] = {}
         for name, value in pairs:
@@ -125,9 +130,10 @@ def sources_from_options(wav=(), times=(), xdf_streams=(), banks=(), models=(), 
     wavs, stamps = by_source("--wav", wav), by_source("--times", times)
     streams, bank = by_source("--xdf-stream", xdf_streams), by_source("--bank", banks)
     model, topic = by_source("--model", models), by_source("--topic", topics)
+    mapping = {n: _mapping(n, v) for n, v in by_source("--mapping", mappings).items()}
     names = list(wavs) + [n for n in streams if n not in wavs]
     names += [n for n in topic if n not in names]
-    for option, given in (("--times", stamps), ("--bank", bank), ("--model", model)):
+    for option, given in (("--times", stamps), ("--bank", bank), ("--model", model), ("--mapping", mapping)):
         stray = sorted(set(given) - set(names))
         if stray:
             raise ImportRecordingError(f"{option}: no source {stray[0]!r} (the sources: {names}); name a source "
@@ -144,7 +150,18 @@ def sources_from_options(wav=(), times=(), xdf_streams=(), banks=(), models=(), 
             raise ImportRecordingError(f"source {n!r} has no bank: --bank {n}=whisker, cochlea or a bank file")
     return [SourceFiles(n, bank[n], wav=Path(wavs[n]) if n in wavs else None,
                         times=Path(stamps[n]) if n in wavs else None, xdf_stream=streams.get(n),
-                        model=Path(model[n]) if n in model else None, topic=topic.get(n)) for n in names]
+                        model=Path(model[n]) if n in model else None, topic=topic.get(n),
+                        mapping=mapping.get(n, "auto")) for n in names]
+
+
+def _mapping(source: str, value: str) -> str | int:
+    """``--mapping``'s value as the scene takes it (a channel index as an integer), or refused naming it."""
+    from supramodal.node.scene.schema import MAPPING
+
+    taken: str | int = int(value) if value.strip().isdigit() else value.strip()
+    if not MAPPING.check(taken):
+        raise ImportRecordingError(f"--mapping {source}={value}: expected {MAPPING.expected}")
+    return taken
 
 
 def _number(text: str, where: str, column: str) -> float:
@@ -251,7 +268,7 @@ def read_times(path, frames: int) -> tuple[str, np.ndarray, np.ndarray]:
 def _wav_session(src: SourceFiles) -> tuple[Session, float]:
     """A source's WAV and timestamps as a session whose arrivals are on the file's clock (zero not
     yet moved), and the time of its first sample on that clock."""
-    from supramodal.replay.xdf import xdf_session
+    from supramodal.replay.xdf import MAX_XDF_TIME, xdf_session
 
     assert src.wav is not None and src.times is not None
     try:
@@ -275,6 +292,14 @@ def _wav_session(src: SourceFiles) -> tuple[Session, float]:
                 f"{src.times}: its times step by {step:.6g} s (the median), where samples at the WAV's {rate} Hz come "
                 f"every {1 / rate:.6g} s: {'milliseconds? ' if 500 / rate <= step <= 2000 / rate else ''}give each "
                 "frame's time in seconds, or the WAV at its real rate")
+    # A jump far beyond any recording's length (a damaged row, another clock pasted in) would otherwise be
+    # refused in an XDF file's words; say it in the CSV's, with its row.
+    span = seconds - seconds[0]
+    if np.max(np.abs(span)) > MAX_XDF_TIME:
+        row = int(np.argmax(np.abs(span) > MAX_XDF_TIME))
+        raise ImportRecordingError(
+            f"{src.times}: line {row + 2} (frame {row}) is {span[row]:.6g} s from the first frame's time, beyond the "
+            f"{MAX_XDF_TIME:g} s any recording spans: a damaged line or another clock; correct that line's time")
     # Per-sample times follow an XDF stream's rules (blocks of about 10 ms at their last sample's
     # time, gaps filled and marked, the rate the times show): read as the one stream of a file.
     stream = {"info": {"name": [src.name], "type": ["imported"], "source_id": [""], "nominal_srate": [str(rate)],
@@ -342,6 +367,24 @@ def _check_times(name: str, session: Session, where: str) -> None:
     except ReplayError as exc:
         raise ImportRecordingError(f"source {name!r}: its timestamps do not follow its samples at {session.rate} Hz: "
                                    f"{exc} (arrivals are the blocks' ends and times, in the CSV's order)") from None
+
+
+def _check_overlap(sessions: Mapping[str, Session], where: Mapping[str, str]) -> None:
+    """Sources recorded in step share some time: two that never do (another day's file, a clock of another
+    origin) would make the replay wait out the gap between them, for as long as it is."""
+    spans = {}
+    for n, session in sessions.items():
+        assert session.arrivals is not None
+        ends, seconds, rate = session.arrivals
+        spans[n] = (float(seconds[0] - (ends[0] - 1) / rate), float(seconds[-1]))
+    last_start = max(spans, key=lambda n: spans[n][0])
+    first_end = min(spans, key=lambda n: spans[n][1])
+    if spans[last_start][0] >= spans[first_end][1]:
+        said = "; ".join(f"{n} ({where[n]}) {a:.6g} to {b:.6g} s" for n, (a, b) in spans.items())
+        raise ImportRecordingError(
+            f"the sources never overlap in time: {said} on the common clock; {last_start} starts "
+            f"{spans[last_start][0] - spans[first_end][1]:.6g} s after {first_end} ends. Give times on one clock, "
+            "of one session (or import each source alone)")
 
 
 def recording_files(folder, name: str, sources) -> list[Path]:
@@ -468,10 +511,11 @@ def import_recording(folder, name: str, sources: list[SourceFiles], xdf=None, ma
         where = {s.name: str(s.times) for s in sources}
     for n, session in sessions.items():
         _check_times(n, session, where[n])
+    _check_overlap(sessions, where)
     scene = folder / f"{name}.toml"
     d = {"source": [{"name": n, "type": "replay", "path": f"{name}.{n}.wav", "timing": "recorded", "speed": "max"}
                     for n in names],
-         "stream": [{"name": s.name, "source": s.name,
+         "stream": [{"name": s.name, "source": s.name, **({"mapping": s.mapping} if s.mapping != "auto" else {}),
                      "bank": {"kind": s.bank} if s.bank in BANK_KINDS else {"file": f"{name}.{s.name}.bank.json"},
                      **({"model": {"path": f"{name}.{s.name}.npz"}} if s.model is not None else {})}
                     for s in sources]}
@@ -520,4 +564,5 @@ def _check_scene(path: Path) -> None:
     try:
         build_node(load_scene(path), speed="max", sinks_override=[])
     except InputError as exc:
-        raise ImportRecordingError(f"the imported recording does not run: {exc}") from None
+        hint = (" (here: --mapping SOURCE=mean, or a channel index)" if "mapping" in str(exc) else "")
+        raise ImportRecordingError(f"the imported recording does not run: {exc}{hint}") from None

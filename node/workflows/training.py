@@ -189,7 +189,7 @@ def train_from_scenes(paths, stream: str, epochs: int = DEFAULT_EPOCHS, seed: in
         else:
             assert sense is not None, "set with make, by the first scene"
             try:
-                sense.check_pipeline(make_here())
+                sense.check_pipeline(make_here(), in_fusion=False)
             except SupramodalError as exc:
                 raise InputError(f"{path}: stream {stream!r} differs from {first}'s ({exc}); train on recordings "
                                  "of one graph") from None

@@ -26,6 +26,7 @@ reading the graph's counters, ``Graph.health``, which the graph gives every sink
 
 from __future__ import annotations
 
+import errno
 import hmac
 import ipaddress
 import json
@@ -293,6 +294,12 @@ class _Server(ThreadingHTTPServer):
               file=sys.stderr, flush=True)
 
 
+class _Server6(_Server):
+    """The view's server on an IPv6 address (``::1``, ``::``)."""
+
+    address_family = socket.AF_INET6
+
+
 class _Handler(BaseHTTPRequestHandler):
     server: _Server
     protocol_version = "HTTP/1.1"
@@ -458,12 +465,16 @@ class ViewSink(Sink):
         self._closing = threading.Event()
         self._threads: list[threading.Thread] = []
         try:
-            self._server = _Server((host, port), _Handler, bind_and_activate=True)
+            self._server = (_Server6 if ":" in host else _Server)((host, port), _Handler, bind_and_activate=True)
         except OverflowError as exc:
             raise ViewError(f"port {port}: {exc}; give a port 0..65535 (0: any free one)") from None
+        except socket.gaierror as exc:     # a host that is no address of this machine's, or not one at all
+            raise ViewError(f"cannot serve the view on host {host!r}: {exc.strerror or exc}; give an address of "
+                            "this machine (127.0.0.1, ::1, or 0.0.0.0 for every one)") from None
         except OSError as exc:
-            raise ViewError(f"cannot serve the view on {host}:{port}: {exc.strerror or exc}; give another port, "
-                            "or 0 for any free one") from None
+            fix = ("give another port, or 0 for any free one" if exc.errno in (errno.EADDRINUSE, errno.EACCES)
+                   else "give an address of this machine (127.0.0.1, ::1, or 0.0.0.0 for every one)")
+            raise ViewError(f"cannot serve the view on {host}:{port}: {exc.strerror or exc}; {fix}") from None
         self._server.view = self
         self.host, self.port = host, int(self._server.server_address[1])
         shown = f"[{host}]" if ":" in host else host
