@@ -170,6 +170,19 @@ def texts(v: object) -> bool:
     return isinstance(v, list) and all(isinstance(t, str) for t in v)
 
 
+#: Longest class name (a model's class, a manifest's label), characters.
+MAX_CLASS_NAME = 200
+CLASS_NAME_HELP = (f"printable text of at most {MAX_CLASS_NAME} characters (no control characters, tabs, line "
+                   "breaks or other invisible ones)")
+
+
+def is_class_name(v: object) -> bool:
+    """A class name (:data:`CLASS_NAME_HELP`): what a model decides and the node prints, shows and publishes.
+    Freer than :func:`is_name` (a manifest's ``"rough, wet"``), but never a terminal's escape sequence, a
+    line break that forges another output line, or a character that turns text around."""
+    return text(v) and len(v) <= MAX_CLASS_NAME and v.isprintable()
+
+
 def is_name(v: object) -> bool:
     """A name (:data:`NAME_HELP`): what becomes a stream name, a file name part or an outlet name."""
     return text(v) and len(v) <= MAX_NAME and all(c.isalnum() or c in "-_" for c in v)

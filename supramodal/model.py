@@ -49,6 +49,7 @@ from supramodal.calibration import (
     input_scaling,
     normalised_log_posteriors,
 )
+from supramodal.checks import CLASS_NAME_HELP, is_class_name
 from supramodal.errors import InputError
 from supramodal.features import check_features
 from supramodal.jsondata import parse_json_text
@@ -394,6 +395,10 @@ def classes_from_header(header: dict, bad) -> list[str]:
     if len(classes) > MAX_CLASSES:
         raise bad(f"'classes' names {len(classes)} classes, more than the {MAX_CLASSES} a model may have "
                   "(MAX_CLASSES)")
+    odd = next((c for c in classes if not is_class_name(c)), None)
+    if odd is not None:
+        raise bad(f"'classes' holds {odd[:80]!r}, which is not {CLASS_NAME_HELP}: a class name is printed, shown "
+                  "and published as it is; train the model again with labels that are plain text")
     return classes
 
 

@@ -85,6 +85,9 @@ BAD = [
     ("", 1, ["empty"]),
     ("path,label\n", 2, ["no recording"]),
     ("path,label\nnot_a_wav.wav,rough\n", 2, ["not a WAV file"]),
+    # issue 35 item 5: a label becomes a model's class, printed raw (a terminal escape, a forged line)
+    ("path,label\na.wav,felt\x1b[31mRED\n", 2, ["label 'felt\\x1b[31mRED' is not printable text", "plain text"]),
+    ('path,label\na.wav,"x\ny"\n', 2, ["label 'x\\ny' is not printable text"]),
 ]
 
 

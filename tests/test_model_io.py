@@ -210,6 +210,11 @@ def test_nonpositive_scale(saved):
     ({"classes": []}, "classes"),
     ({"classes": ["a", "a", "b"]}, "classes"),
     ({"classes": "abc"}, "classes"),
+    # issue 35 item 5: a class name is printed raw by the text sink (a terminal escape from a data file)
+    ({"classes": ["felt\x1b[31mRED\x1b[0m", "b"]}, r"'classes' holds 'felt\\x1b\[31mRED.*not printable text"),
+    ({"classes": ["x\ny", "b"]}, r"'classes' holds 'x\\ny'.*plain text"),
+    ({"classes": ["a\u202eb", "b"]}, r"'classes' holds .*not printable text"),
+    ({"classes": ["x" * 201, "b"]}, r"at most 200 characters"),
     ({"window_samples": 1}, "window_samples"),
     ({"window_samples": 500.0}, "window_samples"),
     ({"window_samples": True}, "window_samples"),

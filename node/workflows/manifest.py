@@ -32,6 +32,7 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
+from supramodal.checks import CLASS_NAME_HELP, is_class_name
 from supramodal.csvdata import bounded_lines
 from supramodal.errors import InputError
 from supramodal.replay.errors import ReplayError
@@ -145,6 +146,9 @@ def _parse(path: Path) -> list[Recording]:
         if not name or not label:
             raise ManifestError(f"{where}: {'path' if not name else 'label'} is empty; every line needs "
                                 "a recording and its label")
+        if not is_class_name(label):
+            raise ManifestError(f"{where}: label {label[:80]!r} is not {CLASS_NAME_HELP}; it becomes a model's "
+                                "class, printed and published as it is: write it as plain text")
         start = _seconds(row.get("start", ""), "start", where)
         end = _seconds(row.get("end", ""), "end", where)
         start = 0.0 if start is None else start
