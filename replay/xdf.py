@@ -62,6 +62,10 @@ XDF_BLOCK_SECONDS = 0.01
 #: Highest ``nominal_srate`` replayed, Hz: above any sensor the node serves (audio interfaces
 #: reach 768 kHz); a rate beyond it is a damaged or foreign header.
 MAX_XDF_RATE = 1_000_000
+#: How far the rate a stream's timestamps show may be from its ``nominal_srate``, a factor either way.
+RATE_MISMATCH = 2.0
+#: Seconds of filled frames always allowed, however few the stream's own (a short stream with a pause).
+MIN_FILL_SECONDS_REFUSED = 1.0
 #: Most samples (frames x channels) one replayed stream may hold once its gaps are filled: 2**29,
 #: 4 GiB as float64 (an hour of 20 channels at 5 kHz, or three of 44.1 kHz audio).
 MAX_XDF_SAMPLES = 2**29
@@ -261,7 +265,15 @@ def xdf_session(path: str | os.PathLike[str], name: str | None = None, stream_ty
         raise ReplayError(f"{where}: it holds NaN or infinite samples")
     rate = float(s["info"]["nominal_srate"][0])
     whole = _session_rate(rate, where)          # before anything is filled at that rate
-    frames = data.shape[0] + sum(missing for _, kind, missing in _steps(stamps, rate) if kind == "gap")
+    _check_stamps_fit_rate(stamps, rate, where)
+    made_up = sum(missing for _, kind, missing in _steps(stamps, rate) if kind == "gap")
+    if made_up > max(data.shape[0], rate * MIN_FILL_SECONDS_REFUSED):
+        raise ReplayError(f"{where}: its timestamps leave room for {made_up} missing frames at nominal_srate "
+                          f"{rate:g} Hz, more than the {data.shape[0]} it holds: filled with zeros, the replay would "
+                          "be more made up than recorded (a stream that sends now and then, or a wrong "
+                          "nominal_srate); name a regularly sampled stream, or correct its nominal_srate where it "
+                          "was recorded")
+    frames = data.shape[0] + made_up
     if frames * data.shape[1] > MAX_XDF_SAMPLES:
         raise ReplayError(f"{where}: its timestamps span {float(stamps[-1] - stamps[0]):.6g} s: with the gaps in them "
                           f"filled at nominal_srate {rate:g} Hz it would be {frames} frames x {data.shape[1]} "
@@ -413,6 +425,25 @@ def _clock_offset(stamps: np.ndarray, a: int, b: int, rate: float, near_start: b
 def _full_scale(dtype: DTypeLike) -> float:
     """Integer samples are scaled so that the type's range is +-1."""
     return float(2 ** (np.dtype(dtype).itemsize * 8 - 1))
+
+
+def _check_stamps_fit_rate(stamps: np.ndarray, rate: float, where: str) -> None:
+    """Refuse timestamps that say another rate than ``rate`` (the header's ``nominal_srate``) by more
+    than :data:`RATE_MISMATCH` either way: faster over the whole stream (its samples per second of stamps;
+    gaps only make that slower), or slower step by step (the median step; gaps leave it alone). Read at a
+    wrong rate, every step is a restart or a filled gap."""
+    if stamps.size < 3:
+        return
+    span = float(stamps[-1] - stamps[0])
+    faster = span > 0 and (stamps.size - 1) / span > RATE_MISMATCH * rate
+    step = float(np.median(np.diff(stamps)))
+    slower = step > RATE_MISMATCH / rate
+    if faster or slower:
+        shown, how = (((stamps.size - 1) / span, "over the whole stream") if faster
+                      else (1.0 / step, "by its median step"))
+        raise ReplayError(f"{where}: its timestamps show {shown:.6g} samples a second ({how}), where its "
+                          f"nominal_srate says {rate:g} Hz: the header or the stamps are wrong; correct the stream's "
+                          "nominal_srate where it was recorded, or name another stream")
 
 
 def _session_rate(rate: float, where: str) -> int:

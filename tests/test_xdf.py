@@ -248,3 +248,41 @@ def test_a_header_declaring_channels_no_sensor_has_is_refused_before_anything_is
     with pytest.raises(ReplayError, match=rf"big.xdf: a stream header declares channel_count '{declared}'"):
         xdf_session(tmp_path / "big.xdf", name="w")
     assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before < 200_000      # KB: no gigabytes
+
+
+@pytest.mark.parametrize("nominal, stamps_rate, words", [
+    (1.0, 5000.0, r"timestamps show 5000 samples a second \(over the whole stream\), where its nominal_srate says 1 Hz"),
+    (50000.0, 5000.0, r"timestamps show 5000 samples a second \(by its median step\), where its nominal_srate says "
+                      r"50000 Hz"),
+])
+def test_a_nominal_srate_that_the_stamps_contradict_is_refused_naming_both_rates(tmp_path, nominal, stamps_rate, words):
+    """Issue 35, item 21: 1 Hz with 5 kHz stamps became 1999 restart marks; 50 kHz with 5 kHz stamps passed,
+    nine zeros filled between every two samples."""
+    n = 2000
+    x = XdfStream("w", "Whiskers", nominal, 0.1 * np.random.default_rng(1).standard_normal((n, 1)),
+                  T0 + np.arange(n) / stamps_rate)
+    write_xdf(tmp_path / "r.xdf", [x])
+    with pytest.raises(ReplayError, match=words):
+        xdf_session(tmp_path / "r.xdf", name="w")
+
+
+def test_a_stream_whose_stamps_leave_more_room_than_samples_is_refused_before_anything_is_filled(tmp_path):
+    """Issue 35, item 8: 2000 samples stamped 10 s apart at nominal 5 kHz (40 KB) took 61 s and 3.2 GB before a
+    sidecar limit refused them. Refused from the stamps, in well under a second, saying how much would be made
+    up; a stream with a short pause still fills it."""
+    import time
+
+    bursts = 667                                        # 3 samples at 5 kHz every 9.99 s: the steps' median is
+    stamps = (np.arange(bursts)[:, None] * 9.99 + np.array([0.0, 0.0002, 0.0004])).ravel()   # the period
+    sparse = XdfStream("w", "Whiskers", 5000.0, np.zeros((stamps.size, 1)), T0 + stamps)
+    write_xdf(tmp_path / "r.xdf", [sparse])
+    t = time.monotonic()
+    with pytest.raises(ReplayError, match=r"room for \d+ missing frames at nominal_srate 5000 Hz, more than the "
+                                          r"2001 it holds: .*more made up than recorded"):
+        xdf_session(tmp_path / "r.xdf", name="w")
+    assert time.monotonic() - t < 5.0
+    stamps = T0 + np.arange(10000) / 5000.0
+    stamps[5000:] += 0.5                                # one pause of half a second: filled and flagged
+    write_xdf(tmp_path / "p.xdf", [XdfStream("w", "Whiskers", 5000.0, np.ones((10000, 1)), stamps)])
+    session = xdf_session(tmp_path / "p.xdf", name="w")
+    assert abs(session.frames - 12500) <= 2 and len(session.filled) == 1
