@@ -110,7 +110,8 @@ def test_a_file_replayed_at_its_own_time_cannot_take_contacts_from_the_robot_s_c
     """A source at max speed keeps its own time; the robot's contacts are on the host's clock: refused at
     build, naming the source and the two ways out."""
     d = scene("lsl:touch")
-    d["stream"][0]["model"] = {}
+    d["stream"][0]["model"] = {}                        # feature windows: contacts, and no decision to pool
+    del d["stream"][0]["decision"]["n"]
     with pytest.raises(SceneError, match=r"source 'whiskers' keeps its own time .*--speed 1.*contact_threshold"):
         build_node(scene_from_dict(d, "c.toml"), speed="max")
 
@@ -141,3 +142,30 @@ def test_contact_from_is_written_back_in_its_decision_tables(tmp_path):
     assert [s.contact_from for s in again.streams] == ["ros2:/robot/in_contact", None]
     assert again.fusion.contact_from == "lsl:touch"
     assert again.streams == first.streams and again.fusion == first.fusion
+
+
+@pytest.mark.parametrize("key, value", [("scope", "contact"), ("confidence", 0.9), ("unknown", 0.05), ("n", 3),
+                                        ("method", "vote"), ("unknown_below", 0.5), ("contact_threshold", 0.2)])
+def test_decision_rules_on_a_stream_without_a_model_are_refused_not_ignored(key, value):
+    """Issue 35, item 25: ``[decision]`` keys on a stream without a model were silently ignored, in the
+    one-source and the graph form alike. Refused, naming the key and the two ways out; the contacts of
+    ``contact_from`` (with scope = "contact") stay, and a scene written back, every default stated, loads."""
+    import tomllib
+
+    from supramodal.node.scene.schema import scene_to_toml
+
+    decision = {"scope": "contact", key: value} if key in ("confidence",) else {key: value}
+    one = {"driver": {"type": "synth"}, "decision": decision}
+    with pytest.raises(SceneError, match=rf"c.toml: \[decision\] {key} = .*no model, so it decides nothing.*"
+                                         rf"\[model\] \(path or train_on_start\), or remove {key}"):
+        scene_from_dict(one, "c.toml")
+    graph = {"source": [{"name": "w", "type": "synth"}],
+             "stream": [{"name": "w", "source": "w", "decision": decision}]}
+    with pytest.raises(SceneError, match=rf"c.toml: \[\[stream\]\] w \[decision\] {key} = .*no model"):
+        scene_from_dict(graph, "c.toml")
+    with_model = {"driver": {"type": "synth"}, "model": {"train_on_start": True}, "decision": decision}
+    scene_from_dict(with_model, "c.toml")                               # a model decides by them
+    contacts = {"driver": {"type": "synth"}, "decision": {"scope": "contact", "contact_from": "lsl:touch"}}
+    kept = scene_from_dict(contacts, "c.toml")
+    assert kept.only_stream().contact_from == "lsl:touch"
+    scene_from_dict(tomllib.loads(scene_to_toml(kept)), "back.toml")

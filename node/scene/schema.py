@@ -298,6 +298,25 @@ def _check_sections(source: str, sections: dict, bank_given: dict, where: str) -
     if sections["decision"]["scope"] == "last" and sections["decision"]["n"] < 1:
         raise SceneError(f"{source}: {where}[decision] n must be >= 1 with scope = \"last\"")
     _check_decision(source, sections["decision"], f"{where}[decision]")
+    if sections["model"]["path"] is None and not sections["model"]["train_on_start"]:
+        _check_no_decision(source, sections["decision"], f"{where}[decision]")
+
+
+def _check_no_decision(source: str, decision: dict, where: str) -> None:
+    """A stream without a model gives feature windows: of its ``[decision]`` only ``contact_from`` (with
+    ``scope = "contact"``) does anything, putting the robot's contacts on the windows. Any other rule
+    set away from its default would be silently ignored: refused (a scene written back states every
+    default, and passes)."""
+    defaults = asdict(DEFAULT_DECISION)
+    idle = [k for k in defaults if k != "scope" and decision[k] != defaults[k]]
+    if decision["scope"] != defaults["scope"] and decision["contact_from"] is None:
+        idle.append("scope")                # named last: a rule that needs it is the likelier slip
+    if idle:
+        k = idle[0]
+        raise SceneError(f"{source}: {where} {k} = {_toml_value(decision[k])}: this stream has no model, so it decides "
+                         "nothing (its windows carry features); give it a [model] (path or train_on_start), or "
+                         f"remove {k}" + (" (without a model, a decision table only carries contact_from, "
+                                          "with scope = \"contact\")" if k == "scope" else ""))
 
 
 def _check_decision(source: str, decision: dict, where: str) -> None:
