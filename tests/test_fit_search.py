@@ -268,3 +268,33 @@ def test_a_cluster_address_that_accepts_and_never_answers_is_refused_in_bounded_
             server.close()
             for conn in held:
                 conn.close()
+
+
+def test_a_local_cluster_says_nothing_of_a_port_another_one_holds():
+    """Issue 35, item 33: ``fit --jobs N`` printed Dask's raw 4-line "Port 8787 is already in use" warning when
+    another cluster (or anything) held Dask's default port. The local cluster's HTTP server takes a free
+    port on this machine; no warning."""
+    import socket
+    import warnings
+
+    from supramodal.node.workflows import fit_search as fs
+
+    pytest.importorskip("distributed")
+    holder = socket.socket()
+    try:
+        holder.bind(("127.0.0.1", 8787))
+        holder.listen()
+    except OSError:
+        pass                                            # held already: the case itself
+    try:
+        with warnings.catch_warnings(record=True) as said:
+            warnings.simplefilter("always")
+            with fs.Runner(jobs=2) as runner:
+                assert runner.map([{"x": 1}, {"x": 2}], task=_echo) == [{"x": 1}, {"x": 2}]
+        assert not [w for w in said if "already in use" in str(w.message)], [str(w.message) for w in said]
+    finally:
+        holder.close()
+
+
+def _echo(job: dict) -> dict:
+    return job

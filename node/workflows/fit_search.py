@@ -453,8 +453,10 @@ class Runner:
         elif jobs > 1:
             from distributed import Client, LocalCluster
 
+            # The scheduler serves HTTP whatever the dashboard: on a port of its own, on this machine only
+            # (at 8787, Dask's default, a second fit printed a 4-line "Port 8787 is already in use" warning).
             self._local = LocalCluster(n_workers=jobs, threads_per_worker=1, processes=True, host="127.0.0.1",
-                                       dashboard_address=None)
+                                       dashboard_address="127.0.0.1:0")
             self.client = Client(self._local)
 
     @property
