@@ -298,3 +298,50 @@ def test_a_local_cluster_says_nothing_of_a_port_another_one_holds():
 
 def _echo(job: dict) -> dict:
     return job
+
+
+@pytest.mark.slow   # a fit on a local Dask cluster, interrupted twice
+@pytest.mark.parametrize("how", ["SIGINT to the group", "SIGTERM to the fit"])
+def test_an_interrupted_fit_on_local_workers_ends_in_one_line(sensor, tmp_path, how):
+    """Issue 35, item 19: Ctrl-C on ``fit --jobs 2`` (SIGINT to the whole process group, as a terminal sends it)
+    printed a KeyboardInterrupt traceback per worker; SIGTERM ended it on the spot, leaking its workers'
+    semaphores. Either ends the fit within seconds, in one line, its workers gone, no traceback."""
+    import os
+    import signal
+    import subprocess
+    import time
+
+    pytest.importorskip("distributed")
+    fit = subprocess.Popen([sys.executable, "-m", "supramodal", "fit", str(sensor / "m.csv"), "--out",
+                            str(tmp_path / "out"), "--quick", "--jobs", "2", "--trials", "400"],
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+                           preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    try:
+        assert fit.stderr is not None
+        lines = []
+        while not any("trial 4 of" in line for line in lines):       # the workers are at work
+            lines.append(fit.stderr.readline())
+            assert lines[-1], "".join(lines)
+        t = time.monotonic()
+        if how.startswith("SIGINT"):
+            os.killpg(fit.pid, signal.SIGINT)
+        else:
+            fit.send_signal(signal.SIGTERM)
+        _, err = fit.communicate(timeout=60)
+        assert time.monotonic() - t < 30.0
+    finally:
+        fit.kill()
+    signum = signal.SIGINT if how.startswith("SIGINT") else signal.SIGTERM
+    assert fit.returncode == 128 + signum, err
+    assert f"interrupted by {signal.Signals(signum).name} during the fit's search; no fit file was written" in err
+    assert "Traceback" not in err and "leaked" not in err and "KeyboardInterrupt" not in err, err[-2000:]
+    assert not (tmp_path / "out" / "bank.json").exists()
+    deadline = time.monotonic() + 15.0                      # the group empties: no worker left behind (init
+    while time.monotonic() < deadline:                       # reaps an ended one within a few seconds)
+        try:
+            os.killpg(fit.pid, 0)
+        except ProcessLookupError:
+            break
+        time.sleep(0.2)
+    else:
+        pytest.fail("a process of the fit's group is still there 15 s after it ended")

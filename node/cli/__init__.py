@@ -148,8 +148,7 @@ def _run(args: argparse.Namespace) -> int:
     try:
         return args.func(args)
     except StartupInterrupted as exc:
-        print(f"supramodal: interrupted by {exc} during start-up (building the scene, training its model); "
-              "nothing was processed", file=sys.stderr)
+        print(f"supramodal: interrupted by {exc} during {exc.during}", file=sys.stderr)
         return 128 + exc.signum
     except KeyboardInterrupt:
         print("supramodal: interrupted", file=sys.stderr)

@@ -14,6 +14,7 @@ from supramodal.node.cli.arguments import (
     progress,
     seed,
 )
+from supramodal.node.cli.signals import interrupt_until_running
 
 
 def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
@@ -83,6 +84,9 @@ def run(args: argparse.Namespace) -> int:
     if args.out.is_dir():
         for name in ("fit.csv", "fit-curve.csv", "fit-curve.png", "bank.json"):
             check_new_file(args.out / name, args.force, "the fit file")
+    # SIGTERM as SIGINT: the search's workers and their cluster are closed on the way out (a SIGTERM
+    # ended the fit on the spot, leaking their semaphores), and one line says what was left
+    interrupt_until_running("the fit's search; no fit file was written")
     result = fit_search(args.manifest, k=args.cv, seed=args.seed, quick=args.quick, trials=args.trials,
                         timeout=args.timeout, batch=args.batch, max_window=args.max_window,
                         max_channels=args.max_channels, target=args.target, contact=args.contact,

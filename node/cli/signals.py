@@ -7,25 +7,30 @@ import signal
 from types import FrameType
 from typing import Any
 
+#: What a node's start-up is doing, as the message of its interruption says it.
+STARTUP = "start-up (building the scene, training its model); nothing was processed"
+
 
 class StartupInterrupted(BaseException):
-    """SIGINT or SIGTERM arrived before the stream started. A BaseException, like
+    """SIGINT or SIGTERM arrived before the stream started (or during another command's work:
+    ``during`` says what was interrupted, and what that left). A BaseException, like
     KeyboardInterrupt, so that no ``except Exception`` on the way swallows it."""
 
-    def __init__(self, signum: int) -> None:
+    def __init__(self, signum: int, during: str = STARTUP) -> None:
         super().__init__(signal.Signals(signum).name)
         self.signum = signum
+        self.during = during
 
 
-def _interrupt_startup(signum: int, frame: FrameType | None) -> None:
-    raise StartupInterrupted(signum)
-
-
-def interrupt_until_running() -> None:
+def interrupt_until_running(during: str = STARTUP) -> None:
     """Until :func:`stop_on_signals`, SIGINT and SIGTERM interrupt the start-up (building the
-    scene, training its model) with a one-line message instead of dying silently."""
+    scene, training its model; or ``during``, another command's work) with a one-line message
+    instead of dying silently, and the ``with`` blocks on the way close what they opened."""
+    def interrupt(signum: int, frame: FrameType | None) -> None:
+        raise StartupInterrupted(signum, during)
+
     for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, _interrupt_startup)
+        signal.signal(sig, interrupt)
 
 
 def stop_on_signals(node: Any) -> None:

@@ -389,6 +389,11 @@ def score_fold(job: dict) -> dict:
 
 # -- where the folds run -------------------------------------------------------------------------
 
+#: Run in each local worker process as it starts (Dask's preload of a script's text): Ctrl-C reaches the
+#: whole process group, and it is the fit's to handle, closing the cluster; a worker that took it
+#: printed a KeyboardInterrupt traceback each. A task cancelled as the cluster closes is no news either.
+WORKER_IGNORES_SIGINT = ("import logging, signal\nsignal.signal(signal.SIGINT, signal.SIG_IGN)\n"
+                         "logging.getLogger('distributed.worker.state_machine').setLevel(logging.ERROR)\n")
 #: Seconds a Dask scheduler has to accept the connection, and then to greet.
 SCHEDULER_TIMEOUT = 20.0
 
@@ -456,7 +461,7 @@ class Runner:
             # The scheduler serves HTTP whatever the dashboard: on a port of its own, on this machine only
             # (at 8787, Dask's default, a second fit printed a 4-line "Port 8787 is already in use" warning).
             self._local = LocalCluster(n_workers=jobs, threads_per_worker=1, processes=True, host="127.0.0.1",
-                                       dashboard_address="127.0.0.1:0")
+                                       dashboard_address="127.0.0.1:0", preload=[WORKER_IGNORES_SIGINT])
             self.client = Client(self._local)
 
     @property
