@@ -258,6 +258,58 @@ def test_a_page_that_stops_reading_loses_messages_counted_and_never_blocks_the_s
     assert not [t.name for t in threading.enumerate() if t.name.startswith("view-")]
 
 
+def test_a_page_given_up_counts_what_it_never_took_and_the_summary_says_so(monkeypatch):
+    """Issue 35 (the view, with a browser): a page reading slowly (a small receive buffer) got windows 0-130 of
+    600 and its connection was given up; the summary said ``pages: 1`` and nothing else. What it had not taken
+    is counted as dropped, and the page as given up."""
+    from supramodal.node.runtime.sinks import view as view_module
+
+    monkeypatch.setattr(view_module, "WRITE_TIMEOUT", 1.0)
+    view = ViewSink(quiet=True)
+    view.prepare()
+    slow = socket.create_connection(("127.0.0.1", view.port), timeout=10)
+    slow.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+    slow.sendall(b"GET /events HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")   # and never reads
+    try:
+        deadline = time.monotonic() + 30
+        while view.hub.clients() == 0 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        features = {"Af": [float(i) for i in range(400)]}
+        n = CLIENT_QUEUE // 2                        # its queue never overflows: only the give-up loses them
+        for w in range(n):
+            view.emit(WindowEvent("main", w, w * 0.1, w * 0.1 + 0.1, w * 0.1 + 0.1, features=features))
+        while view.hub.clients() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        stats = view.stats()
+        assert stats["pages"] == 1 and stats["pages_given_up"] == 1, stats
+        assert 0 < stats["client_dropped"] <= n + 1, stats   # those still queued, and the one on its way
+    finally:
+        slow.close()
+        view.close()
+
+
+def test_mark_buttons_come_with_the_model_s_classes_once_the_first_window_names_them():
+    """Issue 35 (the view, with a browser): ``record --marks --view`` with the labels left to the model's classes
+    showed no mark buttons: the first hello (``labels: []``, before any window) was the page's last word. A
+    window that first names a stream's classes sends a new hello with them."""
+    view = ViewSink(quiet=True, streams=["main"])
+    view.prepare()
+    try:
+        client = view.hub.open()
+        first = [json.loads(m[len(b"data: "):]) for m in client.items]
+        assert [m["labels"] for m in first if m["type"] == "hello"] == [[]]
+        view.emit(WindowEvent("main", 0, 0.0, 0.1, 0.1, posteriors=__import__("numpy").array([0.7, 0.3]),
+                              decision="silk", confidence=0.7, classes=("silk", "cork")))
+        said = [json.loads(m[len(b"data: "):]) for m in client.items]
+        hellos = [m for m in said if m["type"] == "hello"]
+        assert hellos[-1]["labels"] == ["cork", "silk"] and hellos[-1]["classes"] == {"main": ["silk", "cork"]}
+        assert [m["type"] for m in said].index("window") > said.index(hellos[-1])     # the buttons, then the window
+        late = view.hub.open()                                                      # a page opened later: the new
+        assert json.loads(late.items[0][len(b"data: "):])["labels"] == ["cork", "silk"]    # hello first
+    finally:
+        view.close()
+
+
 def test_a_node_with_a_page_that_never_reads_runs_as_fast_and_counts_the_drops(tmp_path):
     sc = scene(tmp_path, {"type": "view"}, speed="max")
     graph = build_node(sc)

@@ -206,6 +206,7 @@ class Hub:
         self._latest: dict[str, bytes] = {}   # the last message of each other kind (hello, health, summary)
         self.dropped = 0                       # messages dropped by pages that did not read
         self.opened = 0                        # pages that ever connected
+        self.given_up = 0                      # pages whose connection was given up (stalled or gone)
         self.closed = False
 
     @staticmethod
@@ -252,9 +253,17 @@ class Hub:
             self.opened += 1
         return c
 
-    def leave(self, c: _Client) -> None:
+    def leave(self, c: _Client, given_up: bool = False, in_flight: int = 0) -> None:
+        """A page's connection ends. ``given_up``: it failed (the page stalled or went away); what it had
+        not taken (its queue, and ``in_flight``, a message being written) is counted as dropped, and the
+        page as given up."""
+        with c.ready:
+            left = len(c.items) + in_flight
         with self._lock:
             self._clients.discard(c)
+            if given_up:
+                self.dropped += left
+                self.given_up += 1
 
     def take(self, c: _Client, timeout: float) -> bytes | None:
         """The page's next message, or None after ``timeout`` seconds or once closed."""
@@ -357,18 +366,23 @@ class _Handler(BaseHTTPRequestHandler):
         # where its loss is counted, rather than in megabytes of the kernel's buffers.
         self.connection.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, SEND_BUFFER)
         client = hub.open()
+        on_its_way = 0                      # a message being written when the connection failed
         try:
             self.wfile.write(b"retry: 1000\n\n")
             while True:
                 data = hub.take(client, 1.0)
                 if data is None and hub.closed:      # what was queued before the end is sent first
                     break
+                on_its_way = data is not None
                 self.wfile.write(data if data is not None else b": keep-alive\n\n")
                 self.wfile.flush()
-        except OSError:                     # the page went away, or stopped reading for WRITE_TIMEOUT
-            pass
-        finally:
+                on_its_way = False
             hub.leave(client)
+        except OSError:                     # the page went away, or stopped reading for WRITE_TIMEOUT: what it
+            hub.leave(client, given_up=True, in_flight=int(on_its_way))    # had not taken is lost, counted
+        except BaseException:
+            hub.leave(client)
+            raise
 
     # -- POST: changes need the token and the page's own origin --
 
@@ -585,12 +599,16 @@ class ViewSink(Sink):
     def emit_message(self, message: dict[str, Any]) -> None:
         """A window as :func:`window_message` made it (a replay plays those it kept)."""
         stream = message["stream"]
+        news = False                        # the page's hello changes: a stream, or classes (the mark labels)
         if stream not in self._classes and message.get("classes"):
             with self._lock:
                 self._classes[stream] = list(message["classes"])
+            news = True
         if stream not in self._streams:
             with self._lock:
                 self._streams.append(stream)
+            news = True
+        if news:
             self.hub.publish(self.hello(), keep="latest")
         self.hub.publish(message)
 
@@ -605,8 +623,8 @@ class ViewSink(Sink):
             self.hub.publish({"type": "summary", "summary": None}, keep="latest")
 
     def stats(self) -> dict[str, Any]:
-        return {"url": self.url, "pages": self.hub.opened, "client_dropped": self.hub.dropped,
-                "marks": len(self.marks)}
+        return {"url": self.url, "pages": self.hub.opened, "pages_given_up": self.hub.given_up,
+                "client_dropped": self.hub.dropped, "marks": len(self.marks)}
 
     def close(self) -> None:
         """Stop serving: the server's, the health and every page's thread end."""
