@@ -155,9 +155,13 @@ def test_a_mark_from_the_page_needs_the_token_and_lands_in_the_recording(tmp_pat
                      "Number(document.querySelector('[data-stream=\"main\"]').dataset.window) > 3", timeout=60)
     browser.eval("document.querySelector('#markbuttons button[data-label=\"rough\"]').click()")
     browser.wait_for("document.querySelector('#markstatus').textContent.startsWith('marking rough')")
+    # the mark's time, the recording's seconds (issue 35: "marking rough since - s" in a one-source recording)
+    said = browser.eval("document.querySelector('#markstatus').textContent")
+    since = float(said.split(" since ")[1].split(" s")[0])
     run.join()
     labels = json.loads((tmp_path / "rec.json").read_text())["labels"]
     assert [lab["label"] for lab in labels] == ["rough"], labels
+    assert abs(labels[0]["start"] - since) < 0.011, (labels, said)
 
 
 # -- the server's rules, over plain HTTP ----------------------------------------------------------
@@ -434,6 +438,39 @@ def test_a_view_serves_on_ipv6_loopback_and_a_host_that_is_no_address_here_names
         with pytest.raises(ViewError, match=f"{host}.*give an address of this machine") as refused:
             ViewSink(0, host=host, remote=True, token="a-token-of-twenty-chars", quiet=True)
         assert "another port" not in str(refused.value)
+
+
+def test_news_is_a_blue_banner_an_alarm_a_red_one_and_events_show_the_clock_time(browser):
+    """Issue 35 (the view, with a browser): "opened" and "reconnected" showed as red alarms, every event did;
+    the event list showed Unix epoch seconds beside the windows' common time; the health column overflowed
+    the page. A lossy event is an alarm, news is blue; an event's time is a clock time; the page never gets
+    wider than its window, whatever the health table holds."""
+    view = ViewSink(quiet=True)
+    view.prepare()
+    try:
+        browser.open(view.url)
+        browser.wait_for("!!document.querySelector('#conn.live')", timeout=60)
+        at = time.mktime((2026, 11, 29, 13, 4, 5, 0, 0, -1))                    # 13:04:05 on this machine's clock
+        view.event(DriverEvent("unplug", "the board is unplugged", at))
+        view.event(DriverEvent("reconnect", "the board is back", at + 1))
+        view.event(DriverEvent("opened", "the port is open", at + 2))
+        browser.wait_for("!!document.querySelector('#banners .event-opened')", timeout=30)
+        classes = browser.eval("Object.fromEntries([...document.querySelectorAll('#banners .banner')].map("
+                               "b => [b.dataset.kind, b.classList.contains('info')]))")
+        assert classes == {"event-unplug": False, "event-reconnect": True, "event-opened": True}, classes
+        times = browser.eval("[...document.querySelectorAll('#eventlog li')].map(li => li.textContent.split(' ')[0])")
+        assert times == ["13:04:07", "13:04:06", "13:04:05"], times
+        view.hub.publish({"type": "health", "clients": 1, "client_dropped": 0,
+                          "streams": {f"a_stream_with_a_long_name_{k}": {"windows": 123456, "frames": {
+                              "delivered": 123456789, "filled": 0, "dropped": 0}, "latency_ms": {"p50": 1.5, "p99": 9.5}}
+                              for k in range(3)},
+                          "sinks": [{"sink": "JsonLinesSink /a/very/long/path/to/somewhere/out.jsonl", "written": 10**9,
+                                     "dropped_windows": 0, "dropped_events": 0, "errors": 0}]}, keep="latest")
+        browser.wait_for("document.querySelectorAll('#frames tbody tr').length === 3", timeout=30)
+        assert browser.eval("document.documentElement.scrollWidth <= window.innerWidth"), \
+            browser.eval("[document.documentElement.scrollWidth, window.innerWidth]")
+    finally:
+        view.close()
 
 
 def test_a_driver_event_shows_as_a_banner_within_a_second(browser):

@@ -162,10 +162,13 @@ class SessionRecorder(Tap):
         with self._lock:
             self._timed_marks.append((float(seconds), label or None))
 
-    def mark(self, label: str | None) -> None:
-        """Start a label at the current stream position; ``None`` ends the current one. Thread-safe."""
+    def mark(self, label: str | None) -> float | None:
+        """Start a label at the current stream position; ``None`` ends the current one. Returns its time,
+        seconds of the stream (None before the recorder is attached: no position yet). Thread-safe."""
         with self._lock:
-            self._marks.append((int(self._position()), label or None))
+            at = int(self._position())
+            self._marks.append((at, label or None))
+        return None if self.rate is None else at / self.rate
 
     def note(self, index: int, kind: str) -> None:
         """Keep a driver's mark (``"restart"`` or ``"overrun"``) at stream ``index`` in the session, so

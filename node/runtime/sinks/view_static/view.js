@@ -6,8 +6,10 @@
   const SPAN = 120;            // windows kept per stream for the plots
   const COLORS = ["#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f",
                   "#bcbd22", "#17becf", "#393b79", "#637939", "#8c6d31", "#843c39", "#7b4173", "#3182bd"];
-  const BANNER_KINDS = new Set(["unplug", "unplugged", "reconnect", "reconnected", "gap", "channels", "restart",
-                                "overrun", "sense_lost", "stall", "lost", "disconnected"]);
+  // Driver events that lost or made up samples: a red banner. Any other (opened, reconnect, sense_back, a notice)
+  // is news, not an alarm: a blue one.
+  const ALARM_KINDS = new Set(["unplug", "unplugged", "gap", "channels", "restart", "overrun", "overflow", "error",
+                               "silence", "sense_lost", "stall", "lost", "disconnected"]);
   const token = new URLSearchParams(location.hash.slice(1)).get("token") || "";
   const streams = new Map();   // name -> {el, history: [msg], classes}
   let hello = null;
@@ -148,16 +150,19 @@
     $("#sinks tbody").innerHTML = (m.sinks || []).map(q =>
       "<tr><td>" + q.sink + "</td><td>" + q.written + "</td><td" + (q.dropped_windows ? " class=bad" : "") + ">" +
       q.dropped_windows + "</td><td>" + q.dropped_events + "</td><td>" + q.errors + "</td></tr>").join("");
-    text($("#pages"), (m.clients || 0) + " page(s) open; " + (m.client_dropped || 0) + " messages dropped by pages that did not keep up");
+    text($("#pages"), m.replay ? "a replay: the recording's counts at its end" :
+         (m.clients || 0) + " page(s) open; " + (m.client_dropped || 0) + " messages dropped by pages that did not keep up");
   }
 
   function onEvent(m) {
     const li = document.createElement("li");
-    li.textContent = fmt(m.time, 2) + " s " + (m.source ? m.source + " " : "") + m.event + (m.count > 1 ? " x" + m.count : "") + ": " + m.message;
+    // an event's time is the host's wall clock (a window's is the node's common time): shown as a clock time
+    const when = new Date(m.time * 1000).toLocaleTimeString([], {hour12: false});
+    li.textContent = when + " " + (m.source ? m.source + " " : "") + m.event + (m.count > 1 ? " x" + m.count : "") + ": " + m.message;
     const log = $("#eventlog");
     log.insertBefore(li, log.firstChild);
     while (log.children.length > 50) log.removeChild(log.lastChild);
-    if (BANNER_KINDS.has(m.event) || m.event) banner((m.source ? m.source + ": " : "") + m.message, "event-" + m.event);
+    banner((m.source ? m.source + ": " : "") + m.message, "event-" + m.event, !ALARM_KINDS.has(m.event));
   }
 
   function banner(msg, cls, info) {
