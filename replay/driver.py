@@ -302,8 +302,10 @@ class ReplayDriver(DriverBase):
             ratio = (Fraction(rate) / Fraction(src_rate)).limit_denominator(max_denominator)
             up, down = ratio.numerator, ratio.denominator
             if up == 0:
-                raise ReplayError(f"cannot resample {src_rate} Hz to {rate} Hz with a down factor "
-                                  f"<= {max_denominator}; raise max_denominator")
+                raise ReplayError(f"{self.name}: cannot resample {src_rate:g} Hz to {rate:g} Hz: more than "
+                                  f"{2 * max_denominator} times slower, beyond what the replay resamples; resample "
+                                  "the recording nearer that rate first, or give its stream a bank at a rate nearer "
+                                  "the recording's")
         self.up, self.down = up, down
         self.rate = float(Fraction(src_rate) * up / down)  # the effective rate, exact or not
         if rate is not None and rate != src_rate:

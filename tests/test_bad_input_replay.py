@@ -298,3 +298,15 @@ def test_damaged_clock_offsets_are_refused_not_replayed_at_4e300_seconds(tmp_pat
     (line,) = _lines(err)
     assert "with the file's clock offsets applied, reach" in line and "(MAX_XDF_TIME)" in line
     assert not (tmp_path / "out.jsonl").exists()
+
+
+def test_a_recording_far_faster_than_its_bank_is_refused_with_what_the_user_can_change():
+    """Issue 35, item 21: a recording thousands of times faster than its bank's rate said "raise
+    max_denominator", a key no scene or command sets. It names both rates and the two fixes."""
+    from supramodal.replay.driver import ReplayDriver
+
+    with pytest.raises(ReplayError, match=r"cannot resample 1e\+06 Hz to 400 Hz: more than 2000 times slower.*"
+                                          r"resample the recording nearer that rate first, or give its stream a bank") \
+            as refused:
+        ReplayDriver((np.zeros((1000, 1)), 1_000_000.0), rate=400.0, on_notice=None)
+    assert "max_denominator" not in str(refused.value)
