@@ -54,7 +54,7 @@ from supramodal.errors import InputError
 
 __all__ = [
     "CALIBRATION_METHOD", "DEFAULT_CALIBRATION_FOLDS", "ECE_BINS", "NOVELTY_METHOD", "Calibration", "Novelty",
-    "brier_score", "calibration_report", "cap_gaps", "confusion_caps", "fit_capped_pooling",
+    "brier_score", "calibration_line", "calibration_report", "cap_gaps", "confusion_caps", "fit_capped_pooling",
     "fit_capped_window_calibration", "effective_windows", "expected_calibration_error", "fit_novelty",
     "fit_pooling", "fit_window_calibration", "log_loss", "log_sigmoid", "normalised_log_posteriors",
     "novelty_warp", "pool_log_posteriors", "reliability", "winner",
@@ -1061,3 +1061,17 @@ def input_scaling(x) -> tuple[np.ndarray, np.ndarray]:
     scale = x.std(axis=0)
     scale[scale == 0] = 1.0
     return mean, scale
+
+
+def calibration_line(fitted_on: dict | None) -> str:
+    """What a model's calibration was fitted on (its ``fitted_on``; None: uncalibrated), in words."""
+    if fitted_on is None:
+        return "uncalibrated (posteriors: the network's normalised outputs)"
+    f = fitted_on
+    by = {"recording": " by recording", "span": " by span of each recording"}.get(f.get("folds_by", ""), "")
+    line = f"calibrated on {f.get('windows')} held-out windows ({f.get('folds')} folds{by})"
+    if "log_loss_uncalibrated" in f and "log_loss" in f:
+        line += f": held-out log loss {f['log_loss_uncalibrated']:.3f} -> {f['log_loss']:.3f} nats"
+    if "held_out_accuracy" in f:
+        line += f", {f['held_out_accuracy']:.3f} of them right"
+    return line

@@ -244,9 +244,8 @@ ROOMS = ("runtime", "scene", "workflows", "cli")
 #: module)``. The list only shrinks (issue 37): an arrow up that is not here fails, and so does an entry
 #: no import needs any longer (delete it). None may start in node/runtime/.
 KNOWN_BACK_ARROWS = {
-    # the builder trains a model on the spot and says its calibration (train_on_texture_set, _learned_weight)
-    ("node/scene/build.py", "supramodal.node.workflows.training"),
-    # ... and keeps a model trained on the spot in the model cache (_model_for)
+    # the builder keeps a model trained on the spot in the model cache (_model_for); the words of a model's
+    # calibration, which it also took from the workflows, are the model's own now (supramodal.calibration)
     ("node/scene/build.py", "supramodal.node.workflows.model_cache"),
 }
 
@@ -315,9 +314,10 @@ def test_the_room_check_sees_lazy_type_checking_and_relative_imports_up(tmp_path
     assert (13, "supramodal.node.runtime.clock") in imports_in(fake, package)
     assert room("supramodal.node.runtime.sinks.spec") == "runtime" and room("supramodal.node") is None
     # a known arrow is known in its own file only, and by module (a name in it too)
-    assert is_known("node/scene/build.py", "supramodal.node.workflows.training.calibration_line")
-    assert not is_known("node/scene/schema.py", "supramodal.node.workflows.training")
-    assert not is_known("node/scene/build.py", "supramodal.node.workflows.trainings")
+    assert is_known("node/scene/build.py", "supramodal.node.workflows.model_cache.trained_on_start")
+    assert not is_known("node/scene/schema.py", "supramodal.node.workflows.model_cache")
+    assert not is_known("node/scene/build.py", "supramodal.node.workflows.model_caches")
+    assert not is_known("node/scene/build.py", "supramodal.node.workflows.training")
 
 
 def test_a_node_that_runs_a_model_loads_neither_scipy_signal_nor_scipy_optimize():

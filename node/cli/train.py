@@ -91,8 +91,9 @@ def run(args: argparse.Namespace) -> int:
     int
         The exit status (0: done).
     """
+    from supramodal.calibration import calibration_line
     from supramodal.node.runtime.outputs import check_new_file
-    from supramodal.node.workflows.training import calibration_line, train_from_manifest
+    from supramodal.node.workflows.training import train_from_manifest
     if args.stream is not None and not args.fusion:
         return _train_stream(args)
     if args.scene or args.fusion:
@@ -132,8 +133,9 @@ def run(args: argparse.Namespace) -> int:
 
 def _train_stream(args) -> int:
     """``train --scene REC.toml ... --stream NAME --out MODEL``: a sense model straight from recorded graphs."""
+    from supramodal.calibration import calibration_line
     from supramodal.node.runtime.outputs import check_new_file
-    from supramodal.node.workflows.training import calibration_line, train_from_scenes
+    from supramodal.node.workflows.training import train_from_scenes
 
     if not args.scene or args.out is None:
         raise CliError("--stream trains one stream's model from recorded graphs: give one --scene per recording "

@@ -95,7 +95,7 @@ def train_on_texture_set(ts, pipeline: FeaturePipeline, progress=None, held_out:
     if trained is not None:
         trained.append(train_part)
     if progress:
-        from supramodal.node.workflows.training import calibration_line
+        from supramodal.calibration import calibration_line
 
         progress(f"trained on {len(train_part[0])} windows of {len(ts.textures)} textures ({', '.join(p.features)}); "
                  + calibration_line(None if model.calibration is None else model.calibration.fitted_on))
@@ -284,7 +284,7 @@ def _early_model(scene: Scene, a: Stream, b: Stream, held_out: dict, trained: di
     model = EarlyFusionModel.train((Sense.of(a.name, a.pipeline), Sense.of(b.name, b.pipeline)), xa, xb, ya,
                                    _model(a).classes)
     if progress:
-        from supramodal.node.workflows.training import calibration_line
+        from supramodal.calibration import calibration_line
 
         (ta, tya), (tb, _) = held_out[a.name][0], held_out[b.name][0]
         right = {a.name: _model(a).log_posteriors(ta),

@@ -322,7 +322,7 @@ def trained_on_start(ts, pipeline, train, progress=None, held_out: list | None =
         if trained is not None:
             trained.append(train_part)
         if progress:
-            from supramodal.node.workflows.training import calibration_line
+            from supramodal.calibration import calibration_line
 
             progress(f"trained on {len(train_part[0])} windows of {len(ts.textures)} textures "
                      f"({', '.join(pipeline.features)}); "

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from supramodal.banks import Bank
-from supramodal.calibration import calibration_report, pool_log_posteriors, winner
+from supramodal.calibration import calibration_line, calibration_report, pool_log_posteriors, winner
 from supramodal.errors import InputError, SupramodalError
 from supramodal.evaluation import POOLED_WINDOWS, anytime_sweep, permutation_importance, pooled_accuracy
 from supramodal.mlp import DEFAULT_EPOCHS
@@ -539,17 +539,3 @@ def describe_calibration(calibration: dict) -> str:
     if not calibration.get("fitted_on"):
         return "calibrated (each fold's model on out-of-fold windows of its own training recordings)"
     return calibration_line(calibration["fitted_on"])
-
-
-def calibration_line(fitted_on: dict | None) -> str:
-    """What a model's calibration was fitted on (its ``fitted_on``; None: uncalibrated), in words."""
-    if fitted_on is None:
-        return "uncalibrated (posteriors: the network's normalised outputs)"
-    f = fitted_on
-    by = {"recording": " by recording", "span": " by span of each recording"}.get(f.get("folds_by", ""), "")
-    line = f"calibrated on {f.get('windows')} held-out windows ({f.get('folds')} folds{by})"
-    if "log_loss_uncalibrated" in f and "log_loss" in f:
-        line += f": held-out log loss {f['log_loss_uncalibrated']:.3f} -> {f['log_loss']:.3f} nats"
-    if "held_out_accuracy" in f:
-        line += f", {f['held_out_accuracy']:.3f} of them right"
-    return line
