@@ -64,8 +64,10 @@ XDF_BLOCK_SECONDS = 0.01
 MAX_XDF_RATE = 1_000_000
 #: How far the rate a stream's timestamps show may be from its ``nominal_srate``, a factor either way.
 RATE_MISMATCH = 2.0
-#: Seconds of filled frames always allowed, however few the stream's own (a short stream with a pause).
-MIN_FILL_SECONDS_REFUSED = 1.0
+#: Seconds of filled frames always allowed, however few the stream's own: one pause as long as the longest gap
+#: filled (a short stream with a pause replays); beyond it, and beyond the stream's own frames, a stream is
+#: more made up than recorded.
+MIN_FILL_SECONDS_REFUSED = DEFAULT_MAX_GAP
 #: Most samples (frames x channels) one replayed stream may hold once its gaps are filled: 2**29,
 #: 4 GiB as float64 (an hour of 20 channels at 5 kHz, or three of 44.1 kHz audio).
 MAX_XDF_SAMPLES = 2**29
@@ -125,10 +127,12 @@ _CHANNEL_COUNT = re.compile(rb"<channel_count>\s*([^<]*?)\s*</channel_count>")
 
 def check_xdf_headers(path: Path) -> None:
     """Refuse a file whose stream headers declare more than :data:`MAX_XDF_CHANNELS` channels, or a count that
-    is no whole number, before pyxdf reads it: pyxdf sizes its buffers from the header (a 306-byte file
-    declaring 1e9 channels took 12.7 GB). Walks the chunks' lengths only (seeking past the samples); a
-    chunk structure it cannot follow is left for pyxdf to refuse."""
+    is no whole number, or one of whose Samples chunks declares more samples than its bytes can hold, before
+    pyxdf reads it: pyxdf sizes its buffers from those counts (a 306-byte file declaring 1e9 channels took
+    12.7 GB). Walks the chunks' lengths only (seeking past the samples); a chunk structure it cannot follow is
+    left for pyxdf to refuse."""
     size = path.stat().st_size
+    channels: dict[int, int] = {}                               # by StreamId, as their headers declare
     with path.open("rb") as f:
         if f.read(4) != b"XDF:":
             return
@@ -148,10 +152,28 @@ def check_xdf_headers(path: Path) -> None:
                 content = f.read(length - 2)
                 for found in _CHANNEL_COUNT.findall(content[4:]):
                     text = found.decode("ascii", "replace")
-                    if not text.isdigit() or int(text) > MAX_XDF_CHANNELS:
+                    # the length first: int() refuses more than 4300 digits with a ValueError of its own
+                    if not text.isdigit() or len(text.lstrip("0")) > 5 or int(text) > MAX_XDF_CHANNELS:
                         raise ReplayError(f"{path}: a stream header declares channel_count {text[:20]!r}; a stream "
                                           f"has 1 to {MAX_XDF_CHANNELS} channels (MAX_XDF_CHANNELS): the header is "
                                           "damaged, or the stream is no sensor's")
+                    channels[int.from_bytes(content[:4], "little")] = int(text)
+            elif tag == 3:                                      # Samples: StreamId, then NumSamples (varlen)
+                head = f.read(min(length - 2, 13))
+                width = head[4] if len(head) > 4 else 0
+                if width in (1, 4, 8) and len(head) >= 5 + width:
+                    # pyxdf allocates every declared sample and channel before reading one, a marker stream's as
+                    # Python lists (16 M samples declared in 5 bytes took 12 s and 1.5 GB; 3000 samples of 65535
+                    # channels in a 9 kB file, 1.6 GB); in the file each takes a byte (its stamp flag) and each
+                    # value a byte at least
+                    count = int.from_bytes(head[5:5 + width], "little")
+                    room = length - 2 - 5 - width
+                    each = 1 + channels.get(int.from_bytes(head[:4], "little"), 0)
+                    if count * each > room:
+                        raise ReplayError(f"{path}: the Samples chunk at byte {start} declares {count} samples of "
+                                          f"{each - 1} channel(s) in {room} bytes, room for {room // each} at most: "
+                                          "the file is damaged there; record it again, or give the file LabRecorder "
+                                          "wrote")
             f.seek(start + length)
 
 
@@ -267,12 +289,6 @@ def xdf_session(path: str | os.PathLike[str], name: str | None = None, stream_ty
     whole = _session_rate(rate, where)          # before anything is filled at that rate
     _check_stamps_fit_rate(stamps, rate, where)
     made_up = sum(missing for _, kind, missing in _steps(stamps, rate) if kind == "gap")
-    if made_up > max(data.shape[0], rate * MIN_FILL_SECONDS_REFUSED):
-        raise ReplayError(f"{where}: its timestamps leave room for {made_up} missing frames at nominal_srate "
-                          f"{rate:g} Hz, more than the {data.shape[0]} it holds: filled with zeros, the replay would "
-                          "be more made up than recorded (a stream that sends now and then, or a wrong "
-                          "nominal_srate); name a regularly sampled stream, or correct its nominal_srate where it "
-                          "was recorded")
     frames = data.shape[0] + made_up
     if frames * data.shape[1] > MAX_XDF_SAMPLES:
         raise ReplayError(f"{where}: its timestamps span {float(stamps[-1] - stamps[0]):.6g} s: with the gaps in them "
@@ -280,6 +296,12 @@ def xdf_session(path: str | os.PathLike[str], name: str | None = None, stream_ty
                           f"channel(s), more than the {MAX_XDF_SAMPLES} samples a replayed stream may hold "
                           "(MAX_XDF_SAMPLES, 4 GiB); check the stream's nominal_srate and timestamps, or cut the "
                           "recording into shorter files")
+    if made_up > max(data.shape[0], rate * MIN_FILL_SECONDS_REFUSED):
+        raise ReplayError(f"{where}: its timestamps leave room for {made_up} missing frames at nominal_srate "
+                          f"{rate:g} Hz, more than the {data.shape[0]} it holds: filled with zeros, the replay would "
+                          "be more made up than recorded (a stream that sends now and then, or a wrong "
+                          "nominal_srate); name a regularly sampled stream, or correct its nominal_srate where it "
+                          "was recorded")
     zero = min(float(np.min(x["time_stamps"])) for x in streams if _regular(x))
     data, stamps, filled, marks = fill_gaps(data, stamps, rate)
     truth = () if labels is None else marker_labels(_marker_stream(streams, labels, path), stamps, rate,

@@ -87,7 +87,7 @@ def bank_from_description(d, where: str = "bank") -> Bank:
     if not isinstance(d, dict):
         raise BankFileError(f"{where}: a bank description is a table (JSON object), got {type(d).__name__}")
     kind = d.get("kind")
-    if kind not in BANK_KEYS:
+    if not isinstance(kind, str) or kind not in BANK_KEYS:      # a list or an object is no kind (and unhashable)
         raise BankFileError(f"{where}: kind must be one of {sorted(BANK_KEYS)}, got {kind!r}")
     d = {k: v for k, v in fill(f"{where} ({kind} bank)", {k: v for k, v in d.items() if k != "kind"},
                                BANK_KEYS[kind], BankFileError).items() if v is not None}

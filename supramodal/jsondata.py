@@ -17,6 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
+from supramodal.errors import SupramodalError
+
 __all__ = ["nesting_depth", "parse_json_text", "read_json_file"]
 
 # A JSON string (escapes included): its brackets are text, not structure.
@@ -81,6 +83,12 @@ def parse_json_text(text: str, where: str, *, max_depth: int, error: type[Except
         raise error(f"{where}: not valid JSON ({e}); fix or regenerate the file") from None
     except RecursionError:                    # not reached with a sane limit; never a traceback all the same
         raise error(f"{where}: JSON nested too deep to parse; the limit is {max_depth} ({limit_name})") from None
+    except ValueError as e:
+        if isinstance(e, SupramodalError):    # a hook's own refusal
+            raise
+        # Python refuses an integer of more than sys.get_int_max_str_digits() digits (4300) with a plain ValueError
+        raise error(f"{where}: not valid JSON here ({str(e).split(';')[0]}); no file of this kind holds such a "
+                    "value: this file is damaged or not of this format") from None
 
 
 def read_json_file(path, *, max_bytes: int, max_depth: int, error: type[Exception], limits: tuple[str, str],

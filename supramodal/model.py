@@ -34,6 +34,7 @@ from __future__ import annotations
 import json
 import math
 import zipfile
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -473,7 +474,8 @@ def read_model_archive(path, names=_ARRAYS, optional=()) -> tuple[object, dict]:
                              "`supramodal train`") from None
         raise ModelError(f"{path} is not a readable model file: not an .npz archive of plain arrays (truncated, "
                          "or another kind of file); train a model with `supramodal train`") from None
-    except (zipfile.BadZipFile, OSError, EOFError) as exc:
+    except (zipfile.BadZipFile, OSError, EOFError, NotImplementedError, zlib.error) as exc:
+        # NotImplementedError, zlib.error: a member's compression method damaged (zipfile's own words for it)
         raise ModelError(f"{path} is not a readable model file ({exc}); "
                          "it may be truncated or of another kind") from exc
     if header_text.dtype.kind != "U" or header_text.ndim != 0:
