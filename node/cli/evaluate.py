@@ -9,6 +9,7 @@ from pathlib import Path
 
 from supramodal.node.cli.arguments import count, mapping, output_folder, progress, say_plots_missing, seed
 from supramodal.node.cli.errors import CliError
+from supramodal.node.cli.signals import interrupt_until_running
 
 
 def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
@@ -65,6 +66,8 @@ def run(args: argparse.Namespace) -> int:
     int
         The exit status (0: done).
     """
+    # SIGTERM as SIGINT: one line, and the files of --out written whole or not at all (a signal ended it on the spot)
+    interrupt_until_running("the evaluation; its files are written all or none")
     from supramodal.model import TextureModel
     from supramodal.node.workflows.training import evaluate_manifest, format_evaluation
 
@@ -92,9 +95,9 @@ def run(args: argparse.Namespace) -> int:
     result["calibration"]["model_version"] = _model_file_version(args.model)
     print(json.dumps(result) if args.json else format_evaluation(result))
     if args.out is not None:
-        from supramodal.node.workflows.reports import plots_missing_notice, write_evaluation
+        from supramodal.node.workflows.reports import plots_missing_notice, write_evaluation, write_staged
 
-        files = write_evaluation(result, args.out)
+        files = write_staged(args.out, lambda folder: write_evaluation(result, folder))
         print("wrote " + ", ".join(str(p) for p in files), file=sys.stderr)
         say_plots_missing(plots_missing_notice())
     return 0
@@ -128,9 +131,9 @@ def _evaluate_fusion(args) -> int:
     result = evaluate_fused(args.scene, fused, progress=progress(args), contact_windows=args.contact_windows)
     print(json.dumps(result) if args.json else format_fused_evaluation(result))
     if args.out is not None:
-        from supramodal.node.workflows.reports import write_fused_evaluation
+        from supramodal.node.workflows.reports import write_fused_evaluation, write_staged
 
-        files = write_fused_evaluation(result, args.out)
+        files = write_staged(args.out, lambda folder: write_fused_evaluation(result, folder))
         print("wrote " + ", ".join(str(p) for p in files), file=sys.stderr)
     return 0
 
@@ -152,14 +155,22 @@ def _evaluate_cv(model, args) -> int:
                               progress=progress(args))
     print(json.dumps(cv) if args.json else format_cross_validation(cv))
     if bases is not None:
-        from supramodal.node.workflows.reports import plots_missing_notice, write_confusion, write_reliability
+        from supramodal.node.workflows.reports import (
+            plots_missing_notice,
+            write_confusion,
+            write_reliability,
+            write_staged,
+        )
 
-        args.out.mkdir(parents=True, exist_ok=True)
         what = f"{args.cv}-fold grouped cross-validation of {Path(args.model).name}'s configuration"
-        files = write_confusion(cv["labels"], cv["confusion"], bases[0],
-                                f"{what}: window accuracy {cv['window_accuracy']['mean']:.3f} +- "
-                                f"{cv['window_accuracy']['sd']:.3f}")
-        files += write_reliability(cv["calibration"], bases[1], f"{what}: test folds' decisions")
+        confusion, reliability = (base.name for base in bases)
+
+        def write(folder: Path) -> list[Path]:
+            return (write_confusion(cv["labels"], cv["confusion"], folder / confusion,
+                                    f"{what}: window accuracy {cv['window_accuracy']['mean']:.3f} +- "
+                                    f"{cv['window_accuracy']['sd']:.3f}")
+                    + write_reliability(cv["calibration"], folder / reliability, f"{what}: test folds' decisions"))
+        files = write_staged(args.out, write)
         print("wrote " + ", ".join(str(p) for p in files), file=sys.stderr)
         say_plots_missing(plots_missing_notice())
     return 0

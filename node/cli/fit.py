@@ -80,6 +80,7 @@ def run(args: argparse.Namespace) -> int:
     """
     from supramodal.node.runtime.outputs import check_new_file
     from supramodal.node.workflows.fit_search import fit_search, format_search, write_search
+    from supramodal.node.workflows.reports import write_staged
 
     if args.out.is_dir():
         for name in ("fit.csv", "fit-curve.csv", "fit-curve.png", "bank.json"):
@@ -87,13 +88,23 @@ def run(args: argparse.Namespace) -> int:
     # SIGTERM as SIGINT: the search's workers and their cluster are closed on the way out (a SIGTERM
     # ended the fit on the spot, leaking their semaphores), and one line says what was left
     interrupt_until_running("the fit's search; no fit file was written")
-    result = fit_search(args.manifest, k=args.cv, seed=args.seed, quick=args.quick, trials=args.trials,
-                        timeout=args.timeout, batch=args.batch, max_window=args.max_window,
-                        max_channels=args.max_channels, target=args.target, contact=args.contact,
-                        max_epochs=args.epochs, jobs=args.jobs, cluster=args.cluster, mapping=args.mapping,
-                        cache_dir=args.out / "cache", cache_memory=args.cache_memory * 2**20, progress=progress(args))
+    cache = args.out / "cache"
+    try:
+        result = fit_search(args.manifest, k=args.cv, seed=args.seed, quick=args.quick, trials=args.trials,
+                            timeout=args.timeout, batch=args.batch, max_window=args.max_window,
+                            max_channels=args.max_channels, target=args.target, contact=args.contact,
+                            max_epochs=args.epochs, jobs=args.jobs, cluster=args.cluster, mapping=args.mapping,
+                            cache_dir=cache, cache_memory=args.cache_memory * 2**20, progress=progress(args))
+    except BaseException:
+        # The cache's files are this search's (a completed one removes them): an interrupted one left them behind.
+        for path in cache.glob("*.npy"):
+            path.unlink(missing_ok=True)
+        raise
     print(format_search(result))
-    files = write_search(result, args.out)
+    # Written aside and put in place all at once (written in place, an interrupted fit left some files new, the
+    # rest an earlier fit's, or one cut short).
+    interrupt_until_running("writing the fit's files; they are put in place all or none")
+    files = write_staged(args.out, lambda folder: write_search(result, folder))
     b = result["best"]
     print(f"wrote {', '.join(str(p) for p in files)}\nnext: supramodal train --bank {args.out / 'bank.json'} "
           f"--window {b['window']:g} --features {b['features'].replace('+', ' ')} --epochs {b['epochs']} "

@@ -7,6 +7,7 @@ import argparse
 
 from supramodal.node.cli.arguments import output_folder, session_name, source_value
 from supramodal.node.cli.errors import CliError
+from supramodal.node.cli.signals import interrupt_until_running
 
 
 def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
@@ -71,6 +72,8 @@ def run(args: argparse.Namespace) -> int:
     """
     from supramodal.node.workflows.import_recording import import_recording, sources_from_options
 
+    # SIGTERM as SIGINT: one line, and the import's staging folder removed (a signal ended it on the spot, leaving it)
+    interrupt_until_running("the import; a recording is imported whole or not at all")
     if args.label_topic is not None and args.markers is not None:
         raise CliError("--markers labels from an XDF file, --label-topic from a bag: give one")
     sources = sources_from_options(args.wav, args.times, args.xdf_stream, args.bank, args.model, args.topic,

@@ -33,8 +33,11 @@ def run(args: argparse.Namespace) -> int:
     int
         The exit status (0: done).
     """
+    from supramodal.node.cli.signals import interrupt_until_running
     from supramodal.node.workflows.labels import label_recording
 
+    # SIGTERM as SIGINT: one line, and the sidecars staged are removed (a signal ended it on the spot, leaving them)
+    interrupt_until_running("labelling; the sessions are labelled all or none")
     written = label_recording(args.recording, args.spans, replace=args.replace)
     for source, labels in written.items():
         names = sorted({n for _, _, n in labels})

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import shutil
 import sys
 import tempfile
@@ -89,8 +90,25 @@ def run(args: argparse.Namespace) -> int:
     try:
         return _record(args, scene, name, labelled, sessions, windows)
     finally:
+        _keep_or_drop(_staging(args.out, name), args.out / f"{name}.incomplete-{os.getpid()}")
         if windows is not None:
             shutil.rmtree(windows.parent, ignore_errors=True)
+
+
+def _keep_or_drop(staging: Path, aside: Path) -> None:
+    """A graph's recording that was not put in place (a source never started, the node failed): its sessions
+    are what the user recorded, kept in ``aside`` and said; a staging folder with no session goes."""
+    if staging.is_dir() and any(staging.glob("*.wav")):
+        staging.rename(aside)
+        print(f"supramodal: record: the recording was not put in place; the sessions it made are kept in {aside}",
+              file=sys.stderr)
+    else:
+        shutil.rmtree(staging, ignore_errors=True)
+
+
+def _staging(out: Path, name: str) -> Path:
+    """The folder a graph's recording is written into, beside it, before its files are put in place all at once."""
+    return out / f".{name}.record-{os.getpid()}"
 
 
 def _record(args: argparse.Namespace, scene, name: str, labelled: bool, sessions: list, windows) -> int:
@@ -101,10 +119,15 @@ def _record(args: argparse.Namespace, scene, name: str, labelled: bool, sessions
     from supramodal.node.runtime.taps.recorder import SessionRecorder
     from supramodal.node.scene.build import build_node
     from supramodal.node.workflows.graph_recording import GraphMarks, graph_recorders, write_replay_scene
+    from supramodal.node.workflows.labels import replace_all
 
     if scene.is_graph:
+        # The sessions, models and replay scene are written aside and put in place once all are there: a source
+        # that had not delivered a block when the recording stopped had no session, and the others' new sessions
+        # were replayed with an earlier recording's session of it (or left without a replay scene).
+        staging = _staging(args.out, name)
         recorders = graph_recorders(scene, args.out, name, overwrite=args.force, label=args.label,
-                                    replace=args.replace)
+                                    replace=args.replace, into=staging)
         node = build_node(scene, recorder=recorders, progress=progress(args), overwrite=args.force)
         own = [s.name for s in node.sources if s.labels is not None and s.labels.ranges]
         if own and labelled and not args.replace:
@@ -117,10 +140,14 @@ def _record(args: argparse.Namespace, scene, name: str, labelled: bool, sessions
         summary = node.run(max_seconds=args.seconds, on_running=lambda: stop_on_signals(node))
         if summary.get("recorded"):
             try:
-                replay = write_replay_scene(scene, node, args.out, name, overwrite=args.force)
+                replay = write_replay_scene(scene, node, args.out, name, overwrite=args.force, into=staging)
             except InputError as exc:
-                raise CliError(f"recorded {', '.join(summary['recorded'])}, but {exc}") from None
-            wavs = ", ".join(p for p in summary["recorded"] if p.endswith(".wav"))
+                raise CliError(f"{exc}; nothing was put in the recording's place (a recording is kept whole or "
+                               "not at all)") from None
+            replace_all([(path, args.out / path.name) for path in sorted(staging.iterdir())
+                          if not path.name.startswith(".")])
+            replay = args.out / replay.name
+            wavs = ", ".join(str(args.out / Path(p).name) for p in summary["recorded"] if p.endswith(".wav"))
             print(f"recorded {summary['stream_seconds']:.2f} s to {wavs} (+ .json); replay them in step: "
                   f"supramodal run {replay}", file=sys.stderr)
             _write_bag(args, sessions, windows)

@@ -16,6 +16,7 @@ from supramodal.node.cli.arguments import (
     seed,
 )
 from supramodal.node.cli.errors import CliError
+from supramodal.node.cli.signals import interrupt_until_running
 
 
 def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
@@ -94,6 +95,9 @@ def run(args: argparse.Namespace) -> int:
     from supramodal.calibration import calibration_line
     from supramodal.node.runtime.outputs import check_new_file
     from supramodal.node.workflows.training import train_from_manifest
+
+    # SIGTERM as SIGINT: one line, and a model file written whole or not at all (a signal ended it on the spot)
+    interrupt_until_running("the training; a model file is written whole or not at all")
     if args.stream is not None and not args.fusion:
         return _train_stream(args)
     if args.scene or args.fusion:
@@ -124,11 +128,20 @@ def run(args: argparse.Namespace) -> int:
         say_plots_missing(plots_missing_notice())
     model = train_from_manifest(args.manifest, bank, tuple(args.features), args.window, epochs=args.epochs,
                                 seed=args.seed, mapping=args.mapping, progress=progress(args))
-    path = model.save(args.out)
+    path = _save(model, args.out)
     print(f"wrote {path}: {model.bank.kind} bank, features {list(model.features)}, classes {list(model.classes)}, "
           f"{model.training['windows']} training windows, final MSE {model.training['final_mse']:.4g}")
     print("posteriors: " + calibration_line(None if model.calibration is None else model.calibration.fitted_on))
     return 0
+
+
+def _save(model, out) -> Path:
+    """Save ``model`` (a sense or a fused model) to ``out`` whole or not at all: written aside, then put in place
+    (written in place, an interrupted save left a model file cut short where the earlier one was)."""
+    from supramodal.node.workflows.reports import write_staged
+
+    out = Path(out)
+    return write_staged(out.parent, lambda folder: [model.save(folder / out.name)])[0]
 
 
 def _train_stream(args) -> int:
@@ -145,7 +158,7 @@ def _train_stream(args) -> int:
                        "out --manifest, --bank, --cv, --model, --live and --write-scene")
     check_new_file(args.out, args.force, "the model file")
     model = train_from_scenes(args.scene, args.stream, epochs=args.epochs, seed=args.seed, progress=progress(args))
-    path = model.save(args.out)
+    path = _save(model, args.out)
     print(f"wrote {path}: stream {args.stream}, {model.bank.kind} bank, features {list(model.features)}, classes "
           f"{list(model.classes)}, {model.training['windows']} training windows of {len(args.scene)} recording(s), "
           f"final MSE {model.training['final_mse']:.4g}")
@@ -214,7 +227,7 @@ def _train_fusion(args) -> int:
         _write_run_scene(args, write_fused_scene, (a, b), models, method="late", weight=round(weight, 4),
                          sharpness=float(f"{sharpness:.4g}"), correlation=float(f"{info['correlation']:.3g}"))
         return 0
-    path = result.save(args.out)
+    path = _save(result, args.out)
     print(f"wrote {path}: early fusion of {a} and {b}, classes {info['classes']}, {info['pairs']} pairs of windows, "
           f"calibrated on its out-of-fold pairs (the early row); use it with [fusion] method = \"early\", "
           f"model = \"{path.resolve()}\" (a relative path is taken from the scene's folder)")

@@ -23,6 +23,7 @@ from supramodal.errors import InputError
 from supramodal.node.runtime.outputs import check_new_file
 from supramodal.node.runtime.taps.recorder import SessionRecorder
 from supramodal.node.scene.schema import Scene, scene_from_dict, scene_to_toml
+from supramodal.replay.session import session_paths
 
 
 def recording_paths(folder, name: str, scene: Scene) -> dict:
@@ -40,16 +41,19 @@ def _files(paths: dict) -> list[Path]:
 
 
 def graph_recorders(scene: Scene, folder, name: str, overwrite: bool = False, label: str | None = None,
-                    replace: bool = False) -> dict[str, SessionRecorder]:
+                    replace: bool = False, into=None) -> dict[str, SessionRecorder]:
     """One recorder per source of a graph scene, keeping the blocks' arrivals; every file the
     recording would write is checked first (refused if it exists, unless ``overwrite``).
 
     ``label`` labels every source's whole recording; ``replace``: the labels given here and by
-    :class:`GraphMarks` replace those a source's driver carries (a synthesised source's truth)."""
+    :class:`GraphMarks` replace those a source's driver carries (a synthesised source's truth). ``into``: the
+    folder the sessions are written into instead of ``folder``, whose files the caller puts in place (``supramodal
+    record``: all of them once the replay scene is written there too, or none)."""
     if Path(folder).is_dir():                       # else made at the first frames: nothing to replace
-        for path in _files(recording_paths(folder, name, scene)):
+        sessions = [p for src in scene.sources for p in session_paths(Path(folder) / f"{name}.{src.name}")]
+        for path in _files(recording_paths(folder, name, scene)) + (sessions if into is not None else []):
             check_new_file(path, overwrite, "the recording's file")
-    return {src.name: SessionRecorder(folder, f"{name}.{src.name}",
+    return {src.name: SessionRecorder(folder if into is None else into, f"{name}.{src.name}",
                                       json.dumps({"scene": scene.source,
                                                   "source": {**src.table(), "buffer": asdict(src.buffer)}}),
                                       label=label, overwrite=overwrite, keep_arrivals=True, replace=replace)
@@ -86,15 +90,18 @@ class GraphMarks:
         return t
 
 
-def write_replay_scene(scene: Scene, graph, folder, name: str, overwrite: bool = False) -> Path:
+def write_replay_scene(scene: Scene, graph, folder, name: str, overwrite: bool = False, into=None) -> Path:
     """After ``graph`` (built from ``scene``) has recorded into ``folder``: save its streams'
-    models and write ``NAME.toml``, the scene that replays the recording; returns its path."""
+    models and write ``NAME.toml``, the scene that replays the recording; returns its path. ``into``: the folder
+    the sessions were recorded into and these files are written into, to be put in ``folder`` by the caller
+    (:func:`graph_recorders`); the scene names ``folder`` as its place."""
     folder = Path(folder)
-    paths = recording_paths(folder, name, scene)
-    missing = [src.name for src in scene.sources if not (folder / f"{name}.{src.name}.wav").exists()]
+    into = folder if into is None else Path(into)
+    paths = recording_paths(into, name, scene)
+    missing = [src.name for src in scene.sources if not (into / f"{name}.{src.name}.wav").exists()]
     if missing:
         raise InputError(f"no session was recorded for source(s) {missing} (no frame came): the recording "
-                         f"in {folder} cannot be replayed in step, so no replay scene is written")
+                         "cannot be replayed in step, so no replay scene is written")
     d = tomllib.loads(scene_to_toml(scene))
     # Each source a replay of its session at its recorded times (the streams read it with their
     # mappings, as recorded); its ring waits rather than drops (a file need lose nothing).
@@ -115,7 +122,7 @@ def write_replay_scene(scene: Scene, graph, folder, name: str, overwrite: bool =
     sent = [sink for sink in d.pop("sink", []) if sink["type"] == "lsl-signal"]
     if not graph.streams:
         d["sink"] = sent
-    replay = scene_from_dict(d, str(paths["scene"]), folder)
+    replay = scene_from_dict(d, str(folder / paths["scene"].name), into)
     check_new_file(paths["scene"], overwrite, "the replay scene")
     paths["scene"].write_text(f"# Replays the recording {name} with its recorded timing (supramodal record).\n"
                               + scene_to_toml(replay))

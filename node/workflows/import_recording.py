@@ -39,7 +39,6 @@ import csv
 import math
 import os
 import shutil
-import tempfile
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -51,6 +50,7 @@ from supramodal.checks import NAME_HELP, is_name
 from supramodal.csvdata import bounded_lines
 from supramodal.errors import InputError
 from supramodal.node.runtime.outputs import check_new_file
+from supramodal.node.workflows.labels import replace_all
 from supramodal.replay.errors import ReplayError
 from supramodal.replay.session import Session, save_session, session_paths, validate_arrivals
 from supramodal.replay.wavio import read_wav
@@ -523,12 +523,14 @@ def import_recording(folder, name: str, sources: list[SourceFiles], xdf=None, ma
         d["fusion"] = {"streams": names}
     text = scene_to_toml(scene_from_dict(d, str(scene), folder))
     made = not folder.exists()
-    folder.mkdir(parents=True, exist_ok=True)
     # Everything is written into a folder of its own beside the recording and checked there (the scene built);
-    # only then does each file take its place, replacing an earlier import's (with overwrite). A refusal or an
-    # interruption before that leaves every file that was there as it was.
-    staging = Path(tempfile.mkdtemp(prefix=f".{name}.import-", dir=folder))
+    # only then does each file take its place, replacing an earlier import's (with overwrite), all of them with
+    # Ctrl-C and SIGTERM held till the last. A refusal or an interruption before that leaves every file that was
+    # there as it was. The folder is named before it is made: an interruption at any moment knows what to remove.
+    staging = folder / f".{name}.import-{os.getpid()}"
     try:
+        folder.mkdir(parents=True, exist_ok=True)
+        staging.mkdir(exist_ok=True)
         for s in sources:
             session = sessions[s.name]
             exact32 = np.array_equal(session.data.astype(np.float32).astype(np.float64), session.data)
@@ -542,8 +544,8 @@ def import_recording(folder, name: str, sources: list[SourceFiles], xdf=None, ma
         (staging / scene.name).write_text(f"# Replays the recording {name}, imported by supramodal import-recording "
                                           f"from {xdf or bag or ', '.join(str(s.wav) for s in sources)}.\n" + text)
         _check_scene(staging / scene.name)
-        for path in outputs:                    # the scene last: a recording is there when its scene is
-            os.replace(staging / Path(path).name, path)
+        # the scene last: a recording is there when its scene is (a signal between two files left some new)
+        replace_all([(staging / Path(path).name, Path(path)) for path in outputs])
     except BaseException:
         if made:
             shutil.rmtree(staging, ignore_errors=True)

@@ -30,7 +30,6 @@ import csv
 import json
 import math
 import os
-import tempfile
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
@@ -49,7 +48,7 @@ from supramodal.replay.session import (
 )
 
 __all__ = ["SPAN_COLUMNS", "LabelError", "Span", "check_label_name", "frames_at", "label_recording", "read_spans",
-           "spans_to_stream"]
+           "replace_all", "spans_to_stream"]
 
 #: The columns of a spans file, in order.
 SPAN_COLUMNS = ("start", "end", "label")
@@ -195,21 +194,16 @@ def _sessions(scene_path) -> list[tuple[str, Path]]:
     return sessions
 
 
-def _staged(path: Path, text: str) -> Path:
-    """``text`` written beside ``path`` under a temporary name (then put in place by :func:`_replace_all`)."""
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
-        os.chmod(tmp, 0o644)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return Path(tmp)
+def _staged(path: Path) -> Path:
+    """The temporary name beside ``path`` its new text is written under (then put in place by :func:`replace_all`):
+    known before the file is made, so that an interruption at any moment knows what to remove (a signal right after
+    ``mkstemp`` made one left it behind)."""
+    return path.with_name(f".{path.name}.{os.getpid()}.tmp")
 
 
-def _replace_all(staged: list[tuple[Path, Path]]) -> None:
-    """Put every staged sidecar in place, ``(temporary, final)``: all or none. Each replace is atomic (a
+def replace_all(staged: list[tuple[Path, Path]]) -> None:
+    """Put every staged file in place, ``(temporary, final)``: all or none (a label's sidecars; the files of an
+    import, a recorded graph, a report: every command that writes several). Each replace is atomic (a
     crash leaves a sidecar old or new, never half of one), and a Ctrl-C or SIGTERM that comes meanwhile is
     held until all are done, then given to the handler it was for (a signal in between left one session
     labelled and the other not). Signals are held only on the main thread (the only one Python's handlers
@@ -299,10 +293,11 @@ def label_recording(scene_path, spans_path, replace: bool = False) -> dict[str, 
     staged: list[tuple[Path, Path]] = []
     try:
         for js, text in texts:
-            staged.append((_staged(js, text), js))
+            staged.append((_staged(js), js))
+            staged[-1][0].write_text(text, encoding="utf-8")
     except BaseException:
         for tmp, _ in staged:
             tmp.unlink(missing_ok=True)
         raise
-    _replace_all(staged)
+    replace_all(staged)
     return written

@@ -2,18 +2,48 @@
 
 from __future__ import annotations
 
+import contextlib
 import csv
+import os
+import shutil
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
 __all__ = ["EVALUATION_FILES", "plots_missing_notice", "pyplot_or_none", "write_confusion", "write_evaluation",
            "write_fused_evaluation", "fused_evaluation_files", "write_reliability", "write_anytime", "scored_text",
-           "contact_text", "FUSION_COLUMNS"]
+           "contact_text", "FUSION_COLUMNS", "write_staged"]
 
 #: Files ``evaluate --out`` writes (the PNGs where matplotlib is installed).
 EVALUATION_FILES = ("confusion.csv", "confusion.png", "pooling.csv", "channels.csv", "evaluation.png",
                     "reliability.csv", "reliability.png", "anytime.csv", "anytime.png")
+
+
+def write_staged(folder: Path, write: Callable[[Path], list[Path]]) -> list[Path]:
+    """Write a command's files into ``folder`` whole or not at all: ``write(staging)`` writes them into a folder of
+    their own inside it (``folder`` made if missing), then each is put in place, Ctrl-C and SIGTERM held until the
+    last is (:func:`supramodal.node.workflows.labels.replace_all`). An interruption or a failure before that leaves
+    every earlier file of ``folder`` as it was and nothing beside them (written in place, an interrupted report had
+    some files new and the rest an earlier run's, or one cut short). Returns the paths written in ``folder``."""
+    from supramodal.node.workflows.labels import replace_all
+
+    folder = Path(folder)
+    made = not folder.exists()
+    staging = folder / f".staging-{os.getpid()}"      # named before it is made: an interruption knows what to remove
+    try:
+        staging.mkdir(parents=True, exist_ok=True)
+        names = [Path(p).name for p in write(staging)]
+        replace_all([(staging / name, folder / name) for name in names])
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        if made:
+            with contextlib.suppress(OSError):
+                folder.rmdir()                          # a folder made for nothing is not left behind
+        raise
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    return [folder / name for name in names]
 
 
 def write_confusion(labels, confusion, base: Path, title: str) -> list[Path]:
