@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import math
 import numbers
+import unicodedata
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any, TypeGuard
@@ -176,11 +177,17 @@ CLASS_NAME_HELP = (f"printable text of at most {MAX_CLASS_NAME} characters (no c
                    "breaks or other invisible ones)")
 
 
+#: Unicode categories no class name holds: control characters (a terminal's escapes, tabs, line breaks), format
+#: characters (bidi overrides that turn text around, invisible joiners), surrogates, line and paragraph separators.
+_NOT_IN_CLASS_NAMES = frozenset({"Cc", "Cf", "Cs", "Zl", "Zp"})
+
+
 def is_class_name(v: object) -> bool:
     """A class name (:data:`CLASS_NAME_HELP`): what a model decides and the node prints, shows and publishes.
-    Freer than :func:`is_name` (a manifest's ``"rough, wet"``), but never a terminal's escape sequence, a
-    line break that forges another output line, or a character that turns text around."""
-    return text(v) and len(v) <= MAX_CLASS_NAME and v.isprintable()
+    Freer than :func:`is_name` (a manifest's ``"rough, wet"``, any script), but never a terminal's escape
+    sequence, a line break that forges another output line, or a character that turns text around."""
+    return (text(v) and len(v) <= MAX_CLASS_NAME
+            and not any(unicodedata.category(c) in _NOT_IN_CLASS_NAMES for c in v))
 
 
 def is_name(v: object) -> bool:

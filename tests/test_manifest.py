@@ -115,7 +115,7 @@ def test_a_missing_manifest(folder):
         read_manifest(folder / "none.csv")
 
 
-LABEL = st.text(st.characters(codec="utf-8", exclude_categories=("Cs", "Cc", "Zl", "Zp")), min_size=1,
+LABEL = st.text(st.characters(codec="utf-8", exclude_categories=("Cs", "Cc", "Cf", "Zl", "Zp")), min_size=1,
                 max_size=12).map(str.strip).filter(bool)
 
 

@@ -95,7 +95,8 @@ def test_a_contact_topic_of_another_type_stops_the_node_naming_the_type_it_found
     strings = pub.node.create_publisher(String, topic + "_s", 10)
     try:
         d = scene(f"ros2:{topic}_s")
-        d["stream"][0]["model"] = {}
+        d["stream"][0]["model"] = {}                    # feature windows: contacts, and no decision to pool
+        del d["stream"][0]["decision"]["n"]
         graph = build_node(scene_from_dict(d, "c.toml"), speed=2.0, sinks_override=[ListSink()])
         t = time.monotonic()
         with pytest.raises(NodeError, match=r"contacts ros2:.*carries \['std_msgs/msg/String'\].*std_msgs/msg/Bool"):

@@ -50,6 +50,8 @@ def _scene(section: str, key: str, value) -> dict:
     if section == "bank" and key in ("channels", "f_low", "f_high"):
         d["bank"]["kind"] = "cochlea"                       # keys of the cochlea recipe
         d["driver"]["textures"] = "reference"
+    if section == "decision":
+        d["model"] = {"train_on_start": True}              # a decision's rules apply to a stream with a model
     if section == "decision" and key in ("confidence",):
         d["decision"]["scope"] = "contact"
     return d

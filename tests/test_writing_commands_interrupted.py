@@ -215,6 +215,19 @@ def _complete_train(folder: Path) -> None:
     assert list(TextureModel.load(folder / "m.npz").classes) == ["T1", "T2"]
 
 
+TRAIN_CV_FILES = ("m-cv.csv", "m-cv.png", "m-cv-reliability.csv", "m-cv-reliability.png")
+
+
+def _prepare_train_cv(folder: Path) -> None:
+    _recordings(folder)
+    _earlier(folder, "m.npz", *TRAIN_CV_FILES)
+
+
+def _complete_train_cv(folder: Path) -> None:
+    _complete_train(folder)
+    assert (folder / "m-cv.csv").read_text().startswith("truth")
+
+
 def _prepare_evaluate(folder: Path) -> None:
     from supramodal.banks import whisker_bank
     from supramodal.node.workflows.reports import EVALUATION_FILES
@@ -308,6 +321,14 @@ COMMANDS = (
             frozenset({"m.npz"}), _complete_train,
             ("train", "--bank", "whisker", "--manifest", "one.csv", "--out", "m.npz", "--epochs", "5", "--force",
              "--quiet"), "at least two labels"),
+    # the cross-validation's files and the model together (the files came first: an interrupted training left a
+    # new report beside the earlier model)
+    Command("train-cv", _prepare_train_cv,
+            ("train", "--bank", "whisker", "--manifest", "all.csv", "--out", "m.npz", "--epochs", "5", "--cv", "2",
+             "--force", "--quiet"),
+            frozenset({"m.npz", *TRAIN_CV_FILES}), _complete_train_cv,
+            ("train", "--bank", "whisker", "--manifest", "one.csv", "--out", "m.npz", "--epochs", "5", "--cv", "2",
+             "--force", "--quiet"), "at least two labels", slow=True, needs=("matplotlib",)),
     Command("evaluate", _prepare_evaluate,
             ("evaluate", "model.npz", "--manifest", "all.csv", "--out", "ev", "--force", "--quiet"),
             frozenset({f"ev/{name}" for name in ("confusion.csv", "confusion.png", "pooling.csv", "channels.csv",

@@ -107,8 +107,8 @@ def run(args: argparse.Namespace) -> int:
                        "--scene)")
     check_new_file(args.out, args.force, "the model file")      # before the training, not after
     bank = args.bank
+    cv = None
     if args.cv:
-        from supramodal.node.workflows.reports import plots_missing_notice, write_confusion, write_reliability
         from supramodal.node.workflows.training import cross_validate_manifest, format_cross_validation
 
         base = args.out.with_name(args.out.stem + "-cv")
@@ -119,29 +119,44 @@ def run(args: argparse.Namespace) -> int:
         cv = cross_validate_manifest(args.manifest, bank, tuple(args.features), args.window, args.cv,
                                      epochs=args.epochs, seed=args.seed, mapping=args.mapping, progress=progress(args))
         print(format_cross_validation(cv))
-        files = write_confusion(cv["labels"], cv["confusion"], base,
-                                f"{args.cv}-fold grouped cross-validation: window accuracy "
-                                f"{cv['window_accuracy']['mean']:.3f} +- {cv['window_accuracy']['sd']:.3f}")
-        files += write_reliability(cv["calibration"], reliability,
-                                   f"{args.cv}-fold grouped cross-validation: test folds' decisions")
-        print("wrote " + ", ".join(str(p) for p in files))
-        say_plots_missing(plots_missing_notice())
     model = train_from_manifest(args.manifest, bank, tuple(args.features), args.window, epochs=args.epochs,
                                 seed=args.seed, mapping=args.mapping, progress=progress(args))
-    path = _save(model, args.out)
+    # The model and its cross-validation's files are put in place together (the files written first, an
+    # interrupted training left a new report beside the earlier model)
+    written = _save(model, args.out, cv=None if cv is None else (args.cv, cv))
+    path = written[-1]
+    if cv is not None:
+        from supramodal.node.workflows.reports import plots_missing_notice
+
+        print("wrote " + ", ".join(str(p) for p in written[:-1]))
+        say_plots_missing(plots_missing_notice())
     print(f"wrote {path}: {model.bank.kind} bank, features {list(model.features)}, classes {list(model.classes)}, "
           f"{model.training['windows']} training windows, final MSE {model.training['final_mse']:.4g}")
     print("posteriors: " + calibration_line(None if model.calibration is None else model.calibration.fitted_on))
     return 0
 
 
-def _save(model, out) -> Path:
-    """Save ``model`` (a sense or a fused model) to ``out`` whole or not at all: written aside, then put in place
-    (written in place, an interrupted save left a model file cut short where the earlier one was)."""
-    from supramodal.node.workflows.reports import write_staged
+def _save(model, out, cv: tuple[int, dict] | None = None) -> list[Path]:
+    """Save ``model`` (a sense or a fused model) to ``out`` whole or not at all, with its cross-validation's files
+    beside it (``cv``: its folds and result): written aside, then put in place together (written in place, an
+    interrupted save left a model file cut short where the earlier one was). The files written, the model last."""
+    from supramodal.node.workflows.reports import write_confusion, write_reliability, write_staged
 
     out = Path(out)
-    return write_staged(out.parent, lambda folder: [model.save(folder / out.name)])[0]
+
+    def write(folder: Path) -> list[Path]:
+        files: list[Path] = []
+        if cv is not None:
+            k, result = cv
+            accuracy = result["window_accuracy"]
+            files += write_confusion(result["labels"], result["confusion"], folder / f"{out.stem}-cv",
+                                     f"{k}-fold grouped cross-validation: window accuracy "
+                                     f"{accuracy['mean']:.3f} +- {accuracy['sd']:.3f}")
+            files += write_reliability(result["calibration"], folder / f"{out.stem}-cv-reliability",
+                                       f"{k}-fold grouped cross-validation: test folds' decisions")
+        return [*files, model.save(folder / out.name)]
+
+    return write_staged(out.parent, write)
 
 
 def _train_stream(args) -> int:
@@ -158,7 +173,7 @@ def _train_stream(args) -> int:
                        "out --manifest, --bank, --cv, --model, --live and --write-scene")
     check_new_file(args.out, args.force, "the model file")
     model = train_from_scenes(args.scene, args.stream, epochs=args.epochs, seed=args.seed, progress=progress(args))
-    path = _save(model, args.out)
+    path = _save(model, args.out)[-1]
     print(f"wrote {path}: stream {args.stream}, {model.bank.kind} bank, features {list(model.features)}, classes "
           f"{list(model.classes)}, {model.training['windows']} training windows of {len(args.scene)} recording(s), "
           f"final MSE {model.training['final_mse']:.4g}")
@@ -227,7 +242,7 @@ def _train_fusion(args) -> int:
         _write_run_scene(args, write_fused_scene, (a, b), models, method="late", weight=round(weight, 4),
                          sharpness=float(f"{sharpness:.4g}"), correlation=float(f"{info['correlation']:.3g}"))
         return 0
-    path = _save(result, args.out)
+    path = _save(result, args.out)[-1]
     print(f"wrote {path}: early fusion of {a} and {b}, classes {info['classes']}, {info['pairs']} pairs of windows, "
           f"calibrated on its out-of-fold pairs (the early row); use it with [fusion] method = \"early\", "
           f"model = \"{path.resolve()}\" (a relative path is taken from the scene's folder)")
