@@ -237,16 +237,23 @@ def test_the_page_learns_the_scenes_stream_order_before_any_window_whatever_wind
         loose.close()
 
 
+def _page_that_never_reads(view: ViewSink) -> socket.socket:
+    """A page's connection to ``view``'s events with a small receive buffer, which never reads; returned once
+    the view has it among its pages."""
+    page = socket.create_connection(("127.0.0.1", view.port), timeout=10)
+    page.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+    page.sendall(b"GET /events HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
+    deadline = time.monotonic() + 30
+    while view.hub.clients() == 0 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    return page
+
+
 def test_a_page_that_stops_reading_loses_messages_counted_and_never_blocks_the_sink():
     view = ViewSink(quiet=True)
     view.prepare()
-    stalled = socket.create_connection(("127.0.0.1", view.port), timeout=10)
-    stalled.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
-    stalled.sendall(b"GET /events HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")   # and never reads
+    stalled = _page_that_never_reads(view)
     try:
-        deadline = time.monotonic() + 30
-        while view.hub.clients() == 0 and time.monotonic() < deadline:
-            time.sleep(0.05)
         features = {"Af": [float(i) for i in range(200)]}
         t0 = time.monotonic()
         n = 20 * CLIENT_QUEUE
@@ -271,13 +278,9 @@ def test_a_page_given_up_counts_what_it_never_took_and_the_summary_says_so(monke
     monkeypatch.setattr(view_module, "WRITE_TIMEOUT", 1.0)
     view = ViewSink(quiet=True)
     view.prepare()
-    slow = socket.create_connection(("127.0.0.1", view.port), timeout=10)
-    slow.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
-    slow.sendall(b"GET /events HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")   # and never reads
+    slow = _page_that_never_reads(view)
     try:
         deadline = time.monotonic() + 30
-        while view.hub.clients() == 0 and time.monotonic() < deadline:
-            time.sleep(0.05)
         features = {"Af": [float(i) for i in range(400)]}
         n = CLIENT_QUEUE // 2                        # its queue never overflows: only the give-up loses them
         for w in range(n):

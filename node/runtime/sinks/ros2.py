@@ -224,14 +224,12 @@ class Ros2Sink(Sink):
             if watchdog is not None:
                 watchdog.cancel()
 
-    def _kill_quietly(self) -> None:
+    def _kill(self, why: str | None = "stopped reading") -> None:
+        """Kill the publisher process if it runs, saying ``why`` on stderr (None: silently)."""
         if self._process.poll() is None:
-            self._process.kill()
-
-    def _kill(self) -> None:
-        if self._process.poll() is None:
-            print(f"supramodal: ros2 sink: the publisher process (pid {self._process.pid}) stopped reading; "
-                  "killed", file=sys.stderr, flush=True)
+            if why is not None:
+                print(f"supramodal: ros2 sink: the publisher process (pid {self._process.pid}) {why}; killed",
+                      file=sys.stderr, flush=True)
             self._process.kill()
 
     def _ask(self, header: dict[str, Any], timeout: float, what: str) -> dict[str, Any]:
@@ -362,7 +360,7 @@ class Ros2Sink(Sink):
             stop.set()
             self._timer.join(CLOSE_TIMEOUT)
         if now:
-            self._kill_quietly()
+            self._kill(None)
         else:
             try:
                 self._send({"op": "close"}, bound=CLOSE_TIMEOUT)
