@@ -35,6 +35,7 @@ from supramodal.calibration import (
     POOLING_RUN,
     Calibration,
     Novelty,
+    OutOfFold,
     calibration_folds,
     calibration_report,
     fit_network_calibration,
@@ -125,6 +126,9 @@ class EarlyFusionModel:
         (None: a version 1 file, or trained without calibration folds).
     novelty : Novelty or None
         How unlike every training texture a pair of windows is.
+    out_of_fold : OutOfFold or None
+        The calibration's held-out logits, in memory after training only (never in a file): what
+        ``train --fusion early`` scores the network's held-out windows by.
     """
 
     senses: tuple[Sense, Sense]
@@ -135,6 +139,7 @@ class EarlyFusionModel:
     training: dict = field(default_factory=dict)
     calibration: Calibration | None = None
     novelty: Novelty | None = None
+    out_of_fold: OutOfFold | None = field(default=None, repr=False, compare=False)
 
     @property
     def calibrated(self) -> bool:
@@ -162,11 +167,11 @@ class EarlyFusionModel:
         mlp, history = train_mlp((x - mean) / scale, y, len(classes), hidden=hidden, epochs=epochs, seed=seed)
         info = {"algorithm": "iRPROP-", "epochs": len(history), "seed": seed, "final_mse": history[-1],
                 "windows": int(len(x))}
-        calibration = novelty = None
+        calibration = novelty = out_of_fold = None
         if calibration_folds:
-            calibration, novelty, _ = fit_network_calibration(x, y, len(classes), groups, calibration_folds, hidden,
-                                                              epochs, seed, calibration_progress)
-        return cls(senses, tuple(classes), mean, scale, mlp, info, calibration, novelty)
+            calibration, novelty, out_of_fold = fit_network_calibration(x, y, len(classes), groups, calibration_folds,
+                                                                        hidden, epochs, seed, calibration_progress)
+        return cls(senses, tuple(classes), mean, scale, mlp, info, calibration, novelty, out_of_fold)
 
     @staticmethod
     def _check(sense: Sense, values) -> np.ndarray:
@@ -432,3 +437,35 @@ def fused_pooling(log_posteriors, labels, folds, groups=None) -> float:
         idx = np.flatnonzero((groups == g) & (folds == f))
         runs += [idx[s:s + POOLING_RUN] for s in range(0, len(idx), POOLING_RUN)]
     return fit_pooling([lp[r] for r in runs], [int(y[r[0]]) for r in runs])
+
+
+#: Mean log loss per window (nats) by which a fusion may trail a sense on held-out windows before
+#: :func:`worse_than_a_sense` calls it worse.
+WORSE_MARGIN = 0.01
+
+
+def worse_than_a_sense(fused, senses: dict, labels) -> tuple[str, float, float] | None:
+    """Whether a fusion's held-out log-posteriors ``fused`` (n, classes) do worse than one of the
+    ``senses`` (``{name: log-posteriors (n, classes)}`` of the same held-out windows) alone.
+
+    Worse: a higher mean log loss than the sense's by more than :data:`WORSE_MARGIN` plus two
+    standard errors of the per-window difference (the windows of one contact are alike, so the
+    error is, if anything, too small: the refusal errs towards refusing; the margin spares a fusion
+    that learned to follow one sense and differs from it by its rounding). Returns ``(sense, its log
+    loss, the fusion's)`` for the sense with the lowest log loss that the fusion does worse than, else
+    None.
+    """
+    y = np.asarray(labels)
+    rows = np.arange(len(y))
+    lost = -np.asarray(fused, dtype=np.float64)[rows, y]
+    found = []
+    for name, lp in senses.items():
+        own = -np.asarray(lp, dtype=np.float64)[rows, y]
+        d = lost - own
+        error = d.std(ddof=1) / np.sqrt(len(d)) if len(d) > 1 else 0.0
+        if d.mean() > WORSE_MARGIN + 2.0 * error:
+            found.append((float(own.mean()), name))
+    if not found:
+        return None
+    own_loss, name = min(found)
+    return name, own_loss, float(lost.mean())

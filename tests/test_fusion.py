@@ -108,3 +108,69 @@ def test_experiment_fusion_on_the_command_line_writes_its_table_csv_and_plot(tmp
     assert [r["method"] for r in rows] == ["whiskers", "microphone", "late", "early"]
     assert all(0.0 <= float(r["window_accuracy"]) <= 1.0 for r in rows)
     assert main(["experiment", "fusion", "--sets", "0", "--out", str(tmp_path)]) == 2
+
+
+# -- a late fusion that cannot overclaim (issue 34) ---------------------------------------------------
+
+def _calibrated(rng, labels, right: float, classes: int = 4) -> np.ndarray:
+    """Log-posteriors of a calibrated sense that is right on a share ``right`` of the windows and says so:
+    the winner gets ``right``, the rest share what is left."""
+    n = len(labels)
+    said = np.where(rng.random(n) < right, labels, (labels + rng.integers(1, classes, n)) % classes)
+    p = np.full((n, classes), (1 - right) / (classes - 1))
+    p[np.arange(n), said] = right
+    return np.log(p)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_a_learned_late_fusion_is_never_surer_than_both_senses_multiplied(seed):
+    """Both senses right on every held-out window (the training touch, where nothing disagrees): the
+    sharpness stays at the naive-Bayes bound 1 / max(w, 1 - w) (before: it grew until every window said
+    1.00); and on the windows it is learned on, the fused log loss is never above the better sense's."""
+    from supramodal.calibration import log_loss
+    from supramodal.fusion import sharpness_bound
+
+    rng = np.random.default_rng(seed)
+    y = rng.integers(0, 4, 300)
+    a, b = _calibrated(rng, y, 1.0 - 1e-3), _calibrated(rng, y, 0.9)
+    w, s = learn_late_fusion(a, b, y)
+    assert s <= 1.0 / max(w, 1.0 - w) + 1e-9 and sharpness_bound(w) == pytest.approx(1.0 / max(w, 1.0 - w))
+    assert np.exp(fuse_late(a, b, w, s)).max() < 1.0      # not every window at 1.00
+    a, b = _calibrated(rng, y, rng.uniform(0.3, 0.95)), _calibrated(rng, y, rng.uniform(0.3, 0.95))
+    w, s = learn_late_fusion(a, b, y)
+    assert log_loss(fuse_late(a, b, w, s), y) <= min(log_loss(a, y), log_loss(b, y)) + 1e-9
+
+
+def test_the_late_weight_is_the_middle_of_its_plateau_not_its_edge():
+    """Issue 34's cliff: weights 0.05..0.55 about as good (the best, 0.55, at the edge), 0.60 and above far
+    worse. The weight kept is the plateau's middle, 0.30, away from the cliff; a candidate that is no
+    better than noise apart from the best joins the plateau, one a clear step worse does not."""
+    from supramodal.fusion import plateau_middle
+
+    rng = np.random.default_rng(0)
+    windows = rng.exponential(0.3, 400)            # the windows' losses, alike for neighbouring weights
+    jitter = rng.normal(0.0, 0.02, (len(LATE_WEIGHTS), 400))
+    jitter -= jitter.mean(axis=1, keepdims=True)   # per-window differences (standard error ~0.0014), no mean
+    # 0.05..0.55 within 0.001 of each other, 0.55 the best by a hair; 0.00 and 0.60 on a step worse
+    offset = [0.5 if k == 0 or k >= 12 else 0.0001 * (11 - k) for k in range(len(LATE_WEIGHTS))]
+    losses = [windows + jitter[k] + offset[k] for k in range(len(LATE_WEIGHTS))]
+    k = plateau_middle(losses)
+    assert LATE_WEIGHTS[k] == pytest.approx(0.30)
+    assert plateau_middle([np.full(10, 1.0), np.full(10, 0.5), np.full(10, 2.0)]) == 1     # no plateau: the best
+    assert plateau_middle([np.zeros(5), np.zeros(5)]) in (0, 1)
+
+
+def test_a_fusion_that_does_worse_than_a_sense_is_named():
+    from supramodal.fused_model import WORSE_MARGIN, worse_than_a_sense
+
+    rng = np.random.default_rng(3)
+    y = rng.integers(0, 4, 500)
+    good, fair = _calibrated(rng, y, 0.8), _calibrated(rng, y, 0.6)
+    overclaiming = np.log(np.clip(np.exp(good) ** 8, 1e-300, None))
+    overclaiming -= np.log(np.exp(overclaiming).sum(axis=1, keepdims=True))     # right as often, surer
+    assert worse_than_a_sense(overclaiming, {"fair": fair, "good": good}, y)[0] == "good"
+    assert worse_than_a_sense(good, {"fair": fair, "good": good}, y) is None     # as good as itself
+    nudged = good.copy()
+    nudged[:, 0] -= WORSE_MARGIN / 2                   # worse by less than the margin: spared
+    nudged -= np.log(np.exp(nudged).sum(axis=1, keepdims=True))
+    assert worse_than_a_sense(nudged, {"good": good}, y) is None

@@ -229,10 +229,11 @@ def _train_fusion(args) -> int:
     print(f"sense posteriors: {info['posteriors']['source']} ({info['posteriors']['why']})")
     print(f"held-out windows ({info['pairs']} pairs of {info['contacts']} contacts, {info['folds']} folds by "
           f"{info['folds_by']}; each scored by networks that never trained on its fold):")
-    print(f"  {'':<12}{'accuracy':>10}{'log loss':>10}")
+    print(f"  {'':<12}{'accuracy':>10}{'log loss':>10}{'ECE':>8}  saying >= 0.99, wrong")
     for name in (a, b, fused):
         h = info["held_out"][name]
-        print(f"  {name:<12}{h['accuracy']:>10.3f}{h['log_loss']:>10.3f}")
+        sure = "none say it" if not h["sure_count"] else f"{h['sure_wrong']:.1%} of {h['sure_count']}"
+        print(f"  {name:<12}{h['accuracy']:>10.3f}{h['log_loss']:>10.3f}{h['ece']:>8.3f}  {sure}")
     if args.fusion == "late":
         weight, sharpness = result
         keys = f"weight = {weight:.2f}, sharpness = {sharpness:.4g}, correlation = {info['correlation']:.3g}"

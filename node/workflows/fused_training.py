@@ -33,6 +33,7 @@ from supramodal.fused_model import (
     held_out_scores,
     learn_late_fusion_out_of_fold,
     senses_out_of_fold,
+    worse_than_a_sense,
 )
 from supramodal.mlp import DEFAULT_EPOCHS
 from supramodal.model import ModelError
@@ -133,7 +134,7 @@ def train_fused(paths, method: str = "early", epochs: int = DEFAULT_EPOCHS, seed
         ``folds_by``, (late) ``fold_weights`` and ``correlation`` (the fused decisions' contact
         pooling, :func:`supramodal.fused_model.fused_pooling`), and ``held_out``: per stream and
         for the fusion (``"late"`` or ``"early"``) its held-out window ``accuracy`` and
-        ``log_loss`` (late and streams: also ``brier``, ``ece``, ``sure_count``, ``sure_wrong``);
+        ``log_loss``, ``brier``, ``ece``, ``sure_count`` and ``sure_wrong``;
         ``posteriors``: ``{"source": "unseen" | "out-of-fold", "why": text}``, which of the two above.
     """
     from supramodal.node.scene.schema import load_scene
@@ -228,17 +229,31 @@ def train_fused(paths, method: str = "early", epochs: int = DEFAULT_EPOCHS, seed
         model = EarlyFusionModel.train(senses, va, vb, y, classes, epochs=epochs, seed=seed, groups=groups,
                                        calibration_folds=k, calibration_progress=say)
         assert model.calibration is not None, "EarlyFusionModel.train calibrates on calibration_folds=k > 0 folds"
-        fitted = model.calibration.fitted_on
-        held["early"] = {"n": int(fitted["windows"]), "accuracy": float(fitted["held_out_accuracy"]),
-                         "log_loss": float(fitted["log_loss"])}
+        assert model.out_of_fold is not None, "kept by EarlyFusionModel.train with its calibration"
+        fused = model.calibration.log_posteriors(model.out_of_fold.logits)
+        held.update(held_out_scores({"early": fused}, y))
         info["held_out"] = held
+        _refuse_worse_than_a_sense("early", fused, dict(zip(names, lps)), y)
         return model, info
     late = learn_late_fusion_out_of_fold(lps[0], lps[1], y, folds)
     held.update(held_out_scores({"late": late["fused"]}, y))
     info["held_out"] = held
+    _refuse_worse_than_a_sense("late", late["fused"], dict(zip(names, lps)), y)
     info["fold_weights"] = late["fold_weights"]
     info["correlation"] = fused_pooling(late["fused"], y, folds, groups)
     return (late["weight"], late["sharpness"]), info
+
+
+def _refuse_worse_than_a_sense(method: str, fused, senses: dict, labels) -> None:
+    """An :class:`InputError` when the fusion does worse on its held-out windows than a sense alone
+    (:func:`supramodal.fused_model.worse_than_a_sense`): a robot would act on its answers."""
+    worse = worse_than_a_sense(fused, senses, labels)
+    if worse is None:
+        return
+    name, own, fused_loss = worse
+    raise InputError(f"the {method} fusion learned here does worse on its held-out windows than {name} alone (log "
+                     f"loss {fused_loss:.3f} against {own:.3f}): it would be surer than it is right; run {name} "
+                     f"alone, or record more contacts of each texture so that the fusion has more to learn from")
 
 
 def write_fused_scene(live, streams, models: dict[str, str], out, *, method: str, model: str | None = None,
