@@ -866,25 +866,103 @@ def fit_novelty(x, labels, n_classes: int, folds, groups=None, mean=None, scale=
         test = folds == f
         fold = Novelty(*_gaussian(u[~test], y[~test], n_classes), NOVELTY_QUANTILES)
         held[test] = fold.distances(u[test]).min(axis=1)
-        if gain is None:
-            continue
-        for g in dict.fromkeys(groups[test].tolist()):
-            idx = np.flatnonzero(test & (groups == g))
-            # a contact never crosses a gap in the group's windows (another fold's span between);
-            # every start counts (overlapping contacts: more of them than disjoint ones steadies the
-            # upper quantiles, which a few dozen contacts leave noisy)
-            for block in np.split(idx, np.flatnonzero(np.diff(idx) > 1) + 1):
-                c = np.vstack([np.zeros((1, u.shape[1])), np.cumsum(u[block], axis=0)])
-                for n in range(2, min(NOVELTY_RUN, len(block)) + 1):
-                    means_n = (c[n:] - c[:-n]) / n
-                    pooled[n - 1].extend(n * fold.distances(means_n).min(axis=1))
+        if gain is not None:
+            _pooled_scores(fold, u, groups, test, pooled)
     means, precision = _gaussian(u, y, n_classes)
     if gain is None:
         return Novelty(means, precision, np.quantile(held, NOVELTY_QUANTILES))
-    rows = [np.quantile(held, NOVELTY_QUANTILES)]
+    return Novelty(means, precision, _quantile_rows(held, pooled), gain, offset)
+
+
+def _pooled_scores(novelty: Novelty, u: np.ndarray, groups: np.ndarray, rows: np.ndarray,
+                   pooled: list[list[float]]) -> None:
+    """Add to ``pooled[n - 1]`` the pooled score of every stretch of ``n`` (2 .. :data:`NOVELTY_RUN`)
+    consecutive windows among ``rows`` (a boolean mask over ``u``'s rows) of one group."""
+    for g in dict.fromkeys(groups[rows].tolist()):
+        idx = np.flatnonzero(rows & (groups == g))
+        # a contact never crosses a gap in the group's windows (another fold's span between);
+        # every start counts (overlapping contacts: more of them than disjoint ones steadies the
+        # upper quantiles, which a few dozen contacts leave noisy)
+        for block in np.split(idx, np.flatnonzero(np.diff(idx) > 1) + 1):
+            c = np.vstack([np.zeros((1, u.shape[1])), np.cumsum(u[block], axis=0)])
+            for n in range(2, min(NOVELTY_RUN, len(block)) + 1):
+                means_n = (c[n:] - c[:-n]) / n
+                pooled[n - 1].extend(n * novelty.distances(means_n).min(axis=1))
+
+
+def _quantile_rows(windows: np.ndarray, pooled: list[list[float]]) -> np.ndarray:
+    """:attr:`Novelty.quantiles` of held-out window scores and pooled scores by contact length (a
+    length with fewer than :data:`NOVELTY_MIN_CONTACTS` contacts repeats the row of the one before)."""
+    rows = [np.quantile(windows, NOVELTY_QUANTILES)]
     for n in range(1, NOVELTY_RUN):
         rows.append(np.quantile(pooled[n], NOVELTY_QUANTILES) if len(pooled[n]) >= NOVELTY_MIN_CONTACTS else rows[-1])
-    return Novelty(means, precision, np.stack(rows), gain, offset)
+    return np.stack(rows)
+
+
+def recalibrate(logits, labels, groups, x=None, novelty: Novelty | None = None, what: str = ""
+                ) -> tuple[Calibration, Novelty | None]:
+    """A network's calibration and novelty thresholds fitted anew on labelled windows it never trained on
+    (a new touch, session or sensor), the network kept (issue 34).
+
+    The windows need no folds: no network trained on them, so its logits on them are held out as they
+    stand. The window map, caps and contact pooling are fitted as :func:`fit_calibration` fits them; the
+    novelty score keeps its Gaussians and takes its thresholds from these windows (:func:`requantiled`).
+
+    Parameters
+    ----------
+    logits : ndarray, shape (n, classes)
+        The network's logits on the windows.
+    labels : ndarray of int, shape (n,)
+        Every class at least once (the caps and the map need them all).
+    groups : sequence, length n
+        Each window's recording, windows of one recording consecutive and in time order.
+    x : ndarray, shape (n, inputs), optional
+        The windows' standardised input rows, with ``novelty``: the novelty's new thresholds.
+    novelty : Novelty, optional
+    what : str
+        What the windows were, in words (e.g. the recordings' names): kept in ``fitted_on``.
+
+    Returns
+    -------
+    calibration : Calibration
+        ``fitted_on`` says ``recalibrated_on`` (``what``) and the windows' accuracy.
+    novelty : Novelty or None
+    """
+    z = np.asarray(logits, dtype=np.float64)
+    y = np.asarray(labels)
+    _check_scored(z, y, "logits")
+    missing = sorted(set(range(z.shape[1])) - set(y.tolist()))
+    if missing:
+        raise InputError(f"recalibrating needs labelled windows of every class; none of class(es) {missing}: record "
+                         "every texture on the new touch")
+    cal = fit_calibration(z, y, groups)
+    cal = replace(cal, fitted_on={**cal.fitted_on, "held_out_accuracy": round(float(np.mean(winner(z) == y)), 6),
+                                  "recalibrated_on": str(what) or f"{len(y)} windows"})
+    if novelty is not None and x is not None:
+        novelty = requantiled(novelty, x, groups)
+    return cal, novelty
+
+
+def requantiled(novelty: Novelty, x, groups) -> Novelty:
+    """``novelty`` with its quantiles set anew on windows of known textures that its Gaussians never
+    saw (a new touch, session or sensor; :func:`recalibrate`): the same score, the thresholds where
+    the asked share of these windows and of their contacts would be called unknown.
+
+    Parameters
+    ----------
+    x : ndarray, shape (n, inputs)
+        Standardised input rows (the model's own standardisation).
+    groups : sequence, length n
+        Each window's recording, windows of one recording consecutive and in time order.
+    """
+    u = novelty.warped(x)
+    groups = np.asarray(groups)
+    windows = novelty.distances(u).min(axis=1)
+    if novelty.gain is None:
+        return replace(novelty, quantiles=np.quantile(windows, NOVELTY_QUANTILES))
+    pooled: list[list[float]] = [[] for _ in range(NOVELTY_RUN)]
+    _pooled_scores(novelty, u, groups, np.ones(len(u), dtype=bool), pooled)
+    return replace(novelty, quantiles=_quantile_rows(windows, pooled))
 
 
 # -- measures ---------------------------------------------------------------------------------------
@@ -927,6 +1005,19 @@ def expected_calibration_error(confidence, correct, bins: int = ECE_BINS) -> flo
     if n == 0:
         raise InputError("no decisions to measure the calibration of")
     return float(sum(c / n * abs(a - m) for c, a, m in zip(r["count"], r["accuracy"], r["confidence"]) if c))
+
+
+#: The largest expected calibration error at which decisions on recordings are said to be about as sure
+#: as they are right (``evaluate``'s verdict; the target of issues 23 and 34).
+HOLDS_ECE = 0.05
+
+
+def mean_confidence(report: dict) -> float:
+    """The mean stated confidence (winner's posterior) of a :func:`calibration_report`'s decisions."""
+    r = report["reliability"]
+    counts = np.asarray(r["count"], dtype=np.float64)
+    conf = np.array([0.0 if c is None else c for c in r["confidence"]])
+    return float((counts * conf).sum() / counts.sum())
 
 
 def calibration_report(log_posteriors, labels, bins: int = ECE_BINS, sure: float = 0.99) -> dict:
@@ -1068,6 +1159,13 @@ def calibration_line(fitted_on: dict | None) -> str:
     if fitted_on is None:
         return "uncalibrated (posteriors: the network's normalised outputs)"
     f = fitted_on
+    if "recalibrated_on" in f:
+        line = (f"recalibrated on {f.get('windows')} windows its network never trained on ({f['recalibrated_on']})")
+        if "log_loss_uncalibrated" in f and "log_loss" in f:
+            line += f": log loss {f['log_loss_uncalibrated']:.3f} -> {f['log_loss']:.3f} nats"
+        if "held_out_accuracy" in f:
+            line += f", {f['held_out_accuracy']:.3f} of them right"
+        return line
     by = {"recording": " by recording", "span": " by span of each recording"}.get(f.get("folds_by", ""), "")
     line = f"calibrated on {f.get('windows')} held-out windows ({f.get('folds')} folds{by})"
     if "log_loss_uncalibrated" in f and "log_loss" in f:

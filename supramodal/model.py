@@ -35,7 +35,7 @@ import json
 import math
 import zipfile
 import zlib
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -49,6 +49,7 @@ from supramodal.calibration import (
     fit_network_calibration,
     input_scaling,
     normalised_log_posteriors,
+    recalibrate,
 )
 from supramodal.checks import CLASS_NAME_HELP, is_class_name
 from supramodal.errors import InputError
@@ -235,6 +236,28 @@ class TextureModel:
             raise ModelError("this model has no novelty score (trained before version 2, or without "
                              "calibration): retrain it with `supramodal train` to detect unknown textures")
         return self.novelty.score(self._inputs(values))
+
+    def recalibrated(self, values: np.ndarray, labels, groups=None, what: str = "") -> TextureModel:
+        """This model with its calibration (window map, caps, contact pooling) and its novelty
+        thresholds fitted on labelled windows of a new touch, session or sensor, its network kept
+        (:func:`supramodal.calibration.recalibrate`).
+
+        Parameters
+        ----------
+        values : ndarray, shape (n, features, channels)
+            Windows the network never trained on.
+        labels : array of int, shape (n,)
+            Index into :attr:`classes`; every class at least once.
+        groups : sequence, length n, optional
+            Each window's recording (default: one per label).
+        what : str
+            What the windows were, kept in the calibration's ``fitted_on``.
+        """
+        y = np.asarray(labels)
+        x = self._inputs(values)
+        groups = y if groups is None else np.asarray(groups)
+        calibration, novelty = recalibrate(self.mlp.logits(x), y, groups, x, self.novelty, what)
+        return replace(self, calibration=calibration, novelty=novelty, out_of_fold=None)
 
     def predict(self, values: np.ndarray) -> np.ndarray:
         """Winner-take-all class index per window, shape (n,)."""

@@ -41,6 +41,13 @@ VIBRATION_IN_MIC = 0.3
 FRICTION_GAIN = 1.0
 #: Relative width of every peak (as in :func:`supramodal.textures.synthesize`).
 WIDTH = 0.2
+#: Vibrissae of the array (the whisker bank's channels): on a touch each meets the surface on its own.
+WHISKERS = 20
+#: How much a touch differs from the next, as the sd of the natural logarithm of a gain: each
+#: vibrissa's coupling to the surface (its angle, its force), drawn for every vibrissa and every touch.
+WHISKER_TOUCH_SPREAD = 0.03
+#: The same for the microphone's level (its distance to the contact, which a touch changes).
+MIC_TOUCH_SPREAD = 0.03
 
 
 @dataclass(frozen=True)
@@ -118,6 +125,55 @@ def synthesize_contact(surface: Surface, seconds: float, seed=None) -> tuple[np.
     mic = (VIBRATION_IN_MIC * synthesize(surface.vibration, MIC_RATE, seconds, WIDTH, s_v)
            + FRICTION_GAIN * synthesize(surface.friction, MIC_RATE, seconds, WIDTH, s_f)
            + MOTOR_GAIN * _motor(seconds, s_m))
+    return whiskers, mic
+
+
+@dataclass(frozen=True)
+class TouchGains:
+    """What sets one touch apart from another touch of the same surface (issue 34): a real array
+    never meets a surface twice at the same angle and force, so a model that learned one touch's
+    coupling as a cue of the texture meets a new touch it has not calibrated for.
+
+    Attributes
+    ----------
+    whiskers : ndarray, shape (WHISKERS,)
+        Each vibrissa's gain on this touch.
+    microphone : float
+        The microphone's gain on this touch.
+    """
+
+    whiskers: np.ndarray
+    microphone: float
+
+
+def touch_gains(seed) -> TouchGains:
+    """One touch's gains, log-normal around 1 (:data:`WHISKER_TOUCH_SPREAD`, :data:`MIC_TOUCH_SPREAD`),
+    drawn from ``seed`` (anything :class:`numpy.random.SeedSequence` takes)."""
+    rng = np.random.default_rng(np.random.SeedSequence(seed))
+    whiskers = np.exp(rng.normal(0.0, WHISKER_TOUCH_SPREAD, WHISKERS))
+    return TouchGains(whiskers, float(np.exp(rng.normal(0.0, MIC_TOUCH_SPREAD))))
+
+
+def synthesize_touch(surface: Surface, seconds: float, set_seed: int, index: int, touch: int
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """Touch number ``touch`` (0, 1, ...) of texture ``index`` of set ``set_seed``: both senses'
+    signals with that touch's own gains (:func:`touch_gains`).
+
+    Returns
+    -------
+    whiskers : ndarray, shape (WHISKERS, round(seconds * WHISKER_RATE))
+        One signal per vibrissa (the vibration times the vibrissa's gain), for the whisker bank's
+        one-signal-per-channel input.
+    mic : ndarray, shape (round(seconds * MIC_RATE),)
+        As :func:`synthesize_contact`, times the touch's microphone gain.
+    """
+    ss = np.random.SeedSequence([set_seed, index, touch])
+    s_w, s_v, s_f, s_m = ss.spawn(4)
+    g = touch_gains([set_seed, index, touch, 1])
+    whiskers = g.whiskers[:, None] * synthesize(surface.vibration, WHISKER_RATE, seconds, WIDTH, s_w)[None, :]
+    mic = g.microphone * (VIBRATION_IN_MIC * synthesize(surface.vibration, MIC_RATE, seconds, WIDTH, s_v)
+                          + FRICTION_GAIN * synthesize(surface.friction, MIC_RATE, seconds, WIDTH, s_f)
+                          + MOTOR_GAIN * _motor(seconds, s_m))
     return whiskers, mic
 
 

@@ -251,6 +251,22 @@ def _complete_evaluate(folder: Path) -> None:
             assert data.count(b"\n") >= 2, name
 
 
+def _prepare_recalibrate(folder: Path) -> None:
+    from supramodal.banks import whisker_bank
+    from supramodal.node.workflows.training import train_from_manifest
+
+    _recordings(folder)
+    train_from_manifest(folder / "all.csv", whisker_bank(), epochs=5).save(folder / "model.npz")
+    (folder / "odd.csv").write_text("path,label\nT1_0.wav,T1\nT2_0.wav,velvet\n")
+    _earlier(folder, "re.npz")
+
+
+def _complete_recalibrate(folder: Path) -> None:
+    from supramodal.model import TextureModel
+
+    assert "manifest all.csv" in TextureModel.load(folder / "re.npz").calibration.fitted_on["recalibrated_on"]
+
+
 def _prepare_fit(folder: Path) -> None:
     _recordings(folder)
     _earlier(folder, "fit/fit.csv", "fit/fit-curve.csv", "fit/fit-curve.png", "fit/bank.json")
@@ -336,6 +352,11 @@ COMMANDS = (
                                                  "anytime.csv", "anytime.png")}), _complete_evaluate,
             ("evaluate", "model.npz", "--manifest", "odd.csv", "--out", "ev", "--force", "--quiet"),
             "is not a class of the model", slow=True, needs=("matplotlib",)),
+    Command("recalibrate", _prepare_recalibrate,
+            ("recalibrate", "model.npz", "--manifest", "all.csv", "--out", "re.npz", "--force", "--quiet"),
+            frozenset({"re.npz"}), _complete_recalibrate,
+            ("recalibrate", "model.npz", "--manifest", "odd.csv", "--out", "re.npz", "--force", "--quiet"),
+            "not among the model's classes"),
     Command("fit", _prepare_fit,
             ("fit", "all.csv", "--out", "fit", "--cv", "2", "--quick", "--trials", "2", "--batch", "2", "--epochs",
              "5", "--max-window", "0.1", "--force", "--quiet"),

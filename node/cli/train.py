@@ -123,7 +123,7 @@ def run(args: argparse.Namespace) -> int:
                                 seed=args.seed, mapping=args.mapping, progress=progress(args))
     # The model and its cross-validation's files are put in place together (the files written first, an
     # interrupted training left a new report beside the earlier model)
-    written = _save(model, args.out, cv=None if cv is None else (args.cv, cv))
+    written = save_model(model, args.out, cv=None if cv is None else (args.cv, cv))
     path = written[-1]
     if cv is not None:
         from supramodal.node.workflows.reports import plots_missing_notice
@@ -136,7 +136,7 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _save(model, out, cv: tuple[int, dict] | None = None) -> list[Path]:
+def save_model(model, out, cv: tuple[int, dict] | None = None) -> list[Path]:
     """Save ``model`` (a sense or a fused model) to ``out`` whole or not at all, with its cross-validation's files
     beside it (``cv``: its folds and result): written aside, then put in place together (written in place, an
     interrupted save left a model file cut short where the earlier one was). The files written, the model last."""
@@ -173,7 +173,7 @@ def _train_stream(args) -> int:
                        "out --manifest, --bank, --cv, --model, --live and --write-scene")
     check_new_file(args.out, args.force, "the model file")
     model = train_from_scenes(args.scene, args.stream, epochs=args.epochs, seed=args.seed, progress=progress(args))
-    path = _save(model, args.out)[-1]
+    path = save_model(model, args.out)[-1]
     print(f"wrote {path}: stream {args.stream}, {model.bank.kind} bank, features {list(model.features)}, classes "
           f"{list(model.classes)}, {model.training['windows']} training windows of {len(args.scene)} recording(s), "
           f"final MSE {model.training['final_mse']:.4g}")
@@ -243,7 +243,7 @@ def _train_fusion(args) -> int:
         _write_run_scene(args, write_fused_scene, (a, b), models, method="late", weight=round(weight, 4),
                          sharpness=float(f"{sharpness:.4g}"), correlation=float(f"{info['correlation']:.3g}"))
         return 0
-    path = _save(result, args.out)[-1]
+    path = save_model(result, args.out)[-1]
     print(f"wrote {path}: early fusion of {a} and {b}, classes {info['classes']}, {info['pairs']} pairs of windows, "
           f"calibrated on its out-of-fold pairs (the early row); use it with [fusion] method = \"early\", "
           f"model = \"{path.resolve()}\" (a relative path is taken from the scene's folder)")

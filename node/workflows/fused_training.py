@@ -23,7 +23,13 @@ from pathlib import Path
 
 import numpy as np
 
-from supramodal.calibration import DEFAULT_CALIBRATION_FOLDS, calibration_folds, calibration_report, winner
+from supramodal.calibration import (
+    DEFAULT_CALIBRATION_FOLDS,
+    calibration_folds,
+    calibration_report,
+    mean_confidence,
+    winner,
+)
 from supramodal.checks import integer
 from supramodal.errors import InputError, SupramodalWarning
 from supramodal.fused_model import (
@@ -382,7 +388,8 @@ def evaluate_fused(paths, fused_model=None, progress=None, contact_windows: int 
                      "labels": list(classes[name]), "confusion": _confusion(decided[name], classes[name]),
                      "unknown": sum(d not in classes[name] for _, d in decided[name]),
                      "calibration": None if report is None else
-                     {k: report[k] for k in ("n", "log_loss", "brier", "ece", "sure", "sure_count", "sure_wrong")},
+                     {k: report[k] for k in ("n", "accuracy", "log_loss", "brier", "ece", "sure", "sure_count",
+                                             "sure_wrong")} | {"confidence": mean_confidence(report)},
                      "scored": what.get(name, [])}
     return out
 
@@ -441,7 +448,7 @@ def format_fused_evaluation(result: dict) -> str:
     """The table ``evaluate --scene`` prints: per stream its windows and contacts right and its
     calibration, then what was scored (the fusion's method, weight, sharpness and files; each
     sense's model) and what a contact is."""
-    from supramodal.node.workflows.reports import contact_text, scored_text
+    from supramodal.node.workflows.reports import confidence_verdict, contact_text, scored_text
 
     lines = [f"{'stream':<12} {'windows right':>14} {'of':>6}  {'contacts right':>15} {'of':>5}  {'log loss':>8} "
              f"{'ECE':>6} {'>= 0.99 wrong':>14}"]
@@ -453,6 +460,8 @@ def format_fused_evaluation(result: dict) -> str:
                      f"{r['contacts']:>5}{calib}")
     for name, r in result.items():
         lines.append(f"{name}: {scored_text(r['scored'])}")
+        if r.get("calibration") is not None:
+            lines.append(f"{name}: {confidence_verdict(r['calibration'], fused=name == FUSED_STREAM)}")
     lines.append(f"contacts: {contact_text(next(iter(result.values()))['contact_windows'])}")
     return "\n".join(lines)
 

@@ -46,6 +46,24 @@ def write_staged(folder: Path, write: Callable[[Path], list[Path]]) -> list[Path
     return [folder / name for name in names]
 
 
+def confidence_verdict(calibration: dict, fused: bool = False) -> str:
+    """Whether decisions on labelled recordings were about as sure as they were right, in one line: their
+    mean stated confidence beside their accuracy, and the ECE against
+    :data:`supramodal.calibration.HOLDS_ECE` (``calibration``: ``accuracy``, ``confidence``, ``ece``, ``n``), and
+    what to do where they were not (``fused``: the decisions of a fusion, which is not recalibrated itself)."""
+    from supramodal.calibration import HOLDS_ECE
+
+    c = calibration
+    said = f"says {c['confidence']:.2f} on average and is right on {c['accuracy']:.2f} of {c['n']} windows"
+    if c["ece"] <= HOLDS_ECE:
+        return f"{said}: its confidence holds on these recordings (ECE {c['ece']:.3f})"
+    way = "surer than it is right" if c["confidence"] > c["accuracy"] else "less sure than it is right"
+    fix = ("recalibrate each sense on labelled recordings like these (supramodal recalibrate), then learn the fusion "
+           "again" if fused else "recalibrate it on labelled recordings like these (supramodal recalibrate), keeping "
+           "its network")
+    return f"{said}: its confidence does not hold on these recordings (ECE {c['ece']:.3f} > {HOLDS_ECE}, {way}); {fix}"
+
+
 def write_confusion(labels, confusion, base: Path, title: str) -> list[Path]:
     """Write ``base.csv`` (counts; rows = truth, columns = predicted) and ``base.png`` (each row as
     shares of its windows, so a rare label reads as clearly as a common one).

@@ -155,6 +155,10 @@ def write_figure(name: str, result: dict, out: Path) -> list[Path]:
         from supramodal.experiments.common import progress_to_stderr
 
         return write_calibration(result, out, notice=progress_to_stderr)
+    if name == "newtouch":
+        from supramodal.experiments.newtouch import write_newtouch
+
+        return write_newtouch(result, out)
     writer = {"fig1": _write_fig1, "fig4": _write_fig4, "fig5": _write_fig5, "fig6": _write_fig6,
               "fusion": _write_fusion}[name]
     paths = writer(result, out)

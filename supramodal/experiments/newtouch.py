@@ -1,0 +1,345 @@
+"""Trust on a new touch (issue 34): what the senses, their late fusion and "unknown" say about
+themselves on a touch the models never met, on the two-sense world with per-touch gains.
+
+Per set (:func:`supramodal.twosense.two_sense_set`, 8 textures): :data:`TOUCHES` touches of every
+texture (:func:`supramodal.twosense.synthesize_touch`: each touch its own gain per vibrissa and its
+own microphone level). The textures of heard pair 2 (``H2a``, ``H2b``) are left out of training: the
+unknown ones. On the six others:
+
+* Each sense's model is trained on touches 1-2, calibrated on held-out folds of whole touches
+  (groups = texture and touch: the calibration the node fits when the recordings are separate
+  touches). Beside it, the same network calibrated on folds that are spans of each texture's
+  recordings (what it fits when a texture is one recording, and all the issue had): scored the
+  same way, to show a calibration that does not hold on a new touch.
+* The late fusion is learned on out-of-fold log-posteriors of touches 1-2, by the rule of issue 34
+  (:func:`supramodal.fusion.learn_late_fusion`: bounded sharpness, the weight in its plateau's
+  middle) and, for comparison, by the rule before it (:func:`late_fusion_before`).
+* Scored on touch 3: accuracy, log loss, ECE and the share wrong of windows saying >= 0.99, per
+  window; each sense beside its training estimate (its calibration's held-out log loss and
+  accuracy); the false-unknown rate at 0.05 asked, per window and per contact of
+  :data:`CONTACT_WINDOWS` windows, and the novelty's AUROC against the unknown textures' touch 3.
+* Recalibration (:meth:`supramodal.model.TextureModel.recalibrated`): each sense recalibrated on the
+  first half of touch 3, the networks and the fusion's weight and sharpness kept, scored on its
+  second half (ECE, log loss, the false-unknown rate).
+
+    supramodal experiment newtouch [--quick] [--sets N] [--seed S] [--out DIR]
+    python -m supramodal.experiments.newtouch [--quick] [--sets N] [--seed S]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+
+import numpy as np
+from scipy.special import log_softmax
+
+from supramodal.banks import cochlea_bank, whisker_bank
+from supramodal.calibration import (
+    DEFAULT_CALIBRATION_FOLDS,
+    calibration_report,
+    fit_network_calibration,
+    log_loss,
+    winner,
+)
+from supramodal.errors import InputError
+from supramodal.experiments.calibration import auroc
+from supramodal.experiments.common import Run
+from supramodal.features import DEFAULT_WINDOW
+from supramodal.fused_model import learn_late_fusion_out_of_fold, senses_out_of_fold
+from supramodal.fusion import LATE_WEIGHTS, fuse_late
+from supramodal.mlp import DEFAULT_EPOCHS
+from supramodal.model import TextureModel, log_posteriors_of
+from supramodal.pipeline import extract_features, window_length
+from supramodal.twosense import synthesize_touch, two_sense_set
+
+#: Touches of every texture: the models learn on all but the last, which scores them.
+TOUCHES = 3
+#: The textures left out of training (heard pair 2 of :func:`~supramodal.twosense.two_sense_set`).
+UNKNOWN = ("H2a", "H2b")
+SENSES = ("whiskers", "microphone")
+#: The false-unknown rate asked (``[decision] unknown``).
+ASKED_UNKNOWN = 0.05
+#: Windows per contact for the contact-level unknown rate.
+CONTACT_WINDOWS = 10
+#: A window saying at least this is "sure" (the issue: at most 1 % of them wrong).
+SURE = 0.99
+FEATURES = ("Af",)
+
+
+def touch_features(set_seed: int, seconds: float, progress=None) -> tuple[list[str], dict]:
+    """Af windows of every texture's every touch, both senses aligned: ``(names, {(texture index, touch):
+    (whiskers (n, 1, 20), microphone (n, 1, 50))})``, n the same for every touch."""
+    surfaces = two_sense_set(pairs=2, seed=set_seed)
+    banks = (whisker_bank(), cochlea_bank())
+    out = {}
+    for i, s in enumerate(surfaces):
+        for t in range(TOUCHES):
+            signals = synthesize_touch(s, seconds, set_seed, i, t)
+            out[i, t] = tuple(extract_features(x, b, FEATURES).values for x, b in zip(signals, banks))
+        if progress:
+            progress(f"  set {set_seed}: {s.name}, {TOUCHES} touches ({i + 1}/{len(surfaces)})")
+    n = min(len(v) for pair in out.values() for v in pair)
+    return [s.name for s in surfaces], {k: (w[:n], m[:n]) for k, (w, m) in out.items()}
+
+
+def late_fusion_before(log_posteriors_a, log_posteriors_b, labels) -> tuple[float, float]:
+    """The late fusion's rule before issue 34, for comparison: the weight right most often (ties: lower
+    log loss, then nearer 0.5), its sharpness unbounded (up to e^5)."""
+    from scipy.optimize import minimize_scalar
+
+    a, b, y = np.asarray(log_posteriors_a), np.asarray(log_posteriors_b), np.asarray(labels)
+    candidates = []
+    for w in LATE_WEIGHTS:
+        mixed = w * a + (1.0 - w) * b
+        r = minimize_scalar(lambda ls, mixed=mixed: log_loss(log_softmax(np.exp(ls) * mixed, axis=1), y),
+                            bounds=(-7.0, 5.0), method="bounded", options={"xatol": 1e-4})
+        s = float(np.exp(r.x))
+        candidates.append((-float(np.mean(winner(mixed) == y)), log_loss(log_softmax(s * mixed, axis=1), y),
+                           abs(w - 0.5), float(w), s))
+    return min(candidates)[3:]
+
+
+def _scores(lp, y) -> dict:
+    r = calibration_report(lp, y, sure=SURE)
+    return {k: r[k] for k in ("n", "accuracy", "log_loss", "ece", "sure_count", "sure_wrong")}
+
+
+def _contacts(n_windows: int, per_texture: int) -> list[np.ndarray]:
+    """Disjoint runs of :data:`CONTACT_WINDOWS` windows of one texture among windows stacked texture by
+    texture, ``per_texture`` each."""
+    return [np.arange(s + k, s + k + CONTACT_WINDOWS) for s in range(0, n_windows, per_texture)
+            for k in range(0, per_texture - CONTACT_WINDOWS + 1, CONTACT_WINDOWS)]
+
+
+def _unknown(model: TextureModel, known, unknown, per_texture: int) -> dict:
+    """The false-unknown rate at :data:`ASKED_UNKNOWN` on windows of known textures (per window and per
+    contact), the rate on the unknown textures, and the novelty's AUROC per window and per contact."""
+    nov = model.novelty
+    assert nov is not None, "trained with calibration folds"
+    xk, xu = model._inputs(known), model._inputs(unknown)
+    wk, wu = nov.score(xk), nov.score(xu)
+    ck = np.array([nov.pooled_score(xk[r]) for r in _contacts(len(xk), per_texture)])
+    cu = np.array([nov.pooled_score(xu[r]) for r in _contacts(len(xu), per_texture)])
+    t_w, t_c = nov.threshold(ASKED_UNKNOWN), nov.contact_threshold(ASKED_UNKNOWN, CONTACT_WINDOWS)
+    return {"false_unknown_window": float(np.mean(wk > t_w)), "false_unknown_contact": float(np.mean(ck > t_c)),
+            "unknown_found_window": float(np.mean(wu > t_w)), "unknown_found_contact": float(np.mean(cu > t_c)),
+            "auroc_window": auroc(wu, wk), "auroc_contact": auroc(cu, ck), "contacts": int(len(ck))}
+
+
+def run_set(set_seed: int, seconds: float = 10.0, epochs: int = DEFAULT_EPOCHS, seed: int = 0,
+            progress=None) -> dict:
+    """One set: see the module docstring. Plain data: per sense and fusion rule, ``training`` (the
+    held-out estimate), ``touch3``, ``recalibrated`` (touch 3's second half) scores, ``unknown`` rates."""
+    names, feats = touch_features(set_seed, seconds, progress)
+    known = [i for i, n in enumerate(names) if n not in UNKNOWN]
+    unknown = [i for i, n in enumerate(names) if n in UNKNOWN]
+    classes = [names[i] for i in known]
+    banks = {"whiskers": whisker_bank(), "microphone": cochlea_bank()}
+    per = len(feats[known[0], 0][0])
+    half = per // 2
+    if half < CONTACT_WINDOWS:
+        raise InputError(f"{per} windows per touch leave too few for contacts of {CONTACT_WINDOWS} in each half of "
+                         "touch 3: synthesise longer touches")
+
+    def stack(touches, senses_index, textures=known, rows=slice(None)):
+        return np.concatenate([feats[i, t][senses_index][rows] for i in textures for t in touches])
+
+    def labels(touches, n):
+        return np.concatenate([np.full(n, k) for k in range(len(known)) for _ in touches])
+
+    y_train = labels(range(TOUCHES - 1), per)
+    groups = np.concatenate([np.full(per, k * TOUCHES + t) for k in range(len(known)) for t in range(TOUCHES - 1)])
+    last = TOUCHES - 1
+    y_test = labels([last], per)
+    y_first, y_second = labels([last], half), labels([last], per - half)
+    new_touch = [last]
+    result: dict = {"set_seed": set_seed, "textures": classes, "unknown_textures": list(UNKNOWN),
+                    "windows_per_touch": per, "senses": {}, "late": {}}
+    models, test_lp, recal_lp = {}, {}, {}
+    for s_i, (sense, bank) in enumerate(banks.items()):
+        if progress:
+            progress(f"  set {set_seed}: the {sense} model, calibrated by touch and by span")
+        train = stack(range(TOUCHES - 1), s_i)
+        model = models[sense] = TextureModel.train(train, y_train, classes, bank, FEATURES,
+                                                   window_length(DEFAULT_WINDOW, bank.fs), epochs=epochs,
+                                                   seed=seed, groups=groups)
+        assert model.calibration is not None and model.out_of_fold is not None, "calibrated (the default)"
+        span, _, _ = fit_network_calibration(train.reshape(len(train), -1), y_train, len(classes), None,
+                                             DEFAULT_CALIBRATION_FOLDS, epochs=epochs, seed=seed)
+        test = stack(new_touch, s_i)
+        test_lp[sense] = model.log_posteriors(test)
+        estimate = model.calibration.log_posteriors(model.out_of_fold.logits)
+        recal = model.recalibrated(stack(new_touch, s_i, rows=slice(0, half)), y_first, what="touch 3, first half")
+        second = stack(new_touch, s_i, rows=slice(half, None))
+        recal_lp[sense] = recal.log_posteriors(second)
+        result["senses"][sense] = {
+            "folds_by": model.calibration.fitted_on.get("folds_by"),
+            "training": _scores(estimate, y_train), "touch3": _scores(test_lp[sense], y_test),
+            "span_training": {"log_loss": span.fitted_on["log_loss"],
+                              "accuracy": span.fitted_on["held_out_accuracy"]},
+            "span_touch3": _scores(log_posteriors_of(model.logits(test), span), y_test),
+            "recalibrated": _scores(recal_lp[sense], y_second),
+            "unknown": _unknown(model, test, stack(new_touch, s_i, unknown), per),
+            "unknown_recalibrated": _unknown(recal, second, stack(new_touch, s_i, unknown, slice(half, None)),
+                                             per - half)}
+    if progress:
+        progress(f"  set {set_seed}: the late fusion, on out-of-fold windows of touches 1-{TOUCHES - 1}")
+    values = [stack(range(TOUCHES - 1), s_i) for s_i in range(len(banks))]
+    held, folds, _ = senses_out_of_fold(list(models.values()), values, y_train, classes, groups)
+    late = learn_late_fusion_out_of_fold(held[0], held[1], y_train, folds)
+    rules = {"issue34": (late["weight"], late["sharpness"]), "before": late_fusion_before(held[0], held[1], y_train)}
+    for rule, (w, s) in rules.items():
+        fused_test = fuse_late(test_lp["whiskers"], test_lp["microphone"], w, s)
+        result["late"][rule] = {"weight": w, "sharpness": s, "touch3": _scores(fused_test, y_test),
+                                "recalibrated": _scores(fuse_late(recal_lp["whiskers"], recal_lp["microphone"], w, s),
+                                                        y_second)}
+    result["late"]["issue34"]["training"] = _scores(late["fused"], y_train)
+    return result
+
+
+def run_newtouch(sets: int = 5, quick: bool = False, epochs: int = DEFAULT_EPOCHS, seed: int = 0, progress=None,
+                 jobs: int | None = None) -> dict:
+    """:func:`run_set` over ``sets`` sets (seeds ``seed``, ``seed + 1``, ...) on ``jobs`` worker processes;
+    ``quick``: 6 s touches (default 10 s)."""
+    from supramodal.experiments.runner import run_all
+
+    if sets < 1:
+        raise InputError(f"--sets must be >= 1 for the new-touch experiment, got {sets}")
+    seconds = 6.0 if quick else 10.0
+    t0 = time.perf_counter()
+    runs = [Run(("newtouch", seed + k), run_set, {"set_seed": seed + k, "seconds": seconds, "epochs": epochs,
+                                                   "seed": seed}, 8 * seconds, seeded=False) for k in range(sets)]
+    results = list(run_all(runs, jobs=jobs, seed=seed, progress=progress).values())
+    return {"figure": "newtouch", "seconds": seconds, "touches": TOUCHES, "asked_unknown": ASKED_UNKNOWN,
+            "contact_windows": CONTACT_WINDOWS, "sure": SURE, "sets": results,
+            "compute_seconds": time.perf_counter() - t0}
+
+
+def _sure(r: dict) -> str:
+    if not r["sure_count"]:
+        return "- (0 sure)"
+    return f"{r['sure_wrong']:.3f} of {r['sure_count']}"
+
+
+def newtouch_table(result: dict) -> str:
+    """The experiment's figures as Markdown, one row per set and method."""
+    lines = [f"{len(result['sets'])} two-sense sets, 6 known textures (+2 unknown), {result['touches']} touches of "
+             f"{result['seconds']:g} s each; trained on touches 1-{result['touches'] - 1}, scored on touch "
+             f"{result['touches']}; per window. Training estimate: held-out folds of the training touches.", "",
+             "| set | method | training estimate: right, log loss | touch 3: right | log loss | ECE | "
+             f"saying >= {result['sure']:g}, wrong | recalibrated on its first half: ECE, log loss |",
+             "|---|---|---|---|---|---|---|---|"]
+    for r in result["sets"]:
+        for sense, v in r["senses"].items():
+            for label, train, test in ((f"{sense} (folds by touch)", v["training"], v["touch3"]),
+                                       (f"{sense} (folds by span)", v["span_training"], v["span_touch3"])):
+                rc = v["recalibrated"] if "touch" in label else None
+                lines.append(f"| {r['set_seed']} | {label} | {train['accuracy']:.3f}, {train['log_loss']:.3f} | "
+                             f"{test['accuracy']:.3f} | {test['log_loss']:.3f} | {test['ece']:.3f} | {_sure(test)} | "
+                             + (f"{rc['ece']:.3f}, {rc['log_loss']:.3f} |" if rc else "- |"))
+        for rule, v in r["late"].items():
+            t = v["touch3"]
+            train = v.get("training")
+            est = f"{train['accuracy']:.3f}, {train['log_loss']:.3f}" if train else "-"
+            lines.append(f"| {r['set_seed']} | late, rule {'of issue 34' if rule == 'issue34' else 'before'} (weight "
+                         f"{v['weight']:.2f}, sharpness {v['sharpness']:.3g}) | {est} | {t['accuracy']:.3f} | "
+                         f"{t['log_loss']:.3f} | {t['ece']:.3f} | {_sure(t)} | {v['recalibrated']['ece']:.3f}, "
+                         f"{v['recalibrated']['log_loss']:.3f} |")
+    lines += ["", f"Unknown at {result['asked_unknown']:g} asked (contacts of {result['contact_windows']} windows): "
+              "false-unknown rate on touch 3 of the known textures, and after recalibration on its second half; "
+              "AUROC against the unknown textures' touch 3", "",
+              "| set | sense | false unknown, windows | contacts | recalibrated: windows | contacts | AUROC windows | "
+              "contacts |", "|---|---|---|---|---|---|---|---|"]
+    for r in result["sets"]:
+        for sense, v in r["senses"].items():
+            u, ur = v["unknown"], v["unknown_recalibrated"]
+            lines.append(f"| {r['set_seed']} | {sense} | {u['false_unknown_window']:.3f} | "
+                         f"{u['false_unknown_contact']:.3f} | {ur['false_unknown_window']:.3f} | "
+                         f"{ur['false_unknown_contact']:.3f} | {u['auroc_window']:.4f} | {u['auroc_contact']:.4f} |")
+    checks = []
+    for r in result["sets"]:
+        better = min(v["touch3"]["log_loss"] for v in r["senses"].values())
+        checks.append(r["late"]["issue34"]["touch3"]["log_loss"] <= better)
+    lines += ["", f"late fusion (rule of issue 34) log loss on touch 3 <= the better sense's: {sum(checks)} of "
+              f"{len(checks)} sets"]
+    return "\n".join(lines)
+
+
+def _rows(result: dict) -> list[dict]:
+    """One row per set and method: the figures of :func:`newtouch_table` as plain columns."""
+    rows = []
+    for r in result["sets"]:
+        methods = {f"{sense}": (v["training"], v["touch3"], v["recalibrated"]) for sense, v in r["senses"].items()}
+        methods |= {f"{sense} (folds by span)": (v["span_training"], v["span_touch3"], None)
+                    for sense, v in r["senses"].items()}
+        methods |= {f"late ({rule})": (v.get("training"), v["touch3"], v["recalibrated"])
+                    for rule, v in r["late"].items()}
+        for name, (train, test, recal) in methods.items():
+            rows.append({"set": r["set_seed"], "method": name,
+                         "estimate_accuracy": None if train is None else train["accuracy"],
+                         "estimate_log_loss": None if train is None else train["log_loss"],
+                         **{f"touch3_{k}": test[k]
+                            for k in ("accuracy", "log_loss", "ece", "sure_count", "sure_wrong")},
+                         "recalibrated_ece": None if recal is None else recal["ece"],
+                         "recalibrated_log_loss": None if recal is None else recal["log_loss"]})
+    return rows
+
+
+def write_newtouch(result: dict, out) -> list:
+    """``newtouch.csv`` (one row per set and method) and, with matplotlib, ``newtouch.png``: each
+    method's log loss and ECE on the new touch, and after recalibration."""
+    import csv
+    from pathlib import Path
+
+    from supramodal.experiments.report import have_matplotlib, pyplot
+
+    out = Path(out)
+    rows = _rows(result)
+    with open(out / "newtouch.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    written = [out / "newtouch.csv"]
+    if not have_matplotlib():
+        return written
+    plt = pyplot()
+    methods = list(dict.fromkeys(r["method"] for r in rows))
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.4))
+    x = np.arange(len(methods))
+    for ax, (key, label) in zip(axes, (("log_loss", "log loss (nats)"), ("ece", "ECE"))):
+        for k, (col, name, shade) in enumerate(((f"touch3_{key}", "new touch", "0.35"),
+                                               (f"recalibrated_{key}", "recalibrated on half of it", "0.7"))):
+            means = [np.mean([r[col] for r in rows if r["method"] == m and r[col] is not None] or [np.nan])
+                     for m in methods]
+            ax.bar(x + (k - 0.5) * 0.38, means, 0.38, label=name, color=shade)
+        ax.set_xticks(x, methods, rotation=30, ha="right", fontsize=7)
+        ax.set_ylabel(label)
+    axes[1].axhline(0.05, color="k", lw=0.8, ls=":")
+    axes[0].legend(fontsize=7)
+    fig.suptitle(f"trust on a new touch: {len(result['sets'])} two-sense sets, mean over sets", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(out / "newtouch.png", dpi=120)
+    plt.close(fig)
+    return [*written, out / "newtouch.png"]
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="python -m supramodal.experiments.newtouch", description=__doc__.splitlines()[0])
+    p.add_argument("--quick", action="store_true", help="6 s touches and 2 sets (default: 10 s, --sets)")
+    p.add_argument("--sets", type=int, default=5, help="random two-sense texture sets (default 5)")
+    p.add_argument("--seed", type=int, default=0, help="first set's seed and the networks' seed (default 0)")
+    p.add_argument("--epochs", type=int, default=DEFAULT_EPOCHS, help=f"iRPROP- epochs (default {DEFAULT_EPOCHS})")
+    p.add_argument("--jobs", type=int, help="worker processes (default: all cores)")
+    args = p.parse_args(argv)
+    from supramodal.experiments.common import progress_to_stderr
+
+    result = run_newtouch(2 if args.quick else args.sets, args.quick, args.epochs, args.seed, progress_to_stderr,
+                          args.jobs)
+    print(newtouch_table(result))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
