@@ -39,6 +39,12 @@ pooled decision, by these rules:
   :data:`UNKNOWN` while more than half of its windows are. With ``confidence = c`` and
   ``scope = "contact"``, the contact's decision is final as soon as its pooled confidence reaches
   ``c``: the pooled dict then says ``"decided": true`` and ``"decided_after"`` windows.
+* ``[decision] change = f`` (false changes per minute allowed, > 0; needs ``scope = "contact"``): the
+  texture may change within a contact (a whisker sliding from one surface onto the next without
+  lifting off). A :class:`ChangeDetector` watches the windows' evidence against the current pooled
+  decision; when it finds another texture, the pooled decision starts again from the windows since
+  the change began (a final decision too), and that window's pooled dict says ``"change": {"from",
+  "to", "after"}`` (``after``: the windows since the change began).
 """
 
 from __future__ import annotations
@@ -49,8 +55,9 @@ from typing import Any
 
 import numpy as np
 
-from supramodal.calibration import pool_log_posteriors, winner
+from supramodal.calibration import POOLING_RUN, cap_gaps, effective_windows, pool_log_posteriors, winner
 from supramodal.errors import InputError
+from supramodal.features import DEFAULT_WINDOW
 
 SCOPES = ("window", "last", "contact")
 METHODS = ("log", "vote")
@@ -81,6 +88,9 @@ class DecisionRules:
         Share of windows of known textures the novelty score may call unknown, in [0, 1) (0: off).
     unknown_below : float
         Calibrated confidence below which a window is unknown, in [0, 1) (0: off).
+    change : float
+        False changes of texture per minute allowed within a contact, >= 0 (0: off, a contact keeps
+        one texture; needs ``scope = "contact"``): :class:`ChangeDetector`.
     """
 
     scope: str = DEFAULT_SCOPE
@@ -90,12 +100,13 @@ class DecisionRules:
     confidence: float = 0.0
     unknown: float = 0.0
     unknown_below: float = 0.0
+    change: float = 0.0
 
     @property
     def calibrated_rules(self) -> list[str]:
         """The rules set here that need calibrated posteriors (``confidence``, ``unknown``,
-        ``unknown_below``), by name."""
-        return [k for k in ("confidence", "unknown", "unknown_below") if getattr(self, k)]
+        ``unknown_below``, ``change``), by name."""
+        return [k for k in ("confidence", "unknown", "unknown_below", "change") if getattr(self, k)]
 
 
 #: The rules when a scene gives no ``[decision]``.
@@ -196,6 +207,14 @@ class DecisionAccumulator:
         self._history.clear()
         self._final = None
 
+    def restart(self, keep: int) -> Decision:
+        """Forget the final decision and every pooled window but the last ``keep`` (>= 1; the texture changed
+        ``keep`` windows ago), and return the decision of those."""
+        kept = list(self._history)[-keep:]
+        self.reset()
+        self._history.extend(kept)
+        return self._pooled()
+
     def update(self, log_posteriors: np.ndarray, in_contact: bool = True, may_decide: bool = True) -> Decision:
         """Add one window's log-posteriors (classes,) and return the current decision.
 
@@ -233,6 +252,91 @@ class DecisionAccumulator:
         return Decision(int(winner(score)), float(votes.max() / len(lp)), len(lp))
 
 
+#: Seconds per minute, for a change rate given per minute.
+_MINUTE = 60.0
+
+
+#: Most recent windows a change detector looks back over (the contact pooling's fitted run length).
+CHANGE_LOOKBACK = POOLING_RUN
+
+
+class ChangeDetector:
+    """Whether the last few windows of a contact, pooled as a contact is, name another texture than the
+    current decision.
+
+    At every window it pools each recent stretch (the last ``n`` windows, ``n`` = 1 ..
+    :data:`CHANGE_LOOKBACK`) as the calibration pools a contact
+    (:func:`~supramodal.calibration.pool_log_posteriors`: the windows' correlation ``rho``, the contact
+    caps), and signals a change to ``j`` when one stretch's pooled log-odds of ``j`` against the current
+    decision ``k`` pass the threshold ``h``; the change began ``n`` windows ago.
+
+    * It is Page's CUSUM of the windows' log-likelihood ratios ``log p_j - log p_k`` (calibrated
+      posteriors, equal priors), whose statistic is the largest sum over the recent stretches, with each
+      stretch's sum weighted as the pooling weighs ``n`` correlated windows (``n_eff(n) / n``): a
+      network's preference that persists through a touch is not taken for new evidence window after
+      window.
+    * The contact caps bound what a stretch may claim for ``j`` against ``k``: a pair the network cannot
+      tell apart never signals a change; the other sense (or the fusion) has to.
+    * ``h = log((K - 1) N)``, ``N`` windows per false change allowed, ``K`` classes: under the current
+      texture, calibrated and independent evidence for one alternative passes ``h`` from a restart once
+      in ``e^h`` windows at most (Lorden 1971), ``N`` for the ``K - 1`` together. Measured by
+      ``experiment change``, not assumed: the windows are not independent.
+
+    Not thread-safe: one per processing thread, like :class:`Decider`.
+
+    Parameters
+    ----------
+    n_classes : int
+    windows_per_false_change : float
+        ``N`` above, > 1.
+    correlation : float
+        ``rho`` in [0, 1] (default 0).
+    caps : array-like (classes, classes) or None
+        The contact caps; None: uncapped.
+    """
+
+    def __init__(self, n_classes: int, windows_per_false_change: float, correlation: float = 0.0,
+                 caps=None) -> None:
+        if not windows_per_false_change > 1:
+            raise InputError(f"a change detector needs more than one window per false change, got "
+                             f"{windows_per_false_change!r}")
+        if not 0.0 <= correlation <= 1.0:
+            raise InputError(f"a change detector's correlation must lie in [0, 1], got {correlation!r}")
+        self.n_classes = int(n_classes)
+        self.threshold = float(np.log(max(self.n_classes - 1, 1) * windows_per_false_change))
+        self.correlation = float(correlation)
+        self.caps = None if caps is None else np.asarray(caps, dtype=np.float64)
+        lengths = np.arange(1, CHANGE_LOOKBACK + 1)
+        self._weights = effective_windows(lengths, self.correlation) / lengths      # g(n), n = 1 .. lookback
+        self._recent: deque[np.ndarray] = deque(maxlen=CHANGE_LOOKBACK)
+
+    def reset(self) -> None:
+        """Forget the recent windows (a contact ended)."""
+        self._recent.clear()
+
+    def update(self, log_posteriors: np.ndarray, current: int) -> tuple[int, int] | None:
+        """Add one window's log-posteriors (classes,) and test the recent stretches against the ``current``
+        decision (a class index; -1: none, nothing is tested). Returns ``(new class, windows since the change
+        began)`` when a stretch names another texture past the threshold (the windows before it are then
+        forgotten), else None."""
+        self._recent.append(np.asarray(log_posteriors, dtype=np.float64))
+        if current < 0:
+            return None
+        recent = np.array(self._recent)[::-1]                       # newest first: row n-1 ends the stretch of n
+        sums = np.cumsum(recent, axis=0) * self._weights[:len(recent), None]
+        pooled = sums if self.caps is None else cap_gaps(sums, self.caps)     # a log-odds needs no normalising
+        lead = pooled - pooled[:, [current]]
+        lead[:, current] = -np.inf
+        n, j = np.unravel_index(int(np.argmax(lead)), lead.shape)
+        if lead[n, j] <= self.threshold:
+            return None
+        since = int(n) + 1
+        kept = list(self._recent)[-since:]
+        self._recent.clear()
+        self._recent.extend(kept)
+        return int(j), since
+
+
 #: What the node says when it will not name a texture.
 UNKNOWN = "unknown"
 
@@ -254,10 +358,13 @@ class Decider:
         kept for the stream, which compares its windows' scores with it.
     caps : array-like (classes, classes) or None
         The pooling's caps per pair of classes (a calibrated model's contact caps; None: uncapped).
+    window_seconds : float
+        Seconds between windows (default :data:`~supramodal.features.DEFAULT_WINDOW`): what a change
+        rate per minute (``rules.change``) is per window.
     """
 
     def __init__(self, classes, rules: DecisionRules = DEFAULT_DECISION, correlation: float = 0.0,
-                 novelty_threshold: float | None = None, caps=None) -> None:
+                 novelty_threshold: float | None = None, caps=None, window_seconds: float = DEFAULT_WINDOW) -> None:
         self.classes = tuple(classes)
         self.unknown_below = float(rules.unknown_below)
         self.novelty_threshold = novelty_threshold
@@ -270,6 +377,15 @@ class Decider:
                                                    correlation=correlation, confidence=confidence, caps=caps)
             maxlen = rules.n if rules.scope == "last" else (rules.n or None)
             self._unknown_flags = deque(maxlen=maxlen)
+        self.detector: ChangeDetector | None = None
+        if rules.change:
+            if rules.scope != "contact" or rules.method != "log":
+                raise InputError("[decision] change re-decides within a contact: it needs scope = \"contact\" and "
+                                 f"method = \"log\" (scope is {rules.scope!r}, method {rules.method!r})")
+            self.detector = ChangeDetector(len(self.classes), _MINUTE / (window_seconds * rules.change), correlation,
+                                           caps)
+        self._label = -1                              # the pooled decision before this window, as a class index
+        self.changes = 0
         self.unknown = {"novel": 0, "unsure": 0, "tie": 0}
         self.contacts_decided = 0
         self.windows_to_decide: list[int] = []
@@ -305,14 +421,35 @@ class Decider:
             self.accumulator.update(lp, in_contact)   # the contact ended: the accumulation resets
             self._unknown_flags.clear()
             self._final = None
+            self._label = -1
+            if self.detector is not None:
+                self.detector.reset()
             return {"label": None, "confidence": 0.0, "windows": 0}
         self._unknown_flags.append(unknown)
+        change = None
+        if self.detector is not None:
+            change = self.detector.update(lp, self._label)
         mostly_unknown = 2 * sum(self._unknown_flags) > len(self._unknown_flags)
         d = self.accumulator.update(lp, in_contact, may_decide=not mostly_unknown)
+        changed = None
+        if change is not None:
+            # the texture changed `since` windows ago: the decision starts again from those windows
+            to, since = change
+            kept = list(self._unknown_flags)[-since:]
+            self._unknown_flags.clear()
+            self._unknown_flags.extend(kept)
+            self._final = None
+            d = self.accumulator.restart(since)
+            mostly_unknown = 2 * sum(self._unknown_flags) > len(self._unknown_flags)
+            changed = {"from": self.classes[self._label], "to": self.classes[to], "after": since}
+            self.changes += 1
+        self._label = -1 if (d.label < 0 or mostly_unknown) else d.label
         if self._final is not None:                   # the contact's final decision stands as it was said
             return self._final
         label = UNKNOWN if (d.label < 0 or mostly_unknown) else self.classes[d.label]
         out = {"label": label, "confidence": round(d.confidence, 4), "windows": d.windows}
+        if changed is not None:
+            out["change"] = changed
         if self.accumulator.confidence is not None:
             out["decided"] = d.decided
             if d.decided:
@@ -326,6 +463,8 @@ class Decider:
         """``unknown`` windows by reason; with a confidence threshold, ``contacts_decided`` and the
         median ``windows_to_decide``."""
         out: dict[str, Any] = {"unknown_windows": dict(self.unknown)}
+        if self.detector is not None:
+            out["changes"] = self.changes
         if self.accumulator is not None and self.accumulator.confidence is not None:
             out["contacts_decided"] = self.contacts_decided
             out["windows_to_decide_median"] = (float(np.median(self.windows_to_decide))

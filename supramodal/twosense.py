@@ -177,6 +177,21 @@ def synthesize_touch(surface: Surface, seconds: float, set_seed: int, index: int
     return whiskers, mic
 
 
+def synthesize_slide(surfaces, order, seconds: float, set_seed: int, touch: int) -> tuple[np.ndarray, np.ndarray]:
+    """One touch that slides across several surfaces without lifting off: ``seconds`` of each of
+    ``surfaces[i]`` for ``i`` in ``order``, back to back (each stretch is that texture's
+    :func:`synthesize_touch`, touch ``touch``), both senses. The texture changes at every multiple of
+    ``seconds``; the contact never ends.
+
+    Returns
+    -------
+    whiskers : ndarray, shape (WHISKERS, len(order) * round(seconds * WHISKER_RATE))
+    mic : ndarray, shape (len(order) * round(seconds * MIC_RATE),)
+    """
+    parts = [synthesize_touch(surfaces[i], seconds, set_seed, int(i), touch) for i in order]
+    return np.concatenate([w for w, _ in parts], axis=1), np.concatenate([m for _, m in parts])
+
+
 def _motor(seconds: float, seed) -> np.ndarray:
     """Motor noise at :data:`MIC_RATE`: the three-peak texture low-passed (4th-order Butterworth at
     :data:`MOTOR_CUTOFF`), so that it masks the vibration's band and leaves the friction sound's."""

@@ -19,11 +19,12 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
     p = subparsers.add_parser("experiment", parents=[common],
                               help="reproduce a figure of the paper (or all of them)")
     p.add_argument("figure", choices=["fig1", "fig3", "fig4", "fig5", "fig6", "all", "fusion", "calibration",
-                                          "newtouch"],
+                                          "newtouch", "change"],
                    help="which figure of the paper; fusion: the two senses fused on the two-sense synthetic world "
                         "(beyond the paper; not in all); calibration: whether the confidence means what it says "
                         "(calibration, fusion, unknown textures, anytime decisions; issue 23; not in all); "
                         "newtouch: the same on a touch the models never met, and after recalibrating on half of it "
+                        "(issue 34; not in all); change: re-deciding when the texture changes within a contact "
                         "(issue 34; not in all)")
     p.add_argument("--quick", action="store_true", help="short textures and small grids: seconds, not minutes")
     p.add_argument("--jobs", type=jobs, help="worker processes (default: all cores); results do not depend on it")
@@ -38,8 +39,8 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
                                             "all: N random sets per bank besides it (default 5, 0 with --quick); "
                                             "fusion: N random two-sense sets (default 5, 2 with --quick); "
                                             "calibration: N random sets per bank and N two-sense sets (default 5, "
-                                            "1 with --quick); newtouch: N two-sense sets (default 5, 2 with "
-                                            "--quick)")
+                                            "1 with --quick); newtouch, change: N two-sense sets (default 5, 2 "
+                                            "with --quick)")
     p.add_argument("--out", default="out", type=output_folder, help="directory for CSV and PNG (default ./out)")
     p.add_argument("--json", action="store_true", help="print the figure's data as one JSON object instead of a table")
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")
@@ -75,6 +76,8 @@ def run(args: argparse.Namespace) -> int:
         return _experiment_fusion(args)
     if args.figure == "newtouch":
         return _experiment_newtouch(args)
+    if args.figure == "change":
+        return _experiment_change(args)
     ts = load_texture_set(args.textures) if args.textures else None
     todo = plans(args.figure, quick=args.quick, epochs=args.epochs, seed=args.seed, sets=args.sets,
                  bank=args.bank, texture_set=ts)
@@ -105,6 +108,22 @@ def _experiment_newtouch(args) -> int:
                           args.jobs)
     written = write_figure("newtouch", result, Path(args.out))
     print(json.dumps(result) if args.json else newtouch_table(result) + "\nwrote " + ", ".join(str(p) for p in written))
+    return 0
+
+
+def _experiment_change(args) -> int:
+    """``experiment change``: re-deciding when the texture changes within a contact."""
+    from supramodal.experiments.change import change_table, run_change
+    from supramodal.experiments.common import progress_to_stderr
+    from supramodal.experiments.report import write_figure
+
+    sets = args.sets if args.sets is not None else (2 if args.quick else 5)
+    if sets < 1:
+        raise CliError(f"--sets must be >= 1 for experiment change, got {sets}")
+    result = run_change(sets, args.quick, args.epochs, args.seed, None if args.quiet else progress_to_stderr,
+                        args.jobs)
+    written = write_figure("change", result, Path(args.out))
+    print(json.dumps(result) if args.json else change_table(result) + "\nwrote " + ", ".join(str(p) for p in written))
     return 0
 
 

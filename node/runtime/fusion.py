@@ -42,6 +42,7 @@ from numpy.typing import ArrayLike
 from supramodal.decisions import DEFAULT_DECISION, Decider, DecisionRules
 from supramodal.drivers.base import DriverEvent
 from supramodal.errors import InputError
+from supramodal.features import DEFAULT_WINDOW
 from supramodal.fusion import fuse_late
 from supramodal.node.runtime.events import FUSED_STREAM, TruthTally, WindowEvent, log_posteriors_of
 from supramodal.node.runtime.latency import LatencyHistogram
@@ -108,7 +109,7 @@ class LateFusion:
     def __init__(self, inputs: Sequence[str], classes: Sequence[Sequence[str]], weight: float = DEFAULT_WEIGHT,
                  max_wait: float | None = DEFAULT_MAX_WAIT,
                  decision: DecisionRules = DEFAULT_DECISION, *, sharpness: float = 1.0, correlation: float = 0.0,
-                 caps: ArrayLike | None = None) -> None:
+                 caps: ArrayLike | None = None, window_seconds: float = DEFAULT_WINDOW) -> None:
         a, b = inputs
         if a == b:
             raise InputError(f"fusion needs two different streams, got {a!r} twice")
@@ -132,7 +133,7 @@ class LateFusion:
         self.sharpness = float(sharpness)
         self.correlation = float(correlation)
         self.max_wait = math.inf if max_wait is None else float(max_wait)
-        self.decider = Decider(ca, decision, correlation, caps=caps)
+        self.decider = Decider(ca, decision, correlation, caps=caps, window_seconds=window_seconds)
         #: The robot's own contact signal (``[fusion.decision] contact_from``): the fused windows'
         #: touches; None: a fused window is in contact when either sense's is.
         self.touches: ContactTimeline | None = None
@@ -329,7 +330,7 @@ class EarlyFusion(LateFusion):
 
     def __init__(self, inputs: Sequence[str], classes: Sequence[Sequence[str]], model: EarlyFusionModel,
                  max_wait: float | None = DEFAULT_MAX_WAIT,
-                 decision: DecisionRules = DEFAULT_DECISION) -> None:
+                 decision: DecisionRules = DEFAULT_DECISION, window_seconds: float = DEFAULT_WINDOW) -> None:
         if sorted(model.classes) != sorted(classes[0]):
             raise InputError(f"the early-fusion model knows {list(model.classes)}, the streams {list(classes[0])}: "
                              "train it on the streams' textures")
@@ -338,7 +339,8 @@ class EarlyFusion(LateFusion):
         if model_caps is not None:          # the model's class order -> the streams'
             order = [list(model.classes).index(name) for name in classes[0]]
             caps = np.asarray(model_caps)[np.ix_(order, order)]
-        super().__init__(inputs, classes, DEFAULT_WEIGHT, max_wait, decision, correlation=correlation, caps=caps)
+        super().__init__(inputs, classes, DEFAULT_WEIGHT, max_wait, decision, correlation=correlation, caps=caps,
+                         window_seconds=window_seconds)
         self.model = model
         self.weight = None
         self._order_model = np.array([list(model.classes).index(name) for name in self.classes])

@@ -113,7 +113,8 @@ def refuse_uncalibrated(rules: DecisionRules, models: Sequence[TextureModel | Ea
                          "version 1 model file): retrain with `supramodal train`")
 
 
-def decider_for(model: TextureModel, rules: DecisionRules, where: str = "[decision]") -> Decider:
+def decider_for(model: TextureModel, rules: DecisionRules, where: str = "[decision]",
+                window_seconds: float | None = None) -> Decider:
     """The :class:`~supramodal.decisions.Decider` of a stream of ``model`` with the scene's
     ``[decision]`` ``rules``; refuses rules the model cannot follow (a confidence threshold or
     "unknown" without a calibration, "unknown" without a novelty score), naming the fix."""
@@ -124,7 +125,9 @@ def decider_for(model: TextureModel, rules: DecisionRules, where: str = "[decisi
             raise InputError(f"{where} unknown needs a model with a novelty score: retrain it with `supramodal train`")
         threshold = model.novelty.threshold(rules.unknown)
     correlation, caps = model.calibration.contact_pooling if model.calibration is not None else (0.0, None)
-    return Decider(model.classes, rules, correlation, threshold, caps=caps)
+    if window_seconds is None:
+        window_seconds = model.window_samples / model.bank.fs
+    return Decider(model.classes, rules, correlation, threshold, caps=caps, window_seconds=window_seconds)
 
 
 class Stream:

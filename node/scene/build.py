@@ -451,7 +451,7 @@ def build_node(scene: Scene, speed=None, sinks_override=None, progress=None, rec
                     model = _early_model(scene, a, b, held_out, trained, progress)
                     _check_fusion_decision(scene, (model,))
                     fusion = EarlyFusion((a.name, b.name), (_model(a).classes, _model(b).classes), model, max_wait,
-                                         f.decision)
+                                         f.decision, window_seconds=_window_seconds(a))
                 else:
                     # A number: the scene's weight (and sharpness, where the scene gives one);
                     # "learn": learned with the sharpness and the fused pooling on out-of-fold windows.
@@ -461,7 +461,7 @@ def build_node(scene: Scene, speed=None, sinks_override=None, progress=None, rec
                         late = {"weight": float(f.weight), "sharpness": f.sharpness, "correlation": f.correlation}
                     fusion = LateFusion((a.name, b.name), (_model(a).classes, _model(b).classes), late["weight"],
                                         max_wait, f.decision, sharpness=late["sharpness"],
-                                        correlation=late["correlation"])
+                                        correlation=late["correlation"], window_seconds=_window_seconds(a))
             except SceneError:
                 raise                           # says its table already
             except ValueError as exc:
@@ -493,3 +493,8 @@ def build_node(scene: Scene, speed=None, sinks_override=None, progress=None, rec
         for _, _, sink in made:                 # a refused scene leaves no file behind, no outlet open
             sink.close()
         raise
+
+
+def _window_seconds(stream) -> float:
+    """Seconds between a stream's windows (its pipeline's window at its bank's rate)."""
+    return stream.pipeline.window_samples / stream.pipeline.bank.fs

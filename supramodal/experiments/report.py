@@ -155,6 +155,10 @@ def write_figure(name: str, result: dict, out: Path) -> list[Path]:
         from supramodal.experiments.common import progress_to_stderr
 
         return write_calibration(result, out, notice=progress_to_stderr)
+    if name == "change":
+        from supramodal.experiments.change import write_change
+
+        return write_change(result, out)
     if name == "newtouch":
         from supramodal.experiments.newtouch import write_newtouch
 

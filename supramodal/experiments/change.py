@@ -1,0 +1,251 @@
+"""Re-deciding when the texture changes within a contact (issue 34): a whisker array and a microphone
+that slide from surface to surface without lifting off, on the two-sense world with touches.
+
+Per set (:func:`supramodal.twosense.two_sense_set`; the six textures of
+:mod:`supramodal.experiments.newtouch`, ``H2a`` and ``H2b`` left out): each sense's model trained on
+touches 1-2 (calibrated by touch), the late fusion learned on their out-of-fold windows (issue 34's
+rule) with its contact pooling. Scored with :class:`supramodal.decisions.Decider` as a scene's
+``[decision] scope = "contact", n = 0, confidence = 0.99, change = 1`` decides (one false change per
+minute allowed), per stream and fused:
+
+* **Slides**: :data:`SLIDES` touches (touch 4 of every texture) that cross all six textures in a random
+  order, :data:`SEGMENT` seconds each, without a lift-off: a change is *detected* when the decider
+  signals one within :data:`DETECT_WITHIN` windows of the boundary (the boundary's window counts as
+  the first); its delay in windows; the share of detections that name the new texture.
+* **Still touches**: touch 3 of every texture, one texture throughout: every change signalled is a
+  false one; false changes per minute, there and in the slides away from any boundary.
+* **Anytime after a change and after a lift-off**: the share of segments after the first of a slide
+  whose decision (the final one where the 0.99 was reached, else the pooled one at the segment's end)
+  names the texture, beside the same for contacts of the same length that start with a lift-off
+  (touch 3 cut into segments, each decided from its first window).
+
+    supramodal experiment change [--quick] [--sets N] [--seed S] [--out DIR]
+    python -m supramodal.experiments.change [--quick] [--sets N] [--seed S]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from typing import Any
+
+import numpy as np
+
+from supramodal.banks import cochlea_bank, whisker_bank
+from supramodal.decisions import Decider, DecisionRules
+from supramodal.errors import InputError
+from supramodal.experiments.common import Run
+from supramodal.experiments.newtouch import FEATURES, TOUCHES, touch_features
+from supramodal.experiments.newtouch import UNKNOWN as LEFT_OUT
+from supramodal.features import DEFAULT_WINDOW
+from supramodal.fused_model import fused_pooling, learn_late_fusion_out_of_fold, senses_out_of_fold
+from supramodal.fusion import fuse_late
+from supramodal.mlp import DEFAULT_EPOCHS
+from supramodal.model import TextureModel
+from supramodal.pipeline import extract_features, window_length
+from supramodal.twosense import synthesize_slide, two_sense_set
+
+#: Seconds of each texture in a slide.
+SEGMENT = 3.0
+#: Slides per set.
+SLIDES = 4
+#: A change is detected when the decider signals one within this many windows of the boundary.
+DETECT_WITHIN = 5
+#: False changes per minute allowed (``[decision] change``).
+CHANGE_RATE = 1.0
+#: The final decision's confidence (``[decision] confidence``).
+CONFIDENCE = 0.99
+STREAMS = ("whiskers", "microphone", "late")
+
+
+def rules() -> DecisionRules:
+    """The ``[decision]`` every stream decides by here."""
+    return DecisionRules(scope="contact", n=0, confidence=CONFIDENCE, change=CHANGE_RATE)
+
+
+def decide(log_posteriors, classes, correlation: float, caps) -> list[dict]:
+    """One contact's windows through a fresh :class:`Decider`: each window's pooled dict."""
+    d = Decider(classes, rules(), correlation, caps=caps, window_seconds=DEFAULT_WINDOW)
+    return [d.decide(lp)["pooled"] for lp in log_posteriors]
+
+
+def _said(pooled: list[dict]) -> str:
+    """A contact's decision: its final one where it was reached, else the pooled one at its end."""
+    final = [p for p in pooled if p.get("decided")]
+    return (final[0] if final else pooled[-1])["label"]
+
+
+def run_set(set_seed: int, seconds: float = 10.0, epochs: int = DEFAULT_EPOCHS, seed: int = 0,
+            progress=None) -> dict:
+    """One set: see the module docstring. Per stream: ``boundaries``, ``detected``, ``delays`` (windows),
+    ``to_new`` (first changes in a segment naming its texture), ``false_changes`` and ``minutes`` (still touches),
+    ``false_in_slides`` and ``slide_minutes``, ``after_change`` and ``after_lift_off`` (segments right, of)."""
+    names, feats = touch_features(set_seed, seconds, progress)
+    known = [i for i, n in enumerate(names) if n not in LEFT_OUT]
+    classes = [names[i] for i in known]
+    banks = {"whiskers": whisker_bank(), "microphone": cochlea_bank()}
+    per = len(feats[known[0], 0][0])
+    seg = int(round(SEGMENT / DEFAULT_WINDOW))
+    if per < seg:
+        raise InputError(f"touches of {seconds:g} s are shorter than a slide's segments of {SEGMENT:g} s")
+    y_train = np.concatenate([np.full(per, k) for k in range(len(known)) for _ in range(TOUCHES - 1)])
+    groups = np.concatenate([np.full(per, k * TOUCHES + t) for k in range(len(known)) for t in range(TOUCHES - 1)])
+    models, pooling = {}, {}
+    for s_i, (sense, bank) in enumerate(banks.items()):
+        if progress:
+            progress(f"  set {set_seed}: the {sense} model")
+        train = np.concatenate([feats[i, t][s_i] for i in known for t in range(TOUCHES - 1)])
+        model = models[sense] = TextureModel.train(train, y_train, classes, bank, FEATURES,
+                                                   window_length(DEFAULT_WINDOW, bank.fs), epochs=epochs, seed=seed,
+                                                   groups=groups)
+        assert model.calibration is not None, "calibrated (the default)"
+        pooling[sense] = model.calibration.contact_pooling
+    values = [np.concatenate([feats[i, t][s_i] for i in known for t in range(TOUCHES - 1)]) for s_i in range(2)]
+    held, folds, _ = senses_out_of_fold(list(models.values()), values, y_train, classes, groups)
+    late = learn_late_fusion_out_of_fold(held[0], held[1], y_train, folds)
+    pooling["late"] = (fused_pooling(late["fused"], y_train, folds, groups), None)
+
+    def stream_lps(whisker_values, mic_values) -> dict:
+        lw = models["whiskers"].log_posteriors(whisker_values)
+        lm = models["microphone"].log_posteriors(mic_values)
+        n = min(len(lw), len(lm))
+        return {"whiskers": lw[:n], "microphone": lm[:n],
+                "late": fuse_late(lw[:n], lm[:n], late["weight"], late["sharpness"])}
+
+    out: dict[str, dict[str, Any]] = {
+        s: {"boundaries": 0, "detected": 0, "delays": [], "to_new": 0, "false_changes": 0, "minutes": 0.0,
+            "false_in_slides": 0, "slide_minutes": 0.0, "after_change": [0, 0], "after_lift_off": [0, 0]}
+        for s in STREAMS}
+    # still touches: touch 3 of every texture, one contact each; and the same cut into lift-off contacts
+    for k, i in enumerate(known):
+        lps = stream_lps(feats[i, TOUCHES - 1][0], feats[i, TOUCHES - 1][1])
+        for s in STREAMS:
+            pooled = decide(lps[s], classes, *pooling[s])
+            out[s]["false_changes"] += sum("change" in p for p in pooled)
+            out[s]["minutes"] += len(pooled) * DEFAULT_WINDOW / 60.0
+            for a in range(0, len(lps[s]) - seg + 1, seg):
+                said = _said(decide(lps[s][a:a + seg], classes, *pooling[s]))
+                out[s]["after_lift_off"][0] += said == classes[k]
+                out[s]["after_lift_off"][1] += 1
+    surfaces = two_sense_set(pairs=2, seed=set_seed)
+    rng = np.random.default_rng([set_seed, 34])
+    for r in range(SLIDES):
+        order = [known[k] for k in rng.permutation(len(known))]
+        if progress:
+            progress(f"  set {set_seed}: slide {r + 1}/{SLIDES} across {[names[i] for i in order]}")
+        w, m = synthesize_slide(surfaces, order, SEGMENT, set_seed, TOUCHES)
+        lps = stream_lps(extract_features(w, banks["whiskers"], FEATURES).values,
+                         extract_features(m, banks["microphone"], FEATURES).values)
+        for s in STREAMS:
+            pooled = decide(lps[s], classes, *pooling[s])
+            changes = [(t, p["change"]) for t, p in enumerate(pooled) if "change" in p]
+            found = set()                 # the first change in each segment after a boundary: its detection
+            for b in range(1, len(order)):
+                at = b * seg
+                out[s]["boundaries"] += 1
+                hit = [(t, c) for t, c in changes if at <= t < at + seg]
+                if hit:
+                    t, c = hit[0]
+                    found.add(t)
+                    out[s]["delays"].append(t - at + 1)
+                    out[s]["detected"] += t - at + 1 <= DETECT_WITHIN
+                    out[s]["to_new"] += c["to"] == names[order[b]]
+                # the segment's decision, from the pooled dicts of its own windows (after the change, if found)
+                said = _said(pooled[hit[0][0] if hit else at:at + seg])
+                out[s]["after_change"][0] += said == names[order[b]]
+                out[s]["after_change"][1] += 1
+            out[s]["false_in_slides"] += sum(t not in found for t, _ in changes)
+            out[s]["slide_minutes"] += len(pooled) * DEFAULT_WINDOW / 60.0
+    return {"set_seed": set_seed, "textures": classes, "late_weight": late["weight"],
+            "late_sharpness": late["sharpness"], "streams": out}
+
+
+def summarize(results: list[dict]) -> dict:
+    """Every set's counts together, per stream."""
+    out = {}
+    for s in STREAMS:
+        rows = [r["streams"][s] for r in results]
+        boundaries = sum(r["boundaries"] for r in rows)
+        delays = [d for r in rows for d in r["delays"]]
+        after = [sum(r["after_change"][k] for r in rows) for k in (0, 1)]
+        lift = [sum(r["after_lift_off"][k] for r in rows) for k in (0, 1)]
+        out[s] = {"boundaries": boundaries, "detected": sum(r["detected"] for r in rows) / boundaries,
+                  "found": len(delays) / boundaries,
+                  "to_new": sum(r["to_new"] for r in rows) / max(1, len(delays)),
+                  "median_delay": float(np.median(delays)) if delays else None,
+                  "false_per_minute": sum(r["false_changes"] for r in rows) / sum(r["minutes"] for r in rows),
+                  "false_per_minute_slides": sum(r["false_in_slides"] for r in rows)
+                  / sum(r["slide_minutes"] for r in rows),
+                  "after_change": after[0] / after[1], "after_lift_off": lift[0] / lift[1],
+                  "segments": after[1], "lift_off_contacts": lift[1]}
+    return out
+
+
+def run_change(sets: int = 5, quick: bool = False, epochs: int = DEFAULT_EPOCHS, seed: int = 0, progress=None,
+               jobs: int | None = None) -> dict:
+    """:func:`run_set` over ``sets`` sets on ``jobs`` worker processes; ``quick``: 6 s still touches."""
+    from supramodal.experiments.runner import run_all
+
+    if sets < 1:
+        raise InputError(f"--sets must be >= 1 for the change experiment, got {sets}")
+    seconds = 6.0 if quick else 10.0
+    t0 = time.perf_counter()
+    runs = [Run(("change", seed + k), run_set, {"set_seed": seed + k, "seconds": seconds, "epochs": epochs,
+                                                 "seed": seed}, 10 * seconds, seeded=False) for k in range(sets)]
+    results = list(run_all(runs, jobs=jobs, seed=seed, progress=progress).values())
+    return {"figure": "change", "seconds": seconds, "segment": SEGMENT, "slides": SLIDES,
+            "detect_within": DETECT_WITHIN, "change_rate": CHANGE_RATE, "confidence": CONFIDENCE, "sets": results,
+            "summary": summarize(results), "compute_seconds": time.perf_counter() - t0}
+
+
+def change_table(result: dict) -> str:
+    """The experiment's figures as Markdown."""
+    lines = [f"{len(result['sets'])} two-sense sets, 6 textures; slides of {result['segment']:g} s per texture "
+             f"({result['slides']} a set, touch 4), still touches of {result['seconds']:g} s (touch 3); [decision] "
+             f"scope = \"contact\", confidence = {result['confidence']:g}, change = {result['change_rate']:g} per "
+             "minute", "",
+             f"| stream | changes detected within {result['detect_within']} windows | at all (in the segment) | "
+             "naming the new texture | median delay (windows) | false changes per minute, still | in slides | "
+             "right after a change | right after a lift-off |", "|---|---|---|---|---|---|---|---|---|"]
+    for s, v in result["summary"].items():
+        delay = "-" if v["median_delay"] is None else f"{v['median_delay']:g}"
+        lines.append(f"| {s} | {v['detected']:.3f} of {v['boundaries']} | {v['found']:.3f} | {v['to_new']:.3f} | "
+                     f"{delay} | "
+                     f"{v['false_per_minute']:.2f} | {v['false_per_minute_slides']:.2f} | {v['after_change']:.3f} of "
+                     f"{v['segments']} | {v['after_lift_off']:.3f} of {v['lift_off_contacts']} |")
+    return "\n".join(lines)
+
+
+def write_change(result: dict, out) -> list:
+    """``change.csv``: one row per stream, the summary's figures."""
+    import csv
+    from pathlib import Path
+
+    path = Path(out) / "change.csv"
+    rows = [{"stream": s, **v} for s, v in result["summary"].items()]
+    with open(path, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    return [path]
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="python -m supramodal.experiments.change", description=__doc__.splitlines()[0])
+    p.add_argument("--quick", action="store_true", help="6 s still touches and 2 sets (default: 10 s, --sets)")
+    p.add_argument("--sets", type=int, default=5, help="random two-sense texture sets (default 5)")
+    p.add_argument("--seed", type=int, default=0, help="first set's seed and the networks' seed (default 0)")
+    p.add_argument("--epochs", type=int, default=DEFAULT_EPOCHS, help=f"iRPROP- epochs (default {DEFAULT_EPOCHS})")
+    p.add_argument("--jobs", type=int, help="worker processes (default: all cores)")
+    args = p.parse_args(argv)
+    from supramodal.experiments.common import progress_to_stderr
+
+    result = run_change(2 if args.quick else args.sets, args.quick, args.epochs, args.seed, progress_to_stderr,
+                        args.jobs)
+    print(change_table(result))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

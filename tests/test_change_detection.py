@@ -1,0 +1,160 @@
+"""Re-deciding when the texture changes within a contact (issue 34): the change detector against a plain
+version of the same test, the decider's pooled decision starting again, and the scene's key."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from supramodal.calibration import pool_log_posteriors
+from supramodal.decisions import CHANGE_LOOKBACK, ChangeDetector, Decider, DecisionRules
+from supramodal.errors import InputError
+
+
+def _plain_alarm(recent: list[np.ndarray], current: int, correlation: float, caps, threshold: float):
+    """The detector's test written out: every stretch of the last n windows pooled as a contact, its pooled
+    log-odds of each other class against the current one; the largest, if past the threshold."""
+    best = None
+    for n in range(1, len(recent) + 1):
+        pooled = pool_log_posteriors(np.array(recent[-n:]), correlation, caps)
+        for j in range(len(pooled)):
+            if j != current and pooled[j] - pooled[current] > threshold:
+                lead = pooled[j] - pooled[current]
+                if best is None or lead > best[0]:
+                    best = (lead, j, n)
+    return None if best is None else (best[1], best[2])
+
+
+def _windows(rng, labels, sure: float = 0.8, classes: int = 4) -> np.ndarray:
+    """Calibrated log-posteriors of windows of the given true classes, right on a share ``sure``."""
+    n = len(labels)
+    said = np.where(rng.random(n) < sure, labels, (labels + rng.integers(1, classes, n)) % classes)
+    p = np.full((n, classes), (1 - sure) / (classes - 1))
+    p[np.arange(n), said] = sure
+    return np.log(p)
+
+
+@pytest.mark.parametrize("correlation, capped", [(0.0, False), (0.6, False), (0.6, True)])
+def test_the_detector_signals_what_the_plain_test_signals(correlation, capped):
+    rng = np.random.default_rng(int(correlation * 10) + capped)
+    labels = np.repeat(rng.integers(0, 4, 12), rng.integers(5, 40, 12))
+    lps = _windows(rng, labels)
+    caps = None
+    if capped:
+        caps = rng.uniform(2.0, 12.0, (4, 4))
+        np.fill_diagonal(caps, 0.0)
+    detector = ChangeDetector(4, 600, correlation, caps)
+    recent: list[np.ndarray] = []
+    current, alarms = 0, 0
+    for lp in lps:
+        recent = (recent + [lp])[-CHANGE_LOOKBACK:]
+        expected = _plain_alarm(recent, current, correlation, caps, detector.threshold)
+        got = detector.update(lp, current)
+        assert got == expected
+        if got is not None:
+            alarms += 1
+            current, since = got
+            recent = recent[-since:]
+    assert alarms >= (2 if capped else 5), alarms       # the texture changed 11 times (caps hide some pairs)
+
+
+def test_a_pair_the_caps_hold_near_even_never_signals():
+    rng = np.random.default_rng(1)
+    labels = np.repeat([0, 1, 0, 1], 40)
+    caps = np.full((4, 4), 30.0)
+    caps[0, 1] = caps[1, 0] = 0.5                       # 0 and 1: a pair the network cannot tell apart
+    np.fill_diagonal(caps, 0.0)
+    detector = ChangeDetector(4, 600, 0.3, caps)
+    assert all(detector.update(lp, 0) is None for lp in _windows(rng, labels, sure=0.95))
+    uncapped = ChangeDetector(4, 600, 0.3, None)
+    assert any(uncapped.update(lp, 0) is not None for lp in _windows(rng, labels, sure=0.95))
+
+
+def test_the_decider_starts_again_from_the_change():
+    """A contact that slides from texture 0 to texture 2 without lifting off: the final decision for 0
+    stands until the change, which is said once, names 2, and starts a pooled decision (and a final one)
+    of its own from the windows since it began."""
+    rng = np.random.default_rng(2)
+    lps = _windows(rng, np.repeat([0, 2], 40), sure=0.9)
+    rules = DecisionRules(scope="contact", n=0, confidence=0.99, change=1.0)
+    decider = Decider(["a", "b", "c", "d"], rules, correlation=0.3)
+    pooled = [decider.decide(lp)["pooled"] for lp in lps]
+    changes = [(t, p["change"]) for t, p in enumerate(pooled) if "change" in p]
+    assert len(changes) == 1
+    t, change = changes[0]
+    assert 40 <= t < 40 + 10 and change["from"] == "a" and change["to"] == "c" and change["after"] <= t - 40 + 1
+    assert all(p["label"] == "a" for p in pooled[5:40])
+    assert pooled[-1]["label"] == "c" and pooled[-1].get("decided") is True
+    assert decider.summary()["changes"] == 1
+    # without the rule, the contact keeps its first texture to the end (the issue's complaint)
+    plain = Decider(["a", "b", "c", "d"], DecisionRules(scope="contact", n=0, confidence=0.99), correlation=0.3)
+    assert [plain.decide(lp)["pooled"] for lp in lps][-1]["label"] == "a"
+
+
+def test_still_touches_change_less_than_asked():
+    """One texture throughout, independent calibrated windows right on half, 70 % and 90 % of them: 9 touches
+    of 6000 windows (10 minutes at 100 ms each): fewer false changes than the one per minute asked (a false
+    change and the change back each count; measured 35 in the 90 minutes)."""
+    changes = 0
+    for seed in range(3):
+        rng = np.random.default_rng(seed)
+        for sure in (0.5, 0.7, 0.9):
+            decider = Decider(["a", "b", "c", "d"], DecisionRules(scope="contact", n=20, change=1.0))
+            for lp in _windows(rng, np.zeros(6000, dtype=int), sure=sure):
+                decider.decide(lp)
+            changes += decider.summary()["changes"]
+    assert changes < 90
+
+
+def test_the_rule_needs_a_contact_and_log_pooling():
+    with pytest.raises(InputError, match="scope = \"contact\""):
+        Decider(["a", "b"], DecisionRules(scope="last", n=5, change=1.0))
+    with pytest.raises(InputError, match="more than one window per false change"):
+        ChangeDetector(3, 1.0)
+
+
+def test_the_scene_key_is_checked():
+    from supramodal.node.scene.schema import SceneError, scene_from_dict
+
+    base = {"driver": {"type": "synth"}, "model": {"train_on_start": True}}
+    scene = scene_from_dict({**base, "decision": {"scope": "contact", "change": 2.0}})
+    assert scene.streams[0].decision.change == 2.0
+    with pytest.raises(SceneError, match="change = 1 re-decides"):
+        scene_from_dict({**base, "decision": {"scope": "window", "change": 1.0}})
+    with pytest.raises(SceneError, match="change"):
+        scene_from_dict({**base, "decision": {"scope": "contact", "change": -1.0}})
+
+
+@pytest.mark.slow      # a model trained on start (cached after the first run) and two runs of 12 s of stream
+def test_the_node_re_decides_a_slide_across_textures(tmp_path):
+    """The node end to end: the two-sense world's microphone plays four textures back to back with no silence
+    between them (one contact), through a model trained on start, decided per contact with `change = 1`. Its
+    window events say each change (from one texture to another, the windows since it began), and the pooled
+    decision then counts only those windows; a change follows each boundary within a second. Without the
+    rule, one pooled decision runs over the whole contact."""
+    from supramodal.node.runtime.sinks import ListSink
+    from supramodal.node.scene.build import build_node
+    from supramodal.node.scene.schema import scene_from_dict
+
+    def run(decision: dict) -> list[dict]:
+        d = {"source": [{"name": "mic", "type": "twosense", "sense": "microphone", "seconds": 3.0,
+                         "order": ["H1a", "H1b", "F1a", "F2a"]}],
+             "stream": [{"name": "mic", "source": "mic", "bank": {"kind": "cochlea"},
+                         "model": {"train_on_start": True},
+                         "decision": {"scope": "contact", "n": 0, "confidence": 0.99, **decision}}]}
+        sink = ListSink()
+        graph = build_node(scene_from_dict(d, "slide.toml", tmp_path), speed=float("inf"), sinks_override=[sink],
+                           progress=None)
+        graph.run()
+        return [e for e in sink.events if "accumulated" in e]
+
+    events = run({"change": 1.0})
+    changed = [(e["window"], e["accumulated"]) for e in events if "change" in e["accumulated"]]
+    for window, pooled in changed:
+        c = pooled["change"]
+        assert c["from"] != c["to"] and 1 <= c["after"] <= 20 and pooled["windows"] == c["after"]
+    boundaries = (30, 60, 90)                               # 3 s of each texture, windows of 100 ms
+    assert sum(any(b <= w < b + 10 for w, _ in changed) for b in boundaries) >= 2
+    assert [e["window"] for e in events] == list(range(120))
+    plain = run({})
+    assert [e["accumulated"]["windows"] for e in plain] == list(range(1, 121))     # one contact, never restarted
