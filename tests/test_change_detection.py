@@ -158,3 +158,19 @@ def test_the_node_re_decides_a_slide_across_textures(tmp_path):
     assert [e["window"] for e in events] == list(range(120))
     plain = run({})
     assert [e["accumulated"]["windows"] for e in plain] == list(range(1, 121))     # one contact, never restarted
+
+
+@pytest.mark.slow      # one set on the command line: its table and CSV
+def test_experiment_change_on_the_command_line_writes_its_table_and_csv(tmp_path, capsys):
+    import csv
+
+    from supramodal.node.cli import main
+
+    assert main(["experiment", "change", "--quick", "--sets", "1", "--epochs", "40", "--out", str(tmp_path),
+                 "--quiet"]) == 0
+    assert "| late |" in capsys.readouterr().out
+    rows = list(csv.DictReader(open(tmp_path / "change.csv")))
+    assert [r["stream"] for r in rows] == ["whiskers", "microphone", "late"]
+    for r in rows:
+        assert int(r["boundaries"]) == 20 and 0.0 <= float(r["detected"]) <= float(r["found"]) <= 1.0
+    assert main(["experiment", "change", "--sets", "0", "--out", str(tmp_path)]) == 2
