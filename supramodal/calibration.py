@@ -1020,6 +1020,21 @@ def mean_confidence(report: dict) -> float:
     return float((counts * conf).sum() / counts.sum())
 
 
+def ece_if_calibrated(report: dict, quantile: float = 0.95, draws: int = 400, seed: int = 0) -> float:
+    """The ECE a perfectly calibrated model would exceed once in ``1 - quantile`` on as many decisions as a
+    :func:`calibration_report`'s, at its confidences: each reliability bin's decisions right at random
+    with the bin's mean confidence (binomial), ``draws`` times. A few hundred decisions have an ECE of a few
+    hundredths by chance alone, which a fixed bound would take for a calibration that does not hold."""
+    r = report["reliability"]
+    counts = np.asarray(r["count"], dtype=np.int64)
+    conf = np.array([0.0 if c is None else c for c in r["confidence"]])
+    rng = np.random.default_rng(seed)
+    right = rng.binomial(counts[None, :], np.clip(conf, 0.0, 1.0)[None, :], size=(draws, len(counts)))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        gaps = np.where(counts > 0, np.abs(right / np.maximum(counts, 1) - conf), 0.0)
+    return float(np.quantile((gaps * counts).sum(axis=1) / counts.sum(), quantile))
+
+
 def calibration_report(log_posteriors, labels, bins: int = ECE_BINS, sure: float = 0.99) -> dict:
     """Accuracy, log loss, Brier score, ECE and the reliability data of decisions whose
     log-posteriors (n, classes) and true ``labels`` (n,) are given; also how many say at least

@@ -207,13 +207,14 @@ class DecisionAccumulator:
         self._history.clear()
         self._final = None
 
-    def restart(self, keep: int) -> Decision:
+    def restart(self, keep: int, may_decide: bool = True) -> Decision:
         """Forget the final decision and every pooled window but the last ``keep`` (>= 1; the texture changed
-        ``keep`` windows ago), and return the decision of those."""
+        ``keep`` windows ago), and return the decision of those, final at once where it is sure enough (as
+        :meth:`update` decides)."""
         kept = list(self._history)[-keep:]
         self.reset()
         self._history.extend(kept)
-        return self._pooled()
+        return self._final_if_sure(self._pooled(), may_decide)
 
     def update(self, log_posteriors: np.ndarray, in_contact: bool = True, may_decide: bool = True) -> Decision:
         """Add one window's log-posteriors (classes,) and return the current decision.
@@ -231,7 +232,10 @@ class DecisionAccumulator:
         self._history.append(lp)
         if self._final is not None:
             return self._final
-        d = self._pooled()
+        return self._final_if_sure(self._pooled(), may_decide)
+
+    def _final_if_sure(self, d: Decision, may_decide: bool) -> Decision:
+        """``d``, made the contact's final decision where its confidence reaches the threshold."""
         if self.confidence is not None and may_decide and d.label >= 0 and d.confidence >= self.confidence:
             d = Decision(d.label, d.confidence, d.windows, decided=True)
             self._final = d
@@ -379,11 +383,16 @@ class Decider:
             self._unknown_flags = deque(maxlen=maxlen)
         self.detector: ChangeDetector | None = None
         if rules.change:
-            if rules.scope != "contact" or rules.method != "log":
-                raise InputError("[decision] change re-decides within a contact: it needs scope = \"contact\" and "
-                                 f"method = \"log\" (scope is {rules.scope!r}, method {rules.method!r})")
-            self.detector = ChangeDetector(len(self.classes), _MINUTE / (window_seconds * rules.change), correlation,
-                                           caps)
+            if rules.scope != "contact" or rules.method != "log" or rules.n != 0:
+                raise InputError("[decision] change re-decides within a contact: it needs scope = \"contact\", "
+                                 f"method = \"log\" and n = 0 (scope is {rules.scope!r}, method {rules.method!r}, n "
+                                 f"{rules.n}; with n > 0 the pooled decision forgets older windows by itself)")
+            per_change = _MINUTE / (window_seconds * rules.change)
+            if per_change <= 1:
+                raise InputError(f"[decision] change = {rules.change:g} per minute allows a false change every "
+                                 f"{per_change:g} windows of {window_seconds:g} s: ask for fewer than "
+                                 f"{_MINUTE / window_seconds:g} per minute")
+            self.detector = ChangeDetector(len(self.classes), per_change, correlation, caps)
         self._label = -1                              # the pooled decision before this window, as a class index
         self.changes = 0
         self.unknown = {"novel": 0, "unsure": 0, "tie": 0}
@@ -439,8 +448,8 @@ class Decider:
             self._unknown_flags.clear()
             self._unknown_flags.extend(kept)
             self._final = None
-            d = self.accumulator.restart(since)
             mostly_unknown = 2 * sum(self._unknown_flags) > len(self._unknown_flags)
+            d = self.accumulator.restart(since, may_decide=not mostly_unknown)
             changed = {"from": self.classes[self._label], "to": self.classes[to], "after": since}
             self.changes += 1
         self._label = -1 if (d.label < 0 or mostly_unknown) else d.label
@@ -456,12 +465,13 @@ class Decider:
                 out["decided_after"] = d.windows
                 self.contacts_decided += 1
                 self.windows_to_decide.append(d.windows)
-                self._final = out
+                self._final = {k: v for k, v in out.items() if k != "change"}     # the change is said once
         return out
 
     def summary(self) -> dict:
         """``unknown`` windows by reason; with a confidence threshold, ``contacts_decided`` and the
-        median ``windows_to_decide``."""
+        median ``windows_to_decide`` (with ``change``, a change starts a decision of its own, counted
+        too); with ``change``, ``changes``."""
         out: dict[str, Any] = {"unknown_windows": dict(self.unknown)}
         if self.detector is not None:
             out["changes"] = self.changes

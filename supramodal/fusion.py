@@ -60,9 +60,9 @@ def learn_late_fusion(log_posteriors_a: np.ndarray, log_posteriors_b: np.ndarray
     weights whose fused log loss is within one standard error (of the per-window difference) of the
     lowest, contiguous with it. A weight at the plateau's edge may stand beside a cliff that a new
     touch crosses (issue 34: 0.05..0.55 right on 0.990..0.998 of windows, 0.65 on 0.842); its middle
-    is as good on these windows and farther from the cliff. The weights 0 and 1 (one sense alone, at
-    most as sure as its calibration) are candidates, so on these windows the fusion's log loss is
-    never above the better sense's.
+    is about as good on these windows and farther from the cliff. The weights 0 and 1 (one sense alone,
+    at most as sure as its calibration) are candidates, so on these windows the best weight's log loss
+    is never above the better sense's, and the weight kept is within one standard error of it.
 
     The windows must be held out from both senses' networks (out-of-fold windows): on their own
     training windows both are nearly always right and say nothing of each other's worth.

@@ -46,6 +46,7 @@ from supramodal.calibration import (
     Calibration,
     Novelty,
     OutOfFold,
+    calibration_line,
     fit_network_calibration,
     input_scaling,
     normalised_log_posteriors,
@@ -257,7 +258,10 @@ class TextureModel:
         x = self._inputs(values)
         groups = y if groups is None else np.asarray(groups)
         calibration, novelty = recalibrate(self.mlp.logits(x), y, groups, x, self.novelty, what)
-        return replace(self, calibration=calibration, novelty=novelty, out_of_fold=None)
+        if self.calibration is not None:        # what it replaces, in words: the file says both
+            before = calibration_line(self.calibration.fitted_on)
+            calibration = replace(calibration, fitted_on={**calibration.fitted_on, "recalibrated_from": before})
+        return replace(self, calibration=calibration, novelty=novelty, out_of_fold=None, training=dict(self.training))
 
     def predict(self, values: np.ndarray) -> np.ndarray:
         """Winner-take-all class index per window, shape (n,)."""

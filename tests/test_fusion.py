@@ -122,11 +122,13 @@ def _calibrated(rng, labels, right: float, classes: int = 4) -> np.ndarray:
     return np.log(p)
 
 
-@pytest.mark.parametrize("seed", range(6))
+@pytest.mark.parametrize("seed", [0, 1, 2, 3, 4, 5, 122])
 def test_a_learned_late_fusion_is_never_surer_than_both_senses_multiplied(seed):
     """Both senses right on every held-out window (the training touch, where nothing disagrees): the
     sharpness stays at the naive-Bayes bound 1 / max(w, 1 - w) (before: it grew until every window said
-    1.00); and on the windows it is learned on, the fused log loss is never above the better sense's."""
+    1.00); and on the windows it is learned on, the fused log loss is above the better sense's by less than
+    two standard errors of their per-window difference (the weight kept is its plateau's middle, within one
+    standard error of the best, and the best is never above a sense alone)."""
     from supramodal.calibration import log_loss
     from supramodal.fusion import sharpness_bound
 
@@ -138,7 +140,11 @@ def test_a_learned_late_fusion_is_never_surer_than_both_senses_multiplied(seed):
     assert np.exp(fuse_late(a, b, w, s)).max() < 1.0      # not every window at 1.00
     a, b = _calibrated(rng, y, rng.uniform(0.3, 0.95)), _calibrated(rng, y, rng.uniform(0.3, 0.95))
     w, s = learn_late_fusion(a, b, y)
-    assert log_loss(fuse_late(a, b, w, s), y) <= min(log_loss(a, y), log_loss(b, y)) + 1e-9
+    rows = np.arange(len(y))
+    fused = -fuse_late(a, b, w, s)[rows, y]
+    better = min((a, b), key=lambda lp: log_loss(lp, y))
+    d = fused + better[rows, y]                          # per window: the fusion's loss minus the better sense's
+    assert d.mean() <= 2 * d.std(ddof=1) / np.sqrt(len(d)) + 1e-9
 
 
 def test_the_late_weight_is_the_middle_of_its_plateau_not_its_edge():

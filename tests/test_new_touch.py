@@ -96,6 +96,20 @@ def test_recalibration_keeps_the_network_and_fits_the_new_touch(small_model, tmp
     np.testing.assert_allclose(back.novelty.quantiles, model.novelty.quantiles)
 
 
+def test_recalibration_says_what_it_replaced_and_leaves_the_model_given_as_it_was(small_model):
+    rng = np.random.default_rng(6)
+    x, y = _windows(rng, 40, gain=1.2)
+    before = dict(small_model.training), small_model.calibration
+    model = small_model.recalibrated(x, y, what="a new touch")
+    assert model.calibration.fitted_on["recalibrated_from"].startswith("calibrated on ")
+    model.training["sessions"] = ["x"]
+    assert small_model.training == before[0] and small_model.calibration == before[1]
+    # the new thresholds: of the windows they were set on, about the asked share is called unknown
+    assert model.novelty.pools
+    rate = np.mean(model.novelty_score(x) > model.novelty.threshold(0.1))
+    assert abs(rate - 0.1) <= 0.03
+
+
 def test_recalibration_needs_every_class(small_model):
     rng = np.random.default_rng(2)
     x, y = _windows(rng, 20)
@@ -230,6 +244,16 @@ def test_recalibrate_writes_the_model_with_its_network_and_a_calibration_of_the_
     assert TextureModel.load(touches / "m.npz").calibration == old.calibration
 
 
+def test_recalibrate_never_writes_over_the_model_it_reads(touches, capsys):
+    from supramodal.node.cli import main
+
+    model = (touches / "m.npz").read_bytes()
+    assert main(["recalibrate", str(touches / "m.npz"), "--manifest", str(touches / "new.csv"), "--out",
+                 str(touches / "m.npz"), "--force", "--quiet"]) == 2
+    assert "is the model being recalibrated" in capsys.readouterr().err
+    assert (touches / "m.npz").read_bytes() == model
+
+
 @pytest.mark.parametrize("extra, says", [
     (["--manifest", "stranger.csv"], "label(s) ['gravel'] are not among the model's classes"),
     (["--scene", "x.toml"], "--stream NAME"),
@@ -272,6 +296,34 @@ def test_evaluate_says_plainly_whether_the_confidence_holds_on_the_recordings():
     c = {k: boastful[k] for k in ("n", "accuracy", "ece")} | {"confidence": mean_confidence(boastful)}
     assert "surer than it is right" in confidence_verdict(c) and "supramodal recalibrate" in confidence_verdict(c)
     assert "then learn the fusion again" in confidence_verdict(c, fused=True)
+
+
+def test_the_verdict_does_not_take_chance_on_few_windows_for_a_calibration_that_fails():
+    """Windows that are right exactly as often as they say (drawn so): on 60 of them the ECE often passes
+    0.05 by chance alone, and the verdict then mostly says there are too few to tell (a calibrated model's
+    ECE passes the 95th percentile of chance one time in 20); on 20000 the same model's ECE is far below,
+    and a model that says 0.9 where it is right on 0.6 is told apart on either."""
+    from supramodal.calibration import ece_if_calibrated, mean_confidence
+    from supramodal.node.workflows.reports import confidence_verdict
+
+    def verdict(n: int, says: float, right: float, seed: int) -> tuple[str, dict]:
+        rng = np.random.default_rng(seed)
+        y = rng.integers(0, 3, n)
+        said = np.where(rng.random(n) < right, y, (y + 1) % 3)
+        p = np.full((n, 3), (1 - says) / 2)
+        p[np.arange(n), said] = says
+        r = calibration_report(np.log(p), y)
+        c = {k: r[k] for k in ("n", "accuracy", "ece")} | {"confidence": mean_confidence(r),
+                                                            "ece_if_calibrated": ece_if_calibrated(r)}
+        return confidence_verdict(c), r
+
+    few = [verdict(60, 0.7, 0.7, seed) for seed in range(40)]
+    chance = [text for text, r in few if r["ece"] > 0.05]
+    assert len(chance) >= 10 and sum("too few windows to tell" in text for text in chance) >= 0.7 * len(chance)
+    assert sum("does not hold" in text for text, _ in few) <= 6            # 2 expected of 40
+    assert "holds" in verdict(20000, 0.7, 0.7, 0)[0]
+    for n in (60, 20000):
+        assert "does not hold" in verdict(n, 0.9, 0.6, 1)[0]
 
 
 @pytest.mark.slow      # one set on the command line: its table, CSV and plot

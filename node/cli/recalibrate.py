@@ -4,8 +4,10 @@ recordings of a new touch, session or sensor, its network kept."""
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 from supramodal.node.cli.arguments import mapping, output_file, progress
+from supramodal.node.cli.errors import CliError
 
 
 def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
@@ -45,15 +47,17 @@ def run(args: argparse.Namespace) -> int:
         The exit status (0: done).
     """
     from supramodal.calibration import calibration_line
-    from supramodal.model import TextureModel
     from supramodal.node.cli.signals import interrupt_until_running
     from supramodal.node.cli.train import save_model
     from supramodal.node.runtime.outputs import check_new_file
     from supramodal.node.workflows.training import recalibrate_model
 
     interrupt_until_running("the recalibration; a model file is written whole or not at all")
+    if Path(args.out).resolve() == Path(args.model).resolve():
+        raise CliError(f"--out {args.out} is the model being recalibrated: write the recalibrated model to a file of "
+                       "its own, so that the model and its calibration stay as they were")
     check_new_file(args.out, args.force, "the model file")
-    model = TextureModel.load(args.model)
+    model = _sense_model(args.model)
     if model.calibration is None:
         print("supramodal: the model was not calibrated (a version 1 file): it is calibrated now, on these recordings")
     before = calibration_line(None if model.calibration is None else model.calibration.fitted_on)
@@ -66,3 +70,17 @@ def run(args: argparse.Namespace) -> int:
     if new.novelty is not None:
         print("unknown: the thresholds of [decision] unknown are set on these recordings' windows")
     return 0
+
+
+def _sense_model(path):
+    """The sense model at ``path``; an early-fusion file is refused with what to do instead."""
+    from supramodal.fused_model import EARLY_FORMAT
+    from supramodal.model import ModelError, TextureModel
+
+    try:
+        return TextureModel.load(path)
+    except ModelError as exc:
+        if EARLY_FORMAT in str(exc):
+            raise CliError(f"{path} is an early-fusion model: recalibrate takes a sense model; recalibrate each "
+                           "sense, then learn the early fusion again (train --fusion early)") from None
+        raise

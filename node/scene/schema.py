@@ -135,7 +135,7 @@ SECTIONS = {
         "unknown_below": Key(number(0.0, 1.0, hi_open=True), "calibrated confidence below which a window is unknown, "
                              "0 <= c < 1 (0: off)", DEFAULT_DECISION.unknown_below),
         "change": Key(number(0.0, 60.0), "false changes of texture per minute allowed within a contact, 0 <= f <= 60 "
-                      "(0: off; needs scope = \"contact\")", DEFAULT_DECISION.change),
+                      "(0: off; needs scope = \"contact\", method = \"log\" and n = 0)", DEFAULT_DECISION.change),
         # Not a DecisionRules field: where the node reads contacts (supramodal.drivers.contact), not how it decides.
         "contact_from": Key(text, 'the robot\'s contact signal, in place of the input\'s RMS: '
                             '"ros2:TOPIC" (std_msgs/Bool) or "lsl:NAME" (a marker stream); needs scope = "contact"',
@@ -330,10 +330,11 @@ def _check_decision(source: str, decision: dict, where: str) -> None:
         if decision["scope"] != "contact":
             raise SceneError(f"{source}: {where} contact_from = {decision['contact_from']!r} says when the robot "
                              f"touches: it needs scope = \"contact\" (scope is {decision['scope']!r})")
-    if decision["change"] and (decision["scope"] != "contact" or decision["method"] != "log"):
+    if decision["change"] and (decision["scope"] != "contact" or decision["method"] != "log" or decision["n"]):
         raise SceneError(f"{source}: {where} change = {decision['change']:g} re-decides when the texture changes "
-                         f"within a contact: it needs scope = \"contact\" and method = \"log\" (scope is "
-                         f"{decision['scope']!r}, method {decision['method']!r})")
+                         f"within a contact: it needs scope = \"contact\", method = \"log\" and n = 0 (scope is "
+                         f"{decision['scope']!r}, method {decision['method']!r}, n {decision['n']}; with n > 0 the "
+                         "pooled decision forgets older windows by itself)")
     if decision["confidence"] and decision["scope"] != "contact":
         raise SceneError(f"{source}: {where} confidence = {decision['confidence']:g} decides a contact as soon as it "
                          f"is sure: it needs scope = \"contact\" (scope is {decision['scope']!r})")

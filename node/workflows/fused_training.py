@@ -27,6 +27,7 @@ from supramodal.calibration import (
     DEFAULT_CALIBRATION_FOLDS,
     calibration_folds,
     calibration_report,
+    ece_if_calibrated,
     mean_confidence,
     winner,
 )
@@ -389,7 +390,8 @@ def evaluate_fused(paths, fused_model=None, progress=None, contact_windows: int 
                      "unknown": sum(d not in classes[name] for _, d in decided[name]),
                      "calibration": None if report is None else
                      {k: report[k] for k in ("n", "accuracy", "log_loss", "brier", "ece", "sure", "sure_count",
-                                             "sure_wrong")} | {"confidence": mean_confidence(report)},
+                                             "sure_wrong")} | {"confidence": mean_confidence(report),
+                                                               "ece_if_calibrated": ece_if_calibrated(report)},
                      "scored": what.get(name, [])}
     return out
 

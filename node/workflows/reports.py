@@ -49,7 +49,8 @@ def write_staged(folder: Path, write: Callable[[Path], list[Path]]) -> list[Path
 def confidence_verdict(calibration: dict, fused: bool = False) -> str:
     """Whether decisions on labelled recordings were about as sure as they were right, in one line: their
     mean stated confidence beside their accuracy, and the ECE against
-    :data:`supramodal.calibration.HOLDS_ECE` (``calibration``: ``accuracy``, ``confidence``, ``ece``, ``n``), and
+    :data:`supramodal.calibration.HOLDS_ECE` and against what a calibrated model's would reach by chance on as
+    many windows (``calibration``: ``accuracy``, ``confidence``, ``ece``, ``n``, ``ece_if_calibrated``), and
     what to do where they were not (``fused``: the decisions of a fusion, which is not recalibrated itself)."""
     from supramodal.calibration import HOLDS_ECE
 
@@ -57,6 +58,9 @@ def confidence_verdict(calibration: dict, fused: bool = False) -> str:
     said = f"says {c['confidence']:.2f} on average and is right on {c['accuracy']:.2f} of {c['n']} windows"
     if c["ece"] <= HOLDS_ECE:
         return f"{said}: its confidence holds on these recordings (ECE {c['ece']:.3f})"
+    if c["ece"] <= c.get("ece_if_calibrated", 0.0):
+        return (f"{said}: too few windows to tell whether its confidence holds (ECE {c['ece']:.3f}; a calibrated "
+                f"model's reaches {c['ece_if_calibrated']:.3f} on as many one time in 20); score more recordings")
     way = "surer than it is right" if c["confidence"] > c["accuracy"] else "less sure than it is right"
     fix = ("recalibrate each sense on labelled recordings like these (supramodal recalibrate), then learn the fusion "
            "again" if fused else "recalibrate it on labelled recordings like these (supramodal recalibrate), keeping "

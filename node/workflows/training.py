@@ -133,7 +133,8 @@ def _warn_if_calibrated_on_spans(model: TextureModel) -> None:
     warnings.warn(f"calibrated on spans of each recording, not whole recordings (a texture in fewer than two "
                   f"recordings, or fewer than {fitted.get('folds', DEFAULT_CALIBRATION_FOLDS)} recordings in all): "
                   "its confidence may not hold on a new touch; record each texture on two or more separate touches, "
-                  "one recording each, so that the calibration holds whole touches out", SupramodalWarning,
+                  f"one recording each ({fitted.get('folds', DEFAULT_CALIBRATION_FOLDS)} recordings or more in all), "
+                  "so that the calibration holds whole touches out", SupramodalWarning,
                   stacklevel=3)
 
 
@@ -297,10 +298,13 @@ def recalibrate_model(model: TextureModel, manifest=None, scenes=(), stream: str
     else:
         if stream is None:
             raise InputError("--scene recordings need --stream NAME: the stream whose model this is")
-        recs, windows, groups, _, make = scene_windows(scenes, stream, progress)
+        recs, windows, scene_of, seen, make = scene_windows(scenes, stream, progress)
         model.check_pipeline(make())
-        what = f"stream {stream} of {len(set(groups))} recording(s): " + ", ".join(Path(g).name for g in
-                                                                                  dict.fromkeys(groups))
+        what = f"stream {stream} of {len(set(scene_of))} recording(s): " + ", ".join(Path(g).name for g in
+                                                                                    dict.fromkeys(scene_of))
+        # each labelled span its own group: a pooling run or a novelty contact never crosses from one texture to
+        # the next within a recording (no folds here to keep a recording whole)
+        groups = [f"{g}@{recording_group(r)}" for g, r in zip(scene_of, recs)]
     unknown = sorted({r.label for r in recs} - set(model.classes))
     if unknown:
         raise InputError(f"label(s) {unknown} are not among the model's classes {list(model.classes)}: recalibration "
@@ -312,7 +316,11 @@ def recalibrate_model(model: TextureModel, manifest=None, scenes=(), stream: str
         raise InputError(f"the recordings have no window of {missing}: recalibration needs every texture the model "
                          "knows; record each on the new touch")
     group_of = np.repeat(np.array(groups), [len(v) for v in windows])
-    return model.recalibrated(x, y, group_of, what=what[:300])
+    new = model.recalibrated(x, y, group_of, what=what[:300])
+    if scenes and "sessions" in model.training:
+        # its calibration has now seen these recordings: a fusion must not take them for unseen ones
+        new.training["sessions"] = list(dict.fromkeys([*model.training["sessions"], *seen]))
+    return new
 
 
 def recording_group(rec: Recording) -> str:
@@ -616,11 +624,12 @@ def format_calibration(calibration: dict) -> str:
     lines.append("(a recording: all its windows pooled as the node pools a contact; ECE: expected calibration "
                  "error, the confidence's mean distance from the accuracy)")
     if calibration.get("calibrated"):
-        from supramodal.calibration import mean_confidence
+        from supramodal.calibration import ece_if_calibrated, mean_confidence
         from supramodal.node.workflows.reports import confidence_verdict
 
         lines.append("windows: " + confidence_verdict({k: w[k] for k in ("n", "accuracy", "ece")}
-                                                      | {"confidence": mean_confidence(w)}))
+                                                      | {"confidence": mean_confidence(w),
+                                                         "ece_if_calibrated": ece_if_calibrated(w)}))
     return "\n".join(lines)
 
 
