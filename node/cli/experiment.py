@@ -72,12 +72,8 @@ def run(args: argparse.Namespace) -> int:
         raise CliError(f"--seed must be >= 0, got {args.seed}")
     if args.jobs is not None and args.jobs < 1:
         raise CliError(f"--jobs must be >= 1, got {args.jobs}")
-    if args.figure == "fusion":
-        return _experiment_fusion(args)
-    if args.figure == "newtouch":
-        return _experiment_newtouch(args)
-    if args.figure == "change":
-        return _experiment_change(args)
+    if args.figure in TWO_SENSE_EXPERIMENTS:
+        return _two_sense_experiment(args)
     ts = load_texture_set(args.textures) if args.textures else None
     todo = plans(args.figure, quick=args.quick, epochs=args.epochs, seed=args.seed, sets=args.sets,
                  bank=args.bank, texture_set=ts)
@@ -95,48 +91,28 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _experiment_newtouch(args) -> int:
-    """``experiment newtouch``: calibration, fusion and "unknown" on a touch the models never met."""
-    from supramodal.experiments.common import progress_to_stderr
-    from supramodal.experiments.newtouch import newtouch_table, run_newtouch
-    from supramodal.experiments.report import write_figure
-
-    sets = args.sets if args.sets is not None else (2 if args.quick else 5)
-    if sets < 1:
-        raise CliError(f"--sets must be >= 1 for experiment newtouch, got {sets}")
-    result = run_newtouch(sets, args.quick, args.epochs, args.seed, None if args.quiet else progress_to_stderr,
-                          args.jobs)
-    written = write_figure("newtouch", result, Path(args.out))
-    print(json.dumps(result) if args.json else newtouch_table(result) + "\nwrote " + ", ".join(str(p) for p in written))
-    return 0
+#: The experiments over random two-sense sets: name -> (their module, its run and table functions).
+TWO_SENSE_EXPERIMENTS = {"fusion": ("fusion", "run_fusion", "fusion_table"),
+                         "newtouch": ("newtouch", "run_newtouch", "newtouch_table"),
+                         "change": ("change", "run_change", "change_table")}
 
 
-def _experiment_change(args) -> int:
-    """``experiment change``: re-deciding when the texture changes within a contact."""
-    from supramodal.experiments.change import change_table, run_change
+def _two_sense_experiment(args) -> int:
+    """``experiment fusion|newtouch|change``: an experiment over random two-sense sets (beyond the paper): its
+    table (or JSON) and its files."""
+    import importlib
+
     from supramodal.experiments.common import progress_to_stderr
     from supramodal.experiments.report import write_figure
 
+    module, run, table = TWO_SENSE_EXPERIMENTS[args.figure]
+    m = importlib.import_module(f"supramodal.experiments.{module}")
     sets = args.sets if args.sets is not None else (2 if args.quick else 5)
     if sets < 1:
-        raise CliError(f"--sets must be >= 1 for experiment change, got {sets}")
-    result = run_change(sets, args.quick, args.epochs, args.seed, None if args.quiet else progress_to_stderr,
-                        args.jobs)
-    written = write_figure("change", result, Path(args.out))
-    print(json.dumps(result) if args.json else change_table(result) + "\nwrote " + ", ".join(str(p) for p in written))
-    return 0
-
-
-def _experiment_fusion(args) -> int:
-    """``experiment fusion``: the two senses fused on the two-sense synthetic world (beyond the paper)."""
-    from supramodal.experiments.common import progress_to_stderr
-    from supramodal.experiments.fusion import fusion_table, run_fusion
-    from supramodal.experiments.report import write_figure
-
-    sets = args.sets if args.sets is not None else (2 if args.quick else 5)
-    if sets < 1:
-        raise CliError(f"--sets must be >= 1 for experiment fusion, got {sets}")
-    result = run_fusion(sets, args.quick, args.epochs, args.seed, None if args.quiet else progress_to_stderr)
-    written = write_figure("fusion", result, Path(args.out))
-    print(json.dumps(result) if args.json else fusion_table(result) + "\nwrote " + ", ".join(str(p) for p in written))
+        raise CliError(f"--sets must be >= 1 for experiment {args.figure}, got {sets}")
+    result = getattr(m, run)(sets, args.quick, args.epochs, args.seed, None if args.quiet else progress_to_stderr,
+                             args.jobs)
+    written = write_figure(args.figure, result, Path(args.out))
+    print(json.dumps(result) if args.json else getattr(m, table)(result) + "\nwrote "
+          + ", ".join(str(p) for p in written))
     return 0

@@ -50,11 +50,14 @@ def confidence_verdict(calibration: dict, fused: bool = False) -> str:
     """Whether decisions on labelled recordings were about as sure as they were right, in one line: their
     mean stated confidence beside their accuracy, and the ECE against
     :data:`supramodal.calibration.HOLDS_ECE` and against what a calibrated model's would reach by chance on as
-    many windows (``calibration``: ``accuracy``, ``confidence``, ``ece``, ``n``, ``ece_if_calibrated``), and
+    many windows (``calibration``: a :func:`~supramodal.calibration.calibration_report`, or its ``accuracy``,
+    ``ece`` and ``n`` with ``confidence`` and ``ece_if_calibrated``), and
     what to do where they were not (``fused``: the decisions of a fusion, which is not recalibrated itself)."""
-    from supramodal.calibration import HOLDS_ECE
+    from supramodal.calibration import HOLDS_ECE, ece_if_calibrated, mean_confidence
 
     c = calibration
+    if "reliability" in c:          # a whole calibration_report: what the verdict reads, derived from it
+        c = {**c, "confidence": mean_confidence(c), "ece_if_calibrated": ece_if_calibrated(c)}
     said = f"says {c['confidence']:.2f} on average and is right on {c['accuracy']:.2f} of {c['n']} windows"
     if c["ece"] <= HOLDS_ECE:
         return f"{said}: its confidence holds on these recordings (ECE {c['ece']:.3f})"

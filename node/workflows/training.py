@@ -287,12 +287,7 @@ def recalibrate_model(model: TextureModel, manifest=None, scenes=(), stream: str
     if (manifest is None) == (not scenes):
         raise InputError("recalibrate on one kind of recordings: --manifest CSV, or --scene REC.toml ... --stream NAME")
     if manifest is not None:
-        recs = read_manifest(manifest)
-        windows = []
-        for k, rec in enumerate(recs):
-            windows.append(recording_windows(rec, model.pipeline(), mapping))
-            if progress:
-                progress(f"[{k + 1}/{len(recs)}] {rec.path.name} ({rec.label}): {len(windows[-1])} windows")
+        recs, _, windows = _manifest_windows(manifest, model.pipeline, mapping, progress)
         groups = [recording_group(r) for r in recs]
         what = f"{len(recs)} recording(s) of manifest {Path(manifest).name}"
     else:
@@ -624,12 +619,9 @@ def format_calibration(calibration: dict) -> str:
     lines.append("(a recording: all its windows pooled as the node pools a contact; ECE: expected calibration "
                  "error, the confidence's mean distance from the accuracy)")
     if calibration.get("calibrated"):
-        from supramodal.calibration import ece_if_calibrated, mean_confidence
         from supramodal.node.workflows.reports import confidence_verdict
 
-        lines.append("windows: " + confidence_verdict({k: w[k] for k in ("n", "accuracy", "ece")}
-                                                      | {"confidence": mean_confidence(w),
-                                                         "ece_if_calibrated": ece_if_calibrated(w)}))
+        lines.append("windows: " + confidence_verdict(w))
     return "\n".join(lines)
 
 

@@ -26,25 +26,21 @@ minute allowed), per stream and fused:
 
 from __future__ import annotations
 
-import argparse
 import sys
 import time
 from typing import Any
 
 import numpy as np
 
-from supramodal.banks import cochlea_bank, whisker_bank
 from supramodal.decisions import Decider, DecisionRules
 from supramodal.errors import InputError
 from supramodal.experiments.common import Run
-from supramodal.experiments.newtouch import FEATURES, TOUCHES, touch_features
-from supramodal.experiments.newtouch import UNKNOWN as LEFT_OUT
+from supramodal.experiments.newtouch import FEATURES, TOUCHES, touch_features, train_senses
 from supramodal.features import DEFAULT_WINDOW
-from supramodal.fused_model import fused_pooling, learn_late_fusion_out_of_fold, senses_out_of_fold
+from supramodal.fused_model import fused_pooling
 from supramodal.fusion import fuse_late
 from supramodal.mlp import DEFAULT_EPOCHS
-from supramodal.model import TextureModel
-from supramodal.pipeline import extract_features, window_length
+from supramodal.pipeline import extract_features
 from supramodal.twosense import synthesize_slide, two_sense_set
 
 #: Seconds of each texture in a slide.
@@ -83,29 +79,14 @@ def run_set(set_seed: int, seconds: float = 10.0, epochs: int = DEFAULT_EPOCHS, 
     ``to_new`` (first changes in a segment naming its texture), ``false_changes`` and ``minutes`` (still touches),
     ``false_in_slides`` and ``slide_minutes``, ``after_change`` and ``after_lift_off`` (segments right, of)."""
     names, feats = touch_features(set_seed, seconds, progress)
-    known = [i for i, n in enumerate(names) if n not in LEFT_OUT]
-    classes = [names[i] for i in known]
-    banks = {"whiskers": whisker_bank(), "microphone": cochlea_bank()}
-    per = len(feats[known[0], 0][0])
+    trained = train_senses(names, feats, epochs, seed, progress, f"  set {set_seed}: ")
+    known, classes, models, late = trained.known, trained.classes, trained.models, trained.late
+    banks = {sense: m.bank for sense, m in models.items()}
     seg = int(round(SEGMENT / DEFAULT_WINDOW))
-    if per < seg:
+    if trained.per < seg:
         raise InputError(f"touches of {seconds:g} s are shorter than a slide's segments of {SEGMENT:g} s")
-    y_train = np.concatenate([np.full(per, k) for k in range(len(known)) for _ in range(TOUCHES - 1)])
-    groups = np.concatenate([np.full(per, k * TOUCHES + t) for k in range(len(known)) for t in range(TOUCHES - 1)])
-    models, pooling = {}, {}
-    for s_i, (sense, bank) in enumerate(banks.items()):
-        if progress:
-            progress(f"  set {set_seed}: the {sense} model")
-        train = np.concatenate([feats[i, t][s_i] for i in known for t in range(TOUCHES - 1)])
-        model = models[sense] = TextureModel.train(train, y_train, classes, bank, FEATURES,
-                                                   window_length(DEFAULT_WINDOW, bank.fs), epochs=epochs, seed=seed,
-                                                   groups=groups)
-        assert model.calibration is not None, "calibrated (the default)"
-        pooling[sense] = model.calibration.contact_pooling
-    values = [np.concatenate([feats[i, t][s_i] for i in known for t in range(TOUCHES - 1)]) for s_i in range(2)]
-    held, folds, _ = senses_out_of_fold(list(models.values()), values, y_train, classes, groups)
-    late = learn_late_fusion_out_of_fold(held[0], held[1], y_train, folds)
-    pooling["late"] = (fused_pooling(late["fused"], y_train, folds, groups), None)
+    pooling = {sense: m.calibration.contact_pooling for sense, m in models.items() if m.calibration is not None}
+    pooling["late"] = (fused_pooling(late["fused"], trained.y, trained.folds, trained.groups), None)
 
     def stream_lps(whisker_values, mic_values) -> dict:
         lw = models["whiskers"].log_posteriors(whisker_values)
@@ -234,19 +215,10 @@ def write_change(result: dict, out) -> list:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m supramodal.experiments.change", description=__doc__.splitlines()[0])
-    p.add_argument("--quick", action="store_true", help="6 s still touches and 2 sets (default: 10 s, --sets)")
-    p.add_argument("--sets", type=int, default=5, help="random two-sense texture sets (default 5)")
-    p.add_argument("--seed", type=int, default=0, help="first set's seed and the networks' seed (default 0)")
-    p.add_argument("--epochs", type=int, default=DEFAULT_EPOCHS, help=f"iRPROP- epochs (default {DEFAULT_EPOCHS})")
-    p.add_argument("--jobs", type=int, help="worker processes (default: all cores)")
-    args = p.parse_args(argv)
-    from supramodal.experiments.common import progress_to_stderr
+    from supramodal.experiments.common import two_sense_sets_main
 
-    result = run_change(2 if args.quick else args.sets, args.quick, args.epochs, args.seed, progress_to_stderr,
-                        args.jobs)
-    print(change_table(result))
-    return 0
+    return two_sense_sets_main(argv, "change", __doc__.splitlines()[0], run_change, change_table,
+                               "6 s still touches (default 10 s)")
 
 
 if __name__ == "__main__":

@@ -72,6 +72,25 @@ def estimate_cost(texture_set: TextureSet, bank: Bank, n_features: int, epochs: 
     return samples * c * 5e-8 + n_features * windows * (c * c + 8 * c) * epochs * 2e-9 + 0.5
 
 
+def two_sense_sets_main(argv, module: str, description: str, run: Callable, table: Callable[[dict], str],
+                        quick: str) -> int:
+    """The command line of an experiment over random two-sense sets (``python -m supramodal.experiments.NAME``):
+    ``--quick`` (its help: ``quick``; 2 sets), ``--sets``, ``--seed``, ``--epochs``, ``--jobs``; runs
+    ``run(sets, quick, epochs, seed, progress, jobs)`` and prints ``table`` of its result."""
+    import argparse
+
+    p = argparse.ArgumentParser(prog=f"python -m supramodal.experiments.{module}", description=description)
+    p.add_argument("--quick", action="store_true", help=f"{quick} and 2 sets (default: --sets)")
+    p.add_argument("--sets", type=int, default=5, help="random two-sense texture sets (default 5)")
+    p.add_argument("--seed", type=int, default=0, help="first set's seed and the networks' seed (default 0)")
+    p.add_argument("--epochs", type=int, default=DEFAULT_EPOCHS, help=f"iRPROP- epochs (default {DEFAULT_EPOCHS})")
+    p.add_argument("--jobs", type=int, help="worker processes (default: all cores)")
+    args = p.parse_args(argv)
+    print(table(run(2 if args.quick else args.sets, args.quick, args.epochs, args.seed, progress_to_stderr,
+                    args.jobs)))
+    return 0
+
+
 def progress_to_stderr(message: str) -> None:
     """Default progress reporter of long experiments: one line on stderr, in one write (so that the
     lines of parallel worker processes do not interleave)."""

@@ -30,7 +30,6 @@ least 0.99).
 
 from __future__ import annotations
 
-import argparse
 import sys
 import time
 
@@ -266,19 +265,10 @@ def sure_cell(report: dict) -> str:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m supramodal.experiments.fusion", description=__doc__.splitlines()[0])
-    p.add_argument("--quick", action="store_true", help="8 s contacts and 2 sets (default: 20 s, --sets)")
-    p.add_argument("--sets", type=int, default=5, help="random two-sense texture sets (default 5)")
-    p.add_argument("--seed", type=int, default=0, help="first set's seed and the networks' seed (default 0)")
-    p.add_argument("--epochs", type=int, default=DEFAULT_EPOCHS, help=f"iRPROP- epochs (default {DEFAULT_EPOCHS})")
-    p.add_argument("--jobs", type=int, help="worker processes (default: all cores)")
-    args = p.parse_args(argv)
-    from supramodal.experiments.common import progress_to_stderr
+    from supramodal.experiments.common import two_sense_sets_main
 
-    result = run_fusion(2 if args.quick else args.sets, args.quick, args.epochs, args.seed, progress_to_stderr,
-                        args.jobs)
-    print(fusion_table(result))
-    return 0
+    return two_sense_sets_main(argv, "fusion", __doc__.splitlines()[0], run_fusion, fusion_table,
+                               "8 s contacts (default 20 s)")
 
 
 if __name__ == "__main__":

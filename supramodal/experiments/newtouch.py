@@ -28,26 +28,21 @@ unknown ones. On the six others:
 
 from __future__ import annotations
 
-import argparse
 import sys
 import time
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.special import log_softmax
 
 from supramodal.banks import cochlea_bank, whisker_bank
-from supramodal.calibration import (
-    DEFAULT_CALIBRATION_FOLDS,
-    calibration_report,
-    fit_network_calibration,
-    log_loss,
-    winner,
-)
+from supramodal.calibration import DEFAULT_CALIBRATION_FOLDS, fit_network_calibration, log_loss, winner
 from supramodal.errors import InputError
 from supramodal.experiments.calibration import auroc
 from supramodal.experiments.common import Run
+from supramodal.experiments.fusion import contact_runs
 from supramodal.features import DEFAULT_WINDOW
-from supramodal.fused_model import learn_late_fusion_out_of_fold, senses_out_of_fold
+from supramodal.fused_model import held_out_scores, learn_late_fusion_out_of_fold, senses_out_of_fold
 from supramodal.fusion import LATE_WEIGHTS, fuse_late
 from supramodal.mlp import DEFAULT_EPOCHS
 from supramodal.model import TextureModel, log_posteriors_of
@@ -84,6 +79,67 @@ def touch_features(set_seed: int, seconds: float, progress=None) -> tuple[list[s
     return [s.name for s in surfaces], {k: (w[:n], m[:n]) for k, (w, m) in out.items()}
 
 
+@dataclass(frozen=True)
+class TrainedSenses:
+    """Both senses' models trained on touches 1 .. :data:`TOUCHES` - 1 of the known textures (calibration
+    folds by touch), and the late fusion learned on their out-of-fold windows (issue 34's rule).
+
+    Attributes
+    ----------
+    classes : list of str
+        The known textures, in the models' order.
+    known : list of int
+        Their indices into the set's textures.
+    per : int
+        Windows per touch.
+    y, groups : ndarray, shape (n,)
+        The training windows' labels and touches (texture and touch).
+    values : list of ndarray
+        Each sense's training windows, in :data:`SENSES` order.
+    models : dict
+        ``{sense: TextureModel}``.
+    late : dict
+        :func:`supramodal.fused_model.learn_late_fusion_out_of_fold`'s result.
+    held, folds : list of ndarray, ndarray
+        The senses' out-of-fold log-posteriors and their folds.
+    """
+
+    classes: list
+    known: list
+    per: int
+    y: np.ndarray
+    groups: np.ndarray
+    values: list
+    models: dict
+    late: dict
+    held: list
+    folds: np.ndarray
+
+
+def train_senses(names, feats, epochs: int, seed: int, progress=None, say: str = "") -> TrainedSenses:
+    """Train :class:`TrainedSenses` on :func:`touch_features`' windows (``names``, ``feats``), leaving out
+    :data:`UNKNOWN`; ``say``: the progress lines' prefix."""
+    known = [i for i, n in enumerate(names) if n not in UNKNOWN]
+    classes = [names[i] for i in known]
+    per = len(feats[known[0], 0][0])
+    training = range(TOUCHES - 1)
+    y = np.concatenate([np.full(per, k) for k in range(len(known)) for _ in training])
+    groups = np.concatenate([np.full(per, k * TOUCHES + t) for k in range(len(known)) for t in training])
+    values = [np.concatenate([feats[i, t][s_i] for i in known for t in training]) for s_i in range(len(SENSES))]
+    models = {}
+    for sense, bank, v in zip(SENSES, (whisker_bank(), cochlea_bank()), values):
+        if progress:
+            progress(f"{say}the {sense} model, calibrated by touch")
+        models[sense] = TextureModel.train(v, y, classes, bank, FEATURES, window_length(DEFAULT_WINDOW, bank.fs),
+                                           epochs=epochs, seed=seed, groups=groups)
+        assert models[sense].calibration is not None, "calibrated (the default)"
+    if progress:
+        progress(f"{say}the late fusion, on out-of-fold windows of touches 1-{TOUCHES - 1}")
+    held, folds, _ = senses_out_of_fold(list(models.values()), values, y, classes, groups)
+    late = learn_late_fusion_out_of_fold(held[0], held[1], y, folds)
+    return TrainedSenses(classes, known, per, y, groups, values, models, late, held, folds)
+
+
 def late_fusion_before(log_posteriors_a, log_posteriors_b, labels) -> tuple[float, float]:
     """The late fusion's rule before issue 34, for comparison: the weight right most often (ties: lower
     log loss, then nearer 0.5), its sharpness unbounded (up to e^5)."""
@@ -102,15 +158,7 @@ def late_fusion_before(log_posteriors_a, log_posteriors_b, labels) -> tuple[floa
 
 
 def _scores(lp, y) -> dict:
-    r = calibration_report(lp, y, sure=SURE)
-    return {k: r[k] for k in ("n", "accuracy", "log_loss", "ece", "sure_count", "sure_wrong")}
-
-
-def _contacts(n_windows: int, per_texture: int) -> list[np.ndarray]:
-    """Disjoint runs of :data:`CONTACT_WINDOWS` windows of one texture among windows stacked texture by
-    texture, ``per_texture`` each."""
-    return [np.arange(s + k, s + k + CONTACT_WINDOWS) for s in range(0, n_windows, per_texture)
-            for k in range(0, per_texture - CONTACT_WINDOWS + 1, CONTACT_WINDOWS)]
+    return held_out_scores({"": lp}, y)[""]       # a window saying >= 0.99 (SURE) is sure
 
 
 def _unknown(model: TextureModel, known, unknown, per_texture: int) -> dict:
@@ -120,8 +168,8 @@ def _unknown(model: TextureModel, known, unknown, per_texture: int) -> dict:
     assert nov is not None, "trained with calibration folds"
     xk, xu = model._inputs(known), model._inputs(unknown)
     wk, wu = nov.score(xk), nov.score(xu)
-    ck = np.array([nov.pooled_score(xk[r]) for r in _contacts(len(xk), per_texture)])
-    cu = np.array([nov.pooled_score(xu[r]) for r in _contacts(len(xu), per_texture)])
+    ck = np.array([nov.pooled_score(xk[r]) for r in contact_runs(np.arange(len(xk)), per_texture, CONTACT_WINDOWS)])
+    cu = np.array([nov.pooled_score(xu[r]) for r in contact_runs(np.arange(len(xu)), per_texture, CONTACT_WINDOWS)])
     t_w, t_c = nov.threshold(ASKED_UNKNOWN), nov.contact_threshold(ASKED_UNKNOWN, CONTACT_WINDOWS)
     return {"false_unknown_window": float(np.mean(wk > t_w)), "false_unknown_contact": float(np.mean(ck > t_c)),
             "unknown_found_window": float(np.mean(wu > t_w)), "unknown_found_contact": float(np.mean(cu > t_c)),
@@ -133,69 +181,55 @@ def run_set(set_seed: int, seconds: float = 10.0, epochs: int = DEFAULT_EPOCHS, 
     """One set: see the module docstring. Plain data: per sense and fusion rule, ``training`` (the
     held-out estimate), ``touch3``, ``recalibrated`` (touch 3's second half) scores, ``unknown`` rates."""
     names, feats = touch_features(set_seed, seconds, progress)
-    known = [i for i, n in enumerate(names) if n not in UNKNOWN]
+    trained = train_senses(names, feats, epochs, seed, progress, f"  set {set_seed}: ")
+    known, classes, per = trained.known, trained.classes, trained.per
     unknown = [i for i, n in enumerate(names) if n in UNKNOWN]
-    classes = [names[i] for i in known]
-    banks = {"whiskers": whisker_bank(), "microphone": cochlea_bank()}
-    per = len(feats[known[0], 0][0])
     half = per // 2
     if half < CONTACT_WINDOWS:
         raise InputError(f"{per} windows per touch leave too few for contacts of {CONTACT_WINDOWS} in each half of "
                          "touch 3: synthesise longer touches")
+    new_touch = [TOUCHES - 1]
 
-    def stack(touches, senses_index, textures=known, rows=slice(None)):
-        return np.concatenate([feats[i, t][senses_index][rows] for i in textures for t in touches])
+    def stack(senses_index, textures=known, rows=slice(None)):
+        return np.concatenate([feats[i, t][senses_index][rows] for i in textures for t in new_touch])
 
-    def labels(touches, n):
-        return np.concatenate([np.full(n, k) for k in range(len(known)) for _ in touches])
+    def labels(n):
+        return np.repeat(np.arange(len(known)), n)
 
-    y_train = labels(range(TOUCHES - 1), per)
-    groups = np.concatenate([np.full(per, k * TOUCHES + t) for k in range(len(known)) for t in range(TOUCHES - 1)])
-    last = TOUCHES - 1
-    y_test = labels([last], per)
-    y_first, y_second = labels([last], half), labels([last], per - half)
-    new_touch = [last]
+    y_test, y_first, y_second = labels(per), labels(half), labels(per - half)
     result: dict = {"set_seed": set_seed, "textures": classes, "unknown_textures": list(UNKNOWN),
                     "windows_per_touch": per, "senses": {}, "late": {}}
-    models, test_lp, recal_lp = {}, {}, {}
-    for s_i, (sense, bank) in enumerate(banks.items()):
+    test_lp, recal_lp = {}, {}
+    for s_i, sense in enumerate(SENSES):
         if progress:
-            progress(f"  set {set_seed}: the {sense} model, calibrated by touch and by span")
-        train = stack(range(TOUCHES - 1), s_i)
-        model = models[sense] = TextureModel.train(train, y_train, classes, bank, FEATURES,
-                                                   window_length(DEFAULT_WINDOW, bank.fs), epochs=epochs,
-                                                   seed=seed, groups=groups)
+            progress(f"  set {set_seed}: the {sense} model calibrated by span, and scored")
+        model, train = trained.models[sense], trained.values[s_i]
         assert model.calibration is not None and model.out_of_fold is not None, "calibrated (the default)"
-        span, _, _ = fit_network_calibration(train.reshape(len(train), -1), y_train, len(classes), None,
+        span, _, _ = fit_network_calibration(train.reshape(len(train), -1), trained.y, len(classes), None,
                                              DEFAULT_CALIBRATION_FOLDS, epochs=epochs, seed=seed)
-        test = stack(new_touch, s_i)
+        test = stack(s_i)
         test_lp[sense] = model.log_posteriors(test)
         estimate = model.calibration.log_posteriors(model.out_of_fold.logits)
-        recal = model.recalibrated(stack(new_touch, s_i, rows=slice(0, half)), y_first, what="touch 3, first half")
-        second = stack(new_touch, s_i, rows=slice(half, None))
+        recal = model.recalibrated(stack(s_i, rows=slice(0, half)), y_first, what="touch 3, first half")
+        second = stack(s_i, rows=slice(half, None))
         recal_lp[sense] = recal.log_posteriors(second)
         result["senses"][sense] = {
             "folds_by": model.calibration.fitted_on.get("folds_by"),
-            "training": _scores(estimate, y_train), "touch3": _scores(test_lp[sense], y_test),
+            "training": _scores(estimate, trained.y), "touch3": _scores(test_lp[sense], y_test),
             "span_training": {"log_loss": span.fitted_on["log_loss"],
                               "accuracy": span.fitted_on["held_out_accuracy"]},
             "span_touch3": _scores(log_posteriors_of(model.logits(test), span), y_test),
             "recalibrated": _scores(recal_lp[sense], y_second),
-            "unknown": _unknown(model, test, stack(new_touch, s_i, unknown), per),
-            "unknown_recalibrated": _unknown(recal, second, stack(new_touch, s_i, unknown, slice(half, None)),
-                                             per - half)}
-    if progress:
-        progress(f"  set {set_seed}: the late fusion, on out-of-fold windows of touches 1-{TOUCHES - 1}")
-    values = [stack(range(TOUCHES - 1), s_i) for s_i in range(len(banks))]
-    held, folds, _ = senses_out_of_fold(list(models.values()), values, y_train, classes, groups)
-    late = learn_late_fusion_out_of_fold(held[0], held[1], y_train, folds)
-    rules = {"issue34": (late["weight"], late["sharpness"]), "before": late_fusion_before(held[0], held[1], y_train)}
+            "unknown": _unknown(model, test, stack(s_i, unknown), per),
+            "unknown_recalibrated": _unknown(recal, second, stack(s_i, unknown, slice(half, None)), per - half)}
+    rules = {"issue34": (trained.late["weight"], trained.late["sharpness"]),
+             "before": late_fusion_before(trained.held[0], trained.held[1], trained.y)}
     for rule, (w, s) in rules.items():
         fused_test = fuse_late(test_lp["whiskers"], test_lp["microphone"], w, s)
         result["late"][rule] = {"weight": w, "sharpness": s, "touch3": _scores(fused_test, y_test),
                                 "recalibrated": _scores(fuse_late(recal_lp["whiskers"], recal_lp["microphone"], w, s),
                                                         y_second)}
-    result["late"]["issue34"]["training"] = _scores(late["fused"], y_train)
+    result["late"]["issue34"]["training"] = _scores(trained.late["fused"], trained.y)
     return result
 
 
@@ -326,19 +360,10 @@ def write_newtouch(result: dict, out) -> list:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m supramodal.experiments.newtouch", description=__doc__.splitlines()[0])
-    p.add_argument("--quick", action="store_true", help="6 s touches and 2 sets (default: 10 s, --sets)")
-    p.add_argument("--sets", type=int, default=5, help="random two-sense texture sets (default 5)")
-    p.add_argument("--seed", type=int, default=0, help="first set's seed and the networks' seed (default 0)")
-    p.add_argument("--epochs", type=int, default=DEFAULT_EPOCHS, help=f"iRPROP- epochs (default {DEFAULT_EPOCHS})")
-    p.add_argument("--jobs", type=int, help="worker processes (default: all cores)")
-    args = p.parse_args(argv)
-    from supramodal.experiments.common import progress_to_stderr
+    from supramodal.experiments.common import two_sense_sets_main
 
-    result = run_newtouch(2 if args.quick else args.sets, args.quick, args.epochs, args.seed, progress_to_stderr,
-                          args.jobs)
-    print(newtouch_table(result))
-    return 0
+    return two_sense_sets_main(argv, "newtouch", __doc__.splitlines()[0], run_newtouch, newtouch_table,
+                               "6 s touches (default 10 s)")
 
 
 if __name__ == "__main__":
