@@ -46,10 +46,12 @@ from __future__ import annotations
 
 import collections
 import math
+import os
 import re
 import threading
 import time
 from collections.abc import Mapping, Sequence
+from pathlib import Path
 from types import ModuleType
 from typing import Any
 
@@ -61,8 +63,9 @@ from supramodal.drivers.spec import BuildContext, Built, DriverSpec, OptionError
 from supramodal.drivers.timestamps import ClockSteps, StampedBlocks, Step
 from supramodal.errors import InputError
 
-__all__ = ["INSTALL_HINT", "Ros2Unavailable", "RosNode", "check_namespace", "check_node_name", "check_token",
-           "import_rclpy", "ros_arguments", "split_ros_arguments", "use_ros_arguments"]
+__all__ = ["INSTALL_HINT", "Ros2Unavailable", "RosNode", "check_namespace", "check_node_name", "check_shared_memory",
+           "check_token", "import_rclpy", "ros_arguments", "split_ros_arguments", "stale_port_segments",
+           "use_ros_arguments"]
 
 INSTALL_HINT = ('install the optional extra: pip install "supramodal[ros2]" (rclpy and the stock messages as '
                 "wheels, no ROS installation needed), or source your ROS 2 installation "
@@ -165,6 +168,66 @@ def ros_arguments() -> list[str]:
 
 # -- a node of the node's own -----------------------------------------------------------------------------
 
+#: Where Fast DDS (ROS 2's default middleware) keeps its shared-memory segments.
+SHARED_MEMORY_DIR = Path("/dev/shm")
+#: Seconds after which an empty Fast DDS port segment is a dead process's: its maker sizes it at once.
+STALE_SEGMENT_SECONDS = 5.0
+_PORT_SEGMENT = re.compile(r"fastdds_port\d+")
+
+
+def stale_port_segments(folder: Path | None = None, now: float | None = None) -> list[Path]:
+    """Fast DDS shared-memory port segments left empty by a process killed while it made them.
+
+    Fast DDS makes a port's segment (``/dev/shm/fastdds_portN``) as a file and sizes it at once; a
+    process killed between the two leaves it empty, and every later ROS 2 participant that opens the
+    port waits for it to be sized, for ever, in native code that no signal interrupts (seen here:
+    a test run hung in ``rclpy.create_node``). An empty port segment older than
+    :data:`STALE_SEGMENT_SECONDS` is such a one.
+
+    Parameters
+    ----------
+    folder : Path, optional
+        Where the segments are (default :data:`SHARED_MEMORY_DIR`; absent: none).
+    now : float, optional
+        The time, s since the epoch (default: now).
+
+    Returns
+    -------
+    list of Path
+        The stale segments, sorted; removing them is safe (no process can use an empty segment).
+    """
+    now = time.time() if now is None else now
+    out = []
+    try:
+        names = sorted((SHARED_MEMORY_DIR if folder is None else folder).iterdir())
+    except OSError:
+        return []
+    for path in names:
+        if not _PORT_SEGMENT.fullmatch(path.name):
+            continue
+        try:
+            st = path.stat()
+        except OSError:            # gone meanwhile
+            continue
+        if st.st_size == 0 and now - st.st_mtime > STALE_SEGMENT_SECONDS:
+            out.append(path)
+    return out
+
+
+def check_shared_memory() -> None:
+    """Refuse to start a ROS 2 node that would hang on a stale Fast DDS segment (:func:`stale_port_segments`),
+    saying what to remove; nothing to check under another middleware (``RMW_IMPLEMENTATION``)."""
+    if not os.environ.get("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp").startswith("rmw_fastrtps"):
+        return
+    stale = stale_port_segments()
+    if stale:
+        paths = " ".join(str(p) for p in stale)
+        raise Ros2Unavailable(f"ROS 2 would hang on start: Fast DDS's shared-memory segment(s) {paths} were left "
+                              "empty by a process killed while making them, and every ROS 2 node on this machine "
+                              f"waits on them for ever; remove them (rm {paths}: no process can use an empty "
+                              "segment) and start again")
+
+
 class RosNode:
     """An rclpy node on a context of its own, spun on a thread of its own.
 
@@ -178,7 +241,7 @@ class RosNode:
     Raises
     ------
     Ros2Unavailable
-        No rclpy here.
+        No rclpy here, or a stale Fast DDS segment that would hang it (:func:`check_shared_memory`).
     InputError
         rclpy refused the name, the namespace or the ROS arguments (its reason in the message).
 
@@ -191,6 +254,7 @@ class RosNode:
         from rclpy.executors import SingleThreadedExecutor
         from rclpy.signals import SignalHandlerOptions
 
+        check_shared_memory()
         self.context = rclpy.Context()
         try:
             rclpy.init(args=["supramodal", *ros_arguments()], context=self.context,

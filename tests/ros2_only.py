@@ -31,11 +31,23 @@ def require_ros2() -> None:
 
 @pytest.fixture(autouse=True)
 def localhost_only():
-    """A test that could discover or be discovered beyond this machine, or on a robot's domain, does not run."""
+    """A test that could discover or be discovered beyond this machine, or on a robot's domain, does not run;
+    and none starts on a Fast DDS segment that a process killed earlier in the run left empty."""
     assert os.environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE") == "LOCALHOST", "conftest.py keeps ROS 2 on localhost"
     assert os.environ.get("ROS_DOMAIN_ID") == os.environ.get("SUPRAMODAL_TEST_ROS_DOMAIN"), \
         "conftest.py sets a ROS domain of the run's own"
     assert not os.environ.get("ROS_STATIC_PEERS")
+    remove_stale_segments()
+
+
+def remove_stale_segments() -> None:
+    """Remove the Fast DDS port segments a killed process left empty (the suite kills publishers and nodes on
+    purpose): every later participant would wait on them for ever (drivers/ros2.py
+    ``stale_port_segments``; the node itself refuses to start on one, naming it)."""
+    from supramodal.drivers.ros2 import stale_port_segments
+
+    for path in stale_port_segments():
+        path.unlink(missing_ok=True)
 
 
 def unique_namespace() -> str:
@@ -55,6 +67,7 @@ class Subscriber:
         from rclpy.executors import SingleThreadedExecutor
         from rclpy.signals import SignalHandlerOptions
 
+        remove_stale_segments()          # a process killed since the test began may have left one
         self.context = rclpy.Context()
         rclpy.init(context=self.context, signal_handler_options=SignalHandlerOptions.NO)
         self.node = rclpy.create_node(f"{name}_{uuid.uuid4().hex[:6]}", context=self.context)

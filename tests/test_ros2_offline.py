@@ -161,3 +161,36 @@ def test_a_frame_to_the_publisher_process_comes_back_as_it_was_sent():
         assert got["decision"]["confidence"] == 0.5 and math.isnan(got["decision"]["nan"]) and got["classes"] is None
         assert np.array_equal(np.frombuffer(payload, dtype=np.float64), values)
     assert decode(encode({"op": "close"})) == ({"op": "close"}, b"")
+
+
+def test_a_fast_dds_port_segment_left_empty_is_found_and_refused_naming_what_to_remove(tmp_path, monkeypatch):
+    """An empty /dev/shm/fastdds_portN older than a few seconds (its maker killed before sizing it) makes every
+    later participant spin for ever in rclpy.create_node: the node refuses to start instead, naming the file.
+    Lock files (..._el), sized segments, a segment being made this instant and other middlewares are left be."""
+    import os
+    import time
+
+    import supramodal.drivers.ros2 as ros2
+
+    now = time.time()
+
+    def make(name: str, size: int = 0, age: float = 60.0) -> None:
+        (tmp_path / name).write_bytes(b"x" * size)
+        os.utime(tmp_path / name, (now - age, now - age))
+
+    make("fastdds_port7000")                                   # stale
+    make("fastdds_port7413_el")                                # a lock file: empty by design
+    make("fastdds_port7001", size=4096)                        # a live port
+    make("fastdds_port7002", age=0.5)                          # being made now
+    make("fastdds_0123456789abcdef")                           # a participant's own segment, not a port
+    assert ros2.stale_port_segments(tmp_path, now) == [tmp_path / "fastdds_port7000"]
+    assert ros2.stale_port_segments(tmp_path / "absent", now) == []
+    monkeypatch.setattr(ros2, "SHARED_MEMORY_DIR", tmp_path)
+    monkeypatch.delenv("RMW_IMPLEMENTATION", raising=False)
+    with pytest.raises(Ros2Unavailable, match=f"rm {tmp_path / 'fastdds_port7000'}"):
+        ros2.check_shared_memory()
+    monkeypatch.setenv("RMW_IMPLEMENTATION", "rmw_cyclonedds_cpp")
+    ros2.check_shared_memory()                                 # not Fast DDS: nothing to check
+    monkeypatch.setenv("RMW_IMPLEMENTATION", "rmw_fastrtps_dynamic_cpp")
+    (tmp_path / "fastdds_port7000").unlink()
+    ros2.check_shared_memory()
