@@ -59,6 +59,10 @@ __all__ = ["MicrophoneDriver", "CaptureBuffer", "import_sounddevice"]
 
 #: Sample formats the driver can ask PortAudio for. Blocks are float32 either way.
 DTYPES = ("float32", "int16")
+#: Largest magnitude a float32 capture may plausibly hold: full scale is 1.0; a converter's overshoot or a
+#: hot preamp stays within a few times that, while another sample format read as float32 (int16 bytes
+#: served raw) gives magnitudes up to 1e38, or NaN.
+PLAUSIBLE_PEAK = 16.0
 
 #: Where the user is told to look for device names and indices.
 _LIST_HINT = (
@@ -181,7 +185,10 @@ class CaptureBuffer:
         blocks for more than a short lock): ``overflow`` (PortAudio flagged
         ``input_overflow``; without a timestamp the block's first frame is also
         marked in :attr:`Block.overruns`), ``underflow``, ``dropped`` (buffer
-        full: the block is filled later) and ``error`` (the callback failed).
+        full: the block is filled later), ``level`` (float32 samples beyond
+        :data:`PLAUSIBLE_PEAK` or not finite: the device delivers another sample
+        format than it was asked for; counted in :attr:`implausible`, passed on
+        as they are) and ``error`` (the callback failed).
 
     Notes
     -----
@@ -218,6 +225,7 @@ class CaptureBuffer:
         self.overflows = 0
         self.lost = 0
         self.errors = 0
+        self.implausible = 0
         # Written by the reader thread only.
         self._queued_out = 0  # data frames ever taken off the queue
         self._errors_raised = 0
@@ -283,6 +291,12 @@ class CaptureBuffer:
                     raise InputError(
                         f"indata has shape {data.shape}, expected ({frames}, {self.channels})"
                     )
+            # int16 is bounded by its scaling; float32 is checked (NaN fails the comparison too)
+            implausible = 0
+            if data is not None and indata.dtype != np.int16 and data.size:
+                with np.errstate(invalid="ignore"):
+                    if not float(np.max(np.abs(data))) <= PLAUSIBLE_PEAK:
+                        implausible = int(np.count_nonzero(~(np.abs(data) <= PLAUSIBLE_PEAK)))
             # State changes.
             self._expected_adc = adc + frames / self.rate if adc > 0.0 else None
             self.captured += frames
@@ -296,6 +310,14 @@ class CaptureBuffer:
             if getattr(status, "input_underflow", False):
                 self.events.record("underflow", "microphone: input underflow reported by PortAudio",
                                    self._next)
+            if implausible:
+                self.implausible += implausible
+                self.events.record("level", (
+                    f"microphone: {implausible} sample(s) of {frames * self.channels} beyond "
+                    f"+-{PLAUSIBLE_PEAK:g} or not finite in float32 capture (full scale 1.0): the device delivers "
+                    f"another sample format than float32 (a file of int16 served raw?); set dtype = \"int16\" in "
+                    f"the scene's [driver] if so"),
+                    self._next)
             if lost:
                 self.lost += lost
                 self._add_gap(lost, arrival)
@@ -443,6 +465,7 @@ class CaptureBuffer:
             ``lost``: frames PortAudio lost in input overflows (estimated).
             ``overflows``: callbacks flagged ``input_overflow``.
             ``callbacks``: callbacks. ``errors``: callbacks that failed.
+            ``implausible``: float32 samples beyond :data:`PLAUSIBLE_PEAK` or not finite (passed on).
             ``captured``: frames PortAudio gave the callback.
             ``buffered``: frames queued and not yet read.
 
@@ -457,6 +480,7 @@ class CaptureBuffer:
             "overflows": self.overflows,
             "callbacks": self.callbacks,
             "errors": self.errors,
+            "implausible": self.implausible,
             "captured": self.captured,
             "buffered": max(0, self._queued_in - self._queued_out),
         }
@@ -707,7 +731,7 @@ class MicrophoneDriver(DriverBase):
         if self._buffer is None:
             return dict.fromkeys(
                 ("frames", "filled", "dropped", "lost", "overflows", "callbacks",
-                 "errors", "captured", "buffered"),
+                 "errors", "implausible", "captured", "buffered"),
                 0,
             )
         return self._buffer.stats()

@@ -370,6 +370,7 @@ class Decider:
     def __init__(self, classes, rules: DecisionRules = DEFAULT_DECISION, correlation: float = 0.0,
                  novelty_threshold: float | None = None, caps=None, window_seconds: float = DEFAULT_WINDOW) -> None:
         self.classes = tuple(classes)
+        self.rules = rules
         self.unknown_below = float(rules.unknown_below)
         self.novelty_threshold = novelty_threshold
         confidence = rules.confidence or None

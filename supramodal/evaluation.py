@@ -11,12 +11,16 @@ from supramodal.calibration import winner
 from supramodal.decisions import DecisionAccumulator
 from supramodal.errors import InputError
 
-__all__ = ["ANYTIME_THRESHOLDS", "POOLED_WINDOWS", "anytime_sweep", "pooled_accuracy", "permutation_importance"]
+__all__ = ["ANYTIME_THRESHOLDS", "DETECT_WITHIN", "POOLED_WINDOWS", "anytime_sweep", "change_detections",
+           "pooled_accuracy", "permutation_importance"]
 
 #: Numbers of consecutive windows whose pooled decision ``evaluate`` reports (and the whole recording).
 POOLED_WINDOWS = (1, 2, 5, 10)
 #: Confidence thresholds of the anytime decisions ``evaluate`` and ``experiment calibration`` report.
 ANYTIME_THRESHOLDS = (0.5, 0.7, 0.8, 0.9, 0.95, 0.98, 0.99, 0.995, 0.999)
+#: A change of texture counts as detected when it is signalled within this many windows of its
+#: boundary (the boundary's window the first).
+DETECT_WITHIN = 5
 
 
 def pooled_accuracy(log_posteriors_by_recording, truths, n: int) -> tuple[float | None, int]:
@@ -54,6 +58,41 @@ def pooled_accuracy(log_posteriors_by_recording, truths, n: int) -> tuple[float 
         hits += int(np.count_nonzero(winner(score) == truth))       # a tie is no decision: not a hit
         runs += m
     return (hits / runs if runs else None), runs
+
+
+def change_detections(truths, signalled) -> tuple[list[tuple[int, int | None]], int]:
+    """The texture changes signalled within one contact, against the truth.
+
+    A *boundary* is a window whose true texture differs from the window before it. Its detection is
+    the first change signalled from that window up to (not including) the next boundary; the delay
+    is ``detection - boundary + 1`` windows (signalled in the boundary's own window: 1). Every other
+    change signalled is a false one (before the first boundary, or a second within one segment).
+
+    Parameters
+    ----------
+    truths : sequence
+        The true texture of each of the contact's windows, in order (consecutive windows, no
+        lift-off between them).
+    signalled : iterable of int
+        The windows (indices into ``truths``) at which a change was signalled.
+
+    Returns
+    -------
+    boundaries : list of (int, int or None)
+        Per boundary, its window and the window of its detection (None: not signalled before the
+        next boundary or the contact's end).
+    false : int
+        Changes signalled that detect no boundary.
+    """
+    n = len(truths)
+    at = sorted(int(t) for t in signalled)
+    if any(not 0 <= t < n for t in at):
+        raise InputError(f"a change signalled outside the contact's {n} windows: {at}")
+    starts = [b for b in range(1, n) if truths[b] != truths[b - 1]]
+    out: list[tuple[int, int | None]] = []
+    for b, end in zip(starts, starts[1:] + [n]):
+        out.append((b, next((t for t in at if b <= t < end), None)))
+    return out, len(at) - sum(t is not None for _, t in out)
 
 
 def permutation_importance(outputs, windows: np.ndarray, truth: np.ndarray, repeats: int = 5,

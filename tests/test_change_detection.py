@@ -166,6 +166,9 @@ def test_the_node_re_decides_a_slide_across_textures(tmp_path):
     from supramodal.node.scene.build import build_node
     from supramodal.node.scene.schema import scene_from_dict
 
+    said: list = []
+    windows: list = []
+
     def run(decision: dict) -> list[dict]:
         d = {"source": [{"name": "mic", "type": "twosense", "sense": "microphone", "seconds": 3.0,
                          "order": ["H1a", "H1b", "F1a", "F2a"]}],
@@ -176,6 +179,8 @@ def test_the_node_re_decides_a_slide_across_textures(tmp_path):
         graph = build_node(scene_from_dict(d, "slide.toml", tmp_path), speed=float("inf"), sinks_override=[sink],
                            progress=None)
         graph.run()
+        said[:] = [ev for ev in sink.driver_events if ev.kind == "change"]
+        windows[:] = sink.windows
         return [e for e in sink.events if "accumulated" in e]
 
     events = run({"change": 1.0})
@@ -183,11 +188,27 @@ def test_the_node_re_decides_a_slide_across_textures(tmp_path):
     for window, pooled in changed:
         c = pooled["change"]
         assert c["from"] != c["to"] and 1 <= c["after"] <= 20 and pooled["windows"] == c["after"]
+    # each change is also an event of its own, in order, that every sink takes as it takes a driver's
+    assert len(said) == len(changed) >= 2
+    for ev, (window, pooled) in zip(said, changed):
+        c = pooled["change"]
+        began = window + 1 - c["after"]
+        assert ev.source == "mic" and ev.stream_index == began * 4410      # 100 ms windows at 44.1 kHz
+        assert f"from {c['from']} to {c['to']} at window {began} (said at window {window})" in ev.message
     boundaries = (30, 60, 90)                               # 3 s of each texture, windows of 100 ms
     assert sum(any(b <= w < b + 10 for w, _ in changed) for b in boundaries) >= 2
     assert [e["window"] for e in events] == list(range(120))
+    # what `evaluate --scene` reports of these windows: the three boundaries, found as above, none made up
+    from supramodal.node.workflows.fused_training import _contact_runs, decision_checks
+
+    checks = decision_checks(_contact_runs(windows), ("H1a", "H1b", "F1a", "F2a"),
+                             [{"asked": {"unknown": None, "change": 1.0}}])["changes"]
+    assert checks["boundaries"] == 3 and checks["false"] == len(changed) - len(checks["delays"])
+    assert checks["detected"] == sum(any(b <= w < b + 5 for w, _ in changed) for b in boundaries)
+    assert checks["minutes"] == pytest.approx(12.0 / 60, rel=0.01)
     plain = run({})
     assert [e["accumulated"]["windows"] for e in plain] == list(range(1, 121))     # one contact, never restarted
+    assert said == []
 
 
 @pytest.mark.slow      # one set on the command line: its table and CSV
@@ -204,3 +225,19 @@ def test_experiment_change_on_the_command_line_writes_its_table_and_csv(tmp_path
     for r in rows:
         assert int(r["boundaries"]) == 20 and 0.0 <= float(r["detected"]) <= float(r["found"]) <= 1.0
     assert main(["experiment", "change", "--sets", "0", "--out", str(tmp_path)]) == 2
+
+
+def test_changes_are_scored_against_the_truth_as_counted_by_hand():
+    """change_detections: the first change signalled in each boundary's segment detects it; the rest are false."""
+    from supramodal.evaluation import change_detections
+
+    truths = list("aaaabbbbbbccdd")           # boundaries at 4 (b), 10 (c), 12 (d)
+    boundaries, false = change_detections(truths, [1, 6, 8, 13])
+    # 1: before any boundary (false); 6 detects 4 (delay 3); 8: a second in b's segment (false);
+    # c's segment [10, 12) has none; 13 detects 12 (delay 2)
+    assert boundaries == [(4, 6), (10, None), (12, 13)] and false == 2
+    assert change_detections(list("aaaa"), []) == ([], 0)
+    assert change_detections(list("aaaa"), [0, 3]) == ([], 2)
+    assert change_detections(list("ab"), [1]) == ([(1, 1)], 0)      # said in the boundary's own window
+    with pytest.raises(InputError, match="outside the contact's 4 windows"):
+        change_detections(list("aaaa"), [4])

@@ -507,3 +507,21 @@ def test_the_seed_range_the_jobs_bound_and_a_cluster_address_are_said_and_good_o
             cluster_address(bad)
     with pytest.raises(argparse.ArgumentTypeError, match=f"at most the {cores()} cores here"):
         jobs(str(cores() + 1))
+
+
+def test_every_command_s_help_says_what_it_does_lists_debug_and_names_no_issue():
+    """`supramodal CMD --help` opens with the command's line (devices and bench showed only options), lists
+    --debug, and no help text names an internal issue."""
+    import re
+
+    from supramodal.node.cli import COMMANDS, build_parser
+
+    parser = build_parser()
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    assert set(sub.choices) == set(COMMANDS)
+    for name, command in sub.choices.items():
+        text = command.format_help()
+        assert command.description, name
+        assert command.description in " ".join(text.split()), name
+        assert "--debug" in text, name
+        assert not re.search(r"\bissue \d", text), (name, re.search(r".{40}\bissue \d.{10}", text))

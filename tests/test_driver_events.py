@@ -62,6 +62,10 @@ def test_limiter_passes_a_burst_then_folds_repeats_into_counts():
     assert [(e.message, e.count) for e in lim.flush()] == [("c11", 1)]
     lim.add_dropped({"channels": 5})
     assert lim.summary() == {"counts": {"channels": 17, "unplug": 1}, "dropped": {"channels": 5}}
+    # a texture change is a decision, each one acted on: never held back nor folded
+    changes = [lim.add(DriverEvent("change", f"x{i}", 0.0, source="main")) for i in range(5)]
+    assert [(e.message, e.count) for e in changes if e] == [(f"x{i}", 1) for i in range(5)]
+    assert lim.summary()["counts"]["main/change"] == 5 and lim.flush() == []
 
 
 def test_sinks_write_events(tmp_path, capsys):

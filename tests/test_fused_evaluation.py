@@ -83,7 +83,8 @@ def test_the_outputs_name_the_fusion_scored(recording, tmp_path, capsys):
     assert late["correlation"] == pytest.approx(fusion["correlation"]) and late["model"] is None
     folder = recording.parent
     assert late["senses"] == {"whiskers": str(folder / "t.whiskers.npz"), "mic": str(folder / "t.mic.npz")}
-    assert r["whiskers"]["scored"] == [{"scene": str(recording), "model": str(folder / "t.whiskers.npz")}]
+    assert r["whiskers"]["scored"] == [{"scene": str(recording), "model": str(folder / "t.whiskers.npz"),
+                                        "asked": {"unknown": None, "change": None}}]
     with open(tmp_path / "report" / "fusion.csv") as fh:
         rows = list(csv.reader(fh))
     assert tuple(rows[0]) == FUSION_COLUMNS
@@ -132,3 +133,36 @@ def test_windows_per_contact_need_recorded_graphs(tmp_path, capsys, monkeypatch)
     monkeypatch.chdir(tmp_path)
     assert main(["evaluate", "m.npz", "--manifest", "m.csv", "--contact-windows", "3"]) == 2
     assert "--contact-windows cuts the contacts of recorded graphs" in capsys.readouterr().err
+
+
+def test_decision_checks_count_false_unknowns_and_changes_per_contact_by_hand():
+    """evaluate's checks of the decision rules on events made by hand: two contacts (a lift-off between), the
+    first sliding from a to b; "unknown" said on known windows; changes signalled and scored per contact."""
+    from supramodal.node.runtime.events import WindowEvent
+    from supramodal.node.workflows.fused_training import _contact_runs, decision_check_lines, decision_checks
+
+    def ev(w, truth, decision="a", pooled_label="a", change=None, in_contact=True):
+        pooled = {"label": pooled_label, "confidence": 0.9, "windows": 1}
+        if change:
+            pooled["change"] = {"from": "a", "to": "b", "after": 1}
+        return WindowEvent("s", w, w * 0.1, (w + 1) * 0.1, (w + 1) * 0.1, decision=decision, confidence=0.9,
+                           pooled=pooled, truth=truth, in_contact=in_contact)
+
+    events = ([ev(w, "a") for w in range(5)] + [ev(5, "b", decision="unknown"), ev(6, "b"), ev(7, "b", change=True)]
+              + [ev(8, "b", change=True), ev(9, "b", in_contact=False)]          # a second change: false; lift-off
+              + [ev(w, "a", decision="unknown", pooled_label="unknown") for w in range(10, 14)])
+    runs = _contact_runs(events)
+    assert [[e.window for e in r] for r in runs] == [list(range(9)), list(range(10, 14))]
+    asked = [{"asked": {"unknown": 0.05, "change": 1.0}}]
+    r = decision_checks(runs, ("a", "b"), asked)
+    assert r["false_unknown"] == {"windows": 5, "of": 13, "asked": 0.05, "contacts": 1, "contacts_of": 1}
+    c = r["changes"]
+    assert (c["boundaries"], c["detected"], c["delays"], c["false"], c["asked"]) == (1, 1, [3], 1, 1.0)
+    assert c["minutes"] == pytest.approx(13 * 0.1 / 60)
+    lines = decision_check_lines(r)
+    assert lines[0] == 'said "unknown" on 5 of 13 windows of known textures (0.385; 1 of 1 contacts, 1.000; asked 0.05)'
+    assert lines[1].startswith("texture changes within a contact: 1 of 1 detected within 5 windows (median delay 3 "
+                               "windows); 1 false in 0.02 min")
+    # rules not asked: no change report, and no unknown line where none was said
+    quiet = decision_checks([[ev(0, "a"), ev(1, "b")]], ("a", "b"), [{"asked": {"unknown": None, "change": None}}])
+    assert "changes" not in quiet and decision_check_lines(quiet) == []

@@ -120,7 +120,37 @@ def test_blocks_tile_and_are_copies():
     assert buf.stats() == {
         "frames": 2205, "filled": 0, "dropped": 0, "lost": 0, "overflows": 0,
         "callbacks": 5, "errors": 0, "captured": 2205, "buffered": 0,
+        "implausible": 2 * (2205 - 17),         # a ramp of frame numbers is beyond 16 from frame 17, both channels
     }
+
+
+def test_float32_samples_of_an_absurd_level_are_counted_and_said_with_the_fix():
+    """Another sample format read as float32 (an int16 file served raw by ALSA's file plugin) gives samples
+    far beyond full scale, or NaN: each block says so in a `level` event naming the dtype, the samples are
+    counted and passed on as they are (the filterbank then counts what it cannot filter); a plausible
+    level (within 16x full scale) and int16 capture say nothing."""
+    buf = CaptureBuffer(RATE, channels=1, capacity=44100, gap_block=441)
+    rng = np.random.default_rng(5)
+    plausible = rng.uniform(-1.5, 1.5, (441, 1)).astype(np.float32)
+    buf.callback(plausible, 441, NO_TIME, flags())
+    int16_bytes = rng.integers(-32768, 32768, 882).astype("<i2").tobytes()
+    misread = np.frombuffer(int16_bytes, "<f4").reshape(441, 1)         # what the device hands over
+    expected = int(np.count_nonzero(~(np.abs(misread) <= 16.0)))
+    assert expected > 0
+    buf.callback(misread, 441, NO_TIME, flags())
+    nan = plausible.copy()
+    nan[[3, 7]] = np.nan
+    buf.callback(nan, 441, NO_TIME, flags())
+    buf.callback((plausible * 32767).astype(np.int16), 441, NO_TIME, flags())   # int16: bounded by its scaling
+    events, _ = buf.events.take()
+    level = [e for e in events if e.kind == "level"]
+    assert [e.stream_index for e in level] == [441, 882]
+    assert 'set dtype = "int16"' in level[0].message and f"{expected} sample(s) of 441" in level[0].message
+    assert "2 sample(s) of 441" in level[1].message
+    assert buf.stats()["implausible"] == expected + 2
+    buf.end()
+    data = np.concatenate([b.data for b in drain(buf)])
+    np.testing.assert_array_equal(data[441:882], misread)                 # passed on as it came
 
 
 def test_int16_is_scaled_exactly():

@@ -547,3 +547,39 @@ def test_a_sink_that_blocks_or_fails_never_stalls_processing():
     assert q_failing["errors"] == 200 and "No space left on device" in q_failing["first_error"]
     assert q_failing["dropped_windows"] == 0
     assert plain.final["sinks"] == summary["sinks"]
+
+
+class _Refusing(StandInDriver):
+    """A live board whose every frame the driver refuses (another channel count than the scene's): it says
+    so, and delivers nothing."""
+
+    rate, channels = 5000.0, 1
+
+    def stats(self):
+        return {"frames": 0, "filled": 0}
+
+    def read(self, timeout=None):
+        self._record("channels", "frame has 1 channels; configured for 20")
+        time.sleep(0.01)
+        return None
+
+
+def test_a_source_that_delivers_nothing_does_not_keep_the_stream_length_from_ending_the_run(monkeypatch):
+    """--seconds on a source that never delivers a sample: the run ends on the wall clock (twice the stream's
+    time, at least SILENT_SOURCE_GRACE more), and says which source and why; one that delivers runs its length."""
+    import supramodal.node.runtime.graph as graph_module
+
+    monkeypatch.setattr(graph_module, "SILENT_SOURCE_GRACE", 0.5)
+    sink = ListSink()
+    node = Node(_Refusing(), FeaturePipeline(whisker_bank(), ("Af",)), [sink])
+    t = time.monotonic()
+    summary = node.run(max_seconds=0.3)
+    took = time.monotonic() - t
+    assert 0.8 <= took < 10.0, took                 # 0.3 s of stream + 0.5 s, then the next check of the loop
+    assert "source(s) main delivered no sample" in summary["stopped_by"] and "0.3 s of stream" in summary["stopped_by"]
+    assert sink.windows == [] and any(ev.kind == "channels" for ev in sink.driver_events)
+    # a replay at max speed reaches its length long before: the rule never fires
+    x = 0.1 * np.random.default_rng(0).standard_normal((5000, 1))
+    replayed = Node(ReplayDriver((x, 5000.0), speed="max", on_notice=None), FeaturePipeline(whisker_bank(), ("Af",)),
+                    [ListSink()]).run(max_seconds=0.5)
+    assert replayed["stopped_by"] == "stream length reached"

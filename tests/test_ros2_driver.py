@@ -87,6 +87,22 @@ def _publisher(topic: str, wav: Path, *args: str) -> subprocess.Popen:
                             stderr=subprocess.PIPE, text=True)
 
 
+def _wait_for_driver(topic: str, node: subprocess.Popen, timeout: float = 300.0) -> None:
+    """Until the node's driver is on the bus (its ROS node, named after ``topic``, appears once the node's model
+    is trained or read from the run's cache; it subscribes when a publisher advertises the topic): a test whose
+    publisher keeps a sample clock from a fixed time must not start it while the node still trains."""
+    probe = Subscriber("probe")
+    name = "supramodal_" + "_".join(t for t in topic.split("/") if t)        # the driver's default node name
+    try:
+        deadline = time.monotonic() + timeout
+        while name not in probe.node.get_node_names():
+            assert node.poll() is None, node.communicate()[1][-1500:]
+            assert time.monotonic() < deadline, f"the node's driver {name} did not come in {timeout:g} s"
+            time.sleep(0.05)
+    finally:
+        probe.close()
+
+
 def _same_decisions(live: list[dict], local: list[dict]) -> None:
     assert len(live) >= 1 and len(live) <= len(local)
     got = [(w["window"], w["predicted"], w["confidence"]) for w in live]
@@ -128,8 +144,9 @@ def test_a_publisher_killed_and_started_again_is_said_and_its_gap_filled_exactly
     signal_ = whisker_signal(12.0)
     write_wav(tmp_path / "s.wav", signal_, RATE)
     topic = f"{unique_namespace()}/whiskers"
-    t0 = time.time_ns() + 8 * 10**9          # sample 0's time: the node trains (or reads its cache) meanwhile
     node = _run(tmp_path, "live", f'type = "ros2"\ntopic = "{topic}"', "--seconds", "11")
+    _wait_for_driver(topic, node)           # the node trains (or reads the run's cache) first
+    t0 = time.time_ns() + 5 * 10**9         # sample 0's time: the publisher starts (its rclpy, a match) meanwhile
     first = _publisher(topic, tmp_path / "s.wav", "--t0-ns", str(t0), "--hold-at", str(4 * RATE),
                        "--wait-subscriber", "300")
     second = None

@@ -91,8 +91,17 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--debug", action="store_true", help="show the traceback of every error, not one line")
     # --debug is also accepted after the command; SUPPRESS keeps the top-level value when it is not.
     common = argparse.ArgumentParser(add_help=False)
-    common.add_argument("--debug", action="store_true", default=argparse.SUPPRESS, help=argparse.SUPPRESS)
+    common.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
+                        help="show the traceback of every error, not one line")
     sub = parser.add_subparsers(dest="command", required=True)
+    add = sub.add_parser
+
+    def add_described(name: str, **kwargs: Any) -> argparse.ArgumentParser:
+        # a command's --help opens with what it does: its line in the command list
+        kwargs.setdefault("description", kwargs.get("help"))
+        return add(name, **kwargs)
+
+    sub.add_parser = add_described      # type: ignore[method-assign]
     for module in COMMANDS.values():
         module.add_parser(sub, common).set_defaults(func=module.run)
     return parser

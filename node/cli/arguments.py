@@ -7,6 +7,7 @@ import argparse
 import math
 import os
 import sys
+import threading
 from pathlib import Path
 
 from supramodal.errors import SupramodalError
@@ -186,8 +187,40 @@ def mapping(text: str):
     return int(text) if text.isdigit() else text
 
 
+class StderrProgress:
+    """Progress lines on stderr, ``supramodal: ...``. :meth:`transient` lines (a long step's periodic
+    line) rewrite one line in place on a terminal and are plain lines elsewhere (a log, a pipe); the
+    next plain line replaces a transient one. Any thread."""
+
+    def __init__(self, stream=None) -> None:
+        self.stream = sys.stderr if stream is None else stream
+        self._open = False                  # a transient line is on the terminal, without its newline
+        self._lock = threading.Lock()
+
+    def _tty(self) -> bool:
+        isatty = getattr(self.stream, "isatty", None)
+        return bool(isatty and isatty())
+
+    def __call__(self, message: str) -> None:
+        with self._lock:
+            clear = "\r\x1b[K" if self._open else ""
+            self._open = False
+            self.stream.write(f"{clear}supramodal: {message}\n")
+            self.stream.flush()
+
+    def transient(self, message: str) -> None:
+        if not self._tty():
+            self(message)
+            return
+        with self._lock:
+            self.stream.write(f"\r\x1b[Ksupramodal: {message}")
+            self._open = True
+            self.stream.flush()
+
+
 def progress(args):
-    return None if getattr(args, "quiet", False) else (lambda m: print(f"supramodal: {m}", file=sys.stderr, flush=True))
+    """The command's progress on stderr (:class:`StderrProgress`), or None with ``--quiet``."""
+    return None if getattr(args, "quiet", False) else StderrProgress()
 
 
 def say_plots_missing(notice: str | None) -> None:

@@ -22,10 +22,9 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
                                           "newtouch", "change"],
                    help="which figure of the paper; fusion: the two senses fused on the two-sense synthetic world "
                         "(beyond the paper; not in all); calibration: whether the confidence means what it says "
-                        "(calibration, fusion, unknown textures, anytime decisions; issue 23; not in all); "
+                        "(calibration, fusion, unknown textures, anytime decisions; not in all); "
                         "newtouch: the same on a touch the models never met, and after recalibrating on half of it "
-                        "(issue 34; not in all); change: re-deciding when the texture changes within a contact "
-                        "(issue 34; not in all)")
+                        "(not in all); change: re-deciding when the texture changes within a contact (not in all)")
     p.add_argument("--quick", action="store_true", help="short textures and small grids: seconds, not minutes")
     p.add_argument("--jobs", type=jobs, help="worker processes (default: all cores); results do not depend on it")
     p.add_argument("--seed", type=seed, default=0,

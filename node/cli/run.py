@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 import argparse
-import sys
 
+from supramodal.node.cli.arguments import progress as progress_of
 from supramodal.node.cli.arguments import speed, stream_seconds
 from supramodal.node.cli.signals import interrupt_until_running, stop_on_signals
 
@@ -61,7 +61,7 @@ def run(args: argparse.Namespace) -> int:
     if args.view is not None:
         from supramodal.node.scene.variants import add_view
         scene, sinks = add_view(scene, sinks, args.view)
-    progress = None if args.quiet else (lambda m: print(f"supramodal: {m}", file=sys.stderr, flush=True))
+    progress = progress_of(args)
     if progress and args.scene is None:
         for line in _default_run_guide(scene, args.speed):
             progress(line)

@@ -20,6 +20,11 @@ import numpy as np
 from supramodal.drivers.base import DriverEvent
 from supramodal.errors import InputError
 
+#: Event kinds that are decisions, not a device's health: a texture ``change`` within a contact
+#: (:func:`change_event`). Each is passed on (never folded by :class:`EventLimiter`) and is no
+#: source's state.
+DECISION_EVENTS = frozenset({"change"})
+
 
 class EventLimiter:
     """At most ``burst`` events per kind per ``interval`` seconds; repeats folded into counts.
@@ -31,7 +36,8 @@ class EventLimiter:
     once there is, or :meth:`flush` at the end) carries them: its ``count`` is 1
     + those held back, its message the latest. A board spewing errors gives at
     most ``burst`` lines per kind per interval, and nothing is lost:
-    :attr:`counts` holds every occurrence per kind.
+    :attr:`counts` holds every occurrence per kind. A kind of :data:`DECISION_EVENTS` always passes:
+    it is a decision (at most one per window), not a device's noise.
 
     Parameters
     ----------
@@ -55,6 +61,8 @@ class EventLimiter:
         """Take one event; return what to show now (it, carrying any held back), or None."""
         key = _key(ev.source, ev.kind)
         self.counts[key] += ev.count
+        if ev.kind in DECISION_EVENTS:
+            return ev
         now = self._clock()
         held = self._held.pop(key, None)
         if held is not None:
@@ -207,6 +215,29 @@ class WindowEvent:
             out[flag] = True
         out["latency_ms"] = self.latency_ms
         return out
+
+
+def change_event(stream: str, window: int, change: dict[str, Any], stream_index: int | None = None) -> DriverEvent:
+    """The event a stream (or the fusion) says when its decider re-decides within a contact
+    (``[decision] change``): kind ``"change"``, its source the stream, so that every sink takes it as it
+    takes a driver's event (a line on stderr, a JSON line, the ROS 2 events topic, the view's banner).
+
+    Parameters
+    ----------
+    stream : str
+        The stream whose decision changed (``"fused"``: the fusion's).
+    window : int
+        The window in which the change was signalled.
+    change : dict
+        The pooled decision's ``"change"``: ``{"from", "to", "after"}``, ``after`` the windows since
+        the change began (the signalling window counts).
+    stream_index : int, optional
+        The stream's sample at which the change began (None: the fusion, which has no samples of its own).
+    """
+    began = window + 1 - int(change["after"])
+    return DriverEvent("change", f"{stream}: the texture changed from {change['from']} to {change['to']} at window "
+                                 f"{began} (said at window {window}): a new decision starts there",
+                       time.time(), stream_index=stream_index, source=stream)
 
 
 def log_posteriors_of(event: WindowEvent) -> np.ndarray:

@@ -44,7 +44,7 @@ from supramodal.drivers.base import DriverEvent
 from supramodal.errors import InputError
 from supramodal.features import DEFAULT_WINDOW
 from supramodal.fusion import fuse_late
-from supramodal.node.runtime.events import FUSED_STREAM, TruthTally, WindowEvent, log_posteriors_of
+from supramodal.node.runtime.events import FUSED_STREAM, TruthTally, WindowEvent, change_event, log_posteriors_of
 from supramodal.node.runtime.latency import LatencyHistogram
 
 if TYPE_CHECKING:   # for annotations only: the runtime does not load the early-fusion model
@@ -279,6 +279,8 @@ class LateFusion:
         said = self.decider.decide(log_post, in_contact, novel=any(e.unknown == "novel" for e in events))
         decision, pooled = said["decision"], said["pooled"]
         self.tally.add(decision, None if pooled is None else pooled["label"], truth)
+        if pooled is not None and "change" in pooled and self.on_event is not None:
+            self.on_event(change_event(FUSED_STREAM, self.windows, pooled["change"]))
         latency = None
         if closed is not None:
             latency = (time.monotonic() - closed) * 1e3

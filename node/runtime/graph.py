@@ -36,6 +36,7 @@ probes them for a method.
 from __future__ import annotations
 
 import contextlib
+import functools
 import math
 import queue
 import threading
@@ -62,6 +63,20 @@ if TYPE_CHECKING:   # for annotations only: a graph of one stream does not load 
     from supramodal.node.runtime.fusion import LateFusion
 
 __all__ = ["Graph", "Node", "NodeError", "Labels", "channel_mapper"]
+
+
+#: Least wall seconds beyond its stream's time that a run waits for a source that delivers nothing.
+SILENT_SOURCE_GRACE = 5.0
+
+
+def silent_source_limit(max_seconds: float, sources: Iterable[Source]) -> float:
+    """Wall seconds after which a run asked for ``max_seconds`` of stream ends if a source has delivered
+    nothing (a board whose every frame is refused, a device that never starts): twice the time the
+    stream takes at the slowest source's pace (a replay's ``speed``; real time for a live driver), and at
+    least 5 s more than it."""
+    pace = min((float(getattr(s.driver, "speed", 1.0)) for s in sources), default=1.0)
+    wall = max_seconds / pace if pace > 0 else 0.0
+    return wall + max(SILENT_SOURCE_GRACE, wall)
 
 
 class NodeError(SupramodalError, RuntimeError):
@@ -212,8 +227,10 @@ class Graph:
         threads += [self._thread(f"processing {s.name}" if len(self.streams) > 1 else "processing", self._process, s)
                     for s in self.streams]
         threads.append(self._thread("event", self._deliver_events))
+        for stream in self.streams:
+            stream.on_event = functools.partial(self._stream_event, stream.name)
         if self.fusion is not None:
-            self.fusion.on_event = lambda ev: self._event_queue.put((FUSED_STREAM, [ev], {}))
+            self.fusion.on_event = functools.partial(self._stream_event, FUSED_STREAM)
             threads.append(self._thread("fusion", self._fuse, self.fusion))
         for tap, source, feed, where in self._all_taps():
             tap.start(source, t0)
@@ -225,10 +242,18 @@ class Graph:
                 opened.enter_context(source.driver)
             for t in threads:
                 t.start()
+            deadline = None if max_seconds is None else t0 + silent_source_limit(max_seconds, self.sources)
             # Join with a timeout so that the main thread stays responsive to signals.
             while any(t.is_alive() for t in threads):
                 for t in threads:
                     t.join(0.1)
+                if deadline is not None and time.monotonic() > deadline:
+                    deadline = None
+                    silent = [s.name for s in self.sources if not s.delivered_any]
+                    if silent:
+                        self.stop(f"the stream length: source(s) {', '.join(silent)} delivered no sample in "
+                                  f"{time.monotonic() - t0:.0f} s (see their events), so the length asked "
+                                  f"({max_seconds:g} s of stream) could never be reached")
         for s in self.sinks:
             s.drain()                             # a queued sink: let it take what it holds
         for tap, _, _, _ in self._all_taps():
@@ -293,10 +318,15 @@ class Graph:
         finally:
             self._event_queue.put(None)
 
+    def _stream_event(self, name: str, ev: DriverEvent) -> None:
+        """An event a stream or the fusion said (a texture ``change``, a ``sense_lost``): to the event thread."""
+        self._event_queue.put((name, [ev], {}))
+
     def _process(self, stream: Stream) -> None:
         try:
             stream.process(self._route)
         finally:
+            self._event_queue.put(None)         # the stream says no more (its last change event is before)
             if self.fusion is not None and stream.name in self.fusion.inputs:
                 self.fusion.end(stream.name)
 
@@ -312,7 +342,8 @@ class Graph:
     def _deliver_events(self) -> None:
         """Driver events to the sinks, rate-limited; ends after every source thread's end."""
         lim = self._limiter
-        running = len(self.sources) + (self.fusion is not None) + len(self.contacts)    # each ends with a None
+        # each source, stream, the fusion and each contact listener ends with a None
+        running = len(self.sources) + len(self.streams) + (self.fusion is not None) + len(self.contacts)
         tag = len(self.sources) > 1           # name the source when there are several
         while running:
             item: EventItem | tuple[()] | None

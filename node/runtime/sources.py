@@ -153,6 +153,8 @@ class Source:
         self._last_arrival = -math.inf
         #: Blocks whose arrival stamp went backwards, left out of the clock fit.
         self.clock_skipped = 0
+        #: Whether the driver has delivered any frame (a source that delivers none cannot reach its length).
+        self.delivered_any = False
         self.max_frames: int | None = None
         #: Set by the source thread: the stream length (``max_frames``) was reached.
         self.reached_length = False
@@ -190,6 +192,7 @@ class Source:
                     self._queue_events()
                 if block is None:
                     continue
+                self.delivered_any = self.delivered_any or block.frames > 0
                 limit = self.max_frames
                 last = limit is not None and block.start + block.frames >= limit
                 if limit is not None and last:

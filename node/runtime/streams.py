@@ -20,10 +20,10 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from supramodal.decisions import DEFAULT_DECISION, ContactDetector, Decider, DecisionRules
-from supramodal.drivers.base import Driver
+from supramodal.drivers.base import Driver, DriverEvent
 from supramodal.errors import InputError
 from supramodal.model import TextureModel
-from supramodal.node.runtime.events import TruthTally, WindowEvent
+from supramodal.node.runtime.events import TruthTally, WindowEvent, change_event
 from supramodal.node.runtime.latency import LatencyHistogram
 from supramodal.node.runtime.ringbuffer import RingClosed
 from supramodal.pipeline import FeaturePipeline
@@ -184,6 +184,8 @@ class Stream:
         self.cpu = 0.0
         self.windows = 0
         self.tally = TruthTally()
+        #: Told a texture ``change`` within a contact as an event (the graph puts it on its event thread).
+        self.on_event: Callable[[DriverEvent], None] | None = None
 
     # -- processing thread --------------------------------------------------------------------
 
@@ -262,6 +264,8 @@ class Stream:
                 decision, confidence, guess, reason, pooled = (said[k] for k in ("decision", "confidence", "guess",
                                                                                  "reason", "pooled"))
                 self.tally.add(decision, None if pooled is None else pooled["label"], truth)
+                if pooled is not None and "change" in pooled and self.on_event is not None:
+                    self.on_event(change_event(self.name, w, pooled["change"], (w + 1 - pooled["change"]["after"]) * W))
             flags = set(self._marks_of(w, W))
             if w in self._gap_windows:
                 flags.add("gap")

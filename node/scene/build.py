@@ -7,7 +7,9 @@ not asked for are not computed, and there is no classifier without a model.
 
 from __future__ import annotations
 
+import contextlib
 import json
+from collections.abc import Iterator
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -15,11 +17,12 @@ from numpy.typing import NDArray
 
 from supramodal.bankfile import BankFileError, bank_from_description, load_bank
 from supramodal.banks import Bank
-from supramodal.calibration import winner
+from supramodal.calibration import DEFAULT_CALIBRATION_FOLDS, winner
 from supramodal.decisions import ContactDetector
 from supramodal.drivers.contact import ContactListener, contact_listener
 from supramodal.drivers.spec import BuildContext, OptionError
 from supramodal.errors import InputError
+from supramodal.mlp import DEFAULT_EPOCHS
 from supramodal.model import ModelError, TextureModel
 from supramodal.node.runtime.contacts import ContactTimeline
 from supramodal.node.runtime.events import MAIN_STREAM
@@ -27,6 +30,7 @@ from supramodal.node.runtime.graph import Graph
 from supramodal.node.runtime.sinks.spec import SinkContext, SinkSpec, SourcePlan, StreamPlan
 from supramodal.node.runtime.sources import Source
 from supramodal.node.runtime.streams import Labels, Stream, refuse_uncalibrated
+from supramodal.node.runtime.ticker import Ticker
 from supramodal.node.scene.band import warn_if_beyond_band
 from supramodal.node.scene.registry import driver_spec, sink_spec
 from supramodal.node.scene.schema import LEARN
@@ -81,10 +85,13 @@ def train_on_texture_set(ts, pipeline: FeaturePipeline, progress=None, held_out:
            float(p.peaks.threshold))
     made = _trained_on_the_spot.pop(key, None)
     if made is None:
-        values, _ = texture_features(ts, p.bank, p.features, p.window, peak_mode=p.peaks.mode,
-                                     peak_threshold=p.peaks.threshold)
-        x_train, y_train, x_test, y_test = split(values)
-        model = TextureModel.train_for(p, x_train, y_train, ts.names, seed=0)
+        with _ticker(progress, f"the {p.bank.kind} bank's model ({', '.join(p.features)}) on {len(ts.textures)} "
+                               "textures") as tell:
+            values, _ = texture_features(ts, p.bank, p.features, p.window, peak_mode=p.peaks.mode,
+                                         peak_threshold=p.peaks.threshold, progress=tell.features)
+            x_train, y_train, x_test, y_test = split(values)
+            model = TextureModel.train_for(p, x_train, y_train, ts.names, seed=0, progress=tell.epoch,
+                                           calibration_progress=tell.fold)
         made = (model, (x_train, y_train), (x_test, y_test))
     _trained_on_the_spot[key] = made                    # the most recent last
     while len(_trained_on_the_spot) > TRAINED_ON_THE_SPOT:
@@ -100,6 +107,46 @@ def train_on_texture_set(ts, pipeline: FeaturePipeline, progress=None, held_out:
         progress(f"trained on {len(train_part[0])} windows of {len(ts.textures)} textures ({', '.join(p.features)}); "
                  + calibration_line(None if model.calibration is None else model.calibration.fitted_on))
     return model
+
+
+class _TrainingTold:
+    """The training's callbacks, each telling a :class:`~supramodal.node.runtime.ticker.Ticker` its stage
+    (``ticker`` None: no one is told)."""
+
+    def __init__(self, ticker: Ticker | None, epochs: int, folds: int) -> None:
+        self.ticker, self.epochs, self.folds = ticker, epochs, folds
+
+    def features(self, line: str) -> None:
+        if self.ticker is not None:
+            self.ticker.stage("features, " + line.strip())
+
+    def epoch(self, epoch: int, mse: float) -> None:
+        if self.ticker is not None:
+            self.ticker.stage(f"network 1 of {self.folds + 1} (the model), epoch {epoch + 1} of {self.epochs}",
+                              (epoch + 1) / self.epochs)
+            if epoch + 1 == self.epochs:
+                self.ticker.network_done()
+                self.ticker.stage(f"network 2 of {self.folds + 1} (calibration fold 1 of {self.folds})")
+
+    def fold(self, line: str) -> None:
+        if self.ticker is not None:
+            if self.ticker.done == 0:               # the model's network stopped early (its error goal met)
+                self.ticker.network_done()
+            self.ticker.network_done()
+            k = self.ticker.done
+            self.ticker.stage(f"network {k + 1} of {self.folds + 1} (calibration fold {k} of {self.folds})"
+                              if k <= self.folds else "fitting the calibration on the folds' held-out windows")
+
+
+@contextlib.contextmanager
+def _ticker(progress, what: str) -> Iterator[_TrainingTold]:
+    """Tell ``progress`` how training ``what`` on start goes: a line at once and every few seconds
+    (:class:`~supramodal.node.runtime.ticker.Ticker`); nothing when ``progress`` is None."""
+    if progress is None:
+        yield _TrainingTold(None, DEFAULT_EPOCHS, DEFAULT_CALIBRATION_FOLDS)
+        return
+    with Ticker(progress, what, 1 + DEFAULT_CALIBRATION_FOLDS) as ticker:
+        yield _TrainingTold(ticker, DEFAULT_EPOCHS, DEFAULT_CALIBRATION_FOLDS)
 
 
 #: Models trained on the spot kept in memory, most recent last (see :func:`train_on_texture_set`).

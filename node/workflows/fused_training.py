@@ -350,6 +350,7 @@ def evaluate_fused(paths, fused_model=None, progress=None, contact_windows: int 
     classes: dict[str, tuple] = {}
     scored: dict[str, tuple[list, list]] = {}   # stream -> (log-posteriors, truth index) of its labelled windows
     what: dict[str, list] = {}              # stream -> per scene, what was scored
+    decided_runs: dict[str, list] = {}      # stream -> its contacts' labelled windows, in order (see _contact_runs)
     for path in paths:
         scene = _graph_for(path, fused_model)
         sink = ListSink()
@@ -364,6 +365,7 @@ def evaluate_fused(paths, fused_model=None, progress=None, contact_windows: int 
             if e.truth is not None and e.posteriors is not None:
                 by_stream.setdefault(e.stream, []).append(e)
         for name, events in by_stream.items():
+            decided_runs.setdefault(name, []).extend(_contact_runs(events))
             windows.setdefault(name, []).extend(e.decision == e.truth for e in events)
             contacts.setdefault(name, []).extend(_contacts(events, contact_windows))
             decided.setdefault(name, []).extend((e.truth, e.decision) for e in events)
@@ -393,6 +395,65 @@ def evaluate_fused(paths, fused_model=None, progress=None, contact_windows: int 
                                              "sure_wrong")} | {"confidence": mean_confidence(report),
                                                                "ece_if_calibrated": ece_if_calibrated(report)},
                      "scored": what.get(name, [])}
+        out[name].update(decision_checks(decided_runs[name], classes[name], what.get(name, [])))
+    return out
+
+
+def _contact_runs(events: list[WindowEvent]) -> list[list[WindowEvent]]:
+    """The node's contacts in one stream's labelled windows (in order): each run of consecutive
+    windows in contact, as its decider pooled them (a lift-off or a missing window ends one)."""
+    runs: list[list[WindowEvent]] = []
+    for e in events:
+        if not e.in_contact:
+            continue
+        if runs and runs[-1][-1].window == e.window - 1 and runs[-1][-1].in_contact:
+            runs[-1].append(e)
+        else:
+            runs.append([e])
+    return runs
+
+
+def decision_checks(runs: list[list[WindowEvent]], classes, scored: list[dict]) -> dict:
+    """What a stream's decision rules did against the truth, over its contacts' windows (``runs``,
+    :func:`_contact_runs`) and the rules each scene asked (``scored``'s ``asked``).
+
+    Returns
+    -------
+    dict
+        ``false_unknown``: windows of a known texture decided "unknown" (``{"windows", "of", "asked"}``,
+        ``asked`` the ``[decision] unknown`` rate, None when off), and, with pooled decisions,
+        contacts of one known texture whose pooled decision at their end was "unknown"
+        (``"contacts"``, ``"contacts_of"``). With ``[decision] change`` asked: ``changes`` (see
+        :func:`~supramodal.evaluation.change_detections`): ``boundaries`` (texture changes within a
+        contact), ``detected`` (signalled within :data:`~supramodal.evaluation.DETECT_WITHIN` windows),
+        ``delays`` (windows, of every detection), ``false`` (changes signalled that detect none),
+        ``minutes`` (the contacts' time), ``asked`` (false changes per minute allowed).
+    """
+    from supramodal.decisions import UNKNOWN
+    from supramodal.evaluation import DETECT_WITHIN, change_detections
+
+    asked = [e.get("asked", {}) for e in scored]
+    unknown_asked = next((a["unknown"] for a in asked if a.get("unknown")), None)
+    change_asked = next((a["change"] for a in asked if a.get("change")), None)
+    known = [e for run in runs for e in run if e.truth in classes]
+    out: dict = {"false_unknown": {"windows": sum(e.decision == UNKNOWN for e in known), "of": len(known),
+                                   "asked": unknown_asked}}
+    ends = [run[-1].pooled for run in runs if run[0].truth in classes and all(e.truth == run[0].truth for e in run)]
+    said = [pooled["label"] for pooled in ends if pooled is not None]      # each contact's pooled decision at its end
+    if said:
+        out["false_unknown"].update(contacts=sum(label == UNKNOWN for label in said), contacts_of=len(said))
+    if change_asked is not None:
+        report = {"boundaries": 0, "detected": 0, "delays": [], "false": 0, "minutes": 0.0, "asked": change_asked}
+        for run in runs:
+            boundaries, false = change_detections([e.truth for e in run],
+                                                  [k for k, e in enumerate(run) if e.pooled and "change" in e.pooled])
+            report["boundaries"] += len(boundaries)
+            report["delays"] += [t - b + 1 for b, t in boundaries if t is not None]
+            report["false"] += false
+            if len(run) > 1:        # a run's time: its windows at their spacing on common time
+                report["minutes"] += len(run) * (run[-1].end - run[0].end) / (len(run) - 1) / 60.0
+        report["detected"] = sum(d <= DETECT_WITHIN for d in report["delays"])
+        out["changes"] = report
     return out
 
 
@@ -402,11 +463,18 @@ def _scored(scene, graph) -> dict[str, dict]:
     def file(path):
         return None if path is None else str(scene.resolve(path))
 
+    def asked(decider) -> dict:          # the rules whose rates the evaluation checks
+        rules = decider.rules
+        return {"unknown": rules.unknown or None, "change": rules.change or None}
+
     models = {spec.name: file(spec.model.path) for spec in scene.streams}
-    out: dict[str, dict] = {name: {"scene": scene.source, "model": path} for name, path in models.items()}
+    deciders = {s.name: s.decider for s in graph.streams}
+    out: dict[str, dict] = {name: {"scene": scene.source, "model": path,
+                                   "asked": asked(deciders[name]) if deciders[name] is not None else {}}
+                            for name, path in models.items()}
     f = graph.fusion
     early = f.method == "early"
-    out[FUSED_STREAM] = {"scene": scene.source, "method": f.method,
+    out[FUSED_STREAM] = {"scene": scene.source, "method": f.method, "asked": asked(f.decider),
                          "weight": None if early else float(f.weight),
                          "sharpness": None if early else float(f.sharpness),
                          "correlation": float(f.correlation),
@@ -464,8 +532,34 @@ def format_fused_evaluation(result: dict) -> str:
         lines.append(f"{name}: {scored_text(r['scored'])}")
         if r.get("calibration") is not None:
             lines.append(f"{name}: {confidence_verdict(r['calibration'], fused=name == FUSED_STREAM)}")
+        lines += [f"{name}: {line}" for line in decision_check_lines(r)]
     lines.append(f"contacts: {contact_text(next(iter(result.values()))['contact_windows'])}")
     return "\n".join(lines)
+
+
+def decision_check_lines(r: dict) -> list[str]:
+    """A stream's :func:`decision_checks` in words: the false-unknown rate where "unknown" was asked or
+    said, and the texture changes where ``[decision] change`` was asked."""
+    from supramodal.evaluation import DETECT_WITHIN
+
+    lines = []
+    u = r.get("false_unknown")
+    if u and (u["asked"] is not None or u["windows"]) and u["of"]:
+        line = (f"said \"unknown\" on {u['windows']} of {u['of']} windows of known textures "
+                f"({u['windows'] / u['of']:.3f}")
+        if u.get("contacts_of"):
+            line += f"; {u['contacts']} of {u['contacts_of']} contacts, {u['contacts'] / u['contacts_of']:.3f}"
+        asked = u["asked"]
+        lines.append(line + (f"; asked {asked:g})" if asked is not None else "; not asked: ties and unsure windows)"))
+    c = r.get("changes")
+    if c:
+        found = (f"{c['detected']} of {c['boundaries']} detected within {DETECT_WITHIN} windows"
+                 + (f" (median delay {np.median(c['delays']):g} windows)" if c["delays"] else "")
+                 if c["boundaries"] else "no texture changed within a contact")
+        rate = f"{c['false'] / c['minutes']:.2f} per minute" if c["minutes"] > 0 else "-"
+        lines.append(f"texture changes within a contact: {found}; {c['false']} false in {c['minutes']:.2f} min "
+                     f"({rate}; asked at most {c['asked']:g})")
+    return lines
 
 
 def _share(v) -> str:

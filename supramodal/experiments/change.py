@@ -34,6 +34,7 @@ import numpy as np
 
 from supramodal.decisions import Decider, DecisionRules
 from supramodal.errors import InputError
+from supramodal.evaluation import DETECT_WITHIN, change_detections
 from supramodal.experiments.common import Run
 from supramodal.experiments.newtouch import FEATURES, TOUCHES, touch_features, train_senses
 from supramodal.features import DEFAULT_WINDOW
@@ -47,8 +48,6 @@ from supramodal.twosense import synthesize_slide, two_sense_set
 SEGMENT = 3.0
 #: Slides per set.
 SLIDES = 4
-#: A change is detected when the decider signals one within this many windows of the boundary.
-DETECT_WITHIN = 5
 #: False changes per minute allowed (``[decision] change``).
 CHANGE_RATE = 1.0
 #: The final decision's confidence (``[decision] confidence``).
@@ -117,26 +116,22 @@ def run_set(set_seed: int, seconds: float = 10.0, epochs: int = DEFAULT_EPOCHS, 
                          extract_features(m, banks["microphone"], FEATURES).values)
         for s in STREAMS:
             pooled = decide(lps[s], classes, *pooling[s])
-            changes = [(t, p["change"]) for t, p in enumerate(pooled) if "change" in p]
-            found = set()                 # the first change in each segment after a boundary: its detection
-            for b in range(1, len(order)):
-                at = b * seg
+            truths = [names[order[min(t // seg, len(order) - 1)]] for t in range(len(pooled))]
+            boundaries, false = change_detections(truths, [t for t, p in enumerate(pooled) if "change" in p])
+            for at, t in boundaries:
                 out[s]["boundaries"] += 1
-                hit = [(t, c) for t, c in changes if at <= t < at + seg]
-                if hit:
-                    t, c = hit[0]
-                    found.add(t)
+                if t is not None:
                     out[s]["delays"].append(t - at + 1)
                     out[s]["detected"] += t - at + 1 <= DETECT_WITHIN
-                    out[s]["to_new"] += c["to"] == names[order[b]]
+                    out[s]["to_new"] += pooled[t]["change"]["to"] == truths[at]
                 # the segment's decision, from the pooled dicts of its own windows (after the change, if found)
-                said = _said(pooled[hit[0][0] if hit else at:at + seg])
-                out[s]["after_change"][0] += said == names[order[b]]
+                said = _said(pooled[at if t is None else t:at + seg])
+                out[s]["after_change"][0] += said == truths[at]
                 out[s]["after_change"][1] += 1
                 fresh = _said(decide(lps[s][at:at + seg], classes, *pooling[s]))      # as after a lift-off
-                out[s]["after_lift_off"][0] += fresh == names[order[b]]
+                out[s]["after_lift_off"][0] += fresh == truths[at]
                 out[s]["after_lift_off"][1] += 1
-            out[s]["false_in_slides"] += sum(t not in found for t, _ in changes)
+            out[s]["false_in_slides"] += false
             out[s]["slide_minutes"] += len(pooled) * DEFAULT_WINDOW / 60.0
     return {"set_seed": set_seed, "textures": classes, "late_weight": late["weight"],
             "late_sharpness": late["sharpness"], "streams": out}

@@ -49,7 +49,7 @@ from supramodal.drivers.base import DriverEvent
 from supramodal.drivers.ros2 import Ros2Unavailable, check_namespace, check_node_name, ros_arguments
 from supramodal.drivers.spec import OptionError
 from supramodal.errors import InputError, SupramodalError
-from supramodal.node.runtime.events import FUSED_STREAM, WindowEvent
+from supramodal.node.runtime.events import DECISION_EVENTS, FUSED_STREAM, WindowEvent
 from supramodal.node.runtime.sinks import QueuedSink, Sink
 from supramodal.node.runtime.sinks.ros2_publisher import (
     DEFAULT_HISTORY,
@@ -302,9 +302,10 @@ class Ros2Sink(Sink):
                     "decision": event.as_dict() if event.decision is not None else None}, payload)
 
     def event(self, ev: DriverEvent) -> None:
-        """A driver event: on ``~/events`` and in the diagnostics (of the counters now), at once."""
-        self._send({"op": "event", "event": asdict(ev), "source": ev.source or self._only_source(),
-                    "health": self.health() if self.health is not None else None})
+        """A driver event: on ``~/events`` and in the diagnostics (of the counters now), at once; a texture
+        change (:data:`~supramodal.node.runtime.events.DECISION_EVENTS`) on ``~/events`` only."""
+        health = self.health() if self.health is not None and ev.kind not in DECISION_EVENTS else None
+        self._send({"op": "event", "event": asdict(ev), "source": ev.source or self._only_source(), "health": health})
 
     def _only_source(self) -> str:
         if self._one_source is None:

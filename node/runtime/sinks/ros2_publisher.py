@@ -24,7 +24,9 @@ the node is built, before any model is trained, so that subscribers match while 
 ``~/STREAM/features`` (``sensor_msgs/JointState``; best effort, volatile, keep last 5: sensor data)
     ``name``: ``FEATURE/FILTER``, ``position``: the window's values.
 ``~/events`` (``std_msgs/String``; reliable, transient local, keep last 20)
-    A driver event's JSON object (unplug, reconnect, gap, overrun, ...), as the ``jsonl`` sink writes it.
+    A driver event's JSON object (unplug, reconnect, gap, overrun, ...), as the ``jsonl`` sink writes it;
+    also each texture ``change`` within a contact (``[decision] change``; its ``source`` the stream, its
+    message from which texture to which, at which window), which is in no diagnostics.
 ``/diagnostics`` (``diagnostic_msgs/DiagnosticArray``; reliable, volatile, keep last 10)
     Per stream, source, the fusion and the sinks: a level, a line and the counts (below).
 
@@ -67,7 +69,7 @@ import numpy as np
 from supramodal.drivers.base import DriverEvent
 from supramodal.drivers.ros2 import RosClock, RosNode, check_token
 from supramodal.errors import InputError
-from supramodal.node.runtime.events import FUSED_STREAM, MAIN_STREAM, WindowEvent
+from supramodal.node.runtime.events import DECISION_EVENTS, FUSED_STREAM, MAIN_STREAM, WindowEvent
 from supramodal.node.runtime.sinks.spec import stream_outputs
 
 __all__ = ["OUTPUTS", "Ros2Publisher", "SourceState", "Status", "TopicStream", "diagnostic_report"]
@@ -449,6 +451,10 @@ class Ros2Publisher:
         """A driver event: on ``~/events`` at once (as the ``jsonl`` sink writes it), and in the diagnostics,
         published at once too, of ``health`` (None: the counters last given). ``source``: the source it is
         filed under when the event names none (default: the graph's one source)."""
+        if ev.kind in DECISION_EVENTS:          # a texture change: the planner's to act on, not the health's
+            self._events.publish(self._String(data=json.dumps(ev.as_dict())))
+            self.published["events"] += 1
+            return
         name = ev.source or source or self._only_source()
         with self._lock:
             state = self._sources.setdefault(name, SourceState())

@@ -73,6 +73,8 @@ class TextSink(FileSink):
                 line += f"  | over {acc['windows']:>3} win: {shown:<12} conf {acc['confidence']:.2f}"
                 if acc.get("decided"):
                     line += f" decided after {acc['decided_after']}"
+                if acc.get("change"):                   # re-decided within the contact: a new pooled decision
+                    line += f"  [changed from {acc['change']['from']}, {acc['change']['after']} win ago]"
             if event.truth is not None:
                 mark = "ok" if event.truth == event.decision else "--"
                 line += f"  truth {event.truth:<12} {mark}"
