@@ -525,3 +525,31 @@ def test_every_command_s_help_says_what_it_does_lists_debug_and_names_no_issue()
         assert command.description in " ".join(text.split()), name
         assert "--debug" in text, name
         assert not re.search(r"\bissue \d", text), (name, re.search(r".{40}\bissue \d.{10}", text))
+
+
+def test_the_user_documents_name_no_internal_issue():
+    """README.md, docs/*.md and the examples say what a user needs, not which internal issue a thing came from."""
+    import re
+
+    root = Path(__file__).resolve().parents[1]
+    files = [root / "README.md", *sorted((root / "docs").glob("*.md")), *sorted((root / "examples").glob("*.toml"))]
+    found = [(f.name, n, line.strip()[:80]) for f in files for n, line in enumerate(f.read_text().splitlines(), 1)
+             if re.search(r"\bissues? \d", line, re.IGNORECASE)]
+    assert found == []
+
+
+def test_speed_on_a_live_scene_is_said_to_be_ignored_once():
+    """--speed paces replayed sources only: on a scene whose sources are all live, run says so (once, before the
+    run); on a replayed scene, or without --speed, nothing."""
+    from supramodal.node.cli.run import speed_notice
+    from supramodal.node.scene.schema import default_scene, scene_from_dict
+
+    live = scene_from_dict({"source": [{"name": "w", "type": "serial", "port": "/dev/null", "rate": 5000.0,
+                                        "channels": 20},
+                                       {"name": "m", "type": "microphone"}],
+                            "stream": [{"name": "w", "source": "w", "bank": {"kind": "whisker"}},
+                                       {"name": "m", "source": "m", "bank": {"kind": "cochlea"}}]})
+    said = speed_notice(live, "max")
+    assert said is not None and said.startswith("--speed max is ignored") and "(serial, microphone)" in said
+    assert speed_notice(live, None) is None
+    assert speed_notice(default_scene(), "max") is None

@@ -67,6 +67,9 @@ def run(args: argparse.Namespace) -> int:
             progress(line)
     elif progress:
         progress(_scene_line(scene, sinks_replaced=args.json))
+    notice = speed_notice(scene, args.speed)
+    if notice and progress:
+        progress(notice)
     node = build_node(scene, speed=args.speed, sinks_override=sinks, progress=progress, overwrite=args.force)
     attach_views(node)
     node.run(max_seconds=args.seconds, on_running=lambda: stop_on_signals(node))
@@ -91,6 +94,21 @@ def _default_run_guide(scene, speed) -> list[str]:
         "next: a model of your own recordings (supramodal train --help), the serial whisker array "
         "(examples/whisker_serial.toml with supramodal mock-whisker), your own scene (supramodal run --print-scene)",
     ]
+
+
+def speed_notice(scene, speed) -> str | None:
+    """What ``--speed`` does not do on this scene, said once: it paces replayed sources only (None: it paces
+    some, or was not given)."""
+    from supramodal.node.scene.registry import driver_spec
+
+    if speed is None:
+        return None
+    live = [s for s in scene.sources if driver_spec(s.type).live]
+    if len(live) < len(scene.sources):
+        return None
+    kinds = ", ".join(dict.fromkeys(s.type for s in live))
+    return (f"--speed {speed} is ignored: it paces replayed sources, and this scene's are live ({kinds}): they "
+            "deliver at their own pace")
 
 
 def _scene_line(scene, sinks_replaced: bool = False) -> str:
