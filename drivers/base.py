@@ -247,6 +247,9 @@ class Driver(Protocol):
         None for ever); 1 for a live driver.
     period : float or None
         Seconds per pass, which the labels repeat with when ``passes != 1``.
+    speed : float
+        How fast the samples come, in times real time: 1 for a live device (and a replay paced in
+        real time), ``math.inf`` for a replay at once.
     """
 
     rate: float
@@ -255,6 +258,7 @@ class Driver(Protocol):
     labels: Sequence[TruthLabel]
     passes: int | None
     period: float | None
+    speed: float
 
     def open(self) -> None: ...
 
@@ -303,7 +307,7 @@ class DriverBase:
 
     A subclass sets ``rate`` and ``channels`` and gives ``read`` and ``stats`` (see
     :class:`Driver`); it overrides ``open`` and ``close`` when it has a device to open, and
-    ``fills_are_drops``, ``labels``, ``passes`` and ``period`` when it has something else to
+    ``fills_are_drops``, ``labels``, ``passes``, ``period`` and ``speed`` when it has something else to
     say. It need not call ``DriverBase.__init__``: the event log is made on first use.
 
     Attributes
@@ -317,6 +321,8 @@ class DriverBase:
         Passes of its source the stream plays; one.
     period : float or None, default None
         Seconds per pass, which looped labels repeat with; none.
+    speed : float, default 1.0
+        Times real time the samples come at: a device's own pace.
     EVENT_CAPACITY, EVENT_HISTORY : int
         Class attributes: the event log's ``capacity`` and ``history`` (see :class:`EventLog`).
 
@@ -333,6 +339,7 @@ class DriverBase:
     labels: Sequence[TruthLabel] = ()
     passes: int | None = 1
     period: float | None = None
+    speed: float = 1.0
     EVENT_CAPACITY: ClassVar[int] = 1024
     EVENT_HISTORY: ClassVar[int] = 200
     #: Called with the text of each notice (:meth:`_notice`) on the thread that makes it;

@@ -74,7 +74,7 @@ def silent_source_limit(max_seconds: float, sources: Iterable[Source]) -> float:
     nothing (a board whose every frame is refused, a device that never starts): twice the time the
     stream takes at the slowest source's pace (a replay's ``speed``; real time for a live driver), and at
     least 5 s more than it."""
-    pace = min((float(getattr(s.driver, "speed", 1.0)) for s in sources), default=1.0)
+    pace = min((float(s.driver.speed) for s in sources), default=1.0)
     wall = max_seconds / pace if pace > 0 else 0.0
     return wall + max(SILENT_SOURCE_GRACE, wall)
 
