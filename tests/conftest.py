@@ -1,7 +1,7 @@
 """Shared test settings.
 
 BLAS and OpenMP: one thread per test process, set here before numpy is loaded, and inherited by the
-xdist workers and every process a test starts. The suite runs one test process per core (README:
+xdist workers and every process a test starts. The suite runs one test process per core (docs/development.md:
 ``pytest -n auto``); a threaded OpenBLAS in each of them, on a machine whose cores are all taken,
 spends its time waiting for its own threads: a model of the default scene on features Af and A was
 measured training in 199 s with OpenBLAS's threads and in 15 s with one (two cores, load 6).

@@ -553,3 +553,12 @@ def test_speed_on_a_live_scene_is_said_to_be_ignored_once():
     assert said is not None and said.startswith("--speed max is ignored") and "(serial, microphone)" in said
     assert speed_notice(live, None) is None
     assert speed_notice(default_scene(), "max") is None
+
+
+def test_ci_runs_exactly_the_readme_s_test_command():
+    """The README's test command is the one .ci/run runs (after its system packages), word for word."""
+    root = Path(__file__).resolve().parents[1]
+    readme = (root / "README.md").read_text()
+    command = next(line for line in readme.splitlines() if line.startswith("python3 -m pip install") and "pytest" in line)
+    ci = [line for line in (root / ".ci/run").read_text().splitlines() if line and not line.startswith("#")]
+    assert command in ci
