@@ -222,10 +222,10 @@ def check_shared_memory() -> None:
     stale = stale_port_segments()
     if stale:
         paths = " ".join(str(p) for p in stale)
-        raise Ros2Unavailable(f"ROS 2 would hang on start: Fast DDS's shared-memory segment(s) {paths} were left "
-                              "empty by a process killed while making them, and every ROS 2 node on this machine "
-                              f"waits on them for ever; remove them (rm {paths}: no process can use an empty "
-                              "segment) and start again")
+        raise Ros2Unavailable(f"ROS 2 may hang on start: Fast DDS's shared-memory segment(s) {paths} were left "
+                              "empty by a process killed while making them, and a ROS 2 node that opens one waits "
+                              f"on it for ever; remove them (rm {paths}: no process can use an empty segment) and "
+                              "start again")
 
 
 class RosNode:

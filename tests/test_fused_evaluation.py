@@ -163,6 +163,13 @@ def test_decision_checks_count_false_unknowns_and_changes_per_contact_by_hand():
     assert lines[0] == 'said "unknown" on 5 of 13 windows of known textures (0.385; 1 of 1 contacts, 1.000; asked 0.05)'
     assert lines[1].startswith("texture changes within a contact: 1 of 1 detected within 5 windows (median delay 3 "
                                "windows); 1 false in 0.02 min")
+    # an unlabelled window inside a contact splits nothing: the boundary after it is found, nothing is made up
+    gapped = [ev(0, "a"), ev(1, None), ev(2, "b"), ev(3, "b", change=True)]
+    runs = _contact_runs(gapped)
+    assert len(runs) == 1
+    c = decision_checks(runs, ("a", "b"), asked)
+    assert (c["changes"]["boundaries"], c["changes"]["delays"], c["changes"]["false"]) == (1, [2], 0)
+    assert c["false_unknown"]["of"] == 3
     # rules not asked: no change report, and no unknown line where none was said
     quiet = decision_checks([[ev(0, "a"), ev(1, "b")]], ("a", "b"), [{"asked": {"unknown": None, "change": None}}])
     assert "changes" not in quiet and decision_check_lines(quiet) == []

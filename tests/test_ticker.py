@@ -40,8 +40,9 @@ def test_the_ticker_says_the_stage_the_time_so_far_and_the_time_left_by_the_netw
 
 def test_the_ticker_s_thread_says_a_line_every_period_until_the_step_ends():
     said: list[str] = []
-    with Ticker(said.append, "x", networks=2, period=0.05) as t:
-        t.stage("working")
+    t = Ticker(said.append, "x", networks=2, period=0.05)
+    t.stage("working")                     # before the thread starts: every tick says it
+    with t:
         deadline = time.monotonic() + 10.0
         while len(said) < 4 and time.monotonic() < deadline:
             time.sleep(0.01)
@@ -49,6 +50,10 @@ def test_the_ticker_s_thread_says_a_line_every_period_until_the_step_ends():
     assert n >= 4 and all(line.startswith("x: working; ") for line in said[1:4])
     time.sleep(0.2)
     assert len(said) == n                                                        # none after the step ended
+    with pytest.raises(KeyboardInterrupt):
+        with Ticker(said.append, "y", networks=2, period=3600):
+            raise KeyboardInterrupt
+    assert said[-1].startswith("y: stopped after ")     # a plain line ends a rewritten one before the error
 
 
 class _Terminal(io.StringIO):

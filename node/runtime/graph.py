@@ -70,13 +70,21 @@ SILENT_SOURCE_GRACE = 5.0
 
 
 def silent_source_limit(max_seconds: float, sources: Iterable[Source]) -> float:
-    """Wall seconds after which a run asked for ``max_seconds`` of stream ends if a source has delivered
-    nothing (a board whose every frame is refused, a device that never starts): twice the time the
-    stream takes at the slowest source's pace (a replay's ``speed``; real time for a live driver), and at
-    least 5 s more than it."""
+    """Wall seconds, from the drivers' opening, after which a run asked for ``max_seconds`` of stream ends
+    if a live device has delivered nothing (a board whose every frame is refused, a sound card that never
+    starts; :func:`silent_sources`): twice the time the stream takes at the slowest source's pace (a
+    replay's ``speed``; real time for a device), and at least 5 s more than it."""
     pace = min((float(s.driver.speed) for s in sources), default=1.0)
     wall = max_seconds / pace if pace > 0 else 0.0
     return wall + max(SILENT_SOURCE_GRACE, wall)
+
+
+def silent_sources(sources: Iterable[Source]) -> list[str]:
+    """The live devices that have delivered no sample: sources whose ring drops rather than waits (a serial
+    board, a microphone). A replay, and a network source that waits for its peer (LSL, ROS 2: its ring
+    blocks), may rightly begin late (a stream that starts late in a recording, a robot started after the
+    node), so they are never called silent."""
+    return [s.name for s in sources if s.ring.overrun != "block" and not s.delivered_any]
 
 
 class NodeError(SupramodalError, RuntimeError):
@@ -242,17 +250,18 @@ class Graph:
                 opened.enter_context(source.driver)
             for t in threads:
                 t.start()
-            deadline = None if max_seconds is None else t0 + silent_source_limit(max_seconds, self.sources)
+            opened_at = time.monotonic()        # a slow open (an LSL resolve, a ROS node) spends none of it
+            deadline = None if max_seconds is None else opened_at + silent_source_limit(max_seconds, self.sources)
             # Join with a timeout so that the main thread stays responsive to signals.
             while any(t.is_alive() for t in threads):
                 for t in threads:
                     t.join(0.1)
                 if deadline is not None and time.monotonic() > deadline:
                     deadline = None
-                    silent = [s.name for s in self.sources if not s.delivered_any]
+                    silent = silent_sources(self.sources)
                     if silent:
                         self.stop(f"the stream length: source(s) {', '.join(silent)} delivered no sample in "
-                                  f"{time.monotonic() - t0:.0f} s (see their events), so the length asked "
+                                  f"{time.monotonic() - opened_at:.0f} s (see their events), so the length asked "
                                   f"({max_seconds:g} s of stream) could never be reached")
         for s in self.sinks:
             s.drain()                             # a queued sink: let it take what it holds

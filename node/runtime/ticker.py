@@ -68,6 +68,8 @@ class Ticker:
                  tb: TracebackType | None) -> None:
         self._stop.set()
         self._thread.join()
+        if exc is not None:        # a plain line, so that the error that follows starts a line of its own
+            self.say(f"{self.what}: stopped after {self.clock() - self.started:.0f} s")
 
     def stage(self, text: str, epoch_share: float | None = None) -> None:
         """What is being done now (a texture's features, a network's epochs); ``epoch_share``, in [0, 1],

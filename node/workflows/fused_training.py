@@ -361,11 +361,15 @@ def evaluate_fused(paths, fused_model=None, progress=None, contact_windows: int 
         if progress:
             progress(f"{scene.source}: {len(sink.windows)} window events")
         by_stream: dict[str, list] = {}
+        decided_by_stream: dict[str, list] = {}     # every decided window: an unlabelled one splits no contact
         for e in sink.windows:
-            if e.truth is not None and e.posteriors is not None:
-                by_stream.setdefault(e.stream, []).append(e)
-        for name, events in by_stream.items():
+            if e.posteriors is not None:
+                decided_by_stream.setdefault(e.stream, []).append(e)
+                if e.truth is not None:
+                    by_stream.setdefault(e.stream, []).append(e)
+        for name, events in decided_by_stream.items():
             decided_runs.setdefault(name, []).extend(_contact_runs(events))
+        for name, events in by_stream.items():
             windows.setdefault(name, []).extend(e.decision == e.truth for e in events)
             contacts.setdefault(name, []).extend(_contacts(events, contact_windows))
             decided.setdefault(name, []).extend((e.truth, e.decision) for e in events)
@@ -395,13 +399,13 @@ def evaluate_fused(paths, fused_model=None, progress=None, contact_windows: int 
                                              "sure_wrong")} | {"confidence": mean_confidence(report),
                                                                "ece_if_calibrated": ece_if_calibrated(report)},
                      "scored": what.get(name, [])}
-        out[name].update(decision_checks(decided_runs[name], classes[name], what.get(name, [])))
+        out[name].update(decision_checks(decided_runs.get(name, []), classes[name], what.get(name, [])))
     return out
 
 
 def _contact_runs(events: list[WindowEvent]) -> list[list[WindowEvent]]:
-    """The node's contacts in one stream's labelled windows (in order): each run of consecutive
-    windows in contact, as its decider pooled them (a lift-off or a missing window ends one)."""
+    """The node's contacts in one stream's decided windows (in order, labelled or not): each run of
+    consecutive windows in contact, as its decider pooled them (a lift-off or a missing window ends one)."""
     runs: list[list[WindowEvent]] = []
     for e in events:
         if not e.in_contact:
@@ -411,6 +415,17 @@ def _contact_runs(events: list[WindowEvent]) -> list[list[WindowEvent]]:
         else:
             runs.append([e])
     return runs
+
+
+def _filled_truths(run: list[WindowEvent]) -> list:
+    """A contact's truths with each unlabelled window given the label before it (the first label, before
+    any): a gap in the labels is no change of texture."""
+    known = next((e.truth for e in run if e.truth is not None), None)
+    out = []
+    for e in run:
+        known = e.truth if e.truth is not None else known
+        out.append(known)
+    return out
 
 
 def decision_checks(runs: list[list[WindowEvent]], classes, scored: list[dict]) -> dict:
@@ -438,14 +453,15 @@ def decision_checks(runs: list[list[WindowEvent]], classes, scored: list[dict]) 
     known = [e for run in runs for e in run if e.truth in classes]
     out: dict = {"false_unknown": {"windows": sum(e.decision == UNKNOWN for e in known), "of": len(known),
                                    "asked": unknown_asked}}
-    ends = [run[-1].pooled for run in runs if run[0].truth in classes and all(e.truth == run[0].truth for e in run)]
+    ends = [run[-1].pooled for run in runs if len(labels := {e.truth for e in run} - {None}) == 1
+            and labels <= set(classes)]         # contacts of one known texture (unlabelled windows aside)
     said = [pooled["label"] for pooled in ends if pooled is not None]      # each contact's pooled decision at its end
     if said:
         out["false_unknown"].update(contacts=sum(label == UNKNOWN for label in said), contacts_of=len(said))
     if change_asked is not None:
         report = {"boundaries": 0, "detected": 0, "delays": [], "false": 0, "minutes": 0.0, "asked": change_asked}
         for run in runs:
-            boundaries, false = change_detections([e.truth for e in run],
+            boundaries, false = change_detections(_filled_truths(run),
                                                   [k for k, e in enumerate(run) if e.pooled and "change" in e.pooled])
             report["boundaries"] += len(boundaries)
             report["delays"] += [t - b + 1 for b, t in boundaries if t is not None]
