@@ -264,9 +264,17 @@ def test_own_robot_six_commands_from_the_example_scene_to_a_fused_model_deciding
                      "--out", f"models/{stream}.npz", "--quiet"]) == 0
     # (5) the fusion on the two other recordings, with those models: their own posteriors, unseen
     capsys.readouterr()
-    assert main(["train", "--fusion", "early", "--scene", "rec/b1.toml", "--scene", "rec/b2.toml",
-                 "--model", "whiskers=models/whiskers.npz", "--model", "mic=models/mic.npz",
-                 "--out", "models/fused.npz", "--live", "robot.toml", "--write-scene", "fused.toml", "--quiet"]) == 0
+    fusion = ["--scene", "rec/b1.toml", "--scene", "rec/b2.toml", "--model", "whiskers=models/whiskers.npz",
+              "--model", "mic=models/mic.npz", "--live", "robot.toml", "--write-scene", "fused.toml", "--quiet"]
+    code = main(["train", "--fusion", "early", *fusion, "--out", "models/fused.npz"])
+    if code != 0:
+        # Two recordings of one contact each are little to learn a network from: on some recordings its held-out
+        # log loss is worse than a sense's alone, and train refuses to write it, saying why (a CI run: 0.237
+        # against 0.099). That refusal is the product's; the walkthrough then goes on with the late fusion,
+        # which learns two numbers, not a network.
+        err = capsys.readouterr().err
+        assert "does worse on its held-out windows than" in err and not (tmp_path / "models/fused.npz").exists(), err
+        assert main(["train", "--fusion", "late", *fusion]) == 0
     said = capsys.readouterr().out
     assert "sense posteriors: unseen" in said and "supramodal run fused.toml" in said
     # (6) run: the fused model decides live on a contact none of the models saw
