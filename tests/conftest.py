@@ -55,13 +55,9 @@ def pytest_configure(config):
         os.environ.pop(stale, None)
     # A process killed while Fast DDS made a shared-memory port (the suite kills nodes and publishers on purpose)
     # leaves /dev/shm/fastdds_portN empty, and every later participant spins on it for ever in rclpy.create_node
-    # (two CI runs hung so; py-spy: SharedMemGlobal::open_port_internal -> boost spin_wait). Under LOCALHOST
-    # discovery rmw_fastrtps sets its transports itself (FASTDDS_BUILTIN_TRANSPORTS=UDPv4 is not heeded), so
-    # tests/ros2_only.py removes such segments before each ROS test instead.
-    from supramodal.drivers.ros2 import stale_port_segments
-
-    for path in stale_port_segments():
-        path.unlink(missing_ok=True)
+    # (two CI runs hung so). Under LOCALHOST discovery rmw_fastrtps sets its transports itself
+    # (FASTDDS_BUILTIN_TRANSPORTS=UDPv4 is not heeded), so tests/ros2_only.py removes such segments before each
+    # ROS test instead.
 
 
 # -- running on every core (pytest-xdist, `-n auto`) --------------------------------------------------

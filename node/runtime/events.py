@@ -217,7 +217,7 @@ class WindowEvent:
         return out
 
 
-def change_event(stream: str, window: int, change: dict[str, Any], stream_index: int | None = None) -> DriverEvent:
+def change_event(stream: str, window: int, change: dict[str, Any], window_samples: int | None = None) -> DriverEvent:
     """The event a stream (or the fusion) says when its decider re-decides within a contact
     (``[decision] change``): kind ``"change"``, its source the stream, so that every sink takes it as it
     takes a driver's event (a line on stderr, a JSON line, the ROS 2 events topic, the view's banner).
@@ -231,10 +231,12 @@ def change_event(stream: str, window: int, change: dict[str, Any], stream_index:
     change : dict
         The pooled decision's ``"change"``: ``{"from", "to", "after"}``, ``after`` the windows since
         the change began (the signalling window counts).
-    stream_index : int, optional
-        The stream's sample at which the change began (None: the fusion, which has no samples of its own).
+    window_samples : int, optional
+        Samples per window: the event's ``stream_index`` is then the sample at which the change began
+        (None: the fusion, which has no samples of its own).
     """
     began = window + 1 - int(change["after"])
+    stream_index = None if window_samples is None else began * window_samples
     return DriverEvent("change", f"{stream}: the texture changed from {change['from']} to {change['to']} at window "
                                  f"{began} (said at window {window}): a new decision starts there",
                        time.time(), stream_index=stream_index, source=stream)

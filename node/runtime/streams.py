@@ -265,7 +265,7 @@ class Stream:
                                                                                  "reason", "pooled"))
                 self.tally.add(decision, None if pooled is None else pooled["label"], truth)
                 if pooled is not None and "change" in pooled and self.on_event is not None:
-                    self.on_event(change_event(self.name, w, pooled["change"], (w + 1 - pooled["change"]["after"]) * W))
+                    self.on_event(change_event(self.name, w, pooled["change"], W))
             flags = set(self._marks_of(w, W))
             if w in self._gap_windows:
                 flags.add("gap")
