@@ -13,17 +13,29 @@ from dataclasses import replace
 from pathlib import Path
 
 import pytest
-from view_browser import Browser, chromium_path, png_colours
+from view_browser import Browser, chromium_path, png_colours, png_size
 
+from supramodal.banks import cochlea_bank, whisker_bank
 from supramodal.drivers.base import DriverEvent
 from supramodal.drivers.spec import OptionError
-from supramodal.node.scene.build import build_node
-from supramodal.node.runtime.events import WindowEvent
-from supramodal.node.runtime.taps.recorder import SessionRecorder
-from supramodal.node.runtime.sinks.spec import SinkContext
-from supramodal.node.scene.schema import SceneError, scene_from_dict
+from supramodal.node.runtime.events import SEVERITY, WindowEvent, severity
 from supramodal.node.runtime.sinks import QueuedSink
-from supramodal.node.runtime.sinks.view import CLIENT_QUEUE, MAX_BODY, SPEC, TOKEN_HEADER, ViewError, ViewSink, attach, view_sinks
+from supramodal.node.runtime.sinks.spec import SinkContext
+from supramodal.node.runtime.sinks.view import (
+    CLIENT_QUEUE,
+    MAX_BODY,
+    SPEC,
+    TOKEN_HEADER,
+    ViewError,
+    ViewSink,
+    attach,
+    channel_labels,
+    event_message,
+    view_sinks,
+)
+from supramodal.node.runtime.taps.recorder import SessionRecorder
+from supramodal.node.scene.build import build_node
+from supramodal.node.scene.schema import SceneError, scene_from_dict
 
 NO_CHROMIUM = "Debian's chromium is not installed (apt-get install -y chromium; .ci/run installs it)"
 
@@ -443,37 +455,210 @@ def test_a_view_serves_on_ipv6_loopback_and_a_host_that_is_no_address_here_names
         assert "another port" not in str(refused.value)
 
 
-def test_news_is_a_blue_banner_an_alarm_a_red_one_and_events_show_the_clock_time(browser):
-    """Issue 35 (the view, with a browser): "opened" and "reconnected" showed as red alarms, every event did;
-    the event list showed Unix epoch seconds beside the windows' common time; the health column overflowed
-    the page. A lossy event is an alarm, news is blue; an event's time is a clock time; the page never gets
-    wider than its window, whatever the health table holds."""
+def test_events_are_coloured_by_how_grave_they_are_and_shown_on_common_time(browser):
+    """Issue 36, item 8: "opened" and "reconnected" showed as red alarms like "unplugged" (every event did, then
+    every kind not on the page's own list was news); the event list showed Unix epoch seconds, then the host's
+    clock time, beside the windows' common time. An event's severity comes with it, from the sink's one
+    mapping (:data:`SEVERITY`): a loss is a red alarm, a warning amber, news blue; its time is on common time."""
     view = ViewSink(quiet=True)
-    view.prepare()
+    view.start(time.monotonic() - 100.0)              # the graph started 100 s ago: common time 100 now
+    zero = time.time() - 100.0                        # common time 0 on the wall clock the events are stamped on
     try:
         browser.open(view.url)
         browser.wait_for("!!document.querySelector('#conn.live')", timeout=60)
-        at = time.mktime((2026, 11, 29, 13, 4, 5, 0, 0, -1))                    # 13:04:05 on this machine's clock
-        view.event(DriverEvent("unplug", "the board is unplugged", at))
-        view.event(DriverEvent("reconnect", "the board is back", at + 1))
-        view.event(DriverEvent("opened", "the port is open", at + 2))
-        browser.wait_for("!!document.querySelector('#banners .event-opened')", timeout=30)
-        classes = browser.eval("Object.fromEntries([...document.querySelectorAll('#banners .banner')].map("
-                               "b => [b.dataset.kind, b.classList.contains('info')]))")
-        assert classes == {"event-unplug": False, "event-reconnect": True, "event-opened": True}, classes
-        times = browser.eval("[...document.querySelectorAll('#eventlog li')].map(li => li.textContent.split(' ')[0])")
-        assert times == ["13:04:07", "13:04:06", "13:04:05"], times
-        view.hub.publish({"type": "health", "clients": 1, "client_dropped": 0,
-                          "streams": {f"a_stream_with_a_long_name_{k}": {"windows": 123456, "frames": {
-                              "delivered": 123456789, "filled": 0, "dropped": 0}, "latency_ms": {"p50": 1.5, "p99": 9.5}}
-                              for k in range(3)},
-                          "sinks": [{"sink": "JsonLinesSink /a/very/long/path/to/somewhere/out.jsonl", "written": 10**9,
-                                     "dropped_windows": 0, "dropped_events": 0, "errors": 0}]}, keep="latest")
-        browser.wait_for("document.querySelectorAll('#frames tbody tr').length === 3", timeout=30)
-        assert browser.eval("document.documentElement.scrollWidth <= window.innerWidth"), \
-            browser.eval("[document.documentElement.scrollWidth, window.innerWidth]")
+        view.event(DriverEvent("unplug", "lost /dev/ttyACM0: [Errno 5] Input/output error", zero + 42.5))
+        view.event(DriverEvent("reconnect", "reconnected to /dev/ttyACM0 after 1.20 s", zero + 45.0))
+        view.event(DriverEvent("sense_lost", "fusion: no window from 'mic' within 0.5 s", zero + 60.0, source="fused"))
+        view.event(DriverEvent("brand_new_kind", "a driver of tomorrow says something", zero + 70.0))
+        browser.wait_for("!!document.querySelector('#banners .event-brand_new_kind')", timeout=30)
+        shown = browser.eval("Object.fromEntries([...document.querySelectorAll('#banners .banner')].map("
+                             "b => [b.dataset.kind, [b.dataset.severity, getComputedStyle(b).color]]))")
+        severities = {kind: sev for kind, (sev, _) in shown.items()}
+        assert severities == {"event-unplug": "alarm", "event-reconnect": "info", "event-sense_lost": "warning",
+                              "event-brand_new_kind": "warning"}, shown
+        colours = {sev: colour for sev, colour in shown.values()}
+        assert len(set(colours.values())) == 3, f"three severities, three colours: {shown}"
+        assert colours["alarm"] == "rgb(180, 35, 24)", shown          # var(--bad): the red of a wrong decision
+        items = browser.eval("[...document.querySelectorAll('#eventlog li')].map(li => [li.dataset.severity, "
+                             "li.querySelector('.when').textContent])")
+        assert [sev for sev, _ in items] == ["warning", "warning", "info", "alarm"], items
+        when = [float(w.removesuffix(" s")) for _, w in items]         # common time, s: never a clock or epoch
+        for got, want in zip(when, [70.0, 60.0, 45.0, 42.5]):
+            assert abs(got - want) < 0.5, items                         # the host's clocks, read a moment apart
     finally:
         view.close()
+
+
+def test_every_kind_of_event_the_node_says_has_a_severity():
+    """The severity mapping is the one place a kind's gravity is said (the page has no list of its own): every
+    kind a driver, the fusion or the decisions record is in it, so that none falls to the default by oversight."""
+    import re
+
+    root = Path(__file__).resolve().parents[1]
+    said = re.compile(r'(?:_record|\.record|_say|DriverEvent)\(\s*f?"([a-z_]+)"|_notice\([^()]*,\s*"([a-z_]+)"')
+    kinds = {a or b for folder in ("drivers", "node", "replay") for path in (root / folder).rglob("*.py")
+             for a, b in said.findall(path.read_text())}
+    assert {"unplug", "reconnect", "open", "gap", "silence", "sense_lost", "change"} <= kinds, kinds  # the scan works
+    assert kinds <= set(SEVERITY), f"kinds without a severity: {sorted(kinds - set(SEVERITY))}"
+    assert set(SEVERITY.values()) == {"alarm", "warning", "info"}
+    lossy = {"unplug", "gap", "overrun", "overflow", "dropped", "restart", "channels", "silence", "error"}
+    assert {k for k in lossy if severity(k) != "alarm"} == set()
+    assert {k for k in ("open", "close", "reconnect", "sense_back", "change") if severity(k) != "info"} == set()
+    ev = DriverEvent("reconnect", "back", 1_800_000_012.25)
+    assert event_message(ev)["severity"] == "info" and "common_time" not in event_message(ev)
+    assert event_message(ev, 1_800_000_000.0)["common_time"] == 12.25    # beside time, the wall clock's, unchanged
+    assert event_message(ev, 1_800_000_000.0)["time"] == 1_800_000_012.25
+
+
+#: A fused two-stream page as a long run shows it: the two-sense world's streams (the whisker array's 20
+#: channels, the cochlea's 50, with two features), their fusion, an hour's counts, long names, the events.
+WHISKERS, MIC = "whiskers", "mic"
+CLASSES = ("H1a", "H1b", "H2a", "H2b", "F1a", "F1b", "F2a", "F2b")
+
+
+def _a_long_runs_page(view: ViewSink, windows: int = 40) -> None:
+    """Send ``view`` what a fused two-sense graph sends its page (windows, health, events), at once."""
+    import numpy as np
+
+    rng = np.random.default_rng(36)
+    channels = {WHISKERS: 20, MIC: 50}
+    for w in range(windows):
+        end = 3600.0 + 0.1 * (w + 1)
+        for stream, n in channels.items():
+            p = rng.dirichlet(np.ones(len(CLASSES)))
+            features = {"Af": rng.gamma(1.0, 1e-3, n)} | ({"A": rng.gamma(1.0, 1e-2, n)} if stream == MIC else {})
+            k = int(np.argmax(p))
+            view.emit(WindowEvent(stream, 36000 + w, end - 0.1, end, end, features=features, posteriors=p,
+                                  decision=CLASSES[k], confidence=float(p[k]), truth="H1b", classes=CLASSES,
+                                  flags=frozenset({"gap"} if w == 7 else ()), latency_ms=1.5,
+                                  pooled={"label": "H1b", "confidence": 0.98765, "windows": 123, "decided": True}))
+        p = rng.dirichlet(np.ones(len(CLASSES)))
+        k = int(np.argmax(p))
+        view.emit(WindowEvent("fused", 36000 + w, end - 0.1, end, end, posteriors=p, decision=CLASSES[k],
+                              confidence=float(p[k]), truth="H1b", classes=CLASSES, senses=(WHISKERS, MIC),
+                              flags=frozenset({"alone"} if w % 9 == 0 else ())))
+    hour = {"windows": 36040, "frames": {"delivered": 158_760_000, "filled": 12_345, "dropped": 678},
+            "latency_ms": {"p50": 1.43, "p99": 117.96, "max": 250.0}}
+    view.hub.publish({"type": "health", "clients": 2, "client_dropped": 1234,
+                      "streams": {WHISKERS: {**hour, "frames": {**hour["frames"], "delivered": 18_000_000}},
+                                  MIC: hour},
+                      "clocks": {WHISKERS: {"ppm": 37.4, "delay_ms": 1.27, "jitter_ms": 5.22},
+                                 MIC: {"ppm": -67.5, "delay_ms": 1.57, "jitter_ms": 6.2}},
+                      "fusion": {"windows": 36040, "paired": 35_912, "alone": 128, "late": {WHISKERS: 3, MIC: 12},
+                                 "dropouts": {WHISKERS: 0, MIC: 2}, "latency_ms": {"p50": 1.5, "p99": 17.96}},
+                      "sinks": [{"sink": "JsonLinesSink /home/robot/runs/2026-11-29-whiskers-and-microphone/"
+                                         "decisions_of_the_whole_afternoon.jsonl",
+                                 "written": 1_234_567_890, "dropped_windows": 12, "dropped_events": 3, "errors": 0},
+                                {"sink": f"ViewSink {view.url}", "written": 108_120, "dropped_windows": 0,
+                                 "dropped_events": 0, "errors": 0}]}, keep="latest")
+    now = time.time()
+    for kind, message in [
+            ("open", "opened /dev/serial/by-id/usb-Supramodal_Whisker_Board_v2_0123456789ABCDEF-if00"),
+            ("silence", "no valid frame from /dev/serial/by-id/usb-Supramodal_Whisker_Board_v2_0123456789ABCDEF-if00 "
+                        "for 2.0 s: 4096 bytes arrived but no valid frame (12 CRC errors, 3 bad headers, 77 bytes "
+                        "skipped): a wrong baud rate (set the board's; USB boards ignore it), another device on this "
+                        "port, or firmware sending another format (docs/serial-frames.md)"),
+            ("unplug", "lost /dev/ttyACM0: [Errno 5] Input/output error; reopening with backoff"),
+            ("reconnect", "reconnected to /dev/ttyACM0 after 1.20 s"),
+            ("sense_lost", "fusion: no window from 'mic' within 0.5 s; deciding on 'whiskers' alone until it "
+                           "comes back")]:
+        view.event(DriverEvent(kind, message, now, source=WHISKERS if kind != "sense_lost" else "fused"))
+
+
+#: Every element that reaches past the window's right edge, and every one that clips what it holds
+#: (a table cell, or a box that scrolls or hides what overflows it): described, none expected.
+OVERFLOWS = """(() => {
+  const width = Math.min(innerWidth, document.documentElement.clientWidth), out = [];
+  const name = e => e.tagName.toLowerCase() + (e.id ? "#" + e.id : "") +
+    (typeof e.className === "string" && e.className.trim() ? "." + e.className.trim().split(/\\s+/).join(".") : "") +
+    (e.dataset.stream ? "[" + e.dataset.stream + "]" : "") + " '" + (e.textContent || "").trim().slice(0, 30) + "'";
+  for (const e of document.querySelectorAll("body *")) {
+    const r = e.getBoundingClientRect();
+    if (r.width > 0 && r.right > width + 0.5) out.push(name(e) + " ends at " + r.right.toFixed(1));
+    const clips = e.matches("td, th") || getComputedStyle(e).overflowX !== "visible";
+    if (clips && r.width > 0 && e.scrollWidth > e.clientWidth + 1)
+      out.push(name(e) + " clips " + e.scrollWidth + " > " + e.clientWidth);
+  }
+  const page = document.documentElement.scrollWidth;
+  if (page > innerWidth) out.push("the page is " + page + " wide");
+  return out;
+})()"""
+
+
+@pytest.mark.parametrize("width, height", [(1280, 800), (1024, 768)])
+def test_a_fused_two_stream_page_fits_a_1280_px_window_with_nothing_cut(browser, width, height):
+    """Issue 36, item 8: in a 1400 px window the health column overflowed (its p99 and errors columns cut; the
+    page's screenshots in docs/img too). A fused two-stream page with an hour's counts, long names and paths,
+    the events and the feature bars' labels fits a 1280 x 800 window, and a narrower one (the health under the
+    streams): no element reaches past the right edge, none clips its content, the screenshot is the window's
+    width."""
+    view = ViewSink(quiet=True, streams=(WHISKERS, MIC, "fused"),
+                    channels={WHISKERS: channel_labels(whisker_bank()), MIC: channel_labels(cochlea_bank(50))})
+    view.start(time.monotonic() - 3600.0)
+    try:
+        _a_long_runs_page(view)
+        browser.open(view.url, width=width, height=height)
+        browser.wait_for("document.querySelectorAll('#streams .stream[data-window]').length === 3 && "
+                         "document.querySelectorAll('#frames tbody tr').length === 3 && "
+                         "document.querySelectorAll('#eventlog li').length === 5", timeout=60)
+        assert browser.eval("innerWidth") == width
+        assert browser.eval(OVERFLOWS) == []
+        png = browser.screenshot(full=True)
+        assert png_size(png)[0] == width, png_size(png)
+        # every column of the health's tables shown, p99 and errors among them
+        for table, last in (("frames", "117.96"), ("sinks", "0")):
+            cells = browser.eval(f"[...document.querySelectorAll('#{table} tbody tr:first-child td')].map(td => "
+                                 "[td.textContent, td.getBoundingClientRect().width])")
+            assert cells[-1][0] == last and all(w > 10 for _, w in cells), cells
+    finally:
+        view.close()
+
+
+def test_the_feature_bars_are_labelled_with_the_bank_s_channels(browser, tmp_path):
+    """Issue 36, item 8: the Af bars had no channel labels. Under the bars, each channel's name and centre
+    frequency as the stream's bank gives them (every k-th where they would overlap: the cochlea's 50); a stream
+    the view knows no bank of has its bars numbered. The view learns the banks from the scene."""
+    whiskers, cochlea = whisker_bank(), cochlea_bank(50)
+    view = ViewSink(quiet=True, streams=(WHISKERS, MIC, "other"),
+                    channels={WHISKERS: channel_labels(whiskers), MIC: channel_labels(cochlea)})
+    view.start(time.monotonic())
+    try:
+        _a_long_runs_page(view, windows=3)
+        view.emit(WindowEvent("other", 0, 0.0, 0.1, 0.1, features={"Af": [float(i) for i in range(6)]}))
+        browser.open(view.url, width=1280, height=800)
+        browser.wait_for("document.querySelectorAll('.chaxis span').length > 30", timeout=60)
+        labels = browser.eval("""Object.fromEntries([...document.querySelectorAll('#streams .stream')].map(s => [
+            s.dataset.stream, {what: s.querySelector('.chwhat').textContent,
+                               spans: [...s.querySelectorAll('.chaxis span')].map(sp => [Number(sp.dataset.channel),
+                                       sp.innerText.split('\\n'), sp.getBoundingClientRect().left,
+                                       sp.getBoundingClientRect().right])}]))""")
+    finally:
+        view.close()
+    w = labels[WHISKERS]
+    assert w["what"] == "name, centre frequency in Hz"
+    assert [name for _, (name, _), _, _ in w["spans"]] == list(whiskers.names)            # 20 fit: every one
+    assert [hz for _, (_, hz), _, _ in w["spans"]][:1] == [f"{whiskers.cf[0]:.0f}"]
+    m = labels[MIC]
+    shown = [k for k, _, _, _ in m["spans"]]
+    assert 5 < len(shown) < 50 and shown[0] == 0 and len({b - a for a, b in zip(shown, shown[1:])}) == 1, shown
+    assert [name for _, (name, _), _, _ in m["spans"]] == [cochlea.names[k] for k in shown]
+    assert m["spans"][-1][1][1].endswith("k")                                              # kHz at the top
+    for panel in (w, m):                                                                   # side by side, never
+        assert all(a[3] <= b[2] for a, b in zip(panel["spans"], panel["spans"][1:])), panel  # overlapping
+    o = labels["other"]
+    assert o["what"] == "index" and [t for _, t, _, _ in o["spans"]] == [[str(i)] for i in range(6)]
+    # from a scene: each stream's bank, before any window
+    d = {"source": [{"name": n, "type": "synth", "seconds": 1.0} for n in ("a", "b")],
+         "stream": [{"name": "a", "source": "a"}, {"name": "b", "source": "b", "bank": {"kind": "cochlea"}}]}
+    from supramodal.node.scene.variants import with_view
+
+    (built,) = view_sinks(build_node(with_view(scene_from_dict(d, str(tmp_path / "s.toml")), 0)))
+    try:
+        channels = built.hello()["channels"]
+        assert channels["a"]["names"] == list(whiskers.names)
+        assert channels["b"]["names"][:2] == ["ch00", "ch01"] and len(channels["b"]["centre_hz"]) == 50
+    finally:
+        built.close()
 
 
 def test_a_driver_event_shows_as_a_banner_within_a_second(browser):
@@ -549,6 +734,10 @@ def test_a_fused_graph_shows_both_streams_the_fused_one_and_the_pairing(tmp_path
     fused = "document.querySelector('[data-stream=\"fused\"]')"
     assert set(browser.eval(f"{fused}.dataset.senses").split(",")) <= {"left", "right"}
     browser.wait_for(f"{fused}.querySelector('.pairing').textContent.startsWith('paired ')", timeout=30)
+    # the real page fits the browser's 1280 px too, its bars labelled with the left stream's bank
+    assert browser.eval(OVERFLOWS) == []
+    label = browser.eval("document.querySelector('[data-stream=\"left\"] .chaxis span').innerText")
+    assert label.split("\n")[0] == view.hello()["channels"]["left"]["names"][0], label
     summary = run.join()
     assert summary["fusion"]["windows"] > 0
 

@@ -112,3 +112,27 @@ def test_what_is_neither_a_recording_nor_a_session_is_refused_naming_the_fix(tmp
         ViewReplay(tmp_path / "nothing")
     with pytest.raises(InputError, match="playback speed"):
         ViewReplay(tmp_path / "nothing", speed=0)
+
+
+def test_a_replay_plays_each_driver_event_among_the_windows_it_came_with_on_the_recordings_time():
+    """A driver event is stamped on the wall clock, which a replay at full speed does not follow: kept for
+    the page, it is placed (and shown, ``common_time``) at the recording's time the node had reached, so
+    that it plays between the windows it came among, and not after the whole recording."""
+    import numpy as np
+
+    from supramodal.drivers.base import DriverEvent
+    from supramodal.node.runtime.events import WindowEvent
+    from supramodal.node.workflows.view_replay import _Keep
+
+    keep = _Keep()
+    for i in range(3):
+        keep.emit(WindowEvent("main", i, 0.1 * i, 0.1 * i + 0.1, 0.1 * i + 0.1, decision="a", confidence=0.9,
+                              posteriors=np.array([0.9, 0.1]), classes=("a", "b")))
+    keep.event(DriverEvent("gap", "12 frames lost", time.time()))
+    for i in range(3, 6):
+        keep.emit(WindowEvent("main", i, 0.1 * i, 0.1 * i + 0.1, 0.1 * i + 0.1, decision="a", confidence=0.9,
+                              posteriors=np.array([0.9, 0.1]), classes=("a", "b")))
+    played = [m.get("event") or m["window"] for _, m in sorted(keep.items, key=lambda item: item[0])]
+    assert played == [0, 1, 2, "gap", 3, 4, 5]
+    gap = next(m for _, m in keep.items if m.get("event") == "gap")
+    assert gap["common_time"] == 0.3 and gap["severity"] == "alarm"

@@ -95,9 +95,16 @@ class Browser:
 
     # -- pages --
 
-    def open(self, url: str) -> None:
-        target = self.send("Target.createTarget", {"url": url})["targetId"]
+    def open(self, url: str, width: int | None = None, height: int | None = None) -> None:
+        """A new tab on ``url``; ``width`` x ``height``: its window (CSS px) instead of the browser's."""
+        sized = width is not None and height is not None
+        target = self.send("Target.createTarget", {"url": "about:blank" if sized else url})["targetId"]
         self.session = self.send("Target.attachToTarget", {"targetId": target, "flatten": True})["sessionId"]
+        if sized:
+            # set before the page loads, so that it is laid out at that size from the start
+            self.send("Emulation.setDeviceMetricsOverride", {"width": width, "height": height, "deviceScaleFactor": 1,
+                                                              "mobile": False}, self.session)
+            self.send("Page.navigate", {"url": url}, self.session)
 
     def eval(self, expression: str) -> Any:
         """The value of ``expression`` in the page (awaited when it is a promise)."""
@@ -156,6 +163,13 @@ def _above(fd: int) -> int:
     import fcntl
 
     return fcntl.fcntl(fd, fcntl.F_DUPFD, 5)
+
+
+def png_size(png: bytes) -> tuple[int, int]:
+    """``(width, height)`` of a PNG, from its header."""
+    assert png[:8] == b"\x89PNG\r\n\x1a\n" and png[12:16] == b"IHDR", "not a PNG"
+    width, height = struct.unpack(">II", png[16:24])
+    return width, height
 
 
 def png_colours(png: bytes) -> tuple[int, int, int]:

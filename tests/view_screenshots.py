@@ -3,8 +3,8 @@
     python3 tests/view_screenshots.py [default|twosense ...]
 
 Each scene runs in this process with a view sink (the two-sense world trains its two models and
-its fusion first: minutes), the page is loaded in headless chromium and photographed near the
-end of the run.
+its fusion first: minutes), the page is loaded in headless chromium in a 1280 x 800 window (the
+width the page is made to fit, tests/test_view.py) and photographed whole near the end of the run.
 """
 
 from __future__ import annotations
@@ -24,6 +24,8 @@ sys.path.insert(0, str(Path(__file__).parent))
 from view_browser import Browser  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
+#: The window the page is photographed in, CSS px (the whole page's height is taken).
+WIDTH, HEIGHT = 1280, 800
 
 
 def shoot(name: str, scene, seconds: float, after_windows: int) -> None:
@@ -32,9 +34,9 @@ def shoot(name: str, scene, seconds: float, after_windows: int) -> None:
     attach(graph)
     thread = threading.Thread(target=graph.run, kwargs={"max_seconds": seconds}, daemon=True)
     thread.start()
-    browser = Browser(width=1400, height=1000)
+    browser = Browser(width=WIDTH, height=HEIGHT)
     try:
-        browser.open(view.url)
+        browser.open(view.url, width=WIDTH, height=HEIGHT)
         browser.wait_for(f"!!document.body && Number(document.body.dataset.received || 0) > {after_windows}",
                          timeout=600)
         time.sleep(1.5)

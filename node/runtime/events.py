@@ -26,6 +26,30 @@ from supramodal.errors import InputError
 DECISION_EVENTS = frozenset({"change"})
 
 
+#: How grave each kind of driver event is, said here once: the page colours an event's banner and its
+#: line in the event list by it, and says nothing of its own about kinds. ``"alarm"`` (red): samples
+#: were lost, filled or made up, or a source is gone; ``"warning"`` (amber): the stream goes on, but
+#: something wants a look (a setting, a sense decided alone); ``"info"`` (blue): news, nothing lost (a
+#: port opened, a source back, a texture change). The kinds are those the drivers document
+#: (:class:`~supramodal.drivers.base.DriverEvent`), the fusion's and the decisions' (:data:`DECISION_EVENTS`).
+SEVERITY: dict[str, str] = {
+    **dict.fromkeys(("unplug", "gap", "overrun", "overflow", "dropped", "restart", "channels", "version", "silence",
+                     "error", "nan"), "alarm"),
+    **dict.fromkeys(("sense_lost", "backlog", "baudrate", "level", "underflow", "block", "reopen", "contact"),
+                    "warning"),
+    **dict.fromkeys(("open", "close", "reconnect", "waiting", "notice", "sense_back", "sense_ended", "change"),
+                    "info"),
+}
+#: The severity of a kind :data:`SEVERITY` does not name (a new driver's): shown in amber, so that it is
+#: neither an alarm that cries wolf nor news that hides a fault.
+UNKNOWN_SEVERITY = "warning"
+
+
+def severity(kind: str) -> str:
+    """How grave a driver event of ``kind`` is: ``"alarm"``, ``"warning"`` or ``"info"`` (:data:`SEVERITY`)."""
+    return SEVERITY.get(kind, UNKNOWN_SEVERITY)
+
+
 class EventLimiter:
     """At most ``burst`` events per kind per ``interval`` seconds; repeats folded into counts.
 

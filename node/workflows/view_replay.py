@@ -46,14 +46,20 @@ class _Keep(Sink):
         self.items: list[tuple[float, dict[str, Any]]] = []
         self.summary_: dict[str, Any] | None = None
         self._lock = threading.Lock()
+        self._latest = 0.0          # the latest window's end kept, on common time
 
     def emit(self, event: WindowEvent) -> None:
         with self._lock:
+            self._latest = max(self._latest, float(event.end))
             self.items.append((float(event.end), window_message(event)))
 
     def event(self, ev: DriverEvent) -> None:
+        # An event is stamped on the wall clock, which a replay at full speed does not follow: it is
+        # played, and shown, at the recording's time the node had reached when it was said (the latest
+        # window's end), beside the windows it came among.
         with self._lock:
-            self.items.append((float(ev.time), event_message(ev)))
+            message = {**event_message(ev), "common_time": round(self._latest, 3)}
+            self.items.append((self._latest, message))
 
     def summary(self, summary: dict[str, Any]) -> None:
         self.summary_ = summary

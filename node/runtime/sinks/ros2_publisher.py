@@ -69,7 +69,7 @@ import numpy as np
 from supramodal.drivers.base import DriverEvent
 from supramodal.drivers.ros2 import RosClock, RosNode, check_token
 from supramodal.errors import InputError
-from supramodal.node.runtime.events import DECISION_EVENTS, FUSED_STREAM, MAIN_STREAM, WindowEvent
+from supramodal.node.runtime.events import DECISION_EVENTS, FUSED_STREAM, MAIN_STREAM, WindowEvent, severity
 from supramodal.node.runtime.sinks.spec import stream_outputs
 
 __all__ = ["OUTPUTS", "Ros2Publisher", "SourceState", "Status", "TopicStream", "diagnostic_report"]
@@ -162,9 +162,6 @@ class SourceState:
     unplugged: bool = False
 
 
-#: Driver events that mean samples were lost or made up: the source's status is WARN in the period
-#: they happen.
-_LOSSY_EVENTS = ("gap", "overrun", "overflow", "restart", "error", "channels", "version", "silence")
 
 
 def _grew(now: Mapping[str, Any], before: Mapping[str, Any] | None, key: str) -> int:
@@ -240,7 +237,7 @@ def diagnostic_report(node: str, health: Mapping[str, Any] | None, sources: Mapp
         values += [(f"events_{kind}", str(n)) for kind, n in sorted(state.counts.items())]
         if state.unplugged:
             level, message = ERROR, f"unplugged: {last.message if last else ''}"
-        elif last is not None and last.kind in _LOSSY_EVENTS and now - last.time < 2.0:
+        elif last is not None and severity(last.kind) == "alarm" and now - last.time < 2.0:   # samples lost, made up
             level, message = WARN, f"{last.kind}: {last.message}"
         else:
             level, message = OK, f"last event: {last.kind}" if last else "no event"

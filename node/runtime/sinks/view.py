@@ -4,7 +4,9 @@
 127.0.0.1: per stream the posteriors over time, the decision, its confidence, the truth, the
 pooled decision, the current feature window and a scrolling channels x time image of one of
 its features; the fused decisions and their pairing; the health (frame fates, clocks, latency,
-sinks' drops) and driver events as banners. docs/view.md.
+sinks' drops) and driver events as banners coloured by how grave they are
+(:data:`~supramodal.node.runtime.events.SEVERITY`), on the
+node's common time. docs/view.md.
 
 Transport: the standard library's :class:`http.server.ThreadingHTTPServer` and Server-Sent
 Events (``text/event-stream``, one JSON object per message): no new dependency, a browser
@@ -49,11 +51,12 @@ from supramodal.checks import Key, flag, integer, is_name, text
 from supramodal.drivers.base import DriverEvent
 from supramodal.drivers.spec import OptionError
 from supramodal.errors import InputError
-from supramodal.node.runtime.events import WindowEvent
+from supramodal.node.runtime.events import WindowEvent, severity
 from supramodal.node.runtime.sinks import QueuedSink, Sink
 from supramodal.node.runtime.sinks.spec import SinkContext, SinkSpec
 
-__all__ = ["SPEC", "Hub", "ViewError", "ViewSink", "attach", "view_sinks", "window_message"]
+__all__ = ["SPEC", "Hub", "ViewError", "ViewSink", "attach", "channel_labels", "event_message", "view_sinks",
+           "window_message"]
 
 #: Messages each open page's queue holds; beyond it the oldest are dropped and counted.
 CLIENT_QUEUE = 256
@@ -173,9 +176,16 @@ def window_message(event: WindowEvent) -> dict[str, Any]:
     return out
 
 
-def event_message(ev: DriverEvent) -> dict[str, Any]:
-    """A driver event as the page gets it (a banner): :meth:`DriverEvent.as_dict`."""
-    return {"type": "event", **ev.as_dict()}
+def event_message(ev: DriverEvent, wall_at_zero: float | None = None) -> dict[str, Any]:
+    """A driver event as the page gets it (a banner and a line in its list): :meth:`DriverEvent.as_dict`,
+    its ``severity`` (:func:`~supramodal.node.runtime.events.severity`) and, given ``wall_at_zero`` (the
+    host's ``time.time()`` at common time 0), ``common_time``: when it happened on the node's common
+    time, seconds, as the windows' times are (the event's ``time`` is the host's wall clock, seconds since
+    1970)."""
+    out = {"type": "event", **ev.as_dict(), "severity": severity(ev.kind)}
+    if wall_at_zero is not None:
+        out["common_time"] = _finite(ev.time - wall_at_zero, 3)
+    return out
 
 
 # -- the open pages ------------------------------------------------------------------------------------
@@ -448,6 +458,10 @@ class ViewSink(Sink):
     streams : sequence of str
         The streams the page shows, in order (a scene's: its streams, then ``"fused"``); a stream
         not named here is added when its first window comes.
+    channels : mapping of str to mapping, optional
+        Per stream, its bank's channels as the page labels its feature bars: ``{"names": [...],
+        "centre_hz": [...]}`` in channel order (:func:`channel_labels`); a stream not named here has its
+        bars numbered.
 
     Raises
     ------
@@ -458,7 +472,8 @@ class ViewSink(Sink):
 
     def __init__(self, port: int = 0, host: str = "127.0.0.1", remote: bool = False, token: str | None = None,
                  labels: list[str] | None = None, mode: str = "live", quiet: bool = False,
-                 streams: Sequence[str] = ()) -> None:
+                 streams: Sequence[str] = (),
+                 channels: Mapping[str, Mapping[str, Sequence[Any]]] | None = None) -> None:
         if not is_loopback(host) and not (remote and token):
             raise ViewError(f"serving the view on {host!r} (not loopback) lets other machines see it: it needs "
                             "remote = true and a token of your own (token = \"...\", at least "
@@ -475,6 +490,10 @@ class ViewSink(Sink):
         self.marks: list[dict[str, Any]] = []
         self._classes: dict[str, list[str]] = {}
         self._streams: list[str] = list(streams)   # in the scene's order; others as their first window comes
+        self._channels = {name: {"names": [str(n) for n in c["names"]],
+                                 "centre_hz": [_finite(f, 1) for f in c["centre_hz"]]}
+                          for name, c in (channels or {}).items()}
+        self._wall_at_zero: float | None = None     # the host's time.time() at common time 0, once started
         self._lock = threading.Lock()
         self._closing = threading.Event()
         self._threads: list[threading.Thread] = []
@@ -508,14 +527,14 @@ class ViewSink(Sink):
     # -- what the page asks --
 
     def hello(self) -> dict[str, Any]:
-        """What the page needs first: the mode, the streams and their classes, the mark labels,
-        whether marks and controls are open."""
+        """What the page needs first: the mode, the streams and their classes, their channels (the
+        feature bars' labels), the mark labels, whether marks and controls are open."""
         with self._lock:
             classes = {k: list(v) for k, v in self._classes.items()}
             streams = list(self._streams)
         labels = self.labels or sorted({c for cs in classes.values() for c in cs})
-        return {"type": "hello", "mode": self.mode, "streams": streams, "classes": classes, "labels": labels,
-                "marks": self.on_mark is not None, "control": self.control is not None}
+        return {"type": "hello", "mode": self.mode, "streams": streams, "classes": classes, "channels": self._channels,
+                "labels": labels, "marks": self.on_mark is not None, "control": self.control is not None}
 
     def actions(self) -> dict[str, Callable[[dict[str, Any]], dict[str, Any]]]:
         out: dict[str, Callable[[dict[str, Any]], dict[str, Any]]] = {}
@@ -572,6 +591,9 @@ class ViewSink(Sink):
             self.hub.publish(self.hello(), keep="latest")
 
     def start(self, epoch: float) -> None:
+        """Serve, and put the driver events on common time from now on: ``epoch``, common time 0 on
+        ``time.monotonic()``, is this far back on the wall clock the events are stamped with."""
+        self._wall_at_zero = time.time() - (time.monotonic() - epoch)
         self.prepare()
         self._spawn("view-health", self._health_loop)
 
@@ -613,7 +635,7 @@ class ViewSink(Sink):
         self.hub.publish(message)
 
     def event(self, ev: DriverEvent) -> None:
-        self.hub.publish(event_message(ev))
+        self.hub.publish(event_message(ev, self._wall_at_zero))
 
     def summary(self, summary: dict[str, Any]) -> None:
         self.publish_health()
@@ -659,16 +681,24 @@ def attach(graph: Any, on_mark: Callable[[str | None], Any] | None = None) -> li
 
 # -- as a scene names it -------------------------------------------------------------------------------
 
+def channel_labels(bank: Any) -> dict[str, list[Any]]:
+    """A bank's channels as the page labels a stream's feature bars: ``{"names", "centre_hz"}``, in
+    channel order (the order of every feature's values in a window)."""
+    return {"names": [str(n) for n in bank.names], "centre_hz": [float(f) for f in bank.cf]}
+
+
 def _build(options: Mapping[str, Any], context: SinkContext) -> Sink:
+    # Made from the streams' plans (their banks: the bars' labels), still before any model is trained.
+    channels = {name: channel_labels(p.pipeline.bank) for name, p in context.plans.items()}
     try:
         view = ViewSink(options["port"], options["host"], options["remote"], options["token"], options["labels"],
-                        streams=context.stream_names)
+                        streams=context.stream_names, channels=channels)
     except ViewError as exc:
         raise OptionError(str(exc)) from None
     # Behind its own queue, as every sink: a slow or absent page never slows processing.
     return QueuedSink(view)
 
 
-SPEC = SinkSpec(type="view", keys=KEYS, build=_build,
+SPEC = SinkSpec(type="view", keys=KEYS, build=_build, needs="plans",
                 summary="a page in the browser (127.0.0.1): decisions, posteriors, features, health, marks")
 

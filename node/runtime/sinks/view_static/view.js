@@ -6,10 +6,10 @@
   const SPAN = 120;            // windows kept per stream for the plots
   const COLORS = ["#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f",
                   "#bcbd22", "#17becf", "#393b79", "#637939", "#8c6d31", "#843c39", "#7b4173", "#3182bd"];
-  // Driver events that lost or made up samples: a red banner. Any other (opened, reconnect, sense_back, a notice)
-  // is news, not an alarm: a blue one.
-  const ALARM_KINDS = new Set(["unplug", "unplugged", "gap", "channels", "restart", "overrun", "overflow", "error",
-                               "silence", "sense_lost", "stall", "lost", "disconnected"]);
+  // How grave a driver event is comes with it (its "severity": alarm, warning or info), decided in one place,
+  // the view sink (view.py's SEVERITY); the page only colours by it. An event without one: a warning.
+  const SEVERITIES = new Set(["alarm", "warning", "info"]);
+  const FEATURE_LEFT = 40;     // px of the features canvas left of the bars (the feature's name)
   const token = new URLSearchParams(location.hash.slice(1)).get("token") || "";
   const streams = new Map();   // name -> {el, history: [msg], classes}
   let hello = null;
@@ -96,10 +96,49 @@
     const names = Object.keys(features), rowH = H / names.length;
     names.forEach((name, r) => {
       const v = features[name], n = v.length, max = Math.max(1e-12, ...v.map(x => Math.abs(x || 0)));
-      const bw = (W - 40) / n;
+      const bw = (W - FEATURE_LEFT) / n;
       g.fillStyle = "#333"; g.fillText(name, 2, r * rowH + 12);
       g.fillStyle = COLORS[r % COLORS.length];
-      v.forEach((x, i) => { const bh = (rowH - 4) * Math.abs(x || 0) / max; g.fillRect(40 + i * bw, (r + 1) * rowH - 2 - bh, Math.max(bw - 1, 1), bh); });
+      v.forEach((x, i) => { const bh = (rowH - 4) * Math.abs(x || 0) / max; g.fillRect(FEATURE_LEFT + i * bw, (r + 1) * rowH - 2 - bh, Math.max(bw - 1, 1), bh); });
+    });
+    if (names.length) channelAxis(s, features[names[0]].length);
+  }
+
+  // The bank's channels as the view sink sends them in hello (names and centre frequencies, in channel
+  // order: the order of every feature's values); numbered from 0 where it has none for this stream
+  // (a replay's page), or where their count is not the bars'.
+  function channelLabels(stream, n) {
+    const c = hello && hello.channels && hello.channels[stream];
+    if (!c || !c.names || c.names.length !== n) return {what: "index", labels: Array.from({length: n}, (_, i) => [String(i)])};
+    const hz = f => f == null ? "" : f >= 1000 ? (f / 1000).toFixed(f >= 10000 ? 0 : 1) + "k" : String(Math.round(f));
+    return {what: "name, centre frequency in Hz", labels: c.names.map((name, i) => [name, hz((c.centre_hz || [])[i])])};
+  }
+
+  // Under the bars, each labelled channel's name and centre frequency, as many as fit side by side
+  // (every k-th channel when they would overlap); redone only when the channels or the width change.
+  function channelAxis(s, n) {
+    const c = $(".features", s.el), axis = $(".chaxis", s.el), width = c.clientWidth;
+    if (!width) return;                                       // not laid out (hidden): the next window draws it
+    const {what, labels} = channelLabels(s.el.dataset.stream, n);
+    const key = n + "|" + width + "|" + labels.map(l => l.join(" ")).join(",");
+    if (axis.dataset.key === key) return;
+    axis.dataset.key = key;
+    text($(".chwhat", s.el), what);
+    axis.innerHTML = "";
+    const spans = labels.map((l, i) => {
+      const span = document.createElement("span");
+      span.dataset.channel = String(i);
+      l.forEach((part, k) => { if (k) span.appendChild(document.createElement("br")); span.appendChild(document.createTextNode(part)); });
+      axis.appendChild(span);
+      return span;
+    });
+    const scale = width / c.width, pitch = (c.width - FEATURE_LEFT) / n * scale;
+    const widest = Math.max(1, ...spans.map(sp => sp.offsetWidth));
+    const step = Math.max(1, Math.ceil((widest + 4) / pitch));
+    spans.forEach((sp, i) => {
+      if (i % step) { sp.remove(); return; }
+      const centre = (FEATURE_LEFT + (i + 0.5) * (c.width - FEATURE_LEFT) / n) * scale;
+      sp.style.left = Math.max(0, Math.min(width - sp.offsetWidth, centre - sp.offsetWidth / 2)) + "px";
     });
   }
 
@@ -129,12 +168,12 @@
       const f = st.frames || {}, l = st.latency_ms || {};
       return "<tr data-stream='" + name + "'><td>" + name + "</td><td>" + st.windows + "</td><td>" + f.delivered +
         "</td><td" + (f.filled ? " class=bad" : "") + ">" + f.filled + "</td><td" + (f.dropped ? " class=bad" : "") + ">" +
-        f.dropped + "</td><td>" + fmt(l.p50, 2) + " ms</td><td>" + fmt(l.p99, 2) + " ms</td></tr>";
+        f.dropped + "</td><td>" + fmt(l.p50, 2) + "</td><td>" + fmt(l.p99, 2) + "</td></tr>";
     });
     if (m.fusion) {
       const l = m.fusion.latency_ms || {};
       rows.push("<tr data-stream='fused'><td>fused</td><td>" + m.fusion.windows + "</td><td colspan=3>" + m.fusion.paired +
-        " paired, " + m.fusion.alone + " alone</td><td>" + fmt(l.p50, 2) + " ms</td><td>" + fmt(l.p99, 2) + " ms</td></tr>");
+        " paired, " + m.fusion.alone + " alone</td><td>" + fmt(l.p50, 2) + "</td><td>" + fmt(l.p99, 2) + "</td></tr>");
       const fs = streams.get("fused");
       if (fs) {
         const late = Object.entries(m.fusion.late || {}).map(([k, v]) => k + " " + v).join(", ") || "none";
@@ -145,8 +184,8 @@
     }
     $("#frames tbody").innerHTML = rows.join("");
     $("#clocks tbody").innerHTML = Object.entries(m.clocks || {}).map(([name, c]) => c ?
-      "<tr><td>" + name + "</td><td>" + fmt(c.ppm, 1) + " ppm</td><td>" + fmt(c.delay_ms, 2) + " ms</td><td>" +
-      fmt(c.jitter_ms, 2) + " ms</td></tr>" : "").join("") || "<tr><td colspan=4 class=muted>no live clock (file time)</td></tr>";
+      "<tr><td>" + name + "</td><td>" + fmt(c.ppm, 1) + "</td><td>" + fmt(c.delay_ms, 2) + "</td><td>" +
+      fmt(c.jitter_ms, 2) + "</td></tr>" : "").join("") || "<tr><td colspan=4 class=muted>no live clock (file time)</td></tr>";
     $("#sinks tbody").innerHTML = (m.sinks || []).map(q =>
       "<tr><td>" + q.sink + "</td><td>" + q.written + "</td><td" + (q.dropped_windows ? " class=bad" : "") + ">" +
       q.dropped_windows + "</td><td>" + q.dropped_events + "</td><td>" + q.errors + "</td></tr>").join("");
@@ -155,20 +194,28 @@
   }
 
   function onEvent(m) {
+    const severity = SEVERITIES.has(m.severity) ? m.severity : "warning";
     const li = document.createElement("li");
-    // an event's time is the host's wall clock (a window's is the node's common time): shown as a clock time
-    const when = new Date(m.time * 1000).toLocaleTimeString([], {hour12: false});
-    li.textContent = when + " " + (m.source ? m.source + " " : "") + m.event + (m.count > 1 ? " x" + m.count : "") + ": " + m.message;
+    li.className = severity;
+    li.dataset.severity = severity;
+    // On the node's common time, as the windows' times are (the sink puts it there); the host's clock only
+    // where the node has no common time to give (a view that is not in a running graph), and said so.
+    const when = document.createElement("span");
+    when.className = "when";
+    when.textContent = m.common_time != null ? fmt(m.common_time, 2) + " s"
+      : new Date(m.time * 1000).toLocaleTimeString([], {hour12: false}) + " (host clock)";
+    li.append(when, " " + (m.source ? m.source + " " : "") + m.event + (m.count > 1 ? " x" + m.count : "") + ": " + m.message);
     const log = $("#eventlog");
     log.insertBefore(li, log.firstChild);
     while (log.children.length > 50) log.removeChild(log.lastChild);
-    banner((m.source ? m.source + ": " : "") + m.message, "event-" + m.event, !ALARM_KINDS.has(m.event));
+    banner((m.source ? m.source + ": " : "") + m.message, "event-" + m.event, severity);
   }
 
-  function banner(msg, cls, info) {
+  function banner(msg, cls, severity) {
     const b = document.createElement("div");
-    b.className = "banner " + cls + (info ? " info" : "");
+    b.className = "banner " + cls + " " + severity;
     b.dataset.kind = cls;
+    b.dataset.severity = severity;
     b.textContent = msg;
     $("#banners").appendChild(b);
     while ($("#banners").children.length > 4) $("#banners").removeChild($("#banners").firstChild);
@@ -206,7 +253,7 @@
   function onSummary() {
     const mode = $("#mode"); text(mode, (hello ? hello.mode : "run") + " ended"); mode.className = "pill ended";
     banner(hello && hello.mode === "replay" ? "the recording has ended (from the start: replays it)"
-           : "the run has ended: the summary is on the terminal", "ended", true);
+           : "the run has ended: the summary is on the terminal", "ended", "info");
   }
 
   function onReset() {
