@@ -11,7 +11,8 @@ The scene: two synthesised whisker sources in real time (``--seconds`` of each o
 textures; their own block sizes), a model per stream (trained on start once, then read from the model
 cache), late fusion, a ``jsonl`` sink to a file; with the sink on, a ``ros2`` sink publishing every
 stream's and the fusion's decisions, posteriors and features. Each round runs the three cases one after
-the other, each a node process of its own (``supramodal run``); the subscriber is a plain rclpy
+the other (round ``r`` starting with case ``r``: no case always runs first, or after the same one), each a
+node process of its own (``supramodal run``); the subscriber is a plain rclpy
 process (reliable, keep last 10 on every decision and posteriors topic), matched before the node
 starts (``wait_for_subscribers``), stopped with SIGSTOP once the first window is written in the third
 case. Reported per case, pooled over rounds: the node's decision latency per stream (p50, p99, max, from
@@ -167,7 +168,7 @@ def main(argv: list[str] | None = None) -> int:
     pooled: dict[str, dict] = {c: {"latencies": {}, "windows": [], "wall": [], "dropped": 0} for c in CASES}
     with tempfile.TemporaryDirectory(prefix="ros2-bench-") as tmp:
         for r in range(args.rounds):
-            for case in CASES:
+            for case in CASES[r % len(CASES):] + CASES[:r % len(CASES)]:    # each case first in some round
                 t = time.monotonic()
                 got = run_case(case, args.seconds, Path(tmp), args.sink_keys)
                 print(f"round {r + 1}/{args.rounds}, {case}: {got['windows']} windows in "

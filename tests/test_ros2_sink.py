@@ -355,6 +355,58 @@ def test_the_subscriber_docs_ros2_md_gives_to_copy_prints_the_fused_decisions():
     assert "{'T1': 0.8, 'T2': 0.2}" in out, out
 
 
+def test_a_senses_windows_wait_for_the_fused_decision_a_bounded_time_and_none_is_lost(monkeypatch):
+    """In a fused scene the senses' windows are held until the fused decision, then published with it (the
+    publisher then takes the cores after the node has decided); one whose fused decision does not come is
+    sent once it has waited ``HOLD_SECONDS`` (at the sink's next window), and the drain sends the rest:
+    every window reaches the subscriber, in order, and the summary counts none unsent."""
+    import numpy as np
+    from rclpy.qos import QoSProfile
+
+    from supramodal.node.runtime.events import WindowEvent
+    from supramodal.node.runtime.sinks import ros2 as ros2_sink
+
+    monkeypatch.setattr(ros2_sink, "HOLD_SECONDS", 0.3)
+    ns = unique_namespace()
+    names = ("left", "right", "fused")
+    topics = {n: f"{ns}/supramodal/{n}/decision" for n in names}
+    sub = Subscriber()
+    for topic in topics.values():
+        sub.subscribe(topic, String, QoSProfile(depth=50))
+    sink = Ros2Sink([TopicStream(n, ("a", "b")) for n in names], namespace=ns, wait_for_subscribers=20,
+                    fused_inputs=("left", "right"))
+
+    def window(stream: str, i: int) -> WindowEvent:
+        return WindowEvent(stream, i, 0.1 * i, 0.1 * i + 0.1, 0.1 * i + 0.1, decision="a", confidence=0.9,
+                           posteriors=np.array([0.9, 0.1]), classes=("a", "b"))
+
+    def got(stream: str) -> list[int]:
+        return [json.loads(m.data)["window"] for m in sub.messages(topics[stream])]
+
+    try:
+        sink.prepare()
+        assert sorted(sink.subscribed) == sorted(f"{n}/decision" for n in names)
+        sink.start(time.monotonic())
+        sink.emit(window("left", 0))
+        sink.emit(window("right", 0))
+        time.sleep(0.6)                      # published at once, they would be here by now (held: nothing)
+        assert got("left") == got("right") == [], "a sense's window went out before the fused decision"
+        sink.emit(window("fused", 0))
+        assert sub.wait_for(lambda: got("left") == got("right") == got("fused") == [0], 10.0), \
+            {n: got(n) for n in names}
+        sink.emit(window("left", 1))         # its fused decision never comes (a sense given up on)
+        time.sleep(0.5)
+        sink.emit(window("left", 2))         # the next window: left 1 has waited long enough
+        assert sub.wait_for(lambda: got("left") == [0, 1], 10.0), got("left")
+        sink.drain(5.0)                      # the end: left 2 goes too
+        assert sub.wait_for(lambda: got("left") == [0, 1, 2], 10.0), got("left")
+        stats = sink.stats()
+        assert "unsent_windows" not in stats and stats["published"]["decision"] == 5, stats
+    finally:
+        sink.close()
+        sub.close()
+
+
 def test_a_publisher_process_that_dies_is_counted_and_said_and_never_mistaken_for_a_closed_stdout():
     """The ros2 sink publishes from a process of its own: killed, each window after it is a counted error
     of the sink naming the process's end (never a ``BrokenPipeError``, which would stop the node as a

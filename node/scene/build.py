@@ -457,7 +457,8 @@ def build_node(scene: Scene, speed=None, sinks_override=None, progress=None, rec
         if sinks_override is None:              # outlets up before any training: consumers resolve them meanwhile
             f = scene.fusion
             _make_sinks(scene, "plans", made, overwrite, plans=plans,
-                        fused_classes=None if f is None else plans[f.streams[0]].classes)
+                        fused_classes=None if f is None else plans[f.streams[0]].classes,
+                        fused_inputs=() if f is None else tuple(f.streams))
         for spec in scene.streams:
             pipeline, bank = plans[spec.name].pipeline, banks[spec.name]
             source, labels, ts = sources[spec.source]
@@ -516,7 +517,8 @@ def build_node(scene: Scene, speed=None, sinks_override=None, progress=None, rec
         contacts = _contacts(scene, streams, fusion)
         if sinks_override is None:
             _make_sinks(scene, "streams", made, overwrite, streams={s.name: s for s in streams},
-                        fused_classes=None if fusion is None else fusion.classes)
+                        fused_classes=None if fusion is None else fusion.classes,
+                        fused_inputs=() if fusion is None else tuple(fusion.inputs))
             readers: dict[str, list] = {}
             for stream, spec in zip(streams, scene.streams):
                 readers.setdefault(spec.source, []).append((stream.pipeline.bank, spec.mapping))

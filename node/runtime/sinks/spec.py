@@ -101,6 +101,8 @@ class SinkContext:
         need the streams; ``"fused"`` is not among them.
     fused_classes : tuple of str or None
         The fusion's classes, when the scene has one.
+    fused_inputs : tuple of str
+        The streams the fusion takes (empty: no fusion).
     plans : dict
         Stream name -> its :class:`StreamPlan`, for sinks that need the plans (made before any
         model is trained); ``"fused"`` is not among them.
@@ -118,6 +120,7 @@ class SinkContext:
     overwrite: bool = False
     streams: Mapping[str, Any] = field(default_factory=dict)
     fused_classes: tuple[str, ...] | None = None
+    fused_inputs: tuple[str, ...] = ()
     sources: Mapping[str, SourcePlan] = field(default_factory=dict)
     plans: Mapping[str, StreamPlan] = field(default_factory=dict)
     stream_names: tuple[str, ...] = ()
