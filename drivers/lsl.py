@@ -56,9 +56,12 @@ dropping: a backlog flushed at once waits in the inlet, not lost in a ring small
 from __future__ import annotations
 
 import collections
+import functools
 import math
+import os
 import time
 from collections.abc import Mapping
+from pathlib import Path
 from types import ModuleType
 from typing import TYPE_CHECKING, Any
 
@@ -100,6 +103,12 @@ DUPLICATE_WAIT = 1.0
 #: Most seconds of that wait (a second stream answers the same resolve waves as the first).
 DUPLICATE_WAIT_MAX = 3.0
 
+#: liblsl's log level on stderr when the user's configuration sets none (loguru's verbosity: -2 errors,
+#: -1 warnings too, 0 liblsl's own default, its INFO lines such as "Configuration loaded from ..." at
+#: every start, which are not the node's user's business). A configuration file with a ``[log]``
+#: section of its own is used as it is (docs/lsl.md: how to see liblsl's log).
+LIBLSL_LOG_LEVEL = -1
+
 # LSL channel formats (lsl_channel_format_t) -> (numpy dtype, full scale).
 _FORMATS = {1: (np.float32, 1.0), 2: (np.float64, 1.0), 4: (np.int32, 2.0 ** 31), 5: (np.int16, 2.0 ** 15),
             6: (np.int8, 2.0 ** 7), 7: (np.int64, 2.0 ** 63)}
@@ -121,7 +130,72 @@ def import_pylsl() -> ModuleType:
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise LSLUnavailable(f"pylsl is installed but cannot load liblsl ({first}): {INSTALL_HINT}") from None
     module: ModuleType = pylsl      # a module, untyped (Any) to mypy
+    _quiet_liblsl(module)
     return module
+
+
+def liblsl_config_file(environ: Mapping[str, str] = os.environ) -> Path | None:
+    """The configuration file liblsl reads, in its own order: the file ``LSLAPICFG`` names,
+    ``lsl_api.cfg`` in the working folder, ``~/lsl_api/lsl_api.cfg``, ``/etc/lsl_api/lsl_api.cfg``;
+    None without one."""
+    home = environ.get("HOME") or environ.get("USERPROFILE")
+    if not home and environ.get("HOMEDRIVE") and environ.get("HOMEPATH"):
+        home = environ["HOMEDRIVE"] + environ["HOMEPATH"]
+    places = [environ.get("LSLAPICFG"), "lsl_api.cfg", home and os.path.join(home, "lsl_api", "lsl_api.cfg"),
+              "/etc/lsl_api/lsl_api.cfg"]
+    for place in places:
+        if place and _readable(place):
+            return Path(place)
+    return None
+
+
+def _readable(path: str) -> bool:
+    return os.path.isfile(path) and os.access(path, os.R_OK)
+
+
+def quiet_config(text: str | None) -> str | None:
+    """A liblsl configuration's ``text`` (None: no file) with ``[log] level =``
+    :data:`LIBLSL_LOG_LEVEL` added, or None where it is to be left as it is: it has a ``[log]``
+    section of its own (the user's choice), or lines liblsl would refuse (its own error says why).
+    Read as liblsl reads it: a section starts at a line's first character, a key is ``name = value``."""
+    added = f"[log]\nlevel = {LIBLSL_LOG_LEVEL}\n"
+    if text is None:
+        return added
+    for line in text.splitlines():
+        if not line.strip() or line.startswith(";"):
+            continue
+        if line.startswith("["):
+            if "]" not in line:
+                return None
+            if line[1:line.index("]")] == "log":
+                return None
+        elif "=" not in line:
+            return None
+    return text + ("" if text.endswith("\n") or not text else "\n") + added
+
+
+@functools.cache                   # once per process: liblsl reads its configuration once
+def _quiet_liblsl(pylsl: ModuleType) -> None:
+    """Before liblsl's first use in this process: its configuration (the user's file, read as liblsl
+    reads it, or none) with its log on stderr held to :data:`LIBLSL_LOG_LEVEL`, given to liblsl as
+    content (it takes that before any file). Nothing where the user's file has a ``[log]`` section,
+    where ``LSLAPICFG`` names a file that cannot be read (liblsl says so), or where liblsl is older
+    than 1.17.7 (no such call)."""
+    named = os.environ.get("LSLAPICFG")
+    if named and not _readable(named):
+        return                                  # liblsl's error says so; a quieter log would hide it
+    path = liblsl_config_file()
+    try:
+        content = quiet_config(None if path is None else path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError):
+        return                                  # left to liblsl, which reads it or says why not
+    setter = getattr(pylsl, "set_config_content", None)
+    if content is None or setter is None:
+        return
+    try:
+        setter(content)
+    except NotImplementedError:                 # pylsl's word for a liblsl older than 1.17.7
+        return
 
 
 def _lost_error(pylsl: ModuleType) -> type[Exception]:

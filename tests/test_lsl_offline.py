@@ -164,3 +164,26 @@ def test_json_replacing_the_lsl_sinks_is_what_the_start_up_line_says(tmp_path, c
     err = capsys.readouterr().err
     assert "sent on as LSL (" not in err, err
     assert "--json: JSON Lines on stdout instead of the scene's sinks (lsl-signal; nothing sent on as LSL)" in err
+
+
+def test_liblsl_gets_the_users_config_with_a_quiet_log_unless_it_has_a_log_of_its_own(tmp_path, monkeypatch):
+    """Issue 36 item 6: what the node gives liblsl before its first use (drivers/lsl.py): the user's
+    configuration file whole, with ``[log] level`` added (its INFO lines are not the node's user's
+    business); untouched where it has a ``[log]`` section of its own, or a line liblsl refuses (its own
+    error says which); the file found where liblsl looks for it."""
+    from supramodal.drivers.lsl import LIBLSL_LOG_LEVEL, liblsl_config_file, quiet_config
+
+    added = f"[log]\nlevel = {LIBLSL_LOG_LEVEL}\n"
+    lab = "[lab]\nSessionID = bench\n; a comment\n\n[ports]\nIPv6 = disable"
+    assert quiet_config(None) == added
+    assert quiet_config(lab) == lab + "\n" + added
+    assert quiet_config("[log]\nfile = lsl.log\n") is None
+    assert quiet_config("[lab]\nSessionID\n") is None                     # no "=": liblsl refuses it
+    assert quiet_config("[lab\n") is None
+    monkeypatch.chdir(tmp_path)                                           # no lsl_api.cfg here
+    own = tmp_path / "own.cfg"
+    own.write_text(lab)
+    (tmp_path / "home" / "lsl_api").mkdir(parents=True)
+    (tmp_path / "home" / "lsl_api" / "lsl_api.cfg").write_text(lab)
+    assert liblsl_config_file({"LSLAPICFG": str(own), "HOME": str(tmp_path / "home")}) == own
+    assert liblsl_config_file({"HOME": str(tmp_path / "home")}) == tmp_path / "home" / "lsl_api" / "lsl_api.cfg"

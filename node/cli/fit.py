@@ -100,6 +100,13 @@ def run(args: argparse.Namespace) -> int:
         for path in cache.glob("*.npy"):
             path.unlink(missing_ok=True)
         raise
+    finally:
+        # The folder too, once empty: it is the search's scratch, not one of the fit's files (an empty
+        # fit/cache was left after every fit). Anything else in it is not the fit's to remove.
+        try:
+            cache.rmdir()
+        except OSError:
+            pass
     print(format_search(result))
     # Written aside and put in place all at once (written in place, an interrupted fit left some files new, the
     # rest an earlier fit's, or one cut short).

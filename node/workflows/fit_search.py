@@ -29,6 +29,7 @@ window is the calibrated model's whenever the calibration keeps the order of the
 
 from __future__ import annotations
 
+import asyncio
 import csv
 import math
 import socket
@@ -396,6 +397,12 @@ WORKER_IGNORES_SIGINT = ("import logging, signal\nsignal.signal(signal.SIGINT, s
                          "logging.getLogger('distributed.worker.state_machine').setLevel(logging.ERROR)\n")
 #: Seconds a Dask scheduler has to accept the connection, and then to greet.
 SCHEDULER_TIMEOUT = 20.0
+#: Seconds each local worker process has to end on its own when a fit that ran to its end closes its
+#: cluster (Dask's nanny waits 0.8 of it). Dask's own close waits 4 s and then kills the worker, saying
+#: "Worker process still alive after 4.0 seconds, killing" once a worker: on a busy machine a worker's
+#: exit took longer (issue 36), with the fit's result in hand. An interrupted fit keeps Dask's 4 s: a
+#: worker then may be in the middle of a fold, which it would finish first.
+WORKER_CLOSE_SECONDS = 20.0
 
 
 def _check_scheduler_answers(address: str, seconds: float) -> None:
@@ -489,19 +496,28 @@ class Runner:
         """The results of what :meth:`start` began."""
         return [] if self.client is None else self.client.gather(started)
 
-    def close(self) -> None:
+    def close(self, done: bool = True) -> None:
+        """Close the client and a local cluster. ``done``: the work is over (no task is running), so
+        each local worker is given :data:`WORKER_CLOSE_SECONDS` to end; else Dask's own close."""
         if self.client is not None:
             if self._local is None:                     # a cluster's workers outlive the fit: free their caches
                 self.client.run(forget_caches)
             self.client.close()
         if self._local is not None:
+            if done:                                    # the workers first; the cluster's close finds them closed
+                self._local.sync(_close_nannies, list(self._local.workers.values()), WORKER_CLOSE_SECONDS)
             self._local.close()
 
     def __enter__(self) -> Runner:
         return self
 
-    def __exit__(self, *exc) -> None:
-        self.close()
+    def __exit__(self, kind, *exc) -> None:
+        self.close(done=kind is None)
+
+
+async def _close_nannies(nannies: list, seconds: float) -> None:
+    """Close a local cluster's worker processes (Dask nannies) together, each given ``seconds``."""
+    await asyncio.gather(*(nanny.close(timeout=seconds) for nanny in nannies))
 
 
 # -- the search ----------------------------------------------------------------------------------

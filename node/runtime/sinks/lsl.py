@@ -8,11 +8,15 @@ Streams
 -------
 Per node stream it listens to (``[[sink]] from``; default every stream, the fused one included),
 the sink opens up to three outlets, made when the node is built, before any model is trained (from
-the streams' plans: bank, features, classes), so that consumers resolve them during the start-up
-and get window 0; ``wait_for_consumer`` makes the node wait for them before it starts. Their
-names, types and source ids are fixed by the node's stream name (``NAME``) and the sink's
-``prefix`` (default ``"supramodal"``), so that a restarted node is picked up again by consumers
-that recover by source id:
+the streams' plans: bank, features, classes), so that consumers resolve them during the start-up.
+A consumer started before the node gets window 0 however soon the node starts: by default each
+outlet keeps its windows, from the node's start, until its first consumer has connected (then sends
+them, stamped as they were) or :data:`HOLD_FOR_CONSUMER_SECONDS` have passed, and the node itself
+waits for nothing; ``wait_for_consumer`` (seconds) makes the node wait for consumers before it
+starts instead, and ``wait_for_consumer = 0`` sends every window at once (a consumer gets what
+comes after it has connected). Their names, types and source ids are fixed by the node's stream
+name (``NAME``) and the sink's ``prefix`` (default ``"supramodal"``), so that a restarted node is
+picked up again by consumers that recover by source id:
 
 ============  ======================  ============  =========================================================
 output        name                    type          samples
@@ -37,8 +41,8 @@ so for a live source it is the host time its last sample was taken, for a file i
 own time from the start of the run.
 
 Threading: the node runs this sink behind its own queue (:class:`~supramodal.node.runtime.sinks.QueuedSink`);
-``emit`` pushes on that thread and never waits for consumers (liblsl buffers and drops for a slow
-one, its outlets' ``max_buffered``).
+``emit`` pushes (or keeps, above) on that thread and never waits for consumers (liblsl buffers and
+drops for a slow one, its outlets' ``max_buffered``).
 """
 
 from __future__ import annotations
@@ -74,8 +78,16 @@ DEFAULT_PREFIX = "supramodal"
 _TYPES = {"features": "Features", "decisions": "Markers", "posteriors": "Posteriors"}
 #: Seconds of samples an outlet keeps for a slow consumer before it drops the oldest.
 OUTLET_BUFFER_SECONDS = 60
-#: Seconds to wait for consumers before the node starts: none (a live sensor cannot wait).
-DEFAULT_WAIT_FOR_CONSUMER = 0.0
+#: Seconds to wait for consumers before the node starts; None (the key absent): no wait, each
+#: outlet keeps its first windows for its first consumer instead (:data:`HOLD_FOR_CONSUMER_SECONDS`).
+DEFAULT_WAIT_FOR_CONSUMER = None
+#: Seconds after the node's start that an outlet with no consumer yet keeps its windows for the first
+#: one (the default, no ``wait_for_consumer``). liblsl sends a new consumer nothing pushed before it
+#: connected, and a consumer started before the node connects 0.1-0.7 s after the outlets are up (a plain
+#: pylsl resolve on one machine, measured), 1-3 s later if it waits for a duplicate as the node's own
+#: inlet does (resolve_stream), longer across a network: up to 2.6 s of windows were lost. Nothing waits
+#: on the hold, so it is several times that.
+HOLD_FOR_CONSUMER_SECONDS = 10.0
 #: Seconds after the last consumer has connected before the node starts: a consumer's data
 #: connection is set up after ``wait_for_consumers`` returns, and a sample pushed before can miss it.
 CONNECT_SETTLE_SECONDS = 0.2
@@ -197,26 +209,32 @@ class LSLOutletSink(Sink):
         only for a stream with filters.
     prefix : str
         Default :data:`DEFAULT_PREFIX`.
-    wait_for_consumer : float
-        Seconds :meth:`prepare` waits, before the node starts, until each outlet has a consumer
-        (default 0: the node starts at once). The node starts anyway when one has none by then
-        (:meth:`stats`: ``waited_s`` and ``consumers``).
+    wait_for_consumer : float or None
+        Seconds :meth:`prepare` waits, before the node starts, until each outlet has a consumer;
+        the node starts anyway when one has none by then (:meth:`stats`: ``waited_s`` and
+        ``consumers``). 0: no wait, every window sent at once. None (the default): no wait, and each
+        outlet keeps its windows until its first consumer connects, for at most
+        :data:`HOLD_FOR_CONSUMER_SECONDS` after the start (:meth:`stats`: ``held_s`` and ``consumers``).
 
     The outlets are made here, when the node is built and before any model is trained, so that
     a consumer started before the node resolves them during the start-up and gets window 0.
     """
 
     def __init__(self, streams: Sequence[OutletStream], outputs: Sequence[str] = OUTPUTS, prefix: str = DEFAULT_PREFIX,
-                 wait_for_consumer: float = DEFAULT_WAIT_FOR_CONSUMER) -> None:
+                 wait_for_consumer: float | None = DEFAULT_WAIT_FOR_CONSUMER) -> None:
         unknown = sorted(set(outputs) - set(OUTPUTS))
         if unknown or not outputs:
             raise InputError(f"an LSL sink sends some of {list(OUTPUTS)}, got {list(outputs)}")
         pylsl = self._pylsl = import_pylsl()
         self.prefix = prefix
-        self.wait_for_consumer = float(wait_for_consumer)
+        self.wait_for_consumer = None if wait_for_consumer is None else float(wait_for_consumer)
         self.waited_s: float | None = None
         self.consumers: list[str] | None = None
         self._outlets: dict[tuple[str, str], Outlet] = {}
+        # The default's hold: per outlet with no consumer yet, the samples kept for its first one,
+        # until _hold_end (time.monotonic()); an outlet leaves it for good on its first consumer.
+        self._held: dict[tuple[str, str], list[tuple[Any, float]]] = {}
+        self._hold_end = 0.0
         self._streams = {s.name: s for s in streams}
         self._clock = LSLClock(pylsl, time.monotonic())
         for s in streams:
@@ -274,46 +292,80 @@ class LSLOutletSink(Sink):
     def prepare(self) -> None:
         """Wait up to ``wait_for_consumer`` seconds until every outlet has a consumer (see
         :func:`wait_for_consumers`). The caller's thread, before the graph's start."""
-        if self.wait_for_consumer > 0:
+        if self.wait_for_consumer is not None and self.wait_for_consumer > 0:
             self.waited_s, found = wait_for_consumers(list(self._outlets.values()), self.wait_for_consumer)
             self.consumers = [f"{name}-{output}" for (name, output), ok in zip(self._outlets, found) if ok]
 
     def stats(self) -> dict[str, Any] | None:
         """With a wait for consumers: ``waited_s`` and ``consumers`` (the outlets that had one,
-        ``STREAM-OUTPUT``); else None."""
-        if self.waited_s is None:
-            return None
-        return {"sink": "LSLOutletSink", "waited_s": self.waited_s, "consumers": self.consumers}
+        ``STREAM-OUTPUT``); with the default's hold: ``held_s`` and ``consumers`` (the outlets whose
+        first consumer came in time for window 0); else None."""
+        if self.waited_s is not None:
+            return {"sink": "LSLOutletSink", "waited_s": self.waited_s, "consumers": self.consumers}
+        if self.wait_for_consumer is None:
+            return {"sink": "LSLOutletSink", "held_s": HOLD_FOR_CONSUMER_SECONDS, "consumers": self.consumers or []}
+        return None
 
     def start(self, epoch: float) -> None:
         """The graph's start, on ``time.monotonic()``: common time 0. The caller's thread, before
         any event."""
         self._clock = LSLClock(self._pylsl, epoch)
+        if self.wait_for_consumer is None:
+            self._held = {key: [] for key in self._outlets}
+            self._hold_end = epoch + HOLD_FOR_CONSUMER_SECONDS
+            self.consumers = []
 
     def emit(self, event: WindowEvent) -> None:
         if event.stream not in self._streams:
             return
         stamp = self._clock.lsl_time(event.end)
         name = event.stream
-        features = self._outlets.get((name, "features"))
-        if features is not None and event.features:
+        if (name, "features") in self._outlets and event.features:
             s = self._streams[name]
             row = np.concatenate([np.asarray(event.features[f], dtype=np.float32) for f in s.features])
-            features.push_sample(row, stamp)
-        posteriors = self._outlets.get((name, "posteriors"))
-        if posteriors is not None and event.posteriors is not None:
-            posteriors.push_sample(np.asarray(event.posteriors, dtype=np.float32), stamp)
-        decisions = self._outlets.get((name, "decisions"))
-        if decisions is not None and event.decision is not None:
-            decisions.push_sample([json.dumps(_marker(event))], stamp)
+            self._push((name, "features"), row, stamp)
+        if (name, "posteriors") in self._outlets and event.posteriors is not None:
+            self._push((name, "posteriors"), np.asarray(event.posteriors, dtype=np.float32), stamp)
+        if (name, "decisions") in self._outlets and event.decision is not None:
+            self._push((name, "decisions"), [json.dumps(_marker(event))], stamp)
+
+    def _push(self, key: tuple[str, str], sample: Any, stamp: float) -> None:
+        """Push one sample on an outlet, or keep it for the outlet's first consumer (the hold)."""
+        outlet = self._outlets[key]
+        held = self._held.get(key)
+        if held is not None and not self._release(key):
+            if time.monotonic() < self._hold_end:
+                held.append((sample, stamp))
+                return
+            del self._held[key]                     # none in time: sent as they come, as with 0
+        outlet.push_sample(sample, stamp)
+
+    def _release(self, key: tuple[str, str]) -> bool:
+        """Whether the held outlet ``key`` has its first consumer: then what it kept is sent, in
+        order, and it holds no more."""
+        outlet = self._outlets[key]
+        if not outlet.have_consumers():
+            return False
+        for x, t in self._held.pop(key):
+            outlet.push_sample(x, t)
+        if self.consumers is not None:
+            self.consumers.append("-".join(key))
+        return True
 
     def event(self, ev: DriverEvent) -> None:
         """Driver events are not sent (they are in the node's own sinks)."""
+
+    def drain(self, timeout: float = 5.0) -> None:
+        """Send what an outlet kept to the consumer that connected after its last window (no wait:
+        a run that ends before its consumer connects needs ``wait_for_consumer``)."""
+        for key in list(self._held):
+            self._release(key)
 
     def summary(self, summary: dict[str, Any]) -> None:
         """Nothing to write (the node's summary counts what the sink's queue passed on)."""
 
     def close(self) -> None:
+        self._held.clear()                  # a hold no consumer came for: nobody to send it to
         self._outlets.clear()               # liblsl closes an outlet when it is released
 
 
@@ -365,6 +417,8 @@ SPEC = SinkSpec(
           "prefix": Key(is_name, "the outlets' name prefix: " + NAME_HELP[len("a name: "):], DEFAULT_PREFIX),
           "wait_for_consumer": Key(non_negative(MAX_WAIT_FOR_CONSUMER),
                                    "seconds to wait, before the node starts, for a consumer on each of the sink's "
-                                   f"outlets, 0 to {MAX_WAIT_FOR_CONSUMER:g} (0: start at once)",
+                                   f"outlets, 0 to {MAX_WAIT_FOR_CONSUMER:g} (0: start at once and send every window "
+                                   "as it comes; absent: start at once, each outlet keeping its windows of the first "
+                                   f"{HOLD_FOR_CONSUMER_SECONDS:g} s for its first consumer)",
                                    DEFAULT_WAIT_FOR_CONSUMER)},
     build=_build, needs="plans")
