@@ -94,9 +94,11 @@ def _paced_group(item) -> str | None:
     # A page in a browser waits on the clock as well: in a worker computing in idle time, a browser test
     # waited 60 s for its first window in a CI dry run while the robot's live tests (paced, at normal
     # priority, training models in their node processes) took the cores.
-    # ROS 2's tests (their fixture localhost_only) wait on DDS discovery and on nodes paced in real time, as LSL's.
-    if (item.get_closest_marker("alone") or "loopback_only" in fixtures or "localhost_only" in fixtures
-            or "browser" in fixtures):
+    # ROS 2's tests (their fixture localhost_only) wait on DDS discovery and on nodes paced in real time, as LSL's;
+    # so do the tests marked paced (a document's commands that run the node in real time: tests/test_docs_commands.py),
+    # which in a computing worker would hold it while they wait.
+    if (item.get_closest_marker("alone") or item.get_closest_marker("paced") or "loopback_only" in fixtures
+            or "localhost_only" in fixtures or "browser" in fixtures):
         return PACED_LSL
     return None
 
