@@ -301,6 +301,30 @@ def test_features_from_rest_equal_one_fresh_pipeline_per_window():
         np.testing.assert_allclose(values[1, w], alone, rtol=1e-12, atol=1e-12)
 
 
+def test_features_from_rest_of_more_windows_than_one_bank_may_hold_channels_are_each_windows_own():
+    """A texture whose windows times the bank's channels pass the bank's limit (MAX_CHANNELS: 40 s of the
+    whole whisker array is 400 windows x 20 channels) goes through in parts, and each part's windows are
+    the windows a fresh pipeline gives, the parts' boundary too (it was refused: 'at most 1024 channels')."""
+    import dataclasses
+
+    from supramodal.banks import MAX_CHANNELS
+    from supramodal.experiments.ablations import features_from_rest
+    from supramodal.pipeline import extract_features
+    from supramodal.textures import reference_texture_set
+
+    bank = whisker_bank()
+    per_call = MAX_CHANNELS // bank.channels
+    n = per_call + 3
+    ts = dataclasses.replace(reference_texture_set("whisker"), duration=n * 0.1)
+    ts = dataclasses.replace(ts, textures=ts.textures[:1])
+    values = features_from_rest(ts, bank)
+    assert values.shape == (1, n, 3, bank.channels)
+    x = ts.synthesize(0)
+    for w in (0, per_call - 1, per_call, n - 1):
+        alone = extract_features(x[w * 500 : (w + 1) * 500], bank).values[0]
+        np.testing.assert_allclose(values[0, w], alone, rtol=1e-12, atol=1e-12)
+
+
 def test_unscaled_rates_use_raw_inputs():
     from supramodal.experiments.common import classification_rates
 

@@ -35,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from supramodal.banks import WHISKER_ROWS, Bank
+from supramodal.banks import MAX_CHANNELS, WHISKER_ROWS, Bank
 from supramodal.experiments.common import (
     Plan,
     Run,
@@ -153,23 +153,31 @@ def network_seeds(bank_name: str = "whisker", n_seeds: int = NETWORK_SEEDS, epoc
 def features_from_rest(texture_set, bank: Bank, features=FEATURES) -> np.ndarray:
     """Like :func:`~supramodal.training.texture_features`, but every window is filtered from rest.
 
-    The bank is replicated once per window so that all windows of a texture go through one
-    filterbank call, each window's samples into its own copy of the channels.
+    The bank is replicated once per window so that the windows of a texture go through a few
+    filterbank calls, each window's samples into its own copy of the channels; at most
+    :data:`~supramodal.banks.MAX_CHANNELS` channels per call (a bank's limit), so a 40 s texture is
+    several calls.
 
     Returns
     -------
     ndarray, shape (textures, windows, features, channels)
     """
     wlen = window_length(DEFAULT_WINDOW, bank.fs)
+    per_call = max(1, MAX_CHANNELS // bank.channels)                                # windows per filterbank call
     out = []
     for i in range(len(texture_set.textures)):
         x = texture_set.synthesize(i)
         n = len(x) // wlen
-        rep = Bank(bank.kind, bank.fs, np.tile(bank.cf, n), np.tile(bank.b, n),
-                   tuple(f"{w}:{name}" for w in range(n) for name in bank.names))
-        xs = np.repeat(x[: n * wlen].reshape(n, wlen), bank.channels, axis=0)       # (n * channels, wlen)
-        v = extract_features(xs, rep, features, block=None).values                  # (1, features, n * channels)
-        out.append(v[0].reshape(len(features), n, bank.channels).transpose(1, 0, 2))
+        windows = x[: n * wlen].reshape(n, wlen)
+        parts = []
+        for first in range(0, n, per_call):
+            k = min(per_call, n - first)
+            rep = Bank(bank.kind, bank.fs, np.tile(bank.cf, k), np.tile(bank.b, k),
+                       tuple(f"{w}:{name}" for w in range(k) for name in bank.names))
+            xs = np.repeat(windows[first:first + k], bank.channels, axis=0)          # (k * channels, wlen)
+            v = extract_features(xs, rep, features, block=None).values              # (1, features, k * channels)
+            parts.append(v[0].reshape(len(features), k, bank.channels).transpose(1, 0, 2))
+        out.append(np.concatenate(parts))
     return np.stack(out)
 
 
