@@ -89,6 +89,7 @@ def run(args: argparse.Namespace) -> int:
     # ended the fit on the spot, leaking their semaphores), and one line says what was left
     interrupt_until_running("the fit's search; no fit file was written")
     cache = args.out / "cache"
+    made_cache = not cache.exists()          # a folder the user (or an earlier fit) had stays, empty or not
     try:
         result = fit_search(args.manifest, k=args.cv, seed=args.seed, quick=args.quick, trials=args.trials,
                             timeout=args.timeout, batch=args.batch, max_window=args.max_window,
@@ -101,12 +102,14 @@ def run(args: argparse.Namespace) -> int:
             path.unlink(missing_ok=True)
         raise
     finally:
-        # The folder too, once empty: it is the search's scratch, not one of the fit's files (an empty
-        # fit/cache was left after every fit). Anything else in it is not the fit's to remove.
-        try:
-            cache.rmdir()
-        except OSError:
-            pass
+        # The folder too, once empty, when this fit made it: it is the search's scratch, not one of the
+        # fit's files (an empty fit/cache was left after every fit). Anything else in it is not the fit's
+        # to remove.
+        if made_cache:
+            try:
+                cache.rmdir()
+            except OSError:
+                pass
     print(format_search(result))
     # Written aside and put in place all at once (written in place, an interrupted fit left some files new, the
     # rest an earlier fit's, or one cut short).
