@@ -70,28 +70,20 @@ def test_the_outlets_are_up_while_the_model_trains(tmp_path, monkeypatch):
             s.close()
 
 
-@pytest.mark.slow   # a node process that trains on the spot, then streams in real time
-def test_a_consumer_started_before_the_node_receives_window_0(tmp_path):
-    """Done when (issue 26): a plain pylsl consumer, started before the node, receives window 0
-    and every window after it; the node waits for it (``wait_for_consumer``) and says so."""
+def _node_with_a_consumer_from_before(tmp_path, outlet: str, pull, timeout: float) -> list:
+    """Run the node of ``tmp_path/node.toml`` (a process) with a plain pylsl consumer of ``outlet`` started
+    before it, on a thread: it resolves as the node's own LSL inlet does (1-3 s more, waiting for a
+    duplicate), opens, and ``pull(inlet)`` reads until it has what it wants. Returns what ``pull`` returned,
+    once the node has ended with status 0 and the consumer raised nothing (else the assertion says which)."""
     pylsl = import_pylsl()
-    prefix = f"t{uuid.uuid4().hex[:8]}"
-    (tmp_path / "node.toml").write_text(_replay_scene(tmp_path, prefix, 3.0,
-                                                      'outputs = ["decisions"]\nwait_for_consumer = 120\n\n'
-                                                      '[[sink]]\ntype = "jsonl"\npath = "out.jsonl"'))
     got: list = []
     failed: list = []
 
-    def consume():
+    def consume() -> None:
         try:
-            info = resolve_stream(outlet_name(prefix, "main", "decisions"), timeout=120.0)
-            inlet = pylsl.StreamInlet(info)
+            inlet = pylsl.StreamInlet(resolve_stream(outlet, timeout=120.0))
             inlet.open_stream(timeout=30)
-            end = time.monotonic() + 120
-            while time.monotonic() < end and not (got and got[-1]["window"] >= 29):
-                chunk, _ = inlet.pull_chunk(timeout=0.0)
-                got.extend(json.loads(s[0]) for s in chunk)
-                time.sleep(0.01)
+            got.extend(pull(inlet))
         except Exception as exc:           # the assertion below says what went wrong
             failed.append(exc)
 
@@ -99,11 +91,33 @@ def test_a_consumer_started_before_the_node_receives_window_0(tmp_path):
     consumer.start()                       # before the node
     node = start_node(tmp_path / "node.toml", tmp_path)
     try:
-        out, err = node.communicate(timeout=300)
+        _, err = node.communicate(timeout=timeout)
     finally:
         node.kill()
     consumer.join(timeout=30)
     assert node.returncode == 0 and not failed, (err[-800:], failed)
+    return got
+
+
+@pytest.mark.slow   # a node process that trains on the spot, then streams in real time
+def test_a_consumer_started_before_the_node_receives_window_0(tmp_path):
+    """Done when (issue 26): a plain pylsl consumer, started before the node, receives window 0
+    and every window after it; the node waits for it (``wait_for_consumer``) and says so."""
+    prefix = f"t{uuid.uuid4().hex[:8]}"
+    (tmp_path / "node.toml").write_text(_replay_scene(tmp_path, prefix, 3.0,
+                                                      'outputs = ["decisions"]\nwait_for_consumer = 120\n\n'
+                                                      '[[sink]]\ntype = "jsonl"\npath = "out.jsonl"'))
+
+    def pull(inlet) -> list:
+        got: list = []
+        end = time.monotonic() + 120
+        while time.monotonic() < end and not (got and got[-1]["window"] >= 29):
+            chunk, _ = inlet.pull_chunk(timeout=0.0)
+            got.extend(json.loads(s[0]) for s in chunk)
+            time.sleep(0.01)
+        return got
+
+    got = _node_with_a_consumer_from_before(tmp_path, outlet_name(prefix, "main", "decisions"), pull, 300)
     assert [m["window"] for m in got] == list(range(30))
     summary = json.loads((tmp_path / "out.jsonl").read_text().splitlines()[-1])
     waited = [s for s in summary["sinks"] if "waited_s" in s]
@@ -245,33 +259,18 @@ def test_a_consumer_started_before_a_node_that_starts_at_once_receives_window_0_
     keys. The consumer resolves as the node's own LSL inlet does (on another machine, say), which waits
     1-3 s for a second stream of the name: it connects seconds after the node started (it got the
     last 28-35 of the 60 windows before)."""
-    pylsl = import_pylsl()
     prefix = f"t{uuid.uuid4().hex[:8]}"
     (tmp_path / "node.toml").write_text(_replay_scene(tmp_path, prefix, 6.0, '\n[[sink]]\ntype = "jsonl"\n'
                                                       'path = "out.jsonl"', model="# none: features only"))
-    got: list = []
-    failed: list = []
 
-    def consume():
-        try:                               # as the node's own inlet resolves: 1-3 s more for a duplicate
-            inlet = pylsl.StreamInlet(resolve_stream(outlet_name(prefix, "main", "features"), timeout=120.0))
-            inlet.open_stream(timeout=30)
-            end = time.monotonic() + 60
-            while time.monotonic() < end and len(got) < 60:
-                _, stamps = inlet.pull_chunk(timeout=0.2)
-                got.extend(stamps)
-        except Exception as exc:           # the assertion below says what went wrong
-            failed.append(exc)
+    def pull(inlet) -> list:
+        stamps: list = []
+        end = time.monotonic() + 60
+        while time.monotonic() < end and len(stamps) < 60:
+            stamps.extend(inlet.pull_chunk(timeout=0.2)[1])
+        return stamps
 
-    consumer = threading.Thread(target=consume, daemon=True)
-    consumer.start()                       # before the node
-    node = start_node(tmp_path / "node.toml", tmp_path)
-    try:
-        out, err = node.communicate(timeout=120)
-    finally:
-        node.kill()
-    consumer.join(timeout=30)
-    assert node.returncode == 0 and not failed, (err[-800:], failed)
+    got = _node_with_a_consumer_from_before(tmp_path, outlet_name(prefix, "main", "features"), pull, 120)
     summary = json.loads((tmp_path / "out.jsonl").read_text().splitlines()[-1])
     assert len(got) == 60, (len(got), summary["sinks"])           # windows 0 to 59: 6 s of 0.1 s windows
     assert np.allclose(np.diff(got), 0.1, atol=1e-3)

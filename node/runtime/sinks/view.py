@@ -683,8 +683,8 @@ def attach(graph: Any, on_mark: Callable[[str | None], Any] | None = None) -> li
 
 def channel_labels(bank: Any) -> dict[str, list[Any]]:
     """A bank's channels as the page labels a stream's feature bars: ``{"names", "centre_hz"}``, in
-    channel order (the order of every feature's values in a window)."""
-    return {"names": [str(n) for n in bank.names], "centre_hz": [float(f) for f in bank.cf]}
+    channel order (the order of every feature's values in a window); :class:`ViewSink` makes them JSON."""
+    return {"names": list(bank.names), "centre_hz": list(bank.cf)}
 
 
 def _build(options: Mapping[str, Any], context: SinkContext) -> Sink:

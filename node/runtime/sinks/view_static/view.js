@@ -7,7 +7,7 @@
   const COLORS = ["#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f",
                   "#bcbd22", "#17becf", "#393b79", "#637939", "#8c6d31", "#843c39", "#7b4173", "#3182bd"];
   // How grave a driver event is comes with it (its "severity": alarm, warning or info), decided in one place,
-  // the view sink (view.py's SEVERITY); the page only colours by it. An event without one: a warning.
+  // node/runtime/events.py's SEVERITY; the page only colours by it. An event without one: a warning.
   const SEVERITIES = new Set(["alarm", "warning", "info"]);
   const FEATURE_LEFT = 40;     // px of the features canvas left of the bars (the feature's name)
   const token = new URLSearchParams(location.hash.slice(1)).get("token") || "";
