@@ -72,6 +72,7 @@ from supramodal.drivers.base import Block, DeviceUnavailable, DriverBase, Driver
 from supramodal.drivers.spec import BuildContext, Built, DriverSpec, OptionError, given
 from supramodal.drivers.timestamps import ENVELOPE_SECONDS, ClockSteps, StampedBlocks, Step, TimestampSteps  # noqa: F401  (moved; named here too)
 from supramodal.errors import InputError
+from supramodal.interrupts import held_interrupts
 
 if TYPE_CHECKING:
     # pylsl ships no type information (pyproject's [tool.mypy] takes it as Any): these name what an object is.
@@ -122,7 +123,8 @@ class LSLUnavailable(DeviceUnavailable):
 def import_pylsl() -> ModuleType:
     """The pylsl module, or :class:`LSLUnavailable` saying what to install."""
     try:
-        import pylsl
+        with held_interrupts():         # a Ctrl-C inside a C extension's import reads as ImportError
+            import pylsl
     except ImportError:
         raise LSLUnavailable(f"LSL needs pylsl, which is not installed: {INSTALL_HINT}") from None
     except (OSError, RuntimeError) as exc:

@@ -54,6 +54,7 @@ from supramodal.checks import Key, integer, one_of, positive
 from supramodal.drivers.base import Block, DeviceUnavailable, DriverBase, DriverClosed, DriverError, EventLog
 from supramodal.drivers.spec import BuildContext, Built, DriverSpec, given
 from supramodal.errors import InputError
+from supramodal.interrupts import held_interrupts
 
 __all__ = ["MicrophoneDriver", "CaptureBuffer", "import_sounddevice"]
 
@@ -96,7 +97,8 @@ def import_sounddevice() -> Any:
         sounddevice package is not installed; the message says how to fix it.
     """
     try:
-        import sounddevice
+        with held_interrupts():         # a Ctrl-C inside a C extension's import reads as ImportError
+            import sounddevice
     except OSError as exc:  # sounddevice found no PortAudio shared library
         raise DeviceUnavailable(
             f"cannot use the microphone: {exc}. sounddevice needs the system's "

@@ -62,6 +62,7 @@ from supramodal.drivers.base import Block, DeviceUnavailable, DriverBase, Driver
 from supramodal.drivers.spec import BuildContext, Built, DriverSpec, OptionError, given
 from supramodal.drivers.timestamps import ClockSteps, StampedBlocks, Step
 from supramodal.errors import InputError
+from supramodal.interrupts import held_interrupts
 
 __all__ = ["INSTALL_HINT", "Ros2Unavailable", "RosNode", "check_namespace", "check_node_name", "check_shared_memory",
            "check_token", "import_rclpy", "ros_arguments", "split_ros_arguments", "stale_port_segments",
@@ -85,10 +86,11 @@ def import_rclpy() -> ModuleType:
     """The rclpy module, with the stock message packages the node uses, or :class:`Ros2Unavailable`
     saying what to install."""
     try:
-        import diagnostic_msgs.msg  # noqa: F401  (the messages are checked here, once, with their fix)
-        import rclpy
-        import sensor_msgs.msg  # noqa: F401
-        import std_msgs.msg  # noqa: F401
+        with held_interrupts():         # a Ctrl-C inside a C extension's import reads as ImportError
+            import diagnostic_msgs.msg  # noqa: F401  (the messages are checked here, once, with their fix)
+            import rclpy
+            import sensor_msgs.msg  # noqa: F401
+            import std_msgs.msg  # noqa: F401
     except ImportError as exc:
         raise Ros2Unavailable(f"ROS 2 needs {exc.name or 'rclpy'}, which is not installed: {INSTALL_HINT}") from None
     except (OSError, RuntimeError) as exc:

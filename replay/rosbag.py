@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 
 from supramodal.drivers.ros2 import MESSAGES, samples_of
+from supramodal.interrupts import held_interrupts
 from supramodal.replay.errors import ReplayError
 
 __all__ = ["INSTALL_HINT", "LABEL_TYPE", "bag_streams", "import_rosbags"]
@@ -41,7 +42,8 @@ LABEL_TYPE = "std_msgs/msg/String"
 def import_rosbags() -> ModuleType:
     """The ``rosbags.highlevel`` module, or a :class:`ReplayError` saying what to install."""
     try:
-        import rosbags.highlevel as highlevel
+        with held_interrupts():
+            import rosbags.highlevel as highlevel
     except ImportError:
         raise ReplayError(f"reading a rosbag2 needs rosbags, which is not installed: {INSTALL_HINT}") from None
     return highlevel

@@ -54,6 +54,7 @@ from supramodal.drivers.base import DeviceUnavailable
 from supramodal.drivers.lsl import DEFAULT_GAP_TOLERANCE, DEFAULT_MAX_GAP
 from supramodal.drivers.spec import BuildContext, Built, DriverSpec, OptionError
 from supramodal.drivers.timestamps import TimestampSteps
+from supramodal.interrupts import held_interrupts
 from supramodal.replay.errors import ReplayError, XdfDamageWarning
 from supramodal.replay.session import Label, Session
 
@@ -85,7 +86,8 @@ XdfStream = dict[str, Any]
 def import_pyxdf() -> ModuleType:
     """The pyxdf module, or :class:`DeviceUnavailable` saying what to install."""
     try:
-        import pyxdf
+        with held_interrupts():
+            import pyxdf
     except ImportError:
         raise DeviceUnavailable('reading XDF files needs pyxdf: pip install "supramodal[lsl]"') from None
     module: ModuleType = pyxdf      # a module, untyped (Any) to mypy

@@ -33,7 +33,6 @@ import os
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 from supramodal.checks import NAME_HELP, is_name
 from supramodal.csvdata import bounded_lines
@@ -208,25 +207,15 @@ def replace_all(staged: list[tuple[Path, Path]]) -> None:
     held until all are done, then given to the handler it was for (a signal in between left one session
     labelled and the other not). Signals are held only on the main thread (the only one Python's handlers
     run on); elsewhere the replaces are microseconds apart."""
-    import signal
+    from supramodal.interrupts import held_interrupts
 
-    caught: list[int] = []
-    previous: dict[signal.Signals, Any] = {}
     try:
-        for held in (signal.SIGINT, signal.SIGTERM):
-            previous[held] = signal.signal(held, lambda signum, frame: caught.append(signum))
-    except ValueError:                                    # not the main thread
-        pass
-    try:
-        for tmp, path in staged:
-            os.replace(tmp, path)
+        with held_interrupts():
+            for tmp, path in staged:
+                os.replace(tmp, path)
     finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
         for tmp, _ in staged:
             tmp.unlink(missing_ok=True)
-    if caught:
-        signal.raise_signal(caught[0])                    # now, to the handler it was meant for
 
 
 def label_recording(scene_path, spans_path, replace: bool = False) -> dict[str, list[tuple[float, float, str]]]:

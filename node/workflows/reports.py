@@ -114,14 +114,15 @@ def _save_png(plt, fig, path: Path, description: str | None = None) -> Path:
 
 
 def pyplot_or_none():
-    """matplotlib.pyplot on a file backend, or None where matplotlib is not installed."""
-    try:
-        import matplotlib
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
+    """matplotlib.pyplot on a file backend, or None where matplotlib is not installed (imported with Ctrl-C
+    held: :func:`supramodal.interrupts.import_optional`)."""
+    from supramodal.interrupts import import_optional
+
+    matplotlib = import_optional("matplotlib")
+    if matplotlib is None:
         return None
-    return plt
+    matplotlib.use("Agg")
+    return import_optional("matplotlib.pyplot")
 
 
 def plots_missing_notice() -> str | None:

@@ -10,17 +10,15 @@ import numpy as np
 
 from supramodal.experiments.fig3 import PAPER_FIG3
 from supramodal.features import FEATURES
+from supramodal.interrupts import import_optional
 
 SHADES = {"Af": "0.2", "A": "0.5", "f": "0.75"}
 MARKERS = {"Af": "o", "A": "s", "f": "^"}
 
 
 def have_matplotlib() -> bool:
-    try:
-        import matplotlib  # noqa: F401
-    except ImportError:
-        return False
-    return True
+    """Whether matplotlib can be imported (imported with Ctrl-C held: see :mod:`supramodal.interrupts`)."""
+    return import_optional("matplotlib") is not None
 
 
 def fig3_table(result: dict) -> str:
