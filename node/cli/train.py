@@ -227,8 +227,11 @@ def _train_fusion(args) -> int:
     a, b = info["streams"]
     fused = "late" if args.fusion == "late" else "early"
     print(f"sense posteriors: {info['posteriors']['source']} ({info['posteriors']['why']})")
-    print(f"held-out windows ({info['pairs']} pairs of {info['contacts']} contacts, {info['folds']} folds by "
-          f"{info['folds_by']}; each scored by networks that never trained on its fold):")
+    # A contact is what the folds keep whole; said here, since a recording of one texture can hold several (a
+    # window missing from its pairs, unlabelled or decided alone, ends one).
+    print(f"held-out windows ({info['pairs']} pairs in {info['contacts']} contacts, a contact a run of consecutive "
+          f"windows of one texture; {info['folds']} folds by {info['folds_by']}; each scored by networks that never "
+          f"trained on its fold):")
     print(f"  {'':<12}{'accuracy':>10}{'log loss':>10}{'ECE':>8}  saying >= 0.99, wrong")
     for name in (a, b, fused):
         h = info["held_out"][name]
