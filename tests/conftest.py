@@ -469,7 +469,7 @@ def pytest_sessionstart(session):
     """The run's shared folder: under xdist, the controller's base temp (every worker's base temp is a
     folder in it, so the workers of one run share it and no other run sees it); without xdist, this
     process's own. The node's models trained on start are kept there too (:class:`_SharedModels`), and
-    so is the cache of models trained on start (node/workflows/model_cache.py: ``SUPRAMODAL_CACHE``,
+    so is the cache of models trained on start (node/scene/model_cache.py: ``SUPRAMODAL_CACHE``,
     set here before any test starts a process, which inherits it), never the user's own: a node run as
     a process by a test reads the model another process of the run trained."""
     global _SHARED_DIR

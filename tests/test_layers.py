@@ -27,8 +27,9 @@ LAYER_DIRS = {"supramodal.node": "node", "supramodal.drivers": "drivers", "supra
 NOT_IN_THE_MODEL = ("node", "drivers", "replay", "benchmarks", "serial", "sounddevice", "_sounddevice")
 #: What drivers and replay may use of the model package: the error root, the bounded JSON reader
 #: (file handling, no DSP; the model's own files need it too, so it cannot live in replay) and the
-#: validation vocabulary (a driver's spec states its keys in it; pure Python, no DSP).
-DRIVER_MAY_USE = ("supramodal.errors", "supramodal.jsondata", "supramodal.checks")
+#: validation vocabulary (a driver's spec states its keys in it; pure Python, no DSP), and Ctrl-C held over
+#: an optional import (a driver's device library: pylsl, sounddevice, rclpy; the standard library only).
+DRIVER_MAY_USE = ("supramodal.errors", "supramodal.jsondata", "supramodal.checks", "supramodal.interrupts")
 
 
 def layer(name: str) -> str:
@@ -194,7 +195,7 @@ def test_the_wheel_installs_one_top_level_package_and_every_package_of_the_check
 
 
 #: The model's modules that every layer may use (docs/architecture.md: ``supramodal_shared``).
-SHARED = ("supramodal.errors", "supramodal.jsondata", "supramodal.checks")
+SHARED = DRIVER_MAY_USE
 #: Layers from the top down: an arrow may only point down.
 RANKS = ("cli", "benchmarks", "node", "replay", "drivers", "supramodal", "supramodal_shared")
 #: The command line: a thin layer over all the others (it runs the benchmarks and experiments too).
@@ -240,14 +241,6 @@ def test_the_architecture_picture_is_the_imports():
 #: no scene; the scene (schema, registries, builder) no workflow; the workflows no command. (node/__init__.py
 #: is in no room; the benchmarks are a layer of their own above the node: RANKS.)
 ROOMS = ("runtime", "scene", "workflows", "cli")
-#: The back-arrows between the rooms that exist today, allowed until they are gone: ``(file, imported
-#: module)``. The list only shrinks (issue 37): an arrow up that is not here fails, and so does an entry
-#: no import needs any longer (delete it). None may start in node/runtime/.
-KNOWN_BACK_ARROWS = {
-    # the builder keeps a model trained on the spot in the model cache (_model_for); the words of a model's
-    # calibration, which it also took from the workflows, are the model's own now (supramodal.calibration)
-    ("node/scene/build.py", "supramodal.node.workflows.model_cache"),
-}
 
 
 def room(module: str) -> str | None:
@@ -266,11 +259,6 @@ def imports_up(path: Path, package: str, from_room: str) -> list[tuple[int, str]
             if (r := room(what)) is not None and ROOMS.index(r) > rank]
 
 
-def is_known(file: str, what: str) -> bool:
-    """Whether an import of ``what`` in ``file`` is one of :data:`KNOWN_BACK_ARROWS`."""
-    return any(file == f and (what == m or what.startswith(m + ".")) for f, m in KNOWN_BACK_ARROWS)
-
-
 def back_arrows() -> list[tuple[str, int, str]]:
     """``(file, line, imported module)`` of every import in node/ that points up a room."""
     found = []
@@ -282,20 +270,87 @@ def back_arrows() -> list[tuple[str, int, str]]:
 
 
 def test_the_rooms_of_the_node_import_only_downwards():
-    """runtime < scene < workflows < cli inside node/: the runtime imports nothing of the scene, the
-    workflows or the command line, not even lazily or for its annotations; in the other rooms only the
-    arrows of :data:`KNOWN_BACK_ARROWS` point up, and each of them still exists."""
+    """runtime < scene < workflows < cli inside node/: no room imports from a room above it, not even lazily
+    or for its annotations (the last arrow up, the builder reading models from the workflows' cache, went
+    when the cache moved beside the builder)."""
     unroomed = [m for m in modules_of("node") if m != "supramodal.node" and room(m) is None]
     assert not unroomed, f"modules of node/ in no room (give them one in ROOMS): {unroomed}"
-    assert not any(f.startswith("node/runtime/") for f, _ in KNOWN_BACK_ARROWS)
-    found = back_arrows()
-    runtime = [f"{f}:{line} imports {what}" for f, line, what in found if f.startswith("node/runtime/")]
-    assert not runtime, "the runtime imports the scene, the workflows or the command line: " + "; ".join(runtime)
-    new = [f"{f}:{line} imports {what}" for f, line, what in found if not is_known(f, what)]
-    assert not new, "an import up the node's rooms (runtime < scene < workflows < cli): " + "; ".join(new)
-    gone = sorted(k for k in KNOWN_BACK_ARROWS
-                  if not any(f == k[0] and (what == k[1] or what.startswith(k[1] + ".")) for f, _, what in found))
-    assert not gone, f"no longer imported: delete from KNOWN_BACK_ARROWS {gone}"
+    up = [f"{f}:{line} imports {what}" for f, line, what in back_arrows()]
+    assert not up, "an import up the node's rooms (runtime < scene < workflows < cli): " + "; ".join(up)
+
+
+def import_graph(modules: list[str]) -> dict[str, set[str]]:
+    """Each of ``modules`` -> the modules among them it imports (any import statement at any depth: lazy,
+    under TYPE_CHECKING, relative; ``from a import b`` counts as importing ``a.b`` where that is a module)."""
+    known = set(modules)
+    graph = {}
+    for m in modules:
+        targets = set()
+        for _, what in imports_in(path_of(m), package_of(m)):
+            while what and what not in known:
+                what = what.rpartition(".")[0]
+            if what and what != m:
+                targets.add(what)
+        graph[m] = targets
+    return graph
+
+
+def cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected components of more than one module (Tarjan's algorithm, iterative): each a set
+    of modules that import one another round a cycle."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    found = []
+    for root in graph:
+        if root in index:
+            continue
+        work = [(root, iter(sorted(graph[root])))]
+        index[root] = low[root] = len(index)
+        stack.append(root)
+        on_stack.add(root)
+        while work:
+            v, children = work[-1]
+            w = next(children, None)
+            if w is not None:
+                if w not in index:
+                    index[w] = low[w] = len(index)
+                    stack.append(w)
+                    on_stack.add(w)
+                    work.append((w, iter(sorted(graph.get(w, ())))))
+                elif w in on_stack:
+                    low[v] = min(low[v], index[w])
+                continue
+            work.pop()
+            if work:
+                low[work[-1][0]] = min(low[work[-1][0]], low[v])
+            if low[v] == index[v]:
+                component = []
+                while True:
+                    w = stack.pop()
+                    on_stack.discard(w)
+                    component.append(w)
+                    if w == v:
+                        break
+                if len(component) > 1:
+                    found.append(sorted(component))
+    return found
+
+
+def test_no_modules_import_one_another_round_a_cycle():
+    """No import cycle among the modules of every layer, counting lazy and TYPE_CHECKING imports: a cycle
+    is two modules that each need the other (the builder and the model cache, the sources and the recorder
+    that set itself on them, the experiments and their report were three), which no layer order shows."""
+    modules = [m for layer_name in ("supramodal", "drivers", "replay", "node", "benchmarks")
+               for m in modules_of(layer_name)]
+    assert not cycles(import_graph(modules)), cycles(import_graph(modules))
+
+
+def test_the_cycle_check_finds_a_cycle():
+    assert cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+    assert cycles({"a": {"b"}, "b": set(), "c": {"c"}}) == []
+    assert sorted(cycles({"a": {"b"}, "b": {"a"}, "c": {"d"}, "d": {"c", "a"}})) == [["a", "b"], ["c", "d"]]
 
 
 def test_the_room_check_sees_lazy_type_checking_and_relative_imports_up(tmp_path):
@@ -313,11 +368,6 @@ def test_the_room_check_sees_lazy_type_checking_and_relative_imports_up(tmp_path
     assert imports_up(fake, package, "cli") == []
     assert (13, "supramodal.node.runtime.clock") in imports_in(fake, package)
     assert room("supramodal.node.runtime.sinks.spec") == "runtime" and room("supramodal.node") is None
-    # a known arrow is known in its own file only, and by module (a name in it too)
-    assert is_known("node/scene/build.py", "supramodal.node.workflows.model_cache.trained_on_start")
-    assert not is_known("node/scene/schema.py", "supramodal.node.workflows.model_cache")
-    assert not is_known("node/scene/build.py", "supramodal.node.workflows.model_caches")
-    assert not is_known("node/scene/build.py", "supramodal.node.workflows.training")
 
 
 def test_a_node_that_runs_a_model_loads_neither_scipy_signal_nor_scipy_optimize():

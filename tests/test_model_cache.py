@@ -1,4 +1,4 @@
-"""The cache of models trained on start (node/workflows/model_cache.py, docs/node.md): a hit is the model
+"""The cache of models trained on start (node/scene/model_cache.py, docs/node.md): a hit is the model
 a fresh training gives, with the same windows; any part of the key changed misses; a corrupt, foreign or
 pickled file is refused with a message and the model trained again; writers and readers side by side
 never see half a file; the cache can be turned off and is bounded."""
@@ -19,8 +19,8 @@ import pytest
 from supramodal.banks import whisker_bank
 from supramodal.model import TextureModel
 from supramodal.node.scene import build
-from supramodal.node.workflows import model_cache
-from supramodal.node.workflows.model_cache import CACHE_ENV, cache_folder, cache_key, trained_on_start
+from supramodal.node.scene import model_cache
+from supramodal.node.scene.model_cache import CACHE_ENV, cache_folder, cache_key, trained_on_start
 from supramodal.pipeline import FeaturePipeline
 from supramodal.textures import reference_texture_set
 

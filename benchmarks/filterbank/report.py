@@ -7,7 +7,7 @@ import json
 import math
 from pathlib import Path
 
-from supramodal.experiments.report import have_matplotlib
+from supramodal.experiments.plotting import have_matplotlib
 from supramodal.training import TRAIN_FRACTION
 
 LABELS = {("fast", "float64"): "fast float64", ("fast", "float32"): "fast float32",

@@ -50,9 +50,10 @@ from supramodal.drivers.base import Driver, DriverEvent
 from supramodal.errors import InputError, SupramodalError
 from supramodal.model import TextureModel
 from supramodal.node.runtime.events import FUSED_STREAM, MAIN_STREAM, EventLimiter, WindowEvent
+from supramodal.node.runtime.labels import Labels
 from supramodal.node.runtime.sinks import Sink
 from supramodal.node.runtime.sources import EventItem, Feed, Source
-from supramodal.node.runtime.streams import Labels, Stream, channel_mapper
+from supramodal.node.runtime.streams import Stream, channel_mapper
 from supramodal.node.runtime.taps import Tap
 from supramodal.node.runtime.taps.recorder import SessionRecorder
 from supramodal.pipeline import FeaturePipeline

@@ -38,18 +38,27 @@ import math
 import queue
 import threading
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 import numpy as np
 
 from supramodal.drivers.base import Block, Driver, DriverClosed, DriverEvent, missing_members
 from supramodal.errors import InputError
 from supramodal.node.runtime.clock import ClockModel
+from supramodal.node.runtime.labels import Labels
 from supramodal.node.runtime.ringbuffer import Reader, RingBuffer
 
-if TYPE_CHECKING:   # the recorder and the streams import the sources: their names for annotations only
-    from supramodal.node.runtime.streams import Labels
-    from supramodal.node.runtime.taps.recorder import SessionRecorder
+
+class ArrivalRecorder(Protocol):
+    """What a source tells its recorder (:class:`~supramodal.node.runtime.taps.recorder.SessionRecorder`)
+    that no feed carries. Called on the source's thread. (A protocol, not the recorder's class: the
+    recorder imports the sources, and the sources need only these two calls of it.)"""
+
+    def note(self, index: int, kind: str) -> None:
+        """A driver mark (``kind``) at the source's frame ``index``."""
+
+    def arrival(self, end: int, seconds: float) -> None:
+        """A block ending at the source's frame ``end`` was complete at ``seconds`` of common time."""
 
 #: What a source puts on the graph's event queue: (source name, driver events, dropped counts by kind).
 EventItem = tuple[str, list[DriverEvent], dict[str, int]]
@@ -137,8 +146,8 @@ class Source:
         #: The recorder of this source (:class:`~supramodal.node.runtime.taps.recorder.SessionRecorder`, a tap
         #: that set itself here in its ``start``), or None: the source thread tells it each
         #: block's driver marks (``note``) and time on common time (``arrival``), which no feed carries.
-        self.recorder: SessionRecorder | None = None
-        #: Truth labels of the source's samples (:class:`~supramodal.node.runtime.streams.Labels`), set by
+        self.recorder: ArrivalRecorder | None = None
+        #: Truth labels of the source's samples (:class:`~supramodal.node.runtime.labels.Labels`), set by
         #: the graph from the first stream that reads the source; None: none known (a relay).
         self.labels: Labels | None = None
         time_rate = self.rate if time_rate is None else float(time_rate)

@@ -14,16 +14,16 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from supramodal.decisions import DEFAULT_DECISION, ContactDetector, Decider, DecisionRules
-from supramodal.drivers.base import Driver, DriverEvent
+from supramodal.drivers.base import DriverEvent
 from supramodal.errors import InputError
 from supramodal.model import TextureModel
 from supramodal.node.runtime.events import TruthTally, WindowEvent, change_event
+from supramodal.node.runtime.labels import Labels
 from supramodal.node.runtime.latency import LatencyHistogram
 from supramodal.node.runtime.ringbuffer import RingClosed
 from supramodal.pipeline import FeaturePipeline
@@ -75,31 +75,6 @@ def channel_mapper(mapping: str | int, driver_channels: int, bank_channels: int,
                              f"the driver has channels 0..{driver_channels - 1}")
         return lambda frames: frames[:, mapping]
     raise InputError(f"unknown channel mapping {mapping!r}")
-
-
-@dataclass
-class Labels:
-    """Truth labels as time ranges ``(start_s, end_s, name)``, for accuracy where they are known;
-    with a ``period`` (seconds) they repeat, as a looped source's do."""
-
-    ranges: list[tuple[float, float, str]] = field(default_factory=list)
-    period: float | None = None
-
-    @classmethod
-    def of(cls, driver: Driver) -> Labels:
-        """The labels a driver carries (a replayed session's, repeating with its loop), or none (a
-        :class:`~supramodal.drivers.base.DriverBase`'s ``labels`` are empty)."""
-        ranges = [(lab.start, lab.end, lab.label) for lab in driver.labels]
-        looped = ranges and driver.passes != 1
-        return cls(ranges, driver.period if looped else None)
-
-    def at(self, t: float) -> str | None:
-        if self.period is not None:
-            t = t % self.period
-        for start, end, name in self.ranges:
-            if start <= t < end:
-                return name
-        return None
 
 
 def refuse_uncalibrated(rules: DecisionRules, models: Sequence[TextureModel | EarlyFusionModel], where: str) -> None:

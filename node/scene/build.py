@@ -27,11 +27,13 @@ from supramodal.model import ModelError, TextureModel
 from supramodal.node.runtime.contacts import ContactTimeline
 from supramodal.node.runtime.events import MAIN_STREAM
 from supramodal.node.runtime.graph import Graph
+from supramodal.node.runtime.labels import Labels
 from supramodal.node.runtime.sinks.spec import SinkContext, SinkSpec, SourcePlan, StreamPlan
 from supramodal.node.runtime.sources import Source
-from supramodal.node.runtime.streams import Labels, Stream, refuse_uncalibrated
+from supramodal.node.runtime.streams import Stream, refuse_uncalibrated
 from supramodal.node.runtime.ticker import Ticker
 from supramodal.node.scene.band import warn_if_beyond_band
+from supramodal.node.scene.model_cache import trained_on_start
 from supramodal.node.scene.registry import driver_spec, sink_spec
 from supramodal.node.scene.schema import LEARN
 from supramodal.node.scene.specs import Scene, SceneError, SinkSettings, SourceSpec, StreamSpec
@@ -240,8 +242,6 @@ def _model_for(scene: Scene, stream: StreamSpec, bank: Bank, pipeline: FeaturePi
                 raise SceneError(f"{stream.where}: [model] train_on_start: the {bank.kind} reference textures are "
                                  f"at {ts.fs:g} Hz, the bank at {bank.fs:g} Hz; give a [model] path instead")
         # Read from the cache of models trained on start where it holds this one (docs/node.md).
-        from supramodal.node.workflows.model_cache import trained_on_start
-
         model = trained_on_start(ts, pipeline, lambda h, t: train_on_texture_set(ts, pipeline, progress, h, t),
                                  progress, held_out, trained)
         if m.path is not None:

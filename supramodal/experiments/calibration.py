@@ -503,7 +503,7 @@ def write_calibration(result: dict, out, notice=None) -> list:
     ``notice`` (a callable taking one line) says that no PNG was written. Returns the paths written."""
     from pathlib import Path
 
-    from supramodal.experiments.report import have_matplotlib, write_csv
+    from supramodal.experiments.plotting import have_matplotlib, write_csv
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -566,7 +566,7 @@ PLOT_MIN_BIN = 5
 
 
 def _plot_reliability(result: dict, path):
-    from supramodal.experiments.report import pyplot, save_figure
+    from supramodal.experiments.plotting import pyplot, save_figure
 
     plt = pyplot()
     fig, axes = plt.subplots(2, 2, figsize=(10, 8.4))
@@ -607,7 +607,7 @@ def _reliability_line(ax, report: dict, colour, marker, line, label) -> None:
 
 
 def _plot_anytime(result: dict, path):
-    from supramodal.experiments.report import pyplot, save_figure
+    from supramodal.experiments.plotting import pyplot, save_figure
 
     plt = pyplot()
     fig, axes = plt.subplots(1, 3, figsize=(12, 3.8))

@@ -327,7 +327,7 @@ def write_newtouch(result: dict, out) -> list:
     import csv
     from pathlib import Path
 
-    from supramodal.experiments.report import have_matplotlib, pyplot
+    from supramodal.experiments.plotting import have_matplotlib, pyplot
 
     out = Path(out)
     rows = _rows(result)

@@ -1,5 +1,6 @@
-"""Tables, CSV files and plots of experiment results. matplotlib is optional (extra ``plots``):
-CSV files are always written, PNG files when matplotlib can be imported."""
+"""Tables, CSV files and plots of the paper's figures, and the one place that writes any experiment's result
+(:func:`write_figure`). matplotlib is optional (extra ``plots``): CSV files are always written, PNG files when
+matplotlib can be imported (:mod:`supramodal.experiments.plotting`, which the experiments use themselves)."""
 
 from __future__ import annotations
 
@@ -9,16 +10,11 @@ from pathlib import Path
 import numpy as np
 
 from supramodal.experiments.fig3 import PAPER_FIG3
+from supramodal.experiments.plotting import have_matplotlib, pyplot, save_figure, write_csv
 from supramodal.features import FEATURES
-from supramodal.interrupts import import_optional
 
 SHADES = {"Af": "0.2", "A": "0.5", "f": "0.75"}
 MARKERS = {"Af": "o", "A": "s", "f": "^"}
-
-
-def have_matplotlib() -> bool:
-    """Whether matplotlib can be imported (imported with Ctrl-C held: see :mod:`supramodal.interrupts`)."""
-    return import_optional("matplotlib") is not None
 
 
 def fig3_table(result: dict) -> str:
@@ -62,32 +58,6 @@ def write_fig3(result: dict, out: Path, suffix: str = "") -> list[Path]:
     return written
 
 
-def pyplot():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
-def save_figure(fig, path: Path) -> Path:
-    """Save at 110 dpi as a palette PNG (64 colours: the plots are line art; a tenth of the size)."""
-    import io
-
-    import matplotlib.pyplot as plt
-    from PIL import Image
-
-    fig.tight_layout()
-    buf = io.BytesIO()
-    fig.savefig(buf, dpi=110, format="png")
-    plt.close(fig)
-    buf.seek(0)
-    with Image.open(buf) as im:
-        im.convert("RGB").quantize(colors=64).save(path, format="PNG", optimize=True)
-    return path
-
-
 def _plot_fig3(result: dict, path: Path) -> Path:
     import numpy as np
 
@@ -121,15 +91,6 @@ def _plot_fig3(result: dict, path: Path) -> Path:
 
 
 # -- every figure ----------------------------------------------------------------------------------
-
-def write_csv(path: Path, header, rows) -> Path:
-    with open(path, "w", newline="") as fh:
-        w = csv.writer(fh)
-        w.writerow(header)
-        for row in rows:
-            w.writerow(["" if v is None else (f"{v:.6g}" if isinstance(v, float) else v) for v in row])
-    return path
-
 
 def _fmt(v, spec=".1f") -> str:
     return "-" if v is None else format(v, spec)

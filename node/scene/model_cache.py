@@ -90,10 +90,10 @@ def _code_digest() -> str:
     (filterbank, peaks, features, pipeline, network, calibration, textures, training) and the node's
     build (which splits the windows and calls the training)."""
     import supramodal
-    from supramodal.node.scene import build
 
     h = hashlib.sha256()
-    files = sorted(Path(supramodal.__file__).parent.glob("*.py")) + [Path(build.__file__)]
+    # the builder by its path beside this module, not imported: it imports this module to read the cache
+    files = sorted(Path(supramodal.__file__).parent.glob("*.py")) + [Path(__file__).with_name("build.py")]
     for path in files:
         h.update(path.name.encode() + b"\0")
         try:
