@@ -392,62 +392,22 @@ _shared_models = _SharedModels()
 
 def _once_per_arguments(func, label, quiet):
     """``func`` computed once per run for each set of arguments (:func:`run_once`, named by a digest
-    of the arguments' content, :func:`_digest`), for a deterministic ``func`` whose result pickles.
+    of the arguments' content, :func:`supramodal.digest.feed`), for a deterministic ``func`` whose result pickles.
     Called with a progress callback (``quiet(kwargs)`` false) or with arguments it cannot digest,
     it runs as it is."""
     @functools.wraps(func)
     def once_per_arguments(*args, **kwargs):
         if _SHARED_DIR is None or not quiet(kwargs):
             return func(*args, **kwargs)
+        from supramodal.digest import feed
+
         digest = hashlib.sha256()
         try:
-            _digest(digest, (args, kwargs))
+            feed(digest, (args, kwargs), objects=True)
         except TypeError:                    # something it cannot say all of: computed here
             return func(*args, **kwargs)
         return run_once(f"{label} {digest.hexdigest()}", lambda: func(*args, **kwargs))
     return once_per_arguments
-
-
-def _digest(h, x, depth=0):
-    """Feed ``x``'s content to the hash ``h``: numbers, strings, arrays (dtype, shape, bytes), lists,
-    tuples, dicts and the attributes of plain objects (by class), so that a model and its unpickled
-    copy digest alike (their pickles differ in how arrays are shared). TypeError for anything else
-    (functions, locks, files) or nesting deeper than 40."""
-    import numpy as np
-
-    if depth > 40:
-        raise TypeError("too deep")
-    if x is None or isinstance(x, (bool, int, float, complex, str, bytes, np.generic)):
-        h.update(f"{type(x).__name__}:{x!r};".encode())
-    elif isinstance(x, np.ndarray):
-        if x.dtype.hasobject:
-            raise TypeError("object array")
-        h.update(f"ndarray:{x.dtype.str}:{x.shape};".encode())
-        h.update(np.ascontiguousarray(x).tobytes())
-    elif isinstance(x, (list, tuple, frozenset, set)):
-        items = sorted(x, key=repr) if isinstance(x, (set, frozenset)) else x
-        h.update(f"{type(x).__name__}:{len(items)}(".encode())
-        for item in items:
-            _digest(h, item, depth + 1)
-        h.update(b")")
-    elif isinstance(x, dict):
-        h.update(f"dict:{len(x)}(".encode())
-        for key in sorted(x, key=repr):
-            _digest(h, key, depth + 1)
-            _digest(h, x[key], depth + 1)
-        h.update(b")")
-    elif isinstance(x, type):
-        h.update(f"type:{x.__module__}.{x.__qualname__};".encode())
-    elif hasattr(x, "__dict__") and not callable(x):
-        h.update(f"object:{type(x).__module__}.{type(x).__qualname__}(".encode())
-        state = dict(vars(x))
-        for slot in getattr(type(x), "__slots__", ()):
-            if hasattr(x, slot):
-                state[slot] = getattr(x, slot)
-        _digest(h, state, depth + 1)
-        h.update(b")")
-    else:
-        raise TypeError(f"cannot digest {type(x).__name__}")
 
 
 def _share_fusion_training():

@@ -30,7 +30,6 @@ docs/node.md, "Models trained on start are cached".
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import functools
 import hashlib
 import json
@@ -42,6 +41,7 @@ from pathlib import Path
 import numpy as np
 
 from supramodal.calibration import OutOfFold
+from supramodal.digest import feed
 from supramodal.model import (
     MODEL_VERSION,
     ModelError,
@@ -103,51 +103,17 @@ def _code_digest() -> str:
     return h.hexdigest()
 
 
-def _feed(h, x, depth: int = 0) -> None:
-    """Feed ``x``'s content to ``h``: plain values by type and repr, arrays by dtype, shape and bytes,
-    sequences and dicts item by item, dataclasses (a texture set, a two-sense set's surfaces) by
-    class and fields. TypeError for anything else."""
-    if depth > 32:
-        raise TypeError("nested too deep")
-    if x is None or isinstance(x, (bool, int, float, complex, str, bytes, np.generic)):
-        h.update(f"{type(x).__name__}:{x!r};".encode())
-    elif isinstance(x, np.ndarray):
-        if x.dtype.hasobject:
-            raise TypeError("an object array")
-        h.update(f"ndarray:{x.dtype.str}:{x.shape};".encode())
-        h.update(np.ascontiguousarray(x).tobytes())
-    elif isinstance(x, (list, tuple)):
-        h.update(f"{type(x).__name__}:{len(x)}(".encode())
-        for item in x:
-            _feed(h, item, depth + 1)
-        h.update(b")")
-    elif isinstance(x, dict):
-        h.update(f"dict:{len(x)}(".encode())
-        for key in sorted(x, key=repr):
-            _feed(h, key, depth + 1)
-            _feed(h, x[key], depth + 1)
-        h.update(b")")
-    elif dataclasses.is_dataclass(x) and not isinstance(x, type):
-        h.update(f"{type(x).__module__}.{type(x).__qualname__}(".encode())
-        for f in dataclasses.fields(x):
-            _feed(h, f.name, depth + 1)
-            _feed(h, getattr(x, f.name), depth + 1)
-        h.update(b")")
-    else:
-        raise TypeError(f"cannot digest a {type(x).__name__}")
-
-
 def _texture_set_digest(ts) -> str:
     """What ``ts`` is: its description where it is a dataclass of plain values (a texture set, a
     two-sense set), else the signals it synthesises (the bytes the training reads)."""
     h = hashlib.sha256()
     try:
-        _feed(h, ts)
+        feed(h, ts)
     except TypeError:
         h = hashlib.sha256(b"signals;")
-        _feed(h, (tuple(ts.names), float(ts.fs)))
+        feed(h, (tuple(ts.names), float(ts.fs)))
         for i in range(len(ts.textures)):
-            _feed(h, np.asarray(ts.synthesize(i)))
+            feed(h, np.asarray(ts.synthesize(i)))
     return h.hexdigest()
 
 
