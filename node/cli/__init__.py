@@ -23,6 +23,7 @@ Errors and exit status (README "Errors and exit status"):
 from __future__ import annotations
 
 import argparse
+import importlib
 import os
 import signal
 import sys
@@ -36,45 +37,34 @@ from typing import Any, TextIO
 from supramodal import __version__
 from supramodal.drivers.ros2 import split_ros_arguments, use_ros_arguments
 from supramodal.errors import SupramodalWarning
-from supramodal.node.cli import (
-    bench,
-    devices,
-    evaluate,
-    experiment,
-    fit,
-    import_recording,
-    label,
-    mock_whisker,
-    recalibrate,
-    record,
-    run,
-    synth,
-    train,
-    view,
-)
 from supramodal.node.cli.errors import EXIT_BUG, EXIT_USER_ERROR, CliError, is_user_error, reader_left
 from supramodal.node.cli.signals import StartupInterrupted
 
-__all__ = ["COMMANDS", "EXIT_BUG", "EXIT_USER_ERROR", "CliError", "build_parser", "main"]
+__all__ = ["COMMANDS", "command_module", "EXIT_BUG", "EXIT_USER_ERROR", "CliError", "build_parser", "main"]
 
-#: The commands, in the order ``supramodal --help`` lists them: name -> module with
-#: ``add_parser(subparsers, common)`` and ``run(args) -> int``.
-COMMANDS: dict[str, ModuleType] = {
-    "run": run,
-    "train": train,
-    "fit": fit,
-    "evaluate": evaluate,
-    "recalibrate": recalibrate,
-    "record": record,
-    "view": view,
-    "label": label,
-    "import-recording": import_recording,
-    "mock-whisker": mock_whisker,
-    "devices": devices,
-    "experiment": experiment,
-    "bench": bench,
-    "synth": synth,
+#: The commands, in the order ``supramodal --help`` lists them: name -> the dotted name of its module, which
+#: has ``add_parser(subparsers, common)`` and ``run(args) -> int`` (:func:`command_module` imports it).
+COMMANDS: dict[str, str] = {
+    "run": "supramodal.node.cli.run",
+    "train": "supramodal.node.cli.train",
+    "fit": "supramodal.node.cli.fit",
+    "evaluate": "supramodal.node.cli.evaluate",
+    "recalibrate": "supramodal.node.cli.recalibrate",
+    "record": "supramodal.node.cli.record",
+    "view": "supramodal.node.cli.view",
+    "label": "supramodal.node.cli.label",
+    "import-recording": "supramodal.node.cli.import_recording",
+    "mock-whisker": "supramodal.node.cli.mock_whisker",
+    "devices": "supramodal.node.cli.devices",
+    "experiment": "supramodal.node.cli.experiment",
+    "bench": "supramodal.node.cli.bench",
+    "synth": "supramodal.node.cli.synth",
 }
+
+
+def command_module(name: str) -> ModuleType:
+    """The module of the command ``name`` (a key of :data:`COMMANDS`)."""
+    return importlib.import_module(COMMANDS[name])
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -102,7 +92,8 @@ def build_parser() -> argparse.ArgumentParser:
         return add(name, **kwargs)
 
     sub.add_parser = add_described      # type: ignore[method-assign]
-    for module in COMMANDS.values():
+    for name in COMMANDS:
+        module = command_module(name)
         module.add_parser(sub, common).set_defaults(func=module.run)
     return parser
 
