@@ -260,15 +260,26 @@ class DecisionAccumulator:
 _MINUTE = 60.0
 
 
+def windows_per_change(rate: float, window_seconds: float = DEFAULT_WINDOW) -> float:
+    """Windows of ``window_seconds`` per false change at ``rate`` false changes per minute (``[decision]
+    change``): ``N`` of :class:`ChangeDetector`."""
+    return _MINUTE / (window_seconds * rate)
+
+
 #: Most recent windows a change detector looks back over (the contact pooling's fitted run length).
 CHANGE_LOOKBACK = POOLING_RUN
+#: Fewest windows of a stretch that :class:`Decider`'s change detector tests: one window alone never
+#: signals a change (a single window's posterior is the least reliable evidence on a new touch).
+CHANGE_MIN_WINDOWS = 2
+#: Held-out windows whose statistic :func:`fit_change_threshold` measures directly before it extrapolates.
+CHANGE_TAIL = 20
 
 
 class ChangeDetector:
     """Whether the last few windows of a contact, pooled as a contact is, name another texture than the
     current decision.
 
-    At every window it pools each recent stretch (the last ``n`` windows, ``n`` = 1 ..
+    At every window it pools each recent stretch (the last ``n`` windows, ``n`` = ``min_windows`` ..
     :data:`CHANGE_LOOKBACK`) as the calibration pools a contact
     (:func:`~supramodal.calibration.pool_log_posteriors`: the windows' correlation ``rho``, the contact
     caps), and signals a change to ``j`` when one stretch's pooled log-odds of ``j`` against the current
@@ -281,10 +292,11 @@ class ChangeDetector:
       window.
     * The contact caps bound what a stretch may claim for ``j`` against ``k``: a pair the network cannot
       tell apart never signals a change; the other sense (or the fusion) has to.
-    * ``h = log((K - 1) N)``, ``N`` windows per false change allowed, ``K`` classes: under the current
-      texture, calibrated and independent evidence for one alternative passes ``h`` from a restart once
-      in ``e^h`` windows at most (Lorden 1971), ``N`` for the ``K - 1`` together. Measured by
-      ``experiment change``, not assumed: the windows are not independent.
+    * The threshold, by default ``h = log((K - 1) N)``, ``N`` windows per false change allowed, ``K``
+      classes: under the current texture, calibrated and independent evidence for one alternative passes
+      ``h`` from a restart once in ``e^h`` windows at most (Lorden 1971), ``N`` for the ``K - 1``
+      together. A bound, and a loose one where the classes are far apart; :func:`fit_change_threshold`
+      fits ``h`` to the rate asked on held-out windows of the training touches instead (``threshold``).
 
     Not thread-safe: one per processing thread, like :class:`Decider`.
 
@@ -297,48 +309,138 @@ class ChangeDetector:
         ``rho`` in [0, 1] (default 0).
     caps : array-like (classes, classes) or None
         The contact caps; None: uncapped.
+    threshold : float or None
+        ``h``, fitted (:func:`fit_change_threshold`); None (default): the bound above.
+    min_windows : int
+        Fewest windows of a stretch tested, 1 .. :data:`CHANGE_LOOKBACK` (default 1: every stretch;
+        :class:`Decider` tests :data:`CHANGE_MIN_WINDOWS`).
     """
 
     def __init__(self, n_classes: int, windows_per_false_change: float, correlation: float = 0.0,
-                 caps=None) -> None:
+                 caps=None, threshold: float | None = None, min_windows: int = 1) -> None:
         if not windows_per_false_change > 1:
             raise InputError(f"a change detector needs more than one window per false change, got "
                              f"{windows_per_false_change!r}")
         if not 0.0 <= correlation <= 1.0:
             raise InputError(f"a change detector's correlation must lie in [0, 1], got {correlation!r}")
+        if threshold is not None and not threshold >= 0:       # also refuses NaN; +inf: never signals
+            raise InputError(f"a change detector's threshold must be a log-odds >= 0, got {threshold!r}")
+        if not (isinstance(min_windows, (int, np.integer)) and 1 <= min_windows <= CHANGE_LOOKBACK):
+            raise InputError(f"a change detector's stretches must hold 1 .. {CHANGE_LOOKBACK} windows at least, "
+                             f"got {min_windows!r}")
         self.n_classes = int(n_classes)
-        self.threshold = float(np.log(max(self.n_classes - 1, 1) * windows_per_false_change))
+        self.windows_per_false_change = float(windows_per_false_change)
+        self.bound = float(np.log(max(self.n_classes - 1, 1) * windows_per_false_change))
+        self.threshold = self.bound if threshold is None else float(threshold)
         self.correlation = float(correlation)
         self.caps = None if caps is None else np.asarray(caps, dtype=np.float64)
+        self.min_windows = int(min_windows)
         lengths = np.arange(1, CHANGE_LOOKBACK + 1)
         self._weights = effective_windows(lengths, self.correlation) / lengths      # g(n), n = 1 .. lookback
         self._recent: deque[np.ndarray] = deque(maxlen=CHANGE_LOOKBACK)
+        #: The last window's statistic: the largest pooled log-odds of a recent stretch for another class
+        #: against the current one (-inf: none tested).
+        self.statistic = -np.inf
+        #: Windows since the last change signalled began (its onset, :meth:`update`); 0 before any.
+        self.onset = 0
 
     def reset(self) -> None:
         """Forget the recent windows (a contact ended)."""
         self._recent.clear()
+        self.statistic = -np.inf
 
     def update(self, log_posteriors: np.ndarray, current: int) -> tuple[int, int] | None:
         """Add one window's log-posteriors (classes,) and test the recent stretches against the ``current``
-        decision (a class index; -1: none, nothing is tested). Returns ``(new class, windows since the change
-        began)`` when a stretch names another texture past the threshold (the windows before it are then
-        forgotten), else None."""
+        decision (a class index; -1: none, nothing is tested). Returns ``(new class, windows of the stretch that
+        passed)`` when a stretch names another texture past the threshold (the windows before it are then
+        forgotten), else None.
+
+        The change's onset (:attr:`onset`, windows since it began) is then Page's estimate: of the stretch that
+        passed and the longer recent ones, the one whose summed log-likelihood ratio of the new class against
+        the current one is largest, the change point most likely for windows independent given the texture.
+        The stretch that passed is often shorter: the pooling weighs a longer stretch's evidence less
+        (``n_eff(n) / n``), which measures how sure the change is, not where it began."""
         self._recent.append(np.asarray(log_posteriors, dtype=np.float64))
-        if current < 0:
+        self.statistic = -np.inf
+        if current < 0 or len(self._recent) < self.min_windows:
             return None
         recent = np.array(self._recent)[::-1]                       # newest first: row n-1 ends the stretch of n
         sums = np.cumsum(recent, axis=0) * self._weights[:len(recent), None]
+        sums = sums[self.min_windows - 1:]                          # row i: the stretch of min_windows + i
         pooled = sums if self.caps is None else cap_gaps(sums, self.caps)     # a log-odds needs no normalising
         lead = pooled - pooled[:, [current]]
         lead[:, current] = -np.inf
         n, j = np.unravel_index(int(np.argmax(lead)), lead.shape)
-        if lead[n, j] <= self.threshold:
+        self.statistic = float(lead[n, j])
+        if self.statistic <= self.threshold:
             return None
-        since = int(n) + 1
+        since = int(n) + self.min_windows
+        # the onset: where the summed log-likelihood ratio of j against the current class is largest, the
+        # stretch that passed or a longer one (the weights g(n) measure the evidence, they do not place it)
+        llr = np.cumsum(recent[:, j] - recent[:, current])
+        self.onset = since + int(np.argmax(llr[since - 1:]))
         kept = list(self._recent)[-since:]
         self._recent.clear()
         self._recent.extend(kept)
         return int(j), since
+
+
+def change_statistics(log_posteriors, label: int, correlation: float = 0.0, caps=None,
+                      min_windows: int = CHANGE_MIN_WINDOWS) -> np.ndarray:
+    """Each window's :attr:`ChangeDetector.statistic` on one still touch of texture ``label``, tested against
+    ``label`` throughout (never restarted): what a false change would have to pass there. Shape (windows,)."""
+    lp = np.asarray(log_posteriors, dtype=np.float64)
+    if lp.ndim != 2:
+        raise InputError(f"a touch's log-posteriors must have shape (windows, classes), got {lp.shape}")
+    detector = ChangeDetector(lp.shape[1], 2.0, correlation, caps, threshold=np.inf, min_windows=min_windows)
+    out = np.empty(len(lp))
+    for t, x in enumerate(lp):
+        detector.update(x, int(label))
+        out[t] = detector.statistic
+    return out
+
+
+def fit_change_threshold(touches, labels, windows_per_false_change: float, correlation: float = 0.0, caps=None,
+                         min_windows: int = CHANGE_MIN_WINDOWS, tail: int = CHANGE_TAIL) -> float:
+    """The threshold ``h`` of a :class:`ChangeDetector` at which its statistic passes ``h`` on at most one
+    window in ``N = windows_per_false_change`` of still touches, fitted on held-out windows of the training
+    touches (never on the touches it will be scored on).
+
+    ``touches``: each one touch's held-out (out-of-fold) calibrated log-posteriors (windows, classes), in
+    time order; ``labels``: each one's texture. Their windows' statistics (:func:`change_statistics`,
+    ``T`` of them) give the share ``e(h0)`` of windows at or above a level ``h0``:
+
+    * where ``T / N >= tail``, ``h`` is measured: the level that at most ``T / N`` windows pass;
+    * else ``h = h0 + log(N e(h0))`` from ``h0`` the ``tail``-th largest statistic (at least 0), where
+      ``e(h0) = tail / T`` is measured. Each stretch's pooled log-odds ``L`` of ``j`` against the texture
+      ``k`` it comes from is calibrated, so that ``P_k(L >= h) = E_j[exp(-L); L >= h]``, and
+      ``exp(h) P_k(L >= h)`` falls as ``h`` grows: the share passing ``h`` is at most ``e(h0) exp(h0 - h)``,
+      and at most ``1 / N`` at this ``h``.
+
+    A window past ``h`` counts though it continues an excursion that already passed it: a false change is
+    one excursion, so the rate fitted errs low. Returns ``h >= 0``.
+    """
+    if not windows_per_false_change > 1:
+        raise InputError(f"fitting a change threshold needs more than one window per false change, got "
+                         f"{windows_per_false_change!r}")
+    if not (isinstance(tail, (int, np.integer)) and tail >= 1):
+        raise InputError(f"the tail measured must be >= 1 windows, got {tail!r}")
+    touches = list(touches)
+    labels = list(labels)
+    if len(touches) != len(labels) or not touches:
+        raise InputError(f"fitting a change threshold needs touches and one label each, got {len(touches)} touches "
+                         f"and {len(labels)} labels")
+    stats = np.concatenate([change_statistics(lp, k, correlation, caps, min_windows)
+                            for lp, k in zip(touches, labels)])
+    stats = np.sort(stats)[::-1]
+    n = len(stats)
+    if n < tail:
+        raise InputError(f"fitting a change threshold needs at least {tail} held-out windows, got {n}")
+    allowed = n / float(windows_per_false_change)
+    if allowed >= tail:
+        return float(max(stats[int(allowed)] if int(allowed) < n else -np.inf, 0.0))
+    h0 = float(max(stats[tail - 1], 0.0))
+    return h0 + float(np.log(tail / allowed))
 
 
 #: What the node says when it will not name a texture.
@@ -365,10 +467,14 @@ class Decider:
     window_seconds : float
         Seconds between windows (default :data:`~supramodal.features.DEFAULT_WINDOW`): what a change
         rate per minute (``rules.change``) is per window.
+    change_threshold : float or None
+        With ``rules.change``: the change detector's threshold fitted for that rate on held-out windows
+        (:func:`fit_change_threshold`); None (default): the bound of :class:`ChangeDetector`.
     """
 
     def __init__(self, classes, rules: DecisionRules = DEFAULT_DECISION, correlation: float = 0.0,
-                 novelty_threshold: float | None = None, caps=None, window_seconds: float = DEFAULT_WINDOW) -> None:
+                 novelty_threshold: float | None = None, caps=None, window_seconds: float = DEFAULT_WINDOW,
+                 change_threshold: float | None = None) -> None:
         self.classes = tuple(classes)
         self.rules = rules
         self.unknown_below = float(rules.unknown_below)
@@ -388,12 +494,13 @@ class Decider:
                 raise InputError("[decision] change re-decides within a contact: it needs scope = \"contact\", "
                                  f"method = \"log\" and n = 0 (scope is {rules.scope!r}, method {rules.method!r}, n "
                                  f"{rules.n}; with n > 0 the pooled decision forgets older windows by itself)")
-            per_change = _MINUTE / (window_seconds * rules.change)
+            per_change = windows_per_change(rules.change, window_seconds)
             if per_change <= 1:
                 raise InputError(f"[decision] change = {rules.change:g} per minute allows a false change every "
                                  f"{per_change:g} windows of {window_seconds:g} s: ask for fewer than "
                                  f"{_MINUTE / window_seconds:g} per minute")
-            self.detector = ChangeDetector(len(self.classes), per_change, correlation, caps)
+            self.detector = ChangeDetector(len(self.classes), per_change, correlation, caps, threshold=change_threshold,
+                                           min_windows=CHANGE_MIN_WINDOWS)
         self._label = -1                              # the pooled decision before this window, as a class index
         self.changes = 0
         self.unknown = {"novel": 0, "unsure": 0, "tie": 0}
@@ -438,12 +545,14 @@ class Decider:
         self._unknown_flags.append(unknown)
         change = None
         if self.detector is not None:
-            change = self.detector.update(lp, self._label)
+            found = self.detector.update(lp, self._label)
+            if found is not None:                     # to which class, and the windows since its onset
+                change = (found[0], self.detector.onset)
         mostly_unknown = 2 * sum(self._unknown_flags) > len(self._unknown_flags)
         d = self.accumulator.update(lp, in_contact, may_decide=not mostly_unknown)
         changed = None
         if change is not None:
-            # the texture changed `since` windows ago: the decision starts again from those windows
+            # the texture changed `since` windows ago (the change's onset): the decision starts again from those
             to, since = change
             kept = list(self._unknown_flags)[-since:]
             self._unknown_flags.clear()

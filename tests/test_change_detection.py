@@ -241,3 +241,93 @@ def test_changes_are_scored_against_the_truth_as_counted_by_hand():
     assert change_detections(list("ab"), [1]) == ([(1, 1)], 0)      # said in the boundary's own window
     with pytest.raises(InputError, match="outside the contact's 4 windows"):
         change_detections(list("aaaa"), [4])
+
+
+def test_one_window_alone_never_signals_a_change():
+    """A still touch of texture a with one window that says c at odds of about e^9 against a (past the bound of
+    log(5 x 600) = 8.0): one window alone is no change (a single window's posterior is the least reliable
+    evidence on a new touch). Two such windows in a row are: the change is signalled at the second and began at
+    the first."""
+    sure_a = np.log([0.9, 0.02, 0.02, 0.02, 0.02, 0.02])
+    says_c = np.log([1e-4, 1e-4, 0.9995, 1e-4, 1e-4, 1e-4])
+    rules = DecisionRules(scope="contact", n=0, confidence=0.99, change=1.0)
+    decider = Decider(["a", "b", "c", "d", "e", "f"], rules)
+    pooled = [decider.decide(lp)["pooled"] for lp in [sure_a] * 10 + [says_c] + [sure_a] * 10]
+    assert not any("change" in p for p in pooled) and pooled[-1]["label"] == "a"
+    assert ChangeDetector(6, 600).update(says_c, 0) is not None       # the detector alone tests one window too
+    twice = [decider.decide(lp)["pooled"] for lp in [says_c, says_c]]
+    assert "change" not in twice[0] and twice[1]["change"] == {"from": "a", "to": "c", "after": 2}
+    assert twice[1]["label"] == "c" and twice[1]["windows"] == 2
+
+
+def _correlated_touch(rng, labels, evidence: float = 2.5, noise: float = 1.0, rho: float = 0.5,
+                      classes: int = 6) -> np.ndarray:
+    """Calibrated-looking log-posteriors of a touch whose windows' logits favour the true class by ``evidence``,
+    with noise that persists from window to window (correlation ``rho`` at lag 1)."""
+    from scipy.special import log_softmax
+
+    e = np.empty((len(labels), classes))
+    e[0] = rng.normal(0.0, noise, classes)
+    for t in range(1, len(labels)):
+        e[t] = rho * e[t - 1] + np.sqrt(1 - rho ** 2) * rng.normal(0.0, noise, classes)
+    return log_softmax(e + evidence * np.eye(classes)[np.asarray(labels)], axis=1)
+
+
+def test_a_threshold_fitted_on_held_out_touches_finds_a_change_within_five_windows_and_restarts_at_its_onset():
+    """Still touches of the training kind (held out) fit the threshold for one false change per minute; it lies
+    well below the bound log(5 x 600) = 8.0 (the textures are far apart), and with it a slide from texture 0 to
+    texture 3 is signalled within 5 windows, the change's onset at the boundary: the decision starts again from
+    exactly the windows since the boundary, and is final for texture 3. With the bound, the change takes longer
+    than 5 windows. New still touches of the same kind make at most the rate asked."""
+    from supramodal.decisions import fit_change_threshold, windows_per_change
+
+    rng = np.random.default_rng(34)
+    rho, names = 0.5, ["a", "b", "c", "d", "e", "f"]
+    held = [_correlated_touch(rng, np.full(100, k % 6)) for k in range(12)]           # 12 touches of 10 s
+    n = windows_per_change(1.0)
+    h = fit_change_threshold(held, [k % 6 for k in range(12)], n, rho)
+    assert 0.0 < h < ChangeDetector(6, n).bound - 2.0
+    rules = DecisionRules(scope="contact", n=0, confidence=0.99, change=1.0)
+
+    def slide(threshold):
+        decider = Decider(names, rules, correlation=rho, change_threshold=threshold)
+        lps = _correlated_touch(np.random.default_rng(7), np.repeat([0, 3], 40))
+        return [decider.decide(lp)["pooled"] for lp in lps]
+
+    pooled = slide(h)
+    changes = [(t, p) for t, p in enumerate(pooled) if "change" in p]
+    assert len(changes) == 1
+    t, p = changes[0]
+    assert 40 <= t < 45 and p["change"]["from"] == "a" and p["change"]["to"] == "d"
+    assert p["change"]["after"] == t - 40 + 1 == p["windows"]                  # restarted at the onset
+    assert pooled[-1]["label"] == "d" and pooled[-1]["decided"] is True
+    bound = [t for t, p in enumerate(slide(None)) if "change" in p]
+    assert bound and bound[0] >= 45                                            # the bound: too late
+    false = 0
+    for k in range(12):                                                         # 2 minutes of new still touches
+        decider = Decider(names, rules, correlation=rho, change_threshold=h)
+        false += sum("change" in decider.decide(lp)["pooled"] for lp in _correlated_touch(rng, np.full(100, k % 6)))
+    assert false <= 2
+
+
+def test_the_threshold_is_measured_where_the_held_out_windows_suffice_and_extrapolated_where_not():
+    """fit_change_threshold by hand: the windows' statistics (change_statistics, each touch against its own
+    texture) sorted; with fewer than `tail` windows per false change the `tail`-th largest plus log(tail / (T / N));
+    with more, the level that at most T / N windows pass. A stricter rate never lowers it."""
+    from supramodal.decisions import change_statistics, fit_change_threshold
+
+    rng = np.random.default_rng(3)
+    touches = [_correlated_touch(rng, np.full(60, k % 6), evidence=1.5) for k in range(6)]
+    labels = [k % 6 for k in range(6)]
+    stats = np.sort(np.concatenate([change_statistics(lp, k, 0.4) for lp, k in zip(touches, labels)]))[::-1]
+    assert len(stats) == 360 and np.isneginf(stats).sum() == 6                 # a touch's first window: no stretch
+    h = fit_change_threshold(touches, labels, 600, 0.4, tail=20)
+    assert h == pytest.approx(max(stats[19], 0.0) + np.log(20 / (360 / 600)))
+    measured = fit_change_threshold(touches, labels, 12, 0.4, tail=20)          # 30 windows may pass
+    assert measured == pytest.approx(max(stats[30], 0.0)) and np.sum(stats > measured) <= 30
+    rates = [fit_change_threshold(touches, labels, n, 0.4) for n in (12, 60, 600, 6000)]
+    assert rates == sorted(rates)
+    with pytest.raises(InputError, match="at least 20 held-out windows"):
+        fit_change_threshold([touches[0][:10]], [0], 600, 0.4)
+    with pytest.raises(InputError, match="threshold must be a log-odds >= 0"):
+        ChangeDetector(6, 600, threshold=-1.0)

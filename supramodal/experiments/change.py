@@ -4,9 +4,11 @@ that slide from surface to surface without lifting off, on the two-sense world w
 Per set (:func:`supramodal.twosense.two_sense_set`; the six textures of
 :mod:`supramodal.experiments.newtouch`, ``H2a`` and ``H2b`` left out): each sense's model trained on
 touches 1-2 (calibrated by touch), the late fusion learned on their out-of-fold windows (issue 34's
-rule) with its contact pooling. Scored with :class:`supramodal.decisions.Decider` as a scene's
-``[decision] scope = "contact", n = 0, confidence = 0.99, change = 1`` decides (one false change per
-minute allowed), per stream and fused:
+rule) with its contact pooling, and each stream's change threshold fitted for one false change per minute
+on the out-of-fold windows of touches 1-2 (:func:`supramodal.decisions.fit_change_threshold`: each held-out
+touch a still one; never on the touches scored). Scored with :class:`supramodal.decisions.Decider` as a
+scene's ``[decision] scope = "contact", n = 0, confidence = 0.99, change = 1`` decides (one false change
+per minute allowed) with that threshold, per stream and fused:
 
 * **Slides**: :data:`SLIDES` touches (slide ``r`` is touch ``4 + r`` of every texture: each its own
   signals and gains) that cross all six textures in a random order, :data:`SEGMENT` seconds each,
@@ -20,6 +22,8 @@ minute allowed), per stream and fused:
   names the texture, beside the same for the very same segments decided as contacts of their own, as
   if the robot had lifted off before each (a fresh decision from the segment's first window).
 
+The table gives every set's figures together, then each set's (the thresholds fitted too).
+
     supramodal experiment change [--quick] [--sets N] [--seed S] [--out DIR]
     python -m supramodal.experiments.change [--quick] [--sets N] [--seed S]
 """
@@ -32,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-from supramodal.decisions import Decider, DecisionRules
+from supramodal.decisions import Decider, DecisionRules, fit_change_threshold, windows_per_change
 from supramodal.errors import InputError
 from supramodal.evaluation import DETECT_WITHIN, change_detections
 from supramodal.experiments.common import Run
@@ -60,10 +64,24 @@ def rules() -> DecisionRules:
     return DecisionRules(scope="contact", n=0, confidence=CONFIDENCE, change=CHANGE_RATE)
 
 
-def decide(log_posteriors, classes, correlation: float, caps) -> list[dict]:
-    """One contact's windows through a fresh :class:`Decider`: each window's pooled dict."""
-    d = Decider(classes, rules(), correlation, caps=caps, window_seconds=DEFAULT_WINDOW)
+def decide(log_posteriors, classes, correlation: float, caps, threshold: float | None = None) -> list[dict]:
+    """One contact's windows through a fresh :class:`Decider` (``threshold``: its change threshold, None: the
+    bound): each window's pooled dict."""
+    d = Decider(classes, rules(), correlation, caps=caps, window_seconds=DEFAULT_WINDOW, change_threshold=threshold)
     return [d.decide(lp)["pooled"] for lp in log_posteriors]
+
+
+def fitted_thresholds(trained, pooling: dict) -> dict:
+    """Each stream's change threshold (:func:`~supramodal.decisions.fit_change_threshold`) for
+    :data:`CHANGE_RATE`, fitted on the out-of-fold windows of the training touches (``trained``: a
+    :class:`~supramodal.experiments.newtouch.TrainedSenses`), each touch a still one; ``pooling``:
+    ``{stream: (rho, caps)}``."""
+    held = {"whiskers": trained.held[0], "microphone": trained.held[1], "late": trained.late["fused"]}
+    groups = np.asarray(trained.groups)
+    touches = [np.flatnonzero(groups == g) for g in dict.fromkeys(groups.tolist())]     # in time order
+    n = windows_per_change(CHANGE_RATE, DEFAULT_WINDOW)
+    return {s: fit_change_threshold([held[s][i] for i in touches], [int(trained.y[i[0]]) for i in touches], n,
+                                    *pooling[s]) for s in STREAMS}
 
 
 def _said(pooled: list[dict]) -> str:
@@ -76,7 +94,8 @@ def run_set(set_seed: int, seconds: float = 10.0, epochs: int = DEFAULT_EPOCHS, 
             progress=None) -> dict:
     """One set: see the module docstring. Per stream: ``boundaries``, ``detected``, ``delays`` (windows),
     ``to_new`` (first changes in a segment naming its texture), ``false_changes`` and ``minutes`` (still touches),
-    ``false_in_slides`` and ``slide_minutes``, ``after_change`` and ``after_lift_off`` (segments right, of)."""
+    ``false_in_slides`` and ``slide_minutes``, ``after_change`` and ``after_lift_off`` (segments right, of),
+    ``threshold`` (fitted)."""
     names, feats = touch_features(set_seed, seconds, progress)
     trained = train_senses(names, feats, epochs, seed, progress, f"  set {set_seed}: ")
     known, classes, models, late = trained.known, trained.classes, trained.models, trained.late
@@ -86,6 +105,8 @@ def run_set(set_seed: int, seconds: float = 10.0, epochs: int = DEFAULT_EPOCHS, 
         raise InputError(f"touches of {seconds:g} s are shorter than a slide's segments of {SEGMENT:g} s")
     pooling = {sense: m.calibration.contact_pooling for sense, m in models.items() if m.calibration is not None}
     pooling["late"] = (fused_pooling(late["fused"], trained.y, trained.folds, trained.groups), None)
+    thresholds = fitted_thresholds(trained, pooling)
+    deciding = {s: (*pooling[s], thresholds[s]) for s in STREAMS}
 
     def stream_lps(whisker_values, mic_values) -> dict:
         lw = models["whiskers"].log_posteriors(whisker_values)
@@ -96,13 +117,14 @@ def run_set(set_seed: int, seconds: float = 10.0, epochs: int = DEFAULT_EPOCHS, 
 
     out: dict[str, dict[str, Any]] = {
         s: {"boundaries": 0, "detected": 0, "delays": [], "to_new": 0, "false_changes": 0, "minutes": 0.0,
-            "false_in_slides": 0, "slide_minutes": 0.0, "after_change": [0, 0], "after_lift_off": [0, 0]}
+            "false_in_slides": 0, "slide_minutes": 0.0, "after_change": [0, 0], "after_lift_off": [0, 0],
+            "threshold": thresholds[s]}
         for s in STREAMS}
     # still touches: touch 3 of every texture, one contact each
     for i in known:
         lps = stream_lps(feats[i, TOUCHES - 1][0], feats[i, TOUCHES - 1][1])
         for s in STREAMS:
-            pooled = decide(lps[s], classes, *pooling[s])
+            pooled = decide(lps[s], classes, *deciding[s])
             out[s]["false_changes"] += sum("change" in p for p in pooled)
             out[s]["minutes"] += len(pooled) * DEFAULT_WINDOW / 60.0
     surfaces = two_sense_set(pairs=2, seed=set_seed)
@@ -115,7 +137,7 @@ def run_set(set_seed: int, seconds: float = 10.0, epochs: int = DEFAULT_EPOCHS, 
         lps = stream_lps(extract_features(w, banks["whiskers"], FEATURES).values,
                          extract_features(m, banks["microphone"], FEATURES).values)
         for s in STREAMS:
-            pooled = decide(lps[s], classes, *pooling[s])
+            pooled = decide(lps[s], classes, *deciding[s])
             truths = [names[order[min(t // seg, len(order) - 1)]] for t in range(len(pooled))]
             boundaries, false = change_detections(truths, [t for t, p in enumerate(pooled) if "change" in p])
             for at, t in boundaries:
@@ -128,7 +150,7 @@ def run_set(set_seed: int, seconds: float = 10.0, epochs: int = DEFAULT_EPOCHS, 
                 said = _said(pooled[at if t is None else t:at + seg])
                 out[s]["after_change"][0] += said == truths[at]
                 out[s]["after_change"][1] += 1
-                fresh = _said(decide(lps[s][at:at + seg], classes, *pooling[s]))      # as after a lift-off
+                fresh = _said(decide(lps[s][at:at + seg], classes, *deciding[s]))      # as after a lift-off
                 out[s]["after_lift_off"][0] += fresh == truths[at]
                 out[s]["after_lift_off"][1] += 1
             out[s]["false_in_slides"] += false
@@ -138,7 +160,7 @@ def run_set(set_seed: int, seconds: float = 10.0, epochs: int = DEFAULT_EPOCHS, 
 
 
 def summarize(results: list[dict]) -> dict:
-    """Every set's counts together, per stream."""
+    """Every set's counts together, per stream (``threshold``: the mean of the sets' fitted ones)."""
     out = {}
     for s in STREAMS:
         rows = [r["streams"][s] for r in results]
@@ -154,7 +176,8 @@ def summarize(results: list[dict]) -> dict:
                   "false_per_minute_slides": sum(r["false_in_slides"] for r in rows)
                   / sum(r["slide_minutes"] for r in rows),
                   "after_change": after[0] / after[1], "after_lift_off": lift[0] / lift[1],
-                  "segments": after[1], "lift_off_contacts": lift[1]}
+                  "segments": after[1], "lift_off_contacts": lift[1],
+                  "threshold": float(np.mean([r["threshold"] for r in rows]))}
     return out
 
 
@@ -192,6 +215,14 @@ def change_table(result: dict) -> str:
                      f"{delay} | "
                      f"{v['false_per_minute']:.2f} | {v['false_per_minute_slides']:.2f} | {v['after_change']:.3f} of "
                      f"{v['segments']} | {v['after_lift_off']:.3f} of {v['lift_off_contacts']} |")
+    lines += ["", "Each set (change threshold: fitted on the training touches' out-of-fold windows, log-odds):", "",
+              f"| set | stream | change threshold | detected within {result['detect_within']} windows | "
+              "false changes per minute, still | segments right after a change | after a lift-off |",
+              "|---|---|---|---|---|---|---|"]
+    for r in result["sets"]:
+        for s, v in summarize([r]).items():
+            lines.append(f"| {r['set_seed']} | {s} | {v['threshold']:.2f} | {v['detected']:.3f} of {v['boundaries']} | "
+                         f"{v['false_per_minute']:.2f} | {v['after_change']:.3f} | {v['after_lift_off']:.3f} |")
     return "\n".join(lines)
 
 
