@@ -56,8 +56,8 @@ RUN_TAGS = frozenset({"sh"})
 SLOW_ENV = "SUPRAMODAL_DOCS_SLOW"
 #: Seconds a block may take (a first run trains models; the suite's other workers share the cores).
 BLOCK_SECONDS = 420.0
-#: Seconds a block marked slow may take (the experiments of results.md took up to 7 min at a load of 2 to 4).
-SLOW_BLOCK_SECONDS = 2400.0
+#: Seconds a block marked slow may take (own-sensor.md's fit_sensors took 76 min at a load of 4 to 15).
+SLOW_BLOCK_SECONDS = 5400.0
 
 _FENCE = re.compile(r"^ {0,3}(`{3,}|~{3,})(.*)$")
 _DIRECTIVE = re.compile(r"^<!--\s*docs-test:\s*(.*?)\s*-->\s*$")
@@ -274,6 +274,7 @@ def run_document(doc: Path, tmp_path: Path) -> None:
     env = _environment()
     slow = os.environ.get(SLOW_ENV) == "1"
     ran = 0
+    outputs: list[tuple[int, Path]] = []    # (the block's line, its output): what a walkthrough's figures are
     not_run: list[str] = []             # for want of a program, module, library or file
     not_slow: list[str] = []            # slow, and SLOW_ENV not set
     # The group's leader holds the group while no block runs, so that every block (and what it leaves running
@@ -314,6 +315,7 @@ def run_document(doc: Path, tmp_path: Path) -> None:
                         proc.wait()
             took = time.monotonic() - started
             ran += 1
+            outputs.append((block.line, log))
             print(f"{block.where}: {took:.1f} s")      # the cost of each block (pytest -rA or -s shows it)
             if code != 0:
                 said = (f"ran over {limit:.0f} s" if code is None
@@ -322,12 +324,32 @@ def run_document(doc: Path, tmp_path: Path) -> None:
                             f"{_tail(log)}", pytrace=False)
     finally:
         _end_group(leader, env[_TOKEN])
+    _check_walkthrough_figures(doc, outputs)
     if not_slow:
         print(f"not run: {'; '.join(not_slow)}")
     # A walkthrough cut short by a missing extra is said (skipped), as the suite's other tests say theirs; one whose
     # slow blocks were left out, as asked, passed on the others.
     if not_run or not ran:
         pytest.skip(f"{_name(doc)}: {'the other blocks ran; ' if ran else ''}not run: {'; '.join(not_run + not_slow)}")
+
+
+def _check_walkthrough_figures(doc: Path, outputs: list[tuple[int, Path]]) -> None:
+    """Fail naming each figure under a ``<!-- figures: walkthrough -->`` comment of ``doc`` that the blocks run
+    above it did not print (tests/test_docs_figures.py: the documents' figures). An element with no block run
+    above it (a slow one left out) is not checked."""
+    from test_docs_figures import elements, unprinted
+
+    wrong = []
+    for element in elements(doc)[0]:
+        if element.says != "walkthrough":
+            continue
+        above = [log.read_text(errors="replace") for line, log in outputs if line < element.start]
+        if not above:
+            continue
+        missing = unprinted(element, "\n".join(above))
+        if missing:
+            wrong.append(f"{element.where}: the walkthrough's commands above did not print {', '.join(missing)}")
+    assert not wrong, "copy what the commands print into the document:\n" + "\n".join(wrong)
 
 
 #: Each document's pytest marks, by what its blocks do (docs/development.md; the times on 2 cores at a load of 2 to
