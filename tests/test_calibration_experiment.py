@@ -17,7 +17,7 @@ import pytest
 
 from supramodal.calibration import calibration_report
 from supramodal.errors import InputError
-from supramodal.experiments import report
+from supramodal.experiments import plotting, report
 from supramodal.evaluation import ANYTIME_THRESHOLDS as THRESHOLDS
 from supramodal.experiments.calibration import (ANYTIME_CONFIDENCE, anytime_sweep, auroc,
                                                 calibration_table, done_when, merge_sweeps)
@@ -201,6 +201,7 @@ def test_quick_table_names_every_part_and_every_done_when_line(quick):
 
 @pytest.mark.slow   # the calibration experiment in quick mode, as above
 def test_csv_files_parse_with_rates_in_range(quick, tmp_path, monkeypatch):
+    monkeypatch.setattr(plotting, "have_matplotlib", lambda: False)      # what the experiments ask
     monkeypatch.setattr(report, "have_matplotlib", lambda: False)
     written = report.write_figure("calibration", quick, tmp_path)
     assert sorted(p.name for p in written) == sorted(FILES)
@@ -224,6 +225,7 @@ def test_csv_files_parse_with_rates_in_range(quick, tmp_path, monkeypatch):
 def test_no_png_without_matplotlib_says_so(quick, tmp_path, monkeypatch):
     from supramodal.experiments.calibration import write_calibration
 
+    monkeypatch.setattr(plotting, "have_matplotlib", lambda: False)      # what the experiments ask
     monkeypatch.setattr(report, "have_matplotlib", lambda: False)
     said = []
     write_calibration(quick, tmp_path, notice=said.append)

@@ -29,6 +29,17 @@ LOADED = True
 '''
 
 
+@pytest.fixture(autouse=True)
+def _ctrl_c_raises():
+    """Ctrl-C as a program has it (KeyboardInterrupt): a test worker of pytest-xdist ignores SIGINT, which
+    would leave nothing to hold or deliver."""
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
 @pytest.fixture
 def extension(tmp_path, monkeypatch):
     """A module name whose import sends SIGINT to this process and turns a KeyboardInterrupt into ImportError."""
