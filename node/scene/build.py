@@ -33,7 +33,7 @@ from supramodal.node.runtime.sources import Source
 from supramodal.node.runtime.streams import Stream, refuse_uncalibrated
 from supramodal.node.runtime.ticker import Ticker
 from supramodal.node.scene.band import warn_if_beyond_band
-from supramodal.node.scene.model_cache import trained_on_start
+from supramodal.node.scene.model_cache import hand_over, trained_on_start
 from supramodal.node.scene.registry import driver_spec, sink_spec
 from supramodal.node.scene.schema import LEARN
 from supramodal.node.scene.specs import Scene, SceneError, SinkSettings, SourceSpec, StreamSpec
@@ -99,15 +99,7 @@ def train_on_texture_set(ts, pipeline: FeaturePipeline, progress=None, held_out:
     while len(_trained_on_the_spot) > TRAINED_ON_THE_SPOT:
         _trained_on_the_spot.pop(next(iter(_trained_on_the_spot)))
     model, train_part, test_part = made
-    if held_out is not None:
-        held_out.append(test_part)
-    if trained is not None:
-        trained.append(train_part)
-    if progress:
-        from supramodal.calibration import calibration_line
-
-        progress(f"trained on {len(train_part[0])} windows of {len(ts.textures)} textures ({', '.join(p.features)}); "
-                 + calibration_line(None if model.calibration is None else model.calibration.fitted_on))
+    hand_over(model, train_part, test_part, ts, p.features, held_out, trained, progress)
     return model
 
 

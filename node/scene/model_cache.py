@@ -261,6 +261,22 @@ def _bound(folder: Path, keep: Path, limit: int) -> None:
         total -= size
 
 
+def hand_over(model, train_part, test_part, ts, features, held_out: list | None, trained: list | None,
+              progress=None, where: str = "") -> None:
+    """What a model trained on start gives its caller besides itself, trained or read: the held-out part to
+    ``held_out`` and the training part to ``trained`` (lists, or None), and to ``progress`` the line that
+    says what it was trained on and how it is calibrated (``where``: appended, e.g. the cache file read)."""
+    if held_out is not None:
+        held_out.append(test_part)
+    if trained is not None:
+        trained.append(train_part)
+    if progress:
+        from supramodal.calibration import calibration_line
+
+        progress(f"trained on {len(train_part[0])} windows of {len(ts.textures)} textures ({', '.join(features)}); "
+                 + calibration_line(None if model.calibration is None else model.calibration.fitted_on) + where)
+
+
 # -- the node's use -----------------------------------------------------------------------------------
 
 def trained_on_start(ts, pipeline, train, progress=None, held_out: list | None = None,
@@ -283,17 +299,8 @@ def trained_on_start(ts, pipeline, train, progress=None, held_out: list | None =
             os.utime(path)              # recently used: kept longest
         except OSError:
             pass
-        if held_out is not None:
-            held_out.append(test_part)
-        if trained is not None:
-            trained.append(train_part)
-        if progress:
-            from supramodal.calibration import calibration_line
-
-            progress(f"trained on {len(train_part[0])} windows of {len(ts.textures)} textures "
-                     f"({', '.join(pipeline.features)}); "
-                     + calibration_line(None if model.calibration is None else model.calibration.fitted_on)
-                     + f" (read from the model cache: {path})")
+        hand_over(model, train_part, test_part, ts, pipeline.features, held_out, trained, progress,
+                  f" (read from the model cache: {path})")
         return model
 
     def refused(exc: CacheRefused) -> None:
