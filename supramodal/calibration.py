@@ -53,7 +53,8 @@ from scipy.special import log_softmax, logsumexp
 from supramodal.errors import InputError
 
 __all__ = [
-    "CALIBRATION_METHOD", "DEFAULT_CALIBRATION_FOLDS", "ECE_BINS", "NOVELTY_METHOD", "Calibration", "Novelty",
+    "CALIBRATION_METHOD", "DEFAULT_CALIBRATION_FOLDS", "ECE_BINS", "NOVELTY_METHOD", "Calibration", "HeldOutLogits",
+    "Novelty", "calibration_of_held_out", "fold_tasks",
     "brier_score", "calibration_line", "calibration_report", "cap_gaps", "confusion_caps", "fit_capped_pooling",
     "fit_capped_window_calibration", "effective_windows", "expected_calibration_error", "fit_novelty",
     "fit_pooling", "fit_window_calibration", "log_loss", "log_sigmoid", "normalised_log_posteriors",
@@ -1084,14 +1085,14 @@ def calibration_folds(labels, groups, k: int = DEFAULT_CALIBRATION_FOLDS, seed: 
 
 def fit_network_calibration(x, labels, n_classes: int, groups=None, k: int = DEFAULT_CALIBRATION_FOLDS,
                             hidden: int | None = None, epochs: int | None = None, seed: int = 0,
-                            progress=None) -> tuple[Calibration, Novelty, OutOfFold]:
+                            progress=None, jobs: int = 1) -> tuple[Calibration, Novelty, OutOfFold]:
     """Calibration and novelty of a network trained as :func:`supramodal.mlp.train_mlp` would train
     it on the raw (unstandardised) input rows ``x`` (n, inputs), from out-of-fold windows.
 
     Each of ``k`` folds (:func:`calibration_folds`) trains a network with the same hidden units,
     epochs and seed on the other folds (standardised by their own mean and scale) and gives the
-    logits of its own windows; the calibration is fitted on those held-out logits, never on
-    windows a network trained on.
+    logits of its own windows (:func:`fold_tasks`); the calibration is fitted on those held-out
+    logits, never on windows a network trained on (:func:`calibration_of_held_out`).
 
     Parameters
     ----------
@@ -1099,6 +1100,10 @@ def fit_network_calibration(x, labels, n_classes: int, groups=None, k: int = DEF
         Each window's recording, windows of one recording consecutive and in time order
         (default: one recording per label).
     progress : callable(str), optional
+        One line per fold, in fold order.
+    jobs : int
+        Worker processes for the fold networks (:func:`supramodal.mlp.train_networks`; the result
+        is the same for any).
 
     Returns
     -------
@@ -1108,24 +1113,61 @@ def fit_network_calibration(x, labels, n_classes: int, groups=None, k: int = DEF
         The held-out logits and folds themselves, for whatever else needs a network's held-out
         windows (a late fusion's weight: no need to train the same fold networks again).
     """
-    from supramodal.mlp import DEFAULT_EPOCHS, train_mlp
+    from supramodal.mlp import DEFAULT_EPOCHS, train_networks
 
     x = np.asarray(x, dtype=np.float64)
     y = np.asarray(labels)
     groups = y if groups is None else np.asarray(groups)
     folds, by = calibration_folds(y, groups, k, seed)
-    z = np.empty((len(x), n_classes))
+    held_out = HeldOutLogits(y, folds, k, n_classes, progress)
+    train_networks(fold_tasks(x, y, n_classes, folds, k, hidden, DEFAULT_EPOCHS if epochs is None else epochs,
+                              seed), jobs, done=held_out.told)
+    return calibration_of_held_out(x, y, n_classes, groups, folds, by, k, held_out.logits)
+
+
+def fold_tasks(x, labels, n_classes: int, folds, k: int, hidden: int | None, epochs: int, seed: int) -> list:
+    """The calibration's fold networks as :class:`~supramodal.mlp.NetworkTask`, one per fold with
+    held-out windows, in fold order: trained on the other folds' rows of ``x`` (n, inputs),
+    standardised by their own mean and scale, scoring the fold's own rows."""
+    from supramodal.mlp import NetworkTask
+
+    y = np.asarray(labels)
+    tasks = []
     for f in range(k):
         test = folds == f
-        if not test.any():
-            continue
-        mean, scale = input_scaling(x[~test])
-        net, _ = train_mlp((x[~test] - mean) / scale, y[~test], n_classes, hidden=hidden,
-                           epochs=DEFAULT_EPOCHS if epochs is None else epochs, seed=seed)
-        z[test] = net.logits((x[test] - mean) / scale)
-        if progress:
-            progress(f"calibration fold {f + 1}/{k}: {int(test.sum())} held-out windows, "
-                     f"{float(np.mean(np.argmax(z[test], axis=1) == y[test])):.3f} right")
+        if test.any():
+            mean, scale = input_scaling(x[~test])
+            tasks.append(NetworkTask((x[~test] - mean) / scale, y[~test], n_classes, hidden, epochs, seed,
+                                     (x[test] - mean) / scale))
+    return tasks
+
+
+class HeldOutLogits:
+    """The fold networks' logits of their held-out windows, gathered as each network is told
+    (:meth:`told`, in fold order, as :func:`supramodal.mlp.train_networks` tells them), with a
+    line per fold to ``progress``."""
+
+    def __init__(self, labels, folds, k: int, n_classes: int, progress=None) -> None:
+        self.labels, self.folds, self.progress = np.asarray(labels), np.asarray(folds), progress
+        self.logits = np.empty((len(self.labels), n_classes))
+        self._order = [f for f in range(k) if (self.folds == f).any()]     # fold_tasks' order
+        self._k = k
+
+    def told(self, i: int, result) -> None:
+        """The ``i``-th fold task's result (:func:`supramodal.mlp.train_task`'s)."""
+        f = self._order[i]
+        test = self.folds == f
+        self.logits[test] = result[2]
+        if self.progress:
+            right = float(np.mean(np.argmax(result[2], axis=1) == self.labels[test]))
+            self.progress(f"calibration fold {f + 1}/{self._k}: {int(test.sum())} held-out windows, {right:.3f} right")
+
+
+def calibration_of_held_out(x, labels, n_classes: int, groups, folds, by: str, k: int,
+                            z) -> tuple[Calibration, Novelty, OutOfFold]:
+    """The calibration, novelty and :class:`OutOfFold` of :func:`fit_network_calibration` from the
+    fold networks' held-out logits ``z`` (n, classes) of the raw input rows ``x``."""
+    y = np.asarray(labels)
     cal = fit_calibration(z, y, groups, folds=folds)
     cal = replace(cal, fitted_on={**cal.fitted_on, "folds": int(k), "folds_by": by,
                                   "held_out_accuracy": round(float(np.mean(np.argmax(z, axis=1) == y)), 6)})

@@ -231,3 +231,98 @@ def train_mlp(x: np.ndarray, labels: np.ndarray, n_classes: int, hidden: int | N
             break
         opt.step(grads)
     return net, history
+
+
+@dataclass(frozen=True)
+class NetworkTask:
+    """One network to train, as data: what :func:`train_mlp` is given, and the rows to score with it.
+
+    A task can be sent to a worker process (:func:`supramodal.parallel.map_in_processes`), and
+    :func:`train_task` gives the same network wherever it runs.
+
+    Attributes
+    ----------
+    x : ndarray, shape (n, inputs)
+        Scaled training inputs.
+    labels : ndarray of int, shape (n,)
+    n_classes, hidden, epochs, seed
+        As :func:`train_mlp`'s.
+    score : ndarray, shape (m, inputs), optional
+        Scaled rows whose logits the trained network gives back (a calibration fold's held-out
+        windows).
+    """
+
+    x: np.ndarray
+    labels: np.ndarray
+    n_classes: int
+    hidden: int | None = None
+    epochs: int = DEFAULT_EPOCHS
+    seed: int | None = None
+    score: np.ndarray | None = None
+
+    @property
+    def work(self) -> float:
+        """Multiply-adds of the training, about: what it costs against starting a process."""
+        inputs = self.x.shape[1]
+        hidden = self.hidden or inputs
+        return float(len(self.x)) * hidden * (inputs + self.n_classes) * self.epochs
+
+
+def train_task(task: NetworkTask, progress=None) -> tuple[MLP, list[float], np.ndarray | None]:
+    """Train ``task``'s network; returns it, its training MSE per epoch (:func:`train_mlp`) and the
+    logits of ``task.score`` (None without rows to score)."""
+    net, history = train_mlp(task.x, task.labels, task.n_classes, hidden=task.hidden, epochs=task.epochs,
+                             seed=task.seed, progress=progress)
+    return net, history, None if task.score is None else net.logits(task.score)
+
+
+#: Multiply-adds (:attr:`NetworkTask.work`) of a set of networks worth worker processes: about 2 s
+#: of one core here, against about 0.3 s to start a spawned worker that imports numpy.
+PARALLEL_MIN_WORK = 1e9
+
+
+def train_networks(tasks, jobs: int = 1, first_progress=None, done=None) -> list:
+    """Train every task (:func:`train_task`), over ``jobs`` worker processes where the work is worth
+    them (:data:`PARALLEL_MIN_WORK`); the networks are the same for any ``jobs``.
+
+    Parameters
+    ----------
+    tasks : sequence of NetworkTask
+    jobs : int
+        Worker processes at most (:func:`supramodal.parallel.map_in_processes`); 1: in this process.
+    first_progress : callable(epoch, mse), optional
+        The first task's :func:`train_mlp` progress: every epoch in this process; in workers, its
+        last epoch alone, once the network is back.
+    done : callable(int, result), optional
+        Told each task's index and result, in the order of ``tasks``.
+
+    Returns
+    -------
+    list of (MLP, list of float, ndarray or None)
+        :func:`train_task`'s results, in the order of ``tasks``.
+    """
+    from supramodal.parallel import map_in_processes
+
+    tasks = list(tasks)
+    if jobs == 1 or sum(t.work for t in tasks) < PARALLEL_MIN_WORK:
+        results = []
+        for i, task in enumerate(tasks):
+            results.append(train_task(task, first_progress if i == 0 else None))
+            if done is not None:
+                done(i, results[-1])
+        return results
+    arrived: dict = {}
+    told = 0
+
+    def tell_in_order(i, result) -> None:
+        nonlocal told
+        arrived[i] = result
+        while told in arrived:
+            if told == 0 and first_progress is not None:
+                history = arrived[0][1]
+                first_progress(len(history) - 1, history[-1])
+            if done is not None:
+                done(told, arrived[told])
+            told += 1
+
+    return map_in_processes(train_task, tasks, jobs, done=tell_in_order)

@@ -44,19 +44,22 @@ from supramodal.banks import COCHLEA_B_MIN, COCHLEA_Q_EAR, ERB_TO_B, WHISKER_TAB
 from supramodal.calibration import (
     DEFAULT_CALIBRATION_FOLDS,
     Calibration,
+    HeldOutLogits,
     Novelty,
     OutOfFold,
     calibration_line,
-    fit_network_calibration,
+    calibration_of_held_out,
+    fold_tasks,
     input_scaling,
     normalised_log_posteriors,
     recalibrate,
 )
+from supramodal.calibration import calibration_folds as calibration_folds_of
 from supramodal.checks import CLASS_NAME_HELP, is_class_name
 from supramodal.errors import InputError
 from supramodal.features import check_features
 from supramodal.jsondata import parse_json_text
-from supramodal.mlp import DEFAULT_EPOCHS, MLP, train_mlp
+from supramodal.mlp import DEFAULT_EPOCHS, MLP, NetworkTask, train_networks
 from supramodal.peaks import PEAK_MODES
 from supramodal.pipeline import MAX_WINDOW_SAMPLES
 
@@ -165,7 +168,8 @@ class TextureModel:
     def train(cls, values: np.ndarray, labels, classes, bank: Bank, features, window_samples: int,
               peak_mode: str = "maxima", epochs: int = DEFAULT_EPOCHS, seed: int = 0, hidden: int | None = None,
               progress=None, peak_threshold: float = 0.0, groups=None,
-              calibration_folds: int = DEFAULT_CALIBRATION_FOLDS, calibration_progress=None) -> TextureModel:
+              calibration_folds: int = DEFAULT_CALIBRATION_FOLDS, calibration_progress=None,
+              jobs: int = 1) -> TextureModel:
         """Fit the scaling and the MLP on feature windows, then their calibration.
 
         Parameters
@@ -186,6 +190,10 @@ class TextureModel:
             network like this one. 0: no calibration (the normalised outputs, as version 1).
         calibration_progress : callable(str), optional
             One line per calibration fold.
+        jobs : int
+            Worker processes for the model's network and its calibration's, trained side by side
+            (:func:`supramodal.mlp.train_networks`): the model is the same for any; with more
+            than one, ``progress`` is told the network's last epoch alone.
         """
         features = check_features(features)
         values = np.asarray(values, dtype=np.float64)
@@ -194,15 +202,26 @@ class TextureModel:
             raise InputError(f"feature windows must have shape (n, {expected[0]}, {expected[1]}), got {values.shape}")
         x = values.reshape(len(values), -1)
         mean, scale = input_scaling(x)         # a constant input carries nothing; scale 1 keeps it at 0
-        mlp, history = train_mlp((x - mean) / scale, np.asarray(labels), len(classes), hidden=hidden,
-                                 epochs=epochs, seed=seed, progress=progress)
+        y = np.asarray(labels)
+        tasks = [NetworkTask((x - mean) / scale, y, len(classes), hidden, epochs, seed)]
+        held_out = None
+        if calibration_folds:
+            g = y if groups is None else np.asarray(groups)
+            folds, by = calibration_folds_of(y, g, calibration_folds, seed)
+            held_out = HeldOutLogits(y, folds, calibration_folds, len(classes), calibration_progress)
+            tasks += fold_tasks(x, y, len(classes), folds, calibration_folds, hidden, epochs, seed)
+
+        def told(i: int, result) -> None:
+            if i and held_out is not None:
+                held_out.told(i - 1, result)
+
+        (mlp, history, _), *_ = train_networks(tasks, jobs, first_progress=progress, done=told)
         info = {"algorithm": "iRPROP-", "epochs": len(history), "seed": seed,
                 "final_mse": history[-1], "windows": int(len(values))}
         calibration = novelty = out_of_fold = None
-        if calibration_folds:
-            calibration, novelty, out_of_fold = fit_network_calibration(
-                x, np.asarray(labels), len(classes), groups, calibration_folds, hidden, epochs, seed,
-                calibration_progress)
+        if held_out is not None:
+            calibration, novelty, out_of_fold = calibration_of_held_out(x, y, len(classes), g, folds, by,
+                                                                        calibration_folds, held_out.logits)
         return cls(bank, features, int(window_samples), peak_mode, tuple(classes), mean, scale, mlp, info,
                    float(peak_threshold), calibration, novelty, out_of_fold)
 

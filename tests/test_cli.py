@@ -203,6 +203,8 @@ def test_signal_during_start_up_training(tmp_path, sig):
     (["evaluate", "m.npz", "--manifest", "m.csv", "--cv", "2", "--seed", "4294967296"], "--seed"),
     (["fit", "m.csv", "--jobs", "1000"], "--jobs"),
     (["experiment", "fig3", "--jobs", "1000"], "--jobs"),
+    (["train", "--bank", "whisker", "--manifest", "m.csv", "--out", "m.npz", "--jobs", "1000"], "--jobs"),
+    (["train", "--bank", "whisker", "--manifest", "m.csv", "--out", "m.npz", "--jobs", "0"], "--jobs"),
     (["fit", "m.csv", "--cluster", "notanaddress"], "--cluster"),
     (["fit", "m.csv", "--cluster", "tcp://host:notaport"], "--cluster"),
 ])

@@ -17,6 +17,7 @@ one thread (``python -m supramodal.benchmarks.filterbank`` re-executes itself so
 are not).
 """
 
+from supramodal.parallel import THREAD_VARS
+
 #: Environment that pins numerical libraries to one thread; set before numpy is imported.
-PINNED_THREADS = {name: "1" for name in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS",
-                                         "VECLIB_MAXIMUM_THREADS", "NUMEXPR_NUM_THREADS")}
+PINNED_THREADS = dict.fromkeys(THREAD_VARS, "1")

@@ -100,10 +100,9 @@ def seed(text: str) -> int:
 
 def cores() -> int:
     """The cores this process may run on."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:                   # not on Linux
-        return os.cpu_count() or 1
+    from supramodal.parallel import default_jobs
+
+    return default_jobs()
 
 
 def jobs(text: str) -> int:

@@ -8,6 +8,7 @@ from pathlib import Path
 from supramodal.node.cli.arguments import (
     bank,
     count,
+    jobs,
     mapping,
     output_file,
     positive_seconds,
@@ -75,6 +76,9 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
     p.add_argument("--mapping", type=mapping, default="auto",
                    help="recording channels to filters: auto (one channel to all, or one each), mono, per-channel, "
                         "mean, or a channel index (default auto)")
+    p.add_argument("--jobs", type=jobs, default=None,
+                   help="worker processes for the model's networks and its calibration folds' (default: the cores "
+                        "here); the model is the same for any")
     p.add_argument("--quiet", action="store_true", help="no progress on stderr (warnings are still shown)")
     return p
 
@@ -120,7 +124,7 @@ def run(args: argparse.Namespace) -> int:
                                      epochs=args.epochs, seed=args.seed, mapping=args.mapping, progress=progress(args))
         print(format_cross_validation(cv))
     model = train_from_manifest(args.manifest, bank, tuple(args.features), args.window, epochs=args.epochs,
-                                seed=args.seed, mapping=args.mapping, progress=progress(args))
+                                seed=args.seed, mapping=args.mapping, progress=progress(args), jobs=_jobs(args))
     # The model and its cross-validation's files are put in place together (the files written first, an
     # interrupted training left a new report beside the earlier model)
     written = save_model(model, args.out, cv=None if cv is None else (args.cv, cv))
@@ -134,6 +138,13 @@ def run(args: argparse.Namespace) -> int:
           f"{model.training['windows']} training windows, final MSE {model.training['final_mse']:.4g}")
     print("posteriors: " + calibration_line(None if model.calibration is None else model.calibration.fitted_on))
     return 0
+
+
+def _jobs(args: argparse.Namespace) -> int:
+    """``--jobs``, or the cores here."""
+    from supramodal.parallel import default_jobs
+
+    return args.jobs or default_jobs()
 
 
 def save_model(model, out, cv: tuple[int, dict] | None = None) -> list[Path]:
@@ -172,7 +183,8 @@ def _train_stream(args) -> int:
         raise CliError("with --scene and --stream, the recordings' scene says the bank, features and window: leave "
                        "out --manifest, --bank, --cv, --model, --live and --write-scene")
     check_new_file(args.out, args.force, "the model file")
-    model = train_from_scenes(args.scene, args.stream, epochs=args.epochs, seed=args.seed, progress=progress(args))
+    model = train_from_scenes(args.scene, args.stream, epochs=args.epochs, seed=args.seed, progress=progress(args),
+                              jobs=_jobs(args))
     path = save_model(model, args.out)[-1]
     print(f"wrote {path}: stream {args.stream}, {model.bank.kind} bank, features {list(model.features)}, classes "
           f"{list(model.classes)}, {model.training['windows']} training windows of {len(args.scene)} recording(s), "

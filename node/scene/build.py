@@ -37,6 +37,7 @@ from supramodal.node.scene.model_cache import hand_over, trained_on_start
 from supramodal.node.scene.registry import driver_spec, sink_spec
 from supramodal.node.scene.schema import LEARN
 from supramodal.node.scene.specs import Scene, SceneError, SinkSettings, SourceSpec, StreamSpec
+from supramodal.parallel import default_jobs
 from supramodal.pipeline import FeaturePipeline
 from supramodal.training import split, texture_features
 
@@ -93,7 +94,7 @@ def train_on_texture_set(ts, pipeline: FeaturePipeline, progress=None, held_out:
                                          peak_threshold=p.peaks.threshold, progress=tell.features)
             x_train, y_train, x_test, y_test = split(values)
             model = TextureModel.train_for(p, x_train, y_train, ts.names, seed=0, progress=tell.epoch,
-                                           calibration_progress=tell.fold)
+                                           calibration_progress=tell.fold, jobs=default_jobs())
         made = (model, (x_train, y_train), (x_test, y_test))
     _trained_on_the_spot[key] = made                    # the most recent last
     while len(_trained_on_the_spot) > TRAINED_ON_THE_SPOT:

@@ -64,7 +64,7 @@ def _no_window(rec: Recording, window_seconds: float) -> ManifestError:
 
 
 def train_from_manifest(manifest, bank: Bank, features=("Af",), window: float = 0.1, epochs: int = DEFAULT_EPOCHS,
-                        seed: int = 0, mapping="auto", progress=None) -> TextureModel:
+                        seed: int = 0, mapping="auto", progress=None, jobs: int = 1) -> TextureModel:
     """Train a model on every window of every recording in the manifest, calibrated on held-out
     windows: out-of-fold windows of folds grouped by recording (manifest line) where every label
     has two recordings and there are enough of them, else of spans of each recording
@@ -83,7 +83,7 @@ def train_from_manifest(manifest, bank: Bank, features=("Af",), window: float = 
     make_pipeline = lambda: FeaturePipeline(bank, features, window)       # noqa: E731
     recs, classes, windows = _manifest_windows(manifest, make_pipeline, mapping, progress)
     say = None if progress is None else (lambda m: progress(f"calibration: {m}"))
-    return _train(recs, classes, windows, make_pipeline(), epochs, seed, calibration_progress=say)
+    return _train(recs, classes, windows, make_pipeline(), epochs, seed, calibration_progress=say, jobs=jobs)
 
 
 def _manifest_windows(manifest, make_pipeline, mapping, progress):
@@ -104,16 +104,16 @@ def _manifest_windows(manifest, make_pipeline, mapping, progress):
 
 
 def _train(recs, classes, windows, pipeline: FeaturePipeline, epochs: int, seed: int, hidden=None,
-           calibration_progress=None, groups=None) -> TextureModel:
+           calibration_progress=None, groups=None, jobs: int = 1) -> TextureModel:
     """A model on the recordings' windows, calibrated on out-of-fold windows of folds grouped by
     recording (``groups``, one per entry of ``recs``; default :func:`recording_group`) where there
-    are enough recordings."""
+    are enough recordings; its networks over ``jobs`` worker processes (the same model for any)."""
     x = np.concatenate(windows)
     y = np.concatenate([np.full(len(v), classes.index(r.label)) for r, v in zip(recs, windows)])
     names = [recording_group(r) for r in recs] if groups is None else list(groups)
     groups = np.repeat(np.array(names), [len(v) for v in windows])
     model = TextureModel.train_for(pipeline, x, y, classes, epochs=epochs, seed=seed, hidden=hidden, groups=groups,
-                                   calibration_progress=calibration_progress)
+                                   calibration_progress=calibration_progress, jobs=jobs)
     _warn_if_calibrated_on_spans(model)
     return model
 
@@ -174,7 +174,7 @@ def scene_stream(path, stream: str):
 
 
 def train_from_scenes(paths, stream: str, epochs: int = DEFAULT_EPOCHS, seed: int = 0, progress=None,
-                      hidden=None) -> TextureModel:
+                      hidden=None, jobs: int = 1) -> TextureModel:
     """Train a stream's model straight from recorded graphs (``train --scene REC.toml ... --stream NAME``).
 
     Each scene is a replay scene ``supramodal record`` wrote; the stream's bank, features and window
@@ -199,7 +199,8 @@ def train_from_scenes(paths, stream: str, epochs: int = DEFAULT_EPOCHS, seed: in
         raise InputError(f"training needs windows of at least two labels, the recordings have {list(classes)}; "
                          "record (or label) another texture")
     say = None if progress is None else (lambda m: progress(f"calibration: {m}"))
-    model = _train(recs, classes, windows, make(), epochs, seed, hidden, calibration_progress=say, groups=groups)
+    model = _train(recs, classes, windows, make(), epochs, seed, hidden, calibration_progress=say, groups=groups,
+                   jobs=jobs)
     model.training.update({"sessions": seen, "stream": stream})
     return model
 

@@ -23,12 +23,10 @@ from __future__ import annotations
 
 import hashlib
 import inspect
-import os
 import sys
 import time
 from collections.abc import Callable
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
-from contextlib import contextmanager
 from functools import partial
 from multiprocessing import get_context
 
@@ -36,18 +34,7 @@ import numpy as np
 
 from supramodal.errors import InputError
 from supramodal.experiments.common import Plan, Run
-
-#: Environment variables that hold BLAS/OpenMP libraries to one thread in the workers.
-_THREAD_VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "VECLIB_MAXIMUM_THREADS",
-                "NUMEXPR_NUM_THREADS")
-
-
-def default_jobs() -> int:
-    """Cores this process may use."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # pragma: no cover - not Linux
-        return max(1, os.cpu_count() or 1)
+from supramodal.parallel import default_jobs, single_threaded_children
 
 
 def run_seed(seed: int, key: tuple) -> int:
@@ -78,21 +65,6 @@ def _call(run: Run, seed: int, progress) -> tuple[object, float]:
     extra = {"seed": seed} if run.seeded else {}
     result = run.fn(**run.kwargs, **extra, progress=report)
     return result, time.perf_counter() - t0
-
-
-@contextmanager
-def _single_threaded_children():
-    """Set the BLAS thread variables to 1 while workers are started (restored afterwards)."""
-    saved = {k: os.environ.get(k) for k in _THREAD_VARS}
-    os.environ.update({k: "1" for k in _THREAD_VARS})
-    try:
-        yield
-    finally:
-        for k, v in saved.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
 
 
 def run_all(runs: list[Run], jobs: int | None = None, seed: int = 0, progress=None) -> dict:
@@ -133,7 +105,7 @@ def run_all(runs: list[Run], jobs: int | None = None, seed: int = 0, progress=No
     workers = min(jobs, len(runs))
     if progress:
         progress(f"{len(runs)} runs over {workers} worker process(es)")
-    with _single_threaded_children(), ProcessPoolExecutor(max_workers=workers, mp_context=get_context("spawn")) as pool:
+    with single_threaded_children(), ProcessPoolExecutor(max_workers=workers, mp_context=get_context("spawn")) as pool:
         pending = {pool.submit(_call, runs[i], seeds[runs[i].key], worker_progress): runs[i] for i in order}
         try:
             while pending:
