@@ -33,6 +33,7 @@ import sys
 import time
 from pathlib import Path
 
+from supramodal.memory import keep_freed_memory
 from supramodal.parallel import THREAD_VARS, default_jobs
 
 #: The first decision line of ``supramodal run`` (a window's end time in seconds, then its decision).
@@ -153,6 +154,7 @@ def main(argv=None) -> int:
     parser.add_argument("--out", default="out/training_speed", help="folder of training_speed.json")
     parser.add_argument("--json", action="store_true", help="print the result as JSON, not a table")
     args = parser.parse_args(argv)
+    keep_freed_memory()                                 # as the command line does
     if args.rounds < 1 or args.jobs < 1:
         parser.error("--rounds and --jobs must be >= 1")
     result = run(args.rounds, args.jobs, lambda line: print(line, file=sys.stderr, flush=True))

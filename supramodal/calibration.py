@@ -1100,7 +1100,7 @@ def fit_network_calibration(x, labels, n_classes: int, groups=None, k: int = DEF
         Each window's recording, windows of one recording consecutive and in time order
         (default: one recording per label).
     progress : callable(str), optional
-        One line per fold, in fold order.
+        One line per fold, as each is trained.
     jobs : int
         Worker processes for the fold networks (:func:`supramodal.mlp.train_networks`; the result
         is the same for any).
@@ -1144,20 +1144,27 @@ def fold_tasks(x, labels, n_classes: int, folds, k: int, hidden: int | None, epo
 
 class HeldOutLogits:
     """The fold networks' logits of their held-out windows, gathered as each network is told
-    (:meth:`told`, in fold order, as :func:`supramodal.mlp.train_networks` tells them), with a
-    line per fold to ``progress``."""
+    (:meth:`told`, in any order: :func:`supramodal.mlp.train_networks` tells them as they are back),
+    with a line per fold to ``progress``; :attr:`complete` once every fold is in."""
 
     def __init__(self, labels, folds, k: int, n_classes: int, progress=None) -> None:
         self.labels, self.folds, self.progress = np.asarray(labels), np.asarray(folds), progress
         self.logits = np.empty((len(self.labels), n_classes))
         self._order = [f for f in range(k) if (self.folds == f).any()]     # fold_tasks' order
         self._k = k
+        self._in: set[int] = set()
+
+    @property
+    def complete(self) -> bool:
+        """Whether every fold's logits are in."""
+        return len(self._in) == len(self._order)
 
     def told(self, i: int, result) -> None:
         """The ``i``-th fold task's result (:func:`supramodal.mlp.train_task`'s)."""
         f = self._order[i]
         test = self.folds == f
         self.logits[test] = result[2]
+        self._in.add(f)
         if self.progress:
             right = float(np.mean(np.argmax(result[2], axis=1) == self.labels[test]))
             self.progress(f"calibration fold {f + 1}/{self._k}: {int(test.sum())} held-out windows, {right:.3f} right")

@@ -193,7 +193,8 @@ class TextureModel:
         jobs : int
             Worker processes for the model's network and its calibration's, trained side by side
             (:func:`supramodal.mlp.train_networks`): the model is the same for any; with more
-            than one, ``progress`` is told the network's last epoch alone.
+            than one, ``progress`` is told the network's last epoch alone. The calibration's
+            networks come first, the model's last (whose ``progress`` then follows the folds').
         """
         features = check_features(features)
         values = np.asarray(values, dtype=np.float64)
@@ -203,25 +204,30 @@ class TextureModel:
         x = values.reshape(len(values), -1)
         mean, scale = input_scaling(x)         # a constant input carries nothing; scale 1 keeps it at 0
         y = np.asarray(labels)
-        tasks = [NetworkTask((x - mean) / scale, y, len(classes), hidden, epochs, seed)]
+        # The calibration's fold networks first, the model's last: with workers, the calibration is
+        # fitted on the folds' windows while the model's network still trains.
+        tasks = []
         held_out = None
+        fitted: list = []
         if calibration_folds:
             g = y if groups is None else np.asarray(groups)
             folds, by = calibration_folds_of(y, g, calibration_folds, seed)
             held_out = HeldOutLogits(y, folds, calibration_folds, len(classes), calibration_progress)
-            tasks += fold_tasks(x, y, len(classes), folds, calibration_folds, hidden, epochs, seed)
+            tasks = fold_tasks(x, y, len(classes), folds, calibration_folds, hidden, epochs, seed)
+        n_folds = len(tasks)
+        tasks.append(NetworkTask((x - mean) / scale, y, len(classes), hidden, epochs, seed))
 
-        def told(i: int, result) -> None:
-            if i and held_out is not None:
-                held_out.told(i - 1, result)
+        def back(i: int, result) -> None:
+            if held_out is not None and i < n_folds:
+                held_out.told(i, result)
+                if held_out.complete:
+                    fitted.append(calibration_of_held_out(x, y, len(classes), g, folds, by, calibration_folds,
+                                                          held_out.logits))
 
-        (mlp, history, _), *_ = train_networks(tasks, jobs, first_progress=progress, done=told)
+        *_, (mlp, history, _) = train_networks(tasks, jobs, watch=(n_folds, progress), done=back)
         info = {"algorithm": "iRPROP-", "epochs": len(history), "seed": seed,
                 "final_mse": history[-1], "windows": int(len(values))}
-        calibration = novelty = out_of_fold = None
-        if held_out is not None:
-            calibration, novelty, out_of_fold = calibration_of_held_out(x, y, len(classes), g, folds, by,
-                                                                        calibration_folds, held_out.logits)
+        calibration, novelty, out_of_fold = fitted[0] if fitted else (None, None, None)
         return cls(bank, features, int(window_samples), peak_mode, tuple(classes), mean, scale, mlp, info,
                    float(peak_threshold), calibration, novelty, out_of_fold)
 

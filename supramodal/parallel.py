@@ -57,9 +57,13 @@ def single_threaded_children() -> Iterator[None]:
                 os.environ[k] = v
 
 
-def _ignore_interrupts() -> None:
-    """A worker's start: Ctrl-C reaches the whole process group; the caller alone answers it."""
+def _start_worker() -> None:
+    """A worker's start: Ctrl-C reaches the whole process group, and the caller alone answers it;
+    freed memory is kept for the next array (:func:`supramodal.memory.keep_freed_memory`)."""
+    from supramodal.memory import keep_freed_memory
+
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    keep_freed_memory()
 
 
 def _indexed(call: tuple[Callable[[Any], Any], int, Any]) -> tuple[int, Any]:
@@ -104,7 +108,7 @@ def map_in_processes(fn: Callable[[Any], T], items: Sequence[Any], jobs: int = 1
 
     out: list[Any] = [None] * len(items)
     with single_threaded_children():
-        pool = get_context("spawn").Pool(min(jobs, len(items)), initializer=_ignore_interrupts)
+        pool = get_context("spawn").Pool(min(jobs, len(items)), initializer=_start_worker)
     try:
         for i, result in pool.imap_unordered(_indexed, [(fn, i, item) for i, item in enumerate(items)]):
             out[i] = result

@@ -84,10 +84,10 @@ def test_the_model_is_the_same_for_any_jobs(always_parallel):
     np.testing.assert_array_equal(one.out_of_fold.logits, two.out_of_fold.logits)
     np.testing.assert_array_equal(one.novelty_score(_windows(seed=9)[0]), two.novelty_score(_windows(seed=9)[0]))
     assert one.training == two.training
-    # Progress: the folds' lines alike and in fold order; of the model's network, every epoch with one
-    # job, its last alone (the same epoch and error) from the workers.
-    assert two_folds == one_folds and len(one_folds) == 10
-    assert [line.split(":")[0] for line in two_folds] == [f"calibration fold {f}/10" for f in range(1, 11)]
+    # Progress: the folds' lines alike (in fold order with one job, as each is back from the workers);
+    # of the model's network, every epoch with one job, its last alone (the same epoch and error) from them.
+    assert sorted(two_folds) == sorted(one_folds) and len(one_folds) == 10
+    assert [line.split(":")[0] for line in one_folds] == [f"calibration fold {f}/10" for f in range(1, 11)]
     assert len(one_epochs) == 60 and two_epochs == one_epochs[-1:]
 
 
@@ -102,3 +102,41 @@ def test_work_counts_every_multiply_add_of_the_training():
     task = mlp.NetworkTask(np.zeros((100, 20)), np.zeros(100, dtype=int), 8, hidden=10, epochs=50)
     assert task.work == 100 * 10 * (20 + 8) * 50
     assert mlp.NetworkTask(np.zeros((100, 20)), np.zeros(100, dtype=int), 8, epochs=50).work == 100 * 20 * 28 * 50
+
+
+INTERRUPTED = """
+import multiprocessing, os, signal, sys, threading, time
+from supramodal.parallel import map_in_processes
+
+def interrupt():
+    time.sleep(1.5)
+    print(" ".join(str(p.pid) for p in multiprocessing.active_children()), flush=True)
+    os.kill(os.getpid(), signal.SIGINT)
+
+if __name__ == "__main__":
+    threading.Thread(target=interrupt, daemon=True).start()
+    try:
+        map_in_processes(time.sleep, [60, 60, 60], jobs=2)
+    except KeyboardInterrupt:
+        print("interrupted", flush=True)
+        sys.exit(3)
+"""
+
+
+def test_ctrl_c_stops_the_workers_at_once(tmp_path):
+    """Ctrl-C in the caller (workers busy for a minute) ends the call at once and no worker is left."""
+    import subprocess
+    import sys
+    import time
+
+    script = tmp_path / "interrupted.py"
+    script.write_text(INTERRUPTED)
+    t0 = time.monotonic()
+    proc = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 3, proc.stderr
+    assert time.monotonic() - t0 < 30                       # not the workers' minute
+    pids, said = proc.stdout.splitlines()
+    assert said == "interrupted" and len(pids.split()) == 2
+    for pid in map(int, pids.split()):
+        with pytest.raises(ProcessLookupError):
+            os.kill(pid, 0)

@@ -59,7 +59,7 @@ class Ticker:
         self._thread = threading.Thread(target=self._run, name="progress", daemon=True)
 
     def __enter__(self) -> Ticker:
-        self.say(f"{self.what}: training ({self.networks} networks: the model's, then its calibration's); later "
+        self.say(f"{self.what}: training ({self.networks} networks: its calibration's, then the model's); later "
                  "runs read it from the model cache")
         self._thread.start()
         return self

@@ -106,7 +106,8 @@ def train_on_texture_set(ts, pipeline: FeaturePipeline, progress=None, held_out:
 
 class _TrainingTold:
     """The training's callbacks, each telling a :class:`~supramodal.node.runtime.ticker.Ticker` its stage
-    (``ticker`` None: no one is told)."""
+    (``ticker`` None: no one is told). The calibration's fold networks come first (side by side on the
+    cores), then the model's (:meth:`supramodal.model.TextureModel.train`)."""
 
     def __init__(self, ticker: Ticker | None, epochs: int, folds: int) -> None:
         self.ticker, self.epochs, self.folds = ticker, epochs, folds
@@ -117,20 +118,17 @@ class _TrainingTold:
 
     def epoch(self, epoch: int, mse: float) -> None:
         if self.ticker is not None:
-            self.ticker.stage(f"network 1 of {self.folds + 1} (the model), epoch {epoch + 1} of {self.epochs}",
-                              (epoch + 1) / self.epochs)
+            self.ticker.stage(f"network {self.folds + 1} of {self.folds + 1} (the model's), epoch {epoch + 1} of "
+                              f"{self.epochs}", (epoch + 1) / self.epochs)
             if epoch + 1 == self.epochs:
                 self.ticker.network_done()
-                self.ticker.stage(f"network 2 of {self.folds + 1} (calibration fold 1 of {self.folds})")
 
     def fold(self, line: str) -> None:
         if self.ticker is not None:
-            if self.ticker.done == 0:               # the model's network stopped early (its error goal met)
-                self.ticker.network_done()
             self.ticker.network_done()
             k = self.ticker.done
-            self.ticker.stage(f"network {k + 1} of {self.folds + 1} (calibration fold {k} of {self.folds})"
-                              if k <= self.folds else "fitting the calibration on the folds' held-out windows")
+            self.ticker.stage(f"{k} of {self.folds + 1} networks trained" if k < self.folds else
+                              "fitting the calibration on the folds' held-out windows")
 
 
 @contextlib.contextmanager

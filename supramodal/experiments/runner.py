@@ -34,6 +34,7 @@ import numpy as np
 
 from supramodal.errors import InputError
 from supramodal.experiments.common import Plan, Run
+from supramodal.memory import keep_freed_memory
 from supramodal.parallel import default_jobs, single_threaded_children
 
 
@@ -105,7 +106,8 @@ def run_all(runs: list[Run], jobs: int | None = None, seed: int = 0, progress=No
     workers = min(jobs, len(runs))
     if progress:
         progress(f"{len(runs)} runs over {workers} worker process(es)")
-    with single_threaded_children(), ProcessPoolExecutor(max_workers=workers, mp_context=get_context("spawn")) as pool:
+    with single_threaded_children(), ProcessPoolExecutor(max_workers=workers, mp_context=get_context("spawn"),
+                                                                initializer=keep_freed_memory) as pool:
         pending = {pool.submit(_call, runs[i], seeds[runs[i].key], worker_progress): runs[i] for i in order}
         try:
             while pending:
