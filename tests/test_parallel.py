@@ -105,16 +105,11 @@ def test_work_counts_every_multiply_add_of_the_training():
 
 
 INTERRUPTED = """
-import multiprocessing, os, signal, sys, threading, time
+import sys, time
 from supramodal.parallel import map_in_processes
 
-def interrupt():
-    time.sleep(1.5)
-    print(" ".join(str(p.pid) for p in multiprocessing.active_children()), flush=True)
-    os.kill(os.getpid(), signal.SIGINT)
-
 if __name__ == "__main__":
-    threading.Thread(target=interrupt, daemon=True).start()
+    print("mapping", flush=True)
     try:
         map_in_processes(time.sleep, [60, 60, 60], jobs=2)
     except KeyboardInterrupt:
@@ -124,19 +119,32 @@ if __name__ == "__main__":
 
 
 def test_ctrl_c_stops_the_workers_at_once(tmp_path):
-    """Ctrl-C in the caller (workers busy for a minute) ends the call at once and no worker is left."""
+    """Ctrl-C at a terminal (SIGINT to the whole process group) while the workers sleep for a minute: the
+    call ends at once, the caller says so, and no process of the group is left."""
+    import signal
     import subprocess
     import sys
     import time
 
     script = tmp_path / "interrupted.py"
     script.write_text(INTERRUPTED)
-    t0 = time.monotonic()
-    proc = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=60)
-    assert proc.returncode == 3, proc.stderr
-    assert time.monotonic() - t0 < 30                       # not the workers' minute
-    pids, said = proc.stdout.splitlines()
-    assert said == "interrupted" and len(pids.split()) == 2
-    for pid in map(int, pids.split()):
-        with pytest.raises(ProcessLookupError):
-            os.kill(pid, 0)
+    proc = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, start_new_session=True)
+    try:
+        assert proc.stdout is not None and proc.stdout.readline() == "mapping\n"
+        time.sleep(3.0)                         # the workers started (or starting: a Ctrl-C then stops them too)
+        t0 = time.monotonic()
+        os.killpg(proc.pid, signal.SIGINT)
+        out, err = proc.communicate(timeout=120)
+    finally:
+        proc.kill()
+    assert proc.returncode == 3, err
+    assert out == "interrupted\n" and time.monotonic() - t0 < 60          # not the workers' minute
+    deadline = time.monotonic() + 10
+    while True:                                  # every worker gone with its caller
+        try:
+            os.killpg(proc.pid, 0)
+        except ProcessLookupError:
+            break
+        assert time.monotonic() < deadline, "a worker outlived its caller"
+        time.sleep(0.1)

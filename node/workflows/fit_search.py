@@ -354,8 +354,10 @@ def score_fold(job: dict) -> dict:
     -------
     dict
         ``window``, ``recording`` and ``contact`` accuracy of the fold, ``filterbank_runs`` (the
-        recordings this task ran through a filterbank: 0 when the bank was cached).
+        recordings this task ran through a filterbank: 0 when the bank was cached), ``cpu_seconds``
+        (of the thread that ran it: BLAS is held to that thread).
     """
+    cpu0 = time.thread_time()
     try:
         from threadpoolctl import threadpool_limits
     except ImportError:                                 # without it BLAS keeps its own threads
@@ -385,7 +387,7 @@ def score_fold(job: dict) -> dict:
     contact = pooled_accuracy(lps, truths, n)[0]
     return {"window": float(window_right.mean()), "recording": recording,
             "contact": recording if contact is None else float(contact),
-            "filterbank_runs": cache.filterbank_runs - before}
+            "filterbank_runs": cache.filterbank_runs - before, "cpu_seconds": time.thread_time() - cpu0}
 
 
 # -- where the folds run -------------------------------------------------------------------------
@@ -673,7 +675,8 @@ def fit_search(manifest, k: int = 5, seed: int = 0, quick: bool = False, trials:
                 + (f"best so far {best[f'{target}_mean']:.3f} of {target}s (trial {best['trial']}: {_describe(best)})"
                    if best else "none complete yet")
                 + f"; {elapsed:.0f} s" + ("" if timeout is None else f" of the {timeout:g} s budget")
-                + f", about {left:.0f} s left")
+                + f", about {left:.0f} s left"
+                + ("" if (cpu := cpu_per_trial(rows)) is None else f"; {cpu:.1f} CPU s per complete trial"))
         done = [r for r in rows if r["state"] == "complete"]
         if not done:
             raise FitError("no trial completed (every one pruned or with an empty band); run more trials")
@@ -719,7 +722,14 @@ def _params(p: dict) -> dict:
 def _row(number: int, state: str, s: Setting, folds: list[dict], target: str) -> dict:
     summary = _summary(folds)
     return {"trial": number, "state": state, "folds": len(folds), **asdict(s), **summary,
-            "score": summary[f"{target}_mean"]}
+            "score": summary[f"{target}_mean"], "cpu_seconds": round(sum(f["cpu_seconds"] for f in folds), 2)}
+
+
+def cpu_per_trial(rows: list[dict]) -> float | None:
+    """The median CPU seconds of the complete trials (every fold's filterbank, features and network),
+    None before one is complete."""
+    done = [r["cpu_seconds"] for r in rows if r["state"] == "complete"]
+    return float(np.median(done)) if done else None
 
 
 def _rank(row: dict):
@@ -741,8 +751,8 @@ def format_search(result: dict) -> str:
     lines = [f"fit by grouped {result['k']}-fold cross-validation (seed {result['seed']}, rounds of "
              f"{result['batch']}), banks at {result['fs']:g} Hz, maximising {t} accuracy: {len(rows)} trials "
              f"({states['complete']} complete, {states['pruned']} pruned, {states['empty band']} with an empty "
-             f"band) in {result['seconds']:.0f} s on {result['where']}; {result['filterbank_runs']} filterbank runs "
-             f"for {result['recordings']} recordings"
+             f"band) in {result['seconds']:.0f} s on {result['where']} ({cpu_per_trial(rows):.1f} CPU s per complete "
+             f"trial, median); {result['filterbank_runs']} filterbank runs for {result['recordings']} recordings"
              + ("" if result["space"]["train_windows"] is None else
                 f"; each fold's network trained on at most {result['space']['train_windows']} windows (--quick)"),
              "",
@@ -766,7 +776,7 @@ def format_search(result: dict) -> str:
 
 ROW_FIELDS = ("trial", "state", "folds", "family", "channels", "f_low", "f_high", "b_scale", "window", "features",
               "hidden", "epochs", "score", "window_mean", "window_sd", "recording_mean", "recording_sd",
-              "contact_mean", "contact_sd")
+              "contact_mean", "contact_sd", "cpu_seconds")
 
 
 def write_search(result: dict, folder: Path) -> list[Path]:
