@@ -53,7 +53,8 @@ from scipy.special import log_softmax, logsumexp
 from supramodal.errors import InputError
 
 __all__ = [
-    "CALIBRATION_METHOD", "DEFAULT_CALIBRATION_FOLDS", "ECE_BINS", "NOVELTY_METHOD", "Calibration", "HeldOutLogits",
+    "CALIBRATION_METHOD", "CHANGES_KEPT", "DEFAULT_CALIBRATION_FOLDS", "HeldOutChanges", "ECE_BINS",
+    "NOVELTY_METHOD", "Calibration", "HeldOutLogits",
     "Novelty", "calibration_of_held_out", "fold_tasks",
     "brier_score", "calibration_line", "calibration_report", "cap_gaps", "confusion_caps", "fit_capped_pooling",
     "fit_capped_window_calibration", "effective_windows", "expected_calibration_error", "fit_novelty",
@@ -408,6 +409,54 @@ def _check_scored(values, labels, what: str) -> None:
 
 # -- the calibration a model keeps -----------------------------------------------------------
 
+#: Held-out change statistics a calibration keeps, the largest (:class:`HeldOutChanges`).
+CHANGES_KEPT = 1024
+
+
+@dataclass(frozen=True)
+class HeldOutChanges:
+    """What a change detector's statistic did on a calibration's held-out windows, so that a node can set
+    its threshold for any rate of false changes (:func:`supramodal.decisions.change_threshold`).
+
+    Attributes
+    ----------
+    windows : int
+        Held-out windows measured (>= 1).
+    largest : tuple of float
+        Their largest statistics, in decreasing order, each at least 0 (a threshold is never below 0, so
+        a lower statistic counts as 0; a window before the detector's first test has none, -inf): all
+        of them, or the :data:`CHANGES_KEPT` largest.
+    """
+
+    windows: int
+    largest: tuple[float, ...]
+
+    def __post_init__(self) -> None:
+        w = self.windows
+        if isinstance(w, bool) or not isinstance(w, (int, np.integer)) or w < 1:
+            raise InputError(f"held-out changes: windows must be a count >= 1, got {w!r}")
+        try:
+            a = np.array(self.largest, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise InputError("held-out changes: largest must be a list of numbers") from None
+        if a.ndim != 1 or not 1 <= len(a) <= min(int(w), CHANGES_KEPT):
+            raise InputError(f"held-out changes: largest must hold 1 to min(windows, {CHANGES_KEPT}) numbers, got "
+                             f"{a.shape} for {w} windows")
+        if not np.isfinite(a).all() or np.any(np.diff(a) > 0) or np.any(a < 0):
+            raise InputError("held-out changes: largest must be finite numbers >= 0 in decreasing order")
+        object.__setattr__(self, "windows", int(w))
+        object.__setattr__(self, "largest", tuple(float(v) for v in a))
+
+    @classmethod
+    def of(cls, statistics) -> HeldOutChanges:
+        """From every held-out window's statistic (any order; -inf where a window had none)."""
+        stats = np.sort(np.maximum(np.asarray(statistics, dtype=np.float64), 0.0))[::-1]
+        return cls(len(stats), tuple(stats[:CHANGES_KEPT]))
+
+    def to_dict(self) -> dict:
+        return {"windows": self.windows, "largest": list(self.largest)}
+
+
 @dataclass(frozen=True)
 class Calibration:
     """A model's fitted map from logits to window posteriors, and its pooling over a contact.
@@ -428,6 +477,10 @@ class Calibration:
         posteriors, ``caps[k][j]`` that of a decision for ``k`` against ``j``: zero diagonal,
         every other entry within :data:`CAP_BOUNDS`. None: no caps (a model file of before them,
         or a fit where they did not earn their numbers: :func:`fit_calibration`).
+    changes : HeldOutChanges or None
+        A change detector's statistic on the held-out windows (the model's, where it was trained
+        with this version), for a node's change threshold at the rate a scene asks; None: the
+        detector's bound.
     contact_correlation : float or None
         ``rho`` of the capped contact pooling, in [0, 1]: given exactly when ``contact_caps`` is.
         :attr:`correlation` stays that of the plain pooling (of the capped windows), for a
@@ -442,6 +495,7 @@ class Calibration:
     caps: tuple | None = None
     contact_caps: tuple | None = None
     contact_correlation: float | None = None
+    changes: HeldOutChanges | None = None
 
     def __post_init__(self) -> None:
         lo, hi = MAP_BOUNDS
@@ -502,6 +556,8 @@ class Calibration:
                 d[name] = [list(r) for r in getattr(self, name)]
         if self.contact_correlation is not None:
             d["contact_correlation"] = self.contact_correlation
+        if self.changes is not None:
+            d["changes"] = self.changes.to_dict()
         return d
 
     @classmethod
@@ -511,7 +567,7 @@ class Calibration:
         if not isinstance(d, dict):
             raise bad("'calibration' must be an object")
         keys = {"method", "temperature", "scale", "correlation", "fitted_on"}
-        optional = {"caps", "contact_caps", "contact_correlation"}
+        optional = {"caps", "contact_caps", "contact_correlation", "changes"}
         if not keys <= set(d) <= keys | optional:
             raise bad(f"'calibration' must have exactly the keys {sorted(keys)}, and may have {sorted(optional)}; "
                       f"has {sorted(d)}")
@@ -537,9 +593,18 @@ class Calibration:
             if n_classes is not None and (len(v) != n_classes or any(len(r) != n_classes for r in v)):
                 raise bad(f"'calibration.{name}' must be {n_classes} x {n_classes} (the model's classes)")
             caps[i] = tuple(tuple(float(e) for e in r) for r in v)
+        changes = d.get("changes")
+        if changes is not None and (not isinstance(changes, dict) or set(changes) != {"windows", "largest"}
+                                    or not isinstance(changes["largest"], list)
+                                    or not all(not isinstance(e, bool) and isinstance(e, (int, float))
+                                               for e in changes["largest"])):
+            raise bad("'calibration.changes' must be an object with exactly the keys windows (a count) and "
+                      "largest (a list of numbers)")
         try:
             return cls(d["temperature"], d["scale"], d["correlation"], d["fitted_on"], caps=caps[0],
-                       contact_caps=caps[1], contact_correlation=d.get("contact_correlation"))
+                       contact_caps=caps[1], contact_correlation=d.get("contact_correlation"),
+                       changes=None if changes is None else HeldOutChanges(changes["windows"],
+                                                                           tuple(changes["largest"])))
         except InputError as exc:
             raise bad(str(exc)) from None
 

@@ -55,7 +55,14 @@ from typing import Any
 
 import numpy as np
 
-from supramodal.calibration import POOLING_RUN, cap_gaps, effective_windows, pool_log_posteriors, winner
+from supramodal.calibration import (
+    POOLING_RUN,
+    HeldOutChanges,
+    cap_gaps,
+    effective_windows,
+    pool_log_posteriors,
+    winner,
+)
 from supramodal.errors import InputError
 from supramodal.features import DEFAULT_WINDOW
 
@@ -420,11 +427,17 @@ def fit_change_threshold(touches, labels, windows_per_false_change: float, corre
     A window past ``h`` counts though it continues an excursion that already passed it: a false change is
     one excursion, so the rate fitted errs low. Returns ``h >= 0``.
     """
-    if not windows_per_false_change > 1:
-        raise InputError(f"fitting a change threshold needs more than one window per false change, got "
-                         f"{windows_per_false_change!r}")
-    if not (isinstance(tail, (int, np.integer)) and tail >= 1):
-        raise InputError(f"the tail measured must be >= 1 windows, got {tail!r}")
+    _check_change_fit(windows_per_false_change, tail)
+    stats = held_out_change_statistics(touches, labels, correlation, caps, min_windows)
+    h = _change_threshold(stats, len(stats), windows_per_false_change, tail)
+    assert h is not None                        # every statistic is at hand
+    return h
+
+
+def held_out_change_statistics(touches, labels, correlation: float = 0.0, caps=None,
+                               min_windows: int = CHANGE_MIN_WINDOWS) -> np.ndarray:
+    """Every window's :func:`change_statistics` on held-out ``touches`` (each one touch's calibrated
+    log-posteriors, (windows, classes), in time order) of textures ``labels``, largest first."""
     touches = list(touches)
     labels = list(labels)
     if len(touches) != len(labels) or not touches:
@@ -432,15 +445,58 @@ def fit_change_threshold(touches, labels, windows_per_false_change: float, corre
                          f"and {len(labels)} labels")
     stats = np.concatenate([change_statistics(lp, k, correlation, caps, min_windows)
                             for lp, k in zip(touches, labels)])
-    stats = np.sort(stats)[::-1]
-    n = len(stats)
-    if n < tail:
+    return np.sort(stats)[::-1]
+
+
+def change_threshold(largest, windows: int, windows_per_false_change: float, tail: int = CHANGE_TAIL) -> float | None:
+    """:func:`fit_change_threshold`'s ``h`` from statistics already measured: ``largest``, the largest of the
+    held-out windows' statistics, in decreasing order, of ``windows`` in all (a model's
+    :class:`~supramodal.calibration.HeldOutChanges`). None when the level asked lies among the statistics
+    not kept (a rate so high that more than ``len(largest)`` windows may pass it)."""
+    return _change_threshold(np.asarray(largest, dtype=np.float64), int(windows), windows_per_false_change, tail)
+
+
+def _check_change_fit(windows_per_false_change: float, tail: int) -> None:
+    if not windows_per_false_change > 1:
+        raise InputError(f"fitting a change threshold needs more than one window per false change, got "
+                         f"{windows_per_false_change!r}")
+    if not (isinstance(tail, (int, np.integer)) and tail >= 1):
+        raise InputError(f"the tail measured must be >= 1 windows, got {tail!r}")
+
+
+def _change_threshold(stats: np.ndarray, n: int, windows_per_false_change: float, tail: int) -> float | None:
+    _check_change_fit(windows_per_false_change, tail)
+    if n < tail or len(stats) < tail:
         raise InputError(f"fitting a change threshold needs at least {tail} held-out windows, got {n}")
     allowed = n / float(windows_per_false_change)
     if allowed >= tail:
-        return float(max(stats[int(allowed)] if int(allowed) < n else -np.inf, 0.0))
+        at = int(allowed)
+        if at >= n:
+            return 0.0
+        return None if at >= len(stats) else float(max(stats[at], 0.0))
     h0 = float(max(stats[tail - 1], 0.0))
     return h0 + float(np.log(tail / allowed))
+
+
+def change_touches(groups, folds, labels) -> list[np.ndarray]:
+    """The held-out touches of a calibration: runs of consecutive windows of one recording (``groups``) and
+    one texture (``labels``) scored by one fold network (``folds``), as index arrays in time order."""
+    g, f, y = np.asarray(groups), np.asarray(folds), np.asarray(labels)
+    if len(g) == 0:
+        return []
+    cut = np.flatnonzero((g[1:] != g[:-1]) | (f[1:] != f[:-1]) | (y[1:] != y[:-1])) + 1
+    return np.split(np.arange(len(g)), cut)
+
+
+def held_out_changes(log_posteriors, labels, groups, folds, correlation: float = 0.0, caps=None) -> HeldOutChanges:
+    """A calibration's :class:`~supramodal.calibration.HeldOutChanges`: the change statistic of every
+    held-out window (``log_posteriors``, calibrated, (n, classes)) on its touch (:func:`change_touches`),
+    tested against its own texture, pooled as a contact is (``correlation``, ``caps``)."""
+    lp = np.asarray(log_posteriors, dtype=np.float64)
+    y = np.asarray(labels)
+    touches = change_touches(groups, folds, y)
+    return HeldOutChanges.of(held_out_change_statistics([lp[i] for i in touches], [int(y[i[0]]) for i in touches],
+                                                        correlation, caps))
 
 
 #: What the node says when it will not name a texture.

@@ -221,8 +221,9 @@ class TextureModel:
             if held_out is not None and i < n_folds:
                 held_out.told(i, result)
                 if held_out.complete:
-                    fitted.append(calibration_of_held_out(x, y, len(classes), g, folds, by, calibration_folds,
-                                                          held_out.logits))
+                    cal, nov, oof = calibration_of_held_out(x, y, len(classes), g, folds, by, calibration_folds,
+                                                            held_out.logits)
+                    fitted.append((with_held_out_changes(cal, held_out.logits, y, g, folds), nov, oof))
 
         *_, (mlp, history, _) = train_networks(tasks, jobs, watch=(n_folds, progress), done=back)
         info = {"algorithm": "iRPROP-", "epochs": len(history), "seed": seed,
@@ -282,7 +283,9 @@ class TextureModel:
         y = np.asarray(labels)
         x = self._inputs(values)
         groups = y if groups is None else np.asarray(groups)
-        calibration, novelty = recalibrate(self.mlp.logits(x), y, groups, x, self.novelty, what)
+        z = self.mlp.logits(x)
+        calibration, novelty = recalibrate(z, y, groups, x, self.novelty, what)
+        calibration = with_held_out_changes(calibration, z, y, groups, np.zeros(len(y), dtype=int))
         if self.calibration is not None:        # what it replaces, in words: the file says both
             before = calibration_line(self.calibration.fitted_on)
             calibration = replace(calibration, fitted_on={**calibration.fitted_on, "recalibrated_from": before})
@@ -571,3 +574,16 @@ def calibration_from_parts(header: dict, arrays: dict, n_in: int, n_classes: int
     raw = header.get("calibration")
     calibration = None if raw is None else Calibration.from_dict(raw, bad, n_classes)
     return calibration, Novelty.from_parts(header.get("novelty", False), arrays, n_in, n_classes, bad)
+
+
+def with_held_out_changes(calibration: Calibration, logits, labels, groups, folds) -> Calibration:
+    """``calibration`` with its :class:`~supramodal.calibration.HeldOutChanges`: the change detector's statistic
+    on the held-out windows it was fitted on (``logits`` of windows no network that scored them trained on,
+    ``folds`` saying which network), so that a node sets its change threshold for the rate a scene asks
+    (:func:`supramodal.decisions.change_threshold`) instead of the detector's bound."""
+    from supramodal.decisions import held_out_changes
+
+    rho, caps = calibration.contact_pooling
+    return replace(calibration, changes=held_out_changes(calibration.log_posteriors(logits), labels, groups, folds,
+                                                         rho, caps))
+

@@ -331,3 +331,70 @@ def test_the_threshold_is_measured_where_the_held_out_windows_suffice_and_extrap
         fit_change_threshold([touches[0][:10]], [0], 600, 0.4)
     with pytest.raises(InputError, match="threshold must be a log-odds >= 0"):
         ChangeDetector(6, 600, threshold=-1.0)
+
+
+# -- the threshold a model carries (issue 34: the node fits it, no longer the bound) ------------------------
+
+def test_a_threshold_from_the_kept_statistics_is_the_threshold_fitted_on_the_touches():
+    from supramodal.calibration import CHANGES_KEPT, HeldOutChanges
+    from supramodal.decisions import change_threshold, fit_change_threshold, held_out_change_statistics
+
+    rng = np.random.default_rng(5)
+    touches = [_correlated_touch(rng, np.full(300, k % 6), evidence=1.5) for k in range(6)]
+    labels = [k % 6 for k in range(6)]
+    changes = HeldOutChanges.of(held_out_change_statistics(touches, labels, 0.4))
+    assert changes.windows == 1800 and len(changes.largest) == CHANGES_KEPT and min(changes.largest) >= 0
+    for n in (3, 12, 60, 600, 6000):                     # 600 .. 0.3 windows may pass: measured or extrapolated
+        assert change_threshold(changes.largest, changes.windows, n) == fit_change_threshold(touches, labels, n, 0.4)
+    assert change_threshold(changes.largest, changes.windows, 1.5) is None      # 1200 may pass: not kept
+
+
+def test_held_out_touches_are_runs_of_one_recording_one_texture_and_one_fold_network():
+    from supramodal.decisions import change_touches
+
+    groups = ["r1"] * 5 + ["r2"] * 4
+    folds = [0, 0, 1, 1, 1, 0, 0, 0, 0]
+    labels = [2, 2, 2, 2, 2, 1, 1, 3, 3]
+    assert [t.tolist() for t in change_touches(groups, folds, labels)] == [[0, 1], [2, 3, 4], [5, 6], [7, 8]]
+
+
+@pytest.mark.parametrize("changes, says", [
+    ({"windows": 0, "largest": [1.0]}, "windows must be a count >= 1"),
+    ({"windows": 3, "largest": [1.0, 2.0]}, "decreasing order"),
+    ({"windows": 3, "largest": [1.0, -0.5]}, ">= 0"),
+    ({"windows": 3, "largest": [float("nan")]}, "finite"),
+    ({"windows": 1, "largest": [2.0, 1.0]}, "1 to min"),
+    ({"windows": 3, "largest": "high"}, "exactly the keys windows"),
+    ({"windows": 3}, "exactly the keys windows"),
+])
+def test_a_model_files_held_out_changes_are_checked(changes, says):
+    from supramodal.calibration import Calibration
+
+    d = {"method": "asinh-temperature", "temperature": 1.0, "scale": 1.0, "correlation": 0.0, "fitted_on": {},
+         "changes": changes}
+    with pytest.raises(ValueError, match=says):
+        Calibration.from_dict(d, ValueError)
+
+
+def test_a_trained_model_carries_its_held_out_changes_and_the_node_fits_its_threshold_on_them(tmp_path):
+    from dataclasses import replace
+
+    from supramodal.banks import whisker_bank
+    from supramodal.decisions import change_threshold, windows_per_change
+    from supramodal.model import TextureModel
+    from supramodal.node.runtime.streams import decider_for
+
+    rng = np.random.default_rng(0)
+    y = np.repeat(np.arange(3), 60)
+    values = rng.normal(size=(180, 1, 20)) + 0.8 * np.eye(3)[y].repeat(7, axis=1)[:, None, :20]
+    model = TextureModel.train(values, y, ("a", "b", "c"), whisker_bank(), ("Af",), 500, epochs=60)
+    changes = model.calibration.changes
+    assert changes is not None and changes.windows == 180          # every held-out window of its calibration
+    again = TextureModel.load(model.save(tmp_path / "m.npz"))
+    assert again.calibration.changes == changes                     # kept in the file
+    rules = DecisionRules(scope="contact", n=0, confidence=0.99, change=1.0)
+    fitted = decider_for(again, rules).detector
+    assert fitted.threshold == change_threshold(changes.largest, 180, windows_per_change(1.0))
+    assert fitted.threshold < fitted.bound                          # the bound is loose where classes stand apart
+    older = replace(again, calibration=replace(again.calibration, changes=None))   # a file of before
+    assert decider_for(older, rules).detector.threshold == fitted.bound

@@ -362,6 +362,25 @@ def test_local_workers_slow_to_end_are_given_time_and_the_fit_ends_without_dasks
     assert SLOW_END < 0.8 * fs.WORKER_CLOSE_SECONDS / 2         # the test's premise: a margin, not a race
 
 
+def test_a_local_worker_says_nothing_of_a_heartbeat_that_finds_the_scheduler_gone():
+    """The workers' preload: the heartbeat's failure as the cluster closes is left out, a worker's other
+    errors are not."""
+    import subprocess
+    import sys
+
+    from supramodal.node.workflows.fit_search import WORKER_IGNORES_SIGINT
+
+    said = subprocess.run([sys.executable, "-c", WORKER_IGNORES_SIGINT + (
+        "log = logging.getLogger('distributed.worker')\n"
+        "try:\n    raise OSError('Stream is closed')\n"
+        "except OSError:\n    log.exception('Failed to communicate with scheduler during heartbeat.')\n"
+        "log.error('Unexpected exception during heartbeat. Closing worker.')\n")],
+                          capture_output=True, text=True, timeout=60)
+    assert said.returncode == 0, said.stderr
+    assert "Traceback" not in said.stderr and "Failed to communicate" not in said.stderr
+    assert "Unexpected exception during heartbeat" in said.stderr
+
+
 @pytest.mark.slow   # a fit on a local Dask cluster, interrupted twice
 @pytest.mark.parametrize("how", ["SIGINT to the group", "SIGTERM to the fit"])
 def test_an_interrupted_fit_on_local_workers_ends_in_one_line(sensor, tmp_path, how):

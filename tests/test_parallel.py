@@ -105,10 +105,12 @@ def test_work_counts_every_multiply_add_of_the_training():
 
 
 INTERRUPTED = """
-import sys, time
+import signal, sys, time
 from supramodal.parallel import map_in_processes
 
 if __name__ == "__main__":
+    # As at a terminal: a test worker of pytest-xdist ignores Ctrl-C, and a child inherits that.
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     print("mapping", flush=True)
     try:
         map_in_processes(time.sleep, [60, 60, 60], jobs=2)

@@ -18,7 +18,15 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from supramodal.decisions import DEFAULT_DECISION, ContactDetector, Decider, DecisionRules
+from supramodal.decisions import (
+    CHANGE_TAIL,
+    DEFAULT_DECISION,
+    ContactDetector,
+    Decider,
+    DecisionRules,
+    change_threshold,
+    windows_per_change,
+)
 from supramodal.drivers.base import DriverEvent
 from supramodal.errors import InputError
 from supramodal.model import TextureModel
@@ -102,7 +110,19 @@ def decider_for(model: TextureModel, rules: DecisionRules, where: str = "[decisi
     correlation, caps = model.calibration.contact_pooling if model.calibration is not None else (0.0, None)
     if window_seconds is None:
         window_seconds = model.window_samples / model.bank.fs
-    return Decider(model.classes, rules, correlation, threshold, caps=caps, window_seconds=window_seconds)
+    return Decider(model.classes, rules, correlation, threshold, caps=caps, window_seconds=window_seconds,
+                   change_threshold=change_threshold_for(model, rules, window_seconds))
+
+
+def change_threshold_for(model: TextureModel, rules: DecisionRules, window_seconds: float) -> float | None:
+    """The change detector's threshold for ``rules.change`` false changes a minute, fitted on the model's
+    held-out windows (:class:`~supramodal.calibration.HeldOutChanges`); None (the detector's bound) without a
+    change rule, for a model trained before they were kept, or at a rate beyond the statistics kept."""
+    changes = None if model.calibration is None else model.calibration.changes
+    per_change = windows_per_change(rules.change, window_seconds) if rules.change else 0.0
+    if changes is None or per_change <= 1 or changes.windows < CHANGE_TAIL:
+        return None                             # (a rate of one change a window or more: the Decider refuses it)
+    return change_threshold(changes.largest, changes.windows, per_change)
 
 
 class Stream:

@@ -394,9 +394,12 @@ def score_fold(job: dict) -> dict:
 
 #: Run in each local worker process as it starts (Dask's preload of a script's text): Ctrl-C reaches the
 #: whole process group, and it is the fit's to handle, closing the cluster; a worker that took it
-#: printed a KeyboardInterrupt traceback each. A task cancelled as the cluster closes is no news either.
+#: printed a KeyboardInterrupt traceback each. A task cancelled as the cluster closes is no news either,
+#: nor a heartbeat that finds the scheduler already gone (a dry run printed its traceback after a Ctrl-C).
 WORKER_IGNORES_SIGINT = ("import logging, signal\nsignal.signal(signal.SIGINT, signal.SIG_IGN)\n"
-                         "logging.getLogger('distributed.worker.state_machine').setLevel(logging.ERROR)\n")
+                         "logging.getLogger('distributed.worker.state_machine').setLevel(logging.ERROR)\n"
+                         "logging.getLogger('distributed.worker').addFilter(lambda record: not record.getMessage()"
+                         ".startswith('Failed to communicate with scheduler during heartbeat'))\n")
 #: Seconds a Dask scheduler has to accept the connection, and then to greet.
 SCHEDULER_TIMEOUT = 20.0
 #: Seconds each local worker process has to end on its own when a fit that ran to its end closes its
