@@ -55,7 +55,7 @@ from supramodal.errors import InputError
 __all__ = [
     "CALIBRATION_METHOD", "CHANGES_KEPT", "DEFAULT_CALIBRATION_FOLDS", "HeldOutChanges", "ECE_BINS",
     "NOVELTY_METHOD", "Calibration", "HeldOutLogits",
-    "Novelty", "calibration_of_held_out", "fold_tasks",
+    "Novelty", "calibration_of_held_out", "fold_tasks", "fold_work",
     "brier_score", "calibration_line", "calibration_report", "cap_gaps", "confusion_caps", "fit_capped_pooling",
     "fit_capped_window_calibration", "effective_windows", "expected_calibration_error", "fit_novelty",
     "fit_pooling", "fit_window_calibration", "log_loss", "log_sigmoid", "normalised_log_posteriors",
@@ -439,8 +439,8 @@ class HeldOutChanges:
             a = np.array(self.largest, dtype=np.float64)
         except (TypeError, ValueError):
             raise InputError("held-out changes: largest must be a list of numbers") from None
-        if a.ndim != 1 or not 1 <= len(a) <= min(int(w), CHANGES_KEPT):
-            raise InputError(f"held-out changes: largest must hold 1 to min(windows, {CHANGES_KEPT}) numbers, got "
+        if a.ndim != 1 or len(a) != min(int(w), CHANGES_KEPT):
+            raise InputError(f"held-out changes: largest must hold min(windows, {CHANGES_KEPT}) numbers, got "
                              f"{a.shape} for {w} windows")
         if not np.isfinite(a).all() or np.any(np.diff(a) > 0) or np.any(a < 0):
             raise InputError("held-out changes: largest must be finite numbers >= 0 in decreasing order")
@@ -1185,26 +1185,32 @@ def fit_network_calibration(x, labels, n_classes: int, groups=None, k: int = DEF
     groups = y if groups is None else np.asarray(groups)
     folds, by = calibration_folds(y, groups, k, seed)
     held_out = HeldOutLogits(y, folds, k, n_classes, progress)
-    train_networks(fold_tasks(x, y, n_classes, folds, k, hidden, DEFAULT_EPOCHS if epochs is None else epochs,
-                              seed), jobs, done=held_out.told)
+    epochs = DEFAULT_EPOCHS if epochs is None else epochs
+    train_networks(fold_tasks(x, y, n_classes, folds, k, hidden, epochs, seed), jobs, done=held_out.told,
+                   work=fold_work(len(x), x.shape[1], n_classes, folds, k, hidden, epochs))
     return calibration_of_held_out(x, y, n_classes, groups, folds, by, k, held_out.logits)
 
 
-def fold_tasks(x, labels, n_classes: int, folds, k: int, hidden: int | None, epochs: int, seed: int) -> list:
+def fold_tasks(x, labels, n_classes: int, folds, k: int, hidden: int | None, epochs: int, seed: int):
     """The calibration's fold networks as :class:`~supramodal.mlp.NetworkTask`, one per fold with
     held-out windows, in fold order: trained on the other folds' rows of ``x`` (n, inputs),
-    standardised by their own mean and scale, scoring the fold's own rows."""
+    standardised by their own mean and scale, scoring the fold's own rows. A generator: each
+    fold's rows are copied when its task is taken."""
     from supramodal.mlp import NetworkTask
 
     y = np.asarray(labels)
-    tasks = []
     for f in range(k):
         test = folds == f
         if test.any():
             mean, scale = input_scaling(x[~test])
-            tasks.append(NetworkTask((x[~test] - mean) / scale, y[~test], n_classes, hidden, epochs, seed,
-                                     (x[test] - mean) / scale))
-    return tasks
+            yield NetworkTask((x[~test] - mean) / scale, y[~test], n_classes, hidden, epochs, seed,
+                              (x[test] - mean) / scale)
+
+
+def fold_work(n: int, inputs: int, n_classes: int, folds, k: int, hidden: int | None, epochs: int) -> float:
+    """The :attr:`~supramodal.mlp.NetworkTask.work` of :func:`fold_tasks`' networks, summed, without making them."""
+    rows = sum(n - int(np.sum(folds == f)) for f in range(k) if np.any(folds == f))
+    return float(rows) * (hidden or inputs) * (inputs + n_classes) * epochs
 
 
 class HeldOutLogits:
@@ -1218,6 +1224,11 @@ class HeldOutLogits:
         self._order = [f for f in range(k) if (self.folds == f).any()]     # fold_tasks' order
         self._k = k
         self._in: set[int] = set()
+
+    @property
+    def networks(self) -> int:
+        """The fold networks (folds with held-out windows: :func:`fold_tasks`' tasks)."""
+        return len(self._order)
 
     @property
     def complete(self) -> bool:

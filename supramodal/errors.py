@@ -11,6 +11,7 @@ line, and anything else as a bug, with its traceback. The tree::
      +-- node.ringbuffer.RingBufferError
      +-- node.runtime.graph.NodeError (also RuntimeError): a thread of the node failed
      +-- StreamEndedError (also RuntimeError): a block fed to a stream after its finish()
+     +-- parallel.WorkerLost (also RuntimeError): a worker process ended in the middle of its work
 
 The leaf classes live beside the code that raises them; this module holds only the root and
 the kinds every layer shares, so that any layer may import it without importing anything else.

@@ -11,8 +11,10 @@ with glibc's defaults, 1.04 s with :func:`keep_freed_memory`; its calibration fi
 :func:`keep_freed_memory` raises both thresholds (:data:`MMAP_THRESHOLD`, :data:`TRIM_THRESHOLD`) for
 the whole process: a setting of the application, made by the command line at its start and by the
 worker processes of :mod:`supramodal.parallel` and :mod:`supramodal.experiments.runner`; a library
-user may call it too. The price is memory: up to :data:`TRIM_THRESHOLD` of freed heap is kept for
-reuse instead of returned at once. Elsewhere than glibc it does nothing.
+user may call it too. The price is memory: freed heap up to :data:`TRIM_THRESHOLD` per malloc arena (one
+per thread that allocates, at most 8 per core) is kept for reuse instead of returned at once, so a
+long-running node holds about each thread's peak rather than shrinking after it. Elsewhere than glibc
+it does nothing.
 """
 
 from __future__ import annotations
@@ -43,5 +45,8 @@ def keep_freed_memory() -> bool:
         return False
     mallopt.argtypes = [ctypes.c_int, ctypes.c_int]
     mallopt.restype = ctypes.c_int
-    # musl's mallopt is a stub that answers 0: nothing was set.
-    return bool(mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD)) and bool(mallopt(_M_TRIM_THRESHOLD, TRIM_THRESHOLD))
+    # Each on its own: a 32-bit glibc refuses a threshold above 512 KiB and takes the other. musl's
+    # mallopt is a stub that answers 0: nothing was set.
+    took_mmap = bool(mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD))
+    took_trim = bool(mallopt(_M_TRIM_THRESHOLD, TRIM_THRESHOLD))
+    return took_mmap and took_trim

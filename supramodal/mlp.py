@@ -60,7 +60,7 @@ def tanh_error(e):
     """FANN_ERRORFUNC_TANH: ``ln((1 + e) / (1 - e))``, +-17 beyond +-0.9999999."""
     e = np.asarray(e, dtype=np.float64)
     with np.errstate(divide="ignore", invalid="ignore"):   # e = +-1: the clip below answers
-        out = np.log((1 + e) / (1 - e))
+        out = np.log((1 + e) / (1 - e), out=np.empty_like(e))
     out[e > 0.9999999] = ERROR_CLIP
     out[e < -0.9999999] = -ERROR_CLIP
     return out
@@ -301,7 +301,7 @@ def train_task(task: NetworkTask, progress=None) -> tuple[MLP, list[float], np.n
 PARALLEL_MIN_WORK = 1e9
 
 
-def train_networks(tasks, jobs: int = 1, watch=None, done=None) -> list:
+def train_networks(tasks, jobs: int = 1, watch=None, done=None, work: float | None = None) -> list:
     """Train every task (:func:`train_task`), over ``jobs`` worker processes where the work is worth
     them (:data:`PARALLEL_MIN_WORK`); the networks are the same for any ``jobs``.
 
@@ -310,7 +310,9 @@ def train_networks(tasks, jobs: int = 1, watch=None, done=None) -> list:
 
     Parameters
     ----------
-    tasks : sequence of NetworkTask
+    tasks : iterable of NetworkTask
+        Taken one by one as they are trained (a generator keeps only a few in memory), unless
+        ``work`` is not given: then all at once, to sum their work.
     jobs : int
         Worker processes at most (:func:`supramodal.parallel.map_in_processes`); 1: in this process.
     watch : (int, callable(epoch, mse)), optional
@@ -319,6 +321,8 @@ def train_networks(tasks, jobs: int = 1, watch=None, done=None) -> list:
     done : callable(int, result), optional
         Told each task's index and result as it is back: in the order of ``tasks`` in this
         process, in the order they finish from workers.
+    work : float, optional
+        The tasks' :attr:`NetworkTask.work` summed, and more than one task (default: from the tasks).
 
     Returns
     -------
@@ -327,9 +331,11 @@ def train_networks(tasks, jobs: int = 1, watch=None, done=None) -> list:
     """
     from supramodal.parallel import map_in_processes
 
-    tasks = list(tasks)
+    if work is None:
+        tasks = list(tasks)
+        work = sum(t.work for t in tasks) if len(tasks) > 1 else 0.0
     watched, progress = watch if watch is not None else (-1, None)
-    if jobs == 1 or sum(t.work for t in tasks) < PARALLEL_MIN_WORK:
+    if jobs == 1 or work < PARALLEL_MIN_WORK:
         results = []
         for i, task in enumerate(tasks):
             results.append(train_task(task, progress if i == watched else None))

@@ -31,10 +31,12 @@ the normalised outputs, and it cannot say "unknown".
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 import zipfile
 import zlib
+from collections.abc import Iterable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -50,6 +52,7 @@ from supramodal.calibration import (
     calibration_line,
     calibration_of_held_out,
     fold_tasks,
+    fold_work,
     input_scaling,
     normalised_log_posteriors,
     recalibrate,
@@ -206,16 +209,20 @@ class TextureModel:
         y = np.asarray(labels)
         # The calibration's fold networks first, the model's last: with workers, the calibration is
         # fitted on the folds' windows while the model's network still trains.
-        tasks = []
+        model_task = NetworkTask((x - mean) / scale, y, len(classes), hidden, epochs, seed)
+        tasks: Iterable = [model_task]
+        work = model_task.work
         held_out = None
         fitted: list = []
+        n_folds = 0
         if calibration_folds:
             g = y if groups is None else np.asarray(groups)
             folds, by = calibration_folds_of(y, g, calibration_folds, seed)
             held_out = HeldOutLogits(y, folds, calibration_folds, len(classes), calibration_progress)
-            tasks = fold_tasks(x, y, len(classes), folds, calibration_folds, hidden, epochs, seed)
-        n_folds = len(tasks)
-        tasks.append(NetworkTask((x - mean) / scale, y, len(classes), hidden, epochs, seed))
+            n_folds = held_out.networks
+            tasks = itertools.chain(fold_tasks(x, y, len(classes), folds, calibration_folds, hidden, epochs, seed),
+                                    tasks)
+            work += fold_work(len(x), x.shape[1], len(classes), folds, calibration_folds, hidden, epochs)
 
         def back(i: int, result) -> None:
             if held_out is not None and i < n_folds:
@@ -225,7 +232,8 @@ class TextureModel:
                                                             held_out.logits)
                     fitted.append((with_held_out_changes(cal, held_out.logits, y, g, folds), nov, oof))
 
-        *_, (mlp, history, _) = train_networks(tasks, jobs, watch=(n_folds, progress), done=back)
+        *_, (mlp, history, _) = train_networks(tasks, jobs, watch=(n_folds, progress), done=back,
+                                               work=work if n_folds else 0.0)
         info = {"algorithm": "iRPROP-", "epochs": len(history), "seed": seed,
                 "final_mse": history[-1], "windows": int(len(values))}
         calibration, novelty, out_of_fold = fitted[0] if fitted else (None, None, None)

@@ -17,13 +17,13 @@ from __future__ import annotations
 
 import os
 import signal
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from typing import Any, TypeVar
 
-from supramodal.errors import InputError
+from supramodal.errors import InputError, SupramodalError
 
-__all__ = ["THREAD_VARS", "default_jobs", "map_in_processes", "single_threaded_children"]
+__all__ = ["THREAD_VARS", "WorkerLost", "default_jobs", "map_in_processes", "single_threaded_children"]
 
 #: Environment variables that hold BLAS/OpenMP libraries to one thread in the workers.
 THREAD_VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "VECLIB_MAXIMUM_THREADS",
@@ -66,12 +66,12 @@ def _start_worker() -> None:
     keep_freed_memory()
 
 
-def _indexed(call: tuple[Callable[[Any], Any], int, Any]) -> tuple[int, Any]:
-    fn, i, item = call
-    return i, fn(item)
+class WorkerLost(SupramodalError, RuntimeError):
+    """A worker process ended in the middle of a call (killed: out of memory, a signal; or crashed).
+    Also a RuntimeError."""
 
 
-def map_in_processes(fn: Callable[[Any], T], items: Sequence[Any], jobs: int = 1,
+def map_in_processes(fn: Callable[[Any], T], items: Iterable[Any], jobs: int = 1,
                      done: Callable[[int, Any], None] | None = None) -> list[T]:
     """``[fn(item) for item in items]``, over ``jobs`` worker processes.
 
@@ -80,11 +80,11 @@ def map_in_processes(fn: Callable[[Any], T], items: Sequence[Any], jobs: int = 1
     fn : callable
         A module-level function (workers import it by name), pure: its result depends on its
         item alone.
-    items : sequence
-        Picklable arguments, one call each.
+    items : iterable
+        Picklable arguments, one call each, taken as workers are free for them: no more than
+        ``jobs`` are held at once beyond the one in hand (a generator of large items stays small).
     jobs : int
-        Worker processes, >= 1 (at most one per item is started). 1: every call in this process,
-        in order, with no process started.
+        Worker processes, >= 1. 1: every call in this process, in order, with no process started.
     done : callable(int, result), optional
         Told the index and result of each call as it finishes, in the order they finish (from
         the calling thread).
@@ -93,31 +93,71 @@ def map_in_processes(fn: Callable[[Any], T], items: Sequence[Any], jobs: int = 1
     -------
     list
         The results, in the order of ``items``.
+
+    Raises
+    ------
+    WorkerLost
+        A worker ended in the middle of a call (its exit code said, and what to try); the others
+        are stopped.
     """
-    if not (isinstance(jobs, int) and jobs >= 1):
+    if isinstance(jobs, bool) or not (isinstance(jobs, int) and jobs >= 1):
         raise InputError(f"jobs must be an integer >= 1, got {jobs!r}")
-    items = list(items)
-    if jobs == 1 or len(items) <= 1:
-        results = []
+    results: dict[int, Any] = {}
+    if jobs == 1:
         for i, item in enumerate(items):
-            results.append(fn(item))
+            results[i] = fn(item)
             if done is not None:
-                done(i, results[-1])
-        return results
+                done(i, results[i])
+        return [results[i] for i in range(len(results))]
+    from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+    from concurrent.futures.process import BrokenProcessPool
     from multiprocessing import get_context
 
-    out: list[Any] = [None] * len(items)
+    todo = enumerate(items)
     with single_threaded_children():
-        pool = get_context("spawn").Pool(min(jobs, len(items)), initializer=_start_worker)
+        pool = ProcessPoolExecutor(jobs, mp_context=get_context("spawn"), initializer=_start_worker)
+    running: dict = {}
     try:
-        for i, result in pool.imap_unordered(_indexed, [(fn, i, item) for i, item in enumerate(items)]):
-            out[i] = result
-            if done is not None:
-                done(i, result)
-        pool.close()
+        for i, item in todo:                   # the first `jobs` calls
+            running[pool.submit(fn, item)] = i
+            if len(running) == jobs:
+                break
+        while running:
+            finished, _ = wait(running, return_when=FIRST_COMPLETED)
+            for future in finished:
+                i = running.pop(future)
+                results[i] = future.result()
+                if done is not None:
+                    done(i, results[i])
+                for j, item in todo:           # one more call for the worker now free
+                    running[pool.submit(fn, item)] = j
+                    break
+    except BrokenProcessPool:
+        codes = sorted({p.exitcode for p in _workers(pool) if p.exitcode not in (None, 0)})
+        _stop(pool)
+        raise WorkerLost(f"a worker process ended in the middle of its work (exit code {codes or 'unknown'}: "
+                         "killed by the system, e.g. out of memory, or crashed); run with fewer jobs (--jobs 1 "
+                         "trains in this process) or free memory") from None
     except BaseException:
-        pool.terminate()               # Ctrl-C, SIGTERM or a failed call: no worker is left computing
+        _stop(pool)                            # Ctrl-C, SIGTERM or a failed call: no worker is left computing
         raise
-    finally:
-        pool.join()
-    return out
+    pool.shutdown()
+    return [results[i] for i in range(len(results))]
+
+
+def _workers(pool) -> list:
+    """The pool's worker processes (``ProcessPoolExecutor`` keeps them in a private attribute until
+    Python 3.14's ``terminate_workers``)."""
+    return list((getattr(pool, "_processes", None) or {}).values())
+
+
+def _stop(pool) -> None:
+    """End every worker now, a call in the middle of its work too, and wait for them."""
+    terminate = getattr(pool, "terminate_workers", None)      # Python >= 3.14
+    if terminate is not None:
+        terminate()
+    else:
+        for p in _workers(pool):
+            if p.exitcode is None:
+                p.terminate()
+    pool.shutdown(wait=True, cancel_futures=True)

@@ -360,10 +360,11 @@ def test_held_out_touches_are_runs_of_one_recording_one_texture_and_one_fold_net
 
 @pytest.mark.parametrize("changes, says", [
     ({"windows": 0, "largest": [1.0]}, "windows must be a count >= 1"),
-    ({"windows": 3, "largest": [1.0, 2.0]}, "decreasing order"),
-    ({"windows": 3, "largest": [1.0, -0.5]}, ">= 0"),
-    ({"windows": 3, "largest": [float("nan")]}, "finite"),
-    ({"windows": 1, "largest": [2.0, 1.0]}, "1 to min"),
+    ({"windows": 2, "largest": [1.0, 2.0]}, "decreasing order"),
+    ({"windows": 2, "largest": [1.0, -0.5]}, ">= 0"),
+    ({"windows": 1, "largest": [float("nan")]}, "finite"),
+    ({"windows": 1, "largest": [2.0, 1.0]}, "must hold min"),
+    ({"windows": 100, "largest": [2.0, 1.0]}, "must hold min"),
     ({"windows": 3, "largest": "high"}, "exactly the keys windows"),
     ({"windows": 3}, "exactly the keys windows"),
 ])

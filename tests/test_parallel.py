@@ -16,7 +16,7 @@ from supramodal import mlp
 from supramodal.banks import whisker_bank
 from supramodal.errors import InputError
 from supramodal.model import TextureModel
-from supramodal.parallel import map_in_processes
+from supramodal.parallel import WorkerLost, map_in_processes
 
 CLASSES = ("a", "b", "c")
 
@@ -65,7 +65,30 @@ def test_a_failed_call_raises_in_the_caller_and_stops_the_workers():
     assert multiprocessing.active_children() == []
 
 
-@pytest.mark.parametrize("jobs", [0, -1, 1.5, "2"])
+def test_a_worker_that_dies_is_said_at_once_not_waited_for():
+    """A worker killed in the middle of a call (out of memory, a signal) ends the call with a clear error;
+    a pool that quietly replaced it would wait for its result for ever."""
+    with pytest.raises(WorkerLost, match=r"ended in the middle of its work \(exit code .*--jobs 1"):
+        map_in_processes(os._exit, [3, 3, 3], jobs=2)
+    assert multiprocessing.active_children() == []
+
+
+def test_items_are_taken_as_workers_are_free_for_them():
+    """A generator is consumed a few items at a time: no more than the workers and the one in hand."""
+    taken = []
+
+    def items():
+        for k in range(8):
+            taken.append(k)
+            yield k
+
+    seen_when_done = []
+    got = map_in_processes(math.factorial, items(), jobs=2, done=lambda i, r: seen_when_done.append(len(taken)))
+    assert got == [math.factorial(k) for k in range(8)]
+    assert seen_when_done[0] <= 3                # when the first came back, at most 2 taken (+1 in hand)
+
+
+@pytest.mark.parametrize("jobs", [0, -1, 1.5, "2", True])
 def test_jobs_must_be_a_positive_integer(jobs):
     with pytest.raises(InputError, match="jobs must be an integer >= 1"):
         map_in_processes(math.factorial, [1], jobs=jobs)
@@ -106,7 +129,7 @@ def test_work_counts_every_multiply_add_of_the_training():
 
 INTERRUPTED = """
 import signal, sys, time
-from supramodal.parallel import map_in_processes
+from supramodal.parallel import WorkerLost, map_in_processes
 
 if __name__ == "__main__":
     # As at a terminal: a test worker of pytest-xdist ignores Ctrl-C, and a child inherits that.

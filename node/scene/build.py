@@ -93,6 +93,7 @@ def train_on_texture_set(ts, pipeline: FeaturePipeline, progress=None, held_out:
             values, _ = texture_features(ts, p.bank, p.features, p.window, peak_mode=p.peaks.mode,
                                          peak_threshold=p.peaks.threshold, progress=tell.features)
             x_train, y_train, x_test, y_test = split(values)
+            tell.networks_begin()
             model = TextureModel.train_for(p, x_train, y_train, ts.names, seed=0, progress=tell.epoch,
                                            calibration_progress=tell.fold, jobs=default_jobs())
         made = (model, (x_train, y_train), (x_test, y_test))
@@ -115,6 +116,11 @@ class _TrainingTold:
     def features(self, line: str) -> None:
         if self.ticker is not None:
             self.ticker.stage("features, " + line.strip())
+
+    def networks_begin(self) -> None:
+        """The features are made: the networks' time, which the time left is told from, begins now."""
+        if self.ticker is not None:
+            self.ticker.stage(f"0 of {self.folds + 1} networks trained", 0.0)
 
     def epoch(self, epoch: int, mse: float) -> None:
         if self.ticker is not None:
