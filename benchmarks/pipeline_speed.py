@@ -21,15 +21,13 @@ Writes ``pipeline_speed.json`` to ``--out``.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import statistics
 import sys
 import time
-from pathlib import Path
 
+from supramodal.benchmarks import run_pinned, write_result
 from supramodal.memory import keep_freed_memory
-from supramodal.parallel import THREAD_VARS
 
 #: (bank, samples per block): a live device's 10 ms.
 CASES = (("cochlea", 441), ("whisker", 50))
@@ -98,15 +96,9 @@ def main(argv=None) -> int:
     if args.rounds < 1 or not args.seconds > 0:
         parser.error("--rounds must be >= 1 and --seconds > 0")
     result = run(args.seconds, args.rounds, lambda line: print(line, file=sys.stderr, flush=True))
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "pipeline_speed.json").write_text(json.dumps(result, indent=2) + "\n")
-    print(json.dumps(result, indent=2) if args.json else report(result))
-    return 0
+    return write_result(result, args.out, "pipeline_speed", args.json, report)
 
 
 if __name__ == "__main__":
-    if any(os.environ.get(k) != "1" for k in THREAD_VARS):      # one BLAS thread, set before numpy loads
-        os.execve(sys.executable, [sys.executable, "-m", "supramodal.benchmarks.pipeline_speed", *sys.argv[1:]],
-                  {**os.environ, **dict.fromkeys(THREAD_VARS, "1")})
+    run_pinned("supramodal.benchmarks.pipeline_speed")      # one BLAS thread, set before numpy loads
     sys.exit(main())

@@ -31,8 +31,8 @@ import statistics
 import subprocess
 import sys
 import time
-from pathlib import Path
 
+from supramodal.benchmarks import run_pinned, write_result
 from supramodal.memory import keep_freed_memory
 from supramodal.parallel import THREAD_VARS, default_jobs
 
@@ -158,15 +158,9 @@ def main(argv=None) -> int:
     if args.rounds < 1 or args.jobs < 1:
         parser.error("--rounds and --jobs must be >= 1")
     result = run(args.rounds, args.jobs, lambda line: print(line, file=sys.stderr, flush=True))
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "training_speed.json").write_text(json.dumps(result, indent=2) + "\n")
-    print(json.dumps(result, indent=2) if args.json else report(result))
-    return 0
+    return write_result(result, args.out, "training_speed", args.json, report)
 
 
 if __name__ == "__main__":
-    if any(os.environ.get(k) != "1" for k in THREAD_VARS):      # one BLAS thread, set before numpy loads
-        os.execve(sys.executable, [sys.executable, "-m", "supramodal.benchmarks.training_speed", *sys.argv[1:]],
-                  {**os.environ, **dict.fromkeys(THREAD_VARS, "1")})
+    run_pinned("supramodal.benchmarks.training_speed")      # one BLAS thread, set before numpy loads
     sys.exit(main())

@@ -17,7 +17,6 @@ one thread (``python -m supramodal.benchmarks.filterbank`` re-executes itself so
 are not).
 """
 
-from supramodal.parallel import THREAD_VARS
+from supramodal.benchmarks import PINNED_THREADS
 
-#: Environment that pins numerical libraries to one thread; set before numpy is imported.
-PINNED_THREADS = dict.fromkeys(THREAD_VARS, "1")
+__all__ = ["PINNED_THREADS"]

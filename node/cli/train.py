@@ -7,6 +7,7 @@ from pathlib import Path
 
 from supramodal.node.cli.arguments import (
     bank,
+    cores,
     count,
     jobs,
     mapping,
@@ -76,7 +77,7 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
     p.add_argument("--mapping", type=mapping, default="auto",
                    help="recording channels to filters: auto (one channel to all, or one each), mono, per-channel, "
                         "mean, or a channel index (default auto)")
-    p.add_argument("--jobs", type=jobs, default=None,
+    p.add_argument("--jobs", type=jobs, default=cores(),
                    help="worker processes for the model's networks and its calibration folds' (default: the cores "
                         "here); the model is the same for any")
     p.add_argument("--quiet", action="store_true", help="no progress on stderr (warnings are still shown)")
@@ -124,7 +125,7 @@ def run(args: argparse.Namespace) -> int:
                                      epochs=args.epochs, seed=args.seed, mapping=args.mapping, progress=progress(args))
         print(format_cross_validation(cv))
     model = train_from_manifest(args.manifest, bank, tuple(args.features), args.window, epochs=args.epochs,
-                                seed=args.seed, mapping=args.mapping, progress=progress(args), jobs=_jobs(args))
+                                seed=args.seed, mapping=args.mapping, progress=progress(args), jobs=args.jobs)
     # The model and its cross-validation's files are put in place together (the files written first, an
     # interrupted training left a new report beside the earlier model)
     written = save_model(model, args.out, cv=None if cv is None else (args.cv, cv))
@@ -138,13 +139,6 @@ def run(args: argparse.Namespace) -> int:
           f"{model.training['windows']} training windows, final MSE {model.training['final_mse']:.4g}")
     print("posteriors: " + calibration_line(None if model.calibration is None else model.calibration.fitted_on))
     return 0
-
-
-def _jobs(args: argparse.Namespace) -> int:
-    """``--jobs``, or the cores here."""
-    from supramodal.parallel import default_jobs
-
-    return args.jobs or default_jobs()
 
 
 def save_model(model, out, cv: tuple[int, dict] | None = None) -> list[Path]:
@@ -184,7 +178,7 @@ def _train_stream(args) -> int:
                        "out --manifest, --bank, --cv, --model, --live and --write-scene")
     check_new_file(args.out, args.force, "the model file")
     model = train_from_scenes(args.scene, args.stream, epochs=args.epochs, seed=args.seed, progress=progress(args),
-                              jobs=_jobs(args))
+                              jobs=args.jobs)
     path = save_model(model, args.out)[-1]
     print(f"wrote {path}: stream {args.stream}, {model.bank.kind} bank, features {list(model.features)}, classes "
           f"{list(model.classes)}, {model.training['windows']} training windows of {len(args.scene)} recording(s), "
