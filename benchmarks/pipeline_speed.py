@@ -8,8 +8,9 @@ whisker bank at 50 samples, 10 ms at 5 kHz), white noise of ``--seconds`` is fed
 * **filterbank**: the filterbank alone (:func:`supramodal.backends.make_filterbank`, the fast form),
   each block as it comes;
 * **pipeline**: the node's :class:`~supramodal.pipeline.FeaturePipeline` as a scene's defaults make
-  it (Af, 100 ms windows, ``chunk`` 10 ms: each 10 ms run as it comes, so that only the last is left
-  when a window closes; non-finite samples replaced);
+  it (Af, 100 ms windows, ``chunk`` 10 ms: the filterbank run on each 10 ms as it comes and the
+  peaks and windows on each stage of chunks, so that only the last is left when a window closes;
+  non-finite samples replaced);
 * **pipeline, whole windows**: the same with ``chunk`` 0 (each window run once it is complete).
 
 CPU seconds (``time.process_time``, BLAS and OpenMP held to one thread, re-executed so before

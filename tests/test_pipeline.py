@@ -1,13 +1,15 @@
 """The whole pipeline: features of a pure sine, silence, block-partition invariance, refusals."""
 
 import math
+from unittest import mock
 
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from supramodal.banks import Bank, whisker_bank
+import supramodal.pipeline
+from supramodal.banks import Bank, bank_by_name, whisker_bank
 from supramodal.features import FEATURES, concat_windows
 from supramodal.gammatone import GammatoneFilterbank, relative_error
 from supramodal.pipeline import FeaturePipeline, extract_features, window_length
@@ -180,6 +182,18 @@ def plain_cut_points(length, window, chunk):
     return sorted(cuts)
 
 
+def plain_stage_ends(cuts, window, channels, cells):
+    """Where a chunked pipeline runs its peaks and windows, written out: from each window's start,
+    at the first cut with at least ``cells`` channel-samples since the last stage, and at every
+    window end."""
+    ends, begun = [], 0
+    for c in cuts:
+        if c % window == 0 or (c - begun) * channels >= cells:
+            ends.append(c)
+            begun = c
+    return ends
+
+
 @settings(max_examples=40)
 @given(
     seed=st.integers(0, 2**32 - 1),
@@ -187,24 +201,43 @@ def plain_cut_points(length, window, chunk):
     sizes=st.lists(st.integers(0, 300), max_size=25),
     chunk_samples=st.sampled_from([1, 7, 13, 25, 49]),
     per_channel=st.booleans(),
+    stage_cells=st.sampled_from([1, 20, 60, 16384]),
 )
 def test_a_chunked_pipeline_runs_exactly_its_chunks_whatever_the_blocks(seed, length, sizes, chunk_samples,
-                                                                         per_channel):
-    """With ``chunk``, the stages run on the segments between fixed cut points, whatever the
-    blocks: bit for bit the unbuffered pipeline fed exactly those segments."""
+                                                                         per_channel, stage_cells):
+    """With ``chunk``, the filterbank runs on the segments between fixed cut points and the peaks
+    and windows on stages of them, whatever the blocks: bit for bit the stages fed exactly that,
+    written out; and within rounding of running every stage on every segment."""
     rng = np.random.default_rng(seed)
     x = rng.standard_normal((3, length) if per_channel else length)
     chunk = chunk_samples / SMALL.fs
-    pipe = FeaturePipeline(SMALL, window=0.01, chunk=chunk)                # 50-sample windows
-    assert pipe.chunk_samples == chunk_samples
-    got = concat_windows(feed(pipe, x, sizes), FEATURES, 3)
-    cuts = [0] + plain_cut_points(length, 50, chunk_samples)
-    plain = FeaturePipeline(SMALL, window=0.01, gather=False)
-    segments = [x[..., a:b] for a, b in zip(cuts, cuts[1:])] + [x[..., cuts[-1]:]]
-    want = concat_windows([plain.process(s) for s in segments] + [plain.finish()], FEATURES, 3)
+    with mock.patch.object(supramodal.pipeline, "STAGE_CELLS", stage_cells):
+        pipe = FeaturePipeline(SMALL, window=0.01, chunk=chunk)            # 50-sample windows
+        assert pipe.chunk_samples == chunk_samples
+        got = concat_windows(feed(pipe, x, sizes), FEATURES, 3)
+    cuts = plain_cut_points(length, 50, chunk_samples)
+    segments = [x[..., a:b] for a, b in zip([0] + cuts, cuts + [length])]
+    stages = FeaturePipeline(SMALL, window=0.01, gather=False)
+    filtered = np.concatenate([stages.filterbank.process(s) for s in segments], axis=1)
+    ends = plain_stage_ends(cuts, 50, 3, stage_cells)
+    by_stage = [filtered[:, a:b] for a, b in zip([0] + ends, ends + [length])]
+    want = concat_windows([stages.windows.process(stages.peaks.process(y)) for y in by_stage]
+                          + [stages.windows.process(stages.peaks.finish())], FEATURES, 3)
     assert len(got) == len(want) == length // 50
     np.testing.assert_array_equal(got.values, want.values)
     assert pipe.partial_samples == length % 50
+    every_stage = FeaturePipeline(SMALL, window=0.01, gather=False)
+    per_segment = concat_windows([every_stage.process(s) for s in segments] + [every_stage.finish()], FEATURES, 3)
+    for k, name in enumerate(FEATURES):
+        assert relative_error(got.values[:, k], per_segment.values[:, k]) <= 1e-12, name
+
+
+def test_a_stage_is_three_chunks_for_the_cochlea_and_a_window_for_the_whiskers():
+    """The stage rule on the two banks at the scene's 10 ms chunks."""
+    cochlea = FeaturePipeline(bank_by_name("cochlea"), chunk=0.01)          # 441-sample chunks, 50 channels
+    assert [cochlea._stage_end(s) for s in (0, 1323, 2646, 3969, 4410)] == [1323, 2646, 3969, 4410, 5733]
+    whisker = FeaturePipeline(bank_by_name("whisker"), chunk=0.01)          # 50-sample chunks, 20 channels
+    assert [whisker._stage_end(s) for s in (0, 500, 950)] == [500, 1000, 1000]
 
 
 def test_chunks_change_the_features_only_by_rounding_and_a_chunk_of_a_window_or_more_is_whole():
