@@ -14,7 +14,10 @@ Version 2 adds the network's calibration, as a one-sense model file's version 2 
 (:mod:`supramodal.model`): the header's ``calibration`` (fitted by
 :func:`supramodal.calibration.fit_network_calibration` on out-of-fold windows of the concatenated
 inputs) and ``novelty`` (with the arrays ``novelty_means``, ``novelty_precision``,
-``novelty_quantiles``). A version 1 file still loads, uncalibrated.
+``novelty_quantiles``). A version 1 file still loads, uncalibrated. The calibration's ``changes``
+(:class:`~supramodal.calibration.HeldOutChanges`, what a change detector did on its held-out windows)
+is written by this version's training; a file without them loads, and its node keeps the change
+detector's bound.
 
 Late fusion learns its weight from windows that neither sense's network trained on:
 :func:`out_of_fold_logits` scores each window with a copy of a sense model's configuration trained
@@ -64,6 +67,7 @@ from supramodal.model import (
     save_model_archive,
     sense_from_header,
     sense_header,
+    with_held_out_changes,
 )
 
 EARLY_FORMAT = "supramodal-early-model"
@@ -157,8 +161,10 @@ class EarlyFusionModel:
         ``calibration_progress`` as for :meth:`supramodal.model.TextureModel.train`: the calibration
         is fitted on out-of-fold windows of networks like this one
         (:func:`~supramodal.calibration.fit_network_calibration` on the concatenated inputs),
-        grouped by ``groups`` (each pair's recording or contact; default one per label); 0 folds:
-        no calibration.
+        grouped by ``groups`` (each pair's recording or contact, pairs of one recording consecutive and in
+        time order; default one per label); 0 folds: no calibration. The calibration carries what a change
+        detector did on those held-out windows (:func:`~supramodal.model.with_held_out_changes`), for a
+        node's change threshold.
         """
         senses = tuple(senses)
         x = early_inputs(cls._check(senses[0], values_a), cls._check(senses[1], values_b))
@@ -171,6 +177,10 @@ class EarlyFusionModel:
         if calibration_folds:
             calibration, novelty, out_of_fold = fit_network_calibration(x, y, len(classes), groups, calibration_folds,
                                                                         hidden, epochs, seed, calibration_progress)
+            # What a change detector did on the same held-out windows, as a one-sense model keeps it: a
+            # node's early fusion then fits its change threshold instead of taking the detector's bound.
+            calibration = with_held_out_changes(calibration, out_of_fold.logits, y,
+                                                y if groups is None else np.asarray(groups), out_of_fold.folds)
         return cls(senses, tuple(classes), mean, scale, mlp, info, calibration, novelty, out_of_fold)
 
     @staticmethod

@@ -250,3 +250,62 @@ def test_a_sense_that_does_not_fit_asks_about_the_streams_order_only_in_a_fusion
     with pytest.raises(ModelError, match=r"sense 'left': ") as refused:
         sense.check_pipeline(other, in_fusion=False)
     assert "other way round" not in str(refused.value) and "fusion" not in str(refused.value)
+
+
+# -- the change threshold an early fusion fits on its held-out windows (issue 34, item 5) -----------------------
+
+def _early_trained():
+    """A small early network calibrated on 4 folds of 12 recordings (pairs of one recording consecutive)."""
+    rng = np.random.default_rng(6)
+    y = np.repeat(np.arange(3), 40)
+    va = rng.normal(size=(120, 1, 20)) + 0.8 * np.eye(20)[y][:, None, :]
+    vb = rng.normal(size=(120, 2, 50))
+    groups = np.repeat(np.arange(12), 10)
+    model = EarlyFusionModel.train(SENSES, va, vb, y, CLASSES, epochs=60, groups=groups, calibration_folds=4)
+    return model, y, groups
+
+
+def test_a_trained_early_model_carries_its_held_out_changes_and_its_fusion_fits_its_threshold_on_them(tmp_path):
+    """As a one-sense model's (test_change_detection): the early network's calibration keeps what a change
+    detector did on the very held-out windows it was fitted on, pooled as its contacts are; its file keeps
+    them; and the fusion block sets its detector's threshold for the scene's rate from them, not the bound."""
+    from supramodal.decisions import change_threshold, held_out_changes, windows_per_change
+
+    model, y, groups = _early_trained()
+    changes = model.calibration.changes
+    assert changes is not None and changes.windows == 120           # every held-out window of its calibration
+    oof = model.out_of_fold
+    expected = held_out_changes(model.calibration.log_posteriors(oof.logits), y, groups, oof.folds,
+                                *model.calibration.contact_pooling)
+    assert changes == expected
+    loaded = EarlyFusionModel.load(model.save(tmp_path / "early.npz"))
+    assert loaded.calibration.changes == changes                     # kept in the file, checked on load
+    rules = DecisionRules(scope="contact", n=0, change=1.0)
+    fusion = EarlyFusion(("whiskers", "mic"), (CLASSES, CLASSES), loaded, decision=rules, window_seconds=0.1)
+    detector = fusion.decider.detector
+    fitted = change_threshold(changes.largest, changes.windows, windows_per_change(1.0, 0.1))
+    assert fitted is not None and detector.threshold == fitted and fitted != detector.bound
+
+
+def test_an_early_model_file_of_before_its_held_out_changes_loads_and_its_fusion_keeps_the_bound(tmp_path):
+    """A file written before the early model kept its held-out changes (no "changes" in its calibration)
+    loads, calibrated as it was; its fusion's change detector keeps the bound, as a late fusion's does."""
+    from supramodal.node.runtime.fusion import LateFusion
+
+    model, _, _ = _early_trained()
+    path = model.save(tmp_path / "early.npz")
+    with np.load(path) as npz:
+        arrays = {k: npz[k] for k in npz.files}
+    header = json.loads(str(arrays["header"]))
+    del header["calibration"]["changes"]
+    arrays["header"] = np.array(json.dumps(header))
+    np.savez(open(tmp_path / "before.npz", "wb"), **arrays)
+    old = EarlyFusionModel.load(tmp_path / "before.npz")
+    assert old.calibration.changes is None
+    assert old.calibration == dataclasses.replace(model.calibration, changes=None)
+    rules = DecisionRules(scope="contact", n=0, change=1.0)
+    detector = EarlyFusion(("whiskers", "mic"), (CLASSES, CLASSES), old, decision=rules,
+                           window_seconds=0.1).decider.detector
+    assert detector.threshold == detector.bound
+    late = LateFusion(("whiskers", "mic"), (CLASSES, CLASSES), decision=rules, window_seconds=0.1).decider.detector
+    assert late.threshold == late.bound

@@ -46,6 +46,7 @@ from supramodal.features import DEFAULT_WINDOW
 from supramodal.fusion import fuse_late
 from supramodal.node.runtime.events import FUSED_STREAM, TruthTally, WindowEvent, change_event, log_posteriors_of
 from supramodal.node.runtime.latency import LatencyHistogram
+from supramodal.node.runtime.streams import change_threshold_for
 
 if TYPE_CHECKING:   # for annotations only: the runtime does not load the early-fusion model
     from supramodal.fused_model import EarlyFusionModel
@@ -96,6 +97,10 @@ class LateFusion:
         at any speed: their timing is their own, and the decisions do not depend on the host's).
     decision : supramodal.decisions.DecisionRules, optional
         Pooling and rules of the fused decisions, as for a stream (default: each window alone).
+    change_threshold : float or None
+        With ``decision.change``: the change detector's threshold fitted for that rate on held-out
+        windows (an early fusion's model carries them); None (default): the detector's bound, which a
+        late fusion keeps (no held-out windows of its fused posteriors are kept).
 
     Attributes
     ----------
@@ -109,7 +114,8 @@ class LateFusion:
     def __init__(self, inputs: Sequence[str], classes: Sequence[Sequence[str]], weight: float = DEFAULT_WEIGHT,
                  max_wait: float | None = DEFAULT_MAX_WAIT,
                  decision: DecisionRules = DEFAULT_DECISION, *, sharpness: float = 1.0, correlation: float = 0.0,
-                 caps: ArrayLike | None = None, window_seconds: float = DEFAULT_WINDOW) -> None:
+                 caps: ArrayLike | None = None, window_seconds: float = DEFAULT_WINDOW,
+                 change_threshold: float | None = None) -> None:
         a, b = inputs
         if a == b:
             raise InputError(f"fusion needs two different streams, got {a!r} twice")
@@ -133,7 +139,8 @@ class LateFusion:
         self.sharpness = float(sharpness)
         self.correlation = float(correlation)
         self.max_wait = math.inf if max_wait is None else float(max_wait)
-        self.decider = Decider(ca, decision, correlation, caps=caps, window_seconds=window_seconds)
+        self.decider = Decider(ca, decision, correlation, caps=caps, window_seconds=window_seconds,
+                               change_threshold=change_threshold)
         #: The robot's own contact signal (``[fusion.decision] contact_from``): the fused windows'
         #: touches; None: a fused window is in contact when either sense's is.
         self.touches: ContactTimeline | None = None
@@ -325,7 +332,12 @@ class EarlyFusion(LateFusion):
     model : EarlyFusionModel
         Knows the streams' textures (in any order); its senses' features are read from the
         window events by name. The fused decisions are pooled by its calibration's contact
-        pooling (uncapped summed log-posteriors for an uncalibrated model).
+        pooling (uncapped summed log-posteriors for an uncalibrated model), and their change
+        threshold (``decision.change``) is fitted on its calibration's held-out windows, as a
+        stream's is (:func:`~supramodal.node.runtime.streams.change_threshold_for`; the detector's
+        bound for a model file without them).
+    window_seconds : float
+        Seconds between windows (what a change rate per minute is per window).
     """
 
     method = "early"
@@ -342,7 +354,8 @@ class EarlyFusion(LateFusion):
             order = [list(model.classes).index(name) for name in classes[0]]
             caps = np.asarray(model_caps)[np.ix_(order, order)]
         super().__init__(inputs, classes, DEFAULT_WEIGHT, max_wait, decision, correlation=correlation, caps=caps,
-                         window_seconds=window_seconds)
+                         window_seconds=window_seconds,
+                         change_threshold=change_threshold_for(model.calibration, decision, window_seconds))
         self.model = model
         self.weight = None
         self._order_model = np.array([list(model.classes).index(name) for name in self.classes])
