@@ -25,7 +25,7 @@ from typing import Any
 from supramodal.checks import Key
 from supramodal.errors import InputError
 
-__all__ = ["BuildContext", "Built", "DriverSpec", "OptionError", "TIMEBASES", "given"]
+__all__ = ["BuildContext", "Built", "DriverSpec", "OptionError", "ReplayedSession", "TIMEBASES", "given"]
 
 #: How a source's samples are put on the graph's common time (see ``supramodal.node.runtime.sources.Source``):
 #: ``stream`` (a file's own time, from its first sample), ``recorded`` (a recording's clock as it was
@@ -98,6 +98,24 @@ class Built:
     source_rate: float | None = None
 
 
+@dataclass(frozen=True)
+class ReplayedSession:
+    """A recorded session a source replays (:attr:`DriverSpec.replays`).
+
+    Attributes
+    ----------
+    path : str
+        The session (``NAME.wav`` and its ``NAME.json``), as the scene names it: relative to the
+        scene's folder.
+    in_step : bool
+        Replayed at its recorded times, in step with the graph's other recorded sources
+        (``timing = "recorded"``), rather than on its rate's schedule.
+    """
+
+    path: str
+    in_step: bool
+
+
 def _default_timebase(live: bool) -> Callable[[Mapping[str, Any], Any], tuple[str, float, float]]:
     def timebase(options: Mapping[str, Any], driver: Any) -> tuple[str, float, float]:
         return ("host" if live else "stream"), 0.0, float(driver.rate)
@@ -136,6 +154,10 @@ class DriverSpec:
         ``buffer_seconds``), so that the node may wait for it: its ring blocks it (``overrun =
         "auto"``) instead of dropping, and a backlog its sender flushes at once waits there.
         Default False.
+    replays : callable, optional
+        ``replays(options) -> ReplayedSession or None``: the recorded session the source replays, which
+        the workflows train on, label and evaluate (``supramodal train --scene``, ``label``); None
+        (the default) for a source that replays none.
     """
 
     type: str
@@ -147,6 +169,7 @@ class DriverSpec:
     signal_type: Callable[[Mapping[str, Any]], str | None] = field(default=lambda options: None)
     check: Callable[[Mapping[str, Any]], None] = field(default=lambda options: None)
     buffered: bool = False
+    replays: Callable[[Mapping[str, Any]], ReplayedSession | None] = field(default=lambda options: None)
 
     def timebase_of(self, options: Mapping[str, Any], driver: Any) -> tuple[str, float, float]:
         """``(timebase, time_offset, time_rate)`` of a built driver."""

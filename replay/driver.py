@@ -43,7 +43,7 @@ from numpy.typing import ArrayLike
 
 from supramodal.checks import Key, flag, integer, is_number, one_of, text
 from supramodal.drivers.base import Block, DeviceUnavailable, DriverBase, DriverClosed, DriverError
-from supramodal.drivers.spec import BuildContext, Built, DriverSpec, OptionError, given
+from supramodal.drivers.spec import BuildContext, Built, DriverSpec, OptionError, ReplayedSession, given
 from supramodal.replay.errors import ReplayError
 from supramodal.replay.session import Label, Session, load_session, session_paths
 from supramodal.replay.wavio import read_wav
@@ -779,11 +779,12 @@ SPEC = DriverSpec(
     type="replay",
     summary="a WAV file or a recorded session, paced like the device that recorded it",
     keys={
-        "path": Key(text, "a WAV file or session path"),
+        "path": Key(text, "a WAV file or session path", path=True),
         "speed": speed_key(),
         "block": block_key(),
         "loop": Key(flag, "true or false", False),
         "timing": Key(one_of(*TIMINGS), '"nominal" (the rate\'s schedule) or "recorded" (a session recorded by a '
                       "graph: its blocks at their recorded times, in step with the other sources)", "nominal"),
     },
-    build=_build, live=False, timebase=_timebase)
+    build=_build, live=False, timebase=_timebase,
+    replays=lambda options: ReplayedSession(str(options["path"]), options["timing"] == "recorded"))

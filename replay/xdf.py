@@ -543,7 +543,7 @@ def _spec() -> DriverSpec:
         type="xdf",
         summary="a stream of an XDF recording (LabRecorder's files; the lsl extra), at its recorded times",
         keys={
-            "path": Key(text, "an XDF file path"),
+            "path": Key(text, "an XDF file path", path=True),
             "stream": Key(text, "the recorded stream's name", None),
             "stream_type": Key(text, 'the recorded stream\'s type, e.g. "Whiskers"', None),
             "source_id": Key(text, "the recorded stream's source_id", None),

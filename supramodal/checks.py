@@ -55,11 +55,15 @@ class Key:
     default : object
         The value when the key is absent; ``None``: the owner's own default applies (the key is
         not passed on); :data:`REQUIRED`: the table must give it.
+    path : bool
+        The value names a file, relative to the folder of the file the table is in (a scene's): a
+        scene written elsewhere makes it absolute (``"-"``, stdout, stays). Default False.
     """
 
     check: Callable[[Any], bool]
     expected: str
     default: Any = REQUIRED
+    path: bool = False
 
     @property
     def required(self) -> bool:

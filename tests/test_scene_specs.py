@@ -12,6 +12,7 @@ import pytest
 
 from supramodal.banks import whisker_bank
 from supramodal.decisions import DecisionRules
+from supramodal.errors import InputError
 from supramodal.node.runtime.sinks import ListSink
 from supramodal.node.scene import specs
 from supramodal.node.scene.build import build_node
@@ -120,3 +121,130 @@ def test_no_spec_field_is_a_dict(cls):
         for part in (hint, *typing.get_args(hint)):
             assert typing.get_origin(part) is not dict and part is not dict, f"{cls.__name__}: {hint}"
             assert typing.get_origin(part) is not list and part is not list, f"{cls.__name__}: {hint}"
+
+
+def _fused_graph(folder) -> dict:
+    """A graph with a file in every kind of place a scene names one, each relative to its folder."""
+    return {"source": [{"name": "board", "type": "replay", "path": "rec/board.wav", "speed": "max"},
+                       {"name": "mic", "type": "replay", "path": "rec/mic.wav", "speed": "max"}],
+            "stream": [{"name": "touch", "source": "board", "model": {"path": "models/touch.npz"}},
+                       {"name": "sound", "source": "mic", "bank": {"kind": "cochlea"},
+                        "model": {"path": "models/sound.npz"}}],
+            "fusion": {"streams": ["touch", "sound"], "method": "early", "model": "models/fused.npz"},
+            "sink": [{"type": "text"}, {"type": "jsonl", "path": "out/w.jsonl"}]}
+
+
+def test_a_scene_with_absolute_paths_is_the_file_with_its_paths_written_absolute(tmp_path):
+    """variants.with_absolute_paths: every key marked ``path`` (a driver's, a sink's), a bank file, the models
+    and the early fusion's model, resolved against the scene's folder; stdout ("-") stays."""
+    from supramodal.node.scene.variants import with_absolute_paths
+
+    d = _fused_graph(tmp_path)
+    scene = scene_from_dict(d, str(tmp_path / "s.toml"), tmp_path)
+    got = with_absolute_paths(scene)
+    here = tmp_path.resolve()
+    want = _fused_graph(tmp_path)
+    for src in want["source"]:
+        src["path"] = str(here / src["path"])
+    for st in want["stream"]:
+        st["model"]["path"] = str(here / st["model"]["path"])
+    want["fusion"]["model"] = str(here / "models/fused.npz")
+    want["sink"][1]["path"] = str(here / "out/w.jsonl")
+    assert got == scene_from_dict(want, str(tmp_path / "s.toml"), tmp_path)
+    assert got.sinks[0].options["path"] == "-"
+    assert scene == scene_from_dict(d, str(tmp_path / "s.toml"), tmp_path)      # the scene itself unchanged
+    banked = scene_from_dict({"driver": {"type": "synth"}, "bank": {"file": "b/bank.json"}}, "one.toml", tmp_path)
+    assert with_absolute_paths(banked).only_stream().bank.file == str(here / "b/bank.json")
+
+
+def test_a_relocated_scene_names_its_new_file_and_resolves_against_its_folder(tmp_path):
+    from supramodal.node.scene.variants import relocated
+
+    scene = scene_from_dict(_fused_graph(tmp_path), str(tmp_path / "s.toml"), tmp_path)
+    moved = relocated(scene, tmp_path / "elsewhere" / "n.toml")
+    assert moved.source == str(tmp_path / "elsewhere" / "n.toml")
+    assert moved.base_dir == (tmp_path / "elsewhere").resolve()
+    assert moved.stream_named("touch").where == f"{moved.source}: [[stream]] touch"
+    assert moved.source_named("mic").where == f"{moved.source}: [[source]] mic"
+    assert moved.resolve("rec/mic.wav") == (tmp_path / "elsewhere").resolve() / "rec/mic.wav"
+    assert relocated(scene, "n.toml", base_dir=tmp_path / "there").base_dir == tmp_path / "there"
+
+
+def test_models_and_a_fusion_given_in_code_are_those_the_file_would_give(tmp_path):
+    """variants.with_models / with_fusion: model files (checked, made absolute) and a [fusion] table
+    filled and checked as the scene file's would be."""
+    from supramodal.node.scene.variants import with_fusion, with_models
+
+    d = _fused_graph(tmp_path)
+    del d["fusion"]
+    for st in d["stream"]:
+        del st["model"]
+    scene = scene_from_dict(d, "g.toml", tmp_path)
+    for name in ("a.npz", "b.npz"):
+        (tmp_path / name).write_bytes(b"")
+    got = with_models(scene, {"touch": tmp_path / "a.npz", "sound": str(tmp_path / "b.npz")})
+    filed = dict(d, stream=[dict(d["stream"][0], model={"path": str((tmp_path / "a.npz").resolve())}),
+                            dict(d["stream"][1], model={"path": str((tmp_path / "b.npz").resolve())})],
+                 fusion={"streams": ["touch", "sound"]})
+    assert got == scene_from_dict(filed, "g.toml", tmp_path)
+    assert got.fusion is not None and got.fusion.method == "late"
+    with pytest.raises(InputError, match=r"--model names stream\(s\) \['nose'\]; its streams are \['touch', 'sound'\]"):
+        with_models(scene, {"nose": tmp_path / "a.npz"})
+    with pytest.raises(InputError, match="--model touch=.*: no model file there; train it first"):
+        with_models(scene, {"touch": tmp_path / "none.npz"})
+    early = with_fusion(got, streams=["sound", "touch"], method="early", model="f.npz")
+    assert early.fusion == scene_from_dict(dict(filed, fusion={"streams": ["sound", "touch"], "method": "early",
+                                                               "model": "f.npz"}), "g.toml", tmp_path).fusion
+    with pytest.raises(SceneError, match=r"g.toml: \[fusion\] weight: expected"):
+        with_fusion(got, streams=["touch", "sound"], weight=2.0)
+    with pytest.raises(SceneError, match=r"g.toml: \[fusion\] streams: stream 'touch' has no model to fuse"):
+        with_fusion(scene, streams=["touch", "sound"])
+
+
+def test_a_scene_as_a_replay_reads_each_source_from_its_session(tmp_path):
+    from supramodal.node.scene.variants import as_replay
+
+    d = {"source": [{"name": "board", "type": "synth", "buffer": {"overrun": "drop-oldest", "seconds": 3}}],
+         "stream": [{"name": "touch", "source": "board", "mapping": 2}]}
+    scene = scene_from_dict(d, "g.toml", tmp_path)
+    got = as_replay(scene, {"board": "rec.board.wav"})
+    filed = dict(d, source=[{"name": "board", "type": "replay", "path": "rec.board.wav", "timing": "recorded",
+                             "speed": "max", "buffer": {"overrun": "auto", "seconds": 3}}])
+    assert got == scene_from_dict(filed, "g.toml", tmp_path)
+    with pytest.raises(InputError, match=r"no session given for source\(s\) \['board'\]"):
+        as_replay(scene, {})
+
+
+def test_no_workflow_varies_a_scene_by_writing_it_out_and_reading_it_back():
+    """Issue 37, item 4: variants are made on the frozen specs (node/scene/variants.py); a scene's TOML is
+    parsed only where a file is read (the schema's load_scene)."""
+    import ast
+    from pathlib import Path
+
+    import supramodal.node
+
+    root = Path(supramodal.node.__file__).parent
+    offenders = []
+    for path in sorted(root.rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.func.attr == "loads"
+                    and isinstance(node.func.value, ast.Name) and node.func.value.id == "tomllib"
+                    and path.name != "schema.py"):
+                offenders.append(f"{path.relative_to(root)}:{node.lineno}")
+    assert not offenders, f"TOML parsed outside the schema (a scene varied by a round trip?): {offenders}"
+
+
+def test_a_driver_spec_says_which_recorded_session_its_source_replays(tmp_path):
+    """What `train --scene` and `label` read of a source comes from its driver's spec (``replays``), not
+    from its options by string key: a replay names its session, and whether it plays in step."""
+    from supramodal.drivers.spec import ReplayedSession
+    from supramodal.node.scene.registry import driver_spec
+
+    def replays(table):
+        src = scene_from_dict({"source": [{"name": "a", **table}], "stream": [{"name": "s", "source": "a"}]},
+                              "g.toml", tmp_path).sources[0]
+        return driver_spec(src.type).replays(src.options)
+
+    assert replays({"type": "replay", "path": "r.wav", "timing": "recorded"}) == ReplayedSession("r.wav", True)
+    assert replays({"type": "replay", "path": "r.wav"}) == ReplayedSession("r.wav", False)
+    assert replays({"type": "synth"}) is None

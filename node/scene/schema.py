@@ -49,7 +49,7 @@ from supramodal.decisions import DEFAULT_DECISION, METHODS, SCOPES, DecisionRule
 from supramodal.drivers.contact import check_contact_from
 from supramodal.drivers.spec import OptionError
 from supramodal.errors import InputError
-from supramodal.features import DEFAULT_WINDOW, FEATURE_TABLE, FEATURES
+from supramodal.features import DEFAULT_WINDOW, FEATURE_TABLE
 from supramodal.node.runtime.events import FUSED_STREAM, MAIN_STREAM
 from supramodal.node.runtime.fusion import DEFAULT_MAX_WAIT, DEFAULT_WEIGHT
 from supramodal.node.runtime.sinks.spec import sink_keys
@@ -71,7 +71,8 @@ from supramodal.peaks import DEFAULT_PEAK_MODE, PEAK_MODES
 
 # Scene and SceneError live with the other specs (node.scene.specs); they are read from here too.
 __all__ = ["FUSION_KEYS", "LEARN", "MAPPING", "ONE_SOURCE_KEYS", "SECTIONS", "SOURCE_KEYS", "STREAM_KEYS", "Scene",
-           "SceneError", "default_scene", "driver_table", "load_scene", "scene_from_dict", "scene_to_toml"]
+           "SceneError", "default_scene", "driver_table", "fusion_from_table", "load_scene", "scene_from_dict",
+           "scene_to_toml"]
 
 
 #: Longest ring a scene may ask for, seconds of its source (node.scene.build also bounds its bytes).
@@ -79,7 +80,8 @@ MAX_BUFFER_SECONDS = 600.0
 
 
 def _features(v):
-    return isinstance(v, list) and v and all(f in FEATURES for f in v) and len(set(v)) == len(v)
+    # the table itself, not a copy of its names made at import: a row added later (a test's) is a feature too
+    return isinstance(v, list) and v and all(f in FEATURE_TABLE for f in v) and len(set(v)) == len(v)
 
 
 def _rows(v):
@@ -99,7 +101,7 @@ SECTIONS = {
         "fs": Key(BANK_KEYS["whisker"]["fs"].check, BANK_KEYS["whisker"]["fs"].expected + " (default: the bank's)",
                   None),
         "file": Key(text, "a bank file (supramodal-bank JSON, e.g. from a fit), relative to the scene; "
-                          "the [bank] table then holds nothing else", None),
+                          "the [bank] table then holds nothing else", None, path=True),
     },
     "features": {
         "names": Key(_features, "a list of distinct names drawn from "
@@ -117,7 +119,7 @@ SECTIONS = {
         "nonfinite": Key(one_of("raise", "zero"), '"raise" or "zero"', "zero"),
     },
     "model": {
-        "path": Key(text, "a model .npz path (loaded; or written when train_on_start)", None),
+        "path": Key(text, "a model .npz path (loaded; or written when train_on_start)", None, path=True),
         "train_on_start": Key(flag, "true or false: train at start-up on the synth driver's texture set, or with "
                                     "another driver on the bank's reference set", False),
     },
@@ -192,7 +194,8 @@ FUSION_KEYS = {
     "method": Key(one_of("late", "early"), '"late" (weighted log-posteriors) or "early" (one network on both '
                                              "streams' features: the supramodal network)", "late"),
     "model": Key(text, 'with method = "early": an early-fusion model file (default: the network trained on the '
-                       "spot on both streams' training windows, which needs both models trained on the spot)", None),
+                       "spot on both streams' training windows, which needs both models trained on the spot)", None,
+                  path=True),
     "weight": Key(lambda v: v == LEARN or number(0.0, 1.0)(v),
                   f'the first stream\'s weight, in [0, 1], or "{LEARN}" (learned on the held-out training windows '
                   'of two models trained on the spot)', DEFAULT_WEIGHT),
@@ -451,7 +454,12 @@ def _graph_scene(d: dict, source: str, base_dir: Path) -> Scene:
 
 def _fusion(d: dict, source: str, streams: list[StreamSpec]) -> FusionSpec:
     """The ``[fusion]`` table of a graph scene (of ``streams``), validated."""
-    given = d["fusion"]
+    return fusion_from_table(d["fusion"], source, streams)
+
+
+def fusion_from_table(given, source: str, streams) -> FusionSpec:
+    """A ``[fusion]`` table (as parsed, defaults left out) over a scene's ``streams`` (StreamSpecs),
+    validated and filled in; ``source`` names the scene file in messages."""
     if not isinstance(given, dict):
         raise SceneError(f"{source}: [fusion] must be a table")
     stream_names = [s.name for s in streams]

@@ -17,7 +17,6 @@ them live; the pairs whose truth is known are the data:
 from __future__ import annotations
 
 import dataclasses
-import tomllib
 import warnings
 from pathlib import Path
 
@@ -47,32 +46,11 @@ from supramodal.model import ModelError
 from supramodal.node.runtime.events import FUSED_STREAM, WindowEvent, log_posteriors_of
 from supramodal.node.runtime.sinks import ListSink
 from supramodal.node.scene.build import build_node
-from supramodal.node.scene.schema import Scene, SceneError, load_scene, scene_from_dict, scene_to_toml
+from supramodal.node.scene.schema import SceneError, load_scene, scene_to_toml
+from supramodal.node.scene.variants import relocated, with_absolute_paths, with_fusion, with_models
 
 #: How a fusion is learned from sessions.
 FUSION_METHODS = ("early", "late")
-
-
-def with_models(scene: Scene, models: dict) -> Scene:
-    """``scene`` with the streams named in ``models`` (``{stream: model file}``) deciding with those
-    files, and, when two are named and the scene fuses other streams or none, a ``[fusion]`` of those
-    two (late, its defaults). A recording of a graph whose streams had no model is fused so."""
-    d = tomllib.loads(scene_to_toml(scene))
-    names = [spec["name"] for spec in d.get("stream", [])]
-    unknown = sorted(set(models) - set(names))
-    if unknown:
-        raise InputError(f"{scene.source}: --model names stream(s) {unknown}; its streams are {names}")
-    for spec in d["stream"]:
-        if spec["name"] in models:
-            path = Path(models[spec["name"]]).expanduser().resolve()
-            if not path.is_file():
-                raise InputError(f"--model {spec['name']}={models[spec['name']]}: no model file there; train it "
-                                 f"first (supramodal train --scene ... --stream {spec['name']} --out FILE)")
-            spec["model"] = {"path": str(path)}
-    fused = d.get("fusion", {}).get("streams")
-    if len(models) == 2 and (fused is None or set(fused) != set(models)):
-        d["fusion"] = {"streams": list(models)}
-    return scene_from_dict(d, scene.source, scene.base_dir)
 
 
 def _graph_for(path, fused_model=None, models=None):
@@ -273,24 +251,12 @@ def write_fused_scene(live, streams, models: dict[str, str], out, *, method: str
     folder (a replay's file, a bank file, a sink's file) are written absolute, so the new scene runs
     from its own folder. Returns ``out``; refuses an existing file (the caller checks ``--force``)."""
     scene = load_scene(live)
-    d = tomllib.loads(scene_to_toml(scene))
-    for src in d.get("source", []):
-        if src.get("type") == "replay" and "path" in src:
-            src["path"] = str(scene.resolve(src["path"]).resolve())
-    for spec in d.get("stream", []):
-        if spec.get("bank", {}).get("file"):
-            spec["bank"]["file"] = str(scene.resolve(spec["bank"]["file"]).resolve())
-        if spec["name"] in models:
-            spec["model"] = {"path": str(Path(models[spec["name"]]).resolve())}
-    for sink in d.get("sink", []):
-        if sink.get("path", "-") != "-":
-            sink["path"] = str(scene.resolve(sink["path"]).resolve())
     learned = {"model": model, "weight": weight, "sharpness": sharpness, "correlation": correlation}
-    d["fusion"] = {"streams": list(streams), "method": method, **{k: v for k, v in learned.items() if v is not None}}
+    checked = with_fusion(with_models(with_absolute_paths(scene), models), streams=list(streams), method=method,
+                          **{k: v for k, v in learned.items() if v is not None})
     out = Path(out)
-    checked = scene_from_dict(d, str(out), out.resolve().parent)
     out.write_text(f"# {scene.source} with its sense models and the fusion learned by supramodal train --fusion.\n"
-                   + scene_to_toml(checked))
+                   + scene_to_toml(relocated(checked, out)))
     return out
 
 

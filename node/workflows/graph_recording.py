@@ -14,15 +14,16 @@ for both streams without a deadline).
 
 from __future__ import annotations
 
+import dataclasses
 import json
-import tomllib
-from dataclasses import asdict
 from pathlib import Path
 
 from supramodal.errors import InputError
 from supramodal.node.runtime.outputs import check_new_file
 from supramodal.node.runtime.taps.recorder import SessionRecorder
-from supramodal.node.scene.schema import Scene, scene_from_dict, scene_to_toml
+from supramodal.node.scene.schema import Scene, scene_to_toml
+from supramodal.node.scene.specs import ModelSpec
+from supramodal.node.scene.variants import as_replay, relocated
 from supramodal.replay.session import session_paths
 
 
@@ -55,7 +56,7 @@ def graph_recorders(scene: Scene, folder, name: str, overwrite: bool = False, la
             check_new_file(path, overwrite, "the recording's file")
     return {src.name: SessionRecorder(folder if into is None else into, f"{name}.{src.name}",
                                       json.dumps({"scene": scene.source,
-                                                  "source": {**src.table(), "buffer": asdict(src.buffer)}}),
+                                                  "source": {**src.table(), "buffer": dataclasses.asdict(src.buffer)}}),
                                       label=label, overwrite=overwrite, keep_arrivals=True, replace=replace)
             for src in scene.sources}
 
@@ -102,27 +103,25 @@ def write_replay_scene(scene: Scene, graph, folder, name: str, overwrite: bool =
     if missing:
         raise InputError(f"no session was recorded for source(s) {missing} (no frame came): the recording "
                          "cannot be replayed in step, so no replay scene is written")
-    d = tomllib.loads(scene_to_toml(scene))
-    # Each source a replay of its session at its recorded times (the streams read it with their
-    # mappings, as recorded); its ring waits rather than drops (a file need lose nothing).
-    d["source"] = [{"name": src.name, "type": "replay", "path": f"{name}.{src.name}.wav",
-                    "timing": "recorded", "speed": "max",
-                    "buffer": {**asdict(src.buffer), "overrun": "auto"}} for src in scene.sources]
-    for spec, stream in zip(d.get("stream", []), graph.streams):
-        if stream.model is not None and spec["name"] in paths["models"]:
-            stream.model.save(paths["models"][spec["name"]])
-            spec["model"] = {"path": paths["models"][spec["name"]].name}
-    if graph.fusion is not None and graph.fusion.method == "early":
+    replay = as_replay(scene, {src.name: f"{name}.{src.name}.wav" for src in scene.sources})
+    streams = []
+    for spec, stream in zip(replay.streams, graph.streams):
+        if stream.model is not None and spec.name in paths["models"]:
+            stream.model.save(paths["models"][spec.name])
+            spec = dataclasses.replace(spec, model=ModelSpec(path=paths["models"][spec.name].name))
+        streams.append(spec)
+    fusion = replay.fusion
+    if fusion is not None and graph.fusion.method == "early":
         graph.fusion.model.save(paths["fused"])           # a network trained on the spot, as trained
-        d["fusion"]["model"] = paths["fused"].name
-    elif graph.fusion is not None:
-        for key in ("weight", "sharpness", "correlation"):  # learned ones, as they were learned
-            d["fusion"][key] = getattr(graph.fusion, key)
+        fusion = dataclasses.replace(fusion, model=paths["fused"].name)
+    elif fusion is not None:                               # the weights learned, as they were learned
+        fusion = dataclasses.replace(fusion, **{key: getattr(graph.fusion, key)
+                                                for key in ("weight", "sharpness", "correlation")})
     # The replay's sinks are the default ones; a relay (no stream) sends its recording on again.
-    sent = [sink for sink in d.pop("sink", []) if sink["type"] == "lsl-signal"]
-    if not graph.streams:
-        d["sink"] = sent
-    replay = scene_from_dict(d, str(folder / paths["scene"].name), into)
+    sent = [sink for sink in scene.sinks if sink.type == "lsl-signal"] if not graph.streams else []
+    replay = dataclasses.replace(replay, streams=tuple(streams) + replay.streams[len(streams):], fusion=fusion,
+                                 sinks=tuple(dataclasses.replace(sink, index=i) for i, sink in enumerate(sent)))
+    replay = relocated(replay, folder / paths["scene"].name, base_dir=into)
     check_new_file(paths["scene"], overwrite, "the replay scene")
     paths["scene"].write_text(f"# Replays the recording {name} with its recorded timing (supramodal record).\n"
                               + scene_to_toml(replay))

@@ -181,15 +181,17 @@ def spans_to_stream(spans: Iterable[Span], arrivals, marks, frames: int, rate: f
 
 def _sessions(scene_path) -> list[tuple[str, Path]]:
     """``(source name, session path)`` of every source of a recorded graph's replay scene."""
+    from supramodal.node.scene.registry import driver_spec
     from supramodal.node.scene.schema import load_scene
 
     scene = load_scene(scene_path)
     sessions = []
     for src in scene.sources:
-        if src.type != "replay" or src.options.get("timing") != "recorded":
+        session = driver_spec(src.type).replays(src.options)
+        if session is None or not session.in_step:
             raise LabelError(f"{scene.source}: source {src.name!r} is not a recorded session (type = "
                              f"{src.type!r}); give the scene `supramodal record` wrote for a graph (DIR/NAME.toml)")
-        sessions.append((src.name, scene.resolve(str(src.options["path"]))))
+        sessions.append((src.name, scene.resolve(session.path)))
     return sessions
 
 

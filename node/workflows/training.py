@@ -159,6 +159,7 @@ def scene_stream(path, stream: str):
         Naming the scene: no stream of that name (its streams listed), or a source that is not a
         recorded session.
     """
+    from supramodal.node.scene.registry import driver_spec
     from supramodal.node.scene.schema import load_scene
 
     scene = load_scene(path)
@@ -167,10 +168,11 @@ def scene_stream(path, stream: str):
         raise InputError(f"{scene.source}: no stream {stream!r}; its streams are {[s.name for s in scene.streams]} "
                          "(--stream names one)")
     src = scene.source_named(spec.source)
-    if src.type != "replay":
+    session = driver_spec(src.type).replays(src.options)
+    if session is None:
         raise InputError(f"{scene.source}: stream {stream!r} reads source {src.name!r} of type {src.type!r}, "
                          "not a recording; give the scene `supramodal record` wrote (DIR/NAME.toml)")
-    return scene, spec, scene.resolve(str(src.options["path"])), src
+    return scene, spec, scene.resolve(session.path), src
 
 
 def train_from_scenes(paths, stream: str, epochs: int = DEFAULT_EPOCHS, seed: int = 0, progress=None,
