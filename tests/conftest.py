@@ -332,64 +332,6 @@ def run_once(name: str, compute):
         os.close(fd)                         # releases the lock
 
 
-class _SharedModels(dict):
-    """``supramodal.node.scene.build._trained_on_the_spot`` (the models the node trains on start, kept in
-    memory by their texture set and pipeline settings) backed by :func:`run_once`'s folder, so that
-    the xdist workers train each model once per run, not once each. The node's own key names the file:
-    a model missing from memory is looked up there (:meth:`pop`), and a model the node trained is
-    written there (:meth:`__setitem__`). While one worker trains, it holds the key's lock and a worker
-    asking for the same model waits for it; the lock is let go when the model is written or, if the
-    training raised, when the test ends (:func:`_release_model_locks`)."""
-
-    def __init__(self):
-        super().__init__()
-        self.held = {}                       # path -> fd of a lock held while this process trains
-
-    @staticmethod
-    def _path(key):
-        """The file of ``key``, or None where its repr does not say all of it (numpy elides long arrays)."""
-        name = "trained-on-the-spot " + repr(key)
-        return None if _SHARED_DIR is None or "..." in name else _shared_path(name)
-
-    def pop(self, key, *default):
-        path = None if key in self else self._path(key)
-        if path is None:
-            return super().pop(key, *default)
-        if path not in self.held:
-            fd = os.open(f"{path}.lock", os.O_CREAT | os.O_RDWR, 0o600)
-            fcntl.flock(fd, fcntl.LOCK_EX)
-            self.held[path] = fd
-        try:
-            with open(f"{path}.pickle", "rb") as f:
-                made = pickle.load(f)
-        except FileNotFoundError:
-            if default:
-                return default[0]            # the caller trains; __setitem__ writes it and lets go
-            self.release()
-            raise KeyError(key) from None
-        self.release(path)
-        return made
-
-    def __setitem__(self, key, made):
-        super().__setitem__(key, made)
-        path = self._path(key)
-        if path is not None and path in self.held:
-            tmp = f"{path}.pickle.{os.getpid()}"
-            with open(tmp, "wb") as f:
-                pickle.dump(made, f, protocol=pickle.HIGHEST_PROTOCOL)
-            os.replace(tmp, f"{path}.pickle")
-            self.release(path)
-
-    def release(self, path=None):
-        for p in [path] if path is not None else list(self.held):
-            fd = self.held.pop(p, None)
-            if fd is not None:
-                os.close(fd)
-
-
-_shared_models = _SharedModels()
-
-
 def _once_per_arguments(func, label, quiet):
     """``func`` computed once per run for each set of arguments (:func:`run_once`, named by a digest
     of the arguments' content, :func:`supramodal.digest.feed`), for a deterministic ``func`` whose result pickles.
@@ -428,10 +370,11 @@ def _share_fusion_training():
 def pytest_sessionstart(session):
     """The run's shared folder: under xdist, the controller's base temp (every worker's base temp is a
     folder in it, so the workers of one run share it and no other run sees it); without xdist, this
-    process's own. The node's models trained on start are kept there too (:class:`_SharedModels`), and
-    so is the cache of models trained on start (node/scene/model_cache.py: ``SUPRAMODAL_CACHE``,
-    set here before any test starts a process, which inherits it), never the user's own: a node run as
-    a process by a test reads the model another process of the run trained."""
+    process's own. The cache of models trained on start is kept there (node/scene/model_cache.py:
+    ``SUPRAMODAL_CACHE``, set here before any test starts a process, which inherits it), never the user's
+    own: a node run in or out of a test's process reads the model another process of the run trained; the
+    trainings a test makes outside that cache, and the fusions' (:func:`_share_fusion_training`), are run
+    once per run too (:func:`run_once`)."""
     global _SHARED_DIR
     config = session.config
     base = config._tmp_path_factory.getbasetemp()
@@ -442,15 +385,11 @@ def pytest_sessionstart(session):
         return                               # xdist's controller: it runs no test (and starts the workers sooner)
     from supramodal.node.scene import build
 
-    build._trained_on_the_spot = _shared_models
+    # The models the node trains on start that a test trains outside the model cache (with a cache of its
+    # own, or none), once per run: seeded and deterministic, keyed by their texture set and settings.
+    build.texture_set_model = _once_per_arguments(build.texture_set_model, "texture_set_model",
+                                                  lambda kw: kw.get("progress") is None)
     _share_fusion_training()
-
-
-@pytest.fixture(autouse=True)
-def _release_model_locks():
-    """A model training that raised leaves its lock held (:class:`_SharedModels`): let it go."""
-    yield
-    _shared_models.release()
 
 
 @pytest.fixture(scope="session")

@@ -175,25 +175,42 @@ def test_fusion_keys_printed_by_train_fusion_are_scene_keys_and_learn_refuses_th
         scene_from_dict(_fusion_scene(weight=0.5, decision={"confidence": 0.9}), "<test>")
 
 
-def test_a_model_trained_on_the_spot_is_trained_once_per_process(monkeypatch):
+def test_a_model_trained_on_the_spot_is_trained_once_per_cache(monkeypatch, tmp_path):
     """Calibration trains eleven networks: a second scene with the same texture set and pipeline
-    gets the same model without training again; another pipeline trains its own."""
+    gets the same model from the node's one cache (on disk: node/scene/model_cache.py) without
+    training again; another pipeline trains its own. (Was: once per process, from a cache in
+    memory beside the disk's, which issue 37 removed.)"""
     from supramodal.node.scene import build
+    from supramodal.node.scene.model_cache import trained_on_start
     from supramodal.textures import reference_texture_set
 
     calls = []
-    real = TextureModel.train_for
-    monkeypatch.setattr(TextureModel, "train_for", classmethod(lambda cls, *a, **k: calls.append(1) or real(*a, **k)))
-    monkeypatch.setattr(build, "_trained_on_the_spot", {})
+    real = build.texture_set_model
+    monkeypatch.setattr(build, "texture_set_model", lambda *a, **k: calls.append(1) or real(*a, **k))
     ts = reference_texture_set("whisker")
     short = type(ts)(**{**ts.__dict__, "duration": 4.0})
+
+    def start(features, held_out):
+        pipeline = FeaturePipeline(whisker_bank(), features)
+        return trained_on_start(short, pipeline, lambda h, t: build.train_on_texture_set(short, pipeline, None, h, t),
+                                None, held_out, [], folder=tmp_path)
+
     held_a, held_b = [], []
-    a = build.train_on_texture_set(short, FeaturePipeline(whisker_bank(), ("Af",)), held_out=held_a)
-    b = build.train_on_texture_set(short, FeaturePipeline(whisker_bank(), ("Af",)), held_out=held_b)
-    assert a is b and len(calls) == 1
+    a, b = start(("Af",), held_a), start(("Af",), held_b)
+    assert len(calls) == 1
+    np.testing.assert_array_equal(a.mlp.w1, b.mlp.w1)
     np.testing.assert_array_equal(held_a[0][0], held_b[0][0])
-    c = build.train_on_texture_set(short, FeaturePipeline(whisker_bank(), ("A",)))
-    assert c is not a and c.features == ("A",) and len(calls) == 2
+    c = start(("A",), [])
+    assert c.features == ("A",) and len(calls) == 2
+
+
+def test_the_node_keeps_no_model_in_memory_between_builds():
+    """Issue 37, item 2: one cache of models trained on start, the disk's; the builder keeps none of its own."""
+    from supramodal.node.scene import build
+
+    assert not any(isinstance(v, dict) and not k.startswith("__") for k, v in vars(build).items()
+                   if k.startswith("_trained")), "a module-level model store in node/scene/build.py"
+    assert not hasattr(build, "TRAINED_ON_THE_SPOT")
 
 
 def test_a_fusion_deciding_per_contact_gives_its_streams_contact_detectors(tmp_path):

@@ -8,7 +8,6 @@ not asked for are not computed, and there is no classifier without a model.
 from __future__ import annotations
 
 import contextlib
-import json
 from collections.abc import Iterator
 from typing import TYPE_CHECKING, Any
 
@@ -38,7 +37,7 @@ from supramodal.node.scene.registry import driver_spec, sink_spec
 from supramodal.node.scene.schema import LEARN
 from supramodal.node.scene.specs import Scene, SceneError, SinkSettings, SourceSpec, StreamSpec
 from supramodal.parallel import default_jobs
-from supramodal.pipeline import FeaturePipeline
+from supramodal.pipeline import FeaturePipeline, window_length
 from supramodal.training import split, texture_features
 
 if TYPE_CHECKING:   # for annotations only: a scene without fusion does not load it
@@ -79,30 +78,32 @@ def train_on_texture_set(ts, pipeline: FeaturePipeline, progress=None, held_out:
     ``(x_train, y_train)`` (an early-fusion network learns on it, a late-fusion weight on its
     out-of-fold windows).
 
-    The result depends on nothing but the texture set and the pipeline's settings, so a process
-    that builds several scenes (a test suite, a notebook, a benchmark) trains each model once:
-    the last :data:`TRAINED_ON_THE_SPOT` are kept in memory (the node never changes a model).
+    It trains every time: the node keeps what it trains on start in one cache, on disk
+    (:func:`~supramodal.node.scene.model_cache.trained_on_start`, which calls this on a miss).
     """
     p = pipeline
-    key = (ts, json.dumps(p.bank.to_dict(), sort_keys=True), tuple(p.features), p.window_samples, p.peaks.mode,
-           float(p.peaks.threshold))
-    made = _trained_on_the_spot.pop(key, None)
-    if made is None:
-        with _ticker(progress, f"the {p.bank.kind} bank's model ({', '.join(p.features)}) on {len(ts.textures)} "
-                               "textures") as tell:
-            values, _ = texture_features(ts, p.bank, p.features, p.window, peak_mode=p.peaks.mode,
-                                         peak_threshold=p.peaks.threshold, progress=tell.features)
-            x_train, y_train, x_test, y_test = split(values)
-            tell.networks_begin()
-            model = TextureModel.train_for(p, x_train, y_train, ts.names, seed=0, progress=tell.epoch,
-                                           calibration_progress=tell.fold, jobs=default_jobs())
-        made = (model, (x_train, y_train), (x_test, y_test))
-    _trained_on_the_spot[key] = made                    # the most recent last
-    while len(_trained_on_the_spot) > TRAINED_ON_THE_SPOT:
-        _trained_on_the_spot.pop(next(iter(_trained_on_the_spot)))
-    model, train_part, test_part = made
+    model, train_part, test_part = texture_set_model(ts, p.bank, p.features, p.window, p.peaks.mode,
+                                                     float(p.peaks.threshold), progress=progress)
     hand_over(model, train_part, test_part, ts, p.features, held_out, trained, progress)
     return model
+
+
+def texture_set_model(ts, bank: Bank, features: tuple[str, ...], window: float, peak_mode: str,
+                      peak_threshold: float, progress=None) -> tuple[TextureModel, tuple, tuple]:
+    """What :func:`train_on_texture_set` trains: ``(model, (x_train, y_train), (x_test, y_test))``, from
+    nothing but the texture set and the pipeline's settings (``window`` in seconds), with progress told
+    every few seconds to ``progress`` (None: silent)."""
+    with _ticker(progress, f"the {bank.kind} bank's model ({', '.join(features)}) on {len(ts.textures)} "
+                           "textures") as tell:
+        values, _ = texture_features(ts, bank, features, window, peak_mode=peak_mode,
+                                     peak_threshold=peak_threshold, progress=tell.features)
+        x_train, y_train, x_test, y_test = split(values)
+        tell.networks_begin()
+        model = TextureModel.train(x_train, y_train, ts.names, bank, features,
+                                   window_length(window, bank.fs), peak_mode=peak_mode,
+                                   peak_threshold=peak_threshold, seed=0, progress=tell.epoch,
+                                   calibration_progress=tell.fold, jobs=default_jobs())
+    return model, (x_train, y_train), (x_test, y_test)
 
 
 class _TrainingTold:
@@ -146,11 +147,6 @@ def _ticker(progress, what: str) -> Iterator[_TrainingTold]:
         return
     with Ticker(progress, what, 1 + DEFAULT_CALIBRATION_FOLDS) as ticker:
         yield _TrainingTold(ticker, DEFAULT_EPOCHS, DEFAULT_CALIBRATION_FOLDS)
-
-
-#: Models trained on the spot kept in memory, most recent last (see :func:`train_on_texture_set`).
-TRAINED_ON_THE_SPOT = 8
-_trained_on_the_spot: dict = {}
 
 
 def driver_for(scene: Scene, bank: Bank | None, speed_override=None, shared: dict | None = None,
