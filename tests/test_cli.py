@@ -524,7 +524,8 @@ def test_every_command_s_help_says_what_it_does_lists_debug_and_names_no_issue()
     for name, command in sub.choices.items():
         text = command.format_help()
         assert command.description, name
-        assert command.description in " ".join(text.split()), name
+        # whitespace aside: argparse wraps lines, at a hyphen too ("cross-" / "validation")
+        assert "".join(command.description.split()) in "".join(text.split()), name
         assert "--debug" in text, name
         assert not re.search(r"\bissue \d", text), (name, re.search(r".{40}\bissue \d.{10}", text))
 
@@ -567,8 +568,12 @@ def test_ci_runs_exactly_the_readme_s_test_command():
 
 
 _TOY_COMMAND = '''
+SUMMARY = "greet a name"
+README_ROWS = (("supramodal toy NAME", SUMMARY + " ([a page](docs/toy.md))"),)
+
+
 def add_parser(subparsers, common):
-    p = subparsers.add_parser("toy", parents=[common], help="greet a name")
+    p = subparsers.add_parser("toy", parents=[common], help=SUMMARY)
     p.add_argument("name")
     return p
 
@@ -580,9 +585,11 @@ def run(args):
 
 
 def test_a_new_command_is_one_module_and_one_line(tmp_path, monkeypatch, capsys):
-    """The recipe of node/cli/__init__.py holds: a module with add_parser and run, and its line in COMMANDS,
-    are all a command needs (its --help, its run, its place in the list); nothing else is edited."""
+    """The recipe of node/cli/__init__.py holds: a module with add_parser, run and its README rows, and its line in
+    COMMANDS, are all a command needs (its --help, its run, its place in the list, its rows in the README's
+    command table); nothing else is edited."""
     from supramodal.node.cli import COMMANDS, build_parser, main
+    from supramodal.node.cli import docs as cli_docs
 
     (tmp_path / "toy_command.py").write_text(_TOY_COMMAND)
     monkeypatch.syspath_prepend(str(tmp_path))
@@ -592,3 +599,38 @@ def test_a_new_command_is_one_module_and_one_line(tmp_path, monkeypatch, capsys)
     sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
     assert list(sub.choices)[-1] == "toy" and sub.choices["toy"].description == "greet a name"
     assert main(["toy", "--debug", "you"]) == 0 and capsys.readouterr().out == "hello you\n"
+    # the README's table gains its row, last as in --help; the committed README now lacks it, and says so
+    assert cli_docs.command_table().endswith("\n| `supramodal toy NAME` | greet a name ([a page](docs/toy.md)) |")
+    assert cli_docs.check(ROOT) == ["README.md"]
+
+
+def test_the_readme_command_table_is_the_command_modules():
+    """README.md's command table is made from each command's README_ROWS (python -m supramodal.node.cli.docs), in
+    COMMANDS' order: a command added, removed or reworded without regenerating it fails here. Each command's
+    line has one home, its module's SUMMARY: --help opens with it, and a command of one form's row says it."""
+    from supramodal.node.cli import COMMANDS, build_parser, command_module
+    from supramodal.node.cli import docs as cli_docs
+    from supramodal.node.scene.docs import rewrite
+
+    assert cli_docs.check(ROOT) == [], "README.md's command table is stale: run python -m supramodal.node.cli.docs"
+    table = cli_docs.command_table()
+    readme = (ROOT / "README.md").read_text()
+    assert "<!-- BEGIN generated: commands -->\n" + table + "\n<!-- END generated: commands -->" in readme
+    rows = table.splitlines()[2:]
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    named = []
+    for name in COMMANDS:
+        module = command_module(name)
+        assert sub.choices[name].description == module.SUMMARY, name
+        forms = module.README_ROWS
+        # every row is its own command's: its synopsis starts with the command's name
+        assert all(synopsis.split()[:2] == ["supramodal", name] for synopsis, _ in forms), name
+        if len(forms) == 1:
+            assert forms[0][1].startswith(module.SUMMARY), name
+        named += [name] * len(forms)
+    assert [row.split("`")[1].split()[1] for row in rows] == named
+    # a pipe in a synopsis is escaped, or the row would have more cells than the header
+    assert all(row.replace("\\|", "").count("|") == 3 for row in rows)
+    # a stale table is found, and the rewrite puts it back
+    stale = readme.replace("| list audio inputs and serial ports |", "| list the devices |")
+    assert stale != readme and rewrite(stale, ["commands"], cli_docs.blocks()) == readme

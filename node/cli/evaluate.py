@@ -1,4 +1,4 @@
-"""``supramodal evaluate``: accuracy and confusion of a model on labelled recordings, or of a fusion."""
+"""The ``supramodal evaluate`` command: :data:`SUMMARY` says what it does."""
 
 from __future__ import annotations
 
@@ -11,13 +11,26 @@ from supramodal.node.cli.arguments import count, mapping, output_folder, progres
 from supramodal.node.cli.errors import CliError
 from supramodal.node.cli.signals import interrupt_until_running
 
+#: What ``supramodal evaluate`` does, in one line: its ``--help`` says it, and the README's command table
+#: where a row says what the whole command does.
+SUMMARY = "accuracy and confusion of a model on labelled recordings, or of a fusion"
+#: Its forms as the README's command table lists them (``python -m supramodal.node.cli.docs`` writes it):
+#: (synopsis, what it does), in Markdown.
+README_ROWS = (
+    ("supramodal evaluate MODEL --manifest FILE.csv [--out DIR] [--cv K]",
+     "accuracy per window and per recording against chance, calibration, confusion, how long a touch must last; "
+     "CSV and PNG with `--out`"),
+    ("supramodal evaluate --scene REC.toml ... [--fused-model FUSED.npz] [--out DIR]",
+     "each stream and the fusion of recorded graphs, per window and per contact, and the decision rules (unknown, "
+     "changes) against the truth"),
+)
+
 
 def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
                common: argparse.ArgumentParser) -> argparse.ArgumentParser:
     """Add the ``evaluate`` command's parser and its arguments to ``subparsers``;
     ``common`` is the parent parser of every command (``--debug``)."""
-    p = subparsers.add_parser("evaluate", parents=[common],
-                              help="accuracy and confusion of a model on labelled recordings, or of a fusion")
+    p = subparsers.add_parser("evaluate", parents=[common], help=SUMMARY)
     p.add_argument("model", nargs="?", help="model file (.npz); not with --scene")
     p.add_argument("--manifest", help="CSV with columns path,label[,start,end]; paths relative to it")
     p.add_argument("--scene", action="append", metavar="NAME.toml",

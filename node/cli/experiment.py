@@ -1,4 +1,4 @@
-"""``supramodal experiment``: reproduce a figure of the paper (or all of them)."""
+"""The ``supramodal experiment`` command: :data:`SUMMARY` says what it does."""
 
 from __future__ import annotations
 
@@ -9,6 +9,16 @@ from pathlib import Path
 from supramodal.node.cli.arguments import count, jobs, output_folder, seed
 from supramodal.node.cli.errors import CliError
 
+#: What ``supramodal experiment`` does, in one line: its ``--help`` says it, and the README's command table
+#: where a row says what the whole command does.
+SUMMARY = "the paper's figures and this project's experiments, as CSV and PNG, beside the paper's results"
+#: Its forms as the README's command table lists them (``python -m supramodal.node.cli.docs`` writes it):
+#: (synopsis, what it does), in Markdown.
+README_ROWS = (
+    ("supramodal experiment fig1|...|all|fusion|calibration|newtouch|change [--quick]",
+     f"{SUMMARY} ([docs/results.md](docs/results.md))"),
+)
+
 
 def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
                common: argparse.ArgumentParser) -> argparse.ArgumentParser:
@@ -16,8 +26,7 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
     ``common`` is the parent parser of every command (``--debug``)."""
     from supramodal.mlp import DEFAULT_EPOCHS
 
-    p = subparsers.add_parser("experiment", parents=[common],
-                              help="reproduce a figure of the paper (or all of them)")
+    p = subparsers.add_parser("experiment", parents=[common], help=SUMMARY)
     p.add_argument("figure", choices=["fig1", "fig3", "fig4", "fig5", "fig6", "all", "fusion", "calibration",
                                           "newtouch", "change"],
                    help="which figure of the paper; fusion: the two senses fused on the two-sense synthetic world "

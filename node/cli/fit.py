@@ -1,4 +1,4 @@
-"""``supramodal fit``: a bank, window, features and network fitted to recordings under latency and CPU budgets."""
+"""The ``supramodal fit`` command: :data:`SUMMARY` says what it does."""
 
 from __future__ import annotations
 
@@ -16,14 +16,23 @@ from supramodal.node.cli.arguments import (
 )
 from supramodal.node.cli.signals import interrupt_until_running
 
+#: What ``supramodal fit`` does, in one line: its ``--help`` says it, and the README's command table
+#: where a row says what the whole command does.
+SUMMARY = ("fit a bank, window, features and network to your sensor by grouped cross-validation under your latency "
+           "and CPU budgets (the `fit` extra)")
+#: Its forms as the README's command table lists them (``python -m supramodal.node.cli.docs`` writes it):
+#: (synopsis, what it does), in Markdown.
+README_ROWS = (
+    ("supramodal fit MANIFEST [--out DIR] [--max-window S] [--trials N] [--jobs N]",
+     f"{SUMMARY}; writes `bank.json` for `train --bank` ([docs/own-sensor.md](docs/own-sensor.md))"),
+)
+
 
 def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
                common: argparse.ArgumentParser) -> argparse.ArgumentParser:
     """Add the ``fit`` command's parser and its arguments to ``subparsers``;
     ``common`` is the parent parser of every command (``--debug``)."""
-    p = subparsers.add_parser("fit", parents=[common],
-                              help="fit a bank, window, features and network to your recordings under your latency and "
-                                   "CPU budgets (a joint search by grouped cross-validation; the fit extra)")
+    p = subparsers.add_parser("fit", parents=[common], help=SUMMARY)
     p.add_argument("manifest", help="CSV with columns path,label[,start,end]; paths relative to it")
     p.add_argument("--out", type=output_folder, default="out/fit",
                    help="folder for fit.csv (every trial), fit-curve.csv/.png (best accuracy per window), bank.json "

@@ -1,5 +1,4 @@
-"""``supramodal import-recording``: a replayable graph recording from WAV files and their timestamps, XDF or a
-rosbag2."""
+"""The ``supramodal import-recording`` command: :data:`SUMMARY` says what it does."""
 
 from __future__ import annotations
 
@@ -9,14 +8,22 @@ from supramodal.node.cli.arguments import output_folder, session_name, source_va
 from supramodal.node.cli.errors import CliError
 from supramodal.node.cli.signals import interrupt_until_running
 
+#: What ``supramodal import-recording`` does, in one line: its ``--help`` says it, and the README's command table
+#: where a row says what the whole command does.
+SUMMARY = "a replayable graph recording from a lab's own files: WAV with timestamps, XDF, or a robot's rosbag2"
+#: Its forms as the README's command table lists them (``python -m supramodal.node.cli.docs`` writes it):
+#: (synopsis, what it does), in Markdown.
+README_ROWS = (
+    ("supramodal import-recording --out DIR (--wav ... | --xdf FILE.xdf ... | --bag BAG ...) --bank SOURCE=BANK",
+     f"{SUMMARY} ([docs/node.md](docs/node.md#importing-a-recording-made-elsewhere), [docs/ros2.md](docs/ros2.md))"),
+)
+
 
 def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
                common: argparse.ArgumentParser) -> argparse.ArgumentParser:
     """Add the ``import-recording`` command's parser and its arguments to ``subparsers``;
     ``common`` is the parent parser of every command (``--debug``)."""
-    p = subparsers.add_parser("import-recording", parents=[common],
-                              help="a replayable graph recording (sessions and their replay scene) from "
-                                   "WAV files and their timestamps (CSV), or from XDF streams")
+    p = subparsers.add_parser("import-recording", parents=[common], help=SUMMARY)
     p.add_argument("--out", required=True, type=output_folder, metavar="DIR",
                    help="folder for the recording (created if missing)")
     p.add_argument("--name", type=session_name, default="imported",

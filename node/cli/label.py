@@ -1,16 +1,24 @@
-"""``supramodal label``: label a recorded graph after the fact from spans on common time (CSV)."""
+"""The ``supramodal label`` command: :data:`SUMMARY` says what it does."""
 
 from __future__ import annotations
 
 import argparse
+
+#: What ``supramodal label`` does, in one line: its ``--help`` says it, and the README's command table
+#: where a row says what the whole command does.
+SUMMARY = "label a recorded graph after the fact (spans `start,end,label` on common time)"
+#: Its forms as the README's command table lists them (``python -m supramodal.node.cli.docs`` writes it):
+#: (synopsis, what it does), in Markdown.
+README_ROWS = (
+    ("supramodal label REC.toml SPANS.csv", SUMMARY),
+)
 
 
 def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
                common: argparse.ArgumentParser) -> argparse.ArgumentParser:
     """Add the ``label`` command's parser and its arguments to ``subparsers``;
     ``common`` is the parent parser of every command (``--debug``)."""
-    p = subparsers.add_parser("label", parents=[common],
-                              help="label a recorded graph after the fact from spans on common time (CSV)")
+    p = subparsers.add_parser("label", parents=[common], help=SUMMARY)
     p.add_argument("recording", metavar="REC.toml", help="the replay scene `supramodal record` wrote for a graph")
     p.add_argument("spans", metavar="SPANS.csv",
                    help="CSV with the header start,end,label: seconds of the recording's common time (as its replay "

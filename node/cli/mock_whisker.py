@@ -1,10 +1,20 @@
-"""``supramodal mock-whisker``: a mock whisker-array board streaming frames on a pty, with fault injection."""
+"""The ``supramodal mock-whisker`` command: :data:`SUMMARY` says what it does."""
 
 from __future__ import annotations
 
 import argparse
 
 from supramodal.node.cli.errors import CliError
+
+#: What ``supramodal mock-whisker`` does, in one line: its ``--help`` says it, and the README's command table
+#: where a row says what the whole command does.
+SUMMARY = "a mock whisker-array board streaming frames on a pty, with fault injection"
+#: Its forms as the README's command table lists them (``python -m supramodal.node.cli.docs`` writes it):
+#: (synopsis, what it does), in Markdown.
+README_ROWS = (
+    ("supramodal mock-whisker SOURCE [--port PATH] [--drop-rate R] ...",
+     f"{SUMMARY} ([docs/testing-without-hardware.md](docs/testing-without-hardware.md))"),
+)
 
 
 def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
@@ -13,8 +23,7 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
     ``common`` is the parent parser of every command (``--debug``)."""
     from supramodal.drivers.mock_whisker import add_arguments as mock_arguments
 
-    p = subparsers.add_parser("mock-whisker", parents=[common],
-                              help="a mock whisker-array board streaming frames on a pty, with fault injection")
+    p = subparsers.add_parser("mock-whisker", parents=[common], help=SUMMARY)
     mock_arguments(p)
     return p
 

@@ -1,5 +1,4 @@
-"""``supramodal recalibrate``: a model's calibration and "unknown" thresholds refitted on labelled
-recordings of a new touch, session or sensor, its network kept."""
+"""The ``supramodal recalibrate`` command: :data:`SUMMARY` says what it does."""
 
 from __future__ import annotations
 
@@ -9,14 +8,24 @@ from pathlib import Path
 from supramodal.node.cli.arguments import mapping, output_file, progress
 from supramodal.node.cli.errors import CliError
 
+#: What ``supramodal recalibrate`` does, in one line: its ``--help`` says it, and the README's command table
+#: where a row says what the whole command does.
+SUMMARY = ('refit a model\'s calibration and "unknown" thresholds on a new touch, session or sensor, keeping its '
+           "network")
+#: Its forms as the README's command table lists them (``python -m supramodal.node.cli.docs`` writes it):
+#: (synopsis, what it does), in Markdown.
+README_ROWS = (
+    ("supramodal recalibrate MODEL (--manifest FILE.csv | --scene REC.toml ... --stream NAME) --out NEW",
+     f"{SUMMARY} ([docs/own-robot.md]"
+     "(docs/own-robot.md#7-a-new-touch-session-or-sensor-recalibrate-keep-the-network))"),
+)
+
 
 def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
                common: argparse.ArgumentParser) -> argparse.ArgumentParser:
     """Add the ``recalibrate`` command's parser and its arguments to ``subparsers``;
     ``common`` is the parent parser of every command (``--debug``)."""
-    p = subparsers.add_parser("recalibrate", parents=[common],
-                              help="refit a model's calibration and unknown thresholds on recordings of a new touch, "
-                                   "keeping its network")
+    p = subparsers.add_parser("recalibrate", parents=[common], help=SUMMARY)
     p.add_argument("model", metavar="MODEL.npz", help="the model to recalibrate (a sense model of `supramodal train`)")
     p.add_argument("--manifest", help="CSV with columns path,label[,start,end] of the new recordings; paths relative "
                                       "to it")

@@ -1,4 +1,4 @@
-"""``supramodal record``: record a scene's raw driver blocks as a session (WAV + JSON), or a graph's sessions."""
+"""The ``supramodal record`` command: :data:`SUMMARY` says what it does."""
 
 from __future__ import annotations
 
@@ -15,13 +15,24 @@ from supramodal.node.cli.errors import CliError
 from supramodal.node.cli.run import attach_views
 from supramodal.node.cli.signals import interrupt_until_running, stop_on_signals
 
+#: What ``supramodal record`` does, in one line: its ``--help`` says it, and the README's command table
+#: where a row says what the whole command does.
+SUMMARY = ("record the node's input as a session that replays to identical output, with its labels; several sources "
+           "in step, with the scene that replays them")
+#: Its forms as the README's command table lists them (``python -m supramodal.node.cli.docs`` writes it):
+#: (synopsis, what it does), in Markdown.
+README_ROWS = (
+    ("supramodal record SCENE --out DIR [--label L | --marks] [--seconds S] [--bag FOLDER]",
+     f"{SUMMARY} ([docs/node.md](docs/node.md#recording-sessions); as a rosbag2: "
+     "[docs/ros2.md](docs/ros2.md#the-nodes-recordings-as-bags))"),
+)
+
 
 def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
                common: argparse.ArgumentParser) -> argparse.ArgumentParser:
     """Add the ``record`` command's parser and its arguments to ``subparsers``;
     ``common`` is the parent parser of every command (``--debug``)."""
-    p = subparsers.add_parser("record", parents=[common],
-                              help="record a scene's raw driver blocks as a session (WAV + JSON)")
+    p = subparsers.add_parser("record", parents=[common], help=SUMMARY)
     p.add_argument("--force", action="store_true", help="replace an existing session of that name (default: refuse)")
     p.add_argument("scene", help="scene TOML file")
     p.add_argument("--out", required=True, type=output_folder, help="folder for the session (created if missing)")

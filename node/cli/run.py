@@ -1,4 +1,4 @@
-"""``supramodal run``: run the node on a scene (default: the embedded whisker replay scene)."""
+"""The ``supramodal run`` command: :data:`SUMMARY` says what it does."""
 
 from __future__ import annotations
 
@@ -8,13 +8,23 @@ from supramodal.node.cli.arguments import progress as progress_of
 from supramodal.node.cli.arguments import speed, stream_seconds
 from supramodal.node.cli.signals import interrupt_until_running, stop_on_signals
 
+#: What ``supramodal run`` does, in one line: its ``--help`` says it, and the README's command table
+#: where a row says what the whole command does.
+SUMMARY = "run the node on a scene (TOML; default: the embedded whisker replay)"
+#: Its forms as the README's command table lists them (``python -m supramodal.node.cli.docs`` writes it):
+#: (synopsis, what it does), in Markdown.
+README_ROWS = (
+    ("supramodal run [SCENE] [--speed S|max] [--seconds S] [--view [PORT]] [--print-scene]",
+     f"{SUMMARY}; `--view` shows it live in the browser ([docs/view.md](docs/view.md)), `--print-scene` prints the "
+     "scene with every key, to start your own"),
+)
+
 
 def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
                common: argparse.ArgumentParser) -> argparse.ArgumentParser:
     """Add the ``run`` command's parser and its arguments to ``subparsers``;
     ``common`` is the parent parser of every command (``--debug``)."""
-    p = subparsers.add_parser("run", parents=[common],
-                              help="run the node on a scene (default: the embedded whisker replay scene)")
+    p = subparsers.add_parser("run", parents=[common], help=SUMMARY)
     p.add_argument("--force", action="store_true", help="replace existing sink files (default: refuse)")
     p.add_argument("scene", nargs="?", help="scene TOML file (default: the embedded default scene)")
     p.add_argument("--speed", type=speed,

@@ -1,4 +1,4 @@
-"""``supramodal synth``: write a texture set as WAV files."""
+"""The ``supramodal synth`` command: :data:`SUMMARY` says what it does."""
 
 from __future__ import annotations
 
@@ -8,13 +8,21 @@ from pathlib import Path
 
 from supramodal.node.cli.arguments import output_folder, positive_seconds
 
+#: What ``supramodal synth`` does, in one line: its ``--help`` says it, and the README's command table
+#: where a row says what the whole command does.
+SUMMARY = "write a texture set as WAV files"
+#: Its forms as the README's command table lists them (``python -m supramodal.node.cli.docs`` writes it):
+#: (synopsis, what it does), in Markdown.
+README_ROWS = (
+    ("supramodal synth [--bank B] [--out DIR]", SUMMARY),
+)
+
 
 def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
                common: argparse.ArgumentParser) -> argparse.ArgumentParser:
     """Add the ``synth`` command's parser and its arguments to ``subparsers``;
     ``common`` is the parent parser of every command (``--debug``)."""
-    p = subparsers.add_parser("synth", parents=[common],
-                              help="write a texture set as WAV files")
+    p = subparsers.add_parser("synth", parents=[common], help=SUMMARY)
     p.add_argument("--force", action="store_true", help="replace existing texture files in --out (default: refuse)")
     p.add_argument("--bank", choices=["whisker", "cochlea"], default="whisker",
                    help="whose reference textures (default whisker)")

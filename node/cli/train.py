@@ -1,4 +1,4 @@
-"""``supramodal train``: a model from labelled recordings, or a fusion of two senses."""
+"""The ``supramodal train`` command: :data:`SUMMARY` says what it does."""
 
 from __future__ import annotations
 
@@ -20,6 +20,23 @@ from supramodal.node.cli.arguments import (
 from supramodal.node.cli.errors import CliError
 from supramodal.node.cli.signals import interrupt_until_running
 
+#: What ``supramodal train`` does, in one line: its ``--help`` says it, and the README's command table
+#: where a row says what the whole command does.
+SUMMARY = "train a model from labelled recordings, or a fusion of two senses"
+#: Its forms as the README's command table lists them (``python -m supramodal.node.cli.docs`` writes it):
+#: (synopsis, what it does), in Markdown.
+README_ROWS = (
+    ("supramodal train --bank B --manifest FILE.csv --out MODEL [--cv K]",
+     "train a calibrated model from labelled recordings (`path,label[,start,end]`); `--cv K` reports grouped "
+     "cross-validation first ([docs/own-sensor.md](docs/own-sensor.md), calibration: [docs/model.md](docs/model.md))"),
+    ("supramodal train --scene REC.toml ... --stream NAME --out MODEL",
+     "train one stream's model from recorded graphs (`supramodal record`), calibrated on folds grouped by recording "
+     "([docs/own-robot.md](docs/own-robot.md))"),
+    ("supramodal train --fusion early|late --scene REC.toml ... [--model STREAM=FILE]",
+     "learn the fusion of two senses on recorded graphs, on windows the senses never trained on; prints each "
+     "sense's and the fusion's held-out score and refuses a fusion worse than a sense"),
+)
+
 
 def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
                common: argparse.ArgumentParser) -> argparse.ArgumentParser:
@@ -28,8 +45,7 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
     from supramodal.features import DEFAULT_WINDOW, FEATURE_TABLE
     from supramodal.mlp import DEFAULT_EPOCHS
 
-    p = subparsers.add_parser("train", parents=[common],
-                              help="train a model from labelled recordings, or a fusion of two senses")
+    p = subparsers.add_parser("train", parents=[common], help=SUMMARY)
     p.add_argument("--force", action="store_true", help="replace an existing model file at --out (default: refuse)")
     p.add_argument("--bank", type=bank, metavar="whisker|cochlea|FILE",
                    help="the filterbank: whisker (5 kHz), cochlea (44.1 kHz), or a bank file (supramodal-bank JSON: "

@@ -1,4 +1,4 @@
-"""``supramodal view``: play a recording back into the view's page (pause, speed)."""
+"""The ``supramodal view`` command: :data:`SUMMARY` says what it does."""
 
 from __future__ import annotations
 
@@ -7,13 +7,21 @@ import argparse
 from supramodal.node.cli.arguments import progress
 from supramodal.node.cli.signals import interrupt_until_running, stop_on_signals
 
+#: What ``supramodal view`` does, in one line: its ``--help`` says it, and the README's command table
+#: where a row says what the whole command does.
+SUMMARY = "play a recording back into the view's page, with pause and speed"
+#: Its forms as the README's command table lists them (``python -m supramodal.node.cli.docs`` writes it):
+#: (synopsis, what it does), in Markdown.
+README_ROWS = (
+    ("supramodal view REC.toml|SESSION", f"{SUMMARY} ([docs/view.md](docs/view.md))"),
+)
+
 
 def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
                common: argparse.ArgumentParser) -> argparse.ArgumentParser:
     """Add the ``view`` command's parser and its arguments to ``subparsers``;
     ``common`` is the parent parser of every command (``--debug``)."""
-    p = subparsers.add_parser("view", parents=[common],
-                              help="play a recording back into the view's page (pause, speed): docs/view.md")
+    p = subparsers.add_parser("view", parents=[common], help=SUMMARY)
     p.add_argument("recording", metavar="REC.toml|SESSION",
                    help="the replay scene `supramodal record` wrote for a graph, or a session (NAME.wav + NAME.json)")
     p.add_argument("--port", type=int, default=0, help="the page's port on 127.0.0.1 (default 0: any free one)")

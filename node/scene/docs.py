@@ -2,7 +2,9 @@
 
 ``python -m supramodal.node.scene.docs`` rewrites the generated blocks of README.md and
 docs/node.md (between ``<!-- BEGIN generated: NAME -->`` and ``<!-- END generated: NAME -->``);
-``--check`` exits 1 when the committed files differ from the schema (a test runs it too).
+``--check`` exits 1 when the committed files differ from the schema (a test runs it too). The README's
+command table is made the same way from the command modules (``python -m supramodal.node.cli.docs``: the
+command line sits above the scene, which may not import it).
 """
 
 from __future__ import annotations
@@ -11,13 +13,14 @@ import argparse
 import json
 import re
 import sys
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 
 from supramodal.node.runtime.sinks.spec import sink_keys
 from supramodal.node.scene.registry import driver_spec, driver_types, sink_spec, sink_types, source_keys
 from supramodal.node.scene.schema import FUSION_KEYS, ONE_SOURCE_KEYS, SECTIONS, SOURCE_KEYS, STREAM_KEYS
 
-__all__ = ["BLOCKS", "blocks", "check", "main", "rewrite"]
+__all__ = ["BLOCKS", "blocks", "check", "command_line", "main", "rewrite"]
 
 #: File (relative to the repository root) -> the generated blocks it holds.
 BLOCKS = {"docs/node.md": ("driver-keys", "section-keys", "sink-keys", "graph-keys"), "README.md": ("driver-types",)}
@@ -73,7 +76,7 @@ def _pattern(name: str) -> re.Pattern:
                       rf"{re.escape(name)} -->)", re.S)
 
 
-def rewrite(text: str, names, made: dict[str, str], where: str = "the file") -> str:
+def rewrite(text: str, names, made: Mapping[str, str], where: str = "the file") -> str:
     """``text`` with each named block replaced by ``made[name]``; a missing block is an error."""
     for name in names:
         pattern = _pattern(name)
@@ -84,29 +87,48 @@ def rewrite(text: str, names, made: dict[str, str], where: str = "the file") -> 
     return text
 
 
-def check(root: Path) -> list[str]:
-    """The files under ``root`` whose generated blocks differ from the schema."""
-    made = blocks()
-    return [f for f, names in BLOCKS.items()
+def check(root: Path, files: Mapping[str, Sequence[str]] = BLOCKS, made: Mapping[str, str] | None = None) -> list[str]:
+    """The files under ``root`` whose generated blocks differ from what the code makes of them.
+
+    Parameters
+    ----------
+    root : Path
+        The repository's root.
+    files : mapping of str to sequence of str
+        File (relative to ``root``) -> the names of the blocks it holds (default: :data:`BLOCKS`).
+    made : mapping of str to str, optional
+        Block name -> its Markdown (default: :func:`blocks`).
+    """
+    made = blocks() if made is None else made
+    return [f for f, names in files.items()
             if (root / f).read_text() != rewrite((root / f).read_text(), names, made, f)]
 
 
-def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m supramodal.node.scene.docs", description=__doc__.splitlines()[0])
+def command_line(argv: Sequence[str] | None, prog: str, description: str, files: Mapping[str, Sequence[str]],
+                 make: Callable[[], Mapping[str, str]], stale: str) -> int:
+    """The command line of a writer of generated blocks: rewrite ``files``' blocks from ``make()``, or, with
+    ``--check``, say which files differ (``"FILE: STALE; run PROG"``) and exit 1. This module's and the
+    command table's (``supramodal.node.cli.docs``) share it, so that both are run and fail alike."""
+    parser = argparse.ArgumentParser(prog=prog, description=description)
     parser.add_argument("--root", type=Path, default=Path.cwd(), help="the repository's root (default: here)")
     parser.add_argument("--check", action="store_true", help="only say whether the files are up to date")
     args = parser.parse_args(argv)
+    made = make()
     if args.check:
-        stale = check(args.root)
-        for f in stale:
-            print(f"{f}: its scene key tables differ from the schema; run python -m supramodal.node.scene.docs",
-                  file=sys.stderr)
-        return 1 if stale else 0
-    made = blocks()
-    for f, names in BLOCKS.items():
+        differ = check(args.root, files, made)
+        for f in differ:
+            print(f"{f}: {stale}; run {prog}", file=sys.stderr)
+        return 1 if differ else 0
+    for f, names in files.items():
         path = args.root / f
         path.write_text(rewrite(path.read_text(), names, made, f))
     return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    assert __doc__ is not None
+    return command_line(argv, "python -m supramodal.node.scene.docs", __doc__.splitlines()[0], BLOCKS, blocks,
+                        "its scene key tables differ from the schema")
 
 
 if __name__ == "__main__":
