@@ -47,8 +47,9 @@ class FeaturePipeline:
     Parameters
     ----------
     bank : Bank
-    features : sequence of {"Af", "A", "f"}
-        Features to compute (default all three); only these are computed.
+    features : sequence of str
+        Names from :data:`~supramodal.features.FEATURE_TABLE` to compute (default: every one); only
+        these are computed.
     window : float
         Window length in seconds (default :data:`DEFAULT_WINDOW`), rounded to whole samples.
     dtype : {numpy.float64, numpy.float32}

@@ -10,6 +10,7 @@ from pathlib import Path
 import pytest
 
 from supramodal.experiments.fig3 import fig3
+from supramodal.features import FEATURES
 from supramodal.textures import reference_texture_set
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -22,7 +23,7 @@ def short_whisker_set(duration=8.0):
 
 def check_structure(result, names):
     assert result["bank"] == "whisker"
-    assert set(result["features"]) == {"Af", "A", "f"}
+    assert set(result["features"]) == set(FEATURES)                   # by default every feature of the table
     for feature, r in result["features"].items():
         assert set(r) == {"mean_rate", "per_texture"}
         assert list(r["per_texture"]) == list(names)

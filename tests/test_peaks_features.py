@@ -5,7 +5,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from supramodal.features import FEATURES, FeatureWindows, Windows, check_features, concat_windows
+from supramodal.features import FEATURE_TABLE, FEATURES, FeatureWindows, Windows, check_features, concat_windows
 from supramodal.peaks import PeakExtractor, Peaks
 
 # One channel, indices 0..13:
@@ -126,6 +126,10 @@ FS = 1000.0
 P = [(0, 3, 1.0), (0, 7, 2.0), (0, 12, 3.0), (0, 25, 4.0), (1, 5, 10.0)]
 
 
+#: The paper's three features, in the order of the values written out by hand below (the table may hold more).
+PAPER = ("Af", "A", "f")
+
+
 def expected_values():
     """(windows 0..3, features Af, A, f, channels 2) by hand."""
     v = np.zeros((4, 3, 2))
@@ -144,10 +148,12 @@ def expected_values():
 
 
 def test_exact_sums_from_a_synthetic_peaks_object():
-    fw = FeatureWindows(2, FS, 10)
+    fw = FeatureWindows(2, FS, 10, PAPER)
     out = fw.process(peaks(P, decided=40))
     assert isinstance(out, Windows) and out.first == 0 and len(out) == 4
-    assert out.features == FEATURES == ("Af", "A", "f")
+    assert out.features == PAPER
+    # by default every feature of the table, in its order
+    assert FeatureWindows(2, FS, 10).features == FEATURES == tuple(FEATURE_TABLE) and set(PAPER) <= set(FEATURES)
     np.testing.assert_array_equal(out.values, expected_values())
     np.testing.assert_array_equal(out.feature("A"), expected_values()[:, 1, :])
     assert out.numbers.tolist() == [0, 1, 2, 3]
@@ -157,7 +163,7 @@ def test_exact_sums_from_a_synthetic_peaks_object():
 
 def test_same_sums_when_peaks_arrive_in_several_calls():
     """The f of a peak whose predecessor arrived in an earlier call (and earlier window)."""
-    fw = FeatureWindows(2, FS, 10)
+    fw = FeatureWindows(2, FS, 10, PAPER)
     chunks = [
         peaks([e for e in P if e[1] < 8], decided=8),        # sample 8 undecided: window 0 not complete yet
         peaks([], decided=9),                                # its peaks are all known now (detections up to 9)
@@ -167,7 +173,7 @@ def test_same_sums_when_peaks_arrive_in_several_calls():
     outs = [fw.process(c) for c in chunks]
     assert [len(o) for o in outs] == [0, 1, 1, 2]
     assert [o.first for o in outs if len(o)] == [0, 1, 2]
-    np.testing.assert_array_equal(concat_windows(outs, FEATURES, 2).values, expected_values())
+    np.testing.assert_array_equal(concat_windows(outs, PAPER, 2).values, expected_values())
 
 
 def test_a_window_closes_when_its_last_sample_has_arrived():
@@ -244,7 +250,6 @@ def test_an_unknown_feature_is_refused_everywhere_with_the_known_names():
     from supramodal.node.cli import build_parser
     from supramodal.node.scene.schema import SceneError, scene_from_dict
     from supramodal.errors import InputError
-    from supramodal.features import FEATURE_TABLE
 
     with pytest.raises(InputError, match=r"unknown feature\(s\) \['Amp'\]; the features are Af: .*; A: .*; f: "):
         FeatureWindows(2, FS, 10, ("Af", "Amp"))
@@ -332,12 +337,12 @@ def test_feature_windows_match_the_definition_for_any_delivery(seed, length, n_w
     for c in range(3):
         idx = np.flatnonzero(rng.random(total) < 0.3)
         entries += [(c, int(n), float(a)) for n, a in zip(idx, rng.uniform(0.1, 5.0, idx.size))]
-    fw = FeatureWindows(3, 4000.0, length)
+    fw = FeatureWindows(3, 4000.0, length, PAPER)
     outs, done = [], 0
     for d in sorted({min(s, total) for s in splits} | {total}):
         outs.append(fw.process(peaks([e for e in entries if done <= e[1] < d], decided=d)))
         done = d
-    got = concat_windows(outs, FEATURES, 3)
+    got = concat_windows(outs, PAPER, 3)
     n_closed = (total + 1) // length                 # detections up to sample `total` are known
     assert got.first == 0 and len(got) == n_closed
     np.testing.assert_allclose(got.values, plain_windows(entries, 4000.0, length, n_closed, 3),

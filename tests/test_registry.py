@@ -1,4 +1,5 @@
-"""A new driver is one file plus one line: a toy driver defined in this file alone runs from a scene.
+"""A new driver, sink, tap or feature is one module (or one row) plus one line: a toy of each, defined in
+this file alone, runs from a scene (a toy command: tests/test_cli.py).
 
 Also: every driver type a scene may name has a spec that fits (its keys validate its defaults, its
 type is its name), and the scene refuses a type no driver has, listing those there are.
@@ -12,14 +13,21 @@ import time
 import numpy as np
 import pytest
 
+from supramodal.backends import make_filterbank
+from supramodal.banks import whisker_bank
 from supramodal.checks import Key, integer, positive
 from supramodal.drivers.base import Block, DriverBase, DriverClosed
 from supramodal.drivers.spec import Built, BuildContext, DriverSpec, OptionError
+from supramodal.errors import InputError
+from supramodal.features import FEATURE_TABLE, Feature
+from supramodal.node.runtime.ringbuffer import RingClosed
+from supramodal.node.runtime.taps import Tap
 from supramodal.node.scene import registry
 from supramodal.node.scene.build import build_node
 from supramodal.node.scene.schema import SceneError, scene_from_dict
 from supramodal.node.runtime.sinks.spec import NEEDS, SinkSpec, sink_keys
 from supramodal.node.runtime.sinks import ListSink, Sink
+from supramodal.pipeline import FeaturePipeline
 
 
 class ToneDriver(DriverBase):
@@ -64,7 +72,8 @@ def _build(options: dict, context: BuildContext) -> Built:
 
 
 TONE = DriverSpec(type="tone", summary="a test tone", live=False, build=_build,
-                  keys={"frequency": Key(positive(), "Hz, > 0", 100.0),
+                  # every numeric key has both bounds (docs/architecture.md): the Nyquist frequency is the build's
+                  keys={"frequency": Key(positive(20000.0), "Hz, > 0, up to 20000", 100.0),
                         "seconds": Key(positive(60.0), "seconds, up to 60", 1.0),
                         "block": Key(integer(1, 4096), "frames per block, 1..4096", 64)})
 
@@ -117,7 +126,7 @@ def test_a_type_is_registered_once_unless_replaced(tone):
 
 def test_an_unknown_type_is_refused_listing_the_types_there_are():
     # the types there are, from the registry (a new driver changes no test); the built-in ones among them
-    assert {"lsl", "microphone", "replay", "serial", "synth", "twosense", "xdf"} <= set(registry.driver_types())
+    assert set(registry.DRIVER_MODULES) <= set(registry.driver_types())
     with pytest.raises(SceneError, match=r"\[driver\] type: expected one of " + re.escape(str(registry.driver_types()))
                        + ", got 'tone'"):
         scene_from_dict({"driver": {"type": "tone"}})
@@ -155,7 +164,7 @@ def test_the_docs_key_tables_are_the_schemas():
     from supramodal.node.scene import docs as scene_docs
 
     root = Path(__file__).resolve().parents[1]
-    assert scene_docs.check(root) == []
+    assert scene_docs.check(root) == [], "the docs' key tables are stale: run python -m supramodal.node.scene.docs"
     made = scene_docs.blocks()
     assert all(f"`{kind}`" in made["driver-types"] for kind in registry.driver_types())
     assert "| `timing` |" in made["driver-keys"] and "| `labels` |" in made["driver-keys"]
@@ -213,3 +222,102 @@ def test_every_built_in_sink_spec_fits_its_type_and_its_own_defaults(kind):
     for key, k in sink_keys(spec).items():
         if not k.required and k.default is not None:
             assert k.check(k.default), (kind, key, k.default)
+
+
+# -- a tap: a sink of a source's samples -------------------------------------------------------------------------
+
+class SquaresTap(Tap):
+    """A tap no one in the package wrote: reads its source's raw frames and sums their squares, per channel."""
+
+    name = "squares"
+    track = False                   # it reads neither the blocks' arrivals nor the driver's marks
+
+    def __init__(self, sums: dict) -> None:
+        self.sums = sums
+
+    def run(self, feed) -> None:
+        while True:
+            try:
+                got = feed.reader.read(timeout=0.05)
+            except RingClosed:
+                return
+            if got is not None:
+                data = got[1]
+                self.sums["frames"] = self.sums.get("frames", 0) + data.shape[0]
+                self.sums["squares"] = self.sums.get("squares", 0.0) + (np.asarray(data, np.float64) ** 2).sum(axis=0)
+
+
+SUMS: dict = {}
+SQUARES = SinkSpec(type="squares", summary="sums a source's squared samples", keys={}, listens="samples",
+                   needs="sources", build=lambda options, context: SquaresTap(SUMS))
+
+
+def test_a_toy_tap_defined_here_reads_its_source_from_a_scene(tone):
+    registry.register_sink(SQUARES, replace=True)          # the one line
+    SUMS.clear()
+    try:
+        scene = scene_from_dict({"driver": {"type": "tone", "frequency": 120.0, "seconds": 0.55, "block": 77},
+                                 "sink": [{"type": "squares"}]})
+        assert scene.sinks[0].type == "squares" and dict(scene.sinks[0].options) == {"source": "main"}   # the only source
+        summary = build_node(scene, sinks_override=None).run()
+    finally:
+        registry.SINKS.unregister("squares")
+    n = round(0.55 * 5000)
+    assert SUMS["frames"] == n and summary["taps"]["squares"]["frames"]["delivered"] == n
+    # every raw frame, against the tone written out: 0.5 sin(2 pi 120 t) on each of the whisker array's 20 channels
+    plain = sum((0.5 * np.sin(2 * np.pi * 120.0 * k / 5000.0)) ** 2 for k in range(n))
+    np.testing.assert_allclose(SUMS["squares"], np.full(20, plain), rtol=1e-6)
+
+
+# -- a feature: one row of FEATURE_TABLE -------------------------------------------------------------------------
+
+#: A feature no one in the package wrote: how many peaks a window holds, per channel.
+PEAK_COUNT = Feature("n", "the number of peaks", False, lambda amp, freq: np.ones_like(amp), "peaks")
+
+
+def _plain_peaks(y: np.ndarray, length: int, windows: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per window and channel, the count and the sum of the peaks of the filterbank's output ``y`` by their
+    definition, one sample at a time: above 0, above the sample before (0 before the stream), not below the one
+    after; a peak at sample k counts in the window of its detection, k + 1."""
+    count, total = np.zeros((windows, y.shape[0])), np.zeros((windows, y.shape[0]))
+    for c in range(y.shape[0]):
+        left = 0.0
+        for k in range(y.shape[1] - 1):
+            mid, right = y[c, k], y[c, k + 1]
+            if left < mid >= right and mid > 0 and (k + 1) // length < windows:
+                count[(k + 1) // length, c] += 1
+                total[(k + 1) // length, c] += mid
+            left = mid
+    return count, total
+
+
+def test_a_toy_feature_defined_here_is_computed_by_the_pipeline(monkeypatch):
+    bank = whisker_bank()
+    with pytest.raises(InputError, match=r"unknown feature\(s\) \['n'\]"):
+        FeaturePipeline(bank, ("n", "A"))
+    monkeypatch.setitem(FEATURE_TABLE, "n", PEAK_COUNT)                  # the one row
+    x = 0.1 * np.random.default_rng(5).standard_normal(2750)             # noise: each channel its own count
+    pipe = FeaturePipeline(bank, ("n", "A"), 0.1)
+    got = pipe.run(x, block=333)
+    count, total = _plain_peaks(make_filterbank(bank).process(x), pipe.window_samples, 5)
+    assert len(got) == 5 and got.features == ("n", "A")
+    np.testing.assert_array_equal(got.feature("n"), count)
+    assert len(np.unique(count)) > 5                                      # not one count everywhere
+    np.testing.assert_allclose(got.feature("A"), total, rtol=1e-12)
+
+
+def test_a_toy_feature_defined_here_runs_from_a_scene(tone, monkeypatch):
+    d = {"driver": {"type": "tone", "frequency": 120.0, "seconds": 0.55}, "features": {"names": ["n", "Af"]}}
+    with pytest.raises(SceneError, match=r"\[features\] names: expected a list of distinct names"):
+        scene_from_dict(d)
+    monkeypatch.setitem(FEATURE_TABLE, "n", PEAK_COUNT)                  # the one row
+    sink = ListSink()
+    build_node(scene_from_dict(d), sinks_override=[sink]).run()
+    got = np.array([np.asarray(e.features["n"]).ravel() for e in sink.windows])
+    # what the pipeline makes of the tone offline, and a 120 Hz tone's 12 periods per 100 ms once the filters settle
+    x = 0.5 * np.sin(2 * np.pi * 120.0 * np.arange(2750) / 5000.0)
+    offline = FeaturePipeline(whisker_bank(), ("n", "Af")).run(x)
+    np.testing.assert_array_equal(got, offline.feature("n"))
+    np.testing.assert_array_equal(got[1:], 12.0)
+    np.testing.assert_allclose([np.asarray(e.features["Af"]).ravel() for e in sink.windows], offline.feature("Af"),
+                               rtol=1e-9)
