@@ -50,7 +50,7 @@ pooled decision, by these rules:
 from __future__ import annotations
 
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -503,6 +503,99 @@ def held_out_changes(log_posteriors, labels, groups, folds, correlation: float =
 UNKNOWN = "unknown"
 
 
+@dataclass(frozen=True)
+class TextureChange:
+    """A change of texture found within a contact (``[decision] change``).
+
+    Attributes
+    ----------
+    from_ : str
+        The decision before the change (JSON ``"from"``: ``from`` is a Python keyword).
+    to : str
+        The texture it changed to.
+    after : int
+        Windows since the change began, the signalling window included: the new pooled decision
+        starts there.
+    """
+
+    from_: str
+    to: str
+    after: int
+
+    def to_dict(self) -> dict[str, Any]:
+        """``{"from", "to", "after"}``, as sinks write it."""
+        return {"from": self.from_, "to": self.to, "after": self.after}
+
+
+@dataclass(frozen=True)
+class PooledDecision:
+    """The decision pooled over windows (``[decision] scope`` other than ``"window"``).
+
+    Attributes
+    ----------
+    label : str or None
+        The pooled winner, :data:`UNKNOWN`, or None out of contact.
+    confidence : float
+        Its pooled posterior (4 decimals; 0 out of contact).
+    windows : int
+        Windows pooled (0 out of contact).
+    decided : bool or None
+        Whether the contact's final decision is taken; None without a ``confidence`` rule.
+    decided_after : int or None
+        Windows the final decision took, once taken.
+    change : TextureChange or None
+        The change of texture said at this window (said once), which started this pooled decision.
+    """
+
+    label: str | None
+    confidence: float
+    windows: int
+    decided: bool | None = None
+    decided_after: int | None = None
+    change: TextureChange | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        """As sinks write it (JSON ``"accumulated"``): ``label``, ``confidence``, ``windows``, and
+        ``change``, ``decided``, ``decided_after`` where they apply."""
+        out: dict[str, Any] = {"label": self.label, "confidence": self.confidence, "windows": self.windows}
+        if self.change is not None:
+            out["change"] = self.change.to_dict()
+        if self.decided is not None:
+            out["decided"] = self.decided
+        if self.decided_after is not None:
+            out["decided_after"] = self.decided_after
+        return out
+
+
+#: The pooled decision out of contact: nothing pooled.
+OUT_OF_CONTACT = PooledDecision(None, 0.0, 0)
+
+
+@dataclass(frozen=True)
+class WindowDecision:
+    """One window's outcome as a :class:`Decider` says it.
+
+    Attributes
+    ----------
+    decision : str
+        A class name, or :data:`UNKNOWN`.
+    confidence : float
+        The winner's posterior.
+    guess : str or None
+        The winner when the decision is unknown (None on a tie, or when known).
+    reason : str or None
+        Why unknown: ``"novel"``, ``"unsure"`` or ``"tie"``; None when known.
+    pooled : PooledDecision or None
+        The decision pooled over windows; None with ``scope = "window"``.
+    """
+
+    decision: str
+    confidence: float
+    guess: str | None
+    reason: str | None
+    pooled: PooledDecision | None
+
+
 class Decider:
     """Decisions of one stream (or of the fusion) by the rules of the module: one per processing
     thread (not thread-safe); :meth:`summary` is read once that thread has ended.
@@ -562,13 +655,10 @@ class Decider:
         self.unknown = {"novel": 0, "unsure": 0, "tie": 0}
         self.contacts_decided = 0
         self.windows_to_decide: list[int] = []
-        self._final: dict | None = None
+        self._final: PooledDecision | None = None
 
-    def decide(self, log_posteriors: np.ndarray, in_contact: bool = True, novel: bool = False) -> dict:
-        """One window's outcome (``novel``: its inputs are unlike every training texture's):
-        ``decision`` (a class or :data:`UNKNOWN`), ``confidence`` (the winner's posterior), ``guess``
-        (the winner when the decision is unknown, else None), ``reason`` (why unknown, else None) and
-        ``pooled`` (dict or None)."""
+    def decide(self, log_posteriors: np.ndarray, in_contact: bool = True, novel: bool = False) -> WindowDecision:
+        """One window's outcome (``novel``: its inputs are unlike every training texture's)."""
         lp = np.asarray(log_posteriors, dtype=np.float64)
         k = int(winner(lp))
         confidence = float(np.exp(lp.max()))
@@ -583,11 +673,11 @@ class Decider:
             self.unknown[reason] += 1
         decision = UNKNOWN if reason else self.classes[k]
         guess = self.classes[k] if reason and k >= 0 else None
-        return {"decision": decision, "confidence": confidence, "guess": guess, "reason": reason,
-                "pooled": self._pool(np.full_like(lp, -np.log(lp.size)) if reason == "novel" else lp, in_contact,
-                                     reason is not None)}
+        return WindowDecision(decision, confidence, guess, reason,
+                              self._pool(np.full_like(lp, -np.log(lp.size)) if reason == "novel" else lp, in_contact,
+                                         reason is not None))
 
-    def _pool(self, lp: np.ndarray, in_contact: bool, unknown: bool) -> dict | None:
+    def _pool(self, lp: np.ndarray, in_contact: bool, unknown: bool) -> PooledDecision | None:
         if self.accumulator is None:
             return None
         if self.accumulator.scope == "contact" and not in_contact:
@@ -597,7 +687,7 @@ class Decider:
             self._label = -1
             if self.detector is not None:
                 self.detector.reset()
-            return {"label": None, "confidence": 0.0, "windows": 0}
+            return OUT_OF_CONTACT
         self._unknown_flags.append(unknown)
         change = None
         if self.detector is not None:
@@ -616,22 +706,19 @@ class Decider:
             self._final = None
             mostly_unknown = 2 * sum(self._unknown_flags) > len(self._unknown_flags)
             d = self.accumulator.restart(since, may_decide=not mostly_unknown)
-            changed = {"from": self.classes[self._label], "to": self.classes[to], "after": since}
+            changed = TextureChange(self.classes[self._label], self.classes[to], since)
             self.changes += 1
         self._label = -1 if (d.label < 0 or mostly_unknown) else d.label
         if self._final is not None:                   # the contact's final decision stands as it was said
             return self._final
         label = UNKNOWN if (d.label < 0 or mostly_unknown) else self.classes[d.label]
-        out = {"label": label, "confidence": round(d.confidence, 4), "windows": d.windows}
-        if changed is not None:
-            out["change"] = changed
-        if self.accumulator.confidence is not None:
-            out["decided"] = d.decided
-            if d.decided:
-                out["decided_after"] = d.windows
-                self.contacts_decided += 1
-                self.windows_to_decide.append(d.windows)
-                self._final = {k: v for k, v in out.items() if k != "change"}     # the change is said once
+        decided = None if self.accumulator.confidence is None else d.decided
+        out = PooledDecision(label, round(d.confidence, 4), d.windows, decided, d.windows if decided else None,
+                             changed)
+        if decided:
+            self.contacts_decided += 1
+            self.windows_to_decide.append(d.windows)
+            self._final = replace(out, change=None)             # the change is said once
         return out
 
     def summary(self) -> dict:

@@ -499,13 +499,13 @@ def test_a_final_contact_decision_stands_as_it_was_said_and_is_never_taken_while
 
     d = Decider(("a", "b"), DecisionRules(scope="contact", n=0, method="log", confidence=0.9, unknown_below=0.95))
     unsure = np.log(np.array([0.94, 0.06]))          # each window unknown (below 0.95), pooled soon sure
-    said = [d.decide(unsure)["pooled"] for _ in range(4)]
-    assert all(p["label"] == UNKNOWN and not p["decided"] for p in said)
+    said = [d.decide(unsure).pooled for _ in range(4)]
+    assert all(p.label == UNKNOWN and not p.decided for p in said)
     sure = np.log(np.array([0.99, 0.01]))
-    said = [d.decide(sure)["pooled"] for _ in range(8)]
-    final = next(p for p in said if p["decided"])
-    assert final["label"] == "a" and all(p == final for p in said[said.index(final):])
-    assert d.decide(np.log(np.array([0.01, 0.99])))["pooled"] == final   # a later window changes nothing
+    said = [d.decide(sure).pooled for _ in range(8)]
+    final = next(p for p in said if p.decided)
+    assert final.label == "a" and all(p == final for p in said[said.index(final):])
+    assert d.decide(np.log(np.array([0.01, 0.99]))).pooled == final     # a later window changes nothing
     assert d.summary()["contacts_decided"] == 1
 
 

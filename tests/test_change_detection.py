@@ -84,17 +84,17 @@ def test_the_decider_starts_again_from_the_change():
     lps = _windows(rng, np.repeat([0, 2], 40), sure=0.9)
     rules = DecisionRules(scope="contact", n=0, confidence=0.99, change=1.0)
     decider = Decider(["a", "b", "c", "d"], rules, correlation=0.3)
-    pooled = [decider.decide(lp)["pooled"] for lp in lps]
-    changes = [(t, p["change"]) for t, p in enumerate(pooled) if "change" in p]
+    pooled = [decider.decide(lp).pooled for lp in lps]
+    changes = [(t, p.change) for t, p in enumerate(pooled) if p.change is not None]
     assert len(changes) == 1
     t, change = changes[0]
-    assert 40 <= t < 40 + 10 and change["from"] == "a" and change["to"] == "c" and change["after"] <= t - 40 + 1
-    assert all(p["label"] == "a" for p in pooled[5:40])
-    assert pooled[-1]["label"] == "c" and pooled[-1].get("decided") is True
+    assert 40 <= t < 40 + 10 and change.from_ == "a" and change.to == "c" and change.after <= t - 40 + 1
+    assert all(p.label == "a" for p in pooled[5:40])
+    assert pooled[-1].label == "c" and pooled[-1].decided is True
     assert decider.summary()["changes"] == 1
     # without the rule, the contact keeps its first texture to the end (the complaint)
     plain = Decider(["a", "b", "c", "d"], DecisionRules(scope="contact", n=0, confidence=0.99), correlation=0.3)
-    assert [plain.decide(lp)["pooled"] for lp in lps][-1]["label"] == "a"
+    assert [plain.decide(lp).pooled for lp in lps][-1].label == "a"
 
 
 @pytest.mark.slow      # 90 minutes of windows through the decider
@@ -133,11 +133,11 @@ def test_a_change_decides_at_once_where_the_new_stretch_is_sure_and_is_said_once
     lps = np.log(np.tile([[0.97, 0.01, 0.01, 0.01]], (30, 1)))
     lps = np.vstack([lps, np.log(np.tile([[0.01, 0.01, 0.97, 0.01]], (30, 1)))])
     decider = Decider(["a", "b", "c", "d"], DecisionRules(scope="contact", n=0, confidence=0.99, change=1.0))
-    pooled = [decider.decide(lp)["pooled"] for lp in lps]
-    t = next(t for t, p in enumerate(pooled) if "change" in p)
-    assert pooled[t]["label"] == "c" and pooled[t]["decided"] is True and pooled[t]["decided_after"] == \
-        pooled[t]["change"]["after"]
-    assert all("change" not in p and p["label"] == "c" for p in pooled[t + 1:])
+    pooled = [decider.decide(lp).pooled for lp in lps]
+    t = next(t for t, p in enumerate(pooled) if p.change is not None)
+    assert pooled[t].label == "c" and pooled[t].decided is True and pooled[t].decided_after == \
+        pooled[t].change.after
+    assert all(p.change is None and p.label == "c" for p in pooled[t + 1:])
     assert decider.summary()["contacts_decided"] == 2 and decider.summary()["changes"] == 1
 
 
@@ -252,12 +252,12 @@ def test_one_window_alone_never_signals_a_change():
     says_c = np.log([1e-4, 1e-4, 0.9995, 1e-4, 1e-4, 1e-4])
     rules = DecisionRules(scope="contact", n=0, confidence=0.99, change=1.0)
     decider = Decider(["a", "b", "c", "d", "e", "f"], rules)
-    pooled = [decider.decide(lp)["pooled"] for lp in [sure_a] * 10 + [says_c] + [sure_a] * 10]
-    assert not any("change" in p for p in pooled) and pooled[-1]["label"] == "a"
+    pooled = [decider.decide(lp).pooled for lp in [sure_a] * 10 + [says_c] + [sure_a] * 10]
+    assert not any(p.change is not None for p in pooled) and pooled[-1].label == "a"
     assert ChangeDetector(6, 600).update(says_c, 0) is not None       # the detector alone tests one window too
-    twice = [decider.decide(lp)["pooled"] for lp in [says_c, says_c]]
-    assert "change" not in twice[0] and twice[1]["change"] == {"from": "a", "to": "c", "after": 2}
-    assert twice[1]["label"] == "c" and twice[1]["windows"] == 2
+    twice = [decider.decide(lp).pooled for lp in [says_c, says_c]]
+    assert twice[0].change is None and twice[1].change.to_dict() == {"from": "a", "to": "c", "after": 2}
+    assert twice[1].label == "c" and twice[1].windows == 2
 
 
 def _correlated_touch(rng, labels, evidence: float = 2.5, noise: float = 1.0, rho: float = 0.5,
@@ -292,21 +292,21 @@ def test_a_threshold_fitted_on_held_out_touches_finds_a_change_within_five_windo
     def slide(threshold):
         decider = Decider(names, rules, correlation=rho, change_threshold=threshold)
         lps = _correlated_touch(np.random.default_rng(7), np.repeat([0, 3], 40))
-        return [decider.decide(lp)["pooled"] for lp in lps]
+        return [decider.decide(lp).pooled for lp in lps]
 
     pooled = slide(h)
-    changes = [(t, p) for t, p in enumerate(pooled) if "change" in p]
+    changes = [(t, p) for t, p in enumerate(pooled) if p.change is not None]
     assert len(changes) == 1
     t, p = changes[0]
-    assert 40 <= t < 45 and p["change"]["from"] == "a" and p["change"]["to"] == "d"
-    assert p["change"]["after"] == t - 40 + 1 == p["windows"]                  # restarted at the onset
-    assert pooled[-1]["label"] == "d" and pooled[-1]["decided"] is True
-    bound = [t for t, p in enumerate(slide(None)) if "change" in p]
+    assert 40 <= t < 45 and p.change.from_ == "a" and p.change.to == "d"
+    assert p.change.after == t - 40 + 1 == p.windows                          # restarted at the onset
+    assert pooled[-1].label == "d" and pooled[-1].decided is True
+    bound = [t for t, p in enumerate(slide(None)) if p.change is not None]
     assert bound and bound[0] >= 45                                            # the bound: too late
     false = 0
     for k in range(12):                                                         # 2 minutes of new still touches
         decider = Decider(names, rules, correlation=rho, change_threshold=h)
-        false += sum("change" in decider.decide(lp)["pooled"] for lp in _correlated_touch(rng, np.full(100, k % 6)))
+        false += sum(decider.decide(lp).pooled.change is not None for lp in _correlated_touch(rng, np.full(100, k % 6)))
     assert false <= 2
 
 

@@ -118,16 +118,16 @@ def test_confidence_now_says_how_often_the_window_is_right(model, touches):
 def test_a_tie_is_said_unknown_and_counted():
     d = Decider(("a", "b", "c"), DecisionRules(scope="window"))
     said = d.decide(np.log(np.array([0.45, 0.45, 0.1])))
-    assert (said["decision"], said["reason"], said["guess"]) == (UNKNOWN, "tie", None)
+    assert (said.decision, said.reason, said.guess) == (UNKNOWN, "tie", None)
     said = d.decide(np.log(np.array([0.1, 0.45, 0.45])))
-    assert said["decision"] == UNKNOWN
+    assert said.decision == UNKNOWN
     assert d.summary()["unknown_windows"] == {"novel": 0, "unsure": 0, "tie": 2}
 
 
 def test_unknown_below_names_no_texture_when_unsure():
     d = Decider(("a", "b"), DecisionRules(scope="window", unknown_below=0.8))
-    assert d.decide(np.log(np.array([0.7, 0.3])))["decision"] == UNKNOWN
-    assert d.decide(np.log(np.array([0.9, 0.1])))["decision"] == "a"
+    assert d.decide(np.log(np.array([0.7, 0.3]))).decision == UNKNOWN
+    assert d.decide(np.log(np.array([0.9, 0.1]))).decision == "a"
 
 
 def test_rules_the_model_cannot_follow_are_refused_before_start(model, touches):

@@ -213,11 +213,11 @@ def test_fused_decisions_pool_over_windows_as_a_streams_do():
     sink = ListSink()
     f = build_node(scene_from_dict(d, "world.toml"), speed="max", sinks_override=[sink]).run()["fusion"]
     fused = [e for e in sink.windows if e.stream == "fused"]
-    assert all(e.pooled is not None and e.pooled["windows"] == min(e.window + 1, 10) for e in fused)
+    assert all(e.pooled is not None and e.pooled.windows == min(e.window + 1, 10) for e in fused)
     truth = [e.truth for e in fused]
     settled = [e for e in fused if e.window >= 9 and len(set(truth[e.window - 9:e.window + 1])) == 1]
     assert len(settled) >= 80
-    assert sum(e.pooled["label"] == e.truth for e in settled) / len(settled) >= 0.98
+    assert sum(e.pooled.label == e.truth for e in settled) / len(settled) >= 0.98
     assert f["accumulated_accuracy"] is not None
 
 

@@ -11,6 +11,7 @@ import tomllib
 import numpy as np
 import pytest
 
+from supramodal.decisions import PooledDecision, TextureChange
 from supramodal.node.scene.build import build_node
 from supramodal.node.cli import main
 from supramodal.node.workflows.reports import FUSION_COLUMNS
@@ -142,9 +143,7 @@ def test_decision_checks_count_false_unknowns_and_changes_per_contact_by_hand():
     from supramodal.node.workflows.fused_training import _contact_runs, decision_check_lines, decision_checks
 
     def ev(w, truth, decision="a", pooled_label="a", change=None, in_contact=True):
-        pooled = {"label": pooled_label, "confidence": 0.9, "windows": 1}
-        if change:
-            pooled["change"] = {"from": "a", "to": "b", "after": 1}
+        pooled = PooledDecision(pooled_label, 0.9, 1, change=TextureChange("a", "b", 1) if change else None)
         return WindowEvent("s", w, w * 0.1, (w + 1) * 0.1, (w + 1) * 0.1, decision=decision, confidence=0.9,
                            pooled=pooled, truth=truth, in_contact=in_contact)
 

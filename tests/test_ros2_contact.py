@@ -66,10 +66,10 @@ def test_contacts_and_contact_decisions_follow_the_topic_s_edges():
         if w.in_contact:
             touches += run == 0
             run += 1
-            assert w.pooled["windows"] == run and w.pooled["label"] is not None
+            assert w.pooled.windows == run and w.pooled.label is not None
         else:
             run = 0
-            assert w.pooled == {"label": None, "confidence": 0.0, "windows": 0}
+            assert w.pooled.to_dict() == {"label": None, "confidence": 0.0, "windows": 0}
     assert touches == 2
     contacts = summary["contacts"]
     assert contacts == [{"from": f"ros2:{topic}", "states": contacts[0]["states"], "touches": 2,

@@ -16,6 +16,7 @@ import pytest
 from view_browser import Browser, chromium_path, png_colours, png_size
 
 from supramodal.banks import cochlea_bank, whisker_bank
+from supramodal.decisions import PooledDecision
 from supramodal.drivers.base import DriverEvent
 from supramodal.drivers.spec import OptionError
 from supramodal.node.runtime.events import SEVERITY, WindowEvent, severity
@@ -531,7 +532,7 @@ def _a_long_runs_page(view: ViewSink, windows: int = 40) -> None:
             view.emit(WindowEvent(stream, 36000 + w, end - 0.1, end, end, features=features, posteriors=p,
                                   decision=CLASSES[k], confidence=float(p[k]), truth="H1b", classes=CLASSES,
                                   flags=frozenset({"gap"} if w == 7 else ()), latency_ms=1.5,
-                                  pooled={"label": "H1b", "confidence": 0.98765, "windows": 123, "decided": True}))
+                                  pooled=PooledDecision("H1b", 0.98765, 123, decided=True)))
         p = rng.dirichlet(np.ones(len(CLASSES)))
         k = int(np.argmax(p))
         view.emit(WindowEvent("fused", 36000 + w, end - 0.1, end, end, posteriors=p, decision=CLASSES[k],

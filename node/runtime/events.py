@@ -17,6 +17,7 @@ from typing import Any, cast
 
 import numpy as np
 
+from supramodal.decisions import PooledDecision, TextureChange
 from supramodal.drivers.base import DriverEvent
 from supramodal.errors import InputError
 
@@ -167,9 +168,9 @@ class WindowEvent:
         The winning class (winner-take-all over ``posteriors``).
     confidence : float or None
         Its posterior.
-    pooled : dict or None
-        The decision pooled over windows (``{"label", "confidence", "windows"}``), with a
-        ``[decision] scope`` other than ``"window"``.
+    pooled : supramodal.decisions.PooledDecision or None
+        The decision pooled over windows, with a ``[decision] scope`` other than ``"window"``
+        (JSON ``"accumulated"``).
     truth : str or None
         The texture really there, where the source carries labels.
     flags : frozenset of str
@@ -203,7 +204,7 @@ class WindowEvent:
     posteriors: np.ndarray | None = None
     decision: str | None = None
     confidence: float | None = None
-    pooled: dict[str, Any] | None = None
+    pooled: PooledDecision | None = None
     truth: str | None = None
     flags: frozenset[str] = frozenset()
     latency_ms: float | None = None
@@ -229,7 +230,7 @@ class WindowEvent:
             if self.novelty is not None:
                 out["novelty"] = self.novelty
             if self.pooled is not None:
-                out["accumulated"] = self.pooled
+                out["accumulated"] = self.pooled.to_dict()
         elif self.features is not None:
             out["features"] = {name: np.asarray(v).tolist() for name, v in self.features.items()}
         if self.senses:
@@ -241,7 +242,7 @@ class WindowEvent:
         return out
 
 
-def change_event(stream: str, window: int, change: dict[str, Any], window_samples: int | None = None) -> DriverEvent:
+def change_event(stream: str, window: int, change: TextureChange, window_samples: int | None = None) -> DriverEvent:
     """The event a stream (or the fusion) says when its decider re-decides within a contact
     (``[decision] change``): kind ``"change"``, its source the stream, so that every sink takes it as it
     takes a driver's event (a line on stderr, a JSON line, the ROS 2 events topic, the view's banner).
@@ -252,16 +253,16 @@ def change_event(stream: str, window: int, change: dict[str, Any], window_sample
         The stream whose decision changed (``"fused"``: the fusion's).
     window : int
         The window in which the change was signalled.
-    change : dict
-        The pooled decision's ``"change"``: ``{"from", "to", "after"}``, ``after`` the windows since
-        the change began (the signalling window counts).
+    change : supramodal.decisions.TextureChange
+        The pooled decision's change (``after``: the windows since the change began, the signalling
+        window counted).
     window_samples : int, optional
         Samples per window: the event's ``stream_index`` is then the sample at which the change began
         (None: the fusion, which has no samples of its own).
     """
-    began = window + 1 - int(change["after"])
+    began = window + 1 - change.after
     stream_index = None if window_samples is None else began * window_samples
-    return DriverEvent("change", f"{stream}: the texture changed from {change['from']} to {change['to']} at window "
+    return DriverEvent("change", f"{stream}: the texture changed from {change.from_} to {change.to} at window "
                                  f"{began} (said at window {window}): a new decision starts there",
                        time.time(), stream_index=stream_index, source=stream)
 

@@ -284,20 +284,20 @@ class LateFusion:
         in_contact = (self.touches.in_window(start, end) if self.touches is not None
                       else any(e.in_contact for e in events))
         said = self.decider.decide(log_post, in_contact, novel=any(e.unknown == "novel" for e in events))
-        decision, pooled = said["decision"], said["pooled"]
-        self.tally.add(decision, None if pooled is None else pooled["label"], truth)
-        if pooled is not None and "change" in pooled and self.on_event is not None:
-            self.on_event(change_event(FUSED_STREAM, self.windows, pooled["change"]))
+        decision, pooled = said.decision, said.pooled
+        self.tally.add(decision, None if pooled is None else pooled.label, truth)
+        if pooled is not None and pooled.change is not None and self.on_event is not None:
+            self.on_event(change_event(FUSED_STREAM, self.windows, pooled.change))
         latency = None
         if closed is not None:
             latency = (time.monotonic() - closed) * 1e3
             self.latencies.add(latency)
             latency = round(latency, 3)
         event = WindowEvent(FUSED_STREAM, self.windows, start, end, end, posteriors=np.exp(log_post),
-                            decision=decision, confidence=said["confidence"], pooled=pooled, truth=truth,
+                            decision=decision, confidence=said.confidence, pooled=pooled, truth=truth,
                             flags=frozenset(flags), latency_ms=latency, senses=tuple(e.stream for e in events),
                             in_contact=in_contact, classes=self.classes, log_posteriors=log_post,
-                            guess=said["guess"], unknown=said["reason"])
+                            guess=said.guess, unknown=said.reason)
         self.windows += 1
         return event
 

@@ -258,11 +258,11 @@ class Stream:
                 post = np.exp(log_post[i])
                 novel = novelty is not None and bool(novelty[i] > decider.novelty_threshold)
                 said = decider.decide(log_post[i], in_contact, novel)
-                decision, confidence, guess, reason, pooled = (said[k] for k in ("decision", "confidence", "guess",
-                                                                                 "reason", "pooled"))
-                self.tally.add(decision, None if pooled is None else pooled["label"], truth)
-                if pooled is not None and "change" in pooled and self.on_event is not None:
-                    self.on_event(change_event(self.name, w, pooled["change"], W))
+                decision, confidence, guess, reason, pooled = (said.decision, said.confidence, said.guess,
+                                                               said.reason, said.pooled)
+                self.tally.add(decision, None if pooled is None else pooled.label, truth)
+                if pooled is not None and pooled.change is not None and self.on_event is not None:
+                    self.on_event(change_event(self.name, w, pooled.change, W))
             flags = set(self._marks_of(w, W))
             if w in self._gap_windows:
                 flags.add("gap")

@@ -421,14 +421,14 @@ def decision_checks(runs: list[list[WindowEvent]], classes, scored: list[dict]) 
                                    "asked": unknown_asked}}
     ends = [run[-1].pooled for run in runs if len(labels := {e.truth for e in run} - {None}) == 1
             and labels <= set(classes)]         # contacts of one known texture (unlabelled windows aside)
-    said = [pooled["label"] for pooled in ends if pooled is not None]      # each contact's pooled decision at its end
+    said = [pooled.label for pooled in ends if pooled is not None]      # each contact's pooled decision at its end
     if said:
         out["false_unknown"].update(contacts=sum(label == UNKNOWN for label in said), contacts_of=len(said))
     if change_asked is not None:
         report = {"boundaries": 0, "detected": 0, "delays": [], "false": 0, "minutes": 0.0, "asked": change_asked}
         for run in runs:
             boundaries, false = change_detections(_filled_truths(run),
-                                                  [k for k, e in enumerate(run) if e.pooled and "change" in e.pooled])
+                                                  [k for k, e in enumerate(run) if e.pooled and e.pooled.change])
             report["boundaries"] += len(boundaries)
             report["delays"] += [t - b + 1 for b, t in boundaries if t is not None]
             report["false"] += false

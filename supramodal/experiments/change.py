@@ -32,11 +32,18 @@ from __future__ import annotations
 
 import sys
 import time
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
-from supramodal.decisions import Decider, DecisionRules, fit_change_threshold, windows_per_change
+from supramodal.decisions import (
+    Decider,
+    DecisionRules,
+    PooledDecision,
+    TextureChange,
+    fit_change_threshold,
+    windows_per_change,
+)
 from supramodal.errors import InputError
 from supramodal.evaluation import DETECT_WITHIN, change_detections
 from supramodal.experiments.common import Run
@@ -64,11 +71,12 @@ def rules() -> DecisionRules:
     return DecisionRules(scope="contact", n=0, confidence=CONFIDENCE, change=CHANGE_RATE)
 
 
-def decide(log_posteriors, classes, correlation: float, caps, threshold: float | None = None) -> list[dict]:
+def decide(log_posteriors, classes, correlation: float, caps,
+           threshold: float | None = None) -> list[PooledDecision]:
     """One contact's windows through a fresh :class:`Decider` (``threshold``: its change threshold, None: the
-    bound): each window's pooled dict."""
+    bound): each window's pooled decision."""
     d = Decider(classes, rules(), correlation, caps=caps, window_seconds=DEFAULT_WINDOW, change_threshold=threshold)
-    return [d.decide(lp)["pooled"] for lp in log_posteriors]
+    return [cast(PooledDecision, d.decide(lp).pooled) for lp in log_posteriors]
 
 
 def fitted_thresholds(trained, pooling: dict) -> dict:
@@ -84,10 +92,10 @@ def fitted_thresholds(trained, pooling: dict) -> dict:
                                     *pooling[s]) for s in STREAMS}
 
 
-def _said(pooled: list[dict]) -> str:
+def _said(pooled: list[PooledDecision]) -> str | None:
     """A contact's decision: its final one where it was reached, else the pooled one at its end."""
-    final = [p for p in pooled if p.get("decided")]
-    return (final[0] if final else pooled[-1])["label"]
+    final = [p for p in pooled if p.decided]
+    return (final[0] if final else pooled[-1]).label
 
 
 def run_set(set_seed: int, seconds: float = 10.0, epochs: int = DEFAULT_EPOCHS, seed: int = 0,
@@ -125,7 +133,7 @@ def run_set(set_seed: int, seconds: float = 10.0, epochs: int = DEFAULT_EPOCHS, 
         lps = stream_lps(feats[i, TOUCHES - 1][0], feats[i, TOUCHES - 1][1])
         for s in STREAMS:
             pooled = decide(lps[s], classes, *deciding[s])
-            out[s]["false_changes"] += sum("change" in p for p in pooled)
+            out[s]["false_changes"] += sum(p.change is not None for p in pooled)
             out[s]["minutes"] += len(pooled) * DEFAULT_WINDOW / 60.0
     surfaces = two_sense_set(pairs=2, seed=set_seed)
     rng = np.random.default_rng([set_seed, 34])
@@ -139,14 +147,14 @@ def run_set(set_seed: int, seconds: float = 10.0, epochs: int = DEFAULT_EPOCHS, 
         for s in STREAMS:
             pooled = decide(lps[s], classes, *deciding[s])
             truths = [names[order[min(t // seg, len(order) - 1)]] for t in range(len(pooled))]
-            boundaries, false = change_detections(truths, [t for t, p in enumerate(pooled) if "change" in p])
+            boundaries, false = change_detections(truths, [t for t, p in enumerate(pooled) if p.change is not None])
             for at, t in boundaries:
                 out[s]["boundaries"] += 1
                 if t is not None:
                     out[s]["delays"].append(t - at + 1)
                     out[s]["detected"] += t - at + 1 <= DETECT_WITHIN
-                    out[s]["to_new"] += pooled[t]["change"]["to"] == truths[at]
-                # the segment's decision, from the pooled dicts of its own windows (after the change, if found)
+                    out[s]["to_new"] += cast(TextureChange, pooled[t].change).to == truths[at]
+                # the segment's decision, from the pooled decisions of its own windows (after the change, if found)
                 said = _said(pooled[at if t is None else t:at + seg])
                 out[s]["after_change"][0] += said == truths[at]
                 out[s]["after_change"][1] += 1

@@ -374,7 +374,8 @@ def _marker(event: WindowEvent) -> dict[str, Any]:
     return {"stream": event.stream, "window": event.window, "start": round(event.start, 6),
             "end": round(event.end, 6), "decision": event.decision,
             "confidence": None if event.confidence is None else round(event.confidence, 4),
-            "pooled": event.pooled, "truth": event.truth, "flags": sorted(event.flags),
+            "pooled": None if event.pooled is None else event.pooled.to_dict(), "truth": event.truth,
+            "flags": sorted(event.flags),
             **({"unknown": event.unknown, "guess": event.guess} if event.unknown is not None else {})}
 
 

@@ -68,13 +68,13 @@ class TextSink(FileSink):
             if event.unknown is not None:
                 line += f" ({event.unknown}" + (f"; guess {event.guess})" if event.guess else ")")
             acc = event.pooled
-            if acc:
-                shown = acc["label"] if acc["label"] is not None else "(no contact)"
-                line += f"  | over {acc['windows']:>3} win: {shown:<12} conf {acc['confidence']:.2f}"
-                if acc.get("decided"):
-                    line += f" decided after {acc['decided_after']}"
-                if acc.get("change"):                   # re-decided within the contact: a new pooled decision
-                    line += f"  [changed from {acc['change']['from']}, {acc['change']['after']} win ago]"
+            if acc is not None:
+                shown = acc.label if acc.label is not None else "(no contact)"
+                line += f"  | over {acc.windows:>3} win: {shown:<12} conf {acc.confidence:.2f}"
+                if acc.decided:
+                    line += f" decided after {acc.decided_after}"
+                if acc.change is not None:              # re-decided within the contact: a new pooled decision
+                    line += f"  [changed from {acc.change.from_}, {acc.change.after} win ago]"
             if event.truth is not None:
                 mark = "ok" if event.truth == event.decision else "--"
                 line += f"  truth {event.truth:<12} {mark}"
