@@ -57,6 +57,7 @@ from __future__ import annotations
 
 import collections
 import functools
+import logging
 import math
 import os
 import time
@@ -73,6 +74,7 @@ from supramodal.drivers.spec import BuildContext, Built, DriverSpec, OptionError
 from supramodal.drivers.timestamps import ENVELOPE_SECONDS, ClockSteps, StampedBlocks, Step, TimestampSteps  # noqa: F401  (moved; named here too)
 from supramodal.errors import InputError
 from supramodal.interrupts import held_interrupts
+from supramodal.logs import logger
 
 if TYPE_CHECKING:
     # pylsl ships no type information (pyproject's [tool.mypy] takes it as Any): these name what an object is.
@@ -182,7 +184,10 @@ def _quiet_liblsl(pylsl: ModuleType) -> None:
     reads it, or none) with its log on stderr held to :data:`LIBLSL_LOG_LEVEL`, given to liblsl as
     content (it takes that before any file). Nothing where the user's file has a ``[log]`` section,
     where ``LSLAPICFG`` names a file that cannot be read (liblsl says so), or where liblsl is older
-    than 1.17.7 (no such call)."""
+    than 1.17.7 (no such call), or where the package logger shows debugging lines (``supramodal -v``: liblsl's
+    own log is then shown as liblsl sets it)."""
+    if logger.isEnabledFor(logging.DEBUG):
+        return
     named = os.environ.get("LSLAPICFG")
     if named and not _readable(named):
         return                                  # liblsl's error says so; a quieter log would hide it

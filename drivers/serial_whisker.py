@@ -52,7 +52,6 @@ import errno
 import math
 import os
 import stat
-import sys
 import termios
 import time
 from collections.abc import Callable, Mapping
@@ -73,6 +72,9 @@ from supramodal.drivers.frames import (
 )
 from supramodal.drivers.spec import BuildContext, Built, DriverSpec, OptionError, given
 from supramodal.errors import InputError
+from supramodal.logs import get_logger
+
+_LOG = get_logger("drivers.serial")
 
 # What an unplug looks like from pyserial on Linux (measured, see
 # TESTING-WITHOUT-HARDWARE.md): read() -> SerialException, in_waiting -> bare
@@ -88,8 +90,9 @@ _DECODER_COUNTERS = ("crc_errors", "truncated", "header_errors", "bytes_skipped"
 DEFAULT_BAUDRATE = 3_000_000  #: bit/s; 20 channels at 5 kHz need about 2.02 Mbit/s (docs/serial-frames.md)
 
 
-def _print_stderr(message: str) -> None:
-    print(message, file=sys.stderr, flush=True)
+def _log_notice(message: str) -> None:
+    """The default ``on_notice``: the package logger's ``supramodal.drivers.serial`` (INFO)."""
+    _LOG.info(message)
 
 
 class SerialWhiskerDriver(DriverBase):
@@ -126,7 +129,7 @@ class SerialWhiskerDriver(DriverBase):
         each says for how long, what arrived meanwhile (no byte at all, bytes
         but no valid frame, frames with the wrong channel count, or a lost
         port) and the likely causes. None: never.
-    on_notice : callable or None, default prints to stderr
+    on_notice : callable or None, default the package logger (``supramodal.drivers.serial``, INFO)
         Called with the text of each silence notice, on the reading thread, for
         a driver used on its own; None silences them. They are ``silence``
         events either way (:meth:`take_events`, :attr:`events`), and counted in
@@ -190,7 +193,7 @@ class SerialWhiskerDriver(DriverBase):
     def __init__(self, port: str, rate: float, channels: int, baudrate: int = DEFAULT_BAUDRATE,
                  timeout: float = 0.5, reconnect: bool = True, max_gap: float = 10.0,
                  exclusive: bool = True, silence_warning: float | None = 1.0,
-                 on_notice: Callable[[str], None] | None = _print_stderr) -> None:
+                 on_notice: Callable[[str], None] | None = _log_notice) -> None:
         if not 1 <= int(channels) <= MAX_CHANNELS:
             raise InputError(f"channels must be 1..{MAX_CHANNELS}, got {channels}")
         if not rate > 0:

@@ -29,7 +29,6 @@ from __future__ import annotations
 import math
 import numbers
 import os
-import sys
 import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -44,9 +43,12 @@ from numpy.typing import ArrayLike
 from supramodal.checks import Key, flag, integer, is_number, one_of, text
 from supramodal.drivers.base import Block, DeviceUnavailable, DriverBase, DriverClosed, DriverError
 from supramodal.drivers.spec import BuildContext, Built, DriverSpec, OptionError, ReplayedSession, given
+from supramodal.logs import get_logger
 from supramodal.replay.errors import ReplayError
 from supramodal.replay.session import Label, Session, load_session, session_paths
 from supramodal.replay.wavio import read_wav
+
+_LOG = get_logger("drivers.replay")
 
 __all__ = ["ReplayDriver", "DeviceClock", "SPEC", "SPEED_HELP", "SPEED_MAX", "TIMINGS", "is_speed", "release_time",
            "random_block_sizes", "RandomBlockSizes", "BlockSize"]
@@ -178,8 +180,9 @@ def _is_count(v: object) -> TypeGuard[numbers.Integral]:
     return isinstance(v, numbers.Integral) and not isinstance(v, bool) and int(v) >= 1
 
 
-def _print_stderr(message: str) -> None:
-    print(message, file=sys.stderr, flush=True)
+def _log_notice(message: str) -> None:
+    """The default ``on_notice``: the package logger's ``supramodal.drivers.replay`` (INFO)."""
+    _LOG.info(message)
 
 
 class ReplayDriver(DriverBase):
@@ -231,7 +234,7 @@ class ReplayDriver(DriverBase):
         recording replay with their original relative timing, drift and jitter included. Needs
         the session's ``arrivals``, no ``block_size``, no ``device_clock`` and no ``loop``; a
         resampled session's block ends map to the first output frame at or after them.
-    on_notice : callable or None, default prints to stderr
+    on_notice : callable or None, default the package logger (``supramodal.drivers.replay``, INFO)
         Called once with each notice (e.g. "resampling ..."), for a driver used
         on its own; None silences them. They are kept in :attr:`notices` and
         are ``notice`` events (:meth:`take_events`) either way; the node passes
@@ -280,7 +283,7 @@ class ReplayDriver(DriverBase):
                  speed: float | str = 1.0, loop: bool | int = False,
                  channels: int | Sequence[int] | np.ndarray | None = None,
                  seed: int | None = None, max_denominator: int = 1000,
-                 on_notice: Callable[[str], None] | None = _print_stderr, device_clock: DeviceClock | None = None,
+                 on_notice: Callable[[str], None] | None = _log_notice, device_clock: DeviceClock | None = None,
                  timing: str = "nominal") -> None:
         super().__init__()
         self.notices: list[str] = []

@@ -255,7 +255,8 @@ def test_the_command_line_says_what_the_board_does_as_it_happens(tmp_path, json_
     with dev:
         scene.write_text(f'[driver]\ntype = "serial"\nport = "{dev.port}"\nrate = {RATE}.0\nchannels = 20\n'
                          'mapping = "per-channel"\n[bank]\nkind = "whisker"\n')
-        proc = subprocess.Popen([sys.executable, "-m", "supramodal.node.cli", "run", str(scene), "--quiet",
+        # not -q: it would leave out the news (the reconnect), keeping only the alarms and warnings
+        proc = subprocess.Popen([sys.executable, "-m", "supramodal.node.cli", "run", str(scene),
                                  "--seconds", "inf"] + ["--json"] * json_mode,
                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         try:

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import logging
 import os
 import signal
 import sys
@@ -37,6 +38,7 @@ from typing import Any, TextIO
 from supramodal import __version__
 from supramodal.drivers.ros2 import split_ros_arguments, use_ros_arguments
 from supramodal.errors import SupramodalWarning
+from supramodal.logs import logger, set_log_level
 from supramodal.memory import keep_freed_memory
 from supramodal.node.cli.errors import EXIT_BUG, EXIT_USER_ERROR, CliError, is_user_error, reader_left
 from supramodal.node.cli.signals import StartupInterrupted
@@ -79,11 +81,15 @@ def build_parser() -> argparse.ArgumentParser:
     assert __doc__ is not None
     parser = argparse.ArgumentParser(prog="supramodal", description=__doc__.splitlines()[0])
     parser.add_argument("--version", action="version", version=f"supramodal {__version__}")
-    parser.add_argument("--debug", action="store_true", help="show the traceback of every error, not one line")
-    # --debug is also accepted after the command; SUPPRESS keeps the top-level value when it is not.
+    # --debug, -q and -v are also accepted after the command; SUPPRESS keeps the top-level value when not.
     common = argparse.ArgumentParser(add_help=False)
-    common.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
-                        help="show the traceback of every error, not one line")
+    for p, default in ((parser, False), (common, argparse.SUPPRESS)):
+        p.add_argument("--debug", action="store_true", default=default,
+                       help="show the traceback of every error, not one line")
+        p.add_argument("-q", "--quiet", action="store_true", default=default,
+                       help="no progress and no notices on stderr: the results, the warnings and a view's address only")
+        p.add_argument("-v", "--verbose", action="store_true", default=default,
+                       help="every notice, the package's debugging lines and the libraries' own (liblsl's log)")
     sub = parser.add_subparsers(dest="command", required=True)
     add = sub.add_parser
 
@@ -132,8 +138,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     # not the command's: kept for the node's ROS 2 parts, then the rest parsed as usual.
     own, ros = split_ros_arguments(sys.argv[1:] if argv is None else argv)
     use_ros_arguments(ros)
-    args = build_parser().parse_args(own)
+    parser = build_parser()
+    args = parser.parse_args(own)
+    if args.quiet and args.verbose:
+        parser.error("-q/--quiet and -v/--verbose: choose one")
     keep_freed_memory()              # numpy's temporaries reuse heap pages (supramodal/memory.py: 2x faster training)
+    level = logger.level
+    set_log_level(logging.WARNING if args.quiet else logging.DEBUG if args.verbose else logging.INFO)
     shown, warnings.showwarning = warnings.showwarning, _show_warning
     handlers = {}
     if threading.current_thread() is threading.main_thread():      # signals are the main thread's
@@ -141,6 +152,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return _run(args)
     finally:
+        set_log_level(level)         # main() may be called again in this process (a test, a notebook)
         warnings.showwarning = shown
         for sig, handler in handlers.items():
             if handler is not None:                                  # None: set outside Python

@@ -62,7 +62,6 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
     p.add_argument("--seed", type=seed, metavar="S",
                    help="with --cv: seed of the folds and of the training (default: the model's own seed)")
     p.add_argument("--force", action="store_true", help="replace earlier evaluation files in --out (default: refuse)")
-    p.add_argument("--quiet", action="store_true", help="no progress on stderr (warnings are still shown)")
     return p
 
 

@@ -51,7 +51,6 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
                                             "with --quick)")
     p.add_argument("--out", default="out", type=output_folder, help="directory for CSV and PNG (default ./out)")
     p.add_argument("--json", action="store_true", help="print the figure's data as one JSON object instead of a table")
-    p.add_argument("--quiet", action="store_true", help="no progress on stderr")
     return p
 
 

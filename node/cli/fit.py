@@ -70,7 +70,6 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
                    help="recording channels to filters: auto (one channel to all, or one each), mono, per-channel, "
                         "mean, or a channel index (default auto)")
     p.add_argument("--force", action="store_true", help="replace earlier fit files in --out (default: refuse)")
-    p.add_argument("--quiet", action="store_true", help="no progress on stderr (warnings are still shown)")
     return p
 
 

@@ -38,7 +38,6 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
     p.add_argument("--out", type=output_file, required=True,
                    help="the recalibrated model file to write (the model given is left as it is)")
     p.add_argument("--force", action="store_true", help="replace an existing file at --out (default: refuse)")
-    p.add_argument("--quiet", action="store_true", help="no progress on stderr (warnings are still shown)")
     return p
 
 

@@ -52,7 +52,6 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
                    help="also write the recording as a rosbag2 (MCAP) folder: each source's samples on "
                         "/supramodal/SOURCE/samples (stamped sensor_msgs/Image), the labels on /supramodal/labels "
                         "(needs the ros2 extra; docs/ros2.md)")
-    p.add_argument("--quiet", action="store_true", help="no progress on stderr (warnings are still shown)")
     p.add_argument("--view", nargs="?", const=0, type=int, metavar="PORT",
                    help="also serve the live page on 127.0.0.1:PORT (default 0: any free port); with --marks its label "
                         "buttons mark too, given the run's token printed at start (docs/view.md)")

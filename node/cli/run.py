@@ -32,7 +32,6 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
     p.add_argument("--json", action="store_true", help="JSON Lines on stdout instead of the scene's sinks")
     p.add_argument("--seconds", type=stream_seconds,
                    help="stop after this much stream; inf: until it ends or Ctrl-C (the default)")
-    p.add_argument("--quiet", action="store_true", help="no progress on stderr")
     p.add_argument("--view", nargs="?", const=0, type=int, metavar="PORT",
                    help="also serve a page that shows the run live on 127.0.0.1:PORT (default 0: any free port; the "
                         "URL and the run's token are printed at start; docs/view.md)")

@@ -96,7 +96,6 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
     p.add_argument("--jobs", type=jobs, default=cores(),
                    help="worker processes for the model's networks and its calibration folds' (default: the cores "
                         "here); the model is the same for any")
-    p.add_argument("--quiet", action="store_true", help="no progress on stderr (warnings are still shown)")
     return p
 
 

@@ -26,7 +26,6 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
                    help="the replay scene `supramodal record` wrote for a graph, or a session (NAME.wav + NAME.json)")
     p.add_argument("--port", type=int, default=0, help="the page's port on 127.0.0.1 (default 0: any free one)")
     p.add_argument("--speed", type=float, default=1.0, help="playback speed at the start (default 1: as recorded)")
-    p.add_argument("--quiet", action="store_true", help="no progress on stderr (the URL is still printed)")
     return p
 
 

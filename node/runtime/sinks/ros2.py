@@ -57,6 +57,7 @@ from supramodal.drivers.base import DriverEvent
 from supramodal.drivers.ros2 import Ros2Unavailable, check_namespace, check_node_name, ros_arguments
 from supramodal.drivers.spec import OptionError
 from supramodal.errors import InputError, SupramodalError
+from supramodal.logs import get_logger
 from supramodal.node.runtime.events import DECISION_EVENTS, FUSED_STREAM, WindowEvent
 from supramodal.node.runtime.sinks import QueuedSink, Sink
 from supramodal.node.runtime.sinks.ros2_publisher import (
@@ -72,6 +73,8 @@ from supramodal.node.runtime.sinks.ros2_publisher import (
     only_source,
 )
 from supramodal.node.runtime.sinks.spec import SinkContext, SinkSpec, listened, stream_outputs
+
+_LOG = get_logger("sinks.ros2")
 
 if TYPE_CHECKING:   # for the annotations only: the sink needs no model code to run
     from supramodal.pipeline import FeaturePipeline
@@ -249,8 +252,7 @@ class Ros2Sink(Sink):
         """Kill the publisher process if it runs, saying ``why`` on stderr (None: silently)."""
         if self._process.poll() is None:
             if why is not None:
-                print(f"supramodal: ros2 sink: the publisher process (pid {self._process.pid}) {why}; killed",
-                      file=sys.stderr, flush=True)
+                _LOG.warning(f"ros2 sink: the publisher process (pid {self._process.pid}) {why}; killed")
             self._process.kill()
 
     def _ask(self, header: dict[str, Any], timeout: float, what: str) -> dict[str, Any]:
@@ -470,7 +472,7 @@ def serve(read_fd: int, write_fd: int) -> None:
                 errors += 1
                 if first is None:
                     first = f"{type(exc).__name__}: {exc}"
-                    print(f"supramodal ros2 sink: publishing failed ({op}): {first}", file=sys.stderr, flush=True)
+                    _LOG.warning(f"ros2 sink: publishing failed ({op}): {first}")
     finally:
         publisher.close()
 

@@ -3,22 +3,29 @@
 
 from __future__ import annotations
 
-import sys
+import logging
 from typing import Any, cast
 
 import numpy as np
 
 from supramodal.drivers.base import DriverEvent
-from supramodal.node.runtime.events import MAIN_STREAM, WindowEvent
+from supramodal.logs import get_logger
+from supramodal.node.runtime.events import MAIN_STREAM, WindowEvent, severity
 from supramodal.node.runtime.sinks import PATH_KEY, FileSink, file_sink
 from supramodal.node.runtime.sinks.spec import SinkSpec
+
+_LOG = get_logger("events")
+#: The log level of a driver event's line, by its severity (:data:`~supramodal.node.runtime.events.SEVERITY`):
+#: ``supramodal -q`` (WARNING) keeps the alarms and warnings, and leaves out the news.
+EVENT_LEVELS = {"alarm": logging.ERROR, "warning": logging.WARNING, "info": logging.INFO}
 
 __all__ = ["SPEC", "TextSink", "frames_line"]
 
 
 class TextSink(FileSink):
     """One human-readable line per window, under a line that names the columns, and a summary block;
-    driver events on stderr, ``supramodal: MESSAGE`` and, for repeats folded in, ``(N more since)``.
+    driver events on stderr, ``supramodal: MESSAGE`` and, for repeats folded in, ``(N more since)``, through
+    the package logger (``supramodal.events``, at the event's severity: ``-q`` leaves out the news).
 
     Every line's time is on one basis, said in the header: the window's end (``WindowEvent.end``),
     seconds on the node's common time, for every stream's window and the fused ones alike (a
@@ -31,8 +38,7 @@ class TextSink(FileSink):
 
     def event(self, ev: DriverEvent) -> None:
         more = f" ({ev.count - 1} more since)" if ev.count > 1 else ""
-        sys.stderr.write(f"supramodal: {ev.message}{more}\n")
-        sys.stderr.flush()
+        _LOG.log(EVENT_LEVELS[severity(ev.kind)], f"{ev.message}{more}")
 
     #: What the first column is, said in the header.
     TIME_BASIS = "time: each window's end, s on the node's common time"

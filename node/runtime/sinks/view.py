@@ -51,9 +51,12 @@ from supramodal.checks import Key, flag, integer, is_name, text
 from supramodal.drivers.base import DriverEvent
 from supramodal.drivers.spec import OptionError
 from supramodal.errors import InputError
+from supramodal.logs import get_logger
 from supramodal.node.runtime.events import WindowEvent, severity
 from supramodal.node.runtime.sinks import QueuedSink, Sink
 from supramodal.node.runtime.sinks.spec import SinkContext, SinkSpec
+
+_LOG = get_logger("sinks.view")
 
 __all__ = ["SPEC", "Hub", "ViewError", "ViewSink", "attach", "channel_labels", "event_message", "view_sinks",
            "window_message"]
@@ -309,8 +312,7 @@ class _Server(ThreadingHTTPServer):
         exc = sys.exc_info()[1]
         if isinstance(exc, (ConnectionError, TimeoutError)):
             return
-        print(f"supramodal: view: a request from {client_address[0]} failed: {type(exc).__name__}: {exc}",
-              file=sys.stderr, flush=True)
+        _LOG.warning(f"view: a request from {client_address[0]} failed: {type(exc).__name__}: {exc}")
 
 
 class _Server6(_Server):
@@ -521,7 +523,8 @@ class ViewSink(Sink):
         self._names = {shown} | ({"localhost", "127.0.0.1", "[::1]"} if is_loopback(host) else set())
         self._started = False
         if not quiet:
-            print(f"supramodal: view at {self.url} (read-only); to mark or control it open "
+            # the address the user opens: said whatever the log level (a result of starting the view)
+            print(f"supramodal: view at {self.url} (read-only); to mark or control it open "  # noqa: T201
                   f"{self.url}#token={self.token}", file=sys.stderr, flush=True)
 
     # -- what the page asks --
