@@ -57,13 +57,17 @@ class Key:
         not passed on); :data:`REQUIRED`: the table must give it.
     path : bool
         The value names a file, relative to the folder of the file the table is in (a scene's): a
-        scene written elsewhere makes it absolute (``"-"``, stdout, stays). Default False.
+        scene written elsewhere makes it absolute. Default False.
+    words : tuple of str
+        Values of a ``path`` key that name no file (``"-"``, stdout; ``"reference"``, the built-in
+        texture set): kept as they are.
     """
 
     check: Callable[[Any], bool]
     expected: str
     default: Any = REQUIRED
     path: bool = False
+    words: tuple[str, ...] = ()
 
     @property
     def required(self) -> bool:

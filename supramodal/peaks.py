@@ -111,13 +111,21 @@ class PeakExtractor:
         return self._staged
 
     def _buffer(self, L: int, dtype: np.dtype) -> np.ndarray:
-        """The (channels, L + 2) work array, its first two columns holding the last two samples."""
+        """The (channels, L + 2) work array, its first two columns holding the last two samples.
+
+        It is a view of one flat array kept between blocks and grown only when a block is longer
+        than any before: a pipeline's stages of varying length (three chunks, then one) would
+        otherwise allocate and fault in a fresh array at each change of length."""
         z = self._z
-        if z is None or z.shape[1] != L + 2 or z.dtype != dtype:
-            new = np.zeros((self.channels, L + 2), dtype=dtype)
-            if z is not None:
-                new[:, :2] = z[:, :2]
-            self._z = z = new
+        if z is not None and z.shape[1] == L + 2 and z.dtype == dtype:
+            return z
+        tail = None if z is None else z[:, :2].copy()     # the old layout's first columns, before the new overwrites
+        size = self.channels * (L + 2)
+        backing = self._scratch.get("z")
+        if backing is None or backing.size < size or backing.dtype != dtype:
+            backing = self._scratch["z"] = np.empty(max(size, 0 if backing is None else backing.size), dtype=dtype)
+        self._z = z = backing[:size].reshape(self.channels, L + 2)
+        z[:, :2] = 0.0 if tail is None else tail
         return z
 
     def process(self, y: np.ndarray) -> Peaks:
@@ -148,6 +156,8 @@ class PeakExtractor:
             z = self._z
             assert z is not None, "staging() made the work array"
         else:
+            if self._z is not None and np.may_share_memory(y, self._z):
+                y = y.copy()                                   # part of the work array, which is laid out anew
             z = self._buffer(L, y.dtype if y.dtype.kind == "f" else np.dtype(np.float64))
             z[:, 2:] = y                                       # stream samples n0-2 .. n0+L-1
         self.samples_seen = n0 + L

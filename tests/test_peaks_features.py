@@ -373,3 +373,23 @@ def test_peaks_must_exceed_the_floor_whatever_the_threshold(mode, threshold):
     if mode == "extrema":                                     # minima by their magnitude
         q = PeakExtractor(1, mode=mode, threshold=threshold).process(-x)
         assert q.index.tolist() == [8]
+
+
+def test_a_block_that_is_part_of_the_staged_work_array_is_read_before_the_array_is_laid_out_anew():
+    """A pipeline hands the peak extractor the first part of its staged array at the stream's end (a
+    partial stage): the same peaks as that block copied out, though the work array is reused."""
+    from supramodal.peaks import PeakExtractor
+
+    rng = np.random.default_rng(5)
+    first, rest = rng.standard_normal((4, 30)), rng.standard_normal((4, 40))
+    plain = PeakExtractor(4)
+    want = [plain.process(first), plain.process(rest[:, :17].copy())]
+    pe = PeakExtractor(4)
+    got = [pe.process(first)]
+    staged = pe.staging(40)
+    staged[:] = rest
+    got.append(pe.process(staged[:, :17]))
+    for g, w in zip(got, want):
+        np.testing.assert_array_equal(g.channel, w.channel)
+        np.testing.assert_array_equal(g.index, w.index)
+        np.testing.assert_array_equal(g.amplitude, w.amplitude)

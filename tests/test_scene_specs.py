@@ -248,3 +248,38 @@ def test_a_driver_spec_says_which_recorded_session_its_source_replays(tmp_path):
     assert replays({"type": "replay", "path": "r.wav", "timing": "recorded"}) == ReplayedSession("r.wav", True)
     assert replays({"type": "replay", "path": "r.wav"}) == ReplayedSession("r.wav", False)
     assert replays({"type": "synth"}) is None
+
+
+def test_a_texture_set_file_is_made_absolute_and_the_built_in_set_is_a_word(tmp_path):
+    """A path key's words name no file: a synthesised source's "reference" stays, its JSON file does not."""
+    from supramodal.node.scene.variants import with_absolute_paths
+
+    def textures(value):
+        scene = scene_from_dict({"driver": {"type": "synth", "textures": value}}, "one.toml", tmp_path)
+        return with_absolute_paths(scene).only_source().options["textures"]
+
+    assert textures("reference") == "reference"
+    assert textures("sets/my.json") == str(tmp_path.resolve() / "sets/my.json")
+
+
+def test_the_fused_scene_keeps_the_live_scenes_way_of_deciding_on_the_fused_windows(tmp_path):
+    """train --fusion's scene: the fusion learned, the live scene's [fusion.decision] and max_wait kept."""
+    from supramodal.node.scene.schema import load_scene
+    from supramodal.node.workflows.fused_training import write_fused_scene
+
+    d = _fused_graph(tmp_path)
+    d["fusion"] = {"streams": ["touch", "sound"], "max_wait": 0.5,
+                   "decision": {"scope": "contact", "n": 0, "confidence": 0.99, "change": 1.0}}
+    (tmp_path / "live.toml").write_text(scene_to_toml(scene_from_dict(d, "live.toml", tmp_path)))
+    models = {}
+    for name in ("touch", "sound"):
+        models[name] = str(tmp_path / f"{name}.npz")
+        (tmp_path / f"{name}.npz").write_bytes(b"")
+    (tmp_path / "out").mkdir()
+    out = write_fused_scene(tmp_path / "live.toml", ["touch", "sound"], models, tmp_path / "out" / "f.toml",
+                            method="late", weight=0.6, sharpness=1.5, correlation=0.2)
+    fused = load_scene(out).fusion
+    live = load_scene(tmp_path / "live.toml").fusion
+    assert (fused.weight, fused.sharpness, fused.correlation, fused.method) == (0.6, 1.5, 0.2, "late")
+    assert fused.decision == live.decision and fused.max_wait == 0.5
+    assert load_scene(out).source_named("board").options["path"] == str(tmp_path.resolve() / "rec/board.wav")

@@ -110,7 +110,7 @@ SYNTH = DriverSpec(
     type="synth",
     summary="the model's synthesised textures (a texture set), played as the device would deliver them",
     keys={
-        "textures": Key(text, '"reference" or a texture-set JSON path', "reference"),
+        "textures": Key(text, '"reference" or a texture-set JSON path', "reference", path=True, words=("reference",)),
         "seconds": Key(positive(), "seconds per texture, > 0", 10.0),
         "order": Key(texts, "a list of texture names", None),
         "speed": speed_key(),

@@ -111,15 +111,15 @@ def with_fusion(scene: Scene, **table: Any) -> Scene:
 
 def with_absolute_paths(scene: Scene) -> Scene:
     """``scene`` with every file it names relative to its folder made absolute (symbolic links
-    resolved): the keys marked ``path`` of its sources' drivers and of its sinks, its banks' files, its
-    models' and its early fusion's; ``"-"`` (stdout) stays. A scene written into another folder then
-    names the same files."""
+    resolved): the keys marked ``path`` of its sources' drivers and of its sinks (but for the words
+    such a key takes, ``"-"`` or ``"reference"``), its banks' files, its models' and its early fusion's. A
+    scene written into another folder then names the same files."""
     def absolute(value: str | None) -> str | None:
-        return value if value is None or value == "-" else str(scene.resolve(value).resolve())
+        return value if value is None else str(scene.resolve(value).resolve())
 
     def options(values: Mapping[str, object], keys: Mapping[str, Key]) -> Options:
-        return frozen({k: absolute(v) if k in keys and keys[k].path and isinstance(v, str) else v
-                       for k, v in values.items()})
+        return frozen({k: absolute(v) if k in keys and keys[k].path and isinstance(v, str)
+                       and v not in keys[k].words else v for k, v in values.items()})
 
     sources = tuple(replace(src, options=options(src.options, driver_spec(src.type).keys)) for src in scene.sources)
     streams = tuple(replace(st, bank=replace(st.bank, file=absolute(st.bank.file)),

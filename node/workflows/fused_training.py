@@ -249,11 +249,18 @@ def write_fused_scene(live, streams, models: dict[str, str], out, *, method: str
     and a ``[fusion]`` of ``method`` over ``streams``: ``model`` (early), or ``weight``,
     ``sharpness`` and ``correlation`` (late; the [fusion] keys). Paths the scene names relative to its own
     folder (a replay's file, a bank file, a sink's file) are written absolute, so the new scene runs
-    from its own folder. Returns ``out``; refuses an existing file (the caller checks ``--force``)."""
+    from its own folder. Where ``live`` fused the same two streams, its ``[fusion.decision]`` and
+    ``max_wait`` are kept. Returns ``out``; refuses an existing file (the caller checks ``--force``)."""
     scene = load_scene(live)
     learned = {"model": model, "weight": weight, "sharpness": sharpness, "correlation": correlation}
     checked = with_fusion(with_models(with_absolute_paths(scene), models), streams=list(streams), method=method,
                           **{k: v for k, v in learned.items() if v is not None})
+    before = scene.fusion
+    if before is not None and set(before.streams) == set(streams):
+        # the live scene's own way of deciding on the fused windows, and its wait, as it had them
+        assert checked.fusion is not None, "with_fusion gives a fusion"
+        checked = dataclasses.replace(checked, fusion=dataclasses.replace(
+            checked.fusion, decision=before.decision, contact_from=before.contact_from, max_wait=before.max_wait))
     out = Path(out)
     out.write_text(f"# {scene.source} with its sense models and the fusion learned by supramodal train --fusion.\n"
                    + scene_to_toml(relocated(checked, out)))

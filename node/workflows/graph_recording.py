@@ -23,7 +23,7 @@ from supramodal.node.runtime.outputs import check_new_file
 from supramodal.node.runtime.taps.recorder import SessionRecorder
 from supramodal.node.scene.schema import Scene, scene_to_toml
 from supramodal.node.scene.specs import ModelSpec
-from supramodal.node.scene.variants import as_replay, relocated
+from supramodal.node.scene.variants import as_replay, relocated, with_absolute_paths
 from supramodal.replay.session import session_paths
 
 
@@ -103,7 +103,8 @@ def write_replay_scene(scene: Scene, graph, folder, name: str, overwrite: bool =
     if missing:
         raise InputError(f"no session was recorded for source(s) {missing} (no frame came): the recording "
                          "cannot be replayed in step, so no replay scene is written")
-    replay = as_replay(scene, {src.name: f"{name}.{src.name}.wav" for src in scene.sources})
+    # its files absolute (a bank file, a texture set): the replay scene is written into the recording's folder
+    replay = as_replay(with_absolute_paths(scene), {src.name: f"{name}.{src.name}.wav" for src in scene.sources})
     streams = []
     for spec, stream in zip(replay.streams, graph.streams):
         if stream.model is not None and spec.name in paths["models"]:

@@ -365,7 +365,7 @@ class QueuedSink(Sink):
 # -- the file sinks as a scene names them (text, jsonl) -----------------------------------------------
 
 #: The ``path`` key of a file sink (:mod:`.text`, :mod:`.jsonl`).
-PATH_KEY = Key(is_text, '"-" (stdout) or a file path', "-", path=True)
+PATH_KEY = Key(is_text, '"-" (stdout) or a file path', "-", path=True, words=("-",))
 
 
 def file_sink(kind: type[FileSink]) -> Callable[[Mapping[str, Any], SinkContext], Sink]:
