@@ -57,6 +57,7 @@ import numpy as np
 
 from supramodal.calibration import (
     POOLING_RUN,
+    Calibration,
     HeldOutChanges,
     cap_gaps,
     effective_windows,
@@ -454,6 +455,20 @@ def change_threshold(largest, windows: int, windows_per_false_change: float, tai
     :class:`~supramodal.calibration.HeldOutChanges`). None when the level asked lies among the statistics
     not kept (a rate so high that more than ``len(largest)`` windows may pass it)."""
     return _change_threshold(np.asarray(largest, dtype=np.float64), int(windows), windows_per_false_change, tail)
+
+
+def fitted_change_threshold(calibration: Calibration | None, rules: DecisionRules,
+                            window_seconds: float) -> float | None:
+    """The change detector's threshold for ``rules.change`` false changes a minute, fitted on the held-out
+    windows of a model's ``calibration`` (its :class:`~supramodal.calibration.HeldOutChanges`: a stream's
+    model's, or an early fusion's), with windows of ``window_seconds``; None (the detector's bound) without
+    a change rule, for an uncalibrated model or one trained before they were kept, or at a rate beyond the
+    statistics kept."""
+    changes = None if calibration is None else calibration.changes
+    per_change = windows_per_change(rules.change, window_seconds) if rules.change else 0.0
+    if changes is None or per_change <= 1 or changes.windows < CHANGE_TAIL:
+        return None                             # (a rate of one change a window or more: the Decider refuses it)
+    return change_threshold(changes.largest, changes.windows, per_change)
 
 
 def _check_change_fit(windows_per_false_change: float, tail: int) -> None:

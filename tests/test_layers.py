@@ -29,7 +29,8 @@ NOT_IN_THE_MODEL = ("node", "drivers", "replay", "benchmarks", "serial", "soundd
 #: (file handling, no DSP; the model's own files need it too, so it cannot live in replay) and the
 #: validation vocabulary (a driver's spec states its keys in it; pure Python, no DSP), and Ctrl-C held over
 #: an optional import (a driver's device library: pylsl, sounddevice, rclpy; the standard library only).
-DRIVER_MAY_USE = ("supramodal.errors", "supramodal.jsondata", "supramodal.checks", "supramodal.interrupts")
+DRIVER_MAY_USE = ("supramodal.errors", "supramodal.jsondata", "supramodal.checks", "supramodal.interrupts",
+                  "supramodal.logs")
 
 
 def layer(name: str) -> str:

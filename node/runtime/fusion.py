@@ -39,14 +39,13 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import ArrayLike
 
-from supramodal.decisions import DEFAULT_DECISION, Decider, DecisionRules
+from supramodal.decisions import DEFAULT_DECISION, Decider, DecisionRules, fitted_change_threshold
 from supramodal.drivers.base import DriverEvent
 from supramodal.errors import InputError
 from supramodal.features import DEFAULT_WINDOW
 from supramodal.fusion import fuse_late
 from supramodal.node.runtime.events import FUSED_STREAM, TruthTally, WindowEvent, change_event, log_posteriors_of
 from supramodal.node.runtime.latency import LatencyHistogram
-from supramodal.node.runtime.streams import change_threshold_for
 
 if TYPE_CHECKING:   # for annotations only: the runtime does not load the early-fusion model
     from supramodal.fused_model import EarlyFusionModel
@@ -334,7 +333,7 @@ class EarlyFusion(LateFusion):
         window events by name. The fused decisions are pooled by its calibration's contact
         pooling (uncapped summed log-posteriors for an uncalibrated model), and their change
         threshold (``decision.change``) is fitted on its calibration's held-out windows, as a
-        stream's is (:func:`~supramodal.node.runtime.streams.change_threshold_for`; the detector's
+        stream's is (:func:`~supramodal.decisions.fitted_change_threshold`; the detector's
         bound for a model file without them).
     window_seconds : float
         Seconds between windows (what a change rate per minute is per window).
@@ -355,7 +354,7 @@ class EarlyFusion(LateFusion):
             caps = np.asarray(model_caps)[np.ix_(order, order)]
         super().__init__(inputs, classes, DEFAULT_WEIGHT, max_wait, decision, correlation=correlation, caps=caps,
                          window_seconds=window_seconds,
-                         change_threshold=change_threshold_for(model.calibration, decision, window_seconds))
+                         change_threshold=fitted_change_threshold(model.calibration, decision, window_seconds))
         self.model = model
         self.weight = None
         self._order_model = np.array([list(model.classes).index(name) for name in self.classes])

@@ -19,13 +19,11 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from supramodal.decisions import (
-    CHANGE_TAIL,
     DEFAULT_DECISION,
     ContactDetector,
     Decider,
     DecisionRules,
-    change_threshold,
-    windows_per_change,
+    fitted_change_threshold,
 )
 from supramodal.drivers.base import DriverEvent
 from supramodal.errors import InputError
@@ -37,7 +35,6 @@ from supramodal.node.runtime.ringbuffer import RingClosed
 from supramodal.pipeline import FeaturePipeline
 
 if TYPE_CHECKING:   # for annotations only
-    from supramodal.calibration import Calibration
     from supramodal.features import Windows
     from supramodal.fused_model import EarlyFusionModel
     from supramodal.node.runtime.contacts import ContactTimeline
@@ -112,19 +109,7 @@ def decider_for(model: TextureModel, rules: DecisionRules, where: str = "[decisi
     if window_seconds is None:
         window_seconds = model.window_samples / model.bank.fs
     return Decider(model.classes, rules, correlation, threshold, caps=caps, window_seconds=window_seconds,
-                   change_threshold=change_threshold_for(model.calibration, rules, window_seconds))
-
-
-def change_threshold_for(calibration: Calibration | None, rules: DecisionRules, window_seconds: float) -> float | None:
-    """The change detector's threshold for ``rules.change`` false changes a minute, fitted on the held-out
-    windows of a model's ``calibration`` (its :class:`~supramodal.calibration.HeldOutChanges`: a stream's
-    model's, or an early fusion's); None (the detector's bound) without a change rule, for an uncalibrated
-    model or one trained before they were kept, or at a rate beyond the statistics kept."""
-    changes = None if calibration is None else calibration.changes
-    per_change = windows_per_change(rules.change, window_seconds) if rules.change else 0.0
-    if changes is None or per_change <= 1 or changes.windows < CHANGE_TAIL:
-        return None                             # (a rate of one change a window or more: the Decider refuses it)
-    return change_threshold(changes.largest, changes.windows, per_change)
+                   change_threshold=fitted_change_threshold(model.calibration, rules, window_seconds))
 
 
 class Stream:
