@@ -16,6 +16,10 @@ from supramodal.node.cli.arguments import (
 )
 from supramodal.node.cli.signals import interrupt_until_running
 
+#: ``--patience``'s default, trials: the search's own (``fit_search.DEFAULT_PATIENCE``), written here so that the
+#: parser does not import the search and numpy with it (tests/test_fit_search.py holds the two equal).
+DEFAULT_PATIENCE = 8
+
 #: What ``supramodal fit`` does, in one line: its ``--help`` says it, and the README's command table
 #: where a row says what the whole command does.
 SUMMARY = ("fit a bank, window, features and network to your sensor by grouped cross-validation under your latency "
@@ -42,6 +46,9 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
                    help="settings to try (default 60, --quick 16)")
     p.add_argument("--timeout", type=positive_seconds, default=None, metavar="S",
                    help="time budget: no new round of trials after S seconds (the first always runs; default: none)")
+    p.add_argument("--patience", type=count(0), default=DEFAULT_PATIENCE, metavar="N",
+                   help="stop early once the best has not moved by more than its fold spread (sd over folds) for N "
+                        f"trials, checked after each round; 0: run every trial (default {DEFAULT_PATIENCE})")
     p.add_argument("--max-window", type=positive_seconds, default=None, metavar="S",
                    help="latency budget: no window longer than S seconds (default: none)")
     p.add_argument("--max-channels", type=count(1), default=None, metavar="N",
@@ -103,7 +110,8 @@ def run(args: argparse.Namespace) -> int:
                             timeout=args.timeout, batch=args.batch, max_window=args.max_window,
                             max_channels=args.max_channels, target=args.target, contact=args.contact,
                             max_epochs=args.epochs, jobs=args.jobs, cluster=args.cluster, mapping=args.mapping,
-                            cache_dir=cache, cache_memory=args.cache_memory * 2**20, progress=progress(args))
+                            cache_dir=cache, cache_memory=args.cache_memory * 2**20, patience=args.patience,
+                            progress=progress(args))
     except BaseException:
         # The cache's files are this search's (a completed one removes them): an interrupted one left them behind.
         for path in cache.glob("*.npy"):

@@ -29,6 +29,8 @@ from supramodal.drivers.spec import OptionError
 if TYPE_CHECKING:   # the annotations' names only
     from supramodal.banks import Bank
     from supramodal.drivers.base import Driver
+    from supramodal.node.runtime.streams import Stream
+    from supramodal.pipeline import FeaturePipeline
 
 __all__ = ["FROM", "NEEDS", "SOURCE", "SinkContext", "SinkSpec", "SourcePlan", "StreamPlan", "listened", "sink_keys",
            "stream_outputs"]
@@ -53,7 +55,7 @@ class StreamPlan:
         The classes its model decides among, in the model's order (empty without a model).
     """
 
-    pipeline: Any
+    pipeline: FeaturePipeline
     classes: tuple[str, ...]
 
 
@@ -118,7 +120,7 @@ class SinkContext:
     where: str
     resolve: Callable[[str], Path] = Path
     overwrite: bool = False
-    streams: Mapping[str, Any] = field(default_factory=dict)
+    streams: Mapping[str, Stream] = field(default_factory=dict)
     fused_classes: tuple[str, ...] | None = None
     fused_inputs: tuple[str, ...] = ()
     sources: Mapping[str, SourcePlan] = field(default_factory=dict)
