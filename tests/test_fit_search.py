@@ -25,11 +25,14 @@ from supramodal.textures import synthesize
 pytest.importorskip("optuna", reason="the fit extra (optuna) is not installed: pip install -e '.[fit]'")
 
 from supramodal.node.workflows.fit_search import (  # noqa: E402
+    DEFAULT_PATIENCE,
     FitError,
     Setting,
     cpu_per_trial,
     fit_search,
     format_search,
+    paper_verdict,
+    plateau,
     search_space,
 )
 
@@ -128,7 +131,7 @@ def _untimed(x):
 
 def test_the_search_reports_each_fold_and_prunes_hopeless_trials(manifest):
     said = []
-    result = fit_search(manifest, seed=0, progress=said.append, **{**FAST, "trials": 14})
+    result = fit_search(manifest, seed=0, progress=said.append, patience=0, **{**FAST, "trials": 14})
     states = [r["state"] for r in result["rows"]]
     assert len(states) == 14 and "complete" in states
     pruned = [r for r in result["rows"] if r["state"] == "pruned"]
@@ -140,6 +143,85 @@ def test_the_search_reports_each_fold_and_prunes_hopeless_trials(manifest):
     assert all(r["cpu_seconds"] > 0 for r in complete + pruned)
     assert any("CPU s per complete trial" in line for line in said)
     assert f"({cpu_per_trial(result['rows']):.1f} CPU s per complete trial, median)" in format_search(result)
+
+
+def _row(trial, state="complete", score=0.5, sd=0.05):
+    return {"trial": trial, "state": state, "score": score, "window_mean": score, "window_sd": sd,
+            "recording_mean": score, "recording_sd": sd}
+
+
+def test_a_plateau_is_the_best_not_moving_by_more_than_its_fold_spread_in_the_last_trials():
+    rows = [_row(0, score=0.40), _row(1, score=0.50, sd=0.05), _row(2, "pruned"), _row(3, score=0.52, sd=0.04)]
+    # Four trials, patience 3: the best (0.52, spread 0.04) moved 0.12 above trial 0's, more than its spread.
+    assert plateau(rows, 3, "window") is None
+    # Patience 2: above the best of trials 0 and 1 (0.50) by 0.02, within its spread: stopped.
+    said = plateau(rows, 2, "window")
+    assert said is not None and said["trials"] == 4 and said["spread"] == 0.04
+    assert said["moved"] == pytest.approx(0.02)
+    assert said["text"] == ("stopped after 4 trials: the best has not moved by more than the fold spread (0.040) "
+                            "for 2 trials")
+    # Exactly the spread is not more than it; a hair above it is (binary fractions: the sums are exact).
+    assert plateau([_row(0, score=0.5), _row(1, score=0.625, sd=0.125)], 1, "window") is not None
+    assert plateau([_row(0, score=0.5), _row(1, score=0.625 + 1e-9, sd=0.125)], 1, "window") is None
+    # A pruned or empty trial is a trial in which the best did not move.
+    assert plateau([_row(0), _row(1, "pruned"), _row(2, "empty band")], 2, "window") is not None
+    # Nothing to move from (no trial complete before the last ``patience``), too few trials, or patience 0: none.
+    assert plateau([_row(0, "pruned"), _row(1), _row(2)], 2, "window") is None
+    assert plateau([_row(0), _row(1)], 2, "window") is None
+    assert plateau([_row(i) for i in range(40)], 0, "window") is None
+    # The spread is the target's: a recording's sd where the fit maximises recording accuracy.
+    rows = [_row(0, score=0.5), {**_row(1, score=0.6, sd=0.01), "recording_sd": 0.2}]
+    assert plateau(rows, 1, "window") is None and plateau(rows, 1, "recording") is not None
+
+
+def test_the_search_stops_on_a_plateau_at_the_first_round_that_ends_on_one_and_patience_0_runs_every_trial(manifest):
+    trials, patience, batch = 15, 6, FAST["batch"]
+    every = fit_search(manifest, seed=1, patience=0, **{**FAST, "trials": trials})
+    assert len(every["rows"]) == trials and every["stopped"] is None and every["patience"] == 0
+    said: list[str] = []
+    early = fit_search(manifest, seed=1, patience=patience, progress=said.append, **{**FAST, "trials": trials})
+    n = len(early["rows"])
+    assert n < trials and early["stopped"]["trials"] == n and early["patience"] == patience
+    # The stop cuts the search short and changes none of its trials (the seed's, as without it).
+    assert _settings(early["rows"]) == _settings(every["rows"][:n])
+
+    def still(k):
+        """The best of the first k trials is within its fold spread of the best before the last ``patience``."""
+        best = max((r for r in every["rows"][:k] if r["state"] == "complete"),
+                   key=lambda r: (r["score"], r["window_mean"], r["recording_mean"], -r["trial"]))
+        before = [r["score"] for r in every["rows"][:k - patience] if r["state"] == "complete"]
+        return bool(before) and best["score"] - max(before) <= best["window_sd"]
+
+    ends = list(range(batch, trials, batch))                 # the rounds' ends, where the search may stop
+    assert n == next(k for k in ends if k > patience and still(k))
+    assert any(k > patience and not still(k) for k in ends if k < n)     # one round's end did not stop it
+    text = (f"stopped after {n} trials: the best has not moved by more than the fold spread "
+            f"({early['best']['window_sd']:.3f}) for {patience} trials")
+    assert f"fit: {text}; {trials - n} trials not run" in said
+    assert f"{text} (--patience {patience}; {trials - n} of the {trials} trials not run)" in format_search(early)
+    assert "stopped after" not in format_search(every)
+
+
+def test_the_report_says_whether_the_best_beats_the_papers_banks_by_more_than_a_folds_spread(manifest):
+    def result(best, sd, whisker, cochlea, bank_sd=0.01):
+        paper = {name: {"window_mean": mean, "window_sd": bank_sd} for name, mean in (("whisker", whisker),
+                                                                                        ("cochlea", cochlea))}
+        return {"target": "window", "best": {"window_mean": best, "window_sd": sd}, "paper": paper}
+
+    clear = paper_verdict(result(0.80, 0.02, 0.50, 0.70))
+    assert clear["beats"] and clear["cochlea"] == {"ahead": pytest.approx(0.10), "spread": 0.02, "beats": True}
+    assert clear["text"].startswith("The best beats the paper's banks by more than a fold's spread (window "
+                                    "accuracy): the whisker bank by +0.300, more than a fold's spread (0.020)")
+    # Ahead of the cochlea by less than the larger of the two spreads (its own here): not a clear win.
+    close = paper_verdict(result(0.80, 0.02, 0.50, 0.75, bank_sd=0.06))
+    assert not close["beats"] and close["whisker"]["beats"] and not close["cochlea"]["beats"]
+    assert close["text"].startswith("The best does NOT beat the paper's banks by more than a fold's spread")
+    assert "the cochlea bank by +0.050, not more than a fold's spread (0.060)" in close["text"]
+    # Behind a paper bank: said the same way, with the sign.
+    assert "the cochlea bank by -0.050" in paper_verdict(result(0.70, 0.02, 0.50, 0.75))["text"]
+    # A search's report says it.
+    run = fit_search(manifest, seed=0, **FAST)
+    assert paper_verdict(run)["text"] in format_search(run)
 
 
 def test_a_time_budget_stops_new_rounds_after_the_first(manifest):
@@ -222,6 +304,27 @@ def test_fit_command_prints_progress_the_curve_and_writes_its_files(manifest, tm
     assert len(list(csv.DictReader(open(out / "fit.csv")))) == 4
     # Issue 36 item 6: the feature cache's folder went with its files (an empty fit/cache was left behind).
     assert (out / "bank.json").is_file() and not (out / "cache").exists()
+
+
+def test_fit_command_stops_early_as_patience_says_and_patience_0_runs_every_trial(manifest, tmp_path, capsys):
+    from supramodal.node.cli import fit as fit_command
+
+    assert fit_command.DEFAULT_PATIENCE == DEFAULT_PATIENCE       # the parser's default is the search's
+    common = ["--cv", "3", "--quick", "--trials", "12", "--batch", "3", "--epochs", "8"]
+    assert main(["fit", str(manifest), "--out", str(tmp_path / "a"), *common, "--patience", "3"]) == 0
+    captured = capsys.readouterr()
+    stopped = [line for line in captured.err.splitlines() if "fit: stopped after " in line]
+    assert len(stopped) == 1 and stopped[0].endswith("for 3 trials; 6 trials not run"), captured.err
+    n = len(list(csv.DictReader(open(tmp_path / "a" / "fit.csv"))))
+    assert n == 6 and f"fit: trial {n} of 12;" in captured.err
+    assert "(--patience 3; 6 of the 12 trials not run)" in captured.out
+    assert "the paper's banks by more than a fold's spread" in captured.out
+    assert main(["fit", str(manifest), "--out", str(tmp_path / "b"), *common, "--patience", "0"]) == 0
+    assert "stopped after" not in capsys.readouterr().err
+    assert len(list(csv.DictReader(open(tmp_path / "b" / "fit.csv")))) == 12
+    with pytest.raises(SystemExit) as refused:
+        main(["fit", str(manifest), "--out", str(tmp_path / "c"), "--patience", "-1"])
+    assert refused.value.code == 2 and "argument --patience: expected a whole number >= 0" in capsys.readouterr().err
 
 
 def test_fit_command_without_the_extra_says_how_to_install_it(manifest, tmp_path, capsys, monkeypatch):
@@ -393,8 +496,9 @@ def test_an_interrupted_fit_on_local_workers_ends_in_one_line(sensor, tmp_path, 
     import time
 
     pytest.importorskip("distributed")
+    # No early stop (--patience 0): the fit is still at work when the signal comes, however fast its trials.
     fit = subprocess.Popen([sys.executable, "-m", "supramodal", "fit", str(sensor / "m.csv"), "--out",
-                            str(tmp_path / "out"), "--quick", "--jobs", "2", "--trials", "400"],
+                            str(tmp_path / "out"), "--quick", "--jobs", "2", "--trials", "400", "--patience", "0"],
                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:

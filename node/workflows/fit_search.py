@@ -15,14 +15,18 @@ of the bank's lowest channel, so each trial's band starts no lower than ``1 / wi
 
 Trials run in rounds of ``batch`` (asked from Optuna together, scored fold by fold, told in
 order): the result depends on the seed and the batch alone, not on how many processes or which
-cluster scored the folds. ``jobs > 1`` starts a local Dask cluster of that many processes,
+cluster scored the folds. The search stops early on a plateau (:func:`plateau`): when the best
+trial's score has not moved by more than its own fold spread (the sd of the target over its folds)
+in the last ``patience`` trials, more trials would only pick among settings that the folds cannot
+tell apart, and it says so. ``jobs > 1`` starts a local Dask cluster of that many processes,
 ``cluster`` connects to a running Dask scheduler; the folds of a round are mapped over its
 workers by Dask (:class:`Runner`). Filterbank outputs are computed once per bank and recording
 (:class:`~node.fit_cache.FeatureCache`).
 
 The report: every trial; the best; the best per window length (the accuracy-vs-window curve) with
 the paper's two banks scored beside each point at the same window, features, hidden units and
-epochs (so also beside the best). Trials are scored on uncalibrated networks (their winner per
+epochs (so also beside the best), and whether the best beats them by more than a fold's spread
+(:func:`paper_verdict`). Trials are scored on uncalibrated networks (their winner per
 window is the calibrated model's whenever the calibration keeps the order of the outputs; a model
 ``supramodal train`` makes is calibrated on top); the paper's banks are scored the same way.
 """
@@ -66,8 +70,8 @@ from supramodal.replay.session import session_paths
 from supramodal.replay.wavio import wav_info
 from supramodal.training import grouped_folds
 
-__all__ = ["FitError", "Runner", "Setting", "Space", "fit_search", "format_search", "install_hint", "search_space",
-           "write_search"]
+__all__ = ["DEFAULT_PATIENCE", "FitError", "Runner", "Setting", "Space", "fit_search", "format_search",
+           "install_hint", "paper_verdict", "plateau", "search_space", "write_search"]
 
 #: The values each parameter may take, (full, quick). Fractions of the Nyquist frequency for the
 #: band edges; seconds for the window.
@@ -88,6 +92,10 @@ DEFAULT_TRIALS = (60, 16)
 TRAIN_WINDOWS = (None, 4000)
 #: Trials asked from Optuna at once (the result depends on it, not on the number of processes).
 DEFAULT_BATCH = 4
+#: Trials in which the best must move by more than its fold spread, or the search stops (0: never stops
+#: early). Two rounds of :data:`DEFAULT_BATCH`: long enough for the sampler to try a round away from
+#: the best after a round near it.
+DEFAULT_PATIENCE = 8
 #: A contact, for ``target = "contact"``: seconds of consecutive windows pooled.
 DEFAULT_CONTACT = 0.5
 
@@ -540,7 +548,8 @@ def fit_search(manifest, k: int = 5, seed: int = 0, quick: bool = False, trials:
                timeout: float | None = None, batch: int = DEFAULT_BATCH, max_window: float | None = None,
                max_channels: int | None = None, target: str = "window", contact: float = DEFAULT_CONTACT,
                max_epochs: int | None = None, jobs: int = 1, cluster: str | None = None, mapping="auto",
-               cache_dir=None, cache_memory: int = DEFAULT_MEMORY_BYTES, progress=None) -> dict:
+               cache_dir=None, cache_memory: int = DEFAULT_MEMORY_BYTES, patience: int = DEFAULT_PATIENCE,
+               progress=None) -> dict:
     """Search settings (module docstring) on the manifest's recordings.
 
     Parameters
@@ -564,6 +573,9 @@ def fit_search(manifest, k: int = 5, seed: int = 0, quick: bool = False, trials:
         Where feature windows that leave memory are kept (shared by local workers).
     cache_memory : int
         Bytes of feature windows each process keeps in memory.
+    patience : int
+        Trials: the search stops after a round at whose end the best has not moved by more than its
+        fold spread in the last ``patience`` trials (:func:`plateau`); 0: it runs every trial.
     progress : callable(str), optional
 
     Returns
@@ -574,7 +586,8 @@ def fit_search(manifest, k: int = 5, seed: int = 0, quick: bool = False, trials:
         ``curve`` (per window: ``fitted``, the best trial there, and ``whisker``, ``cochlea``, the
         paper's banks at that window with its features and network), ``paper`` (the paper's
         banks beside the best), ``filterbank_runs`` (recordings run through a filterbank, all
-        processes), ``seconds``, ``where``.
+        processes), ``seconds``, ``where``, ``trials`` (asked), ``patience``, ``stopped`` (None, or what
+        :func:`plateau` said when it ended the search before its last trial).
 
     Raises
     ------
@@ -598,6 +611,8 @@ def fit_search(manifest, k: int = 5, seed: int = 0, quick: bool = False, trials:
     trials = DEFAULT_TRIALS[1 if quick else 0] if trials is None else int(trials)
     if trials < 1 or batch < 1:
         raise FitError(f"the fit needs at least one trial and a batch of at least one, got {trials} and {batch}")
+    if not integer(0, None)(patience):
+        raise FitError(f"--patience must be a whole number of trials, 0 or more (0: no early stop), got {patience!r}")
     optuna.logging.set_verbosity(optuna.logging.WARNING)
     study = optuna.create_study(direction="maximize", sampler=optuna.samplers.TPESampler(seed=seed),
                                 pruner=optuna.pruners.MedianPruner(n_startup_trials=max(batch, len(space.windows)),
@@ -608,6 +623,7 @@ def fit_search(manifest, k: int = 5, seed: int = 0, quick: bool = False, trials:
             "cache_dir": None if cache_dir is None else str(cache_dir), "cache_memory": int(cache_memory),
             "k": k, "seed": seed, "contact": space.contact, "train_windows": space.train_windows}
     rows: list[dict] = []
+    stopped: dict | None = None
     runs = 0
     t0 = time.perf_counter()
     warmed: set[str] = set()
@@ -634,7 +650,8 @@ def fit_search(manifest, k: int = 5, seed: int = 0, quick: bool = False, trials:
         say(f"fit: {trials} trials of grouped {k}-fold cross-validation in rounds of {batch}, on {where}; "
             f"maximising {target} accuracy; windows {', '.join(f'{w:g}' for w in space.windows)} s")
         # A time budget stops new rounds, never the first: a fit always has a result.
-        while len(rows) < trials and (not rows or timeout is None or time.perf_counter() - t0 < timeout):
+        while (len(rows) < trials and stopped is None
+               and (not rows or timeout is None or time.perf_counter() - t0 < timeout)):
             asked = [study.ask() for _ in range(min(batch, trials - len(rows)))]
             live: list[tuple] = []
             for trial in asked:
@@ -680,6 +697,11 @@ def fit_search(manifest, k: int = 5, seed: int = 0, quick: bool = False, trials:
                 + f"; {elapsed:.0f} s" + ("" if timeout is None else f" of the {timeout:g} s budget")
                 + f", about {left:.0f} s left"
                 + ("" if (cpu := cpu_per_trial(rows)) is None else f"; {cpu:.1f} CPU s per complete trial"))
+            # Checked after whole rounds, on the trials' scores alone: the same seed and batch stop at the
+            # same trial wherever the folds ran. A plateau at the last trial is no early stop.
+            stopped = plateau(rows, patience, target) if len(rows) < trials else None
+            if stopped is not None:
+                say(f"fit: {stopped['text']}; {trials - len(rows)} trials not run")
         done = [r for r in rows if r["state"] == "complete"]
         if not done:
             raise FitError("no trial completed (every one pruned or with an empty band); run more trials")
@@ -713,7 +735,8 @@ def fit_search(manifest, k: int = 5, seed: int = 0, quick: bool = False, trials:
     paper = next(p for p in curve if p["window"] == best["window"])
     return {"fs": space.fs, "k": k, "seed": seed, "batch": batch, "target": target, "space": asdict(space),
             "rows": rows, "best": best, "curve": curve, "paper": {n: paper[n] for n in ("whisker", "cochlea")},
-            "filterbank_runs": runs, "recordings": len(recs), "seconds": time.perf_counter() - t0, "where": where}
+            "filterbank_runs": runs, "recordings": len(recs), "seconds": time.perf_counter() - t0, "where": where,
+            "trials": trials, "patience": patience, "stopped": stopped}
 
 
 def _params(p: dict) -> dict:
@@ -724,8 +747,76 @@ def _params(p: dict) -> dict:
 
 def _row(number: int, state: str, s: Setting, folds: list[dict], target: str) -> dict:
     summary = _summary(folds)
+    # CPU to 0.1 ms: a pruned trial of one fold of a few epochs takes under 5 ms, which 2 decimals made 0.
     return {"trial": number, "state": state, "folds": len(folds), **asdict(s), **summary,
-            "score": summary[f"{target}_mean"], "cpu_seconds": round(sum(f["cpu_seconds"] for f in folds), 2)}
+            "score": summary[f"{target}_mean"], "cpu_seconds": round(sum(f["cpu_seconds"] for f in folds), 4)}
+
+
+def plateau(rows: list[dict], patience: int, target: str) -> dict | None:
+    """Whether the search has reached a plateau: the best complete trial's score is no more than its
+    fold spread above the best of the trials before the last ``patience``.
+
+    Parameters
+    ----------
+    rows : list of dict
+        Every trial so far, in trial order (:func:`fit_search`'s rows).
+    patience : int
+        Trials; 0, or no more trials than ``patience``: never a plateau.
+    target : {"window", "recording", "contact"}
+        The score's accuracy, whose sd over the best trial's folds is the spread.
+
+    Returns
+    -------
+    dict or None
+        None while the best still moves (or nothing was complete ``patience`` trials ago); else
+        ``trials`` (so far), ``patience``, ``spread`` and ``moved`` (accuracy, fractions) and ``text``,
+        the sentence that says it.
+    """
+    if patience <= 0 or len(rows) <= patience:
+        return None
+    before = [r for r in rows[: len(rows) - patience] if r["state"] == "complete"]
+    if not before:
+        return None
+    best = max((r for r in rows if r["state"] == "complete"), key=_rank)
+    moved = best["score"] - max(before, key=_rank)["score"]
+    spread = best[f"{target}_sd"]
+    if moved > spread:
+        return None
+    return {"trials": len(rows), "patience": patience, "spread": spread, "moved": moved,
+            "text": f"stopped after {len(rows)} trials: the best has not moved by more than the fold spread "
+                    f"({spread:.3f}) for {patience} trials"}
+
+
+def paper_verdict(result: dict) -> dict:
+    """Whether the search's best beats each of the paper's banks (at its window, with its features and
+    network) by more than a fold's spread: the larger of the two sds of the target over the folds.
+
+    Parameters
+    ----------
+    result : dict
+        What :func:`fit_search` returns.
+
+    Returns
+    -------
+    dict
+        ``beats`` (True when the best beats both banks by more than the spread); per bank (``whisker``,
+        ``cochlea``) ``ahead`` (the best's mean minus the bank's, a fraction), ``spread`` and ``beats``;
+        and ``text``, the sentences that say it.
+    """
+    t, b = result["target"], result["best"]
+    banks = {}
+    for name, p in result["paper"].items():
+        ahead = b[f"{t}_mean"] - p[f"{t}_mean"]
+        spread = max(b[f"{t}_sd"], p[f"{t}_sd"])
+        banks[name] = {"ahead": ahead, "spread": spread, "beats": ahead > spread}
+    beats = all(v["beats"] for v in banks.values())
+    said = "; ".join(f"the {name} bank by {v['ahead']:+.3f}, {'more' if v['beats'] else 'not more'} than a fold's "
+                     f"spread ({v['spread']:.3f})" for name, v in banks.items())
+    text = (f"The best {'beats' if beats else 'does NOT beat'} the paper's banks by more than a fold's spread "
+            f"({t} accuracy): {said}."
+            + ("" if beats else " On these folds the search found nothing that a paper bank does not match "
+               "within the folds' spread."))
+    return {**banks, "beats": beats, "text": text}
 
 
 def cpu_per_trial(rows: list[dict]) -> float | None:
@@ -758,6 +849,9 @@ def format_search(result: dict) -> str:
              f"trial, median); {result['filterbank_runs']} filterbank runs for {result['recordings']} recordings"
              + ("" if result["space"]["train_windows"] is None else
                 f"; each fold's network trained on at most {result['space']['train_windows']} windows (--quick)"),
+             *([] if not result.get("stopped") else
+               [f"{result['stopped']['text']} (--patience {result['stopped']['patience']}; "
+                f"{result['trials'] - len(rows)} of the {result['trials']} trials not run)"]),
              "",
              f"best (trial {b['trial']}): {_describe(b)}: windows {b['window_mean']:.3f} +- {b['window_sd']:.3f}, "
              f"recordings {b['recording_mean']:.3f} +- {b['recording_sd']:.3f}, contacts {b['contact_mean']:.3f}"]
@@ -767,6 +861,7 @@ def format_search(result: dict) -> str:
                      f"contacts {p['contact_mean']:.3f}"
                      + (f"; {p['beyond_band']} of its {p['channels']} channels lie above the recordings' band"
                         if p["beyond_band"] else ""))
+    lines.append(paper_verdict(result)["text"])
     lines += ["", f"best {t} accuracy per window length (each window's best trial; the paper's banks with its "
                   "features and network)",
               f"{'window':>8}  {'fitted':>14}  {'whisker':>14}  {'cochlea':>14}  setting"]
