@@ -49,14 +49,16 @@ def _load() -> str:
     return f"load average {one:.2f}, {five:.2f}, {fifteen:.2f} on {os.cpu_count()} cores"
 
 
-def speed_manifest(folder: Path, recordings: int = 600, labels: int = 16, seconds: float = 5.0) -> Path:
-    """``recordings`` WAVs of ``seconds`` at :data:`SPEED_RATE`, dealt over ``labels`` textures."""
+def speed_manifest(folder: Path, recordings: int = 600, labels: int = 16, seconds: float = 5.0,
+                   rate: int = SPEED_RATE) -> Path:
+    """``recordings`` WAVs of ``seconds`` at ``rate`` Hz (default :data:`SPEED_RATE`), dealt over ``labels``
+    textures; each recording's noise seeded by its index, so the set is the same on every run."""
     rows = ["path,label"]
     for i in range(recordings):
         t = i % labels
         peaks = tuple(f * (1 + 0.05 * t) for f in SPEED_BASE)
-        x = 0.2 * synthesize(peaks, SPEED_RATE, seconds, width=WIDTH, seed=10_000 + i)
-        write_wav(folder / f"t{t:02d}_{i:04d}.wav", x[:, None], SPEED_RATE)
+        x = 0.2 * synthesize(peaks, rate, seconds, width=WIDTH, seed=10_000 + i)
+        write_wav(folder / f"t{t:02d}_{i:04d}.wav", x[:, None], rate)
         rows.append(f"t{t:02d}_{i:04d}.wav,t{t:02d}")
     (folder / "manifest.csv").write_text("\n".join(rows) + "\n")
     return folder / "manifest.csv"

@@ -338,12 +338,14 @@ def warm_bank(job: dict) -> dict:
     Returns
     -------
     dict
-        ``filterbank_runs``: the recordings filtered (0 when the part was on disk).
+        ``filterbank_runs``: the recordings filtered (0 when the part was on disk);
+        ``features_cpu_seconds``: CPU seconds of the thread that ran it.
     """
+    cpu0 = time.thread_time()
     recs, cache = _cache(job)
     before = cache.filterbank_runs
     cache.fill(Bank.from_dict(job["bank"]), job["part"])
-    return {"filterbank_runs": cache.filterbank_runs - before}
+    return {"filterbank_runs": cache.filterbank_runs - before, "features_cpu_seconds": time.thread_time() - cpu0}
 
 
 def score_fold(job: dict) -> dict:
@@ -363,7 +365,9 @@ def score_fold(job: dict) -> dict:
     dict
         ``window``, ``recording`` and ``contact`` accuracy of the fold, ``filterbank_runs`` (the
         recordings this task ran through a filterbank: 0 when the bank was cached), ``cpu_seconds``
-        (of the thread that ran it: BLAS is held to that thread).
+        (of the thread that ran it: BLAS is held to that thread) and ``features_cpu_seconds``, the part
+        of them spent before the network (the features: filtered, or read from the cache and summed
+        into windows).
     """
     cpu0 = time.thread_time()
     try:
@@ -376,6 +380,7 @@ def score_fold(job: dict) -> dict:
     features = _features(job["features"])
     with threadpool_limits(1):                          # one core per task: processes scale, threads fight
         values = cache.features(bank, job["window"], features)
+        features_cpu = time.thread_time() - cpu0
         classes = sorted({r.label for r in recs})
         fold = grouped_folds([r.where for r in recs], [r.label for r in recs], job["k"], job["seed"])
         train = [i for i in range(len(recs)) if fold[i] != job["fold"]]
@@ -395,7 +400,8 @@ def score_fold(job: dict) -> dict:
     contact = pooled_accuracy(lps, truths, n)[0]
     return {"window": float(window_right.mean()), "recording": recording,
             "contact": recording if contact is None else float(contact),
-            "filterbank_runs": cache.filterbank_runs - before, "cpu_seconds": time.thread_time() - cpu0}
+            "filterbank_runs": cache.filterbank_runs - before, "cpu_seconds": time.thread_time() - cpu0,
+            "features_cpu_seconds": features_cpu}
 
 
 # -- where the folds run -------------------------------------------------------------------------
@@ -587,7 +593,9 @@ def fit_search(manifest, k: int = 5, seed: int = 0, quick: bool = False, trials:
         paper's banks at that window with its features and network), ``paper`` (the paper's
         banks beside the best), ``filterbank_runs`` (recordings run through a filterbank, all
         processes), ``seconds``, ``where``, ``trials`` (asked), ``patience``, ``stopped`` (None, or what
-        :func:`plateau` said when it ended the search before its last trial).
+        :func:`plateau` said when it ended the search before its last trial), ``features_cpu_seconds`` and
+        ``networks_cpu_seconds`` (CPU seconds of every task, all processes: the features, filtered or read
+        and summed, and the networks, trained and scored).
 
     Raises
     ------
@@ -624,7 +632,17 @@ def fit_search(manifest, k: int = 5, seed: int = 0, quick: bool = False, trials:
             "k": k, "seed": seed, "contact": space.contact, "train_windows": space.train_windows}
     rows: list[dict] = []
     stopped: dict | None = None
-    runs = 0
+    # What the tasks did, all processes: recordings filtered, and CPU seconds of features and of networks
+    # (where a fit's time goes: benchmarks/fit_speed.py prints it).
+    spent = {"filterbank_runs": 0, "features": 0.0, "networks": 0.0}
+
+    def tally(results: list[dict]) -> list[dict]:
+        for r in results:
+            spent["filterbank_runs"] += r["filterbank_runs"]
+            spent["features"] += r["features_cpu_seconds"]
+            spent["networks"] += r.get("cpu_seconds", r["features_cpu_seconds"]) - r["features_cpu_seconds"]
+        return results
+
     t0 = time.perf_counter()
     warmed: set[str] = set()
 
@@ -661,8 +679,7 @@ def fit_search(manifest, k: int = 5, seed: int = 0, quick: bool = False, trials:
                     rows.append({"trial": trial.number, "state": "empty band", "folds": 0, **_params(trial.params)})
                     continue
                 live.append((trial, setting, []))
-            runs += sum(r["filterbank_runs"] for r in runner.map(warm([s.bank() for _, s, _ in live], runner),
-                                                                 warm_bank))
+            tally(runner.map(warm([s.bank() for _, s, _ in live], runner), warm_bank))
             for f in range(k):
                 if not live:
                     break
@@ -670,8 +687,7 @@ def fit_search(manifest, k: int = 5, seed: int = 0, quick: bool = False, trials:
                                        "features": s.features, "hidden": s.hidden, "epochs": s.epochs, "fold": f}
                                       for _, s, _ in live])
                 still = []
-                for (trial, setting, folds), r in zip(live, results):
-                    runs += r["filterbank_runs"]
+                for (trial, setting, folds), r in zip(live, tally(results)):
                     folds.append(r)
                     trial.report(float(np.mean([x[target] for x in folds])), f)
                     if f < k - 1 and trial.should_prune():
@@ -719,9 +735,8 @@ def fit_search(manifest, k: int = 5, seed: int = 0, quick: bool = False, trials:
                                 "hidden": s["hidden"], "epochs": s["epochs"], "fold": f}
                                for f in range(k)]
         say(f"fit: the paper's whisker and cochlea banks at {len(curve)} window(s), beside the best of each")
-        runs += sum(r["filterbank_runs"] for r in runner.wait(paper_warm))
-        results = runner.map(paper_jobs)
-        runs += sum(r["filterbank_runs"] for r in results)
+        tally(runner.wait(paper_warm))
+        results = tally(runner.map(paper_jobs))
         for i, point in enumerate(curve):
             for j, name in enumerate(("whisker", "cochlea")):
                 folds = results[(2 * i + j) * k: (2 * i + j + 1) * k]
@@ -735,8 +750,9 @@ def fit_search(manifest, k: int = 5, seed: int = 0, quick: bool = False, trials:
     paper = next(p for p in curve if p["window"] == best["window"])
     return {"fs": space.fs, "k": k, "seed": seed, "batch": batch, "target": target, "space": asdict(space),
             "rows": rows, "best": best, "curve": curve, "paper": {n: paper[n] for n in ("whisker", "cochlea")},
-            "filterbank_runs": runs, "recordings": len(recs), "seconds": time.perf_counter() - t0, "where": where,
-            "trials": trials, "patience": patience, "stopped": stopped}
+            "filterbank_runs": spent["filterbank_runs"], "recordings": len(recs), "seconds": time.perf_counter() - t0,
+            "where": where, "trials": trials, "patience": patience, "stopped": stopped,
+            "features_cpu_seconds": spent["features"], "networks_cpu_seconds": spent["networks"]}
 
 
 def _params(p: dict) -> dict:
