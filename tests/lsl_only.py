@@ -1,5 +1,5 @@
 """What every test module that opens LSL streams starts with: a skip without the ``lsl`` extra, and
-a fixture that refuses to run a test that could send packets beyond this machine (conftest.py
+a fixture that refuses to run a test that could send packets beyond this machine (tests/harness/environment.py
 points ``LSLAPICFG`` at a loopback config; this checks it again before each test).
 
     from lsl_only import loopback_only, require_lsl  # noqa: F401  (the fixture applies itself)

@@ -1,5 +1,5 @@
 """What every test module that talks ROS 2 starts with: a skip without rclpy, a fixture that refuses to
-run a test whose DDS traffic could leave this machine or reach a robot's domain (conftest.py sets
+run a test whose DDS traffic could leave this machine or reach a robot's domain (tests/harness/environment.py sets
 ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST`` and a ``ROS_DOMAIN_ID`` of the run's own; this checks them
 again before each test), and a plain rclpy subscriber, as a user would write one.
 
@@ -33,9 +33,9 @@ def require_ros2() -> None:
 def localhost_only():
     """A test that could discover or be discovered beyond this machine, or on a robot's domain, does not run;
     and none starts on a Fast DDS segment that a process killed earlier in the run left empty."""
-    assert os.environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE") == "LOCALHOST", "conftest.py keeps ROS 2 on localhost"
+    assert os.environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE") == "LOCALHOST", "tests/harness/environment.py keeps ROS 2 on localhost"
     assert os.environ.get("ROS_DOMAIN_ID") == os.environ.get("SUPRAMODAL_TEST_ROS_DOMAIN"), \
-        "conftest.py sets a ROS domain of the run's own"
+        "tests/harness/environment.py sets a ROS domain of the run's own"
     assert not os.environ.get("ROS_STATIC_PEERS")
     remove_stale_segments()
 

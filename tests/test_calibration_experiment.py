@@ -40,7 +40,7 @@ def numbers(x):
 @pytest.fixture(scope="module")
 def cli_run(tmp_path_factory, once):
     """The experiment in quick mode through the command line: (result, stdout, stderr, out folder);
-    run once per test run, whichever xdist worker gets here first (conftest.run_once)."""
+    run once per test run, whichever xdist worker gets here first (tests/harness/run_once.py)."""
     from supramodal.node.cli import main
 
     def run():

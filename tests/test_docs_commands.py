@@ -23,7 +23,7 @@ passed or not, with every process that left the group (found by a token in its e
 JACK server started with ``&`` never outlives it. Each block has
 :data:`BLOCK_SECONDS` (:data:`SLOW_BLOCK_SECONDS` when slow); a block that fails or runs over fails the test
 naming the document, the block's line and the tail of its output. The folder's shell sees the variables of the
-test process (so the run's model cache, ``SUPRAMODAL_CACHE``, tests/conftest.py), ``REPO`` (the checkout, as
+test process (so the run's model cache, ``SUPRAMODAL_CACHE``, tests/harness/shared_trainings.py), ``REPO`` (the checkout, as
 own-sensor.md asks), the test's Python first on ``PATH`` (its ``supramodal``, ``python`` and ``python3``) and a
 JACK server name of its own (``JACK_DEFAULT_SERVER``: a doc's ``jackd`` never meets another test's server).
 """
@@ -353,7 +353,7 @@ def _check_walkthrough_figures(doc: Path, outputs: list[tuple[int, Path]]) -> No
 
 
 #: Each document's pytest marks, by what its blocks do (docs/development.md; the times on 2 cores at a load of 2 to
-#: 4): ``slow`` leaves it out of the quick command; ``hardware`` puts it in tests/conftest.py's paced group of the
+#: 4): ``slow`` leaves it out of the quick command; ``hardware`` puts it in tests/harness/pacing.py's paced group of the
 #: pty boards and JACK-paced microphones, ``paced`` in the other paced group (it waits on a clock, at normal
 #: priority, and holds no computing worker while it waits).
 _MARKS = {
@@ -371,11 +371,11 @@ def test_a_document_s_commands_run_as_written(doc, tmp_path):
     """Every sh block of ``doc`` not marked skip (nor slow, unless SUPRAMODAL_DOCS_SLOW=1) runs as written and
     exits 0, in order, in one fresh folder."""
     if doc.name == "ros2.md":
-        # As before every ROS 2 test (tests/ros2_only.py): conftest.py keeps DDS on this machine, in the run's own
+        # As before every ROS 2 test (tests/ros2_only.py): tests/harness/environment.py keeps DDS on this machine, in the run's own
         # domain (inherited by the blocks); a segment a killed process left empty would hang the node's start.
         from ros2_only import remove_stale_segments
 
-        assert os.environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE") == "LOCALHOST", "conftest.py keeps ROS 2 on localhost"
+        assert os.environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE") == "LOCALHOST", "tests/harness/environment.py keeps ROS 2 on localhost"
         assert os.environ.get("ROS_DOMAIN_ID") == os.environ.get("SUPRAMODAL_TEST_ROS_DOMAIN")
         remove_stale_segments()
     run_document(doc, tmp_path)

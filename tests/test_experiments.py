@@ -37,7 +37,7 @@ def is_rate(v) -> bool:
 @pytest.fixture(scope="module")
 def quick(once):
     """Every figure in quick mode, in one pool of two workers; run once per test run, whichever xdist
-    worker gets here first (conftest.run_once)."""
+    worker gets here first (tests/harness/run_once.py)."""
     return once("test_experiments.quick all jobs=2 seed=0", lambda: run_plans(plans("all", quick=True), jobs=2, seed=0))
 
 

@@ -2,7 +2,7 @@
 process sends, as the same signal fed locally; survives its sender being killed and restarted;
 names what it found when the stream it asks for is not there.
 
-Traffic stays on this machine: conftest.py points ``LSLAPICFG`` at a loopback config before liblsl
+Traffic stays on this machine: tests/harness/environment.py points ``LSLAPICFG`` at a loopback config before liblsl
 loads, and every test checks it first. The sender always runs in a child process."""
 
 import time

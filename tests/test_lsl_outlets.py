@@ -4,7 +4,7 @@ and SIGTERM end; what each outlet declares (issue 26, items 7 and 11). By defaul
 its first windows for its first consumer, so that one started before the node gets window 0 however
 soon the node starts; liblsl's INFO lines stay out of the node's output (issue 36, items 7 and 6).
 
-Traffic stays on this machine (conftest.py's loopback ``LSLAPICFG``, checked by every test)."""
+Traffic stays on this machine (tests/harness/environment.py's loopback ``LSLAPICFG``, checked by every test)."""
 
 import json
 import os
@@ -281,7 +281,7 @@ def test_a_consumer_started_before_a_node_that_starts_at_once_receives_window_0_
 # -- issue 36, item 6: liblsl's log ------------------------------------------------------------------------
 
 def _config_without_log(folder) -> str:
-    """The suite's loopback LSL config (conftest.py) without its ``[log]`` section: as a user's own."""
+    """The suite's loopback LSL config (tests/harness/environment.py) without its ``[log]`` section: as a user's own."""
     text = check_loopback_config().read_text()
     path = folder / "lsl_api.cfg"
     path.write_text(text[:text.index("[log]")])

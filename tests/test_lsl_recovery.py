@@ -2,7 +2,7 @@
 sender with no source id killed and restarted; a sender that stamps at push time, holds 3 s and
 flushes its backlog; two senders of one name.
 
-Traffic stays on this machine (conftest.py's loopback ``LSLAPICFG``, checked by every test). The
+Traffic stays on this machine (tests/harness/environment.py's loopback ``LSLAPICFG``, checked by every test). The
 senders run in child processes (tests/lsl_senders.py)."""
 
 import json

@@ -3,7 +3,7 @@ fixed stream indices whatever the blocks, never sending a sample the node did no
 chunk stamped with its last sample's time; a relay node in one process classified by a node in
 another; the scene's checks.
 
-Traffic stays on this machine (conftest.py's loopback ``LSLAPICFG``, checked by every test)."""
+Traffic stays on this machine (tests/harness/environment.py's loopback ``LSLAPICFG``, checked by every test)."""
 
 import collections
 import json

@@ -243,7 +243,7 @@ def test_nodes_started_together_train_the_model_once(tmp_path):
 
 def test_the_cache_is_off_with_its_variable_and_never_in_the_home_under_the_suite(tmp_path, monkeypatch):
     assert Path(os.environ[CACHE_ENV]).resolve() != (Path.home() / ".cache" / "supramodal").resolve()
-    assert cache_folder() == Path(os.environ[CACHE_ENV])             # conftest: the run's own folder
+    assert cache_folder() == Path(os.environ[CACHE_ENV])             # the harness: the run's own folder
     monkeypatch.setenv(CACHE_ENV, "off")
     assert cache_folder() is None
     ts, p = _short_set(), _pipeline()

@@ -4,7 +4,7 @@ the node the same windows as a local replay of the same samples; killed and star
 says so and fills the gap exactly; stalled for 3 s and then flushing, nothing is filled. Bad input:
 a topic of another type, a message of another layout, non-finite samples, a topic that never comes.
 
-DDS stays on this machine, in a domain of the run's own (conftest.py; checked by ``localhost_only``);
+DDS stays on this machine, in a domain of the run's own (tests/harness/environment.py; checked by ``localhost_only``);
 every test uses topics of its own."""
 
 from __future__ import annotations

@@ -3,7 +3,7 @@ gets every window of every stream and of the fusion, the decisions equal the jso
 the windows' ends on the ROS clock; driver events on ``~/events`` and ``/diagnostics`` within a second;
 remapping by ``--ros-args``; a stopped subscriber never holds the node up.
 
-DDS stays on this machine, in a domain of the run's own (conftest.py; checked by ``localhost_only``);
+DDS stays on this machine, in a domain of the run's own (tests/harness/environment.py; checked by ``localhost_only``);
 every test uses a namespace of its own."""
 
 from __future__ import annotations
