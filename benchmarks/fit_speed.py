@@ -117,7 +117,7 @@ def run(recordings: int, seconds: float, jobs: int, trials: int | None, patience
             "trials_asked": result["trials"], "patience": result["patience"],
             "trials": len(rows), **states, "stopped_early": stopped is not None,
             "stopped": None if stopped is None else stopped["text"],
-            "wall_s": round(wall, 1), "cpu_s": round(cpu, 1), "synth_s": round(synth, 1),
+            "wall_s": round(wall, 3), "cpu_s": round(cpu, 3), "synth_s": round(synth, 1),
             "features_cpu_s": round(result["features_cpu_seconds"], 1),
             "networks_cpu_s": round(result["networks_cpu_seconds"], 1),
             "trials_per_cpu_minute": round(len(rows) / (cpu / 60), 2) if cpu > 0 else None,

@@ -68,7 +68,7 @@ def run(seconds: float, rounds: int, say) -> dict:
         base = statistics.median(times["filterbank"])
         for name, got in times.items():
             cpu = statistics.median(got)
-            rows.append({"bank": kind, "block": block, "channels": bank.channels, "what": name, "cpu_s": round(cpu, 4),
+            rows.append({"bank": kind, "block": block, "channels": bank.channels, "what": name, "cpu_s": round(cpu, 6),
                          "ratio": round(cpu / base, 2), "real_time_factor": round(cpu / (n / bank.fs), 4)})
     return {"seconds": seconds, "rounds": rounds, "rows": rows, "load_before": os.getloadavg()[0],
             "date": time.strftime("%Y-%m-%d")}

@@ -18,7 +18,7 @@ from supramodal.node.cli.signals import interrupt_until_running
 
 #: ``--patience``'s default, trials: the search's own (``fit_search.DEFAULT_PATIENCE``), written here so that the
 #: parser does not import the search and numpy with it (tests/test_fit_search.py holds the two equal).
-DEFAULT_PATIENCE = 8
+DEFAULT_PATIENCE = 0
 
 #: What ``supramodal fit`` does, in one line: its ``--help`` says it, and the README's command table
 #: where a row says what the whole command does.
