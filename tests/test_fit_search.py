@@ -513,7 +513,8 @@ def test_an_interrupted_fit_on_local_workers_ends_in_one_line(sensor, tmp_path, 
         else:
             fit.send_signal(signal.SIGTERM)
         _, err = fit.communicate(timeout=60)
-        assert time.monotonic() - t < 30.0
+        took = time.monotonic() - t
+        assert took < 30.0, f"the fit ended {took:.1f} s after the signal; its stderr: {err[-2000:]}"
     finally:
         fit.kill()
     signum = signal.SIGINT if how.startswith("SIGINT") else signal.SIGTERM

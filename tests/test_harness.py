@@ -222,6 +222,9 @@ from harness.run_once import run_once
 
 
 def interrupted():
+    # Python's handler, as at a terminal: a worker started by a process that ignores SIGINT (an xdist
+    # worker of the outer suite, whose children inherit it) would ignore it too
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     os.kill(os.getpid(), signal.SIGINT)
     time.sleep(30)                       # the interrupt comes first
     return "computed before"

@@ -34,6 +34,7 @@ window is the calibrated model's whenever the calibration keeps the order of the
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import csv
 import math
 import socket
@@ -423,6 +424,10 @@ SCHEDULER_TIMEOUT = 20.0
 #: exit took longer (issue 36), with the fit's result in hand. An interrupted fit keeps Dask's 4 s: a
 #: worker then may be in the middle of a fold, which it would finish first.
 WORKER_CLOSE_SECONDS = 20.0
+#: Seconds an interrupted fit's client and local cluster each have to close (Dask's own: twice
+#: :data:`SCHEDULER_TIMEOUT` for the client). Ctrl-C asks to be out now: a scheduler slow to answer on a busy
+#: machine held an interrupted fit for 53 s in a test run, with nothing left to save.
+INTERRUPTED_CLOSE_SECONDS = 5.0
 
 
 def _check_scheduler_answers(address: str, seconds: float) -> None:
@@ -518,15 +523,24 @@ class Runner:
 
     def close(self, done: bool = True) -> None:
         """Close the client and a local cluster. ``done``: the work is over (no task is running), so
-        each local worker is given :data:`WORKER_CLOSE_SECONDS` to end; else Dask's own close."""
+        each local worker is given :data:`WORKER_CLOSE_SECONDS` to end; else (an interrupt, a failure)
+        Dask's own close of the workers, the client and the cluster each bounded by
+        :data:`INTERRUPTED_CLOSE_SECONDS`."""
         if self.client is not None:
             if self._local is None:                     # a cluster's workers outlive the fit: free their caches
                 self.client.run(forget_caches)
-            self.client.close()
+            if done:
+                self.client.close()
+            else:
+                with contextlib.suppress(Exception):    # gone or slow: the fit ends either way
+                    self.client.close(timeout=INTERRUPTED_CLOSE_SECONDS)
         if self._local is not None:
             if done:                                    # the workers first; the cluster's close finds them closed
                 self._local.sync(_close_nannies, list(self._local.workers.values()), WORKER_CLOSE_SECONDS)
-            self._local.close()
+                self._local.close()
+            else:
+                with contextlib.suppress(Exception):    # its workers end with this process in any case
+                    self._local.close(timeout=INTERRUPTED_CLOSE_SECONDS)
 
     def __enter__(self) -> Runner:
         return self
