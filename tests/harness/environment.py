@@ -36,12 +36,16 @@ def pytest_configure(config):
     """LSL and ROS 2 stay on this machine in every test: before anything loads liblsl, ``LSLAPICFG`` names
     a loopback config with a session id of this run's own (tests/test_lsl.py checks it again); ROS 2's
     discovery is on localhost, in a domain of this run's own."""
+    import atexit
     import random
+    import shutil
     import tempfile
 
     from supramodal.benchmarks.lsl_link import loopback_config
 
-    os.environ["LSLAPICFG"] = str(loopback_config(tempfile.mkdtemp(prefix="supramodal-lsl-")))
+    folder = tempfile.mkdtemp(prefix="supramodal-lsl-")
+    atexit.register(shutil.rmtree, folder, True)         # each test process's own, gone with it (they piled up)
+    os.environ["LSLAPICFG"] = str(loopback_config(folder))
     # ROS 2 too (tests/ros2_only.py checks it again): DDS discovery on this machine only, in a domain of
     # this run's own (never the one a user's robot may use), drawn by the controller and kept by its workers.
     if "SUPRAMODAL_TEST_ROS_DOMAIN" not in os.environ:
