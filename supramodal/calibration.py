@@ -1191,11 +1191,14 @@ def fit_network_calibration(x, labels, n_classes: int, groups=None, k: int = DEF
     return calibration_of_held_out(x, y, n_classes, groups, folds, by, k, held_out.logits)
 
 
-def fold_tasks(x, labels, n_classes: int, folds, k: int, hidden: int | None, epochs: int, seed: int):
+def fold_tasks(x, labels, n_classes: int, folds, k: int, hidden: int | None, epochs: int, seed: int,
+               augment=None):
     """The calibration's fold networks as :class:`~supramodal.mlp.NetworkTask`, one per fold with
     held-out windows, in fold order: trained on the other folds' rows of ``x`` (n, inputs),
     standardised by their own mean and scale, scoring the fold's own rows. A generator: each
-    fold's rows are copied when its task is taken."""
+    fold's rows are copied when its task is taken. ``augment``: optional callable
+    ``(rows, labels, stream) -> (rows, labels)`` applied to each fold's raw training rows (stream
+    ``f + 1``; the held-out rows are never augmented)."""
     from supramodal.mlp import NetworkTask
 
     y = np.asarray(labels)
@@ -1203,7 +1206,8 @@ def fold_tasks(x, labels, n_classes: int, folds, k: int, hidden: int | None, epo
         test = folds == f
         if test.any():
             mean, scale = input_scaling(x[~test])
-            yield NetworkTask((x[~test] - mean) / scale, y[~test], n_classes, hidden, epochs, seed,
+            xt, yt = (x[~test], y[~test]) if augment is None else augment(x[~test], y[~test], f + 1)
+            yield NetworkTask((xt - mean) / scale, yt, n_classes, hidden, epochs, seed,
                               (x[test] - mean) / scale)
 
 

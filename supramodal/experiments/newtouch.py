@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.special import log_softmax
@@ -45,7 +45,7 @@ from supramodal.features import DEFAULT_WINDOW
 from supramodal.fused_model import held_out_scores, learn_late_fusion_out_of_fold, senses_out_of_fold
 from supramodal.fusion import LATE_WEIGHTS, fuse_late
 from supramodal.mlp import DEFAULT_EPOCHS
-from supramodal.model import TextureModel, log_posteriors_of
+from supramodal.model import GainAugment, TextureModel, log_posteriors_of
 from supramodal.pipeline import extract_features, window_length
 from supramodal.twosense import synthesize_touch, two_sense_set
 
@@ -116,9 +116,12 @@ class TrainedSenses:
     folds: np.ndarray
 
 
-def train_senses(names, feats, epochs: int, seed: int, progress=None, say: str = "") -> TrainedSenses:
+def train_senses(names, feats, epochs: int, seed: int, progress=None, say: str = "",
+                 augment: GainAugment | None = None) -> TrainedSenses:
     """Train :class:`TrainedSenses` on :func:`touch_features`' windows (``names``, ``feats``), leaving out
-    :data:`UNKNOWN`; ``say``: the progress lines' prefix."""
+    :data:`UNKNOWN`; ``say``: the progress lines' prefix. ``augment``: gain augmentation of
+    every network's training windows, per vibrissa for the whiskers, one level for the microphone (one
+    signal: a touch scales its every cochlea channel alike)."""
     known = [i for i, n in enumerate(names) if n not in UNKNOWN]
     classes = [names[i] for i in known]
     per = len(feats[known[0], 0][0])
@@ -130,8 +133,9 @@ def train_senses(names, feats, epochs: int, seed: int, progress=None, say: str =
     for sense, bank, v in zip(SENSES, (whisker_bank(), cochlea_bank()), values):
         if progress:
             progress(f"{say}the {sense} model, calibrated by touch")
+        aug = None if augment is None else replace(augment, per_channel=augment.per_channel and sense == "whiskers")
         models[sense] = TextureModel.train(v, y, classes, bank, FEATURES, window_length(DEFAULT_WINDOW, bank.fs),
-                                           epochs=epochs, seed=seed, groups=groups)
+                                           epochs=epochs, seed=seed, groups=groups, augment=aug)
         assert models[sense].calibration is not None, "calibrated (the default)"
     if progress:
         progress(f"{say}the late fusion, on out-of-fold windows of touches 1-{TOUCHES - 1}")
@@ -177,11 +181,13 @@ def _unknown(model: TextureModel, known, unknown, per_texture: int) -> dict:
 
 
 def run_set(set_seed: int, seconds: float = 10.0, epochs: int = DEFAULT_EPOCHS, seed: int = 0,
-            progress=None) -> dict:
+            progress=None, augment: GainAugment | None = None) -> dict:
     """One set: see the module docstring. Plain data: per sense and fusion rule, ``training`` (the
     held-out estimate), ``touch3``, ``recalibrated`` (touch 3's second half) scores, ``unknown`` rates."""
     names, feats = touch_features(set_seed, seconds, progress)
-    trained = train_senses(names, feats, epochs, seed, progress, f"  set {set_seed}: ")
+    t0 = time.process_time()
+    trained = train_senses(names, feats, epochs, seed, progress, f"  set {set_seed}: ", augment)
+    train_cpu = time.process_time() - t0
     known, classes, per = trained.known, trained.classes, trained.per
     unknown = [i for i, n in enumerate(names) if n in UNKNOWN]
     half = per // 2
@@ -198,7 +204,7 @@ def run_set(set_seed: int, seconds: float = 10.0, epochs: int = DEFAULT_EPOCHS, 
 
     y_test, y_first, y_second = labels(per), labels(half), labels(per - half)
     result: dict = {"set_seed": set_seed, "textures": classes, "unknown_textures": list(UNKNOWN),
-                    "windows_per_touch": per, "senses": {}, "late": {}}
+                    "windows_per_touch": per, "senses": {}, "late": {}, "train_cpu_seconds": train_cpu}
     test_lp, recal_lp = {}, {}
     for s_i, sense in enumerate(SENSES):
         if progress:
@@ -234,7 +240,7 @@ def run_set(set_seed: int, seconds: float = 10.0, epochs: int = DEFAULT_EPOCHS, 
 
 
 def run_newtouch(sets: int = 5, quick: bool = False, epochs: int = DEFAULT_EPOCHS, seed: int = 0, progress=None,
-                 jobs: int | None = None) -> dict:
+                 jobs: int | None = None, augment: GainAugment | None = None) -> dict:
     """:func:`run_set` over ``sets`` sets (seeds ``seed``, ``seed + 1``, ...) on ``jobs`` worker processes;
     ``quick``: 6 s touches (default 10 s)."""
     from supramodal.experiments.runner import run_all
@@ -244,7 +250,8 @@ def run_newtouch(sets: int = 5, quick: bool = False, epochs: int = DEFAULT_EPOCH
     seconds = 6.0 if quick else 10.0
     t0 = time.perf_counter()
     runs = [Run(("newtouch", seed + k), run_set, {"set_seed": seed + k, "seconds": seconds, "epochs": epochs,
-                                                   "seed": seed}, 8 * seconds, seeded=False) for k in range(sets)]
+                                                   "seed": seed, "augment": augment}, 8 * seconds, seeded=False)
+            for k in range(sets)]
     results = list(run_all(runs, jobs=jobs, seed=seed, progress=progress).values())
     return {"figure": "newtouch", "seconds": seconds, "touches": TOUCHES, "asked_unknown": ASKED_UNKNOWN,
             "contact_windows": CONTACT_WINDOWS, "sure": SURE, "sets": results,
