@@ -39,6 +39,7 @@ from supramodal.drivers.mock_whisker import FaultSpec, MockWhiskerDevice
 from supramodal.drivers.serial_whisker import SerialWhiskerDriver
 from supramodal.node.runtime.graph import Node
 from supramodal.node.runtime.sinks import Sink
+from supramodal.node.runtime.summaries import RunSummary
 from supramodal.pipeline import FeaturePipeline
 
 RATE, CHANNELS, SPF = 5000.0, 20, 32
@@ -151,8 +152,8 @@ class CountingSink(Sink):
         self.windows += 1
         self.gap_windows += "gap" in event.flags
 
-    def summary(self, summary: dict) -> None:
-        self.result = summary
+    def summary(self, summary: RunSummary) -> None:
+        self.result = summary.to_dict()     # the report is JSON
 
     def close(self) -> None:
         pass
@@ -217,7 +218,7 @@ def run_soak(seconds: float, unplugs: int, seed: int = 1, sample_every: float = 
     with dev:
         controller.start()
         try:
-            summary = node.run()
+            summary = node.run().to_dict()
         except Exception as exc:  # the report says so; the exit status too
             summary, error = sink.result or {}, f"{type(exc).__name__}: {exc}"
         controller.join(10)

@@ -47,6 +47,7 @@ import numpy as np
 
 from supramodal.benchmarks.soak import rss_kib, rss_slope
 from supramodal.node.runtime.sinks import QueuedSink, Sink
+from supramodal.node.runtime.summaries import RunSummary
 from supramodal.node.scene.build import build_node
 from supramodal.node.scene.schema import scene_from_dict
 from supramodal.replay.driver import ReplayDriver
@@ -71,7 +72,7 @@ class CountingSink(Sink):
     def emit(self, event) -> None:
         self.windows[event.stream] = self.windows.get(event.stream, 0) + 1
 
-    def summary(self, summary: dict) -> None:
+    def summary(self, summary: RunSummary) -> None:
         pass
 
     def close(self) -> None:
@@ -149,14 +150,13 @@ def run_phase(name: str, streams: tuple[str, ...], seconds: float, sample_every:
         assert est is not None, "a host-timed source has a clock"
         clocks[source.name] = {"true_ppm": true_ppm, "ppm": est["ppm"], "ppm_error": est["ppm"] - true_ppm,
                                "jitter_ms": est["jitter_ms"], "fitted": est["fitted"]}
-    # A graph of one source reports as a one-source node: its stream's figures at the top.
-    per = summary["streams"] if "streams" in summary else {streams[0]: summary}
-    stream_s = min(per[s]["stream_seconds"] for s in streams)
+    per = summary.streams
+    stream_s = min(per[s].stream_seconds for s in streams)
     return {"phase": name, "streams": list(streams), "seconds": seconds, "wall_s": wall, "cpu_s": cpu,
             "stream_s": stream_s, "cpu_per_stream_s": cpu / stream_s,
-            "latency_ms": {s: per[s]["latency_ms"] for s in streams},
-            "accuracy": {s: per[s]["window_accuracy"] for s in streams},
-            "windows": dict(sink.windows), "fusion": summary.get("fusion"), "clocks": clocks, "end": end,
+            "latency_ms": {s: per[s].to_dict()["latency_ms"] for s in streams},
+            "accuracy": {s: per[s].accuracy.window_accuracy for s in streams},
+            "windows": dict(sink.windows), "fusion": summary.to_dict()["fusion"], "clocks": clocks, "end": end,
             "rss_slope_kib_per_min": rss_slope([(r["t"], r["rss_kib"]) for r in samples], skip=0.5),
             "rss_kib": [samples[0]["rss_kib"], max(r["rss_kib"] for r in samples), samples[-1]["rss_kib"]]
             if samples else None, "samples": samples}

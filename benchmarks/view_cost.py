@@ -62,10 +62,9 @@ def run(scene, seconds: float | None, view: bool) -> dict:
     stop.set()
     if reader is not None:
         reader.join(5)
-    streams = summary.get("streams") or {"main": summary}
     return {"cpu_s": cpu, "messages": counted[0],
-            "streams": {k: {"p50": s["latency_ms"]["p50"], "p99": s["latency_ms"]["p99"],
-                            "rtf": s["real_time_factor"]} for k, s in streams.items()}}
+            "streams": {k: {"p50": (s.latency_ms or {}).get("p50"), "p99": (s.latency_ms or {}).get("p99"),
+                            "rtf": s.real_time_factor} for k, s in summary.streams.items()}}
 
 
 def _median(runs: list[dict]) -> dict:

@@ -50,6 +50,7 @@ pooled decision, by these rules:
 from __future__ import annotations
 
 from collections import deque
+from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -66,6 +67,7 @@ from supramodal.calibration import (
 )
 from supramodal.errors import InputError
 from supramodal.features import DEFAULT_WINDOW
+from supramodal.records import JsonRecord, JsonValue
 
 SCOPES = ("window", "last", "contact")
 METHODS = ("log", "vote")
@@ -611,6 +613,39 @@ class WindowDecision:
     pooled: PooledDecision | None
 
 
+@dataclass(frozen=True, eq=False)
+class DecisionCounts(JsonRecord):
+    """What a :class:`Decider` decided over a run (:meth:`Decider.summary`), as the node's summary says it.
+
+    Attributes
+    ----------
+    unknown_windows : mapping of str to int
+        Windows said :data:`UNKNOWN`, by reason (``"novel"``, ``"unsure"``, ``"tie"``).
+    changes : int or None
+        Texture changes found within a contact; None without a change detector (``[decision] change``).
+    contacts_decided : int or None
+        Pooled decisions that reached the confidence threshold; None without one (and then
+        ``windows_to_decide_median`` is None too).
+    windows_to_decide_median : float or None
+        The median windows a pooled decision took to be decided; None when none was.
+    """
+
+    unknown_windows: Mapping[str, int]
+    changes: int | None = None
+    contacts_decided: int | None = None
+    windows_to_decide_median: float | None = None
+
+    def to_dict(self) -> dict[str, JsonValue]:
+        """Return the counts as the summary's JSON has them (``changes``, the decided counts: where they apply)."""
+        out: dict[str, JsonValue] = {"unknown_windows": dict(self.unknown_windows)}
+        if self.changes is not None:
+            out["changes"] = self.changes
+        if self.contacts_decided is not None:
+            out["contacts_decided"] = self.contacts_decided
+            out["windows_to_decide_median"] = self.windows_to_decide_median
+        return out
+
+
 class Decider:
     """Decisions of one stream (or of the fusion) by the rules of the module: one per processing
     thread (not thread-safe); :meth:`summary` is read once that thread has ended.
@@ -736,18 +771,20 @@ class Decider:
             self._final = replace(out, change=None)             # the change is said once
         return out
 
-    def summary(self) -> dict:
-        """``unknown`` windows by reason; with a confidence threshold, ``contacts_decided`` and the
-        median ``windows_to_decide`` (with ``change``, a change starts a decision of its own, counted
-        too); with ``change``, ``changes``."""
-        out: dict[str, Any] = {"unknown_windows": dict(self.unknown)}
-        if self.detector is not None:
-            out["changes"] = self.changes
-        if self.accumulator is not None and self.accumulator.confidence is not None:
-            out["contacts_decided"] = self.contacts_decided
-            out["windows_to_decide_median"] = (float(np.median(self.windows_to_decide))
-                                               if self.windows_to_decide else None)
-        return out
+    def summary(self) -> DecisionCounts:
+        """Return what was decided over the run.
+
+        ``unknown`` windows by reason; with a confidence threshold, ``contacts_decided`` and the median
+        ``windows_to_decide`` (with ``change``, a change starts a decision of its own, counted too); with
+        ``change``, ``changes``.
+        """
+        pooling = self.accumulator is not None and self.accumulator.confidence is not None
+        return DecisionCounts(
+            dict(self.unknown),
+            changes=self.changes if self.detector is not None else None,
+            contacts_decided=self.contacts_decided if pooling else None,
+            windows_to_decide_median=(float(np.median(self.windows_to_decide))
+                                      if pooling and self.windows_to_decide else None))
 
 
 class ContactDetector:

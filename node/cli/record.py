@@ -148,7 +148,7 @@ def _record(args: argparse.Namespace, scene, name: str, labelled: bool, sessions
             _read_marks(GraphMarks(recorders).mark)
         attach_views(node, GraphMarks(recorders).mark if args.marks else None)    # marks from the page too
         summary = node.run(max_seconds=args.seconds, on_running=lambda: stop_on_signals(node))
-        if summary.get("recorded"):
+        if summary.recorded:
             try:
                 replay = write_replay_scene(scene, node, args.out, name, overwrite=args.force, into=staging)
             except InputError as exc:
@@ -157,8 +157,8 @@ def _record(args: argparse.Namespace, scene, name: str, labelled: bool, sessions
             replace_all([(path, args.out / path.name) for path in sorted(staging.iterdir())
                           if not path.name.startswith(".")])
             replay = args.out / replay.name
-            wavs = ", ".join(str(args.out / Path(p).name) for p in summary["recorded"] if p.endswith(".wav"))
-            print(f"recorded {summary['stream_seconds']:.2f} s to {wavs} (+ .json); replay them in step: "
+            wavs = ", ".join(str(args.out / Path(p).name) for p in summary.recorded if p.endswith(".wav"))
+            print(f"recorded {summary.stream_seconds:.2f} s to {wavs} (+ .json); replay them in step: "
                   f"supramodal run {replay}", file=sys.stderr)
             _write_bag(args, sessions, windows)
         return 0
@@ -175,8 +175,8 @@ def _record(args: argparse.Namespace, scene, name: str, labelled: bool, sessions
         _read_marks(recorder.mark)
     attach_views(node, recorder.mark if args.marks else None)                    # marks from the page too
     summary = node.run(max_seconds=args.seconds, on_running=lambda: stop_on_signals(node))
-    if summary.get("recorded"):
-        print(f"recorded {summary['stream_seconds']:.2f} s to {summary['recorded'][0]} (+ .json)", file=sys.stderr)
+    if summary.recorded:
+        print(f"recorded {summary.stream_seconds:.2f} s to {summary.recorded[0]} (+ .json)", file=sys.stderr)
         _write_bag(args, sessions, windows)
     return 0
 

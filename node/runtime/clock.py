@@ -34,7 +34,7 @@ import collections
 import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import overload
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -224,13 +224,23 @@ class ClockModel:
         than :meth:`estimate`, for a caller that maps many indices)."""
         return self._offset, self._slope
 
-    def time_of(self, index: Any) -> Any:
-        """Host monotonic time of sample ``index`` (scalar or array), seconds."""
+    @overload
+    def time_of(self, index: float) -> float: ...
+    @overload
+    def time_of(self, index: np.ndarray) -> np.ndarray: ...
+
+    def time_of(self, index: float | np.ndarray) -> float | np.ndarray:
+        """Return the host monotonic time of sample ``index`` (scalar or array), seconds."""
         return self._offset + np.asarray(index, dtype=np.float64) * self._slope if np.ndim(index) else \
             self._offset + float(index) * self._slope
 
-    def index_at(self, time: Any) -> Any:
-        """Sample index (fractional) taken at host monotonic ``time`` (scalar or array), seconds."""
+    @overload
+    def index_at(self, time: float) -> float: ...
+    @overload
+    def index_at(self, time: np.ndarray) -> np.ndarray: ...
+
+    def index_at(self, time: float | np.ndarray) -> float | np.ndarray:
+        """Return the sample index (fractional) taken at host monotonic ``time`` (scalar or array), seconds."""
         return (np.asarray(time, dtype=np.float64) - self._offset) / self._slope if np.ndim(time) else \
             (float(time) - self._offset) / self._slope
 
@@ -302,5 +312,5 @@ def _line(x: np.ndarray, y: np.ndarray, slope_now: float) -> tuple[float, float]
     return slope, float(ym - slope * xm)
 
 
-def _finite_positive(v: Any) -> bool:
+def _finite_positive(v: object) -> bool:
     return not isinstance(v, bool) and isinstance(v, (int, float)) and math.isfinite(v) and v > 0

@@ -20,6 +20,7 @@ import numpy as np
 from supramodal.decisions import PooledDecision, TextureChange
 from supramodal.drivers.base import DriverEvent
 from supramodal.errors import InputError
+from supramodal.node.runtime.summaries import Accuracy
 
 #: Event kinds that are decisions, not a device's health: a texture ``change`` within a contact
 #: (:func:`change_event`). Each is passed on (never folded by :class:`EventLimiter`) and is no
@@ -125,9 +126,11 @@ class EventLimiter:
         self._held.clear()
         return out
 
-    def summary(self) -> dict[str, Any]:
-        """``{"counts": {kind: occurrences}, "dropped": {kind: n}}`` for the node's summary (kinds
-        named ``source/kind`` for events that name their source)."""
+    def summary(self) -> dict[str, dict[str, int]]:
+        """Return ``{"counts": {kind: occurrences}, "dropped": {kind: n}}`` for the node's summary.
+
+        Kinds are named ``source/kind`` for events that name their source.
+        """
         return {"counts": dict(sorted(self.counts.items())), "dropped": dict(sorted(self.dropped.items()))}
 
 
@@ -298,8 +301,7 @@ class TruthTally:
             self.pooled_labelled += 1
             self.pooled_correct += pooled_label == truth
 
-    def summary(self) -> dict[str, Any]:
-        """``window_accuracy``, ``labelled_windows`` and ``accumulated_accuracy`` (None: no truth)."""
-        return {"window_accuracy": self.correct / self.labelled if self.labelled else None,
-                "labelled_windows": self.labelled,
-                "accumulated_accuracy": self.pooled_correct / self.pooled_labelled if self.pooled_labelled else None}
+    def summary(self) -> Accuracy:
+        """Return the accuracy so far (None where nothing was labelled)."""
+        return Accuracy(self.correct / self.labelled if self.labelled else None, self.labelled,
+                        self.pooled_correct / self.pooled_labelled if self.pooled_labelled else None)

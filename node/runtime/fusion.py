@@ -34,7 +34,7 @@ import math
 import queue
 import time
 from collections.abc import Callable, Iterable, Sequence
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -46,6 +46,7 @@ from supramodal.features import DEFAULT_WINDOW
 from supramodal.fusion import fuse_late
 from supramodal.node.runtime.events import FUSED_STREAM, TruthTally, WindowEvent, change_event, log_posteriors_of
 from supramodal.node.runtime.latency import LatencyHistogram
+from supramodal.node.runtime.summaries import FusionSummary
 
 if TYPE_CHECKING:   # for annotations only: the runtime does not load the early-fusion model
     from supramodal.fused_model import EarlyFusionModel
@@ -302,16 +303,12 @@ class LateFusion:
 
     # -- summary ----------------------------------------------------------------------------
 
-    def summary(self) -> dict[str, Any]:
-        """``windows`` fused decisions: ``paired`` from both senses, ``alone`` from one; ``late``
-        windows per stream (their partner was already decided alone); ``dropouts`` per stream
-        (times it stopped coming in time, each said as a ``sense_lost`` event); accuracies where truth is
-        known; ``latency_ms`` from the later window's last block to the fused decision."""
-        return {"inputs": list(self.inputs), "method": self.method, "weight": self.weight,
-                "sharpness": None if self.weight is None else self.sharpness, "windows": self.windows,
-                "paired": self.paired, "alone": self.alone, "late": dict(self.late),
-                "dropouts": dict(self.dropouts),
-                **self.tally.summary(), **self.decider.summary(), "latency_ms": self.latencies.summary()}
+    def summary(self) -> FusionSummary:
+        """Return the fusion's part of the node's summary (a :class:`~.summaries.FusionSummary`)."""
+        return FusionSummary(tuple(self.inputs), self.method, self.weight,
+                             None if self.weight is None else self.sharpness, self.windows, self.paired, self.alone,
+                             dict(self.late), dict(self.dropouts), self.tally.summary(), self.decider.summary(),
+                             self.latencies.summary())
 
 
 def _centre(event: WindowEvent) -> float:

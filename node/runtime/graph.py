@@ -43,7 +43,7 @@ import threading
 import time
 from collections.abc import Callable, Collection, Iterable
 from dataclasses import replace
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from supramodal.decisions import DEFAULT_DECISION, DecisionRules
 from supramodal.drivers.base import Driver, DriverEvent
@@ -54,6 +54,7 @@ from supramodal.node.runtime.labels import Labels
 from supramodal.node.runtime.sinks import Sink
 from supramodal.node.runtime.sources import EventItem, Feed, Source
 from supramodal.node.runtime.streams import Stream, channel_mapper
+from supramodal.node.runtime.summaries import FusionHealth, Health, RunSummary, StreamHealth
 from supramodal.node.runtime.taps import Tap
 from supramodal.node.runtime.taps.recorder import SessionRecorder
 from supramodal.pipeline import FeaturePipeline
@@ -198,7 +199,7 @@ class Graph:
             self._stopped_by = reason
         self._stop.set()
 
-    def run(self, max_seconds: float | None = None, on_running: Callable[[], None] | None = None) -> dict[str, Any]:
+    def run(self, max_seconds: float | None = None, on_running: Callable[[], None] | None = None) -> RunSummary:
         """Run until every source's stream ends, ``max_seconds`` of stream have passed, or :meth:`stop`.
 
         ``on_running``: called on the caller's thread once the taps are prepared (a wait for an
@@ -219,7 +220,7 @@ class Graph:
         """The recorders and the other taps: ``(tap, source, feed, thread name)``."""
         return [*self._recorders, *self._taps]
 
-    def _run(self, max_seconds: float | None, on_running: Callable[[], None] | None) -> dict[str, Any]:
+    def _run(self, max_seconds: float | None, on_running: Callable[[], None] | None) -> RunSummary:
         for s in self.sinks:
             s.prepare()                           # may wait (e.g. for a consumer), before time starts
         for tap, _, _, _ in self._all_taps():
@@ -379,66 +380,49 @@ class Graph:
 
     # -- summary ------------------------------------------------------------------------------
 
-    def health(self) -> dict[str, Any]:
-        """What the graph counts, read while it runs (what its summary says at the end, in the same
-        units): per stream ``frames`` (delivered, filled, dropped, :meth:`Source.frame_fates`),
-        ``windows``, ``latency_ms`` (p50, p99, max) and ``source``; per source with a host
-        timebase its clock (``ppm``, ``jitter_ms``, ``delay_ms``: :meth:`Source.clock_summary`); the
-        fusion's pairing counts (``windows``, ``paired``, ``alone``, ``late``, ``dropouts``,
-        ``latency_ms``) or None; each sink's stats (those that count: ``written``,
-        ``dropped_windows``, ``dropped_events``, ``errors`` for a queued sink). Any thread: every
-        count is a snapshot, read without stopping the graph."""
-        streams = {}
-        for st in self.streams:
-            streams[st.name] = {"windows": st.windows, "frames": st.source.frame_fates(st.feed),
-                                "latency_ms": st.latencies.summary(), "source": st.source.name}
-        clocks = {s.name: s.clock_summary() for s in self.sources if s.clock is not None}
-        fusion = None
-        if self.fusion is not None:
-            f = self.fusion
-            fusion = {"windows": f.windows, "paired": f.paired, "alone": f.alone, "late": dict(f.late),
-                      "dropouts": dict(f.dropouts), "latency_ms": f.latencies.summary()}
-        sinks = [s for s in (k.stats() for k in self.sinks) if s is not None]
-        return {"streams": streams, "clocks": clocks, "fusion": fusion, "sinks": sinks}
+    def health(self) -> Health:
+        """Return what the graph counts, read while it runs (what its summary says at the end, in the same units).
 
-    def summary(self, wall: float) -> dict[str, Any]:
-        """The run's summary.
-
-        One stream: its counts at the top level (``windows``, ``stream_seconds``,
-        ``window_accuracy``, ``frames``, ``latency_ms``, ``real_time_factor``, ``driver``,
-        ``ring``, ...; a live source's clock under ``clock``). Several: ``windows`` (all
-        streams'), ``stream_seconds`` (the longest) and per stream the same counts under
-        ``streams``, the sources' clocks under ``clocks``, and the fusion block's counts under
-        ``fusion``. Always: ``wall_seconds``, ``events`` (driver events per kind, ``source/kind``
-        with several sources), ``sinks`` (what each queued sink wrote, dropped and raised: the
-        sinks whose ``stats()`` is not None), ``stopped_by`` and ``recorded`` (the recorders'
-        files); with taps, ``taps``: per tap its own counts and every frame's fate as its reader
-        saw it (``frames``, see :meth:`Source.frame_fates`).
+        Per stream ``frames`` (delivered, filled, dropped, :meth:`Source.frame_fates`), ``windows``,
+        ``latency_ms`` (p50, p99, max) and ``source``; per source with a host timebase its clock
+        (``ppm``, ``jitter_ms``, ``delay_ms``: :meth:`Source.clock_summary`); the fusion's pairing counts
+        (``windows``, ``paired``, ``alone``, ``late``, ``dropouts``, ``latency_ms``) or None; each sink's
+        stats (those that count: ``written``, ``dropped_windows``, ``dropped_events``, ``errors`` for a
+        queued sink). Any thread: every count is a snapshot, read without stopping the graph.
         """
-        common = {
-            "wall_seconds": wall,
-            "recorded": [str(p) for rec, _, _, _ in self._recorders for p in (rec.paths or ())] or None,
-            "stopped_by": self._stopped_by,
-            "events": self._limiter.summary(),
-            "sinks": [stats for stats in (s.stats() for s in self.sinks) if stats is not None],
-        }
-        if self.contacts:
-            common["contacts"] = [{**timeline.summary(), **listener.stats()} for listener, timeline in self.contacts]
-        if self._taps:
-            common["taps"] = {tap.name: {**tap.summary(), "frames": source.frame_fates(feed)}
-                              for tap, source, feed, _ in self._taps}
-        per_stream = {s.name: s.summary() for s in self.streams}
-        if len(self.streams) == 1 and self.fusion is None:
-            clock = self.sources[0].clock_summary()         # a live source's clock, under ``clock``
-            return {**next(iter(per_stream.values())), **({"clock": clock} if clock else {}), **common}
-        clocks = {s.name: s.clock_summary() for s in self.sources if s.clock is not None}
-        if not self.streams:                                # a relay: its sources' frames are under taps
-            return {"windows": 0, "stream_seconds": max(s.ring.stats()["written"] / s.rate for s in self.sources),
-                    "streams": {}, "clocks": clocks, "fusion": None, **common}
-        return {"windows": sum(s["windows"] for s in per_stream.values()),
-                "stream_seconds": max((s["stream_seconds"] for s in per_stream.values()), default=0.0),
-                "streams": per_stream, "clocks": clocks,
-                "fusion": self.fusion.summary() if self.fusion is not None else None, **common}
+        streams = {st.name: StreamHealth(st.windows, st.source.frame_fates(st.feed), st.latencies.summary(),
+                                         st.source.name) for st in self.streams}
+        clocks = {s.name: summary for s in self.sources if s.clock is not None
+                  and (summary := s.clock_summary()) is not None}
+        f = self.fusion
+        fusion = None if f is None else FusionHealth(f.windows, f.paired, f.alone, dict(f.late), dict(f.dropouts),
+                                                     f.latencies.summary())
+        sinks = tuple(s for s in (k.stats() for k in self.sinks) if s is not None)
+        return Health(streams, clocks, fusion, sinks)
+
+    def summary(self, wall: float) -> RunSummary:
+        """Return the run's summary (:class:`~supramodal.node.runtime.summaries.RunSummary`).
+
+        Each stream's counts, the fusion's, the sources' clocks, and the graph's own: ``wall`` seconds,
+        driver events per kind, what each queued sink wrote, dropped and raised, what stopped the run,
+        the recorders' files, the contact signals' and the taps' counts. The caller's thread, after the run.
+        """
+        streams = {s.name: s.summary() for s in self.streams}
+        recorded = tuple(str(p) for rec, _, _, _ in self._recorders for p in (rec.paths or ()))
+        if streams:
+            stream_seconds = max(s.stream_seconds for s in streams.values())
+        else:                                               # a relay: its sources' frames are under taps
+            stream_seconds = max(s.ring.stats()["written"] / s.rate for s in self.sources)
+        return RunSummary(
+            streams=streams, fusion=self.fusion.summary() if self.fusion is not None else None,
+            clocks={s.name: summary for s in self.sources if (summary := s.clock_summary()) is not None},
+            windows=sum(s.windows for s in streams.values()), stream_seconds=stream_seconds, wall_seconds=wall,
+            recorded=recorded or None, stopped_by=self._stopped_by, events=self._limiter.summary(),
+            sinks=tuple(stats for stats in (s.stats() for s in self.sinks) if stats is not None),
+            contacts=(tuple({**timeline.summary(), **listener.stats()} for listener, timeline in self.contacts)
+                      if self.contacts else None),
+            taps=({tap.name: {**tap.summary(), "frames": source.frame_fates(feed)}
+                   for tap, source, feed, _ in self._taps} if self._taps else None))
 
 
 class Node(Graph):

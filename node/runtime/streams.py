@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -32,6 +32,7 @@ from supramodal.node.runtime.events import TruthTally, WindowEvent, change_event
 from supramodal.node.runtime.labels import Labels
 from supramodal.node.runtime.latency import LatencyHistogram
 from supramodal.node.runtime.ringbuffer import RingClosed
+from supramodal.node.runtime.summaries import StreamSummary
 from supramodal.pipeline import FeaturePipeline
 
 if TYPE_CHECKING:   # for annotations only
@@ -283,22 +284,18 @@ class Stream:
 
     # -- summary ------------------------------------------------------------------------------
 
-    def summary(self) -> dict[str, Any]:
-        """This stream's part of the node's summary (see :meth:`Graph.summary`)."""
-        fs = self.pipeline.bank.fs
-        stream = self._expected / fs
+    def summary(self) -> StreamSummary:
+        """Return this stream's part of the node's summary (see :meth:`Graph.summary`)."""
+        stream = self._expected / self.pipeline.bank.fs
         source = self.source
-        return {
-            "windows": self.windows,
-            "stream_seconds": stream,
-            **self.tally.summary(),
-            **(self.decider.summary() if self.decider is not None else {}),
-            "frames": source.frame_fates(self.feed),
-            "nonfinite_replaced": self.pipeline.filterbank.nonfinite_count,
-            "out_of_range_replaced": self.pipeline.filterbank.out_of_range_count,
-            "partial_window_samples": self.pipeline.partial_samples,
-            "latency_ms": self.latencies.summary(),
-            "real_time_factor": self.cpu / stream if stream else 0.0,
-            "driver": dict(source.driver.stats()),
-            "ring": {k: v for k, v in source.ring.stats().items() if isinstance(v, (int, float))},
-        }
+        return StreamSummary(
+            source=source.name, windows=self.windows, stream_seconds=stream, accuracy=self.tally.summary(),
+            decisions=self.decider.summary() if self.decider is not None else None,
+            frames=source.frame_fates(self.feed),
+            nonfinite_replaced=self.pipeline.filterbank.nonfinite_count,
+            out_of_range_replaced=self.pipeline.filterbank.out_of_range_count,
+            partial_window_samples=self.pipeline.partial_samples,
+            latency_ms=self.latencies.summary(),
+            real_time_factor=self.cpu / stream if stream else 0.0,
+            driver=dict(source.driver.stats()),
+            ring={k: v for k, v in source.ring.stats().items() if isinstance(v, (int, float))})

@@ -30,6 +30,7 @@ from supramodal.errors import InputError
 from supramodal.node.runtime.events import WindowEvent
 from supramodal.node.runtime.sinks import Sink
 from supramodal.node.runtime.sinks.view import ViewSink, event_message, window_message
+from supramodal.node.runtime.summaries import RunSummary
 
 __all__ = ["BANKS_BY_RATE", "MAX_SPEED", "ViewReplay", "replay_scene"]
 
@@ -44,7 +45,7 @@ class _Keep(Sink):
 
     def __init__(self) -> None:
         self.items: list[tuple[float, dict[str, Any]]] = []
-        self.summary_: dict[str, Any] | None = None
+        self.summary_: RunSummary | None = None
         self._lock = threading.Lock()
         self._latest = 0.0          # the latest window's end kept, on common time
 
@@ -61,7 +62,7 @@ class _Keep(Sink):
             message = {**event_message(ev), "common_time": round(self._latest, 3)}
             self.items.append((self._latest, message))
 
-    def summary(self, summary: dict[str, Any]) -> None:
+    def summary(self, summary: RunSummary) -> None:
         self.summary_ = summary
 
 
@@ -88,20 +89,26 @@ def replay_scene(path: str | Path) -> Any:
                             "features": {"names": ["A", "f", "Af"]}, "sink": [{"type": "text"}]}, str(p))
 
 
-def _health(summary: dict[str, Any]) -> dict[str, Any]:
-    """The page's health from a run's summary (the recording's totals)."""
-    if "streams" in summary:
-        streams = {name: {"windows": s["windows"], "frames": s["frames"], "latency_ms": s.get("latency_ms")}
-                   for name, s in summary["streams"].items()}
-        clocks = summary.get("clocks") or {}
+def _health(summary: RunSummary | None) -> dict[str, Any]:
+    """Return the page's health message from a run's summary (the recording's totals; None: nothing run)."""
+    if summary is None:
+        return {"type": "health", "streams": {"main": {"windows": 0, "frames": {}, "latency_ms": None}}, "clocks": {},
+                "fusion": None, "sinks": [], "replay": True}
+    one = summary.one_stream
+    # a one-stream node's stream and clock are the page's "main", as the JSON form has them at the top level
+    named = {"main": one} if one is not None else summary.streams
+    streams = {name: {"windows": s.windows, "frames": dict(s.frames),
+                      "latency_ms": None if s.latency_ms is None else dict(s.latency_ms)} for name, s in named.items()}
+    if one is not None:
+        clock = summary.clocks.get(one.source)
+        clocks = {"main": dict(clock)} if clock else {}
     else:
-        streams = {"main": {"windows": summary["windows"], "frames": summary["frames"],
-                            "latency_ms": summary.get("latency_ms")}}
-        clocks = {"main": summary["clock"]} if summary.get("clock") else {}
-    f = summary.get("fusion")
-    fusion = None if not f else {k: f.get(k) for k in ("windows", "paired", "alone", "late", "dropouts", "latency_ms")}
-    return {"type": "health", "streams": streams, "clocks": clocks, "fusion": fusion, "sinks": [],
-            "replay": True}
+        clocks = {name: dict(c) for name, c in summary.clocks.items()}
+    f = summary.fusion
+    fusion = None if f is None else {"windows": f.windows, "paired": f.paired, "alone": f.alone, "late": dict(f.late),
+                                     "dropouts": dict(f.dropouts),
+                                     "latency_ms": None if f.latency_ms is None else dict(f.latency_ms)}
+    return {"type": "health", "streams": streams, "clocks": clocks, "fusion": fusion, "sinks": [], "replay": True}
 
 
 class ViewReplay:
@@ -137,7 +144,7 @@ class ViewReplay:
         self._restart = False
         self._stopped = threading.Event()
         self.items: list[tuple[float, dict[str, Any]]] = []
-        self.summary: dict[str, Any] | None = None
+        self.summary: RunSummary | None = None
         self.played = 0               # items sent to the page, over every pass
 
     # -- the page's controls --
@@ -217,7 +224,7 @@ class ViewReplay:
         with self._cond:
             self._restart = False
             self._position = 0.0
-        hub.publish(_health(self.summary or {"windows": 0, "frames": {}}), keep="latest")
+        hub.publish(_health(self.summary), keep="latest")
         wall = time.monotonic()
         for t, message in self.items:
             with self._cond:
@@ -237,4 +244,5 @@ class ViewReplay:
             else:
                 hub.publish(message)
             self.played += 1
-        hub.publish({"type": "summary", "summary": self.summary}, keep="latest")
+        summary = None if self.summary is None else self.summary.to_dict()
+        hub.publish({"type": "summary", "summary": summary}, keep="latest")

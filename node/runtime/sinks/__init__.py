@@ -46,6 +46,7 @@ from supramodal.errors import InputError
 from supramodal.node.runtime.events import WindowEvent
 from supramodal.node.runtime.outputs import check_new_file
 from supramodal.node.runtime.sinks.spec import SinkContext
+from supramodal.node.runtime.summaries import Health, RunSummary
 
 
 class Sink(abc.ABC):
@@ -65,7 +66,7 @@ class Sink(abc.ABC):
         head``), and the graph stops. A sink called on the graph's threads need not: its error
         stops the graph anyway. Default None.
     health : callable or None
-        ``health() -> dict``: what the graph counts, read while it runs (``Graph.health``), given by
+        ``health() -> Health``: what the graph counts, read while it runs (``Graph.health``), given by
         :meth:`watch` when the graph is made; None before (and for a sink outside a graph). A
         sink that reports the node's health (the view's page, ROS 2 diagnostics) calls it from
         its own thread.
@@ -73,9 +74,9 @@ class Sink(abc.ABC):
 
     path: str | None = None
     on_reader_left: Callable[[BrokenPipeError], None] | None = None
-    health: Callable[[], dict[str, Any]] | None = None
+    health: Callable[[], Health] | None = None
 
-    def watch(self, health: Callable[[], dict[str, Any]]) -> None:
+    def watch(self, health: Callable[[], Health]) -> None:
         """Take the graph's counters (:attr:`health`); the graph calls it once, when it is made.
         Default: keep it."""
         self.health = health
@@ -106,7 +107,7 @@ class Sink(abc.ABC):
         the summary leaves out. The caller's thread, after :meth:`drain`."""
         return None
 
-    def summary(self, summary: dict[str, Any]) -> None:
+    def summary(self, summary: RunSummary) -> None:
         """The run's summary, once, after :meth:`drain`. The caller's thread. Default: nothing."""
 
     def close(self) -> None:
@@ -177,7 +178,7 @@ class ListSink(Sink):
         self.path = None
         self.windows: list[WindowEvent] = []
         self.driver_events: list[DriverEvent] = []
-        self.final: dict[str, Any] | None = None
+        self.final: RunSummary | None = None
 
     @property
     def events(self) -> list[dict[str, Any]]:
@@ -189,7 +190,7 @@ class ListSink(Sink):
     def event(self, ev: DriverEvent) -> None:
         self.driver_events.append(ev)
 
-    def summary(self, summary: dict[str, Any]) -> None:
+    def summary(self, summary: RunSummary) -> None:
         self.final = summary
 
     def close(self) -> None:
@@ -334,7 +335,7 @@ class QueuedSink(Sink):
         """Passed on to the sink (on the caller's thread)."""
         self.sink.prepare()
 
-    def watch(self, health: Callable[[], dict[str, Any]]) -> None:
+    def watch(self, health: Callable[[], Health]) -> None:
         """Passed on to the sink (and kept)."""
         self.health = health
         self.sink.watch(health)
@@ -343,7 +344,7 @@ class QueuedSink(Sink):
         """Passed on to the sink (before any event, on the caller's thread)."""
         self.sink.start(epoch)
 
-    def summary(self, summary: dict[str, Any]) -> None:
+    def summary(self, summary: RunSummary) -> None:
         try:
             self.sink.summary(summary)
         except NoReader as exc:            # the summary cannot wait for a reader either

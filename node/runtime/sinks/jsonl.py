@@ -4,12 +4,12 @@
 from __future__ import annotations
 
 import json
-from typing import Any
 
 from supramodal.drivers.base import DriverEvent
 from supramodal.node.runtime.events import WindowEvent
 from supramodal.node.runtime.sinks import PATH_KEY, FileSink, file_sink
 from supramodal.node.runtime.sinks.spec import SinkSpec
+from supramodal.node.runtime.summaries import RunSummary
 
 __all__ = ["SPEC", "JsonLinesSink"]
 
@@ -29,8 +29,8 @@ class JsonLinesSink(FileSink):
         with self._lock:
             self._fh.write(line)
 
-    def summary(self, summary: dict[str, Any]) -> None:
-        self._fh.write(json.dumps({"summary": True, **summary}) + "\n")
+    def summary(self, summary: RunSummary) -> None:
+        self._fh.write(json.dumps({"summary": True, **summary.to_dict()}) + "\n")
 
 
 SPEC = SinkSpec(type="jsonl", keys={"path": PATH_KEY}, build=file_sink(JsonLinesSink),

@@ -67,6 +67,7 @@ from supramodal.features import FEATURE_TABLE
 from supramodal.node.runtime.events import FUSED_STREAM, WindowEvent
 from supramodal.node.runtime.sinks import QueuedSink, Sink
 from supramodal.node.runtime.sinks.spec import SinkContext, SinkSpec, listened, stream_outputs
+from supramodal.node.runtime.summaries import RunSummary
 
 if TYPE_CHECKING:   # for the annotations only: the sink needs no model code to run
     from supramodal.pipeline import FeaturePipeline
@@ -361,7 +362,7 @@ class LSLOutletSink(Sink):
         for key in list(self._held):
             self._release(key)
 
-    def summary(self, summary: dict[str, Any]) -> None:
+    def summary(self, summary: RunSummary) -> None:
         """Nothing to write (the node's summary counts what the sink's queue passed on)."""
 
     def close(self) -> None:

@@ -73,6 +73,8 @@ from supramodal.node.runtime.sinks.ros2_publisher import (
     only_source,
 )
 from supramodal.node.runtime.sinks.spec import SinkContext, SinkSpec, listened, stream_outputs
+from supramodal.node.runtime.summaries import RunSummary
+from supramodal.records import JsonValue
 
 _LOG = get_logger("sinks.ros2")
 
@@ -287,7 +289,7 @@ class Ros2Sink(Sink):
     def _diagnose(self, period: float) -> None:
         while not self._stop.wait(period):
             try:
-                self._send({"op": "diagnostics", "health": self.health() if self.health is not None else None})
+                self._send({"op": "diagnostics", "health": self._health()})
             except PublisherProcessError:
                 return                                   # said by the next window's failure, and the summary
 
@@ -341,14 +343,14 @@ class Ros2Sink(Sink):
     def event(self, ev: DriverEvent) -> None:
         """A driver event: on ``~/events`` and in the diagnostics (of the counters now), at once; a texture
         change (:data:`~supramodal.node.runtime.events.DECISION_EVENTS`) on ``~/events`` only."""
-        health = self.health() if self.health is not None and ev.kind not in DECISION_EVENTS else None
+        health = self._health() if ev.kind not in DECISION_EVENTS else None
         self._send({"op": "event", "event": asdict(ev), "source": ev.source or self._only_source(), "health": health})
 
     def _only_source(self) -> str:
         if self._one_source is None:
             if self.health is None:
                 return only_source({})
-            self._one_source = only_source(self.health())
+            self._one_source = only_source(self.health().to_dict())
         return self._one_source
 
     def drain(self, timeout: float = 5.0) -> None:
@@ -363,6 +365,10 @@ class Ros2Sink(Sink):
             return
         self._published = done["published"]
         self._failed = (done["errors"], done["first_error"])
+
+    def _health(self) -> dict[str, JsonValue] | None:
+        """Return the graph's counters as the publisher process takes them (JSON), or None outside a graph."""
+        return None if self.health is None else self.health().to_dict()
 
     def stats(self) -> dict[str, Any]:
         """The node's name; after :meth:`drain`, what was published per output; with a wait for
@@ -381,10 +387,10 @@ class Ros2Sink(Sink):
             out["unsent_windows"] = len(self._held)
         return out
 
-    def summary(self, summary: dict[str, Any]) -> None:
+    def summary(self, summary: RunSummary) -> None:
         """The last diagnostics, with the run's final counts."""
         try:
-            self._send({"op": "diagnostics", "health": self.health() if self.health is not None else None},
+            self._send({"op": "diagnostics", "health": self._health()},
                        bound=CLOSE_TIMEOUT)
         except PublisherProcessError:
             pass                                          # the summary says so (``publisher_exit``)

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import logging
+from collections.abc import Mapping
 from typing import Any, cast
 
 import numpy as np
@@ -13,6 +14,7 @@ from supramodal.logs import get_logger
 from supramodal.node.runtime.events import MAIN_STREAM, WindowEvent, severity
 from supramodal.node.runtime.sinks import PATH_KEY, FileSink, file_sink
 from supramodal.node.runtime.sinks.spec import SinkSpec
+from supramodal.node.runtime.summaries import RunSummary, StreamSummary
 
 _LOG = get_logger("events")
 #: The log level of a driver event's line, by its severity (:data:`~supramodal.node.runtime.events.SEVERITY`):
@@ -93,73 +95,77 @@ class TextSink(FileSink):
                 line += f"  [{flag}]"
         return line
 
-    def summary(self, s: dict[str, Any]) -> None:
+    def summary(self, s: RunSummary) -> None:
         lines = ["", "summary"]
-        if "streams" in s and not s["streams"]:  # a relay: its sources' samples sent on, nothing decided
-            lines.append(f"  stream             {s['stream_seconds']:.2f} s sent on, no windows (a relay)")
-        elif "streams" in s:                    # several streams: each one's counts, then the graph's
-            lines.append(f"  windows            {s['windows']} on {len(s['streams'])} streams")
-            for name, one in s["streams"].items():
-                lines += [f"  stream {name}"] + ["  " + line for line in _stream_lines(one)]
-            for name, c in (s.get("clocks") or {}).items():
+        one = s.one_stream
+        if one is not None:
+            lines += _stream_lines(one, s.wall_seconds)
+        elif not s.streams:                     # a relay: its sources' samples sent on, nothing decided
+            lines.append(f"  stream             {s.stream_seconds:.2f} s sent on, no windows (a relay)")
+        else:                                   # several streams: each one's counts, then the graph's
+            lines.append(f"  windows            {s.windows} on {len(s.streams)} streams")
+            for name, stream in s.streams.items():
+                lines += [f"  stream {name}"] + ["  " + line for line in _stream_lines(stream)]
+            for name, c in s.clocks.items():
                 lines.append(f"  clock {name:<11} rate error {c['ppm']:+.1f} ppm, jitter {c['jitter_ms']:.2f} ms")
-            f = s.get("fusion")
-            if f:
-                lines.append(f"  fused              {f['windows']} windows: {f['paired']} paired, {f['alone']} alone"
-                             f" (one sense), {sum(f['late'].values())} late windows left out"
+            f = s.fusion
+            if f is not None:
+                accuracy = f.accuracy.window_accuracy
+                lines.append(f"  fused              {f.windows} windows: {f.paired} paired, {f.alone} alone"
+                             f" (one sense), {sum(f.late.values())} late windows left out"
                              + "".join(f"; {name} dropped out {n} time{'s' * (n != 1)}"
-                                       for name, n in f.get("dropouts", {}).items() if n)
-                             + (f"; window accuracy {f['window_accuracy']:.3f}" if f.get("window_accuracy") is not None
-                                else ""))
-        else:
-            lines += _stream_lines(s)
-        for name, t in (s.get("taps") or {}).items():
-            f = t["frames"]
+                                       for name, n in f.dropouts.items() if n)
+                             + (f"; window accuracy {accuracy:.3f}" if accuracy is not None else ""))
+        for name, t in (s.taps or {}).items():
+            fates = cast(Mapping[str, int], t["frames"])
             lines.append(f"  sent               {name}: {t['samples_sent']} samples in {t['chunks']} chunks; not sent: "
-                         f"{f['filled']} filled and {f['dropped']} dropped frames")
-        counts = (s.get("events") or {}).get("counts")
+                         f"{fates['filled']} filled and {fates['dropped']} dropped frames")
+        counts = s.events.get("counts")
         if counts:
-            dropped = sum(s["events"].get("dropped", {}).values())
+            dropped = sum(s.events.get("dropped", {}).values())
             lines.append("  driver events      " + ", ".join(f"{k} {n}" for k, n in counts.items())
                          + (f" ({dropped} not shown: dropped before the node took them)" if dropped else ""))
-        for q in s.get("sinks") or ():
+        for q in s.sinks:
             if q["dropped_windows"] or q["dropped_events"] or q["errors"]:
                 lines.append(f"  sink               {q['sink']}: dropped {q['dropped_windows']} windows and "
                              f"{q['dropped_events']} events it could not take"
                              + (f", {q['errors']} errors (first: {q['first_error']})" if q["errors"] else ""))
-        if s.get("stopped_by"):
-            lines.append(f"  stopped by         {s['stopped_by']}")
+        if s.stopped_by:
+            lines.append(f"  stopped by         {s.stopped_by}")
         self._fh.write("\n".join(lines) + "\n")
 
 
-def _stream_lines(s: dict[str, Any]) -> list[str]:
-    """The summary lines of one stream's counts."""
-    lines = [f"  windows            {s['windows']}",
-             f"  stream             {s['stream_seconds']:.2f} s"
-             + (f" in {s['wall_seconds']:.2f} s wall time" if "wall_seconds" in s else "")]
-    if s.get("window_accuracy") is not None:
-        lines.append(f"  window accuracy    {s['window_accuracy']:.3f} over {s['labelled_windows']} labelled windows")
-    if s.get("accumulated_accuracy") is not None:
-        lines.append(f"  accumulated acc.   {s['accumulated_accuracy']:.3f}")
-    unknown = s.get("unknown_windows")
-    if unknown and any(unknown.values()):
+def _stream_lines(s: StreamSummary, wall_seconds: float | None = None) -> list[str]:
+    """Return the summary lines of one stream's counts (with the run's wall time: a one-stream node's)."""
+    lines = [f"  windows            {s.windows}",
+             f"  stream             {s.stream_seconds:.2f} s"
+             + (f" in {wall_seconds:.2f} s wall time" if wall_seconds is not None else "")]
+    accuracy = s.accuracy
+    if accuracy.window_accuracy is not None:
+        lines.append(f"  window accuracy    {accuracy.window_accuracy:.3f} over {accuracy.labelled_windows} labelled "
+                     "windows")
+    if accuracy.accumulated_accuracy is not None:
+        lines.append(f"  accumulated acc.   {accuracy.accumulated_accuracy:.3f}")
+    decided = s.decisions
+    if decided is not None and any(decided.unknown_windows.values()):
+        unknown = decided.unknown_windows
         lines.append("  unknown windows    " + ", ".join(f"{n} {why}" for why, n in unknown.items() if n))
-    if "contacts_decided" in s:
-        median = s["windows_to_decide_median"]
-        lines.append(f"  contacts decided   {s['contacts_decided']}"
+    if decided is not None and decided.contacts_decided is not None:
+        median = decided.windows_to_decide_median
+        lines.append(f"  contacts decided   {decided.contacts_decided}"
                      + (f", median {median:g} windows to decide" if median is not None else ""))
-    lines.append(frames_line(s["frames"]))
-    lines.append(f"  samples replaced   nonfinite replaced {s['nonfinite_replaced']}, out of range replaced "
-                 f"{s.get('out_of_range_replaced', 0)}")
-    lat = s.get("latency_ms")
+    lines.append(frames_line(s.frames))
+    lines.append(f"  samples replaced   nonfinite replaced {s.nonfinite_replaced}, out of range replaced "
+                 f"{s.out_of_range_replaced}")
+    lat = s.latency_ms
     if lat:
         lines.append(f"  decision latency   p50 {lat['p50']:.2f} ms, p99 {lat['p99']:.2f} ms, max {lat['max']:.2f} ms "
                      "after window close")
-    lines.append(f"  real-time factor   {s['real_time_factor']:.4f} (processing CPU s per s of stream)")
+    lines.append(f"  real-time factor   {s.real_time_factor:.4f} (processing CPU s per s of stream)")
     return lines
 
 
-def frames_line(f: dict[str, Any]) -> str:
+def frames_line(f: Mapping[str, int]) -> str:
     """The summary line of frame fates: ``stream = delivered + filled + dropped``, with where the
     dropped ones went (docs/node.md, "Every frame has one fate")."""
     total = f["delivered"] + f["filled"] + f["dropped"]

@@ -55,6 +55,7 @@ from supramodal.logs import get_logger
 from supramodal.node.runtime.events import WindowEvent, severity
 from supramodal.node.runtime.sinks import QueuedSink, Sink
 from supramodal.node.runtime.sinks.spec import SinkContext, SinkSpec
+from supramodal.node.runtime.summaries import Health, RunSummary
 
 _LOG = get_logger("sinks.view")
 
@@ -486,7 +487,7 @@ class ViewSink(Sink):
         self.labels = list(labels) if labels else None
         self.mode = mode
         self.hub = Hub()
-        self.health: Callable[[], dict[str, Any]] | None = None
+        self.health: Callable[[], Health] | None = None
         self.on_mark: Callable[[str | None], Any] | None = None
         self.control: Callable[[dict[str, Any]], dict[str, Any]] | None = None
         self.marks: list[dict[str, Any]] = []
@@ -614,7 +615,7 @@ class ViewSink(Sink):
         if self.health is not None:
             try:
                 self.hub.publish({"type": "health", "clients": self.hub.clients(),
-                                  "client_dropped": self.hub.dropped, **self.health()}, keep="latest")
+                                  "client_dropped": self.hub.dropped, **self.health().to_dict()}, keep="latest")
             except Exception:       # a counter read mid-update: the next tick has it
                 pass
 
@@ -640,10 +641,10 @@ class ViewSink(Sink):
     def event(self, ev: DriverEvent) -> None:
         self.hub.publish(event_message(ev, self._wall_at_zero))
 
-    def summary(self, summary: dict[str, Any]) -> None:
+    def summary(self, summary: RunSummary) -> None:
         self.publish_health()
         try:
-            self.hub.publish({"type": "summary", "summary": _clean(summary)}, keep="latest")
+            self.hub.publish({"type": "summary", "summary": _clean(dict(summary))}, keep="latest")
         except (TypeError, ValueError):     # a value JSON has no form for: the page still learns of the end
             self.hub.publish({"type": "summary", "summary": None}, keep="latest")
 
