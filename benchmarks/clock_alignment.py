@@ -59,13 +59,16 @@ def simulate(src: Source, seconds: float, jitter: float, rng, outage=None):
 
 
 def true_index(src: Source, t):
+    """Return the sample index ``src`` truly reaches at host time ``t`` (s; scalar or array), on its true clock."""
     return (np.asarray(t) - src["t0"]) * src["nominal"] * (1 + src["ppm"] * 1e-6)
 
 
 def run(seconds: float, jitter: float, seed: int, window_segments: int = DEFAULT_WINDOW_SEGMENTS,
         check_every: float = 0.1) -> dict:
-    """Feed both sources block by block, in arrival order; every ``check_every`` seconds of host
-    time, measure the errors. Returns the curves and the per-block cost."""
+    """Feed both sources block by block, in arrival order, measuring the errors every ``check_every`` s.
+
+    ``check_every`` is seconds of host time. Returns the curves and the per-block cost.
+    """
     rng = np.random.default_rng(seed)
     streams = []
     for src, outage in ((WHISKERS, (seconds / 2, seconds / 2 + 4.0)), (MIC, None)):
@@ -104,6 +107,7 @@ def _summary(r: dict, seconds: float) -> tuple[float, float, float, float, float
 
 
 def main(argv=None) -> int:
+    """Run the benchmark for each jitter and print its table (and, with ``--out``, the plot); return 0."""
     p = argparse.ArgumentParser(prog="python -m supramodal.benchmarks.clock_alignment",
                                 description=__doc__.splitlines()[0])
     p.add_argument("--minutes", type=float, default=10.0, help="stream length, minutes (default 10)")

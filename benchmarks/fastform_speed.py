@@ -27,6 +27,7 @@ BLOCKS = (32, 441, 500, 4410)
 
 
 def load(path: str):
+    """Import the gammatone module at ``path`` (the earlier version) as ``old_gammatone``."""
     spec = importlib.util.spec_from_file_location("old_gammatone", path)
     assert spec is not None and spec.loader is not None, f"{path}: no module loader for this file"
     module = importlib.util.module_from_spec(spec)
@@ -43,6 +44,14 @@ def time_per_block(fb, blocks, calls: int) -> float:
 
 
 def main(argv: list[str]) -> None:
+    """Print the best time per block of both versions, per bank, block length and dtype, and their ratio.
+
+    Parameters
+    ----------
+    argv : list of str
+        The old module's path, then optionally the rounds (default 30) and ``bank:block``
+        cases to run (default all), as on the command line.
+    """
     old_module = load(argv[0])
     repeats = int(argv[1]) if len(argv) > 1 else 30
     only = set(argv[2:])
@@ -81,6 +90,11 @@ ERROR_BLOCKS = {"1": (1, 1), "2": (2, 2), "5": (5, 5), "32": (32, 32), "441": (4
 
 
 def errors(old_module) -> None:
+    """Print the worst impulse-response error of both versions against the long-double reference.
+
+    One line per version and case of :data:`ERROR_CASES`, for each block pattern of
+    :data:`ERROR_BLOCKS` (channels with ``b < fs`` only).
+    """
     from supramodal.gammatone import reference_impulse_response, relative_error
     for name, (make, time_constants) in ERROR_CASES.items():
         bank = make()

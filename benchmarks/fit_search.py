@@ -51,8 +51,11 @@ def _load() -> str:
 
 def speed_manifest(folder: Path, recordings: int = 600, labels: int = 16, seconds: float = 5.0,
                    rate: int = SPEED_RATE) -> Path:
-    """``recordings`` WAVs of ``seconds`` at ``rate`` Hz (default :data:`SPEED_RATE`), dealt over ``labels``
-    textures; each recording's noise seeded by its index, so the set is the same on every run."""
+    """Write ``recordings`` WAVs of ``seconds`` at ``rate`` Hz (default :data:`SPEED_RATE`), dealt over ``labels``.
+
+    ``labels`` is a number of textures; each recording's noise is seeded by its index, so the
+    set is the same on every run.
+    """
     rows = ["path,label"]
     for i in range(recordings):
         t = i % labels
@@ -65,8 +68,10 @@ def speed_manifest(folder: Path, recordings: int = 600, labels: int = 16, second
 
 
 def today_estimate(manifest: Path, k: int = 5, epochs: int = 300) -> dict:
-    """Today's coordinate search (:func:`node.fit.fit_manifest`, quick) on ``manifest``, estimated
-    from one fold of its first candidate and one filterbank pass, both measured."""
+    """Today's coordinate search (:func:`node.fit.fit_manifest`, quick) on ``manifest``, estimated.
+
+    Estimated from one fold of its first candidate and one filterbank pass, both measured.
+    """
     from supramodal.model import TextureModel
     from supramodal.node.workflows.fit import STEPS, Candidate
     from supramodal.node.workflows.manifest import read_manifest
@@ -151,6 +156,7 @@ def _speed(args) -> int:
 
 
 def main(argv=None) -> int:
+    """Run the ``budget`` or the ``speed`` measurement named on the command line; return its exit status."""
     p = argparse.ArgumentParser(prog="python3 -m supramodal.benchmarks.fit_search", description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="what", required=True)
     b = sub.add_parser("budget", help="the fit under a latency budget against the paper's banks")

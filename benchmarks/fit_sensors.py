@@ -1,7 +1,9 @@
-"""`supramodal fit` on three sensors: the LMT surface recordings (44.1 kHz, where present) and two
-synthetic sensors with bands unlike the paper's (2.2 kHz with content below 1 kHz; 6 kHz with
-content below 2.5 kHz). Prints, per sensor, the fitted bank's grouped cross-validation accuracy
-beside the paper's whisker and cochlea banks (same window and features), mean and sd over folds.
+"""`supramodal fit` on three sensors: the fitted bank's accuracy beside the paper's whisker and cochlea banks.
+
+The sensors are the LMT surface recordings (44.1 kHz, where present) and two synthetic sensors
+with bands unlike the paper's (2.2 kHz with content below 1 kHz; 6 kHz with content below
+2.5 kHz). Prints, per sensor, the fitted bank's grouped cross-validation accuracy beside the
+paper's whisker and cochlea banks (same window and features), mean and sd over folds.
 
     python3 -m supramodal.benchmarks.fit_sensors [--quick] [--jobs N] [--out DIR]
 
@@ -28,8 +30,11 @@ LMT = ["carpet", "fiber", "rough_paper", "sheep_skin", "textile", "wallpaper"]
 
 #: name -> (rate, {texture: three peaks, Hz})
 def _family(base, names, step=0.05):
-    """Textures whose three peaks are the base's scaled by 1, 1 + step, ...: close together, so
-    that a bank's channel spacing in the band decides how well they separate."""
+    """Textures whose three peaks are the base's scaled by 1, 1 + step, and so on.
+
+    They are close together, so that a bank's channel spacing in the band decides how well they
+    separate.
+    """
     return {n: tuple(round(f * (1 + step * i), 1) for f in base) for i, n in enumerate(names)}
 
 
@@ -42,6 +47,11 @@ WIDTH = 0.4
 
 
 def synthetic_manifest(folder: Path, rate: int, textures: dict, recordings: int = 4, seconds: float = 3.0) -> Path:
+    """Write a synthetic sensor's recordings and ``manifest.csv`` into ``folder``; return the manifest's path.
+
+    Each texture of ``textures`` (name -> peaks) gets ``recordings`` WAVs of ``seconds`` at
+    ``rate`` Hz, each with its own noise seed.
+    """
     rows = ["path,label"]
     for t, (name, peaks) in enumerate(textures.items()):
         for r in range(recordings):
@@ -53,6 +63,10 @@ def synthetic_manifest(folder: Path, rate: int, textures: dict, recordings: int 
 
 
 def lmt_manifest(folder: Path, lines: int = 4, seconds: float = 211611 / 44100) -> Path:
+    """Write ``manifest.csv`` for the LMT recordings into ``folder``; return its path.
+
+    Each texture's recording of ``seconds`` is split into ``lines`` equal spans (the folds' trials).
+    """
     step = seconds / lines
     rows = ["path,label,start,end"] + [f"{SHARED / n}.wav,{n},{i * step:.4f},{(i + 1) * step:.4f}"
                                        for n in LMT for i in range(lines)]
@@ -61,8 +75,11 @@ def lmt_manifest(folder: Path, lines: int = 4, seconds: float = 211611 / 44100) 
 
 
 def sensor_manifests(folder: Path, say) -> dict[str, Path]:
-    """Each sensor's manifest written under ``folder``: the LMT recordings where they are (``say``
-    says their row is left out where not), and every :data:`SYNTHETIC` sensor."""
+    """Write each sensor's manifest under ``folder``; return them by sensor name.
+
+    The sensors are the LMT recordings where they are (``say`` says their row is left out where
+    not), and every :data:`SYNTHETIC` sensor.
+    """
     sensors = {}
     if SHARED.is_dir():
         (folder / "lmt").mkdir()
@@ -76,6 +93,7 @@ def sensor_manifests(folder: Path, say) -> dict[str, Path]:
 
 
 def main(argv=None) -> int:
+    """Fit each sensor's bank and print its accuracy beside the paper's banks; return 0."""
     p = argparse.ArgumentParser(prog="python3 -m supramodal.benchmarks.fit_sensors",
                                 description=__doc__.splitlines()[0])
     p.add_argument("--quick", action="store_true", help="fewer values per parameter")

@@ -130,7 +130,7 @@ def run(recordings: int, seconds: float, jobs: int, trials: int | None, patience
 
 
 def report(result: dict) -> str:
-    """The result as a few lines of Markdown."""
+    """Return the result as a few lines of Markdown."""
     r = result
     return "\n".join([
         f"`fit --quick --max-window {r['max_window']:g} --jobs {r['jobs']}` on {r['recordings']} recordings of "
@@ -154,6 +154,7 @@ def report(result: dict) -> str:
 
 
 def main(argv=None) -> int:
+    """Run the benchmark from the command line, write its JSON and print it; return the exit status."""
     from supramodal.memory import keep_freed_memory
     from supramodal.parallel import default_jobs
 

@@ -18,6 +18,7 @@ from supramodal.drivers.frames import SYNC, FrameDecoder, encode_frame
 
 
 def main(argv=None) -> int:
+    """Decode a stream of frames in chunks of three sizes and print the throughput of each; return 0."""
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--seconds", type=float, default=2.0, help="seconds of decoding per chunk size (default 2)")
     seconds = p.parse_args(argv).seconds

@@ -1,5 +1,6 @@
-"""Two processes, one LSL stream: 20 whisker channels at 5 kHz sent by one process, classified by a
-node in another, as two machines would.
+"""Two processes, one LSL stream: 20 whisker channels at 5 kHz sent by one, classified by a node in another.
+
+The two processes work as two machines would.
 
     python3 -m supramodal.benchmarks.lsl_link --seconds 60 --out DIR
 
@@ -66,15 +67,17 @@ STREAM_NAME = "supramodal-bench-whiskers"
 
 
 def loopback_config(folder: str | os.PathLike, session: str | None = None) -> Path:
-    """Write an LSL config file that keeps traffic on this machine; return its path. ``session``:
-    the LSL session id (default: a fresh one, so no other run's streams are seen)."""
+    """Write an LSL config file that keeps traffic on this machine; return its path.
+
+    ``session``: the LSL session id (default: a fresh one, so no other run's streams are seen).
+    """
     path = Path(folder) / "lsl_loopback.cfg"
     path.write_text(LOOPBACK_CONFIG.format(session=session or f"supramodal-{uuid.uuid4().hex}"))
     return path
 
 
 def check_loopback_config(environ=os.environ) -> Path:
-    """The ``LSLAPICFG`` file, checked to keep LSL on this machine; RuntimeError otherwise."""
+    """Return the ``LSLAPICFG`` file, checked to keep LSL on this machine; RuntimeError otherwise."""
     name = environ.get("LSLAPICFG")
     if not name or not Path(name).is_file():
         raise RuntimeError("LSLAPICFG must name a loopback config file (loopback_config()) before LSL is used")
@@ -86,8 +89,10 @@ def check_loopback_config(environ=os.environ) -> Path:
 
 
 def whisker_signal(seconds: float) -> np.ndarray:
-    """The whisker reference textures in turn (7.5 s each) for ``seconds``, fanned out to 20 whiskers
-    with gains 0.6..1.0; float32, shape (samples, 20)."""
+    """Return the whisker reference textures in turn (7.5 s each) for ``seconds``, on 20 whiskers.
+
+    Fanned out to 20 whiskers with gains 0.6..1.0; float32, shape (samples, 20).
+    """
     from supramodal.textures import reference_texture_set
 
     ts = reference_texture_set("whisker")
@@ -107,9 +112,11 @@ def whisker_signal(seconds: float) -> np.ndarray:
 
 def send(wav: str, name: str, source_id: str, chunk: float = 0.01, t0: float | None = None,
          wait: float = 10.0) -> int:
-    """Play ``wav`` as an LSL stream in real time, in ``chunk``-second chunks stamped on the sample
-    clock: sample ``i`` at ``t0 + i / rate`` on the LSL clock. With ``t0`` given (a restarted
-    sender), the samples start where that clock has got to; without, when a consumer connects."""
+    """Play ``wav`` as an LSL stream in real time, in ``chunk``-second chunks stamped on the sample clock.
+
+    Sample ``i`` is stamped ``t0 + i / rate`` on the LSL clock. With ``t0`` given (a restarted
+    sender), the samples start where that clock has got to; without, when a consumer connects.
+    """
     from supramodal.drivers.lsl import import_pylsl
     from supramodal.replay.wavio import read_wav
 
@@ -144,7 +151,7 @@ def send(wav: str, name: str, source_id: str, chunk: float = 0.01, t0: float | N
 
 
 def start_sender(wav, name, source_id, t0=None, env=None, stderr=None) -> subprocess.Popen:
-    """The sender as a child process (as another machine would be); ``stderr`` as for Popen."""
+    """Start the sender as a child process (as another machine would be); ``stderr`` as for Popen."""
     cmd = [sys.executable, "-m", "supramodal.benchmarks.lsl_link", "send", str(wav), "--name", name,
            "--source-id", source_id]
     if t0 is not None:
@@ -153,14 +160,16 @@ def start_sender(wav, name, source_id, t0=None, env=None, stderr=None) -> subpro
 
 
 def relay_scene(wav, prefix: str, wait: float = 30.0) -> str:
-    """The sending machine's scene: the WAV replayed in real time as a source that no stream
-    reads, sent on as ``PREFIX-whiskers-signal`` in 10 ms chunks once a consumer has come."""
+    """Return the sending machine's scene: the WAV replayed in real time as a source that no stream reads.
+
+    The source is sent on as ``PREFIX-whiskers-signal`` in 10 ms chunks once a consumer has come.
+    """
     return (f'[[source]]\nname = "whiskers"\ntype = "replay"\npath = {json.dumps(str(wav))}\nspeed = 1.0\n\n'
             f'[[sink]]\ntype = "lsl-signal"\nprefix = "{prefix}"\nchunk = 0.01\nwait_for_consumer = {wait!r}\n')
 
 
 def start_relay(scene, stderr=None) -> subprocess.Popen:
-    """A relay node (``supramodal run SCENE``) as a child process, as the robot's computer would run it."""
+    """Start a relay node (``supramodal run SCENE``) as a child process, as the robot's computer would run it."""
     return subprocess.Popen([sys.executable, "-m", "supramodal", "run", str(scene), "--quiet"],
                             env=os.environ.copy(), stderr=stderr, text=True)
 
@@ -168,8 +177,11 @@ def start_relay(scene, stderr=None) -> subprocess.Popen:
 # -- the receiving node ------------------------------------------------------------------------
 
 def inlet_scene(name: str | None, model: str, **driver) -> dict:
-    """The node's scene on the receiving machine: the whisker bank per channel, a model file; the
-    stream by ``name`` (or None) and whatever else ``driver`` names (``source_id``, ...)."""
+    """Return the node's scene on the receiving machine: the whisker bank per channel, a model file.
+
+    The stream is found by ``name`` (or None) and whatever else ``driver`` names
+    (``source_id``, ...).
+    """
     named = {} if name is None else {"stream": name}
     return {"driver": {"type": "lsl", **named, "mapping": "per-channel", **driver},
             "bank": {"kind": "whisker"}, "features": {"names": ["Af"]},
@@ -177,15 +189,18 @@ def inlet_scene(name: str | None, model: str, **driver) -> dict:
 
 
 def local_scene(wav: str, model: str, train: bool = False) -> dict:
-    """The same scene with the WAV replayed locally at full speed."""
+    """Return the same scene with the WAV replayed locally at full speed."""
     return {"driver": {"type": "replay", "path": wav, "speed": "max", "mapping": "per-channel"},
             "bank": {"kind": "whisker"}, "features": {"names": ["Af"]},
             "model": {"path": model, "train_on_start": train}, "decision": {"scope": "window"}}
 
 
 def _stamped_sink():
-    """A sink that keeps each window event (``windows``), and driver event, with the host time
-    it reached the sinks. Made here: this module loads no part of the node until it runs one."""
+    """Return a sink that keeps each window event (``windows``) and driver event, with its host time.
+
+    The host time is when the event reached the sinks. Made here: this module loads no part of
+    the node until it runs one.
+    """
     from supramodal.node.runtime.sinks import Sink
 
     class Stamped(Sink):
@@ -203,8 +218,10 @@ def _stamped_sink():
 
 
 def _prepare(seconds: float, out: Path, progress):
-    """The signal's WAV, the model trained on the whisker reference textures, and the windows of
-    the WAV replayed locally through the same scene."""
+    """Return the signal's WAV, the model trained on the whisker reference textures, and the local windows.
+
+    The local windows are those of the WAV replayed locally through the same scene.
+    """
     from supramodal.node.runtime.sinks import ListSink
     from supramodal.node.scene.build import build_node
     from supramodal.node.scene.schema import scene_from_dict
@@ -220,8 +237,10 @@ def _prepare(seconds: float, out: Path, progress):
 
 
 def _inlet_node(name: str, model, **driver):
-    """The inlet node, its sink, and the list its driver's reads fill with (end frame, timestamp,
-    arrival) per block."""
+    """Return the inlet node, its sink, and the list its driver's reads fill.
+
+    The list gets (end frame, timestamp, arrival) per block.
+    """
     from supramodal.node.scene.build import build_node
     from supramodal.node.scene.schema import scene_from_dict
 
@@ -261,8 +280,10 @@ SENDERS = ("node", "plain")
 
 
 def run(seconds: float, out: Path, progress=print, sender: str = SENDERS[0]) -> dict:
-    """Send ``seconds`` of the whisker signal from another process to an inlet node; compare with
-    the same WAV fed locally. ``sender``: one of :data:`SENDERS`."""
+    """Send ``seconds`` of the whisker signal from another process to an inlet node; compare with the WAV fed locally.
+
+    ``sender``: one of :data:`SENDERS`.
+    """
     if sender not in SENDERS:
         raise ValueError(f"sender is one of {SENDERS}, got {sender!r}")
     wav, model, local = _prepare(seconds, out, progress)
@@ -292,8 +313,10 @@ def _end(proc) -> None:
 
 
 def _start_line(proc) -> tuple[float, float]:
-    """``(t0, started)`` from a sender's first line: its schedule's t0 and when it began to push,
-    both on the LSL clock."""
+    """``(t0, started)`` from a sender's first line.
+
+    Its schedule's t0 and when it began to push, both on the LSL clock.
+    """
     said = []
     for line in proc.stderr:             # liblsl's own log lines come first
         if line.startswith("send: from sample"):
@@ -307,9 +330,12 @@ def _start_line(proc) -> tuple[float, float]:
 
 
 def run_restart(seconds: float, out: Path, kill_at: float = 3.0, down: float = 1.0, progress=print) -> dict:
-    """The sender killed ``kill_at`` s into the stream and started again ``down`` s later, going on
-    from where its sample clock has got to: the gap the node counts and fills, and how soon after
-    the new sender's first push the node decides again on measured samples."""
+    """Kill the sender ``kill_at`` s into the stream and start it again ``down`` s later.
+
+    The new sender goes on from where its sample clock has got to. Measures the gap the node
+    counts and fills, and how soon after the new sender's first push the node decides again on
+    measured samples.
+    """
     from supramodal.drivers.lsl import import_pylsl, lsl_clock_offset
 
     pylsl = import_pylsl()
@@ -361,7 +387,7 @@ def _percentiles(values) -> dict:
 
 
 def _report(local, remote, times, blocks, summary, seconds) -> dict:
-    """Counts, decisions compared window by window, and the three latencies, ms."""
+    """Return the counts, the decisions compared window by window, and the three latencies, ms."""
     mine = {e.window: e.decision for e in local}
     theirs = {e.window: e.decision for e in remote}
     common = sorted(set(mine) & set(theirs))
@@ -390,7 +416,7 @@ def _report(local, remote, times, blocks, summary, seconds) -> dict:
 
 
 def report_markdown(link: dict, restart: dict | None) -> str:
-    """The two runs as the report's tables."""
+    """Return the two runs as the report's tables."""
     d = link["driver"]
     lines = ["# 20 whisker channels at 5 kHz over LSL, between two processes", "",
              f"{link['seconds']:g} s sent in 10 ms chunks by one process ("
@@ -429,6 +455,10 @@ def report_markdown(link: dict, restart: dict | None) -> str:
 
 
 def main(argv=None) -> int:
+    """Run the link (and the kill-and-restart run), or with ``send`` be the sender; return the exit status.
+
+    The exit status is 0 when no sample was lost and every decision equals the local one.
+    """
     parser = argparse.ArgumentParser(prog="python -m supramodal.benchmarks.lsl_link", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command")

@@ -70,7 +70,7 @@ class _TimedBuffer(micmod.CaptureBuffer):
 
 
 def driver(device, rate: float, blocksize: int, frames: int, timed: bool) -> dict:
-    """The same through MicrophoneDriver, read block by block on this thread.
+    """Measure the same through MicrophoneDriver, read block by block on this thread.
 
     With ``timed``, the callback's own CPU time is measured too (which costs a
     little: use the untimed run for the total).
@@ -108,6 +108,7 @@ def driver(device, rate: float, blocksize: int, frames: int, timed: bool) -> dic
 
 
 def main() -> None:
+    """Measure a no-op callback and the driver on the device named on the command line; print the CPU."""
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--device", default=None, help="PortAudio input device (index or name)")
     p.add_argument("--rate", type=float, default=44100)

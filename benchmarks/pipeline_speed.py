@@ -42,7 +42,7 @@ def _cpu(feed, blocks) -> float:
 
 
 def run(seconds: float, rounds: int, say) -> dict:
-    """The measurements (see the module); ``say`` is told progress lines."""
+    """Return the measurements (see the module); ``say`` is told progress lines."""
     import numpy as np
 
     from supramodal.backends import make_filterbank
@@ -75,7 +75,7 @@ def run(seconds: float, rounds: int, say) -> dict:
 
 
 def report(result: dict) -> str:
-    """The result as a Markdown table."""
+    """Return the result as a Markdown table."""
     lines = [f"{result['seconds']:g} s of noise per bank, median of {result['rounds']} round(s), one core "
              f"({result['date']}, load {result['load_before']:.1f} at the start)", "",
              "| bank | block | | CPU s | / filterbank | real-time factor |", "|---|---|---|---|---|---|"]
@@ -86,6 +86,7 @@ def report(result: dict) -> str:
 
 
 def main(argv=None) -> int:
+    """Run the benchmark from the command line, write its JSON and print it; return the exit status."""
     parser = argparse.ArgumentParser(prog="python -m supramodal.benchmarks.pipeline_speed", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--seconds", type=float, default=20.0, help="seconds of noise per bank (default 20)")

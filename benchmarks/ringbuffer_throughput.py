@@ -21,6 +21,23 @@ from supramodal.node.runtime.ringbuffer import RingBuffer, RingClosed
 
 
 def run(frames: int, channels: int, block: int, capacity: int, policy: str, reads: str) -> dict:
+    """Write ``frames`` in blocks of ``block`` to a ring read by one thread; return the throughput.
+
+    Parameters
+    ----------
+    frames, channels, block, capacity : int
+        Frames written in all, channels per frame, frames per write, the ring's capacity in frames.
+    policy : str
+        The ring's ``overrun`` policy.
+    reads : {"block", "all"}
+        The reader asks for exactly one block per read, or for all that is available.
+
+    Returns
+    -------
+    dict
+        ``frames`` read, ``lost`` (the reader's), ``reads``, ``seconds``, ``frames_per_s`` and
+        ``blocks_per_s``.
+    """
     rb = RingBuffer(capacity, channels, overrun=policy)
     reader = rb.add_reader()
     data = np.random.default_rng(0).standard_normal((block, channels))
@@ -53,6 +70,7 @@ def run(frames: int, channels: int, block: int, capacity: int, policy: str, read
 
 
 def main() -> None:
+    """Run the measurement ``--repeat`` times with the command line's settings and print each."""
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--frames", type=int, default=5_000_000)
     p.add_argument("--channels", type=int, default=20)

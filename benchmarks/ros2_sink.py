@@ -1,5 +1,7 @@
-"""What the ``ros2`` sink costs the node: its decision latency and throughput with the sink off, on with a
-live subscriber, and on with a subscriber stopped by SIGSTOP, side by side in one run.
+"""What the ``ros2`` sink costs the node: decision latency and throughput with the sink off, on, and stalled.
+
+The three cases are the sink off, on with a live subscriber, and on with a subscriber stopped by
+SIGSTOP, side by side in one run.
 
     python3 -m supramodal.benchmarks.ros2_sink --seconds 2 --rounds 3
 
@@ -80,8 +82,10 @@ path = "out.jsonl"
 
 
 def scene(seconds: float, namespace: str | None = None, ros2: str = "wait_for_subscribers = 60") -> str:
-    """:data:`SCENE` of ``seconds`` per texture, with a ros2 sink in ``namespace`` (its other keys:
-    ``ros2``, TOML lines), or without one (None)."""
+    """:data:`SCENE` of ``seconds`` per texture, with a ros2 sink in ``namespace``, or without one (None).
+
+    The sink's other keys are ``ros2``, TOML lines.
+    """
     sink = "" if namespace is None else f'\n[[sink]]\ntype = "ros2"\nnamespace = "{namespace}"\n{ros2}\n'
     return SCENE.format(seconds=seconds) + sink
 
@@ -109,8 +113,10 @@ CASES = ("off", "on, live subscriber", "on, stopped subscriber")
 
 
 def run_case(case: str, seconds: float, folder: Path, keys: str = "") -> dict:
-    """One node process of ``case``: the summary's latencies, windows and drops (``keys``: TOML lines of
-    the ros2 sink's other keys)."""
+    """One node process of ``case``: the summary's latencies, windows and drops.
+
+    ``keys``: TOML lines of the ros2 sink's other keys.
+    """
     namespace = f"/bench{uuid.uuid4().hex[:8]}"
     text = scene(seconds, None if case == "off" else namespace, "wait_for_subscribers = 60\n" + keys)
     work = folder / f"case{CASES.index(case)}-{uuid.uuid4().hex[:6]}"
@@ -145,7 +151,7 @@ def run_case(case: str, seconds: float, folder: Path, keys: str = "") -> dict:
 
 
 def p99_difference_interval(on: np.ndarray, off: np.ndarray, draws: int = 2000, seed: int = 0) -> tuple[float, float]:
-    """The 95 % bootstrap interval of ``p99(on) - p99(off)``, each case's windows resampled on their own."""
+    """Return the 95 % bootstrap interval of ``p99(on) - p99(off)``, each case's windows resampled on their own."""
     rng = np.random.default_rng(seed)
     diffs = [np.percentile(rng.choice(on, on.size), 99) - np.percentile(rng.choice(off, off.size), 99)
              for _ in range(draws)]
@@ -154,6 +160,7 @@ def p99_difference_interval(on: np.ndarray, off: np.ndarray, draws: int = 2000, 
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run the rounds of the three cases and print the table; return 1 if a case lost a jsonl window, else 0."""
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--seconds", type=float, default=2.0, help="seconds of each of the 8 textures per run (2)")
     p.add_argument("--rounds", type=int, default=3, help="rounds of the three cases (3)")

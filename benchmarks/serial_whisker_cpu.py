@@ -41,6 +41,7 @@ def measure(seconds: float = 5.0, channels: int = 20, rate: float = 5000.0, samp
 
 
 def main(argv=None) -> int:
+    """Measure the serial driver with the command line's settings and print its CPU; return 0."""
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--seconds", type=float, default=5.0, help="seconds of stream (default 5)")
     p.add_argument("--channels", type=int, default=20)

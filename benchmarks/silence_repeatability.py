@@ -60,6 +60,7 @@ def worst_over_chunkings(bank, gather: bool, chunkings: int, seed: int = 11) -> 
 
 
 def main(argv=None) -> int:
+    """Print, per bank and way of gathering, the worst window difference over random chunkings; return 0."""
     p = argparse.ArgumentParser(prog="python -m supramodal.benchmarks.silence_repeatability",
                                 description=__doc__.splitlines()[0])
     p.add_argument("--no-floor", action="store_true", help="measure without the peak floor (default: with it)")

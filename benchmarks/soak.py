@@ -61,8 +61,10 @@ def rss_kib() -> int:
 
 
 def source_signal(seconds: float = 6.0) -> np.ndarray:
-    """What the board loops: three reference whisker textures in turn, on 20 channels of
-    different gains (a channel swap would show), shape (n, 20), full scale +-1."""
+    """Return what the board loops: three reference whisker textures in turn, shape (n, 20), full scale +-1.
+
+    The 20 channels have different gains (a channel swap would show).
+    """
     from supramodal.textures import reference_texture_set
 
     ts = reference_texture_set("whisker")
@@ -90,21 +92,26 @@ class CheckedDriver(DriverBase):
         self._started = False
 
     def open(self) -> None:
+        """Open the serial driver, and start the board the first time."""
         self.inner.open()
         if not self._started:  # the board streams once the port is open (nothing flushed)
             self.dev.start()
             self._started = True
 
     def close(self) -> None:
+        """Close the serial driver."""
         self.inner.close()
 
     def stats(self) -> dict[str, int]:
+        """Return the serial driver's counters."""
         return self.inner.stats()
 
     def take_events(self):
+        """Return the serial driver's new events and dropped counts."""
         return self.inner.take_events()
 
     def read(self, timeout: float | None = None):
+        """Return the serial driver's next block (None if none came within ``timeout`` s), checked against the mock."""
         block = self.inner.read(timeout)
         if block is not None:
             self._check(block)
@@ -143,6 +150,7 @@ class CountingSink(Sink):
         self.result: dict | None = None
 
     def emit(self, event) -> None:
+        """Count a window (and a gap window), and the wall time since the last."""
         now = time.monotonic()
         if self._last is not None:
             gap = now - self._last
@@ -153,9 +161,11 @@ class CountingSink(Sink):
         self.gap_windows += "gap" in event.flags
 
     def summary(self, summary: RunSummary) -> None:
-        self.result = summary.to_dict()     # the report is JSON
+        """Keep the run's summary as ``result``, as JSON (the report is JSON)."""
+        self.result = summary.to_dict()
 
     def close(self) -> None:
+        """Do nothing: the sink holds nothing to release."""
         pass
 
 
@@ -239,8 +249,10 @@ def _size_kib(container) -> float:
 
 
 def rss_slope(samples, skip: float = 0.25) -> float | None:
-    """Least-squares RSS slope, KiB per minute, after the first ``skip`` of the run; ``samples``
-    are ``(seconds, RSS KiB, ...)``."""
+    """Least-squares RSS slope, KiB per minute, after the first ``skip`` of the run.
+
+    ``samples`` are ``(seconds, RSS KiB, ...)``.
+    """
     if len(samples) < 4:
         return None
     t = np.array([s[0] for s in samples])
@@ -328,7 +340,7 @@ def _compare(led, driver: CheckedDriver, sink: CountingSink, summary: dict, samp
 
 
 def format_report(rep: dict) -> str:
-    """The report as Markdown (also what is printed)."""
+    """Return the report as Markdown (also what is printed)."""
     p = rep["params"]
     out = [f"# Soak: {p['seconds']:g} s of faults, {p['unplugs']} unplugs, seed {p['seed']}", "",
            f"20 channels x 5 kHz, {SPF} samples/frame; `python3 -m supramodal.benchmarks.soak --minutes "
@@ -389,6 +401,7 @@ def write_report(rep: dict, out: Path) -> list[Path]:
 
 
 def main(argv=None) -> int:
+    """Run the soak from the command line and write its report; return 0 if it passed, else 1."""
     ap = argparse.ArgumentParser(prog="python3 -m supramodal.benchmarks.soak", description=__doc__.split("\n\n")[0])
     ap.add_argument("--minutes", type=float, default=60.0, help="minutes of faults and unplugs (default 60)")
     ap.add_argument("--unplugs", type=int, default=100, help="unplug/replug cycles (default 100)")

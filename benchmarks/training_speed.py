@@ -81,7 +81,7 @@ def _same_model(a, b) -> bool:
 
 
 def run(rounds: int, jobs: int, say) -> dict:
-    """The measurements (see the module); ``say`` is told progress lines."""
+    """Return the measurements (see the module); ``say`` is told progress lines."""
     import numpy as np
 
     from supramodal.calibration import input_scaling
@@ -133,7 +133,7 @@ def run(rounds: int, jobs: int, say) -> dict:
 
 
 def report(result: dict) -> str:
-    """The result as a Markdown table."""
+    """Return the result as a Markdown table."""
     lines = [f"Training on {result['windows']} windows x {result['inputs']} inputs, {result['classes']} classes; "
              f"median of {result['rounds']} round(s) on {result['cores']} cores ({result['date']}, load "
              f"{result['load_before']:.1f} at the start)", "",
@@ -147,6 +147,7 @@ def report(result: dict) -> str:
 
 
 def main(argv=None) -> int:
+    """Run the benchmark from the command line, write its JSON and print it; return the exit status."""
     parser = argparse.ArgumentParser(prog="python -m supramodal.benchmarks.training_speed", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--rounds", type=int, default=3, help="rounds, interleaved (default 3)")

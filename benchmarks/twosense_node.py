@@ -70,17 +70,20 @@ class CountingSink(Sink):
         self.windows: dict[str, int] = {}
 
     def emit(self, event) -> None:
+        """Count a window event of its stream."""
         self.windows[event.stream] = self.windows.get(event.stream, 0) + 1
 
     def summary(self, summary: RunSummary) -> None:
+        """Do nothing: the run's summary is what ``graph.run`` returns."""
         pass
 
     def close(self) -> None:
+        """Do nothing: the sink holds nothing to release."""
         pass
 
 
 def scene_dict(streams: tuple[str, ...]) -> dict:
-    """A graph scene of the given streams ("whiskers", "mic"), fused when both."""
+    """Return a graph scene of the given streams ("whiskers", "mic"), fused when both."""
     sources = {"whiskers": WHISKERS, "mic": MIC}
     d: dict[str, Any] = {
         "source": [dict(sources[s], seconds=SECONDS_PER_TEXTURE, loop=True, speed=1.0) for s in streams],
@@ -92,8 +95,10 @@ def scene_dict(streams: tuple[str, ...]) -> dict:
 
 
 def clock_errors(graph, at: float) -> dict[str, float]:
-    """Each source's error, s: common time its model gives the sample completed at host time
-    ``at``, minus ``at`` (see the module docstring for the truth)."""
+    """Each source's error, s: common time its model gives the sample completed at host time ``at``, minus ``at``.
+
+    See the module docstring for the truth.
+    """
     errors = {}
     for source in graph.sources:
         drv = source.driver
@@ -163,6 +168,12 @@ def run_phase(name: str, streams: tuple[str, ...], seconds: float, sample_every:
 
 
 def run(minutes: float, single_minutes: float, sample_every: float, progress=None) -> dict:
+    """Run the three phases (whiskers alone, microphone alone, both) and return the report as a dict.
+
+    The single-sense phases last ``single_minutes``, the two-sense one ``minutes``; memory and
+    clocks are sampled every ``sample_every`` s. The report holds the phases, the CPU ratio, the
+    fused p99 latency, the largest ppm error, the alignment at the end, and which targets are met.
+    """
     phases = [run_phase("whiskers", ("whiskers",), single_minutes * 60, sample_every, progress),
               run_phase("mic", ("mic",), single_minutes * 60, sample_every, progress),
               run_phase("both", ("whiskers", "mic"), minutes * 60, sample_every, progress)]
@@ -178,6 +189,7 @@ def run(minutes: float, single_minutes: float, sample_every: float, progress=Non
 
 
 def format_report(rep: dict) -> str:
+    """Return the report of :func:`run` as Markdown."""
     w, m, both = rep["phases"]
     f = both["fusion"]
     out = ["# The two-sense node in real time", "",
@@ -222,6 +234,10 @@ def format_report(rep: dict) -> str:
 
 
 def write_report(rep: dict, out: Path) -> list[Path]:
+    """Write the report into ``out``; return the paths written.
+
+    The report is Markdown, JSON, the samples as CSV and, with matplotlib, a PNG.
+    """
     out.mkdir(parents=True, exist_ok=True)
     paths = [out / "twosense_node.md", out / "twosense_node.json", out / "samples.csv"]
     paths[0].write_text(format_report(rep))
@@ -260,6 +276,7 @@ def write_report(rep: dict, out: Path) -> list[Path]:
 
 
 def main(argv=None) -> int:
+    """Run the benchmark from the command line and write its report; return 0 if every target is met, else 1."""
     ap = argparse.ArgumentParser(prog="python3 -m supramodal.benchmarks.twosense_node",
                                  description=__doc__.split("\n\n")[0])
     ap.add_argument("--minutes", type=float, default=30.0, help="minutes of the two-sense run (default 30)")

@@ -103,10 +103,12 @@ class Block:
 
     @property
     def frames(self) -> int:
+        """Frames in the block (rows of ``data``)."""
         return int(self.data.shape[0])
 
     @property
     def n_filled(self) -> int:
+        """Frames of the block that were filled (0 when ``filled`` is None)."""
         return 0 if self.filled is None else int(np.count_nonzero(self.filled))
 
 
@@ -145,7 +147,7 @@ class DriverEvent:
     source: str | None = None
 
     def as_dict(self) -> dict[str, Any]:
-        """The event as a JSON-ready dict: ``{"event": kind, "message": ..., ...}``."""
+        """Return the event as a JSON-ready dict: ``{"event": kind, "message": ..., ...}``."""
         out = {"event": self.kind, "message": self.message, "time": round(self.time, 3),
                "stream_index": self.stream_index, "count": self.count}
         if self.source is not None:
@@ -198,7 +200,7 @@ class EventLog:
         return out, dropped
 
     def history(self) -> list[DriverEvent]:
-        """The last ``history`` events, oldest first (a copy)."""
+        """Return the last ``history`` events, oldest first (a copy)."""
         with self._lock:
             return list(self._history)
 
@@ -211,23 +213,32 @@ class EventLog:
 
 
 class TruthLabel(Protocol):
-    """A truth label a driver carries (:class:`supramodal.replay.session.Label` is one): what was
-    sensed (``label``) over ``[start, end)``, stream seconds."""
+    """A truth label a driver carries (:class:`supramodal.replay.session.Label` is one).
+
+    It says what was sensed (``label``) over ``[start, end)``, stream seconds.
+    """
 
     @property
-    def start(self) -> float: ...
+    def start(self) -> float:
+        """Start of the labelled span, stream seconds (inclusive)."""
+        ...
 
     @property
-    def end(self) -> float: ...
+    def end(self) -> float:
+        """End of the labelled span, stream seconds (exclusive)."""
+        ...
 
     @property
-    def label(self) -> str: ...
+    def label(self) -> str:
+        """What was sensed over the span."""
+        ...
 
 
 @runtime_checkable
 class Driver(Protocol):
-    """What the node needs of a source of blocks (:class:`DriverBase` gives all but
-    ``rate``, ``channels``, ``read`` and ``stats``).
+    """What the node needs of a source of blocks.
+
+    :class:`DriverBase` gives all of it but ``rate``, ``channels``, ``read`` and ``stats``.
 
     Attributes
     ----------
@@ -260,9 +271,13 @@ class Driver(Protocol):
     period: float | None
     speed: float
 
-    def open(self) -> None: ...
+    def open(self) -> None:
+        """Open the device or source; blocks may be read from then on."""
+        ...
 
-    def close(self) -> None: ...
+    def close(self) -> None:
+        """Release the device or source."""
+        ...
 
     def read(self, timeout: float | None = None) -> Block | None:
         """Return the next block, ``None`` if none arrived within ``timeout`` s.
@@ -276,8 +291,10 @@ class Driver(Protocol):
         ...
 
     def take_events(self) -> tuple[list[DriverEvent], dict[str, int]]:
-        """New events since the last call, and per-kind counts of those dropped
-        (bounded log); any thread, never blocks but on a short lock."""
+        """Return the new events since the last call, and per-kind counts of those dropped (bounded log).
+
+        Any thread; never blocks but on a short lock.
+        """
         ...
 
     def __enter__(self) -> Driver: ...
@@ -291,9 +308,11 @@ DRIVER_MEMBERS = ("rate", "channels", "open", "close", "read", "stats", "take_ev
 
 
 def missing_members(driver: object) -> tuple[str, ...]:
-    """The members of :class:`Driver` that ``driver`` lacks, in :data:`DRIVER_MEMBERS`'s order
-    (empty for a complete driver): checked once, where a driver enters the node, so that the
-    node then calls every member without probing for it."""
+    """Return the members of :class:`Driver` that ``driver`` lacks, in :data:`DRIVER_MEMBERS`'s order.
+
+    Empty for a complete driver. Checked once, where a driver enters the node, so that the
+    node then calls every member without probing for it.
+    """
     return tuple(name for name in DRIVER_MEMBERS if not hasattr(driver, name))
 
 
@@ -302,8 +321,10 @@ _LOG_CREATION = threading.Lock()
 
 
 class DriverBase:
-    """The part of a driver every driver shares: its event log, ``take_events``, notices, the
-    context manager, and the labels of a driver that has none.
+    """The part of a driver every driver shares.
+
+    That is its event log, ``take_events``, notices, the context manager, and the labels of a
+    driver that has none.
 
     A subclass sets ``rate`` and ``channels`` and gives ``read`` and ``stats`` (see
     :class:`Driver`); it overrides ``open`` and ``close`` when it has a device to open, and
@@ -352,8 +373,10 @@ class DriverBase:
 
     @property
     def event_log(self) -> EventLog:
-        """The driver's :class:`EventLog` (made on first use by a subclass that did not call
-        ``DriverBase.__init__``); any thread."""
+        """The driver's :class:`EventLog`; any thread.
+
+        Made on first use by a subclass that did not call ``DriverBase.__init__``.
+        """
         try:
             log: EventLog = self.__dict__["_event_log"]
             return log
@@ -364,8 +387,10 @@ class DriverBase:
                 return self._event_log
 
     def take_events(self) -> tuple[list[DriverEvent], dict[str, int]]:
-        """New events since the last call, and the per-kind counts of those the bounded log
-        dropped because nobody took them; ``([], {})`` when there is nothing new.
+        """Return the new events since the last call, and per-kind counts the bounded log dropped.
+
+        The counts are of the events dropped because nobody took them; ``([], {})`` when there
+        is nothing new.
 
         Any thread; holds the log's lock for a few microseconds and never waits otherwise.
         """
@@ -376,16 +401,21 @@ class DriverBase:
         return self.event_log.record(kind, message, stream_index, count)
 
     def _notice(self, message: str, kind: str = "notice", stream_index: int | None = None) -> None:
-        """Log ``message`` as an event of ``kind`` and hand it to ``on_notice``, if one is set,
-        on this thread (a driver used on its own prints its notices; the node sets none)."""
+        """Log ``message`` as an event of ``kind`` and hand it to ``on_notice``, if one is set.
+
+        ``on_notice`` is called on this thread (a driver used on its own prints its notices;
+        the node sets none).
+        """
         self._record(kind, message, stream_index)
         if self._on_notice is not None:
             self._on_notice(message)
 
     @property
     def events(self) -> list[str]:
-        """The last ``EVENT_HISTORY`` events as timestamped lines, oldest first (a copy); any
-        thread. :meth:`take_events` is not affected."""
+        """The last ``EVENT_HISTORY`` events as timestamped lines, oldest first (a copy); any thread.
+
+        :meth:`take_events` is not affected.
+        """
         return [_stamp(ev.time) + " " + ev.message for ev in self.event_log.history()]
 
     def open(self) -> None:

@@ -52,8 +52,11 @@ LSL_RESOLVE_TIMEOUT = 5.0
 
 
 def marker_state(value: object) -> bool | None:
-    """The contact state a sample says: a string of :data:`CONTACT_MARKERS`, or a finite number (non-zero:
-    in contact); None for anything else (refused and counted by the listener)."""
+    """Return the contact state a sample says, or None for no state.
+
+    A sample says a state as a string of :data:`CONTACT_MARKERS`, or as a finite number
+    (non-zero: in contact); anything else gives None (refused and counted by the listener).
+    """
     if isinstance(value, str):
         return CONTACT_MARKERS.get(value.strip().lower())
     if isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value):
@@ -62,8 +65,10 @@ def marker_state(value: object) -> bool | None:
 
 
 def check_contact_from(value: object) -> tuple[str, str]:
-    """``(bus, address)`` of a ``contact_from`` value, or :class:`InputError` saying what is accepted.
-    Checks the text only (no bus is reached)."""
+    """Return ``(bus, address)`` of a ``contact_from`` value, or raise :class:`InputError` saying what is accepted.
+
+    Checks the text only (no bus is reached).
+    """
     from supramodal.drivers.ros2 import check_topic
 
     buses = ", ".join(f'"{bus}:..."' for bus in CONTACT_BUSES)
@@ -83,7 +88,7 @@ def check_contact_from(value: object) -> tuple[str, str]:
 
 
 def contact_listener(value: str) -> ContactListener:
-    """The listener of a ``contact_from`` value (:func:`check_contact_from`); nothing is opened yet."""
+    """Return the listener of a ``contact_from`` value (:func:`check_contact_from`); nothing is opened yet."""
     bus, address = check_contact_from(value)
     return CONTACT_BUSES[bus](address)
 
@@ -120,12 +125,14 @@ class ContactListener:
         """Leave the bus (idempotent)."""
 
     def poll(self, timeout: float) -> list[tuple[float, bool]]:
-        """The states that came, ``(time on time.monotonic(), in contact)``, waiting at most ``timeout``
-        seconds for the first."""
+        """Return the states that came, ``(time on time.monotonic(), in contact)``.
+
+        Waits at most ``timeout`` seconds for the first.
+        """
         raise NotImplementedError
 
     def take_events(self) -> tuple[list[DriverEvent], dict[str, int]]:
-        """The new events and the counts dropped (:meth:`EventLog.take`)."""
+        """Return the new events and the counts dropped (:meth:`EventLog.take`)."""
         return self.event_log.take()
 
     def stats(self) -> dict[str, int]:
@@ -148,8 +155,11 @@ class ContactListener:
 
 
 class Ros2ContactListener(ContactListener):
-    """A ``std_msgs/msg/Bool`` topic (see the module notes); its own rclpy node, named
-    ``supramodal_contact`` (``-r supramodal_contact:__node:=...`` renames it)."""
+    """A ``std_msgs/msg/Bool`` topic (see the module notes).
+
+    It runs its own rclpy node, named ``supramodal_contact``
+    (``-r supramodal_contact:__node:=...`` renames it).
+    """
 
     bus = "ros2"
     TYPE = "std_msgs/msg/Bool"
@@ -166,6 +176,7 @@ class Ros2ContactListener(ContactListener):
         self._looked = -math.inf
 
     def open(self) -> None:
+        """Start the listener's ROS 2 node; the topic is subscribed to once a publisher advertises it."""
         from supramodal.drivers.ros2 import RosNode
 
         self._ros = RosNode(self.NODE_NAME)
@@ -173,11 +184,18 @@ class Ros2ContactListener(ContactListener):
         self._looked = -math.inf
 
     def close(self) -> None:
+        """Close the ROS 2 node and its subscription (idempotent)."""
         ros, self._ros, self._sub = self._ros, None, None
         if ros is not None:
             ros.close()
 
     def poll(self, timeout: float) -> list[tuple[float, bool]]:
+        """Return the states queued since the last call, waiting at most ``timeout`` seconds for the first.
+
+        Until subscribed, looks for the topic's publishers every :data:`LOOK_INTERVAL` seconds and
+        subscribes once one advertises it (a topic of another type is refused). Each state is
+        ``(time.monotonic() at arrival, in contact)``.
+        """
         if self._sub is None and time.monotonic() - self._looked >= LOOK_INTERVAL:
             self._looked = time.monotonic()
             self._subscribe_when_published()
@@ -231,6 +249,11 @@ class LslContactListener(ContactListener):
         self._offset = 0.0
 
     def open(self) -> None:
+        """Resolve the stream by name, open an inlet to it and measure the clock offset.
+
+        Waits up to :data:`LSL_RESOLVE_TIMEOUT` seconds for each step; a stream of more than one
+        channel, or one that cannot be opened, raises :class:`DeviceUnavailable`.
+        """
         from supramodal.drivers.lsl import describe_stream, lsl_clock_offset, resolve_stream
 
         pylsl = self._pylsl
@@ -250,6 +273,7 @@ class LslContactListener(ContactListener):
         self._offset = lsl_clock_offset(pylsl)
 
     def close(self) -> None:
+        """Close the inlet (idempotent)."""
         inlet, self._inlet = self._inlet, None
         if inlet is not None:
             try:
@@ -258,6 +282,11 @@ class LslContactListener(ContactListener):
                 pass
 
     def poll(self, timeout: float) -> list[tuple[float, bool]]:
+        """Return the states that came, waiting at most ``timeout`` seconds for the first.
+
+        Each state is ``(sender's stamp on this host's time.monotonic(), in contact)``. A sample
+        that says no state is refused and counted; a lost sender is recorded as ``unplug``.
+        """
         out: list[tuple[float, bool]] = []
         wait = max(0.0, timeout)
         while True:

@@ -92,10 +92,12 @@ class Frame:
 
     @property
     def channels(self) -> int:
+        """Channels per sample (columns of ``samples``)."""
         return int(self.samples.shape[1])
 
     @property
     def samples_per_frame(self) -> int:
+        """Samples in the frame (rows of ``samples``)."""
         return int(self.samples.shape[0])
 
 
@@ -251,14 +253,14 @@ class FrameDecoder:
 
     @staticmethod
     def _header_fits_version(buf: bytearray, i: int) -> bool:
-        """Is the header at ``i`` valid but for its version (a frame of another version)?"""
+        """Tell whether the header at ``i`` is valid but for its version (a frame of another version)."""
         fields: tuple[int, ...] = _HEADER.unpack_from(buf, i)
         _, version, flags, seq, n, ch, check = fields
         return (1 <= ch <= MAX_CHANNELS and 1 <= n <= MAX_SAMPLES_PER_FRAME
                 and check == _header_check(version, flags, seq, n, ch))
 
     def _frame_starts_within(self, buf: bytearray, lo: int, hi: int) -> bool:
-        """Does a valid frame header start at an offset in ``[lo, hi)``?
+        """Tell whether a valid frame header starts at an offset in ``[lo, hi)``.
 
         The caller makes sure ``buf`` holds ``hi + HEADER_SIZE - 1`` bytes.
         """

@@ -123,7 +123,7 @@ class LSLUnavailable(DeviceUnavailable):
 
 
 def import_pylsl() -> ModuleType:
-    """The pylsl module, or :class:`LSLUnavailable` saying what to install."""
+    """Return the pylsl module, or raise :class:`LSLUnavailable` saying what to install."""
     try:
         with held_interrupts():         # a Ctrl-C inside a C extension's import reads as ImportError
             import pylsl
@@ -139,9 +139,11 @@ def import_pylsl() -> ModuleType:
 
 
 def liblsl_config_file(environ: Mapping[str, str] = os.environ) -> Path | None:
-    """The configuration file liblsl reads, in its own order: the file ``LSLAPICFG`` names,
-    ``lsl_api.cfg`` in the working folder, ``~/lsl_api/lsl_api.cfg``, ``/etc/lsl_api/lsl_api.cfg``;
-    None without one."""
+    """Return the configuration file liblsl reads, or None without one.
+
+    liblsl looks, in its own order, for the file ``LSLAPICFG`` names, ``lsl_api.cfg`` in the
+    working folder, ``~/lsl_api/lsl_api.cfg`` and ``/etc/lsl_api/lsl_api.cfg``.
+    """
     home = environ.get("HOME") or environ.get("USERPROFILE")
     if not home and environ.get("HOMEDRIVE") and environ.get("HOMEPATH"):
         home = environ["HOMEDRIVE"] + environ["HOMEPATH"]
@@ -158,10 +160,13 @@ def _readable(path: str) -> bool:
 
 
 def quiet_config(text: str | None) -> str | None:
-    """A liblsl configuration's ``text`` (None: no file) with ``[log] level =``
-    :data:`LIBLSL_LOG_LEVEL` added, or None where it is to be left as it is: it has a ``[log]``
-    section of its own (the user's choice), or lines liblsl would refuse (its own error says why).
-    Read as liblsl reads it: a section starts at a line's first character, a key is ``name = value``."""
+    """Return a liblsl configuration's ``text`` with ``[log] level =`` :data:`LIBLSL_LOG_LEVEL` added.
+
+    ``text`` None stands for no file. Return None where the configuration is to be left as it
+    is: it has a ``[log]`` section of its own (the user's choice), or lines liblsl would refuse
+    (its own error says why). Read as liblsl reads it: a section starts at a line's first
+    character, a key is ``name = value``.
+    """
     added = f"[log]\nlevel = {LIBLSL_LOG_LEVEL}\n"
     if text is None:
         return added
@@ -180,12 +185,14 @@ def quiet_config(text: str | None) -> str | None:
 
 @functools.cache                   # once per process: liblsl reads its configuration once
 def _quiet_liblsl(pylsl: ModuleType) -> None:
-    """Before liblsl's first use in this process: its configuration (the user's file, read as liblsl
-    reads it, or none) with its log on stderr held to :data:`LIBLSL_LOG_LEVEL`, given to liblsl as
-    content (it takes that before any file). Nothing where the user's file has a ``[log]`` section,
-    where ``LSLAPICFG`` names a file that cannot be read (liblsl says so), or where liblsl is older
-    than 1.17.7 (no such call), or where the package logger shows debugging lines (``supramodal -v``: liblsl's
-    own log is then shown as liblsl sets it)."""
+    """Hold liblsl's log on stderr to :data:`LIBLSL_LOG_LEVEL`, before liblsl's first use in this process.
+
+    liblsl is given its configuration (the user's file, read as liblsl reads it, or none) with
+    that log level, as content (it takes that before any file). Nothing where the user's file
+    has a ``[log]`` section, where ``LSLAPICFG`` names a file that cannot be read (liblsl says
+    so), or where liblsl is older than 1.17.7 (no such call), or where the package logger shows
+    debugging lines (``supramodal -v``: liblsl's own log is then shown as liblsl sets it).
+    """
     if logger.isEnabledFor(logging.DEBUG):
         return
     named = os.environ.get("LSLAPICFG")
@@ -206,14 +213,17 @@ def _quiet_liblsl(pylsl: ModuleType) -> None:
 
 
 def _lost_error(pylsl: ModuleType) -> type[Exception]:
-    """pylsl's ``LostError`` (raised by an inlet whose sender, without a source id, went away)."""
+    """Return pylsl's ``LostError`` (raised by an inlet whose sender, without a source id, went away)."""
     error: type[Exception] = getattr(pylsl, "LostError", None) or pylsl.util.LostError
     return error
 
 
 def lsl_clock_offset(pylsl: ModuleType) -> float:
-    """``time.monotonic() - pylsl.local_clock()``, seconds: the midpoint of the tightest of a few
-    brackets of one LSL clock reading between two host clock readings."""
+    """Return ``time.monotonic() - pylsl.local_clock()``, seconds.
+
+    The offset is the midpoint of the tightest of a few brackets of one LSL clock reading
+    between two host clock readings.
+    """
     best = (math.inf, 0.0)
     for _ in range(9):
         a = time.monotonic()
@@ -231,11 +241,14 @@ def describe_stream(info: StreamInfo) -> str:
 
 def resolve_stream(name: str | None = None, stream_type: str | None = None, source_id: str | None = None,
                    timeout: float = DEFAULT_RESOLVE_TIMEOUT) -> StreamInfo:
-    """The one stream matching every property given, or :class:`DeviceUnavailable` naming those
-    that were found instead (or that none was); more than one match is refused too, listing them
-    (say which with ``source_id``). After the first answer the resolver waits
+    """Return the one stream matching every property given.
+
+    Raises :class:`DeviceUnavailable` naming the streams that were found instead (or that none
+    was); more than one match is refused too, listing them (say which with ``source_id``). After
+    the first answer the resolver waits
     :data:`DUPLICATE_WAIT` seconds more (or twice the time the first took, at most
-    :data:`DUPLICATE_WAIT_MAX`) for a second one."""
+    :data:`DUPLICATE_WAIT_MAX`) for a second one.
+    """
     pylsl = import_pylsl()
     wanted = {"name": name, "type": stream_type, "source_id": source_id}
     wanted = {k: v for k, v in wanted.items() if v is not None}
@@ -272,7 +285,7 @@ def resolve_stream(name: str | None = None, stream_type: str | None = None, sour
 
 
 def _distinct(infos: list[StreamInfo]) -> list[StreamInfo]:
-    """The streams of ``infos`` with one of each ``uid`` (one outlet answers each query)."""
+    """Return the streams of ``infos`` with one of each ``uid`` (one outlet answers each query)."""
     seen: dict[str, StreamInfo] = {}
     for info in infos:
         seen.setdefault(info.uid(), info)
@@ -374,6 +387,7 @@ class LSLInletDriver(DriverBase):
         self._last_data = time.monotonic()
 
     def close(self) -> None:
+        """Close the inlet (idempotent)."""
         inlet, self._inlet, self._lost = self._inlet, None, False
         if inlet is not None:
             try:
@@ -384,8 +398,10 @@ class LSLInletDriver(DriverBase):
     # -- reading (the source thread) ----------------------------------------------------------
 
     def read(self, timeout: float | None = None) -> Block | None:
-        """The samples that arrived (up to 100 ms of them), waiting at most ``timeout`` s for the
-        first; None if none came."""
+        """Return the samples that arrived (up to 100 ms of them) as a block; None if none came.
+
+        Waits at most ``timeout`` s for the first.
+        """
         if self._ready:
             return self._ready.popleft()
         inlet = self._inlet
@@ -442,16 +458,19 @@ class LSLInletDriver(DriverBase):
         return self._ready.popleft() if self._ready else None
 
     def _judged(self, steps: list[Step]) -> None:
-        """The held blocks the clock model has judged, as blocks ready to return."""
+        """Make the held blocks the clock model has judged (``steps``) into blocks ready to return."""
         for step in steps:
             data, host, now = self._held.popleft()
             self._ready.append(self._blocks.block(data, float(host[-1]), now, step))
 
     def _look_for_a_new_sender(self) -> None:
-        """While the stream is silent, ask the network for it again: a sender that was restarted
-        is a new outlet of the same stream (same source id, or same name, type and host), which
-        liblsl's own recovery finds only seconds later (about 3 s measured here); an inlet to it
-        is made at once. Blocks the source thread for at most :data:`PROBE_TIMEOUT` s."""
+        """Ask the network for the stream again while it is silent.
+
+        A sender that was restarted is a new outlet of the same stream (same source id, or same
+        name, type and host), which liblsl's own recovery finds only seconds later (about 3 s
+        measured here); an inlet to it is made at once. Blocks the source thread for at most
+        :data:`PROBE_TIMEOUT` s.
+        """
         pylsl = self._pylsl
         old = self._stream
         query = (f"source_id='{old.source_id()}'" if old.source_id() and "'" not in old.source_id() else
@@ -481,10 +500,13 @@ class LSLInletDriver(DriverBase):
     # -- counters and events ------------------------------------------------------------------
 
     def stats(self) -> dict[str, int]:
-        """``frames`` (delivered, filled ones included), ``filled``, ``chunks`` (reads that
+        """Return the driver's counters since ``open()``.
+
+        ``frames`` (delivered, filled ones included), ``filled``, ``chunks`` (reads that
         brought samples), ``gaps``, ``restarts``, ``stalls``, ``reopened`` (inlets made to a
         restarted sender), ``timing_slips``, ``backlogs`` (late stamps that came back onto the
-        sample clock: nothing filled)."""
+        sample clock: nothing filled).
+        """
         b = self._blocks
         return {"frames": b.frames, "filled": b.filled, "chunks": self._chunks, "gaps": b.gaps,
                 "restarts": b.restarts, "stalls": self._stalls, "reopened": self._reopened,

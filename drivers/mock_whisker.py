@@ -171,7 +171,9 @@ class FaultSpec:
 
 @dataclass
 class FaultLedger:
-    """What the device did. Frame indices are unwrapped (0, 1, 2, ...);
+    """What the device did.
+
+    Frame indices are unwrapped (0, 1, 2, ...);
     the sequence number of frame ``k`` is ``(first_seq + k) % 65536``.
 
     Attributes
@@ -383,9 +385,12 @@ class MockWhiskerDevice:
         return self
 
     def wait_for_reader(self, timeout: float) -> bool:
-        """Before :meth:`start`: wait until a reader opens the port (a node in another process
-        starting up), at most ``timeout`` seconds; whether one did. Started after it, the board's
-        faults fall at known times of the reader's run, however long its start-up took."""
+        """Wait, before :meth:`start`, until a reader opens the port; return whether one did.
+
+        The reader may be a node in another process starting up; waits at most ``timeout``
+        seconds. Started after it, the board's faults fall at known times of the reader's run,
+        however long its start-up took.
+        """
         if self._thread is not None:
             raise RuntimeError("wait_for_reader() is for before start(): the writer thread reads the port's status")
         deadline = time.monotonic() + timeout
@@ -475,7 +480,7 @@ class MockWhiskerDevice:
         self._clean_run = 0
 
     def _host_opened(self) -> bool:
-        """Has a reader opened the port since the last call? (reads packet-mode status)"""
+        """Tell whether a reader has opened the port since the last call (reads packet-mode status)."""
         if self._master is None:  # unplugged (a replug awaiting a reader can be unplugged again): no port
             return False
         try:

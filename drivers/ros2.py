@@ -1,5 +1,7 @@
-"""ROS 2, as the node meets it: rclpy imported from wherever it is, one rclpy node on a context of
-its own, ROS names checked before anything starts, and the command line's ``--ros-args``.
+"""ROS 2, as the node meets it.
+
+rclpy imported from wherever it is, one rclpy node on a context of its own, ROS names checked
+before anything starts, and the command line's ``--ros-args``.
 
 Needs the optional extra ``ros2`` (rclpy and the stock message packages as wheels) or a sourced ROS 2
 installation (``source /opt/ros/<distro>/setup.bash``): rclpy is imported from wherever Python finds
@@ -83,8 +85,10 @@ class Ros2Unavailable(DeviceUnavailable):
 
 
 def import_rclpy() -> ModuleType:
-    """The rclpy module, with the stock message packages the node uses, or :class:`Ros2Unavailable`
-    saying what to install."""
+    """Return the rclpy module, with the stock message packages the node uses.
+
+    Raises :class:`Ros2Unavailable` saying what to install.
+    """
     try:
         with held_interrupts():         # a Ctrl-C inside a C extension's import reads as ImportError
             import diagnostic_msgs.msg  # noqa: F401  (the messages are checked here, once, with their fix)
@@ -104,8 +108,11 @@ def import_rclpy() -> ModuleType:
 # -- names ----------------------------------------------------------------------------------------------
 
 def check_token(value: object) -> bool:
-    """Whether ``value`` is one token of a ROS name: a letter or ``_``, then letters, digits and
-    ``_``, no ``__`` (ROS 2's rule; e.g. a stream's name, which becomes a topic's part)."""
+    """Whether ``value`` is one token of a ROS name.
+
+    A token is a letter or ``_``, then letters, digits and ``_``, no ``__`` (ROS 2's rule;
+    e.g. a stream's name, which becomes a topic's part).
+    """
     return isinstance(value, str) and bool(_TOKEN.fullmatch(value)) and "__" not in value
 
 
@@ -115,8 +122,11 @@ def check_node_name(value: object) -> bool:
 
 
 def check_namespace(value: object) -> bool:
-    """Whether ``value`` may be a node's namespace: ``""`` (the root, or what ``-r __ns:=`` says)
-    or ``/``-separated tokens, e.g. ``"/robot/left_arm"`` (a leading ``/`` is added if missing)."""
+    """Whether ``value`` may be a node's namespace.
+
+    A namespace is ``""`` (the root, or what ``-r __ns:=`` says) or ``/``-separated tokens,
+    e.g. ``"/robot/left_arm"`` (a leading ``/`` is added if missing).
+    """
     if not isinstance(value, str):
         return False
     if value in ("", "/"):
@@ -131,8 +141,10 @@ _ros_arguments: list[str] = []
 
 
 def split_ros_arguments(argv: Sequence[str]) -> tuple[list[str], list[str]]:
-    """``argv`` split into the command's own arguments and ROS 2's: every ``--ros-args`` section,
-    up to a ``--`` that ends it or the end (as rclpy's ``remove_ros_args`` does, without rclpy).
+    """Split ``argv`` into the command's own arguments and ROS 2's.
+
+    ROS 2's are every ``--ros-args`` section, up to a ``--`` that ends it or the end (as
+    rclpy's ``remove_ros_args`` does, without rclpy).
 
     Returns
     -------
@@ -157,14 +169,16 @@ def split_ros_arguments(argv: Sequence[str]) -> tuple[list[str], list[str]]:
 
 
 def use_ros_arguments(ros: Sequence[str]) -> None:
-    """Keep ``ros`` (``--ros-args`` sections) as the global ROS arguments of every :class:`RosNode`
-    made after this call in this process (the command line sets them)."""
+    """Keep ``ros`` (``--ros-args`` sections) as the global ROS arguments of every later :class:`RosNode`.
+
+    They apply to every one made after this call in this process (the command line sets them).
+    """
     global _ros_arguments
     _ros_arguments = list(ros)
 
 
 def ros_arguments() -> list[str]:
-    """The global ROS arguments :func:`use_ros_arguments` kept (empty by default)."""
+    """Return the global ROS arguments :func:`use_ros_arguments` kept (empty by default)."""
     return list(_ros_arguments)
 
 
@@ -217,8 +231,11 @@ def stale_port_segments(folder: Path | None = None, now: float | None = None) ->
 
 
 def check_shared_memory() -> None:
-    """Refuse to start a ROS 2 node that would hang on a stale Fast DDS segment (:func:`stale_port_segments`),
-    saying what to remove; nothing to check under another middleware (``RMW_IMPLEMENTATION``)."""
+    """Refuse to start a ROS 2 node that would hang on a stale Fast DDS segment, saying what to remove.
+
+    The segments are those of :func:`stale_port_segments`; nothing to check under another
+    middleware (``RMW_IMPLEMENTATION``).
+    """
     if not os.environ.get("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp").startswith("rmw_fastrtps"):
         return
     stale = stale_port_segments()
@@ -342,7 +359,7 @@ class RosClock:
         return bool(getattr(self._clock, "ros_time_is_active", False))
 
     def stamp_ns(self, common: float) -> int:
-        """A time on the node's common clock, seconds, as nanoseconds on the ROS clock."""
+        """Return a time on the node's common clock, seconds, as nanoseconds on the ROS clock."""
         host_ns = round((self.epoch + common) * 1e9)
         if self.simulated:
             return int(self._clock.now().nanoseconds) - (time.monotonic_ns() - host_ns)
@@ -352,8 +369,11 @@ class RosClock:
 # -- the robot's sensor topic as a driver ---------------------------------------------------------------
 
 def check_topic(value: object) -> bool:
-    """Whether ``value`` may name a topic: ``/``-separated tokens, absolute (``/robot/whiskers``) or
-    relative to the node's namespace (``whiskers``)."""
+    """Whether ``value`` may name a topic.
+
+    A topic is ``/``-separated tokens, absolute (``/robot/whiskers``) or relative to the node's
+    namespace (``whiskers``).
+    """
     return isinstance(value, str) and value not in ("", "/") and check_namespace(value) and not value.endswith("/")
 
 
@@ -373,8 +393,9 @@ _IMAGE_ENCODINGS = {"32FC1": (np.float32, 1.0), "64FC1": (np.float64, 1.0), "16S
 
 
 def samples_of(kind: str, msg: Any, channels: int) -> tuple[np.ndarray | None, str]:
-    """One message's samples, shape (samples, channels), float64 at full scale +-1, or None and why
-    it is refused (the reason names the layout the driver reads).
+    """Return one message's samples, shape (samples, channels), float64 at full scale +-1.
+
+    Or None and why it is refused (the reason names the layout the driver reads).
 
     A ``*MultiArray`` holds samples x channels row by row: ``layout.dim`` either two dimensions
     (``[samples, channels]``; ``data_offset`` honoured) or none (the data's length a multiple of
@@ -519,8 +540,10 @@ class Ros2TopicDriver(DriverBase):
     # -- life cycle -----------------------------------------------------------------------------------
 
     def open(self) -> None:
-        """Start the driver's ROS 2 node; the subscription is made as soon as the topic's type is known
-        (at once with ``message`` given, else when a publisher advertises it)."""
+        """Start the driver's ROS 2 node; the subscription is made as soon as the topic's type is known.
+
+        That is at once with ``message`` given, else when a publisher advertises it.
+        """
         self._reset()
         self.event_log.clear()
         self._ros = RosNode(self.node_name, self.namespace)
@@ -557,8 +580,10 @@ class Ros2TopicDriver(DriverBase):
         self._incompatible = True
 
     def _on_message(self, msg: Any) -> None:
-        """One message (the executor's thread): its samples queued for :meth:`read`, or refused and
-        counted. Never blocks but on a short lock."""
+        """Queue one message's samples for :meth:`read`, or refuse and count it (the executor's thread).
+
+        Never blocks but on a short lock.
+        """
         now = time.monotonic()
         assert self._kind is not None
         data, why = samples_of(self._kind, msg, self.channels)
@@ -600,8 +625,10 @@ class Ros2TopicDriver(DriverBase):
     # -- reading (the source thread) -----------------------------------------------------------------
 
     def read(self, timeout: float | None = None) -> Block | None:
-        """The next message's samples as a block (with any gap before them filled or marked), waiting at
-        most ``timeout`` s; None if none came."""
+        """Return the next message's samples as a block, with any gap before them filled or marked.
+
+        Waits at most ``timeout`` s; None if none came.
+        """
         if self._ready:
             return self._ready.popleft()
         if self._ros is None:
@@ -636,8 +663,11 @@ class Ros2TopicDriver(DriverBase):
         return self._ready.popleft() if self._ready else None
 
     def _silent(self, now: float) -> Block | None:
-        """No message: judge what is held once the topic is silent, say it is (``unplug``), and look for
-        the topic's type (``message = "auto"``), a type that does not match, or a QoS that cannot."""
+        """Handle a read that found no message.
+
+        Judge what is held once the topic is silent, say it is (``unplug``), and look for the
+        topic's type (``message = "auto"``), a type that does not match, or a QoS that cannot.
+        """
         if self._incompatible:
             raise DriverError(f"ROS 2: the publisher of {self.info} offers a QoS the {self.reliability} subscription "
                               "cannot match (a best-effort publisher, e.g. sensor-data QoS): set reliability = "
@@ -662,7 +692,7 @@ class Ros2TopicDriver(DriverBase):
         return None
 
     def _look_at_the_graph(self) -> None:
-        """The types the topic's publishers advertise: subscribe (``auto``), or refuse a mismatch."""
+        """Read the types the topic's publishers advertise, and subscribe (``auto``) or refuse a mismatch."""
         assert self._ros is not None
         node = self._ros.node
         full = node.resolve_topic_name(self.topic)
@@ -690,8 +720,10 @@ class Ros2TopicDriver(DriverBase):
             self._ready.append(block)
 
     def _check_rate(self, stamp: float) -> None:
-        """After :data:`RATE_CHECK_SECONDS` of samples, their rate against the scene's: a publisher at
-        another rate is refused (every window would be wrong)."""
+        """Check the samples' rate against the scene's, after :data:`RATE_CHECK_SECONDS` of samples.
+
+        A publisher at another rate is refused (every window would be wrong).
+        """
         if self._rate_checked:
             return
         if self._rate_since is None:
@@ -709,10 +741,13 @@ class Ros2TopicDriver(DriverBase):
     # -- counters -------------------------------------------------------------------------------------
 
     def stats(self) -> dict[str, int]:
-        """``frames`` (delivered, filled ones included), ``filled``, ``messages``, ``gaps``, ``restarts``,
+        """Return the driver's counters since ``open()``.
+
+        ``frames`` (delivered, filled ones included), ``filled``, ``messages``, ``gaps``, ``restarts``,
         ``stalls``, ``backlogs``, ``refused`` (messages of another layout), ``nan`` (values set to 0),
         ``odd_blocks`` (messages of another size than ``block``, kept),
-        ``dropped_messages`` and ``dropped_samples`` (the queue was full)."""
+        ``dropped_messages`` and ``dropped_samples`` (the queue was full).
+        """
         with self._lock:
             b = self._blocks
             return {"frames": b.frames, "filled": b.filled, "messages": self._messages, "gaps": b.gaps,

@@ -91,7 +91,7 @@ DEFAULT_BAUDRATE = 3_000_000  #: bit/s; 20 channels at 5 kHz need about 2.02 Mbi
 
 
 def _log_notice(message: str) -> None:
-    """The default ``on_notice``: the package logger's ``supramodal.drivers.serial`` (INFO)."""
+    """Log ``message`` on the package logger's ``supramodal.drivers.serial`` (INFO): the default ``on_notice``."""
     _LOG.info(message)
 
 
@@ -371,7 +371,7 @@ class SerialWhiskerDriver(DriverBase):
                 "and that the board is powered")
 
     def _not_a_serial_device(self, code: int | None, text: str) -> str | None:
-        """What the port is, if an open failed because it is no terminal; else None.
+        """Return what the port is, if an open failed because it is no terminal; else None.
 
         pyserial opens a regular file or /dev/null, then fails to configure it
         (ENOTTY, "Inappropriate ioctl for device"); a directory fails with EISDIR.
@@ -543,7 +543,7 @@ class SerialWhiskerDriver(DriverBase):
         return block
 
     def _judge_gap(self, jump: int, seq: int, now: float, pos: int, rows: int) -> int:
-        """Serial frames to fill for a sequence jump of ``jump`` (0: don't fill).
+        """Return the serial frames to fill for a sequence jump of ``jump`` (0: don't fill).
 
         Parameters are the jump modulo 65536, the new frame's sequence number,
         its arrival time, the stream position (rows) before any fill, and the
@@ -580,7 +580,7 @@ class SerialWhiskerDriver(DriverBase):
     # -- silence ---------------------------------------------------------------
 
     def _frame_seen(self, now: float) -> None:
-        """A valid frame arrived (or the port opened): a silence starts counting from here."""
+        """Note that a valid frame arrived (or the port opened): a silence starts counting from here."""
         self._last_frame_at = now
         self._warnings_now = 0
         if self.silence_warning is not None:

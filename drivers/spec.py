@@ -34,8 +34,10 @@ TIMEBASES = ("stream", "recorded", "host")
 
 
 class OptionError(InputError):
-    """A driver option that cannot be honoured; the message starts with the key, and the node
-    puts the table it came from in front of it."""
+    """A driver option that cannot be honoured.
+
+    The message starts with the key, and the node puts the table it came from in front of it.
+    """
 
 
 @dataclass(frozen=True)
@@ -180,13 +182,18 @@ class DriverSpec:
 
     @property
     def overrun(self) -> str:
-        """The ring's policy for ``overrun = "auto"``: lossless back-pressure for a file (and a
-        live driver with a buffer of its own), the oldest frames dropped for a live device (it
-        cannot wait)."""
+        """The ring's policy for ``overrun = "auto"``.
+
+        Lossless back-pressure for a file (and a live driver with a buffer of its own), the
+        oldest frames dropped for a live device (it cannot wait).
+        """
         return "drop-oldest" if self.live and not self.buffered else "block"
 
 
 def given(options: Mapping[str, Any], names: Mapping[str, str]) -> dict[str, Any]:
-    """The options a scene sets, renamed to a driver's keyword arguments (``{scene key: argument}``);
-    an option left at None is not passed, so that the driver's own default applies (its one home)."""
+    """Return the options a scene sets, renamed to a driver's keyword arguments.
+
+    ``names`` maps ``{scene key: argument}``. An option left at None is not passed, so that the
+    driver's own default applies (its one home).
+    """
     return {arg: options[key] for key, arg in names.items() if options.get(key) is not None}

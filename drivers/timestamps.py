@@ -1,5 +1,6 @@
-"""What lies between one block of a stream and the next, judged from their timestamps on the sender's
-sample clock: nothing, jitter, lost samples to fill, a backlog pushed late, or a restart.
+"""What lies between one block of a stream and the next, judged from their stamps on the sender's sample clock.
+
+It is nothing, jitter, lost samples to fill, a backlog pushed late, or a restart.
 
 Pure functions of the blocks' sizes and stamps (no device, no clock of their own), so that they are
 tested alone: :class:`ClockSteps` for a live stream (the LSL inlet, the ROS 2 subscriber), whose stamps
@@ -45,8 +46,10 @@ class Step:
 
 
 class TimestampSteps:
-    """Judges the step between consecutive blocks of a stream from their first and last
-    timestamps (seconds, any clock): a pure function of the stamps, so that it is tested alone.
+    """Judges the step between consecutive blocks of a stream from their first and last timestamps.
+
+    The timestamps are seconds, on any clock: a pure function of the stamps, so that it is
+    tested alone.
 
     Parameters
     ----------
@@ -61,7 +64,7 @@ class TimestampSteps:
         self.last: float | None = None
 
     def step(self, first: float, last: float) -> Step:
-        """The step before a block whose samples are stamped ``first`` .. ``last``."""
+        """Return the step before a block whose samples are stamped ``first`` .. ``last``."""
         before, self.last = self.last, last
         if before is None:
             return Step("first")
@@ -82,8 +85,9 @@ ENVELOPE_SECONDS = 2.0
 
 
 class ClockSteps:
-    """Judges, on the sender's sample clock, what lies before each block of a stream: a pure
-    function of the blocks' sizes and stamps, so that it is tested alone.
+    """Judges, on the sender's sample clock, what lies before each block of a stream.
+
+    A pure function of the blocks' sizes and stamps, so that it is tested alone.
 
     The clock model is the line ``t = E + index / rate``: ``E`` the lower envelope of the
     accepted blocks' ``last stamp - last index / rate`` over the last :data:`ENVELOPE_SECONDS`
@@ -135,9 +139,11 @@ class ClockSteps:
         self._envelope.append((self.index - 1, last - (self.index - 1) / self.rate))
 
     def add(self, n: int, first: float, last: float) -> list[Step]:
-        """Take a block of ``n`` samples stamped ``first`` .. ``last`` (seconds); returns the
-        steps of the blocks judged now, oldest first: one per block, in the order they came
-        (none while a step is being judged)."""
+        """Take a block of ``n`` samples stamped ``first`` .. ``last`` (seconds).
+
+        Returns the steps of the blocks judged now, oldest first: one per block, in the order
+        they came (none while a step is being judged).
+        """
         if n < 1:
             raise InputError(f"a block has at least one sample, got {n!r}")
         e = self._intercept()
@@ -169,16 +175,22 @@ class ClockSteps:
         return []
 
     def flush(self) -> list[Step]:
-        """A verdict on every held block now (the stream went silent, or ended): a gap of their
-        smallest offset where it exceeds the tolerance, else a backlog."""
+        """Return a verdict on every held block now (the stream went silent, or ended).
+
+        The verdict is a gap of their smallest offset where it exceeds the tolerance, else a
+        backlog.
+        """
         steps: list[Step] = []
         while self._held:
             steps += self._release(min(h[3] for h in self._held))
         return steps
 
     def _release(self, offset: float) -> list[Step]:
-        """The first held block's step (``offset``: seconds missing before it); the blocks held
-        after it are judged again, on the line it leaves."""
+        """Release the held blocks: return the first one's step (``offset``: seconds missing before it).
+
+        The blocks held after it are judged again, on the line it leaves, and their steps
+        returned too.
+        """
         held, self._held = self._held, []
         fill = int(round(offset * self.rate)) if offset > self.tolerance else 0
         if fill and offset > self.max_gap:
@@ -200,16 +212,18 @@ class ClockSteps:
         return steps
 
     def _restart(self, n: int, last: float, residual: float) -> Step:
-        """A step that cannot be filled: the clock model starts again with this block."""
+        """Return a step that cannot be filled: the clock model starts again with this block."""
         self._envelope = []
         self._accept(n, last)
         return Step("back" if residual < 0 else "long", residual)
 
 
 class StampedBlocks:
-    """A live stream's samples as :class:`~supramodal.drivers.base.Block`, each with the step before it
-    (:class:`ClockSteps`'): a gap filled with zeros, a restart marked, a backlog dated on the sample clock,
-    each counted and said. What the LSL inlet and the ROS 2 subscriber share.
+    """A live stream's samples as :class:`~supramodal.drivers.base.Block`, each with the step before it.
+
+    The steps are :class:`ClockSteps`': a gap filled with zeros, a restart marked, a backlog
+    dated on the sample clock, each counted and said. What the LSL inlet and the ROS 2
+    subscriber share.
 
     Parameters
     ----------
@@ -243,8 +257,10 @@ class StampedBlocks:
         self.last_stamp = -math.inf
 
     def block(self, data: np.ndarray, last: float, arrival: float, step: Step) -> Block:
-        """The block of ``data`` (samples x channels) whose last sample is stamped ``last`` (host seconds)
-        and which came at ``arrival``, after the step ``step``."""
+        """Return the block of ``data`` (samples x channels), after the step ``step``.
+
+        Its last sample is stamped ``last`` (host seconds), and it came at ``arrival``.
+        """
         start, fill = self.frames, 0
         restarts: tuple[int, ...] = ()
         if step.kind == "gap":

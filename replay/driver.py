@@ -79,8 +79,10 @@ SPEED_HELP = (f'1.0 (real time), a factor from {SPEED_RANGE[0]:g} to {SPEED_RANG
 
 
 def is_speed(v: Any) -> bool:
-    """Whether ``v`` is a replay speed a scene may ask for: :data:`SPEED_MAX` or a number within
-    :data:`SPEED_RANGE`."""
+    """Whether ``v`` is a replay speed a scene may ask for.
+
+    That is :data:`SPEED_MAX` or a number within :data:`SPEED_RANGE`.
+    """
     return v == SPEED_MAX or is_number(v) and SPEED_RANGE[0] <= v <= SPEED_RANGE[1]
 
 
@@ -165,6 +167,7 @@ class RandomBlockSizes:
         self.low, self.high = int(low), int(high)
 
     def __call__(self, rng: np.random.Generator) -> int:
+        """Draw one block size from ``rng``, frames in ``[low, high]``."""
         return int(rng.integers(self.low, self.high + 1))
 
     def __repr__(self) -> str:
@@ -181,7 +184,7 @@ def _is_count(v: object) -> TypeGuard[numbers.Integral]:
 
 
 def _log_notice(message: str) -> None:
-    """The default ``on_notice``: the package logger's ``supramodal.drivers.replay`` (INFO)."""
+    """Log ``message`` on the package logger's ``supramodal.drivers.replay`` (INFO): the default ``on_notice``."""
     _LOG.info(message)
 
 
@@ -399,7 +402,8 @@ class ReplayDriver(DriverBase):
         """-> (data (n, ch) float64, rate, labels, filled mask or None, marks, name, arrivals or None).
 
         ``need_session``: a path is read as a session even without its sidecar (timing "recorded"
-        needs the sidecar's arrivals: its absence is then said as such)."""
+        needs the sidecar's arrivals: its absence is then said as such).
+        """
         if isinstance(source, Session):
             # A Session may be built by hand: check its samples like any array.
             data, rate, _, _, _, _, _ = self._load((source.data, source.rate))
@@ -441,8 +445,10 @@ class ReplayDriver(DriverBase):
 
     def _recorded_blocks(self, arrivals: tuple[np.ndarray, np.ndarray, float] | None, up: int, down: int,
                          block_given: bool, device_clock: DeviceClock | None) -> tuple[np.ndarray, np.ndarray, float]:
-        """The session's block ends, arrival times and clock rate, for ``timing="recorded"``; the
-        last block reaches the end of the data (its time the last one recorded)."""
+        """Return the session's block ends, arrival times and clock rate, for ``timing="recorded"``.
+
+        The last block reaches the end of the data (its time the last one recorded).
+        """
         if arrivals is None:
             raise ReplayError(f"{self.name}: timing = 'recorded' needs a session recorded by a node of several "
                               "sources (its sidecar's 'arrivals'); this source has none: use timing = 'nominal'")
@@ -532,8 +538,10 @@ class ReplayDriver(DriverBase):
 
     @property
     def opened_at(self) -> float:
-        """Host monotonic time of the last ``open()``, seconds: a paced stream's schedule (and a
-        :class:`DeviceClock`'s start) counts from it."""
+        """Host monotonic time of the last ``open()``, seconds.
+
+        A paced stream's schedule (and a :class:`DeviceClock`'s start) counts from it.
+        """
         return self._t0
 
     # passes, period and labels: DriverBase's defaults are plain class attributes, which a driver with
@@ -551,8 +559,10 @@ class ReplayDriver(DriverBase):
         return math.inf if self._passes is None else self._passes * self._data.shape[0]
 
     def release_time(self, end_frame: int) -> float:
-        """:func:`release_time` of a block ending at ``end_frame`` since the last ``open()`` (on
-        the device's own clock, before its delivery delay, with a :class:`DeviceClock`)."""
+        """:func:`release_time` of a block ending at ``end_frame`` since the last ``open()``.
+
+        With a :class:`DeviceClock`, on the device's own clock, before its delivery delay.
+        """
         c = self.device_clock
         if self._arrivals is not None:
             frames, seconds = self._arrivals
@@ -643,8 +653,10 @@ class ReplayDriver(DriverBase):
         return block
 
     def _marks_in(self, pos: int, size: int, kind: str) -> tuple[int, ...]:
-        """Offsets within the block ``[pos, pos + size)`` of the session's marks of ``kind``, on every
-        pass of a looped source."""
+        """Offsets within the block ``[pos, pos + size)`` of the session's marks of ``kind``.
+
+        Marks on every pass of a looped source count.
+        """
         n = self._data.shape[0]
         out: list[int] = []
         for frame, k in self._marks:
@@ -736,7 +748,7 @@ class ReplayDriver(DriverBase):
 # -- as a scene names it ---------------------------------------------------------------------------
 
 def speed_key() -> Key:
-    """The ``speed`` key of a paced source (its default: the replay driver's)."""
+    """Return the ``speed`` key of a paced source (its default: the replay driver's)."""
     return Key(is_speed, SPEED_HELP + " (default: the replay driver's)", None)
 
 
@@ -745,13 +757,15 @@ MAX_BLOCK = 2**20
 
 
 def block_key() -> Key:
-    """The ``block`` key of a paced source, frames per block (its default: 10 ms)."""
+    """Return the ``block`` key of a paced source, frames per block (its default: 10 ms)."""
     return Key(integer(1, MAX_BLOCK), f"frames per block, 1..{MAX_BLOCK} (default: the replay driver's)", None)
 
 
 def pacing(options: Mapping[str, Any], context: BuildContext) -> dict[str, Any]:
-    """The replay driver's ``speed`` and ``block_size`` arguments from a scene's options (the
-    command line's ``--speed`` first); absent ones keep the driver's defaults."""
+    """Return the replay driver's ``speed`` and ``block_size`` arguments from a scene's options.
+
+    The command line's ``--speed`` comes first; absent ones keep the driver's defaults.
+    """
     speed = context.speed if context.speed is not None else options.get("speed")
     return given({**options, "speed": speed}, {"speed": "speed", "block": "block_size"})
 

@@ -1,6 +1,7 @@
-"""A rosbag2 of a robot's sensor topics (MCAP, the default since ROS 2 Iron, or sqlite3; a ROS 1 bag
-too), read as recorded streams: what ``supramodal import-recording --bag`` turns into a replayable
-graph recording.
+"""A rosbag2 of a robot's sensor topics, read as recorded streams.
+
+The bag is MCAP (the default since ROS 2 Iron) or sqlite3, or a ROS 1 bag too: what
+``supramodal import-recording --bag`` turns into a replayable graph recording.
 
 Read by ``rosbags`` (pure Python, in the ``ros2`` extra; no ROS installation needed). Each sensor topic
 holds the messages the ``ros2`` driver reads (:data:`supramodal.drivers.ros2.MESSAGES`: a
@@ -40,7 +41,7 @@ LABEL_TYPE = "std_msgs/msg/String"
 
 
 def import_rosbags() -> ModuleType:
-    """The ``rosbags.highlevel`` module, or a :class:`ReplayError` saying what to install."""
+    """Return the ``rosbags.highlevel`` module, or raise a :class:`ReplayError` saying what to install."""
     try:
         with held_interrupts():
             import rosbags.highlevel as highlevel
@@ -50,8 +51,10 @@ def import_rosbags() -> ModuleType:
 
 
 def _channels(kind: str, msg: Any) -> int:
-    """The channels a message says it has: an image's width, a layout's second dimension, else 1 (a
-    flat array of one channel)."""
+    """Return the channels a message says it has.
+
+    That is an image's width, a layout's second dimension, else 1 (a flat array of one channel).
+    """
     if kind == "sensor_msgs/msg/Image":
         return int(msg.width)
     dims = msg.layout.dim
@@ -60,8 +63,9 @@ def _channels(kind: str, msg: Any) -> int:
 
 def bag_streams(path: str | os.PathLike[str], topics: Mapping[str, float],
                 labels: str | None = None) -> list[dict[str, Any]]:
-    """The topics of a bag as streams in the XDF reader's form (``info``, ``time_series``,
-    ``time_stamps``), each named by its topic, for :func:`supramodal.replay.xdf.xdf_session`.
+    """Read the topics of a bag as streams in the XDF reader's form, for :func:`supramodal.replay.xdf.xdf_session`.
+
+    Each stream is a dict of ``info``, ``time_series`` and ``time_stamps``, named by its topic.
 
     Parameters
     ----------

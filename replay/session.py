@@ -115,7 +115,7 @@ class Label:
     label: str
 
     def shifted(self, seconds: float) -> Label:
-        """The same label moved later by ``seconds``."""
+        """Return the same label moved later by ``seconds``."""
         return Label(self.start + seconds, self.end + seconds, self.label)
 
 
@@ -160,10 +160,12 @@ class Session:
 
     @property
     def frames(self) -> int:
+        """Frames in the session (rows of ``data``)."""
         return int(self.data.shape[0])
 
     @property
     def channels(self) -> int:
+        """Channels per frame (columns of ``data``)."""
         return int(self.data.shape[1])
 
     @property
@@ -180,7 +182,7 @@ class Session:
 
 
 def session_paths(path: str | os.PathLike[str]) -> tuple[Path, Path]:
-    """The ``(NAME.wav, NAME.json)`` pair for ``NAME``, ``NAME.wav`` or ``NAME.json``."""
+    """Return the ``(NAME.wav, NAME.json)`` pair for ``NAME``, ``NAME.wav`` or ``NAME.json``."""
     p = Path(path)
     if p.suffix.lower() in (".wav", ".json"):
         p = p.with_suffix("")
@@ -318,9 +320,10 @@ def validate_sidecar(meta: Any, *, rate: int, channels: int, frames: int,
 
 def validate_arrivals(raw: Any, frames: int, where: str = "sidecar", marks: Iterable[tuple[int, str]] = (),
                       times: bool = True) -> tuple[np.ndarray, np.ndarray, float]:
-    """Check a sidecar's ``arrivals``: ``{"frames": [...], "seconds": [...], "rate": r}``, the
-    arrays of equal length >= 1, frames integers ascending in ``(0, frames]``, seconds finite and
-    non-decreasing, the rate a positive number.
+    """Check a sidecar's ``arrivals``: ``{"frames": [...], "seconds": [...], "rate": r}``.
+
+    The arrays must be of equal length >= 1, frames integers ascending in ``(0, frames]``,
+    seconds finite and non-decreasing, the rate a positive number.
 
     With ``times`` (the default; :func:`load_session`), the times must also agree with the frames
     and the rate: for any two blocks ``j < k`` with no mark (``marks``: the sidecar's restarts
@@ -385,7 +388,7 @@ def validate_arrivals(raw: Any, frames: int, where: str = "sidecar", marks: Iter
 
 def _check_arrival_times(fa: np.ndarray, ta: np.ndarray, rate: float, marks: Iterable[tuple[int, str]],
                          bad: _Complaint) -> None:
-    """The consistency rule of :func:`validate_arrivals`, in O(blocks)."""
+    """Check the consistency rule of :func:`validate_arrivals`, in O(blocks)."""
     with np.errstate(over="ignore", invalid="ignore"):
         nominal = fa / rate                     # when each block ends by its frames, seconds
     if not np.all(np.isfinite(nominal)):
@@ -537,9 +540,12 @@ def load_session(path: str | os.PathLike[str]) -> Session:
 
 
 def missing_sidecar(path: str | os.PathLike[str]) -> MissingSidecarError:
-    """The error for a session whose sidecar ``NAME.json`` is not there: it names the file, what
-    is lost without it and how to get it back (a caller that needs a session, such as a replay
-    with ``timing = "recorded"``, raises it rather than playing the bare WAV)."""
+    """Return the error for a session whose sidecar ``NAME.json`` is not there.
+
+    It names the file, what is lost without it and how to get it back (a caller that needs a
+    session, such as a replay with ``timing = "recorded"``, raises it rather than playing the
+    bare WAV).
+    """
     wav, js = session_paths(path)
     have = f"beside {wav.name}" if wav.exists() else f"and so is {wav.name}"
     return MissingSidecarError(
@@ -570,8 +576,10 @@ def _label_dict(item: Label | Mapping[str, Any] | tuple[float, float, str]) -> d
 
 
 def sidecar_text(meta: dict[str, Any]) -> str:
-    """The sidecar as written: indented JSON, with the block ``arrivals`` on one compact line
-    each (one number per line would double their size)."""
+    """Return the sidecar as written: indented JSON, with the block ``arrivals`` on one compact line each.
+
+    One number per line would double their size.
+    """
     head = {k: v for k, v in meta.items() if k != "arrivals"}
     text = json.dumps(head, indent=1, allow_nan=False)
     if "arrivals" in meta:

@@ -298,7 +298,7 @@ def read_wav(path: str | os.PathLike[str]) -> tuple[np.ndarray, int]:
 
 
 def as_frames(data: ArrayLike) -> np.ndarray:
-    """Samples as float64 frames, shape (frames, channels); a 1-D array is one channel.
+    """Return samples as float64 frames, shape (frames, channels); a 1-D array is one channel.
 
     Raises
     ------

@@ -84,7 +84,7 @@ XdfStream = dict[str, Any]
 
 
 def import_pyxdf() -> ModuleType:
-    """The pyxdf module, or :class:`DeviceUnavailable` saying what to install."""
+    """Return the pyxdf module, or raise :class:`DeviceUnavailable` saying what to install."""
     try:
         with held_interrupts():
             import pyxdf
@@ -128,11 +128,14 @@ _CHANNEL_COUNT = re.compile(rb"<channel_count>\s*([^<]*?)\s*</channel_count>")
 
 
 def check_xdf_headers(path: Path) -> None:
-    """Refuse a file whose stream headers declare more than :data:`MAX_XDF_CHANNELS` channels, or a count that
-    is no whole number, or one of whose Samples chunks declares more samples than its bytes can hold, before
-    pyxdf reads it: pyxdf sizes its buffers from those counts (a 306-byte file declaring 1e9 channels took
-    12.7 GB). Walks the chunks' lengths only (seeking past the samples); a chunk structure it cannot follow is
-    left for pyxdf to refuse."""
+    """Refuse, before pyxdf reads it, a file whose headers declare channel or sample counts out of bounds.
+
+    That is a file whose stream headers declare more than :data:`MAX_XDF_CHANNELS` channels, or
+    a count that is no whole number, or one of whose Samples chunks declares more samples than
+    its bytes can hold: pyxdf sizes its buffers from those counts (a 306-byte file declaring 1e9
+    channels took 12.7 GB). Walks the chunks' lengths only (seeking past the samples); a chunk
+    structure it cannot follow is left for pyxdf to refuse.
+    """
     size = path.stat().st_size
     channels: dict[int, int] = {}                               # by StreamId, as their headers declare
     with path.open("rb") as f:
@@ -180,10 +183,12 @@ def check_xdf_headers(path: Path) -> None:
 
 
 def load_xdf_streams(path: str | os.PathLike[str]) -> list[XdfStream]:
-    """Every stream of an XDF file, timestamps on the recorder's clock: a list of pyxdf's stream
-    dicts. :class:`DeviceUnavailable` if the file is missing; :class:`ReplayError` if it cannot be
+    """Every stream of an XDF file, timestamps on the recorder's clock: a list of pyxdf's stream dicts.
+
+    :class:`DeviceUnavailable` if the file is missing; :class:`ReplayError` if it cannot be
     read as XDF (also when pyxdf found nothing but damage). pyxdf's log stays off the terminal; a
-    file read only by skipping damaged chunks gives an :class:`XdfDamageWarning`."""
+    file read only by skipping damaged chunks gives an :class:`XdfDamageWarning`.
+    """
     pyxdf = import_pyxdf()
     path = Path(path)
     if not path.is_file():
@@ -218,7 +223,7 @@ def load_xdf_streams(path: str | os.PathLike[str]) -> list[XdfStream]:
 
 
 def _said(record: logging.LogRecord) -> str:
-    """A pyxdf log record in one line, with the exception it carries."""
+    """Return a pyxdf log record in one line, with the exception it carries."""
     text = record.getMessage().strip()
     if record.exc_info and record.exc_info[1] is not None:
         text += f" ({type(record.exc_info[1]).__name__}: {record.exc_info[1]})"
@@ -314,7 +319,7 @@ def xdf_session(path: str | os.PathLike[str], name: str | None = None, stream_ty
 
 
 def _marker_stream(streams: list[XdfStream], name: str, path: Path) -> XdfStream:
-    """The one marker stream called ``name``: irregular, one string channel."""
+    """Return the one marker stream called ``name``: irregular, one string channel."""
     found = [s for s in streams if _matches(s.get("info", {}), {"name": name})]
     if len(found) != 1:
         have = "; ".join(_describe(s.get("info", {})) for s in streams) or "no stream"
@@ -328,8 +333,9 @@ def _marker_stream(streams: list[XdfStream], name: str, path: Path) -> XdfStream
 
 
 def marker_labels(markers: XdfStream, stamps: np.ndarray, rate: float, where: str = "labels") -> tuple[Label, ...]:
-    """Truth labels from a marker stream, in the seconds of the stream whose samples are stamped
-    ``stamps`` (after :func:`fill_gaps`).
+    """Truth labels from a marker stream, in the seconds of the stream whose samples are stamped ``stamps``.
+
+    The stamps are those after :func:`fill_gaps`.
 
     Each marker's text starts a label at the first sample stamped at or after the marker, which
     runs until the next marker (or the end of the stream); a marker whose text is empty ends the
@@ -406,9 +412,11 @@ def fill_gaps(data: np.ndarray, stamps: np.ndarray, rate: float, tolerance: floa
 
 def _steps(stamps: np.ndarray, rate: float, tolerance: float = DEFAULT_GAP_TOLERANCE,
            max_gap: float = DEFAULT_MAX_GAP) -> list[tuple[int, str, int]]:
-    """The steps of ``stamps`` that :func:`fill_gaps` acts on: ``(i, kind, missing)`` for the
-    step between sample ``i`` and ``i + 1``, ``kind`` ``"gap"`` (``missing`` samples to fill) or
-    a restart (``"long"``, ``"back"``; ``missing`` 0), judged as the live inlet judges them."""
+    """Return the steps of ``stamps`` that :func:`fill_gaps` acts on, judged as the live inlet judges them.
+
+    Each is ``(i, kind, missing)`` for the step between sample ``i`` and ``i + 1``, ``kind``
+    ``"gap"`` (``missing`` samples to fill) or a restart (``"long"``, ``"back"``; ``missing`` 0).
+    """
     steps = np.diff(stamps)
     # The live inlet's judge, on each step that is not within the tolerance of one period.
     judge = TimestampSteps(rate, tolerance, max_gap)
@@ -437,10 +445,12 @@ CLOCK_FIT_SECONDS = 1.0
 
 
 def _clock_offset(stamps: np.ndarray, a: int, b: int, rate: float, near_start: bool) -> float:
-    """The sender's sample clock over samples ``a .. b`` (no gap between them), as ``t - i / rate``
-    at ``i = 0``: the median over the :data:`CLOCK_FIT_SECONDS` of them nearest the gap (the first
-    ones when ``near_start``, else the last), robust to the stamps' jitter (a rate 100 ppm off
-    moves it 0.1 ms over that second)."""
+    """Return the sender's sample clock over samples ``a .. b`` (no gap between them), as ``t - i / rate`` at ``i = 0``.
+
+    It is the median over the :data:`CLOCK_FIT_SECONDS` of them nearest the gap (the first ones
+    when ``near_start``, else the last), robust to the stamps' jitter (a rate 100 ppm off moves
+    it 0.1 ms over that second).
+    """
     n = max(1, int(CLOCK_FIT_SECONDS * rate))
     idx = np.arange(a, min(b, a + n)) if near_start else np.arange(max(a, b - n), b)
     return float(np.median(stamps[idx] - idx / rate))
@@ -452,10 +462,13 @@ def _full_scale(dtype: DTypeLike) -> float:
 
 
 def _check_stamps_fit_rate(stamps: np.ndarray, rate: float, where: str) -> None:
-    """Refuse timestamps that say another rate than ``rate`` (the header's ``nominal_srate``) by more
-    than :data:`RATE_MISMATCH` either way: faster over the whole stream (its samples per second of stamps;
-    gaps only make that slower), or slower step by step (the median step; gaps leave it alone). Read at a
-    wrong rate, every step is a restart or a filled gap."""
+    """Refuse timestamps that say another rate than ``rate`` (the header's ``nominal_srate``).
+
+    Refused by more than :data:`RATE_MISMATCH` either way: faster over the whole stream (its
+    samples per second of stamps; gaps only make that slower), or slower step by step (the
+    median step; gaps leave it alone). Read at a wrong rate, every step is a restart or a filled
+    gap.
+    """
     if stamps.size < 3:
         return
     span = float(stamps[-1] - stamps[0])
@@ -471,7 +484,7 @@ def _check_stamps_fit_rate(stamps: np.ndarray, rate: float, where: str) -> None:
 
 
 def _session_rate(rate: float, where: str) -> int:
-    """A session's rate is whole Hz from 1 to :data:`MAX_XDF_RATE`; any other nominal rate is refused."""
+    """Return a stream's nominal rate as a session's: whole Hz from 1 to :data:`MAX_XDF_RATE`; any other is refused."""
     if not (math.isfinite(rate) and 1 <= rate <= MAX_XDF_RATE):
         raise ReplayError(f"{where}: nominal_srate {rate:g} Hz is out of range: the node replays streams of 1 to "
                           f"{MAX_XDF_RATE} Hz (MAX_XDF_RATE); this header is damaged or the stream is not a sensor's "
@@ -483,12 +496,15 @@ def _session_rate(rate: float, where: str) -> int:
 
 
 def _arrivals(seconds: np.ndarray, rate: float, cuts: Iterable[int] = ()) -> tuple[np.ndarray, np.ndarray, float]:
-    """Blocks of :data:`XDF_BLOCK_SECONDS`, also cut at ``cuts`` (restart frames: no block
-    spans one, so none of its frames is timed by the line after it): each one's end frame and the
-    time of its last sample (never earlier than the block's before), and the rate the timestamps show over the whole
-    stream (a least-squares line; the nominal rate for a stream too short to show one). The node's
+    """Cut the stream into blocks of :data:`XDF_BLOCK_SECONDS`, also at ``cuts``, and time them.
+
+    ``cuts`` are restart frames: no block spans one, so none of its frames is timed by the line
+    after it. Returns each block's end frame and the time of its last sample (never earlier
+    than the block's before), and the rate the timestamps show over the whole stream (a
+    least-squares line; the nominal rate for a stream too short to show one). The node's
     clock model starts from that rate, so the first windows are on time too, before the model
-    has seen enough blocks to find a drift of tens of ppm itself."""
+    has seen enough blocks to find a drift of tens of ppm itself.
+    """
     n = seconds.size
     step = max(1, int(round(XDF_BLOCK_SECONDS * rate)))
     ends = np.unique(np.r_[np.arange(step, n, step), [c for c in cuts if 0 < c < n], n]).astype(np.int64)

@@ -54,6 +54,7 @@ class ReferenceFilterbank(FilterbankBase):
         self.reset()
 
     def reset(self) -> None:
+        """Return to rest: zero every channel's filter delays, as if no sample had been seen."""
         # Per channel: the numerator section's 3 delays, then one delay per further pole.
         self._zi = [[np.zeros(3, complex), np.zeros(1, complex), np.zeros(1, complex), np.zeros(1, complex)]
                     for _ in range(self.channels)]
@@ -79,7 +80,7 @@ class ReferenceFilterbank(FilterbankBase):
 
 def make_filterbank(bank: Bank, backend: str = "fast", dtype=np.float64, nonfinite: str = "raise",
                     **kwargs) -> FilterbankBase:
-    """A filterbank of the named backend (``"fast"`` or ``"reference"``).
+    """Return a filterbank of the named backend (``"fast"`` or ``"reference"``).
 
     ``kwargs`` go to the backend (``subblock`` for the fast form).
     """

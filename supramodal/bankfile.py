@@ -75,7 +75,7 @@ BANK_KEYS = {
 
 
 def bank_from_description(d, where: str = "bank") -> Bank:
-    """The :class:`~supramodal.banks.Bank` a description names (module docstring).
+    """Return the :class:`~supramodal.banks.Bank` a description names (module docstring).
 
     Raises
     ------

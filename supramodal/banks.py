@@ -161,7 +161,7 @@ class Bank:
             raise InputError(f"malformed bank description: {exc!r}; expected keys kind, fs, cf, b, names") from exc
 
     def matches(self, other: Bank) -> bool:
-        """True if both banks filter identically (same rate, cf and b to 1e-12, same names)."""
+        """Tell whether both banks filter identically (same rate, cf and b to 1e-12, same names)."""
         return (
             self.channels == other.channels
             and bool(np.isclose(self.fs, other.fs, rtol=1e-12, atol=0))
@@ -177,12 +177,12 @@ def erb(fc, q_ear: float = COCHLEA_Q_EAR, b_min: float = COCHLEA_B_MIN):
 
 
 def slaney_bandwidth(b):
-    """The paper's bandwidth figure ``B = 2 pi b`` (rad/s, quoted as "Hz" in the paper)."""
+    """Return the paper's bandwidth figure ``B = 2 pi b`` (rad/s, quoted as "Hz" in the paper)."""
     return 2 * np.pi * np.asarray(b, dtype=np.float64)
 
 
 def half_power_width(b, order: int = 4):
-    """True -3 dB width of an order-``order`` gammatone of bandwidth parameter ``b``, Hz.
+    """Return the true -3 dB width of an order-``order`` gammatone of bandwidth parameter ``b``, Hz.
 
     For a gammatone the magnitude near fc is ``(1 + ((f - fc)/b)**2) ** (-order/2)``,
     so the half-power width is ``2 b sqrt(2**(1/order) - 1)`` (0.87 b at order 4).
@@ -215,7 +215,7 @@ def erb_space(f_low: float, f_high: float, n: int, q_ear: float = COCHLEA_Q_EAR,
 
 def cochlea_bank(n: int = 50, f_low: float = 20.0, f_high: float = 20000.0,
                  fs: float = COCHLEA_RATE) -> Bank:
-    """The paper's cochlea: ``n`` channels ERB-spaced over [f_low, f_high), Glasberg-Moore bandwidths.
+    """Return the paper's cochlea: ``n`` channels ERB-spaced over [f_low, f_high), Glasberg-Moore bandwidths.
 
     Channels are ordered by ascending centre frequency (``ch00`` lowest).
     """
@@ -235,7 +235,7 @@ def cochlea_bank(n: int = 50, f_low: float = 20.0, f_high: float = 20000.0,
 
 def whisker_bank(rows: Sequence[str] | str = WHISKER_ROWS, mean_B: float | None = None,
                  fs: float = WHISKER_RATE) -> Bank:
-    """The whisker array: the reconstructed table's vibrissae, row by row.
+    """Return the whisker array: the reconstructed table's vibrissae, row by row.
 
     Parameters
     ----------

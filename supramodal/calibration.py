@@ -1,5 +1,7 @@
-"""Confidence that means what it says: calibrated posteriors of one window and of a contact,
-the measures of calibration, and a novelty score for textures the model never met.
+"""Confidence that means what it says: calibrated posteriors, their measures, and novelty.
+
+Calibrated posteriors of one window and of a contact, the measures of calibration, and a
+novelty score for textures the model never met.
 
 The network (:mod:`supramodal.mlp`) ends in logistic units trained towards 0 and 1 with FANN's
 tanh error, which drives their pre-activations (the *logits* ``z``) to hundreds: the outputs of
@@ -115,9 +117,11 @@ def normalised_log_posteriors(logits) -> np.ndarray:
 
 
 def winner(log_posteriors) -> np.ndarray:
-    """Winner-take-all per row of ``log_posteriors`` (..., classes): the class index, or -1 where
-    the largest value is shared by several classes (a tie is no decision; it is never broken by
-    the classes' order)."""
+    """Winner-take-all per row of ``log_posteriors`` (..., classes): the class index, or -1 on a tie.
+
+    A tie is a largest value shared by several classes: it is no decision, and it is never
+    broken by the classes' order.
+    """
     lp = np.asarray(log_posteriors, dtype=np.float64)
     k = np.argmax(lp, axis=-1)
     top = np.take_along_axis(lp, k[..., None], axis=-1)
@@ -126,8 +130,9 @@ def winner(log_posteriors) -> np.ndarray:
 
 
 def effective_windows(n, correlation: float) -> np.ndarray:
-    """Independent windows worth ``n`` consecutive windows whose correlation at lag ``k`` is
-    ``correlation ** k``: ``n / (1 + 2 sum_{k=1}^{n-1} (1 - k/n) rho^k)``, in closed form.
+    """Independent windows worth ``n`` consecutive windows whose correlation at lag ``k`` is ``correlation ** k``.
+
+    That is ``n / (1 + 2 sum_{k=1}^{n-1} (1 - k/n) rho^k)``, in closed form.
 
     1 for ``n = 1`` whatever ``rho``; ``n`` for ``rho = 0``; 1 for ``rho = 1``.
     """
@@ -148,9 +153,11 @@ def effective_windows(n, correlation: float) -> np.ndarray:
 
 
 def pool_log_posteriors(log_posteriors, correlation: float, caps=None) -> np.ndarray:
-    """Pooled log-posteriors of the windows ``log_posteriors`` (n, classes) of one contact:
-    ``log_softmax(g(n) sum_t log p_t)``, ``g(n) = effective_windows(n, correlation) / n``; with
-    ``caps`` (a calibration's contact caps), :func:`cap_gaps` of it instead. Shape (classes,)."""
+    """Pooled log-posteriors of the windows ``log_posteriors`` (n, classes) of one contact, shape (classes,).
+
+    The pool is ``log_softmax(g(n) sum_t log p_t)``, ``g(n) = effective_windows(n, correlation) / n``;
+    with ``caps`` (a calibration's contact caps), :func:`cap_gaps` of it instead.
+    """
     lp = np.asarray(log_posteriors, dtype=np.float64)
     n = lp.shape[0]
     if n == 0:
@@ -160,8 +167,9 @@ def pool_log_posteriors(log_posteriors, correlation: float, caps=None) -> np.nda
 
 
 def cap_gaps(scores, caps) -> np.ndarray:
-    """Log-posteriors ``log_softmax`` of ``scores`` (..., classes) whose gaps to each row's winner
-    are capped per pair of classes.
+    """Log-posteriors ``log_softmax`` of ``scores`` (..., classes), each row's gaps to its winner capped.
+
+    The caps are per pair of classes.
 
     With ``k`` the row's winner (its largest score) and ``d_j = s_k - s_j >= 0`` its lead over
     class ``j``, the lead becomes ``d_j / (1 + (d_j / L_kj) ** q) ** (1 / q)`` (``q`` =
@@ -184,12 +192,14 @@ def cap_gaps(scores, caps) -> np.ndarray:
 
 
 def confusion_caps(predicted, labels, n_classes: int) -> np.ndarray:
-    """Caps per pair of classes from held-out decisions: ``L[k, j] = log((N[k, k] + 1) / (N[j, k] + 1))``,
-    ``N[t, p]`` the count of held-out decisions for ``p`` of class ``t`` (Laplace's +1), at least
-    :data:`CAP_FLOOR`; the diagonal 0 (no cap of a class against itself).
+    """Caps per pair of classes from held-out decisions: ``L[k, j] = log((N[k, k] + 1) / (N[j, k] + 1))``.
+
+    ``N[t, p]`` is the count of held-out decisions for ``p`` of class ``t`` (Laplace's +1); each
+    cap is at least :data:`CAP_FLOOR`, the diagonal 0 (no cap of a class against itself).
 
     ``exp(L[k, j])`` estimates the odds of ``k`` against ``j`` among the decisions for ``k``: about 1
-    for a pair the model cannot tell apart, large for a pair it never confuses."""
+    for a pair the model cannot tell apart, large for a pair it never confuses.
+    """
     n = np.zeros((n_classes, n_classes))
     np.add.at(n, (np.asarray(labels), np.asarray(predicted)), 1.0)
     caps = np.maximum(np.log((np.diag(n)[:, None] + 1.0) / (n.T + 1.0)), CAP_FLOOR)
@@ -198,10 +208,11 @@ def confusion_caps(predicted, labels, n_classes: int) -> np.ndarray:
 
 
 class _Prefixes:
-    """Every prefix of every run of log-posteriors, summed once, so that pooling them at a given
-    correlation is one vectorised step: the pooling fits (:func:`fit_pooling`,
-    :func:`fit_capped_pooling`) pool them at thousands of correlations, and a loop over runs made
-    those fits most of a model's training time.
+    """Every prefix of every run of log-posteriors, summed once.
+
+    Pooling them at a given correlation is then one vectorised step: the pooling fits
+    (:func:`fit_pooling`, :func:`fit_capped_pooling`) pool them at thousands of correlations,
+    and a loop over runs made those fits most of a model's training time.
 
     Parameters
     ----------
@@ -216,7 +227,7 @@ class _Prefixes:
         self._at = self.lengths.astype(np.intp) - 1
 
     def pooled(self, correlation: float) -> np.ndarray:
-        """The pooled log-posteriors of every prefix (prefixes, classes): ``log_softmax(g(n) sum_t log p_t)``."""
+        """Return the pooled log-posteriors of every prefix (prefixes, classes): ``log_softmax(g(n) sum_t log p_t)``."""
         g = effective_windows(self._n, correlation) / self._n
         return log_softmax(self.sums * g[self._at][:, None], axis=1)
 
@@ -228,7 +239,7 @@ def _window_map(logits, temperature: float, scale: float) -> np.ndarray:
 
 
 def fit_window_calibration(logits, labels) -> tuple[float, float]:
-    """``(a, c)`` of ``softmax(a * asinh(z / c))`` minimising the log loss of ``labels``.
+    """Fit ``(a, c)`` of ``softmax(a * asinh(z / c))`` minimising the log loss of ``labels``.
 
     Parameters
     ----------
@@ -267,8 +278,10 @@ def fit_window_calibration(logits, labels) -> tuple[float, float]:
 
 
 def fit_capped_window_calibration(logits, labels) -> tuple[float, float, np.ndarray]:
-    """``(a, c, caps)`` of the capped window map ``cap_gaps(a * asinh(z / c), caps)`` minimising the
-    log loss of ``labels`` (held-out windows, as :func:`fit_window_calibration`).
+    """Fit ``(a, c, caps)`` of the capped window map ``cap_gaps(a * asinh(z / c), caps)``.
+
+    The fit minimises the log loss of ``labels`` (held-out windows, as
+    :func:`fit_window_calibration`).
 
     ``caps = f * confusion_caps(...)`` of the held-out windows' own winners; ``a``, ``c`` and the
     factor ``f`` (in :data:`FACTOR_BOUNDS`) are fitted together, so that the temperature no longer
@@ -315,8 +328,9 @@ def _bounded_caps(caps) -> np.ndarray:
 
 
 def _smoothed_targets(labels, n_classes: int) -> np.ndarray:
-    """Targets of the calibration's log loss: ``1 - eps`` on the true class and ``eps`` shared by
-    the others, ``eps = 1 / (n + 2)`` (Laplace's rule of succession for ``n`` windows).
+    """Targets of the calibration's log loss: ``1 - eps`` on the true class and ``eps`` shared by the others.
+
+    ``eps = 1 / (n + 2)`` (Laplace's rule of succession for ``n`` windows).
 
     Without it, held-out windows that are all right make the most likely calibration infinitely
     sure, and the first wrong window in use costs without bound; with it, ``n`` right windows
@@ -330,8 +344,9 @@ def _smoothed_targets(labels, n_classes: int) -> np.ndarray:
 
 
 def fit_pooling(runs, labels) -> float:
-    """The correlation ``rho`` in [0, 1] of :func:`pool_log_posteriors` that minimises the log loss
-    of every prefix of every run.
+    """Fit the correlation ``rho`` in [0, 1] of :func:`pool_log_posteriors`.
+
+    ``rho`` minimises the log loss of every prefix of every run.
 
     Parameters
     ----------
@@ -355,8 +370,9 @@ def fit_pooling(runs, labels) -> float:
 
 
 def fit_capped_pooling(runs, labels, plain_correlation: float | None = None) -> tuple[float, np.ndarray]:
-    """The correlation ``rho`` and the contact caps of a capped pooling
-    (``cap_gaps(g(n) sum_t log p_t, caps)``) minimising the log loss of every prefix of every run.
+    """Fit the correlation ``rho`` and the contact caps of a capped pooling ``cap_gaps(g(n) sum_t log p_t, caps)``.
+
+    They minimise the log loss of every prefix of every run.
 
     The caps are a factor (fitted with ``rho``) times :func:`confusion_caps` of the winners of the
     runs' prefixes of two windows or more, pooled with :func:`fit_pooling`'s correlation. A pair
@@ -415,8 +431,10 @@ CHANGES_KEPT = 1024
 
 @dataclass(frozen=True)
 class HeldOutChanges:
-    """What a change detector's statistic did on a calibration's held-out windows, so that a node can set
-    its threshold for any rate of false changes (:func:`supramodal.decisions.change_threshold`).
+    """What a change detector's statistic did on a calibration's held-out windows.
+
+    A node can then set its threshold for any rate of false changes
+    (:func:`supramodal.decisions.change_threshold`).
 
     Attributes
     ----------
@@ -454,6 +472,7 @@ class HeldOutChanges:
         return cls(len(stats), tuple(stats[:CHANGES_KEPT]))
 
     def to_dict(self) -> dict:
+        """Return the record as the JSON object a model file's calibration holds (``changes``)."""
         return {"windows": self.windows, "largest": list(self.largest)}
 
 
@@ -534,8 +553,10 @@ class Calibration:
 
     @property
     def contact_pooling(self) -> tuple[float, tuple | None]:
-        """``(rho, caps)`` of this calibration's contact pooling (:func:`pool_log_posteriors`):
-        the capped one where it has contact caps, else ``(correlation, None)``."""
+        """``(rho, caps)`` of this calibration's contact pooling (:func:`pool_log_posteriors`).
+
+        The capped one where it has contact caps, else ``(correlation, None)``.
+        """
         if self.contact_caps is None or self.contact_correlation is None:    # both or neither (__post_init__)
             return self.correlation, None
         return self.contact_correlation, self.contact_caps
@@ -549,6 +570,7 @@ class Calibration:
             raise InputError(f"this calibration's caps are for {len(self.caps)} classes, got {n}")
 
     def to_dict(self) -> dict:
+        """Return the calibration as a model header's ``calibration`` object (:meth:`from_dict` reads it)."""
         d = {"method": CALIBRATION_METHOD, "temperature": self.temperature, "scale": self.scale,
              "correlation": self.correlation, "fitted_on": self.fitted_on}
         for name in ("caps", "contact_caps"):
@@ -562,8 +584,10 @@ class Calibration:
 
     @classmethod
     def from_dict(cls, d, bad, n_classes: int | None = None) -> Calibration:
-        """From a model header's ``calibration`` object; ``bad(message)`` makes the error to raise;
-        ``n_classes``: the model's classes, which caps must match."""
+        """From a model header's ``calibration`` object; ``bad(message)`` makes the error to raise.
+
+        ``n_classes``: the model's classes, which caps must match.
+        """
         if not isinstance(d, dict):
             raise bad("'calibration' must be an object")
         keys = {"method", "temperature", "scale", "correlation", "fitted_on"}
@@ -610,8 +634,11 @@ class Calibration:
 
 
 def _checked_caps(v, name: str) -> tuple:
-    """``v`` as a tuple of tuples of floats, checked: square, >= 2 classes, zero diagonal, every
-    other entry a finite number within :data:`CAP_BOUNDS`."""
+    """``v`` as a tuple of tuples of floats, checked.
+
+    It must be square, of >= 2 classes, with a zero diagonal and every other entry a finite
+    number within :data:`CAP_BOUNDS`.
+    """
     try:
         a = np.array(v, dtype=np.float64)
     except (TypeError, ValueError):
@@ -779,8 +806,10 @@ class Novelty:
         return self.distances(self.warped(x)).min(axis=1)
 
     def pooled_score(self, x) -> float:
-        """Novelty of one contact, its standardised input rows ``x`` (n >= 1, inputs) in any order:
-        ``n * min_k d_k(mean of u)``; one window's equals :meth:`score`."""
+        """Novelty of one contact, its standardised input rows ``x`` (n >= 1, inputs) in any order.
+
+        The score is ``n * min_k d_k(mean of u)``; one window's equals :meth:`score`.
+        """
         u = self.warped(x)
         if u.ndim != 2 or len(u) == 0:
             raise InputError(f"a contact's novelty needs windows (n >= 1, inputs), got shape {u.shape}")
@@ -792,15 +821,20 @@ class Novelty:
         return self.quantiles.ndim == 2
 
     def threshold(self, false_unknown: float) -> float:
-        """The score above which a window is unknown, so that a share ``false_unknown`` of held-out
-        windows of known textures would be called unknown."""
+        """Return the score above which a window is unknown.
+
+        At that threshold a share ``false_unknown`` of held-out windows of known textures would
+        be called unknown.
+        """
         return self._threshold(false_unknown, 1)
 
     def contact_threshold(self, false_unknown: float, windows: int) -> float:
-        """The :meth:`pooled_score` above which a contact of ``windows`` windows is unknown, so that a
-        share ``false_unknown`` of held-out contacts of known textures that long would be (beyond
-        :data:`NOVELTY_RUN` windows, that length's threshold). A model without pooled quantiles
-        (:attr:`pools` false) raises :class:`InputError`."""
+        """Return the :meth:`pooled_score` above which a contact of ``windows`` windows is unknown.
+
+        At that threshold a share ``false_unknown`` of held-out contacts of known textures that
+        long would be (beyond :data:`NOVELTY_RUN` windows, that length's threshold). A model
+        without pooled quantiles (:attr:`pools` false) raises :class:`InputError`.
+        """
         if not self.pools:
             raise InputError("this novelty score has no contact quantiles (a model file of before them): "
                              "retrain the model with `supramodal train`")
@@ -817,21 +851,26 @@ class Novelty:
     # -- in a model file: the header's ``novelty`` value and the arrays ``novelty_*``
 
     def header(self) -> bool | dict:
-        """The header's ``novelty`` value: ``true`` for the unwarped score of before (what such a file
-        said), else the method and the warp (a program of before refuses it rather than misread it)."""
+        """Return the header's ``novelty`` value.
+
+        ``true`` for the unwarped score of before (what such a file said), else the method and
+        the warp (a program of before refuses it rather than misread it).
+        """
         if self.gain is None or self.offset is None:       # the warp is both or neither
             return True
         return {"method": NOVELTY_METHOD, "gain": [float(v) for v in self.gain],
                 "offset": [float(v) for v in self.offset]}
 
     def arrays(self) -> dict:
-        """The arrays a model file holds (``novelty_means``, ``novelty_precision``, ``novelty_quantiles``)."""
+        """Return the arrays a model file holds (``novelty_means``, ``novelty_precision``, ``novelty_quantiles``)."""
         return {"novelty_means": self.means, "novelty_precision": self.precision, "novelty_quantiles": self.quantiles}
 
     @classmethod
     def from_parts(cls, flag, arrays: dict, n_in: int, n_classes: int, bad) -> Novelty | None:
-        """The novelty of a model file from its header's ``novelty`` value and its arrays, each
-        validated; None when the header says false. ``bad(message)`` makes the error to raise."""
+        """Return the novelty of a model file from its header's ``novelty`` value and its arrays, each validated.
+
+        None when the header says false. ``bad(message)`` makes the error to raise.
+        """
         names = ("novelty_means", "novelty_precision", "novelty_quantiles")
         present = [k for k in names if k in arrays]
         if flag is False:
@@ -879,10 +918,12 @@ class Novelty:
 
 
 def novelty_warp(mean, scale) -> tuple[np.ndarray, np.ndarray]:
-    """``gain`` and ``offset`` of :class:`Novelty`'s warp for a model whose raw inputs ``v`` are
-    standardised as ``x = (v - mean) / scale``: ``asinh(v / floor) = asinh(gain * x + offset)`` with
-    ``floor`` :data:`NOVELTY_FLOOR` times each input's typical magnitude ``|mean|`` (``scale`` where
-    the mean is 0)."""
+    """``gain`` and ``offset`` of :class:`Novelty`'s warp for a model whose raw inputs are standardised.
+
+    The raw inputs ``v`` are standardised as ``x = (v - mean) / scale``; then
+    ``asinh(v / floor) = asinh(gain * x + offset)`` with ``floor`` :data:`NOVELTY_FLOOR` times
+    each input's typical magnitude ``|mean|`` (``scale`` where the mean is 0).
+    """
     mean = np.asarray(mean, dtype=np.float64)
     scale = np.asarray(scale, dtype=np.float64)
     floor = NOVELTY_FLOOR * np.where(np.abs(mean) > 0, np.abs(mean), scale)
@@ -899,8 +940,9 @@ def _gaussian(u, y, n_classes: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def fit_novelty(x, labels, n_classes: int, folds, groups=None, mean=None, scale=None) -> Novelty:
-    """Fit the novelty score on standardised training inputs ``x`` (n, inputs) and set its
-    quantiles on held-out windows of the known textures only: each fold's windows scored by the
+    """Fit the novelty score on standardised training inputs ``x`` and set its quantiles on held-out windows.
+
+    The held-out windows are of the known textures only: each fold's windows scored by the
     Gaussians of the other folds.
 
     Parameters
@@ -942,8 +984,11 @@ def fit_novelty(x, labels, n_classes: int, folds, groups=None, mean=None, scale=
 
 def _pooled_scores(novelty: Novelty, u: np.ndarray, groups: np.ndarray, rows: np.ndarray,
                    pooled: list[list[float]]) -> None:
-    """Add to ``pooled[n - 1]`` the pooled score of every stretch of ``n`` (2 .. :data:`NOVELTY_RUN`)
-    consecutive windows among ``rows`` (a boolean mask over ``u``'s rows) of one group."""
+    """Add to ``pooled[n - 1]`` the pooled score of every stretch of ``n`` consecutive windows of one group.
+
+    ``n`` runs over 2 .. :data:`NOVELTY_RUN`; the windows are those among ``rows`` (a boolean mask
+    over ``u``'s rows).
+    """
     for g in dict.fromkeys(groups[rows].tolist()):
         idx = np.flatnonzero(rows & (groups == g))
         # a contact never crosses a gap in the group's windows (another fold's span between);
@@ -957,8 +1002,11 @@ def _pooled_scores(novelty: Novelty, u: np.ndarray, groups: np.ndarray, rows: np
 
 
 def _quantile_rows(windows: np.ndarray, pooled: list[list[float]]) -> np.ndarray:
-    """:attr:`Novelty.quantiles` of held-out window scores and pooled scores by contact length (a
-    length with fewer than :data:`NOVELTY_MIN_CONTACTS` contacts repeats the row of the one before)."""
+    """:attr:`Novelty.quantiles` of held-out window scores and pooled scores by contact length.
+
+    A length with fewer than :data:`NOVELTY_MIN_CONTACTS` contacts repeats the row of the one
+    before.
+    """
     rows = [np.quantile(windows, NOVELTY_QUANTILES)]
     for n in range(1, NOVELTY_RUN):
         rows.append(np.quantile(pooled[n], NOVELTY_QUANTILES) if len(pooled[n]) >= NOVELTY_MIN_CONTACTS else rows[-1])
@@ -967,8 +1015,9 @@ def _quantile_rows(windows: np.ndarray, pooled: list[list[float]]) -> np.ndarray
 
 def recalibrate(logits, labels, groups, x=None, novelty: Novelty | None = None, what: str = ""
                 ) -> tuple[Calibration, Novelty | None]:
-    """A network's calibration and novelty thresholds fitted anew on labelled windows it never trained on
-    (a new touch, session or sensor), the network kept (issue 34).
+    """Fit a network's calibration and novelty thresholds anew on labelled windows it never trained on.
+
+    The windows are of a new touch, session or sensor; the network is kept (issue 34).
 
     The windows need no folds: no network trained on them, so its logits on them are held out as they
     stand. The window map, caps and contact pooling are fitted as :func:`fit_calibration` fits them; the
@@ -1010,9 +1059,11 @@ def recalibrate(logits, labels, groups, x=None, novelty: Novelty | None = None, 
 
 
 def requantiled(novelty: Novelty, x, groups) -> Novelty:
-    """``novelty`` with its quantiles set anew on windows of known textures that its Gaussians never
-    saw (a new touch, session or sensor; :func:`recalibrate`): the same score, the thresholds where
-    the asked share of these windows and of their contacts would be called unknown.
+    """``novelty`` with its quantiles set anew on windows of known textures that its Gaussians never saw.
+
+    The windows are of a new touch, session or sensor (:func:`recalibrate`): the same score, the
+    thresholds where the asked share of these windows and of their contacts would be called
+    unknown.
 
     Parameters
     ----------
@@ -1050,8 +1101,11 @@ def brier_score(posteriors, labels) -> float:
 
 
 def reliability(confidence, correct, bins: int = ECE_BINS) -> dict:
-    """Reliability diagram data: per equal-width confidence bin (right-closed, the first also
-    holding 0), the count, the mean confidence and the share right (None where empty)."""
+    """Reliability diagram data: per equal-width confidence bin, the count, the mean confidence and the share right.
+
+    The bins are right-closed, the first also holding 0; the mean and the share are None where
+    a bin is empty.
+    """
     conf = np.asarray(confidence, dtype=np.float64)
     ok = np.asarray(correct, dtype=bool)
     edges = np.linspace(0.0, 1.0, bins + 1)
@@ -1079,7 +1133,7 @@ HOLDS_ECE = 0.05
 
 
 def mean_confidence(report: dict) -> float:
-    """The mean stated confidence (winner's posterior) of a :func:`calibration_report`'s decisions."""
+    """Return the mean stated confidence (winner's posterior) of a :func:`calibration_report`'s decisions."""
     r = report["reliability"]
     counts = np.asarray(r["count"], dtype=np.float64)
     conf = np.array([0.0 if c is None else c for c in r["confidence"]])
@@ -1087,10 +1141,13 @@ def mean_confidence(report: dict) -> float:
 
 
 def ece_if_calibrated(report: dict, quantile: float = 0.95, draws: int = 400, seed: int = 0) -> float:
-    """The ECE a perfectly calibrated model would exceed once in ``1 - quantile`` on as many decisions as a
-    :func:`calibration_report`'s, at its confidences: each reliability bin's decisions right at random
-    with the bin's mean confidence (binomial), ``draws`` times. A few hundred decisions have an ECE of a few
-    hundredths by chance alone, which a fixed bound would take for a calibration that does not hold."""
+    """Return the ECE a perfectly calibrated model would exceed once in ``1 - quantile`` at a report's confidences.
+
+    Simulated on as many decisions as a :func:`calibration_report`'s, at its confidences: each
+    reliability bin's decisions right at random with the bin's mean confidence (binomial),
+    ``draws`` times. A few hundred decisions have an ECE of a few hundredths by chance alone,
+    which a fixed bound would take for a calibration that does not hold.
+    """
     r = report["reliability"]
     counts = np.asarray(r["count"], dtype=np.int64)
     conf = np.array([0.0 if c is None else c for c in r["confidence"]])
@@ -1102,9 +1159,12 @@ def ece_if_calibrated(report: dict, quantile: float = 0.95, draws: int = 400, se
 
 
 def calibration_report(log_posteriors, labels, bins: int = ECE_BINS, sure: float = 0.99) -> dict:
-    """Accuracy, log loss, Brier score, ECE and the reliability data of decisions whose
-    log-posteriors (n, classes) and true ``labels`` (n,) are given; also how many say at least
-    ``sure`` and what share of those is wrong. A tie (:func:`winner` -1) counts as wrong."""
+    """Accuracy, log loss, Brier score, ECE and the reliability data of decisions.
+
+    The decisions are given by their log-posteriors (n, classes) and true ``labels`` (n,); also
+    how many say at least ``sure`` and what share of those is wrong. A tie (:func:`winner` -1)
+    counts as wrong.
+    """
     lp = np.asarray(log_posteriors, dtype=np.float64)
     y = np.asarray(labels)
     p = np.exp(lp)
@@ -1151,8 +1211,10 @@ def calibration_folds(labels, groups, k: int = DEFAULT_CALIBRATION_FOLDS, seed: 
 def fit_network_calibration(x, labels, n_classes: int, groups=None, k: int = DEFAULT_CALIBRATION_FOLDS,
                             hidden: int | None = None, epochs: int | None = None, seed: int = 0,
                             progress=None, jobs: int = 1) -> tuple[Calibration, Novelty, OutOfFold]:
-    """Calibration and novelty of a network trained as :func:`supramodal.mlp.train_mlp` would train
-    it on the raw (unstandardised) input rows ``x`` (n, inputs), from out-of-fold windows.
+    """Fit the calibration and novelty of a network as :func:`supramodal.mlp.train_mlp` would train it.
+
+    They are fitted from out-of-fold windows; the network would train on the raw (unstandardised)
+    input rows ``x`` (n, inputs).
 
     Each of ``k`` folds (:func:`calibration_folds`) trains a network with the same hidden units,
     epochs and seed on the other folds (standardised by their own mean and scale) and gives the
@@ -1193,12 +1255,14 @@ def fit_network_calibration(x, labels, n_classes: int, groups=None, k: int = DEF
 
 def fold_tasks(x, labels, n_classes: int, folds, k: int, hidden: int | None, epochs: int, seed: int,
                augment=None):
-    """The calibration's fold networks as :class:`~supramodal.mlp.NetworkTask`, one per fold with
-    held-out windows, in fold order: trained on the other folds' rows of ``x`` (n, inputs),
+    """Yield the calibration's fold networks as :class:`~supramodal.mlp.NetworkTask`, in fold order.
+
+    One per fold with held-out windows: trained on the other folds' rows of ``x`` (n, inputs),
     standardised by their own mean and scale, scoring the fold's own rows. A generator: each
     fold's rows are copied when its task is taken. ``augment``: optional callable
     ``(rows, labels, stream) -> (rows, labels)`` applied to each fold's raw training rows (stream
-    ``f + 1``; the held-out rows are never augmented)."""
+    ``f + 1``; the held-out rows are never augmented).
+    """
     from supramodal.mlp import NetworkTask
 
     y = np.asarray(labels)
@@ -1212,15 +1276,17 @@ def fold_tasks(x, labels, n_classes: int, folds, k: int, hidden: int | None, epo
 
 
 def fold_work(n: int, inputs: int, n_classes: int, folds, k: int, hidden: int | None, epochs: int) -> float:
-    """The :attr:`~supramodal.mlp.NetworkTask.work` of :func:`fold_tasks`' networks, summed, without making them."""
+    """Return the summed :attr:`~supramodal.mlp.NetworkTask.work` of :func:`fold_tasks`' networks, not making them."""
     rows = sum(n - int(np.sum(folds == f)) for f in range(k) if np.any(folds == f))
     return float(rows) * (hidden or inputs) * (inputs + n_classes) * epochs
 
 
 class HeldOutLogits:
-    """The fold networks' logits of their held-out windows, gathered as each network is told
-    (:meth:`told`, in any order: :func:`supramodal.mlp.train_networks` tells them as they are back),
-    with a line per fold to ``progress``; :attr:`complete` once every fold is in."""
+    """The fold networks' logits of their held-out windows, gathered as each network is told.
+
+    Each is told by :meth:`told`, in any order (:func:`supramodal.mlp.train_networks` tells them
+    as they are back), with a line per fold to ``progress``; :attr:`complete` once every fold is in.
+    """
 
     def __init__(self, labels, folds, k: int, n_classes: int, progress=None) -> None:
         self.labels, self.folds, self.progress = np.asarray(labels), np.asarray(folds), progress
@@ -1240,7 +1306,7 @@ class HeldOutLogits:
         return len(self._in) == len(self._order)
 
     def told(self, i: int, result) -> None:
-        """The ``i``-th fold task's result (:func:`supramodal.mlp.train_task`'s)."""
+        """Take the ``i``-th fold task's result (:func:`supramodal.mlp.train_task`'s)."""
         f = self._order[i]
         test = self.folds == f
         self.logits[test] = result[2]
@@ -1252,8 +1318,10 @@ class HeldOutLogits:
 
 def calibration_of_held_out(x, labels, n_classes: int, groups, folds, by: str, k: int,
                             z) -> tuple[Calibration, Novelty, OutOfFold]:
-    """The calibration, novelty and :class:`OutOfFold` of :func:`fit_network_calibration` from the
-    fold networks' held-out logits ``z`` (n, classes) of the raw input rows ``x``."""
+    """Fit :func:`fit_network_calibration`'s calibration, novelty and :class:`OutOfFold` from held-out logits.
+
+    The logits ``z`` (n, classes) are the fold networks' of the raw input rows ``x``.
+    """
     y = np.asarray(labels)
     cal = fit_calibration(z, y, groups, folds=folds)
     cal = replace(cal, fitted_on={**cal.fitted_on, "folds": int(k), "folds_by": by,
@@ -1265,9 +1333,12 @@ def calibration_of_held_out(x, labels, n_classes: int, groups, folds, by: str, k
 
 @dataclass(frozen=True)
 class OutOfFold:
-    """A network's held-out logits from training: ``logits`` (n, classes) of each training window
-    from the fold network that did not train on it, ``folds`` (n,), and ``fingerprint``, what they
-    were computed on (the input rows and labels, hashed: :meth:`matches`). Kept in memory only."""
+    """A network's held-out logits from training.
+
+    ``logits`` (n, classes) of each training window from the fold network that did not train on
+    it, ``folds`` (n,), and ``fingerprint``, what they were computed on (the input rows and
+    labels, hashed: :meth:`matches`). Kept in memory only.
+    """
 
     logits: np.ndarray
     folds: np.ndarray
@@ -1299,7 +1370,7 @@ def input_scaling(x) -> tuple[np.ndarray, np.ndarray]:
 
 
 def calibration_line(fitted_on: dict | None) -> str:
-    """What a model's calibration was fitted on (its ``fitted_on``; None: uncalibrated), in words."""
+    """Return, in words, what a model's calibration was fitted on (its ``fitted_on``; None: uncalibrated)."""
     if fitted_on is None:
         return "uncalibrated (posteriors: the network's normalised outputs)"
     f = fitted_on

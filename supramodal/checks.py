@@ -71,6 +71,7 @@ class Key:
 
     @property
     def required(self) -> bool:
+        """Whether the key must be given (it has no default)."""
         return self.default is REQUIRED
 
 
@@ -124,7 +125,7 @@ def fill(where: str, given: Any, keys: Schema, error: type[InputError] = InputEr
 # -- the words ---------------------------------------------------------------------------------------
 
 def is_number(v: object) -> bool:
-    """A finite real number (Python's or NumPy's), not a bool; an int too large for a float is not."""
+    """Whether ``v`` is a finite real number (Python's or NumPy's), not a bool; an int too large for a float is not."""
     if not isinstance(v, numbers.Real) or isinstance(v, bool) or type(v).__name__ == "bool_":
         return False
     try:
@@ -135,7 +136,7 @@ def is_number(v: object) -> bool:
 
 def number(lo: float = -math.inf, hi: float = math.inf, *, lo_open: bool = False,
            hi_open: bool = False) -> Callable[[Any], bool]:
-    """A finite number within ``[lo, hi]`` (an end excluded where ``lo_open`` / ``hi_open``)."""
+    """Return a check for a finite number within ``[lo, hi]`` (an end excluded where ``lo_open`` / ``hi_open``)."""
     def check(v: Any) -> bool:
         if not is_number(v):
             return False
@@ -144,17 +145,17 @@ def number(lo: float = -math.inf, hi: float = math.inf, *, lo_open: bool = False
 
 
 def positive(hi: float = math.inf) -> Callable[[Any], bool]:
-    """A finite number ``0 < v <= hi``."""
+    """Return a check for a finite number ``0 < v <= hi``."""
     return number(0.0, hi, lo_open=True)
 
 
 def non_negative(hi: float = math.inf) -> Callable[[Any], bool]:
-    """A finite number ``0 <= v <= hi``."""
+    """Return a check for a finite number ``0 <= v <= hi``."""
     return number(0.0, hi)
 
 
 def integer(lo: int | None = None, hi: int | None = None) -> Callable[[Any], bool]:
-    """An int (not a bool) within ``[lo, hi]`` (an absent end: unbounded)."""
+    """Return a check for an int (not a bool) within ``[lo, hi]`` (an absent end: unbounded)."""
     return lambda v: (isinstance(v, int) and not isinstance(v, bool) and (lo is None or v >= lo)
                       and (hi is None or v <= hi))
 
@@ -165,17 +166,17 @@ def one_of(*choices: object) -> Callable[[Any], bool]:
 
 
 def flag(v: object) -> bool:
-    """``true`` or ``false``."""
+    """Whether ``v`` is ``true`` or ``false``."""
     return isinstance(v, bool)
 
 
 def text(v: object) -> TypeGuard[str]:
-    """A non-empty string."""
+    """Whether ``v`` is a non-empty string."""
     return isinstance(v, str) and v != ""
 
 
 def texts(v: object) -> bool:
-    """A list of strings (possibly empty)."""
+    """Whether ``v`` is a list of strings (possibly empty)."""
     return isinstance(v, list) and all(isinstance(t, str) for t in v)
 
 
@@ -191,13 +192,16 @@ _NOT_IN_CLASS_NAMES = frozenset({"Cc", "Cf", "Cs", "Zl", "Zp"})
 
 
 def is_class_name(v: object) -> bool:
-    """A class name (:data:`CLASS_NAME_HELP`): what a model decides and the node prints, shows and publishes.
-    Freer than :func:`is_name` (a manifest's ``"rough, wet"``, any script), but never a terminal's escape
-    sequence, a line break that forges another output line, or a character that turns text around."""
+    """Whether ``v`` is a class name (:data:`CLASS_NAME_HELP`).
+
+    A class name is what a model decides and the node prints, shows and publishes. Freer than
+    :func:`is_name` (a manifest's ``"rough, wet"``, any script), but never a terminal's escape sequence, a
+    line break that forges another output line, or a character that turns text around.
+    """
     return (text(v) and len(v) <= MAX_CLASS_NAME
             and not any(unicodedata.category(c) in _NOT_IN_CLASS_NAMES for c in v))
 
 
 def is_name(v: object) -> bool:
-    """A name (:data:`NAME_HELP`): what becomes a stream name, a file name part or an outlet name."""
+    """Whether ``v`` is a name (:data:`NAME_HELP`): what becomes a stream name, a file name part or an outlet name."""
     return text(v) and len(v) <= MAX_NAME and all(c.isalnum() or c in "-_" for c in v)

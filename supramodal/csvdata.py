@@ -1,5 +1,7 @@
-"""Bounded reading of the CSV files a user gives (manifests, spans, timestamps): a file is data, and a
-"CSV" with no line break (a binary file, ``/dev/zero``) must be refused before it is read whole.
+"""Bounded reading of the CSV files a user gives (manifests, spans, timestamps).
+
+A file is data, and a "CSV" with no line break (a binary file, ``/dev/zero``) must be refused
+before it is read whole.
 
 :func:`bounded_lines` feeds :func:`csv.reader` one line at a time, each at most :data:`MAX_CSV_LINE`
 characters; a longer one is refused with the caller's error, naming the file and the line. Files may be
@@ -19,9 +21,11 @@ MAX_CSV_LINE = 64 * 1024
 
 
 def bounded_lines(f: TextIO, where: str, error: type[Exception]) -> Iterator[str]:
-    """The lines of ``f`` (opened with ``newline=""``, as :mod:`csv` wants), each at most
-    :data:`MAX_CSV_LINE` characters besides its line break; a longer one raises ``error`` naming ``where``
-    and the line."""
+    """Yield the lines of ``f``, each at most :data:`MAX_CSV_LINE` characters besides its line break.
+
+    ``f`` is opened with ``newline=""``, as :mod:`csv` wants; a longer line raises ``error``
+    naming ``where`` and the line.
+    """
     number = 0
     while True:
         line = f.readline(MAX_CSV_LINE + 2)        # the line and its terminator (\r\n at most)

@@ -78,9 +78,10 @@ DEFAULT_METHOD = "log"
 DEFAULT_CONTACT_THRESHOLD = 0.01
 @dataclass(frozen=True)
 class DecisionRules:
-    """How a stream (or a fusion) of windows decides: a scene's ``[decision]``, every rule's meaning
-    :class:`Decider`'s. The defaults are those a scene gets when it gives none, with the rules of
-    issue 23 off (0: no final contact decision, no "unknown").
+    """How a stream (or a fusion) of windows decides: a scene's ``[decision]``.
+
+    Every rule's meaning is :class:`Decider`'s. The defaults are those a scene gets when it gives
+    none, with the rules of issue 23 off (0: no final contact decision, no "unknown").
 
     Attributes
     ----------
@@ -114,8 +115,10 @@ class DecisionRules:
 
     @property
     def calibrated_rules(self) -> list[str]:
-        """The rules set here that need calibrated posteriors (``confidence``, ``unknown``,
-        ``unknown_below``, ``change``), by name."""
+        """The rules set here that need calibrated posteriors, by name.
+
+        Those are ``confidence``, ``unknown``, ``unknown_below`` and ``change``.
+        """
         return [k for k in ("confidence", "unknown", "unknown_below", "change") if getattr(self, k)]
 
 
@@ -218,9 +221,11 @@ class DecisionAccumulator:
         self._final = None
 
     def restart(self, keep: int, may_decide: bool = True) -> Decision:
-        """Forget the final decision and every pooled window but the last ``keep`` (>= 1; the texture changed
-        ``keep`` windows ago), and return the decision of those, final at once where it is sure enough (as
-        :meth:`update` decides)."""
+        """Forget the final decision and every pooled window but the last ``keep``, and return their decision.
+
+        ``keep`` >= 1: the texture changed ``keep`` windows ago. The decision of those is final at
+        once where it is sure enough (as :meth:`update` decides).
+        """
         kept = list(self._history)[-keep:]
         self.reset()
         self._history.extend(kept)
@@ -230,7 +235,8 @@ class DecisionAccumulator:
         """Add one window's log-posteriors (classes,) and return the current decision.
 
         ``may_decide`` False: the contact's decision may not become final at this window (its
-        caller has a reason of its own not to be sure, e.g. most windows are unknown)."""
+        caller has a reason of its own not to be sure, e.g. most windows are unknown).
+        """
         lp = np.asarray(log_posteriors, dtype=np.float64)
         if lp.shape != (self.n_classes,):
             raise InputError(f"expected {self.n_classes} log-posteriors, got shape {lp.shape}")
@@ -271,8 +277,10 @@ _MINUTE = 60.0
 
 
 def windows_per_change(rate: float, window_seconds: float = DEFAULT_WINDOW) -> float:
-    """Windows of ``window_seconds`` per false change at ``rate`` false changes per minute (``[decision]
-    change``): ``N`` of :class:`ChangeDetector`."""
+    """Windows of ``window_seconds`` per false change at ``rate`` false changes per minute (``[decision] change``).
+
+    That is ``N`` of :class:`ChangeDetector`.
+    """
     return _MINUTE / (window_seconds * rate)
 
 
@@ -286,8 +294,7 @@ CHANGE_TAIL = 20
 
 
 class ChangeDetector:
-    """Whether the last few windows of a contact, pooled as a contact is, name another texture than the
-    current decision.
+    """Whether a contact's last few windows, pooled as a contact is, name another texture than the current decision.
 
     At every window it pools each recent stretch (the last ``n`` windows, ``n`` = ``min_windows`` ..
     :data:`CHANGE_LOOKBACK`) as the calibration pools a contact
@@ -360,16 +367,18 @@ class ChangeDetector:
         self.statistic = -np.inf
 
     def update(self, log_posteriors: np.ndarray, current: int) -> tuple[int, int] | None:
-        """Add one window's log-posteriors (classes,) and test the recent stretches against the ``current``
-        decision (a class index; -1: none, nothing is tested). Returns ``(new class, windows of the stretch that
-        passed)`` when a stretch names another texture past the threshold (the windows before it are then
-        forgotten), else None.
+        """Add one window's log-posteriors (classes,) and test the recent stretches against the ``current`` decision.
+
+        ``current`` is a class index (-1: none, nothing is tested). Returns ``(new class, windows of the
+        stretch that passed)`` when a stretch names another texture past the threshold (the windows before
+        it are then forgotten), else None.
 
         The change's onset (:attr:`onset`, windows since it began) is then Page's estimate: of the stretch that
         passed and the longer recent ones, the one whose summed log-likelihood ratio of the new class against
         the current one is largest, the change point most likely for windows independent given the texture.
         The stretch that passed is often shorter: the pooling weighs a longer stretch's evidence less
-        (``n_eff(n) / n``), which measures how sure the change is, not where it began."""
+        (``n_eff(n) / n``), which measures how sure the change is, not where it began.
+        """
         self._recent.append(np.asarray(log_posteriors, dtype=np.float64))
         self.statistic = -np.inf
         if current < 0 or len(self._recent) < self.min_windows:
@@ -397,8 +406,11 @@ class ChangeDetector:
 
 def change_statistics(log_posteriors, label: int, correlation: float = 0.0, caps=None,
                       min_windows: int = CHANGE_MIN_WINDOWS) -> np.ndarray:
-    """Each window's :attr:`ChangeDetector.statistic` on one still touch of texture ``label``, tested against
-    ``label`` throughout (never restarted): what a false change would have to pass there. Shape (windows,)."""
+    """Each window's :attr:`ChangeDetector.statistic` on one still touch of texture ``label``, shape (windows,).
+
+    Tested against ``label`` throughout (never restarted): what a false change would have to
+    pass there.
+    """
     lp = np.asarray(log_posteriors, dtype=np.float64)
     if lp.ndim != 2:
         raise InputError(f"a touch's log-posteriors must have shape (windows, classes), got {lp.shape}")
@@ -412,9 +424,10 @@ def change_statistics(log_posteriors, label: int, correlation: float = 0.0, caps
 
 def fit_change_threshold(touches, labels, windows_per_false_change: float, correlation: float = 0.0, caps=None,
                          min_windows: int = CHANGE_MIN_WINDOWS, tail: int = CHANGE_TAIL) -> float:
-    """The threshold ``h`` of a :class:`ChangeDetector` at which its statistic passes ``h`` on at most one
-    window in ``N = windows_per_false_change`` of still touches, fitted on held-out windows of the training
-    touches (never on the touches it will be scored on).
+    """Fit the threshold ``h`` of a :class:`ChangeDetector` on held-out windows of the training touches.
+
+    At ``h`` its statistic passes ``h`` on at most one window in ``N = windows_per_false_change``
+    of still touches; never fitted on the touches it will be scored on.
 
     ``touches``: each one touch's held-out (out-of-fold) calibrated log-posteriors (windows, classes), in
     time order; ``labels``: each one's texture. Their windows' statistics (:func:`change_statistics`,
@@ -439,8 +452,10 @@ def fit_change_threshold(touches, labels, windows_per_false_change: float, corre
 
 def held_out_change_statistics(touches, labels, correlation: float = 0.0, caps=None,
                                min_windows: int = CHANGE_MIN_WINDOWS) -> np.ndarray:
-    """Every window's :func:`change_statistics` on held-out ``touches`` (each one touch's calibrated
-    log-posteriors, (windows, classes), in time order) of textures ``labels``, largest first."""
+    """Every window's :func:`change_statistics` on held-out ``touches`` of textures ``labels``, largest first.
+
+    Each touch is one touch's calibrated log-posteriors, (windows, classes), in time order.
+    """
     touches = list(touches)
     labels = list(labels)
     if len(touches) != len(labels) or not touches:
@@ -452,20 +467,24 @@ def held_out_change_statistics(touches, labels, correlation: float = 0.0, caps=N
 
 
 def change_threshold(largest, windows: int, windows_per_false_change: float, tail: int = CHANGE_TAIL) -> float | None:
-    """:func:`fit_change_threshold`'s ``h`` from statistics already measured: ``largest``, the largest of the
-    held-out windows' statistics, in decreasing order, of ``windows`` in all (a model's
-    :class:`~supramodal.calibration.HeldOutChanges`). None when the level asked lies among the statistics
-    not kept (a rate so high that more than ``len(largest)`` windows may pass it)."""
+    """:func:`fit_change_threshold`'s ``h`` from statistics already measured.
+
+    ``largest`` are the largest of the held-out windows' statistics, in decreasing order, of ``windows`` in
+    all (a model's :class:`~supramodal.calibration.HeldOutChanges`). None when the level asked lies among
+    the statistics not kept (a rate so high that more than ``len(largest)`` windows may pass it).
+    """
     return _change_threshold(np.asarray(largest, dtype=np.float64), int(windows), windows_per_false_change, tail)
 
 
 def fitted_change_threshold(calibration: Calibration | None, rules: DecisionRules,
                             window_seconds: float) -> float | None:
-    """The change detector's threshold for ``rules.change`` false changes a minute, fitted on the held-out
-    windows of a model's ``calibration`` (its :class:`~supramodal.calibration.HeldOutChanges`: a stream's
-    model's, or an early fusion's), with windows of ``window_seconds``; None (the detector's bound) without
-    a change rule, for an uncalibrated model or one trained before they were kept, or at a rate beyond the
-    statistics kept."""
+    """Return the change detector's threshold for ``rules.change`` false changes a minute.
+
+    The threshold is fitted on the held-out windows of a model's ``calibration`` (its
+    :class:`~supramodal.calibration.HeldOutChanges`: a stream's model's, or an early fusion's), with windows
+    of ``window_seconds``; None (the detector's bound) without a change rule, for an uncalibrated model or
+    one trained before they were kept, or at a rate beyond the statistics kept.
+    """
     changes = None if calibration is None else calibration.changes
     per_change = windows_per_change(rules.change, window_seconds) if rules.change else 0.0
     if changes is None or per_change <= 1 or changes.windows < CHANGE_TAIL:
@@ -496,8 +515,11 @@ def _change_threshold(stats: np.ndarray, n: int, windows_per_false_change: float
 
 
 def change_touches(groups, folds, labels) -> list[np.ndarray]:
-    """The held-out touches of a calibration: runs of consecutive windows of one recording (``groups``) and
-    one texture (``labels``) scored by one fold network (``folds``), as index arrays in time order."""
+    """Return the held-out touches of a calibration, as index arrays in time order.
+
+    A touch is a run of consecutive windows of one recording (``groups``) and one texture
+    (``labels``) scored by one fold network (``folds``).
+    """
     g, f, y = np.asarray(groups), np.asarray(folds), np.asarray(labels)
     if len(g) == 0:
         return []
@@ -506,9 +528,12 @@ def change_touches(groups, folds, labels) -> list[np.ndarray]:
 
 
 def held_out_changes(log_posteriors, labels, groups, folds, correlation: float = 0.0, caps=None) -> HeldOutChanges:
-    """A calibration's :class:`~supramodal.calibration.HeldOutChanges`: the change statistic of every
-    held-out window (``log_posteriors``, calibrated, (n, classes)) on its touch (:func:`change_touches`),
-    tested against its own texture, pooled as a contact is (``correlation``, ``caps``)."""
+    """Return a calibration's :class:`~supramodal.calibration.HeldOutChanges`.
+
+    That is the change statistic of every held-out window (``log_posteriors``, calibrated,
+    (n, classes)) on its touch (:func:`change_touches`), tested against its own texture, pooled
+    as a contact is (``correlation``, ``caps``).
+    """
     lp = np.asarray(log_posteriors, dtype=np.float64)
     y = np.asarray(labels)
     touches = change_touches(groups, folds, y)
@@ -572,8 +597,11 @@ class PooledDecision:
     change: TextureChange | None = None
 
     def to_dict(self) -> dict[str, Any]:
-        """As sinks write it (JSON ``"accumulated"``): ``label``, ``confidence``, ``windows``, and
-        ``change``, ``decided``, ``decided_after`` where they apply."""
+        """As sinks write it (JSON ``"accumulated"``).
+
+        ``label``, ``confidence``, ``windows``, and ``change``, ``decided``, ``decided_after``
+        where they apply.
+        """
         out: dict[str, Any] = {"label": self.label, "confidence": self.confidence, "windows": self.windows}
         if self.change is not None:
             out["change"] = self.change.to_dict()
@@ -647,8 +675,10 @@ class DecisionCounts(JsonRecord):
 
 
 class Decider:
-    """Decisions of one stream (or of the fusion) by the rules of the module: one per processing
-    thread (not thread-safe); :meth:`summary` is read once that thread has ended.
+    """Decisions of one stream (or of the fusion) by the rules of the module.
+
+    One per processing thread (not thread-safe); :meth:`summary` is read once that thread has
+    ended.
 
     Parameters
     ----------

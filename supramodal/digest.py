@@ -1,5 +1,7 @@
-"""A digest of a value's content: what the cache of models trained on start keys its files by, and what the
-test suite's once-per-run results are named by.
+"""A digest of a value's content.
+
+It is what the cache of models trained on start keys its files by, and what the test suite's
+once-per-run results are named by.
 
 Two values digest alike when they hold the same content, however they were made: a model and its copy read
 back from a file, a texture set built twice. Pure Python and numpy; no pickle (the content is read, never the

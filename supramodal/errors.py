@@ -29,8 +29,11 @@ class InputError(SupramodalError, ValueError):
 
 
 class StreamEndedError(SupramodalError, RuntimeError):
-    """A block was fed to a streaming object (peak extractor, pipeline) after its ``finish()``:
-    a stream that has ended takes no more samples; make a new one, or ``reset()`` it. Also a RuntimeError."""
+    """A block was fed to a streaming object (peak extractor, pipeline) after its ``finish()``.
+
+    A stream that has ended takes no more samples; make a new one, or ``reset()`` it. Also a
+    RuntimeError.
+    """
 
 
 class SupramodalWarning(UserWarning):

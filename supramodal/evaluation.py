@@ -1,6 +1,8 @@
-"""What a user needs to trust a model: how accuracy grows with the windows pooled, how soon a
-touch is decided at a confidence threshold, and which channels carry the decision. Pure numpy on
-a model's outputs; no files, no devices.
+"""What a user needs to trust a model.
+
+How accuracy grows with the windows pooled, how soon a touch is decided at a confidence
+threshold, and which channels carry the decision. Pure numpy on a model's outputs; no files, no
+devices.
 """
 
 from __future__ import annotations
@@ -61,7 +63,7 @@ def pooled_accuracy(log_posteriors_by_recording, truths, n: int) -> tuple[float 
 
 
 def change_detections(truths, signalled) -> tuple[list[tuple[int, int | None]], int]:
-    """The texture changes signalled within one contact, against the truth.
+    """Score the texture changes signalled within one contact against the truth.
 
     A *boundary* is a window whose true texture differs from the window before it. Its detection is
     the first change signalled from that window up to (not including) the next boundary; the delay

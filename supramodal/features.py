@@ -58,7 +58,7 @@ class Feature:
 
 
 def _given(freq: np.ndarray | None) -> np.ndarray:
-    """The peaks' frequencies, which a feature that ``needs_frequency`` is always given."""
+    """Return the peaks' frequencies, which a feature that ``needs_frequency`` is always given."""
     assert freq is not None, "FeatureWindows computes them when a selected feature needs_frequency"
     return freq
 
@@ -237,4 +237,5 @@ class FeatureWindows:
 
     @property
     def windows_emitted(self) -> int:
+        """Windows emitted so far: the index the next window gets."""
         return self._next

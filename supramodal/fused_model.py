@@ -89,18 +89,21 @@ class Sense:
 
     @classmethod
     def of(cls, name: str, pipeline) -> Sense:
-        """The sense a :class:`~supramodal.pipeline.FeaturePipeline` computes."""
+        """Return the sense a :class:`~supramodal.pipeline.FeaturePipeline` computes."""
         return cls(name, pipeline.bank, tuple(pipeline.features), pipeline.window_samples, pipeline.peaks.mode,
                    float(pipeline.peaks.threshold))
 
     @property
     def n_inputs(self) -> int:
+        """The sense's inputs per window: features x channels."""
         return len(self.features) * self.bank.channels
 
     def check_pipeline(self, pipeline, in_fusion: bool = True) -> None:
-        """Raise :class:`ModelError` naming what differs if ``pipeline`` does not make this sense's
-        windows (checked as a one-sense model checks its pipeline); ``in_fusion``: the pipeline is a
-        ``[fusion]`` stream's, and the message asks whether the streams were given in the other order."""
+        """Raise :class:`ModelError` naming what differs if ``pipeline`` does not make this sense's windows.
+
+        Checked as a one-sense model checks its pipeline. ``in_fusion``: the pipeline is a
+        ``[fusion]`` stream's, and the message asks whether the streams were given in the other order.
+        """
         try:
             check_sense_fits((self.bank, self.features, self.window_samples, self.peak_mode, self.peak_threshold),
                              pipeline.bank, pipeline.features, pipeline.window_samples, pipeline.peaks.mode,
@@ -201,12 +204,15 @@ class EarlyFusionModel:
         return self.mlp.outputs(self._inputs(values_a, values_b))
 
     def logits(self, values_a: np.ndarray, values_b: np.ndarray) -> np.ndarray:
-        """The output units' logits, shape (n, classes) (finite where the outputs round to 0 or 1)."""
+        """Return the output units' logits, shape (n, classes) (finite where the outputs round to 0 or 1)."""
         return self.mlp.logits(self._inputs(values_a, values_b))
 
     def log_posteriors(self, values_a: np.ndarray, values_b: np.ndarray) -> np.ndarray:
-        """Log-posteriors per pair of windows, shape (n, classes): calibrated when the model is
-        (:attr:`calibrated`), else the normalised outputs; finite, never clipped."""
+        """Log-posteriors per pair of windows, shape (n, classes).
+
+        Calibrated when the model is (:attr:`calibrated`), else the normalised outputs; finite,
+        never clipped.
+        """
         return log_posteriors_of(self.logits(values_a, values_b), self.calibration)
 
     def posteriors(self, values_a: np.ndarray, values_b: np.ndarray) -> np.ndarray:
@@ -214,8 +220,10 @@ class EarlyFusionModel:
         return np.exp(self.log_posteriors(values_a, values_b))
 
     def novelty_score(self, values_a: np.ndarray, values_b: np.ndarray) -> np.ndarray:
-        """How unlike every training texture each pair of windows is, shape (n,); a model without
-        a novelty score (a version 1 file) raises :class:`ModelError`."""
+        """How unlike every training texture each pair of windows is, shape (n,).
+
+        A model without a novelty score (a version 1 file) raises :class:`ModelError`.
+        """
         if self.novelty is None:
             raise ModelError("this early-fusion model has no novelty score (trained before version 2, or without "
                              "calibration): retrain it with `supramodal train --fusion early`")
@@ -224,6 +232,7 @@ class EarlyFusionModel:
     # -- files ---------------------------------------------------------------------------------
 
     def header(self) -> dict:
+        """Return the model file's JSON header: format, version, each sense, classes, layers, training, calibration."""
         return {"format": EARLY_FORMAT, "version": EARLY_VERSION,
                 "senses": [{"name": s.name, **sense_header(s.bank, s.features, s.window_samples, s.peak_mode,
                                                            s.peak_threshold)} for s in self.senses],
@@ -339,11 +348,13 @@ def out_of_fold_logits(model: TextureModel, values, labels, classes, folds, prog
 
 
 def out_of_fold_log_posteriors(model: TextureModel, values, labels, classes, folds, progress=None) -> np.ndarray:
-    """Log-posteriors of each window from :func:`out_of_fold_logits`, mapped as ``model`` maps its
-    own: when ``model`` is calibrated, by a window map fitted on these out-of-fold logits (as
+    """Log-posteriors of each window from :func:`out_of_fold_logits`, mapped as ``model`` maps its own.
+
+    When ``model`` is calibrated, by a window map fitted on these out-of-fold logits (as
     :func:`~supramodal.calibration.fit_network_calibration` fits a model's; the model's own map
     where these are the very logits it was fitted on), else the normalised outputs (a version 1
-    model's posteriors). Shape (n, classes)."""
+    model's posteriors). Shape (n, classes).
+    """
     y = np.asarray(labels)
     kept = model.out_of_fold
     own = kept is not None and tuple(classes) == tuple(model.classes) and kept.matches(values, y, folds)
@@ -395,8 +406,10 @@ def senses_out_of_fold(models, values, labels, classes, groups=None, k: int = DE
 
 
 def learn_late_fusion_out_of_fold(log_posteriors_a, log_posteriors_b, labels, folds) -> dict:
-    """The late fusion's ``(weight, sharpness)`` learned on out-of-fold log-posteriors of both
-    senses (:func:`senses_out_of_fold`), and the fusion's own held-out score.
+    """Learn the late fusion's ``(weight, sharpness)`` on both senses' out-of-fold log-posteriors, and score it.
+
+    The log-posteriors are :func:`senses_out_of_fold`'s; the score is the fusion's own held-out
+    one.
 
     The weight and sharpness kept are learned on every window
     (:func:`supramodal.fusion.learn_late_fusion`). The fused log-posteriors returned are
@@ -426,18 +439,22 @@ def learn_late_fusion_out_of_fold(log_posteriors_a, log_posteriors_b, labels, fo
 
 
 def held_out_scores(log_posteriors: dict, labels) -> dict:
-    """``{name: {"accuracy", "log_loss", "brier", "ece", "sure_count", "sure_wrong"}}`` of each named
-    set of held-out log-posteriors (a tie is wrong)."""
+    """``{name: {"accuracy", "log_loss", "brier", "ece", "sure_count", "sure_wrong"}}`` of each named set.
+
+    Each set is of held-out log-posteriors (a tie is wrong).
+    """
     keys = ("n", "accuracy", "log_loss", "brier", "ece", "sure_count", "sure_wrong")
     return {name: {k: v for k, v in calibration_report(lp, labels).items() if k in keys}
             for name, lp in log_posteriors.items()}
 
 
 def fused_pooling(log_posteriors, labels, folds, groups=None) -> float:
-    """The correlation ``rho`` of the fused decisions' contact pooling
-    (:func:`supramodal.calibration.fit_pooling`), fitted on runs of up to
-    :data:`~supramodal.calibration.POOLING_RUN` consecutive held-out windows of one group (default:
-    one per label) and one fold, the windows one held-out network scored in a row."""
+    """Fit the correlation ``rho`` of the fused decisions' contact pooling (:func:`supramodal.calibration.fit_pooling`).
+
+    Fitted on runs of up to :data:`~supramodal.calibration.POOLING_RUN` consecutive held-out
+    windows of one group (default: one per label) and one fold, the windows one held-out network
+    scored in a row.
+    """
     lp = np.asarray(log_posteriors, dtype=np.float64)
     y = np.asarray(labels)
     folds = np.asarray(folds)
@@ -455,8 +472,9 @@ WORSE_MARGIN = 0.01
 
 
 def worse_than_a_sense(fused, senses: dict, labels) -> tuple[str, float, float] | None:
-    """Whether a fusion's held-out log-posteriors ``fused`` (n, classes) do worse than one of the
-    ``senses`` (``{name: log-posteriors (n, classes)}`` of the same held-out windows) alone.
+    """Whether a fusion's held-out log-posteriors ``fused`` (n, classes) do worse than one of the ``senses`` alone.
+
+    ``senses`` is ``{name: log-posteriors (n, classes)}`` of the same held-out windows.
 
     Worse: a higher mean log loss than the sense's by more than :data:`WORSE_MARGIN` plus two
     standard errors of the per-window difference (the windows of one contact are alike, so the

@@ -1,5 +1,7 @@
-"""Decisions of two senses fused: late (weighted sum of per-sense log-posteriors) and early (one
-network on both senses' aligned feature vectors, the supramodal network of the paper's Sect. 5).
+"""Decisions of two senses fused, late and early.
+
+Late: a weighted sum of per-sense log-posteriors. Early: one network on both senses' aligned
+feature vectors, the supramodal network of the paper's Sect. 5.
 
 Pure functions on arrays of aligned windows: window k of one sense covers the same time as window
 k of the other (pairing windows of live streams on a common clock is the node's job).
@@ -39,7 +41,7 @@ def fuse_late(log_posteriors_a: np.ndarray, log_posteriors_b: np.ndarray, weight
 
 
 def sharpness_bound(weight: float) -> float:
-    """The largest sharpness a late fusion of ``weight`` may learn: ``1 / max(w, 1 - w)``.
+    """Return the largest sharpness a late fusion of ``weight`` may learn: ``1 / max(w, 1 - w)``.
 
     At the bound the sense that counts more enters the fused log-posteriors at full strength,
     ``s w = 1``, and no sense ever beyond: the fusion may be as sure as the two senses' calibrated
@@ -83,10 +85,13 @@ def learn_late_fusion(log_posteriors_a: np.ndarray, log_posteriors_b: np.ndarray
 
 
 def plateau_middle(losses) -> int:
-    """The middle of the plateau around the best of several candidates, each given by its losses on the
-    same windows (a sequence of arrays (n,), candidates in order of a parameter): the candidates whose mean
-    loss is within one standard error (of the per-window difference) of the lowest, contiguous with it; of
-    two middles, the one nearer the best."""
+    """Return the middle of the plateau around the best of several candidates.
+
+    Each candidate is given by its losses on the same windows (a sequence of arrays (n,),
+    candidates in order of a parameter). The plateau is the candidates whose mean loss is within
+    one standard error (of the per-window difference) of the lowest, contiguous with it; of two
+    middles, the one nearer the best is returned.
+    """
     best = int(np.argmin([np.mean(loss) for loss in losses]))
     plateau = [_within_one_error(np.asarray(loss), np.asarray(losses[best])) for loss in losses]
     lo = hi = best
@@ -115,8 +120,10 @@ def _fit_sharpness(mixed: np.ndarray, labels: np.ndarray, upper: float) -> float
 
 
 def early_inputs(values_a: np.ndarray, values_b: np.ndarray) -> np.ndarray:
-    """Both senses' aligned windows side by side, shape (windows, inputs_a + inputs_b): the
-    supramodal network's input (e.g. 20 whisker + 50 cochlea channels of Af)."""
+    """Both senses' aligned windows side by side, shape (windows, inputs_a + inputs_b).
+
+    That is the supramodal network's input (e.g. 20 whisker + 50 cochlea channels of Af).
+    """
     a = np.asarray(values_a).reshape(len(values_a), -1)
     b = np.asarray(values_b).reshape(len(values_b), -1)
     if len(a) != len(b):

@@ -115,7 +115,7 @@ def _cos_sin_turns(k, s):
 
 
 def _two_product(a, b):
-    """``a * b = hi + lo`` exactly (Dekker's splitting; float64 arrays, no overflow)."""
+    """Return ``(hi, lo)`` with ``a * b = hi + lo`` exactly (Dekker's splitting; float64 arrays, no overflow)."""
     hi = a * b
     a_hi = a * 134217729.0 - (a * 134217729.0 - a)
     b_hi = b * 134217729.0 - (b * 134217729.0 - b)
@@ -164,10 +164,12 @@ def pole_powers(bank: Bank, d) -> np.ndarray:
 
 
 def _moment_sum_log(z):
-    """``sum_{m>=0} m**3 q**m = q (1 + 4q + q**2) / (1 - q)**4`` for ``q = exp(z)``, ``Re z < 0``,
-    with ``1 - q`` taken as ``-expm1(z)``: exact to rounding even when ``|q|`` is within 1e-6 of 1
+    """``sum_{m>=0} m**3 q**m = q (1 + 4q + q**2) / (1 - q)**4`` for ``q = exp(z)``, ``Re z < 0``.
+
+    ``1 - q`` is taken as ``-expm1(z)``: exact to rounding even when ``|q|`` is within 1e-6 of 1
     (narrow filters at high sample rates), where ``1 - q`` would lose digits. Works in the
-    precision of ``z`` (complex128 or ``numpy.clongdouble``)."""
+    precision of ``z`` (complex128 or ``numpy.clongdouble``).
+    """
     q = np.exp(z)
     return q * (1 + 4 * q + q * q) / np.expm1(z) ** 4
 
@@ -233,7 +235,7 @@ def gain_at_cf(bank: Bank) -> np.ndarray:
 
 
 def reference_impulse_response(bank: Bank, n: int) -> np.ndarray:
-    """The sampled analytic gammatone, normalised to unit gain at ``fc``: the reference.
+    """Return the sampled analytic gammatone, normalised to unit gain at ``fc``: the reference.
 
     Computed directly from ``t**3 exp(-2 pi b t) cos(2 pi fc t)`` (not from the
     pole form the filter uses), so comparing against it is an independent check.
@@ -302,7 +304,7 @@ def state_gain(bank: Bank) -> np.ndarray:
 
 
 def max_input(bank: Bank, dtype=np.float64) -> float:
-    """The largest input magnitude a filterbank of ``bank`` accepts, in the input's units.
+    """Return the largest input magnitude a filterbank of ``bank`` accepts, in the input's units.
 
     Derivation. Let ``|x| <= X``. Every number a filterbank forms is bounded by a sum of
     magnitudes of terms ``g m**j p**(m-l) x``:
@@ -512,7 +514,7 @@ def _flush_small(a: np.ndarray, dtype) -> np.ndarray:
 
 
 def _as_real_rows(z: np.ndarray) -> np.ndarray:
-    """A complex array (..., n, 4, C) seen as real (..., 4 n, 2 C), no copy.
+    """Return a complex array (..., n, 4, C) seen as real (..., 4 n, 2 C), no copy.
 
     The recursion's maps are real and act on the (sub-block, moment) rows alone, so they apply
     to the real and imaginary parts of every channel at once: one real matrix product.
@@ -566,8 +568,11 @@ class _SubblockMatrices:
 
 
 def _grouping(K: int) -> tuple[int, int]:
-    """``(groups, J)`` for a pass of ``K`` sub-blocks: ``(0, K)`` up to _ONE_LEVEL, else ``groups``
-    groups of ``J`` sub-blocks, the last zero-padded to ``groups * J >= K``."""
+    """Return ``(groups, J)`` for a pass of ``K`` sub-blocks.
+
+    ``(0, K)`` up to _ONE_LEVEL, else ``groups`` groups of ``J`` sub-blocks, the last
+    zero-padded to ``groups * J >= K``.
+    """
     if K <= _ONE_LEVEL:
         return 0, K
     groups = max(1, round(math.sqrt(K / 2)))
@@ -575,8 +580,11 @@ def _grouping(K: int) -> tuple[int, int]:
 
 
 def _reach(K: int) -> int:
-    """Sub-blocks a pass of ``K`` reaches in the rescaled frame, padding included: the last group's
-    end state is formed at ``groups * J`` sub-blocks, so that is what the frame must hold."""
+    """Sub-blocks a pass of ``K`` reaches in the rescaled frame, padding included.
+
+    The last group's end state is formed at ``groups * J`` sub-blocks, so that is what the frame
+    must hold.
+    """
     groups, J = _grouping(K)
     return groups * J if groups else K
 
@@ -595,7 +603,7 @@ def _one_level_map(K: int, m: int) -> np.ndarray:
 
 
 def _two_level_maps(groups: int, J: int, m: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The three real maps of the grouped recursion: ``K`` sub-blocks in ``groups`` groups of ``J``.
+    """Return the three real maps of the grouped recursion: ``K`` sub-blocks in ``groups`` groups of ``J``.
 
     Returns
     -------
@@ -913,6 +921,7 @@ class GammatoneFilterbank(FilterbankBase):
         self._builds = 0
 
     def reset(self) -> None:
+        """Return to rest: zero every channel group's state, as if no sample had been seen (counters are kept)."""
         for group in self._groups:
             group.reset()
 
@@ -920,7 +929,7 @@ class GammatoneFilterbank(FilterbankBase):
         return GammatoneFilterbank(self.bank, self.dtype, self.subblock)
 
     def _layout(self, L: int, group: int = 0) -> list:
-        """The passes a block of ``L`` samples goes in: ``[(m, K), ...]``, ``K * m`` samples each."""
+        """Return the passes a block of ``L`` samples goes in: ``[(m, K), ...]``, ``K * m`` samples each."""
         passes = self._layouts.get((group, L))
         if passes is None:
             span = self._groups[group].span
@@ -992,7 +1001,7 @@ class GammatoneFilterbank(FilterbankBase):
 
 
 def _lru_get(cache: OrderedDict, key):
-    """The cached value (marked most recently used), or None."""
+    """Return the cached value (marked most recently used), or None."""
     value = cache.get(key)
     if value is not None:
         cache.move_to_end(key)

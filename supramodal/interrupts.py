@@ -58,7 +58,7 @@ def held_interrupts() -> Iterator[None]:
 
 
 def import_optional(name: str) -> ModuleType | None:
-    """The module ``name`` (dotted), imported with Ctrl-C and SIGTERM held, or None where it cannot be imported.
+    """Import the module ``name`` (dotted) with Ctrl-C and SIGTERM held; None where it cannot be imported.
 
     Parameters
     ----------

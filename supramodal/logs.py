@@ -60,7 +60,7 @@ logger = _package_logger()
 
 
 def get_logger(part: str) -> logging.Logger:
-    """The child logger of one part of the package, ``supramodal.<part>`` (e.g. ``"drivers.serial"``)."""
+    """Return the child logger of one part of the package, ``supramodal.<part>`` (e.g. ``"drivers.serial"``)."""
     return logger.getChild(part)
 
 

@@ -35,8 +35,11 @@ _M_MMAP_THRESHOLD = -3
 
 
 def keep_freed_memory() -> bool:
-    """Keep freed memory for reuse (see the module); True where the C library took the setting
-    (glibc), False elsewhere. Safe to call more than once and from any thread."""
+    """Keep freed memory for reuse (see the module); return True where the C library took the setting.
+
+    The C library takes it with glibc; False elsewhere. Safe to call more than once and from
+    any thread.
+    """
     if not sys.platform.startswith("linux"):
         return False
     try:

@@ -116,6 +116,7 @@ class MLP:
 
     @property
     def shape(self) -> tuple[int, int, int]:
+        """The network's layers: ``(inputs, hidden, outputs)``."""
         return (self.w1.shape[0], self.w1.shape[1], self.w2.shape[1])
 
     def forward(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -128,7 +129,7 @@ class MLP:
         return self.forward(np.asarray(x, dtype=np.float64))[1]
 
     def logits(self, x: np.ndarray) -> np.ndarray:
-        """The output units' logits ``z``, ``outputs = 1 / (1 + exp(-z))``, shape (n, outputs).
+        """Return the output units' logits ``z``, ``outputs = 1 / (1 + exp(-z))``, shape (n, outputs).
 
         Finite where the outputs round to exactly 0.0 or 1.0: what calibrated posteriors are
         computed from (:mod:`supramodal.calibration`). Their argmax is the outputs' wherever the
@@ -142,6 +143,7 @@ class MLP:
         return np.argmax(self.outputs(x), axis=1)
 
     def params(self) -> list[np.ndarray]:
+        """Return the weights and biases, ``[w1, b1, w2, b2]`` (the arrays themselves, not copies)."""
         return [self.w1, self.b1, self.w2, self.b2]
 
     def gradients(self, x: np.ndarray, targets: np.ndarray) -> tuple[list[np.ndarray], float]:
@@ -289,8 +291,10 @@ class NetworkTask:
 
 
 def train_task(task: NetworkTask, progress=None) -> tuple[MLP, list[float], np.ndarray | None]:
-    """Train ``task``'s network; returns it, its training MSE per epoch (:func:`train_mlp`) and the
-    logits of ``task.score`` (None without rows to score)."""
+    """Train ``task``'s network; return it, its training MSE per epoch and the logits of ``task.score``.
+
+    The MSE is :func:`train_mlp`'s; the logits are None without rows to score.
+    """
     net, history = train_mlp(task.x, task.labels, task.n_classes, hidden=task.hidden, epochs=task.epochs,
                              seed=task.seed, progress=progress)
     return net, history, None if task.score is None else net.logits(task.score)
@@ -302,8 +306,10 @@ PARALLEL_MIN_WORK = 1e9
 
 
 def train_networks(tasks, jobs: int = 1, watch=None, done=None, work: float | None = None) -> list:
-    """Train every task (:func:`train_task`), over ``jobs`` worker processes where the work is worth
-    them (:data:`PARALLEL_MIN_WORK`); the networks are the same for any ``jobs``.
+    """Train every task (:func:`train_task`), over ``jobs`` worker processes where the work is worth them.
+
+    The work is worth them from :data:`PARALLEL_MIN_WORK`; the networks are the same for any
+    ``jobs``.
 
     Workers take the tasks in their order: put last a task whose result is needed last, so that
     what the caller does in ``done`` with the others runs while it trains.

@@ -114,7 +114,7 @@ def _check_member_size(npz, name: str, max_bytes: int, path) -> None:
 
 
 def _bank_kind_problem(bank: Bank) -> str | None:
-    """What makes ``bank``'s channels contradict its ``kind``, or None if they fit."""
+    """Return what makes ``bank``'s channels contradict its ``kind``, or None if they fit."""
     if bank.kind == "whisker":
         table = {f"{row}{arc + 1}": cf for row, cfs in WHISKER_TABLE.items() for arc, cf in enumerate(cfs)}
         for name, cf in zip(bank.names, bank.cf):
@@ -140,10 +140,11 @@ GAIN_LINEAR_FEATURES = ("Af", "A")
 
 @dataclass(frozen=True)
 class GainAugment:
-    """Gain augmentation of training windows (opt-in, :meth:`TextureModel.train`'s ``augment``): ``copies``
-    more copies of every training window, each with its own gains ``exp(N(0, spread))``, one per channel
-    (``per_channel``: a vibrissa's own gain) or one for all channels (a microphone's level), multiplying
-    the columns of the gain-linear features (:data:`GAIN_LINEAR_FEATURES`); ``f`` is left as it is.
+    """Gain augmentation of training windows (opt-in, :meth:`TextureModel.train`'s ``augment``).
+
+    ``copies`` more copies of every training window, each with its own gains ``exp(N(0, spread))``, one
+    per channel (``per_channel``: a vibrissa's own gain) or one for all channels (a microphone's level),
+    multiplying the columns of the gain-linear features (:data:`GAIN_LINEAR_FEATURES`); ``f`` is left as it is.
     Drawn from ``seed`` and the network's stream (0: the model's, ``f + 1``: calibration fold ``f``'s),
     so the same for any number of workers.
 
@@ -154,7 +155,8 @@ class GainAugment:
     log loss from 0.30-0.68 to 0.14-0.25, each sense's accuracy unchanged on average; the networks cost
     ``1 + copies`` times the CPU. Not yet on the command line, nor in ``fit_network_calibration`` or
     ``out_of_fold_logits``. ``spread = 0`` gives the model without it, to the bit (iRPROP- follows the
-    gradients' signs, which exact copies do not change)."""
+    gradients' signs, which exact copies do not change).
+    """
 
     copies: int = 4
     spread: float = 0.03
@@ -162,8 +164,10 @@ class GainAugment:
     seed: int = 0
 
     def for_inputs(self, features, channels: int):
-        """The callable ``(rows (n, features x channels), labels, stream) -> (rows, labels)`` for
-        :func:`supramodal.calibration.fold_tasks` and the model's own network."""
+        """Return the callable ``(rows (n, features x channels), labels, stream) -> (rows, labels)``.
+
+        It is for :func:`supramodal.calibration.fold_tasks` and the model's own network.
+        """
         linear = np.array([f in GAIN_LINEAR_FEATURES for f in features])
         n_features = len(features)
 
@@ -210,12 +214,15 @@ class TextureModel:
 
     @property
     def n_inputs(self) -> int:
+        """The network's inputs per window: features x channels."""
         return len(self.features) * self.bank.channels
 
     @property
     def calibrated(self) -> bool:
-        """Whether the posteriors are calibrated (a model trained by this version; a version 1
-        file is not)."""
+        """Whether the posteriors are calibrated.
+
+        A model trained by this version is; a version 1 file is not.
+        """
         return self.calibration is not None
 
     @classmethod
@@ -313,12 +320,15 @@ class TextureModel:
         return self.mlp.outputs(self._inputs(values))
 
     def logits(self, values: np.ndarray) -> np.ndarray:
-        """The output units' logits, shape (n, classes) (finite where the outputs round to 0 or 1)."""
+        """Return the output units' logits, shape (n, classes) (finite where the outputs round to 0 or 1)."""
         return self.mlp.logits(self._inputs(values))
 
     def log_posteriors(self, values: np.ndarray) -> np.ndarray:
-        """Log-posteriors of the classes per window, shape (n, classes): calibrated when the model
-        is (:attr:`calibrated`), else the normalised outputs; finite, computed without clipping."""
+        """Log-posteriors of the classes per window, shape (n, classes).
+
+        Calibrated when the model is (:attr:`calibrated`), else the normalised outputs; finite,
+        computed without clipping.
+        """
         return log_posteriors_of(self.logits(values), self.calibration)
 
     def posteriors(self, values: np.ndarray) -> np.ndarray:
@@ -326,17 +336,21 @@ class TextureModel:
         return np.exp(self.log_posteriors(values))
 
     def novelty_score(self, values: np.ndarray) -> np.ndarray:
-        """How unlike every training texture each window is, shape (n,)
-        (:class:`~supramodal.calibration.Novelty`); a model without a novelty score raises."""
+        """How unlike every training texture each window is, shape (n,).
+
+        The score is :class:`~supramodal.calibration.Novelty`'s; a model without a novelty score
+        raises.
+        """
         if self.novelty is None:
             raise ModelError("this model has no novelty score (trained before version 2, or without "
                              "calibration): retrain it with `supramodal train` to detect unknown textures")
         return self.novelty.score(self._inputs(values))
 
     def recalibrated(self, values: np.ndarray, labels, groups=None, what: str = "") -> TextureModel:
-        """This model with its calibration (window map, caps, contact pooling) and its novelty
-        thresholds fitted on labelled windows of a new touch, session or sensor, its network kept
-        (:func:`supramodal.calibration.recalibrate`).
+        """Return the model with its calibration and novelty thresholds fitted anew, its network kept.
+
+        The calibration (window map, caps, contact pooling) and the novelty thresholds are fitted
+        on labelled windows of a new touch, session or sensor (:func:`supramodal.calibration.recalibrate`).
 
         Parameters
         ----------
@@ -371,8 +385,10 @@ class TextureModel:
                          peak_mode=pipeline.peaks.mode, peak_threshold=pipeline.peaks.threshold, **kwargs)
 
     def pipeline(self, **kwargs):
-        """A FeaturePipeline computing exactly the inputs this model takes (extra keyword arguments
-        such as ``dtype`` or ``nonfinite`` are passed on)."""
+        """Return a FeaturePipeline computing exactly the inputs this model takes.
+
+        Extra keyword arguments such as ``dtype`` or ``nonfinite`` are passed on.
+        """
         from supramodal.pipeline import FeaturePipeline
 
         return FeaturePipeline(self.bank, self.features, self.window_samples / self.bank.fs, peak_mode=self.peak_mode,
@@ -395,6 +411,7 @@ class TextureModel:
     # -- files ---------------------------------------------------------------------------------
 
     def header(self) -> dict:
+        """Return the model file's JSON header: format, version, sense, classes, layers, training, calibration."""
         return {
             "format": MODEL_FORMAT,
             "version": MODEL_VERSION,
@@ -406,8 +423,10 @@ class TextureModel:
         }
 
     def save(self, path) -> Path:
-        """Write the model, an ``.npz`` archive, to exactly ``path`` (no suffix is added, so that
-        :meth:`load` reads it back from the same name). Returns the path written."""
+        """Write the model, an ``.npz`` archive, to exactly ``path``; return the path written.
+
+        No suffix is added, so that :meth:`load` reads it back from the same name.
+        """
         return save_model_archive(path, self.header(), self.mlp, self.mean, self.scale, novelty_arrays(self.novelty))
 
     @classmethod
@@ -448,9 +467,12 @@ class TextureModel:
 
 def check_sense_fits(trained, bank: Bank, features, window_samples: int, peak_mode: str | None = None,
                      peak_threshold: float | None = None) -> None:
-    """Raise :class:`ModelError` naming what differs if windows made with ``bank``, ``features``,
-    ``window_samples`` (and, when given, ``peak_mode`` and ``peak_threshold``) are not the
-    ``trained`` sense's, ``(bank, features, window_samples, peak_mode, peak_threshold)``."""
+    """Raise :class:`ModelError` naming what differs if windows made so are not the ``trained`` sense's.
+
+    The windows are made with ``bank``, ``features``, ``window_samples`` (and, when given,
+    ``peak_mode`` and ``peak_threshold``); ``trained`` is
+    ``(bank, features, window_samples, peak_mode, peak_threshold)``.
+    """
     t_bank, t_features, t_window, t_mode, t_threshold = trained
     features = check_features(features)
     if not t_bank.matches(bank):
@@ -478,14 +500,16 @@ SENSE_KEYS = ("bank", "features", "window_samples", "peak_mode", "peak_threshold
 
 
 def sense_header(bank: Bank, features, window_samples: int, peak_mode: str, peak_threshold: float) -> dict:
-    """The :data:`SENSE_KEYS` of a header: what a sense's feature windows are."""
+    """Return the :data:`SENSE_KEYS` of a header: what a sense's feature windows are."""
     return {"bank": bank.to_dict(), "features": list(features), "window_samples": int(window_samples),
             "peak_mode": peak_mode, "peak_threshold": float(peak_threshold)}
 
 
 def sense_from_header(header: dict, bad) -> tuple[Bank, tuple[str, ...], int, str, float]:
-    """``(bank, features, window_samples, peak_mode, peak_threshold)`` from a header's
-    :data:`SENSE_KEYS`, each validated; ``bad(message)`` makes the error to raise."""
+    """``(bank, features, window_samples, peak_mode, peak_threshold)`` from a header's :data:`SENSE_KEYS`.
+
+    Each is validated; ``bad(message)`` makes the error to raise.
+    """
     try:
         bank = Bank.from_dict(header["bank"])
         if not (isinstance(header["features"], list) and all(isinstance(f, str) for f in header["features"])):
@@ -512,7 +536,7 @@ def sense_from_header(header: dict, bad) -> tuple[Bank, tuple[str, ...], int, st
 
 
 def classes_from_header(header: dict, bad) -> list[str]:
-    """A header's ``classes``: a non-empty list of at most :data:`MAX_CLASSES` distinct names."""
+    """Return a header's ``classes``: a non-empty list of at most :data:`MAX_CLASSES` distinct names."""
     classes = header.get("classes")
     if not (isinstance(classes, list) and classes and all(isinstance(c, str) for c in classes)
             and len(set(classes)) == len(classes)):
@@ -528,8 +552,11 @@ def classes_from_header(header: dict, bad) -> list[str]:
 
 
 def network_from_arrays(header: dict, arrays: dict, n_in: int, n_classes: int, bad, inputs_are: str):
-    """``(MLP, mean, scale)`` from a header's ``layers`` and the arrays :data:`_ARRAYS`, every
-    shape checked against ``n_in`` inputs (``inputs_are`` says what they are) and ``n_classes``."""
+    """``(MLP, mean, scale)`` from a header's ``layers`` and the arrays :data:`_ARRAYS`.
+
+    Every shape is checked against ``n_in`` inputs (``inputs_are`` says what they are) and
+    ``n_classes``.
+    """
     layers = header.get("layers")
     if not (isinstance(layers, list) and len(layers) == 3
             and all(isinstance(n, int) and not isinstance(n, bool) for n in layers)
@@ -554,8 +581,10 @@ def network_from_arrays(header: dict, arrays: dict, n_in: int, n_classes: int, b
 
 def save_model_archive(path, header: dict, mlp: MLP, mean: np.ndarray, scale: np.ndarray,
                        extra: dict | None = None) -> Path:
-    """Write ``header`` (as JSON text), the network's arrays and any ``extra`` named arrays to
-    exactly ``path``, an ``.npz``."""
+    """Write ``header`` (as JSON text), the network's arrays and any ``extra`` named arrays to exactly ``path``.
+
+    The file is an ``.npz``.
+    """
     path = Path(path)
     arrays = {**dict(zip(_ARRAYS, (mlp.w1, mlp.b1, mlp.w2, mlp.b2, mean, scale))), **(extra or {})}
     with open(path, "wb") as fh:
@@ -564,9 +593,12 @@ def save_model_archive(path, header: dict, mlp: MLP, mean: np.ndarray, scale: np
 
 
 def read_model_archive(path, names=_ARRAYS, optional=()) -> tuple[object, dict]:
-    """``(header, arrays)`` of a model file: the parsed JSON header and the named arrays (and
-    those of ``optional`` that it holds), read with ``allow_pickle=False``, every member's size
-    bounded before it is read; anything else is a :class:`ModelError` that says what the file is not."""
+    """``(header, arrays)`` of a model file: the parsed JSON header and the named arrays.
+
+    The arrays are those named and those of ``optional`` that it holds, read with
+    ``allow_pickle=False``, every member's size bounded before it is read; anything else is a
+    :class:`ModelError` that says what the file is not.
+    """
     path = Path(path)
     if not path.is_file():
         raise ModelError(f"no model file at {path}: train one with `supramodal train` or give the right path")
@@ -617,39 +649,47 @@ CALIBRATION_KEYS = ("calibration", "novelty")
 
 
 def log_posteriors_of(logits: np.ndarray, calibration: Calibration | None) -> np.ndarray:
-    """Log-posteriors from a network's logits: calibrated with ``calibration``, else the
-    normalised outputs (:func:`~supramodal.calibration.normalised_log_posteriors`)."""
+    """Log-posteriors from a network's logits.
+
+    Calibrated with ``calibration``, else the normalised outputs
+    (:func:`~supramodal.calibration.normalised_log_posteriors`).
+    """
     if calibration is None:
         return normalised_log_posteriors(logits)
     return calibration.log_posteriors(logits)
 
 
 def calibration_header(calibration: Calibration | None, novelty: Novelty | None) -> dict:
-    """The :data:`CALIBRATION_KEYS` of a header."""
+    """Return the :data:`CALIBRATION_KEYS` of a header."""
     return {"calibration": None if calibration is None else calibration.to_dict(),
             "novelty": False if novelty is None else novelty.header()}
 
 
 def novelty_arrays(novelty: Novelty | None) -> dict:
-    """The :data:`NOVELTY_ARRAYS` a model file holds for ``novelty`` (none without one)."""
+    """Return the :data:`NOVELTY_ARRAYS` a model file holds for ``novelty`` (none without one)."""
     if novelty is None:
         return {}
     return novelty.arrays()
 
 
 def calibration_from_parts(header: dict, arrays: dict, n_in: int, n_classes: int, bad):
-    """``(Calibration or None, Novelty or None)`` of a header and its arrays, each validated;
-    both None for a version 1 file or one saved without them."""
+    """``(Calibration or None, Novelty or None)`` of a header and its arrays, each validated.
+
+    Both are None for a version 1 file or one saved without them.
+    """
     raw = header.get("calibration")
     calibration = None if raw is None else Calibration.from_dict(raw, bad, n_classes)
     return calibration, Novelty.from_parts(header.get("novelty", False), arrays, n_in, n_classes, bad)
 
 
 def with_held_out_changes(calibration: Calibration, logits, labels, groups, folds) -> Calibration:
-    """``calibration`` with its :class:`~supramodal.calibration.HeldOutChanges`: the change detector's statistic
-    on the held-out windows it was fitted on (``logits`` of windows no network that scored them trained on,
-    ``folds`` saying which network), so that a node sets its change threshold for the rate a scene asks
-    (:func:`supramodal.decisions.change_threshold`) instead of the detector's bound."""
+    """``calibration`` with its :class:`~supramodal.calibration.HeldOutChanges`.
+
+    They hold the change detector's statistic on the held-out windows it was fitted on (``logits`` of
+    windows no network that scored them trained on, ``folds`` saying which network), so that a node sets
+    its change threshold for the rate a scene asks (:func:`supramodal.decisions.change_threshold`)
+    instead of the detector's bound.
+    """
     from supramodal.decisions import held_out_changes
 
     rho, caps = calibration.contact_pooling

@@ -42,9 +42,11 @@ def default_jobs() -> int:
 
 @contextmanager
 def single_threaded_children() -> Iterator[None]:
-    """Set the BLAS thread variables to 1 while workers are started (restored afterwards): a worker's
-    BLAS reads them when numpy loads, and two workers on two cores gain nothing from threads that
-    would compete with each other."""
+    """Set the BLAS thread variables to 1 while workers are started (restored afterwards).
+
+    A worker's BLAS reads them when numpy loads, and two workers on two cores gain nothing from
+    threads that would compete with each other.
+    """
     saved = {k: os.environ.get(k) for k in THREAD_VARS}
     os.environ.update({k: "1" for k in THREAD_VARS})
     try:
@@ -58,8 +60,11 @@ def single_threaded_children() -> Iterator[None]:
 
 
 def _start_worker() -> None:
-    """A worker's start: Ctrl-C reaches the whole process group, and the caller alone answers it;
-    freed memory is kept for the next array (:func:`supramodal.memory.keep_freed_memory`)."""
+    """Start a worker: leave Ctrl-C to the caller, and keep freed memory for the next array.
+
+    Ctrl-C reaches the whole process group, and the caller alone answers it; freed memory is
+    kept by :func:`supramodal.memory.keep_freed_memory`.
+    """
     from supramodal.memory import keep_freed_memory
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -68,7 +73,9 @@ def _start_worker() -> None:
 
 class WorkerLost(SupramodalError, RuntimeError):
     """A worker process ended in the middle of a call (killed: out of memory, a signal; or crashed).
-    Also a RuntimeError."""
+
+    Also a RuntimeError.
+    """
 
 
 def map_in_processes(fn: Callable[[Any], T], items: Iterable[Any], jobs: int = 1,
@@ -146,8 +153,11 @@ def map_in_processes(fn: Callable[[Any], T], items: Iterable[Any], jobs: int = 1
 
 
 def _workers(pool) -> list:
-    """The pool's worker processes (``ProcessPoolExecutor`` keeps them in a private attribute until
-    Python 3.14's ``terminate_workers``)."""
+    """Return the pool's worker processes.
+
+    ``ProcessPoolExecutor`` keeps them in a private attribute until Python 3.14's
+    ``terminate_workers``.
+    """
     return list((getattr(pool, "_processes", None) or {}).values())
 
 

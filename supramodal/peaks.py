@@ -105,17 +105,21 @@ class PeakExtractor:
         self._finished = False
 
     def staging(self, length: int, dtype: DTypeLike = np.float64) -> np.ndarray:
-        """A (channels, length) array to write the next block into; pass that very array to
-        :meth:`process` next, which then skips copying it (an optimisation for the pipeline)."""
+        """Return a (channels, length) array to write the next block into.
+
+        Pass that very array to :meth:`process` next, which then skips copying it (an
+        optimisation for the pipeline).
+        """
         self._staged = self._buffer(int(length), np.dtype(dtype))[:, 2:]
         return self._staged
 
     def _buffer(self, L: int, dtype: np.dtype) -> np.ndarray:
-        """The (channels, L + 2) work array, its first two columns holding the last two samples.
+        """Return the (channels, L + 2) work array, its first two columns holding the last two samples.
 
         It is a view of one flat array kept between blocks and grown only when a block is longer
         than any before: a pipeline's stages of varying length (three chunks, then one) would
-        otherwise allocate and fault in a fresh array at each change of length."""
+        otherwise allocate and fault in a fresh array at each change of length.
+        """
         z = self._z
         if z is not None and z.shape[1] == L + 2 and z.dtype == dtype:
             return z
@@ -209,7 +213,7 @@ class PeakExtractor:
         return channel, column, amplitude
 
     def _work(self, name: str, size: int, dtype: DTypeLike) -> np.ndarray:
-        """A scratch array kept between blocks (fresh large arrays cost page faults every block)."""
+        """Return a scratch array kept between blocks (fresh large arrays cost page faults every block)."""
         a = self._scratch.get(name)
         if a is None or a.size < size or a.dtype != dtype:
             a = self._scratch[name] = np.empty(size, dtype=dtype)

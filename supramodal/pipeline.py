@@ -28,8 +28,10 @@ STAGE_CELLS = 65536
 
 
 def window_length(window: float, fs: float) -> int:
-    """Window length in samples for ``window`` seconds at ``fs`` Hz (rounded to the nearest sample),
-    2 .. :data:`MAX_WINDOW_SAMPLES`."""
+    """Window length in samples for ``window`` seconds at ``fs`` Hz, rounded to the nearest sample.
+
+    It must be 2 .. :data:`MAX_WINDOW_SAMPLES` (:class:`InputError` otherwise).
+    """
     if not (is_number(window) and window > 0):
         raise InputError(f"window must be a positive number of seconds, got {window!r}")
     n = int(round(window * fs))
@@ -149,13 +151,13 @@ class FeaturePipeline:
         return 0 if n >= self.window_samples else n
 
     def _next_cut(self, index: int) -> int:
-        """The first cut point after stream index ``index``: the next chunk end or window end."""
+        """Return the first cut point after stream index ``index``: the next chunk end or window end."""
         W, C = self.window_samples, self.chunk_samples
         w0 = index // W * W
         return min(w0 + ((index - w0) // C + 1) * C, w0 + W)
 
     def _no_windows(self) -> Windows:
-        """An empty result (shared: it holds nothing to change)."""
+        """Return an empty result (shared: it holds nothing to change)."""
         first = self.windows.windows_emitted
         if self._empty is None or self._empty.first != first:
             self._empty = Windows(first, np.zeros((0, len(self.features), self.bank.channels)), self.features)
@@ -195,16 +197,18 @@ class FeaturePipeline:
         return self.windows.process(self.peaks.process(y))
 
     def _stage_end(self, start: int) -> int:
-        """Where a stage begun at stream index ``start`` (a cut point) ends: the first chunk end
-        at least :data:`STAGE_CELLS` channel-samples on, or its window's end."""
+        """Where a stage begun at stream index ``start`` (a cut point) ends.
+
+        That is the first chunk end at least :data:`STAGE_CELLS` channel-samples on, or its
+        window's end.
+        """
         W, C = self.window_samples, self.chunk_samples
         w0 = start // W * W
         need = -(-STAGE_CELLS // self.bank.channels)                 # samples, rounded up
         return min(w0 - (-(start + need - w0) // C) * C, w0 + W)
 
     def _run_chunk(self, x: np.ndarray) -> Windows:
-        """Filter (part of) one chunk into the stage; at the stage's end, find its peaks and
-        close the windows that ends."""
+        """Filter (part of) one chunk into the stage; at its end, find its peaks and close the windows ending there."""
         if self._stage is None:
             start = self.peaks.samples_seen
             self._stage = self.peaks.staging(self._stage_end(start) - start, self.filterbank.dtype)
@@ -216,16 +220,20 @@ class FeaturePipeline:
         return self._run_stage()
 
     def _run_stage(self) -> Windows:
-        """The peaks and windows of the staged filterbank output (all of it: a window's end, or
-        the stream's)."""
+        """Find the peaks and windows of the staged filterbank output.
+
+        All of it: up to a window's end, or the stream's.
+        """
         stage, n = self._stage, self._staged
         assert stage is not None, "a chunk was staged"
         self._stage, self._staged = None, 0
         return self.windows.process(self.peaks.process(stage if n == stage.shape[1] else stage[:, :n]))
 
     def finish(self) -> Windows:
-        """End of stream: close the last complete window. A trailing partial window is dropped
-        (see :attr:`partial_samples`)."""
+        """End of stream: close the last complete window.
+
+        A trailing partial window is dropped (see :attr:`partial_samples`).
+        """
         parts = [self._release(self._held)] if self._held else []
         if self._staged:
             parts.append(self._run_stage())

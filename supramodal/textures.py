@@ -89,9 +89,11 @@ class TextureSet:
 
     @property
     def names(self) -> tuple[str, ...]:
+        """The textures' names, in order."""
         return tuple(t.name for t in self.textures)
 
     def to_dict(self) -> dict:
+        """Return the set as the JSON object of a texture-set file (:func:`load_texture_set` reads it)."""
         return {
             "format": TEXTURES_FORMAT, "version": TEXTURES_VERSION, "name": self.name, "bank": self.bank,
             "fs": self.fs, "duration": self.duration, "width": self.width, "seed": self.seed,
@@ -99,6 +101,7 @@ class TextureSet:
         }
 
     def save(self, path) -> None:
+        """Write the set to ``path`` as indented JSON (:meth:`to_dict`)."""
         Path(path).write_text(json.dumps(self.to_dict(), indent=2) + "\n")
 
     def synthesize(self, index: int, duration: float | None = None) -> np.ndarray:
@@ -149,7 +152,7 @@ def synthesize(peaks, fs: float, duration: float, width: float = 0.2, seed=None)
 
 
 def texture_samples(duration: float, fs: float) -> int:
-    """Samples in ``duration`` seconds at ``fs`` Hz, ``round(duration * fs)``.
+    """Return the samples in ``duration`` seconds at ``fs`` Hz, ``round(duration * fs)``.
 
     Raises
     ------
@@ -265,7 +268,7 @@ def load_texture_set(path) -> TextureSet:
 
 
 def reference_texture_set(bank: str) -> TextureSet:
-    """The reference set shipped with the package for ``bank`` ('whisker' or 'cochlea')."""
+    """Return the reference set shipped with the package for ``bank`` ('whisker' or 'cochlea')."""
     if bank not in BANK_RATES:
         raise InputError(f"unknown bank {bank!r}: choose 'whisker' or 'cochlea'")
     text = resources.files("supramodal").joinpath("data", "textures", f"{bank}_reference.json").read_text()

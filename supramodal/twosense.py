@@ -109,7 +109,7 @@ def two_sense_set(pairs: int = 2, seed: int = 0) -> tuple[Surface, ...]:
 
 
 def synthesize_contact(surface: Surface, seconds: float, seed=None) -> tuple[np.ndarray, np.ndarray]:
-    """The whisker vibration and the microphone signal of ``seconds`` of contact with ``surface``.
+    """Synthesize the whisker vibration and the microphone signal of ``seconds`` of contact with ``surface``.
 
     Returns
     -------
@@ -130,9 +130,11 @@ def synthesize_contact(surface: Surface, seconds: float, seed=None) -> tuple[np.
 
 @dataclass(frozen=True)
 class TouchGains:
-    """What sets one touch apart from another touch of the same surface (issue 34): a real array
-    never meets a surface twice at the same angle and force, so a model that learned one touch's
-    coupling as a cue of the texture meets a new touch it has not calibrated for.
+    """What sets one touch apart from another touch of the same surface (issue 34).
+
+    A real array never meets a surface twice at the same angle and force, so a model that
+    learned one touch's coupling as a cue of the texture meets a new touch it has not calibrated
+    for.
 
     Attributes
     ----------
@@ -147,8 +149,10 @@ class TouchGains:
 
 
 def touch_gains(seed) -> TouchGains:
-    """One touch's gains, log-normal around 1 (:data:`WHISKER_TOUCH_SPREAD`, :data:`MIC_TOUCH_SPREAD`),
-    drawn from ``seed`` (anything :class:`numpy.random.SeedSequence` takes)."""
+    """One touch's gains, log-normal around 1 (:data:`WHISKER_TOUCH_SPREAD`, :data:`MIC_TOUCH_SPREAD`).
+
+    Drawn from ``seed`` (anything :class:`numpy.random.SeedSequence` takes).
+    """
     rng = np.random.default_rng(np.random.SeedSequence(seed))
     whiskers = np.exp(rng.normal(0.0, WHISKER_TOUCH_SPREAD, WHISKERS))
     return TouchGains(whiskers, float(np.exp(rng.normal(0.0, MIC_TOUCH_SPREAD))))
@@ -156,8 +160,9 @@ def touch_gains(seed) -> TouchGains:
 
 def synthesize_touch(surface: Surface, seconds: float, set_seed: int, index: int, touch: int
                      ) -> tuple[np.ndarray, np.ndarray]:
-    """Touch number ``touch`` (0, 1, ...) of texture ``index`` of set ``set_seed``: both senses'
-    signals with that touch's own gains (:func:`touch_gains`).
+    """Touch number ``touch`` (0, 1, ...) of texture ``index`` of set ``set_seed``: both senses' signals.
+
+    Each with that touch's own gains (:func:`touch_gains`).
 
     Returns
     -------
@@ -178,10 +183,11 @@ def synthesize_touch(surface: Surface, seconds: float, set_seed: int, index: int
 
 
 def synthesize_slide(surfaces, order, seconds: float, set_seed: int, touch: int) -> tuple[np.ndarray, np.ndarray]:
-    """One touch that slides across several surfaces without lifting off: ``seconds`` of each of
-    ``surfaces[i]`` for ``i`` in ``order``, back to back (each stretch is that texture's
-    :func:`synthesize_touch`, touch ``touch``), both senses. The texture changes at every multiple of
-    ``seconds``; the contact never ends.
+    """One touch that slides across several surfaces without lifting off, both senses.
+
+    ``seconds`` of each of ``surfaces[i]`` for ``i`` in ``order``, back to back (each stretch is that
+    texture's :func:`synthesize_touch`, touch ``touch``), both senses. The texture changes at every multiple
+    of ``seconds``; the contact never ends.
 
     Returns
     -------
@@ -193,8 +199,11 @@ def synthesize_slide(surfaces, order, seconds: float, set_seed: int, touch: int)
 
 
 def _motor(seconds: float, seed) -> np.ndarray:
-    """Motor noise at :data:`MIC_RATE`: the three-peak texture low-passed (4th-order Butterworth at
-    :data:`MOTOR_CUTOFF`), so that it masks the vibration's band and leaves the friction sound's."""
+    """Motor noise at :data:`MIC_RATE`: the three-peak texture low-passed.
+
+    The low pass is a 4th-order Butterworth at :data:`MOTOR_CUTOFF`, so that the noise masks the
+    vibration's band and leaves the friction sound's.
+    """
     from scipy.signal import butter, sosfilt  # here: scipy.signal takes 0.6 s to import
 
     sos = butter(4, MOTOR_CUTOFF, fs=MIC_RATE, output="sos")
@@ -209,8 +218,9 @@ TRAIN_SECONDS = 20.0
 
 @dataclass(frozen=True)
 class OneSense:
-    """One sense of a two-sense set, shaped as a texture set (``name``, ``fs``, ``duration``,
-    ``textures``, ``names``, ``synthesize``): what the training helpers take.
+    """One sense of a two-sense set, shaped as a texture set: what the training helpers take.
+
+    A texture set has ``name``, ``fs``, ``duration``, ``textures``, ``names`` and ``synthesize``.
 
     Contact ``index`` with ``take`` k is one draw of the world, the same for both senses: the
     whisker signal of ``OneSense(..., "whiskers")`` and the microphone signal of
@@ -242,22 +252,26 @@ class OneSense:
 
     @property
     def name(self) -> str:
+        """The set's name, with its seed and sense."""
         return f"two-sense set {self.seed} ({self.sense})"
 
     @property
     def fs(self) -> float:
+        """The sense's sample rate, Hz."""
         return WHISKER_RATE if self.sense == "whiskers" else MIC_RATE
 
     @property
     def textures(self) -> tuple:
+        """The set's surfaces."""
         return self.surfaces
 
     @property
     def names(self) -> tuple[str, ...]:
+        """The surfaces' names, in order."""
         return tuple(s.name for s in self.surfaces)
 
     def synthesize(self, index: int, duration: float | None = None) -> np.ndarray:
-        """This sense's signal of contact ``index``, float64, shape (samples,)."""
+        """Synthesize the sense's signal of contact ``index``, float64, shape (samples,)."""
         whiskers, mic = synthesize_contact(self.surfaces[index], self.duration if duration is None else duration,
                                            seed=[self.seed, index, self.take])
         return whiskers if self.sense == "whiskers" else mic

@@ -68,7 +68,7 @@ def scipy_iir_design(cf: float, b: float, fs: float) -> tuple[np.ndarray, np.nda
 
 
 def scipy_uses_bank_bandwidths(bank: Bank) -> bool:
-    """True where scipy's own ERB gives the bank's ``b`` (so scipy's function is called as is)."""
+    """Tell whether scipy's own ERB gives the bank's ``b`` (so scipy's function is called as is)."""
     return bool(np.allclose(1.019 * (bank.cf / 9.26449 + 24.7), bank.b, rtol=1e-12, atol=0))
 
 
@@ -138,6 +138,7 @@ class ScipyGammatonePeer(_PerChannelPeer):
         super().__init__(bank, dtype, nonfinite)
 
     def reset(self) -> None:
+        """Zero every channel's filter state."""
         self._zi = [np.zeros(8, dtype=self.dtype) for _ in range(self.channels)]
 
     def _call(self, c: int, x: np.ndarray) -> np.ndarray:
@@ -156,6 +157,7 @@ class SlaneyPeer(_PerChannelPeer):
         super().__init__(bank, dtype, nonfinite)
 
     def reset(self) -> None:
+        """Zero every channel's filter state."""
         self._zi = [np.zeros((4, 2), dtype=self.dtype) for _ in range(self.channels)]
 
     def _call(self, c: int, x: np.ndarray) -> np.ndarray:
@@ -164,7 +166,7 @@ class SlaneyPeer(_PerChannelPeer):
 
 
 def make_peer(bank: Bank, name: str, dtype=np.float64) -> FilterbankBase:
-    """A peer filterbank by name (``"scipy-iir"`` or ``"slaney"``)."""
+    """Return a peer filterbank by name (``"scipy-iir"`` or ``"slaney"``)."""
     if name == "scipy-iir":
         return ScipyGammatonePeer(bank, dtype)
     if name == "slaney":

@@ -37,8 +37,11 @@ def _rtf(v) -> str:
 
 
 def write_report(results: dict, out) -> list[Path]:
-    """Write ``report.md``, ``speed_error.csv``, ``drift.csv``, ``node.csv``, ``bench.json`` and, with
-    matplotlib, ``pareto.png`` and ``drift.png`` into ``out``; return the paths written."""
+    """Write the report's files into ``out``; return the paths written.
+
+    The files are ``report.md``, ``speed_error.csv``, ``drift.csv``, ``node.csv``,
+    ``bench.json`` and, with matplotlib, ``pareto.png`` and ``drift.png``.
+    """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     written = []
@@ -92,6 +95,7 @@ def _csv(path: Path, header: list, rows: list) -> Path:
 
 
 def markdown(results: dict, plots: bool = True) -> str:
+    """Return the text of ``report.md`` for ``results`` (with ``plots``, it shows the PNGs)."""
     meta = results["meta"]
     m = meta["machine"]
     load = lambda la: "n/a" if not la else ", ".join(f"{v:.2f}" for v in la)  # noqa: E731

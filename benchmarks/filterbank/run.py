@@ -97,7 +97,7 @@ QUICK = replace(
 
 
 def make_backend(bank: Bank, backend: str, dtype: str):
-    """A filterbank of the product (``fast``, ``reference``) or a peer, fresh."""
+    """Return a fresh filterbank of the product (``fast``, ``reference``) or a peer."""
     if backend in PRODUCT:
         return make_filterbank(bank, backend, dtype=np.dtype(dtype))
     return make_peer(bank, backend, np.dtype(dtype))
@@ -123,10 +123,13 @@ def summarise_errors(err: np.ndarray) -> tuple[float, int]:
 
 
 def interleaved(jobs: dict, repeats: int, budget: float) -> dict:
-    """Run each job ``repeats`` times, one run of every job per round, so that a change of load on
-    a shared machine affects every job alike. ``jobs[key](first)`` sets a run up, untimed (``first``:
+    """Run each job ``repeats`` times, one run of every job per round.
+
+    Interleaved so that a change of load on a shared machine affects every job alike.
+    ``jobs[key](first)`` sets a run up, untimed (``first``:
     the job's first run), and returns the callable that is timed. A job whose runs exceed ``budget``
-    seconds stops repeating. Returns ``{key: (wall seconds per run, CPU seconds per run)}``."""
+    seconds stops repeating. Returns ``{key: (wall seconds per run, CPU seconds per run)}``.
+    """
     times: dict[Any, tuple[list[float], list[float]]] = {k: ([], []) for k in jobs}
     for r in range(repeats):
         for key, setup in jobs.items():
@@ -142,8 +145,10 @@ def interleaved(jobs: dict, repeats: int, budget: float) -> dict:
 
 
 def stream_job(bank: Bank, variant, x: np.ndarray, L: int, keep: dict):
-    """Runs of a fresh, warmed filterbank over ``x`` in blocks of ``L``; the first run's output
-    goes to ``keep[variant]``."""
+    """Return a job (for :func:`interleaved`) running a fresh, warmed filterbank over ``x`` in blocks of ``L``.
+
+    The first run's output goes to ``keep[variant]``.
+    """
     def setup(first: bool):
         fb = warm(make_backend(bank, *variant), L)
 
@@ -171,6 +176,13 @@ def pareto(points: list[tuple[float, float]]) -> list[bool]:
 # -- part a: error against run time -----------------------------------------------------------
 
 def speed_error(cfg: Config, progress) -> list[dict]:
+    """Measure part a: each variant's speed and error against the reference, per bank and block length.
+
+    Returns one row per bank, block length and variant: real-time factors (wall and CPU), the
+    streamed output's and the impulse response's error against the reference, the bad
+    channels, and whether the row is on the speed/error Pareto front of its bank and block.
+    ``progress`` is told a line per row.
+    """
     rows = []
     for kind in BANKS:
         bank = bank_by_name(kind)
@@ -211,6 +223,7 @@ def speed_error(cfg: Config, progress) -> list[dict]:
 # -- part b: error against stream duration ----------------------------------------------------
 
 def sub_bank(bank: Bank, channels) -> Bank:
+    """Return the bank of ``bank``'s ``channels`` (indices) alone."""
     idx = list(channels)
     return Bank(bank.kind, bank.fs, bank.cf[idx], bank.b[idx], tuple(bank.names[i] for i in idx))
 
@@ -265,8 +278,10 @@ def drift(cfg: Config, progress) -> dict:
 # -- part c: the whole node -------------------------------------------------------------------
 
 def texture_session(kind: str, cfg: Config):
-    """Training windows from the first :data:`~supramodal.training.TRAIN_FRACTION` of each texture; the session:
-    the last seconds of each."""
+    """Training windows from the first :data:`~supramodal.training.TRAIN_FRACTION` of each texture.
+
+    The session is the last seconds of each.
+    """
     ts = reference_texture_set(kind)
     bank = bank_by_name(kind)
     pipe_W = FeaturePipeline(bank, FEATURES).window_samples
@@ -287,6 +302,7 @@ def texture_session(kind: str, cfg: Config):
 
 
 def make_pipeline(bank: Bank, backend: str, dtype: str) -> FeaturePipeline:
+    """Return a warmed feature pipeline of ``bank`` on the product's ``backend`` or a peer's filterbank."""
     if backend in PRODUCT:
         pipe = FeaturePipeline(bank, FEATURES, backend=backend, dtype=np.dtype(dtype))
     else:
@@ -297,8 +313,11 @@ def make_pipeline(bank: Bank, backend: str, dtype: str) -> FeaturePipeline:
 
 
 def chain_job(bank, model, session, L, variant, keep: dict):
-    """Runs of the pipeline to decisions, block by block, as the node's processing thread runs it
-    (fresh, warmed pipeline each run); the first run's decided labels go to ``keep[(variant, L)]``."""
+    """Return a job (for :func:`interleaved`) running the pipeline to decisions, block by block.
+
+    It runs as the node's processing thread runs it (fresh, warmed pipeline each run); the
+    first run's decided labels go to ``keep[(variant, L)]``.
+    """
     def setup(first: bool):
         pipe = make_pipeline(bank, *variant)
 
@@ -320,7 +339,7 @@ def chain_job(bank, model, session, L, variant, keep: dict):
 
 
 def threaded_node(bank, model, session, ranges, L, speed):
-    """The node itself (driver thread, ring buffer, processing thread, sink) on the replayed session."""
+    """Run the node itself (driver thread, ring buffer, processing thread, sink) on the replayed session."""
     sink = ListSink()
     driver = ReplayDriver((session[:, None], bank.fs), block_size=L, speed=speed, on_notice=None)
     node = Node(driver, make_pipeline(bank, "fast", "float64"), [sink], model=model,
@@ -330,6 +349,11 @@ def threaded_node(bank, model, session, ranges, L, speed):
 
 
 def node_part(cfg: Config, progress) -> dict:
+    """Measure part c: the chain to decisions per variant and block length, and the threaded node.
+
+    Returns ``{"chain": rows, "threaded": rows}``: real-time factors, windows, and agreement
+    with the reference's decisions (and accuracy) per bank. ``progress`` is told a line per row.
+    """
     rows, threaded = [], []
     for kind in BANKS:
         bank, model, session, ranges = texture_session(kind, cfg)
@@ -368,7 +392,7 @@ def node_part(cfg: Config, progress) -> dict:
 # -- targets ----------------------------------------------------------------------------------
 
 def targets(results: dict) -> list[dict]:
-    """The issue's Done-when figures, each with its measured value and whether it is met."""
+    """Return the issue's Done-when figures, each with its measured value and whether it is met."""
     a, c = results["speed_error"], results["node"]["chain"]
 
     def row(rows, **kw):
@@ -405,6 +429,7 @@ def targets(results: dict) -> list[dict]:
 # -- main -------------------------------------------------------------------------------------
 
 def machine() -> dict:
+    """Return this machine for the report: CPU, logical CPUs, Python, numpy, scipy, platform, pinned threads."""
     cpu = platform.processor()
     try:
         with open("/proc/cpuinfo") as fh:
@@ -434,6 +459,7 @@ def run(cfg: Config, progress=lambda m: None) -> dict:
 
 
 def main(argv=None) -> int:
+    """Run the benchmark and write its report (``supramodal bench``); return 0."""
     parser = argparse.ArgumentParser(prog="supramodal bench", description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="short signals and streams (well under a minute)")
     parser.add_argument("--out", default="out/bench", help="directory for the report (default ./out/bench)")

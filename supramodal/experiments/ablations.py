@@ -63,7 +63,7 @@ NETWORK_SEEDS = 5
 
 
 def as_cochlea_set(texture_set):
-    """The same textures (peaks, noise seed, duration, width) synthesised at 44.1 kHz for the cochlea."""
+    """Return the same textures (peaks, noise seed, duration, width) synthesised at 44.1 kHz for the cochlea."""
     return dataclasses.replace(texture_set, name=f"{texture_set.name}-at-44k1", bank="cochlea",
                                fs=BANK_RATES["cochlea"])
 
@@ -239,9 +239,12 @@ LEVEL_B = (5.0, 145.0)
 
 
 def level_spread(mean_B: float, quick: bool = False, progress=None) -> dict:
-    """Per whisker channel at ``mean_B``, on the reference set: the range over textures of the mean
-    of A (dB), the mean over textures of A's window-to-window standard deviation (dB, of 20 log10 A),
-    and their ratio, a per-channel separability index."""
+    """Per whisker channel at ``mean_B``, on the reference set: A's spread between and within textures.
+
+    That is the range over textures of the mean of A (dB), the mean over textures of A's
+    window-to-window standard deviation (dB, of 20 log10 A), and their ratio, a per-channel
+    separability index.
+    """
     ts = quick_set(reference_texture_set("whisker"), quick)
     bank = default_bank(ts, mean_B=mean_B)
     values, _ = texture_features(ts, bank, ("A",))

@@ -1,6 +1,7 @@
-"""Confidence that means what it says (issue 23), measured: calibrated posteriors per window and per
-contact, late and early fusion of two senses, unknown textures, and decisions taken as soon as they
-are sure.
+"""Confidence that means what it says (issue 23), measured.
+
+Calibrated posteriors per window and per contact, late and early fusion of two senses, unknown
+textures, and decisions taken as soon as they are sure.
 
 Four measurements, each on held-out windows (the last quarter of every texture's windows,
 :func:`supramodal.training.split`; Af features, each bank's default channels):
@@ -89,8 +90,10 @@ TARGET_ANYTIME = 0.99
 # -- the pieces --------------------------------------------------------------------------------------
 
 def auroc(unknown, known) -> float:
-    """Area under the ROC curve of a score that should be larger for ``unknown`` than for ``known``:
-    the chance that an unknown item scores above a known one (ties count half)."""
+    """Area under the ROC curve of a score that should be larger for ``unknown`` than for ``known``.
+
+    That is the chance that an unknown item scores above a known one (ties count half).
+    """
     u = np.asarray(unknown, dtype=np.float64)
     k = np.asarray(known, dtype=np.float64)
     if u.size == 0 or k.size == 0:
@@ -163,8 +166,9 @@ def score_set(texture_set: TextureSet, epochs: int = DEFAULT_EPOCHS, seed: int =
 
 def leave_out_fold(texture_set: TextureSet, fold: int, epochs: int = DEFAULT_EPOCHS, seed: int = 0,
                    progress=None) -> dict:
-    """Textures ``LEFT_OUT * fold ..`` left out of training; unknown-texture detection on the test
-    windows of every texture (see the module).
+    """Leave textures ``LEFT_OUT * fold ..`` out of training; detect unknown textures on every texture's test windows.
+
+    See the module.
 
     A window is unknown when its novelty score (:meth:`~supramodal.calibration.Novelty.score`) is
     beyond the model's threshold for a :data:`FALSE_UNKNOWN` rate of held-out known windows; a
@@ -253,10 +257,13 @@ def _cost(texture_set: TextureSet, per: float) -> float:
 
 
 def plan(quick: bool = False, epochs: int = DEFAULT_EPOCHS, seed: int = 0, sets: int | None = None) -> Plan:
-    """The runs of ``experiment calibration``: per bank its reference set, ``sets`` random sets
-    (seeds ``seed ..``) and every leave-out fold of the reference set; ``sets`` two-sense sets
-    (seeds ``seed ..``). Quick mode: textures of :data:`~supramodal.experiments.common.QUICK_DURATION`
-    s, two-sense contacts of :data:`QUICK_TWO_SENSE_SECONDS` s, :data:`QUICK_SETS` sets by default."""
+    """Return the runs of ``experiment calibration``.
+
+    Per bank its reference set, ``sets`` random sets (seeds ``seed ..``) and every leave-out fold of the
+    reference set; ``sets`` two-sense sets (seeds ``seed ..``). Quick mode: textures of
+    :data:`~supramodal.experiments.common.QUICK_DURATION` s, two-sense contacts of
+    :data:`QUICK_TWO_SENSE_SECONDS` s, :data:`QUICK_SETS` sets by default.
+    """
     n_sets = (QUICK_SETS if quick else DEFAULT_SETS) if sets is None else sets
     if isinstance(n_sets, bool) or not isinstance(n_sets, int) or n_sets < 1:
         raise InputError(f"--sets must be >= 1 for experiment calibration (random texture sets per bank and "
@@ -299,8 +306,11 @@ def plan(quick: bool = False, epochs: int = DEFAULT_EPOCHS, seed: int = 0, sets:
 
 
 def summarize_sets(results: list[dict], seed: int) -> dict:
-    """:func:`score_set` results of random sets: per scope and posteriors, every set's decisions
-    together (``pooled``) and the spread over sets of the accuracy and the ECE; anytime merged."""
+    """:func:`score_set` results of random sets, summarised.
+
+    Per scope and posteriors, every set's decisions together (``pooled``) and the spread over
+    sets of the accuracy and the ECE; anytime merged.
+    """
     summary: dict[str, dict] = {}
     for scope in ("window", "contact"):
         summary[scope] = {}
@@ -326,8 +336,11 @@ def summarize_folds(folds: list[dict]) -> dict:
 # -- the table -------------------------------------------------------------------------------------------
 
 def _groups(result: dict):
-    """(name, window report, contact report, uncalibrated window report, uncalibrated contact report,
-    per-set window ECEs, per-set contact ECEs) of every texture-set group and two-sense method."""
+    """Return the reports and ECEs of every texture-set group and two-sense method, one tuple each.
+
+    Each is (name, window report, contact report, uncalibrated window report, uncalibrated
+    contact report, per-set window ECEs, per-set contact ECEs).
+    """
     rows = []
     for bank in BANKS:
         r = result["reference"][bank]
@@ -369,15 +382,19 @@ def _calibration_rows(result: dict, scope: int) -> list[str]:
 
 
 def mean_confidence(report: dict) -> float:
-    """The mean top posterior of a calibration report's decisions (from its reliability bins):
-    above the accuracy, the decisions overclaim; below it, they underclaim."""
+    """Return the mean top posterior of a calibration report's decisions (from its reliability bins).
+
+    Above the accuracy, the decisions overclaim; below it, they underclaim.
+    """
     rel = report["reliability"]
     return sum(c * (m or 0.0) for c, m in zip(rel["count"], rel["confidence"])) / report["n"]
 
 
 def done_when(result: dict) -> list[tuple[str, str, list[str]]]:
-    """The issue's "Done when" figures: (what, measured, what misses it) per line; the line holds
-    where the last is empty."""
+    """Return the issue's "Done when" figures: (what, measured, what misses it) per line.
+
+    The line holds where the last is empty.
+    """
     out = []
     groups = [g for g in _groups(result) if not g[0].startswith(tuple(f"{b}," for b in BANKS))]
     for k, label in ((0, "per window"), (1, "per contact")):
@@ -440,7 +457,7 @@ def _fmt(v, spec: str) -> str:
 
 
 def calibration_table(result: dict) -> str:
-    """The experiment's figures as Markdown: the issue's "Done when", then each measurement."""
+    """Return the experiment's figures as Markdown: the issue's "Done when", then each measurement."""
     two = result["two_sense"]
     head = (f"Test windows of 100 ms (the last 25 % of each texture; "
             f"{'quick: ' + format(result['duration'], 'g') + ' s textures' if result['quick'] else '40 s textures'}), "
@@ -498,9 +515,12 @@ def _sweep_names(result: dict) -> list[str]:
 # -- files -------------------------------------------------------------------------------------------------
 
 def write_calibration(result: dict, out, notice=None) -> list:
-    """``calibration.csv``, ``reliability.csv``, ``unknown.csv``, ``anytime.csv`` and, with matplotlib,
-    ``calibration.png`` (reliability diagrams) and ``anytime.png`` into ``out``; without matplotlib,
-    ``notice`` (a callable taking one line) says that no PNG was written. Returns the paths written."""
+    """Write the experiment's CSV files and, with matplotlib, its PNGs into ``out``; return the paths written.
+
+    ``calibration.csv``, ``reliability.csv``, ``unknown.csv``, ``anytime.csv`` and, with
+    matplotlib, ``calibration.png`` (reliability diagrams) and ``anytime.png``; without
+    matplotlib, ``notice`` (a callable taking one line) says that no PNG was written.
+    """
     from pathlib import Path
 
     from supramodal.experiments.plotting import have_matplotlib, write_csv

@@ -1,5 +1,6 @@
-"""Re-deciding when the texture changes within a contact (issue 34): a whisker array and a microphone
-that slide from surface to surface without lifting off, on the two-sense world with touches.
+"""Re-deciding when the texture changes within a contact (issue 34), on the two-sense world with touches.
+
+A whisker array and a microphone slide from surface to surface without lifting off.
 
 Per set (:func:`supramodal.twosense.two_sense_set`; the six textures of
 :mod:`supramodal.experiments.newtouch`, ``H2a`` and ``H2b`` left out): each sense's model trained on
@@ -67,23 +68,27 @@ STREAMS = ("whiskers", "microphone", "late")
 
 
 def rules() -> DecisionRules:
-    """The ``[decision]`` every stream decides by here."""
+    """Return the ``[decision]`` every stream decides by here."""
     return DecisionRules(scope="contact", n=0, confidence=CONFIDENCE, change=CHANGE_RATE)
 
 
 def decide(log_posteriors, classes, correlation: float, caps,
            threshold: float | None = None) -> list[PooledDecision]:
-    """One contact's windows through a fresh :class:`Decider` (``threshold``: its change threshold, None: the
-    bound): each window's pooled decision."""
+    """One contact's windows through a fresh :class:`Decider`: each window's pooled decision.
+
+    ``threshold``: its change threshold (None: the bound).
+    """
     d = Decider(classes, rules(), correlation, caps=caps, window_seconds=DEFAULT_WINDOW, change_threshold=threshold)
     return [cast(PooledDecision, d.decide(lp).pooled) for lp in log_posteriors]
 
 
 def fitted_thresholds(trained, pooling: dict) -> dict:
-    """Each stream's change threshold (:func:`~supramodal.decisions.fit_change_threshold`) for
-    :data:`CHANGE_RATE`, fitted on the out-of-fold windows of the training touches (``trained``: a
+    """Each stream's change threshold (:func:`~supramodal.decisions.fit_change_threshold`) for :data:`CHANGE_RATE`.
+
+    Fitted on the out-of-fold windows of the training touches (``trained``: a
     :class:`~supramodal.experiments.newtouch.TrainedSenses`), each touch a still one; ``pooling``:
-    ``{stream: (rho, caps)}``."""
+    ``{stream: (rho, caps)}``.
+    """
     held = {"whiskers": trained.held[0], "microphone": trained.held[1], "late": trained.late["fused"]}
     groups = np.asarray(trained.groups)
     touches = [np.flatnonzero(groups == g) for g in dict.fromkeys(groups.tolist())]     # in time order
@@ -93,17 +98,19 @@ def fitted_thresholds(trained, pooling: dict) -> dict:
 
 
 def _said(pooled: list[PooledDecision]) -> str | None:
-    """A contact's decision: its final one where it was reached, else the pooled one at its end."""
+    """Return a contact's decision: its final one where it was reached, else the pooled one at its end."""
     final = [p for p in pooled if p.decided]
     return (final[0] if final else pooled[-1]).label
 
 
 def run_set(set_seed: int, seconds: float = 10.0, epochs: int = DEFAULT_EPOCHS, seed: int = 0,
             progress=None) -> dict:
-    """One set: see the module docstring. Per stream: ``boundaries``, ``detected``, ``delays`` (windows),
-    ``to_new`` (first changes in a segment naming its texture), ``false_changes`` and ``minutes`` (still touches),
-    ``false_in_slides`` and ``slide_minutes``, ``after_change`` and ``after_lift_off`` (segments right, of),
-    ``threshold`` (fitted)."""
+    """One set: see the module docstring.
+
+    Per stream: ``boundaries``, ``detected``, ``delays`` (windows), ``to_new`` (first changes in a segment
+    naming its texture), ``false_changes`` and ``minutes`` (still touches), ``false_in_slides`` and
+    ``slide_minutes``, ``after_change`` and ``after_lift_off`` (segments right, of), ``threshold`` (fitted).
+    """
     names, feats = touch_features(set_seed, seconds, progress)
     trained = train_senses(names, feats, epochs, seed, progress, f"  set {set_seed}: ")
     known, classes, models, late = trained.known, trained.classes, trained.models, trained.late
@@ -207,7 +214,7 @@ def run_change(sets: int = 5, quick: bool = False, epochs: int = DEFAULT_EPOCHS,
 
 
 def change_table(result: dict) -> str:
-    """The experiment's figures as Markdown."""
+    """Return the experiment's figures as Markdown."""
     lines = [f"{len(result['sets'])} two-sense sets, 6 textures; slides of {result['segment']:g} s per texture "
              f"({result['slides']} a set, touches 4-{3 + result['slides']}), still touches of {result['seconds']:g} s "
              "(touch 3); [decision] "
@@ -249,6 +256,7 @@ def write_change(result: dict, out) -> list:
 
 
 def main(argv=None) -> int:
+    """Run the experiment from the command line (:func:`~supramodal.experiments.common.two_sense_sets_main`)."""
     from supramodal.experiments.common import two_sense_sets_main
 
     return two_sense_sets_main(argv, "change", __doc__.splitlines()[0], run_change, change_table,

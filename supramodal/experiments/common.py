@@ -1,6 +1,8 @@
-"""Pieces shared by the experiments: classification rates and the plain-data description of an
-experiment's runs (:class:`Run`, :class:`Plan`). The training data (texture features, the train/test
-split, the default epochs) come from :mod:`supramodal.training`."""
+"""Pieces shared by the experiments: classification rates and the plain-data description of their runs.
+
+The runs are described by :class:`Run` and :class:`Plan`. The training data (texture features,
+the train/test split, the default epochs) come from :mod:`supramodal.training`.
+"""
 
 from __future__ import annotations
 
@@ -60,7 +62,7 @@ class Plan:
 
 
 def quick_set(texture_set: TextureSet, quick: bool) -> TextureSet:
-    """The texture set, shortened to :data:`QUICK_DURATION` seconds per texture in quick mode."""
+    """Return the texture set, shortened to :data:`QUICK_DURATION` seconds per texture in quick mode."""
     return dataclasses.replace(texture_set, duration=QUICK_DURATION) if quick else texture_set
 
 
@@ -74,9 +76,12 @@ def estimate_cost(texture_set: TextureSet, bank: Bank, n_features: int, epochs: 
 
 def two_sense_sets_main(argv, module: str, description: str, run: Callable, table: Callable[[dict], str],
                         quick: str) -> int:
-    """The command line of an experiment over random two-sense sets (``python -m supramodal.experiments.NAME``):
-    ``--quick`` (its help: ``quick``; 2 sets), ``--sets``, ``--seed``, ``--epochs``, ``--jobs``; runs
-    ``run(sets, quick, epochs, seed, progress, jobs)`` and prints ``table`` of its result."""
+    """Run the command line of an experiment over random two-sense sets (``python -m supramodal.experiments.NAME``).
+
+    Its options are ``--quick`` (its help: ``quick``; 2 sets), ``--sets``, ``--seed``, ``--epochs``,
+    ``--jobs``; it runs ``run(sets, quick, epochs, seed, progress, jobs)`` and prints ``table`` of
+    its result.
+    """
     import argparse
 
     p = argparse.ArgumentParser(prog=f"python -m supramodal.experiments.{module}", description=description)
@@ -92,14 +97,16 @@ def two_sense_sets_main(argv, module: str, description: str, run: Callable, tabl
 
 
 def progress_to_stderr(message: str) -> None:
-    """Default progress reporter of long experiments: one line on stderr, in one write (so that the
-    lines of parallel worker processes do not interleave)."""
+    """Default progress reporter of long experiments: one line on stderr, in one write.
+
+    One write, so that the lines of parallel worker processes do not interleave.
+    """
     sys.stderr.write(message + "\n")
     sys.stderr.flush()
 
 
 def default_bank(texture_set: TextureSet, **kwargs) -> Bank:
-    """The bank a texture set was made for, at the set's sample rate."""
+    """Return the bank a texture set was made for, at the set's sample rate."""
     return bank_by_name(texture_set.bank, fs=texture_set.fs, **kwargs)
 
 
@@ -119,8 +126,10 @@ def rates_of(texture_set: TextureSet, bank: Bank, features=FEATURES, epochs: int
 
 def rates_per_feature(values: np.ndarray, classes, bank: Bank, features, epochs: int = DEFAULT_EPOCHS,
                       seed: int = 0, progress=None, standardise: bool = True) -> dict:
-    """:func:`classification_rates` of each feature alone; ``values`` as from
-    :func:`~supramodal.training.texture_features`."""
+    """:func:`classification_rates` of each feature alone.
+
+    ``values`` as from :func:`~supramodal.training.texture_features`.
+    """
     wlen = window_length(DEFAULT_WINDOW, bank.fs)
     results = {}
     for k, feature in enumerate(features):

@@ -68,6 +68,7 @@ def summarize_sets(runs: list[dict], label: str) -> dict:
 
 
 def random_sets_label(n_sets: int, seed: int) -> str:
+    """Return the label of ``n_sets`` random sets of seeds ``seed ..``, e.g. ``"5 random sets, seeds 0..4"``."""
     return f"{n_sets} random sets, seeds {seed}..{seed + n_sets - 1}"
 
 

@@ -1,6 +1,7 @@
-"""Fusion of the two senses on the two-sense synthetic world: whiskers alone, microphone alone, late
-fusion and early fusion (the supramodal network), over random texture sets, with calibrated
-posteriors (issue 23).
+"""Fusion of the two senses on the two-sense synthetic world, with calibrated posteriors (issue 23).
+
+Whiskers alone, microphone alone, late fusion and early fusion (the supramodal network), over
+random texture sets.
 
 Per set (:func:`supramodal.twosense.two_sense_set`, 8 textures): each texture's contact is
 synthesised for both senses; Af windows of 100 ms from the whisker bank (20 channels, 5 kHz) and
@@ -72,10 +73,12 @@ def set_features(set_seed: int, seconds: float, progress=None):
 
 
 def contact_runs(labels, per_texture: int, length: int = CONTACT_WINDOWS, step: int | None = None) -> list[np.ndarray]:
-    """Indices of the contacts among test windows stacked texture by texture (``per_texture`` each):
-    runs of ``length`` consecutive windows of one texture (a shorter rest is left out), one every
-    ``step`` windows (default ``length``: contacts side by side; 1: a contact starting at every
-    window, overlapping)."""
+    """Return the indices of the contacts among test windows stacked texture by texture (``per_texture`` each).
+
+    A contact is a run of ``length`` consecutive windows of one texture (a shorter rest is left
+    out), one every ``step`` windows (default ``length``: contacts side by side; 1: a contact
+    starting at every window, overlapping).
+    """
     step = length if step is None else step
     runs = []
     for start in range(0, len(labels), per_texture):
@@ -85,8 +88,11 @@ def contact_runs(labels, per_texture: int, length: int = CONTACT_WINDOWS, step: 
 
 
 def pooled_contacts(log_posteriors, runs, correlation: float, caps=None) -> np.ndarray:
-    """Each run's pooled log-posteriors (:func:`supramodal.calibration.pool_log_posteriors`, with a
-    calibration's contact ``caps`` where it has them), (runs, classes)."""
+    """Each run's pooled log-posteriors, (runs, classes).
+
+    Pooled by :func:`supramodal.calibration.pool_log_posteriors`, with a calibration's contact
+    ``caps`` where it has them.
+    """
     return np.array([pool_log_posteriors(log_posteriors[r], correlation, caps) for r in runs])
 
 
@@ -167,8 +173,10 @@ def spread(values) -> dict:
 
 
 def merge_reports(reports: list[dict]) -> dict:
-    """One :func:`~supramodal.calibration.calibration_report` of the decisions of several, as if
-    scored together: means weighted by count, reliability bins summed, sure decisions counted."""
+    """One :func:`~supramodal.calibration.calibration_report` of the decisions of several, as if scored together.
+
+    Means are weighted by count, reliability bins summed, sure decisions counted.
+    """
     n = np.array([r["n"] for r in reports], dtype=np.float64)
     counts = np.sum([r["reliability"]["count"] for r in reports], axis=0)
     conf = np.sum([[c * (m or 0.0) for c, m in zip(r["reliability"]["count"], r["reliability"]["confidence"])]
@@ -190,8 +198,11 @@ def merge_reports(reports: list[dict]) -> dict:
 
 
 def summarize(results: list[dict], seconds: float) -> dict:
-    """:func:`run_set` results of several sets: per method and scope the accuracy's and ECE's mean
-    and spread over sets, and every set's decisions scored together (``pooled``)."""
+    """:func:`run_set` results of several sets, summarised.
+
+    Per method and scope the accuracy's and ECE's mean and spread over sets, and every set's
+    decisions scored together (``pooled``).
+    """
     best = [max(r["window"]["whiskers"], r["window"]["microphone"]) for r in results]
     summary: dict[str, dict[str, dict[str, object]]] = {}
     for m in METHODS:
@@ -210,12 +221,14 @@ def summarize(results: list[dict], seconds: float) -> dict:
 
 def run_fusion(sets: int = 5, quick: bool = False, epochs: int = DEFAULT_EPOCHS, seed: int = 0,
                progress=None, jobs: int | None = None) -> dict:
-    """:func:`run_set` over ``sets`` sets (seeds ``seed``, ``seed + 1``, ...; the networks' seed is
-    ``seed`` itself); ``quick``: 8 s contacts (default 20 s). The sets run over ``jobs`` worker
-    processes (default: all cores; :func:`supramodal.experiments.runner.run_all`, single-threaded
-    BLAS: a set trains some 30 small networks, which threaded BLAS slows many times on a busy
-    machine); the results do not depend on ``jobs``. Returns the per-set results and
-    :func:`summarize`'s figures."""
+    """:func:`run_set` over ``sets`` sets (seeds ``seed``, ``seed + 1``, ...), and their summary.
+
+    The networks' seed is ``seed`` itself; ``quick``: 8 s contacts (default 20 s). The sets run over
+    ``jobs`` worker processes (default: all cores; :func:`supramodal.experiments.runner.run_all`,
+    single-threaded BLAS: a set trains some 30 small networks, which threaded BLAS slows many times
+    on a busy machine); the results do not depend on ``jobs``. Returns the per-set results and
+    :func:`summarize`'s figures.
+    """
     from supramodal.experiments.runner import run_all
 
     if sets < 1:
@@ -233,7 +246,7 @@ def run_fusion(sets: int = 5, quick: bool = False, epochs: int = DEFAULT_EPOCHS,
 
 
 def fusion_table(result: dict) -> str:
-    """The experiment's summary as Markdown."""
+    """Return the experiment's summary as Markdown."""
     s = result["summary"]
     lines = [f"{len(result['sets'])} two-sense sets of 8 textures, {result['seconds']:g} s contacts; test windows of "
              f"100 ms and contacts of {result['contact_windows']} windows; mean +- sd over sets; ECE (15 bins) and "
@@ -265,6 +278,7 @@ def sure_cell(report: dict) -> str:
 
 
 def main(argv=None) -> int:
+    """Run the experiment from the command line (:func:`~supramodal.experiments.common.two_sense_sets_main`)."""
     from supramodal.experiments.common import two_sense_sets_main
 
     return two_sense_sets_main(argv, "fusion", __doc__.splitlines()[0], run_fusion, fusion_table,

@@ -1,5 +1,6 @@
-"""Trust on a new touch (issue 34): what the senses, their late fusion and "unknown" say about
-themselves on a touch the models never met, on the two-sense world with per-touch gains.
+"""Trust on a new touch (issue 34): what the senses, their late fusion and "unknown" say about themselves.
+
+They say it on a touch the models never met, on the two-sense world with per-touch gains.
 
 Per set (:func:`supramodal.twosense.two_sense_set`, 8 textures): :data:`TOUCHES` touches of every
 texture (:func:`supramodal.twosense.synthesize_touch`: each touch its own gain per vibrissa and its
@@ -64,8 +65,11 @@ FEATURES = ("Af",)
 
 
 def touch_features(set_seed: int, seconds: float, progress=None) -> tuple[list[str], dict]:
-    """Af windows of every texture's every touch, both senses aligned: ``(names, {(texture index, touch):
-    (whiskers (n, 1, 20), microphone (n, 1, 50))})``, n the same for every touch."""
+    """Af windows of every texture's every touch, both senses aligned.
+
+    Returns ``(names, {(texture index, touch): (whiskers (n, 1, 20), microphone (n, 1, 50))})``,
+    n the same for every touch.
+    """
     surfaces = two_sense_set(pairs=2, seed=set_seed)
     banks = (whisker_bank(), cochlea_bank())
     out = {}
@@ -81,8 +85,10 @@ def touch_features(set_seed: int, seconds: float, progress=None) -> tuple[list[s
 
 @dataclass(frozen=True)
 class TrainedSenses:
-    """Both senses' models trained on touches 1 .. :data:`TOUCHES` - 1 of the known textures (calibration
-    folds by touch), and the late fusion learned on their out-of-fold windows (issue 34's rule).
+    """Both senses' models trained on touches 1 .. :data:`TOUCHES` - 1 of the known textures, and their late fusion.
+
+    The models' calibration folds are by touch; the late fusion is learned on their out-of-fold
+    windows (issue 34's rule).
 
     Attributes
     ----------
@@ -118,10 +124,12 @@ class TrainedSenses:
 
 def train_senses(names, feats, epochs: int, seed: int, progress=None, say: str = "",
                  augment: GainAugment | None = None) -> TrainedSenses:
-    """Train :class:`TrainedSenses` on :func:`touch_features`' windows (``names``, ``feats``), leaving out
-    :data:`UNKNOWN`; ``say``: the progress lines' prefix. ``augment``: gain augmentation of
-    every network's training windows, per vibrissa for the whiskers, one level for the microphone (one
-    signal: a touch scales its every cochlea channel alike)."""
+    """Train :class:`TrainedSenses` on :func:`touch_features`' windows, leaving out :data:`UNKNOWN`.
+
+    The windows are ``names``, ``feats``. ``say``: the progress lines' prefix. ``augment``: gain
+    augmentation of every network's training windows, per vibrissa for the whiskers, one level for
+    the microphone (one signal: a touch scales its every cochlea channel alike).
+    """
     known = [i for i, n in enumerate(names) if n not in UNKNOWN]
     classes = [names[i] for i in known]
     per = len(feats[known[0], 0][0])
@@ -145,8 +153,11 @@ def train_senses(names, feats, epochs: int, seed: int, progress=None, say: str =
 
 
 def late_fusion_before(log_posteriors_a, log_posteriors_b, labels) -> tuple[float, float]:
-    """The late fusion's rule before issue 34, for comparison: the weight right most often (ties: lower
-    log loss, then nearer 0.5), its sharpness unbounded (up to e^5)."""
+    """Learn the late fusion by its rule before issue 34, for comparison.
+
+    The weight right most often (ties: lower log loss, then nearer 0.5), its sharpness unbounded
+    (up to e^5).
+    """
     from scipy.optimize import minimize_scalar
 
     a, b, y = np.asarray(log_posteriors_a), np.asarray(log_posteriors_b), np.asarray(labels)
@@ -166,8 +177,11 @@ def _scores(lp, y) -> dict:
 
 
 def _unknown(model: TextureModel, known, unknown, per_texture: int) -> dict:
-    """The false-unknown rate at :data:`ASKED_UNKNOWN` on windows of known textures (per window and per
-    contact), the rate on the unknown textures, and the novelty's AUROC per window and per contact."""
+    """Return the false-unknown rate at :data:`ASKED_UNKNOWN` on known textures, the unknown ones' rate, and AUROCs.
+
+    The false-unknown rate is on windows of known textures (per window and per contact), the
+    rate on the unknown textures likewise, and the novelty's AUROC per window and per contact.
+    """
     nov = model.novelty
     assert nov is not None, "trained with calibration folds"
     xk, xu = model._inputs(known), model._inputs(unknown)
@@ -182,8 +196,11 @@ def _unknown(model: TextureModel, known, unknown, per_texture: int) -> dict:
 
 def run_set(set_seed: int, seconds: float = 10.0, epochs: int = DEFAULT_EPOCHS, seed: int = 0,
             progress=None, augment: GainAugment | None = None) -> dict:
-    """One set: see the module docstring. Plain data: per sense and fusion rule, ``training`` (the
-    held-out estimate), ``touch3``, ``recalibrated`` (touch 3's second half) scores, ``unknown`` rates."""
+    """One set: see the module docstring.
+
+    Plain data: per sense and fusion rule, ``training`` (the held-out estimate), ``touch3``,
+    ``recalibrated`` (touch 3's second half) scores, ``unknown`` rates.
+    """
     names, feats = touch_features(set_seed, seconds, progress)
     t0 = time.process_time()
     trained = train_senses(names, feats, epochs, seed, progress, f"  set {set_seed}: ", augment)
@@ -241,8 +258,10 @@ def run_set(set_seed: int, seconds: float = 10.0, epochs: int = DEFAULT_EPOCHS, 
 
 def run_newtouch(sets: int = 5, quick: bool = False, epochs: int = DEFAULT_EPOCHS, seed: int = 0, progress=None,
                  jobs: int | None = None, augment: GainAugment | None = None) -> dict:
-    """:func:`run_set` over ``sets`` sets (seeds ``seed``, ``seed + 1``, ...) on ``jobs`` worker processes;
-    ``quick``: 6 s touches (default 10 s)."""
+    """:func:`run_set` over ``sets`` sets (seeds ``seed``, ``seed + 1``, ...) on ``jobs`` worker processes.
+
+    ``quick``: 6 s touches (default 10 s).
+    """
     from supramodal.experiments.runner import run_all
 
     if sets < 1:
@@ -265,7 +284,7 @@ def _sure(r: dict) -> str:
 
 
 def newtouch_table(result: dict) -> str:
-    """The experiment's figures as Markdown, one row per set and method."""
+    """Return the experiment's figures as Markdown, one row per set and method."""
     lines = [f"{len(result['sets'])} two-sense sets, 6 known textures (+2 unknown), {result['touches']} touches of "
              f"{result['seconds']:g} s each; trained on touches 1-{result['touches'] - 1}, scored on touch "
              f"{result['touches']}; per window. Training estimate: held-out folds of the training touches.", "",
@@ -329,8 +348,10 @@ def _rows(result: dict) -> list[dict]:
 
 
 def write_newtouch(result: dict, out) -> list:
-    """``newtouch.csv`` (one row per set and method) and, with matplotlib, ``newtouch.png``: each
-    method's log loss and ECE on the new touch, and after recalibration."""
+    """Write ``newtouch.csv`` (one row per set and method) and, with matplotlib, ``newtouch.png``.
+
+    The PNG shows each method's log loss and ECE on the new touch, and after recalibration.
+    """
     import csv
     from pathlib import Path
 
@@ -367,6 +388,7 @@ def write_newtouch(result: dict, out) -> list:
 
 
 def main(argv=None) -> int:
+    """Run the experiment from the command line (:func:`~supramodal.experiments.common.two_sense_sets_main`)."""
     from supramodal.experiments.common import two_sense_sets_main
 
     return two_sense_sets_main(argv, "newtouch", __doc__.splitlines()[0], run_newtouch, newtouch_table,

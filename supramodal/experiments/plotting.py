@@ -1,6 +1,8 @@
-"""What every experiment writes its results with: CSV rows, and PNG figures where matplotlib can be imported
-(extra ``plots``). The experiments use it, and :mod:`supramodal.experiments.report` (which dispatches to them)
-too, so that neither imports the other for it."""
+"""What every experiment writes its results with: CSV rows, and PNG figures where matplotlib can be imported.
+
+matplotlib is the extra ``plots``. The experiments use it, and :mod:`supramodal.experiments.report` (which
+dispatches to them) too, so that neither imports the other for it.
+"""
 
 from __future__ import annotations
 

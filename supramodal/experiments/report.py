@@ -1,6 +1,9 @@
-"""Tables, CSV files and plots of the paper's figures, and the one place that writes any experiment's result
-(:func:`write_figure`). matplotlib is optional (extra ``plots``): CSV files are always written, PNG files when
-matplotlib can be imported (:mod:`supramodal.experiments.plotting`, which the experiments use themselves)."""
+"""Tables, CSV files and plots of the paper's figures, and the one place that writes any experiment's result.
+
+That place is :func:`write_figure`. matplotlib is optional (extra ``plots``): CSV files are always written,
+PNG files when matplotlib can be imported (:mod:`supramodal.experiments.plotting`, which the experiments use
+themselves).
+"""
 
 from __future__ import annotations
 
@@ -133,7 +136,7 @@ def write_figure(name: str, result: dict, out: Path) -> list[Path]:
 
 
 def figure_table(name: str, result: dict) -> str:
-    """A short text summary of one figure's result, beside the paper's statement."""
+    """Return a short text summary of one figure's result, beside the paper's statement."""
     if name == "fig3":
         if "figure" not in result:
             return fig3_table(result)

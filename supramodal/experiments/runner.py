@@ -52,6 +52,7 @@ def run_seed(seed: int, key: tuple) -> int:
 
 
 def format_key(key: tuple) -> str:
+    """Return a run's key as text: its parts joined by spaces."""
     return " ".join(str(k) for k in key)
 
 
@@ -129,7 +130,7 @@ def run_all(runs: list[Run], jobs: int | None = None, seed: int = 0, progress=No
 
 
 def _sendable_to_workers(fn) -> bool:
-    """A module-level function reaches spawned workers by reference; a lambda or closure does not."""
+    """Whether ``fn`` reaches spawned workers by reference: a module-level function does, a lambda or closure not."""
     return (inspect.isfunction(fn) and "<" not in fn.__qualname__
             and getattr(sys.modules.get(fn.__module__), fn.__qualname__, None) is fn)
 
