@@ -170,11 +170,11 @@ class LateFusion:
     # -- processing threads -----------------------------------------------------------------
 
     def put(self, event: WindowEvent) -> None:
-        """A window of one of the inputs (never blocks)."""
+        """Take a window of one of the inputs (never blocks)."""
         self._queue.put((event, time.monotonic()))
 
     def end(self, stream: str) -> None:
-        """The stream ``stream`` has emitted its last window."""
+        """Mark that the stream ``stream`` has emitted its last window."""
         self._queue.put((_END, stream))
 
     # -- fusion thread ----------------------------------------------------------------------
@@ -303,10 +303,13 @@ class LateFusion:
     # -- summary ----------------------------------------------------------------------------
 
     def summary(self) -> dict[str, Any]:
-        """``windows`` fused decisions: ``paired`` from both senses, ``alone`` from one; ``late``
+        """Return the fusion block's counts.
+
+        ``windows`` fused decisions: ``paired`` from both senses, ``alone`` from one; ``late``
         windows per stream (their partner was already decided alone); ``dropouts`` per stream
         (times it stopped coming in time, each said as a ``sense_lost`` event); accuracies where truth is
-        known; ``latency_ms`` from the later window's last block to the fused decision."""
+        known; ``latency_ms`` from the later window's last block to the fused decision.
+        """
         return {"inputs": list(self.inputs), "method": self.method, "weight": self.weight,
                 "sharpness": None if self.weight is None else self.sharpness, "windows": self.windows,
                 "paired": self.paired, "alone": self.alone, "late": dict(self.late),
@@ -319,9 +322,10 @@ def _centre(event: WindowEvent) -> float:
 
 
 class EarlyFusion(LateFusion):
-    """Pairs two streams' windows as :class:`LateFusion` does, and decides each pair with one
-    network on both windows' features (the supramodal network,
-    :class:`supramodal.fused_model.EarlyFusionModel`). A window decided alone (its partner did
+    """Pairs two streams' windows as :class:`LateFusion` does, and decides each pair with one network.
+
+    The network, on both windows' features, is the supramodal network,
+    :class:`supramodal.fused_model.EarlyFusionModel`. A window decided alone (its partner did
     not come in time, or its stream runs alone) keeps its own stream's posteriors.
 
     Parameters
