@@ -57,8 +57,10 @@ JITTER_BLOCKS = 512
 
 
 class ClockError(InputError):
-    """A clock update or query that cannot be right (time going backwards, a non-finite time);
-    the message names the value and the fix."""
+    """A clock update or query that cannot be right (time going backwards, a non-finite time).
+
+    The message names the value and the fix.
+    """
 
 
 @dataclass(frozen=True)
@@ -220,8 +222,10 @@ class ClockModel:
         self._fitted = True
 
     def line(self) -> tuple[float, float]:
-        """``(offset, slope)``: host time of sample 0, seconds, and seconds per sample (cheaper
-        than :meth:`estimate`, for a caller that maps many indices)."""
+        """Return ``(offset, slope)``: host time of sample 0, seconds, and seconds per sample.
+
+        Cheaper than :meth:`estimate`, for a caller that maps many indices.
+        """
         return self._offset, self._slope
 
     @overload
@@ -245,7 +249,7 @@ class ClockModel:
             (float(time) - self._offset) / self._slope
 
     def estimate(self) -> ClockEstimate:
-        """A snapshot of the current estimate."""
+        """Return a snapshot of the current estimate."""
         k = min(self._delay_count, JITTER_BLOCKS)
         recent = self._delays[:k]
         if k:
@@ -260,7 +264,7 @@ class ClockModel:
 
 def frames_at(arrivals: tuple[Sequence[int], Sequence[float], float], times: ArrayLike,
               marks: Iterable[tuple[int, str]] = ()) -> NDArray[np.float64]:
-    """The stream position (fractional frame) a source had reached at each common time in ``times``.
+    """Return the stream position (fractional frame) a source had reached at each common time in ``times``.
 
     The source's clock model is fed its blocks as the node fed it live and as its replay feeds it
     (``update(end - 1, time)`` per block, ``reset()`` at a ``restart`` mark); a time is mapped by the

@@ -74,7 +74,7 @@ class ContactTimeline:
         return self.at(0.5 * (start + end))
 
     def edges(self) -> list[tuple[float, bool]]:
-        """The signal's changes among the states kept, ``(common time, state from then on)``."""
+        """Return the signal's changes among the states kept, ``(common time, state from then on)``."""
         with self._lock:
             out, last = [], self._before
             for t, state in zip(self._times, self._states, strict=True):

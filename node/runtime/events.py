@@ -1,5 +1,7 @@
-"""What the node tells its sinks: window results (:class:`WindowEvent`, one typed event per window
-and stream) and driver events on their way to the sinks, rate-limited per kind, counted exactly.
+"""What the node tells its sinks: window results and driver events on their way to the sinks.
+
+Window results are :class:`WindowEvent`, one typed event per window and stream; driver events are
+rate-limited per kind and counted exactly.
 
 Threading rules
 ---------------
@@ -220,9 +222,13 @@ class WindowEvent:
     novelty: float | None = None
 
     def as_dict(self) -> dict[str, Any]:
-        """The event as a JSON-ready dict: ``{"stream", "t", "window", "start", "end"}``, then
-        ``predicted`` and ``confidence`` (and ``accumulated``, the pooled decision) with a
-        model, else ``features``; ``truth``, each flag as ``true``, ``latency_ms``."""
+        """Return the event as a JSON-ready dict.
+
+        Its keys: ``{"stream", "t", "window", "start", "end"}``, then ``predicted`` and ``confidence``
+        (and, where set, ``unknown`` and ``guess``, ``novelty``, and ``accumulated``, the pooled decision)
+        with a model, else ``features``; ``senses`` where set; ``truth``, each flag as ``true``,
+        ``latency_ms``.
+        """
         out = {"stream": self.stream, "t": round(self.t, 6), "window": self.window,
                "start": round(self.start, 6), "end": round(self.end, 6)}
         if self.decision is not None:
@@ -246,9 +252,10 @@ class WindowEvent:
 
 
 def change_event(stream: str, window: int, change: TextureChange, window_samples: int | None = None) -> DriverEvent:
-    """The event a stream (or the fusion) says when its decider re-decides within a contact
-    (``[decision] change``): kind ``"change"``, its source the stream, so that every sink takes it as it
-    takes a driver's event (a line on stderr, a JSON line, the ROS 2 events topic, the view's banner).
+    """Return the event a stream (or the fusion) says when its decider re-decides within a contact.
+
+    This is ``[decision] change``'s event: kind ``"change"``, its source the stream, so that every sink takes it
+    as it takes a driver's event (a line on stderr, a JSON line, the ROS 2 events topic, the view's banner).
 
     Parameters
     ----------
@@ -271,9 +278,12 @@ def change_event(stream: str, window: int, change: TextureChange, window_samples
 
 
 def log_posteriors_of(event: WindowEvent) -> np.ndarray:
-    """A window event's log-posteriors: those it carries (a stream's and the fusion's events do:
-    never clipped), else the log of its posteriors, refused where one is exactly 0 (an event
-    made elsewhere, e.g. by hand: its log would be -inf and poison every sum it enters)."""
+    """Return a window event's log-posteriors.
+
+    Those it carries (a stream's and the fusion's events do: never clipped), else the log of its
+    posteriors, refused where one is exactly 0 (an event made elsewhere, e.g. by hand: its log would be
+    -inf and poison every sum it enters).
+    """
     if event.log_posteriors is not None:
         return np.asarray(event.log_posteriors, dtype=np.float64)
     with np.errstate(divide="ignore"):
@@ -285,8 +295,11 @@ def log_posteriors_of(event: WindowEvent) -> np.ndarray:
 
 
 class TruthTally:
-    """Decisions against the truth, where a driver knows it: per window, and of the pooled
-    decision (a stream's or a fusion's; one processing thread writes, the summary reads it after)."""
+    """Decisions against the truth, where a driver knows it: per window, and of the pooled decision.
+
+    The pooled decision is a stream's or a fusion's. One processing thread writes, the summary reads it
+    after.
+    """
 
     def __init__(self) -> None:
         self.correct = self.labelled = self.pooled_correct = self.pooled_labelled = 0

@@ -171,11 +171,11 @@ class LateFusion:
     # -- processing threads -----------------------------------------------------------------
 
     def put(self, event: WindowEvent) -> None:
-        """A window of one of the inputs (never blocks)."""
+        """Take a window of one of the inputs (never blocks)."""
         self._queue.put((event, time.monotonic()))
 
     def end(self, stream: str) -> None:
-        """The stream ``stream`` has emitted its last window."""
+        """Mark that the stream ``stream`` has emitted its last window."""
         self._queue.put((_END, stream))
 
     # -- fusion thread ----------------------------------------------------------------------
@@ -316,9 +316,10 @@ def _centre(event: WindowEvent) -> float:
 
 
 class EarlyFusion(LateFusion):
-    """Pairs two streams' windows as :class:`LateFusion` does, and decides each pair with one
-    network on both windows' features (the supramodal network,
-    :class:`supramodal.fused_model.EarlyFusionModel`). A window decided alone (its partner did
+    """Pairs two streams' windows as :class:`LateFusion` does, and decides each pair with one network.
+
+    The network, on both windows' features, is the supramodal network,
+    :class:`supramodal.fused_model.EarlyFusionModel`. A window decided alone (its partner did
     not come in time, or its stream runs alone) keeps its own stream's posteriors.
 
     Parameters

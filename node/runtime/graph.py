@@ -72,20 +72,25 @@ SILENT_SOURCE_GRACE = 5.0
 
 
 def silent_source_limit(max_seconds: float, sources: Iterable[Source]) -> float:
-    """Wall seconds, from the drivers' opening, after which a run asked for ``max_seconds`` of stream ends
-    if a live device has delivered nothing (a board whose every frame is refused, a sound card that never
-    starts; :func:`silent_sources`): twice the time the stream takes at the slowest source's pace (a
-    replay's ``speed``; real time for a device), and at least 5 s more than it."""
+    """Return the wall seconds, from the drivers' opening, after which a run with a silent live device ends.
+
+    A run asked for ``max_seconds`` of stream ends at that limit if a live device has delivered nothing by then (a
+    board whose every frame is refused, a sound card that never starts; :func:`silent_sources`). The limit is twice
+    the time the stream takes at the slowest source's pace (a replay's ``speed``; real time for a device), and at
+    least 5 s more than it.
+    """
     pace = min((float(s.driver.speed) for s in sources), default=1.0)
     wall = max_seconds / pace if pace > 0 else 0.0
     return wall + max(SILENT_SOURCE_GRACE, wall)
 
 
 def silent_sources(sources: Iterable[Source]) -> list[str]:
-    """The live devices that have delivered no sample: sources whose ring drops rather than waits (a serial
-    board, a microphone). A replay, and a network source that waits for its peer (LSL, ROS 2: its ring
-    blocks), may rightly begin late (a stream that starts late in a recording, a robot started after the
-    node), so they are never called silent."""
+    """Return the names of the live devices that have delivered no sample.
+
+    Live devices are sources whose ring drops rather than waits (a serial board, a microphone). A replay, and a
+    network source that waits for its peer (LSL, ROS 2: its ring blocks), may rightly begin late (a stream that
+    starts late in a recording, a robot started after the node), so they are never called silent.
+    """
     return [s.name for s in sources if s.ring.overrun != "block" and not s.delivered_any]
 
 
@@ -217,7 +222,7 @@ class Graph:
                 tap.close()
 
     def _all_taps(self) -> list[tuple[Tap, Source, Feed, str]]:
-        """The recorders and the other taps: ``(tap, source, feed, thread name)``."""
+        """Return the recorders and the other taps: ``(tap, source, feed, thread name)``."""
         return [*self._recorders, *self._taps]
 
     def _run(self, max_seconds: float | None, on_running: Callable[[], None] | None) -> RunSummary:
@@ -283,7 +288,7 @@ class Graph:
                                 name="node-" + where.replace(" ", "-"))
 
     def _sink_reader_left(self, exc: BrokenPipeError) -> None:
-        """A sink's reader left: the stream has no one to go to; stop, and say why at the end."""
+        """Handle a sink's reader leaving: the stream has no one to go to; stop, and say why at the end."""
         self._errors.append(("sink", exc))
         self.stop("the reader of the output left")
 
@@ -305,12 +310,12 @@ class Graph:
             self._event_queue.put(None)
 
     def _source_ended(self, reason: str) -> None:
-        """A source reached the stream length: stop when every source has."""
+        """Handle a source reaching the stream length: stop when every source has."""
         if all(s.ring.closed or s.reached_length for s in self.sources):
             self.stop(reason)
 
     def _listen(self, listener: ContactListener, timeline: ContactTimeline, t0: float) -> None:
-        """A contact signal's states onto its timeline, on common time, until the node stops."""
+        """Put a contact signal's states onto its timeline, on common time, until the node stops."""
         try:
             with listener:
                 while not self._stop.is_set() and not all(s.ring.closed for s in self.sources):
@@ -330,7 +335,7 @@ class Graph:
             self._event_queue.put(None)
 
     def _stream_event(self, name: str, ev: DriverEvent) -> None:
-        """An event a stream or the fusion said (a texture ``change``, a ``sense_lost``): to the event thread."""
+        """Pass an event a stream or the fusion said (a texture ``change``, a ``sense_lost``) to the event thread."""
         self._event_queue.put((name, [ev], {}))
 
     def _process(self, stream: Stream) -> None:
@@ -342,8 +347,10 @@ class Graph:
                 self.fusion.end(stream.name)
 
     def _route(self, event: WindowEvent) -> None:
-        """A window event to the fusion block (if it takes this stream) and to every sink that
-        listens to its stream. Never blocks."""
+        """Route a window event to the fusion block (if it takes this stream) and to its stream's sinks.
+
+        Every sink that listens to the event's stream gets it. Never blocks.
+        """
         if self.fusion is not None and event.stream in self.fusion.inputs:
             self.fusion.put(event)
         for sink, route in zip(self.sinks, self.routes):
@@ -468,12 +475,15 @@ class Node(Graph):
 
     @property
     def driver(self) -> Driver:
+        """The driver of the node's one source."""
         return self.sources[0].driver
 
     @property
     def labels(self) -> Labels:
+        """The truth labels of the node's one stream."""
         return self.streams[0].labels
 
     @property
     def pipeline(self) -> FeaturePipeline:
+        """The feature pipeline of the node's one stream."""
         return self.streams[0].pipeline

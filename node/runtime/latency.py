@@ -45,9 +45,11 @@ class LatencyHistogram:
         self.max = max(self.max, ms)
 
     def percentile(self, q: float) -> float:
-        """The ``q``-th percentile (0..100), ms, as numpy's ``method="lower"`` (the recorded value at
-        rank ``floor(q/100 (count - 1))``), to within ``resolution``: the geometric centre of the bin
-        holding it, at most the maximum."""
+        """Return the ``q``-th percentile (0..100), ms, as numpy's ``method="lower"``, to within ``resolution``.
+
+        numpy's ``"lower"`` is the recorded value at rank ``floor(q/100 (count - 1))``; the value returned
+        is the geometric centre of the bin holding it, at most the maximum.
+        """
         if not self.count:
             raise InputError("no latency recorded: a percentile needs at least one")
         rank = q / 100 * (self.count - 1)

@@ -17,9 +17,11 @@ __all__ = ["check_new_file"]
 
 
 def check_new_file(path: Path, overwrite: bool, what: str) -> None:
-    """Refuse to write ``path`` where that would replace a file, unless ``overwrite``; refuse a
-    folder, a missing parent folder or one that cannot be written, naming the fix. A named pipe
-    (FIFO) is not replaced by writing to it: it needs no ``overwrite``."""
+    """Refuse to write ``path`` where that would replace a file, unless ``overwrite``.
+
+    Refuse a folder, a missing parent folder or one that cannot be written, naming the fix. A named pipe
+    (FIFO) is not replaced by writing to it: it needs no ``overwrite``.
+    """
     if path.is_dir():
         raise InputError(f"{what} {path} is a folder; give a file name")
     if path.exists() and not overwrite and not path.is_fifo():    # a named pipe is written to, not replaced

@@ -111,8 +111,10 @@ class Chunk(NamedTuple):
 
 
 def flag_runs(flags: np.ndarray) -> list[tuple[int, int]]:
-    """The runs of True in a chunk's per-frame flags, as ``(start, end)`` offsets (end exclusive),
-    in order: e.g. the filled frames of a read, or (of ``~filled``) the measured ones."""
+    """Return the runs of True in a chunk's per-frame flags, as ``(start, end)`` offsets (end exclusive).
+
+    In order. E.g. the filled frames of a read, or (of ``~filled``) the measured ones.
+    """
     edges = np.flatnonzero(np.diff(np.r_[0, np.asarray(flags, dtype=np.int8), 0]))
     return list(zip(edges[::2].tolist(), edges[1::2].tolist()))
 
@@ -218,9 +220,12 @@ class Reader:
         self._ring._remove(self)
 
     def stats(self) -> dict[str, int]:
-        """``start`` stream index when added, ``read`` and ``lost`` frames, ``available`` now,
+        """Return this reader's frame counts.
+
+        ``start`` stream index when added, ``read`` and ``lost`` frames, ``available`` now,
         and ``read_filled``, ``lost_filled``: of the frames read and lost, those written with a
-        True filled flag."""
+        True filled flag.
+        """
         with self._ring._lock:
             return self._stats()
 
@@ -334,6 +339,7 @@ class RingBuffer:
 
     @property
     def readers(self) -> tuple[Reader, ...]:
+        """The readers attached now (a copy, taken under the ring's lock)."""
         with self._lock:
             return tuple(self._readers)
 
@@ -461,7 +467,7 @@ class RingBuffer:
         self._end += n_offered
 
     def _filled_between(self, a: int, b: int, f: np.ndarray | None) -> int:
-        """Flagged frames at storage positions ``a .. b - 1``, before the block ``f`` is stored.
+        """Count the flagged frames at storage positions ``a .. b - 1``, before the block ``f`` is stored.
 
         Positions below ``self._stored`` are still in the ring (a reader's cursor never lags
         more than one capacity); those from ``self._stored`` on are the head of the block being
@@ -556,6 +562,7 @@ class RingBuffer:
 
     @property
     def closed(self) -> bool:
+        """Whether :meth:`close` has been called (the end of the stream is marked)."""
         return self._closed
 
     @property

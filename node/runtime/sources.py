@@ -1,5 +1,4 @@
-"""A source: one driver, its ring buffer and its thread, and the clock that puts its samples on
-the graph's common time line.
+"""A source: one driver, its ring buffer and its thread, and the clock that puts its samples on the graph's common time.
 
 Threads and real-time rules
 ---------------------------
@@ -50,15 +49,18 @@ from supramodal.node.runtime.ringbuffer import Reader, RingBuffer
 
 
 class ArrivalRecorder(Protocol):
-    """What a source tells its recorder (:class:`~supramodal.node.runtime.taps.recorder.SessionRecorder`)
-    that no feed carries. Called on the source's thread. (A protocol, not the recorder's class: the
-    recorder imports the sources, and the sources need only these two calls of it.)"""
+    """What a source tells its recorder that no feed carries.
+
+    The recorder: :class:`~supramodal.node.runtime.taps.recorder.SessionRecorder`. Called on the source's thread. (A
+    protocol, not the recorder's class: the recorder imports the sources, and the sources need only these two calls
+    of it.)
+    """
 
     def note(self, index: int, kind: str) -> None:
-        """A driver mark (``kind``) at the source's frame ``index``."""
+        """Note a driver mark (``kind``) at the source's frame ``index``."""
 
     def arrival(self, end: int, seconds: float) -> None:
-        """A block ending at the source's frame ``end`` was complete at ``seconds`` of common time."""
+        """Note that a block ending at the source's frame ``end`` was complete at ``seconds`` of common time."""
 
 #: What a source puts on the graph's event queue: (source name, driver events, dropped counts by kind).
 EventItem = tuple[str, list[DriverEvent], dict[str, int]]
@@ -67,7 +69,7 @@ TIMEBASES = ("stream", "host", "recorded")
 
 
 def _head(block: Block, n: int) -> Block:
-    """The first ``n`` frames of a block."""
+    """Return the first ``n`` frames of a block."""
     n = max(n, 0)
     filled = None if block.filled is None else block.filled[:n]
     return Block(block.data[:n], block.start, block.arrival, filled,
@@ -75,12 +77,13 @@ def _head(block: Block, n: int) -> Block:
 
 
 class Feed:
-    """What one reader of a source gets: the ring reader, and in stream order each block's
-    ``(end index, host arrival, common-time line after it)`` and the driver's marks
-    (``(index, "restart" | "overrun")``). Filled by the source thread, consumed by one processing
-    thread (deques: appends and pops from opposite ends are thread-safe). A feed that does not
-    ``track`` (the recorder's: it takes marks and times from the source itself) gets neither,
-    so nothing piles up unread."""
+    """What one reader of a source gets: the ring reader, each block's arrival and the driver's marks.
+
+    In stream order, each block's ``(end index, host arrival, common-time line after it)`` and the driver's marks
+    (``(index, "restart" | "overrun")``). Filled by the source thread, consumed by one processing thread (deques:
+    appends and pops from opposite ends are thread-safe). A feed that does not ``track`` (the recorder's: it takes
+    marks and times from the source itself) gets neither, so nothing piles up unread.
+    """
 
     def __init__(self, reader: Reader, track: bool = True) -> None:
         self.reader = reader
@@ -90,9 +93,11 @@ class Feed:
         self.marks: collections.deque[tuple[int, str]] = collections.deque()
 
     def block_of(self, index: int) -> tuple[int, float, tuple[float, float]] | None:
-        """``(end, arrival, line)`` of the block that brought frame ``index``, or None if no block
-        is known for it (the end of the stream). The blocks before it are dropped: call it with
-        indices that never go back. The reader's thread."""
+        """Return ``(end, arrival, line)`` of the block that brought frame ``index``, or None.
+
+        None if no block is known for it (the end of the stream). The blocks before it are dropped: call it with
+        indices that never go back. The reader's thread.
+        """
         arrivals = self.arrivals
         while arrivals and arrivals[0][0] <= index:
             arrivals.popleft()
@@ -171,8 +176,10 @@ class Source:
         self.event_queue: queue.SimpleQueue[EventItem | None] | None = None
 
     def add_feed(self, name: str, track: bool = True) -> Feed:
-        """A new reader of this source's ring (a stream or a tap; a tap that does not ``track``
-        arrivals and marks, such as the recorder, gets neither, see :class:`Feed`)."""
+        """Return a new reader of this source's ring (a stream or a tap).
+
+        A tap that does not ``track`` arrivals and marks, such as the recorder, gets neither, see :class:`Feed`.
+        """
         feed = Feed(self.ring.add_reader(name), track)
         self.feeds.append(feed)
         return feed
@@ -189,8 +196,10 @@ class Source:
     # -- source thread ----------------------------------------------------------------------
 
     def drive(self, stop: threading.Event, on_stop: Callable[[str], None]) -> None:
-        """Move blocks from the driver to the ring until the stream ends or ``stop`` is set;
-        ``on_stop(reason)`` when the stream length (``max_frames``) is reached."""
+        """Move blocks from the driver to the ring until the stream ends or ``stop`` is set.
+
+        Call ``on_stop(reason)`` when the stream length (``max_frames``) is reached.
+        """
         try:
             while not stop.is_set():
                 try:
@@ -279,8 +288,7 @@ class Source:
     # -- summary ----------------------------------------------------------------------------
 
     def frame_fates(self, feed: Feed) -> dict[str, int]:
-        """Every frame of the stream counted once, as ``feed``'s reader saw it: delivered,
-        filled or dropped.
+        """Return the stream's frames, each counted once, as ``feed``'s reader saw it: delivered, filled or dropped.
 
         ``delivered``: measured by the driver and processed as measured.
         ``filled``: synthesised by the driver (``Block.filled``) for samples the host never
@@ -311,7 +319,7 @@ class Source:
                 "filled_lost_in_ring": r["lost_filled"]}
 
     def clock_summary(self) -> dict[str, Any] | None:
-        """The clock's estimate (rate error in ppm, jitter and delay in ms), for a host timebase."""
+        """Return the clock's estimate (rate error in ppm, jitter and delay in ms), for a host timebase."""
         if self.clock is None:
             return None
         e = self.clock.estimate()

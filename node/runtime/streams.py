@@ -1,5 +1,7 @@
-"""A stream: one source's ring reader -> channel mapping -> filterbank -> peaks -> windows ->
-classifier -> decisions -> one :class:`~supramodal.node.runtime.events.WindowEvent` per window.
+"""A stream: from one source's ring reader to one window event per window.
+
+Ring reader -> channel mapping -> filterbank -> peaks -> windows -> classifier -> decisions -> one
+:class:`~supramodal.node.runtime.events.WindowEvent` per window.
 
 Threading rules
 ---------------
@@ -85,8 +87,10 @@ def channel_mapper(mapping: str | int, driver_channels: int, bank_channels: int,
 
 
 def refuse_uncalibrated(rules: DecisionRules, models: Sequence[TextureModel | EarlyFusionModel], where: str) -> None:
-    """Refuse the rules of a ``[decision]`` (a confidence threshold, "unknown") that need
-    calibrated posteriors when one of ``models`` (a stream's, or a fusion's) has none, naming the fix."""
+    """Refuse ``[decision]`` rules that need calibrated posteriors when one of ``models`` has none, naming the fix.
+
+    Such rules: a confidence threshold, "unknown". ``models``: a stream's, or a fusion's.
+    """
     asks = rules.calibrated_rules
     old = [m for m in models if not m.calibrated]
     if asks and old:
@@ -97,9 +101,11 @@ def refuse_uncalibrated(rules: DecisionRules, models: Sequence[TextureModel | Ea
 
 def decider_for(model: TextureModel, rules: DecisionRules, where: str = "[decision]",
                 window_seconds: float | None = None) -> Decider:
-    """The :class:`~supramodal.decisions.Decider` of a stream of ``model`` with the scene's
-    ``[decision]`` ``rules``; refuses rules the model cannot follow (a confidence threshold or
-    "unknown" without a calibration, "unknown" without a novelty score), naming the fix."""
+    """Return the :class:`~supramodal.decisions.Decider` of a stream of ``model`` with the scene's decision rules.
+
+    ``rules`` are the scene's ``[decision]``. Refuse rules the model cannot follow (a confidence threshold or
+    "unknown" without a calibration, "unknown" without a novelty score), naming the fix.
+    """
     refuse_uncalibrated(rules, (model,), where)
     threshold = None
     if rules.unknown:
@@ -266,7 +272,7 @@ class Stream:
             emit(event)
 
     def _marks_of(self, w: int, W: int) -> list[str]:
-        """The driver's marks ("restart", "overrun") in window ``w``."""
+        """Return the driver's marks ("restart", "overrun") in window ``w``."""
         end = (w + 1) * W
         marks = self.feed.marks
         while marks and marks[0][0] < end:

@@ -1,5 +1,6 @@
-"""Saying how a long step goes while it runs: :class:`Ticker`, for the model a node trains on start,
-so that a user is never left in silence for a minute.
+"""Saying how a long step goes while it runs: :class:`Ticker`, for the model a node trains on start.
+
+So that a user is never left in silence for a minute.
 
 Threading: the step's own thread calls :meth:`Ticker.stage` and :meth:`Ticker.network_done`; a
 thread of the ticker's own says the line every ``period`` seconds. The ``say`` callable is
@@ -72,8 +73,10 @@ class Ticker:
             self.say(f"{self.what}: stopped after {self.clock() - self.started:.0f} s")
 
     def stage(self, text: str, epoch_share: float | None = None) -> None:
-        """What is being done now (a texture's features, a network's epochs); ``epoch_share``, in [0, 1],
-        of the network in training."""
+        """Say what is being done now (a texture's features, a network's epochs).
+
+        ``epoch_share``, in [0, 1]: the share of the network's epochs done, while one is in training.
+        """
         with self._lock:
             self._stage = text
             if epoch_share is not None:
@@ -94,7 +97,7 @@ class Ticker:
             self._epoch_share = 0.0
 
     def line(self) -> str:
-        """The line for now: the stage, the time so far and, once it can be told, the time left."""
+        """Return the line for now: the stage, the time so far and, once it can be told, the time left."""
         now = self.clock()
         with self._lock:
             stage, done, share = self._stage, self.done, self._epoch_share

@@ -1,9 +1,10 @@
-"""Sinks: where the node's window events go. This package holds the base and the machinery every
-sink shares; each sink a scene can name is one module beside it, with its spec (``SPEC``, a
-:class:`~supramodal.node.runtime.sinks.spec.SinkSpec`: :mod:`.spec`), registered in
-:data:`supramodal.node.scene.registry.SINK_MODULES`: :mod:`.text` (text lines), :mod:`.jsonl` (JSON
-Lines), :mod:`.lsl` (Lab Streaming Layer outlets), :mod:`.view` (a page in the browser). The taps (a
-source's raw frames) are in :mod:`supramodal.node.runtime.taps`.
+"""Sinks: where the node's window events go.
+
+This package holds the base and the machinery every sink shares; each sink a scene can name is one module beside it,
+with its spec (``SPEC``, a :class:`~supramodal.node.runtime.sinks.spec.SinkSpec`: :mod:`.spec`), registered in
+:data:`supramodal.node.scene.registry.SINK_MODULES`: :mod:`.text` (text lines), :mod:`.jsonl` (JSON Lines),
+:mod:`.lsl` (Lab Streaming Layer outlets), :mod:`.view` (a page in the browser). The taps (a source's raw frames)
+are in :mod:`supramodal.node.runtime.taps`.
 
 :class:`Sink` is the interface the graph calls (every call but ``emit`` a documented no-op by
 default): ``start``, ``emit``, ``event``, ``drain``, ``stats``, ``summary``, ``close``, and the
@@ -78,45 +79,59 @@ class Sink(abc.ABC):
 
     def watch(self, health: Callable[[], Health]) -> None:
         """Take the graph's counters (:attr:`health`); the graph calls it once, when it is made.
-        Default: keep it."""
+
+        Default: keep it.
+        """
         self.health = health
 
     def prepare(self) -> None:
-        """Before the graph's start, still start-up (SIGINT and SIGTERM interrupt it): e.g. wait
-        for a consumer of an outlet. The caller's (main) thread. Default: nothing."""
+        """Prepare before the graph's start, still start-up (SIGINT and SIGTERM interrupt it).
+
+        E.g. wait for a consumer of an outlet. The caller's (main) thread. Default: nothing.
+        """
 
     def start(self, epoch: float) -> None:
-        """The graph's start on ``time.monotonic()`` (common time 0), before any event: for a
-        sink that puts common time on another clock (LSL). The caller's thread. Default: nothing."""
+        """Take the graph's start on ``time.monotonic()`` (common time 0), before any event.
+
+        For a sink that puts common time on another clock (LSL). The caller's thread. Default: nothing.
+        """
 
     @abc.abstractmethod
     def emit(self, event: WindowEvent) -> None:
-        """One window's event (of the streams the sink listens to). The processing or fusion thread."""
+        """Take one window's event (of the streams the sink listens to). The processing or fusion thread."""
 
     def event(self, ev: DriverEvent) -> None:
-        """A driver event (rate-limited by the node: ``ev.count`` > 1 stands for repeats). The
-        event thread. Default: ignored."""
+        """Take a driver event (rate-limited by the node: ``ev.count`` > 1 stands for repeats).
+
+        The event thread. Default: ignored.
+        """
 
     def drain(self, timeout: float = 5.0) -> None:
-        """After the last ``emit`` and ``event``: take what is still held, for at most
-        ``timeout`` seconds (a queued sink's queue). The caller's thread. Default: nothing."""
+        """Take what is still held, for at most ``timeout`` seconds, after the last ``emit`` and ``event``.
+
+        E.g. a queued sink's queue. The caller's thread. Default: nothing.
+        """
 
     def stats(self) -> dict[str, Any] | None:
-        """What the sink wrote, dropped and raised, for the summary's ``sinks``; None (the
-        default) for a sink that counts nothing (one called on the graph's own threads), which
-        the summary leaves out. The caller's thread, after :meth:`drain`."""
+        """Return what the sink wrote, dropped and raised, for the summary's ``sinks``.
+
+        None (the default) for a sink that counts nothing (one called on the graph's own threads), which
+        the summary leaves out. The caller's thread, after :meth:`drain`.
+        """
         return None
 
     def summary(self, summary: RunSummary) -> None:
-        """The run's summary, once, after :meth:`drain`. The caller's thread. Default: nothing."""
+        """Take the run's summary, once, after :meth:`drain`. The caller's thread. Default: nothing."""
 
     def close(self) -> None:
         """Release what the sink holds, last. The caller's thread. Default: nothing."""
 
 
 class NoReader(OSError):
-    """A FIFO sink's file has no reader yet: opening it would block. The item is kept and the
-    open tried again (:class:`QueuedSink`); nothing waits on it."""
+    """A FIFO sink's file has no reader yet: opening it would block.
+
+    The item is kept and the open tried again (:class:`QueuedSink`); nothing waits on it.
+    """
 
 
 class FileSink(Sink):
@@ -170,9 +185,11 @@ class FileSink(Sink):
 
 
 class ListSink(Sink):
-    """Keeps window events (``windows``: :class:`WindowEvent`; ``events``: the same as the dicts a
-    JSON Lines sink writes), driver events (``driver_events``) and the summary in memory: for a
-    node embedded in a Python program, and tests."""
+    """Keeps window events, driver events and the summary in memory, for a node in a Python program and tests.
+
+    Window events are in ``windows`` (:class:`WindowEvent`) and, as the dicts a JSON Lines sink writes,
+    ``events``; driver events in ``driver_events``; the summary in ``final``.
+    """
 
     def __init__(self) -> None:
         self.path = None
@@ -182,18 +199,23 @@ class ListSink(Sink):
 
     @property
     def events(self) -> list[dict[str, Any]]:
+        """The window events kept, as the dicts a JSON Lines sink writes (:meth:`WindowEvent.as_dict`)."""
         return [w.as_dict() for w in self.windows]
 
     def emit(self, event: WindowEvent) -> None:
+        """Keep a window's event in ``windows``."""
         self.windows.append(event)
 
     def event(self, ev: DriverEvent) -> None:
+        """Keep a driver event in ``driver_events``."""
         self.driver_events.append(ev)
 
     def summary(self, summary: RunSummary) -> None:
+        """Keep the run's summary in ``final``."""
         self.final = summary
 
     def close(self) -> None:
+        """Do nothing: what the sink kept stays readable."""
         pass
 
 
@@ -252,9 +274,11 @@ class QueuedSink(Sink):
         self._thread.start()
 
     def emit(self, event: WindowEvent) -> None:
+        """Queue a window's event for the sink (never blocks: dropped and counted when the queue is full)."""
         self._put("emit", event, "windows")
 
     def event(self, ev: DriverEvent) -> None:
+        """Queue a driver event for the sink (never blocks: dropped and counted when the queue is full)."""
         self._put("event", ev, "events")
 
     def _put(self, method: str, item: WindowEvent | DriverEvent, kind: str) -> None:
@@ -297,9 +321,11 @@ class QueuedSink(Sink):
                         self._first_error = f"{type(exc).__name__}: {exc}"
 
     def drain(self, timeout: float = 5.0) -> None:
-        """Let the sink take what is queued, for at most ``timeout`` seconds; what it has not taken
-        by then is dropped and counted. Call once, after the last ``emit`` and ``event``; the
-        wrapped sink's own ``drain`` follows, in what is left of ``timeout``."""
+        """Let the sink take what is queued, for at most ``timeout`` seconds.
+
+        What it has not taken by then is dropped and counted. Call once, after the last ``emit`` and
+        ``event``; the wrapped sink's own ``drain`` follows, in what is left of ``timeout``.
+        """
         deadline = time.monotonic() + timeout
         while self._thread.is_alive():
             try:
@@ -322,8 +348,10 @@ class QueuedSink(Sink):
             self.sink.drain(max(0.0, deadline - time.monotonic()))
 
     def stats(self) -> dict[str, Any]:
-        """``{"sink", "written", "dropped_windows", "dropped_events", "errors", "first_error"}``,
-        and what the sink's own ``stats`` adds."""
+        """Return ``{"sink", "written", "dropped_windows", "dropped_events", "errors", "first_error"}``.
+
+        And what the sink's own ``stats`` adds.
+        """
         own = self.sink.stats() or {}
         with self._lock:
             return {"sink": type(self.sink).__name__ + (f" {self.path}" if self.path not in (None, "-") else ""),
@@ -332,19 +360,24 @@ class QueuedSink(Sink):
                     "first_error": self._first_error, **{k: v for k, v in own.items() if k != "sink"}}
 
     def prepare(self) -> None:
-        """Passed on to the sink (on the caller's thread)."""
+        """Pass the call on to the sink (on the caller's thread)."""
         self.sink.prepare()
 
     def watch(self, health: Callable[[], Health]) -> None:
-        """Passed on to the sink (and kept)."""
+        """Pass the graph's counters on to the sink (and keep them)."""
         self.health = health
         self.sink.watch(health)
 
     def start(self, epoch: float) -> None:
-        """Passed on to the sink (before any event, on the caller's thread)."""
+        """Pass the graph's start on to the sink (before any event, on the caller's thread)."""
         self.sink.start(epoch)
 
     def summary(self, summary: RunSummary) -> None:
+        """Pass the run's summary on to the sink, on the caller's thread.
+
+        A named pipe with no reader (:class:`NoReader`) is not waited for: the summary is not written,
+        and that is counted as an error.
+        """
         try:
             self.sink.summary(summary)
         except NoReader as exc:            # the summary cannot wait for a reader either
@@ -354,6 +387,7 @@ class QueuedSink(Sink):
                     self._first_error = f"the summary was not written: {exc.strerror}"
 
     def close(self) -> None:
+        """End the sink's thread (unless the sink is stuck for good: its daemon thread is left), then close the sink."""
         self._closing.set()
         if self._thread.is_alive():
             try:
@@ -370,8 +404,10 @@ PATH_KEY = Key(is_text, '"-" (stdout) or a file path', "-", path=True, words=("-
 
 
 def file_sink(kind: type[FileSink]) -> Callable[[Mapping[str, Any], SinkContext], Sink]:
-    """The ``build`` of a file sink's spec: ``kind`` at the scene's ``path`` (relative to the scene),
-    behind its own :class:`QueuedSink`."""
+    """Return the ``build`` of a file sink's spec: ``kind`` at the scene's ``path``, behind its own queue.
+
+    The ``path`` is relative to the scene; the queue a :class:`QueuedSink`.
+    """
     def build(options: Mapping[str, Any], context: SinkContext) -> Sink:
         path = options["path"] if options["path"] == "-" else str(context.resolve(options["path"]))
         try:

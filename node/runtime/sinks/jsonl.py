@@ -1,5 +1,7 @@
-"""The ``jsonl`` sink: one JSON object per window, driver event and summary, to stdout or a file
-(a :class:`~supramodal.node.runtime.sinks.FileSink`, behind its own queue in a scene)."""
+"""The ``jsonl`` sink: one JSON object per window, driver event and summary, to stdout or a file.
+
+A :class:`~supramodal.node.runtime.sinks.FileSink`, behind its own queue in a scene.
+"""
 
 from __future__ import annotations
 
@@ -15,21 +17,27 @@ __all__ = ["SPEC", "JsonLinesSink"]
 
 
 class JsonLinesSink(FileSink):
-    """One JSON object per window; a driver event as ``{"event": kind, "message": ..., "time": ...,
+    """One JSON object per window, driver event and summary, in one stream of lines.
+
+    A window as :meth:`WindowEvent.as_dict`; a driver event as ``{"event": kind, "message": ..., "time": ...,
     "stream_index": ..., "count": ...}`` in the same stream; the summary as a last object with
-    ``"summary": true``."""
+    ``"summary": true``.
+    """
 
     def emit(self, event: WindowEvent) -> None:
+        """Write a window's event as one JSON line (under the sink's lock)."""
         line = json.dumps(event.as_dict()) + "\n"
         with self._lock:
             self._fh.write(line)
 
     def event(self, ev: DriverEvent) -> None:
+        """Write a driver event as one JSON line (under the sink's lock)."""
         line = json.dumps(ev.as_dict()) + "\n"
         with self._lock:
             self._fh.write(line)
 
     def summary(self, summary: RunSummary) -> None:
+        """Write the run's summary as a last JSON line, with ``"summary": true``."""
         self._fh.write(json.dumps({"summary": True, **summary.to_dict()}) + "\n")
 
 

@@ -1,5 +1,6 @@
-"""Window events out as Lab Streaming Layer streams: features, decisions and posteriors, so that
-another machine (a recorder such as LabRecorder, a controller, a second classifier) takes them.
+"""Window events out as Lab Streaming Layer streams: features, decisions and posteriors.
+
+So that another machine (a recorder such as LabRecorder, a controller, a second classifier) takes them.
 
 Needs the optional extra ``lsl`` (:func:`supramodal.drivers.lsl.import_pylsl` says what to
 install when it is missing).
@@ -99,13 +100,21 @@ WAIT_STEP_SECONDS = 0.1
 class Outlet(Protocol):
     """What the node uses of a ``pylsl.StreamOutlet`` (pylsl ships no type information)."""
 
-    def push_sample(self, x: Any, timestamp: float = ...) -> None: ...
+    def push_sample(self, x: Any, timestamp: float = ...) -> None:
+        """Push one sample (a row of channels), stamped ``timestamp`` on LSL's clock."""
+        ...
 
-    def push_chunk(self, x: Any, timestamp: float = ...) -> None: ...
+    def push_chunk(self, x: Any, timestamp: float = ...) -> None:
+        """Push several samples (rows), the last stamped ``timestamp`` on LSL's clock."""
+        ...
 
-    def wait_for_consumers(self, timeout: float) -> bool: ...
+    def wait_for_consumers(self, timeout: float) -> bool:
+        """Wait up to ``timeout`` seconds for a consumer; return whether one has connected."""
+        ...
 
-    def have_consumers(self) -> bool: ...
+    def have_consumers(self) -> bool:
+        """Return whether a consumer is connected now."""
+        ...
 
 
 @dataclass(frozen=True)
@@ -157,15 +166,16 @@ class LSLClock:
         self.offset = lsl_clock_offset(pylsl)
 
     def lsl_time(self, common: float) -> float:
-        """A time on the node's common clock, seconds, on LSL's clock."""
+        """Return a time on the node's common clock, seconds, on LSL's clock."""
         return self.epoch + common - self.offset
 
 
 def wait_for_consumers(outlets: Sequence[Outlet], seconds: float) -> tuple[float, list[bool]]:
-    """Wait up to ``seconds`` until each of ``outlets`` (pylsl ``StreamOutlet``) has a consumer,
-    then :data:`CONNECT_SETTLE_SECONDS` more. Start-up work: the wait is made of liblsl waits of
-    at most :data:`WAIT_STEP_SECONDS`, so that SIGINT and SIGTERM, whose handlers run on the main
-    thread between two, interrupt it.
+    """Wait up to ``seconds`` until each of ``outlets`` (pylsl ``StreamOutlet``) has a consumer.
+
+    Then wait :data:`CONNECT_SETTLE_SECONDS` more. Start-up work: the wait is made of liblsl waits of at most
+    :data:`WAIT_STEP_SECONDS`, so that SIGINT and SIGTERM, whose handlers run on the main thread between two,
+    interrupt it.
 
     Returns
     -------
@@ -189,12 +199,12 @@ def wait_for_consumers(outlets: Sequence[Outlet], seconds: float) -> tuple[float
 
 
 def outlet_name(prefix: str, stream: str, output: str) -> str:
-    """The LSL name of one outlet: ``PREFIX-STREAM-OUTPUT``."""
+    """Return the LSL name of one outlet: ``PREFIX-STREAM-OUTPUT``."""
     return f"{prefix}-{stream}-{output}"
 
 
 def outlet_source_id(prefix: str, stream: str, output: str, host: str | None = None) -> str:
-    """The LSL source id of one outlet: ``PREFIX@HOST/STREAM/OUTPUT``."""
+    """Return the LSL source id of one outlet: ``PREFIX@HOST/STREAM/OUTPUT``."""
     return f"{prefix}@{host or socket.gethostname()}/{stream}/{output}"
 
 
@@ -245,7 +255,7 @@ class LSLOutletSink(Sink):
                                                                      max_buffered=OUTLET_BUFFER_SECONDS)
 
     def _info(self, s: OutletStream, output: str) -> Any:
-        """The outlet's ``pylsl.StreamInfo`` (Any: pylsl ships no type information)."""
+        """Return the outlet's ``pylsl.StreamInfo`` (Any: pylsl ships no type information)."""
         pylsl = self._pylsl
         if output == "features":
             labels = [f"{f}/{name}" for f in s.features for name in s.filters]
@@ -291,16 +301,21 @@ class LSLOutletSink(Sink):
     # -- the node's calls ---------------------------------------------------------------------
 
     def prepare(self) -> None:
-        """Wait up to ``wait_for_consumer`` seconds until every outlet has a consumer (see
-        :func:`wait_for_consumers`). The caller's thread, before the graph's start."""
+        """Wait up to ``wait_for_consumer`` seconds until every outlet has a consumer.
+
+        See :func:`wait_for_consumers`. The caller's thread, before the graph's start.
+        """
         if self.wait_for_consumer is not None and self.wait_for_consumer > 0:
             self.waited_s, found = wait_for_consumers(list(self._outlets.values()), self.wait_for_consumer)
             self.consumers = [f"{name}-{output}" for (name, output), ok in zip(self._outlets, found) if ok]
 
     def stats(self) -> dict[str, Any] | None:
-        """With a wait for consumers: ``waited_s`` and ``consumers`` (the outlets that had one,
+        """Return how the outlets found their consumers, or None.
+
+        With a wait for consumers: ``waited_s`` and ``consumers`` (the outlets that had one,
         ``STREAM-OUTPUT``); with the default's hold: ``held_s`` and ``consumers`` (the outlets whose
-        first consumer came in time for window 0); else None."""
+        first consumer came in time for window 0); else None.
+        """
         if self.waited_s is not None:
             return {"sink": "LSLOutletSink", "waited_s": self.waited_s, "consumers": self.consumers}
         if self.wait_for_consumer is None:
@@ -308,8 +323,10 @@ class LSLOutletSink(Sink):
         return None
 
     def start(self, epoch: float) -> None:
-        """The graph's start, on ``time.monotonic()``: common time 0. The caller's thread, before
-        any event."""
+        """Take the graph's start, on ``time.monotonic()``: common time 0; start the hold, by default.
+
+        The caller's thread, before any event.
+        """
         self._clock = LSLClock(self._pylsl, epoch)
         if self.wait_for_consumer is None:
             self._held = {key: [] for key in self._outlets}
@@ -317,6 +334,12 @@ class LSLOutletSink(Sink):
             self.consumers = []
 
     def emit(self, event: WindowEvent) -> None:
+        """Push a window's features, posteriors and decision marker on its stream's outlets.
+
+        Each stamped with the window's end on LSL's clock, or kept for the outlet's first consumer
+        during the hold. A window of a stream the sink does not listen to is ignored. The sink's thread;
+        never waits for consumers.
+        """
         if event.stream not in self._streams:
             return
         stamp = self._clock.lsl_time(event.end)
@@ -342,8 +365,10 @@ class LSLOutletSink(Sink):
         outlet.push_sample(sample, stamp)
 
     def _release(self, key: tuple[str, str]) -> bool:
-        """Whether the held outlet ``key`` has its first consumer: then what it kept is sent, in
-        order, and it holds no more."""
+        """Return whether the held outlet ``key`` has its first consumer.
+
+        If it has, what it kept is sent, in order, and it holds no more.
+        """
         outlet = self._outlets[key]
         if not outlet.have_consumers():
             return False
@@ -357,8 +382,10 @@ class LSLOutletSink(Sink):
         """Driver events are not sent (they are in the node's own sinks)."""
 
     def drain(self, timeout: float = 5.0) -> None:
-        """Send what an outlet kept to the consumer that connected after its last window (no wait:
-        a run that ends before its consumer connects needs ``wait_for_consumer``)."""
+        """Send what an outlet kept to the consumer that connected after its last window.
+
+        No wait: a run that ends before its consumer connects needs ``wait_for_consumer``.
+        """
         for key in list(self._held):
             self._release(key)
 
@@ -366,12 +393,13 @@ class LSLOutletSink(Sink):
         """Nothing to write (the node's summary counts what the sink's queue passed on)."""
 
     def close(self) -> None:
+        """Drop a hold no consumer came for and release the outlets (liblsl closes them)."""
         self._held.clear()                  # a hold no consumer came for: nobody to send it to
         self._outlets.clear()               # liblsl closes an outlet when it is released
 
 
 def _marker(event: WindowEvent) -> dict[str, Any]:
-    """The decision marker of one window: what a consumer needs to act on it."""
+    """Return the decision marker of one window: what a consumer needs to act on it."""
     return {"stream": event.stream, "window": event.window, "start": round(event.start, 6),
             "end": round(event.end, 6), "decision": event.decision,
             "confidence": None if event.confidence is None else round(event.confidence, 4),
@@ -383,8 +411,10 @@ def _marker(event: WindowEvent) -> dict[str, Any]:
 # -- as a scene names it ---------------------------------------------------------------------------
 
 def describe(name: str, pipeline: FeaturePipeline, classes: Sequence[str]) -> OutletStream:
-    """A stream's outlets' description from its pipeline and its model's classes (empty: features
-    only)."""
+    """Return a stream's outlets' description from its pipeline and its model's classes.
+
+    With no classes (empty), the stream has the features outlet only.
+    """
     bank = pipeline.bank
     return OutletStream(name, bank.kind, bank.fs, tuple(bank.names), tuple(float(c) for c in bank.cf),
                         pipeline.features, pipeline.window_samples / bank.fs, tuple(classes))

@@ -1,5 +1,4 @@
-"""The ``ros2`` sink: window events, driver events and the node's health on ROS 2 topics, published by a
-process of its own.
+"""The ``ros2`` sink: window events, driver events and the node's health on ROS 2 topics, from its own process.
 
 What goes on which topic, in which message and with which QoS is
 :class:`~supramodal.node.runtime.sinks.ros2_publisher.Ros2Publisher`'s (its module notes); this module
@@ -120,14 +119,16 @@ def _plain(value: Any) -> Any:
 
 
 def encode(header: Mapping[str, Any], payload: bytes = b"") -> bytes:
-    """One frame: ``header`` as JSON, then a NUL and ``payload`` if there is one (JSON never holds a NUL:
-    it escapes control characters)."""
+    """Return one frame: ``header`` as JSON, then a NUL and ``payload`` if there is one.
+
+    JSON never holds a NUL: it escapes control characters.
+    """
     text = json.dumps(header, separators=(",", ":"), default=_plain).encode()
     return text + b"\0" + payload if payload else text
 
 
 def decode(frame: bytes) -> tuple[dict[str, Any], bytes]:
-    """A frame's header and payload (:func:`encode`'s inverse)."""
+    """Return a frame's header and payload (:func:`encode`'s inverse)."""
     text, _, payload = frame.partition(b"\0")
     return json.loads(text), payload
 
@@ -135,8 +136,9 @@ def decode(frame: bytes) -> tuple[dict[str, Any], bytes]:
 # -- the node's side -----------------------------------------------------------------------------------------
 
 class Ros2Sink(Sink):
-    """The node's window events, driver events and health on ROS 2 topics, published by a process of its
-    own (the module notes; topics and messages: :mod:`~supramodal.node.runtime.sinks.ros2_publisher`).
+    """The node's window events, driver events and health on ROS 2 topics, published by a process of its own.
+
+    See the module notes; topics and messages: :mod:`~supramodal.node.runtime.sinks.ros2_publisher`.
 
     Parameters
     ----------
@@ -222,16 +224,18 @@ class Ros2Sink(Sink):
         return self._process.pid
 
     def topic(self, stream: str, output: str) -> str:
-        """The full name of one of the sink's topics (after any remapping)."""
+        """Return the full name of one of the sink's topics (after any remapping)."""
         return self._topics[f"{stream}/{output}"]
 
     # -- the pipe ------------------------------------------------------------------------------------------
 
     def _send(self, header: Mapping[str, Any], payload: bytes = b"", bound: float | None = None) -> None:
-        """Write one frame. ``bound``: seconds the caller's thread may wait, for the lock or the write
-        (a child that stopped reading, its pipe full: a frozen rclpy); past them the child is killed,
-        which ends every write waiting on it (the sink's thread's too). None: no bound (the sink's
-        threads, whose waits the queue absorbs)."""
+        """Write one frame.
+
+        ``bound``: seconds the caller's thread may wait, for the lock or the write (a child that stopped reading,
+        its pipe full: a frozen rclpy); past them the child is killed, which ends every write waiting on it (the
+        sink's thread's too). None: no bound (the sink's threads, whose waits the queue absorbs).
+        """
         self._write(encode(header, payload), bound)
 
     def _write(self, frame: bytes, bound: float | None = None) -> None:
@@ -258,8 +262,10 @@ class Ros2Sink(Sink):
             self._process.kill()
 
     def _ask(self, header: dict[str, Any], timeout: float, what: str) -> dict[str, Any]:
-        """Send a request and wait up to ``timeout`` s for its answer, in short polls (SIGINT and SIGTERM
-        reach the caller's thread between two). The caller's thread."""
+        """Send a request and wait up to ``timeout`` s for its answer, in short polls.
+
+        SIGINT and SIGTERM reach the caller's thread between two. The caller's thread.
+        """
         self._asked += 1
         self._send({**header, "ask": self._asked}, bound=ANSWER_MARGIN)
         deadline = time.monotonic() + timeout
@@ -296,9 +302,11 @@ class Ros2Sink(Sink):
     # -- the node's calls ----------------------------------------------------------------------------------
 
     def prepare(self) -> None:
-        """Wait up to ``wait_for_subscribers`` seconds until every decision topic (a stream without
-        classes: its features topic) has a subscriber. The caller's thread, before the graph's start;
-        SIGINT and SIGTERM interrupt it."""
+        """Wait up to ``wait_for_subscribers`` seconds until every decision topic has a subscriber.
+
+        For a stream without classes, its features topic. The caller's thread, before the graph's start;
+        SIGINT and SIGTERM interrupt it.
+        """
         if self.wait_for_subscribers <= 0:
             return
         try:
@@ -309,10 +317,16 @@ class Ros2Sink(Sink):
         self.waited_s, self.subscribed = done["waited_s"], done["subscribed"]
 
     def start(self, epoch: float) -> None:
-        """The graph's start, on ``time.monotonic()`` (one clock for every process of this machine)."""
+        """Take the graph's start, on ``time.monotonic()`` (one clock for every process of this machine)."""
         self._send({"op": "start", "epoch": epoch}, bound=ANSWER_MARGIN)
 
     def emit(self, event: WindowEvent) -> None:
+        """Send one window event to the publisher process, or hold it for the fused decision.
+
+        A window of one of the fusion's senses is held until the fused decision comes (then the fused
+        decision is sent, and the held windows after it), at most :data:`HOLD_SECONDS`. A window of a
+        stream the sink does not publish is ignored. The sink's thread.
+        """
         s = self._streams.get(event.stream)
         if s is None:
             return
@@ -335,14 +349,18 @@ class Ros2Sink(Sink):
             self._release()
 
     def _release(self, held_before: float = np.inf) -> None:
-        """Send the held windows held before ``held_before`` (``time.monotonic()``; default: all), in the
-        order they came. The sink's thread."""
+        """Send the windows held before ``held_before`` (``time.monotonic()``; default: all).
+
+        In the order they came. The sink's thread.
+        """
         while self._held and self._held[0][0] < held_before:
             self._write(self._held.pop(0)[1])
 
     def event(self, ev: DriverEvent) -> None:
-        """A driver event: on ``~/events`` and in the diagnostics (of the counters now), at once; a texture
-        change (:data:`~supramodal.node.runtime.events.DECISION_EVENTS`) on ``~/events`` only."""
+        """Send a driver event: on ``~/events`` and in the diagnostics (of the counters now), at once.
+
+        A texture change (:data:`~supramodal.node.runtime.events.DECISION_EVENTS`) goes on ``~/events`` only.
+        """
         health = self._health() if ev.kind not in DECISION_EVENTS else None
         self._send({"op": "event", "event": asdict(ev), "source": ev.source or self._only_source(), "health": health})
 
@@ -354,9 +372,11 @@ class Ros2Sink(Sink):
         return self._one_source
 
     def drain(self, timeout: float = 5.0) -> None:
-        """After the last window: the publisher publishes what it was sent and waits (bounded) for the
-        subscribers' acknowledgements (:meth:`Ros2Publisher.drain`); its counts come back. The caller's
-        thread, once no window comes any more."""
+        """Have the publisher publish what it was sent and wait (bounded) for the subscribers, after the last window.
+
+        The wait is for the subscribers' acknowledgements (:meth:`Ros2Publisher.drain`); its counts come back.
+        The caller's thread, once no window comes any more.
+        """
         try:
             self._release()
             done = self._ask({"op": "drain", "timeout": timeout}, timeout + ANSWER_MARGIN, "drain")
@@ -371,11 +391,14 @@ class Ros2Sink(Sink):
         return None if self.health is None else self.health().to_dict()
 
     def stats(self) -> dict[str, Any]:
-        """The node's name; after :meth:`drain`, what was published per output; with a wait for
+        """Return the sink's counts.
+
+        The node's name; after :meth:`drain`, what was published per output; with a wait for
         subscribers ``waited_s`` and ``subscribed``; the publisher's failures (``publisher_errors``,
         ``publisher_first_error``, each counted in the process, which goes on) when there were any,
         ``publisher_exit`` if the process ended before it was closed, and ``unsent_windows`` if windows
-        held for the fused decision were never sent (the sink's thread did not end in time)."""
+        held for the fused decision were never sent (the sink's thread did not end in time).
+        """
         out: dict[str, Any] = {"sink": "Ros2Sink", "node": self._node, "published": dict(self._published)}
         if self.waited_s is not None:
             out.update(waited_s=self.waited_s, subscribed=self.subscribed)
@@ -388,7 +411,7 @@ class Ros2Sink(Sink):
         return out
 
     def summary(self, summary: RunSummary) -> None:
-        """The last diagnostics, with the run's final counts."""
+        """Publish the last diagnostics, with the run's final counts."""
         try:
             self._send({"op": "diagnostics", "health": self._health()},
                        bound=CLOSE_TIMEOUT)
@@ -426,8 +449,9 @@ class Ros2Sink(Sink):
 # -- the publisher process's side ---------------------------------------------------------------------------
 
 def serve(read_fd: int, write_fd: int) -> None:
-    """The publisher process: make a :class:`Ros2Publisher` as the first frame says, answer whether it
-    could, then publish what each frame says until ``close`` or the end of the input.
+    """Run the publisher process: make a :class:`Ros2Publisher` as the first frame says, and answer whether it could.
+
+    Then publish what each frame says until ``close`` or the end of the input.
 
     Parameters
     ----------
@@ -484,8 +508,10 @@ def serve(read_fd: int, write_fd: int) -> None:
 
 
 def _open(header: Mapping[str, Any], answer: Connection) -> Any:
-    """The publisher the ``open`` frame asks for, its node's name and topics answered; or None, the
-    refusal answered."""
+    """Return the publisher the ``open`` frame asks for, its node's name and topics answered.
+
+    Or None, the refusal answered.
+    """
     from supramodal.drivers.ros2 import use_ros_arguments
     from supramodal.node.runtime.sinks.ros2_publisher import Ros2Publisher
 
@@ -517,7 +543,7 @@ def _publish_window(publisher: Any, header: Mapping[str, Any], payload: bytes) -
 # -- as a scene names it ---------------------------------------------------------------------------
 
 def describe(name: str, pipeline: FeaturePipeline, classes: Sequence[str]) -> TopicStream:
-    """A stream's topics' description from its pipeline and its model's classes (empty: features only)."""
+    """Return a stream's topics' description from its pipeline and its model's classes (empty: features only)."""
     return TopicStream(name, tuple(classes), tuple(pipeline.features), tuple(pipeline.bank.names))
 
 

@@ -1,8 +1,9 @@
-"""Window events, driver events and the node's health on ROS 2 topics, in stock message types, so
-that a robot's planner, ``ros2 topic echo``, rqt and Foxglove take them with no interface package:
+"""Window events, driver events and the node's health on ROS 2 topics, in stock message types.
+
+So that a robot's planner, ``ros2 topic echo``, rqt and Foxglove take them with no interface package:
 :class:`Ros2Publisher`, the ROS side of the ``ros2`` sink. The node runs it in a process of its own
-(:mod:`supramodal.node.runtime.sinks.ros2`), so that rclpy and DDS never hold the node's
-interpreter; in a process with no stream of its own (a test, a tool) it is used as it is.
+(:mod:`supramodal.node.runtime.sinks.ros2`), so that rclpy and DDS never hold the node's interpreter; in a process
+with no stream of its own (a test, a tool) it is used as it is.
 
 Needs the optional extra ``ros2`` or a sourced ROS 2 (:func:`supramodal.drivers.ros2.import_rclpy`
 says what to install when rclpy is missing).
@@ -128,8 +129,10 @@ class TopicStream:
 
     @functools.cached_property
     def feature_labels(self) -> tuple[str, ...]:
-        """``FEATURE/FILTER`` per value of a window's features, in order (made once: each window's
-        features message names them)."""
+        """``FEATURE/FILTER`` per value of a window's features, in order.
+
+        Made once: each window's features message names them.
+        """
         return tuple(f"{f}/{name}" for f in self.features for name in self.filters)
 
 
@@ -154,8 +157,10 @@ class Status:
 
 @dataclass
 class SourceState:
-    """What the driver events of one source said: the last one, counts per kind, and whether it is
-    unplugged now (an ``unplug`` not yet followed by a ``reconnect``)."""
+    """What the driver events of one source said: the last one, counts per kind, and whether it is unplugged.
+
+    Unplugged now: an ``unplug`` not yet followed by a ``reconnect``.
+    """
 
     last: DriverEvent | None = None
     counts: Counter[str] = field(default_factory=Counter)
@@ -176,7 +181,7 @@ def _fmt(value: Any) -> str:
 
 def diagnostic_report(node: str, health: Mapping[str, Any] | None, sources: Mapping[str, SourceState],
                       before: Mapping[str, Any] | None, now: float) -> list[Status]:
-    """The statuses of one diagnostics message.
+    """Return the statuses of one diagnostics message.
 
     Parameters
     ----------
@@ -359,16 +364,18 @@ class Ros2Publisher:
         return tuple(self._publishers)
 
     def topic(self, stream: str, output: str) -> str:
-        """The full name of one of the sink's topics (after any remapping)."""
+        """Return the full name of one of the sink's topics (after any remapping)."""
         name: str = self._publishers[(stream, output)].topic_name
         return name
 
     # -- the node's calls ---------------------------------------------------------------------
 
     def prepare(self) -> None:
-        """Wait up to ``wait_for_subscribers`` seconds until every decision topic (a stream
-        without classes: its features topic) has a subscriber. The caller's thread, before the
-        graph's start; made of short sleeps, so that SIGINT and SIGTERM interrupt it."""
+        """Wait up to ``wait_for_subscribers`` seconds until every decision topic has a subscriber.
+
+        For a stream without classes, its features topic. The caller's thread, before the
+        graph's start; made of short sleeps, so that SIGINT and SIGTERM interrupt it.
+        """
         if self.wait_for_subscribers <= 0:
             return
         waited = {key: pub for key, pub in self._publishers.items()
@@ -385,13 +392,17 @@ class Ros2Publisher:
         self.subscribed = [f"{stream}/{output}" for (stream, output), ok in found.items() if ok]
 
     def start(self, epoch: float) -> None:
-        """The graph's start, on ``time.monotonic()``: common time 0. The caller's thread, before
-        any event."""
+        """Take the graph's start, on ``time.monotonic()``: common time 0.
+
+        The caller's thread, before any event.
+        """
         self._clock = RosClock(self._ros.node.get_clock(), epoch)
 
     def emit(self, event: WindowEvent) -> None:
-        """One window event, on its stream's topics (an event of a stream this publisher does not
-        publish is ignored)."""
+        """Publish one window event on its stream's topics.
+
+        An event of a stream this publisher does not publish is ignored.
+        """
         s = self._streams.get(event.stream)
         if s is None:
             return
@@ -401,10 +412,13 @@ class Ros2Publisher:
 
     def publish_window(self, stream: str, end: float, features: np.ndarray | None, posteriors: np.ndarray | None,
                        classes: tuple[str, ...] | None, decision: dict[str, Any] | None) -> None:
-        """One window, by its parts: its ``end`` (common time, s), its ``features`` (the stream's
-        features' values concatenated in order, :func:`features_of`), ``posteriors`` in the order of
-        ``classes`` (None: the stream's), and the ``decision`` (the event's :meth:`~WindowEvent.as_dict`); None: not
-        published. A stream this publisher does not publish is ignored."""
+        """Publish one window, by its parts.
+
+        Its ``end`` (common time, s), its ``features`` (the stream's features' values concatenated in order,
+        :func:`features_of`), ``posteriors`` in the order of ``classes`` (None: the stream's), and the ``decision``
+        (the event's :meth:`~WindowEvent.as_dict`); None: not published. A stream this publisher does not publish is
+        ignored.
+        """
         s = self._streams.get(stream)
         if s is None:
             return
@@ -428,10 +442,12 @@ class Ros2Publisher:
 
     def _joint_state(self, stream: str, output: str, sec: int, nanosec: int, names: tuple[str, ...],
                      values: np.ndarray) -> Any:
-        """The stream's ``JointState`` of ``output``, its stamp and values set. One message per topic,
-        kept and refilled: a new one costs its field checks (about a third of a window's publishing);
-        its names are set again only when they change (compared with the tuple last set, not the
-        message's list). The sink's thread only."""
+        """Return the stream's ``JointState`` of ``output``, its stamp and values set.
+
+        One message per topic, kept and refilled: a new one costs its field checks (about a third of a window's
+        publishing); its names are set again only when they change (compared with the tuple last set, not the
+        message's list). The sink's thread only.
+        """
         key = (stream, output)
         msg = self._messages.get(key)
         if msg is None:
@@ -445,9 +461,11 @@ class Ros2Publisher:
         return msg
 
     def event(self, ev: DriverEvent, source: str | None = None, health: Mapping[str, Any] | None = None) -> None:
-        """A driver event: on ``~/events`` at once (as the ``jsonl`` sink writes it), and in the diagnostics,
-        published at once too, of ``health`` (None: the counters last given). ``source``: the source it is
-        filed under when the event names none (default: the graph's one source)."""
+        """Publish a driver event: on ``~/events`` at once (as the ``jsonl`` sink writes it), and in the diagnostics.
+
+        The diagnostics are published at once too, of ``health`` (None: the counters last given). ``source``:
+        the source it is filed under when the event names none (default: the graph's one source).
+        """
         if ev.kind in DECISION_EVENTS:          # a texture change: the planner's to act on, not the health's
             self._events.publish(self._String(data=json.dumps(ev.as_dict())))
             self.published["events"] += 1
@@ -466,8 +484,10 @@ class Ros2Publisher:
         self.publish_diagnostics(health)
 
     def _only_source(self) -> str:
-        """The name of the graph's one source (a one-source graph's events name none): what its stream's
-        status is keyed by; ``main`` outside a graph (no counters given yet)."""
+        """Return the name of the graph's one source (a one-source graph's events name none).
+
+        What its stream's status is keyed by; ``main`` outside a graph (no counters given yet).
+        """
         if self._one_source is None:
             if self._health is None:
                 return MAIN_STREAM
@@ -475,9 +495,11 @@ class Ros2Publisher:
         return self._one_source
 
     def publish_diagnostics(self, health: Mapping[str, Any] | None = None) -> None:
-        """One ``DiagnosticArray`` of :func:`diagnostic_report` now, of ``health`` (the graph's counters,
-        :meth:`Graph.health <supramodal.node.runtime.graph.Graph.health>`; None: those last given, or
-        "starting up" before any). Any thread."""
+        """Publish one ``DiagnosticArray`` of :func:`diagnostic_report` now, of ``health``.
+
+        ``health``: the graph's counters, :meth:`Graph.health <supramodal.node.runtime.graph.Graph.health>`;
+        None: those last given, or "starting up" before any. Any thread.
+        """
         from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
 
         with self._lock:
@@ -496,18 +518,22 @@ class Ros2Publisher:
             self.published["diagnostics"] += 1
 
     def stats(self) -> dict[str, Any]:
-        """The node's name, what was published per output, and with a wait for subscribers
-        ``waited_s`` and ``subscribed`` (the topics that had one, ``STREAM/OUTPUT``)."""
+        """Return the node's name, what was published per output, and the wait for subscribers.
+
+        With a wait for subscribers, ``waited_s`` and ``subscribed`` (the topics that had one, ``STREAM/OUTPUT``).
+        """
         out: dict[str, Any] = {"node": self.node_name, "published": dict(self.published)}
         if self.waited_s is not None:
             out.update(waited_s=self.waited_s, subscribed=self.subscribed)
         return out
 
     def drain(self, timeout: float = 5.0) -> None:
-        """After the last window: wait (at most ``timeout`` s, and at most :data:`ACK_WAIT_SECONDS`) until
-        every subscriber has acknowledged the reliable topics' last messages, so that closing the node
-        does not cut the last windows off on their way (a subscriber missed the last window of two
-        streams so, in a suite run under load). The caller's thread."""
+        """Wait, after the last window, until every subscriber has acknowledged the reliable topics' last messages.
+
+        At most ``timeout`` s, and at most :data:`ACK_WAIT_SECONDS`; so that closing the node does not cut the last
+        windows off on their way (a subscriber missed the last window of two streams so, in a suite run under load).
+        The caller's thread.
+        """
         from rclpy.duration import Duration
 
         deadline = time.monotonic() + min(timeout, ACK_WAIT_SECONDS)
@@ -522,15 +548,19 @@ class Ros2Publisher:
 
 
 def features_of(event: WindowEvent, stream: TopicStream) -> np.ndarray | None:
-    """A window event's features, its stream's features' values concatenated in their order
-    (float64; None without features)."""
+    """Return a window event's features, its stream's features' values concatenated in their order.
+
+    float64; None without features.
+    """
     if not event.features:
         return None
     return np.concatenate([np.asarray(event.features[f], dtype=np.float64) for f in stream.features])
 
 
 def only_source(health: Mapping[str, Any]) -> str:
-    """The name of a graph's one source, from its counters (``main`` where there is not exactly one):
-    the source a driver event that names none came from."""
+    """Return the name of a graph's one source, from its counters (``main`` where there is not exactly one).
+
+    The source a driver event that names none came from.
+    """
     sources = {st.get("source") for st in (health.get("streams") or {}).values()} - {None}
     return str(sources.pop()) if len(sources) == 1 else MAIN_STREAM

@@ -1,5 +1,6 @@
-"""What a scene needs to know of a kind of sink, in one object: :class:`SinkSpec` (the sinks'
-counterpart of ``supramodal.drivers.spec``).
+"""What a scene needs to know of a kind of sink, in one object: :class:`SinkSpec`.
+
+It is the sinks' counterpart of ``supramodal.drivers.spec``.
 
 Each sink module (:mod:`supramodal.node.runtime.sinks.text`, ...; a tap a scene names too:
 :mod:`supramodal.node.runtime.taps.lsl_signal`) defines its spec as the module attribute ``SPEC``:
@@ -170,8 +171,10 @@ SOURCE = Key(is_name, "the name of the [[source]] whose samples it sends (defaul
 
 
 def listened(listens: str | list[str] | None, streams: Collection[str]) -> list[str]:
-    """The streams a sink of windows listens to: its ``from`` (None: every one of ``streams``, in
-    their order), each checked to be among ``streams`` (``"fused"`` where the scene has a fusion).
+    """Return the streams a sink of windows listens to: its ``from``, each checked to be among ``streams``.
+
+    ``from`` None: every one of ``streams``, in their order. ``streams`` has ``"fused"`` where the scene
+    has a fusion.
 
     Raises
     ------
@@ -186,11 +189,14 @@ def listened(listens: str | list[str] | None, streams: Collection[str]) -> list[
 
 
 def stream_outputs(outputs: Sequence[str], has_features: bool, has_classes: bool) -> list[str]:
-    """Of a sink's ``outputs``, those one stream has: ``"features"`` where it has feature columns, the others
-    (its decisions, its posteriors) where it has a model's classes (a stream without a model, the fusion)."""
+    """Return, of a sink's ``outputs``, those one stream has.
+
+    ``"features"`` where it has feature columns, the others (its decisions, its posteriors) where it has a
+    model's classes: a stream without a model has only the features, the fusion only the others.
+    """
     return [o for o in outputs if (has_features if o == "features" else has_classes)]
 
 
 def sink_keys(spec: SinkSpec) -> dict[str, Key]:
-    """A sink's keys in a scene: its own, and what it listens to (``from`` or ``source``)."""
+    """Return a sink's keys in a scene: its own, and what it listens to (``from`` or ``source``)."""
     return {**spec.keys, **({"source": SOURCE} if spec.listens == "samples" else {"from": FROM})}

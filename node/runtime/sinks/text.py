@@ -1,5 +1,7 @@
-"""The ``text`` sink: one human-readable line per window and a summary block, to stdout or a file
-(a :class:`~supramodal.node.runtime.sinks.FileSink`, behind its own queue in a scene)."""
+"""The ``text`` sink: one human-readable line per window and a summary block, to stdout or a file.
+
+A :class:`~supramodal.node.runtime.sinks.FileSink`, behind its own queue in a scene.
+"""
 
 from __future__ import annotations
 
@@ -25,8 +27,9 @@ __all__ = ["SPEC", "TextSink", "frames_line"]
 
 
 class TextSink(FileSink):
-    """One human-readable line per window, under a line that names the columns, and a summary block;
-    driver events on stderr, ``supramodal: MESSAGE`` and, for repeats folded in, ``(N more since)``, through
+    """One human-readable line per window, under a line that names the columns, and a summary block.
+
+    Driver events go to stderr, ``supramodal: MESSAGE`` and, for repeats folded in, ``(N more since)``, through
     the package logger (``supramodal.events``, at the event's severity: ``-q`` leaves out the news).
 
     Every line's time is on one basis, said in the header: the window's end (``WindowEvent.end``),
@@ -39,6 +42,7 @@ class TextSink(FileSink):
     _headed = False
 
     def event(self, ev: DriverEvent) -> None:
+        """Log a driver event through ``supramodal.events`` at its severity, with its repeats folded in."""
         more = f" ({ev.count - 1} more since)" if ev.count > 1 else ""
         _LOG.log(EVENT_LEVELS[severity(ev.kind)], f"{ev.message}{more}")
 
@@ -56,6 +60,7 @@ class TextSink(FileSink):
         return line
 
     def emit(self, event: WindowEvent) -> None:
+        """Write a window's line (the header first, before the first window), under the sink's lock."""
         line = self._line(event)
         # Two streams' processing threads may emit at once (a sink called on the graph's own threads): the
         # lock makes the header, the file's lazy open and each line one at a time (unlocked, both threads
@@ -67,7 +72,7 @@ class TextSink(FileSink):
             self._fh.write(line + "\n")
 
     def _line(self, event: WindowEvent) -> str:
-        """The window's line."""
+        """Return the window's line."""
         head = f"{event.end:9.3f} s"                    # common time, for every stream (TIME_BASIS)
         if event.stream != MAIN_STREAM:                 # a graph of several streams: say whose window
             head += f"  {event.stream:<8}"
@@ -96,6 +101,11 @@ class TextSink(FileSink):
         return line
 
     def summary(self, s: RunSummary) -> None:
+        """Write the summary block: one stream's counts, or each stream's, the clocks' and the fusion's.
+
+        A relay's says only the seconds sent on. Then the taps' counts, the driver events', what the queued
+        sinks dropped or raised, and what stopped the run.
+        """
         lines = ["", "summary"]
         one = s.one_stream
         if one is not None:
@@ -166,8 +176,10 @@ def _stream_lines(s: StreamSummary, wall_seconds: float | None = None) -> list[s
 
 
 def frames_line(f: Mapping[str, int]) -> str:
-    """The summary line of frame fates: ``stream = delivered + filled + dropped``, with where the
-    dropped ones went (docs/node.md, "Every frame has one fate")."""
+    """Return the summary line of frame fates: ``stream = delivered + filled + dropped``.
+
+    With where the dropped ones went (docs/node.md, "Every frame has one fate").
+    """
     total = f["delivered"] + f["filled"] + f["dropped"]
     line = (f"  frames             {f['stream']} = delivered {f['delivered']} + filled {f['filled']} + "
             f"dropped {f['dropped']} (in ring {f['dropped_in_ring']}, by driver {f['dropped_by_driver']})")

@@ -133,7 +133,7 @@ def _json(obj: Any) -> str:
 
 
 def _plain(o: Any) -> Any:
-    """numpy scalars and arrays, sets: as JSON has them."""
+    """Convert numpy scalars and arrays, and sets, to what JSON has for them."""
     if isinstance(o, np.ndarray):
         return o.tolist()
     if isinstance(o, (np.floating, np.integer, np.bool_)):
@@ -162,9 +162,12 @@ def _finite(x: float, digits: int) -> float | None:
 
 
 def window_message(event: WindowEvent) -> dict[str, Any]:
-    """A window event as the page gets it: :meth:`WindowEvent.as_dict` (the JSONL sink's object,
-    unchanged in meaning) and what the page draws besides: ``posteriors`` with their ``classes``,
-    ``features`` per channel (rounded, at most :data:`MAX_CHANNELS`), ``in_contact``, ``flags``."""
+    """Return a window event as the page gets it.
+
+    That is :meth:`WindowEvent.as_dict` (the JSONL sink's object, unchanged in meaning) and what the page
+    draws besides: ``posteriors`` with their ``classes``, ``features`` per channel (rounded, at most
+    :data:`MAX_CHANNELS`), ``in_contact``, ``flags``.
+    """
     out = event.as_dict()
     out["type"] = "window"
     if event.posteriors is not None:
@@ -181,11 +184,13 @@ def window_message(event: WindowEvent) -> dict[str, Any]:
 
 
 def event_message(ev: DriverEvent, wall_at_zero: float | None = None) -> dict[str, Any]:
-    """A driver event as the page gets it (a banner and a line in its list): :meth:`DriverEvent.as_dict`,
-    its ``severity`` (:func:`~supramodal.node.runtime.events.severity`) and, given ``wall_at_zero`` (the
-    host's ``time.time()`` at common time 0), ``common_time``: when it happened on the node's common
-    time, seconds, as the windows' times are (the event's ``time`` is the host's wall clock, seconds since
-    1970)."""
+    """Return a driver event as the page gets it (a banner and a line in its list).
+
+    That is :meth:`DriverEvent.as_dict`, its ``severity`` (:func:`~supramodal.node.runtime.events.severity`) and,
+    given ``wall_at_zero`` (the host's ``time.time()`` at common time 0), ``common_time``: when it happened on the
+    node's common time, seconds, as the windows' times are (the event's ``time`` is the host's wall clock, seconds
+    since 1970).
+    """
     out = {"type": "event", **ev.as_dict(), "severity": severity(ev.kind)}
     if wall_at_zero is not None:
         out["common_time"] = _finite(ev.time - wall_at_zero, 3)
@@ -225,12 +230,15 @@ class Hub:
 
     @staticmethod
     def encode(message: dict[str, Any]) -> bytes:
+        """Return ``message`` as one server-sent event: ``data: JSON`` and a blank line, UTF-8."""
         return f"data: {_json(message)}\n\n".encode()
 
     def publish(self, message: dict[str, Any], keep: str = "history") -> None:
-        """Send ``message`` to every open page; ``keep``: ``"history"`` (a window or an event, kept
-        for a page opened later among the last :data:`HISTORY`), ``"latest"`` (only the last of its
-        ``type`` is kept) or ``"none"``."""
+        """Send ``message`` to every open page, and keep it for pages opened later as ``keep`` says.
+
+        ``keep``: ``"history"`` (a window or an event, kept for a page opened later among the last :data:`HISTORY`),
+        ``"latest"`` (only the last of its ``type`` is kept) or ``"none"``.
+        """
         data = self.encode(message)
         with self._lock:
             if keep == "history":
@@ -257,8 +265,11 @@ class Hub:
             c.ready.notify()
 
     def open(self) -> _Client:
-        """A new page: its queue starts with the latest hello and health and the history (the
-        newest :attr:`capacity` of them)."""
+        """Open a new page's queue and return it.
+
+        Its queue starts with the latest hello, health and summary and the history (the newest
+        :attr:`capacity` of them).
+        """
         c = _Client(self.capacity)
         with self._lock:
             first = [self._latest[k] for k in ("hello", "health", "summary") if k in self._latest]
@@ -268,9 +279,11 @@ class Hub:
         return c
 
     def leave(self, c: _Client, given_up: bool = False, in_flight: int = 0) -> None:
-        """A page's connection ends. ``given_up``: it failed (the page stalled or went away); what it had
-        not taken (its queue, and ``in_flight``, a message being written) is counted as dropped, and the
-        page as given up."""
+        """End a page's connection.
+
+        ``given_up``: it failed (the page stalled or went away); what it had not taken (its queue, and
+        ``in_flight``, a message being written) is counted as dropped, and the page as given up.
+        """
         with c.ready:
             left = len(c.items) + in_flight
         with self._lock:
@@ -280,7 +293,7 @@ class Hub:
                 self.given_up += 1
 
     def take(self, c: _Client, timeout: float) -> bytes | None:
-        """The page's next message, or None after ``timeout`` seconds or once closed."""
+        """Return the page's next message, or None after ``timeout`` seconds or once closed."""
         with c.ready:
             if not c.items and not self.closed:
                 c.ready.wait(timeout)
@@ -296,6 +309,7 @@ class Hub:
                 c.ready.notify_all()
 
     def clients(self) -> int:
+        """Return the number of pages connected now."""
         with self._lock:
             return len(self._clients)
 
@@ -308,8 +322,10 @@ class _Server(ThreadingHTTPServer):
     view: ViewSink
 
     def handle_error(self, request: Any, client_address: Any) -> None:
-        """A page that went away mid-request (a reset, a closed tab) is no error of the node's; anything
-        else is said in one line, never as a traceback on the node's stderr (socketserver's default)."""
+        """Say a request's error in one line, never as a traceback on the node's stderr (socketserver's default).
+
+        A page that went away mid-request (a reset, a closed tab) is no error of the node's, and is not said.
+        """
         exc = sys.exc_info()[1]
         if isinstance(exc, (ConnectionError, TimeoutError)):
             return
@@ -531,8 +547,11 @@ class ViewSink(Sink):
     # -- what the page asks --
 
     def hello(self) -> dict[str, Any]:
-        """What the page needs first: the mode, the streams and their classes, their channels (the
-        feature bars' labels), the mark labels, whether marks and controls are open."""
+        """Return what the page needs first, the ``hello`` message.
+
+        The mode, the streams and their classes, their channels (the feature bars' labels), the mark
+        labels, whether marks and controls are open.
+        """
         with self._lock:
             classes = {k: list(v) for k, v in self._classes.items()}
             streams = list(self._streams)
@@ -541,6 +560,10 @@ class ViewSink(Sink):
                 "labels": labels, "marks": self.on_mark is not None, "control": self.control is not None}
 
     def actions(self) -> dict[str, Callable[[dict[str, Any]], dict[str, Any]]]:
+        """Return the changes a page may POST, by path: ``/mark`` while marks are taken, ``/control`` with a control.
+
+        Each handler takes the request's JSON body and returns the answer's. None open: a read-only view.
+        """
         out: dict[str, Callable[[dict[str, Any]], dict[str, Any]]] = {}
         if self.on_mark is not None:
             out["/mark"] = self._mark
@@ -549,9 +572,12 @@ class ViewSink(Sink):
         return out
 
     def host_ok(self, host: str | None) -> bool:
-        """A request (any: reads too) names this view as its Host: on a view not ``remote``, one of the
-        names it serves on (a page of another site whose name resolves to this machine, DNS rebinding,
-        names its own, and may not read the stream). A remote view answers any name it is reached by."""
+        """Return whether a request (any: reads too) names this view as its Host.
+
+        On a view not ``remote``, one of the names it serves on (a page of another site whose name resolves to this
+        machine, DNS rebinding, names its own, and may not read the stream). A remote view answers any name it is
+        reached by.
+        """
         if host is None:
             return False
         if self.remote:
@@ -560,9 +586,11 @@ class ViewSink(Sink):
         return name in self._names
 
     def origin_ok(self, origin: str | None, host: str | None) -> bool:
-        """A change comes from the view's own page: its Origin is the view's, and so is its Host
-        (a page of another site that resolves its name to this machine has another Host). A remote
-        view's page is the one served as the Host it was reached by (any address of the machine)."""
+        """Return whether a change comes from the view's own page: its Origin is the view's, and so is its Host.
+
+        A page of another site that resolves its name to this machine has another Host. A remote view's page is the
+        one served as the Host it was reached by (any address of the machine).
+        """
         if self.remote:
             return host is not None and origin == f"http://{host}"
         return origin in self._origins and host is not None and f"http://{host}" in self._origins
@@ -595,8 +623,11 @@ class ViewSink(Sink):
             self.hub.publish(self.hello(), keep="latest")
 
     def start(self, epoch: float) -> None:
-        """Serve, and put the driver events on common time from now on: ``epoch``, common time 0 on
-        ``time.monotonic()``, is this far back on the wall clock the events are stamped with."""
+        """Serve, and put the driver events on common time from now on.
+
+        ``epoch``, common time 0 on ``time.monotonic()``, is this far back on the wall clock the events are stamped
+        with.
+        """
         self._wall_at_zero = time.time() - (time.monotonic() - epoch)
         self.prepare()
         self._spawn("view-health", self._health_loop)
@@ -620,10 +651,14 @@ class ViewSink(Sink):
                 pass
 
     def emit(self, event: WindowEvent) -> None:
+        """Send a window to every page, as :func:`window_message` makes it (see :meth:`emit_message`)."""
         self.emit_message(window_message(event))
 
     def emit_message(self, message: dict[str, Any]) -> None:
-        """A window as :func:`window_message` made it (a replay plays those it kept)."""
+        """Send a window as :func:`window_message` made it (a replay plays those it kept).
+
+        A new stream, or a stream's first classes, sends the page a new hello first.
+        """
         stream = message["stream"]
         news = False                        # the page's hello changes: a stream, or classes (the mark labels)
         if stream not in self._classes and message.get("classes"):
@@ -639,9 +674,11 @@ class ViewSink(Sink):
         self.hub.publish(message)
 
     def event(self, ev: DriverEvent) -> None:
+        """Send a driver event to every page, as :func:`event_message` makes it (kept in the history)."""
         self.hub.publish(event_message(ev, self._wall_at_zero))
 
     def summary(self, summary: RunSummary) -> None:
+        """Send the last health and the run's summary to every page (None where JSON has no form for it)."""
         self.publish_health()
         try:
             self.hub.publish({"type": "summary", "summary": _clean(dict(summary))}, keep="latest")
@@ -649,6 +686,7 @@ class ViewSink(Sink):
             self.hub.publish({"type": "summary", "summary": None}, keep="latest")
 
     def stats(self) -> dict[str, Any]:
+        """Return the view's address, the pages opened and given up, what they dropped and the marks taken."""
         return {"url": self.url, "pages": self.hub.opened, "pages_given_up": self.hub.given_up,
                 "client_dropped": self.hub.dropped, "marks": len(self.marks)}
 
@@ -669,13 +707,16 @@ class ViewSink(Sink):
 # -- a graph's views ----------------------------------------------------------------------------------
 
 def view_sinks(graph: Any) -> list[ViewSink]:
-    """The graph's view sinks (each behind its queue)."""
+    """Return the graph's view sinks (each behind its queue)."""
     return [s.sink for s in graph.sinks if isinstance(s, QueuedSink) and isinstance(s.sink, ViewSink)]
 
 
 def attach(graph: Any, on_mark: Callable[[str | None], Any] | None = None) -> list[ViewSink]:
-    """The graph's view sinks, given the marks' handler while recording (``on_mark``). Their counters
-    (health) the graph gives every sink itself (:meth:`Sink.watch <supramodal.node.runtime.sinks.Sink.watch>`)."""
+    """Return the graph's view sinks, given the marks' handler while recording (``on_mark``).
+
+    Their counters (health) the graph gives every sink itself
+    (:meth:`Sink.watch <supramodal.node.runtime.sinks.Sink.watch>`).
+    """
     views = view_sinks(graph)
     for v in views:
         if on_mark is not None:
@@ -686,8 +727,10 @@ def attach(graph: Any, on_mark: Callable[[str | None], Any] | None = None) -> li
 # -- as a scene names it -------------------------------------------------------------------------------
 
 def channel_labels(bank: Any) -> dict[str, list[Any]]:
-    """A bank's channels as the page labels a stream's feature bars: ``{"names", "centre_hz"}``, in
-    channel order (the order of every feature's values in a window); :class:`ViewSink` makes them JSON."""
+    """Return a bank's channels as the page labels a stream's feature bars: ``{"names", "centre_hz"}``.
+
+    In channel order (the order of every feature's values in a window); :class:`ViewSink` makes them JSON.
+    """
     return {"names": list(bank.names), "centre_hz": list(bank.cf)}
 
 

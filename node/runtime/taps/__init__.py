@@ -1,5 +1,4 @@
-"""Taps: readers of a source's raw frames, each on a thread of its own (the recorder, the LSL
-signal outlet).
+"""Taps: readers of a source's raw frames, each on a thread of its own (the recorder, the LSL signal outlet).
 
 A tap sees a source's samples before any processing, with their ``filled`` marks, through a
 :class:`~supramodal.node.runtime.sources.Feed` of the source's ring. The graph
@@ -47,26 +46,36 @@ class Tap(abc.ABC):
     track: bool = True
 
     def prepare(self) -> None:
-        """Before the graph's start, on the caller's thread; may wait (e.g. for a consumer).
-        Default: nothing."""
+        """Prepare before the graph's start, on the caller's thread; may wait (e.g. for a consumer).
+
+        Default: nothing.
+        """
 
     def start(self, source: Source, epoch: float) -> None:
-        """The source this tap reads (:class:`~supramodal.node.runtime.sources.Source`) and the graph's
-        start on ``time.monotonic()`` (common time 0). The caller's thread, before any frame and
-        before the tap's thread starts. Default: nothing."""
+        """Take the source this tap reads and the graph's start on ``time.monotonic()`` (common time 0).
+
+        ``source``: a :class:`~supramodal.node.runtime.sources.Source`. The caller's thread, before any
+        frame and before the tap's thread starts. Default: nothing.
+        """
 
     @abc.abstractmethod
     def run(self, feed: Feed) -> None:
-        """Read ``feed`` (a :class:`~supramodal.node.runtime.sources.Feed`: ``feed.reader.read`` until it
-        raises :class:`~supramodal.node.runtime.ringbuffer.RingClosed`). The tap's thread; an exception
-        stops the graph, which raises it from :meth:`Graph.run`."""
+        """Read ``feed`` (a :class:`~supramodal.node.runtime.sources.Feed`) until its ring closes.
+
+        That is, ``feed.reader.read`` until it raises :class:`~supramodal.node.runtime.ringbuffer.RingClosed`.
+        The tap's thread; an exception stops the graph, which raises it from :meth:`Graph.run`.
+        """
 
     def summary(self) -> dict[str, Any]:
-        """The tap's own counts, for the graph's summary (``taps``; the graph adds ``frames``).
-        The caller's thread, after :meth:`close`. Default: ``{}``."""
+        """Return the tap's own counts, for the graph's summary (``taps``; the graph adds ``frames``).
+
+        The caller's thread, after :meth:`close`. Default: ``{}``.
+        """
         return {}
 
     def close(self) -> None:
-        """Release what the tap holds (an outlet, a file). Called after the tap's thread has
-        ended, and again when the graph's run ends, whatever happened: a second call is a no-op.
-        The caller's thread. Default: nothing."""
+        """Release what the tap holds (an outlet, a file).
+
+        Called after the tap's thread has ended, and again when the graph's run ends, whatever happened: a
+        second call is a no-op. The caller's thread. Default: nothing.
+        """

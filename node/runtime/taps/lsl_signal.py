@@ -1,5 +1,6 @@
-"""A source's samples out as a Lab Streaming Layer stream, so that another machine records or
-classifies them: the robot's computer sends the whisker array, a workstation runs the model.
+"""A source's samples out as a Lab Streaming Layer stream, so that another machine records or classifies them.
+
+E.g. the robot's computer sends the whisker array, a workstation runs the model.
 
 Needs the optional extra ``lsl`` (:func:`supramodal.drivers.lsl.import_pylsl` says what to
 install when it is missing). A scene asks for it with ``[[sink]] type = "lsl-signal"``; a scene
@@ -180,21 +181,28 @@ class LSLSignalOutlet(Tap):
     # -- the graph's calls --------------------------------------------------------------------
 
     def prepare(self) -> None:
-        """Wait up to ``wait_for_consumer`` seconds for a consumer. The caller's thread, before
-        the graph's start (a graph prepares its taps in turn: waits without a consumer add up)."""
+        """Wait up to ``wait_for_consumer`` seconds for a consumer.
+
+        The caller's thread, before the graph's start (a graph prepares its taps in turn: waits without
+        a consumer add up).
+        """
         if self.wait_for_consumer > 0:
             assert self._outlet is not None, "prepare before close (the graph's order of calls)"
             self.waited_s, (self.consumer,) = wait_for_consumers([self._outlet], self.wait_for_consumer)
 
     def start(self, source: Source, epoch: float) -> None:
-        """The source this outlet taps and the graph's start (``time.monotonic()``): common
-        time 0. The caller's thread, before the tap's thread starts."""
+        """Take the source this outlet taps and the graph's start (``time.monotonic()``): common time 0.
+
+        The caller's thread, before the tap's thread starts.
+        """
         self._clock = LSLClock(self._pylsl, epoch)
         self._source = source
 
     def run(self, feed: Feed) -> None:
-        """Read ``feed`` (a :class:`~supramodal.node.runtime.sources.Feed` of the source's ring) until
-        the ring closes, pushing each chunk as it completes. The tap's thread."""
+        """Read ``feed`` until the ring closes, pushing each chunk as it completes.
+
+        ``feed``: a :class:`~supramodal.node.runtime.sources.Feed` of the source's ring. The tap's thread.
+        """
         reader, expected = feed.reader, 0
         self._feed = feed
         heard = time.monotonic()
@@ -225,7 +233,7 @@ class LSLSignalOutlet(Tap):
         self._flush()
 
     def summary(self) -> dict[str, Any]:
-        """What the outlet sent (the graph adds every frame's fate as its reader saw it)."""
+        """Return what the outlet sent (the graph adds every frame's fate as its reader saw it)."""
         return {"outlet": self.name, "source_id": self.source_id, "chunks": self.chunks,
                 "samples_sent": self.samples_sent, "holes": self.holes, "waited_s": self.waited_s,
                 "consumer": self.consumer}
@@ -239,17 +247,21 @@ class LSLSignalOutlet(Tap):
     # -- chunks -------------------------------------------------------------------------------
 
     def _take_restarts(self, marks: collections.deque[tuple[int, str]], end: int) -> None:
-        """Keep the driver's restart marks before stream index ``end`` (the source thread notes
-        a block's marks before it writes the block, so all of them are there)."""
+        """Keep the driver's restart marks before stream index ``end``.
+
+        The source thread notes a block's marks before it writes the block, so all of them are there.
+        """
         while marks and marks[0][0] < end:
             index, kind = marks.popleft()
             if kind == "restart":
                 self._restarts.append(index)
 
     def _add(self, frames: np.ndarray, index: int) -> None:
-        """Frames from stream ``index`` on, measured and contiguous: pushed at each cut, and
-        before a restart (liblsl dates a chunk's samples back from its last one at the nominal
-        rate, which must not reach across a jump in the source's time)."""
+        """Add frames from stream ``index`` on, measured and contiguous: pushed at each cut, and before a restart.
+
+        Before a restart, because liblsl dates a chunk's samples back from its last one at the nominal
+        rate, which must not reach across a jump in the source's time.
+        """
         if self._pending and index != self._pending_end:
             self._flush(hole=True)
         C, n, i = self.frames_per_chunk, frames.shape[0], 0
@@ -280,8 +292,10 @@ class LSLSignalOutlet(Tap):
         self.holes += hole
 
     def _stamp(self, index: int) -> float:
-        """Sample ``index`` on common time, by the line of the block that brought it (the one a
-        window ending there is dated by)."""
+        """Return sample ``index`` on common time, by the line of the block that brought it.
+
+        That line is the one a window ending there is dated by.
+        """
         feed, source = self._feed, self._source
         assert feed is not None and source is not None, "start and run set them before any frame"
         block = feed.block_of(index)
@@ -292,8 +306,10 @@ class LSLSignalOutlet(Tap):
 # -- as a scene names it ---------------------------------------------------------------------------
 
 def signal_type(source: SourcePlan) -> str:
-    """What ``source`` is, as an LSL content type: by the banks that read it, else by its driver's spec
-    (:attr:`~supramodal.node.runtime.sinks.spec.SourcePlan.signal_type`)."""
+    """Return what ``source`` is, as an LSL content type: by the banks that read it, else by its driver's spec.
+
+    The driver's spec says it in :attr:`~supramodal.node.runtime.sinks.spec.SourcePlan.signal_type`.
+    """
     kinds = {bank.kind for bank, _ in source.read_by}
     if kinds == {"whisker"}:
         return "Whiskers"

@@ -124,20 +124,25 @@ class SessionRecorder(Tap):
     def attach(self, rate: float, channels: int, position: Callable[[], int],
                labels: Iterable[tuple[float, float, str]] = (), clock_rate: float | None = None,
                label_period: float | None = None) -> None:
-        """Called by the node: the stream's rate, channels, a callable giving the current frame,
-        the driver's own labels ``(start_s, end_s, name)``, kept in the session (repeating every
-        ``label_period`` seconds for a looped source), and the nominal rate of the source's clock
-        model (samples per second of common time; default ``rate``)."""
+        """Take what the recorder needs of the stream (called by the node).
+
+        The stream's rate, channels, a callable giving the current frame, the driver's own labels ``(start_s,
+        end_s, name)``, kept in the session (repeating every ``label_period`` seconds for a looped source),
+        and the nominal rate of the source's clock model (samples per second of common time; default
+        ``rate``).
+        """
         self.rate, self.channels, self._position = float(rate), int(channels), position
         self.clock_rate = self.rate if clock_rate is None else float(clock_rate)
         self._driver_labels = [(float(a), float(b), str(n)) for a, b, n in labels]
         self._label_period = label_period
 
     def start(self, source: Source, epoch: float) -> None:
-        """The source this recorder records (:class:`~supramodal.node.runtime.sources.Source`), before any
-        frame: :meth:`attach` to it (its rate, channels, position, truth labels and clock rate) and
-        become its ``recorder``, which the source thread tells each block's marks and time. The
-        caller's thread. ``epoch`` is not needed: the source's times are on common time already."""
+        """Take the source this recorder records (:class:`~supramodal.node.runtime.sources.Source`), before any frame.
+
+        :meth:`attach` to it (its rate, channels, position, truth labels and clock rate) and become its
+        ``recorder``, which the source thread tells each block's marks and time. The caller's thread.
+        ``epoch`` is not needed: the source's times are on common time already.
+        """
         labels = source.labels
         self.attach(source.rate, source.driver.channels, lambda: source.ring.written,
                     labels=labels.ranges if labels is not None else (), clock_rate=source.time_rate,
@@ -146,46 +151,59 @@ class SessionRecorder(Tap):
         self._source = source
 
     def newest_time(self) -> float:
-        """Common time of the newest sample the source has delivered, seconds (-inf before the
-        first): where a label typed now starts. Any thread."""
+        """Return the common time of the newest sample the source has delivered, seconds (-inf before the first).
+
+        That is where a label typed now starts. Any thread.
+        """
         source = self._source
         if source is None or not source.ring.written:
             return -math.inf
         return float(source.time_of(source.ring.written - 1))
 
     def mark_at(self, seconds: float, label: str | None) -> None:
-        """Start a label at ``seconds`` of the node's common time (``None`` ends the current one);
-        mapped to this source's frames through its recorded block times when the session is
-        written (:func:`supramodal.node.runtime.clock.frames_at`). Needs ``keep_arrivals``. Thread-safe."""
+        """Start a label at ``seconds`` of the node's common time (``None`` ends the current one).
+
+        It is mapped to this source's frames through its recorded block times when the session is written
+        (:func:`supramodal.node.runtime.clock.frames_at`). Needs ``keep_arrivals``. Thread-safe.
+        """
         if not self.keep_arrivals:
             raise InputError("a mark on common time needs the blocks' times: make the recorder with keep_arrivals")
         with self._lock:
             self._timed_marks.append((float(seconds), label or None))
 
     def mark(self, label: str | None) -> float | None:
-        """Start a label at the current stream position; ``None`` ends the current one. Returns its time,
-        seconds of the stream (None before the recorder is attached: no position yet). Thread-safe."""
+        """Start a label at the current stream position; ``None`` ends the current one.
+
+        Returns its time, seconds of the stream (None before the recorder is attached: no position yet).
+        Thread-safe.
+        """
         with self._lock:
             at = int(self._position())
             self._marks.append((at, label or None))
         return None if self.rate is None else at / self.rate
 
     def note(self, index: int, kind: str) -> None:
-        """Keep a driver's mark (``"restart"`` or ``"overrun"``) at stream ``index`` in the session, so
-        that its replay flags the same windows. Called by the node's driver thread; thread-safe."""
+        """Keep a driver's mark (``"restart"`` or ``"overrun"``) at stream ``index`` in the session.
+
+        So that its replay flags the same windows. Called by the node's driver thread; thread-safe.
+        """
         with self._lock:
             self._board_marks.append((int(index), kind))
 
     def arrival(self, end: int, seconds: float) -> None:
-        """A block ending at stream frame ``end`` was complete at ``seconds`` of the node's common
-        time. Called by the source thread, in stream order; kept only with ``keep_arrivals``."""
+        """Note that a block ending at stream frame ``end`` was complete at ``seconds`` of the node's common time.
+
+        Called by the source thread, in stream order; kept only with ``keep_arrivals``.
+        """
         if self.keep_arrivals:
             self._arrival_frames.append(int(end))
             self._arrival_seconds.append(float(seconds))
 
     def run(self, feed: Feed | Reader) -> None:
-        """Drain ``feed`` (a :class:`~supramodal.node.runtime.sources.Feed`, or a ring reader itself) until
-        the ring closes; then write the session (:attr:`paths`). The recorder's thread."""
+        """Drain ``feed`` until the ring closes; then write the session (:attr:`paths`).
+
+        ``feed``: a :class:`~supramodal.node.runtime.sources.Feed`, or a ring reader itself. The recorder's thread.
+        """
         reader = feed.reader if isinstance(feed, Feed) else feed
         try:
             expected = 0
@@ -224,8 +242,10 @@ class SessionRecorder(Tap):
             self._filled += [(a + s, a + e) for s, e in flag_runs(filled)]
 
     def _labels(self, rate: float, clock_rate: float) -> list[tuple[float, float, str]]:
-        """The session's labels, in seconds of a stream of ``rate`` Hz (``clock_rate``: the source's
-        clock model's nominal rate, for the marks on common time)."""
+        """Return the session's labels, in seconds of a stream of ``rate`` Hz.
+
+        ``clock_rate``: the source's clock model's nominal rate, for the marks on common time.
+        """
         if self._driver_labels and not self.replace:
             # The driver's truth on every pass, clipped to what was recorded (a recording stopped early).
             end = self._frames / rate
@@ -244,8 +264,10 @@ class SessionRecorder(Tap):
         return out
 
     def _timed_frames(self, clock_rate: float) -> list[tuple[int, str | None]]:
-        """The marks on common time as frame marks, through the clock fed this session's block
-        times (all of them, before any thinning). Called with the lock held."""
+        """Return the marks on common time as frame marks, through the clock fed this session's block times.
+
+        All of the block times, before any thinning. Called with the lock held.
+        """
         if not self._timed_marks or not len(self._arrival_frames):
             return []
         at = frames_at((self._arrival_frames, self._arrival_seconds, clock_rate), [t for t, _ in self._timed_marks],
@@ -273,8 +295,10 @@ class SessionRecorder(Tap):
         return paths
 
     def _arrivals(self, clock_rate: float) -> tuple[np.ndarray, np.ndarray, float] | None:
-        """The kept arrivals within what was recorded, thinned to :data:`ARRIVALS_BUDGET`, with the
-        clock model's nominal rate ``clock_rate``."""
+        """Return the kept arrivals within what was recorded, thinned to :data:`ARRIVALS_BUDGET`.
+
+        With the clock model's nominal rate ``clock_rate``.
+        """
         if not self.keep_arrivals or not len(self._arrival_frames):
             return None
         frames = np.frombuffer(self._arrival_frames, dtype=np.int64)
