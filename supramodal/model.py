@@ -162,13 +162,14 @@ class GainAugment:
     Why: each touch of a surface has gains of its own; a network that met every texture on one or two
     touches learns their gains, and its calibration, fitted on held-out touches, says less than a new
     touch gives. On the two-sense world's new touch (``python -m supramodal.experiments.newtouch --augment``,
-    5 sets, 2026-11-30) the late fusion's ECE went from 0.07-0.16 to 0.02-0.07 and its log loss from
+    5 sets, 2026-11-30) the late fusion's ECE went from 0.07-0.16 to 0.03-0.07 and its log loss from
     0.30-0.68 to 0.14-0.25, each sense's accuracy unchanged on average; the networks cost ``1 + copies``
-    times the CPU. A scene asks for it in ``[model]`` (``augment_copies``, ...), ``supramodal train`` with
-    ``--augment-gains``; the model file keeps it (``training["augment"]``, :attr:`TextureModel.augment`),
-    and copies of a model's configuration (:func:`supramodal.fused_model.out_of_fold_logits`, ``evaluate
-    --cv``) are augmented alike. ``spread = 0`` gives the model without it, to the bit (iRPROP- follows the
-    gradients' signs, which exact copies do not change)."""
+    times the CPU (a set's training, 4 times). A scene asks for it in ``[model]`` (``augment_copies``,
+    ...), ``supramodal train`` with ``--augment-gains``; the model file keeps it (``training["augment"]``,
+    :attr:`TextureModel.augment`), and copies of a model's configuration
+    (:func:`supramodal.fused_model.out_of_fold_logits`, ``evaluate --cv``) are augmented alike.
+    ``spread = 0`` gives the model without it, to the bit (iRPROP- follows the gradients' signs, which
+    exact copies do not change)."""
 
     copies: int = 4
     spread: float = DEFAULT_AUGMENT_SPREAD
