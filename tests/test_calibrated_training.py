@@ -362,6 +362,23 @@ def test_train_takes_gain_augmentation_to_every_network_and_says_it(recordings, 
     assert aug.calibration.fitted_on["windows"] == plain.calibration.fitted_on["windows"] == 180
 
 
+def test_evaluate_cv_trains_each_fold_with_the_models_gain_augmentation(recordings, trained, monkeypatch):
+    """`evaluate MODEL --cv K` re-trains the model's configuration: its gain augmentation too (issue 34)."""
+    import dataclasses
+
+    from supramodal.model import GainAugment
+    from supramodal.node.workflows import training
+
+    asked = GainAugment(1, 0.05, True, 0)
+    plain = TextureModel.load(trained)
+    model = dataclasses.replace(plain, training={**plain.training, "augment": asked.to_dict()})
+    seen, real = [], training._train
+    monkeypatch.setattr(training, "_train", lambda *a, **k: seen.append(k.get("augment")) or real(*a, **k))
+    training.cross_validate_model(model, recordings / "all.csv", k=2)
+    training.cross_validate_model(plain, recordings / "all.csv", k=2)
+    assert seen == [asked, asked, None, None]
+
+
 @pytest.mark.slow   # a long run: a calibrated cross-validation
 def test_cross_validation_reports_the_calibration_of_every_test_fold(recordings, tmp_path, capsys):
     out = tmp_path / "m.npz"
