@@ -1210,11 +1210,12 @@ def calibration_folds(labels, groups, k: int = DEFAULT_CALIBRATION_FOLDS, seed: 
 
 def fit_network_calibration(x, labels, n_classes: int, groups=None, k: int = DEFAULT_CALIBRATION_FOLDS,
                             hidden: int | None = None, epochs: int | None = None, seed: int = 0,
-                            progress=None, jobs: int = 1) -> tuple[Calibration, Novelty, OutOfFold]:
+                            progress=None, jobs: int = 1, augment=None) -> tuple[Calibration, Novelty, OutOfFold]:
     """Fit the calibration and novelty of a network as :func:`supramodal.mlp.train_mlp` would train it.
 
     They are fitted from out-of-fold windows; the network would train on the raw (unstandardised)
-    input rows ``x`` (n, inputs).
+    input rows ``x`` (n, inputs), augmented by ``augment`` where given (each fold network alike, the
+    held-out rows never).
 
     Each of ``k`` folds (:func:`calibration_folds`) trains a network with the same hidden units,
     epochs and seed on the other folds (standardised by their own mean and scale) and gives the
@@ -1231,6 +1232,11 @@ def fit_network_calibration(x, labels, n_classes: int, groups=None, k: int = DEF
     jobs : int
         Worker processes for the fold networks (:func:`supramodal.mlp.train_networks`; the result
         is the same for any).
+    augment : callable, optional
+        Augmentation of each fold network's training rows, as :func:`fold_tasks` takes it (e.g.
+        :meth:`supramodal.model.GainAugment.for_inputs`, whose ``factor`` says how many rows it makes
+        of one): the network this calibrates should be trained with it too. The held-out rows, the
+        calibration and the novelty see the original rows only. Default None: none.
 
     Returns
     -------
@@ -1248,8 +1254,9 @@ def fit_network_calibration(x, labels, n_classes: int, groups=None, k: int = DEF
     folds, by = calibration_folds(y, groups, k, seed)
     held_out = HeldOutLogits(y, folds, k, n_classes, progress)
     epochs = DEFAULT_EPOCHS if epochs is None else epochs
-    train_networks(fold_tasks(x, y, n_classes, folds, k, hidden, epochs, seed), jobs, done=held_out.told,
-                   work=fold_work(len(x), x.shape[1], n_classes, folds, k, hidden, epochs))
+    train_networks(fold_tasks(x, y, n_classes, folds, k, hidden, epochs, seed, augment), jobs, done=held_out.told,
+                   work=fold_work(len(x), x.shape[1], n_classes, folds, k, hidden, epochs)
+                   * getattr(augment, "factor", 1))
     return calibration_of_held_out(x, y, n_classes, groups, folds, by, k, held_out.logits)
 
 

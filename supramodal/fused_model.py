@@ -294,9 +294,9 @@ def out_of_fold_logits(model: TextureModel, values, labels, classes, folds, prog
     """Each window's logits from a network that never trained on its fold.
 
     Per fold, a copy of ``model``'s configuration (bank, features, window, peak settings, hidden
-    units, epochs and seed, as :func:`supramodal.node.workflows.training.cross_validate_model` copies it) is
-    trained on the windows of the other folds, without a calibration of its own, and scores the
-    fold's windows.
+    units, epochs, seed and gain augmentation, as :func:`supramodal.node.workflows.training.cross_validate_model`
+    copies it) is trained on the windows of the other folds, without a calibration of its own, and scores
+    the fold's windows (never augmented).
 
     Parameters
     ----------
@@ -339,7 +339,7 @@ def out_of_fold_logits(model: TextureModel, values, labels, classes, folds, prog
         test = folds == f
         copy = TextureModel.train(values[~test], y[~test], classes, model.bank, model.features, model.window_samples,
                                   model.peak_mode, epochs=epochs, seed=seed, hidden=model.mlp.shape[1],
-                                  peak_threshold=model.peak_threshold, calibration_folds=0)
+                                  peak_threshold=model.peak_threshold, calibration_folds=0, augment=model.augment)
         z[test] = copy.logits(values[test])
         if progress:
             progress(f"fold {i + 1}/{len(parts)}: {int(test.sum())} held-out windows, "

@@ -136,6 +136,17 @@ def _bank_kind_problem(bank: Bank) -> str | None:
 #: Features that scale linearly with a channel's gain (a touch's gain multiplies every peak's
 #: amplitude A_k, not its frequency f_k).
 GAIN_LINEAR_FEATURES = ("Af", "A")
+#: How a :class:`GainAugment` draws its gains, as scenes and ``train --augment-gains`` name it: one per
+#: channel (a whisker array: each vibrissa its own gain) or one for all channels (a microphone: one level).
+GAIN_MODES = ("per-channel", "shared")
+#: Most copies of each training window a :class:`GainAugment` may make (its networks cost ``1 + copies``
+#: times the CPU and the memory of their training rows).
+MAX_AUGMENT_COPIES = 32
+#: Largest spread (standard deviation of the log gains) of a :class:`GainAugment`: ``exp(N(0, 1))``
+#: already gains of 0.37..2.7 within one standard deviation, past any touch's.
+MAX_AUGMENT_SPREAD = 1.0
+#: A :class:`GainAugment`'s default spread (the two-sense world's per-touch spread, ``WHISKER_TOUCH_SPREAD``).
+DEFAULT_AUGMENT_SPREAD = 0.03
 
 
 @dataclass(frozen=True)
@@ -145,47 +156,115 @@ class GainAugment:
     ``copies`` more copies of every training window, each with its own gains ``exp(N(0, spread))``, one
     per channel (``per_channel``: a vibrissa's own gain) or one for all channels (a microphone's level),
     multiplying the columns of the gain-linear features (:data:`GAIN_LINEAR_FEATURES`); ``f`` is left as it is.
-    Drawn from ``seed`` and the network's stream (0: the model's, ``f + 1``: calibration fold ``f``'s),
-    so the same for any number of workers.
+    ``per_channel = None``: by the bank (:meth:`resolved`): per channel for a whisker bank, one level for
+    a cochlea. Drawn from ``seed`` and the network's stream (0: the model's, ``f + 1``: calibration fold
+    ``f``'s), so the same for any number of workers.
 
     Why: each touch of a surface has gains of its own; a network that met every texture on one or two
     touches learns their gains, and its calibration, fitted on held-out touches, says less than a new
-    touch gives. On the two-sense world's new touch (``supramodal.experiments.newtouch.run_newtouch(augment=
-    GainAugment())``, 5 sets, 2026-11-30) the late fusion's ECE went from 0.07-0.16 to 0.02-0.07 and its
-    log loss from 0.30-0.68 to 0.14-0.25, each sense's accuracy unchanged on average; the networks cost
-    ``1 + copies`` times the CPU. Not yet on the command line, nor in ``fit_network_calibration`` or
-    ``out_of_fold_logits``. ``spread = 0`` gives the model without it, to the bit (iRPROP- follows the
-    gradients' signs, which exact copies do not change).
+    touch gives. On the two-sense world's new touch (``python -m supramodal.experiments.newtouch --augment``,
+    5 sets, 2026-11-30) the late fusion's ECE went from 0.07-0.16 to 0.03-0.07 and its log loss from
+    0.30-0.68 to 0.14-0.25, each sense's accuracy unchanged on average; the networks cost ``1 + copies``
+    times the CPU (a set's training, 4 times). A scene asks for it in ``[model]`` (``augment_copies``,
+    ...), ``supramodal train`` with ``--augment-gains``; the model file keeps it (``training["augment"]``,
+    :attr:`TextureModel.augment`), and copies of a model's configuration
+    (:func:`supramodal.fused_model.out_of_fold_logits`, ``evaluate --cv``) are augmented alike.
+    ``spread = 0`` gives the model without it, to the bit (iRPROP- follows the gradients' signs, which
+    exact copies do not change).
     """
 
     copies: int = 4
-    spread: float = 0.03
-    per_channel: bool = True
+    spread: float = DEFAULT_AUGMENT_SPREAD
+    per_channel: bool | None = True
     seed: int = 0
 
-    def for_inputs(self, features, channels: int):
+    def resolved(self, kind: str) -> GainAugment:
+        """Return the augmentation with ``per_channel`` said.
+
+        Where it is None, by a bank of ``kind``: per channel for ``"whisker"``, one level for ``"cochlea"``.
+        """
+        if self.per_channel is not None:
+            return self
+        return replace(self, per_channel=kind == "whisker")
+
+    @property
+    def gains(self) -> str:
+        """``per_channel`` in the words of :data:`GAIN_MODES` (``"by bank"`` where it is None)."""
+        return "by bank" if self.per_channel is None else GAIN_MODES[0] if self.per_channel else GAIN_MODES[1]
+
+    def to_dict(self) -> dict:
+        """Return what a model file keeps of it (``training["augment"]``): plain JSON values."""
+        return {"copies": int(self.copies), "spread": float(self.spread), "per_channel": self.per_channel,
+                "seed": int(self.seed)}
+
+    @classmethod
+    def from_dict(cls, d, bad) -> GainAugment:
+        """Return the augmentation a model file says (:meth:`to_dict`), every value checked.
+
+        ``bad(message)`` makes the error to raise.
+        """
+        if not isinstance(d, dict) or set(d) != {"copies", "spread", "per_channel", "seed"}:
+            raise bad(f"'training' 'augment' must be an object of copies, spread, per_channel and seed, got {d!r}")
+        copies, spread, per_channel, seed = d["copies"], d["spread"], d["per_channel"], d["seed"]
+        if not (type(copies) is int and 0 <= copies <= MAX_AUGMENT_COPIES):
+            raise bad(f"'training' 'augment' copies must be an integer 0..{MAX_AUGMENT_COPIES}, got {copies!r}")
+        if isinstance(spread, bool) or not isinstance(spread, (int, float)) or not 0 <= spread <= MAX_AUGMENT_SPREAD:
+            raise bad(f"'training' 'augment' spread must be a number 0..{MAX_AUGMENT_SPREAD:g}, got {spread!r}")
+        if per_channel not in (True, False, None) or not (type(seed) is int and 0 <= seed < 2**32):
+            raise bad(f"'training' 'augment': per_channel must be true, false or null and seed an integer "
+                      f"0..2**32 - 1, got {per_channel!r} and {seed!r}")
+        return cls(copies, float(spread), per_channel, seed)
+
+    def describe(self) -> str:
+        """In words, one line (``train`` prints it)."""
+        one = {True: "one gain per channel", False: "one gain for all channels", None: "gains by bank"}
+        return (f"gain augmentation: {self.copies} more copies of each training window, {one[self.per_channel]}, "
+                f"exp(N(0, {self.spread:g})) (seed {self.seed}); held-out windows, scaling and calibration on "
+                f"the originals; the networks cost {1 + self.copies} times the CPU")
+
+    def for_inputs(self, features, channels: int) -> GainCopies:
         """Return the callable ``(rows (n, features x channels), labels, stream) -> (rows, labels)``.
 
         It is for :func:`supramodal.calibration.fold_tasks` and the model's own network.
         """
-        linear = np.array([f in GAIN_LINEAR_FEATURES for f in features])
-        n_features = len(features)
+        return GainCopies(self, tuple(features), int(channels))
 
-        def augment(x, y, stream):
-            if not self.copies or not linear.any():
-                return x, y
-            rng = np.random.default_rng(np.random.SeedSequence([self.seed, stream]))
-            v = np.asarray(x).reshape(len(x), n_features, channels)
-            out = [v]
-            for _ in range(self.copies):
-                g = np.exp(rng.normal(0.0, self.spread, (len(v), channels if self.per_channel else 1)))
-                c = v.copy()
-                c[:, linear, :] *= g[:, None, :]
-                out.append(c)
-            return (np.concatenate(out).reshape(len(x) * (1 + self.copies), -1),
-                    np.tile(np.asarray(y), 1 + self.copies))
 
-        return augment
+@dataclass(frozen=True)
+class GainCopies:
+    """A :class:`GainAugment` on inputs of ``features`` x ``channels``.
+
+    Called ``(rows, labels, stream)``, it gives the rows and their copies, and their labels;
+    :attr:`factor`, how many rows it makes of one.
+    """
+
+    augment: GainAugment
+    features: tuple[str, ...]
+    channels: int
+
+    @property
+    def factor(self) -> int:
+        """Rows out per row in (the networks' work grows by it)."""
+        return 1 + self.augment.copies
+
+    def __call__(self, x, y, stream: int):
+        """Return the rows ``x`` and their copies, and the labels ``y`` repeated, for network ``stream``."""
+        a = self.augment
+        linear = np.array([f in GAIN_LINEAR_FEATURES for f in self.features])
+        if not a.copies or not linear.any():
+            return x, y
+        if a.per_channel is None:
+            raise ValueError("GainAugment.per_channel is None (by bank): resolve it with .resolved(kind) first")
+        rng = np.random.default_rng(np.random.SeedSequence([a.seed, stream]))
+        v = np.asarray(x).reshape(len(x), len(self.features), self.channels)
+        out = [v]
+        for _ in range(a.copies):
+            g = np.exp(rng.normal(0.0, a.spread, (len(v), self.channels if a.per_channel else 1)))
+            c = v.copy()
+            c[:, linear, :] *= g[:, None, :]
+            out.append(c)
+        return (np.concatenate(out).reshape(len(x) * (1 + a.copies), -1),
+                np.tile(np.asarray(y), 1 + a.copies))
 
 
 @dataclass
@@ -259,7 +338,9 @@ class TextureModel:
         augment : GainAugment, optional
             Gain augmentation of the training windows of every network, the calibration's fold
             networks and the model's alike (default None: none); the held-out windows, the scaling,
-            the calibration map and the novelty score see the original windows only.
+            the calibration map and the novelty score see the original windows only. Its gains by bank
+            (``per_channel`` None) are resolved with ``bank``'s kind; the model keeps it
+            (:attr:`augment`).
         """
         features = check_features(features)
         values = np.asarray(values, dtype=np.float64)
@@ -271,6 +352,7 @@ class TextureModel:
         y = np.asarray(labels)
         # The calibration's fold networks first, the model's last: with workers, the calibration is
         # fitted on the folds' windows while the model's network still trains.
+        augment = None if augment is None else augment.resolved(bank.kind)
         aug = None if augment is None else augment.for_inputs(features, bank.channels)
         xm, ym = (x, y) if aug is None else aug(x, y, 0)
         model_task = NetworkTask((xm - mean) / scale, ym, len(classes), hidden, epochs, seed)
@@ -287,7 +369,7 @@ class TextureModel:
             tasks = itertools.chain(fold_tasks(x, y, len(classes), folds, calibration_folds, hidden, epochs, seed,
                                                aug), tasks)
             work += fold_work(len(x), x.shape[1], len(classes), folds, calibration_folds, hidden, epochs) * (
-                1 + (augment.copies if augment is not None else 0))
+                1 if aug is None else aug.factor)
 
         def back(i: int, result) -> None:
             if held_out is not None and i < n_folds:
@@ -302,11 +384,19 @@ class TextureModel:
         info = {"algorithm": "iRPROP-", "epochs": len(history), "seed": seed,
                 "final_mse": history[-1], "windows": int(len(values))}
         if augment is not None:
-            info["augment"] = {"copies": augment.copies, "spread": augment.spread,
-                               "per_channel": augment.per_channel, "seed": augment.seed}
+            info["augment"] = augment.to_dict()
         calibration, novelty, out_of_fold = fitted[0] if fitted else (None, None, None)
         return cls(bank, features, int(window_samples), peak_mode, tuple(classes), mean, scale, mlp, info,
                    float(peak_threshold), calibration, novelty, out_of_fold)
+
+    @property
+    def augment(self) -> GainAugment | None:
+        """Return the gain augmentation its networks were trained with, or None.
+
+        From ``training["augment"]``, checked when the file was read; None: none, or a model file from before it.
+        """
+        d = self.training.get("augment")
+        return None if d is None else GainAugment.from_dict(d, ModelError)
 
     def _inputs(self, values: np.ndarray) -> np.ndarray:
         values = np.asarray(values, dtype=np.float64)
@@ -460,6 +550,8 @@ class TextureModel:
         training = header.get("training", {})
         if not isinstance(training, dict):
             raise bad("'training' must be an object")
+        if training.get("augment") is not None:        # a file from before it has none
+            GainAugment.from_dict(training["augment"], bad)
         calibration, novelty = calibration_from_parts(header, arrays, n_in, len(classes), bad)
         return cls(bank, features, window, peak_mode, tuple(classes), mean, scale, mlp, training, threshold,
                    calibration, novelty)

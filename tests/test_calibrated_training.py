@@ -330,6 +330,55 @@ def test_without_matplotlib_the_csvs_are_written_and_the_user_told(recordings, t
         ["anytime.csv", "channels.csv", "confusion.csv", "pooling.csv", "reliability.csv"]
 
 
+def test_train_takes_gain_augmentation_to_every_network_and_says_it(recordings, trained, tmp_path, capsys):
+    """Issue 34: `train --augment-gains` reaches every network. Gains of one (spread 0) give the model
+    without it to the bit (iRPROP- follows the gradients' signs: exact copies change none); real gains
+    change the networks, not the scaling nor the held-out windows the calibration is fitted on."""
+    from supramodal.model import GainAugment
+
+    capsys.readouterr()
+    plain = TextureModel.load(trained)
+    ones, aug = tmp_path / "ones.npz", tmp_path / "aug.npz"
+    for out, asked in ((ones, "2,0"), (aug, "1,0.05,shared")):
+        assert main(["train", "--bank", "whisker", "--manifest", str(recordings / "all.csv"), "--out", str(out),
+                     "--epochs", "60", "--augment-gains", asked, "--quiet"]) == 0
+    said = capsys.readouterr().out.splitlines()
+    assert [line.split(",")[0] for line in said if line.startswith("gain augmentation")] == [
+        "gain augmentation: 2 more copies of each training window", "gain augmentation: 1 more copies of each "
+        "training window"]
+    ones, aug = TextureModel.load(ones), TextureModel.load(aug)
+    assert ones.augment == GainAugment(2, 0.0, True) and aug.augment == GainAugment(1, 0.05, False)
+    for k in ("w1", "b1", "w2", "b2"):
+        np.testing.assert_array_equal(getattr(ones.mlp, k), getattr(plain.mlp, k))
+    assert ones.calibration.to_dict() == plain.calibration.to_dict()
+    # the MSE is a mean over three times the rows: equal but for its sum's rounding
+    assert {k: v for k, v in ones.training.items() if k not in ("augment", "final_mse")} == {
+        k: v for k, v in plain.training.items() if k != "final_mse"}
+    assert ones.training["final_mse"] == pytest.approx(plain.training["final_mse"], rel=1e-12)
+    assert not np.array_equal(aug.mlp.w1, plain.mlp.w1)
+    np.testing.assert_array_equal(aug.mean, plain.mean)
+    np.testing.assert_array_equal(aug.scale, plain.scale)
+    assert aug.training["windows"] == plain.training["windows"] == 180
+    assert aug.calibration.fitted_on["windows"] == plain.calibration.fitted_on["windows"] == 180
+
+
+def test_evaluate_cv_trains_each_fold_with_the_models_gain_augmentation(recordings, trained, monkeypatch):
+    """`evaluate MODEL --cv K` re-trains the model's configuration: its gain augmentation too (issue 34)."""
+    import dataclasses
+
+    from supramodal.model import GainAugment
+    from supramodal.node.workflows import training
+
+    asked = GainAugment(1, 0.05, True, 0)
+    plain = TextureModel.load(trained)
+    model = dataclasses.replace(plain, training={**plain.training, "augment": asked.to_dict()})
+    seen, real = [], training._train
+    monkeypatch.setattr(training, "_train", lambda *a, **k: seen.append(k.get("augment")) or real(*a, **k))
+    training.cross_validate_model(model, recordings / "all.csv", k=2)
+    training.cross_validate_model(plain, recordings / "all.csv", k=2)
+    assert seen == [asked, asked, None, None]
+
+
 @pytest.mark.slow   # a long run: a calibrated cross-validation
 def test_cross_validation_reports_the_calibration_of_every_test_fold(recordings, tmp_path, capsys):
     out = tmp_path / "m.npz"

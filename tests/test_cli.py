@@ -207,6 +207,10 @@ def test_signal_during_start_up_training(tmp_path, sig):
     (["train", "--bank", "whisker", "--manifest", "m.csv", "--out", "m.npz", "--jobs", "0"], "--jobs"),
     (["fit", "m.csv", "--cluster", "notanaddress"], "--cluster"),
     (["fit", "m.csv", "--cluster", "tcp://host:notaport"], "--cluster"),
+    # issue 34: gain augmentation, COPIES[,SPREAD[,per-channel|shared]]
+    *[(["train", "--bank", "whisker", "--manifest", "m.csv", "--out", "m.npz", "--augment-gains", bad],
+       "--augment-gains") for bad in ("0", "33", "four", "4,-0.1", "4,nan", "4,2", "4,0.03,per-vibrissa",
+                                      "4,0.03,shared,1", "")],
 ])
 def test_bad_numbers_on_the_command_line_name_their_option(capsys, argv, option):
     with pytest.raises(SystemExit) as stop:

@@ -4,10 +4,16 @@ change where the gains are all 1."""
 
 from __future__ import annotations
 
+import dataclasses
+import json
+
 import numpy as np
+import pytest
 
 from supramodal.banks import whisker_bank
-from supramodal.model import GAIN_LINEAR_FEATURES, GainAugment, TextureModel
+from supramodal.calibration import fit_network_calibration
+from supramodal.fused_model import out_of_fold_logits
+from supramodal.model import GAIN_LINEAR_FEATURES, GainAugment, ModelError, TextureModel
 
 BANK = whisker_bank(rows="AB")            # 8 vibrissae
 CLASSES = ("rough", "smooth", "medium")
@@ -65,3 +71,61 @@ def test_augmented_networks_differ_and_the_held_out_windows_are_the_originals():
     assert aug.out_of_fold.logits.shape == plain.out_of_fold.logits.shape    # one held-out row per window
     np.testing.assert_array_equal(aug.mean, plain.mean)                      # scaling from the originals
     assert aug.training["windows"] == len(values)
+
+
+# -- gains by bank, the file's record, and every network of a model augmented alike (issue 34, the next slice) ----
+
+def test_gains_by_bank_are_per_vibrissa_for_a_whisker_array_and_one_level_for_a_cochlea():
+    by_bank = GainAugment(copies=1, spread=0.05, per_channel=None)
+    assert by_bank.resolved("whisker").per_channel is True and by_bank.resolved("cochlea").per_channel is False
+    assert GainAugment(per_channel=False).resolved("whisker").per_channel is False      # said: kept
+    values, labels = _data()
+    model = TextureModel.train(values, labels, CLASSES, BANK, FEATURES, 500, epochs=10, seed=1, augment=by_bank,
+                               calibration_folds=0)
+    assert model.augment == GainAugment(1, 0.05, True) and model.training["augment"]["per_channel"] is True
+    with pytest.raises(ValueError, match="resolve"):
+        by_bank.for_inputs(FEATURES, 8)(values.reshape(len(values), -1), labels, 0)
+
+
+def test_a_models_record_of_its_augmentation_reads_back_and_a_bad_one_is_refused():
+    a = GainAugment(copies=3, spread=0.04, per_channel=False, seed=7)
+    assert GainAugment.from_dict(json.loads(json.dumps(a.to_dict())), ModelError) == a
+    for bad in ({**a.to_dict(), "copies": 99}, {**a.to_dict(), "copies": 1.5}, {**a.to_dict(), "spread": -0.1},
+                {**a.to_dict(), "spread": True}, {**a.to_dict(), "per_channel": "yes"}, {**a.to_dict(), "seed": -1},
+                {"copies": 1}, [1, 2]):
+        with pytest.raises(ModelError, match="augment"):
+            GainAugment.from_dict(bad, ModelError)
+
+
+def test_fit_network_calibration_trains_its_fold_networks_as_the_models_own_are_trained():
+    """The same fold networks, augmented alike, whether a model's training or fit_network_calibration
+    trains them: the held-out logits agree to the bit; without augmentation they differ."""
+    values, labels = _data()
+    x = values.reshape(len(values), -1)
+    augment = GainAugment(copies=2, spread=0.05)
+    model = TextureModel.train(values, labels, CLASSES, BANK, FEATURES, 500, epochs=40, seed=1, augment=augment)
+    cal, _, oof = fit_network_calibration(x, labels, 3, epochs=40, seed=1, augment=augment.for_inputs(FEATURES, 8))
+    np.testing.assert_array_equal(oof.logits, model.out_of_fold.logits)
+    assert dataclasses.replace(model.calibration, changes=None) == cal       # the model adds its change detector's
+    assert cal.fitted_on["windows"] == len(values)                            # the held-out rows: the originals
+    _, _, plain = fit_network_calibration(x, labels, 3, epochs=40, seed=1)
+    assert plain.logits.shape == oof.logits.shape and not np.array_equal(plain.logits, oof.logits)
+    _, _, ones = fit_network_calibration(x, labels, 3, epochs=40, seed=1,
+                                         augment=GainAugment(copies=2, spread=0.0).for_inputs(FEATURES, 8))
+    np.testing.assert_array_equal(ones.logits, plain.logits)
+
+
+def test_out_of_fold_copies_of_a_model_are_augmented_as_the_model_was():
+    """A late fusion's out-of-fold copies of a sense model (fused_model.out_of_fold_logits) follow the
+    model's file: augmented when it was, alike; never its held-out windows."""
+    values, labels = _data()
+    folds = np.arange(len(labels)) % 2                              # not the model's own folds: copies train
+    augmented = TextureModel.train(values, labels, CLASSES, BANK, FEATURES, 500, epochs=30, seed=1,
+                                   augment=GainAugment(copies=1, spread=0.05), calibration_folds=0)
+    forgot = dataclasses.replace(augmented, training={k: v for k, v in augmented.training.items() if k != "augment"})
+    z = out_of_fold_logits(augmented, values, labels, CLASSES, folds)
+    z_plain = out_of_fold_logits(forgot, values, labels, CLASSES, folds)
+    assert z.shape == z_plain.shape == (len(labels), 3) and not np.array_equal(z, z_plain)
+    zero = dataclasses.replace(augmented, training={**augmented.training,
+                                                    "augment": GainAugment(1, 0.0).to_dict()})
+    np.testing.assert_array_equal(out_of_fold_logits(zero, values, labels, CLASSES, folds), z_plain)

@@ -353,3 +353,50 @@ def test_a_wait_for_another_process_s_training_is_said_before_it_starts(tmp_path
     with model_cache._lock(path, said.append):               # free: nothing said
         pass
     assert len(said) == 1
+
+
+def test_the_key_holds_the_gain_augmentation_the_model_is_trained_with():
+    """Issue 34: a model trained with gain augmentation is another model; its key is another key (and a
+    model trained without it keeps the key it had)."""
+    from supramodal.model import GainAugment
+
+    ts, p = _short_set(), _pipeline()
+    plain = cache_key(ts, p)
+    asked = GainAugment(4, 0.03, None)
+    assert cache_key(ts, p, None) == plain and cache_key(ts, p, asked) != plain
+    assert cache_key(ts, p, asked) == cache_key(ts, p, GainAugment(4, 0.03, True))      # by bank: whisker, per channel
+    others = [GainAugment(3, 0.03, True), GainAugment(4, 0.05, True), GainAugment(4, 0.03, False),
+              GainAugment(4, 0.03, True, seed=1), GainAugment(4, 0.0, True)]
+    assert len({cache_key(ts, p, a) for a in [asked, *others]} | {plain}) == 2 + len(others)
+
+
+def test_a_scene_with_gain_augmentation_is_never_served_the_model_of_one_without_it(tmp_path, monkeypatch):
+    """build_node: the scene without augmentation trains (or reads) its model; the same scene with
+    [model] augment_copies trains another, which says so, and is read back from the cache on its next start."""
+    from supramodal.model import GainAugment
+    from supramodal.node.runtime.sinks import ListSink
+    from supramodal.node.scene.build import build_node
+    from supramodal.node.scene.schema import scene_from_dict
+
+    monkeypatch.setenv(CACHE_ENV, str(tmp_path / "cache"))
+    _short_set(duration=2.0).save(tmp_path / "short.json")
+
+    def start(model):
+        said = []
+        graph = build_node(scene_from_dict({"driver": {"type": "synth", "textures": "short.json", "seconds": 0.5},
+                                            "model": {"train_on_start": True, **model}},
+                                           str(tmp_path / "s.toml"), tmp_path),
+                           sinks_override=[ListSink()], progress=said.append)
+        for sink in graph.sinks:
+            sink.close()
+        [stream] = graph.streams
+        return stream.model, [m for m in said if m.startswith(("trained on", "gain augmentation"))]
+
+    plain, _ = start({})
+    augmented, said = start({"augment_copies": 1, "augment_spread": 0.05})
+    assert plain.augment is None and augmented.augment == GainAugment(1, 0.05, True)
+    assert "read from the model cache" not in said[0] and said[1].startswith("gain augmentation: 1 more copies")
+    assert not np.array_equal(augmented.mlp.w1, plain.mlp.w1)
+    again, said = start({"augment_copies": 1, "augment_spread": 0.05})
+    assert "read from the model cache" in said[0] and again.augment == augmented.augment
+    assert len(list((tmp_path / "cache" / "models").glob("*.npz"))) == 2

@@ -353,3 +353,30 @@ def test_a_text_file_or_a_pickle_given_as_a_model_gets_no_advice_to_load_it_unsa
         TextureModel.load(p)
     assert "allow_pickle" not in str(err.value) and "pickle.load" not in str(err.value)
     assert not (tmp_path / "unpickled").exists()
+
+
+# -- the gain augmentation a model was trained with (issue 34) -----------------------------------------
+
+def test_a_models_gain_augmentation_travels_with_its_file_and_a_file_without_one_loads(model, saved, tmp_path):
+    from supramodal.model import GainAugment
+
+    values, labels = training_data()
+    augmented = TextureModel.train(values, labels, CLASSES, BANK, FEATURES, 500, epochs=20, seed=3,
+                                   augment=GainAugment(copies=2, spread=0.05, per_channel=None, seed=3))
+    loaded = TextureModel.load(augmented.save(tmp_path / "aug.npz"))
+    assert loaded.augment == GainAugment(2, 0.05, True, 3) == augmented.augment      # by bank: whisker, per channel
+    assert read_parts(tmp_path / "aug.npz")[0]["training"]["augment"] == {"copies": 2, "spread": 0.05,
+                                                                         "per_channel": True, "seed": 3}
+    np.testing.assert_array_equal(loaded.outputs(values), augmented.outputs(values))
+    assert "augment" not in read_parts(saved)[0]["training"]                          # as every earlier file
+    assert TextureModel.load(saved).augment is None and model.augment is None
+
+
+@pytest.mark.parametrize("augment", [{"copies": -1, "spread": 0.03, "per_channel": True, "seed": 0},
+                                     {"copies": 4, "spread": "wide", "per_channel": True, "seed": 0},
+                                     {"copies": 4}, "yes"])
+def test_a_bad_gain_augmentation_in_a_header_is_refused(saved, augment):
+    header, arrays = read_parts(saved)
+    header["training"]["augment"] = augment
+    with pytest.raises(ModelError, match="'training' 'augment'"):
+        TextureModel.load(write_parts(saved.with_name("bad.npz"), header, arrays))

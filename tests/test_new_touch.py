@@ -343,3 +343,23 @@ def test_experiment_newtouch_on_the_command_line_writes_its_table_csv_and_plot(t
     pytest.importorskip("matplotlib")
     assert (tmp_path / "newtouch.png").stat().st_size > 0
     assert main(["experiment", "newtouch", "--sets", "0", "--out", str(tmp_path)]) == 2
+
+
+def test_the_experiments_module_takes_gain_augmentation_seeded_by_its_seed(capsys):
+    """`python -m supramodal.experiments.newtouch --augment` (docs' measured command): run_newtouch is given
+    GainAugment() seeded by --seed; without the flag, nothing; the other two-sense experiments have no flag."""
+    from supramodal.experiments.common import two_sense_sets_main
+    from supramodal.model import GainAugment
+
+    given = []
+
+    def run(sets, quick, epochs, seed, progress, jobs, **more):
+        given.append(more)
+        return {}
+
+    for argv in (["--augment", "--seed", "3", "--sets", "1"], ["--sets", "1"]):
+        assert two_sense_sets_main(argv, "newtouch", "", run, lambda r: "table", "6 s", augment="help") == 0
+    assert given == [{"augment": GainAugment(seed=3)}, {}]
+    with pytest.raises(SystemExit):
+        two_sense_sets_main(["--augment"], "fusion", "", run, lambda r: "table", "6 s")
+    capsys.readouterr()

@@ -283,3 +283,56 @@ def test_the_fused_scene_keeps_the_live_scenes_way_of_deciding_on_the_fused_wind
     assert (fused.weight, fused.sharpness, fused.correlation, fused.method) == (0.6, 1.5, 0.2, "late")
     assert fused.decision == live.decision and fused.max_wait == 0.5
     assert load_scene(out).source_named("board").options["path"] == str(tmp_path.resolve() / "rec/board.wav")
+
+
+# -- gain augmentation of a model trained on start (issue 34): [model] augment_copies, augment_spread, augment_gains --
+
+def _augmented(model: dict, graph: bool = False) -> dict:
+    if graph:
+        return {"source": [{"name": "s", "type": "synth", "seconds": 1.0}],
+                "stream": [{"name": "w", "source": "s", "model": model}]}
+    return {"driver": {"type": "synth", "seconds": 1.0}, "model": model}
+
+
+@pytest.mark.parametrize("graph", [False, True])
+def test_a_streams_model_asks_for_gain_augmentation_and_prints_back(graph):
+    from supramodal.model import GainAugment
+
+    plain = scene_from_dict(_augmented({"train_on_start": True}, graph)).streams[0].model
+    assert plain.gain_augment() is None                                      # opt-in: none unless asked
+    asked = {"train_on_start": True, "augment_copies": 4, "augment_spread": 0.05, "augment_gains": "shared"}
+    scene = scene_from_dict(_augmented(asked, graph))
+    assert scene.streams[0].model.gain_augment() == GainAugment(4, 0.05, False)
+    by_bank = scene_from_dict(_augmented({"train_on_start": True, "augment_copies": 2}, graph))
+    assert by_bank.streams[0].model.gain_augment() == GainAugment(2, 0.03, None)     # "auto": by the bank
+    again = scene_from_dict(tomllib.loads(scene_to_toml(scene)))
+    assert again.streams[0].model == scene.streams[0].model
+    assert scene_from_dict(tomllib.loads(scene_to_toml(scene_from_dict(_augmented({"path": "m.npz"}, graph)))))
+
+
+@pytest.mark.parametrize("model, says", [
+    ({"augment_copies": -1}, "augment_copies: expected"),
+    ({"augment_copies": 1.5}, "augment_copies: expected"),
+    ({"augment_copies": 33}, "augment_copies: expected"),
+    ({"augment_copies": True}, "augment_copies: expected"),
+    ({"augment_copies": 4, "augment_spread": -0.01}, "augment_spread: expected"),
+    ({"augment_copies": 4, "augment_spread": 2.0}, "augment_spread: expected"),
+    ({"augment_copies": 4, "augment_spread": float("nan")}, "augment_spread: expected"),
+    ({"augment_copies": 4, "augment_gains": "per-vibrissa"}, "augment_gains: expected"),
+    ({"augment_copies": 4, "augment_gains": "per-vibrissa"}, '"per-channel"'),
+    ({"augment_spread": 0.05}, "augment_spread = 0.05 has no effect without gain augmentation: set augment_copies"),
+    ({"augment_gains": "shared"}, 'augment_gains = "shared" has no effect'),
+])
+def test_bad_gain_augmentation_keys_are_refused_naming_the_key(model, says):
+    with pytest.raises(SceneError) as refused:
+        scene_from_dict(_augmented({"train_on_start": True, **model}))
+    assert says in str(refused.value) and "[model]" in str(refused.value)
+
+
+@pytest.mark.parametrize("graph", [False, True])
+def test_gain_augmentation_of_a_model_the_node_does_not_train_is_refused_with_the_fix(graph):
+    with pytest.raises(SceneError) as refused:
+        scene_from_dict(_augmented({"path": "m.npz", "augment_copies": 4}, graph))
+    said = str(refused.value)
+    assert "augment_copies = 4" in said and "set train_on_start = true" in said
+    assert "supramodal train --augment-gains 4,0.03" in said

@@ -64,6 +64,23 @@ def test_a_sense_model_is_trained_straight_from_recorded_graphs(recordings, caps
     assert TextureModel.load(recordings / "whiskers.npz").bank.kind == "whisker"
 
 
+def test_a_streams_model_trains_with_gain_augmentation_by_its_bank_and_says_it(recordings, capsys, tmp_path):
+    """Issue 34: `train --stream mic --augment-gains 2,0.05`, the gains left to the bank: one level for the
+    microphone's cochlea; the held-out windows the originals."""
+    from supramodal.model import GainAugment
+
+    out = tmp_path / "mic-aug.npz"
+    assert main(["train", *_scenes(recordings, 1), "--stream", "mic", "--out", str(out), "--augment-gains", "2,0.05",
+                 "--seed", "5", "--quiet"]) == 0
+    said = capsys.readouterr().out.splitlines()
+    assert [line for line in said if line.startswith("gain augmentation:")] == [
+        "gain augmentation: 2 more copies of each training window, one gain for all channels, exp(N(0, 0.05)) "
+        "(seed 5); held-out windows, scaling and calibration on the originals; the networks cost 3 times the CPU"]
+    model = TextureModel.load(out)
+    assert model.augment == GainAugment(2, 0.05, False, 5) and model.bank.kind == "cochlea"
+    assert model.training["windows"] == 2 * 15 and model.calibration.fitted_on["windows"] == 2 * 15
+
+
 def test_a_fusion_says_whether_it_learned_from_unseen_recordings_or_out_of_fold(recordings, capsys):
     models = ["--model", f"whiskers={recordings / 'whiskers.npz'}", "--model", f"mic={recordings / 'mic.npz'}"]
     if not (recordings / "whiskers.npz").exists():
@@ -92,6 +109,7 @@ def test_a_fusion_says_whether_it_learned_from_unseen_recordings_or_out_of_fold(
     (["--fusion", "late", "--model", "mic=x.npz"], "a fusion takes two"),
     (["--fusion", "late", "--model", "mic=x.npz", "--model", "whiskers=y.npz"], "no model file there"),
     (["--fusion", "late", "--live", "x.toml"], "go together"),
+    (["--fusion", "late", "--augment-gains", "4"], "--augment-gains trains one sense"),
 ])
 def test_training_from_scenes_refuses_with_the_fix(recordings, capsys, argv, needle, tmp_path):
     out = [] if "--fusion" in argv else ["--out", str(tmp_path / "m.npz")]

@@ -186,6 +186,41 @@ def mapping(text: str):
     return int(text) if text.isdigit() else text
 
 
+#: ``--augment-gains``'s form, for its help and its errors.
+AUGMENT_GAINS_FORM = "COPIES[,SPREAD[,per-channel|shared]]"
+
+
+def augment_gains(text: str):
+    """``--augment-gains COPIES[,SPREAD[,per-channel|shared]]``: a :class:`supramodal.model.GainAugment` (seed 0:
+    the command sets its own), its gains by the bank where the third part is left out."""
+    from supramodal.model import DEFAULT_AUGMENT_SPREAD, GAIN_MODES, MAX_AUGMENT_COPIES, MAX_AUGMENT_SPREAD, GainAugment
+
+    parts = text.split(",")
+    problem = None
+    if not 1 <= len(parts) <= 3:
+        problem = "one to three parts separated by commas"
+    else:
+        try:
+            copies = int(parts[0])
+        except ValueError:
+            copies = -1
+        try:
+            spread = float(parts[1]) if len(parts) > 1 else DEFAULT_AUGMENT_SPREAD
+        except ValueError:
+            spread = math.nan
+        gains = parts[2] if len(parts) > 2 else None
+        if not 1 <= copies <= MAX_AUGMENT_COPIES:
+            problem = f"COPIES a whole number from 1 to {MAX_AUGMENT_COPIES}"
+        elif not 0 <= spread <= MAX_AUGMENT_SPREAD:         # nan too
+            problem = f"SPREAD (the standard deviation of the gains' natural log) from 0 to {MAX_AUGMENT_SPREAD:g}"
+        elif gains is not None and gains not in GAIN_MODES:
+            problem = (f"the gains {' or '.join(GAIN_MODES)} (left out: per-channel for a whisker bank, shared for "
+                       "a cochlea)")
+    if problem is not None:
+        raise argparse.ArgumentTypeError(f"expected {AUGMENT_GAINS_FORM} (e.g. 4,0.03), with {problem}; got {text!r}")
+    return GainAugment(copies, spread, None if gains is None else gains == GAIN_MODES[0])
+
+
 class StderrProgress:
     """Progress lines on stderr, ``supramodal: ...``. :meth:`transient` lines (a long step's periodic
     line) rewrite one line in place on a terminal and are plain lines elsewhere (a log, a pipe); the

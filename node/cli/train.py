@@ -6,6 +6,8 @@ import argparse
 from pathlib import Path
 
 from supramodal.node.cli.arguments import (
+    AUGMENT_GAINS_FORM,
+    augment_gains,
     bank,
     cores,
     count,
@@ -96,6 +98,14 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
     p.add_argument("--jobs", type=jobs, default=cores(),
                    help="worker processes for the model's networks and its calibration folds' (default: the cores "
                         "here); the model is the same for any")
+    p.add_argument("--augment-gains", type=augment_gains, metavar=AUGMENT_GAINS_FORM,
+                   help="gain augmentation, for models that must hold on a new touch or session (each has its own "
+                        "sensor gains): every network (the calibration's folds' and the model's) also trains on "
+                        "COPIES copies of each training window with random gains exp(N(0, SPREAD)) (default 0.03) on "
+                        "Af and A, one per channel (per-channel: a whisker array's vibrissae) or one for all (shared: "
+                        "a microphone's level; left out: per-channel for a whisker bank, shared for a cochlea); the "
+                        "held-out windows, scaling and calibration see the originals; the networks cost 1 + COPIES "
+                        "times the CPU; the model file keeps it (default: none; e.g. 4,0.03)")
     return p
 
 
@@ -137,10 +147,12 @@ def run(args: argparse.Namespace) -> int:
             for suffix in (".csv", ".png"):
                 check_new_file(b.with_name(b.name + suffix), args.force, "the cross-validation file")
         cv = cross_validate_manifest(args.manifest, bank, tuple(args.features), args.window, args.cv,
-                                     epochs=args.epochs, seed=args.seed, mapping=args.mapping, progress=progress(args))
+                                     epochs=args.epochs, seed=args.seed, mapping=args.mapping, progress=progress(args),
+                                     augment=_augment(args))
         print(format_cross_validation(cv))
     model = train_from_manifest(args.manifest, bank, tuple(args.features), args.window, epochs=args.epochs,
-                                seed=args.seed, mapping=args.mapping, progress=progress(args), jobs=args.jobs)
+                                seed=args.seed, mapping=args.mapping, progress=progress(args), jobs=args.jobs,
+                                augment=_augment(args))
     # The model and its cross-validation's files are put in place together (the files written first, an
     # interrupted training left a new report beside the earlier model)
     written = save_model(model, args.out, cv=None if cv is None else (args.cv, cv))
@@ -153,7 +165,21 @@ def run(args: argparse.Namespace) -> int:
     print(f"wrote {path}: {model.bank.kind} bank, features {list(model.features)}, classes {list(model.classes)}, "
           f"{model.training['windows']} training windows, final MSE {model.training['final_mse']:.4g}")
     print("posteriors: " + calibration_line(None if model.calibration is None else model.calibration.fitted_on))
+    _say_augment(model)
     return 0
+
+
+def _augment(args):
+    """``--augment-gains``, seeded by ``--seed`` (None: not asked)."""
+    from dataclasses import replace
+
+    return None if args.augment_gains is None else replace(args.augment_gains, seed=args.seed)
+
+
+def _say_augment(model) -> None:
+    """The report's line of the gain augmentation its networks trained with (none: no line)."""
+    if model.augment is not None:
+        print(model.augment.describe())
 
 
 def save_model(model, out, cv: tuple[int, dict] | None = None) -> list[Path]:
@@ -193,12 +219,13 @@ def _train_stream(args) -> int:
                        "out --manifest, --bank, --cv, --model, --live and --write-scene")
     check_new_file(args.out, args.force, "the model file")
     model = train_from_scenes(args.scene, args.stream, epochs=args.epochs, seed=args.seed, progress=progress(args),
-                              jobs=args.jobs)
+                              jobs=args.jobs, augment=_augment(args))
     path = save_model(model, args.out)[-1]
     print(f"wrote {path}: stream {args.stream}, {model.bank.kind} bank, features {list(model.features)}, classes "
           f"{list(model.classes)}, {model.training['windows']} training windows of {len(args.scene)} recording(s), "
           f"final MSE {model.training['final_mse']:.4g}")
     print("posteriors: " + calibration_line(None if model.calibration is None else model.calibration.fitted_on))
+    _say_augment(model)
     print("train the fusion on other recordings than these (supramodal train --fusion ... --model "
           f"{args.stream}={path}): its sense posteriors are then those of this model on recordings it never saw")
     return 0
@@ -230,6 +257,10 @@ def _train_fusion(args) -> int:
                        "`supramodal record` writes for a graph)")
     if args.manifest is not None or args.cv:
         raise CliError("--manifest and --cv train one sense; a fusion is trained on --scene recordings")
+    if args.augment_gains is not None:
+        raise CliError("--augment-gains trains one sense; a fusion's copies of the sense models train as each model "
+                       "did (its file keeps its gain augmentation): train the senses with it (--stream), then give "
+                       "them with --model")
     if args.fusion == "early":
         if args.out is None:
             raise CliError("--fusion early needs --out, the model file to write")

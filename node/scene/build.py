@@ -22,7 +22,7 @@ from supramodal.drivers.contact import ContactListener, contact_listener
 from supramodal.drivers.spec import BuildContext, OptionError
 from supramodal.errors import InputError
 from supramodal.mlp import DEFAULT_EPOCHS
-from supramodal.model import ModelError, TextureModel
+from supramodal.model import GainAugment, ModelError, TextureModel
 from supramodal.node.runtime.contacts import ContactTimeline
 from supramodal.node.runtime.events import MAIN_STREAM
 from supramodal.node.runtime.graph import Graph
@@ -69,30 +69,32 @@ def pipeline_for(scene: Scene, bank: Bank, stream: StreamSpec | None = None) -> 
 
 
 def train_on_texture_set(ts, pipeline: FeaturePipeline, progress=None, held_out: list | None = None,
-                         trained: list | None = None) -> TextureModel:
+                         trained: list | None = None, augment: GainAugment | None = None) -> TextureModel:
     """The model the default scene trains on the spot: Fig. 3's training part of each texture,
     computed with the scene's own pipeline settings, calibrated on out-of-fold windows of that
     training part (:meth:`TextureModel.train`: each texture's training windows cut into spans in
     time, one per fold). ``held_out``, a list, receives the held-out part ``(x_test, y_test)``
     (windows the model never saw: a fusion is scored on them); ``trained`` the training part
     ``(x_train, y_train)`` (an early-fusion network learns on it, a late-fusion weight on its
-    out-of-fold windows).
+    out-of-fold windows). ``augment``: the gain augmentation of its networks' training windows
+    (``[model] augment_copies``, ...; default none).
 
     It trains every time: the node keeps what it trains on start in one cache, on disk
     (:func:`~supramodal.node.scene.model_cache.trained_on_start`, which calls this on a miss).
     """
     p = pipeline
     model, train_part, test_part = texture_set_model(ts, p.bank, p.features, p.window, p.peaks.mode,
-                                                     float(p.peaks.threshold), progress=progress)
+                                                     float(p.peaks.threshold), progress=progress, augment=augment)
     hand_over(model, train_part, test_part, ts, p.features, held_out, trained, progress)
     return model
 
 
 def texture_set_model(ts, bank: Bank, features: tuple[str, ...], window: float, peak_mode: str,
-                      peak_threshold: float, progress=None) -> tuple[TextureModel, tuple, tuple]:
+                      peak_threshold: float, progress=None, augment: GainAugment | None = None
+                      ) -> tuple[TextureModel, tuple, tuple]:
     """What :func:`train_on_texture_set` trains: ``(model, (x_train, y_train), (x_test, y_test))``, from
-    nothing but the texture set and the pipeline's settings (``window`` in seconds), with progress told
-    every few seconds to ``progress`` (None: silent)."""
+    nothing but the texture set, the pipeline's settings (``window`` in seconds) and ``augment``, with
+    progress told every few seconds to ``progress`` (None: silent)."""
     with _ticker(progress, f"the {bank.kind} bank's model ({', '.join(features)}) on {len(ts.textures)} "
                            "textures") as tell:
         values, _ = texture_features(ts, bank, features, window, peak_mode=peak_mode,
@@ -102,7 +104,7 @@ def texture_set_model(ts, bank: Bank, features: tuple[str, ...], window: float, 
         model = TextureModel.train(x_train, y_train, ts.names, bank, features,
                                    window_length(window, bank.fs), peak_mode=peak_mode,
                                    peak_threshold=peak_threshold, seed=0, progress=tell.epoch,
-                                   calibration_progress=tell.fold, jobs=default_jobs())
+                                   calibration_progress=tell.fold, jobs=default_jobs(), augment=augment)
     return model, (x_train, y_train), (x_test, y_test)
 
 
@@ -235,8 +237,10 @@ def _model_for(scene: Scene, stream: StreamSpec, bank: Bank, pipeline: FeaturePi
                 raise SceneError(f"{stream.where}: [model] train_on_start: the {bank.kind} reference textures are "
                                  f"at {ts.fs:g} Hz, the bank at {bank.fs:g} Hz; give a [model] path instead")
         # Read from the cache of models trained on start where it holds this one (docs/node.md).
-        model = trained_on_start(ts, pipeline, lambda h, t: train_on_texture_set(ts, pipeline, progress, h, t),
-                                 progress, held_out, trained)
+        augment = m.gain_augment()
+        model = trained_on_start(ts, pipeline,
+                                 lambda h, t: train_on_texture_set(ts, pipeline, progress, h, t, augment),
+                                 progress, held_out, trained, augment=augment)
         if m.path is not None:
             model.save(scene.resolve(m.path))
     if model is not None:

@@ -4,7 +4,8 @@ instead of training it again (the default scene's model takes 8 to 20 s to train
 A model trained on start (``[model] train_on_start``) depends on nothing but what :func:`cache_key`
 digests: the texture set it was trained on (every field of its description: peaks, rate, duration,
 seed, or a two-sense set's surfaces; the signals themselves for any other kind of set), the bank,
-the features, the window and the peak settings, the training's epochs and seed, the model file's
+the features, the window and the peak settings, the training's epochs, seed and gain augmentation
+(``[model] augment_copies``, ...: a model trained with it is never served to a scene without it), the model file's
 format version, the versions of this package, numpy and scipy, and the source of the model package
 and of the node's build (a changed training or feature code is another key). Each cached model is one
 file, ``KEY.npz`` in :func:`cache_folder`'s ``models/``: a model file as ``supramodal train`` writes it
@@ -44,6 +45,7 @@ from supramodal.calibration import OutOfFold
 from supramodal.digest import feed
 from supramodal.model import (
     MODEL_VERSION,
+    GainAugment,
     ModelError,
     TextureModel,
     novelty_arrays,
@@ -117,9 +119,9 @@ def _texture_set_digest(ts) -> str:
     return h.hexdigest()
 
 
-def cache_key(ts, pipeline) -> str:
+def cache_key(ts, pipeline, augment: GainAugment | None = None) -> str:
     """The key of the model :func:`supramodal.node.scene.build.train_on_texture_set` trains on
-    ``ts`` with ``pipeline``'s settings: a hex digest of everything that model depends on."""
+    ``ts`` with ``pipeline``'s settings and ``augment``: a hex digest of everything that model depends on."""
     import scipy
 
     import supramodal
@@ -134,6 +136,8 @@ def cache_key(ts, pipeline) -> str:
         "window_samples": int(p.window_samples), "peak_mode": p.peaks.mode, "peak_threshold": float(p.peaks.threshold),
         "epochs": DEFAULT_EPOCHS, "seed": 0, "train_fraction": TRAIN_FRACTION,
     }
+    if augment is not None:             # only then: the keys of models trained without it stay as they were
+        parts["augment"] = augment.resolved(p.bank.kind).to_dict()
     return hashlib.sha256(json.dumps(parts, sort_keys=True, default=repr).encode()).hexdigest()[:40]
 
 
@@ -161,7 +165,7 @@ def _write(path: Path, key: str, model: TextureModel, train_part, test_part) -> 
         raise
 
 
-def _read(path: Path, key: str, ts, pipeline):
+def _read(path: Path, key: str, ts, pipeline, augment: GainAugment | None = None):
     """``(model, (x_train, y_train), (x_test, y_test))`` from a cache file, every part checked;
     FileNotFoundError where there is none, :class:`CacheRefused` where it is not what ``key`` names."""
     if not path.is_file():
@@ -178,6 +182,10 @@ def _read(path: Path, key: str, ts, pipeline):
         model.check_pipeline(pipeline)
     except ModelError as exc:
         raise CacheRefused(f"{path}: {exc}") from None
+    asked = None if augment is None else augment.resolved(model.bank.kind)
+    if model.augment != asked:
+        raise CacheRefused(f"{path}: the model was trained with gain augmentation {model.augment}, the scene asks "
+                           f"for {asked}")
     if tuple(model.classes) != tuple(ts.names):
         raise CacheRefused(f"{path}: the model's classes {list(model.classes)} are not the texture set's "
                            f"{list(ts.names)}")
@@ -275,26 +283,30 @@ def hand_over(model, train_part, test_part, ts, features, held_out: list | None,
 
         progress(f"trained on {len(train_part[0])} windows of {len(ts.textures)} textures ({', '.join(features)}); "
                  + calibration_line(None if model.calibration is None else model.calibration.fitted_on) + where)
+        if model.augment is not None:
+            progress(model.augment.describe())
 
 
 # -- the node's use -----------------------------------------------------------------------------------
 
 def trained_on_start(ts, pipeline, train, progress=None, held_out: list | None = None,
-                     trained: list | None = None, folder: Path | None = None) -> TextureModel:
+                     trained: list | None = None, folder: Path | None = None,
+                     augment: GainAugment | None = None) -> TextureModel:
     """The model trained on start on ``ts`` with ``pipeline``'s settings: read from the cache where it
     holds it, else ``train(held_out, trained)`` (:func:`~supramodal.node.scene.build.train_on_texture_set`
     with ``ts`` and ``pipeline`` bound) and written to it. ``held_out`` and ``trained`` receive the
     held-out and training windows either way; ``progress`` gets the training's line (or the same line
     for a model read, naming the file) and a line for a cache file refused or not written.
-    ``folder``: the cache's folder (default :func:`cache_folder`; None there: no cache)."""
+    ``folder``: the cache's folder (default :func:`cache_folder`; None there: no cache). ``augment``: the
+    gain augmentation ``train`` trains with (part of the key)."""
     folder = cache_folder() if folder is None else folder
     if folder is None:
         return train(held_out, trained)
-    key = cache_key(ts, pipeline)
+    key = cache_key(ts, pipeline, augment)
     path = folder / "models" / f"{key}.npz"
 
     def hit():
-        model, train_part, test_part = _read(path, key, ts, pipeline)
+        model, train_part, test_part = _read(path, key, ts, pipeline, augment)
         try:
             os.utime(path)              # recently used: kept longest
         except OSError:

@@ -50,6 +50,7 @@ from supramodal.drivers.contact import check_contact_from
 from supramodal.drivers.spec import OptionError
 from supramodal.errors import InputError
 from supramodal.features import DEFAULT_WINDOW, FEATURE_TABLE
+from supramodal.model import DEFAULT_AUGMENT_SPREAD, GAIN_MODES, MAX_AUGMENT_COPIES, MAX_AUGMENT_SPREAD
 from supramodal.node.runtime.events import FUSED_STREAM, MAIN_STREAM
 from supramodal.node.runtime.fusion import DEFAULT_MAX_WAIT, DEFAULT_WEIGHT
 from supramodal.node.runtime.sinks.spec import sink_keys
@@ -122,6 +123,16 @@ SECTIONS = {
         "path": Key(text, "a model .npz path (loaded; or written when train_on_start)", None, path=True),
         "train_on_start": Key(flag, "true or false: train at start-up on the synth driver's texture set, or with "
                                     "another driver on the bank's reference set", False),
+        # Gain augmentation of the model trained on start (supramodal.model.GainAugment; issue 34): opt-in, it
+        # multiplies the training's CPU. A model file keeps what it was trained with (train --augment-gains).
+        "augment_copies": Key(integer(0, MAX_AUGMENT_COPIES), "with train_on_start: gain augmentation, more copies "
+                              "of each training window, each with its own random gains (a new touch's), an integer "
+                              f"0..{MAX_AUGMENT_COPIES} (0: none; the networks cost 1 + copies times the CPU)", 0),
+        "augment_spread": Key(non_negative(MAX_AUGMENT_SPREAD), "with augment_copies: the gains' spread, the standard "
+                              f"deviation of their natural log, 0..{MAX_AUGMENT_SPREAD:g}", DEFAULT_AUGMENT_SPREAD),
+        "augment_gains": Key(one_of("auto", *GAIN_MODES), 'with augment_copies: "per-channel" (each channel its own '
+                             'gain: a whisker array\'s vibrissae), "shared" (one level for all channels: a microphone) '
+                             'or "auto" (per-channel for a whisker bank, shared for a cochlea)', "auto"),
     },
     "decision": {
         "scope": Key(one_of(*SCOPES), f"one of {list(SCOPES)}", DEFAULT_DECISION.scope),
@@ -305,6 +316,24 @@ def _check_sections(source: str, sections: dict, bank_given: dict, where: str) -
     _check_decision(source, sections["decision"], f"{where}[decision]")
     if sections["model"]["path"] is None and not sections["model"]["train_on_start"]:
         _check_no_decision(source, sections["decision"], f"{where}[decision]")
+    _check_augment(source, sections["model"], f"{where}[model]")
+
+
+def _check_augment(source: str, model: dict, where: str) -> None:
+    """Gain augmentation is for a model the node trains (``train_on_start``), and its spread and gains for
+    ``augment_copies`` >= 1: set otherwise, refused (by value, not by presence: a scene written back states
+    every default, and passes)."""
+    if model["augment_copies"] and not model["train_on_start"]:
+        raise SceneError(f"{source}: {where} augment_copies = {model['augment_copies']}: gain augmentation is part of "
+                         "training, and this stream's model is not trained here (a model file keeps what it was "
+                         "trained with); set train_on_start = true, or train the file with `supramodal train "
+                         f"--augment-gains {model['augment_copies']},{model['augment_spread']:g}`, or remove "
+                         "augment_copies")
+    idle = [k for k in ("augment_spread", "augment_gains") if model[k] != SECTIONS["model"][k].default]
+    if idle and not model["augment_copies"]:
+        k = idle[0]
+        raise SceneError(f"{source}: {where} {k} = {_toml_value(model[k])} has no effect without gain augmentation: "
+                         "set augment_copies (e.g. 4) with train_on_start = true, or remove it")
 
 
 def _check_no_decision(source: str, decision: dict, where: str) -> None:

@@ -17,6 +17,7 @@ from types import MappingProxyType
 from supramodal.bankfile import BANK_KEYS
 from supramodal.decisions import DEFAULT_DECISION, DecisionRules
 from supramodal.errors import InputError
+from supramodal.model import DEFAULT_AUGMENT_SPREAD, GainAugment
 
 
 class SceneError(InputError):
@@ -101,10 +102,23 @@ class ModelSpec:
         A model file: loaded, or written when trained on start.
     train_on_start : bool
         Train at start-up (on the synthesised texture set, or the bank's reference set).
+    augment_copies, augment_spread, augment_gains
+        The gain augmentation of a model trained at start-up (0 copies: none; :meth:`gain_augment`).
     """
 
     path: str | None = None
     train_on_start: bool = False
+    augment_copies: int = 0
+    augment_spread: float = DEFAULT_AUGMENT_SPREAD
+    augment_gains: str = "auto"
+
+    def gain_augment(self) -> GainAugment | None:
+        """The :class:`supramodal.model.GainAugment` of a model trained at start-up (gains ``"auto"``: by the
+        bank), or None without one."""
+        if not self.augment_copies:
+            return None
+        per_channel = {"auto": None, "per-channel": True, "shared": False}[self.augment_gains]
+        return GainAugment(self.augment_copies, float(self.augment_spread), per_channel)
 
     @property
     def exists(self) -> bool:

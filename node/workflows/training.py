@@ -21,7 +21,7 @@ from supramodal.calibration import calibration_line, calibration_report, pool_lo
 from supramodal.errors import InputError, SupramodalError
 from supramodal.evaluation import POOLED_WINDOWS, anytime_sweep, permutation_importance, pooled_accuracy
 from supramodal.mlp import DEFAULT_EPOCHS
-from supramodal.model import TextureModel
+from supramodal.model import GainAugment, TextureModel
 from supramodal.node.runtime.streams import channel_mapper
 from supramodal.node.scene.band import warn_if_beyond_band
 from supramodal.node.workflows.manifest import ManifestError, Recording, manifest_classes, read_manifest
@@ -64,11 +64,13 @@ def _no_window(rec: Recording, window_seconds: float) -> ManifestError:
 
 
 def train_from_manifest(manifest, bank: Bank, features=("Af",), window: float = 0.1, epochs: int = DEFAULT_EPOCHS,
-                        seed: int = 0, mapping="auto", progress=None, jobs: int = 1) -> TextureModel:
+                        seed: int = 0, mapping="auto", progress=None, jobs: int = 1,
+                        augment: GainAugment | None = None) -> TextureModel:
     """Train a model on every window of every recording in the manifest, calibrated on held-out
     windows: out-of-fold windows of folds grouped by recording (manifest line) where every label
     has two recordings and there are enough of them, else of spans of each recording
-    (:meth:`supramodal.model.TextureModel.train`).
+    (:meth:`supramodal.model.TextureModel.train`). ``augment``: gain augmentation of every network's
+    training windows, the calibration's fold networks and the model's alike (default none).
 
     The manifest is read and checked whole (:func:`node.manifest.read_manifest`) before
     any feature is computed; a line whose part of its file holds no complete window is
@@ -83,7 +85,8 @@ def train_from_manifest(manifest, bank: Bank, features=("Af",), window: float = 
     make_pipeline = lambda: FeaturePipeline(bank, features, window)       # noqa: E731
     recs, classes, windows = _manifest_windows(manifest, make_pipeline, mapping, progress)
     say = None if progress is None else (lambda m: progress(f"calibration: {m}"))
-    return _train(recs, classes, windows, make_pipeline(), epochs, seed, calibration_progress=say, jobs=jobs)
+    return _train(recs, classes, windows, make_pipeline(), epochs, seed, calibration_progress=say, jobs=jobs,
+                  augment=augment)
 
 
 def _manifest_windows(manifest, make_pipeline, mapping, progress):
@@ -104,16 +107,17 @@ def _manifest_windows(manifest, make_pipeline, mapping, progress):
 
 
 def _train(recs, classes, windows, pipeline: FeaturePipeline, epochs: int, seed: int, hidden=None,
-           calibration_progress=None, groups=None, jobs: int = 1) -> TextureModel:
+           calibration_progress=None, groups=None, jobs: int = 1, augment: GainAugment | None = None) -> TextureModel:
     """A model on the recordings' windows, calibrated on out-of-fold windows of folds grouped by
     recording (``groups``, one per entry of ``recs``; default :func:`recording_group`) where there
-    are enough recordings; its networks over ``jobs`` worker processes (the same model for any)."""
+    are enough recordings; its networks over ``jobs`` worker processes (the same model for any), each
+    trained on its windows gain-augmented by ``augment`` (None: not)."""
     x = np.concatenate(windows)
     y = np.concatenate([np.full(len(v), classes.index(r.label)) for r, v in zip(recs, windows)])
     names = [recording_group(r) for r in recs] if groups is None else list(groups)
     groups = np.repeat(np.array(names), [len(v) for v in windows])
     model = TextureModel.train_for(pipeline, x, y, classes, epochs=epochs, seed=seed, hidden=hidden, groups=groups,
-                                   calibration_progress=calibration_progress, jobs=jobs)
+                                   calibration_progress=calibration_progress, jobs=jobs, augment=augment)
     _warn_if_calibrated_on_spans(model)
     return model
 
@@ -176,7 +180,7 @@ def scene_stream(path, stream: str):
 
 
 def train_from_scenes(paths, stream: str, epochs: int = DEFAULT_EPOCHS, seed: int = 0, progress=None,
-                      hidden=None, jobs: int = 1) -> TextureModel:
+                      hidden=None, jobs: int = 1, augment: GainAugment | None = None) -> TextureModel:
     """Train a stream's model straight from recorded graphs (``train --scene REC.toml ... --stream NAME``).
 
     Each scene is a replay scene ``supramodal record`` wrote; the stream's bank, features and window
@@ -187,7 +191,8 @@ def train_from_scenes(paths, stream: str, epochs: int = DEFAULT_EPOCHS, seed: in
     (every span of one recording in one fold) where every label lies in two recordings or more and
     there are enough of them (:meth:`supramodal.model.TextureModel.train`). The model keeps, under
     ``training["sessions"]``, the fingerprint of every session it saw (:func:`session_fingerprint`),
-    so that ``train --fusion`` can tell recordings it never saw.
+    so that ``train --fusion`` can tell recordings it never saw. ``augment``: gain augmentation of every
+    network's training windows (gains by bank resolved with the stream's bank; default none).
 
     Raises
     ------
@@ -202,7 +207,7 @@ def train_from_scenes(paths, stream: str, epochs: int = DEFAULT_EPOCHS, seed: in
                          "record (or label) another texture")
     say = None if progress is None else (lambda m: progress(f"calibration: {m}"))
     model = _train(recs, classes, windows, make(), epochs, seed, hidden, calibration_progress=say, groups=groups,
-                   jobs=jobs)
+                   jobs=jobs, augment=augment)
     model.training.update({"sessions": seen, "stream": stream})
     return model
 
@@ -328,14 +333,15 @@ def recording_group(rec: Recording) -> str:
 
 
 def cross_validate_manifest(manifest, bank: Bank, features=("Af",), window: float = 0.1, k: int = 5,
-                            epochs: int = DEFAULT_EPOCHS, seed: int = 0, mapping="auto", progress=None) -> dict:
+                            epochs: int = DEFAULT_EPOCHS, seed: int = 0, mapping="auto", progress=None,
+                            augment: GainAugment | None = None) -> dict:
     """Grouped ``k``-fold cross-validation of the training :func:`train_from_manifest` would do.
 
     Folds are grouped by manifest line, one trial (:func:`supramodal.training.grouped_folds`):
     the windows of one trial are never on both sides. A long recording may be split into
     several lines (``start``, ``end``) to make several trials; their spans must not overlap. Each
-    fold's model is trained as the final one would be (same features, window, epochs, seed) on the
-    other folds' recordings and scored on its own.
+    fold's model is trained as the final one would be (same features, window, epochs, seed, gain
+    augmentation) on the other folds' recordings and scored on its own.
 
     Returns
     -------
@@ -349,7 +355,7 @@ def cross_validate_manifest(manifest, bank: Bank, features=("Af",), window: floa
         of every test fold's decisions scored together, each by its fold's calibrated model).
     """
     make_pipeline = lambda: FeaturePipeline(bank, features, window)       # noqa: E731
-    return _cross_validate(manifest, make_pipeline, k, epochs, seed, None, mapping, progress)
+    return _cross_validate(manifest, make_pipeline, k, epochs, seed, None, mapping, progress, augment)
 
 
 def cross_validate_model(model: TextureModel, manifest, k: int = 5, seed: int | None = None, mapping="auto",
@@ -357,7 +363,7 @@ def cross_validate_model(model: TextureModel, manifest, k: int = 5, seed: int | 
     """Grouped ``k``-fold cross-validation of ``model``'s configuration on the manifest.
 
     Each fold trains a fresh model exactly as ``model`` was made (bank, features, window, peak
-    settings, hidden units, epochs) on the other folds' recordings and scores it on its own: how
+    settings, hidden units, epochs, gain augmentation) on the other folds' recordings and scores it on its own: how
     well a model like this one generalises to recordings it has not seen, which scoring ``model``
     itself on its own training recordings cannot say. ``seed`` defaults to the model's.
 
@@ -368,10 +374,10 @@ def cross_validate_model(model: TextureModel, manifest, k: int = 5, seed: int | 
     """
     seed = model.training.get("seed", 0) if seed is None else seed
     return _cross_validate(manifest, model.pipeline, k, int(model.training["epochs"]), seed,
-                           model.mlp.shape[1], mapping, progress)
+                           model.mlp.shape[1], mapping, progress, model.augment)
 
 
-def _cross_validate(manifest, make_pipeline, k, epochs, seed, hidden, mapping, progress) -> dict:
+def _cross_validate(manifest, make_pipeline, k, epochs, seed, hidden, mapping, progress, augment=None) -> dict:
     recs, classes, windows = _manifest_windows(manifest, make_pipeline, mapping, progress)
     _refuse_overlapping_trials(recs)
     fold = grouped_folds([r.where for r in recs], [r.label for r in recs], k, seed)
@@ -389,7 +395,7 @@ def _cross_validate(manifest, make_pipeline, k, epochs, seed, hidden, mapping, p
             raise ManifestError(f"{manifest}: fold {f + 1} of {k} would train without {missing}: record them more "
                                 "often or lower --cv")
         model = _train([recs[i] for i in train], classes, [windows[i] for i in train],
-                       make_pipeline(), epochs, seed, hidden)
+                       make_pipeline(), epochs, seed, hidden, augment=augment)
         result, part = _score_recordings(model, [recs[i] for i in test], [windows[i] for i in test])
         for key, value in part.items():
             scored[key] += list(value)

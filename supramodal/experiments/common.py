@@ -75,12 +75,14 @@ def estimate_cost(texture_set: TextureSet, bank: Bank, n_features: int, epochs: 
 
 
 def two_sense_sets_main(argv, module: str, description: str, run: Callable, table: Callable[[dict], str],
-                        quick: str) -> int:
+                        quick: str, augment: str | None = None) -> int:
     """Run the command line of an experiment over random two-sense sets (``python -m supramodal.experiments.NAME``).
 
     Its options are ``--quick`` (its help: ``quick``; 2 sets), ``--sets``, ``--seed``, ``--epochs``,
     ``--jobs``; it runs ``run(sets, quick, epochs, seed, progress, jobs)`` and prints ``table`` of
-    its result.
+    its result. ``augment``: the help of an ``--augment`` flag, for a ``run`` that takes ``augment`` (a
+    :class:`~supramodal.model.GainAugment` of the default copies and spread, seeded by ``--seed``); None:
+    no such flag.
     """
     import argparse
 
@@ -90,9 +92,16 @@ def two_sense_sets_main(argv, module: str, description: str, run: Callable, tabl
     p.add_argument("--seed", type=int, default=0, help="first set's seed and the networks' seed (default 0)")
     p.add_argument("--epochs", type=int, default=DEFAULT_EPOCHS, help=f"iRPROP- epochs (default {DEFAULT_EPOCHS})")
     p.add_argument("--jobs", type=int, help="worker processes (default: all cores)")
+    if augment is not None:
+        p.add_argument("--augment", action="store_true", help=augment)
     args = p.parse_args(argv)
+    more = {}
+    if getattr(args, "augment", False):
+        from supramodal.model import GainAugment
+
+        more["augment"] = GainAugment(seed=args.seed)
     print(table(run(2 if args.quick else args.sets, args.quick, args.epochs, args.seed, progress_to_stderr,
-                    args.jobs)))
+                    args.jobs, **more)))
     return 0
 
 

@@ -228,8 +228,11 @@ def run_set(set_seed: int, seconds: float = 10.0, epochs: int = DEFAULT_EPOCHS, 
             progress(f"  set {set_seed}: the {sense} model calibrated by span, and scored")
         model, train = trained.models[sense], trained.values[s_i]
         assert model.calibration is not None and model.out_of_fold is not None, "calibrated (the default)"
+        aug = model.augment          # the same network's fold networks, augmented as its own were
         span, _, _ = fit_network_calibration(train.reshape(len(train), -1), trained.y, len(classes), None,
-                                             DEFAULT_CALIBRATION_FOLDS, epochs=epochs, seed=seed)
+                                             DEFAULT_CALIBRATION_FOLDS, epochs=epochs, seed=seed,
+                                             augment=None if aug is None else aug.for_inputs(FEATURES,
+                                                                                             model.bank.channels))
         test = stack(s_i)
         test_lp[sense] = model.log_posteriors(test)
         estimate = model.calibration.log_posteriors(model.out_of_fold.logits)
@@ -274,6 +277,7 @@ def run_newtouch(sets: int = 5, quick: bool = False, epochs: int = DEFAULT_EPOCH
     results = list(run_all(runs, jobs=jobs, seed=seed, progress=progress).values())
     return {"figure": "newtouch", "seconds": seconds, "touches": TOUCHES, "asked_unknown": ASKED_UNKNOWN,
             "contact_windows": CONTACT_WINDOWS, "sure": SURE, "sets": results,
+            "augment": None if augment is None else augment.to_dict(),
             "compute_seconds": time.perf_counter() - t0}
 
 
@@ -324,6 +328,13 @@ def newtouch_table(result: dict) -> str:
         checks.append(r["late"]["issue34"]["touch3"]["log_loss"] <= better)
     lines += ["", f"late fusion (rule of issue 34) log loss on touch 3 <= the better sense's: {sum(checks)} of "
               f"{len(checks)} sets"]
+    cpu = [r["train_cpu_seconds"] for r in result["sets"] if "train_cpu_seconds" in r]
+    if cpu:
+        lines.append(f"training CPU of a set's senses and fusion (this process): {min(cpu):.1f}..{max(cpu):.1f} s")
+    augment = result.get("augment")
+    lines.append("gain augmentation of the networks' training windows: "
+                 + ("none" if augment is None else f"{augment['copies']} copies, spread {augment['spread']:g} "
+                    "(per vibrissa for the whiskers, one level for the microphone)"))
     return "\n".join(lines)
 
 
@@ -392,7 +403,11 @@ def main(argv=None) -> int:
     from supramodal.experiments.common import two_sense_sets_main
 
     return two_sense_sets_main(argv, "newtouch", __doc__.splitlines()[0], run_newtouch, newtouch_table,
-                               "6 s touches (default 10 s)")
+                               "6 s touches (default 10 s)",
+                               augment="gain augmentation of every network's training windows (supramodal.model."
+                                       "GainAugment: 4 more copies of each, gains exp(N(0, 0.03)); per vibrissa for "
+                                       "the whiskers, one level for the microphone); the networks cost 5 times the "
+                                       "CPU (default: none)")
 
 
 if __name__ == "__main__":
