@@ -66,12 +66,12 @@ COMMANDS: dict[str, str] = {
 
 
 def command_module(name: str) -> ModuleType:
-    """The module of the command ``name`` (a key of :data:`COMMANDS`)."""
+    """Import and return the module of the command ``name`` (a key of :data:`COMMANDS`)."""
     return importlib.import_module(COMMANDS[name])
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """The parser of the whole command line: the global options and one subparser per command.
+    """Build the parser of the whole command line: the global options and one subparser per command.
 
     Returns
     -------
@@ -108,7 +108,10 @@ def build_parser() -> argparse.ArgumentParser:
 def _show_warning(message: Warning | str, category: type[Warning], filename: str, lineno: int,
                   file: TextIO | None = None, line: str | None = None,
                   _default: Callable[..., Any] = warnings.showwarning) -> None:
-    """The package's warnings as one line each, like its errors (``--quiet`` hides progress, never these)."""
+    """Show the package's warnings as one line each, like its errors (``--quiet`` hides progress, never these).
+
+    Other warnings are shown as Python shows them.
+    """
     if issubclass(category, SupramodalWarning):
         print(f"supramodal: warning: {message}", file=sys.stderr, flush=True)
     else:

@@ -1,5 +1,7 @@
-"""What the commands share: argument types checked at parse time, output paths checked before any work,
-and the progress lines on stderr."""
+"""What the commands share: argument types, output paths checked before any work, and progress lines on stderr.
+
+The argument types are checked at parse time.
+"""
 
 from __future__ import annotations
 
@@ -14,7 +16,7 @@ from supramodal.errors import SupramodalError
 
 
 def _check_output(text: str, folder: bool) -> Path:
-    """An output path, checked before any long work starts, so that none is lost.
+    """Return an output path, checked before any long work starts, so that none is lost.
 
     A file (``folder=False``) must not be a folder, and its folder must exist and be
     writable; the file is written at exactly this path. A folder (``folder=True``) is
@@ -41,10 +43,12 @@ def _check_output(text: str, folder: bool) -> Path:
 
 
 def output_file(text: str) -> Path:
+    """Parse an output file's path, checked at parse time (see :func:`_check_output`)."""
     return _check_output(text, folder=False)
 
 
 def output_folder(text: str) -> Path:
+    """Parse an output folder's path, checked at parse time (see :func:`_check_output`)."""
     return _check_output(text, folder=True)
 
 
@@ -60,7 +64,7 @@ def stream_seconds(text: str) -> float | None:
 
 
 def positive_seconds(text: str) -> float:
-    """A finite, positive number of seconds (``--window``, ``--duration``)."""
+    """Parse a finite, positive number of seconds (``--window``, ``--duration``)."""
     try:
         value = float(text)
     except ValueError:
@@ -71,7 +75,7 @@ def positive_seconds(text: str) -> float:
 
 
 def count(lo: int):
-    """An integer option of at least ``lo`` (``--epochs``, ``--jobs``, ``--sets``, ``--seed``)."""
+    """Return the argument type of an integer option of at least ``lo`` (``--epochs``, ``--jobs``, ``--sets``)."""
     def parse(text: str) -> int:
         try:
             value = int(text)
@@ -99,15 +103,17 @@ def seed(text: str) -> int:
 
 
 def cores() -> int:
-    """The cores this process may run on."""
+    """Return the number of cores this process may run on."""
     from supramodal.parallel import default_jobs
 
     return default_jobs()
 
 
 def jobs(text: str) -> int:
-    """``--jobs``: local worker processes, 1 .. the cores here (more only compete for them and hold memory
-    each; a cluster of more machines is ``--cluster``)."""
+    """``--jobs``: local worker processes, 1 .. the cores here.
+
+    More only compete for them and hold memory each; a cluster of more machines is ``--cluster``.
+    """
     n = cores()
     value = count(1)(text)
     if value > n:
@@ -133,7 +139,7 @@ def cluster_address(text: str) -> str:
 
 
 def session_name(text: str) -> str:
-    """A session's name: a file name part, never a path (refused at start, not after recording)."""
+    """Parse a session's name: a file name part, never a path (refused at start, not after recording)."""
     from supramodal.checks import NAME_HELP, is_name
 
     if not is_name(text):
@@ -142,6 +148,10 @@ def session_name(text: str) -> str:
 
 
 def speed(text: str):
+    """``--speed``: a replay's speed, a factor (1.0: real time) or ``max`` (every block at once).
+
+    The replay driver's ``SPEED_HELP`` says which factors it takes.
+    """
     from supramodal.replay.driver import SPEED_HELP, SPEED_MAX, is_speed
 
     try:
@@ -164,7 +174,7 @@ def label_name(text: str) -> str:
 
 
 def source_value(text: str) -> tuple[str, str]:
-    """A ``SOURCE=VALUE`` option of ``import-recording``."""
+    """Parse a ``SOURCE=VALUE`` option of ``import-recording`` into ``(SOURCE, VALUE)``."""
     name, eq, value = text.partition("=")
     if not eq or not name or not value:
         raise argparse.ArgumentTypeError(f"expected SOURCE=VALUE (e.g. whiskers=whiskers.wav); got {text!r}")
@@ -183,6 +193,7 @@ def bank(text: str):
 
 
 def mapping(text: str):
+    """Parse ``--mapping``: a channel index (digits, as an integer), or a mapping's name as it is given."""
     return int(text) if text.isdigit() else text
 
 
@@ -191,8 +202,10 @@ AUGMENT_GAINS_FORM = "COPIES[,SPREAD[,per-channel|shared]]"
 
 
 def augment_gains(text: str):
-    """``--augment-gains COPIES[,SPREAD[,per-channel|shared]]``: a :class:`supramodal.model.GainAugment` (seed 0:
-    the command sets its own), its gains by the bank where the third part is left out."""
+    """Parse ``--augment-gains COPIES[,SPREAD[,per-channel|shared]]`` into a :class:`supramodal.model.GainAugment`.
+
+    Seed 0: the command sets its own; its gains by the bank where the third part is left out.
+    """
     from supramodal.model import DEFAULT_AUGMENT_SPREAD, GAIN_MODES, MAX_AUGMENT_COPIES, MAX_AUGMENT_SPREAD, GainAugment
 
     parts = text.split(",")
@@ -222,9 +235,11 @@ def augment_gains(text: str):
 
 
 class StderrProgress:
-    """Progress lines on stderr, ``supramodal: ...``. :meth:`transient` lines (a long step's periodic
-    line) rewrite one line in place on a terminal and are plain lines elsewhere (a log, a pipe); the
-    next plain line replaces a transient one. Any thread."""
+    """Progress lines on stderr, ``supramodal: ...``.
+
+    :meth:`transient` lines (a long step's periodic line) rewrite one line in place on a terminal and are
+    plain lines elsewhere (a log, a pipe); the next plain line replaces a transient one. Any thread.
+    """
 
     def __init__(self, stream=None) -> None:
         self.stream = sys.stderr if stream is None else stream
@@ -236,6 +251,7 @@ class StderrProgress:
         return bool(isatty and isatty())
 
     def __call__(self, message: str) -> None:
+        """Write ``message`` as a plain line, ``supramodal: MESSAGE``, replacing a transient line on the terminal."""
         with self._lock:
             clear = "\r\x1b[K" if self._open else ""
             self._open = False
@@ -243,6 +259,7 @@ class StderrProgress:
             self.stream.flush()
 
     def transient(self, message: str) -> None:
+        """Write ``message`` as a transient line: in place of the last one on a terminal, a plain line elsewhere."""
         if not self._tty():
             self(message)
             return
@@ -253,10 +270,14 @@ class StderrProgress:
 
 
 def progress(args):
-    """The command's progress on stderr (:class:`StderrProgress`), or None with ``--quiet``."""
+    """Return the command's progress on stderr (:class:`StderrProgress`), or None with ``--quiet``."""
     return None if getattr(args, "quiet", False) else StderrProgress()
 
 
 def say_plots_missing(notice: str | None) -> None:
+    """Say on stderr why no PNG was written, if ``notice`` says so.
+
+    ``notice``: :func:`~supramodal.node.workflows.reports.plots_missing_notice`'s (None: nothing to say).
+    """
     if notice:
         print(f"supramodal: {notice}", file=sys.stderr)

@@ -28,8 +28,10 @@ SPEED = (
 
 def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
                common: argparse.ArgumentParser) -> argparse.ArgumentParser:
-    """Add the ``bench`` command's parser and its arguments to ``subparsers``;
-    ``common`` is the parent parser of every command (``--debug``)."""
+    """Add the ``bench`` command's parser and its arguments to ``subparsers``.
+
+    ``common`` is the parent parser of every command (``--debug``).
+    """
     p = subparsers.add_parser("bench", parents=[common], help=SUMMARY)
     p.add_argument("--quick", action="store_true",
                    help="short signals and streams, one round, a fit of 48 short recordings (a minute or two; not "
@@ -43,8 +45,10 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
 
 
 def speed_section(results: dict) -> str:
-    """The report's part on the speed benchmarks: each one's command and its ``report()`` of ``results[NAME]``
-    (those absent are left out)."""
+    """Return the report's part on the speed benchmarks: each one's command and its ``report()`` of ``results[NAME]``.
+
+    Those absent are left out.
+    """
     import importlib
 
     lines = ["## d. Training, the pipeline and the fit's search", "",
@@ -58,8 +62,9 @@ def speed_section(results: dict) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Run the filterbank benchmark, then the speed benchmarks (:data:`SPEED`), each in a child process, and
-    add the speed benchmarks' figures to the report; the first child's failure is the command's.
+    """Run the filterbank benchmark, then the speed benchmarks (:data:`SPEED`), each in a child process.
+
+    Add the speed benchmarks' figures to the report; the first child's failure is the command's.
 
     Parameters
     ----------

@@ -33,7 +33,7 @@ def _cell(text: str) -> str:
 
 
 def command_table() -> str:
-    """The README's command table, as Markdown: one row per form of each command, in ``COMMANDS``' order.
+    """Return the README's command table, as Markdown: one row per form of each command, in ``COMMANDS``' order.
 
     Raises
     ------
@@ -57,11 +57,15 @@ def blocks() -> dict[str, str]:
 
 
 def check(root: Path) -> list[str]:
-    """The files under ``root`` (the repository's root) whose command table differs from the commands'."""
+    """Return the files under ``root`` (the repository's root) whose command table differs from the commands'."""
     return check_blocks(root, BLOCKS, blocks())
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """Rewrite README.md's command table from the command modules, or with ``--check`` say if it differs.
+
+    ``python -m supramodal.node.cli.docs [--check]``; returns the exit status (1: the file differs).
+    """
     assert __doc__ is not None
     return command_line(argv, "python -m supramodal.node.cli.docs", __doc__.splitlines()[0], BLOCKS, blocks,
                         "its command table differs from the command modules")

@@ -28,8 +28,10 @@ README_ROWS = (
 
 def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
                common: argparse.ArgumentParser) -> argparse.ArgumentParser:
-    """Add the ``evaluate`` command's parser and its arguments to ``subparsers``;
-    ``common`` is the parent parser of every command (``--debug``)."""
+    """Add the ``evaluate`` command's parser and its arguments to ``subparsers``.
+
+    ``common`` is the parent parser of every command (``--debug``).
+    """
     p = subparsers.add_parser("evaluate", parents=[common], help=SUMMARY)
     p.add_argument("model", nargs="?", help="model file (.npz); not with --scene")
     p.add_argument("--manifest", help="CSV with columns path,label[,start,end]; paths relative to it")
@@ -116,7 +118,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _model_file_version(path) -> int | None:
-    """The format version a model file says it is (an uncalibrated model of version 1 is said so)."""
+    """Return the format version a model file says it is (an uncalibrated model of version 1 is said so)."""
     from supramodal.model import read_model_archive
 
     header, _ = read_model_archive(path)

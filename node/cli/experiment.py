@@ -22,8 +22,10 @@ README_ROWS = (
 
 def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
                common: argparse.ArgumentParser) -> argparse.ArgumentParser:
-    """Add the ``experiment`` command's parser and its arguments to ``subparsers``;
-    ``common`` is the parent parser of every command (``--debug``)."""
+    """Add the ``experiment`` command's parser and its arguments to ``subparsers``.
+
+    ``common`` is the parent parser of every command (``--debug``).
+    """
     from supramodal.mlp import DEFAULT_EPOCHS
 
     p = subparsers.add_parser("experiment", parents=[common], help=SUMMARY)
@@ -105,8 +107,10 @@ TWO_SENSE_EXPERIMENTS = {"fusion": ("fusion", "run_fusion", "fusion_table"),
 
 
 def _two_sense_experiment(args) -> int:
-    """``experiment fusion|newtouch|change``: an experiment over random two-sense sets (beyond the paper): its
-    table (or JSON) and its files."""
+    """Run ``experiment fusion|newtouch|change``: an experiment over random two-sense sets (beyond the paper).
+
+    It writes its table (or JSON) and its files.
+    """
     import importlib
 
     from supramodal.experiments.common import progress_to_stderr

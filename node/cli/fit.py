@@ -34,8 +34,10 @@ README_ROWS = (
 
 def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
                common: argparse.ArgumentParser) -> argparse.ArgumentParser:
-    """Add the ``fit`` command's parser and its arguments to ``subparsers``;
-    ``common`` is the parent parser of every command (``--debug``)."""
+    """Add the ``fit`` command's parser and its arguments to ``subparsers``.
+
+    ``common`` is the parent parser of every command (``--debug``).
+    """
     p = subparsers.add_parser("fit", parents=[common], help=SUMMARY)
     p.add_argument("manifest", help="CSV with columns path,label[,start,end]; paths relative to it")
     p.add_argument("--out", type=output_folder, default="out/fit",

@@ -21,8 +21,10 @@ README_ROWS = (
 
 def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
                common: argparse.ArgumentParser) -> argparse.ArgumentParser:
-    """Add the ``import-recording`` command's parser and its arguments to ``subparsers``;
-    ``common`` is the parent parser of every command (``--debug``)."""
+    """Add the ``import-recording`` command's parser and its arguments to ``subparsers``.
+
+    ``common`` is the parent parser of every command (``--debug``).
+    """
     p = subparsers.add_parser("import-recording", parents=[common], help=SUMMARY)
     p.add_argument("--out", required=True, type=output_folder, metavar="DIR",
                    help="folder for the recording (created if missing)")

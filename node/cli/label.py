@@ -16,8 +16,10 @@ README_ROWS = (
 
 def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
                common: argparse.ArgumentParser) -> argparse.ArgumentParser:
-    """Add the ``label`` command's parser and its arguments to ``subparsers``;
-    ``common`` is the parent parser of every command (``--debug``)."""
+    """Add the ``label`` command's parser and its arguments to ``subparsers``.
+
+    ``common`` is the parent parser of every command (``--debug``).
+    """
     p = subparsers.add_parser("label", parents=[common], help=SUMMARY)
     p.add_argument("recording", metavar="REC.toml", help="the replay scene `supramodal record` wrote for a graph")
     p.add_argument("spans", metavar="SPANS.csv",

@@ -19,8 +19,10 @@ README_ROWS = (
 
 def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
                common: argparse.ArgumentParser) -> argparse.ArgumentParser:
-    """Add the ``mock-whisker`` command's parser and its arguments to ``subparsers``;
-    ``common`` is the parent parser of every command (``--debug``)."""
+    """Add the ``mock-whisker`` command's parser and its arguments to ``subparsers``.
+
+    ``common`` is the parent parser of every command (``--debug``).
+    """
     from supramodal.drivers.mock_whisker import add_arguments as mock_arguments
 
     p = subparsers.add_parser("mock-whisker", parents=[common], help=SUMMARY)

@@ -23,8 +23,10 @@ README_ROWS = (
 
 def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
                common: argparse.ArgumentParser) -> argparse.ArgumentParser:
-    """Add the ``recalibrate`` command's parser and its arguments to ``subparsers``;
-    ``common`` is the parent parser of every command (``--debug``)."""
+    """Add the ``recalibrate`` command's parser and its arguments to ``subparsers``.
+
+    ``common`` is the parent parser of every command (``--debug``).
+    """
     p = subparsers.add_parser("recalibrate", parents=[common], help=SUMMARY)
     p.add_argument("model", metavar="MODEL.npz", help="the model to recalibrate (a sense model of `supramodal train`)")
     p.add_argument("--manifest", help="CSV with columns path,label[,start,end] of the new recordings; paths relative "
@@ -81,7 +83,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _sense_model(path):
-    """The sense model at ``path``; an early-fusion file is refused with what to do instead."""
+    """Return the sense model at ``path``; an early-fusion file is refused with what to do instead."""
     from supramodal.fused_model import EARLY_FORMAT
     from supramodal.model import ModelError, TextureModel
 

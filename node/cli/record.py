@@ -30,8 +30,10 @@ README_ROWS = (
 
 def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
                common: argparse.ArgumentParser) -> argparse.ArgumentParser:
-    """Add the ``record`` command's parser and its arguments to ``subparsers``;
-    ``common`` is the parent parser of every command (``--debug``)."""
+    """Add the ``record`` command's parser and its arguments to ``subparsers``.
+
+    ``common`` is the parent parser of every command (``--debug``).
+    """
     p = subparsers.add_parser("record", parents=[common], help=SUMMARY)
     p.add_argument("--force", action="store_true", help="replace an existing session of that name (default: refuse)")
     p.add_argument("scene", help="scene TOML file")
@@ -106,8 +108,11 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _keep_or_drop(staging: Path, aside: Path) -> None:
-    """A graph's recording that was not put in place (a source never started, the node failed): its sessions
-    are what the user recorded, kept in ``aside`` and said; a staging folder with no session goes."""
+    """Keep the sessions of a graph's recording that was not put in place, in ``aside``, or drop an empty one.
+
+    Not put in place: a source never started, the node failed. Its sessions are what the user recorded,
+    kept in ``aside`` and said; a staging folder with no session goes.
+    """
     if staging.is_dir() and any(staging.glob("*.wav")):
         staging.rename(aside)
         print(f"supramodal: record: the recording was not put in place; the sessions it made are kept in {aside}",
@@ -117,7 +122,7 @@ def _keep_or_drop(staging: Path, aside: Path) -> None:
 
 
 def _staging(out: Path, name: str) -> Path:
-    """The folder a graph's recording is written into, beside it, before its files are put in place all at once."""
+    """Return the folder a graph's recording is written into, beside it, before its files are put in place at once."""
     return out / f".{name}.record-{os.getpid()}"
 
 
@@ -182,8 +187,10 @@ def _record(args: argparse.Namespace, scene, name: str, labelled: bool, sessions
 
 
 def _write_bag(args: argparse.Namespace, sessions: list, windows) -> None:
-    """``record --bag``: the sessions just recorded, and the windows' decisions (``windows``: the JSON
-    Lines the run wrote), as a rosbag2."""
+    """Write ``record --bag``'s rosbag2: the sessions just recorded, and the windows' decisions.
+
+    ``windows``: the JSON Lines the run wrote.
+    """
     if args.bag is None:
         return
     from supramodal.node.workflows.bag_export import export_bag
@@ -194,9 +201,11 @@ def _write_bag(args: argparse.Namespace, sessions: list, windows) -> None:
 
 
 def _read_marks(mark) -> None:
-    """``record --marks``: each line typed on stdin starts a label (its text) now, an empty line
-    ends it (``mark(label or None)``), on a thread of its own; a line that is no valid label is
-    said on stderr and not applied."""
+    """Read ``record --marks``' labels from stdin, on a thread of its own.
+
+    Each line typed on stdin starts a label (its text) now, an empty line ends it (``mark(label or None)``); a
+    line that is no valid label is said on stderr and not applied.
+    """
     from supramodal.node.workflows.labels import LabelError, check_label_name
 
     def read():

@@ -22,8 +22,10 @@ README_ROWS = (
 
 def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
                common: argparse.ArgumentParser) -> argparse.ArgumentParser:
-    """Add the ``run`` command's parser and its arguments to ``subparsers``;
-    ``common`` is the parent parser of every command (``--debug``)."""
+    """Add the ``run`` command's parser and its arguments to ``subparsers``.
+
+    ``common`` is the parent parser of every command (``--debug``).
+    """
     p = subparsers.add_parser("run", parents=[common], help=SUMMARY)
     p.add_argument("--force", action="store_true", help="replace existing sink files (default: refuse)")
     p.add_argument("scene", nargs="?", help="scene TOML file (default: the embedded default scene)")
@@ -86,7 +88,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _default_run_guide(scene, speed) -> list[str]:
-    """What the embedded default scene shows, how long it runs, and where to go from it."""
+    """Return what the embedded default scene shows, how long it runs, and where to go from it."""
     from supramodal.textures import reference_texture_set
     from supramodal.training import TRAIN_FRACTION
 
@@ -106,8 +108,10 @@ def _default_run_guide(scene, speed) -> list[str]:
 
 
 def speed_notice(scene, speed) -> str | None:
-    """What ``--speed`` does not do on this scene, said once: it paces replayed sources only (None: it paces
-    some, or was not given)."""
+    """Return what ``--speed`` does not do on this scene, said once: it paces replayed sources only.
+
+    None: it paces some, or was not given.
+    """
     from supramodal.node.scene.registry import driver_spec
 
     if speed is None:
@@ -121,9 +125,11 @@ def speed_notice(scene, speed) -> str | None:
 
 
 def _scene_line(scene, sinks_replaced: bool = False) -> str:
-    """What a scene runs, in one line: driver, bank, features and window (per stream, and the
-    fusion, for a scene of several sources); ``sinks_replaced`` (``run --json``): the scene's
-    sinks are not made, so no source is said to be sent on."""
+    """Return what a scene runs, in one line: driver, bank, features and window.
+
+    Per stream, and the fusion, for a scene of several sources. ``sinks_replaced`` (``run --json``): the
+    scene's sinks are not made, so no source is said to be sent on.
+    """
     def one(stream) -> str:
         bank = f"the bank of {stream.bank.file}" if stream.bank.file is not None else f"{stream.bank.kind} bank"
         return f"{bank}, features {list(stream.features.names)}, {stream.features.window:g} s windows"
@@ -149,7 +155,10 @@ def _scene_line(scene, sinks_replaced: bool = False) -> str:
 
 
 def attach_views(node, on_mark=None) -> None:
-    """A scene's view sinks (if any) get the graph's counters and, while recording, the marks."""
+    """Give a scene's view sinks (if any) the marks' handler ``on_mark`` while recording.
+
+    Their counters the graph gives every sink itself (:meth:`Sink.watch <supramodal.node.runtime.sinks.Sink.watch>`).
+    """
     from supramodal.node.runtime.sinks.view import attach
 
     attach(node, on_mark)

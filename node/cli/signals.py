@@ -1,5 +1,7 @@
-"""SIGINT and SIGTERM: during start-up they interrupt it (one line, 130 or 143); once the node runs they stop it
-cleanly (what is buffered is processed, the summary printed)."""
+"""SIGINT and SIGTERM: they interrupt the start-up (one line, 130 or 143), and stop a running node cleanly.
+
+Cleanly: what is buffered is processed, the summary printed.
+"""
 
 from __future__ import annotations
 
@@ -12,9 +14,11 @@ STARTUP = "start-up (building the scene, training its model); nothing was proces
 
 
 class StartupInterrupted(BaseException):
-    """SIGINT or SIGTERM arrived before the stream started (or during another command's work:
-    ``during`` says what was interrupted, and what that left). A BaseException, like
-    KeyboardInterrupt, so that no ``except Exception`` on the way swallows it."""
+    """SIGINT or SIGTERM arrived before the stream started (or during another command's work).
+
+    ``during`` says what was interrupted, and what that left. A BaseException, like KeyboardInterrupt, so that
+    no ``except Exception`` on the way swallows it.
+    """
 
     def __init__(self, signum: int, during: str = STARTUP) -> None:
         super().__init__(signal.Signals(signum).name)
@@ -23,9 +27,11 @@ class StartupInterrupted(BaseException):
 
 
 def interrupt_until_running(during: str = STARTUP) -> None:
-    """Until :func:`stop_on_signals`, SIGINT and SIGTERM interrupt the start-up (building the
-    scene, training its model; or ``during``, another command's work) with a one-line message
-    instead of dying silently, and the ``with`` blocks on the way close what they opened."""
+    """Have SIGINT and SIGTERM interrupt the start-up with a one-line message, until :func:`stop_on_signals`.
+
+    The start-up: building the scene, training its model; or ``during``, another command's work. The command
+    does not die silently, and the ``with`` blocks on the way close what they opened.
+    """
     def interrupt(signum: int, frame: FrameType | None) -> None:
         raise StartupInterrupted(signum, during)
 
@@ -34,9 +40,10 @@ def interrupt_until_running(during: str = STARTUP) -> None:
 
 
 def stop_on_signals(node: Any) -> None:
-    """From now on SIGINT and SIGTERM only set a flag: the node finishes what it holds and
-    prints its summary (before this, :func:`interrupt_until_running` applies). Called by the node once it
-    runs (``on_running``): a wait before, for a consumer of an outlet, is still start-up.
+    """From now on, have SIGINT and SIGTERM only set a flag: the node finishes what it holds and prints its summary.
+
+    Before this, :func:`interrupt_until_running` applies. Called by the node once it runs (``on_running``): a
+    wait before, for a consumer of an outlet, is still start-up.
 
     Parameters
     ----------

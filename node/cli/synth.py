@@ -20,8 +20,10 @@ README_ROWS = (
 
 def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
                common: argparse.ArgumentParser) -> argparse.ArgumentParser:
-    """Add the ``synth`` command's parser and its arguments to ``subparsers``;
-    ``common`` is the parent parser of every command (``--debug``)."""
+    """Add the ``synth`` command's parser and its arguments to ``subparsers``.
+
+    ``common`` is the parent parser of every command (``--debug``).
+    """
     p = subparsers.add_parser("synth", parents=[common], help=SUMMARY)
     p.add_argument("--force", action="store_true", help="replace existing texture files in --out (default: refuse)")
     p.add_argument("--bank", choices=["whisker", "cochlea"], default="whisker",

@@ -42,8 +42,10 @@ README_ROWS = (
 
 def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
                common: argparse.ArgumentParser) -> argparse.ArgumentParser:
-    """Add the ``train`` command's parser and its arguments to ``subparsers``;
-    ``common`` is the parent parser of every command (``--debug``)."""
+    """Add the ``train`` command's parser and its arguments to ``subparsers``.
+
+    ``common`` is the parent parser of every command (``--debug``).
+    """
     from supramodal.features import DEFAULT_WINDOW, FEATURE_TABLE
     from supramodal.mlp import DEFAULT_EPOCHS
 
@@ -177,15 +179,18 @@ def _augment(args):
 
 
 def _say_augment(model) -> None:
-    """The report's line of the gain augmentation its networks trained with (none: no line)."""
+    """Print the report's line of the gain augmentation its networks trained with (none: no line)."""
     if model.augment is not None:
         print(model.augment.describe())
 
 
 def save_model(model, out, cv: tuple[int, dict] | None = None) -> list[Path]:
-    """Save ``model`` (a sense or a fused model) to ``out`` whole or not at all, with its cross-validation's files
-    beside it (``cv``: its folds and result): written aside, then put in place together (written in place, an
-    interrupted save left a model file cut short where the earlier one was). The files written, the model last."""
+    """Save ``model`` (a sense or a fused model) to ``out`` whole or not at all, with its cross-validation's files.
+
+    The cross-validation's files go beside it (``cv``: its folds and result): written aside, then put in place
+    together (written in place, an interrupted save left a model file cut short where the earlier one was).
+    Returns the files written, the model last.
+    """
     from supramodal.node.workflows.reports import write_confusion, write_reliability, write_staged
 
     out = Path(out)
@@ -247,8 +252,10 @@ def _stream_models(pairs) -> dict:
 
 
 def _train_fusion(args) -> int:
-    """``train --fusion early|late --scene S.toml ...``: a fusion learned on recorded two-sense sessions,
-    from windows held out of every network that scored them (node/workflows/fused_training.py)."""
+    """Run ``train --fusion early|late --scene S.toml ...``: learn a fusion on recorded two-sense sessions.
+
+    From windows held out of every network that scored them (node/workflows/fused_training.py).
+    """
     from supramodal.node.runtime.outputs import check_new_file
     from supramodal.node.workflows.fused_training import train_fused, write_fused_scene
 

@@ -19,8 +19,10 @@ README_ROWS = (
 
 def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
                common: argparse.ArgumentParser) -> argparse.ArgumentParser:
-    """Add the ``view`` command's parser and its arguments to ``subparsers``;
-    ``common`` is the parent parser of every command (``--debug``)."""
+    """Add the ``view`` command's parser and its arguments to ``subparsers``.
+
+    ``common`` is the parent parser of every command (``--debug``).
+    """
     p = subparsers.add_parser("view", parents=[common], help=SUMMARY)
     p.add_argument("recording", metavar="REC.toml|SESSION",
                    help="the replay scene `supramodal record` wrote for a graph, or a session (NAME.wav + NAME.json)")

@@ -24,13 +24,15 @@ class BandWarning(SupramodalWarning):
 
 
 def channels_beyond_band(bank: Bank, source_rate: float) -> np.ndarray:
-    """Indices of the channels whose centre frequency is at or above ``source_rate / 2`` (Hz)."""
+    """Return the indices of the channels whose centre frequency is at or above ``source_rate / 2`` (Hz)."""
     return np.flatnonzero(bank.cf >= source_rate / 2)
 
 
 def warn_if_beyond_band(bank: Bank, source_rate: float, what: str) -> int:
-    """Warn (:class:`BandWarning`) when ``what``, sampled at ``source_rate`` Hz, leaves channels of
-    ``bank`` above its band; returns how many channels that is (0: nothing said)."""
+    """Warn when ``what``, sampled at ``source_rate`` Hz, leaves channels of ``bank`` above its band.
+
+    The warning is a :class:`BandWarning`. Returns how many channels that is (0: nothing said).
+    """
     empty = channels_beyond_band(bank, source_rate)
     if empty.size:
         warnings.warn(BandWarning(

@@ -45,8 +45,10 @@ if TYPE_CHECKING:   # for annotations only: a scene without fusion does not load
 
 
 def bank_for(scene: Scene, stream: StreamSpec | None = None) -> Bank:
-    """The bank of ``stream`` (default: the scene's only one): its [bank] file, or its kind's recipe
-    with the keys the scene sets."""
+    """Return the bank of ``stream`` (default: the scene's only one).
+
+    Its [bank] file, or its kind's recipe with the keys the scene sets.
+    """
     stream = stream or scene.only_stream()
     b = stream.bank
     try:
@@ -58,7 +60,7 @@ def bank_for(scene: Scene, stream: StreamSpec | None = None) -> Bank:
 
 
 def pipeline_for(scene: Scene, bank: Bank, stream: StreamSpec | None = None) -> FeaturePipeline:
-    """The feature pipeline of ``stream`` (default: the scene's only one) on ``bank``."""
+    """Return the feature pipeline of ``stream`` (default: the scene's only one) on ``bank``."""
     stream = stream or scene.only_stream()
     f = stream.features
     try:
@@ -70,14 +72,14 @@ def pipeline_for(scene: Scene, bank: Bank, stream: StreamSpec | None = None) -> 
 
 def train_on_texture_set(ts, pipeline: FeaturePipeline, progress=None, held_out: list | None = None,
                          trained: list | None = None, augment: GainAugment | None = None) -> TextureModel:
-    """The model the default scene trains on the spot: Fig. 3's training part of each texture,
-    computed with the scene's own pipeline settings, calibrated on out-of-fold windows of that
-    training part (:meth:`TextureModel.train`: each texture's training windows cut into spans in
-    time, one per fold). ``held_out``, a list, receives the held-out part ``(x_test, y_test)``
-    (windows the model never saw: a fusion is scored on them); ``trained`` the training part
-    ``(x_train, y_train)`` (an early-fusion network learns on it, a late-fusion weight on its
-    out-of-fold windows). ``augment``: the gain augmentation of its networks' training windows
-    (``[model] augment_copies``, ...; default none).
+    """Return the model the default scene trains on the spot, on Fig. 3's training part of each texture.
+
+    It is computed with the scene's own pipeline settings, calibrated on out-of-fold windows of that training
+    part (:meth:`TextureModel.train`: each texture's training windows cut into spans in time, one per fold).
+    ``held_out``, a list, receives the held-out part ``(x_test, y_test)`` (windows the model never saw: a
+    fusion is scored on them); ``trained`` the training part ``(x_train, y_train)`` (an early-fusion network
+    learns on it, a late-fusion weight on its out-of-fold windows). ``augment``: the gain augmentation of its
+    networks' training windows (``[model] augment_copies``, ...; default none).
 
     It trains every time: the node keeps what it trains on start in one cache, on disk
     (:func:`~supramodal.node.scene.model_cache.trained_on_start`, which calls this on a miss).
@@ -92,9 +94,11 @@ def train_on_texture_set(ts, pipeline: FeaturePipeline, progress=None, held_out:
 def texture_set_model(ts, bank: Bank, features: tuple[str, ...], window: float, peak_mode: str,
                       peak_threshold: float, progress=None, augment: GainAugment | None = None
                       ) -> tuple[TextureModel, tuple, tuple]:
-    """What :func:`train_on_texture_set` trains: ``(model, (x_train, y_train), (x_test, y_test))``, from
-    nothing but the texture set, the pipeline's settings (``window`` in seconds) and ``augment``, with
-    progress told every few seconds to ``progress`` (None: silent)."""
+    """Train and return what :func:`train_on_texture_set` trains: ``(model, (x_train, y_train), (x_test, y_test))``.
+
+    From nothing but the texture set, the pipeline's settings (``window`` in seconds) and ``augment``, with
+    progress told every few seconds to ``progress`` (None: silent).
+    """
     with _ticker(progress, f"the {bank.kind} bank's model ({', '.join(features)}) on {len(ts.textures)} "
                            "textures") as tell:
         values, _ = texture_features(ts, bank, features, window, peak_mode=peak_mode,
@@ -109,23 +113,27 @@ def texture_set_model(ts, bank: Bank, features: tuple[str, ...], window: float, 
 
 
 class _TrainingTold:
-    """The training's callbacks, each telling a :class:`~supramodal.node.runtime.ticker.Ticker` its stage
-    (``ticker`` None: no one is told). The calibration's fold networks come first (side by side on the
-    cores), then the model's (:meth:`supramodal.model.TextureModel.train`)."""
+    """The training's callbacks, each telling a :class:`~supramodal.node.runtime.ticker.Ticker` its stage.
+
+    ``ticker`` None: no one is told. The calibration's fold networks come first (side by side on the cores),
+    then the model's (:meth:`supramodal.model.TextureModel.train`).
+    """
 
     def __init__(self, ticker: Ticker | None, epochs: int, folds: int) -> None:
         self.ticker, self.epochs, self.folds = ticker, epochs, folds
 
     def features(self, line: str) -> None:
+        """Tell the stage of making the features (``line``: the training's own line about them)."""
         if self.ticker is not None:
             self.ticker.stage("features, " + line.strip())
 
     def networks_begin(self) -> None:
-        """The features are made: the networks' time, which the time left is told from, begins now."""
+        """Note that the features are made: the networks' time, which the time left is told from, begins now."""
         if self.ticker is not None:
             self.ticker.stage(f"0 of {self.folds + 1} networks trained", 0.0)
 
     def epoch(self, epoch: int, mse: float) -> None:
+        """Tell the model's network's epoch ``epoch`` (from 0) done; after its last, the network is done."""
         if self.ticker is not None:
             self.ticker.stage(f"network {self.folds + 1} of {self.folds + 1} (the model's), epoch {epoch + 1} of "
                               f"{self.epochs}", (epoch + 1) / self.epochs)
@@ -133,6 +141,7 @@ class _TrainingTold:
                 self.ticker.network_done()
 
     def fold(self, line: str) -> None:
+        """Tell one more of the calibration's fold networks trained, then the fitting of the calibration."""
         if self.ticker is not None:
             self.ticker.network_done()
             k = self.ticker.done
@@ -142,8 +151,10 @@ class _TrainingTold:
 
 @contextlib.contextmanager
 def _ticker(progress, what: str) -> Iterator[_TrainingTold]:
-    """Tell ``progress`` how training ``what`` on start goes: a line at once and every few seconds
-    (:class:`~supramodal.node.runtime.ticker.Ticker`); nothing when ``progress`` is None."""
+    """Tell ``progress`` how training ``what`` on start goes: a line at once and every few seconds.
+
+    Told by a :class:`~supramodal.node.runtime.ticker.Ticker`; nothing when ``progress`` is None.
+    """
     if progress is None:
         yield _TrainingTold(None, DEFAULT_EPOCHS, DEFAULT_CALIBRATION_FOLDS)
         return
@@ -153,8 +164,9 @@ def _ticker(progress, what: str) -> Iterator[_TrainingTold]:
 
 def driver_for(scene: Scene, bank: Bank | None, speed_override=None, shared: dict | None = None,
                source: SourceSpec | None = None):
-    """Build the driver of ``source`` (default: the scene's only one) from its spec (node.scene.registry);
-    returns ``(driver, labels, texture_set_or_None)``.
+    """Build the driver of ``source`` (default: the scene's only one) from its spec (node.scene.registry).
+
+    Returns ``(driver, labels, texture_set_or_None)``.
 
     ``bank``: the bank that reads the source (a file is resampled to its rate, a stream at
     another rate is refused), or None for a source that no bank reads (a relay's): then the
@@ -177,9 +189,11 @@ def driver_for(scene: Scene, bank: Bank | None, speed_override=None, shared: dic
 
 
 def _make_sinks(scene: Scene, needs: str, made: list, overwrite: bool, **context) -> None:
-    """Make the scene's sinks whose spec needs ``needs`` (node.runtime.sinks.spec.NEEDS), appending
-    ``(settings, spec, sink or tap)`` to ``made``; ``context``: the rest of the
-    :class:`~supramodal.node.runtime.sinks.spec.SinkContext` (the streams, the sources)."""
+    """Make the scene's sinks whose spec needs ``needs`` (node.runtime.sinks.spec.NEEDS).
+
+    Each is appended as ``(settings, spec, sink or tap)`` to ``made``; ``context``: the rest of the
+    :class:`~supramodal.node.runtime.sinks.spec.SinkContext` (the streams, the sources).
+    """
     for settings in scene.sinks:
         spec = sink_spec(settings.type)
         if spec.needs != needs:
@@ -193,14 +207,20 @@ def _make_sinks(scene: Scene, needs: str, made: list, overwrite: bool, **context
 
 
 def _source_plan(src: SourceSpec, driver, read_by: list) -> SourcePlan:
-    """What a sink of ``src``'s samples is told of it: its built ``driver``, its driver type, options
-    and signal type (its driver's spec's), and the ``(bank, mapping)`` of the streams that read it."""
+    """Return what a sink of ``src``'s samples is told of it.
+
+    Its built ``driver``, its driver type, options and signal type (its driver's spec's), and the
+    ``(bank, mapping)`` of the streams that read it.
+    """
     return SourcePlan(driver, src.type, src.options, driver_spec(src.type).signal_type(src.options), tuple(read_by))
 
 
 def _planned_classes(stream: StreamSpec, bank: Bank, ts, loaded: TextureModel | None) -> tuple[str, ...]:
-    """The classes ``stream``'s model will decide among, before it is trained (the texture set
-    :func:`_model_for` trains on) or as ``loaded`` (:func:`_model_file`); empty without a model."""
+    """Return the classes ``stream``'s model will decide among; empty without a model.
+
+    Known before it is trained (the texture set :func:`_model_for` trains on) or as ``loaded``
+    (:func:`_model_file`).
+    """
     if stream.model.train_on_start:
         if ts is None:
             from supramodal.textures import reference_texture_set
@@ -211,8 +231,10 @@ def _planned_classes(stream: StreamSpec, bank: Bank, ts, loaded: TextureModel | 
 
 
 def _model_file(scene: Scene, stream: StreamSpec) -> TextureModel | None:
-    """``stream``'s model read from its file (once: the plans and the stream both take it), or None
-    where the model is trained on the spot or there is none."""
+    """Return ``stream``'s model read from its file, or None where it is trained on the spot or there is none.
+
+    Read once: the plans and the stream both take it.
+    """
     m = stream.model
     if m.train_on_start or m.path is None:
         return None
@@ -222,8 +244,11 @@ def _model_file(scene: Scene, stream: StreamSpec) -> TextureModel | None:
 def _model_for(scene: Scene, stream: StreamSpec, bank: Bank, pipeline: FeaturePipeline, ts, progress,
                held_out: list | None = None, trained: list | None = None,
                loaded: TextureModel | None = None) -> TextureModel | None:
-    """``stream``'s model: trained on the spot (its held-out and training windows appended to
-    ``held_out`` and ``trained``), or ``loaded`` (:func:`_model_file`); checked against the pipeline."""
+    """Return ``stream``'s model, trained on the spot or ``loaded``, checked against the pipeline.
+
+    Trained on the spot, its held-out and training windows are appended to ``held_out`` and ``trained``;
+    ``loaded``: :func:`_model_file`.
+    """
     model = loaded
     m = stream.model
     if m.train_on_start:
@@ -257,8 +282,10 @@ MAX_RING_BYTES = 2**30
 
 
 def _check_ring(src: SourceSpec, driver, where: str) -> None:
-    """Refuse a ring (``src``'s ``[buffer] seconds`` of ``driver``) beyond :data:`MAX_RING_BYTES`,
-    naming the key (``where``: the buffer's table)."""
+    """Refuse a ring (``src``'s ``[buffer] seconds`` of ``driver``) beyond :data:`MAX_RING_BYTES`, naming the key.
+
+    ``where``: the buffer's table.
+    """
     seconds = src.buffer.seconds
     size = seconds * driver.rate * driver.channels * 8
     if size > MAX_RING_BYTES:
@@ -269,34 +296,40 @@ def _check_ring(src: SourceSpec, driver, where: str) -> None:
 
 
 def _source(src: SourceSpec, driver, where: str) -> Source:
-    """The source of ``driver`` with its ring as ``src``'s ``[buffer]`` says (``where``: its table)."""
+    """Return the source of ``driver`` with its ring as ``src``'s ``[buffer]`` says (``where``: its table)."""
     _check_ring(src, driver, where)
     return Source(src.name, driver, src.buffer.seconds, _overrun(src), *_timebase(src, driver))
 
 
 def _overrun(src: SourceSpec) -> str:
-    """The ring's policy: "auto" is the driver's (lossless back-pressure for files, drop-oldest for
-    live devices: node.scene.registry)."""
+    """Return the ring's policy: "auto" is the driver's.
+
+    The driver's is lossless back-pressure for files, drop-oldest for live devices (node.scene.registry).
+    """
     overrun = src.buffer.overrun
     return driver_spec(src.type).overrun if overrun == "auto" else overrun
 
 
 def _timebase(src: SourceSpec, driver) -> tuple[str, float, float]:
-    """``(timebase, time_offset, time_rate)`` of a source (see node.runtime.sources.Source), as its driver's
-    spec says: files keep their own time, a live driver's samples are put on host time by a clock
-    model."""
+    """Return ``(timebase, time_offset, time_rate)`` of a source (see node.runtime.sources.Source).
+
+    As its driver's spec says: files keep their own time, a live driver's samples are put on host time by a
+    clock model.
+    """
     return driver_spec(src.type).timebase_of(src.options, driver)
 
 
 def _model(stream: Stream) -> TextureModel:
-    """The model of a fused stream (the schema refuses to fuse a stream without one)."""
+    """Return the model of a fused stream (the schema refuses to fuse a stream without one)."""
     assert stream.model is not None, f"stream {stream.name!r} is fused: the schema requires its model"
     return stream.model
 
 
 def _aligned_windows(scene: Scene, a: Stream, b: Stream, windows: dict, asked: str, instead: str):
-    """``((x_a, y), (x_b, y))``: windows kept when both streams' models were trained on the spot,
-    checked to be the two senses of the same contacts (what learning a fusion on them needs)."""
+    """Return ``((x_a, y), (x_b, y))``: windows kept when both streams' models were trained on the spot.
+
+    Checked to be the two senses of the same contacts (what learning a fusion on them needs).
+    """
     if not (windows[a.name] and windows[b.name]):
         raise SceneError(f"{scene.source}: [fusion] {asked} needs both streams' models trained on the spot "
                          f"(train_on_start) on the same textures; give {instead} instead")
@@ -308,10 +341,12 @@ def _aligned_windows(scene: Scene, a: Stream, b: Stream, windows: dict, asked: s
 
 
 def _early_model(scene: Scene, a: Stream, b: Stream, held_out: dict, trained: dict, progress):
-    """The early-fusion network: loaded from ``[fusion] model`` and checked against both streams'
-    pipelines, or trained on the spot on both streams' aligned training windows (the two senses
-    of the same training contacts) and calibrated on their out-of-fold windows, its accuracy on
-    their held-out windows said beside each stream's."""
+    """Return the early-fusion network, loaded from ``[fusion] model`` or trained on the spot.
+
+    Loaded, it is checked against both streams' pipelines; trained on the spot, it learns on both streams'
+    aligned training windows (the two senses of the same training contacts) and is calibrated on their
+    out-of-fold windows, its accuracy on their held-out windows said beside each stream's.
+    """
     from supramodal.fused_model import EarlyFusionModel, Sense
 
     assert scene.fusion is not None, "an early fusion is built for a scene with a [fusion]"
@@ -343,9 +378,11 @@ def _early_model(scene: Scene, a: Stream, b: Stream, held_out: dict, trained: di
 
 def _contacts(scene: Scene, streams: list[Stream], fusion: LateFusion | None) -> dict[str, tuple[ContactListener,
                                                                                                 ContactTimeline]]:
-    """The listener and timeline of each contact signal the scene names (``[decision] contact_from``), one per
-    signal, given to the streams and the fusion that read it. Their sources must be on the host's clock: the
-    signal's edges are."""
+    """Return the listener and timeline of each contact signal the scene names (``[decision] contact_from``).
+
+    One per signal, given to the streams and the fusion that read it. Their sources must be on the host's
+    clock: the signal's edges are.
+    """
     contacts: dict[str, tuple[ContactListener, ContactTimeline]] = {}
     by_name = {s.name: s for s in streams}
     readers: list[tuple[str, str, list[Stream], Stream | LateFusion]] = [
@@ -368,8 +405,10 @@ def _contacts(scene: Scene, streams: list[Stream], fusion: LateFusion | None) ->
 
 
 def _check_fusion_decision(scene: Scene, models) -> None:
-    """Refuse ``[fusion.decision]`` rules the fusion cannot follow with these ``models`` (the two
-    senses', or the early network), naming the fix, before anything starts."""
+    """Refuse ``[fusion.decision]`` rules the fusion cannot follow with these ``models``, naming the fix.
+
+    ``models``: the two senses', or the early network. Refused before anything starts.
+    """
     assert scene.fusion is not None, "checked for a scene with a [fusion]"
     try:
         refuse_uncalibrated(scene.fusion.decision, models, f"{scene.source}: [fusion.decision]")
@@ -383,12 +422,13 @@ def _order(model: TextureModel, reference: TextureModel) -> NDArray[np.intp]:
 
 
 def _learned_weight(scene: Scene, a: Stream, b: Stream, held_out: dict, trained: dict, progress) -> dict[str, float]:
-    """The late fusion learned for two models trained on the spot: the weight and sharpness
-    (:func:`supramodal.fused_model.learn_late_fusion_out_of_fold`) on out-of-fold log-posteriors
-    of their training windows (aligned: the two senses of the same training contacts), each from
-    a copy of the stream's model trained without the window's fold, never from the models on
-    their own training windows; the fused decisions' pooling fitted on the same windows. Said
-    beside each stream's and the fusion's accuracy on the held-out windows.
+    """Return the late fusion learned for two models trained on the spot.
+
+    The weight and sharpness (:func:`supramodal.fused_model.learn_late_fusion_out_of_fold`) on out-of-fold
+    log-posteriors of their training windows (aligned: the two senses of the same training contacts), each
+    from a copy of the stream's model trained without the window's fold, never from the models on their own
+    training windows; the fused decisions' pooling fitted on the same windows. Said beside each stream's and
+    the fusion's accuracy on the held-out windows.
 
     Returns ``{"weight", "sharpness", "correlation"}``.
     """
@@ -416,9 +456,10 @@ def _learned_weight(scene: Scene, a: Stream, b: Stream, held_out: dict, trained:
 
 def build_node(scene: Scene, speed=None, sinks_override=None, progress=None, recorder=None,
                overwrite: bool = False) -> Graph:
-    """Everything a scene describes, wired and ready to :meth:`Graph.run`: its sources, the streams
-    that read them, the fusion and the sinks (one builder for both forms of a scene; a one-source
-    scene is the graph of one source and one stream, both ``"main"``).
+    """Build everything a scene describes, wired and ready to :meth:`Graph.run`.
+
+    Its sources, the streams that read them, the fusion and the sinks (one builder for both forms of a scene;
+    a one-source scene is the graph of one source and one stream, both ``"main"``).
 
     ``speed``: the command line's ``--speed``. ``sinks_override``: sinks that replace the scene's
     (its file sinks are then not made). ``recorder``: a :class:`~supramodal.node.runtime.taps.recorder.SessionRecorder`

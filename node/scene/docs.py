@@ -88,7 +88,7 @@ def rewrite(text: str, names, made: Mapping[str, str], where: str = "the file") 
 
 
 def check(root: Path, files: Mapping[str, Sequence[str]] = BLOCKS, made: Mapping[str, str] | None = None) -> list[str]:
-    """The files under ``root`` whose generated blocks differ from what the code makes of them.
+    """Return the files under ``root`` whose generated blocks differ from what the code makes of them.
 
     Parameters
     ----------
@@ -106,9 +106,11 @@ def check(root: Path, files: Mapping[str, Sequence[str]] = BLOCKS, made: Mapping
 
 def command_line(argv: Sequence[str] | None, prog: str, description: str, files: Mapping[str, Sequence[str]],
                  make: Callable[[], Mapping[str, str]], stale: str) -> int:
-    """The command line of a writer of generated blocks: rewrite ``files``' blocks from ``make()``, or, with
-    ``--check``, say which files differ (``"FILE: STALE; run PROG"``) and exit 1. This module's and the
-    command table's (``supramodal.node.cli.docs``) share it, so that both are run and fail alike."""
+    """Run the command line of a writer of generated blocks: rewrite ``files``' blocks from ``make()``.
+
+    Or, with ``--check``, say which files differ (``"FILE: STALE; run PROG"``) and exit 1. This module's and the
+    command table's (``supramodal.node.cli.docs``) share it, so that both are run and fail alike.
+    """
     parser = argparse.ArgumentParser(prog=prog, description=description)
     parser.add_argument("--root", type=Path, default=Path.cwd(), help="the repository's root (default: here)")
     parser.add_argument("--check", action="store_true", help="only say whether the files are up to date")
@@ -126,6 +128,10 @@ def command_line(argv: Sequence[str] | None, prog: str, description: str, files:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """Rewrite the scene key tables of README.md and docs/node.md, or with ``--check`` say which differ.
+
+    ``python -m supramodal.node.scene.docs [--check]``; returns the exit status (1: a file differs).
+    """
     assert __doc__ is not None
     return command_line(argv, "python -m supramodal.node.scene.docs", __doc__.splitlines()[0], BLOCKS, blocks,
                         "its scene key tables differ from the schema")

@@ -1,5 +1,7 @@
-"""Models trained on start, kept on disk: a node that starts again with the same scene reads its model
-instead of training it again (the default scene's model takes 8 to 20 s to train; reading it, 10 ms).
+"""Models trained on start, kept on disk: a node that starts again with the same scene reads its model.
+
+It reads it instead of training it again (the default scene's model takes 8 to 20 s to train; reading it,
+10 ms).
 
 A model trained on start (``[model] train_on_start``) depends on nothing but what :func:`cache_key`
 digests: the texture set it was trained on (every field of its description: peaks, rate, duration,
@@ -76,7 +78,7 @@ class CacheRefused(ModelError):
 
 
 def cache_folder() -> Path | None:
-    """The folder models trained on start are kept in, or None where :data:`CACHE_ENV` is ``off``."""
+    """Return the folder models trained on start are kept in, or None where :data:`CACHE_ENV` is ``off``."""
     given = os.environ.get(CACHE_ENV)
     if given:
         return None if given.strip().lower() == OFF else Path(given).expanduser()
@@ -88,9 +90,11 @@ def cache_folder() -> Path | None:
 
 @functools.cache
 def _code_digest() -> str:
-    """A digest of the source the model and its windows come from: the model package's modules
-    (filterbank, peaks, features, pipeline, network, calibration, textures, training) and the node's
-    build (which splits the windows and calls the training)."""
+    """Return a digest of the source the model and its windows come from.
+
+    That source is the model package's modules (filterbank, peaks, features, pipeline, network, calibration,
+    textures, training) and the node's build (which splits the windows and calls the training).
+    """
     import supramodal
 
     h = hashlib.sha256()
@@ -106,8 +110,11 @@ def _code_digest() -> str:
 
 
 def _texture_set_digest(ts) -> str:
-    """What ``ts`` is: its description where it is a dataclass of plain values (a texture set, a
-    two-sense set), else the signals it synthesises (the bytes the training reads)."""
+    """Return a digest of what ``ts`` is.
+
+    Its description where it is a dataclass of plain values (a texture set, a two-sense set), else the
+    signals it synthesises (the bytes the training reads).
+    """
     h = hashlib.sha256()
     try:
         feed(h, ts)
@@ -120,8 +127,11 @@ def _texture_set_digest(ts) -> str:
 
 
 def cache_key(ts, pipeline, augment: GainAugment | None = None) -> str:
-    """The key of the model :func:`supramodal.node.scene.build.train_on_texture_set` trains on
-    ``ts`` with ``pipeline``'s settings and ``augment``: a hex digest of everything that model depends on."""
+    """Return the key of the model :func:`supramodal.node.scene.build.train_on_texture_set` trains on ``ts``.
+
+    The model trained with ``pipeline``'s settings and ``augment``; the key is a hex digest of everything that
+    model depends on.
+    """
     import scipy
 
     import supramodal
@@ -144,8 +154,10 @@ def cache_key(ts, pipeline, augment: GainAugment | None = None) -> str:
 # -- a cache file -------------------------------------------------------------------------------------
 
 def _write(path: Path, key: str, model: TextureModel, train_part, test_part) -> None:
-    """Write ``model`` with its windows and held-out logits to ``path``: a temporary file in the same
-    folder, then renamed over it."""
+    """Write ``model`` with its windows and held-out logits to ``path``.
+
+    First to a temporary file in the same folder, then renamed over it.
+    """
     extra = {**novelty_arrays(model.novelty), _KEY: np.array(key)}
     extra.update(zip(_WINDOWS, (np.asarray(train_part[0], dtype=np.float64), np.asarray(train_part[1], dtype=np.int64),
                                 np.asarray(test_part[0], dtype=np.float64), np.asarray(test_part[1], dtype=np.int64))))
@@ -166,8 +178,10 @@ def _write(path: Path, key: str, model: TextureModel, train_part, test_part) -> 
 
 
 def _read(path: Path, key: str, ts, pipeline, augment: GainAugment | None = None):
-    """``(model, (x_train, y_train), (x_test, y_test))`` from a cache file, every part checked;
-    FileNotFoundError where there is none, :class:`CacheRefused` where it is not what ``key`` names."""
+    """Return ``(model, (x_train, y_train), (x_test, y_test))`` from a cache file, every part checked.
+
+    FileNotFoundError where there is none, :class:`CacheRefused` where it is not what ``key`` names.
+    """
     if not path.is_file():
         raise FileNotFoundError(path)
     try:
@@ -219,8 +233,10 @@ def _read(path: Path, key: str, ts, pipeline, augment: GainAugment | None = None
 @contextlib.contextmanager
 def _lock(path: Path, progress=None):
     """Hold ``path``'s lock file (fcntl.flock) while a model is trained; nothing where there is no flock.
+
     OSError where the lock file cannot be made (before anything is held). Where another process holds it
-    (training the same model), ``progress`` is told so before the wait (issue 35: a node waited silently)."""
+    (training the same model), ``progress`` is told so before the wait (issue 35: a node waited silently).
+    """
     try:
         import fcntl
     except ImportError:                 # Windows: two nodes started at once may both train
@@ -246,9 +262,11 @@ _KEY_FILE = re.compile(r"[0-9a-f]{40}\.npz")
 
 
 def _bound(folder: Path, keep: Path, limit: int) -> None:
-    """Remove the least recently used cache files of ``folder`` (not ``keep``) until they hold at most
-    ``limit`` bytes. Only the cache's own key files count and go: a folder the user named as the cache may
-    hold files of theirs, which are never touched."""
+    """Remove the least recently used cache files of ``folder`` (not ``keep``) until they hold at most ``limit`` bytes.
+
+    Only the cache's own key files count and go: a folder the user named as the cache may hold files of
+    theirs, which are never touched.
+    """
     files = []
     for p in folder.glob("*.npz"):
         if not _KEY_FILE.fullmatch(p.name):
@@ -271,9 +289,12 @@ def _bound(folder: Path, keep: Path, limit: int) -> None:
 
 def hand_over(model, train_part, test_part, ts, features, held_out: list | None, trained: list | None,
               progress=None, where: str = "") -> None:
-    """What a model trained on start gives its caller besides itself, trained or read: the held-out part to
-    ``held_out`` and the training part to ``trained`` (lists, or None), and to ``progress`` the line that
-    says what it was trained on and how it is calibrated (``where``: appended, e.g. the cache file read)."""
+    """Give the caller of a model trained on start what it gets besides the model, trained or read.
+
+    The held-out part to ``held_out`` and the training part to ``trained`` (lists, or None), and to
+    ``progress`` the line that says what it was trained on and how it is calibrated (``where``: appended, e.g.
+    the cache file read).
+    """
     if held_out is not None:
         held_out.append(test_part)
     if trained is not None:
@@ -292,13 +313,15 @@ def hand_over(model, train_part, test_part, ts, features, held_out: list | None,
 def trained_on_start(ts, pipeline, train, progress=None, held_out: list | None = None,
                      trained: list | None = None, folder: Path | None = None,
                      augment: GainAugment | None = None) -> TextureModel:
-    """The model trained on start on ``ts`` with ``pipeline``'s settings: read from the cache where it
-    holds it, else ``train(held_out, trained)`` (:func:`~supramodal.node.scene.build.train_on_texture_set`
-    with ``ts`` and ``pipeline`` bound) and written to it. ``held_out`` and ``trained`` receive the
-    held-out and training windows either way; ``progress`` gets the training's line (or the same line
-    for a model read, naming the file) and a line for a cache file refused or not written.
-    ``folder``: the cache's folder (default :func:`cache_folder`; None there: no cache). ``augment``: the
-    gain augmentation ``train`` trains with (part of the key)."""
+    """Return the model trained on start on ``ts`` with ``pipeline``'s settings, from the cache or trained now.
+
+    Read from the cache where it holds it, else ``train(held_out, trained)``
+    (:func:`~supramodal.node.scene.build.train_on_texture_set` with ``ts`` and ``pipeline`` bound) and written
+    to it. ``held_out`` and ``trained`` receive the held-out and training windows either way; ``progress``
+    gets the training's line (or the same line for a model read, naming the file) and a line for a cache file
+    refused or not written. ``folder``: the cache's folder (default :func:`cache_folder`; None there: no
+    cache). ``augment``: the gain augmentation ``train`` trains with (part of the key).
+    """
     folder = cache_folder() if folder is None else folder
     if folder is None:
         return train(held_out, trained)

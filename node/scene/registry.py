@@ -62,8 +62,7 @@ SpecT = TypeVar("SpecT", bound=_Typed)
 
 
 class Registry(Generic[SpecT]):
-    """Specs by type: built-in ones named by module (imported when first asked for), others
-    registered at run time.
+    """Specs by type: built-in ones named by module (imported when first asked for), others registered at run time.
 
     Parameters
     ----------
@@ -80,6 +79,14 @@ class Registry(Generic[SpecT]):
         self.registered: dict[str, SpecT] = {}
 
     def register(self, spec: object, replace: bool = False) -> SpecT:
+        """Register ``spec`` under its type, at run time, and return it.
+
+        Raises
+        ------
+        InputError
+            ``spec`` is not a :attr:`spec_type`, or its type exists already (built in or registered) and
+            ``replace`` is False.
+        """
         if not isinstance(spec, self.spec_type):
             raise InputError(f"register_{self.what} takes a {self.spec_type.__name__}, got {type(spec).__name__}")
         if not replace and (spec.type in self.modules or spec.type in self.registered):
@@ -92,9 +99,17 @@ class Registry(Generic[SpecT]):
         self.registered.pop(kind, None)
 
     def types(self) -> list[str]:
+        """Return every type, built in or registered, sorted."""
         return sorted({*self.modules, *self.registered})
 
     def spec(self, kind: object) -> SpecT:
+        """Return the spec of type ``kind``: a registered one, else the built-in one, its module imported now.
+
+        Raises
+        ------
+        InputError
+            For a type there is no spec of (listing those there are), or a module whose spec has another type.
+        """
         if isinstance(kind, str) and kind in self.registered:
             return self.registered[kind]
         where = self.modules.get(kind) if isinstance(kind, str) else None
@@ -127,13 +142,15 @@ def driver_types() -> list[str]:
 
 
 def driver_spec(kind: object) -> DriverSpec:
-    """The spec of driver type ``kind``; an :class:`InputError` for a type no driver has, listing
-    those there are."""
+    """Return the spec of driver type ``kind``.
+
+    An :class:`InputError` for a type no driver has, listing those there are.
+    """
     return DRIVERS.spec(kind)
 
 
 def source_keys(spec: DriverSpec) -> dict[str, Key]:
-    """A source's keys in a scene: its driver's (how a stream reads it, ``mapping``, is the stream's)."""
+    """Return a source's keys in a scene: its driver's (how a stream reads it, ``mapping``, is the stream's)."""
     return dict(spec.keys)
 
 
@@ -162,6 +179,6 @@ def sink_types() -> list[str]:
 
 
 def sink_spec(kind: object) -> SinkSpec:
-    """The spec of sink type ``kind``; an :class:`InputError` for a type no sink has."""
+    """Return the spec of sink type ``kind``; an :class:`InputError` for a type no sink has."""
     return SINKS.spec(kind)
 

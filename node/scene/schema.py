@@ -237,12 +237,12 @@ def _features_spec(section: dict) -> FeaturesSpec:
 
 
 def _decision_rules(section: dict) -> DecisionRules:
-    """The rules of a validated ``[decision]`` section (``contact_from`` is the spec's own field)."""
+    """Return the rules of a validated ``[decision]`` section (``contact_from`` is the spec's own field)."""
     return DecisionRules(**{k: v for k, v in section.items() if k != "contact_from"})
 
 
 def _stream(name: str, source: str, mapping, sections: dict, where: str) -> StreamSpec:
-    """A stream from its validated sections (``where``: how messages name it)."""
+    """Return a stream from its validated sections (``where``: how messages name it)."""
     return StreamSpec(name, source, mapping, _bank(sections["bank"]), _features_spec(sections["features"]),
                       ModelSpec(**sections["model"]), _decision_rules(sections["decision"]), where,
                       contact_from=sections["decision"]["contact_from"])
@@ -276,9 +276,12 @@ def scene_from_dict(d: dict, source: str = "<scene>", base_dir: Path | None = No
 
 
 def driver_table(where: str, table, extra: dict | None = None) -> tuple[str, dict]:
-    """A source's table (``[driver]`` or a ``[[source]]``, named by ``where``) validated against its
-    driver's keys (node.scene.registry) and ``extra`` ones: ``(driver type, its keys with defaults filled
-    in)``, without ``type`` and ``buffer``."""
+    """Return a source's table validated against its driver's keys and ``extra`` ones.
+
+    The table is a ``[driver]`` or a ``[[source]]``, named by ``where``; the driver's keys are from
+    node.scene.registry. Returns ``(driver type, its keys with defaults filled in)``, without ``type``
+    and ``buffer``.
+    """
     if not isinstance(table, dict):
         raise SceneError(f"{where} must be a table")
     kind = table.get("type")
@@ -300,7 +303,7 @@ def driver_table(where: str, table, extra: dict | None = None) -> tuple[str, dic
 
 
 def _check_sections(source: str, sections: dict, bank_given: dict, where: str) -> None:
-    """Checks across keys of the one-source sections (``where``: the stream they belong to)."""
+    """Check across keys of the one-source sections (``where``: the stream they belong to)."""
     bank = sections["bank"]
     if bank["file"] is not None and set(bank_given) - {"file"}:
         raise SceneError(f"{source}: {where}[bank] file: a bank file describes the whole bank; remove "
@@ -320,9 +323,12 @@ def _check_sections(source: str, sections: dict, bank_given: dict, where: str) -
 
 
 def _check_augment(source: str, model: dict, where: str) -> None:
-    """Gain augmentation is for a model the node trains (``train_on_start``), and its spread and gains for
-    ``augment_copies`` >= 1: set otherwise, refused (by value, not by presence: a scene written back states
-    every default, and passes)."""
+    """Refuse gain augmentation of a model the node does not train, and a spread or gains without copies.
+
+    Gain augmentation is for a model the node trains (``train_on_start``), and its spread and gains for
+    ``augment_copies`` >= 1; checked by value, not by presence: a scene written back states every default,
+    and passes.
+    """
     if model["augment_copies"] and not model["train_on_start"]:
         raise SceneError(f"{source}: {where} augment_copies = {model['augment_copies']}: gain augmentation is part of "
                          "training, and this stream's model is not trained here (a model file keeps what it was "
@@ -337,10 +343,13 @@ def _check_augment(source: str, model: dict, where: str) -> None:
 
 
 def _check_no_decision(source: str, decision: dict, where: str) -> None:
-    """A stream without a model gives feature windows: of its ``[decision]`` only ``contact_from`` (with
+    """Refuse ``[decision]`` rules a stream without a model would silently ignore.
+
+    A stream without a model gives feature windows: of its ``[decision]`` only ``contact_from`` (with
     ``scope = "contact"``) does anything, putting the robot's contacts on the windows. Any other rule
     set away from its default would be silently ignored: refused (a scene written back states every
-    default, and passes)."""
+    default, and passes).
+    """
     defaults = asdict(DEFAULT_DECISION)
     idle = [k for k in defaults if k != "scope" and decision[k] != defaults[k]]
     if decision["scope"] != defaults["scope"] and decision["contact_from"] is None:
@@ -377,8 +386,10 @@ def _check_decision(source: str, decision: dict, where: str) -> None:
 
 def _sinks(d: dict, source: str, streams, sources=(MAIN_STREAM,), base_dir: Path | None = None
            ) -> tuple[SinkSettings, ...]:
-    """The [[sink]] tables, with ``from`` checked against the scene's streams and ``source``
-    against its sources (filled in when there is only one); two sinks may not write one file."""
+    """Return the [[sink]] tables, with ``from`` checked against the streams and ``source`` against the sources.
+
+    ``source`` is filled in when there is only one; two sinks may not write one file.
+    """
     sinks_in = d.get("sink", [{"type": "text"}])
     if not isinstance(sinks_in, list) or not sinks_in:
         raise SceneError(f"{source}: [[sink]] must be a list of at least one sink table")
@@ -428,7 +439,7 @@ def _sinks(d: dict, source: str, streams, sources=(MAIN_STREAM,), base_dir: Path
 
 
 def _graph_scene(d: dict, source: str, base_dir: Path) -> Scene:
-    """A scene in the graph form: [[source]], [[stream]], [fusion], [[sink]]."""
+    """Return a scene in the graph form: [[source]], [[stream]], [fusion], [[sink]]."""
     one_source = sorted(set(d) & {"driver", *STREAM_SECTIONS})
     if one_source:
         raise SceneError(f"{source}: {one_source} belong to a one-source scene; with [[source]] and [[stream]], "
@@ -482,13 +493,15 @@ def _graph_scene(d: dict, source: str, base_dir: Path) -> Scene:
 
 
 def _fusion(d: dict, source: str, streams: list[StreamSpec]) -> FusionSpec:
-    """The ``[fusion]`` table of a graph scene (of ``streams``), validated."""
+    """Return the ``[fusion]`` table of a graph scene (of ``streams``), validated."""
     return fusion_from_table(d["fusion"], source, streams)
 
 
 def fusion_from_table(given, source: str, streams) -> FusionSpec:
-    """A ``[fusion]`` table (as parsed, defaults left out) over a scene's ``streams`` (StreamSpecs),
-    validated and filled in; ``source`` names the scene file in messages."""
+    """Return a ``[fusion]`` table over a scene's ``streams`` (StreamSpecs), validated and filled in.
+
+    ``given`` is the table as parsed, defaults left out; ``source`` names the scene file in messages.
+    """
     if not isinstance(given, dict):
         raise SceneError(f"{source}: [fusion] must be a table")
     stream_names = [s.name for s in streams]
@@ -543,8 +556,11 @@ def load_scene(path) -> Scene:
 
 
 def default_scene() -> Scene:
-    """The embedded default: the whisker array replaying a synthesised session of the
-    reference textures (their held-out last 10 s), with a model trained on the spot."""
+    """Return the embedded default scene.
+
+    The whisker array replaying a synthesised session of the reference textures (their held-out last
+    10 s), with a model trained on the spot.
+    """
     return scene_from_dict({
         "driver": {"type": "synth", "textures": "reference", "seconds": 10.0, "held_out": True, "block": 50},
         "bank": {"kind": "whisker"},
@@ -569,9 +585,11 @@ def _toml_value(v) -> str:
 
 
 def scene_to_toml(scene: Scene) -> str:
-    """The scene as a TOML file that :func:`load_scene` reads back to the same scene: every key
-    with its value (defaults filled in), keys whose default belongs to the driver or the bank
-    (None) left out, so that they keep following their owner."""
+    """Return the scene as a TOML file that :func:`load_scene` reads back to the same scene.
+
+    Every key with its value (defaults filled in), keys whose default belongs to the driver or the bank
+    (None) left out, so that they keep following their owner.
+    """
     def table(header: str, values) -> list[str]:
         return [header] + [f"{k} = {_toml_value(v)}" for k, v in values.items() if v is not None] + [""]
 

@@ -1,5 +1,6 @@
-"""A scene's parts as typed, frozen values: what :mod:`~supramodal.node.scene.schema` makes of a scene
-file, and all that the builder, the command line and the workflows read of it.
+"""A scene's parts as typed, frozen values: what :mod:`~supramodal.node.scene.schema` makes of a scene file.
+
+They are all that the builder, the command line and the workflows read of it.
 
 Every value here has been validated (the schema's key tables say what each key accepts and its
 default); nothing is changed after loading: a variant of a scene is made with
@@ -28,7 +29,7 @@ Options = Mapping[str, object]
 
 
 def frozen(values: Mapping[str, object]) -> Options:
-    """A read-only copy of ``values``."""
+    """Return a read-only copy of ``values``."""
     return MappingProxyType(dict(values))
 
 
@@ -70,9 +71,11 @@ class BankSpec:
     recipe: Options = field(default_factory=lambda: EMPTY)
 
     def table(self) -> dict[str, object]:
-        """The ``[bank]`` table as a scene file writes it: the file alone, or the kind and the keys
-        of its recipe that are set (only those the kind has, whatever a spec made in code holds,
-        so that the file loads back)."""
+        """Return the ``[bank]`` table as a scene file writes it.
+
+        The file alone, or the kind and the keys of its recipe that are set (only those the kind has,
+        whatever a spec made in code holds, so that the file loads back).
+        """
         if self.file is not None:
             return {"file": self.file}
         keys = BANK_KEYS[self.kind]
@@ -113,8 +116,10 @@ class ModelSpec:
     augment_gains: str = "auto"
 
     def gain_augment(self) -> GainAugment | None:
-        """The :class:`supramodal.model.GainAugment` of a model trained at start-up (gains ``"auto"``: by the
-        bank), or None without one."""
+        """Return the :class:`supramodal.model.GainAugment` of a model trained at start-up, or None without one.
+
+        Gains ``"auto"``: by the bank.
+        """
         if not self.augment_copies:
             return None
         per_channel = {"auto": None, "per-channel": True, "shared": False}[self.augment_gains]
@@ -150,7 +155,7 @@ class SourceSpec:
     where: str = "<scene>"
 
     def table(self) -> dict[str, object]:
-        """The ``[[source]]`` table as a scene file writes it (without its ``[source.buffer]``)."""
+        """Return the ``[[source]]`` table as a scene file writes it (without its ``[source.buffer]``)."""
         return {"name": self.name, "type": self.type, **self.options}
 
 
@@ -285,12 +290,12 @@ class Scene:
         return tuple(st.name for st in self.streams) + (("fused",) if self.fusion is not None else ())
 
     def only_stream(self) -> StreamSpec:
-        """The only stream of a one-source scene."""
+        """Return the only stream of a one-source scene."""
         self._one_source()
         return self.streams[0]
 
     def only_source(self) -> SourceSpec:
-        """The only source of a one-source scene (its ``[driver]`` and ``[buffer]``)."""
+        """Return the only source of a one-source scene (its ``[driver]`` and ``[buffer]``)."""
         self._one_source()
         return self.sources[0]
 
@@ -300,15 +305,15 @@ class Scene:
                              "each stream's (scene.streams) and source's (scene.sources)")
 
     def source_named(self, name: str) -> SourceSpec:
-        """The source called ``name``."""
+        """Return the source called ``name``."""
         return next(s for s in self.sources if s.name == name)
 
     def stream_named(self, name: str) -> StreamSpec:
-        """The stream called ``name``."""
+        """Return the stream called ``name``."""
         return next(s for s in self.streams if s.name == name)
 
     def resolve(self, path: str) -> Path:
-        """A path from the scene, relative to the scene file's folder."""
+        """Return a path from the scene, taken relative to the scene file's folder."""
         p = Path(path).expanduser()
         return p if p.is_absolute() else self.base_dir / p
 

@@ -32,8 +32,10 @@ MAX_SYNTH_SAMPLES = 2**27
 
 
 def _checked_length(options: Mapping[str, Any], order: list, fs: float) -> int:
-    """Samples per texture of a synthesised source; a length that cannot be held is refused
-    naming ``seconds`` (and ``order`` when it is the number of textures)."""
+    """Return the samples per texture of a synthesised source.
+
+    A length that cannot be held is refused naming ``seconds`` (and ``order`` when it is the number of textures).
+    """
     from supramodal.textures import texture_samples
 
     try:
@@ -65,7 +67,7 @@ def _texture_set(options: Mapping[str, Any], context: BuildContext):
 
 
 def synth_session(options: Mapping[str, Any], context: BuildContext):
-    """The synth driver's signal: each texture for ``seconds`` in ``order``, with its labels.
+    """Return the synth driver's signal: each texture for ``seconds`` in ``order``, with its labels.
 
     With ``held_out`` the segment is the *last* ``seconds`` of the texture's full-length
     signal: the part a model trained on the spot (on the first ``TRAIN_FRACTION``) has never seen.
@@ -121,8 +123,9 @@ SYNTH = DriverSpec(
 
 
 def twosense_session(options: Mapping[str, Any], context: BuildContext):
-    """A two-sense source's signal: one sense of the two-sense world (supramodal.twosense), each
-    texture for ``seconds`` in ``order``, contact ``take`` (by default 1: contacts the model trained
+    """Return a two-sense source's signal: one sense of the two-sense world (supramodal.twosense).
+
+    Each texture for ``seconds`` in ``order``, contact ``take`` (by default 1: contacts the model trained
     on the spot never met).
 
     Returns
@@ -159,8 +162,11 @@ def _build_twosense(options: Mapping[str, Any], context: BuildContext) -> Built:
 
 
 def _twosense_timebase(options: Mapping[str, Any], driver) -> tuple[str, float, float]:
-    """At ``max`` speed a two-sense source is a file whose true timing is known (its offset and
-    clock error); at a finite speed it is paced like a live device, and the node sees only arrivals."""
+    """Return a two-sense source's ``(timebase, time_offset, time_rate)``, by its speed.
+
+    At ``max`` speed a two-sense source is a file whose true timing is known (its offset and
+    clock error); at a finite speed it is paced like a live device, and the node sees only arrivals.
+    """
     if driver.speed == math.inf:
         return "stream", options["offset"], driver.rate * (1.0 + options["clock_ppm"] * 1e-6)
     return "host", 0.0, driver.rate * driver.speed

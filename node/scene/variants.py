@@ -32,9 +32,10 @@ __all__ = ["add_view", "as_replay", "relocated", "with_absolute_paths", "with_fu
 
 
 def with_sink(scene: Scene, kind: str, **options: Any) -> Scene:
-    """``scene`` with a sink of type ``kind`` after its own: ``options`` checked against the sink's
-    keys, the others at their defaults (as a ``[[sink]]`` table of the scene file would be; a sink of
-    samples names its ``source``).
+    """Return ``scene`` with a sink of type ``kind`` after its own.
+
+    ``options`` are checked against the sink's keys, the others at their defaults (as a ``[[sink]]`` table
+    of the scene file would be; a sink of samples names its ``source``).
 
     Raises
     ------
@@ -58,8 +59,10 @@ def with_view(scene: Scene, port: int) -> Scene:
 
 
 def add_view(scene: Scene, sinks: list[Any] | None, port: int) -> tuple[Scene, list[Any] | None]:
-    """``run --view PORT``: the scene with a view sink added, or (``--json``, whose ``sinks``
-    replace the scene's) those sinks with a view beside them."""
+    """Return the scene with a view sink added, for ``run --view PORT``; or those ``sinks`` with a view beside them.
+
+    The latter with ``--json``, whose ``sinks`` replace the scene's.
+    """
     if isinstance(port, bool) or not VIEW.keys["port"].check(port):
         raise ViewError(f"--view {port!r}: expected a TCP port 0..65535 (0: any free one)")
     if sinks is not None:
@@ -68,9 +71,10 @@ def add_view(scene: Scene, sinks: list[Any] | None, port: int) -> tuple[Scene, l
 
 
 def with_models(scene: Scene, models: Mapping[str, str | Path]) -> Scene:
-    """``scene`` with the streams named in ``models`` (``{stream: model file}``) deciding with those
-    files (made absolute), and, when two are named and the scene fuses other streams or none, a
-    ``[fusion]`` of those two (late, its defaults).
+    """Return ``scene`` with the streams named in ``models`` (``{stream: model file}``) deciding with those files.
+
+    The files are made absolute. When two are named and the scene fuses other streams or none, the scene
+    gets a ``[fusion]`` of those two (late, its defaults).
 
     Raises
     ------
@@ -97,8 +101,9 @@ def with_models(scene: Scene, models: Mapping[str, str | Path]) -> Scene:
 
 
 def with_fusion(scene: Scene, **table: Any) -> Scene:
-    """``scene`` with the ``[fusion]`` ``table`` gives (its keys as a scene file's, the others at their
-    defaults), validated against the scene's streams as a file's would be.
+    """Return ``scene`` with the ``[fusion]`` ``table`` gives, validated against the scene's streams.
+
+    ``table``'s keys are as a scene file's, the others at their defaults; it is validated as a file's would be.
 
     Raises
     ------
@@ -110,10 +115,12 @@ def with_fusion(scene: Scene, **table: Any) -> Scene:
 
 
 def with_absolute_paths(scene: Scene) -> Scene:
-    """``scene`` with every file it names relative to its folder made absolute (symbolic links
-    resolved): the keys marked ``path`` of its sources' drivers and of its sinks (but for the words
-    such a key takes, ``"-"`` or ``"reference"``), its banks' files, its models' and its early fusion's. A
-    scene written into another folder then names the same files."""
+    """Return ``scene`` with every file it names relative to its folder made absolute (symbolic links resolved).
+
+    These are the keys marked ``path`` of its sources' drivers and of its sinks (but for the words such a key
+    takes, ``"-"`` or ``"reference"``), its banks' files, its models' and its early fusion's. A scene written
+    into another folder then names the same files.
+    """
     def absolute(value: str | None) -> str | None:
         return value if value is None else str(scene.resolve(value).resolve())
 
@@ -134,9 +141,10 @@ def with_absolute_paths(scene: Scene) -> Scene:
 
 
 def relocated(scene: Scene, path: str | Path, base_dir: str | Path | None = None) -> Scene:
-    """``scene`` as the file ``path`` (messages name it; its relative paths resolve against
-    ``base_dir``, by default ``path``'s folder). Its paths are not changed: see
-    :func:`with_absolute_paths`."""
+    """Return ``scene`` as the file ``path``: messages name it; its relative paths resolve against ``base_dir``.
+
+    ``base_dir`` is by default ``path``'s folder. Its paths are not changed: see :func:`with_absolute_paths`.
+    """
     old, new = scene.source, str(path)
 
     def where(text: str) -> str:
@@ -148,10 +156,12 @@ def relocated(scene: Scene, path: str | Path, base_dir: str | Path | None = None
 
 
 def as_replay(scene: Scene, sessions: Mapping[str, str]) -> Scene:
-    """``scene`` with each source a replay of its recorded session (``{source: session path}``, every
-    source named) at its recorded times (``timing = "recorded"``, ``speed = "max"``), in step with the
-    others; its ring waits rather than drops (``overrun = "auto"``: a file need lose nothing). The
-    streams read the sessions with their mappings, as recorded."""
+    """Return ``scene`` with each source a replay of its recorded session, at its recorded times.
+
+    ``sessions``: ``{source: session path}``, every source named. The times: ``timing = "recorded"``,
+    ``speed = "max"``, in step with the others; its ring waits rather than drops (``overrun = "auto"``: a
+    file need lose nothing). The streams read the sessions with their mappings, as recorded.
+    """
     missing = sorted({src.name for src in scene.sources} - set(sessions))
     if missing:
         raise InputError(f"{scene.source}: no session given for source(s) {missing}")

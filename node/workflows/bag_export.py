@@ -1,5 +1,6 @@
-"""A recording as a rosbag2 (MCAP): what ``supramodal record --bag`` writes beside the sessions, for
-``ros2 bag play``, Foxglove and ``rosbags``, and what ``import-recording --bag`` reads back.
+"""A recording as a rosbag2 (MCAP): what ``supramodal record --bag`` writes beside the sessions.
+
+It is for ``ros2 bag play``, Foxglove and ``rosbags``, and what ``import-recording --bag`` reads back.
 
 Each recorded source becomes one stamped ``sensor_msgs/Image`` topic, ``/supramodal/SOURCE/samples``:
 one message per block the node recorded (per 10 ms of samples for a session without its blocks),
@@ -47,7 +48,7 @@ class BagExportError(InputError):
 
 
 def samples_topic(source: str) -> str:
-    """The topic of a source's samples in an exported bag."""
+    """Return the topic of a source's samples in an exported bag."""
     return f"/supramodal/{source}/samples"
 
 
@@ -56,7 +57,8 @@ def _clock(session: Session) -> tuple[float, float]:
 
     A graph recording's session keeps its blocks' arrivals on the node's common time: the line is their lower
     envelope at the clock model's rate (every block arrives at or after its last sample, the quickest closest
-    to it). Without them, the session's own seconds."""
+    to it). Without them, the session's own seconds.
+    """
     if session.arrivals is None:
         return 0.0, float(session.rate)
     ends, arrived, rate = session.arrivals
@@ -72,13 +74,15 @@ def _block_ends(session: Session) -> np.ndarray:
 
 
 def decision_topic(stream: str) -> str:
-    """The topic of a stream's decisions in an exported bag (the ``ros2`` sink's, under ``/supramodal``)."""
+    """Return the topic of a stream's decisions in an exported bag (the ``ros2`` sink's, under ``/supramodal``)."""
     return f"/supramodal/{stream}/decision"
 
 
 def _decisions(path: Path, String: Any) -> list[tuple[int, str, Any, str]]:
-    """The decision messages of the windows of a JSON Lines file the node wrote (its own output: read
-    line by line, each a JSON object; a line that is not one is refused)."""
+    """Return the decision messages of the windows of a JSON Lines file the node wrote.
+
+    The file is the node's own output: read line by line, each a JSON object; a line that is not one is refused.
+    """
     import json
 
     out = []
@@ -98,10 +102,12 @@ def _decisions(path: Path, String: Any) -> list[tuple[int, str, Any, str]]:
 
 def check_bag_target(bag: str | Path, names: Sequence[str], overwrite: bool = False,
                      made: str | Path | None = None) -> Path:
-    """Refuse, before anything is recorded, a bag :func:`export_bag` could not write: rosbags missing,
-    ``bag`` there (and no rosbag2 folder, or ``overwrite`` False), no parent folder (but ``made``, a
-    folder the recording makes), a source's or stream's name (``names``) that is no ROS name token. Returns
-    ``bag`` as a Path."""
+    """Refuse, before anything is recorded, a bag :func:`export_bag` could not write.
+
+    Refused: rosbags missing, ``bag`` there (and no rosbag2 folder, or ``overwrite`` False), no parent folder
+    (but ``made``, a folder the recording makes), a source's or stream's name (``names``) that is no ROS name
+    token. Returns ``bag`` as a Path.
+    """
     from supramodal.drivers.ros2 import check_token
     from supramodal.replay.rosbag import INSTALL_HINT
 

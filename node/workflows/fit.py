@@ -64,6 +64,10 @@ class Candidate:
     features: tuple = ("Af",)
 
     def bank(self) -> Bank:
+        """Return the candidate's bank: ``channels`` ERB-spaced filters at ``fs``, bandwidths scaled by ``b_scale``.
+
+        ``f_low`` and ``f_high`` are fractions of the Nyquist frequency.
+        """
         nyquist = self.fs / 2
         base = bank_from_description({"kind": "cochlea", "channels": self.channels, "f_low": self.f_low * nyquist,
                                       "f_high": self.f_high * nyquist, "fs": self.fs}, "fit")
@@ -142,6 +146,11 @@ def _flat(score: dict) -> dict:
 
 
 def format_fit(result: dict) -> str:
+    """Return a fit's result as text: each step's value and accuracies, the best setting, the paper's banks.
+
+    Accuracies are means +- standard deviations over the folds, per window and per recording; a paper's
+    bank with channels above the recordings' band says how many.
+    """
     b = result["best"]
     lines = [f"fit by grouped {result['k']}-fold cross-validation (seed {result['seed']}), "
              f"banks at {result['fs']:g} Hz",
@@ -163,8 +172,11 @@ def format_fit(result: dict) -> str:
 
 
 def write_fit(result: dict, folder: Path) -> list[Path]:
-    """``fit.csv`` (every candidate), ``bank.json`` (the best bank, for ``train --bank``) and, where
-    matplotlib is installed, ``fit.png`` (accuracy against each parameter)."""
+    """Write a fit's result into ``folder`` and return the files written.
+
+    ``fit.csv`` (every candidate), ``bank.json`` (the best bank, for ``train --bank``) and, where
+    matplotlib is installed, ``fit.png`` (accuracy against each parameter).
+    """
     folder.mkdir(parents=True, exist_ok=True)
     with open(folder / "fit.csv", "w", newline="") as fh:
         w = csv.writer(fh)

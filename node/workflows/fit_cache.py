@@ -48,10 +48,11 @@ PART = 40
 
 
 def base_samples(windows, fs: float) -> tuple[int, ...]:
-    """The base windows, samples, for ``windows`` (seconds) at ``fs`` Hz: their greatest common
-    divisor where it is at least an eighth of the shortest (and 2 samples); else (lengths rounded to
-    whole samples that share no useful divisor, 1102 and 2205 samples at 44.1 kHz) each window takes
-    the first base that divides it, or becomes a base itself.
+    """Return the base windows, samples, for ``windows`` (seconds) at ``fs`` Hz.
+
+    Their greatest common divisor where it is at least an eighth of the shortest (and 2 samples); else
+    (lengths rounded to whole samples that share no useful divisor, 1102 and 2205 samples at 44.1 kHz) each
+    window takes the first base that divides it, or becomes a base itself.
 
     Parameters
     ----------
@@ -150,8 +151,10 @@ class FeatureCache:
         return -(-len(self.recs) // PART)
 
     def fill(self, bank: Bank, part: int) -> None:
-        """Compute part ``part`` of ``bank`` into the folder (nothing if it is there already), so that
-        the processes sharing the folder find it: what a worker does while others fill other parts."""
+        """Compute part ``part`` of ``bank`` into the folder (nothing if it is there already).
+
+        So that the processes sharing the folder find it: what a worker does while others fill other parts.
+        """
         for base in self._base_samples(bank):
             self._part(bank, base, part)
 
@@ -213,7 +216,7 @@ class FeatureCache:
             os.replace(tmp, path)
 
     def _read(self, key: str, channels: int, count: int) -> list[np.ndarray] | None:
-        """A part kept on disk, or None (absent, or not what this cache wrote: then recomputed)."""
+        """Return a part kept on disk, or None (absent, or not what this cache wrote: then recomputed)."""
         if self.folder is None:
             return None
         values_path, ends_path = self._paths(key)

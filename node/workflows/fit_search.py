@@ -107,7 +107,7 @@ class FitError(InputError):
 
 
 def install_hint() -> str:
-    """The line that says how to install what the search needs."""
+    """Return the line that says how to install what the search needs."""
     return "supramodal fit needs the fit extra (optuna, dask[distributed]): pip install 'supramodal[fit]'"
 
 
@@ -152,7 +152,7 @@ class Setting:
     epochs: int
 
     def bank(self) -> Bank:
-        """The setting's bank (kind ``custom``)."""
+        """Return the setting's bank (kind ``custom``)."""
         if self.family == "erb":
             base = bank_from_description({"kind": "cochlea", "channels": self.channels, "f_low": self.f_low,
                                           "f_high": self.f_high, "fs": self.fs}, "fit")
@@ -186,8 +186,10 @@ class Space:
     train_windows: int | None = None
 
     def setting(self, trial) -> Setting | None:
-        """The setting an Optuna trial proposes; None when its band is empty (the window's
-        ``1 / window`` lower edge at or above half its top edge)."""
+        """Return the setting an Optuna trial proposes; None when its band is empty.
+
+        Empty: the window's ``1 / window`` lower edge at or above half its top edge.
+        """
         family = trial.suggest_categorical("family", FAMILIES)
         channels = trial.suggest_categorical("channels", self.channels)
         f_high = trial.suggest_categorical("f_high", self.f_high)
@@ -204,9 +206,11 @@ class Space:
         return Setting(self.fs, family, channels, lo, hi, b_scale, window, features, hidden, epochs)
 
     def start(self) -> list[dict]:
-        """The first trials, one per window (so that the curve has every window): the paper's cochlea
-        made at the recordings' rate, as far as the space allows (an ERB bank of the most channels
-        over the widest band), all three features."""
+        """Return the first trials, one per window (so that the curve has every window).
+
+        Each is the paper's cochlea made at the recordings' rate, as far as the space allows (an ERB bank of
+        the most channels over the widest band), all three features.
+        """
         mid = lambda values: values[len(values) // 2]         # noqa: E731
         first = {"family": "erb", "channels": max(self.channels),
                  "f_high": max(self.f_high), "f_low": min(self.f_low),
@@ -229,7 +233,7 @@ def _duration(rec) -> float:
 
 def search_space(recs, quick: bool = False, max_window: float | None = None, max_channels: int | None = None,
                  target: str = "window", contact: float = DEFAULT_CONTACT, max_epochs: int | None = None) -> Space:
-    """The values the search may try on these recordings under the constraints.
+    """Return the values the search may try on these recordings under the constraints.
 
     Parameters
     ----------
@@ -333,8 +337,9 @@ def forget_caches() -> None:
 
 
 def warm_bank(job: dict) -> dict:
-    """Filter part ``job["part"]`` of the recordings through ``job["bank"]`` into the cache folder, where
-    the other workers of the machine read it: a task of its own, so that the parts of a new bank are
+    """Filter part ``job["part"]`` of the recordings through ``job["bank"]`` into the cache folder.
+
+    There the other workers of the machine read it. A task of its own, so that the parts of a new bank are
     filtered by several workers at once instead of each fold filtering them again.
 
     Returns
@@ -431,10 +436,12 @@ INTERRUPTED_CLOSE_SECONDS = 5.0
 
 
 def _check_scheduler_answers(address: str, seconds: float) -> None:
-    """Raise :class:`FitError` unless a TCP scheduler at ``address`` greets within ``seconds`` of the
-    connection (a Dask scheduler speaks first). Dask's own timeout covers only the connection: an address
-    that accepts and stays silent (another service, a stopped process) held the fit forever. Addresses
-    of other schemes (tls://, ucx://) are left to Dask."""
+    """Raise :class:`FitError` unless a TCP scheduler at ``address`` greets within ``seconds`` of the connection.
+
+    A Dask scheduler speaks first. Dask's own timeout covers only the connection: an address that accepts and
+    stays silent (another service, a stopped process) held the fit forever. Addresses of other schemes
+    (tls://, ucx://) are left to Dask.
+    """
     from distributed.comm import parse_address
     from distributed.comm.addressing import parse_host_port
 
@@ -498,6 +505,7 @@ class Runner:
 
     @property
     def where(self) -> str:
+        """Where the work runs, in words: this process, or the Dask scheduler's address and its workers."""
         if self.client is None:
             return "this process"
         workers = len(self.client.scheduler_info().get("workers", {}))
@@ -511,21 +519,25 @@ class Runner:
         return self.client.gather(self.client.map(task, jobs, pure=False))
 
     def start(self, jobs: list[dict], task) -> list:
-        """Begin ``task`` on every job on the cluster's workers, behind every task :meth:`map` gives
-        them, and return at once (handles for :meth:`wait`); nothing in this process."""
+        """Begin ``task`` on every job on the cluster's workers and return at once (handles for :meth:`wait`).
+
+        The tasks queue behind every task :meth:`map` gives the workers; nothing is begun in this process.
+        """
         if self.client is None:
             return []
         return self.client.map(task, jobs, pure=False, priority=-1)
 
     def wait(self, started: list) -> list[dict]:
-        """The results of what :meth:`start` began."""
+        """Return the results of what :meth:`start` began."""
         return [] if self.client is None else self.client.gather(started)
 
     def close(self, done: bool = True) -> None:
-        """Close the client and a local cluster. ``done``: the work is over (no task is running), so
-        each local worker is given :data:`WORKER_CLOSE_SECONDS` to end; else (an interrupt, a failure)
-        Dask's own close of the workers, the client and the cluster each bounded by
-        :data:`INTERRUPTED_CLOSE_SECONDS`."""
+        """Close the client and a local cluster.
+
+        ``done``: the work is over (no task is running), so each local worker is given
+        :data:`WORKER_CLOSE_SECONDS` to end; else (an interrupt, a failure) Dask's own close of the workers,
+        the client and the cluster each bounded by :data:`INTERRUPTED_CLOSE_SECONDS`.
+        """
         if self.client is not None:
             if self._local is None:                     # a cluster's workers outlive the fit: free their caches
                 self.client.run(forget_caches)
@@ -662,8 +674,10 @@ def fit_search(manifest, k: int = 5, seed: int = 0, quick: bool = False, trials:
     warmed: set[str] = set()
 
     def warm(banks: list[Bank], runner: Runner) -> list[dict]:
-        """On a cluster sharing the cache folder, jobs filtering the parts of the banks not yet
-        filtered (in this process each fold fills what it needs)."""
+        """Return the jobs filtering the parts of the banks not yet filtered, on a cluster sharing the cache folder.
+
+        None in this process: each fold fills what it needs.
+        """
         if runner.client is None or cache_dir is None:
             return []
         todo = {}
@@ -784,8 +798,10 @@ def _row(number: int, state: str, s: Setting, folds: list[dict], target: str) ->
 
 
 def plateau(rows: list[dict], patience: int, target: str) -> dict | None:
-    """Whether the search has reached a plateau: the best complete trial's score is no more than its
-    fold spread above the best of the trials before the last ``patience``.
+    """Return whether the search has reached a plateau, and how.
+
+    A plateau: the best complete trial's score is no more than its fold spread above the best of the trials
+    before the last ``patience``.
 
     Parameters
     ----------
@@ -819,8 +835,10 @@ def plateau(rows: list[dict], patience: int, target: str) -> dict | None:
 
 
 def paper_verdict(result: dict) -> dict:
-    """Whether the search's best beats each of the paper's banks (at its window, with its features and
-    network) by more than a fold's spread: the larger of the two sds of the target over the folds.
+    """Return whether the search's best beats each of the paper's banks by more than a fold's spread.
+
+    Each bank at its window, with its features and network; the spread is the larger of the two sds of the
+    target over the folds.
 
     Parameters
     ----------
@@ -851,15 +869,19 @@ def paper_verdict(result: dict) -> dict:
 
 
 def cpu_per_trial(rows: list[dict]) -> float | None:
-    """The median CPU seconds of the complete trials (every fold's filterbank, features and network),
-    None before one is complete."""
+    """Return the median CPU seconds of the complete trials, None before one is complete.
+
+    A trial's CPU seconds: every fold's filterbank, features and network.
+    """
     done = [r["cpu_seconds"] for r in rows if r["state"] == "complete"]
     return float(np.median(done)) if done else None
 
 
 def _rank(row: dict):
-    """Best first by the target's mean (the search's objective), then window and recording accuracy,
-    then the earlier trial."""
+    """Return a trial's sort key: best first by the target's mean (the search's objective).
+
+    Then by window and recording accuracy, then the earlier trial.
+    """
     return (row["score"], row["window_mean"], row["recording_mean"], -row["trial"])
 
 
@@ -869,7 +891,7 @@ def _describe(row: dict) -> str:
 
 
 def format_search(result: dict) -> str:
-    """The search's report: the best, the paper's banks beside it, the accuracy-vs-window curve."""
+    """Return the search's report: the best, the paper's banks beside it, the accuracy-vs-window curve."""
     t = result["target"]
     b, rows = result["best"], result["rows"]
     states = {s: sum(r["state"] == s for r in rows) for s in ("complete", "pruned", "empty band")}
@@ -909,9 +931,12 @@ ROW_FIELDS = ("trial", "state", "folds", "family", "channels", "f_low", "f_high"
 
 
 def write_search(result: dict, folder: Path) -> list[Path]:
-    """``fit.csv`` (every trial), ``fit-curve.csv`` (best accuracy per window, beside the paper's banks),
+    """Write the search's result into ``folder`` and return the files written.
+
+    ``fit.csv`` (every trial), ``fit-curve.csv`` (best accuracy per window, beside the paper's banks),
     ``bank.json`` (the best bank, for ``train --bank``) and, where matplotlib is installed,
-    ``fit-curve.png``."""
+    ``fit-curve.png``.
+    """
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     with open(folder / "fit.csv", "w", newline="") as fh:

@@ -67,10 +67,13 @@ def _graph_for(path, fused_model=None, models=None):
 
 
 def scene_pairs(path, progress=None, models=None):
-    """Run the scene at ``max`` speed; return ``(graph, pairs)``: the fused pairs of window events
-    ``(event_a, event_b)`` whose truth is known, in order. Pairing does not depend on the fusion
-    method, so the scene's fusion is run as late fusion here (its own model is not needed).
-    ``models``: ``{stream: model file}`` to decide with instead of the scene's (:func:`with_models`)."""
+    """Run the scene at ``max`` speed; return ``(graph, pairs)``.
+
+    ``pairs``: the fused pairs of window events ``(event_a, event_b)`` whose truth is known, in order. Pairing
+    does not depend on the fusion method, so the scene's fusion is run as late fusion here (its own model is
+    not needed). ``models``: ``{stream: model file}`` to decide with instead of the scene's
+    (:func:`with_models`).
+    """
     scene = _graph_for(path, models=models)
     assert scene.fusion is not None, "_graph_for refuses a scene without a [fusion]"
     scene = dataclasses.replace(scene, fusion=dataclasses.replace(scene.fusion, method="late", model=None, weight=0.5))
@@ -230,8 +233,10 @@ def train_fused(paths, method: str = "early", epochs: int = DEFAULT_EPOCHS, seed
 
 
 def _refuse_worse_than_a_sense(method: str, fused, senses: dict, labels) -> None:
-    """An :class:`InputError` when the fusion does worse on its held-out windows than a sense alone
-    (:func:`supramodal.fused_model.worse_than_a_sense`): a robot would act on its answers."""
+    """Raise an :class:`InputError` when the fusion does worse on its held-out windows than a sense alone.
+
+    As :func:`supramodal.fused_model.worse_than_a_sense` tells: a robot would act on its answers.
+    """
     worse = worse_than_a_sense(fused, senses, labels)
     if worse is None:
         return
@@ -244,13 +249,16 @@ def _refuse_worse_than_a_sense(method: str, fused, senses: dict, labels) -> None
 def write_fused_scene(live, streams, models: dict[str, str], out, *, method: str, model: str | None = None,
                       weight: float | None = None, sharpness: float | None = None,
                       correlation: float | None = None) -> Path:
-    """Write the scene that runs the fusion live: the scene ``live`` (the one the recordings were
-    made with) with the streams in ``models`` (``{stream: model file}``) deciding with those files
-    and a ``[fusion]`` of ``method`` over ``streams``: ``model`` (early), or ``weight``,
-    ``sharpness`` and ``correlation`` (late; the [fusion] keys). Paths the scene names relative to its own
-    folder (a replay's file, a bank file, a sink's file) are written absolute, so the new scene runs
-    from its own folder. Where ``live`` fused the same two streams, its ``[fusion.decision]`` and
-    ``max_wait`` are kept. Returns ``out``; refuses an existing file (the caller checks ``--force``)."""
+    """Write the scene that runs the fusion live.
+
+    It is the scene ``live`` (the one the recordings were made with) with the streams in ``models``
+    (``{stream: model file}``) deciding with those files and a ``[fusion]`` of ``method`` over ``streams``:
+    ``model`` (early), or ``weight``, ``sharpness`` and ``correlation`` (late; the [fusion] keys). Paths the
+    scene names relative to its own folder (a replay's file, a bank file, a sink's file) are written absolute,
+    so the new scene runs from its own folder. Where ``live`` fused the same two streams, its
+    ``[fusion.decision]`` and ``max_wait`` are kept. Returns ``out``; refuses an existing file (the caller
+    checks ``--force``).
+    """
     scene = load_scene(live)
     learned = {"model": model, "weight": weight, "sharpness": sharpness, "correlation": correlation}
     checked = with_fusion(with_models(with_absolute_paths(scene), models), streams=list(streams), method=method,
@@ -268,8 +276,11 @@ def write_fused_scene(live, streams, models: dict[str, str], out, *, method: str
 
 
 def contact_groups(pairs, prefix: str = "") -> list[str]:
-    """Each pair's contact: runs of pairs of one truth whose first stream's windows follow one
-    another (``prefix`` + the run's number), the groups whole folds are made of."""
+    """Return each pair's contact, the groups whole folds are made of.
+
+    Contacts are runs of pairs of one truth whose first stream's windows follow one
+    another (``prefix`` + the run's number).
+    """
     out, run, last = [], -1, None
     for ea, _ in pairs:
         if last is None or ea.truth != last.truth or ea.window != last.window + 1:
@@ -377,8 +388,11 @@ def evaluate_fused(paths, fused_model=None, progress=None, contact_windows: int 
 
 
 def _contact_runs(events: list[WindowEvent]) -> list[list[WindowEvent]]:
-    """The node's contacts in one stream's decided windows (in order, labelled or not): each run of
-    consecutive windows in contact, as its decider pooled them (a lift-off or a missing window ends one)."""
+    """Return the node's contacts in one stream's decided windows (in order, labelled or not).
+
+    Each run of consecutive windows in contact, as its decider pooled them (a lift-off or a missing window
+    ends one).
+    """
     runs: list[list[WindowEvent]] = []
     for e in events:
         if not e.in_contact:
@@ -391,8 +405,10 @@ def _contact_runs(events: list[WindowEvent]) -> list[list[WindowEvent]]:
 
 
 def _filled_truths(run: list[WindowEvent]) -> list:
-    """A contact's truths with each unlabelled window given the label before it (the first label, before
-    any): a gap in the labels is no change of texture."""
+    """Return a contact's truths with each unlabelled window given the label before it.
+
+    The first label, before any: a gap in the labels is no change of texture.
+    """
     known = next((e.truth for e in run if e.truth is not None), None)
     out = []
     for e in run:
@@ -402,8 +418,10 @@ def _filled_truths(run: list[WindowEvent]) -> list:
 
 
 def decision_checks(runs: list[list[WindowEvent]], classes, scored: list[dict]) -> dict:
-    """What a stream's decision rules did against the truth, over its contacts' windows (``runs``,
-    :func:`_contact_runs`) and the rules each scene asked (``scored``'s ``asked``).
+    """Return what a stream's decision rules did against the truth.
+
+    Over its contacts' windows (``runs``, :func:`_contact_runs`) and the rules each scene asked
+    (``scored``'s ``asked``).
 
     Returns
     -------
@@ -447,8 +465,11 @@ def decision_checks(runs: list[list[WindowEvent]], classes, scored: list[dict]) 
 
 
 def _scored(scene, graph) -> dict[str, dict]:
-    """What one scene's run scored, per stream: a sense's model file, the fusion's method,
-    weight, sharpness, correlation and files (see :func:`evaluate_fused`)."""
+    """Return what one scene's run scored, per stream.
+
+    A sense's model file, the fusion's method, weight, sharpness, correlation and files (see
+    :func:`evaluate_fused`).
+    """
     def file(path):
         return None if path is None else str(scene.resolve(path))
 
@@ -473,8 +494,10 @@ def _scored(scene, graph) -> dict[str, dict]:
 
 
 def _confusion(pairs, classes) -> list[list[int]]:
-    """Window counts, rows the truth and columns the decision, in the model's class order (a
-    window decided "unknown" is in no column)."""
+    """Return the window counts, rows the truth and columns the decision, in the model's class order.
+
+    A window decided "unknown" is in no column.
+    """
     index = {c: k for k, c in enumerate(classes)}
     counts = np.zeros((len(classes), len(classes)), dtype=int)
     for truth, decision in pairs:
@@ -484,10 +507,12 @@ def _confusion(pairs, classes) -> list[list[int]]:
 
 
 def _contacts(events, n: int | None = None) -> list[bool]:
-    """Whether each contact was decided right when its windows are pooled by summed
-    log-posteriors (the decision's class order is the event's; a tie is wrong). A contact is
-    each run of consecutive windows of one truth (``n`` None), or each ``n`` consecutive windows
-    of a run from its start (a shorter rest left out)."""
+    """Return whether each contact was decided right when its windows are pooled by summed log-posteriors.
+
+    The decision's class order is the event's; a tie is wrong. A contact is each run of consecutive windows of
+    one truth (``n`` None), or each ``n`` consecutive windows of a run from its start (a shorter rest left
+    out).
+    """
     out: list[bool] = []
     run: list[WindowEvent] = []
     for e in events + [None]:
@@ -504,9 +529,11 @@ def _contacts(events, n: int | None = None) -> list[bool]:
 
 
 def format_fused_evaluation(result: dict) -> str:
-    """The table ``evaluate --scene`` prints: per stream its windows and contacts right and its
-    calibration, then what was scored (the fusion's method, weight, sharpness and files; each
-    sense's model) and what a contact is."""
+    """Return the table ``evaluate --scene`` prints.
+
+    Per stream its windows and contacts right and its calibration, then what was scored (the fusion's method,
+    weight, sharpness and files; each sense's model) and what a contact is.
+    """
     from supramodal.node.workflows.reports import confidence_verdict, contact_text, scored_text
 
     lines = [f"{'stream':<12} {'windows right':>14} {'of':>6}  {'contacts right':>15} {'of':>5}  {'log loss':>8} "
@@ -527,8 +554,11 @@ def format_fused_evaluation(result: dict) -> str:
 
 
 def decision_check_lines(r: dict) -> list[str]:
-    """A stream's :func:`decision_checks` in words: the false-unknown rate where "unknown" was asked or
-    said, and the texture changes where ``[decision] change`` was asked."""
+    """Return a stream's :func:`decision_checks` in words.
+
+    The false-unknown rate where "unknown" was asked or said, and the texture changes where
+    ``[decision] change`` was asked.
+    """
     from supramodal.evaluation import DETECT_WITHIN
 
     lines = []

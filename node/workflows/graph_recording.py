@@ -28,8 +28,10 @@ from supramodal.replay.session import session_paths
 
 
 def recording_paths(folder, name: str, scene: Scene) -> dict:
-    """What recording ``scene`` as ``name`` writes into ``folder`` besides the sessions:
-    ``{"models": {stream: path}, "fused": path or None, "scene": path}``."""
+    """Return what recording ``scene`` as ``name`` writes into ``folder`` besides the sessions.
+
+    ``{"models": {stream: path}, "fused": path or None, "scene": path}``.
+    """
     folder = Path(folder)
     early = scene.fusion is not None and scene.fusion.method == "early"
     return {"models": {spec.name: folder / f"{name}.{spec.name}.npz" for spec in scene.streams if spec.model.exists},
@@ -43,13 +45,15 @@ def _files(paths: dict) -> list[Path]:
 
 def graph_recorders(scene: Scene, folder, name: str, overwrite: bool = False, label: str | None = None,
                     replace: bool = False, into=None) -> dict[str, SessionRecorder]:
-    """One recorder per source of a graph scene, keeping the blocks' arrivals; every file the
-    recording would write is checked first (refused if it exists, unless ``overwrite``).
+    """Return one recorder per source of a graph scene, keeping the blocks' arrivals.
+
+    Every file the recording would write is checked first (refused if it exists, unless ``overwrite``).
 
     ``label`` labels every source's whole recording; ``replace``: the labels given here and by
     :class:`GraphMarks` replace those a source's driver carries (a synthesised source's truth). ``into``: the
     folder the sessions are written into instead of ``folder``, whose files the caller puts in place (``supramodal
-    record``: all of them once the replay scene is written there too, or none)."""
+    record``: all of them once the replay scene is written there too, or none).
+    """
     if Path(folder).is_dir():                       # else made at the first frames: nothing to replace
         sessions = [p for src in scene.sources for p in session_paths(Path(folder) / f"{name}.{src.name}")]
         for path in _files(recording_paths(folder, name, scene)) + (sessions if into is not None else []):
@@ -92,10 +96,12 @@ class GraphMarks:
 
 
 def write_replay_scene(scene: Scene, graph, folder, name: str, overwrite: bool = False, into=None) -> Path:
-    """After ``graph`` (built from ``scene``) has recorded into ``folder``: save its streams'
-    models and write ``NAME.toml``, the scene that replays the recording; returns its path. ``into``: the folder
-    the sessions were recorded into and these files are written into, to be put in ``folder`` by the caller
-    (:func:`graph_recorders`); the scene names ``folder`` as its place."""
+    """Save the streams' models and write ``NAME.toml``, the scene that replays the recording; return its path.
+
+    Called after ``graph`` (built from ``scene``) has recorded into ``folder``. ``into``: the folder the
+    sessions were recorded into and these files are written into, to be put in ``folder`` by the caller
+    (:func:`graph_recorders`); the scene names ``folder`` as its place.
+    """
     folder = Path(folder)
     into = folder if into is None else Path(into)
     paths = recording_paths(into, name, scene)

@@ -70,8 +70,10 @@ MAX_TIME = 1e10
 
 
 class ImportRecordingError(InputError):
-    """A file to import, or an option of the import, is refused; the message names the file (and
-    line), what is wrong and the fix."""
+    """A file to import, or an option of the import, is refused.
+
+    The message names the file (and line), what is wrong and the fix.
+    """
 
 
 @dataclass(frozen=True)
@@ -114,11 +116,13 @@ class SourceFiles:
 
 def sources_from_options(wav=(), times=(), xdf_streams=(), banks=(), models=(), topics=(),
                          mappings=()) -> list[SourceFiles]:
-    """The sources the command line's ``SOURCE=VALUE`` options describe, in the order the WAVs, XDF
-    streams or bag topics are given (``wav``, ``times``, ``xdf_streams``, ``banks``, ``models``,
-    ``topics``, ``mappings``: lists of ``(source, value)``). Refused, naming the option: a source given
-    twice in one option, a ``--times``, ``--bank``, ``--model`` or ``--mapping`` for no source, a mapping
-    the scene would refuse, a source without its bank or (a WAV) its timestamps."""
+    """Return the sources the command line's ``SOURCE=VALUE`` options describe.
+
+    In the order the WAVs, XDF streams or bag topics are given (``wav``, ``times``, ``xdf_streams``,
+    ``banks``, ``models``, ``topics``, ``mappings``: lists of ``(source, value)``). Refused, naming the
+    option: a source given twice in one option, a ``--times``, ``--bank``, ``--model`` or ``--mapping`` for no
+    source, a mapping the scene would refuse, a source without its bank or (a WAV) its timestamps.
+    """
     def by_source(option: str, pairs) -> dict[str, str]:
         out: dict[str, str] = {}
         for name, value in pairs:
@@ -155,7 +159,7 @@ def sources_from_options(wav=(), times=(), xdf_streams=(), banks=(), models=(), 
 
 
 def _mapping(source: str, value: str) -> str | int:
-    """``--mapping``'s value as the scene takes it (a channel index as an integer), or refused naming it."""
+    """Return ``--mapping``'s value as the scene takes it (a channel index as an integer), or refuse it, naming it."""
     from supramodal.node.scene.schema import MAPPING
 
     taken: str | int = int(value) if value.strip().isdigit() else value.strip()
@@ -266,8 +270,10 @@ def read_times(path, frames: int) -> tuple[str, np.ndarray, np.ndarray]:
 
 
 def _wav_session(src: SourceFiles) -> tuple[Session, float]:
-    """A source's WAV and timestamps as a session whose arrivals are on the file's clock (zero not
-    yet moved), and the time of its first sample on that clock."""
+    """Return a source's WAV and timestamps as a session, and the time of its first sample on the file's clock.
+
+    The session's arrivals are on the file's clock (zero not yet moved).
+    """
     from supramodal.replay.xdf import MAX_XDF_TIME, xdf_session
 
     assert src.wav is not None and src.times is not None
@@ -347,7 +353,7 @@ def _bag_sessions(path: Path, sources: list[SourceFiles], labels: str | None) ->
 
 
 def _bank_rate(source: SourceFiles) -> float:
-    """The rate, Hz, the source's bank reads: a bag's samples carry none of their own."""
+    """Return the rate, Hz, the source's bank reads: a bag's samples carry none of their own."""
     from supramodal.banks import cochlea_bank, whisker_bank
 
     if source.bank == "whisker":
@@ -358,7 +364,7 @@ def _bank_rate(source: SourceFiles) -> float:
 
 
 def _check_times(name: str, session: Session, where: str) -> None:
-    """The times must follow the frames as a device's clock does (the rule replays are held to)."""
+    """Refuse times that do not follow the frames as a device's clock does (the rule replays are held to)."""
     assert session.arrivals is not None
     ends, seconds, rate = session.arrivals
     try:
@@ -370,8 +376,11 @@ def _check_times(name: str, session: Session, where: str) -> None:
 
 
 def _check_overlap(sessions: Mapping[str, Session], where: Mapping[str, str]) -> None:
-    """Sources recorded in step share some time: two that never do (another day's file, a clock of another
-    origin) would make the replay wait out the gap between them, for as long as it is."""
+    """Refuse sources two of which share no time: sources recorded in step share some.
+
+    Two that never do (another day's file, a clock of another origin) would make the replay wait out the
+    gap between them, for as long as it is.
+    """
     spans = {}
     for n, session in sessions.items():
         assert session.arrivals is not None
@@ -558,8 +567,11 @@ def import_recording(folder, name: str, sources: list[SourceFiles], xdf=None, ma
 
 
 def _check_scene(path: Path) -> None:
-    """Build (not run) the written scene: a model that does not fit its stream's bank or
-    features, or two streams that cannot be fused, is refused now, not at the first run."""
+    """Build (not run) the written scene, so that what would fail at the first run is refused now.
+
+    A model that does not fit its stream's bank or features, or two streams that cannot be fused, is
+    refused now, not at the first run.
+    """
     from supramodal.node.scene.build import build_node
     from supramodal.node.scene.schema import load_scene
 

@@ -76,8 +76,10 @@ class Span:
 
 
 def check_label_name(name: object, where: str) -> str:
-    """``name`` if it is a valid label (a name: letters, digits, '-' or '_'), else a :class:`LabelError`
-    naming ``where`` and the fix (class names become outlet channels, file name parts and columns)."""
+    """Return ``name`` if it is a valid label (a name: letters, digits, '-' or '_'), else raise a :class:`LabelError`.
+
+    The error names ``where`` and the fix (class names become outlet channels, file name parts and columns).
+    """
     if not is_name(name):
         raise LabelError(f"{where}: the label {name!r} is not {NAME_HELP}; rename it (e.g. 'rough_wood')")
     return str(name)
@@ -159,9 +161,11 @@ def read_spans(path) -> list[Span]:
 
 
 def spans_to_stream(spans: Iterable[Span], arrivals, marks, frames: int, rate: float) -> list[tuple[float, float, str]]:
-    """Spans on common time as labels of one session: ``(start_s, end_s, name)`` in seconds of the
-    device's own stream (frame / ``rate``), each end clipped to the ``frames`` recorded; a span the
-    source did not record (all before its first sample or after its last) is left out."""
+    """Return spans on common time as labels of one session: ``(start_s, end_s, name)``.
+
+    In seconds of the device's own stream (frame / ``rate``), each end clipped to the ``frames`` recorded; a
+    span the source did not record (all before its first sample or after its last) is left out.
+    """
     spans = list(spans)
     if not spans:
         return []
@@ -196,19 +200,24 @@ def _sessions(scene_path) -> list[tuple[str, Path]]:
 
 
 def _staged(path: Path) -> Path:
-    """The temporary name beside ``path`` its new text is written under (then put in place by :func:`replace_all`):
-    known before the file is made, so that an interruption at any moment knows what to remove (a signal right after
-    ``mkstemp`` made one left it behind)."""
+    """Return the temporary name beside ``path`` its new text is written under.
+
+    It is then put in place by :func:`replace_all`. The name is known before the file is made, so that an
+    interruption at any moment knows what to remove (a signal right after ``mkstemp`` made one left it
+    behind).
+    """
     return path.with_name(f".{path.name}.{os.getpid()}.tmp")
 
 
 def replace_all(staged: list[tuple[Path, Path]]) -> None:
-    """Put every staged file in place, ``(temporary, final)``: all or none (a label's sidecars; the files of an
-    import, a recorded graph, a report: every command that writes several). Each replace is atomic (a
-    crash leaves a sidecar old or new, never half of one), and a Ctrl-C or SIGTERM that comes meanwhile is
-    held until all are done, then given to the handler it was for (a signal in between left one session
-    labelled and the other not). Signals are held only on the main thread (the only one Python's handlers
-    run on); elsewhere the replaces are microseconds apart."""
+    """Put every staged file in place, ``(temporary, final)``: all or none.
+
+    Every command that writes several files puts them so: a label's sidecars; the files of an import, a
+    recorded graph, a report. Each replace is atomic (a crash leaves a sidecar old or new, never half of one), and a
+    Ctrl-C or SIGTERM that comes meanwhile is held until all are done, then given to the handler it was for (a
+    signal in between left one session labelled and the other not). Signals are held only on the main thread
+    (the only one Python's handlers run on); elsewhere the replaces are microseconds apart.
+    """
     from supramodal.interrupts import held_interrupts
 
     try:

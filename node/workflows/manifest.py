@@ -164,7 +164,7 @@ def _parse(path: Path) -> list[Recording]:
 
 
 def recording_info(rec: Recording) -> WavInfo:
-    """The header of ``rec``'s WAV file (for a session, its ``NAME.wav``); no sample is read.
+    """Return the header of ``rec``'s WAV file (for a session, its ``NAME.wav``); no sample is read.
 
     Raises
     ------
@@ -222,8 +222,10 @@ def read_manifest(path) -> list[Recording]:
 
 
 def manifest_classes(recs: list[Recording], manifest) -> tuple[str, ...]:
-    """The labels of a manifest's recordings, sorted; a :class:`ManifestError` with fewer than two (a model
-    that tells one texture from nothing learns nothing: ``train`` and ``fit`` refuse it alike)."""
+    """Return the labels of a manifest's recordings, sorted; a :class:`ManifestError` with fewer than two.
+
+    A model that tells one texture from nothing learns nothing: ``train`` and ``fit`` refuse it alike.
+    """
     classes = tuple(sorted({r.label for r in recs}))
     if len(classes) < 2:
         raise ManifestError(f"{manifest}: training needs at least two labels, found {list(classes)}; "

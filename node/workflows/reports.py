@@ -21,11 +21,15 @@ EVALUATION_FILES = ("confusion.csv", "confusion.png", "pooling.csv", "channels.c
 
 
 def write_staged(folder: Path, write: Callable[[Path], list[Path]]) -> list[Path]:
-    """Write a command's files into ``folder`` whole or not at all: ``write(staging)`` writes them into a folder of
-    their own inside it (``folder`` made if missing), then each is put in place, Ctrl-C and SIGTERM held until the
-    last is (:func:`supramodal.node.workflows.labels.replace_all`). An interruption or a failure before that leaves
-    every earlier file of ``folder`` as it was and nothing beside them (written in place, an interrupted report had
-    some files new and the rest an earlier run's, or one cut short). Returns the paths written in ``folder``."""
+    """Write a command's files into ``folder`` whole or not at all.
+
+    ``write(staging)`` writes them into a folder of their own inside it (``folder`` made if missing), then
+    each is put in place, Ctrl-C and SIGTERM held until the last is
+    (:func:`supramodal.node.workflows.labels.replace_all`). An interruption or a failure before that leaves
+    every earlier file of ``folder`` as it was and nothing beside them (written in place, an interrupted
+    report had some files new and the rest an earlier run's, or one cut short). Returns the paths written in
+    ``folder``.
+    """
     from supramodal.node.workflows.labels import replace_all
 
     folder = Path(folder)
@@ -47,12 +51,14 @@ def write_staged(folder: Path, write: Callable[[Path], list[Path]]) -> list[Path
 
 
 def confidence_verdict(calibration: dict, fused: bool = False) -> str:
-    """Whether decisions on labelled recordings were about as sure as they were right, in one line: their
-    mean stated confidence beside their accuracy, and the ECE against
+    """Say in one line whether decisions on labelled recordings were about as sure as they were right.
+
+    Their mean stated confidence beside their accuracy, and the ECE against
     :data:`supramodal.calibration.HOLDS_ECE` and against what a calibrated model's would reach by chance on as
     many windows (``calibration``: a :func:`~supramodal.calibration.calibration_report`, or its ``accuracy``,
-    ``ece`` and ``n`` with ``confidence`` and ``ece_if_calibrated``), and
-    what to do where they were not (``fused``: the decisions of a fusion, which is not recalibrated itself)."""
+    ``ece`` and ``n`` with ``confidence`` and ``ece_if_calibrated``), and what to do where they were not
+    (``fused``: the decisions of a fusion, which is not recalibrated itself).
+    """
     from supramodal.calibration import HOLDS_ECE, ece_if_calibrated, mean_confidence
 
     c = calibration
@@ -72,8 +78,9 @@ def confidence_verdict(calibration: dict, fused: bool = False) -> str:
 
 
 def write_confusion(labels, confusion, base: Path, title: str) -> list[Path]:
-    """Write ``base.csv`` (counts; rows = truth, columns = predicted) and ``base.png`` (each row as
-    shares of its windows, so a rare label reads as clearly as a common one).
+    """Write ``base.csv`` (counts; rows = truth, columns = predicted) and ``base.png`` (each row as shares).
+
+    ``base.png`` shows each row as shares of its windows, so a rare label reads as clearly as a common one.
 
     Returns the paths written (the PNG only where matplotlib can be imported).
     """
@@ -105,8 +112,10 @@ def write_confusion(labels, confusion, base: Path, title: str) -> list[Path]:
 
 
 def _save_png(plt, fig, path: Path, description: str | None = None) -> Path:
-    """Lay ``fig`` out, write it to ``path`` (120 dpi) and free it; returns ``path``.
-    ``description``: kept in the PNG's ``Description`` text chunk (what the figure shows)."""
+    """Lay ``fig`` out, write it to ``path`` (120 dpi) and free it; return ``path``.
+
+    ``description``: kept in the PNG's ``Description`` text chunk (what the figure shows).
+    """
     fig.tight_layout()
     fig.savefig(path, dpi=120, metadata=None if description is None else {"Description": description})
     plt.close(fig)
@@ -114,8 +123,10 @@ def _save_png(plt, fig, path: Path, description: str | None = None) -> Path:
 
 
 def pyplot_or_none():
-    """matplotlib.pyplot on a file backend, or None where matplotlib is not installed (imported with Ctrl-C
-    held: :func:`supramodal.interrupts.import_optional`)."""
+    """Return matplotlib.pyplot on a file backend, or None where matplotlib is not installed.
+
+    Imported with Ctrl-C held: :func:`supramodal.interrupts.import_optional`.
+    """
     from supramodal.interrupts import import_optional
 
     matplotlib = import_optional("matplotlib")
@@ -126,7 +137,7 @@ def pyplot_or_none():
 
 
 def plots_missing_notice() -> str | None:
-    """What a user without matplotlib is told instead of the PNGs (None where it is installed)."""
+    """Return what a user without matplotlib is told instead of the PNGs (None where it is installed)."""
     if pyplot_or_none() is not None:
         return None
     return ("no PNG written (confusion, reliability diagram, plots): matplotlib is not installed; "
@@ -134,12 +145,13 @@ def plots_missing_notice() -> str | None:
 
 
 def write_reliability(calibration: dict, base: Path, title: str) -> list[Path]:
-    """Write ``base.csv``, the reliability bins of the decisions per window and per recording
-    (``calibration["window"]`` and ``["recording"]``, each a
-    :func:`supramodal.calibration.calibration_report`), and ``base.png``, the reliability diagram:
-    per confidence bin, the share of decisions right against their mean confidence (a calibrated
-    model's bars reach the diagonal). Returns the paths written (the PNG only where matplotlib
-    can be imported)."""
+    """Write ``base.csv``, the reliability bins of the decisions, and ``base.png``, the reliability diagram.
+
+    The bins per window and per recording (``calibration["window"]`` and ``["recording"]``, each a
+    :func:`supramodal.calibration.calibration_report`); the diagram: per confidence bin, the share of
+    decisions right against their mean confidence (a calibrated model's bars reach the diagonal). Returns the
+    paths written (the PNG only where matplotlib can be imported).
+    """
     scopes = [(name, calibration[name]) for name in ("window", "recording") if calibration.get(name)]
     csv_path = base.with_name(base.name + ".csv")
     with open(csv_path, "w", newline="") as fh:
@@ -180,10 +192,12 @@ def write_reliability(calibration: dict, base: Path, title: str) -> list[Path]:
 
 
 def write_evaluation(result: dict, folder: Path) -> list[Path]:
-    """``evaluate --out``: the confusion (``confusion.csv/.png``), accuracy against windows pooled
-    (``pooling.csv``) and the channels' importance (``channels.csv``), with one PNG of the last two
-    (``evaluation.png``), and the reliability diagram (``reliability.csv/.png``). Returns the paths
-    written."""
+    """Write the files of ``evaluate --out`` into ``folder``.
+
+    The confusion (``confusion.csv/.png``), accuracy against windows pooled (``pooling.csv``) and the
+    channels' importance (``channels.csv``), with one PNG of the last two (``evaluation.png``), and the
+    reliability diagram (``reliability.csv/.png``). Returns the paths written.
+    """
     folder.mkdir(parents=True, exist_ok=True)
     written = write_confusion(result["labels"], result["confusion"], folder / "confusion",
                               f"window accuracy {result['window_accuracy']:.3f} (chance {result['chance']:.3f})")
@@ -223,9 +237,12 @@ def write_evaluation(result: dict, folder: Path) -> list[Path]:
 
 
 def write_anytime(rows: list[dict], base: Path) -> list[Path]:
-    """Write ``base.csv`` and ``base.png``: per confidence threshold, the touches decided, the share
-    of those right, and the median windows it took (``rows``: :func:`supramodal.evaluation.anytime_sweep`'s,
-    without the per-touch windows). Returns the paths written (the PNG where matplotlib is)."""
+    """Write ``base.csv`` and ``base.png``: per confidence threshold, the touches decided and how.
+
+    The touches decided, the share of those right, and the median windows it took (``rows``:
+    :func:`supramodal.evaluation.anytime_sweep`'s, without the per-touch windows). Returns the paths written
+    (the PNG where matplotlib is).
+    """
     csv_path = base.with_name(base.name + ".csv")
     with open(csv_path, "w", newline="") as fh:
         w = csv.writer(fh)
@@ -262,8 +279,10 @@ def _reliability_title(result: dict) -> str:
 
 
 def fused_evaluation_files(streams) -> list[str]:
-    """The file names :func:`write_fused_evaluation` writes for ``streams`` (the CSVs; each also
-    gets a PNG where matplotlib is installed)."""
+    """Return the file names :func:`write_fused_evaluation` writes for ``streams``.
+
+    The CSVs; each also gets a PNG where matplotlib is installed.
+    """
     names = ["fusion.csv", "fusion.png"]
     for name in streams:
         names += [f"confusion-{name}.csv", f"confusion-{name}.png"]
@@ -284,9 +303,11 @@ def _name(path) -> str:
 
 
 def scored_text(scored: list[dict]) -> str:
-    """What a stream's score is of, in words (``scored``:
-    :func:`~supramodal.node.workflows.fused_training.evaluate_fused`'s ``scored``, one entry per scene;
-    entries that differ are joined by ``"; "``)."""
+    """Return what a stream's score is of, in words.
+
+    ``scored``: :func:`~supramodal.node.workflows.fused_training.evaluate_fused`'s ``scored``, one entry per
+    scene; entries that differ are joined by ``"; "``.
+    """
     said = []
     for e in scored:
         if "method" not in e:
@@ -301,7 +322,7 @@ def scored_text(scored: list[dict]) -> str:
 
 
 def contact_text(contact_windows: int | None) -> str:
-    """What a contact is, in words (``None``: each run of windows of one texture)."""
+    """Return what a contact is, in words (``None``: each run of windows of one texture)."""
     if contact_windows is None:
         return "each run of windows of one texture, pooled"
     return (f"{contact_windows} windows each, pooled (each run of one texture cut from its start; a shorter rest "
@@ -309,8 +330,11 @@ def contact_text(contact_windows: int | None) -> str:
 
 
 def _columns(r: dict) -> list:
-    """A row's columns after ``contacts``: windows per contact, method, weight, sharpness,
-    correlation and model files (values that differ between scenes joined by ``" | "``)."""
+    """Return a row's columns after ``contacts``.
+
+    Windows per contact, method, weight, sharpness, correlation and model files (values that differ between
+    scenes joined by ``" | "``).
+    """
     def join(values) -> str:
         return " | ".join("" if v is None else (f"{v:.6g}" if isinstance(v, float) else str(v))
                           for v in _distinct(values))
@@ -326,10 +350,13 @@ def _columns(r: dict) -> list:
 
 
 def write_fused_evaluation(result: dict, folder: Path) -> list[Path]:
-    """``evaluate --scene --out``: per stream (each sense and ``fused``) its accuracy per window and
-    per contact, what a contact is and what was scored (``fusion.csv``, columns
-    :data:`FUSION_COLUMNS`; and side by side in ``fusion.png``, whose title and ``Description``
-    name them too) and its confusion (``confusion-STREAM.csv/.png``). Returns the paths written."""
+    """Write the files of ``evaluate --scene --out`` into ``folder``.
+
+    Per stream (each sense and ``fused``) its accuracy per window and per contact, what a contact is and what
+    was scored (``fusion.csv``, columns :data:`FUSION_COLUMNS`; and side by side in ``fusion.png``, whose
+    title and ``Description`` name them too) and its confusion (``confusion-STREAM.csv/.png``). Returns the
+    paths written.
+    """
     folder.mkdir(parents=True, exist_ok=True)
     rows = [(name, r["window_accuracy"], r["windows"], r["contact_accuracy"], r["contacts"])
             for name, r in result.items()]

@@ -32,8 +32,9 @@ from supramodal.training import grouped_folds
 
 
 def recording_windows(rec: Recording, pipeline: FeaturePipeline, mapping="auto", notice=None) -> np.ndarray:
-    """Feature windows of one recording (its [start, end) part) through a fresh ``pipeline``,
-    shape (n, features, channels).
+    """Return the feature windows of one recording (its [start, end) part) through a fresh ``pipeline``.
+
+    Shape (n, features, channels).
 
     Raises
     ------
@@ -66,9 +67,10 @@ def _no_window(rec: Recording, window_seconds: float) -> ManifestError:
 def train_from_manifest(manifest, bank: Bank, features=("Af",), window: float = 0.1, epochs: int = DEFAULT_EPOCHS,
                         seed: int = 0, mapping="auto", progress=None, jobs: int = 1,
                         augment: GainAugment | None = None) -> TextureModel:
-    """Train a model on every window of every recording in the manifest, calibrated on held-out
-    windows: out-of-fold windows of folds grouped by recording (manifest line) where every label
-    has two recordings and there are enough of them, else of spans of each recording
+    """Train a model on every window of every recording in the manifest, calibrated on held-out windows.
+
+    The held-out windows are out-of-fold windows of folds grouped by recording (manifest line) where every
+    label has two recordings and there are enough of them, else of spans of each recording
     (:meth:`supramodal.model.TextureModel.train`). ``augment``: gain augmentation of every network's
     training windows, the calibration's fold networks and the model's alike (default none).
 
@@ -90,8 +92,10 @@ def train_from_manifest(manifest, bank: Bank, features=("Af",), window: float = 
 
 
 def _manifest_windows(manifest, make_pipeline, mapping, progress):
-    """The manifest's recordings, its classes (sorted) and every recording's feature windows
-    (``make_pipeline()``: a fresh FeaturePipeline per recording)."""
+    """Return the manifest's recordings, its classes (sorted) and every recording's feature windows.
+
+    ``make_pipeline()``: a fresh FeaturePipeline per recording.
+    """
     recs = read_manifest(manifest)
     classes = manifest_classes(recs, manifest)
     windows = []
@@ -108,10 +112,12 @@ def _manifest_windows(manifest, make_pipeline, mapping, progress):
 
 def _train(recs, classes, windows, pipeline: FeaturePipeline, epochs: int, seed: int, hidden=None,
            calibration_progress=None, groups=None, jobs: int = 1, augment: GainAugment | None = None) -> TextureModel:
-    """A model on the recordings' windows, calibrated on out-of-fold windows of folds grouped by
-    recording (``groups``, one per entry of ``recs``; default :func:`recording_group`) where there
-    are enough recordings; its networks over ``jobs`` worker processes (the same model for any), each
-    trained on its windows gain-augmented by ``augment`` (None: not)."""
+    """Train a model on the recordings' windows, calibrated on out-of-fold windows of folds grouped by recording.
+
+    The groups are ``groups``, one per entry of ``recs`` (default :func:`recording_group`), where there are
+    enough recordings; its networks over ``jobs`` worker processes (the same model for any), each trained on
+    its windows gain-augmented by ``augment`` (None: not).
+    """
     x = np.concatenate(windows)
     y = np.concatenate([np.full(len(v), classes.index(r.label)) for r, v in zip(recs, windows)])
     names = [recording_group(r) for r in recs] if groups is None else list(groups)
@@ -123,9 +129,12 @@ def _train(recs, classes, windows, pipeline: FeaturePipeline, epochs: int, seed:
 
 
 def _warn_if_calibrated_on_spans(model: TextureModel) -> None:
-    """One line when the calibration's folds had to be spans of recordings: its held-out windows then
-    share a touch with windows that trained their fold's network, and its confidence may not hold on
-    a new touch (issue 34: 0.966 right by spans, 0.798 on a new touch, log loss 0.082 against 0.973)."""
+    """Warn in one line when the calibration's folds had to be spans of recordings.
+
+    Its held-out windows then share a touch with windows that trained their fold's network, and its confidence
+    may not hold on a new touch (issue 34: 0.966 right by spans, 0.798 on a new touch, log loss 0.082 against
+    0.973).
+    """
     import warnings
 
     from supramodal.calibration import DEFAULT_CALIBRATION_FOLDS
@@ -154,8 +163,9 @@ def session_fingerprint(path) -> str:
 
 
 def scene_stream(path, stream: str):
-    """The recorded graph's replay scene at ``path``, stream ``stream`` of it and the session its
-    source plays: ``(scene, stream spec, session path, source spec)``.
+    """Return the recorded graph's replay scene at ``path``, stream ``stream`` of it and the session its source plays.
+
+    As ``(scene, stream spec, session path, source spec)``.
 
     Raises
     ------
@@ -214,8 +224,9 @@ def train_from_scenes(paths, stream: str, epochs: int = DEFAULT_EPOCHS, seed: in
 
 def scene_windows(paths, stream: str, progress=None
                   ) -> tuple[list[Recording], list[np.ndarray], list[str], list[str], Callable[[], FeaturePipeline]]:
-    """The labelled windows of one stream of recorded graphs (``--scene REC.toml ... --stream NAME``), as
-    :func:`train_from_scenes` and :func:`recalibrate_model` read them.
+    """Return the labelled windows of one stream of recorded graphs (``--scene REC.toml ... --stream NAME``).
+
+    As :func:`train_from_scenes` and :func:`recalibrate_model` read them.
 
     Returns
     -------
@@ -282,8 +293,9 @@ def scene_windows(paths, stream: str, progress=None
 
 def recalibrate_model(model: TextureModel, manifest=None, scenes=(), stream: str | None = None, mapping="auto",
                       progress=None) -> TextureModel:
-    """``model`` recalibrated on labelled recordings of a new touch, session or sensor, its network kept
-    (:meth:`supramodal.model.TextureModel.recalibrated`): from a ``manifest`` (CSV of recordings and labels)
+    """Return ``model`` recalibrated on labelled recordings of a new touch, session or sensor, its network kept.
+
+    See :meth:`supramodal.model.TextureModel.recalibrated`. From a ``manifest`` (CSV of recordings and labels)
     or from recorded graphs (``scenes``, the ``stream`` of each), read through the model's own pipeline.
 
     Raises
@@ -327,15 +339,17 @@ def recalibrate_model(model: TextureModel, manifest=None, scenes=(), stream: str
 
 
 def recording_group(rec: Recording) -> str:
-    """The calibration group of a manifest line's windows: its file and span (the same whatever
-    manifest lists it, so that a fold's model is calibrated as a re-run on its recordings is)."""
+    """Return the calibration group of a manifest line's windows: its file and span.
+
+    The same whatever manifest lists it, so that a fold's model is calibrated as a re-run on its recordings is.
+    """
     return f"{rec.path}@{rec.start:g}-{'end' if rec.end is None else f'{rec.end:g}'}"
 
 
 def cross_validate_manifest(manifest, bank: Bank, features=("Af",), window: float = 0.1, k: int = 5,
                             epochs: int = DEFAULT_EPOCHS, seed: int = 0, mapping="auto", progress=None,
                             augment: GainAugment | None = None) -> dict:
-    """Grouped ``k``-fold cross-validation of the training :func:`train_from_manifest` would do.
+    """Cross-validate, grouped ``k``-fold, the training :func:`train_from_manifest` would do.
 
     Folds are grouped by manifest line, one trial (:func:`supramodal.training.grouped_folds`):
     the windows of one trial are never on both sides. A long recording may be split into
@@ -360,7 +374,7 @@ def cross_validate_manifest(manifest, bank: Bank, features=("Af",), window: floa
 
 def cross_validate_model(model: TextureModel, manifest, k: int = 5, seed: int | None = None, mapping="auto",
                          progress=None) -> dict:
-    """Grouped ``k``-fold cross-validation of ``model``'s configuration on the manifest.
+    """Cross-validate, grouped ``k``-fold, ``model``'s configuration on the manifest.
 
     Each fold trains a fresh model exactly as ``model`` was made (bank, features, window, peak
     settings, hidden units, epochs, gain augmentation) on the other folds' recordings and scores it on its own: how
@@ -436,6 +450,12 @@ def _refuse_overlapping_trials(recs: list[Recording]) -> None:
 
 
 def format_cross_validation(result: dict) -> str:
+    """Return a cross-validation's result as text.
+
+    Window and recording accuracy (mean +- sd over the folds, chance beside), recall per label, the
+    calibration of every test fold's decisions where it was measured, and the confusion table.
+    ``result``: what :func:`cross_validate_manifest` or :func:`cross_validate_model` returns.
+    """
     w, r = result["window_accuracy"], result["recording_accuracy"]
     lines = [f"grouped {result['k']}-fold cross-validation (folds by manifest line: a trial's windows on one side; "
              f"seed {result['seed']})",
@@ -493,7 +513,7 @@ def evaluate_manifest(model: TextureModel, manifest, mapping="auto", progress=No
 
 
 def score_recordings(model: TextureModel, recs: list[Recording], windows: list[np.ndarray], progress=None) -> dict:
-    """The result of :func:`evaluate_manifest` for recordings whose feature windows are known.
+    """Return the result of :func:`evaluate_manifest` for recordings whose feature windows are known.
 
     Decisions come from the model's log-posteriors (calibrated when the model is): a window's is
     their winner, a recording's the winner of its windows pooled
@@ -542,10 +562,12 @@ def _score_recordings(model: TextureModel, recs, windows, progress=None) -> tupl
 
 
 def _anytime(model: TextureModel, scored: dict) -> list[dict] | None:
-    """Each recording taken as one touch, decided as soon as its pooled confidence reaches each of
-    :data:`~supramodal.evaluation.ANYTIME_THRESHOLDS` (:func:`~supramodal.evaluation.anytime_sweep`,
-    as the node's ``[decision] confidence`` decides a contact); None for an uncalibrated model,
-    whose confidence is no probability to set a threshold on."""
+    """Return the anytime sweep: each recording as one touch, decided once its pooled confidence reaches a threshold.
+
+    The thresholds are each of :data:`~supramodal.evaluation.ANYTIME_THRESHOLDS`
+    (:func:`~supramodal.evaluation.anytime_sweep`, as the node's ``[decision] confidence`` decides a contact);
+    None for an uncalibrated model, whose confidence is no probability to set a threshold on.
+    """
     if model.calibration is None:          # not model.calibrated
         return None
     lps = scored["log_posteriors"]
@@ -573,6 +595,12 @@ def _calibration_reports(scored: dict) -> dict:
 
 
 def format_evaluation(result: dict) -> str:
+    """Return an evaluation's result (:func:`evaluate_manifest`'s) as text.
+
+    Window and recording accuracy (chance beside), accuracy against windows pooled, the calibration, the
+    anytime decisions where there are any, the channels carrying the decision where measured, and the
+    confusion table.
+    """
     lines = [f"window accuracy     {result['window_accuracy']:.3f} (chance {result['chance']:.3f}: always the "
              "commonest label)",
              f"recording accuracy  {result['recording_accuracy']:.3f} ({len(result['recordings'])} recordings, "
@@ -594,7 +622,7 @@ def format_evaluation(result: dict) -> str:
 
 
 def format_anytime(rows: list[dict]) -> str:
-    """The anytime decisions of :func:`evaluate_manifest` (its ``anytime``) as a table."""
+    """Return the anytime decisions of :func:`evaluate_manifest` (its ``anytime``) as a table."""
     lines = ["decided as soon as sure (each recording one touch, as [decision] confidence = c decides a contact)",
              f"  {'c':>6}  {'decided':>9}  {'right of decided':>16}  {'median windows':>14}  {'right at the end':>16}"]
     for r in rows:
@@ -606,9 +634,12 @@ def format_anytime(rows: list[dict]) -> str:
 
 
 def format_calibration(calibration: dict) -> str:
-    """How far the confidence can be trusted: a model's calibration, and per window and per
-    recording its decisions' accuracy, log loss, Brier score, ECE and the share wrong of those
-    that say >= 0.99 (``calibration`` as in :func:`evaluate_manifest`'s result)."""
+    """Return, as text, how far the confidence can be trusted.
+
+    A model's calibration, and per window and per recording its decisions' accuracy, log loss, Brier score,
+    ECE and the share wrong of those that say >= 0.99 (``calibration`` as in :func:`evaluate_manifest`'s
+    result).
+    """
     lines = [f"posteriors          {describe_calibration(calibration)}"]
     w, r = calibration["window"], calibration["recording"]
     sure = w["sure"]

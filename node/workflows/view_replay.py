@@ -1,5 +1,6 @@
-"""``supramodal view REC.toml | SESSION``: a recording played back into the view's page, with pause
-and speed, so that a user can look back at what the robot felt.
+"""``supramodal view REC.toml | SESSION``: a recording played back into the view's page, with pause and speed.
+
+So that a user can look back at what the robot felt.
 
 The recording is first run through the node at once (``--speed max``: the same windows, decisions
 and driver events a live run of it gives, node/runtime/graph.py), kept in memory, then played to the page
@@ -67,8 +68,11 @@ class _Keep(Sink):
 
 
 def replay_scene(path: str | Path) -> Any:
-    """The scene that replays ``path``: a recorded graph's ``REC.toml`` as it is, or a session
-    (``NAME``, ``NAME.wav`` or ``NAME.json``) through the paper's bank for its rate, no model."""
+    """Return the scene that replays ``path``.
+
+    A recorded graph's ``REC.toml`` as it is, or a session (``NAME``, ``NAME.wav`` or ``NAME.json``) through
+    the paper's bank for its rate, no model.
+    """
     from supramodal.node.scene.schema import load_scene, scene_from_dict
     from supramodal.replay.session import load_session, session_paths
 
@@ -196,8 +200,10 @@ class ViewReplay:
         self.items = sorted(keep.items, key=lambda item: item[0])
 
     def serve(self, on_running: Callable[[], None] | None = None, loop: bool = False) -> None:
-        """Load (if not yet), then play to the page until :meth:`stop`; at the end of the
-        recording the page keeps what it has (``loop``: it starts again)."""
+        """Load (if not yet), then play to the page until :meth:`stop`.
+
+        At the end of the recording the page keeps what it has (``loop``: it starts again).
+        """
         try:
             if self.summary is None:
                 self.load()
