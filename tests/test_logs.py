@@ -5,6 +5,7 @@ line's -q leaves only the results and the warnings."""
 from __future__ import annotations
 
 import logging
+import os
 
 import numpy as np
 import pytest
@@ -101,3 +102,40 @@ def test_quiet_keeps_a_driver_events_alarms_and_warnings_and_leaves_out_the_news
         sink.event(DriverEvent(kind, f"the {kind} event", 0.0))
     err = capsys.readouterr().err
     assert "supramodal: the gap event" in err and "supramodal: the level event" in err and "open" not in err
+
+
+def _dask_level_in_a_child() -> int:
+    """The ``distributed`` logger's level in a new process that imports Dask (as a fit's local workers do)."""
+    import subprocess
+    import sys
+
+    code = "import logging, distributed; print(logging.getLogger('distributed').getEffectiveLevel())"
+    return int(subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                              timeout=120).stdout.split()[-1])
+
+
+@pytest.mark.parametrize("verbose", [False, True])
+def test_dask_s_own_log_lines_show_only_with_verbose_here_and_in_the_processes_a_command_starts(
+        monkeypatch, verbose):
+    """Without -v, Dask's lines (a nanny killing a worker, a heartbeat failing) are kept out: its logger at
+    ERROR in the command's process and in every process the command starts (a fit's local workers, which
+    import Dask on their own); with -v they show at Dask's own level. Undone when the command returns."""
+    pytest.importorskip("distributed")
+    import supramodal.node.cli as cli
+
+    monkeypatch.delenv(cli.DASK_LOGGING_ENV, raising=False)
+    seen = {}
+
+    def run(args) -> int:
+        seen["here"] = logging.getLogger("distributed").getEffectiveLevel()
+        seen["child"] = _dask_level_in_a_child()
+        return 0
+
+    monkeypatch.setattr(cli, "_run", run)
+    before = logging.getLogger("distributed").level
+    assert main(["-v", "devices"] if verbose else ["devices"]) == 0
+    if verbose:
+        assert seen["child"] < logging.WARNING             # Dask's own (INFO): its warnings show
+    else:
+        assert seen == {"here": logging.ERROR, "child": logging.ERROR}
+    assert logging.getLogger("distributed").level == before and cli.DASK_LOGGING_ENV not in os.environ

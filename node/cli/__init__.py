@@ -89,7 +89,7 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("-q", "--quiet", action="store_true", default=default,
                        help="no progress and no notices on stderr: the results, the warnings and a view's address only")
         p.add_argument("-v", "--verbose", action="store_true", default=default,
-                       help="every notice, the package's debugging lines and the libraries' own (liblsl's log)")
+                       help="every notice, the package's debugging lines and the libraries' own (liblsl's log, Dask's)")
     sub = parser.add_subparsers(dest="command", required=True)
     add = sub.add_parser
 
@@ -116,6 +116,34 @@ def _show_warning(message: Warning | str, category: type[Warning], filename: str
         print(f"supramodal: warning: {message}", file=sys.stderr, flush=True)
     else:
         _default(message, category, filename, lineno, file, line)
+
+
+#: The environment variable of Dask's configuration that sets its ``distributed`` logger's level, read by each
+#: process as it imports Dask: the fit's local worker processes inherit it.
+DASK_LOGGING_ENV = "DASK_LOGGING__DISTRIBUTED"
+
+
+def quiet_libraries() -> Callable[[], None]:
+    """Keep the libraries' own log lines out (Dask's: its nannies, scheduler and workers), and return the undo.
+
+    Without ``-v`` a command says what it does itself; Dask's lines (a nanny that kills a worker slow to
+    end, a heartbeat that finds the scheduler gone as a fit closes) are for whoever runs a Dask cluster,
+    and show with ``-v``. They are raised to ERROR: in this process, and, through :data:`DASK_LOGGING_ENV`,
+    in the processes it starts. liblsl's own log is kept out by the LSL driver and sinks unless ``-v``.
+    """
+    saved_env = os.environ.get(DASK_LOGGING_ENV)
+    os.environ[DASK_LOGGING_ENV] = "error"
+    dask = logging.getLogger("distributed")
+    saved_level = dask.level
+    dask.setLevel(logging.ERROR)        # where Dask is already imported (it sets the level as it is)
+
+    def undo() -> None:
+        dask.setLevel(saved_level)
+        if saved_env is None:
+            os.environ.pop(DASK_LOGGING_ENV, None)
+        else:
+            os.environ[DASK_LOGGING_ENV] = saved_env
+    return undo
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -148,6 +176,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     keep_freed_memory()              # numpy's temporaries reuse heap pages (supramodal/memory.py: 2x faster training)
     level = logger.level
     set_log_level(logging.WARNING if args.quiet else logging.DEBUG if args.verbose else logging.INFO)
+    libraries = None if args.verbose else quiet_libraries()
     shown, warnings.showwarning = warnings.showwarning, _show_warning
     handlers = {}
     if threading.current_thread() is threading.main_thread():      # signals are the main thread's
@@ -156,6 +185,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return _run(args)
     finally:
         set_log_level(level)         # main() may be called again in this process (a test, a notebook)
+        if libraries is not None:
+            libraries()
         warnings.showwarning = shown
         for sig, handler in handlers.items():
             if handler is not None:                                  # None: set outside Python
