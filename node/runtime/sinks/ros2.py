@@ -368,7 +368,7 @@ class Ros2Sink(Sink):
         if self._one_source is None:
             if self.health is None:
                 return only_source({})
-            self._one_source = only_source(self.health().to_dict())
+            self._one_source = only_source(self.health())
         return self._one_source
 
     def drain(self, timeout: float = 5.0) -> None:
@@ -388,7 +388,8 @@ class Ros2Sink(Sink):
 
     def _health(self) -> dict[str, JsonValue] | None:
         """Return the graph's counters as the publisher process takes them (JSON), or None outside a graph."""
-        return None if self.health is None else self.health().to_dict()
+        # dict(): a Health's JSON form; a program that watches the sink with a plain mapping of it works too
+        return None if self.health is None else dict(self.health())
 
     def stats(self) -> dict[str, Any]:
         """Return the sink's counts.

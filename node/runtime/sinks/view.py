@@ -646,7 +646,7 @@ class ViewSink(Sink):
         if self.health is not None:
             try:
                 self.hub.publish({"type": "health", "clients": self.hub.clients(),
-                                  "client_dropped": self.hub.dropped, **self.health().to_dict()}, keep="latest")
+                                  "client_dropped": self.hub.dropped, **self.health()}, keep="latest")
             except Exception:       # a counter read mid-update: the next tick has it
                 pass
 
