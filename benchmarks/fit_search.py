@@ -12,7 +12,7 @@ cross-validation (mean +- sd over folds), and whether the fit is at least the be
 
 ``speed``: a synthetic set of 600 recordings of 5 s at 2 kHz and 16 labels (each texture's three
 peaks 5 % above the last's), the quick fit on it (grouped 5-fold), timed, beside today's coordinate
-search (:mod:`node.fit`) on the same recordings. Today's fit takes hours there, so it is estimated
+search (:mod:`node.workflows.fit`) on the same recordings. Today's fit takes hours there, so it is estimated
 from measured parts: one of its folds (the first candidate's: the model ``train`` would make, with
 its ten calibration networks, on four fifths of the recordings) and one filterbank pass over the
 recordings, times its 15 cross-validations (13 candidates and the paper's two banks) of 5 folds.
@@ -68,7 +68,7 @@ def speed_manifest(folder: Path, recordings: int = 600, labels: int = 16, second
 
 
 def today_estimate(manifest: Path, k: int = 5, epochs: int = 300) -> dict:
-    """Today's coordinate search (:func:`node.fit.fit_manifest`, quick) on ``manifest``, estimated.
+    """Today's coordinate search (:func:`node.workflows.fit.fit_manifest`, quick) on ``manifest``, estimated.
 
     Estimated from one fold of its first candidate and one filterbank pass, both measured.
     """
@@ -89,7 +89,7 @@ def today_estimate(manifest: Path, k: int = 5, epochs: int = 300) -> dict:
     classes = sorted({r.label for r in recs})
     fold = grouped_folds([r.where for r in recs], [r.label for r in recs], k, 0)
     train = [i for i in range(len(recs)) if fold[i] != 0]
-    # One fold as node.training's cross-validation trains it: the model `train` makes, calibrated.
+    # One fold as node.workflows.training's cross-validation trains it: the model `train` makes, calibrated.
     x = np.concatenate([windows[i] for i in train])
     y = np.concatenate([np.full(len(windows[i]), classes.index(recs[i].label)) for i in train])
     groups = np.repeat([recording_group(recs[i]) for i in train], [len(windows[i]) for i in train])

@@ -1,4 +1,4 @@
-"""Throughput of node.ringbuffer.RingBuffer: one writer thread, one reader thread.
+"""Throughput of node.runtime.ringbuffer.RingBuffer: one writer thread, one reader thread.
 
 Writes ``--frames`` frames of ``--channels`` float64 channels in blocks of
 ``--block`` frames (default 50: 10 ms at the whisker array's 5 kHz) as fast as

@@ -6,9 +6,9 @@ line, and anything else as a bug, with its traceback. The tree::
 
     SupramodalError
      +-- InputError (also ValueError): an argument, a block of samples or a file's content is refused
-     |    +-- node.scene.SceneError, supramodal.model.ModelError, replay.errors.ReplayError, ...
+     |    +-- node.scene.specs.SceneError, supramodal.model.ModelError, replay.errors.ReplayError, ...
      +-- drivers.base.DriverError: a device or stream failed (DeviceUnavailable, DriverClosed, ...)
-     +-- node.ringbuffer.RingBufferError
+     +-- node.runtime.ringbuffer.RingBufferError
      +-- node.runtime.graph.NodeError (also RuntimeError): a thread of the node failed
      +-- StreamEndedError (also RuntimeError): a block fed to a stream after its finish()
      +-- parallel.WorkerLost (also RuntimeError): a worker process ended in the middle of its work

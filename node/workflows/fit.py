@@ -10,7 +10,7 @@ and tens of cross-validations instead of thousands):
 2. the band's top and 3. bottom edge, 4. the bandwidth scale (every ``b`` times a factor),
 5. the window, 6. the features (A, f, Af, all three),
 
-each candidate scored by :func:`node.training.cross_validate_manifest` (folds by recording,
+each candidate scored by :func:`node.workflows.training.cross_validate_manifest` (folds by recording,
 seeded: the fit is deterministic given its seed). The paper's whisker and cochlea banks (their
 rates, the recordings resampled) are scored with the same window and features, for comparison.
 Candidates of one step run in parallel processes.

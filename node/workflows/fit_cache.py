@@ -129,7 +129,7 @@ class FeatureCache:
         Returns
         -------
         list of ndarray, each (windows, len(features), channels)
-            What :func:`node.training.recording_windows` returns for a
+            What :func:`node.workflows.training.recording_windows` returns for a
             ``FeaturePipeline(bank, features, window)`` (equal up to the order of float sums).
         """
         features = check_features(features)

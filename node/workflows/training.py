@@ -2,7 +2,7 @@
 
 A manifest is a CSV file with a header and the columns ``path,label`` and,
 optionally, ``start,end`` (seconds; a recording's part to use). Paths are relative
-to the manifest's folder. :mod:`node.manifest` reads and checks it (format, rules
+to the manifest's folder. :mod:`node.workflows.manifest` reads and checks it (format, rules
 and errors there) before any training starts. Recordings are read and resampled to the bank's rate by
 the replay driver, exactly as ``supramodal run`` would replay them, so a model
 sees in training what the node feeds it live.
@@ -74,7 +74,7 @@ def train_from_manifest(manifest, bank: Bank, features=("Af",), window: float = 
     (:meth:`supramodal.model.TextureModel.train`). ``augment``: gain augmentation of every network's
     training windows, the calibration's fold networks and the model's alike (default none).
 
-    The manifest is read and checked whole (:func:`node.manifest.read_manifest`) before
+    The manifest is read and checked whole (:func:`node.workflows.manifest.read_manifest`) before
     any feature is computed; a line whose part of its file holds no complete window is
     refused (its label would be a class the model never saw).
 
