@@ -35,7 +35,7 @@ import queue
 import sys
 import threading
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, TextIO
 
@@ -45,8 +45,9 @@ from supramodal.drivers.base import DriverEvent
 from supramodal.drivers.spec import OptionError
 from supramodal.errors import InputError
 from supramodal.node.runtime.events import WindowEvent
+from supramodal.node.runtime.fields import str_of
 from supramodal.node.runtime.outputs import check_new_file
-from supramodal.node.runtime.sinks.spec import SinkContext
+from supramodal.node.runtime.sinks.spec import Options, SinkContext
 from supramodal.node.runtime.summaries import Health, RunSummary
 
 
@@ -403,13 +404,14 @@ class QueuedSink(Sink):
 PATH_KEY = Key(is_text, '"-" (stdout) or a file path', "-", path=True, words=("-",))
 
 
-def file_sink(kind: type[FileSink]) -> Callable[[Mapping[str, Any], SinkContext], Sink]:
+def file_sink(kind: type[FileSink]) -> Callable[[Options, SinkContext], Sink]:
     """Return the ``build`` of a file sink's spec: ``kind`` at the scene's ``path``, behind its own queue.
 
     The ``path`` is relative to the scene; the queue a :class:`QueuedSink`.
     """
-    def build(options: Mapping[str, Any], context: SinkContext) -> Sink:
-        path = options["path"] if options["path"] == "-" else str(context.resolve(options["path"]))
+    def build(options: Options, context: SinkContext) -> Sink:
+        path = str_of(options, "path")
+        path = path if path == "-" else str(context.resolve(path))
         try:
             sink = kind(path, context.overwrite)
         except InputError as exc:

@@ -51,7 +51,7 @@ from __future__ import annotations
 import json
 import socket
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from types import ModuleType
 from typing import TYPE_CHECKING, Any, Protocol
@@ -66,8 +66,9 @@ from supramodal.drivers.spec import OptionError
 from supramodal.errors import InputError
 from supramodal.features import FEATURE_TABLE
 from supramodal.node.runtime.events import FUSED_STREAM, WindowEvent
+from supramodal.node.runtime.fields import optional_float_of, str_of, strs_of
 from supramodal.node.runtime.sinks import QueuedSink, Sink
-from supramodal.node.runtime.sinks.spec import SinkContext, SinkSpec, listened, stream_outputs
+from supramodal.node.runtime.sinks.spec import Options, SinkContext, SinkSpec, listened, option_from, stream_outputs
 from supramodal.node.runtime.summaries import RunSummary
 
 if TYPE_CHECKING:   # for the annotations only: the sink needs no model code to run
@@ -420,7 +421,7 @@ def describe(name: str, pipeline: FeaturePipeline, classes: Sequence[str]) -> Ou
                         pipeline.features, pipeline.window_samples / bank.fs, tuple(classes))
 
 
-def _build(options: Mapping[str, Any], context: SinkContext) -> Sink:
+def _build(options: Options, context: SinkContext) -> Sink:
     # Made from the streams' plans, before any model is trained: consumers resolve the outlets
     # while the node trains (seconds), and get window 0.
     described = {name: describe(name, p.pipeline, p.classes) for name, p in context.plans.items()}
@@ -428,10 +429,10 @@ def _build(options: Mapping[str, Any], context: SinkContext) -> Sink:
         window = next(iter(described.values())).window
         described[FUSED_STREAM] = OutletStream(FUSED_STREAM, "fused", 0.0, (), (), (), window,
                                                tuple(context.fused_classes))
-    names = listened(options["from"], described)
+    names = listened(option_from(options), described)
     try:
-        sink = LSLOutletSink([described[n] for n in names], options["outputs"], options["prefix"],
-                             options["wait_for_consumer"])
+        sink = LSLOutletSink([described[n] for n in names], strs_of(options, "outputs"),
+                             str_of(options, "prefix"), optional_float_of(options, "wait_for_consumer"))
     except InputError as exc:
         raise OptionError(str(exc)) from None
     return QueuedSink(sink)

@@ -58,6 +58,7 @@ from supramodal.drivers.spec import OptionError
 from supramodal.errors import InputError, SupramodalError
 from supramodal.logs import get_logger
 from supramodal.node.runtime.events import DECISION_EVENTS, FUSED_STREAM, WindowEvent
+from supramodal.node.runtime.fields import float_of, int_of, str_of, strs_of
 from supramodal.node.runtime.sinks import QueuedSink, Sink
 from supramodal.node.runtime.sinks.ros2_publisher import (
     DEFAULT_HISTORY,
@@ -71,7 +72,7 @@ from supramodal.node.runtime.sinks.ros2_publisher import (
     features_of,
     only_source,
 )
-from supramodal.node.runtime.sinks.spec import SinkContext, SinkSpec, listened, stream_outputs
+from supramodal.node.runtime.sinks.spec import Options, SinkContext, SinkSpec, listened, option_from, stream_outputs
 from supramodal.node.runtime.summaries import RunSummary
 from supramodal.records import JsonValue
 
@@ -547,17 +548,19 @@ def describe(name: str, pipeline: FeaturePipeline, classes: Sequence[str]) -> To
     return TopicStream(name, tuple(classes), tuple(pipeline.features), tuple(pipeline.bank.names))
 
 
-def _build(options: Mapping[str, Any], context: SinkContext) -> Sink:
+def _build(options: Options, context: SinkContext) -> Sink:
     # Made from the streams' plans, before any model is trained: subscribers match the topics
     # while the node trains, and get window 0.
     described = {name: describe(name, p.pipeline, p.classes) for name, p in context.plans.items()}
     if context.fused_classes is not None and described:
         described[FUSED_STREAM] = TopicStream(FUSED_STREAM, tuple(context.fused_classes))
-    names = listened(options["from"], described)
+    names = listened(option_from(options), described)
     try:
-        sink = Ros2Sink([described[n] for n in names], options["outputs"], options["node_name"],
-                        options["namespace"], options["frame_id"], options["diagnostics_period"],
-                        options["wait_for_subscribers"], options["history"], context.fused_inputs)
+        sink = Ros2Sink([described[n] for n in names], strs_of(options, "outputs"),
+                        str_of(options, "node_name"), str_of(options, "namespace"),
+                        str_of(options, "frame_id"), float_of(options, "diagnostics_period"),
+                        float_of(options, "wait_for_subscribers"), int_of(options, "history"),
+                        context.fused_inputs)
     except InputError as exc:
         raise OptionError(str(exc)) from None
     return QueuedSink(sink)

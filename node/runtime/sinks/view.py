@@ -53,8 +53,9 @@ from supramodal.drivers.spec import OptionError
 from supramodal.errors import InputError
 from supramodal.logs import get_logger
 from supramodal.node.runtime.events import WindowEvent, severity
+from supramodal.node.runtime.fields import bool_of, int_of, optional_str_of, optional_strs_of, str_of
 from supramodal.node.runtime.sinks import QueuedSink, Sink
-from supramodal.node.runtime.sinks.spec import SinkContext, SinkSpec
+from supramodal.node.runtime.sinks.spec import Options, SinkContext, SinkSpec
 from supramodal.node.runtime.summaries import Health, RunSummary
 
 _LOG = get_logger("sinks.view")
@@ -734,11 +735,12 @@ def channel_labels(bank: Any) -> dict[str, list[Any]]:
     return {"names": list(bank.names), "centre_hz": list(bank.cf)}
 
 
-def _build(options: Mapping[str, Any], context: SinkContext) -> Sink:
+def _build(options: Options, context: SinkContext) -> Sink:
     # Made from the streams' plans (their banks: the bars' labels), still before any model is trained.
     channels = {name: channel_labels(p.pipeline.bank) for name, p in context.plans.items()}
     try:
-        view = ViewSink(options["port"], options["host"], options["remote"], options["token"], options["labels"],
+        view = ViewSink(int_of(options, "port"), str_of(options, "host"), bool_of(options, "remote"),
+                        optional_str_of(options, "token"), optional_strs_of(options, "labels"),
                         streams=context.stream_names, channels=channels)
     except ViewError as exc:
         raise OptionError(str(exc)) from None
