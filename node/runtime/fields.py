@@ -14,8 +14,9 @@ from collections.abc import Mapping
 
 import numpy as np
 
-__all__ = ["bool_of", "float_of", "int_of", "list_of", "mapping_of", "optional_float_of", "optional_int_of",
-           "optional_str_of", "optional_strs_of", "str_of", "strs_of"]
+__all__ = ["bool_of", "float_of", "int_mapping_of", "int_of", "list_of", "mapping_of", "mappings_of",
+           "optional_float_of", "optional_int_of", "optional_str_of", "optional_strs_of", "str_mapping_of", "str_of",
+           "strs_of"]
 
 
 def _wrong(key: str, value: object, what: str) -> TypeError:
@@ -90,6 +91,34 @@ def list_of(m: Mapping[str, object], key: str) -> list[object]:
     if isinstance(value, list):
         return list(value)
     raise _wrong(key, value, "a list")
+
+
+def mappings_of(m: Mapping[str, object], key: str) -> list[Mapping[str, object]]:
+    """Return ``m[key]``, a list of mappings of text to values (a copy)."""
+    value = m[key]
+    if isinstance(value, list):
+        out = [v for v in value if isinstance(v, Mapping) and all(isinstance(k, str) for k in v)]
+        if len(out) == len(value):
+            return out
+    raise _wrong(key, value, "a list of mappings of text to values")
+
+
+def str_mapping_of(m: Mapping[str, object], key: str) -> dict[str, str]:
+    """Return ``m[key]``, a mapping of text to text (a copy)."""
+    value = mapping_of(m, key)
+    out = {k: v for k, v in value.items() if isinstance(v, str)}
+    if len(out) == len(value):
+        return out
+    raise _wrong(key, value, "a mapping of text to text")
+
+
+def int_mapping_of(m: Mapping[str, object], key: str) -> dict[str, int]:
+    """Return ``m[key]``, a mapping of text to integers (a copy; counts by name)."""
+    value = mapping_of(m, key)
+    out = {k: v for k, v in value.items() if isinstance(v, int) and not isinstance(v, bool)}
+    if len(out) == len(value):
+        return out
+    raise _wrong(key, value, "a mapping of text to integers")
 
 
 def mapping_of(m: Mapping[str, object], key: str) -> Mapping[str, object]:
