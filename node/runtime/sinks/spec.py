@@ -38,7 +38,8 @@ __all__ = ["FROM", "NEEDS", "SOURCE", "OptionValue", "Options", "SinkContext", "
            "listened", "option_from", "sink_keys", "stream_outputs"]
 
 #: A scene option's value once its table's schema (:class:`supramodal.checks.Key`) has checked it: what TOML
-#: gives (no key takes a date), or a key's default (None for some).
+#: gives but its dates and times (no key's check takes one), or a key's default (None for some). A build
+#: reads each as its key's type with the checked readers of :mod:`supramodal.node.runtime.fields`.
 OptionValue = None | bool | int | float | str | list["OptionValue"] | Mapping[str, "OptionValue"]
 #: A sink's or source's options: its keys, validated, defaults filled in (read-only).
 Options = Mapping[str, OptionValue]
@@ -209,7 +210,6 @@ def stream_outputs(outputs: Sequence[str], has_features: bool, has_classes: bool
 def sink_keys(spec: SinkSpec) -> dict[str, Key]:
     """Return a sink's keys in a scene: its own, and what it listens to (``from`` or ``source``)."""
     return {**spec.keys, **({"source": SOURCE} if spec.listens == "samples" else {"from": FROM})}
-
 
 
 def option_from(options: Options) -> str | list[str] | None:
