@@ -153,8 +153,8 @@ def run_phase(name: str, streams: tuple[str, ...], seconds: float, sample_every:
         true_ppm = driver.device_clock.ppm
         est = source.clock_summary()
         assert est is not None, "a host-timed source has a clock"
-        clocks[source.name] = {"true_ppm": true_ppm, "ppm": est["ppm"], "ppm_error": est["ppm"] - true_ppm,
-                               "jitter_ms": est["jitter_ms"], "fitted": est["fitted"]}
+        clocks[source.name] = {"true_ppm": true_ppm, "ppm": est.ppm, "ppm_error": est.ppm - true_ppm,
+                               "jitter_ms": est.jitter_ms, "fitted": est.fitted}
     per = summary.streams
     stream_s = min(per[s].stream_seconds for s in streams)
     return {"phase": name, "streams": list(streams), "seconds": seconds, "wall_s": wall, "cpu_s": cpu,

@@ -18,7 +18,8 @@ from __future__ import annotations
 import bisect
 import threading
 from collections.abc import Iterable
-from typing import Any
+
+from supramodal.records import JsonValue
 
 __all__ = ["ContactTimeline"]
 
@@ -89,7 +90,7 @@ class ContactTimeline:
         with self._lock:
             return self._touches_gone + _rising(self._before, self._states)
 
-    def summary(self) -> dict[str, Any]:
+    def summary(self) -> dict[str, JsonValue]:
         """``from``, ``states`` received, ``touches`` (rising edges)."""
         return {"from": self.name, "states": self.states, "touches": self.touches}
 

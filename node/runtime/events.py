@@ -13,16 +13,18 @@ from __future__ import annotations
 
 import time
 from collections import Counter, deque
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, replace
-from typing import Any, cast
+from typing import cast
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from supramodal.decisions import PooledDecision, TextureChange
 from supramodal.drivers.base import DriverEvent
 from supramodal.errors import InputError
 from supramodal.node.runtime.summaries import Accuracy
+from supramodal.records import JsonValue
 
 #: Event kinds that are decisions, not a device's health: a texture ``change`` within a contact
 #: (:func:`change_event`). Each is passed on (never folded by :class:`EventLimiter`) and is no
@@ -163,8 +165,9 @@ class WindowEvent:
         clock (see :mod:`supramodal.node.runtime.sources`; for a one-source scene, stream time).
     t : float
         End of the window in the stream's own time, seconds (``(window + 1) * W / fs``).
-    features : dict of str to ndarray, or None
-        Per feature, the window's values over the channels; None on a fused event.
+    features : mapping of str to array_like, or None
+        Per feature, the window's values over the channels (a stream's: a row of its windows' array); None
+        on a fused event.
     posteriors : ndarray or None
         Normalised class posteriors (a model's, or the fused ones); None without a model.
     classes : tuple of str
@@ -205,7 +208,7 @@ class WindowEvent:
     start: float
     end: float
     t: float
-    features: dict[str, Any] | None = None
+    features: Mapping[str, ArrayLike] | None = None
     posteriors: np.ndarray | None = None
     decision: str | None = None
     confidence: float | None = None
@@ -221,7 +224,7 @@ class WindowEvent:
     unknown: str | None = None
     novelty: float | None = None
 
-    def as_dict(self) -> dict[str, Any]:
+    def as_dict(self) -> dict[str, JsonValue]:
         """Return the event as a JSON-ready dict.
 
         Its keys: ``{"stream", "t", "window", "start", "end"}``, then ``predicted`` and ``confidence``
@@ -229,8 +232,8 @@ class WindowEvent:
         with a model, else ``features``; ``senses`` where set; ``truth``, each flag as ``true``,
         ``latency_ms``.
         """
-        out = {"stream": self.stream, "t": round(self.t, 6), "window": self.window,
-               "start": round(self.start, 6), "end": round(self.end, 6)}
+        out: dict[str, JsonValue] = {"stream": self.stream, "t": round(self.t, 6), "window": self.window,
+                                     "start": round(self.start, 6), "end": round(self.end, 6)}
         if self.decision is not None:
             # a decision comes with its confidence (the streams and the fusion set both)
             out.update(predicted=self.decision, confidence=round(cast(float, self.confidence), 4))

@@ -72,14 +72,15 @@ import bisect
 import math
 import threading
 import time
-from typing import Any, NamedTuple
+from typing import NamedTuple, TypedDict
 
 import numpy as np
 from numpy.typing import ArrayLike, DTypeLike
 
 from supramodal.errors import InputError, SupramodalError
 
-__all__ = ["RingBuffer", "Reader", "Chunk", "RingBufferError", "RingClosed", "OVERRUN_POLICIES"]
+__all__ = ["RingBuffer", "Reader", "Chunk", "ReaderStats", "RingStats", "RingBufferError", "RingClosed",
+           "OVERRUN_POLICIES"]
 
 OVERRUN_POLICIES = ("drop-oldest", "drop-newest", "block")
 
@@ -90,6 +91,33 @@ class RingBufferError(SupramodalError):
 
 class RingClosed(RingBufferError):
     """The ring (or this reader) is closed and, for a reader, drained: no more frames will come."""
+
+
+class ReaderStats(TypedDict):
+    """A reader's frame counts (:meth:`Reader.stats`).
+
+    ``start``: the stream index when it was added; ``read``, ``lost``: frames read and lost; ``available``:
+    frames it may read now; ``read_filled``, ``lost_filled``: of the frames read and lost, those written
+    with a True filled flag.
+    """
+
+    start: int
+    read: int
+    lost: int
+    available: int
+    read_filled: int
+    lost_filled: int
+
+
+class RingStats(TypedDict):
+    """A ring's counters since construction (:meth:`RingBuffer.stats`: what each key counts)."""
+
+    written: int
+    filled: int
+    stored: int
+    refused: int
+    capacity: int
+    readers: dict[str, ReaderStats]
 
 
 class Chunk(NamedTuple):
@@ -219,7 +247,7 @@ class Reader:
         """Detach: the ring stops waiting for this reader; later reads raise :class:`RingClosed`."""
         self._ring._remove(self)
 
-    def stats(self) -> dict[str, int]:
+    def stats(self) -> ReaderStats:
         """Return this reader's frame counts.
 
         ``start`` stream index when added, ``read`` and ``lost`` frames, ``available`` now,
@@ -229,7 +257,7 @@ class Reader:
         with self._ring._lock:
             return self._stats()
 
-    def _stats(self) -> dict[str, int]:
+    def _stats(self) -> ReaderStats:
         return {"start": self._start, "read": self._read, "lost": self._lost,
                 "available": self._ring._stored - self._cursor,
                 "read_filled": self._read_filled, "lost_filled": self._lost_filled}
@@ -571,12 +599,12 @@ class RingBuffer:
         with self._lock:
             return self._end
 
-    def stats(self) -> dict[str, Any]:
+    def stats(self) -> RingStats:
         """Counters since construction.
 
         Returns
         -------
-        dict
+        RingStats
             ``written``: frames offered to :meth:`write` (the stream's length);
             ``filled``: of them, frames offered with a True filled flag;
             ``stored``: frames kept (equal to ``written`` unless refused);

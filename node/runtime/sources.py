@@ -37,7 +37,7 @@ import math
 import queue
 import threading
 from collections.abc import Callable
-from typing import Any, Protocol
+from typing import Protocol
 
 import numpy as np
 
@@ -46,6 +46,7 @@ from supramodal.errors import InputError
 from supramodal.node.runtime.clock import ClockModel
 from supramodal.node.runtime.labels import Labels
 from supramodal.node.runtime.ringbuffer import Reader, RingBuffer
+from supramodal.node.runtime.summaries import ClockSummary
 
 
 class ArrivalRecorder(Protocol):
@@ -318,10 +319,10 @@ class Source:
                 "dropped_by_driver": driver_drops,
                 "filled_lost_in_ring": r["lost_filled"]}
 
-    def clock_summary(self) -> dict[str, Any] | None:
+    def clock_summary(self) -> ClockSummary | None:
         """Return the clock's estimate (rate error in ppm, jitter and delay in ms), for a host timebase."""
         if self.clock is None:
             return None
         e = self.clock.estimate()
-        return {"ppm": round(e.ppm, 3), "jitter_ms": round(e.jitter * 1e3, 3), "delay_ms": round(e.delay * 1e3, 3),
-                "blocks": e.blocks, "fitted": e.fitted, "skipped": self.clock_skipped}
+        return ClockSummary(round(e.ppm, 3), round(e.jitter * 1e3, 3), round(e.delay * 1e3, 3), e.blocks, e.fitted,
+                            self.clock_skipped)

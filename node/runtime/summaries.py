@@ -16,13 +16,14 @@ from dataclasses import dataclass
 from supramodal.decisions import DecisionCounts
 from supramodal.records import JsonRecord, JsonValue
 
-__all__ = ["Accuracy", "FusionHealth", "FusionSummary", "Health", "RunSummary", "StreamHealth", "StreamSummary"]
+__all__ = ["Accuracy", "ClockSummary", "FusionHealth", "FusionSummary", "Health", "RunSummary", "StreamHealth",
+           "StreamSummary"]
 
 #: Counts by name (frame fates, driver events per kind, late windows per stream, ...).
 Counts = Mapping[str, int]
 #: A latency histogram's ``{"p50", "p99", "max", "count"}`` in ms, or None with none recorded.
 Latency = Mapping[str, float] | None
-#: A part's own statistics, as that part documents them (a driver's, the ring's, a sink's, a clock's, a tap's).
+#: A part's own statistics, as that part documents them (a driver's, the ring's, a sink's, a tap's).
 Stats = Mapping[str, JsonValue]
 
 
@@ -48,6 +49,37 @@ class Accuracy(JsonRecord):
         """Return the accuracy as the summary's JSON has it."""
         return {"window_accuracy": self.window_accuracy, "labelled_windows": self.labelled_windows,
                 "accumulated_accuracy": self.accumulated_accuracy}
+
+
+@dataclass(frozen=True, eq=False)
+class ClockSummary(JsonRecord):
+    """A source's clock, as the run's summary and the graph's health say it (a source with a host timebase).
+
+    Attributes
+    ----------
+    ppm : float
+        The source's rate error, parts per million (3 decimals).
+    jitter_ms, delay_ms : float
+        The spread and the median of the recent blocks' delays above the fitted line, ms (3 decimals).
+    blocks : int
+        Blocks the clock has taken.
+    fitted : bool
+        Whether the rate comes from a fit rather than the nominal rate.
+    skipped : int
+        Block stamps out of order (a driver's fill), not taken as measurements.
+    """
+
+    ppm: float
+    jitter_ms: float
+    delay_ms: float
+    blocks: int
+    fitted: bool
+    skipped: int
+
+    def to_dict(self) -> dict[str, JsonValue]:
+        """Return the clock's estimate as the summary's JSON has it."""
+        return {"ppm": self.ppm, "jitter_ms": self.jitter_ms, "delay_ms": self.delay_ms, "blocks": self.blocks,
+                "fitted": self.fitted, "skipped": self.skipped}
 
 
 @dataclass(frozen=True, eq=False)
@@ -170,9 +202,8 @@ class RunSummary(JsonRecord):
         By stream name (``"main"`` for a one-source scene); empty for a relay (taps only).
     fusion : FusionSummary or None
         The fusion block's; None without one.
-    clocks : mapping of str to mapping
-        Per source with a host timebase, its clock's estimate (``ppm``, ``jitter_ms``, ``delay_ms``,
-        ``blocks``, ``fitted``, ``skipped``; :meth:`Source.clock_summary`).
+    clocks : mapping of str to ClockSummary
+        Per source with a host timebase, its clock's estimate (:meth:`Source.clock_summary`).
     windows : int
         All streams' windows.
     stream_seconds : float
@@ -195,7 +226,7 @@ class RunSummary(JsonRecord):
 
     streams: Mapping[str, StreamSummary]
     fusion: FusionSummary | None
-    clocks: Mapping[str, Stats]
+    clocks: Mapping[str, ClockSummary]
     windows: int
     stream_seconds: float
     wall_seconds: float
@@ -286,8 +317,8 @@ class Health(JsonRecord):
     ----------
     streams : mapping of str to StreamHealth
         By stream name.
-    clocks : mapping of str to mapping
-        Per source with a host timebase, its clock's estimate (``ppm``, ``jitter_ms``, ``delay_ms``, ...).
+    clocks : mapping of str to ClockSummary
+        Per source with a host timebase, its clock's estimate.
     fusion : FusionHealth or None
         The fusion block's pairing counters; None without one.
     sinks : tuple of mapping
@@ -295,7 +326,7 @@ class Health(JsonRecord):
     """
 
     streams: Mapping[str, StreamHealth]
-    clocks: Mapping[str, Stats]
+    clocks: Mapping[str, ClockSummary]
     fusion: FusionHealth | None
     sinks: tuple[Stats, ...]
 

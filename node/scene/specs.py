@@ -19,16 +19,18 @@ from supramodal.bankfile import BANK_KEYS
 from supramodal.decisions import DEFAULT_DECISION, DecisionRules
 from supramodal.errors import InputError
 from supramodal.model import DEFAULT_AUGMENT_SPREAD, GainAugment
+from supramodal.node.runtime.sinks.spec import Options as RuntimeOptions
+from supramodal.node.runtime.sinks.spec import OptionValue
 
 
 class SceneError(InputError):
     """A scene file is unreadable or does not fit the schema; the message names the key."""
 
-#: A driver's or a sink's validated keys (defaults filled in), read-only.
-Options = Mapping[str, object]
+#: A driver's or a sink's validated keys (defaults filled in), read-only: what a sink's build takes.
+Options = RuntimeOptions
 
 
-def frozen(values: Mapping[str, object]) -> Options:
+def frozen(values: Mapping[str, OptionValue]) -> Options:
     """Return a read-only copy of ``values``."""
     return MappingProxyType(dict(values))
 

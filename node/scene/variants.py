@@ -124,7 +124,7 @@ def with_absolute_paths(scene: Scene) -> Scene:
     def absolute(value: str | None) -> str | None:
         return value if value is None else str(scene.resolve(value).resolve())
 
-    def options(values: Mapping[str, object], keys: Mapping[str, Key]) -> Options:
+    def options(values: Options, keys: Mapping[str, Key]) -> Options:
         return frozen({k: absolute(v) if k in keys and keys[k].path and isinstance(v, str)
                        and v not in keys[k].words else v for k, v in values.items()})
 

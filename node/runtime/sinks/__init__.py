@@ -35,9 +35,9 @@ import queue
 import sys
 import threading
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, TextIO
+from typing import TextIO
 
 from supramodal.checks import Key
 from supramodal.checks import text as is_text  # not `text`: that is the text sink's module here
@@ -45,9 +45,11 @@ from supramodal.drivers.base import DriverEvent
 from supramodal.drivers.spec import OptionError
 from supramodal.errors import InputError
 from supramodal.node.runtime.events import WindowEvent
+from supramodal.node.runtime.fields import str_of
 from supramodal.node.runtime.outputs import check_new_file
-from supramodal.node.runtime.sinks.spec import SinkContext
+from supramodal.node.runtime.sinks.spec import Options, SinkContext
 from supramodal.node.runtime.summaries import Health, RunSummary
+from supramodal.records import JsonValue
 
 
 class Sink(abc.ABC):
@@ -112,7 +114,7 @@ class Sink(abc.ABC):
         E.g. a queued sink's queue. The caller's thread. Default: nothing.
         """
 
-    def stats(self) -> dict[str, Any] | None:
+    def stats(self) -> dict[str, JsonValue] | None:
         """Return what the sink wrote, dropped and raised, for the summary's ``sinks``.
 
         None (the default) for a sink that counts nothing (one called on the graph's own threads), which
@@ -198,7 +200,7 @@ class ListSink(Sink):
         self.final: RunSummary | None = None
 
     @property
-    def events(self) -> list[dict[str, Any]]:
+    def events(self) -> list[dict[str, JsonValue]]:
         """The window events kept, as the dicts a JSON Lines sink writes (:meth:`WindowEvent.as_dict`)."""
         return [w.as_dict() for w in self.windows]
 
@@ -258,7 +260,7 @@ class QueuedSink(Sink):
         self.sink = sink
         self.path = sink.path
         # (method, item), or None: the end
-        self._queue: queue.Queue[tuple[str, Any] | None] = queue.Queue(maxsize=capacity)
+        self._queue: queue.Queue[tuple[str, WindowEvent | DriverEvent] | None] = queue.Queue(maxsize=capacity)
         self._dropped = {"windows": 0, "events": 0}
         self._errors = 0
         self._first_error: str | None = None
@@ -268,7 +270,7 @@ class QueuedSink(Sink):
         self.reader_left: BrokenPipeError | None = None
         #: Called (on the sink's thread) with that error; the node sets it to stop.
         self.on_reader_left: Callable[[BrokenPipeError], None] | None = None
-        self._pending: tuple[str, Any] | None = None   # an item held back while a FIFO has no reader
+        self._pending: tuple[str, WindowEvent | DriverEvent] | None = None   # held back while a FIFO has no reader
         self._closing = threading.Event()  # drain's time is up: stop waiting for a reader
         self._thread = threading.Thread(target=self._run, name=f"sink-{type(sink).__name__}", daemon=True)
         self._thread.start()
@@ -294,9 +296,9 @@ class QueuedSink(Sink):
             self._pending = None
             if item is None:
                 return
-            method, payload = item
+            method, payload = item            # ("emit", a window) or ("event", a driver event)
             try:
-                if method == "emit":
+                if isinstance(payload, WindowEvent):
                     self.sink.emit(payload)
                 else:
                     self.sink.event(payload)
@@ -347,7 +349,7 @@ class QueuedSink(Sink):
         if not self._thread.is_alive():    # never while the worker may still call the sink
             self.sink.drain(max(0.0, deadline - time.monotonic()))
 
-    def stats(self) -> dict[str, Any]:
+    def stats(self) -> dict[str, JsonValue]:
         """Return ``{"sink", "written", "dropped_windows", "dropped_events", "errors", "first_error"}``.
 
         And what the sink's own ``stats`` adds.
@@ -403,13 +405,14 @@ class QueuedSink(Sink):
 PATH_KEY = Key(is_text, '"-" (stdout) or a file path', "-", path=True, words=("-",))
 
 
-def file_sink(kind: type[FileSink]) -> Callable[[Mapping[str, Any], SinkContext], Sink]:
+def file_sink(kind: type[FileSink]) -> Callable[[Options, SinkContext], Sink]:
     """Return the ``build`` of a file sink's spec: ``kind`` at the scene's ``path``, behind its own queue.
 
     The ``path`` is relative to the scene; the queue a :class:`QueuedSink`.
     """
-    def build(options: Mapping[str, Any], context: SinkContext) -> Sink:
-        path = options["path"] if options["path"] == "-" else str(context.resolve(options["path"]))
+    def build(options: Options, context: SinkContext) -> Sink:
+        path = str_of(options, "path")
+        path = path if path == "-" else str(context.resolve(path))
         try:
             sink = kind(path, context.overwrite)
         except InputError as exc:

@@ -51,10 +51,10 @@ from __future__ import annotations
 import json
 import socket
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from types import ModuleType
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
@@ -66,9 +66,11 @@ from supramodal.drivers.spec import OptionError
 from supramodal.errors import InputError
 from supramodal.features import FEATURE_TABLE
 from supramodal.node.runtime.events import FUSED_STREAM, WindowEvent
+from supramodal.node.runtime.fields import optional_float_of, str_of, strs_of
 from supramodal.node.runtime.sinks import QueuedSink, Sink
-from supramodal.node.runtime.sinks.spec import SinkContext, SinkSpec, listened, stream_outputs
+from supramodal.node.runtime.sinks.spec import Options, SinkContext, SinkSpec, listened, option_from, stream_outputs
 from supramodal.node.runtime.summaries import RunSummary
+from supramodal.records import JsonValue
 
 if TYPE_CHECKING:   # for the annotations only: the sink needs no model code to run
     from supramodal.pipeline import FeaturePipeline
@@ -97,15 +99,19 @@ CONNECT_SETTLE_SECONDS = 0.2
 WAIT_STEP_SECONDS = 0.1
 
 
+#: One sample of an outlet: a float32 row of its channels, or a string outlet's one string in a list.
+Sample = np.ndarray | list[str]
+
+
 class Outlet(Protocol):
     """What the node uses of a ``pylsl.StreamOutlet`` (pylsl ships no type information)."""
 
-    def push_sample(self, x: Any, timestamp: float = ...) -> None:
+    def push_sample(self, x: Sample, timestamp: float = ...) -> None:
         """Push one sample (a row of channels), stamped ``timestamp`` on LSL's clock."""
         ...
 
-    def push_chunk(self, x: Any, timestamp: float = ...) -> None:
-        """Push several samples (rows), the last stamped ``timestamp`` on LSL's clock."""
+    def push_chunk(self, x: np.ndarray, timestamp: float = ...) -> None:
+        """Push several samples (the rows of a float32 array), the last stamped ``timestamp`` on LSL's clock."""
         ...
 
     def wait_for_consumers(self, timeout: float) -> bool:
@@ -244,7 +250,7 @@ class LSLOutletSink(Sink):
         self._outlets: dict[tuple[str, str], Outlet] = {}
         # The default's hold: per outlet with no consumer yet, the samples kept for its first one,
         # until _hold_end (time.monotonic()); an outlet leaves it for good on its first consumer.
-        self._held: dict[tuple[str, str], list[tuple[Any, float]]] = {}
+        self._held: dict[tuple[str, str], list[tuple[Sample, float]]] = {}
         self._hold_end = 0.0
         self._streams = {s.name: s for s in streams}
         self._clock = LSLClock(pylsl, time.monotonic())
@@ -254,8 +260,8 @@ class LSLOutletSink(Sink):
                 self._outlets[(s.name, output)] = pylsl.StreamOutlet(info, chunk_size=1,
                                                                      max_buffered=OUTLET_BUFFER_SECONDS)
 
-    def _info(self, s: OutletStream, output: str) -> Any:
-        """Return the outlet's ``pylsl.StreamInfo`` (Any: pylsl ships no type information)."""
+    def _info(self, s: OutletStream, output: str) -> object:
+        """Return the outlet's ``pylsl.StreamInfo`` (an object to the type checker: pylsl ships no types)."""
         pylsl = self._pylsl
         if output == "features":
             labels = [f"{f}/{name}" for f in s.features for name in s.filters]
@@ -309,7 +315,7 @@ class LSLOutletSink(Sink):
             self.waited_s, found = wait_for_consumers(list(self._outlets.values()), self.wait_for_consumer)
             self.consumers = [f"{name}-{output}" for (name, output), ok in zip(self._outlets, found) if ok]
 
-    def stats(self) -> dict[str, Any] | None:
+    def stats(self) -> dict[str, JsonValue] | None:
         """Return how the outlets found their consumers, or None.
 
         With a wait for consumers: ``waited_s`` and ``consumers`` (the outlets that had one,
@@ -317,9 +323,11 @@ class LSLOutletSink(Sink):
         first consumer came in time for window 0); else None.
         """
         if self.waited_s is not None:
-            return {"sink": "LSLOutletSink", "waited_s": self.waited_s, "consumers": self.consumers}
+            return {"sink": "LSLOutletSink", "waited_s": self.waited_s,
+                    "consumers": None if self.consumers is None else list(self.consumers)}
         if self.wait_for_consumer is None:
-            return {"sink": "LSLOutletSink", "held_s": HOLD_FOR_CONSUMER_SECONDS, "consumers": self.consumers or []}
+            return {"sink": "LSLOutletSink", "held_s": HOLD_FOR_CONSUMER_SECONDS,
+                    "consumers": list(self.consumers or [])}
         return None
 
     def start(self, epoch: float) -> None:
@@ -353,7 +361,7 @@ class LSLOutletSink(Sink):
         if (name, "decisions") in self._outlets and event.decision is not None:
             self._push((name, "decisions"), [json.dumps(_marker(event))], stamp)
 
-    def _push(self, key: tuple[str, str], sample: Any, stamp: float) -> None:
+    def _push(self, key: tuple[str, str], sample: Sample, stamp: float) -> None:
         """Push one sample on an outlet, or keep it for the outlet's first consumer (the hold)."""
         outlet = self._outlets[key]
         held = self._held.get(key)
@@ -398,13 +406,13 @@ class LSLOutletSink(Sink):
         self._outlets.clear()               # liblsl closes an outlet when it is released
 
 
-def _marker(event: WindowEvent) -> dict[str, Any]:
+def _marker(event: WindowEvent) -> dict[str, JsonValue]:
     """Return the decision marker of one window: what a consumer needs to act on it."""
     return {"stream": event.stream, "window": event.window, "start": round(event.start, 6),
             "end": round(event.end, 6), "decision": event.decision,
             "confidence": None if event.confidence is None else round(event.confidence, 4),
             "pooled": None if event.pooled is None else event.pooled.to_dict(), "truth": event.truth,
-            "flags": sorted(event.flags),
+            "flags": list(sorted(event.flags)),   # a list of JSON values (sorted's own is a list of str)
             **({"unknown": event.unknown, "guess": event.guess} if event.unknown is not None else {})}
 
 
@@ -420,7 +428,7 @@ def describe(name: str, pipeline: FeaturePipeline, classes: Sequence[str]) -> Ou
                         pipeline.features, pipeline.window_samples / bank.fs, tuple(classes))
 
 
-def _build(options: Mapping[str, Any], context: SinkContext) -> Sink:
+def _build(options: Options, context: SinkContext) -> Sink:
     # Made from the streams' plans, before any model is trained: consumers resolve the outlets
     # while the node trains (seconds), and get window 0.
     described = {name: describe(name, p.pipeline, p.classes) for name, p in context.plans.items()}
@@ -428,10 +436,10 @@ def _build(options: Mapping[str, Any], context: SinkContext) -> Sink:
         window = next(iter(described.values())).window
         described[FUSED_STREAM] = OutletStream(FUSED_STREAM, "fused", 0.0, (), (), (), window,
                                                tuple(context.fused_classes))
-    names = listened(options["from"], described)
+    names = listened(option_from(options), described)
     try:
-        sink = LSLOutletSink([described[n] for n in names], options["outputs"], options["prefix"],
-                             options["wait_for_consumer"])
+        sink = LSLOutletSink([described[n] for n in names], strs_of(options, "outputs"),
+                             str_of(options, "prefix"), optional_float_of(options, "wait_for_consumer"))
     except InputError as exc:
         raise OptionError(str(exc)) from None
     return QueuedSink(sink)

@@ -47,7 +47,7 @@ import time
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict
 from multiprocessing.connection import Connection
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -58,6 +58,20 @@ from supramodal.drivers.spec import OptionError
 from supramodal.errors import InputError, SupramodalError
 from supramodal.logs import get_logger
 from supramodal.node.runtime.events import DECISION_EVENTS, FUSED_STREAM, WindowEvent
+from supramodal.node.runtime.fields import (
+    float_of,
+    int_mapping_of,
+    int_of,
+    mapping_of,
+    mappings_of,
+    optional_float_of,
+    optional_int_of,
+    optional_str_of,
+    optional_strs_of,
+    str_mapping_of,
+    str_of,
+    strs_of,
+)
 from supramodal.node.runtime.sinks import QueuedSink, Sink
 from supramodal.node.runtime.sinks.ros2_publisher import (
     DEFAULT_HISTORY,
@@ -67,11 +81,12 @@ from supramodal.node.runtime.sinks.ros2_publisher import (
     MAX_WAIT_FOR_SUBSCRIBERS,
     OUTPUTS,
     WAIT_STEP_SECONDS,
+    Ros2Publisher,
     TopicStream,
     features_of,
     only_source,
 )
-from supramodal.node.runtime.sinks.spec import SinkContext, SinkSpec, listened, stream_outputs
+from supramodal.node.runtime.sinks.spec import Options, SinkContext, SinkSpec, listened, option_from, stream_outputs
 from supramodal.node.runtime.summaries import RunSummary
 from supramodal.records import JsonValue
 
@@ -109,16 +124,15 @@ class PublisherProcessError(SupramodalError, RuntimeError):
 
 # -- the wire ----------------------------------------------------------------------------------------------
 
-def _plain(value: Any) -> Any:
+def _plain(value: object) -> JsonValue:
     """JSON for what the graph's counters may hold besides JSON's own types (numpy's numbers)."""
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, np.ndarray):
-        return value.tolist()
+    if isinstance(value, np.generic | np.ndarray):
+        plain: JsonValue = value.tolist()      # a number (of a numpy scalar), or numbers in lists (an array's)
+        return plain
     raise TypeError(f"{type(value).__name__} is not JSON")
 
 
-def encode(header: Mapping[str, Any], payload: bytes = b"") -> bytes:
+def encode(header: Mapping[str, JsonValue], payload: bytes = b"") -> bytes:
     """Return one frame: ``header`` as JSON, then a NUL and ``payload`` if there is one.
 
     JSON never holds a NUL: it escapes control characters.
@@ -127,10 +141,11 @@ def encode(header: Mapping[str, Any], payload: bytes = b"") -> bytes:
     return text + b"\0" + payload if payload else text
 
 
-def decode(frame: bytes) -> tuple[dict[str, Any], bytes]:
+def decode(frame: bytes) -> tuple[dict[str, JsonValue], bytes]:
     """Return a frame's header and payload (:func:`encode`'s inverse)."""
     text, _, payload = frame.partition(b"\0")
-    return json.loads(text), payload
+    header: dict[str, JsonValue] = json.loads(text)     # a JSON object: what encode wrote
+    return header, payload
 
 
 # -- the node's side -----------------------------------------------------------------------------------------
@@ -199,16 +214,16 @@ class Ros2Sink(Sink):
             ready = self._ask({"op": "open", "streams": [asdict(s) for s in streams], "outputs": list(outputs),
                                "node_name": node_name, "namespace": namespace, "frame_id": frame_id,
                                "wait_for_subscribers": self.wait_for_subscribers, "history": int(history),
-                               "ros_arguments": ros_arguments()}, OPEN_TIMEOUT, "start")
+                               "ros_arguments": list(ros_arguments())}, OPEN_TIMEOUT, "start")
         except BaseException:
             self._end(now=True)
             raise
         if ready["op"] == "refused":
             self._end(now=True)
             kind = Ros2Unavailable if ready["kind"] == "unavailable" else InputError
-            raise kind(ready["message"])
-        self._node: str = ready["node"]
-        self._topics: dict[str, str] = ready["topics"]
+            raise kind(str_of(ready, "message"))
+        self._node = str_of(ready, "node")
+        self._topics = str_mapping_of(ready, "topics")
         self._stop = threading.Event()
         self._timer = threading.Thread(target=self._diagnose, args=(period,), name="sink-ros2-diagnostics", daemon=True)
         self._timer.start()
@@ -229,7 +244,7 @@ class Ros2Sink(Sink):
 
     # -- the pipe ------------------------------------------------------------------------------------------
 
-    def _send(self, header: Mapping[str, Any], payload: bytes = b"", bound: float | None = None) -> None:
+    def _send(self, header: Mapping[str, JsonValue], payload: bytes = b"", bound: float | None = None) -> None:
         """Write one frame.
 
         ``bound``: seconds the caller's thread may wait, for the lock or the write (a child that stopped reading,
@@ -261,7 +276,7 @@ class Ros2Sink(Sink):
                 _LOG.warning(f"ros2 sink: the publisher process (pid {self._process.pid}) {why}; killed")
             self._process.kill()
 
-    def _ask(self, header: dict[str, Any], timeout: float, what: str) -> dict[str, Any]:
+    def _ask(self, header: dict[str, JsonValue], timeout: float, what: str) -> dict[str, JsonValue]:
         """Send a request and wait up to ``timeout`` s for its answer, in short polls.
 
         SIGINT and SIGTERM reach the caller's thread between two. The caller's thread.
@@ -314,7 +329,7 @@ class Ros2Sink(Sink):
         except BaseException:              # Ctrl-C, SIGTERM: the node will not start, nor close its sinks
             self._end(now=True)
             raise
-        self.waited_s, self.subscribed = done["waited_s"], done["subscribed"]
+        self.waited_s, self.subscribed = optional_float_of(done, "waited_s"), optional_strs_of(done, "subscribed")
 
     def start(self, epoch: float) -> None:
         """Take the graph's start, on ``time.monotonic()`` (one clock for every process of this machine)."""
@@ -383,15 +398,15 @@ class Ros2Sink(Sink):
         except PublisherProcessError as exc:
             self._failed = (self._failed[0] + 1, self._failed[1] or str(exc))
             return
-        self._published = done["published"]
-        self._failed = (done["errors"], done["first_error"])
+        self._published = int_mapping_of(done, "published")
+        self._failed = (int_of(done, "errors"), optional_str_of(done, "first_error"))
 
     def _health(self) -> dict[str, JsonValue] | None:
         """Return the graph's counters as the publisher process takes them (JSON), or None outside a graph."""
         # dict(): a Health's JSON form; a program that watches the sink with a plain mapping of it works too
         return None if self.health is None else dict(self.health())
 
-    def stats(self) -> dict[str, Any]:
+    def stats(self) -> dict[str, JsonValue]:
         """Return the sink's counts.
 
         The node's name; after :meth:`drain`, what was published per output; with a wait for
@@ -400,9 +415,9 @@ class Ros2Sink(Sink):
         ``publisher_exit`` if the process ended before it was closed, and ``unsent_windows`` if windows
         held for the fused decision were never sent (the sink's thread did not end in time).
         """
-        out: dict[str, Any] = {"sink": "Ros2Sink", "node": self._node, "published": dict(self._published)}
+        out: dict[str, JsonValue] = {"sink": "Ros2Sink", "node": self._node, "published": dict(self._published)}
         if self.waited_s is not None:
-            out.update(waited_s=self.waited_s, subscribed=self.subscribed)
+            out.update(waited_s=self.waited_s, subscribed=None if self.subscribed is None else list(self.subscribed))
         if self._failed[0]:
             out.update(publisher_errors=self._failed[0], publisher_first_error=self._failed[1])
         if not self._closed and self._process.poll() is not None:
@@ -486,17 +501,19 @@ def serve(read_fd: int, write_fd: int) -> None:
                 if op == "window":
                     _publish_window(publisher, header, payload)
                 elif op == "event":
-                    publisher.event(DriverEvent(**header["event"]), header["source"], header["health"])
+                    publisher.event(_driver_event(mapping_of(header, "event")), str_of(header, "source"),
+                                    _health_of(header))
                 elif op == "diagnostics":
-                    publisher.publish_diagnostics(header["health"])
+                    publisher.publish_diagnostics(_health_of(header))
                 elif op == "start":
-                    publisher.start(header["epoch"])
+                    publisher.start(float_of(header, "epoch"))
                 elif op == "prepare":
                     publisher.prepare()
                     answer.send_bytes(encode({"ask": header["ask"], "waited_s": publisher.waited_s,
-                                              "subscribed": publisher.subscribed}))
+                                              "subscribed": None if publisher.subscribed is None
+                                              else list(publisher.subscribed)}))
                 elif op == "drain":
-                    publisher.drain(header["timeout"])
+                    publisher.drain(float_of(header, "timeout"))
                     answer.send_bytes(encode({"ask": header["ask"], "published": dict(publisher.published),
                                               "errors": errors, "first_error": first}))
             except Exception as exc:                     # counted, said once, and the next frame published
@@ -508,20 +525,21 @@ def serve(read_fd: int, write_fd: int) -> None:
         publisher.close()
 
 
-def _open(header: Mapping[str, Any], answer: Connection) -> Any:
+def _open(header: Mapping[str, JsonValue], answer: Connection) -> Ros2Publisher | None:
     """Return the publisher the ``open`` frame asks for, its node's name and topics answered.
 
     Or None, the refusal answered.
     """
     from supramodal.drivers.ros2 import use_ros_arguments
-    from supramodal.node.runtime.sinks.ros2_publisher import Ros2Publisher
 
-    use_ros_arguments(header["ros_arguments"])
+    use_ros_arguments(strs_of(header, "ros_arguments"))
     try:
-        publisher = Ros2Publisher([TopicStream(s["name"], tuple(s["classes"]), tuple(s["features"]),
-                                               tuple(s["filters"])) for s in header["streams"]],
-                                  header["outputs"], header["node_name"], header["namespace"], header["frame_id"],
-                                  header["wait_for_subscribers"], header["history"])
+        publisher = Ros2Publisher([TopicStream(str_of(s, "name"), tuple(strs_of(s, "classes")),
+                                               tuple(strs_of(s, "features")), tuple(strs_of(s, "filters")))
+                                   for s in mappings_of(header, "streams")],
+                                  strs_of(header, "outputs"), str_of(header, "node_name"), str_of(header, "namespace"),
+                                  str_of(header, "frame_id"), float_of(header, "wait_for_subscribers"),
+                                  int_of(header, "history"))
     except Ros2Unavailable as exc:
         answer.send_bytes(encode({"ask": header["ask"], "op": "refused", "kind": "unavailable", "message": str(exc)}))
         return None
@@ -533,12 +551,34 @@ def _open(header: Mapping[str, Any], answer: Connection) -> Any:
     return publisher
 
 
-def _publish_window(publisher: Any, header: Mapping[str, Any], payload: bytes) -> None:
+def _publish_window(publisher: Ros2Publisher, header: Mapping[str, JsonValue], payload: bytes) -> None:
     values = np.frombuffer(payload, dtype=np.float64)
-    n = header["features"]
-    publisher.publish_window(header["stream"], header["end"], values[:n] if n else None,
-                             None if header["posteriors"] is None else values[n:n + header["posteriors"]],
-                             None if header["classes"] is None else tuple(header["classes"]), header["decision"])
+    n = int_of(header, "features")
+    posteriors = optional_int_of(header, "posteriors")
+    classes = optional_strs_of(header, "classes")
+    publisher.publish_window(str_of(header, "stream"), float_of(header, "end"), values[:n] if n else None,
+                             None if posteriors is None else values[n:n + posteriors],
+                             None if classes is None else tuple(classes), _json_object(header, "decision"))
+
+
+def _json_object(header: Mapping[str, JsonValue], key: str) -> Mapping[str, JsonValue] | None:
+    """Return ``header[key]``, a JSON object or None (a window's decision, the graph's counters)."""
+    value = header[key]
+    if value is None or isinstance(value, Mapping):
+        return value
+    raise TypeError(f"{key!r}: {value!r} is not a JSON object")
+
+
+def _health_of(header: Mapping[str, JsonValue]) -> Mapping[str, JsonValue] | None:
+    """Return a frame's ``health``: the graph's counters (:meth:`Health.to_dict`), or None outside a graph."""
+    return _json_object(header, "health")
+
+
+def _driver_event(fields: Mapping[str, object]) -> DriverEvent:
+    """Return the driver event a frame carries (as :func:`dataclasses.asdict` wrote it)."""
+    return DriverEvent(str_of(fields, "kind"), str_of(fields, "message"), float_of(fields, "time"),
+                       optional_int_of(fields, "stream_index"), int_of(fields, "count"),
+                       optional_str_of(fields, "source"))
 
 
 # -- as a scene names it ---------------------------------------------------------------------------
@@ -548,17 +588,19 @@ def describe(name: str, pipeline: FeaturePipeline, classes: Sequence[str]) -> To
     return TopicStream(name, tuple(classes), tuple(pipeline.features), tuple(pipeline.bank.names))
 
 
-def _build(options: Mapping[str, Any], context: SinkContext) -> Sink:
+def _build(options: Options, context: SinkContext) -> Sink:
     # Made from the streams' plans, before any model is trained: subscribers match the topics
     # while the node trains, and get window 0.
     described = {name: describe(name, p.pipeline, p.classes) for name, p in context.plans.items()}
     if context.fused_classes is not None and described:
         described[FUSED_STREAM] = TopicStream(FUSED_STREAM, tuple(context.fused_classes))
-    names = listened(options["from"], described)
+    names = listened(option_from(options), described)
     try:
-        sink = Ros2Sink([described[n] for n in names], options["outputs"], options["node_name"],
-                        options["namespace"], options["frame_id"], options["diagnostics_period"],
-                        options["wait_for_subscribers"], options["history"], context.fused_inputs)
+        sink = Ros2Sink([described[n] for n in names], strs_of(options, "outputs"),
+                        str_of(options, "node_name"), str_of(options, "namespace"),
+                        str_of(options, "frame_id"), float_of(options, "diagnostics_period"),
+                        float_of(options, "wait_for_subscribers"), int_of(options, "history"),
+                        context.fused_inputs)
     except InputError as exc:
         raise OptionError(str(exc)) from None
     return QueuedSink(sink)

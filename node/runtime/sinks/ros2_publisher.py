@@ -63,7 +63,7 @@ import time
 from collections import Counter
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -72,6 +72,7 @@ from supramodal.drivers.ros2 import RosClock, RosNode, check_token
 from supramodal.errors import InputError
 from supramodal.node.runtime.events import DECISION_EVENTS, FUSED_STREAM, MAIN_STREAM, WindowEvent, severity
 from supramodal.node.runtime.sinks.spec import stream_outputs
+from supramodal.records import JsonValue
 
 __all__ = ["OUTPUTS", "Ros2Publisher", "SourceState", "Status", "TopicStream", "diagnostic_report"]
 
@@ -169,18 +170,32 @@ class SourceState:
 
 
 
-def _grew(now: Mapping[str, Any], before: Mapping[str, Any] | None, key: str) -> int:
-    """How much ``now[key]`` grew since ``before`` (all of it without a ``before``)."""
-    was = before.get(key, 0) if before else 0
-    return int(now.get(key) or 0) - int(was or 0)
+def _count(value: object) -> int:
+    """Return one of the graph's counts as an int (0 where there is none)."""
+    return int(value) if isinstance(value, int | float | str) and value else 0
 
 
-def _fmt(value: Any) -> str:
+def _grew(now: Mapping[str, object], before: Mapping[str, object], key: str) -> int:
+    """How much ``now[key]`` grew since ``before`` (all of it without a ``before``: empty)."""
+    return _count(now.get(key)) - _count(before.get(key, 0))
+
+
+def _fields(value: object) -> Mapping[str, object]:
+    """Return a JSON object of the counters, or an empty one where there is none (None, absent)."""
+    return value if isinstance(value, Mapping) else {}
+
+
+def _items(value: object) -> list[object]:
+    """Return a JSON list of the counters, or an empty one where there is none (None, absent)."""
+    return value if isinstance(value, list) else []
+
+
+def _fmt(value: object) -> str:
     return "" if value is None else f"{value:g}" if isinstance(value, float) else str(value)
 
 
-def diagnostic_report(node: str, health: Mapping[str, Any] | None, sources: Mapping[str, SourceState],
-                      before: Mapping[str, Any] | None, now: float) -> list[Status]:
+def diagnostic_report(node: str, health: Mapping[str, JsonValue] | None, sources: Mapping[str, SourceState],
+                      before: Mapping[str, JsonValue] | None, now: float) -> list[Status]:
     """Return the statuses of one diagnostics message.
 
     Parameters
@@ -215,16 +230,18 @@ def diagnostic_report(node: str, health: Mapping[str, Any] | None, sources: Mapp
     if health is None:
         out.append(Status(OK, f"{node}: node", "starting up (building the scene, training its model)"))
         health = {}
-    before_streams = (before or {}).get("streams") or {}
-    clocks = health.get("clocks") or {}
-    for name, st in health.get("streams", {}).items():
-        frames, latency = st.get("frames") or {}, st.get("latency_ms") or {}
-        was = (before_streams.get(name) or {}).get("frames")
-        source = st.get("source") or ""
+    before = before or {}
+    before_streams = _fields(before.get("streams"))
+    clocks = _fields(health.get("clocks"))
+    for name, stream in _fields(health.get("streams")).items():
+        st = _fields(stream)
+        frames, latency = _fields(st.get("frames")), _fields(st.get("latency_ms"))
+        was = _fields(_fields(before_streams.get(name)).get("frames"))
+        source = str(st.get("source") or "")
         values = [("windows", _fmt(st.get("windows")))]
         values += [(f"frames_{k}", _fmt(frames.get(k))) for k in ("delivered", "filled", "dropped", "stream")]
         values += [(f"latency_{k}_ms", _fmt(latency.get(k))) for k in ("p50", "p99", "max")]
-        clock = clocks.get(source) or {}
+        clock = _fields(clocks.get(source))
         values += [(f"clock_{k}", _fmt(clock.get(k))) for k in ("ppm", "jitter_ms", "delay_ms") if k in clock]
         state = sources.get(source)
         filled, dropped = _grew(frames, was, "filled"), _grew(frames, was, "dropped")
@@ -247,29 +264,50 @@ def diagnostic_report(node: str, health: Mapping[str, Any] | None, sources: Mapp
         else:
             level, message = OK, f"last event: {last.kind}" if last else "no event"
         out.append(Status(level, f"{node}: source {name}", message, name, tuple(values)))
-    fusion = health.get("fusion")
+    fusion = _fields(health.get("fusion"))
     if fusion:
-        alone = _grew(fusion, (before or {}).get("fusion"), "alone")
+        alone = _grew(fusion, _fields(before.get("fusion")), "alone")
         values = [("windows", _fmt(fusion.get("windows"))), ("paired", _fmt(fusion.get("paired"))),
                   ("alone", _fmt(fusion.get("alone"))), ("late", json.dumps(fusion.get("late") or {}))]
         out.append(Status(WARN if alone else OK, f"{node}: fusion",
                           f"{alone} windows decided by one sense since the last report" if alone
                           else f"{fusion.get('paired', 0)} windows paired", FUSED_STREAM, tuple(values)))
-    sinks = health.get("sinks") or []
+    sinks = [_fields(s) for s in _items(health.get("sinks"))]
     if sinks:
         values, grew = [], 0
-        was_sinks = {s.get("sink"): s for s in ((before or {}).get("sinks") or [])}
+        was_sinks = {s.get("sink"): s for s in map(_fields, _items(before.get("sinks")))}
         for s in sinks:
             label = str(s.get("sink"))
             for key in ("written", "dropped_windows", "dropped_events", "errors", "publisher_errors"):
                 if key in s:
                     values.append((f"{label} {key}", _fmt(s[key])))
-            grew += sum(_grew(s, was_sinks.get(s.get("sink")), k) for k in ("dropped_windows", "dropped_events",
+            grew += sum(_grew(s, was_sinks.get(s.get("sink"), {}), k) for k in ("dropped_windows", "dropped_events",
                                                                              "errors", "publisher_errors") if k in s)
         out.append(Status(WARN if grew else OK, f"{node}: sinks",
                           f"{grew} items dropped or failed since the last report" if grew else f"{len(sinks)} sinks",
                           "", tuple(values)))
     return out
+
+
+class _Publisher(Protocol):
+    """What the node uses of an ``rclpy`` publisher (rclpy is not type-checked here: the ros2 extra)."""
+
+    @property
+    def topic_name(self) -> str:
+        """The topic's full name."""
+        ...
+
+    def publish(self, msg: object) -> None:
+        """Publish one message of the publisher's type."""
+        ...
+
+    def get_subscription_count(self) -> int:
+        """Return the subscriptions matched now."""
+        ...
+
+    def wait_for_all_acked(self, timeout: object) -> bool:
+        """Wait up to ``timeout`` (an ``rclpy.duration.Duration``) for every reliable subscriber's acknowledgements."""
+        ...
 
 
 class Ros2Publisher:
@@ -323,13 +361,13 @@ class Ros2Publisher:
         node = self._ros.node
         latched = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=int(history),
                              reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
-        kinds: dict[str, tuple[Any, Any]] = {
+        kinds: dict[str, tuple[type[object], object]] = {          # message class, QoS profile
             "decision": (String, latched),
             "posteriors": (JointState, QoSProfile(depth=int(history))),
             "features": (JointState, qos_profile_sensor_data),
         }
         self._streams = {s.name: s for s in streams}
-        self._publishers: dict[tuple[str, str], Any] = {}
+        self._publishers: dict[tuple[str, str], _Publisher] = {}
         self._messages: dict[tuple[str, str], Any] = {}       # (stream, output) -> its JointState, refilled
         self._names: dict[tuple[str, str], tuple[str, ...]] = {}     # ... -> the names its message carries
         self._one_source: str | None = None                   # the graph's one source, once known
@@ -347,8 +385,8 @@ class Ros2Publisher:
         self.subscribed: list[str] | None = None
         self.published: Counter[str] = Counter()
         self._sources: dict[str, SourceState] = {}
-        self._health: dict[str, Any] | None = None            # the graph's counters last given
-        self._before: dict[str, Any] | None = None            # ... as the last report said them
+        self._health: dict[str, JsonValue] | None = None      # the graph's counters last given
+        self._before: dict[str, JsonValue] | None = None      # ... as the last report said them
         self._lock = threading.Lock()
         self._clock = RosClock(node.get_clock(), time.monotonic())
         self._ros.start()
@@ -411,7 +449,7 @@ class Ros2Publisher:
                             event.as_dict() if event.decision is not None else None)
 
     def publish_window(self, stream: str, end: float, features: np.ndarray | None, posteriors: np.ndarray | None,
-                       classes: tuple[str, ...] | None, decision: dict[str, Any] | None) -> None:
+                       classes: tuple[str, ...] | None, decision: Mapping[str, JsonValue] | None) -> None:
         """Publish one window, by its parts.
 
         Its ``end`` (common time, s), its ``features`` (the stream's features' values concatenated in order,
@@ -441,7 +479,7 @@ class Ros2Publisher:
             self.published["decision"] += 1
 
     def _joint_state(self, stream: str, output: str, sec: int, nanosec: int, names: tuple[str, ...],
-                     values: np.ndarray) -> Any:
+                     values: np.ndarray) -> object:
         """Return the stream's ``JointState`` of ``output``, its stamp and values set.
 
         One message per topic, kept and refilled: a new one costs its field checks (about a third of a window's
@@ -460,7 +498,8 @@ class Ros2Publisher:
         msg.position = array.array("d", values.tobytes())   # an array of doubles: rclpy takes it unchecked
         return msg
 
-    def event(self, ev: DriverEvent, source: str | None = None, health: Mapping[str, Any] | None = None) -> None:
+    def event(self, ev: DriverEvent, source: str | None = None,
+              health: Mapping[str, JsonValue] | None = None) -> None:
         """Publish a driver event: on ``~/events`` at once (as the ``jsonl`` sink writes it), and in the diagnostics.
 
         The diagnostics are published at once too, of ``health`` (None: the counters last given). ``source``:
@@ -494,7 +533,7 @@ class Ros2Publisher:
             self._one_source = only_source(self._health)
         return self._one_source
 
-    def publish_diagnostics(self, health: Mapping[str, Any] | None = None) -> None:
+    def publish_diagnostics(self, health: Mapping[str, JsonValue] | None = None) -> None:
         """Publish one ``DiagnosticArray`` of :func:`diagnostic_report` now, of ``health``.
 
         ``health``: the graph's counters, :meth:`Graph.health <supramodal.node.runtime.graph.Graph.health>`;
@@ -517,14 +556,14 @@ class Ros2Publisher:
             self._diagnostics.publish(msg)
             self.published["diagnostics"] += 1
 
-    def stats(self) -> dict[str, Any]:
+    def stats(self) -> dict[str, JsonValue]:
         """Return the node's name, what was published per output, and the wait for subscribers.
 
         With a wait for subscribers, ``waited_s`` and ``subscribed`` (the topics that had one, ``STREAM/OUTPUT``).
         """
-        out: dict[str, Any] = {"node": self.node_name, "published": dict(self.published)}
+        out: dict[str, JsonValue] = {"node": self.node_name, "published": dict(self.published)}
         if self.waited_s is not None:
-            out.update(waited_s=self.waited_s, subscribed=self.subscribed)
+            out.update(waited_s=self.waited_s, subscribed=None if self.subscribed is None else list(self.subscribed))
         return out
 
     def drain(self, timeout: float = 5.0) -> None:
@@ -557,10 +596,10 @@ def features_of(event: WindowEvent, stream: TopicStream) -> np.ndarray | None:
     return np.concatenate([np.asarray(event.features[f], dtype=np.float64) for f in stream.features])
 
 
-def only_source(health: Mapping[str, Any]) -> str:
+def only_source(health: Mapping[str, JsonValue]) -> str:
     """Return the name of a graph's one source, from its counters (``main`` where there is not exactly one).
 
     The source a driver event that names none came from.
     """
-    sources = {st.get("source") for st in (health.get("streams") or {}).values()} - {None}
+    sources = {_fields(st).get("source") for st in _fields(health.get("streams")).values()} - {None}
     return str(sources.pop()) if len(sources) == 1 else MAIN_STREAM

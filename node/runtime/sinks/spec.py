@@ -22,10 +22,11 @@ from __future__ import annotations
 from collections.abc import Callable, Collection, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from supramodal.checks import Key, is_name, text
 from supramodal.drivers.spec import OptionError
+from supramodal.node.runtime.fields import strs_of
 
 if TYPE_CHECKING:   # the annotations' names only
     from supramodal.banks import Bank
@@ -33,8 +34,15 @@ if TYPE_CHECKING:   # the annotations' names only
     from supramodal.node.runtime.streams import Stream
     from supramodal.pipeline import FeaturePipeline
 
-__all__ = ["FROM", "NEEDS", "SOURCE", "SinkContext", "SinkSpec", "SourcePlan", "StreamPlan", "listened", "sink_keys",
-           "stream_outputs"]
+__all__ = ["FROM", "NEEDS", "SOURCE", "OptionValue", "Options", "SinkContext", "SinkSpec", "SourcePlan", "StreamPlan",
+           "listened", "option_from", "sink_keys", "stream_outputs"]
+
+#: A scene option's value once its table's schema (:class:`supramodal.checks.Key`) has checked it: what TOML
+#: gives but its dates and times (no key's check takes one), or a key's default (None for some). A build
+#: reads each as its key's type with the checked readers of :mod:`supramodal.node.runtime.fields`.
+OptionValue = None | bool | int | float | str | list["OptionValue"] | Mapping[str, "OptionValue"]
+#: A sink's or source's options: its keys, validated, defaults filled in (read-only).
+Options = Mapping[str, OptionValue]
 
 #: What a sink may need built before it is made: nothing (it is made first, so that a file is
 #: checked before any training), the streams' plans (their pipelines and classes, known before any
@@ -82,7 +90,7 @@ class SourcePlan:
 
     driver: Driver
     type: str
-    options: Mapping[str, Any]
+    options: Options
     signal_type: str | None = None
     read_by: tuple[tuple[Bank, str | int], ...] = ()
 
@@ -156,7 +164,9 @@ class SinkSpec:
 
     type: str
     keys: Mapping[str, Key]
-    build: Callable[[Mapping[str, Any], SinkContext], Any]
+    # A Sink, or a Tap for a sink of samples: ``object`` to this module, which the sinks' package imports (an
+    # import of either here, even for the type checker only, would close a cycle; tests/test_layers.py).
+    build: Callable[[Options, SinkContext], object]
     summary: str
     listens: str = "windows"
     needs: str = "nothing"
@@ -200,3 +210,9 @@ def stream_outputs(outputs: Sequence[str], has_features: bool, has_classes: bool
 def sink_keys(spec: SinkSpec) -> dict[str, Key]:
     """Return a sink's keys in a scene: its own, and what it listens to (``from`` or ``source``)."""
     return {**spec.keys, **({"source": SOURCE} if spec.listens == "samples" else {"from": FROM})}
+
+
+def option_from(options: Options) -> str | list[str] | None:
+    """Return a sink of windows' ``from`` (:data:`FROM`): a stream name, a list of them, or None (every stream)."""
+    value = options["from"]
+    return value if value is None or isinstance(value, str) else strs_of(options, "from")

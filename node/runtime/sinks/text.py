@@ -7,9 +7,10 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Mapping
-from typing import Any, cast
+from typing import cast
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from supramodal.drivers.base import DriverEvent
 from supramodal.logs import get_logger
@@ -92,7 +93,7 @@ class TextSink(FileSink):
                 mark = "ok" if event.truth == event.decision else "--"
                 line += f"  truth {event.truth:<12} {mark}"
         else:
-            features = cast(dict[str, Any], event.features)   # an event without a decision carries features
+            features = cast(Mapping[str, ArrayLike], event.features)   # one without a decision carries features
             parts = [f"{name} sum {float(np.sum(vals)):.4g}" for name, vals in features.items()]
             line = f"{head}  " + "  ".join(parts)
         for flag in ("gap", "alone"):

@@ -43,7 +43,7 @@ from collections.abc import Callable, Mapping, Sequence
 from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from importlib import resources
-from typing import Any
+from typing import TYPE_CHECKING, Protocol, TypedDict
 
 import numpy as np
 
@@ -53,14 +53,41 @@ from supramodal.drivers.spec import OptionError
 from supramodal.errors import InputError
 from supramodal.logs import get_logger
 from supramodal.node.runtime.events import WindowEvent, severity
+from supramodal.node.runtime.fields import bool_of, int_of, optional_str_of, optional_strs_of, str_of, strs_of
 from supramodal.node.runtime.sinks import QueuedSink, Sink
-from supramodal.node.runtime.sinks.spec import SinkContext, SinkSpec
+from supramodal.node.runtime.sinks.spec import Options, SinkContext, SinkSpec
 from supramodal.node.runtime.summaries import Health, RunSummary
+from supramodal.records import JsonValue
+
+if TYPE_CHECKING:   # the annotations' names only
+    from supramodal.banks import Bank
 
 _LOG = get_logger("sinks.view")
 
-__all__ = ["SPEC", "Hub", "ViewError", "ViewSink", "attach", "channel_labels", "event_message", "view_sinks",
-           "window_message"]
+__all__ = ["SPEC", "Action", "ChannelLabels", "Hub", "SinkHolder", "ViewError", "ViewSink", "attach",
+           "channel_labels", "event_message", "view_sinks", "window_message"]
+
+#: A change a page may POST (:meth:`ViewSink.actions`): the request's JSON body in, the answer's out.
+Action = Callable[[dict[str, JsonValue]], dict[str, JsonValue]]
+
+
+class ChannelLabels(TypedDict):
+    """A stream's channels as the page labels its feature bars (:func:`channel_labels`), in channel order."""
+
+    names: list[str]
+    centre_hz: list[float]
+
+
+class SinkHolder(Protocol):
+    """What the view reads of a graph (:class:`~supramodal.node.runtime.graph.Graph`, which it may not import).
+
+    The graph imports the sinks: an import of it here, even for the type checker only, would close a cycle.
+    """
+
+    @property
+    def sinks(self) -> Sequence[Sink]:
+        """The graph's sinks, each as the graph holds it (a view behind its :class:`QueuedSink`)."""
+        ...
 
 #: Messages each open page's queue holds; beyond it the oldest are dropped and counted.
 CLIENT_QUEUE = 256
@@ -128,14 +155,15 @@ def is_loopback(host: str) -> bool:
 
 # -- messages ------------------------------------------------------------------------------------------
 
-def _json(obj: Any) -> str:
+def _json(obj: object) -> str:
     return json.dumps(obj, separators=(",", ":"), default=_plain, allow_nan=False)
 
 
-def _plain(o: Any) -> Any:
+def _plain(o: object) -> JsonValue:
     """Convert numpy scalars and arrays, and sets, to what JSON has for them."""
     if isinstance(o, np.ndarray):
-        return o.tolist()
+        nested: list[JsonValue] = o.tolist()     # numbers, in lists as deep as the array
+        return nested
     if isinstance(o, (np.floating, np.integer, np.bool_)):
         return o.item()
     if isinstance(o, (set, frozenset, tuple)):
@@ -143,7 +171,7 @@ def _plain(o: Any) -> Any:
     raise TypeError(f"{type(o).__name__} is not JSON")
 
 
-def _clean(o: Any) -> Any:
+def _clean(o: JsonValue) -> JsonValue:
     """``o`` with every number JSON can carry (NaN and infinities as None; numpy as Python)."""
     if isinstance(o, dict):
         return {str(k): _clean(v) for k, v in o.items()}
@@ -161,7 +189,7 @@ def _finite(x: float, digits: int) -> float | None:
     return round(x, digits) if math.isfinite(x) else None
 
 
-def window_message(event: WindowEvent) -> dict[str, Any]:
+def window_message(event: WindowEvent) -> dict[str, JsonValue]:
     """Return a window event as the page gets it.
 
     That is :meth:`WindowEvent.as_dict` (the JSONL sink's object, unchanged in meaning) and what the page
@@ -177,13 +205,13 @@ def window_message(event: WindowEvent) -> dict[str, Any]:
         out["features"] = {name: [_finite(x, 6) for x in np.asarray(v, dtype=float).ravel()[:MAX_CHANNELS]]
                            for name, v in event.features.items()}
     out["in_contact"] = bool(event.in_contact)
-    out["flags"] = sorted(event.flags)
-    if out.get("novelty") is not None:
-        out["novelty"] = _finite(out["novelty"], 5)
+    out["flags"] = list(sorted(event.flags))   # a list of JSON values (sorted's own is a list of str)
+    if event.decision is not None and event.novelty is not None:      # where as_dict says it
+        out["novelty"] = _finite(event.novelty, 5)
     return out
 
 
-def event_message(ev: DriverEvent, wall_at_zero: float | None = None) -> dict[str, Any]:
+def event_message(ev: DriverEvent, wall_at_zero: float | None = None) -> dict[str, JsonValue]:
     """Return a driver event as the page gets it (a banner and a line in its list).
 
     That is :meth:`DriverEvent.as_dict`, its ``severity`` (:func:`~supramodal.node.runtime.events.severity`) and,
@@ -191,7 +219,7 @@ def event_message(ev: DriverEvent, wall_at_zero: float | None = None) -> dict[st
     node's common time, seconds, as the windows' times are (the event's ``time`` is the host's wall clock, seconds
     since 1970).
     """
-    out = {"type": "event", **ev.as_dict(), "severity": severity(ev.kind)}
+    out: dict[str, JsonValue] = {"type": "event", **ev.as_dict(), "severity": severity(ev.kind)}
     if wall_at_zero is not None:
         out["common_time"] = _finite(ev.time - wall_at_zero, 3)
     return out
@@ -229,11 +257,11 @@ class Hub:
         self.closed = False
 
     @staticmethod
-    def encode(message: dict[str, Any]) -> bytes:
+    def encode(message: Mapping[str, JsonValue]) -> bytes:
         """Return ``message`` as one server-sent event: ``data: JSON`` and a blank line, UTF-8."""
         return f"data: {_json(message)}\n\n".encode()
 
-    def publish(self, message: dict[str, Any], keep: str = "history") -> None:
+    def publish(self, message: Mapping[str, JsonValue], keep: str = "history") -> None:
         """Send ``message`` to every open page, and keep it for pages opened later as ``keep`` says.
 
         ``keep``: ``"history"`` (a window or an event, kept for a page opened later among the last :data:`HISTORY`),
@@ -321,7 +349,10 @@ class _Server(ThreadingHTTPServer):
     block_on_close = False
     view: ViewSink
 
-    def handle_error(self, request: Any, client_address: Any) -> None:
+    # The base's request (typeshed's own type); its client_address is typeshed's Any, which this server's two
+    # families make an (host, port) or (host, port, flowinfo, scope_id) tuple.
+    def handle_error(self, request: socket.socket | tuple[bytes, socket.socket],
+                     client_address: tuple[str, int] | tuple[str, int, int, int]) -> None:
         """Say a request's error in one line, never as a traceback on the node's stderr (socketserver's default).
 
         A page that went away mid-request (a reset, a closed tab) is no error of the node's, and is not said.
@@ -342,7 +373,7 @@ class _Handler(BaseHTTPRequestHandler):
     server: _Server
     protocol_version = "HTTP/1.1"
 
-    def log_message(self, format: str, *args: Any) -> None:   # noqa: A002 (the base's name)
+    def log_message(self, format: str, *args: object) -> None:   # noqa: A002 (the base's name)
         pass                                                     # no access log on the node's stderr
 
     def setup(self) -> None:
@@ -492,7 +523,7 @@ class ViewSink(Sink):
     def __init__(self, port: int = 0, host: str = "127.0.0.1", remote: bool = False, token: str | None = None,
                  labels: list[str] | None = None, mode: str = "live", quiet: bool = False,
                  streams: Sequence[str] = (),
-                 channels: Mapping[str, Mapping[str, Sequence[Any]]] | None = None) -> None:
+                 channels: Mapping[str, ChannelLabels] | None = None) -> None:
         if not is_loopback(host) and not (remote and token):
             raise ViewError(f"serving the view on {host!r} (not loopback) lets other machines see it: it needs "
                             "remote = true and a token of your own (token = \"...\", at least "
@@ -504,12 +535,12 @@ class ViewSink(Sink):
         self.mode = mode
         self.hub = Hub()
         self.health: Callable[[], Health] | None = None
-        self.on_mark: Callable[[str | None], Any] | None = None
-        self.control: Callable[[dict[str, Any]], dict[str, Any]] | None = None
-        self.marks: list[dict[str, Any]] = []
+        self.on_mark: Callable[[str | None], object] | None = None   # its answer, a number: the mark's time
+        self.control: Action | None = None
+        self.marks: list[dict[str, JsonValue]] = []
         self._classes: dict[str, list[str]] = {}
         self._streams: list[str] = list(streams)   # in the scene's order; others as their first window comes
-        self._channels = {name: {"names": [str(n) for n in c["names"]],
+        self._channels: dict[str, JsonValue] = {name: {"names": [str(n) for n in c["names"]],
                                  "centre_hz": [_finite(f, 1) for f in c["centre_hz"]]}
                           for name, c in (channels or {}).items()}
         self._wall_at_zero: float | None = None     # the host's time.time() at common time 0, once started
@@ -546,25 +577,31 @@ class ViewSink(Sink):
 
     # -- what the page asks --
 
-    def hello(self) -> dict[str, Any]:
+    def hello(self) -> dict[str, JsonValue]:
         """Return what the page needs first, the ``hello`` message.
 
         The mode, the streams and their classes, their channels (the feature bars' labels), the mark
         labels, whether marks and controls are open.
         """
         with self._lock:
-            classes = {k: list(v) for k, v in self._classes.items()}
-            streams = list(self._streams)
-        labels = self.labels or sorted({c for cs in classes.values() for c in cs})
+            classes: dict[str, JsonValue] = {k: list(v) for k, v in self._classes.items()}
+            streams: list[JsonValue] = list(self._streams)
+        labels: list[JsonValue] = list(self._mark_labels())
         return {"type": "hello", "mode": self.mode, "streams": streams, "classes": classes, "channels": self._channels,
                 "labels": labels, "marks": self.on_mark is not None, "control": self.control is not None}
 
-    def actions(self) -> dict[str, Callable[[dict[str, Any]], dict[str, Any]]]:
+    def _mark_labels(self) -> list[str]:
+        """Return the mark buttons' labels: those given, else every stream's classes (sorted)."""
+        with self._lock:
+            classes = [c for cs in self._classes.values() for c in cs]
+        return self.labels or sorted(set(classes))
+
+    def actions(self) -> dict[str, Action]:
         """Return the changes a page may POST, by path: ``/mark`` while marks are taken, ``/control`` with a control.
 
         Each handler takes the request's JSON body and returns the answer's. None open: a read-only view.
         """
-        out: dict[str, Callable[[dict[str, Any]], dict[str, Any]]] = {}
+        out: dict[str, Action] = {}
         if self.on_mark is not None:
             out["/mark"] = self._mark
         if self.control is not None:
@@ -595,19 +632,20 @@ class ViewSink(Sink):
             return host is not None and origin == f"http://{host}"
         return origin in self._origins and host is not None and f"http://{host}" in self._origins
 
-    def _mark(self, asked: dict[str, Any]) -> dict[str, Any]:
+    def _mark(self, asked: dict[str, JsonValue]) -> dict[str, JsonValue]:
         label = asked.get("label")
-        allowed = self.hello()["labels"]
+        allowed = self._mark_labels()
         if set(asked) - {"label"}:
             raise InputError(f"a mark is {{\"label\": NAME or null}}; unknown keys {sorted(set(asked) - {'label'})}")
-        if label is not None and label not in allowed:
+        if label is not None and not (isinstance(label, str) and label in allowed):
             raise InputError(f"the label {label!r} is not one of this view's: {allowed}")
+        label = label if isinstance(label, str) else None
         mark = self.on_mark
         if mark is None:
             raise InputError("marks are closed")
         when = mark(label)
-        done = {"type": "mark", "label": label, "time": round(float(when), 3) if isinstance(when, (int, float))
-                else None}
+        done: dict[str, JsonValue] = {"type": "mark", "label": label,
+                                      "time": round(float(when), 3) if isinstance(when, (int, float)) else None}
         with self._lock:
             self.marks.append(done)
         self.hub.publish(done)
@@ -632,7 +670,7 @@ class ViewSink(Sink):
         self.prepare()
         self._spawn("view-health", self._health_loop)
 
-    def _spawn(self, name: str, target: Callable[..., Any], *args: Any) -> None:
+    def _spawn(self, name: str, target: Callable[..., object], *args: object) -> None:
         t = threading.Thread(target=target, args=args, name=name, daemon=True)
         t.start()
         self._threads.append(t)
@@ -654,16 +692,17 @@ class ViewSink(Sink):
         """Send a window to every page, as :func:`window_message` makes it (see :meth:`emit_message`)."""
         self.emit_message(window_message(event))
 
-    def emit_message(self, message: dict[str, Any]) -> None:
+    def emit_message(self, message: Mapping[str, JsonValue]) -> None:
         """Send a window as :func:`window_message` made it (a replay plays those it kept).
 
         A new stream, or a stream's first classes, sends the page a new hello first.
         """
-        stream = message["stream"]
+        stream = str_of(message, "stream")
+        classes = message.get("classes")
         news = False                        # the page's hello changes: a stream, or classes (the mark labels)
-        if stream not in self._classes and message.get("classes"):
+        if stream not in self._classes and classes:
             with self._lock:
-                self._classes[stream] = list(message["classes"])
+                self._classes[stream] = strs_of(message, "classes")
             news = True
         if stream not in self._streams:
             with self._lock:
@@ -685,7 +724,7 @@ class ViewSink(Sink):
         except (TypeError, ValueError):     # a value JSON has no form for: the page still learns of the end
             self.hub.publish({"type": "summary", "summary": None}, keep="latest")
 
-    def stats(self) -> dict[str, Any]:
+    def stats(self) -> dict[str, JsonValue]:
         """Return the view's address, the pages opened and given up, what they dropped and the marks taken."""
         return {"url": self.url, "pages": self.hub.opened, "pages_given_up": self.hub.given_up,
                 "client_dropped": self.hub.dropped, "marks": len(self.marks)}
@@ -706,12 +745,12 @@ class ViewSink(Sink):
 
 # -- a graph's views ----------------------------------------------------------------------------------
 
-def view_sinks(graph: Any) -> list[ViewSink]:
+def view_sinks(graph: SinkHolder) -> list[ViewSink]:
     """Return the graph's view sinks (each behind its queue)."""
     return [s.sink for s in graph.sinks if isinstance(s, QueuedSink) and isinstance(s.sink, ViewSink)]
 
 
-def attach(graph: Any, on_mark: Callable[[str | None], Any] | None = None) -> list[ViewSink]:
+def attach(graph: SinkHolder, on_mark: Callable[[str | None], object] | None = None) -> list[ViewSink]:
     """Return the graph's view sinks, given the marks' handler while recording (``on_mark``).
 
     Their counters (health) the graph gives every sink itself
@@ -726,19 +765,20 @@ def attach(graph: Any, on_mark: Callable[[str | None], Any] | None = None) -> li
 
 # -- as a scene names it -------------------------------------------------------------------------------
 
-def channel_labels(bank: Any) -> dict[str, list[Any]]:
+def channel_labels(bank: Bank) -> ChannelLabels:
     """Return a bank's channels as the page labels a stream's feature bars: ``{"names", "centre_hz"}``.
 
     In channel order (the order of every feature's values in a window); :class:`ViewSink` makes them JSON.
     """
-    return {"names": list(bank.names), "centre_hz": list(bank.cf)}
+    return {"names": list(bank.names), "centre_hz": [float(f) for f in bank.cf]}
 
 
-def _build(options: Mapping[str, Any], context: SinkContext) -> Sink:
+def _build(options: Options, context: SinkContext) -> Sink:
     # Made from the streams' plans (their banks: the bars' labels), still before any model is trained.
     channels = {name: channel_labels(p.pipeline.bank) for name, p in context.plans.items()}
     try:
-        view = ViewSink(options["port"], options["host"], options["remote"], options["token"], options["labels"],
+        view = ViewSink(int_of(options, "port"), str_of(options, "host"), bool_of(options, "remote"),
+                        optional_str_of(options, "token"), optional_strs_of(options, "labels"),
                         streams=context.stream_names, channels=channels)
     except ViewError as exc:
         raise OptionError(str(exc)) from None

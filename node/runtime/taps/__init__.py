@@ -20,7 +20,9 @@ drops the frames a tap falls behind on, and counts them in the tap's ``frames`` 
 from __future__ import annotations
 
 import abc
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
+
+from supramodal.records import JsonValue
 
 if TYPE_CHECKING:   # the sources import the taps: names for the annotations only
     from supramodal.node.runtime.sources import Feed, Source
@@ -66,7 +68,7 @@ class Tap(abc.ABC):
         The tap's thread; an exception stops the graph, which raises it from :meth:`Graph.run`.
         """
 
-    def summary(self) -> dict[str, Any]:
+    def summary(self) -> dict[str, JsonValue]:
         """Return the tap's own counts, for the graph's summary (``taps``; the graph adds ``frames``).
 
         The caller's thread, after :meth:`close`. Default: ``{}``.

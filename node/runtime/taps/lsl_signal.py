@@ -55,8 +55,8 @@ from __future__ import annotations
 
 import collections
 import time
-from collections.abc import Mapping, Sequence
-from typing import TYPE_CHECKING, Any
+from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -65,6 +65,7 @@ from supramodal.checks import NAME_HELP, Key, is_name, non_negative, number, tex
 from supramodal.drivers.lsl import import_pylsl
 from supramodal.drivers.spec import OptionError
 from supramodal.errors import InputError
+from supramodal.node.runtime.fields import float_of, optional_str_of, str_of
 from supramodal.node.runtime.ringbuffer import RingClosed, flag_runs
 from supramodal.node.runtime.sinks.lsl import (
     DEFAULT_PREFIX,
@@ -75,8 +76,9 @@ from supramodal.node.runtime.sinks.lsl import (
     outlet_source_id,
     wait_for_consumers,
 )
-from supramodal.node.runtime.sinks.spec import SinkContext, SinkSpec, SourcePlan
+from supramodal.node.runtime.sinks.spec import Options, SinkContext, SinkSpec, SourcePlan
 from supramodal.node.runtime.taps import Tap
+from supramodal.records import JsonValue
 
 if TYPE_CHECKING:   # the annotations' names only (the sources import the taps)
     from supramodal.node.runtime.sources import Feed, Source
@@ -232,7 +234,7 @@ class LSLSignalOutlet(Tap):
             expected = start + data.shape[0]
         self._flush()
 
-    def summary(self) -> dict[str, Any]:
+    def summary(self) -> dict[str, JsonValue]:
         """Return what the outlet sent (the graph adds every frame's fate as its reader saw it)."""
         return {"outlet": self.name, "source_id": self.source_id, "chunks": self.chunks,
                 "samples_sent": self.samples_sent, "holes": self.holes, "waited_s": self.waited_s,
@@ -318,17 +320,18 @@ def signal_type(source: SourcePlan) -> str:
     return source.signal_type or DEFAULT_SIGNAL_TYPE
 
 
-def _build(options: Mapping[str, Any], context: SinkContext) -> Tap:
-    source = context.sources[options["source"]]
+def _build(options: Options, context: SinkContext) -> Tap:
+    name = str_of(options, "source")
+    source = context.sources[name]
     driver = source.driver
     channels = driver.channels
     # Channel labels: the filters' names where a bank takes the channels one to one.
     labels = next((bank.names for bank, mapping in source.read_by
                    if mapping in ("auto", "per-channel") and bank.channels == channels), None)
     try:
-        return LSLSignalOutlet(options["source"], driver.rate, channels, options["chunk"], options["prefix"],
-                               options["stream_type"] or signal_type(source), labels, source.type,
-                               options["wait_for_consumer"])
+        return LSLSignalOutlet(name, driver.rate, channels, float_of(options, "chunk"),
+                               str_of(options, "prefix"), optional_str_of(options, "stream_type")
+                               or signal_type(source), labels, source.type, float_of(options, "wait_for_consumer"))
     except InputError as exc:
         raise OptionError(str(exc)) from None
 

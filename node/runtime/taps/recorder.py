@@ -37,7 +37,6 @@ import os
 import threading
 from collections.abc import Callable, Iterable
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
@@ -46,6 +45,7 @@ from supramodal.node.runtime.clock import frames_at
 from supramodal.node.runtime.ringbuffer import Reader, RingClosed, flag_runs
 from supramodal.node.runtime.sources import Feed, Source
 from supramodal.node.runtime.taps import Tap
+from supramodal.records import JsonValue
 from supramodal.replay.session import MAX_SIDECAR_BYTES, save_session, session_paths
 
 _CHUNK = 1 << 18  # frames per pass when converting the raw file
@@ -225,7 +225,7 @@ class SessionRecorder(Tap):
                 self._raw.close()
             self.paths = self._finish()
 
-    def summary(self) -> dict[str, Any]:
+    def summary(self) -> dict[str, JsonValue]:
         """``{"session": name, "paths": [wav, json] or None}`` (None: no frame came)."""
         return {"session": self.name, "paths": None if self.paths is None else [str(p) for p in self.paths]}
 
