@@ -16,7 +16,7 @@ Threads and real-time rules
   scene's sinks run behind their own bounded queues (:class:`~supramodal.node.runtime.sinks.QueuedSink`),
   the fusion block behind its queue.
 * The *event thread* hands the sources' driver events to the sinks, at most one per kind per
-  second per source (:class:`node.events.EventLimiter`: repeats are folded into the next one's
+  second per source (:class:`node.runtime.events.EventLimiter`: repeats are folded into the next one's
   ``count``), so neither a source nor a stream ever waits on a sink for an event.
 * The *fusion thread*, with a ``[fusion]`` block, pairs the streams' windows and emits the fused
   decisions (stream ``"fused"``).
@@ -103,23 +103,23 @@ class Graph:
 
     Parameters
     ----------
-    sources : list of node.sources.Source
-    streams : list of node.streams.Stream
+    sources : list of node.runtime.sources.Source
+    streams : list of node.runtime.streams.Stream
         Each reads one of ``sources``; names are unique.
-    sinks : list of node.sinks.Sink
+    sinks : list of node.runtime.sinks.Sink
         Called on the graph's threads: a scene's sinks are each behind a
         :class:`~supramodal.node.runtime.sinks.QueuedSink`, so that processing never waits on them.
     routes : list of (set of str or None), optional
         Per sink, the stream names it listens to (``"fused"`` for the fusion block's
         decisions); None (the default for every sink) listens to all. Driver events and the
         summary go to every sink.
-    fusion : node.fusion.LateFusion, optional
+    fusion : node.runtime.fusion.LateFusion, optional
     recorder : node.runtime.taps.recorder.SessionRecorder or dict, optional
         Records the raw frames of a source (a tap, run as the others are): one recorder for a
         graph of one source, or ``{source name: recorder}`` for several (each keeps its blocks'
         times on common time, so that the sessions replay in step). What they wrote is in the
         summary's ``recorded``, not under ``taps``.
-    taps : list of (str, node.taps.Tap), optional
+    taps : list of (str, node.runtime.taps.Tap), optional
         Readers of a source's raw frames, each on a thread of its own, by source name (e.g.
         :class:`~supramodal.node.runtime.taps.lsl_signal.LSLSignalOutlet`); see
         :class:`~supramodal.node.runtime.taps.Tap` for the calls and their threads. A source that
@@ -440,7 +440,7 @@ class Node(Graph):
     driver : drivers.base.Driver
     pipeline : supramodal.pipeline.FeaturePipeline
         Its bank's rate must equal the driver's rate.
-    sinks : list of node.sinks.Sink
+    sinks : list of node.runtime.sinks.Sink
     model : TextureModel, optional
         Without it the node emits feature windows.
     decision : supramodal.decisions.DecisionRules, optional
@@ -451,7 +451,7 @@ class Node(Graph):
         Truth labels; by default those the driver carries (a replayed session's).
     buffer_seconds : float
         Ring capacity.
-    recorder : node.recorder.SessionRecorder, optional
+    recorder : node.runtime.taps.recorder.SessionRecorder, optional
         Records the raw driver frames (a second ring reader, on its own thread).
     overrun : {"drop-oldest", "drop-newest", "block"}
         "block" makes the driver thread wait for space: right for replay, where

@@ -126,7 +126,7 @@ class Stream:
     ----------
     name : str
         The stream's name (``[[stream]] name``; events carry it).
-    source : node.sources.Source
+    source : node.runtime.sources.Source
         Its bank's rate must equal the source's rate.
     pipeline : supramodal.pipeline.FeaturePipeline
     model : TextureModel, optional
