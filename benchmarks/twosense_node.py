@@ -161,7 +161,8 @@ def run_phase(name: str, streams: tuple[str, ...], seconds: float, sample_every:
             "stream_s": stream_s, "cpu_per_stream_s": cpu / stream_s,
             "latency_ms": {s: per[s].to_dict()["latency_ms"] for s in streams},
             "accuracy": {s: per[s].accuracy.window_accuracy for s in streams},
-            "windows": dict(sink.windows), "fusion": summary.to_dict()["fusion"], "clocks": clocks, "end": end,
+            "windows": dict(sink.windows), "fusion": None if summary.fusion is None else summary.fusion.to_dict(),
+            "clocks": clocks, "end": end,
             "rss_slope_kib_per_min": rss_slope([(r["t"], r["rss_kib"]) for r in samples], skip=0.5),
             "rss_kib": [samples[0]["rss_kib"], max(r["rss_kib"] for r in samples), samples[-1]["rss_kib"]]
             if samples else None, "samples": samples}

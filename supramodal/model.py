@@ -181,7 +181,8 @@ class GainAugment:
     def resolved(self, kind: str) -> GainAugment:
         """Return the augmentation with ``per_channel`` said.
 
-        Where it is None, by a bank of ``kind``: per channel for ``"whisker"``, one level for ``"cochlea"``.
+        Where it is None, by a bank of ``kind``: per channel for ``"whisker"``, one level for ``"cochlea"`` and
+        for any other bank (a custom bank's channels may be one sensor's: say ``per_channel`` for an array).
         """
         if self.per_channel is not None:
             return self

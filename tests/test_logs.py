@@ -139,3 +139,18 @@ def test_dask_s_own_log_lines_show_only_with_verbose_here_and_in_the_processes_a
     else:
         assert seen == {"here": logging.ERROR, "child": logging.ERROR}
     assert logging.getLogger("distributed").level == before and cli.DASK_LOGGING_ENV not in os.environ
+
+
+def test_a_users_own_dask_log_level_is_kept(monkeypatch):
+    """A DASK_LOGGING__DISTRIBUTED the user set (quieter or louder than ERROR) is theirs: the command leaves it,
+    and Dask's logger, as they are."""
+    import supramodal.node.cli as cli
+
+    for chosen in ("critical", "debug"):
+        monkeypatch.setenv(cli.DASK_LOGGING_ENV, chosen)
+        level = logging.getLogger("distributed").level
+        seen = {}
+        monkeypatch.setattr(cli, "_run", lambda args: seen.update(env=os.environ[cli.DASK_LOGGING_ENV],
+                                                                 level=logging.getLogger("distributed").level) or 0)
+        assert main(["devices"]) == 0
+        assert seen == {"env": chosen, "level": level} and os.environ[cli.DASK_LOGGING_ENV] == chosen

@@ -129,20 +129,20 @@ def quiet_libraries() -> Callable[[], None]:
     Without ``-v`` a command says what it does itself; Dask's lines (a nanny that kills a worker slow to
     end, a heartbeat that finds the scheduler gone as a fit closes) are for whoever runs a Dask cluster,
     and show with ``-v``. They are raised to ERROR: in this process, and, through :data:`DASK_LOGGING_ENV`,
-    in the processes it starts. liblsl's own log is kept out by the LSL driver and sinks unless ``-v``.
+    in the processes it starts; a user who set that variable keeps what they set. liblsl's own log is kept
+    out by the LSL driver and sinks unless ``-v``.
     """
-    saved_env = os.environ.get(DASK_LOGGING_ENV)
+    if os.environ.get(DASK_LOGGING_ENV):
+        return lambda: None             # the user's own choice of Dask's level, louder or quieter: kept
     os.environ[DASK_LOGGING_ENV] = "error"
     dask = logging.getLogger("distributed")
     saved_level = dask.level
-    dask.setLevel(logging.ERROR)        # where Dask is already imported (it sets the level as it is)
+    if dask.getEffectiveLevel() < logging.ERROR:
+        dask.setLevel(logging.ERROR)    # where Dask is already imported (it sets the level as it is)
 
     def undo() -> None:
         dask.setLevel(saved_level)
-        if saved_env is None:
-            os.environ.pop(DASK_LOGGING_ENV, None)
-        else:
-            os.environ[DASK_LOGGING_ENV] = saved_env
+        os.environ.pop(DASK_LOGGING_ENV, None)
     return undo
 
 

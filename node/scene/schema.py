@@ -333,7 +333,9 @@ def _check_augment(source: str, model: dict, where: str) -> None:
         raise SceneError(f"{source}: {where} augment_copies = {model['augment_copies']}: gain augmentation is part of "
                          "training, and this stream's model is not trained here (a model file keeps what it was "
                          "trained with); set train_on_start = true, or train the file with `supramodal train "
-                         f"--augment-gains {model['augment_copies']},{model['augment_spread']:g}`, or remove "
+                         f"--augment-gains {model['augment_copies']},{model['augment_spread']:g}"
+                         + ("" if model["augment_gains"] == "auto" else f",{model['augment_gains']}")
+                         + "`, or remove "
                          "augment_copies")
     idle = [k for k in ("augment_spread", "augment_gains") if model[k] != SECTIONS["model"][k].default]
     if idle and not model["augment_copies"]:
