@@ -105,9 +105,9 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
                         "sensor gains): every network (the calibration's folds' and the model's) also trains on "
                         "COPIES copies of each training window with random gains exp(N(0, SPREAD)) (default 0.03) on "
                         "Af and A, one per channel (per-channel: a whisker array's vibrissae) or one for all (shared: "
-                        "a microphone's level; left out: per-channel for a whisker bank, shared for a cochlea); the "
-                        "held-out windows, scaling and calibration see the originals; the networks cost 1 + COPIES "
-                        "times the CPU; the model file keeps it (default: none; e.g. 4,0.03)")
+                        "a microphone's level; left out: per-channel for a whisker bank, shared for a cochlea or a "
+                        "custom bank); the held-out windows, scaling and calibration see the originals; the networks "
+                        "cost 1 + COPIES times the CPU; the model file keeps it (default: none; e.g. 4,0.03)")
     return p
 
 

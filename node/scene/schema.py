@@ -132,7 +132,8 @@ SECTIONS = {
                               f"deviation of their natural log, 0..{MAX_AUGMENT_SPREAD:g}", DEFAULT_AUGMENT_SPREAD),
         "augment_gains": Key(one_of("auto", *GAIN_MODES), 'with augment_copies: "per-channel" (each channel its own '
                              'gain: a whisker array\'s vibrissae), "shared" (one level for all channels: a microphone) '
-                             'or "auto" (per-channel for a whisker bank, shared for a cochlea)', "auto"),
+                             'or "auto" (per-channel for a whisker bank, shared for a cochlea or a custom bank: say '
+                             'per-channel for an array of your own)', "auto"),
     },
     "decision": {
         "scope": Key(one_of(*SCOPES), f"one of {list(SCOPES)}", DEFAULT_DECISION.scope),
