@@ -363,3 +363,27 @@ def test_the_experiments_module_takes_gain_augmentation_seeded_by_its_seed(capsy
     with pytest.raises(SystemExit):
         two_sense_sets_main(["--augment"], "fusion", "", run, lambda r: "table", "6 s")
     capsys.readouterr()
+
+
+def test_experiment_newtouch_takes_augment_on_the_command_line_and_the_others_refuse_it(monkeypatch, tmp_path,
+                                                                                         capsys):
+    """`supramodal experiment newtouch --augment` gives run_newtouch GainAugment() seeded by --seed, as the
+    module's flag does; without it, nothing; another experiment refuses the flag, naming it (exit 2)."""
+    from supramodal.experiments import newtouch
+    from supramodal.model import GainAugment
+    from supramodal.node.cli import main
+
+    given = []
+
+    def run(sets, quick, epochs, seed, progress, jobs, **more):
+        given.append(more)
+        return {}
+
+    monkeypatch.setattr(newtouch, "run_newtouch", run)
+    monkeypatch.setattr(newtouch, "newtouch_table", lambda result: "table")
+    monkeypatch.setattr("supramodal.experiments.report.write_figure", lambda name, result, out: [])
+    for extra in (["--augment", "--seed", "3"], []):
+        assert main(["-q", "experiment", "newtouch", "--sets", "1", "--out", str(tmp_path), *extra]) == 0
+    assert given == [{"augment": GainAugment(seed=3)}, {}]
+    assert main(["experiment", "fusion", "--augment", "--out", str(tmp_path)]) == 2
+    assert "--augment is experiment newtouch's" in capsys.readouterr().err

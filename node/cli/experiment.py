@@ -51,6 +51,10 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
                                             "calibration: N random sets per bank and N two-sense sets (default 5, "
                                             "1 with --quick); newtouch, change: N two-sense sets (default 5, 2 "
                                             "with --quick)")
+    p.add_argument("--augment", action="store_true",
+                   help="newtouch: gain augmentation of every network's training windows (4 more copies of each, "
+                        "gains exp(N(0, 0.03)): per vibrissa for the whiskers, one level for the microphone; seeded "
+                        "by --seed; the networks take 5 times the CPU)")
     p.add_argument("--out", default="out", type=output_folder, help="directory for CSV and PNG (default ./out)")
     p.add_argument("--json", action="store_true", help="print the figure's data as one JSON object instead of a table")
     return p
@@ -81,6 +85,9 @@ def run(args: argparse.Namespace) -> int:
         raise CliError(f"--seed must be >= 0, got {args.seed}")
     if args.jobs is not None and args.jobs < 1:
         raise CliError(f"--jobs must be >= 1, got {args.jobs}")
+    if args.augment and args.figure != "newtouch":
+        raise CliError(f"--augment is experiment newtouch's (the models on a touch they never met), not "
+                       f"{args.figure}'s: leave it out, or run experiment newtouch --augment")
     if args.figure in TWO_SENSE_EXPERIMENTS:
         return _two_sense_experiment(args)
     ts = load_texture_set(args.textures) if args.textures else None
@@ -121,8 +128,13 @@ def _two_sense_experiment(args) -> int:
     sets = args.sets if args.sets is not None else (2 if args.quick else 5)
     if sets < 1:
         raise CliError(f"--sets must be >= 1 for experiment {args.figure}, got {sets}")
+    more = {}
+    if args.augment:                    # newtouch's: as its module's --augment, seeded by --seed
+        from supramodal.model import GainAugment
+
+        more["augment"] = GainAugment(seed=args.seed)
     result = getattr(m, run)(sets, args.quick, args.epochs, args.seed, None if args.quiet else progress_to_stderr,
-                             args.jobs)
+                             args.jobs, **more)
     written = write_figure(args.figure, result, Path(args.out))
     print(json.dumps(result) if args.json else getattr(m, table)(result) + "\nwrote "
           + ", ".join(str(p) for p in written))
