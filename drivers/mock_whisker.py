@@ -581,12 +581,16 @@ class MockWhiskerDevice:
                 pending = 0 if self._pending is None else len(self._pending)
                 settled = self._clean_run - pending - self._unread() >= margin
                 if settled or now >= next_unplug + 1.0:
+                    unplugged_at = time.monotonic()
+                    self._unplug_pty()
+                    # counted once the port is gone and what it held is in the ledger: a reader that waits for
+                    # the count (a test stalling across the unplug) then reads nothing the unplug takes as lost
+                    # (counted first, a reader woken by it read from the port while the unplug emptied it)
                     with self._lock:
                         self._ledger.unplugs += 1
                         self._ledger.unplugs_forced += not settled
                         self._ledger.unplug_at.append(k)
-                        self._ledger.unplug_times.append(time.monotonic())
-                    self._unplug_pty()
+                        self._ledger.unplug_times.append(unplugged_at)
                     replug_at = now + f.unplug_for
                     next_unplug = float("inf")
                     self._quiet = False
