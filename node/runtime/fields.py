@@ -10,11 +10,12 @@ frame written otherwise), not of the scene. A missing key raises KeyError, as ``
 from __future__ import annotations
 
 import numbers
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
+from typing import TypeGuard, TypeVar
 
 import numpy as np
 
-__all__ = ["bool_of", "float_of", "int_mapping_of", "int_of", "list_of", "mapping_of", "mappings_of",
+__all__ = ["bool_of", "float_of", "int_mapping_of", "int_of", "mapping_of", "mappings_of",
            "optional_float_of", "optional_int_of", "optional_str_of", "optional_strs_of", "str_mapping_of", "str_of",
            "strs_of"]
 
@@ -23,12 +24,48 @@ def _wrong(key: str, value: object, what: str) -> TypeError:
     return TypeError(f"{key!r}: {value!r} is not {what}")
 
 
+T = TypeVar("T")
+
+
+def _read(m: Mapping[str, object], key: str, guard: Callable[[object], TypeGuard[T]], what: str) -> T:
+    """Return ``m[key]`` where ``guard`` accepts it; else a TypeError naming the key and ``what`` was expected."""
+    value = m[key]
+    if guard(value):
+        return value
+    raise _wrong(key, value, what)
+
+
+def _is_str(v: object) -> TypeGuard[str]:
+    return isinstance(v, str)
+
+
+def _is_int(v: object) -> TypeGuard[int]:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _is_real(v: object) -> TypeGuard[numbers.Real]:
+    return isinstance(v, numbers.Real) and not isinstance(v, bool | np.bool_)
+
+
+def _is_bool(v: object) -> TypeGuard[bool]:
+    return isinstance(v, bool)
+
+
+def _is_strs(v: object) -> TypeGuard[list[str]]:
+    return isinstance(v, list) and all(isinstance(x, str) for x in v)
+
+
+def _is_mapping(v: object) -> TypeGuard[Mapping[str, object]]:
+    return isinstance(v, Mapping) and all(isinstance(k, str) for k in v)
+
+
+def _is_mappings(v: object) -> TypeGuard[list[Mapping[str, object]]]:
+    return isinstance(v, list) and all(_is_mapping(x) for x in v)
+
+
 def str_of(m: Mapping[str, object], key: str) -> str:
     """Return ``m[key]``, text."""
-    value = m[key]
-    if isinstance(value, str):
-        return value
-    raise _wrong(key, value, "text")
+    return _read(m, key, _is_str, "text")
 
 
 def optional_str_of(m: Mapping[str, object], key: str) -> str | None:
@@ -38,10 +75,7 @@ def optional_str_of(m: Mapping[str, object], key: str) -> str | None:
 
 def int_of(m: Mapping[str, object], key: str) -> int:
     """Return ``m[key]``, an integer (not a bool)."""
-    value = m[key]
-    if isinstance(value, int) and not isinstance(value, bool):
-        return value
-    raise _wrong(key, value, "an integer")
+    return _read(m, key, _is_int, "an integer")
 
 
 def optional_int_of(m: Mapping[str, object], key: str) -> int | None:
@@ -51,10 +85,7 @@ def optional_int_of(m: Mapping[str, object], key: str) -> int | None:
 
 def float_of(m: Mapping[str, object], key: str) -> float:
     """Return ``m[key]``, a real number (Python's or NumPy's, not a bool), as a float."""
-    value = m[key]
-    if isinstance(value, numbers.Real) and not isinstance(value, bool | np.bool_):
-        return float(value)
-    raise _wrong(key, value, "a number")
+    return float(_read(m, key, _is_real, "a number"))
 
 
 def optional_float_of(m: Mapping[str, object], key: str) -> float | None:
@@ -64,20 +95,12 @@ def optional_float_of(m: Mapping[str, object], key: str) -> float | None:
 
 def bool_of(m: Mapping[str, object], key: str) -> bool:
     """Return ``m[key]``, true or false."""
-    value = m[key]
-    if isinstance(value, bool):
-        return value
-    raise _wrong(key, value, "true or false")
+    return _read(m, key, _is_bool, "true or false")
 
 
 def strs_of(m: Mapping[str, object], key: str) -> list[str]:
     """Return ``m[key]``, a list of text (a copy)."""
-    value = m[key]
-    if isinstance(value, list):
-        out = [v for v in value if isinstance(v, str)]
-        if len(out) == len(value):
-            return out
-    raise _wrong(key, value, "a list of text")
+    return list(_read(m, key, _is_strs, "a list of text"))
 
 
 def optional_strs_of(m: Mapping[str, object], key: str) -> list[str] | None:
@@ -85,45 +108,30 @@ def optional_strs_of(m: Mapping[str, object], key: str) -> list[str] | None:
     return None if m[key] is None else strs_of(m, key)
 
 
-def list_of(m: Mapping[str, object], key: str) -> list[object]:
-    """Return ``m[key]``, a list (a copy)."""
-    value = m[key]
-    if isinstance(value, list):
-        return list(value)
-    raise _wrong(key, value, "a list")
+def mapping_of(m: Mapping[str, object], key: str) -> Mapping[str, object]:
+    """Return ``m[key]``, a mapping of text to values."""
+    return _read(m, key, _is_mapping, "a mapping of text to values")
 
 
 def mappings_of(m: Mapping[str, object], key: str) -> list[Mapping[str, object]]:
     """Return ``m[key]``, a list of mappings of text to values (a copy)."""
-    value = m[key]
-    if isinstance(value, list):
-        out = [v for v in value if isinstance(v, Mapping) and all(isinstance(k, str) for k in v)]
-        if len(out) == len(value):
-            return out
-    raise _wrong(key, value, "a list of mappings of text to values")
+    return list(_read(m, key, _is_mappings, "a list of mappings of text to values"))
+
+
+def _values_of(m: Mapping[str, object], key: str, guard: Callable[[object], TypeGuard[T]], what: str) -> dict[str, T]:
+    """Return ``m[key]``, a mapping of text to values ``guard`` accepts (a copy); else a TypeError."""
+    value = mapping_of(m, key)
+    out = {k: v for k, v in value.items() if guard(v)}
+    if len(out) == len(value):
+        return out
+    raise _wrong(key, value, what)
 
 
 def str_mapping_of(m: Mapping[str, object], key: str) -> dict[str, str]:
     """Return ``m[key]``, a mapping of text to text (a copy)."""
-    value = mapping_of(m, key)
-    out = {k: v for k, v in value.items() if isinstance(v, str)}
-    if len(out) == len(value):
-        return out
-    raise _wrong(key, value, "a mapping of text to text")
+    return _values_of(m, key, _is_str, "a mapping of text to text")
 
 
 def int_mapping_of(m: Mapping[str, object], key: str) -> dict[str, int]:
     """Return ``m[key]``, a mapping of text to integers (a copy; counts by name)."""
-    value = mapping_of(m, key)
-    out = {k: v for k, v in value.items() if isinstance(v, int) and not isinstance(v, bool)}
-    if len(out) == len(value):
-        return out
-    raise _wrong(key, value, "a mapping of text to integers")
-
-
-def mapping_of(m: Mapping[str, object], key: str) -> Mapping[str, object]:
-    """Return ``m[key]``, a mapping of text to values."""
-    value = m[key]
-    if isinstance(value, Mapping) and all(isinstance(k, str) for k in value):
-        return value
-    raise _wrong(key, value, "a mapping of text to values")
+    return _values_of(m, key, _is_int, "a mapping of text to integers")
