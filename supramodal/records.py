@@ -10,6 +10,7 @@ unchanged.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Iterator, Mapping
 
 __all__ = ["JsonRecord", "JsonValue"]
@@ -25,17 +26,21 @@ class JsonRecord(Mapping[str, "JsonValue"]):
     result, so a record equals the dict it is written as. Not hashable.
     """
 
-    __slots__ = ()
-
     def to_dict(self) -> dict[str, JsonValue]:
         """Return the record as it is written (JSON-ready: its keys, in their order)."""
         raise NotImplementedError
 
+    @functools.cached_property
+    def _json(self) -> dict[str, JsonValue]:
+        # built once per record for the mapping view (a frozen record's JSON does not change): ``dict(r)`` and
+        # ``**r`` read every key; to_dict() itself still gives a fresh dict the caller may change
+        return self.to_dict()
+
     def __getitem__(self, key: str) -> JsonValue:
-        return self.to_dict()[key]
+        return self._json[key]
 
     def __iter__(self) -> Iterator[str]:
-        return iter(self.to_dict())
+        return iter(self._json)
 
     def __len__(self) -> int:
-        return len(self.to_dict())
+        return len(self._json)
