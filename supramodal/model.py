@@ -236,12 +236,15 @@ class GainCopies:
     """A :class:`GainAugment` on inputs of ``features`` x ``channels``.
 
     Called ``(rows, labels, stream)``, it gives the rows and their copies, and their labels;
-    :attr:`factor`, how many rows it makes of one.
+    :attr:`factor`, how many rows it makes of one. ``part``: which sense's columns these are in an early
+    fusion's inputs (:class:`~supramodal.fused_model.EarlyGainCopies`): each sense draws its own gains
+    (part 0 draws as a one-sense model does).
     """
 
     augment: GainAugment
     features: tuple[str, ...]
     channels: int
+    part: int = 0
 
     @property
     def factor(self) -> int:
@@ -256,7 +259,9 @@ class GainCopies:
             return x, y
         if a.per_channel is None:
             raise ValueError("GainAugment.per_channel is None (by bank): resolve it with .resolved(kind) first")
-        rng = np.random.default_rng(np.random.SeedSequence([a.seed, stream]))
+        # part 0's key is a one-sense model's own: its gains, and so its models, are those of before
+        key = [a.seed, stream] if self.part == 0 else [a.seed, stream, self.part]
+        rng = np.random.default_rng(np.random.SeedSequence(key))
         v = np.asarray(x).reshape(len(x), len(self.features), self.channels)
         out = [v]
         for _ in range(a.copies):

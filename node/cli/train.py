@@ -102,7 +102,8 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
                         "here); the model is the same for any")
     p.add_argument("--augment-gains", type=augment_gains, metavar=AUGMENT_GAINS_FORM,
                    help="gain augmentation, for models that must hold on a new touch or session (each has its own "
-                        "sensor gains): every network (the calibration's folds' and the model's) also trains on "
+                        "sensor gains): every network (the calibration's folds' and the model's; with --fusion "
+                        "early, the early network's, each sense's columns by its own bank) also trains on "
                         "COPIES copies of each training window with random gains exp(N(0, SPREAD)) (default 0.03) on "
                         "Af and A, one per channel (per-channel: a whisker array's vibrissae) or one for all (shared: "
                         "a microphone's level; left out: per-channel for a whisker bank, shared for a cochlea or a "
@@ -264,10 +265,10 @@ def _train_fusion(args) -> int:
                        "`supramodal record` writes for a graph)")
     if args.manifest is not None or args.cv:
         raise CliError("--manifest and --cv train one sense; a fusion is trained on --scene recordings")
-    if args.augment_gains is not None:
-        raise CliError("--augment-gains trains one sense; a fusion's copies of the sense models train as each model "
-                       "did (its file keeps its gain augmentation): train the senses with it (--stream), then give "
-                       "them with --model")
+    if args.augment_gains is not None and args.fusion != "early":
+        raise CliError("--augment-gains trains one sense (--stream) or the early fusion's network; a late "
+                       "fusion's copies of the sense models train as each model did (its file keeps its gain "
+                       "augmentation): train the senses with it (--stream), then give them with --model")
     if args.fusion == "early":
         if args.out is None:
             raise CliError("--fusion early needs --out, the model file to write")
@@ -282,7 +283,7 @@ def _train_fusion(args) -> int:
         check_new_file(args.write_scene, args.force, "the scene file")
     models = _stream_models(args.models)
     result, info = train_fused(args.scene, args.fusion, epochs=args.epochs, seed=args.seed, progress=progress(args),
-                               models=models)
+                               models=models, augment=_augment(args))
     a, b = info["streams"]
     fused = "late" if args.fusion == "late" else "early"
     print(f"sense posteriors: {info['posteriors']['source']} ({info['posteriors']['why']})")
@@ -309,6 +310,9 @@ def _train_fusion(args) -> int:
     print(f"wrote {path}: early fusion of {a} and {b}, classes {info['classes']}, {info['pairs']} pairs of windows, "
           f"calibrated on its out-of-fold pairs (the early row); use it with [fusion] method = \"early\", "
           f"model = \"{path.resolve()}\" (a relative path is taken from the scene's folder)")
+    if result.augment is not None:
+        for name, augment in zip((a, b), result.augment):
+            print(f"{name}: {augment.describe()}")
     _write_run_scene(args, write_fused_scene, (a, b), models, method="early", model=str(path.resolve()))
     return 0
 
