@@ -18,6 +18,7 @@ from supramodal.node.cli.arguments import (
     progress,
     say_plots_missing,
     seed,
+    seeded_augment,
 )
 from supramodal.node.cli.errors import CliError
 from supramodal.node.cli.signals import interrupt_until_running
@@ -151,11 +152,11 @@ def run(args: argparse.Namespace) -> int:
                 check_new_file(b.with_name(b.name + suffix), args.force, "the cross-validation file")
         cv = cross_validate_manifest(args.manifest, bank, tuple(args.features), args.window, args.cv,
                                      epochs=args.epochs, seed=args.seed, mapping=args.mapping, progress=progress(args),
-                                     augment=_augment(args))
+                                     augment=seeded_augment(args))
         print(format_cross_validation(cv))
     model = train_from_manifest(args.manifest, bank, tuple(args.features), args.window, epochs=args.epochs,
                                 seed=args.seed, mapping=args.mapping, progress=progress(args), jobs=args.jobs,
-                                augment=_augment(args))
+                                augment=seeded_augment(args))
     # The model and its cross-validation's files are put in place together (the files written first, an
     # interrupted training left a new report beside the earlier model)
     written = save_model(model, args.out, cv=None if cv is None else (args.cv, cv))
@@ -170,13 +171,6 @@ def run(args: argparse.Namespace) -> int:
     print("posteriors: " + calibration_line(None if model.calibration is None else model.calibration.fitted_on))
     _say_augment(model)
     return 0
-
-
-def _augment(args):
-    """``--augment-gains``, seeded by ``--seed`` (None: not asked)."""
-    from dataclasses import replace
-
-    return None if args.augment_gains is None else replace(args.augment_gains, seed=args.seed)
 
 
 def _say_augment(model) -> None:
@@ -225,7 +219,7 @@ def _train_stream(args) -> int:
                        "out --manifest, --bank, --cv, --model, --live and --write-scene")
     check_new_file(args.out, args.force, "the model file")
     model = train_from_scenes(args.scene, args.stream, epochs=args.epochs, seed=args.seed, progress=progress(args),
-                              jobs=args.jobs, augment=_augment(args))
+                              jobs=args.jobs, augment=seeded_augment(args))
     path = save_model(model, args.out)[-1]
     print(f"wrote {path}: stream {args.stream}, {model.bank.kind} bank, features {list(model.features)}, classes "
           f"{list(model.classes)}, {model.training['windows']} training windows of {len(args.scene)} recording(s), "
@@ -283,7 +277,7 @@ def _train_fusion(args) -> int:
         check_new_file(args.write_scene, args.force, "the scene file")
     models = _stream_models(args.models)
     result, info = train_fused(args.scene, args.fusion, epochs=args.epochs, seed=args.seed, progress=progress(args),
-                               models=models, augment=_augment(args))
+                               models=models, augment=seeded_augment(args))
     a, b = info["streams"]
     fused = "late" if args.fusion == "late" else "early"
     print(f"sense posteriors: {info['posteriors']['source']} ({info['posteriors']['why']})")
