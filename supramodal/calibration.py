@@ -37,8 +37,10 @@ Unknown textures
     :class:`Novelty`: the squared Mahalanobis distance of the logarithm of a window's inputs to the
     nearest class mean (one covariance shared by the classes, shrunk towards its diagonal); for a
     contact, that of the mean of its windows, times their number (evidence that grows with the
-    contact). Each comes with its distribution on held-out windows and contacts of known textures
-    only, so that a threshold is a false-unknown rate.
+    contact). A model trained now measures both under each class's predictive covariance for a new
+    touch, whose gains move all its windows alike (:class:`TouchSpread`). Each comes with its
+    distribution on held-out windows and contacts of known textures only, so that a threshold is a
+    false-unknown rate.
 
 Pure numpy/scipy; the models (:mod:`supramodal.model`, :mod:`supramodal.fused_model`) fit and
 store these, the node applies them.

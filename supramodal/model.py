@@ -21,10 +21,10 @@ bandwidths the Glasberg-Moore rule's).
 
 Version 2 adds the model's calibration (:mod:`supramodal.calibration`): the header's
 ``calibration`` object (the window map and the contact pooling, fitted on held-out windows)
-and ``novelty`` (false, or the novelty score's method and warp, :meth:`Novelty.header`; ``true`` in
-files of before the warp; the file then holds the arrays ``novelty_means`` (classes, inputs),
-``novelty_precision`` (inputs, inputs) and ``novelty_quantiles``, validated by
-:meth:`Novelty.from_parts`). A version 1 file still
+and ``novelty`` (false, or the novelty score's method and warp, and since 2026-11-30 its allowance for
+a new touch, :meth:`Novelty.header`; ``true`` in files of before the warp; the file then holds the
+arrays ``novelty_means`` (classes, inputs), ``novelty_precision`` (inputs, inputs) and
+``novelty_quantiles``, validated by :meth:`Novelty.from_parts`). A version 1 file still
 loads: its model is *uncalibrated* (:attr:`TextureModel.calibrated` is False), its posteriors
 the normalised outputs, and it cannot say "unknown".
 """
