@@ -1128,11 +1128,14 @@ def _touch_gaussian(u, y, groups, n_classes: int, touch_groups: tuple, floor: fl
                     ) -> tuple[np.ndarray, np.ndarray, TouchSpread]:
     """Class means, the precision of the covariance within a recording, and the :class:`TouchSpread` of ``u``.
 
-    The covariance is of each window about its recording's mean, shrunk as :func:`_gaussian`'s.
+    The covariance is of each window about the mean of its texture's part of its recording, shrunk as
+    :func:`_gaussian`'s.
     """
     p = u.shape[1]
     means = np.stack([u[y == k].mean(axis=0) if np.any(y == k) else np.zeros(p) for k in range(n_classes)])
-    _, index = np.unique(groups, return_inverse=True)
+    _, recording = np.unique(groups, return_inverse=True)
+    _, index = np.unique(np.stack([np.asarray(y).ravel(), recording.ravel()], axis=1), axis=0, return_inverse=True)
+    index = index.ravel()
     recording_means = np.stack([u[index == r].mean(axis=0) for r in range(index.max() + 1)])
     resid = u - recording_means[index]
     cov = resid.T @ resid / max(len(u) - len(recording_means), 1)

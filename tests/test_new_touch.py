@@ -544,3 +544,23 @@ def test_a_bad_touch_allowance_in_a_model_file_is_refused_by_name(same_level_mod
     np.savez(tmp_path / "bad.npz", header=np.array(json.dumps(header)), **arrays)
     with pytest.raises(ModelError, match=message):
         TextureModel.load(tmp_path / "bad.npz")
+
+
+def test_the_covariance_within_a_recording_is_about_each_textures_part_of_it():
+    """A recording that holds two textures: the windows' covariance is about each texture's own part of it
+    (the part's mean), not about the recording's mean, which lies between the textures."""
+    from supramodal.calibration import NOVELTY_SHRINK, fit_novelty, input_scaling
+
+    rng = np.random.default_rng(8)
+    x, y, _ = _touches(rng, 2, 4, 0.05, channels=4)
+    g = np.concatenate([np.repeat(np.arange(4), 60)] * 2)         # touch t of both textures: recording t
+    raw = x.reshape(len(x), -1)
+    mean, scale = input_scaling(raw)
+    nov = fit_novelty((raw - mean) / scale, y, 2, g, g, mean, scale, touch_groups=(0,) * 4)
+    u = nov.warped((raw - mean) / scale)
+    parts = [(y == k) & (g == r) for k in range(2) for r in range(4)]
+    r = np.concatenate([u[m] - u[m].mean(axis=0) for m in parts])
+    cov = r.T @ r / (len(u) - len(parts))
+    cov = (1 - NOVELTY_SHRINK) * cov + NOVELTY_SHRINK * np.diag(np.diag(cov)) + 1e-6 * np.eye(4)
+    np.testing.assert_allclose(nov.precision, np.linalg.inv(cov), rtol=1e-8)
+    assert nov.touch.touches == (4, 4)
