@@ -1409,7 +1409,8 @@ def calibration_folds(labels, groups, k: int = DEFAULT_CALIBRATION_FOLDS, seed: 
 
 def fit_network_calibration(x, labels, n_classes: int, groups=None, k: int = DEFAULT_CALIBRATION_FOLDS,
                             hidden: int | None = None, epochs: int | None = None, seed: int = 0,
-                            progress=None, jobs: int = 1, augment=None) -> tuple[Calibration, Novelty, OutOfFold]:
+                            progress=None, jobs: int = 1, augment=None, touch_groups=None,
+                            touch_floor: float = NOVELTY_TOUCH_SPREAD) -> tuple[Calibration, Novelty, OutOfFold]:
     """Fit the calibration and novelty of a network as :func:`supramodal.mlp.train_mlp` would train it.
 
     They are fitted from out-of-fold windows; the network would train on the raw (unstandardised)
@@ -1436,6 +1437,8 @@ def fit_network_calibration(x, labels, n_classes: int, groups=None, k: int = DEF
         :meth:`supramodal.model.GainAugment.for_inputs`, whose ``factor`` says how many rows it makes
         of one): the network this calibrates should be trained with it too. The held-out rows, the
         calibration and the novelty see the original rows only. Default None: none.
+    touch_groups, touch_floor
+        The novelty's allowance for a new touch (:func:`fit_novelty`; default none).
 
     Returns
     -------
@@ -1456,7 +1459,7 @@ def fit_network_calibration(x, labels, n_classes: int, groups=None, k: int = DEF
     train_networks(fold_tasks(x, y, n_classes, folds, k, hidden, epochs, seed, augment), jobs, done=held_out.told,
                    work=fold_work(len(x), x.shape[1], n_classes, folds, k, hidden, epochs)
                    * getattr(augment, "factor", 1))
-    return calibration_of_held_out(x, y, n_classes, groups, folds, by, k, held_out.logits)
+    return calibration_of_held_out(x, y, n_classes, groups, folds, by, k, held_out.logits, touch_groups, touch_floor)
 
 
 def fold_tasks(x, labels, n_classes: int, folds, k: int, hidden: int | None, epochs: int, seed: int,

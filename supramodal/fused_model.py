@@ -67,6 +67,7 @@ from supramodal.model import (
     save_model_archive,
     sense_from_header,
     sense_header,
+    touch_allowance,
     with_held_out_changes,
 )
 
@@ -179,7 +180,8 @@ class EarlyFusionModel:
         calibration = novelty = out_of_fold = None
         if calibration_folds:
             calibration, novelty, out_of_fold = fit_network_calibration(x, y, len(classes), groups, calibration_folds,
-                                                                        hidden, epochs, seed, calibration_progress)
+                                                                        hidden, epochs, seed, calibration_progress,
+                                                                        touch_groups=early_touch_groups(senses))
             # What a change detector did on the same held-out windows, as a one-sense model keeps it: a
             # node's early fusion then fits its change threshold instead of taking the detector's bound.
             calibration = with_held_out_changes(calibration, out_of_fold.logits, y,
@@ -497,3 +499,14 @@ def worse_than_a_sense(fused, senses: dict, labels) -> tuple[str, float, float] 
         return None
     own_loss, name = min(found)
     return name, own_loss, float(lost.mean())
+
+
+def early_touch_groups(senses) -> tuple[int, ...]:
+    """Which of an early-fusion network's inputs share a gain: each sense's (:func:`supramodal.model.touch_allowance`).
+
+    The second sense's groups follow the first's: a touch's gains are each sensor's own.
+    """
+    first = touch_allowance(senses[0].features, senses[0].bank)[0]
+    second = touch_allowance(senses[1].features, senses[1].bank)[0]
+    shift = max(first, default=-1) + 1
+    return first + tuple(g + shift if g >= 0 else -1 for g in second)
