@@ -69,6 +69,7 @@ from supramodal.model import (
     save_model_archive,
     sense_from_header,
     sense_header,
+    touch_allowance,
     with_held_out_changes,
 )
 
@@ -270,9 +271,11 @@ class EarlyFusionModel:
             info["augment"] = [a.to_dict() for a in augments]
         calibration = novelty = out_of_fold = None
         if calibration_folds:
+            touch_groups, touch_floor = early_touch_allowance(senses, augments)
             calibration, novelty, out_of_fold = fit_network_calibration(x, y, len(classes), groups, calibration_folds,
                                                                         hidden, epochs, seed, calibration_progress,
-                                                                        augment=aug)
+                                                                        augment=aug, touch_groups=touch_groups,
+                                                                        touch_floor=touch_floor)
             # What a change detector did on the same held-out windows, as a one-sense model keeps it: a
             # node's early fusion then fits its change threshold instead of taking the detector's bound.
             calibration = with_held_out_changes(calibration, out_of_fold.logits, y,
@@ -596,3 +599,18 @@ def worse_than_a_sense(fused, senses: dict, labels) -> tuple[str, float, float] 
         return None
     own_loss, name = min(found)
     return name, own_loss, float(lost.mean())
+
+
+def early_touch_allowance(senses, augments: tuple[GainAugment, GainAugment] | None = None
+                          ) -> tuple[tuple[int, ...], float]:
+    """Return the novelty's allowance for a new touch of an early-fusion network: inputs sharing a gain, least spread.
+
+    Each sense's as :func:`supramodal.model.touch_allowance` gives it, by its own gain augmentation where
+    ``augments`` (:func:`early_augment`) copies its windows with gains (spread > 0); the second sense's groups
+    follow the first's (a touch's gains are each sensor's own), the least spread the larger of the two.
+    """
+    parts = [touch_allowance(s.features, s.bank, a if a is not None and a.spread > 0 else None)
+             for s, a in zip(senses, augments if augments is not None else (None, None))]
+    (first, floor_a), (second, floor_b) = parts
+    shift = max(first, default=-1) + 1
+    return first + tuple(g + shift if g >= 0 else -1 for g in second), max(floor_a, floor_b)
