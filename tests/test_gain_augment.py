@@ -201,6 +201,10 @@ def test_an_augmented_early_network_and_its_fold_networks_train_on_the_copies_an
     assert aug.out_of_fold.logits.shape == plain.out_of_fold.logits.shape     # one held-out row per pair
     np.testing.assert_array_equal(aug.mean, plain.mean)                        # scaling from the originals
     assert aug.training["windows"] == len(va) and plain.augment is None
+    # the novelty allows for a new touch at least as far as the copies' gains spread (each sense's groups its own)
+    assert aug.novelty.touch.spread >= 0.05 > plain.novelty.touch.spread
+    groups = aug.novelty.touch.groups
+    assert groups[:8] == tuple(range(8)) and groups[8:16] == (-1,) * 8 and set(groups[16:]) == {8}   # Af, f; A
     loaded = EarlyFusionModel.load(aug.save(tmp_path / "early.npz"))
     assert [a.per_channel for a in loaded.augment] == [True, False] and loaded.augment[0].copies == 2
     header_bad = dict(aug.training, augment=[aug.training["augment"][0]])
