@@ -160,6 +160,8 @@ def test_a_calibration_held_out_by_touch_holds_on_a_new_touch_and_one_by_span_do
     assert r["late"]["issue34"]["touch3"]["log_loss"] <= better
     fused = r["late"]["issue34"]
     assert fused["sharpness"] <= 1 / max(fused["weight"], 1 - fused["weight"]) + 1e-9
+    # the early network sees both senses of a pair at once: on the new touch it is right more often than either
+    assert r["early"]["touch3"]["accuracy"] > max(v["touch3"]["accuracy"] for v in r["senses"].values())
 
 
 # -- train says when its calibration held out spans, not recordings ------------------------------------
@@ -337,8 +339,10 @@ def test_experiment_newtouch_on_the_command_line_writes_its_table_csv_and_plot(t
     out = capsys.readouterr().out
     assert "late fusion (rule of issue 34) log loss on touch 3 <= the better sense's:" in out
     rows = list(csv.DictReader(open(tmp_path / "newtouch.csv")))
-    assert [r["method"] for r in rows] == ["whiskers", "microphone", "whiskers (folds by span)",
-                                           "microphone (folds by span)", "late (issue34)", "late (before)"]
+    assert [r["method"] for r in rows][:6] == ["whiskers", "microphone", "whiskers (folds by span)",
+                                               "microphone (folds by span)", "late (issue34)", "late (before)"]
+    assert [r["method"] for r in rows][6:] == ["early"]
+    assert "early fusion (folds by touch)" in out
     assert all(0.0 <= float(r["touch3_ece"]) <= 1.0 for r in rows)
     pytest.importorskip("matplotlib")
     assert (tmp_path / "newtouch.png").stat().st_size > 0

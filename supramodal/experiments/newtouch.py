@@ -19,6 +19,8 @@ unknown ones. On the six others:
   window; each sense beside its training estimate (its calibration's held-out log loss and
   accuracy); the false-unknown rate at 0.05 asked, per window and per contact of
   :data:`CONTACT_WINDOWS` windows, and the novelty's AUROC against the unknown textures' touch 3.
+* The early fusion's network (:func:`train_early`), trained on both senses' windows of touches 1-2 and
+  calibrated by touch as the senses are, scored on touch 3 beside them.
 * Recalibration (:meth:`supramodal.model.TextureModel.recalibrated`): each sense recalibrated on the
   first half of touch 3, the networks and the fusion's weight and sharpness kept, scored on its
   second half (ECE, log loss, the false-unknown rate).
@@ -266,7 +268,32 @@ def run_set(set_seed: int, seconds: float = 10.0, epochs: int = DEFAULT_EPOCHS, 
                                 "recalibrated": _scores(fuse_late(recal_lp["whiskers"], recal_lp["microphone"], w, s),
                                                         y_second)}
     result["late"]["issue34"]["training"] = _scores(trained.late["fused"], trained.y)
+    if progress:
+        progress(f"  set {set_seed}: the early fusion's network, calibrated by touch")
+    t0 = time.process_time()
+    early = train_early(trained, epochs, seed, augment)
+    result["early"] = {"training": _scores(early.calibration.log_posteriors(early.out_of_fold.logits), trained.y),
+                       "touch3": _scores(early.log_posteriors(stack(0), stack(1)), y_test),
+                       "train_cpu_seconds": time.process_time() - t0}
     return result
+
+
+def train_early(trained: TrainedSenses, epochs: int, seed: int, augment: GainAugment | None = None):
+    """Return the early fusion's network trained on both senses' windows of touches 1-2, calibrated by touch.
+
+    ``augment``: as :func:`train_senses` gives each sense's (per vibrissa for the whiskers, one level for the
+    microphone), each sense's columns by its own gains.
+    """
+    from supramodal.fused_model import EarlyFusionModel, Sense
+
+    models = [trained.models[s] for s in SENSES]
+    senses = [Sense(s, m.bank, m.features, m.window_samples, m.peak_mode, m.peak_threshold)
+              for s, m in zip(SENSES, models)]
+    pair = None if augment is None else tuple(m.augment for m in models)
+    model = EarlyFusionModel.train(senses, trained.values[0], trained.values[1], trained.y, trained.classes,
+                                   epochs=epochs, seed=seed, groups=trained.groups, augment=pair)
+    assert model.calibration is not None and model.out_of_fold is not None, "calibrated (the default)"
+    return model
 
 
 def run_newtouch(sets: int = 5, quick: bool = False, epochs: int = DEFAULT_EPOCHS, seed: int = 0, progress=None,
@@ -339,6 +366,11 @@ def newtouch_table(result: dict) -> str:
                          f"{v['weight']:.2f}, sharpness {v['sharpness']:.3g}) | {est} | {t['accuracy']:.3f} | "
                          f"{t['log_loss']:.3f} | {t['ece']:.3f} | {_sure(t)} | {v['recalibrated']['ece']:.3f}, "
                          f"{v['recalibrated']['log_loss']:.3f} |")
+        if "early" in r:            # results of before it have none
+            train, t = r["early"]["training"], r["early"]["touch3"]
+            lines.append(f"| {r['set_seed']} | early fusion (folds by touch) | {train['accuracy']:.3f}, "
+                         f"{train['log_loss']:.3f} | {t['accuracy']:.3f} | {t['log_loss']:.3f} | {t['ece']:.3f} | "
+                         f"{_sure(t)} | - |")
     lines += ["", f"Unknown at {result['asked_unknown']:g} asked (contacts of {result['contact_windows']} windows): "
               "false-unknown rate on touch 3 of the known textures, and after recalibration on its second half; "
               "AUROC against the unknown textures' touch 3", "",
@@ -369,6 +401,10 @@ def newtouch_table(result: dict) -> str:
     cpu = [r["train_cpu_seconds"] for r in result["sets"] if "train_cpu_seconds" in r]
     if cpu:
         lines.append(f"training CPU of a set's senses and fusion (this process): {min(cpu):.1f}..{max(cpu):.1f} s")
+    early = [r["early"]["train_cpu_seconds"] for r in result["sets"] if "early" in r]
+    if early:
+        lines.append(f"training CPU of a set's early-fusion network (this process): {min(early):.1f}.."
+                     f"{max(early):.1f} s")
     augment = result.get("augment")
     lines.append("gain augmentation of the networks' training windows: "
                  + ("none" if augment is None else f"{augment['copies']} copies, spread {augment['spread']:g} "
@@ -385,6 +421,8 @@ def _rows(result: dict) -> list[dict]:
                     for sense, v in r["senses"].items()}
         methods |= {f"late ({rule})": (v.get("training"), v["touch3"], v["recalibrated"])
                     for rule, v in r["late"].items()}
+        if "early" in r:
+            methods["early"] = (r["early"]["training"], r["early"]["touch3"], None)
         for name, (train, test, recal) in methods.items():
             rows.append({"set": r["set_seed"], "method": name,
                          "estimate_accuracy": None if train is None else train["accuracy"],
