@@ -243,6 +243,8 @@ def _window_map(logits, temperature: float, scale: float) -> np.ndarray:
 #: end is kept (the loss has a long valley towards plain temperature scaling, ``c`` -> infinity, that a
 #: single start may stop in).
 _MAP_STARTS = ((0.0, 0.0), (0.0, math.log(10.0)), (math.log(3.0), math.log(30.0)))
+#: Largest logit a fit takes: ``z / c`` stays finite for every ``c`` it tries (>= ``MAP_BOUNDS[0]``).
+_LARGEST_LOGIT = float(np.finfo(np.float64).max) * MAP_BOUNDS[0] / 2
 #: Options of the quasi-Newton fits (``scipy.optimize.minimize``'s SLSQP, whose quasi-Newton steps
 #: keep within the bounds): a step that changes the loss (about 1 nat) by less than ``ftol`` ends it.
 _QUASI_NEWTON = {"ftol": 1e-12, "maxiter": 500}
@@ -303,6 +305,9 @@ class _MapLoss:
     """
 
     def __init__(self, z: np.ndarray, y: np.ndarray, base: np.ndarray | None = None) -> None:
+        if np.abs(z).max() > _LARGEST_LOGIT:
+            raise InputError(f"logits beyond +-{_LARGEST_LOGIT:.3g} cannot be calibrated "
+                             f"(the largest here: {np.abs(z).max():.3g}); a network's are hundreds at most")
         self.z = np.ascontiguousarray(z.T)
         self.n = len(z)
         self.target = np.ascontiguousarray(_smoothed_targets(y, z.shape[1]).T)
