@@ -238,13 +238,15 @@ def _window_map(logits, temperature: float, scale: float) -> np.ndarray:
     return np.arcsinh(np.asarray(logits, dtype=np.float64) / scale) * temperature
 
 
-#: Starts ``(log a, log c)`` of the window map's fit: where the map is near the identity, near a
-#: temperature of 10 and in between. Each is a quasi-Newton descent of a few dozen steps; the best
-#: end is kept (the loss has a long valley towards plain temperature scaling, ``c`` -> infinity, that a
-#: single start may stop in).
+#: Starts ``(log a, log c)`` of the window map's fit (those of the Nelder-Mead fit of before): where the
+#: map is near the identity, near a temperature of 10 and in between. Each is a quasi-Newton descent of
+#: a few dozen evaluations; the best end is kept (the loss has a long, flat valley towards plain
+#: temperature scaling, ``c`` -> infinity, where descents from different starts may stop apart).
 _MAP_STARTS = ((0.0, 0.0), (0.0, math.log(10.0)), (math.log(3.0), math.log(30.0)))
 #: Largest logit a fit takes: ``z / c`` stays finite for every ``c`` it tries (>= ``MAP_BOUNDS[0]``).
 _LARGEST_LOGIT = float(np.finfo(np.float64).max) * MAP_BOUNDS[0] / 2
+#: Largest ``q log(d / L)`` of :func:`_capped_loss`: its exponential stays finite.
+_LARGEST_EXP = 700.0
 #: Options of the quasi-Newton fits (``scipy.optimize.minimize``'s SLSQP, whose quasi-Newton steps
 #: keep within the bounds): a step that changes the loss (about 1 nat) by less than ``ftol`` ends it.
 _QUASI_NEWTON = {"ftol": 1e-12, "maxiter": 500}
@@ -277,7 +279,8 @@ def _capped_loss(d, log_caps, target) -> tuple[float, np.ndarray, np.ndarray]:
         x = np.log(d)                               # d = 0: -inf, and then x = 0: a lead of 0 stays 0
     x -= log_caps
     x *= CAP_SHARPNESS
-    np.exp(x, out=x)                                # (d / L) ** q: finite for the bounded map and caps
+    np.minimum(x, _LARGEST_EXP, out=x)              # never reached by a window map (d / L < 1.5e10)
+    np.exp(x, out=x)                                # (d / L) ** q
     soft = np.log1p(x)
     shrink = np.exp(soft * (-1.0 / CAP_SHARPNESS))  # the capped lead over the lead
     h = d * shrink
@@ -348,8 +351,8 @@ def _fit(loss, starts, bounds):
     SLSQP with the analytic gradient: with bounds alone its steps are BFGS's, kept within them. Not
     L-BFGS-B: scipy's (1.17) calls LAPACK on its few numbers at every step, and in a process whose
     OpenBLAS keeps two threads each step cost 4.5 ms (2 busy cores), ten times the loss on 2400
-    windows; none with one thread. A loss that is not finite (logits beyond float64's range once
-    divided by ``c``) raises :class:`InputError`.
+    windows; none with one thread. A loss that is not finite raises :class:`InputError` (the logits'
+    bound, :class:`_MapLoss`, should leave none).
     """
     from scipy.optimize import minimize  # here: it takes 0.3 s to import, and only a fit needs it
 
