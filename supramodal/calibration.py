@@ -37,8 +37,10 @@ Unknown textures
     :class:`Novelty`: the squared Mahalanobis distance of the logarithm of a window's inputs to the
     nearest class mean (one covariance shared by the classes, shrunk towards its diagonal); for a
     contact, that of the mean of its windows, times their number (evidence that grows with the
-    contact). Each comes with its distribution on held-out windows and contacts of known textures
-    only, so that a threshold is a false-unknown rate.
+    contact). A model trained now measures both under each class's predictive covariance for a new
+    touch, whose gains move all its windows alike (:class:`TouchSpread`). Each comes with its
+    distribution on held-out windows and contacts of known textures only, so that a threshold is a
+    false-unknown rate.
 
 Pure numpy/scipy; the models (:mod:`supramodal.model`, :mod:`supramodal.fused_model`) fit and
 store these, the node applies them.
@@ -56,12 +58,12 @@ from supramodal.errors import InputError
 
 __all__ = [
     "CALIBRATION_METHOD", "CHANGES_KEPT", "DEFAULT_CALIBRATION_FOLDS", "HeldOutChanges", "ECE_BINS",
-    "NOVELTY_METHOD", "Calibration", "HeldOutLogits",
-    "Novelty", "calibration_of_held_out", "fold_tasks", "fold_work",
+    "NOVELTY_METHOD", "NOVELTY_TOUCH_METHOD", "NOVELTY_TOUCH_SPREAD", "Calibration", "HeldOutLogits",
+    "Novelty", "TouchSpread", "calibration_of_held_out", "fold_tasks", "fold_work",
     "brier_score", "calibration_line", "calibration_report", "cap_gaps", "confusion_caps", "fit_capped_pooling",
     "fit_capped_window_calibration", "effective_windows", "expected_calibration_error", "fit_novelty",
     "fit_pooling", "fit_window_calibration", "log_loss", "log_sigmoid", "normalised_log_posteriors",
-    "novelty_warp", "pool_log_posteriors", "reliability", "winner",
+    "novelty_warp", "pool_log_posteriors", "reliability", "touch_spread", "winner",
 ]
 
 #: Name of the window map stored in model files. Its optional keys ``caps`` and ``contact_caps``
@@ -905,6 +907,82 @@ NOVELTY_RUN = POOLING_RUN
 #: Fewest held-out contacts a length needs for quantiles of its own (a length with fewer repeats the
 #: row of the one before).
 NOVELTY_MIN_CONTACTS = 20
+#: Name of the novelty score that allows for a new touch (:class:`TouchSpread`; issue 34).
+NOVELTY_TOUCH_METHOD = "asinh-mahalanobis-touch"
+#: Least spread (sd of the natural logarithm) of a touch's gains that a novelty score allows for,
+#: whatever its training recordings show: two or three touches of each texture estimate it poorly
+#: (a microphone's level is one number a touch: on the two-sense world, whose spread is 0.03, six
+#: textures' two touches said 0.012 to 0.031). The default spread of :class:`supramodal.model.GainAugment`.
+NOVELTY_TOUCH_SPREAD = 0.03
+
+
+@dataclass(frozen=True)
+class TouchSpread:
+    """How far a touch's windows lie from their texture's mean by the touch alone: the novelty's allowance.
+
+    Each touch of a surface has gains of its own (each vibrissa's coupling, the microphone's distance):
+    in the novelty's logarithmic inputs ``u`` a gain ``g`` adds ``log g`` to its inputs, the same to every
+    window of the touch. The touch's offset from its texture's mean is modelled as Gaussian with
+    covariance ``spread ** 2 * G``, ``G[i, j] = 1`` where inputs ``i`` and ``j`` share a gain (same
+    group, ``>= 0``), else 0. A class mean fitted on ``m`` touches (``touches``) and ``N`` windows
+    (``windows``) of its texture then predicts a new touch's mean of ``n`` windows up to the covariance
+    ``W (1 / n + 1 / N) + (1 + 1 / m) spread ** 2 G`` (``W``: the windows' covariance within one
+    recording), and :class:`Novelty` measures the distance under it.
+
+    Attributes
+    ----------
+    spread : float
+        The sd of a touch's log gains allowed for (>= 0).
+    groups : tuple of int
+        Per input: the gain it shares (inputs of one group share one), -1 for an input no gain scales.
+    windows, touches : tuple of int
+        Per class: the windows and the recordings (touches) its mean was fitted on.
+    estimated : float or None
+        The spread the training recordings showed (None: they could not: fewer than two recordings of
+        every texture); ``spread`` is the larger of it and the least allowed.
+    """
+
+    spread: float
+    groups: tuple[int, ...]
+    windows: tuple[int, ...]
+    touches: tuple[int, ...]
+    estimated: float | None = None
+
+    def structure(self) -> np.ndarray:
+        """``G`` (inputs, inputs): 1 where two inputs share a gain."""
+        g = np.asarray(self.groups)
+        return ((g[:, None] == g[None, :]) & (g[:, None] >= 0)).astype(np.float64)
+
+    def to_dict(self) -> dict:
+        """Return what a model file's header keeps of it (plain JSON values)."""
+        return {"spread": float(self.spread), "estimated": None if self.estimated is None else float(self.estimated),
+                "groups": [int(v) for v in self.groups], "windows": [int(v) for v in self.windows],
+                "touches": [int(v) for v in self.touches]}
+
+    @classmethod
+    def from_dict(cls, d, n_in: int, n_classes: int, bad) -> TouchSpread:
+        """Return the spread a header says (:meth:`to_dict`), every value checked; ``bad(message)`` makes the error."""
+        keys = ["estimated", "groups", "spread", "touches", "windows"]
+        if not isinstance(d, dict) or sorted(d) != keys:
+            raise bad(f"'novelty.touch' must be an object of exactly the keys {keys}, got {d!r}")
+
+        def number(v) -> bool:
+            return not isinstance(v, bool) and isinstance(v, (int, float)) and math.isfinite(v) and v >= 0
+
+        def integers(v, n: int, least: int) -> bool:
+            return (isinstance(v, list) and len(v) == n
+                    and all(not isinstance(e, bool) and isinstance(e, int) and e >= least for e in v))
+
+        if not number(d["spread"]) or not (d["estimated"] is None or number(d["estimated"])):
+            raise bad(f"'novelty.touch' spread and estimated must be finite numbers >= 0 (estimated may be null), "
+                      f"got {d['spread']!r} and {d['estimated']!r}")
+        if not integers(d["groups"], n_in, -1):
+            raise bad(f"'novelty.touch.groups' must be a list of {n_in} integers >= -1")
+        for key in ("windows", "touches"):
+            if not integers(d[key], n_classes, 1):
+                raise bad(f"'novelty.touch.{key}' must be a list of {n_classes} integers >= 1")
+        return cls(float(d["spread"]), tuple(d["groups"]), tuple(d["windows"]), tuple(d["touches"]),
+                   None if d["estimated"] is None else float(d["estimated"]))
 
 
 @dataclass(frozen=True)
@@ -939,6 +1017,11 @@ class Novelty:
         quantile.
     gain, offset : ndarray, shape (inputs,), or None
         The warp; None: ``u = x`` (a model file of before the warp).
+    touch : TouchSpread or None
+        The allowance for a new touch (issue 34): the distances are then measured under each class's
+        predictive covariance for a new touch's mean of ``n`` windows (:class:`TouchSpread`), ``precision``
+        the inverse of ``W``, the windows' covariance within a recording. None: under ``W / n``, the
+        class means taken as exact (a model file of before it).
     """
 
     means: np.ndarray
@@ -946,6 +1029,7 @@ class Novelty:
     quantiles: np.ndarray
     gain: np.ndarray | None = None
     offset: np.ndarray | None = None
+    touch: TouchSpread | None = None
 
     def warped(self, x) -> np.ndarray:
         """``u`` of standardised input rows ``x`` (n, inputs)."""
@@ -957,19 +1041,50 @@ class Novelty:
         d = np.asarray(u, dtype=np.float64)[:, None, :] - self.means[None, :, :]
         return np.einsum("nki,ij,nkj->nk", d, self.precision, d)
 
+    def class_scores(self, u, n: int = 1) -> np.ndarray:
+        """Scores (m, classes) of means ``u`` (m, inputs) of ``n`` warped windows each, against every class.
+
+        Without :attr:`touch`, ``n`` times the squared Mahalanobis distance under ``W``; with it,
+        the squared distance under the class's predictive covariance of such a mean (:class:`TouchSpread`).
+        """
+        if self.touch is None:
+            return n * self.distances(u)
+        d = np.asarray(u, dtype=np.float64)[:, None, :] - self.means[None, :, :]
+        return np.einsum("nki,kij,nkj->nk", d, self._touch_precisions(n), d)
+
+    def _touch_precisions(self, n: int) -> np.ndarray:
+        """Return the classes' precisions (classes, inputs, inputs) of a new touch's mean of ``n`` windows."""
+        cache = self.__dict__.setdefault("_precisions", {})      # derived from frozen fields: kept beside them
+        if n not in cache:
+            t = self.touch
+            assert t is not None
+            within = self.__dict__.get("_within")
+            if within is None:
+                within = np.linalg.inv(self.precision)
+                within = self.__dict__.setdefault("_within", (within + within.T) / 2)
+            g = t.structure() * t.spread ** 2
+            p = np.stack([np.linalg.inv(within * (1.0 / n + 1.0 / nk) + (1.0 + 1.0 / mk) * g)
+                          for nk, mk in zip(t.windows, t.touches)])
+            p = (p + p.transpose(0, 2, 1)) / 2
+            if n > NOVELTY_RUN:                     # a long contact's: not kept (one per length would pile up)
+                return p
+            cache[n] = p
+        return cache[n]
+
     def score(self, x) -> np.ndarray:
         """Novelty of standardised input rows ``x`` (n, inputs), shape (n,)."""
-        return self.distances(self.warped(x)).min(axis=1)
+        return self.class_scores(self.warped(x)).min(axis=1)
 
     def pooled_score(self, x) -> float:
         """Novelty of one contact, its standardised input rows ``x`` (n >= 1, inputs) in any order.
 
-        The score is ``n * min_k d_k(mean of u)``; one window's equals :meth:`score`.
+        The score is ``min_k`` of :meth:`class_scores` of the mean of its ``u`` (without
+        :attr:`touch`: ``n * min_k d_k(mean of u)``); one window's equals :meth:`score`.
         """
         u = self.warped(x)
         if u.ndim != 2 or len(u) == 0:
             raise InputError(f"a contact's novelty needs windows (n >= 1, inputs), got shape {u.shape}")
-        return float(len(u) * self.distances(u.mean(axis=0, keepdims=True)).min())
+        return float(self.class_scores(u.mean(axis=0, keepdims=True), len(u)).min())
 
     @property
     def pools(self) -> bool:
@@ -1014,8 +1129,10 @@ class Novelty:
         """
         if self.gain is None or self.offset is None:       # the warp is both or neither
             return True
-        return {"method": NOVELTY_METHOD, "gain": [float(v) for v in self.gain],
-                "offset": [float(v) for v in self.offset]}
+        warp = {"gain": [float(v) for v in self.gain], "offset": [float(v) for v in self.offset]}
+        if self.touch is None:
+            return {"method": NOVELTY_METHOD, **warp}
+        return {"method": NOVELTY_TOUCH_METHOD, **warp, "touch": self.touch.to_dict()}
 
     def arrays(self) -> dict:
         """Return the arrays a model file holds (``novelty_means``, ``novelty_precision``, ``novelty_quantiles``)."""
@@ -1036,12 +1153,17 @@ class Novelty:
         if flag is not True and not isinstance(flag, dict):
             raise bad(f"'novelty' must be true or false, or an object with the method {NOVELTY_METHOD!r}, "
                       f"got {flag!r}")
-        gain = offset = None
+        gain = offset = touch = None
         if isinstance(flag, dict):
-            if set(flag) != {"method", "gain", "offset"}:
-                raise bad(f"'novelty' must have exactly the keys ['gain', 'method', 'offset'], has {sorted(flag)}")
-            if flag["method"] != NOVELTY_METHOD:
-                raise bad(f"novelty method {flag['method']!r} is not known (this program reads {NOVELTY_METHOD!r})")
+            method = flag.get("method")
+            if "method" in flag and method not in (NOVELTY_METHOD, NOVELTY_TOUCH_METHOD):
+                raise bad(f"novelty method {method!r} is not known (this program reads {NOVELTY_METHOD!r} "
+                          f"and {NOVELTY_TOUCH_METHOD!r})")
+            keys = ["gain", "method", "offset"] + (["touch"] if method == NOVELTY_TOUCH_METHOD else [])
+            if sorted(flag) != keys:
+                raise bad(f"'novelty' must have exactly the keys {keys}, has {sorted(flag)}")
+            if method == NOVELTY_TOUCH_METHOD:
+                touch = TouchSpread.from_dict(flag["touch"], n_in, n_classes, bad)
             warp = []
             for key in ("gain", "offset"):
                 v = flag[key]
@@ -1070,7 +1192,7 @@ class Novelty:
         precision = arrays["novelty_precision"].astype(np.float64)
         if not np.allclose(precision, precision.T, rtol=1e-9, atol=1e-12):
             raise bad("array novelty_precision must be symmetric")
-        return cls(arrays["novelty_means"].astype(np.float64), precision, q, gain, offset)
+        return cls(arrays["novelty_means"].astype(np.float64), precision, q, gain, offset, touch)
 
 
 def novelty_warp(mean, scale) -> tuple[np.ndarray, np.ndarray]:
@@ -1095,7 +1217,8 @@ def _gaussian(u, y, n_classes: int) -> tuple[np.ndarray, np.ndarray]:
     return means, (precision + precision.T) / 2
 
 
-def fit_novelty(x, labels, n_classes: int, folds, groups=None, mean=None, scale=None) -> Novelty:
+def fit_novelty(x, labels, n_classes: int, folds, groups=None, mean=None, scale=None, touch_groups=None,
+                touch_floor: float = NOVELTY_TOUCH_SPREAD) -> Novelty:
     """Fit the novelty score on standardised training inputs ``x`` and set its quantiles on held-out windows.
 
     The held-out windows are of the known textures only: each fold's windows scored by the
@@ -1115,6 +1238,14 @@ def fit_novelty(x, labels, n_classes: int, folds, groups=None, mean=None, scale=
         How ``x`` was standardised from the raw inputs: the score then warps them back to the
         logarithm of the raw values (:func:`novelty_warp`); without them, ``x`` itself (the score
         of before, windows only).
+    touch_groups : sequence of int, length inputs, optional
+        With ``mean`` and ``scale``: which inputs share a gain (:attr:`TouchSpread.groups`; e.g. one
+        group per vibrissa, or one for a microphone's every channel). The score then allows for a new
+        touch (:class:`TouchSpread`, :func:`touch_spread`): its Gaussians are each fold's and the
+        final one's class means, the covariance within a recording (``groups``) and the touches'
+        spread. Default None: the score of before it.
+    touch_floor : float
+        The least spread allowed for (default :data:`NOVELTY_TOUCH_SPREAD`).
     """
     x = np.asarray(x, dtype=np.float64)
     y = np.asarray(labels)
@@ -1124,18 +1255,86 @@ def fit_novelty(x, labels, n_classes: int, folds, groups=None, mean=None, scale=
     if mean is not None:
         gain, offset = novelty_warp(mean, scale)
     u = Novelty(np.zeros((1, x.shape[1])), np.eye(x.shape[1]), NOVELTY_QUANTILES, gain, offset).warped(x)
+    if touch_groups is not None and gain is not None:
+        tg = tuple(int(v) for v in touch_groups)
+        if len(tg) != x.shape[1]:
+            raise InputError(f"touch_groups must name a group for each of the {x.shape[1]} inputs, got {len(tg)}")
+
+        def gaussians(rows):
+            return _touch_gaussian(u[rows], y[rows], groups[rows], n_classes, tg, touch_floor)
+    else:
+        def gaussians(rows):
+            return (*_gaussian(u[rows], y[rows], n_classes), None)
     held = np.empty(len(x))
     pooled: list[list[float]] = [[] for _ in range(NOVELTY_RUN)]
     for f in np.unique(folds):
         test = folds == f
-        fold = Novelty(*_gaussian(u[~test], y[~test], n_classes), NOVELTY_QUANTILES)
-        held[test] = fold.distances(u[test]).min(axis=1)
+        means, precision, touch = gaussians(~test)
+        fold = Novelty(means, precision, NOVELTY_QUANTILES, touch=touch)
+        held[test] = fold.class_scores(u[test]).min(axis=1)
         if gain is not None:
             _pooled_scores(fold, u, groups, test, pooled)
-    means, precision = _gaussian(u, y, n_classes)
+    means, precision, touch = gaussians(np.ones(len(x), dtype=bool))
     if gain is None:
         return Novelty(means, precision, np.quantile(held, NOVELTY_QUANTILES))
-    return Novelty(means, precision, _quantile_rows(held, pooled), gain, offset)
+    return Novelty(means, precision, _quantile_rows(held, pooled), gain, offset, touch)
+
+
+def _touch_gaussian(u, y, groups, n_classes: int, touch_groups: tuple, floor: float
+                    ) -> tuple[np.ndarray, np.ndarray, TouchSpread]:
+    """Class means, the precision of the covariance within a recording, and the :class:`TouchSpread` of ``u``.
+
+    The covariance is of each window about the mean of its texture's part of its recording, shrunk as
+    :func:`_gaussian`'s.
+    """
+    p = u.shape[1]
+    means = np.stack([u[y == k].mean(axis=0) if np.any(y == k) else np.zeros(p) for k in range(n_classes)])
+    _, recording = np.unique(groups, return_inverse=True)
+    _, index = np.unique(np.stack([np.asarray(y).ravel(), recording.ravel()], axis=1), axis=0, return_inverse=True)
+    index = index.ravel()
+    recording_means = np.stack([u[index == r].mean(axis=0) for r in range(index.max() + 1)])
+    resid = u - recording_means[index]
+    cov = resid.T @ resid / max(len(u) - len(recording_means), 1)
+    cov = (1 - NOVELTY_SHRINK) * cov + NOVELTY_SHRINK * np.diag(np.diag(cov)) + 1e-6 * np.eye(p)
+    precision = np.linalg.inv(cov)
+    structure = TouchSpread(0.0, touch_groups, (1,) * n_classes, (1,) * n_classes).structure()
+    estimated = touch_spread(u, y, groups, cov, structure)
+    windows = tuple(max(int(np.sum(y == k)), 1) for k in range(n_classes))
+    touches = tuple(max(len(set(groups[y == k].tolist())), 1) for k in range(n_classes))
+    spread = max(floor, 0.0 if estimated is None else estimated)
+    return means, (precision + precision.T) / 2, TouchSpread(float(spread), touch_groups, windows, touches, estimated)
+
+
+def touch_spread(u, labels, groups, within, structure) -> float | None:
+    """Estimate the spread of the touches' log gains from the recordings' means about their texture's.
+
+    A moment estimate: a recording of ``n`` windows of a texture met in ``m`` recordings lies from
+    the mean of that texture's recordings by ``d`` with ``E[d' G d] = (1 - 1 / m) (s**2 tr(G G) +
+    tr(G W) / n)`` (``G`` the gains' ``structure``, ``W`` the covariance ``within`` a recording),
+    solved for ``s`` (0 where the recordings differ less than their windows' noise explains).
+    None where no texture has two recordings.
+    """
+    u = np.asarray(u, dtype=np.float64)
+    y, groups = np.asarray(labels), np.asarray(groups)
+    gg = float(np.sum(structure * structure))
+    gw = float(np.sum(structure * within))
+    if gg == 0:
+        return None
+    seen = excess = 0.0
+    for k in dict.fromkeys(y.tolist()):
+        recs = list(dict.fromkeys(groups[y == k].tolist()))
+        if len(recs) < 2:
+            continue
+        rows = [(y == k) & (groups == r) for r in recs]
+        rm = np.stack([u[r].mean(axis=0) for r in rows])
+        d = rm - rm.mean(axis=0)
+        share = 1.0 - 1.0 / len(recs)
+        for dr, r in zip(d, rows):
+            excess += float(dr @ structure @ dr) - share * gw / int(r.sum())
+            seen += share * gg
+    if not seen:
+        return None
+    return math.sqrt(max(excess / seen, 0.0))
 
 
 def _pooled_scores(novelty: Novelty, u: np.ndarray, groups: np.ndarray, rows: np.ndarray,
@@ -1154,7 +1353,7 @@ def _pooled_scores(novelty: Novelty, u: np.ndarray, groups: np.ndarray, rows: np
             c = np.vstack([np.zeros((1, u.shape[1])), np.cumsum(u[block], axis=0)])
             for n in range(2, min(NOVELTY_RUN, len(block)) + 1):
                 means_n = (c[n:] - c[:-n]) / n
-                pooled[n - 1].extend(n * novelty.distances(means_n).min(axis=1))
+                pooled[n - 1].extend(novelty.class_scores(means_n, n).min(axis=1))
 
 
 def _quantile_rows(windows: np.ndarray, pooled: list[list[float]]) -> np.ndarray:
@@ -1230,7 +1429,7 @@ def requantiled(novelty: Novelty, x, groups) -> Novelty:
     """
     u = novelty.warped(x)
     groups = np.asarray(groups)
-    windows = novelty.distances(u).min(axis=1)
+    windows = novelty.class_scores(u).min(axis=1)
     if novelty.gain is None:
         return replace(novelty, quantiles=np.quantile(windows, NOVELTY_QUANTILES))
     pooled: list[list[float]] = [[] for _ in range(NOVELTY_RUN)]
@@ -1366,7 +1565,8 @@ def calibration_folds(labels, groups, k: int = DEFAULT_CALIBRATION_FOLDS, seed: 
 
 def fit_network_calibration(x, labels, n_classes: int, groups=None, k: int = DEFAULT_CALIBRATION_FOLDS,
                             hidden: int | None = None, epochs: int | None = None, seed: int = 0,
-                            progress=None, jobs: int = 1, augment=None) -> tuple[Calibration, Novelty, OutOfFold]:
+                            progress=None, jobs: int = 1, augment=None, touch_groups=None,
+                            touch_floor: float = NOVELTY_TOUCH_SPREAD) -> tuple[Calibration, Novelty, OutOfFold]:
     """Fit the calibration and novelty of a network as :func:`supramodal.mlp.train_mlp` would train it.
 
     They are fitted from out-of-fold windows; the network would train on the raw (unstandardised)
@@ -1393,6 +1593,8 @@ def fit_network_calibration(x, labels, n_classes: int, groups=None, k: int = DEF
         :meth:`supramodal.model.GainAugment.for_inputs`, whose ``factor`` says how many rows it makes
         of one): the network this calibrates should be trained with it too. The held-out rows, the
         calibration and the novelty see the original rows only. Default None: none.
+    touch_groups, touch_floor
+        The novelty's allowance for a new touch (:func:`fit_novelty`; default none).
 
     Returns
     -------
@@ -1413,7 +1615,7 @@ def fit_network_calibration(x, labels, n_classes: int, groups=None, k: int = DEF
     train_networks(fold_tasks(x, y, n_classes, folds, k, hidden, epochs, seed, augment), jobs, done=held_out.told,
                    work=fold_work(len(x), x.shape[1], n_classes, folds, k, hidden, epochs)
                    * getattr(augment, "factor", 1))
-    return calibration_of_held_out(x, y, n_classes, groups, folds, by, k, held_out.logits)
+    return calibration_of_held_out(x, y, n_classes, groups, folds, by, k, held_out.logits, touch_groups, touch_floor)
 
 
 def fold_tasks(x, labels, n_classes: int, folds, k: int, hidden: int | None, epochs: int, seed: int,
@@ -1480,17 +1682,19 @@ class HeldOutLogits:
 
 
 def calibration_of_held_out(x, labels, n_classes: int, groups, folds, by: str, k: int,
-                            z) -> tuple[Calibration, Novelty, OutOfFold]:
+                            z, touch_groups=None, touch_floor: float = NOVELTY_TOUCH_SPREAD
+                            ) -> tuple[Calibration, Novelty, OutOfFold]:
     """Fit :func:`fit_network_calibration`'s calibration, novelty and :class:`OutOfFold` from held-out logits.
 
-    The logits ``z`` (n, classes) are the fold networks' of the raw input rows ``x``.
+    The logits ``z`` (n, classes) are the fold networks' of the raw input rows ``x``. ``touch_groups``
+    and ``touch_floor``: the novelty's allowance for a new touch (:func:`fit_novelty`; default none).
     """
     y = np.asarray(labels)
     cal = fit_calibration(z, y, groups, folds=folds)
     cal = replace(cal, fitted_on={**cal.fitted_on, "folds": int(k), "folds_by": by,
                                   "held_out_accuracy": round(float(np.mean(np.argmax(z, axis=1) == y)), 6)})
     mean, scale = input_scaling(x)
-    novelty = fit_novelty((x - mean) / scale, y, n_classes, folds, groups, mean, scale)
+    novelty = fit_novelty((x - mean) / scale, y, n_classes, folds, groups, mean, scale, touch_groups, touch_floor)
     return cal, novelty, OutOfFold(z, folds, _fingerprint(x, y))
 
 

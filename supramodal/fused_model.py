@@ -54,6 +54,8 @@ from supramodal.model import (
     CALIBRATION_KEYS,
     NOVELTY_ARRAYS,
     SENSE_KEYS,
+    GainAugment,
+    GainCopies,
     ModelError,
     TextureModel,
     calibration_from_parts,
@@ -67,6 +69,7 @@ from supramodal.model import (
     save_model_archive,
     sense_from_header,
     sense_header,
+    touch_allowance,
     with_held_out_changes,
 )
 
@@ -114,6 +117,72 @@ class Sense:
             raise ModelError(f"sense {self.name!r}: {exc}{hint}") from None
 
 
+#: What :meth:`EarlyFusionModel.train` takes for gain augmentation: one for both senses (each resolved by
+#: its own bank), or one per sense in input order (None: that sense's columns copied unchanged).
+EarlyAugment = GainAugment | tuple[GainAugment | None, GainAugment | None] | None
+
+
+def early_augment(augment: EarlyAugment, senses) -> tuple[GainAugment, GainAugment] | None:
+    """Return one :class:`~supramodal.model.GainAugment` per sense, each resolved by its bank, or None.
+
+    ``augment`` as :meth:`EarlyFusionModel.train` takes it. A sense given None (or ``copies`` 0) next
+    to one augmented gets the other's copies with spread 0: its columns copied unchanged, so that both
+    senses make the same rows. No copies in either: None.
+
+    Raises
+    ------
+    InputError
+        Two senses asking for different numbers of copies (the rows of one pair must be copied alike).
+    """
+    pair = (augment, augment) if augment is None or isinstance(augment, GainAugment) else tuple(augment)
+    if len(pair) != 2:
+        raise InputError(f"early fusion's gain augmentation: one, or one per sense (two), got {len(pair)}")
+    asked = [a for a in pair if a is not None and a.copies]
+    if not asked:
+        return None
+    copies = {a.copies for a in asked}
+    if len(copies) > 1:
+        raise InputError(f"early fusion's gain augmentation: the senses ask for {sorted(copies)} copies; a pair's "
+                         "two windows are copied together: give both senses the same augment_copies")
+    first = asked[0]
+    out = []
+    for a, sense in zip(pair, senses):
+        if a is None or not a.copies:
+            a = GainAugment(first.copies, 0.0, False, first.seed)     # copies unchanged: exp(N(0, 0)) = 1
+        out.append(a.resolved(sense.bank.kind))
+    return out[0], out[1]
+
+
+@dataclass(frozen=True)
+class EarlyGainCopies:
+    """Gain augmentation of early-fusion inputs: each sense's columns copied by its own :class:`GainCopies`.
+
+    Called ``(rows, labels, stream)`` as a :class:`~supramodal.model.GainCopies` is (for
+    :func:`~supramodal.calibration.fit_network_calibration`'s fold networks and the model's own);
+    each sense draws its own gains (a touch's whisker gains and microphone level are independent).
+    """
+
+    parts: tuple[GainCopies, GainCopies]
+
+    @classmethod
+    def of(cls, augments: tuple[GainAugment, GainAugment], senses) -> EarlyGainCopies:
+        """Return the copies of resolved ``augments`` (:func:`early_augment`) for ``senses``' inputs."""
+        return cls(tuple(GainCopies(a, tuple(s.features), s.bank.channels, part)          # type: ignore[arg-type]
+                         for part, (a, s) in enumerate(zip(augments, senses))))
+
+    @property
+    def factor(self) -> int:
+        """Rows out per row in (the same for both senses: :func:`early_augment` sees to it)."""
+        return self.parts[0].factor
+
+    def __call__(self, x, y, stream: int):
+        """Return the rows ``x`` and their copies, and the labels ``y`` repeated, for network ``stream``."""
+        x = np.asarray(x)
+        split = len(self.parts[0].features) * self.parts[0].channels
+        (xa, ya), (xb, _) = self.parts[0](x[:, :split], y, stream), self.parts[1](x[:, split:], y, stream)
+        return np.concatenate([xa, xb], axis=1), ya
+
+
 @dataclass
 class EarlyFusionModel:
     """One MLP on two senses' aligned feature windows.
@@ -153,10 +222,22 @@ class EarlyFusionModel:
         """Whether the posteriors are calibrated (not so for a version 1 file)."""
         return self.calibration is not None
 
+    @property
+    def augment(self) -> tuple[GainAugment, GainAugment] | None:
+        """Return the gain augmentation its networks were trained with, one per sense in input order, or None.
+
+        From ``training["augment"]``, checked when the file was read; None: none, or a file from before it.
+        """
+        d = self.training.get("augment")
+        if d is None:
+            return None
+        return tuple(GainAugment.from_dict(part, ModelError) for part in d)      # type: ignore[return-value]
+
     @classmethod
     def train(cls, senses, values_a: np.ndarray, values_b: np.ndarray, labels, classes,
               epochs: int = DEFAULT_EPOCHS, seed: int = 0, hidden: int | None = None, groups=None,
-              calibration_folds: int = DEFAULT_CALIBRATION_FOLDS, calibration_progress=None) -> EarlyFusionModel:
+              calibration_folds: int = DEFAULT_CALIBRATION_FOLDS, calibration_progress=None,
+              augment: EarlyAugment = None) -> EarlyFusionModel:
         """Fit the scaling and the MLP on aligned windows, then their calibration.
 
         ``values_a[k]`` and ``values_b[k]`` cover the same time, shapes (n, features, channels) of
@@ -168,18 +249,33 @@ class EarlyFusionModel:
         time order; default one per label); 0 folds: no calibration. The calibration carries what a change
         detector did on those held-out windows (:func:`~supramodal.model.with_held_out_changes`), for a
         node's change threshold.
+
+        ``augment``: gain augmentation of every network's training windows (the model's and the
+        calibration's fold networks; :func:`early_augment`): one :class:`~supramodal.model.GainAugment`
+        for both senses, each resolved by its bank (per vibrissa for a whisker array, one level for a
+        microphone), or one per sense; each sense draws its own gains. Scaling, calibration and novelty
+        are fitted on the original windows, as a one-sense model's are. The model keeps it
+        (:attr:`augment`).
         """
         senses = tuple(senses)
         x = early_inputs(cls._check(senses[0], values_a), cls._check(senses[1], values_b))
         y = np.asarray(labels)
         mean, scale = input_scaling(x)
-        mlp, history = train_mlp((x - mean) / scale, y, len(classes), hidden=hidden, epochs=epochs, seed=seed)
+        augments = early_augment(augment, senses)
+        aug = None if augments is None else EarlyGainCopies.of(augments, senses)
+        xm, ym = (x, y) if aug is None else aug(x, y, 0)
+        mlp, history = train_mlp((xm - mean) / scale, ym, len(classes), hidden=hidden, epochs=epochs, seed=seed)
         info = {"algorithm": "iRPROP-", "epochs": len(history), "seed": seed, "final_mse": history[-1],
                 "windows": int(len(x))}
+        if augments is not None:
+            info["augment"] = [a.to_dict() for a in augments]
         calibration = novelty = out_of_fold = None
         if calibration_folds:
+            touch_groups, touch_floor = early_touch_allowance(senses, augments)
             calibration, novelty, out_of_fold = fit_network_calibration(x, y, len(classes), groups, calibration_folds,
-                                                                        hidden, epochs, seed, calibration_progress)
+                                                                        hidden, epochs, seed, calibration_progress,
+                                                                        augment=aug, touch_groups=touch_groups,
+                                                                        touch_floor=touch_floor)
             # What a change detector did on the same held-out windows, as a one-sense model keeps it: a
             # node's early fusion then fits its change threshold instead of taking the detector's bound.
             calibration = with_held_out_changes(calibration, out_of_fold.logits, y,
@@ -284,6 +380,12 @@ class EarlyFusionModel:
         training = header.get("training", {})
         if not isinstance(training, dict):
             raise bad("'training' must be an object")
+        if training.get("augment") is not None:        # a file from before it has none
+            parts = training["augment"]
+            if not (isinstance(parts, list) and len(parts) == 2):
+                raise bad(f"'training' 'augment' must be a list of the two senses' gain augmentation, got {parts!r}")
+            for part in parts:
+                GainAugment.from_dict(part, bad)
         calibration, novelty = calibration_from_parts(header, arrays, n_in, len(classes), bad)
         return cls((senses[0], senses[1]), tuple(classes), mean, scale, mlp, training, calibration, novelty)
 
@@ -497,3 +599,18 @@ def worse_than_a_sense(fused, senses: dict, labels) -> tuple[str, float, float] 
         return None
     own_loss, name = min(found)
     return name, own_loss, float(lost.mean())
+
+
+def early_touch_allowance(senses, augments: tuple[GainAugment, GainAugment] | None = None
+                          ) -> tuple[tuple[int, ...], float]:
+    """Return the novelty's allowance for a new touch of an early-fusion network: inputs sharing a gain, least spread.
+
+    Each sense's as :func:`supramodal.model.touch_allowance` gives it, by its own gain augmentation where
+    ``augments`` (:func:`early_augment`) copies its windows with gains (spread > 0); the second sense's groups
+    follow the first's (a touch's gains are each sensor's own), the least spread the larger of the two.
+    """
+    parts = [touch_allowance(s.features, s.bank, a if a is not None and a.spread > 0 else None)
+             for s, a in zip(senses, augments if augments is not None else (None, None))]
+    (first, floor_a), (second, floor_b) = parts
+    shift = max(first, default=-1) + 1
+    return first + tuple(g + shift if g >= 0 else -1 for g in second), max(floor_a, floor_b)

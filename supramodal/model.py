@@ -21,10 +21,10 @@ bandwidths the Glasberg-Moore rule's).
 
 Version 2 adds the model's calibration (:mod:`supramodal.calibration`): the header's
 ``calibration`` object (the window map and the contact pooling, fitted on held-out windows)
-and ``novelty`` (false, or the novelty score's method and warp, :meth:`Novelty.header`; ``true`` in
-files of before the warp; the file then holds the arrays ``novelty_means`` (classes, inputs),
-``novelty_precision`` (inputs, inputs) and ``novelty_quantiles``, validated by
-:meth:`Novelty.from_parts`). A version 1 file still
+and ``novelty`` (false, or the novelty score's method and warp, and since 2026-11-30 its allowance for
+a new touch, :meth:`Novelty.header`; ``true`` in files of before the warp; the file then holds the
+arrays ``novelty_means`` (classes, inputs), ``novelty_precision`` (inputs, inputs) and
+``novelty_quantiles``, validated by :meth:`Novelty.from_parts`). A version 1 file still
 loads: its model is *uncalibrated* (:attr:`TextureModel.calibrated` is False), its posteriors
 the normalised outputs, and it cannot say "unknown".
 """
@@ -45,6 +45,7 @@ import numpy as np
 from supramodal.banks import COCHLEA_B_MIN, COCHLEA_Q_EAR, ERB_TO_B, WHISKER_TABLE, Bank, erb
 from supramodal.calibration import (
     DEFAULT_CALIBRATION_FOLDS,
+    NOVELTY_TOUCH_SPREAD,
     Calibration,
     HeldOutLogits,
     Novelty,
@@ -231,17 +232,35 @@ class GainAugment:
         return GainCopies(self, tuple(features), int(channels))
 
 
+def touch_allowance(features, bank: Bank, augment: GainAugment | None = None) -> tuple[tuple[int, ...], float]:
+    """Return the novelty's allowance for a new touch of a model: which inputs share a gain, and the least spread.
+
+    The gains are those a :class:`GainAugment` draws (per channel for a whisker bank, one level for
+    any other, or as ``augment`` says), on the gain-linear features' inputs (feature-major, as the
+    model flattens a window); the least spread is
+    :data:`~supramodal.calibration.NOVELTY_TOUCH_SPREAD`, or ``augment``'s spread where larger
+    (:func:`supramodal.calibration.fit_novelty`'s ``touch_groups`` and ``touch_floor``).
+    """
+    per_channel = (augment if augment is not None else GainAugment(per_channel=None)).resolved(bank.kind).per_channel
+    groups = tuple((c if per_channel else 0) if f in GAIN_LINEAR_FEATURES else -1
+                   for f in features for c in range(bank.channels))
+    return groups, max(NOVELTY_TOUCH_SPREAD, 0.0 if augment is None else float(augment.spread))
+
+
 @dataclass(frozen=True)
 class GainCopies:
     """A :class:`GainAugment` on inputs of ``features`` x ``channels``.
 
     Called ``(rows, labels, stream)``, it gives the rows and their copies, and their labels;
-    :attr:`factor`, how many rows it makes of one.
+    :attr:`factor`, how many rows it makes of one. ``part``: which sense's columns these are in an early
+    fusion's inputs (:class:`~supramodal.fused_model.EarlyGainCopies`): each sense draws its own gains
+    (part 0 draws as a one-sense model does).
     """
 
     augment: GainAugment
     features: tuple[str, ...]
     channels: int
+    part: int = 0
 
     @property
     def factor(self) -> int:
@@ -256,7 +275,9 @@ class GainCopies:
             return x, y
         if a.per_channel is None:
             raise ValueError("GainAugment.per_channel is None (by bank): resolve it with .resolved(kind) first")
-        rng = np.random.default_rng(np.random.SeedSequence([a.seed, stream]))
+        # part 0's key is a one-sense model's own: its gains, and so its models, are those of before
+        key = [a.seed, stream] if self.part == 0 else [a.seed, stream, self.part]
+        rng = np.random.default_rng(np.random.SeedSequence(key))
         v = np.asarray(x).reshape(len(x), len(self.features), self.channels)
         out = [v]
         for _ in range(a.copies):
@@ -355,6 +376,7 @@ class TextureModel:
         # fitted on the folds' windows while the model's network still trains.
         augment = None if augment is None else augment.resolved(bank.kind)
         aug = None if augment is None else augment.for_inputs(features, bank.channels)
+        touch = touch_allowance(features, bank, augment)
         xm, ym = (x, y) if aug is None else aug(x, y, 0)
         model_task = NetworkTask((xm - mean) / scale, ym, len(classes), hidden, epochs, seed)
         tasks: Iterable = [model_task]
@@ -377,7 +399,7 @@ class TextureModel:
                 held_out.told(i, result)
                 if held_out.complete:
                     cal, nov, oof = calibration_of_held_out(x, y, len(classes), g, folds, by, calibration_folds,
-                                                            held_out.logits)
+                                                            held_out.logits, *touch)
                     fitted.append((with_held_out_changes(cal, held_out.logits, y, g, folds), nov, oof))
 
         *_, (mlp, history, _) = train_networks(tasks, jobs, watch=(n_folds, progress), done=back,

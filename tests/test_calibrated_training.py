@@ -464,3 +464,17 @@ def test_evaluate_says_how_soon_each_touch_is_decided_at_each_threshold(recordin
     assert (tmp_path / "ev" / "anytime.png").stat().st_size > 0
     assert main(["evaluate", str(trained), "--manifest", str(recordings / "all.csv"), "--quiet"]) == 0
     assert "decided as soon as sure" in capsys.readouterr().out
+
+
+def test_an_early_fusion_networks_novelty_allows_for_each_senses_gains_on_a_new_touch(early, tmp_path):
+    """Each sensor has its own gains on a touch: the early network's novelty allows for the whiskers' per
+    vibrissa and the microphone's one level, apart (issue 34), and the allowance round-trips through its file."""
+    from supramodal.calibration import NOVELTY_TOUCH_METHOD
+
+    model, va, vb, _ = early
+    touch = model.novelty.touch
+    assert touch is not None and model.novelty.header()["method"] == NOVELTY_TOUCH_METHOD
+    assert touch.groups == tuple(range(20)) + (20,) * 50 and touch.spread >= 0.03
+    loaded = EarlyFusionModel.load(model.save(tmp_path / "early.npz"))
+    assert loaded.novelty.touch == touch
+    np.testing.assert_array_equal(loaded.novelty_score(va, vb), model.novelty_score(va, vb))

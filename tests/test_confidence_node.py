@@ -252,3 +252,21 @@ def test_the_nodes_contact_pooling_is_the_models_calibrated_pooling(model, touch
         acc = events[i]["accumulated"]
         assert acc["windows"] == i + 1 and acc["label"] == model.classes[int(np.argmax(pooled))]
         assert acc["confidence"] == pytest.approx(np.exp(pooled.max()), abs=6e-5)   # said to 4 decimals
+
+
+def test_the_nodes_novelty_allows_for_a_new_touch_in_any_block_sizes(model, touches):
+    """A model trained now allows for a new touch's gains in its novelty (issue 34); the node scores every
+    window with it as the model does offline, in any block sizes, and calls "unknown" exactly the windows
+    above its threshold."""
+    x, _ = touches
+    nov = model.novelty
+    assert nov.touch is not None and nov.touch.spread >= 0.03
+    threshold = nov.threshold(DECISION["unknown"])
+    runs = [_run(model, x, DECISION, size).events for size in (64, random_block_sizes(3, 997))]
+    scores = [[e["novelty"] for e in events] for events in runs]
+    assert scores[0] == scores[1]
+    offline = model.novelty_score(extract_features(x, whisker_bank(), ("Af",)).values)
+    np.testing.assert_allclose(scores[0], offline, atol=1e-4)
+    for e, s in zip(runs[1], offline):
+        if abs(s - threshold) > 1e-6:
+            assert (e.get("unknown") == "novel") == (s > threshold)

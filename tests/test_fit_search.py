@@ -531,3 +531,45 @@ def test_an_interrupted_fit_on_local_workers_ends_in_one_line(sensor, tmp_path, 
         time.sleep(0.2)
     else:
         pytest.fail("a process of the fit's group is still there 15 s after it ended")
+
+
+# -- scored as the model will be trained: gain augmentation (issue 34) --------------------------------------
+
+def test_every_folds_network_and_the_papers_banks_train_with_the_gain_augmentation_asked(manifest, monkeypatch):
+    """`fit --augment-gains`: each fold's network, the paper's banks' too, trains on the copies (gains by the trial's
+    bank where left to it); gains of 1 (exact copies, which iRPROP- does not see) score as no augmentation."""
+    from supramodal.model import GainAugment, TextureModel
+    from supramodal.node.workflows import fit_search as search
+
+    asked = []
+    train = TextureModel.train
+
+    def spy(*args, augment=None, **kwargs):
+        asked.append(augment)
+        return train(*args, augment=augment, **kwargs)
+
+    monkeypatch.setattr(search.TextureModel, "train", spy)
+    fast = {**FAST, "trials": 2, "batch": 2}
+    plain = fit_search(manifest, seed=1, **fast)
+    assert set(asked) == {None} and plain.get("augment") is None
+    asked.clear()
+    ones = fit_search(manifest, seed=1, augment=GainAugment(1, 0.0, None, 1), **fast)
+    assert asked and set(asked) == {GainAugment(1, 0.0, None, 1)}
+    assert ones["augment"] == {"copies": 1, "spread": 0.0, "per_channel": None, "seed": 1}
+    assert _untimed(ones["rows"]) == _untimed(plain["rows"]) and _untimed(ones["paper"]) == _untimed(plain["paper"])
+    assert "trained with gain augmentation: 1 more copies of each window, gains exp(N(0, 0)) by bank" in \
+        format_search(ones)
+    assert "gain augmentation" not in format_search(plain)
+
+
+def test_fit_command_with_gain_augmentation_says_so_and_its_next_command_trains_alike(manifest, tmp_path, capsys):
+    out = tmp_path / "fit"
+    assert main(["fit", str(manifest), "--out", str(out), "--cv", "3", "--quick", "--trials", "2", "--batch", "2",
+                 "--epochs", "8", "--max-window", "0.1", "--augment-gains", "2,0.05,shared", "--quiet"]) == 0
+    said = capsys.readouterr().out
+    assert "trained with gain augmentation: 2 more copies of each window, gains exp(N(0, 0.05)) shared" in said
+    assert "--augment-gains 2,0.05,shared --out MODEL" in said
+    with pytest.raises(SystemExit) as exit_:
+        main(["fit", str(manifest), "--out", str(out), "--augment-gains", "0", "--force"])
+    assert exit_.value.code == 2
+    assert "COPIES a whole number from 1" in capsys.readouterr().err

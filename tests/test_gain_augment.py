@@ -129,3 +129,85 @@ def test_out_of_fold_copies_of_a_model_are_augmented_as_the_model_was():
     zero = dataclasses.replace(augmented, training={**augmented.training,
                                                     "augment": GainAugment(1, 0.0).to_dict()})
     np.testing.assert_array_equal(out_of_fold_logits(zero, values, labels, CLASSES, folds), z_plain)
+
+
+# -- the early-fusion network augmented as each sense would be ------------------------------------------------
+
+def _early_data(seed=0, n=30):
+    from supramodal.banks import cochlea_bank
+    from supramodal.fused_model import Sense
+
+    senses = (Sense("whiskers", BANK, ("Af", "f"), 500), Sense("mic", cochlea_bank(), ("A",), 4410))
+    rng = np.random.default_rng(seed)
+    labels = np.repeat(np.arange(3), n)
+    va = rng.gamma(2.0, 1.0, (3 * n, 2, 8)) * 100.0
+    vb = rng.gamma(2.0, 1.0, (3 * n, 1, 50))
+    va[:, 0, :2] *= 1 + 0.5 * labels[:, None]
+    vb[:, 0, 40:] *= 1 + 0.4 * labels[:, None]
+    return senses, va, vb, labels
+
+
+def test_early_copies_scale_each_senses_columns_by_its_own_gains_whiskers_per_vibrissa_microphone_one_level():
+    from supramodal.fused_model import EarlyGainCopies, early_augment
+    from supramodal.fusion import early_inputs
+
+    senses, va, vb, labels = _early_data()
+    augments = early_augment(GainAugment(copies=2, spread=0.05, per_channel=None), senses)
+    assert [a.per_channel for a in augments] == [True, False]                 # each by its own bank
+    rows, y = EarlyGainCopies.of(augments, senses)(early_inputs(va, vb), labels, 1)
+    assert rows.shape == (3 * len(va), 16 + 50) and np.array_equal(y, np.tile(labels, 3))
+    a = rows[:, :16].reshape(3, len(va), 2, 8)
+    b = rows[:, 16:].reshape(3, len(vb), 1, 50)
+    np.testing.assert_array_equal(a[0], va)
+    np.testing.assert_array_equal(b[0], vb)
+    for k in (1, 2):
+        np.testing.assert_array_equal(a[k][:, 1], va[:, 1])                   # f is not a gain's
+        ga, gb = a[k][:, 0] / va[:, 0], b[k][:, 0] / vb[:, 0]
+        assert len(np.unique(ga.round(12))) == ga.size                        # a gain per window and vibrissa
+        np.testing.assert_allclose(gb, gb[:, :1] * np.ones((1, 50)), rtol=1e-13)    # one level a window
+        # the two senses' gains are drawn apart (a touch's whisker gains and microphone level are independent)
+        assert abs(np.corrcoef(np.log(ga[:, 0]), np.log(gb[:, 0]))[0, 1]) < 0.4
+    # the whiskers' part draws the gains a whisker model of the same seed draws for the same network
+    alone, _ = augments[0].for_inputs(("Af", "f"), 8)(va.reshape(len(va), -1), labels, 1)
+    np.testing.assert_array_equal(rows[:, :16], alone)
+
+
+def test_early_augmentation_one_sense_only_copies_the_others_columns_unchanged_and_differing_copies_refused():
+    from supramodal.errors import InputError
+    from supramodal.fused_model import early_augment
+
+    senses, *_ = _early_data()
+    pair = early_augment((GainAugment(copies=3, spread=0.05), None), senses)
+    assert pair[1].copies == 3 and pair[1].spread == 0.0
+    assert early_augment(None, senses) is None and early_augment((None, None), senses) is None
+    with pytest.raises(InputError, match=r"\[2, 3\] copies.*same augment_copies"):
+        early_augment((GainAugment(copies=3), GainAugment(copies=2)), senses)
+
+
+def test_an_augmented_early_network_and_its_fold_networks_train_on_the_copies_and_its_file_keeps_it(tmp_path):
+    from supramodal.fused_model import EarlyFusionModel
+
+    senses, va, vb, labels = _early_data()
+    kw = dict(epochs=30, seed=2, calibration_folds=3)
+    plain = EarlyFusionModel.train(senses, va, vb, labels, CLASSES, **kw)
+    ones = EarlyFusionModel.train(senses, va, vb, labels, CLASSES, augment=GainAugment(copies=2, spread=0.0), **kw)
+    aug = EarlyFusionModel.train(senses, va, vb, labels, CLASSES, **kw,
+                                 augment=GainAugment(copies=2, spread=0.05, per_channel=None))     # by bank
+    # gains of 1: exact copies, which iRPROP- does not see: every network as without (so the copies reach them all)
+    np.testing.assert_array_equal(ones.mlp.w1, plain.mlp.w1)
+    np.testing.assert_array_equal(ones.out_of_fold.logits, plain.out_of_fold.logits)
+    assert not np.array_equal(aug.mlp.w1, plain.mlp.w1)
+    assert not np.array_equal(aug.out_of_fold.logits, plain.out_of_fold.logits)
+    assert aug.out_of_fold.logits.shape == plain.out_of_fold.logits.shape     # one held-out row per pair
+    np.testing.assert_array_equal(aug.mean, plain.mean)                        # scaling from the originals
+    assert aug.training["windows"] == len(va) and plain.augment is None
+    # the novelty allows for a new touch at least as far as the copies' gains spread (each sense's groups its own)
+    assert aug.novelty.touch.spread >= 0.05 > plain.novelty.touch.spread
+    groups = aug.novelty.touch.groups
+    assert groups[:8] == tuple(range(8)) and groups[8:16] == (-1,) * 8 and set(groups[16:]) == {8}   # Af, f; A
+    loaded = EarlyFusionModel.load(aug.save(tmp_path / "early.npz"))
+    assert [a.per_channel for a in loaded.augment] == [True, False] and loaded.augment[0].copies == 2
+    header_bad = dict(aug.training, augment=[aug.training["augment"][0]])
+    broken = dataclasses.replace(aug, training=header_bad)
+    with pytest.raises(ModelError, match="two senses' gain augmentation"):
+        EarlyFusionModel.load(broken.save(tmp_path / "broken.npz"))

@@ -336,3 +336,24 @@ def test_gain_augmentation_of_a_model_the_node_does_not_train_is_refused_with_th
     said = str(refused.value)
     assert "augment_copies = 4" in said and "set train_on_start = true" in said
     assert "supramodal train --augment-gains 4,0.03" in said
+
+
+def test_an_early_fusion_trained_on_start_refuses_streams_asking_for_different_numbers_of_copies():
+    """The early network copies a pair's two windows together (each stream's by its own [model] augment_*)."""
+    from supramodal.node.scene.schema import SceneError
+
+    def scene(copies_a, copies_b):
+        models = [{"train_on_start": True, **({"augment_copies": c} if c else {})} for c in (copies_a, copies_b)]
+        return {"source": [{"name": "w", "type": "twosense", "sense": "whiskers", "seconds": 1.0},
+                           {"name": "m", "type": "twosense", "sense": "microphone", "seconds": 1.0}],
+                "stream": [{"name": "w", "source": "w", "bank": {"kind": "whisker"}, "model": models[0]},
+                           {"name": "m", "source": "m", "bank": {"kind": "cochlea"}, "model": models[1]}],
+                "fusion": {"streams": ["w", "m"], "method": "early"}}
+
+    with pytest.raises(SceneError, match=r'method = "early": the streams\' \[model\] augment_copies differ \(w 4, m 2\)'):
+        scene_from_dict(scene(4, 2))
+    for ok in ((4, 4), (4, 0), (0, 0)):
+        scene_from_dict(scene(*ok))
+    late = scene(4, 2)
+    late["fusion"]["method"] = "late"
+    scene_from_dict(late)                 # a late fusion trains no network of its own

@@ -81,6 +81,31 @@ def test_a_streams_model_trains_with_gain_augmentation_by_its_bank_and_says_it(r
     assert model.training["windows"] == 2 * 15 and model.calibration.fitted_on["windows"] == 2 * 15
 
 
+def test_an_early_fusion_trains_with_gain_augmentation_each_sense_by_its_bank_and_says_it(recordings, capsys,
+                                                                                          tmp_path):
+    """Issue 34: `train --fusion early --augment-gains 1,0.05`: the early network's copies scale the whiskers per
+    vibrissa and the microphone by one level; the model file keeps it, per sense."""
+    from supramodal.fused_model import EarlyFusionModel
+    from supramodal.model import GainAugment
+
+    models = []
+    for stream in ("whiskers", "mic"):       # the recordings have no [fusion]: --model names the two to fuse
+        path = tmp_path / f"{stream}.npz"
+        assert main(["train", *_scenes(recordings, 2), "--stream", stream, "--out", str(path), "--epochs", "60",
+                     "--quiet"]) == 0
+        models += ["--model", f"{stream}={path}"]
+    capsys.readouterr()
+    out = tmp_path / "early-aug.npz"
+    assert main(["train", "--fusion", "early", *_scenes(recordings, 1), *models, "--out", str(out),
+                 "--augment-gains", "1,0.05", "--seed", "3", "--epochs", "60", "--quiet"]) == 0
+    said = [line for line in capsys.readouterr().out.splitlines() if "gain augmentation:" in line]
+    assert [line.split(":")[0] for line in said] == ["whiskers", "mic"]
+    assert "one gain per channel" in said[0] and "one gain for all channels" in said[1]
+    model = EarlyFusionModel.load(out)
+    assert model.augment == (GainAugment(1, 0.05, True, 3), GainAugment(1, 0.05, False, 3))
+    assert model.training["windows"] == model.calibration.fitted_on["windows"]        # held out: the originals
+
+
 def test_a_fusion_says_whether_it_learned_from_unseen_recordings_or_out_of_fold(recordings, capsys):
     models = ["--model", f"whiskers={recordings / 'whiskers.npz'}", "--model", f"mic={recordings / 'mic.npz'}"]
     if not (recordings / "whiskers.npz").exists():

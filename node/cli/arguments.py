@@ -201,6 +201,19 @@ def mapping(text: str):
 AUGMENT_GAINS_FORM = "COPIES[,SPREAD[,per-channel|shared]]"
 
 
+def seeded_augment(args: argparse.Namespace):
+    """Return ``--augment-gains`` (:func:`augment_gains`) seeded by ``--seed``, or None where not asked."""
+    from dataclasses import replace
+
+    return None if args.augment_gains is None else replace(args.augment_gains, seed=args.seed)
+
+
+def augment_form(augment) -> str:
+    """Return ``--augment-gains``'s text for a :class:`supramodal.model.GainAugment` (a next command's)."""
+    gains = "" if augment.per_channel is None else "," + augment.gains
+    return f"{augment.copies},{augment.spread:g}{gains}"
+
+
 def augment_gains(text: str):
     """Parse ``--augment-gains COPIES[,SPREAD[,per-channel|shared]]`` into a :class:`supramodal.model.GainAugment`.
 

@@ -5,6 +5,9 @@ from __future__ import annotations
 import argparse
 
 from supramodal.node.cli.arguments import (
+    AUGMENT_GAINS_FORM,
+    augment_form,
+    augment_gains,
     cluster_address,
     count,
     jobs,
@@ -13,6 +16,7 @@ from supramodal.node.cli.arguments import (
     positive_seconds,
     progress,
     seed,
+    seeded_augment,
 )
 from supramodal.node.cli.signals import interrupt_until_running
 
@@ -78,6 +82,10 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
     p.add_argument("--mapping", type=mapping, default="auto",
                    help="recording channels to filters: auto (one channel to all, or one each), mono, per-channel, "
                         "mean, or a channel index (default auto)")
+    p.add_argument("--augment-gains", type=augment_gains, metavar=AUGMENT_GAINS_FORM,
+                   help="score every setting as `train --augment-gains` will train the model: each fold's network "
+                        "(the paper's banks' too) also trains on COPIES copies of each training window with random "
+                        "gains exp(N(0, SPREAD)); the networks cost 1 + COPIES times the CPU (default: none)")
     p.add_argument("--force", action="store_true", help="replace earlier fit files in --out (default: refuse)")
     return p
 
@@ -113,7 +121,7 @@ def run(args: argparse.Namespace) -> int:
                             max_channels=args.max_channels, target=args.target, contact=args.contact,
                             max_epochs=args.epochs, jobs=args.jobs, cluster=args.cluster, mapping=args.mapping,
                             cache_dir=cache, cache_memory=args.cache_memory * 2**20, patience=args.patience,
-                            progress=progress(args))
+                            augment=seeded_augment(args), progress=progress(args))
     except BaseException:
         # The cache's files are this search's (a completed one removes them): an interrupted one left them behind.
         for path in cache.glob("*.npy"):
@@ -134,7 +142,8 @@ def run(args: argparse.Namespace) -> int:
     interrupt_until_running("writing the fit's files; they are put in place all or none")
     files = write_staged(args.out, lambda folder: write_search(result, folder))
     b = result["best"]
+    augment = "" if args.augment_gains is None else f" --augment-gains {augment_form(args.augment_gains)}"
     print(f"wrote {', '.join(str(p) for p in files)}\nnext: supramodal train --bank {args.out / 'bank.json'} "
           f"--window {b['window']:g} --features {b['features'].replace('+', ' ')} --epochs {b['epochs']} "
-          f"--manifest {args.manifest} --out MODEL")
+          f"--manifest {args.manifest}{augment} --out MODEL")
     return 0

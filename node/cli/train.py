@@ -18,6 +18,7 @@ from supramodal.node.cli.arguments import (
     progress,
     say_plots_missing,
     seed,
+    seeded_augment,
 )
 from supramodal.node.cli.errors import CliError
 from supramodal.node.cli.signals import interrupt_until_running
@@ -102,7 +103,8 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
                         "here); the model is the same for any")
     p.add_argument("--augment-gains", type=augment_gains, metavar=AUGMENT_GAINS_FORM,
                    help="gain augmentation, for models that must hold on a new touch or session (each has its own "
-                        "sensor gains): every network (the calibration's folds' and the model's) also trains on "
+                        "sensor gains): every network (the calibration's folds' and the model's; with --fusion "
+                        "early, the early network's, each sense's columns by its own bank) also trains on "
                         "COPIES copies of each training window with random gains exp(N(0, SPREAD)) (default 0.03) on "
                         "Af and A, one per channel (per-channel: a whisker array's vibrissae) or one for all (shared: "
                         "a microphone's level; left out: per-channel for a whisker bank, shared for a cochlea or a "
@@ -150,11 +152,11 @@ def run(args: argparse.Namespace) -> int:
                 check_new_file(b.with_name(b.name + suffix), args.force, "the cross-validation file")
         cv = cross_validate_manifest(args.manifest, bank, tuple(args.features), args.window, args.cv,
                                      epochs=args.epochs, seed=args.seed, mapping=args.mapping, progress=progress(args),
-                                     augment=_augment(args))
+                                     augment=seeded_augment(args))
         print(format_cross_validation(cv))
     model = train_from_manifest(args.manifest, bank, tuple(args.features), args.window, epochs=args.epochs,
                                 seed=args.seed, mapping=args.mapping, progress=progress(args), jobs=args.jobs,
-                                augment=_augment(args))
+                                augment=seeded_augment(args))
     # The model and its cross-validation's files are put in place together (the files written first, an
     # interrupted training left a new report beside the earlier model)
     written = save_model(model, args.out, cv=None if cv is None else (args.cv, cv))
@@ -169,13 +171,6 @@ def run(args: argparse.Namespace) -> int:
     print("posteriors: " + calibration_line(None if model.calibration is None else model.calibration.fitted_on))
     _say_augment(model)
     return 0
-
-
-def _augment(args):
-    """``--augment-gains``, seeded by ``--seed`` (None: not asked)."""
-    from dataclasses import replace
-
-    return None if args.augment_gains is None else replace(args.augment_gains, seed=args.seed)
 
 
 def _say_augment(model) -> None:
@@ -224,7 +219,7 @@ def _train_stream(args) -> int:
                        "out --manifest, --bank, --cv, --model, --live and --write-scene")
     check_new_file(args.out, args.force, "the model file")
     model = train_from_scenes(args.scene, args.stream, epochs=args.epochs, seed=args.seed, progress=progress(args),
-                              jobs=args.jobs, augment=_augment(args))
+                              jobs=args.jobs, augment=seeded_augment(args))
     path = save_model(model, args.out)[-1]
     print(f"wrote {path}: stream {args.stream}, {model.bank.kind} bank, features {list(model.features)}, classes "
           f"{list(model.classes)}, {model.training['windows']} training windows of {len(args.scene)} recording(s), "
@@ -264,10 +259,10 @@ def _train_fusion(args) -> int:
                        "`supramodal record` writes for a graph)")
     if args.manifest is not None or args.cv:
         raise CliError("--manifest and --cv train one sense; a fusion is trained on --scene recordings")
-    if args.augment_gains is not None:
-        raise CliError("--augment-gains trains one sense; a fusion's copies of the sense models train as each model "
-                       "did (its file keeps its gain augmentation): train the senses with it (--stream), then give "
-                       "them with --model")
+    if args.augment_gains is not None and args.fusion != "early":
+        raise CliError("--augment-gains trains one sense (--stream) or the early fusion's network; a late "
+                       "fusion's copies of the sense models train as each model did (its file keeps its gain "
+                       "augmentation): train the senses with it (--stream), then give them with --model")
     if args.fusion == "early":
         if args.out is None:
             raise CliError("--fusion early needs --out, the model file to write")
@@ -282,7 +277,7 @@ def _train_fusion(args) -> int:
         check_new_file(args.write_scene, args.force, "the scene file")
     models = _stream_models(args.models)
     result, info = train_fused(args.scene, args.fusion, epochs=args.epochs, seed=args.seed, progress=progress(args),
-                               models=models)
+                               models=models, augment=seeded_augment(args))
     a, b = info["streams"]
     fused = "late" if args.fusion == "late" else "early"
     print(f"sense posteriors: {info['posteriors']['source']} ({info['posteriors']['why']})")
@@ -309,6 +304,9 @@ def _train_fusion(args) -> int:
     print(f"wrote {path}: early fusion of {a} and {b}, classes {info['classes']}, {info['pairs']} pairs of windows, "
           f"calibrated on its out-of-fold pairs (the early row); use it with [fusion] method = \"early\", "
           f"model = \"{path.resolve()}\" (a relative path is taken from the scene's folder)")
+    if result.augment is not None:
+        for name, augment in zip((a, b), result.augment):
+            print(f"{name}: {augment.describe()}")
     _write_run_scene(args, write_fused_scene, (a, b), models, method="early", model=str(path.resolve()))
     return 0
 

@@ -360,8 +360,14 @@ def _early_model(scene: Scene, a: Stream, b: Stream, held_out: dict, trained: di
             raise SceneError(f"{scene.source}: [fusion] model: {exc}") from None
         return model
     (xa, ya), (xb, _) = _aligned_windows(scene, a, b, trained, 'method = "early"', "a [fusion] model file")
-    model = EarlyFusionModel.train((Sense.of(a.name, a.pipeline), Sense.of(b.name, b.pipeline)), xa, xb, ya,
-                                   _model(a).classes)
+    # Augmented as each stream's model was asked to be ([model] augment_*), each sense's columns by its bank
+    specs = {spec.name: spec for spec in scene.streams}
+    try:
+        model = EarlyFusionModel.train((Sense.of(a.name, a.pipeline), Sense.of(b.name, b.pipeline)), xa, xb, ya,
+                                       _model(a).classes,
+                                       augment=(specs[a.name].model.gain_augment(), specs[b.name].model.gain_augment()))
+    except InputError as exc:
+        raise SceneError(f"{scene.source}: [fusion] method = \"early\": {exc}") from None
     if progress:
         from supramodal.calibration import calibration_line
 

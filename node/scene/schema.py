@@ -532,6 +532,14 @@ def fusion_from_table(given, source: str, streams) -> FusionSpec:
         if not spec.model.exists:
             raise SceneError(f"{source}: [fusion] streams: stream {n!r} has no model to fuse; give it "
                              "[stream.model] path or train_on_start")
+    if fusion["method"] == "early" and fusion["model"] is None:
+        # The early network trained on start copies each pair's two windows together, each stream's by its
+        # own [model] augment_*: one number of copies for both
+        copies = {n: s.model.augment_copies for n in fusion["streams"] for s in streams if s.name == n}
+        if len(set(copies.values()) - {0}) > 1:
+            raise SceneError(f"{source}: [fusion] method = \"early\": the streams' [model] augment_copies differ "
+                             f"({', '.join(f'{n} {c}' for n, c in copies.items())}); the early network copies a "
+                             "pair's two windows together: give both streams the same augment_copies (or one none)")
     return FusionSpec(**{**fusion, "streams": tuple(fusion["streams"])}, decision=_decision_rules(decision),
                       contact_from=decision["contact_from"])
 

@@ -61,7 +61,7 @@ from supramodal.calibration import pool_log_posteriors, winner
 from supramodal.checks import integer, one_of, positive
 from supramodal.errors import InputError
 from supramodal.evaluation import pooled_accuracy
-from supramodal.model import TextureModel
+from supramodal.model import GainAugment, TextureModel
 from supramodal.node.scene.band import channels_beyond_band
 from supramodal.node.workflows.fit_cache import DEFAULT_MEMORY_BYTES, PART, FeatureCache
 from supramodal.node.workflows.manifest import ManifestError, manifest_classes, read_manifest
@@ -365,7 +365,7 @@ def score_fold(job: dict) -> dict:
         ``cache_dir``, ``cache_memory`` (bytes), ``bank`` (:meth:`Bank.to_dict`), ``window``
         (seconds), ``features`` (names joined by ``+``), ``hidden``, ``epochs``, ``fold``, ``k``,
         ``seed``, ``contact`` (seconds), ``train_windows`` (most training windows, evenly spaced; None:
-        all).
+        all), ``augment`` (:meth:`GainAugment.to_dict`, the network's gain augmentation; None: none).
 
     Returns
     -------
@@ -397,8 +397,10 @@ def score_fold(job: dict) -> dict:
         if job["train_windows"] is not None and len(x) > job["train_windows"]:
             keep = np.round(np.linspace(0, len(x) - 1, job["train_windows"])).astype(int)
             x, y = x[keep], y[keep]
+        augment = job.get("augment")
         model = TextureModel.train(x, y, classes, bank, features, window_length(job["window"], bank.fs),
-                                   epochs=job["epochs"], seed=job["seed"], hidden=job["hidden"], calibration_folds=0)
+                                   epochs=job["epochs"], seed=job["seed"], hidden=job["hidden"], calibration_folds=0,
+                                   augment=None if augment is None else GainAugment.from_dict(augment, FitError))
         lps = [model.log_posteriors(values[i]) for i in test if len(values[i])]
         truths = [classes.index(recs[i].label) for i in test if len(values[i])]
     window_right = np.concatenate([winner(lp) == t for lp, t in zip(lps, truths)])
@@ -582,7 +584,7 @@ def fit_search(manifest, k: int = 5, seed: int = 0, quick: bool = False, trials:
                max_channels: int | None = None, target: str = "window", contact: float = DEFAULT_CONTACT,
                max_epochs: int | None = None, jobs: int = 1, cluster: str | None = None, mapping="auto",
                cache_dir=None, cache_memory: int = DEFAULT_MEMORY_BYTES, patience: int = DEFAULT_PATIENCE,
-               progress=None) -> dict:
+               augment: GainAugment | None = None, progress=None) -> dict:
     """Search settings (module docstring) on the manifest's recordings.
 
     Parameters
@@ -609,6 +611,10 @@ def fit_search(manifest, k: int = 5, seed: int = 0, quick: bool = False, trials:
     patience : int
         Trials: the search stops after a round at whose end the best has not moved by more than its
         fold spread in the last ``patience`` trials (:func:`plateau`); 0: it runs every trial.
+    augment : GainAugment or None
+        Gain augmentation of every fold's network, the paper's banks' too (``train --augment-gains``'s;
+        its gains by each trial's bank where it leaves them to the bank): the settings are then scored as
+        the model will be trained. Default none.
     progress : callable(str), optional
 
     Returns
@@ -656,7 +662,8 @@ def fit_search(manifest, k: int = 5, seed: int = 0, quick: bool = False, trials:
         study.enqueue_trial(params)
     base = {"manifest": str(manifest), "mapping": mapping, "windows": space.windows,
             "cache_dir": None if cache_dir is None else str(cache_dir), "cache_memory": int(cache_memory),
-            "k": k, "seed": seed, "contact": space.contact, "train_windows": space.train_windows}
+            "k": k, "seed": seed, "contact": space.contact, "train_windows": space.train_windows,
+            "augment": None if augment is None else augment.to_dict()}
     rows: list[dict] = []
     stopped: dict | None = None
     # What the tasks did, all processes: recordings filtered, and CPU seconds of features and of networks
@@ -781,6 +788,7 @@ def fit_search(manifest, k: int = 5, seed: int = 0, quick: bool = False, trials:
             "rows": rows, "best": best, "curve": curve, "paper": {n: paper[n] for n in ("whisker", "cochlea")},
             "filterbank_runs": spent["filterbank_runs"], "recordings": len(recs), "seconds": time.perf_counter() - t0,
             "where": where, "trials": trials, "patience": patience, "stopped": stopped,
+            "augment": None if augment is None else augment.to_dict(),
             "features_cpu_seconds": spent["features"], "networks_cpu_seconds": spent["networks"]}
 
 
@@ -890,6 +898,13 @@ def _describe(row: dict) -> str:
             f"{row['window']:g} s, {row['features']}, {row['hidden']} hidden, {row['epochs']} epochs")
 
 
+def _augment_line(augment: dict) -> str:
+    """Return the report's line of the folds' gain augmentation (``augment``: :meth:`GainAugment.to_dict`)."""
+    a = GainAugment.from_dict(augment, FitError)
+    return (f"every fold's network (the paper's banks' too) trained with gain augmentation: {a.copies} more copies "
+            f"of each window, gains exp(N(0, {a.spread:g})) {a.gains} (as `train --augment-gains` trains the model)")
+
+
 def format_search(result: dict) -> str:
     """Return the search's report: the best, the paper's banks beside it, the accuracy-vs-window curve."""
     t = result["target"]
@@ -902,6 +917,7 @@ def format_search(result: dict) -> str:
              f"trial, median); {result['filterbank_runs']} filterbank runs for {result['recordings']} recordings"
              + ("" if result["space"]["train_windows"] is None else
                 f"; each fold's network trained on at most {result['space']['train_windows']} windows (--quick)"),
+             *([] if not result.get("augment") else [_augment_line(result["augment"])]),
              *([] if not result.get("stopped") else
                [f"{result['stopped']['text']} (--patience {result['stopped']['patience']}; "
                 f"{result['trials'] - len(rows)} of the {result['trials']} trials not run)"]),

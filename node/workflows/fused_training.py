@@ -42,7 +42,7 @@ from supramodal.fused_model import (
     worse_than_a_sense,
 )
 from supramodal.mlp import DEFAULT_EPOCHS
-from supramodal.model import ModelError
+from supramodal.model import GainAugment, ModelError
 from supramodal.node.runtime.events import FUSED_STREAM, WindowEvent, log_posteriors_of
 from supramodal.node.runtime.sinks import ListSink
 from supramodal.node.scene.build import build_node
@@ -87,7 +87,7 @@ def scene_pairs(path, progress=None, models=None):
 
 
 def train_fused(paths, method: str = "early", epochs: int = DEFAULT_EPOCHS, seed: int = 0, progress=None,
-                k: int = DEFAULT_CALIBRATION_FOLDS, models=None):
+                k: int = DEFAULT_CALIBRATION_FOLDS, models=None, augment: GainAugment | None = None):
     """Learn a fusion on the labelled pairs of the scenes at ``paths``.
 
     Every number learned comes from windows held out of the network that made them: the pairs are
@@ -112,7 +112,8 @@ def train_fused(paths, method: str = "early", epochs: int = DEFAULT_EPOCHS, seed
       weight learned without it).
     * ``"early"``: the supramodal network trained on every pair, calibrated on out-of-fold pairs of
       the same folds (:meth:`~supramodal.fused_model.EarlyFusionModel.train`); its held-out score
-      is that of its calibration folds.
+      is that of its calibration folds. ``augment``: gain augmentation of its networks' training pairs
+      (each sense's gains by its bank; a late fusion trains no network, and takes none).
 
     Returns
     -------
@@ -130,6 +131,9 @@ def train_fused(paths, method: str = "early", epochs: int = DEFAULT_EPOCHS, seed
 
     if method not in FUSION_METHODS:
         raise InputError(f"the fusion method is one of {FUSION_METHODS}, got {method!r}")
+    if augment is not None and method != "early":
+        raise InputError("gain augmentation is of a network's training windows; a late fusion trains none (its "
+                         "senses' models train as each did: train them with it)")
     senses: tuple[Sense, Sense] | None = None        # the first scene's, and its classes
     classes: tuple[str, ...] | None = None
     stream_models: tuple = ()
@@ -215,7 +219,7 @@ def train_fused(paths, method: str = "early", epochs: int = DEFAULT_EPOCHS, seed
     if method == "early":
         say = None if progress is None else (lambda m: progress(f"early network's calibration: {m}"))
         model = EarlyFusionModel.train(senses, va, vb, y, classes, epochs=epochs, seed=seed, groups=groups,
-                                       calibration_folds=k, calibration_progress=say)
+                                       calibration_folds=k, calibration_progress=say, augment=augment)
         assert model.calibration is not None, "EarlyFusionModel.train calibrates on calibration_folds=k > 0 folds"
         assert model.out_of_fold is not None, "kept by EarlyFusionModel.train with its calibration"
         fused = model.calibration.log_posteriors(model.out_of_fold.logits)

@@ -181,6 +181,10 @@ def _unknown(model: TextureModel, known, unknown, per_texture: int) -> dict:
 
     The false-unknown rate is on windows of known textures (per window and per contact), the
     rate on the unknown textures likewise, and the novelty's AUROC per window and per contact.
+    Contacts are :data:`CONTACT_WINDOWS` windows side by side (``contacts``) and, for the
+    false-unknown rate, also starting at every window (``false_unknown_contact_every_start``: the same
+    rate, measured on every contact a touch holds; side by side, 10 contacts a touch make it a count
+    of 60, whose binomial spread alone is +-0.03 at 0.05).
     """
     nov = model.novelty
     assert nov is not None, "trained with calibration folds"
@@ -188,10 +192,16 @@ def _unknown(model: TextureModel, known, unknown, per_texture: int) -> dict:
     wk, wu = nov.score(xk), nov.score(xu)
     ck = np.array([nov.pooled_score(xk[r]) for r in contact_runs(np.arange(len(xk)), per_texture, CONTACT_WINDOWS)])
     cu = np.array([nov.pooled_score(xu[r]) for r in contact_runs(np.arange(len(xu)), per_texture, CONTACT_WINDOWS)])
+    every = np.array([nov.pooled_score(xk[r])
+                      for r in contact_runs(np.arange(len(xk)), per_texture, CONTACT_WINDOWS, step=1)])
     t_w, t_c = nov.threshold(ASKED_UNKNOWN), nov.contact_threshold(ASKED_UNKNOWN, CONTACT_WINDOWS)
+    touch = nov.touch
     return {"false_unknown_window": float(np.mean(wk > t_w)), "false_unknown_contact": float(np.mean(ck > t_c)),
+            "false_unknown_contact_every_start": float(np.mean(every > t_c)),
             "unknown_found_window": float(np.mean(wu > t_w)), "unknown_found_contact": float(np.mean(cu > t_c)),
-            "auroc_window": auroc(wu, wk), "auroc_contact": auroc(cu, ck), "contacts": int(len(ck))}
+            "auroc_window": auroc(wu, wk), "auroc_contact": auroc(cu, ck), "contacts": int(len(ck)),
+            "touch_spread": None if touch is None else touch.spread,
+            "touch_spread_estimated": None if touch is None else touch.estimated}
 
 
 def run_set(set_seed: int, seconds: float = 10.0, epochs: int = DEFAULT_EPOCHS, seed: int = 0,
@@ -287,6 +297,24 @@ def _sure(r: dict) -> str:
     return f"{r['sure_wrong']:.3f} of {r['sure_count']}"
 
 
+#: The false-unknown rates on the new touch that issue 34 asks for at :data:`ASKED_UNKNOWN`.
+UNKNOWN_RANGE = (0.03, 0.08)
+
+
+def _every(u: dict) -> str:
+    v = u.get("false_unknown_contact_every_start")
+    return "-" if v is None else f"{v:.3f}"
+
+
+def _within(result: dict, key: str) -> str:
+    """``k of n sense-sets`` whose ``unknown[key]`` on touch 3 lies in :data:`UNKNOWN_RANGE`."""
+    lo, hi = UNKNOWN_RANGE
+    values = [v["unknown"].get(key) for r in result["sets"] for v in r["senses"].values()]
+    values = [x for x in values if x is not None]
+    inside = sum(lo <= x <= hi for x in values)
+    return f"{inside} of {len(values)} sense-sets" + (f" ({min(values):.3f}..{max(values):.3f})" if values else "")
+
+
 def newtouch_table(result: dict) -> str:
     """Return the experiment's figures as Markdown, one row per set and method."""
     lines = [f"{len(result['sets'])} two-sense sets, 6 known textures (+2 unknown), {result['touches']} touches of "
@@ -314,14 +342,24 @@ def newtouch_table(result: dict) -> str:
     lines += ["", f"Unknown at {result['asked_unknown']:g} asked (contacts of {result['contact_windows']} windows): "
               "false-unknown rate on touch 3 of the known textures, and after recalibration on its second half; "
               "AUROC against the unknown textures' touch 3", "",
-              "| set | sense | false unknown, windows | contacts | recalibrated: windows | contacts | AUROC windows | "
-              "contacts |", "|---|---|---|---|---|---|---|---|"]
+              "| set | sense | false unknown, windows | contacts | contacts at every start | recalibrated: windows | "
+              "contacts | contacts at every start | AUROC windows | contacts | touch spread allowed (estimated) |",
+              "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in result["sets"]:
         for sense, v in r["senses"].items():
             u, ur = v["unknown"], v["unknown_recalibrated"]
+            spread = "-" if u.get("touch_spread") is None else (
+                f"{u['touch_spread']:.3f} ("
+                + ("-" if u["touch_spread_estimated"] is None else f"{u['touch_spread_estimated']:.3f}") + ")")
             lines.append(f"| {r['set_seed']} | {sense} | {u['false_unknown_window']:.3f} | "
-                         f"{u['false_unknown_contact']:.3f} | {ur['false_unknown_window']:.3f} | "
-                         f"{ur['false_unknown_contact']:.3f} | {u['auroc_window']:.4f} | {u['auroc_contact']:.4f} |")
+                         f"{u['false_unknown_contact']:.3f} | {_every(u)} | {ur['false_unknown_window']:.3f} | "
+                         f"{ur['false_unknown_contact']:.3f} | {_every(ur)} | {u['auroc_window']:.4f} | "
+                         f"{u['auroc_contact']:.4f} | {spread} |")
+    lines += ["", "false-unknown rate (0.05 asked) within 0.03..0.08 on touch 3: "
+              + "; ".join(f"{what} {_within(result, key)}"
+                          for what, key in (("per window", "false_unknown_window"),
+                                            ("per contact", "false_unknown_contact"),
+                                            ("per contact at every start", "false_unknown_contact_every_start")))]
     checks = []
     for r in result["sets"]:
         better = min(v["touch3"]["log_loss"] for v in r["senses"].values())
