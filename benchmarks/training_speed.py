@@ -10,6 +10,8 @@ model the default scene trains on start), each round measures, one after the oth
   networks, in this process;
 * **train, N jobs**: the same over ``--jobs`` worker processes (default: the cores); the model is
   checked to be the one of 1 job, weights and calibration alike;
+* **calibration fit**: :func:`supramodal.calibration.fit_calibration` alone on the 1-job model's
+  held-out logits (the window map, its caps and the contact pooling; part of each train above);
 * **first decision**: ``supramodal run --speed max`` on the embedded default scene with the model
   cache off (``SUPRAMODAL_CACHE=off``), a user's first run: seconds from the command's start to
   its first decision line, with the user's own BLAS threads.
@@ -84,7 +86,7 @@ def run(rounds: int, jobs: int, say) -> dict:
     """Return the measurements (see the module); ``say`` is told progress lines."""
     import numpy as np
 
-    from supramodal.calibration import input_scaling
+    from supramodal.calibration import fit_calibration, input_scaling
     from supramodal.experiments.common import default_bank
     from supramodal.features import DEFAULT_WINDOW
     from supramodal.mlp import NetworkTask, train_task
@@ -100,8 +102,10 @@ def run(rounds: int, jobs: int, say) -> dict:
     x_train, y_train, _, _ = split(values)
     x = x_train.reshape(len(x_train), -1)
     mean, scale = input_scaling(x)
-    task = NetworkTask((x - mean) / scale, np.asarray(y_train), len(ts.names), seed=0)
-    rows: dict[str, list[tuple[float, float]]] = {"one network": [], "train, 1 job": [], f"train, {jobs} jobs": []}
+    y = np.asarray(y_train)
+    task = NetworkTask((x - mean) / scale, y, len(ts.names), seed=0)
+    rows: dict[str, list[tuple[float, float]]] = {"one network": [], "train, 1 job": [], f"train, {jobs} jobs": [],
+                                                  "calibration fit": []}
     first: list[float] = []
     for r in range(rounds):
         _, wall, cpu = _timed(lambda: train_task(task))
@@ -116,6 +120,10 @@ def run(rounds: int, jobs: int, say) -> dict:
         if not _same_model(one, many):
             raise RuntimeError(f"the model of {jobs} jobs differs from the model of 1 job")
         say(f"round {r + 1}/{rounds}: train, {jobs} jobs {wall:.1f} s (the same model)")
+        assert isinstance(one, TextureModel) and one.out_of_fold is not None     # trained with calibration folds
+        _, wall, cpu = _timed(lambda held=one.out_of_fold: fit_calibration(held.logits, y, y, folds=held.folds))
+        rows["calibration fit"].append((wall, cpu))
+        say(f"round {r + 1}/{rounds}: calibration fit {cpu:.2f} s CPU")
         first.append(first_decision_seconds())
         say(f"round {r + 1}/{rounds}: the default scene's first decision after {first[-1]:.1f} s")
     base_wall = statistics.median(w for w, _ in rows["one network"])

@@ -240,8 +240,141 @@ def _window_map(logits, temperature: float, scale: float) -> np.ndarray:
     return np.arcsinh(np.asarray(logits, dtype=np.float64) / scale) * temperature
 
 
+#: Starts ``(log a, log c)`` of the window map's fit (those of the Nelder-Mead fit of before): where the
+#: map is near the identity, near a temperature of 10 and in between. Each is a quasi-Newton descent of
+#: a few dozen evaluations; the best end is kept (the loss has a long, flat valley towards plain
+#: temperature scaling, ``c`` -> infinity, where descents from different starts may stop apart).
+_MAP_STARTS = ((0.0, 0.0), (0.0, math.log(10.0)), (math.log(3.0), math.log(30.0)))
+#: Largest logit a fit takes: ``z / c`` stays finite for every ``c`` it tries (>= ``MAP_BOUNDS[0]``).
+_LARGEST_LOGIT = float(np.finfo(np.float64).max) * MAP_BOUNDS[0] / 2
+#: Largest ``q log(d / L)`` of :func:`_capped_loss`: its exponential stays finite.
+_LARGEST_EXP = 700.0
+#: Options of the quasi-Newton fits (``scipy.optimize.minimize``'s SLSQP, whose quasi-Newton steps
+#: keep within the bounds): a step that changes the loss (about 1 nat) by less than ``ftol`` ends it.
+_QUASI_NEWTON = {"ftol": 1e-12, "maxiter": 500}
+
+
+def _capped_loss(d, log_caps, target) -> tuple[float, np.ndarray, np.ndarray]:
+    """Smoothed log loss of :func:`cap_gaps`' posteriors from the leads, and its derivatives.
+
+    The arrays are laid out (classes, n), one column per decision: sums over the classes are then
+    sums of rows, which numpy does at the speed of the elementwise operations.
+
+    Parameters
+    ----------
+    d : ndarray, shape (classes, n)
+        Each decision's leads ``d_j >= 0`` of its winner over class ``j`` (0 at the winner).
+    log_caps : ndarray, shape (classes, n)
+        The log of each lead's cap ``L_kj`` (any finite value where ``d_j`` is 0).
+    target : ndarray, shape (classes, n)
+        Targets whose columns sum to 1 (:func:`_smoothed_targets`).
+
+    Returns
+    -------
+    loss : float
+        ``-mean_i sum_j t_ij log p_ij``, ``log p`` the log-posteriors :func:`cap_gaps` makes of these leads.
+    by_lead, by_log_cap : ndarray, shape (classes, n)
+        The loss's derivatives by each ``d_ij`` and each ``log L_ij``.
+    """
+    n = d.shape[1]
+    with np.errstate(divide="ignore"):
+        x = np.log(d)                               # d = 0: -inf, and then x = 0: a lead of 0 stays 0
+    x -= log_caps
+    x *= CAP_SHARPNESS
+    np.minimum(x, _LARGEST_EXP, out=x)              # never reached by a window map (d / L < 1.5e10)
+    np.exp(x, out=x)                                # (d / L) ** q
+    soft = np.log1p(x)
+    shrink = np.exp(soft * (-1.0 / CAP_SHARPNESS))  # the capped lead over the lead
+    h = d * shrink
+    e = np.exp(-h)                                  # the winner's h is 0: every column sums to >= 1
+    total = e.sum(axis=0)
+    loss = float(((target * h).sum() + np.log(total).sum()) / n)
+    by_h = (target - e / total) / n
+    inv = 1.0 / (1.0 + x)
+    # dh/dd = (h / d) / (1 + (d / L) ** q) and dh/dlog L = h (d / L) ** q / (1 + (d / L) ** q)
+    return loss, by_h * shrink * inv, by_h * h * x * inv
+
+
+class _MapLoss:
+    """The smoothed log loss of a window map on fixed held-out logits, with its gradient.
+
+    The map is ``softmax(a * asinh(z / c))``, or with ``base`` caps ``cap_gaps(a * asinh(z / c),
+    clip(f * base))`` (:func:`_bounded_caps`). Parameters are ``(log a, log c)`` or ``(log a, log c,
+    log f)``; :meth:`__call__` gives the loss and its gradient at once, as a quasi-Newton fit
+    (``jac=True``) asks. What does not change between evaluations (the targets, each row's winner,
+    the log of its caps) is computed once here, laid out (classes, n) (:func:`_capped_loss`).
+
+    Each row's winner is that of its logits: the map is increasing, so it is the winner of its
+    scores (:func:`cap_gaps` takes it from the scores; the two differ only where rounding ties
+    two scores, whose lead is then 0 against either).
+    """
+
+    def __init__(self, z: np.ndarray, y: np.ndarray, base: np.ndarray | None = None) -> None:
+        if np.abs(z).max() > _LARGEST_LOGIT:
+            raise InputError(f"logits beyond +-{_LARGEST_LOGIT:.3g} cannot be calibrated "
+                             f"(the largest here: {np.abs(z).max():.3g}); a network's are hundreds at most")
+        self.z = np.ascontiguousarray(z.T)
+        self.n = len(z)
+        self.target = np.ascontiguousarray(_smoothed_targets(y, z.shape[1]).T)
+        self.at = (np.argmax(z, axis=1), np.arange(self.n))     # each row's winner, in the (classes, n) layout
+        self.base = base
+        if base is not None:
+            filled = np.array(base, dtype=np.float64)
+            np.fill_diagonal(filled, 1.0)               # a class against itself: its lead is 0
+            self.log_base = np.ascontiguousarray(np.log(filled)[self.at[0]].T)   # log caps of each row's winner
+            self.cap_lo, self.cap_hi = (math.log(v) for v in CAP_BOUNDS)
+
+    def __call__(self, p) -> tuple[float, np.ndarray]:
+        """Return the loss and its gradient at ``p`` (logs of ``a``, ``c`` and, with caps, ``f``)."""
+        a, c = math.exp(p[0]), math.exp(p[1])
+        u = np.arcsinh(self.z / c)
+        slope = np.tanh(u)                              # -c du/dc = w / sqrt(1 + w^2), w = z / c
+        if self.base is None:
+            s = u * a
+            top = s[self.at]                            # each row's largest score (its winner's)
+            e = np.exp(s - top)
+            total = e.sum(axis=0)
+            loss = float((np.log(total).sum() + top.sum() - (self.target * s).sum()) / self.n)
+            by_s = (e / total - self.target) / self.n
+            return loss, np.array([(by_s * s).sum(), -a * (by_s * slope).sum()])
+        d = u[self.at] - u
+        d *= a
+        np.maximum(d, 0.0, out=d)                       # >= 0 already, but for rounding
+        raw = self.log_base + p[2]
+        loss, by_d, by_log_cap = _capped_loss(d, np.clip(raw, self.cap_lo, self.cap_hi), self.target)
+        slope -= slope[self.at]
+        free = (raw > self.cap_lo) & (raw < self.cap_hi)  # a cap at its bound does not move with f
+        return loss, np.array([(by_d * d).sum(), a * (by_d * slope).sum(), (by_log_cap * free).sum()])
+
+
+def _fit(loss, starts, bounds):
+    """Return the best end of quasi-Newton descents of ``loss`` (a :class:`_MapLoss`-like callable) from ``starts``.
+
+    SLSQP with the analytic gradient: with bounds alone its steps are BFGS's, kept within them. Not
+    L-BFGS-B: scipy's (1.17) calls LAPACK on its few numbers at every step, and in a process whose
+    OpenBLAS keeps two threads each step cost 4.5 ms (2 busy cores), ten times the loss on 2400
+    windows; none with one thread. A loss that is not finite raises :class:`InputError` (the logits'
+    bound, :class:`_MapLoss`, should leave none).
+    """
+    from scipy.optimize import minimize  # here: it takes 0.3 s to import, and only a fit needs it
+
+    best = None
+    for start in starts:
+        r = minimize(loss, np.array(start, dtype=np.float64), jac=True, method="SLSQP", bounds=bounds,
+                     options=_QUASI_NEWTON)
+        if not np.isfinite(r.fun):
+            raise InputError("the calibration's loss is not finite: are the logits finite and of a sane size?")
+        if best is None or r.fun < best.fun:
+            best = r
+    assert best is not None                     # starts were given
+    return best
+
+
 def fit_window_calibration(logits, labels) -> tuple[float, float]:
     """Fit ``(a, c)`` of ``softmax(a * asinh(z / c))`` minimising the log loss of ``labels``.
+
+    The log loss (smoothed targets, :func:`_smoothed_targets`) is minimised by a quasi-Newton method (SLSQP) on
+    ``(log a, log c)`` with its analytic gradient, from each of three starts, the best kept.
 
     Parameters
     ----------
@@ -256,70 +389,53 @@ def fit_window_calibration(logits, labels) -> tuple[float, float]:
         ``a`` (the sharpness, > 0) and ``c`` (the scale of the logits where the map turns from
         linear to logarithmic, > 0), each within ``[1e-3, 1e4]``.
     """
-    from scipy.optimize import minimize  # here: it takes 0.3 s to import, and only a fit needs it
-
     z = np.asarray(logits, dtype=np.float64)
     y = np.asarray(labels)
     _check_scored(z, y, "logits")
-    target = _smoothed_targets(y, z.shape[1])
     lo, hi = (math.log(v) for v in MAP_BOUNDS)
-
-    def loss(p):
-        a, c = np.exp(np.clip(p, lo, hi))
-        return -(target * log_softmax(_window_map(z, a, c), axis=1)).sum(axis=1).mean()
-
-    best = None
-    for start in ((0.0, 0.0), (0.0, math.log(10.0)), (math.log(3.0), math.log(30.0))):
-        r = minimize(loss, np.array(start), method="Nelder-Mead",
-                     options={"xatol": 1e-4, "fatol": 1e-7, "maxiter": 2000})
-        if best is None or r.fun < best.fun:
-            best = r
-    assert best is not None                     # three starts were tried
+    best = _fit(_MapLoss(z, y), _MAP_STARTS, [(lo, hi)] * 2)
     a, c = np.exp(np.clip(best.x, lo, hi))
     return float(a), float(c)
 
 
-def fit_capped_window_calibration(logits, labels) -> tuple[float, float, np.ndarray]:
+def fit_capped_window_calibration(logits, labels, start: tuple[float, float] | None = None
+                                  ) -> tuple[float, float, np.ndarray]:
     """Fit ``(a, c, caps)`` of the capped window map ``cap_gaps(a * asinh(z / c), caps)``.
 
     The fit minimises the log loss of ``labels`` (held-out windows, as
-    :func:`fit_window_calibration`).
+    :func:`fit_window_calibration`), by a quasi-Newton method on ``(log a, log c, log f)`` with the analytic
+    gradient.
 
     ``caps = f * confusion_caps(...)`` of the held-out windows' own winners; ``a``, ``c`` and the
     factor ``f`` (in :data:`FACTOR_BOUNDS`) are fitted together, so that the temperature no longer
     has to compromise between the pairs the network tells apart and those it cannot: the caps
     hold the latter near even odds, and the temperature serves the former.
 
+    Parameters
+    ----------
+    logits, labels
+        As :func:`fit_window_calibration`'s.
+    start : (float, float), optional
+        ``(a, c)`` of the plain map fitted to these windows, where the caller has it: one descent
+        from there, with ``f`` at ``exp(0.5)``. Default: the plain map's three starts, each with
+        that ``f``, the best kept.
+
     Returns
     -------
     (float, float, ndarray (classes, classes))
         ``caps`` has a zero diagonal and each other entry within :data:`CAP_BOUNDS`.
     """
-    from scipy.optimize import minimize  # here: it takes 0.3 s to import, and only a fit needs it
-
     z = np.asarray(logits, dtype=np.float64)
     y = np.asarray(labels)
     _check_scored(z, y, "logits")
-    target = _smoothed_targets(y, z.shape[1])
     base = confusion_caps(np.argmax(z, axis=1), y, z.shape[1])
     lo, hi = (math.log(v) for v in MAP_BOUNDS)
     flo, fhi = (math.log(v) for v in FACTOR_BOUNDS)
-
-    def unpack(p):
-        return (*np.exp(np.clip(p[:2], lo, hi)), math.exp(min(max(p[2], flo), fhi)))
-
-    def loss(p):
-        a, c, f = unpack(p)
-        return -(target * cap_gaps(_window_map(z, a, c), _bounded_caps(base * f))).sum(axis=1).mean()
-
-    best = None
-    for start in ((0.0, 0.0, 0.5), (0.0, math.log(10.0), 0.5), (math.log(3.0), math.log(30.0), 1.0)):
-        r = minimize(loss, np.array(start), method="Nelder-Mead",
-                     options={"xatol": 1e-4, "fatol": 1e-7, "maxiter": 3000})
-        if best is None or r.fun < best.fun:
-            best = r
-    assert best is not None                     # three starts were tried
-    a, c, f = unpack(best.x)
+    starts = _MAP_STARTS if start is None else [tuple(math.log(min(max(v, MAP_BOUNDS[0]), MAP_BOUNDS[1]))
+                                                      for v in start)]
+    best = _fit(_MapLoss(z, y, base), [(*s, 0.5) for s in starts], [(lo, hi)] * 2 + [(flo, fhi)])
+    a, c = np.exp(np.clip(best.x[:2], lo, hi))
+    f = math.exp(min(max(float(best.x[2]), flo), fhi))
     return float(a), float(c), _bounded_caps(base * f)
 
 
@@ -374,9 +490,11 @@ def fit_pooling(runs, labels) -> float:
 def fit_capped_pooling(runs, labels, plain_correlation: float | None = None) -> tuple[float, np.ndarray]:
     """Fit the correlation ``rho`` and the contact caps of a capped pooling ``cap_gaps(g(n) sum_t log p_t, caps)``.
 
-    They minimise the log loss of every prefix of every run.
+    They minimise the log loss of every prefix of every run, by a quasi-Newton method (as
+    :func:`fit_window_calibration`) on ``(rho, log f)`` with the analytic gradient, from
+    ``plain_correlation`` and ``f = exp(0.5)``.
 
-    The caps are a factor (fitted with ``rho``) times :func:`confusion_caps` of the winners of the
+    The caps are a factor ``f`` (fitted with ``rho``) times :func:`confusion_caps` of the winners of the
     runs' prefixes of two windows or more, pooled with :func:`fit_pooling`'s correlation. A pair
     the network confuses within a whole touch (its preference within the pair persists from
     window to window) keeps odds near even however long the contact; a pair whose windows err
@@ -386,8 +504,6 @@ def fit_capped_pooling(runs, labels, plain_correlation: float | None = None) -> 
     these runs where the caller has it (default: fitted here). Returns ``(rho, caps)``, ``caps``
     (classes, classes) with a zero diagonal and each other entry within :data:`CAP_BOUNDS`.
     """
-    from scipy.optimize import minimize  # here: it takes 0.3 s to import, and only a fit needs it
-
     rho0 = fit_pooling(runs, labels) if plain_correlation is None else float(plain_correlation)
     kept = [(np.asarray(r, dtype=np.float64), lab) for r, lab in zip(runs, labels) if len(r)]
     runs = [r for r, _ in kept]
@@ -397,21 +513,61 @@ def fit_capped_pooling(runs, labels, plain_correlation: float | None = None) -> 
     pooled = prefixes.pooled(rho0)
     several = prefixes.lengths >= 2
     base = confusion_caps(np.argmax(pooled[several], axis=1), y[several], n_classes)
-    target = _smoothed_targets(y, n_classes)
     flo, fhi = (math.log(v) for v in FACTOR_BOUNDS)
+    best = _fit(_PoolLoss(prefixes, y, base), [(min(max(rho0, 0.0), 1.0), 0.5)], [(0.0, 1.0), (flo, fhi)])
+    rho = min(max(float(best.x[0]), 0.0), 1.0)
+    return rho, _bounded_caps(base * math.exp(min(max(float(best.x[1]), flo), fhi)))
 
-    def unpack(p):
-        return 1.0 / (1.0 + math.exp(-min(max(p[0], -30.0), 30.0))), math.exp(min(max(p[1], flo), fhi))
 
-    def loss(p):
-        rho, f = unpack(p)
-        return -(target * cap_gaps(prefixes.pooled(rho), _bounded_caps(base * f))).sum(axis=1).mean()
+def _pooling_slope(n_max: int, correlation: float) -> np.ndarray:
+    """``d g(n) / d rho`` of ``g(n) = effective_windows(n, rho) / n`` for ``n = 1 .. n_max``, shape (n_max,).
 
-    r0 = min(max(rho0, 1e-3), 1 - 1e-3)
-    r = minimize(loss, np.array([math.log(r0 / (1 - r0)), 0.5]), method="Nelder-Mead",
-                 options={"xatol": 1e-4, "fatol": 1e-7, "maxiter": 2000})
-    rho, f = unpack(r.x)
-    return float(rho), _bounded_caps(base * f)
+    ``g = 1 / (1 + 2 s)`` with ``s = sum_{k=1}^{n-1} (1 - k/n) rho^k``, so ``dg/drho = -2 s' g^2``, and
+    ``s' = sum_k k rho^(k-1) - (1/n) sum_k k^2 rho^(k-1)`` is summed as a series for every ``n`` at once
+    (its terms are >= 0 for ``rho`` in [0, 1]: no cancellation near ``rho = 1``, where the closed
+    form of ``s`` cancels).
+    """
+    r = min(max(float(correlation), 0.0), 1.0)
+    n = np.arange(1, n_max + 1, dtype=np.float64)
+    k = n[:-1]
+    terms = k * r ** (k - 1)
+    first = np.concatenate(([0.0], np.cumsum(terms)))
+    second = np.concatenate(([0.0], np.cumsum(k * terms)))
+    g = effective_windows(n, r) / n
+    return -2.0 * (first - second / n) * g * g
+
+
+class _PoolLoss:
+    """The smoothed log loss of a capped pooling of every prefix, with its gradient in ``(rho, log f)``.
+
+    The pooled scores of a prefix are ``g(n) S`` (``S`` the sum of its windows' log-posteriors, :class:`_Prefixes`),
+    so its leads over its winner are ``g(n)`` times those of ``S``, computed once here; each
+    evaluation scales them and caps them (:func:`_capped_loss`), as :func:`cap_gaps` does with the
+    pooled log-posteriors (whose leads these are, but for rounding).
+    """
+
+    def __init__(self, prefixes: _Prefixes, y: np.ndarray, base: np.ndarray) -> None:
+        s = prefixes.sums
+        k = np.argmax(s, axis=1)                     # the pooled winner: g(n) > 0 keeps it
+        rows = np.arange(len(s))
+        self.lead = np.ascontiguousarray(np.maximum(s[rows, k][:, None] - s, 0.0).T)
+        self.target = np.ascontiguousarray(_smoothed_targets(y, s.shape[1]).T)
+        filled = np.array(base, dtype=np.float64)
+        np.fill_diagonal(filled, 1.0)                # a class against itself: its lead is 0
+        self.log_base = np.ascontiguousarray(np.log(filled)[k].T)
+        self.cap_lo, self.cap_hi = (math.log(v) for v in CAP_BOUNDS)
+        self.n, self.at = prefixes._n, prefixes._at
+
+    def __call__(self, p) -> tuple[float, np.ndarray]:
+        """Return the loss and its gradient at ``p = (rho, log f)``."""
+        rho = min(max(float(p[0]), 0.0), 1.0)
+        g = (effective_windows(self.n, rho) / self.n)[self.at]
+        raw = self.log_base + p[1]
+        loss, by_d, by_log_cap = _capped_loss(self.lead * g, np.clip(raw, self.cap_lo, self.cap_hi), self.target)
+        by_g = (by_d * self.lead).sum(axis=0)
+        free = (raw > self.cap_lo) & (raw < self.cap_hi)
+        return loss, np.array([(by_g * _pooling_slope(len(self.n), rho)[self.at]).sum(),
+                               (by_log_cap * free).sum()])
 
 
 def _check_scored(values, labels, what: str) -> None:
@@ -698,7 +854,7 @@ def fit_calibration(logits, labels, groups, run: int = POOLING_RUN, folds=None, 
     window_caps = contact_caps = contact_rho = None
     if caps:
         target = _smoothed_targets(y, n_classes)
-        ca, cc, capped_caps = fit_capped_window_calibration(z, y)
+        ca, cc, capped_caps = fit_capped_window_calibration(z, y, start=(a, c))
         capped = cap_gaps(_window_map(z, ca, cc), capped_caps)
         if (target * (capped - lp)).sum(axis=1).mean() > charge:
             a, c, window_caps, lp = ca, cc, capped_caps, capped
