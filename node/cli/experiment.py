@@ -52,9 +52,9 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
                                             "1 with --quick); newtouch, change: N two-sense sets (default 5, 2 "
                                             "with --quick)")
     p.add_argument("--augment", action="store_true",
-                   help="newtouch: gain augmentation of every network's training windows (4 more copies of each, "
-                        "gains exp(N(0, 0.03)): per vibrissa for the whiskers, one level for the microphone; seeded "
-                        "by --seed; the networks take 5 times the CPU)")
+                   help="newtouch, change: gain augmentation of every network's training windows (4 more copies of "
+                        "each, gains exp(N(0, 0.03)): per vibrissa for the whiskers, one level for the microphone; "
+                        "seeded by --seed; the networks take 5 times the CPU)")
     p.add_argument("--out", default="out", type=output_folder, help="directory for CSV and PNG (default ./out)")
     p.add_argument("--json", action="store_true", help="print the figure's data as one JSON object instead of a table")
     return p
@@ -85,9 +85,10 @@ def run(args: argparse.Namespace) -> int:
         raise CliError(f"--seed must be >= 0, got {args.seed}")
     if args.jobs is not None and args.jobs < 1:
         raise CliError(f"--jobs must be >= 1, got {args.jobs}")
-    if args.augment and args.figure != "newtouch":
-        raise CliError(f"--augment is experiment newtouch's (the models on a touch they never met), not "
-                       f"{args.figure}'s: leave it out, or run experiment newtouch --augment")
+    if args.augment and args.figure not in AUGMENTED:
+        raise CliError(f"--augment is experiment newtouch's (the models on a touch they never met) and change's "
+                       f"(re-deciding when the texture changes), not {args.figure}'s: leave it out, or run "
+                       "experiment newtouch --augment")
     if args.figure in TWO_SENSE_EXPERIMENTS:
         return _two_sense_experiment(args)
     ts = load_texture_set(args.textures) if args.textures else None
@@ -111,6 +112,8 @@ def run(args: argparse.Namespace) -> int:
 TWO_SENSE_EXPERIMENTS = {"fusion": ("fusion", "run_fusion", "fusion_table"),
                          "newtouch": ("newtouch", "run_newtouch", "newtouch_table"),
                          "change": ("change", "run_change", "change_table")}
+#: The experiments whose networks may train on gain-augmented windows (``--augment``: their run takes ``augment``).
+AUGMENTED = ("newtouch", "change")
 
 
 def _two_sense_experiment(args) -> int:
@@ -129,7 +132,7 @@ def _two_sense_experiment(args) -> int:
     if sets < 1:
         raise CliError(f"--sets must be >= 1 for experiment {args.figure}, got {sets}")
     more = {}
-    if args.augment:                    # newtouch's: as its module's --augment, seeded by --seed
+    if args.augment:                    # newtouch's and change's: as their modules' --augment, seeded by --seed
         from supramodal.model import GainAugment
 
         more["augment"] = GainAugment(seed=args.seed)

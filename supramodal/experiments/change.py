@@ -23,10 +23,15 @@ per minute allowed) with that threshold, per stream and fused:
   names the texture, beside the same for the very same segments decided as contacts of their own, as
   if the robot had lifted off before each (a fresh decision from the segment's first window).
 
+With ``augment`` (``--augment``), every network trains also on gain-augmented copies of its training
+windows, as :mod:`supramodal.experiments.newtouch`'s do (:class:`supramodal.model.GainAugment`: per
+vibrissa for the whiskers, one level for the microphone); the thresholds are then fitted on the
+augmented networks' out-of-fold windows.
+
 The table gives every set's figures together, then each set's (the thresholds fitted too).
 
-    supramodal experiment change [--quick] [--sets N] [--seed S] [--out DIR]
-    python -m supramodal.experiments.change [--quick] [--sets N] [--seed S]
+    supramodal experiment change [--quick] [--sets N] [--seed S] [--augment] [--out DIR]
+    python -m supramodal.experiments.change [--quick] [--sets N] [--seed S] [--augment]
 """
 
 from __future__ import annotations
@@ -47,12 +52,13 @@ from supramodal.decisions import (
 )
 from supramodal.errors import InputError
 from supramodal.evaluation import DETECT_WITHIN, change_detections
-from supramodal.experiments.common import Run
+from supramodal.experiments.common import AUGMENT_HELP, Run, augment_line
 from supramodal.experiments.newtouch import FEATURES, TOUCHES, touch_features, train_senses
 from supramodal.features import DEFAULT_WINDOW
 from supramodal.fused_model import fused_pooling
 from supramodal.fusion import fuse_late
 from supramodal.mlp import DEFAULT_EPOCHS
+from supramodal.model import GainAugment
 from supramodal.pipeline import extract_features
 from supramodal.twosense import synthesize_slide, two_sense_set
 
@@ -104,15 +110,15 @@ def _said(pooled: list[PooledDecision]) -> str | None:
 
 
 def run_set(set_seed: int, seconds: float = 10.0, epochs: int = DEFAULT_EPOCHS, seed: int = 0,
-            progress=None) -> dict:
-    """One set: see the module docstring.
+            progress=None, augment: GainAugment | None = None) -> dict:
+    """One set: see the module docstring (``augment``: the networks' gain augmentation, None: none).
 
     Per stream: ``boundaries``, ``detected``, ``delays`` (windows), ``to_new`` (first changes in a segment
     naming its texture), ``false_changes`` and ``minutes`` (still touches), ``false_in_slides`` and
     ``slide_minutes``, ``after_change`` and ``after_lift_off`` (segments right, of), ``threshold`` (fitted).
     """
     names, feats = touch_features(set_seed, seconds, progress)
-    trained = train_senses(names, feats, epochs, seed, progress, f"  set {set_seed}: ")
+    trained = train_senses(names, feats, epochs, seed, progress, f"  set {set_seed}: ", augment)
     known, classes, models, late = trained.known, trained.classes, trained.models, trained.late
     banks = {sense: m.bank for sense, m in models.items()}
     seg = int(round(SEGMENT / DEFAULT_WINDOW))
@@ -197,8 +203,11 @@ def summarize(results: list[dict]) -> dict:
 
 
 def run_change(sets: int = 5, quick: bool = False, epochs: int = DEFAULT_EPOCHS, seed: int = 0, progress=None,
-               jobs: int | None = None) -> dict:
-    """:func:`run_set` over ``sets`` sets on ``jobs`` worker processes; ``quick``: 6 s still touches."""
+               jobs: int | None = None, augment: GainAugment | None = None) -> dict:
+    """:func:`run_set` over ``sets`` sets on ``jobs`` worker processes; ``quick``: 6 s still touches.
+
+    ``augment``: every network's gain augmentation (None: none).
+    """
     from supramodal.experiments.runner import run_all
 
     if sets < 1:
@@ -206,10 +215,12 @@ def run_change(sets: int = 5, quick: bool = False, epochs: int = DEFAULT_EPOCHS,
     seconds = 6.0 if quick else 10.0
     t0 = time.perf_counter()
     runs = [Run(("change", seed + k), run_set, {"set_seed": seed + k, "seconds": seconds, "epochs": epochs,
-                                                 "seed": seed}, 10 * seconds, seeded=False) for k in range(sets)]
+                                                 "seed": seed, "augment": augment},
+                (10 if augment is None else 14) * seconds, seeded=False) for k in range(sets)]
     results = list(run_all(runs, jobs=jobs, seed=seed, progress=progress).values())
     return {"figure": "change", "seconds": seconds, "segment": SEGMENT, "slides": SLIDES,
             "detect_within": DETECT_WITHIN, "change_rate": CHANGE_RATE, "confidence": CONFIDENCE, "sets": results,
+            "augment": None if augment is None else augment.to_dict(),
             "summary": summarize(results), "compute_seconds": time.perf_counter() - t0}
 
 
@@ -238,6 +249,7 @@ def change_table(result: dict) -> str:
         for s, v in summarize([r]).items():
             lines.append(f"| {r['set_seed']} | {s} | {v['threshold']:.2f} | {v['detected']:.3f} of {v['boundaries']} | "
                          f"{v['false_per_minute']:.2f} | {v['after_change']:.3f} | {v['after_lift_off']:.3f} |")
+    lines += ["", augment_line(result)]
     return "\n".join(lines)
 
 
@@ -260,7 +272,7 @@ def main(argv=None) -> int:
     from supramodal.experiments.common import two_sense_sets_main
 
     return two_sense_sets_main(argv, "change", __doc__.splitlines()[0], run_change, change_table,
-                               "6 s still touches (default 10 s)")
+                               "6 s still touches (default 10 s)", augment=AUGMENT_HELP)
 
 
 if __name__ == "__main__":

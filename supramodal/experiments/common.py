@@ -24,6 +24,11 @@ from supramodal.training import split, texture_features
 #: Seconds per texture in ``--quick`` mode (40 windows: 30 to train, 10 to test).
 QUICK_DURATION = 4.0
 BANKS = ("whisker", "cochlea")
+#: The help of the ``--augment`` flag of the experiments whose networks may train on gain-augmented windows
+#: (``newtouch``, ``change``: :func:`two_sense_sets_main`, ``supramodal experiment``).
+AUGMENT_HELP = ("gain augmentation of every network's training windows (supramodal.model.GainAugment: 4 more "
+                "copies of each, gains exp(N(0, 0.03)); per vibrissa for the whiskers, one level for the "
+                "microphone; seeded by --seed); the networks cost 5 times the CPU (default: none)")
 
 
 @dataclass(frozen=True)
@@ -103,6 +108,14 @@ def two_sense_sets_main(argv, module: str, description: str, run: Callable, tabl
     print(table(run(2 if args.quick else args.sets, args.quick, args.epochs, args.seed, progress_to_stderr,
                     args.jobs, **more)))
     return 0
+
+
+def augment_line(result: dict) -> str:
+    """Return the line of an experiment's table that says its networks' gain augmentation (``result["augment"]``)."""
+    augment = result.get("augment")
+    return ("gain augmentation of the networks' training windows: "
+            + ("none" if augment is None else f"{augment['copies']} copies, spread {augment['spread']:g} "
+               "(per vibrissa for the whiskers, one level for the microphone)"))
 
 
 def progress_to_stderr(message: str) -> None:

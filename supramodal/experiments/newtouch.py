@@ -42,7 +42,7 @@ from supramodal.banks import cochlea_bank, whisker_bank
 from supramodal.calibration import DEFAULT_CALIBRATION_FOLDS, fit_network_calibration, log_loss, winner
 from supramodal.errors import InputError
 from supramodal.experiments.calibration import auroc
-from supramodal.experiments.common import Run
+from supramodal.experiments.common import AUGMENT_HELP, Run, augment_line
 from supramodal.experiments.fusion import contact_runs
 from supramodal.features import DEFAULT_WINDOW
 from supramodal.fused_model import held_out_scores, learn_late_fusion_out_of_fold, senses_out_of_fold
@@ -405,10 +405,7 @@ def newtouch_table(result: dict) -> str:
     if early:
         lines.append(f"training CPU of a set's early-fusion network (this process): {min(early):.1f}.."
                      f"{max(early):.1f} s")
-    augment = result.get("augment")
-    lines.append("gain augmentation of the networks' training windows: "
-                 + ("none" if augment is None else f"{augment['copies']} copies, spread {augment['spread']:g} "
-                    "(per vibrissa for the whiskers, one level for the microphone)"))
+    lines.append(augment_line(result))
     return "\n".join(lines)
 
 
@@ -479,11 +476,7 @@ def main(argv=None) -> int:
     from supramodal.experiments.common import two_sense_sets_main
 
     return two_sense_sets_main(argv, "newtouch", __doc__.splitlines()[0], run_newtouch, newtouch_table,
-                               "6 s touches (default 10 s)",
-                               augment="gain augmentation of every network's training windows (supramodal.model."
-                                       "GainAugment: 4 more copies of each, gains exp(N(0, 0.03)); per vibrissa for "
-                                       "the whiskers, one level for the microphone); the networks cost 5 times the "
-                                       "CPU (default: none)")
+                               "6 s touches (default 10 s)", augment=AUGMENT_HELP)
 
 
 if __name__ == "__main__":
