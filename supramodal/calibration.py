@@ -907,6 +907,11 @@ NOVELTY_RUN = POOLING_RUN
 #: Fewest held-out contacts a length needs for quantiles of its own (a length with fewer repeats the
 #: row of the one before).
 NOVELTY_MIN_CONTACTS = 20
+#: Largest spread (sd of the natural logarithm of a touch's gains) a novelty score allows for, and a model
+#: file may say: gains of e^10 are no touch's (a training's estimate is held to it; a file beyond it is refused).
+NOVELTY_MAX_TOUCH_SPREAD = 10.0
+#: Most windows or touches a class's mean may say it was fitted on (a file's counts, checked on load).
+NOVELTY_MAX_COUNT = 2**53
 #: Name of the novelty score that allows for a new touch (:class:`TouchSpread`; issue 34).
 NOVELTY_TOUCH_METHOD = "asinh-mahalanobis-touch"
 #: Least spread (sd of the natural logarithm) of a touch's gains that a novelty score allows for,
@@ -967,20 +972,21 @@ class TouchSpread:
             raise bad(f"'novelty.touch' must be an object of exactly the keys {keys}, got {d!r}")
 
         def number(v) -> bool:
-            return not isinstance(v, bool) and isinstance(v, (int, float)) and math.isfinite(v) and v >= 0
+            return (not isinstance(v, bool) and isinstance(v, (int, float)) and math.isfinite(v)
+                    and 0 <= v <= NOVELTY_MAX_TOUCH_SPREAD)
 
-        def integers(v, n: int, least: int) -> bool:
+        def integers(v, n: int, least: int, most: int) -> bool:
             return (isinstance(v, list) and len(v) == n
-                    and all(not isinstance(e, bool) and isinstance(e, int) and e >= least for e in v))
+                    and all(not isinstance(e, bool) and isinstance(e, int) and least <= e <= most for e in v))
 
         if not number(d["spread"]) or not (d["estimated"] is None or number(d["estimated"])):
-            raise bad(f"'novelty.touch' spread and estimated must be finite numbers >= 0 (estimated may be null), "
-                      f"got {d['spread']!r} and {d['estimated']!r}")
-        if not integers(d["groups"], n_in, -1):
-            raise bad(f"'novelty.touch.groups' must be a list of {n_in} integers >= -1")
+            raise bad(f"'novelty.touch' spread and estimated must be finite numbers >= 0 and <= "
+                      f"{NOVELTY_MAX_TOUCH_SPREAD:g} (estimated may be null), got {d['spread']!r} and {d['estimated']!r}")
+        if not integers(d["groups"], n_in, -1, n_in):
+            raise bad(f"'novelty.touch.groups' must be a list of {n_in} integers >= -1 and <= {n_in}")
         for key in ("windows", "touches"):
-            if not integers(d[key], n_classes, 1):
-                raise bad(f"'novelty.touch.{key}' must be a list of {n_classes} integers >= 1")
+            if not integers(d[key], n_classes, 1, NOVELTY_MAX_COUNT):
+                raise bad(f"'novelty.touch.{key}' must be a list of {n_classes} integers >= 1 and <= 2**53")
         return cls(float(d["spread"]), tuple(d["groups"]), tuple(d["windows"]), tuple(d["touches"]),
                    None if d["estimated"] is None else float(d["estimated"]))
 
@@ -990,7 +996,9 @@ class Novelty:
     """How far windows lie from every known texture.
 
     A window's score is the squared Mahalanobis distance of its warped inputs ``u`` to the nearest
-    class mean (one covariance shared by the classes, shrunk towards its diagonal). The warp
+    class mean: under one covariance shared by the classes, shrunk towards its diagonal (a model file
+    of before :attr:`touch`), or, with :attr:`touch`, under each class's predictive covariance of a
+    new touch (:class:`TouchSpread`). The warp
     ``u = asinh(gain * x + offset)`` of the standardised inputs ``x`` is the logarithm of the raw
     feature values (:data:`NOVELTY_FLOOR`): the peak features are positive and heavy-tailed, and a
     Gaussian fits their logarithm better (leave-2-textures-out on the whisker reference set, worst
@@ -1192,7 +1200,21 @@ class Novelty:
         precision = arrays["novelty_precision"].astype(np.float64)
         if not np.allclose(precision, precision.T, rtol=1e-9, atol=1e-12):
             raise bad("array novelty_precision must be symmetric")
-        return cls(arrays["novelty_means"].astype(np.float64), precision, q, gain, offset, touch)
+        try:
+            np.linalg.cholesky(precision)       # a distance under it is then >= 0, and its inverse exists
+        except np.linalg.LinAlgError:
+            raise bad("array novelty_precision must be positive definite (a covariance's inverse)") from None
+        novelty = cls(arrays["novelty_means"].astype(np.float64), precision, q, gain, offset, touch)
+        if touch is not None:
+            # made here, not on the node's first window: a file whose numbers make no covariance is refused now
+            with np.errstate(all="raise"):
+                try:
+                    if not np.isfinite(novelty._touch_precisions(1)).all():
+                        raise FloatingPointError
+                except (np.linalg.LinAlgError, FloatingPointError, OverflowError):
+                    raise bad("'novelty.touch' and array novelty_precision make no covariance of a new touch "
+                              "(singular or not finite): retrain the model") from None
+        return novelty
 
 
 def novelty_warp(mean, scale) -> tuple[np.ndarray, np.ndarray]:
@@ -1255,6 +1277,9 @@ def fit_novelty(x, labels, n_classes: int, folds, groups=None, mean=None, scale=
     if mean is not None:
         gain, offset = novelty_warp(mean, scale)
     u = Novelty(np.zeros((1, x.shape[1])), np.eye(x.shape[1]), NOVELTY_QUANTILES, gain, offset).warped(x)
+    if touch_groups is not None and gain is None:
+        raise InputError("fit_novelty's touch_groups need mean and scale: the allowance for a new touch is in the "
+                         "logarithm of the raw inputs")
     if touch_groups is not None and gain is not None:
         tg = tuple(int(v) for v in touch_groups)
         if len(tg) != x.shape[1]:
@@ -1301,7 +1326,9 @@ def _touch_gaussian(u, y, groups, n_classes: int, touch_groups: tuple, floor: fl
     estimated = touch_spread(u, y, groups, cov, structure)
     windows = tuple(max(int(np.sum(y == k)), 1) for k in range(n_classes))
     touches = tuple(max(len(set(groups[y == k].tolist())), 1) for k in range(n_classes))
-    spread = max(floor, 0.0 if estimated is None else estimated)
+    if estimated is not None:
+        estimated = min(estimated, NOVELTY_MAX_TOUCH_SPREAD)
+    spread = min(max(floor, 0.0 if estimated is None else estimated), NOVELTY_MAX_TOUCH_SPREAD)
     return means, (precision + precision.T) / 2, TouchSpread(float(spread), touch_groups, windows, touches, estimated)
 
 

@@ -179,8 +179,10 @@ class EarlyGainCopies:
         """Return the rows ``x`` and their copies, and the labels ``y`` repeated, for network ``stream``."""
         x = np.asarray(x)
         split = len(self.parts[0].features) * self.parts[0].channels
-        (xa, ya), (xb, _) = self.parts[0](x[:, :split], y, stream), self.parts[1](x[:, split:], y, stream)
-        return np.concatenate([xa, xb], axis=1), ya
+        xa, xb = self.parts[0](x[:, :split], y, stream)[0], self.parts[1](x[:, split:], y, stream)[0]
+        # a sense without a gain-linear feature (f alone) comes back uncopied: its windows repeated, unchanged
+        xa, xb = (np.tile(v, (self.factor, 1)) if len(v) == len(x) else v for v in (xa, xb))
+        return np.concatenate([xa, xb], axis=1), np.tile(np.asarray(y), self.factor)
 
 
 @dataclass

@@ -241,6 +241,8 @@ def touch_allowance(features, bank: Bank, augment: GainAugment | None = None) ->
     :data:`~supramodal.calibration.NOVELTY_TOUCH_SPREAD`, or ``augment``'s spread where larger
     (:func:`supramodal.calibration.fit_novelty`'s ``touch_groups`` and ``touch_floor``).
     """
+    if augment is not None and not (augment.copies and augment.spread > 0):
+        augment = None              # copies of gains 1 are the model without it, to the bit: its allowance too
     per_channel = (augment if augment is not None else GainAugment(per_channel=None)).resolved(bank.kind).per_channel
     groups = tuple((c if per_channel else 0) if f in GAIN_LINEAR_FEATURES else -1
                    for f in features for c in range(bank.channels))

@@ -211,3 +211,24 @@ def test_an_augmented_early_network_and_its_fold_networks_train_on_the_copies_an
     broken = dataclasses.replace(aug, training=header_bad)
     with pytest.raises(ModelError, match="two senses' gain augmentation"):
         EarlyFusionModel.load(broken.save(tmp_path / "broken.npz"))
+
+
+def test_an_early_sense_without_a_gain_linear_feature_is_repeated_unchanged_beside_the_others_copies():
+    """A microphone of f alone has no gain to draw: its windows are repeated so that each pair stays a pair
+    (the two senses' rows were joined at different lengths: a numpy error)."""
+    from supramodal.banks import cochlea_bank
+    from supramodal.fused_model import EarlyFusionModel, Sense
+
+    _, va, vb, labels = _early_data()
+    senses = (Sense("whiskers", BANK, ("Af", "f"), 500), Sense("mic", cochlea_bank(), ("f",), 4410))
+    model = EarlyFusionModel.train(senses, va, vb, labels, CLASSES, epochs=20, seed=1, calibration_folds=3,
+                                   augment=GainAugment(copies=2, spread=0.05, per_channel=None))
+    from supramodal.fused_model import EarlyGainCopies, early_augment
+    from supramodal.fusion import early_inputs
+
+    rows, y = EarlyGainCopies.of(early_augment(GainAugment(2, 0.05, None), senses), senses)(
+        early_inputs(va, vb), labels, 0)
+    assert rows.shape == (3 * len(va), 16 + 50) and len(y) == len(rows)
+    for k in range(3):
+        np.testing.assert_array_equal(rows[k * len(vb):(k + 1) * len(vb), 16:], vb.reshape(len(vb), -1))
+    assert model.augment is not None and model.calibration is not None

@@ -530,6 +530,8 @@ def test_a_model_file_of_the_novelty_before_the_touch_allowance_loads_and_scores
     (lambda n: n.update(method="asinh-mahalanobis"), "exactly the keys"),
     (lambda n: n.pop("touch"), "exactly the keys"),
     (lambda n: n["touch"].update(spread=-0.1), "finite numbers >= 0"),
+    (lambda n: n["touch"].update(spread=1e200), "finite numbers >= 0 and <= 10"),      # spread ** 2 overflowed
+    (lambda n: n["touch"].update(windows=[10**400] * 5), r"integers >= 1 and <= 2\*\*53"),
     (lambda n: n["touch"].update(estimated="x"), "finite numbers >= 0"),
     (lambda n: n["touch"].update(groups=[0] * 7), "list of 50 integers >= -1"),
     (lambda n: n["touch"].update(touches=[0] * 5), "touches' must be a list of 5 integers >= 1"),
@@ -548,6 +550,41 @@ def test_a_bad_touch_allowance_in_a_model_file_is_refused_by_name(same_level_mod
     np.savez(tmp_path / "bad.npz", header=np.array(json.dumps(header)), **arrays)
     with pytest.raises(ModelError, match=message):
         TextureModel.load(tmp_path / "bad.npz")
+
+
+@pytest.mark.parametrize("precision, message", [
+    (lambda p: np.zeros_like(p), "novelty_precision must be positive definite"),
+    (lambda p: -p, "novelty_precision must be positive definite"),
+])
+def test_a_novelty_precision_that_is_no_covariances_inverse_is_refused_on_load(same_level_model, tmp_path, precision,
+                                                                               message):
+    """Loaded, such a file crashed the node's first window (a singular inverse) or never said "unknown" (a
+    negative distance): refused by name when the file is read."""
+    from supramodal.model import ModelError
+
+    path = same_level_model.save(tmp_path / "m.npz")
+    with np.load(path) as npz:
+        arrays = {k: npz[k] for k in npz.files}
+    arrays["novelty_precision"] = precision(arrays["novelty_precision"])
+    np.savez(tmp_path / "bad.npz", **arrays)
+    with pytest.raises(ModelError, match=message):
+        TextureModel.load(tmp_path / "bad.npz")
+    loaded = TextureModel.load(path)                 # the file as trained loads, its new-touch covariance made
+    assert 1 in loaded.novelty.__dict__["_precisions"]
+
+
+def test_the_novelty_allowance_needs_the_warp_and_gains_of_1_allow_as_without():
+    from supramodal.banks import whisker_bank
+    from supramodal.calibration import fit_novelty
+    from supramodal.errors import InputError
+    from supramodal.model import GainAugment, touch_allowance
+
+    x = np.random.default_rng(0).normal(size=(20, 4))
+    with pytest.raises(InputError, match="touch_groups need mean and scale"):
+        fit_novelty(x, np.repeat([0, 1], 10), 2, np.tile([0, 1], 10), touch_groups=[0, 1, 2, 3])
+    bank = whisker_bank(rows="AB")
+    assert touch_allowance(("Af",), bank, GainAugment(4, 0.0, False)) == touch_allowance(("Af",), bank)
+    assert touch_allowance(("Af",), bank, GainAugment(4, 0.05, False))[0] == (0,) * 8       # shared when asked
 
 
 def test_the_covariance_within_a_recording_is_about_each_textures_part_of_it():

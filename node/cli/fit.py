@@ -142,7 +142,9 @@ def run(args: argparse.Namespace) -> int:
     interrupt_until_running("writing the fit's files; they are put in place all or none")
     files = write_staged(args.out, lambda folder: write_search(result, folder))
     b = result["best"]
-    augment = "" if args.augment_gains is None else f" --augment-gains {augment_form(args.augment_gains)}"
+    # the gains scored are drawn from the seed: the model trained with the same seed draws the same
+    augment = ("" if args.augment_gains is None else f" --augment-gains {augment_form(args.augment_gains)}"
+               + ("" if args.seed == 0 else f" --seed {args.seed}"))
     print(f"wrote {', '.join(str(p) for p in files)}\nnext: supramodal train --bank {args.out / 'bank.json'} "
           f"--window {b['window']:g} --features {b['features'].replace('+', ' ')} --epochs {b['epochs']} "
           f"--manifest {args.manifest}{augment} --out MODEL")
