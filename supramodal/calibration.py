@@ -981,7 +981,8 @@ class TouchSpread:
 
         if not number(d["spread"]) or not (d["estimated"] is None or number(d["estimated"])):
             raise bad(f"'novelty.touch' spread and estimated must be finite numbers >= 0 and <= "
-                      f"{NOVELTY_MAX_TOUCH_SPREAD:g} (estimated may be null), got {d['spread']!r} and {d['estimated']!r}")
+                      f"{NOVELTY_MAX_TOUCH_SPREAD:g} (estimated may be null), got {d['spread']!r} and "
+                      f"{d['estimated']!r}")
         if not integers(d["groups"], n_in, -1, n_in):
             raise bad(f"'novelty.touch.groups' must be a list of {n_in} integers >= -1 and <= {n_in}")
         for key in ("windows", "touches"):
