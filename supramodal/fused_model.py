@@ -386,8 +386,11 @@ class EarlyFusionModel:
             parts = training["augment"]
             if not (isinstance(parts, list) and len(parts) == 2):
                 raise bad(f"'training' 'augment' must be a list of the two senses' gain augmentation, got {parts!r}")
-            for part in parts:
-                GainAugment.from_dict(part, bad)
+            augments = [GainAugment.from_dict(part, bad) for part in parts]
+            # as early_augment makes them: a pair's two windows copied together, each sense's gains said
+            if augments[0].copies != augments[1].copies or None in (a.per_channel for a in augments):
+                raise bad("'training' 'augment': the two senses' gain augmentation must have the same copies and "
+                          f"per_channel true or false, got {parts!r}")
         calibration, novelty = calibration_from_parts(header, arrays, n_in, len(classes), bad)
         return cls((senses[0], senses[1]), tuple(classes), mean, scale, mlp, training, calibration, novelty)
 

@@ -211,6 +211,10 @@ def test_an_augmented_early_network_and_its_fold_networks_train_on_the_copies_an
     broken = dataclasses.replace(aug, training=header_bad)
     with pytest.raises(ModelError, match="two senses' gain augmentation"):
         EarlyFusionModel.load(broken.save(tmp_path / "broken.npz"))
+    for part in ({**aug.training["augment"][1], "copies": 3}, {**aug.training["augment"][1], "per_channel": None}):
+        unlike = dataclasses.replace(aug, training=dict(aug.training, augment=[aug.training["augment"][0], part]))
+        with pytest.raises(ModelError, match="same copies and per_channel true or false"):
+            EarlyFusionModel.load(unlike.save(tmp_path / "unlike.npz"))
 
 
 def test_an_early_sense_without_a_gain_linear_feature_is_repeated_unchanged_beside_the_others_copies():
