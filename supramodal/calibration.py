@@ -295,6 +295,27 @@ def _capped_loss(d, log_caps, target) -> tuple[float, np.ndarray, np.ndarray]:
     return loss, by_h * shrink * inv, by_h * h * x * inv
 
 
+class _WinnersCaps:
+    """The caps ``f * base`` of each decision's winner over every class, as the capped losses take them.
+
+    ``log base`` of each decision's winner is computed once (laid out (classes, n), as :func:`_capped_loss`
+    takes it); :meth:`loss` caps the leads ``d`` at ``f`` times it, clipped to :data:`CAP_BOUNDS`.
+    """
+
+    def __init__(self, base: np.ndarray, winners: np.ndarray) -> None:
+        filled = np.array(base, dtype=np.float64)
+        np.fill_diagonal(filled, 1.0)               # a class against itself: its lead is 0
+        self.log_base = np.ascontiguousarray(np.log(filled)[winners].T)
+        self.lo, self.hi = (math.log(v) for v in CAP_BOUNDS)
+
+    def loss(self, d, log_f: float, target) -> tuple[float, np.ndarray, float]:
+        """Return :func:`_capped_loss` of leads ``d`` at caps ``f * base``, its derivatives by ``d`` and ``log f``."""
+        raw = self.log_base + log_f
+        loss, by_d, by_log_cap = _capped_loss(d, np.clip(raw, self.lo, self.hi), target)
+        free = (raw > self.lo) & (raw < self.hi)    # a cap at its bound does not move with f
+        return loss, by_d, float((by_log_cap * free).sum())
+
+
 class _MapLoss:
     """The smoothed log loss of a window map on fixed held-out logits, with its gradient.
 
@@ -317,19 +338,14 @@ class _MapLoss:
         self.n = len(z)
         self.target = np.ascontiguousarray(_smoothed_targets(y, z.shape[1]).T)
         self.at = (np.argmax(z, axis=1), np.arange(self.n))     # each row's winner, in the (classes, n) layout
-        self.base = base
-        if base is not None:
-            filled = np.array(base, dtype=np.float64)
-            np.fill_diagonal(filled, 1.0)               # a class against itself: its lead is 0
-            self.log_base = np.ascontiguousarray(np.log(filled)[self.at[0]].T)   # log caps of each row's winner
-            self.cap_lo, self.cap_hi = (math.log(v) for v in CAP_BOUNDS)
+        self.caps = None if base is None else _WinnersCaps(base, self.at[0])
 
     def __call__(self, p) -> tuple[float, np.ndarray]:
         """Return the loss and its gradient at ``p`` (logs of ``a``, ``c`` and, with caps, ``f``)."""
         a, c = math.exp(p[0]), math.exp(p[1])
         u = np.arcsinh(self.z / c)
         slope = np.tanh(u)                              # -c du/dc = w / sqrt(1 + w^2), w = z / c
-        if self.base is None:
+        if self.caps is None:
             s = u * a
             top = s[self.at]                            # each row's largest score (its winner's)
             e = np.exp(s - top)
@@ -340,11 +356,9 @@ class _MapLoss:
         d = u[self.at] - u
         d *= a
         np.maximum(d, 0.0, out=d)                       # >= 0 already, but for rounding
-        raw = self.log_base + p[2]
-        loss, by_d, by_log_cap = _capped_loss(d, np.clip(raw, self.cap_lo, self.cap_hi), self.target)
+        loss, by_d, by_log_f = self.caps.loss(d, p[2], self.target)
         slope -= slope[self.at]
-        free = (raw > self.cap_lo) & (raw < self.cap_hi)  # a cap at its bound does not move with f
-        return loss, np.array([(by_d * d).sum(), a * (by_d * slope).sum(), (by_log_cap * free).sum()])
+        return loss, np.array([(by_d * d).sum(), a * (by_d * slope).sum(), by_log_f])
 
 
 def _fit(loss, starts, bounds):
@@ -552,22 +566,16 @@ class _PoolLoss:
         rows = np.arange(len(s))
         self.lead = np.ascontiguousarray(np.maximum(s[rows, k][:, None] - s, 0.0).T)
         self.target = np.ascontiguousarray(_smoothed_targets(y, s.shape[1]).T)
-        filled = np.array(base, dtype=np.float64)
-        np.fill_diagonal(filled, 1.0)                # a class against itself: its lead is 0
-        self.log_base = np.ascontiguousarray(np.log(filled)[k].T)
-        self.cap_lo, self.cap_hi = (math.log(v) for v in CAP_BOUNDS)
+        self.caps = _WinnersCaps(base, k)
         self.n, self.at = prefixes._n, prefixes._at
 
     def __call__(self, p) -> tuple[float, np.ndarray]:
         """Return the loss and its gradient at ``p = (rho, log f)``."""
         rho = min(max(float(p[0]), 0.0), 1.0)
         g = (effective_windows(self.n, rho) / self.n)[self.at]
-        raw = self.log_base + p[1]
-        loss, by_d, by_log_cap = _capped_loss(self.lead * g, np.clip(raw, self.cap_lo, self.cap_hi), self.target)
+        loss, by_d, by_log_f = self.caps.loss(self.lead * g, p[1], self.target)
         by_g = (by_d * self.lead).sum(axis=0)
-        free = (raw > self.cap_lo) & (raw < self.cap_hi)
-        return loss, np.array([(by_g * _pooling_slope(len(self.n), rho)[self.at]).sum(),
-                               (by_log_cap * free).sum()])
+        return loss, np.array([(by_g * _pooling_slope(len(self.n), rho)[self.at]).sum(), by_log_f])
 
 
 def _check_scored(values, labels, what: str) -> None:
@@ -921,6 +929,12 @@ NOVELTY_TOUCH_METHOD = "asinh-mahalanobis-touch"
 NOVELTY_TOUCH_SPREAD = 0.03
 
 
+def gain_structure(groups) -> np.ndarray:
+    """``G`` (inputs, inputs) of per-input gain ``groups`` (-1: no gain): 1 where two inputs share a gain."""
+    g = np.asarray(groups)
+    return ((g[:, None] == g[None, :]) & (g[:, None] >= 0)).astype(np.float64)
+
+
 @dataclass(frozen=True)
 class TouchSpread:
     """How far a touch's windows lie from their texture's mean by the touch alone: the novelty's allowance.
@@ -954,9 +968,8 @@ class TouchSpread:
     estimated: float | None = None
 
     def structure(self) -> np.ndarray:
-        """``G`` (inputs, inputs): 1 where two inputs share a gain."""
-        g = np.asarray(self.groups)
-        return ((g[:, None] == g[None, :]) & (g[:, None] >= 0)).astype(np.float64)
+        """``G`` (inputs, inputs): 1 where two inputs share a gain (:func:`gain_structure` of :attr:`groups`)."""
+        return gain_structure(self.groups)
 
     def to_dict(self) -> dict:
         """Return what a model file's header keeps of it (plain JSON values)."""
@@ -1323,8 +1336,7 @@ def _touch_gaussian(u, y, groups, n_classes: int, touch_groups: tuple, floor: fl
     cov = resid.T @ resid / max(len(u) - len(recording_means), 1)
     cov = (1 - NOVELTY_SHRINK) * cov + NOVELTY_SHRINK * np.diag(np.diag(cov)) + 1e-6 * np.eye(p)
     precision = np.linalg.inv(cov)
-    structure = TouchSpread(0.0, touch_groups, (1,) * n_classes, (1,) * n_classes).structure()
-    estimated = touch_spread(u, y, groups, cov, structure)
+    estimated = touch_spread(u, y, groups, cov, gain_structure(touch_groups))
     windows = tuple(max(int(np.sum(y == k)), 1) for k in range(n_classes))
     touches = tuple(max(len(set(groups[y == k].tolist())), 1) for k in range(n_classes))
     if estimated is not None:

@@ -610,11 +610,11 @@ def early_touch_allowance(senses, augments: tuple[GainAugment, GainAugment] | No
                           ) -> tuple[tuple[int, ...], float]:
     """Return the novelty's allowance for a new touch of an early-fusion network: inputs sharing a gain, least spread.
 
-    Each sense's as :func:`supramodal.model.touch_allowance` gives it, by its own gain augmentation where
-    ``augments`` (:func:`early_augment`) copies its windows with gains (spread > 0); the second sense's groups
-    follow the first's (a touch's gains are each sensor's own), the least spread the larger of the two.
+    Each sense's as :func:`supramodal.model.touch_allowance` gives it, by its own gain augmentation
+    (``augments``, :func:`early_augment`; a sense copied unchanged, spread 0, as none); the second sense's
+    groups follow the first's (a touch's gains are each sensor's own), the least spread the larger of the two.
     """
-    parts = [touch_allowance(s.features, s.bank, a if a is not None and a.spread > 0 else None)
+    parts = [touch_allowance(s.features, s.bank, a)
              for s, a in zip(senses, augments if augments is not None else (None, None))]
     (first, floor_a), (second, floor_b) = parts
     shift = max(first, default=-1) + 1

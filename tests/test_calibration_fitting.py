@@ -18,6 +18,7 @@ from supramodal.calibration import (CAP_BOUNDS, CAP_SHARPNESS, FACTOR_BOUNDS, MA
                                     fit_capped_window_calibration, fit_pooling, fit_window_calibration, log_loss,
                                     pool_log_posteriors, winner)
 from supramodal.errors import InputError
+from test_calibration import _confusable      # held-out logits of a pair the network cannot tell apart
 
 mpmath.mp.dps = 50
 
@@ -192,25 +193,6 @@ def test_the_fitted_map_lowers_the_held_out_log_loss_against_the_identity_and_ke
         assert log_loss(lp, yt) < log_loss(log_softmax(zt, axis=1), yt) - 1.0
         assert log_loss(cal.log_posteriors(z), y) < log_loss(log_softmax(z, axis=1), y) - 1.0
         np.testing.assert_array_equal(winner(lp), winner(zt))
-
-
-def _confusable(seed=0, runs=12, run=20):
-    """Held-out logits of 4 classes, 2 and 3 told apart, 0 and 1 not (one of the pair for a whole run):
-    test_calibration's data for caps."""
-    rng = np.random.default_rng(seed)
-    z, y, groups, folds = [], [], [], []
-    for r in range(runs * 4):
-        label = r % 4
-        side = label if label >= 2 else rng.integers(2)
-        logits = rng.normal(-30, 8, (run, 4))
-        logits[:, side] = rng.normal(30, 8, run)
-        if label < 2 and rng.random() < 0.1:
-            logits[:, [0, 1]] = logits[:, [1, 0]]
-        z.append(logits)
-        y += [label] * run
-        groups += [r] * run
-        folds += [r % 10] * run
-    return np.vstack(z), np.array(y), np.array(groups), np.array(folds)
 
 
 def test_fitted_caps_still_bound_the_odds_between_each_pair():

@@ -399,30 +399,3 @@ def test_a_trained_model_carries_its_held_out_changes_and_the_node_fits_its_thre
     assert fitted.threshold < fitted.bound                          # the bound is loose where classes stand apart
     older = replace(again, calibration=replace(again.calibration, changes=None))   # a file of before
     assert decider_for(older, rules).detector.threshold == fitted.bound
-
-
-def test_experiment_change_takes_gain_augmentation_as_experiment_newtouch_does(monkeypatch, tmp_path):
-    """`supramodal experiment change --augment` and `python -m supramodal.experiments.change --augment` give
-    run_change GainAugment() seeded by --seed (the same flag as newtouch's); without it, nothing. The table
-    says which."""
-    from supramodal.experiments import change
-    from supramodal.model import GainAugment
-    from supramodal.node.cli import main
-
-    given = []
-
-    def run(sets, quick, epochs, seed, progress, jobs, **more):
-        given.append(more)
-        return {}
-
-    monkeypatch.setattr(change, "run_change", run)
-    monkeypatch.setattr(change, "change_table", lambda result: "table")
-    monkeypatch.setattr("supramodal.experiments.report.write_figure", lambda name, result, out: [])
-    for extra in (["--augment", "--seed", "3"], []):
-        assert main(["-q", "experiment", "change", "--sets", "1", "--out", str(tmp_path), *extra]) == 0
-        assert change.main(["--sets", "1", *extra]) == 0
-    assert given == [{"augment": GainAugment(seed=3)}] * 2 + [{}] * 2
-    from supramodal.experiments.common import augment_line
-
-    assert augment_line({"augment": None}).endswith("none")
-    assert "4 copies, spread 0.03" in augment_line({"augment": GainAugment(seed=3).to_dict()})

@@ -369,26 +369,34 @@ def test_the_experiments_module_takes_gain_augmentation_seeded_by_its_seed(capsy
     capsys.readouterr()
 
 
+@pytest.mark.parametrize("figure", ["newtouch", "change"])
 def test_experiment_newtouch_takes_augment_on_the_command_line_and_the_others_refuse_it(monkeypatch, tmp_path,
-                                                                                         capsys):
-    """`supramodal experiment newtouch --augment` gives run_newtouch GainAugment() seeded by --seed, as the
-    module's flag does; without it, nothing; another experiment refuses the flag, naming it (exit 2)."""
-    from supramodal.experiments import newtouch
+                                                                                         capsys, figure):
+    """`supramodal experiment newtouch --augment` (and change's) gives its run GainAugment() seeded by --seed, as
+    the module's flag does; without it, nothing; another experiment refuses the flag, naming it (exit 2)."""
+    import importlib
+
     from supramodal.model import GainAugment
     from supramodal.node.cli import main
 
+    module = importlib.import_module(f"supramodal.experiments.{figure}")
     given = []
 
     def run(sets, quick, epochs, seed, progress, jobs, **more):
         given.append(more)
         return {}
 
-    monkeypatch.setattr(newtouch, "run_newtouch", run)
-    monkeypatch.setattr(newtouch, "newtouch_table", lambda result: "table")
+    monkeypatch.setattr(module, f"run_{figure}", run)
+    monkeypatch.setattr(module, f"{figure}_table", lambda result: "table")
     monkeypatch.setattr("supramodal.experiments.report.write_figure", lambda name, result, out: [])
     for extra in (["--augment", "--seed", "3"], []):
-        assert main(["-q", "experiment", "newtouch", "--sets", "1", "--out", str(tmp_path), *extra]) == 0
-    assert given == [{"augment": GainAugment(seed=3)}, {}]
+        assert main(["-q", "experiment", figure, "--sets", "1", "--out", str(tmp_path), *extra]) == 0
+        assert module.main(["--sets", "1", *extra]) == 0
+    assert given == [{"augment": GainAugment(seed=3)}] * 2 + [{}] * 2
+    from supramodal.experiments.common import augment_line       # the tables' line saying it
+
+    assert augment_line({"augment": None}).endswith("none")
+    assert "4 copies, spread 0.03" in augment_line({"augment": GainAugment(seed=3).to_dict()})
     assert main(["experiment", "fusion", "--augment", "--out", str(tmp_path)]) == 2
     assert "--augment is experiment newtouch's" in capsys.readouterr().err
 
