@@ -14,8 +14,9 @@ cross-validation (mean +- sd over folds), and whether the fit is at least the be
 peaks 5 % above the last's), the quick fit on it (grouped 5-fold), timed, beside today's coordinate
 search (:mod:`node.workflows.fit`) on the same recordings. Today's fit takes hours there, so it is estimated
 from measured parts: one of its folds (the first candidate's: the model ``train`` would make, with
-its ten calibration networks, on four fifths of the recordings) and one filterbank pass over the
-recordings, times its 15 cross-validations (13 candidates and the paper's two banks) of 5 folds.
+its calibration's networks (ten when this was measured), on four fifths of the recordings) and one
+filterbank pass over the recordings, times its 15 cross-validations (13 candidates and the paper's two
+banks) of 5 folds.
 The machine's load average is printed before and after.
 """
 

@@ -5,9 +5,10 @@
 On the whisker reference set's training part (Fig. 3's first 75 % of each texture, Af; the
 model the default scene trains on start), each round measures, one after the other:
 
-* **one network**: the model's network alone (:func:`supramodal.mlp.train_task`), as a yardstick;
-* **train, 1 job**: :meth:`supramodal.model.TextureModel.train` with its calibration's ten fold
-  networks, in this process;
+* **one network**: a network of all the training windows alone (:func:`supramodal.mlp.train_task`), as a
+  yardstick (what an uncalibrated model trains; before 2026-11-30, the deployed network beside ten fold networks);
+* **train, 1 job**: :meth:`supramodal.model.TextureModel.train`: its calibration's fold networks (three,
+  which the model deploys) and the calibration's fitting, in this process;
 * **train, N jobs**: the same over ``--jobs`` worker processes (default: the cores); the model is
   checked to be the one of 1 job, weights and calibration alike;
 * **calibration fit**: :func:`supramodal.calibration.fit_calibration` alone on the 1-job model's
@@ -77,7 +78,7 @@ def first_decision_seconds(timeout: float = 300.0) -> float:
 def _same_model(a, b) -> bool:
     import numpy as np
 
-    return (all(np.array_equal(p, q) for p, q in zip(a.mlp.params(), b.mlp.params()))
+    return (all(np.array_equal(p, q) for p, q in zip(a.mlp.params(), b.mlp.params(), strict=True))
             and json.dumps(a.calibration.to_dict(), sort_keys=True)
             == json.dumps(b.calibration.to_dict(), sort_keys=True))
 

@@ -414,12 +414,29 @@ def change_statistics(log_posteriors, label: int, correlation: float = 0.0, caps
     lp = np.asarray(log_posteriors, dtype=np.float64)
     if lp.ndim != 2:
         raise InputError(f"a touch's log-posteriors must have shape (windows, classes), got {lp.shape}")
+    # The detector's own sums, for every window at once: the last CHANGE_LOOKBACK windows ending at each,
+    # newest first (zeros before the touch, whose stretches are then left out), summed in the detector's order.
     detector = ChangeDetector(lp.shape[1], 2.0, correlation, caps, threshold=np.inf, min_windows=min_windows)
+    if label < 0 or not len(lp):                # no decision to test against (the detector's -1), or no window
+        return np.full(len(lp), -np.inf)
+    L, m = CHANGE_LOOKBACK, detector.min_windows
+    windows = np.lib.stride_tricks.sliding_window_view(np.concatenate([np.zeros((L - 1, lp.shape[1])), lp]), L,
+                                                       axis=0)                      # (windows, classes, L)
     out = np.empty(len(lp))
-    for t, x in enumerate(lp):
-        detector.update(x, int(label))
-        out[t] = detector.statistic
+    for start in range(0, len(lp), _CHANGE_CHUNK):
+        recent = windows[start:start + _CHANGE_CHUNK].transpose(0, 2, 1)[:, ::-1]   # (chunk, L, classes)
+        sums = (np.cumsum(recent, axis=1) * detector._weights[:, None])[:, m - 1:]  # stretch of m + i windows
+        pooled = sums if detector.caps is None else cap_gaps(sums, detector.caps)
+        lead = pooled - pooled[..., [label]]
+        lead[..., label] = -np.inf
+        t = np.arange(start, start + len(recent))
+        lead[np.arange(m, L + 1)[None, :] > t[:, None] + 1] = -np.inf               # longer than the touch so far
+        out[start:start + len(recent)] = lead.max(axis=(1, 2))
     return out
+
+
+#: Windows of a touch whose stretches :func:`change_statistics` weighs at once (memory: ``20 x classes`` each).
+_CHANGE_CHUNK = 4096
 
 
 def fit_change_threshold(touches, labels, windows_per_false_change: float, correlation: float = 0.0, caps=None,

@@ -11,13 +11,13 @@ header names the format ``supramodal-early-model`` and, under ``senses``, what e
 inputs are (bank, features, window, peak settings, and the sense's name), in input order.
 
 Version 2 adds the network's calibration, as a one-sense model file's version 2 does
-(:mod:`supramodal.model`): the header's ``calibration`` (fitted by
-:func:`supramodal.calibration.fit_network_calibration` on out-of-fold windows of the concatenated
-inputs) and ``novelty`` (with the arrays ``novelty_means``, ``novelty_precision``,
-``novelty_quantiles``). A version 1 file still loads, uncalibrated. The calibration's ``changes``
-(:class:`~supramodal.calibration.HeldOutChanges`, what a change detector did on its held-out windows)
-is written by this version's training; a file without them loads, and its node keeps the change
-detector's bound.
+(:mod:`supramodal.model`): the header's ``calibration`` (fitted on out-of-fold windows of the
+concatenated inputs, :func:`supramodal.model.train_deployed`) and ``novelty`` (with the arrays
+``novelty_means``, ``novelty_precision``, ``novelty_quantiles``). A version 1 file still loads,
+uncalibrated. The calibration's ``changes`` (:class:`~supramodal.calibration.HeldOutChanges`, what a change
+detector did on its held-out windows) is written by this version's training; a file without them loads,
+and its node keeps the change detector's bound. Version 3 adds ``networks``, as a one-sense model file's
+version 3 does: a calibrated model deploys its calibration's fold networks.
 
 Late fusion learns its weight from windows that neither sense's network trained on:
 :func:`out_of_fold_logits` scores each window with a copy of a sense model's configuration trained
@@ -41,7 +41,6 @@ from supramodal.calibration import (
     OutOfFold,
     calibration_folds,
     calibration_report,
-    fit_network_calibration,
     fit_pooling,
     fit_window_calibration,
     input_scaling,
@@ -49,9 +48,10 @@ from supramodal.calibration import (
 )
 from supramodal.errors import InputError
 from supramodal.fusion import early_inputs, fuse_late, learn_late_fusion
-from supramodal.mlp import DEFAULT_EPOCHS, MLP, train_mlp
+from supramodal.mlp import DEFAULT_EPOCHS, MLP, Ensemble
 from supramodal.model import (
     CALIBRATION_KEYS,
+    NETWORKS_VERSION,
     NOVELTY_ARRAYS,
     SENSE_KEYS,
     GainAugment,
@@ -60,23 +60,25 @@ from supramodal.model import (
     TextureModel,
     calibration_from_parts,
     calibration_header,
+    check_networks_key,
     check_sense_fits,
     classes_from_header,
     log_posteriors_of,
     network_from_arrays,
+    networks_of,
     novelty_arrays,
     read_model_archive,
     save_model_archive,
     sense_from_header,
     sense_header,
     touch_allowance,
-    with_held_out_changes,
+    train_deployed,
 )
 
 EARLY_FORMAT = "supramodal-early-model"
-EARLY_VERSION = 2
-#: Versions this program reads (1: before calibration; its networks load uncalibrated).
-EARLY_VERSIONS = (1, 2)
+EARLY_VERSION = 3
+#: Versions this program reads (1: before calibration, its networks load uncalibrated; 2: one network).
+EARLY_VERSIONS = (1, 2, 3)
 
 
 @dataclass(frozen=True)
@@ -158,7 +160,7 @@ class EarlyGainCopies:
     """Gain augmentation of early-fusion inputs: each sense's columns copied by its own :class:`GainCopies`.
 
     Called ``(rows, labels, stream)`` as a :class:`~supramodal.model.GainCopies` is (for
-    :func:`~supramodal.calibration.fit_network_calibration`'s fold networks and the model's own);
+    :func:`~supramodal.model.train_deployed`'s networks);
     each sense draws its own gains (a touch's whisker gains and microphone level are independent).
     """
 
@@ -196,7 +198,8 @@ class EarlyFusionModel:
     classes : tuple of str
     mean, scale : ndarray, shape (inputs,)
         Standardisation of the concatenated inputs (from the training windows).
-    mlp : MLP
+    mlp : MLP or Ensemble
+        One network (uncalibrated), or the calibration's fold networks.
     training : dict
         How it was trained (algorithm, epochs, seed, windows).
     calibration : Calibration or None
@@ -213,7 +216,7 @@ class EarlyFusionModel:
     classes: tuple[str, ...]
     mean: np.ndarray
     scale: np.ndarray
-    mlp: MLP
+    mlp: MLP | Ensemble
     training: dict = field(default_factory=dict)
     calibration: Calibration | None = None
     novelty: Novelty | None = None
@@ -239,14 +242,14 @@ class EarlyFusionModel:
     def train(cls, senses, values_a: np.ndarray, values_b: np.ndarray, labels, classes,
               epochs: int = DEFAULT_EPOCHS, seed: int = 0, hidden: int | None = None, groups=None,
               calibration_folds: int = DEFAULT_CALIBRATION_FOLDS, calibration_progress=None,
-              augment: EarlyAugment = None) -> EarlyFusionModel:
-        """Fit the scaling and the MLP on aligned windows, then their calibration.
+              augment: EarlyAugment = None, jobs: int = 1) -> EarlyFusionModel:
+        """Fit the scaling and the networks on aligned windows, and their calibration.
 
         ``values_a[k]`` and ``values_b[k]`` cover the same time, shapes (n, features, channels) of
         each sense; ``labels`` (n,) index ``classes``. ``groups``, ``calibration_folds`` and
         ``calibration_progress`` as for :meth:`supramodal.model.TextureModel.train`: the calibration
-        is fitted on out-of-fold windows of networks like this one
-        (:func:`~supramodal.calibration.fit_network_calibration` on the concatenated inputs),
+        is fitted on out-of-fold windows of the fold networks that the model deploys
+        (:func:`~supramodal.model.train_deployed` on the concatenated inputs; ``jobs`` its worker processes),
         grouped by ``groups`` (each pair's recording or contact, pairs of one recording consecutive and in
         time order; default one per label); 0 folds: no calibration. The calibration carries what a change
         detector did on those held-out windows (:func:`~supramodal.model.with_held_out_changes`), for a
@@ -261,27 +264,16 @@ class EarlyFusionModel:
         """
         senses = tuple(senses)
         x = early_inputs(cls._check(senses[0], values_a), cls._check(senses[1], values_b))
-        y = np.asarray(labels)
-        mean, scale = input_scaling(x)
         augments = early_augment(augment, senses)
-        aug = None if augments is None else EarlyGainCopies.of(augments, senses)
-        xm, ym = (x, y) if aug is None else aug(x, y, 0)
-        mlp, history = train_mlp((xm - mean) / scale, ym, len(classes), hidden=hidden, epochs=epochs, seed=seed)
-        info = {"algorithm": "iRPROP-", "epochs": len(history), "seed": seed, "final_mse": history[-1],
-                "windows": int(len(x))}
+        # as a one-sense model: the calibration's fold networks deployed, the change detector's held-out
+        # statistics kept (a node's early fusion then fits its change threshold, not the detector's bound)
+        mlp, info, calibration, novelty, out_of_fold = train_deployed(
+            x, labels, len(classes), hidden, epochs, seed, groups, calibration_folds, jobs,
+            None if augments is None else EarlyGainCopies.of(augments, senses),
+            early_touch_allowance(senses, augments), calibration_progress=calibration_progress)
         if augments is not None:
             info["augment"] = [a.to_dict() for a in augments]
-        calibration = novelty = out_of_fold = None
-        if calibration_folds:
-            touch_groups, touch_floor = early_touch_allowance(senses, augments)
-            calibration, novelty, out_of_fold = fit_network_calibration(x, y, len(classes), groups, calibration_folds,
-                                                                        hidden, epochs, seed, calibration_progress,
-                                                                        augment=aug, touch_groups=touch_groups,
-                                                                        touch_floor=touch_floor)
-            # What a change detector did on the same held-out windows, as a one-sense model keeps it: a
-            # node's early fusion then fits its change threshold instead of taking the detector's bound.
-            calibration = with_held_out_changes(calibration, out_of_fold.logits, y,
-                                                y if groups is None else np.asarray(groups), out_of_fold.folds)
+        mean, scale = input_scaling(x)
         return cls(senses, tuple(classes), mean, scale, mlp, info, calibration, novelty, out_of_fold)
 
     @staticmethod
@@ -334,7 +326,8 @@ class EarlyFusionModel:
         return {"format": EARLY_FORMAT, "version": EARLY_VERSION,
                 "senses": [{"name": s.name, **sense_header(s.bank, s.features, s.window_samples, s.peak_mode,
                                                            s.peak_threshold)} for s in self.senses],
-                "classes": list(self.classes), "layers": list(self.mlp.shape), "training": self.training,
+                "classes": list(self.classes), "layers": list(self.mlp.shape), "networks": networks_of(self.mlp),
+                "training": self.training,
                 **calibration_header(self.calibration, self.novelty)}
 
     def save(self, path) -> Path:
@@ -361,9 +354,12 @@ class EarlyFusionModel:
         known = {"format", "version", "senses", "classes", "layers", "training"}
         if header["version"] >= 2:
             known |= set(CALIBRATION_KEYS)
+        if header["version"] >= NETWORKS_VERSION:
+            known.add("networks")
         unknown = set(header) - known
         if unknown:
             raise bad(f"unknown header key(s) {sorted(unknown)}")
+        check_networks_key(header, bad)
         raw = header.get("senses")
         if not (isinstance(raw, list) and len(raw) == 2 and all(isinstance(s, dict) for s in raw)):
             raise bad("'senses' must be a list of the two senses' descriptions")

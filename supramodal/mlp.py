@@ -163,6 +163,76 @@ class MLP:
         return [-(x.T @ delta1), -delta1.sum(0), -(h.T @ delta2), -delta2.sum(0)], mse
 
 
+
+@dataclass(frozen=True)
+class Ensemble:
+    """Networks of one shape on the same inputs, deciding together by the mean of their logits.
+
+    What a calibrated model deploys (:meth:`supramodal.model.TextureModel.train`): its calibration's
+    fold networks, each trained on all but one fold of the windows, so that the map fitted on their
+    held-out logits is the deployed networks' own. The mean of logits, not of outputs: a member sure
+    of a class (logit +40) and one unsure of it (logit -1) give a mean that is still sure, where the
+    mean of outputs would halve it; the calibration map then says how sure the mean is.
+
+    Attributes
+    ----------
+    members : tuple of MLP
+        At least one, all of the same :attr:`MLP.shape`.
+    """
+
+    members: tuple[MLP, ...]
+
+    def __post_init__(self) -> None:
+        if not self.members:
+            raise InputError("an ensemble needs at least one network")
+        shapes = {m.shape for m in self.members}
+        if len(shapes) > 1:
+            raise InputError(f"an ensemble's networks must have one shape, got {sorted(shapes)}")
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        """The members' layers: ``(inputs, hidden, outputs)``."""
+        return self.members[0].shape
+
+    def logits(self, x: np.ndarray) -> np.ndarray:
+        """Return the mean of the members' logits (:meth:`MLP.logits`), shape (n, outputs)."""
+        x = np.asarray(x, dtype=np.float64)
+        z = self.members[0].logits(x)
+        for m in self.members[1:]:
+            z += m.logits(x)
+        z /= len(self.members)
+        return z
+
+    def outputs(self, x: np.ndarray) -> np.ndarray:
+        """Return the logistic of :meth:`logits`, in [0, 1], shape (n, outputs)."""
+        return 0.5 * (1 + np.tanh(0.5 * self.logits(x)))
+
+    def predict(self, x: np.ndarray) -> np.ndarray:
+        """Winner-take-all class index, shape (n,) (the largest mean logit)."""
+        return np.argmax(self.logits(x), axis=1)
+
+    def params(self) -> list[np.ndarray]:
+        """Return every member's :meth:`MLP.params`, member after member (the arrays themselves)."""
+        return [p for m in self.members for p in m.params()]
+
+    def stacked(self) -> list[np.ndarray]:
+        """Return ``[w1, b1, w2, b2]``, each the members' arrays stacked on a first axis (a model file's)."""
+        return [np.stack(ps) for ps in zip(*(m.params() for m in self.members))]
+
+
+def rescaled(net: MLP, mean, scale, to_mean, to_scale) -> MLP:
+    """Return ``net``, trained on inputs ``(x - mean) / scale``, as the same function of ``(x - to_mean) / to_scale``.
+
+    Exact but for rounding: with ``u = (x - mean) / scale = v (to_scale / scale) + (to_mean - mean) / scale``
+    for ``v = (x - to_mean) / to_scale``, the first layer's weights are scaled by row and its biases moved.
+    What lets an :class:`Ensemble`'s members, each standardised by its own fold's windows, share one
+    input scaling.
+    """
+    mean, scale, to_mean, to_scale = (np.asarray(a, dtype=np.float64) for a in (mean, scale, to_mean, to_scale))
+    return MLP(net.w1 * (to_scale / scale)[:, None], net.b1 + ((to_mean - mean) / scale) @ net.w1,
+               net.w2.copy(), net.b2.copy())
+
+
 @dataclass
 class IRpropMinus:
     """Batch iRPROP- state for a list of parameter arrays (updated in place)."""

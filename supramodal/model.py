@@ -24,19 +24,20 @@ Version 2 adds the model's calibration (:mod:`supramodal.calibration`): the head
 and ``novelty`` (false, or the novelty score's method and warp, and since 2026-11-30 its allowance for
 a new touch, :meth:`Novelty.header`; ``true`` in files of before the warp; the file then holds the
 arrays ``novelty_means`` (classes, inputs), ``novelty_precision`` (inputs, inputs) and
-``novelty_quantiles``, validated by :meth:`Novelty.from_parts`). A version 1 file still
+``novelty_quantiles``, validated by :meth:`Novelty.from_parts`). Version 3 (2026-11-30) adds the header's
+``networks``: how many networks the model deploys (a calibrated model, its calibration's fold
+networks, :class:`~supramodal.mlp.Ensemble`), each of ``w1 b1 w2 b2`` then stacked on a first axis of
+that length. A version 2 file holds one network and loads as it did. A version 1 file still
 loads: its model is *uncalibrated* (:attr:`TextureModel.calibrated` is False), its posteriors
 the normalised outputs, and it cannot say "unknown".
 """
 
 from __future__ import annotations
 
-import itertools
 import json
 import math
 import zipfile
 import zlib
-from collections.abc import Iterable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -63,14 +64,18 @@ from supramodal.checks import CLASS_NAME_HELP, is_class_name
 from supramodal.errors import InputError
 from supramodal.features import check_features
 from supramodal.jsondata import parse_json_text
-from supramodal.mlp import DEFAULT_EPOCHS, MLP, NetworkTask, train_networks
+from supramodal.mlp import DEFAULT_EPOCHS, MLP, Ensemble, NetworkTask, rescaled, train_networks
 from supramodal.peaks import PEAK_MODES
 from supramodal.pipeline import MAX_WINDOW_SAMPLES
 
 MODEL_FORMAT = "supramodal-model"
-MODEL_VERSION = 2
-#: Versions this program reads (1: before calibration; its models load uncalibrated).
-MODEL_VERSIONS = (1, 2)
+MODEL_VERSION = 3
+#: Versions this program reads (1: before calibration, its models load uncalibrated; 2: one network).
+MODEL_VERSIONS = (1, 2, 3)
+#: The first version whose header says its ``networks`` (an :class:`~supramodal.mlp.Ensemble`'s members).
+NETWORKS_VERSION = 3
+#: Most networks a model file may hold (a model deploys its calibration's fold networks, 3 by default).
+MAX_NETWORKS = 64
 _ARRAYS = ("w1", "b1", "w2", "b2", "mean", "scale")
 #: Arrays of a model's novelty score, present when its header says ``"novelty": true``.
 NOVELTY_ARRAYS = ("novelty_means", "novelty_precision", "novelty_quantiles")
@@ -227,7 +232,7 @@ class GainAugment:
     def for_inputs(self, features, channels: int) -> GainCopies:
         """Return the callable ``(rows (n, features x channels), labels, stream) -> (rows, labels)``.
 
-        It is for :func:`supramodal.calibration.fold_tasks` and the model's own network.
+        It is for :func:`supramodal.calibration.fold_tasks` and a model's network of all the windows.
         """
         return GainCopies(self, tuple(features), int(channels))
 
@@ -291,6 +296,77 @@ class GainCopies:
                 np.tile(np.asarray(y), 1 + a.copies))
 
 
+def train_deployed(x, labels, n_classes: int, hidden: int | None, epochs: int, seed: int, groups, folds: int,
+                   jobs: int = 1, augment=None, touch=((), NOVELTY_TOUCH_SPREAD), progress=None,
+                   calibration_progress=None) -> tuple:
+    """Train what a model deploys on raw input rows ``x`` (n, inputs): its network(s) and their calibration.
+
+    With ``folds`` (> 0), the calibration's fold networks (:func:`~supramodal.calibration.fold_tasks`),
+    each trained on all folds but one and scoring that one's windows; the calibration, the novelty score
+    and the change detector's held-out statistics are fitted on those held-out logits
+    (:func:`~supramodal.calibration.calibration_of_held_out`, :func:`with_held_out_changes`), and the model
+    deploys the fold networks themselves, as an :class:`~supramodal.mlp.Ensemble` (the mean of their
+    logits) on ``x``'s own scaling. No network of all the windows is trained: the calibration is then fitted on the
+    deployed networks' own held-out logits (applied to their mean), and the model costs its fold networks (3 by
+    default: about twice one network of all the windows; with 10 folds and a network of its own, as before
+    2026-11-30, about 11 times).
+    Without folds (0): one network of all the windows, uncalibrated.
+
+    Parameters
+    ----------
+    x : ndarray, shape (n, inputs)
+    labels : array of int, shape (n,)
+    n_classes, hidden, epochs, seed
+        As :func:`supramodal.mlp.train_mlp`'s, for every network.
+    groups : sequence, length n, or None
+        Each window's recording (None: one per label): the folds (:func:`~supramodal.calibration.calibration_folds`).
+    folds : int
+        The calibration's folds; 0: none.
+    jobs : int
+        Worker processes (:func:`supramodal.mlp.train_networks`; the result is the same for any).
+    augment : callable, optional
+        Each network's training rows augmented (:meth:`GainAugment.for_inputs`; stream 0 is the one network
+        of all the windows, ``f + 1`` fold ``f``'s); the held-out rows, scaling, calibration and novelty
+        see the originals.
+    touch : (groups, floor)
+        The novelty's allowance for a new touch (:func:`touch_allowance`).
+    progress : callable(epoch, mse), optional
+        The last network's epochs (from workers: its last epoch alone).
+    calibration_progress : callable(str), optional
+        One line per fold network.
+
+    Returns
+    -------
+    network : MLP or Ensemble
+    info : dict
+        The ``training`` a model file keeps (algorithm, epochs, seed, final_mse: the networks' mean, windows).
+    calibration, novelty, out_of_fold
+        None without folds.
+    """
+    y = np.asarray(labels)
+    mean, scale = input_scaling(x)         # a constant input carries nothing; scale 1 keeps it at 0
+    info = {"algorithm": "iRPROP-", "seed": seed, "windows": int(len(x))}
+    if not folds:
+        xm, ym = (x, y) if augment is None else augment(x, y, 0)
+        (mlp, history, _), = train_networks([NetworkTask((xm - mean) / scale, ym, n_classes, hidden, epochs, seed)],
+                                            jobs, watch=(0, progress))
+        return mlp, {**info, "epochs": len(history), "final_mse": history[-1]}, None, None, None
+    g = y if groups is None else np.asarray(groups)
+    fold_of, by = calibration_folds_of(y, g, folds, seed)
+    held_out = HeldOutLogits(y, fold_of, folds, n_classes, calibration_progress)
+    work = fold_work(len(x), x.shape[1], n_classes, fold_of, folds, hidden, epochs) * getattr(augment, "factor", 1)
+    results = train_networks(fold_tasks(x, y, n_classes, fold_of, folds, hidden, epochs, seed, augment), jobs,
+                             watch=(held_out.networks - 1, progress), done=held_out.told, work=work)
+    calibration, novelty, out_of_fold = calibration_of_held_out(x, y, n_classes, g, fold_of, by, folds,
+                                                                held_out.logits, *touch)
+    calibration = with_held_out_changes(calibration, held_out.logits, y, g, fold_of)
+    # each fold network standardised its rows by their own mean and scale: re-expressed on the model's
+    members = [rescaled(net, *input_scaling(x[fold_of != f]), mean, scale)
+               for f, (net, _, _) in zip(held_out.order, results)]
+    info.update(epochs=len(results[0][1]), final_mse=float(np.mean([h[-1] for _, h, _ in results])))
+    return Ensemble(tuple(members)), info, calibration, novelty, out_of_fold
+
+
 @dataclass
 class TextureModel:
     """Input scaling + MLP + the metadata that says what the inputs mean.
@@ -306,7 +382,7 @@ class TextureModel:
     classes: tuple[str, ...]
     mean: np.ndarray
     scale: np.ndarray
-    mlp: MLP
+    mlp: MLP | Ensemble
     training: dict = field(default_factory=dict)
     peak_threshold: float = 0.0
     calibration: Calibration | None = None
@@ -334,7 +410,10 @@ class TextureModel:
               progress=None, peak_threshold: float = 0.0, groups=None,
               calibration_folds: int = DEFAULT_CALIBRATION_FOLDS, calibration_progress=None,
               jobs: int = 1, augment: GainAugment | None = None) -> TextureModel:
-        """Fit the scaling and the MLP on feature windows, then their calibration.
+        """Fit the scaling and the networks on feature windows, and their calibration (:func:`train_deployed`).
+
+        A calibrated model deploys its calibration's fold networks, the mean of their logits
+        (:class:`~supramodal.mlp.Ensemble`); without calibration folds, one network of all the windows.
 
         Parameters
         ----------
@@ -342,26 +421,28 @@ class TextureModel:
         labels : array of int, shape (n,)
             Index into ``classes`` of each window.
         classes : sequence of str
-        epochs, seed, hidden, progress
+        epochs, seed, hidden
             See :func:`supramodal.mlp.train_mlp`.
+        progress : callable(epoch, mse), optional
+            The last network's epochs.
         groups : sequence, length n, optional
             Each window's recording (windows of one recording consecutive, in time order): the
             calibration's held-out windows are whole recordings where there are enough of
             them (:func:`supramodal.calibration.calibration_folds`). Default: one per label.
         calibration_folds : int
-            Folds whose held-out windows fit the calibration and the novelty score (default
-            :data:`~supramodal.calibration.DEFAULT_CALIBRATION_FOLDS`); each trains one more
-            network like this one. 0: no calibration (the normalised outputs, as version 1).
+            Folds whose held-out windows fit the calibration and the novelty score, each trained by
+            a network of the others that the model deploys (default
+            :data:`~supramodal.calibration.DEFAULT_CALIBRATION_FOLDS`). 0: one network of all the
+            windows, no calibration (the normalised outputs, as version 1).
         calibration_progress : callable(str), optional
             One line per calibration fold.
         jobs : int
-            Worker processes for the model's network and its calibration's, trained side by side
+            Worker processes for the networks, trained side by side
             (:func:`supramodal.mlp.train_networks`): the model is the same for any; with more
-            than one, ``progress`` is told the network's last epoch alone. The calibration's
-            networks come first, the model's last (whose ``progress`` then follows the folds').
+            than one, ``progress`` is told the network's last epoch alone.
         augment : GainAugment, optional
-            Gain augmentation of the training windows of every network, the calibration's fold
-            networks and the model's alike (default None: none); the held-out windows, the scaling,
+            Gain augmentation of the training windows of every network (default None: none); the
+            held-out windows, the scaling,
             the calibration map and the novelty score see the original windows only. Its gains by bank
             (``per_channel`` None) are resolved with ``bank``'s kind; the model keeps it
             (:attr:`augment`).
@@ -372,45 +453,14 @@ class TextureModel:
         if values.ndim != 3 or values.shape[1:] != expected:
             raise InputError(f"feature windows must have shape (n, {expected[0]}, {expected[1]}), got {values.shape}")
         x = values.reshape(len(values), -1)
-        mean, scale = input_scaling(x)         # a constant input carries nothing; scale 1 keeps it at 0
-        y = np.asarray(labels)
-        # The calibration's fold networks first, the model's last: with workers, the calibration is
-        # fitted on the folds' windows while the model's network still trains.
         augment = None if augment is None else augment.resolved(bank.kind)
-        aug = None if augment is None else augment.for_inputs(features, bank.channels)
-        touch = touch_allowance(features, bank, augment)
-        xm, ym = (x, y) if aug is None else aug(x, y, 0)
-        model_task = NetworkTask((xm - mean) / scale, ym, len(classes), hidden, epochs, seed)
-        tasks: Iterable = [model_task]
-        work = model_task.work
-        held_out = None
-        fitted: list = []
-        n_folds = 0
-        if calibration_folds:
-            g = y if groups is None else np.asarray(groups)
-            folds, by = calibration_folds_of(y, g, calibration_folds, seed)
-            held_out = HeldOutLogits(y, folds, calibration_folds, len(classes), calibration_progress)
-            n_folds = held_out.networks
-            tasks = itertools.chain(fold_tasks(x, y, len(classes), folds, calibration_folds, hidden, epochs, seed,
-                                               aug), tasks)
-            work += fold_work(len(x), x.shape[1], len(classes), folds, calibration_folds, hidden, epochs) * (
-                1 if aug is None else aug.factor)
-
-        def back(i: int, result) -> None:
-            if held_out is not None and i < n_folds:
-                held_out.told(i, result)
-                if held_out.complete:
-                    cal, nov, oof = calibration_of_held_out(x, y, len(classes), g, folds, by, calibration_folds,
-                                                            held_out.logits, *touch)
-                    fitted.append((with_held_out_changes(cal, held_out.logits, y, g, folds), nov, oof))
-
-        *_, (mlp, history, _) = train_networks(tasks, jobs, watch=(n_folds, progress), done=back,
-                                               work=work if n_folds else 0.0)
-        info = {"algorithm": "iRPROP-", "epochs": len(history), "seed": seed,
-                "final_mse": history[-1], "windows": int(len(values))}
+        mlp, info, calibration, novelty, out_of_fold = train_deployed(
+            x, labels, len(classes), hidden, epochs, seed, groups, calibration_folds, jobs,
+            None if augment is None else augment.for_inputs(features, bank.channels),
+            touch_allowance(features, bank, augment), progress, calibration_progress)
         if augment is not None:
             info["augment"] = augment.to_dict()
-        calibration, novelty, out_of_fold = fitted[0] if fitted else (None, None, None)
+        mean, scale = input_scaling(x)
         return cls(bank, features, int(window_samples), peak_mode, tuple(classes), mean, scale, mlp, info,
                    float(peak_threshold), calibration, novelty, out_of_fold)
 
@@ -490,8 +540,12 @@ class TextureModel:
         return replace(self, calibration=calibration, novelty=novelty, out_of_fold=None, training=dict(self.training))
 
     def predict(self, values: np.ndarray) -> np.ndarray:
-        """Winner-take-all class index per window, shape (n,)."""
-        return np.argmax(self.outputs(values), axis=1)
+        """Winner-take-all class index per window, shape (n,).
+
+        The largest logit: the largest output wherever that is unique, and a winner still where outputs
+        tie at 1.0 (as an ensemble's mean of sure logits often does), as the node decides.
+        """
+        return np.argmax(self.logits(values), axis=1)
 
     @classmethod
     def train_for(cls, pipeline, values, labels, classes, **kwargs) -> TextureModel:
@@ -533,6 +587,7 @@ class TextureModel:
             **sense_header(self.bank, self.features, self.window_samples, self.peak_mode, self.peak_threshold),
             "classes": list(self.classes),
             "layers": list(self.mlp.shape),
+            "networks": networks_of(self.mlp),
             "training": self.training,
             **calibration_header(self.calibration, self.novelty),
         }
@@ -564,9 +619,12 @@ class TextureModel:
         known = {"format", "version", *SENSE_KEYS, "classes", "layers", "training"}
         if header["version"] >= 2:
             known |= set(CALIBRATION_KEYS)
+        if header["version"] >= NETWORKS_VERSION:
+            known.add("networks")
         unknown = set(header) - known
         if unknown:
             raise bad(f"unknown header key(s) {sorted(unknown)}")
+        check_networks_key(header, bad)
         bank, features, window, peak_mode, threshold = sense_from_header(header, bad)
         classes = classes_from_header(header, bad)
         n_in = len(features) * bank.channels
@@ -681,29 +739,62 @@ def network_from_arrays(header: dict, arrays: dict, n_in: int, n_classes: int, b
         raise bad(f"'layers' is {layers!r}; it must be [inputs, hidden, outputs] = [{n_in}, hidden >= 1, "
                   f"{n_classes}] for {inputs_are} and {n_classes} classes")
     hidden = layers[1]
-    shapes = {"w1": (n_in, hidden), "b1": (hidden,), "w2": (hidden, n_classes), "b2": (n_classes,),
-              "mean": (n_in,), "scale": (n_in,)}
+    # a file of before NETWORKS_VERSION holds one network's arrays; since, each network's on a first axis
+    stacked = "networks" in header
+    networks = header.get("networks", 1)
+    if not (type(networks) is int and 1 <= networks <= MAX_NETWORKS):
+        raise bad(f"'networks' must be an integer 1..{MAX_NETWORKS} (MAX_NETWORKS), got {networks!r}")
+    lead = (networks,) if stacked else ()
+    shapes = {"w1": (*lead, n_in, hidden), "b1": (*lead, hidden), "w2": (*lead, hidden, n_classes),
+              "b2": (*lead, n_classes), "mean": (n_in,), "scale": (n_in,)}
     for k, want in shapes.items():
         a = arrays[k]
         if a.dtype.kind != "f" or a.shape != want:
             raise bad(f"array {k} has shape {a.shape} and dtype {a.dtype}; expected float {want} for "
-                      f"{inputs_are}, {hidden} hidden units ('layers' {layers}) and {n_classes} classes")
+                      f"{inputs_are}, {hidden} hidden units ('layers' {layers}), {n_classes} classes"
+                      + (f" and {networks} network(s) ('networks')" if stacked else ""))
         if not np.isfinite(a).all():
             raise bad(f"array {k} contains NaN or Inf")
     if np.any(arrays["scale"] <= 0):
         raise bad("input scale must be > 0 everywhere")
-    mlp = MLP(*(arrays[k].astype(np.float64) for k in ("w1", "b1", "w2", "b2")))
+    params = [arrays[k].astype(np.float64) for k in ("w1", "b1", "w2", "b2")]
+    members = tuple(MLP(*(p[i] for p in params)) for i in range(networks)) if stacked else (MLP(*params),)
+    mlp = members[0] if len(members) == 1 else Ensemble(members)
     return mlp, arrays["mean"].astype(np.float64), arrays["scale"].astype(np.float64)
 
 
-def save_model_archive(path, header: dict, mlp: MLP, mean: np.ndarray, scale: np.ndarray,
+def check_networks_key(header: dict, bad) -> None:
+    """Refuse a header of version :data:`NETWORKS_VERSION` or later that does not say its ``networks``.
+
+    (Its arrays would otherwise be read as one network's, with a calibration fitted for several.)
+    """
+    if header["version"] >= NETWORKS_VERSION and "networks" not in header:
+        raise bad(f"a version {header['version']} header must say its 'networks' (how many networks its arrays "
+                  "hold); the file is damaged or was not written by supramodal")
+
+
+def networks_of(mlp: MLP | Ensemble) -> int:
+    """Return how many networks a model's ``mlp`` is (its header's ``networks``)."""
+    return len(mlp.members) if isinstance(mlp, Ensemble) else 1
+
+
+def save_model_archive(path, header: dict, mlp: MLP | Ensemble, mean: np.ndarray, scale: np.ndarray,
                        extra: dict | None = None) -> Path:
     """Write ``header`` (as JSON text), the network's arrays and any ``extra`` named arrays to exactly ``path``.
 
-    The file is an ``.npz``.
+    The file is an ``.npz``. The networks' arrays are stacked on a first axis (one per network,
+    :meth:`~supramodal.mlp.Ensemble.stacked`) where ``header`` says its ``networks``, as every header of
+    this version does; else (a header of before) one network's.
     """
     path = Path(path)
-    arrays = {**dict(zip(_ARRAYS, (mlp.w1, mlp.b1, mlp.w2, mlp.b2, mean, scale))), **(extra or {})}
+    if "networks" in header:
+        params = (mlp if isinstance(mlp, Ensemble) else Ensemble((mlp,))).stacked()
+    elif isinstance(mlp, Ensemble) and len(mlp.members) > 1:
+        raise ValueError("a header without 'networks' holds one network's arrays: give it 'networks' to write "
+                         f"an ensemble of {len(mlp.members)}")
+    else:
+        params = (mlp.members[0] if isinstance(mlp, Ensemble) else mlp).params()
+    arrays = {**dict(zip(_ARRAYS, (*params, mean, scale))), **(extra or {})}
     with open(path, "wb") as fh:
         np.savez(fh, header=np.array(json.dumps(header)), **arrays)
     return path

@@ -5,6 +5,7 @@ and `evaluate` reporting log loss, Brier score, ECE and the reliability diagram.
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 from types import SimpleNamespace
 
@@ -62,10 +63,11 @@ def test_the_setup_would_give_the_memoriser_the_weight_if_learned_on_training_wi
     right every time and the signal model is not, so a weight chosen there by the windows it gets
     right goes to the noise. (Issue 34: the weight is now chosen by the fused log loss, which the
     noise model's calibrated, near-even posteriors do not fool even here; until then this test
-    asserted that the learned weight went to the noise.)"""
+    asserted that the learned weight went to the noise.) Nearly every time: each window was held out of
+    one of the fold networks a model deploys, which is at chance on it."""
     m = memoriser
     own = [model.log_posteriors(v) for model, v in zip(m.models, m.values)]
-    assert np.mean(winner(own[0]) == m.y) == 1.0 and np.mean(winner(own[1]) == m.y) < 0.95
+    assert np.mean(winner(own[0]) == m.y) > 0.95 and np.mean(winner(own[1]) == m.y) < 0.95
     right = [np.mean(winner(w * own[0] + (1 - w) * own[1]) == m.y) for w in LATE_WEIGHTS]
     assert LATE_WEIGHTS[int(np.argmax(right))] > 0.5
     weight, _ = learn_late_fusion(own[0], own[1], m.y)
@@ -144,7 +146,7 @@ def test_train_fusion_on_too_few_contacts_warns_that_its_held_out_windows_are_sp
 
     _fake_recordings(monkeypatch, memoriser)
     with pytest.warns(SupramodalWarning, match="too few for 10 folds of whole contacts"):
-        _, info = train_fused(["one.toml"], "late")
+        _, info = train_fused(["one.toml"], "late", k=10)
     assert info["folds_by"] == "span"
 
 
@@ -199,17 +201,19 @@ def test_the_calibration_round_trips_through_the_early_fusion_file(early, tmp_pa
     np.testing.assert_array_equal(loaded.log_posteriors(va, vb), model.log_posteriors(va, vb))
     with np.load(tmp_path / "early.npz") as npz:
         header = json.loads(str(npz["header"]))
-    assert header["version"] == EARLY_VERSION == 2 and header["calibration"]["method"] == "asinh-temperature"
+    assert header["version"] == EARLY_VERSION == 3 and header["calibration"]["method"] == "asinh-temperature"
 
 
 def test_a_version_1_early_fusion_file_still_loads_uncalibrated(early, tmp_path):
     model, va, vb, _ = early
+    model = dataclasses.replace(model, mlp=model.mlp.members[0])      # a version 1 file holds one network
     path = model.save(tmp_path / "early.npz")
     with np.load(path) as npz:
         arrays = {k: npz[k] for k in npz.files if not k.startswith("novelty_")}
     header = json.loads(str(arrays["header"]))
-    for key in ("calibration", "novelty"):
+    for key in ("calibration", "novelty", "networks"):
         del header[key]
+    arrays.update({k: arrays[k][0] for k in ("w1", "b1", "w2", "b2")})
     header["version"] = 1
     arrays["header"] = np.array(json.dumps(header))
     with open(tmp_path / "v1.npz", "wb") as fh:
@@ -217,8 +221,9 @@ def test_a_version_1_early_fusion_file_still_loads_uncalibrated(early, tmp_path)
     old = EarlyFusionModel.load(tmp_path / "v1.npz")
     assert not old.calibrated and old.novelty is None
     out = model.outputs(va, vb)                             # the normalised outputs, finite in the log domain
+    # (outputs that all round near 0 leave the probability domain's ratios a few 1e-12 off: the log domain's exact)
     np.testing.assert_allclose(np.exp(old.log_posteriors(va, vb)), out / out.sum(axis=1, keepdims=True),
-                               rtol=1e-9, atol=1e-15)
+                               rtol=1e-9, atol=1e-10)
     np.testing.assert_array_equal(old.log_posteriors(va, vb), normalised_log_posteriors(model.logits(va, vb)))
     assert np.isfinite(old.log_posteriors(va, vb)).all()
     with pytest.raises(ModelError, match="no novelty score"):
@@ -258,7 +263,7 @@ def test_evaluate_reports_log_loss_brier_ece_and_writes_the_reliability_diagram(
                  str(tmp_path / "ev"), "--quiet"]) == 0
     result = json.loads(capsys.readouterr().out)
     cal = result["calibration"]
-    assert cal["calibrated"] and cal["model_version"] == 2 and cal["fitted_on"]["windows"] == 180
+    assert cal["calibrated"] and cal["model_version"] == 3 and cal["fitted_on"]["windows"] == 180
     # against the model's own log-posteriors, pooled per recording by its calibration
     model = TextureModel.load(trained)
     recs = read_manifest(recordings / "all.csv")
@@ -293,8 +298,9 @@ def _as_version_1(path, to):
     with np.load(path) as npz:
         arrays = {k: npz[k] for k in npz.files if not k.startswith("novelty_")}
     header = json.loads(str(arrays["header"]))
-    del header["calibration"], header["novelty"]
+    del header["calibration"], header["novelty"], header["networks"]
     header["version"] = 1
+    arrays.update({k: arrays[k][0] for k in ("w1", "b1", "w2", "b2")})     # one network: its first
     arrays["header"] = np.array(json.dumps(header))
     with open(to, "wb") as fh:
         np.savez(fh, **arrays)
@@ -348,14 +354,14 @@ def test_train_takes_gain_augmentation_to_every_network_and_says_it(recordings, 
         "training window"]
     ones, aug = TextureModel.load(ones), TextureModel.load(aug)
     assert ones.augment == GainAugment(2, 0.0, True) and aug.augment == GainAugment(1, 0.05, False)
-    for k in ("w1", "b1", "w2", "b2"):
-        np.testing.assert_array_equal(getattr(ones.mlp, k), getattr(plain.mlp, k))
+    for p, q in zip(ones.mlp.params(), plain.mlp.params(), strict=True):     # every deployed network
+        np.testing.assert_array_equal(p, q)
     assert ones.calibration.to_dict() == plain.calibration.to_dict()
     # the MSE is a mean over three times the rows: equal but for its sum's rounding
     assert {k: v for k, v in ones.training.items() if k not in ("augment", "final_mse")} == {
         k: v for k, v in plain.training.items() if k != "final_mse"}
     assert ones.training["final_mse"] == pytest.approx(plain.training["final_mse"], rel=1e-12)
-    assert not np.array_equal(aug.mlp.w1, plain.mlp.w1)
+    assert not np.array_equal(aug.mlp.stacked()[0], plain.mlp.stacked()[0])
     np.testing.assert_array_equal(aug.mean, plain.mean)
     np.testing.assert_array_equal(aug.scale, plain.scale)
     assert aug.training["windows"] == plain.training["windows"] == 180

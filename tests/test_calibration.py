@@ -215,9 +215,10 @@ def test_trained_model_is_calibrated_on_held_out_windows_and_keeps_the_networks_
     assert model.calibrated and model.calibration.fitted_on["folds"] == DEFAULT_CALIBRATION_FOLDS
     assert model.calibration.fitted_on["windows"] == 180
     np.testing.assert_array_equal(np.argmax(model.log_posteriors(values), axis=1), model.predict(values))
+    # it deploys its calibration's fold networks (tests/test_ensemble.py); without folds, one network
+    assert len(model.mlp.members) == DEFAULT_CALIBRATION_FOLDS
     plain = TextureModel.train(*_data(), CLASSES, BANK, ("Af",), 500, epochs=60, seed=1, calibration_folds=0)
-    np.testing.assert_array_equal(plain.outputs(values), model.outputs(values))   # the network is the same
-    assert not plain.calibrated
+    assert not plain.calibrated and not hasattr(plain.mlp, "members")
 
 
 def test_calibration_and_novelty_round_trip_through_the_model_file(model, tmp_path):
@@ -228,7 +229,7 @@ def test_calibration_and_novelty_round_trip_through_the_model_file(model, tmp_pa
     np.testing.assert_array_equal(loaded.log_posteriors(values), model.log_posteriors(values))
     np.testing.assert_array_equal(loaded.novelty_score(values), model.novelty_score(values))
     with np.load(path, allow_pickle=False) as npz:
-        assert json.loads(str(npz["header"]))["version"] == MODEL_VERSION == 2
+        assert json.loads(str(npz["header"]))["version"] == MODEL_VERSION == 3
 
 
 def _rewrite(path, edit_header=None, drop=(), arrays=None):
@@ -246,10 +247,12 @@ def _rewrite(path, edit_header=None, drop=(), arrays=None):
 def test_a_version_1_file_still_loads_and_is_said_to_be_uncalibrated(model, tmp_path):
     def to_v1(h):
         h["version"] = 1
-        del h["calibration"], h["novelty"]
+        del h["calibration"], h["novelty"], h["networks"]
 
+    one = model.mlp.members[0]                                  # a version 1 file holds one network
     path = _rewrite(model.save(tmp_path / "v1.npz"), to_v1, drop=("novelty_means", "novelty_precision",
-                                                                   "novelty_quantiles"))
+                                                                   "novelty_quantiles"),
+                    arrays=dict(zip(("w1", "b1", "w2", "b2"), one.params())))
     old = TextureModel.load(path)
     assert not old.calibrated and old.novelty is None
     values, _ = _data(seed=8)

@@ -75,8 +75,9 @@ def _tamper(tmp_path, change):
 
 @pytest.mark.parametrize("change, needle", [
     (lambda h: h.update(format="supramodal-model"), "it is a one-sense model: give it to a \\[\\[stream\\]\\]"),
-    (lambda h: h.update(version=3), "format version 3 is not supported"),
-    (lambda h: h.update(version=1), "unknown header key\\(s\\) \\['calibration', 'novelty'\\]"),
+    (lambda h: h.update(version=4), "format version 4 is not supported"),
+    (lambda h: h.update(version=1), "unknown header key\\(s\\) \\['calibration', 'networks', 'novelty'\\]"),
+    (lambda h: h.update(version=2), "unknown header key\\(s\\) \\['networks'\\]"),
     (lambda h: h.update(calibration={"method": "platt"}), "'calibration' must have exactly the keys"),
     (lambda h: h.update(novelty=True), "the header says the model has a novelty score, but the file lacks"),
     (lambda h: h.update(version=True), "format version True is not supported"),
@@ -159,7 +160,7 @@ def test_early_fusion_refuses_a_model_of_other_textures():
 
 
 @pytest.mark.slow   # a long run: the two-sense world's early and late fusions trained and run twice
-def test_the_two_sense_world_with_early_fusion_in_the_node_beats_late_fusion_and_each_sense(tmp_path):
+def test_the_two_sense_world_with_early_fusion_in_the_node_beats_each_sense_and_is_as_good_as_late_fusion(tmp_path):
     """The supramodal network trained on the spot on both senses' aligned training windows: on
     contacts it never met, it decides the windows that each sense alone confuses; and a network
     saved to a file and named in [fusion] model decides the same."""
@@ -173,9 +174,10 @@ def test_the_two_sense_world_with_early_fusion_in_the_node_beats_late_fusion_and
                       sinks_override=[ListSink()]).run()["fusion"]
     best = max(summary["streams"][s]["window_accuracy"] for s in ("whiskers", "mic"))
     assert f["method"] == "early" and f["windows"] == f["paired"] == 160
-    # Early fusion beats late fusion here; by 5 points while late fusion was calibrated with one
-    # temperature (0.856), by less since the calibration caps each pair of classes (6915eaa: late 0.925).
-    assert f["window_accuracy"] >= best + 0.2 and f["window_accuracy"] > late["window_accuracy"]
+    # Early fusion beat late fusion here: by 5 points while late fusion was calibrated with one
+    # temperature (0.856), by less since the calibration caps each pair of classes (6915eaa: late 0.925);
+    # since each sense deploys its calibration's fold networks (2026-11-30) late fusion is as right (0.969).
+    assert f["window_accuracy"] >= best + 0.2 and f["window_accuracy"] >= late["window_accuracy"]
     # the same network from a file
     graph.fusion.model.save(tmp_path / "fused.npz")
     d["fusion"]["model"] = str(tmp_path / "fused.npz")

@@ -77,8 +77,8 @@ def model():
 
 
 def _parts(model):
-    arrays = dict(w1=model.mlp.w1, b1=model.mlp.b1, w2=model.mlp.w2, b2=model.mlp.b2, mean=model.mean,
-                  scale=model.scale)
+    w1, b1, w2, b2 = model.mlp.stacked()               # a calibrated model's networks, on a first axis
+    arrays = dict(w1=w1, b1=b1, w2=w2, b2=b2, mean=model.mean, scale=model.scale)
     return model.header(), arrays
 
 
@@ -98,7 +98,7 @@ def _with(header, **changes):
     (dict(classes=[f"c{i}" for i in range(MAX_CLASSES + 1)]), "'classes'", ["MAX_CLASSES"]),
     (dict(bank={"kind": "custom", "fs": 44100.0, "cf": [1000.0 + i for i in range(1500)], "b": [100.0] * 1500,
                 "names": [f"c{i}" for i in range(1500)]}), "'bank'", ["1500 channels", "MAX_CHANNELS"]),
-    (dict(layers=[4, 99, 3]), "'layers'", ["array w1", "(4, 99)", "99 hidden units"]),
+    (dict(layers=[4, 99, 3]), "'layers'", ["array w1", "4, 99)", "99 hidden units"]),
     (dict(layers=[5, 4, 3]), "'layers'", ["[4, hidden >= 1, 3]"]),
     (dict(layers=[4, 16]), "'layers'", ["[inputs, hidden, outputs]"]),
 ])

@@ -56,7 +56,8 @@ def test_gains_of_one_train_the_model_of_no_augmentation_to_the_bit():
     plain = TextureModel.train(values, labels, CLASSES, BANK, FEATURES, 500, epochs=40, seed=1)
     ones = TextureModel.train(values, labels, CLASSES, BANK, FEATURES, 500, epochs=40, seed=1,
                               augment=GainAugment(copies=2, spread=0.0))
-    np.testing.assert_array_equal(ones.mlp.w1, plain.mlp.w1)
+    for a, b in zip(ones.mlp.params(), plain.mlp.params(), strict=True):       # every deployed network
+        np.testing.assert_array_equal(a, b)
     np.testing.assert_array_equal(ones.mean, plain.mean)
     np.testing.assert_array_equal(ones.out_of_fold.logits, plain.out_of_fold.logits)
     assert ones.calibration == plain.calibration and ones.training["augment"]["copies"] == 2
@@ -67,7 +68,7 @@ def test_augmented_networks_differ_and_the_held_out_windows_are_the_originals():
     plain = TextureModel.train(values, labels, CLASSES, BANK, FEATURES, 500, epochs=40, seed=1)
     aug = TextureModel.train(values, labels, CLASSES, BANK, FEATURES, 500, epochs=40, seed=1,
                              augment=GainAugment(copies=2, spread=0.05))
-    assert not np.array_equal(aug.mlp.w1, plain.mlp.w1)
+    assert not np.array_equal(aug.mlp.stacked()[0], plain.mlp.stacked()[0])
     assert aug.out_of_fold.logits.shape == plain.out_of_fold.logits.shape    # one held-out row per window
     np.testing.assert_array_equal(aug.mean, plain.mean)                      # scaling from the originals
     assert aug.training["windows"] == len(values)
@@ -194,9 +195,10 @@ def test_an_augmented_early_network_and_its_fold_networks_train_on_the_copies_an
     aug = EarlyFusionModel.train(senses, va, vb, labels, CLASSES, **kw,
                                  augment=GainAugment(copies=2, spread=0.05, per_channel=None))     # by bank
     # gains of 1: exact copies, which iRPROP- does not see: every network as without (so the copies reach them all)
-    np.testing.assert_array_equal(ones.mlp.w1, plain.mlp.w1)
+    for a, b in zip(ones.mlp.params(), plain.mlp.params(), strict=True):       # every deployed network
+        np.testing.assert_array_equal(a, b)
     np.testing.assert_array_equal(ones.out_of_fold.logits, plain.out_of_fold.logits)
-    assert not np.array_equal(aug.mlp.w1, plain.mlp.w1)
+    assert not np.array_equal(aug.mlp.stacked()[0], plain.mlp.stacked()[0])
     assert not np.array_equal(aug.out_of_fold.logits, plain.out_of_fold.logits)
     assert aug.out_of_fold.logits.shape == plain.out_of_fold.logits.shape     # one held-out row per pair
     np.testing.assert_array_equal(aug.mean, plain.mean)                        # scaling from the originals

@@ -104,7 +104,9 @@ def test_the_outlets_carry_the_documented_labels_units_classes_and_window_times(
 
     pylsl = import_pylsl()
     wav = tmp_path / "s.wav"
-    write_wav(wav, whisker_signal(6.0), RATE)
+    # 12 s: the three inlets are resolved, opened and clock-synced one after the other (a few seconds on a
+    # busy machine) while the node streams; since its model trains in 1 s, a 6 s stream could end first
+    write_wav(wav, whisker_signal(12.0), RATE)
     prefix = f"t{uuid.uuid4().hex[:8]}"
     scene = tmp_path / "node.toml"
     scene.write_text(f'[driver]\ntype = "replay"\npath = "s.wav"\nmapping = "per-channel"\n\n[bank]\nkind = "whisker"\n\n'
@@ -124,7 +126,7 @@ def test_the_outlets_carry_the_documented_labels_units_classes_and_window_times(
             # already streaming (a lag of 1.2 s)
             inlets[output].time_correction(timeout=5)
         full = {k: v.info(timeout=5) for k, v in inlets.items()}
-        # The outlets are up while the node trains (seconds): pull until it has sent its 6 s and
+        # The outlets are up while the node trains (seconds): pull until it has sent its 12 s and
         # ended (1 s more for the last samples), at most 5 minutes.
         ended: list = []
         limit = time.monotonic() + 300

@@ -221,7 +221,7 @@ def _start(folder, ts, pipeline, log, result):
         return model
 
     model = trained_on_start(ts, pipeline, train, None, [], [], folder=Path(folder))
-    np.save(result, model.mlp.w1)
+    np.save(result, model.mlp.stacked()[0])
 
 
 def test_nodes_started_together_train_the_model_once(tmp_path):
@@ -238,7 +238,7 @@ def test_nodes_started_together_train_the_model_once(tmp_path):
         assert proc.exitcode == 0
     assert len(log.read_text().split()) == 1
     for i in range(3):
-        np.testing.assert_array_equal(np.load(tmp_path / f"w1-{i}.npy"), fresh.mlp.w1)
+        np.testing.assert_array_equal(np.load(tmp_path / f"w1-{i}.npy"), fresh.mlp.stacked()[0])
 
 
 def test_the_cache_is_off_with_its_variable_and_never_in_the_home_under_the_suite(tmp_path, monkeypatch):
@@ -396,7 +396,7 @@ def test_a_scene_with_gain_augmentation_is_never_served_the_model_of_one_without
     augmented, said = start({"augment_copies": 1, "augment_spread": 0.05})
     assert plain.augment is None and augmented.augment == GainAugment(1, 0.05, True)
     assert "read from the model cache" not in said[0] and said[1].startswith("gain augmentation: 1 more copies")
-    assert not np.array_equal(augmented.mlp.w1, plain.mlp.w1)
+    assert not np.array_equal(augmented.mlp.stacked()[0], plain.mlp.stacked()[0])
     again, said = start({"augment_copies": 1, "augment_spread": 0.05})
     assert "read from the model cache" in said[0] and again.augment == augmented.augment
     assert len(list((tmp_path / "cache" / "models").glob("*.npz"))) == 2

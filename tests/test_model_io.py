@@ -199,7 +199,7 @@ def test_nonpositive_scale(saved):
 @pytest.mark.parametrize("change, match", [
     ({"format": "other-model"}, "not a supramodal-model file"),
     ({"format": None}, "not a supramodal-model file"),
-    ({"version": 3}, "version 3 is not supported"),
+    ({"version": 4}, "version 4 is not supported"),
     ({"version": "1"}, "version '1' is not supported"),
     ({"extra": 1}, r"unknown header key\(s\) \['extra'\]"),
     ({"bank": {"kind": "whisker"}}, "invalid 'bank' or 'features'"),

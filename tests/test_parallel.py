@@ -14,6 +14,7 @@ import pytest
 
 from supramodal import mlp
 from supramodal.banks import whisker_bank
+from supramodal.calibration import DEFAULT_CALIBRATION_FOLDS
 from supramodal.errors import InputError
 from supramodal.model import TextureModel
 from supramodal.parallel import WorkerLost, map_in_processes
@@ -108,9 +109,10 @@ def test_the_model_is_the_same_for_any_jobs(always_parallel):
     np.testing.assert_array_equal(one.novelty_score(_windows(seed=9)[0]), two.novelty_score(_windows(seed=9)[0]))
     assert one.training == two.training
     # Progress: the folds' lines alike (in fold order with one job, as each is back from the workers);
-    # of the model's network, every epoch with one job, its last alone (the same epoch and error) from them.
-    assert sorted(two_folds) == sorted(one_folds) and len(one_folds) == 10
-    assert [line.split(":")[0] for line in one_folds] == [f"calibration fold {f}/10" for f in range(1, 11)]
+    # of the last network, every epoch with one job, its last alone (the same epoch and error) from them.
+    assert sorted(two_folds) == sorted(one_folds) and len(one_folds) == DEFAULT_CALIBRATION_FOLDS
+    assert [line.split(":")[0] for line in one_folds] == [f"calibration fold {f}/{DEFAULT_CALIBRATION_FOLDS}"
+                                                          for f in range(1, DEFAULT_CALIBRATION_FOLDS + 1)]
     assert len(one_epochs) == 60 and two_epochs == one_epochs[-1:]
 
 

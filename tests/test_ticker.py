@@ -18,8 +18,8 @@ def test_the_ticker_says_the_stage_the_time_so_far_and_the_time_left_by_the_netw
     said: list[str] = []
     t = Ticker(said.append, "the model", networks=4, period=3600, clock=lambda: now[0])
     with t:
-        assert said == ["the model: training (4 networks: its calibration's, then the model's); later runs read it "
-                        "from the model cache"]                                  # at once, before any work
+        assert said == ["the model: training (4 networks: its calibration's fold networks, which it deploys); later "
+                        "runs read it from the model cache"]                                  # at once, before any work
         now[0] += 2.0
         t.stage("features, texture 1/8")
         assert t.line() == "the model: features, texture 1/8; 2 s so far"          # no network begun: no estimate

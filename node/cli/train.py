@@ -99,12 +99,13 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
                    help="recording channels to filters: auto (one channel to all, or one each), mono, per-channel, "
                         "mean, or a channel index (default auto)")
     p.add_argument("--jobs", type=jobs, default=cores(),
-                   help="worker processes for the model's networks and its calibration folds' (default: the cores "
-                        "here); the model is the same for any")
+                   help="worker processes for the model's networks, its calibration's fold networks (default: the "
+                        "cores here); the model is the same for any")
     p.add_argument("--augment-gains", type=augment_gains, metavar=AUGMENT_GAINS_FORM,
                    help="gain augmentation, for models that must hold on a new touch or session (each has its own "
-                        "sensor gains): every network (the calibration's folds' and the model's; with --fusion "
-                        "early, the early network's, each sense's columns by its own bank) also trains on "
+                        "sensor gains): every network (the calibration's fold networks, which the model deploys; "
+                        "with --fusion early, the early network's, each sense's columns by its own bank) also trains "
+                        "on "
                         "COPIES copies of each training window with random gains exp(N(0, SPREAD)) (default 0.03) on "
                         "Af and A, one per channel (per-channel: a whisker array's vibrissae) or one for all (shared: "
                         "a microphone's level; left out: per-channel for a whisker bank, shared for a cochlea or a "
@@ -277,7 +278,7 @@ def _train_fusion(args) -> int:
         check_new_file(args.write_scene, args.force, "the scene file")
     models = _stream_models(args.models)
     result, info = train_fused(args.scene, args.fusion, epochs=args.epochs, seed=args.seed, progress=progress(args),
-                               models=models, augment=seeded_augment(args))
+                               models=models, augment=seeded_augment(args), jobs=args.jobs)
     a, b = info["streams"]
     fused = "late" if args.fusion == "late" else "early"
     print(f"sense posteriors: {info['posteriors']['source']} ({info['posteriors']['why']})")

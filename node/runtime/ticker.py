@@ -32,7 +32,7 @@ class Ticker:
     what : str
         What is being made, e.g. ``"stream 'main': the model trained on start"``.
     networks : int
-        Networks the step trains (the model's and its calibration folds'), for the time left.
+        Networks the step trains (its calibration's fold networks, which the model deploys), for the time left.
     period : float
         Seconds between two lines (default :data:`DEFAULT_TICK`).
     clock : callable
@@ -60,8 +60,8 @@ class Ticker:
         self._thread = threading.Thread(target=self._run, name="progress", daemon=True)
 
     def __enter__(self) -> Ticker:
-        self.say(f"{self.what}: training ({self.networks} networks: its calibration's, then the model's); later "
-                 "runs read it from the model cache")
+        self.say(f"{self.what}: training ({self.networks} networks: its calibration's fold networks, which it "
+                 "deploys); later runs read it from the model cache")
         self._thread.start()
         return self
 

@@ -115,8 +115,9 @@ def texture_set_model(ts, bank: Bank, features: tuple[str, ...], window: float, 
 class _TrainingTold:
     """The training's callbacks, each telling a :class:`~supramodal.node.runtime.ticker.Ticker` its stage.
 
-    ``ticker`` None: no one is told. The calibration's fold networks come first (side by side on the cores),
-    then the model's (:meth:`supramodal.model.TextureModel.train`).
+    ``ticker`` None: no one is told. The networks are the calibration's fold networks, side by side on the
+    cores, the last one's epochs told as they go (:meth:`supramodal.model.TextureModel.train`); then the
+    calibration's fitting.
     """
 
     def __init__(self, ticker: Ticker | None, epochs: int, folds: int) -> None:
@@ -130,22 +131,20 @@ class _TrainingTold:
     def networks_begin(self) -> None:
         """Note that the features are made: the networks' time, which the time left is told from, begins now."""
         if self.ticker is not None:
-            self.ticker.stage(f"0 of {self.folds + 1} networks trained", 0.0)
+            self.ticker.stage(f"0 of {self.folds} networks trained", 0.0)
 
     def epoch(self, epoch: int, mse: float) -> None:
-        """Tell the model's network's epoch ``epoch`` (from 0) done; after its last, the network is done."""
+        """Tell the last network's epoch ``epoch`` (from 0) done (:meth:`fold` then tells the network done)."""
         if self.ticker is not None:
-            self.ticker.stage(f"network {self.folds + 1} of {self.folds + 1} (the model's), epoch {epoch + 1} of "
-                              f"{self.epochs}", (epoch + 1) / self.epochs)
-            if epoch + 1 == self.epochs:
-                self.ticker.network_done()
+            self.ticker.stage(f"network {self.folds} of {self.folds}, epoch {epoch + 1} of {self.epochs}",
+                              (epoch + 1) / self.epochs)
 
     def fold(self, line: str) -> None:
         """Tell one more of the calibration's fold networks trained, then the fitting of the calibration."""
         if self.ticker is not None:
             self.ticker.network_done()
             k = self.ticker.done
-            self.ticker.stage(f"{k} of {self.folds + 1} networks trained" if k < self.folds else
+            self.ticker.stage(f"{k} of {self.folds} networks trained" if k < self.folds else
                               "fitting the calibration on the folds' held-out windows")
 
 
@@ -158,7 +157,7 @@ def _ticker(progress, what: str) -> Iterator[_TrainingTold]:
     if progress is None:
         yield _TrainingTold(None, DEFAULT_EPOCHS, DEFAULT_CALIBRATION_FOLDS)
         return
-    with Ticker(progress, what, 1 + DEFAULT_CALIBRATION_FOLDS) as ticker:
+    with Ticker(progress, what, DEFAULT_CALIBRATION_FOLDS) as ticker:
         yield _TrainingTold(ticker, DEFAULT_EPOCHS, DEFAULT_CALIBRATION_FOLDS)
 
 
@@ -364,7 +363,7 @@ def _early_model(scene: Scene, a: Stream, b: Stream, held_out: dict, trained: di
     specs = {spec.name: spec for spec in scene.streams}
     try:
         model = EarlyFusionModel.train((Sense.of(a.name, a.pipeline), Sense.of(b.name, b.pipeline)), xa, xb, ya,
-                                       _model(a).classes,
+                                       _model(a).classes, jobs=default_jobs(),
                                        augment=(specs[a.name].model.gain_augment(), specs[b.name].model.gain_augment()))
     except InputError as exc:
         raise SceneError(f"{scene.source}: [fusion] method = \"early\": {exc}") from None

@@ -1,6 +1,6 @@
 """Models trained on start, kept on disk: a node that starts again with the same scene reads its model.
 
-It reads it instead of training it again (the default scene's model takes 8 to 20 s to train; reading it,
+It reads it instead of training it again (the default scene's model takes 1 to 5 s to train; reading it,
 10 ms).
 
 A model trained on start (``[model] train_on_start``) depends on nothing but what :func:`cache_key`
@@ -14,7 +14,7 @@ file, ``KEY.npz`` in :func:`cache_folder`'s ``models/``: a model file as ``supra
 (``TextureModel.load`` reads it, validated like any model file: plain arrays, never a pickle), with
 members of its own beside it (ignored by ``TextureModel.load``): the key, the training and held-out
 windows (a fusion trained on start learns from them) and the held-out logits of the calibration's
-fold networks (a learned late-fusion weight is fitted on them; without them it trains ten networks
+fold networks (a learned late-fusion weight is fitted on them; without them it trains its fold networks
 again). Reading checks all of it: a file that is not a model, is of another key, or whose parts do
 not fit is refused with a message and the model trained again (and the file replaced).
 

@@ -87,7 +87,7 @@ def scene_pairs(path, progress=None, models=None):
 
 
 def train_fused(paths, method: str = "early", epochs: int = DEFAULT_EPOCHS, seed: int = 0, progress=None,
-                k: int = DEFAULT_CALIBRATION_FOLDS, models=None, augment: GainAugment | None = None):
+                k: int = DEFAULT_CALIBRATION_FOLDS, models=None, augment: GainAugment | None = None, jobs: int = 1):
     """Learn a fusion on the labelled pairs of the scenes at ``paths``.
 
     Every number learned comes from windows held out of the network that made them: the pairs are
@@ -219,7 +219,7 @@ def train_fused(paths, method: str = "early", epochs: int = DEFAULT_EPOCHS, seed
     if method == "early":
         say = None if progress is None else (lambda m: progress(f"early network's calibration: {m}"))
         model = EarlyFusionModel.train(senses, va, vb, y, classes, epochs=epochs, seed=seed, groups=groups,
-                                       calibration_folds=k, calibration_progress=say, augment=augment)
+                                       calibration_folds=k, calibration_progress=say, augment=augment, jobs=jobs)
         assert model.calibration is not None, "EarlyFusionModel.train calibrates on calibration_folds=k > 0 folds"
         assert model.out_of_fold is not None, "kept by EarlyFusionModel.train with its calibration"
         fused = model.calibration.log_posteriors(model.out_of_fold.logits)

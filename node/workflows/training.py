@@ -20,7 +20,7 @@ from supramodal.banks import Bank
 from supramodal.calibration import calibration_line, calibration_report, pool_log_posteriors, winner
 from supramodal.errors import InputError, SupramodalError
 from supramodal.evaluation import POOLED_WINDOWS, anytime_sweep, permutation_importance, pooled_accuracy
-from supramodal.mlp import DEFAULT_EPOCHS
+from supramodal.mlp import DEFAULT_EPOCHS, Ensemble
 from supramodal.model import GainAugment, TextureModel
 from supramodal.node.runtime.streams import channel_mapper
 from supramodal.node.scene.band import warn_if_beyond_band
@@ -72,7 +72,7 @@ def train_from_manifest(manifest, bank: Bank, features=("Af",), window: float = 
     The held-out windows are out-of-fold windows of folds grouped by recording (manifest line) where every
     label has two recordings and there are enough of them, else of spans of each recording
     (:meth:`supramodal.model.TextureModel.train`). ``augment``: gain augmentation of every network's
-    training windows, the calibration's fold networks and the model's alike (default none).
+    training windows, the calibration's fold networks (which the model deploys) alike (default none).
 
     The manifest is read and checked whole (:func:`node.workflows.manifest.read_manifest`) before
     any feature is computed; a line whose part of its file holds no complete window is
@@ -111,19 +111,22 @@ def _manifest_windows(manifest, make_pipeline, mapping, progress):
 
 
 def _train(recs, classes, windows, pipeline: FeaturePipeline, epochs: int, seed: int, hidden=None,
-           calibration_progress=None, groups=None, jobs: int = 1, augment: GainAugment | None = None) -> TextureModel:
+           calibration_progress=None, groups=None, jobs: int = 1, augment: GainAugment | None = None,
+           calibration_folds: int | None = None) -> TextureModel:
     """Train a model on the recordings' windows, calibrated on out-of-fold windows of folds grouped by recording.
 
     The groups are ``groups``, one per entry of ``recs`` (default :func:`recording_group`), where there are
     enough recordings; its networks over ``jobs`` worker processes (the same model for any), each trained on
-    its windows gain-augmented by ``augment`` (None: not).
+    its windows gain-augmented by ``augment`` (None: not); ``calibration_folds`` (None: the default) its
+    calibration's fold networks, which it deploys (0: one network, uncalibrated).
     """
     x = np.concatenate(windows)
     y = np.concatenate([np.full(len(v), classes.index(r.label)) for r, v in zip(recs, windows)])
     names = [recording_group(r) for r in recs] if groups is None else list(groups)
     groups = np.repeat(np.array(names), [len(v) for v in windows])
+    folds = {} if calibration_folds is None else {"calibration_folds": calibration_folds}
     model = TextureModel.train_for(pipeline, x, y, classes, epochs=epochs, seed=seed, hidden=hidden, groups=groups,
-                                   calibration_progress=calibration_progress, jobs=jobs, augment=augment)
+                                   calibration_progress=calibration_progress, jobs=jobs, augment=augment, **folds)
     _warn_if_calibrated_on_spans(model)
     return model
 
@@ -388,10 +391,23 @@ def cross_validate_model(model: TextureModel, manifest, k: int = 5, seed: int | 
     """
     seed = model.training.get("seed", 0) if seed is None else seed
     return _cross_validate(manifest, model.pipeline, k, int(model.training["epochs"]), seed,
-                           model.mlp.shape[1], mapping, progress, model.augment)
+                           model.mlp.shape[1], mapping, progress, model.augment, _deployed_folds(model))
 
 
-def _cross_validate(manifest, make_pipeline, k, epochs, seed, hidden, mapping, progress, augment=None) -> dict:
+def _deployed_folds(model: TextureModel) -> int | None:
+    """Return the calibration folds a copy of ``model`` trains with, so that it deploys as ``model`` does.
+
+    As many as its networks (an ensemble of its calibration's fold networks), 0 for an uncalibrated model;
+    None (the default) for a calibrated model of one network (a file of before version 3, which trained
+    one network beside ten fold networks: its copies are made as this version makes them).
+    """
+    if not model.calibrated:
+        return 0
+    return len(model.mlp.members) if isinstance(model.mlp, Ensemble) else None
+
+
+def _cross_validate(manifest, make_pipeline, k, epochs, seed, hidden, mapping, progress, augment=None,
+                    calibration_folds: int | None = None) -> dict:
     recs, classes, windows = _manifest_windows(manifest, make_pipeline, mapping, progress)
     _refuse_overlapping_trials(recs)
     fold = grouped_folds([r.where for r in recs], [r.label for r in recs], k, seed)
@@ -409,7 +425,7 @@ def _cross_validate(manifest, make_pipeline, k, epochs, seed, hidden, mapping, p
             raise ManifestError(f"{manifest}: fold {f + 1} of {k} would train without {missing}: record them more "
                                 "often or lower --cv")
         model = _train([recs[i] for i in train], classes, [windows[i] for i in train],
-                       make_pipeline(), epochs, seed, hidden, augment=augment)
+                       make_pipeline(), epochs, seed, hidden, augment=augment, calibration_folds=calibration_folds)
         result, part = _score_recordings(model, [recs[i] for i in test], [windows[i] for i in test])
         for key, value in part.items():
             scored[key] += list(value)

@@ -203,7 +203,7 @@ def leave_out_fold(texture_set: TextureSet, fold: int, epochs: int = DEFAULT_EPO
     model = TextureModel.train(x_train, y_train, [names[k] for k in known], bank, FEATURES, wlen, epochs=epochs,
                                seed=seed)
     all_train, all_labels, x_test, y_test = split(values)
-    # A reference no novelty score can be expected to beat: the same network trained on all the
+    # A reference no novelty score can be expected to beat: a network of the same shape trained on all the
     # textures, the left-out ones included, scoring a window by its posterior of the left-out
     # classes. Where even it cannot tell a left-out texture's windows from the known ones', the
     # features of one window do not hold the difference.

@@ -240,7 +240,8 @@ def run_set(set_seed: int, seconds: float = 10.0, epochs: int = DEFAULT_EPOCHS, 
             progress(f"  set {set_seed}: the {sense} model calibrated by span, and scored")
         model, train = trained.models[sense], trained.values[s_i]
         assert model.calibration is not None and model.out_of_fold is not None, "calibrated (the default)"
-        aug = model.augment          # the same network's fold networks, augmented as its own were
+        # span folds' networks, augmented as the model's were; their calibration applied to the model's networks
+        aug = model.augment
         span, _, _ = fit_network_calibration(train.reshape(len(train), -1), trained.y, len(classes), None,
                                              DEFAULT_CALIBRATION_FOLDS, epochs=epochs, seed=seed,
                                              augment=None if aug is None else aug.for_inputs(FEATURES,
