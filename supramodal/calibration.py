@@ -961,6 +961,12 @@ class TouchSpread:
     estimated : float or None
         The spread the training recordings showed (None: they could not: fewer than two recordings of
         every texture); ``spread`` is the larger of it and the least allowed.
+    parts : tuple of int
+        Per input: the sensor (part) whose gains it has, where the inputs are of several sensors whose touches
+        vary each by its own spread (an early fusion's two senses); empty: one spread for all (``spread``).
+    part_spreads, part_estimated : tuple
+        Per part, its ``spread`` and ``estimated`` (empty without :attr:`parts`); ``spread`` and
+        ``estimated`` are then the largest of them (what is said in one number).
     """
 
     spread: float
@@ -968,23 +974,40 @@ class TouchSpread:
     windows: tuple[int, ...]
     touches: tuple[int, ...]
     estimated: float | None = None
+    parts: tuple[int, ...] = ()
+    part_spreads: tuple[float, ...] = ()
+    part_estimated: tuple[float | None, ...] = ()
 
     def structure(self) -> np.ndarray:
         """``G`` (inputs, inputs): 1 where two inputs share a gain (:func:`gain_structure` of :attr:`groups`)."""
         return gain_structure(self.groups)
 
+    def covariance(self) -> np.ndarray:
+        """Return the touch's covariance of its offset, ``D G D`` (inputs, inputs), ``D`` each input's part's spread."""
+        if not self.parts:
+            return self.structure() * self.spread ** 2
+        d = np.asarray(self.part_spreads, dtype=np.float64)[np.asarray(self.parts)]
+        return self.structure() * np.outer(d, d)
+
     def to_dict(self) -> dict:
         """Return what a model file's header keeps of it (plain JSON values)."""
-        return {"spread": float(self.spread), "estimated": None if self.estimated is None else float(self.estimated),
-                "groups": [int(v) for v in self.groups], "windows": [int(v) for v in self.windows],
-                "touches": [int(v) for v in self.touches]}
+        d: dict = {"spread": float(self.spread),
+                   "estimated": None if self.estimated is None else float(self.estimated),
+                   "groups": [int(v) for v in self.groups], "windows": [int(v) for v in self.windows],
+                   "touches": [int(v) for v in self.touches]}
+        if self.parts:
+            d.update(parts=[int(v) for v in self.parts], part_spreads=[float(v) for v in self.part_spreads],
+                     part_estimated=[None if v is None else float(v) for v in self.part_estimated])
+        return d
 
     @classmethod
     def from_dict(cls, d, n_in: int, n_classes: int, bad) -> TouchSpread:
         """Return the spread a header says (:meth:`to_dict`), every value checked; ``bad(message)`` makes the error."""
         keys = ["estimated", "groups", "spread", "touches", "windows"]
-        if not isinstance(d, dict) or sorted(d) != keys:
-            raise bad(f"'novelty.touch' must be an object of exactly the keys {keys}, got {d!r}")
+        with_parts = sorted(keys + ["part_estimated", "part_spreads", "parts"])
+        if not isinstance(d, dict) or sorted(d) not in (keys, with_parts):
+            raise bad(f"'novelty.touch' must be an object of exactly the keys {keys} (and, for inputs of several "
+                      f"sensors, parts, part_spreads and part_estimated), got {d!r}")
 
         def number(v) -> bool:
             return (not isinstance(v, bool) and isinstance(v, (int, float)) and math.isfinite(v)
@@ -1003,8 +1026,25 @@ class TouchSpread:
         for key in ("windows", "touches"):
             if not integers(d[key], n_classes, 1, NOVELTY_MAX_COUNT):
                 raise bad(f"'novelty.touch.{key}' must be a list of {n_classes} integers >= 1 and <= 2**53")
+        parts: tuple = ()
+        spreads: tuple = ()
+        estimated: tuple = ()
+        if "parts" in d:
+            k = len(d["part_spreads"]) if isinstance(d["part_spreads"], list) else 0
+            if not (2 <= k <= n_in and integers(d["parts"], n_in, 0, k - 1)
+                    and all(number(v) for v in d["part_spreads"]) and isinstance(d["part_estimated"], list)
+                    and len(d["part_estimated"]) == k and all(v is None or number(v) for v in d["part_estimated"])):
+                raise bad(f"'novelty.touch' parts must give each of the {n_in} inputs a part 0..k-1, part_spreads "
+                          f"k >= 2 finite numbers 0..{NOVELTY_MAX_TOUCH_SPREAD:g} and part_estimated k of them or "
+                          f"null, got {d['parts']!r}, {d['part_spreads']!r} and {d['part_estimated']!r}")
+            groups = d["groups"]
+            if any(parts_of > 1 for parts_of in (len({p for g2, p in zip(groups, d["parts"]) if g2 == g})
+                                                 for g in set(groups) if g >= 0)):
+                raise bad("'novelty.touch' parts: the inputs of one gain group must be of one part")
+            parts, spreads = tuple(d["parts"]), tuple(float(v) for v in d["part_spreads"])
+            estimated = tuple(None if v is None else float(v) for v in d["part_estimated"])
         return cls(float(d["spread"]), tuple(d["groups"]), tuple(d["windows"]), tuple(d["touches"]),
-                   None if d["estimated"] is None else float(d["estimated"]))
+                   None if d["estimated"] is None else float(d["estimated"]), parts, spreads, estimated)
 
 
 @dataclass(frozen=True)
@@ -1087,7 +1127,7 @@ class Novelty:
             if within is None:
                 within = np.linalg.inv(self.precision)
                 within = self.__dict__.setdefault("_within", (within + within.T) / 2)
-            g = t.structure() * t.spread ** 2
+            g = t.covariance()
             p = np.stack([np.linalg.inv(within * (1.0 / n + 1.0 / nk) + (1.0 + 1.0 / mk) * g)
                           for nk, mk in zip(t.windows, t.touches)])
             p = (p + p.transpose(0, 2, 1)) / 2
@@ -1257,7 +1297,7 @@ def _gaussian(u, y, n_classes: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def fit_novelty(x, labels, n_classes: int, folds, groups=None, mean=None, scale=None, touch_groups=None,
-                touch_floor: float = NOVELTY_TOUCH_SPREAD) -> Novelty:
+                touch_floor: float | tuple[float, ...] = NOVELTY_TOUCH_SPREAD, touch_parts=None) -> Novelty:
     """Fit the novelty score on standardised training inputs ``x`` and set its quantiles on held-out windows.
 
     The held-out windows are of the known textures only: each fold's windows scored by the
@@ -1283,8 +1323,12 @@ def fit_novelty(x, labels, n_classes: int, folds, groups=None, mean=None, scale=
         touch (:class:`TouchSpread`, :func:`touch_spread`): its Gaussians are each fold's and the
         final one's class means, the covariance within a recording (``groups``) and the touches'
         spread. Default None: the score of before it.
-    touch_floor : float
-        The least spread allowed for (default :data:`NOVELTY_TOUCH_SPREAD`).
+    touch_floor : float or tuple of float
+        The least spread allowed for (default :data:`NOVELTY_TOUCH_SPREAD`); with ``touch_parts``, one per part.
+    touch_parts : sequence of int, length inputs, optional
+        With ``touch_groups``: per input, the sensor (part, 0 .. k - 1) whose gains it has, each part's spread
+        estimated and allowed for on its own (:attr:`TouchSpread.parts`: an early fusion's two senses, whose
+        touches vary unalike). Default None: one spread for all the inputs.
     """
     x = np.asarray(x, dtype=np.float64)
     y = np.asarray(labels)
@@ -1302,8 +1346,13 @@ def fit_novelty(x, labels, n_classes: int, folds, groups=None, mean=None, scale=
         if len(tg) != x.shape[1]:
             raise InputError(f"touch_groups must name a group for each of the {x.shape[1]} inputs, got {len(tg)}")
 
+        tp = None if touch_parts is None else tuple(int(v) for v in touch_parts)
+        if tp is not None and (len(tp) != x.shape[1] or min(tp) < 0 or len(set(tp)) != max(tp) + 1 or len(set(tp)) < 2):
+            raise InputError(f"touch_parts must give each of the {x.shape[1]} inputs a part 0 .. k - 1, k >= 2, "
+                             "each part at least one input")
+
         def gaussians(rows):
-            return _touch_gaussian(u[rows], y[rows], groups[rows], n_classes, tg, touch_floor)
+            return _touch_gaussian(u[rows], y[rows], groups[rows], n_classes, tg, touch_floor, tp)
     else:
         def gaussians(rows):
             return (*_gaussian(u[rows], y[rows], n_classes), None)
@@ -1322,12 +1371,13 @@ def fit_novelty(x, labels, n_classes: int, folds, groups=None, mean=None, scale=
     return Novelty(means, precision, _quantile_rows(held, pooled), gain, offset, touch)
 
 
-def _touch_gaussian(u, y, groups, n_classes: int, touch_groups: tuple, floor: float
+def _touch_gaussian(u, y, groups, n_classes: int, touch_groups: tuple, floor, parts: tuple | None = None
                     ) -> tuple[np.ndarray, np.ndarray, TouchSpread]:
     """Class means, the precision of the covariance within a recording, and the :class:`TouchSpread` of ``u``.
 
     The covariance is of each window about the mean of its texture's part of its recording, shrunk as
-    :func:`_gaussian`'s.
+    :func:`_gaussian`'s. With ``parts``, each part's spread is estimated on its own inputs' gains and
+    floored by its own ``floor`` (a float for all, or one per part).
     """
     p = u.shape[1]
     means = np.stack([u[y == k].mean(axis=0) if np.any(y == k) else np.zeros(p) for k in range(n_classes)])
@@ -1339,9 +1389,22 @@ def _touch_gaussian(u, y, groups, n_classes: int, touch_groups: tuple, floor: fl
     cov = resid.T @ resid / max(len(u) - len(recording_means), 1)
     cov = (1 - NOVELTY_SHRINK) * cov + NOVELTY_SHRINK * np.diag(np.diag(cov)) + 1e-6 * np.eye(p)
     precision = np.linalg.inv(cov)
-    estimated = touch_spread(u, y, groups, cov, gain_structure(touch_groups))
     windows = tuple(max(int(np.sum(y == k)), 1) for k in range(n_classes))
     touches = tuple(max(len(set(groups[y == k].tolist())), 1) for k in range(n_classes))
+    if parts is not None:
+        floors = tuple(floor) if isinstance(floor, (tuple, list)) else (floor,) * (max(parts) + 1)
+        structure, of_part = gain_structure(touch_groups), np.asarray(parts)
+        estimates: list[float | None] = []
+        for part in range(len(floors)):
+            inside = of_part == part
+            e = touch_spread(u, y, groups, cov, structure * np.outer(inside, inside))
+            estimates.append(None if e is None else min(e, NOVELTY_MAX_TOUCH_SPREAD))
+        spreads = tuple(min(max(least, e or 0.0), NOVELTY_MAX_TOUCH_SPREAD) for least, e in zip(floors, estimates))
+        known = [e for e in estimates if e is not None]
+        touch = TouchSpread(max(spreads), touch_groups, windows, touches, max(known) if known else None, parts,
+                            spreads, tuple(estimates))
+        return means, (precision + precision.T) / 2, touch
+    estimated = touch_spread(u, y, groups, cov, gain_structure(touch_groups))
     if estimated is not None:
         estimated = min(estimated, NOVELTY_MAX_TOUCH_SPREAD)
     spread = min(max(floor, 0.0 if estimated is None else estimated), NOVELTY_MAX_TOUCH_SPREAD)
@@ -1730,19 +1793,21 @@ class HeldOutLogits:
 
 
 def calibration_of_held_out(x, labels, n_classes: int, groups, folds, by: str, k: int,
-                            z, touch_groups=None, touch_floor: float = NOVELTY_TOUCH_SPREAD
-                            ) -> tuple[Calibration, Novelty, OutOfFold]:
+                            z, touch_groups=None, touch_floor: float | tuple[float, ...] = NOVELTY_TOUCH_SPREAD,
+                            touch_parts=None) -> tuple[Calibration, Novelty, OutOfFold]:
     """Fit :func:`fit_network_calibration`'s calibration, novelty and :class:`OutOfFold` from held-out logits.
 
-    The logits ``z`` (n, classes) are the fold networks' of the raw input rows ``x``. ``touch_groups``
-    and ``touch_floor``: the novelty's allowance for a new touch (:func:`fit_novelty`; default none).
+    The logits ``z`` (n, classes) are the fold networks' of the raw input rows ``x``. ``touch_groups``,
+    ``touch_floor`` and ``touch_parts``: the novelty's allowance for a new touch (:func:`fit_novelty`;
+    default none).
     """
     y = np.asarray(labels)
     cal = fit_calibration(z, y, groups, folds=folds)
     cal = replace(cal, fitted_on={**cal.fitted_on, "folds": int(k), "folds_by": by,
                                   "held_out_accuracy": round(float(np.mean(np.argmax(z, axis=1) == y)), 6)})
     mean, scale = input_scaling(x)
-    novelty = fit_novelty((x - mean) / scale, y, n_classes, folds, groups, mean, scale, touch_groups, touch_floor)
+    novelty = fit_novelty((x - mean) / scale, y, n_classes, folds, groups, mean, scale, touch_groups, touch_floor,
+                          touch_parts)
     return cal, novelty, OutOfFold(z, folds, _fingerprint(x, y))
 
 

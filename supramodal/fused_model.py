@@ -603,15 +603,19 @@ def worse_than_a_sense(fused, senses: dict, labels) -> tuple[str, float, float] 
 
 
 def early_touch_allowance(senses, augments: tuple[GainAugment, GainAugment] | None = None
-                          ) -> tuple[tuple[int, ...], float]:
-    """Return the novelty's allowance for a new touch of an early-fusion network: inputs sharing a gain, least spread.
+                          ) -> tuple[tuple[int, ...], tuple[float, float], tuple[int, ...]]:
+    """Return the novelty's allowance for a new touch of an early-fusion network.
 
-    Each sense's as :func:`supramodal.model.touch_allowance` gives it, by its own gain augmentation
-    (``augments``, :func:`early_augment`; a sense copied unchanged, spread 0, as none); the second sense's
-    groups follow the first's (a touch's gains are each sensor's own), the least spread the larger of the two.
+    Which inputs share a gain, each sense's least spread, and each input's sense (part 0 or 1:
+    :func:`supramodal.calibration.fit_novelty`'s ``touch_groups``, ``touch_floor``, ``touch_parts``). Each
+    sense's as :func:`supramodal.model.touch_allowance` gives it, by its own gain augmentation (``augments``,
+    :func:`early_augment`; a sense copied unchanged, spread 0, as none); the second sense's groups follow the
+    first's (a touch's gains are each sensor's own), and each sense's spread is estimated and allowed for on
+    its own (a whisker array's touches may vary five times as much as a microphone's level).
     """
     parts = [touch_allowance(s.features, s.bank, a)
              for s, a in zip(senses, augments if augments is not None else (None, None))]
     (first, floor_a), (second, floor_b) = parts
     shift = max(first, default=-1) + 1
-    return first + tuple(g + shift if g >= 0 else -1 for g in second), max(floor_a, floor_b)
+    return (first + tuple(g + shift if g >= 0 else -1 for g in second), (floor_a, floor_b),
+            (0,) * len(first) + (1,) * len(second))

@@ -328,8 +328,9 @@ def train_deployed(x, labels, n_classes: int, hidden: int | None, epochs: int, s
         Each network's training rows augmented (:meth:`GainAugment.for_inputs`; stream 0 is the one network
         of all the windows, ``f + 1`` fold ``f``'s); the held-out rows, scaling, calibration and novelty
         see the originals.
-    touch : (groups, floor)
-        The novelty's allowance for a new touch (:func:`touch_allowance`).
+    touch : (groups, floor) or (groups, floors, parts)
+        The novelty's allowance for a new touch (:func:`touch_allowance`; an early fusion's, each sense its
+        own spread: :func:`supramodal.fused_model.early_touch_allowance`).
     progress : callable(epoch, mse), optional
         The last network's epochs (from workers: its last epoch alone).
     calibration_progress : callable(str), optional
