@@ -216,6 +216,44 @@ def test_by_default_an_outlet_keeps_its_first_windows_for_its_first_consumer():
         sink.close()
 
 
+def test_a_consumer_gets_the_last_windows_pushed_before_the_sink_closes():
+    """liblsl sends from threads of its own and an outlet released drops what it has not sent: a consumer on a
+    busy machine missed a run's last windows as the node exited. The sink keeps its outlets open a moment at
+    close while they have consumers: a burst pushed right before close all arrives."""
+    import threading
+
+    pylsl = import_pylsl()
+    prefix = f"t{uuid.uuid4().hex[:8]}"
+    sink = LSLOutletSink([OutletStream("main", "whisker", 5000.0, ("C1",), (100.0,), ("A",), 0.1, CLASSES)],
+                         outputs=["decisions"], prefix=prefix, wait_for_consumer=10.0)
+    found = pylsl.resolve_byprop("name", outlet_name(prefix, "main", "decisions"), timeout=10.0)
+    inlet = pylsl.StreamInlet(found[0], max_buflen=600, recover=False)     # a lost outlet ends the pull
+    inlet.open_stream(timeout=10)
+    got: list = []
+
+    def consume() -> None:                           # as a consumer does: pulling all along
+        end = time.monotonic() + 20
+        while len(got) < 3000 and time.monotonic() < end:
+            try:
+                chunk, _ = inlet.pull_chunk(timeout=0.05)
+            except pylsl.util.LostError:             # the outlet is gone
+                return
+            got.extend(json.loads(x[0])["window"] for x in chunk)
+
+    consumer = threading.Thread(target=consume, daemon=True)
+    try:
+        sink.prepare()
+        assert sink.consumers == ["main-decisions"]
+        consumer.start()
+        sink.start(time.monotonic())
+        for k in range(3000):
+            sink.emit(_decision(k))
+    finally:
+        sink.close()                                 # at once, as a node at the end of its run
+    consumer.join(timeout=30)
+    assert got == list(range(3000)), (len(got), got[-3:])
+
+
 class _Outlet:
     """An outlet without a consumer: counts what is pushed."""
 

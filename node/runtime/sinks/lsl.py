@@ -97,6 +97,10 @@ HOLD_FOR_CONSUMER_SECONDS = 10.0
 CONNECT_SETTLE_SECONDS = 0.2
 #: Seconds of one wait in liblsl: the main thread sees SIGINT and SIGTERM between two.
 WAIT_STEP_SECONDS = 0.1
+#: Seconds the sink keeps its outlets open at the end of a run while they have consumers: liblsl sends
+#: from threads of its own, and an outlet released drops what it has not yet sent (a consumer on a busy
+#: machine missed a run's last windows, its connection "broke off" as the node exited).
+CLOSE_LINGER_SECONDS = 1.0
 
 
 #: One sample of an outlet: a float32 row of its channels, or a string outlet's one string in a list.
@@ -401,8 +405,16 @@ class LSLOutletSink(Sink):
         """Nothing to write (the node's summary counts what the sink's queue passed on)."""
 
     def close(self) -> None:
-        """Drop a hold no consumer came for and release the outlets (liblsl closes them)."""
+        """Drop a hold no consumer came for and release the outlets (liblsl closes them).
+
+        Where an outlet has a consumer, :data:`CLOSE_LINGER_SECONDS` first, in steps of
+        :data:`WAIT_STEP_SECONDS`, so that what was pushed last reaches it.
+        """
         self._held.clear()                  # a hold no consumer came for: nobody to send it to
+        if any(o.have_consumers() for o in self._outlets.values()):
+            end = time.monotonic() + CLOSE_LINGER_SECONDS
+            while time.monotonic() < end:
+                time.sleep(WAIT_STEP_SECONDS)
         self._outlets.clear()               # liblsl closes an outlet when it is released
 
 
