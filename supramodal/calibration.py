@@ -931,6 +931,12 @@ NOVELTY_TOUCH_METHOD = "asinh-mahalanobis-touch"
 NOVELTY_TOUCH_SPREAD = 0.03
 
 
+def _group_of_two_parts(groups, parts) -> bool:
+    """Whether some gain group (>= 0) of ``groups`` has inputs of two ``parts`` (one gain is one sensor's)."""
+    seen: dict[int, int] = {}
+    return any(seen.setdefault(g, p) != p for g, p in zip(groups, parts) if g >= 0)
+
+
 def gain_structure(groups) -> np.ndarray:
     """``G`` (inputs, inputs) of per-input gain ``groups`` (-1: no gain): 1 where two inputs share a gain."""
     g = np.asarray(groups)
@@ -1037,12 +1043,16 @@ class TouchSpread:
                 raise bad(f"'novelty.touch' parts must give each of the {n_in} inputs a part 0..k-1, part_spreads "
                           f"k >= 2 finite numbers 0..{NOVELTY_MAX_TOUCH_SPREAD:g} and part_estimated k of them or "
                           f"null, got {d['parts']!r}, {d['part_spreads']!r} and {d['part_estimated']!r}")
-            groups = d["groups"]
-            if any(parts_of > 1 for parts_of in (len({p for g2, p in zip(groups, d["parts"]) if g2 == g})
-                                                 for g in set(groups) if g >= 0)):
+            if len(set(d["parts"])) != k:
+                raise bad(f"'novelty.touch' parts: every part of the {k} of part_spreads must have inputs")
+            if _group_of_two_parts(d["groups"], d["parts"]):
                 raise bad("'novelty.touch' parts: the inputs of one gain group must be of one part")
             parts, spreads = tuple(d["parts"]), tuple(float(v) for v in d["part_spreads"])
             estimated = tuple(None if v is None else float(v) for v in d["part_estimated"])
+            known = [v for v in estimated if v is not None]
+            if d["spread"] != max(spreads) or d["estimated"] != (max(known) if known else None):
+                raise bad("'novelty.touch' spread and estimated must be the largest of part_spreads and "
+                          f"part_estimated, got {d['spread']!r} and {d['estimated']!r}")
         return cls(float(d["spread"]), tuple(d["groups"]), tuple(d["windows"]), tuple(d["touches"]),
                    None if d["estimated"] is None else float(d["estimated"]), parts, spreads, estimated)
 
@@ -1350,6 +1360,11 @@ def fit_novelty(x, labels, n_classes: int, folds, groups=None, mean=None, scale=
         if tp is not None and (len(tp) != x.shape[1] or min(tp) < 0 or len(set(tp)) != max(tp) + 1 or len(set(tp)) < 2):
             raise InputError(f"touch_parts must give each of the {x.shape[1]} inputs a part 0 .. k - 1, k >= 2, "
                              "each part at least one input")
+        if tp is not None and _group_of_two_parts(tg, tp):
+            raise InputError("touch_parts: the inputs of one gain group must be of one part (one gain, one sensor)")
+        if isinstance(touch_floor, (tuple, list)) and (tp is None or len(touch_floor) != max(tp) + 1):
+            raise InputError(f"touch_floor: one least spread per part ({0 if tp is None else max(tp) + 1} with these "
+                             f"touch_parts), or one number for all, got {touch_floor!r}")
 
         def gaussians(rows):
             return _touch_gaussian(u[rows], y[rows], groups[rows], n_classes, tg, touch_floor, tp)

@@ -254,6 +254,24 @@ def test_a_consumer_gets_the_last_windows_pushed_before_the_sink_closes():
     assert got == list(range(3000)), (len(got), got[-3:])
 
 
+def test_a_sink_that_sent_nothing_closes_at_once_though_it_has_a_consumer(monkeypatch):
+    """The outlets are made when the node is built, and a consumer may connect while a model trains: a start
+    that fails or is stopped then closes a sink that sent nothing, with nothing to wait for."""
+    monkeypatch.setattr(lsl_sink, "CLOSE_LINGER_SECONDS", 60.0)
+    pylsl = import_pylsl()
+    prefix = f"t{uuid.uuid4().hex[:8]}"
+    sink = LSLOutletSink([OutletStream("main", "whisker", 5000.0, ("C1",), (100.0,), ("A",), 0.1, CLASSES)],
+                         outputs=["decisions"], prefix=prefix, wait_for_consumer=10.0)
+    found = pylsl.resolve_byprop("name", outlet_name(prefix, "main", "decisions"), timeout=10.0)
+    inlet = pylsl.StreamInlet(found[0], recover=False)
+    inlet.open_stream(timeout=10)
+    sink.prepare()
+    assert sink.consumers == ["main-decisions"]
+    t = time.monotonic()
+    sink.close()
+    assert time.monotonic() - t < 30.0                      # not the 60 s linger: nothing was sent
+
+
 class _Outlet:
     """An outlet without a consumer: counts what is pushed."""
 

@@ -531,6 +531,12 @@ def test_two_sensors_whose_touches_vary_unalike_each_get_their_own_spread():
     assert np.all(np.array(off["each"]) < np.array(off["one"])), off
     with pytest.raises(InputError, match="touch_parts must give each"):
         fit_novelty((raw - mean) / scale, y, 6, folds, g, mean, scale, touch_groups=groups, touch_parts=(0,) * 16)
+    with pytest.raises(InputError, match="one gain group must be of one part"):
+        fit_novelty((raw - mean) / scale, y, 6, folds, g, mean, scale, touch_groups=(0,) * 16, touch_parts=parts)
+    for floor, extra in (((0.03, 0.03), {}), ((0.03,), {"touch_parts": parts}), ((0.03,) * 3, {"touch_parts": parts})):
+        with pytest.raises(InputError, match="one least spread per part"):
+            fit_novelty((raw - mean) / scale, y, 6, folds, g, mean, scale, touch_groups=groups, touch_floor=floor,
+                        **extra)
 
 
 @pytest.mark.parametrize("change, says", [
@@ -540,6 +546,8 @@ def test_two_sensors_whose_touches_vary_unalike_each_get_their_own_spread():
     (lambda t: t.update(part_spreads=[0.1, float("nan")]), "parts must give each"),
     (lambda t: t.update(groups=[0] * 16), "one gain group must be of one part"),
     (lambda t: t.pop("part_estimated"), "exactly the keys"),
+    (lambda t: t.update(parts=[0] * 16), "every part of the 2"),
+    (lambda t: t.update(spread=t["spread"] / 2), "the largest of part_spreads"),
 ])
 def test_an_early_networks_novelty_keeps_a_spread_per_sense_in_its_file(tmp_path, change, says):
     """Trained on two sensors whose touches vary unalike, the early network's novelty says a spread per sense;

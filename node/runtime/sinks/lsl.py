@@ -256,6 +256,7 @@ class LSLOutletSink(Sink):
         # until _hold_end (time.monotonic()); an outlet leaves it for good on its first consumer.
         self._held: dict[tuple[str, str], list[tuple[Sample, float]]] = {}
         self._hold_end = 0.0
+        self._pushed = False                 # whether any sample went to an outlet (close lingers only then)
         self._streams = {s.name: s for s in streams}
         self._clock = LSLClock(pylsl, time.monotonic())
         for s in streams:
@@ -375,6 +376,7 @@ class LSLOutletSink(Sink):
                 return
             del self._held[key]                     # none in time: sent as they come, as with 0
         outlet.push_sample(sample, stamp)
+        self._pushed = True
 
     def _release(self, key: tuple[str, str]) -> bool:
         """Return whether the held outlet ``key`` has its first consumer.
@@ -386,6 +388,7 @@ class LSLOutletSink(Sink):
             return False
         for x, t in self._held.pop(key):
             outlet.push_sample(x, t)
+            self._pushed = True
         if self.consumers is not None:
             self.consumers.append("-".join(key))
         return True
@@ -407,14 +410,15 @@ class LSLOutletSink(Sink):
     def close(self) -> None:
         """Drop a hold no consumer came for and release the outlets (liblsl closes them).
 
-        Where an outlet has a consumer, :data:`CLOSE_LINGER_SECONDS` first, in steps of
-        :data:`WAIT_STEP_SECONDS`, so that what was pushed last reaches it.
+        Where samples were pushed and an outlet has a consumer, up to :data:`CLOSE_LINGER_SECONDS`
+        first, in steps of :data:`WAIT_STEP_SECONDS` (less once no outlet has one), so that what was
+        pushed last reaches it.
         """
         self._held.clear()                  # a hold no consumer came for: nobody to send it to
-        if any(o.have_consumers() for o in self._outlets.values()):
-            end = time.monotonic() + CLOSE_LINGER_SECONDS
-            while time.monotonic() < end:
-                time.sleep(WAIT_STEP_SECONDS)
+        end = time.monotonic() + CLOSE_LINGER_SECONDS
+        while (self._pushed and time.monotonic() < end
+               and any(o.have_consumers() for o in self._outlets.values())):
+            time.sleep(WAIT_STEP_SECONDS)
         self._outlets.clear()               # liblsl closes an outlet when it is released
 
 
