@@ -388,6 +388,12 @@ class EarlyFusionModel:
                 raise bad("'training' 'augment': the two senses' gain augmentation must have the same copies and "
                           f"per_channel true or false, got {parts!r}")
         calibration, novelty = calibration_from_parts(header, arrays, n_in, len(classes), bad)
+        touch = None if novelty is None else novelty.touch
+        split = (0,) * senses[0].n_inputs + (1,) * senses[1].n_inputs
+        if touch is not None and touch.parts and touch.parts != split:
+            raise bad(f"'novelty.touch.parts' must say each input's sense as the header's senses split them: "
+                      f"{senses[0].n_inputs} of {senses[0].name!r} (0), then {senses[1].n_inputs} of "
+                      f"{senses[1].name!r} (1)")
         return cls((senses[0], senses[1]), tuple(classes), mean, scale, mlp, training, calibration, novelty)
 
 

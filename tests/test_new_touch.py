@@ -547,6 +547,7 @@ def test_two_sensors_whose_touches_vary_unalike_each_get_their_own_spread():
     (lambda t: t.update(groups=[0] * 16), "one gain group must be of one part"),
     (lambda t: t.pop("part_estimated"), "exactly the keys"),
     (lambda t: t.update(parts=[0] * 16), "every part of the 2"),
+    (lambda t: t.update(parts=[1] * 8 + [0] * 8), "as the header's senses split them"),
     (lambda t: t.update(spread=t["spread"] / 2), "the largest of part_spreads"),
 ])
 def test_an_early_networks_novelty_keeps_a_spread_per_sense_in_its_file(tmp_path, change, says):
