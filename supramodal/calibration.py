@@ -1406,24 +1406,21 @@ def _touch_gaussian(u, y, groups, n_classes: int, touch_groups: tuple, floor, pa
     precision = np.linalg.inv(cov)
     windows = tuple(max(int(np.sum(y == k)), 1) for k in range(n_classes))
     touches = tuple(max(len(set(groups[y == k].tolist())), 1) for k in range(n_classes))
-    if parts is not None:
-        floors = tuple(floor) if isinstance(floor, (tuple, list)) else (floor,) * (max(parts) + 1)
-        structure, of_part = gain_structure(touch_groups), np.asarray(parts)
-        estimates: list[float | None] = []
-        for part in range(len(floors)):
-            inside = of_part == part
-            e = touch_spread(u, y, groups, cov, structure * np.outer(inside, inside))
-            estimates.append(None if e is None else min(e, NOVELTY_MAX_TOUCH_SPREAD))
-        spreads = tuple(min(max(least, e or 0.0), NOVELTY_MAX_TOUCH_SPREAD) for least, e in zip(floors, estimates))
-        known = [e for e in estimates if e is not None]
-        touch = TouchSpread(max(spreads), touch_groups, windows, touches, max(known) if known else None, parts,
-                            spreads, tuple(estimates))
-        return means, (precision + precision.T) / 2, touch
-    estimated = touch_spread(u, y, groups, cov, gain_structure(touch_groups))
-    if estimated is not None:
-        estimated = min(estimated, NOVELTY_MAX_TOUCH_SPREAD)
-    spread = min(max(floor, 0.0 if estimated is None else estimated), NOVELTY_MAX_TOUCH_SPREAD)
-    return means, (precision + precision.T) / 2, TouchSpread(float(spread), touch_groups, windows, touches, estimated)
+    of_part = np.zeros(p, dtype=int) if parts is None else np.asarray(parts)        # one part: every input
+    floors = tuple(floor) if isinstance(floor, (tuple, list)) else (floor,) * (int(of_part.max()) + 1)
+    structure = gain_structure(touch_groups)
+    estimates: list[float | None] = []
+    for part in range(len(floors)):
+        inside = of_part == part
+        e = touch_spread(u, y, groups, cov, structure * np.outer(inside, inside))
+        estimates.append(None if e is None else min(e, NOVELTY_MAX_TOUCH_SPREAD))
+    spreads = tuple(float(min(max(least, e or 0.0), NOVELTY_MAX_TOUCH_SPREAD)) for least, e in zip(floors, estimates))
+    precision = (precision + precision.T) / 2
+    if parts is None:
+        return means, precision, TouchSpread(spreads[0], touch_groups, windows, touches, estimates[0])
+    known = [e for e in estimates if e is not None]
+    return means, precision, TouchSpread(max(spreads), touch_groups, windows, touches, max(known) if known else None,
+                                         parts, spreads, tuple(estimates))
 
 
 def touch_spread(u, labels, groups, within, structure) -> float | None:
@@ -1755,10 +1752,15 @@ def fold_tasks(x, labels, n_classes: int, folds, k: int, hidden: int | None, epo
     for f in range(k):
         test = folds == f
         if test.any():
-            mean, scale = input_scaling(x[~test])
+            mean, scale = fold_scaling(x, folds, f)
             xt, yt = (x[~test], y[~test]) if augment is None else augment(x[~test], y[~test], f + 1)
             yield NetworkTask((xt - mean) / scale, yt, n_classes, hidden, epochs, seed,
                               (x[test] - mean) / scale)
+
+
+def fold_scaling(x, folds, f: int) -> tuple[np.ndarray, np.ndarray]:
+    """Return the mean and scale fold ``f``'s network standardises its rows by: those of the other folds' rows."""
+    return input_scaling(np.asarray(x)[np.asarray(folds) != f])
 
 
 def fold_work(n: int, inputs: int, n_classes: int, folds, k: int, hidden: int | None, epochs: int) -> float:

@@ -291,6 +291,9 @@ CHANGE_LOOKBACK = POOLING_RUN
 CHANGE_MIN_WINDOWS = 2
 #: Held-out windows whose statistic :func:`fit_change_threshold` measures directly before it extrapolates.
 CHANGE_TAIL = 20
+#: Windows of a touch whose stretches :meth:`ChangeDetector.still_statistics` weighs at once (memory: ``20 x
+#: classes`` floats each).
+_CHANGE_CHUNK = 4096
 
 
 class ChangeDetector:
@@ -403,40 +406,45 @@ class ChangeDetector:
         self._recent.extend(kept)
         return int(j), since
 
+    def still_statistics(self, log_posteriors: np.ndarray, current: int) -> np.ndarray:
+        """Return :attr:`statistic` after each window of a touch (windows, classes), tested against ``current``.
+
+        As :meth:`update` window by window from an empty detector, never restarted (so its threshold
+        does not matter), for every window at once: the last :data:`CHANGE_LOOKBACK` windows ending at
+        each, newest first (zeros before the touch, whose stretches are then left out), summed in
+        :meth:`update`'s order. This detector's recent windows are neither read nor changed.
+        """
+        lp = log_posteriors
+        if current < 0 or not len(lp):              # no decision to test against, or no window
+            return np.full(len(lp), -np.inf)
+        L, m = CHANGE_LOOKBACK, self.min_windows
+        windows = np.lib.stride_tricks.sliding_window_view(np.concatenate([np.zeros((L - 1, lp.shape[1])), lp]),
+                                                           L, axis=0)                 # (windows, classes, L)
+        out = np.empty(len(lp))
+        for start in range(0, len(lp), _CHANGE_CHUNK):
+            recent = windows[start:start + _CHANGE_CHUNK].transpose(0, 2, 1)[:, ::-1]   # (chunk, L, classes)
+            sums = (np.cumsum(recent, axis=1) * self._weights[:, None])[:, m - 1:]     # stretch of m + i windows
+            pooled = sums if self.caps is None else cap_gaps(sums, self.caps)
+            lead = pooled - pooled[..., [current]]
+            lead[..., current] = -np.inf
+            t = np.arange(start, start + len(recent))
+            lead[np.arange(m, L + 1)[None, :] > t[:, None] + 1] = -np.inf              # longer than the touch so far
+            out[start:start + len(recent)] = lead.max(axis=(1, 2))
+        return out
+
 
 def change_statistics(log_posteriors, label: int, correlation: float = 0.0, caps=None,
                       min_windows: int = CHANGE_MIN_WINDOWS) -> np.ndarray:
     """Each window's :attr:`ChangeDetector.statistic` on one still touch of texture ``label``, shape (windows,).
 
     Tested against ``label`` throughout (never restarted): what a false change would have to
-    pass there.
+    pass there (:meth:`ChangeDetector.still_statistics`).
     """
     lp = np.asarray(log_posteriors, dtype=np.float64)
     if lp.ndim != 2:
         raise InputError(f"a touch's log-posteriors must have shape (windows, classes), got {lp.shape}")
-    # The detector's own sums, for every window at once: the last CHANGE_LOOKBACK windows ending at each,
-    # newest first (zeros before the touch, whose stretches are then left out), summed in the detector's order.
     detector = ChangeDetector(lp.shape[1], 2.0, correlation, caps, threshold=np.inf, min_windows=min_windows)
-    if label < 0 or not len(lp):                # no decision to test against (the detector's -1), or no window
-        return np.full(len(lp), -np.inf)
-    L, m = CHANGE_LOOKBACK, detector.min_windows
-    windows = np.lib.stride_tricks.sliding_window_view(np.concatenate([np.zeros((L - 1, lp.shape[1])), lp]), L,
-                                                       axis=0)                      # (windows, classes, L)
-    out = np.empty(len(lp))
-    for start in range(0, len(lp), _CHANGE_CHUNK):
-        recent = windows[start:start + _CHANGE_CHUNK].transpose(0, 2, 1)[:, ::-1]   # (chunk, L, classes)
-        sums = (np.cumsum(recent, axis=1) * detector._weights[:, None])[:, m - 1:]  # stretch of m + i windows
-        pooled = sums if detector.caps is None else cap_gaps(sums, detector.caps)
-        lead = pooled - pooled[..., [label]]
-        lead[..., label] = -np.inf
-        t = np.arange(start, start + len(recent))
-        lead[np.arange(m, L + 1)[None, :] > t[:, None] + 1] = -np.inf               # longer than the touch so far
-        out[start:start + len(recent)] = lead.max(axis=(1, 2))
-    return out
-
-
-#: Windows of a touch whose stretches :func:`change_statistics` weighs at once (memory: ``20 x classes`` each).
-_CHANGE_CHUNK = 4096
+    return detector.still_statistics(lp, int(label))
 
 
 def fit_change_threshold(touches, labels, windows_per_false_change: float, correlation: float = 0.0, caps=None,

@@ -43,15 +43,12 @@ from supramodal.calibration import (
     calibration_report,
     fit_pooling,
     fit_window_calibration,
-    input_scaling,
     normalised_log_posteriors,
 )
 from supramodal.errors import InputError
 from supramodal.fusion import early_inputs, fuse_late, learn_late_fusion
 from supramodal.mlp import DEFAULT_EPOCHS, MLP, Ensemble
 from supramodal.model import (
-    CALIBRATION_KEYS,
-    NETWORKS_VERSION,
     NOVELTY_ARRAYS,
     SENSE_KEYS,
     GainAugment,
@@ -60,7 +57,7 @@ from supramodal.model import (
     TextureModel,
     calibration_from_parts,
     calibration_header,
-    check_networks_key,
+    check_header_keys,
     check_sense_fits,
     classes_from_header,
     log_posteriors_of,
@@ -267,14 +264,13 @@ class EarlyFusionModel:
         augments = early_augment(augment, senses)
         # as a one-sense model: the calibration's fold networks deployed, the change detector's held-out
         # statistics kept (a node's early fusion then fits its change threshold, not the detector's bound)
-        mlp, info, calibration, novelty, out_of_fold = train_deployed(
-            x, labels, len(classes), hidden, epochs, seed, groups, calibration_folds, jobs,
-            None if augments is None else EarlyGainCopies.of(augments, senses),
-            early_touch_allowance(senses, augments), calibration_progress=calibration_progress)
+        d = train_deployed(x, labels, len(classes), hidden, epochs, seed, groups, calibration_folds, jobs,
+                           None if augments is None else EarlyGainCopies.of(augments, senses),
+                           early_touch_allowance(senses, augments), calibration_progress=calibration_progress)
         if augments is not None:
-            info["augment"] = [a.to_dict() for a in augments]
-        mean, scale = input_scaling(x)
-        return cls(senses, tuple(classes), mean, scale, mlp, info, calibration, novelty, out_of_fold)
+            d.training["augment"] = [a.to_dict() for a in augments]
+        return cls(senses, tuple(classes), d.mean, d.scale, d.network, d.training, d.calibration, d.novelty,
+                   d.out_of_fold)
 
     @staticmethod
     def _check(sense: Sense, values) -> np.ndarray:
@@ -351,15 +347,7 @@ class EarlyFusionModel:
         if type(header.get("version")) is not int or header["version"] not in EARLY_VERSIONS:   # true == 1 in Python
             raise bad(f"format version {header.get('version')!r} is not supported (this program reads versions "
                       f"{', '.join(map(str, EARLY_VERSIONS))}); retrain the model with this version")
-        known = {"format", "version", "senses", "classes", "layers", "training"}
-        if header["version"] >= 2:
-            known |= set(CALIBRATION_KEYS)
-        if header["version"] >= NETWORKS_VERSION:
-            known.add("networks")
-        unknown = set(header) - known
-        if unknown:
-            raise bad(f"unknown header key(s) {sorted(unknown)}")
-        check_networks_key(header, bad)
+        check_header_keys(header, {"senses", "classes"}, bad)
         raw = header.get("senses")
         if not (isinstance(raw, list) and len(raw) == 2 and all(isinstance(s, dict) for s in raw)):
             raise bad("'senses' must be a list of the two senses' descriptions")
@@ -389,8 +377,7 @@ class EarlyFusionModel:
                           f"per_channel true or false, got {parts!r}")
         calibration, novelty = calibration_from_parts(header, arrays, n_in, len(classes), bad)
         touch = None if novelty is None else novelty.touch
-        split = (0,) * senses[0].n_inputs + (1,) * senses[1].n_inputs
-        if touch is not None and touch.parts and touch.parts != split:
+        if touch is not None and touch.parts and touch.parts != input_senses(senses):
             raise bad(f"'novelty.touch.parts' must say each input's sense as the header's senses split them: "
                       f"{senses[0].n_inputs} of {senses[0].name!r} (0), then {senses[1].n_inputs} of "
                       f"{senses[1].name!r} (1)")
@@ -623,5 +610,9 @@ def early_touch_allowance(senses, augments: tuple[GainAugment, GainAugment] | No
              for s, a in zip(senses, augments if augments is not None else (None, None))]
     (first, floor_a), (second, floor_b) = parts
     shift = max(first, default=-1) + 1
-    return (first + tuple(g + shift if g >= 0 else -1 for g in second), (floor_a, floor_b),
-            (0,) * len(first) + (1,) * len(second))
+    return first + tuple(g + shift if g >= 0 else -1 for g in second), (floor_a, floor_b), input_senses(senses)
+
+
+def input_senses(senses) -> tuple[int, ...]:
+    """Return each input's sense (0 or 1) of an early network's inputs, the two senses' side by side."""
+    return (0,) * senses[0].n_inputs + (1,) * senses[1].n_inputs

@@ -163,7 +163,6 @@ class MLP:
         return [-(x.T @ delta1), -delta1.sum(0), -(h.T @ delta2), -delta2.sum(0)], mse
 
 
-
 @dataclass(frozen=True)
 class Ensemble:
     """Networks of one shape on the same inputs, deciding together by the mean of their logits.
@@ -204,8 +203,8 @@ class Ensemble:
         return z
 
     def outputs(self, x: np.ndarray) -> np.ndarray:
-        """Return the logistic of :meth:`logits`, in [0, 1], shape (n, outputs)."""
-        return 0.5 * (1 + np.tanh(0.5 * self.logits(x)))
+        """Return the output units' activations of the mean logits (:func:`sigmoid`), in [0, 1], shape (n, outputs)."""
+        return sigmoid(self.logits(x) / (2 * STEEPNESS))
 
     def predict(self, x: np.ndarray) -> np.ndarray:
         """Winner-take-all class index, shape (n,) (the largest mean logit)."""

@@ -40,6 +40,7 @@ import zipfile
 import zlib
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -53,6 +54,7 @@ from supramodal.calibration import (
     OutOfFold,
     calibration_line,
     calibration_of_held_out,
+    fold_scaling,
     fold_tasks,
     fold_work,
     input_scaling,
@@ -296,9 +298,20 @@ class GainCopies:
                 np.tile(np.asarray(y), 1 + a.copies))
 
 
+class Deployed(NamedTuple):
+    """What :func:`train_deployed` trains: a model's networks, their input scaling, training and calibration."""
+
+    network: MLP | Ensemble
+    mean: np.ndarray
+    scale: np.ndarray
+    training: dict
+    calibration: Calibration | None
+    novelty: Novelty | None
+    out_of_fold: OutOfFold | None
+
+
 def train_deployed(x, labels, n_classes: int, hidden: int | None, epochs: int, seed: int, groups, folds: int,
-                   jobs: int = 1, augment=None, touch=((), NOVELTY_TOUCH_SPREAD), progress=None,
-                   calibration_progress=None) -> tuple:
+                   jobs: int = 1, augment=None, touch=None, progress=None, calibration_progress=None) -> Deployed:
     """Train what a model deploys on raw input rows ``x`` (n, inputs): its network(s) and their calibration.
 
     With ``folds`` (> 0), the calibration's fold networks (:func:`~supramodal.calibration.fold_tasks`),
@@ -328,9 +341,9 @@ def train_deployed(x, labels, n_classes: int, hidden: int | None, epochs: int, s
         Each network's training rows augmented (:meth:`GainAugment.for_inputs`; stream 0 is the one network
         of all the windows, ``f + 1`` fold ``f``'s); the held-out rows, scaling, calibration and novelty
         see the originals.
-    touch : (groups, floor) or (groups, floors, parts)
+    touch : (groups, floor) or (groups, floors, parts), optional
         The novelty's allowance for a new touch (:func:`touch_allowance`; an early fusion's, each sense its
-        own spread: :func:`supramodal.fused_model.early_touch_allowance`).
+        own spread: :func:`supramodal.fused_model.early_touch_allowance`). Default None: none.
     progress : callable(epoch, mse), optional
         The last network's epochs (from workers: its last epoch alone).
     calibration_progress : callable(str), optional
@@ -338,11 +351,10 @@ def train_deployed(x, labels, n_classes: int, hidden: int | None, epochs: int, s
 
     Returns
     -------
-    network : MLP or Ensemble
-    info : dict
-        The ``training`` a model file keeps (algorithm, epochs, seed, final_mse: the networks' mean, windows).
-    calibration, novelty, out_of_fold
-        None without folds.
+    Deployed
+        The network (an ensemble of the fold networks, or one), the input scaling of ``x`` they take, the
+        ``training`` a model file keeps (algorithm, epochs, seed, final_mse: the networks' mean, windows)
+        and the calibration, novelty and held-out logits (None without folds).
     """
     y = np.asarray(labels)
     mean, scale = input_scaling(x)         # a constant input carries nothing; scale 1 keeps it at 0
@@ -351,7 +363,7 @@ def train_deployed(x, labels, n_classes: int, hidden: int | None, epochs: int, s
         xm, ym = (x, y) if augment is None else augment(x, y, 0)
         (mlp, history, _), = train_networks([NetworkTask((xm - mean) / scale, ym, n_classes, hidden, epochs, seed)],
                                             jobs, watch=(0, progress))
-        return mlp, {**info, "epochs": len(history), "final_mse": history[-1]}, None, None, None
+        return Deployed(mlp, mean, scale, {**info, "epochs": len(history), "final_mse": history[-1]}, None, None, None)
     g = y if groups is None else np.asarray(groups)
     fold_of, by = calibration_folds_of(y, g, folds, seed)
     held_out = HeldOutLogits(y, fold_of, folds, n_classes, calibration_progress)
@@ -359,13 +371,13 @@ def train_deployed(x, labels, n_classes: int, hidden: int | None, epochs: int, s
     results = train_networks(fold_tasks(x, y, n_classes, fold_of, folds, hidden, epochs, seed, augment), jobs,
                              watch=(held_out.networks - 1, progress), done=held_out.told, work=work)
     calibration, novelty, out_of_fold = calibration_of_held_out(x, y, n_classes, g, fold_of, by, folds,
-                                                                held_out.logits, *touch)
+                                                                held_out.logits, *(touch or ()))
     calibration = with_held_out_changes(calibration, held_out.logits, y, g, fold_of)
     # each fold network standardised its rows by their own mean and scale: re-expressed on the model's
-    members = [rescaled(net, *input_scaling(x[fold_of != f]), mean, scale)
+    members = [rescaled(net, *fold_scaling(x, fold_of, f), mean, scale)
                for f, (net, _, _) in zip(held_out.order, results)]
     info.update(epochs=len(results[0][1]), final_mse=float(np.mean([h[-1] for _, h, _ in results])))
-    return Ensemble(tuple(members)), info, calibration, novelty, out_of_fold
+    return Deployed(Ensemble(tuple(members)), mean, scale, info, calibration, novelty, out_of_fold)
 
 
 @dataclass
@@ -455,15 +467,13 @@ class TextureModel:
             raise InputError(f"feature windows must have shape (n, {expected[0]}, {expected[1]}), got {values.shape}")
         x = values.reshape(len(values), -1)
         augment = None if augment is None else augment.resolved(bank.kind)
-        mlp, info, calibration, novelty, out_of_fold = train_deployed(
-            x, labels, len(classes), hidden, epochs, seed, groups, calibration_folds, jobs,
-            None if augment is None else augment.for_inputs(features, bank.channels),
-            touch_allowance(features, bank, augment), progress, calibration_progress)
+        d = train_deployed(x, labels, len(classes), hidden, epochs, seed, groups, calibration_folds, jobs,
+                           None if augment is None else augment.for_inputs(features, bank.channels),
+                           touch_allowance(features, bank, augment), progress, calibration_progress)
         if augment is not None:
-            info["augment"] = augment.to_dict()
-        mean, scale = input_scaling(x)
-        return cls(bank, features, int(window_samples), peak_mode, tuple(classes), mean, scale, mlp, info,
-                   float(peak_threshold), calibration, novelty, out_of_fold)
+            d.training["augment"] = augment.to_dict()
+        return cls(bank, features, int(window_samples), peak_mode, tuple(classes), d.mean, d.scale, d.network,
+                   d.training, float(peak_threshold), d.calibration, d.novelty, d.out_of_fold)
 
     @property
     def augment(self) -> GainAugment | None:
@@ -617,15 +627,7 @@ class TextureModel:
         if type(header.get("version")) is not int or header["version"] not in MODEL_VERSIONS:   # true == 1 in Python
             raise bad(f"model format version {header.get('version')!r} is not supported (this program reads "
                       f"versions {', '.join(map(str, MODEL_VERSIONS))}); retrain the model with this version")
-        known = {"format", "version", *SENSE_KEYS, "classes", "layers", "training"}
-        if header["version"] >= 2:
-            known |= set(CALIBRATION_KEYS)
-        if header["version"] >= NETWORKS_VERSION:
-            known.add("networks")
-        unknown = set(header) - known
-        if unknown:
-            raise bad(f"unknown header key(s) {sorted(unknown)}")
-        check_networks_key(header, bad)
+        check_header_keys(header, {*SENSE_KEYS, "classes"}, bad)
         bank, features, window, peak_mode, threshold = sense_from_header(header, bad)
         classes = classes_from_header(header, bad)
         n_in = len(features) * bank.channels
@@ -764,14 +766,26 @@ def network_from_arrays(header: dict, arrays: dict, n_in: int, n_classes: int, b
     return mlp, arrays["mean"].astype(np.float64), arrays["scale"].astype(np.float64)
 
 
-def check_networks_key(header: dict, bad) -> None:
-    """Refuse a header of version :data:`NETWORKS_VERSION` or later that does not say its ``networks``.
+def check_header_keys(header: dict, own: set, bad) -> None:
+    """Refuse a model header (of a known ``version``) with a key its version does not have, or without ``networks``.
 
-    (Its arrays would otherwise be read as one network's, with a calibration fitted for several.)
+    ``own``: the keys of the file's kind beside those every model file has (format, version, layers,
+    training; from version 2 :data:`CALIBRATION_KEYS`, from :data:`NETWORKS_VERSION` ``networks``, which
+    it must then say: its arrays would otherwise be read as one network's, with a calibration fitted for
+    several).
     """
-    if header["version"] >= NETWORKS_VERSION and "networks" not in header:
-        raise bad(f"a version {header['version']} header must say its 'networks' (how many networks its arrays "
-                  "hold); the file is damaged or was not written by supramodal")
+    version = header["version"]
+    known = {"format", "version", "layers", "training", *own}
+    if version >= 2:
+        known |= set(CALIBRATION_KEYS)
+    if version >= NETWORKS_VERSION:
+        known.add("networks")
+    unknown = set(header) - known
+    if unknown:
+        raise bad(f"unknown header key(s) {sorted(unknown)}")
+    if version >= NETWORKS_VERSION and "networks" not in header:
+        raise bad(f"a version {version} header must say its 'networks' (how many networks its arrays hold); the "
+                  "file is damaged or was not written by supramodal")
 
 
 def networks_of(mlp: MLP | Ensemble) -> int:

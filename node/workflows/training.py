@@ -17,7 +17,13 @@ from typing import Any
 import numpy as np
 
 from supramodal.banks import Bank
-from supramodal.calibration import calibration_line, calibration_report, pool_log_posteriors, winner
+from supramodal.calibration import (
+    DEFAULT_CALIBRATION_FOLDS,
+    calibration_line,
+    calibration_report,
+    pool_log_posteriors,
+    winner,
+)
 from supramodal.errors import InputError, SupramodalError
 from supramodal.evaluation import POOLED_WINDOWS, anytime_sweep, permutation_importance, pooled_accuracy
 from supramodal.mlp import DEFAULT_EPOCHS, Ensemble
@@ -112,21 +118,21 @@ def _manifest_windows(manifest, make_pipeline, mapping, progress):
 
 def _train(recs, classes, windows, pipeline: FeaturePipeline, epochs: int, seed: int, hidden=None,
            calibration_progress=None, groups=None, jobs: int = 1, augment: GainAugment | None = None,
-           calibration_folds: int | None = None) -> TextureModel:
+           calibration_folds: int = DEFAULT_CALIBRATION_FOLDS) -> TextureModel:
     """Train a model on the recordings' windows, calibrated on out-of-fold windows of folds grouped by recording.
 
     The groups are ``groups``, one per entry of ``recs`` (default :func:`recording_group`), where there are
     enough recordings; its networks over ``jobs`` worker processes (the same model for any), each trained on
-    its windows gain-augmented by ``augment`` (None: not); ``calibration_folds`` (None: the default) its
-    calibration's fold networks, which it deploys (0: one network, uncalibrated).
+    its windows gain-augmented by ``augment`` (None: not); ``calibration_folds`` its calibration's fold
+    networks, which it deploys (0: one network, uncalibrated).
     """
     x = np.concatenate(windows)
     y = np.concatenate([np.full(len(v), classes.index(r.label)) for r, v in zip(recs, windows)])
     names = [recording_group(r) for r in recs] if groups is None else list(groups)
     groups = np.repeat(np.array(names), [len(v) for v in windows])
-    folds = {} if calibration_folds is None else {"calibration_folds": calibration_folds}
     model = TextureModel.train_for(pipeline, x, y, classes, epochs=epochs, seed=seed, hidden=hidden, groups=groups,
-                                   calibration_progress=calibration_progress, jobs=jobs, augment=augment, **folds)
+                                   calibration_progress=calibration_progress, jobs=jobs, augment=augment,
+                                   calibration_folds=calibration_folds)
     _warn_if_calibrated_on_spans(model)
     return model
 
@@ -140,7 +146,6 @@ def _warn_if_calibrated_on_spans(model: TextureModel) -> None:
     """
     import warnings
 
-    from supramodal.calibration import DEFAULT_CALIBRATION_FOLDS
     from supramodal.errors import SupramodalWarning
 
     fitted = {} if model.calibration is None else model.calibration.fitted_on
@@ -425,7 +430,8 @@ def _cross_validate(manifest, make_pipeline, k, epochs, seed, hidden, mapping, p
             raise ManifestError(f"{manifest}: fold {f + 1} of {k} would train without {missing}: record them more "
                                 "often or lower --cv")
         model = _train([recs[i] for i in train], classes, [windows[i] for i in train],
-                       make_pipeline(), epochs, seed, hidden, augment=augment, calibration_folds=calibration_folds)
+                       make_pipeline(), epochs, seed, hidden, augment=augment,
+                       calibration_folds=DEFAULT_CALIBRATION_FOLDS if calibration_folds is None else calibration_folds)
         result, part = _score_recordings(model, [recs[i] for i in test], [windows[i] for i in test])
         for key, value in part.items():
             scored[key] += list(value)
