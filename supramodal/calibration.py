@@ -55,6 +55,7 @@ import numpy as np
 from scipy.special import log_softmax, logsumexp
 
 from supramodal.errors import InputError
+from supramodal.mlp import DEFAULT_PATIENCE
 
 __all__ = [
     "CALIBRATION_METHOD", "CHANGES_KEPT", "DEFAULT_CALIBRATION_FOLDS", "HeldOutChanges", "ECE_BINS",
@@ -1684,7 +1685,8 @@ def calibration_folds(labels, groups, k: int = DEFAULT_CALIBRATION_FOLDS, seed: 
 def fit_network_calibration(x, labels, n_classes: int, groups=None, k: int = DEFAULT_CALIBRATION_FOLDS,
                             hidden: int | None = None, epochs: int | None = None, seed: int = 0,
                             progress=None, jobs: int = 1, augment=None, touch_groups=None,
-                            touch_floor: float = NOVELTY_TOUCH_SPREAD) -> tuple[Calibration, Novelty, OutOfFold]:
+                            touch_floor: float = NOVELTY_TOUCH_SPREAD,
+                            patience: int | None = DEFAULT_PATIENCE) -> tuple[Calibration, Novelty, OutOfFold]:
     """Fit the calibration and novelty of a network as :func:`supramodal.mlp.train_mlp` would train it.
 
     They are fitted from out-of-fold windows; the network would train on the raw (unstandardised)
@@ -1713,6 +1715,9 @@ def fit_network_calibration(x, labels, n_classes: int, groups=None, k: int = DEF
         calibration and the novelty see the original rows only. Default None: none.
     touch_groups, touch_floor
         The novelty's allowance for a new touch (:func:`fit_novelty`; default none).
+    patience : int or None
+        Each fold network stops early on its held-out windows, as a model's own do
+        (:func:`fold_tasks`; default :data:`~supramodal.mlp.DEFAULT_PATIENCE`); None: every epoch.
 
     Returns
     -------
@@ -1730,23 +1735,25 @@ def fit_network_calibration(x, labels, n_classes: int, groups=None, k: int = DEF
     folds, by = calibration_folds(y, groups, k, seed)
     held_out = HeldOutLogits(y, folds, k, n_classes, progress)
     epochs = DEFAULT_EPOCHS if epochs is None else epochs
-    train_networks(fold_tasks(x, y, n_classes, folds, k, hidden, epochs, seed, augment), jobs, done=held_out.told,
-                   work=fold_work(len(x), x.shape[1], n_classes, folds, k, hidden, epochs)
+    train_networks(fold_tasks(x, y, n_classes, folds, k, hidden, epochs, seed, augment, patience), jobs,
+                   done=held_out.told, work=fold_work(len(x), x.shape[1], n_classes, folds, k, hidden, epochs, patience)
                    * getattr(augment, "factor", 1))
     return calibration_of_held_out(x, y, n_classes, groups, folds, by, k, held_out.logits, touch_groups, touch_floor)
 
 
 def fold_tasks(x, labels, n_classes: int, folds, k: int, hidden: int | None, epochs: int, seed: int,
-               augment=None):
+               augment=None, patience: int | None = None):
     """Yield the calibration's fold networks as :class:`~supramodal.mlp.NetworkTask`, in fold order.
 
     One per fold with held-out windows: trained on the other folds' rows of ``x`` (n, inputs),
     standardised by their own mean and scale, scoring the fold's own rows. A generator: each
     fold's rows are copied when its task is taken. ``augment``: optional callable
     ``(rows, labels, stream) -> (rows, labels)`` applied to each fold's raw training rows (stream
-    ``f + 1``; the held-out rows are never augmented).
+    ``f + 1``; the held-out rows are never augmented). ``patience``: each network stops early on
+    its fold's held-out rows (:func:`supramodal.mlp.train_mlp`'s ``stop_on``); None (the default):
+    every epoch.
     """
-    from supramodal.mlp import NetworkTask
+    from supramodal.mlp import DEFAULT_PATIENCE, NetworkTask
 
     y = np.asarray(labels)
     for f in range(k):
@@ -1755,7 +1762,8 @@ def fold_tasks(x, labels, n_classes: int, folds, k: int, hidden: int | None, epo
             mean, scale = fold_scaling(x, folds, f)
             xt, yt = (x[~test], y[~test]) if augment is None else augment(x[~test], y[~test], f + 1)
             yield NetworkTask((xt - mean) / scale, yt, n_classes, hidden, epochs, seed,
-                              (x[test] - mean) / scale)
+                              (x[test] - mean) / scale, None if patience is None else y[test],
+                              DEFAULT_PATIENCE if patience is None else patience)
 
 
 def fold_scaling(x, folds, f: int) -> tuple[np.ndarray, np.ndarray]:
@@ -1763,10 +1771,13 @@ def fold_scaling(x, folds, f: int) -> tuple[np.ndarray, np.ndarray]:
     return input_scaling(np.asarray(x)[np.asarray(folds) != f])
 
 
-def fold_work(n: int, inputs: int, n_classes: int, folds, k: int, hidden: int | None, epochs: int) -> float:
+def fold_work(n: int, inputs: int, n_classes: int, folds, k: int, hidden: int | None, epochs: int,
+              patience: int | None = None) -> float:
     """Return the summed :attr:`~supramodal.mlp.NetworkTask.work` of :func:`fold_tasks`' networks, not making them."""
+    from supramodal.mlp import expected_epochs
+
     rows = sum(n - int(np.sum(folds == f)) for f in range(k) if np.any(folds == f))
-    return float(rows) * (hidden or inputs) * (inputs + n_classes) * epochs
+    return float(rows) * (hidden or inputs) * (inputs + n_classes) * expected_epochs(epochs, patience)
 
 
 class HeldOutLogits:

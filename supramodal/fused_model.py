@@ -43,11 +43,12 @@ from supramodal.calibration import (
     calibration_report,
     fit_pooling,
     fit_window_calibration,
+    fold_tasks,
     normalised_log_posteriors,
 )
 from supramodal.errors import InputError
 from supramodal.fusion import early_inputs, fuse_late, learn_late_fusion
-from supramodal.mlp import DEFAULT_EPOCHS, MLP, Ensemble
+from supramodal.mlp import DEFAULT_EPOCHS, DEFAULT_PATIENCE, MLP, Ensemble, train_networks
 from supramodal.model import (
     NOVELTY_ARRAYS,
     SENSE_KEYS,
@@ -59,6 +60,7 @@ from supramodal.model import (
     calibration_header,
     check_header_keys,
     check_sense_fits,
+    check_training_patience,
     classes_from_header,
     log_posteriors_of,
     network_from_arrays,
@@ -239,7 +241,8 @@ class EarlyFusionModel:
     def train(cls, senses, values_a: np.ndarray, values_b: np.ndarray, labels, classes,
               epochs: int = DEFAULT_EPOCHS, seed: int = 0, hidden: int | None = None, groups=None,
               calibration_folds: int = DEFAULT_CALIBRATION_FOLDS, calibration_progress=None,
-              augment: EarlyAugment = None, jobs: int = 1) -> EarlyFusionModel:
+              augment: EarlyAugment = None, jobs: int = 1,
+              patience: int | None = DEFAULT_PATIENCE) -> EarlyFusionModel:
         """Fit the scaling and the networks on aligned windows, and their calibration.
 
         ``values_a[k]`` and ``values_b[k]`` cover the same time, shapes (n, features, channels) of
@@ -257,7 +260,8 @@ class EarlyFusionModel:
         for both senses, each resolved by its bank (per vibrissa for a whisker array, one level for a
         microphone), or one per sense; each sense draws its own gains. Scaling, calibration and novelty
         are fitted on the original windows, as a one-sense model's are. The model keeps it
-        (:attr:`augment`).
+        (:attr:`augment`). ``patience``: each fold network stops early on its held-out windows, as a
+        one-sense model's do (None: every epoch).
         """
         senses = tuple(senses)
         x = early_inputs(cls._check(senses[0], values_a), cls._check(senses[1], values_b))
@@ -266,7 +270,8 @@ class EarlyFusionModel:
         # statistics kept (a node's early fusion then fits its change threshold, not the detector's bound)
         d = train_deployed(x, labels, len(classes), hidden, epochs, seed, groups, calibration_folds, jobs,
                            None if augments is None else EarlyGainCopies.of(augments, senses),
-                           early_touch_allowance(senses, augments), calibration_progress=calibration_progress)
+                           early_touch_allowance(senses, augments), calibration_progress=calibration_progress,
+                           patience=patience)
         if augments is not None:
             d.training["augment"] = [a.to_dict() for a in augments]
         return cls(senses, tuple(classes), d.mean, d.scale, d.network, d.training, d.calibration, d.novelty,
@@ -366,6 +371,7 @@ class EarlyFusionModel:
         training = header.get("training", {})
         if not isinstance(training, dict):
             raise bad("'training' must be an object")
+        check_training_patience(training, bad)
         if training.get("augment") is not None:        # a file from before it has none
             parts = training["augment"]
             if not (isinstance(parts, list) and len(parts) == 2):
@@ -389,10 +395,11 @@ class EarlyFusionModel:
 def out_of_fold_logits(model: TextureModel, values, labels, classes, folds, progress=None) -> np.ndarray:
     """Each window's logits from a network that never trained on its fold.
 
-    Per fold, a copy of ``model``'s configuration (bank, features, window, peak settings, hidden
-    units, epochs, seed and gain augmentation, as :func:`supramodal.node.workflows.training.cross_validate_model`
-    copies it) is trained on the windows of the other folds, without a calibration of its own, and scores
-    the fold's windows (never augmented).
+    Per fold, a copy of ``model``'s configuration (inputs, hidden units, epochs, seed, gain augmentation
+    and early stopping, as :func:`supramodal.node.workflows.training.cross_validate_model` copies it) is
+    trained on the windows of the other folds, as a fold network of the model's own calibration is
+    (:func:`~supramodal.calibration.fold_tasks`: stopped early on the fold's windows where the model's
+    networks were), and scores the fold's windows (never augmented).
 
     Parameters
     ----------
@@ -430,16 +437,27 @@ def out_of_fold_logits(model: TextureModel, values, labels, classes, folds, prog
             progress(f"the {len(parts)} fold networks of the model's calibration, {len(y)} held-out windows, "
                      f"{float(np.mean(np.argmax(kept.logits, axis=1) == y)):.3f} right")
         return kept.logits.copy()
+    expected = (len(model.features), model.bank.channels)
+    if values.ndim != 3 or values.shape[1:] != expected or len(y) != len(values) or len(folds) != len(values):
+        raise InputError(f"out-of-fold windows must have shape (n, {expected[0]}, {expected[1]}) with a label and "
+                         f"a fold each, got {values.shape}, {len(y)} labels, {len(folds)} folds")
+    x, fold_of = values.reshape(len(values), -1), np.searchsorted(parts, folds)
+    augment = model.augment
+    # the copies are fold networks as the model's own are: augmented, stopped early (a file from before
+    # early stopping has no patience: every epoch, as its networks were trained)
+    tasks = fold_tasks(x, y, len(classes), fold_of, len(parts), model.mlp.shape[1], epochs, seed,
+                       None if augment is None else augment.for_inputs(model.features, model.bank.channels),
+                       model.training.get("patience"))
     z = np.empty((len(y), len(classes)))
-    for i, f in enumerate(parts):
-        test = folds == f
-        copy = TextureModel.train(values[~test], y[~test], classes, model.bank, model.features, model.window_samples,
-                                  model.peak_mode, epochs=epochs, seed=seed, hidden=model.mlp.shape[1],
-                                  peak_threshold=model.peak_threshold, calibration_folds=0, augment=model.augment)
-        z[test] = copy.logits(values[test])
+
+    def told(i, result) -> None:
+        test = fold_of == i
+        z[test] = result[2]
         if progress:
             progress(f"fold {i + 1}/{len(parts)}: {int(test.sum())} held-out windows, "
                      f"{float(np.mean(np.argmax(z[test], axis=1) == y[test])):.3f} right")
+
+    train_networks(tasks, 1, done=told)
     return z
 
 

@@ -32,6 +32,11 @@ from supramodal.errors import InputError
 
 #: iRPROP- epochs when none are asked for (the one home of this default; the paper trains 500).
 DEFAULT_EPOCHS = 500
+#: Epochs without a better held-out error after which a network with held-out rows stops
+#: (:func:`train_mlp`'s ``stop_on``): the default of a calibrated model's fold networks.
+DEFAULT_PATIENCE = 100
+#: Epochs between two looks at the held-out error of a network that may stop early.
+STOP_CHECK_EPOCHS = 10
 STEEPNESS = 0.5
 INIT_RANGE = 0.1
 RPROP_INCREASE = 1.2
@@ -272,10 +277,20 @@ def one_hot(labels: np.ndarray, n_classes: int) -> np.ndarray:
     return t
 
 
+def held_out_mse(net: MLP, x: np.ndarray, targets: np.ndarray) -> float:
+    """Return the mean squared error of ``net``'s outputs on rows ``x`` (m, inputs) against ``targets`` (m, outputs)."""
+    return float(np.mean((targets - net.outputs(x)) ** 2))
+
+
 def train_mlp(x: np.ndarray, labels: np.ndarray, n_classes: int, hidden: int | None = None,
               epochs: int = DEFAULT_EPOCHS, seed=None, desired_mse: float = 0.0,
-              progress=None) -> tuple[MLP, list[float]]:
+              progress=None, stop_on=None, patience: int = DEFAULT_PATIENCE) -> tuple[MLP, list[float]]:
     """Train an MLP by batch iRPROP- on (already scaled) inputs.
+
+    With held-out rows (``stop_on``), training stops early: every :data:`STOP_CHECK_EPOCHS` epochs
+    the network's mean squared error on those rows is measured, and once it has not improved for
+    ``patience`` epochs the network of the best measure is returned. Without, every epoch is
+    trained (the paper's 500), unless ``desired_mse`` is reached.
 
     Parameters
     ----------
@@ -291,11 +306,19 @@ def train_mlp(x: np.ndarray, labels: np.ndarray, n_classes: int, hidden: int | N
     desired_mse : float
         Stop early once the training MSE falls below it (FANN's desired error; 0 = never).
     progress : callable(epoch, mse), optional
+    stop_on : (ndarray, ndarray of int), optional
+        Held-out rows, shape (m, inputs), scaled as ``x``, and their labels, shape (m,): what the
+        network's error is watched on to stop (a calibration fold's held-out windows). Default: none.
+    patience : int
+        Epochs without a lower held-out error before stopping (default :data:`DEFAULT_PATIENCE`);
+        only with ``stop_on``.
 
     Returns
     -------
     (MLP, list of float)
-        The network and the training MSE before each epoch's update.
+        The network and the training MSE before each of its epochs' updates: with ``stop_on``,
+        the network of the lowest held-out error and the epochs that made it (the epochs trained
+        past it, to see that it stayed the lowest, are not returned).
     """
     x = np.asarray(x, dtype=np.float64)
     labels = np.asarray(labels)
@@ -312,7 +335,9 @@ def train_mlp(x: np.ndarray, labels: np.ndarray, n_classes: int, hidden: int | N
     net = MLP.create(x.shape[1], hidden or x.shape[1], n_classes, seed=seed)
     opt = IRpropMinus(net.params())
     targets = one_hot(labels, n_classes)
-    history = []
+    history: list[float] = []
+    watch = None if stop_on is None else _StopWatch(net, stop_on[0], stop_on[1], n_classes, x.shape[1], patience)
+    updates = 0
     for epoch in range(epochs):
         grads, mse = net.gradients(x, targets)
         history.append(mse)
@@ -321,7 +346,43 @@ def train_mlp(x: np.ndarray, labels: np.ndarray, n_classes: int, hidden: int | N
         if mse < desired_mse:
             break
         opt.step(grads)
-    return net, history
+        updates += 1
+        if watch is not None and watch.stop(updates):
+            break
+    if watch is None:
+        return net, history
+    watch.stop(updates, final=True)
+    return watch.best, history[:max(watch.best_epochs, 1)]     # the start's own MSE if it stayed the best
+
+
+class _StopWatch:
+    """The held-out error of a network in training, every :data:`STOP_CHECK_EPOCHS` epochs, and the best so far."""
+
+    def __init__(self, net: MLP, x_held, labels_held, n_classes: int, inputs: int, patience: int) -> None:
+        x_held = np.asarray(x_held, dtype=np.float64)
+        labels_held = np.asarray(labels_held)
+        if x_held.ndim != 2 or x_held.shape[1] != inputs or len(x_held) == 0:
+            raise InputError(f"held-out rows to stop on must have shape (m >= 1, {inputs}), got {x_held.shape}")
+        if labels_held.shape != (len(x_held),) or labels_held.dtype.kind not in "iu":
+            raise InputError(f"held-out labels must be integers of shape ({len(x_held)},), got "
+                             f"{labels_held.dtype} {labels_held.shape}")
+        if labels_held.min() < 0 or labels_held.max() >= n_classes:
+            raise InputError(f"held-out labels must lie in 0..{n_classes - 1}")
+        if isinstance(patience, bool) or not isinstance(patience, int | np.integer) or patience < 1:
+            raise InputError(f"patience must be a whole number of epochs >= 1, got {patience!r}")
+        self.net, self.x, self.targets, self.patience = net, x_held, one_hot(labels_held, n_classes), int(patience)
+        self.best, self.best_epochs, self.best_error = MLP(*[p.copy() for p in net.params()]), 0, np.inf
+
+    def stop(self, epochs: int, final: bool = False) -> bool:
+        """Look at the network after ``epochs`` epochs if it is time (or ``final``); return whether to stop."""
+        if epochs % STOP_CHECK_EPOCHS and not final:
+            return False
+        error = held_out_mse(self.net, self.x, self.targets)
+        if error < self.best_error:
+            self.best_error, self.best_epochs = error, epochs
+            for kept, p in zip(self.best.params(), self.net.params()):
+                kept[...] = p
+        return epochs - self.best_epochs >= self.patience
 
 
 @dataclass(frozen=True)
@@ -341,6 +402,11 @@ class NetworkTask:
     score : ndarray, shape (m, inputs), optional
         Scaled rows whose logits the trained network gives back (a calibration fold's held-out
         windows).
+    score_labels : ndarray of int, shape (m,), optional
+        The labels of ``score``'s rows: with them, training stops early on those rows
+        (:func:`train_mlp`'s ``stop_on``, with ``patience``).
+    patience : int
+        As :func:`train_mlp`'s (default :data:`DEFAULT_PATIENCE`).
     """
 
     x: np.ndarray
@@ -350,22 +416,40 @@ class NetworkTask:
     epochs: int = DEFAULT_EPOCHS
     seed: int | None = None
     score: np.ndarray | None = None
+    score_labels: np.ndarray | None = None
+    patience: int = DEFAULT_PATIENCE
+
+    @property
+    def stops_early(self) -> bool:
+        """Whether the network stops on its held-out rows (it has rows to score and their labels)."""
+        return self.score is not None and self.score_labels is not None
 
     @property
     def work(self) -> float:
-        """Multiply-adds of the training, about: what it costs against starting a process."""
+        """Multiply-adds of the training, about: what it costs against starting a process.
+
+        A network that stops early is counted at :func:`expected_epochs`.
+        """
         inputs = self.x.shape[1]
         hidden = self.hidden or inputs
-        return float(len(self.x)) * hidden * (inputs + self.n_classes) * self.epochs
+        epochs = expected_epochs(self.epochs, self.patience if self.stops_early else None)
+        return float(len(self.x)) * hidden * (inputs + self.n_classes) * epochs
+
+
+def expected_epochs(epochs: int, patience: int | None) -> int:
+    """Return the epochs a network is expected to train: ``epochs``, or about twice ``patience`` if it stops early."""
+    return epochs if patience is None else min(epochs, 2 * patience)
 
 
 def train_task(task: NetworkTask, progress=None) -> tuple[MLP, list[float], np.ndarray | None]:
     """Train ``task``'s network; return it, its training MSE per epoch and the logits of ``task.score``.
 
-    The MSE is :func:`train_mlp`'s; the logits are None without rows to score.
+    The MSE is :func:`train_mlp`'s; the logits are None without rows to score. With the scored
+    rows' labels, the network stops early on them (:attr:`NetworkTask.stops_early`).
     """
+    stop_on = (task.score, task.score_labels) if task.stops_early else None
     net, history = train_mlp(task.x, task.labels, task.n_classes, hidden=task.hidden, epochs=task.epochs,
-                             seed=task.seed, progress=progress)
+                             seed=task.seed, progress=progress, stop_on=stop_on, patience=task.patience)
     return net, history, None if task.score is None else net.logits(task.score)
 
 

@@ -66,7 +66,7 @@ from supramodal.checks import CLASS_NAME_HELP, is_class_name
 from supramodal.errors import InputError
 from supramodal.features import check_features
 from supramodal.jsondata import parse_json_text
-from supramodal.mlp import DEFAULT_EPOCHS, MLP, Ensemble, NetworkTask, rescaled, train_networks
+from supramodal.mlp import DEFAULT_EPOCHS, DEFAULT_PATIENCE, MLP, Ensemble, NetworkTask, rescaled, train_networks
 from supramodal.peaks import PEAK_MODES
 from supramodal.pipeline import MAX_WINDOW_SAMPLES
 
@@ -311,7 +311,8 @@ class Deployed(NamedTuple):
 
 
 def train_deployed(x, labels, n_classes: int, hidden: int | None, epochs: int, seed: int, groups, folds: int,
-                   jobs: int = 1, augment=None, touch=None, progress=None, calibration_progress=None) -> Deployed:
+                   jobs: int = 1, augment=None, touch=None, progress=None, calibration_progress=None,
+                   patience: int | None = DEFAULT_PATIENCE) -> Deployed:
     """Train what a model deploys on raw input rows ``x`` (n, inputs): its network(s) and their calibration.
 
     With ``folds`` (> 0), the calibration's fold networks (:func:`~supramodal.calibration.fold_tasks`),
@@ -348,13 +349,19 @@ def train_deployed(x, labels, n_classes: int, hidden: int | None, epochs: int, s
         The last network's epochs (from workers: its last epoch alone).
     calibration_progress : callable(str), optional
         One line per fold network.
+    patience : int or None
+        Each fold network stops early on its own held-out windows once their error has not fallen for
+        ``patience`` epochs, and is deployed as it was at its best (:func:`supramodal.mlp.train_mlp`'s
+        ``stop_on``; default :data:`~supramodal.mlp.DEFAULT_PATIENCE`). None: every epoch, as before
+        2026-11-30. A network without folds has no held-out windows and trains every epoch.
 
     Returns
     -------
     Deployed
         The network (an ensemble of the fold networks, or one), the input scaling of ``x`` they take, the
-        ``training`` a model file keeps (algorithm, epochs, seed, final_mse: the networks' mean, windows)
-        and the calibration, novelty and held-out logits (None without folds).
+        ``training`` a model file keeps (algorithm, epochs, seed, final_mse: the networks' mean, windows;
+        with folds ``patience`` and ``network_epochs``, each fold network's) and the calibration, novelty
+        and held-out logits (None without folds).
     """
     y = np.asarray(labels)
     mean, scale = input_scaling(x)         # a constant input carries nothing; scale 1 keeps it at 0
@@ -367,16 +374,18 @@ def train_deployed(x, labels, n_classes: int, hidden: int | None, epochs: int, s
     g = y if groups is None else np.asarray(groups)
     fold_of, by = calibration_folds_of(y, g, folds, seed)
     held_out = HeldOutLogits(y, fold_of, folds, n_classes, calibration_progress)
-    work = fold_work(len(x), x.shape[1], n_classes, fold_of, folds, hidden, epochs) * getattr(augment, "factor", 1)
-    results = train_networks(fold_tasks(x, y, n_classes, fold_of, folds, hidden, epochs, seed, augment), jobs,
-                             watch=(held_out.networks - 1, progress), done=held_out.told, work=work)
+    work = fold_work(len(x), x.shape[1], n_classes, fold_of, folds, hidden, epochs, patience) \
+        * getattr(augment, "factor", 1)
+    results = train_networks(fold_tasks(x, y, n_classes, fold_of, folds, hidden, epochs, seed, augment, patience),
+                             jobs, watch=(held_out.networks - 1, progress), done=held_out.told, work=work)
     calibration, novelty, out_of_fold = calibration_of_held_out(x, y, n_classes, g, fold_of, by, folds,
                                                                 held_out.logits, *(touch or ()))
     calibration = with_held_out_changes(calibration, held_out.logits, y, g, fold_of)
     # each fold network standardised its rows by their own mean and scale: re-expressed on the model's
     members = [rescaled(net, *fold_scaling(x, fold_of, f), mean, scale)
                for f, (net, _, _) in zip(held_out.order, results)]
-    info.update(epochs=len(results[0][1]), final_mse=float(np.mean([h[-1] for _, h, _ in results])))
+    info.update(epochs=epochs, patience=patience, network_epochs=[len(h) for _, h, _ in results],
+                final_mse=float(np.mean([h[-1] for _, h, _ in results])))
     return Deployed(Ensemble(tuple(members)), mean, scale, info, calibration, novelty, out_of_fold)
 
 
@@ -422,7 +431,8 @@ class TextureModel:
               peak_mode: str = "maxima", epochs: int = DEFAULT_EPOCHS, seed: int = 0, hidden: int | None = None,
               progress=None, peak_threshold: float = 0.0, groups=None,
               calibration_folds: int = DEFAULT_CALIBRATION_FOLDS, calibration_progress=None,
-              jobs: int = 1, augment: GainAugment | None = None) -> TextureModel:
+              jobs: int = 1, augment: GainAugment | None = None,
+              patience: int | None = DEFAULT_PATIENCE) -> TextureModel:
         """Fit the scaling and the networks on feature windows, and their calibration (:func:`train_deployed`).
 
         A calibrated model deploys its calibration's fold networks, the mean of their logits
@@ -459,6 +469,9 @@ class TextureModel:
             the calibration map and the novelty score see the original windows only. Its gains by bank
             (``per_channel`` None) are resolved with ``bank``'s kind; the model keeps it
             (:attr:`augment`).
+        patience : int or None
+            Each fold network stops early on its held-out windows (:func:`train_deployed`; default
+            :data:`~supramodal.mlp.DEFAULT_PATIENCE` epochs); None: every epoch.
         """
         features = check_features(features)
         values = np.asarray(values, dtype=np.float64)
@@ -469,7 +482,7 @@ class TextureModel:
         augment = None if augment is None else augment.resolved(bank.kind)
         d = train_deployed(x, labels, len(classes), hidden, epochs, seed, groups, calibration_folds, jobs,
                            None if augment is None else augment.for_inputs(features, bank.channels),
-                           touch_allowance(features, bank, augment), progress, calibration_progress)
+                           touch_allowance(features, bank, augment), progress, calibration_progress, patience)
         if augment is not None:
             d.training["augment"] = augment.to_dict()
         return cls(bank, features, int(window_samples), peak_mode, tuple(classes), d.mean, d.scale, d.network,
@@ -638,6 +651,7 @@ class TextureModel:
             raise bad("'training' must be an object")
         if training.get("augment") is not None:        # a file from before it has none
             GainAugment.from_dict(training["augment"], bad)
+        check_training_patience(training, bad)
         calibration, novelty = calibration_from_parts(header, arrays, n_in, len(classes), bad)
         return cls(bank, features, window, peak_mode, tuple(classes), mean, scale, mlp, training, threshold,
                    calibration, novelty)
@@ -764,6 +778,16 @@ def network_from_arrays(header: dict, arrays: dict, n_in: int, n_classes: int, b
     members = tuple(MLP(*(p[i] for p in params)) for i in range(networks)) if stacked else (MLP(*params),)
     mlp = members[0] if len(members) == 1 else Ensemble(members)
     return mlp, arrays["mean"].astype(np.float64), arrays["scale"].astype(np.float64)
+
+
+def check_training_patience(training: dict, bad) -> None:
+    """Refuse a model file's ``training.patience`` unless absent, null or a whole number of epochs >= 1.
+
+    What copies of the model's networks stop early by (:func:`supramodal.fused_model.out_of_fold_logits`).
+    """
+    patience = training.get("patience")
+    if patience is not None and (isinstance(patience, bool) or not isinstance(patience, int) or patience < 1):
+        raise bad(f"'training.patience' must be null or a whole number of epochs >= 1, got {patience!r}")
 
 
 def check_header_keys(header: dict, own: set, bad) -> None:

@@ -87,6 +87,7 @@ def _tamper(tmp_path, change):
     (lambda h: h["senses"][0].update(window_samples=1), "senses\\[0\\]: 'window_samples' must be an integer >= 2"),
     (lambda h: h["senses"][0].update(colour="red"), "senses\\[0\\] must have a non-empty 'name' and the keys"),
     (lambda h: h.update(extra=1), "unknown header key"),
+    (lambda h: h["training"].update(patience=0), "'training.patience' must be null or a whole number"),
 ])
 def test_bad_early_model_files_are_refused(tmp_path, change, needle):
     with pytest.raises(ModelError, match=needle):

@@ -249,3 +249,83 @@ def test_evaluate_cv_copies_a_model_with_as_many_fold_networks_as_it_deploys(mod
     assert _deployed_folds(dataclasses.replace(m, mlp=Ensemble(m.mlp.members[:2]))) == 2
     assert _deployed_folds(dataclasses.replace(m, calibration=None)) == 0            # uncalibrated: one network
     assert _deployed_folds(dataclasses.replace(m, mlp=m.mlp.members[0])) is None     # a version 2 file: as made now
+
+
+# -- fold networks stopped early on their own held-out windows -------------------------------------------
+
+def test_each_member_stopped_at_its_best_and_the_file_says_so(model):
+    """A model's fold networks stop early by default: each member is the network of its fold after the epochs the
+    file records (a network trained that many epochs on the same rows, re-expressed, gives the same logits)."""
+    from supramodal.calibration import fold_scaling, fold_tasks
+    from supramodal.mlp import DEFAULT_PATIENCE, train_mlp
+
+    m, values = model
+    assert m.training["patience"] == DEFAULT_PATIENCE and m.training["epochs"] == 60
+    x, y = values.reshape(len(values), -1), training_data()[1]
+    held = m.out_of_fold
+    tasks = list(fold_tasks(x, y, 3, held.folds, 3, None, 60, 3))
+    assert len(m.training["network_epochs"]) == 3
+    for f, (task, member, epochs) in enumerate(zip(tasks, m.mlp.members, m.training["network_epochs"])):
+        assert 1 <= epochs <= 60
+        net, _ = train_mlp(task.x, task.labels, 3, epochs=epochs, seed=3)
+        again = rescaled(net, *fold_scaling(x, held.folds, f), m.mean, m.scale)
+        for p, q in zip(again.params(), member.params()):
+            np.testing.assert_allclose(p, q, rtol=1e-12, atol=1e-12)
+
+
+def test_without_patience_every_fold_network_trains_every_epoch():
+    values, labels = training_data()
+    groups = np.repeat(np.arange(12), 10)
+    m = TextureModel.train(values, labels, CLASSES, BANK, FEATURES, 500, epochs=40, seed=3, groups=groups,
+                           patience=None)
+    assert m.training["patience"] is None and m.training["network_epochs"] == [40, 40, 40]
+
+
+def test_overfitting_fold_networks_stop_before_their_last_epoch():
+    """Classes that overlap: the fold networks' held-out error turns up well before 400 epochs; they stop there."""
+    rng = np.random.default_rng(5)
+    labels = np.repeat(np.arange(3), 60)
+    values = rng.gamma(2.0, 1.0, (180, 2, 8)) * 100.0
+    values[:, 0, :] *= 1 + 0.15 * labels[:, None]
+    m = TextureModel.train(values, labels, CLASSES, BANK, FEATURES, 500, epochs=400, seed=0, patience=30)
+    assert all(e < 400 - 30 for e in m.training["network_epochs"])
+
+
+@pytest.mark.parametrize("patience", [0, -3, 2.5, True, "100", [100]])
+def test_a_file_whose_patience_is_not_a_number_of_epochs_is_refused(model, tmp_path, patience):
+    m, _ = model
+    header, arrays = read_parts(m.save(tmp_path / "m.npz"))
+    header["training"]["patience"] = patience
+    with pytest.raises(ModelError, match="training.patience"):
+        TextureModel.load(write_parts(tmp_path / "bad.npz", header, arrays))
+
+
+def test_a_file_without_patience_loads_and_its_copies_train_every_epoch(model, tmp_path):
+    """A file from before early stopping (no 'patience'): loads; its out-of-fold copies train every epoch, as its
+    networks did."""
+    import dataclasses
+
+    from supramodal.fused_model import out_of_fold_logits
+
+    m, values = model
+    header, arrays = read_parts(m.save(tmp_path / "m.npz"))
+    del header["training"]["patience"]
+    old = TextureModel.load(write_parts(tmp_path / "old.npz", header, arrays))
+    assert "patience" not in old.training
+    labels, folds = training_data()[1], np.arange(len(values)) % 2
+    z_old = out_of_fold_logits(dataclasses.replace(old, out_of_fold=None), values, labels, CLASSES, folds)
+    z_new = out_of_fold_logits(dataclasses.replace(m, out_of_fold=None), values, labels, CLASSES, folds)
+    assert not np.array_equal(z_old, z_new)
+
+
+def test_out_of_fold_copies_on_the_models_own_folds_are_its_fold_networks(model):
+    """Copies of a model trained on its own calibration's folds (not taken from the file) are its fold networks,
+    stopped where they stopped: the same held-out logits."""
+    import dataclasses
+
+    from supramodal.fused_model import out_of_fold_logits
+
+    m, values = model
+    labels, held = training_data()[1], m.out_of_fold
+    z = out_of_fold_logits(dataclasses.replace(m, out_of_fold=None), values, labels, CLASSES, held.folds)
+    np.testing.assert_array_equal(z, held.logits)

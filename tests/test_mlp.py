@@ -5,16 +5,20 @@ import math
 import numpy as np
 import pytest
 
+from supramodal.errors import InputError
 from supramodal.mlp import (
     ERROR_CLIP,
     MLP,
+    STOP_CHECK_EPOCHS,
     IRpropMinus,
+    NetworkTask,
     logistic_in_place,
     one_hot,
     sigmoid,
     sigmoid_derivative,
     tanh_error,
     train_mlp,
+    train_task,
 )
 
 
@@ -315,3 +319,88 @@ def test_training_gives_the_network_of_the_plain_loop(n, inputs, classes, seed):
     for p, q in zip(fast.params(), plain.params()):
         np.testing.assert_array_equal(p, q)
     assert history[-1] < history[0]
+
+
+# -- stopping early on held-out rows -------------------------------------------------------------
+
+def overlapping(n, inputs, classes, seed, held=200):
+    """Classes that overlap, ``n`` training rows and ``held`` held-out rows of the same classes: a network
+    of this size overfits them within a few hundred epochs."""
+    rng = np.random.default_rng(seed)
+    means = 0.4 * rng.normal(size=(classes, inputs))
+    labels = rng.integers(0, classes, n + held)
+    x = rng.normal(size=(n + held, inputs)) + means[labels]
+    return x[:n], labels[:n], x[n:], labels[n:]
+
+
+def plain_held_out_errors(x, labels, classes, x_held, labels_held, epochs, seed):
+    """The held-out mean squared error after every STOP_CHECK_EPOCHS epochs of the plain loop, computed plainly."""
+    targets = one_hot(labels_held, classes)
+    errors = {}
+    for e in range(STOP_CHECK_EPOCHS, epochs + 1, STOP_CHECK_EPOCHS):
+        net = plain_train(x, labels, classes, e, seed)
+        y = 1.0 / (1.0 + np.exp(-(sigmoid(x_held @ net.w1 + net.b1) @ net.w2 + net.b2)))
+        errors[e] = float(np.mean((targets - y) ** 2))
+    return errors
+
+
+@pytest.mark.parametrize("patience", [20, 60])
+def test_a_network_stops_at_its_lowest_held_out_error_after_patience(patience):
+    """The network returned is the plain loop's of the epochs with the lowest held-out error (every 10th
+    epoch looked at); it trained ``patience`` epochs past them, no more, and says the epochs that made it."""
+    x, y, xh, yh = overlapping(300, 12, 3, 0)
+    seen = []
+    net, history = train_mlp(x, y, 3, epochs=400, seed=0, stop_on=(xh, yh), patience=patience,
+                             progress=lambda epoch, mse: seen.append(epoch))
+    errors = plain_held_out_errors(x, y, 3, xh, yh, len(seen), 0)
+    best = min(errors, key=lambda e: (errors[e], e))
+    assert best < 400 - patience                                    # the premise: it stopped before the last epoch
+    assert len(history) == best and len(seen) == best + patience
+    assert all(errors[e] > errors[best] for e in errors if e > best)
+    for p, q in zip(net.params(), plain_train(x, y, 3, best, 0).params()):
+        np.testing.assert_array_equal(p, q)
+
+
+def test_without_held_out_rows_every_epoch_is_trained():
+    x, y, _, _ = overlapping(300, 12, 3, 0)
+    net, history = train_mlp(x, y, 3, epochs=120, seed=0, patience=10)
+    assert len(history) == 120
+    for p, q in zip(net.params(), plain_train(x, y, 3, 120, 0).params()):
+        np.testing.assert_array_equal(p, q)
+
+
+def test_a_held_out_error_still_falling_at_the_last_epoch_keeps_the_last_network():
+    x, y, xh, yh = overlapping(1000, 12, 3, 0)
+    targets = one_hot(yh, 3)
+    err = {e: float(np.mean((targets - plain_train(x, y, 3, e, 0).outputs(xh)) ** 2)) for e in (10, 15)}
+    assert err[15] < err[10]                                        # the premise: still falling
+    net, history = train_mlp(x, y, 3, epochs=15, seed=0, stop_on=(xh, yh))
+    assert len(history) == 15                                       # looked at after the last epoch too
+    for p, q in zip(net.params(), train_mlp(x, y, 3, epochs=15, seed=0)[0].params()):
+        np.testing.assert_array_equal(p, q)
+
+
+def test_a_task_with_its_scored_rows_labels_stops_early_on_them():
+    x, y, xh, yh = overlapping(300, 12, 3, 0)
+    plain = NetworkTask(x, y, 3, epochs=400, seed=0, score=xh)
+    stopping = NetworkTask(x, y, 3, epochs=400, seed=0, score=xh, score_labels=yh, patience=20)
+    assert not plain.stops_early and stopping.stops_early and stopping.work < plain.work
+    net, history, logits = train_task(stopping)
+    assert len(train_task(plain)[1]) == 400 and len(history) < 400
+    np.testing.assert_array_equal(logits, net.logits(xh))
+    np.testing.assert_array_equal(net.w1, train_mlp(x, y, 3, epochs=len(history), seed=0)[0].w1)
+
+
+@pytest.mark.parametrize("stop_on, patience, match", [
+    ((np.zeros((4, 3)), np.zeros(4, int)), 10, r"shape \(m >= 1, 2\)"),
+    ((np.zeros((0, 2)), np.zeros(0, int)), 10, "held-out rows"),
+    ((np.zeros((4, 2)), np.zeros(3, int)), 10, "held-out labels must be integers of shape"),
+    ((np.zeros((4, 2)), np.zeros(4)), 10, "held-out labels must be integers"),
+    ((np.zeros((4, 2)), np.full(4, 2)), 10, r"held-out labels must lie in 0\.\.1"),
+    ((np.zeros((4, 2)), np.zeros(4, int)), 0, "patience"),
+    ((np.zeros((4, 2)), np.zeros(4, int)), True, "patience"),
+    ((np.zeros((4, 2)), np.zeros(4, int)), 2.5, "patience"),
+])
+def test_train_refuses_bad_held_out_rows(stop_on, patience, match):
+    with pytest.raises(InputError, match=match):
+        train_mlp(np.zeros((5, 2)), np.zeros(5, int), 2, epochs=5, stop_on=stop_on, patience=patience)

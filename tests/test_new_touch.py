@@ -695,3 +695,21 @@ def test_the_covariance_within_a_recording_is_about_each_textures_part_of_it():
     cov = (1 - NOVELTY_SHRINK) * cov + NOVELTY_SHRINK * np.diag(np.diag(cov)) + 1e-6 * np.eye(4)
     np.testing.assert_allclose(nov.precision, np.linalg.inv(cov), rtol=1e-8)
     assert nov.touch.touches == (4, 4)
+
+
+def test_the_pooled_contact_line_counts_every_sense_set_and_says_what_one_can_show():
+    """The pooled per-contact false-unknown rate and the chance a sense-set of n contacts lands in the band at
+    exactly the rate asked: against the binomial sum written out (math.comb)."""
+    from math import comb
+
+    from supramodal.experiments.newtouch import UNKNOWN_RANGE, pooled_contacts
+
+    counts = [0, 0, 5, 3, 4, 1, 9, 1, 5, 4]
+    sets = [{"senses": {s: {"unknown": {"false_unknown_contact": counts[2 * i + j] / 60, "contacts": 60}}
+                        for j, s in enumerate(("whiskers", "microphone"))}} for i in range(5)]
+    line = pooled_contacts({"sets": sets, "asked_unknown": 0.05})
+    lo, hi = UNKNOWN_RANGE
+    inside = sum(comb(60, k) * 0.05 ** k * 0.95 ** (60 - k) for k in range(61) if lo <= k / 60 <= hi)
+    assert "32 of 600 known contacts called unknown, 0.053" in line
+    assert f"with probability {inside:.2f}, all 10 with {inside ** 10:.3f}" in line
+    assert pooled_contacts({"sets": [], "asked_unknown": 0.05}) == ""

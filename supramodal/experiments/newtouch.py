@@ -343,6 +343,33 @@ def _within(result: dict, key: str) -> str:
     return f"{inside} of {len(values)} sense-sets" + (f" ({min(values):.3f}..{max(values):.3f})" if values else "")
 
 
+def pooled_contacts(result: dict) -> str:
+    """The per-contact false-unknown rate of every sense-set together, and what a sense-set's count can say.
+
+    The count of contacts called unknown in a sense-set is binomial if the rate is the one asked: the
+    line gives the pooled rate with its 95 % (Clopper-Pearson) interval, and the chance that one
+    sense-set of its contacts lands in :data:`UNKNOWN_RANGE`, and every sense-set, at exactly the rate
+    asked.
+    """
+    from scipy.stats import binom, binomtest
+
+    pairs = [(round(v["unknown"]["false_unknown_contact"] * v["unknown"]["contacts"]), v["unknown"]["contacts"])
+             for r in result["sets"] for v in r["senses"].values() if v["unknown"].get("contacts")]
+    if not pairs:
+        return ""
+    k, n = sum(c for c, _ in pairs), sum(m for _, m in pairs)
+    low, high = binomtest(k, n, result["asked_unknown"]).proportion_ci(0.95)
+    per = pairs[0][1]
+    lo, hi = UNKNOWN_RANGE
+    # P(lo <= X / per <= hi) for X ~ Binomial(per, asked): the counts ceil(lo per) .. floor(hi per)
+    inside = float(binom.cdf(np.floor(hi * per + 1e-9), per, result["asked_unknown"])
+                   - binom.cdf(np.ceil(lo * per - 1e-9) - 1, per, result["asked_unknown"]))
+    return (f"per contact, every sense-set together: {k} of {n} known contacts called unknown, {k / n:.3f} "
+            f"(95 % interval {low:.3f}..{high:.3f}); at exactly {result['asked_unknown']:g}, a sense-set of {per} "
+            f"contacts lands within {lo:g}..{hi:g} with probability {inside:.2f}, all {len(pairs)} with "
+            f"{inside ** len(pairs):.3f}")
+
+
 def newtouch_table(result: dict) -> str:
     """Return the experiment's figures as Markdown, one row per set and method."""
     lines = [f"{len(result['sets'])} two-sense sets, 6 known textures (+2 unknown), {result['touches']} touches of "
@@ -393,6 +420,9 @@ def newtouch_table(result: dict) -> str:
                           for what, key in (("per window", "false_unknown_window"),
                                             ("per contact", "false_unknown_contact"),
                                             ("per contact at every start", "false_unknown_contact_every_start")))]
+    pooled = pooled_contacts(result)
+    if pooled:
+        lines.append(pooled)
     checks = []
     for r in result["sets"]:
         better = min(v["touch3"]["log_loss"] for v in r["senses"].values())
