@@ -55,7 +55,7 @@ import numpy as np
 from scipy.special import log_softmax, logsumexp
 
 from supramodal.errors import InputError
-from supramodal.mlp import DEFAULT_PATIENCE
+from supramodal.mlp import EARLY_STOP_PATIENCE
 
 __all__ = [
     "CALIBRATION_METHOD", "CHANGES_KEPT", "DEFAULT_CALIBRATION_FOLDS", "HeldOutChanges", "ECE_BINS",
@@ -1686,7 +1686,7 @@ def fit_network_calibration(x, labels, n_classes: int, groups=None, k: int = DEF
                             hidden: int | None = None, epochs: int | None = None, seed: int = 0,
                             progress=None, jobs: int = 1, augment=None, touch_groups=None,
                             touch_floor: float = NOVELTY_TOUCH_SPREAD,
-                            patience: int | None = DEFAULT_PATIENCE) -> tuple[Calibration, Novelty, OutOfFold]:
+                            patience: int | None = EARLY_STOP_PATIENCE) -> tuple[Calibration, Novelty, OutOfFold]:
     """Fit the calibration and novelty of a network as :func:`supramodal.mlp.train_mlp` would train it.
 
     They are fitted from out-of-fold windows; the network would train on the raw (unstandardised)
@@ -1717,7 +1717,7 @@ def fit_network_calibration(x, labels, n_classes: int, groups=None, k: int = DEF
         The novelty's allowance for a new touch (:func:`fit_novelty`; default none).
     patience : int or None
         Each fold network stops early on its held-out windows, as a model's own do
-        (:func:`fold_tasks`; default :data:`~supramodal.mlp.DEFAULT_PATIENCE`); None: every epoch.
+        (:func:`fold_tasks`; default :data:`~supramodal.mlp.EARLY_STOP_PATIENCE`); None: every epoch.
 
     Returns
     -------
@@ -1742,18 +1742,18 @@ def fit_network_calibration(x, labels, n_classes: int, groups=None, k: int = DEF
 
 
 def fold_tasks(x, labels, n_classes: int, folds, k: int, hidden: int | None, epochs: int, seed: int,
-               augment=None, patience: int | None = None):
+               augment, patience: int | None):
     """Yield the calibration's fold networks as :class:`~supramodal.mlp.NetworkTask`, in fold order.
 
     One per fold with held-out windows: trained on the other folds' rows of ``x`` (n, inputs),
     standardised by their own mean and scale, scoring the fold's own rows. A generator: each
     fold's rows are copied when its task is taken. ``augment``: optional callable
     ``(rows, labels, stream) -> (rows, labels)`` applied to each fold's raw training rows (stream
-    ``f + 1``; the held-out rows are never augmented). ``patience``: each network stops early on
-    its fold's held-out rows (:func:`supramodal.mlp.train_mlp`'s ``stop_on``); None (the default):
-    every epoch.
+    ``f + 1``; the held-out rows are never augmented; None: none). ``patience``: each network stops
+    early on its fold's held-out rows (:func:`supramodal.mlp.train_mlp`'s ``stop_on``); None: every
+    epoch.
     """
-    from supramodal.mlp import DEFAULT_PATIENCE, NetworkTask
+    from supramodal.mlp import NetworkTask
 
     y = np.asarray(labels)
     for f in range(k):
@@ -1761,9 +1761,9 @@ def fold_tasks(x, labels, n_classes: int, folds, k: int, hidden: int | None, epo
         if test.any():
             mean, scale = fold_scaling(x, folds, f)
             xt, yt = (x[~test], y[~test]) if augment is None else augment(x[~test], y[~test], f + 1)
-            yield NetworkTask((xt - mean) / scale, yt, n_classes, hidden, epochs, seed,
-                              (x[test] - mean) / scale, None if patience is None else y[test],
-                              DEFAULT_PATIENCE if patience is None else patience)
+            stop = {} if patience is None else {"score_labels": y[test], "patience": patience}
+            yield NetworkTask((xt - mean) / scale, yt, n_classes, hidden, epochs, seed, (x[test] - mean) / scale,
+                              **stop)
 
 
 def fold_scaling(x, folds, f: int) -> tuple[np.ndarray, np.ndarray]:
@@ -1772,7 +1772,7 @@ def fold_scaling(x, folds, f: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def fold_work(n: int, inputs: int, n_classes: int, folds, k: int, hidden: int | None, epochs: int,
-              patience: int | None = None) -> float:
+              patience: int | None) -> float:
     """Return the summed :attr:`~supramodal.mlp.NetworkTask.work` of :func:`fold_tasks`' networks, not making them."""
     from supramodal.mlp import expected_epochs
 

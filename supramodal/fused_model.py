@@ -48,7 +48,7 @@ from supramodal.calibration import (
 )
 from supramodal.errors import InputError
 from supramodal.fusion import early_inputs, fuse_late, learn_late_fusion
-from supramodal.mlp import DEFAULT_EPOCHS, DEFAULT_PATIENCE, MLP, Ensemble, train_networks
+from supramodal.mlp import DEFAULT_EPOCHS, EARLY_STOP_PATIENCE, MLP, Ensemble, train_networks
 from supramodal.model import (
     NOVELTY_ARRAYS,
     SENSE_KEYS,
@@ -242,7 +242,7 @@ class EarlyFusionModel:
               epochs: int = DEFAULT_EPOCHS, seed: int = 0, hidden: int | None = None, groups=None,
               calibration_folds: int = DEFAULT_CALIBRATION_FOLDS, calibration_progress=None,
               augment: EarlyAugment = None, jobs: int = 1,
-              patience: int | None = DEFAULT_PATIENCE) -> EarlyFusionModel:
+              patience: int | None = EARLY_STOP_PATIENCE) -> EarlyFusionModel:
         """Fit the scaling and the networks on aligned windows, and their calibration.
 
         ``values_a[k]`` and ``values_b[k]`` cover the same time, shapes (n, features, channels) of

@@ -33,8 +33,9 @@ from supramodal.errors import InputError
 #: iRPROP- epochs when none are asked for (the one home of this default; the paper trains 500).
 DEFAULT_EPOCHS = 500
 #: Epochs without a better held-out error after which a network with held-out rows stops
-#: (:func:`train_mlp`'s ``stop_on``): the default of a calibrated model's fold networks.
-DEFAULT_PATIENCE = 100
+#: (:func:`train_mlp`'s ``stop_on``): the default of a calibrated model's fold networks. Counted in
+#: looks at the error, :data:`STOP_CHECK_EPOCHS` apart (a patience of 15 waits 20 epochs).
+EARLY_STOP_PATIENCE = 100
 #: Epochs between two looks at the held-out error of a network that may stop early.
 STOP_CHECK_EPOCHS = 10
 STEEPNESS = 0.5
@@ -284,7 +285,7 @@ def held_out_mse(net: MLP, x: np.ndarray, targets: np.ndarray) -> float:
 
 def train_mlp(x: np.ndarray, labels: np.ndarray, n_classes: int, hidden: int | None = None,
               epochs: int = DEFAULT_EPOCHS, seed=None, desired_mse: float = 0.0,
-              progress=None, stop_on=None, patience: int = DEFAULT_PATIENCE) -> tuple[MLP, list[float]]:
+              progress=None, stop_on=None, patience: int = EARLY_STOP_PATIENCE) -> tuple[MLP, list[float]]:
     """Train an MLP by batch iRPROP- on (already scaled) inputs.
 
     With held-out rows (``stop_on``), training stops early: every :data:`STOP_CHECK_EPOCHS` epochs
@@ -310,7 +311,7 @@ def train_mlp(x: np.ndarray, labels: np.ndarray, n_classes: int, hidden: int | N
         Held-out rows, shape (m, inputs), scaled as ``x``, and their labels, shape (m,): what the
         network's error is watched on to stop (a calibration fold's held-out windows). Default: none.
     patience : int
-        Epochs without a lower held-out error before stopping (default :data:`DEFAULT_PATIENCE`);
+        Epochs without a lower held-out error before stopping (default :data:`EARLY_STOP_PATIENCE`);
         only with ``stop_on``.
 
     Returns
@@ -368,6 +369,8 @@ class _StopWatch:
                              f"{labels_held.dtype} {labels_held.shape}")
         if labels_held.min() < 0 or labels_held.max() >= n_classes:
             raise InputError(f"held-out labels must lie in 0..{n_classes - 1}")
+        if not np.isfinite(x_held).all():
+            raise InputError("held-out rows to stop on contain NaN or Inf")
         if isinstance(patience, bool) or not isinstance(patience, int | np.integer) or patience < 1:
             raise InputError(f"patience must be a whole number of epochs >= 1, got {patience!r}")
         self.net, self.x, self.targets, self.patience = net, x_held, one_hot(labels_held, n_classes), int(patience)
@@ -406,7 +409,7 @@ class NetworkTask:
         The labels of ``score``'s rows: with them, training stops early on those rows
         (:func:`train_mlp`'s ``stop_on``, with ``patience``).
     patience : int
-        As :func:`train_mlp`'s (default :data:`DEFAULT_PATIENCE`).
+        As :func:`train_mlp`'s (default :data:`EARLY_STOP_PATIENCE`).
     """
 
     x: np.ndarray
@@ -417,7 +420,7 @@ class NetworkTask:
     seed: int | None = None
     score: np.ndarray | None = None
     score_labels: np.ndarray | None = None
-    patience: int = DEFAULT_PATIENCE
+    patience: int = EARLY_STOP_PATIENCE
 
     @property
     def stops_early(self) -> bool:
@@ -476,7 +479,8 @@ def train_networks(tasks, jobs: int = 1, watch=None, done=None, work: float | No
         Worker processes at most (:func:`supramodal.parallel.map_in_processes`); 1: in this process.
     watch : (int, callable(epoch, mse)), optional
         A task's index and its :func:`train_mlp` progress: every epoch in this process; from a
-        worker, its last epoch alone, when the network is back.
+        worker, when the network is back, the last epoch of the network kept alone (of a network
+        that stopped early, the epoch of its lowest held-out error, not the last one trained).
     done : callable(int, result), optional
         Told each task's index and result as it is back: in the order of ``tasks`` in this
         process, in the order they finish from workers.

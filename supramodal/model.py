@@ -66,7 +66,7 @@ from supramodal.checks import CLASS_NAME_HELP, is_class_name
 from supramodal.errors import InputError
 from supramodal.features import check_features
 from supramodal.jsondata import parse_json_text
-from supramodal.mlp import DEFAULT_EPOCHS, DEFAULT_PATIENCE, MLP, Ensemble, NetworkTask, rescaled, train_networks
+from supramodal.mlp import DEFAULT_EPOCHS, EARLY_STOP_PATIENCE, MLP, Ensemble, NetworkTask, rescaled, train_networks
 from supramodal.peaks import PEAK_MODES
 from supramodal.pipeline import MAX_WINDOW_SAMPLES
 
@@ -312,7 +312,7 @@ class Deployed(NamedTuple):
 
 def train_deployed(x, labels, n_classes: int, hidden: int | None, epochs: int, seed: int, groups, folds: int,
                    jobs: int = 1, augment=None, touch=None, progress=None, calibration_progress=None,
-                   patience: int | None = DEFAULT_PATIENCE) -> Deployed:
+                   patience: int | None = EARLY_STOP_PATIENCE) -> Deployed:
     """Train what a model deploys on raw input rows ``x`` (n, inputs): its network(s) and their calibration.
 
     With ``folds`` (> 0), the calibration's fold networks (:func:`~supramodal.calibration.fold_tasks`),
@@ -352,7 +352,7 @@ def train_deployed(x, labels, n_classes: int, hidden: int | None, epochs: int, s
     patience : int or None
         Each fold network stops early on its own held-out windows once their error has not fallen for
         ``patience`` epochs, and is deployed as it was at its best (:func:`supramodal.mlp.train_mlp`'s
-        ``stop_on``; default :data:`~supramodal.mlp.DEFAULT_PATIENCE`). None: every epoch, as before
+        ``stop_on``; default :data:`~supramodal.mlp.EARLY_STOP_PATIENCE`). None: every epoch, as before
         2026-11-30. A network without folds has no held-out windows and trains every epoch.
 
     Returns
@@ -432,7 +432,7 @@ class TextureModel:
               progress=None, peak_threshold: float = 0.0, groups=None,
               calibration_folds: int = DEFAULT_CALIBRATION_FOLDS, calibration_progress=None,
               jobs: int = 1, augment: GainAugment | None = None,
-              patience: int | None = DEFAULT_PATIENCE) -> TextureModel:
+              patience: int | None = EARLY_STOP_PATIENCE) -> TextureModel:
         """Fit the scaling and the networks on feature windows, and their calibration (:func:`train_deployed`).
 
         A calibrated model deploys its calibration's fold networks, the mean of their logits
@@ -471,7 +471,7 @@ class TextureModel:
             (:attr:`augment`).
         patience : int or None
             Each fold network stops early on its held-out windows (:func:`train_deployed`; default
-            :data:`~supramodal.mlp.DEFAULT_PATIENCE` epochs); None: every epoch.
+            :data:`~supramodal.mlp.EARLY_STOP_PATIENCE` epochs); None: every epoch.
         """
         features = check_features(features)
         values = np.asarray(values, dtype=np.float64)

@@ -53,8 +53,11 @@ def memoriser():
     signal = np.zeros((96, 1, 20))
     signal[:, 0, :2] = 1.2 * np.array([[0, 0], [1, 0], [0, 1]])[y] + 0.5 * rng.normal(size=(96, 2))
     bank = whisker_bank()
-    models = (TextureModel.train(noise, y, CLASSES, bank, ("Af",), 500, epochs=200, hidden=20, groups=contacts),
-              TextureModel.train(signal, y, CLASSES, bank, ("Af",), 500, epochs=200, hidden=2, groups=contacts))
+    # every epoch (patience None): a network stopped early on its held-out windows would not learn the noise
+    models = (TextureModel.train(noise, y, CLASSES, bank, ("Af",), 500, epochs=200, hidden=20, groups=contacts,
+                                 patience=None),
+              TextureModel.train(signal, y, CLASSES, bank, ("Af",), 500, epochs=200, hidden=2, groups=contacts,
+                                 patience=None))
     return SimpleNamespace(y=y, contacts=contacts, values=(noise, signal), models=models)
 
 

@@ -257,13 +257,13 @@ def test_each_member_stopped_at_its_best_and_the_file_says_so(model):
     """A model's fold networks stop early by default: each member is the network of its fold after the epochs the
     file records (a network trained that many epochs on the same rows, re-expressed, gives the same logits)."""
     from supramodal.calibration import fold_scaling, fold_tasks
-    from supramodal.mlp import DEFAULT_PATIENCE, train_mlp
+    from supramodal.mlp import EARLY_STOP_PATIENCE, train_mlp
 
     m, values = model
-    assert m.training["patience"] == DEFAULT_PATIENCE and m.training["epochs"] == 60
+    assert m.training["patience"] == EARLY_STOP_PATIENCE and m.training["epochs"] == 60
     x, y = values.reshape(len(values), -1), training_data()[1]
     held = m.out_of_fold
-    tasks = list(fold_tasks(x, y, 3, held.folds, 3, None, 60, 3))
+    tasks = list(fold_tasks(x, y, 3, held.folds, 3, None, 60, 3, None, None))
     assert len(m.training["network_epochs"]) == 3
     for f, (task, member, epochs) in enumerate(zip(tasks, m.mlp.members, m.training["network_epochs"])):
         assert 1 <= epochs <= 60
@@ -329,3 +329,22 @@ def test_out_of_fold_copies_on_the_models_own_folds_are_its_fold_networks(model)
     labels, held = training_data()[1], m.out_of_fold
     z = out_of_fold_logits(dataclasses.replace(m, out_of_fold=None), values, labels, CLASSES, held.folds)
     np.testing.assert_array_equal(z, held.logits)
+
+
+def test_evaluate_cv_copies_stop_early_as_the_model_did(model, monkeypatch):
+    """`evaluate --cv` re-trains a model's configuration: its early stopping too (a file from before it trained
+    every epoch; a version 2 file's copies are made as this version makes them)."""
+    import dataclasses
+
+    from supramodal.mlp import EARLY_STOP_PATIENCE
+    from supramodal.node.workflows import training
+
+    m, _ = model
+    asked = []
+    monkeypatch.setattr(training, "_cross_validate", lambda *args: asked.append(args[-1]) or {})
+    training.cross_validate_model(m, "manifest.csv")
+    training.cross_validate_model(dataclasses.replace(m, training={**m.training, "patience": 7}), "manifest.csv")
+    before = {k: v for k, v in m.training.items() if k != "patience"}
+    training.cross_validate_model(dataclasses.replace(m, training=before), "manifest.csv")
+    training.cross_validate_model(dataclasses.replace(m, training=before, mlp=m.mlp.members[0]), "manifest.csv")
+    assert asked == [EARLY_STOP_PATIENCE, 7, None, EARLY_STOP_PATIENCE]

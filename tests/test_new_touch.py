@@ -149,15 +149,22 @@ def test_a_calibration_held_out_by_touch_holds_on_a_new_touch_and_one_by_span_do
     calibrated on spans of the same recordings, it promises more than it keeps. The late fusion does no
     worse on touch 3 than the better sense, its sharpness within its bound. (Until the model deployed its
     fold networks, 2026-11-30, each sense's log loss on touch 3 was also within its estimate's here; the
-    microphone's now is not, 0.98 against 0.82, without gain augmentation: docs/results.md.)"""
+    microphone's now is not, 0.98 against 0.82, without gain augmentation: docs/results.md. Until the fold
+    networks stopped early, later that day, both senses' spans promised more right windows than touch 3
+    gave; the whiskers' networks, stopped before they learn their touch's gains, now keep what their spans
+    promise here: 0.758 right against 0.749 promised. Spans still promise more than whole touches for both,
+    and more than the new touch gives for the microphone.)"""
     from supramodal.experiments.newtouch import run_set
 
     r = run_set(0, seconds=6.0, epochs=300)
     for sense, v in r["senses"].items():
         assert v["folds_by"] == "recording", sense
         assert v["training"]["accuracy"] <= v["touch3"]["accuracy"], sense
-        assert v["span_training"]["accuracy"] > v["touch3"]["accuracy"], sense
+        assert v["span_training"]["accuracy"] > v["training"]["accuracy"], sense
         assert v["span_training"]["log_loss"] < v["training"]["log_loss"], sense    # spans promise more
+    mic = r["senses"]["microphone"]
+    assert mic["span_training"]["accuracy"] > mic["touch3"]["accuracy"]
+    assert mic["span_training"]["log_loss"] < mic["touch3"]["log_loss"]
     better = min(v["touch3"]["log_loss"] for v in r["senses"].values())
     assert r["late"]["issue34"]["touch3"]["log_loss"] <= better
     fused = r["late"]["issue34"]
@@ -711,5 +718,5 @@ def test_the_pooled_contact_line_counts_every_sense_set_and_says_what_one_can_sh
     lo, hi = UNKNOWN_RANGE
     inside = sum(comb(60, k) * 0.05 ** k * 0.95 ** (60 - k) for k in range(61) if lo <= k / 60 <= hi)
     assert "32 of 600 known contacts called unknown, 0.053" in line
-    assert f"with probability {inside:.2f}, all 10 with {inside ** 10:.3f}" in line
+    assert f"with probability {inside:.2f} at 60 contacts, all 10 with {inside ** 10:.3f}" in line
     assert pooled_contacts({"sets": [], "asked_unknown": 0.05}) == ""

@@ -134,9 +134,13 @@ class _TrainingTold:
             self.ticker.stage(f"0 of {self.folds} networks trained", 0.0)
 
     def epoch(self, epoch: int, mse: float) -> None:
-        """Tell the last network's epoch ``epoch`` (from 0) done (:meth:`fold` then tells the network done)."""
+        """Tell the last network's epoch ``epoch`` (from 0) done (:meth:`fold` then tells the network done).
+
+        The epochs are the most it trains: a fold network stops early once its held-out error stops
+        falling, so the time left told from them is the longest it can be.
+        """
         if self.ticker is not None:
-            self.ticker.stage(f"network {self.folds} of {self.folds}, epoch {epoch + 1} of {self.epochs}",
+            self.ticker.stage(f"network {self.folds} of {self.folds}, epoch {epoch + 1} of at most {self.epochs}",
                               (epoch + 1) / self.epochs)
 
     def fold(self, line: str) -> None:

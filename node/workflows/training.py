@@ -26,7 +26,7 @@ from supramodal.calibration import (
 )
 from supramodal.errors import InputError, SupramodalError
 from supramodal.evaluation import POOLED_WINDOWS, anytime_sweep, permutation_importance, pooled_accuracy
-from supramodal.mlp import DEFAULT_EPOCHS, Ensemble
+from supramodal.mlp import DEFAULT_EPOCHS, EARLY_STOP_PATIENCE, Ensemble
 from supramodal.model import GainAugment, TextureModel
 from supramodal.node.runtime.streams import channel_mapper
 from supramodal.node.scene.band import warn_if_beyond_band
@@ -118,13 +118,15 @@ def _manifest_windows(manifest, make_pipeline, mapping, progress):
 
 def _train(recs, classes, windows, pipeline: FeaturePipeline, epochs: int, seed: int, hidden=None,
            calibration_progress=None, groups=None, jobs: int = 1, augment: GainAugment | None = None,
-           calibration_folds: int = DEFAULT_CALIBRATION_FOLDS) -> TextureModel:
+           calibration_folds: int = DEFAULT_CALIBRATION_FOLDS, patience: int | None = EARLY_STOP_PATIENCE
+           ) -> TextureModel:
     """Train a model on the recordings' windows, calibrated on out-of-fold windows of folds grouped by recording.
 
     The groups are ``groups``, one per entry of ``recs`` (default :func:`recording_group`), where there are
     enough recordings; its networks over ``jobs`` worker processes (the same model for any), each trained on
     its windows gain-augmented by ``augment`` (None: not); ``calibration_folds`` its calibration's fold
-    networks, which it deploys (0: one network, uncalibrated).
+    networks, which it deploys (0: one network, uncalibrated), each stopped early after ``patience`` epochs
+    without a lower held-out error (None: every epoch).
     """
     x = np.concatenate(windows)
     y = np.concatenate([np.full(len(v), classes.index(r.label)) for r, v in zip(recs, windows)])
@@ -132,7 +134,7 @@ def _train(recs, classes, windows, pipeline: FeaturePipeline, epochs: int, seed:
     groups = np.repeat(np.array(names), [len(v) for v in windows])
     model = TextureModel.train_for(pipeline, x, y, classes, epochs=epochs, seed=seed, hidden=hidden, groups=groups,
                                    calibration_progress=calibration_progress, jobs=jobs, augment=augment,
-                                   calibration_folds=calibration_folds)
+                                   calibration_folds=calibration_folds, patience=patience)
     _warn_if_calibrated_on_spans(model)
     return model
 
@@ -385,7 +387,8 @@ def cross_validate_model(model: TextureModel, manifest, k: int = 5, seed: int | 
     """Cross-validate, grouped ``k``-fold, ``model``'s configuration on the manifest.
 
     Each fold trains a fresh model exactly as ``model`` was made (bank, features, window, peak
-    settings, hidden units, epochs, gain augmentation) on the other folds' recordings and scores it on its own: how
+    settings, hidden units, epochs, gain augmentation, early stopping: a file from before it has none, and
+    its copies train every epoch) on the other folds' recordings and scores it on its own: how
     well a model like this one generalises to recordings it has not seen, which scoring ``model``
     itself on its own training recordings cannot say. ``seed`` defaults to the model's.
 
@@ -395,8 +398,11 @@ def cross_validate_model(model: TextureModel, manifest, k: int = 5, seed: int | 
         As :func:`cross_validate_manifest`.
     """
     seed = model.training.get("seed", 0) if seed is None else seed
+    folds = _deployed_folds(model)
+    # a version 3 file from before early stopping has no patience: its fold networks trained every epoch
+    patience = EARLY_STOP_PATIENCE if folds is None else model.training.get("patience")
     return _cross_validate(manifest, model.pipeline, k, int(model.training["epochs"]), seed,
-                           model.mlp.shape[1], mapping, progress, model.augment, _deployed_folds(model))
+                           model.mlp.shape[1], mapping, progress, model.augment, folds, patience)
 
 
 def _deployed_folds(model: TextureModel) -> int | None:
@@ -412,7 +418,7 @@ def _deployed_folds(model: TextureModel) -> int | None:
 
 
 def _cross_validate(manifest, make_pipeline, k, epochs, seed, hidden, mapping, progress, augment=None,
-                    calibration_folds: int | None = None) -> dict:
+                    calibration_folds: int | None = None, patience: int | None = EARLY_STOP_PATIENCE) -> dict:
     recs, classes, windows = _manifest_windows(manifest, make_pipeline, mapping, progress)
     _refuse_overlapping_trials(recs)
     fold = grouped_folds([r.where for r in recs], [r.label for r in recs], k, seed)
@@ -431,7 +437,8 @@ def _cross_validate(manifest, make_pipeline, k, epochs, seed, hidden, mapping, p
                                 "often or lower --cv")
         model = _train([recs[i] for i in train], classes, [windows[i] for i in train],
                        make_pipeline(), epochs, seed, hidden, augment=augment,
-                       calibration_folds=DEFAULT_CALIBRATION_FOLDS if calibration_folds is None else calibration_folds)
+                       calibration_folds=DEFAULT_CALIBRATION_FOLDS if calibration_folds is None else calibration_folds,
+                       patience=patience)
         result, part = _score_recordings(model, [recs[i] for i in test], [windows[i] for i in test])
         for key, value in part.items():
             scored[key] += list(value)

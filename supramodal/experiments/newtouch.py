@@ -245,7 +245,8 @@ def run_set(set_seed: int, seconds: float = 10.0, epochs: int = DEFAULT_EPOCHS, 
         span, _, _ = fit_network_calibration(train.reshape(len(train), -1), trained.y, len(classes), None,
                                              DEFAULT_CALIBRATION_FOLDS, epochs=epochs, seed=seed,
                                              augment=None if aug is None else aug.for_inputs(FEATURES,
-                                                                                             model.bank.channels))
+                                                                                             model.bank.channels),
+                                             patience=model.training.get("patience"))
         test = stack(s_i)
         test_lp[sense] = model.log_posteriors(test)
         estimate = model.calibration.log_posteriors(model.out_of_fold.logits)
@@ -344,7 +345,7 @@ def _within(result: dict, key: str) -> str:
 
 
 def pooled_contacts(result: dict) -> str:
-    """The per-contact false-unknown rate of every sense-set together, and what a sense-set's count can say.
+    """Return the per-contact false-unknown rate of every sense-set together, and what a count can say.
 
     The count of contacts called unknown in a sense-set is binomial if the rate is the one asked: the
     line gives the pooled rate with its 95 % (Clopper-Pearson) interval, and the chance that one
@@ -353,21 +354,24 @@ def pooled_contacts(result: dict) -> str:
     """
     from scipy.stats import binom, binomtest
 
+    asked = result["asked_unknown"]
     pairs = [(round(v["unknown"]["false_unknown_contact"] * v["unknown"]["contacts"]), v["unknown"]["contacts"])
              for r in result["sets"] for v in r["senses"].values() if v["unknown"].get("contacts")]
     if not pairs:
         return ""
     k, n = sum(c for c, _ in pairs), sum(m for _, m in pairs)
-    low, high = binomtest(k, n, result["asked_unknown"]).proportion_ci(0.95)
-    per = pairs[0][1]
+    low, high = binomtest(k, n, asked).proportion_ci(0.95)
     lo, hi = UNKNOWN_RANGE
-    # P(lo <= X / per <= hi) for X ~ Binomial(per, asked): the counts ceil(lo per) .. floor(hi per)
-    inside = float(binom.cdf(np.floor(hi * per + 1e-9), per, result["asked_unknown"])
-                   - binom.cdf(np.ceil(lo * per - 1e-9) - 1, per, result["asked_unknown"]))
+
+    def inside(m: int) -> float:
+        """P(lo <= X / m <= hi) for X ~ Binomial(m, asked): the counts ceil(lo m) .. floor(hi m)."""
+        return float(binom.cdf(np.floor(hi * m + 1e-9), m, asked) - binom.cdf(np.ceil(lo * m - 1e-9) - 1, m, asked))
+
+    sizes = sorted({m for _, m in pairs})
+    each = ", ".join(f"{inside(m):.2f} at {m} contacts" for m in sizes)
     return (f"per contact, every sense-set together: {k} of {n} known contacts called unknown, {k / n:.3f} "
-            f"(95 % interval {low:.3f}..{high:.3f}); at exactly {result['asked_unknown']:g}, a sense-set of {per} "
-            f"contacts lands within {lo:g}..{hi:g} with probability {inside:.2f}, all {len(pairs)} with "
-            f"{inside ** len(pairs):.3f}")
+            f"(95 % interval {low:.3f}..{high:.3f}); at exactly {asked:g}, a sense-set lands within {lo:g}..{hi:g} "
+            f"with probability {each}, all {len(pairs)} with {float(np.prod([inside(m) for _, m in pairs])):.3f}")
 
 
 def newtouch_table(result: dict) -> str:
