@@ -87,6 +87,33 @@ def test_a_graph_of_one_source_keeps_the_one_source_summary():
     assert summary["frames"]["delivered"] == 5000
 
 
+def test_every_sink_has_its_summary_before_any_sink_closes():
+    """A sink whose close lingers (an LSL sink's, up to 1 s for its consumers) delays no other sink's summary."""
+    calls = []
+
+    class Lingering(ListSink):
+        def __init__(self, name):
+            super().__init__()
+            self.name = name
+
+        def summary(self, summary):
+            super().summary(summary)
+            calls.append((self.name, "summary"))
+
+        def close(self):
+            calls.append((self.name, "close"))
+            if self.name == "first":
+                time.sleep(0.3)
+
+    x = np.random.default_rng(4).standard_normal((2500, 1)) * 0.2
+    source = Source("main", ReplayDriver((x, 5000.0), speed="max", on_notice=None), overrun="block")
+    sinks = [Lingering("first"), Lingering("second")]
+    Graph([source], [Stream("main", source, FeaturePipeline(whisker_bank(), ("Af",)))], sinks).run()
+    assert calls == [("first", "summary"), ("second", "summary"), ("first", "close"),
+                                      ("second", "close")]
+    assert all(s.final is not None and s.final["windows"] == 5 for s in sinks)
+
+
 def test_stream_names_are_unique():
     x = np.zeros((500, 1))
     sources = [Source(name, ReplayDriver((x, 5000.0), speed="max", on_notice=None)) for name in ("s", "t")]

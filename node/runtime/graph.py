@@ -277,7 +277,8 @@ class Graph:
         summary = self.summary(time.monotonic() - t0)
         for s in self.sinks:
             s.summary(summary)
-            s.close()
+        for s in self.sinks:                      # every summary out before any close: a close may linger
+            s.close()                             # (an LSL outlet's, up to 1 s, for its consumers)
         if self._errors:
             where, exc = self._errors[0]
             raise NodeError(f"the {where} thread failed: {type(exc).__name__}: {exc}") from exc
