@@ -60,7 +60,8 @@ from supramodal.mlp import EARLY_STOP_PATIENCE
 __all__ = [
     "CALIBRATION_METHOD", "CHANGES_KEPT", "DEFAULT_CALIBRATION_FOLDS", "HeldOutChanges", "ECE_BINS",
     "NOVELTY_METHOD", "NOVELTY_TOUCH_METHOD", "NOVELTY_TOUCH_SPREAD", "Calibration", "HeldOutLogits",
-    "Novelty", "TouchSpread", "calibration_of_held_out", "fold_tasks", "fold_work",
+    "Novelty", "TouchSpread", "calibration_of_held_out", "fold_tasks", "fold_work", "joint_stop_epochs",
+    "train_fold_networks",
     "brier_score", "calibration_line", "calibration_report", "cap_gaps", "confusion_caps", "fit_capped_pooling",
     "fit_capped_window_calibration", "effective_windows", "expected_calibration_error", "fit_novelty",
     "fit_pooling", "fit_window_calibration", "log_loss", "log_sigmoid", "normalised_log_posteriors",
@@ -1727,7 +1728,7 @@ def fit_network_calibration(x, labels, n_classes: int, groups=None, k: int = DEF
         The held-out logits and folds themselves, for whatever else needs a network's held-out
         windows (a late fusion's weight: no need to train the same fold networks again).
     """
-    from supramodal.mlp import DEFAULT_EPOCHS, train_networks
+    from supramodal.mlp import DEFAULT_EPOCHS
 
     x = np.asarray(x, dtype=np.float64)
     y = np.asarray(labels)
@@ -1735,9 +1736,7 @@ def fit_network_calibration(x, labels, n_classes: int, groups=None, k: int = DEF
     folds, by = calibration_folds(y, groups, k, seed)
     held_out = HeldOutLogits(y, folds, k, n_classes, progress)
     epochs = DEFAULT_EPOCHS if epochs is None else epochs
-    train_networks(fold_tasks(x, y, n_classes, folds, k, hidden, epochs, seed, augment, patience), jobs,
-                   done=held_out.told, work=fold_work(len(x), x.shape[1], n_classes, folds, k, hidden, epochs, patience)
-                   * getattr(augment, "factor", 1))
+    train_fold_networks(x, y, n_classes, folds, k, hidden, epochs, seed, augment, patience, jobs, done=held_out.told)
     return calibration_of_held_out(x, y, n_classes, groups, folds, by, k, held_out.logits, touch_groups, touch_floor)
 
 
@@ -1764,6 +1763,72 @@ def fold_tasks(x, labels, n_classes: int, folds, k: int, hidden: int | None, epo
             stop = {} if patience is None else {"score_labels": y[test], "patience": patience}
             yield NetworkTask((xt - mean) / scale, yt, n_classes, hidden, epochs, seed, (x[test] - mean) / scale,
                               **stop)
+
+
+def train_fold_networks(x, labels, n_classes: int, folds, k: int, hidden: int | None, epochs: int, seed: int,
+                        augment, patience: int | None, jobs: int = 1, done=None, watch=None) -> list:
+    """Train :func:`fold_tasks`' networks; where they stop early, all at the epochs best for them together.
+
+    Each fold network stops on its own held-out windows (``patience``); then the epochs of the lowest
+    held-out error summed over every fold's windows (:func:`joint_stop_epochs`), and each network
+    that stopped at other epochs is trained again for exactly those (the same network as its own
+    training's at those epochs: the training is deterministic). The members of an ensemble are so of
+    one age: the calibration is fitted on held-out logits of single members, each window one
+    member's, and applied to their mean, which a member much sharper than the others would sway.
+    ``patience`` None: every network trains every epoch, as it is.
+
+    Parameters
+    ----------
+    x, labels, n_classes, folds, k, hidden, epochs, seed, augment, patience
+        As :func:`fold_tasks`'.
+    jobs : int
+        Worker processes (:func:`supramodal.mlp.train_networks`; the networks are the same for any).
+    done : callable(int, Trained), optional
+        Told each fold network's final result, in :func:`fold_tasks`' order once all are in where
+        they stop early, else as each is back.
+    watch : (int, callable(epoch, mse)), optional
+        :func:`~supramodal.mlp.train_networks`' ``watch``, of the first training.
+
+    Returns
+    -------
+    list of :class:`~supramodal.mlp.Trained`
+        In :func:`fold_tasks`' order.
+    """
+    from supramodal.mlp import NetworkTask, train_networks
+
+    factor = getattr(augment, "factor", 1)
+    work = fold_work(len(x), x.shape[1], n_classes, folds, k, hidden, epochs, patience) * factor
+    tasks = fold_tasks(x, labels, n_classes, folds, k, hidden, epochs, seed, augment, patience)
+    results = train_networks(tasks, jobs, watch=watch, done=done if patience is None else None, work=work)
+    if patience is None:
+        return results
+    sizes = [int(np.sum(folds == f)) for f in range(k) if np.any(folds == f)]
+    best = joint_stop_epochs([r.held_out_errors for r in results], sizes)
+    again = [i for i, r in enumerate(results) if len(r.history) != best]
+    if again:
+        tasks = list(fold_tasks(x, labels, n_classes, folds, k, hidden, epochs, seed, augment, None))
+        redo = [NetworkTask(t.x, t.labels, n_classes, hidden, best, seed, t.score) for i, t in enumerate(tasks)
+                if i in again]
+        for i, r in zip(again, train_networks(redo, jobs, work=sum(t.work for t in redo))):
+            results[i] = r._replace(held_out_errors=results[i].held_out_errors)
+    if done is not None:
+        for i, r in enumerate(results):
+            done(i, r)
+    return results
+
+
+def joint_stop_epochs(errors, sizes) -> int:
+    """Return the epochs whose held-out error, summed over the fold networks' windows, is lowest.
+
+    ``errors``: per fold network, its looks ``(epochs, mean squared error)``
+    (:attr:`~supramodal.mlp.Trained.held_out_errors`); ``sizes``: its held-out windows. Only epochs every
+    network looked at count (each trained ``patience`` past its own best); of equal sums, the fewest epochs.
+    """
+    looks = [dict(e) for e in errors]
+    common = set(looks[0]).intersection(*looks[1:])
+    if not common:
+        raise InputError("the fold networks looked at their held-out errors at no common epochs")
+    return min(sorted(common), key=lambda e: sum(m * look[e] for m, look in zip(sizes, looks)))
 
 
 def fold_scaling(x, folds, f: int) -> tuple[np.ndarray, np.ndarray]:
@@ -1810,13 +1875,13 @@ class HeldOutLogits:
         return len(self._in) == len(self._order)
 
     def told(self, i: int, result) -> None:
-        """Take the ``i``-th fold task's result (:func:`supramodal.mlp.train_task`'s)."""
+        """Take the ``i``-th fold task's result (a :class:`supramodal.mlp.Trained`)."""
         f = self._order[i]
         test = self.folds == f
-        self.logits[test] = result[2]
+        self.logits[test] = result.logits
         self._in.add(f)
         if self.progress:
-            right = float(np.mean(np.argmax(result[2], axis=1) == self.labels[test]))
+            right = float(np.mean(np.argmax(result.logits, axis=1) == self.labels[test]))
             self.progress(f"calibration fold {f + 1}/{self._k}: {int(test.sum())} held-out windows, {right:.3f} right")
 
 

@@ -43,12 +43,12 @@ from supramodal.calibration import (
     calibration_report,
     fit_pooling,
     fit_window_calibration,
-    fold_tasks,
     normalised_log_posteriors,
+    train_fold_networks,
 )
 from supramodal.errors import InputError
 from supramodal.fusion import early_inputs, fuse_late, learn_late_fusion
-from supramodal.mlp import DEFAULT_EPOCHS, EARLY_STOP_PATIENCE, MLP, Ensemble, train_networks
+from supramodal.mlp import DEFAULT_EPOCHS, EARLY_STOP_PATIENCE, MLP, Ensemble
 from supramodal.model import (
     NOVELTY_ARRAYS,
     SENSE_KEYS,
@@ -443,21 +443,20 @@ def out_of_fold_logits(model: TextureModel, values, labels, classes, folds, prog
                          f"a fold each, got {values.shape}, {len(y)} labels, {len(folds)} folds")
     x, fold_of = values.reshape(len(values), -1), np.searchsorted(parts, folds)
     augment = model.augment
-    # the copies are fold networks as the model's own are: augmented, stopped early (a file from before
-    # early stopping has no patience: every epoch, as its networks were trained)
-    tasks = fold_tasks(x, y, len(classes), fold_of, len(parts), model.mlp.shape[1], epochs, seed,
-                       None if augment is None else augment.for_inputs(model.features, model.bank.channels),
-                       model.training.get("patience"))
     z = np.empty((len(y), len(classes)))
 
     def told(i, result) -> None:
         test = fold_of == i
-        z[test] = result[2]
+        z[test] = result.logits
         if progress:
             progress(f"fold {i + 1}/{len(parts)}: {int(test.sum())} held-out windows, "
                      f"{float(np.mean(np.argmax(z[test], axis=1) == y[test])):.3f} right")
 
-    train_networks(tasks, 1, done=told)
+    # the copies are fold networks as the model's own are: augmented, stopped early together (a file from
+    # before early stopping has no patience: every epoch, as its networks were trained)
+    train_fold_networks(x, y, len(classes), fold_of, len(parts), model.mlp.shape[1], epochs, seed,
+                        None if augment is None else augment.for_inputs(model.features, model.bank.channels),
+                        model.training.get("patience"), done=told)
     return z
 
 

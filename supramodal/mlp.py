@@ -25,6 +25,7 @@ Where this differs from FANN, by choice:
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 
@@ -285,7 +286,8 @@ def held_out_mse(net: MLP, x: np.ndarray, targets: np.ndarray) -> float:
 
 def train_mlp(x: np.ndarray, labels: np.ndarray, n_classes: int, hidden: int | None = None,
               epochs: int = DEFAULT_EPOCHS, seed=None, desired_mse: float = 0.0,
-              progress=None, stop_on=None, patience: int = EARLY_STOP_PATIENCE) -> tuple[MLP, list[float]]:
+              progress=None, stop_on=None, patience: int = EARLY_STOP_PATIENCE,
+              on_check=None) -> tuple[MLP, list[float]]:
     """Train an MLP by batch iRPROP- on (already scaled) inputs.
 
     With held-out rows (``stop_on``), training stops early: every :data:`STOP_CHECK_EPOCHS` epochs
@@ -313,6 +315,8 @@ def train_mlp(x: np.ndarray, labels: np.ndarray, n_classes: int, hidden: int | N
     patience : int
         Epochs without a lower held-out error before stopping (default :data:`EARLY_STOP_PATIENCE`);
         only with ``stop_on``.
+    on_check : callable(epochs, error), optional
+        With ``stop_on``: told each look at the held-out error, once per number of epochs looked at.
 
     Returns
     -------
@@ -337,7 +341,8 @@ def train_mlp(x: np.ndarray, labels: np.ndarray, n_classes: int, hidden: int | N
     opt = IRpropMinus(net.params())
     targets = one_hot(labels, n_classes)
     history: list[float] = []
-    watch = None if stop_on is None else _StopWatch(net, stop_on[0], stop_on[1], n_classes, x.shape[1], patience)
+    watch = None if stop_on is None else _StopWatch(net, stop_on[0], stop_on[1], n_classes, x.shape[1], patience,
+                                                    on_check)
     updates = 0
     for epoch in range(epochs):
         grads, mse = net.gradients(x, targets)
@@ -359,7 +364,8 @@ def train_mlp(x: np.ndarray, labels: np.ndarray, n_classes: int, hidden: int | N
 class _StopWatch:
     """The held-out error of a network in training, every :data:`STOP_CHECK_EPOCHS` epochs, and the best so far."""
 
-    def __init__(self, net: MLP, x_held, labels_held, n_classes: int, inputs: int, patience: int) -> None:
+    def __init__(self, net: MLP, x_held, labels_held, n_classes: int, inputs: int, patience: int,
+                 on_check=None) -> None:
         x_held = np.asarray(x_held, dtype=np.float64)
         labels_held = np.asarray(labels_held)
         if x_held.ndim != 2 or x_held.shape[1] != inputs or len(x_held) == 0:
@@ -375,12 +381,18 @@ class _StopWatch:
             raise InputError(f"patience must be a whole number of epochs >= 1, got {patience!r}")
         self.net, self.x, self.targets, self.patience = net, x_held, one_hot(labels_held, n_classes), int(patience)
         self.best, self.best_epochs, self.best_error = MLP(*[p.copy() for p in net.params()]), 0, np.inf
+        self.on_check, self.looked = on_check, -1
 
     def stop(self, epochs: int, final: bool = False) -> bool:
         """Look at the network after ``epochs`` epochs if it is time (or ``final``); return whether to stop."""
         if epochs % STOP_CHECK_EPOCHS and not final:
             return False
+        if epochs == self.looked:                     # the last look, at epochs already looked at
+            return epochs - self.best_epochs >= self.patience
         error = held_out_mse(self.net, self.x, self.targets)
+        self.looked = epochs
+        if self.on_check is not None:
+            self.on_check(epochs, error)
         if error < self.best_error:
             self.best_error, self.best_epochs = error, epochs
             for kept, p in zip(self.best.params(), self.net.params()):
@@ -444,16 +456,32 @@ def expected_epochs(epochs: int, patience: int | None) -> int:
     return epochs if patience is None else min(epochs, 2 * patience)
 
 
-def train_task(task: NetworkTask, progress=None) -> tuple[MLP, list[float], np.ndarray | None]:
+class Trained(NamedTuple):
+    """What :func:`train_task` gives back: the network, its training and its held-out rows' logits."""
+
+    #: The network (where it stopped early, the one of its lowest held-out error).
+    network: MLP
+    #: :func:`train_mlp`'s training MSE per epoch of ``network``.
+    history: list[float]
+    #: Logits of the task's ``score`` rows, shape (m, outputs); None without rows to score.
+    logits: np.ndarray | None
+    #: Where it stopped early: ``(epochs, held-out MSE)`` of every look, in order; else empty.
+    held_out_errors: tuple[tuple[int, float], ...] = ()
+
+
+def train_task(task: NetworkTask, progress=None) -> Trained:
     """Train ``task``'s network; return it, its training MSE per epoch and the logits of ``task.score``.
 
     The MSE is :func:`train_mlp`'s; the logits are None without rows to score. With the scored
-    rows' labels, the network stops early on them (:attr:`NetworkTask.stops_early`).
+    rows' labels, the network stops early on them (:attr:`NetworkTask.stops_early`) and the
+    held-out errors it looked at come back too.
     """
     stop_on = (task.score, task.score_labels) if task.stops_early else None
+    looks: list[tuple[int, float]] = []
     net, history = train_mlp(task.x, task.labels, task.n_classes, hidden=task.hidden, epochs=task.epochs,
-                             seed=task.seed, progress=progress, stop_on=stop_on, patience=task.patience)
-    return net, history, None if task.score is None else net.logits(task.score)
+                             seed=task.seed, progress=progress, stop_on=stop_on, patience=task.patience,
+                             on_check=lambda epochs, error: looks.append((epochs, error)))
+    return Trained(net, history, None if task.score is None else net.logits(task.score), tuple(looks))
 
 
 #: Multiply-adds (:attr:`NetworkTask.work`) of a set of networks worth worker processes: about 2 s
@@ -489,7 +517,7 @@ def train_networks(tasks, jobs: int = 1, watch=None, done=None, work: float | No
 
     Returns
     -------
-    list of (MLP, list of float, ndarray or None)
+    list of Trained
         :func:`train_task`'s results, in the order of ``tasks``.
     """
     from supramodal.parallel import map_in_processes

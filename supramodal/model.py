@@ -55,11 +55,10 @@ from supramodal.calibration import (
     calibration_line,
     calibration_of_held_out,
     fold_scaling,
-    fold_tasks,
-    fold_work,
     input_scaling,
     normalised_log_posteriors,
     recalibrate,
+    train_fold_networks,
 )
 from supramodal.calibration import calibration_folds as calibration_folds_of
 from supramodal.checks import CLASS_NAME_HELP, is_class_name
@@ -368,24 +367,22 @@ def train_deployed(x, labels, n_classes: int, hidden: int | None, epochs: int, s
     info = {"algorithm": "iRPROP-", "seed": seed, "windows": int(len(x))}
     if not folds:
         xm, ym = (x, y) if augment is None else augment(x, y, 0)
-        (mlp, history, _), = train_networks([NetworkTask((xm - mean) / scale, ym, n_classes, hidden, epochs, seed)],
-                                            jobs, watch=(0, progress))
-        return Deployed(mlp, mean, scale, {**info, "epochs": len(history), "final_mse": history[-1]}, None, None, None)
+        one, = train_networks([NetworkTask((xm - mean) / scale, ym, n_classes, hidden, epochs, seed)], jobs,
+                              watch=(0, progress))
+        return Deployed(one.network, mean, scale, {**info, "epochs": len(one.history), "final_mse": one.history[-1]},
+                        None, None, None)
     g = y if groups is None else np.asarray(groups)
     fold_of, by = calibration_folds_of(y, g, folds, seed)
     held_out = HeldOutLogits(y, fold_of, folds, n_classes, calibration_progress)
-    work = fold_work(len(x), x.shape[1], n_classes, fold_of, folds, hidden, epochs, patience) \
-        * getattr(augment, "factor", 1)
-    results = train_networks(fold_tasks(x, y, n_classes, fold_of, folds, hidden, epochs, seed, augment, patience),
-                             jobs, watch=(held_out.networks - 1, progress), done=held_out.told, work=work)
+    results = train_fold_networks(x, y, n_classes, fold_of, folds, hidden, epochs, seed, augment, patience, jobs,
+                                  done=held_out.told, watch=(held_out.networks - 1, progress))
     calibration, novelty, out_of_fold = calibration_of_held_out(x, y, n_classes, g, fold_of, by, folds,
                                                                 held_out.logits, *(touch or ()))
     calibration = with_held_out_changes(calibration, held_out.logits, y, g, fold_of)
     # each fold network standardised its rows by their own mean and scale: re-expressed on the model's
-    members = [rescaled(net, *fold_scaling(x, fold_of, f), mean, scale)
-               for f, (net, _, _) in zip(held_out.order, results)]
-    info.update(epochs=epochs, patience=patience, network_epochs=[len(h) for _, h, _ in results],
-                final_mse=float(np.mean([h[-1] for _, h, _ in results])))
+    members = [rescaled(r.network, *fold_scaling(x, fold_of, f), mean, scale) for f, r in zip(held_out.order, results)]
+    info.update(epochs=epochs, patience=patience, network_epochs=[len(r.history) for r in results],
+                final_mse=float(np.mean([r.history[-1] for r in results])))
     return Deployed(Ensemble(tuple(members)), mean, scale, info, calibration, novelty, out_of_fold)
 
 

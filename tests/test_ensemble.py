@@ -264,7 +264,7 @@ def test_each_member_stopped_at_its_best_and_the_file_says_so(model):
     x, y = values.reshape(len(values), -1), training_data()[1]
     held = m.out_of_fold
     tasks = list(fold_tasks(x, y, 3, held.folds, 3, None, 60, 3, None, None))
-    assert len(m.training["network_epochs"]) == 3
+    assert len(m.training["network_epochs"]) == 3 and len(set(m.training["network_epochs"])) == 1   # one age
     for f, (task, member, epochs) in enumerate(zip(tasks, m.mlp.members, m.training["network_epochs"])):
         assert 1 <= epochs <= 60
         net, _ = train_mlp(task.x, task.labels, 3, epochs=epochs, seed=3)
@@ -348,3 +348,47 @@ def test_evaluate_cv_copies_stop_early_as_the_model_did(model, monkeypatch):
     training.cross_validate_model(dataclasses.replace(m, training=before), "manifest.csv")
     training.cross_validate_model(dataclasses.replace(m, training=before, mlp=m.mlp.members[0]), "manifest.csv")
     assert asked == [EARLY_STOP_PATIENCE, 7, None, EARLY_STOP_PATIENCE]
+
+
+def test_the_joint_epochs_are_those_of_the_lowest_summed_held_out_error():
+    from supramodal.calibration import joint_stop_epochs
+
+    a = ((10, 0.30), (20, 0.20), (30, 0.25), (40, 0.28))
+    b = ((10, 0.40), (20, 0.38), (30, 0.30), (40, 0.35), (50, 0.36))
+    assert joint_stop_epochs([a, b], [100, 100]) == 30           # 0.55 at 30 against 0.58 at 20
+    assert joint_stop_epochs([a, b], [300, 100]) == 20           # a's windows weigh more: 0.98 at 20 against 1.05
+    assert joint_stop_epochs([a, ((10, 0.4), (20, 0.4), (30, 0.3))], [1, 1]) == 30
+    assert joint_stop_epochs([((10, 0.2), (20, 0.2))], [5]) == 10  # a tie: the fewest epochs
+    with pytest.raises(InputError, match="no common epochs"):
+        joint_stop_epochs([((10, 0.2),), ((15, 0.1),)], [1, 1])
+
+
+def test_fold_networks_stop_together_at_the_epochs_best_for_all_their_held_out_windows():
+    """Each fold network trained alone, every epoch, its held-out error every 10 epochs computed plainly: the
+    members are the networks of the epochs whose error summed over every held-out window is lowest (among
+    those all of them reached), to the bit, all of one age."""
+    from supramodal.calibration import train_fold_networks
+    from supramodal.mlp import one_hot, train_mlp
+
+    rng = np.random.default_rng(5)
+    y = np.repeat(np.arange(3), 60)
+    x = rng.gamma(2.0, 1.0, (180, 16)) * 100.0
+    x[:, :8] *= 1 + 0.15 * y[:, None]
+    folds = np.arange(180) % 3
+    results = train_fold_networks(x, y, 3, folds, 3, None, 300, 0, None, 30)
+    ages = {len(r.history) for r in results}
+    assert len(ages) == 1
+    age = ages.pop()
+    last = min(r.held_out_errors[-1][0] for r in results)
+    summed = {}
+    for f in range(3):
+        train, test = folds != f, folds == f
+        mean, scale = input_scaling(x[train])
+        for e in range(10, last + 1, 10):
+            net, _ = train_mlp((x[train] - mean) / scale, y[train], 3, epochs=e, seed=0)
+            out = 1 / (1 + np.exp(-net.logits((x[test] - mean) / scale)))
+            summed[e] = summed.get(e, 0.0) + float(np.sum((one_hot(y[test], 3) - out) ** 2)) / 3
+        net, _ = train_mlp((x[train] - mean) / scale, y[train], 3, epochs=age, seed=0)
+        for p, q in zip(net.params(), results[f].network.params()):
+            np.testing.assert_array_equal(p, q)
+    assert age == min(summed, key=lambda e: (round(summed[e], 9), e)) and age < 300 - 30

@@ -385,10 +385,14 @@ def test_a_task_with_its_scored_rows_labels_stops_early_on_them():
     plain = NetworkTask(x, y, 3, epochs=400, seed=0, score=xh)
     stopping = NetworkTask(x, y, 3, epochs=400, seed=0, score=xh, score_labels=yh, patience=20)
     assert not plain.stops_early and stopping.stops_early and stopping.work < plain.work
-    net, history, logits = train_task(stopping)
-    assert len(train_task(plain)[1]) == 400 and len(history) < 400
+    net, history, logits, looks = train_task(stopping)
+    assert len(train_task(plain).history) == 400 and train_task(plain).held_out_errors == () and len(history) < 400
     np.testing.assert_array_equal(logits, net.logits(xh))
     np.testing.assert_array_equal(net.w1, train_mlp(x, y, 3, epochs=len(history), seed=0)[0].w1)
+    # every look comes back: every 10 epochs until 20 (the patience) past the best, each the plain loop's error
+    assert [e for e, _ in looks] == list(range(STOP_CHECK_EPOCHS, len(history) + 20 + 1, STOP_CHECK_EPOCHS))
+    want = plain_held_out_errors(x, y, 3, xh, yh, len(history) + 20, 0)
+    np.testing.assert_allclose([err for _, err in looks], [want[e] for e, _ in looks], rtol=1e-12)
 
 
 @pytest.mark.parametrize("stop_on, patience, match", [
