@@ -1736,12 +1736,13 @@ def fit_network_calibration(x, labels, n_classes: int, groups=None, k: int = DEF
     folds, by = calibration_folds(y, groups, k, seed)
     held_out = HeldOutLogits(y, folds, k, n_classes, progress)
     epochs = DEFAULT_EPOCHS if epochs is None else epochs
-    train_fold_networks(x, y, n_classes, folds, k, hidden, epochs, seed, augment, patience, jobs, done=held_out.told)
+    train_fold_networks(x, y, n_classes, folds, k, hidden, epochs, seed, augment, patience, jobs, done=held_out.told,
+                        redone=held_out.retold)
     return calibration_of_held_out(x, y, n_classes, groups, folds, by, k, held_out.logits, touch_groups, touch_floor)
 
 
 def fold_tasks(x, labels, n_classes: int, folds, k: int, hidden: int | None, epochs: int, seed: int,
-               augment, patience: int | None):
+               augment, patience: int | None, only=None):
     """Yield the calibration's fold networks as :class:`~supramodal.mlp.NetworkTask`, in fold order.
 
     One per fold with held-out windows: trained on the other folds' rows of ``x`` (n, inputs),
@@ -1750,14 +1751,14 @@ def fold_tasks(x, labels, n_classes: int, folds, k: int, hidden: int | None, epo
     ``(rows, labels, stream) -> (rows, labels)`` applied to each fold's raw training rows (stream
     ``f + 1``; the held-out rows are never augmented; None: none). ``patience``: each network stops
     early on its fold's held-out rows (:func:`supramodal.mlp.train_mlp`'s ``stop_on``); None: every
-    epoch.
+    epoch. ``only``: the tasks to yield, by their index among all (default: all).
     """
     from supramodal.mlp import NetworkTask
 
     y = np.asarray(labels)
-    for f in range(k):
+    for i, f in enumerate(f for f in range(k) if np.any(folds == f)):
         test = folds == f
-        if test.any():
+        if only is None or i in only:
             mean, scale = fold_scaling(x, folds, f)
             xt, yt = (x[~test], y[~test]) if augment is None else augment(x[~test], y[~test], f + 1)
             stop = {} if patience is None else {"score_labels": y[test], "patience": patience}
@@ -1766,16 +1767,16 @@ def fold_tasks(x, labels, n_classes: int, folds, k: int, hidden: int | None, epo
 
 
 def train_fold_networks(x, labels, n_classes: int, folds, k: int, hidden: int | None, epochs: int, seed: int,
-                        augment, patience: int | None, jobs: int = 1, done=None, watch=None) -> list:
+                        augment, patience: int | None, jobs: int = 1, done=None, redone=None, watch=None) -> list:
     """Train :func:`fold_tasks`' networks; where they stop early, all at the epochs best for them together.
 
     Each fold network stops on its own held-out windows (``patience``); then the epochs of the lowest
-    held-out error summed over every fold's windows (:func:`joint_stop_epochs`), and each network
-    that stopped at other epochs is trained again for exactly those (the same network as its own
-    training's at those epochs: the training is deterministic). The members of an ensemble are so of
-    one age: the calibration is fitted on held-out logits of single members, each window one
-    member's, and applied to their mean, which a member much sharper than the others would sway.
-    ``patience`` None: every network trains every epoch, as it is.
+    held-out error summed over every fold's windows, among the epochs every network looked at
+    (:func:`joint_stop_epochs`), and each network that stopped at other epochs is trained again for
+    exactly those (the same network as its own training's at those epochs: the training is
+    deterministic). The members of an ensemble are so of one age: the calibration is fitted on held-out
+    logits of single members, each window one member's, and applied to their mean, which a member much
+    sharper than the others would sway. ``patience`` None: every network trains every epoch.
 
     Parameters
     ----------
@@ -1784,36 +1785,36 @@ def train_fold_networks(x, labels, n_classes: int, folds, k: int, hidden: int | 
     jobs : int
         Worker processes (:func:`supramodal.mlp.train_networks`; the networks are the same for any).
     done : callable(int, Trained), optional
-        Told each fold network's final result, in :func:`fold_tasks`' order once all are in where
-        they stop early, else as each is back.
+        Told each fold network's result as it is back from its first training (with ``patience``, the
+        network at its own best): progress as it goes.
+    redone : callable(int, Trained), optional
+        Told each result that the joint stop trained again, once all are in (default: ``done``).
     watch : (int, callable(epoch, mse)), optional
         :func:`~supramodal.mlp.train_networks`' ``watch``, of the first training.
 
     Returns
     -------
     list of :class:`~supramodal.mlp.Trained`
-        In :func:`fold_tasks`' order.
+        The networks deployed, in :func:`fold_tasks`' order (a network trained again keeps the held-out
+        errors of its first training).
     """
     from supramodal.mlp import NetworkTask, train_networks
 
     factor = getattr(augment, "factor", 1)
     work = fold_work(len(x), x.shape[1], n_classes, folds, k, hidden, epochs, patience) * factor
     tasks = fold_tasks(x, labels, n_classes, folds, k, hidden, epochs, seed, augment, patience)
-    results = train_networks(tasks, jobs, watch=watch, done=done if patience is None else None, work=work)
+    results = train_networks(tasks, jobs, watch=watch, done=done, work=work)
     if patience is None:
         return results
     sizes = [int(np.sum(folds == f)) for f in range(k) if np.any(folds == f)]
     best = joint_stop_epochs([r.held_out_errors for r in results], sizes)
     again = [i for i, r in enumerate(results) if len(r.history) != best]
     if again:
-        tasks = list(fold_tasks(x, labels, n_classes, folds, k, hidden, epochs, seed, augment, None))
-        redo = [NetworkTask(t.x, t.labels, n_classes, hidden, best, seed, t.score) for i, t in enumerate(tasks)
-                if i in again]
-        for i, r in zip(again, train_networks(redo, jobs, work=sum(t.work for t in redo))):
+        redo = [NetworkTask(t.x, t.labels, n_classes, hidden, best, seed, t.score)
+                for t in fold_tasks(x, labels, n_classes, folds, k, hidden, epochs, seed, augment, None, set(again))]
+        for i, r in zip(again, train_networks(redo, min(jobs, len(redo)), work=sum(t.work for t in redo))):
             results[i] = r._replace(held_out_errors=results[i].held_out_errors)
-    if done is not None:
-        for i, r in enumerate(results):
-            done(i, r)
+            (redone or done or (lambda *_: None))(i, results[i])
     return results
 
 
@@ -1828,6 +1829,8 @@ def joint_stop_epochs(errors, sizes) -> int:
     common = set(looks[0]).intersection(*looks[1:])
     if not common:
         raise InputError("the fold networks looked at their held-out errors at no common epochs")
+    if not all(np.isfinite(look[e]) for look in looks for e in common):
+        raise InputError("a fold network's held-out error is not finite: its inputs or weights overflowed")
     return min(sorted(common), key=lambda e: sum(m * look[e] for m, look in zip(sizes, looks)))
 
 
@@ -1873,6 +1876,10 @@ class HeldOutLogits:
     def complete(self) -> bool:
         """Whether every fold's logits are in."""
         return len(self._in) == len(self._order)
+
+    def retold(self, i: int, result) -> None:
+        """Take the ``i``-th fold task's result again, without a line (:func:`train_fold_networks`' ``redone``)."""
+        self.logits[self.folds == self._order[i]] = result.logits
 
     def told(self, i: int, result) -> None:
         """Take the ``i``-th fold task's result (a :class:`supramodal.mlp.Trained`)."""

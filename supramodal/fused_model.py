@@ -452,11 +452,14 @@ def out_of_fold_logits(model: TextureModel, values, labels, classes, folds, prog
             progress(f"fold {i + 1}/{len(parts)}: {int(test.sum())} held-out windows, "
                      f"{float(np.mean(np.argmax(z[test], axis=1) == y[test])):.3f} right")
 
-    # the copies are fold networks as the model's own are: augmented, stopped early together (a file from
-    # before early stopping has no patience: every epoch, as its networks were trained)
+    def retold(i, result) -> None:
+        z[fold_of == i] = result.logits
+
+    # the copies are fold networks as this version makes a model's: augmented, stopped early together (a
+    # file from before early stopping has no patience: every epoch, as its networks were trained)
     train_fold_networks(x, y, len(classes), fold_of, len(parts), model.mlp.shape[1], epochs, seed,
                         None if augment is None else augment.for_inputs(model.features, model.bank.channels),
-                        model.training.get("patience"), done=told)
+                        model.training.get("patience"), done=told, redone=retold)
     return z
 
 

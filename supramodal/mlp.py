@@ -459,13 +459,15 @@ def expected_epochs(epochs: int, patience: int | None) -> int:
 class Trained(NamedTuple):
     """What :func:`train_task` gives back: the network, its training and its held-out rows' logits."""
 
-    #: The network (where it stopped early, the one of its lowest held-out error).
+    #: The network (where it stopped early, the one of its lowest held-out error; trained again to other
+    #: epochs by :func:`~supramodal.calibration.train_fold_networks`, that one).
     network: MLP
     #: :func:`train_mlp`'s training MSE per epoch of ``network``.
     history: list[float]
     #: Logits of the task's ``score`` rows, shape (m, outputs); None without rows to score.
     logits: np.ndarray | None
-    #: Where it stopped early: ``(epochs, held-out MSE)`` of every look, in order; else empty.
+    #: Where it stopped early: ``(epochs, held-out MSE)`` of every look of its (first) training, in order;
+    #: else empty.
     held_out_errors: tuple[tuple[int, float], ...] = ()
 
 

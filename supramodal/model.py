@@ -350,8 +350,9 @@ def train_deployed(x, labels, n_classes: int, hidden: int | None, epochs: int, s
         One line per fold network.
     patience : int or None
         Each fold network stops early on its own held-out windows once their error has not fallen for
-        ``patience`` epochs, and is deployed as it was at its best (:func:`supramodal.mlp.train_mlp`'s
-        ``stop_on``; default :data:`~supramodal.mlp.EARLY_STOP_PATIENCE`). None: every epoch, as before
+        ``patience`` epochs, and all are deployed at the epochs best for them together
+        (:func:`~supramodal.calibration.train_fold_networks`; default
+        :data:`~supramodal.mlp.EARLY_STOP_PATIENCE`). None: every epoch, as before
         2026-11-30. A network without folds has no held-out windows and trains every epoch.
 
     Returns
@@ -375,7 +376,7 @@ def train_deployed(x, labels, n_classes: int, hidden: int | None, epochs: int, s
     fold_of, by = calibration_folds_of(y, g, folds, seed)
     held_out = HeldOutLogits(y, fold_of, folds, n_classes, calibration_progress)
     results = train_fold_networks(x, y, n_classes, fold_of, folds, hidden, epochs, seed, augment, patience, jobs,
-                                  done=held_out.told, watch=(held_out.networks - 1, progress))
+                                  done=held_out.told, redone=held_out.retold, watch=(held_out.networks - 1, progress))
     calibration, novelty, out_of_fold = calibration_of_held_out(x, y, n_classes, g, fold_of, by, folds,
                                                                 held_out.logits, *(touch or ()))
     calibration = with_held_out_changes(calibration, held_out.logits, y, g, fold_of)

@@ -253,7 +253,7 @@ def test_evaluate_cv_copies_a_model_with_as_many_fold_networks_as_it_deploys(mod
 
 # -- fold networks stopped early on their own held-out windows -------------------------------------------
 
-def test_each_member_stopped_at_its_best_and_the_file_says_so(model):
+def test_each_member_is_its_fold_network_of_the_epochs_the_file_says(model):
     """A model's fold networks stop early by default: each member is the network of its fold after the epochs the
     file records (a network trained that many epochs on the same rows, re-expressed, gives the same logits)."""
     from supramodal.calibration import fold_scaling, fold_tasks
@@ -364,21 +364,26 @@ def test_the_joint_epochs_are_those_of_the_lowest_summed_held_out_error():
 
 
 def test_fold_networks_stop_together_at_the_epochs_best_for_all_their_held_out_windows():
-    """Each fold network trained alone, every epoch, its held-out error every 10 epochs computed plainly: the
-    members are the networks of the epochs whose error summed over every held-out window is lowest (among
-    those all of them reached), to the bit, all of one age."""
-    from supramodal.calibration import train_fold_networks
-    from supramodal.mlp import one_hot, train_mlp
+    """Fold networks of unequal folds that stop at their own bests at different epochs: each network's
+    held-out error every 10 epochs computed plainly (a plain network trained that many epochs), the members
+    are the networks of the epochs whose error summed over every held-out window is lowest, to the bit, all
+    of one age; those that stopped elsewhere were trained again to it, and progress was told as each was back."""
+    from supramodal.calibration import fold_tasks, train_fold_networks
+    from supramodal.mlp import one_hot, train_mlp, train_task
 
-    rng = np.random.default_rng(5)
+    rng = np.random.default_rng(2)
     y = np.repeat(np.arange(3), 60)
-    x = rng.gamma(2.0, 1.0, (180, 16)) * 100.0
-    x[:, :8] *= 1 + 0.15 * y[:, None]
-    folds = np.arange(180) % 3
-    results = train_fold_networks(x, y, 3, folds, 3, None, 300, 0, None, 30)
+    x = rng.normal(size=(180, 8)) + 0.5 * np.eye(3)[y] @ rng.normal(size=(3, 8))
+    folds = rng.integers(0, 3, 180)
+    own = [len(train_task(t).history) for t in fold_tasks(x, y, 3, folds, 3, None, 300, 0, None, 30)]
+    assert len(set(own)) > 1 and len(set(np.bincount(folds))) == 3        # the premise: bests and folds differ
+    told, retold = [], []
+    results = train_fold_networks(x, y, 3, folds, 3, None, 300, 0, None, 30, done=lambda i, r: told.append(i),
+                                  redone=lambda i, r: retold.append((i, len(r.history))))
     ages = {len(r.history) for r in results}
     assert len(ages) == 1
     age = ages.pop()
+    assert sorted(told) == [0, 1, 2] and retold == [(i, age) for i in range(3) if own[i] != age] and retold
     last = min(r.held_out_errors[-1][0] for r in results)
     summed = {}
     for f in range(3):
@@ -391,4 +396,27 @@ def test_fold_networks_stop_together_at_the_epochs_best_for_all_their_held_out_w
         net, _ = train_mlp((x[train] - mean) / scale, y[train], 3, epochs=age, seed=0)
         for p, q in zip(net.params(), results[f].network.params()):
             np.testing.assert_array_equal(p, q)
-    assert age == min(summed, key=lambda e: (round(summed[e], 9), e)) and age < 300 - 30
+        np.testing.assert_array_equal(results[f].logits, net.logits((x[test] - mean) / scale))
+    assert age == min(summed, key=lambda e: (round(summed[e], 9), e))
+
+
+def test_a_models_held_out_logits_are_those_of_its_members_stopped_together():
+    """The calibration's held-out logits are the deployed members' (trained again to the joint epochs), not
+    those of the networks at their own bests."""
+    from supramodal.calibration import fold_tasks
+    from supramodal.mlp import train_task
+
+    rng = np.random.default_rng(0)
+    labels = np.repeat(np.arange(3), 60)
+    values = np.exp(rng.normal(size=(180, 2, 8)) * 0.3 + 0.15 * labels[:, None, None] * (np.arange(8) < 3))
+    groups = labels * 4 + rng.integers(0, 4, 180)                  # four recordings a texture
+    m = TextureModel.train(values, labels, CLASSES, BANK, FEATURES, 500, epochs=300, seed=0, groups=groups,
+                           patience=30)
+    held = m.out_of_fold
+    own = [len(train_task(t).history)
+           for t in fold_tasks(values.reshape(180, -1), labels, 3, held.folds, 3, None, 300, 0, None, 30)]
+    assert len(set(own)) > 1 and len(set(m.training["network_epochs"])) == 1    # the premise: one was trained again
+    x = (values.reshape(len(values), -1) - m.mean) / m.scale
+    for f, member in zip(sorted(set(held.folds.tolist())), m.mlp.members):
+        rows = held.folds == f
+        np.testing.assert_allclose(member.logits(x[rows]), held.logits[rows], rtol=1e-9, atol=1e-9)
