@@ -163,7 +163,11 @@ def test_the_outlets_carry_the_documented_labels_units_classes_and_window_times(
     live = np.asarray(stamps) > received[0] + 0.5
     assert live.sum() >= 10, (received[0], stamps[-1])
     lag = (np.asarray(received) - np.asarray(stamps))[live]
-    assert np.all(lag > -0.02) and np.all(lag < 0.1), (lag.min(), lag.max())
+    # "received" is when this process pulled: a window this process was descheduled over comes late by
+    # that much (0.24 s once in a CI run on 2 busy cores). Live, not a backlog: most windows within 0.1 s,
+    # the typical one well within it, none by a second (a held backlog is seconds behind).
+    assert np.all(lag > -0.02) and np.median(lag) < 0.05, (lag.min(), np.median(lag))
+    assert np.mean(lag < 0.1) >= 0.9 and lag.max() < 1.0, (np.mean(lag < 0.1), lag.max())
     lines = [json.loads(x) for x in (tmp_path / "out.jsonl").read_text().splitlines()]
     written = {x["window"]: x for x in lines if "window" in x}
     markers = [json.loads(s[0]) for s in got["decisions"][0]]
