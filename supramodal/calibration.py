@@ -60,8 +60,8 @@ from supramodal.mlp import EARLY_STOP_PATIENCE
 __all__ = [
     "CALIBRATION_METHOD", "CHANGES_KEPT", "DEFAULT_CALIBRATION_FOLDS", "HeldOutChanges", "ECE_BINS",
     "NOVELTY_METHOD", "NOVELTY_TOUCH_METHOD", "NOVELTY_TOUCH_SPREAD", "Calibration", "HeldOutLogits",
-    "Novelty", "TouchSpread", "calibration_of_held_out", "fold_tasks", "fold_work", "joint_stop_epochs",
-    "train_fold_networks",
+    "Novelty", "TouchSpread", "calibration_of_held_out", "fold_tasks", "fold_work", "held_out_folds",
+    "joint_stop_epochs", "train_fold_networks",
     "brier_score", "calibration_line", "calibration_report", "cap_gaps", "confusion_caps", "fit_capped_pooling",
     "fit_capped_window_calibration", "effective_windows", "expected_calibration_error", "fit_novelty",
     "fit_pooling", "fit_window_calibration", "log_loss", "log_sigmoid", "normalised_log_posteriors",
@@ -1756,7 +1756,7 @@ def fold_tasks(x, labels, n_classes: int, folds, k: int, hidden: int | None, epo
     from supramodal.mlp import NetworkTask
 
     y = np.asarray(labels)
-    for i, f in enumerate(f for f in range(k) if np.any(folds == f)):
+    for i, f in enumerate(held_out_folds(folds, k)):
         test = folds == f
         if only is None or i in only:
             mean, scale = fold_scaling(x, folds, f)
@@ -1806,15 +1806,17 @@ def train_fold_networks(x, labels, n_classes: int, folds, k: int, hidden: int | 
     results = train_networks(tasks, jobs, watch=watch, done=done, work=work)
     if patience is None:
         return results
-    sizes = [int(np.sum(folds == f)) for f in range(k) if np.any(folds == f)]
+    sizes = [int(np.sum(folds == f)) for f in held_out_folds(folds, k)]
     best = joint_stop_epochs([r.held_out_errors for r in results], sizes)
     again = [i for i, r in enumerate(results) if len(r.history) != best]
     if again:
         redo = [NetworkTask(t.x, t.labels, n_classes, hidden, best, seed, t.score)
                 for t in fold_tasks(x, labels, n_classes, folds, k, hidden, epochs, seed, augment, None, set(again))]
+        tell = redone or done
         for i, r in zip(again, train_networks(redo, min(jobs, len(redo)), work=sum(t.work for t in redo))):
             results[i] = r._replace(held_out_errors=results[i].held_out_errors)
-            (redone or done or (lambda *_: None))(i, results[i])
+            if tell is not None:
+                tell(i, results[i])
     return results
 
 
@@ -1834,6 +1836,12 @@ def joint_stop_epochs(errors, sizes) -> int:
     return min(sorted(common), key=lambda e: sum(m * look[e] for m, look in zip(sizes, looks)))
 
 
+def held_out_folds(folds, k: int) -> list[int]:
+    """Return the folds 0 .. ``k`` - 1 that hold windows (of ``folds``, each window's): one network each, in order."""
+    folds = np.asarray(folds)
+    return [f for f in range(k) if np.any(folds == f)]
+
+
 def fold_scaling(x, folds, f: int) -> tuple[np.ndarray, np.ndarray]:
     """Return the mean and scale fold ``f``'s network standardises its rows by: those of the other folds' rows."""
     return input_scaling(np.asarray(x)[np.asarray(folds) != f])
@@ -1844,7 +1852,7 @@ def fold_work(n: int, inputs: int, n_classes: int, folds, k: int, hidden: int | 
     """Return the summed :attr:`~supramodal.mlp.NetworkTask.work` of :func:`fold_tasks`' networks, not making them."""
     from supramodal.mlp import expected_epochs
 
-    rows = sum(n - int(np.sum(folds == f)) for f in range(k) if np.any(folds == f))
+    rows = sum(n - int(np.sum(folds == f)) for f in held_out_folds(folds, k))
     return float(rows) * (hidden or inputs) * (inputs + n_classes) * expected_epochs(epochs, patience)
 
 
@@ -1855,10 +1863,10 @@ class HeldOutLogits:
     as they are back), with a line per fold to ``progress``; :attr:`complete` once every fold is in.
     """
 
-    def __init__(self, labels, folds, k: int, n_classes: int, progress=None) -> None:
-        self.labels, self.folds, self.progress = np.asarray(labels), np.asarray(folds), progress
+    def __init__(self, labels, folds, k: int, n_classes: int, progress=None, what: str = "calibration fold") -> None:
+        self.labels, self.folds, self.progress, self.what = np.asarray(labels), np.asarray(folds), progress, what
         self.logits = np.empty((len(self.labels), n_classes))
-        self._order = [f for f in range(k) if (self.folds == f).any()]     # fold_tasks' order
+        self._order = held_out_folds(self.folds, k)
         self._k = k
         self._in: set[int] = set()
 
@@ -1889,23 +1897,23 @@ class HeldOutLogits:
         self._in.add(f)
         if self.progress:
             right = float(np.mean(np.argmax(result.logits, axis=1) == self.labels[test]))
-            self.progress(f"calibration fold {f + 1}/{self._k}: {int(test.sum())} held-out windows, {right:.3f} right")
+            self.progress(f"{self.what} {f + 1}/{self._k}: {int(test.sum())} held-out windows, {right:.3f} right")
 
 
 def calibration_of_held_out(x, labels, n_classes: int, groups, folds, by: str, k: int,
                             z, touch_groups=None, touch_floor: float | tuple[float, ...] = NOVELTY_TOUCH_SPREAD,
-                            touch_parts=None) -> tuple[Calibration, Novelty, OutOfFold]:
+                            touch_parts=None, scaling=None) -> tuple[Calibration, Novelty, OutOfFold]:
     """Fit :func:`fit_network_calibration`'s calibration, novelty and :class:`OutOfFold` from held-out logits.
 
     The logits ``z`` (n, classes) are the fold networks' of the raw input rows ``x``. ``touch_groups``,
     ``touch_floor`` and ``touch_parts``: the novelty's allowance for a new touch (:func:`fit_novelty`;
-    default none).
+    default none). ``scaling``: ``x``'s :func:`input_scaling` where the caller has it (default: computed).
     """
     y = np.asarray(labels)
     cal = fit_calibration(z, y, groups, folds=folds)
     cal = replace(cal, fitted_on={**cal.fitted_on, "folds": int(k), "folds_by": by,
                                   "held_out_accuracy": round(float(np.mean(np.argmax(z, axis=1) == y)), 6)})
-    mean, scale = input_scaling(x)
+    mean, scale = input_scaling(x) if scaling is None else scaling
     novelty = fit_novelty((x - mean) / scale, y, n_classes, folds, groups, mean, scale, touch_groups, touch_floor,
                           touch_parts)
     return cal, novelty, OutOfFold(z, folds, _fingerprint(x, y))

@@ -37,6 +37,7 @@ from supramodal.calibration import (
     DEFAULT_CALIBRATION_FOLDS,
     POOLING_RUN,
     Calibration,
+    HeldOutLogits,
     Novelty,
     OutOfFold,
     calibration_folds,
@@ -443,24 +444,13 @@ def out_of_fold_logits(model: TextureModel, values, labels, classes, folds, prog
                          f"a fold each, got {values.shape}, {len(y)} labels, {len(folds)} folds")
     x, fold_of = values.reshape(len(values), -1), np.searchsorted(parts, folds)
     augment = model.augment
-    z = np.empty((len(y), len(classes)))
-
-    def told(i, result) -> None:
-        test = fold_of == i
-        z[test] = result.logits
-        if progress:
-            progress(f"fold {i + 1}/{len(parts)}: {int(test.sum())} held-out windows, "
-                     f"{float(np.mean(np.argmax(z[test], axis=1) == y[test])):.3f} right")
-
-    def retold(i, result) -> None:
-        z[fold_of == i] = result.logits
-
+    held = HeldOutLogits(y, fold_of, len(parts), len(classes), progress, what="fold")
     # the copies are fold networks as this version makes a model's: augmented, stopped early together (a
     # file from before early stopping has no patience: every epoch, as its networks were trained)
     train_fold_networks(x, y, len(classes), fold_of, len(parts), model.mlp.shape[1], epochs, seed,
                         None if augment is None else augment.for_inputs(model.features, model.bank.channels),
-                        model.training.get("patience"), done=told, redone=retold)
-    return z
+                        model.training.get("patience"), done=held.told, redone=held.retold)
+    return held.logits
 
 
 def out_of_fold_log_posteriors(model: TextureModel, values, labels, classes, folds, progress=None) -> np.ndarray:

@@ -325,16 +325,7 @@ def train_mlp(x: np.ndarray, labels: np.ndarray, n_classes: int, hidden: int | N
         the network of the lowest held-out error and the epochs that made it (the epochs trained
         past it, to see that it stayed the lowest, are not returned).
     """
-    x = np.asarray(x, dtype=np.float64)
-    labels = np.asarray(labels)
-    if x.ndim != 2 or x.shape[0] == 0:
-        raise InputError(f"training inputs must have shape (n >= 1, inputs), got {x.shape}")
-    if labels.shape != (x.shape[0],) or labels.dtype.kind not in "iu":
-        raise InputError(f"labels must be integers of shape ({x.shape[0]},), got {labels.dtype} {labels.shape}")
-    if labels.min() < 0 or labels.max() >= n_classes:
-        raise InputError(f"labels must lie in 0..{n_classes - 1}")
-    if not np.isfinite(x).all():
-        raise InputError("training inputs contain NaN or Inf")
+    x, labels = _checked_rows(x, labels, n_classes, "training inputs", "labels", "n", "inputs")
     if epochs < 1:
         raise InputError(f"epochs must be >= 1, got {epochs}")
     net = MLP.create(x.shape[1], hidden or x.shape[1], n_classes, seed=seed)
@@ -361,22 +352,32 @@ def train_mlp(x: np.ndarray, labels: np.ndarray, n_classes: int, hidden: int | N
     return watch.best, history[:max(watch.best_epochs, 1)]     # the start's own MSE if it stayed the best
 
 
+def _checked_rows(x, labels, n_classes: int, rows: str, labelled: str, n: str, inputs) -> tuple[np.ndarray, np.ndarray]:
+    """Return rows ``x`` (n >= 1, ``inputs``) as float64 and their integer ``labels`` (n,), or refuse them by name.
+
+    ``rows`` and ``labelled`` name them in the messages, ``n`` their count; ``inputs``: the columns
+    required (an int), or a name for any number of them.
+    """
+    x = np.asarray(x, dtype=np.float64)
+    labels = np.asarray(labels)
+    if x.ndim != 2 or len(x) == 0 or (isinstance(inputs, int) and x.shape[1] != inputs):
+        raise InputError(f"{rows} must have shape ({n} >= 1, {inputs}), got {x.shape}")
+    if labels.shape != (len(x),) or labels.dtype.kind not in "iu":
+        raise InputError(f"{labelled} must be integers of shape ({len(x)},), got {labels.dtype} {labels.shape}")
+    if labels.min() < 0 or labels.max() >= n_classes:
+        raise InputError(f"{labelled} must lie in 0..{n_classes - 1}")
+    if not np.isfinite(x).all():
+        raise InputError(f"{rows} contain NaN or Inf")
+    return x, labels
+
+
 class _StopWatch:
     """The held-out error of a network in training, every :data:`STOP_CHECK_EPOCHS` epochs, and the best so far."""
 
     def __init__(self, net: MLP, x_held, labels_held, n_classes: int, inputs: int, patience: int,
                  on_check=None) -> None:
-        x_held = np.asarray(x_held, dtype=np.float64)
-        labels_held = np.asarray(labels_held)
-        if x_held.ndim != 2 or x_held.shape[1] != inputs or len(x_held) == 0:
-            raise InputError(f"held-out rows to stop on must have shape (m >= 1, {inputs}), got {x_held.shape}")
-        if labels_held.shape != (len(x_held),) or labels_held.dtype.kind not in "iu":
-            raise InputError(f"held-out labels must be integers of shape ({len(x_held)},), got "
-                             f"{labels_held.dtype} {labels_held.shape}")
-        if labels_held.min() < 0 or labels_held.max() >= n_classes:
-            raise InputError(f"held-out labels must lie in 0..{n_classes - 1}")
-        if not np.isfinite(x_held).all():
-            raise InputError("held-out rows to stop on contain NaN or Inf")
+        x_held, labels_held = _checked_rows(x_held, labels_held, n_classes, "held-out rows to stop on",
+                                            "held-out labels", "m", inputs)
         if isinstance(patience, bool) or not isinstance(patience, int | np.integer) or patience < 1:
             raise InputError(f"patience must be a whole number of epochs >= 1, got {patience!r}")
         self.net, self.x, self.targets, self.patience = net, x_held, one_hot(labels_held, n_classes), int(patience)

@@ -321,8 +321,8 @@ def train_deployed(x, labels, n_classes: int, hidden: int | None, epochs: int, s
     deploys the fold networks themselves, as an :class:`~supramodal.mlp.Ensemble` (the mean of their
     logits) on ``x``'s own scaling. No network of all the windows is trained: the calibration is then fitted on the
     deployed networks' own held-out logits (applied to their mean), and the model costs its fold networks (3 by
-    default: about twice one network of all the windows; with 10 folds and a network of its own, as before
-    2026-11-30, about 11 times).
+    default, stopped early: about one network of all the windows trained every epoch; with 10 folds and a
+    network of its own, as before 2026-11-30, about 11 times).
     Without folds (0): one network of all the windows, uncalibrated.
 
     Parameters
@@ -345,7 +345,7 @@ def train_deployed(x, labels, n_classes: int, hidden: int | None, epochs: int, s
         The novelty's allowance for a new touch (:func:`touch_allowance`; an early fusion's, each sense its
         own spread: :func:`supramodal.fused_model.early_touch_allowance`). Default None: none.
     progress : callable(epoch, mse), optional
-        The last network's epochs (from workers: its last epoch alone).
+        The last network's epochs (from workers: the last epoch of the network kept, alone).
     calibration_progress : callable(str), optional
         One line per fold network.
     patience : int or None
@@ -377,8 +377,9 @@ def train_deployed(x, labels, n_classes: int, hidden: int | None, epochs: int, s
     held_out = HeldOutLogits(y, fold_of, folds, n_classes, calibration_progress)
     results = train_fold_networks(x, y, n_classes, fold_of, folds, hidden, epochs, seed, augment, patience, jobs,
                                   done=held_out.told, redone=held_out.retold, watch=(held_out.networks - 1, progress))
+    allowance = dict(zip(("touch_groups", "touch_floor", "touch_parts"), touch or ()))
     calibration, novelty, out_of_fold = calibration_of_held_out(x, y, n_classes, g, fold_of, by, folds,
-                                                                held_out.logits, *(touch or ()))
+                                                                held_out.logits, **allowance, scaling=(mean, scale))
     calibration = with_held_out_changes(calibration, held_out.logits, y, g, fold_of)
     # each fold network standardised its rows by their own mean and scale: re-expressed on the model's
     members = [rescaled(r.network, *fold_scaling(x, fold_of, f), mean, scale) for f, r in zip(held_out.order, results)]
