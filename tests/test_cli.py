@@ -84,6 +84,44 @@ def test_a_planted_bug_shows_its_traceback(monkeypatch, tmp_path, capsys, plante
     assert "supramodal: error:" not in err
 
 
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+@pytest.mark.parametrize("how", ["cause", "context"])
+def test_a_signal_a_library_turned_into_its_own_error_is_still_the_signal(monkeypatch, tmp_path, capsys, sig, how):
+    """A signal that lands while a C extension initialises comes back as that import's ImportError (pybind11's
+    "initialization failed", raised from the handler's exception: a CI run of an interrupted ``evaluate`` exited 1
+    as a bug). It is the interruption: one line, 128 + the signal, no traceback."""
+    import supramodal.node.scene.schema
+    from supramodal.node.cli.signals import StartupInterrupted
+
+    def importing(path):
+        try:
+            raise StartupInterrupted(sig, "the test's work")
+        except StartupInterrupted as interrupted:
+            if how == "cause":
+                raise ImportError("initialization failed") from interrupted
+            raise ImportError("initialization failed")      # noqa: B904 (the context, as a library may leave it)
+
+    monkeypatch.setattr(supramodal.node.scene.schema, "load_scene", importing)
+    assert main(["run", str(tmp_path / "s.toml")]) == 128 + sig
+    assert _lines(capsys.readouterr().err) == [f"supramodal: interrupted by {signal.Signals(sig).name} during the "
+                                               "test's work"]
+
+
+def test_a_bug_raised_while_handling_another_error_is_still_a_bug(monkeypatch, tmp_path, capsys):
+    """Only an interruption on the chain makes an error the interruption: a chain of ordinary errors is a bug."""
+    import supramodal.node.scene.schema
+
+    def broken(path):
+        try:
+            raise KeyError("k")
+        except KeyError as first:
+            raise ImportError("initialization failed") from first
+
+    monkeypatch.setattr(supramodal.node.scene.schema, "load_scene", broken)
+    assert main(["run", str(tmp_path / "s.toml")]) == cli.EXIT_BUG
+    assert "this is a bug in supramodal" in capsys.readouterr().err.splitlines()[-1]
+
+
 @pytest.mark.parametrize("raised, one_line", [(InputError("the pipeline refused it"), True),
                                               (ValueError("unexpected in a thread"), False)])
 def test_an_error_in_a_node_thread(monkeypatch, replay_scene, capsys, raised, one_line):

@@ -41,7 +41,7 @@ from supramodal.errors import SupramodalWarning
 from supramodal.logs import logger, set_log_level
 from supramodal.memory import keep_freed_memory
 from supramodal.node.cli.errors import EXIT_BUG, EXIT_USER_ERROR, CliError, is_user_error, reader_left
-from supramodal.node.cli.signals import StartupInterrupted
+from supramodal.node.cli.signals import StartupInterrupted, interruption_behind
 
 __all__ = ["COMMANDS", "command_module", "EXIT_BUG", "EXIT_USER_ERROR", "CliError", "build_parser", "main"]
 
@@ -193,17 +193,25 @@ def main(argv: Sequence[str] | None = None) -> int:
                 signal.signal(sig, handler)
 
 
+def _interrupted(exc: BaseException) -> int:
+    """Say that a signal interrupted the command, and return its exit status (128 + the signal's number)."""
+    if isinstance(exc, StartupInterrupted):
+        print(f"supramodal: interrupted by {exc} during {exc.during}", file=sys.stderr)
+        return 128 + exc.signum
+    print("supramodal: interrupted", file=sys.stderr)
+    return 128 + signal.SIGINT
+
+
 def _run(args: argparse.Namespace) -> int:
     """Run the parsed command and turn what it raised into its message and exit status."""
     try:
         return args.func(args)
-    except StartupInterrupted as exc:
-        print(f"supramodal: interrupted by {exc} during {exc.during}", file=sys.stderr)
-        return 128 + exc.signum
-    except KeyboardInterrupt:
-        print("supramodal: interrupted", file=sys.stderr)
-        return 128 + signal.SIGINT
+    except (StartupInterrupted, KeyboardInterrupt) as exc:
+        return _interrupted(exc)
     except Exception as exc:
+        interruption = interruption_behind(exc)
+        if interruption is not None:        # a library's error in place of the signal's (signals.py)
+            return _interrupted(interruption)
         if reader_left(exc):
             # Python docs' recipe: point stdout at /dev/null so that the interpreter's last
             # flush does not fail again; then stop quietly (exit status: module docstring).

@@ -26,6 +26,28 @@ class StartupInterrupted(BaseException):
         self.during = during
 
 
+def interruption_behind(exc: BaseException) -> BaseException | None:
+    """Find the interruption (:class:`StartupInterrupted` or KeyboardInterrupt) behind an exception.
+
+    A signal that lands while a C extension module initialises (matplotlib's Agg backend, numpy's parts) has its
+    handler's exception turned into that import's ``ImportError: initialization failed``; other libraries wrap
+    what interrupted them in their own errors. Such an error is the interruption, not a bug: it is found on the
+    chain of causes and contexts Python keeps.
+
+    Returns
+    -------
+    BaseException or None
+        The interruption on ``exc``'s chain (``exc`` itself included), or None if there is none.
+    """
+    seen: set[int] = set()
+    while exc is not None and id(exc) not in seen:          # a chain may loop back on itself
+        if isinstance(exc, (StartupInterrupted, KeyboardInterrupt)):
+            return exc
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__      # type: ignore[assignment]
+    return None
+
+
 def interrupt_until_running(during: str = STARTUP) -> None:
     """Have SIGINT and SIGTERM interrupt the start-up with a one-line message, until :func:`stop_on_signals`.
 
