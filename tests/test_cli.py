@@ -107,6 +107,39 @@ def test_a_signal_a_library_turned_into_its_own_error_is_still_the_signal(monkey
                                                "test's work"]
 
 
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_a_signal_whose_error_lost_it_is_still_the_signal(monkeypatch, tmp_path, capsys, sig):
+    """numpy's C parts, interrupted as they import, raise "PyCapsule_Import could not import module" with the
+    handler's exception lost from the chain. A real signal to this process, through the command's own handler:
+    whatever error follows is the interruption. The next command in the same process starts afresh: a bug there
+    is a bug."""
+    import supramodal.node.scene.schema
+    from supramodal.node.cli.signals import interrupt_until_running
+
+    def importing(path):
+        interrupt_until_running("the test's work")
+        try:
+            os.kill(os.getpid(), sig)
+            time.sleep(5)                           # the handler raises at the next bytecode, long before this ends
+        except BaseException:                       # noqa: S110 (as the C code does: the exception cleared)
+            pass
+        else:
+            raise AssertionError("the signal did not arrive")
+        raise ImportError("PyCapsule_Import could not import module")     # no cause, no context
+
+    monkeypatch.setattr(supramodal.node.scene.schema, "load_scene", importing)
+    assert main(["run", str(tmp_path / "s.toml")]) == 128 + sig
+    assert _lines(capsys.readouterr().err) == [f"supramodal: interrupted by {signal.Signals(sig).name} during the "
+                                               "test's work"]
+
+    def broken(path):
+        raise ImportError("PyCapsule_Import could not import module")
+
+    monkeypatch.setattr(supramodal.node.scene.schema, "load_scene", broken)
+    assert main(["run", str(tmp_path / "s.toml")]) == cli.EXIT_BUG
+    assert "this is a bug in supramodal" in capsys.readouterr().err.splitlines()[-1]
+
+
 def test_a_bug_raised_while_handling_another_error_is_still_a_bug(monkeypatch, tmp_path, capsys):
     """Only an interruption on the chain makes an error the interruption: a chain of ordinary errors is a bug."""
     import supramodal.node.scene.schema

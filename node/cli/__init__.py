@@ -41,7 +41,7 @@ from supramodal.errors import SupramodalWarning
 from supramodal.logs import logger, set_log_level
 from supramodal.memory import keep_freed_memory
 from supramodal.node.cli.errors import EXIT_BUG, EXIT_USER_ERROR, CliError, is_user_error, reader_left
-from supramodal.node.cli.signals import StartupInterrupted, interruption_behind
+from supramodal.node.cli.signals import StartupInterrupted, forget_interruption, interruption_behind
 
 __all__ = ["COMMANDS", "command_module", "EXIT_BUG", "EXIT_USER_ERROR", "CliError", "build_parser", "main"]
 
@@ -204,6 +204,7 @@ def _interrupted(exc: BaseException) -> int:
 
 def _run(args: argparse.Namespace) -> int:
     """Run the parsed command and turn what it raised into its message and exit status."""
+    forget_interruption()
     try:
         return args.func(args)
     except (StartupInterrupted, KeyboardInterrupt) as exc:

@@ -26,26 +26,41 @@ class StartupInterrupted(BaseException):
         self.during = during
 
 
+#: The last interruption a handler of :func:`interrupt_until_running` raised in this process, or None: what an
+#: error that came of it is (:func:`interruption_behind`). Cleared by :func:`forget_interruption`.
+_raised: StartupInterrupted | None = None
+
+
+def forget_interruption() -> None:
+    """Forget the last interruption raised: a command starts (``main`` may be called again in one process)."""
+    global _raised
+    _raised = None
+
+
 def interruption_behind(exc: BaseException) -> BaseException | None:
     """Find the interruption (:class:`StartupInterrupted` or KeyboardInterrupt) behind an exception.
 
-    A signal that lands while a C extension module initialises (matplotlib's Agg backend, numpy's parts) has its
-    handler's exception turned into that import's ``ImportError: initialization failed``; other libraries wrap
-    what interrupted them in their own errors. Such an error is the interruption, not a bug: it is found on the
-    chain of causes and contexts Python keeps.
+    A signal that lands while a C extension module initialises has its handler's exception turned into that
+    import's ImportError: pybind11's "initialization failed" (matplotlib's Agg backend) keeps it as the cause;
+    numpy's "PyCapsule_Import could not import module" loses it. Libraries wrap what interrupted them in their
+    own errors too. Such an error is the interruption, not a bug: it is found on the chain of causes and contexts
+    Python keeps, or, where the chain lost it, as the interruption a handler of :func:`interrupt_until_running`
+    raised since the command started.
 
     Returns
     -------
     BaseException or None
-        The interruption on ``exc``'s chain (``exc`` itself included), or None if there is none.
+        The interruption on ``exc``'s chain (``exc`` itself included), else the one raised since
+        :func:`forget_interruption`, else None.
     """
     seen: set[int] = set()
-    while exc is not None and id(exc) not in seen:          # a chain may loop back on itself
-        if isinstance(exc, (StartupInterrupted, KeyboardInterrupt)):
-            return exc
-        seen.add(id(exc))
-        exc = exc.__cause__ or exc.__context__      # type: ignore[assignment]
-    return None
+    link: BaseException | None = exc
+    while link is not None and id(link) not in seen:          # a chain may loop back on itself
+        if isinstance(link, (StartupInterrupted, KeyboardInterrupt)):
+            return link
+        seen.add(id(link))
+        link = link.__cause__ or link.__context__
+    return _raised
 
 
 def interrupt_until_running(during: str = STARTUP) -> None:
@@ -55,7 +70,9 @@ def interrupt_until_running(during: str = STARTUP) -> None:
     does not die silently, and the ``with`` blocks on the way close what they opened.
     """
     def interrupt(signum: int, frame: FrameType | None) -> None:
-        raise StartupInterrupted(signum, during)
+        global _raised
+        _raised = StartupInterrupted(signum, during)
+        raise _raised
 
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, interrupt)
