@@ -103,6 +103,30 @@ def test_train_cv_reports_then_writes_the_model_and_the_confusion_files(recordin
     assert sum(int(v) for row in rows[1:] for v in row[1:]) == 9 * 15
 
 
+def test_train_takes_the_hidden_units_a_fit_scored_and_its_cross_validation_trains_alike(recordings, tmp_path, capsys):
+    """`train --hidden N` (what `fit`'s next: line carries): every deployed network has N hidden units, the
+    cross-validation's folds too (its score is cross_validate_manifest's with N); left out, the paper's rule (as
+    many as the inputs); a fusion refuses it by name."""
+    from supramodal.model import TextureModel
+
+    out = tmp_path / "m.npz"
+    assert main(["train", "--bank", "whisker", "--manifest", str(recordings / "all.csv"), "--out", str(out),
+                 "--epochs", "20", "--hidden", "5", "--cv", "3", "--quiet"]) == 0
+    said = capsys.readouterr().out
+    model = TextureModel.load(out)
+    assert len(model.mlp.members) > 1 and {m.shape[1] for m in model.mlp.members} == {5}
+    direct = cross_validate_manifest(recordings / "all.csv", whisker_bank(), ("Af",), 0.1, k=3, epochs=20, hidden=5)
+    rule = cross_validate_manifest(recordings / "all.csv", whisker_bank(), ("Af",), 0.1, k=3, epochs=20)
+    assert f"window accuracy     {direct['window_accuracy']['mean']:.3f}" in said
+    assert [f["window_accuracy"] for f in direct["folds"]] != [f["window_accuracy"] for f in rule["folds"]]
+    assert main(["train", "--bank", "whisker", "--manifest", str(recordings / "all.csv"), "--out",
+                 str(tmp_path / "rule.npz"), "--epochs", "20", "--quiet"]) == 0
+    assert {m.shape[1] for m in TextureModel.load(tmp_path / "rule.npz").mlp.members} == {20}     # 20 vibrissae x Af
+    capsys.readouterr()
+    assert main(["train", "--fusion", "late", "--scene", str(tmp_path / "s.toml"), "--hidden", "5"]) == 2
+    assert "--hidden sets one sense's networks" in capsys.readouterr().err
+
+
 def test_lines_of_one_file_are_trials_and_must_not_overlap(recordings, tmp_path):
     """One recording per label, split into two lines each: two trials per label, folds possible;
     overlapping spans of one file are refused (a fold would test on windows it trained on)."""

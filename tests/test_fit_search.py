@@ -175,7 +175,11 @@ def test_a_plateau_is_the_best_not_moving_by_more_than_its_fold_spread_in_the_la
 
 
 def test_the_search_stops_on_a_plateau_at_the_first_round_that_ends_on_one_and_patience_0_runs_every_trial(manifest):
-    trials, patience, batch = 15, 6, FAST["batch"]
+    """The stop comes at the first round's end on a plateau, not before; without patience every trial runs.
+
+    The patience is one that puts a round's end off the plateau before the stop on this seed's trials (5 since the
+    trials score the calibrated model `train` makes: at 6 every round's end before the stop was on a plateau)."""
+    trials, patience, batch = 15, 5, FAST["batch"]
     every = fit_search(manifest, seed=1, patience=0, **{**FAST, "trials": trials})
     assert len(every["rows"]) == trials and every["stopped"] is None and every["patience"] == 0
     said: list[str] = []
@@ -222,6 +226,27 @@ def test_the_report_says_whether_the_best_beats_the_papers_banks_by_more_than_a_
     # A search's report says it.
     run = fit_search(manifest, seed=0, **FAST)
     assert paper_verdict(run)["text"] in format_search(run)
+
+
+def test_a_trials_score_is_the_cross_validation_of_the_model_train_makes_with_its_setting(manifest):
+    """Each fold scores the model `train --hidden H` makes of its training recordings (calibrated on folds by
+    recording, its fold networks stopped early together and deployed): a complete trial's window and recording
+    accuracy are `train --cv`'s (cross_validate_manifest) for its setting, its hidden units included. (They were a
+    single uncalibrated network's, trained every epoch, which `train` does not make.)"""
+    from supramodal.node.workflows.fit_search import Setting
+    from supramodal.node.workflows.training import cross_validate_manifest
+
+    result = fit_search(manifest, seed=1, **{**FAST, "trials": 3})
+    rows = [r for r in result["rows"] if r["state"] == "complete"]
+    assert len(rows) == 3
+    for row in rows:
+        setting = Setting(result["fs"], *(row[f] for f in list(Setting.__dataclass_fields__)[1:]))
+        features = tuple(setting.features.split("+"))
+        assert setting.hidden != len(features) * setting.channels   # the paper's rule would not give the same network
+        direct = cross_validate_manifest(manifest, setting.bank(), features, setting.window, FAST["k"],
+                                         epochs=setting.epochs, seed=1, hidden=setting.hidden)
+        assert row["window_mean"] == pytest.approx(direct["window_accuracy"]["mean"], abs=1e-12)
+        assert row["recording_mean"] == pytest.approx(direct["recording_accuracy"]["mean"], abs=1e-12)
 
 
 def test_a_time_budget_stops_new_rounds_after_the_first(manifest):
@@ -299,6 +324,9 @@ def test_fit_command_prints_progress_the_curve_and_writes_its_files(manifest, tm
     assert "fit: trial 4 of 4;" in captured.err
     assert "the paper's whisker bank (same window, features, network)" in captured.out
     assert "best window accuracy per window length" in captured.out and "next: supramodal train --bank" in captured.out
+    best = max((r for r in csv.DictReader(open(out / "fit.csv")) if r["state"] == "complete"),
+               key=lambda r: (float(r["score"]), float(r["window_mean"]), float(r["recording_mean"]), -int(r["trial"])))
+    assert f" --hidden {best['hidden']} --epochs {best['epochs']} " in captured.out   # the network it scored
     curve = list(csv.DictReader(open(out / "fit-curve.csv")))
     assert [float(r["window"]) for r in curve] == [0.05, 0.1]
     assert len(list(csv.DictReader(open(out / "fit.csv")))) == 4

@@ -72,7 +72,7 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
                    help="trials asked at once; the result depends on the seed and this, not on --jobs or --cluster "
                         "(default 4)")
     p.add_argument("--quick", action="store_true",
-                   help="fewer values per parameter, 16 trials, each fold's network trained on at most 4000 windows")
+                   help="fewer values per parameter, 16 trials, each fold's model trained on at most 4000 windows")
     p.add_argument("--jobs", type=jobs, default=1,
                    help="local processes scoring folds (a local Dask cluster when more than 1; default 1)")
     p.add_argument("--cluster", type=cluster_address, default=None, metavar="ADDRESS",
@@ -146,6 +146,6 @@ def run(args: argparse.Namespace) -> int:
     augment = ("" if args.augment_gains is None else f" --augment-gains {augment_form(args.augment_gains)}"
                + ("" if args.seed == 0 else f" --seed {args.seed}"))
     print(f"wrote {', '.join(str(p) for p in files)}\nnext: supramodal train --bank {args.out / 'bank.json'} "
-          f"--window {b['window']:g} --features {b['features'].replace('+', ' ')} --epochs {b['epochs']} "
-          f"--manifest {args.manifest}{augment} --out MODEL")
+          f"--window {b['window']:g} --features {b['features'].replace('+', ' ')} --hidden {b['hidden']} "
+          f"--epochs {b['epochs']} --manifest {args.manifest}{augment} --out MODEL")
     return 0

@@ -88,6 +88,9 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
                    help=f"window, seconds (default {DEFAULT_WINDOW})")
     p.add_argument("--epochs", type=count(1), default=DEFAULT_EPOCHS,
                    help=f"iRPROP- epochs (default {DEFAULT_EPOCHS})")
+    p.add_argument("--hidden", type=count(1), metavar="N",
+                   help="hidden units of the networks (default: as many as their inputs, features x channels, the "
+                        "paper's rule; `supramodal fit` says the ones it scored)")
     p.add_argument("--seed", type=seed, default=0,
                    help="seed of the network's initial weights and of the cross-validation folds (default 0)")
     p.add_argument("--cv", type=count(2), metavar="K",
@@ -153,11 +156,11 @@ def run(args: argparse.Namespace) -> int:
                 check_new_file(b.with_name(b.name + suffix), args.force, "the cross-validation file")
         cv = cross_validate_manifest(args.manifest, bank, tuple(args.features), args.window, args.cv,
                                      epochs=args.epochs, seed=args.seed, mapping=args.mapping, progress=progress(args),
-                                     augment=seeded_augment(args))
+                                     augment=seeded_augment(args), hidden=args.hidden)
         print(format_cross_validation(cv))
     model = train_from_manifest(args.manifest, bank, tuple(args.features), args.window, epochs=args.epochs,
                                 seed=args.seed, mapping=args.mapping, progress=progress(args), jobs=args.jobs,
-                                augment=seeded_augment(args))
+                                augment=seeded_augment(args), hidden=args.hidden)
     # The model and its cross-validation's files are put in place together (the files written first, an
     # interrupted training left a new report beside the earlier model)
     written = save_model(model, args.out, cv=None if cv is None else (args.cv, cv))
@@ -220,7 +223,7 @@ def _train_stream(args) -> int:
                        "out --manifest, --bank, --cv, --model, --live and --write-scene")
     check_new_file(args.out, args.force, "the model file")
     model = train_from_scenes(args.scene, args.stream, epochs=args.epochs, seed=args.seed, progress=progress(args),
-                              jobs=args.jobs, augment=seeded_augment(args))
+                              hidden=args.hidden, jobs=args.jobs, augment=seeded_augment(args))
     path = save_model(model, args.out)[-1]
     print(f"wrote {path}: stream {args.stream}, {model.bank.kind} bank, features {list(model.features)}, classes "
           f"{list(model.classes)}, {model.training['windows']} training windows of {len(args.scene)} recording(s), "
@@ -260,6 +263,9 @@ def _train_fusion(args) -> int:
                        "`supramodal record` writes for a graph)")
     if args.manifest is not None or args.cv:
         raise CliError("--manifest and --cv train one sense; a fusion is trained on --scene recordings")
+    if args.hidden is not None:
+        raise CliError("--hidden sets one sense's networks (--manifest or --stream); a fusion's networks take the "
+                       "paper's rule (a late fusion's copies of the sense models, each model's own): leave it out")
     if args.augment_gains is not None and args.fusion != "early":
         raise CliError("--augment-gains trains one sense (--stream) or the early fusion's network; a late "
                        "fusion's copies of the sense models train as each model did (its file keeps its gain "

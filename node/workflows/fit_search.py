@@ -26,10 +26,10 @@ workers by Dask (:class:`Runner`). Filterbank outputs are computed once per bank
 The report: every trial; the best; the best per window length (the accuracy-vs-window curve) with
 the paper's two banks scored beside each point at the same window, features, hidden units and
 epochs (so also beside the best), and whether the best beats them by more than a fold's spread
-(:func:`paper_verdict`). Trials are scored on one uncalibrated network per fold, of all its training
-windows, trained every epoch; a model ``supramodal train`` makes deploys three fold networks stopped early
-together, which decide a little better (whisker reference 0.845 against 0.818 of the windows, 8 network
-seeds, at about the same CPU). The paper's banks are scored the same way.
+(:func:`paper_verdict`). Each fold scores the model ``supramodal train`` would make of its training
+recordings (:meth:`~supramodal.model.TextureModel.train`: calibrated on folds grouped by recording, its fold
+networks stopped early together and deployed), with the trial's hidden units (``train --hidden``): the
+setting the fit reports is the model the ``next:`` command makes. The paper's banks are scored the same way.
 """
 
 from __future__ import annotations
@@ -67,6 +67,7 @@ from supramodal.node.scene.band import channels_beyond_band
 from supramodal.node.workflows.fit_cache import DEFAULT_MEMORY_BYTES, PART, FeatureCache
 from supramodal.node.workflows.manifest import ManifestError, manifest_classes, read_manifest
 from supramodal.node.workflows.reports import pyplot_or_none
+from supramodal.node.workflows.training import recording_group
 from supramodal.pipeline import window_length
 from supramodal.replay.session import session_paths
 from supramodal.replay.wavio import wav_info
@@ -89,7 +90,7 @@ FAMILIES = ("erb", "whisker")
 TARGETS = ("window", "recording", "contact")
 #: Trials when none are asked for (full, quick).
 DEFAULT_TRIALS = (60, 16)
-#: Most windows a fold's network trains on (full, quick): evenly spaced over the training recordings'
+#: Most windows a fold's model trains on (full, quick): evenly spaced over the training recordings'
 #: windows, every recording in proportion (None: all). Test windows are always all scored.
 TRAIN_WINDOWS = (None, 4000)
 #: Trials asked from Optuna at once (the result depends on it, not on the number of processes).
@@ -395,12 +396,14 @@ def score_fold(job: dict) -> dict:
         test = [i for i in range(len(recs)) if fold[i] == job["fold"]]
         x = np.concatenate([values[i] for i in train])
         y = np.concatenate([np.full(len(values[i]), classes.index(recs[i].label)) for i in train])
+        groups = np.repeat(np.array([recording_group(recs[i]) for i in train]), [len(values[i]) for i in train])
         if job["train_windows"] is not None and len(x) > job["train_windows"]:
             keep = np.round(np.linspace(0, len(x) - 1, job["train_windows"])).astype(int)
-            x, y = x[keep], y[keep]
+            x, y, groups = x[keep], y[keep], groups[keep]
         augment = job.get("augment")
+        # the model `train` makes of these recordings (calibrated by recording, early-stopped fold networks)
         model = TextureModel.train(x, y, classes, bank, features, window_length(job["window"], bank.fs),
-                                   epochs=job["epochs"], seed=job["seed"], hidden=job["hidden"], calibration_folds=0,
+                                   epochs=job["epochs"], seed=job["seed"], hidden=job["hidden"], groups=groups,
                                    augment=None if augment is None else GainAugment.from_dict(augment, FitError))
         lps = [model.log_posteriors(values[i]) for i in test if len(values[i])]
         truths = [classes.index(recs[i].label) for i in test if len(values[i])]
@@ -917,7 +920,7 @@ def format_search(result: dict) -> str:
              f"band) in {result['seconds']:.0f} s on {result['where']} ({cpu_per_trial(rows):.1f} CPU s per complete "
              f"trial, median); {result['filterbank_runs']} filterbank runs for {result['recordings']} recordings"
              + ("" if result["space"]["train_windows"] is None else
-                f"; each fold's network trained on at most {result['space']['train_windows']} windows (--quick)"),
+                f"; each fold's model trained on at most {result['space']['train_windows']} windows (--quick)"),
              *([] if not result.get("augment") else [_augment_line(result["augment"])]),
              *([] if not result.get("stopped") else
                [f"{result['stopped']['text']} (--patience {result['stopped']['patience']}; "

@@ -72,13 +72,14 @@ def _no_window(rec: Recording, window_seconds: float) -> ManifestError:
 
 def train_from_manifest(manifest, bank: Bank, features=("Af",), window: float = 0.1, epochs: int = DEFAULT_EPOCHS,
                         seed: int = 0, mapping="auto", progress=None, jobs: int = 1,
-                        augment: GainAugment | None = None) -> TextureModel:
+                        augment: GainAugment | None = None, hidden: int | None = None) -> TextureModel:
     """Train a model on every window of every recording in the manifest, calibrated on held-out windows.
 
     The held-out windows are out-of-fold windows of folds grouped by recording (manifest line) where every
     label has two recordings and there are enough of them, else of spans of each recording
     (:meth:`supramodal.model.TextureModel.train`). ``augment``: gain augmentation of every network's
     training windows, the calibration's fold networks (which the model deploys) alike (default none).
+    ``hidden``: the networks' hidden units (default None: as many as their inputs, the paper's rule).
 
     The manifest is read and checked whole (:func:`node.workflows.manifest.read_manifest`) before
     any feature is computed; a line whose part of its file holds no complete window is
@@ -93,7 +94,7 @@ def train_from_manifest(manifest, bank: Bank, features=("Af",), window: float = 
     make_pipeline = lambda: FeaturePipeline(bank, features, window)       # noqa: E731
     recs, classes, windows = _manifest_windows(manifest, make_pipeline, mapping, progress)
     say = None if progress is None else (lambda m: progress(f"calibration: {m}"))
-    return _train(recs, classes, windows, make_pipeline(), epochs, seed, calibration_progress=say, jobs=jobs,
+    return _train(recs, classes, windows, make_pipeline(), epochs, seed, hidden, calibration_progress=say, jobs=jobs,
                   augment=augment)
 
 
@@ -358,13 +359,13 @@ def recording_group(rec: Recording) -> str:
 
 def cross_validate_manifest(manifest, bank: Bank, features=("Af",), window: float = 0.1, k: int = 5,
                             epochs: int = DEFAULT_EPOCHS, seed: int = 0, mapping="auto", progress=None,
-                            augment: GainAugment | None = None) -> dict:
+                            augment: GainAugment | None = None, hidden: int | None = None) -> dict:
     """Cross-validate, grouped ``k``-fold, the training :func:`train_from_manifest` would do.
 
     Folds are grouped by manifest line, one trial (:func:`supramodal.training.grouped_folds`):
     the windows of one trial are never on both sides. A long recording may be split into
     several lines (``start``, ``end``) to make several trials; their spans must not overlap. Each
-    fold's model is trained as the final one would be (same features, window, epochs, seed, gain
+    fold's model is trained as the final one would be (same features, window, epochs, seed, hidden units, gain
     augmentation) on the other folds' recordings and scored on its own.
 
     Returns
@@ -379,7 +380,7 @@ def cross_validate_manifest(manifest, bank: Bank, features=("Af",), window: floa
         of every test fold's decisions scored together, each by its fold's calibrated model).
     """
     make_pipeline = lambda: FeaturePipeline(bank, features, window)       # noqa: E731
-    return _cross_validate(manifest, make_pipeline, k, epochs, seed, None, mapping, progress, augment)
+    return _cross_validate(manifest, make_pipeline, k, epochs, seed, hidden, mapping, progress, augment)
 
 
 def cross_validate_model(model: TextureModel, manifest, k: int = 5, seed: int | None = None, mapping="auto",
