@@ -339,13 +339,26 @@ def test_the_verdict_does_not_take_chance_on_few_windows_for_a_calibration_that_
 
 @pytest.mark.slow      # one set on the command line: its table, CSV and plot
 def test_experiment_newtouch_on_the_command_line_writes_its_table_csv_and_plot(tmp_path, capsys):
+    """Its table, CSV and plot, on touches of --touch-seconds (4 s: 40 windows a touch, 20 in each half of touch
+    3's recalibration, 4 contacts of 10 windows a texture); a touch too short for two contacts, or too long, and
+    --touch-seconds given to another experiment, are refused before any work, naming the option."""
     import csv
 
     from supramodal.node.cli import main
 
-    assert main(["experiment", "newtouch", "--quick", "--sets", "1", "--epochs", "40", "--out", str(tmp_path),
-                 "--quiet"]) == 0
-    out = capsys.readouterr().out
+    import json
+
+    from supramodal.experiments.newtouch import newtouch_table
+
+    assert main(["experiment", "newtouch", "--quick", "--sets", "1", "--epochs", "40", "--touch-seconds", "4",
+                 "--out", str(tmp_path), "--quiet", "--json"]) == 0
+    result = json.loads(capsys.readouterr().out)
+    one = result["sets"][0]
+    assert result["seconds"] == 4.0 and one["windows_per_touch"] == 40
+    assert one["senses"]["whiskers"]["touch3"]["n"] == 6 * 40        # the 6 known textures' touch 3
+    assert one["senses"]["whiskers"]["unknown"]["contacts"] == 6 * 4
+    out = newtouch_table(result)
+    assert "3 touches of 4 s each" in out
     assert "late fusion (rule of issue 34) log loss on touch 3 <= the better sense's:" in out
     rows = list(csv.DictReader(open(tmp_path / "newtouch.csv")))
     assert [r["method"] for r in rows][:6] == ["whiskers", "microphone", "whiskers (folds by span)",
@@ -356,6 +369,12 @@ def test_experiment_newtouch_on_the_command_line_writes_its_table_csv_and_plot(t
     pytest.importorskip("matplotlib")
     assert (tmp_path / "newtouch.png").stat().st_size > 0
     assert main(["experiment", "newtouch", "--sets", "0", "--out", str(tmp_path)]) == 2
+    capsys.readouterr()
+    for seconds, says in (("2", "give at least 2.1 s (--touch-seconds)"), ("601", "in (0, 600]")):
+        assert main(["experiment", "newtouch", "--touch-seconds", seconds, "--out", str(tmp_path)]) == 2
+        assert says in capsys.readouterr().err
+    assert main(["experiment", "change", "--touch-seconds", "4", "--out", str(tmp_path)]) == 2
+    assert "--touch-seconds is experiment newtouch's" in capsys.readouterr().err
 
 
 def test_the_experiments_module_takes_gain_augmentation_seeded_by_its_seed(capsys):

@@ -6,7 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
-from supramodal.node.cli.arguments import count, jobs, output_folder, seed
+from supramodal.node.cli.arguments import count, jobs, output_folder, positive_seconds, seed
 from supramodal.node.cli.errors import CliError
 
 #: What ``supramodal experiment`` does, in one line: its ``--help`` says it, and the README's command table
@@ -55,6 +55,9 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
                    help="newtouch, change: gain augmentation of every network's training windows (4 more copies of "
                         "each, gains exp(N(0, 0.03)): per vibrissa for the whiskers, one level for the microphone; "
                         "seeded by --seed; the networks take 5 times the CPU)")
+    p.add_argument("--touch-seconds", type=positive_seconds, metavar="S",
+                   help="newtouch: seconds of each touch (default 10, 6 with --quick); longer touches give every "
+                        "figure more windows and contacts to count, and the models more to learn from")
     p.add_argument("--out", default="out", type=output_folder, help="directory for CSV and PNG (default ./out)")
     p.add_argument("--json", action="store_true", help="print the figure's data as one JSON object instead of a table")
     return p
@@ -89,6 +92,9 @@ def run(args: argparse.Namespace) -> int:
         raise CliError(f"--augment is experiment newtouch's (the models on a touch they never met) and change's "
                        f"(re-deciding when the texture changes), not {args.figure}'s: leave it out, or run "
                        "experiment newtouch --augment")
+    if args.touch_seconds is not None and args.figure != "newtouch":
+        raise CliError(f"--touch-seconds is experiment newtouch's (the length of each touch), not {args.figure}'s: "
+                       "leave it out")
     if args.figure in TWO_SENSE_EXPERIMENTS:
         return _two_sense_experiment(args)
     ts = load_texture_set(args.textures) if args.textures else None
@@ -136,6 +142,8 @@ def _two_sense_experiment(args) -> int:
         from supramodal.model import GainAugment
 
         more["augment"] = GainAugment(seed=args.seed)
+    if args.touch_seconds is not None:
+        more["touch_seconds"] = args.touch_seconds
     result = getattr(m, run)(sets, args.quick, args.epochs, args.seed, None if args.quiet else progress_to_stderr,
                              args.jobs, **more)
     written = write_figure(args.figure, result, Path(args.out))
