@@ -177,8 +177,10 @@ def test_a_plateau_is_the_best_not_moving_by_more_than_its_fold_spread_in_the_la
 def test_the_search_stops_on_a_plateau_at_the_first_round_that_ends_on_one_and_patience_0_runs_every_trial(manifest):
     """The stop comes at the first round's end on a plateau, not before; without patience every trial runs.
 
-    The patience is one that puts a round's end off the plateau before the stop on this seed's trials (5 since the
-    trials score the calibrated model `train` makes: at 6 every round's end before the stop was on a plateau)."""
+    The patience is one at which a round's end that may stop the search (past the patience) is off a plateau before
+    the stop, on this seed's trials (asserted below): 5 since the trials score the calibrated model `train` makes;
+    at 6 the first such end was already on one, so the test could not tell a stop at the first plateau from a
+    stop at any round's end."""
     trials, patience, batch = 15, 5, FAST["batch"]
     every = fit_search(manifest, seed=1, patience=0, **{**FAST, "trials": trials})
     assert len(every["rows"]) == trials and every["stopped"] is None and every["patience"] == 0
@@ -197,8 +199,8 @@ def test_the_search_stops_on_a_plateau_at_the_first_round_that_ends_on_one_and_p
         return bool(before) and best["score"] - max(before) <= best["window_sd"]
 
     ends = list(range(batch, trials, batch))                 # the rounds' ends, where the search may stop
+    assert any(k > patience and not still(k) for k in ends if k < n)     # the premise: one end did not stop it
     assert n == next(k for k in ends if k > patience and still(k))
-    assert any(k > patience and not still(k) for k in ends if k < n)     # one round's end did not stop it
     text = (f"stopped after {n} trials: the best has not moved by more than the fold spread "
             f"({early['best']['window_sd']:.3f}) for {patience} trials")
     assert f"fit: {text}; {trials - n} trials not run" in said
@@ -247,6 +249,41 @@ def test_a_trials_score_is_the_cross_validation_of_the_model_train_makes_with_it
                                          epochs=setting.epochs, seed=1, hidden=setting.hidden)
         assert row["window_mean"] == pytest.approx(direct["window_accuracy"]["mean"], abs=1e-12)
         assert row["recording_mean"] == pytest.approx(direct["recording_accuracy"]["mean"], abs=1e-12)
+
+
+def test_a_folds_model_trains_on_the_windows_the_quick_cap_keeps_each_with_its_recordings_group(manifest,
+                                                                                                 monkeypatch):
+    """--quick keeps at most so many training windows, evenly spaced: the calibration's groups (each window's
+    recording) are kept with them, window for window, as a plain gathering of the fold's recordings gives them."""
+    from supramodal.node.workflows import fit_search as search
+    from supramodal.node.workflows.training import recording_group
+    from supramodal.training import grouped_folds
+
+    seen = {}
+    train = search.TextureModel.train
+
+    def spy(values, labels, classes, *args, groups=None, **kwargs):
+        seen.update(values=np.array(values), labels=np.array(labels), groups=np.array(groups), kwargs=kwargs)
+        return train(values, labels, classes, *args, groups=groups, **kwargs)
+
+    monkeypatch.setattr(search.TextureModel, "train", spy)
+    setting = search.Setting(RATE, "erb", 8, 60.0, 900.0, 1.0, 0.1, "Af", 6, 5)
+    job = {"manifest": str(manifest), "mapping": "auto", "windows": (0.1,), "cache_dir": None,
+           "cache_memory": 64 << 20, "k": 3, "seed": 2, "contact": 0.5, "train_windows": 50, "augment": None,
+           "bank": setting.bank().to_dict(), "window": 0.1, "features": "Af", "hidden": 6, "epochs": 5, "fold": 1}
+    search.score_fold(job)
+    recs = read_manifest(manifest)
+    classes = sorted({r.label for r in recs})
+    fold = grouped_folds([r.where for r in recs], [r.label for r in recs], 3, 2)
+    kept = [i for i in range(len(recs)) if fold[i] != 1]
+    counts = [len(recording_windows(recs[i], FeaturePipeline(setting.bank(), ("Af",), 0.1))) for i in kept]
+    every_group = np.repeat([recording_group(recs[i]) for i in kept], counts)
+    every_label = np.repeat([classes.index(recs[i].label) for i in kept], counts)
+    keep = np.round(np.linspace(0, sum(counts) - 1, 50)).astype(int)
+    assert sum(counts) > 50 and len(seen["values"]) == 50
+    np.testing.assert_array_equal(seen["groups"], every_group[keep])
+    np.testing.assert_array_equal(seen["labels"], every_label[keep])
+    assert seen["kwargs"]["calibration_folds"] > 0 and seen["kwargs"]["patience"] is not None      # train's model
 
 
 def test_a_time_budget_stops_new_rounds_after_the_first(manifest):
@@ -332,6 +369,25 @@ def test_fit_command_prints_progress_the_curve_and_writes_its_files(manifest, tm
     assert len(list(csv.DictReader(open(out / "fit.csv")))) == 4
     # Issue 36 item 6: the feature cache's folder went with its files (an empty fit/cache was left behind).
     assert (out / "bank.json").is_file() and not (out / "cache").exists()
+
+
+def test_the_next_command_the_fit_prints_makes_the_model_it_scored(manifest, tmp_path, capsys):
+    """Its `next:` line, run as printed with `--cv` of the fit's folds, cross-validates to the fit's best score:
+    the same bank, window, features, hidden units, epochs, seed (the networks' start and the folds) and channel
+    mapping. (It left out --seed unless --augment-gains was given.)"""
+    import shlex
+
+    out = tmp_path / "fit"
+    assert main(["fit", str(manifest), "--out", str(out), "--cv", "3", "--quick", "--trials", "3", "--batch", "3",
+                 "--epochs", "8", "--max-window", "0.1", "--seed", "1", "--mapping", "mono", "--quiet"]) == 0
+    line = next(x for x in capsys.readouterr().out.splitlines() if x.startswith("next: supramodal train "))
+    argv = [str(tmp_path / "model.npz") if a == "MODEL" else a for a in shlex.split(line)[2:]]
+    assert argv[argv.index("--seed") + 1] == "1" and argv[argv.index("--mapping") + 1] == "mono"
+    best = max((r for r in csv.DictReader(open(out / "fit.csv")) if r["state"] == "complete"),
+               key=lambda r: (float(r["score"]), float(r["window_mean"]), float(r["recording_mean"]), -int(r["trial"])))
+    assert main([*argv, "--cv", "3", "--quiet"]) == 0
+    said = capsys.readouterr().out
+    assert f"window accuracy     {float(best['window_mean']):.3f} +- {float(best['window_sd']):.3f}" in said
 
 
 def test_fit_command_stops_early_as_patience_says_and_patience_0_runs_every_trial(manifest, tmp_path, capsys):

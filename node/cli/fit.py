@@ -83,9 +83,9 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
                    help="recording channels to filters: auto (one channel to all, or one each), mono, per-channel, "
                         "mean, or a channel index (default auto)")
     p.add_argument("--augment-gains", type=augment_gains, metavar=AUGMENT_GAINS_FORM,
-                   help="score every setting as `train --augment-gains` will train the model: each fold's network "
-                        "(the paper's banks' too) also trains on COPIES copies of each training window with random "
-                        "gains exp(N(0, SPREAD)); the networks cost 1 + COPIES times the CPU (default: none)")
+                   help="score every setting as `train --augment-gains` will train the model: each fold's model's "
+                        "networks (the paper's banks' too) also train on COPIES copies of each training window with "
+                        "random gains exp(N(0, SPREAD)); the networks cost 1 + COPIES times the CPU (default: none)")
     p.add_argument("--force", action="store_true", help="replace earlier fit files in --out (default: refuse)")
     return p
 
@@ -142,10 +142,12 @@ def run(args: argparse.Namespace) -> int:
     interrupt_until_running("writing the fit's files; they are put in place all or none")
     files = write_staged(args.out, lambda folder: write_search(result, folder))
     b = result["best"]
-    # the gains scored are drawn from the seed: the model trained with the same seed draws the same
-    augment = ("" if args.augment_gains is None else f" --augment-gains {augment_form(args.augment_gains)}"
-               + ("" if args.seed == 0 else f" --seed {args.seed}"))
+    # The model the folds scored: the same seed (its networks' start, and the gains drawn where augmented) and
+    # the same channels of the recordings.
+    augment = "" if args.augment_gains is None else f" --augment-gains {augment_form(args.augment_gains)}"
+    seeded = "" if args.seed == 0 else f" --seed {args.seed}"
+    mapped = "" if args.mapping == "auto" else f" --mapping {args.mapping}"
     print(f"wrote {', '.join(str(p) for p in files)}\nnext: supramodal train --bank {args.out / 'bank.json'} "
           f"--window {b['window']:g} --features {b['features'].replace('+', ' ')} --hidden {b['hidden']} "
-          f"--epochs {b['epochs']} --manifest {args.manifest}{augment} --out MODEL")
+          f"--epochs {b['epochs']} --manifest {args.manifest}{mapped}{augment}{seeded} --out MODEL")
     return 0

@@ -264,8 +264,9 @@ def _train_fusion(args) -> int:
     if args.manifest is not None or args.cv:
         raise CliError("--manifest and --cv train one sense; a fusion is trained on --scene recordings")
     if args.hidden is not None:
-        raise CliError("--hidden sets one sense's networks (--manifest or --stream); a fusion's networks take the "
-                       "paper's rule (a late fusion's copies of the sense models, each model's own): leave it out")
+        raise CliError("--hidden sets one sense's networks (--manifest or --stream); an early fusion's network "
+                       "takes the paper's rule, a late fusion's copies of the sense models each model's own: leave it "
+                       "out")
     if args.augment_gains is not None and args.fusion != "early":
         raise CliError("--augment-gains trains one sense (--stream) or the early fusion's network; a late "
                        "fusion's copies of the sense models train as each model did (its file keeps its gain "

@@ -58,10 +58,11 @@ from supramodal.banks import (
     erb,
     whisker_bank,
 )
-from supramodal.calibration import pool_log_posteriors, winner
+from supramodal.calibration import DEFAULT_CALIBRATION_FOLDS, pool_log_posteriors, winner
 from supramodal.checks import integer, one_of, positive
 from supramodal.errors import InputError
 from supramodal.evaluation import pooled_accuracy
+from supramodal.mlp import EARLY_STOP_PATIENCE
 from supramodal.model import GainAugment, TextureModel
 from supramodal.node.scene.band import channels_beyond_band
 from supramodal.node.workflows.fit_cache import DEFAULT_MEMORY_BYTES, PART, FeatureCache
@@ -404,6 +405,7 @@ def score_fold(job: dict) -> dict:
         # the model `train` makes of these recordings (calibrated by recording, early-stopped fold networks)
         model = TextureModel.train(x, y, classes, bank, features, window_length(job["window"], bank.fs),
                                    epochs=job["epochs"], seed=job["seed"], hidden=job["hidden"], groups=groups,
+                                   calibration_folds=DEFAULT_CALIBRATION_FOLDS, patience=EARLY_STOP_PATIENCE,
                                    augment=None if augment is None else GainAugment.from_dict(augment, FitError))
         lps = [model.log_posteriors(values[i]) for i in test if len(values[i])]
         truths = [classes.index(recs[i].label) for i in test if len(values[i])]
@@ -616,7 +618,7 @@ def fit_search(manifest, k: int = 5, seed: int = 0, quick: bool = False, trials:
         Trials: the search stops after a round at whose end the best has not moved by more than its
         fold spread in the last ``patience`` trials (:func:`plateau`); 0: it runs every trial.
     augment : GainAugment or None
-        Gain augmentation of every fold's network, the paper's banks' too (``train --augment-gains``'s;
+        Gain augmentation of every fold's networks, the paper's banks' too (``train --augment-gains``'s;
         its gains by each trial's bank where it leaves them to the bank): the settings are then scored as
         the model will be trained. Default none.
     progress : callable(str), optional
@@ -905,7 +907,7 @@ def _describe(row: dict) -> str:
 def _augment_line(augment: dict) -> str:
     """Return the report's line of the folds' gain augmentation (``augment``: :meth:`GainAugment.to_dict`)."""
     a = GainAugment.from_dict(augment, FitError)
-    return (f"every fold's network (the paper's banks' too) trained with gain augmentation: {a.copies} more copies "
+    return (f"every fold's networks (the paper's banks' too) trained with gain augmentation: {a.copies} more copies "
             f"of each window, gains exp(N(0, {a.spread:g})) {a.gains} (as `train --augment-gains` trains the model)")
 
 
