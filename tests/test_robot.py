@@ -142,7 +142,11 @@ def test_the_robot_scene_runs_both_senses_fused_and_survives_the_board_unplugged
     inner = [d for d in fused if 5 <= d["window"] < len(fused) - 5]
     alone = [d for d in inner if d.get("alone")]
     assert 5 <= len(alone) <= 20 and all(d["senses"] == ["mic"] for d in alone)
-    assert [d["window"] for d in alone] == list(range(alone[0]["window"], alone[-1]["window"] + 1))
+    # one run through the outage; at its edges a window may still find its partner in time (a CI run at load: the
+    # whiskers' windows 38 and 39 straddling the unplug came late and on time, 38 decided alone, 39 paired)
+    first, last = alone[0]["window"], alone[-1]["window"]
+    paired_within = sorted(set(range(first, last + 1)) - {d["window"] for d in alone})
+    assert all(min(w - first, last - w) <= 2 for w in paired_within), (first, last, paired_within)
     after = [d for d in inner if d["window"] > alone[-1]["window"]]
     assert len(after) >= 20 and all(d["senses"] == ["whiskers", "mic"] for d in after)
     f = summary["fusion"]
