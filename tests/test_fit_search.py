@@ -251,6 +251,30 @@ def test_a_trials_score_is_the_cross_validation_of_the_model_train_makes_with_it
         assert row["recording_mean"] == pytest.approx(direct["recording_accuracy"]["mean"], abs=1e-12)
 
 
+def test_a_folds_score_is_train_s_where_its_fold_networks_stop_early(manifest, monkeypatch):
+    """At 300 epochs (patience 100) the fold networks stop early together: the fold's score is still the one
+    `train --cv` gives (cross_validate_manifest's fold), and its networks did stop before 300 epochs."""
+    from supramodal.node.workflows import fit_search as search
+    from supramodal.node.workflows.training import cross_validate_manifest
+
+    models = []
+    train = search.TextureModel.train
+
+    def spy(*args, **kwargs):
+        models.append(train(*args, **kwargs))
+        return models[-1]
+
+    monkeypatch.setattr(search.TextureModel, "train", spy)
+    setting = search.Setting(RATE, "erb", 8, 60.0, 900.0, 1.0, 0.1, "Af", 6, 300)
+    job = {"manifest": str(manifest), "mapping": "auto", "windows": (0.1,), "cache_dir": None,
+           "cache_memory": 64 << 20, "k": 3, "seed": 2, "contact": 0.5, "train_windows": None, "augment": None,
+           "bank": setting.bank().to_dict(), "window": 0.1, "features": "Af", "hidden": 6, "epochs": 300}
+    scores = [search.score_fold({**job, "fold": f})["window"] for f in range(3)]
+    direct = cross_validate_manifest(manifest, setting.bank(), ("Af",), 0.1, 3, epochs=300, seed=2, hidden=6)
+    assert scores == pytest.approx([f["window_accuracy"] for f in direct["folds"]], abs=1e-12)
+    assert all(max(m.training["network_epochs"]) < 300 for m in models), [m.training["network_epochs"] for m in models]
+
+
 def test_a_folds_model_trains_on_the_windows_the_quick_cap_keeps_each_with_its_recordings_group(manifest,
                                                                                                  monkeypatch):
     """--quick keeps at most so many training windows, evenly spaced: the calibration's groups (each window's
