@@ -106,6 +106,31 @@ def test_an_early_fusion_trains_with_gain_augmentation_each_sense_by_its_bank_an
     assert model.training["windows"] == model.calibration.fitted_on["windows"]        # held out: the originals
 
 
+def test_an_early_fusion_of_few_touches_without_augmentation_is_warned_of_and_one_with_it_is_not(recordings, capsys,
+                                                                                                tmp_path):
+    """One contact of each texture, no --augment-gains: one warning line naming the fix (an early network learns
+    the touches' gains: docs/results.md); the same with --augment-gains, or a late fusion (no network), none."""
+    models = []
+    for stream in ("whiskers", "mic"):       # the recordings have no [fusion]: --model names the two to fuse
+        path = tmp_path / f"{stream}.npz"
+        assert main(["train", *_scenes(recordings, 2), "--stream", stream, "--out", str(path), "--epochs", "30",
+                     "--quiet"]) == 0
+        models += ["--model", f"{stream}={path}"]
+    capsys.readouterr()
+    warning = "an early network learns from 1 contact(s) of some texture, without gain augmentation"
+    for extra, warned in (([], True), (["--augment-gains", "1,0.05"], False)):
+        out = tmp_path / f"early{len(extra)}.npz"
+        assert main(["train", "--fusion", "early", *_scenes(recordings, 1), *models, "--out", str(out),
+                     "--epochs", "30", "--quiet", *extra]) == 0
+        err = capsys.readouterr().err
+        assert (warning in err) == warned, err
+        if warned:
+            line = next(x for x in err.splitlines() if warning in x)
+            assert line.startswith("supramodal: warning: ") and "add --augment-gains 4,0.03" in line
+    assert main(["train", "--fusion", "late", *_scenes(recordings, 1), *models, "--quiet"]) == 0
+    assert "early network learns" not in capsys.readouterr().err
+
+
 def test_a_fusion_says_whether_it_learned_from_unseen_recordings_or_out_of_fold(recordings, capsys):
     models = ["--model", f"whiskers={recordings / 'whiskers.npz'}", "--model", f"mic={recordings / 'mic.npz'}"]
     if not (recordings / "whiskers.npz").exists():

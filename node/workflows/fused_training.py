@@ -217,6 +217,7 @@ def train_fused(paths, method: str = "early", epochs: int = DEFAULT_EPOCHS, seed
                       "other windows trained the fold's networks, so the weight and the held-out scores are "
                       "optimistic; record more contacts", SupramodalWarning, stacklevel=2)
     if method == "early":
+        _warn_if_early_without_augmentation(y, groups, augment)
         say = None if progress is None else (lambda m: progress(f"early network's calibration: {m}"))
         model = EarlyFusionModel.train(senses, va, vb, y, classes, epochs=epochs, seed=seed, groups=groups,
                                        calibration_folds=k, calibration_progress=say, augment=augment, jobs=jobs)
@@ -234,6 +235,30 @@ def train_fused(paths, method: str = "early", epochs: int = DEFAULT_EPOCHS, seed
     info["fold_weights"] = late["fold_weights"]
     info["correlation"] = fused_pooling(late["fused"], y, folds, groups)
     return (late["weight"], late["sharpness"]), info
+
+
+#: Contacts (touches) of a texture below which an early network trained without gain augmentation is warned of.
+FEW_TOUCHES = 3
+
+
+def _warn_if_early_without_augmentation(labels, groups, augment: GainAugment | None) -> None:
+    """Warn in one line when an early network is to learn from few touches of some texture, without augmentation.
+
+    It then learns the touches' own gains: on the two-sense world (two touches of each texture, scored on a
+    third; `supramodal experiment newtouch`, 2026-11-30), its ECE on the new touch was 0.04 to 0.24 without gain
+    augmentation, and 56 of its 708 windows saying >= 0.99 were wrong on one set of 40 s touches; with
+    ``--augment-gains 4,0.03``, 0.013 to 0.036 (docs/results.md, "Trust on a new touch").
+    """
+    if augment is not None:
+        return
+    labels, groups = np.asarray(labels), np.asarray(groups)
+    fewest = min(len(set(groups[labels == c])) for c in np.unique(labels))
+    if fewest >= FEW_TOUCHES:
+        return
+    warnings.warn(f"an early network learns from {fewest} contact(s) of some texture, without gain augmentation: "
+                  "it may learn those touches' own gains and overclaim on a touch it never met; add "
+                  "--augment-gains 4,0.03 (the network then takes 5 times the CPU), or record each texture on "
+                  f"{FEW_TOUCHES} or more separate touches", SupramodalWarning, stacklevel=3)
 
 
 def _refuse_worse_than_a_sense(method: str, fused, senses: dict, labels) -> None:
