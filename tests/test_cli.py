@@ -140,6 +140,46 @@ def test_a_signal_whose_error_lost_it_is_still_the_signal(monkeypatch, tmp_path,
     assert "this is a bug in supramodal" in capsys.readouterr().err.splitlines()[-1]
 
 
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_a_signal_a_garbage_collector_callback_swallowed_is_delivered_again(monkeypatch, tmp_path, capsys, sig):
+    """The handler's exception, raised in a gc callback (Dask's GCDiagnosis: an interrupted fit of a CI run kept
+    searching, "Exception ignored in" on its stderr), is swallowed by the interpreter: its signal is delivered
+    again, and the command ends as interrupted, in one line."""
+    import gc
+    import threading
+
+    import supramodal.node.scene.schema
+    from supramodal.node.cli.signals import interrupt_until_running
+
+    def importing(path):
+        interrupt_until_running("the test's work")
+        armed = [True]
+
+        def busy(phase, info):
+            if armed[0] and phase == "start":
+                armed[0] = False
+                t0 = time.monotonic()
+                while time.monotonic() - t0 < 0.5:       # in the callback when the signal comes
+                    pass
+
+        gc.callbacks.append(busy)
+        try:
+            threading.Timer(0.1, os.kill, (os.getpid(), sig)).start()
+            gc.collect()
+        finally:
+            gc.callbacks.remove(busy)
+        assert not armed[0]
+        time.sleep(5)                                   # the signal delivered again ends this
+        raise AssertionError("the command went on: the interruption was swallowed")
+
+    monkeypatch.setattr(supramodal.node.scene.schema, "load_scene", importing)
+    t0 = time.monotonic()
+    assert main(["run", str(tmp_path / "s.toml")]) == 128 + sig
+    assert time.monotonic() - t0 < 4
+    assert _lines(capsys.readouterr().err) == [f"supramodal: interrupted by {signal.Signals(sig).name} during the "
+                                               "test's work"]
+
+
 def test_a_bug_raised_while_handling_another_error_is_still_a_bug(monkeypatch, tmp_path, capsys):
     """Only an interruption on the chain makes an error the interruption: a chain of ordinary errors is a bug."""
     import supramodal.node.scene.schema

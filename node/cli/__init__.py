@@ -41,7 +41,12 @@ from supramodal.errors import SupramodalWarning
 from supramodal.logs import logger, set_log_level
 from supramodal.memory import keep_freed_memory
 from supramodal.node.cli.errors import EXIT_BUG, EXIT_USER_ERROR, CliError, is_user_error, reader_left
-from supramodal.node.cli.signals import StartupInterrupted, forget_interruption, interruption_behind
+from supramodal.node.cli.signals import (
+    Redelivery,
+    StartupInterrupted,
+    forget_interruption,
+    interruption_behind,
+)
 
 __all__ = ["COMMANDS", "command_module", "EXIT_BUG", "EXIT_USER_ERROR", "CliError", "build_parser", "main"]
 
@@ -181,9 +186,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     handlers = {}
     if threading.current_thread() is threading.main_thread():      # signals are the main thread's
         handlers = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    redelivery = Redelivery(sys.unraisablehook)     # an interruption a gc callback swallowed, delivered again
+    sys.unraisablehook = redelivery
     try:
         return _run(args)
     finally:
+        redelivery.cancel()
+        sys.unraisablehook = redelivery.previous
         set_log_level(level)         # main() may be called again in this process (a test, a notebook)
         if libraries is not None:
             libraries()

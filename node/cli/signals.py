@@ -5,7 +5,10 @@ Cleanly: what is buffered is processed, the summary printed.
 
 from __future__ import annotations
 
+import os
 import signal
+import threading
+from collections.abc import Callable
 from types import FrameType
 from typing import Any
 
@@ -61,6 +64,54 @@ def interruption_behind(exc: BaseException) -> BaseException | None:
         seen.add(id(link))
         link = link.__cause__ or link.__context__
     return _raised
+
+
+#: Seconds after an interruption was swallowed until its signal is delivered again (:class:`Redelivery`).
+REDELIVER_SECONDS = 0.05
+
+
+class Redelivery:
+    """A ``sys.unraisablehook`` that delivers again the signal of an interruption the interpreter swallowed.
+
+    A handler's exception that lands in code whose exceptions Python cannot raise (a garbage-collector callback,
+    such as Dask's ``GCDiagnosis``; a ``__del__``; a weakref callback) is handed to ``sys.unraisablehook``,
+    printed as "Exception ignored in ...", and the command goes on: an interrupted ``fit`` kept searching (a CI
+    run). Its signal is sent again :data:`REDELIVER_SECONDS` later, from a timer thread, so that it lands outside
+    the callback; nothing is printed for it. Any other unraisable exception goes to ``previous``.
+
+    Threading: the hook runs in whichever thread met the exception; the signal is the process's, handled in the
+    main thread. :meth:`cancel` (the command's end) stops the deliveries still to come, so that none reaches the
+    caller's own handlers.
+
+    Parameters
+    ----------
+    previous : callable
+        The hook before this one, put back by the caller.
+    """
+
+    def __init__(self, previous: Callable[[Any], None]) -> None:
+        self.previous = previous
+        self._timers: list[threading.Timer] = []
+
+    def __call__(self, unraisable: Any) -> None:
+        """Take an unraisable exception (``sys.unraisablehook``'s argument): an interruption's signal again."""
+        exc = unraisable.exc_value
+        if isinstance(exc, StartupInterrupted):
+            signum = exc.signum
+        elif isinstance(exc, KeyboardInterrupt):
+            signum = signal.SIGINT
+        else:
+            self.previous(unraisable)
+            return
+        timer = threading.Timer(REDELIVER_SECONDS, os.kill, (os.getpid(), signum))
+        timer.daemon = True
+        self._timers.append(timer)
+        timer.start()
+
+    def cancel(self) -> None:
+        """Stop the deliveries still to come."""
+        for timer in self._timers:
+            timer.cancel()
 
 
 def interrupt_until_running(during: str = STARTUP) -> None:
