@@ -63,8 +63,8 @@ __all__ = [
     "Novelty", "TouchSpread", "calibration_of_held_out", "fold_tasks", "fold_work", "held_out_folds",
     "joint_stop_epochs", "train_fold_networks",
     "brier_score", "calibration_line", "calibration_report", "cap_gaps", "confusion_caps", "fit_capped_pooling",
-    "fit_capped_window_calibration", "effective_windows", "expected_calibration_error", "fit_novelty",
-    "fit_pooling", "fit_window_calibration", "log_loss", "log_sigmoid", "normalised_log_posteriors",
+    "fit_capped_window_calibration", "effective_windows", "expected_calibration_error", "fewest_groups_of_a_label",
+    "fit_novelty", "fit_pooling", "fit_window_calibration", "log_loss", "log_sigmoid", "normalised_log_posteriors",
     "novelty_warp", "pool_log_posteriors", "reliability", "touch_spread", "winner",
 ]
 
@@ -1656,6 +1656,15 @@ def calibration_report(log_posteriors, labels, bins: int = ECE_BINS, sure: float
 
 # -- fitting a network's calibration by grouped folds ----------------------------------------------
 
+def fewest_groups_of_a_label(labels, groups) -> int:
+    """Return the fewest groups (recordings, contacts) any one label's windows come from.
+
+    ``labels`` and ``groups``: one per window, of one length (at least one window).
+    """
+    labels, groups = np.asarray(labels), np.asarray(groups)
+    return min(len(set(groups[labels == lab].tolist())) for lab in set(labels.tolist()))
+
+
 def calibration_folds(labels, groups, k: int = DEFAULT_CALIBRATION_FOLDS, seed: int = 0) -> tuple[np.ndarray, str]:
     """Folds for the held-out windows of a calibration, and how they were made.
 
@@ -1673,8 +1682,7 @@ def calibration_folds(labels, groups, k: int = DEFAULT_CALIBRATION_FOLDS, seed: 
 
     labels = np.asarray(labels)
     groups = np.asarray(groups)
-    per_label = {lab: len(set(groups[labels == lab].tolist())) for lab in set(labels.tolist())}
-    if len(set(groups.tolist())) >= k and min(per_label.values()) >= 2:
+    if len(set(groups.tolist())) >= k and fewest_groups_of_a_label(labels, groups) >= 2:
         return grouped_folds(groups.tolist(), labels.tolist(), k, seed), "recording"
     folds = np.empty(len(labels), dtype=int)
     for g in dict.fromkeys(groups.tolist()):

@@ -42,6 +42,19 @@ def recordings(tmp_path_factory):
     return root
 
 
+@pytest.fixture(scope="module")
+def models_of_take_2(recordings):
+    """``--model`` arguments of both streams' models trained on take 2 (the recordings have no [fusion]: --model
+    names the two to fuse), for a fusion learned on take 1."""
+    models = []
+    for stream in ("whiskers", "mic"):
+        path = recordings / f"{stream}-take-2.npz"
+        assert main(["train", *_scenes(recordings, 2), "--stream", stream, "--out", str(path), "--epochs", "60",
+                     "--quiet"]) == 0
+        models += ["--model", f"{stream}={path}"]
+    return models
+
+
 def _scenes(root, take):
     return [a for t in ("H1a", "H1b") for a in ("--scene", str(root / "rec" / f"{t}-{take}.toml"))]
 
@@ -81,22 +94,15 @@ def test_a_streams_model_trains_with_gain_augmentation_by_its_bank_and_says_it(r
     assert model.training["windows"] == 2 * 15 and model.calibration.fitted_on["windows"] == 2 * 15
 
 
-def test_an_early_fusion_trains_with_gain_augmentation_each_sense_by_its_bank_and_says_it(recordings, capsys,
-                                                                                          tmp_path):
+def test_an_early_fusion_trains_with_gain_augmentation_each_sense_by_its_bank_and_says_it(recordings, models_of_take_2,
+                                                                                          capsys, tmp_path):
     """Issue 34: `train --fusion early --augment-gains 1,0.05`: the early network's copies scale the whiskers per
     vibrissa and the microphone by one level; the model file keeps it, per sense."""
     from supramodal.fused_model import EarlyFusionModel
     from supramodal.model import GainAugment
 
-    models = []
-    for stream in ("whiskers", "mic"):       # the recordings have no [fusion]: --model names the two to fuse
-        path = tmp_path / f"{stream}.npz"
-        assert main(["train", *_scenes(recordings, 2), "--stream", stream, "--out", str(path), "--epochs", "60",
-                     "--quiet"]) == 0
-        models += ["--model", f"{stream}={path}"]
-    capsys.readouterr()
     out = tmp_path / "early-aug.npz"
-    assert main(["train", "--fusion", "early", *_scenes(recordings, 1), *models, "--out", str(out),
+    assert main(["train", "--fusion", "early", *_scenes(recordings, 1), *models_of_take_2, "--out", str(out),
                  "--augment-gains", "1,0.05", "--seed", "3", "--epochs", "60", "--quiet"]) == 0
     said = [line for line in capsys.readouterr().out.splitlines() if "gain augmentation:" in line]
     assert [line.split(":")[0] for line in said] == ["whiskers", "mic"]
@@ -106,28 +112,21 @@ def test_an_early_fusion_trains_with_gain_augmentation_each_sense_by_its_bank_an
     assert model.training["windows"] == model.calibration.fitted_on["windows"]        # held out: the originals
 
 
-def test_an_early_fusion_of_few_touches_without_augmentation_is_warned_of_and_one_with_it_is_not(recordings, capsys,
-                                                                                                tmp_path):
+def test_an_early_fusion_of_few_touches_without_augmentation_is_warned_of_and_one_with_it_is_not(
+        recordings, models_of_take_2, capsys, tmp_path):
     """One contact of each texture, no --augment-gains: one warning line naming the fix (an early network learns
     the touches' gains: docs/results.md); the same with --augment-gains, or a late fusion (no network), none."""
-    models = []
-    for stream in ("whiskers", "mic"):       # the recordings have no [fusion]: --model names the two to fuse
-        path = tmp_path / f"{stream}.npz"
-        assert main(["train", *_scenes(recordings, 2), "--stream", stream, "--out", str(path), "--epochs", "30",
-                     "--quiet"]) == 0
-        models += ["--model", f"{stream}={path}"]
-    capsys.readouterr()
     warning = "an early network learns from 1 contact(s) of some texture, without gain augmentation"
     for extra, warned in (([], True), (["--augment-gains", "1,0.05"], False)):
         out = tmp_path / f"early{len(extra)}.npz"
-        assert main(["train", "--fusion", "early", *_scenes(recordings, 1), *models, "--out", str(out),
+        assert main(["train", "--fusion", "early", *_scenes(recordings, 1), *models_of_take_2, "--out", str(out),
                      "--epochs", "30", "--quiet", *extra]) == 0
         err = capsys.readouterr().err
         assert (warning in err) == warned, err
         if warned:
             line = next(x for x in err.splitlines() if warning in x)
             assert line.startswith("supramodal: warning: ") and "add --augment-gains 4,0.03" in line
-    assert main(["train", "--fusion", "late", *_scenes(recordings, 1), *models, "--quiet"]) == 0
+    assert main(["train", "--fusion", "late", *_scenes(recordings, 1), *models_of_take_2, "--quiet"]) == 0
     assert "early network learns" not in capsys.readouterr().err
 
 

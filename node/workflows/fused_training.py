@@ -27,6 +27,7 @@ from supramodal.calibration import (
     calibration_folds,
     calibration_report,
     ece_if_calibrated,
+    fewest_groups_of_a_label,
     mean_confidence,
     winner,
 )
@@ -251,8 +252,7 @@ def _warn_if_early_without_augmentation(labels, groups, augment: GainAugment | N
     """
     if augment is not None:
         return
-    labels, groups = np.asarray(labels), np.asarray(groups)
-    fewest = min(len(set(groups[labels == c])) for c in np.unique(labels))
+    fewest = fewest_groups_of_a_label(labels, groups)
     if fewest >= FEW_TOUCHES:
         return
     warnings.warn(f"an early network learns from {fewest} contact(s) of some texture, without gain augmentation: "

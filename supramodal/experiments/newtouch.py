@@ -214,15 +214,16 @@ def run_set(set_seed: int, seconds: float = 10.0, epochs: int = DEFAULT_EPOCHS, 
     ``recalibrated`` (touch 3's second half) scores, ``unknown`` rates.
     """
     names, feats = touch_features(set_seed, seconds, progress)
+    per = len(next(iter(feats.values()))[0])          # windows a touch, every touch alike
+    half = per // 2
+    if half < CONTACT_WINDOWS:                      # before the training, which would be for nothing
+        raise InputError(f"{per} windows per touch leave too few for contacts of {CONTACT_WINDOWS} in each half of "
+                         "touch 3: give longer touches (--touch-seconds)")
     t0 = time.process_time()
     trained = train_senses(names, feats, epochs, seed, progress, f"  set {set_seed}: ", augment)
     train_cpu = time.process_time() - t0
-    known, classes, per = trained.known, trained.classes, trained.per
+    known, classes = trained.known, trained.classes
     unknown = [i for i, n in enumerate(names) if n in UNKNOWN]
-    half = per // 2
-    if half < CONTACT_WINDOWS:
-        raise InputError(f"{per} windows per touch leave too few for contacts of {CONTACT_WINDOWS} in each half of "
-                         "touch 3: give longer touches (--touch-seconds)")
     new_touch = [TOUCHES - 1]
 
     def stack(senses_index, textures=known, rows=slice(None)):
