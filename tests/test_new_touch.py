@@ -351,14 +351,24 @@ def test_experiment_newtouch_on_the_command_line_writes_its_table_csv_and_plot(t
     from supramodal.experiments.newtouch import newtouch_table
 
     assert main(["experiment", "newtouch", "--quick", "--sets", "1", "--epochs", "40", "--touch-seconds", "4",
-                 "--out", str(tmp_path), "--quiet", "--json"]) == 0
+                 "--more-touches", "2", "--out", str(tmp_path), "--quiet", "--json"]) == 0
     result = json.loads(capsys.readouterr().out)
     one = result["sets"][0]
     assert result["seconds"] == 4.0 and one["windows_per_touch"] == 40
     assert one["senses"]["whiskers"]["touch3"]["n"] == 6 * 40        # the 6 known textures' touch 3
     assert one["senses"]["whiskers"]["unknown"]["contacts"] == 6 * 4
+    for sense, v in one["senses"].items():
+        more = v["more_touches"]
+        counts = np.array(more["counts"])
+        assert counts.shape == (6, 3) and more["contacts"] == 4, sense       # touch 3 and 2 more, 4 contacts each
+        # touch 3's contacts, counted again among the further touches, as the unknown rate counted them
+        assert counts[:, 0].sum() == round(v["unknown"]["false_unknown_contact"] * 24), sense
+        assert more["rate"] == pytest.approx(counts.sum() / counts.size / 4), sense
+        assert 0.0 <= more["within"] <= 1.0 and 0.0 <= more["within_ideal"] <= 1.0, sense
     out = newtouch_table(result)
     assert "3 touches of 4 s each" in out
+    assert "Per contact on touch 3 and 2 more new touches of each known texture (4 contacts a touch)" in out
+    assert "per contact over touch 3 and 2 more:" in out
     assert "late fusion (rule of issue 34) log loss on touch 3 <= the better sense's:" in out
     rows = list(csv.DictReader(open(tmp_path / "newtouch.csv")))
     assert [r["method"] for r in rows][:6] == ["whiskers", "microphone", "whiskers (folds by span)",
@@ -375,6 +385,34 @@ def test_experiment_newtouch_on_the_command_line_writes_its_table_csv_and_plot(t
         assert says in capsys.readouterr().err
     assert main(["experiment", "change", "--touch-seconds", "4", "--out", str(tmp_path)]) == 2
     assert "--touch-seconds is experiment newtouch's" in capsys.readouterr().err
+    assert main(["experiment", "change", "--more-touches", "4", "--out", str(tmp_path)]) == 2
+    assert "--more-touches is experiment newtouch's" in capsys.readouterr().err
+    assert main(["experiment", "newtouch", "--more-touches", "101", "--out", str(tmp_path)]) == 2
+    assert "--more-touches must be a whole number of touches in 0..100" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as stop:
+        main(["experiment", "newtouch", "--more-touches=-1", "--out", str(tmp_path)])
+    assert stop.value.code == 2 and "whole number >= 0" in capsys.readouterr().err
+
+
+def test_one_touch_draws_against_every_draw_written_out():
+    """The chance that one touch a texture lands in the band: against every combination of touches enumerated
+    (itertools.product), on counts that put some draws on the band's edges."""
+    import itertools
+
+    from supramodal.experiments.newtouch import one_touch_draws
+
+    rng = np.random.default_rng(3)
+    for trial in range(20):
+        contacts = int(rng.integers(1, 12))
+        counts = [list(rng.integers(0, contacts + 1, size=rng.integers(1, 5))) for _ in range(int(rng.integers(1, 5)))]
+        band = (0.03, 0.08) if trial % 2 else (0.2, 0.5)
+        total = contacts * len(counts)
+        draws = list(itertools.product(*counts))
+        expected = sum(band[0] <= sum(d) / total + 1e-12 and sum(d) / total - 1e-12 <= band[1] for d in draws) / len(draws)
+        assert one_touch_draws(counts, contacts, band) == pytest.approx(expected, abs=1e-12), (counts, contacts, band)
+    # the edges are inside: 3 of 100 and 8 of 100 contacts
+    assert one_touch_draws([[3], [0]], 50) == 1.0 and one_touch_draws([[8], [0]], 50) == 1.0
+    assert one_touch_draws([[2], [0]], 50) == 0.0 and one_touch_draws([[9], [0]], 50) == 0.0
 
 
 def test_the_experiments_module_takes_gain_augmentation_seeded_by_its_seed(capsys):

@@ -58,6 +58,10 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
     p.add_argument("--touch-seconds", type=positive_seconds, metavar="S",
                    help="newtouch: seconds of each touch (default 10, 6 with --quick); longer touches give every "
                         "figure more windows and contacts to count, and the models more to learn from")
+    p.add_argument("--more-touches", type=count(0), metavar="K",
+                   help="newtouch: K further new touches of every known texture, on which the per-contact "
+                        "false-unknown rate is also measured, with how often one touch a texture (as touch 3) lands "
+                        "within 0.03..0.08 (default 0; about 1 s of CPU per 10 s of touch and texture)")
     p.add_argument("--out", default="out", type=output_folder, help="directory for CSV and PNG (default ./out)")
     p.add_argument("--json", action="store_true", help="print the figure's data as one JSON object instead of a table")
     return p
@@ -92,9 +96,10 @@ def run(args: argparse.Namespace) -> int:
         raise CliError(f"--augment is experiment newtouch's (the models on a touch they never met) and change's "
                        f"(re-deciding when the texture changes), not {args.figure}'s: leave it out, or run "
                        "experiment newtouch --augment")
-    if args.touch_seconds is not None and args.figure != "newtouch":
-        raise CliError(f"--touch-seconds is experiment newtouch's (the length of each touch), not {args.figure}'s: "
-                       "leave it out")
+    for option, value, what in (("--touch-seconds", args.touch_seconds, "the length of each touch"),
+                                ("--more-touches", args.more_touches, "further new touches")):
+        if value is not None and args.figure != "newtouch":
+            raise CliError(f"{option} is experiment newtouch's ({what}), not {args.figure}'s: leave it out")
     if args.figure in TWO_SENSE_EXPERIMENTS:
         return _two_sense_experiment(args)
     ts = load_texture_set(args.textures) if args.textures else None
@@ -144,6 +149,8 @@ def _two_sense_experiment(args) -> int:
         more["augment"] = GainAugment(seed=args.seed)
     if args.touch_seconds is not None:
         more["touch_seconds"] = args.touch_seconds
+    if args.more_touches is not None:
+        more["more_touches"] = args.more_touches
     result = getattr(m, run)(sets, args.quick, args.epochs, args.seed, None if args.quiet else progress_to_stderr,
                              args.jobs, **more)
     written = write_figure(args.figure, result, Path(args.out))
