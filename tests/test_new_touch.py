@@ -378,6 +378,7 @@ def test_experiment_newtouch_on_the_command_line_writes_its_table_csv_and_plot(t
     assert all(0.0 <= float(r["touch3_ece"]) <= 1.0 for r in rows)
     pytest.importorskip("matplotlib")
     assert (tmp_path / "newtouch.png").stat().st_size > 0
+    assert (tmp_path / "newtouch_unknown.png").stat().st_size > 0          # --more-touches: each touch's rate
     assert main(["experiment", "newtouch", "--sets", "0", "--out", str(tmp_path)]) == 2
     capsys.readouterr()
     for seconds, says in (("2", "give at least 2.1 s (--touch-seconds)"), ("601", "in (0, 600]")):

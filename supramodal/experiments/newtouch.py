@@ -24,8 +24,12 @@ unknown ones. On the six others:
 * Recalibration (:meth:`supramodal.model.TextureModel.recalibrated`): each sense recalibrated on the
   first half of touch 3, the networks and the fusion's weight and sharpness kept, scored on its
   second half (ECE, log loss, the false-unknown rate).
+* With ``--more-touches K``, each sense's per-contact false-unknown rate also over K further new touches of
+  every known texture, and how often one touch a texture, as touch 3, lands within :data:`UNKNOWN_RANGE`
+  (:func:`more_touches_unknown`).
 
-    supramodal experiment newtouch [--quick] [--sets N] [--seed S] [--out DIR]
+    supramodal experiment newtouch [--quick] [--sets N] [--seed S] [--touch-seconds S] [--more-touches K]
+                                   [--augment] [--out DIR]
     python -m supramodal.experiments.newtouch [--quick] [--sets N] [--seed S]
 """
 
@@ -624,7 +628,8 @@ def _rows(result: dict) -> list[dict]:
 def write_newtouch(result: dict, out) -> list:
     """Write ``newtouch.csv`` (one row per set and method) and, with matplotlib, ``newtouch.png``.
 
-    The PNG shows each method's log loss and ECE on the new touch, and after recalibration.
+    The PNG shows each method's log loss and ECE on the new touch, and after recalibration. With
+    ``--more-touches``, also ``newtouch_unknown.png``: each new touch's per-contact false-unknown rate.
     """
     import csv
     from pathlib import Path
@@ -658,7 +663,37 @@ def write_newtouch(result: dict, out) -> list:
     fig.tight_layout()
     fig.savefig(out / "newtouch.png", dpi=120)
     plt.close(fig)
-    return [*written, out / "newtouch.png"]
+    written.append(out / "newtouch.png")
+    if any("more_touches" in v for r in result["sets"] for v in r["senses"].values()):
+        written.append(_plot_more_touches(result, out / "newtouch_unknown.png"))
+    return written
+
+
+def _plot_more_touches(result: dict, path):
+    """Plot each new touch's per-contact false-unknown rate, per sense-set, beside the band asked; return ``path``."""
+    from supramodal.experiments.plotting import pyplot
+
+    plt = pyplot()
+    got = [(f"set {r['set_seed']}\n{sense}", v["more_touches"]) for r in result["sets"]
+           for sense, v in r["senses"].items() if "more_touches" in v]
+    fig, ax = plt.subplots(figsize=(10, 3.4))
+    lo, hi = UNKNOWN_RANGE
+    ax.axhspan(lo, hi, color="0.85", label=f"asked: {lo:g}..{hi:g}")
+    jitter = np.random.default_rng(0)
+    for x, (_, m) in enumerate(got):
+        rates = np.array([c for touches in m["counts"] for c in touches]) / m["contacts"]
+        ax.plot(x + jitter.uniform(-0.25, 0.25, len(rates)), rates, ".", color="0.35", ms=3,
+                label="one touch" if x == 0 else None)
+        ax.plot([x - 0.35, x + 0.35], [m["rate"]] * 2, "k-", lw=2, label="over all the new touches" if x == 0 else None)
+    ax.set_xticks(range(len(got)), [name for name, _ in got], fontsize=7)
+    ax.set_ylabel("contacts called unknown")
+    ax.legend(fontsize=7, loc="upper right")
+    ax.set_title(f"false unknown per contact ({result['asked_unknown']:g} asked) on {got[0][1]['touches']} new "
+                 f"touches of each known texture, {result['seconds']:g} s each", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
 
 
 def main(argv=None) -> int:
