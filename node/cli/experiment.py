@@ -61,7 +61,8 @@ def add_parser(subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
     p.add_argument("--more-touches", type=count(0), metavar="K",
                    help="newtouch: K further new touches of every known texture, on which the per-contact "
                         "false-unknown rate is also measured, with how often one touch a texture (as touch 3) lands "
-                        "within 0.03..0.08 (default 0; about 1 s of CPU per 10 s of touch and texture)")
+                        "within 0.03..0.08 (default 0; each further touch is synthesised and its features "
+                        "extracted, both senses)")
     p.add_argument("--out", default="out", type=output_folder, help="directory for CSV and PNG (default ./out)")
     p.add_argument("--json", action="store_true", help="print the figure's data as one JSON object instead of a table")
     return p

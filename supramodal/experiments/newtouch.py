@@ -90,9 +90,21 @@ def touch_features(set_seed: int, seconds: float, progress=None) -> tuple[list[s
 
 
 def touch_windows(surface, seconds: float, set_seed: int, index: int, touch: int) -> tuple[np.ndarray, np.ndarray]:
-    """Return the Af windows of touch ``touch`` of texture ``index`` of set ``set_seed``.
+    """Return both senses' Af windows of one touch (:func:`supramodal.twosense.synthesize_touch`).
 
-    Whiskers (n, 1, 20) and microphone (n, 1, 50).
+    Parameters
+    ----------
+    surface : Surface
+        Texture ``index`` of set ``set_seed`` (:func:`supramodal.twosense.two_sense_set`).
+    seconds : float
+        The touch's length.
+    set_seed, index, touch : int
+        Which touch: its signals and gains derive from the three.
+
+    Returns
+    -------
+    whiskers : ndarray, shape (n, 1, 20)
+    microphone : ndarray, shape (m, 1, 50)
     """
     whiskers, mic = synthesize_touch(surface, seconds, set_seed, index, touch)
     return (extract_features(whiskers, whisker_bank(), FEATURES).values,
@@ -220,8 +232,14 @@ def _unknown(model: TextureModel, known, unknown, per_texture: int) -> dict:
             "touch_spread_estimated": None if touch is None else touch.estimated}
 
 
+def band_counts(total: int, band: tuple[float, float] = UNKNOWN_RANGE) -> tuple[int, int]:
+    """Return the least and most counts ``k`` of ``total`` whose share ``k / total`` lies in ``band``, inclusive."""
+    lo, hi = band
+    return int(np.ceil(lo * total - 1e-9)), int(np.floor(hi * total + 1e-9))
+
+
 def contact_scores(model: TextureModel, windows) -> list[float]:
-    """Novelty scores (:meth:`~supramodal.calibration.Novelty.pooled_score`) of one touch's contacts.
+    """Return the novelty scores (:meth:`~supramodal.calibration.Novelty.pooled_score`) of one touch's contacts.
 
     The contacts are :data:`CONTACT_WINDOWS` windows side by side (a shorter rest left out), as
     :func:`_unknown` counts them; ``windows`` are the touch's feature windows (n, 1, inputs).
@@ -254,10 +272,27 @@ def one_touch_draws(counts, contacts: int, band: tuple[float, float] = UNKNOWN_R
     pmf = np.ones(1)
     for per_touch in counts:
         pmf = np.convolve(pmf, np.bincount(np.asarray(per_touch, dtype=int), minlength=contacts + 1) / len(per_touch))
-    total = contacts * len(counts)
-    lo, hi = band
-    k = np.arange(len(pmf))
-    return float(pmf[(k >= np.ceil(lo * total - 1e-9)) & (k <= np.floor(hi * total + 1e-9))].sum())
+    least, most = band_counts(contacts * len(counts), band)
+    return float(pmf[least:most + 1].sum())
+
+
+def best_one_touch_draws(scores, band: tuple[float, float] = UNKNOWN_RANGE) -> float:
+    """Return the largest chance that one touch a texture lands within ``band``, over every threshold.
+
+    ``scores``: per texture, per touch of it, the contacts' novelty scores, every touch with as many
+    contacts. The threshold is chosen knowing these touches, so no threshold fixed before them can do
+    better on them: an upper bound on :func:`one_touch_draws` at any threshold.
+    """
+    touches = [[np.sort(np.asarray(c, dtype=np.float64)) for c in per_texture] for per_texture in scores]
+    contacts = len(touches[0][0])
+    every = np.concatenate([c for per_texture in touches for c in per_texture])
+    # the counts change only at a score: below the least, every contact is called unknown
+    candidates = np.concatenate([[-np.inf], np.unique(every)])
+    best = 0.0
+    for t in candidates:
+        counts = [[contacts - int(np.searchsorted(c, t, side="right")) for c in per_texture] for per_texture in touches]
+        best = max(best, one_touch_draws(counts, contacts, band))
+    return best
 
 
 def more_touches_unknown(trained: TrainedSenses, feats, set_seed: int, seconds: float, more: int, per: int,
@@ -267,16 +302,32 @@ def more_touches_unknown(trained: TrainedSenses, feats, set_seed: int, seconds: 
     Touch 3 is one draw of a new touch per texture; its rate moves with the draw, since a touch's gains move
     all its contacts together. Over many new touches, each sense's rate at its model's threshold is the one
     the model delivers; and :func:`one_touch_draws` says how often one draw, as touch 3, lands within
-    :data:`UNKNOWN_RANGE`, at the model's threshold and at the ideal one for these touches (the ``1 -``
-    :data:`ASKED_UNKNOWN` quantile of their own contacts' scores: no threshold set beforehand does better
-    on average).
+    :data:`UNKNOWN_RANGE`: at the model's threshold; at the ideal one for these touches (the ``1 -``
+    :data:`ASKED_UNKNOWN` quantile of their own contacts' scores, whose rate over them is exactly the one
+    asked); and at the best one for the band (:func:`best_one_touch_draws`: no threshold does better).
+
+    Parameters
+    ----------
+    trained : TrainedSenses
+    feats : dict
+        :func:`touch_features`' windows (touch 3 among them).
+    set_seed : int
+    seconds : float
+        Each touch's length.
+    more : int
+        Further new touches of every known texture (touches 4 .. ``more`` + 3).
+    per : int
+        Windows a touch (the further touches are cut to it, as :func:`touch_features` cuts every touch).
+    progress : callable(str), optional
+    say : str
+        The progress lines' prefix.
 
     Returns
     -------
     dict
         ``{sense: {"touches", "contacts", "rate", "within", "threshold", "ideal_threshold", "within_ideal",
-        "counts"}}``; ``counts`` per known texture and touch (touch 3 first), the contacts called unknown at
-        the model's threshold.
+        "within_best", "counts"}}``; ``counts`` per known texture and touch (touch 3 first), the contacts
+        called unknown at the model's threshold.
     """
     surfaces = two_sense_set(pairs=2, seed=set_seed)
     scores: dict = {sense: [] for sense in SENSES}
@@ -300,7 +351,7 @@ def more_touches_unknown(trained: TrainedSenses, feats, set_seed: int, seconds: 
         out[sense] = {"touches": more + 1, "contacts": contacts, "rate": float(np.mean(every > threshold)),
                       "within": one_touch_draws(counts, contacts), "threshold": threshold,
                       "ideal_threshold": ideal, "within_ideal": one_touch_draws(ideal_counts, contacts),
-                      "counts": counts}
+                      "within_best": best_one_touch_draws(per_texture), "counts": counts}
     return out
 
 
@@ -405,9 +456,11 @@ def train_early(trained: TrainedSenses, epochs: int, seed: int, augment: GainAug
 
 #: Seconds of each touch (full, quick).
 TOUCH_SECONDS = (10.0, 6.0)
-#: The most further new touches of each texture ``--more-touches`` takes: each costs about 0.11 s of CPU per second
-#: of touch and texture (its signals and features; measured at 10 s).
+#: The most further new touches of each texture ``--more-touches`` takes.
 MAX_MORE_TOUCHES = 100
+#: CPU seconds a further new touch costs per second of touch and texture (its signals and features, both senses):
+#: measured 0.02-0.03 as the wall time added by ``--more-touches`` on 2 worker processes, at 10 s and 40 s.
+MORE_TOUCH_CPU = 0.03
 #: The longest touch the experiment makes: a set takes about 3 CPU-minutes per 60 s of touch (measured at 40 s),
 #: and each touch's signals are held whole (the microphone's at 44.1 kHz).
 MAX_TOUCH_SECONDS = 600.0
@@ -434,7 +487,8 @@ def run_newtouch(sets: int = 5, quick: bool = False, epochs: int = DEFAULT_EPOCH
                          f"{touch_seconds!r}")
     if isinstance(more_touches, bool) or int(more_touches) != more_touches or not 0 <= more_touches <= MAX_MORE_TOUCHES:
         raise InputError(f"--more-touches must be a whole number of touches in 0..{MAX_MORE_TOUCHES}, got "
-                         f"{more_touches!r}")
+                         f"{more_touches!r}: give fewer (each costs about {MORE_TOUCH_CPU:g} s of CPU per second of "
+                         "touch and texture)")
     least = (2 * CONTACT_WINDOWS + 1) * DEFAULT_WINDOW
     if seconds < least:
         raise InputError(f"touches of {seconds:g} s leave too few windows for contacts of {CONTACT_WINDOWS} in each "
@@ -442,7 +496,7 @@ def run_newtouch(sets: int = 5, quick: bool = False, epochs: int = DEFAULT_EPOCH
     t0 = time.perf_counter()
     runs = [Run(("newtouch", seed + k), run_set, {"set_seed": seed + k, "seconds": seconds, "epochs": epochs,
                                                    "seed": seed, "augment": augment, "more_touches": int(more_touches)},
-                (8 + 0.7 * more_touches) * seconds, seeded=False)
+                (8 + 6 * MORE_TOUCH_CPU * more_touches) * seconds, seeded=False)
             for k in range(sets)]
     results = list(run_all(runs, jobs=jobs, seed=seed, progress=progress).values())
     return {"figure": "newtouch", "seconds": seconds, "touches": TOUCHES, "asked_unknown": ASKED_UNKNOWN,
@@ -462,10 +516,12 @@ def _every(u: dict) -> str:
     return "-" if v is None else f"{v:.3f}"
 
 
-def _within(result: dict, key: str) -> str:
-    """``k of n sense-sets`` whose ``unknown[key]`` on touch 3 lies in :data:`UNKNOWN_RANGE`."""
+def _within(values) -> str:
+    """Return ``k of n sense-sets (min..max)``, k of the sense-sets' rates ``values`` in :data:`UNKNOWN_RANGE`.
+
+    A value None (not measured) is left out.
+    """
     lo, hi = UNKNOWN_RANGE
-    values = [v["unknown"].get(key) for r in result["sets"] for v in r["senses"].values()]
     values = [x for x in values if x is not None]
     inside = sum(lo <= x <= hi for x in values)
     return f"{inside} of {len(values)} sense-sets" + (f" ({min(values):.3f}..{max(values):.3f})" if values else "")
@@ -491,8 +547,9 @@ def pooled_contacts(result: dict) -> str:
     lo, hi = UNKNOWN_RANGE
 
     def inside(m: int) -> float:
-        """P(lo <= X / m <= hi) for X ~ Binomial(m, asked): the counts ceil(lo m) .. floor(hi m)."""
-        return float(binom.cdf(np.floor(hi * m + 1e-9), m, asked) - binom.cdf(np.ceil(lo * m - 1e-9) - 1, m, asked))
+        """P(lo <= X / m <= hi) for X ~ Binomial(m, asked)."""
+        least, most = band_counts(m)
+        return float(binom.cdf(most, m, asked) - binom.cdf(least - 1, m, asked))
 
     sizes = sorted({m for _, m in pairs})
     each = ", ".join(f"{inside(m):.2f} at {m} contacts" for m in sizes)
@@ -509,27 +566,28 @@ def more_touches_lines(result: dict) -> list[str]:
         return []
     lo, hi = UNKNOWN_RANGE
     more = got[0][2]["touches"] - 1
-    rates = [m["rate"] for _, _, m in got]
-    within, ideal = [m["within"] for _, _, m in got], [m["within_ideal"] for _, _, m in got]
-    per_touch = np.array([c / m["contacts"] for _, _, m in got for touches in m["counts"] for c in touches])
     lines = ["", f"Per contact on touch 3 and {more} more new touches of each known texture "
              f"({got[0][2]['contacts']} contacts a touch): the rate at the model's threshold over all of them, and "
-             f"the chance that one touch a texture, as touch 3, lands within {lo:g}..{hi:g}, at the model's "
-             "threshold and at the ideal one for these touches (the quantile of their own contacts' scores that "
-             "calls the rate asked)", "",
+             f"the chance that one touch a texture, as touch 3, lands within {lo:g}..{hi:g}: at the model's "
+             "threshold, at the ideal one for these touches (the quantile of their own contacts' scores that "
+             "calls the rate asked), and at the best one for the band (chosen knowing these touches: no "
+             "threshold does better on them)", "",
              "| set | sense | rate over the new touches | touches with none called unknown | one touch a texture "
-             "within the band: model's threshold | ideal threshold |", "|---|---|---|---|---|---|"]
+             "within the band: model's threshold | ideal threshold | best threshold |", "|---|---|---|---|---|---|---|"]
     for set_seed, sense, m in got:
         zero = float(np.mean([c == 0 for touches in m["counts"] for c in touches]))
+        best = m.get("within_best")
         lines.append(f"| {set_seed} | {sense} | {m['rate']:.3f} | {zero:.2f} | {m['within']:.2f} | "
-                     f"{m['within_ideal']:.2f} |")
-    inside = sum(lo <= x <= hi for x in rates)
-    return lines + ["", f"per contact over touch 3 and {more} more: {inside} of {len(rates)} sense-sets within "
-                    f"{lo:g}..{hi:g} ({min(rates):.3f}..{max(rates):.3f}); of the {len(per_touch)} touches, "
-                    f"{np.mean(per_touch == 0):.2f} had no contact called unknown, the most {per_touch.max():.2f}",
-                    f"one touch a texture within {lo:g}..{hi:g} per contact, every one of the {len(got)} "
-                    f"sense-sets: probability {float(np.prod(within)):.2g} at the models' thresholds, "
-                    f"{float(np.prod(ideal)):.2g} at the ideal ones"]
+                     f"{m['within_ideal']:.2f} | {'-' if best is None else f'{best:.2f}'} |")
+    per_touch = np.array([c / m["contacts"] for _, _, m in got for touches in m["counts"] for c in touches])
+    chances = {name: float(np.prod([m[key] for _, _, m in got]))
+               for name, key in (("models'", "within"), ("ideal", "within_ideal"), ("best", "within_best"))
+               if all(key in m for *_, m in got)}
+    return lines + ["", f"per contact over touch 3 and {more} more: {_within(m['rate'] for *_, m in got)} within "
+                    f"{lo:g}..{hi:g}; of the {len(per_touch)} touches and senses, {np.mean(per_touch == 0):.2f} had no "
+                    f"contact called unknown, the most {per_touch.max():.2f}",
+                    f"one touch a texture within {lo:g}..{hi:g} per contact, every one of the {len(got)} sense-sets: "
+                    "probability " + ", ".join(f"{v:.2g} at the {name} thresholds" for name, v in chances.items())]
 
 
 def newtouch_table(result: dict) -> str:
@@ -577,8 +635,9 @@ def newtouch_table(result: dict) -> str:
                          f"{u['false_unknown_contact']:.3f} | {_every(u)} | {ur['false_unknown_window']:.3f} | "
                          f"{ur['false_unknown_contact']:.3f} | {_every(ur)} | {u['auroc_window']:.4f} | "
                          f"{u['auroc_contact']:.4f} | {spread} |")
+    unknowns = [v["unknown"] for r in result["sets"] for v in r["senses"].values()]
     lines += ["", "false-unknown rate (0.05 asked) within 0.03..0.08 on touch 3: "
-              + "; ".join(f"{what} {_within(result, key)}"
+              + "; ".join(f"{what} {_within(u.get(key) for u in unknowns)}"
                           for what, key in (("per window", "false_unknown_window"),
                                             ("per contact", "false_unknown_contact"),
                                             ("per contact at every start", "false_unknown_contact_every_start")))]
@@ -671,7 +730,7 @@ def write_newtouch(result: dict, out) -> list:
 
 def _plot_more_touches(result: dict, path):
     """Plot each new touch's per-contact false-unknown rate, per sense-set, beside the band asked; return ``path``."""
-    from supramodal.experiments.plotting import pyplot
+    from supramodal.experiments.plotting import pyplot, save_figure
 
     plt = pyplot()
     got = [(f"set {r['set_seed']}\n{sense}", v["more_touches"]) for r in result["sets"]
@@ -686,14 +745,11 @@ def _plot_more_touches(result: dict, path):
                 label="one touch" if x == 0 else None)
         ax.plot([x - 0.35, x + 0.35], [m["rate"]] * 2, "k-", lw=2, label="over all the new touches" if x == 0 else None)
     ax.set_xticks(range(len(got)), [name for name, _ in got], fontsize=7)
-    ax.set_ylabel("contacts called unknown")
+    ax.set_ylabel("share of a touch's contacts\ncalled unknown")
     ax.legend(fontsize=7, loc="upper right")
     ax.set_title(f"false unknown per contact ({result['asked_unknown']:g} asked) on {got[0][1]['touches']} new "
                  f"touches of each known texture, {result['seconds']:g} s each", fontsize=9)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 def main(argv=None) -> int:
