@@ -224,3 +224,26 @@ def test_an_outage_longer_than_the_ring_is_filled_not_dropped(signal_and_model):
     f = summary["frames"]
     assert f["filled"] > 1.2 * RATE > 0.5 * RATE    # the outage was longer than the ring
     assert f["filled_lost_in_ring"] > 0             # and the ring dropped part of its fill
+
+
+def test_the_mock_counts_clean_bytes_as_in_the_port_only_once_they_had_time_to_get_there():
+    """Before an unplug the mock waits until a fault's judging bytes are in the port's input queue. Bytes written
+    count there only PTY_FLUSH_SECONDS after they were written (the kernel moves them in a worker, and the input
+    count does not see them on their way: a soak lost a truncated frame's judging bytes so); the mock's own pending
+    tail never counts."""
+    from supramodal.drivers.mock_whisker import PTY_FLUSH_SECONDS
+
+    dev = MockWhiskerDevice(np.zeros((64, 2)), 5000.0)
+    try:
+        dev._clean_run = 300
+        assert dev._clean_bytes_flushed(10.0) == 0                          # just written
+        assert dev._clean_bytes_flushed(10.0 + PTY_FLUSH_SECONDS / 2) == 0
+        dev._clean_run = 500
+        assert dev._clean_bytes_flushed(10.0 + PTY_FLUSH_SECONDS) == 300    # the first 300 are there by now
+        assert dev._clean_bytes_flushed(10.0 + 2 * PTY_FLUSH_SECONDS) == 500
+        dev._pending, dev._clean_run = memoryview(b"x" * 50), 600             # 50 of the last 100 not yet written
+        assert dev._clean_bytes_flushed(12.0) == 500
+        assert dev._clean_bytes_flushed(12.0 + PTY_FLUSH_SECONDS) == 550
+    finally:
+        dev._pending = None
+        dev.close()
