@@ -4,6 +4,8 @@ could only hold out spans of its recordings."""
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 
@@ -364,10 +366,11 @@ def test_experiment_newtouch_on_the_command_line_writes_its_table_csv_and_plot(t
     assert "3 touches of 4 s each" in out
     assert "Per contact on touch 3 and 2 more new touches of each known texture (4 contacts a touch)" in out
     assert "per contact over touch 3 and 2 more:" in out
-    assert "late fusion (rule of issue 34) log loss on touch 3 <= the better sense's:" in out
+    assert "late fusion (the new-touch rule) log loss on touch 3 <= the better sense's:" in out
+    assert not re.search(r"\bissues? \d", out), "the table a user reads names no internal issue"
     rows = list(csv.DictReader(open(tmp_path / "newtouch.csv")))
     assert [r["method"] for r in rows][:6] == ["whiskers", "microphone", "whiskers (folds by span)",
-                                               "microphone (folds by span)", "late (issue34)", "late (before)"]
+                                               "microphone (folds by span)", "late (new-touch rule)", "late (before)"]
     assert [r["method"] for r in rows][6:] == ["early"]
     assert "early fusion (folds by touch)" in out
     assert all(0.0 <= float(r["touch3_ece"]) <= 1.0 for r in rows)

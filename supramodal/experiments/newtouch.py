@@ -610,7 +610,8 @@ def newtouch_table(result: dict) -> str:
             t = v["touch3"]
             train = v.get("training")
             est = f"{train['accuracy']:.3f}, {train['log_loss']:.3f}" if train else "-"
-            lines.append(f"| {r['set_seed']} | late, rule {'of issue 34' if rule == 'issue34' else 'before'} (weight "
+            name = "the new-touch rule" if rule == "issue34" else "the rule before"
+            lines.append(f"| {r['set_seed']} | late, {name} (weight "
                          f"{v['weight']:.2f}, sharpness {v['sharpness']:.3g}) | {est} | {t['accuracy']:.3f} | "
                          f"{t['log_loss']:.3f} | {t['ece']:.3f} | {_sure(t)} | {v['recalibrated']['ece']:.3f}, "
                          f"{v['recalibrated']['log_loss']:.3f} |")
@@ -649,7 +650,7 @@ def newtouch_table(result: dict) -> str:
     for r in result["sets"]:
         better = min(v["touch3"]["log_loss"] for v in r["senses"].values())
         checks.append(r["late"]["issue34"]["touch3"]["log_loss"] <= better)
-    lines += ["", f"late fusion (rule of issue 34) log loss on touch 3 <= the better sense's: {sum(checks)} of "
+    lines += ["", f"late fusion (the new-touch rule) log loss on touch 3 <= the better sense's: {sum(checks)} of "
               f"{len(checks)} sets"]
     cpu = [r["train_cpu_seconds"] for r in result["sets"] if "train_cpu_seconds" in r]
     if cpu:
@@ -669,7 +670,8 @@ def _rows(result: dict) -> list[dict]:
         methods = {f"{sense}": (v["training"], v["touch3"], v["recalibrated"]) for sense, v in r["senses"].items()}
         methods |= {f"{sense} (folds by span)": (v["span_training"], v["span_touch3"], None)
                     for sense, v in r["senses"].items()}
-        methods |= {f"late ({rule})": (v.get("training"), v["touch3"], v["recalibrated"])
+        methods |= {f"late ({'new-touch rule' if rule == 'issue34' else rule})": (v.get("training"), v["touch3"],
+                                                                                 v["recalibrated"])
                     for rule, v in r["late"].items()}
         if "early" in r:
             methods["early"] = (r["early"]["training"], r["early"]["touch3"], None)
