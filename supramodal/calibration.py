@@ -52,9 +52,9 @@ import math
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from scipy.special import log_softmax, logsumexp
 
 from supramodal.errors import InputError
+from supramodal.logdomain import log_softmax, logsumexp
 from supramodal.mlp import EARLY_STOP_PATIENCE
 
 __all__ = [
@@ -130,8 +130,7 @@ def winner(log_posteriors) -> np.ndarray:
     """
     lp = np.asarray(log_posteriors, dtype=np.float64)
     k = np.argmax(lp, axis=-1)
-    top = np.take_along_axis(lp, k[..., None], axis=-1)
-    tied = np.count_nonzero(lp == top, axis=-1) > 1
+    tied = np.count_nonzero(lp == lp.max(axis=-1, keepdims=True), axis=-1) > 1
     return np.where(tied, -1, k)
 
 

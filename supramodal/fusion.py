@@ -10,10 +10,10 @@ k of the other (pairing windows of live streams on a common clock is the node's 
 from __future__ import annotations
 
 import numpy as np
-from scipy.special import log_softmax
 
 from supramodal.calibration import log_loss
 from supramodal.errors import InputError
+from supramodal.logdomain import log_softmax
 
 #: Weights of the first sense tried when learning late fusion (the second gets 1 - w).
 LATE_WEIGHTS = np.linspace(0.0, 1.0, 21)
