@@ -418,10 +418,15 @@ class SerialWhiskerDriver(DriverBase):
             self._port_timeout = t
         first: bytes = ser.read(1)
         if first:
-            waiting = ser.in_waiting
-            if waiting:
-                rest: bytes = ser.read(waiting)
-                return first + rest
+            try:
+                waiting = ser.in_waiting
+                if waiting:
+                    rest: bytes = ser.read(waiting)
+                    return first + rest
+            except _LINK_ERRORS:
+                # the link went down after its first byte: keep the byte (counted like any other); the next
+                # read meets the loss and reports it
+                return first
         return first
 
     def _link_lost(self, exc: BaseException) -> None:

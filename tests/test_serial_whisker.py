@@ -335,6 +335,33 @@ class FakePort:
         pass
 
 
+def test_a_byte_read_just_before_the_link_went_down_is_counted(monkeypatch):
+    """The port hands over its first byte, then dies before the rest: the byte is kept and counted among the
+    bytes read and skipped (a soak's ledger of skipped bytes was one byte ahead of the driver's), and the loss is
+    reported on the next read."""
+    link = FakeLink()
+    monkeypatch.setattr(serial, "serial_for_url", link)
+    with SerialWhiskerDriver("/dev/ttyFAKE", 1000, 3) as drv:
+        link.data += frames_bytes([10, 11])
+        assert len(joined(read_all(drv, 8))[0]) == 8
+        before = drv.stats()
+        port = drv._ser
+
+        def read_then_die(size):
+            # nothing was waiting, so the driver waits for a first byte: it comes, and the port is gone
+            # before the rest (the next in_waiting fails)
+            assert size == 1
+            link.unplug()
+            return b"\x07"
+
+        monkeypatch.setattr(port, "read", read_then_die)
+        assert drv.read(0.1) is None
+        st = drv.stats()
+        assert st["bytes_read"] == before["bytes_read"] + 1
+        assert st["bytes_skipped"] == before["bytes_skipped"] + 1      # the half frame dropped at the reset
+        assert st["unplugs"] == 1
+
+
 def test_unplug_reopens_with_backoff_and_fills_the_gap(monkeypatch):
     link = FakeLink()
     monkeypatch.setattr(serial, "serial_for_url", link)
