@@ -40,7 +40,6 @@ import time
 from dataclasses import dataclass, replace
 
 import numpy as np
-from scipy.special import log_softmax
 
 from supramodal.banks import cochlea_bank, whisker_bank
 from supramodal.calibration import DEFAULT_CALIBRATION_FOLDS, fit_network_calibration, log_loss, winner
@@ -51,6 +50,7 @@ from supramodal.experiments.fusion import contact_runs
 from supramodal.features import DEFAULT_WINDOW
 from supramodal.fused_model import held_out_scores, learn_late_fusion_out_of_fold, senses_out_of_fold
 from supramodal.fusion import LATE_WEIGHTS, fuse_late
+from supramodal.logdomain import log_softmax
 from supramodal.mlp import DEFAULT_EPOCHS
 from supramodal.model import GainAugment, TextureModel, log_posteriors_of
 from supramodal.pipeline import extract_features, window_length
@@ -218,10 +218,8 @@ def _unknown(model: TextureModel, known, unknown, per_texture: int) -> dict:
     assert nov is not None, "trained with calibration folds"
     xk, xu = model._inputs(known), model._inputs(unknown)
     wk, wu = nov.score(xk), nov.score(xu)
-    ck = np.array([nov.pooled_score(xk[r]) for r in contact_runs(np.arange(len(xk)), per_texture, CONTACT_WINDOWS)])
-    cu = np.array([nov.pooled_score(xu[r]) for r in contact_runs(np.arange(len(xu)), per_texture, CONTACT_WINDOWS)])
-    every = np.array([nov.pooled_score(xk[r])
-                      for r in contact_runs(np.arange(len(xk)), per_texture, CONTACT_WINDOWS, step=1)])
+    ck, cu = _contact_scores(nov, xk, per_texture), _contact_scores(nov, xu, per_texture)
+    every = _contact_scores(nov, xk, per_texture, step=1)
     t_w, t_c = nov.threshold(ASKED_UNKNOWN), nov.contact_threshold(ASKED_UNKNOWN, CONTACT_WINDOWS)
     touch = nov.touch
     return {"false_unknown_window": float(np.mean(wk > t_w)), "false_unknown_contact": float(np.mean(ck > t_c)),
@@ -238,16 +236,25 @@ def band_counts(total: int, band: tuple[float, float] = UNKNOWN_RANGE) -> tuple[
     return int(np.ceil(lo * total - 1e-9)), int(np.floor(hi * total + 1e-9))
 
 
-def contact_scores(model: TextureModel, windows) -> list[float]:
+def contact_scores(model: TextureModel, windows) -> np.ndarray:
     """Return the novelty scores (:meth:`~supramodal.calibration.Novelty.pooled_score`) of one touch's contacts.
 
     The contacts are :data:`CONTACT_WINDOWS` windows side by side (a shorter rest left out), as
     :func:`_unknown` counts them; ``windows`` are the touch's feature windows (n, 1, inputs).
     """
-    nov = model.novelty
-    assert nov is not None, "trained with calibration folds"
-    x = model._inputs(windows)
-    return [nov.pooled_score(x[r]) for r in contact_runs(np.arange(len(x)), len(x), CONTACT_WINDOWS)]
+    assert model.novelty is not None, "trained with calibration folds"
+    return _contact_scores(model.novelty, model._inputs(windows), len(windows))
+
+
+def _contact_scores(nov, x, per_texture: int, step: int | None = None) -> np.ndarray:
+    """Pooled scores of the contacts among standardised rows ``x`` stacked texture by texture (:func:`contact_runs`)."""
+    return np.array([nov.pooled_score(x[r]) for r in contact_runs(np.arange(len(x)), per_texture, CONTACT_WINDOWS,
+                                                                  step=step)])
+
+
+def _counts_above(scores, threshold: float) -> list[list[int]]:
+    """Per texture, per touch: its contacts whose score is above ``threshold`` (called unknown)."""
+    return [[int(np.sum(np.asarray(c) > threshold)) for c in per_texture] for per_texture in scores]
 
 
 def one_touch_draws(counts, contacts: int, band: tuple[float, float] = UNKNOWN_RANGE) -> float:
@@ -346,8 +353,7 @@ def more_touches_unknown(trained: TrainedSenses, feats, set_seed: int, seconds: 
         every = np.concatenate([np.asarray(c) for touches in per_texture for c in touches])
         threshold = nov.contact_threshold(ASKED_UNKNOWN, CONTACT_WINDOWS)
         ideal = float(np.quantile(every, 1.0 - ASKED_UNKNOWN))
-        counts = [[int(np.sum(np.asarray(c) > threshold)) for c in touches] for touches in per_texture]
-        ideal_counts = [[int(np.sum(np.asarray(c) > ideal)) for c in touches] for touches in per_texture]
+        counts, ideal_counts = _counts_above(per_texture, threshold), _counts_above(per_texture, ideal)
         out[sense] = {"touches": more + 1, "contacts": contacts, "rate": float(np.mean(every > threshold)),
                       "within": one_touch_draws(counts, contacts), "threshold": threshold,
                       "ideal_threshold": ideal, "within_ideal": one_touch_draws(ideal_counts, contacts),
@@ -576,13 +582,11 @@ def more_touches_lines(result: dict) -> list[str]:
              "within the band: model's threshold | ideal threshold | best threshold |", "|---|---|---|---|---|---|---|"]
     for set_seed, sense, m in got:
         zero = float(np.mean([c == 0 for touches in m["counts"] for c in touches]))
-        best = m.get("within_best")
         lines.append(f"| {set_seed} | {sense} | {m['rate']:.3f} | {zero:.2f} | {m['within']:.2f} | "
-                     f"{m['within_ideal']:.2f} | {'-' if best is None else f'{best:.2f}'} |")
+                     f"{m['within_ideal']:.2f} | {m['within_best']:.2f} |")
     per_touch = np.array([c / m["contacts"] for _, _, m in got for touches in m["counts"] for c in touches])
     chances = {name: float(np.prod([m[key] for _, _, m in got]))
-               for name, key in (("models'", "within"), ("ideal", "within_ideal"), ("best", "within_best"))
-               if all(key in m for *_, m in got)}
+               for name, key in (("models'", "within"), ("ideal", "within_ideal"), ("best", "within_best"))}
     return lines + ["", f"per contact over touch 3 and {more} more: {_within(m['rate'] for *_, m in got)} within "
                     f"{lo:g}..{hi:g}; of the {len(per_touch)} touches and senses, {np.mean(per_touch == 0):.2f} had no "
                     f"contact called unknown, the most {per_touch.max():.2f}",
